@@ -1,0 +1,58 @@
+"""The ``cellbridge`` command.
+
+Each layer contributes subcommands through :data:`SUBCOMMANDS`, a list of
+``(name, module, help)``: the module exposes ``add_arguments(parser)`` and
+``run(args) -> int``. A subcommand whose module cannot be imported (an optional
+extra such as plotting is not installed) still shows in ``--help`` and explains
+what is missing when run, instead of breaking the whole command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from cellbridge._version import __version__
+
+SUBCOMMANDS: list[tuple[str, str, str]] = [
+    ("decode", "cellbridge.protocol.cli", "decode serial-line bytes (COBS frames) into readable frames"),
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cellbridge",
+        description=(
+            "Software for a large-area soft robot skin built on the cell-bridge system: "
+            "wire protocol, tactile physics, bridge emulator and host daemon."
+        ),
+        epilog="Run 'cellbridge COMMAND --help' for the options of one command.",
+    )
+    parser.add_argument("--version", action="version", version=f"cellbridge {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module_name, help_text in SUBCOMMANDS:
+        sp = sub.add_parser(name, help=help_text, description=help_text)
+        sp.set_defaults(_module=module_name)
+        try:
+            importlib.import_module(module_name).add_arguments(sp)
+        except ImportError as exc:  # an optional extra is missing
+            sp.set_defaults(_import_error=exc)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    if getattr(args, "_import_error", None) is not None:
+        print(f"cellbridge {args.command}: {args._import_error}", file=sys.stderr)
+        return 1
+    return int(importlib.import_module(args._module).run(args) or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""daemon layer of cellbridge (see DESIGN.md); filled in by later work."""

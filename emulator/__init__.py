@@ -1,0 +1,1 @@
+"""emulator layer of cellbridge (see DESIGN.md); filled in by later work."""

@@ -1,1 +1,51 @@
-"""Wire protocol of the cell-bridge network: sans-I/O (no sockets, no asyncio, no clocks)."""
+"""Wire protocol of the cell-bridge network, sans-I/O.
+
+Nothing here touches sockets, serial ports, asyncio or clocks: callers feed bytes
+(and, for reassembly, the current time) and get frames back, so the same code runs
+in bridge emulators, in virtual-time simulations and in the host daemon.
+``docs/protocol.md`` is the specification.
+"""
+
+from cellbridge.protocol.crc import CRC_CHECK, crc16
+from cellbridge.protocol.dedupe import DuplicateFilter
+from cellbridge.protocol.errors import ProtocolError
+from cellbridge.protocol.fragment import Reassembler, fragment
+from cellbridge.protocol.frame import (
+    ADDR_BROADCAST,
+    ADDR_HOST,
+    MAX_DATAGRAM,
+    MAX_FRAME,
+    VERSION,
+    Flags,
+    Fragment,
+    Frame,
+    decode,
+    encode,
+)
+from cellbridge.protocol.messages import (
+    Beacon,
+    BridgeStatus,
+    Bundle,
+    Command,
+    CommandReply,
+    Data,
+    FrameType,
+    Hello,
+    LinkAck,
+    Message,
+    Mode,
+    Neighbour,
+    Op,
+    Sample,
+    SampleFlags,
+    Status,
+)
+from cellbridge.protocol.stream import StreamDecoder, encode_stream
+
+__all__ = [
+    "ADDR_BROADCAST", "ADDR_HOST", "MAX_DATAGRAM", "MAX_FRAME", "VERSION", "CRC_CHECK",
+    "Beacon", "BridgeStatus", "Bundle", "Command", "CommandReply", "Data", "DuplicateFilter",
+    "Flags", "Fragment", "Frame", "FrameType", "Hello", "LinkAck", "Message", "Mode",
+    "Neighbour", "Op", "ProtocolError", "Reassembler", "Sample", "SampleFlags", "Status",
+    "StreamDecoder", "crc16", "decode", "encode", "encode_stream", "fragment",
+]

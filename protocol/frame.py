@@ -1,0 +1,161 @@
+"""The frame: one format on the cell and on the serial line.
+
+Layout (big-endian; docs/protocol.md is the normative text)::
+
+    0  version   u8    = 1
+    1  flags     u8    bits 0-3 optional, bits 4-7 must-understand
+    2  type      u8    FrameType
+    3  src       u16   link source (bridge id that transmitted this hop)
+    5  dst       u16   link destination (0x0000 host/sink, 0xFFFF broadcast)
+    7  origin    u16   bridge that created the datagram
+    9  seq       u16   per-origin sequence number, one per frame sent
+    11 hops      u8    hops travelled so far
+    12 cost      u16   accumulated path cost, tenths of an expected transmission
+    [14 tag u16, offset u16, total u16]   only when flags has FRAGMENT
+    .. payload   msgpack (or a slice of one when fragmented)
+    -2 crc       u16   CRC-16/CCITT-FALSE over everything before it
+
+A frame is at most :data:`MAX_FRAME` bytes so that a cell transmission stays short
+(255 bytes = 2 ms at 1 Mbit/s) and a receiver's buffers are fixed; larger
+datagrams are fragmented (:mod:`cellbridge.protocol.fragment`).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from enum import IntFlag
+
+from cellbridge.protocol.crc import crc16
+from cellbridge.protocol.errors import ProtocolError
+from cellbridge.protocol.messages import (
+    MESSAGE_CLASSES,
+    U16,
+    FrameType,
+    Message,
+    pack_payload,
+    unpack_payload,
+)
+
+VERSION = 1
+MAX_FRAME = 255  #: whole frame, header to CRC, before COBS
+MAX_DATAGRAM = 4096  #: largest payload a fragmented datagram may reassemble to
+ADDR_HOST = 0x0000  #: the host (sink) behind every gateway
+ADDR_BROADCAST = 0xFFFF
+
+_HEADER = struct.Struct(">BBBHHHHBH")
+_FRAG = struct.Struct(">HHH")
+_CRC = struct.Struct(">H")
+HEADER_LEN = _HEADER.size  # 14
+FRAG_LEN = _FRAG.size  # 6
+CRC_LEN = _CRC.size  # 2
+MIN_FRAME = HEADER_LEN + CRC_LEN
+
+
+class Flags(IntFlag):
+    """Header flags. Bits 0-3 may be ignored by a receiver that does not know them;
+    bits 4-7 are must-understand: a receiver that does not know one set drops the frame."""
+
+    ACK_REQUEST = 0x01  #: the sender wants a LINK_ACK for this hop
+    FRAGMENT = 0x10  #: fragment fields follow the header; the payload is a slice
+
+
+OPTIONAL_MASK = 0x0F
+MUST_UNDERSTAND_MASK = 0xF0
+KNOWN_MUST_UNDERSTAND = int(Flags.FRAGMENT)
+
+
+@dataclass(frozen=True, slots=True)
+class Fragment:
+    """The payload of a fragment frame: a slice of the msgpack bytes of one datagram."""
+
+    frame_type: FrameType  #: type of the whole datagram
+    tag: int  #: datagram tag, unique per origin among datagrams in flight (u16)
+    offset: int  #: byte offset of ``data`` in the datagram
+    total: int  #: length of the whole datagram's payload
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One frame: link header fields plus a typed payload (or a :class:`Fragment`)."""
+
+    src: int
+    dst: int
+    origin: int
+    seq: int
+    payload: Message | Fragment
+    hops: int = 0
+    cost: int = 0
+    flags: int = 0  #: optional flags (FRAGMENT is implied by the payload, never set here)
+
+    @property
+    def type(self) -> FrameType:
+        return self.payload.frame_type
+
+
+def _check_u(value: int, limit: int, name: str) -> None:
+    if type(value) is not int or not 0 <= value <= limit:
+        raise ProtocolError("field", f"{name} must be an integer in 0..{limit}, got {value!r}")
+
+
+def encode(frame: Frame) -> bytes:
+    """Frame to wire bytes (no COBS). Raises :class:`ProtocolError` for a frame that
+    cannot be sent: a field out of range or a payload too large for one frame."""
+    for name, limit in (("src", U16), ("dst", U16), ("origin", U16), ("seq", U16), ("hops", 0xFF),
+                        ("cost", U16)):
+        _check_u(getattr(frame, name), limit, name)
+    _check_u(frame.flags, OPTIONAL_MASK, "flags (optional bits only)")
+    p = frame.payload
+    if isinstance(p, Fragment):
+        _check_u(p.tag, U16, "tag")
+        if not (0 <= p.offset and p.offset + len(p.data) <= p.total <= MAX_DATAGRAM and p.data):
+            raise ProtocolError("fragment", "fragment must be a non-empty slice within total <= MAX_DATAGRAM")
+        head = _HEADER.pack(VERSION, frame.flags | Flags.FRAGMENT, p.frame_type, frame.src, frame.dst,
+                            frame.origin, frame.seq, frame.hops, frame.cost)
+        body = head + _FRAG.pack(p.tag, p.offset, p.total) + p.data
+    else:
+        if type(p) not in MESSAGE_CLASSES.values():
+            raise ProtocolError("payload", f"not a message: {type(p).__name__}")
+        head = _HEADER.pack(VERSION, frame.flags, p.frame_type, frame.src, frame.dst, frame.origin,
+                            frame.seq, frame.hops, frame.cost)
+        body = head + pack_payload(p)
+    if len(body) + CRC_LEN > MAX_FRAME:
+        raise ProtocolError("too_large", f"frame of {len(body) + CRC_LEN} bytes exceeds {MAX_FRAME}; fragment it")
+    return body + _CRC.pack(crc16(body))
+
+
+def decode(data: bytes | bytearray | memoryview) -> Frame:
+    """Wire bytes (no COBS) to a validated :class:`Frame`.
+
+    Raises only :class:`ProtocolError`; its ``cause`` names what was wrong
+    (``short``, ``too_large``, ``crc``, ``version``, ``must_understand``, ``type``,
+    ``fragment``, ``payload``, ``nested_bundle``).
+    """
+    n = len(data)
+    if n < MIN_FRAME:
+        raise ProtocolError("short", f"{n} bytes, a frame has at least {MIN_FRAME}")
+    if n > MAX_FRAME:
+        raise ProtocolError("too_large", f"{n} bytes, a frame has at most {MAX_FRAME}")
+    data = bytes(data)
+    if crc16(data[:-CRC_LEN]) != _CRC.unpack_from(data, n - CRC_LEN)[0]:
+        raise ProtocolError("crc", "CRC mismatch")
+    ver, flags, ftype, src, dst, origin, seq, hops, cost = _HEADER.unpack_from(data)
+    if ver != VERSION:
+        raise ProtocolError("version", f"version {ver} not supported (this is {VERSION})")
+    if flags & MUST_UNDERSTAND_MASK & ~KNOWN_MUST_UNDERSTAND:
+        raise ProtocolError("must_understand", f"unknown must-understand flags 0x{flags:02x}")
+    if ftype not in MESSAGE_CLASSES:
+        raise ProtocolError("type", f"unknown frame type {ftype}")
+    payload: Message | Fragment
+    if flags & Flags.FRAGMENT:
+        if n < MIN_FRAME + FRAG_LEN + 1:
+            raise ProtocolError("fragment", "fragment frame too short")
+        tag, offset, total = _FRAG.unpack_from(data, HEADER_LEN)
+        chunk = data[HEADER_LEN + FRAG_LEN:-CRC_LEN]
+        if offset + len(chunk) > total or total > MAX_DATAGRAM:
+            raise ProtocolError("fragment", f"slice {offset}+{len(chunk)} outside datagram of {total} bytes")
+        payload = Fragment(FrameType(ftype), tag, offset, total, chunk)
+    else:
+        payload = unpack_payload(ftype, data[HEADER_LEN:-CRC_LEN])
+    return Frame(src, dst, origin, seq, payload, hops, cost, flags & OPTIONAL_MASK)

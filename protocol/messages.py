@@ -1,0 +1,347 @@
+"""Typed payloads of every frame type and their msgpack schema.
+
+Payloads travel as msgpack *arrays* (positional fields), not maps: field names
+would cost more bytes than the values on a 1 Mbit/s cell. Every ``from_wire``
+checks shape, types and ranges, so a frame that passes :func:`decode` carries a
+payload the rest of the system can trust without re-checking.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
+
+import msgpack
+
+from cellbridge.protocol.errors import ProtocolError
+
+if TYPE_CHECKING:
+    from cellbridge.protocol.frame import Frame
+
+U8, U16, U32, U64 = 0xFF, 0xFFFF, 0xFFFF_FFFF, 0xFFFF_FFFF_FFFF_FFFF
+MAX_FW_VERSION_LEN = 32
+MAX_NEIGHBOURS = 32
+
+
+class FrameType(IntEnum):
+    """Frame type codes (header byte 2). Unknown codes are rejected: a type is must-understand."""
+
+    DATA = 1
+    BEACON = 2
+    HELLO = 3
+    STATUS = 4
+    CMD = 5
+    CMD_REPLY = 6
+    LINK_ACK = 7
+    BUNDLE = 8
+
+
+class Mode(IntEnum):
+    """How a bridge measured C1 and C2."""
+
+    COUNTER = 0  #: RC self-oscillation edges counted over a gate
+    ADC = 1  #: sum of ``oversampling`` 8-bit charge-time conversions
+
+
+class SampleFlags(IntEnum):
+    OVERFLOW_C1 = 0x01  #: the 16-bit counter of C1 wrapped during the gate
+    OVERFLOW_C2 = 0x02
+
+
+class Op(IntEnum):
+    """Downlink command operations."""
+
+    SET_RATE = 1  #: value: sampling rate in Hz
+    SET_MODE = 2  #: value: a :class:`Mode`
+    SET_GATE = 3  #: value: counter gate length in clock cycles
+    SET_OVERSAMPLING = 4  #: value: ADC conversions per reported sample
+    PING = 5  #: value: ignored; the reply carries the bridge's cycle counter
+    RESET = 6  #: value: ignored
+
+
+class Status(IntEnum):
+    """Result of a command, in :class:`CommandReply`."""
+
+    OK = 0
+    BAD_VALUE = 1
+    UNSUPPORTED = 2
+
+
+def _bad(kind: str, detail: str) -> ProtocolError:
+    return ProtocolError("payload", f"{kind}: {detail}")
+
+
+def _uint(value: Any, limit: int, kind: str, name: str) -> int:
+    if type(value) is not int or not 0 <= value <= limit:
+        raise _bad(kind, f"{name} must be an integer in 0..{limit}, got {value!r}")
+    return value
+
+
+def _array(value: Any, length: int, kind: str) -> list[Any]:
+    if type(value) is not list or len(value) != length:
+        raise _bad(kind, f"expected an array of {length} fields")
+    return value
+
+
+class Sample(NamedTuple):
+    """One measurement of one element: both capacitances from one sampling slot."""
+
+    element: int  #: element index on the reporting bridge (u16)
+    cycle: int  #: bridge cycle counter at the start of the C1 gate (u64)
+    c1: int  #: counter value (u16) or sum of ADC codes (u32) for C1
+    c2: int  #: the same for C2
+    flags: int = 0  #: :class:`SampleFlags` bits (u8)
+
+
+@dataclass(frozen=True, slots=True)
+class Data:
+    """A batch of samples from one origin (several per frame to amortise the header)."""
+
+    frame_type: ClassVar[FrameType] = FrameType.DATA
+    mode: Mode
+    samples: tuple[Sample, ...]
+    oversampling: int = 1  #: ADC conversions summed into c1/c2 (1 in counter mode)
+
+    def to_wire(self) -> list[Any]:
+        return [int(self.mode), self.oversampling, [list(s) for s in self.samples]]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> Data:
+        mode, over, raw = _array(obj, 3, "DATA")
+        if mode not in (0, 1) or type(mode) is not int:
+            raise _bad("DATA", f"unknown mode {mode!r}")
+        _uint(over, U16, "DATA", "oversampling")
+        if over == 0:
+            raise _bad("DATA", "oversampling must be at least 1")
+        if type(raw) is not list:
+            raise _bad("DATA", "samples must be an array")
+        samples = []
+        for s in raw:
+            if type(s) is not list or len(s) != 5:
+                raise _bad("DATA", "a sample is [element, cycle, c1, c2, flags]")
+            e, cyc, c1, c2, fl = s
+            if not (
+                type(e) is int and 0 <= e <= U16
+                and type(cyc) is int and 0 <= cyc <= U64
+                and type(c1) is int and 0 <= c1 <= U32
+                and type(c2) is int and 0 <= c2 <= U32
+                and type(fl) is int and 0 <= fl <= U8
+            ):
+                raise _bad("DATA", f"sample field out of range: {s!r}")
+            samples.append(Sample(e, cyc, c1, c2, fl))
+        return cls(Mode(mode), tuple(samples), over)
+
+
+@dataclass(frozen=True, slots=True)
+class Beacon:
+    """Collection-routing advertisement: "my parent is X, my path cost to the sink is Y"."""
+
+    frame_type: ClassVar[FrameType] = FrameType.BEACON
+    parent: int  #: the sender's parent bridge id (0 = the sender is a gateway)
+    path_etx: int  #: path cost to the sink in tenths of an expected transmission (u16)
+    hops: int  #: hops to the sink (u8)
+
+    def to_wire(self) -> list[Any]:
+        return [self.parent, self.path_etx, self.hops]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> Beacon:
+        p, etx, hops = _array(obj, 3, "BEACON")
+        return cls(_uint(p, U16, "BEACON", "parent"), _uint(etx, U16, "BEACON", "path_etx"),
+                   _uint(hops, U8, "BEACON", "hops"))
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """A bridge announcing itself after reset and on request."""
+
+    frame_type: ClassVar[FrameType] = FrameType.HELLO
+    bridge: int  #: bridge id (u16)
+    firmware: str  #: firmware version, at most 32 UTF-8 bytes
+    x: float  #: element centre, metres, in the skin's frame
+    y: float
+    side: float  #: element side length, metres
+    clock_hz: int  #: nominal clock frequency (u32)
+    capabilities: int = 0  #: bit mask (u32); bit 0: ADC mode, bit 1: counter mode
+
+    def to_wire(self) -> list[Any]:
+        return [self.bridge, self.firmware, [float(self.x), float(self.y), float(self.side)],
+                self.clock_hz, self.capabilities]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> Hello:
+        b, fw, geo, clk, caps = _array(obj, 5, "HELLO")
+        if type(fw) is not str or len(fw.encode()) > MAX_FW_VERSION_LEN:
+            raise _bad("HELLO", f"firmware must be a string of at most {MAX_FW_VERSION_LEN} bytes")
+        geo = _array(geo, 3, "HELLO")
+        if not all(type(g) is float and math.isfinite(g) for g in geo) or geo[2] <= 0.0:
+            raise _bad("HELLO", "geometry must be [x, y, side] finite floats with side > 0")
+        return cls(_uint(b, U16, "HELLO", "bridge"), fw, geo[0], geo[1], geo[2],
+                   _uint(clk, U32, "HELLO", "clock_hz"), _uint(caps, U32, "HELLO", "capabilities"))
+
+
+@dataclass(frozen=True, slots=True)
+class Neighbour:
+    bridge: int  #: neighbour id (u16)
+    link_etx: int  #: link cost in tenths of an expected transmission (u16)
+
+
+@dataclass(frozen=True, slots=True)
+class BridgeStatus:
+    """A bridge's routing state and health counters, sent periodically to the host."""
+
+    frame_type: ClassVar[FrameType] = FrameType.STATUS
+    parent: int
+    path_etx: int
+    neighbours: tuple[Neighbour, ...]
+    queue_drops: int  #: frames dropped because a queue was full (u32)
+    retries: int  #: link retransmissions (u32)
+    resets: int  #: resets since power-on (u32)
+    uptime_cycles: int  #: cycles since the last reset (u64)
+
+    def to_wire(self) -> list[Any]:
+        return [self.parent, self.path_etx, [[n.bridge, n.link_etx] for n in self.neighbours],
+                self.queue_drops, self.retries, self.resets, self.uptime_cycles]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> BridgeStatus:
+        p, etx, nb, qd, rt, rs, up = _array(obj, 7, "STATUS")
+        if type(nb) is not list or len(nb) > MAX_NEIGHBOURS:
+            raise _bad("STATUS", f"neighbours must be an array of at most {MAX_NEIGHBOURS}")
+        neighbours = tuple(
+            Neighbour(_uint(n[0], U16, "STATUS", "neighbour"), _uint(n[1], U16, "STATUS", "link_etx"))
+            for n in (_array(n, 2, "STATUS") for n in nb)
+        )
+        return cls(_uint(p, U16, "STATUS", "parent"), _uint(etx, U16, "STATUS", "path_etx"), neighbours,
+                   _uint(qd, U32, "STATUS", "queue_drops"), _uint(rt, U32, "STATUS", "retries"),
+                   _uint(rs, U32, "STATUS", "resets"), _uint(up, U64, "STATUS", "uptime_cycles"))
+
+
+def _optional_value(value: Any, kind: str) -> int | None:
+    if value is None:
+        return None
+    return _uint(value, U64, kind, "value")
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """A downlink command from the host to one bridge (or all, with the broadcast address)."""
+
+    frame_type: ClassVar[FrameType] = FrameType.CMD
+    token: int  #: chosen by the host, echoed in the reply (u16)
+    op: Op
+    value: int | None = None
+
+    def to_wire(self) -> list[Any]:
+        return [self.token, int(self.op), self.value]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> Command:
+        tok, op, val = _array(obj, 3, "CMD")
+        if type(op) is not int or op not in Op._value2member_map_:
+            raise _bad("CMD", f"unknown op {op!r}")
+        return cls(_uint(tok, U16, "CMD", "token"), Op(op), _optional_value(val, "CMD"))
+
+
+@dataclass(frozen=True, slots=True)
+class CommandReply:
+    """A bridge's answer to a :class:`Command`."""
+
+    frame_type: ClassVar[FrameType] = FrameType.CMD_REPLY
+    token: int
+    op: Op
+    status: Status
+    value: int | None = None
+
+    def to_wire(self) -> list[Any]:
+        return [self.token, int(self.op), int(self.status), self.value]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> CommandReply:
+        tok, op, st, val = _array(obj, 4, "CMD_REPLY")
+        if type(op) is not int or op not in Op._value2member_map_:
+            raise _bad("CMD_REPLY", f"unknown op {op!r}")
+        if type(st) is not int or st not in Status._value2member_map_:
+            raise _bad("CMD_REPLY", f"unknown status {st!r}")
+        return cls(_uint(tok, U16, "CMD_REPLY", "token"), Op(op), Status(st), _optional_value(val, "CMD_REPLY"))
+
+
+@dataclass(frozen=True, slots=True)
+class LinkAck:
+    """Per-hop acknowledgement of the link transmission (origin, seq) from the acked frame."""
+
+    frame_type: ClassVar[FrameType] = FrameType.LINK_ACK
+    origin: int
+    seq: int
+
+    def to_wire(self) -> list[Any]:
+        return [self.origin, self.seq]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> LinkAck:
+        o, s = _array(obj, 2, "LINK_ACK")
+        return cls(_uint(o, U16, "LINK_ACK", "origin"), _uint(s, U16, "LINK_ACK", "seq"))
+
+
+@dataclass(frozen=True, slots=True)
+class Bundle:
+    """Several frames for the same next hop in one link transmission (forwarder aggregation).
+
+    Inner frames are complete frames (own header and CRC); a bundle never holds a bundle.
+    """
+
+    frame_type: ClassVar[FrameType] = FrameType.BUNDLE
+    frames: tuple[Frame, ...]
+
+    def to_wire(self) -> list[Any]:
+        from cellbridge.protocol.frame import encode
+
+        for f in self.frames:
+            if f.type is FrameType.BUNDLE:
+                raise ProtocolError("nested_bundle", "a bundle cannot contain a bundle")
+        return [encode(f) for f in self.frames]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> Bundle:
+        from cellbridge.protocol.frame import decode
+
+        if type(obj) is not list or not obj:
+            raise _bad("BUNDLE", "expected a non-empty array of frames")
+        frames = []
+        for raw in obj:
+            if type(raw) is not bytes:
+                raise _bad("BUNDLE", "each bundled frame is a bin")
+            f = decode(raw)
+            if f.type is FrameType.BUNDLE:
+                raise ProtocolError("nested_bundle", "a bundle cannot contain a bundle")
+            frames.append(f)
+        return cls(tuple(frames))
+
+
+Message = Data | Beacon | Hello | BridgeStatus | Command | CommandReply | LinkAck | Bundle
+
+MESSAGE_CLASSES: dict[int, type[Any]] = {
+    cls.frame_type: cls
+    for cls in (Data, Beacon, Hello, BridgeStatus, Command, CommandReply, LinkAck, Bundle)
+}
+
+
+def pack_payload(message: Message) -> bytes:
+    """msgpack bytes of a message's wire form."""
+    return msgpack.packb(message.to_wire(), use_bin_type=True)
+
+
+def unpack_payload(frame_type: int, data: bytes) -> Message:
+    """Parse and validate a payload; any malformation becomes :class:`ProtocolError`."""
+    try:
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several unrelated types on bad input
+        raise ProtocolError("payload", f"not valid msgpack ({type(exc).__name__})") from None
+    try:
+        return MESSAGE_CLASSES[frame_type].from_wire(obj)
+    except ProtocolError:
+        raise
+    except (ValueError, TypeError, IndexError) as exc:  # e.g. unpacking a short array
+        raise ProtocolError("payload", f"{FrameType(frame_type).name}: {exc}") from None

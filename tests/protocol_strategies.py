@@ -1,0 +1,54 @@
+"""Hypothesis strategies for every protocol message and frame (shared by the protocol tests)."""
+
+from __future__ import annotations
+
+from hypothesis import strategies as st
+
+from cellbridge.protocol import (
+    Beacon,
+    BridgeStatus,
+    Bundle,
+    Command,
+    CommandReply,
+    Data,
+    Frame,
+    FrameType,
+    Hello,
+    LinkAck,
+    Mode,
+    Neighbour,
+    Op,
+    Sample,
+    Status,
+)
+
+u8 = st.integers(0, 0xFF)
+u16 = st.integers(0, 0xFFFF)
+u32 = st.integers(0, 0xFFFF_FFFF)
+u64 = st.integers(0, 0xFFFF_FFFF_FFFF_FFFF)
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+samples = st.builds(Sample, u16, u64, u32, u32, u8)
+data = st.builds(Data, st.sampled_from(Mode), st.lists(samples, max_size=8).map(tuple), st.integers(1, 0xFFFF))
+beacon = st.builds(Beacon, u16, u16, u8)
+hello = st.builds(Hello, u16, st.text(max_size=8), finite, finite,
+                  st.floats(min_value=1e-3, max_value=1.0), u32, u32)
+status = st.builds(BridgeStatus, u16, u16, st.lists(st.builds(Neighbour, u16, u16), max_size=6).map(tuple),
+                   u32, u32, u32, u64)
+value = st.none() | u64
+command = st.builds(Command, u16, st.sampled_from(Op), value)
+reply = st.builds(CommandReply, u16, st.sampled_from(Op), st.sampled_from(Status), value)
+link_ack = st.builds(LinkAck, u16, u16)
+simple_messages = data | beacon | hello | status | command | reply | link_ack
+
+header = dict(src=u16, dst=u16, origin=u16, seq=u16, hops=u8, cost=u16, flags=st.integers(0, 0x0F))
+simple_frames = st.builds(Frame, payload=simple_messages, **header)
+bundle = st.builds(Bundle, st.lists(simple_frames.filter(lambda f: f.type.name != "HELLO"),
+                                    min_size=1, max_size=3).map(tuple))
+frames = simple_frames | st.builds(Frame, payload=bundle, **header)
+
+#: one payload strategy per frame type, so a test can prove it covers them all
+messages_by_type = {
+    FrameType.DATA: data, FrameType.BEACON: beacon, FrameType.HELLO: hello, FrameType.STATUS: status,
+    FrameType.CMD: command, FrameType.CMD_REPLY: reply, FrameType.LINK_ACK: link_ack, FrameType.BUNDLE: bundle,
+}

@@ -1,0 +1,173 @@
+"""Frame codec: round trips for every type, and every way a frame can be wrong."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from protocol_strategies import header, messages_by_type
+
+from cellbridge.protocol import (
+    CRC_CHECK,
+    MAX_FRAME,
+    Beacon,
+    Bundle,
+    Data,
+    Frame,
+    FrameType,
+    Mode,
+    ProtocolError,
+    Sample,
+    crc16,
+    decode,
+    encode,
+)
+from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
+
+
+def _reseal(body: bytes) -> bytes:
+    """Body with a correct CRC, so a test reaches the checks behind the CRC."""
+    return body + struct.pack(">H", crc16(body))
+
+
+def test_crc_parameters() -> None:
+    assert crc16(b"123456789") == CRC_CHECK == 0x29B1
+    # Independent bitwise CRC-16/CCITT-FALSE.
+    def ref(data: bytes) -> int:
+        crc = 0xFFFF
+        for byte in data:
+            crc ^= byte << 8
+            for _ in range(8):
+                crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else crc << 1
+                crc &= 0xFFFF
+        return crc
+    for data in (b"", b"\x00", b"cellbridge", bytes(range(256))):
+        assert crc16(data) == ref(data)
+
+
+def test_every_frame_type_has_a_strategy() -> None:
+    assert set(messages_by_type) == set(FrameType)
+
+
+@pytest.mark.parametrize("ftype", list(FrameType), ids=lambda t: t.name)
+@settings(max_examples=60, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_round_trip_every_type(ftype: FrameType, data: st.DataObject) -> None:
+    frame = data.draw(st.builds(Frame, payload=messages_by_type[ftype], **header))
+    assert frame.type is ftype
+    try:
+        wire = encode(frame)
+    except ProtocolError as exc:
+        assert exc.cause == "too_large"  # the only reason a well-formed frame cannot be sent
+        assert len(frame_bytes_estimate(frame)) > MAX_FRAME
+        return
+    assert len(wire) <= MAX_FRAME
+    assert decode(wire) == frame
+    assert encode(decode(wire)) == wire
+
+
+def frame_bytes_estimate(frame: Frame) -> bytes:
+    from cellbridge.protocol.messages import pack_payload
+    return b"h" * (HEADER_LEN + CRC_LEN) + pack_payload(frame.payload)
+
+
+SAMPLE = Frame(7, 0, 7, 42, Data(Mode.COUNTER, (Sample(0, 123456, 19600, 15800, 0),)), hops=2, cost=25)
+
+
+@given(st.integers(0, len(encode(SAMPLE)) - 1), st.integers(1, 255))
+def test_any_byte_error_is_detected(pos: int, xor: int) -> None:
+    wire = bytearray(encode(SAMPLE))
+    wire[pos] ^= xor
+    with pytest.raises(ProtocolError) as err:
+        decode(bytes(wire))
+    assert err.value.cause == "crc"
+
+
+@pytest.mark.parametrize(
+    "offset,value,cause",
+    [(0, 2, "version"), (1, 0x20, "must_understand"), (1, 0x80, "must_understand"), (2, 0, "type"),
+     (2, 99, "type")],
+)
+def test_header_policy(offset: int, value: int, cause: str) -> None:
+    body = bytearray(encode(SAMPLE)[:-CRC_LEN])
+    body[offset] = value
+    with pytest.raises(ProtocolError) as err:
+        decode(_reseal(bytes(body)))
+    assert err.value.cause == cause
+
+
+def test_unknown_optional_flags_are_kept() -> None:
+    body = bytearray(encode(SAMPLE)[:-CRC_LEN])
+    body[1] = 0x0E  # optional bits the receiver does not know
+    frame = decode(_reseal(bytes(body)))
+    assert frame.flags == 0x0E and frame.payload == SAMPLE.payload
+    assert encode(frame) == _reseal(bytes(body))  # a forwarder passes them on unchanged
+
+
+@pytest.mark.parametrize("data,cause", [(b"", "short"), (b"\x01" * 15, "short"), (b"\x01" * 256, "too_large")])
+def test_size_limits(data: bytes, cause: str) -> None:
+    with pytest.raises(ProtocolError) as err:
+        decode(data)
+    assert err.value.cause == cause
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        b"\xc1",  # never-used msgpack byte
+        b"\x93\x00\x01",  # truncated array
+        b"\x93\x05\x01\x90",  # unknown mode
+        b"\x93\x00\x00\x90",  # oversampling 0
+        b"\x93\x00\x01\x91\x94\x00\x00\x00\x00",  # sample with 4 fields
+        b"\x93\x00\x01\x91\x95\xff\x00\x00\x00\x00",  # negative element
+        b"\x93\x00\x01\x91\x95\xc3\x00\x00\x00\x00",  # bool element
+        b"\x92\x00\x01",  # wrong arity
+        b"\xd4\x01\x00",  # ext type
+        b"\x93\x00\x01\x90\x00",  # trailing data
+    ],
+)
+def test_bad_payloads(payload: bytes) -> None:
+    head = encode(SAMPLE)[:HEADER_LEN]
+    with pytest.raises(ProtocolError) as err:
+        decode(_reseal(head + payload))
+    assert err.value.cause == "payload"
+
+
+def test_bundle_cannot_nest() -> None:
+    inner = Frame(3, 1, 3, 1, Beacon(1, 10, 1))
+    outer = Frame(1, 0, 1, 2, Bundle((inner,)))
+    assert decode(encode(outer)).payload.frames == (inner,)
+    with pytest.raises(ProtocolError) as err:
+        encode(Frame(1, 0, 1, 3, Bundle((outer,))))
+    assert err.value.cause == "nested_bundle"
+    # Forged on the wire: a bundle whose inner frame is a bundle.
+    import msgpack
+    head = encode(outer)[:HEADER_LEN]
+    with pytest.raises(ProtocolError) as err:
+        decode(_reseal(head + msgpack.packb([encode(outer)])))
+    assert err.value.cause == "nested_bundle"
+
+
+@pytest.mark.parametrize("field,value", [("src", -1), ("seq", 0x10000), ("hops", 256), ("flags", 0x10),
+                                         ("cost", 1.5)])
+def test_encode_rejects_out_of_range_fields(field: str, value) -> None:
+    kwargs = dict(src=1, dst=0, origin=1, seq=1, payload=Beacon(0, 0, 0))
+    kwargs[field] = value
+    with pytest.raises(ProtocolError):
+        encode(Frame(**kwargs))
+
+
+def test_encode_refuses_oversized_frames() -> None:
+    big = Frame(1, 0, 1, 1, Data(Mode.COUNTER, tuple(Sample(0, 2**40, 1, 1, 0) for _ in range(30))))
+    with pytest.raises(ProtocolError) as err:
+        encode(big)
+    assert err.value.cause == "too_large"
+
+
+@settings(max_examples=50, derandomize=True)
+@given(st.binary(min_size=0, max_size=300))
+def test_arbitrary_bytes_only_protocol_error(data: bytes) -> None:
+    with pytest.raises(ProtocolError):  # 300 random bytes are never a frame with a valid CRC here
+        decode(data)

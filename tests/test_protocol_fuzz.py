@@ -95,7 +95,7 @@ def test_fuzz_decoders_raise_only_protocol_error() -> None:
             decoded += 1
             reassembler.receive(frame, now=i * 1e-4)
         # The serial path: the same bytes, raw or COBS-framed, in two pieces.
-        serial = data if i % 2 else cobs.encode(data) + b"\x00"
+        serial = data if i % 2 else b"\x00" + cobs.encode(data) + b"\x00"
         for f in stream.feed(serial[: len(serial) // 3]) + stream.feed(serial[len(serial) // 3:]):
             reassembler.receive(f, now=i * 1e-4)
         assert stream.buffered <= stream.max_buffer

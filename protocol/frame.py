@@ -62,7 +62,8 @@ class Flags(IntFlag):
 
 OPTIONAL_MASK = 0x0F
 MUST_UNDERSTAND_MASK = 0xF0
-KNOWN_MUST_UNDERSTAND = int(Flags.FRAGMENT)
+_FRAGMENT = int(Flags.FRAGMENT)  # plain int: IntFlag arithmetic is slow on the decode path
+_UNKNOWN_MUST_UNDERSTAND = MUST_UNDERSTAND_MASK & ~_FRAGMENT
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,9 +77,14 @@ class Fragment:
     data: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Frame:
-    """One frame: link header fields plus a typed payload (or a :class:`Fragment`)."""
+    """One frame: link header fields plus a typed payload (or a :class:`Fragment`).
+
+    Not frozen, because a frozen dataclass costs twice as much to build and the
+    host decodes hundreds of thousands of frames a second; treat it as a value
+    all the same (forwarders build a new frame with the next hop's fields).
+    """
 
     src: int
     dst: int
@@ -111,7 +117,7 @@ def encode(frame: Frame) -> bytes:
         _check_u(p.tag, U16, "tag")
         if not (0 <= p.offset and p.offset + len(p.data) <= p.total <= MAX_DATAGRAM and p.data):
             raise ProtocolError("fragment", "fragment must be a non-empty slice within total <= MAX_DATAGRAM")
-        head = _HEADER.pack(VERSION, frame.flags | Flags.FRAGMENT, p.frame_type, frame.src, frame.dst,
+        head = _HEADER.pack(VERSION, frame.flags | _FRAGMENT, p.frame_type, frame.src, frame.dst,
                             frame.origin, frame.seq, frame.hops, frame.cost)
         body = head + _FRAG.pack(p.tag, p.offset, p.total) + p.data
     else:
@@ -137,18 +143,19 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
         raise ProtocolError("short", f"{n} bytes, a frame has at least {MIN_FRAME}")
     if n > MAX_FRAME:
         raise ProtocolError("too_large", f"{n} bytes, a frame has at most {MAX_FRAME}")
-    data = bytes(data)
-    if crc16(data[:-CRC_LEN]) != _CRC.unpack_from(data, n - CRC_LEN)[0]:
+    if type(data) is not bytes:
+        data = bytes(data)
+    if crc16(data[:-CRC_LEN]) != (data[-2] << 8 | data[-1]):
         raise ProtocolError("crc", "CRC mismatch")
     ver, flags, ftype, src, dst, origin, seq, hops, cost = _HEADER.unpack_from(data)
     if ver != VERSION:
         raise ProtocolError("version", f"version {ver} not supported (this is {VERSION})")
-    if flags & MUST_UNDERSTAND_MASK & ~KNOWN_MUST_UNDERSTAND:
+    if flags & _UNKNOWN_MUST_UNDERSTAND:
         raise ProtocolError("must_understand", f"unknown must-understand flags 0x{flags:02x}")
     if ftype not in MESSAGE_CLASSES:
         raise ProtocolError("type", f"unknown frame type {ftype}")
     payload: Message | Fragment
-    if flags & Flags.FRAGMENT:
+    if flags & _FRAGMENT:
         if n < MIN_FRAME + FRAG_LEN + 1:
             raise ProtocolError("fragment", "fragment frame too short")
         tag, offset, total = _FRAG.unpack_from(data, HEADER_LEN)

@@ -45,6 +45,9 @@ class Mode(IntEnum):
     ADC = 1  #: sum of ``oversampling`` 8-bit charge-time conversions
 
 
+_MODES = tuple(Mode)  # index -> member, cheaper than calling Mode(value)
+
+
 class SampleFlags(IntEnum):
     OVERFLOW_C1 = 0x01  #: the 16-bit counter of C1 wrapped during the gate
     OVERFLOW_C2 = 0x02
@@ -95,9 +98,13 @@ class Sample(NamedTuple):
     flags: int = 0  #: :class:`SampleFlags` bits (u8)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Data:
-    """A batch of samples from one origin (several per frame to amortise the header)."""
+    """A batch of samples from one origin (several per frame to amortise the header).
+
+    Not frozen, like :class:`~cellbridge.protocol.frame.Frame`: it is built once per
+    frame on the host's hot path.
+    """
 
     frame_type: ClassVar[FrameType] = FrameType.DATA
     mode: Mode
@@ -110,11 +117,10 @@ class Data:
     @classmethod
     def from_wire(cls, obj: Any) -> Data:
         mode, over, raw = _array(obj, 3, "DATA")
-        if mode not in (0, 1) or type(mode) is not int:
+        if type(mode) is not int or not 0 <= mode < len(_MODES):
             raise _bad("DATA", f"unknown mode {mode!r}")
-        _uint(over, U16, "DATA", "oversampling")
-        if over == 0:
-            raise _bad("DATA", "oversampling must be at least 1")
+        if type(over) is not int or not 1 <= over <= U16:
+            raise _bad("DATA", f"oversampling must be an integer in 1..{U16}, got {over!r}")
         if type(raw) is not list:
             raise _bad("DATA", "samples must be an array")
         samples = []
@@ -131,7 +137,7 @@ class Data:
             ):
                 raise _bad("DATA", f"sample field out of range: {s!r}")
             samples.append(Sample(e, cyc, c1, c2, fl))
-        return cls(Mode(mode), tuple(samples), over)
+        return cls(_MODES[mode], tuple(samples), over)
 
 
 @dataclass(frozen=True, slots=True)

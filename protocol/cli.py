@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict, is_dataclass
+from dataclasses import fields, is_dataclass
 from typing import Any
 
 from cellbridge.protocol.fragment import Reassembler
@@ -32,19 +32,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, Frame):
+        return frame_to_json(obj)
     if isinstance(obj, bytes):
         return obj.hex()
     if is_dataclass(obj):
-        return {k: _jsonable(v) for k, v in asdict(obj).items()}
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in fields(obj)}
     if isinstance(obj, (list, tuple)):
         return [_jsonable(v) for v in obj]
-    return obj
+    return int(obj) if isinstance(obj, int) else obj  # enum members as their numbers
 
 
 def frame_to_json(frame: Frame) -> dict[str, Any]:
-    """A frame as plain JSON-able data, with the frame type by name."""
-    d = {"type": frame.type.name}
-    d.update(_jsonable(frame))
+    """A frame as plain JSON-able data (bytes as hex), led by the frame type's name.
+
+    The form used by ``cellbridge decode`` and by the test vectors of docs/protocol.md.
+    """
+    d: dict[str, Any] = {"type": frame.type.name}
+    d.update({f.name: _jsonable(getattr(frame, f.name)) for f in fields(frame)})
     return d
 
 

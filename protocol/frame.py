@@ -101,7 +101,7 @@ class Frame:
 
 
 def _check_u(value: int, limit: int, name: str) -> None:
-    if type(value) is not int or not 0 <= value <= limit:
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= limit:
         raise ProtocolError("field", f"{name} must be an integer in 0..{limit}, got {value!r}")
 
 

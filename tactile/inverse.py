@@ -1,0 +1,370 @@
+"""Inverse of the element model: (ΔC1, ΔC2) → (force, area), with a validity flag.
+
+Why it works: a contact of area S at pressure σ = F/S changes the two capacitors by
+``S·g1(σ)`` and ``S·g2(σ)`` (:func:`cellbridge.tactile.element.sensitivity`), so the
+ratio ρ = ΔC1/ΔC2 = g1(σ)/g2(σ) depends on σ alone. Solve σ from ρ, then
+S = ΔC1/g1(σ) and F = σ·S.
+
+Why it needs a flag: ρ(σ) is not monotonic. From ρ(0) (≈1.88 with the default
+element) it rises to a peak ρ_pk (≈2.32 at σ ≈ 3.2 kPa) and then falls towards
+g1(∞)/g2(∞) (0.60). Each ratio in (ρ(0), ρ_pk) has two pressures: a low one on
+the rising branch and a high one on the falling branch. Nothing in the ratio tells
+them apart; what sometimes does is the element size: the low-pressure reading of the
+same (ΔC1, ΔC2) needs a larger area (g1 grows with σ), and when that area exceeds
+the element the low reading is impossible and the high one is the answer. So this
+module always solves the falling branch and declares the result valid only when
+
+* both ΔC are finite and at least ``k_sigma·noise`` (a real signal, not noise);
+* ρ lies inside the falling branch's range (otherwise no contact produces it);
+* no point of the ±``k_sigma·noise`` box around (ΔC1, ΔC2) can be the reading of a
+  rising-branch contact inside the element (so the answer is unique despite noise);
+* the branch is not flat: ``|d ln ρ / d ln σ| ≥ min_slope`` (near the peak and in
+  deep saturation the ratio stops carrying information);
+* noise of ``noise`` rms on each channel moves F and the diameter D by at most
+  ``max_error`` (relative, one sigma), from first-order error propagation;
+* the area fits the element (S ≤ side², within ``k_sigma`` of its own noise).
+
+Invalid entries get NaN force and area; a status bitmask says why (see :class:`Status`).
+Speed comes from a precomputed table per :class:`ElementParams` (ln σ against
+√(ln ρ_pk − ln ρ), smooth through the peak) and one vectorised Newton step in ln σ
+with the analytic slope; a reading whose step did not converge is flagged too.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _stretch
+
+__all__ = [
+    "DEFAULT_NOISE",
+    "Status",
+    "InverseResult",
+    "BranchInfo",
+    "branch_info",
+    "solve",
+    "inverse",
+    "ratio",
+    "ratio_slope",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Default rms noise of one ΔC measurement (F): about two counts of the oscillator
+#: counter at a 2 ms gate (1 pF ≈ 1 200 counts), i.e. what one gate delivers.
+DEFAULT_NOISE = 2e-15
+
+
+class Status(enum.IntFlag):
+    """Why an inverse entry is invalid (bits may combine). 0 means valid."""
+
+    OK = 0
+    NONFINITE = 1  #: a ΔC is NaN or infinite
+    BELOW_NOISE = 2  #: a ΔC is below k_sigma·noise (includes zero and negative)
+    NO_SOLUTION = 4  #: ratio above the peak, or at/below full saturation: no contact gives it
+    AMBIGUOUS = 8  #: a low-pressure contact inside the element gives the same reading
+    ILL_CONDITIONED = 16  #: ratio too flat in σ, noise gives more than max_error, or no convergence
+    AREA_EXCEEDS = 32  #: the area found is larger than the element
+
+
+class InverseResult(NamedTuple):
+    """Full answer of :func:`solve`; arrays of the broadcast input shape."""
+
+    force: FloatArray  #: N, NaN where invalid
+    area: FloatArray  #: m², NaN where invalid
+    valid: NDArray[np.bool_]
+    pressure: FloatArray  #: Pa on the falling branch, NaN where there is none
+    force_rms: FloatArray  #: N, one-sigma error from ``noise`` (first order)
+    diameter_rms: FloatArray  #: m, one-sigma error of D = 2√(S/π) from ``noise``
+    status: NDArray[np.uint8]  #: :class:`Status` bits
+
+
+class BranchInfo(NamedTuple):
+    """Landmarks of ρ(σ) for one element; used by the inverse and the plot."""
+
+    ratio_zero: float  #: ρ(σ → 0)
+    ratio_peak: float  #: maximum of ρ
+    sigma_peak: float  #: Pa where the maximum is
+    ratio_inf: float  #: ρ(σ → ∞)
+    sigma_unique: float  #: Pa on the falling branch where ρ = ρ(0): above it no ambiguity at all
+
+
+def _elasticity(lam: FloatArray, d: float, d0: float) -> FloatArray:
+    """d ln g / d ln σ for one layer, written in λ so it never cancels.
+
+    From g ∝ (1−λ)/(d0 + (d−d0)λ) and dσ/dλ of eq. 2:
+    ``e = λ(1+λ+λ²)·d / ((1+2λ³)(d0 + (d−d0)λ))`` — 1 at rest, → 0 in saturation.
+    """
+    lam2 = lam * lam
+    return lam * (1.0 + lam + lam2) * d / ((1.0 + 2.0 * lam2 * lam) * (d0 + (d - d0) * lam))
+
+
+def _layers(
+    sigma: FloatArray, p: ElementParams
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """g1, g2 (F/m²) and their elasticities e1, e2 at σ."""
+    lam1, om1 = _stretch(sigma / p.E1)
+    lam2, om2 = _stretch(sigma / p.E2)
+    s1 = p.d1 - p.d10
+    s2 = p.d2 - p.d20
+    g1 = p.eps1 * s1 * om1 / (p.d1 * (p.d10 + s1 * lam1))
+    g2 = p.eps2 * s2 * om2 / (p.d2 * (p.d20 + s2 * lam2))
+    return g1, g2, _elasticity(lam1, p.d1, p.d10), _elasticity(lam2, p.d2, p.d20)
+
+
+def ratio(sigma: ArrayLike, params: ElementParams | None = None) -> FloatArray:
+    """ρ(σ) = ΔC1/ΔC2 of a contact at pressure σ (Pa); the σ → 0 limit at σ = 0."""
+    p = DEFAULT_PARAMS if params is None else params
+    s = np.asarray(sigma, dtype=np.float64)
+    r0 = _ratio_zero(p)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g1, g2, _, _ = _layers(s, p)
+        return np.where(s > 0, g1 / g2, r0)
+
+
+def ratio_slope(sigma: ArrayLike, params: ElementParams | None = None) -> FloatArray:
+    """d ln ρ / d ln σ: how much the ratio says about σ (0 at the peak and at saturation)."""
+    p = DEFAULT_PARAMS if params is None else params
+    _, _, e1, e2 = _layers(np.asarray(sigma, dtype=np.float64), p)
+    return e1 - e2
+
+
+def _ratio_zero(p: ElementParams) -> float:
+    # Small σ: g_n ≈ ε_n (d_n − d_n0) σ / (E_n d_n²).
+    k1 = p.eps1 * (p.d1 - p.d10) / (p.E1 * p.d1**2)
+    k2 = p.eps2 * (p.d2 - p.d20) / (p.E2 * p.d2**2)
+    return k1 / k2
+
+
+class _Tables(NamedTuple):
+    info: BranchInfo
+    # Falling branch: q = √(ln ρ_pk − ln ρ) (increasing with σ) → ln σ. Near the peak
+    # ln ρ is quadratic in ln σ, so q is nearly linear there and interpolation in q
+    # stays accurate where interpolation in ρ would meet a square-root singularity.
+    hi_q: FloatArray
+    hi_lns: FloatArray
+    ln_r_pk: float
+    ln_r_end: float  # ln ρ at the table's high-σ end
+    # Rising branch: ρ (increasing) → ΔC1 of a whole-element contact at that ρ.
+    lo_r: FloatArray
+    lo_c1_full: FloatArray
+
+
+_TABLE_POINTS = 4096
+
+
+@functools.lru_cache(maxsize=32)
+def _tables(p: ElementParams) -> _Tables:
+    """Precompute both branches for one element (cached: ElementParams is hashable)."""
+    e_min = min(p.E1, p.E2)
+    # Locate the peak of ρ on a log grid, then refine with bisection on the slope.
+    s = np.geomspace(1e-6 * e_min, 1e8 * e_min, 20001)
+    slope = ratio_slope(s, p)
+    i = int(np.argmax(slope < 0))
+    if i == 0 or not slope[i] < 0:
+        raise ValueError(
+            "the ratio ΔC1/ΔC2 of these element parameters has no falling branch: "
+            "the soft layer must saturate before the hard one (E1 < E2 or similar)"
+        )
+    lo, hi = s[i - 1], s[i]
+    for _ in range(80):
+        mid = np.sqrt(lo * hi)
+        if ratio_slope(mid, p) > 0:
+            lo = mid
+        else:
+            hi = mid
+    sigma_pk = float(np.sqrt(lo * hi))
+    r_pk = float(ratio(sigma_pk, p))
+    r0 = _ratio_zero(p)
+    g1i, g2i = p.g1_max, p.g2_max
+    r_inf = g1i / g2i
+
+    # Falling branch from the peak to where the ratio carries ~nothing (|slope| ≤ 1e-4).
+    s_hi = np.geomspace(sigma_pk, 1e8 * e_min, 200001)
+    sl = ratio_slope(s_hi, p)
+    flat = np.nonzero(np.abs(sl) < 1e-4)[0]
+    flat = flat[flat > 10]
+    s_end = s_hi[flat[0]] if flat.size else s_hi[-1]
+    s_hi = np.geomspace(sigma_pk, s_end, _TABLE_POINTS)
+    r_hi = ratio(s_hi, p)
+    if not np.all(np.diff(r_hi) < 0):
+        raise ValueError("the falling branch of ΔC1/ΔC2 is not monotonic for these parameters")
+    ln_r_pk = float(np.log(r_pk))
+    hi_q = np.sqrt(np.maximum(ln_r_pk - np.log(r_hi), 0.0))
+    hi_q[0] = 0.0
+    hi_lns = np.log(s_hi)
+
+    # σ where the falling branch comes back down to ρ(0).
+    if r0 < r_pk and r0 > r_hi[-1]:
+        sigma_unique = float(np.exp(np.interp(np.sqrt(ln_r_pk - np.log(r0)), hi_q, hi_lns)))
+    else:
+        sigma_unique = float("nan")
+
+    # Rising branch: 0 … σ_pk, dense near both ends.
+    t = np.linspace(0.0, 1.0, _TABLE_POINTS)
+    s_lo = sigma_pk * (0.5 - 0.5 * np.cos(np.pi * t))
+    r_lo = ratio(s_lo, p)
+    r_lo = np.maximum.accumulate(r_lo)  # guard the last ulp near the peak
+    g1_lo, _, _, _ = _layers(s_lo, p)
+    info = BranchInfo(r0, r_pk, sigma_pk, r_inf, sigma_unique)
+    return _Tables(info, hi_q, hi_lns, ln_r_pk, float(np.log(r_hi[-1])), r_lo, p.area * g1_lo)
+
+
+def branch_info(params: ElementParams | None = None) -> BranchInfo:
+    """Peak, limits and the unconditional-uniqueness pressure of ρ(σ) for one element."""
+    return _tables(DEFAULT_PARAMS if params is None else params).info
+
+
+def _ambiguous(c1: FloatArray, c2: FloatArray, margin: float, tab: _Tables) -> NDArray[np.bool_]:
+    """True where a rising-branch contact inside the element may give the same reading.
+
+    The rising branch maps onto the lens ρ ∈ [ρ(0), ρ_pk], ΔC1 ≤ h(ρ) where
+    h(ρ) = A·g1(σ_low(ρ)) is the whole-element reading at that ratio (h grows with
+    ρ). A reading is ambiguous when its box ±``margin`` on each channel may touch
+    the lens. The test is conservative: the smallest ΔC1 of the box against h at the
+    largest ratio the box reaches (capped at the peak), so noise can never carry a
+    reading across the lens boundary unflagged.
+    """
+    r0 = tab.lo_r[0]
+    r_pk = tab.lo_r[-1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_max = (c1 + margin) / (c2 - margin)
+        r_min = (c1 - margin) / (c2 + margin)
+    # c2 ≤ margin only happens for readings already rejected as below the noise.
+    r_max = np.where(c2 > margin, r_max, np.inf)
+    h = np.interp(np.minimum(r_max, r_pk), tab.lo_r, tab.lo_c1_full)
+    return (r_max >= r0) & (r_min <= r_pk) & (c1 - margin <= h)
+
+
+_B_NONFINITE = np.uint8(Status.NONFINITE)
+_B_BELOW_NOISE = np.uint8(Status.BELOW_NOISE)
+_B_NO_SOLUTION = np.uint8(Status.NO_SOLUTION)
+_B_AMBIGUOUS = np.uint8(Status.AMBIGUOUS)
+_B_ILL_CONDITIONED = np.uint8(Status.ILL_CONDITIONED)
+_B_AREA_EXCEEDS = np.uint8(Status.AREA_EXCEEDS)
+
+
+def solve(
+    dC1: ArrayLike,
+    dC2: ArrayLike,
+    params: ElementParams | None = None,
+    *,
+    noise: float = DEFAULT_NOISE,
+    max_error: float = 0.05,
+    min_slope: float = 0.02,
+    k_sigma: float = 3.0,
+) -> InverseResult:
+    """Invert capacitance changes (F) to force (N) and area (m²) with diagnostics.
+
+    ``noise`` is the rms noise of each ΔC (F); 0 means exact data. ``max_error``
+    bounds the one-sigma relative error of F and of D = 2√(S/π) that noise may cause;
+    ``min_slope`` rejects the flat parts of ρ(σ) even for exact data; ``k_sigma``
+    sets how many sigmas a signal must clear, and how wide the ambiguity and area
+    checks look. See the module docstring for the rules.
+    """
+    p = DEFAULT_PARAMS if params is None else params
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"noise must be a finite rms capacitance >= 0 F, got {noise!r}")
+    if not (max_error > 0 and min_slope >= 0 and k_sigma >= 0):
+        raise ValueError("need max_error > 0, min_slope >= 0 and k_sigma >= 0")
+    tab = _tables(p)
+    c1, c2 = np.broadcast_arrays(
+        np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64)
+    )
+    shape = c1.shape
+    c1 = c1.ravel()
+    c2 = c2.ravel()
+    status = np.zeros(c1.shape, dtype=np.uint8)
+
+    finite = np.isfinite(c1) & np.isfinite(c2)
+    status[~finite] |= _B_NONFINITE
+    floor = k_sigma * noise
+    # `not >` keeps NaN out and demands a strictly positive signal when noise is 0.
+    weak = ~((c1 > floor) & (c2 > floor) & (c1 > 0) & (c2 > 0))
+    status[weak & finite] |= _B_BELOW_NOISE
+
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        lnr = np.log(c1) - np.log(c2)
+        out_of_range = ~((lnr >= tab.ln_r_end) & (lnr <= tab.ln_r_pk))
+        status[out_of_range & ~weak & finite] |= _B_NO_SOLUTION
+
+        # Falling-branch pressure: table, then one Newton step in ln σ.
+        q = np.sqrt(np.maximum(tab.ln_r_pk - lnr, 0.0))
+        lns = np.interp(q, tab.hi_q, tab.hi_lns)
+        g1, g2, e1, e2 = _layers(np.exp(lns), p)
+        slope = e1 - e2
+        lns = lns - (np.log(g1) - np.log(g2) - lnr) / slope
+        sigma = np.exp(lns)
+        g1, g2, e1, e2 = _layers(sigma, p)
+        slope = e1 - e2
+        # What the step left over, as an error of ln σ; a guard, not a tolerance
+        # that normal readings come near (they reach ~1e-10).
+        converged = np.abs((np.log(g1) - np.log(g2) - lnr) / slope) <= 1e-8
+        on_branch = sigma >= tab.info.sigma_peak
+
+        area = c1 / g1
+        force = sigma * area
+
+        # First-order noise propagation through the log-Jacobian
+        # [[e1, 1−e1], [e2, 1−e2]] of (ln F, ln S) → (ln ΔC1, ln ΔC2).
+        n1 = noise / c1
+        n2 = noise / c2
+        inv = 1.0 / np.abs(slope)
+        rel_f = np.hypot((1.0 - e2) * n1, (1.0 - e1) * n2) * inv
+        rel_s = np.hypot(e2 * n1, e1 * n2) * inv
+        rel_d = 0.5 * rel_s
+
+        ill = ~(
+            (np.abs(slope) >= min_slope)
+            & (rel_f <= max_error)
+            & (rel_d <= max_error)
+            & converged
+            & on_branch
+        )
+        too_big = ~(area - k_sigma * rel_s * area <= p.area * (1.0 + 1e-9))
+
+        amb = _ambiguous(c1, c2, floor, tab)
+
+    solvable = finite & ~weak & ~out_of_range
+    status[solvable & ill] |= _B_ILL_CONDITIONED
+    status[solvable & too_big] |= _B_AREA_EXCEEDS
+    status[solvable & amb] |= _B_AMBIGUOUS
+    valid = status == 0
+
+    nan = np.float64(np.nan)
+    sigma = np.where(solvable, sigma, nan)
+    force = np.where(valid, force, nan)
+    area = np.where(valid, area, nan)
+    diam = 2.0 * np.sqrt(np.where(solvable, c1 / g1, nan) / np.pi)
+    force_rms = np.where(solvable, rel_f * sigma * c1 / g1, nan)
+    diameter_rms = np.where(solvable, rel_d * diam, nan)
+    return InverseResult(
+        force.reshape(shape),
+        area.reshape(shape),
+        valid.reshape(shape),
+        sigma.reshape(shape),
+        force_rms.reshape(shape),
+        diameter_rms.reshape(shape),
+        status.reshape(shape),
+    )
+
+
+def inverse(
+    dC1: ArrayLike,
+    dC2: ArrayLike,
+    params: ElementParams | None = None,
+    noise: float = DEFAULT_NOISE,
+    **options: float,
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """(force N, area m², valid) from capacitance changes (ΔC1, ΔC2) in farads.
+
+    Shorthand for :func:`solve` (same keywords: ``max_error``, ``min_slope``,
+    ``k_sigma``). Invalid entries carry NaN force and area, never a guess.
+    """
+    r = solve(dC1, dC2, params, noise=noise, **options)
+    return r.force, r.area, r.valid

@@ -1,0 +1,386 @@
+"""Transfer functions of the bridge chip's two capacitance front ends.
+
+One description shared by the chip emulator (which must produce these numbers cycle
+by cycle) and by the host daemon (which turns them back into capacitances). Keeping
+both directions in one module is what guarantees they agree.
+
+**RC self-oscillation counter.** The element's capacitor C and ``R_osc`` form a
+relaxation oscillator of period ``T = 2·ln2·R_osc·C`` (thresholds at 1/3 and 2/3 of
+the supply). A counter of ``counter_bits`` bits counts the oscillator's rising edges
+during a gate of ``gate_cycles`` cycles of the chip clock; it wraps modulo
+2^counter_bits and raises a sticky overflow flag when it does. With the defaults
+(4.7 kΩ, 100 000 cycles of 50 MHz = 2 ms) a rest C1 of 15.67 pF gives ≈19 588 counts,
+C2 of 19.44 pF ≈15 788, and 1 pF ≈ 1 250 (C1) / 810 (C2) counts.
+
+The integer count modelled here is the ideal edge count: edges at times
+``(phase + k)·T`` (k = 0, 1, …) after the gate opens, counted while ``< t_gate``.
+Its mean over a uniformly random phase is exactly ``t_gate/T`` (:func:`expected_counts`),
+which is why the inverse uses that formula with no half-count correction. The chip's
+two-flop synchroniser delays every detected edge by the same 2-3 cycles, which shifts
+the window but not its length, so the statistics are the same; it can only follow an
+oscillator slower than half the clock (T ≥ 2 cycles, C ≥ ≈6.1 pF at the defaults).
+
+**8-bit SAR ADC, charge-time method.** The channel is discharged, released to charge
+through ``R_adc`` and sampled ``adc_sample_cycles`` cycles later, so the sampled
+voltage is the supply times ``1 − exp(−t_s/(R_adc·C))``. An ideal SAR converter
+returns ``floor`` of that fraction times 2^adc_bits, clipped to the code range.
+Defaults (100 kΩ, 64 cycles = 1.28 µs): rest C1 → code 142 (142.9), C2 → 123 (123.5);
+≈5.9 (C1) / 4.5 (C2) codes per pF. Input noise ``adc_noise_lsb`` (≈0.5 LSB rms)
+dithers the quantiser, so the mean of N conversions resolves below one code; this
+module gives the exact expected mean and its spread, so oversampled means invert
+without bias.
+
+**Crystal offset.** ``clock_ppm`` scales the chip clock: a crystal fast by +50 ppm
+makes every cycle-defined time (gate, sample instant) 50 ppm shorter.
+
+All times in seconds, capacitances in farads, resistances in ohms.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "ChipParams",
+    "oscillator_period",
+    "expected_counts",
+    "counts",
+    "unwrap_counts",
+    "counts_to_capacitance",
+    "counts_per_farad",
+    "adc_input",
+    "adc_code",
+    "code_to_capacitance",
+    "codes_per_farad",
+    "adc_mean_code",
+    "adc_mean_to_capacitance",
+    "adc_resolution",
+]
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_LN2x2 = 2.0 * math.log(2.0)
+
+
+@dataclass(frozen=True)
+class ChipParams:
+    """Bridge-chip front-end parameters; defaults are the reference chip."""
+
+    clock_hz: float = 50e6
+    gate_cycles: int = 100_000
+    R_osc: float = 4.7e3
+    R_adc: float = 100e3
+    adc_sample_cycles: int = 64
+    adc_bits: int = 8
+    counter_bits: int = 16
+    clock_ppm: float = 0.0
+    adc_noise_lsb: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("clock_hz", "R_osc", "R_adc"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"ChipParams.{name} must be finite and > 0, got {v!r}")
+        for name in ("gate_cycles", "adc_sample_cycles", "adc_bits", "counter_bits"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and v > 0):
+                raise ValueError(f"ChipParams.{name} must be a positive integer, got {v!r}")
+        if not self.counter_bits <= 62:
+            raise ValueError("ChipParams.counter_bits must be <= 62 (counts are int64)")
+        if not self.adc_bits <= 24:
+            raise ValueError("ChipParams.adc_bits must be <= 24")
+        if not (math.isfinite(self.clock_ppm) and abs(self.clock_ppm) < 1e5):
+            raise ValueError(f"ChipParams.clock_ppm must be finite and |ppm| < 1e5, got {self.clock_ppm!r}")
+        if not (math.isfinite(self.adc_noise_lsb) and self.adc_noise_lsb >= 0):
+            raise ValueError("ChipParams.adc_noise_lsb must be finite and >= 0")
+
+    def with_ppm(self, ppm: float) -> ChipParams:
+        """The same chip with another crystal offset (each chip draws its own)."""
+        return replace(self, clock_ppm=ppm)
+
+    @property
+    def clock_actual_hz(self) -> float:
+        """Clock frequency including the crystal offset (Hz)."""
+        return self.clock_hz * (1.0 + 1e-6 * self.clock_ppm)
+
+    @property
+    def gate_time(self) -> float:
+        """Counter gate length (s) as the crystal actually produces it."""
+        return self.gate_cycles / self.clock_actual_hz
+
+    @property
+    def adc_sample_time(self) -> float:
+        """Time (s) from release of the channel to the ADC's sampling instant."""
+        return self.adc_sample_cycles / self.clock_actual_hz
+
+    @property
+    def counter_modulus(self) -> int:
+        return 1 << self.counter_bits
+
+    @property
+    def adc_levels(self) -> int:
+        return 1 << self.adc_bits
+
+
+DEFAULT_CHIP = ChipParams()
+
+
+def _chip(chip: ChipParams | None) -> ChipParams:
+    return DEFAULT_CHIP if chip is None else chip
+
+
+def _cap(c: ArrayLike) -> FloatArray:
+    arr = np.asarray(c, dtype=np.float64)
+    if not np.all(arr > 0) or not np.all(np.isfinite(arr)):
+        raise ValueError("capacitance must be finite and > 0 F")
+    return arr
+
+
+# --------------------------------------------------------------------- oscillator
+
+
+def oscillator_period(C: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
+    """Period ``2·ln2·R_osc·C`` (s) of the relaxation oscillator on capacitance C."""
+    return _LN2x2 * _chip(chip).R_osc * _cap(C)
+
+
+def expected_counts(C: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
+    """Mean number of rising edges in one gate (not wrapped): ``t_gate / T``.
+
+    Exactly the average of :func:`counts` over a uniformly random oscillator phase.
+    """
+    ch = _chip(chip)
+    return ch.gate_time / (_LN2x2 * ch.R_osc * _cap(C))
+
+
+def counts(
+    C: ArrayLike, chip: ChipParams | None = None, phase: ArrayLike = 0.0
+) -> tuple[IntArray, NDArray[np.bool_]]:
+    """(register value, overflow flag) the counter holds after one gate.
+
+    ``phase`` ∈ [0, 1) places the first rising edge at ``phase·T`` after the gate
+    opens; edges at exactly the gate end are not counted. The register is the edge
+    count modulo 2^counter_bits; the flag is set if the count reached the modulus.
+    """
+    ch = _chip(chip)
+    ph = np.asarray(phase, dtype=np.float64)
+    if not (np.all(ph >= 0) and np.all(ph < 1)):
+        raise ValueError("phase must lie in [0, 1)")
+    x = expected_counts(C, ch)
+    n = np.maximum(np.ceil(x - ph), 0.0).astype(np.int64)
+    return n % ch.counter_modulus, n >= ch.counter_modulus
+
+
+def unwrap_counts(
+    raw: ArrayLike,
+    nominal_counts: ArrayLike,
+    chip: ChipParams | None = None,
+    overflow: ArrayLike | None = None,
+) -> IntArray:
+    """True edge count from a wrapped register value.
+
+    Picks the count ``raw + k·2^bits`` nearest to ``nominal_counts`` (e.g. the
+    :func:`expected_counts` of the channel's rest capacitance), which is right as long
+    as the real count is within half a modulus (32 768 at 16 bits) of the nominal one.
+    If the overflow flag is known it is used: no overflow means k = 0 exactly;
+    overflow means k ≥ 1.
+    """
+    ch = _chip(chip)
+    m = ch.counter_modulus
+    r = np.asarray(raw)
+    if not np.issubdtype(r.dtype, np.integer) or np.any(r < 0) or np.any(r >= m):
+        raise ValueError(f"raw counts must be integers in [0, {m})")
+    r = r.astype(np.int64)
+    nom = np.asarray(nominal_counts, dtype=np.float64)
+    k = np.maximum(np.rint((nom - r) / m), 0).astype(np.int64)
+    if overflow is not None:
+        ov = np.asarray(overflow, dtype=bool)
+        k = np.where(ov, np.maximum(k, 1), 0)
+    return r + k * m
+
+
+def counts_to_capacitance(
+    n: ArrayLike, chip: ChipParams | None = None
+) -> FloatArray:
+    """Capacitance (F) whose expected count is ``n`` (unwrapped; may be a mean).
+
+    Zero or negative counts (a dead oscillator) give +inf.
+    """
+    ch = _chip(chip)
+    nn = np.asarray(n, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return np.where(nn > 0, ch.gate_time / (_LN2x2 * ch.R_osc * nn), np.inf)
+
+
+def counts_per_farad(C: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
+    """|d counts / dC| at C (counts per farad; × 1e-12 for counts per pF)."""
+    ch = _chip(chip)
+    c = _cap(C)
+    return ch.gate_time / (_LN2x2 * ch.R_osc * c * c)
+
+
+# --------------------------------------------------------------------------- ADC
+
+
+def adc_input(C: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
+    """Sampled voltage in LSB (continuous code, before quantisation): 2^bits·(1 − e^(−t/RC))."""
+    ch = _chip(chip)
+    return ch.adc_levels * -np.expm1(-ch.adc_sample_time / (ch.R_adc * _cap(C)))
+
+
+def adc_code(
+    C: ArrayLike, chip: ChipParams | None = None, noise: ArrayLike | None = None
+) -> IntArray:
+    """Code of one conversion: floor of the input (plus ``noise`` in LSB), clipped.
+
+    ``noise`` is input-referred noise the caller draws (e.g. ``rng.normal(0, 0.5, n)``),
+    so this function stays deterministic and the emulator controls its randomness.
+    """
+    ch = _chip(chip)
+    x = adc_input(C, ch)
+    if noise is not None:
+        x = x + np.asarray(noise, dtype=np.float64)
+    return np.clip(np.floor(x), 0, ch.adc_levels - 1).astype(np.int64)
+
+
+def _input_to_cap(x: FloatArray, ch: ChipParams) -> FloatArray:
+    frac = x / ch.adc_levels
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = ch.adc_sample_time / (ch.R_adc * -np.log1p(-frac))
+    return np.where(frac <= 0, 0.0, np.where(frac >= 1, np.inf, c))
+
+
+def code_to_capacitance(code: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
+    """Capacitance (F) at the middle of a code's input step (one conversion).
+
+    The rail codes are open-ended (0: C ≤ …, top code: C ≥ …); they still map to their
+    step middle, and a caller that meets them should treat the value as a bound.
+    """
+    ch = _chip(chip)
+    k = np.asarray(code)
+    if np.any(k < 0) or np.any(k >= ch.adc_levels):
+        raise ValueError(f"ADC code must lie in [0, {ch.adc_levels})")
+    return _input_to_cap(k.astype(np.float64) + 0.5, ch)
+
+
+def codes_per_farad(C: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
+    """|d code / dC| at C (LSB per farad; × 1e-12 for codes per pF)."""
+    ch = _chip(chip)
+    c = _cap(C)
+    t = ch.adc_sample_time / (ch.R_adc * c)
+    return ch.adc_levels * np.exp(-t) * t / c
+
+
+_SQRT1_2 = 1.0 / math.sqrt(2.0)
+
+
+def _erfc(z: FloatArray) -> FloatArray:
+    """Complementary error function, |relative error| < 1.2e-7 (Chebyshev fit, pure numpy).
+
+    numpy has no erf; this accuracy is far below the ADC's resolution.
+    """
+    a = np.abs(z)
+    t = 1.0 / (1.0 + 0.5 * a)
+    poly = -a * a - 1.26551223 + t * (1.00002368 + t * (0.37409196 + t * (0.09678418
+        + t * (-0.18628806 + t * (0.27886807 + t * (-1.13520398 + t * (1.48851587
+        + t * (-0.82215223 + t * 0.17087277))))))))
+    r = t * np.exp(poly)
+    return np.where(z >= 0, r, 2.0 - r)
+
+
+def _code_moments(
+    x: FloatArray, sigma: float, levels: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Mean, variance and d(mean)/dx of clip(floor(x + n)), n ~ N(0, σ²), in LSB.
+
+    code = Σ_{k=1}^{L−1} [x + n ≥ k], so E[code] = Σ Φ((x − k)/σ) and
+    E[code²] = Σ (2k − 1)·Φ((x − k)/σ). Only thresholds within ±9σ of x contribute
+    a fraction; the rest are 0 or 1 and are counted in closed form.
+    """
+    w = int(math.ceil(9.0 * sigma)) + 1
+    base = np.floor(x)
+    mean = np.clip(base - w, 0, levels - 1)  # thresholds k ≤ base − w: all passed
+    # E[code²] of those: Σ_{k=1}^{m} (2k−1) = m²
+    sq = mean * mean
+    dmean = np.zeros_like(x)
+    for off in range(-w + 1, w + 1):
+        k = base + off
+        inside = (k >= 1) & (k <= levels - 1)
+        z = (x - k) / sigma
+        phi = 0.5 * _erfc(-z * _SQRT1_2)
+        pdf = np.exp(-0.5 * z * z) / (sigma * math.sqrt(2.0 * math.pi))
+        mean = mean + np.where(inside, phi, 0.0)
+        sq = sq + np.where(inside, (2.0 * k - 1.0) * phi, 0.0)
+        dmean = dmean + np.where(inside, pdf, 0.0)
+    return mean, np.maximum(sq - mean * mean, 0.0), dmean
+
+
+def adc_mean_code(
+    C: ArrayLike, chip: ChipParams | None = None, noise_lsb: float | None = None
+) -> FloatArray:
+    """Expected code averaged over many conversions with Gaussian input noise.
+
+    With ``noise_lsb`` (default ``chip.adc_noise_lsb``) of 0 this is the plain code.
+    With 0.5 LSB it is the input minus ½ to within ≈0.002 LSB; the exact sum is used.
+    """
+    ch = _chip(chip)
+    s = ch.adc_noise_lsb if noise_lsb is None else noise_lsb
+    x = adc_input(C, ch)
+    if s == 0:
+        return np.clip(np.floor(x), 0, ch.adc_levels - 1)
+    return _code_moments(np.asarray(x, dtype=np.float64), s, ch.adc_levels)[0]
+
+
+def adc_mean_to_capacitance(
+    mean_code: ArrayLike, chip: ChipParams | None = None, noise_lsb: float | None = None
+) -> FloatArray:
+    """Capacitance (F) whose expected oversampled mean code is ``mean_code``.
+
+    Inverts :func:`adc_mean_code` by Newton's method on the input (in LSB), starting
+    from ``mean + ½``. Needs noise > 0 (the dither is what makes the mean a smooth
+    function of the input); means at or beyond the rails give NaN.
+    """
+    ch = _chip(chip)
+    s = ch.adc_noise_lsb if noise_lsb is None else noise_lsb
+    if not s > 0:
+        raise ValueError("inverting a mean code needs adc noise > 0 (use code_to_capacitance)")
+    m = np.asarray(mean_code, dtype=np.float64)
+    levels = ch.adc_levels
+    x = m + 0.5
+    for _ in range(8):
+        mu, _, dmu = _code_moments(x, s, levels)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = x - (mu - m) / dmu
+        x = np.clip(x, -10.0 * s, levels + 10.0 * s)
+    ok = (m > 0) & (m < levels - 1) & np.isfinite(x)
+    return np.where(ok, _input_to_cap(x, ch), np.nan)
+
+
+def adc_resolution(
+    C: ArrayLike,
+    n: ArrayLike = 1,
+    chip: ChipParams | None = None,
+    noise_lsb: float | None = None,
+) -> FloatArray:
+    """RMS capacitance error (F) of the mean of ``n`` conversions at capacitance C.
+
+    The spread of one dithered code (≈√(σ² + 1/12) LSB for σ ≳ 0.3) shrinks as
+    1/√n; divided by the local slope d(mean)/dC. With no noise the code does not
+    average out, so the answer is the quantisation step's 1/√12 whatever n is.
+    """
+    ch = _chip(chip)
+    s = ch.adc_noise_lsb if noise_lsb is None else noise_lsb
+    nn = np.asarray(n, dtype=np.float64)
+    if np.any(nn < 1):
+        raise ValueError("number of conversions n must be >= 1")
+    x = adc_input(C, ch)
+    slope_c = codes_per_farad(C, ch)
+    if s == 0:
+        return np.broadcast_to(1.0 / math.sqrt(12.0) / slope_c, np.broadcast(x, nn).shape).copy()
+    _, var, dmu = _code_moments(np.asarray(x, dtype=np.float64), s, ch.adc_levels)
+    return np.sqrt(var / nn) / (dmu * slope_c)

@@ -1,0 +1,230 @@
+"""Transfer functions of the bridge chip: the design's rest numbers and round trips.
+
+Expected values come from first principles here: the relaxation oscillator's two
+half-periods are RC charges between 1/3 and 2/3 of the supply, the counter counts
+edges of a phase-shifted pulse train, and the ADC samples an RC charging curve.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cellbridge.tactile import (
+    ChipParams,
+    ElementParams,
+    adc_code,
+    adc_input,
+    adc_mean_code,
+    adc_mean_to_capacitance,
+    adc_resolution,
+    code_to_capacitance,
+    codes_per_farad,
+    counts,
+    counts_per_farad,
+    counts_to_capacitance,
+    expected_counts,
+    oscillator_period,
+    unwrap_counts,
+)
+
+P = ElementParams()
+C_REST = np.array([P.C1_rest, P.C2_rest])
+CHIP = ChipParams()
+
+
+def approx(expected, rel=1e-12, abs=0.0):
+    return pytest.approx(expected, rel=rel, abs=abs)
+
+
+def period_first_principles(R: float, C: float) -> float:
+    # Charge from 1/3 to 2/3 of V towards V, then discharge from 2/3 to 1/3 towards 0:
+    # each takes RC·ln((1 − 1/3)/(1 − 2/3)) = RC·ln 2.
+    half = R * C * math.log((1 - 1 / 3) / (1 - 2 / 3))
+    return 2 * half
+
+
+def test_chip_defaults():
+    assert CHIP.clock_hz == 50e6 and CHIP.gate_cycles == 100_000
+    assert CHIP.R_osc == 4.7e3 and CHIP.R_adc == 100e3
+    assert CHIP.adc_sample_cycles == 64 and CHIP.adc_bits == 8 and CHIP.counter_bits == 16
+    assert CHIP.gate_time == approx(2e-3)
+    assert CHIP.adc_sample_time == approx(1.28e-6)
+
+
+def test_oscillator_rest_numbers():
+    T = oscillator_period(C_REST)
+    for t, c in zip(T, C_REST):
+        assert t == approx(period_first_principles(4.7e3, c))
+    n = expected_counts(C_REST)
+    # DESIGN: "about 19 600 counts on C1 and 15 800 on C2; 1 pF ≈ 1 200 counts".
+    assert n[0] == pytest.approx(19600, rel=0.005)
+    assert n[1] == pytest.approx(15800, rel=0.005)
+    assert n[0] == approx(2e-3 / period_first_principles(4.7e3, P.C1_rest))
+    per_pf = counts_per_farad(C_REST) * 1e-12
+    assert per_pf[0] == pytest.approx(1200, rel=0.06)
+    # The slope is the derivative of the count: check by a 1 fF finite difference.
+    fd = expected_counts(C_REST) - expected_counts(C_REST + 1e-15)
+    assert fd * 1e3 == pytest.approx(per_pf, rel=1e-3)
+
+
+def edge_count_reference(C: float, phase: float, chip: ChipParams) -> int:
+    """Count pulses of a train with first edge at phase·T by walking the edges."""
+    T = period_first_principles(chip.R_osc, C)
+    t_gate = chip.gate_cycles / (chip.clock_hz * (1 + 1e-6 * chip.clock_ppm))
+    k = 0
+    t = phase * T
+    while t < t_gate:
+        k += 1
+        t = (phase + k) * T
+    return k
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    c=st.floats(min_value=8e-12, max_value=60e-12),
+    phase=st.floats(min_value=0.0, max_value=0.999999),
+    ppm=st.floats(min_value=-100, max_value=100),
+)
+def test_integer_counts_walk_the_edges(c, phase, ppm):
+    chip = CHIP.with_ppm(ppm)
+    raw, ov = counts(c, chip, phase)
+    assert int(raw) == edge_count_reference(c, phase, chip)
+    assert not ov
+
+
+def test_mean_count_over_phase_is_the_expected_count():
+    phases = (np.arange(4000) + 0.5) / 4000
+    for c in C_REST:
+        raw, _ = counts(c, CHIP, phases)
+        assert raw.mean() == pytest.approx(float(expected_counts(c)), abs=1e-3)
+
+
+def test_crystal_offset_scales_counts():
+    fast = CHIP.with_ppm(50.0)
+    ratio_ = expected_counts(C_REST, fast) / expected_counts(C_REST, CHIP)
+    assert ratio_ == approx(1 / (1 + 50e-6))
+    assert fast.clock_actual_hz == approx(50e6 * (1 + 50e-6))
+
+
+def test_counts_round_trip():
+    c = np.linspace(6e-12, 80e-12, 500)
+    assert counts_to_capacitance(expected_counts(c)) == approx(c, rel=1e-13)
+    # One integer count is worth ≈ 1/1250 pF at rest on C1.
+    raw, _ = counts(P.C1_rest)
+    assert float(counts_to_capacitance(raw)) == pytest.approx(P.C1_rest, abs=1e-15, rel=0)
+    assert counts_to_capacitance(0) == np.inf
+
+
+def test_counter_wraps_and_unwraps():
+    chip = ChipParams(gate_cycles=400_000)  # 8 ms: ≈78 000 counts at rest on C1
+    n = expected_counts(C_REST, chip)
+    assert n[0] > 65536 > n[1]
+    raw, ov = counts(C_REST, chip, 0.25)
+    true = np.ceil(n - 0.25).astype(np.int64)
+    assert list(raw) == list(true % 65536)
+    assert list(ov) == [True, False]
+    # Unwrap with the rest counts as nominal, with and without the overflow flag.
+    pressed = C_REST + np.array([3e-12, 5e-12])
+    raw_p, ov_p = counts(pressed, chip, 0.5)
+    true_p = np.ceil(expected_counts(pressed, chip) - 0.5).astype(np.int64)
+    assert list(unwrap_counts(raw_p, n, chip)) == list(true_p)
+    assert list(unwrap_counts(raw_p, n, chip, ov_p)) == list(true_p)
+    assert counts_to_capacitance(unwrap_counts(raw_p, n, chip), chip) == pytest.approx(
+        pressed, abs=1e-15, rel=0)
+    # Overflow flag clear means no wrap, whatever the nominal says.
+    assert int(unwrap_counts(100, 70000.0, chip, overflow=False)) == 100
+    assert int(unwrap_counts(100, 70000.0, chip, overflow=True)) == 65636
+    with pytest.raises(ValueError):
+        unwrap_counts(70000, 1.0, chip)
+
+
+def adc_fraction_first_principles(C: float, chip: ChipParams) -> float:
+    t = chip.adc_sample_cycles / chip.clock_actual_hz
+    return 1 - math.exp(-t / (chip.R_adc * C))
+
+
+def test_adc_rest_numbers():
+    codes = adc_code(C_REST)
+    # DESIGN: "At rest ≈ code 142 (C1) and 123 (C2); 1 pF ≈ 5 codes".
+    assert list(codes) == [142, 123]
+    for c, x in zip(C_REST, adc_input(C_REST)):
+        assert x == approx(256 * adc_fraction_first_principles(c, CHIP))
+    per_pf = codes_per_farad(C_REST) * 1e-12
+    assert np.all((per_pf > 4) & (per_pf < 6.5))
+    fd = adc_input(C_REST - 0.5e-15) - adc_input(C_REST + 0.5e-15)
+    assert fd * 1e3 == pytest.approx(per_pf, rel=1e-4)
+
+
+def test_adc_code_steps_invert():
+    c = np.linspace(3e-12, 60e-12, 20000)
+    codes = adc_code(c)
+    assert np.all(np.diff(codes) <= 0)  # more capacitance charges more slowly
+    back = code_to_capacitance(codes)
+    # The step of code k spans inputs [k, k+1): its middle maps back inside it.
+    assert np.all(adc_code(back) == codes)
+    step = codes < 255
+    assert np.all(code_to_capacitance(codes[step] + 1) < back[step])  # higher code: less C
+    with pytest.raises(ValueError):
+        code_to_capacitance(256)
+
+
+def test_adc_rails():
+    assert int(adc_code(1e-15)) == 255
+    assert int(adc_code(1e-6)) == 0
+
+
+def test_oversampled_mean_matches_monte_carlo_and_inverts():
+    rng = np.random.default_rng(3)
+    n = 200_000
+    for c in (P.C1_rest, P.C2_rest, P.C1_rest + 2.3e-12):
+        noise = rng.normal(0.0, 0.5, n)
+        mc = adc_code(np.full(n, c), noise=noise)
+        expected = float(adc_mean_code(c))
+        sd = mc.std()
+        assert mc.mean() == pytest.approx(expected, abs=4 * sd / math.sqrt(n))
+        # ≈ input − ½ for 0.5 LSB noise: the dither linearises the quantiser.
+        assert expected == pytest.approx(float(adc_input(c)) - 0.5, abs=0.005)
+        # Spread of one dithered code: ≈ √(σ² + 1/12) LSB.
+        assert sd == pytest.approx(math.sqrt(0.25 + 1 / 12), rel=0.02)
+        # The exact mean inverts to the capacitance.
+        assert float(adc_mean_to_capacitance(expected)) == pytest.approx(c, rel=1e-7, abs=0)
+        # The Monte Carlo mean inverts to within the predicted resolution.
+        res = float(adc_resolution(c, n))
+        got = float(adc_mean_to_capacitance(mc.mean()))
+        assert abs(got - c) < 4 * res
+
+
+def test_resolution_scales_with_oversampling():
+    r1 = adc_resolution(P.C1_rest, 1)
+    r64 = adc_resolution(P.C1_rest, 64)
+    assert r1 / r64 == approx(8.0, rel=1e-9)
+    lsb = 1 / float(codes_per_farad(P.C1_rest))
+    assert float(r1) == pytest.approx(math.sqrt(0.25 + 1 / 12) * lsb, rel=0.01)
+    # Without noise averaging buys nothing.
+    assert float(adc_resolution(P.C1_rest, 64, noise_lsb=0.0)) == approx(lsb / math.sqrt(12))
+    with pytest.raises(ValueError):
+        adc_mean_to_capacitance(100.0, noise_lsb=0.0)
+
+
+def test_erfc_approximation():
+    from cellbridge.tactile.transfer import _erfc
+
+    z = np.linspace(-7, 7, 2001)
+    ref = np.array([math.erfc(x) for x in z])
+    assert np.max(np.abs(_erfc(z) / ref - 1)) < 2e-7
+
+
+def test_chip_params_validation():
+    with pytest.raises(ValueError):
+        ChipParams(gate_cycles=0)
+    with pytest.raises(ValueError):
+        ChipParams(R_osc=-1.0)
+    with pytest.raises(ValueError):
+        ChipParams(gate_cycles=1.5)  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        expected_counts(-1e-12)

@@ -72,3 +72,49 @@ __all__ = [
     "oscillator_period",
     "unwrap_counts",
 ]
+
+# Skin array, calibration and contact estimation (paper §III).
+from cellbridge.tactile.calibration import CalibrationConfig, CalibrationStep, Calibrator  # noqa: E402
+from cellbridge.tactile.contacts import (  # noqa: E402
+    Contact,
+    ContactEstimator,
+    cluster_elements,
+    estimate_contacts,
+    force_centroid,
+)
+from cellbridge.tactile.skin import (  # noqa: E402
+    SkinLayout,
+    disk_element_overlap,
+    disk_rect_overlap,
+    disk_response,
+    grid_layout,
+    layout_from_mapping,
+    layout_to_toml,
+    load_layout,
+    pressure_field,
+    skin_response,
+)
+
+__all__ += [
+    # skin array
+    "SkinLayout",
+    "disk_element_overlap",
+    "disk_rect_overlap",
+    "disk_response",
+    "grid_layout",
+    "layout_from_mapping",
+    "layout_to_toml",
+    "load_layout",
+    "pressure_field",
+    "skin_response",
+    # calibration
+    "CalibrationConfig",
+    "CalibrationStep",
+    "Calibrator",
+    # contacts
+    "Contact",
+    "ContactEstimator",
+    "cluster_elements",
+    "estimate_contacts",
+    "force_centroid",
+]

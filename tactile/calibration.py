@@ -1,0 +1,300 @@
+"""Baseline and drift of every element's capacitances: from readings to ΔC.
+
+The inverse needs capacitance *changes*. A change is only meaningful against a
+baseline, and a soft skin's baseline is not constant: parasitics and foam
+permittivity move with temperature and humidity, slowly but by amounts comparable to a
+light touch. Following that drift is easy; the hard part is not following a contact.
+A tracker that adapts all the time would absorb a hand resting on the robot within a
+few time constants and report it as gone. So:
+
+* **Baseline** per element: the median of its first ``n_baseline`` readings (assumed
+  quiet), with the noise estimated from their MAD. Until then the element is not
+  *ready* and its ΔC is NaN.
+* **Touch state** with hysteresis: an element becomes *touched* when any channel rises
+  above ``enter`` and *released* when every channel is back below ``leave``
+  (``leave < enter``), both raised to a multiple of the measured noise if that is
+  larger. After release a **hold-off** lets the foam recover before tracking resumes.
+* **Drift** is followed only while an element is untouched and past its hold-off: an
+  exponential tracker with time constant ``tau`` (seconds of the timestamps passed
+  in, not of any clock), faster (``tau_negative``) when the reading is clearly
+  *below* the baseline, which no contact can cause (e.g. a baseline taken while
+  something rested on the skin).
+* **Common-mode drift**: a touched element's own baseline is frozen, but drift that
+  all elements share (temperature) is carried to it as the median step of the
+  elements being tracked at that time, so a press held for minutes neither fades
+  nor picks up the skin's drift.
+* **Tare** re-takes the baseline of all or some elements on command.
+
+Plain object, no clocks or I/O: :meth:`Calibrator.update` takes one time and the
+readings of every element (NaN for an element without a reading at that step) and
+returns ΔC, touch and readiness for all of them. Each step is vectorised over
+elements. Readings are in whatever unit the caller uses consistently (farads from
+the transfer functions, normally); the default thresholds assume farads.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "CalibrationConfig",
+    "CalibrationStep",
+    "Calibrator",
+    "COLLECTING",
+    "TRACKING",
+    "TOUCHED",
+    "HOLDOFF",
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Element states (values of :attr:`Calibrator.state`).
+COLLECTING = 0  #: gathering quiet readings for the baseline; not ready
+TRACKING = 1  #: untouched, baseline follows drift
+TOUCHED = 2  #: contact present, baseline frozen (common-mode drift only)
+HOLDOFF = 3  #: just released, baseline frozen until ``holdoff`` has passed
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Tuning of :class:`Calibrator`; defaults suit the counter front end in farads.
+
+    ``enter``/``leave`` are per channel (a scalar applies to all channels). The
+    defaults (50 fF / 25 fF) sit a few tens of counter counts above the 2 ms gate's
+    quantisation and correspond to roughly 0.05 N on a 10-20 mm contact; the ADC
+    front end (1 LSB ≈ 0.2 pF) needs about ten times more, which the noise
+    multiples ``k_enter``/``k_leave`` provide automatically when the baseline
+    readings are that noisy.
+    """
+
+    n_baseline: int = 50  #: quiet readings before an element is ready (0.5 s at 100 Hz)
+    enter: float | Sequence[float] = 50e-15  #: ΔC above which a channel signals touch
+    leave: float | Sequence[float] = 25e-15  #: every channel below this: released
+    k_enter: float = 8.0  #: enter at least this many noise sigmas (MAD of the baseline)
+    k_leave: float = 4.0  #: leave at least this many noise sigmas
+    holdoff: float = 2.0  #: s after release before drift tracking resumes
+    tau: float = 10.0  #: s, time constant of the drift tracker
+    tau_negative: float = 3.0  #: s, tracker time constant while reading below baseline
+    common_mode: bool = True  #: carry the tracked elements' median drift to touched ones
+    min_common: int = 2  #: tracked elements needed for a common-mode estimate
+    max_touch: float | None = None  #: s; re-take baseline of an element touched longer
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.n_baseline, (int, np.integer)) and self.n_baseline >= 1):
+            raise ValueError(f"n_baseline must be an integer >= 1, got {self.n_baseline!r}")
+        for name in ("enter", "leave"):
+            v = np.asarray(getattr(self, name), dtype=np.float64)
+            if v.ndim > 1 or not np.all(np.isfinite(v)) or not np.all(v >= 0):
+                raise ValueError(f"{name} must be a finite threshold >= 0 or one per channel")
+        for name in ("k_enter", "k_leave", "holdoff"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        for name in ("tau", "tau_negative"):
+            v = getattr(self, name)
+            if not (v > 0):  # inf allowed: a frozen baseline
+                raise ValueError(f"{name} must be > 0 s, got {v!r}")
+        if self.k_leave > self.k_enter:
+            raise ValueError("k_leave must not exceed k_enter (hysteresis)")
+        if not (isinstance(self.min_common, (int, np.integer)) and self.min_common >= 1):
+            raise ValueError("min_common must be an integer >= 1")
+        if self.max_touch is not None and not (self.max_touch > 0):
+            raise ValueError("max_touch must be > 0 s or None")
+
+
+class CalibrationStep(NamedTuple):
+    """What one :meth:`Calibrator.update` returns; arrays over elements."""
+
+    delta: FloatArray  #: (N, C) reading − baseline; NaN where not ready or not sampled
+    touched: NDArray[np.bool_]  #: (N,) contact present (hysteresis state)
+    ready: NDArray[np.bool_]  #: (N,) baseline available
+
+
+class Calibrator:
+    """Baselines, drift tracking and touch hysteresis for N elements × C channels."""
+
+    def __init__(self, n_elements: int, n_channels: int = 2, config: CalibrationConfig | None = None):
+        if not (int(n_elements) == n_elements and n_elements >= 1):
+            raise ValueError(f"n_elements must be an integer >= 1, got {n_elements!r}")
+        if not (int(n_channels) == n_channels and n_channels >= 1):
+            raise ValueError(f"n_channels must be an integer >= 1, got {n_channels!r}")
+        self.config = CalibrationConfig() if config is None else config
+        n, c = int(n_elements), int(n_channels)
+        self.n_elements, self.n_channels = n, c
+        cfg = self.config
+        self._enter = self._per_channel(cfg.enter, "enter")
+        self._leave = self._per_channel(cfg.leave, "leave")
+        if np.any(self._leave > self._enter):
+            raise ValueError("leave thresholds must not exceed enter thresholds (hysteresis)")
+        self._buf = np.zeros((n, cfg.n_baseline, c))
+        self._count = np.zeros(n, dtype=np.int64)
+        self._baseline = np.full((n, c), np.nan)
+        self._noise = np.full((n, c), np.nan)
+        self._state = np.full(n, COLLECTING, dtype=np.int8)
+        self._last_t = np.full(n, -np.inf)
+        self._since = np.full(n, -np.inf)  # time of the last state change into TOUCHED/HOLDOFF
+        self._drift = np.zeros(c)  # accumulated common-mode drift, for inspection
+        self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
+
+    def _per_channel(self, v: float | Sequence[float], name: str) -> FloatArray:
+        a = np.asarray(v, dtype=np.float64)
+        if a.ndim == 0:
+            return np.full(self.n_channels, float(a))
+        if a.shape != (self.n_channels,):
+            raise ValueError(f"{name} needs one value per channel ({self.n_channels}), got {a.shape}")
+        return a.copy()
+
+    # -- inspection -----------------------------------------------------------------
+    @property
+    def baseline(self) -> FloatArray:
+        """(N, C) current baselines (NaN while collecting)."""
+        return self._baseline.copy()
+
+    @property
+    def noise(self) -> FloatArray:
+        """(N, C) rms noise estimated from the baseline readings (1.4826·MAD)."""
+        return self._noise.copy()
+
+    @property
+    def state(self) -> NDArray[np.int8]:
+        """(N,) element states: COLLECTING, TRACKING, TOUCHED or HOLDOFF."""
+        return self._state.copy()
+
+    @property
+    def ready(self) -> NDArray[np.bool_]:
+        return self._state != COLLECTING
+
+    @property
+    def touched(self) -> NDArray[np.bool_]:
+        return self._state == TOUCHED
+
+    @property
+    def common_drift(self) -> FloatArray:
+        """(C,) common-mode drift carried to frozen elements since start."""
+        return self._drift.copy()
+
+    def thresholds(self) -> tuple[FloatArray, FloatArray]:
+        """(N, C) enter and leave thresholds in effect (absolute or noise-scaled)."""
+        if self._thr is None:
+            noise = np.nan_to_num(self._noise, nan=0.0)
+            enter = np.maximum(self._enter, self.config.k_enter * noise)
+            leave = np.maximum(self._leave, self.config.k_leave * noise)
+            self._thr = (enter, np.minimum(leave, enter))
+        return self._thr[0].copy(), self._thr[1].copy()
+
+    # -- commands -------------------------------------------------------------------
+    def tare(self, elements: ArrayLike | None = None) -> None:
+        """Re-take the baseline of the given elements (indices or a bool mask; None: all).
+
+        They go back to collecting and are not ready until ``n_baseline`` new
+        readings arrived; whatever touches them meanwhile becomes part of the
+        baseline, as the user asked.
+        """
+        sel = self._select(elements)
+        self._state[sel] = COLLECTING
+        self._count[sel] = 0
+        self._baseline[sel] = np.nan
+        self._noise[sel] = np.nan
+        self._thr = None
+
+    def _select(self, elements: ArrayLike | None) -> NDArray[np.bool_]:
+        if elements is None:
+            return np.ones(self.n_elements, dtype=bool)
+        e = np.asarray(elements)
+        if e.dtype == bool:
+            if e.shape != (self.n_elements,):
+                raise ValueError(f"element mask must have shape ({self.n_elements},)")
+            return e.copy()
+        if e.dtype.kind not in "iu":
+            raise ValueError("elements must be integer indices or a boolean mask")
+        e = np.atleast_1d(e)
+        if np.any(e < 0) or np.any(e >= self.n_elements):
+            raise ValueError(f"element index out of range 0..{self.n_elements - 1}")
+        m = np.zeros(self.n_elements, dtype=bool)
+        m[e] = True
+        return m
+
+    # -- the step -------------------------------------------------------------------
+    def update(self, t: float | ArrayLike, values: ArrayLike) -> CalibrationStep:
+        """Feed the readings of all elements at time ``t`` (s); NaN = no reading.
+
+        ``values`` is (N, C), or (N,) when there is one channel. ``t`` is a scalar or
+        one time per element; times must not go backwards for any element.
+        """
+        n, c = self.n_elements, self.n_channels
+        v = np.asarray(values, dtype=np.float64)
+        if v.shape == (n,) and c == 1:
+            v = v[:, None]
+        if v.shape != (n, c):
+            raise ValueError(f"values must have shape ({n}, {c}), got {v.shape}")
+        tt = np.broadcast_to(np.asarray(t, dtype=np.float64), (n,))
+        if not np.all(np.isfinite(tt)):
+            raise ValueError("time must be finite")
+        sampled = np.all(np.isfinite(v), axis=1)
+        if np.any(tt[sampled] < self._last_t[sampled]):
+            raise ValueError("time went backwards for an element")
+        cfg = self.config
+
+        # Baseline collection.
+        col = sampled & (self._state == COLLECTING)
+        if col.any():
+            idx = np.nonzero(col)[0]
+            self._buf[idx, self._count[idx]] = v[idx]
+            self._count[idx] += 1
+            done = idx[self._count[idx] >= cfg.n_baseline]
+            if done.size:
+                b = self._buf[done]
+                med = np.median(b, axis=1)
+                self._baseline[done] = med
+                self._noise[done] = 1.4826 * np.median(np.abs(b - med[:, None, :]), axis=1)
+                self._state[done] = TRACKING
+                self._count[done] = 0
+                self._thr = None
+
+        live = sampled & ~col  # ready elements with a reading this step
+        delta = np.full((n, c), np.nan)
+        delta[live] = v[live] - self._baseline[live]
+        if self._thr is None:
+            self.thresholds()
+        enter, leave = self._thr  # type: ignore[misc]
+
+        # Touch hysteresis.
+        st = self._state
+        up = live & (st != TOUCHED) & np.any(delta > enter, axis=1)
+        down = live & (st == TOUCHED) & np.all(delta < leave, axis=1)
+        st[up] = TOUCHED
+        self._since[up] = tt[up]
+        st[down] = HOLDOFF
+        self._since[down] = tt[down]
+        back = (st == HOLDOFF) & (tt - self._since >= cfg.holdoff)
+        st[back] = TRACKING
+        if cfg.max_touch is not None:
+            stuck = (st == TOUCHED) & (tt - self._since >= cfg.max_touch)
+            if stuck.any():
+                self.tare(stuck)
+
+        # Drift tracking of untouched elements (their previous reading time sets dt).
+        trk = live & (st == TRACKING)
+        dt = tt - self._last_t
+        dt = np.where(trk & np.isfinite(dt), dt, 0.0)  # first tracked reading: no step
+        tau = np.where(delta < -enter, cfg.tau_negative, cfg.tau)
+        alpha = -np.expm1(-dt[:, None] / tau)
+        step = np.where(trk[:, None], alpha * delta, 0.0)
+        self._baseline += step
+
+        # Common-mode drift to the frozen (touched / held-off) elements.
+        if cfg.common_mode:
+            k = int(trk.sum())
+            frozen = (st == TOUCHED) | (st == HOLDOFF)
+            if k >= cfg.min_common and frozen.any():
+                cm = np.median(step[trk], axis=0)
+                self._baseline[frozen] += cm
+                self._drift += cm
+
+        self._last_t[sampled] = tt[sampled]
+        return CalibrationStep(delta, self._state == TOUCHED, self._state != COLLECTING)

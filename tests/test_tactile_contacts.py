@@ -1,0 +1,205 @@
+"""Contact estimation over the array (cellbridge.tactile.contacts)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cellbridge.tactile.contacts import (
+    Contact,
+    ContactEstimator,
+    cluster_elements,
+    estimate_contacts,
+    force_centroid,
+)
+from cellbridge.tactile.element import ElementParams
+from cellbridge.tactile.skin import grid_layout, skin_response
+from cellbridge.tactile.transfer import counts, counts_per_farad, counts_to_capacitance
+
+LAY = grid_layout(2, 2)  # the paper's 2×2 array, 40 mm pitch; seams at x = 20 mm, y = 20 mm
+EST = ContactEstimator(LAY)
+P = ElementParams()
+MM = 1e-3
+
+
+def measure(contacts, lay=LAY, **kw):
+    return skin_response(lay, contacts, **kw)
+
+
+def quantised(dc1, dc2, rng):
+    """What one 2 ms counter gate per channel reports, as ΔC against the rest value."""
+    out = []
+    for dc, rest in ((dc1, P.C1_rest), (dc2, P.C2_rest)):
+        n, _ = counts(rest + dc, phase=rng.uniform(0, 1, dc.shape))
+        out.append(counts_to_capacitance(n) - rest)
+    return out
+
+
+# Rms of one counter reading: at most half a count.
+COUNTER_NOISE = (0.5 / counts_per_farad(P.C1_rest), 0.5 / counts_per_farad(P.C2_rest))
+
+
+# ------------------------------------------------------------------------ clusters
+
+
+def test_clusters_are_connected_components():
+    lay = grid_layout(3, 4)
+    active = np.zeros(12, dtype=bool)
+    active[[0, 1, 5, 10, 11, 3]] = True  # {0,1,5}, {10,11}, {3}
+    lab = cluster_elements(lay, active)
+    assert lab[0] == lab[1] == lab[5] and lab[10] == lab[11]
+    assert len({lab[0], lab[10], lab[3]}) == 3
+    assert (lab[~active] == -1).all() and sorted(set(lab[active])) == [0, 1, 2]
+    # Diagonal neighbours are separate contacts unless asked otherwise.
+    diag = np.zeros(12, dtype=bool)
+    diag[[0, 5]] = True
+    assert len(set(cluster_elements(lay, diag)[[0, 5]])) == 2
+    assert len(set(cluster_elements(lay, diag, "corner")[[0, 5]])) == 1
+    assert (cluster_elements(lay, np.zeros(12, dtype=bool)) == -1).all()
+    with pytest.raises(ValueError):
+        cluster_elements(lay, np.ones(5, dtype=bool))
+
+
+def test_force_centroid():
+    w = np.array([1.0, 3.0, 0.0, 0.0])
+    assert force_centroid(LAY, w, [0, 1]) == pytest.approx((0.030, 0.0))
+    assert force_centroid(LAY, np.zeros(4), [0, 1]) == pytest.approx((0.020, 0.0))
+
+
+# ---------------------------------------------------------------------- positions
+
+
+def test_two_separate_contacts_are_two_clusters():
+    lay = grid_layout(3, 3)
+    truth = [[0.0, 0.0, 3.0, 0.010], [0.080, 0.062, 5.0, 0.016]]
+    cs = ContactEstimator(lay).estimate(*measure(truth, lay))
+    assert len(cs) == 2
+    a, b = sorted(cs, key=lambda c: c.x)
+    assert a.elements == (0,) and b.elements == (5, 8)
+    assert a.force == pytest.approx(3.0, rel=1e-6) and b.force == pytest.approx(5.0, rel=1e-6)
+    assert b.diameter == pytest.approx(0.016, rel=1e-6)
+    assert abs(b.y - 0.062) < 0.01 * MM and b.observable[1]
+    assert all(c.valid and c.fit_ok for c in cs)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    # Offset of the disk centre from the seam. Beyond ±4.5 mm the 10 mm disk's share
+    # of the other element drops under a few noise sigmas and the skin no longer sees
+    # the straddle (covered by the inside-one-element case).
+    st.floats(-4.5 * MM, 4.5 * MM),
+    st.floats(-15 * MM, 15 * MM),
+    st.floats(2.0, 8.0),
+)
+def test_straddling_contact_located_within_1mm_and_centroid_is_worse(off, y, f):
+    d = 0.010
+    x = 0.020 + off
+    c = EST.estimate(*measure([x, y, f, d]))
+    assert len(c) == 1
+    c = c[0]
+    assert c.elements == (0, 1) and c.valid and c.fit_ok
+    # Across the seam the position is observed: the model-based estimate is within
+    # 1 mm (in fact µm), the centroid tens of millimetres off.
+    assert c.observable[0]
+    assert abs(c.model_x - x) < 1 * MM
+    assert c.force == pytest.approx(f, rel=1e-3) and c.diameter == pytest.approx(d, rel=1e-3)
+    assert abs(c.centroid_x - x) >= abs(c.model_x - x)
+    if abs(off) > 1 * MM:
+        assert abs(c.centroid_x - x) > 1 * MM
+    # Along the seam it is not: reported at the row's middle, with the spread of the
+    # positions consistent with the readings, which include the truth.
+    assert not c.observable[1]
+    assert abs(c.y) < 1 * MM
+    assert abs(c.y - y) <= math.sqrt(3) * c.sigma_y + 0.5 * MM
+
+
+def test_corner_contact_is_located_in_both_axes():
+    for x, y, f, d in [(0.018, 0.023, 5.0, 0.016), (0.025, 0.013, 8.0, 0.026), (0.020, 0.020, 3.0, 0.010)]:
+        (c,) = EST.estimate(*measure([x, y, f, d]))
+        assert c.observable == (True, True)
+        assert math.hypot(c.x - x, c.y - y) < 0.1 * MM
+        assert c.sigma_xy < 0.1 * MM
+        if (x, y) != (0.020, 0.020):  # the centroid is right only at the symmetric point
+            assert math.hypot(c.centroid_x - x, c.centroid_y - y) > 1 * MM
+
+
+def test_disk_inside_one_element_reports_the_centre_with_the_feasible_spread():
+    for x, y, d in [(0.003, -0.007, 0.010), (-0.012, 0.0, 0.010), (0.0, 0.0, 0.026)]:
+        (c,) = EST.estimate(*measure([x, y, 5.0, d]))
+        assert c.observable == (False, False)
+        assert c.x == pytest.approx(0.0, abs=0.3 * MM) and c.y == pytest.approx(0.0, abs=0.3 * MM)
+        # Uniform over the centres keeping the disk on the element: (side − D)/√12,
+        # a little more for the noise margin at the ends.
+        width = 0.040 - d
+        assert width / math.sqrt(12) <= c.sigma_x <= (width + 3 * MM) / math.sqrt(12)
+        assert abs(c.x - x) <= math.sqrt(3) * c.sigma_x
+        assert c.force == pytest.approx(5.0, rel=1e-6)
+
+
+def test_method_area_agrees():
+    est = ContactEstimator(LAY, method="area")
+    (c,) = est.estimate(*measure([0.0215, 0.004, 4.0, 0.016]))
+    assert abs(c.x - 0.0215) < 0.01 * MM and c.force == pytest.approx(4.0, rel=1e-6)
+    with pytest.raises(ValueError):
+        ContactEstimator(LAY, method="area", spread=0.002)
+
+
+def test_straddling_contacts_with_counter_quantisation():
+    rng = np.random.default_rng(11)
+    est = ContactEstimator(LAY, noise=COUNTER_NOISE)
+    errs, cerrs, z = [], [], []
+    for x in np.linspace(0.0155, 0.0245, 10):
+        truth = [x, 0.0, 3.0, 0.010]
+        (c,) = est.estimate(*quantised(*measure(truth), rng))
+        errs.append(c.x - x)
+        cerrs.append(c.centroid_x - x)
+        z.append((c.x - x) / c.sigma_x)
+    rms = math.sqrt(np.mean(np.square(errs)))
+    assert rms < 1 * MM
+    assert math.sqrt(np.mean(np.square(cerrs))) > 5 * rms
+    assert np.max(np.abs(z)) < 5  # the reported uncertainty is not a false precision
+
+
+def test_light_touch_is_flagged_not_guessed():
+    (c,) = EST.estimate(*measure([0.018, 0.0, 0.3, 0.010]))
+    assert not c.valid and not c.fit_ok and math.isnan(c.force)
+    assert c.x == c.centroid_x and c.sigma_xy > 10 * MM
+
+
+def test_spread_model_fit():
+    s = 0.002
+    est = ContactEstimator(LAY, spread=s)
+    (c,) = est.estimate(*measure([0.018, 0.003, 3.0, 0.010], spread=s))
+    assert abs(c.x - 0.018) < 0.1 * MM and c.force == pytest.approx(3.0, rel=1e-2)
+    assert c.diameter == pytest.approx(0.010, rel=1e-2)
+    assert abs(c.y - 0.003) <= math.sqrt(3) * c.sigma_y
+    # The uniform model on the same readings is biased: tension makes the contact
+    # look larger and softer than it is.
+    (u,) = EST.estimate(*measure([0.018, 0.003, 3.0, 0.010], spread=s))
+    assert u.diameter > 0.012
+
+
+def test_active_mask_nan_and_output_format():
+    dc1, dc2 = measure([[0.0, 0.0, 3.0, 0.010], [0.040, 0.040, 2.0, 0.012]])
+    cs = EST.estimate(dc1, dc2, active=np.array([True, False, False, False]))
+    assert len(cs) == 1 and cs[0].elements == (0,)
+    dc1[3] = np.nan
+    assert len(EST.estimate(dc1, dc2)) == 1
+    d = cs[0].to_dict()
+    json.dumps(d)
+    assert set(d) == set(Contact.__dataclass_fields__)
+    assert estimate_contacts(LAY, *measure([0.0, 0.0, 3.0, 0.010]))[0].force == pytest.approx(3.0)
+    assert EST.estimate(np.zeros(4), np.zeros(4)) == []
+    with pytest.raises(ValueError):
+        EST.estimate(np.zeros(3), np.zeros(3))
+    with pytest.raises(ValueError):
+        EST.estimate(np.zeros(4), np.zeros(4), active=np.ones(2, dtype=bool))
+    with pytest.raises(ValueError):
+        ContactEstimator(LAY, method="centroid")  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        ContactEstimator(LAY, noise=0.0)

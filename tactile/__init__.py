@@ -9,11 +9,11 @@ from cellbridge.tactile.element import (
     rest_capacitance,
     sensitivity,
 )
-from cellbridge.tactile.inverse import (
+from cellbridge.tactile.inversion import (
     DEFAULT_NOISE,
     BranchInfo,
     InverseResult,
-    Status,
+    InverseStatus,
     branch_info,
     inverse,
     ratio,
@@ -50,7 +50,7 @@ __all__ = [
     "DEFAULT_NOISE",
     "BranchInfo",
     "InverseResult",
-    "Status",
+    "InverseStatus",
     "branch_info",
     "inverse",
     "ratio",

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cellbridge.tactile.element import ElementParams, sensitivity
-from cellbridge.tactile.inverse import DEFAULT_NOISE, InverseResult, solve
+from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseResult, solve
 from cellbridge.tactile.skin import SkinLayout, _check_spread, _disk_response, disk_rect_overlap
 
 __all__ = [

@@ -4,7 +4,7 @@ An element is two stacked parallel-plate capacitors: a soft upper foam (C1) and 
 hard lower foam (C2). Both foams follow the entropy-elasticity law of eq. 2, but
 saturate at different pressures, so the pair (ΔC1, ΔC2) carries two independent
 numbers about a contact: its force F and its area S. This module maps (F, S) to
-(ΔC1, ΔC2); :mod:`cellbridge.tactile.inverse` goes back.
+(ΔC1, ΔC2); :mod:`cellbridge.tactile.inversion` goes back.
 
 Assumptions (the paper's): uniform pressure σ = F/S over the contact (eq. 1), zero
 Poisson ratio and negligible sheet tension, so each point of a foam compresses

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, forward
-from cellbridge.tactile.inverse import DEFAULT_NOISE, Status, branch_info, solve
+from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info, solve
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.figure import Figure
@@ -147,8 +147,8 @@ def response_figure(
         X, Y = np.meshgrid(gx, gy)
         res = solve(X / pf, (X / Y if ratio_y else Y) / pf, p, noise=noise)
         verdict = np.full(X.shape, np.nan)  # NaN (white): no contact gives this reading
-        verdict[(res.status & (Status.ILL_CONDITIONED | Status.AREA_EXCEEDS)) != 0] = 1
-        verdict[(res.status & Status.AMBIGUOUS) != 0] = 2
+        verdict[(res.status & (InverseStatus.ILL_CONDITIONED | InverseStatus.AREA_EXCEEDS)) != 0] = 1
+        verdict[(res.status & InverseStatus.AMBIGUOUS) != 0] = 2
         verdict[res.valid] = 0
         target.imshow(verdict, origin="lower", extent=(0, x_hi, y_lo, y_hi), aspect="auto",
                       cmap=cmap, vmin=-0.5, vmax=2.5, interpolation="nearest", zorder=0)

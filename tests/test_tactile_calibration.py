@@ -18,7 +18,7 @@ from cellbridge.tactile.calibration import (
     Calibrator,
 )
 from cellbridge.tactile.element import ElementParams
-from cellbridge.tactile.inverse import inverse
+from cellbridge.tactile.inversion import inverse
 from cellbridge.tactile.skin import grid_layout, skin_response
 
 pF = 1e-12

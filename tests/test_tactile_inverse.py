@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from cellbridge.tactile import (
     DEFAULT_NOISE,
     ElementParams,
-    Status,
+    InverseStatus,
     branch_info,
     forward,
     inverse,
@@ -113,7 +113,7 @@ def test_low_pressure_contacts_are_never_valid():
         assert not r.valid.any()
         # … and for the reason that matters, where the reading is above the noise.
         strong = (c1 > 3 * noise) & (c2 > 3 * noise)
-        assert np.all((r.status[strong] & Status.AMBIGUOUS) != 0)
+        assert np.all((r.status[strong] & InverseStatus.AMBIGUOUS) != 0)
 
 
 @settings(max_examples=200, deadline=None)
@@ -152,22 +152,22 @@ def test_status_reasons():
     c2 = np.array([good2, 1e-12, 1e-12, 1e-12, 1e-12 / 2.5, 1e-12 / 0.5, amb2, sat2,
                    40e-12 / 1.7, pk2])
     r = solve(c1, c2, noise=0.0)
-    st_ = [Status(int(x)) for x in r.status]
-    assert st_[0] == Status.OK and r.valid[0]
-    assert Status.NONFINITE in st_[1]
-    assert Status.BELOW_NOISE in st_[2] and Status.BELOW_NOISE in st_[3]
-    assert st_[4] == Status.NO_SOLUTION  # ratio above the peak
-    assert st_[5] == Status.NO_SOLUTION  # ratio below saturation's 0.6
-    assert Status.AMBIGUOUS in st_[6]
-    assert Status.ILL_CONDITIONED in st_[7]
-    assert Status.AREA_EXCEEDS in st_[8]
-    assert Status.ILL_CONDITIONED in st_[9]
+    st_ = [InverseStatus(int(x)) for x in r.status]
+    assert st_[0] == InverseStatus.OK and r.valid[0]
+    assert InverseStatus.NONFINITE in st_[1]
+    assert InverseStatus.BELOW_NOISE in st_[2] and InverseStatus.BELOW_NOISE in st_[3]
+    assert st_[4] == InverseStatus.NO_SOLUTION  # ratio above the peak
+    assert st_[5] == InverseStatus.NO_SOLUTION  # ratio below saturation's 0.6
+    assert InverseStatus.AMBIGUOUS in st_[6]
+    assert InverseStatus.ILL_CONDITIONED in st_[7]
+    assert InverseStatus.AREA_EXCEEDS in st_[8]
+    assert InverseStatus.ILL_CONDITIONED in st_[9]
     assert r.valid.sum() == 1
     assert np.isnan(r.force[1:]).all() and np.isnan(r.area[1:]).all()
     # Below the noise floor: a real but tiny reading is refused only when noise is set.
     t1, t2 = forward(1e-3, 1e-7)  # σ = 10 kPa on 0.1 mm², ≈ 1e-16 F
     assert solve(t1, t2, noise=0.0).valid
-    assert solve(t1, t2, noise=1e-15).status == Status.BELOW_NOISE
+    assert solve(t1, t2, noise=1e-15).status == InverseStatus.BELOW_NOISE
 
 
 def test_more_noise_never_widens_the_valid_region():

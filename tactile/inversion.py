@@ -24,7 +24,7 @@ module always solves the falling branch and declares the result valid only when
   ``max_error`` (relative, one sigma), from first-order error propagation;
 * the area fits the element (S ≤ side², within ``k_sigma`` of its own noise).
 
-Invalid entries get NaN force and area; a status bitmask says why (see :class:`Status`).
+Invalid entries get NaN force and area; a status bitmask says why (see :class:`InverseStatus`).
 Speed comes from a precomputed table per :class:`ElementParams` (ln σ against
 √(ln ρ_pk − ln ρ), smooth through the peak) and one vectorised Newton step in ln σ
 with the analytic slope; a reading whose step did not converge is flagged too.
@@ -43,7 +43,7 @@ from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _stretch
 
 __all__ = [
     "DEFAULT_NOISE",
-    "Status",
+    "InverseStatus",
     "InverseResult",
     "BranchInfo",
     "branch_info",
@@ -60,7 +60,7 @@ FloatArray = NDArray[np.float64]
 DEFAULT_NOISE = 2e-15
 
 
-class Status(enum.IntFlag):
+class InverseStatus(enum.IntFlag):
     """Why an inverse entry is invalid (bits may combine). 0 means valid."""
 
     OK = 0
@@ -81,7 +81,7 @@ class InverseResult(NamedTuple):
     pressure: FloatArray  #: Pa on the falling branch, NaN where there is none
     force_rms: FloatArray  #: N, one-sigma error from ``noise`` (first order)
     diameter_rms: FloatArray  #: m, one-sigma error of D = 2√(S/π) from ``noise``
-    status: NDArray[np.uint8]  #: :class:`Status` bits
+    status: NDArray[np.uint8]  #: :class:`InverseStatus` bits
 
 
 class BranchInfo(NamedTuple):
@@ -241,12 +241,12 @@ def _ambiguous(c1: FloatArray, c2: FloatArray, margin: float, tab: _Tables) -> N
     return (r_max >= r0) & (r_min <= r_pk) & (c1 - margin <= h)
 
 
-_B_NONFINITE = np.uint8(Status.NONFINITE)
-_B_BELOW_NOISE = np.uint8(Status.BELOW_NOISE)
-_B_NO_SOLUTION = np.uint8(Status.NO_SOLUTION)
-_B_AMBIGUOUS = np.uint8(Status.AMBIGUOUS)
-_B_ILL_CONDITIONED = np.uint8(Status.ILL_CONDITIONED)
-_B_AREA_EXCEEDS = np.uint8(Status.AREA_EXCEEDS)
+_B_NONFINITE = np.uint8(InverseStatus.NONFINITE)
+_B_BELOW_NOISE = np.uint8(InverseStatus.BELOW_NOISE)
+_B_NO_SOLUTION = np.uint8(InverseStatus.NO_SOLUTION)
+_B_AMBIGUOUS = np.uint8(InverseStatus.AMBIGUOUS)
+_B_ILL_CONDITIONED = np.uint8(InverseStatus.ILL_CONDITIONED)
+_B_AREA_EXCEEDS = np.uint8(InverseStatus.AREA_EXCEEDS)
 
 
 def solve(

@@ -15,9 +15,9 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import time  # noqa: E402
 
 import numpy as np  # noqa: E402
+from timing import best_rate, pin_to_one_core  # noqa: E402
 
 from cellbridge.tactile import DEFAULT_NOISE, forward, inverse, solve  # noqa: E402
 
@@ -25,20 +25,8 @@ N = 1_000_000
 REPEATS = 5
 
 
-def best_rate(fn, n: int) -> float:
-    best = float("inf")
-    for _ in range(REPEATS):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return n / best
-
-
 def main() -> int:
-    try:
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
-    except (AttributeError, OSError):
-        pass
+    pin_to_one_core()
     rng = np.random.default_rng(1)
     f = rng.uniform(1.0, 20.0, N)
     d = rng.uniform(10e-3, 40e-3, N)
@@ -47,9 +35,9 @@ def main() -> int:
     inverse(c1[:10], c2[:10])  # build the tables outside the timing
 
     rows = [
-        ("forward (F, S) -> (dC1, dC2)", best_rate(lambda: forward(f, s), N)),
-        ("inverse (dC1, dC2) -> (F, S, valid)", best_rate(lambda: inverse(c1, c2), N)),
-        ("solve (inverse + error estimates)", best_rate(lambda: solve(c1, c2), N)),
+        ("forward (F, S) -> (dC1, dC2)", best_rate(lambda: forward(f, s), N, REPEATS)),
+        ("inverse (dC1, dC2) -> (F, S, valid)", best_rate(lambda: inverse(c1, c2), N, REPEATS)),
+        ("solve (inverse + error estimates)", best_rate(lambda: solve(c1, c2), N, REPEATS)),
     ]
     print(f"throughput, one core, arrays of {N:,} elements (best of {REPEATS})")
     print(f"  {'operation':<38} {'elements/s':>14}")

@@ -8,7 +8,7 @@ frames/s through the stream decoder.
 
 from __future__ import annotations
 
-import time
+from timing import best_rate, pin_to_one_core
 
 from cellbridge.protocol import Data, Frame, Mode, Sample, StreamDecoder, decode, encode, encode_stream
 
@@ -16,16 +16,8 @@ N = 200_000
 TARGET_STREAM = 200_000
 
 
-def best_rate(fn, n: int, repeats: int = 3) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return n / best
-
-
 def main() -> None:
+    pin_to_one_core()
     frame = Frame(7, 0, 7, 1, Data(Mode.COUNTER, (Sample(0, 40_000, 19_600, 15_800, 0),)), hops=3, cost=31)
     wire = encode(frame)
     frames = [Frame(7, 0, 7, i & 0xFFFF, frame.payload, 3, 31) for i in range(N)]

@@ -678,7 +678,11 @@ def _near_nodes(nodes: _Nodes, x: float, y: float, reach: float) -> tuple[IntArr
     return idx, np.hypot(dx[idx], dy[idx])
 
 
-def _blurred_on_nodes(nodes: _Nodes, contact: FloatArray, s: float) -> tuple[IntArray, FloatArray] | None:
+def _profile_near(
+    nodes: _Nodes, contact: FloatArray, s: float
+) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, float] | None:
+    """Nodes a blurred disk reaches, their distance to its centre, the disk's radial
+    profile and its nominal pressure; None when the contact touches no node."""
     x, y, f, d = contact
     rad = 0.5 * d
     if f == 0.0:
@@ -687,8 +691,15 @@ def _blurred_on_nodes(nodes: _Nodes, contact: FloatArray, s: float) -> tuple[Int
     if idx.size == 0:
         return None
     grid, prof = _disk_profile(rad, s)
-    press = (f / (math.pi * rad * rad)) * np.interp(rho, grid, prof, left=prof[0], right=0.0)
-    return idx, press
+    return idx, rho, grid, prof, f / (math.pi * rad * rad)
+
+
+def _blurred_on_nodes(nodes: _Nodes, contact: FloatArray, s: float) -> tuple[IntArray, FloatArray] | None:
+    near = _profile_near(nodes, contact, s)
+    if near is None:
+        return None
+    idx, rho, grid, prof, sigma = near
+    return idx, sigma * np.interp(rho, grid, prof, left=prof[0], right=0.0)
 
 
 def _disk_g_on_nodes(
@@ -697,15 +708,11 @@ def _disk_g_on_nodes(
     # One contact alone: g_n(σ·Φ(ρ)) is itself a smooth function of ρ, so it is
     # tabulated on the profile grid and interpolated, instead of solving eq. 2 at
     # every node.
-    x, y, f, d = contact
-    rad = 0.5 * d
-    if f == 0.0:
+    near = _profile_near(nodes, contact, s)
+    if near is None:
         return None
-    idx, rho = _near_nodes(nodes, x, y, rad + 8.0 * s)
-    if idx.size == 0:
-        return None
-    grid, prof = _disk_profile(rad, s)
-    g1t, g2t = sensitivity((f / (math.pi * rad * rad)) * prof, params)
+    idx, rho, grid, prof, sigma = near
+    g1t, g2t = sensitivity(sigma * prof, params)
     g1 = np.interp(rho, grid, g1t, left=g1t[0], right=0.0)
     g2 = np.interp(rho, grid, g2t, left=g2t[0], right=0.0)
     return idx, g1, g2

@@ -90,7 +90,7 @@ from cellbridge.tactile.skin import (  # noqa: E402
     grid_layout,
     layout_from_mapping,
     layout_to_toml,
-    load_layout,
+    parse_layout,
     pressure_field,
     skin_response,
 )
@@ -104,7 +104,7 @@ __all__ += [
     "grid_layout",
     "layout_from_mapping",
     "layout_to_toml",
-    "load_layout",
+    "parse_layout",
     "pressure_field",
     "skin_response",
     # calibration

@@ -24,7 +24,6 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from functools import cached_property
-from os import PathLike
 from typing import Any, Literal, Mapping
 
 import numpy as np
@@ -35,7 +34,7 @@ from cellbridge.tactile.element import ElementParams, sensitivity
 __all__ = [
     "SkinLayout",
     "grid_layout",
-    "load_layout",
+    "parse_layout",
     "layout_from_mapping",
     "layout_to_toml",
     "disk_rect_overlap",
@@ -269,7 +268,7 @@ def grid_layout(
 
 
 def layout_from_mapping(data: Mapping[str, Any]) -> SkinLayout:
-    """Build a layout from a parsed layout document (see :func:`load_layout`)."""
+    """Build a layout from a parsed layout document (see :func:`parse_layout`)."""
     if not isinstance(data, Mapping):
         raise ValueError("a layout document must be a table/mapping")
     known = {"side", "neighbour_gap", "grid", "element"}
@@ -325,8 +324,11 @@ def layout_from_mapping(data: Mapping[str, Any]) -> SkinLayout:
     )
 
 
-def load_layout(path: str | PathLike[str]) -> SkinLayout:
-    """Load a skin layout from a TOML file (metres throughout).
+def parse_layout(text: str, source: str = "layout") -> SkinLayout:
+    """Build a skin layout from the text of a TOML layout file (metres throughout).
+
+    Takes text, not a path, so this layer stays free of I/O; ``cellbridge.config.load_layout``
+    reads the file. ``source`` names the document in error messages.
 
     Either a grid::
 
@@ -347,19 +349,18 @@ def load_layout(path: str | PathLike[str]) -> SkinLayout:
         x = 0.000
         y = 0.000
     """
-    with open(path, "rb") as f:
-        try:
-            data = tomllib.load(f)
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{source}: not valid TOML: {exc}") from None
     try:
         return layout_from_mapping(data)
     except (TypeError, KeyError) as exc:
-        raise ValueError(f"{path}: bad layout: {exc}") from None
+        raise ValueError(f"{source}: bad layout: {exc}") from None
 
 
 def layout_to_toml(layout: SkinLayout) -> str:
-    """The ``[[element]]`` form of a layout, readable by :func:`load_layout`."""
+    """The ``[[element]]`` form of a layout, readable by :func:`parse_layout`."""
     lines = [f"side = {layout.side!r}", f"neighbour_gap = {layout.neighbour_gap!r}", ""]
     for i in range(layout.n):
         lines += [

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cellbridge.config import load_layout
 from cellbridge.tactile.element import ElementParams, forward, sensitivity
 from cellbridge.tactile.skin import (
     SkinLayout,
@@ -19,7 +20,7 @@ from cellbridge.tactile.skin import (
     grid_layout,
     layout_from_mapping,
     layout_to_toml,
-    load_layout,
+    parse_layout,
     pressure_field,
     skin_response,
 )
@@ -204,6 +205,10 @@ def test_layout_files(tmp_path):
         bad.write_text(text)
         with pytest.raises(ValueError):
             load_layout(bad)
+    with pytest.raises(ValueError, match="my-skin"):
+        parse_layout("[grid\n", source="my-skin")
+    with pytest.raises(ValueError):
+        load_layout(tmp_path / "missing.toml")
     with pytest.raises(ValueError):
         layout_from_mapping({"grid": {"rows": 1, "cols": 1}, "element": []})
 

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a check
 from cellbridge.tactile.contacts import ContactEstimator  # noqa: E402
 from cellbridge.tactile.element import ElementParams  # noqa: E402
 from cellbridge.tactile.skin import grid_layout, skin_response  # noqa: E402
-from cellbridge.tactile.transfer import counts, counts_per_farad, counts_to_capacitance  # noqa: E402
+from cellbridge.tactile.transfer import counter_delta, counts_per_farad  # noqa: E402
 
 MM = 1e-3
 P = ElementParams()
@@ -38,11 +38,7 @@ COUNTER_NOISE = (0.5 / float(counts_per_farad(P.C1_rest)), 0.5 / float(counts_pe
 
 
 def quantised(dc1, dc2, rng):
-    out = []
-    for dc, rest in ((dc1, P.C1_rest), (dc2, P.C2_rest)):
-        n, _ = counts(rest + dc, phase=rng.uniform(0, 1, dc.shape))
-        out.append(counts_to_capacitance(n) - rest)
-    return out
+    return [counter_delta(dc, rest, rng.uniform(0, 1, dc.shape)) for dc, rest in ((dc1, P.C1_rest), (dc2, P.C2_rest))]
 
 
 def rms(a) -> float:

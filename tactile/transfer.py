@@ -51,6 +51,7 @@ __all__ = [
     "counts",
     "unwrap_counts",
     "counts_to_capacitance",
+    "counter_delta",
     "counts_per_farad",
     "adc_input",
     "adc_code",
@@ -215,6 +216,19 @@ def counts_to_capacitance(
     nn = np.asarray(n, dtype=np.float64)
     with np.errstate(divide="ignore"):
         return np.where(nn > 0, ch.gate_time / (_LN2x2 * ch.R_osc * nn), np.inf)
+
+
+def counter_delta(
+    dC: ArrayLike, C_rest: ArrayLike, phase: ArrayLike = 0.0, chip: ChipParams | None = None
+) -> FloatArray:
+    """ΔC as one counter gate reports it: ``C_rest + dC`` counted, unwrapped and
+    converted back, minus ``C_rest``. The quantisation a host sees from a noise-free
+    element, for simulations and benchmarks of everything downstream of the counter."""
+    ch = _chip(chip)
+    rest = np.asarray(C_rest, dtype=np.float64)
+    raw, overflow = counts(rest + np.asarray(dC, dtype=np.float64), ch, phase)
+    n = unwrap_counts(raw, expected_counts(rest, ch), ch, overflow)
+    return counts_to_capacitance(n, ch) - rest
 
 
 def counts_per_farad(C: ArrayLike, chip: ChipParams | None = None) -> FloatArray:

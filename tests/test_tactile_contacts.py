@@ -19,7 +19,7 @@ from cellbridge.tactile.contacts import (
 )
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.skin import grid_layout, skin_response
-from cellbridge.tactile.transfer import counts, counts_per_farad, counts_to_capacitance
+from cellbridge.tactile.transfer import counter_delta, counts_per_farad
 
 LAY = grid_layout(2, 2)  # the paper's 2×2 array, 40 mm pitch; seams at x = 20 mm, y = 20 mm
 EST = ContactEstimator(LAY)
@@ -33,11 +33,7 @@ def measure(contacts, lay=LAY, **kw):
 
 def quantised(dc1, dc2, rng):
     """What one 2 ms counter gate per channel reports, as ΔC against the rest value."""
-    out = []
-    for dc, rest in ((dc1, P.C1_rest), (dc2, P.C2_rest)):
-        n, _ = counts(rest + dc, phase=rng.uniform(0, 1, dc.shape))
-        out.append(counts_to_capacitance(n) - rest)
-    return out
+    return [counter_delta(dc, rest, rng.uniform(0, 1, dc.shape)) for dc, rest in ((dc1, P.C1_rest), (dc2, P.C2_rest))]
 
 
 # Rms of one counter reading: at most half a count.

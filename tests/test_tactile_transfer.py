@@ -228,3 +228,15 @@ def test_chip_params_validation():
         ChipParams(gate_cycles=1.5)  # type: ignore[arg-type]
     with pytest.raises(ValueError):
         expected_counts(-1e-12)
+
+
+def test_counter_delta_is_within_one_count_of_the_truth() -> None:
+    from cellbridge.tactile import ElementParams, counter_delta, counts_per_farad
+
+    rest = ElementParams().C1_rest
+    dC = np.linspace(0.0, 8e-12, 200)
+    phase = np.linspace(0.0, 0.999, 200)
+    got = counter_delta(dC, rest, phase)
+    lsb = 1.0 / counts_per_farad(rest + dC)  # one count, in farads
+    assert np.all(np.abs(got - dC) <= 1.01 * lsb)
+    assert np.any(got != dC)  # it does quantise

@@ -395,22 +395,22 @@ class ContactEstimator:
         for j, k in enumerate(owners):
             if np.isfinite(two.cost[j]) and (k not in best or two.cost[j] < two.cost[best[k]]):
                 best[k] = j
-        accept = []
+        gained = []
         for k, j in best.items():
-            dof2 = dof[k] - 4
-            infl = max(1.0, two.chi2[j] / dof2)
-            gain = (fits.chi2[k] - two.chi2[j]) / infl
-            th = two.theta[j]
-            r1, r2 = 0.5 * math.exp(th[2]), 0.5 * math.exp(th[6])
-            apart = math.hypot(th[0] - th[4], th[1] - th[5]) >= 0.8 * (r1 + r2)
-            if gain > SPLIT_DCHI2 and apart:
-                accept.append((k, th))
-        if not accept:
+            infl = max(1.0, two.chi2[j] / (dof[k] - 4))
+            if (fits.chi2[k] - two.chi2[j]) / infl > SPLIT_DCHI2:
+                gained.append((k, two.theta[j]))
+        if not gained:
             return
-        final = self._run(self._batch([clusters[k] for k, _ in accept], c1, c2),
-                          np.array([th for _, th in accept]), np.ones((len(accept), 8), dtype=bool), 2, True)
-        for j, (k, _) in enumerate(accept):
-            results[k] = self._split_contacts(clusters[k], final, j, int(dof[k] - 4))
+        final = self._run(self._batch([clusters[k] for k, _ in gained], c1, c2),
+                          np.array([th for _, th in gained]), np.ones((len(gained), 8), dtype=bool), 2, True)
+        for j, (k, _) in enumerate(gained):
+            # Two disks that overlap are no physical answer (the model adds their
+            # areas); the test runs after unresolved axes went to their ranges' middles.
+            th = final.theta[j]
+            r1, r2 = 0.5 * math.exp(th[2]), 0.5 * math.exp(th[6])
+            if math.hypot(th[0] - th[4], th[1] - th[5]) >= 0.8 * (r1 + r2) and final.ok[j]:
+                results[k] = self._split_contacts(clusters[k], final, j, int(dof[k] - 4))
 
     def _pair_seeds(self, cl: _Cluster, c1: FloatArray, c2: FloatArray, hinted: FloatArray | None) -> list[FloatArray]:
         """Starting points for two disks: each disk from the area it is credited with."""
@@ -481,12 +481,13 @@ class ContactEstimator:
         At low pressure ΔC ≈ k·F whatever the area, so the diameter is not known;
         but for any given diameter the elements' shares still fix the centre along a
         straddled axis. Fits at fixed diameters over the plausible range (force
-        free), keeps those consistent with the readings (cost within 1 of the best)
-        and reports the span of their centres: centre of the span, σ = span/√12
-        combined with the fits' own σ.
+        free) and free fits from the grid's local minima; keeps those consistent with
+        the readings (cost within 1 of the best) and reports the span of their
+        centres (± their own σ): centre of the span, σ = span/√12 combined with the
+        fits' own σ.
         """
         lay = self.layout
-        nd_grid = 12
+        nd_grid = 20
         out = []
         diam = np.geomspace(0.05 * lay.side, 1.5 * lay.side, nd_grid)
         probs, t0 = [], []
@@ -507,31 +508,50 @@ class ContactEstimator:
         self.method = "capacitance"  # the area method needs a pressure; ΔC does not
         try:
             fits = self._run(self._batch(probs, c1, c2), np.array(t0), free, 1, False)
+            # The grid is coarse near a sharp minimum (the ambiguous region has two
+            # discrete branches): every local minimum of the grid is refined with the
+            # diameter free as well.
+            cost = fits.cost.reshape(len(clusters), nd_grid)
+            padded = np.pad(cost, ((0, 0), (1, 1)), constant_values=np.inf)
+            loc = np.isfinite(cost) & (cost <= padded[:, :-2]) & (cost <= padded[:, 2:])
+            qk, qd = np.nonzero(loc)
+            rows = qk * nd_grid + qd
+            ref = self._run(self._batch([clusters[k] for k in qk], c1, c2), fits.theta[rows],
+                            np.ones((qk.size, 4), dtype=bool), 1, False)
         finally:
             self.method = saved
         for i, cl in enumerate(clusters):
             sl = slice(i * nd_grid, (i + 1) * nd_grid)
-            cost = fits.cost[sl]
-            keep = np.isfinite(cost) & (cost <= np.nanmin(cost) + 1.0)
+            mine = qk == i
+            c_ref = ref.cost[mine]
+            floor = min(float(np.nanmin(cost[i])), float(np.nanmin(c_ref)) if c_ref.size else np.inf)
+            best = np.isfinite(cost[i]) & (cost[i] <= floor + 1.0)
+            # The true diameter may lie between two grid points: the neighbours of a
+            # consistent one count too, so the span brackets it.
+            keep = best.copy()
+            keep[1:] |= best[:-1]
+            keep[:-1] |= best[1:]
+            keep &= np.isfinite(cost[i])
+            kref = np.isfinite(c_ref) & (c_ref <= floor + 1.0)
             b = lay.bounds[cl.members]
             pos, sig, obs = [0.0, 0.0], [0.0, 0.0], [False, False]
             dmin = float(diam[keep].min()) if keep.any() else 0.0
             for ax in (0, 1):
-                v = fits.theta[sl, ax][keep]
-                s = fits.sig[sl, ax][keep]
+                v = np.concatenate([fits.theta[sl, ax][keep], ref.theta[mine, ax][kref]])
+                s = np.concatenate([fits.sig[sl, ax][keep], ref.sig[mine, ax][kref]])
                 lo_e, hi_e = b[:, ax].min(), b[:, ax + 2].max()
-                if keep.any() and np.all(np.isfinite(s)) and s.max() < 0.25 * lay.side:
-                    lo, hi = float(v.min()), float(v.max())
+                if v.size and np.all(np.isfinite(s)) and s.max() < 0.25 * lay.side:
+                    lo, hi = float(np.min(v - s)), float(np.max(v + s))
                     pos[ax] = 0.5 * (lo + hi)
                     sig[ax] = math.sqrt((hi - lo) ** 2 / 12.0 + float(np.mean(s * s)))
                     obs[ax] = True
                 else:
                     pos[ax] = 0.5 * (lo_e + hi_e)
                     sig[ax] = max(hi_e - lo_e - dmin, 0.0) / math.sqrt(12.0)
-            good = keep.any() and any(obs)
+            good = (keep.any() or kref.any()) and any(obs)
             x, y = (pos[0], pos[1]) if good else cl.centroid
             sx, sy = (sig[0], sig[1]) if good else (0.5 * lay.side / math.sqrt(3.0) * cl.members.size,) * 2
-            j = int(np.argmin(np.where(keep, cost, np.inf)))
+            j = int(np.nanargmin(cost[i]))
             dof = int(2 * cl.obs.size - 3)
             out.append(Contact(
                 x=float(x), y=float(y), force=math.nan, diameter=math.nan,

@@ -11,7 +11,7 @@ elements), it reports both.
 
 This module holds the orchestration only: the compiled model and fit are in
 :mod:`cellbridge.tactile.disk_model` and :mod:`cellbridge.tactile.fit_kernel`, the
-spread model in :mod:`cellbridge.tactile.spread_fit`. Every fit of a frame runs in
+spread model in :mod:`cellbridge.tactile.spread_model`. Every fit of a frame runs in
 one kernel call.
 """
 
@@ -28,9 +28,10 @@ from cellbridge.tactile.clusters import cluster_elements, force_centroid
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.disk_model import element_vector
 from cellbridge.tactile.element import ElementParams, sensitivity
-from cellbridge.tactile.fit_kernel import fit_batch, share_start
+from cellbridge.tactile.fit_kernel import UNIFORM, fit_batch, share_start
 from cellbridge.tactile.inversion import DEFAULT_NOISE, solve
-from cellbridge.tactile.skin import SkinLayout, _check_spread
+from cellbridge.tactile.skin import SkinLayout, _check_spread, _spread_cells
+from cellbridge.tactile.spread_model import DV, PROFILE_ROWS
 
 __all__ = ["ContactEstimator", "estimate_contacts"]
 
@@ -133,11 +134,8 @@ class ContactEstimator:
         e = layout.corner_edges
         self._ring_of = [np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]]) for i in range(layout.n)]
         self._adj_edge = layout.adjacency("edge") if layout.n <= 4096 else None
-        self._spread_fit = None
         if self.spread > 0:
-            from cellbridge.tactile.spread_fit import SpreadFit
-
-            self._spread_fit = SpreadFit(layout, self.params, self.spread, self.noise, quad_step)
+            _spread_cells(layout.side, self.spread, quad_step)  # validates quad_step now
 
     # -- public -----------------------------------------------------------------------
     def estimate(
@@ -264,13 +262,15 @@ class ContactEstimator:
             w = np.tile(1.0 / self.noise, (len(obs), 1))
         return _Batch(off, np.ascontiguousarray(lay.bounds[allobs]), np.ascontiguousarray(y), quiet, w)
 
-    def _run(self, b: _Batch, theta0: FloatArray, free: NDArray[np.bool_], nd: int, assess: bool) -> _Fits:
+    def _run(
+        self, b: _Batch, theta0: FloatArray, free: NDArray[np.bool_], nd: int, assess: bool, sm: tuple = UNIFORM
+    ) -> _Fits:
         n, p = b.n, 4 * nd
         r = _Fits(np.empty((n, p)), np.empty((n, p)), np.zeros((n, p), dtype=bool), np.empty((n, p, p)),
                   np.empty(n), np.empty(n), np.zeros(n, dtype=bool))
         fit_batch(b.off, b.bounds, b.y, b.quiet, np.ascontiguousarray(theta0, dtype=np.float64),
                   np.ascontiguousarray(free), nd, b.w, 1 if self.method == "area" else 2, self._par,
-                  float(self.layout.side), assess, r.theta, r.sig, r.flat, r.cov, r.chi2, r.cost, r.ok)
+                  float(self.layout.side), assess, r.theta, r.sig, r.flat, r.cov, r.chi2, r.cost, r.ok, sm)
         return r
 
     def _starts(self, clusters: list[_Cluster], areas: list[FloatArray] | None = None) -> FloatArray:
@@ -318,12 +318,37 @@ class ContactEstimator:
                 if again.cost[j] < fits.cost[k]:
                     for name in ("theta", "sig", "flat", "cov", "chi2", "cost", "ok"):
                         getattr(fits, name)[k] = getattr(again, name)[j]
+        if self.spread > 0:
+            fits = self._spread_refine(batch, fits)
         results = [[self._contact(cl, fits, k, int(dof[k]))] for k, cl in enumerate(clusters)]
-        if self.split and self.method != "area":
+        # Two disks need the uniform model: under a spread, a one-disk misfit of the
+        # uniform model is no evidence of a second contact.
+        if self.split and self.method != "area" and self.spread == 0:
             self._try_splits(clusters, fits, dof, c1, c2, pair_hints, results)
-        if self._spread_fit is not None:
-            results = [[self._spread_fit.refine(cl, c, c1, c2) for c in cs] for cl, cs in zip(clusters, results)]
         return results
+
+    def _spread_refine(self, batch: _Batch, uni: _Fits) -> _Fits:
+        """The uniform fits, refined with the spread model (cheap start, close position).
+
+        Axes the uniform fit found unresolved stay at the middle of their range (a
+        disk inside one element sees its position under tension only through the
+        tails, which the readings resolve no better); the others, D and F are fitted
+        again, and their σ come from the spread model's curvature.
+        """
+        s = self.spread
+        d_max = float(np.exp(uni.theta[:, 2]).max())
+        rows = PROFILE_ROWS.upto(int(math.ceil((0.5 * d_max * 1.5 / s + 2.0) / DV)) + 2)
+        sm = (s, _spread_cells(self.layout.side, s, self.quad_step), rows)
+        free = np.ones(uni.theta.shape, dtype=bool)
+        free[:, :2] = ~uni.flat[:, :2]
+        good = uni.ok
+        out = self._run(batch, uni.theta, free, 1, False, sm)
+        for j in range(2):
+            keep = uni.flat[:, j] | ~good
+            out.sig[keep, j] = uni.sig[keep, j]
+            out.flat[:, j] = uni.flat[:, j]
+        out.ok &= good
+        return out
 
     def _hints_in(self, cl: _Cluster, hints: FloatArray) -> FloatArray:
         if hints.shape[0] == 0:

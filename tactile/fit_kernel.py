@@ -25,12 +25,30 @@ import numpy as np
 from numba import njit
 
 from cellbridge.tactile.disk_model import disk_residuals
+from cellbridge.tactile.spread_model import DV, spread_residuals
 
-__all__ = ["share_start", "fit_batch"]
+#: (spread s in m, 0 for the uniform model; quadrature cells per element side;
+#: profile rows of :mod:`cellbridge.tactile.spread_model`): which model a fit uses.
+SpreadArgs = tuple  # (float, int, np.ndarray)
+
+UNIFORM = (0.0, 1, np.zeros((2, 2)))
+
+__all__ = ["share_start", "fit_batch", "UNIFORM"]
 
 _LN_D_MIN = math.log(1e-5)  # 10 µm
 _LN_F_MIN = math.log(1e-6)
 _LN_F_MAX = math.log(1e5)
+
+
+@njit(cache=True)
+def _eval(
+    theta: np.ndarray, nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray,
+    nch: int, par: np.ndarray, sm: SpreadArgs, res: np.ndarray, jac: np.ndarray, want_jac: bool,
+) -> tuple[float, float]:
+    # The uniform-pressure model, or the spread model (one disk, ΔC) when s > 0.
+    if sm[0] > 0.0:
+        return spread_residuals(theta, bounds, y, w, quiet, par, sm[0], sm[1], sm[2], res, jac, want_jac)
+    return disk_residuals(theta, nd, bounds, y, w, quiet, nch, par, res, jac, want_jac)
 
 
 @njit(cache=True)
@@ -67,16 +85,16 @@ def _scale(j: int, side: float) -> float:
 
 
 @njit(cache=True)
-def _clip_theta(theta: np.ndarray, nd: int, side: float) -> None:
+def _clip_theta(theta: np.ndarray, nd: int, ln_dmax: float) -> None:
     for k in range(nd):
-        theta[4 * k + 2] = min(max(theta[4 * k + 2], _LN_D_MIN), math.log(100.0 * side))
+        theta[4 * k + 2] = min(max(theta[4 * k + 2], _LN_D_MIN), ln_dmax)
         theta[4 * k + 3] = min(max(theta[4 * k + 3], _LN_F_MIN), _LN_F_MAX)
 
 
 @njit(cache=True)
 def lm(
     theta: np.ndarray, free: np.ndarray, nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray,
-    quiet: np.ndarray, nch: int, par: np.ndarray, side: float, max_iter: int,
+    quiet: np.ndarray, nch: int, par: np.ndarray, side: float, max_iter: int, sm: SpreadArgs,
 ) -> tuple[float, float, bool]:
     """Levenberg–Marquardt in place on ``theta``; returns (data cost, total cost, converged).
 
@@ -98,8 +116,12 @@ def lm(
     g = np.empty(p)
     step = np.empty(p)
     idx = np.empty(p, dtype=np.int64)
-    _clip_theta(theta, nd, side)
-    data, cost = disk_residuals(theta, nd, bounds, y, w, quiet, nch, par, res, jac, True)
+    # Diameters up to 100 sides; with the spread model, up to what the profile rows cover.
+    ln_dmax = math.log(100.0 * side)
+    if sm[0] > 0.0:
+        ln_dmax = math.log(2.0 * sm[0] * (sm[2].shape[0] - 2) * DV)
+    _clip_theta(theta, nd, ln_dmax)
+    data, cost = _eval(theta, nd, bounds, y, w, quiet, nch, par, sm, res, jac, True)
     lam = 1e-3
     conv = False
     for _ in range(max_iter):
@@ -146,8 +168,8 @@ def lm(
             for a in range(n):
                 trial[idx[a]] += step[a]
                 big = max(big, abs(step[a]) / _scale(idx[a], side))
-            _clip_theta(trial, nd, side)
-            dt, ct = disk_residuals(trial, nd, bounds, y, w, quiet, nch, par, rt, jt, True)
+            _clip_theta(trial, nd, ln_dmax)
+            dt, ct = _eval(trial, nd, bounds, y, w, quiet, nch, par, sm, rt, jt, True)
             if ct <= cost:
                 small = cost - ct <= 1e-10 * cost + 1e-14 or big < 1e-9
                 for j in range(p):
@@ -171,7 +193,7 @@ def lm(
 @njit(cache=True)
 def _profile(
     theta: np.ndarray, free: np.ndarray, j: int, value: float, nd: int, bounds: np.ndarray, y: np.ndarray,
-    w: np.ndarray, quiet: np.ndarray, nch: int, par: np.ndarray, side: float, out: np.ndarray,
+    w: np.ndarray, quiet: np.ndarray, nch: int, par: np.ndarray, side: float, out: np.ndarray, sm: SpreadArgs,
 ) -> float:
     # Total cost with parameter j held at `value` and every other free one re-fitted.
     for i in range(theta.size):
@@ -179,14 +201,14 @@ def _profile(
     out[j] = value
     fr = free.copy()
     fr[j] = False
-    _, cost, _ = lm(out, fr, nd, bounds, y, w, quiet, nch, par, side, 12)
+    _, cost, _ = lm(out, fr, nd, bounds, y, w, quiet, nch, par, side, 12, sm)
     return cost
 
 
 @njit(cache=True)
 def _covariance(
     theta: np.ndarray, use: np.ndarray, nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray,
-    quiet: np.ndarray, nch: int, par: np.ndarray, side: float, cov: np.ndarray,
+    quiet: np.ndarray, nch: int, par: np.ndarray, side: float, cov: np.ndarray, sm: SpreadArgs,
 ) -> bool:
     # (JᵀJ)⁻¹ of the data rows (not the prior) over the parameters `use`; others NaN.
     m = bounds.shape[0]
@@ -194,7 +216,7 @@ def _covariance(
     nrow = nch * m + nd
     res = np.empty(nrow)
     jac = np.empty((nrow, p))
-    disk_residuals(theta, nd, bounds, y, w, quiet, nch, par, res, jac, True)
+    _eval(theta, nd, bounds, y, w, quiet, nch, par, sm, res, jac, True)
     idx = np.empty(p, dtype=np.int64)
     n = 0
     for j in range(p):
@@ -251,11 +273,11 @@ def _covariance(
 def _bracket(
     theta: np.ndarray, free: np.ndarray, j: int, c0: float, thr: float, step0: float, limit: float,
     nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray, nch: int,
-    par: np.ndarray, side: float, better: np.ndarray,
+    par: np.ndarray, side: float, better: np.ndarray, sm: SpreadArgs,
 ) -> tuple[float, float, float]:
     """Range of parameter j where the profile cost stays within ``c0 + thr``.
 
-    Doubling steps outwards, then bisection to 1/64 of the last step. Returns
+    Doubling steps outwards, then bisection to 1/1024 of the last step. Returns
     (lo, hi, lowest cost seen); ``better`` holds the parameters at that lowest cost,
     so a caller can restart from a better minimum the local solver missed.
     """
@@ -271,7 +293,7 @@ def _bracket(
         t_out = -1.0
         cur = theta.copy()
         while t <= limit:
-            c = _profile(cur, free, j, theta[j] + sgn * t, nd, bounds, y, w, quiet, nch, par, side, tmp)
+            c = _profile(cur, free, j, theta[j] + sgn * t, nd, bounds, y, w, quiet, nch, par, side, tmp, sm)
             if c < best:
                 best = c
                 for i in range(theta.size):
@@ -286,9 +308,9 @@ def _bracket(
         if t_out < 0.0:
             ends[side_i] = limit
             continue
-        for _ in range(6):
+        for _ in range(10):
             mid = 0.5 * (t_in + t_out)
-            c = _profile(cur, free, j, theta[j] + sgn * mid, nd, bounds, y, w, quiet, nch, par, side, tmp)
+            c = _profile(cur, free, j, theta[j] + sgn * mid, nd, bounds, y, w, quiet, nch, par, side, tmp, sm)
             if c <= c0 + thr:
                 t_in = mid
             else:
@@ -301,7 +323,7 @@ def _bracket(
 def fit_one(
     theta: np.ndarray, free: np.ndarray, nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray,
     quiet: np.ndarray, nch: int, par: np.ndarray, side: float,
-    sig: np.ndarray, flat: np.ndarray, cov: np.ndarray, assess: bool,
+    sig: np.ndarray, flat: np.ndarray, cov: np.ndarray, assess: bool, sm: SpreadArgs,
 ) -> tuple[float, float, bool]:
     """Fit in place and fill one-sigma ``sig`` per parameter, ``flat`` per position
     parameter (True: the readings do not resolve it; value = middle of the
@@ -309,7 +331,7 @@ def fit_one(
     Without ``assess`` the axes are not checked: σ is the curvature's alone."""
     p = 4 * nd
     m = bounds.shape[0]
-    data, cost, conv = lm(theta, free, nd, bounds, y, w, quiet, nch, par, side, 60)
+    data, cost, conv = lm(theta, free, nd, bounds, y, w, quiet, nch, par, side, 60, sm)
     nfree = 0
     for j in range(p):
         nfree += free[j]
@@ -325,7 +347,7 @@ def fit_one(
         # Position parameters the Jacobian does not see at all are flat from the start.
         for j in range(p):
             use[j] = free[j]
-        ok_cov = _covariance(theta, use, nd, bounds, y, w, quiet, nch, par, side, cov)
+        ok_cov = _covariance(theta, use, nd, bounds, y, w, quiet, nch, par, side, cov, sm)
         restart = False
         for k in range(nd):
             for a in range(2):
@@ -334,21 +356,26 @@ def fit_one(
                     continue
                 sl = math.sqrt(cov[j, j] * infl) if ok_cov and cov[j, j] >= 0.0 else math.inf
                 if sl < 0.05 * side:
-                    cp = _profile(theta, free, j, theta[j] + 2.0 * sl, nd, bounds, y, w, quiet, nch, par, side, tmp)
-                    cm = _profile(theta, free, j, theta[j] - 2.0 * sl, nd, bounds, y, w, quiet, nch, par, side, tmp)
+                    cp = _profile(theta, free, j, theta[j] + 2.0 * sl, nd, bounds, y, w, quiet, nch, par, side, tmp, sm)
+                    cm = _profile(theta, free, j, theta[j] - 2.0 * sl, nd, bounds, y, w, quiet, nch, par, side, tmp, sm)
                     if min(cp, cm) >= cost + 2.0 * infl:
                         sig[j] = sl
                         continue
                 step0 = max(min(sl, 0.05 * side), side / 80.0)
                 lo, hi, best = _bracket(theta, free, j, cost, infl, step0, 1.5 * side, nd, bounds, y, w,
-                                        quiet, nch, par, side, better)
+                                        quiet, nch, par, side, better, sm)
                 if best < cost - 1e-3 * infl and attempt < 2:
                     restart = True
                     break
                 width = (hi - lo) / math.sqrt(12.0)
                 if sl >= width:
+                    # Report the middle of the flat bottom (positions the readings
+                    # cannot tell apart at all), σ from the consistent range: the
+                    # range may be lopsided where the skin ends.
                     flat[j] = True
-                    theta[j] = 0.5 * (lo + hi)
+                    plo, phi, _ = _bracket(theta, free, j, cost, 0.01 * infl, step0, 1.5 * side, nd, bounds, y,
+                                           w, quiet, nch, par, side, better, sm)
+                    theta[j] = 0.5 * (plo + phi)
                     sig[j] = width
                 else:
                     sig[j] = width
@@ -357,7 +384,7 @@ def fit_one(
         if restart:
             for j in range(p):
                 theta[j] = better[j]
-            data, cost, conv = lm(theta, free, nd, bounds, y, w, quiet, nch, par, side, 60)
+            data, cost, conv = lm(theta, free, nd, bounds, y, w, quiet, nch, par, side, 60, sm)
             continue
         break
     if not assess:
@@ -370,9 +397,9 @@ def fit_one(
             anyflat = True
             use[j] = False
     if anyflat:
-        data, cost, conv2 = lm(theta, use, nd, bounds, y, w, quiet, nch, par, side, 30)
+        data, cost, conv2 = lm(theta, use, nd, bounds, y, w, quiet, nch, par, side, 30, sm)
     infl = max(1.0, data / dof) if dof > 0 else 1.0
-    ok_cov = _covariance(theta, use, nd, bounds, y, w, quiet, nch, par, side, cov)
+    ok_cov = _covariance(theta, use, nd, bounds, y, w, quiet, nch, par, side, cov, sm)
     for j in range(p):
         if use[j]:
             v = cov[j, j] * infl if ok_cov else np.nan
@@ -392,7 +419,7 @@ def fit_batch(
     off: np.ndarray, bounds: np.ndarray, y: np.ndarray, quiet: np.ndarray, theta0: np.ndarray,
     free: np.ndarray, nd: int, w: np.ndarray, nch: int, par: np.ndarray, side: float, assess: bool,
     theta: np.ndarray, sig: np.ndarray, flat: np.ndarray, cov: np.ndarray, chi2: np.ndarray,
-    cost: np.ndarray, ok: np.ndarray,
+    cost: np.ndarray, ok: np.ndarray, sm: SpreadArgs,
 ) -> None:
     """Fit problem q on observations ``off[q]:off[q+1]`` from ``theta0[q]``, all q
     (``w[q]``: the weights 1/noise of its channels)."""
@@ -400,7 +427,7 @@ def fit_batch(
         a, b = off[q], off[q + 1]
         th = theta0[q].copy()
         c2, ct, good = fit_one(th, free[q], nd, bounds[a:b], y[:, a:b], w[q], quiet[a:b], nch, par, side,
-                               sig[q], flat[q], cov[q], assess)
+                               sig[q], flat[q], cov[q], assess, sm)
         theta[q] = th
         chi2[q] = c2
         cost[q] = ct

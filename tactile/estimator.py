@@ -190,7 +190,11 @@ class ContactEstimator:
         if good:
             for k, cs in zip(good, self._fit_valid([clusters[k] for k in good], c1, c2, h)):
                 out[k] = cs
-        light = [k for k, cl in enumerate(clusters) if not cl.valid]
+        # A light touch on one element says nothing finer than the element: no fit.
+        light = [k for k, cl in enumerate(clusters) if not cl.valid and cl.members.size > 1]
+        for k, cl in enumerate(clusters):
+            if not cl.valid and cl.members.size == 1:
+                out[k] = self._unlocated(cl)
         if light:
             for k, c in zip(light, self._fit_light([clusters[k] for k in light], c1, c2)):
                 out[k] = c
@@ -500,6 +504,17 @@ class ContactEstimator:
         return out
 
     # -- clusters without a pressure: the light touch ---------------------------------------
+    def _unlocated(self, cl: _Cluster) -> Contact:
+        # Uniform over the cluster's elements: the ΔC1-weighted centroid, σ = side/√12 per element.
+        sx = sy = self.layout.side / math.sqrt(12.0) * cl.members.size
+        x, y = cl.centroid
+        return Contact(
+            x=float(x), y=float(y), force=math.nan, diameter=math.nan, model_x=math.nan, model_y=math.nan,
+            sigma_x=sx, sigma_y=sy, sigma_xy=sx, cov=((sx * sx, 0.0), (0.0, sy * sy)), sigma_force=math.nan,
+            sigma_diameter=math.nan, valid=False, fit_ok=False, observable=(False, False), chi2=math.nan,
+            dof=0, **cl.base,
+        )
+
     def _fit_light(self, clusters: list[_Cluster], c1: FloatArray, c2: FloatArray) -> list[Contact]:
         """Position of a touch whose pressure the inverse cannot give.
 
@@ -573,19 +588,18 @@ class ContactEstimator:
                 else:
                     pos[ax] = 0.5 * (lo_e + hi_e)
                     sig[ax] = max(hi_e - lo_e - dmin, 0.0) / math.sqrt(12.0)
-            good = (keep.any() or kref.any()) and any(obs)
-            x, y = (pos[0], pos[1]) if good else cl.centroid
-            sx, sy = (sig[0], sig[1]) if good else (0.5 * lay.side / math.sqrt(3.0) * cl.members.size,) * 2
+            if not ((keep.any() or kref.any()) and any(obs)):
+                out.append(self._unlocated(cl))
+                continue
+            x, y = pos
+            sx, sy = sig
             j = int(np.nanargmin(cost[i]))
-            dof = int(2 * cl.obs.size - 3)
             out.append(Contact(
-                x=float(x), y=float(y), force=math.nan, diameter=math.nan,
-                model_x=float(x) if good else math.nan, model_y=float(y) if good else math.nan,
+                x=float(x), y=float(y), force=math.nan, diameter=math.nan, model_x=float(x), model_y=float(y),
                 sigma_x=float(sx), sigma_y=float(sy), sigma_xy=float(max(sx, sy)),
                 cov=((float(sx * sx), 0.0), (0.0, float(sy * sy))), sigma_force=math.nan,
-                sigma_diameter=math.nan, valid=False, fit_ok=bool(good),
-                observable=(bool(obs[0]), bool(obs[1])) if good else (False, False),
-                chi2=float(fits.chi2[sl][j]), dof=dof, **cl.base,
+                sigma_diameter=math.nan, valid=False, fit_ok=True, observable=(bool(obs[0]), bool(obs[1])),
+                chi2=float(fits.chi2[sl][j]), dof=int(2 * cl.obs.size - 3), **cl.base,
             ))
         return out
 

@@ -273,11 +273,13 @@ def _covariance(
 def _bracket(
     theta: np.ndarray, free: np.ndarray, j: int, c0: float, thr: float, step0: float, limit: float,
     nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray, nch: int,
-    par: np.ndarray, side: float, better: np.ndarray, sm: SpreadArgs,
+    par: np.ndarray, side: float, better: np.ndarray, sm: SpreadArgs, tol: float, start_lo: float,
+    start_hi: float,
 ) -> tuple[float, float, float]:
     """Range of parameter j where the profile cost stays within ``c0 + thr``.
 
-    Doubling steps outwards, then bisection to 1/1024 of the last step. Returns
+    From ``start_lo`` below and ``start_hi`` above the current value (known to be
+    inside), doubling steps outwards, then bisection down to ``tol``. Returns
     (lo, hi, lowest cost seen); ``better`` holds the parameters at that lowest cost,
     so a caller can restart from a better minimum the local solver missed.
     """
@@ -288,8 +290,10 @@ def _bracket(
     ends = np.empty(2)
     for side_i in range(2):
         sgn = -1.0 if side_i == 0 else 1.0
-        t_in = 0.0
-        t = step0
+        t_in = start_lo if side_i == 0 else start_hi
+        offset = t_in
+        step = step0
+        t = offset + step
         t_out = -1.0
         cur = theta.copy()
         while t <= limit:
@@ -304,11 +308,12 @@ def _bracket(
             t_in = t
             for i in range(theta.size):
                 cur[i] = tmp[i]
-            t *= 2.0
+            step *= 2.0
+            t = offset + step
         if t_out < 0.0:
             ends[side_i] = limit
             continue
-        for _ in range(10):
+        while t_out - t_in > tol:
             mid = 0.5 * (t_in + t_out)
             c = _profile(cur, free, j, theta[j] + sgn * mid, nd, bounds, y, w, quiet, nch, par, side, tmp, sm)
             if c <= c0 + thr:
@@ -317,6 +322,35 @@ def _bracket(
                 t_out = mid
         ends[side_i] = 0.5 * (t_in + t_out)
     return theta[j] - ends[0], theta[j] + ends[1], best
+
+
+@njit(cache=True)
+def _plateau(theta: np.ndarray, k: int, a: int, bounds: np.ndarray) -> tuple[float, float]:
+    """Positions along axis ``a`` where disk k reads exactly as it does now.
+
+    Sliding the disk changes an element's share only when its extent crosses one of
+    that element's edges (perpendicular to the axis, among the elements level with
+    the disk). So the readings stay put between the nearest such edges on either
+    side, less the radius. (NaN, NaN) when an edge cuts the disk: then the axis is
+    not flat here and the caller brackets it by profile instead.
+    """
+    c = theta[4 * k + a]
+    cb = theta[4 * k + 1 - a]
+    r = 0.5 * math.exp(theta[4 * k + 2])
+    lo = -math.inf
+    hi = math.inf
+    eps = 1e-9 * r
+    for i in range(bounds.shape[0]):
+        if bounds[i, 3 - a] <= cb - r or bounds[i, 1 - a] >= cb + r:
+            continue  # not level with the disk
+        for e in (bounds[i, a], bounds[i, a + 2]):
+            if e <= c - r + eps:
+                lo = max(lo, e + r)
+            elif e >= c + r - eps:
+                hi = min(hi, e - r)
+            else:
+                return np.nan, np.nan
+    return lo, hi
 
 
 @njit(cache=True)
@@ -361,9 +395,27 @@ def fit_one(
                     if min(cp, cm) >= cost + 2.0 * infl:
                         sig[j] = sl
                         continue
+                if sl == math.inf and sm[0] == 0.0:
+                    plo, phi = _plateau(theta, k, a, bounds)
+                    if plo <= phi:
+                        # Unseen by the readings: take the middle of the plateau (same
+                        # cost), then find how far beyond it the readings stay consistent.
+                        plo = max(plo, theta[j] - 1.5 * side)
+                        phi = min(phi, theta[j] + 1.5 * side)
+                        theta[j] = 0.5 * (plo + phi)
+                        lo, hi, best = _bracket(theta, free, j, cost, infl, side / 400.0, 1.5 * side, nd, bounds,
+                                                y, w, quiet, nch, par, side, better, sm, 0.004 * side,
+                                                theta[j] - plo, phi - theta[j])
+                        if best < cost - 1e-3 * infl and attempt < 2:
+                            restart = True
+                            break
+                        flat[j] = True
+                        sig[j] = (hi - lo) / math.sqrt(12.0)
+                        continue
                 step0 = max(min(sl, 0.05 * side), side / 80.0)
+                # The range sets σ = width/√12: a few per mille of the side is plenty.
                 lo, hi, best = _bracket(theta, free, j, cost, infl, step0, 1.5 * side, nd, bounds, y, w,
-                                        quiet, nch, par, side, better, sm)
+                                        quiet, nch, par, side, better, sm, 0.004 * side, 0.0, 0.0)
                 if best < cost - 1e-3 * infl and attempt < 2:
                     restart = True
                     break
@@ -374,7 +426,7 @@ def fit_one(
                     # range may be lopsided where the skin ends.
                     flat[j] = True
                     plo, phi, _ = _bracket(theta, free, j, cost, 0.01 * infl, step0, 1.5 * side, nd, bounds, y,
-                                           w, quiet, nch, par, side, better, sm)
+                                           w, quiet, nch, par, side, better, sm, 0.0005 * side, 0.0, 0.0)
                     theta[j] = 0.5 * (plo + phi)
                     sig[j] = width
                 else:

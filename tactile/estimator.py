@@ -26,8 +26,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from cellbridge.tactile.clusters import cluster_elements, force_centroid
 from cellbridge.tactile.contact_result import Contact
-from cellbridge.tactile.disk_model import element_vector
-from cellbridge.tactile.element import ElementParams, sensitivity
+from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
+from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.fit_kernel import UNIFORM, fit_batch, share_start
 from cellbridge.tactile.inversion import DEFAULT_NOISE, solve
 from cellbridge.tactile.skin import SkinLayout, _check_spread, _spread_cells
@@ -53,11 +53,8 @@ class _Cluster:
     sigma0: float  # shared pressure from the valid elements (NaN: none)
     area: FloatArray  # per observed element
     centroid: tuple[float, float]
+    valid: bool  # a pressure and a positive area: the disk can be fitted
     base: dict = field(default_factory=dict)
-
-    @property
-    def valid(self) -> bool:
-        return math.isfinite(self.sigma0) and float(np.nansum(np.maximum(self.area[: self.members.size], 0))) > 0
 
 
 @dataclass
@@ -223,7 +220,7 @@ class ContactEstimator:
         a = area[obs].copy()
         f = force[obs].copy()
         if math.isfinite(sigma0):
-            g1, g2 = sensitivity(sigma0, self.params)
+            g1, g2 = self._g(sigma0)
             w1, w2 = 1.0 / self.noise[0] ** 2, 1.0 / self.noise[1] ** 2
             est = (w1 * g1 * c1[obs] + w2 * g2 * c2[obs]) / (w1 * g1 * g1 + w2 * g2 * g2)
             bad = ~valid[obs]
@@ -243,7 +240,12 @@ class ContactEstimator:
             pressure=sigma0, force_sum=float(np.nansum(f[:nm])) if ok else math.nan,
             area=s_tot if ok else math.nan,
         )
-        return _Cluster(members, obs, sigma0, a, (cx, cy), base)
+        return _Cluster(members, obs, sigma0, a, (cx, cy), ok and s_tot > 0, base)
+
+    def _g(self, sigma: float) -> tuple[float, float]:
+        """Sensitivities (g1, g2) at one pressure (the compiled scalar: no array overhead)."""
+        p = self._par
+        return sensitivity_slope(sigma, *p[:4])[0], sensitivity_slope(sigma, *p[4:])[0]
 
     def _batch(self, clusters: list[_Cluster], c1: FloatArray, c2: FloatArray, reps: int = 1) -> _Batch:
         """Kernel arrays for the clusters, each repeated ``reps`` times in a row."""
@@ -258,7 +260,7 @@ class ContactEstimator:
             y[0] = np.nan_to_num(np.concatenate([cl.area for cl in clusters for _ in range(reps)]))
             w = np.empty((len(obs), 2))
             for k, cl in enumerate(clusters):
-                g1, g2 = sensitivity(cl.sigma0, self.params)
+                g1, g2 = self._g(cl.sigma0)
                 # Area noise of one element: the ΔC noise through both sensitivities.
                 w[k * reps : (k + 1) * reps] = math.sqrt((g1 / self.noise[0]) ** 2 + (g2 / self.noise[1]) ** 2)
         else:
@@ -387,14 +389,13 @@ class ContactEstimator:
         cxy = float(cv[0, 1]) if not flat.any() and np.isfinite(cv[0, 1]) else 0.0
         sx, sy = float(sig[0]), float(sig[1])
         cov = ((sx * sx, cxy), (cxy, sy * sy))
-        ev = np.linalg.eigvalsh(np.array(cov))
         cx, cy = base["centroid_x"], base["centroid_y"]
         return Contact(
             x=float(th[0]) if ok else cx, y=float(th[1]) if ok else cy,
             force=force if ok else base["force_sum"],
             diameter=diam if ok else 2.0 * math.sqrt(max(base["area"], 0.0) / math.pi),
             model_x=float(th[0]) if ok else math.nan, model_y=float(th[1]) if ok else math.nan,
-            sigma_x=sx, sigma_y=sy, sigma_xy=float(math.sqrt(max(float(ev.max()), 0.0))), cov=cov,
+            sigma_x=sx, sigma_y=sy, sigma_xy=_major(sx * sx, sy * sy, cxy), cov=cov,
             sigma_force=float(force * s_lnf) if ok else math.nan,
             sigma_diameter=float(diam * sig[2]) if ok else math.nan,
             valid=True, fit_ok=ok, observable=(not bool(flat[0]), not bool(flat[1])),
@@ -488,7 +489,7 @@ class ContactEstimator:
         for d in range(2):
             a = shares[d]
             sig_d = math.exp(th[4 * d + 3]) / (math.pi * (0.5 * math.exp(th[4 * d + 2])) ** 2)
-            g1, _ = sensitivity(sig_d, self.params)
+            g1, _ = self._g(sig_d)
             mine = a * g1 > 3.0 * self.noise[0]
             if not mine.any():
                 mine = a >= a.max()
@@ -530,24 +531,27 @@ class ContactEstimator:
         nd_grid = 20
         out = []
         diam = np.geomspace(0.05 * lay.side, 1.5 * lay.side, nd_grid)
-        probs, t0 = [], []
+        probs: list[_Cluster] = []
         p = self.params
         k_low = p.eps1 * (p.d1 - p.d10) / (p.E1 * p.d1 * p.d1)  # g1/σ as σ → 0
+        areas, lnf = [], []
         for cl in clusters:
             nm = cl.members.size
             s1 = np.maximum(c1[cl.members], 0.0)
             tot = s1.sum()
+            share = s1 / tot if tot > 0 else np.full(nm, 1.0 / nm)
             f0 = max(tot / k_low, 1e-6) if tot > 0 else 1e-3
             for d in diam:
-                area = s1 / tot * math.pi * d * d / 4 if tot > 0 else np.full(nm, math.pi * d * d / 4 / nm)
-                st = self._starts([cl], [area])[0]
-                t0.append([st[0], st[1], math.log(d), math.log(f0)])
+                areas.append(share * math.pi * d * d / 4)
+                lnf.append(math.log(f0))
                 probs.append(cl)
+        st = self._starts(probs, areas)
+        t0 = np.column_stack([st[:, :2], np.log(np.tile(diam, len(clusters))), lnf])
         free = np.tile(np.array([True, True, False, True]), (len(probs), 1))
         saved = self.method
         self.method = "capacitance"  # the area method needs a pressure; ΔC does not
         try:
-            fits = self._run(self._batch(probs, c1, c2), np.array(t0), free, 1, False)
+            fits = self._run(self._batch(probs, c1, c2), t0, free, 1, False)
             # The grid is coarse near a sharp minimum (the ambiguous region has two
             # discrete branches): every local minimum of the grid is refined with the
             # diameter free as well.
@@ -602,6 +606,12 @@ class ContactEstimator:
                 chi2=float(fits.chi2[sl][j]), dof=int(2 * cl.obs.size - 3), **cl.base,
             ))
         return out
+
+
+def _major(vx: float, vy: float, cxy: float) -> float:
+    """Larger semi-axis (one sigma) of a 2×2 covariance, in closed form."""
+    half = 0.5 * (vx + vy)
+    return math.sqrt(max(half + math.hypot(0.5 * (vx - vy), cxy), 0.0))
 
 
 def estimate_contacts(

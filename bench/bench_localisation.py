@@ -30,6 +30,7 @@ from cellbridge.tactile.contacts import ContactEstimator  # noqa: E402
 from cellbridge.tactile.element import ElementParams  # noqa: E402
 from cellbridge.tactile.skin import grid_layout, skin_response  # noqa: E402
 from cellbridge.tactile.transfer import counter_delta, counts_per_farad  # noqa: E402
+from timing import table  # noqa: E402
 
 MM = 1e-3
 P = ElementParams()
@@ -44,19 +45,6 @@ def quantised(dc1, dc2, rng):
 def rms(a) -> float:
     a = np.asarray(a, dtype=float)
     return float(math.sqrt(np.mean(a * a))) if a.size else float("nan")
-
-
-def row(cells, widths):
-    return "  ".join(str(c).rjust(w) if i else str(c).ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
-
-
-def table(title, head, rows):
-    widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
-    print(f"\n{title}")
-    print(row(head, widths))
-    print(row(["-" * w for w in widths], widths))
-    for r in rows:
-        print(row(r, widths))
 
 
 TIMES: list[float] = []

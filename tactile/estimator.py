@@ -592,7 +592,11 @@ class ContactEstimator:
                 else:
                     pos[ax] = 0.5 * (lo_e + hi_e)
                     sig[ax] = max(hi_e - lo_e - dmin, 0.0) / math.sqrt(12.0)
-            if not ((keep.any() or kref.any()) and any(obs)):
+            # A best fit far worse than the noise found no disk that explains the
+            # readings (the search missed, or it is no disk): no interval then.
+            dof = 2 * cl.obs.size - 3
+            plausible = floor <= dof + 5.0 * math.sqrt(2.0 * max(dof, 1)) + 10.0
+            if not ((keep.any() or kref.any()) and any(obs) and plausible):
                 out.append(self._unlocated(cl))
                 continue
             x, y = pos
@@ -603,7 +607,7 @@ class ContactEstimator:
                 sigma_x=float(sx), sigma_y=float(sy), sigma_xy=float(max(sx, sy)),
                 cov=((float(sx * sx), 0.0), (0.0, float(sy * sy))), sigma_force=math.nan,
                 sigma_diameter=math.nan, valid=False, fit_ok=True, observable=(bool(obs[0]), bool(obs[1])),
-                chi2=float(fits.chi2[sl][j]), dof=int(2 * cl.obs.size - 3), **cl.base,
+                chi2=float(fits.chi2[sl][j]), dof=int(dof), **cl.base,
             ))
         return out
 

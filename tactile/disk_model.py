@@ -34,7 +34,9 @@ from numba import njit
 
 from cellbridge.tactile.element import ElementParams
 
-__all__ = ["PRIOR_OFF", "element_vector", "overlap_grad", "sensitivity_slope", "disk_residuals"]
+__all__ = [
+    "PRIOR_OFF", "element_vector", "overlap_grad", "sensitivity_slope", "disk_residuals", "prior_row", "whiten",
+]
 
 #: One-sigma width of the on-skin prior, as a fraction of the disk lying on no
 #: observed element (see :func:`disk_residuals`).
@@ -206,19 +208,47 @@ def disk_residuals(
                     jac[row, 4 * k + 1] += ay * g * w[c]
                     jac[row, 4 * k + 2] += (ar * r * g - 2.0 * a * s * sig) * w[c]
                     jac[row, 4 * k + 3] += a * s * sig * w[c]
-        off = 1.0 - tot / disk
-        prow = nch * m + k
-        if off > 0.0:
-            res[prow] = off / PRIOR_OFF
-            if want_jac:
-                jac[prow, 4 * k] = -tx / disk / PRIOR_OFF
-                jac[prow, 4 * k + 1] = -ty / disk / PRIOR_OFF
-                jac[prow, 4 * k + 2] = (-tr * r / disk + 2.0 * tot / disk) / PRIOR_OFF
+        prior_row(res, jac, nch * m + k, 4 * k, tot, tx, ty, -tr * r / disk + 2.0 * tot / disk, disk, want_jac)
+    data = whiten(res, jac, y, w, quiet, nch, m, False, want_jac)
+    total = data
+    for k in range(nd):
+        total += res[nch * m + k] ** 2
+    return data, total
+
+
+@njit(cache=True)
+def prior_row(
+    res: np.ndarray, jac: np.ndarray, row: int, col: int, tot: float, tx: float, ty: float,
+    doff_dlnr: float, disk: float, want_jac: bool,
+) -> None:
+    """The on-skin prior's row: off-footprint fraction ``1 − tot/disk`` over
+    :data:`PRIOR_OFF`, zero when the footprint lies wholly on the observed elements."""
+    off = 1.0 - tot / disk
+    if off > 0.0:
+        res[row] = off / PRIOR_OFF
+        if want_jac:
+            jac[row, col] = -tx / disk / PRIOR_OFF
+            jac[row, col + 1] = -ty / disk / PRIOR_OFF
+            jac[row, col + 2] = doff_dlnr / PRIOR_OFF
+
+
+@njit(cache=True)
+def whiten(
+    res: np.ndarray, jac: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray, nch: int, m: int,
+    scale_jac: bool, want_jac: bool,
+) -> float:
+    """Turn predictions in ``res`` into whitened residuals (data rows); returns their
+    cost. Quiet elements only bound the prediction from above. ``scale_jac``:
+    multiply the Jacobian's data rows by w (False: they already carry it)."""
     data = 0.0
+    p = jac.shape[1]
     for c in range(nch):
         for i in range(m):
             row = c * m + i
             v = (res[row] - y[c, i]) * w[c]
+            if want_jac and scale_jac:
+                for j in range(p):
+                    jac[row, j] *= w[c]
             if quiet[i] and v < 0.0:
                 v = 0.0
                 if want_jac:
@@ -226,7 +256,4 @@ def disk_residuals(
                         jac[row, j] = 0.0
             res[row] = v
             data += v * v
-    total = data
-    for k in range(nd):
-        total += res[nch * m + k] ** 2
-    return data, total
+    return data

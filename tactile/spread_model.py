@@ -19,7 +19,7 @@ import math
 import numpy as np
 from numba import njit
 
-from cellbridge.tactile.disk_model import PRIOR_OFF, overlap_grad, sensitivity_slope
+from cellbridge.tactile.disk_model import overlap_grad, prior_row, sensitivity_slope, whiten
 from cellbridge.tactile.skin import _disk_blur
 
 __all__ = ["ProfileRows", "spread_residuals", "DV", "DU", "U_SPAN"]
@@ -154,21 +154,8 @@ def spread_residuals(
                                     jac[row, 1] += wn * gu * dy / (rho * s)
                                 jac[row, 2] += wn * (T[4 * c + 3, jj] * (1.0 - f) + T[4 * c + 3, jj + 1] * f)
                                 jac[row, 3] += wn * (T[4 * c + 2, jj] * (1.0 - f) + T[4 * c + 2, jj + 1] * f)
-    data = 0.0
-    for c in range(2):
-        for i in range(m):
-            row = c * m + i
-            if want_jac:
-                for j in range(4):
-                    jac[row, j] *= w[c]
-            val = (res[row] - y[c, i]) * w[c]
-            if quiet[i] and val < 0.0:
-                val = 0.0
-                for j in range(4):
-                    jac[row, j] = 0.0
-            res[row] = val
-            data += val * val
-    # On-skin prior on the widened footprint.
+    data = whiten(res, jac, y, w, quiet, 2, m, True, want_jac)
+    # On-skin prior on the widened footprint (∂rw/∂ln R = R).
     rw = R + 1.5 * s
     tot = 0.0
     tx = 0.0
@@ -181,14 +168,6 @@ def spread_residuals(
         ty += ay
         tr += ar
     disk = math.pi * rw * rw
-    off = 1.0 - tot / disk
-    total = data
-    if off > 0.0:
-        res[2 * m] = off / PRIOR_OFF
-        total += res[2 * m] ** 2
-        if want_jac:
-            jac[2 * m, 0] = -tx / disk / PRIOR_OFF
-            jac[2 * m, 1] = -ty / disk / PRIOR_OFF
-            # d(off)/d ln R with rw = R + 1.5 s: ∂rw/∂lnR = R.
-            jac[2 * m, 2] = (-tr * R / disk + 2.0 * tot * R / (disk * rw)) / PRIOR_OFF
+    prior_row(res, jac, 2 * m, 0, tot, tx, ty, -tr * R / disk + 2.0 * tot * R / (disk * rw), disk, want_jac)
+    total = data + res[2 * m] ** 2
     return data, total

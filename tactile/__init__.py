@@ -84,6 +84,7 @@ from cellbridge.tactile.contacts import (  # noqa: E402
     estimate_contacts,
     force_centroid,
 )
+from cellbridge.tactile.tracker import ContactTracker, TrackedContact  # noqa: E402
 from cellbridge.tactile.skin import (  # noqa: E402
     SkinLayout,
     disk_element_overlap,
@@ -119,4 +120,7 @@ __all__ += [
     "cluster_elements",
     "estimate_contacts",
     "force_centroid",
+    # contacts across frames
+    "ContactTracker",
+    "TrackedContact",
 ]

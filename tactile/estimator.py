@@ -302,7 +302,7 @@ class ContactEstimator:
         pair_hints: dict[int, FloatArray] = {}
         hinted = np.zeros(len(clusters), dtype=bool)
         for k, cl in enumerate(clusters):
-            inside = self._hints_in(cl, hints)
+            inside = self._hints_in(cl, hints, 2.0 * st[k, 2])
             if inside.shape[0] >= 1:
                 hinted[k] = True
                 theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
@@ -327,6 +327,14 @@ class ContactEstimator:
         if self.spread > 0:
             fits = self._spread_refine(batch, fits)
         results = [[self._contact(cl, fits, k, int(dof[k]))] for k, cl in enumerate(clusters)]
+        # A pressure from an element's inverse that no disk agrees with (a reading
+        # that passed the inverse's checks on the wrong branch): locate the touch as
+        # one without a pressure, if that finds a disk that fits.
+        failed = [k for k in range(len(clusters)) if not fits.ok[k] and clusters[k].members.size > 1]
+        if failed:
+            for k, c in zip(failed, self._fit_light([clusters[k] for k in failed], c1, c2)):
+                if c.fit_ok:
+                    results[k] = [c]
         # Two disks need the uniform model: under a spread, a one-disk misfit of the
         # uniform model is no evidence of a second contact.
         if self.split and self.method != "area" and self.spread == 0:
@@ -356,16 +364,28 @@ class ContactEstimator:
         out.ok &= good
         return out
 
-    def _hints_in(self, cl: _Cluster, hints: FloatArray) -> FloatArray:
+    def _hints_in(self, cl: _Cluster, hints: FloatArray, d_start: float) -> FloatArray:
+        """The hints that can be this cluster's disk, nearest its centroid first.
+
+        A hint must sit on one of the cluster's elements (a quarter side of slack:
+        the disk moved) and have a diameter within a factor 2 of what the readings
+        say now; anything else (a finger lifted here and pressed there) would start
+        the fit in a wrong valley, slower and worse than the readings' own start.
+        """
         if hints.shape[0] == 0:
             return hints
         b = self.layout.bounds[cl.members]
-        ok = (
-            (hints[:, 0] >= b[:, 0].min()) & (hints[:, 0] <= b[:, 2].max())
-            & (hints[:, 1] >= b[:, 1].min()) & (hints[:, 1] <= b[:, 3].max())
-            & np.all(np.isfinite(hints), axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0)
-        )
-        return hints[ok]
+        m = 0.25 * self.layout.side
+        on = (
+            (hints[:, None, 0] >= b[None, :, 0] - m) & (hints[:, None, 0] <= b[None, :, 2] + m)
+            & (hints[:, None, 1] >= b[None, :, 1] - m) & (hints[:, None, 1] <= b[None, :, 3] + m)
+        ).any(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            size_ok = np.abs(np.log(hints[:, 2] / d_start)) <= math.log(2.0)
+        ok = on & np.all(np.isfinite(hints), axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0) & size_ok
+        h = hints[ok]
+        cx, cy = cl.centroid
+        return h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))]
 
     def _dof(self, b: _Batch, nfree: int) -> FloatArray:
         nch = 1 if self.method == "area" else 2
@@ -409,7 +429,10 @@ class ContactEstimator:
     ) -> None:
         cand = [
             k for k, cl in enumerate(clusters)
-            if cl.members.size >= 2 and dof[k] - 4 >= 2 and (fits.chi2[k] > SPLIT_DCHI2 or k in pair_hints)
+            if cl.members.size >= 2 and dof[k] - 4 >= 2
+            # Two disks leave about dof − 4 of noise: only a one-disk χ² beyond that
+            # by the threshold can pass the test below.
+            and (fits.chi2[k] > dof[k] - 4 + SPLIT_DCHI2 or k in pair_hints)
         ]
         if not cand:
             return

@@ -44,13 +44,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a check
 from _legacy_contacts import ContactEstimator as LegacyEstimator  # noqa: E402
 from timing import pin_to_one_core, table  # noqa: E402
 
-from cellbridge.tactile.contacts import ContactEstimator  # noqa: E402
+from cellbridge.tactile.contacts import ContactEstimator, cluster_elements  # noqa: E402
 from cellbridge.tactile.skin import grid_layout, skin_response  # noqa: E402
 from cellbridge.tactile.tracker import ContactTracker  # noqa: E402
 
 MM = 1e-3
 NOISE = 1e-15
 SPREAD = 0.002
+SEPARATION: list[list[object]] = []
 
 
 def noisy(lay, contacts, rng, spread=0.0):
@@ -154,6 +155,11 @@ def speed_frame8(rows, rows_legacy, rng, n=200, n_legacy=10):
     per = np.array([len(o) for o in out])
     rows.append(["16×16", "8 contacts per frame", n, ms(wall), ms(wall, 99), ms(cpu), ms(cpu, 99),
                  f"{per.mean():.2f}"])
+    # Fingers 40 mm apart edge to edge can still press neighbouring elements: their
+    # clusters merge, and the two-disk split has to separate them.
+    ncl = np.array([cluster_elements(lay, f[2]).max() + 1 for f in frames])
+    SEPARATION.append(["16×16, 8 fingers", n, f"{ncl.mean():.2f}", int((ncl < 8).sum()),
+                       int(((ncl < 8) & (per == 8)).sum()), f"{per.mean():.2f}"])
     leg = LegacyEstimator(lay, noise=NOISE)
     lw, lc, _ = timed(leg.estimate, frames[:n_legacy])
     rows_legacy.append(["16×16", "8 contacts per frame", n_legacy, ms(lw), ms(lc),
@@ -210,6 +216,12 @@ def main() -> None:
         "Today's estimator (bench/_legacy_contacts.py) on the first frames of the same sets",
         ["skin", "frames", "n", "wall median", "CPU median", "speed-up (CPU medians)"],
         rows_legacy,
+    )
+    table(
+        "Touching fingers: frames whose clusters merged, and how many came back as all 8 contacts "
+        "(two disks per cluster at most)",
+        ["skin", "frames", "clusters/frame", "frames with merged clusters", "of them all 8 found", "contacts/frame"],
+        SEPARATION,
     )
     print(f"\nspread model, first contact of the process (profile rows built): {1e3 * cold:.0f} ms")
     print(f"total bench time {time.perf_counter() - t0:.1f} s")

@@ -3,8 +3,10 @@
 Two fingers on neighbouring elements press one connected group of elements, so
 clustering makes one cluster of them and one disk fits it badly. Two disks are
 fitted when the one-disk χ² leaves room for a significant gain, from seeds that
-credit each element's area to the nearer of the two strongest elements (or from two
-tracked disks lying on the cluster), and reported when
+credit each element's area to the nearer of two seed elements (the strongest, and
+the strongest not next to it or the second strongest; elements as far from both go
+either way or half to each), or from two tracked disks lying on the cluster. The best
+fit is reported when
 
 * the second disk's four parameters buy (χ²₁ − χ²₂)/max(1, χ²₂/dof₂) > 23.51, the
   1 − 10⁻⁴ quantile of χ² with 4 degrees of freedom (the reduced χ² scale guards
@@ -91,17 +93,24 @@ def _pair_seeds(
     order = np.argsort(-c1[mem])
     i1 = int(order[0])
     # The second seed element: the strongest one not edge-adjacent to the first
-    # (two fingers rarely peak on neighbours), else simply the second strongest.
-    i2 = next((int(i) for i in order[1:] if adjacent is None or not adjacent[mem[i1], mem[i]]), int(order[1]))
+    # (two fingers rarely peak on neighbours), and the second strongest.
+    far = next((int(i) for i in order[1:] if adjacent is None or not adjacent[mem[i1], mem[i]]), int(order[1]))
     cen = runner.layout.centres[mem]
     d1 = np.hypot(*(cen - cen[i1]).T)
-    d2 = np.hypot(*(cen - cen[i2]).T)
-    share = np.where(d1 < d2, 1.0, np.where(d1 > d2, 0.0, 0.5))
-    aa, bb = a * share, a * (1.0 - share)
-    st = runner.starts([cl, cl], [aa, bb])
     s0 = cl.sigma0
-    seeds.append(np.array([st[0, 0], st[0, 1], math.log(2 * st[0, 2]), math.log(s0 * aa.sum()),
-                           st[1, 0], st[1, 1], math.log(2 * st[1, 2]), math.log(s0 * bb.sum())]))
+    parts = []
+    for i2 in {far, int(order[1])}:
+        d2 = np.hypot(*(cen - cen[i2]).T)
+        # Elements as far from both go to one disk, the other, or half to each.
+        for tie in (1.0, 0.0, 0.5):
+            parts.append(np.where(d1 < d2, 1.0, np.where(d1 > d2, 0.0, tie)))
+    pairs = [(cl, cl)] * len(parts)
+    st = runner.starts([c for pair in pairs for c in pair], [x for p in parts for x in (a * p, a * (1.0 - p))])
+    for j, p in enumerate(parts):
+        s1, s2 = st[2 * j], st[2 * j + 1]
+        with np.errstate(divide="ignore"):
+            seeds.append(np.array([s1[0], s1[1], math.log(2 * s1[2]), math.log(s0 * (a * p).sum()),
+                                   s2[0], s2[1], math.log(2 * s2[2]), math.log(s0 * (a * (1.0 - p)).sum())]))
     return [s for s in seeds if np.all(np.isfinite(s))]
 
 

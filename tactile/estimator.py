@@ -120,7 +120,11 @@ class ContactEstimator:
             if act.shape != (lay.n,):
                 raise ValueError(f"active must have shape ({lay.n},)")
             act = act & finite
-        h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64).reshape(-1, 4)
+        h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64)
+        if h.ndim == 1 and h.size in (0, 4):
+            h = h.reshape(-1, 4)
+        if h.ndim != 2 or h.shape[1] != 4:
+            raise ValueError(f"hints must be (x, y, diameter, force) rows, got shape {h.shape}")
         if not act.any():
             return []
         idx = np.nonzero(act)[0]

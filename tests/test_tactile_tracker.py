@@ -110,6 +110,8 @@ def test_warm_start_gives_the_same_answer_as_a_cold_fit():
 
 def test_bad_settings_are_named():
     est = ContactEstimator(LAY)
+    with pytest.raises(ValueError, match="hints"):
+        est.estimate(np.zeros(LAY.n), np.zeros(LAY.n), hints=np.zeros((2, 3)))
     for kw in ({"birth_frames": 0}, {"max_missed": -1}, {"gate": 0.0}, {"motion": -1.0}):
         with pytest.raises(ValueError, match=next(iter(kw))):
             ContactTracker(est, **kw)

@@ -6,9 +6,9 @@ the area, so the diameter is not known; but for any given diameter the elements'
 shares still fix the centre along a straddled axis. So the disk is fitted at fixed
 diameters over the plausible range (force free), and again with the diameter free
 from each local minimum of that grid (the ambiguous region has two discrete branches,
-which a coarse grid can step over). The fits within +1 of the best cost (and their
-grid neighbours, so a diameter between two grid points is bracketed) give the span of
-centres, ± their own σ: the contact is reported at its middle with
+which a coarse grid can step over). The fits within +4 of the best cost (95 % for
+one parameter; and their grid neighbours, so a diameter between two grid points is
+bracketed) give the span of centres, ± their own σ: the contact is reported at its middle with
 σ = √(span²/12 + σ_fit²).
 """
 
@@ -27,6 +27,10 @@ __all__ = ["locate_light", "unlocated"]
 FloatArray = NDArray[np.float64]
 
 N_DIAMETERS = 20  #: grid of fixed diameters, log-spaced over 0.05–1.5 element sides
+#: Cost rise that still counts as consistent: the 95 % range of a one-parameter
+#: profile (the diameter), so the span holds the truth at least as often as the 2σ
+#: the contact reports.
+CONSISTENT = 4.0
 
 
 def unlocated(cl: Cluster, side: float) -> Contact:
@@ -76,12 +80,12 @@ def locate_light(runner: FitRunner, clusters: list[Cluster], c1: FloatArray, c2:
         mine = qk == i
         c_ref = ref.cost[mine]
         floor = min(float(np.nanmin(cost[i])), float(np.nanmin(c_ref)) if c_ref.size else np.inf)
-        best = np.isfinite(cost[i]) & (cost[i] <= floor + 1.0)
+        best = np.isfinite(cost[i]) & (cost[i] <= floor + CONSISTENT)
         keep = best.copy()
         keep[1:] |= best[:-1]
         keep[:-1] |= best[1:]
         keep &= np.isfinite(cost[i])
-        kref = np.isfinite(c_ref) & (c_ref <= floor + 1.0)
+        kref = np.isfinite(c_ref) & (c_ref <= floor + CONSISTENT)
         b = lay.bounds[cl.members]
         pos, sig, obs = [0.0, 0.0], [0.0, 0.0], [False, False]
         for ax in (0, 1):

@@ -15,7 +15,8 @@ Prints tables; asserts nothing. Run (one core, about a minute):
   16×16 skin (D 10-30 mm, F 2-10 N, 1 fF noise; ``active`` = elements the contact
   really touches, as the calibrator's touch flags give), ``estimate()`` per frame;
   a 16×16 frame with 8 simultaneous contacts; the spread model (s = 2 mm) per
-  contact; the tracker's ``update()`` on the 8-contact frames. Today's code
+  contact; the tracker's ``update()`` on the 8-contact frames; ``estimate_frames()``
+  on chunks of the same frames (time per frame; its p99 is over chunks). Today's code
   (``bench/_legacy_contacts.py``, the estimator before this kernel) runs on the same
   readings in the same run for the speed-up.
 
@@ -118,6 +119,16 @@ def accuracy(n=300):
     )
 
 
+def batched(rows, est, name, what, frames, chunk):
+    """estimate_frames() on chunks of frames: time per frame."""
+    groups = [frames[i : i + chunk] for i in range(0, len(frames) - chunk + 1, chunk)]
+    stacked = [tuple(np.stack([f[j] for f in g]) for j in range(3)) for g in groups]
+    wall, cpu, out = timed(est.estimate_frames, stacked)
+    per = np.mean([len(c) for o in out for c in o])
+    rows.append([name, f"{what}, estimate_frames × {chunk}", len(groups) * chunk, ms(wall / chunk),
+                 ms(wall / chunk, 99), ms(cpu / chunk), ms(cpu / chunk, 99), f"{per:.2f}"])
+
+
 def speed_single(rows, rows_legacy, name, lay, n, n_legacy, rng):
     pitch = lay.side
     extent = lay.extent
@@ -129,6 +140,7 @@ def speed_single(rows, rows_legacy, name, lay, n, n_legacy, rng):
     per = np.array([len(o) for o in out])
     rows.append([name, "one contact per frame", n, ms(wall), ms(wall, 99), ms(cpu), ms(cpu, 99),
                  f"{per.mean():.2f}"])
+    batched(rows, est, name, "one contact per frame", frames, 50)
     leg = LegacyEstimator(lay, noise=NOISE)
     lw, lc, _ = timed(leg.estimate, frames[:n_legacy])
     rows_legacy.append([name, "one contact per frame", n_legacy, ms(lw), ms(lc),
@@ -155,6 +167,7 @@ def speed_frame8(rows, rows_legacy, rng, n=200, n_legacy=10):
     per = np.array([len(o) for o in out])
     rows.append(["16×16", "8 contacts per frame", n, ms(wall), ms(wall, 99), ms(cpu), ms(cpu, 99),
                  f"{per.mean():.2f}"])
+    batched(rows, est, "16×16", "8 contacts per frame", frames, 10)
     # Fingers 40 mm apart edge to edge can still press neighbouring elements: their
     # clusters merge, and the two-disk split has to separate them.
     ncl = np.array([cluster_elements(lay, f[2]).max() + 1 for f in frames])

@@ -107,64 +107,96 @@ class ContactEstimator:
         frame (the previous frame's, from :class:`~cellbridge.tactile.tracker.ContactTracker`):
         a cluster containing one starts its fit there.
         """
-        lay = self.layout
-        c1 = np.asarray(dC1, dtype=np.float64)
-        c2 = np.asarray(dC2, dtype=np.float64)
-        if c1.shape != (lay.n,) or c2.shape != (lay.n,):
-            raise ValueError(f"dC1 and dC2 must have shape ({lay.n},)")
-        finite = np.isfinite(c1) & np.isfinite(c2)
-        if active is None:
-            act = finite & ((c1 > 3 * self.noise[0]) | (c2 > 3 * self.noise[1]))
-        else:
-            act = np.asarray(active, dtype=bool)
-            if act.shape != (lay.n,):
-                raise ValueError(f"active must have shape ({lay.n},)")
-            act = act & finite
         h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64)
         if h.ndim == 1 and h.size in (0, 4):
             h = h.reshape(-1, 4)
         if h.ndim != 2 or h.shape[1] != 4:
             raise ValueError(f"hints must be (x, y, diameter, force) rows, got shape {h.shape}")
-        if not act.any():
-            return []
-        idx = np.nonzero(act)[0]
-        inv = solve(c1[idx], c2[idx], self.params, noise=float(self.noise.max()), **self.inverse_options)
-        valid = np.zeros(lay.n, dtype=bool)
-        force = np.full(lay.n, np.nan)
-        area = np.full(lay.n, np.nan)
-        valid[idx] = inv.valid
-        force[idx] = inv.force
-        area[idx] = inv.area
-        labels = cluster_elements(lay, act, self.connectivity)
-        order = np.argsort(labels, kind="stable")
-        starts = np.searchsorted(labels[order], np.arange(int(labels.max()) + 2))
-        clusters = [
-            self._runner.cluster(order[starts[k] : starts[k + 1]], labels, c1, c2, finite, valid, force, area)
-            for k in range(int(labels.max()) + 1)
-        ]
-        out: list[Contact | None] = [None] * len(clusters)
+        (per_frame,) = self._estimate(*self._readings(dC1, dC2, active, 1), h)
+        return per_frame
+
+    def estimate_frames(
+        self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None
+    ) -> list[list[Contact]]:
+        """:meth:`estimate` for T frames at once: ``dC1``, ``dC2`` (and ``active``)
+        of shape (T, N); one list of contacts per frame.
+
+        The same answers, cheaper per frame: one inverse call and one kernel call per
+        kind of fit serve every frame (for a backlog, a recording, or several skins'
+        frames that arrive together).
+        """
+        c1, c2, act = self._readings(dC1, dC2, active, None)
+        return self._estimate(c1, c2, act, np.zeros((0, 4)))
+
+    # -- per frame ------------------------------------------------------------------------
+    def _readings(
+        self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None, frames: int | None
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """(T, N) readings and active flags, checked; ``frames=1``: one frame of (N,)."""
+        n = self.layout.n
+        c1 = np.asarray(dC1, dtype=np.float64)
+        c2 = np.asarray(dC2, dtype=np.float64)
+        want = (n,) if frames == 1 else (c1.shape[0] if c1.ndim == 2 else -1, n)
+        if c1.shape != want or c2.shape != want:
+            shape = f"({n},)" if frames == 1 else f"(T, {n})"
+            raise ValueError(f"dC1 and dC2 must have shape {shape}, got {c1.shape} and {c2.shape}")
+        c1, c2 = c1.reshape(-1, n), c2.reshape(-1, n)
+        finite = np.isfinite(c1) & np.isfinite(c2)
+        if active is None:
+            act = finite & ((c1 > 3 * self.noise[0]) | (c2 > 3 * self.noise[1]))
+        else:
+            act = np.asarray(active, dtype=bool)
+            if act.shape != want:
+                raise ValueError(f"active must have the readings' shape {want}, got {act.shape}")
+            act = act.reshape(-1, n) & finite
+        return c1, c2, act
+
+    def _estimate(
+        self, c1: FloatArray, c2: FloatArray, act: NDArray[np.bool_], hints: FloatArray
+    ) -> list[list[Contact]]:
+        lay = self.layout
+        valid = np.zeros(c1.shape, dtype=bool)
+        force = np.full(c1.shape, np.nan)
+        area = np.full(c1.shape, np.nan)
+        if act.any():
+            inv = solve(c1[act], c2[act], self.params, noise=float(self.noise.max()), **self.inverse_options)
+            valid[act] = inv.valid
+            force[act] = inv.force
+            area[act] = inv.area
+        clusters: list[Cluster] = []
+        frame_of: list[int] = []
+        for t in range(c1.shape[0]):
+            if not act[t].any():
+                continue
+            labels = cluster_elements(lay, act[t], self.connectivity)
+            order = np.argsort(labels, kind="stable")
+            k_max = int(labels.max())
+            starts = np.searchsorted(labels[order], np.arange(k_max + 2))
+            finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
+            for k in range(k_max + 1):
+                clusters.append(self._runner.cluster(
+                    order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t]))
+                frame_of.append(t)
+        out: list[list[Contact]] = [[] for _ in clusters]
         good = [k for k, cl in enumerate(clusters) if cl.valid]
         if good:
-            for k, cs in zip(good, self._fit_valid([clusters[k] for k in good], c1, c2, h)):
+            for k, cs in zip(good, self._fit_valid([clusters[k] for k in good], hints)):
                 out[k] = cs
         # A light touch on one element says nothing finer than the element: no fit.
         light = [k for k, cl in enumerate(clusters) if not cl.valid and cl.members.size > 1]
         for k, cl in enumerate(clusters):
             if not cl.valid and cl.members.size == 1:
-                out[k] = unlocated(cl, lay.side)
+                out[k] = [unlocated(cl, lay.side)]
         if light:
-            for k, c in zip(light, locate_light(self._runner, [clusters[k] for k in light], c1, c2)):
-                out[k] = c
-        flat: list[Contact] = []
-        for item in out:
-            if isinstance(item, list):
-                flat.extend(item)
-            elif item is not None:
-                flat.append(item)
-        return flat
+            for k, c in zip(light, locate_light(self._runner, [clusters[k] for k in light])):
+                out[k] = [c]
+        frames: list[list[Contact]] = [[] for _ in range(c1.shape[0])]
+        for t, cs in zip(frame_of, out):
+            frames[t].extend(cs)
+        return frames
 
     # -- clusters with a pressure ---------------------------------------------------------
-    def _fit_valid(self, clusters: list[Cluster], c1: FloatArray, c2: FloatArray, hints: FloatArray) -> list[list[Contact]]:
+    def _fit_valid(self, clusters: list[Cluster], hints: FloatArray) -> list[list[Contact]]:
         nd_free = np.array([True, True, True, self.method != "area"])
         run = self._runner
         st = run.starts(clusters)
@@ -182,7 +214,7 @@ class ContactEstimator:
             if inside.shape[0] >= 2:
                 pair_hints[k] = inside[:2]
         free = np.tile(nd_free, (len(clusters), 1))
-        batch = run.batch(clusters, c1, c2)
+        batch = run.batch(clusters)
         fits = run.run(batch, theta0, free, 1, True)
         # A warm start in the wrong valley (the disk moved far since last frame) is
         # caught by its fit quality and redone from the readings' own start.
@@ -192,7 +224,7 @@ class ContactEstimator:
             sub = [clusters[k] for k in redo]
             t0 = np.column_stack([st[redo, :2], np.log(2 * st[redo, 2]),
                                   np.log([clusters[k].sigma0 * math.pi * st[k, 2] ** 2 for k in redo])])
-            again = run.run(run.batch(sub, c1, c2), t0, free[redo], 1, True)
+            again = run.run(run.batch(sub), t0, free[redo], 1, True)
             for j, k in enumerate(redo):
                 if again.cost[j] < fits.cost[k]:
                     fits.take(k, again, j)
@@ -205,13 +237,13 @@ class ContactEstimator:
         # one without a pressure, if that finds a disk that fits.
         failed = [k for k in range(len(clusters)) if not fits.ok[k] and clusters[k].members.size > 1]
         if failed:
-            for k, c in zip(failed, locate_light(run, [clusters[k] for k in failed], c1, c2)):
+            for k, c in zip(failed, locate_light(run, [clusters[k] for k in failed])):
                 if c.fit_ok:
                     results[k] = [c]
         # Two disks need the uniform model: under a spread, a one-disk misfit of the
         # uniform model is no evidence of a second contact.
         if self.split and self.method != "area" and self.spread == 0:
-            results.update(split_clusters(run, clusters, fits, dof, c1, c2, pair_hints, self._adj_edge))
+            results.update(split_clusters(run, clusters, fits, dof, pair_hints, self._adj_edge))
         return list(results.values())
 
     def _spread_refine(self, batch: Batch, uni: Fits) -> Fits:

@@ -36,6 +36,7 @@ class Cluster:
     obs: IntArray  # members first, then the quiet ring
     sigma0: float  # shared pressure from the valid elements (NaN: none)
     area: FloatArray  # per observed element
+    y: FloatArray  # (2, observed) ΔC1, ΔC2 read: a cluster carries its frame's readings
     centroid: tuple[float, float]
     valid: bool  # a pressure and a positive area: the disk can be fitted
     base: dict = field(default_factory=dict)  # Contact fields known before any fit
@@ -174,9 +175,10 @@ class FitRunner:
             pressure=sigma0, force_sum=float(np.nansum(f[:nm])) if ok else math.nan,
             area=s_tot if ok else math.nan,
         )
-        return Cluster(members, obs, sigma0, a, (cx, cy), ok and s_tot > 0, base)
+        y = np.stack([c1[obs], c2[obs]])
+        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base)
 
-    def batch(self, clusters: list[Cluster], c1: FloatArray, c2: FloatArray, areas: bool | None = None) -> Batch:
+    def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
         """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)
         fits the per-element areas instead of ΔC."""
         lay = self.layout
@@ -194,7 +196,7 @@ class FitRunner:
                 # Area noise of one element: the ΔC noise through both sensitivities.
                 w[k] = math.sqrt((g1 / self.noise[0]) ** 2 + (g2 / self.noise[1]) ** 2)
         else:
-            y = np.stack([c1[allobs], c2[allobs]])
+            y = np.concatenate([cl.y for cl in clusters], axis=1)
             w = np.tile(1.0 / self.noise, (len(clusters), 1))
         return Batch(off, np.ascontiguousarray(lay.bounds[allobs]), np.ascontiguousarray(y), quiet, w,
                      1 if area_fit else 2)

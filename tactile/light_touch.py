@@ -45,7 +45,7 @@ def unlocated(cl: Cluster, side: float) -> Contact:
     )
 
 
-def locate_light(runner: FitRunner, clusters: list[Cluster], c1: FloatArray, c2: FloatArray) -> list[Contact]:
+def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
     """A contact per cluster: located by the span of consistent fits, or :func:`unlocated`."""
     lay = runner.layout
     diam = np.geomspace(0.05 * lay.side, 1.5 * lay.side, N_DIAMETERS)
@@ -55,7 +55,7 @@ def locate_light(runner: FitRunner, clusters: list[Cluster], c1: FloatArray, c2:
     areas, lnf = [], []
     for cl in clusters:
         nm = cl.members.size
-        s1 = np.maximum(c1[cl.members], 0.0)
+        s1 = np.maximum(cl.y[0, :nm], 0.0)
         tot = s1.sum()
         share = s1 / tot if tot > 0 else np.full(nm, 1.0 / nm)
         f0 = max(tot / k_low, 1e-6) if tot > 0 else 1e-3
@@ -67,12 +67,12 @@ def locate_light(runner: FitRunner, clusters: list[Cluster], c1: FloatArray, c2:
     t0 = np.column_stack([st[:, :2], np.log(np.tile(diam, len(clusters))), lnf])
     free = np.tile(np.array([True, True, False, True]), (len(probs), 1))
     # ΔC fits whatever the estimator's method: the area method needs a pressure.
-    fits = runner.run(runner.batch(probs, c1, c2, areas=False), t0, free, 1, False)
+    fits = runner.run(runner.batch(probs, areas=False), t0, free, 1, False)
     cost = fits.cost.reshape(len(clusters), N_DIAMETERS)
     padded = np.pad(cost, ((0, 0), (1, 1)), constant_values=np.inf)
     loc = np.isfinite(cost) & (cost <= padded[:, :-2]) & (cost <= padded[:, 2:])
     qk, qd = np.nonzero(loc)
-    ref = runner.run(runner.batch([clusters[k] for k in qk], c1, c2, areas=False),
+    ref = runner.run(runner.batch([clusters[k] for k in qk], areas=False),
                      fits.theta[qk * N_DIAMETERS + qd], np.ones((qk.size, 4), dtype=bool), 1, False)
     out = []
     for i, cl in enumerate(clusters):

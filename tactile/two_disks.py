@@ -37,7 +37,7 @@ SPLIT_DCHI2 = 23.51
 
 
 def split_clusters(
-    runner: FitRunner, clusters: list[Cluster], fits: Fits, dof: FloatArray, c1: FloatArray, c2: FloatArray,
+    runner: FitRunner, clusters: list[Cluster], fits: Fits, dof: FloatArray,
     pair_hints: dict[int, FloatArray], adjacent: NDArray[np.bool_] | None,
 ) -> dict[int, list[Contact]]:
     """The clusters (by index) that are two contacts, with both contacts."""
@@ -52,12 +52,12 @@ def split_clusters(
         return {}
     seeds, owners = [], []
     for k in cand:
-        for s in _pair_seeds(runner, clusters[k], c1, pair_hints.get(k), adjacent):
+        for s in _pair_seeds(runner, clusters[k], pair_hints.get(k), adjacent):
             seeds.append(s)
             owners.append(k)
     if not seeds:
         return {}
-    two = runner.run(runner.batch([clusters[k] for k in owners], c1, c2), np.array(seeds),
+    two = runner.run(runner.batch([clusters[k] for k in owners]), np.array(seeds),
                      np.ones((len(owners), 8), dtype=bool), 2, False)
     best: dict[int, int] = {}
     for j, k in enumerate(owners):
@@ -69,7 +69,7 @@ def split_clusters(
     ]
     if not gained:
         return {}
-    final = runner.run(runner.batch([clusters[k] for k, _ in gained], c1, c2),
+    final = runner.run(runner.batch([clusters[k] for k, _ in gained]),
                        np.array([th for _, th in gained]), np.ones((len(gained), 8), dtype=bool), 2, True)
     out = {}
     for j, (k, _) in enumerate(gained):
@@ -82,7 +82,7 @@ def split_clusters(
 
 
 def _pair_seeds(
-    runner: FitRunner, cl: Cluster, c1: FloatArray, hinted: FloatArray | None, adjacent: NDArray[np.bool_] | None
+    runner: FitRunner, cl: Cluster, hinted: FloatArray | None, adjacent: NDArray[np.bool_] | None
 ) -> list[FloatArray]:
     """Starting points for two disks: each disk from the area it is credited with."""
     seeds = []
@@ -90,7 +90,7 @@ def _pair_seeds(
         seeds.append(np.concatenate([[h[0], h[1], math.log(h[2]), math.log(h[3])] for h in hinted[:2]]))
     mem = cl.members
     a = np.maximum(np.nan_to_num(cl.area[: mem.size]), 0.0)
-    order = np.argsort(-c1[mem])
+    order = np.argsort(-cl.y[0, : mem.size])
     i1 = int(order[0])
     # The second seed element: the strongest one not edge-adjacent to the first
     # (two fingers rarely peak on neighbours), and the second strongest.

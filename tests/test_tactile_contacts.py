@@ -288,3 +288,31 @@ def test_split_can_be_turned_off():
     truth = [[0.017, 0.022, 3.0, 0.016], [0.057, 0.018, 8.0, 0.020]]
     cs = ContactEstimator(LAY34, noise=1e-15, split=False).estimate(*noisy(truth, LAY34, rng))
     assert len(cs) == 1 and cs[0].chi2 > 10 * cs[0].dof  # the misfit shows
+
+
+def test_estimate_frames_gives_each_frame_what_estimate_gives():
+    rng = np.random.default_rng(12)
+    lay = grid_layout(3, 3)
+    est = ContactEstimator(lay, noise=1e-15)
+    scenes = [
+        [[0.018, 0.004, 4.0, 0.012]],
+        [],  # nothing touched
+        [[0.0, 0.0, 3.0, 0.010], [0.080, 0.062, 5.0, 0.016]],
+        [[0.018, 0.0, 0.3, 0.010]],  # a light touch
+        [[0.017, 0.022, 3.0, 0.016], [0.057, 0.018, 8.0, 0.020]],  # one cluster, two disks
+    ]
+    frames = [noisy(s, lay, rng) if s else (rng.normal(0, 1e-15, lay.n), rng.normal(0, 1e-15, lay.n))
+              for s in scenes]
+    d1 = np.stack([f[0] for f in frames])
+    d2 = np.stack([f[1] for f in frames])
+    active = np.stack([(f[0] > 6e-15) | (f[1] > 6e-15) for f in frames])
+    batched = est.estimate_frames(d1, d2, active)
+    assert len(batched) == len(scenes)
+    for t in range(len(scenes)):
+        one = est.estimate(d1[t], d2[t], active[t])
+        assert [c.to_dict() for c in batched[t]] == [c.to_dict() for c in one]
+    assert [len(b) for b in batched] == [1, 0, 2, 1, 2]
+    with pytest.raises(ValueError, match="shape"):
+        est.estimate_frames(d1[0], d2[0])
+    with pytest.raises(ValueError, match="active"):
+        est.estimate_frames(d1, d2, active[:, :3])

@@ -11,10 +11,13 @@ Speed by construction:
   start from the element ratios (:func:`share_start`) or from the previous frame,
   so a handful of Gauss–Newton/LM steps converge;
 * an axis the readings resolve is checked with two profile points (± 2σ: does the
-  cost rise as the curvature says?) instead of a scan; only an axis they do not
-  resolve (a disk wholly inside an element, the coordinate along a seam, a disk
-  barely over a seam) is bracketed, by doubling steps and bisection, to report the
-  range of positions consistent with the readings.
+  cost rise as the curvature says?) instead of a scan;
+* an axis they do not see at all (a disk wholly inside an element, the coordinate
+  along a seam) has its plateau computed from the element edges (:func:`_plateau`),
+  and only the short way beyond it, where the readings start to notice, is
+  bracketed (doubling steps, bisection); an axis seen weakly (a disk barely over a
+  seam) is bracketed from the fit outwards. The brackets give the range of
+  positions consistent with the readings, hence σ.
 """
 
 from __future__ import annotations

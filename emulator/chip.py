@@ -25,8 +25,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from cellbridge.emulator.adc import AdcTiming, held_inputs, sar_codes
-from cellbridge.emulator.keyed_random import KeyedNormals, Stream
-from cellbridge.emulator.oscillator import BLOCK, EdgeTrain, max_period_deviation
+from cellbridge.emulator.keyed_random import GateNoise, KeyedNormals, Stream
+from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation
 from cellbridge.tactile.transfer import ChipParams, adc_input, oscillator_period
 
 __all__ = ["CLOCK_HZ", "ChipConfig", "Chip"]
@@ -105,12 +105,14 @@ class ChipConfig:
         """This config with a crystal offset drawn uniformly from ±crystal_tolerance_ppm.
 
         Deterministic for a seed, so a mesh can give each bridge its own crystal."""
-        u = KeyedNormals(seed).uniform(Stream.PHASE, 0, 0, substream=1)
+        u = KeyedNormals(seed).uniform(Stream.CRYSTAL, 0, 0)
         ppm = (2.0 * u - 1.0) * self.crystal_tolerance_ppm
         return replace(self, crystal_ppm=ppm)
 
 
 def _check_int(name: str, v: object, minimum: int) -> int:
+    if type(v) is int and v >= minimum:  # the common case, checked cheaply
+        return v
     if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= minimum):
         raise ValueError(f"{name} must be an integer >= {minimum}, got {v!r}")
     return int(v)
@@ -141,6 +143,8 @@ class Chip:
         self._noise = KeyedNormals(seed)
         self._modulus = 1 << config.counter_bits
         self._timing = config.adc_timing
+        # T is linear in C: evaluate transfer.oscillator_period once, not per gate.
+        self._period_per_farad = float(oscillator_period(1.0, self.params)) * self._clock
 
     # ------------------------------------------------------------------ clock
 
@@ -158,7 +162,7 @@ class Chip:
 
     def period_cycles(self, capacitance: float) -> float:
         """Oscillator period in this chip's cycles."""
-        return float(oscillator_period(capacitance, self.params)) * self._clock
+        return capacitance * self._period_per_farad
 
     def edge_train(self, channel: int, capacitance: float, start_cycle: int, gate_cycles: int) -> EdgeTrain:
         """The oscillator's edges for one gate (the definition both paths evaluate)."""
@@ -166,16 +170,10 @@ class Chip:
         start_cycle = _check_int("start_cycle", start_cycle, 0)
         gate_cycles = _check_int("gate_cycles", gate_cycles, 1)
         period = self.period_cycles(_check_capacitance(capacitance))
-        noise = self._noise
-
-        def block_sums(n: int) -> np.ndarray:
-            return noise.normals(Stream.JITTER_BLOCKS, channel, start_cycle, n)
-
-        def block_steps(b: int) -> np.ndarray:
-            return noise.normals(Stream.JITTER_STEPS, channel, start_cycle, BLOCK, substream=b)
-
-        phase = noise.uniform(Stream.PHASE, channel, start_cycle)
-        return EdgeTrain(period, self.config.jitter, phase, gate_cycles, block_sums, block_steps)
+        phase = self._noise.uniform(Stream.PHASE, channel, start_cycle)
+        return EdgeTrain(
+            period, self.config.jitter, phase, gate_cycles, GateNoise(self._noise, channel, start_cycle)
+        )
 
     def count(self, channel: int, capacitance: float, start_cycle: int, gate_cycles: int) -> tuple[int, bool]:
         """16-bit edge count over [start_cycle, start_cycle+gate_cycles) and the overflow flag.

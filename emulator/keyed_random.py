@@ -21,21 +21,24 @@ import enum
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["Stream", "KeyedNormals", "Z_MAX"]
+__all__ = ["Stream", "KeyedNormals", "GateNoise", "Z_MAX", "BLOCK_SIZE"]
 
 Z_MAX = 8.0  #: normals are clipped to ±Z_MAX (in units of their sigma)
 
 _MASK64 = (1 << 64) - 1
 _SUBSTREAM_SHIFT = 32  # 2^32 Philox blocks (4 draws each) per substream: never exhausted
+_TWO_M53 = 2.0**-53
+BLOCK_SIZE = 128  #: periods per jitter block (the oscillator's BLOCK)
 
 
 class Stream(enum.IntEnum):
     """What a random stream is for; part of the key, so streams never overlap."""
 
-    PHASE = 1  #: oscillator phase at a gate's start
+    PHASE = 1  #: oscillator phase at a gate's start (hashed, see :meth:`KeyedNormals.uniform`)
     JITTER_BLOCKS = 2  #: per-block sums of the period jitter
     JITTER_STEPS = 3  #: period jitter within one block (substream = block index)
     ADC = 4  #: ADC input noise, one normal per conversion
+    CRYSTAL = 5  #: a chip's crystal offset
 
 
 class KeyedNormals:
@@ -50,18 +53,21 @@ class KeyedNormals:
         if not isinstance(seed, (int, np.integer)):
             raise TypeError(f"seed must be an integer, got {seed!r}")
         self.seed = int(seed)
+        self._seed64 = self.seed & _MASK64
         self._bitgen = np.random.Philox(key=0)
         self._gen = np.random.Generator(self._bitgen)
         self._state = self._bitgen.state
 
     def _seek(self, stream: Stream, channel: int, cycle: int, substream: int) -> None:
+        # Hot path (three per counter gate): plain int stores into the kept state dict.
         st = self._state
-        st["state"]["key"][0] = self.seed & _MASK64
-        st["state"]["key"][1] = int(cycle) & _MASK64
-        ctr = st["state"]["counter"]
-        ctr[0] = (int(substream) << _SUBSTREAM_SHIFT) & _MASK64
-        ctr[1] = int(stream)
-        ctr[2] = int(channel) & _MASK64
+        inner = st["state"]
+        inner["key"][0] = self._seed64
+        inner["key"][1] = cycle & _MASK64
+        ctr = inner["counter"]
+        ctr[0] = (substream << _SUBSTREAM_SHIFT) & _MASK64
+        ctr[1] = stream
+        ctr[2] = channel & _MASK64
         ctr[3] = 0
         st["buffer_pos"] = 4  # empty output buffer: next draw comes from the counter
         st["has_uint32"] = 0
@@ -73,9 +79,39 @@ class KeyedNormals:
         """``n`` standard normals clipped to ±Z_MAX; a longer draw extends a shorter one."""
         self._seek(stream, channel, cycle, substream)
         z = self._gen.standard_normal(n)
-        return np.clip(z, -Z_MAX, Z_MAX, out=z)
+        np.minimum(z, Z_MAX, out=z)
+        return np.maximum(z, -Z_MAX, out=z)
 
     def uniform(self, stream: Stream, channel: int, cycle: int, substream: int = 0) -> float:
-        """One uniform number in [0, 1)."""
-        self._seek(stream, channel, cycle, substream)
-        return float(self._gen.random())
+        """One uniform number in [0, 1) (a SplitMix64 hash of the key: no generator seek)."""
+        tag = (int(stream) << 56) | ((substream & 0xFFFF) << 40) | (channel & 0xFFFFFFFFFF)
+        h = _splitmix64(_splitmix64(cycle & _MASK64) ^ self._seed64 ^ tag)
+        return (h >> 11) * _TWO_M53
+
+
+class GateNoise:
+    """The :class:`~cellbridge.emulator.oscillator.JitterSource` of one gate: a chip's
+    keyed normals at (channel, start cycle)."""
+
+    __slots__ = ("_normals", "_channel", "_cycle")
+
+    def __init__(self, normals: KeyedNormals, channel: int, cycle: int) -> None:
+        self._normals = normals
+        self._channel = channel
+        self._cycle = cycle
+
+    def block_sums(self, n: int) -> NDArray[np.float64]:
+        return self._normals.normals(Stream.JITTER_BLOCKS, self._channel, self._cycle, n)
+
+    def block_steps(self, b: int) -> NDArray[np.float64]:
+        return self._normals.normals(
+            Stream.JITTER_STEPS, self._channel, self._cycle, BLOCK_SIZE, substream=b
+        )
+
+
+def _splitmix64(x: int) -> int:
+    """SplitMix64's output function: a bijective 64-bit mixer (Steele et al., 2014)."""
+    x = (x + 0x9E3779B97F4A7C15) & _MASK64
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _MASK64
+    return x ^ (x >> 31)

@@ -33,17 +33,16 @@ edge, vectorised.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cellbridge.emulator.keyed_random import Z_MAX
+from cellbridge.emulator.keyed_random import BLOCK_SIZE, Z_MAX
 
-__all__ = ["BLOCK", "SYNC_LATENCY", "EdgeTrain", "max_period_deviation"]
+__all__ = ["BLOCK", "SYNC_LATENCY", "EdgeTrain", "JitterSource", "max_period_deviation"]
 
-BLOCK = 128  #: periods per jitter block
+BLOCK = BLOCK_SIZE  #: periods per jitter block
 SYNC_LATENCY = 3  #: window origin L = start_cycle − SYNC_LATENCY
 _SQRT_BLOCK = math.sqrt(BLOCK)
 _ARANGE_BLOCK = np.arange(BLOCK, dtype=np.float64)
@@ -53,41 +52,65 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
+_OFFSETS = BLOCK * np.arange(4097, dtype=np.float64)
+
+
+def _block_offsets(n: int) -> FloatArray:
+    """Edge index of the first n block starts, as floats: 0, B, 2B, …"""
+    return _OFFSETS[:n] if n <= _OFFSETS.size else BLOCK * np.arange(n, dtype=np.float64)
+
+
 def max_period_deviation() -> float:
     """Largest |z| a period can have, in units of the jitter (clipping makes it finite)."""
     return 2.0 * Z_MAX + Z_MAX / _SQRT_BLOCK
 
 
-@dataclass
-class EdgeTrain:
-    """The oscillator's rising edges for one gate.
+_MAX_DEV = max_period_deviation()
 
-    ``block_sums(n)`` returns the first n block-sum normals y (a longer call extends a
-    shorter one); ``block_steps(b)`` the BLOCK shape normals w of block b. Both are
-    clipped standard normals from the chip's keyed generator.
+
+class JitterSource(Protocol):
+    """The clipped standard normals a train's jitter is made of (a keyed generator)."""
+
+    def block_sums(self, n: int) -> FloatArray:
+        """The first n block-sum normals y (a longer call extends a shorter one)."""
+
+    def block_steps(self, b: int) -> FloatArray:
+        """The BLOCK shape normals w of block b."""
+
+
+class EdgeTrain:
+    """The oscillator's rising edges for one gate of ``gate`` cycles.
+
+    ``period`` is T in chip cycles, ``jitter`` the relative rms jitter of one period,
+    ``phase`` ∈ [0, 1) places edge 0 at phase·T after the origin.
     """
 
-    period: float  #: T in chip cycles
-    jitter: float  #: relative rms jitter of one period
-    phase: float  #: first edge at phase·T after the origin, in [0, 1)
-    gate: int  #: gate length in cycles
-    block_sums: Callable[[int], FloatArray]
-    block_steps: Callable[[int], FloatArray]
-    _starts: FloatArray = field(default_factory=lambda: np.empty(0), repr=False)
-    _sums: FloatArray = field(default_factory=lambda: np.empty(0), repr=False)
+    __slots__ = ("period", "jitter", "phase", "gate", "noise", "every_edge_seen", "_starts", "_sums")
 
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.period) and self.period > 0):
-            raise ValueError(f"oscillator period must be finite and > 0 cycles, got {self.period!r}")
-        if not (0.0 <= self.jitter * max_period_deviation() < 1.0):
+    def __init__(
+        self, period: float, jitter: float, phase: float, gate: int, noise: JitterSource
+    ) -> None:
+        if not (math.isfinite(period) and period > 0):
+            raise ValueError(f"oscillator period must be finite and > 0 cycles, got {period!r}")
+        if not (0.0 <= jitter * _MAX_DEV < 1.0):
             raise ValueError(
-                f"jitter must lie in [0, {1 / max_period_deviation():.4f}) so that every period "
-                f"stays positive, got {self.jitter!r}"
+                f"jitter must lie in [0, {1 / _MAX_DEV:.4f}) so that every period "
+                f"stays positive, got {jitter!r}"
             )
-        if not (0.0 <= self.phase < 1.0):
-            raise ValueError(f"phase must lie in [0, 1), got {self.phase!r}")
-        if not (isinstance(self.gate, (int, np.integer)) and self.gate > 0):
-            raise ValueError(f"gate must be a positive number of cycles, got {self.gate!r}")
+        if not (0.0 <= phase < 1.0):
+            raise ValueError(f"phase must lie in [0, 1), got {phase!r}")
+        if not (type(gate) is int or isinstance(gate, np.integer)) or gate <= 0:
+            raise ValueError(f"gate must be a positive number of cycles, got {gate!r}")
+        self.period = period
+        self.jitter = jitter
+        self.phase = phase
+        self.gate = int(gate)
+        self.noise = noise
+        #: True when no half period can be shorter than one cycle, whatever the jitter draws:
+        #: then the synchroniser sees every edge and the count has a closed form.
+        self.every_edge_seen = 0.5 * period * (1.0 - jitter * _MAX_DEV) >= 1.0 + _DETECT_MARGIN
+        self._starts: FloatArray | None = None
+        self._sums: FloatArray | None = None
 
     # ------------------------------------------------------------ the definition
 
@@ -98,31 +121,40 @@ class EdgeTrain:
 
     def block_starts(self) -> FloatArray:
         """Times of edges 0, B, 2B, … up to the first one beyond the gate."""
-        if self._starts.size and self._starts[-1] > self.gate:
+        if self._starts is not None:
             return self._starts
-        n = max(2, int(self.gate / (self.period * BLOCK)) + 2)
+        n = int(self.gate / (self.period * BLOCK)) + 2
         while True:
-            y = self.block_sums(n)
-            s = np.empty(n + 1)
-            s[0] = 0.0
-            np.cumsum(y * _SQRT_BLOCK, out=s[1:])
-            starts = self.first_edge + self.period * (BLOCK * np.arange(n + 1)) + (
-                self.period * self.jitter
-            ) * s
+            y = self.noise.block_sums(n)
+            starts = np.empty(n + 1)
+            starts[0] = 0.0
+            y.cumsum(out=starts[1:])  # Σ y over the blocks before each start
+            starts *= self.period * self.jitter * _SQRT_BLOCK
+            starts += self.period * _block_offsets(n + 1)
+            starts += self.phase * self.period
             if starts[-1] > self.gate:
                 self._starts, self._sums = starts, y
                 return starts
             n *= 2
 
+    def _block_z(self, b: int, y_b: float) -> FloatArray:
+        """The normalised period deviations z of block b (its shape w, its sum y_b·√B)."""
+        z = self.noise.block_steps(b)
+        z -= np.add.reduce(z) / BLOCK - y_b / _SQRT_BLOCK
+        return z
+
     def block_rises(self, b: int) -> FloatArray:
         """Times of edges bB … bB + B − 1."""
         starts = self.block_starts()
-        w = self.block_steps(b)
-        z = w - w.mean() + self._sums[b] / _SQRT_BLOCK
-        c = np.empty(BLOCK)
-        c[0] = 0.0
-        np.cumsum(z[:-1], out=c[1:])
-        return starts[b] + self.period * _ARANGE_BLOCK + (self.period * self.jitter) * c
+        assert self._sums is not None
+        z = self._block_z(b, float(self._sums[b]))
+        rises = np.empty(BLOCK)
+        rises[0] = 0.0
+        z[:-1].cumsum(out=rises[1:])  # Σ z over the periods before each edge
+        rises *= self.period * self.jitter
+        rises += self.period * _ARANGE_BLOCK
+        rises += starts[b]
+        return rises
 
     def edges(self) -> tuple[FloatArray, FloatArray]:
         """(rises, falls) of every edge that can matter: the previous period's edge,
@@ -141,12 +173,6 @@ class EdgeTrain:
 
     # ------------------------------------------------------------ the fast path
 
-    @property
-    def every_edge_seen(self) -> bool:
-        """True when no half period can be shorter than one cycle, whatever the jitter draws."""
-        shortest = self.period * (1.0 - self.jitter * max_period_deviation())
-        return 0.5 * shortest >= 1.0 + _DETECT_MARGIN
-
     def event_offsets(self) -> IntArray:
         """Counter increments in the gate, as cycles after its start (0 … gate − 1).
 
@@ -163,11 +189,49 @@ class EdgeTrain:
         return a[seen] - 1
 
     def edge_count(self) -> int:
-        """Number of counter increments in the gate (not wrapped)."""
+        """Number of counter increments in the gate (not wrapped).
+
+        With every edge seen this is #{k : t_k ∈ (0, gate]}: find the block holding
+        the gate's end from the block sums' prefix sums, then the edge within it. The
+        few edge times it needs are evaluated as scalars with exactly the operations,
+        in exactly the order, that :meth:`block_starts` and :meth:`block_rises` apply
+        to whole arrays, so they are the same doubles (IEEE arithmetic is the same in
+        numpy and Python).
+        """
         if not self.every_edge_seen:
             return int(self.event_offsets().size)
-        starts = self.block_starts()
-        last = int(np.searchsorted(starts, self.gate, side="right")) - 1
-        rises = self.block_rises(last)
-        n = last * BLOCK + int(np.searchsorted(rises, self.gate, side="right"))
-        return n - (1 if self.first_edge <= 0.0 else 0)
+        gate, period = self.gate, self.period
+        k_sum = period * self.jitter * _SQRT_BLOCK
+        t0 = self.phase * period
+        n = int(gate / (period * BLOCK)) + 2
+        while True:
+            y = self.noise.block_sums(n)
+            sums = y.cumsum()  # sums[b - 1] = Σ_{i<b} y_i
+
+            def start(b: int) -> float:
+                return ((float(sums[b - 1]) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
+
+            if start(n) > gate:
+                break
+            n *= 2
+        b = min(max(int((gate - t0) / (period * BLOCK)), 0), n - 1)
+        while start(b + 1) <= gate:
+            b += 1
+        while b >= 0 and start(b) > gate:
+            b -= 1
+        if b < 0:  # edge 0 comes after the gate's end
+            return 0
+        z = self._block_z(b, float(y[b]))
+        steps = z[:-1].cumsum()  # steps[i - 1] = Σ_{m<i} z_m
+        k_step = period * self.jitter
+        base = start(b)
+
+        def rise(i: int) -> float:
+            return ((float(steps[i - 1]) if i else 0.0) * k_step + period * i) + base
+
+        i = min(max(int((gate - base) / period), 0), BLOCK - 1)
+        while i + 1 < BLOCK and rise(i + 1) <= gate:
+            i += 1
+        while i >= 0 and rise(i) > gate:
+            i -= 1
+        return b * BLOCK + i + 1 - (1 if t0 <= 0.0 else 0)

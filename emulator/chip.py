@@ -143,6 +143,7 @@ class Chip:
         self._noise = KeyedNormals(seed)
         self._modulus = 1 << config.counter_bits
         self._timing = config.adc_timing
+        self._adc_cache: dict[float, float] = {}
         # T is linear in C: evaluate transfer.oscillator_period once, not per gate.
         self._period_per_farad = float(oscillator_period(1.0, self.params)) * self._clock
 
@@ -191,9 +192,18 @@ class Chip:
         channel = _check_int("channel", channel, 0)
         start_cycle = _check_int("start_cycle", start_cycle, 0)
         oversampling = _check_int("oversampling", oversampling, 1)
-        clean = float(adc_input(_check_capacitance(capacitance), self.params))
+        clean = self._adc_clean(_check_capacitance(capacitance))
         noise = self._noise.normals(Stream.ADC, channel, start_cycle, oversampling)
         return held_inputs(clean, noise * self.config.adc_noise_lsb)
+
+    def _adc_clean(self, capacitance: float) -> float:
+        """Noise-free held value (LSB), memoised: a channel at rest repeats its capacitance."""
+        v = self._adc_cache.get(capacitance)
+        if v is None:
+            if len(self._adc_cache) >= 4096:
+                self._adc_cache.clear()
+            v = self._adc_cache[capacitance] = float(adc_input(capacitance, self.params))
+        return v
 
     def convert(self, channel: int, capacitance: float, start_cycle: int, oversampling: int) -> tuple[int, int]:
         """Sum of `oversampling` 8-bit charge-time conversions and the cycles they took."""

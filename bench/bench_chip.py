@@ -47,7 +47,7 @@ def speed_rows(chip: Chip, caps: dict[str, float]) -> list[tuple[str, float, flo
             step_counter(chip.edge_train(0, c, 1000, gate), 1000, chip.config.counter_bits)
 
         rows.append((f"counter gate, {name}", 1e6 / best_rate(fast, FAST_CALLS, REPEATS),
-                     1e6 / best_rate(ref, 1, 3)))
+                     1e6 / best_rate(ref, 1, REPEATS)))
     c = caps["C1 rest"]
     timing = chip.config.adc_timing
     for n in (1, 16, 64):

@@ -171,9 +171,8 @@ class Chip:
         start_cycle = _check_int("start_cycle", start_cycle, 0)
         gate_cycles = _check_int("gate_cycles", gate_cycles, 1)
         period = self.period_cycles(_check_capacitance(capacitance))
-        phase = self._noise.uniform(Stream.PHASE, channel, start_cycle)
         return EdgeTrain(
-            period, self.config.jitter, phase, gate_cycles, GateNoise(self._noise, channel, start_cycle)
+            period, self.config.jitter, None, gate_cycles, GateNoise(self._noise, channel, start_cycle)
         )
 
     def count(self, channel: int, capacitance: float, start_cycle: int, gate_cycles: int) -> tuple[int, bool]:

@@ -34,8 +34,7 @@ BLOCK_SIZE = 128  #: periods per jitter block (the oscillator's BLOCK)
 class Stream(enum.IntEnum):
     """What a random stream is for; part of the key, so streams never overlap."""
 
-    PHASE = 1  #: oscillator phase at a gate's start (hashed, see :meth:`KeyedNormals.uniform`)
-    JITTER_BLOCKS = 2  #: per-block sums of the period jitter
+    JITTER_BLOCKS = 2  #: a gate's head: phase, per-block sums of the jitter, hint block's shape
     JITTER_STEPS = 3  #: period jitter within one block (substream = block index)
     ADC = 4  #: ADC input noise, one normal per conversion
     CRYSTAL = 5  #: a chip's crystal offset
@@ -57,27 +56,27 @@ class KeyedNormals:
         self._bitgen = np.random.Philox(key=0)
         self._gen = np.random.Generator(self._bitgen)
         self._state = self._bitgen.state
+        self._key = self._state["state"]["key"]
+        self._counter = self._state["state"]["counter"]
+        self._key[0] = self._seed64
 
-    def _seek(self, stream: Stream, channel: int, cycle: int, substream: int) -> None:
-        # Hot path (three per counter gate): plain int stores into the kept state dict.
-        st = self._state
-        inner = st["state"]
-        inner["key"][0] = self._seed64
-        inner["key"][1] = cycle & _MASK64
-        ctr = inner["counter"]
+    def _seek(self, stream: int, channel: int, cycle: int, substream: int) -> None:
+        # Hot path (two per counter gate): plain int stores into kept arrays, one setter.
+        self._key[1] = cycle & _MASK64
+        ctr = self._counter
         ctr[0] = (substream << _SUBSTREAM_SHIFT) & _MASK64
         ctr[1] = stream
         ctr[2] = channel & _MASK64
-        ctr[3] = 0
+        st = self._state
         st["buffer_pos"] = 4  # empty output buffer: next draw comes from the counter
         st["has_uint32"] = 0
         self._bitgen.state = st
 
     def normals(
-        self, stream: Stream, channel: int, cycle: int, n: int, substream: int = 0
+        self, stream: int, channel: int, cycle: int, n: int, substream: int = 0
     ) -> NDArray[np.float64]:
         """``n`` standard normals clipped to ±Z_MAX; a longer draw extends a shorter one."""
-        self._seek(stream, channel, cycle, substream)
+        self._seek(int(stream), channel, cycle, substream)
         z = self._gen.standard_normal(n)
         np.minimum(z, Z_MAX, out=z)
         return np.maximum(z, -Z_MAX, out=z)
@@ -87,6 +86,10 @@ class KeyedNormals:
         tag = (int(stream) << 56) | ((substream & 0xFFFF) << 40) | (channel & 0xFFFFFFFFFF)
         h = _splitmix64(_splitmix64(cycle & _MASK64) ^ self._seed64 ^ tag)
         return (h >> 11) * _TWO_M53
+
+
+_JITTER_BLOCKS = int(Stream.JITTER_BLOCKS)
+_JITTER_STEPS = int(Stream.JITTER_STEPS)
 
 
 class GateNoise:
@@ -100,13 +103,18 @@ class GateNoise:
         self._channel = channel
         self._cycle = cycle
 
-    def block_sums(self, n: int) -> NDArray[np.float64]:
-        return self._normals.normals(Stream.JITTER_BLOCKS, self._channel, self._cycle, n)
+    def head(self, n: int) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+        """(phase, n block sums, the hint block's BLOCK_SIZE shape normals): one seek, one draw."""
+        k = self._normals
+        k._seek(_JITTER_BLOCKS, self._channel, self._cycle, 0)
+        phase = float(k._gen.random())
+        z = k._gen.standard_normal(n + BLOCK_SIZE)
+        np.minimum(z, Z_MAX, out=z)
+        np.maximum(z, -Z_MAX, out=z)
+        return phase, z[:n], z[n:]
 
     def block_steps(self, b: int) -> NDArray[np.float64]:
-        return self._normals.normals(
-            Stream.JITTER_STEPS, self._channel, self._cycle, BLOCK_SIZE, substream=b
-        )
+        return self._normals.normals(_JITTER_STEPS, self._channel, self._cycle, BLOCK_SIZE, b)
 
 
 def _splitmix64(x: int) -> int:

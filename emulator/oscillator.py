@@ -16,7 +16,10 @@ Block b draws its *sum* ``Z_b = √B·y_b`` directly and its shape from B furthe
 w: ``z = w − mean(w) + Z_b/B``. Since ``w − mean(w)`` is independent of ``mean(w)``,
 this is exactly i.i.d. N(0, 1) periods — but the start of any block is a prefix sum
 of the y alone, so the gate's last edge needs ~gate/(B·T) + B normals, not one per
-period.
+period. The gate's *head* draw holds the phase, a fixed number of y (enough to pass
+the gate's end whatever they are) and the shape of the block where the gate most
+likely ends (the *hint* block, from the jitter-free edge times); every other block
+has its own substream. So the fast path's usual cost is one seek and one draw.
 
 **Synchroniser and counter.** The oscillator output is sampled at each integer cycle
 by flop 1, then flop 2; the counter increments at cycle n when flop 2 was high and
@@ -71,24 +74,28 @@ _MAX_DEV = max_period_deviation()
 class JitterSource(Protocol):
     """The clipped standard normals a train's jitter is made of (a keyed generator)."""
 
-    def block_sums(self, n: int) -> FloatArray:
-        """The first n block-sum normals y (a longer call extends a shorter one)."""
+    def head(self, n: int) -> tuple[float, FloatArray, FloatArray]:
+        """(uniform phase, n block-sum normals y, BLOCK shape normals of the hint block)."""
 
     def block_steps(self, b: int) -> FloatArray:
-        """The BLOCK shape normals w of block b."""
+        """The BLOCK shape normals w of block b (any block but the hint block)."""
 
 
 class EdgeTrain:
     """The oscillator's rising edges for one gate of ``gate`` cycles.
 
     ``period`` is T in chip cycles, ``jitter`` the relative rms jitter of one period,
-    ``phase`` ∈ [0, 1) places edge 0 at phase·T after the origin.
+    ``phase`` ∈ [0, 1) places edge 0 at phase·T after the origin (None: the phase
+    the noise source draws, as the chip does).
     """
 
-    __slots__ = ("period", "jitter", "phase", "gate", "noise", "every_edge_seen", "_starts", "_sums")
+    __slots__ = (
+        "period", "jitter", "gate", "noise", "every_edge_seen", "n_blocks",
+        "_phase", "_sums", "_hint", "_hint_steps", "_starts",
+    )
 
     def __init__(
-        self, period: float, jitter: float, phase: float, gate: int, noise: JitterSource
+        self, period: float, jitter: float, phase: float | None, gate: int, noise: JitterSource
     ) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ValueError(f"oscillator period must be finite and > 0 cycles, got {period!r}")
@@ -97,60 +104,76 @@ class EdgeTrain:
                 f"jitter must lie in [0, {1 / _MAX_DEV:.4f}) so that every period "
                 f"stays positive, got {jitter!r}"
             )
-        if not (0.0 <= phase < 1.0):
+        if phase is not None and not (0.0 <= phase < 1.0):
             raise ValueError(f"phase must lie in [0, 1), got {phase!r}")
         if not (type(gate) is int or isinstance(gate, np.integer)) or gate <= 0:
             raise ValueError(f"gate must be a positive number of cycles, got {gate!r}")
         self.period = period
         self.jitter = jitter
-        self.phase = phase
         self.gate = int(gate)
         self.noise = noise
         #: True when no half period can be shorter than one cycle, whatever the jitter draws:
         #: then the synchroniser sees every edge and the count has a closed form.
         self.every_edge_seen = 0.5 * period * (1.0 - jitter * _MAX_DEV) >= 1.0 + _DETECT_MARGIN
-        self._starts: FloatArray | None = None
+        #: Block sums drawn: enough that block n_blocks starts after the gate's end even
+        #: if every y sits at −Z_MAX (start(b) ≥ T·b·(B − jitter·√B·Z_MAX)).
+        self.n_blocks = int((self.gate + 1) / (period * (BLOCK - jitter * _SQRT_BLOCK * Z_MAX))) + 2
+        self._phase = phase
         self._sums: FloatArray | None = None
+        self._hint = -1
+        self._hint_steps: FloatArray | None = None
+        self._starts: FloatArray | None = None
 
     # ------------------------------------------------------------ the definition
 
+    def _draw_head(self) -> FloatArray:
+        """Block sums y (drawing the gate's head once); sets the phase and the hint block."""
+        if self._sums is None:
+            phase, y, steps = self.noise.head(self.n_blocks)
+            if self._phase is None:
+                self._phase = phase
+            t0 = self._phase * self.period
+            self._hint = min(max(int((self.gate - t0) / (self.period * BLOCK)), 0), self.n_blocks - 1)
+            self._sums, self._hint_steps = y, steps
+        return self._sums
+
     @property
-    def first_edge(self) -> float:
-        """t_0 = phase·T."""
-        return self.phase * self.period
+    def phase(self) -> float:
+        """Edge 0 is at phase·T after the origin."""
+        self._draw_head()
+        assert self._phase is not None
+        return self._phase
 
     def block_starts(self) -> FloatArray:
-        """Times of edges 0, B, 2B, … up to the first one beyond the gate."""
-        if self._starts is not None:
-            return self._starts
-        n = int(self.gate / (self.period * BLOCK)) + 2
-        while True:
-            y = self.noise.block_sums(n)
+        """Times of edges 0, B, 2B, …, n_blocks·B (the last one is beyond the gate)."""
+        if self._starts is None:
+            y = self._draw_head()
+            n = self.n_blocks
             starts = np.empty(n + 1)
             starts[0] = 0.0
             y.cumsum(out=starts[1:])  # Σ y over the blocks before each start
             starts *= self.period * self.jitter * _SQRT_BLOCK
             starts += self.period * _block_offsets(n + 1)
             starts += self.phase * self.period
-            if starts[-1] > self.gate:
-                self._starts, self._sums = starts, y
-                return starts
-            n *= 2
+            self._starts = starts
+        return self._starts
 
-    def _block_z(self, b: int, y_b: float) -> FloatArray:
-        """The normalised period deviations z of block b (its shape w, its sum y_b·√B)."""
-        z = self.noise.block_steps(b)
-        z -= np.add.reduce(z) / BLOCK - y_b / _SQRT_BLOCK
-        return z
+    def _block_shape(self, b: int) -> tuple[FloatArray, float]:
+        """Block b's shape normals w and the shift m with z_i = w_i − m
+        (m = mean(w) − y_b/√B, so that the block's z sum to y_b·√B)."""
+        y = self._draw_head()
+        w = self._hint_steps if b == self._hint else self.noise.block_steps(b)
+        assert w is not None
+        return w, float(np.add.reduce(w)) / BLOCK - float(y[b]) / _SQRT_BLOCK
 
     def block_rises(self, b: int) -> FloatArray:
         """Times of edges bB … bB + B − 1."""
         starts = self.block_starts()
-        assert self._sums is not None
-        z = self._block_z(b, float(self._sums[b]))
+        w, m = self._block_shape(b)
         rises = np.empty(BLOCK)
         rises[0] = 0.0
-        z[:-1].cumsum(out=rises[1:])  # Σ z over the periods before each edge
+        w[:-1].cumsum(out=rises[1:])  # Σ w over the periods before each edge …
+        rises -= m * _ARANGE_BLOCK  # … minus the shift: Σ z
         rises *= self.period * self.jitter
         rises += self.period * _ARANGE_BLOCK
         rises += starts[b]
@@ -161,7 +184,7 @@ class EdgeTrain:
         then edges 0, 1, … through the block that holds the gate's end."""
         starts = self.block_starts()
         last = int(np.searchsorted(starts, self.gate, side="right")) - 1
-        t0 = self.first_edge
+        t0 = self.phase * self.period
         rises = np.concatenate(
             [[t0 - self.period], *(self.block_rises(b) for b in range(last + 1))]
         )
@@ -201,33 +224,27 @@ class EdgeTrain:
         if not self.every_edge_seen:
             return int(self.event_offsets().size)
         gate, period = self.gate, self.period
+        sums = self._draw_head().cumsum()  # sums[b - 1] = Σ_{i<b} y_i
         k_sum = period * self.jitter * _SQRT_BLOCK
         t0 = self.phase * period
-        n = int(gate / (period * BLOCK)) + 2
-        while True:
-            y = self.noise.block_sums(n)
-            sums = y.cumsum()  # sums[b - 1] = Σ_{i<b} y_i
 
-            def start(b: int) -> float:
-                return ((float(sums[b - 1]) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
+        def start(b: int) -> float:
+            return ((float(sums[b - 1]) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
 
-            if start(n) > gate:
-                break
-            n *= 2
-        b = min(max(int((gate - t0) / (period * BLOCK)), 0), n - 1)
+        b = self._hint
         while start(b + 1) <= gate:
             b += 1
         while b >= 0 and start(b) > gate:
             b -= 1
         if b < 0:  # edge 0 comes after the gate's end
             return 0
-        z = self._block_z(b, float(y[b]))
-        steps = z[:-1].cumsum()  # steps[i - 1] = Σ_{m<i} z_m
+        w, m = self._block_shape(b)
+        steps = w.cumsum()  # steps[i - 1] = Σ_{j<i} w_j (the prefixes block_rises uses)
         k_step = period * self.jitter
         base = start(b)
 
         def rise(i: int) -> float:
-            return ((float(steps[i - 1]) if i else 0.0) * k_step + period * i) + base
+            return (((float(steps[i - 1]) if i else 0.0) - m * i) * k_step + period * i) + base
 
         i = min(max(int((gate - base) / period), 0), BLOCK - 1)
         while i + 1 < BLOCK and rise(i + 1) <= gate:

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from cellbridge.emulator.adc import sar_codes
 from cellbridge.emulator.chip import Chip, ChipConfig
-from cellbridge.emulator.keyed_random import GateNoise, KeyedNormals
+from cellbridge.emulator.keyed_random import Z_MAX, GateNoise, KeyedNormals, Stream
 from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation
 from cellbridge.emulator.reference import step_conversions, step_counter
 
@@ -131,13 +131,20 @@ def test_sar_search_is_floor_clipped(x, bits):
     assert sar_codes(held, bits).tolist() == ref.codes
 
 
-def test_keyed_draws_are_prefixes():
-    """A longer draw extends a shorter one: the fast path may draw fewer block sums
-    than the stepper and still see the same values."""
+def test_keyed_streams_are_addressable_and_independent():
+    """A draw depends on (seed, stream, channel, cycle, substream) only: repeating it,
+    after any other draw, gives the same numbers; changing any key gives others."""
     k = KeyedNormals(7)
-    from cellbridge.emulator.keyed_random import Stream
-
-    a = k.normals(Stream.JITTER_BLOCKS, 1, 99, 5)
-    b = k.normals(Stream.JITTER_BLOCKS, 1, 99, 500)
-    assert np.array_equal(a, b[:5])
-    assert not np.array_equal(b[:5], k.normals(Stream.JITTER_BLOCKS, 1, 100, 5))
+    a = k.normals(Stream.JITTER_STEPS, 1, 99, 5, 3)
+    k.normals(Stream.ADC, 0, 12, 50)
+    assert np.array_equal(a, k.normals(Stream.JITTER_STEPS, 1, 99, 5, 3))
+    assert np.array_equal(a, k.normals(Stream.JITTER_STEPS, 1, 99, 500, 3)[:5])
+    for other in (
+        KeyedNormals(8).normals(Stream.JITTER_STEPS, 1, 99, 5, 3),
+        k.normals(Stream.ADC, 1, 99, 5, 3),
+        k.normals(Stream.JITTER_STEPS, 2, 99, 5, 3),
+        k.normals(Stream.JITTER_STEPS, 1, 100, 5, 3),
+        k.normals(Stream.JITTER_STEPS, 1, 99, 5, 4),
+    ):
+        assert not np.array_equal(a, other)
+    assert np.all(np.abs(k.normals(Stream.ADC, 0, 0, 100_000)) <= Z_MAX)

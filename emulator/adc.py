@@ -54,4 +54,7 @@ def sar_codes(held: NDArray[np.float64], bits: int) -> NDArray[np.int64]:
     Successive approximation keeps bit j when ``x ≥ code | 2^j``; that binary search
     ends at floor(x) clipped to [0, 2^bits − 1], computed here in one step.
     """
-    return np.clip(np.floor(held), 0, (1 << bits) - 1).astype(np.int64)
+    codes = np.floor(held)
+    np.minimum(codes, (1 << bits) - 1, out=codes)
+    np.maximum(codes, 0.0, out=codes)
+    return codes.astype(np.int64)

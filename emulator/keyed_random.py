@@ -9,6 +9,10 @@ output at a counter value depends on the key and that counter only), so a stream
 "seek to (key, counter), draw" — one state assignment (≈1 µs) instead of building a
 generator per call (≈7 µs).
 
+Normals come from numpy's ``Generator.standard_normal`` on Philox; numpy keeps that
+stream stable across releases in practice but does not promise it, so a run is
+reproducible for a seed on a given numpy version.
+
 Normals are clipped to ±:data:`Z_MAX`. Clipping at 8σ changes no statistic anyone
 can measure (P(|z| > 8) ≈ 1e-15) but bounds every jittered period, which is what lets
 the counter's fast path prove that the synchroniser sees every edge.

@@ -29,9 +29,13 @@ from cellbridge.emulator.keyed_random import GateNoise, KeyedNormals, Stream
 from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation
 from cellbridge.tactile.transfer import ChipParams, adc_input, oscillator_period
 
-__all__ = ["CLOCK_HZ", "ChipConfig", "Chip"]
+__all__ = ["CLOCK_HZ", "MIN_PERIOD_CYCLES", "ChipConfig", "Chip"]
 
 CLOCK_HZ: int = 50_000_000
+#: Shortest oscillator period modelled (cycles). Faster oscillators are aliased by the
+#: synchroniser into meaningless counts, and following each edge costs gate/T work.
+#: At the defaults this is C ≥ 0.77 pF; a real channel has ≥ 10 pF of parasitics.
+MIN_PERIOD_CYCLES = 0.25
 
 
 @dataclass(frozen=True)
@@ -170,7 +174,13 @@ class Chip:
         channel = _check_int("channel", channel, 0)
         start_cycle = _check_int("start_cycle", start_cycle, 0)
         gate_cycles = _check_int("gate_cycles", gate_cycles, 1)
-        period = self.period_cycles(_check_capacitance(capacitance))
+        c = _check_capacitance(capacitance)
+        period = self.period_cycles(c)
+        if period < MIN_PERIOD_CYCLES:
+            raise ValueError(
+                f"capacitance {c!r} F gives an oscillator period of {period:.3g} cycles; the chip "
+                f"model needs >= {MIN_PERIOD_CYCLES} (C >= {MIN_PERIOD_CYCLES / self._period_per_farad:.3g} F)"
+            )
         return EdgeTrain(
             period, self.config.jitter, None, gate_cycles, GateNoise(self._noise, channel, start_cycle)
         )

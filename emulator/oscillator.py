@@ -159,20 +159,21 @@ class EdgeTrain:
         return self._starts
 
     def _block_shape(self, b: int) -> tuple[FloatArray, float]:
-        """Block b's shape normals w and the shift m with z_i = w_i − m
-        (m = mean(w) − y_b/√B, so that the block's z sum to y_b·√B)."""
+        """Prefix sums W of block b's shape normals w (W[i] = Σ_{j≤i} w_j) and the shift
+        m with z_i = w_i − m (m = mean(w) − y_b/√B, so that the block's z sum to y_b·√B)."""
         y = self._draw_head()
         w = self._hint_steps if b == self._hint else self.noise.block_steps(b)
         assert w is not None
-        return w, float(np.add.reduce(w)) / BLOCK - float(y[b]) / _SQRT_BLOCK
+        cum = w.cumsum()
+        return cum, float(cum[-1]) / BLOCK - float(y[b]) / _SQRT_BLOCK
 
     def block_rises(self, b: int) -> FloatArray:
         """Times of edges bB … bB + B − 1."""
         starts = self.block_starts()
-        w, m = self._block_shape(b)
+        cum, m = self._block_shape(b)
         rises = np.empty(BLOCK)
         rises[0] = 0.0
-        w[:-1].cumsum(out=rises[1:])  # Σ w over the periods before each edge …
+        rises[1:] = cum[:-1]  # Σ w over the periods before each edge …
         rises -= m * _ARANGE_BLOCK  # … minus the shift: Σ z
         rises *= self.period * self.jitter
         rises += self.period * _ARANGE_BLOCK
@@ -238,8 +239,7 @@ class EdgeTrain:
             b -= 1
         if b < 0:  # edge 0 comes after the gate's end
             return 0
-        w, m = self._block_shape(b)
-        steps = w.cumsum()  # steps[i - 1] = Σ_{j<i} w_j (the prefixes block_rises uses)
+        steps, m = self._block_shape(b)  # steps[i - 1] = Σ_{j<i} w_j
         k_step = period * self.jitter
         base = start(b)
 

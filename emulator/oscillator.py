@@ -24,8 +24,8 @@ has its own substream. So the fast path's usual cost is one seek and one draw.
 **Synchroniser and counter.** The oscillator output is sampled at each integer cycle
 by flop 1, then flop 2; the counter increments at cycle n when flop 2 was high and
 its previous value low before edge n, i.e. ``level(n−2) = 1`` and ``level(n−3) = 0``
-(relative to L: an edge whose first high sample is a increments at a + 2 − 3 cycles
-after the gate opens, the DESIGN's 2–3-cycle latency). The counter counts increments
+(an edge whose first high sample is cycle L + a, a = ⌈t⌉, increments the register at
+L + a + 2, i.e. 2–3 cycles after the edge itself). The counter counts increments
 at cycles ``[start, start + gate)``. When every half period is at least one cycle
 long, every edge is seen and the count is simply the number of edges in
 ``(0, gate]``: the fast path's closed form. Otherwise (oscillator near or above half

@@ -36,6 +36,9 @@ CLOCK_HZ: int = 50_000_000
 #: synchroniser into meaningless counts, and following each edge costs gate/T work.
 #: At the defaults this is C ≥ 0.77 pF; a real channel has ≥ 10 pF of parasitics.
 MIN_PERIOD_CYCLES = 0.25
+#: Largest capacitance accepted (F): far above any element, far below picofarads
+#: passed as farads (the transfer functions' bound).
+MAX_CAPACITANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -129,6 +132,11 @@ def _check_capacitance(c: object) -> float:
         raise ValueError(f"capacitance must be a number in farads, got {c!r}") from None
     if not (math.isfinite(v) and v > 0):
         raise ValueError(f"capacitance must be finite and > 0 F, got {c!r}")
+    if v > MAX_CAPACITANCE:
+        raise ValueError(
+            f"capacitance must be in farads (<= {MAX_CAPACITANCE:g} F), got {c!r}: "
+            "picofarads passed as farads?"
+        )
     return v
 
 
@@ -149,7 +157,7 @@ class Chip:
         self._timing = config.adc_timing
         self._adc_cache: dict[float, float] = {}
         # T is linear in C: evaluate transfer.oscillator_period once, not per gate.
-        self._period_per_farad = float(oscillator_period(1.0, self.params)) * self._clock
+        self._period_per_farad = float(oscillator_period(1e-12, self.params)) * self._clock / 1e-12
 
     # ------------------------------------------------------------------ clock
 

@@ -183,7 +183,8 @@ def test_bad_config_names_the_key(kwargs, key):
         (lambda c: c.count(0, 0.0, 0, 100), "capacitance"),
         (lambda c: c.count(0, float("nan"), 0, 100), "capacitance"),
         (lambda c: c.count(0, "15p", 0, 100), "capacitance"),
-        (lambda c: c.count(0, 0.5e-12, 0, 100), "capacitance"),  # oscillator faster than 4x the clock
+        (lambda c: c.count(0, 0.5e-12, 0, 100), "capacitance"),
+        (lambda c: c.count(0, 15.67, 0, 100), "picofarads"),  # oscillator faster than 4x the clock
         (lambda c: c.count(0, 15e-12, -5, 100), "start_cycle"),
         (lambda c: c.count(0, 15e-12, 0, 0), "gate_cycles"),
         (lambda c: c.count(0, 15e-12, 0, 1.5), "gate_cycles"),

@@ -118,15 +118,21 @@ class CurveServer:
     """Makes sockets CURVE servers whose clients must hold an allowed key.
 
     Owns pyzmq's ThreadAuthenticator: a ZAP handler on its own thread, which
-    libzmq asks about every handshake on the context's CURVE sockets.
+    libzmq asks about every CURVE handshake on the context's sockets. The handler
+    calls :meth:`callback`, so each accepted and denied handshake is counted
+    (:meth:`counters`, for the daemon's health topic).
     """
 
     def __init__(self, context: zmq.Context, curve: CurveKeys) -> None:
         self.curve = curve
         self._public, self._secret = _read_key(curve.server_secret_file, secret=True)
+        self.allowed: frozenset[bytes] = frozenset()
+        self.accepted = 0
+        self.denied = 0
+        self.reload()
         self._auth = ThreadAuthenticator(context)
         self._auth.start()
-        self.reload()
+        self._auth.configure_curve_callback(domain="*", credentials_provider=self)
 
     @property
     def public_key(self) -> bytes:
@@ -134,8 +140,28 @@ class CurveServer:
         return self._public
 
     def reload(self) -> None:
-        """Read the allowed clients' directory again (on SIGHUP, after adding or removing a key)."""
-        self._auth.configure_curve(domain="*", location=str(self.curve.allowed_clients_dir))
+        """Read the allowed clients' directory again (on SIGHUP, after adding or removing a key).
+
+        On a bad directory or key file the previous keys stay in force and a
+        ValueError names the problem.
+        """
+        directory = self.curve.allowed_clients_dir
+        try:
+            self.allowed = frozenset(load_certificates(directory))  # one assignment: the ZAP thread sees old or new
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"allowed_clients_dir {str(directory)!r}: {exc}") from None
+
+    def callback(self, domain: str, client_key: bytes) -> bool:
+        """ZAP thread: may the client with this public key (Z85) connect?"""
+        if client_key in self.allowed:
+            self.accepted += 1
+            return True
+        self.denied += 1
+        return False
+
+    def counters(self) -> dict[str, int]:
+        return {"allowed_keys": len(self.allowed), "handshakes_accepted": self.accepted,
+                "handshakes_denied": self.denied}
 
     def apply(self, socket: zmq.Socket) -> None:
         """Make ``socket`` a CURVE server (call before bind)."""

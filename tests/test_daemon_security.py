@@ -133,11 +133,14 @@ def ask(context: zmq.Context, server: zmq.Socket, endpoint: str, server_key: Pat
 
 @pytest.mark.parametrize("kind", [zmq.REP, zmq.ROUTER])
 def test_allowed_key_gets_replies_foreign_key_and_plain_clients_get_none(kind: int, keys: dict[str, Path]) -> None:
-    with curve_server(keys, kind) as (context, server, endpoint, _):
+    with curve_server(keys, kind) as (context, server, endpoint, curve):
         assert ask(context, server, endpoint, keys["server.key"], keys["arm"]) == b"ping-pong"
         assert ask(context, server, endpoint, keys["server.key"], keys["stranger"]) is None
         assert ask(context, server, endpoint, None, None) is None  # no CURVE at all
         assert ask(context, server, endpoint, keys["server.key"], keys["arm"]) == b"ping-pong"  # still serving
+        counters = curve.counters()
+    assert counters["allowed_keys"] == 1
+    assert counters["handshakes_accepted"] == 2 and counters["handshakes_denied"] >= 1  # a refused client retries
 
 
 def test_reload_admits_a_newly_allowed_key(keys: dict[str, Path]) -> None:
@@ -148,6 +151,10 @@ def test_reload_admits_a_newly_allowed_key(keys: dict[str, Path]) -> None:
         assert ask(context, server, endpoint, keys["server.key"], keys["stranger"]) is None  # not before the reload
         curve.reload()
         assert ask(context, server, endpoint, keys["server.key"], keys["stranger"]) == b"ping-pong"
+        (keys["clients"] / "broken.key").write_text("no key here\n")
+        with pytest.raises(ValueError, match="allowed_clients_dir .*broken.key"):
+            curve.reload()
+        assert curve.counters()["allowed_keys"] == 2  # the previous keys stay in force
 
 
 def test_apply_client_names_a_bad_key_file(keys: dict[str, Path], tmp_path: Path) -> None:

@@ -102,3 +102,12 @@ def test_json_conversion_keeps_values() -> None:
     payload = {"v": 1, "t_host": 1.5, "f": math.nan, "b": b"\x00\xff", 7: [1, -2]}
     assert message_to_json([b"element", msgpack.packb(payload)])["payload"] == {
         "v": 1, "t_host": 1.5, "f": None, "b": "00ff", "7": [1, -2]}
+
+
+def test_sub_ends_quietly_when_its_reader_goes_away() -> None:
+    with publisher() as endpoint:
+        out = run_subscriber(["bash", "-c", f"set -o pipefail; '{CLI}' sub --endpoint {endpoint} --timeout 20 "
+                                            "| head -n 2"])
+    assert out.returncode == 0, out.stderr  # pipefail: sub's own status
+    assert len(json_lines(out.stdout)) == 2
+    assert "Traceback" not in out.stderr and "BrokenPipe" not in out.stderr

@@ -109,9 +109,9 @@ def check_bind(endpoint: str, curve: CurveKeys | None) -> None:
     """Refuse to bind beyond loopback unless CURVE keys are configured."""
     if curve is None and not is_loopback(endpoint):
         raise SecurityError(
-            f"refusing to bind {endpoint!r}: it is reachable from other hosts and no CURVE keys are "
-            "configured; bind to 127.0.0.1 or ipc://, or set server_secret_file and allowed_clients_dir "
-            "in [security] (create keys with `cellbridge keys gen`)")
+            f"refusing to bind {endpoint!r}: it is not a loopback endpoint, so other hosts could reach it, "
+            "and no CURVE keys are configured; bind to 127.0.0.1 or ipc://, or set server_secret_file and "
+            "allowed_clients_dir in [security] (create keys with `cellbridge keys gen`)")
 
 
 class CurveServer:

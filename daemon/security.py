@@ -58,6 +58,10 @@ def load_curve(section: Mapping[str, Any] | None, *, source: str = "config",
     if secret_key is None:
         raise ValueError(f"{where}: server_secret_file {str(secret)!r} holds only a public key "
                          "(give the .key_secret file written by `cellbridge keys gen`)")
+    mode = secret.stat().st_mode & 0o777
+    if mode & 0o077:  # as ssh does: a secret others can read is no longer a secret
+        raise ValueError(f"{where}: server_secret_file {str(secret)!r} is readable by group or others "
+                         f"(mode {mode:04o}); make it private: chmod 600")
     if not allowed.is_dir():
         raise ValueError(f"{where}: allowed_clients_dir {str(allowed)!r} is not a directory")
     try:

@@ -83,13 +83,21 @@ def test_load_curve_expands_environment_variables(keys: dict[str, Path], tmp_pat
      "unknown key 'allow'"),
     ({"server_secret_file": 5, "allowed_clients_dir": "clients"}, "server_secret_file must be a non-empty path"),
     ({"server_secret_file": "nope.key_secret", "allowed_clients_dir": "clients"}, "server_secret_file .*nope"),
-    ({"server_secret_file": "server.key", "allowed_clients_dir": "clients"}, "server_secret_file .* holds only a public key"),
-    ({"server_secret_file": "server.key_secret", "allowed_clients_dir": "server.key"}, "allowed_clients_dir .* is not a directory"),
-    ({"server_secret_file": "server.key_secret", "allowed_clients_dir": "empty"}, "allowed_clients_dir .* holds no public key file"),
+    ({"server_secret_file": "server.key", "allowed_clients_dir": "clients"},
+     "server_secret_file .* holds only a public key"),
+    ({"server_secret_file": "server.key_secret", "allowed_clients_dir": "server.key"},
+     "allowed_clients_dir .* is not a directory"),
+    ({"server_secret_file": "loose.key_secret", "allowed_clients_dir": "clients"},
+     r"server_secret_file .* readable by group or others \(mode 0640\)"),
+    ({"server_secret_file": "server.key_secret", "allowed_clients_dir": "empty"},
+     "allowed_clients_dir .* holds no public key file"),
 ])
 def test_load_curve_names_the_bad_key(section: dict[str, object], message: str, keys: dict[str, Path],
                                       tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
+    loose = tmp_path / "loose.key_secret"
+    loose.write_bytes(keys["server.key_secret"].read_bytes())
+    loose.chmod(0o640)
     with pytest.raises(ValueError, match=rf"daemon.toml: \[security\]: {message}"):
         load_curve(section, source="daemon.toml", base_dir=tmp_path)
 
@@ -131,7 +139,7 @@ def ask(context: zmq.Context, server: zmq.Socket, endpoint: str, server_key: Pat
         client.close()
 
 
-@pytest.mark.parametrize("kind", [zmq.REP, zmq.ROUTER])
+@pytest.mark.parametrize("kind", [zmq.REP, zmq.ROUTER], ids=["REP", "ROUTER"])
 def test_allowed_key_gets_replies_foreign_key_and_plain_clients_get_none(kind: int, keys: dict[str, Path]) -> None:
     with curve_server(keys, kind) as (context, server, endpoint, curve):
         assert ask(context, server, endpoint, keys["server.key"], keys["arm"]) == b"ping-pong"

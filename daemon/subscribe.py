@@ -74,13 +74,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("topics", nargs="*", metavar="TOPIC",
                         help="topic prefix to receive (ZeroMQ prefix match; default: all topics)")
     parser.add_argument("--endpoint", default=DEFAULT_PUB, help=f"daemon's PUB endpoint (default: {DEFAULT_PUB})")
-    parser.add_argument("--count", type=int, default=0, metavar="N", help="exit after N messages (default: run until Ctrl-C)")
+    parser.add_argument("--count", type=int, default=0, metavar="N",
+                        help="exit after N messages (default: run until Ctrl-C)")
     parser.add_argument("--timeout", type=float, default=0.0, metavar="SECONDS",
                         help="exit with status 1 when no message arrives for this long (default: wait forever)")
     parser.add_argument("--server-key", type=Path, metavar="FILE",
                         help="daemon's public key file (NAME.key) when it runs with CURVE")
     parser.add_argument("--client-key", type=Path, metavar="FILE",
-                        help="this client's secret key file (NAME.key_secret); its NAME.key must be allowed by the daemon")
+                        help="this client's secret key file (NAME.key_secret); "
+                             "its NAME.key must be allowed by the daemon")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -305,7 +305,7 @@ class Calibrator:
         delta = np.full((n, c), np.nan)
         delta[live] = resid[live] - self._common
         self._hysteresis(live, tt, delta, enter, leave)
-        self._track(live & (st == TRACKING), tt, delta, enter)
+        self._track(live & (st == TRACKING), live, tt, delta, enter)
         self._last_t[sampled] = tt[sampled]
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING)
 
@@ -363,12 +363,17 @@ class Calibrator:
                 self._rebaselines[stuck] += 1
                 self.tare(stuck)
 
-    def _track(self, trk: NDArray[np.bool_], tt: FloatArray, delta: FloatArray, enter: FloatArray) -> None:
+    def _track(
+        self, trk: NDArray[np.bool_], live: NDArray[np.bool_], tt: FloatArray,
+        delta: FloatArray, enter: FloatArray,
+    ) -> None:
         """Element drift: clipped exponential tracker, unclipped and faster on a
-        channel that has stayed below −enter for ``negative_after`` seconds."""
+        channel that has stayed below −enter for ``negative_after`` seconds (a
+        missing reading neither restarts nor ends that wait)."""
         cfg = self.config
         below = trk[:, None] & (delta < -enter)
-        self._below_since = np.where(below, np.minimum(self._below_since, tt[:, None]), np.inf)
+        since = np.where(live[:, None], np.inf, self._below_since)
+        self._below_since = np.where(below, np.minimum(self._below_since, tt[:, None]), since)
         if not trk.any():
             return
         fast = below & (tt[:, None] - self._below_since >= cfg.negative_after)

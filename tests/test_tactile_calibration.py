@@ -447,3 +447,18 @@ def test_an_untouched_skin_stays_untouched_for_an_hour_of_drift_steps_and_outage
     assert cal.rebaselines.sum() == 0 and cal.health()["common_jumps"] >= 5  # the upward steps
     last = cal.update(3600.0, 20 * pF + temp[-1] * scale + swing[-1] + steps[-1])
     assert np.abs(last.delta).max() < 25 * fF
+
+
+def test_missing_readings_do_not_restart_the_below_baseline_timer():
+    # The fast negative tracker waits for a channel to stay low for negative_after;
+    # a missing reading in between is no evidence that it came back up.
+    cfg = CalibrationConfig(n_baseline=3, negative_after=1.0, tau_negative=0.5)
+    cal = ready_calibrator(4, cfg, base=21 * pF)
+    low = np.full((4, 2), 21 * pF)
+    low[0] = 20 * pF
+    gap = low.copy()
+    gap[0] = np.nan
+    for k in range(40):  # 4 s: a reading low, then a missing one, alternately
+        feed(cal, 1.0 + 0.1 * k, low if k % 2 == 0 else gap)
+    s = feed(cal, 5.0, low)
+    assert abs(s.delta[0, 0]) < cfg.enter

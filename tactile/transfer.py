@@ -258,6 +258,11 @@ def plausible_capacitance(
     return rest * (1 - margin), full * (1 + margin)
 
 
+#: Counts by which two integer readings may differ beyond their expected counts
+#: difference (each is the expected count rounded up or down by the phase).
+_COUNT_SLACK = 2
+
+
 def counter_span(C_lo: ArrayLike, C_hi: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
     """Counts between the lowest and the highest plausible capacitance, per channel."""
     ch = _chip(chip)
@@ -287,7 +292,7 @@ def max_gate_cycles(
     ch = _chip(chip)
     lo, hi = _range(C_lo, C_hi)
     per_cycle = float(np.max(counter_span(lo, hi, ch))) / ch.gate_cycles
-    return int(math.floor(0.5 * ch.counter_modulus / per_cycle))
+    return int(math.floor((0.5 * ch.counter_modulus - _COUNT_SLACK) / per_cycle))
 
 
 def check_gate(
@@ -336,7 +341,7 @@ class CounterUnwrapper:
         if not (isinstance(resync, (int, np.integer)) and resync >= 1):
             raise ValueError(f"resync must be an integer >= 1, got {resync!r}")
         self.resync = int(resync)
-        self._span = counter_span(lo, hi, self.chip)
+        self._span = counter_span(lo, hi, self.chip) + _COUNT_SLACK
         c0 = np.sqrt(lo * hi) if start is None else np.broadcast_to(_cap(start), lo.shape)
         self._nominal = np.rint(expected_counts(c0, self.chip)).astype(np.int64)
         self._prev = self._nominal.copy()

@@ -382,3 +382,34 @@ def test_garbage_in_is_rejected_or_flagged():
     assert np.isnan(counts_to_capacitance(-5))
     assert np.isnan(counts_to_capacitance(CHIP.gate_cycles))  # T = 1 cycle
     assert np.isfinite(counts_to_capacitance(19_593))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 0.999)),
+             min_size=1, max_size=30),
+    st.floats(-100.0, 100.0),
+)
+def test_unwrapper_is_exact_for_any_plausible_sequence_at_the_longest_gate(path, ppm):
+    # Any jump between plausible readings, from one sample to the next, at the
+    # longest gate check_gate allows: the count is exact and never flagged.
+    from cellbridge.tactile.transfer import CounterUnwrapper, max_gate_cycles, plausible_capacitance
+
+    lo, hi = plausible_capacitance()
+    chip = ChipParams(gate_cycles=max_gate_cycles(chip=CHIP.with_ppm(ppm)), clock_ppm=ppm)
+    un = CounterUnwrapper(lo, hi, chip, start=C_REST)
+    for u1, u2, ph in path:
+        c = lo + np.array([u1, u2]) * (hi - lo)
+        raw, ov = counts(c, chip, ph)
+        n, amb = un.unwrap(raw, ov)
+        assert list(n) == list(np.ceil(expected_counts(c, chip) - ph).astype(np.int64))
+        assert not amb.any()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(6e-12, 200e-12), st.floats(0.05, 3.0))
+def test_mean_code_inversion_is_right_or_nan(c, sigma):
+    back = float(adc_mean_to_capacitance(adc_mean_code(c, noise_lsb=sigma), noise_lsb=sigma))
+    assert math.isnan(back) or back == pytest.approx(c, rel=1e-5)
+    if sigma >= 0.15:
+        assert not math.isnan(back)

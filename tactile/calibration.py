@@ -307,6 +307,7 @@ class Calibrator:
         self._hysteresis(live, tt, delta, enter, leave)
         self._track(live & (st == TRACKING), live, tt, delta, enter)
         self._last_t[sampled] = tt[sampled]
+        delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING)
 
     def _update_common(self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray) -> None:

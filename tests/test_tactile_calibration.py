@@ -351,6 +351,15 @@ def test_max_touch_has_a_default_and_rebaselines_are_counted():
     h = cal.health()
     assert h["rebaselines_total"] == 1 and h["rebaselined"] == [[2, 1]]
     assert h["touched"] == 0 and h["ready"] == 4
+    # The step that re-baselines reports the element as not ready, with no ΔC.
+    cal.tare()
+    for k in range(cfg.n_baseline):
+        feed(cal, 1000.0 + 0.1 * k, np.full((4, 2), 20 * pF))
+    s = feed(cal, 1005.0, 20 * pF + shift)
+    assert s.touched[2]
+    s = feed(cal, 1005.0 + cfg.max_touch, 20 * pF + shift)
+    assert list(cal.rebaselines) == [0, 0, 2, 0]
+    assert not s.ready[2] and np.isnan(s.delta[2]).all() and s.ready[[0, 1, 3]].all()
 
 
 def test_one_low_outlier_does_not_drag_the_baseline():

@@ -341,9 +341,11 @@ def solve(
     sigma = np.where(solvable, sigma, nan)
     force = np.where(valid, force, nan)
     area = np.where(valid, area, nan)
-    diam = 2.0 * np.sqrt(np.where(solvable, c1 / g1, nan) / np.pi)
-    force_rms = np.where(solvable, rel_f * sigma * c1 / g1, nan)
-    diameter_rms = np.where(solvable, rel_d * diam, nan)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        # Garbage readings (e.g. 1e308 F) overflow here too; they are flagged above.
+        diam = 2.0 * np.sqrt(np.where(solvable, c1 / g1, nan) / np.pi)
+        force_rms = np.where(solvable, rel_f * sigma * c1 / g1, nan)
+        diameter_rms = np.where(solvable, rel_d * diam, nan)
     return InverseResult(
         force.reshape(shape),
         area.reshape(shape),

@@ -27,7 +27,7 @@ import numpy as np
 from cellbridge.emulator.adc import AdcTiming, held_inputs, sar_codes
 from cellbridge.emulator.keyed_random import GateNoise, KeyedNormals, Stream
 from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation
-from cellbridge.tactile.transfer import ChipParams, adc_input, oscillator_period
+from cellbridge.tactile.transfer import C_MAX, ChipParams, adc_input, oscillator_period
 
 __all__ = ["CLOCK_HZ", "MIN_PERIOD_CYCLES", "ChipConfig", "Chip"]
 
@@ -36,9 +36,9 @@ CLOCK_HZ: int = 50_000_000
 #: synchroniser into meaningless counts, and following each edge costs gate/T work.
 #: At the defaults this is C ≥ 0.77 pF; a real channel has ≥ 10 pF of parasitics.
 MIN_PERIOD_CYCLES = 0.25
-#: Largest capacitance accepted (F): far above any element, far below picofarads
-#: passed as farads (the transfer functions' bound).
-MAX_CAPACITANCE = 1e-3
+#: Largest capacitance accepted (F): the transfer functions' bound, far above any
+#: element and far below picofarads passed as farads.
+MAX_CAPACITANCE = C_MAX
 
 
 @dataclass(frozen=True)

@@ -196,3 +196,19 @@ def test_bad_config_names_the_key(kwargs, key):
 def test_bad_calls_name_the_argument(call, key):
     with pytest.raises(ValueError, match=key):
         call(Chip())
+
+
+def test_synchroniser_limit_is_the_transfer_modules():
+    """transfer.sync_min_capacitance (T = 2 cycles) is where the chip stops seeing
+    every edge: just above it all edges count, well below it edges are lost."""
+    from cellbridge.tactile.transfer import sync_min_capacitance
+
+    chip = Chip(seed=5)
+    c_min = sync_min_capacitance(chip.params)
+    above = chip.edge_train(0, 1.03 * c_min, 0, 100_000)
+    assert above.every_edge_seen
+    gate = chip.config.gate_cycles
+    c = 0.8 * c_min  # T = 1.6 cycles: the low half (0.8 cycles) can fall between samples
+    got = np.mean([chip.count(0, c, i * gate, gate)[0] for i in range(10)])
+    assert not chip.edge_train(0, c, 0, gate).every_edge_seen
+    assert got < 0.9 * float(expected_counts(c, chip.params))

@@ -59,8 +59,9 @@ def speed_rows(chip: Chip, caps: dict[str, float]) -> list[tuple[str, float, flo
             for s in range(0, 50 * 10_000, 10_000):
                 step_conversions(timing, chip.held_inputs(0, c, s, n), s, chip.config.adc_bits)
 
+        fast_adc()  # warm-up: the first ADC timings otherwise read high
         rows.append((f"ADC read, {n} conversion(s), C1 rest",
-                     1e6 / best_rate(fast_adc, FAST_CALLS, REPEATS), 1e6 / best_rate(ref_adc, 50, 3)))
+                     1e6 / best_rate(fast_adc, FAST_CALLS, REPEATS), 1e6 / best_rate(ref_adc, 50, REPEATS)))
     return rows
 
 
@@ -78,7 +79,8 @@ def main() -> int:
     worst_gate = max(fast for name, fast, _ in rows if name.startswith("counter"))
     print(f"  mesh load: {MESH_GATES_PER_S:,} gates/s x {worst_gate:.1f} µs = "
           f"{MESH_GATES_PER_S * worst_gate * 1e-6:.0%} of one core")
-    print("  target: counter gate <= 50 µs, speed-up >= 1000x")
+    print("  target: counter gate <= 50 µs, speed-up >= 1000x (an ADC read is only 80 cycles per")
+    print("  conversion, so its stepper is cheap and its speed-up small: listed for the cost per read)")
     print()
 
     print(f"noise of one reading at rest, jitter {chip.config.jitter:g}, "

@@ -81,6 +81,7 @@ class _Done:
 
     completed: float
     step: int
+    head_crc: int  # CRC-16 of the head slice: a reset bridge may reuse (tag, head seq) for other bytes
 
 
 class Reassembler:
@@ -88,7 +89,8 @@ class Reassembler:
 
     Unfragmented frames pass straight through. A datagram is named by (origin, tag)
     while in flight, and remembered after completion by (origin, tag, seq of its
-    head fragment), so a reset bridge that reuses a tag starts a new datagram. A
+    head fragment) with a CRC of the head's bytes, so a reset bridge that reuses a
+    tag (even with the same head seq) starts a new datagram. A
     fragment belongs to an open datagram only if it proves it: the fragment at
     offset ``k * step`` has seq ``head.seq + k`` (mod 2**16), where ``step`` is the
     head's slice length, and every slice but the last is ``step`` bytes long.
@@ -190,7 +192,7 @@ class Reassembler:
                 self._drop(key, "replaced")
                 slot = None
             if slot is None:
-                if self._is_done(origin, frag.tag, frame.seq):
+                if self._is_done(origin, frag.tag, frame.seq, frag.data):
                     self.drops["late_duplicate"] += 1
                     return None
                 self._make_room(origin)
@@ -219,9 +221,10 @@ class Reassembler:
             self._drop(key, "reset")
         self._recent.pop(origin, None)
 
-    def _is_done(self, origin: int, tag: int, seq: int) -> bool:
+    def _is_done(self, origin: int, tag: int, seq: int, head: bytes) -> bool:
         done = self._recent.get(origin)
-        return done is not None and (tag, seq) in done
+        d = done.get((tag, seq)) if done is not None else None
+        return d is not None and d.head_crc == crc16(head)
 
     def _make_room(self, origin: int) -> None:
         if self._per_origin[origin] >= self.max_per_origin:
@@ -246,8 +249,9 @@ class Reassembler:
         if slot.received < frag.total:
             return None
         body = b"".join(slot.pieces[o] for o in sorted(slot.pieces))
-        self._release(key)
-        self._remember(head.origin, (key[1], head.seq), _Done(self._now, slot.step))
+        self._release(key)  # (pieces stay readable on the released slot)
+        self._remember(head.origin, (key[1], head.seq),
+                       _Done(self._now, slot.step, crc16(slot.pieces[0])))
         body, check = body[:-DATAGRAM_CRC_LEN], body[-DATAGRAM_CRC_LEN:]
         if len(check) < DATAGRAM_CRC_LEN or crc16(body).to_bytes(DATAGRAM_CRC_LEN, "big") != check:
             self.drops["checksum"] += 1

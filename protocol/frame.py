@@ -140,7 +140,9 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
 
     Raises only :class:`ProtocolError`; its ``cause`` names what was wrong
     (``short``, ``too_large``, ``crc``, ``version``, ``must_understand``, ``type``,
-    ``fragment``, ``payload``, ``nested_bundle``).
+    ``fragment``, ``payload``, ``nested_bundle``, ``bundle``, and ``inner_<cause>``
+    for a bundled frame that fails). Only the canonical encoding of a frame is
+    accepted: ``encode(decode(x)) == x``.
     """
     n = len(data)
     if n < MIN_FRAME:

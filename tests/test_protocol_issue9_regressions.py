@@ -96,6 +96,16 @@ def test_reused_tag_after_a_reset_is_a_new_datagram() -> None:
     assert r.completed == 2 and "late_duplicate" not in r.drops
 
 
+def test_two_boots_reusing_tag_and_head_seq_are_two_datagrams() -> None:
+    r = Reassembler()
+    boot1, boot2 = _datagram(1, 19000), _datagram(1, 18000)  # same tag, same head seq, other readings
+    p1, p2 = fragment(boot1, tag=0, max_frame=64), fragment(boot2, tag=0, max_frame=64)
+    assert [r.receive(p, 0.0) for p in p1][-1] == boot1
+    assert r.receive(p1[0], 0.5) is None and r.drops["late_duplicate"] == 1  # a copy is still a copy
+    assert [r.receive(p, 1.0) for p in p2][-1] == boot2
+    assert r.completed == 2
+
+
 def test_completion_time_not_first_fragment_time_is_remembered() -> None:
     r = Reassembler(timeout=5.0, remember_for=2.0)
     parts = fragment(_datagram(100, 19000), tag=3, max_frame=64)

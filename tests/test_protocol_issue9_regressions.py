@@ -6,7 +6,10 @@ import math
 import tracemalloc
 
 import msgpack
+import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from protocol_strategies import data as data_strategy
 
 from cellbridge.protocol import (
     Beacon,
@@ -27,6 +30,7 @@ from cellbridge.protocol import (
     encode_stream,
     fragment,
 )
+from cellbridge.tactile import transfer
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
 
 
@@ -275,3 +279,21 @@ def test_delimiters_are_counted() -> None:
     frame = Frame(5, 0, 5, 9, Beacon(0, 10, 1))
     d.feed(encode_stream(frame) * 3 + b"\x00\x00")
     assert d.counters()["delimiters"] == 8 and d.delimiters == 8
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(payload=data_strategy)
+def test_every_decodable_data_payload_is_accepted_by_tactile(payload: Data) -> None:
+    """What decode lets through, the counts-to-capacitance functions take without raising."""
+    try:
+        wire = encode(Frame(7, 0, 7, 1, payload))
+    except ProtocolError:
+        return  # too many samples for one frame
+    decoded = decode(wire).payload
+    if not decoded.samples:
+        return
+    c = np.array([[s.c1, s.c2] for s in decoded.samples], dtype=np.int64)
+    if decoded.mode is Mode.COUNTER:
+        transfer.unwrap_counts(c, transfer.expected_counts(20e-12))
+    else:
+        transfer.code_to_capacitance(c // decoded.oversampling)

@@ -100,11 +100,11 @@ class Reassembler:
     recently), ``duplicate_fragment`` (same slice again), ``mismatch`` (a fragment
     with the datagram's tag that does not belong to it: the tail of another
     datagram); datagram events: ``timeout``, ``evicted`` (slot limit reached,
-    oldest given up), ``reset`` (given up by ``reset(origin)``), ``checksum`` (the reassembled bytes fail the datagram's
-    CRC-16: fragments of different datagrams), ``replaced`` (a new head with the same tag but another seq
-    abandons the incomplete datagram), ``conflict`` (same fragment with other bytes,
-    or another total or type), ``payload`` (reassembled bytes are not a valid
-    payload).
+    oldest given up), ``replaced`` (a new head with the same tag but another seq
+    abandons the incomplete datagram), ``reset`` (given up by ``reset(origin)``),
+    ``conflict`` (same fragment with other bytes, or another total or type),
+    ``checksum`` (the reassembled bytes fail the datagram's CRC-16: fragments of
+    different datagrams), ``payload`` (reassembled bytes are not a valid payload).
 
     ``now`` must be finite; a clock that steps back is followed (``clock_steps``):
     ages are kept, not made negative, so nothing outlives its limit.
@@ -200,7 +200,8 @@ class Reassembler:
                 self._per_origin[origin] += 1
         elif slot is None:
             done = self._recent.get(origin)
-            if done and any(t == frag.tag and _belongs(frame, frag, s, d.step) for (t, s), d in done.items()):
+            if done and any(t == frag.tag and self._fresh(d) and _belongs(frame, frag, s, d.step)
+                            for (t, s), d in done.items()):
                 self.drops["late_duplicate"] += 1
             else:
                 self.drops["no_state"] += 1
@@ -224,7 +225,11 @@ class Reassembler:
     def _is_done(self, origin: int, tag: int, seq: int, head: bytes) -> bool:
         done = self._recent.get(origin)
         d = done.get((tag, seq)) if done is not None else None
-        return d is not None and d.head_crc == crc16(head)
+        return d is not None and self._fresh(d) and d.head_crc == crc16(head)
+
+    def _fresh(self, done: _Done) -> bool:
+        """Completed less than ``remember_for`` ago (expiry is lazy: ``expire`` stops early)."""
+        return self._now - done.completed < self.remember_for
 
     def _make_room(self, origin: int) -> None:
         if self._per_origin[origin] >= self.max_per_origin:

@@ -235,3 +235,14 @@ def test_fragment_rejects_bad_sizes() -> None:
         fragment(big_frame(400), tag=1)  # > MAX_DATAGRAM
     with pytest.raises(ProtocolError):
         fragment(big_frame(50), tag=1, max_frame=20)
+
+
+def test_completions_are_forgotten_after_remember_for_whatever_the_order_of_origins() -> None:
+    r = Reassembler(remember_for=10.0)
+    body = _sealed(b"\x93\x01\x14\x02")  # a BEACON [1, 20, 2]
+    beacon = lambda origin, tag: Frame(origin, 0, origin, 0, Fragment(FrameType.BEACON, tag, 0, len(body), body))
+    assert r.receive(beacon(1, 0), 0.0) is not None
+    assert r.receive(beacon(2, 0), 1.0) is not None
+    assert r.receive(beacon(1, 1), 9.0) is not None  # origin 1 completed last: it is now behind origin 2
+    assert r.receive(beacon(1, 0), 10.5) is not None  # 10.5 s after its completion: a new datagram
+    assert r.receive(beacon(2, 0), 10.6) is None and r.drops["late_duplicate"] == 1

@@ -30,8 +30,8 @@ from cellbridge.protocol import (
     encode_stream,
     fragment,
 )
-from cellbridge.tactile import transfer
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
+from cellbridge.tactile import transfer
 
 
 def _reseal(body: bytes) -> bytes:

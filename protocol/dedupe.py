@@ -11,10 +11,11 @@ A number more than ``window`` behind the highest is **stale**: a late copy, drop
 and counted, never a reason to reopen the window. A bridge that resets starts
 numbering at 0 again, so a restart is taken only from evidence:
 
-- a HELLO (``is_duplicate(..., hello=True)``) that is not ahead of the highest
-  restarts the origin's window at its number, unless it repeats the HELLO that
-  began the current numbering and that origin has sent fewer than ``hello_guard``
-  frames since (the same HELLO heard through a second gateway);
+- a HELLO (``is_duplicate(..., hello=True)``) whose number was already seen or is
+  stale restarts the origin's window at its number, unless it repeats the last
+  HELLO and that origin has sent fewer than ``hello_guard`` frames since (the same
+  HELLO heard through a second gateway). A HELLO that is ahead, or inside the
+  window and unseen, is an ordinary new frame;
 - ``restart_run`` stale frames in a row with consecutive numbers (gaps of at most
   ``_RUN_GAP``), the first below ``window``, with no accepted frame in between:
   a reset whose HELLO was lost. Those first frames are dropped as stale;
@@ -101,19 +102,22 @@ class DuplicateFilter:
                 st.hello = seq
             return False
         behind = (_MOD - ahead) % _MOD
-        if hello and not (seq == st.hello and (st.highest - seq) % _MOD < self.hello_guard):
+        bit = 1 << behind if behind < self.window else 0
+        if bit and not st.mask & bit:  # inside the window, not seen yet: new (a HELLO reordered)
+            st.mask |= bit
+            st.run_len = 0
+            if hello:
+                st.hello = seq
+            return False
+        # Seen or stale: a repeat, unless a HELLO says the origin numbers again.
+        if hello and not (seq == st.hello and behind < self.hello_guard):
             self._restart(st, seq, 1)
             st.hello = seq
             return False
-        if behind >= self.window:
+        if not bit:
             return self._stale(st, seq)
-        bit = 1 << behind
-        if st.mask & bit:
-            self.duplicates += 1
-            return True
-        st.mask |= bit
-        st.run_len = 0
-        return False
+        self.duplicates += 1
+        return True
 
     def _stale(self, st: _Origin, seq: int) -> bool:
         """Count a stale frame, and restart the origin once stale frames form a run."""

@@ -19,6 +19,8 @@ from cellbridge._version import __version__
 SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("decode", "cellbridge.protocol.cli", "decode serial-line bytes (COBS frames) into readable frames"),
     ("plot", "cellbridge.tactile.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
+    ("sub", "cellbridge.daemon.subscribe", "print what the daemon publishes as JSON lines"),
+    ("keys", "cellbridge.daemon.keys", "CURVE key pairs for binding the daemon beyond loopback"),
 ]
 
 

@@ -22,6 +22,13 @@ from cellbridge.tactile.inversion import (
 )
 from cellbridge.tactile.transfer import (
     ChipParams,
+    CounterUnwrapper,
+    adc_mean_band,
+    check_gate,
+    counter_span,
+    max_gate_cycles,
+    plausible_capacitance,
+    sync_min_capacitance,
     adc_code,
     adc_input,
     adc_mean_code,
@@ -59,6 +66,13 @@ __all__ = [
     "solve",
     # transfer functions of the bridge chip
     "ChipParams",
+    "CounterUnwrapper",
+    "adc_mean_band",
+    "check_gate",
+    "counter_span",
+    "max_gate_cycles",
+    "plausible_capacitance",
+    "sync_min_capacitance",
     "adc_code",
     "adc_input",
     "adc_mean_code",

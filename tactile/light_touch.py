@@ -7,8 +7,8 @@ shares still fix the centre along a straddled axis. So the disk is fitted at fix
 diameters over the plausible range (force free), and again with the diameter free
 from each local minimum of that grid (the ambiguous region has two discrete branches,
 which a coarse grid can step over). The fits within +4 of the best cost (95 % for
-one parameter; and their grid neighbours, so a diameter between two grid points is
-bracketed) give the span of centres, ± their own σ: the contact is reported at its middle with
+one parameter; and two grid points either side, so a diameter between grid points
+is bracketed with room to spare) give the span of centres, ± their own σ: the contact is reported at its middle with
 σ = √(span²/12 + σ_fit²).
 """
 
@@ -82,15 +82,20 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
         floor = min(float(np.nanmin(cost[i])), float(np.nanmin(c_ref)) if c_ref.size else np.inf)
         best = np.isfinite(cost[i]) & (cost[i] <= floor + CONSISTENT)
         keep = best.copy()
-        keep[1:] |= best[:-1]
-        keep[:-1] |= best[1:]
+        for step in (1, 2):
+            keep[step:] |= best[:-step]
+            keep[:-step] |= best[step:]
         keep &= np.isfinite(cost[i])
         kref = np.isfinite(c_ref) & (c_ref <= floor + CONSISTENT)
         b = lay.bounds[cl.members]
         pos, sig, obs = [0.0, 0.0], [0.0, 0.0], [False, False]
         for ax in (0, 1):
-            v = np.concatenate([fits.theta[sl, ax][keep], ref.theta[mine, ax][kref]])
-            s = np.concatenate([fits.sig[sl, ax][keep], ref.sig[mine, ax][kref]])
+            # A free-diameter refinement whose covariance is singular (at low pressure
+            # D and F nearly trade off) only sets the cost floor; the fixed-diameter
+            # fits around it carry its position.
+            rs = ref.sig[mine, ax][kref]
+            v = np.concatenate([fits.theta[sl, ax][keep], ref.theta[mine, ax][kref][np.isfinite(rs)]])
+            s = np.concatenate([fits.sig[sl, ax][keep], rs[np.isfinite(rs)]])
             if v.size and np.all(np.isfinite(s)) and s.max() < 0.25 * lay.side:
                 lo, hi = float(np.min(v - s)), float(np.max(v + s))
                 pos[ax] = 0.5 * (lo + hi)

@@ -232,18 +232,21 @@ class ContactEstimator:
             fits = self._spread_refine(batch, fits)
         area_force = self.method == "area"
         results = {k: [fits.contact(cl, k, int(dof[k]), area_force)] for k, cl in enumerate(clusters)}
-        # A pressure from an element's inverse that no disk agrees with (a reading
-        # that passed the inverse's checks on the wrong branch): locate the touch as
-        # one without a pressure, if that finds a disk that fits.
-        failed = [k for k in range(len(clusters)) if not fits.ok[k] and clusters[k].members.size > 1]
+        # Two disks need the uniform model: under a spread, a one-disk misfit of the
+        # uniform model is no evidence of a second contact.
+        split: dict[int, list[Contact]] = {}
+        if self.split and self.method != "area" and self.spread == 0:
+            split = split_clusters(run, clusters, fits, dof, pair_hints, self._adj_edge)
+            results.update(split)
+        # A pressure from an element's inverse that no disk (nor two) agrees with (a
+        # reading that passed the inverse's checks on the wrong branch): locate the
+        # touch as one without a pressure, if that finds a disk that fits.
+        failed = [k for k in range(len(clusters))
+                  if not fits.ok[k] and clusters[k].members.size > 1 and k not in split]
         if failed:
             for k, c in zip(failed, locate_light(run, [clusters[k] for k in failed])):
                 if c.fit_ok:
                     results[k] = [c]
-        # Two disks need the uniform model: under a spread, a one-disk misfit of the
-        # uniform model is no evidence of a second contact.
-        if self.split and self.method != "area" and self.spread == 0:
-            results.update(split_clusters(run, clusters, fits, dof, pair_hints, self._adj_edge))
         return list(results.values())
 
     def _spread_refine(self, batch: Batch, uni: Fits) -> Fits:

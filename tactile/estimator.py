@@ -89,6 +89,9 @@ class ContactEstimator:
         self._adj_edge = layout.adjacency("edge") if layout.n <= 4096 else None
         if self.spread > 0:
             _spread_cells(layout.side, self.spread, quad_step)  # validates quad_step now
+            # The spread model's profile rows for disks up to an element side, built
+            # now (≈ 1 s once per process, at most 300 rows) rather than in a frame.
+            PROFILE_ROWS.upto(min(int(math.ceil((0.5 * layout.side / self.spread + 2.0) / DV)) + 2, 300))
 
     # -- public -----------------------------------------------------------------------
     def estimate(

@@ -100,6 +100,8 @@ class DuplicateFilter:
             st.run_len = 0
             if hello:
                 st.hello = seq
+            elif st.hello >= 0 and (seq - st.hello) % _MOD >= self.hello_guard:
+                st.hello = -1  # past the guard for good: after a wrap its number is the next boot's HELLO
             return False
         behind = (_MOD - ahead) % _MOD
         bit = 1 << behind if behind < self.window else 0

@@ -172,3 +172,14 @@ def test_origins_are_bounded() -> None:
     for origin in range(10_000):
         f.is_duplicate(origin, 1)
     assert len(f) == 100 and f.evicted_origins == 9_900
+
+
+def test_a_reset_right_after_a_wrap_is_a_restart_not_a_copy_of_the_hello_of_the_last_boot() -> None:
+    """The HELLO that began a numbering 65536 frames ago is no guard against the next boot's HELLO."""
+    f = DuplicateFilter(hello_guard=16)
+    assert not f.is_duplicate(1, 0, hello=True)
+    assert not any(f.is_duplicate(1, s % MOD) for s in range(1, MOD + 10))  # wrapped once: highest 9
+    # The bridge resets: HELLO 0 then 1, 2, ... of the new boot.
+    assert not f.is_duplicate(1, 0, hello=True)
+    assert not any(f.is_duplicate(1, s) for s in range(1, 20))
+    assert f.counters()["restarts"] == 1 and f.counters()["duplicates"] == 0

@@ -11,10 +11,12 @@ A number more than ``window`` behind the highest is **stale**: a late copy, drop
 and counted, never a reason to reopen the window. A bridge that resets starts
 numbering at 0 again, so a restart is taken only from evidence:
 
-- a HELLO (``is_duplicate(..., hello=True)``) whose number was already seen or is
-  stale restarts the origin's window at its number, unless it repeats the last
+- a HELLO (``is_duplicate(..., hello=True)``) numbered 0 whose number was already
+  seen or is stale restarts the origin's window at 0, unless it repeats the last
   HELLO and that origin has sent fewer than ``hello_guard`` frames since (the same
-  HELLO heard through a second gateway). A HELLO that is ahead, or inside the
+  HELLO heard through a second gateway). A restarting bridge numbers from 0 and
+  sends its HELLO first, so a HELLO with another number was sent on request: a
+  late copy of it is a copy, however late. A HELLO that is ahead, or inside the
   window and unseen, is an ordinary new frame;
 - ``restart_run`` stale frames in a row with consecutive numbers (gaps of at most
   ``_RUN_GAP``), the first below ``window``, with no accepted frame in between:
@@ -112,7 +114,7 @@ class DuplicateFilter:
                 st.hello = seq
             return False
         # Seen or stale: a repeat, unless a HELLO says the origin numbers again.
-        if hello and not (seq == st.hello and behind < self.hello_guard):
+        if hello and not seq and not (seq == st.hello and behind < self.hello_guard):
             self._restart(st, seq, 1)
             st.hello = seq
             return False

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import random
 
+import pytest
+
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
@@ -49,7 +51,7 @@ class Reference:
             if hello:
                 self.hello[origin] = seq
             return False
-        if hello and not (self.hello[origin] == seq and (h - seq) % MOD < self.hello_guard):
+        if hello and seq == 0 and not (self.hello[origin] == seq and (h - seq) % MOD < self.hello_guard):
             self._start(origin, seq, {seq}, seq)
             return False
         if not inside:  # stale
@@ -70,7 +72,7 @@ class Reference:
 
 @settings(max_examples=300)
 @given(window=st.integers(8, 64), restart_run=st.integers(2, 8), hello_guard=st.integers(0, 8),
-       start=st.integers(0, 65535),
+       start=st.one_of(st.integers(0, 65535), st.integers(0, 120), st.integers(65416, 65535)),
        steps=st.lists(st.tuples(st.integers(0, 2), st.integers(-80, 80), st.booleans()), max_size=200))
 def test_matches_reference(window, restart_run, hello_guard, start, steps) -> None:
     f = DuplicateFilter(window=window, restart_run=restart_run, hello_guard=hello_guard)
@@ -78,7 +80,7 @@ def test_matches_reference(window, restart_run, hello_guard, start, steps) -> No
     for origin, delta, is_hello in steps:
         seq = (start + delta) % MOD
         start = seq if delta > 0 else start
-        hello = is_hello and delta % 7 == 0
+        hello = is_hello and (delta % 7 == 0 or seq == 0)  # a restart's HELLO is numbered 0
         assert f.is_duplicate(origin, seq, hello) == ref.is_duplicate(origin, seq, hello)
 
 
@@ -183,3 +185,18 @@ def test_a_reset_right_after_a_wrap_is_a_restart_not_a_copy_of_the_hello_of_the_
     assert not f.is_duplicate(1, 0, hello=True)
     assert not any(f.is_duplicate(1, s) for s in range(1, 20))
     assert f.counters()["restarts"] == 1 and f.counters()["duplicates"] == 0
+
+
+@pytest.mark.parametrize("lag", [16, 50, 255, 256, 257, 1000])
+def test_a_late_copy_of_a_hello_sent_on_request_is_no_restart(lag: int) -> None:
+    """A bridge numbers from 0 after a reset and sends its HELLO first (docs §1): a HELLO
+    with another number was sent on request, and a copy of it through a lagging gateway
+    is a copy, however late, not a reason to take the next ``lag`` frames again."""
+    f = DuplicateFilter()
+    delivered = []
+    for i in range(4000, 6000 + lag):
+        for seq in (i, i - lag):  # gateway A, then gateway B running `lag` frames late
+            if 4000 <= seq < 6000 and not f.is_duplicate(1, seq, hello=seq == 5000):
+                delivered.append(seq)
+    assert sorted(delivered) == list(range(4000, 6000))
+    assert f.counters()["restarts"] == 0

@@ -87,11 +87,12 @@ class StreamDecoder:
     def _windows(self, chunk: bytes | bytearray | memoryview) -> Iterator[bytes]:
         """``chunk`` in slices of at most ``WINDOW`` bytes, so that splitting at the
         delimiters (fast, in C) never holds more than one window's segments."""
-        self.bytes_in += len(chunk)
         if type(chunk) is bytes and len(chunk) <= WINDOW:
+            self.bytes_in += len(chunk)
             yield chunk
             return
-        view = memoryview(chunk).cast("B")
+        view = memoryview(chunk).cast("B")  # bytes, whatever the item size of a view fed
+        self.bytes_in += len(view)
         for start in range(0, len(view), WINDOW):
             yield bytes(view[start:start + WINDOW])
 

@@ -116,3 +116,16 @@ def test_feed_iter_yields_what_feed_returns_without_holding_it() -> None:
         tracemalloc.stop()
     assert count == len(frames)
     assert peak < 2_000_000  # feed holds ~8 MB here: the 40 000 frames in its list
+
+
+def test_a_memoryview_of_wide_items_is_counted_in_bytes() -> None:
+    """bytes_in counts bytes, whatever the item size of the view fed (the accounting identity holds)."""
+    import array
+
+    frame = encode_stream(Frame(5, 0, 5, 9, Beacon(0, 10, 1)))
+    words = array.array("H", frame + b"\x00" * (len(frame) % 2))  # the stream in 16-bit words
+    d = StreamDecoder()
+    assert len(d.feed(memoryview(words))) == 1
+    c = d.counters()
+    assert c["bytes_in"] == len(words) * 2
+    assert c["bytes_in"] == c["bytes_ok"] + sum(c["bytes_dropped"].values()) + c["delimiters"] + c["buffered"]

@@ -23,6 +23,11 @@ class Reference:
         self.seen: dict[int, set[int]] = {}
         self.hello: dict[int, int | None] = {}
         self.run: dict[int, list[int]] = {}
+        self.old: dict[int, tuple[int, set[int], int]] = {}  # before the last restart: highest, seen, restart seq
+
+    def _restart(self, origin: int, seq: int, seen: set[int], hello: int | None) -> None:
+        self.old[origin] = (self.highest[origin], self.seen[origin], seq)
+        self._start(origin, seq, seen, hello)
 
     def _start(self, origin: int, seq: int, seen: set[int], hello: int | None) -> None:
         self.highest[origin], self.seen[origin], self.hello[origin], self.run[origin] = seq, seen, hello, []
@@ -37,6 +42,11 @@ class Reference:
             return False
         h = self.highest[origin]
         if 0 < (seq - h) % MOD < 32768:
+            old = self.old.get(origin)
+            if old is not None and (h - old[2]) % MOD >= self.window:
+                del self.old[origin]  # the new numbering has moved on: nothing left to replay
+            elif old is not None and (seq - h) % MOD > 32 and seq in old[1]:
+                return True  # far ahead of the new numbering, seen by the old one: a late copy
             self.highest[origin] = seq
             self.seen[origin].add(seq)
             self._trim(origin)
@@ -52,14 +62,14 @@ class Reference:
                 self.hello[origin] = seq
             return False
         if hello and seq == 0 and not (self.hello[origin] == seq and (h - seq) % MOD < self.hello_guard):
-            self._start(origin, seq, {seq}, seq)
+            self._restart(origin, seq, {seq}, seq)
             return False
         if not inside:  # stale
             run = self.run[origin]
             if run and 0 < (seq - run[-1]) % MOD <= 4:
                 run.append(seq)
                 if len(run) >= self.restart_run:
-                    self._start(origin, seq, set(run), None)
+                    self._restart(origin, seq, set(run), None)
                     self._trim(origin)
                     return False
                 return True
@@ -200,3 +210,27 @@ def test_a_late_copy_of_a_hello_sent_on_request_is_no_restart(lag: int) -> None:
                 delivered.append(seq)
     assert sorted(delivered) == list(range(4000, 6000))
     assert f.counters()["restarts"] == 0
+
+
+@pytest.mark.parametrize("old_highest", [300, 1000, 20000, 32000])
+@pytest.mark.parametrize(("lag", "hello_copy"), [(1, True), (15, True), (50, False), (200, False), (255, False)])
+def test_a_lagging_gateway_replaying_the_old_numbering_after_a_reset_delivers_nothing_twice(
+        old_highest: int, lag: int, hello_copy: bool) -> None:
+    """A bridge resets (HELLO 0, then 1, 2, ...) while gateway B still replays, ``lag`` frames
+    late, what it numbered before. Those copies are ahead of the new numbering; they were
+    delivered through A and must not be again, nor drag the window back so that the new
+    frames look stale. (B's copy of the HELLO itself is a restart when it lags 16 frames or
+    more, a documented limit, so it is left out there.)"""
+    before = [(0, s) for s in range(old_highest - 1000, old_highest + 1) if s >= 0]
+    after = [(1, s) for s in range(600)]
+    sent = before + after
+    f = DuplicateFilter()
+    delivered = []
+    for i in range(len(sent) + lag):
+        for path, j in ((0, i), (1, i - lag)):
+            if not 0 <= j < len(sent) or (path == 1 and sent[j] == (1, 0) and not hello_copy):
+                continue
+            boot, seq = sent[j]
+            if not f.is_duplicate(7, seq, hello=boot == 1 and seq == 0):
+                delivered.append(sent[j])
+    assert sorted(delivered) == sorted(sent)

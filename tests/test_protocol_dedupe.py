@@ -110,7 +110,7 @@ def test_two_delayed_copies_deliver_each_frame_once(n, lag, jitter, wrap, data, 
     start = 65536 - data.draw(st.integers(1, n)) if wrap else data.draw(st.integers(0, 65535 - n))
     rng = random.Random(seed)
     window = 256
-    event(f"lag {'within' if lag + jitter < window else 'beyond' if lag - jitter >= window else 'at'} the window")
+    event(f"lag {'within' if lag + jitter < window else 'beyond' if lag - jitter > window else 'at'} the window")
     event(f"wraps: {start + n > MOD}")
     events = []
     for i in range(n + lag + jitter + 1):
@@ -126,7 +126,7 @@ def test_two_delayed_copies_deliver_each_frame_once(n, lag, jitter, wrap, data, 
     if lag + jitter < window:  # every copy of B meets its number inside the window
         assert sorted(delivered) == list(range(n))
         assert c["stale"] == 0 and c["duplicates"] == n
-    elif lag - jitter >= window:  # every copy of B is stale
+    elif lag - jitter > window:  # every copy of B is stale (at exactly the window it may tie with the frame 256 ahead)
         assert sorted(delivered) == list(range(n))
         assert c["stale"] == n and c["duplicates"] == 0
     else:  # in between: still never twice, and every drop is counted

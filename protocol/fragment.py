@@ -30,6 +30,7 @@ from cellbridge.protocol.frame import (
     MAX_FRAME,
     Fragment,
     Frame,
+    check_origin,
 )
 from cellbridge.protocol.messages import FrameType, pack_payload, unpack_payload
 
@@ -269,6 +270,7 @@ class Reassembler:
             return None
         try:
             payload = unpack_payload(frag.frame_type, body)
+            check_origin(head.origin, payload)
         except ProtocolError:
             self.drops["payload"] += 1
             return None

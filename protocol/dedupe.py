@@ -39,7 +39,6 @@ than ``hello_guard`` frames: that copy is taken as a restart.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable
 
 _HALF = 0x8000
 _MOD = 0x10000
@@ -69,11 +68,7 @@ class DuplicateFilter:
     """``is_duplicate(origin, seq)`` is True for a frame to drop (a repeat or stale), else records it."""
 
     def __init__(self, window: int = 256, max_origins: int = 4096, restart_run: int = 8,
-                 hello_guard: int = 16, on_restart: Callable[[int], None] | None = None) -> None:
-        """``on_restart(origin)`` is called when the filter takes a restart of ``origin``
-        (HELLO or run), so that state keyed by the origin's old numbering follows: pass
-        ``Reassembler.reset``, whose memory of completed datagrams would otherwise take
-        the new boot's first datagrams (same tags, same seqs) for late copies."""
+                 hello_guard: int = 16) -> None:
         if not 1 <= window < _HALF or max_origins < 1:
             raise ValueError(f"window must be in 1..{_HALF - 1} and max_origins >= 1")
         if restart_run < 2 or hello_guard < 0:
@@ -82,7 +77,6 @@ class DuplicateFilter:
         self.max_origins = max_origins
         self.restart_run = restart_run
         self.hello_guard = hello_guard
-        self.on_restart = on_restart
         self._full = (1 << window) - 1
         self._state: OrderedDict[int, _Origin] = OrderedDict()  # least recently heard first
         self.duplicates = 0
@@ -137,15 +131,15 @@ class DuplicateFilter:
             return False
         # Seen or stale: a repeat, unless a HELLO says the origin numbers again.
         if hello and not seq and not (seq == st.hello and behind < self.hello_guard):
-            self._restart(origin, st, seq, 1)
+            self._restart(st, seq, 1)
             st.hello = seq
             return False
         if not bit:
-            return self._stale(origin, st, seq)
+            return self._stale(st, seq)
         self.duplicates += 1
         return True
 
-    def _stale(self, origin: int, st: _Origin, seq: int) -> bool:
+    def _stale(self, st: _Origin, seq: int) -> bool:
         """Count a stale frame, and restart the origin once stale frames form a run."""
         self.stale += 1
         if st.run_len:
@@ -156,7 +150,7 @@ class DuplicateFilter:
                 st.run_len += 1
                 if st.run_len >= self.restart_run:
                     self.stale -= 1  # this one is delivered
-                    self._restart(origin, st, seq, st.run_mask)
+                    self._restart(st, seq, st.run_mask)
                     return False
                 return True
             if (st.run_last - seq) % _MOD < self.window and st.run_mask >> ((st.run_last - seq) % _MOD) & 1:
@@ -167,9 +161,7 @@ class DuplicateFilter:
             st.run_len = 0
         return True
 
-    def _restart(self, origin: int, st: _Origin, seq: int, mask: int) -> None:
+    def _restart(self, st: _Origin, seq: int, mask: int) -> None:
         self.restarts += 1
         st.old_highest, st.old_mask, st.since = st.highest, st.mask, seq
         st.highest, st.mask, st.run_len, st.hello = seq, mask, 0, -1
-        if self.on_restart is not None:
-            self.on_restart(origin)

@@ -297,30 +297,3 @@ def test_every_decodable_data_payload_is_accepted_by_tactile(payload: Data) -> N
         transfer.unwrap_counts(c, transfer.expected_counts(20e-12))
     else:
         transfer.code_to_capacitance(c // decoded.oversampling)
-
-
-def test_the_first_datagram_after_a_reset_is_delivered_when_it_repeats_tag_seq_and_head() -> None:
-    """A bridge in a reset loop sends HELLO 0 then a fragmented STATUS (tag 0, seqs 1..)
-    after every boot; the STATUS heads are equal, the tails differ (``resets``, uptime).
-    The filter sees the restart; the reassembler must hear of it (``on_restart``), or it
-    takes the new STATUS for a late copy of the last boot's and drops it."""
-    from cellbridge.protocol import BridgeStatus, Hello, Neighbour, Reassembler
-
-    reassembler = Reassembler()
-    dedupe = DuplicateFilter(on_restart=reassembler.reset)
-    neighbours = tuple(Neighbour(i, 10 + i) for i in range(1, 33))
-    got = []
-    t = 100.0
-    for boot in range(3):
-        frames = [Frame(4, 0, 4, 0, Hello(4, "0.1.0", 0.04, 0.08, 0.04, 50_000_000, 3))]
-        status = BridgeStatus(1, 20, neighbours, 0, 0, boot, 1000 + boot)
-        frames += fragment(Frame(4, 0, 4, 1, status), tag=0, max_frame=64)
-        frames += [Frame(4, 0, 4, s, Beacon(1, 20, 2)) for s in range(len(frames), 1000)]  # ~3 s of traffic
-        for f in frames:
-            t += 0.003
-            if not dedupe.is_duplicate(f.origin, f.seq, hello=isinstance(f.payload, Hello)):
-                whole = reassembler.receive(f, t)
-                if whole is not None and isinstance(whole.payload, BridgeStatus):
-                    got.append(whole.payload.resets)
-    assert got == [0, 1, 2]
-    assert dedupe.counters()["restarts"] == 2 and "late_duplicate" not in reassembler.drops

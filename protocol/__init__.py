@@ -22,6 +22,7 @@ from cellbridge.protocol.frame import (
     decode,
     encode,
 )
+from cellbridge.protocol.host import HostReceiver
 from cellbridge.protocol.messages import (
     Beacon,
     BridgeStatus,
@@ -45,7 +46,7 @@ from cellbridge.protocol.stream import StreamDecoder, encode_stream
 __all__ = [
     "ADDR_BROADCAST", "ADDR_HOST", "MAX_DATAGRAM", "MAX_FRAME", "VERSION", "CRC_CHECK",
     "Beacon", "BridgeStatus", "Bundle", "Command", "CommandReply", "Data", "DuplicateFilter",
-    "Flags", "Fragment", "Frame", "FrameType", "Hello", "LinkAck", "Message", "Mode",
+    "Flags", "Fragment", "Frame", "FrameType", "Hello", "HostReceiver", "LinkAck", "Message", "Mode",
     "Neighbour", "Op", "ProtocolError", "Reassembler", "Sample", "SampleFlags", "Status",
     "StreamDecoder", "crc16", "decode", "encode", "encode_stream", "fragment",
 ]

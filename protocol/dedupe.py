@@ -11,16 +11,23 @@ A number more than ``window`` behind the highest is **stale**: a late copy, drop
 and counted, never a reason to reopen the window. A bridge that resets starts
 numbering at 0 again, so a restart is taken only from evidence:
 
-- a HELLO (``is_duplicate(..., hello=True)``) whose number was already seen or is
-  stale restarts the origin's window at its number, unless it repeats the last
+- a HELLO (``is_duplicate(..., hello=True)``) numbered 0 whose number was already
+  seen or is stale restarts the origin's window at 0, unless it repeats the last
   HELLO and that origin has sent fewer than ``hello_guard`` frames since (the same
-  HELLO heard through a second gateway). A HELLO that is ahead, or inside the
+  HELLO heard through a second gateway). A restarting bridge numbers from 0 and
+  sends its HELLO first, so a HELLO with another number was sent on request: a
+  late copy of it is a copy, however late. A HELLO that is ahead, or inside the
   window and unseen, is an ordinary new frame;
 - ``restart_run`` stale frames in a row with consecutive numbers (gaps of at most
   ``_RUN_GAP``), the first below ``window``, with no accepted frame in between:
   a reset whose HELLO was lost. Those first frames are dropped as stale;
 - ``reset(origin)``, for a caller that knows better (a bridge replaced, a link
   re-plugged).
+
+After a HELLO or run restart the old window is kept while the new numbering is
+young (``window`` frames): a gateway running behind still replays the old numbering,
+and those copies look *ahead* of the new one. A frame more than ``_NEAR`` ahead that
+the old window saw is such a copy: a duplicate, not a reason to jump back.
 
 A reset seen without its HELLO while the old numbering is still inside the window
 replays numbers the window holds: those frames are dropped as duplicates until
@@ -36,12 +43,14 @@ from collections import OrderedDict
 _HALF = 0x8000
 _MOD = 0x10000
 _RUN_GAP = 4  #: lost frames tolerated between two members of a restart run
+_NEAR = 32  #: a numbering advances in small steps: a frame further ahead may be from before a restart
 
 
 class _Origin:
     """Window of one origin plus the evidence gathered for a restart."""
 
-    __slots__ = ("highest", "mask", "hello", "run_last", "run_mask", "run_len")
+    __slots__ = ("highest", "mask", "hello", "run_last", "run_mask", "run_len", "old_highest", "old_mask",
+                 "since")
 
     def __init__(self, seq: int, hello: bool) -> None:
         self.highest = seq
@@ -50,6 +59,9 @@ class _Origin:
         self.run_len = 0  #: members of the current restart candidate run (0: none)
         self.run_last = 0
         self.run_mask = 0
+        self.old_mask = 0  #: window of the numbering before the last restart (0: none kept)
+        self.old_highest = 0
+        self.since = 0  #: seq the window restarted at
 
 
 class DuplicateFilter:
@@ -95,11 +107,19 @@ class DuplicateFilter:
         self._state.move_to_end(origin)
         ahead = (seq - st.highest) % _MOD
         if 0 < ahead < _HALF:  # newer: slide the window forward
+            if st.old_mask:  # restarted lately: a lagging gateway may still replay the old numbering
+                if (st.highest - st.since) % _MOD >= self.window:
+                    st.old_mask = 0
+                elif ahead > _NEAR and st.old_mask >> ((st.old_highest - seq) % _MOD) & 1:
+                    self.duplicates += 1
+                    return True
             st.mask = ((st.mask << ahead) | 1) & self._full
             st.highest = seq
             st.run_len = 0
             if hello:
                 st.hello = seq
+            elif st.hello >= 0 and (seq - st.hello) % _MOD >= self.hello_guard:
+                st.hello = -1  # past the guard for good: after a wrap its number is the next boot's HELLO
             return False
         behind = (_MOD - ahead) % _MOD
         bit = 1 << behind if behind < self.window else 0
@@ -110,7 +130,7 @@ class DuplicateFilter:
                 st.hello = seq
             return False
         # Seen or stale: a repeat, unless a HELLO says the origin numbers again.
-        if hello and not (seq == st.hello and behind < self.hello_guard):
+        if hello and not seq and not (seq == st.hello and behind < self.hello_guard):
             self._restart(st, seq, 1)
             st.hello = seq
             return False
@@ -143,4 +163,5 @@ class DuplicateFilter:
 
     def _restart(self, st: _Origin, seq: int, mask: int) -> None:
         self.restarts += 1
+        st.old_highest, st.old_mask, st.since = st.highest, st.mask, seq
         st.highest, st.mask, st.run_len, st.hello = seq, mask, 0, -1

@@ -30,6 +30,7 @@ from cellbridge.protocol.frame import (
     MAX_FRAME,
     Fragment,
     Frame,
+    check_origin,
 )
 from cellbridge.protocol.messages import FrameType, pack_payload, unpack_payload
 
@@ -106,14 +107,18 @@ class Reassembler:
     ``checksum`` (the reassembled bytes fail the datagram's CRC-16: fragments of
     different datagrams), ``payload`` (reassembled bytes are not a valid payload).
 
-    ``now`` must be finite; a clock that steps back is followed (``clock_steps``):
-    ages are kept, not made negative, so nothing outlives its limit.
+    ``now`` must be finite. Times are kept on an internal clock that never goes back:
+    a reading up to ``clock_jitter`` behind the latest (readers' timestamps merged out
+    of order) is that same instant, so jitter never ages anything; a reading further
+    back is a step of the clock (``clock_steps``), followed without going back, so
+    ages are kept and nothing outlives its limit. Both cost O(1).
     """
 
     def __init__(self, max_per_origin: int = 4, max_slots: int = 64, timeout: float = 2.0,
-                 remember: int = 32, remember_for: float = 10.0, remember_origins: int = 1024) -> None:
+                 remember: int = 32, remember_for: float = 10.0, remember_origins: int = 1024,
+                 clock_jitter: float = 0.25) -> None:
         if min(max_per_origin, max_slots, remember, remember_origins) < 1 or not (
-                0 < timeout < math.inf and 0 < remember_for < math.inf):
+                0 < timeout < math.inf and 0 < remember_for < math.inf and 0 <= clock_jitter < math.inf):
             raise ValueError("limits must be positive and finite")
         self.max_per_origin = max_per_origin
         self.max_slots = max_slots
@@ -121,11 +126,13 @@ class Reassembler:
         self.remember = remember  #: completed datagrams remembered per origin
         self.remember_for = remember_for
         self.remember_origins = remember_origins
+        self.clock_jitter = clock_jitter
         self._slots: OrderedDict[tuple[int, int], _Slot] = OrderedDict()  # oldest first
         self._per_origin: Counter[int] = Counter()
         # origin -> (tag, head seq) -> completion, oldest first; origins least recently completed first
         self._recent: OrderedDict[int, OrderedDict[tuple[int, int], _Done]] = OrderedDict()
-        self._now = -math.inf
+        self._now = -math.inf  # internal time: the caller's plus _offset, never decreasing
+        self._offset = 0.0
         self.drops: Counter[str] = Counter()
         self.completed = 0
         self.clock_steps = 0
@@ -139,22 +146,22 @@ class Reassembler:
     def recent_count(self) -> int:
         return sum(len(done) for done in self._recent.values())
 
-    def _clock(self, now: float) -> None:
+    def _clock(self, now: float) -> float:
+        """The internal time for the caller's ``now``."""
         if not math.isfinite(now):
             raise ValueError(f"now must be a finite time in seconds, got {now!r}")
-        if now < self._now:  # the clock stepped back: shift every stored time with it
-            shift = now - self._now
-            self.clock_steps += 1
-            for slot in self._slots.values():
-                slot.started += shift
-            for done in self._recent.values():
-                for d in done.values():
-                    d.completed += shift
-        self._now = now
+        t = now + self._offset
+        if t < self._now:
+            if self._now - t > self.clock_jitter:  # a step back, not jitter: continue from here
+                self._offset += self._now - t
+                self.clock_steps += 1
+            return self._now
+        self._now = t
+        return t
 
     def expire(self, now: float) -> None:
         """Give up datagrams older than ``timeout`` and forget old completions."""
-        self._clock(now)
+        now = self._clock(now)
         while self._slots:
             key, slot = next(iter(self._slots.items()))
             if now - slot.started < self.timeout:
@@ -196,7 +203,7 @@ class Reassembler:
                     self.drops["late_duplicate"] += 1
                     return None
                 self._make_room(origin)
-                slot = self._slots[key] = _Slot(frame, now, len(frag.data))
+                slot = self._slots[key] = _Slot(frame, self._now, len(frag.data))
                 self._per_origin[origin] += 1
         elif slot is None:
             done = self._recent.get(origin)
@@ -263,6 +270,7 @@ class Reassembler:
             return None
         try:
             payload = unpack_payload(frag.frame_type, body)
+            check_origin(head.origin, payload)
         except ProtocolError:
             self.drops["payload"] += 1
             return None

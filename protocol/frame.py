@@ -66,6 +66,7 @@ MUST_UNDERSTAND_MASK = 0xF0
 _FRAGMENT = int(Flags.FRAGMENT)  # plain int: IntFlag arithmetic is slow on the decode path
 _UNKNOWN_MUST_UNDERSTAND = MUST_UNDERSTAND_MASK & ~_FRAGMENT
 _BUNDLE = int(FrameType.BUNDLE)
+_HELLO = int(FrameType.HELLO)
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,6 +103,13 @@ class Frame:
         return self.payload.frame_type
 
 
+def check_origin(origin: int, payload: Message) -> None:
+    """A HELLO is its origin announcing itself: a HELLO naming another bridge contradicts its
+    header (geometry filed under one id, the restart under another), so it is refused."""
+    if payload.frame_type == _HELLO and payload.bridge != origin:  # type: ignore[union-attr]
+        raise ProtocolError("payload", f"HELLO: bridge {payload.bridge} is not the frame's origin {origin}")  # type: ignore[union-attr]
+
+
 def _check_u(value: int, limit: int, name: str) -> None:
     if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= limit:
         raise ProtocolError("field", f"{name} must be an integer in 0..{limit}, got {value!r}")
@@ -127,6 +135,7 @@ def encode(frame: Frame) -> bytes:
     else:
         if type(p) not in MESSAGE_CLASSES.values():
             raise ProtocolError("payload", f"not a message: {type(p).__name__}")
+        check_origin(frame.origin, p)
         head = _HEADER.pack(VERSION, frame.flags, p.frame_type, frame.src, frame.dst, frame.origin,
                             frame.seq, frame.hops, frame.cost)
         body = head + pack_payload(p)
@@ -173,4 +182,6 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
         payload = Fragment(FrameType(ftype), tag, offset, total, chunk)
     else:
         payload = unpack_payload(ftype, data[HEADER_LEN:-CRC_LEN])
+        if ftype == _HELLO:
+            check_origin(origin, payload)
     return Frame(src, dst, origin, seq, payload, hops, cost, flags & OPTIONAL_MASK)

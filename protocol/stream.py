@@ -51,6 +51,7 @@ class StreamDecoder:
         self.max_buffer = max_encoded_len(max_frame)
         self._buf = bytearray()
         self._skipping = False  # inside an over-long run: discard until the next delimiter
+        self._skip_cause = "overlong"  # what the skipped bytes are counted as
         self.frames_ok = 0
         self.bytes_ok = 0  # COBS bytes of delivered frames
         self.bytes_in = 0
@@ -76,43 +77,68 @@ class StreamDecoder:
     def feed_iter(self, chunk: bytes | bytearray | memoryview) -> Iterator[Frame]:
         """The frames completed by ``chunk``, yielded a window (``WINDOW`` bytes) at a time.
 
-        Consume it to the end before feeding more: the decoder state moves with it.
+        Consume it to the end before feeding more: the decoder state moves with it. A
+        consumer that stops early (``break``, an exception) leaves frames and bytes it never
+        took: they are counted ``abandoned``, and the decoder resumes at the next delimiter.
         """
+        total = len(chunk) if type(chunk) is bytes else memoryview(chunk).nbytes
         out: list[Frame] = []
-        for piece in self._windows(chunk):
-            self._scan(piece, out)
-            yield from out
-            out.clear()
+        sizes: list[int] = []
+        taken = scanned = 0
+        try:
+            for piece in self._windows(chunk):
+                self._scan(piece, out, sizes)
+                scanned += len(piece)
+                for taken, frame in enumerate(out, 1):  # noqa: B007 (taken is read in finally)
+                    yield frame
+                out.clear()
+                sizes.clear()
+                taken = 0
+        finally:
+            self._abandon(len(out) - taken, sum(sizes[taken:]), total - scanned)
+
+    def _abandon(self, frames: int, frame_bytes: int, unscanned: int) -> None:
+        """Count what a consumer of :meth:`feed_iter` left: decoded frames and unread bytes."""
+        if frames:
+            self.frames_ok -= frames
+            self.bytes_ok -= frame_bytes
+            self.frames_dropped["abandoned"] += frames
+            self.bytes_dropped["abandoned"] += frame_bytes
+        if unscanned:  # the frame in progress continues in bytes never read: resynchronise
+            self.bytes_dropped["abandoned"] += unscanned + len(self._buf)
+            self._buf.clear()
+            self._skipping, self._skip_cause = True, "abandoned"
 
     def _windows(self, chunk: bytes | bytearray | memoryview) -> Iterator[bytes]:
         """``chunk`` in slices of at most ``WINDOW`` bytes, so that splitting at the
         delimiters (fast, in C) never holds more than one window's segments."""
-        self.bytes_in += len(chunk)
         if type(chunk) is bytes and len(chunk) <= WINDOW:
+            self.bytes_in += len(chunk)
             yield chunk
             return
-        view = memoryview(chunk).cast("B")
+        view = memoryview(chunk).cast("B")  # bytes, whatever the item size of a view fed
+        self.bytes_in += len(view)
         for start in range(0, len(view), WINDOW):
             yield bytes(view[start:start + WINDOW])
 
-    def _scan(self, piece: bytes, out: list[Frame]) -> None:
+    def _scan(self, piece: bytes, out: list[Frame], sizes: list[int] | None = None) -> None:
         parts = piece.split(DELIMITER)
         self.delimiters += len(parts) - 1
         # Every part but the last ended at a delimiter; the last is the frame in progress.
         last = parts.pop()
         for part in parts:
             if self._skipping:
-                self.bytes_dropped["overlong"] += len(part)
+                self.bytes_dropped[self._skip_cause] += len(part)
                 self._skipping = False
             elif self._buf:
                 self._buf += part
                 part = bytes(self._buf)
                 self._buf.clear()
-                self._frame(part, out)
+                self._frame(part, out, sizes)
             elif part:
-                self._frame(part, out)
+                self._frame(part, out, sizes)
         if self._skipping:
-            self.bytes_dropped["overlong"] += len(last)
+            self.bytes_dropped[self._skip_cause] += len(last)
         elif len(self._buf) + len(last) > self.max_buffer:
             self._overlong(len(self._buf) + len(last))
         else:
@@ -123,9 +149,9 @@ class StreamDecoder:
         self.bytes_dropped["overlong"] += size
         self.frames_dropped["overlong"] += 1
         self._buf.clear()
-        self._skipping = True
+        self._skipping, self._skip_cause = True, "overlong"
 
-    def _frame(self, encoded: bytes, out: list[Frame]) -> None:
+    def _frame(self, encoded: bytes, out: list[Frame], sizes: list[int] | None) -> None:
         if len(encoded) > self.max_buffer:
             self._dropped("overlong", len(encoded))
             return
@@ -144,6 +170,8 @@ class StreamDecoder:
             return
         self.frames_ok += 1
         self.bytes_ok += len(encoded)
+        if sizes is not None:
+            sizes.append(len(encoded))
 
     def _dropped(self, cause: str, size: int) -> None:
         self.bytes_dropped[cause] += size

@@ -50,7 +50,21 @@ link_ack = st.builds(LinkAck, u16, u16)
 simple_messages = data | beacon | hello | status | command | reply | link_ack
 
 header = dict(src=u16, dst=u16, origin=u16, seq=u16, hops=u8, cost=u16, flags=st.integers(0, 0x0F))
-simple_frames = st.builds(Frame, payload=simple_messages, **header)
+
+
+def _consistent(frame: Frame) -> Frame:
+    """A HELLO comes from the bridge it names (decode refuses the contradiction)."""
+    if isinstance(frame.payload, Hello):
+        frame.origin = frame.payload.bridge
+    return frame
+
+
+def frames_of(payloads: st.SearchStrategy) -> st.SearchStrategy[Frame]:
+    """Frames with any header around ``payloads``, consistent where the payload names its origin."""
+    return st.builds(Frame, payload=payloads, **header).map(_consistent)
+
+
+simple_frames = frames_of(simple_messages)
 bundle = st.builds(Bundle, st.lists(simple_frames.filter(lambda f: f.type.name != "HELLO"),
                                     min_size=1, max_size=3).map(tuple))
 frames = simple_frames | st.builds(Frame, payload=bundle, **header)

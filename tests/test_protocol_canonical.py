@@ -13,7 +13,7 @@ import msgpack
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import header, messages_by_type
+from protocol_strategies import frames_of, messages_by_type
 
 from cellbridge.protocol import MAX_FRAME, Frame, FrameType, ProtocolError, crc16, decode, encode
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
@@ -60,7 +60,7 @@ def sloppy(obj: object, pick) -> bytes:
 
 def _frames_of_every_type():
     return st.sampled_from(list(FrameType)).flatmap(
-        lambda t: st.builds(Frame, payload=messages_by_type[t], **header))
+        lambda t: frames_of(messages_by_type[t]))
 
 
 @settings(max_examples=400, suppress_health_check=[HealthCheck.too_slow])
@@ -94,7 +94,7 @@ def test_only_the_canonical_encoding_is_accepted(frame: Frame, data: st.DataObje
 @settings(max_examples=40, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
 def test_canonical_round_trip_every_type(ftype: FrameType, data: st.DataObject) -> None:
-    frame = data.draw(st.builds(Frame, payload=messages_by_type[ftype], **header))
+    frame = data.draw(frames_of(messages_by_type[ftype]))
     try:
         wire = encode(frame)
     except ProtocolError:

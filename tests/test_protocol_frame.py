@@ -7,7 +7,7 @@ import struct
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import header, messages_by_type
+from protocol_strategies import frames_of, messages_by_type
 
 from cellbridge.protocol import (
     CRC_CHECK,
@@ -55,7 +55,7 @@ def test_every_frame_type_has_a_strategy() -> None:
 @settings(max_examples=60, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
 def test_round_trip_every_type(ftype: FrameType, data: st.DataObject) -> None:
-    frame = data.draw(st.builds(Frame, payload=messages_by_type[ftype], **header))
+    frame = data.draw(frames_of(messages_by_type[ftype]))
     assert frame.type is ftype
     try:
         wire = encode(frame)
@@ -171,3 +171,30 @@ def test_encode_refuses_oversized_frames() -> None:
 def test_arbitrary_bytes_only_protocol_error(data: bytes) -> None:
     with pytest.raises(ProtocolError):  # 300 random bytes are never a frame with a valid CRC here
         decode(data)
+
+
+def test_a_hello_that_names_another_bridge_than_its_origin_is_dropped() -> None:
+    """``[bridge, ...]`` of a HELLO is the bridge announcing itself: a HELLO whose bridge is not
+    the frame's origin contradicts itself (geometry would be filed under one id and the
+    restart under another), so it never passes decode, reassembly or encode."""
+    from cellbridge.protocol import Hello, Reassembler, fragment
+    from cellbridge.protocol.frame import _HEADER
+
+    good = Frame(5, 0, 5, 0, Hello(5, "0.1.0", 0.04, 0.08, 0.04, 50_000_000, 3))
+    wire = encode(good)
+    assert decode(wire) == good
+    body = bytearray(wire[:-CRC_LEN])
+    _HEADER.pack_into(body, 0, 1, 0, 3, 5, 0, 6, 0, 0, 0)  # origin 6, payload still says bridge 5
+    with pytest.raises(ProtocolError) as err:
+        decode(_reseal(bytes(body)))
+    assert err.value.cause == "payload"
+    bad = Frame(5, 0, 6, 0, good.payload)
+    with pytest.raises(ProtocolError):
+        encode(bad)
+    r = Reassembler()
+    pieces = fragment(Frame(5, 0, 5, 0, Hello(5, "x" * 32, 0.04, 0.08, 0.04, 50_000_000, 3)), tag=1, max_frame=40)
+    assert len(pieces) > 1
+    for p in pieces:
+        p.origin = 6
+        assert r.receive(decode(encode(p)), 0.0) is None
+    assert r.drops["payload"] == 1

@@ -246,3 +246,34 @@ def test_completions_are_forgotten_after_remember_for_whatever_the_order_of_orig
     assert r.receive(beacon(1, 1), 9.0) is not None  # origin 1 completed last: it is now behind origin 2
     assert r.receive(beacon(1, 0), 10.5) is not None  # 10.5 s after its completion: a new datagram
     assert r.receive(beacon(2, 0), 10.6) is None and r.drops["late_duplicate"] == 1
+
+
+def test_a_jittery_clock_does_not_age_a_datagram_faster_than_real_time() -> None:
+    """Times stamped by two readers and merged step back by a millisecond every other call.
+
+    0.7 s of real time passes between the first and last fragment, well inside the 2 s
+    timeout: the datagram completes. (Adding every backward jitter to every age made it
+    time out after 0.7 s, and each step back rewrote every stored time.)
+    """
+    parts = fragment(big_frame(40), tag=1, max_frame=64)
+    r = Reassembler(timeout=2.0)
+    t, out = 1000.0, None
+    for part in parts:
+        for k in range(500):
+            t += 0.0001
+            r.expire(t - (0.001 if k % 2 else 0.0))
+        out = r.receive(part, t)
+    assert out is not None and out.payload == big_frame(40).payload
+    assert r.drops == {} and r.clock_steps == 0
+
+
+def test_a_clock_drifting_back_in_small_steps_is_a_clock_step() -> None:
+    """Jitter is forgiven only up to clock_jitter: a clock that keeps going back still keeps ages."""
+    parts = fragment(big_frame(40), tag=1, max_frame=64)
+    r = Reassembler(timeout=2.0, clock_jitter=0.25)
+    r.receive(parts[0], 1000.0)
+    for i in range(1, 11):
+        r.expire(1000.0 - 0.1 * i)  # back to 999.0 in steps of 0.1 s
+    assert r.clock_steps >= 1 and r.slot_count == 1
+    r.expire(999.0 + 2.3)  # timeout + clock_jitter after the last reading: too old whatever happened before
+    assert r.slot_count == 0 and r.drops["timeout"] == 1

@@ -116,3 +116,41 @@ def test_feed_iter_yields_what_feed_returns_without_holding_it() -> None:
         tracemalloc.stop()
     assert count == len(frames)
     assert peak < 2_000_000  # feed holds ~8 MB here: the 40 000 frames in its list
+
+
+def test_a_memoryview_of_wide_items_is_counted_in_bytes() -> None:
+    """bytes_in counts bytes, whatever the item size of the view fed (the accounting identity holds)."""
+    import array
+
+    frame = encode_stream(Frame(5, 0, 5, 9, Beacon(0, 10, 1)))
+    words = array.array("H", frame + b"\x00" * (len(frame) % 2))  # the stream in 16-bit words
+    d = StreamDecoder()
+    assert len(d.feed(memoryview(words))) == 1
+    c = d.counters()
+    assert c["bytes_in"] == len(words) * 2
+    assert c["bytes_in"] == c["bytes_ok"] + sum(c["bytes_dropped"].values()) + c["delimiters"] + c["buffered"]
+
+
+def test_frames_a_consumer_leaves_in_feed_iter_are_counted_not_lost() -> None:
+    """A consumer that stops early (a handler raised, a break) leaves frames and bytes it
+    never took: they are counted ``abandoned``, never as delivered, and the decoder
+    resumes at the next delimiter of the next chunk."""
+    frames = [Frame(7, 0, 7, i & 0xFFFF, Beacon(1, 20, 2)) for i in range(10_000)]  # ~230 KB: several windows
+    stream = b"".join(encode_stream(f) for f in frames)
+    d = StreamDecoder()
+    taken = []
+    for f in d.feed_iter(stream):
+        taken.append(f)
+        if len(taken) == 5:
+            break
+    c = d.counters()
+    # Decoded and not taken: frames abandoned; never read (later windows): bytes abandoned.
+    assert c["frames_ok"] == 5 and 0 < c["frames_dropped"]["abandoned"] < len(frames) - 5
+    assert c["bytes_ok"] == 5 * len(encode_stream(frames[0])[1:-1]) and c["bytes_dropped"]["abandoned"] > 0
+    assert c["bytes_in"] == len(stream)
+    assert c["bytes_in"] == c["bytes_ok"] + sum(c["bytes_dropped"].values()) + c["delimiters"] + c["buffered"]
+    # The next chunk starts mid-frame (the rest of this one was never read): resynchronised.
+    tail = encode_stream(frames[0])
+    assert d.feed(tail[10:] + tail) == [frames[0]]
+    c = d.counters()
+    assert c["bytes_in"] == c["bytes_ok"] + sum(c["bytes_dropped"].values()) + c["delimiters"] + c["buffered"]

@@ -1,0 +1,42 @@
+"""The host's receive path for frames from any number of gateways.
+
+Order matters: reassemble first, then filter duplicates of whole frames. Filtering
+fragments one by one before reassembly loses a datagram whenever the faster gateway
+lost its first fragment: its later fragments arrive first, find no open datagram
+(``no_state``) and are marked seen, so the slower gateway's copies, which would
+complete the datagram, are dropped as duplicates. Reassembling first lets every copy
+of a fragment reach the :class:`Reassembler` (which drops repeats itself:
+``duplicate_fragment``, ``late_duplicate``), and the :class:`DuplicateFilter` then
+sees each whole frame once, as (origin, seq of its first fragment).
+
+A BUNDLE is a hop's container, not a frame of its own to the host: two gateways may
+bundle the same frames differently, so the frames inside are what is reassembled and
+filtered.
+"""
+
+from __future__ import annotations
+
+from cellbridge.protocol.dedupe import DuplicateFilter
+from cellbridge.protocol.fragment import Reassembler
+from cellbridge.protocol.frame import Frame
+from cellbridge.protocol.messages import Bundle, Hello
+
+
+class HostReceiver:
+    """``receive(frame, now)``: the frames to deliver, each once, from one decoded frame."""
+
+    def __init__(self, dedupe: DuplicateFilter | None = None, reassembler: Reassembler | None = None) -> None:
+        self.dedupe = dedupe if dedupe is not None else DuplicateFilter()
+        self.reassembler = reassembler if reassembler is not None else Reassembler()
+
+    def receive(self, frame: Frame, now: float) -> list[Frame]:
+        """Frames completed by ``frame`` and not seen before (``now``: seconds, for reassembly)."""
+        if isinstance(frame.payload, Bundle):
+            return [f for inner in frame.payload.frames for f in self.receive(inner, now)]
+        whole = self.reassembler.receive(frame, now)
+        if whole is None or self.dedupe.is_duplicate(whole.origin, whole.seq, hello=isinstance(whole.payload, Hello)):
+            return []
+        return [whole]
+
+    def counters(self) -> dict[str, object]:
+        return {"dedupe": self.dedupe.counters(), "reassembly": self.reassembler.counters()}

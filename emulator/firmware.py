@@ -1,0 +1,366 @@
+"""Bridge firmware, sans-I/O: fed the chip's events and a cycle time, returns transmissions.
+
+One :class:`Firmware` is one bridge. Its owner (the virtual-time mesh or a real-time
+process shell) calls:
+
+* ``receive(data, tick)`` with bytes the medium delivered from the cell,
+* ``carrier(until)`` when the medium reports another bridge transmitting,
+* ``serial_in(data, tick)`` (gateways) with bytes the host wrote to the serial line,
+* ``advance(tick)`` at or after ``next_tick``; it runs every timer due and returns the
+  bytes whose cell transmission starts at ``tick`` (or None),
+* ``take_serial()`` (gateways) for the bytes to write to the host.
+
+Everything the bridge does — sampling (C1 gate then C2 gate), reporting, routing,
+forwarding, commands — happens inside those calls; the owner supplies only time,
+bytes and the element's capacitance (``sense(tick) -> (C1, C2)`` in farads).
+"""
+
+from __future__ import annotations
+
+import random
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+from cellbridge import __version__
+from cellbridge.protocol import (
+    ADDR_BROADCAST,
+    ADDR_HOST,
+    Beacon,
+    BridgeStatus,
+    Bundle,
+    Command,
+    CommandReply,
+    Data,
+    DuplicateFilter,
+    Flags,
+    Frame,
+    FrameType,
+    Hello,
+    LinkAck,
+    Mode,
+    Neighbour,
+    ProtocolError,
+    Sample,
+    SampleFlags,
+    StreamDecoder,
+    decode,
+    encode,
+    encode_stream,
+)
+from cellbridge.emulator.commands import Settings, execute
+from cellbridge.emulator.linklayer import LinkLayer
+from cellbridge.emulator.reporting import Reporter, ReportingMode
+from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
+from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
+
+FIRMWARE_VERSION = f"cellbridge-emu {__version__}"
+_ACK = int(Flags.ACK_REQUEST)
+_MS = 50_000  # cycles per millisecond at 50 MHz
+_FOR_ALL = frozenset({int(FrameType.BEACON), int(FrameType.CMD)})  # frames every bridge reads
+
+
+@dataclass(frozen=True)
+class FirmwareConfig:
+    """Firmware parameters; times in chip cycles (50 MHz)."""
+
+    bridge: int
+    cells: tuple[int, ...] = (1,)
+    gateway: bool = False
+    position: tuple[float, float] = (0.0, 0.0)
+    side: float = 0.040
+    clock_hz: int = 50_000_000
+    settings: Settings = field(default_factory=Settings)
+    batch_max: int = 12  #: samples per DATA frame at most (12 fit one frame with 64-bit cycles)
+    max_latency: int = 50 * _MS  #: a sample waits at most this long for company in a DATA frame
+    queue_len: int = 64
+    max_retries: int = 5
+    trickle_imin: int = 50 * _MS
+    trickle_imax: int = 500 * _MS  #: the beacon period once routes are stable
+    status_period: int = 2000 * _MS
+    hello_period: int = 10_000 * _MS
+    max_hops: int = 32
+    transceiver: TransceiverConfig = field(default_factory=TransceiverConfig)
+
+
+def _rest(_tick: int) -> tuple[float, float]:
+    return 15.67e-12, 19.44e-12
+
+
+class Firmware:
+    def __init__(self, config: FirmwareConfig, chip: object, sense: Callable[[int], tuple[float, float]] = _rest,
+                 seed: int = 0, boot_tick: int = 0, resets: int = 0) -> None:
+        self.config = config
+        self.me = config.bridge
+        self.chip = chip
+        self.sense = sense
+        self.rng = random.Random(seed * 1_000_003 + config.bridge * 7919 + resets)
+        self.counters: Counter[str] = Counter()
+        self.resets = resets
+        self.serial_out = bytearray()
+        self._serial_in = StreamDecoder()
+        self._power_on(boot_tick)
+
+    # -- state ----------------------------------------------------------------------
+    def _power_on(self, tick: int) -> None:
+        c = self.config
+        self.boot_tick = tick
+        self.settings = c.settings
+        self.seq = self.rng.randrange(0x10000)  # a restart does not reuse recent numbers
+        self.radio = Transceiver(self.rng, c.transceiver)
+        self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries)
+        self.router = Router(self.me, c.gateway, max_hops=c.max_hops,
+                             neighbour_timeout=4 * c.trickle_imax)
+        self.trickle = Trickle(self.rng, c.trickle_imin, c.trickle_imax)
+        self.trickle.start(tick)
+        self.reporter = Reporter(self.settings.reporting, _MS)
+        self.seen = DuplicateFilter()  # upward frames: (origin, seq)
+        self.seen_cmd = DuplicateFilter()  # flooded commands
+        self.batch: list[Sample] = []
+        self.flush_at = -1
+        self.sample_start = tick + self.rng.randrange(self.settings.period_cycles(c.clock_hz))
+        self.sample_ready = self.sample_start + self.settings.measure_cycles()
+        self.status_at = tick + c.status_period
+        self.hello_at = tick if c.gateway else -1  # a relay says hello once it has a route
+        self.reset_at = -1
+
+    @property
+    def next_tick(self) -> int:
+        t = min(self.sample_ready, self.trickle.next_tick, self.status_at)
+        for x in (self.flush_at, self.hello_at, self.reset_at):
+            if x >= 0 and x < t:
+                t = x
+        lt = self.link.next_tick
+        if lt is not None and lt < t:
+            t = lt
+        return t
+
+    def _next_seq(self) -> int:
+        s = self.seq
+        self.seq = (s + 1) & 0xFFFF
+        return s
+
+    def counters_snapshot(self) -> dict[str, int]:
+        out = dict(self.counters)
+        out.update(self.link.counters)
+        out.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
+                   bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
+                   neighbour_evictions=self.router.evictions, suppressed=self.reporter.suppressed,
+                   resets=self.resets, queue_len=len(self.link.queue))
+        return out
+
+    # -- inputs ---------------------------------------------------------------------
+    def carrier(self, cell: int, start: int, until: int) -> None:
+        self.radio.carrier(cell, start, until)
+
+    def serial_in(self, data: bytes, tick: int) -> None:
+        """Bytes the host wrote to the gateway's serial line (COBS frames)."""
+        for f in self._serial_in.feed(data):
+            if f.type is FrameType.CMD:
+                self._command(f, tick)
+            else:
+                self.counters["serial_ignored"] += 1
+
+    def take_serial(self) -> bytes:
+        out = bytes(self.serial_out)
+        self.serial_out.clear()
+        return out
+
+    def receive(self, data: bytes, tick: int, cell: int) -> None:
+        # Address filter before any decoding, as a radio does: unicasts for other bridges
+        # are dropped from the header bytes alone (type at 2, dst at 5-6).
+        if len(data) > 7 and data[2] not in _FOR_ALL and (data[5] << 8 | data[6]) != self.me:
+            self.counters["overheard"] += 1
+            return
+        try:
+            f = decode(data)
+        except ProtocolError as exc:
+            self.counters[f"rx_{exc.cause}"] += 1
+            return
+        t = f.type
+        if t is FrameType.LINK_ACK:
+            if f.dst == self.me:
+                self.link.acked(f.payload, f.src)  # type: ignore[arg-type]
+            return
+        if t is FrameType.BEACON:
+            self._beacon(f, tick, cell)
+            return
+        if t is FrameType.CMD:
+            self._command(f, tick)
+            return
+        if f.dst != self.me:
+            return  # overheard unicast for another bridge
+        if f.flags & _ACK:
+            self.radio.send_ack(encode(Frame(self.me, f.src, self.me, self._next_seq(),
+                                             LinkAck(f.origin, f.seq))), self.config.cells, tick)
+        if self.router.inconsistent(f.src):
+            self.counters["inconsistencies"] += 1
+            self.trickle.reset(tick)
+        if t is FrameType.BUNDLE:
+            for inner in f.payload.frames:  # type: ignore[union-attr]
+                self._upward(inner, tick)
+        else:
+            self._upward(f, tick)
+
+    # -- routing --------------------------------------------------------------------
+    def _beacon(self, f: Frame, tick: int, cell: int) -> None:
+        b: Beacon = f.payload  # type: ignore[assignment]
+        self.router.on_beacon(f.src, b.parent, b.path_etx, b.hops, tick, cell)
+        if b.parent == self.me and b.path_etx < INFINITE and b.path_etx <= self.router.path_etx:
+            self.trickle.reset(tick)  # a child thinks it is closer than us: our cost is stale
+        else:
+            self.trickle.heard_consistent()
+        self._reroute(tick)
+
+    def _reroute(self, tick: int) -> None:
+        had = self.router.has_route
+        if self.router.select():
+            self.trickle.reset(tick)
+        if not had and self.router.has_route and self.hello_at < 0:
+            self.hello_at = tick
+        if had and not self.router.has_route:
+            self.counters["route_lost"] += 1
+
+    def _send_beacon(self, tick: int) -> None:
+        r = self.router
+        beacon = Beacon(0 if r.gateway or r.parent is None else r.parent, r.path_etx, r.hops)
+        self.link.broadcast(encode(Frame(self.me, ADDR_BROADCAST, self.me, self._next_seq(), beacon)))
+        self.counters["beacons"] += 1
+
+    # -- upward traffic -------------------------------------------------------------
+    def _upward(self, f: Frame, tick: int) -> None:
+        if f.origin == self.me:
+            self.counters["loop_drops"] += 1
+            return
+        if self.seen.is_duplicate(f.origin, f.seq):
+            self.counters["duplicates"] += 1
+            return
+        if f.hops + 1 > self.config.max_hops:
+            self.counters["loop_drops"] += 1
+            return
+        self.counters["forwarded"] += 1
+        fwd = Frame(self.me, ADDR_HOST, f.origin, f.seq, f.payload, f.hops + 1, f.cost)
+        self._emit(fwd)
+
+    def _own(self, payload: object) -> None:
+        self._emit(Frame(self.me, ADDR_HOST, self.me, self._next_seq(), payload))  # type: ignore[arg-type]
+
+    def _emit(self, f: Frame) -> None:
+        if self.config.gateway:
+            self.serial_out += encode_stream(f)
+            self.counters["serial_frames"] += 1
+        elif not self.link.enqueue(f):
+            self.counters["queue_full"] += 1
+
+    # -- sampling -------------------------------------------------------------------
+    def _sample(self) -> None:
+        st = self.settings
+        start = self.sample_start
+        c1, c2 = self.sense(start)
+        if st.mode is Mode.COUNTER:
+            v1, o1 = self.chip.count(0, c1, start, st.gate_cycles)  # type: ignore[attr-defined]
+            v2, o2 = self.chip.count(1, c2, start + st.gate_cycles, st.gate_cycles)  # type: ignore[attr-defined]
+            flags = (SampleFlags.OVERFLOW_C1 if o1 else 0) | (SampleFlags.OVERFLOW_C2 if o2 else 0)
+        else:
+            v1, took = self.chip.convert(0, c1, start, st.oversampling)  # type: ignore[attr-defined]
+            v2, _ = self.chip.convert(1, c2, start + took, st.oversampling)  # type: ignore[attr-defined]
+            flags = 0
+        s = Sample(0, start, v1, v2, int(flags))
+        self.counters["samples"] += 1
+        if self.reporter.wants(s):
+            self.batch.append(s)
+            if self.flush_at < 0:
+                self.flush_at = self.sample_ready + self.config.max_latency
+            if len(self.batch) >= self.config.batch_max:
+                self._flush()
+        period = st.period_cycles(self.config.clock_hz)
+        self.sample_start = start + period
+        self.sample_ready = self.sample_start + st.measure_cycles()
+
+    def _flush(self) -> None:
+        if self.batch:
+            st = self.settings
+            self._own(Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1))
+            self.counters["data_frames"] += 1
+            self.counters["samples_sent"] += len(self.batch)
+            self.batch = []
+        self.flush_at = -1
+
+    # -- commands -------------------------------------------------------------------
+    def _command(self, f: Frame, tick: int) -> None:
+        if self.seen_cmd.is_duplicate(f.origin, f.seq):
+            return
+        target = f.dst
+        if target != self.me:  # controlled flooding: every bridge repeats a new command once
+            self.link.broadcast(encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost)))
+            self.counters["flooded"] += 1
+        if target in (self.me, ADDR_BROADCAST):
+            cmd: Command = f.payload  # type: ignore[assignment]
+            self.counters["commands"] += 1
+            reply, new = execute(cmd, self.settings, self.config.clock_hz, tick)
+            self._own(reply)
+            if new is not None:
+                self._apply(new, tick)
+            if reply.op.name == "RESET" and reply.status == 0:
+                self.reset_at = tick + 50 * _MS  # time for the reply to leave
+
+    def _apply(self, new: Settings, tick: int) -> None:
+        old = self.settings
+        self.settings = new
+        if new.reporting != old.reporting or new.mode != old.mode:
+            self.reporter.set_mode(new.reporting, 1 << 16 if new.mode is Mode.COUNTER else 0)
+        if new.period_cycles(self.config.clock_hz) != old.period_cycles(self.config.clock_hz) or \
+                new.measure_cycles() != old.measure_cycles():
+            self._flush()
+            self.sample_start = max(tick, self.sample_start)
+            self.sample_ready = self.sample_start + new.measure_cycles()
+
+    # -- time -----------------------------------------------------------------------
+    def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
+        """Run every timer due at ``tick``; the (bytes, cells) to transmit now, if any."""
+        while self.sample_ready <= tick:
+            self._sample()
+        if 0 <= self.flush_at <= tick:
+            self._flush()
+        if self.trickle.next_tick <= tick:
+            if self.trickle.advance(tick):
+                self.router.expire(tick)
+                self._reroute(tick)
+                self._send_beacon(tick)
+        if 0 <= self.hello_at <= tick:
+            c = self.config
+            self._own(Hello(self.me, FIRMWARE_VERSION, c.position[0], c.position[1], c.side, c.clock_hz, 3))
+            self.hello_at = tick + c.hello_period
+        if self.status_at <= tick:
+            self._status(tick)
+            self.status_at = tick + self.config.status_period
+        if 0 <= self.reset_at <= tick:
+            self.resets += 1
+            self.counters["command_resets"] += 1
+            self._power_on(tick)
+        r = self.router
+        p = r.table.get(r.parent) if r.parent is not None else None
+        if p is not None:
+            out, used = self.link.advance(tick, p.id, p.cell, self.seq, int(round(p.link_etx)))
+        else:
+            out, used = self.link.advance(tick, None, 0, self.seq, PERFECT_LINK)
+        if used:
+            self._next_seq()
+        if self.link.results:
+            for nbr, attempts, ok in self.link.results:
+                self.router.on_link_result(nbr, attempts, ok)
+            self.link.results.clear()
+            self._reroute(tick)
+        return out
+
+    def _status(self, tick: int) -> None:
+        r = self.router
+        if not r.gateway and r.parent is None:
+            return
+        nbrs = tuple(Neighbour(n.id, min(0xFFFF, int(round(n.link_etx)))) for n in list(r.table.values())[:32])
+        self._own(BridgeStatus(0 if r.parent is None else r.parent, min(r.path_etx, 0xFFFF), nbrs,
+                               self.link.counters["queue_drops"], self.link.counters["retries"],
+                               self.resets, tick - self.boot_tick))
+
+
+__all__ = ["FIRMWARE_VERSION", "Firmware", "FirmwareConfig", "Bundle", "CommandReply", "replace"]

@@ -1,0 +1,143 @@
+"""Link layer of the firmware: bounded queues, aggregation, per-hop ACK and retries.
+
+Frames climbing toward the sink wait in one bounded FIFO (a full queue refuses the
+newest frame and counts it). When the cell is free, the head frame and every queued
+frame that still fits go to the parent in one BUNDLE transmission, which the parent
+acknowledges with one LINK_ACK; without the acknowledgement the transmission is
+repeated with a wider backoff up to ``max_retries`` times, then given up (counted).
+Broadcasts (beacons, command floods) have their own small queue, go first and are
+never acknowledged.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from dataclasses import dataclass
+
+from cellbridge.protocol import ADDR_BROADCAST, Bundle, Flags, Frame, LinkAck, encode
+from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
+from cellbridge.emulator.transceiver import Transceiver
+
+_ACK = int(Flags.ACK_REQUEST)
+_BUNDLE_OVERHEAD = HEADER_LEN + CRC_LEN + 3  # header, CRC, msgpack array header (<= 3 bytes)
+
+
+@dataclass
+class _InFlight:
+    data: bytes
+    key: tuple[int, int]  #: (origin, seq) the LINK_ACK must name
+    frames: list[Frame]
+    next_hop: int
+    cell: int
+    attempts: int = 0
+    deadline: int = -1  #: ack deadline once on the cell; -1 while still contending
+
+
+class LinkLayer:
+    def __init__(self, me: int, cells: tuple[int, ...], radio: Transceiver, queue_len: int = 32,
+                 max_retries: int = 5, ack_bytes: int = 24) -> None:
+        self.me = me
+        self.cells = cells
+        self.radio = radio
+        self.queue_len = queue_len
+        self.max_retries = max_retries
+        self.queue: deque[Frame] = deque()
+        self.broadcasts: deque[bytes] = deque()
+        self.inflight: _InFlight | None = None
+        c = radio.config
+        self._ack_wait = (c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.airtime(ack_bytes)
+        self.counters: Counter[str] = Counter()
+        self.results: list[tuple[int, int, bool]] = []  #: (next hop, attempts, ok) not yet read
+
+    def enqueue(self, frame: Frame) -> bool:
+        """Queue a frame for the parent; False (and counted) when the queue is full."""
+        if len(self.queue) >= self.queue_len:
+            self.counters["queue_drops"] += 1
+            return False
+        self.queue.append(frame)
+        return True
+
+    def broadcast(self, data: bytes) -> None:
+        if len(self.broadcasts) >= 8:
+            self.counters["broadcast_drops"] += 1
+            return
+        self.broadcasts.append(data)
+
+    def acked(self, ack: LinkAck, src: int) -> bool:
+        f = self.inflight
+        if f is None or f.deadline < 0 or (ack.origin, ack.seq) != f.key or src != f.next_hop:
+            return False
+        self.results.append((f.next_hop, f.attempts, True))
+        self.counters["frames_acked"] += len(f.frames)
+        self.inflight = None
+        return True
+
+    def _build(self, parent: int, cell: int, seq: int, cost_add: int) -> tuple[_InFlight, bool]:
+        """Take queued frames for ``parent``; True in the result when a bundle seq was used."""
+        first = self.queue.popleft()
+        taken = [first]
+        encoded = [self._inner(first, parent, cost_add)]
+        size = _BUNDLE_OVERHEAD + len(encoded[0]) + 2
+        while self.queue:
+            nxt = self._inner(self.queue[0], parent, cost_add)
+            if size + len(nxt) + 2 > MAX_FRAME:
+                break
+            taken.append(self.queue.popleft())
+            encoded.append(nxt)
+            size += len(nxt) + 2
+        if len(taken) == 1:
+            f = first
+            data = encode(Frame(self.me, parent, f.origin, f.seq, f.payload, f.hops, f.cost + cost_add, _ACK))
+            return _InFlight(data, (f.origin, f.seq), taken, parent, cell), False
+        inner = tuple(Frame(self.me, parent, f.origin, f.seq, f.payload, f.hops, f.cost + cost_add) for f in taken)
+        data = encode(Frame(self.me, parent, self.me, seq, Bundle(inner), 0, 0, _ACK))
+        self.counters["bundles"] += 1
+        self.counters["bundled_frames"] += len(taken)
+        return _InFlight(data, (self.me, seq), taken, parent, cell), True
+
+    def _inner(self, f: Frame, parent: int, cost_add: int) -> bytes:
+        return encode(Frame(self.me, parent, f.origin, f.seq, f.payload, f.hops, f.cost + cost_add))
+
+    def advance(self, tick: int, parent: int | None, cell: int, next_seq: int,
+                cost_add: int) -> tuple[tuple[bytes, tuple[int, ...]] | None, bool]:
+        """((bytes, cells) to put on the cells now, or None; whether ``next_seq`` was used)."""
+        used = False
+        f = self.inflight
+        radio = self.radio
+        if f is not None and 0 <= f.deadline <= tick and radio.idle:  # no acknowledgement in time
+            if f.attempts > self.max_retries or parent != f.next_hop:
+                self.counters["tx_failed"] += 1
+                self.counters["frames_failed"] += len(f.frames)
+                self.results.append((f.next_hop, f.attempts, False))
+                self.inflight = f = None
+            else:
+                self.counters["retries"] += 1
+                f.deadline = -1
+                radio.send(f.data, self.cells, tick, f.attempts)
+        if radio.idle and f is None:
+            if self.broadcasts:
+                radio.send(self.broadcasts.popleft(), self.cells, tick)
+            elif parent is not None and self.queue:
+                self.inflight, used = self._build(parent, cell, next_seq, cost_add)
+                radio.send(self.inflight.data, self.cells, tick)
+        out = radio.advance(tick)
+        if out is not None:
+            f = self.inflight
+            if f is not None and out[0] is f.data and f.deadline < 0:
+                f.attempts += 1
+                f.deadline = radio.tx_until + self._ack_wait
+        return out, used
+
+    @property
+    def next_tick(self) -> int | None:
+        t = self.radio.next_tick
+        f = self.inflight
+        if f is not None and f.deadline >= 0:
+            t = f.deadline if t is None else min(t, f.deadline)
+        return t
+
+    def has_work(self) -> bool:
+        return bool(self.queue or self.broadcasts)
+
+
+BROADCAST = ADDR_BROADCAST

@@ -110,11 +110,13 @@ class World:
 
     def __init__(self, mesh: Mesh, contacts: list[Contact] | None = None,
                  params: ElementParams | None = None, clock_hz: int = 50_000_000,
-                 quantum: float = 1e-3) -> None:
+                 quantum: float = 1e-3, bridges: list[int] | None = None) -> None:
+        """``bridges`` limits the elements evaluated (a bridge process needs only its own:
+        without membrane spread an element's response depends on nothing else)."""
         self.params = params or ElementParams(side=mesh.side)
-        self.layout = SkinLayout(np.array([b.position for b in mesh.bridges]), mesh.side,
-                                 np.array(mesh.ids))
-        self.index = {b: i for i, b in enumerate(mesh.ids)}
+        ids = list(mesh.ids if bridges is None else bridges)
+        self.layout = SkinLayout(np.array([mesh.bridge(b).position for b in ids]), mesh.side, np.array(ids))
+        self.index = {b: i for i, b in enumerate(ids)}
         self.contacts: list[Contact] = list(contacts or [])
         self.clock_hz = clock_hz
         self.quantum = quantum  # moving contacts are re-evaluated at most this often
@@ -126,6 +128,18 @@ class World:
     def press(self, contact: Contact) -> None:
         self.contacts.append(contact)
         self._key = None
+
+    def set_contacts(self, contacts: list[Contact]) -> None:
+        """Replace every contact (a bridge process mirroring the world process)."""
+        if contacts != self.contacts:
+            self.contacts = list(contacts)
+            self._key = None
+
+    def prune(self, t: float) -> None:
+        """Forget contacts that ended before ``t`` (live sessions run for days)."""
+        keep = [c for c in self.contacts if c.start + c.duration > t]
+        if len(keep) != len(self.contacts):
+            self.set_contacts(keep)
 
     def capacitances(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(C1, C2) of every element at time ``t`` (s), parasitics included."""

@@ -80,6 +80,7 @@ class FirmwareConfig:
     status_period: int = 2000 * _MS
     hello_period: int = 10_000 * _MS
     max_hops: int = 32
+    ack_slack: int = 0  #: extra wait for a LINK_ACK (real-time shells: message latency)
     transceiver: TransceiverConfig = field(default_factory=TransceiverConfig)
 
 
@@ -108,7 +109,7 @@ class Firmware:
         self.settings = c.settings
         self.seq = self.rng.randrange(0x10000)  # a restart does not reuse recent numbers
         self.radio = Transceiver(self.rng, c.transceiver)
-        self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries)
+        self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries, ack_slack=c.ack_slack)
         self.router = Router(self.me, c.gateway, max_hops=c.max_hops,
                              neighbour_timeout=4 * c.trickle_imax)
         self.trickle = Trickle(self.rng, c.trickle_imin, c.trickle_imax)

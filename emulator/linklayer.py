@@ -35,7 +35,7 @@ class _InFlight:
 
 class LinkLayer:
     def __init__(self, me: int, cells: tuple[int, ...], radio: Transceiver, queue_len: int = 32,
-                 max_retries: int = 5, ack_bytes: int = 24) -> None:
+                 max_retries: int = 5, ack_bytes: int = 24, ack_slack: int = 0) -> None:
         self.me = me
         self.cells = cells
         self.radio = radio
@@ -45,7 +45,7 @@ class LinkLayer:
         self.broadcasts: deque[bytes] = deque()
         self.inflight: _InFlight | None = None
         c = radio.config
-        self._ack_wait = (c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.airtime(ack_bytes)
+        self._ack_wait = (c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.airtime(ack_bytes) + ack_slack
         self.counters: Counter[str] = Counter()
         self.results: list[tuple[int, int, bool]] = []  #: (next hop, attempts, ok) not yet read
 

@@ -94,7 +94,8 @@ class Medium:
         self._tx_end[src] = tx.end
         for c in self._cells_of[src]:  # half duplex: sending spoils what src was receiving
             for other in self._rx[(src, c)].values():
-                other.spoiled.setdefault((src, c), "half_duplex")
+                if other.end > tick:
+                    other.spoiled.setdefault((src, c), "half_duplex")
         dead, tx_end, rx = self.dead, self._tx_end, self._rx
         for c in cells:
             for r in self._members.get(c, ()):
@@ -105,9 +106,9 @@ class Medium:
                 if tx_end.get(r, -1) > tick:
                     tx.spoiled[key] = "half_duplex"
                 active = rx[key]
-                if active:
-                    tx.spoiled[key] = "collision"
-                    for other in active.values():
+                for other in active.values():  # ended ones may await finish() (a real-time caller)
+                    if other.end > tick:
+                        tx.spoiled[key] = "collision"
                         other.spoiled.setdefault(key, "collision")
                 active[tx.id] = tx
         return tx

@@ -20,17 +20,17 @@ from __future__ import annotations
 import random
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 from cellbridge import __version__
+import msgpack
+
 from cellbridge.protocol import (
     ADDR_BROADCAST,
     ADDR_HOST,
     Beacon,
     BridgeStatus,
-    Bundle,
     Command,
-    CommandReply,
     Data,
     DuplicateFilter,
     Flags,
@@ -38,6 +38,7 @@ from cellbridge.protocol import (
     FrameType,
     Hello,
     LinkAck,
+    Message,
     Mode,
     Neighbour,
     ProtocolError,
@@ -46,8 +47,8 @@ from cellbridge.protocol import (
     StreamDecoder,
     decode,
     encode,
-    encode_stream,
 )
+from cellbridge.emulator.rawframe import Raw, build, own, parse, to_serial
 from cellbridge.emulator.commands import Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
 from cellbridge.emulator.reporting import Reporter, ReportingMode
@@ -58,6 +59,8 @@ FIRMWARE_VERSION = f"cellbridge-emu {__version__}"
 _ACK = int(Flags.ACK_REQUEST)
 _MS = 50_000  # cycles per millisecond at 50 MHz
 _FOR_ALL = frozenset({int(FrameType.BEACON), int(FrameType.CMD)})  # frames every bridge reads
+_PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
+_BUNDLE = int(FrameType.BUNDLE)
 
 
 @dataclass(frozen=True)
@@ -167,46 +170,60 @@ class Firmware:
         self.serial_out.clear()
         return out
 
-    def receive(self, data: bytes, tick: int, cell: int) -> None:
+    def receive(self, data: bytes, tick: int, cell: int) -> bool:
+        """A frame from ``cell``; False when the bridge ignored it (no need to advance)."""
         # Address filter before any decoding, as a radio does: unicasts for other bridges
         # are dropped from the header bytes alone (type at 2, dst at 5-6).
         if len(data) > 7 and data[2] not in _FOR_ALL and (data[5] << 8 | data[6]) != self.me:
             self.counters["overheard"] += 1
-            return
+            return False
+        if len(data) > 7 and data[2] in _PARSED:
+            return self._receive_parsed(data, tick)
+        got = parse(data)
+        if got is None:
+            self.counters["rx_crc"] += 1
+            return False
+        src, _, f = got
+        if f.flags & _ACK:
+            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_seq()), self.me, src),
+                                self.config.cells, tick)
+        if self.router.inconsistent(src):
+            self.counters["inconsistencies"] += 1
+            self.trickle.reset(tick)
+        if f.type == _BUNDLE:
+            try:
+                inner = [parse(b) for b in msgpack.unpackb(f.body)]
+            except Exception:  # malformed msgpack: the whole bundle is bad
+                inner = [None]
+            for g in inner:
+                if g is None:
+                    self.counters["rx_bad_bundle"] += 1
+                else:
+                    self._upward(g[2], tick)
+        else:
+            self._upward(f, tick)
+        return True
+
+    def _receive_parsed(self, data: bytes, tick: int) -> bool:
         try:
             f = decode(data)
         except ProtocolError as exc:
             self.counters[f"rx_{exc.cause}"] += 1
-            return
+            return False
         t = f.type
         if t is FrameType.LINK_ACK:
-            if f.dst == self.me:
-                self.link.acked(f.payload, f.src)  # type: ignore[arg-type]
-            return
+            ack: LinkAck = f.payload  # type: ignore[assignment]
+            return f.dst == self.me and self.link.acked(ack.origin, ack.seq, f.src)
         if t is FrameType.BEACON:
-            self._beacon(f, tick, cell)
-            return
-        if t is FrameType.CMD:
-            self._command(f, tick)
-            return
-        if f.dst != self.me:
-            return  # overheard unicast for another bridge
-        if f.flags & _ACK:
-            self.radio.send_ack(encode(Frame(self.me, f.src, self.me, self._next_seq(),
-                                             LinkAck(f.origin, f.seq))), self.config.cells, tick)
-        if self.router.inconsistent(f.src):
-            self.counters["inconsistencies"] += 1
-            self.trickle.reset(tick)
-        if t is FrameType.BUNDLE:
-            for inner in f.payload.frames:  # type: ignore[union-attr]
-                self._upward(inner, tick)
+            self._beacon(f, tick)
         else:
-            self._upward(f, tick)
+            self._command(f, tick)
+        return True
 
     # -- routing --------------------------------------------------------------------
-    def _beacon(self, f: Frame, tick: int, cell: int) -> None:
+    def _beacon(self, f: Frame, tick: int) -> None:
         b: Beacon = f.payload  # type: ignore[assignment]
-        self.router.on_beacon(f.src, b.parent, b.path_etx, b.hops, tick, cell)
+        self.router.on_beacon(f.src, b.parent, b.path_etx, b.hops, tick)
         if b.parent == self.me and b.path_etx < INFINITE and b.path_etx <= self.router.path_etx:
             self.trickle.reset(tick)  # a child thinks it is closer than us: our cost is stale
         else:
@@ -229,7 +246,7 @@ class Firmware:
         self.counters["beacons"] += 1
 
     # -- upward traffic -------------------------------------------------------------
-    def _upward(self, f: Frame, tick: int) -> None:
+    def _upward(self, f: Raw, tick: int) -> None:
         if f.origin == self.me:
             self.counters["loop_drops"] += 1
             return
@@ -240,15 +257,14 @@ class Firmware:
             self.counters["loop_drops"] += 1
             return
         self.counters["forwarded"] += 1
-        fwd = Frame(self.me, ADDR_HOST, f.origin, f.seq, f.payload, f.hops + 1, f.cost)
-        self._emit(fwd)
+        self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
 
-    def _own(self, payload: object) -> None:
-        self._emit(Frame(self.me, ADDR_HOST, self.me, self._next_seq(), payload))  # type: ignore[arg-type]
+    def _own(self, message: Message) -> None:
+        self._emit(own(message, self.me, self._next_seq()))
 
-    def _emit(self, f: Frame) -> None:
+    def _emit(self, f: Raw) -> None:
         if self.config.gateway:
-            self.serial_out += encode_stream(f)
+            self.serial_out += to_serial(build(f, self.me, ADDR_HOST))
             self.counters["serial_frames"] += 1
         elif not self.link.enqueue(f):
             self.counters["queue_full"] += 1
@@ -342,9 +358,9 @@ class Firmware:
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
         if p is not None:
-            out, used = self.link.advance(tick, p.id, p.cell, self.seq, int(round(p.link_etx)))
+            out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)))
         else:
-            out, used = self.link.advance(tick, None, 0, self.seq, PERFECT_LINK)
+            out, used = self.link.advance(tick, None, self.seq, PERFECT_LINK)
         if used:
             self._next_seq()
         if self.link.results:
@@ -364,4 +380,4 @@ class Firmware:
                                self.resets, tick - self.boot_tick))
 
 
-__all__ = ["FIRMWARE_VERSION", "Firmware", "FirmwareConfig", "Bundle", "CommandReply", "replace"]
+__all__ = ["FIRMWARE_VERSION", "Firmware", "FirmwareConfig"]

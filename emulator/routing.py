@@ -74,7 +74,6 @@ class Neighbour:
     link_etx: float = float(PERFECT_LINK)
     heard: int = 0
     failures: int = 0  #: consecutive frames not acknowledged after all retries
-    cell: int = 0  #: the cell it was last heard on (unicasts to it go there)
 
 
 class Router:
@@ -106,7 +105,7 @@ class Router:
             return INFINITE
         return min(INFINITE, n.path_etx + int(round(n.link_etx)))
 
-    def on_beacon(self, src: int, parent: int, path_etx: int, hops: int, tick: int, cell: int) -> None:
+    def on_beacon(self, src: int, parent: int, path_etx: int, hops: int, tick: int) -> None:
         n = self.table.get(src)
         if n is None:
             if len(self.table) >= self.max_neighbours:
@@ -115,7 +114,7 @@ class Router:
                     return
                 del self.table[worst.id]
             n = self.table[src] = Neighbour(src)
-        n.parent, n.path_etx, n.hops, n.heard, n.cell = parent, path_etx, hops, tick, cell
+        n.parent, n.path_etx, n.hops, n.heard = parent, path_etx, hops, tick
 
     def on_link_result(self, nbr: int, attempts: int, ok: bool) -> None:
         """Feed the outcome of one frame sent to ``nbr`` (``attempts`` transmissions)."""

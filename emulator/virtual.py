@@ -181,8 +181,7 @@ class VirtualMesh:
                 tx: Transmission = item  # type: ignore[assignment]
                 for r, cell, data in self.medium.finish(tx):
                     fw = nodes.get(r)
-                    if fw is not None:
-                        fw.receive(data, tick, cell)
+                    if fw is not None and fw.receive(data, tick, cell):
                         self._run(r)
             else:
                 item()  # type: ignore[operator]

@@ -49,6 +49,7 @@ from cellbridge.protocol import (
     encode,
 )
 from cellbridge.emulator.rawframe import Raw, build, own, parse, to_serial
+from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
 from cellbridge.emulator.commands import Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
 from cellbridge.emulator.reporting import Reporter, ReportingMode
@@ -61,6 +62,9 @@ _MS = 50_000  # cycles per millisecond at 50 MHz
 _FOR_ALL = frozenset({int(FrameType.BEACON), int(FrameType.CMD)})  # frames every bridge reads
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
 _BUNDLE = int(FrameType.BUNDLE)
+_FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
+# header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes)
+_DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3
 
 
 @dataclass(frozen=True)
@@ -74,7 +78,7 @@ class FirmwareConfig:
     side: float = 0.040
     clock_hz: int = 50_000_000
     settings: Settings = field(default_factory=Settings)
-    batch_max: int = 12  #: samples per DATA frame at most (12 fit one frame with 64-bit cycles)
+    batch_max: int = 16  #: samples per DATA frame at most (also bounded by the frame size)
     max_latency: int = 50 * _MS  #: a sample waits at most this long for company in a DATA frame
     queue_len: int = 64
     max_retries: int = 5
@@ -103,6 +107,9 @@ class Firmware:
         self.resets = resets
         self.serial_out = bytearray()
         self._serial_in = StreamDecoder()
+        # Commands seen survive a RESET command (kept in memory a reset does not clear), so
+        # the flood's repeated copies of that RESET do not reset the bridge again.
+        self.seen_cmd = DuplicateFilter()
         self._power_on(boot_tick)
 
     # -- state ----------------------------------------------------------------------
@@ -119,18 +126,21 @@ class Firmware:
         self.trickle.start(tick)
         self.reporter = Reporter(self.settings.reporting, _MS)
         self.seen = DuplicateFilter()  # upward frames: (origin, seq)
-        self.seen_cmd = DuplicateFilter()  # flooded commands
         self.batch: list[Sample] = []
+        self.batch_bytes = 0
         self.flush_at = -1
         self.sample_start = tick + self.rng.randrange(self.settings.period_cycles(c.clock_hz))
         self.sample_ready = self.sample_start + self.settings.measure_cycles()
         self.status_at = tick + c.status_period
         self.hello_at = tick if c.gateway else -1  # a relay says hello once it has a route
         self.reset_at = -1
+        self.floods: list[tuple[int, bytes]] = []  # (when, frame) command copies still to send
 
     @property
     def next_tick(self) -> int:
         t = min(self.sample_ready, self.trickle.next_tick, self.status_at)
+        if self.floods and self.floods[0][0] < t:
+            t = self.floods[0][0]
         for x in (self.flush_at, self.hello_at, self.reset_at):
             if x >= 0 and x < t:
                 t = x
@@ -187,7 +197,10 @@ class Firmware:
         if f.flags & _ACK:
             self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_seq()), self.me, src),
                                 self.config.cells, tick)
-        if self.router.inconsistent(src):
+        if self.router.child_sent(src):
+            self.counters["loops_broken"] += 1
+            self.trickle.reset(tick)
+        elif self.router.inconsistent(src):
             self.counters["inconsistencies"] += 1
             self.trickle.reset(tick)
         if f.type == _BUNDLE:
@@ -224,6 +237,7 @@ class Firmware:
     def _beacon(self, f: Frame, tick: int) -> None:
         b: Beacon = f.payload  # type: ignore[assignment]
         self.router.on_beacon(f.src, b.parent, b.path_etx, b.hops, tick)
+        self.radio.contenders = len(self.router.table)
         if b.parent == self.me and b.path_etx < INFINITE and b.path_etx <= self.router.path_etx:
             self.trickle.reset(tick)  # a child thinks it is closer than us: our cost is stale
         else:
@@ -248,8 +262,9 @@ class Firmware:
     # -- upward traffic -------------------------------------------------------------
     def _upward(self, f: Raw, tick: int) -> None:
         if f.origin == self.me:
-            self.counters["loop_drops"] += 1
-            return
+            # our own frame came back (a parent change raced with a neighbour's): send it on
+            # once more; the duplicate filter stops a second return
+            self.counters["own_returned"] += 1
         if self.seen.is_duplicate(f.origin, f.seq):
             self.counters["duplicates"] += 1
             return
@@ -285,7 +300,11 @@ class Firmware:
         s = Sample(0, start, v1, v2, int(flags))
         self.counters["samples"] += 1
         if self.reporter.wants(s):
+            size = len(msgpack.packb(s))  # a NamedTuple packs as the wire's array
+            if self.batch and _DATA_OVERHEAD + self.batch_bytes + size > MAX_FRAME:
+                self._flush()
             self.batch.append(s)
+            self.batch_bytes += size
             if self.flush_at < 0:
                 self.flush_at = self.sample_ready + self.config.max_latency
             if len(self.batch) >= self.config.batch_max:
@@ -301,6 +320,7 @@ class Firmware:
             self.counters["data_frames"] += 1
             self.counters["samples_sent"] += len(self.batch)
             self.batch = []
+            self.batch_bytes = 0
         self.flush_at = -1
 
     # -- commands -------------------------------------------------------------------
@@ -308,8 +328,13 @@ class Firmware:
         if self.seen_cmd.is_duplicate(f.origin, f.seq):
             return
         target = f.dst
-        if target != self.me:  # controlled flooding: every bridge repeats a new command once
-            self.link.broadcast(encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost)))
+        if target != self.me:
+            # controlled flooding: every bridge repeats a new command a few times at random
+            # moments (a broadcast has no ACK; one lost copy must not cut a branch off)
+            data = encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost))
+            for lo, hi in _FLOOD_REPEATS:
+                self.floods.append((tick + lo + self.rng.randrange(hi - lo), data))
+            self.floods.sort(key=lambda x: x[0])
             self.counters["flooded"] += 1
         if target in (self.me, ADDR_BROADCAST):
             cmd: Command = f.payload  # type: ignore[assignment]
@@ -339,6 +364,8 @@ class Firmware:
             self._sample()
         if 0 <= self.flush_at <= tick:
             self._flush()
+        while self.floods and self.floods[0][0] <= tick:
+            self.link.broadcast(self.floods.pop(0)[1])
         if self.trickle.next_tick <= tick:
             if self.trickle.advance(tick):
                 self.router.expire(tick)

@@ -67,7 +67,7 @@ class LinkLayer:
         return True
 
     def broadcast(self, data: bytes) -> None:
-        if len(self.broadcasts) >= 8:
+        if len(self.broadcasts) >= 16:
             self.counters["broadcast_drops"] += 1
             return
         self.broadcasts.append(data)

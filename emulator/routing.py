@@ -5,7 +5,8 @@ parent, path cost and hops) and from its own link-layer results (attempts per
 delivered frame give the link's ETX). Its path cost is the best neighbour's path
 cost plus the link to it; it changes parent only when another one is better by
 ``hysteresis``, so routes do not flap on noise. Loops are avoided three ways: a
-neighbour whose beacon names us as its parent is never chosen (two-bridge loops),
+neighbour whose beacon names us as its parent, or that just sent us a frame to
+forward, is never chosen (two-bridge loops),
 a frame that arrives from a neighbour that advertises a cost no higher than ours
 is an inconsistency that resets the beacon timer so the stale cost is corrected
 fast, and frames that travelled more than ``max_hops`` are dropped (counted).
@@ -158,6 +159,17 @@ class Router:
             self.parent_changes += 1
             return True
         return abs(self.path_etx - old_cost) > self.hysteresis
+
+    def child_sent(self, sender: int) -> bool:
+        """``sender`` forwarded a frame to us, so its parent is us (datapath validation).
+        True when it was our parent: a two-bridge loop, now broken by choosing again."""
+        n = self.table.get(sender)
+        if n is not None:
+            n.parent = self.me
+        if sender == self.parent:
+            self.select()
+            return True
+        return False
 
     def inconsistent(self, sender: int) -> bool:
         """A frame to forward came from ``sender``: is its advertised cost no higher than ours?"""

@@ -10,11 +10,14 @@ The bridge has one transmitter (half duplex: it hears nothing while it sends) an
 receiver per cell. Carrier is detected ``cca_bits`` after another transmission starts,
 so two bridges that start within that window collide, as on a real shared wire.
 
-Access rule (as on 802.15.4-like radios): a data frame may start only after the cell
-has been idle for DIFS plus a random number of backoff slots drawn from a contention
-window that doubles after each busy sense. A link acknowledgement goes out after the
-shorter SIFS with no backoff, so nobody else can grab the cell between a frame and its
-acknowledgement.
+Access rule (CSMA/CA as in 802.11's distributed coordination): a data frame draws a
+backoff of random slots from a contention window that doubles with each retransmission
+and starts in proportion to the number of bridges sharing our cells (so a crowded cell
+does not collide itself to a standstill, and a quiet one wastes no idle slots);
+the backoff counts down only while the cell has been idle for DIFS, and a transmission
+heard meanwhile freezes it (the slots already idle are kept). A link acknowledgement
+goes out after the shorter SIFS with no backoff, so nobody else can grab the cell
+between a frame and its acknowledgement.
 """
 
 from __future__ import annotations
@@ -30,9 +33,10 @@ class TransceiverConfig:
     bit_cycles: int = 50  #: 1 Mbit/s at 50 MHz
     sifs_bits: int = 12  #: turnaround before an acknowledgement
     difs_bits: int = 40  #: idle time before contention starts
-    slot_bits: int = 20  #: one backoff slot
-    cw_min: int = 4  #: contention window (slots), first attempt
-    cw_max: int = 128
+    slot_bits: int = 8  #: one backoff slot
+    cw_min: int = 32  #: contention window (slots), first attempt
+    cw_max: int = 4096
+    slots_per_contender: int = 32  #: the window grows with the bridges sharing our cells
     cca_bits: int = 4  #: carrier detection delay
 
 
@@ -48,10 +52,13 @@ class Transceiver:
         self._cells: tuple[int, ...] = ()
         self._urgent_cells: tuple[int, ...] = ()
         self._at = 0  #: planned start of the pending frame
+        self._t0 = 0  #: when the backoff countdown began (cell idle for DIFS)
+        self._slots = 0  #: backoff slots still to count down
         self._cw = config.cw_min
         self._urgent: bytes | None = None
         self._urgent_at = 0
         self.cca_busy = 0  #: planned starts that found the cell busy and backed off again
+        self.contenders = 0  #: bridges heard on our cells (set by the firmware from its neighbours)
         self.transmissions = 0
         self.bits_sent = 0
 
@@ -71,7 +78,10 @@ class Transceiver:
             raise RuntimeError("transceiver already holds a frame")
         self._frame = frame
         self._cells = cells
-        self._cw = min(self.config.cw_min << min(attempt, 8), self.config.cw_max)
+        c = self.config
+        base = max(c.cw_min, c.slots_per_contender * self.contenders)
+        self._cw = min(base << min(attempt, 8), c.cw_max)
+        self._slots = self._rng.randrange(self._cw)
         self._plan(tick)
 
     def send_ack(self, frame: bytes, cells: tuple[int, ...], tick: int) -> None:
@@ -82,12 +92,21 @@ class Transceiver:
 
     def carrier(self, cell: int, start: int, until: int) -> None:
         """The medium reports a transmission on ``cell`` over [start, until)."""
-        seen = start + self.config.cca_bits * self.config.bit_cycles
+        c = self.config
+        seen = start + c.cca_bits * c.bit_cycles
         old = self._busy.get(cell)
         if old is None or old[1] < seen:
             self._busy[cell] = (seen, until)
         elif until > old[1]:
             self._busy[cell] = (old[0], until)
+        if self._frame is not None and cell in self._cells and seen <= self._at:
+            # freeze the countdown: slots idle before the carrier are kept, the rest resume
+            # DIFS after it ends
+            slot = c.slot_bits * c.bit_cycles
+            if seen > self._t0:
+                self._slots = max(0, self._slots - (seen - self._t0) // slot)
+            self._t0 = max(self._t0, until + c.difs_bits * c.bit_cycles)
+            self._at = self._t0 + self._slots * slot
 
     def busy_until(self, cells: tuple[int, ...]) -> int:
         """When carrier on ``cells`` (or our own transmission) ends, as far as known."""
@@ -99,18 +118,20 @@ class Transceiver:
                 end = b[1]
         return end
 
-    def _sensed(self, tick: int) -> bool:
+    def _last_busy(self, tick: int) -> tuple[int, int]:
+        """(start, end) of the latest carrier sensed by ``tick`` on our cells (or own sending)."""
+        best = (self.tx_until, self.tx_until)
         busy = self._busy
         for c in self._cells:
             b = busy.get(c)
-            if b is not None and b[0] <= tick < b[1]:
-                return True
-        return False
+            if b is not None and b[0] <= tick and b[1] > best[1]:
+                best = b
+        return best
 
     def _plan(self, tick: int) -> None:
         c = self.config
-        start = max(tick, self.busy_until(self._cells) + c.difs_bits * c.bit_cycles)
-        self._at = start + self._rng.randrange(self._cw) * c.slot_bits * c.bit_cycles
+        self._t0 = max(tick, self._last_busy(tick)[1] + c.difs_bits * c.bit_cycles)
+        self._at = self._t0 + self._slots * c.slot_bits * c.bit_cycles
 
     @property
     def next_tick(self) -> int | None:
@@ -130,10 +151,10 @@ class Transceiver:
             return self._start(out, self._urgent_cells, tick)
         if self._frame is None or tick < self._at:
             return None
-        if tick < self.tx_until or self._sensed(tick):
+        start, end = self._last_busy(tick)
+        if start <= tick < end:  # reported late (a real-time medium): defer, keep the slots
             self.cca_busy += 1
-            self._cw = min(self._cw * 2, self.config.cw_max)
-            self._plan(max(tick, self.tx_until))
+            self._plan(end)
             return None
         out, self._frame = self._frame, None
         return self._start(out, self._cells, tick)

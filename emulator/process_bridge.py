@@ -5,7 +5,9 @@ The chip's cycle counter is the host's monotonic clock at 50 MHz. The loop sleep
 carrier reports and deliveries, the world's contacts, the host's bytes on a gateway's
 serial line); nothing busy-waits. A gate whose sample is computed more than one gate
 late counts as ``late_gates``, the measure of whether a machine holds the mesh in
-real time. On SIGTERM/SIGINT it prints its counters as JSON on stderr and exits.
+real time. SIGUSR1 marks a moment (``late_gates_since_mark`` and
+``samples_since_mark`` count from it: a benchmark marks the end of start-up). On
+SIGTERM/SIGINT it prints its counters as JSON on stderr and exits.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import sys
 
 import zmq
@@ -49,6 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    mark = {"late": 0, "samples": 0, "set": False, "asked": False}
+    signal.signal(signal.SIGUSR1, lambda *_: mark.update(asked=True))  # before anything slow
     try:
         mesh = load_mesh(args.mesh)
         br = mesh.bridge(args.id)
@@ -101,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
             wait_ms = max(0, math.ceil((fw.next_tick - now_tick()) * 1000 / CLOCK_HZ))  # never spin
             ready = dict(poller.poll(min(wait_ms, 200)))
             tick = now_tick()
+            if mark["asked"]:
+                mark.update(late=late, samples=fw.counters["samples"], set=True, asked=False)
             if medium in ready:
                 while True:
                     try:
@@ -135,6 +142,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         counters = fw.counters_snapshot()
         counters["late_gates"] = late
+        if mark["set"]:
+            counters["late_gates_since_mark"] = late - mark["late"]
+            counters["samples_since_mark"] = fw.counters["samples"] - mark["samples"]
         if port is not None:
             counters.update(port.counters)
             port.close()

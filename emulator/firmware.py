@@ -18,7 +18,7 @@ bytes and the element's capacitance (``sense(tick) -> (C1, C2)`` in farads).
 from __future__ import annotations
 
 import random
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -62,6 +62,7 @@ _MS = 50_000  # cycles per millisecond at 50 MHz
 _FOR_ALL = frozenset({int(FrameType.BEACON), int(FrameType.CMD)})  # frames every bridge reads
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
 _BUNDLE = int(FrameType.BUNDLE)
+_HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
 # header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes)
 _DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3
@@ -126,6 +127,7 @@ class Firmware:
         self.trickle.start(tick)
         self.reporter = Reporter(self.settings.reporting, _MS)
         self.seen = DuplicateFilter()  # upward frames: (origin, seq)
+        self.hops_seen: OrderedDict[tuple[int, int], int] = OrderedDict()  # (origin, seq) -> hops
         self.batch: list[Sample] = []
         self.batch_bytes = 0
         self.flush_at = -1
@@ -240,6 +242,8 @@ class Firmware:
         self.radio.contenders = len(self.router.table)
         if b.parent == self.me and b.path_etx < INFINITE and b.path_etx <= self.router.path_etx:
             self.trickle.reset(tick)  # a child thinks it is closer than us: our cost is stale
+        elif b.path_etx >= INFINITE and self.router.has_route:
+            self.trickle.reset(tick)  # a neighbour without a route asks for fresh beacons
         else:
             self.trickle.heard_consistent()
         self._reroute(tick)
@@ -265,9 +269,20 @@ class Firmware:
             # our own frame came back (a parent change raced with a neighbour's): send it on
             # once more; the duplicate filter stops a second return
             self.counters["own_returned"] += 1
+        key = (f.origin, f.seq)
         if self.seen.is_duplicate(f.origin, f.seq):
             self.counters["duplicates"] += 1
+            first = self.hops_seen.get(key)
+            if first is not None and f.hops > first and not self.config.gateway:
+                # the same frame again with more hops: it went round a loop through us
+                self.counters["loops_detected"] += 1
+                self.router.loop_detected()
+                self.trickle.reset(tick)
+                self._reroute(tick)
             return
+        self.hops_seen[key] = f.hops
+        if len(self.hops_seen) > _HOPS_MEMORY:
+            self.hops_seen.popitem(last=False)
         if f.hops + 1 > self.config.max_hops:
             self.counters["loop_drops"] += 1
             return
@@ -367,7 +382,7 @@ class Firmware:
         while self.floods and self.floods[0][0] <= tick:
             self.link.broadcast(self.floods.pop(0)[1])
         if self.trickle.next_tick <= tick:
-            if self.trickle.advance(tick):
+            if self.trickle.advance(tick, force=not self.router.has_route):
                 self.router.expire(tick)
                 self._reroute(tick)
                 self._send_beacon(tick)

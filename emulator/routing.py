@@ -9,7 +9,9 @@ neighbour whose beacon names us as its parent, or that just sent us a frame to
 forward, is never chosen (two-bridge loops),
 a frame that arrives from a neighbour that advertises a cost no higher than ours
 is an inconsistency that resets the beacon timer so the stale cost is corrected
-fast, and frames that travelled more than ``max_hops`` are dropped (counted).
+fast, a frame that comes back with more hops than it had (the same origin and sequence
+number: it went round a loop through us) makes us drop our parent and choose again,
+and frames that travelled more than ``max_hops`` are dropped (counted).
 """
 
 from __future__ import annotations
@@ -54,11 +56,11 @@ class Trickle:
     def next_tick(self) -> int:
         return min(self.fire_at, self.end_at) if self.fire_at >= 0 else self.end_at
 
-    def advance(self, tick: int) -> bool:
-        """True when a beacon should be sent now."""
+    def advance(self, tick: int, force: bool = False) -> bool:
+        """True when a beacon should be sent now (``force``: whatever was heard)."""
         fire = False
         if 0 <= self.fire_at <= tick:
-            fire = self.counter < self.k
+            fire = force or self.counter < self.k
             self.fire_at = -1
         if self.end_at <= tick:
             self.interval = min(self.interval * 2, self.imax)
@@ -159,6 +161,13 @@ class Router:
             self.parent_changes += 1
             return True
         return abs(self.path_etx - old_cost) > self.hysteresis
+
+    def loop_detected(self) -> None:
+        """A frame came back with more hops: our parent's route leads through us. Drop
+        the parent until it is heard again (with fresh costs) and choose again."""
+        if self.parent is not None and self.parent in self.table:
+            del self.table[self.parent]
+            self.evictions += 1
 
     def child_sent(self, sender: int) -> bool:
         """``sender`` forwarded a frame to us, so its parent is us (datapath validation).

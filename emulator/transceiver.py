@@ -151,6 +151,9 @@ class Transceiver:
             return self._start(out, self._urgent_cells, tick)
         if self._frame is None or tick < self._at:
             return None
+        if tick < self.tx_until:  # our own acknowledgement went out meanwhile
+            self._plan(self.tx_until)
+            return None
         start, end = self._last_busy(tick)
         if start <= tick < end:  # reported late (a real-time medium): defer, keep the slots
             self.cca_busy += 1

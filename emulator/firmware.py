@@ -162,7 +162,8 @@ class Firmware:
         out.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
                    bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
                    neighbour_evictions=self.router.evictions, suppressed=self.reporter.suppressed,
-                   resets=self.resets, queue_len=len(self.link.queue))
+                   resets=self.resets, queue_len=len(self.link.queue),
+                   has_route=int(self.router.has_route))
         return out
 
     # -- inputs ---------------------------------------------------------------------

@@ -314,16 +314,20 @@ def parse_mesh(text: str, source: str = "mesh") -> Mesh:
     return mesh_from_mapping(data, source)
 
 
-def load_mesh(path: str) -> Mesh:
-    """Read and validate a mesh file; every problem is a :class:`MeshError` naming the file."""
+def read_text(path: str, what: str, error: type[ValueError]) -> str:
+    """A user's file as text; a missing or unreadable file is ``error`` naming it."""
     try:
         with open(path, encoding="utf-8") as fh:
-            text = fh.read()
+            return fh.read()
     except OSError as exc:
-        raise MeshError(f"{path}: cannot read mesh file: {exc.strerror}") from None
+        raise error(f"{path}: cannot read {what}: {exc.strerror}") from None
     except UnicodeDecodeError:
-        raise MeshError(f"{path}: mesh file is not UTF-8 text") from None
-    return parse_mesh(text, path)
+        raise error(f"{path}: {what} is not UTF-8 text") from None
+
+
+def load_mesh(path: str) -> Mesh:
+    """Read and validate a mesh file; every problem is a :class:`MeshError` naming the file."""
+    return parse_mesh(read_text(path, "mesh file", MeshError), path)
 
 
 def _num(v: float) -> str:

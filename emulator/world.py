@@ -26,7 +26,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from cellbridge.emulator.mesh import Mesh
+from cellbridge.emulator.mesh import Mesh, read_text
 from cellbridge.tactile import ElementParams, SkinLayout, skin_response
 
 _CONTACT_KEYS = {"start", "duration", "position", "force", "diameter", "velocity"}
@@ -98,11 +98,7 @@ def parse_scenario(text: str, source: str = "scenario") -> list[Contact]:
 
 
 def load_scenario(path: str) -> list[Contact]:
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return parse_scenario(fh.read(), path)
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read scenario: {exc.strerror}") from None
+    return parse_scenario(read_text(path, "scenario", ScenarioError), path)
 
 
 class World:

@@ -86,7 +86,8 @@ def test_bridges_cut_off_by_a_dead_relay_are_reported() -> None:
     vm.kill(4, at=1.0)
     r = vm.run(4.0)
     assert r.cut_off == [5, 6, 7, 8]
-    assert all(r.counters[b]["route_lost"] >= 1 for b in (5, 6, 7, 8))
+    assert all(r.counters[b]["route_lost"] >= 1 and r.counters[b]["has_route"] == 0 for b in (5, 6, 7, 8))
+    assert all(r.counters[b]["has_route"] == 1 for b in (1, 2, 3))
     assert_complete(r, [1, 2, 3], 0.5, 3.7)
     assert all(missing(r, b, 2.0, 3.7) == 170 for b in (5, 6, 7, 8))  # nothing after the cut
     assert set(mesh.ids) - mesh.reachable(dead=frozenset({4})) == {4, 5, 6, 7, 8}

@@ -21,6 +21,7 @@ from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, Frame, FrameType, StreamDecoder, encode_stream
 
 CLOCK_HZ = 50_000_000
+_STATES = frozenset({"has_route", "queue_len", "resets"})  # counters that are states, not totals
 _FINISH, _FAULT, _WAKE = 0, 1, 2
 
 
@@ -191,9 +192,11 @@ class VirtualMesh:
     def result(self) -> MeshResult:
         counters = {}
         for b in self.mesh.ids:
-            c = Counter(self._retired[b])
-            if b in self.nodes:
-                c.update(self.nodes[b].counters_snapshot())
+            # events add up over a bridge's lives; states are those of the live one (or none)
+            c = Counter({k: v for k, v in self._retired[b].items() if k not in _STATES})
+            c.update(self.nodes[b].counters_snapshot() if b in self.nodes else
+                     {"has_route": 0, "queue_len": 0, "resets": self.resets[b]})
+            c["alive"] = int(b in self.nodes)
             counters[b] = dict(c)
         parents = {b: fw.router.parent for b, fw in self.nodes.items()}
         cut_off = sorted(b for b, fw in self.nodes.items() if not fw.router.has_route)

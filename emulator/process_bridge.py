@@ -75,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
 
     world = World(mesh, bridges=[br.id])
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
-                                 settings=Settings(rate_hz=args.rate), ack_slack=ACK_SLACK),
+                                 settings=Settings(rate_hz=args.rate), ack_slack=ACK_SLACK,
+                                 lazy_sampling=False),  # real gates, so late ones can be counted
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
     port = None
     if br.gateway:

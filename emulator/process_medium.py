@@ -23,6 +23,7 @@ import zmq
 
 from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import MeshError, load_mesh
+from cellbridge.emulator.rawframe import addressed_to
 from cellbridge.emulator.realtime import (
     CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick,
 )
@@ -82,7 +83,8 @@ def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
             while pending and pending[0][0] <= now:
                 tx = heapq.heappop(pending)[2]
                 for r, cell, data in medium.finish(tx):
-                    sock.send_multipart([str(r).encode(), b"rx", _CELL.pack(cell), data])
+                    if addressed_to(data, r):  # a bridge drops others' unicasts anyway: save the message
+                        sock.send_multipart([str(r).encode(), b"rx", _CELL.pack(cell), data])
     finally:
         sock.close()
 

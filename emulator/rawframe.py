@@ -33,6 +33,15 @@ class Raw(NamedTuple):
     body: bytes  #: everything between header and CRC (fragment fields and payload)
 
 
+_FOR_ALL = frozenset({2, 5})  # BEACON and CMD: every bridge that hears them reads them
+
+
+def addressed_to(data: bytes, bridge: int) -> bool:
+    """Whether ``bridge`` should read a frame it hears, from the header bytes alone (the
+    address filter of a radio: type at byte 2, link destination at bytes 5-6)."""
+    return len(data) <= 7 or data[2] in _FOR_ALL or (data[5] << 8 | data[6]) == bridge
+
+
 def parse(data: bytes) -> tuple[int, int, Raw] | None:
     """(src, dst, frame) of wire bytes, or None when the CRC, length or version is wrong."""
     n = len(data)

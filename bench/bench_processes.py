@@ -46,6 +46,17 @@ def bridge_pids(mesh_path: str) -> list[int]:
     return out
 
 
+def catches_usr1(pid: int) -> bool:
+    """Whether the process has installed its SIGUSR1 handler (else the signal would kill it)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("SigCgt:"):
+                return bool(int(line.split()[1], 16) & (1 << (signal.SIGUSR1 - 1)))
+    except OSError:
+        pass
+    return False
+
+
 def run_one(n_side: int, seconds: float, tmp: str) -> tuple[int, int, int, float]:
     mesh = meshgen.grid(n_side, n_side)
     path = os.path.join(tmp, f"grid{n_side}.toml")
@@ -56,9 +67,12 @@ def run_one(n_side: int, seconds: float, tmp: str) -> tuple[int, int, int, float
     n = n_side * n_side
     try:
         deadline = time.monotonic() + 60 + 2 * n
-        while len(bridge_pids(path)) < n and time.monotonic() < deadline:
+        while time.monotonic() < deadline:
+            pids = bridge_pids(path)
+            if len(pids) == n and all(catches_usr1(q) for q in pids):
+                break
             time.sleep(0.5)
-        time.sleep(3.0 + 0.1 * n)  # imports and boot of the last ones
+        time.sleep(2.0)  # the last ones finish booting
         t0 = time.monotonic()
         for pid in bridge_pids(path):
             os.kill(pid, signal.SIGUSR1)

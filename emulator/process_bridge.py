@@ -26,6 +26,7 @@ from cellbridge.emulator.gateway_port import GatewayPort, open_pty
 from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.process_medium import _CELL, _CS, pack_cells
 from cellbridge.emulator.process_world import decode_contacts
+from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.realtime import (
     CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick,
 )
@@ -76,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
     world = World(mesh, bridges=[br.id])
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
                                  settings=Settings(rate_hz=args.rate), ack_slack=ACK_SLACK,
+                                 transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate),
                                  lazy_sampling=False),  # real gates, so late ones can be counted
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
     port = None

@@ -17,6 +17,7 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import Mesh
+from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, Frame, FrameType, StreamDecoder, encode_stream
 
@@ -90,6 +91,7 @@ class VirtualMesh:
     def _config(self, b: int) -> FirmwareConfig:
         br = self.mesh.bridge(b)
         return FirmwareConfig(b, br.cells, br.gateway, br.position, self.mesh.side, settings=self.settings,
+                              transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // self.mesh.bitrate),
                               **self._fw_kw)  # type: ignore[arg-type]
 
     def _boot(self, b: int, tick: int) -> None:

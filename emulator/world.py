@@ -131,12 +131,6 @@ class World:
             self.contacts = list(contacts)
             self._key = None
 
-    def prune(self, t: float) -> None:
-        """Forget contacts that ended before ``t`` (live sessions run for days)."""
-        keep = [c for c in self.contacts if c.start + c.duration > t]
-        if len(keep) != len(self.contacts):
-            self.set_contacts(keep)
-
     def capacitances(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(C1, C2) of every element at time ``t`` (s), parasitics included."""
         active = tuple(i for i, c in enumerate(self.contacts) if c.active(t))

@@ -16,7 +16,7 @@ import serial
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
-from cellbridge.protocol import Frame, FrameType, StreamDecoder
+from cellbridge.protocol import Command, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
 
 PY = [sys.executable, "-m", "cellbridge"]
 
@@ -116,6 +116,11 @@ def test_mesh_up_pty_press_kill_and_clean_stop(skin: Skin) -> None:
         mean = {b: sum(s.c1 for s in v) / len(v) for b, v in pressed.items()}
         assert mean[4] < rest[4] - 200
         assert all(abs(mean[b] - rest[b]) < 20 for b in (1, 2, 3))
+
+        # a command written to the pty reaches bridge 4 and its reply comes back
+        pty.write(encode_stream(Frame(0, 4, 0, 500, Command(77, Op.PING), flags=int(Flags.ACK_REQUEST))))
+        answers = [f for f in skin.read(pty, 2.0) if f.type is FrameType.CMD_REPLY]
+        assert [(f.origin, f.payload.token) for f in answers] == [(4, 77)]
 
         # the same stream on the TCP port, as pyserial's socket:// URL
         with serial.serial_for_url(url, timeout=0.1) as tcp:

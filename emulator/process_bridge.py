@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     medium.setsockopt(zmq.IDENTITY, str(br.id).encode())
     medium.setsockopt(zmq.LINGER, 0)
     medium.setsockopt(zmq.SNDHWM, 1000)
+    medium.setsockopt(zmq.IMMEDIATE, 1)  # no medium: a transmission is lost now, not replayed later
     medium.connect(ep.medium)
     stimuli = ctx.socket(zmq.SUB)
     stimuli.setsockopt(zmq.LINGER, 0)

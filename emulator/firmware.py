@@ -52,7 +52,7 @@ from cellbridge.emulator.rawframe import Raw, addressed_to, build, own, parse, t
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
 from cellbridge.emulator.commands import Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
-from cellbridge.emulator.reporting import Reporter, ReportingMode
+from cellbridge.emulator.reporting import Reporter
 from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
 

@@ -73,9 +73,6 @@ class Medium:
     def revive(self, bridge: int) -> None:
         self.dead.discard(bridge)
 
-    def cells_of(self, bridge: int) -> tuple[int, ...]:
-        return self._cells_of[bridge]
-
     # -- transmissions --------------------------------------------------------------
     def airtime(self, n_bytes: int) -> int:
         from cellbridge.emulator.transceiver import PREAMBLE_BITS

@@ -11,7 +11,7 @@ from __future__ import annotations
 import heapq
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
@@ -19,7 +19,7 @@ from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import Mesh
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.world import Contact, World
-from cellbridge.protocol import Data, Frame, FrameType, StreamDecoder, encode_stream
+from cellbridge.protocol import Frame, FrameType, StreamDecoder, encode_stream
 
 CLOCK_HZ = 50_000_000
 _STATES = frozenset({"has_route", "queue_len", "resets"})  # counters that are states, not totals
@@ -207,8 +207,4 @@ class VirtualMesh:
                           {g: len(s) for g, s in self.serial.items()})
 
 
-def data_frames(frames: list[Frame]) -> list[Frame]:
-    return [f for f in frames if isinstance(f.payload, Data)]
-
-
-__all__ = ["MeshResult", "VirtualMesh", "data_frames", "default_chip", "replace"]
+__all__ = ["CLOCK_HZ", "MeshResult", "VirtualMesh", "default_chip"]

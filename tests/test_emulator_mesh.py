@@ -121,3 +121,30 @@ def test_cli_gen_and_check(tmp_path: Path) -> None:
     assert r.returncode == 2 and b"bridge 3 is on no cell" in r.stderr and b"Traceback" not in r.stderr
     r = subprocess.run([CLI, "mesh", "gen", "line", "4", "--gateways", "9"], capture_output=True, timeout=60)
     assert r.returncode == 2 and b"gateway 9" in r.stderr
+
+
+def test_cli_run_in_virtual_time_with_scenario_and_capture(tmp_path: Path) -> None:
+    import json
+
+    from cellbridge.protocol import FrameType, StreamDecoder
+
+    mesh = tmp_path / "line.toml"
+    mesh.write_text(mesh_to_toml(meshgen.line(3)))
+    scenario = tmp_path / "press.toml"
+    scenario.write_text("[[contact]]\nstart = 0.5\nduration = 0.4\nposition = [0.08, 0.0]\n"
+                        "force = 3.0\ndiameter = 0.02\n")
+    out = tmp_path / "cap"
+    r = subprocess.run([CLI, "mesh", "run", str(mesh), "--seconds", "1.5", "--scenario", str(scenario),
+                        "--capture", str(out)], capture_output=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert all(n > 100 for n in summary["samples_delivered"].values())
+    frames = StreamDecoder().feed((out / "gateway-1.bin").read_bytes())
+    c1 = {s.cycle: s.c1 for f in frames if f.type is FrameType.DATA and f.origin == 3 for s in f.payload.samples}
+    pressed = [v for cyc, v in c1.items() if 0.55e0 * 50e6 <= cyc < 0.85 * 50e6]
+    idle = [v for cyc, v in c1.items() if cyc < 0.45 * 50e6]
+    assert pressed and idle and max(pressed) < min(idle) - 100  # the press raised C1 of bridge 3
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[contact]]\nstart = 0\n")
+    r = subprocess.run([CLI, "mesh", "run", str(mesh), "--scenario", str(bad)], capture_output=True, timeout=60)
+    assert r.returncode == 2 and b"missing key" in r.stderr

@@ -31,7 +31,6 @@ from cellbridge.protocol import (
     Beacon,
     BridgeStatus,
     Command,
-    Data,
     DuplicateFilter,
     Flags,
     Frame,
@@ -39,20 +38,16 @@ from cellbridge.protocol import (
     Hello,
     LinkAck,
     Message,
-    Mode,
     Neighbour,
     ProtocolError,
-    Sample,
-    SampleFlags,
     StreamDecoder,
     decode,
     encode,
 )
 from cellbridge.emulator.rawframe import Raw, addressed_to, build, own, parse, to_serial
-from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
 from cellbridge.emulator.commands import Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
-from cellbridge.emulator.reporting import Reporter
+from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
 
@@ -63,9 +58,6 @@ _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LI
 _BUNDLE = int(FrameType.BUNDLE)
 _HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
-# header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes)
-_DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3
-_MAX_SAMPLE_BYTES = 1 + 3 + 9 + 5 + 5 + 2  # msgpack of [element, cycle, c1, c2, flags] at the widest
 
 
 @dataclass(frozen=True)
@@ -118,7 +110,6 @@ class Firmware:
     def _power_on(self, tick: int) -> None:
         c = self.config
         self.boot_tick = tick
-        self.settings = c.settings
         self.seq = self.rng.randrange(0x10000)  # a restart does not reuse recent numbers
         self.radio = Transceiver(self.rng, c.transceiver)
         self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries, ack_slack=c.ack_slack)
@@ -126,39 +117,22 @@ class Firmware:
                              neighbour_timeout=4 * c.trickle_imax)
         self.trickle = Trickle(self.rng, c.trickle_imin, c.trickle_imax)
         self.trickle.start(tick)
-        self.reporter = Reporter(self.settings.reporting, _MS)
         self.seen = DuplicateFilter()  # upward frames: (origin, seq)
         self.hops_seen: OrderedDict[tuple[int, int], int] = OrderedDict()  # (origin, seq) -> hops
-        self.batch: list[Sample] = []
-        self.batch_bytes = 0
-        self.flush_at = -1
-        self.sample_start = tick + self.rng.randrange(self.settings.period_cycles(c.clock_hz))
-        self.sample_ready = self.sample_start + self.settings.measure_cycles()
+        self.sampler = Sampler(c.settings, self.chip, self.sense,
+                               tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
+                               c.batch_max, c.max_latency, c.lazy_sampling, self.counters)
         self.status_at = tick + c.status_period
         self.hello_at = tick if c.gateway else -1  # a relay says hello once it has a route
         self.reset_at = -1
         self.floods: list[tuple[int, bytes]] = []  # (when, frame) command copies still to send
 
-    def _sampling_due(self) -> int:
-        """When sampling next needs the bridge's attention. Periodic reports change nothing
-        outside the bridge until a DATA frame is due (full, or ``max_latency`` old), so
-        with ``lazy_sampling`` the samples in between are computed then, all at once,
-        with the same cycles and values (a virtual-time speed-up, invisible on the cell)."""
-        if not (self.config.lazy_sampling and self.reporter.mode.periodic):
-            return self.sample_ready
-        room = max(1, min(self.config.batch_max - len(self.batch),
-                          (MAX_FRAME - _DATA_OVERHEAD - self.batch_bytes) // _MAX_SAMPLE_BYTES))
-        full = self.sample_ready + (room - 1) * self.settings.period_cycles(self.config.clock_hz)
-        if self.batch:
-            return min(full, self.flush_at)
-        return min(full, self.sample_ready + self.config.max_latency)
-
     @property
     def next_tick(self) -> int:
-        t = min(self._sampling_due(), self.trickle.next_tick, self.status_at)
+        t = min(self.sampler.next_tick, self.trickle.next_tick, self.status_at)
         if self.floods and self.floods[0][0] < t:
             t = self.floods[0][0]
-        for x in (self.flush_at, self.hello_at, self.reset_at):
+        for x in (self.hello_at, self.reset_at):
             if x >= 0 and x < t:
                 t = x
         lt = self.link.next_tick
@@ -176,7 +150,7 @@ class Firmware:
         out.update(self.link.counters)
         out.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
                    bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
-                   neighbour_evictions=self.router.evictions, suppressed=self.reporter.suppressed,
+                   neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed,
                    resets=self.resets, queue_len=len(self.link.queue),
                    has_route=int(self.router.has_route))
         return out
@@ -315,45 +289,6 @@ class Firmware:
         elif not self.link.enqueue(f):
             self.counters["queue_full"] += 1
 
-    # -- sampling -------------------------------------------------------------------
-    def _sample(self) -> None:
-        st = self.settings
-        start = self.sample_start
-        c1, c2 = self.sense(start)
-        if st.mode is Mode.COUNTER:
-            v1, o1 = self.chip.count(0, c1, start, st.gate_cycles)  # type: ignore[attr-defined]
-            v2, o2 = self.chip.count(1, c2, start + st.gate_cycles, st.gate_cycles)  # type: ignore[attr-defined]
-            flags = (SampleFlags.OVERFLOW_C1 if o1 else 0) | (SampleFlags.OVERFLOW_C2 if o2 else 0)
-        else:
-            v1, took = self.chip.convert(0, c1, start, st.oversampling)  # type: ignore[attr-defined]
-            v2, _ = self.chip.convert(1, c2, start + took, st.oversampling)  # type: ignore[attr-defined]
-            flags = 0
-        s = Sample(0, start, v1, v2, int(flags))
-        self.counters["samples"] += 1
-        if self.reporter.wants(s):
-            size = len(msgpack.packb(s))  # a NamedTuple packs as the wire's array
-            if self.batch and _DATA_OVERHEAD + self.batch_bytes + size > MAX_FRAME:
-                self._flush()
-            self.batch.append(s)
-            self.batch_bytes += size
-            if self.flush_at < 0:
-                self.flush_at = self.sample_ready + self.config.max_latency
-            if len(self.batch) >= self.config.batch_max:
-                self._flush()
-        period = st.period_cycles(self.config.clock_hz)
-        self.sample_start = start + period
-        self.sample_ready = self.sample_start + st.measure_cycles()
-
-    def _flush(self) -> None:
-        if self.batch:
-            st = self.settings
-            self._own(Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1))
-            self.counters["data_frames"] += 1
-            self.counters["samples_sent"] += len(self.batch)
-            self.batch = []
-            self.batch_bytes = 0
-        self.flush_at = -1
-
     # -- commands -------------------------------------------------------------------
     def _command(self, f: Frame, tick: int) -> None:
         if self.seen_cmd.is_duplicate(f.origin, f.seq):
@@ -370,31 +305,19 @@ class Firmware:
         if target in (self.me, ADDR_BROADCAST):
             cmd: Command = f.payload  # type: ignore[assignment]
             self.counters["commands"] += 1
-            reply, new = execute(cmd, self.settings, self.config.clock_hz, tick)
+            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick)
             self._own(reply)
             if new is not None:
-                self._apply(new, tick)
+                for data in self.sampler.apply(new, tick):
+                    self._own(data)
             if reply.op.name == "RESET" and reply.status == 0:
                 self.reset_at = tick + 50 * _MS  # time for the reply to leave
-
-    def _apply(self, new: Settings, tick: int) -> None:
-        old = self.settings
-        self.settings = new
-        if new.reporting != old.reporting or new.mode != old.mode:
-            self.reporter.set_mode(new.reporting, 1 << 16 if new.mode is Mode.COUNTER else 0)
-        if new.period_cycles(self.config.clock_hz) != old.period_cycles(self.config.clock_hz) or \
-                new.measure_cycles() != old.measure_cycles():
-            self._flush()
-            self.sample_start = max(tick, self.sample_start)
-            self.sample_ready = self.sample_start + new.measure_cycles()
 
     # -- time -----------------------------------------------------------------------
     def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
         """Run every timer due at ``tick``; the (bytes, cells) to transmit now, if any."""
-        while self.sample_ready <= tick:
-            self._sample()
-        if 0 <= self.flush_at <= tick:
-            self._flush()
+        for data in self.sampler.advance(tick):
+            self._own(data)
         while self.floods and self.floods[0][0] <= tick:
             self.link.broadcast(self.floods.pop(0)[1])
         if self.trickle.next_tick <= tick:

@@ -97,7 +97,6 @@ def run(args: argparse.Namespace) -> int:
     poller.register(stimuli, zmq.POLLIN)
     registered: set[int] = set()
     late = 0
-    gate = fw.settings.gate_cycles
     try:
         while not stop.stopped:
             if port is not None:
@@ -133,8 +132,9 @@ def run(args: argparse.Namespace) -> int:
                 data = port.read({k for k in ready if isinstance(k, int)})
                 if data:
                     fw.serial_in(data, tick)
-            if fw.sample_ready + gate < tick:
-                late += (tick - fw.sample_ready) // fw.settings.period_cycles(CLOCK_HZ) + 1
+            sampler = fw.sampler
+            if sampler.ready + sampler.settings.gate_cycles < tick:  # more than one gate late
+                late += (tick - sampler.ready) // sampler.settings.period_cycles(CLOCK_HZ) + 1
             out = fw.advance(tick)
             if out is not None:
                 try:

@@ -61,7 +61,7 @@ def run_one(n_side: int, seconds: float, tmp: str) -> tuple[int, int, int, float
     mesh = meshgen.grid(n_side, n_side)
     path = os.path.join(tmp, f"grid{n_side}.toml")
     Path(path).write_text(mesh_to_toml(mesh))
-    err = open(os.path.join(tmp, f"grid{n_side}.err"), "w+")
+    err = open(os.path.join(tmp, f"grid{n_side}.err"), "a+")
     p = subprocess.Popen([sys.executable, "-m", "cellbridge", "mesh", "up", path, "--base-port",
                           str(free_base_port())], stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
     n = n_side * n_side

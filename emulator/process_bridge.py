@@ -97,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     poller.register(stimuli, zmq.POLLIN)
     registered: set[int] = set()
     late = 0
+    wanting, told = False, 0.0  # contention state last reported to the medium, and when
     try:
         while not stop.stopped:
             if port is not None:
@@ -143,6 +144,13 @@ def run(args: argparse.Namespace) -> int:
                     fw.counters["medium_unreachable"] += 1
             if port is not None and fw.serial_out:
                 port.write(fw.take_serial())
+            want = not fw.radio.idle
+            if want != wanting or (want and tick - told > CLOCK_HZ):  # repeated: a medium may restart
+                try:
+                    medium.send_multipart([b"want", b"1" if want else b"0"], zmq.NOBLOCK)
+                    wanting, told = want, tick
+                except zmq.Again:
+                    pass
     finally:
         counters = fw.counters_snapshot()
         counters["late_gates"] = late
@@ -152,7 +160,9 @@ def run(args: argparse.Namespace) -> int:
         if port is not None:
             counters.update(port.counters)
             port.close()
-        print(json.dumps({"bridge": br.id, "counters": counters}), file=sys.stderr, flush=True)
+        # one write, so the lines of many bridges sharing a stderr never interleave
+        sys.stderr.write(json.dumps({"bridge": br.id, "counters": counters}) + "\n")
+        sys.stderr.flush()
         medium.close()
         stimuli.close()
     return 0

@@ -3,9 +3,14 @@
 A thin shell around :class:`~cellbridge.emulator.medium.Medium`: bridges connect a
 DEALER socket (identity = bridge id) to this ROUTER. Messages, all multipart:
 
-* bridge → medium: ``[b"tx", cells, frame]`` (cells: u32 big-endian each),
+* bridge → medium: ``[b"tx", cells, frame]`` (cells: u32 big-endian each) and
+  ``[b"want", b"1" or b"0"]`` (whether its transceiver is contending for the cell),
 * medium → bridge: ``[b"cs", cell u32, start u64, end u64]`` (carrier on a cell) and
   ``[b"rx", cell u32, frame]`` (a delivery at the transmission's end).
+
+Carrier reports go only to bridges that are contending (one that starts contending
+first gets the carrier already on its cells): an idle transceiver ignores carrier,
+and these messages would otherwise cost every bridge more CPU than its firmware.
 
 Ticks are 50 MHz cycles of the host's monotonic clock (shared by every process on the
 host). ZeroMQ reconnects by itself, so a bridge or this process may die and return.
@@ -58,7 +63,10 @@ def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
     sock.setsockopt(zmq.ROUTER_HANDOVER, 1)  # a restarted bridge takes its identity back
     sock.bind(endpoint)
     known = {str(b).encode(): b for b in medium.mesh.ids}
+    cells_of = {b.id: b.cells for b in medium.mesh.bridges}
     pending: list[tuple[int, int, Transmission]] = []
+    busy: dict[int, tuple[int, int]] = {}  # cell -> (start, end) of its latest transmission
+    contending: set[int] = set()
     try:
         while not stop.stopped:
             timeout = 100
@@ -71,13 +79,26 @@ def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
                     except zmq.Again:
                         break
                     src = known.get(msg[0])
+                    tick = now_tick()
+                    if src is not None and len(msg) == 3 and msg[1] == b"want":
+                        if msg[2] == b"1":
+                            contending.add(src)
+                            for c in cells_of[src]:
+                                if c in busy and busy[c][1] > tick:
+                                    sock.send_multipart([msg[0], b"cs", _CS.pack(c, *busy[c])])
+                        else:
+                            contending.discard(src)
+                        continue
                     if src is None or len(msg) != 4 or msg[1] != b"tx":
                         medium.counters["bad_messages"] += 1
                         continue
-                    tick = now_tick()
                     tx = medium.start(src, msg[3], unpack_cells(msg[2]), tick)
+                    for c in unpack_cells(msg[2]):
+                        old = busy.get(c)
+                        busy[c] = (old[0], max(old[1], tx.end)) if old and old[1] > tick else (tick, tx.end)
                     for r, cell in tx.receivers:
-                        sock.send_multipart([str(r).encode(), b"cs", _CS.pack(cell, tick, tx.end)])
+                        if r in contending:
+                            sock.send_multipart([str(r).encode(), b"cs", _CS.pack(cell, tick, tx.end)])
                     heapq.heappush(pending, (tx.end, tx.id, tx))
             now = now_tick()
             while pending and pending[0][0] <= now:

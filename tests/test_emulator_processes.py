@@ -58,6 +58,15 @@ class Skin:
         self.mesh_path, self.base, self.proc, self.gateways = mesh_path, base, proc, gateways
         self.decoder = StreamDecoder()
 
+    def wait_for(self, port: serial.SerialBase, origins: set[int], seconds: float = 15.0) -> set[int]:
+        """Origins of DATA seen until all of ``origins`` were (or ``seconds`` passed): a
+        loaded machine may take seconds to start the processes."""
+        seen: set[int] = set()
+        end = time.monotonic() + seconds
+        while not origins <= seen and time.monotonic() < end:
+            seen |= set(data_by_origin(self.read(port, 0.5)))
+        return seen
+
     def read(self, port: serial.SerialBase, seconds: float) -> list[Frame]:
         frames: list[Frame] = []
         end = time.monotonic() + seconds
@@ -100,7 +109,8 @@ def data_by_origin(frames: list[Frame]) -> dict[int, list]:
 def test_mesh_up_pty_press_kill_and_clean_stop(skin: Skin) -> None:
     device, url = skin.gateways[1]
     with serial.Serial(device, 115200, timeout=0.1) as pty:
-        frames = skin.read(pty, 4.0)
+        skin.wait_for(pty, {1, 2, 3, 4})
+        frames = skin.read(pty, 3.0)
         data = data_by_origin(frames)
         assert set(data) == {1, 2, 3, 4}, {f.origin for f in frames}
         assert {f.origin for f in frames if f.type is FrameType.HELLO} <= {1, 2, 3, 4}
@@ -134,8 +144,7 @@ def test_mesh_up_pty_press_kill_and_clean_stop(skin: Skin) -> None:
         # kill one bridge process: the others keep delivering
         os.kill(_bridge_pid(skin, 2), signal.SIGKILL)
         skin.read(pty, 1.5)
-        after = data_by_origin(skin.read(pty, 2.5))
-        assert {1, 3, 4} <= set(after)
+        assert {1, 3, 4} <= skin.wait_for(pty, {1, 3, 4})
 
     skin.proc.send_signal(signal.SIGTERM)
     assert skin.proc.wait(15) == 0
@@ -154,7 +163,7 @@ def _bridge_pid(skin: Skin, bridge: int) -> int:
 def test_bridges_survive_the_medium_dying_and_reconnect(skin: Skin) -> None:
     device, _ = skin.gateways[1]
     with serial.Serial(device, timeout=0.1) as pty:
-        assert {2, 3, 4} <= set(data_by_origin(skin.read(pty, 3.0)))
+        assert {2, 3, 4} <= skin.wait_for(pty, {2, 3, 4})
         medium = [p for p in processes_mentioning(str(skin.mesh_path))
                   if b"medium" in Path(f"/proc/{p}/cmdline").read_bytes().split(b"\0")]
         assert len(medium) == 1
@@ -166,11 +175,7 @@ def test_bridges_survive_the_medium_dying_and_reconnect(skin: Skin) -> None:
         again = subprocess.Popen([*PY, "medium", "--mesh", str(skin.mesh_path), "--base-port", str(skin.base)],
                                  start_new_session=True)
         try:
-            back: set[int] = set()
-            end = time.monotonic() + 15.0  # a loaded machine may take seconds to start a process
-            while not {2, 3, 4} <= back and time.monotonic() < end:
-                back |= set(data_by_origin(skin.read(pty, 1.0)))
-            assert {2, 3, 4} <= back
+            assert {2, 3, 4} <= skin.wait_for(pty, {2, 3, 4})
         finally:
             again.send_signal(signal.SIGTERM)
             again.wait(10)

@@ -145,6 +145,7 @@ def test_mesh_up_pty_press_kill_and_clean_stop(skin: Skin) -> None:
         os.kill(_bridge_pid(skin, 2), signal.SIGKILL)
         skin.read(pty, 1.5)
         assert {1, 3, 4} <= skin.wait_for(pty, {1, 3, 4})
+        assert {1, 3, 4} <= set(data_by_origin(skin.read(pty, 2.0))) <= {1, 3, 4}  # and 2 is gone
 
     skin.proc.send_signal(signal.SIGTERM)
     assert skin.proc.wait(15) == 0

@@ -102,7 +102,7 @@ def per_element_rate() -> None:
 
 def reporting_modes() -> None:
     print("\n4. DATA frames per second at the gateway of a 4x4 skin, 100 Hz")
-    print(f"{'skin':<8} {'periodic':>9} {'event-based':>11} {'ratio':>6} {'presses seen':>12}")
+    print(f"{'skin':<8} {'periodic':>9} {'event-based':>11} {'ratio':>6} {'bridges heard':>13}")
     mesh = meshgen.grid(4, 4)
     moving = [Contact(0.0, 10.0, 0.0, 0.02 * k, 2.0, 0.02, vx=0.03, vy=0.0) for k in range(4)]
     for label, contacts in (("idle", []), ("pressed", moving)):
@@ -116,7 +116,7 @@ def reporting_modes() -> None:
             if not mode.periodic:
                 seen = len({f.origin for f in frames})
         print(f"{label:<8} {rates[True]:>9.1f} {rates[False]:>11.1f} {rates[False] / rates[True]:>6.1%} "
-              f"{seen:>12}")
+              f"{seen:>13}")
 
 
 def main() -> None:

@@ -5,7 +5,8 @@ The chip's cycle counter is the host's monotonic clock at 50 MHz. The loop sleep
 carrier reports and deliveries, the world's contacts, the host's bytes on a gateway's
 serial line); nothing busy-waits. A gate whose sample is computed more than one gate
 late counts as ``late_gates``, the measure of whether a machine holds the mesh in
-real time. SIGUSR1 marks a moment (``late_gates_since_mark`` and
+real time; one taken more than a whole sampling period late (the bridge fell behind)
+also counts as ``behind_gates``. SIGUSR1 marks a moment (``late_gates_since_mark`` and
 ``samples_since_mark`` count from it: a benchmark marks the end of start-up). On
 SIGTERM/SIGINT it prints its counters as JSON on stderr and exits.
 """
@@ -53,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    mark = {"late": 0, "samples": 0, "set": False, "asked": False}
+    mark = {"late": 0, "behind": 0, "samples": 0, "set": False, "asked": False}
     signal.signal(signal.SIGUSR1, lambda *_: mark.update(asked=True))  # before anything slow
     try:
         mesh = load_mesh(args.mesh)
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     poller.register(medium, zmq.POLLIN)
     poller.register(stimuli, zmq.POLLIN)
     registered: set[int] = set()
-    late = 0
+    late = behind = 0
     wanting, told = False, 0.0  # contention state last reported to the medium, and when
     try:
         while not stop.stopped:
@@ -111,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
             ready = dict(poller.poll(min(wait_ms, 200)))
             tick = now_tick()
             if mark["asked"]:
-                mark.update(late=late, samples=fw.counters["samples"], set=True, asked=False)
+                mark.update(late=late, behind=behind, samples=fw.counters["samples"], set=True, asked=False)
             if medium in ready:
                 while True:
                     try:
@@ -135,7 +136,9 @@ def run(args: argparse.Namespace) -> int:
                     fw.serial_in(data, tick)
             sampler = fw.sampler
             if sampler.ready + sampler.settings.gate_cycles < tick:  # more than one gate late
-                late += (tick - sampler.ready) // sampler.settings.period_cycles(CLOCK_HZ) + 1
+                period = sampler.settings.period_cycles(CLOCK_HZ)
+                late += (tick - sampler.ready) // period + 1
+                behind += (tick - sampler.ready) // period
             out = fw.advance(tick)
             if out is not None:
                 try:
@@ -154,8 +157,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         counters = fw.counters_snapshot()
         counters["late_gates"] = late
+        counters["behind_gates"] = behind
         if mark["set"]:
             counters["late_gates_since_mark"] = late - mark["late"]
+            counters["behind_gates_since_mark"] = behind - mark["behind"]
             counters["samples_since_mark"] = fw.counters["samples"] - mark["samples"]
         if port is not None:
             counters.update(port.counters)

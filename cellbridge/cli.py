@@ -19,6 +19,11 @@ from cellbridge._version import __version__
 SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("decode", "cellbridge.protocol.cli", "decode serial-line bytes (COBS frames) into readable frames"),
     ("plot", "cellbridge.tactile.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
+    ("mesh", "cellbridge.emulator.mesh_cli", "generate, check, run and start emulated skins (mesh files)"),
+    ("bridge", "cellbridge.emulator.process_bridge", "run one emulated bridge in real time (started by 'mesh up')"),
+    ("medium", "cellbridge.emulator.process_medium", "relay cell transmissions between bridge processes (ZeroMQ)"),
+    ("world", "cellbridge.emulator.process_world", "publish stimuli (contacts) to bridge processes"),
+    ("press", "cellbridge.emulator.process_press", "press on a running emulated skin"),
     ("sub", "cellbridge.daemon.subscribe", "print what the daemon publishes as JSON lines"),
     ("keys", "cellbridge.daemon.keys", "CURVE key pairs for binding the daemon beyond loopback"),
 ]

@@ -64,6 +64,7 @@ class Op(IntEnum):
     SET_OVERSAMPLING = 4  #: value: ADC conversions per reported sample
     PING = 5  #: value: ignored; the reply carries the bridge's cycle counter
     RESET = 6  #: value: ignored
+    SET_REPORTING = 7  #: value: 0 periodic; else threshold (bits 0-31) | heartbeat ms (bits 32-63)
 
 
 class Status(IntEnum):

@@ -1,0 +1,364 @@
+"""Bridge firmware, sans-I/O: fed the chip's events and a cycle time, returns transmissions.
+
+One :class:`Firmware` is one bridge. Its owner (the virtual-time mesh or a real-time
+process shell) calls:
+
+* ``receive(data, tick)`` with bytes the medium delivered from the cell,
+* ``carrier(until)`` when the medium reports another bridge transmitting,
+* ``serial_in(data, tick)`` (gateways) with bytes the host wrote to the serial line,
+* ``advance(tick)`` at or after ``next_tick``; it runs every timer due and returns the
+  bytes whose cell transmission starts at ``tick`` (or None),
+* ``take_serial()`` (gateways) for the bytes to write to the host.
+
+Everything the bridge does — sampling (C1 gate then C2 gate), reporting, routing,
+forwarding, commands — happens inside those calls; the owner supplies only time,
+bytes and the element's capacitance (``sense(tick) -> (C1, C2)`` in farads).
+"""
+
+from __future__ import annotations
+
+import random
+from collections import Counter, OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from cellbridge import __version__
+import msgpack
+
+from cellbridge.protocol import (
+    ADDR_BROADCAST,
+    ADDR_HOST,
+    Beacon,
+    BridgeStatus,
+    Command,
+    DuplicateFilter,
+    Flags,
+    Frame,
+    FrameType,
+    Hello,
+    LinkAck,
+    Message,
+    Neighbour,
+    ProtocolError,
+    StreamDecoder,
+    decode,
+    encode,
+)
+from cellbridge.emulator.rawframe import Raw, addressed_to, build, own, parse, to_serial
+from cellbridge.emulator.commands import Settings, execute
+from cellbridge.emulator.linklayer import LinkLayer
+from cellbridge.emulator.sampling import Sampler
+from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
+from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
+
+FIRMWARE_VERSION = f"cellbridge-emu {__version__}"
+_ACK = int(Flags.ACK_REQUEST)
+_MS = 50_000  # cycles per millisecond at 50 MHz
+_PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
+_BUNDLE = int(FrameType.BUNDLE)
+_HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
+_FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
+
+
+@dataclass(frozen=True)
+class FirmwareConfig:
+    """Firmware parameters; times in chip cycles (50 MHz)."""
+
+    bridge: int
+    cells: tuple[int, ...] = (1,)
+    gateway: bool = False
+    position: tuple[float, float] = (0.0, 0.0)
+    side: float = 0.040
+    clock_hz: int = 50_000_000
+    settings: Settings = field(default_factory=Settings)
+    batch_max: int = 16  #: samples per DATA frame at most (also bounded by the frame size)
+    max_latency: int = 50 * _MS  #: a sample waits at most this long for company in a DATA frame
+    queue_len: int = 64
+    max_retries: int = 5
+    trickle_imin: int = 50 * _MS
+    trickle_imax: int = 500 * _MS  #: the beacon period once routes are stable
+    status_period: int = 2000 * _MS
+    hello_period: int = 10_000 * _MS
+    max_hops: int = 32
+    ack_slack: int = 0  #: extra wait for a LINK_ACK (real-time shells: message latency)
+    lazy_sampling: bool = True  #: compute periodic samples when their frame is due (False: at each gate)
+    transceiver: TransceiverConfig = field(default_factory=TransceiverConfig)
+
+
+def _rest(_tick: int) -> tuple[float, float]:
+    return 15.67e-12, 19.44e-12
+
+
+class Firmware:
+    def __init__(self, config: FirmwareConfig, chip: object, sense: Callable[[int], tuple[float, float]] = _rest,
+                 seed: int = 0, boot_tick: int = 0, resets: int = 0) -> None:
+        self.config = config
+        self.me = config.bridge
+        self.chip = chip
+        self.sense = sense
+        self.rng = random.Random(seed * 1_000_003 + config.bridge * 7919 + resets)
+        self.counters: Counter[str] = Counter()
+        self.resets = resets
+        self.serial_out = bytearray()
+        self._serial_in = StreamDecoder()
+        # Commands seen survive a RESET command (kept in memory a reset does not clear), so
+        # the flood's repeated copies of that RESET do not reset the bridge again.
+        self.seen_cmd = DuplicateFilter()
+        self._power_on(boot_tick)
+
+    # -- state ----------------------------------------------------------------------
+    def _power_on(self, tick: int) -> None:
+        c = self.config
+        self.boot_tick = tick
+        self.seq = self.rng.randrange(0x10000)  # a restart does not reuse recent numbers
+        self.radio = Transceiver(self.rng, c.transceiver)
+        self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries, ack_slack=c.ack_slack)
+        self.router = Router(self.me, c.gateway, max_hops=c.max_hops,
+                             neighbour_timeout=4 * c.trickle_imax)
+        self.trickle = Trickle(self.rng, c.trickle_imin, c.trickle_imax)
+        self.trickle.start(tick)
+        self.seen = DuplicateFilter()  # upward frames: (origin, seq)
+        self.hops_seen: OrderedDict[tuple[int, int], int] = OrderedDict()  # (origin, seq) -> hops
+        self.sampler = Sampler(c.settings, self.chip, self.sense,
+                               tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
+                               c.batch_max, c.max_latency, c.lazy_sampling, self.counters)
+        self.status_at = tick + c.status_period
+        self.hello_at = tick if c.gateway else -1  # a relay says hello once it has a route
+        self.reset_at = -1
+        self.floods: list[tuple[int, bytes]] = []  # (when, frame) command copies still to send
+
+    @property
+    def next_tick(self) -> int:
+        t = min(self.sampler.next_tick, self.trickle.next_tick, self.status_at)
+        if self.floods and self.floods[0][0] < t:
+            t = self.floods[0][0]
+        for x in (self.hello_at, self.reset_at):
+            if x >= 0 and x < t:
+                t = x
+        lt = self.link.next_tick
+        if lt is not None and lt < t:
+            t = lt
+        return t
+
+    def _next_seq(self) -> int:
+        s = self.seq
+        self.seq = (s + 1) & 0xFFFF
+        return s
+
+    def counters_snapshot(self) -> dict[str, int]:
+        out = dict(self.counters)
+        out.update(self.link.counters)
+        out.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
+                   bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
+                   neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed,
+                   resets=self.resets, queue_len=len(self.link.queue),
+                   has_route=int(self.router.has_route))
+        return out
+
+    # -- inputs ---------------------------------------------------------------------
+    def carrier(self, cell: int, start: int, until: int) -> None:
+        self.radio.carrier(cell, start, until)
+
+    def serial_in(self, data: bytes, tick: int) -> None:
+        """Bytes the host wrote to the gateway's serial line (COBS frames)."""
+        for f in self._serial_in.feed(data):
+            if f.type is FrameType.CMD:
+                self._command(f, tick)
+            else:
+                self.counters["serial_ignored"] += 1
+
+    def take_serial(self) -> bytes:
+        out = bytes(self.serial_out)
+        self.serial_out.clear()
+        return out
+
+    def receive(self, data: bytes, tick: int, cell: int) -> bool:
+        """A frame from ``cell``; False when the bridge ignored it (no need to advance)."""
+        # Address filter before any decoding, as a radio does: unicasts for other bridges
+        # are dropped from the header bytes alone (type at 2, dst at 5-6).
+        if not addressed_to(data, self.me):
+            self.counters["overheard"] += 1
+            return False
+        if len(data) > 7 and data[2] in _PARSED:
+            return self._receive_parsed(data, tick)
+        got = parse(data)
+        if got is None:
+            self.counters["rx_crc"] += 1
+            return False
+        src, _, f = got
+        if f.flags & _ACK:
+            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_seq()), self.me, src),
+                                self.config.cells, tick)
+        if self.router.child_sent(src):
+            self.counters["loops_broken"] += 1
+            self.trickle.reset(tick)
+        elif self.router.inconsistent(src):
+            self.counters["inconsistencies"] += 1
+            self.trickle.reset(tick)
+        if f.type == _BUNDLE:
+            try:
+                inner = [parse(b) for b in msgpack.unpackb(f.body)]
+            except Exception:  # malformed msgpack: the whole bundle is bad
+                inner = [None]
+            for g in inner:
+                if g is None:
+                    self.counters["rx_bad_bundle"] += 1
+                else:
+                    self._upward(g[2], tick)
+        else:
+            self._upward(f, tick)
+        return True
+
+    def _receive_parsed(self, data: bytes, tick: int) -> bool:
+        try:
+            f = decode(data)
+        except ProtocolError as exc:
+            self.counters[f"rx_{exc.cause}"] += 1
+            return False
+        t = f.type
+        if t is FrameType.LINK_ACK:
+            ack: LinkAck = f.payload  # type: ignore[assignment]
+            return f.dst == self.me and self.link.acked(ack.origin, ack.seq, f.src)
+        if t is FrameType.BEACON:
+            self._beacon(f, tick)
+        else:
+            self._command(f, tick)
+        return True
+
+    # -- routing --------------------------------------------------------------------
+    def _beacon(self, f: Frame, tick: int) -> None:
+        b: Beacon = f.payload  # type: ignore[assignment]
+        self.router.on_beacon(f.src, b.parent, b.path_etx, b.hops, tick)
+        self.radio.contenders = len(self.router.table)
+        if b.parent == self.me and b.path_etx < INFINITE and b.path_etx <= self.router.path_etx:
+            self.trickle.reset(tick)  # a child thinks it is closer than us: our cost is stale
+        elif b.path_etx >= INFINITE and self.router.has_route:
+            self.trickle.reset(tick)  # a neighbour without a route asks for fresh beacons
+        else:
+            self.trickle.heard_consistent()
+        self._reroute(tick)
+
+    def _reroute(self, tick: int) -> None:
+        had = self.router.has_route
+        if self.router.select():
+            self.trickle.reset(tick)
+        if not had and self.router.has_route and self.hello_at < 0:
+            self.hello_at = tick
+        if had and not self.router.has_route:
+            self.counters["route_lost"] += 1
+
+    def _send_beacon(self, tick: int) -> None:
+        r = self.router
+        beacon = Beacon(0 if r.gateway or r.parent is None else r.parent, r.path_etx, r.hops)
+        self.link.broadcast(encode(Frame(self.me, ADDR_BROADCAST, self.me, self._next_seq(), beacon)))
+        self.counters["beacons"] += 1
+
+    # -- upward traffic -------------------------------------------------------------
+    def _upward(self, f: Raw, tick: int) -> None:
+        if f.origin == self.me:
+            # our own frame came back (a parent change raced with a neighbour's): send it on
+            # once more; the duplicate filter stops a second return
+            self.counters["own_returned"] += 1
+        key = (f.origin, f.seq)
+        if self.seen.is_duplicate(f.origin, f.seq):
+            self.counters["duplicates"] += 1
+            first = self.hops_seen.get(key)
+            if first is not None and f.hops > first and not self.config.gateway:
+                # the same frame again with more hops: it went round a loop through us
+                self.counters["loops_detected"] += 1
+                self.router.loop_detected()
+                self.trickle.reset(tick)
+                self._reroute(tick)
+            return
+        self.hops_seen[key] = f.hops
+        if len(self.hops_seen) > _HOPS_MEMORY:
+            self.hops_seen.popitem(last=False)
+        if f.hops + 1 > self.config.max_hops:
+            self.counters["loop_drops"] += 1
+            return
+        self.counters["forwarded"] += 1
+        self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
+
+    def _own(self, message: Message) -> None:
+        self._emit(own(message, self.me, self._next_seq()))
+
+    def _emit(self, f: Raw) -> None:
+        if self.config.gateway:
+            self.serial_out += to_serial(build(f, self.me, ADDR_HOST))
+            self.counters["serial_frames"] += 1
+        elif not self.link.enqueue(f):
+            self.counters["queue_full"] += 1
+
+    # -- commands -------------------------------------------------------------------
+    def _command(self, f: Frame, tick: int) -> None:
+        if self.seen_cmd.is_duplicate(f.origin, f.seq):
+            return
+        target = f.dst
+        if target != self.me:
+            # controlled flooding: every bridge repeats a new command a few times at random
+            # moments (a broadcast has no ACK; one lost copy must not cut a branch off)
+            data = encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost))
+            for lo, hi in _FLOOD_REPEATS:
+                self.floods.append((tick + lo + self.rng.randrange(hi - lo), data))
+            self.floods.sort(key=lambda x: x[0])
+            self.counters["flooded"] += 1
+        if target in (self.me, ADDR_BROADCAST):
+            cmd: Command = f.payload  # type: ignore[assignment]
+            self.counters["commands"] += 1
+            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick)
+            self._own(reply)
+            if new is not None:
+                for data in self.sampler.apply(new, tick):
+                    self._own(data)
+            if reply.op.name == "RESET" and reply.status == 0:
+                self.reset_at = tick + 50 * _MS  # time for the reply to leave
+
+    # -- time -----------------------------------------------------------------------
+    def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
+        """Run every timer due at ``tick``; the (bytes, cells) to transmit now, if any."""
+        for data in self.sampler.advance(tick):
+            self._own(data)
+        while self.floods and self.floods[0][0] <= tick:
+            self.link.broadcast(self.floods.pop(0)[1])
+        if self.trickle.next_tick <= tick:
+            if self.trickle.advance(tick, force=not self.router.has_route):
+                self.router.expire(tick)
+                self._reroute(tick)
+                self._send_beacon(tick)
+        if 0 <= self.hello_at <= tick:
+            c = self.config
+            self._own(Hello(self.me, FIRMWARE_VERSION, c.position[0], c.position[1], c.side, c.clock_hz, 3))
+            self.hello_at = tick + c.hello_period
+        if self.status_at <= tick:
+            self._status(tick)
+            self.status_at = tick + self.config.status_period
+        if 0 <= self.reset_at <= tick:
+            self.resets += 1
+            self.counters["command_resets"] += 1
+            self._power_on(tick)
+        r = self.router
+        p = r.table.get(r.parent) if r.parent is not None else None
+        if p is not None:
+            out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)))
+        else:
+            out, used = self.link.advance(tick, None, self.seq, PERFECT_LINK)
+        if used:
+            self._next_seq()
+        if self.link.results:
+            for nbr, attempts, ok in self.link.results:
+                self.router.on_link_result(nbr, attempts, ok)
+            self.link.results.clear()
+            self._reroute(tick)
+        return out
+
+    def _status(self, tick: int) -> None:
+        r = self.router
+        if not r.gateway and r.parent is None:
+            return
+        nbrs = tuple(Neighbour(n.id, min(0xFFFF, int(round(n.link_etx)))) for n in list(r.table.values())[:32])
+        self._own(BridgeStatus(0 if r.parent is None else r.parent, min(r.path_etx, 0xFFFF), nbrs,
+                               self.link.counters["queue_drops"], self.link.counters["retries"],
+                               self.resets, tick - self.boot_tick))
+
+
+__all__ = ["FIRMWARE_VERSION", "Firmware", "FirmwareConfig"]

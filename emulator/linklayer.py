@@ -1,0 +1,165 @@
+"""Link layer of the firmware: bounded queues, aggregation, per-hop ACK and retries.
+
+Frames climbing toward the sink wait in one bounded FIFO (a full queue refuses the
+newest frame and counts it). When the cell is free, the head frame and every queued
+frame that still fits go to the parent in one BUNDLE transmission, which the parent
+acknowledges with one LINK_ACK; without the acknowledgement the transmission is
+repeated with a wider backoff up to ``max_retries`` times. Its frames then go back to
+the head of the queue for the next parent the routing picks (a dead parent is
+evicted after a few such failures), at most ``max_rounds`` times, then are given up
+(counted as ``frames_failed``). A parent change while a transmission is in flight
+also sends its frames back to the queue.
+Broadcasts (beacons, command floods) have their own small queue, go first and are
+never acknowledged.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from dataclasses import dataclass
+
+import msgpack
+
+from cellbridge.emulator.rawframe import Raw, build
+from cellbridge.emulator.transceiver import Transceiver
+from cellbridge.protocol import Flags, FrameType
+from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
+
+_ACK = int(Flags.ACK_REQUEST)
+_BUNDLE = int(FrameType.BUNDLE)
+_BUNDLE_OVERHEAD = HEADER_LEN + CRC_LEN + 3  # header, CRC, msgpack array header (<= 3 bytes)
+
+
+@dataclass
+class _InFlight:
+    data: bytes
+    key: tuple[int, int]  #: (origin, seq) the LINK_ACK must name
+    frames: list[Raw]
+    next_hop: int
+    attempts: int = 0
+    deadline: int = -1  #: ack deadline once on the cell; -1 while still contending
+
+
+class LinkLayer:
+    def __init__(self, me: int, cells: tuple[int, ...], radio: Transceiver, queue_len: int = 32,
+                 max_retries: int = 5, ack_bytes: int = 24, ack_slack: int = 0, max_rounds: int = 3) -> None:
+        self.me = me
+        self.max_rounds = max_rounds
+        self._rounds: dict[tuple[int, int], int] = {}  # frames sent back to the queue, and how often
+        self.cells = cells
+        self.radio = radio
+        self.queue_len = queue_len
+        self.max_retries = max_retries
+        self.queue: deque[Raw] = deque()
+        self.broadcasts: deque[bytes] = deque()
+        self.inflight: _InFlight | None = None
+        c = radio.config
+        self._ack_wait = (c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.airtime(ack_bytes) + ack_slack
+        self.counters: Counter[str] = Counter()
+        self.results: list[tuple[int, int, bool]] = []  #: (next hop, attempts, ok) not yet read
+
+    def enqueue(self, frame: Raw) -> bool:
+        """Queue a frame for the parent; False (and counted) when the queue is full."""
+        if len(self.queue) >= self.queue_len:
+            self.counters["queue_drops"] += 1
+            return False
+        self.queue.append(frame)
+        return True
+
+    def broadcast(self, data: bytes) -> None:
+        if len(self.broadcasts) >= 16:
+            self.counters["broadcast_drops"] += 1
+            return
+        self.broadcasts.append(data)
+
+    def acked(self, origin: int, seq: int, src: int) -> bool:
+        f = self.inflight
+        if f is None or f.deadline < 0 or (origin, seq) != f.key or src != f.next_hop:
+            return False
+        self.results.append((f.next_hop, f.attempts, True))
+        self.counters["frames_acked"] += len(f.frames)
+        if self._rounds:
+            for x in f.frames:
+                self._rounds.pop((x.origin, x.seq), None)
+        self.inflight = None
+        return True
+
+    def _give_back(self, f: _InFlight) -> None:
+        """Frames of a failed transmission go back to the head of the queue (bounded rounds)."""
+        for x in reversed(f.frames):
+            key = (x.origin, x.seq)
+            n = self._rounds.get(key, 0) + 1
+            if n > self.max_rounds:
+                self._rounds.pop(key, None)
+                self.counters["frames_failed"] += 1
+            else:
+                self._rounds[key] = n
+                self.queue.appendleft(x)
+                self.counters["frames_requeued"] += 1
+        while len(self.queue) > self.queue_len:
+            x = self.queue.pop()
+            self._rounds.pop((x.origin, x.seq), None)
+            self.counters["queue_drops"] += 1
+
+    def _build(self, parent: int, seq: int, cost_add: int) -> tuple[_InFlight, bool]:
+        """Take queued frames for ``parent``; True in the result when a bundle seq was used."""
+        first = self.queue.popleft()
+        taken = [first]
+        encoded = [build(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent)]
+        size = _BUNDLE_OVERHEAD + len(encoded[0]) + 2
+        while self.queue:
+            f = self.queue[0]
+            if size + HEADER_LEN + CRC_LEN + len(f.body) + 2 > MAX_FRAME:
+                break
+            taken.append(self.queue.popleft())
+            encoded.append(build(f._replace(cost=min(0xFFFF, f.cost + cost_add)), self.me, parent))
+            size += len(encoded[-1]) + 2
+        if len(taken) == 1:
+            data = build(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent, _ACK)
+            return _InFlight(data, (first.origin, first.seq), taken, parent), False
+        bundle = Raw(_BUNDLE, 0, self.me, seq, 0, 0, msgpack.packb(encoded, use_bin_type=True))
+        self.counters["bundles"] += 1
+        self.counters["bundled_frames"] += len(taken)
+        return _InFlight(build(bundle, self.me, parent, _ACK), (self.me, seq), taken, parent), True
+
+    def advance(self, tick: int, parent: int | None, next_seq: int, cost_add: int) -> tuple[tuple[bytes, tuple[int, ...]] | None, bool]:
+        """((bytes, cells) to put on the cells now, or None; whether ``next_seq`` was used)."""
+        used = False
+        f = self.inflight
+        radio = self.radio
+        if f is not None and 0 <= f.deadline <= tick and radio.idle:  # no acknowledgement in time
+            if f.attempts > self.max_retries or parent != f.next_hop:
+                if parent == f.next_hop:
+                    self.counters["tx_failed"] += 1
+                    self.results.append((f.next_hop, f.attempts, False))
+                self._give_back(f)
+                self.inflight = f = None
+            else:
+                self.counters["retries"] += 1
+                f.deadline = -1
+                radio.send(f.data, self.cells, tick, f.attempts)
+        if radio.idle and f is None:
+            if self.broadcasts:
+                radio.send(self.broadcasts.popleft(), self.cells, tick)
+            elif parent is not None and self.queue:
+                self.inflight, used = self._build(parent, next_seq, cost_add)
+                radio.send(self.inflight.data, self.cells, tick)
+        out = radio.advance(tick)
+        if out is not None:
+            f = self.inflight
+            if f is not None and out[0] is f.data and f.deadline < 0:
+                f.attempts += 1
+                f.deadline = radio.tx_until + self._ack_wait
+        return out, used
+
+    @property
+    def next_tick(self) -> int | None:
+        t = self.radio.next_tick
+        f = self.inflight
+        if f is not None and f.deadline >= 0:
+            t = f.deadline if t is None else min(t, f.deadline)
+        return t
+
+    def has_work(self) -> bool:
+        return bool(self.queue or self.broadcasts)
+

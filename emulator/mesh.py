@@ -1,0 +1,367 @@
+"""Mesh files: which bridges touch which cells, where their elements are, who is a gateway.
+
+A mesh is a bipartite graph: cells are shared broadcast media, bridges touch one or
+more cells, and one or more bridges are gateways with a serial line to the host. Two
+bridges *hear* each other when they share a cell. The file format (TOML)::
+
+    loss = 0.0          # default probability that one delivery is lost
+    ber = 0.0           # default bit-error rate of one delivery
+    side = 0.04         # element side (m)
+    bitrate = 1000000   # cell bit rate (bit/s)
+
+    [[cell]]
+    id = 1
+    loss = 0.01         # optional: overrides the default for deliveries over this cell
+
+    [[bridge]]
+    id = 1
+    cells = [1]
+    position = [0.0, 0.0]   # element centre (m)
+    gateway = true          # optional, default false
+    tcp = 0                 # optional: gateway also serves its stream on this TCP port
+
+    [[link]]            # optional per-edge overrides between two bridges
+    a = 1
+    b = 2
+    loss = 0.05
+    ber = 1e-6
+
+A bad file is refused with a :class:`MeshError` whose message names the key and the
+problem, so a user can fix it without reading this module.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+DEFAULT_SIDE = 0.040
+DEFAULT_BITRATE = 1_000_000
+MAX_BRIDGE_ID = 0xFFFE
+
+_TOP_KEYS = {"loss", "ber", "side", "bitrate", "name", "cell", "bridge", "link"}
+_CELL_KEYS = {"id", "loss", "ber"}
+_BRIDGE_KEYS = {"id", "cells", "position", "gateway", "tcp"}
+_LINK_KEYS = {"a", "b", "loss", "ber"}
+
+
+class MeshError(ValueError):
+    """A mesh description that cannot be used; the message names the key and the problem."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    id: int
+    loss: float | None = None
+    ber: float | None = None
+
+
+@dataclass(frozen=True)
+class Bridge:
+    id: int
+    cells: tuple[int, ...]
+    position: tuple[float, float]
+    gateway: bool = False
+    tcp: int | None = None
+
+
+@dataclass(frozen=True)
+class Link:
+    a: int
+    b: int
+    loss: float | None = None
+    ber: float | None = None
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A validated mesh. Build one with :func:`parse_mesh`, :func:`mesh_from_mapping`
+    or the generators in :mod:`cellbridge.emulator.meshgen`."""
+
+    cells: tuple[Cell, ...]
+    bridges: tuple[Bridge, ...]
+    links: tuple[Link, ...] = ()
+    loss: float = 0.0
+    ber: float = 0.0
+    side: float = DEFAULT_SIDE
+    bitrate: int = DEFAULT_BITRATE
+    name: str = ""
+    _by_id: dict[int, Bridge] = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self._by_id.update({b.id: b for b in self.bridges})
+
+    def bridge(self, bridge_id: int) -> Bridge:
+        try:
+            return self._by_id[bridge_id]
+        except KeyError:
+            raise MeshError(f"bridge {bridge_id}: no such bridge in the mesh") from None
+
+    @property
+    def ids(self) -> list[int]:
+        return [b.id for b in self.bridges]
+
+    @property
+    def gateways(self) -> list[int]:
+        return [b.id for b in self.bridges if b.gateway]
+
+    def cell(self, cell_id: int) -> Cell:
+        for c in self.cells:
+            if c.id == cell_id:
+                return c
+        raise MeshError(f"cell {cell_id}: no such cell in the mesh")
+
+    def members(self, cut: frozenset[int] = frozenset()) -> dict[int, list[int]]:
+        """Cell id -> bridges on it (cells in ``cut`` left out)."""
+        out: dict[int, list[int]] = {c.id: [] for c in self.cells if c.id not in cut}
+        for b in self.bridges:
+            for c in b.cells:
+                if c in out:
+                    out[c].append(b.id)
+        return out
+
+    def shared_cells(self, cut: frozenset[int] = frozenset()) -> dict[tuple[int, int], list[int]]:
+        """(a, b) with a != b -> the cells both bridges touch (both orders present)."""
+        out: dict[tuple[int, int], list[int]] = {}
+        for cell, ids in self.members(cut).items():
+            for a in ids:
+                for b in ids:
+                    if a != b:
+                        out.setdefault((a, b), []).append(cell)
+        return out
+
+    def neighbours(self, cut: frozenset[int] = frozenset(),
+                   dead: frozenset[int] = frozenset()) -> dict[int, list[int]]:
+        """Bridge -> the bridges that hear it (sorted), ignoring cut cells and dead bridges."""
+        out: dict[int, set[int]] = {b.id: set() for b in self.bridges if b.id not in dead}
+        for (a, b) in self.shared_cells(cut):
+            if a not in dead and b not in dead:
+                out[a].add(b)
+        return {k: sorted(v) for k, v in out.items()}
+
+    def reachable(self, cut: frozenset[int] = frozenset(),
+                  dead: frozenset[int] = frozenset()) -> set[int]:
+        """Bridges with a path of live bridges and uncut cells to a live gateway."""
+        nb = self.neighbours(cut, dead)
+        seen = {g for g in self.gateways if g not in dead}
+        todo = deque(seen)
+        while todo:
+            for n in nb[todo.popleft()]:
+                if n not in seen:
+                    seen.add(n)
+                    todo.append(n)
+        return seen
+
+    def link_params(self, a: int, b: int, cell: int) -> tuple[float, float]:
+        """(loss, ber) of a delivery from a to b over ``cell``: link, then cell, then default."""
+        for ln in self.links:
+            if {ln.a, ln.b} == {a, b}:
+                c = self.cell(cell)
+                loss = ln.loss if ln.loss is not None else (c.loss if c.loss is not None else self.loss)
+                ber = ln.ber if ln.ber is not None else (c.ber if c.ber is not None else self.ber)
+                return loss, ber
+        c = self.cell(cell)
+        return (c.loss if c.loss is not None else self.loss, c.ber if c.ber is not None else self.ber)
+
+
+# ----------------------------------------------------------------------------- parsing
+
+
+def _where(kind: str, i: int, entry: Mapping[str, Any]) -> str:
+    ident = entry.get("id") if isinstance(entry, Mapping) else None
+    return f"{kind}[{i}]" + (f" (id {ident})" if isinstance(ident, int) else "")
+
+
+def _unknown(keys: set[str], allowed: set[str], where: str) -> None:
+    extra = sorted(set(keys) - allowed)
+    if extra:
+        raise MeshError(f"{where}: unknown key '{extra[0]}' (allowed: {', '.join(sorted(allowed))})")
+
+
+def _int(value: Any, where: str, lo: int, hi: int) -> int:
+    if type(value) is not int or not lo <= value <= hi:
+        raise MeshError(f"{where}: must be an integer in {lo}..{hi}, got {value!r}")
+    return value
+
+
+def _prob(value: Any, where: str) -> float:
+    if type(value) not in (int, float) or not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise MeshError(f"{where}: must be a probability in 0..1, got {value!r}")
+    return float(value)
+
+
+def _opt_prob(entry: Mapping[str, Any], key: str, where: str) -> float | None:
+    return _prob(entry[key], f"{where}.{key}") if key in entry else None
+
+
+def _table_list(data: Mapping[str, Any], key: str, source: str) -> list[Mapping[str, Any]]:
+    raw = data.get(key, [])
+    if not isinstance(raw, list) or not all(isinstance(e, Mapping) for e in raw):
+        raise MeshError(f"{source}: '{key}' must be an array of tables ([[{key}]])")
+    return raw
+
+
+def mesh_from_mapping(data: Mapping[str, Any], source: str = "mesh") -> Mesh:
+    """Validate a parsed mesh (e.g. from TOML) and build a :class:`Mesh`."""
+    _unknown(set(data), _TOP_KEYS, source)
+    loss = _prob(data.get("loss", 0.0), f"{source}: loss")
+    ber = _prob(data.get("ber", 0.0), f"{source}: ber")
+    side = data.get("side", DEFAULT_SIDE)
+    if type(side) not in (int, float) or not (math.isfinite(side) and side > 0):
+        raise MeshError(f"{source}: side must be a length > 0 in metres, got {side!r}")
+    bitrate = _int(data.get("bitrate", DEFAULT_BITRATE), f"{source}: bitrate", 1_000, 50_000_000)
+    name = data.get("name", "")
+    if not isinstance(name, str):
+        raise MeshError(f"{source}: name must be a string")
+
+    cells: list[Cell] = []
+    for i, e in enumerate(_table_list(data, "cell", source)):
+        w = f"{source}: {_where('cell', i, e)}"
+        _unknown(set(e), _CELL_KEYS, w)
+        if "id" not in e:
+            raise MeshError(f"{w}: missing key 'id'")
+        cid = _int(e["id"], f"{w}.id", 0, 2**31)
+        if any(c.id == cid for c in cells):
+            raise MeshError(f"{w}.id: duplicate cell id {cid}")
+        cells.append(Cell(cid, _opt_prob(e, "loss", w), _opt_prob(e, "ber", w)))
+    cell_ids = {c.id for c in cells}
+
+    bridges: list[Bridge] = []
+    for i, e in enumerate(_table_list(data, "bridge", source)):
+        w = f"{source}: {_where('bridge', i, e)}"
+        _unknown(set(e), _BRIDGE_KEYS, w)
+        for key in ("id", "cells", "position"):
+            if key not in e:
+                raise MeshError(f"{w}: missing key '{key}'")
+        bid = _int(e["id"], f"{w}.id", 1, MAX_BRIDGE_ID)
+        if any(b.id == bid for b in bridges):
+            raise MeshError(f"{w}.id: duplicate bridge id {bid}")
+        cl = e["cells"]
+        if not isinstance(cl, list) or not all(type(c) is int for c in cl):
+            raise MeshError(f"{w}.cells: must be an array of cell ids")
+        if not cl:
+            raise MeshError(f"{w}.cells: bridge {bid} is on no cell")
+        for c in cl:
+            if c not in cell_ids:
+                raise MeshError(f"{w}.cells: cell {c} is not declared in [[cell]]")
+        if len(set(cl)) != len(cl):
+            raise MeshError(f"{w}.cells: a cell is listed twice")
+        pos = e["position"]
+        if (not isinstance(pos, list) or len(pos) != 2
+                or not all(type(p) in (int, float) and math.isfinite(p) for p in pos)):
+            raise MeshError(f"{w}.position: must be [x, y] in metres, got {pos!r}")
+        gw = e.get("gateway", False)
+        if type(gw) is not bool:
+            raise MeshError(f"{w}.gateway: must be true or false, got {gw!r}")
+        tcp = e.get("tcp")
+        if tcp is not None:
+            _int(tcp, f"{w}.tcp", 0, 65535)
+            if not gw:
+                raise MeshError(f"{w}.tcp: only a gateway serves a TCP port")
+        bridges.append(Bridge(bid, tuple(cl), (float(pos[0]), float(pos[1])), gw, tcp))
+    if not bridges:
+        raise MeshError(f"{source}: no [[bridge]] in the mesh")
+    bridge_ids = {b.id for b in bridges}
+
+    links: list[Link] = []
+    for i, e in enumerate(_table_list(data, "link", source)):
+        w = f"{source}: link[{i}]"
+        _unknown(set(e), _LINK_KEYS, w)
+        for key in ("a", "b"):
+            if key not in e:
+                raise MeshError(f"{w}: missing key '{key}'")
+            if e[key] not in bridge_ids:
+                raise MeshError(f"{w}.{key}: missing bridge {e[key]!r} (no [[bridge]] with that id)")
+        if e["a"] == e["b"]:
+            raise MeshError(f"{w}: a link joins two different bridges")
+        links.append(Link(e["a"], e["b"], _opt_prob(e, "loss", w), _opt_prob(e, "ber", w)))
+
+    mesh = Mesh(tuple(cells), tuple(bridges), tuple(links), loss, ber, float(side), bitrate, name)
+    for ln in mesh.links:
+        if (ln.a, ln.b) not in mesh.shared_cells():
+            raise MeshError(f"{source}: link {ln.a}-{ln.b}: the bridges share no cell")
+    if not mesh.gateways:
+        raise MeshError(f"{source}: no bridge has 'gateway = true'; a mesh needs at least one gateway")
+    lost = sorted(bridge_ids - mesh.reachable())
+    if lost:
+        raise MeshError(f"{source}: bridge {lost[0]} is unreachable: no chain of shared cells leads "
+                        f"to a gateway (unreachable: {', '.join(map(str, lost))})")
+    _check_positions(mesh, source)
+    return mesh
+
+
+def _check_positions(mesh: Mesh, source: str) -> None:
+    """Elements are squares of ``side`` at the positions: they may not overlap."""
+    pts = sorted((b.position, b.id) for b in mesh.bridges)
+    tol = mesh.side * (1 - 1e-9)
+    for i, ((x, y), a) in enumerate(pts):
+        for (x2, y2), b in pts[i + 1:]:
+            if x2 - x >= tol:
+                break
+            if abs(y2 - y) < tol:
+                raise MeshError(f"{source}: bridge {b}.position: its element overlaps bridge {a}'s "
+                                f"(elements are {mesh.side} m squares)")
+
+
+def parse_mesh(text: str, source: str = "mesh") -> Mesh:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise MeshError(f"{source}: not valid TOML: {exc}") from None
+    return mesh_from_mapping(data, source)
+
+
+def read_text(path: str, what: str, error: type[ValueError]) -> str:
+    """A user's file as text; a missing or unreadable file is ``error`` naming it."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return fh.read()
+    except OSError as exc:
+        raise error(f"{path}: cannot read {what}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: {what} is not UTF-8 text") from None
+
+
+def load_mesh(path: str) -> Mesh:
+    """Read and validate a mesh file; every problem is a :class:`MeshError` naming the file."""
+    return parse_mesh(read_text(path, "mesh file", MeshError), path)
+
+
+def _num(v: float) -> str:
+    return repr(float(v))
+
+
+def mesh_to_toml(mesh: Mesh) -> str:
+    """The mesh as a TOML file that :func:`parse_mesh` reads back to an equal mesh."""
+    out = []
+    if mesh.name:
+        out.append(f'name = "{mesh.name}"')
+    out += [f"loss = {_num(mesh.loss)}", f"ber = {_num(mesh.ber)}", f"side = {_num(mesh.side)}",
+            f"bitrate = {mesh.bitrate}", ""]
+    for c in mesh.cells:
+        out.append("[[cell]]")
+        out.append(f"id = {c.id}")
+        if c.loss is not None:
+            out.append(f"loss = {_num(c.loss)}")
+        if c.ber is not None:
+            out.append(f"ber = {_num(c.ber)}")
+        out.append("")
+    for b in mesh.bridges:
+        out += ["[[bridge]]", f"id = {b.id}", f"cells = [{', '.join(map(str, b.cells))}]",
+                f"position = [{_num(b.position[0])}, {_num(b.position[1])}]"]
+        if b.gateway:
+            out.append("gateway = true")
+        if b.tcp is not None:
+            out.append(f"tcp = {b.tcp}")
+        out.append("")
+    for ln in mesh.links:
+        out += ["[[link]]", f"a = {ln.a}", f"b = {ln.b}"]
+        if ln.loss is not None:
+            out.append(f"loss = {_num(ln.loss)}")
+        if ln.ber is not None:
+            out.append(f"ber = {_num(ln.ber)}")
+        out.append("")
+    return "\n".join(out)

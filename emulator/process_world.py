@@ -1,0 +1,87 @@
+"""``cellbridge world`` and ``cellbridge press``: stimuli for bridges running in real time.
+
+The world process owns the list of contacts (from a scenario file, plus presses
+injected live) and publishes all of it on a PUB socket whenever it changes and every
+half second, so a bridge that (re)connects late has it within 0.5 s. Contact times
+on the wire are absolute host monotonic seconds, the bridges' clock. ``press`` sends
+one contact to the world's control socket (REQ/REP, :mod:`.process_press`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import msgpack
+import zmq
+
+from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, endpoints
+from cellbridge.emulator.world import Contact, ScenarioError, contact_from_mapping, load_scenario
+
+REPUBLISH_S = 0.5
+
+
+def encode_contacts(contacts: list[Contact]) -> bytes:
+    return msgpack.packb([[c.start, c.duration, c.x, c.y, c.force, c.diameter, c.vx, c.vy] for c in contacts])
+
+
+def decode_contacts(data: bytes) -> list[Contact]:
+    try:
+        return [Contact(*map(float, row)) for row in msgpack.unpackb(data)]
+    except Exception:  # a malformed message is ignored, never fatal to a bridge
+        return []
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = ("Publish stimuli (contacts) to the bridge processes of a running mesh: "
+                          "the scenario file's contacts, timed from this process's start, and any "
+                          "'cellbridge press'.")
+    parser.add_argument("--mesh", help="mesh file (accepted for symmetry with the other processes)")
+    parser.add_argument("--scenario", help="TOML file of [[contact]] stimuli")
+    add_endpoint_arguments(parser)
+
+
+def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag) -> None:
+    ctx = zmq.Context.instance()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    pub.bind(pub_ep)
+    ctl = ctx.socket(zmq.REP)
+    ctl.setsockopt(zmq.LINGER, 0)
+    ctl.bind(ctl_ep)
+    last = 0.0
+    try:
+        while not stop.stopped:
+            if ctl.poll(100):
+                try:
+                    req = msgpack.unpackb(ctl.recv())
+                    now = time.monotonic()
+                    c = contact_from_mapping({**req, "start": 0.0}, "press")
+                    contacts.append(Contact(now + float(req.get("start", 0.0)), c.duration, c.x, c.y,
+                                            c.force, c.diameter, c.vx, c.vy))
+                    ctl.send(msgpack.packb({"ok": True, "start": contacts[-1].start}))
+                    last = 0.0
+                except (ScenarioError, ValueError, TypeError, msgpack.UnpackException) as exc:
+                    ctl.send(msgpack.packb({"ok": False, "error": str(exc)}))
+            now = time.monotonic()
+            if now - last >= REPUBLISH_S:
+                contacts[:] = [c for c in contacts if c.start + c.duration > now]
+                pub.send(encode_contacts(contacts))
+                last = now
+    finally:
+        pub.close()
+        ctl.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        scenario = load_scenario(args.scenario) if args.scenario else []
+    except ScenarioError as exc:
+        print(f"cellbridge world: {exc}", file=sys.stderr)
+        return 2
+    t0 = time.monotonic()
+    contacts = [Contact(t0 + c.start, c.duration, c.x, c.y, c.force, c.diameter, c.vx, c.vy) for c in scenario]
+    ep = endpoints(args)
+    serve(contacts, ep.world, ep.control, StopFlag())
+    return 0

@@ -1,0 +1,81 @@
+"""What the real-time process shells share: the clock, the ZeroMQ endpoints, shutdown.
+
+Every process on one host reads the same monotonic clock, so a tick (a 50 MHz cycle
+of host time) means the same instant in the medium and in every bridge: carrier
+reports and deliveries need no clock exchange. Endpoints are derived from one base
+port so that ``mesh up``, ``bridge``, ``medium``, ``world`` and ``press`` agree without
+a registry: medium = base, world stimuli = base + 1, world control = base + 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import signal
+import time
+from dataclasses import dataclass
+
+CLOCK_HZ = 50_000_000
+DEFAULT_BASE_PORT = 5570
+LOOPBACK = "127.0.0.1"
+
+
+def now_tick() -> int:
+    return int(time.monotonic() * CLOCK_HZ)
+
+
+def tick_seconds(tick: int) -> float:
+    return tick / CLOCK_HZ
+
+
+@dataclass(frozen=True)
+class Endpoints:
+    host: str = LOOPBACK
+    base_port: int = DEFAULT_BASE_PORT
+
+    @property
+    def medium(self) -> str:
+        return f"tcp://{self.host}:{self.base_port}"
+
+    @property
+    def world(self) -> str:
+        return f"tcp://{self.host}:{self.base_port + 1}"
+
+    @property
+    def control(self) -> str:
+        return f"tcp://{self.host}:{self.base_port + 2}"
+
+
+def add_endpoint_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--base-port", type=int, default=DEFAULT_BASE_PORT,
+                        help=f"ZeroMQ ports: medium = base, world = base+1, world control = base+2 "
+                             f"(default {DEFAULT_BASE_PORT})")
+    parser.add_argument("--host", default=LOOPBACK,
+                        help="host of the medium and world processes (default 127.0.0.1; "
+                             "bridges on other hosts point here)")
+
+
+def endpoints(args: argparse.Namespace) -> Endpoints:
+    return Endpoints(args.host, args.base_port)
+
+
+class StopFlag:
+    """Set by SIGINT/SIGTERM; shells check it in their loops and exit cleanly."""
+
+    def __init__(self) -> None:
+        self.stopped = False
+        signal.signal(signal.SIGTERM, self._set)
+        signal.signal(signal.SIGINT, self._set)
+
+    def _set(self, *_: object) -> None:
+        self.stopped = True
+
+
+def die_with_parent() -> None:
+    """preexec_fn: the child gets SIGTERM if the process that started it dies (Linux),
+    so a supervisor killed with SIGKILL still leaves nothing behind."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass

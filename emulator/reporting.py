@@ -1,0 +1,74 @@
+"""Which samples a bridge reports: every one (periodic) or only changes (event-based).
+
+Event-based reporting is how a large skin stays inside one shared 1 Mbit/s link: an
+untouched element sends a heartbeat now and then; a sample goes out as soon as it
+differs from the last one *sent* by more than the threshold on either channel, so a
+press is never missed and a slow drift is reported once it adds up.
+
+The command ``SET_REPORTING`` carries the choice in one u64 (docs/protocol.md):
+0 = periodic; otherwise bits 0–31 are the threshold (counts or summed codes) and
+bits 32–63 the heartbeat in milliseconds (0 = the default heartbeat).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from cellbridge.protocol import Sample
+
+DEFAULT_HEARTBEAT_MS = 1000
+MAX_HEARTBEAT_MS = 600_000
+
+
+@dataclass(frozen=True)
+class ReportingMode:
+    threshold: int = 0  #: 0 = periodic
+    heartbeat_ms: int = DEFAULT_HEARTBEAT_MS
+
+    @property
+    def periodic(self) -> bool:
+        return self.threshold == 0
+
+    @classmethod
+    def from_value(cls, value: int) -> ReportingMode:
+        """Decode the SET_REPORTING value; ValueError for a heartbeat out of range."""
+        threshold, heartbeat = value & 0xFFFF_FFFF, value >> 32
+        if heartbeat > MAX_HEARTBEAT_MS:
+            raise ValueError(f"heartbeat {heartbeat} ms exceeds {MAX_HEARTBEAT_MS}")
+        return cls(threshold, heartbeat or DEFAULT_HEARTBEAT_MS)
+
+    def to_value(self) -> int:
+        return 0 if self.periodic else self.threshold | (self.heartbeat_ms << 32)
+
+
+class Reporter:
+    """Decides per sample whether it is sent; counts what it suppressed."""
+
+    def __init__(self, mode: ReportingMode, cycles_per_ms: int, modulus: int = 1 << 16) -> None:
+        self.mode = mode
+        self._cpm = cycles_per_ms
+        self._mod = modulus
+        self._last: Sample | None = None
+        self.suppressed = 0
+
+    def set_mode(self, mode: ReportingMode, counter_modulus: int) -> None:
+        self.mode = mode
+        self._mod = counter_modulus
+        self._last = None  # the next sample is sent, so the host has a fresh reference
+
+    def _moved(self, a: int, b: int) -> int:
+        d = abs(a - b)
+        return min(d, self._mod - d) if self._mod else d
+
+    def wants(self, s: Sample) -> bool:
+        m = self.mode
+        last = self._last
+        if (m.periodic or last is None
+                or s.cycle - last.cycle >= m.heartbeat_ms * self._cpm
+                or self._moved(s.c1, last.c1) > m.threshold
+                or self._moved(s.c2, last.c2) > m.threshold
+                or s.flags != last.flags):
+            self._last = s
+            return True
+        self.suppressed += 1
+        return False

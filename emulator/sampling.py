@@ -1,0 +1,117 @@
+"""The bridge's measurement schedule and the DATA frames it fills.
+
+One sample is a C1 gate then a C2 gate on the counter (or two bursts of ADC
+conversions), repeated at the sampling rate. Samples the reporter keeps are batched
+into one DATA payload until it is full (255-byte frame, ``batch_max`` samples) or its
+oldest sample is ``max_latency`` old: fewer, larger frames carry more samples per bit
+of air time.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+
+import msgpack
+
+from cellbridge.emulator.commands import Settings
+from cellbridge.emulator.reporting import Reporter
+from cellbridge.protocol import Data, Mode, Sample, SampleFlags
+from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
+
+# header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes)
+_DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3
+_MAX_SAMPLE_BYTES = 1 + 3 + 9 + 5 + 5 + 2  # msgpack of [element, cycle, c1, c2, flags] at the widest
+_COUNTER_MODULUS = 1 << 16
+
+
+class Sampler:
+    def __init__(self, settings: Settings, chip: object, sense: Callable[[int], tuple[float, float]],
+                 first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
+                 counters: Counter[str]) -> None:
+        self.settings = settings
+        self.chip = chip
+        self.sense = sense
+        self.clock_hz = clock_hz
+        self.batch_max = batch_max
+        self.max_latency = max_latency
+        self.lazy = lazy
+        self.counters = counters
+        self.reporter = Reporter(settings.reporting, clock_hz // 1000)
+        self.batch: list[Sample] = []
+        self.batch_bytes = 0
+        self.flush_at = -1
+        self.start = first_start
+        self.ready = first_start + settings.measure_cycles()
+
+    @property
+    def next_tick(self) -> int:
+        """When sampling next needs the bridge's attention. Periodic reports change nothing
+        outside the bridge until a DATA frame is due (full, or ``max_latency`` old), so
+        with ``lazy`` the samples in between are computed then, all at once, with the
+        same cycles and values (a virtual-time speed-up, invisible on the cell)."""
+        if not (self.lazy and self.reporter.mode.periodic):
+            return self.ready if self.flush_at < 0 else min(self.ready, self.flush_at)
+        room = max(1, min(self.batch_max - len(self.batch),
+                          (MAX_FRAME - _DATA_OVERHEAD - self.batch_bytes) // _MAX_SAMPLE_BYTES))
+        full = self.ready + (room - 1) * self.settings.period_cycles(self.clock_hz)
+        return min(full, self.flush_at if self.batch else self.ready + self.max_latency)
+
+    def advance(self, tick: int) -> list[Data]:
+        """Take every sample due by ``tick``; the DATA payloads that are complete."""
+        out: list[Data] = []
+        while self.ready <= tick:
+            self._sample(out)
+        if 0 <= self.flush_at <= tick:
+            self._flush(out)
+        return out
+
+    def apply(self, new: Settings, tick: int) -> list[Data]:
+        """New settings from a command; a schedule change closes the current batch."""
+        old, self.settings = self.settings, new
+        out: list[Data] = []
+        if new.reporting != old.reporting or new.mode != old.mode:
+            self.reporter.set_mode(new.reporting, _COUNTER_MODULUS if new.mode is Mode.COUNTER else 0)
+        if (new.period_cycles(self.clock_hz) != old.period_cycles(self.clock_hz)
+                or new.measure_cycles() != old.measure_cycles() or new.mode != old.mode):
+            self._flush(out)  # one DATA payload holds one mode
+            self.start = max(tick, self.start)
+            self.ready = self.start + new.measure_cycles()
+        return out
+
+    def _sample(self, out: list[Data]) -> None:
+        st = self.settings
+        start = self.start
+        c1, c2 = self.sense(start)
+        if st.mode is Mode.COUNTER:
+            v1, o1 = self.chip.count(0, c1, start, st.gate_cycles)  # type: ignore[attr-defined]
+            v2, o2 = self.chip.count(1, c2, start + st.gate_cycles, st.gate_cycles)  # type: ignore[attr-defined]
+            flags = (SampleFlags.OVERFLOW_C1 if o1 else 0) | (SampleFlags.OVERFLOW_C2 if o2 else 0)
+        else:
+            v1, took = self.chip.convert(0, c1, start, st.oversampling)  # type: ignore[attr-defined]
+            v2, _ = self.chip.convert(1, c2, start + took, st.oversampling)  # type: ignore[attr-defined]
+            flags = 0
+        s = Sample(0, start, v1, v2, int(flags))
+        self.counters["samples"] += 1
+        if self.reporter.wants(s):
+            size = len(msgpack.packb(s))  # a NamedTuple packs as the wire's array
+            if self.batch and _DATA_OVERHEAD + self.batch_bytes + size > MAX_FRAME:
+                self._flush(out)
+            self.batch.append(s)
+            self.batch_bytes += size
+            if self.flush_at < 0:
+                self.flush_at = self.ready + self.max_latency
+            if len(self.batch) >= self.batch_max:
+                self._flush(out)
+        self.start = start + st.period_cycles(self.clock_hz)
+        self.ready = self.start + st.measure_cycles()
+
+    def _flush(self, out: list[Data]) -> None:
+        if self.batch:
+            st = self.settings
+            out.append(Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1))
+            self.counters["data_frames"] += 1
+            self.counters["samples_sent"] += len(self.batch)
+            self.batch = []
+            self.batch_bytes = 0
+        self.flush_at = -1

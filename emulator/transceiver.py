@@ -1,0 +1,169 @@
+"""The chip's cell transceiver: bit timing, carrier sense, random backoff (CSMA).
+
+Sans-I/O: the owner hands it one frame at a time (``send``) with the cells to send
+it on (a unicast goes on one cell shared with the next hop, a broadcast on all the
+bridge's cells), tells it when the medium reports carrier on a cell (``carrier``),
+and calls ``advance(tick)`` at or after ``next_tick``; ``advance`` returns the
+bytes and cells of a transmission that starts at that tick. Time is in chip cycles.
+
+The bridge has one transmitter (half duplex: it hears nothing while it sends) and a
+receiver per cell. Carrier is detected ``cca_bits`` after another transmission starts,
+so two bridges that start within that window collide, as on a real shared wire.
+
+Access rule (CSMA/CA as in 802.11's distributed coordination): a data frame draws a
+backoff of random slots from a contention window that doubles with each retransmission
+and starts in proportion to the number of bridges sharing our cells (so a crowded cell
+does not collide itself to a standstill, and a quiet one wastes no idle slots);
+the backoff counts down only while the cell has been idle for DIFS, and a transmission
+heard meanwhile freezes it (the slots already idle are kept). A link acknowledgement
+goes out after the shorter SIFS with no backoff, so nobody else can grab the cell
+between a frame and its acknowledgement.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass
+
+PREAMBLE_BITS = 16  #: sync word before every frame on the cell
+
+
+@dataclass(frozen=True)
+class TransceiverConfig:
+    bit_cycles: int = 50  #: 1 Mbit/s at 50 MHz
+    sifs_bits: int = 12  #: turnaround before an acknowledgement
+    difs_bits: int = 40  #: idle time before contention starts
+    slot_bits: int = 8  #: one backoff slot
+    cw_min: int = 32  #: contention window (slots), first attempt
+    cw_max: int = 4096
+    slots_per_contender: int = 32  #: the window grows with the bridges sharing our cells
+    cca_bits: int = 4  #: carrier detection delay
+
+
+class Transceiver:
+    """Half-duplex CSMA transmitter of one bridge (on all of its cells at once)."""
+
+    def __init__(self, rng: random.Random, config: TransceiverConfig = TransceiverConfig()) -> None:
+        self.config = config
+        self._rng = rng
+        self._busy: dict[int, tuple[int, int]] = {}  #: cell -> (carrier from, until)
+        self.tx_until = 0  #: own transmission ends at this tick
+        self._frame: bytes | None = None
+        self._cells: tuple[int, ...] = ()
+        self._urgent_cells: tuple[int, ...] = ()
+        self._at = 0  #: planned start of the pending frame
+        self._t0 = 0  #: when the backoff countdown began (cell idle for DIFS)
+        self._slots = 0  #: backoff slots still to count down
+        self._cw = config.cw_min
+        self._urgent: bytes | None = None
+        self._urgent_at = 0
+        self.cca_busy = 0  #: planned starts that found the cell busy and backed off again
+        self.contenders = 0  #: bridges heard on our cells (set by the firmware from its neighbours)
+        self.transmissions = 0
+        self.bits_sent = 0
+
+    def airtime(self, n_bytes: int) -> int:
+        """Cycles one frame of ``n_bytes`` occupies the cell."""
+        return (n_bytes * 8 + PREAMBLE_BITS) * self.config.bit_cycles
+
+    @property
+    def idle(self) -> bool:
+        """No frame waiting for the cell (a new one may be handed over)."""
+        return self._frame is None
+
+    def send(self, frame: bytes, cells: tuple[int, ...], tick: int, attempt: int = 0) -> None:
+        """Contend for ``cells`` with ``frame`` (the previous one must have gone out).
+        ``attempt`` > 0 (a retransmission) starts with a wider contention window."""
+        if self._frame is not None:
+            raise RuntimeError("transceiver already holds a frame")
+        self._frame = frame
+        self._cells = cells
+        c = self.config
+        base = max(c.cw_min, c.slots_per_contender * self.contenders)
+        self._cw = min(base << min(attempt, 8), c.cw_max)
+        self._slots = self._rng.randrange(self._cw)
+        self._plan(tick)
+
+    def send_ack(self, frame: bytes, cells: tuple[int, ...], tick: int) -> None:
+        """Send an acknowledgement SIFS after ``tick`` (the end of the frame it answers)."""
+        self._urgent = frame
+        self._urgent_cells = cells
+        self._urgent_at = max(tick, self.tx_until) + self.config.sifs_bits * self.config.bit_cycles
+
+    def carrier(self, cell: int, start: int, until: int) -> None:
+        """The medium reports a transmission on ``cell`` over [start, until)."""
+        c = self.config
+        seen = start + c.cca_bits * c.bit_cycles
+        old = self._busy.get(cell)
+        if old is None or old[1] < seen:
+            self._busy[cell] = (seen, until)
+        elif until > old[1]:
+            self._busy[cell] = (old[0], until)
+        if self._frame is not None and cell in self._cells and seen <= self._at:
+            # freeze the countdown: slots idle before the carrier are kept, the rest resume
+            # DIFS after it ends
+            slot = c.slot_bits * c.bit_cycles
+            if seen > self._t0:
+                self._slots = max(0, self._slots - (seen - self._t0) // slot)
+            self._t0 = max(self._t0, until + c.difs_bits * c.bit_cycles)
+            self._at = self._t0 + self._slots * slot
+
+    def busy_until(self, cells: tuple[int, ...]) -> int:
+        """When carrier on ``cells`` (or our own transmission) ends, as far as known."""
+        end = self.tx_until
+        busy = self._busy
+        for c in cells:
+            b = busy.get(c)
+            if b is not None and b[1] > end:
+                end = b[1]
+        return end
+
+    def _last_busy(self, tick: int) -> tuple[int, int]:
+        """(start, end) of the latest carrier sensed by ``tick`` on our cells (or own sending)."""
+        best = (self.tx_until, self.tx_until)
+        busy = self._busy
+        for c in self._cells:
+            b = busy.get(c)
+            if b is not None and b[0] <= tick and b[1] > best[1]:
+                best = b
+        return best
+
+    def _plan(self, tick: int) -> None:
+        c = self.config
+        self._t0 = max(tick, self._last_busy(tick)[1] + c.difs_bits * c.bit_cycles)
+        self._at = self._t0 + self._slots * c.slot_bits * c.bit_cycles
+
+    @property
+    def next_tick(self) -> int | None:
+        if self._urgent is not None:
+            return self._urgent_at
+        return self._at if self._frame is not None else None
+
+    def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
+        """(bytes, cells) to put on the cells now, if a transmission starts at ``tick``."""
+        if self._urgent is not None:
+            if tick < self._urgent_at:
+                return None
+            if tick < self.tx_until:  # still sending: go right after
+                self._urgent_at = self.tx_until
+                return None
+            out, self._urgent = self._urgent, None
+            return self._start(out, self._urgent_cells, tick)
+        if self._frame is None or tick < self._at:
+            return None
+        if tick < self.tx_until:  # our own acknowledgement went out meanwhile
+            self._plan(self.tx_until)
+            return None
+        start, end = self._last_busy(tick)
+        if start <= tick < end:  # reported late (a real-time medium): defer, keep the slots
+            self.cca_busy += 1
+            self._plan(end)
+            return None
+        out, self._frame = self._frame, None
+        return self._start(out, self._cells, tick)
+
+    def _start(self, data: bytes, cells: tuple[int, ...], tick: int) -> tuple[bytes, tuple[int, ...]]:
+        self.tx_until = tick + self.airtime(len(data))
+        self.transmissions += 1
+        self.bits_sent += len(data) * 8
+        return data, cells

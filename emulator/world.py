@@ -1,0 +1,161 @@
+"""The world: what presses on the skin, and the capacitance each element then has.
+
+Contacts are disks (force, diameter) that start, last, and may move in a straight
+line. Their effect on every element goes through :func:`cellbridge.tactile.skin_response`
+(exact share of each disk on each element at pressure F/S), so a press straddling
+two elements gives each the right ΔC1/ΔC2. The same object serves a scenario file
+(all contacts known ahead) and live injection (``press`` while the mesh runs).
+
+Scenario files (TOML)::
+
+    [[contact]]
+    start = 0.5              # s after the mesh starts
+    duration = 1.0           # s
+    position = [0.04, 0.0]   # centre at the start (m)
+    force = 2.0              # N
+    diameter = 0.02          # m
+    velocity = [0.01, 0.0]   # optional, m/s
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from cellbridge.emulator.mesh import Mesh, read_text
+from cellbridge.tactile import ElementParams, SkinLayout, skin_response
+
+_CONTACT_KEYS = {"start", "duration", "position", "force", "diameter", "velocity"}
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be used; the message names the key and the problem."""
+
+
+@dataclass(frozen=True)
+class Contact:
+    start: float
+    duration: float
+    x: float
+    y: float
+    force: float
+    diameter: float
+    vx: float = 0.0
+    vy: float = 0.0
+
+    def active(self, t: float) -> bool:
+        return self.start <= t < self.start + self.duration
+
+    def at(self, t: float) -> tuple[float, float, float, float]:
+        dt = t - self.start
+        return (self.x + self.vx * dt, self.y + self.vy * dt, self.force, self.diameter)
+
+
+def _num(e: Mapping[str, Any], key: str, where: str, lo: float, strict: bool = False) -> float:
+    if key not in e:
+        raise ScenarioError(f"{where}: missing key '{key}'")
+    v = e[key]
+    if type(v) not in (int, float) or not math.isfinite(v) or v < lo or (strict and v == lo):
+        raise ScenarioError(f"{where}.{key}: must be a number {'>' if strict else '>='} {lo}, got {v!r}")
+    return float(v)
+
+
+def _pair(e: Mapping[str, Any], key: str, where: str) -> tuple[float, float]:
+    v = e[key]
+    if not isinstance(v, list) or len(v) != 2 or not all(type(x) in (int, float) and math.isfinite(x) for x in v):
+        raise ScenarioError(f"{where}.{key}: must be [x, y], got {v!r}")
+    return float(v[0]), float(v[1])
+
+
+def contact_from_mapping(e: Mapping[str, Any], where: str) -> Contact:
+    extra = sorted(set(e) - _CONTACT_KEYS)
+    if extra:
+        raise ScenarioError(f"{where}: unknown key '{extra[0]}' (allowed: {', '.join(sorted(_CONTACT_KEYS))})")
+    if "position" not in e:
+        raise ScenarioError(f"{where}: missing key 'position'")
+    x, y = _pair(e, "position", where)
+    vx, vy = _pair(e, "velocity", where) if "velocity" in e else (0.0, 0.0)
+    return Contact(_num(e, "start", where, 0.0), _num(e, "duration", where, 0.0, True), x, y,
+                   _num(e, "force", where, 0.0, True), _num(e, "diameter", where, 0.0, True), vx, vy)
+
+
+def parse_scenario(text: str, source: str = "scenario") -> list[Contact]:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
+    extra = sorted(set(data) - {"contact"})
+    if extra:
+        raise ScenarioError(f"{source}: unknown key '{extra[0]}' (a scenario holds [[contact]] tables)")
+    raw = data.get("contact", [])
+    if not isinstance(raw, list):
+        raise ScenarioError(f"{source}: 'contact' must be an array of tables ([[contact]])")
+    return [contact_from_mapping(e, f"{source}: contact[{i}]") for i, e in enumerate(raw)]
+
+
+def load_scenario(path: str) -> list[Contact]:
+    return parse_scenario(read_text(path, "scenario", ScenarioError), path)
+
+
+class World:
+    """Element capacitances of a mesh's skin over time (one element per bridge)."""
+
+    def __init__(self, mesh: Mesh, contacts: list[Contact] | None = None,
+                 params: ElementParams | None = None, clock_hz: int = 50_000_000,
+                 quantum: float = 1e-3, bridges: list[int] | None = None) -> None:
+        """``bridges`` limits the elements evaluated (a bridge process needs only its own:
+        without membrane spread an element's response depends on nothing else)."""
+        self.params = params or ElementParams(side=mesh.side)
+        ids = list(mesh.ids if bridges is None else bridges)
+        self.layout = SkinLayout(np.array([mesh.bridge(b).position for b in ids]), mesh.side, np.array(ids))
+        self.index = {b: i for i, b in enumerate(ids)}
+        self.contacts: list[Contact] = list(contacts or [])
+        self.clock_hz = clock_hz
+        self.quantum = quantum  # moving contacts are re-evaluated at most this often
+        self.rest = (self.params.C1_rest, self.params.C2_rest)
+        self._key: object = None
+        self._c1 = np.full(self.layout.n, self.rest[0])
+        self._c2 = np.full(self.layout.n, self.rest[1])
+
+    def press(self, contact: Contact) -> None:
+        self.contacts.append(contact)
+        self._key = None
+
+    def set_contacts(self, contacts: list[Contact]) -> None:
+        """Replace every contact (a bridge process mirroring the world process)."""
+        if contacts != self.contacts:
+            self.contacts = list(contacts)
+            self._key = None
+
+    def capacitances(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(C1, C2) of every element at time ``t`` (s), parasitics included."""
+        active = tuple(i for i, c in enumerate(self.contacts) if c.active(t))
+        moving = any(self.contacts[i].vx or self.contacts[i].vy for i in active)
+        key = (active, math.floor(t / self.quantum) if moving else None)
+        if key != self._key:
+            self._key = key
+            if active:
+                d1, d2 = skin_response(self.layout, [self.contacts[i].at(t) for i in active], self.params)
+                self._c1 = self.rest[0] + d1
+                self._c2 = self.rest[1] + d2
+            else:
+                self._c1 = np.full(self.layout.n, self.rest[0])
+                self._c2 = np.full(self.layout.n, self.rest[1])
+        return self._c1, self._c2
+
+    def sense_for(self, bridge: int):
+        """``sense(tick) -> (C1, C2)`` of one bridge's element, for its firmware."""
+        i = self.index[bridge]
+        clock = float(self.clock_hz)
+
+        def sense(tick: int) -> tuple[float, float]:
+            if not self.contacts:
+                return self.rest
+            c1, c2 = self.capacitances(tick / clock)
+            return float(c1[i]), float(c2[i])
+
+        return sense

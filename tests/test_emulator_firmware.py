@@ -1,0 +1,208 @@
+"""Firmware parts and behaviour: commands, reporting modes, downlink flooding, the world."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings as hsettings, strategies as st
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.commands import Settings, execute
+from cellbridge.emulator.reporting import Reporter, ReportingMode
+from cellbridge.emulator.standin_chip import Chip
+from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world import Contact, ScenarioError, World, parse_scenario
+from cellbridge.protocol import (
+    ADDR_BROADCAST, Command, CommandReply, Flags, Frame, FrameType, Mode, Op, Status,
+)
+from cellbridge.tactile import ElementParams, expected_counts
+
+HOST = 0
+
+
+def cmd(seq: int, target: int, op: Op, value: int | None = None, token: int = 1) -> Frame:
+    return Frame(0, target, HOST, seq, Command(token, op, value), flags=int(Flags.ACK_REQUEST))
+
+
+def replies(frames: list[Frame]) -> dict[int, list[CommandReply]]:
+    out: dict[int, list[CommandReply]] = {}
+    for f in frames:
+        if f.type is FrameType.CMD_REPLY:
+            out.setdefault(f.origin, []).append(f.payload)  # type: ignore[arg-type]
+    return out
+
+
+# -- pure parts ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("op, value, status", [
+    (Op.SET_RATE, 250, Status.OK),
+    (Op.SET_RATE, 251, Status.BAD_VALUE),  # above the gate limit 1/(2·2 ms)
+    (Op.SET_RATE, 0, Status.BAD_VALUE),
+    (Op.SET_MODE, 1, Status.OK),
+    (Op.SET_MODE, 2, Status.BAD_VALUE),
+    (Op.SET_GATE, 50_000, Status.OK),
+    (Op.SET_GATE, 10, Status.BAD_VALUE),
+    (Op.SET_OVERSAMPLING, 64, Status.OK),
+    (Op.SET_OVERSAMPLING, 0, Status.BAD_VALUE),
+    (Op.SET_REPORTING, 40 | 500 << 32, Status.OK),
+    (Op.SET_REPORTING, 40 | 10**6 << 32, Status.BAD_VALUE),
+    (Op.SET_RATE, None, Status.BAD_VALUE),
+    (Op.PING, None, Status.OK),
+])
+def test_execute_checks_every_value(op: Op, value: int | None, status: Status) -> None:
+    reply, new = execute(Command(7, op, value), Settings(), CLOCK_HZ, 12345)
+    assert reply.status is status and reply.token == 7 and reply.op is op
+    assert (new is not None) == (status is Status.OK and op is not Op.PING)
+    if op is Op.PING:
+        assert reply.value == 12345
+
+
+def test_gate_change_that_breaks_the_rate_is_refused() -> None:
+    s = Settings(rate_hz=250)
+    reply, new = execute(Command(1, Op.SET_GATE, 200_000), s, CLOCK_HZ, 0)
+    assert reply.status is Status.BAD_VALUE and new is None
+
+
+def test_reporting_value_round_trip() -> None:
+    m = ReportingMode.from_value(40 | 2000 << 32)
+    assert (m.threshold, m.heartbeat_ms) == (40, 2000) and m.to_value() == 40 | 2000 << 32
+    assert ReportingMode.from_value(0).periodic
+    assert ReportingMode.from_value(5).heartbeat_ms == 1000
+
+
+@hsettings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 65535), st.integers(0, 65535)), min_size=1, max_size=200),
+       st.integers(1, 500))
+def test_event_reporting_never_hides_a_change_beyond_the_threshold(values, threshold) -> None:
+    """Between two sent samples every suppressed one is within the threshold of the last sent."""
+    from cellbridge.protocol import Sample
+
+    rep = Reporter(ReportingMode(threshold, 1000), cycles_per_ms=50_000)
+    last = None
+    n_sent = 0
+    for i, (a, b) in enumerate(values):
+        s = Sample(0, i * 10, a, b)  # far below the heartbeat
+        sent = rep.wants(s)
+        n_sent += sent
+        if last is None:
+            assert sent
+        elif not sent:
+            for x, y in ((a, last.c1), (b, last.c2)):
+                d = abs(x - y)
+                assert min(d, 65536 - d) <= threshold
+        if sent:
+            last = s
+    assert rep.suppressed == len(values) - n_sent
+
+
+def test_standin_chip_is_deterministic_and_near_the_transfer_function() -> None:
+    chip = Chip(seed=3)
+    c = ElementParams().C1_rest
+    a = [chip.count(0, c, 1000 * k, 100_000)[0] for k in range(200)]
+    assert a == [chip.count(0, c, 1000 * k, 100_000)[0] for k in range(200)]
+    assert abs(sum(a) / len(a) - float(expected_counts(c))) < 1.0
+    assert len(set(a)) > 1  # it is noisy
+
+
+# -- the world -----------------------------------------------------------------------
+
+
+def test_scenario_parsing_and_errors() -> None:
+    cs = parse_scenario("[[contact]]\nstart = 1\nduration = 0.5\nposition = [0.0, 0.04]\n"
+                        "force = 2.0\ndiameter = 0.02\nvelocity = [0.01, 0]\n")
+    assert cs == [Contact(1.0, 0.5, 0.0, 0.04, 2.0, 0.02, 0.01, 0.0)]
+    for text, words in [
+        ("[[contact]]\nstart = 1\nduration = 1\nposition = [0, 0]\nforce = 1\ndiameter = 0.01\nspin = 2\n",
+         "unknown key 'spin'"),
+        ("[[contact]]\nstart = 1\nduration = 1\nposition = [0, 0]\ndiameter = 0.01\n", "missing key 'force'"),
+        ("[[contact]]\nstart = 1\nduration = 1\nposition = [0, 0]\nforce = -1\ndiameter = 0.01\n", "force"),
+        ("[[contact]]\nstart = 1\nduration = 1\nposition = 3\nforce = 1\ndiameter = 0.01\n", "position"),
+        ("wind = 3\n", "unknown key 'wind'"),
+    ]:
+        with pytest.raises(ScenarioError, match=words):
+            parse_scenario(text, "s.toml")
+
+
+def test_world_press_straddling_two_elements_splits_the_response() -> None:
+    mesh = meshgen.line(3)
+    w = World(mesh, [Contact(0.0, 1.0, 0.02, 0.0, 3.0, 0.02)])  # on the seam of elements 1 and 2
+    c1, c2 = w.capacitances(0.5)
+    rest1, rest2 = w.rest
+    assert c1[0] - rest1 == pytest.approx(c1[1] - rest1, rel=1e-9) and c1[0] > rest1
+    assert c1[2] == rest1 and c2[2] == rest2
+    c1_late, _ = w.capacitances(1.5)
+    assert (c1_late == rest1).all()
+
+
+def test_moving_contact_moves_the_response() -> None:
+    mesh = meshgen.line(3)
+    w = World(mesh, [Contact(0.0, 2.0, 0.0, 0.0, 3.0, 0.02, vx=0.04)])  # one pitch a second
+    assert w.capacitances(0.1)[0].argmax() == 0
+    assert w.capacitances(1.05)[0].argmax() == 1
+
+
+# -- behaviour in a mesh ---------------------------------------------------------------
+
+
+def test_commands_reach_their_target_and_reply() -> None:
+    mesh = meshgen.line(6)
+    vm = VirtualMesh(mesh, seed=2)
+    vm.host_write(1, cmd(100, 6, Op.PING, token=11), at=1.0)
+    vm.host_write(1, cmd(101, 4, Op.SET_RATE, 200, token=12), at=1.1)
+    vm.host_write(1, cmd(102, 5, Op.SET_RATE, 999, token=13), at=1.2)
+    vm.host_write(1, cmd(103, 3, Op.SET_REPORTING, 40, token=14), at=1.3)
+    vm.host_write(1, cmd(103, 3, Op.SET_REPORTING, 40, token=14), at=1.35)  # repeated: done once
+    vm.host_write(1, cmd(104, 2, Op.RESET, token=15), at=1.4)
+    r = vm.run(3.0)
+    rep = replies(r.gateway_frames[1])
+    assert [x.token for x in rep[6]] == [11] and rep[6][0].value > 1.0 * CLOCK_HZ
+    assert rep[4][0].status is Status.OK
+    assert rep[5][0].status is Status.BAD_VALUE
+    assert len(rep[3]) == 1 and rep[3][0].status is Status.OK
+    assert rep[2][0].op is Op.RESET and r.counters[2]["command_resets"] == 1
+    assert set(rep) == {2, 3, 4, 5, 6}  # nobody else answered
+    rate4 = [s.cycle for s in r.samples()[4] if 2.0 * CLOCK_HZ <= s.cycle < 2.5 * CLOCK_HZ]
+    assert len(rate4) == 100  # 200 Hz for half a second
+
+
+def test_broadcast_command_reaches_every_bridge() -> None:
+    mesh = meshgen.grid(3, 3)
+    vm = VirtualMesh(mesh, seed=3)
+    vm.host_write(1, cmd(7, ADDR_BROADCAST, Op.SET_MODE, int(Mode.ADC), token=5), at=1.0)
+    r = vm.run(2.5)
+    assert set(replies(r.gateway_frames[1])) == set(mesh.ids)
+    late = [f for f in r.gateway_frames[1] if f.type is FrameType.DATA and f.payload.samples[0].cycle > 1.6 * CLOCK_HZ]
+    assert late and all(f.payload.mode is Mode.ADC and f.payload.oversampling == 16 for f in late)
+
+
+def _data_rate(vm: VirtualMesh, lo: float, hi: float) -> float:
+    frames = vm.result().gateway_frames[1]
+    n = sum(1 for f in frames if f.type is FrameType.DATA and lo * CLOCK_HZ <= f.payload.samples[0].cycle < hi * CLOCK_HZ)
+    return n / (hi - lo)
+
+
+def test_event_reporting_sends_far_fewer_frames_when_idle_and_reports_every_press() -> None:
+    mesh = meshgen.grid(4, 4)
+    presses = [Contact(2.0 + 0.5 * i, 0.2, x, y, 2.0, 0.02)
+               for i, (x, y) in enumerate([(0.0, 0.0), (0.06, 0.04), (0.12, 0.12)])]
+    runs = {}
+    for mode in ("periodic", "event"):
+        vm = VirtualMesh(mesh, seed=4, world=World(mesh, list(presses)))
+        if mode == "event":
+            vm.host_write(1, cmd(1, ADDR_BROADCAST, Op.SET_REPORTING, 40 | 1000 << 32), at=0.2)
+        vm.run(4.5)
+        runs[mode] = vm
+    idle = {m: _data_rate(vm, 0.5, 2.0) for m, vm in runs.items()}
+    assert idle["event"] < 0.1 * idle["periodic"]
+    r = runs["event"].result()
+    samples = r.samples()
+    world = runs["event"].world
+    for p in presses:
+        c1, _ = world.capacitances(p.start + 0.1)
+        pressed = [b for b, v in zip(mesh.ids, c1) if v > world.rest[0] * 1.02]
+        assert pressed
+        for b in pressed:
+            during = [s for s in samples[b] if p.start * CLOCK_HZ <= s.cycle < (p.start + p.duration) * CLOCK_HZ]
+            base = [s for s in samples[b] if s.cycle < p.start * CLOCK_HZ][-1]
+            assert during and min(s.c1 for s in during[1:] or during) < base.c1 - 40  # more C, fewer counts
+    assert r.total("suppressed") > 0

@@ -1,0 +1,81 @@
+"""The cell medium and the transceiver on their own: collisions, half duplex, loss, CSMA."""
+
+from __future__ import annotations
+
+import random
+
+from cellbridge.emulator.medium import Medium
+from cellbridge.emulator.mesh import Bridge, Cell, Link, Mesh
+from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
+from cellbridge.protocol import crc16
+
+BIT = 50
+
+
+def mesh(**kw) -> Mesh:
+    """Bridges 1, 2, 3 on cell 1; bridges 3 and 4 on cell 2."""
+    return Mesh((Cell(1), Cell(2)), (Bridge(1, (1,), (0.0, 0.0), True), Bridge(2, (1,), (0.04, 0.0)),
+                                     Bridge(3, (1, 2), (0.08, 0.0)), Bridge(4, (2,), (0.12, 0.0))), **kw)
+
+
+def test_a_transmission_reaches_every_other_bridge_on_its_cells_after_its_airtime() -> None:
+    m = Medium(mesh())
+    tx = m.start(3, b"x" * 10, (1, 2), 1000)
+    assert tx.end == 1000 + (10 * 8 + 16) * BIT
+    assert sorted(tx.receivers) == [(1, 1), (2, 1), (4, 2)]
+    assert sorted(r for r, _, _ in m.finish(tx)) == [1, 2, 4]
+
+
+def test_overlap_on_one_cell_collides_but_not_across_cells() -> None:
+    m = Medium(mesh())
+    a = m.start(1, b"a" * 20, (1,), 0)
+    b = m.start(4, b"b" * 20, (2,), 100)  # bridge 3 hears both, each on its own cell
+    assert {r for r, _, _ in m.finish(a)} == {2, 3}
+    assert {r for r, _, _ in m.finish(b)} == {3}
+    c = m.start(1, b"c" * 20, (1,), 10**6)
+    d = m.start(2, b"d" * 20, (1,), 10**6 + 100)  # same cell: bridge 3 gets neither
+    assert {r for r, _, _ in m.finish(c)} == set()  # 2 is sending (half duplex), 3 hears both
+    assert {r for r, _, _ in m.finish(d)} == set()
+    assert m.counters["collision"] >= 2 and m.counters["half_duplex"] >= 1
+
+
+def test_loss_bit_errors_and_cuts() -> None:
+    lossy = Medium(mesh(links=(Link(1, 2, loss=1.0),)))
+    tx = lossy.start(1, b"z" * 8, (1,), 0)
+    assert {r for r, _, _ in lossy.finish(tx)} == {3}
+    assert lossy.counters["lost"] == 1
+    noisy = Medium(mesh(ber=0.01), seed=3)
+    body = bytes(range(40))
+    frame = body + crc16(body).to_bytes(2, "big")
+    flipped = 0
+    for i in range(50):
+        tx = noisy.start(1, frame, (1,), i * 10**6)
+        for _, _, data in noisy.finish(tx):
+            flipped += data != frame
+            assert len(data) == len(frame)
+    assert flipped > 20 and noisy.counters["bit_errors"] == flipped
+    cut = Medium(mesh())
+    cut.cut_cell(2)
+    tx = cut.start(3, b"q" * 8, (1, 2), 0)
+    assert {r for r, _, _ in cut.finish(tx)} == {1, 2}
+
+
+def test_backoff_freezes_while_the_cell_is_busy() -> None:
+    radio = Transceiver(random.Random(1), TransceiverConfig(cw_min=8))
+    radio.send(b"f" * 30, (1,), 0)
+    planned = radio.next_tick
+    assert planned is not None and planned >= 40 * BIT  # DIFS first
+    radio.carrier(1, 0, 10_000)  # someone else transmits from the start
+    assert radio.next_tick >= 10_000 + 40 * BIT
+    assert radio.advance(5_000) is None
+    start = radio.next_tick
+    assert radio.advance(start) == (b"f" * 30, (1,))
+    assert start >= 10_000 + 40 * BIT and radio.tx_until == start + (30 * 8 + 16) * BIT
+
+
+def test_acknowledgement_goes_sifs_after_the_frame_without_backoff() -> None:
+    radio = Transceiver(random.Random(2))
+    radio.carrier(1, 0, 20_000)
+    radio.send_ack(b"ack", (1,), 20_000)
+    assert radio.next_tick == 20_000 + 12 * BIT
+    assert radio.advance(20_000 + 12 * BIT) == (b"ack", (1,))

@@ -1,0 +1,150 @@
+"""Mesh files: generators, round trip, and refusal of bad files with the key named."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+import shutil
+
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.mesh import MeshError, mesh_to_toml, parse_mesh
+
+CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
+
+GOOD = """
+[[cell]]
+id = 1
+[[cell]]
+id = 2
+[[bridge]]
+id = 1
+cells = [1]
+position = [0.0, 0.0]
+gateway = true
+[[bridge]]
+id = 2
+cells = [1, 2]
+position = [0.04, 0.0]
+[[bridge]]
+id = 3
+cells = [2]
+position = [0.08, 0.0]
+"""
+
+
+def test_good_file_parses() -> None:
+    m = parse_mesh(GOOD)
+    assert m.ids == [1, 2, 3] and m.gateways == [1]
+    assert m.neighbours() == {1: [2], 2: [1, 3], 3: [2]}
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda t: t + "\nbogus = 1\n", ["unknown key 'bogus'"]),
+    (lambda t: t.replace("position = [0.08, 0.0]", "position = [0.08, 0.0]\ncolour = 1"), ["bridge[2]", "colour"]),
+    (lambda t: t.replace("id = 3\ncells = [2]", "id = 2\ncells = [2]"), ["duplicate bridge id 2"]),
+    (lambda t: t.replace("[[cell]]\nid = 2", "[[cell]]\nid = 1"), ["duplicate cell id 1"]),
+    (lambda t: t.replace("cells = [2]\n", "cells = []\n"), ["bridge 3 is on no cell"]),
+    (lambda t: t.replace("cells = [1, 2]", "cells = [1]"), ["bridge 3 is unreachable"]),
+    (lambda t: t.replace("cells = [2]\n", "cells = [9]\n"), ["cell 9 is not declared"]),
+    (lambda t: t + "\n[[link]]\na = 1\nb = 7\nloss = 0.1\n", ["link[0].b", "missing bridge 7"]),
+    (lambda t: t.replace("gateway = true", ""), ["no bridge has 'gateway = true'"]),
+    (lambda t: t.replace("position = [0.04, 0.0]", "position = [0.02, 0.0]"), ["overlaps"]),
+    (lambda t: "loss = 2.0\n" + t, ["loss", "probability"]),
+    (lambda t: t.replace("id = 3\ncells", "cells"), ["bridge[2]", "missing key 'id'"]),
+    (lambda t: t + "\n[[bridge]\n", ["not valid TOML"]),
+])
+def test_bad_files_are_refused_naming_the_problem(edit, words) -> None:
+    with pytest.raises(MeshError) as exc:
+        parse_mesh(edit(GOOD), "skin.toml")
+    msg = str(exc.value)
+    assert msg.startswith("skin.toml")
+    for w in words:
+        assert w in msg
+
+
+@pytest.mark.parametrize("mesh, n, hops", [
+    (meshgen.line(8), 8, 7),
+    (meshgen.ring(10), 10, 5),
+    (meshgen.grid(4, 4), 16, 6),
+    (meshgen.random_mesh(32, seed=5), 32, None),
+])
+def test_generators_make_valid_connected_meshes(mesh, n, hops) -> None:
+    assert len(mesh.bridges) == n
+    assert mesh.reachable() == set(mesh.ids)
+    assert parse_mesh(mesh_to_toml(mesh)) == mesh
+    if hops is not None:  # breadth-first depth from the gateway
+        nb, depth, todo = mesh.neighbours(), {1: 0}, [1]
+        for b in todo:
+            for x in nb[b]:
+                if x not in depth:
+                    depth[x] = depth[b] + 1
+                    todo.append(x)
+        assert max(depth.values()) == hops
+
+
+def test_random_mesh_has_shared_cells() -> None:
+    m = meshgen.random_mesh(32, seed=1)
+    assert max(len(v) for v in m.members().values()) >= 3
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(2, 40), st.integers(0, 10_000))
+def test_random_meshes_round_trip_and_are_connected(n: int, seed: int) -> None:
+    m = meshgen.random_mesh(n, seed=seed)
+    assert m.reachable() == set(m.ids)
+    assert parse_mesh(mesh_to_toml(m)) == m
+
+
+def test_cut_cells_and_dead_bridges_change_reachability() -> None:
+    m = meshgen.line(5)
+    assert m.reachable(dead=frozenset({3})) == {1, 2}
+    assert m.reachable(cut=frozenset({1})) == {1}
+    r = meshgen.ring(6)
+    assert r.reachable(dead=frozenset({2})) == {1, 3, 4, 5, 6}
+
+
+def test_cli_gen_and_check(tmp_path: Path) -> None:
+    out = tmp_path / "g.toml"
+    r = subprocess.run([CLI, "mesh", "gen", "grid", "2", "3", "--gateways", "1,6", "-o", str(out)],
+                       capture_output=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert parse_mesh(out.read_text()).gateways == [1, 6]
+    r = subprocess.run([CLI, "mesh", "check", str(out)], capture_output=True, timeout=60)
+    assert r.returncode == 0 and b"6 bridges" in r.stdout
+    bad = tmp_path / "bad.toml"
+    bad.write_text(GOOD.replace("cells = [2]\n", "cells = []\n"))
+    r = subprocess.run([CLI, "mesh", "check", str(bad)], capture_output=True, timeout=60)
+    assert r.returncode == 2 and b"bridge 3 is on no cell" in r.stderr and b"Traceback" not in r.stderr
+    r = subprocess.run([CLI, "mesh", "gen", "line", "4", "--gateways", "9"], capture_output=True, timeout=60)
+    assert r.returncode == 2 and b"gateway 9" in r.stderr
+
+
+def test_cli_run_in_virtual_time_with_scenario_and_capture(tmp_path: Path) -> None:
+    import json
+
+    from cellbridge.protocol import FrameType, StreamDecoder
+
+    mesh = tmp_path / "line.toml"
+    mesh.write_text(mesh_to_toml(meshgen.line(3)))
+    scenario = tmp_path / "press.toml"
+    scenario.write_text("[[contact]]\nstart = 0.5\nduration = 0.4\nposition = [0.08, 0.0]\n"
+                        "force = 3.0\ndiameter = 0.02\n")
+    out = tmp_path / "cap"
+    r = subprocess.run([CLI, "mesh", "run", str(mesh), "--seconds", "1.5", "--scenario", str(scenario),
+                        "--capture", str(out)], capture_output=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert all(n > 100 for n in summary["samples_delivered"].values())
+    frames = StreamDecoder().feed((out / "gateway-1.bin").read_bytes())
+    c1 = {s.cycle: s.c1 for f in frames if f.type is FrameType.DATA and f.origin == 3 for s in f.payload.samples}
+    pressed = [v for cyc, v in c1.items() if 0.55e0 * 50e6 <= cyc < 0.85 * 50e6]
+    idle = [v for cyc, v in c1.items() if cyc < 0.45 * 50e6]
+    assert pressed and idle and max(pressed) < min(idle) - 100  # the press raised C1 of bridge 3
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[contact]]\nstart = 0\n")
+    r = subprocess.run([CLI, "mesh", "run", str(mesh), "--scenario", str(bad)], capture_output=True, timeout=60)
+    assert r.returncode == 2 and b"missing key" in r.stderr

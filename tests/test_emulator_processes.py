@@ -1,0 +1,197 @@
+"""Real processes, real ptys, real ZeroMQ on loopback: ``cellbridge mesh up`` and friends."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import serial
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.protocol import Command, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
+
+PY = [sys.executable, "-m", "cellbridge"]
+
+
+def free_base_port() -> int:
+    """A base port whose three ZeroMQ ports (base..base+2) are free right now."""
+    for _ in range(50):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base > 60000:
+            continue
+        try:
+            for p in range(base, base + 3):
+                with socket.socket() as t:
+                    t.bind(("127.0.0.1", p))
+            return base
+        except OSError:
+            continue
+    raise RuntimeError("no free ports")
+
+
+def processes_mentioning(text: str) -> list[int]:
+    pids = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if text in cmd and int(pid) != os.getpid():
+            pids.append(int(pid))
+    return pids
+
+
+class Skin:
+    def __init__(self, mesh_path: Path, base: int, proc: subprocess.Popen[bytes], gateways: dict[int, list[str]]):
+        self.mesh_path, self.base, self.proc, self.gateways = mesh_path, base, proc, gateways
+        self.decoder = StreamDecoder()
+
+    def wait_for(self, port: serial.SerialBase, origins: set[int], seconds: float = 15.0) -> set[int]:
+        """Origins of DATA seen until all of ``origins`` were (or ``seconds`` passed): a
+        loaded machine may take seconds to start the processes."""
+        seen: set[int] = set()
+        end = time.monotonic() + seconds
+        while not origins <= seen and time.monotonic() < end:
+            seen |= set(data_by_origin(self.read(port, 0.5)))
+        return seen
+
+    def read(self, port: serial.SerialBase, seconds: float) -> list[Frame]:
+        frames: list[Frame] = []
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            frames += self.decoder.feed(port.read(4096))
+        return frames
+
+
+@pytest.fixture
+def skin(tmp_path: Path) -> Iterator[Skin]:
+    mesh_path = tmp_path / "skin-2x2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.grid(2, 2)))
+    base = free_base_port()
+    proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(base), "--tcp"],
+                            stdout=subprocess.PIPE, start_new_session=True)
+    try:
+        line = proc.stdout.readline().decode().split()  # type: ignore[union-attr]
+        assert line[:2] == ["gateway", "1"] and line[2].startswith("/dev/pts/"), line
+        yield Skin(mesh_path, base, proc, {1: line[2:]})
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        for pid in processes_mentioning(str(mesh_path)):  # a failed test still leaves nothing
+            os.kill(pid, signal.SIGKILL)
+
+
+def data_by_origin(frames: list[Frame]) -> dict[int, list]:
+    out: dict[int, list] = {}
+    for f in frames:
+        if f.type is FrameType.DATA:
+            out.setdefault(f.origin, []).extend(f.payload.samples)  # type: ignore[union-attr]
+    return out
+
+
+def test_mesh_up_pty_press_kill_and_clean_stop(skin: Skin) -> None:
+    device, url = skin.gateways[1]
+    with serial.Serial(device, 115200, timeout=0.1) as pty:
+        skin.wait_for(pty, {1, 2, 3, 4})
+        frames = skin.read(pty, 3.0)
+        data = data_by_origin(frames)
+        assert set(data) == {1, 2, 3, 4}, {f.origin for f in frames}
+        assert {f.origin for f in frames if f.type is FrameType.HELLO} <= {1, 2, 3, 4}
+        rest = {b: sum(s.c1 for s in v[-20:]) / len(v[-20:]) for b, v in data.items()}
+
+        # press on bridge 4's element (0.04, 0.04): its C1 rises, so its counts fall
+        r = subprocess.run([*PY, "press", "0.04", "0.04", "--force", "3", "--diameter", "0.02",
+                            "--duration", "3", "--base-port", str(skin.base)], capture_output=True, timeout=20)
+        assert r.returncode == 0, r.stderr
+        skin.read(pty, 0.8)  # the world republishes; frames in flight drain
+        pressed = data_by_origin(skin.read(pty, 1.5))
+        assert set(pressed) == {1, 2, 3, 4}
+        mean = {b: sum(s.c1 for s in v) / len(v) for b, v in pressed.items()}
+        assert mean[4] < rest[4] - 200
+        assert all(abs(mean[b] - rest[b]) < 20 for b in (1, 2, 3))
+
+        # a command written to the pty reaches bridge 4 and its reply comes back
+        pty.write(encode_stream(Frame(0, 4, 0, 500, Command(77, Op.PING), flags=int(Flags.ACK_REQUEST))))
+        answers = [f for f in skin.read(pty, 2.0) if f.type is FrameType.CMD_REPLY]
+        assert [(f.origin, f.payload.token) for f in answers] == [(4, 77)]
+
+        # the same stream on the TCP port, as pyserial's socket:// URL
+        with serial.serial_for_url(url, timeout=0.1) as tcp:
+            dec = StreamDecoder()
+            got: list[Frame] = []
+            end = time.monotonic() + 2.0
+            while time.monotonic() < end and not got:
+                got += [f for f in dec.feed(tcp.read(4096)) if f.type is FrameType.DATA]
+            assert got
+
+        # kill one bridge process: the others keep delivering
+        os.kill(_bridge_pid(skin, 2), signal.SIGKILL)
+        skin.read(pty, 1.5)
+        assert {1, 3, 4} <= skin.wait_for(pty, {1, 3, 4})
+        assert {1, 3, 4} <= set(data_by_origin(skin.read(pty, 2.0))) <= {1, 3, 4}  # and 2 is gone
+
+    skin.proc.send_signal(signal.SIGTERM)
+    assert skin.proc.wait(15) == 0
+    time.sleep(0.2)
+    assert processes_mentioning(str(skin.mesh_path)) == []
+
+
+def _bridge_pid(skin: Skin, bridge: int) -> int:
+    for pid in processes_mentioning(str(skin.mesh_path)):
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        if b"bridge" in cmd and b"--id" in cmd and cmd[cmd.index(b"--id") + 1] == str(bridge).encode():
+            return pid
+    raise AssertionError(f"no process for bridge {bridge}")
+
+
+def test_bridges_survive_the_medium_dying_and_reconnect(skin: Skin) -> None:
+    device, _ = skin.gateways[1]
+    with serial.Serial(device, timeout=0.1) as pty:
+        assert {2, 3, 4} <= skin.wait_for(pty, {2, 3, 4})
+        medium = [p for p in processes_mentioning(str(skin.mesh_path))
+                  if b"medium" in Path(f"/proc/{p}/cmdline").read_bytes().split(b"\0")]
+        assert len(medium) == 1
+        os.kill(medium[0], signal.SIGKILL)
+        time.sleep(1.0)
+        skin.decoder.feed(pty.read(65536))
+        quiet = data_by_origin(skin.read(pty, 1.0))
+        assert set(quiet) <= {1}  # only the gateway's own element, no cell traffic
+        again = subprocess.Popen([*PY, "medium", "--mesh", str(skin.mesh_path), "--base-port", str(skin.base)],
+                                 start_new_session=True)
+        try:
+            assert {2, 3, 4} <= skin.wait_for(pty, {2, 3, 4})
+        finally:
+            again.send_signal(signal.SIGTERM)
+            again.wait(10)
+
+
+def test_bad_mesh_file_is_refused_by_every_process(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[cell]]\nid = 1\n[[bridge]]\nid = 1\ncells = [1]\nposition = [0, 0]\n")
+    for cmd in (["mesh", "up", str(bad)], ["bridge", "--mesh", str(bad), "--id", "1"],
+                ["medium", "--mesh", str(bad)]):
+        r = subprocess.run([*PY, *cmd], capture_output=True, timeout=30)
+        assert r.returncode == 2 and b"gateway" in r.stderr and b"Traceback" not in r.stderr, (cmd, r.stderr)
+
+
+def test_press_without_a_world_says_so() -> None:
+    r = subprocess.run([*PY, "press", "0", "0", "--timeout", "0.5", "--base-port", str(free_base_port())],
+                       capture_output=True, timeout=30)
+    assert r.returncode == 1 and b"no world process answered" in r.stderr

@@ -1,0 +1,174 @@
+"""Mesh topologies in virtual time: delivery, rerouting, loss, loops, duplicates, load sharing."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import pytest
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.commands import Settings
+from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
+from cellbridge.protocol import FrameType
+
+PERIOD = CLOCK_HZ // 100  # 100 Hz
+BEACON_PERIOD = 0.5  # FirmwareConfig.trickle_imax
+
+
+def missing(result: MeshResult, bridge: int, lo: float, hi: float, period: int = PERIOD) -> int:
+    """Samples of ``bridge`` started in [lo, hi) seconds that never reached a gateway."""
+    cycles = sorted({s.cycle for s in result.samples().get(bridge, [])
+                     if lo * CLOCK_HZ <= s.cycle < hi * CLOCK_HZ})
+    if not cycles:
+        return int((hi - lo) * CLOCK_HZ / period)
+    gaps = sum(round((b - a) / period) - 1 for a, b in zip(cycles, cycles[1:]))
+    head = (cycles[0] - lo * CLOCK_HZ) // period
+    tail = (hi * CLOCK_HZ - cycles[-1] - 1) // period
+    return int(gaps + head + tail)
+
+
+def assert_complete(result: MeshResult, bridges, lo: float, hi: float, allowed: int = 0,
+                    period: int = PERIOD) -> None:
+    lost = {b: missing(result, b, lo, hi, period) for b in bridges}
+    assert all(v <= allowed for v in lost.values()), lost
+
+
+def hops_by_origin(result: MeshResult) -> dict[int, set[int]]:
+    out: dict[int, set[int]] = {}
+    for frames in result.gateway_frames.values():
+        for f in frames:
+            out.setdefault(f.origin, set()).add(f.hops)
+    return out
+
+
+def test_line_of_8_delivers_every_sample_over_7_hops() -> None:
+    mesh = meshgen.line(8)
+    r = VirtualMesh(mesh, seed=1).run(4.0)
+    assert_complete(r, mesh.ids, 0.5, 3.7)
+    assert hops_by_origin(r)[8] == {7}
+    assert r.parents == {1: None, 2: 1, 3: 2, 4: 3, 5: 4, 6: 5, 7: 6, 8: 7}
+    assert r.cut_off == []
+    # HELLO and STATUS from every bridge reach the host
+    types = Counter((f.origin, f.type) for f in r.gateway_frames[1])
+    assert all(types[(b, FrameType.HELLO)] >= 1 and types[(b, FrameType.STATUS)] >= 1 for b in mesh.ids)
+
+
+@pytest.mark.parametrize("mesh, settings", [
+    (meshgen.grid(4, 4), Settings()),
+    (meshgen.ring(12), Settings()),
+    (meshgen.random_mesh(32, seed=2), Settings(rate_hz=50)),
+], ids=["grid4x4", "ring12", "random32"])
+def test_every_bridge_reaches_the_gateway(mesh, settings) -> None:
+    r = VirtualMesh(mesh, seed=3, settings=settings).run(4.0)
+    lost = {b: missing(r, b, 0.5, 3.6, CLOCK_HZ // settings.rate_hz) for b in mesh.ids}
+    assert all(v == 0 for v in lost.values()), lost
+    assert r.total("queue_drops") == 0
+
+
+def test_killing_a_relay_reroutes_within_three_beacon_periods() -> None:
+    mesh = meshgen.grid(4, 4)
+    vm = VirtualMesh(mesh, seed=4)
+    before = vm.run(2.0)
+    relay = 2 if 2 in before.parents.values() else 5
+    children = [b for b, p in before.parents.items() if p == relay]
+    assert children
+    vm.kill(relay, at=2.0)
+    r = vm.run(3.0)
+    alive = [b for b in mesh.ids if b != relay]
+    assert all(r.parents[b] != relay for b in alive)
+    assert_complete(r, alive, 2.0 + 3 * BEACON_PERIOD, 4.7)
+    assert r.cut_off == []
+
+
+def test_bridges_cut_off_by_a_dead_relay_are_reported() -> None:
+    mesh = meshgen.line(8)
+    vm = VirtualMesh(mesh, seed=5)
+    vm.kill(4, at=1.0)
+    r = vm.run(4.0)
+    assert r.cut_off == [5, 6, 7, 8]
+    assert all(r.counters[b]["route_lost"] >= 1 and r.counters[b]["has_route"] == 0 for b in (5, 6, 7, 8))
+    assert all(r.counters[b]["has_route"] == 1 for b in (1, 2, 3))
+    assert_complete(r, [1, 2, 3], 0.5, 3.7)
+    assert all(missing(r, b, 2.0, 3.7) == 170 for b in (5, 6, 7, 8))  # nothing after the cut
+    assert set(mesh.ids) - mesh.reachable(dead=frozenset({4})) == {4, 5, 6, 7, 8}
+
+
+def test_cut_cell_in_a_ring_reroutes_the_other_way() -> None:
+    mesh = meshgen.ring(8)
+    vm = VirtualMesh(mesh, seed=6)
+    vm.cut(1, at=1.0)  # the cell between bridges 1 and 2
+    r = vm.run(4.0)
+    assert r.parents[2] == 3
+    assert_complete(r, mesh.ids, 1.0 + 3 * BEACON_PERIOD, 3.7)
+
+
+def test_restarted_bridge_comes_back() -> None:
+    mesh = meshgen.line(4)
+    vm = VirtualMesh(mesh, seed=7)
+    vm.kill(3, at=1.0)
+    vm.restart(3, at=2.0)
+    r = vm.run(4.0)
+    assert r.counters[3]["resets"] == 1
+    hellos = [f for f in r.gateway_frames[1] if f.type is FrameType.HELLO and f.origin == 3]
+    assert len(hellos) >= 2  # once after power-on, once after the restart
+    assert_complete(r, [3, 4], 2.0 + 3 * BEACON_PERIOD, 3.7)
+
+
+def test_one_percent_loss_per_hop_over_8_hops_delivers_999_per_mille() -> None:
+    mesh = meshgen.line(9, loss=0.01)  # 8 hops from bridge 9
+    r = VirtualMesh(mesh, seed=8).run(10.8)
+    sent = 1000  # started in [0.5, 10.5) s; the run goes on long enough for the last to arrive
+    delivered = sent - missing(r, 9, 0.5, 10.5)
+    assert delivered / sent >= 0.999
+    assert hops_by_origin(r)[9] == {8}
+    assert r.medium["lost"] > 100 and r.total("retries") > 100  # the loss was real
+
+
+def test_duplicates_are_suppressed() -> None:
+    mesh = meshgen.line(6, loss=0.05)  # lost ACKs make hops retransmit frames already received
+    r = VirtualMesh(mesh, seed=9).run(5.0)
+    keys = [(f.origin, f.seq) for f in r.gateway_frames[1]]
+    assert len(keys) == len(set(keys))
+    assert r.total("duplicates") > 0
+
+
+def test_no_frame_circulates_in_a_loop_under_churn() -> None:
+    mesh = meshgen.random_mesh(24, seed=11, loss=0.02)
+    vm = VirtualMesh(mesh, seed=10, settings=Settings(rate_hz=50))
+    for i, b in enumerate([5, 9, 14, 3]):
+        vm.kill(b, at=1.0 + i)
+        vm.restart(b, at=1.5 + i)
+    r = vm.run(6.0)
+    n = len(mesh.bridges)
+    assert max(max(h) for h in hops_by_origin(r).values()) < n
+    keys = [(f.origin, f.seq) for f in r.gateway_frames[1]]
+    assert len(keys) == len(set(keys))
+    assert_complete(r, mesh.ids, 5.0, 5.7, period=CLOCK_HZ // 50)
+
+
+def test_two_gateways_share_the_load() -> None:
+    mesh = meshgen.line(8, gateways=(1, 8))
+    r = VirtualMesh(mesh, seed=12).run(4.0)
+    per_gw = {g: Counter(f.origin for f in fr if f.type is FrameType.DATA) for g, fr in r.gateway_frames.items()}
+    # each bridge uses the nearer gateway (the middle one either, by hysteresis), never both
+    assert {1, 2, 3} <= set(per_gw[1]) and {6, 7, 8} <= set(per_gw[8])
+    assert not set(per_gw[1]) & set(per_gw[8])
+    assert_complete(r, mesh.ids, 0.5, 3.7)
+
+
+def test_bit_errors_are_caught_by_crc_and_repaired_by_retries() -> None:
+    mesh = meshgen.line(4, ber=2e-4)
+    r = VirtualMesh(mesh, seed=13).run(4.0)
+    assert r.total("rx_crc") > 10
+    assert_complete(r, mesh.ids, 0.5, 3.7)
+
+
+def test_same_seed_same_run_other_seed_other_run() -> None:
+    mesh = meshgen.grid(3, 3)
+
+    def stream(seed: int) -> list[tuple[int, int, int]]:
+        r = VirtualMesh(mesh, seed=seed).run(1.5)
+        return [(f.origin, f.seq, f.hops) for f in r.gateway_frames[1]]
+
+    assert stream(1) == stream(1)
+    assert stream(1) != stream(2)

@@ -110,7 +110,10 @@ class Firmware:
     def _power_on(self, tick: int) -> None:
         c = self.config
         self.boot_tick = tick
-        self.seq = self.rng.randrange(0x10000)  # a restart does not reuse recent numbers
+        # A boot numbers from 0 and its first frame is the HELLO (seq 0): the protocol's
+        # evidence of a restart, without which the host and the relays would drop the new
+        # numbering as stale or duplicate (docs/protocol.md, duplicate filter).
+        self.seq = 0
         self.radio = Transceiver(self.rng, c.transceiver)
         self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries, ack_slack=c.ack_slack)
         self.router = Router(self.me, c.gateway, max_hops=c.max_hops,
@@ -123,7 +126,8 @@ class Firmware:
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters)
         self.status_at = tick + c.status_period
-        self.hello_at = tick if c.gateway else -1  # a relay says hello once it has a route
+        self._say_hello()  # queued until there is a route
+        self.hello_at = tick + c.hello_period
         self.reset_at = -1
         self.floods: list[tuple[int, bytes]] = []  # (when, frame) command copies still to send
 
@@ -242,8 +246,6 @@ class Firmware:
         had = self.router.has_route
         if self.router.select():
             self.trickle.reset(tick)
-        if not had and self.router.has_route and self.hello_at < 0:
-            self.hello_at = tick
         if had and not self.router.has_route:
             self.counters["route_lost"] += 1
 
@@ -260,7 +262,7 @@ class Firmware:
             # once more; the duplicate filter stops a second return
             self.counters["own_returned"] += 1
         key = (f.origin, f.seq)
-        if self.seen.is_duplicate(f.origin, f.seq):
+        if self.seen.is_duplicate(f.origin, f.seq, f.type == FrameType.HELLO):
             self.counters["duplicates"] += 1
             first = self.hops_seen.get(key)
             if first is not None and f.hops > first and not self.config.gateway:
@@ -278,6 +280,10 @@ class Firmware:
             return
         self.counters["forwarded"] += 1
         self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
+
+    def _say_hello(self) -> None:
+        c = self.config
+        self._own(Hello(self.me, FIRMWARE_VERSION, c.position[0], c.position[1], c.side, c.clock_hz, 3))
 
     def _own(self, message: Message) -> None:
         self._emit(own(message, self.me, self._next_seq()))
@@ -326,9 +332,8 @@ class Firmware:
                 self._reroute(tick)
                 self._send_beacon(tick)
         if 0 <= self.hello_at <= tick:
-            c = self.config
-            self._own(Hello(self.me, FIRMWARE_VERSION, c.position[0], c.position[1], c.side, c.clock_hz, 3))
-            self.hello_at = tick + c.hello_period
+            self._say_hello()
+            self.hello_at = tick + self.config.hello_period
         if self.status_at <= tick:
             self._status(tick)
             self.status_at = tick + self.config.status_period

@@ -17,6 +17,7 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import Mesh
+from cellbridge.emulator.chip import Chip, ChipConfig
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Frame, FrameType, StreamDecoder, encode_stream
@@ -26,13 +27,10 @@ _STATES = frozenset({"has_route", "queue_len", "resets"})  # counters that are s
 _FINISH, _FAULT, _WAKE = 0, 1, 2
 
 
-def default_chip(bridge: int, seed: int) -> object:
-    """The chip model: the cycle-exact one when present, else the stand-in."""
-    try:
-        from cellbridge.emulator.chip import Chip  # type: ignore[import-not-found]
-    except ImportError:
-        from cellbridge.emulator.standin_chip import Chip
-    return Chip(seed=seed * 65_537 + bridge)
+def default_chip(bridge: int, seed: int) -> Chip:
+    """The bridge's cycle-exact chip, its crystal offset drawn from the mesh seed."""
+    chip_seed = seed * 65_537 + bridge
+    return Chip(ChipConfig().with_random_crystal(chip_seed), seed=chip_seed)
 
 
 @dataclass
@@ -47,15 +45,28 @@ class MeshResult:
     seconds: float
     serial_bytes: dict[int, int] = field(default_factory=dict)
 
+    def delivered(self) -> list[tuple[int, int, int, Frame]]:
+        """(origin, boot, seq, frame) of every frame at every gateway, in each gateway's order.
+
+        A bridge numbers from 0 again after a reset and says so with a HELLO numbered 0, so
+        (origin, seq) repeats across boots; ``boot`` counts those HELLOs per origin."""
+        out = []
+        for frames in self.gateway_frames.values():
+            boots: dict[int, int] = {}
+            for f in frames:
+                if f.type is FrameType.HELLO and f.seq == 0:
+                    boots[f.origin] = boots.get(f.origin, -1) + 1
+                out.append((f.origin, boots.get(f.origin, 0), f.seq, f))
+        return out
+
     def samples(self) -> dict[int, list]:
         """origin -> every sample delivered to any gateway (duplicates across gateways removed)."""
-        seen: set[tuple[int, int]] = set()
+        seen: set[tuple[int, int, int]] = set()
         out: dict[int, list] = {}
-        for frames in self.gateway_frames.values():
-            for f in frames:
-                if f.type is FrameType.DATA and (f.origin, f.seq) not in seen:
-                    seen.add((f.origin, f.seq))
-                    out.setdefault(f.origin, []).extend(f.payload.samples)  # type: ignore[union-attr]
+        for origin, boot, seq, f in self.delivered():
+            if f.type is FrameType.DATA and (origin, boot, seq) not in seen:
+                seen.add((origin, boot, seq))
+                out.setdefault(origin, []).extend(f.payload.samples)  # type: ignore[union-attr]
         return out
 
     def total(self, name: str) -> int:

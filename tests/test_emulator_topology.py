@@ -127,7 +127,7 @@ def test_one_percent_loss_per_hop_over_8_hops_delivers_999_per_mille() -> None:
 def test_duplicates_are_suppressed() -> None:
     mesh = meshgen.line(6, loss=0.05)  # lost ACKs make hops retransmit frames already received
     r = VirtualMesh(mesh, seed=9).run(5.0)
-    keys = [(f.origin, f.seq) for f in r.gateway_frames[1]]
+    keys = [(origin, boot, seq) for origin, boot, seq, _ in r.delivered()]
     assert len(keys) == len(set(keys))
     assert r.total("duplicates") > 0
 
@@ -141,8 +141,10 @@ def test_no_frame_circulates_in_a_loop_under_churn() -> None:
     r = vm.run(6.0)
     n = len(mesh.bridges)
     assert max(max(h) for h in hops_by_origin(r).values()) < n
-    keys = [(f.origin, f.seq) for f in r.gateway_frames[1]]
+    keys = [(origin, boot, seq) for origin, boot, seq, _ in r.delivered()]
     assert len(keys) == len(set(keys))
+    boots = Counter(origin for origin, _, seq, f in r.delivered() if f.type is FrameType.HELLO and seq == 0)
+    assert all(boots[b] == 2 for b in (5, 9, 14, 3))  # each restart announced once
     assert_complete(r, mesh.ids, 5.0, 5.7, period=CLOCK_HZ // 50)
 
 

@@ -13,8 +13,9 @@ gone. So:
   *ready* and its ΔC is NaN.
 * **Common mode**: a change every element sees at once is drift, never touch. Each
   step the skin's common offset is the median residual of the tracked elements that
-  did not jump past their touch threshold — or of all tracked elements when nearly
-  all of them (``common_fraction``) jumped together, which no contact does. The offset
+  did not jump past their touch threshold, up or down — or of all tracked elements
+  when nearly all of them (``common_fraction``) jumped together the same way, which
+  no contact does. The offset
   is subtracted from *every* ready element (tracked, touched, held off, or without a
   reading this step), so a press held for minutes neither fades nor picks up the
   skin's drift, and an element that was silent comes back corrected.
@@ -312,17 +313,25 @@ class Calibrator:
 
     def _update_common(self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray) -> None:
         """The skin's common offset: median residual of the tracked elements that did
-        not jump past ``enter`` — or of all of them when nearly all jumped together."""
+        not jump past ±``enter`` — or of all of them when nearly all jumped together
+        the same way.
+
+        Both directions are excluded: with two tracked elements the median is their
+        mean, so one element far below the rest (a glitch, a baseline tared under a
+        press) would otherwise shift every other element by half its drop."""
         k = int(trk.sum())
         if k < self.config.min_common:
             return  # too few to tell drift from touch: the offset is carried
-        jump = trk & np.any(resid - self._common > enter, axis=1)
-        kj = int(jump.sum())
-        if kj and kj >= self.config.common_fraction * k:
+        off = resid - self._common
+        up = trk & np.any(off > enter, axis=1)
+        down = trk & np.any(off < -enter, axis=1)
+        need = self.config.common_fraction * k
+        most = max(int(up.sum()), int(down.sum()))
+        if most and most >= need:
             ref = trk
             self._common_jumps += 1
         else:
-            ref = trk & ~jump
+            ref = trk & ~up & ~down
         if int(ref.sum()) >= self.config.min_common:
             self._common = np.median(resid[ref], axis=0)
 

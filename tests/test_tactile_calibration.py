@@ -471,3 +471,51 @@ def test_missing_readings_do_not_restart_the_below_baseline_timer():
         feed(cal, 1.0 + 0.1 * k, low if k % 2 == 0 else gap)
     s = feed(cal, 5.0, low)
     assert abs(s.delta[0, 0]) < cfg.enter
+
+
+# ------------------------------------------- small skins: one element far below the rest
+
+
+def test_one_low_glitch_on_a_two_element_skin_does_not_touch_the_other():
+    # With two tracked elements the "median" is their mean: a −5 pF glitch on one
+    # used to pull the common offset down by 2.5 pF and report a 2.5 pF press on the
+    # other. A reading below −enter is excluded from the common reference just like
+    # one above +enter.
+    cal, t0, rng = ready_skin(2)
+    low = np.full((2, 2), 20 * pF)
+    low[0] -= 5 * pF
+    s = feed(cal, t0, low)
+    assert not s.touched.any()
+    assert np.abs(s.delta[1]).max() < 5 * fF
+    assert np.abs(cal.common_drift).max() < 5 * fF
+
+
+def test_tare_during_a_press_on_a_small_skin_does_not_touch_the_other_element():
+    # The user tares element 0 while it is pressed; on release it reads 2.2 pF below
+    # its baseline until the fast negative tracker has followed it. Meanwhile the
+    # other element of the 1×2 skin must stay untouched and read ~0.
+    cal, t0, rng = ready_skin(2)
+    press = np.zeros((2, 2))
+    press[0] = [2.2 * pF, 0.6 * pF]
+    run(cal, t0, t0 + 2.0, lambda t: 20 * pF + press)
+    cal.tare([0])
+    run(cal, t0 + 2.0, t0 + 10.0, lambda t: 20 * pF + press)
+    assert cal.ready.all()
+    touched = run(cal, t0 + 10.0, t0 + 40.0, lambda t: 20 * pF + rng.normal(0, 1 * fF, (2, 2)))
+    assert not touched[:, 1].any()
+    s = feed(cal, t0 + 40.0, np.full((2, 2), 20 * pF))
+    assert np.abs(s.delta).max() < 25 * fF  # element 0 followed back by the fast tracker
+
+
+def test_a_common_step_down_on_a_two_element_skin_is_still_drift():
+    # The counterpart of the rule above: when (nearly) all tracked elements fall
+    # together it is a common change, taken in the same step.
+    cal, t0, rng = ready_skin(2)
+    before = cal.health()["common_jumps"]
+    touched = run(cal, t0, t0 + 30.0, lambda t: 20 * pF - (t > t0 + 5.0) * 300 * fF
+                  + rng.normal(0, 1 * fF, (2, 2)))
+    assert not touched.any()
+    s = feed(cal, t0 + 30.0, np.full((2, 2), 20 * pF - 300 * fF))
+    assert np.abs(s.delta).max() < 5 * fF
+    assert cal.common_drift == pytest.approx([-300 * fF, -300 * fF], abs=5 * fF)
+    assert cal.health()["common_jumps"] == before + 1

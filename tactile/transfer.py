@@ -401,14 +401,16 @@ def counts_to_capacitance(
     """Capacitance (F) whose expected count is ``n`` (unwrapped; may be a mean).
 
     NaN for anything no counted oscillator gives: non-finite, zero or negative (a
-    dead oscillator or no reading), or more than one edge per two cycles (beyond the
-    synchroniser). A NaN is "no reading", which every later stage handles.
+    dead oscillator or no reading), so few edges that C would exceed ``C_MAX``, or
+    more than one edge per two cycles (beyond the synchroniser). A NaN is "no
+    reading", which every later stage handles.
     """
     ch = _chip(chip)
     nn = np.asarray(n, dtype=np.float64)
-    ok = (nn > 0) & (nn <= ch.gate_cycles / 2.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(ok, ch.gate_time / (_LN2x2 * ch.R_osc * nn), np.nan)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        c = ch.gate_time / (_LN2x2 * ch.R_osc * nn)
+    ok = (nn > 0) & (nn <= ch.gate_cycles / 2.0) & (c <= C_MAX)
+    return np.where(ok, c, np.nan)
 
 
 def counter_delta(

@@ -413,3 +413,16 @@ def test_mean_code_inversion_is_right_or_nan(c, sigma):
     assert math.isnan(back) or back == pytest.approx(c, rel=1e-5)
     if sigma >= 0.15:
         assert not math.isnan(back)
+
+
+def test_a_tiny_mean_count_is_no_reading_not_an_infinite_capacitance():
+    # A denormal or sub-count mean (a channel that almost never fired in the window)
+    # used to come back as inf F or tenths of a farad; anything above C_MAX is no
+    # capacitance any element has, so it is "no reading" like a zero count.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = counts_to_capacitance(np.array([5e-324, 1e-300, 1e-6, 0.5, 19_593.0]))
+    assert np.isnan(out[:3]).all()
+    assert np.isfinite(out[3:]).all() and out[3] <= 1e-3

@@ -277,7 +277,8 @@ class Calibrator:
         """Feed the readings of all elements at time ``t`` (s); NaN = no reading.
 
         ``values`` is (N, C), or (N,) when there is one channel. ``t`` is a scalar or
-        one time per element; times must not go backwards for any element. Feed one
+        one time per element (NaN for an element without a reading); times must not
+        go backwards for any element. Feed one
         vector per sampling period (the latest reading of every element, NaN where
         none came): the common offset is estimated across the elements of one step.
         """
@@ -287,10 +288,15 @@ class Calibrator:
             v = v[:, None]
         if v.shape != (n, c):
             raise ValueError(f"values must have shape ({n}, {c}), got {v.shape}")
-        tt = np.broadcast_to(np.asarray(t, dtype=np.float64), (n,))
-        if not np.all(np.isfinite(tt)):
-            raise ValueError("time must be finite")
+        t_arr = np.asarray(t, dtype=np.float64)
+        tt = np.broadcast_to(t_arr, (n,))
         sampled = np.all(np.isfinite(v), axis=1)
+        # NaN is allowed as the time of an element without a reading (as its values);
+        # inf never: it would end every hold-off and trip max_touch at once.
+        if (t_arr.ndim == 0 and not np.isfinite(t_arr)) or np.any(np.isinf(tt)) or not np.all(
+            np.isfinite(tt[sampled])
+        ):
+            raise ValueError("time must be finite (NaN only for an element without a reading)")
         if np.any(tt[sampled] < self._last_t[sampled]):
             raise ValueError("time went backwards for an element")
         if self._thr is None:

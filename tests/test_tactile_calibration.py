@@ -519,3 +519,24 @@ def test_a_common_step_down_on_a_two_element_skin_is_still_drift():
     assert np.abs(s.delta).max() < 5 * fF
     assert cal.common_drift == pytest.approx([-300 * fF, -300 * fF], abs=5 * fF)
     assert cal.health()["common_jumps"] == before + 1
+
+
+def test_per_element_times_may_be_nan_where_there_is_no_reading():
+    # A daemon that builds one time per element naturally leaves NaN where an
+    # element gave no reading, as it does for the values; that frame used to be
+    # refused whole ("time must be finite"), blinding every other element.
+    cfg = CalibrationConfig(n_baseline=3)
+    a, b = ready_calibrator(3, cfg), ready_calibrator(3, cfg)
+    v = np.full((3, 2), 20 * pF)
+    v[1] = np.nan
+    v[0] += 300 * fF  # a press on element 0
+    sa = a.update(np.array([1.0, np.nan, 1.0]), v)
+    sb = b.update(1.0, v)
+    np.testing.assert_array_equal(sa.delta, sb.delta)
+    np.testing.assert_array_equal(sa.touched, sb.touched)
+    assert sa.touched[0] and np.isnan(sa.delta[1]).all()
+    for bad in ([np.nan, 2.0, 2.0], [2.0, np.inf, 2.0]):  # a reading needs a time; inf is no time
+        with pytest.raises(ValueError, match="time"):
+            a.update(np.array(bad), np.full((3, 2), 20 * pF))
+    with pytest.raises(ValueError, match="time"):
+        a.update(np.nan, np.full((3, 2), np.nan))  # a scalar time must be a time

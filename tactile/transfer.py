@@ -374,13 +374,22 @@ class CounterUnwrapper:
         self, raw: ArrayLike, overflow: ArrayLike | None = None, sampled: ArrayLike | None = None
     ) -> tuple[IntArray, NDArray[np.bool_]]:
         """(counts, ambiguous) for one sample of every channel (``sampled``: which
-        channels carry a new sample; the others are left alone and returned as 0)."""
+        channels carry a new sample; the others are left alone and returned as 0).
+
+        ``raw`` may be a float array with NaN (or anything) in the channels that were
+        not sampled, as the rest of the host's per-element arrays are; the sampled
+        ones must hold integer counts."""
         r = np.asarray(raw)
         if r.shape != self._prev.shape:
             raise ValueError(f"raw must have shape {self._prev.shape}, got {r.shape}")
         s = np.ones(r.shape, dtype=bool) if sampled is None else np.broadcast_to(
             np.asarray(sampled, dtype=bool), r.shape)
         r = np.where(s, r, 0)
+        if r.dtype.kind == "f":
+            m = self.chip.counter_modulus
+            if not np.all((r == np.round(r)) & (r >= 0) & (r < m)):  # False for NaN
+                raise ValueError(f"raw counts must be integers in [0, {m})")
+            r = r.astype(np.int64)
         ov = None if overflow is None else np.where(s, np.asarray(overflow, dtype=bool), False)
         n = unwrap_counts(r, self._prev, self.chip, ov)
         amb = s & ((np.abs(n - self._prev) > self._span) | (n <= 0) | (n > self._max))

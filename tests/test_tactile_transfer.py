@@ -426,3 +426,28 @@ def test_a_tiny_mean_count_is_no_reading_not_an_infinite_capacitance():
         out = counts_to_capacitance(np.array([5e-324, 1e-300, 1e-6, 0.5, 19_593.0]))
     assert np.isnan(out[:3]).all()
     assert np.isfinite(out[3:]).all() and out[3] <= 1e-3
+
+
+def test_unwrapper_takes_nan_for_channels_without_a_sample():
+    # The daemon's readings are NaN where a channel gave none, like every other
+    # per-element array; a float array with NaN in unsampled channels used to be
+    # refused whole ("raw counts must be integers"), losing the sampled channels.
+    from cellbridge.tactile.transfer import CounterUnwrapper
+
+    un = CounterUnwrapper.for_elements(2)
+    ref = CounterUnwrapper.for_elements(2)
+    raw, ov = counts(np.broadcast_to(C_REST, (2, 2)), CHIP, 0.5)
+    fl = raw.astype(np.float64)
+    fl[1, 0] = np.nan
+    sampled = np.isfinite(fl)
+    n, amb = un.unwrap(fl, ov, sampled)
+    n_ref, amb_ref = ref.unwrap(np.where(sampled, raw, 0), ov, sampled)
+    np.testing.assert_array_equal(n, n_ref)
+    np.testing.assert_array_equal(amb, amb_ref)
+    assert n[1, 0] == 0 and n[0, 0] == raw[0, 0] and not amb.any()
+    np.testing.assert_array_equal(un.previous, ref.previous)
+    for bad in (np.nan, 19_588.5, -1.0):  # a sampled channel still needs an integer count
+        fl2 = raw.astype(np.float64)
+        fl2[0, 1] = bad
+        with pytest.raises(ValueError, match="integers"):
+            un.unwrap(fl2, ov, np.ones((2, 2), dtype=bool))

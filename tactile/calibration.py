@@ -137,6 +137,9 @@ class CalibrationStep(NamedTuple):
     delta: FloatArray  #: (N, C) reading − baseline; NaN where not ready or not sampled
     touched: NDArray[np.bool_]  #: (N,) contact present (hysteresis state)
     ready: NDArray[np.bool_]  #: (N,) baseline available
+    #: this step's common offset took a jump: a common step, or a press lifting
+    #: (nearly) every tracked element at once, which cannot be told apart here
+    common_jump: bool = False
 
 
 class Calibrator:
@@ -169,6 +172,7 @@ class Calibrator:
         self._below_since = np.full((n, c), np.inf)  # reading below −enter since (per channel)
         self._rebaselines = np.zeros(n, dtype=np.int64)
         self._common_jumps = 0
+        self._last_jump: dict[str, object] | None = None
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
 
     def _per_channel(self, v: float | Sequence[float], name: str) -> FloatArray:
@@ -226,6 +230,9 @@ class Calibrator:
             "rebaselined": [[int(i), int(self._rebaselines[i])] for i in hit],
             "common_offset": [float(x) for x in self._common],
             "common_jumps": self._common_jumps,
+            # when, by how much and on how many elements the offset last jumped: a
+            # common step or a press over (nearly) the whole skin (None: never)
+            "last_common_jump": None if self._last_jump is None else dict(self._last_jump),
         }
 
     def thresholds(self) -> tuple[FloatArray, FloatArray]:
@@ -305,8 +312,9 @@ class Calibrator:
         st = self._state
         live = sampled & (st != COLLECTING)  # ready elements with a reading this step
         resid = v - self._base  # NaN where not ready or not sampled
+        jumps = self._common_jumps
         if self.config.common_mode:
-            self._update_common(resid, live & (st == TRACKING), enter)
+            self._update_common(resid, live & (st == TRACKING), enter, tt)
         self._collect(sampled & (st == COLLECTING), v)
 
         delta = np.full((n, c), np.nan)
@@ -315,9 +323,11 @@ class Calibrator:
         self._track(live & (st == TRACKING), live, tt, delta, enter)
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
-        return CalibrationStep(delta, st == TOUCHED, st != COLLECTING)
+        return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps)
 
-    def _update_common(self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray) -> None:
+    def _update_common(
+        self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray, tt: FloatArray
+    ) -> None:
         """The skin's common offset: median residual of the tracked elements that did
         not jump past ±``enter`` — or of all of them when nearly all jumped together
         the same way.
@@ -333,13 +343,19 @@ class Calibrator:
         down = trk & np.any(off < -enter, axis=1)
         need = self.config.common_fraction * k
         most = max(int(up.sum()), int(down.sum()))
-        if most and most >= need:
-            ref = trk
-            self._common_jumps += 1
-        else:
-            ref = trk & ~up & ~down
+        jump = bool(most and most >= need)
+        ref = trk if jump else trk & ~up & ~down
         if int(ref.sum()) >= self.config.min_common:
-            self._common = np.median(resid[ref], axis=0)
+            new = np.median(resid[ref], axis=0)
+            if jump:
+                self._common_jumps += 1
+                self._last_jump = {
+                    "t": float(tt[trk].max()),
+                    "offset_change": [float(x) for x in new - self._common],
+                    "elements": most,
+                    "tracked": k,
+                }
+            self._common = new
 
     def _collect(self, col: NDArray[np.bool_], v: FloatArray) -> None:
         """Baseline collection (relative to the common offset of each reading's step)."""

@@ -540,3 +540,31 @@ def test_per_element_times_may_be_nan_where_there_is_no_reading():
             a.update(np.array(bad), np.full((3, 2), 20 * pF))
     with pytest.raises(ValueError, match="time"):
         a.update(np.nan, np.full((3, 2), np.nan))  # a scalar time must be a time
+
+
+# ------------------------------------ presses over (nearly) the whole skin: reported
+
+
+@pytest.mark.parametrize("rows, diameter", [(2, 0.040), (3, 0.120), (4, 0.160)])
+def test_a_press_over_the_whole_skin_is_reported_as_a_common_jump(rows, diameter):
+    # The documented price of the common-mode rule: a press that lifts (nearly) every
+    # tracked element in one step — any press centred on the junction of a 2×2 skin,
+    # a palm on a 3×3 or 4×4 — is taken for a common step and not touched. It must
+    # not vanish silently: the step says so and health() keeps when, how much and
+    # on how many elements (a 5 N palm on a 4×4 moves the offset by ≈0.2 pF, like a
+    # supply step: the size alone does not tell them apart).
+    skin = grid_layout(rows, rows)
+    c = 0.5 * (rows - 1) * 0.040
+    d1, d2 = skin_response(skin, [[c, c, 5.0, diameter]])
+    cal, t0, rng = ready_skin(skin.n)
+    quiet = feed(cal, t0, np.full((skin.n, 2), 20 * pF))
+    assert not quiet.common_jump and cal.health()["last_common_jump"] is None
+    s = feed(cal, t0 + 0.1, 20 * pF + np.stack([d1, d2], axis=1))
+    assert s.common_jump
+    last = cal.health()["last_common_jump"]
+    assert last["t"] == pytest.approx(t0 + 0.1)
+    assert last["elements"] == skin.n and last["tracked"] == skin.n
+    assert last["offset_change"][0] == pytest.approx(float(np.median(d1)), rel=0.01)
+    assert last["offset_change"][0] > 100 * fF
+    nxt = feed(cal, t0 + 0.2, 20 * pF + np.stack([d1, d2], axis=1))
+    assert not nxt.common_jump and cal.health()["last_common_jump"] == last

@@ -159,6 +159,7 @@ class Calibrator:
         if np.any(self._leave > self._enter):
             raise ValueError("leave thresholds must not exceed enter thresholds (hysteresis)")
         drift = self._per_channel(cfg.max_drift, "max_drift")
+        self._drift = drift
         with np.errstate(invalid="ignore"):  # 0 F/s on a frozen (tau = inf) baseline: 0
             self._clip = np.where(drift > 0, drift * cfg.tau, 0.0)
         self._buf = np.zeros((n, cfg.n_baseline, c))
@@ -172,6 +173,7 @@ class Calibrator:
         self._below_since = np.full((n, c), np.inf)  # reading below −enter since (per channel)
         self._rebaselines = np.zeros(n, dtype=np.int64)
         self._common_jumps = 0
+        self._catchups = 0
         self._last_jump: dict[str, object] | None = None
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
 
@@ -230,6 +232,7 @@ class Calibrator:
             "rebaselined": [[int(i), int(self._rebaselines[i])] for i in hit],
             "common_offset": [float(x) for x in self._common],
             "common_jumps": self._common_jumps,
+            "outage_catchups": self._catchups,
             # when, by how much and on how many elements the offset last jumped: a
             # common step or a press over (nearly) the whole skin (None: never)
             "last_common_jump": None if self._last_jump is None else dict(self._last_jump),
@@ -319,6 +322,7 @@ class Calibrator:
 
         delta = np.full((n, c), np.nan)
         delta[live] = resid[live] - self._common
+        self._catch_up(live & (st == TRACKING), tt, delta)
         self._hysteresis(live, tt, delta, enter, leave)
         self._track(live & (st == TRACKING), live, tt, delta, enter)
         self._last_t[sampled] = tt[sampled]
@@ -374,6 +378,29 @@ class Calibrator:
             self._state[done] = TRACKING
             self._count[done] = 0
             self._thr = None
+
+    def _catch_up(self, trk: NDArray[np.bool_], tt: FloatArray, delta: FloatArray) -> None:
+        """An element back from a silence longer than ``tau`` takes its reading as
+        baseline if the change fits the drift allowed over the gap (``max_drift`` per
+        second of it, every channel); otherwise nothing moves and the change is a touch.
+
+        Without this the tracker's per-step clip (±max_drift·tau) would cap the
+        catch-up after hours of silence at 10 fF, and an element's own drift over
+        those hours came back as a touch held for ``max_touch``. A press that appeared
+        during the gap and fits the allowance is absorbed, as one rising that slowly
+        would be; each catch-up is counted (``health()["outage_catchups"]``).
+        """
+        gap = tt - self._last_t
+        with np.errstate(invalid="ignore"):
+            back = trk & (gap > self.config.tau)
+        if not back.any():
+            return
+        with np.errstate(invalid="ignore"):  # 0 F/s × inf is never reached: gap is finite
+            fit = back & np.all(np.abs(delta) <= self._drift * gap[:, None], axis=1)
+        if fit.any():
+            self._base[fit] += delta[fit]
+            delta[fit] = 0.0
+            self._catchups += int(fit.sum())
 
     def _hysteresis(
         self, live: NDArray[np.bool_], tt: FloatArray, delta: FloatArray,

@@ -568,3 +568,41 @@ def test_a_press_over_the_whole_skin_is_reported_as_a_common_jump(rows, diameter
     assert last["offset_change"][0] > 100 * fF
     nxt = feed(cal, t0 + 0.2, 20 * pF + np.stack([d1, d2], axis=1))
     assert not nxt.common_jump and cal.health()["last_common_jump"] == last
+
+
+# ------------------------------------------------ an element back from a long outage
+
+
+def test_an_element_back_from_hours_of_silence_is_not_a_phantom_touch():
+    # Element 3's bridge is silent for 2 h while its own drift (what the common mode
+    # does not remove) moves it 150 fF, well within max_drift·2 h = 7.2 pF. It used
+    # to come back "touched" and stay so for max_touch (10 min of phantom contact)
+    # before being re-baselined. The tracker's rate bound holds across the gap: a
+    # change the element could have drifted while silent is drift.
+    cal, t0, rng = ready_skin(4)
+    own = np.zeros((4, 2))
+    silent = np.full((4, 2), 20 * pF)
+    silent[3] = np.nan
+    run(cal, t0, t0 + 5.0, lambda t: 20 * pF + rng.normal(0, 1 * fF, (4, 2)))
+    run(cal, t0 + 5.0, t0 + 7205.0, lambda t: silent, rate=0.1)
+    own[3] = [150 * fF, 90 * fF]
+    touched = run(cal, t0 + 7205.0, t0 + 7265.0, lambda t: 20 * pF + own + rng.normal(0, 1 * fF, (4, 2)))
+    assert not touched.any()
+    s = feed(cal, t0 + 7265.0, 20 * pF + own)
+    assert np.abs(s.delta).max() < 5 * fF
+    assert cal.health()["outage_catchups"] == 1 and cal.rebaselines.sum() == 0
+
+
+def test_a_press_larger_than_the_drift_an_outage_allows_is_reported_whole():
+    # 60 s of silence allow 60 fF of drift: a 2.2 pF press present when the element
+    # comes back is a touch, reported at its full size (no partial catch-up).
+    cal, t0, rng = ready_skin(4)
+    silent = np.full((4, 2), 20 * pF)
+    silent[3] = np.nan
+    run(cal, t0, t0 + 60.0, lambda t: silent)
+    press = np.zeros((4, 2))
+    press[3] = [2.2 * pF, 0.6 * pF]
+    s = feed(cal, t0 + 60.0, 20 * pF + press)
+    assert s.touched[3] and not s.touched[:3].any()
+    assert s.delta[3, 0] == pytest.approx(2.2 * pF, abs=5 * fF)
+    assert cal.health()["outage_catchups"] == 0

@@ -30,7 +30,9 @@ gone. So:
   move (``max_drift`` F/s), so one outlier cannot drag it and a slow press outruns it
   and is reported. A channel that has read below ``−enter`` for ``negative_after``
   seconds — which no contact can cause, e.g. a baseline taken while something rested
-  on the skin — is followed unclipped on ``tau_negative``.
+  on the skin — is followed unclipped on ``tau_negative``. An element back from a
+  silence longer than ``tau`` may have drifted ``max_drift`` per second of it: a
+  change within that is taken as baseline at once (counted), a larger one is a touch.
 * **Stuck touch**: an element touched for longer than ``max_touch`` seconds is
   re-baselined (as by :meth:`Calibrator.tare`) and the event counted per element
   (:attr:`Calibrator.rebaselines`, :meth:`Calibrator.health`), so a phantom cannot

@@ -67,6 +67,12 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
+
+def _is_count(v: object, minimum: int = 1) -> bool:
+    """An integer (Python or numpy, never a bool) of at least ``minimum``."""
+    return (isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+            and v >= minimum)
+
 #: Element states (values of :attr:`Calibrator.state`).
 COLLECTING = 0  #: gathering quiet readings for the baseline; not ready
 TRACKING = 1  #: untouched, baseline follows drift
@@ -107,7 +113,7 @@ class CalibrationConfig:
     max_touch: float | None = 600.0
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.n_baseline, (int, np.integer)) and self.n_baseline >= 1):
+        if not _is_count(self.n_baseline):
             raise ValueError(f"n_baseline must be an integer >= 1, got {self.n_baseline!r}")
         for name in ("enter", "leave", "max_drift"):
             v = np.asarray(getattr(self, name), dtype=np.float64)
@@ -125,8 +131,8 @@ class CalibrationConfig:
                 raise ValueError(f"{name} must be > 0 s, got {v!r}")
         if self.k_leave > self.k_enter:
             raise ValueError("k_leave must not exceed k_enter (hysteresis)")
-        if not (isinstance(self.min_common, (int, np.integer)) and self.min_common >= 1):
-            raise ValueError("min_common must be an integer >= 1")
+        if not _is_count(self.min_common):
+            raise ValueError(f"min_common must be an integer >= 1, got {self.min_common!r}")
         if not (0.5 < self.common_fraction <= 1.0):
             raise ValueError(f"common_fraction must lie in (0.5, 1], got {self.common_fraction!r}")
         if self.max_touch is not None and not (self.max_touch > 0):
@@ -148,9 +154,9 @@ class Calibrator:
     """Baselines, drift tracking and touch hysteresis for N elements × C channels."""
 
     def __init__(self, n_elements: int, n_channels: int = 2, config: CalibrationConfig | None = None):
-        if not (int(n_elements) == n_elements and n_elements >= 1):
+        if not _is_count(n_elements):
             raise ValueError(f"n_elements must be an integer >= 1, got {n_elements!r}")
-        if not (int(n_channels) == n_channels and n_channels >= 1):
+        if not _is_count(n_channels):
             raise ValueError(f"n_channels must be an integer >= 1, got {n_channels!r}")
         self.config = CalibrationConfig() if config is None else config
         n, c = int(n_elements), int(n_channels)

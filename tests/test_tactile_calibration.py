@@ -606,3 +606,15 @@ def test_a_press_larger_than_the_drift_an_outage_allows_is_reported_whole():
     assert s.touched[3] and not s.touched[:3].any()
     assert s.delta[3, 0] == pytest.approx(2.2 * pF, abs=5 * fF)
     assert cal.health()["outage_catchups"] == 0
+
+
+def test_counts_in_the_config_refuse_booleans_with_a_value_error():
+    # n_baseline=True escaped as a TypeError from numpy; min_common=True and
+    # Calibrator(True) were taken as 1.
+    for kw in ({"n_baseline": True}, {"min_common": True}, {"n_baseline": np.True_}):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            CalibrationConfig(**kw)
+    for args in ((True, 2), (2, True), ("3", 2)):
+        with pytest.raises(ValueError, match="n_"):
+            Calibrator(*args)
+    assert Calibrator(np.int64(3), np.int32(2), CalibrationConfig(n_baseline=np.int16(5))).n_elements == 3

@@ -341,8 +341,10 @@ class CounterUnwrapper:
         if not (isinstance(resync, (int, np.integer)) and resync >= 1):
             raise ValueError(f"resync must be an integer >= 1, got {resync!r}")
         self.resync = int(resync)
+        self._lo, self._hi = lo, hi
         self._span = counter_span(lo, hi, self.chip) + _COUNT_SLACK
         c0 = np.sqrt(lo * hi) if start is None else np.broadcast_to(_cap(start), lo.shape)
+        self._c0 = c0
         self._nominal = np.rint(expected_counts(c0, self.chip)).astype(np.int64)
         self._prev = self._nominal.copy()
         self._ambiguous = np.zeros(lo.shape, dtype=np.int64)
@@ -359,6 +361,26 @@ class CounterUnwrapper:
         shape = (int(n), 2)
         rest = np.broadcast_to([p.C1_rest, p.C2_rest], shape)
         return cls(np.broadcast_to(lo, shape), np.broadcast_to(hi, shape), chip, rest)
+
+    def set_gate(self, gate_cycles: int) -> None:
+        """Follow a gate change (``SET_GATE``) mid-stream, keeping every channel's reference.
+
+        Counts scale with the gate, so each channel's last trusted count is rescaled
+        to the new gate (off by at most the gate ratio plus one count, far inside the
+        plausible span) — a fresh unwrapper anchored at rest would lose a channel
+        whose parasitics drifted beyond the plausible range. A gate too long for the
+        channels' range is refused (:func:`check_gate`) and changes nothing; the
+        ``ambiguous`` counts are kept.
+        """
+        chip = replace(self.chip, gate_cycles=gate_cycles)
+        check_gate(chip, self._lo, self._hi)
+        ratio = chip.gate_cycles / self.chip.gate_cycles
+        self._prev = np.rint(self._prev * ratio).astype(np.int64)
+        self._nominal = np.rint(expected_counts(self._c0, chip)).astype(np.int64)
+        self._span = counter_span(self._lo, self._hi, chip) + _COUNT_SLACK
+        self._max = chip.gate_cycles / 2.0
+        self._run[...] = 0
+        self.chip = chip
 
     @property
     def previous(self) -> IntArray:

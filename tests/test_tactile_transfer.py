@@ -451,3 +451,36 @@ def test_unwrapper_takes_nan_for_channels_without_a_sample():
         fl2[0, 1] = bad
         with pytest.raises(ValueError, match="integers"):
             un.unwrap(fl2, ov, np.ones((2, 2), dtype=bool))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.05, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 0.999)),
+                min_size=2, max_size=12))
+def test_unwrapper_follows_set_gate_mid_stream(changes):
+    # SET_GATE mid-stream on a 12-bit counter (wraps at every realistic gate): the
+    # unwrapper rescales each channel's reference to the new gate and stays exact,
+    # also for a channel whose parasitics drifted 3 pF below the nominal rest — which
+    # a fresh unwrapper anchored at rest gets a modulus wrong. Counters survive.
+    from cellbridge.tactile.transfer import CounterUnwrapper, max_gate_cycles
+
+    base = ChipParams(counter_bits=12, gate_cycles=20_000)
+    lo, hi = C_REST * 0.98, C_REST + 3e-12
+    longest = max_gate_cycles(lo, hi, base)
+    un = CounterUnwrapper(lo, hi, base, start=C_REST)
+    drifted = C_REST - np.array([3e-12, 2.4e-12])
+    chip = base
+    for k, (g, u, ph) in enumerate(changes):
+        steps = np.linspace(C_REST, drifted, 40) if k == 0 else [drifted + u * 1e-12] * 3
+        for c in steps:
+            raw, ov = counts(c, chip, ph)
+            n, amb = un.unwrap(raw, ov)
+            assert list(n) == list(np.ceil(expected_counts(c, chip) - ph).astype(np.int64))
+            assert not amb.any()
+        gate = max(int(g * longest), 200)
+        un.set_gate(gate)
+        chip = ChipParams(counter_bits=12, gate_cycles=gate)
+        assert un.chip == chip
+    with pytest.raises(ValueError, match="half the counter"):
+        un.set_gate(longest + 1)
+    assert un.chip == chip  # a refused gate changes nothing
+    assert list(un.ambiguous) == [0, 0]

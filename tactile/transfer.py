@@ -98,7 +98,7 @@ class ChipParams:
                 raise ValueError(f"ChipParams.{name} must be finite and > 0, got {v!r}")
         for name in ("gate_cycles", "adc_sample_cycles", "adc_bits", "counter_bits"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, np.integer)) and v > 0):
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_)) and v > 0):
                 raise ValueError(f"ChipParams.{name} must be a positive integer, got {v!r}")
         if not self.counter_bits <= 62:
             raise ValueError("ChipParams.counter_bits must be <= 62 (counts are int64)")
@@ -338,7 +338,8 @@ class CounterUnwrapper:
         self.chip = _chip(chip)
         lo, hi = _range(C_lo, C_hi)
         check_gate(self.chip, lo, hi)
-        if not (isinstance(resync, (int, np.integer)) and resync >= 1):
+        if not (isinstance(resync, (int, np.integer)) and not isinstance(resync, (bool, np.bool_))
+                and resync >= 1):
             raise ValueError(f"resync must be an integer >= 1, got {resync!r}")
         self.resync = int(resync)
         self._lo, self._hi = lo, hi

@@ -484,3 +484,16 @@ def test_unwrapper_follows_set_gate_mid_stream(changes):
         un.set_gate(longest + 1)
     assert un.chip == chip  # a refused gate changes nothing
     assert list(un.ambiguous) == [0, 0]
+
+
+def test_integer_chip_parameters_refuse_booleans():
+    # ChipParams(gate_cycles=True) was a 1-cycle gate, counter_bits=True a 1-bit
+    # counter, CounterUnwrapper(resync=True) one sample: a bool is not a count.
+    from cellbridge.tactile.transfer import CounterUnwrapper
+
+    for name in ("gate_cycles", "adc_sample_cycles", "adc_bits", "counter_bits"):
+        with pytest.raises(ValueError, match=name):
+            ChipParams(**{name: True})
+    with pytest.raises(ValueError, match="resync"):
+        CounterUnwrapper(C_REST * 0.9, C_REST + 20e-12, CHIP, resync=True)
+    assert ChipParams(gate_cycles=np.int64(50_000)).gate_cycles == 50_000

@@ -535,9 +535,17 @@ def disk_rect_overlap(
                                  np.stack(np.broadcast_arrays(by0, by0, by1, by1)))
     q = _quadrant(a4, b4)
     u = q[0] - q[1] - q[2] + q[3]
-    area = u * rs * rs
-    # Clamp rounding: never negative, never more than the disk or the rectangle.
-    area = np.clip(area, 0.0, np.minimum(np.pi * rs * rs, (x1 - x0) * (y1 - y0)))
+    rect = (x1 - x0) * (y1 - y0)
+    with np.errstate(over="ignore", invalid="ignore"):  # r² beyond float range
+        area = u * rs * rs
+        # Clamp rounding: never negative, never more than the disk or the rectangle.
+        area = np.clip(area, 0.0, np.minimum(np.pi * rs * rs, rect))
+    # A rectangle whose farthest corner lies in the disk is wholly inside: its own
+    # area, exactly. The corner terms above cancel to nothing when the disk is much
+    # larger than the rectangle (r = 1e5 m: 0.08 % short; 1e8 m: 0).
+    far = np.hypot(np.maximum(np.abs(x0 - cx), np.abs(x1 - cx)),
+                   np.maximum(np.abs(y0 - cy), np.abs(y1 - cy)))
+    area = np.where(far <= r, rect, area)
     return np.where(pos, area, 0.0)
 
 
@@ -682,10 +690,17 @@ def pressure_field(
     return out.reshape(p.shape[:-1])
 
 
+#: Smallest non-zero spread (m): below it the blurred rim is narrower than float64
+#: resolves at a contact's radius, and the profile table collapses.
+MIN_SPREAD = 1e-9
+
+
 def _check_spread(spread: float) -> float:
     s = float(spread)
     if not (math.isfinite(s) and s >= 0):
         raise ValueError(f"spread must be finite and >= 0 m, got {spread!r}")
+    if 0 < s < MIN_SPREAD:
+        raise ValueError(f"spread must be 0 or >= {MIN_SPREAD:g} m (a sub-nanometre blur is none), got {spread!r}")
     return s
 
 

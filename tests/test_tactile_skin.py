@@ -464,3 +464,30 @@ def test_index_of_and_neighbours_refuse_what_is_not_an_integer():
         lay.neighbours(1.5)  # used to return no neighbours
     assert list(lay.index_of([3.0, np.int32(1)])) == [3, 1]
     assert list(lay.neighbours(np.int64(1))) == [0, 3]
+
+
+@pytest.mark.parametrize("r", [1.0, 1e3, 1e5, 1e8, 1e200])
+def test_an_element_wholly_inside_a_huge_disk_gets_its_whole_area(r):
+    # The closed form is a difference of four O(1) corner terms scaled by r²: for an
+    # element far inside a large disk it lost every digit (r = 1e5 m: 0.08 % short,
+    # r = 1e8 m: 0). A rectangle whose corners all lie in the disk is exactly inside.
+    area = disk_rect_overlap(0.3, -0.2, r, -0.02, -0.02, 0.02, 0.02)
+    assert area == 0.04 * 0.04
+    lay = grid_layout(2, 2)
+    b = lay.bounds
+    np.testing.assert_array_equal(disk_element_overlap(lay, [[0.02, 0.02]], [r]),
+                                  ((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]))[None, :])
+
+
+def test_a_spread_below_a_nanometre_is_refused_not_wrong():
+    # spread = 1e-100 m gave all-zero responses (the profile's grid collapsed to one
+    # point) and 1e-160 m a NaN pressure error from deep inside the element model.
+    lay = grid_layout(2, 2)
+    for s in (1e-100, 1e-160, 5e-324):
+        with pytest.raises(ValueError, match="spread"):
+            skin_response(lay, [[0.005, 0.003, 3.0, 0.01]], spread=s)
+    with pytest.raises(ValueError, match="spread"):
+        pressure_field([[0.0, 0.0]], [[0.0, 0.0, 3.0, 0.01]], spread=1e-300)
+    fine = skin_response(lay, [[0.005, 0.003, 3.0, 0.01]], spread=1e-9)[0]
+    flat = skin_response(lay, [[0.005, 0.003, 3.0, 0.01]], spread=0.0)[0]
+    np.testing.assert_allclose(fine, flat, rtol=1e-3)

@@ -311,9 +311,7 @@ class Calibrator:
         sampled = np.all(np.isfinite(v), axis=1)
         # NaN is allowed as the time of an element without a reading (as its values);
         # inf never: it would end every hold-off and trip max_touch at once.
-        if (t_arr.ndim == 0 and not np.isfinite(t_arr)) or np.any(np.isinf(tt)) or not np.all(
-            np.isfinite(tt[sampled])
-        ):
+        if not np.all(np.isfinite(tt) | (np.isnan(tt) & ~sampled & (t_arr.ndim > 0))):
             raise ValueError("time must be finite (NaN only for an element without a reading)")
         if np.any(tt[sampled] < self._last_t[sampled]):
             raise ValueError("time went backwards for an element")
@@ -398,17 +396,16 @@ class Calibrator:
         during the gap and fits the allowance is absorbed, as one rising that slowly
         would be; each catch-up is counted (``health()["outage_catchups"]``).
         """
-        gap = tt - self._last_t
-        with np.errstate(invalid="ignore"):
-            back = trk & (gap > self.config.tau)
+        gap = tt - self._last_t  # NaN or inf where not tracked: compares False / is masked
+        back = trk & (gap > self.config.tau)
         if not back.any():
             return
-        with np.errstate(invalid="ignore"):  # 0 F/s × inf is never reached: gap is finite
-            fit = back & np.all(np.abs(delta) <= self._drift * gap[:, None], axis=1)
-        if fit.any():
+        idx = np.nonzero(back)[0]  # tracked: sampled before, so the gap is finite
+        fit = idx[np.all(np.abs(delta[idx]) <= self._drift * gap[idx, None], axis=1)]
+        if fit.size:
             self._base[fit] += delta[fit]
             delta[fit] = 0.0
-            self._catchups += int(fit.sum())
+            self._catchups += int(fit.size)
 
     def _hysteresis(
         self, live: NDArray[np.bool_], tt: FloatArray, delta: FloatArray,

@@ -73,6 +73,10 @@ def _is_count(v: object, minimum: int = 1) -> bool:
     return (isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
             and v >= minimum)
 
+#: A reading this many times its channel's absolute touch threshold is in another
+#: unit (farads: 20 pF / 50 fF = 400; picofarads against farad thresholds: 4e14).
+_UNIT_RATIO = 1e9
+
 #: Element states (values of :attr:`Calibrator.state`).
 COLLECTING = 0  #: gathering quiet readings for the baseline; not ready
 TRACKING = 1  #: untouched, baseline follows drift
@@ -319,6 +323,7 @@ class Calibrator:
             self.thresholds()
         enter, leave = self._thr  # type: ignore[misc]
         st = self._state
+        self._check_unit(v, sampled & (st == COLLECTING))
         live = sampled & (st != COLLECTING)  # ready elements with a reading this step
         resid = v - self._base  # NaN where not ready or not sampled
         jumps = self._common_jumps
@@ -334,6 +339,24 @@ class Calibrator:
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps)
+
+    def _check_unit(self, v: FloatArray, col: NDArray[np.bool_]) -> None:
+        """ValueError for readings far too large for the absolute thresholds (a unit
+        mix-up), checked on the readings a baseline is built from, before any state
+        changes. Quantised readings in pF give a MAD of 0, so the noise multiples
+        cannot rescue farad thresholds: every count of flicker would be a touch."""
+        if not col.any():
+            return
+        lim = _UNIT_RATIO * self._enter
+        big = (np.abs(v[col]) > lim) & (lim > 0)
+        if big.any():
+            i, j = np.argwhere(big)[0]
+            e = int(np.nonzero(col)[0][i])
+            raise ValueError(
+                f"element {e} channel {j} reads {v[e, j]:g}, more than {_UNIT_RATIO:g} times its "
+                f"touch threshold {self._enter[j]:g}: readings in picofarads with thresholds in "
+                "farads? Give readings and CalibrationConfig in one unit (farads by default)"
+            )
 
     def _update_common(
         self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray, tt: FloatArray

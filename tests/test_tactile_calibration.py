@@ -159,7 +159,7 @@ def test_missing_readings_per_element_times_and_errors():
     with pytest.raises(ValueError):
         Calibrator(2, 2, CalibrationConfig(enter=1.0, leave=2.0))
     one = Calibrator(2, 1, CalibrationConfig(n_baseline=1))
-    assert one.update(0.0, np.array([1.0, 2.0])).ready.all()  # (N,) accepted for one channel
+    assert one.update(0.0, np.array([1.0, 2.0]) * pF).ready.all()  # (N,) accepted for one channel
 
 
 def test_max_touch_rebaselines_a_stuck_element():
@@ -618,3 +618,20 @@ def test_counts_in_the_config_refuse_booleans_with_a_value_error():
         with pytest.raises(ValueError, match="n_"):
             Calibrator(*args)
     assert Calibrator(np.int64(3), np.int32(2), CalibrationConfig(n_baseline=np.int16(5))).n_elements == 3
+
+
+def test_readings_in_picofarads_with_thresholds_in_farads_are_refused():
+    # Counter readings in pF fed to the default (farad) config: the quantised
+    # readings give a MAD of 0, so enter stays 5e-14 "pF" and one count of flicker
+    # is a touch — a quiet 2×2 skin was touched in a quarter of all element-steps.
+    # A reading 10⁹ times its touch threshold is a unit mix-up, refused up front.
+    cal = Calibrator(4, 2)
+    v = np.full((4, 2), 15.67)
+    with pytest.raises(ValueError, match="picofarads"):
+        cal.update(0.0, v)
+    assert (cal.state == COLLECTING).all() and cal.health()["collecting"] == 4
+    assert not cal.update(0.0, v * pF).ready.any()  # farads: fine
+    same_unit = Calibrator(4, 2, CalibrationConfig(enter=0.05, leave=0.025, max_drift=1e-3))
+    same_unit.update(0.0, v)  # picofarads throughout: fine
+    blind = Calibrator(4, 2, CalibrationConfig(enter=0.0, leave=0.0))
+    blind.update(0.0, v)  # no absolute threshold: nothing to compare against

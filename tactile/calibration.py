@@ -14,10 +14,11 @@ gone. So:
 * **Common mode**: a change every element sees at once is drift, never touch. Each
   step the skin's common offset is the median residual of the tracked elements that
   did not jump past their touch threshold, up or down — or of all tracked elements
-  when nearly all of them (``common_fraction``) jumped together the same way, which
-  no contact does. The offset
-  is subtracted from *every* ready element (tracked, touched, held off, or without a
-  reading this step), so a press held for minutes neither fades nor picks up the
+  when nearly all of them (``common_fraction``) jumped together the same way and
+  alike (within ``enter + common_spread·|step|``), which no contact but one pressing
+  them all equally does (that one is absorbed, and reported as a common jump). The
+  offset is subtracted from *every* ready element (tracked, touched, held off, or
+  without a reading this step), so a press held for minutes neither fades nor picks up the
   skin's drift, and an element that was silent comes back corrected.
 * **Touch state** with hysteresis: an element becomes *touched* when any channel rises
   above ``enter`` and *released* when every channel is back below ``leave``
@@ -113,6 +114,10 @@ class CalibrationConfig:
     #: share of the tracked elements that must jump past ``enter`` together for the
     #: jump to count as common (drift), not as contacts
     common_fraction: float = 0.9
+    #: a common step moves the tracked elements alike: after it, ``common_fraction`` of
+    #: them must lie within ``enter + common_spread·|step|`` of it, or it is contacts
+    #: (inf: any jump of enough elements is common)
+    common_spread: float = 0.25
     #: s; an element touched this long is re-baselined and counted (None: never)
     max_touch: float | None = 600.0
 
@@ -137,6 +142,8 @@ class CalibrationConfig:
             raise ValueError("k_leave must not exceed k_enter (hysteresis)")
         if not _is_count(self.min_common):
             raise ValueError(f"min_common must be an integer >= 1, got {self.min_common!r}")
+        if not (self.common_spread >= 0):  # inf allowed, NaN not
+            raise ValueError(f"common_spread must be >= 0, got {self.common_spread!r}")
         if not (0.5 < self.common_fraction <= 1.0):
             raise ValueError(f"common_fraction must lie in (0.5, 1], got {self.common_fraction!r}")
         if self.max_touch is not None and not (self.max_touch > 0):
@@ -363,20 +370,30 @@ class Calibrator:
     ) -> None:
         """The skin's common offset: median residual of the tracked elements that did
         not jump past ±``enter`` — or of all of them when nearly all jumped together
-        the same way.
+        the same way, and alike.
 
         Both directions are excluded: with two tracked elements the median is their
         mean, so one element far below the rest (a glitch, a baseline tared under a
-        press) would otherwise shift every other element by half its drop."""
+        press) would otherwise shift every other element by half its drop. A jump
+        that lifts the elements unevenly (a palm: centre ≫ corners) is contacts: taken
+        as common it would hide the press, and the fast negative tracker would follow
+        the elements left below the offset, which then latch touched on release."""
+        cfg = self.config
         k = int(trk.sum())
-        if k < self.config.min_common:
+        if k < cfg.min_common:
             return  # too few to tell drift from touch: the offset is carried
         off = resid - self._common
         up = trk & np.any(off > enter, axis=1)
         down = trk & np.any(off < -enter, axis=1)
-        need = self.config.common_fraction * k
+        need = cfg.common_fraction * k
         most = max(int(up.sum()), int(down.sum()))
         jump = bool(most and most >= need)
+        if jump:
+            step = np.median(off[trk], axis=0)
+            with np.errstate(invalid="ignore"):  # inf · 0 when common_spread is inf
+                tol = enter + cfg.common_spread * np.abs(step)
+            alike = trk & np.all(np.abs(off - step) <= np.where(np.isnan(tol), np.inf, tol), axis=1)
+            jump = int(alike.sum()) >= need
         ref = trk if jump else trk & ~up & ~down
         if int(ref.sum()) >= self.config.min_common:
             new = np.median(resid[ref], axis=0)

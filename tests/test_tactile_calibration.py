@@ -545,14 +545,14 @@ def test_per_element_times_may_be_nan_where_there_is_no_reading():
 # ------------------------------------ presses over (nearly) the whole skin: reported
 
 
-@pytest.mark.parametrize("rows, diameter", [(2, 0.040), (3, 0.120), (4, 0.160)])
+@pytest.mark.parametrize("rows, diameter", [(2, 0.040), (3, 0.200), (4, 0.240)])
 def test_a_press_over_the_whole_skin_is_reported_as_a_common_jump(rows, diameter):
     # The documented price of the common-mode rule: a press that lifts (nearly) every
-    # tracked element in one step — any press centred on the junction of a 2×2 skin,
-    # a palm on a 3×3 or 4×4 — is taken for a common step and not touched. It must
+    # tracked element alike in one step — any press centred on the junction of a 2×2
+    # skin, a plate over a whole 3×3 or 4×4 — is taken for a common step and not
+    # touched. It must
     # not vanish silently: the step says so and health() keeps when, how much and
-    # on how many elements (a 5 N palm on a 4×4 moves the offset by ≈0.2 pF, like a
-    # supply step: the size alone does not tell them apart).
+    # on how many elements (the size alone does not tell it from a supply step).
     skin = grid_layout(rows, rows)
     c = 0.5 * (rows - 1) * 0.040
     d1, d2 = skin_response(skin, [[c, c, 5.0, diameter]])
@@ -635,3 +635,54 @@ def test_readings_in_picofarads_with_thresholds_in_farads_are_refused():
     same_unit.update(0.0, v)  # picofarads throughout: fine
     blind = Calibrator(4, 2, CalibrationConfig(enter=0.0, leave=0.0))
     blind.update(0.0, v)  # no absolute threshold: nothing to compare against
+
+
+@pytest.mark.parametrize("rows, diameter, force", [(3, 0.080, 5.0), (3, 0.120, 20.0), (4, 0.160, 20.0)])
+def test_an_uneven_palm_is_contacts_not_a_common_step_and_leaves_no_phantom(rows, diameter, force):
+    # A palm centred on a 3×3 or 4×4 skin lifts every element past enter, but
+    # unevenly (centre ≫ corners). It used to be taken for a common step: at most 4
+    # elements touched during the press, and the fast negative tracker followed the
+    # corners down to "below the offset", so after the release 4 elements stayed
+    # touched (0.4-0.9 pF) until max_touch. A common step moves every element alike;
+    # one that leaves the tracked elements spread beyond enter + common_spread·|step|
+    # is contacts.
+    skin = grid_layout(rows, rows)
+    c = 0.5 * (rows - 1) * 0.040
+    d1, d2 = skin_response(skin, [[c, c, force, diameter]])
+    press = np.stack([d1, d2], axis=1)
+    assert (d1 > 50 * fF).all()  # every element lifted past enter
+    cal, t0, rng = ready_skin(skin.n)
+    during = run(cal, t0, t0 + 60.0, lambda t: 20 * pF + press + rng.normal(0, 1 * fF, (skin.n, 2)))
+    assert during[5:].all() and cal.health()["common_jumps"] == 0
+    after = run(cal, t0 + 60.0, t0 + 120.0, lambda t: 20 * pF + rng.normal(0, 1 * fF, (skin.n, 2)))
+    assert not after[-100:].any()  # released, hold-off over: nothing latched
+    s = feed(cal, t0 + 120.0, np.full((skin.n, 2), 20 * pF))
+    assert np.abs(s.delta).max() < 10 * fF
+
+
+@pytest.mark.parametrize("size", [300 * fF, 1 * pF, 3 * pF, -3 * pF])
+def test_large_common_steps_that_move_the_elements_alike_are_still_drift(size):
+    # The "alike" condition scales with the step: elements that follow it to ±1 %
+    # (what is left stays below enter) see a common step at any size, up or down,
+    # also with a press held meanwhile.
+    cal, t0, rng = ready_skin(16)
+    scale = 1.0 + rng.uniform(-0.01, 0.01, (16, 2))
+    press = np.zeros((16, 2))
+    press[5] = [2.2 * pF, 0.6 * pF]
+    touched = run(cal, t0, t0 + 60.0, lambda t: 20 * pF + press + (t > t0 + 5.0) * size * scale
+                  + rng.normal(0, 1 * fF, (16, 2)))
+    assert touched[:, 5].all() and not np.delete(touched, 5, axis=1).any()
+    s = feed(cal, t0 + 60.0, 20 * pF + press + size * scale)
+    assert s.delta[5, 0] == pytest.approx(2.2 * pF, rel=0.1)
+    assert cal.health()["common_jumps"] >= 1
+
+
+def test_common_spread_is_validated_and_inf_restores_the_fraction_rule_alone():
+    for bad in (-0.1, math.nan):
+        with pytest.raises(ValueError, match="common_spread"):
+            CalibrationConfig(common_spread=bad)
+    skin = grid_layout(3, 3)
+    d1, d2 = skin_response(skin, [[0.04, 0.04, 5.0, 0.080]])
+    cal, t0, rng = ready_skin(9, CalibrationConfig(common_spread=math.inf))
+    s = feed(cal, t0, 20 * pF + np.stack([d1, d2], axis=1))
+    assert s.common_jump and s.touched.sum() <= 4  # the palm taken for a common step

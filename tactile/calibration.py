@@ -150,6 +150,51 @@ class CalibrationConfig:
             raise ValueError("max_touch must be > 0 s or None")
 
 
+def _check_unit(v: FloatArray, col: NDArray[np.bool_], enter: FloatArray) -> None:
+    """ValueError for readings far too large for the absolute thresholds ``enter``
+    (C,): a unit mix-up, checked on the readings ``col`` a baseline is built from.
+
+    Quantised readings in pF give a MAD of 0, so the noise multiples cannot rescue
+    farad thresholds: every count of flicker would be a touch.
+    """
+    if not col.any():
+        return
+    lim = _UNIT_RATIO * enter
+    big = (np.abs(v[col]) > lim) & (lim > 0)
+    if big.any():
+        i, j = np.argwhere(big)[0]
+        e = int(np.nonzero(col)[0][i])
+        raise ValueError(
+            f"element {e} channel {j} reads {v[e, j]:g}, more than {_UNIT_RATIO:g} times its "
+            f"touch threshold {enter[j]:g}: readings in picofarads with thresholds in "
+            "farads? Give readings and CalibrationConfig in one unit (farads by default)"
+        )
+
+
+def _common_reference(
+    off: FloatArray, trk: NDArray[np.bool_], enter: FloatArray, cfg: CalibrationConfig
+) -> tuple[bool, int, NDArray[np.bool_]]:
+    """(common jump?, elements that jumped, elements whose median is the offset).
+
+    ``off`` is every element's residual beyond the current offset. A jump is common
+    when ``common_fraction`` of the tracked elements jumped past ±enter the same way
+    *and* lie within ``enter + common_spread·|step|`` of its median step; otherwise
+    the reference is the tracked elements that did not jump either way.
+    """
+    up = trk & np.any(off > enter, axis=1)
+    down = trk & np.any(off < -enter, axis=1)
+    need = cfg.common_fraction * int(trk.sum())
+    most = max(int(up.sum()), int(down.sum()))
+    jump = bool(most and most >= need)
+    if jump:
+        step = np.median(off[trk], axis=0)
+        with np.errstate(invalid="ignore"):  # inf · 0 when common_spread is inf
+            tol = enter + cfg.common_spread * np.abs(step)
+        alike = trk & np.all(np.abs(off - step) <= np.where(np.isnan(tol), np.inf, tol), axis=1)
+        jump = int(alike.sum()) >= need
+    return jump, most, (trk if jump else trk & ~up & ~down)
+
+
 class CalibrationStep(NamedTuple):
     """What one :meth:`Calibrator.update` returns; arrays over elements."""
 
@@ -330,7 +375,7 @@ class Calibrator:
             self.thresholds()
         enter, leave = self._thr  # type: ignore[misc]
         st = self._state
-        self._check_unit(v, sampled & (st == COLLECTING))
+        _check_unit(v, sampled & (st == COLLECTING), self._enter)
         live = sampled & (st != COLLECTING)  # ready elements with a reading this step
         resid = v - self._base  # NaN where not ready or not sampled
         jumps = self._common_jumps
@@ -347,24 +392,6 @@ class Calibrator:
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps)
 
-    def _check_unit(self, v: FloatArray, col: NDArray[np.bool_]) -> None:
-        """ValueError for readings far too large for the absolute thresholds (a unit
-        mix-up), checked on the readings a baseline is built from, before any state
-        changes. Quantised readings in pF give a MAD of 0, so the noise multiples
-        cannot rescue farad thresholds: every count of flicker would be a touch."""
-        if not col.any():
-            return
-        lim = _UNIT_RATIO * self._enter
-        big = (np.abs(v[col]) > lim) & (lim > 0)
-        if big.any():
-            i, j = np.argwhere(big)[0]
-            e = int(np.nonzero(col)[0][i])
-            raise ValueError(
-                f"element {e} channel {j} reads {v[e, j]:g}, more than {_UNIT_RATIO:g} times its "
-                f"touch threshold {self._enter[j]:g}: readings in picofarads with thresholds in "
-                "farads? Give readings and CalibrationConfig in one unit (farads by default)"
-            )
-
     def _update_common(
         self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray, tt: FloatArray
     ) -> None:
@@ -378,23 +405,10 @@ class Calibrator:
         that lifts the elements unevenly (a palm: centre ≫ corners) is contacts: taken
         as common it would hide the press, and the fast negative tracker would follow
         the elements left below the offset, which then latch touched on release."""
-        cfg = self.config
         k = int(trk.sum())
-        if k < cfg.min_common:
+        if k < self.config.min_common:
             return  # too few to tell drift from touch: the offset is carried
-        off = resid - self._common
-        up = trk & np.any(off > enter, axis=1)
-        down = trk & np.any(off < -enter, axis=1)
-        need = cfg.common_fraction * k
-        most = max(int(up.sum()), int(down.sum()))
-        jump = bool(most and most >= need)
-        if jump:
-            step = np.median(off[trk], axis=0)
-            with np.errstate(invalid="ignore"):  # inf · 0 when common_spread is inf
-                tol = enter + cfg.common_spread * np.abs(step)
-            alike = trk & np.all(np.abs(off - step) <= np.where(np.isnan(tol), np.inf, tol), axis=1)
-            jump = int(alike.sum()) >= need
-        ref = trk if jump else trk & ~up & ~down
+        jump, most, ref = _common_reference(resid - self._common, trk, enter, self.config)
         if int(ref.sum()) >= self.config.min_common:
             new = np.median(resid[ref], axis=0)
             if jump:

@@ -700,7 +700,9 @@ def _check_spread(spread: float) -> float:
     if not (math.isfinite(s) and s >= 0):
         raise ValueError(f"spread must be finite and >= 0 m, got {spread!r}")
     if 0 < s < MIN_SPREAD:
-        raise ValueError(f"spread must be 0 or >= {MIN_SPREAD:g} m (a sub-nanometre blur is none), got {spread!r}")
+        raise ValueError(
+            f"spread must be 0 or >= {MIN_SPREAD:g} m (a sub-nanometre blur is none), got {spread!r}"
+        )
     return s
 
 

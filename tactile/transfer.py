@@ -397,7 +397,8 @@ class CounterUnwrapper:
         self, raw: ArrayLike, overflow: ArrayLike | None = None, sampled: ArrayLike | None = None
     ) -> tuple[IntArray, NDArray[np.bool_]]:
         """(counts, ambiguous) for one sample of every channel (``sampled``: which
-        channels carry a new sample; the others are left alone and returned as 0).
+        channels carry a new sample, raw's shape or (…, 1) per element; the others
+        are left alone and returned as 0).
 
         ``raw`` may be a float array with NaN (or anything) in the channels that were
         not sampled, as the rest of the host's per-element arrays are; the sampled
@@ -405,8 +406,18 @@ class CounterUnwrapper:
         r = np.asarray(raw)
         if r.shape != self._prev.shape:
             raise ValueError(f"raw must have shape {self._prev.shape}, got {r.shape}")
-        s = np.ones(r.shape, dtype=bool) if sampled is None else np.broadcast_to(
-            np.asarray(sampled, dtype=bool), r.shape)
+        if sampled is None:
+            s = np.ones(r.shape, dtype=bool)
+        else:
+            sm = np.asarray(sampled, dtype=bool)
+            per_element = r.shape[:-1] + (1,)
+            if sm.ndim and sm.shape not in (r.shape, per_element):
+                # e.g. (N,) for N = C would broadcast over the channels, not the elements
+                raise ValueError(
+                    f"sampled must have raw's shape {r.shape}, one flag per element "
+                    f"{per_element} or be a scalar, got {sm.shape}"
+                )
+            s = np.broadcast_to(sm, r.shape)
         r = np.where(s, r, 0)
         if r.dtype.kind == "f":
             m = self.chip.counter_modulus

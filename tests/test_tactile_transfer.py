@@ -497,3 +497,20 @@ def test_integer_chip_parameters_refuse_booleans():
     with pytest.raises(ValueError, match="resync"):
         CounterUnwrapper(C_REST * 0.9, C_REST + 20e-12, CHIP, resync=True)
     assert ChipParams(gate_cycles=np.int64(50_000)).gate_cycles == 50_000
+
+
+def test_unwrapper_refuses_a_sampled_mask_it_would_read_across_channels():
+    # For a 2-element skin (2, 2), sampled=[True, False] meant "element 0 only" to
+    # its caller but was broadcast over the channel axis ("C1 of every element"),
+    # silently unwrapping element 1's stale register. Only raw's shape or one flag
+    # per element (N, 1) are accepted.
+    from cellbridge.tactile.transfer import CounterUnwrapper
+
+    un = CounterUnwrapper.for_elements(2)
+    raw, ov = counts(np.broadcast_to(C_REST, (2, 2)), CHIP, 0.5)
+    with pytest.raises(ValueError, match="sampled"):
+        un.unwrap(raw, ov, np.array([True, False]))
+    n, amb = un.unwrap(raw, ov, np.array([[True], [False]]))
+    assert list(n[:, 0]) == [raw[0, 0], 0] and list(n[1]) == [0, 0] and not amb.any()
+    n, amb = un.unwrap(raw, ov, True)
+    np.testing.assert_array_equal(n, raw)

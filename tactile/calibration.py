@@ -13,10 +13,12 @@ gone. So:
   *ready* and its ΔC is NaN.
 * **Common mode**: a change every element sees at once is drift, never touch. Each
   step the skin's common offset is the median residual of the tracked elements that
-  did not jump past their touch threshold — or of all tracked elements when nearly
-  all of them (``common_fraction``) jumped together, which no contact does. The offset
-  is subtracted from *every* ready element (tracked, touched, held off, or without a
-  reading this step), so a press held for minutes neither fades nor picks up the
+  did not jump past their touch threshold, up or down — or of all tracked elements
+  when nearly all of them (``common_fraction``) jumped together the same way and
+  alike (within ``enter + common_spread·|step|``), which no contact but one pressing
+  them all equally does (that one is absorbed, and reported as a common jump). The
+  offset is subtracted from *every* ready element (tracked, touched, held off, or
+  without a reading this step), so a press held for minutes neither fades nor picks up the
   skin's drift, and an element that was silent comes back corrected.
 * **Touch state** with hysteresis: an element becomes *touched* when any channel rises
   above ``enter`` and *released* when every channel is back below ``leave``
@@ -29,7 +31,9 @@ gone. So:
   move (``max_drift`` F/s), so one outlier cannot drag it and a slow press outruns it
   and is reported. A channel that has read below ``−enter`` for ``negative_after``
   seconds — which no contact can cause, e.g. a baseline taken while something rested
-  on the skin — is followed unclipped on ``tau_negative``.
+  on the skin — is followed unclipped on ``tau_negative``. An element back from a
+  silence longer than ``tau`` may have drifted ``max_drift`` per second of it: a
+  change within that is taken as baseline at once (counted), a larger one is a touch.
 * **Stuck touch**: an element touched for longer than ``max_touch`` seconds is
   re-baselined (as by :meth:`Calibrator.tare`) and the event counted per element
   (:attr:`Calibrator.rebaselines`, :meth:`Calibrator.health`), so a phantom cannot
@@ -63,6 +67,16 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
+
+
+def _is_count(v: object, minimum: int = 1) -> bool:
+    """An integer (Python or numpy, never a bool) of at least ``minimum``."""
+    return (isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+            and v >= minimum)
+
+#: A reading this many times its channel's absolute touch threshold is in another
+#: unit (farads: 20 pF / 50 fF = 400; picofarads against farad thresholds: 4e14).
+_UNIT_RATIO = 1e9
 
 #: Element states (values of :attr:`Calibrator.state`).
 COLLECTING = 0  #: gathering quiet readings for the baseline; not ready
@@ -100,11 +114,15 @@ class CalibrationConfig:
     #: share of the tracked elements that must jump past ``enter`` together for the
     #: jump to count as common (drift), not as contacts
     common_fraction: float = 0.9
+    #: a common step moves the tracked elements alike: after it, ``common_fraction`` of
+    #: them must lie within ``enter + common_spread·|step|`` of it, or it is contacts
+    #: (inf: any jump of enough elements is common)
+    common_spread: float = 0.25
     #: s; an element touched this long is re-baselined and counted (None: never)
     max_touch: float | None = 600.0
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.n_baseline, (int, np.integer)) and self.n_baseline >= 1):
+        if not _is_count(self.n_baseline):
             raise ValueError(f"n_baseline must be an integer >= 1, got {self.n_baseline!r}")
         for name in ("enter", "leave", "max_drift"):
             v = np.asarray(getattr(self, name), dtype=np.float64)
@@ -122,12 +140,59 @@ class CalibrationConfig:
                 raise ValueError(f"{name} must be > 0 s, got {v!r}")
         if self.k_leave > self.k_enter:
             raise ValueError("k_leave must not exceed k_enter (hysteresis)")
-        if not (isinstance(self.min_common, (int, np.integer)) and self.min_common >= 1):
-            raise ValueError("min_common must be an integer >= 1")
+        if not _is_count(self.min_common):
+            raise ValueError(f"min_common must be an integer >= 1, got {self.min_common!r}")
+        if not (self.common_spread >= 0):  # inf allowed, NaN not
+            raise ValueError(f"common_spread must be >= 0, got {self.common_spread!r}")
         if not (0.5 < self.common_fraction <= 1.0):
             raise ValueError(f"common_fraction must lie in (0.5, 1], got {self.common_fraction!r}")
         if self.max_touch is not None and not (self.max_touch > 0):
             raise ValueError("max_touch must be > 0 s or None")
+
+
+def _check_unit(v: FloatArray, col: NDArray[np.bool_], enter: FloatArray) -> None:
+    """ValueError for readings far too large for the absolute thresholds ``enter``
+    (C,): a unit mix-up, checked on the readings ``col`` a baseline is built from.
+
+    Quantised readings in pF give a MAD of 0, so the noise multiples cannot rescue
+    farad thresholds: every count of flicker would be a touch.
+    """
+    if not col.any():
+        return
+    lim = _UNIT_RATIO * enter
+    big = (np.abs(v[col]) > lim) & (lim > 0)
+    if big.any():
+        i, j = np.argwhere(big)[0]
+        e = int(np.nonzero(col)[0][i])
+        raise ValueError(
+            f"element {e} channel {j} reads {v[e, j]:g}, more than {_UNIT_RATIO:g} times its "
+            f"touch threshold {enter[j]:g}: readings in picofarads with thresholds in "
+            "farads? Give readings and CalibrationConfig in one unit (farads by default)"
+        )
+
+
+def _common_reference(
+    off: FloatArray, trk: NDArray[np.bool_], enter: FloatArray, cfg: CalibrationConfig
+) -> tuple[bool, int, NDArray[np.bool_]]:
+    """(common jump?, elements that jumped, elements whose median is the offset).
+
+    ``off`` is every element's residual beyond the current offset. A jump is common
+    when ``common_fraction`` of the tracked elements jumped past ±enter the same way
+    *and* lie within ``enter + common_spread·|step|`` of its median step; otherwise
+    the reference is the tracked elements that did not jump either way.
+    """
+    up = trk & np.any(off > enter, axis=1)
+    down = trk & np.any(off < -enter, axis=1)
+    need = cfg.common_fraction * int(trk.sum())
+    most = max(int(up.sum()), int(down.sum()))
+    jump = bool(most and most >= need)
+    if jump:
+        step = np.median(off[trk], axis=0)
+        with np.errstate(invalid="ignore"):  # inf · 0 when common_spread is inf
+            tol = enter + cfg.common_spread * np.abs(step)
+        alike = trk & np.all(np.abs(off - step) <= np.where(np.isnan(tol), np.inf, tol), axis=1)
+        jump = int(alike.sum()) >= need
+    return jump, most, (trk if jump else trk & ~up & ~down)
 
 
 class CalibrationStep(NamedTuple):
@@ -136,15 +201,18 @@ class CalibrationStep(NamedTuple):
     delta: FloatArray  #: (N, C) reading − baseline; NaN where not ready or not sampled
     touched: NDArray[np.bool_]  #: (N,) contact present (hysteresis state)
     ready: NDArray[np.bool_]  #: (N,) baseline available
+    #: this step's common offset took a jump: a common step, or a press lifting
+    #: (nearly) every tracked element at once, which cannot be told apart here
+    common_jump: bool = False
 
 
 class Calibrator:
     """Baselines, drift tracking and touch hysteresis for N elements × C channels."""
 
     def __init__(self, n_elements: int, n_channels: int = 2, config: CalibrationConfig | None = None):
-        if not (int(n_elements) == n_elements and n_elements >= 1):
+        if not _is_count(n_elements):
             raise ValueError(f"n_elements must be an integer >= 1, got {n_elements!r}")
-        if not (int(n_channels) == n_channels and n_channels >= 1):
+        if not _is_count(n_channels):
             raise ValueError(f"n_channels must be an integer >= 1, got {n_channels!r}")
         self.config = CalibrationConfig() if config is None else config
         n, c = int(n_elements), int(n_channels)
@@ -155,6 +223,7 @@ class Calibrator:
         if np.any(self._leave > self._enter):
             raise ValueError("leave thresholds must not exceed enter thresholds (hysteresis)")
         drift = self._per_channel(cfg.max_drift, "max_drift")
+        self._drift = drift
         with np.errstate(invalid="ignore"):  # 0 F/s on a frozen (tau = inf) baseline: 0
             self._clip = np.where(drift > 0, drift * cfg.tau, 0.0)
         self._buf = np.zeros((n, cfg.n_baseline, c))
@@ -168,6 +237,8 @@ class Calibrator:
         self._below_since = np.full((n, c), np.inf)  # reading below −enter since (per channel)
         self._rebaselines = np.zeros(n, dtype=np.int64)
         self._common_jumps = 0
+        self._catchups = 0
+        self._last_jump: dict[str, object] | None = None
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
 
     def _per_channel(self, v: float | Sequence[float], name: str) -> FloatArray:
@@ -225,6 +296,10 @@ class Calibrator:
             "rebaselined": [[int(i), int(self._rebaselines[i])] for i in hit],
             "common_offset": [float(x) for x in self._common],
             "common_jumps": self._common_jumps,
+            "outage_catchups": self._catchups,
+            # when, by how much and on how many elements the offset last jumped: a
+            # common step or a press over (nearly) the whole skin (None: never)
+            "last_common_jump": None if self._last_jump is None else dict(self._last_jump),
         }
 
     def thresholds(self) -> tuple[FloatArray, FloatArray]:
@@ -276,7 +351,8 @@ class Calibrator:
         """Feed the readings of all elements at time ``t`` (s); NaN = no reading.
 
         ``values`` is (N, C), or (N,) when there is one channel. ``t`` is a scalar or
-        one time per element; times must not go backwards for any element. Feed one
+        one time per element (NaN for an element without a reading); times must not
+        go backwards for any element. Feed one
         vector per sampling period (the latest reading of every element, NaN where
         none came): the common offset is estimated across the elements of one step.
         """
@@ -286,45 +362,64 @@ class Calibrator:
             v = v[:, None]
         if v.shape != (n, c):
             raise ValueError(f"values must have shape ({n}, {c}), got {v.shape}")
-        tt = np.broadcast_to(np.asarray(t, dtype=np.float64), (n,))
-        if not np.all(np.isfinite(tt)):
-            raise ValueError("time must be finite")
+        t_arr = np.asarray(t, dtype=np.float64)
+        tt = np.broadcast_to(t_arr, (n,))
         sampled = np.all(np.isfinite(v), axis=1)
+        # NaN is allowed as the time of an element without a reading (as its values);
+        # inf never: it would end every hold-off and trip max_touch at once.
+        if not np.all(np.isfinite(tt) | (np.isnan(tt) & ~sampled & (t_arr.ndim > 0))):
+            raise ValueError("time must be finite (NaN only for an element without a reading)")
         if np.any(tt[sampled] < self._last_t[sampled]):
             raise ValueError("time went backwards for an element")
         if self._thr is None:
             self.thresholds()
         enter, leave = self._thr  # type: ignore[misc]
         st = self._state
+        _check_unit(v, sampled & (st == COLLECTING), self._enter)
         live = sampled & (st != COLLECTING)  # ready elements with a reading this step
         resid = v - self._base  # NaN where not ready or not sampled
+        jumps = self._common_jumps
         if self.config.common_mode:
-            self._update_common(resid, live & (st == TRACKING), enter)
+            self._update_common(resid, live & (st == TRACKING), enter, tt)
         self._collect(sampled & (st == COLLECTING), v)
 
         delta = np.full((n, c), np.nan)
         delta[live] = resid[live] - self._common
+        self._catch_up(live & (st == TRACKING), tt, delta)
         self._hysteresis(live, tt, delta, enter, leave)
         self._track(live & (st == TRACKING), live, tt, delta, enter)
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
-        return CalibrationStep(delta, st == TOUCHED, st != COLLECTING)
+        return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps)
 
-    def _update_common(self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray) -> None:
+    def _update_common(
+        self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray, tt: FloatArray
+    ) -> None:
         """The skin's common offset: median residual of the tracked elements that did
-        not jump past ``enter`` — or of all of them when nearly all jumped together."""
+        not jump past ±``enter`` — or of all of them when nearly all jumped together
+        the same way, and alike.
+
+        Both directions are excluded: with two tracked elements the median is their
+        mean, so one element far below the rest (a glitch, a baseline tared under a
+        press) would otherwise shift every other element by half its drop. A jump
+        that lifts the elements unevenly (a palm: centre ≫ corners) is contacts: taken
+        as common it would hide the press, and the fast negative tracker would follow
+        the elements left below the offset, which then latch touched on release."""
         k = int(trk.sum())
         if k < self.config.min_common:
             return  # too few to tell drift from touch: the offset is carried
-        jump = trk & np.any(resid - self._common > enter, axis=1)
-        kj = int(jump.sum())
-        if kj and kj >= self.config.common_fraction * k:
-            ref = trk
-            self._common_jumps += 1
-        else:
-            ref = trk & ~jump
+        jump, most, ref = _common_reference(resid - self._common, trk, enter, self.config)
         if int(ref.sum()) >= self.config.min_common:
-            self._common = np.median(resid[ref], axis=0)
+            new = np.median(resid[ref], axis=0)
+            if jump:
+                self._common_jumps += 1
+                self._last_jump = {
+                    "t": float(tt[trk].max()),
+                    "offset_change": [float(x) for x in new - self._common],
+                    "elements": most,
+                    "tracked": k,
+                }
+            self._common = new
 
     def _collect(self, col: NDArray[np.bool_], v: FloatArray) -> None:
         """Baseline collection (relative to the common offset of each reading's step)."""
@@ -343,6 +438,28 @@ class Calibrator:
             self._state[done] = TRACKING
             self._count[done] = 0
             self._thr = None
+
+    def _catch_up(self, trk: NDArray[np.bool_], tt: FloatArray, delta: FloatArray) -> None:
+        """An element back from a silence longer than ``tau`` takes its reading as
+        baseline if the change fits the drift allowed over the gap (``max_drift`` per
+        second of it, every channel); otherwise nothing moves and the change is a touch.
+
+        Without this the tracker's per-step clip (±max_drift·tau) would cap the
+        catch-up after hours of silence at 10 fF, and an element's own drift over
+        those hours came back as a touch held for ``max_touch``. A press that appeared
+        during the gap and fits the allowance is absorbed, as one rising that slowly
+        would be; each catch-up is counted (``health()["outage_catchups"]``).
+        """
+        gap = tt - self._last_t  # NaN or inf where not tracked: compares False / is masked
+        back = trk & (gap > self.config.tau)
+        if not back.any():
+            return
+        idx = np.nonzero(back)[0]  # tracked: sampled before, so the gap is finite
+        fit = idx[np.all(np.abs(delta[idx]) <= self._drift * gap[idx, None], axis=1)]
+        if fit.size:
+            self._base[fit] += delta[fit]
+            delta[fit] = 0.0
+            self._catchups += int(fit.size)
 
     def _hysteresis(
         self, live: NDArray[np.bool_], tt: FloatArray, delta: FloatArray,

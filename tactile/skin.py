@@ -50,6 +50,18 @@ IntArray = NDArray[np.int64]
 
 _DEFAULT_SIDE = ElementParams().side
 
+#: Most elements one layout may hold: far beyond any robot skin, far below what would
+#: exhaust memory before a typo (``rows = 1000000000``) is reported.
+MAX_ELEMENTS = 1_000_000
+#: Largest element side (m): far beyond any element, far below a side in millimetres
+#: written where metres are expected.
+MAX_SIDE = 1.0
+#: Farthest an element centre may lie from the origin, in element sides. Beyond about
+#: 4.5e6 sides float64 cannot resolve an element's edges to the 1e-9·side the overlap
+#: check works to, and two elements at the same place would pass it.
+MAX_REACH = 1e5
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+
 
 def _readonly(a: np.ndarray) -> np.ndarray:
     a = np.array(a, copy=True)
@@ -75,9 +87,29 @@ def _checked(value: Any, name: str, kind: type[int] | type[float], minimum: floa
     if not ok:
         raise ValueError(f"{name} must be {what}, got {value!r}")
     out = kind(value)
+    if kind is int and not _INT64_MIN <= out <= _INT64_MAX:
+        raise ValueError(f"{name} must be an integer in [-2**63, 2**63), got {value!r}")
     if minimum is not None and out < minimum:
         raise ValueError(f"{name} must be >= {minimum:g}, got {value!r}")
     return out
+
+
+def _as_ids(raw: ArrayLike, what: str) -> IntArray:
+    """Integer ids as int64, or ValueError: never truncated (0.5 → 0) nor wrapped
+    (2**63 as uint64 → −2**63)."""
+    a = np.asarray(raw)
+    if a.dtype.kind == "i":
+        ok = True
+    elif a.dtype.kind == "u":
+        ok = bool(np.all(a <= _INT64_MAX))
+    elif a.dtype.kind == "f":
+        with np.errstate(invalid="ignore"):
+            ok = bool(np.all((a == np.round(a)) & (a >= -(2.0**63)) & (a < 2.0**63)))
+    else:
+        ok = False
+    if not ok:
+        raise ValueError(f"{what} must be integers in [-2**63, 2**63)")
+    return a.astype(np.int64)
 
 
 # --------------------------------------------------------------------------- layout
@@ -108,27 +140,38 @@ class SkinLayout:
             raise ValueError(f"centres must have shape (N, 2), got {c.shape}")
         if c.shape[0] == 0:
             raise ValueError("a layout needs at least one element")
+        if c.shape[0] > MAX_ELEMENTS:
+            raise ValueError(f"a layout holds at most {MAX_ELEMENTS} elements, got {c.shape[0]}")
         if not np.all(np.isfinite(c)):
             raise ValueError("element centres must be finite")
         side = _checked(self.side, "element side", float)
-        if not side > 0:
-            raise ValueError(f"element side must be > 0 m, got {self.side!r}")
+        if not 0 < side <= MAX_SIDE:
+            raise ValueError(
+                f"element side must be > 0 and <= {MAX_SIDE:g} m, got {self.side!r} "
+                "(metres expected, not millimetres)"
+            )
+        reach = MAX_REACH * side
+        if np.abs(c).max() > reach:
+            raise ValueError(
+                f"element centres must lie within {reach:g} m ({MAX_REACH:g} element sides) "
+                f"of the origin, got {float(np.abs(c).max()):g} m: farther, float64 cannot "
+                "resolve the elements' edges"
+            )
         n = c.shape[0]
         if self.ids is None:
             ids = np.arange(n, dtype=np.int64)
         else:
-            raw = np.asarray(self.ids)
-            if raw.shape != (n,):
-                raise ValueError(f"ids must have shape ({n},), got {raw.shape}")
-            if raw.dtype.kind not in "iu" and not (
-                raw.dtype.kind == "f" and np.all(np.isfinite(raw)) and np.all(raw == np.round(raw))
-            ):
-                raise ValueError("element ids must be integers")
-            ids = raw.astype(np.int64)
+            if np.shape(self.ids) != (n,):
+                raise ValueError(f"ids must have shape ({n},), got {np.shape(self.ids)}")
+            ids = _as_ids(self.ids, "element ids")
         if np.unique(ids).size != n:
             raise ValueError("element ids must be unique")
         gap = 0.25 * side if self.neighbour_gap is None else _checked(
             self.neighbour_gap, "neighbour_gap", float, minimum=0.0)
+        if gap > side:
+            # Wider seams than an element: no contact presses both sides, and the
+            # neighbour search would compare (gap/side)² candidates per element.
+            raise ValueError(f"neighbour_gap must be <= the element side {side:g} m, got {gap!r}")
         object.__setattr__(self, "centres", _readonly(c))
         object.__setattr__(self, "side", side)
         object.__setattr__(self, "ids", _readonly(ids))
@@ -245,14 +288,15 @@ class SkinLayout:
 
     def neighbours(self, index: int, connectivity: Literal["edge", "corner"] = "edge") -> IntArray:
         """Indices (not ids) of the neighbours of element ``index``."""
-        if not 0 <= index < self.n:
-            raise ValueError(f"element index {index} out of range 0..{self.n - 1}")
+        if not (isinstance(index, (int, np.integer)) and not isinstance(index, (bool, np.bool_))
+                and 0 <= index < self.n):
+            raise ValueError(f"element index must be an integer in 0..{self.n - 1}, got {index!r}")
         e = self.edges if connectivity == "edge" else self.corner_edges
         return np.sort(np.concatenate([e[e[:, 0] == index, 1], e[e[:, 1] == index, 0]]))
 
     def index_of(self, ids: ArrayLike) -> IntArray:
         """Row indices of the given element ids; ValueError for an unknown id."""
-        want = np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        want = np.atleast_1d(_as_ids(ids, "element ids"))
         order = np.argsort(self.ids)
         pos = np.searchsorted(self.ids, want, sorter=order)
         pos = np.clip(pos, 0, self.n - 1)
@@ -310,6 +354,13 @@ def grid_layout(
     if not (isinstance(origin, (list, tuple)) and len(origin) == 2):
         raise ValueError(f"{where}origin must be [x, y] in metres, got {origin!r}")
     ox, oy = (_checked(v, f"{where}origin", float) for v in origin)
+    if rows * cols > MAX_ELEMENTS:
+        raise ValueError(
+            f"{where}rows × {where}cols = {rows * cols} elements, more than a layout holds "
+            f"({MAX_ELEMENTS})"
+        )
+    if first_id + rows * cols - 1 > _INT64_MAX:
+        raise ValueError(f"{where}first_id {first_id} + {rows * cols} elements overflows 64-bit ids")
     r, c = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
     centres = np.stack([ox + c.ravel() * pitch, oy + r.ravel() * pitch], axis=1)
     ids = first_id + np.arange(centres.shape[0], dtype=np.int64)
@@ -401,6 +452,8 @@ def parse_layout(text: str, source: str = "layout") -> SkinLayout:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise ValueError(f"{source}: not valid TOML: nested too deeply") from None
     return layout_from_mapping(data, source)
 
 
@@ -482,9 +535,17 @@ def disk_rect_overlap(
                                  np.stack(np.broadcast_arrays(by0, by0, by1, by1)))
     q = _quadrant(a4, b4)
     u = q[0] - q[1] - q[2] + q[3]
-    area = u * rs * rs
-    # Clamp rounding: never negative, never more than the disk or the rectangle.
-    area = np.clip(area, 0.0, np.minimum(np.pi * rs * rs, (x1 - x0) * (y1 - y0)))
+    rect = (x1 - x0) * (y1 - y0)
+    with np.errstate(over="ignore", invalid="ignore"):  # r² beyond float range
+        area = u * rs * rs
+        # Clamp rounding: never negative, never more than the disk or the rectangle.
+        area = np.clip(area, 0.0, np.minimum(np.pi * rs * rs, rect))
+    # A rectangle whose farthest corner lies in the disk is wholly inside: its own
+    # area, exactly. The corner terms above cancel to nothing when the disk is much
+    # larger than the rectangle (r = 1e5 m: 0.08 % short; 1e8 m: 0).
+    far = np.hypot(np.maximum(np.abs(x0 - cx), np.abs(x1 - cx)),
+                   np.maximum(np.abs(y0 - cy), np.abs(y1 - cy)))
+    area = np.where(far <= r, rect, area)
     return np.where(pos, area, 0.0)
 
 
@@ -629,10 +690,19 @@ def pressure_field(
     return out.reshape(p.shape[:-1])
 
 
+#: Smallest non-zero spread (m): below it the blurred rim is narrower than float64
+#: resolves at a contact's radius, and the profile table collapses.
+MIN_SPREAD = 1e-9
+
+
 def _check_spread(spread: float) -> float:
     s = float(spread)
     if not (math.isfinite(s) and s >= 0):
         raise ValueError(f"spread must be finite and >= 0 m, got {spread!r}")
+    if 0 < s < MIN_SPREAD:
+        raise ValueError(
+            f"spread must be 0 or >= {MIN_SPREAD:g} m (a sub-nanometre blur is none), got {spread!r}"
+        )
     return s
 
 

@@ -98,7 +98,7 @@ class ChipParams:
                 raise ValueError(f"ChipParams.{name} must be finite and > 0, got {v!r}")
         for name in ("gate_cycles", "adc_sample_cycles", "adc_bits", "counter_bits"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, np.integer)) and v > 0):
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_)) and v > 0):
                 raise ValueError(f"ChipParams.{name} must be a positive integer, got {v!r}")
         if not self.counter_bits <= 62:
             raise ValueError("ChipParams.counter_bits must be <= 62 (counts are int64)")
@@ -338,11 +338,14 @@ class CounterUnwrapper:
         self.chip = _chip(chip)
         lo, hi = _range(C_lo, C_hi)
         check_gate(self.chip, lo, hi)
-        if not (isinstance(resync, (int, np.integer)) and resync >= 1):
+        if not (isinstance(resync, (int, np.integer)) and not isinstance(resync, (bool, np.bool_))
+                and resync >= 1):
             raise ValueError(f"resync must be an integer >= 1, got {resync!r}")
         self.resync = int(resync)
+        self._lo, self._hi = lo, hi
         self._span = counter_span(lo, hi, self.chip) + _COUNT_SLACK
         c0 = np.sqrt(lo * hi) if start is None else np.broadcast_to(_cap(start), lo.shape)
+        self._c0 = c0
         self._nominal = np.rint(expected_counts(c0, self.chip)).astype(np.int64)
         self._prev = self._nominal.copy()
         self._ambiguous = np.zeros(lo.shape, dtype=np.int64)
@@ -360,6 +363,26 @@ class CounterUnwrapper:
         rest = np.broadcast_to([p.C1_rest, p.C2_rest], shape)
         return cls(np.broadcast_to(lo, shape), np.broadcast_to(hi, shape), chip, rest)
 
+    def set_gate(self, gate_cycles: int) -> None:
+        """Follow a gate change (``SET_GATE``) mid-stream, keeping every channel's reference.
+
+        Counts scale with the gate, so each channel's last trusted count is rescaled
+        to the new gate (off by at most the gate ratio plus one count, far inside the
+        plausible span) — a fresh unwrapper anchored at rest would lose a channel
+        whose parasitics drifted beyond the plausible range. A gate too long for the
+        channels' range is refused (:func:`check_gate`) and changes nothing; the
+        ``ambiguous`` counts are kept.
+        """
+        chip = replace(self.chip, gate_cycles=gate_cycles)
+        check_gate(chip, self._lo, self._hi)
+        ratio = chip.gate_cycles / self.chip.gate_cycles
+        self._prev = np.rint(self._prev * ratio).astype(np.int64)
+        self._nominal = np.rint(expected_counts(self._c0, chip)).astype(np.int64)
+        self._span = counter_span(self._lo, self._hi, chip) + _COUNT_SLACK
+        self._max = chip.gate_cycles / 2.0
+        self._run[...] = 0
+        self.chip = chip
+
     @property
     def previous(self) -> IntArray:
         """Each channel's last trusted count."""
@@ -374,13 +397,33 @@ class CounterUnwrapper:
         self, raw: ArrayLike, overflow: ArrayLike | None = None, sampled: ArrayLike | None = None
     ) -> tuple[IntArray, NDArray[np.bool_]]:
         """(counts, ambiguous) for one sample of every channel (``sampled``: which
-        channels carry a new sample; the others are left alone and returned as 0)."""
+        channels carry a new sample, raw's shape or (…, 1) per element; the others
+        are left alone and returned as 0).
+
+        ``raw`` may be a float array with NaN (or anything) in the channels that were
+        not sampled, as the rest of the host's per-element arrays are; the sampled
+        ones must hold integer counts."""
         r = np.asarray(raw)
         if r.shape != self._prev.shape:
             raise ValueError(f"raw must have shape {self._prev.shape}, got {r.shape}")
-        s = np.ones(r.shape, dtype=bool) if sampled is None else np.broadcast_to(
-            np.asarray(sampled, dtype=bool), r.shape)
+        if sampled is None:
+            s = np.ones(r.shape, dtype=bool)
+        else:
+            sm = np.asarray(sampled, dtype=bool)
+            per_element = r.shape[:-1] + (1,)
+            if sm.ndim and sm.shape not in (r.shape, per_element):
+                # e.g. (N,) for N = C would broadcast over the channels, not the elements
+                raise ValueError(
+                    f"sampled must have raw's shape {r.shape}, one flag per element "
+                    f"{per_element} or be a scalar, got {sm.shape}"
+                )
+            s = np.broadcast_to(sm, r.shape)
         r = np.where(s, r, 0)
+        if r.dtype.kind == "f":
+            m = self.chip.counter_modulus
+            if not np.all((r == np.round(r)) & (r >= 0) & (r < m)):  # False for NaN
+                raise ValueError(f"raw counts must be integers in [0, {m})")
+            r = r.astype(np.int64)
         ov = None if overflow is None else np.where(s, np.asarray(overflow, dtype=bool), False)
         n = unwrap_counts(r, self._prev, self.chip, ov)
         amb = s & ((np.abs(n - self._prev) > self._span) | (n <= 0) | (n > self._max))
@@ -401,14 +444,16 @@ def counts_to_capacitance(
     """Capacitance (F) whose expected count is ``n`` (unwrapped; may be a mean).
 
     NaN for anything no counted oscillator gives: non-finite, zero or negative (a
-    dead oscillator or no reading), or more than one edge per two cycles (beyond the
-    synchroniser). A NaN is "no reading", which every later stage handles.
+    dead oscillator or no reading), so few edges that C would exceed ``C_MAX``, or
+    more than one edge per two cycles (beyond the synchroniser). A NaN is "no
+    reading", which every later stage handles.
     """
     ch = _chip(chip)
     nn = np.asarray(n, dtype=np.float64)
-    ok = (nn > 0) & (nn <= ch.gate_cycles / 2.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(ok, ch.gate_time / (_LN2x2 * ch.R_osc * nn), np.nan)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        c = ch.gate_time / (_LN2x2 * ch.R_osc * nn)
+    ok = (nn > 0) & (nn <= ch.gate_cycles / 2.0) & (c <= C_MAX)
+    return np.where(ok, c, np.nan)
 
 
 def counter_delta(

@@ -159,7 +159,7 @@ def test_missing_readings_per_element_times_and_errors():
     with pytest.raises(ValueError):
         Calibrator(2, 2, CalibrationConfig(enter=1.0, leave=2.0))
     one = Calibrator(2, 1, CalibrationConfig(n_baseline=1))
-    assert one.update(0.0, np.array([1.0, 2.0])).ready.all()  # (N,) accepted for one channel
+    assert one.update(0.0, np.array([1.0, 2.0]) * pF).ready.all()  # (N,) accepted for one channel
 
 
 def test_max_touch_rebaselines_a_stuck_element():
@@ -471,3 +471,218 @@ def test_missing_readings_do_not_restart_the_below_baseline_timer():
         feed(cal, 1.0 + 0.1 * k, low if k % 2 == 0 else gap)
     s = feed(cal, 5.0, low)
     assert abs(s.delta[0, 0]) < cfg.enter
+
+
+# ------------------------------------------- small skins: one element far below the rest
+
+
+def test_one_low_glitch_on_a_two_element_skin_does_not_touch_the_other():
+    # With two tracked elements the "median" is their mean: a −5 pF glitch on one
+    # used to pull the common offset down by 2.5 pF and report a 2.5 pF press on the
+    # other. A reading below −enter is excluded from the common reference just like
+    # one above +enter.
+    cal, t0, rng = ready_skin(2)
+    low = np.full((2, 2), 20 * pF)
+    low[0] -= 5 * pF
+    s = feed(cal, t0, low)
+    assert not s.touched.any()
+    assert np.abs(s.delta[1]).max() < 5 * fF
+    assert np.abs(cal.common_drift).max() < 5 * fF
+
+
+def test_tare_during_a_press_on_a_small_skin_does_not_touch_the_other_element():
+    # The user tares element 0 while it is pressed; on release it reads 2.2 pF below
+    # its baseline until the fast negative tracker has followed it. Meanwhile the
+    # other element of the 1×2 skin must stay untouched and read ~0.
+    cal, t0, rng = ready_skin(2)
+    press = np.zeros((2, 2))
+    press[0] = [2.2 * pF, 0.6 * pF]
+    run(cal, t0, t0 + 2.0, lambda t: 20 * pF + press)
+    cal.tare([0])
+    run(cal, t0 + 2.0, t0 + 10.0, lambda t: 20 * pF + press)
+    assert cal.ready.all()
+    touched = run(cal, t0 + 10.0, t0 + 40.0, lambda t: 20 * pF + rng.normal(0, 1 * fF, (2, 2)))
+    assert not touched[:, 1].any()
+    s = feed(cal, t0 + 40.0, np.full((2, 2), 20 * pF))
+    assert np.abs(s.delta).max() < 25 * fF  # element 0 followed back by the fast tracker
+
+
+def test_a_common_step_down_on_a_two_element_skin_is_still_drift():
+    # The counterpart of the rule above: when (nearly) all tracked elements fall
+    # together it is a common change, taken in the same step.
+    cal, t0, rng = ready_skin(2)
+    before = cal.health()["common_jumps"]
+    touched = run(cal, t0, t0 + 30.0, lambda t: 20 * pF - (t > t0 + 5.0) * 300 * fF
+                  + rng.normal(0, 1 * fF, (2, 2)))
+    assert not touched.any()
+    s = feed(cal, t0 + 30.0, np.full((2, 2), 20 * pF - 300 * fF))
+    assert np.abs(s.delta).max() < 5 * fF
+    assert cal.common_drift == pytest.approx([-300 * fF, -300 * fF], abs=5 * fF)
+    assert cal.health()["common_jumps"] == before + 1
+
+
+def test_per_element_times_may_be_nan_where_there_is_no_reading():
+    # A daemon that builds one time per element naturally leaves NaN where an
+    # element gave no reading, as it does for the values; that frame used to be
+    # refused whole ("time must be finite"), blinding every other element.
+    cfg = CalibrationConfig(n_baseline=3)
+    a, b = ready_calibrator(3, cfg), ready_calibrator(3, cfg)
+    v = np.full((3, 2), 20 * pF)
+    v[1] = np.nan
+    v[0] += 300 * fF  # a press on element 0
+    sa = a.update(np.array([1.0, np.nan, 1.0]), v)
+    sb = b.update(1.0, v)
+    np.testing.assert_array_equal(sa.delta, sb.delta)
+    np.testing.assert_array_equal(sa.touched, sb.touched)
+    assert sa.touched[0] and np.isnan(sa.delta[1]).all()
+    for bad in ([np.nan, 2.0, 2.0], [2.0, np.inf, 2.0]):  # a reading needs a time; inf is no time
+        with pytest.raises(ValueError, match="time"):
+            a.update(np.array(bad), np.full((3, 2), 20 * pF))
+    with pytest.raises(ValueError, match="time"):
+        a.update(np.nan, np.full((3, 2), np.nan))  # a scalar time must be a time
+
+
+# ------------------------------------ presses over (nearly) the whole skin: reported
+
+
+@pytest.mark.parametrize("rows, diameter", [(2, 0.040), (3, 0.200), (4, 0.240)])
+def test_a_press_over_the_whole_skin_is_reported_as_a_common_jump(rows, diameter):
+    # The documented price of the common-mode rule: a press that lifts (nearly) every
+    # tracked element alike in one step — any press centred on the junction of a 2×2
+    # skin, a plate over a whole 3×3 or 4×4 — is taken for a common step and not
+    # touched. It must
+    # not vanish silently: the step says so and health() keeps when, how much and
+    # on how many elements (the size alone does not tell it from a supply step).
+    skin = grid_layout(rows, rows)
+    c = 0.5 * (rows - 1) * 0.040
+    d1, d2 = skin_response(skin, [[c, c, 5.0, diameter]])
+    cal, t0, rng = ready_skin(skin.n)
+    quiet = feed(cal, t0, np.full((skin.n, 2), 20 * pF))
+    assert not quiet.common_jump and cal.health()["last_common_jump"] is None
+    s = feed(cal, t0 + 0.1, 20 * pF + np.stack([d1, d2], axis=1))
+    assert s.common_jump
+    last = cal.health()["last_common_jump"]
+    assert last["t"] == pytest.approx(t0 + 0.1)
+    assert last["elements"] == skin.n and last["tracked"] == skin.n
+    assert last["offset_change"][0] == pytest.approx(float(np.median(d1)), rel=0.01)
+    assert last["offset_change"][0] > 100 * fF
+    nxt = feed(cal, t0 + 0.2, 20 * pF + np.stack([d1, d2], axis=1))
+    assert not nxt.common_jump and cal.health()["last_common_jump"] == last
+
+
+# ------------------------------------------------ an element back from a long outage
+
+
+def test_an_element_back_from_hours_of_silence_is_not_a_phantom_touch():
+    # Element 3's bridge is silent for 2 h while its own drift (what the common mode
+    # does not remove) moves it 150 fF, well within max_drift·2 h = 7.2 pF. It used
+    # to come back "touched" and stay so for max_touch (10 min of phantom contact)
+    # before being re-baselined. The tracker's rate bound holds across the gap: a
+    # change the element could have drifted while silent is drift.
+    cal, t0, rng = ready_skin(4)
+    own = np.zeros((4, 2))
+    silent = np.full((4, 2), 20 * pF)
+    silent[3] = np.nan
+    run(cal, t0, t0 + 5.0, lambda t: 20 * pF + rng.normal(0, 1 * fF, (4, 2)))
+    run(cal, t0 + 5.0, t0 + 7205.0, lambda t: silent, rate=0.1)
+    own[3] = [150 * fF, 90 * fF]
+    touched = run(cal, t0 + 7205.0, t0 + 7265.0, lambda t: 20 * pF + own + rng.normal(0, 1 * fF, (4, 2)))
+    assert not touched.any()
+    s = feed(cal, t0 + 7265.0, 20 * pF + own)
+    assert np.abs(s.delta).max() < 5 * fF
+    assert cal.health()["outage_catchups"] == 1 and cal.rebaselines.sum() == 0
+
+
+def test_a_press_larger_than_the_drift_an_outage_allows_is_reported_whole():
+    # 60 s of silence allow 60 fF of drift: a 2.2 pF press present when the element
+    # comes back is a touch, reported at its full size (no partial catch-up).
+    cal, t0, rng = ready_skin(4)
+    silent = np.full((4, 2), 20 * pF)
+    silent[3] = np.nan
+    run(cal, t0, t0 + 60.0, lambda t: silent)
+    press = np.zeros((4, 2))
+    press[3] = [2.2 * pF, 0.6 * pF]
+    s = feed(cal, t0 + 60.0, 20 * pF + press)
+    assert s.touched[3] and not s.touched[:3].any()
+    assert s.delta[3, 0] == pytest.approx(2.2 * pF, abs=5 * fF)
+    assert cal.health()["outage_catchups"] == 0
+
+
+def test_counts_in_the_config_refuse_booleans_with_a_value_error():
+    # n_baseline=True escaped as a TypeError from numpy; min_common=True and
+    # Calibrator(True) were taken as 1.
+    for kw in ({"n_baseline": True}, {"min_common": True}, {"n_baseline": np.True_}):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            CalibrationConfig(**kw)
+    for args in ((True, 2), (2, True), ("3", 2)):
+        with pytest.raises(ValueError, match="n_"):
+            Calibrator(*args)
+    assert Calibrator(np.int64(3), np.int32(2), CalibrationConfig(n_baseline=np.int16(5))).n_elements == 3
+
+
+def test_readings_in_picofarads_with_thresholds_in_farads_are_refused():
+    # Counter readings in pF fed to the default (farad) config: the quantised
+    # readings give a MAD of 0, so enter stays 5e-14 "pF" and one count of flicker
+    # is a touch — a quiet 2×2 skin was touched in a quarter of all element-steps.
+    # A reading 10⁹ times its touch threshold is a unit mix-up, refused up front.
+    cal = Calibrator(4, 2)
+    v = np.full((4, 2), 15.67)
+    with pytest.raises(ValueError, match="picofarads"):
+        cal.update(0.0, v)
+    assert (cal.state == COLLECTING).all() and cal.health()["collecting"] == 4
+    assert not cal.update(0.0, v * pF).ready.any()  # farads: fine
+    same_unit = Calibrator(4, 2, CalibrationConfig(enter=0.05, leave=0.025, max_drift=1e-3))
+    same_unit.update(0.0, v)  # picofarads throughout: fine
+    blind = Calibrator(4, 2, CalibrationConfig(enter=0.0, leave=0.0))
+    blind.update(0.0, v)  # no absolute threshold: nothing to compare against
+
+
+@pytest.mark.parametrize("rows, diameter, force", [(3, 0.080, 5.0), (3, 0.120, 20.0), (4, 0.160, 20.0)])
+def test_an_uneven_palm_is_contacts_not_a_common_step_and_leaves_no_phantom(rows, diameter, force):
+    # A palm centred on a 3×3 or 4×4 skin lifts every element past enter, but
+    # unevenly (centre ≫ corners). It used to be taken for a common step: at most 4
+    # elements touched during the press, and the fast negative tracker followed the
+    # corners down to "below the offset", so after the release 4 elements stayed
+    # touched (0.4-0.9 pF) until max_touch. A common step moves every element alike;
+    # one that leaves the tracked elements spread beyond enter + common_spread·|step|
+    # is contacts.
+    skin = grid_layout(rows, rows)
+    c = 0.5 * (rows - 1) * 0.040
+    d1, d2 = skin_response(skin, [[c, c, force, diameter]])
+    press = np.stack([d1, d2], axis=1)
+    assert (d1 > 50 * fF).all()  # every element lifted past enter
+    cal, t0, rng = ready_skin(skin.n)
+    during = run(cal, t0, t0 + 60.0, lambda t: 20 * pF + press + rng.normal(0, 1 * fF, (skin.n, 2)))
+    assert during[5:].all() and cal.health()["common_jumps"] == 0
+    after = run(cal, t0 + 60.0, t0 + 120.0, lambda t: 20 * pF + rng.normal(0, 1 * fF, (skin.n, 2)))
+    assert not after[-100:].any()  # released, hold-off over: nothing latched
+    s = feed(cal, t0 + 120.0, np.full((skin.n, 2), 20 * pF))
+    assert np.abs(s.delta).max() < 10 * fF
+
+
+@pytest.mark.parametrize("size", [300 * fF, 1 * pF, 3 * pF, -3 * pF])
+def test_large_common_steps_that_move_the_elements_alike_are_still_drift(size):
+    # The "alike" condition scales with the step: elements that follow it to ±1 %
+    # (what is left stays below enter) see a common step at any size, up or down,
+    # also with a press held meanwhile.
+    cal, t0, rng = ready_skin(16)
+    scale = 1.0 + rng.uniform(-0.01, 0.01, (16, 2))
+    press = np.zeros((16, 2))
+    press[5] = [2.2 * pF, 0.6 * pF]
+    touched = run(cal, t0, t0 + 60.0, lambda t: 20 * pF + press + (t > t0 + 5.0) * size * scale
+                  + rng.normal(0, 1 * fF, (16, 2)))
+    assert touched[:, 5].all() and not np.delete(touched, 5, axis=1).any()
+    s = feed(cal, t0 + 60.0, 20 * pF + press + size * scale)
+    assert s.delta[5, 0] == pytest.approx(2.2 * pF, rel=0.1)
+    assert cal.health()["common_jumps"] >= 1
+
+
+def test_common_spread_is_validated_and_inf_restores_the_fraction_rule_alone():
+    for bad in (-0.1, math.nan):
+        with pytest.raises(ValueError, match="common_spread"):
+            CalibrationConfig(common_spread=bad)
+    skin = grid_layout(3, 3)
+    d1, d2 = skin_response(skin, [[0.04, 0.04, 5.0, 0.080]])
+    cal, t0, rng = ready_skin(9, CalibrationConfig(common_spread=math.inf))
+    s = feed(cal, t0, 20 * pF + np.stack([d1, d2], axis=1))
+    assert s.common_jump and s.touched.sum() <= 4  # the palm taken for a common step

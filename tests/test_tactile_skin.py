@@ -411,3 +411,83 @@ def test_neighbour_search_is_local():
     assert len(lay.edges) == 2 * 60 * 59 and len(lay.corner_edges) == 2 * 60 * 59 + 2 * 59 * 59
     with pytest.raises(ValueError, match="overlap"):
         SkinLayout(np.concatenate([lay.centres, [[1.0, 1.0 + 1e-3]]]), side=0.04)
+
+
+# ------------------------------------------------------------- hostile layout files
+
+
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ("[[element]]\nid = 9223372036854775808\nx = 0.0\ny = 0.0\n", "id"),
+        ("[[element]]\nid = -9223372036854775809\nx = 0.0\ny = 0.0\n", "id"),
+        ("[grid]\nrows = 1\ncols = 2\nfirst_id = 9223372036854775808\n", "first_id"),
+        ("[grid]\nrows = 1\ncols = 2\nfirst_id = 9223372036854775807\n", "first_id"),  # would wrap
+        ("[grid]\nrows = 1000000000\ncols = 1000000000\n", "rows"),
+        ("[grid]\nrows = 1000000000000000000000\ncols = 2\n", "rows"),
+        ("side = 40.0\n[grid]\nrows = 1\ncols = 1\npitch = 40.0\n", "side"),  # millimetres
+        ("neighbour_gap = 1e300\n[grid]\nrows = 2\ncols = 2\n", "neighbour_gap"),
+        ("[[element]]\nid = 1\nx = 1e17\ny = 0.0\n[[element]]\nid = 2\nx = 1.0000000000000001e17\ny = 0.0\n",
+         "centre"),
+        ("[[element]]\nid = 1\nx = -1e300\ny = 0.0\n[[element]]\nid = 2\nx = -1e300\ny = 0.01\n", "centre"),
+        ("x = " + "[" * 100_000 + "]" * 100_000 + "\n", "TOML"),
+        ("side = " + "{a = " * 5_000 + "1" + "}" * 5_000 + "\n", "TOML"),
+    ],
+)
+def test_hostile_layout_files_are_refused_with_a_value_error_naming_the_key(text, key):
+    # Huge ids used to escape as OverflowError or wrap silently into negative ids, a
+    # huge grid as MemoryError, deep nesting as RecursionError; coordinates so large
+    # that float64 cannot resolve an element's edges let two elements at the same
+    # place pass the overlap check.
+    with pytest.raises(ValueError) as info:
+        parse_layout(text, source="arm.toml")
+    msg = str(info.value)
+    assert msg.startswith("arm.toml: ") and key in msg, msg
+
+
+def test_layout_ids_outside_int64_are_refused_not_wrapped():
+    xy = np.array([[0.0, 0.0], [0.04, 0.0]])
+    for ids in (np.array([2**64 - 1, 2**63], dtype=np.uint64), np.array([2.0**63, 0.0]),
+                np.array([1e300, 2e300])):
+        with pytest.raises(ValueError, match="ids"):
+            SkinLayout(xy, ids=ids)
+    assert list(SkinLayout(xy, ids=np.array([2**63 - 1, 0], dtype=np.uint64)).ids) == [2**63 - 1, 0]
+
+
+def test_index_of_and_neighbours_refuse_what_is_not_an_integer():
+    lay = grid_layout(2, 2)
+    with pytest.raises(ValueError, match="id"):
+        lay.index_of([0.5])  # used to truncate to id 0
+    with pytest.raises(ValueError, match="id"):
+        lay.index_of([2**70])  # used to raise OverflowError
+    with pytest.raises(ValueError, match="index"):
+        lay.neighbours(1.5)  # used to return no neighbours
+    assert list(lay.index_of([3.0, np.int32(1)])) == [3, 1]
+    assert list(lay.neighbours(np.int64(1))) == [0, 3]
+
+
+@pytest.mark.parametrize("r", [1.0, 1e3, 1e5, 1e8, 1e200])
+def test_an_element_wholly_inside_a_huge_disk_gets_its_whole_area(r):
+    # The closed form is a difference of four O(1) corner terms scaled by r²: for an
+    # element far inside a large disk it lost every digit (r = 1e5 m: 0.08 % short,
+    # r = 1e8 m: 0). A rectangle whose corners all lie in the disk is exactly inside.
+    area = disk_rect_overlap(0.3, -0.2, r, -0.02, -0.02, 0.02, 0.02)
+    assert area == 0.04 * 0.04
+    lay = grid_layout(2, 2)
+    b = lay.bounds
+    np.testing.assert_array_equal(disk_element_overlap(lay, [[0.02, 0.02]], [r]),
+                                  ((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]))[None, :])
+
+
+def test_a_spread_below_a_nanometre_is_refused_not_wrong():
+    # spread = 1e-100 m gave all-zero responses (the profile's grid collapsed to one
+    # point) and 1e-160 m a NaN pressure error from deep inside the element model.
+    lay = grid_layout(2, 2)
+    for s in (1e-100, 1e-160, 5e-324):
+        with pytest.raises(ValueError, match="spread"):
+            skin_response(lay, [[0.005, 0.003, 3.0, 0.01]], spread=s)
+    with pytest.raises(ValueError, match="spread"):
+        pressure_field([[0.0, 0.0]], [[0.0, 0.0, 3.0, 0.01]], spread=1e-300)
+    fine = skin_response(lay, [[0.005, 0.003, 3.0, 0.01]], spread=1e-9)[0]
+    flat = skin_response(lay, [[0.005, 0.003, 3.0, 0.01]], spread=0.0)[0]
+    np.testing.assert_allclose(fine, flat, rtol=1e-3)

@@ -413,3 +413,104 @@ def test_mean_code_inversion_is_right_or_nan(c, sigma):
     assert math.isnan(back) or back == pytest.approx(c, rel=1e-5)
     if sigma >= 0.15:
         assert not math.isnan(back)
+
+
+def test_a_tiny_mean_count_is_no_reading_not_an_infinite_capacitance():
+    # A denormal or sub-count mean (a channel that almost never fired in the window)
+    # used to come back as inf F or tenths of a farad; anything above C_MAX is no
+    # capacitance any element has, so it is "no reading" like a zero count.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = counts_to_capacitance(np.array([5e-324, 1e-300, 1e-6, 0.5, 19_593.0]))
+    assert np.isnan(out[:3]).all()
+    assert np.isfinite(out[3:]).all() and out[3] <= 1e-3
+
+
+def test_unwrapper_takes_nan_for_channels_without_a_sample():
+    # The daemon's readings are NaN where a channel gave none, like every other
+    # per-element array; a float array with NaN in unsampled channels used to be
+    # refused whole ("raw counts must be integers"), losing the sampled channels.
+    from cellbridge.tactile.transfer import CounterUnwrapper
+
+    un = CounterUnwrapper.for_elements(2)
+    ref = CounterUnwrapper.for_elements(2)
+    raw, ov = counts(np.broadcast_to(C_REST, (2, 2)), CHIP, 0.5)
+    fl = raw.astype(np.float64)
+    fl[1, 0] = np.nan
+    sampled = np.isfinite(fl)
+    n, amb = un.unwrap(fl, ov, sampled)
+    n_ref, amb_ref = ref.unwrap(np.where(sampled, raw, 0), ov, sampled)
+    np.testing.assert_array_equal(n, n_ref)
+    np.testing.assert_array_equal(amb, amb_ref)
+    assert n[1, 0] == 0 and n[0, 0] == raw[0, 0] and not amb.any()
+    np.testing.assert_array_equal(un.previous, ref.previous)
+    for bad in (np.nan, 19_588.5, -1.0):  # a sampled channel still needs an integer count
+        fl2 = raw.astype(np.float64)
+        fl2[0, 1] = bad
+        with pytest.raises(ValueError, match="integers"):
+            un.unwrap(fl2, ov, np.ones((2, 2), dtype=bool))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.05, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 0.999)),
+                min_size=2, max_size=12))
+def test_unwrapper_follows_set_gate_mid_stream(changes):
+    # SET_GATE mid-stream on a 12-bit counter (wraps at every realistic gate): the
+    # unwrapper rescales each channel's reference to the new gate and stays exact,
+    # also for a channel whose parasitics drifted 3 pF below the nominal rest — which
+    # a fresh unwrapper anchored at rest gets a modulus wrong. Counters survive.
+    from cellbridge.tactile.transfer import CounterUnwrapper, max_gate_cycles
+
+    base = ChipParams(counter_bits=12, gate_cycles=20_000)
+    lo, hi = C_REST * 0.98, C_REST + 3e-12
+    longest = max_gate_cycles(lo, hi, base)
+    un = CounterUnwrapper(lo, hi, base, start=C_REST)
+    drifted = C_REST - np.array([3e-12, 2.4e-12])
+    chip = base
+    for k, (g, u, ph) in enumerate(changes):
+        steps = np.linspace(C_REST, drifted, 40) if k == 0 else [drifted + u * 1e-12] * 3
+        for c in steps:
+            raw, ov = counts(c, chip, ph)
+            n, amb = un.unwrap(raw, ov)
+            assert list(n) == list(np.ceil(expected_counts(c, chip) - ph).astype(np.int64))
+            assert not amb.any()
+        gate = max(int(g * longest), 200)
+        un.set_gate(gate)
+        chip = ChipParams(counter_bits=12, gate_cycles=gate)
+        assert un.chip == chip
+    with pytest.raises(ValueError, match="half the counter"):
+        un.set_gate(longest + 1)
+    assert un.chip == chip  # a refused gate changes nothing
+    assert list(un.ambiguous) == [0, 0]
+
+
+def test_integer_chip_parameters_refuse_booleans():
+    # ChipParams(gate_cycles=True) was a 1-cycle gate, counter_bits=True a 1-bit
+    # counter, CounterUnwrapper(resync=True) one sample: a bool is not a count.
+    from cellbridge.tactile.transfer import CounterUnwrapper
+
+    for name in ("gate_cycles", "adc_sample_cycles", "adc_bits", "counter_bits"):
+        with pytest.raises(ValueError, match=name):
+            ChipParams(**{name: True})
+    with pytest.raises(ValueError, match="resync"):
+        CounterUnwrapper(C_REST * 0.9, C_REST + 20e-12, CHIP, resync=True)
+    assert ChipParams(gate_cycles=np.int64(50_000)).gate_cycles == 50_000
+
+
+def test_unwrapper_refuses_a_sampled_mask_it_would_read_across_channels():
+    # For a 2-element skin (2, 2), sampled=[True, False] meant "element 0 only" to
+    # its caller but was broadcast over the channel axis ("C1 of every element"),
+    # silently unwrapping element 1's stale register. Only raw's shape or one flag
+    # per element (N, 1) are accepted.
+    from cellbridge.tactile.transfer import CounterUnwrapper
+
+    un = CounterUnwrapper.for_elements(2)
+    raw, ov = counts(np.broadcast_to(C_REST, (2, 2)), CHIP, 0.5)
+    with pytest.raises(ValueError, match="sampled"):
+        un.unwrap(raw, ov, np.array([True, False]))
+    n, amb = un.unwrap(raw, ov, np.array([[True], [False]]))
+    assert list(n[:, 0]) == [raw[0, 0], 0] and list(n[1]) == [0, 0] and not amb.any()
+    n, amb = un.unwrap(raw, ov, True)
+    np.testing.assert_array_equal(n, raw)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from cellbridge.tactile._jit import compiled
 
 from cellbridge.tactile.disk_model import overlap_grad, prior_row, sensitivity_slope, whiten
 from cellbridge.tactile.skin import _disk_blur
@@ -54,7 +54,7 @@ class ProfileRows:
 PROFILE_ROWS = ProfileRows()
 
 
-@njit(cache=True)
+@compiled
 def _row_at(tab: np.ndarray, k: int, u: float) -> float:
     u0 = max(k * DV - U_SPAN, 0.0)
     x = (u - u0) / DU
@@ -67,7 +67,7 @@ def _row_at(tab: np.ndarray, k: int, u: float) -> float:
     return tab[k, j] * (1.0 - f) + tab[k, j + 1] * f
 
 
-@njit(cache=True)
+@compiled
 def spread_residuals(
     theta: np.ndarray, bounds: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray,
     par: np.ndarray, s: float, q: int, tab: np.ndarray, res: np.ndarray, jac: np.ndarray, want_jac: bool,

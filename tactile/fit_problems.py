@@ -40,6 +40,7 @@ class Cluster:
     centroid: tuple[float, float]
     valid: bool  # a pressure and a positive area: the disk can be fitted
     base: dict = field(default_factory=dict)  # Contact fields known before any fit
+    firm: bool = False  # the pressure is from too-noisy high-branch elements only
 
 
 @dataclass
@@ -141,8 +142,14 @@ class FitRunner:
     def cluster(
         self, members: IntArray, labels: IntArray, c1: FloatArray, c2: FloatArray,
         finite: NDArray[np.bool_], valid: NDArray[np.bool_], force: FloatArray, area: FloatArray,
+        firm: FloatArray | None = None,
     ) -> Cluster:
-        """A cluster's observed elements, shared pressure, areas, centroid and base fields."""
+        """A cluster's observed elements, shared pressure, areas, centroid and base fields.
+
+        ``firm``: per element, a high-branch pressure its inverse found too noisy to
+        report (NaN elsewhere); with no valid element, the ΔC1-weighted mean of these
+        is the cluster's pressure, so a hard press is fitted, not taken for a light one.
+        """
         lay = self.layout
         members = np.sort(members)
         ring = np.unique(np.concatenate([self._ring_of[i] for i in members]))
@@ -150,6 +157,15 @@ class FitRunner:
         obs = np.concatenate([members, ring])
         vm = valid[members]
         sigma0 = float(force[members][vm].sum() / area[members][vm].sum()) if vm.any() else math.nan
+        is_firm = False
+        if not vm.any() and firm is not None:
+            fm = firm[members]
+            hard = np.isfinite(fm)
+            if hard.any():
+                w1 = np.maximum(c1[members][hard], 0.0) + 1e-300
+                sigma0 = float(np.exp(np.sum(w1 * np.log(fm[hard])) / w1.sum()))
+                vm = hard
+                is_firm = True
         # Area per observed element: the inverse's where valid; elsewhere the
         # least-squares area at the cluster's pressure, A = (g·ΔC)/(g·g).
         a = area[obs].copy()
@@ -176,7 +192,7 @@ class FitRunner:
             area=s_tot if ok else math.nan,
         )
         y = np.stack([c1[obs], c2[obs]])
-        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base)
+        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm)
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
         """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)

@@ -365,3 +365,22 @@ def test_hard_press_force_sigma_covers_the_truth_under_noise():
     z = np.abs(np.array(z))
     assert np.mean(z <= 2.0) >= 0.9
     assert z.max() < 4.0
+
+
+def test_two_fingers_with_a_touched_neighbour_that_reads_nothing_do_not_crash_the_split():
+    """The calibrator's hysteresis keeps an element touched after the finger slid off
+    it (ΔC back near zero). With two fingers beside it, the split's seed that credits
+    that element alone to the second disk has no area: math.log(0) raised ValueError
+    out of estimate(), killing the frame loop (136 of 3 000 random frames of this kind)."""
+    lay = grid_layout(3, 3)
+    truth = [[0.088, 0.075, 8.0, 0.016], [0.052, 0.088, 7.0, 0.014]]  # on elements 8 and 7
+    dc1, dc2 = measure(truth, lay)
+    active = dc1 > 50e-15
+    assert not active[4] and dc1[4] == 0.0
+    active[4] = True  # still touched: it has not read below the leave threshold long enough
+    cs = ContactEstimator(lay).estimate(dc1, dc2, active)
+    assert len(cs) == 2
+    for (x, y, f, d), c in zip(sorted(truth), sorted(cs, key=lambda c: c.x)):
+        assert c.valid and c.fit_ok
+        assert abs(c.x - x) <= 3 * c.sigma_x + 1e-6 and abs(c.y - y) <= 3 * c.sigma_y + 1e-6
+        assert c.force == pytest.approx(f, rel=1e-3)

@@ -41,6 +41,7 @@ class Cluster:
     valid: bool  # a pressure and a positive area: the disk can be fitted
     base: dict = field(default_factory=dict)  # Contact fields known before any fit
     firm: bool = False  # the pressure is from too-noisy high-branch elements only
+    extent: tuple[float, float, float, float] = (math.nan,) * 4  # members' (x0, y0, x1, y1)
 
 
 @dataclass
@@ -103,6 +104,14 @@ class Fits:
         cxy = float(cv[0, 1]) if not flat.any() and np.isfinite(cv[0, 1]) else 0.0
         sx, sy = float(sig[0]), float(sig[1])
         cx, cy = base["centroid_x"], base["centroid_y"]
+        seen = (not bool(flat[0]), not bool(flat[1]))
+        if not ok:
+            # The position is the centroid, which says only that the contact is on the
+            # cluster: σ of a uniform spread out to the farther edge of the cluster on
+            # each side (a failed fit's covariance says nothing about the centroid).
+            sx, sy = (max(c - lo, hi - c) / math.sqrt(3.0) for c, lo, hi in
+                      ((cx, cl.extent[0], cl.extent[2]), (cy, cl.extent[1], cl.extent[3])))
+            cxy, seen = 0.0, (False, False)
         return Contact(
             x=float(th[0]) if ok else cx, y=float(th[1]) if ok else cy,
             force=force if ok else base["force_sum"],
@@ -111,7 +120,7 @@ class Fits:
             sigma_x=sx, sigma_y=sy, sigma_xy=major_axis(sx * sx, sy * sy, cxy), cov=((sx * sx, cxy), (cxy, sy * sy)),
             sigma_force=float(force * s_lnf) if ok else math.nan,
             sigma_diameter=float(diam * sig[2]) if ok else math.nan,
-            valid=True, fit_ok=ok, observable=(not bool(flat[0]), not bool(flat[1])),
+            valid=True, fit_ok=ok, observable=seen,
             chi2=float(self.chi2[k]), dof=dof, **base,
         )
 
@@ -192,7 +201,9 @@ class FitRunner:
             area=s_tot if ok else math.nan,
         )
         y = np.stack([c1[obs], c2[obs]])
-        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm)
+        b = lay.bounds[members]
+        extent = (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
+        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, extent)
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
         """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)

@@ -384,3 +384,28 @@ def test_two_fingers_with_a_touched_neighbour_that_reads_nothing_do_not_crash_th
         assert c.valid and c.fit_ok
         assert abs(c.x - x) <= 3 * c.sigma_x + 1e-6 and abs(c.y - y) <= 3 * c.sigma_y + 1e-6
         assert c.force == pytest.approx(f, rel=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("element", "channel", "glitch"),
+    [(0, 0, -1e-12), (0, 0, 0.0), (1, 1, -1e-13), (2, 0, -1e-12), (0, 1, 0.0)],
+)
+def test_failed_fit_reports_the_centroid_with_a_sigma_that_holds_it(element, channel, glitch):
+    """A one-channel glitch (a dropped reading sent as 0, a negative spike) on a touched
+    element or its neighbour makes the disk fit fail, and the contact falls back to the
+    centroid. Its σ was the failed fit's covariance: 0.5 mm with the truth 5 mm away,
+    or inf with a NaN σ_xy (an inf σ matches every track in the tracker), and the axes
+    claimed observable."""
+    lay = grid_layout(3, 3)
+    truth = (0.020, 0.0, 5.0, 0.012)  # across the seam of elements 0 and 1
+    dc = np.array(measure([truth], lay))
+    active = dc.max(axis=0) > 50e-15
+    dc[channel, element] = glitch
+    cs = ContactEstimator(lay).estimate(dc[0], dc[1], active)
+    assert len(cs) == 1 and cs[0].valid and not cs[0].fit_ok
+    (c,) = cs
+    for v, s, t in ((c.x, c.sigma_x, truth[0]), (c.y, c.sigma_y, truth[1])):
+        assert math.isfinite(s) and 0 < s < 0.1
+        assert abs(v - t) <= 2 * s
+    assert math.isfinite(c.sigma_xy) and c.sigma_xy >= max(c.sigma_x, c.sigma_y) - 1e-12
+    assert c.observable == (False, False)

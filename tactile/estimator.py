@@ -90,6 +90,8 @@ class ContactEstimator:
         self.split = bool(split)
         self._runner = FitRunner(layout, self.params, nz, method == "area")
         self._sigma_unique = branch_info(self.params).sigma_unique
+        lo, hi = layout.bounds[:, :2].min(axis=0), layout.bounds[:, 2:].max(axis=0)
+        self._skin_diagonal = float(np.hypot(*(hi - lo)))
         self._adj_edge = layout.adjacency("edge") if layout.n <= 4096 else None
         if self.spread > 0:
             _spread_cells(layout.side, self.spread, quad_step)  # validates quad_step now
@@ -312,7 +314,10 @@ class ContactEstimator:
         again, and their σ come from the spread model's curvature.
         """
         s = self.spread
-        d_max = float(np.exp(uni.theta[:, 2]).max())
+        # Rows for the fits kept (a failed fit may sit at any size, up to 100 sides),
+        # and for no disk larger than the skin: each row costs memory for the process.
+        d_kept = np.exp(uni.theta[uni.ok, 2])
+        d_max = min(float(d_kept.max(initial=0.0)), self._skin_diagonal)
         rows = PROFILE_ROWS.upto(int(math.ceil((0.5 * d_max * 1.5 / s + 2.0) / DV)) + 2)
         sm = (s, _spread_cells(self.layout.side, s, self.quad_step), rows)
         free = np.ones(uni.theta.shape, dtype=bool)

@@ -41,12 +41,14 @@ class ProfileRows:
         """All rows 0..k_max (built now if missing)."""
         have = self.rows.shape[0]
         if k_max >= have:
-            ks = np.arange(have, k_max + 1)
-            v = ks * DV
-            u0 = np.maximum(v - U_SPAN, 0.0)
-            u = u0[:, None] + DU * np.arange(NU)[None, :]
-            new = _disk_blur(u, np.broadcast_to(v[:, None], u.shape).copy(), 1.0)
-            self.rows = np.concatenate([self.rows, new])
+            # In blocks: the quadrature's temporaries grow with the rows built at once.
+            new = []
+            for k0 in range(have, k_max + 1, 64):
+                v = np.arange(k0, min(k0 + 64, k_max + 1)) * DV
+                u0 = np.maximum(v - U_SPAN, 0.0)
+                u = u0[:, None] + DU * np.arange(NU)[None, :]
+                new.append(_disk_blur(u, np.broadcast_to(v[:, None], u.shape).copy(), 1.0))
+            self.rows = np.concatenate([self.rows, *new])
         return self.rows
 
 

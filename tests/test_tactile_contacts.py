@@ -409,3 +409,30 @@ def test_failed_fit_reports_the_centroid_with_a_sigma_that_holds_it(element, cha
         assert abs(v - t) <= 2 * s
     assert math.isfinite(c.sigma_xy) and c.sigma_xy >= max(c.sigma_x, c.sigma_y) - 1e-12
     assert c.observable == (False, False)
+
+
+def test_spread_refinement_builds_profile_rows_only_for_fits_it_keeps(monkeypatch):
+    """Readings no disk explains (a hand, a glitch) fail the uniform fit at any size, up
+    to 100 element sides; the spread refinement sized its profile rows by that failed
+    fit: 0.8 m of disk on a 2×2 skin asked for ~6 000 rows, a 0.5 GB temporary and
+    seconds inside one frame (MemoryError under a 4 GB limit). Only fits it keeps,
+    and no disk larger than the skin, may size them."""
+    from cellbridge.tactile.spread_model import DV, PROFILE_ROWS
+
+    s = 0.002
+    est = ContactEstimator(LAY, spread=s)
+    lo, hi = LAY.bounds[:, :2].min(axis=0), LAY.bounds[:, 2:].max(axis=0)
+    bound = int(math.ceil((0.5 * float(np.hypot(*(hi - lo))) * 1.5 / s + 2.0) / DV)) + 2
+    asked = []
+    real = PROFILE_ROWS.upto
+
+    def spy(k_max):
+        asked.append(k_max)
+        assert k_max <= max(bound, PROFILE_ROWS.rows.shape[0]), f"{k_max} rows asked for"
+        return real(k_max)
+
+    monkeypatch.setattr(PROFILE_ROWS, "upto", spy)
+    dc1 = np.array([1.57487310e-13, 6.78318954e-12, 1.72295669e-11, 2.76113861e-11])
+    dc2 = np.array([8.96837013e-14, 8.01914861e-12, 1.69099721e-11, 1.31653495e-11])
+    cs = est.estimate(dc1, dc2)
+    assert asked and cs and all(math.isfinite(c.x) and math.isfinite(c.sigma_x) for c in cs)

@@ -21,6 +21,7 @@ import warnings
 warnings.simplefilter("always")
 with warnings.catch_warnings(record=True) as caught:
     import cellbridge.config  # what the daemon imports to read its layout
+    import cellbridge.tactile.estimator  # the estimator's modules: every kernel
     from cellbridge.tactile import _jit
     from cellbridge.tactile.disk_model import sensitivity_slope
 print("uncached", len(_jit.UNCACHED))

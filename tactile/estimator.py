@@ -167,7 +167,7 @@ class ContactEstimator:
         valid = np.zeros(c1.shape, dtype=bool)
         force = np.full(c1.shape, np.nan)
         area = np.full(c1.shape, np.nan)
-        firm = np.full(c1.shape, np.nan)
+        firm = None
         if act.any():
             inv = solve(c1[act], c2[act], self.params, noise=float(self.noise.max()), **self.inverse_options)
             valid[act] = inv.valid
@@ -177,8 +177,10 @@ class ContactEstimator:
             # element's inverse, yet its pressure is on the unique high branch: no
             # light touch reads like it. The cluster's fit, over all its elements,
             # still measures the force (with its own σ); the pressure starts it.
-            hard = (inv.status == InverseStatus.ILL_CONDITIONED) & (inv.pressure >= self._sigma_unique)
-            firm[act] = np.where(hard, inv.pressure, np.nan)
+            hard = inv.status == InverseStatus.ILL_CONDITIONED
+            if hard.any():
+                firm = np.full(c1.shape, np.nan)
+                firm[act] = np.where(hard & (inv.pressure >= self._sigma_unique), inv.pressure, np.nan)
         clusters: list[Cluster] = []
         frame_of: list[int] = []
         for t in range(c1.shape[0]):
@@ -192,7 +194,7 @@ class ContactEstimator:
             for k in range(k_max + 1):
                 clusters.append(self._runner.cluster(
                     order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
-                    firm[t]))
+                    None if firm is None else firm[t]))
                 frame_of.append(t)
         out: list[list[Contact]] = [[] for _ in clusters]
         good = [k for k, cl in enumerate(clusters) if cl.valid]
@@ -280,6 +282,8 @@ class ContactEstimator:
         the rest re-fitted, gives where the cost has risen by 4 (2σ); σ_F is at least
         half of that excursion.
         """
+        if not any(cl.firm for cl in clusters):
+            return {}
         firm = np.array([k for k, cl in enumerate(clusters) if cl.firm and fits.ok[k] and free[k, 3]], dtype=np.int64)
         if firm.size == 0:
             return {}

@@ -41,7 +41,7 @@ class Cluster:
     valid: bool  # a pressure and a positive area: the disk can be fitted
     base: dict = field(default_factory=dict)  # Contact fields known before any fit
     firm: bool = False  # the pressure is from too-noisy high-branch elements only
-    extent: tuple[float, float, float, float] = (math.nan,) * 4  # members' (x0, y0, x1, y1)
+    bounds: FloatArray | None = None  # the layout's element bounds (a reference, for failed fits)
 
 
 @dataclass
@@ -109,8 +109,9 @@ class Fits:
             # The position is the centroid, which says only that the contact is on the
             # cluster: σ of a uniform spread out to the farther edge of the cluster on
             # each side (a failed fit's covariance says nothing about the centroid).
-            sx, sy = (max(c - lo, hi - c) / math.sqrt(3.0) for c, lo, hi in
-                      ((cx, cl.extent[0], cl.extent[2]), (cy, cl.extent[1], cl.extent[3])))
+            b = cl.bounds[cl.members]
+            sx, sy = (max(c - float(b[:, a].min()), float(b[:, a + 2].max()) - c) / math.sqrt(3.0)
+                      for a, c in ((0, cx), (1, cy)))
             cxy, seen = 0.0, (False, False)
         return Contact(
             x=float(th[0]) if ok else cx, y=float(th[1]) if ok else cy,
@@ -201,9 +202,7 @@ class FitRunner:
             area=s_tot if ok else math.nan,
         )
         y = np.stack([c1[obs], c2[obs]])
-        b = lay.bounds[members]
-        extent = (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
-        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, extent)
+        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, lay.bounds)
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
         """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)

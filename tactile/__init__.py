@@ -91,14 +91,8 @@ __all__ = [
 
 # Skin array, calibration and contact estimation (paper §III).
 from cellbridge.tactile.calibration import CalibrationConfig, CalibrationStep, Calibrator  # noqa: E402
-from cellbridge.tactile.contacts import (  # noqa: E402
-    Contact,
-    ContactEstimator,
-    cluster_elements,
-    estimate_contacts,
-    force_centroid,
-)
-from cellbridge.tactile.tracker import ContactTracker, TrackedContact  # noqa: E402
+from cellbridge.tactile.clusters import cluster_elements, force_centroid  # noqa: E402
+from cellbridge.tactile.contact_result import Contact  # noqa: E402
 from cellbridge.tactile.skin import (  # noqa: E402
     SkinLayout,
     disk_element_overlap,
@@ -138,3 +132,22 @@ __all__ += [
     "ContactTracker",
     "TrackedContact",
 ]
+
+# The estimator and the tracker run compiled kernels (numba): imported on first use,
+# so what needs only the physics, the layout or the calibration (the emulated mesh,
+# the daemon's configuration, the CLI) neither pays for numba nor needs what it
+# needs (executable memory, which a unit's MemoryDenyWriteExecute= forbids).
+_LAZY = {
+    "ContactEstimator": "cellbridge.tactile.estimator",
+    "estimate_contacts": "cellbridge.tactile.estimator",
+    "ContactTracker": "cellbridge.tactile.tracker",
+    "TrackedContact": "cellbridge.tactile.tracker",
+}
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -20,7 +20,8 @@ class Contact:
     the readings determine that coordinate (False: the value is the middle of the
     consistent range). ``valid`` is False when no element's inverse gave a pressure
     (too light a touch, or the ambiguous low-pressure region): only the position is
-    meaningful then.
+    meaningful then. A hard press that each element alone reads too noisily (on the
+    unique high-pressure branch) is fitted and valid.
     """
 
     x: float

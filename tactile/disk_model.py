@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from cellbridge.tactile._jit import compiled
 
 from cellbridge.tactile.element import ElementParams
 
@@ -48,12 +48,12 @@ def element_vector(p: ElementParams) -> np.ndarray:
     return np.array([p.E1, p.d1, p.d10, p.eps1, p.E2, p.d2, p.d20, p.eps2], dtype=np.float64)
 
 
-@njit(cache=True)
+@compiled
 def _prim(t: float, root: float) -> float:
     return 0.5 * (t * root + math.asin(t))
 
 
-@njit(cache=True)
+@compiled
 def _quadrant(a: float, b: float) -> float:
     # Area of the unit disk with x > a and y > b (see skin._quadrant).
     a = min(max(a, -1.0), 1.0)
@@ -69,7 +69,7 @@ def _quadrant(a: float, b: float) -> float:
     return 0.5 * math.pi - 2.0 * pa - pc + px1 - b * (c - x1)
 
 
-@njit(cache=True)
+@compiled
 def _chord(e: float, c: float, r: float, ct: float, lo: float, hi: float) -> float:
     # Length of the line {coordinate = e} inside the disk (centre c along that axis,
     # ct across it) and inside [lo, hi].
@@ -81,7 +81,7 @@ def _chord(e: float, c: float, r: float, ct: float, lo: float, hi: float) -> flo
     return max(min(hi, ct + h) - max(lo, ct - h), 0.0)
 
 
-@njit(cache=True)
+@compiled
 def overlap_grad(
     cx: float, cy: float, r: float, x0: float, y0: float, x1: float, y1: float
 ) -> tuple[float, float, float, float]:
@@ -109,7 +109,7 @@ def overlap_grad(
     return area, dx, dy, max(dr, 0.0)
 
 
-@njit(cache=True)
+@compiled
 def sensitivity_slope(sig: float, E: float, d: float, d0: float, eps: float) -> tuple[float, float]:
     """g(σ) of one layer (F/m²) and dg/dσ, for σ >= 0 (see element._stretch)."""
     u = sig / E
@@ -137,7 +137,7 @@ def sensitivity_slope(sig: float, E: float, d: float, d0: float, eps: float) -> 
     return g, g * e / sig
 
 
-@njit(cache=True)
+@compiled
 def disk_residuals(
     theta: np.ndarray,
     nd: int,
@@ -216,7 +216,7 @@ def disk_residuals(
     return data, total
 
 
-@njit(cache=True)
+@compiled
 def prior_row(
     res: np.ndarray, jac: np.ndarray, row: int, col: int, tot: float, tx: float, ty: float,
     doff_dlnr: float, disk: float, want_jac: bool,
@@ -232,7 +232,7 @@ def prior_row(
             jac[row, col + 2] = doff_dlnr / PRIOR_OFF
 
 
-@njit(cache=True)
+@compiled
 def whiten(
     res: np.ndarray, jac: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray, nch: int, m: int,
     scale_jac: bool, want_jac: bool,

@@ -30,13 +30,16 @@ from cellbridge.tactile.clusters import cluster_elements
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits
-from cellbridge.tactile.inversion import DEFAULT_NOISE, solve
+from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info, solve
 from cellbridge.tactile.light_touch import locate_light, unlocated
 from cellbridge.tactile.skin import SkinLayout, _check_spread, _spread_cells
 from cellbridge.tactile.spread_model import DV, PROFILE_ROWS
 from cellbridge.tactile.two_disks import split_clusters
 
 __all__ = ["ContactEstimator", "estimate_contacts"]
+
+#: Steps in ln F above a hard press's fit where its profile cost is taken.
+FIRM_STEPS = np.array([0.05, 0.1, 0.2, 0.4, 0.8, 1.6])
 
 FloatArray = NDArray[np.float64]
 
@@ -86,6 +89,9 @@ class ContactEstimator:
         self.inverse_options = dict(inverse_options or {})
         self.split = bool(split)
         self._runner = FitRunner(layout, self.params, nz, method == "area")
+        self._sigma_unique = branch_info(self.params).sigma_unique
+        lo, hi = layout.bounds[:, :2].min(axis=0), layout.bounds[:, 2:].max(axis=0)
+        self._skin_diagonal = float(np.hypot(*(hi - lo)))
         self._adj_edge = layout.adjacency("edge") if layout.n <= 4096 else None
         if self.spread > 0:
             _spread_cells(layout.side, self.spread, quad_step)  # validates quad_step now
@@ -161,11 +167,20 @@ class ContactEstimator:
         valid = np.zeros(c1.shape, dtype=bool)
         force = np.full(c1.shape, np.nan)
         area = np.full(c1.shape, np.nan)
+        firm = None
         if act.any():
             inv = solve(c1[act], c2[act], self.params, noise=float(self.noise.max()), **self.inverse_options)
             valid[act] = inv.valid
             force[act] = inv.force
             area[act] = inv.area
+            # A hard press (saturating foam, a small tip) can be too noisy for one
+            # element's inverse, yet its pressure is on the unique high branch: no
+            # light touch reads like it. The cluster's fit, over all its elements,
+            # still measures the force (with its own σ); the pressure starts it.
+            hard = inv.status == InverseStatus.ILL_CONDITIONED
+            if hard.any():
+                firm = np.full(c1.shape, np.nan)
+                firm[act] = np.where(hard & (inv.pressure >= self._sigma_unique), inv.pressure, np.nan)
         clusters: list[Cluster] = []
         frame_of: list[int] = []
         for t in range(c1.shape[0]):
@@ -178,7 +193,8 @@ class ContactEstimator:
             finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
             for k in range(k_max + 1):
                 clusters.append(self._runner.cluster(
-                    order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t]))
+                    order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
+                    None if firm is None else firm[t]))
                 frame_of.append(t)
         out: list[list[Contact]] = [[] for _ in clusters]
         good = [k for k, cl in enumerate(clusters) if cl.valid]
@@ -231,8 +247,13 @@ class ContactEstimator:
             for j, k in enumerate(redo):
                 if again.cost[j] < fits.cost[k]:
                     fits.take(k, again, j)
+        # Measured on the uniform fit (the foam's saturation, not the tension, makes
+        # the force's cost flat upwards), applied to whichever fit is reported.
+        firm_sig = self._firm_force_sigma(clusters, fits, free)
         if self.spread > 0:
             fits = self._spread_refine(batch, fits)
+        for k, s_lnf in firm_sig.items():
+            fits.sig[k, 3] = max(fits.sig[k, 3], s_lnf)
         area_force = self.method == "area"
         results = {k: [fits.contact(cl, k, int(dof[k]), area_force)] for k, cl in enumerate(clusters)}
         # Two disks need the uniform model: under a spread, a one-disk misfit of the
@@ -252,6 +273,42 @@ class ContactEstimator:
                     results[k] = [c]
         return list(results.values())
 
+    def _firm_force_sigma(self, clusters: list[Cluster], fits: Fits, free: NDArray[np.bool_]) -> dict[int, float]:
+        """Least σ of ln F of each hard press, from the profile upwards, not the curvature alone.
+
+        Where the foam saturates, more force barely changes the readings: the cost
+        in ln F is flat upwards, so the curvature's σ is too small on that side (the
+        truth lay 3–6 σ above the fit). The force held at a few steps above the fit,
+        the rest re-fitted, gives where the cost has risen by 4 (2σ); σ_F is at least
+        half of that excursion.
+        """
+        if not any(cl.firm for cl in clusters):
+            return {}
+        firm = np.array([k for k, cl in enumerate(clusters) if cl.firm and fits.ok[k] and free[k, 3]], dtype=np.int64)
+        if firm.size == 0:
+            return {}
+        steps = FIRM_STEPS
+        t0 = np.repeat(fits.theta[firm], steps.size, axis=0)
+        t0[:, 3] += np.tile(steps, firm.size)
+        fr = np.tile(np.array([True, True, True, False]), (t0.shape[0], 1))
+        sub = self._runner.batch([clusters[k] for k in firm for _ in steps])
+        prof = self._runner.run(sub, t0, fr, 1, False)
+        rise = prof.cost.reshape(firm.size, steps.size) - fits.cost[firm, None]
+        out = {}
+        for i, k in enumerate(firm):
+            over = np.nonzero(~(rise[i] <= 4.0))[0]
+            if over.size == 0:
+                up = 2.0 * steps[-1]
+            elif over[0] == 0:
+                up = steps[0]
+            else:
+                j = over[0]
+                r0, r1 = max(rise[i, j - 1], 0.0), rise[i, j]
+                frac = (4.0 - r0) / (r1 - r0) if np.isfinite(r1) and r1 > r0 else 1.0
+                up = steps[j - 1] + frac * (steps[j] - steps[j - 1])
+            out[int(k)] = 0.5 * math.expm1(up)
+        return out
+
     def _spread_refine(self, batch: Batch, uni: Fits) -> Fits:
         """The uniform fits, refined with the spread model (cheap start, close position).
 
@@ -261,7 +318,10 @@ class ContactEstimator:
         again, and their σ come from the spread model's curvature.
         """
         s = self.spread
-        d_max = float(np.exp(uni.theta[:, 2]).max())
+        # Rows for the fits kept (a failed fit may sit at any size, up to 100 sides),
+        # and for no disk larger than the skin: each row costs memory for the process.
+        d_kept = np.exp(uni.theta[uni.ok, 2])
+        d_max = min(float(d_kept.max(initial=0.0)), self._skin_diagonal)
         rows = PROFILE_ROWS.upto(int(math.ceil((0.5 * d_max * 1.5 / s + 2.0) / DV)) + 2)
         sm = (s, _spread_cells(self.layout.side, s, self.quad_step), rows)
         free = np.ones(uni.theta.shape, dtype=bool)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from cellbridge.tactile._jit import compiled
 
 from cellbridge.tactile.disk_model import disk_residuals
 from cellbridge.tactile.spread_model import DV, spread_residuals
@@ -43,7 +43,7 @@ _LN_F_MIN = math.log(1e-6)
 _LN_F_MAX = math.log(1e5)
 
 
-@njit(cache=True)
+@compiled
 def _eval(
     theta: np.ndarray, nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray,
     nch: int, par: np.ndarray, sm: SpreadArgs, res: np.ndarray, jac: np.ndarray, want_jac: bool,
@@ -54,7 +54,7 @@ def _eval(
     return disk_residuals(theta, nd, bounds, y, w, quiet, nch, par, res, jac, want_jac)
 
 
-@njit(cache=True)
+@compiled
 def _cholesky_solve(A: np.ndarray, b: np.ndarray, n: int, out: np.ndarray) -> bool:
     # In-place Cholesky of the leading n×n block of A; solves A·out = b.
     for j in range(n):
@@ -82,19 +82,19 @@ def _cholesky_solve(A: np.ndarray, b: np.ndarray, n: int, out: np.ndarray) -> bo
     return True
 
 
-@njit(cache=True)
+@compiled
 def _scale(j: int, side: float) -> float:
     return side if j % 4 < 2 else 1.0
 
 
-@njit(cache=True)
+@compiled
 def _clip_theta(theta: np.ndarray, nd: int, ln_dmax: float) -> None:
     for k in range(nd):
         theta[4 * k + 2] = min(max(theta[4 * k + 2], _LN_D_MIN), ln_dmax)
         theta[4 * k + 3] = min(max(theta[4 * k + 3], _LN_F_MIN), _LN_F_MAX)
 
 
-@njit(cache=True)
+@compiled
 def lm(
     theta: np.ndarray, free: np.ndarray, nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray,
     quiet: np.ndarray, nch: int, par: np.ndarray, side: float, max_iter: int, sm: SpreadArgs,
@@ -195,7 +195,7 @@ def lm(
     return data, cost, conv
 
 
-@njit(cache=True)
+@compiled
 def _profile(
     theta: np.ndarray, free: np.ndarray, j: int, value: float, nd: int, bounds: np.ndarray, y: np.ndarray,
     w: np.ndarray, quiet: np.ndarray, nch: int, par: np.ndarray, side: float, out: np.ndarray, sm: SpreadArgs,
@@ -210,7 +210,7 @@ def _profile(
     return cost
 
 
-@njit(cache=True)
+@compiled
 def _covariance(
     theta: np.ndarray, use: np.ndarray, nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray,
     quiet: np.ndarray, nch: int, par: np.ndarray, side: float, cov: np.ndarray, sm: SpreadArgs,
@@ -274,7 +274,7 @@ def _covariance(
     return True
 
 
-@njit(cache=True)
+@compiled
 def _bracket(
     theta: np.ndarray, free: np.ndarray, j: int, c0: float, thr: float, step0: float, limit: float,
     nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray, nch: int,
@@ -329,7 +329,7 @@ def _bracket(
     return theta[j] - ends[0], theta[j] + ends[1], best
 
 
-@njit(cache=True)
+@compiled
 def _plateau(theta: np.ndarray, k: int, a: int, bounds: np.ndarray) -> tuple[float, float]:
     """Positions along axis ``a`` where disk k reads exactly as it does now.
 
@@ -358,7 +358,7 @@ def _plateau(theta: np.ndarray, k: int, a: int, bounds: np.ndarray) -> tuple[flo
     return lo, hi
 
 
-@njit(cache=True)
+@compiled
 def fit_one(
     theta: np.ndarray, free: np.ndarray, nd: int, bounds: np.ndarray, y: np.ndarray, w: np.ndarray,
     quiet: np.ndarray, nch: int, par: np.ndarray, side: float,
@@ -476,7 +476,7 @@ def fit_one(
     return data, cost, ok
 
 
-@njit(cache=True)
+@compiled
 def fit_batch(
     off: np.ndarray, bounds: np.ndarray, y: np.ndarray, quiet: np.ndarray, theta0: np.ndarray,
     free: np.ndarray, nd: int, w: np.ndarray, nch: int, par: np.ndarray, side: float, assess: bool,
@@ -496,14 +496,14 @@ def fit_batch(
         ok[q] = good
 
 
-@njit(cache=True)
+@compiled
 def _frac_right(t: float) -> float:
     # Fraction of a unit disk beyond the line at signed distance t from its centre.
     t = min(max(t, -1.0), 1.0)
     return (math.acos(t) - t * math.sqrt(1.0 - t * t)) / math.pi
 
 
-@njit(cache=True)
+@compiled
 def _axis_start(centre: np.ndarray, hi_edge: np.ndarray, area: np.ndarray, total: float, r: float) -> float:
     # Best boundary: the internal element edge that splits the area closest to half.
     best = -1.0
@@ -541,7 +541,7 @@ def _axis_start(centre: np.ndarray, hi_edge: np.ndarray, area: np.ndarray, total
     return pos
 
 
-@njit(cache=True)
+@compiled
 def share_start(off: np.ndarray, nmem: np.ndarray, bounds: np.ndarray, area: np.ndarray, out: np.ndarray) -> None:
     """Disk centre and radius from how a cluster's area is shared between its elements.
 

@@ -40,6 +40,8 @@ class Cluster:
     centroid: tuple[float, float]
     valid: bool  # a pressure and a positive area: the disk can be fitted
     base: dict = field(default_factory=dict)  # Contact fields known before any fit
+    firm: bool = False  # the pressure is from too-noisy high-branch elements only
+    bounds: FloatArray | None = None  # the layout's element bounds (a reference, for failed fits)
 
 
 @dataclass
@@ -102,6 +104,15 @@ class Fits:
         cxy = float(cv[0, 1]) if not flat.any() and np.isfinite(cv[0, 1]) else 0.0
         sx, sy = float(sig[0]), float(sig[1])
         cx, cy = base["centroid_x"], base["centroid_y"]
+        seen = (not bool(flat[0]), not bool(flat[1]))
+        if not ok:
+            # The position is the centroid, which says only that the contact is on the
+            # cluster: σ of a uniform spread out to the farther edge of the cluster on
+            # each side (a failed fit's covariance says nothing about the centroid).
+            b = cl.bounds[cl.members]
+            sx, sy = (max(c - float(b[:, a].min()), float(b[:, a + 2].max()) - c) / math.sqrt(3.0)
+                      for a, c in ((0, cx), (1, cy)))
+            cxy, seen = 0.0, (False, False)
         return Contact(
             x=float(th[0]) if ok else cx, y=float(th[1]) if ok else cy,
             force=force if ok else base["force_sum"],
@@ -110,7 +121,7 @@ class Fits:
             sigma_x=sx, sigma_y=sy, sigma_xy=major_axis(sx * sx, sy * sy, cxy), cov=((sx * sx, cxy), (cxy, sy * sy)),
             sigma_force=float(force * s_lnf) if ok else math.nan,
             sigma_diameter=float(diam * sig[2]) if ok else math.nan,
-            valid=True, fit_ok=ok, observable=(not bool(flat[0]), not bool(flat[1])),
+            valid=True, fit_ok=ok, observable=seen,
             chi2=float(self.chi2[k]), dof=dof, **base,
         )
 
@@ -141,8 +152,14 @@ class FitRunner:
     def cluster(
         self, members: IntArray, labels: IntArray, c1: FloatArray, c2: FloatArray,
         finite: NDArray[np.bool_], valid: NDArray[np.bool_], force: FloatArray, area: FloatArray,
+        firm: FloatArray | None = None,
     ) -> Cluster:
-        """A cluster's observed elements, shared pressure, areas, centroid and base fields."""
+        """A cluster's observed elements, shared pressure, areas, centroid and base fields.
+
+        ``firm``: per element, a high-branch pressure its inverse found too noisy to
+        report (NaN elsewhere); with no valid element, the ΔC1-weighted mean of these
+        is the cluster's pressure, so a hard press is fitted, not taken for a light one.
+        """
         lay = self.layout
         members = np.sort(members)
         ring = np.unique(np.concatenate([self._ring_of[i] for i in members]))
@@ -150,6 +167,15 @@ class FitRunner:
         obs = np.concatenate([members, ring])
         vm = valid[members]
         sigma0 = float(force[members][vm].sum() / area[members][vm].sum()) if vm.any() else math.nan
+        is_firm = False
+        if not vm.any() and firm is not None:
+            fm = firm[members]
+            hard = np.isfinite(fm)
+            if hard.any():
+                w1 = np.maximum(c1[members][hard], 0.0) + 1e-300
+                sigma0 = float(np.exp(np.sum(w1 * np.log(fm[hard])) / w1.sum()))
+                vm = hard
+                is_firm = True
         # Area per observed element: the inverse's where valid; elsewhere the
         # least-squares area at the cluster's pressure, A = (g·ΔC)/(g·g).
         a = area[obs].copy()
@@ -176,7 +202,7 @@ class FitRunner:
             area=s_tot if ok else math.nan,
         )
         y = np.stack([c1[obs], c2[obs]])
-        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base)
+        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, lay.bounds)
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
         """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from cellbridge.tactile._jit import compiled
 
 from cellbridge.tactile.disk_model import overlap_grad, prior_row, sensitivity_slope, whiten
 from cellbridge.tactile.skin import _disk_blur
@@ -41,12 +41,14 @@ class ProfileRows:
         """All rows 0..k_max (built now if missing)."""
         have = self.rows.shape[0]
         if k_max >= have:
-            ks = np.arange(have, k_max + 1)
-            v = ks * DV
-            u0 = np.maximum(v - U_SPAN, 0.0)
-            u = u0[:, None] + DU * np.arange(NU)[None, :]
-            new = _disk_blur(u, np.broadcast_to(v[:, None], u.shape).copy(), 1.0)
-            self.rows = np.concatenate([self.rows, new])
+            # In blocks: the quadrature's temporaries grow with the rows built at once.
+            new = []
+            for k0 in range(have, k_max + 1, 64):
+                v = np.arange(k0, min(k0 + 64, k_max + 1)) * DV
+                u0 = np.maximum(v - U_SPAN, 0.0)
+                u = u0[:, None] + DU * np.arange(NU)[None, :]
+                new.append(_disk_blur(u, np.broadcast_to(v[:, None], u.shape).copy(), 1.0))
+            self.rows = np.concatenate([self.rows, *new])
         return self.rows
 
 
@@ -54,7 +56,7 @@ class ProfileRows:
 PROFILE_ROWS = ProfileRows()
 
 
-@njit(cache=True)
+@compiled
 def _row_at(tab: np.ndarray, k: int, u: float) -> float:
     u0 = max(k * DV - U_SPAN, 0.0)
     x = (u - u0) / DU
@@ -67,7 +69,7 @@ def _row_at(tab: np.ndarray, k: int, u: float) -> float:
     return tab[k, j] * (1.0 - f) + tab[k, j + 1] * f
 
 
-@njit(cache=True)
+@compiled
 def spread_residuals(
     theta: np.ndarray, bounds: np.ndarray, y: np.ndarray, w: np.ndarray, quiet: np.ndarray,
     par: np.ndarray, s: float, q: int, tab: np.ndarray, res: np.ndarray, jac: np.ndarray, want_jac: bool,

@@ -97,6 +97,7 @@ class ContactTracker:
         self.motion = float(motion)
         self._tracks: list[_Track] = []
         self._next_id = 0
+        self._last_t: float | None = None
         self.frame = 0
         self.births = 0
         self.deaths = 0
@@ -119,7 +120,17 @@ class ContactTracker:
         return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
     def step(self, contacts: Sequence[Contact], t: float | None = None) -> list[TrackedContact]:
-        """Associate one frame's contacts with the tracks; return the confirmed ones."""
+        """Associate one frame's contacts with the tracks; return the confirmed ones.
+
+        ``t`` (s, optional) must be finite and never go back (as for the calibrator):
+        a frame that breaks this is refused with ValueError and changes nothing.
+        """
+        if t is not None:
+            if not math.isfinite(t):
+                raise ValueError(f"t must be a finite time in s, got {t!r}")
+            if self._last_t is not None and t < self._last_t:
+                raise ValueError(f"t went backwards: {t!r} after {self._last_t!r}")
+            self._last_t = float(t)
         self.frame += 1
         pairs = self._associate(contacts)
         matched_t = set()
@@ -172,9 +183,13 @@ class ContactTracker:
 
     # -- association ----------------------------------------------------------------------
     def _distance(self, a: Contact, b: Contact) -> float:
+        """Gate units between two positions; inf when either says nothing (a σ or a
+        coordinate not finite), so such a contact matches only by a shared element."""
         m2 = self.motion * self.motion
         dx = (a.x - b.x) ** 2 / (a.sigma_x**2 + b.sigma_x**2 + m2 + 1e-18)
         dy = (a.y - b.y) ** 2 / (a.sigma_y**2 + b.sigma_y**2 + m2 + 1e-18)
+        if not all(math.isfinite(v) for v in (a.sigma_x, a.sigma_y, b.sigma_x, b.sigma_y, dx, dy)):
+            return math.inf
         return math.sqrt(max(dx, dy))
 
     def _associate(self, contacts: Sequence[Contact]) -> list[tuple[int, int]]:

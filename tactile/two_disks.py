@@ -108,9 +108,11 @@ def _pair_seeds(
     st = runner.starts([c for pair in pairs for c in pair], [x for p in parts for x in (a * p, a * (1.0 - p))])
     for j, p in enumerate(parts):
         s1, s2 = st[2 * j], st[2 * j + 1]
-        with np.errstate(divide="ignore"):
-            seeds.append(np.array([s1[0], s1[1], math.log(2 * s1[2]), math.log(s0 * (a * p).sum()),
-                                   s2[0], s2[1], math.log(2 * s2[2]), math.log(s0 * (a * (1.0 - p)).sum())]))
+        # A side credited no area (an element touched but reading nothing, e.g. held
+        # by the calibrator's hysteresis) gives -inf here: that seed is dropped below.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            seeds.append(np.array([s1[0], s1[1], np.log(2 * s1[2]), np.log(s0 * (a * p).sum()),
+                                   s2[0], s2[1], np.log(2 * s2[2]), np.log(s0 * (a * (1.0 - p)).sum())]))
     return [s for s in seeds if np.all(np.isfinite(s))]
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -91,3 +92,36 @@ def test_exposure_is_at_most(unit: str, limit: float, tmp_path: Path) -> None:
     match = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", out.stdout)
     assert match, out.stdout + out.stderr
     assert float(match.group(1)) <= limit, out.stdout
+
+
+ESTIMATE_UNDER_UNIT = r"""
+import ctypes, sys
+if sys.argv[1] == "yes":
+    # PR_SET_MDWE / PR_MDWE_REFUSE_EXEC_GAIN: what systemd applies for MemoryDenyWriteExecute=yes.
+    if ctypes.CDLL(None, use_errno=True).prctl(65, 1, 0, 0, 0) != 0:
+        print("no mdwe")
+        sys.exit(0)
+from cellbridge.tactile import ContactEstimator, grid_layout, skin_response
+lay = grid_layout(2, 2)
+(c,) = ContactEstimator(lay).estimate(*skin_response(lay, [[0.02, 0.0, 3.0, 0.012]]))
+print("estimated", round(c.x, 6))
+"""
+
+
+def test_daemon_unit_lets_the_contact_kernels_compile_and_keeps_their_cache() -> None:
+    """The daemon runs the contact estimator, whose kernels numba compiles to machine
+    code: the unit must allow executable memory, and give numba a writable cache
+    (the installation is read-only, the home hidden) or every start pays ≈ 20 s of
+    compiling, longer than the watchdog's period."""
+    unit = "cellbridge-daemon.service"
+    env = dict(v.split("=", 1) for e in values(unit, "Environment") for v in e.split())
+    (cache,) = values(unit, "CacheDirectory")
+    assert env.get("NUMBA_CACHE_DIR", "").startswith(f"/var/cache/{cache}/"), env
+    mdwe = (values(unit, "MemoryDenyWriteExecute") or ["no"])[-1]
+    # The kernels' own cache (next to the modules) keeps this run short.
+    r = subprocess.run([sys.executable, "-c", ESTIMATE_UNDER_UNIT, mdwe], capture_output=True, text=True,
+                       timeout=300)
+    if r.stdout.strip() == "no mdwe":
+        pytest.skip("this kernel has no PR_SET_MDWE (Linux < 6.3)")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "estimated 0.02"

@@ -115,3 +115,49 @@ def test_bad_settings_are_named():
     for kw in ({"birth_frames": 0}, {"max_missed": -1}, {"gate": 0.0}, {"motion": -1.0}):
         with pytest.raises(ValueError, match=next(iter(kw))):
             ContactTracker(est, **kw)
+
+
+def _born(tr, contacts, n=3):
+    for _ in range(n):
+        out = tr.step(contacts)
+    return {tc.contact.elements: tc.id for tc in out}
+
+
+def test_a_contact_with_an_unbounded_sigma_only_continues_the_track_it_touches():
+    """A contact whose position carries no information (σ = inf or a NaN position) was
+    at distance 0 from every track: it took the id of whichever track came first and
+    the finger it belonged to lost its id."""
+    from dataclasses import replace
+
+    est = ContactEstimator(LAY, noise=NOISE)
+    rng = np.random.default_rng(6)
+    (a,) = est.estimate(*frame([0.0, 0.0, 3.0, 0.012], rng))  # on element 0
+    (b,) = est.estimate(*frame([0.080, 0.080, 3.0, 0.012], rng))  # on element 8
+    for blind in (replace(b, sigma_x=math.inf, sigma_y=math.inf), replace(b, x=math.nan, y=math.nan)):
+        tr = ContactTracker(est, birth_frames=2)
+        ids = _born(tr, [a, b])
+        out = tr.step([blind, a])
+        assert {tc.contact.elements: tc.id for tc in out} == ids
+        assert all(tc.missed == 0 for tc in out)
+        # Far from every track and sharing no element, it is a new candidate, not a match.
+        tr2 = ContactTracker(est, birth_frames=2)
+        ids_a = _born(tr2, [a])
+        out = tr2.step([replace(blind, elements=(4,)), a])
+        assert {tc.contact.elements: tc.id for tc in out} == ids_a and tr2.candidates == 1
+
+
+def test_time_going_back_or_not_finite_is_refused_and_changes_nothing():
+    """The calibrator refuses time going backwards; the tracker stamped such frames
+    on its tracks (a consumer's velocity flips sign) and took NaN."""
+    est = ContactEstimator(LAY, noise=NOISE)
+    (a,) = est.estimate(*frame([0.0, 0.0, 3.0, 0.012], np.random.default_rng(7)))
+    tr = ContactTracker(est, birth_frames=1)
+    tr.step([a], t=1.0)
+    tr.step([a], t=1.0)  # a repeated time is fine
+    tr.step([a])  # so is no time
+    for bad in (0.5, math.nan, math.inf):
+        with pytest.raises(ValueError, match="t"):
+            tr.step([a], t=bad)
+    assert tr.frame == 3
+    (out,) = tr.step([a], t=1.004)
+    assert out.t == 1.004 and out.age == 4

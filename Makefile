@@ -1,4 +1,4 @@
-# Two commands for a new user: `make test` (and, later, `make demo`).
+# Two commands for a new user: `make demo` and `make test`.
 # Everything is installed into .venv, created on first use from the system python3.
 
 PYTHON ?= python3
@@ -6,9 +6,10 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: test bench install clean help
+.PHONY: demo test bench install clean help
 
 help:
+	@echo "make demo   create .venv if missing, install, run an emulated skin and the daemon, press, show the contact"
 	@echo "make test   create .venv if missing, install cellbridge into it, run the test suite"
 	@echo "make bench  run the benchmarks in bench/ and print their tables"
 	@echo "make clean  remove .venv and build leftovers"
@@ -20,6 +21,9 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 install: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/cellbridge demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -1,0 +1,268 @@
+"""``cellbridge demo``: the whole chain on one machine, as a robot would run it.
+
+An emulated 4×4 skin (one process per bridge, ``cellbridge mesh up``) serves its gateway
+on a pseudo-terminal; ``cellbridge daemon`` opens that pty exactly as it would open
+``/dev/ttyUSB0``, and this command subscribes to the daemon's ZeroMQ ``contact`` topic,
+presses on the skin where two elements meet, and compares what the daemon reports
+with what was pressed. It is the first thing to run on a new machine (``make demo``)
+and doubles as the end-to-end check of the test suite (``--check``).
+
+Every process it starts lives in its own process group and is stopped on the way out,
+also on Ctrl-C or an error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import zmq
+
+GATEWAY_TIMEOUT = 30.0  # s for 'mesh up' to print its gateway line
+START_TIMEOUT = 120.0  # s for the daemon to see every bridge calibrated (first run compiles kernels)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = __doc__.split("\n\n")[0] + (
+        " Starts an emulated 4×4 skin and the daemon on its gateway, presses where two"
+        " elements meet, and prints the contact the daemon published next to the press."
+    )
+    parser.add_argument("--x", type=float, default=0.057, help="press centre x in metres (default 0.057: across the seam at 0.06)")
+    parser.add_argument("--y", type=float, default=0.043, help="press centre y in metres (default 0.043)")
+    parser.add_argument("--force", type=float, default=3.0, help="press force in newtons (default 3)")
+    parser.add_argument("--diameter", type=float, default=0.02, help="press diameter in metres (default 0.02)")
+    parser.add_argument("--duration", type=float, default=3.0, help="press duration in seconds (default 3)")
+    parser.add_argument("--rows", type=int, default=4, help="skin rows (default 4)")
+    parser.add_argument("--cols", type=int, default=4, help="skin columns (default 4)")
+    parser.add_argument("--check", action="store_true",
+                        help="exit 1 unless the contact is within 1 mm and 5 %% of the press")
+    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    parser.add_argument("--keep", action="store_true", help="keep the working folder (mesh, config, logs)")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _free_port_block(n: int) -> int:
+    """A base port with ``n`` consecutive free ports after it (the emulator's ZeroMQ ports)."""
+    for _ in range(50):
+        base = _free_port()
+        socks = []
+        try:
+            for k in range(n):
+                s = socket.socket()
+                socks.append(s)
+                s.bind(("127.0.0.1", base + k))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError("no block of free TCP ports on 127.0.0.1")
+
+
+def _stop(proc: subprocess.Popen[Any], grace: float = 10.0) -> None:
+    """SIGTERM the process group, then SIGKILL what is left after ``grace`` seconds."""
+    if proc.poll() is not None:
+        return
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    try:
+        proc.wait(grace)
+    except subprocess.TimeoutExpired:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait(5)
+
+
+@contextmanager
+def _group(cmd: list[str], **kw: Any) -> Iterator[subprocess.Popen[Any]]:
+    proc = subprocess.Popen(cmd, start_new_session=True, **kw)
+    try:
+        yield proc
+    finally:
+        _stop(proc)
+
+
+def _cellbridge(*args: str) -> list[str]:
+    return [sys.executable, "-m", "cellbridge", *args]
+
+
+def _wait_gateway(proc: subprocess.Popen[str]) -> str:
+    deadline = time.monotonic() + GATEWAY_TIMEOUT
+    assert proc.stdout is not None
+    os.set_blocking(proc.stdout.fileno(), True)
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"'mesh up' ended (status {proc.wait()}) before naming its gateway")
+        parts = line.split()
+        if len(parts) >= 3 and parts[0] == "gateway":
+            return parts[2]
+    raise RuntimeError("'mesh up' named no gateway within %.0f s" % GATEWAY_TIMEOUT)
+
+
+def _warm_kernels() -> None:
+    """Compile the contact-fit kernels here, once, into numba's cache.
+
+    The daemon would otherwise compile them on its first contact (about half a minute on
+    a fresh install), and the press would be over before the daemon could report it."""
+    from cellbridge.tactile import ContactEstimator, grid_layout
+
+    layout = grid_layout(2, 2)
+    est = ContactEstimator(layout)
+    import numpy as np
+
+    est.estimate(np.full(4, 1e-13), np.full(4, 5e-14))
+
+
+def _recv(sub: zmq.Socket, timeout: float) -> tuple[str, dict[str, Any]] | None:
+    if not sub.poll(int(timeout * 1000)):
+        return None
+    topic, payload = sub.recv_multipart()
+    return topic.decode(), msgpack.unpackb(payload)
+
+
+def _wait_ready(sub: zmq.Socket, n: int, daemon: subprocess.Popen[Any], mesh: subprocess.Popen[Any]) -> None:
+    deadline = time.monotonic() + START_TIMEOUT
+    while time.monotonic() < deadline:
+        for name, proc in (("daemon", daemon), ("mesh up", mesh)):
+            if proc.poll() is not None:
+                raise RuntimeError(f"{name} ended with status {proc.returncode} during start-up")
+        msg = _recv(sub, 1.0)
+        if msg and msg[0] == "health":
+            cal = msg[1].get("layout", {}).get("calibration", {})
+            if cal.get("ready", 0) >= n:
+                return
+    raise RuntimeError(f"the daemon did not see {n} calibrated elements within {START_TIMEOUT:.0f} s")
+
+
+def _press_and_collect(args: argparse.Namespace, base_port: int, sub: zmq.Socket) -> list[dict[str, Any]]:
+    subprocess.run(_cellbridge("press", str(args.x), str(args.y), "--force", str(args.force),
+                               "--diameter", str(args.diameter), "--duration", str(args.duration),
+                               "--base-port", str(base_port)), check=True, timeout=30)
+    seen: list[dict[str, Any]] = []
+    end = time.monotonic() + args.duration + 1.0
+    while time.monotonic() < end:
+        msg = _recv(sub, 0.2)
+        if msg and msg[0] == "contact":
+            seen.extend(c for c in msg[1]["contacts"] if c.get("missed", 0) == 0)
+    return seen
+
+
+def _summarise(args: argparse.Namespace, contacts: list[dict[str, Any]]) -> dict[str, Any]:
+    """The press's steady part: the second half of the reports of the longest-lived id."""
+    out: dict[str, Any] = {"pressed": {"x": args.x, "y": args.y, "force": args.force, "diameter": args.diameter},
+                           "reports": len(contacts)}
+    if not contacts:
+        return out
+    ids = [c["id"] for c in contacts]
+    main = max(set(ids), key=ids.count)
+    mine = [c for c in contacts if c["id"] == main]
+    steady = mine[len(mine) // 2:]
+
+    def median(key: str) -> float:
+        v = sorted(float(c[key]) for c in steady)
+        return v[len(v) // 2]
+
+    got = {k: median(k) for k in ("x", "y", "force", "diameter", "centroid_x", "centroid_y")}
+    out.update(reported=got, ids=sorted(set(ids)),
+               position_error_mm=1e3 * math.hypot(got["x"] - args.x, got["y"] - args.y),
+               centroid_error_mm=1e3 * math.hypot(got["centroid_x"] - args.x, got["centroid_y"] - args.y),
+               force_error_pct=100 * abs(got["force"] - args.force) / args.force)
+    return out
+
+
+def _print_table(r: dict[str, Any]) -> None:
+    p = r["pressed"]
+    if "reported" not in r:
+        print("no contact was reported for the press")
+        return
+    g = r["reported"]
+    print(f"{'':22}{'pressed':>12}{'reported':>12}")
+    print(f"{'x (mm)':22}{1e3 * p['x']:12.2f}{1e3 * g['x']:12.2f}")
+    print(f"{'y (mm)':22}{1e3 * p['y']:12.2f}{1e3 * g['y']:12.2f}")
+    print(f"{'force (N)':22}{p['force']:12.3f}{g['force']:12.3f}")
+    print(f"{'diameter (mm)':22}{1e3 * p['diameter']:12.2f}{1e3 * g['diameter']:12.2f}")
+    print(f"position error {r['position_error_mm']:.2f} mm (the paper's centroid: "
+          f"{r['centroid_error_mm']:.1f} mm), force error {r['force_error_pct']:.2f} %, "
+          f"{r['reports']} reports, contact ids {r['ids']}")
+
+
+def _within(r: dict[str, Any]) -> bool:
+    return "reported" in r and r["position_error_mm"] <= 1.0 and r["force_error_pct"] <= 5.0
+
+
+def run(args: argparse.Namespace) -> int:
+    from cellbridge.emulator import meshgen
+    from cellbridge.emulator.mesh import mesh_to_toml
+
+    say = (lambda *a: None) if args.json else (lambda *a: print(*a, file=sys.stderr, flush=True))
+    work = Path(tempfile.mkdtemp(prefix="cellbridge-demo-"))
+    try:
+        say("compiling the contact-fit kernels (a first run on a machine takes about half a minute) ...")
+        _warm_kernels()
+        mesh_file = work / "skin.toml"
+        mesh_file.write_text(mesh_to_toml(meshgen.grid(args.rows, args.cols)))
+        base_port = _free_port_block(3)
+        pub, ctl = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
+        n = args.rows * args.cols
+        say(f"starting an emulated {args.rows}x{args.cols} skin: {n} bridge processes, medium and world ...")
+        with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port)),
+                    stdout=subprocess.PIPE, stderr=open(work / "mesh.log", "w"), text=True) as mesh:
+            device = _wait_gateway(mesh)
+            say(f"gateway on {device}; starting the daemon on it (pub {pub}) ...")
+            config = work / "daemon.toml"
+            config.write_text(f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n'
+                              f'[daemon]\nlog_format = "text"\n\n[[link]]\nname = "gateway"\nurl = "{device}"\n')
+            ctx = zmq.Context.instance()
+            sub = ctx.socket(zmq.SUB)
+            sub.setsockopt(zmq.LINGER, 0)
+            for topic in (b"contact", b"health"):
+                sub.setsockopt(zmq.SUBSCRIBE, topic)
+            sub.connect(pub)
+            try:
+                with _group(_cellbridge("daemon", "--config", str(config)),
+                            stderr=open(work / "daemon.log", "w")) as daemon:
+                    _wait_ready(sub, n, daemon, mesh)
+                    say(f"all {n} elements calibrated; pressing {args.force} N with a {1e3 * args.diameter:.0f} mm "
+                        f"disk at ({1e3 * args.x:.1f}, {1e3 * args.y:.1f}) mm for {args.duration} s ...")
+                    result = _summarise(args, _press_and_collect(args, base_port, sub))
+            finally:
+                sub.close()
+        if args.json:
+            print(json.dumps(result))
+        else:
+            _print_table(result)
+        if args.keep:
+            say(f"working folder kept: {work}")
+        return 0 if (_within(result) or not args.check) else 1
+    except (RuntimeError, subprocess.SubprocessError) as exc:
+        print(f"cellbridge demo: {exc} (logs in {work})", file=sys.stderr)
+        args.keep = True
+        return 1
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)

@@ -85,11 +85,12 @@ def calibration_config(section: dict[str, Any]) -> CalibrationConfig:
 class ElementStage:
     """Calibration and inverse for the elements of one layout, a batch at a time.
 
-    The Calibrator steps once per batch with each element's newest reading (its
-    hysteresis and drift tracking need a time step, not every sample); every sample of
-    the batch gets ΔC against the baseline after that step, and the inverse runs on
-    all of them in one call.
+    The Calibrator steps once per sampling slot in the batch (at most ``MAX_STEPS``
+    times); every sample of the batch gets ΔC against the baseline after the last
+    step, and the inverse runs on all of them in one call.
     """
+
+    MAX_STEPS = 8
 
     def __init__(self, layout: SkinLayout, params: ElementParams, cal: CalibrationConfig, noise: float) -> None:
         self.layout = layout
@@ -102,27 +103,41 @@ class ElementStage:
 
     def step(self, rows: NDArray[np.int64], caps: FloatArray, now: float) -> dict[str, FloatArray]:
         """``rows``: layout row of each sample (all valid); ``caps``: (n, 2) farads."""
-        n = self.layout.n
         self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
-        # Newest reading per element: the last occurrence of each row.
-        rev = rows[::-1]
-        uniq, first = np.unique(rev, return_index=True)
-        last = rows.shape[0] - 1 - first
-        values = np.full((n, 2), np.nan)
-        values[uniq] = caps[last]
-        st = self.calibrator.update(self._t, values)
+        for values in self._sub_steps(rows, caps):
+            st = self.calibrator.update(self._t, values)
+            fresh = np.all(np.isfinite(st.delta), axis=1)
+            self.latest[fresh] = st.delta[fresh]
+        self.latest[~st.ready] = np.nan
         base = self.calibrator.baseline
         delta = caps - base[rows]
         self.touched = st.touched
-        fresh = np.all(np.isfinite(st.delta), axis=1)
-        self.latest[fresh] = st.delta[fresh]
-        not_ready = ~st.ready
-        self.latest[not_ready] = np.nan
         inv = solve(delta[:, 0], delta[:, 1], self.params, noise=self.noise)
         return {
             "dc1": delta[:, 0], "dc2": delta[:, 1], "force": inv.force, "area": inv.area,
             "valid": inv.valid, "status": inv.status, "touched": st.touched[rows],
         }
+
+    def _sub_steps(self, rows: NDArray[np.int64], caps: FloatArray) -> list[FloatArray]:
+        """(n, 2) readings per Calibrator step: the k-th step holds each element's k-th
+        sample of the batch. A batch that holds many samples per element (a backlog)
+        is thinned to ``MAX_STEPS`` evenly spaced steps, so its cost stays bounded while
+        baselines still collect several readings from it."""
+        order = np.argsort(rows, kind="stable")
+        r = rows[order]
+        starts = np.r_[0, np.nonzero(r[1:] != r[:-1])[0] + 1]
+        lengths = np.diff(np.r_[starts, r.size])
+        occ = np.empty(rows.size, dtype=np.int64)
+        occ[order] = np.arange(r.size) - np.repeat(starts, lengths)
+        top = int(lengths.max())
+        ks = np.arange(top) if top <= self.MAX_STEPS else np.unique(np.linspace(0, top - 1, self.MAX_STEPS).round())
+        out = []
+        for k in ks.astype(np.int64):
+            sel = occ == k
+            values = np.full((self.layout.n, 2), np.nan)
+            values[rows[sel]] = caps[sel]
+            out.append(values)
+        return out
 
     def tare(self, rows: NDArray[np.int64] | None) -> None:
         self.calibrator.tare(rows)
@@ -139,6 +154,7 @@ class ContactSnapshot:
     t_host: float
     t_sample: FloatArray  # (n,) host time of each element's newest sample (NaN: none)
     cycle: NDArray[np.uint64]  # (n,) its bridge cycle count
+    ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
 
 
 class ContactStage:

@@ -51,6 +51,7 @@ class Pipeline:
         self.wanted: set[str] | None = None  # topics with subscribers; None = build all
         self.seq: dict[str, int] = {}
         self.started: float | None = None
+        self.last_feed = 0.0
         self._next_health = -math.inf
         self.announced_silent: set[int] = set()
         self.events: list[tuple[str, str]] = []  # (level, text) for the shell to log
@@ -81,6 +82,7 @@ class Pipeline:
     def feed(self, link: str, data: bytes, now: float) -> list[Message]:
         if self.started is None:
             self.started = now
+        self.last_feed = now
         dec = self.ingress.feed(link, data, now)
         lh = self.links.get(link)
         if lh is None:
@@ -104,15 +106,15 @@ class Pipeline:
             if b.clock_hz != h.clock_hz and h.clock_hz > 0:
                 b.clock_hz = float(h.clock_hz)
                 self.clocks.pop(origin, None)
-        if dec.hellos and self.skin.hello({o: (h.x, h.y, h.side) for o, h in dec.hellos}):
-            self.events.append(("info", f"layout from HELLO now has {self.skin.layout.n} elements"))  # type: ignore[union-attr]
-            if self._want("topology"):
-                out.append(self._message("topology", now, self._topology_body(now)))
         for origin, src, bc in dec.beacons:
             self.topology.beacon(origin, bc.parent, bc.path_etx, bc.hops)
         for origin, st in dec.statuses:
             self.topology.status(origin, st.parent, st.path_etx, {n.bridge: n.link_etx for n in st.neighbours},
                                  st.queue_drops, st.retries, st.resets)
+        if dec.hellos and self.skin.hello({o: (h.x, h.y, h.side) for o, h in dec.hellos}):
+            self.events.append(("info", f"layout from HELLO now has {self.skin.layout.n} elements"))  # type: ignore[union-attr]
+            if self._want("topology"):
+                out.append(self._message("topology", now, self._topology_body(now)))
         for origin, reply in dec.replies:
             p = self.commands.reply(origin, reply, now)
             if p is not None and p.op == _GATE_OP and reply.status.name == "OK":
@@ -177,16 +179,15 @@ class Pipeline:
         return out
 
     # -- contacts -----------------------------------------------------------------------
-    def contact_snapshot(self, now: float) -> ContactSnapshot | None:
-        """The newest per-element state if anything changed since the last snapshot."""
+    def contact_snapshot(self) -> ContactSnapshot | None:
+        """The newest per-element state if anything changed since the last snapshot,
+        stamped with the arrival time of the newest data in it."""
         if not self.config["contact"]["enabled"]:
             return None
-        return self.skin.snapshot(now)
+        return self.skin.snapshot(self.last_feed)
 
-    def contact_message(self, snap: ContactSnapshot, contacts: list[dict[str, Any]], now: float) -> Message:
-        layout = self.skin.layout
-        assert layout is not None
-        index = {int(b): i for i, b in enumerate(layout.ids)}
+    def contact_message(self, snap: ContactSnapshot, contacts: list[dict[str, Any]]) -> Message:
+        index = {int(b): i for i, b in enumerate(snap.ids)}
         for c in contacts:
             rows = [index[e] for e in c["elements"]]
             c["cycles"] = [int(snap.cycle[i]) for i in rows]
@@ -194,14 +195,13 @@ class Pipeline:
             c["t_sample"] = max(ts) if ts else None
         with np.errstate(invalid="ignore"):
             t = float(np.nanmax(snap.t_sample)) if np.isfinite(snap.t_sample).any() else None
-        return self._message("contact", now, {"t_snapshot": snap.t_host, "t_sample": t, "t_bridge": None,
-                                              "contacts": contacts})
+        return self._message("contact", snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": contacts})
 
     # -- periodic -----------------------------------------------------------------------
-    def tick(self, now: float) -> list[Message]:
-        """Health every ``health.interval`` and topology when it changed; also expires reassembly."""
+    def tick(self, now: float, force: bool = False) -> list[Message]:
+        """Health every ``health.interval`` (or now, if forced) and topology when it changed."""
         h = self.config["health"]
-        if now < self._next_health:
+        if now < self._next_health and not force:
             return []
         interval = h["interval"]
         self._next_health = now + interval
@@ -268,6 +268,13 @@ class Pipeline:
 
     def tare(self, bridges: list[int] | None) -> int:
         return self.skin.tare(bridges)
+
+    def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
+        """SIGHUP: take the reloadable settings; the element stages are rebuilt (baselines re-taken)."""
+        self.config = config
+        geometry = self.skin.geometry
+        self.skin = Skin(config.sections, layout)
+        self.skin.hello(geometry)
 
     # -- links ----------------------------------------------------------------------------
     def link_state(self, link: str, connected: bool, now: float, error: str = "") -> None:

@@ -95,7 +95,8 @@ class Skin:
         self.dirty = False
         self.snapshot_t = now
         e = self.elements
-        return ContactSnapshot(e.latest.copy(), e.touched.copy(), now, self.t_sample.copy(), self.cycle.copy())
+        return ContactSnapshot(e.latest.copy(), e.touched.copy(), now, self.t_sample.copy(), self.cycle.copy(),
+                               self.layout.ids)  # type: ignore[union-attr]
 
     def tare(self, bridges: list[int] | None) -> int:
         if self.elements is None:

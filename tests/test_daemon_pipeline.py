@@ -63,9 +63,9 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
     force = np.nansum(np.where(el["valid"], el["force"], 0.0))
     touched = [b for b, t in zip(el["bridge"], el["touched"]) if t]
     assert touched == [1, 2]
-    snap = p.contact_snapshot(T0 + 1)
+    snap = p.contact_snapshot()
     contacts = p.skin.contacts.run(snap)  # type: ignore[union-attr]
-    _, msg = p.contact_message(snap, contacts, T0 + 1)
+    _, msg = p.contact_message(snap, contacts)
     (c,) = msg["contacts"]
     assert c["x"] == pytest.approx(STRADDLE[0], abs=1e-3)
     assert c["force"] == pytest.approx(3.0, rel=0.01)

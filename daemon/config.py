@@ -234,6 +234,11 @@ def parse_config(data: Mapping[str, Any], source: str = "config", base_dir: Path
             continue
         t = _table(f"link[{i}]", raw, LINK_KEYS, problems)
         t["name"] = t["name"] or f"link{i}"
+        if base_dir is not None:  # files named in the config are relative to it
+            if t["url"].startswith("replay:"):
+                t["url"] = "replay:" + str(base_dir / t["url"][len("replay:"):])
+            if t["capture"]:
+                t["capture"] = str(base_dir / t["capture"])
         if not t["url"]:
             problems.append(f"link[{i}].url: missing (a device path, socket://HOST:PORT or replay:FILE)")
         if t["reconnect_max"] < t["reconnect_min"]:

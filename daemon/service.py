@@ -377,6 +377,10 @@ class Service:
         for t in link_tasks:
             t.cancel()
         await asyncio.gather(*link_tasks, return_exceptions=True)
+        for _ in range(500):  # let a running contact estimate finish and publish (at most 5 s)
+            if not self._contact_busy:
+                break
+            await asyncio.sleep(0.01)
         for t in self._tasks:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)

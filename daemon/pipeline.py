@@ -231,7 +231,8 @@ class Pipeline:
             "t_bridge": None,
             "uptime": 0.0 if self.started is None else now - self.started,
             "links": {name: link_report(lh, self.ingress.counters(name)) for name, lh in self.links.items()},
-            "bridges": {str(b): bh.report(now) for b, bh in sorted(self.bridges.items())},
+            "bridges": {str(b): {**bh.report(now), "reassembly_drops": self.ingress.reassembly_drops.get(b, 0)}
+                        for b, bh in sorted(self.bridges.items())},
             "silent": sorted(b for b, bh in self.bridges.items() if bh.silent),
             "unplaced": unplaced,
             "layout": layout_report,

@@ -10,6 +10,7 @@ ingest far below 100 000 samples a second.
 from __future__ import annotations
 
 import itertools
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,6 +26,7 @@ from cellbridge.protocol import (
     CommandReply,
     Data,
     DuplicateFilter,
+    Fragment,
     Frame,
     Hello,
     Mode,
@@ -106,6 +108,7 @@ class Ingress:
         self.dedupe = DuplicateFilter(window=dedupe_window)
         self.reassembler = Reassembler(timeout=reassembly_timeout)
         self.duplicates_by_link: dict[str, int] = {}
+        self.reassembly_drops: Counter[int] = Counter()  # by origin: drops met handling its fragments
 
     def decoder(self, link: str) -> StreamDecoder:
         d = self.decoders.get(link)
@@ -133,12 +136,25 @@ class Ingress:
                 self.duplicates_by_link[link] += 1
                 continue
             out.frames_by_origin.setdefault(frame.origin, []).append(frame.seq)
-            whole = self.reassembler.receive(frame, now)
+            if type(frame.payload) is Fragment:
+                whole = self._reassemble(frame, now)
+            else:
+                whole = frame
             if whole is not None:
                 self._route(whole, out, rows, meta)
         if rows:
             out.samples = _columns(rows, meta)
         return out
+
+    def _reassemble(self, frame: Frame, now: float) -> Frame | None:
+        r = self.reassembler
+        r.expire(now)  # timeouts first, so what follows is this bridge's own doing
+        before = r.drops.total()
+        whole = r.receive(frame, now)
+        lost = r.drops.total() - before
+        if lost:
+            self.reassembly_drops[frame.origin] += lost
+        return whole
 
     def _route(self, frame: Frame, out: Decoded, rows: list, meta: list) -> None:
         p = frame.payload

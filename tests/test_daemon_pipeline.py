@@ -247,3 +247,33 @@ def test_unwanted_topics_are_not_built() -> None:
     p.wanted = {"contact"}
     settle(p, sk, 5)
     assert press(p, sk, None, 5, 2) == []
+
+
+def test_reassembly_drops_are_reported_per_bridge() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 5)
+    samples = tuple(Sample(0, 10**9 + i, 19600, 15800, 0) for i in range(30))
+    frags = fragment(Frame(1, 0, 3, 100, Data(Mode.COUNTER, samples)), tag=4)
+    p.feed("gw", encode_stream(frags[1]), T0 + 0.1)  # a later fragment with no first one: dropped
+    h = p.health_body(T0 + 0.1)
+    assert h["bridges"]["3"]["reassembly_drops"] == 1 and h["bridges"]["2"]["reassembly_drops"] == 0
+    assert h["reassembly"]["drops"] == {"no_state": 1}
+
+
+def test_topology_tracks_status_neighbours_and_the_gateway_of_each_link() -> None:
+    from cellbridge.protocol import BridgeStatus, Neighbour
+
+    sk = Skin()
+    p = make()
+    p.feed("gw", sk.hellos() + sk.beacons(), T0)
+    st = encode_stream(Frame(3, 0, 4, sk.seq[4], BridgeStatus(3, 12, (Neighbour(3, 11), Neighbour(2, 25)), 0, 1, 0,
+                                                                  10**6)))
+    p.feed("gw2", st, T0 + 0.05)  # bridge 4 now heard through gateway 3 on the second line
+    topo = topic(p.tick(T0 + 0.1), "topology")
+    b4 = topo["bridges"]["4"]
+    assert b4["parent"] == 3 and b4["link"] == "gw2" and b4["gateway"] == 3
+    assert b4["neighbours"] == {"2": 2.5, "3": 1.1}
+    assert topo["gateways"] == {"gw": [1], "gw2": [3]}
+    _, writes = p.command(int(Op.PING), None, 4, T0 + 0.1, 1.0)
+    assert [link for link, _ in writes] == ["gw2"]  # commands follow the bridge to its new gateway

@@ -17,6 +17,7 @@ off from the arrival by more than ``max_jump`` seconds, restarts the fit (counte
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
@@ -31,7 +32,6 @@ class BridgeClock:
         self.hz = float(hz)
         self.bits = bits
         self._mod = 1 << bits
-        self._mask = np.uint64(self._mod - 1) if bits < 64 else None
         self.block = block
         self.max_jump = max_jump
         self._minima: deque[tuple[float, float]] = deque(maxlen=blocks)  # (x, residual) per closed block
@@ -94,38 +94,56 @@ class BridgeClock:
             x = 0.0
         self._x_last = max(self._x_last, x)
         r = arrival - self._ref_arrival - x
-        if x - self._cur_start >= self.block:
+        if x - self._cur_start >= self.block:  # a block closed: refit (once a block, not per frame)
             if self._cur is not None:
                 self._minima.append(self._cur)
             self._cur, self._cur_start = (x, r), x
+            self._fit()
         elif self._cur is None or r < self._cur[1]:
             self._cur = (x, r)
-        self._fit()
+            below = r - (self.offset + self.skew * x)
+            if below < 0 or len(self._minima) < 2:  # a new lowest point: lower the line onto it
+                self._fit() if len(self._minima) < 2 else setattr(self, "offset", self.offset + below)
         return False
 
     def _fit(self) -> None:
+        """Least-squares line through the closed blocks' minima (the open block's first
+        points are no minimum yet), then lowered onto the envelope."""
         pts = list(self._minima)
-        if self._cur is not None:
-            pts.append(self._cur)
         if len(pts) < 3:
+            if self._cur is not None:
+                pts.append(self._cur)
             self.offset, self.skew = min(p[1] for p in pts), 0.0
             return
-        xs = np.fromiter((p[0] for p in pts), float, len(pts))
-        rs = np.fromiter((p[1] for p in pts), float, len(pts))
-        slope, icpt = np.polyfit(xs, rs, 1)
-        # The line through the minima may still sit above some of them: lower it onto the envelope.
-        icpt += min(0.0, float(np.min(rs - (icpt + slope * xs))))
-        self.offset, self.skew = float(icpt), float(slope)
+        n = len(pts)
+        mx = sum(p[0] for p in pts) / n
+        mr = sum(p[1] for p in pts) / n
+        sxx = sum((p[0] - mx) ** 2 for p in pts)
+        slope = sum((p[0] - mx) * (p[1] - mr) for p in pts) / sxx if sxx > 0 else 0.0
+        icpt = mr - slope * mx
+        icpt += min(0.0, min(p[1] - (icpt + slope * p[0]) for p in pts))
+        self.offset, self.skew = icpt, slope
+
+    def params(self) -> tuple[int, float, float, float]:
+        """(reference raw cycle, host time at it, 1 + skew, Hz): host = t + ((c - ref) mod 2^bits)/Hz·(1 + skew)."""
+        if self._ref_raw is None:
+            return 0, math.nan, 1.0, self.hz
+        return self._ref_raw, self._ref_arrival + self.offset, 1.0 + self.skew, self.hz
 
     def to_host(self, cycles: NDArray[np.uint64]) -> NDArray[np.float64]:
         """Host times (s) of cycle counts of this bridge (vectorised, wrap-aware)."""
-        if self._ref_raw is None:
-            return np.full(cycles.shape, np.nan)
-        c = cycles.astype(np.uint64, copy=False)
-        d = c - np.uint64(self._ref_raw)  # uint64 arithmetic wraps modulo 2**64
-        if self._mask is not None:
-            d &= self._mask
-        half = self._mod >> 1
-        x = d.astype(np.float64)
-        x = np.where(d >= np.uint64(half), x - float(self._mod), x) / self.hz
-        return self._ref_arrival + self.offset + x * (1.0 + self.skew)
+        ref, t, k, hz = self.params()
+        n = cycles.shape[0]
+        return rows_to_host(cycles, np.full(n, ref, dtype=np.uint64), np.full(n, t), np.full(n, k), np.full(n, hz),
+                            self.bits)
+
+
+def rows_to_host(cycles: NDArray[np.uint64], ref: NDArray[np.uint64], t: NDArray[np.float64],
+                 k: NDArray[np.float64], hz: NDArray[np.float64], bits: int) -> NDArray[np.float64]:
+    """Host times of samples of many bridges at once, from each row's bridge :meth:`BridgeClock.params`."""
+    d = cycles.astype(np.uint64, copy=False) - ref  # uint64 arithmetic wraps modulo 2**64
+    if bits < 64:
+        d &= np.uint64((1 << bits) - 1)
+    x = d.astype(np.float64)
+    x = np.where(d >= np.uint64(1 << (bits - 1)), x - float(1 << bits), x) / hz
+    return t + x * k

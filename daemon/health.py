@@ -85,28 +85,25 @@ class ChannelHealth:
         self.saturated = np.zeros((n, 2), dtype=bool)
         self.saturated_samples = np.zeros((n, 2), dtype=np.int64)
 
-    def update(self, rows: NDArray[np.int64], raw: NDArray[np.int64], sat: NDArray[np.bool_], now: float) -> None:
-        """``raw`` and ``sat`` are (k, 2) for the k samples of layout rows ``rows``."""
-        if rows.size == 0:
-            return
+    def update(self, rows: NDArray[np.int64], raw: NDArray[np.int64], sat: NDArray[np.bool_],
+               groups: tuple[NDArray[np.int64], NDArray[np.int64]], now: float) -> None:
+        """``raw``, ``sat``: (k, 2) for the k samples of layout rows ``rows``; ``groups``:
+        the distinct rows and the index of each one's newest sample."""
+        uniq, last = groups
         np.add.at(self.saturated_samples, rows, sat.astype(np.int64))
-        # Any change within the batch, or against the last value held, counts as a change.
-        order = np.argsort(rows, kind="stable")
-        r, v = rows[order], raw[order]
-        starts = np.r_[True, r[1:] != r[:-1]]
-        prev = np.where(starts[:, None], self.last_raw[r], np.roll(v, 1, axis=0))
-        moved = np.zeros((self.last_raw.shape[0], 2), dtype=bool)
-        np.logical_or.at(moved, r, v != prev)
-        ends = np.r_[r[1:] != r[:-1], True]
-        last_rows = r[ends]
-        self.last_raw[last_rows] = v[ends]
-        self.saturated[last_rows] = sat[order][ends]
-        first = np.isnan(self.changed_at)
-        touched_rows = np.zeros(self.last_raw.shape[0], dtype=bool)
-        touched_rows[last_rows] = True
-        upd = (moved | first) & touched_rows[:, None]
-        self.changed_at[upd] = now
-        self.seen_at[touched_rows] = now
+        newest = np.empty_like(self.last_raw)
+        newest[uniq] = raw[last]
+        moved = np.zeros(self.last_raw.shape, dtype=bool)
+        moved[uniq] = newest[uniq] != self.last_raw[uniq]
+        if uniq.shape[0] != rows.shape[0]:  # several samples of an element: any change among them
+            varied = raw != newest[rows]
+            if varied.any():
+                r, c = np.nonzero(varied)
+                moved[rows[r], c] = True
+        self.last_raw[uniq] = newest[uniq]
+        self.saturated[uniq] = sat[last]
+        self.changed_at[moved] = now
+        self.seen_at[uniq] = now
 
     def stuck(self, after: float) -> NDArray[np.bool_]:
         with np.errstate(invalid="ignore"):

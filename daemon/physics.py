@@ -20,6 +20,7 @@ from cellbridge.tactile import (
     ChipParams,
     ContactEstimator,
     ElementParams,
+    InverseStatus,
     SkinLayout,
     adc_mean_code,
     counts_to_capacitance,
@@ -51,30 +52,40 @@ class Frontend:
         order = np.argsort(means, kind="stable")
         self._adc_means, self._adc_caps = means[order], caps[order]
         self._adc_top = chip.adc_levels - 1
+        self._ov_bits = np.array([_OVERFLOW_C1, _OVERFLOW_C2])
 
     def capacitance(self, mode: NDArray[np.int64], over: NDArray[np.int64], raw: NDArray[np.int64],
-                    flags: NDArray[np.int64], channel: int, gate: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
-        """(C in F, saturated) of one channel for every row. Saturated: counter overflow
-        with no plausible unwrap, a dead oscillator, or an ADC mean at a rail."""
-        out = np.empty(raw.shape)
-        sat = np.zeros(raw.shape, dtype=bool)
+                    flags: NDArray[np.int64], gate: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """(C in F, saturated), both (n, 2), from (n, 2) raw readings. Saturated: a dead
+        oscillator or a counter value no counter can hold, an ADC mean at a rail (C is NaN
+        for the impossible and the railed)."""
         adc = mode == ADC_MODE
+        if not adc.any():
+            return self._counter(raw, flags, gate)
+        caps = np.empty(raw.shape)
+        sat = np.empty(raw.shape, dtype=bool)
         cnt = ~adc
         if cnt.any():
-            ratio = self.chip.gate_cycles / gate[cnt]
-            r = raw[cnt]
-            r = np.clip(r, 0, self.chip.counter_modulus - 1)
-            ov = (flags[cnt] & (_OVERFLOW_C1 if channel == 0 else _OVERFLOW_C2)) != 0
-            n = unwrap_counts(r, self._nominal[channel] / ratio, self.chip, ov)
-            out[cnt] = counts_to_capacitance(n * ratio, self.chip)
-            sat[cnt] = n <= 0
-        if adc.any():
-            mean = raw[adc] / over[adc]
-            c = np.interp(mean, self._adc_means, self._adc_caps)
-            rail = (mean <= 0) | (mean >= self._adc_top)
-            out[adc] = np.where(rail, np.nan, c)
-            sat[adc] = rail
-        return out, sat
+            caps[cnt], sat[cnt] = self._counter(raw[cnt], flags[cnt], gate[cnt])
+        mean = raw[adc] / over[adc][:, None]
+        rail = (mean <= 0) | (mean >= self._adc_top)
+        caps[adc] = np.where(rail, np.nan, np.interp(mean, self._adc_means, self._adc_caps))
+        sat[adc] = rail
+        return caps, sat
+
+    def _counter(self, raw: NDArray[np.int64], flags: NDArray[np.int64], gate: FloatArray
+                 ) -> tuple[FloatArray, NDArray[np.bool_]]:
+        ratio = (self.chip.gate_cycles / gate)[:, None]
+        bad = raw >= self.chip.counter_modulus  # only a corrupt reading: the counter has 16 bits
+        if bad.any():
+            raw = np.where(bad, 0, raw)
+        ov = (flags[:, None] & self._ov_bits) != 0
+        n = unwrap_counts(raw, self._nominal / ratio, self.chip, ov)
+        caps = counts_to_capacitance(n * ratio, self.chip)
+        sat = (n <= 0) | bad
+        if bad.any():
+            caps[bad] = np.nan
+        return caps, sat
 
 
 def calibration_config(section: dict[str, Any]) -> CalibrationConfig:
@@ -90,7 +101,7 @@ class ElementStage:
     step, and the inverse runs on all of them in one call.
     """
 
-    MAX_STEPS = 8
+    MAX_STEPS = 2
 
     def __init__(self, layout: SkinLayout, params: ElementParams, cal: CalibrationConfig, noise: float) -> None:
         self.layout = layout
@@ -101,10 +112,18 @@ class ElementStage:
         self.touched = np.zeros(layout.n, dtype=bool)
         self._t = -math.inf
 
-    def step(self, rows: NDArray[np.int64], caps: FloatArray, now: float) -> dict[str, FloatArray]:
-        """``rows``: layout row of each sample (all valid); ``caps``: (n, 2) farads."""
+    def step(self, rows: NDArray[np.int64], caps: FloatArray, groups: tuple[NDArray[np.int64], NDArray[np.int64]],
+             now: float) -> dict[str, FloatArray]:
+        """``rows``: layout row of each sample; ``caps``: (n, 2) farads; ``groups``: the
+        distinct rows and the index of each one's newest sample."""
         self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
-        for values in self._sub_steps(rows, caps):
+        if groups[0].shape[0] == rows.shape[0]:  # one sample per element: one step
+            values = np.full((self.layout.n, 2), np.nan)
+            values[rows] = caps
+            steps = [values]
+        else:
+            steps = self._sub_steps(rows, caps)
+        for values in steps:
             st = self.calibrator.update(self._t, values)
             fresh = np.all(np.isfinite(st.delta), axis=1)
             self.latest[fresh] = st.delta[fresh]
@@ -112,11 +131,25 @@ class ElementStage:
         base = self.calibrator.baseline
         delta = caps - base[rows]
         self.touched = st.touched
-        inv = solve(delta[:, 0], delta[:, 1], self.params, noise=self.noise)
-        return {
-            "dc1": delta[:, 0], "dc2": delta[:, 1], "force": inv.force, "area": inv.area,
-            "valid": inv.valid, "status": inv.status, "touched": st.touched[rows],
-        }
+        out = {"dc1": delta[:, 0], "dc2": delta[:, 1], "touched": st.touched[rows]}
+        out.update(self._inverse(delta))
+        return out
+
+    def _inverse(self, delta: FloatArray) -> dict[str, FloatArray]:
+        """The inverse on the rows that can pass its noise floor; the others are answered
+        here as the inverse would (NaN, invalid, BELOW_NOISE or NONFINITE) — a quiet
+        skin then costs no call at all, and the call has a large fixed cost."""
+        n = delta.shape[0]
+        force, area = np.full(n, np.nan), np.full(n, np.nan)
+        valid = np.zeros(n, dtype=bool)
+        finite = np.isfinite(delta).all(axis=1)
+        status = np.where(finite, int(InverseStatus.BELOW_NOISE), int(InverseStatus.NONFINITE)).astype(np.uint8)
+        with np.errstate(invalid="ignore"):
+            signal = finite & (delta > self.noise).all(axis=1)  # the inverse asks for k_sigma (3) noise sigmas
+        if signal.any():
+            inv = solve(delta[signal, 0], delta[signal, 1], self.params, noise=self.noise)
+            force[signal], area[signal], valid[signal], status[signal] = inv.force, inv.area, inv.valid, inv.status
+        return {"force": force, "area": area, "valid": valid, "status": status}
 
     def _sub_steps(self, rows: NDArray[np.int64], caps: FloatArray) -> list[FloatArray]:
         """(n, 2) readings per Calibrator step: the k-th step holds each element's k-th
@@ -157,8 +190,43 @@ class ContactSnapshot:
     ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
 
 
+@dataclass(frozen=True)
+class ContactSpec:
+    """Everything a contact estimator is built from: small, picklable and hashable, so a
+    worker process can build (and keep) its own estimator for the current layout."""
+
+    ids: tuple[int, ...]
+    centres: tuple[tuple[float, float], ...]
+    side: float
+    neighbour_gap: float
+    noise: float
+    method: str
+
+    @classmethod
+    def of(cls, layout: SkinLayout, noise: float, method: str) -> ContactSpec:
+        return cls(tuple(int(i) for i in layout.ids), tuple((float(x), float(y)) for x, y in layout.centres),
+                   layout.side, float(layout.neighbour_gap), noise, method)  # type: ignore[arg-type]
+
+    def build(self) -> ContactStage:
+        layout = SkinLayout(np.array(self.centres), side=self.side, ids=np.array(self.ids),
+                            neighbour_gap=self.neighbour_gap)
+        return ContactStage(layout, default_params(layout), self.noise, self.method)
+
+
+_WORKER_STAGE: dict[ContactSpec, ContactStage] = {}
+
+
+def estimate_in_worker(spec: ContactSpec, snap: ContactSnapshot) -> list[dict[str, Any]]:
+    """Entry point in the contact worker process: the estimator for ``spec``, built once."""
+    stage = _WORKER_STAGE.get(spec)
+    if stage is None:
+        _WORKER_STAGE.clear()
+        stage = _WORKER_STAGE[spec] = spec.build()
+    return stage.run(snap)
+
+
 class ContactStage:
-    """The contact estimator for one layout; ``run`` is thread-safe on its snapshot."""
+    """The contact estimator for one layout, run on one snapshot at a time."""
 
     def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str) -> None:
         self.layout = layout

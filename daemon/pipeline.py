@@ -15,11 +15,12 @@ free and runs the estimator on that (latest frame only, never a backlog).
 from __future__ import annotations
 
 import math
+from collections import Counter
 from typing import Any
 
 import numpy as np
 
-from cellbridge.daemon.clock import BridgeClock
+from cellbridge.daemon.clock import BridgeClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
@@ -43,6 +44,12 @@ class Pipeline:
         self.frontend = Frontend(default_params(layout) if layout is not None else ElementParams(), self.chip)
         self.skin = Skin(s, layout)
         self.gate = np.full(0x10000, float(self.chip.gate_cycles))
+        self._bits = s["chip"]["cycle_bits"]
+        # Each bridge's clock parameters, indexed by bridge id, so a batch maps in one vector step.
+        self._ref = np.zeros(0x10000, dtype=np.uint64)
+        self._t_ref = np.full(0x10000, np.nan)
+        self._k = np.ones(0x10000)
+        self._hz = np.full(0x10000, float(self.chip.clock_hz))
         self.clocks: dict[int, BridgeClock] = {}
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
@@ -124,29 +131,31 @@ class Pipeline:
 
     def _samples(self, link: str, s: SampleColumns, now: float) -> list[Message]:
         n = len(s)
-        t_sample = np.empty(n)
-        t_bridge = np.empty(n)
-        origins, inv = np.unique(s.origin, return_inverse=True)
-        for k, o in enumerate(origins.tolist()):
-            m = inv == k
-            cyc = s.cycle[m]
+        origin_list = s.origin.tolist()
+        newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
+        counts = Counter(origin_list)
+        for o, i in newest.items():
             b = self._bridge(o, now)
             clk = self._clock(o)
-            if clk.observe(int(cyc[-1]), now):
+            cyc = int(s.cycle[i])
+            if clk.observe(cyc, now):
                 b.clock_resets += 1
                 self.events.append(("warning", f"bridge {o}: clock restarted (reset?), resynchronising"))
-            t_sample[m] = clk.to_host(cyc)
-            t_bridge[m] = cyc.astype(np.float64) / clk.hz
-            b.samples += int(m.sum())
-            b.last_cycle = int(cyc[-1])
-        gate = self.gate[s.origin]
-        c1, sat1 = self.frontend.capacitance(s.mode, s.oversampling, s.c1, s.flags, 0, gate)
-        c2, sat2 = self.frontend.capacitance(s.mode, s.oversampling, s.c2, s.flags, 1, gate)
-        rows = self.skin.rows_of(s.origin, s.element)
+            b.samples += counts[o]
+            b.last_cycle = cyc
+            self._ref[o], self._t_ref[o], self._k[o], self._hz[o] = clk.params()
+        o = s.origin
+        hz = self._hz[o]
+        t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
+        t_bridge = s.cycle.astype(np.float64) / hz
+        raw = np.stack([s.c1, s.c2], axis=1)
+        caps_all, sat_all = self.frontend.capacitance(s.mode, s.oversampling, raw, s.flags, self.gate[o])
+        rows = self.skin.rows_of(o, s.element)
         placed = rows >= 0
-        if not placed.all():
-            for o, cnt in zip(*np.unique(s.origin[~placed], return_counts=True)):
-                self.bridges[int(o)].unmapped_samples += int(cnt)
+        all_placed = bool(placed.all())
+        if not all_placed:
+            for b_id, cnt in Counter(o[~placed].tolist()).items():
+                self.bridges[b_id].unmapped_samples += cnt
         out: list[Message] = []
         if self._want("raw"):
             out.append(self._message("raw", now, {
@@ -158,20 +167,23 @@ class Pipeline:
         sk = self.skin
         if sk.elements is None or not placed.any():
             return out
-        r = rows[placed]
-        caps = np.stack([c1[placed], c2[placed]], axis=1)
+        sel = slice(None) if all_placed else placed
+        r = rows[sel]
+        caps = caps_all[sel]
+        last = {x: i for i, x in enumerate(r.tolist())}  # each element's newest sample
+        groups = (np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last)))
         assert sk.channels is not None
-        sk.channels.update(r, np.stack([s.c1[placed], s.c2[placed]], axis=1),
-                           np.stack([sat1[placed], sat2[placed]], axis=1), now)
-        res = sk.elements.step(r, caps, now)
-        sk.t_sample[r] = t_sample[placed]
-        sk.cycle[r] = s.cycle[placed]
+        sk.channels.update(r, raw[sel], sat_all[sel], groups, now)
+        res = sk.elements.step(r, caps, groups, now)
+        uniq, newest_i = groups
+        sk.t_sample[uniq] = t_sample[sel][newest_i]
+        sk.cycle[uniq] = s.cycle[sel][newest_i]
         sk.dirty = True
         if self._want("element"):
             out.append(self._message("element", now, {
-                "bridge": s.origin[placed].tolist(), "element": s.element[placed].tolist(),
-                "cycle": s.cycle[placed].tolist(), "t_bridge": t_bridge[placed].tolist(),
-                "t_sample": t_sample[placed].tolist(), "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
+                "bridge": o[sel].tolist(), "element": s.element[sel].tolist(),
+                "cycle": s.cycle[sel].tolist(), "t_bridge": t_bridge[sel].tolist(),
+                "t_sample": t_sample[sel].tolist(), "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
                 "dc1": res["dc1"].tolist(), "dc2": res["dc2"].tolist(), "force": res["force"].tolist(),
                 "area": res["area"].tolist(), "valid": res["valid"].tolist(), "status": res["status"].tolist(),
                 "touched": res["touched"].tolist(),

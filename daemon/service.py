@@ -2,20 +2,24 @@
 
 Everything here is a thin shell: each task moves bytes or messages between the
 outside (serial lines, ZeroMQ sockets, signals) and the sans-I/O pipeline. Contact
-estimation runs in one worker thread on the newest snapshot whenever the worker is
-free, so a slow estimate delays the next estimate, never ingest.
+estimation runs in one worker *process* on the newest snapshot whenever the worker is
+free, so a slow estimate delays the next estimate, never ingest (a thread would hold
+the interpreter lock for milliseconds at a time and stall the event loop).
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import concurrent.futures.process
 import logging
+import multiprocessing
 import signal
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zmq
 import zmq.asyncio
 
@@ -25,6 +29,7 @@ from cellbridge.daemon.config import SECTIONS, Config, ConfigError, load_config
 from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply
 from cellbridge.daemon.links import Link, ReplayLink, SerialLink
 from cellbridge.daemon.logs import event, setup
+from cellbridge.daemon.physics import estimate_in_worker
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher, pack
 from cellbridge.daemon.wire import PING
@@ -88,24 +93,34 @@ class Service:
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
         self._answers: set[asyncio.Task[Any]] = set()
-        self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="contacts")
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
         self._contact_busy = False
         self._contacts_shown = False
         self.contact_stats = {"runs": 0, "errors": 0, "last_ms": 0.0, "max_ms": 0.0, "feeds_skipped": 0}
         self._feeds_since_snapshot = 0
+        self.ingest_errors = 0
+        self._busy = np.zeros(4096)  # s spent on each of the last reads, bytes to published messages
+        self._n_reads = 0
 
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
+        t0 = time.perf_counter()
         p = self.pipeline
         publish = self.pub.publish
-        for topic, payload in p.feed(link, data, now):
-            publish(topic, payload)
+        try:
+            for topic, payload in p.feed(link, data, now):
+                publish(topic, payload)
+        except Exception:  # a bug must cost one read, not the daemon
+            self.ingest_errors += 1
+            self.log.exception("ingest failed on one read", extra={"fields": {"link": link, "bytes": len(data)}})
         if len(p.commands):
             self._resolve(now)
         if p.events:
             self._log_events()
         self._feeds_since_snapshot += 1
         self._fresh.set()
+        self._busy[self._n_reads % self._busy.shape[0]] = time.perf_counter() - t0
+        self._n_reads += 1
 
     def _on_state(self, link: str, connected: bool, why: str) -> None:
         self.pipeline.link_state(link, connected, time.time(), why)
@@ -170,7 +185,11 @@ class Service:
             lh = self.pipeline.links.get(name)
             if lh is not None:
                 lh.extra = link.stats()
-        return {"pub": self.pub.stats(), "contact_estimation": dict(self.contact_stats)}
+        recent = self._busy[:min(self._n_reads, self._busy.shape[0])]
+        p50, p99 = (np.percentile(recent, [50, 99]) * 1e3).tolist() if recent.size else (None, None)
+        ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
+                  "ms_per_read_p99": p99, "ms_per_read_max": float(recent.max() * 1e3) if recent.size else None}
+        return {"pub": self.pub.stats(), "contact_estimation": dict(self.contact_stats), "ingest": ingest}
 
     def status_body(self, now: float) -> dict[str, Any]:
         body = self.pipeline.health_body(now)
@@ -194,21 +213,26 @@ class Service:
         if "contact" not in wanted:
             return
         snap = self.pipeline.contact_snapshot()
-        stage = self.pipeline.skin.contacts
-        if snap is None or stage is None:
+        spec = self.pipeline.skin.contact_spec
+        if snap is None or spec is None:
             return
         self.contact_stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
         self._feeds_since_snapshot = 0
         t0 = time.perf_counter()
-        self._contact_busy = True
-        try:
-            contacts = await loop.run_in_executor(self._pool, stage.run, snap)
-        except Exception:  # a bad estimate must not end contact publishing
-            self.contact_stats["errors"] += 1
-            self.log.exception("contact estimation failed")
-            return
-        finally:
-            self._contact_busy = False
+        if not snap.touched.any():
+            contacts: list[dict[str, Any]] = []  # nothing touched: no need to ask the worker
+        else:
+            self._contact_busy = True
+            try:
+                contacts = await loop.run_in_executor(self._worker(), estimate_in_worker, spec, snap)
+            except Exception as exc:  # a bad estimate (or a dead worker) must not end contact publishing
+                self.contact_stats["errors"] += 1
+                event(self.log, "error", "contact estimation failed", error=f"{type(exc).__name__}: {exc}")
+                if isinstance(exc, concurrent.futures.process.BrokenProcessPool):
+                    self._pool = None  # a new worker on the next estimate
+                return
+            finally:
+                self._contact_busy = False
         ms = (time.perf_counter() - t0) * 1e3
         st = self.contact_stats
         st["runs"] += 1
@@ -216,6 +240,11 @@ class Service:
         if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without
             self.pub.publish(*self.pipeline.contact_message(snap, contacts))
         self._contacts_shown = bool(contacts)
+
+    def _worker(self) -> concurrent.futures.ProcessPoolExecutor:
+        if self._pool is None:
+            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        return self._pool
 
     # -- commands -----------------------------------------------------------------------
     def _resolve(self, now: float) -> None:
@@ -366,7 +395,8 @@ class Service:
                 s.close()
             self.hooks.close()
             ctx.term()
-            self._pool.shutdown(wait=True)
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
             for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
                 loop.remove_signal_handler(sig)
             event(self.log, "info", "stopped")

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from cellbridge.daemon.health import ChannelHealth
 from cellbridge.daemon.physics import (
     ContactSnapshot,
+    ContactSpec,
     ContactStage,
     ElementStage,
     calibration_config,
@@ -36,7 +37,8 @@ class Skin:
         self.rejected: list[int] = []
         self.layout: SkinLayout | None = None
         self.elements: ElementStage | None = None
-        self.contacts: ContactStage | None = None
+        self.contacts: ContactStage | None = None  # in this process (tests, tools)
+        self.contact_spec: ContactSpec | None = None  # what the service's worker process builds from
         self.channels: ChannelHealth | None = None
         self.row = np.full(_IDS, -1, dtype=np.int64)
         self.t_sample = np.zeros(0)
@@ -53,6 +55,7 @@ class Skin:
         self.layout = layout
         self.elements = ElementStage(layout, params, calibration_config(self.sections["calibration"]), inv["noise"])
         self.contacts = ContactStage(layout, params, inv["noise"], self.sections["contact"]["method"])
+        self.contact_spec = ContactSpec.of(layout, inv["noise"], self.sections["contact"]["method"])
         self.channels = ChannelHealth(layout.n)
         self.row[:] = -1
         ids = layout.ids

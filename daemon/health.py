@@ -120,7 +120,6 @@ class LinkHealth:
     last_error: str = ""
     connected_since: float | None = None
     last_data: float | None = None
-    capture_error: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
 
     def set_state(self, connected: bool, now: float, error: str = "") -> None:
@@ -147,7 +146,7 @@ def link_report(h: LinkHealth, counters: dict[str, Any]) -> dict[str, Any]:
         "bytes": counters.get("bytes_in", 0), "frames": counters.get("frames_ok", 0),
         "crc_errors": crc, "framing_errors": framing, "frames_dropped": dropped,
         "bytes_dropped": counters.get("bytes_dropped", {}), "duplicates": counters.get("duplicates", 0),
-        "capture_error": h.capture_error, **h.extra,
+        **h.extra,
     }
 
 

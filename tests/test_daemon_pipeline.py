@@ -277,3 +277,26 @@ def test_topology_tracks_status_neighbours_and_the_gateway_of_each_link() -> Non
     assert topo["gateways"] == {"gw": [1], "gw2": [3]}
     _, writes = p.command(int(Op.PING), None, 4, T0 + 0.1, 1.0)
     assert [link for link, _ in writes] == ["gw2"]  # commands follow the bridge to its new gateway
+
+
+def test_every_published_field_is_documented() -> None:
+    doc = (Path(__file__).parent.parent / "docs" / "zmq-api.md").read_text()
+    sk = Skin()
+    p = make()
+    settle(p, sk, 60)
+    out = press(p, sk, STRADDLE, 60, 5) + p.tick(T0 + 2)
+    snap = p.contact_snapshot()
+    out.append(p.contact_message(snap, p.skin.contacts.run(snap)))  # type: ignore[union-attr]
+    seen: set[str] = set()
+    for _, m in out:
+        seen |= set(m)
+        for c in m.get("contacts", []):
+            seen |= set(c)
+        for group in ("links", "bridges"):
+            for entry in m.get(group, {}).values():
+                if isinstance(entry, dict):
+                    seen |= set(entry)
+        if isinstance(m.get("layout"), dict):
+            seen |= set(m["layout"])
+    missing = sorted(k for k in seen if f"`{k}`" not in doc and f"`{k}:" not in doc and f"`{k} " not in doc)
+    assert not missing, f"fields not in docs/zmq-api.md: {missing}"

@@ -96,12 +96,12 @@ def calibration_config(section: dict[str, Any]) -> CalibrationConfig:
 class ElementStage:
     """Calibration and inverse for the elements of one layout, a batch at a time.
 
-    The Calibrator steps once per sampling slot in the batch (at most ``MAX_STEPS``
-    times); every sample of the batch gets ΔC against the baseline after the last
-    step, and the inverse runs on all of them in one call.
+    The Calibrator steps on each element's newest sample of the batch, and before that
+    on its first one when the batch holds several (a backlog): two steps at most, so a
+    large read costs a bounded amount while baselines still collect from it. Every
+    sample of the batch gets ΔC against the baseline after the last step, and the
+    inverse runs on all of them in one call.
     """
-
-    MAX_STEPS = 2
 
     def __init__(self, layout: SkinLayout, params: ElementParams, cal: CalibrationConfig, noise: float) -> None:
         self.layout = layout
@@ -117,12 +117,15 @@ class ElementStage:
         """``rows``: layout row of each sample; ``caps``: (n, 2) farads; ``groups``: the
         distinct rows and the index of each one's newest sample."""
         self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
-        if groups[0].shape[0] == rows.shape[0]:  # one sample per element: one step
-            values = np.full((self.layout.n, 2), np.nan)
-            values[rows] = caps
-            steps = [values]
-        else:
-            steps = self._sub_steps(rows, caps)
+        uniq, newest = groups
+        values = np.full((self.layout.n, 2), np.nan)
+        values[uniq] = caps[newest]
+        steps = [values]
+        if uniq.shape[0] != rows.shape[0]:  # several samples per element: also step on the first ones
+            first_rows, first = np.unique(rows, return_index=True)
+            early = np.full((self.layout.n, 2), np.nan)
+            early[first_rows] = caps[first]
+            steps.insert(0, early)
         for values in steps:
             st = self.calibrator.update(self._t, values)
             fresh = np.all(np.isfinite(st.delta), axis=1)
@@ -150,27 +153,6 @@ class ElementStage:
             inv = solve(delta[signal, 0], delta[signal, 1], self.params, noise=self.noise)
             force[signal], area[signal], valid[signal], status[signal] = inv.force, inv.area, inv.valid, inv.status
         return {"force": force, "area": area, "valid": valid, "status": status}
-
-    def _sub_steps(self, rows: NDArray[np.int64], caps: FloatArray) -> list[FloatArray]:
-        """(n, 2) readings per Calibrator step: the k-th step holds each element's k-th
-        sample of the batch. A batch that holds many samples per element (a backlog)
-        is thinned to ``MAX_STEPS`` evenly spaced steps, so its cost stays bounded while
-        baselines still collect several readings from it."""
-        order = np.argsort(rows, kind="stable")
-        r = rows[order]
-        starts = np.r_[0, np.nonzero(r[1:] != r[:-1])[0] + 1]
-        lengths = np.diff(np.r_[starts, r.size])
-        occ = np.empty(rows.size, dtype=np.int64)
-        occ[order] = np.arange(r.size) - np.repeat(starts, lengths)
-        top = int(lengths.max())
-        ks = np.arange(top) if top <= self.MAX_STEPS else np.unique(np.linspace(0, top - 1, self.MAX_STEPS).round())
-        out = []
-        for k in ks.astype(np.int64):
-            sel = occ == k
-            values = np.full((self.layout.n, 2), np.nan)
-            values[rows[sel]] = caps[sel]
-            out.append(values)
-        return out
 
     def tare(self, rows: NDArray[np.int64] | None) -> None:
         self.calibrator.tare(rows)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import concurrent.futures.process
+import gc
 import logging
 import multiprocessing
 import signal
@@ -384,6 +385,10 @@ class Service:
             self._tasks.append(asyncio.create_task(self._watchdog(self.hooks.watchdog_interval)))
         event(self.log, "info", "daemon started", version=__version__, pub=self.config["pub"]["endpoint"],
               control=self.config["control"]["endpoint"], links=list(self.links))
+        # Start-up objects (numpy, zmq, the layout) never die: keep them out of the cyclic
+        # collector's full passes, which pause the event loop for the time they take.
+        gc.collect()
+        gc.freeze()
         self.hooks.ready(self._summary(time.time()))  # OPS: READY=1 once links run and sockets are bound
         try:
             await self._stop.wait()

@@ -224,3 +224,51 @@ def test_sigterm_drains_and_exits_zero_and_sighup_reloads(tmp_path: Path) -> Non
     finally:
         client.close()
         pty.close()
+
+
+def test_two_gateways_pty_and_socket_url_duplicates_removed(tmp_path: Path) -> None:
+    """Two gateways hear the same bridges: a pty and a TCP serial server (socket:// URL).
+    Every sample is published once; the second copy is counted as a duplicate; a dropped
+    TCP connection is reopened."""
+    import socket
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    server.settimeout(10)
+    port = server.getsockname()[1]
+    pty = Pty(tmp_path / "gw")
+    cfg = tmp_path / "daemon.toml"
+    endpoints = write_config(cfg, [{"name": "tty", "url": pty.link},
+                                   {"name": "tcp", "url": f"socket://127.0.0.1:{port}", "reconnect_min": 0.05,
+                                    "reconnect_max": 0.2}])
+    client = Client(endpoints, (b"element", b"health"))
+    conns = []
+    try:
+        with daemon(cfg):
+            client.ready()
+            conn, _ = server.accept()
+            conns.append(conn)
+            sk = Skin()
+            data = sk.hellos() + b"".join(d for _, d in sk.stream(10))
+            pty.write(data)
+            conn.sendall(data)
+            total = 0
+            while total < 40:
+                total += len(client.wait_for("element")["bridge"])
+            h = client.wait_for("health", lambda m: m["duplicates"] >= 44)
+            assert total == 40 and h["duplicates"] == 44  # 4 HELLO + 40 DATA frames heard twice
+            conn.close()  # the serial server goes away and comes back
+            conn, _ = server.accept()
+            conns.append(conn)
+            # pyserial flushes what arrives while it opens a socket:// port: send once it is up
+            client.wait_for("health", lambda m: m["links"]["tcp"]["connected"] and m["links"]["tcp"]["reconnects"])
+            conn.sendall(b"".join(d for _, d in sk.stream(3, start=10)))
+            el = client.wait_for("element")
+            assert el["cycle"][0] == sk.cycle0 + 10 * 500_000  # the new samples, through the new connection
+    finally:
+        for c in conns:
+            c.close()
+        server.close()
+        client.close()
+        pty.close()

@@ -63,12 +63,18 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
     assert c["v"] == 1 and c["t_host"] > 0 and sorted(contact["elements"]) == [1, 2, 3, 4]
 
 
-def test_closing_and_reopening_the_pty_reconnects(rig) -> None:
-    pty, client, _ = rig
+def announce(pty: Pty, client: Client, slots: int) -> Skin:
+    """Bridges say HELLO and send a few quiet slots; returns once their data comes out."""
     sk = Skin()
     pty.write(sk.hellos())
-    feed(pty, sk, 5)
+    feed(pty, sk, slots)
     client.wait_for("element")
+    return sk
+
+
+def test_closing_and_reopening_the_pty_reconnects(rig) -> None:
+    pty, client, _ = rig
+    sk = announce(pty, client, 5)
     pty.close()
     client.wait_for("health", lambda m: not m["links"]["gw"]["connected"])
     time.sleep(0.3)  # a few failed reopen attempts (backoff), then the device is back
@@ -116,10 +122,7 @@ def test_malformed_control_requests_get_error_replies(rig) -> None:
 
 def test_set_goes_down_the_pty_as_a_cmd_frame_and_the_reply_comes_back(rig) -> None:
     pty, client, _ = rig
-    sk = Skin()
-    pty.write(sk.hellos())
-    feed(pty, sk, 3)
-    client.wait_for("element")
+    sk = announce(pty, client, 3)
     req = client.ctx.socket(zmq.DEALER)
     req.connect(client.endpoints["control"])
     try:

@@ -11,10 +11,12 @@ outlive its cables. ``ReplayLink`` plays a capture file back as if it were a lin
 from __future__ import annotations
 
 import asyncio
+import os
 import time
 from collections.abc import Awaitable, Callable
 
 import serial
+import serial.serialposix
 
 from cellbridge.daemon.capture import CaptureWriter, read_capture
 from cellbridge.daemon.config import LinkConfig
@@ -85,9 +87,11 @@ class SerialLink(Link):
         capture = self.capture
         on_data, name = self._on_data, self.name
 
+        read = _reader(ser)
+
         def readable() -> None:
             try:
-                data = ser.read(READ_SIZE)
+                data = read()
             except (serial.SerialException, OSError) as exc:
                 loop.remove_reader(fd)
                 if not lost.done():
@@ -131,6 +135,27 @@ class SerialLink(Link):
             return True
         except (serial.SerialException, OSError):
             return super().write(data)
+
+
+def _reader(ser: serial.SerialBase) -> Callable[[], bytes]:
+    """One non-blocking read of what is there. A tty or pty is read with a single
+    ``os.read`` (pyserial's ``read`` polls around it, three system calls a read)."""
+    if isinstance(ser, serial.serialposix.Serial):
+        fd = ser.fd
+
+        def read_fd() -> bytes:
+            try:
+                data = os.read(fd, READ_SIZE)
+            except BlockingIOError:
+                return b""
+            except OSError as exc:
+                raise serial.SerialException(f"read failed: {exc}") from None
+            if not data:  # readable yet empty: the device is gone
+                raise serial.SerialException("device disconnected")
+            return data
+
+        return read_fd
+    return lambda: ser.read(READ_SIZE)
 
 
 class ReplayLink(Link):

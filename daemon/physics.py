@@ -207,6 +207,10 @@ def estimate_in_worker(spec: ContactSpec, snap: ContactSnapshot) -> list[dict[st
     return stage.run(snap)
 
 
+def warm_up() -> None:
+    """Run in the worker at start: its imports (numpy, the estimator) happen before the first touch."""
+
+
 class ContactStage:
     """The contact estimator for one layout, run on one snapshot at a time."""
 

@@ -30,7 +30,7 @@ from cellbridge.daemon.config import SECTIONS, Config, ConfigError, load_config
 from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply
 from cellbridge.daemon.links import Link, ReplayLink, SerialLink
 from cellbridge.daemon.logs import event, setup
-from cellbridge.daemon.physics import estimate_in_worker
+from cellbridge.daemon.physics import estimate_in_worker, warm_up
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher, pack
 from cellbridge.daemon.wire import PING
@@ -381,6 +381,8 @@ class Service:
         link_tasks = [asyncio.create_task(ln.run(), name=f"link {n}") for n, ln in self.links.items()]
         self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self._control(),
                                                         self.pub.watch_subscriptions())]
+        if self.config["contact"]["enabled"]:
+            self._worker().submit(warm_up)  # the worker starts now, not at the first touch
         if self.hooks.watchdog_interval:
             self._tasks.append(asyncio.create_task(self._watchdog(self.hooks.watchdog_interval)))
         event(self.log, "info", "daemon started", version=__version__, pub=self.config["pub"]["endpoint"],

@@ -56,8 +56,8 @@ class SerialLink(Link):
             self.capture = CaptureWriter(cfg.capture)
 
     def _open(self) -> serial.SerialBase:
-        ser = serial.serial_for_url(self.cfg.url, baudrate=self.cfg.baudrate, timeout=0, write_timeout=0.5)
-        return ser
+        # timeout=0: reads never wait; a socket:// write waits at most write_timeout
+        return serial.serial_for_url(self.cfg.url, baudrate=self.cfg.baudrate, timeout=0, write_timeout=0.05)
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -131,7 +131,13 @@ class SerialLink(Link):
         if ser is None:
             return super().write(data)
         try:
-            ser.write(data)  # a few dozen bytes: the tty buffer takes them at once
+            if isinstance(ser, serial.serialposix.Serial):
+                # A few dozen bytes: the driver's buffer takes them at once, or the line is
+                # stuck and the command is dropped (counted) instead of stalling the loop.
+                # A partial write is a dropped command too (the next frame's leading
+                # delimiter resynchronises the bridge's decoder).
+                return os.write(ser.fd, data) == len(data) or super().write(data)
+            ser.write(data)
             return True
         except (serial.SerialException, OSError):
             return super().write(data)

@@ -70,6 +70,7 @@ def write_config(path: Path, links: list[dict[str, Any]], **sections: dict[str, 
                                        "health": {"interval": 0.2}, "daemon": {"log_format": "json"}}
     for name, values in sections.items():
         base.setdefault(name, {}).update(values)
+    endpoints = {"pub": base["pub"]["endpoint"], "control": base["control"]["endpoint"]}
     for name, values in base.items():
         lines.append(f"[{name}]")
         lines += [f"{k} = {_toml(v)}" for k, v in values.items()]

@@ -201,9 +201,11 @@ def test_subscriber_that_never_reads_does_not_slow_ingest(tmp_path: Path) -> Non
 
 
 def test_sigterm_drains_and_exits_zero_and_sighup_reloads(tmp_path: Path) -> None:
+    """Also over ipc:// endpoints instead of loopback TCP."""
     pty = Pty(tmp_path / "gw")
     cfg = tmp_path / "daemon.toml"
-    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link}])
+    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link}], pub={"endpoint": f"ipc://{tmp_path}/pub"},
+                             control={"endpoint": f"ipc://{tmp_path}/control"})
     client = Client(endpoints)
     log = tmp_path / "err.log"
     try:

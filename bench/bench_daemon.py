@@ -225,7 +225,7 @@ def latency(tmp: Path, seconds: float, contacts: bool = True, bridges: int = 10)
     finally:
         client.close()
         pty.close()
-    return np.array(lat[bridges * 500:]) * 1e3, ingest  # skip the first half second (baseline, sync)
+    return np.array(lat[bridges * 2000:]) * 1e3, ingest  # skip 2 s of warm-up (baseline, clock sync, worker start)
 
 
 def _collect(client: Client, sent: dict, lat: list, timeout: float) -> None:
@@ -283,7 +283,7 @@ def main() -> None:
                      "", None))
         rows.append((f"RSS after replaying {long_s:.0f} s of traffic ({n_long:,} samples)",
                      f"{rss_long / 1024:.1f} MiB", "bounded", rss_long <= 1.1 * rss_short + 8 * 1024))
-        rows.append((f"peak RSS, short / long replay", f"{hwm_short / 1024:.1f} / {hwm_long / 1024:.1f} MiB", "", None))
+        rows.append(("peak RSS, short / long replay", f"{hwm_short / 1024:.1f} / {hwm_long / 1024:.1f} MiB", "", None))
         rows.append(("ingest, daemon process, long replay", f"{r_long:,.0f} samples/s", "", None))
     print(f"{'measurement':<68} {'value':>18} {'target':>12} {'ok':>4}")
     for name, value, target, ok in rows:

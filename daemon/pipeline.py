@@ -130,7 +130,6 @@ class Pipeline:
                     self.gate[origin] = float(gate)
 
     def _samples(self, link: str, s: SampleColumns, now: float) -> list[Message]:
-        n = len(s)
         origin_list = s.origin.tolist()
         newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
         counts = Counter(origin_list)

@@ -10,11 +10,8 @@ the interpreter lock for milliseconds at a time and stall the event loop).
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
-import concurrent.futures.process
 import gc
 import logging
-import multiprocessing
 import signal
 import time
 from pathlib import Path
@@ -27,13 +24,12 @@ import zmq.asyncio
 from cellbridge._version import __version__
 from cellbridge.config import load_layout
 from cellbridge.daemon.config import SECTIONS, Config, ConfigError, load_config
-from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply
+from cellbridge.daemon.contact_worker import ContactWorker
+from cellbridge.daemon.control_server import ControlServer
 from cellbridge.daemon.links import Link, ReplayLink, SerialLink
 from cellbridge.daemon.logs import event, setup
-from cellbridge.daemon.physics import estimate_in_worker, warm_up
 from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.daemon.publisher import Publisher, pack
-from cellbridge.daemon.wire import PING
+from cellbridge.daemon.publisher import Publisher
 from cellbridge.tactile import SkinLayout
 
 
@@ -89,15 +85,11 @@ class Service:
         self.pipeline = Pipeline(config, layout)
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
-        self._waiting: dict[int, asyncio.Future[dict[str, Any]]] = {}
         self._fresh = asyncio.Event()
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
-        self._answers: set[asyncio.Task[Any]] = set()
-        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
-        self._contact_busy = False
+        self.contacts = ContactWorker(self.log)
         self._contacts_shown = False
-        self.contact_stats = {"runs": 0, "errors": 0, "last_ms": 0.0, "max_ms": 0.0, "feeds_skipped": 0}
         self._feeds_since_snapshot = 0
         self.ingest_errors = 0
         self._busy = np.zeros(4096)  # s spent on each of the last reads, bytes to published messages
@@ -115,7 +107,7 @@ class Service:
             self.ingest_errors += 1
             self.log.exception("ingest failed on one read", extra={"fields": {"link": link, "bytes": len(data)}})
         if len(p.commands):
-            self._resolve(now)
+            self.control.resolve(now)
         if p.events:
             self._log_events()
         self._feeds_since_snapshot += 1
@@ -159,7 +151,7 @@ class Service:
                 if topic == "health":
                     payload.update(self._shell_health())
                 self.pub.publish(topic, payload)
-            self._resolve(now)
+            self.control.resolve(now)
             self._log_events()
             if now >= next_status:
                 next_status = now + 5.0
@@ -190,7 +182,7 @@ class Service:
         p50, p99 = (np.percentile(recent, [50, 99]) * 1e3).tolist() if recent.size else (None, None)
         ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
                   "ms_per_read_p99": p99, "ms_per_read_max": float(recent.max() * 1e3) if recent.size else None}
-        return {"pub": self.pub.stats(), "contact_estimation": dict(self.contact_stats), "ingest": ingest}
+        return {"pub": self.pub.stats(), "contact_estimation": dict(self.contacts.stats), "ingest": ingest}
 
     def status_body(self, now: float) -> dict[str, Any]:
         body = self.pipeline.health_body(now)
@@ -199,128 +191,30 @@ class Service:
 
     # -- contacts -----------------------------------------------------------------------
     async def _contacts(self) -> None:
-        loop = asyncio.get_running_loop()
         while True:
             await self._fresh.wait()
             self._fresh.clear()
             started = time.perf_counter()
-            await self._contact_once(loop)
+            await self._contact_once()
             rest = 1.0 / self.config["contact"]["rate"] - (time.perf_counter() - started)
             if rest > 0:
                 await asyncio.sleep(rest)
 
-    async def _contact_once(self, loop: asyncio.AbstractEventLoop) -> None:
-        wanted = self.pub.wanted
-        if "contact" not in wanted:
+    async def _contact_once(self) -> None:
+        if "contact" not in self.pub.wanted:
             return
         snap = self.pipeline.contact_snapshot()
         spec = self.pipeline.skin.contact_spec
         if snap is None or spec is None:
             return
-        self.contact_stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
+        self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
         self._feeds_since_snapshot = 0
-        t0 = time.perf_counter()
-        if not snap.touched.any():
-            contacts: list[dict[str, Any]] = []  # nothing touched: no need to ask the worker
-        else:
-            self._contact_busy = True
-            try:
-                contacts = await loop.run_in_executor(self._worker(), estimate_in_worker, spec, snap)
-            except Exception as exc:  # a bad estimate (or a dead worker) must not end contact publishing
-                self.contact_stats["errors"] += 1
-                event(self.log, "error", "contact estimation failed", error=f"{type(exc).__name__}: {exc}")
-                if isinstance(exc, concurrent.futures.process.BrokenProcessPool):
-                    self._pool = None  # a new worker on the next estimate
-                return
-            finally:
-                self._contact_busy = False
-        ms = (time.perf_counter() - t0) * 1e3
-        st = self.contact_stats
-        st["runs"] += 1
-        st["last_ms"], st["max_ms"] = ms, max(st["max_ms"], ms)
+        contacts = await self.contacts.estimate(spec, snap)
+        if contacts is None:
+            return
         if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without
             self.pub.publish(*self.pipeline.contact_message(snap, contacts))
         self._contacts_shown = bool(contacts)
-
-    def _worker(self) -> concurrent.futures.ProcessPoolExecutor:
-        if self._pool is None:
-            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        return self._pool
-
-    # -- commands -----------------------------------------------------------------------
-    def _resolve(self, now: float) -> None:
-        for p in self.pipeline.commands.done(now):
-            fut = self._waiting.pop(p.token, None)
-            if fut is not None and not fut.done():
-                fut.set_result(p.result())
-
-    async def command(self, op: int, value: int | None, target: int | None, timeout: float) -> dict[str, Any]:
-        now = time.time()
-        pending, writes = self.pipeline.command(op, value, target, now, timeout)
-        fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
-        self._waiting[pending.token] = fut
-        sent = [name for name, data in writes if name in self.links and self.links[name].write(data)]
-        self._resolve(now)  # a broadcast with nobody alive completes at once
-        result = await asyncio.wait_for(fut, timeout + 1.0)
-        result["sent_on"] = sent
-        return result
-
-    # -- control ------------------------------------------------------------------------
-    async def _control(self) -> None:
-        while True:
-            frames = await self.ctl.recv_multipart()
-            task = asyncio.create_task(self._answer(frames))  # a slow command never holds up others
-            self._answers.add(task)
-            task.add_done_callback(self._answers.discard)
-
-    async def _answer(self, frames: list[bytes]) -> None:
-        envelope, body = frames[:-1], frames[-1]
-        try:
-            req = parse_request(body)
-        except RequestError as exc:
-            event(self.log, "info", "bad control request", error=str(exc))
-            rep = error(str(exc))
-        else:
-            try:
-                rep = await self._execute(req)
-            except ValueError as exc:
-                rep = error(str(exc), req.id)
-            except Exception as exc:  # never let one request take the daemon down
-                self.log.exception("control request failed")
-                rep = error(f"internal error: {type(exc).__name__}: {exc}", req.id)
-        await self.ctl.send_multipart([*envelope, pack(rep)])
-
-    async def _execute(self, req: Request) -> dict[str, Any]:
-        now = time.time()
-        timeout = req.timeout or self.config["control"]["command_timeout"]
-        if req.cmd == "status":
-            return reply(True, req.id, **self.status_body(now))
-        if req.cmd == "topology":
-            return reply(True, req.id, **self.pipeline.topology_body(now))
-        if req.cmd == "tare":
-            n = self.pipeline.tare(None if req.bridges is None else list(req.bridges))
-            return reply(True, req.id, tared_elements=n)
-        if req.cmd == "ping" and req.bridge is None:
-            return reply(True, req.id, pong=True, version=__version__, t_host=now, commands=COMMANDS)
-        op, value = (int(PING), None) if req.cmd == "ping" else (req.op, req.value)
-        result = await self.command(op, value, req.bridge, timeout)  # type: ignore[arg-type]
-        replies = result["replies"]
-        ok = bool(replies) and not result["missing"] and all(r["status"] == "OK" for r in replies.values())
-        if not ok and not result.get("error"):
-            result["error"] = self._command_error(result)
-        return reply(ok, req.id, **result)
-
-    @staticmethod
-    def _command_error(result: dict[str, Any]) -> str:
-        if not result["replies"] and not result["missing"]:
-            return "no bridge is alive to receive the command"
-        bad = {b: r["status"] for b, r in result["replies"].items() if r["status"] != "OK"}
-        parts = []
-        if result["missing"]:
-            parts.append(f"no reply within the timeout from bridges {result['missing']}")
-        if bad:
-            parts.append(f"refused: {bad}")
-        return "; ".join(parts)
 
     # -- reload -------------------------------------------------------------------------
     def reload(self) -> None:
@@ -355,6 +249,7 @@ class Service:
         self.pub = Publisher(ctx, c["pub"]["endpoint"], c["pub"]["hwm"], c["pub"]["count_drops"])
         self.ctl = ctx.socket(zmq.ROUTER)
         self.ctl.setsockopt(zmq.LINGER, 500)
+        self.control = ControlServer(self.ctl, self, self.log)
         for sock, endpoint in ((self.pub.sock, c["pub"]["endpoint"]), (self.ctl, c["control"]["endpoint"])):
             self.hooks.secure(ctx, sock, endpoint)  # OPS: security check and CURVE, before bind
             sock.bind(endpoint)
@@ -379,10 +274,10 @@ class Service:
         loop.add_signal_handler(signal.SIGINT, self._stop.set)
         loop.add_signal_handler(signal.SIGHUP, self.reload)
         link_tasks = [asyncio.create_task(ln.run(), name=f"link {n}") for n, ln in self.links.items()]
-        self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self._control(),
+        self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self.control.serve(),
                                                         self.pub.watch_subscriptions())]
         if self.config["contact"]["enabled"]:
-            self._worker().submit(warm_up)  # the worker starts now, not at the first touch
+            self.contacts.start()
         if self.hooks.watchdog_interval:
             self._tasks.append(asyncio.create_task(self._watchdog(self.hooks.watchdog_interval)))
         event(self.log, "info", "daemon started", version=__version__, pub=self.config["pub"]["endpoint"],
@@ -397,35 +292,29 @@ class Service:
         finally:
             self.hooks.stopping()  # OPS: STOPPING=1
             event(self.log, "info", "stopping: draining")
-            await self._drain(loop, link_tasks)
+            await self._drain(link_tasks)
             for s in (self.pub.sock, self.ctl):
                 s.close()
             self.hooks.close()
             ctx.term()
-            if self._pool is not None:
-                self._pool.shutdown(wait=True)
+            self.contacts.close()
             for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
                 loop.remove_signal_handler(sig)
             event(self.log, "info", "stopped")
         return 0
 
-    async def _drain(self, loop: asyncio.AbstractEventLoop, link_tasks: list[asyncio.Task[Any]]) -> None:
+    async def _drain(self, link_tasks: list[asyncio.Task[Any]]) -> None:
         """Stop reading, finish what was read (last contact estimate, pending replies), say goodbye."""
         for t in link_tasks:
             t.cancel()
         await asyncio.gather(*link_tasks, return_exceptions=True)
-        for _ in range(500):  # let a running contact estimate finish and publish (at most 5 s)
-            if not self._contact_busy:
-                break
-            await asyncio.sleep(0.01)
+        await self.contacts.idle()  # a running estimate finishes and is published
         for t in self._tasks:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        if self._answers:
-            await asyncio.wait(self._answers, timeout=1.0)
-        await self._contact_once(loop)
+        await self.control.finish()
+        await self._contact_once()  # the newest state, if the last estimate did not see it
         now = time.time()
-        self._resolve(now + 3600.0)  # anything still waiting gets its timeout answer
         for topic, payload in self.pipeline.tick(now, force=True):
             if topic == "health":
                 payload.update(self._shell_health())

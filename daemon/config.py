@@ -80,7 +80,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "command_timeout": Key(NUM, 1.0, "s to wait for bridges to answer a command", _positive, reloadable=True),
     },
     "layout": {
-        "file": Key(str, "", "skin layout TOML (see docs/contacts.md); empty: geometry from the bridges' HELLO"),
+        "file": Key(str, "", "skin layout TOML (see docs/contacts.md); empty: geometry from the bridges' HELLO",
+                    reloadable=True),
     },
     "chip": {
         "clock_hz": Key(NUM, 50e6, "nominal bridge clock when a bridge has not said (HELLO)", _positive),

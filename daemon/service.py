@@ -232,7 +232,7 @@ class Service:
             self.hooks.ready("reload rejected")
             return
         fixed = [f"{s}.{k}" for s, keys in SECTIONS.items() for k, spec in keys.items()
-                 if not spec.reloadable and s != "layout" and new[s][k] != self.config[s][k]]
+                 if not spec.reloadable and new[s][k] != self.config[s][k]]
         if new.links != self.config.links:
             fixed.append("link")
         if fixed:

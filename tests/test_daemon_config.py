@@ -69,3 +69,29 @@ def test_layout_path_is_relative_to_the_config(tmp_path: Path) -> None:
     f = tmp_path / "d.toml"
     f.write_text('[layout]\nfile = "skin.toml"\n[[link]]\nurl = "/dev/null"\n')
     assert load_config(f).layout_path() == tmp_path.resolve() / "skin.toml"
+
+
+def test_cli_print_config_check_and_errors(tmp_path: Path) -> None:
+    import subprocess
+
+    from daemon_harness import CLI
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([CLI, "daemon", *args], capture_output=True, text=True, timeout=60)
+
+    help_text = run("--help").stdout
+    assert "--print-config" in help_text and "replay:FILE" in help_text and "docs/zmq-api.md" in help_text
+    printed = run("--print-config")
+    assert printed.returncode == 0
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(printed.stdout)
+    ok = run("--config", str(cfg), "--check")
+    assert ok.returncode == 0 and "ok (1 link(s))" in ok.stdout
+    cfg.write_text(printed.stdout.replace('hwm = 1000', 'hwm = "lots"').replace("[layout]\nfile = \"\"",
+                                                                              "[layout]\nfile = \"nope.toml\""))
+    bad = run("--config", str(cfg), "--check")
+    assert bad.returncode == 2 and "pub.hwm = 'lots': must be an integer" in bad.stderr
+    cfg.write_text(printed.stdout.replace("[layout]\nfile = \"\"", "[layout]\nfile = \"nope.toml\""))
+    bad = run("--config", str(cfg), "--check")
+    assert bad.returncode == 2 and "nope.toml" in bad.stderr and "cannot read layout" in bad.stderr
+    assert run().returncode == 2

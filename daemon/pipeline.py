@@ -129,7 +129,8 @@ class Pipeline:
                 if gate:
                     self.gate[origin] = float(gate)
 
-    def _samples(self, link: str, s: SampleColumns, now: float) -> list[Message]:
+    def _sync_clocks(self, s: SampleColumns, now: float) -> tuple[np.ndarray, np.ndarray]:
+        """Feed each bridge's clock its newest sample; (host time, bridge time) of every sample."""
         origin_list = s.origin.tolist()
         newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
         counts = Counter(origin_list)
@@ -146,7 +147,11 @@ class Pipeline:
         o = s.origin
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
-        t_bridge = s.cycle.astype(np.float64) / hz
+        return t_sample, s.cycle.astype(np.float64) / hz
+
+    def _samples(self, link: str, s: SampleColumns, now: float) -> list[Message]:
+        t_sample, t_bridge = self._sync_clocks(s, now)
+        o = s.origin
         raw = np.stack([s.c1, s.c2], axis=1)
         caps_all, sat_all = self.frontend.capacitance(s.mode, s.oversampling, raw, s.flags, self.gate[o])
         rows = self.skin.rows_of(o, s.element)

@@ -52,11 +52,46 @@ def make_capture(path: Path) -> None:
     write_capture(path, records)
 
 
+CONTACT_KEYS = ("x", "y", "force", "diameter", "elements", "valid")
+#: Tolerances of the contact comparison: the estimator may improve without breaking the
+#: golden file, but not move a contact by half a millimetre or change its force by 1 %.
+CONTACT_TOL = {"x": 5e-4, "y": 5e-4, "diameter": 5e-4}
+CONTACT_REL = {"force": 0.01}
+
+
 def normalise(messages: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
-    """What the golden file holds: every element message, and the last contact estimate."""
+    """What the golden file holds: every element message, and the last contact estimate
+    (its time stamps and each contact's position, force, diameter, elements, validity)."""
     elements = [m for t, m in messages if t == "element"]
-    contacts = [{k: v for k, v in m.items() if k != "seq"} for t, m in messages if t == "contact"]
-    return {"element": elements, "last_contact": contacts[-1] if contacts else None}
+    contacts = [m for t, m in messages if t == "contact"]
+    last = None
+    if contacts:
+        m = contacts[-1]
+        last = {"t_host": m["t_host"], "t_sample": m["t_sample"],
+                "contacts": [{k: c[k] for k in CONTACT_KEYS} for c in m["contacts"]]}
+    return {"element": elements, "last_contact": last}
+
+
+def compare(got: dict[str, Any], golden: dict[str, Any]) -> list[str]:
+    """Element messages equal to 1e-9; the last contact within the physical tolerances."""
+    diffs = close(got["element"], golden["element"], "element")
+    a, b = got["last_contact"], golden["last_contact"]
+    if a is None or b is None:
+        return diffs + ([] if a is b else [f"last_contact: {a!r} != {b!r}"])
+    diffs += close(a["t_host"], b["t_host"], "t_host") + close(a["t_sample"], b["t_sample"], "t_sample")
+    if len(a["contacts"]) != len(b["contacts"]):
+        return diffs + [f"contacts: {len(a['contacts'])} != {len(b['contacts'])}"]
+    for i, (x, y) in enumerate(zip(a["contacts"], b["contacts"])):
+        for k in CONTACT_KEYS:
+            if k in CONTACT_TOL:
+                ok = abs(x[k] - y[k]) <= CONTACT_TOL[k]
+            elif k in CONTACT_REL:
+                ok = math.isclose(x[k], y[k], rel_tol=CONTACT_REL[k])
+            else:
+                ok = (sorted(x[k]) == sorted(y[k])) if k == "elements" else x[k] == y[k]
+            if not ok:
+                diffs.append(f"contacts[{i}].{k}: {x[k]!r} != {y[k]!r}")
+    return diffs
 
 
 def pipeline_output() -> dict[str, Any]:

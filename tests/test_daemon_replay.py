@@ -8,13 +8,13 @@ from pathlib import Path
 import pytest
 
 from cellbridge.daemon.capture import MAGIC, read_capture, write_capture
-from daemon_golden import CAPTURE, CONFIG, close, load_golden, normalise, pipeline_output
+from daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise, pipeline_output
 from daemon_harness import Client, Pty, daemon, write_config
 from daemon_traffic import Skin
 
 
 def test_pipeline_replay_matches_golden() -> None:
-    diffs = close(pipeline_output(), load_golden())
+    diffs = compare(pipeline_output(), load_golden())
     assert not diffs, diffs[:10]
 
 
@@ -24,6 +24,20 @@ def test_golden_holds_what_the_capture_was_made_of() -> None:
     assert c["x"] == pytest.approx(0.040, abs=1e-3) and c["y"] == pytest.approx(0.022, abs=1e-3)
     assert c["force"] == pytest.approx(2.0, rel=0.01) and sorted(c["elements"]) == [2, 4]
     assert any(all(m["touched"]) for m in g["element"])  # the first press, on all four
+
+
+def test_comparison_catches_a_moved_contact_and_a_changed_force() -> None:
+    import copy
+
+    g = load_golden()
+    moved = copy.deepcopy(g)
+    moved["last_contact"]["contacts"][0]["x"] += 1e-3
+    assert compare(moved, g) == [f"contacts[0].x: {moved['last_contact']['contacts'][0]['x']!r} != "
+                                 f"{g['last_contact']['contacts'][0]['x']!r}"]
+    changed = copy.deepcopy(g)
+    assert all(f == f for f in g["element"][30]["force"])  # message 30: the first press, all valid
+    changed["element"][30]["force"] = [f * 1.0001 for f in changed["element"][30]["force"]]
+    assert len(compare(changed, g)) == 4
 
 
 def test_daemon_replaying_the_capture_publishes_the_golden_output(tmp_path: Path) -> None:
@@ -47,7 +61,7 @@ def test_daemon_replaying_the_capture_publishes_the_golden_output(tmp_path: Path
     finally:
         client.close()
     got = normalise(messages)
-    diffs = close(got, load_golden())
+    diffs = compare(got, load_golden())
     assert not diffs, diffs[:10]
 
 

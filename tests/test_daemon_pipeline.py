@@ -300,3 +300,22 @@ def test_every_published_field_is_documented() -> None:
             seen |= set(m["layout"])
     missing = sorted(k for k in seen if f"`{k}`" not in doc and f"`{k}:" not in doc and f"`{k} " not in doc)
     assert not missing, f"fields not in docs/zmq-api.md: {missing}"
+
+
+def test_bridge_reset_is_followed() -> None:
+    """A bridge restarts: sequence numbers and cycle counter from zero, HELLO again."""
+    sk = Skin()
+    p = make()
+    t = settle(p, sk, 300)
+    sk.seq = {b: 0 for b in sk.ids}
+    sk.cycle0 = 0
+    t_reset = t + 1.0
+    p.feed("gw", sk.hellos(), t_reset)
+    out = []
+    for k, data in sk.stream(20):
+        out = p.feed("gw", data, t_reset + 0.01 + k / sk.rate)
+    el = topic(out, "element")
+    assert len(el["bridge"]) == 4  # nothing taken for a duplicate of the old numbering
+    assert el["t_sample"][0] == pytest.approx(t_reset + 0.01 + 19 / sk.rate, abs=0.02)
+    h = p.health_body(t_reset + 1)["bridges"]["1"]
+    assert h["clock_resets"] == 1 and h["seq_restarts"] == 1

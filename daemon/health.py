@@ -8,7 +8,6 @@ counted.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -149,6 +148,3 @@ def link_report(h: LinkHealth, counters: dict[str, Any]) -> dict[str, Any]:
         **h.extra,
     }
 
-
-def finite_or_none(x: float) -> float | None:
-    return x if math.isfinite(x) else None

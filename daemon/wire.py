@@ -64,10 +64,6 @@ def mode_value(value: object) -> int:
     raise ValueError(f"mode must be one of {sorted(MODE_NAMES)}, got {value!r}")
 
 
-def op_name(op: int) -> str:
-    return Op(op).name
-
-
 @dataclass(slots=True)
 class SampleColumns:
     """All samples of one ingest batch, column-wise (one row per sample)."""

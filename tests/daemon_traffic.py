@@ -22,7 +22,6 @@ from cellbridge.protocol import (
     Mode,
     Op,
     Sample,
-    SampleFlags,
     Status,
     encode_stream,
 )
@@ -99,5 +98,3 @@ class Skin:
     def reply(self, origin: int, token: int, op: Op, value: int | None = None) -> bytes:
         return self._frame(origin, CommandReply(token, op, Status.OK, value))
 
-
-OVERFLOW = SampleFlags.OVERFLOW_C1

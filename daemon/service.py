@@ -36,10 +36,15 @@ from cellbridge.tactile import SkinLayout
 class OpsHooks:
     """Where the operations pieces plug in (see DAEMON_OPS_API.md); no-ops here.
 
-    On merge the lead wires ``cellbridge.daemon.security`` into :meth:`secure`
-    (``check_bind`` for every endpoint, ``CurveServer.apply`` when CURVE is configured)
-    and ``cellbridge.daemon.notify.Notifier`` into the lifecycle methods. The service
-    calls them at exactly the points the agreed interface names.
+    On merge the lead wires ``cellbridge.daemon.security`` and
+    ``cellbridge.daemon.notify.Notifier`` in, at exactly the points the agreed interface
+    names, e.g.::
+
+        self.curve = load_curve(config.security)          # __init__ (also for --check)
+        self.notifier = Notifier()
+        self.watchdog_interval = self.notifier.watchdog_interval
+        def secure(...):  check_bind(endpoint, self.curve); CurveServer(ctx, self.curve).apply(socket)
+        def ready(...):   self.notifier.ready(status)  ... and so on for status/watchdog/reloading/stopping
     """
 
     watchdog_interval: float | None = None  # s; Notifier.watchdog_interval

@@ -6,11 +6,12 @@ import argparse
 import sys
 
 from cellbridge.daemon.config import Config, ConfigError, default_toml, load_config
+from cellbridge.daemon.wire import OPS
 
 DESCRIPTION = """\
 Read the skin's gateway serial lines and publish contacts, per-element force and area,
 raw readings, health and topology on ZeroMQ; accept control requests (status, tare,
-set rate/mode/gate/oversampling/reporting, topology, ping).
+set {params}, topology, ping).
 
 Start by printing the defaults into a file and adding your gateway(s):
 
@@ -30,7 +31,7 @@ the settings marked (reload) in --print-config.
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.description = DESCRIPTION
+    parser.description = DESCRIPTION.format(params="/".join(OPS))
     parser.add_argument("--config", "-c", metavar="FILE", help="TOML configuration (see --print-config)")
     parser.add_argument("--print-config", action="store_true",
                         help="print every setting with its default and meaning, then exit")

@@ -99,6 +99,7 @@ class Service:
         self.ingest_errors = 0
         self._busy = np.zeros(4096)  # s spent on each of the last reads, bytes to published messages
         self._n_reads = 0
+        self._lag_max = 0.0  # s, since the last health message
 
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
@@ -165,7 +166,10 @@ class Service:
                     cap = getattr(link, "capture", None)
                     if cap is not None:
                         cap.flush()
+            asked = time.perf_counter()
             await asyncio.sleep(self.TICK)
+            # How late the loop woke us: time the loop spent on other work (or did not get the CPU).
+            self._lag_max = max(self._lag_max, time.perf_counter() - asked - self.TICK)
 
     async def _watchdog(self, interval: float) -> None:
         while True:
@@ -186,7 +190,9 @@ class Service:
         recent = self._busy[:min(self._n_reads, self._busy.shape[0])]
         p50, p99 = (np.percentile(recent, [50, 99]) * 1e3).tolist() if recent.size else (None, None)
         ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
-                  "ms_per_read_p99": p99, "ms_per_read_max": float(recent.max() * 1e3) if recent.size else None}
+                  "ms_per_read_p99": p99, "ms_per_read_max": float(recent.max() * 1e3) if recent.size else None,
+                  "loop_lag_ms_max": self._lag_max * 1e3}
+        self._lag_max = 0.0
         return {"pub": self.pub.stats(), "contact_estimation": dict(self.contacts.stats), "ingest": ingest}
 
     def status_body(self, now: float) -> dict[str, Any]:

@@ -156,6 +156,7 @@ class Service:
             for topic, payload in self.pipeline.tick(now):
                 if topic == "health":
                     payload.update(self._shell_health())
+                    self._lag_max = 0.0  # each health message reports the lag since the one before
                 self.pub.publish(topic, payload)
             self.control.resolve(now)
             self._log_events()
@@ -192,7 +193,6 @@ class Service:
         ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
                   "ms_per_read_p99": p99, "ms_per_read_max": float(recent.max() * 1e3) if recent.size else None,
                   "loop_lag_ms_max": self._lag_max * 1e3}
-        self._lag_max = 0.0
         return {"pub": self.pub.stats(), "contact_estimation": dict(self.contacts.stats), "ingest": ingest}
 
     def status_body(self, now: float) -> dict[str, Any]:

@@ -10,7 +10,8 @@ Run: ``.venv/bin/python bench/bench_daemon.py [--quick] [--long-seconds S]``.
 2. **Latency** (target p99 <= 2 ms at 10 000 samples/s): the daemon as a process on a
    pty; this script writes 10 bridges × 1 000 Hz in 1 ms ticks into the pty and takes
    each sample's time from the write of its bytes to the receipt of its ``element``
-   message on a SUB socket.
+   message on a SUB socket. For reference, the same path through a minimal forwarder
+   (read the pty, publish the bytes) shows what the machine's scheduling alone costs.
 3. **Memory**: the daemon's resident memory after replaying a long capture as fast as
    possible, next to after a short one (bounded state: the two should match).
 
@@ -34,7 +35,7 @@ import zmq.asyncio
 from timing import best_rate, pin_to_one_core
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from daemon_harness import Client, Pty, daemon, write_config  # noqa: E402
+from daemon_harness import Client, Pty, daemon, free_port, write_config  # noqa: E402
 
 from cellbridge.daemon.capture import CaptureWriter  # noqa: E402
 from cellbridge.daemon.config import parse_config  # noqa: E402
@@ -229,6 +230,69 @@ def latency(tmp: Path, seconds: float, contacts: bool = True, bridges: int = 10)
     return np.array(lat[bridges * 2000:]) * 1e3, ingest  # skip 2 s of warm-up (baseline, clock sync, worker start)
 
 
+FORWARDER = """
+import asyncio, os, sys, zmq
+fd = os.open(sys.argv[1], os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
+import tty
+tty.setraw(fd)
+pub = zmq.Context().socket(zmq.PUB)
+pub.bind(sys.argv[2])
+loop = asyncio.new_event_loop()
+def readable():
+    pub.send_multipart([b"element", os.read(fd, 65536)], zmq.NOBLOCK)
+loop.add_reader(fd, readable)
+loop.run_forever()
+"""
+
+
+def floor_latency(tmp: Path, seconds: float) -> np.ndarray:
+    """The same path with no pipeline: pty -> a minimal asyncio reader -> PUB -> SUB, 1 000
+    writes a second of 400 bytes. What this machine's scheduling alone costs."""
+    import subprocess
+
+    pty = Pty(tmp / "floor")
+    endpoint = f"tcp://127.0.0.1:{free_port()}"
+    proc = subprocess.Popen([sys.executable, "-c", FORWARDER, str(pty.link), endpoint], start_new_session=True)
+    ctx = zmq.Context()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    sub.connect(endpoint)
+    size, sent, lat = 400, {}, []
+    try:
+        time.sleep(1.0)
+        t_next = time.monotonic()
+        end = t_next + seconds
+        k = 0
+        while time.monotonic() < end:
+            while time.monotonic() < t_next:
+                if sub.poll(max(0, int((t_next - time.monotonic()) * 1000))):
+                    _floor_collect(sub, sent, lat, size)
+            pty.write(k.to_bytes(8, "little") + bytes(size - 8))
+            sent[k] = time.monotonic()
+            k += 1
+            t_next += 0.001
+        drain = time.monotonic() + 1.0
+        while time.monotonic() < drain:
+            if sub.poll(50):
+                _floor_collect(sub, sent, lat, size)
+    finally:
+        proc.terminate()
+        proc.wait(5)
+        ctx.destroy(linger=0)
+        pty.close()
+    return np.array(lat[500:]) * 1e3
+
+
+def _floor_collect(sub: zmq.Socket, sent: dict, lat: list, size: int) -> None:
+    while sub.poll(0):
+        data = sub.recv_multipart()[1]
+        t = time.monotonic()
+        for i in range(0, len(data) - size + 1, size):
+            w = sent.pop(int.from_bytes(data[i:i + 8], "little"), None)
+            if w is not None:
+                lat.append(t - w)
+
+
 def _collect(client: Client, sent: dict, lat: list, timeout: float) -> None:
     if not client.sub.poll(max(0, int(timeout * 1000))):
         return
@@ -277,6 +341,10 @@ def main() -> None:
                      f"<= {TARGET_P99_MS} ms", p99 <= TARGET_P99_MS))
         rows.append(("  of which the daemon's own work per read (bytes -> sent), p50 / p99",
                      f"{ingest['ms_per_read_p50']:.3f} / {ingest['ms_per_read_p99']:.3f} ms", "", None))
+        floor = floor_latency(tmp, 3.0 if quick else 10.0)
+        f50, f99 = np.percentile(floor, [50, 99])
+        rows.append(("  reference: pty -> minimal reader -> PUB -> SUB, no pipeline, p50 / p99",
+                     f"{f50:.3f} / {f99:.3f} ms", "", None))
         long_s = 60.0 if quick else args.long_seconds
         long = tmp / "long.cbcap"
         n_long = make_capture(long, long_s)

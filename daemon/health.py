@@ -89,7 +89,8 @@ class ChannelHealth:
         """``raw``, ``sat``: (k, 2) for the k samples of layout rows ``rows``; ``groups``:
         the distinct rows and the index of each one's newest sample."""
         uniq, last = groups
-        np.add.at(self.saturated_samples, rows, sat.astype(np.int64))
+        if sat.any():  # rare; ufunc.at is slow enough to matter on every read
+            np.add.at(self.saturated_samples, rows, sat.astype(np.int64))
         newest = np.empty_like(self.last_raw)
         newest[uniq] = raw[last]
         moved = np.zeros(self.last_raw.shape, dtype=bool)

@@ -102,6 +102,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
                    reloadable=True),
         "tau_negative": Key(NUM, 3.0, "s, tracker time constant while the reading is below baseline", _positive,
                             reloadable=True),
+        "max_step_rate": Key(NUM, 250.0, "Hz, most baseline/touch updates a second (each on every element's "
+                             "newest reading); the gate limit of the bridges is enough", _positive, reloadable=True),
     },
     "inverse": {
         "noise": Key(NUM, 2e-15, "F, rms noise of one ΔC reading (weights the inverse and contact fit)",

@@ -96,20 +96,26 @@ def calibration_config(section: dict[str, Any]) -> CalibrationConfig:
 class ElementStage:
     """Calibration and inverse for the elements of one layout, a batch at a time.
 
-    The Calibrator steps on each element's newest sample of the batch, and before that
-    on its first one when the batch holds several (a backlog): two steps at most, so a
-    large read costs a bounded amount while baselines still collect from it. Every
-    sample of the batch gets ΔC against the baseline after the last step, and the
-    inverse runs on all of them in one call.
+    The Calibrator's baseline, drift and touch state need one step per sampling period,
+    not one per serial read: it steps at most ``max_step_rate`` times a second, each
+    time on the newest reading of every element since the step before (so no element
+    is left out however reads fall). A read holding several samples of an element (a
+    backlog) steps on the first ones too: two steps at most, so a large read costs a
+    bounded amount while baselines still collect from it. Every sample gets ΔC against
+    the current baseline, and the inverse runs on all of a read's samples in one call.
     """
 
-    def __init__(self, layout: SkinLayout, params: ElementParams, cal: CalibrationConfig, noise: float) -> None:
+    def __init__(self, layout: SkinLayout, params: ElementParams, cal: CalibrationConfig, noise: float,
+                 max_step_rate: float = 250.0) -> None:
         self.layout = layout
         self.params = params
         self.noise = noise
         self.calibrator = Calibrator(layout.n, 2, cal)
+        self.min_step = 1.0 / max_step_rate
         self.latest = np.full((layout.n, 2), np.nan)  # newest ΔC per element, for contact estimation
         self.touched = np.zeros(layout.n, dtype=bool)
+        self._pending = np.full((layout.n, 2), np.nan)  # newest readings since the last step
+        self._last_step = -math.inf
         self._t = -math.inf
 
     def step(self, rows: NDArray[np.int64], caps: FloatArray, groups: tuple[NDArray[np.int64], NDArray[np.int64]],
@@ -118,23 +124,22 @@ class ElementStage:
         distinct rows and the index of each one's newest sample."""
         self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
         uniq, newest = groups
-        values = np.full((self.layout.n, 2), np.nan)
-        values[uniq] = caps[newest]
-        steps = [values]
-        if uniq.shape[0] != rows.shape[0]:  # several samples per element: also step on the first ones
-            first_rows, first = np.unique(rows, return_index=True)
-            early = np.full((self.layout.n, 2), np.nan)
-            early[first_rows] = caps[first]
-            steps.insert(0, early)
-        for values in steps:
-            st = self.calibrator.update(self._t, values)
-            fresh = np.all(np.isfinite(st.delta), axis=1)
-            self.latest[fresh] = st.delta[fresh]
-        self.latest[~st.ready] = np.nan
-        base = self.calibrator.baseline
-        delta = caps - base[rows]
-        self.touched = st.touched
-        out = {"dc1": delta[:, 0], "dc2": delta[:, 1], "touched": st.touched[rows]}
+        self._pending[uniq] = caps[newest]
+        if self._t - self._last_step >= self.min_step:
+            steps = [self._pending]
+            if uniq.shape[0] != rows.shape[0]:  # several samples per element: also step on the first ones
+                first_rows, first = np.unique(rows, return_index=True)
+                early = np.full((self.layout.n, 2), np.nan)
+                early[first_rows] = caps[first]
+                steps.insert(0, early)
+            for values in steps:
+                st = self.calibrator.update(self._t, values)
+            self.touched = st.touched
+            self._pending = np.full((self.layout.n, 2), np.nan)
+            self._last_step = self._t
+        delta = caps - self.calibrator.baseline[rows]  # NaN while an element's baseline is being taken
+        self.latest[uniq] = delta[newest]
+        out = {"dc1": delta[:, 0], "dc2": delta[:, 1], "touched": self.touched[rows]}
         out.update(self._inverse(delta))
         return out
 

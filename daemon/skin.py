@@ -53,7 +53,8 @@ class Skin:
         params = default_params(layout)
         inv = self.sections["inverse"]
         self.layout = layout
-        self.elements = ElementStage(layout, params, calibration_config(self.sections["calibration"]), inv["noise"])
+        cal = self.sections["calibration"]
+        self.elements = ElementStage(layout, params, calibration_config(cal), inv["noise"], cal["max_step_rate"])
         self.contacts = ContactStage(layout, params, inv["noise"], self.sections["contact"]["method"])
         self.contact_spec = ContactSpec.of(layout, inv["noise"], self.sections["contact"]["method"])
         self.channels = ChannelHealth(layout.n)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -319,3 +320,22 @@ def test_bridge_reset_is_followed() -> None:
     assert el["t_sample"][0] == pytest.approx(t_reset + 0.01 + 19 / sk.rate, abs=0.02)
     h = p.health_body(t_reset + 1)["bridges"]["1"]
     assert h["clock_resets"] == 1 and h["seq_restarts"] == 1
+
+
+def test_elements_read_just_after_a_calibration_step_are_not_left_out() -> None:
+    """Bridge 1's frame always comes in one read, the others' 0.1 ms later in the next:
+    the calibrator steps at most every 4 ms, on everything read since its last step."""
+    sk = Skin()
+    p = make({"calibration": {"n_baseline": 5}})
+    p.feed("gw", sk.hellos(), T0)
+    out: list = []
+    for k in range(30):
+        press_k = STRADDLE if k >= 20 else None
+        parts = sk.slot(k, press_k).split(b"\x00\x00")
+        t = T0 + k / sk.rate
+        p.feed("gw", parts[0] + b"\x00", t)
+        out = p.feed("gw", b"\x00" + b"\x00\x00".join(parts[1:]), t + 1e-4)
+    el = topic(out, "element")
+    assert el["bridge"] == [2, 3, 4] and el["touched"] == [True, False, False]
+    assert not any(math.isnan(x) for x in el["dc1"])  # every element has its baseline
+    assert p.skin.elements.touched.tolist() == [True, True, False, False]  # type: ignore[union-attr]

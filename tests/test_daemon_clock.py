@@ -30,7 +30,7 @@ def test_recovers_offset_and_skew_from_delayed_arrivals(ppm: float, seed: int) -
     err = clock.to_host(cycles[-500:]) - truth[-500:]
     # Mapped to the least-delayed arrival: within the 2 ms minimum delay plus a little, no jitter.
     assert np.all(err > 0.0015) and np.all(err < 0.0030), (err.min(), err.max())
-    assert abs(clock.skew + ppm * 1e-6) < 5e-6  # a fast crystal (ppm > 0) runs ahead: host time is slower
+    assert abs(clock.skew + ppm * 1e-6) < 10e-6  # a fast crystal (ppm > 0) runs ahead: host time is slower
 
 
 def test_jitter_does_not_reach_the_timestamps() -> None:

@@ -277,3 +277,35 @@ def test_two_gateways_pty_and_socket_url_duplicates_removed(tmp_path: Path) -> N
         server.close()
         client.close()
         pty.close()
+
+
+def test_count_drops_counts_what_a_full_subscriber_queue_refused(tmp_path: Path) -> None:
+    pty = Pty(tmp_path / "gw")
+    cfg = tmp_path / "daemon.toml"
+    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link}], pub={"hwm": 5, "count_drops": True},
+                             contact={"enabled": False})
+    control = Client(endpoints, (b"health",))
+    stuck = control.ctx.socket(zmq.SUB)  # tiny queues: it fills after a few messages
+    stuck.setsockopt(zmq.RCVHWM, 1)
+    stuck.setsockopt(zmq.RCVBUF, 1024)
+    stuck.setsockopt(zmq.SUBSCRIBE, b"element")
+    stuck.connect(endpoints["pub"])
+    slots = 4000
+    try:
+        with daemon(cfg):
+            control.ready()
+            sk = Skin(rate=1000.0)
+            pty.write(sk.hellos())
+            for _, data in sk.stream(slots):
+                pty.write(data)
+            end = time.monotonic() + 30
+            st = control.request({"v": 1, "cmd": "status"})
+            while sum(b["samples"] for b in st["bridges"].values()) < 4 * slots and time.monotonic() < end:
+                time.sleep(0.2)
+                st = control.request({"v": 1, "cmd": "status"})
+            assert sum(b["samples"] for b in st["bridges"].values()) == 4 * slots  # ingest went on
+            assert st["pub"]["dropped"].get("element", 0) > 0  # and the refusals were counted
+    finally:
+        stuck.close(0)
+        control.close()
+        pty.close()

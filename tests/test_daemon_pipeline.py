@@ -339,3 +339,15 @@ def test_elements_read_just_after_a_calibration_step_are_not_left_out() -> None:
     assert el["bridge"] == [2, 3, 4] and el["touched"] == [True, False, False]
     assert not any(math.isnan(x) for x in el["dc1"])  # every element has its baseline
     assert p.skin.elements.touched.tolist() == [True, True, False, False]  # type: ignore[union-attr]
+
+
+def test_reconfigure_takes_a_new_layout_and_keeps_hello_geometry() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 5)
+    assert p.skin.layout is not None and p.skin.layout.n == 4
+    p.reconfigure(p.config, grid_layout(1, 2, first_id=1))  # SIGHUP with a layout file now named
+    assert p.skin.from_file and p.skin.layout.n == 2  # type: ignore[union-attr]
+    assert set(p.skin.geometry) == {1, 2, 3, 4}  # what the bridges said is remembered
+    p.reconfigure(p.config, None)  # and the layout file removed again: back to HELLO geometry
+    assert p.skin.layout is not None and p.skin.layout.n == 4

@@ -25,3 +25,18 @@ def best_rate(fn: Callable[[], object], n: int, repeats: int = 3) -> float:
         fn()
         best = min(best, time.perf_counter() - t0)
     return n / best
+
+
+def row(cells: list[object], widths: list[int]) -> str:
+    """One table line: first column left-aligned, the others right-aligned."""
+    return "  ".join(str(c).rjust(w) if i else str(c).ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+
+
+def table(title: str, head: list[str], rows: list[list[object]]) -> None:
+    """Print a titled table with a dashed rule under the header."""
+    widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
+    print(f"\n{title}")
+    print(row(head, widths))
+    print(row(["-" * w for w in widths], widths))
+    for r in rows:
+        print(row(r, widths))

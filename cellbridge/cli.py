@@ -20,6 +20,8 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("decode", "cellbridge.protocol.cli", "decode serial-line bytes (COBS frames) into readable frames"),
     ("plot", "cellbridge.tactile.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
     ("daemon", "cellbridge.daemon.cli", "run the host service: gateway serial lines in, ZeroMQ messages out"),
+    ("sub", "cellbridge.daemon.subscribe", "print what the daemon publishes as JSON lines"),
+    ("keys", "cellbridge.daemon.keys", "CURVE key pairs for binding the daemon beyond loopback"),
 ]
 
 

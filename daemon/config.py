@@ -102,6 +102,10 @@ SECTIONS: dict[str, dict[str, Key]] = {
                    reloadable=True),
         "tau_negative": Key(NUM, 3.0, "s, tracker time constant while the reading is below baseline", _positive,
                             reloadable=True),
+        "max_drift": Key(NUM, 1e-15, "F/s, fastest drift of one element followed; a press rising faster is "
+                         "reported, not absorbed", _positive, reloadable=True),
+        "max_touch": Key(NUM, 600.0, "s an element may stay touched before it is re-baselined (and counted); "
+                         "0: never", _non_negative, reloadable=True),
         "max_step_rate": Key(NUM, 250.0, "Hz, most baseline/touch updates a second (each on every element's "
                              "newest reading); the gate limit of the bridges is enough", _positive, reloadable=True),
     },

@@ -89,8 +89,8 @@ class Frontend:
 
 
 def calibration_config(section: dict[str, Any]) -> CalibrationConfig:
-    keys = ("n_baseline", "enter", "leave", "k_enter", "k_leave", "holdoff", "tau", "tau_negative")
-    return CalibrationConfig(**{k: section[k] for k in keys})
+    keys = ("n_baseline", "enter", "leave", "k_enter", "k_leave", "holdoff", "tau", "tau_negative", "max_drift")
+    return CalibrationConfig(**{k: section[k] for k in keys}, max_touch=section["max_touch"] or None)
 
 
 class ElementStage:

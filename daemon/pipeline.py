@@ -254,6 +254,7 @@ class Pipeline:
             "layout": layout_report,
             "reassembly": self.ingress.reassembler.counters(),
             "duplicates": self.ingress.dedupe.duplicates,
+            "dedupe": self.ingress.dedupe.counters(),
             "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
         }
 

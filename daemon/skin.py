@@ -132,6 +132,9 @@ class Skin:
             touched=ids[self.elements.touched].tolist(),
             not_ready=ids[~self.elements.calibrator.ready].tolist(),
         )
+        cal = self.elements.calibrator.health()
+        cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids
+        out["calibration"] = cal
         return out
 
     def layout_report(self) -> dict[str, Any] | None:

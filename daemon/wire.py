@@ -128,7 +128,7 @@ class Ingress:
         dup = self.dedupe.is_duplicate
         for frame in self.decoder(link).feed(data):
             out.gateways.add(frame.src)
-            if dup(frame.origin, frame.seq):
+            if dup(frame.origin, frame.seq, type(frame.payload) is Hello):  # a HELLO may restart numbering
                 self.duplicates_by_link[link] += 1
                 continue
             out.frames_by_origin.setdefault(frame.origin, []).append(frame.seq)
@@ -159,7 +159,7 @@ class Ingress:
             meta.append((frame.origin, int(p.mode), p.oversampling, len(p.samples), frame.seq))
         elif type(p) is Bundle:
             for inner in p.frames:
-                if not self.dedupe.is_duplicate(inner.origin, inner.seq):
+                if not self.dedupe.is_duplicate(inner.origin, inner.seq, type(inner.payload) is Hello):
                     out.frames_by_origin.setdefault(inner.origin, []).append(inner.seq)
                     self._route(inner, out, rows, meta)
         elif type(p) is Hello:

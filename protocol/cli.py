@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"cellbridge decode: input is not hexadecimal: {exc}", file=sys.stderr)
             return 2
     decoder, reassembler = StreamDecoder(), Reassembler()
-    for frame in decoder.feed(raw):
+    for frame in decoder.feed_iter(raw):
         whole = reassembler.receive(frame, 0.0)
         if whole is not None:
             print(json.dumps(frame_to_json(whole)))

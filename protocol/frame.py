@@ -39,7 +39,8 @@ from cellbridge.protocol.messages import (
 
 VERSION = 1
 MAX_FRAME = 255  #: whole frame, header to CRC, before COBS
-MAX_DATAGRAM = 4096  #: largest payload a fragmented datagram may reassemble to
+MAX_DATAGRAM = 4096  #: largest fragmented datagram (payload and its 2-byte checksum)
+DATAGRAM_CRC_LEN = 2  #: CRC-16 of the payload, ending every fragmented datagram
 ADDR_HOST = 0x0000  #: the host (sink) behind every gateway
 ADDR_BROADCAST = 0xFFFF
 
@@ -64,6 +65,7 @@ OPTIONAL_MASK = 0x0F
 MUST_UNDERSTAND_MASK = 0xF0
 _FRAGMENT = int(Flags.FRAGMENT)  # plain int: IntFlag arithmetic is slow on the decode path
 _UNKNOWN_MUST_UNDERSTAND = MUST_UNDERSTAND_MASK & ~_FRAGMENT
+_BUNDLE = int(FrameType.BUNDLE)
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,6 +119,8 @@ def encode(frame: Frame) -> bytes:
         _check_u(p.tag, U16, "tag")
         if not (0 <= p.offset and p.offset + len(p.data) <= p.total <= MAX_DATAGRAM and p.data):
             raise ProtocolError("fragment", "fragment must be a non-empty slice within total <= MAX_DATAGRAM")
+        if p.frame_type == _BUNDLE:
+            raise ProtocolError("fragment", "a bundle is never fragmented")
         head = _HEADER.pack(VERSION, frame.flags | _FRAGMENT, p.frame_type, frame.src, frame.dst,
                             frame.origin, frame.seq, frame.hops, frame.cost)
         body = head + _FRAG.pack(p.tag, p.offset, p.total) + p.data
@@ -136,7 +140,9 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
 
     Raises only :class:`ProtocolError`; its ``cause`` names what was wrong
     (``short``, ``too_large``, ``crc``, ``version``, ``must_understand``, ``type``,
-    ``fragment``, ``payload``, ``nested_bundle``).
+    ``fragment``, ``payload``, ``nested_bundle``, ``bundle``, and ``inner_<cause>``
+    for a bundled frame that fails). Only the canonical encoding of a frame is
+    accepted: ``encode(decode(x)) == x``.
     """
     n = len(data)
     if n < MIN_FRAME:
@@ -145,7 +151,7 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
         raise ProtocolError("too_large", f"{n} bytes, a frame has at most {MAX_FRAME}")
     if type(data) is not bytes:
         data = bytes(data)
-    if crc16(data[:-CRC_LEN]) != (data[-2] << 8 | data[-1]):
+    if crc16(data):  # a frame followed by its big-endian CRC-16/CCITT-FALSE leaves a residue of 0
         raise ProtocolError("crc", "CRC mismatch")
     ver, flags, ftype, src, dst, origin, seq, hops, cost = _HEADER.unpack_from(data)
     if ver != VERSION:
@@ -162,6 +168,8 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
         chunk = data[HEADER_LEN + FRAG_LEN:-CRC_LEN]
         if offset + len(chunk) > total or total > MAX_DATAGRAM:
             raise ProtocolError("fragment", f"slice {offset}+{len(chunk)} outside datagram of {total} bytes")
+        if ftype == _BUNDLE:
+            raise ProtocolError("fragment", "a bundle is never fragmented")
         payload = Fragment(FrameType(ftype), tag, offset, total, chunk)
     else:
         payload = unpack_payload(ftype, data[HEADER_LEN:-CRC_LEN])

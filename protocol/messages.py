@@ -23,6 +23,7 @@ if TYPE_CHECKING:
 U8, U16, U32, U64 = 0xFF, 0xFFFF, 0xFFFF_FFFF, 0xFFFF_FFFF_FFFF_FFFF
 MAX_FW_VERSION_LEN = 32
 MAX_NEIGHBOURS = 32
+_FRAGMENT_FLAG = 0x10  # header flag FRAGMENT (frame.Flags imports this module, so not from there)
 
 
 class FrameType(IntEnum):
@@ -46,6 +47,7 @@ class Mode(IntEnum):
 
 
 _MODES = tuple(Mode)  # index -> member, cheaper than calling Mode(value)
+_new_tuple = tuple.__new__
 
 
 class SampleFlags(IntEnum):
@@ -116,11 +118,22 @@ class Data:
 
     @classmethod
     def from_wire(cls, obj: Any) -> Data:
-        mode, over, raw = _array(obj, 3, "DATA")
-        if type(mode) is not int or not 0 <= mode < len(_MODES):
+        # The host's hottest path: checks are inlined and samples built with
+        # tuple.__new__ (a NamedTuple's own constructor costs twice as much).
+        if type(obj) is not list or len(obj) != 3:
+            raise _bad("DATA", "expected an array of 3 fields")
+        mode, over, raw = obj
+        # The ranges depend on the mode, so a decoded sample is one the chip could produce.
+        if mode == 0 and type(mode) is int:
+            if over != 1 or type(over) is not int:
+                raise _bad("DATA", f"oversampling must be 1 in counter mode, got {over!r}")
+            limit = U16  # 16-bit counter register
+        elif mode == 1 and type(mode) is int:
+            if type(over) is not int or not 1 <= over <= U16:
+                raise _bad("DATA", f"oversampling must be an integer in 1..{U16}, got {over!r}")
+            limit = U8 * over  # sum of `over` 8-bit codes
+        else:
             raise _bad("DATA", f"unknown mode {mode!r}")
-        if type(over) is not int or not 1 <= over <= U16:
-            raise _bad("DATA", f"oversampling must be an integer in 1..{U16}, got {over!r}")
         if type(raw) is not list:
             raise _bad("DATA", "samples must be an array")
         samples = []
@@ -129,14 +142,12 @@ class Data:
                 raise _bad("DATA", "a sample is [element, cycle, c1, c2, flags]")
             e, cyc, c1, c2, fl = s
             if not (
-                type(e) is int and 0 <= e <= U16
-                and type(cyc) is int and 0 <= cyc <= U64
-                and type(c1) is int and 0 <= c1 <= U32
-                and type(c2) is int and 0 <= c2 <= U32
-                and type(fl) is int and 0 <= fl <= U8
+                type(e) is int and type(cyc) is int and type(c1) is int and type(c2) is int and type(fl) is int
+                and 0 <= e <= U16 and 0 <= cyc <= U64 and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= U8
             ):
-                raise _bad("DATA", f"sample field out of range: {s!r}")
-            samples.append(Sample(e, cyc, c1, c2, fl))
+                raise _bad("DATA", f"sample field out of range for {_MODES[mode].name} mode "
+                                   f"(c1, c2 at most {limit}): {s!r}")
+            samples.append(_new_tuple(Sample, s))
         return cls(_MODES[mode], tuple(samples), over)
 
 
@@ -302,9 +313,11 @@ class Bundle:
     frames: tuple[Frame, ...]
 
     def to_wire(self) -> list[Any]:
-        from cellbridge.protocol.frame import encode
+        from cellbridge.protocol.frame import Fragment, encode
 
         for f in self.frames:
+            if isinstance(f.payload, Fragment):
+                raise ProtocolError("bundle", "a bundle carries whole frames, not fragments")
             if f.type is FrameType.BUNDLE:
                 raise ProtocolError("nested_bundle", "a bundle cannot contain a bundle")
         return [encode(f) for f in self.frames]
@@ -316,13 +329,17 @@ class Bundle:
         if type(obj) is not list or not obj:
             raise _bad("BUNDLE", "expected a non-empty array of frames")
         frames = []
-        for raw in obj:
+        for i, raw in enumerate(obj):
             if type(raw) is not bytes:
                 raise _bad("BUNDLE", "each bundled frame is a bin")
-            f = decode(raw)
-            if f.type is FrameType.BUNDLE:
+            if len(raw) > 2 and raw[2] == FrameType.BUNDLE:
                 raise ProtocolError("nested_bundle", "a bundle cannot contain a bundle")
-            frames.append(f)
+            if len(raw) > 1 and raw[1] & _FRAGMENT_FLAG:
+                raise ProtocolError("bundle", f"bundled frame {i} is a fragment; a bundle carries whole frames")
+            try:
+                frames.append(decode(raw))
+            except ProtocolError as exc:  # the inner frame's fault, not the bundle's: say so
+                raise ProtocolError(f"inner_{exc.cause}", f"bundled frame {i}: {exc.detail}") from None
         return cls(tuple(frames))
 
 
@@ -334,17 +351,32 @@ MESSAGE_CLASSES: dict[int, type[Any]] = {
 }
 
 
+_pack = msgpack.Packer(use_bin_type=True).pack
+
+
 def pack_payload(message: Message) -> bytes:
-    """msgpack bytes of a message's wire form."""
-    return msgpack.packb(message.to_wire(), use_bin_type=True)
+    """msgpack bytes of a message's wire form: the canonical encoding (smallest int, array,
+    str and bin forms; floats as float64), the only one :func:`unpack_payload` accepts."""
+    return _pack(message.to_wire())
 
 
 def unpack_payload(frame_type: int, data: bytes) -> Message:
-    """Parse and validate a payload; any malformation becomes :class:`ProtocolError`."""
+    """Parse and validate a payload; any malformation becomes :class:`ProtocolError`.
+
+    Only the canonical encoding is accepted (``pack_payload(unpack_payload(x)) == x``):
+    one message has exactly one byte string, so byte-level duplicate detection and
+    caches see one frame as one frame.
+    """
     try:
-        obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
+        obj = msgpack.unpackb(data)
     except Exception as exc:  # msgpack raises several unrelated types on bad input
         raise ProtocolError("payload", f"not valid msgpack ({type(exc).__name__})") from None
+    try:
+        canonical = _pack(obj) == data
+    except Exception as exc:  # e.g. a map with keys msgpack cannot pack back
+        raise ProtocolError("payload", f"not packable ({type(exc).__name__})") from None
+    if not canonical:
+        raise ProtocolError("payload", "not the canonical msgpack encoding (smallest forms, float64)")
     try:
         return MESSAGE_CLASSES[frame_type].from_wire(obj)
     except ProtocolError:

@@ -10,13 +10,15 @@ after line noise) discards only the garbage up to the first delimiter.
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Iterator
 
 from cobs import cobs
 
 from cellbridge.protocol.errors import ProtocolError
-from cellbridge.protocol.frame import MAX_FRAME, Frame, decode, encode
+from cellbridge.protocol.frame import MAX_FRAME, MIN_FRAME, Frame, decode, encode
 
 DELIMITER = b"\x00"
+WINDOW = 65536  #: bytes of a fed chunk split at once: bounds what one feed call holds
 
 
 def max_encoded_len(frame_len: int) -> int:
@@ -37,7 +39,7 @@ class StreamDecoder:
     ``max_buffer``: an over-long run without a delimiter is discarded and the
     decoder skips to the next delimiter. Nothing is dropped silently:
     ``bytes_dropped`` and ``frames_dropped`` count by cause, ``frames_ok`` counts
-    delivered frames. Every byte fed is accounted for:
+    delivered frames, ``delimiters`` the 0x00 bytes. Every byte fed is accounted for:
     ``bytes_in == bytes_ok + sum(bytes_dropped) + delimiters + buffered``.
 
     Causes: ``overlong`` (more bytes than any valid frame before a delimiter),
@@ -52,6 +54,7 @@ class StreamDecoder:
         self.frames_ok = 0
         self.bytes_ok = 0  # COBS bytes of delivered frames
         self.bytes_in = 0
+        self.delimiters = 0  # 0x00 bytes seen, frame boundaries and idle fill alike
         self.frames_dropped: Counter[str] = Counter()
         self.bytes_dropped: Counter[str] = Counter()
 
@@ -61,54 +64,90 @@ class StreamDecoder:
         return len(self._buf)
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[Frame]:
+        """The frames completed by ``chunk`` (any length: it is scanned in bounded windows).
+
+        A Frame object takes ~10x its wire size; to hold none of them, use :meth:`feed_iter`.
+        """
+        out: list[Frame] = []
+        for piece in self._windows(chunk):
+            self._scan(piece, out)
+        return out
+
+    def feed_iter(self, chunk: bytes | bytearray | memoryview) -> Iterator[Frame]:
+        """The frames completed by ``chunk``, yielded a window (``WINDOW`` bytes) at a time.
+
+        Consume it to the end before feeding more: the decoder state moves with it.
+        """
+        out: list[Frame] = []
+        for piece in self._windows(chunk):
+            self._scan(piece, out)
+            yield from out
+            out.clear()
+
+    def _windows(self, chunk: bytes | bytearray | memoryview) -> Iterator[bytes]:
+        """``chunk`` in slices of at most ``WINDOW`` bytes, so that splitting at the
+        delimiters (fast, in C) never holds more than one window's segments."""
         self.bytes_in += len(chunk)
-        parts = bytes(chunk).split(DELIMITER)
-        frames: list[Frame] = []
+        if type(chunk) is bytes and len(chunk) <= WINDOW:
+            yield chunk
+            return
+        view = memoryview(chunk).cast("B")
+        for start in range(0, len(view), WINDOW):
+            yield bytes(view[start:start + WINDOW])
+
+    def _scan(self, piece: bytes, out: list[Frame]) -> None:
+        parts = piece.split(DELIMITER)
+        self.delimiters += len(parts) - 1
         # Every part but the last ended at a delimiter; the last is the frame in progress.
-        for i, part in enumerate(parts):
-            last = i == len(parts) - 1
+        last = parts.pop()
+        for part in parts:
             if self._skipping:
                 self.bytes_dropped["overlong"] += len(part)
-                if not last:
-                    self._skipping = False
-                continue
-            if self._buf:
+                self._skipping = False
+            elif self._buf:
                 self._buf += part
-                if not last:
-                    part, self._buf = bytes(self._buf), bytearray()
-            elif last:
-                self._buf += part
-            if last:
-                if len(self._buf) > self.max_buffer:
-                    self._drop_overlong()
-                break
-            if part:
-                self._frame(part, frames)
-        return frames
+                part = bytes(self._buf)
+                self._buf.clear()
+                self._frame(part, out)
+            elif part:
+                self._frame(part, out)
+        if self._skipping:
+            self.bytes_dropped["overlong"] += len(last)
+        elif len(self._buf) + len(last) > self.max_buffer:
+            self._overlong(len(self._buf) + len(last))
+        else:
+            self._buf += last
 
-    def _drop_overlong(self) -> None:
-        self.bytes_dropped["overlong"] += len(self._buf)
+    def _overlong(self, size: int) -> None:
+        """Discard a run longer than any frame: the bytes so far, and the rest up to the next delimiter."""
+        self.bytes_dropped["overlong"] += size
         self.frames_dropped["overlong"] += 1
-        self._buf = bytearray()
+        self._buf.clear()
         self._skipping = True
 
     def _frame(self, encoded: bytes, out: list[Frame]) -> None:
         if len(encoded) > self.max_buffer:
-            self.bytes_dropped["overlong"] += len(encoded)
-            self.frames_dropped["overlong"] += 1
+            self._dropped("overlong", len(encoded))
             return
         try:
-            out.append(decode(cobs.decode(encoded)))
+            raw = cobs.decode(encoded)
         except cobs.DecodeError:
-            self.bytes_dropped["cobs"] += len(encoded)
-            self.frames_dropped["cobs"] += 1
+            self._dropped("cobs", len(encoded))
             return
+        if len(raw) < MIN_FRAME:  # the commonest garbage, counted without raising
+            self._dropped("short", len(encoded))
+            return
+        try:
+            out.append(decode(raw))
         except ProtocolError as exc:
-            self.bytes_dropped[exc.cause] += len(encoded)
-            self.frames_dropped[exc.cause] += 1
+            self._dropped(exc.cause, len(encoded))
             return
         self.frames_ok += 1
         self.bytes_ok += len(encoded)
+
+    def _dropped(self, cause: str, size: int) -> None:
+        self.bytes_dropped[cause] += size
+        self.frames_dropped[cause] += 1
 
     def counters(self) -> dict[str, object]:
         """A snapshot for health reports: totals and drops by cause."""
@@ -116,6 +155,8 @@ class StreamDecoder:
             "bytes_in": self.bytes_in,
             "frames_ok": self.frames_ok,
             "bytes_ok": self.bytes_ok,
+            "delimiters": self.delimiters,
+            "buffered": len(self._buf),
             "frames_dropped": dict(self.frames_dropped),
             "bytes_dropped": dict(self.bytes_dropped),
         }

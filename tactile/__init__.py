@@ -22,6 +22,13 @@ from cellbridge.tactile.inversion import (
 )
 from cellbridge.tactile.transfer import (
     ChipParams,
+    CounterUnwrapper,
+    adc_mean_band,
+    check_gate,
+    counter_span,
+    max_gate_cycles,
+    plausible_capacitance,
+    sync_min_capacitance,
     adc_code,
     adc_input,
     adc_mean_code,
@@ -59,6 +66,13 @@ __all__ = [
     "solve",
     # transfer functions of the bridge chip
     "ChipParams",
+    "CounterUnwrapper",
+    "adc_mean_band",
+    "check_gate",
+    "counter_span",
+    "max_gate_cycles",
+    "plausible_capacitance",
+    "sync_min_capacitance",
     "adc_code",
     "adc_input",
     "adc_mean_code",
@@ -84,6 +98,7 @@ from cellbridge.tactile.contacts import (  # noqa: E402
     estimate_contacts,
     force_centroid,
 )
+from cellbridge.tactile.tracker import ContactTracker, TrackedContact  # noqa: E402
 from cellbridge.tactile.skin import (  # noqa: E402
     SkinLayout,
     disk_element_overlap,
@@ -119,4 +134,7 @@ __all__ += [
     "cluster_elements",
     "estimate_contacts",
     "force_centroid",
+    # contacts across frames
+    "ContactTracker",
+    "TrackedContact",
 ]

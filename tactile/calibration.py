@@ -3,33 +3,44 @@
 The inverse needs capacitance *changes*. A change is only meaningful against a
 baseline, and a soft skin's baseline is not constant: parasitics and foam
 permittivity move with temperature and humidity, slowly but by amounts comparable to a
-light touch. Following that drift is easy; the hard part is not following a contact.
-A tracker that adapts all the time would absorb a hand resting on the robot within a
-few time constants and report it as gone. So:
+light touch, and a supply step moves every element at once. Following that drift is
+easy; the hard part is not following a contact. A tracker that adapts all the time
+would absorb a hand resting on the robot within a few time constants and report it as
+gone. So:
 
 * **Baseline** per element: the median of its first ``n_baseline`` readings (assumed
   quiet), with the noise estimated from their MAD. Until then the element is not
   *ready* and its ΔC is NaN.
+* **Common mode**: a change every element sees at once is drift, never touch. Each
+  step the skin's common offset is the median residual of the tracked elements that
+  did not jump past their touch threshold — or of all tracked elements when nearly
+  all of them (``common_fraction``) jumped together, which no contact does. The offset
+  is subtracted from *every* ready element (tracked, touched, held off, or without a
+  reading this step), so a press held for minutes neither fades nor picks up the
+  skin's drift, and an element that was silent comes back corrected.
 * **Touch state** with hysteresis: an element becomes *touched* when any channel rises
   above ``enter`` and *released* when every channel is back below ``leave``
   (``leave < enter``), both raised to a multiple of the measured noise if that is
   larger. After release a **hold-off** lets the foam recover before tracking resumes.
-* **Drift** is followed only while an element is untouched and past its hold-off: an
-  exponential tracker with time constant ``tau`` (seconds of the timestamps passed
-  in, not of any clock), faster (``tau_negative``) when the reading is clearly
-  *below* the baseline, which no contact can cause (e.g. a baseline taken while
-  something rested on the skin).
-* **Common-mode drift**: a touched element's own baseline is frozen, but drift that
-  all elements share (temperature) is carried to it as the median step of the
-  elements being tracked at that time, so a press held for minutes neither fades
-  nor picks up the skin's drift.
+* **Element drift** (what is left after the common mode) is followed only while an
+  element is untouched and past its hold-off: an exponential tracker with time
+  constant ``tau`` (seconds of the timestamps passed in, not of any clock) whose
+  innovation is clipped to ``±max_drift·tau``. The clip bounds how fast a baseline may
+  move (``max_drift`` F/s), so one outlier cannot drag it and a slow press outruns it
+  and is reported. A channel that has read below ``−enter`` for ``negative_after``
+  seconds — which no contact can cause, e.g. a baseline taken while something rested
+  on the skin — is followed unclipped on ``tau_negative``.
+* **Stuck touch**: an element touched for longer than ``max_touch`` seconds is
+  re-baselined (as by :meth:`Calibrator.tare`) and the event counted per element
+  (:attr:`Calibrator.rebaselines`, :meth:`Calibrator.health`), so a phantom cannot
+  latch forever and the user can see that it happened.
 * **Tare** re-takes the baseline of all or some elements on command.
 
 Plain object, no clocks or I/O: :meth:`Calibrator.update` takes one time and the
 readings of every element (NaN for an element without a reading at that step) and
 returns ΔC, touch and readiness for all of them. Each step is vectorised over
 elements. Readings are in whatever unit the caller uses consistently (farads from
-the transfer functions, normally); the default thresholds assume farads.
+the transfer functions, normally); the default thresholds and rates assume farads.
 """
 
 from __future__ import annotations
@@ -64,10 +75,10 @@ HOLDOFF = 3  #: just released, baseline frozen until ``holdoff`` has passed
 class CalibrationConfig:
     """Tuning of :class:`Calibrator`; defaults suit the counter front end in farads.
 
-    ``enter``/``leave`` are per channel (a scalar applies to all channels). The
-    defaults (50 fF / 25 fF) sit a few tens of counter counts above the 2 ms gate's
-    quantisation and correspond to roughly 0.05 N on a 10-20 mm contact; the ADC
-    front end (1 LSB ≈ 0.2 pF) needs about ten times more, which the noise
+    ``enter``/``leave``/``max_drift`` are per channel (a scalar applies to all
+    channels). The defaults (50 fF / 25 fF) sit a few tens of counter counts above the
+    2 ms gate's quantisation and correspond to roughly 0.05 N on a 10-20 mm contact;
+    the ADC front end (1 LSB ≈ 0.2 pF) needs about ten times more, which the noise
     multiples ``k_enter``/``k_leave`` provide automatically when the baseline
     readings are that noisy.
     """
@@ -79,19 +90,29 @@ class CalibrationConfig:
     k_leave: float = 4.0  #: leave at least this many noise sigmas
     holdoff: float = 2.0  #: s after release before drift tracking resumes
     tau: float = 10.0  #: s, time constant of the drift tracker
-    tau_negative: float = 3.0  #: s, tracker time constant while reading below baseline
-    common_mode: bool = True  #: carry the tracked elements' median drift to touched ones
+    #: F/s, fastest element drift followed: the tracker's innovation is clipped to
+    #: ±max_drift·tau, so a press rising faster than this is reported, not absorbed
+    max_drift: float | Sequence[float] = 1e-15
+    tau_negative: float = 3.0  #: s, tracker time constant while reading below −enter
+    negative_after: float = 1.0  #: s below −enter before tau_negative applies
+    common_mode: bool = True  #: subtract the skin's common offset from every element
     min_common: int = 2  #: tracked elements needed for a common-mode estimate
-    max_touch: float | None = None  #: s; re-take baseline of an element touched longer
+    #: share of the tracked elements that must jump past ``enter`` together for the
+    #: jump to count as common (drift), not as contacts
+    common_fraction: float = 0.9
+    #: s; an element touched this long is re-baselined and counted (None: never)
+    max_touch: float | None = 600.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.n_baseline, (int, np.integer)) and self.n_baseline >= 1):
             raise ValueError(f"n_baseline must be an integer >= 1, got {self.n_baseline!r}")
-        for name in ("enter", "leave"):
+        for name in ("enter", "leave", "max_drift"):
             v = np.asarray(getattr(self, name), dtype=np.float64)
-            if v.ndim > 1 or not np.all(np.isfinite(v)) or not np.all(v >= 0):
-                raise ValueError(f"{name} must be a finite threshold >= 0 or one per channel")
-        for name in ("k_enter", "k_leave", "holdoff"):
+            if v.ndim > 1 or np.any(np.isnan(v)) or not np.all(v >= 0):
+                raise ValueError(f"{name} must be a threshold >= 0 or one per channel, got {v!r}")
+            if name != "max_drift" and not np.all(np.isfinite(v)):
+                raise ValueError(f"{name} must be finite, got {v!r}")
+        for name in ("k_enter", "k_leave", "holdoff", "negative_after"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
@@ -103,6 +124,8 @@ class CalibrationConfig:
             raise ValueError("k_leave must not exceed k_enter (hysteresis)")
         if not (isinstance(self.min_common, (int, np.integer)) and self.min_common >= 1):
             raise ValueError("min_common must be an integer >= 1")
+        if not (0.5 < self.common_fraction <= 1.0):
+            raise ValueError(f"common_fraction must lie in (0.5, 1], got {self.common_fraction!r}")
         if self.max_touch is not None and not (self.max_touch > 0):
             raise ValueError("max_touch must be > 0 s or None")
 
@@ -131,14 +154,20 @@ class Calibrator:
         self._leave = self._per_channel(cfg.leave, "leave")
         if np.any(self._leave > self._enter):
             raise ValueError("leave thresholds must not exceed enter thresholds (hysteresis)")
+        drift = self._per_channel(cfg.max_drift, "max_drift")
+        with np.errstate(invalid="ignore"):  # 0 F/s on a frozen (tau = inf) baseline: 0
+            self._clip = np.where(drift > 0, drift * cfg.tau, 0.0)
         self._buf = np.zeros((n, cfg.n_baseline, c))
         self._count = np.zeros(n, dtype=np.int64)
-        self._baseline = np.full((n, c), np.nan)
+        self._base = np.full((n, c), np.nan)  # element's own baseline, without the common offset
+        self._common = np.zeros(c)  # the skin's common offset, carried by every element
         self._noise = np.full((n, c), np.nan)
         self._state = np.full(n, COLLECTING, dtype=np.int8)
         self._last_t = np.full(n, -np.inf)
         self._since = np.full(n, -np.inf)  # time of the last state change into TOUCHED/HOLDOFF
-        self._drift = np.zeros(c)  # accumulated common-mode drift, for inspection
+        self._below_since = np.full((n, c), np.inf)  # reading below −enter since (per channel)
+        self._rebaselines = np.zeros(n, dtype=np.int64)
+        self._common_jumps = 0
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
 
     def _per_channel(self, v: float | Sequence[float], name: str) -> FloatArray:
@@ -152,8 +181,8 @@ class Calibrator:
     # -- inspection -----------------------------------------------------------------
     @property
     def baseline(self) -> FloatArray:
-        """(N, C) current baselines (NaN while collecting)."""
-        return self._baseline.copy()
+        """(N, C) current baselines, common offset included (NaN while collecting)."""
+        return self._base + self._common
 
     @property
     def noise(self) -> FloatArray:
@@ -175,8 +204,28 @@ class Calibrator:
 
     @property
     def common_drift(self) -> FloatArray:
-        """(C,) common-mode drift carried to frozen elements since start."""
-        return self._drift.copy()
+        """(C,) the skin's common offset since start, carried by every element."""
+        return self._common.copy()
+
+    @property
+    def rebaselines(self) -> NDArray[np.int64]:
+        """(N,) how often each element was re-baselined after ``max_touch`` (not tares)."""
+        return self._rebaselines.copy()
+
+    def health(self) -> dict[str, object]:
+        """Plain-Python summary for a health message (element *indices*, not ids)."""
+        st = self._state
+        hit = np.nonzero(self._rebaselines)[0]
+        return {
+            "ready": int(np.count_nonzero(st != COLLECTING)),
+            "collecting": int(np.count_nonzero(st == COLLECTING)),
+            "touched": int(np.count_nonzero(st == TOUCHED)),
+            "holdoff": int(np.count_nonzero(st == HOLDOFF)),
+            "rebaselines_total": int(self._rebaselines.sum()),
+            "rebaselined": [[int(i), int(self._rebaselines[i])] for i in hit],
+            "common_offset": [float(x) for x in self._common],
+            "common_jumps": self._common_jumps,
+        }
 
     def thresholds(self) -> tuple[FloatArray, FloatArray]:
         """(N, C) enter and leave thresholds in effect (absolute or noise-scaled)."""
@@ -193,13 +242,14 @@ class Calibrator:
 
         They go back to collecting and are not ready until ``n_baseline`` new
         readings arrived; whatever touches them meanwhile becomes part of the
-        baseline, as the user asked.
+        baseline, as the user asked. An empty selection does nothing.
         """
         sel = self._select(elements)
         self._state[sel] = COLLECTING
         self._count[sel] = 0
-        self._baseline[sel] = np.nan
+        self._base[sel] = np.nan
         self._noise[sel] = np.nan
+        self._below_since[sel] = np.inf
         self._thr = None
 
     def _select(self, elements: ArrayLike | None) -> NDArray[np.bool_]:
@@ -210,6 +260,8 @@ class Calibrator:
             if e.shape != (self.n_elements,):
                 raise ValueError(f"element mask must have shape ({self.n_elements},)")
             return e.copy()
+        if e.size == 0:
+            return np.zeros(self.n_elements, dtype=bool)
         if e.dtype.kind not in "iu":
             raise ValueError("elements must be integer indices or a boolean mask")
         e = np.atleast_1d(e)
@@ -224,7 +276,9 @@ class Calibrator:
         """Feed the readings of all elements at time ``t`` (s); NaN = no reading.
 
         ``values`` is (N, C), or (N,) when there is one channel. ``t`` is a scalar or
-        one time per element; times must not go backwards for any element.
+        one time per element; times must not go backwards for any element. Feed one
+        vector per sampling period (the latest reading of every element, NaN where
+        none came): the common offset is estimated across the elements of one step.
         """
         n, c = self.n_elements, self.n_channels
         v = np.asarray(values, dtype=np.float64)
@@ -238,32 +292,63 @@ class Calibrator:
         sampled = np.all(np.isfinite(v), axis=1)
         if np.any(tt[sampled] < self._last_t[sampled]):
             raise ValueError("time went backwards for an element")
-        cfg = self.config
-
-        # Baseline collection.
-        col = sampled & (self._state == COLLECTING)
-        if col.any():
-            idx = np.nonzero(col)[0]
-            self._buf[idx, self._count[idx]] = v[idx]
-            self._count[idx] += 1
-            done = idx[self._count[idx] >= cfg.n_baseline]
-            if done.size:
-                b = self._buf[done]
-                med = np.median(b, axis=1)
-                self._baseline[done] = med
-                self._noise[done] = 1.4826 * np.median(np.abs(b - med[:, None, :]), axis=1)
-                self._state[done] = TRACKING
-                self._count[done] = 0
-                self._thr = None
-
-        live = sampled & ~col  # ready elements with a reading this step
-        delta = np.full((n, c), np.nan)
-        delta[live] = v[live] - self._baseline[live]
         if self._thr is None:
             self.thresholds()
         enter, leave = self._thr  # type: ignore[misc]
+        st = self._state
+        live = sampled & (st != COLLECTING)  # ready elements with a reading this step
+        resid = v - self._base  # NaN where not ready or not sampled
+        if self.config.common_mode:
+            self._update_common(resid, live & (st == TRACKING), enter)
+        self._collect(sampled & (st == COLLECTING), v)
 
-        # Touch hysteresis.
+        delta = np.full((n, c), np.nan)
+        delta[live] = resid[live] - self._common
+        self._hysteresis(live, tt, delta, enter, leave)
+        self._track(live & (st == TRACKING), live, tt, delta, enter)
+        self._last_t[sampled] = tt[sampled]
+        delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
+        return CalibrationStep(delta, st == TOUCHED, st != COLLECTING)
+
+    def _update_common(self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray) -> None:
+        """The skin's common offset: median residual of the tracked elements that did
+        not jump past ``enter`` — or of all of them when nearly all jumped together."""
+        k = int(trk.sum())
+        if k < self.config.min_common:
+            return  # too few to tell drift from touch: the offset is carried
+        jump = trk & np.any(resid - self._common > enter, axis=1)
+        kj = int(jump.sum())
+        if kj and kj >= self.config.common_fraction * k:
+            ref = trk
+            self._common_jumps += 1
+        else:
+            ref = trk & ~jump
+        if int(ref.sum()) >= self.config.min_common:
+            self._common = np.median(resid[ref], axis=0)
+
+    def _collect(self, col: NDArray[np.bool_], v: FloatArray) -> None:
+        """Baseline collection (relative to the common offset of each reading's step)."""
+        if not col.any():
+            return
+        cfg = self.config
+        idx = np.nonzero(col)[0]
+        self._buf[idx, self._count[idx]] = v[idx] - self._common
+        self._count[idx] += 1
+        done = idx[self._count[idx] >= cfg.n_baseline]
+        if done.size:
+            b = self._buf[done]
+            med = np.median(b, axis=1)
+            self._base[done] = med
+            self._noise[done] = 1.4826 * np.median(np.abs(b - med[:, None, :]), axis=1)
+            self._state[done] = TRACKING
+            self._count[done] = 0
+            self._thr = None
+
+    def _hysteresis(
+        self, live: NDArray[np.bool_], tt: FloatArray, delta: FloatArray,
+        enter: FloatArray, leave: FloatArray,
+    ) -> None:
+        cfg = self.config
         st = self._state
         up = live & (st != TOUCHED) & np.any(delta > enter, axis=1)
         down = live & (st == TOUCHED) & np.all(delta < leave, axis=1)
@@ -276,25 +361,26 @@ class Calibrator:
         if cfg.max_touch is not None:
             stuck = (st == TOUCHED) & (tt - self._since >= cfg.max_touch)
             if stuck.any():
+                self._rebaselines[stuck] += 1
                 self.tare(stuck)
 
-        # Drift tracking of untouched elements (their previous reading time sets dt).
-        trk = live & (st == TRACKING)
+    def _track(
+        self, trk: NDArray[np.bool_], live: NDArray[np.bool_], tt: FloatArray,
+        delta: FloatArray, enter: FloatArray,
+    ) -> None:
+        """Element drift: clipped exponential tracker, unclipped and faster on a
+        channel that has stayed below −enter for ``negative_after`` seconds (a
+        missing reading neither restarts nor ends that wait)."""
+        cfg = self.config
+        below = trk[:, None] & (delta < -enter)
+        since = np.where(live[:, None], np.inf, self._below_since)
+        self._below_since = np.where(below, np.minimum(self._below_since, tt[:, None]), since)
+        if not trk.any():
+            return
+        fast = below & (tt[:, None] - self._below_since >= cfg.negative_after)
         dt = tt - self._last_t
         dt = np.where(trk & np.isfinite(dt), dt, 0.0)  # first tracked reading: no step
-        tau = np.where(delta < -enter, cfg.tau_negative, cfg.tau)
+        tau = np.where(fast, cfg.tau_negative, cfg.tau)
         alpha = -np.expm1(-dt[:, None] / tau)
-        step = np.where(trk[:, None], alpha * delta, 0.0)
-        self._baseline += step
-
-        # Common-mode drift to the frozen (touched / held-off) elements.
-        if cfg.common_mode:
-            k = int(trk.sum())
-            frozen = (st == TOUCHED) | (st == HOLDOFF)
-            if k >= cfg.min_common and frozen.any():
-                cm = np.median(step[trk], axis=0)
-                self._baseline[frozen] += cm
-                self._drift += cm
-
-        self._last_t[sampled] = tt[sampled]
-        return CalibrationStep(delta, self._state == TOUCHED, self._state != COLLECTING)
+        innov = np.where(fast, delta, np.clip(delta, -self._clip, self._clip))
+        self._base += np.where(trk[:, None], alpha * innov, 0.0)

@@ -144,16 +144,24 @@ def _stretch(u: FloatArray) -> tuple[FloatArray, FloatArray]:
       ``λ = r/(u(r² + r + 1))``; no overflow even for σ/E ≈ 1e300, and 1 − λ has
       no cancellation there because λ < 0.33.
     """
-    # Small branch, evaluated on u clipped to [0, 1] so it never overflows.
-    us = np.minimum(u, 1.0)
-    us3 = us * us * us
-    s = np.sqrt(0.25 + us3)
-    a = np.cbrt(0.5 + s)
-    a2 = a * a
-    den = a2 * a2 + a2 * us + us * us
-    am1 = us3 / ((s + 0.5) * (a2 + a + 1.0))
-    lam_s = a2 / den
-    one_m_s = (a2 * am1 * (a + 1.0) + a2 * us + us * us) / den
+    big = u > 1.0
+    any_big = bool(big.any())
+    all_big = bool(big.all()) if any_big else False
+    # Only the branches some entry needs: small arrays (one frame's elements) are
+    # all on one side, and numpy's per-call overhead is most of their cost.
+    if not all_big:
+        # Small branch, evaluated on u clipped to [0, 1] so it never overflows.
+        us = np.minimum(u, 1.0)
+        us3 = us * us * us
+        s = np.sqrt(0.25 + us3)
+        a = np.cbrt(0.5 + s)
+        a2 = a * a
+        den = a2 * a2 + a2 * us + us * us
+        am1 = us3 / ((s + 0.5) * (a2 + a + 1.0))
+        lam_s = a2 / den
+        one_m_s = (a2 * am1 * (a + 1.0) + a2 * us + us * us) / den
+        if not any_big:
+            return np.asarray(lam_s), np.asarray(one_m_s)
 
     # Large branch, on u clipped to [1, ∞].
     ub = np.maximum(u, 1.0)
@@ -161,8 +169,8 @@ def _stretch(u: FloatArray) -> tuple[FloatArray, FloatArray]:
     r = np.cbrt(np.square(0.5 * w + np.sqrt(0.25 * w * w + 1.0)))
     with np.errstate(invalid="ignore"):  # u = inf: inf·(finite) is fine, r/inf → 0
         lam_b = r / (ub * (r * r + r + 1.0))
-
-    big = u > 1.0
+    if all_big:
+        return np.asarray(lam_b), np.asarray(1.0 - lam_b)
     lam = np.where(big, lam_b, lam_s)
     one_m = np.where(big, 1.0 - lam_b, one_m_s)
     return lam, one_m

@@ -44,8 +44,17 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cellbridge.tactile.element import ElementParams
+
 __all__ = [
     "ChipParams",
+    "CounterUnwrapper",
+    "adc_mean_band",
+    "check_gate",
+    "counter_span",
+    "max_gate_cycles",
+    "plausible_capacitance",
+    "sync_min_capacitance",
     "oscillator_period",
     "expected_counts",
     "counts",
@@ -135,11 +144,27 @@ def _chip(chip: ChipParams | None) -> ChipParams:
     return DEFAULT_CHIP if chip is None else chip
 
 
+#: Largest capacitance any function here accepts (F): far above any element, far
+#: below a value in picofarads passed where farads are expected.
+C_MAX = 1e-3
+
+
 def _cap(c: ArrayLike) -> FloatArray:
     arr = np.asarray(c, dtype=np.float64)
-    if not np.all(arr > 0) or not np.all(np.isfinite(arr)):
+    if not np.all(np.isfinite(arr)) or not np.all(arr > 0):
         raise ValueError("capacitance must be finite and > 0 F")
+    if np.any(arr > C_MAX):
+        raise ValueError(
+            f"capacitance must be in farads (0 < C <= {C_MAX:g} F), got up to "
+            f"{float(arr.max()):g}: picofarads passed as farads?"
+        )
     return arr
+
+
+def sync_min_capacitance(chip: ChipParams | None = None) -> float:
+    """Smallest C (F) the counter can count: the two-flop synchroniser needs T ≥ 2 cycles."""
+    ch = _chip(chip)
+    return 2.0 / (ch.clock_actual_hz * _LN2x2 * ch.R_osc)
 
 
 # --------------------------------------------------------------------- oscillator
@@ -167,29 +192,39 @@ def counts(
     ``phase`` ∈ [0, 1) places the first rising edge at ``phase·T`` after the gate
     opens; edges at exactly the gate end are not counted. The register is the edge
     count modulo 2^counter_bits; the flag is set if the count reached the modulus.
+    C below :func:`sync_min_capacitance` is refused: the chip cannot count it.
     """
     ch = _chip(chip)
     ph = np.asarray(phase, dtype=np.float64)
     if not (np.all(ph >= 0) and np.all(ph < 1)):
         raise ValueError("phase must lie in [0, 1)")
-    x = expected_counts(C, ch)
+    c = _cap(C)
+    c_min = sync_min_capacitance(ch)
+    if np.any(c < c_min):
+        raise ValueError(
+            f"capacitance {float(c.min()):g} F is below the synchroniser's limit "
+            f"{c_min:g} F (oscillator period < 2 clock cycles): the chip cannot count it"
+        )
+    x = expected_counts(c, ch)
     n = np.maximum(np.ceil(x - ph), 0.0).astype(np.int64)
     return n % ch.counter_modulus, n >= ch.counter_modulus
 
 
 def unwrap_counts(
     raw: ArrayLike,
-    nominal_counts: ArrayLike,
+    reference: ArrayLike,
     chip: ChipParams | None = None,
     overflow: ArrayLike | None = None,
 ) -> IntArray:
-    """True edge count from a wrapped register value.
+    """True edge count from a wrapped register value: ``raw + k·2^bits`` nearest ``reference``.
 
-    Picks the count ``raw + k·2^bits`` nearest to ``nominal_counts`` (e.g. the
-    :func:`expected_counts` of the channel's rest capacitance), which is right as long
-    as the real count is within half a modulus (32 768 at 16 bits) of the nominal one.
-    If the overflow flag is known it is used: no overflow means k = 0 exactly;
-    overflow means k ≥ 1.
+    ``reference`` is the channel's previous unwrapped count (or, for its first
+    sample, the expected count of its rest capacitance); the answer is right while
+    the count moved less than half a modulus (32 768 at 16 bits) since then, which
+    :func:`check_gate` guarantees for any plausible reading. If the overflow flag is
+    known it is used: no overflow means k = 0 exactly; overflow means k ≥ 1. This is
+    the stateless rule; :class:`CounterUnwrapper` keeps the reference per channel and
+    flags samples that cannot be trusted.
     """
     ch = _chip(chip)
     m = ch.counter_modulus
@@ -197,7 +232,9 @@ def unwrap_counts(
     if not np.issubdtype(r.dtype, np.integer) or np.any(r < 0) or np.any(r >= m):
         raise ValueError(f"raw counts must be integers in [0, {m})")
     r = r.astype(np.int64)
-    nom = np.asarray(nominal_counts, dtype=np.float64)
+    nom = np.asarray(reference, dtype=np.float64)
+    if not np.all(np.isfinite(nom)):
+        raise ValueError("the unwrap reference must be finite")
     k = np.maximum(np.rint((nom - r) / m), 0).astype(np.int64)
     if overflow is not None:
         ov = np.asarray(overflow, dtype=bool)
@@ -205,17 +242,173 @@ def unwrap_counts(
     return r + k * m
 
 
+def plausible_capacitance(
+    params: ElementParams | None = None, margin: float = 0.1
+) -> tuple[FloatArray, FloatArray]:
+    """(lo, hi) per channel (C1, C2) in F: what an element can read, with ``margin``.
+
+    lo is the rest capacitance less ``margin`` (drift of parasitics and foam), hi the
+    fully saturated foam over the whole element plus ``margin``.
+    """
+    p = ElementParams() if params is None else params
+    if not (0 <= margin < 1):
+        raise ValueError(f"margin must lie in [0, 1), got {margin!r}")
+    rest = np.array([p.C1_rest, p.C2_rest])
+    full = rest + p.area * np.array([p.g1_max, p.g2_max])
+    return rest * (1 - margin), full * (1 + margin)
+
+
+#: Counts by which two integer readings may differ beyond their expected counts
+#: difference (each is the expected count rounded up or down by the phase).
+_COUNT_SLACK = 2
+
+
+def counter_span(C_lo: ArrayLike, C_hi: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
+    """Counts between the lowest and the highest plausible capacitance, per channel."""
+    ch = _chip(chip)
+    return np.abs(expected_counts(C_lo, ch) - expected_counts(C_hi, ch))
+
+
+def _range(C_lo: ArrayLike | None, C_hi: ArrayLike | None) -> tuple[FloatArray, FloatArray]:
+    if (C_lo is None) != (C_hi is None):
+        raise ValueError("give both C_lo and C_hi, or neither (the default element's range)")
+    if C_lo is None:
+        return plausible_capacitance()
+    lo, hi = np.broadcast_arrays(_cap(C_lo), _cap(C_hi))
+    if np.any(hi <= lo):
+        raise ValueError("the plausible range needs C_hi > C_lo")
+    return lo, hi
+
+
+def max_gate_cycles(
+    C_lo: ArrayLike | None = None, C_hi: ArrayLike | None = None, chip: ChipParams | None = None
+) -> int:
+    """Longest gate (cycles) whose plausible count span stays within half a modulus.
+
+    Within that, a reading can move between any two plausible values from one sample
+    to the next and still be unwrapped unambiguously. Default range:
+    :func:`plausible_capacitance` of the default element (≈ 226 000 cycles, 4.5 ms).
+    """
+    ch = _chip(chip)
+    lo, hi = _range(C_lo, C_hi)
+    per_cycle = float(np.max(counter_span(lo, hi, ch))) / ch.gate_cycles
+    return int(math.floor((0.5 * ch.counter_modulus - _COUNT_SLACK) / per_cycle))
+
+
+def check_gate(
+    chip: ChipParams | None = None, C_lo: ArrayLike | None = None, C_hi: ArrayLike | None = None
+) -> None:
+    """ValueError if ``chip.gate_cycles`` is too long to unwrap the counter unambiguously.
+
+    Whoever sets a gate (``SET_GATE``, configuration) asks this first: beyond
+    :func:`max_gate_cycles` a press and a wrap look alike, and the error would be a
+    plausible wrong ΔC, not a visible one.
+    """
+    ch = _chip(chip)
+    limit = max_gate_cycles(C_lo, C_hi, ch)
+    if ch.gate_cycles > limit:
+        span = float(np.max(counter_span(*_range(C_lo, C_hi), ch)))
+        raise ValueError(
+            f"gate of {ch.gate_cycles} cycles: plausible readings span {span:.0f} counts, "
+            f"more than half the counter's modulus ({ch.counter_modulus // 2}); the "
+            f"longest unambiguous gate is {limit} cycles"
+        )
+
+
+class CounterUnwrapper:
+    """Unwraps each channel's counter against its own previous sample, and says when
+    it cannot be trusted. One per link or skin; arrays of any shape (e.g. N × 2).
+
+    A sample is *ambiguous* (counted per channel in :attr:`ambiguous`, returned as a
+    flag) when its count moved more than the plausible span since the last good
+    sample, contradicts the overflow flag, or lies beyond what the synchroniser can
+    count. An ambiguous sample does not move the reference; after ``resync``
+    ambiguous samples in a row the channel re-anchors on the stateless rule around
+    ``start`` (e.g. after an outage that spanned a press).
+    """
+
+    def __init__(
+        self,
+        C_lo: ArrayLike,
+        C_hi: ArrayLike,
+        chip: ChipParams | None = None,
+        start: ArrayLike | None = None,
+        resync: int = 3,
+    ):
+        self.chip = _chip(chip)
+        lo, hi = _range(C_lo, C_hi)
+        check_gate(self.chip, lo, hi)
+        if not (isinstance(resync, (int, np.integer)) and resync >= 1):
+            raise ValueError(f"resync must be an integer >= 1, got {resync!r}")
+        self.resync = int(resync)
+        self._span = counter_span(lo, hi, self.chip) + _COUNT_SLACK
+        c0 = np.sqrt(lo * hi) if start is None else np.broadcast_to(_cap(start), lo.shape)
+        self._nominal = np.rint(expected_counts(c0, self.chip)).astype(np.int64)
+        self._prev = self._nominal.copy()
+        self._ambiguous = np.zeros(lo.shape, dtype=np.int64)
+        self._run = np.zeros(lo.shape, dtype=np.int64)
+        self._max = self.chip.gate_cycles / 2.0  # T ≥ 2 cycles
+
+    @classmethod
+    def for_elements(
+        cls, n: int, chip: ChipParams | None = None, params: ElementParams | None = None
+    ) -> CounterUnwrapper:
+        """(n, 2) channels of elements ``params``, starting from their rest counts."""
+        p = ElementParams() if params is None else params
+        lo, hi = plausible_capacitance(p)
+        shape = (int(n), 2)
+        rest = np.broadcast_to([p.C1_rest, p.C2_rest], shape)
+        return cls(np.broadcast_to(lo, shape), np.broadcast_to(hi, shape), chip, rest)
+
+    @property
+    def previous(self) -> IntArray:
+        """Each channel's last trusted count."""
+        return self._prev.copy()
+
+    @property
+    def ambiguous(self) -> IntArray:
+        """How many samples of each channel were flagged ambiguous."""
+        return self._ambiguous.copy()
+
+    def unwrap(
+        self, raw: ArrayLike, overflow: ArrayLike | None = None, sampled: ArrayLike | None = None
+    ) -> tuple[IntArray, NDArray[np.bool_]]:
+        """(counts, ambiguous) for one sample of every channel (``sampled``: which
+        channels carry a new sample; the others are left alone and returned as 0)."""
+        r = np.asarray(raw)
+        if r.shape != self._prev.shape:
+            raise ValueError(f"raw must have shape {self._prev.shape}, got {r.shape}")
+        s = np.ones(r.shape, dtype=bool) if sampled is None else np.broadcast_to(
+            np.asarray(sampled, dtype=bool), r.shape)
+        r = np.where(s, r, 0)
+        ov = None if overflow is None else np.where(s, np.asarray(overflow, dtype=bool), False)
+        n = unwrap_counts(r, self._prev, self.chip, ov)
+        amb = s & ((np.abs(n - self._prev) > self._span) | (n <= 0) | (n > self._max))
+        good = s & ~amb
+        self._prev = np.where(good, n, self._prev)
+        self._run = np.where(good, 0, self._run + amb)
+        self._ambiguous += amb
+        lost = self._run >= self.resync
+        if lost.any():
+            self._prev = np.where(lost, unwrap_counts(r, self._nominal, self.chip, ov), self._prev)
+            self._run[lost] = 0
+        return np.where(s, n, 0), amb
+
+
 def counts_to_capacitance(
     n: ArrayLike, chip: ChipParams | None = None
 ) -> FloatArray:
     """Capacitance (F) whose expected count is ``n`` (unwrapped; may be a mean).
 
-    Zero or negative counts (a dead oscillator) give +inf.
+    NaN for anything no counted oscillator gives: non-finite, zero or negative (a
+    dead oscillator or no reading), or more than one edge per two cycles (beyond the
+    synchroniser). A NaN is "no reading", which every later stage handles.
     """
     ch = _chip(chip)
     nn = np.asarray(n, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        return np.where(nn > 0, ch.gate_time / (_LN2x2 * ch.R_osc * nn), np.inf)
+    ok = (nn > 0) & (nn <= ch.gate_cycles / 2.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(ok, ch.gate_time / (_LN2x2 * ch.R_osc * nn), np.nan)
 
 
 def counter_delta(
@@ -258,15 +451,19 @@ def adc_code(
     ch = _chip(chip)
     x = adc_input(C, ch)
     if noise is not None:
-        x = x + np.asarray(noise, dtype=np.float64)
+        nz = np.asarray(noise, dtype=np.float64)
+        if not np.all(np.isfinite(nz)):
+            raise ValueError("ADC noise must be finite (LSB)")
+        x = x + nz
     return np.clip(np.floor(x), 0, ch.adc_levels - 1).astype(np.int64)
 
 
 def _input_to_cap(x: FloatArray, ch: ChipParams) -> FloatArray:
+    # Input 0 LSB is C → ∞, full scale is C → 0: neither is a capacitance, so NaN.
     frac = x / ch.adc_levels
     with np.errstate(divide="ignore", invalid="ignore"):
         c = ch.adc_sample_time / (ch.R_adc * -np.log1p(-frac))
-    return np.where(frac <= 0, 0.0, np.where(frac >= 1, np.inf, c))
+    return np.where((frac > 0) & (frac < 1), c, np.nan)
 
 
 def code_to_capacitance(code: ArrayLike, chip: ChipParams | None = None) -> FloatArray:
@@ -277,6 +474,10 @@ def code_to_capacitance(code: ArrayLike, chip: ChipParams | None = None) -> Floa
     """
     ch = _chip(chip)
     k = np.asarray(code)
+    if k.dtype.kind not in "iu" and not (
+        k.dtype.kind == "f" and np.all(np.isfinite(k)) and np.all(k == np.round(k))
+    ):
+        raise ValueError(f"ADC codes must be integers, got {code!r}")
     if np.any(k < 0) or np.any(k >= ch.adc_levels):
         raise ValueError(f"ADC code must lie in [0, {ch.adc_levels})")
     return _input_to_cap(k.astype(np.float64) + 0.5, ch)
@@ -334,6 +535,13 @@ def _code_moments(
     return mean, np.maximum(sq - mean * mean, 0.0), dmean
 
 
+def _noise_lsb(ch: ChipParams, noise_lsb: float | None) -> float:
+    s = ch.adc_noise_lsb if noise_lsb is None else float(noise_lsb)
+    if not (math.isfinite(s) and s >= 0):
+        raise ValueError(f"ADC noise must be finite and >= 0 LSB, got {noise_lsb!r}")
+    return s
+
+
 def adc_mean_code(
     C: ArrayLike, chip: ChipParams | None = None, noise_lsb: float | None = None
 ) -> FloatArray:
@@ -343,11 +551,33 @@ def adc_mean_code(
     With 0.5 LSB it is the input minus ½ to within ≈0.002 LSB; the exact sum is used.
     """
     ch = _chip(chip)
-    s = ch.adc_noise_lsb if noise_lsb is None else noise_lsb
+    s = _noise_lsb(ch, noise_lsb)
     x = adc_input(C, ch)
     if s == 0:
         return np.clip(np.floor(x), 0, ch.adc_levels - 1)
     return _code_moments(np.asarray(x, dtype=np.float64), s, ch.adc_levels)[0]
+
+
+def adc_mean_band(chip: ChipParams | None = None, noise_lsb: float | None = None) -> tuple[float, float]:
+    """(lo, hi): the mean codes that say something about C.
+
+    They are the means at inputs of 1 LSB and full scale − 1 LSB, the first and last
+    code thresholds. Below lo the channel reads like a short (C → ∞), above hi like an
+    open input (C → 0); :func:`adc_mean_to_capacitance` gives NaN there.
+    """
+    ch = _chip(chip)
+    s = _noise_lsb(ch, noise_lsb)
+    if s == 0:
+        return 1.0, float(ch.adc_levels - 1)
+    m = _code_moments(np.array([1.0, ch.adc_levels - 1.0]), s, ch.adc_levels)[0]
+    return float(m[0]), float(m[1])
+
+
+#: |mean − target| at which the inversion stops (LSB), and the largest input error
+#: (LSB) accepted: a bracket that narrow, or a leftover that small where the mean is
+#: flat; otherwise NaN.
+_MEAN_TOL = 1e-11
+_INPUT_TOL = 1e-6
 
 
 def adc_mean_to_capacitance(
@@ -355,24 +585,44 @@ def adc_mean_to_capacitance(
 ) -> FloatArray:
     """Capacitance (F) whose expected oversampled mean code is ``mean_code``.
 
-    Inverts :func:`adc_mean_code` by Newton's method on the input (in LSB), starting
-    from ``mean + ½``. Needs noise > 0 (the dither is what makes the mean a smooth
-    function of the input); means at or beyond the rails give NaN.
+    Inverts :func:`adc_mean_code` for the input (LSB) by Newton's method kept inside
+    a bracket (the mean is monotone in the input; a step leaving the bracket is
+    replaced by bisection), and checks the result: NaN where it did not converge or
+    where the mean is too flat to fix the input to ``1e-6`` LSB (little noise,
+    between codes), and for means outside :func:`adc_mean_band` (open or shorted
+    channel). Needs noise > 0: the dither is what makes the mean a function of C.
     """
     ch = _chip(chip)
-    s = ch.adc_noise_lsb if noise_lsb is None else noise_lsb
+    s = _noise_lsb(ch, noise_lsb)
     if not s > 0:
         raise ValueError("inverting a mean code needs adc noise > 0 (use code_to_capacitance)")
     m = np.asarray(mean_code, dtype=np.float64)
     levels = ch.adc_levels
-    x = m + 0.5
-    for _ in range(8):
+    band_lo, band_hi = adc_mean_band(ch, s)
+    inside = ((m >= band_lo) & (m <= band_hi)).ravel()  # False for NaN
+    target = np.where(inside, m.ravel(), 0.5 * (band_lo + band_hi))
+    lo = np.full(target.shape, 1.0)
+    hi = np.full(target.shape, levels - 1.0)
+    x = np.clip(target + 0.5, lo, hi)
+    for _ in range(200):
         mu, _, dmu = _code_moments(x, s, levels)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = x - (mu - m) / dmu
-        x = np.clip(x, -10.0 * s, levels + 10.0 * s)
-    ok = (m > 0) & (m < levels - 1) & np.isfinite(x)
-    return np.where(ok, _input_to_cap(x, ch), np.nan)
+        r = mu - target
+        lo = np.where(r < 0, x, lo)
+        hi = np.where(r > 0, x, hi)
+        done = (np.abs(r) <= _MEAN_TOL) | (hi - lo <= _INPUT_TOL)
+        if done.all():
+            break
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            step = x - r / dmu
+        keep = (step >= lo) & (step <= hi)  # False for NaN
+        x = np.where(done, x, np.where(keep, step, 0.5 * (lo + hi)))
+    # Converged: the bracket itself pins the input, or the mean matches where it is
+    # steep enough that the leftover means < _INPUT_TOL (on a float-flat stretch
+    # between codes the match says nothing about where on the stretch we are).
+    with np.errstate(divide="ignore"):
+        converged = (hi - lo <= _INPUT_TOL) | ((np.abs(r) <= _MEAN_TOL) & (_MEAN_TOL / dmu <= _INPUT_TOL))
+    ok = inside & converged
+    return np.where(ok, _input_to_cap(x, ch), np.nan).reshape(m.shape)
 
 
 def adc_resolution(
@@ -388,7 +638,7 @@ def adc_resolution(
     average out, so the answer is the quantisation step's 1/√12 whatever n is.
     """
     ch = _chip(chip)
-    s = ch.adc_noise_lsb if noise_lsb is None else noise_lsb
+    s = _noise_lsb(ch, noise_lsb)
     nn = np.asarray(n, dtype=np.float64)
     if np.any(nn < 1):
         raise ValueError("number of conversions n must be >= 1")

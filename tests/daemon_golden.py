@@ -3,9 +3,9 @@
 ``python tests/daemon_golden.py`` regenerates both; do that only when a deliberate
 change of the daemon's output is reviewed, and commit the new golden file with it.
 
-The capture is a gateway line carrying four bridges: HELLO and BEACON, quiet samples
-for the baseline, a 3 N press on the corner of all four elements, the release, a second
-press held to the end, with
+The capture is a gateway line carrying nine bridges (3 x 3): HELLO and BEACON, quiet
+samples for the baseline, a 3 N press on the corner of four elements, the release, a
+second press held to the end, with
 line noise and a truncated frame on the way, in reads of uneven size.
 """
 
@@ -21,8 +21,8 @@ DATA = Path(__file__).parent / "data"
 CAPTURE = DATA / "daemon_press.cbcap"
 GOLDEN = DATA / "daemon_press.golden.json"
 CONFIG = DATA / "daemon_press.toml"
-PRESS = (0.020, 0.020, 3.0, 0.012)  # corner of all four elements
-PRESS2 = (0.040, 0.022, 2.0, 0.010)  # across the seam of bridges 2 and 4
+PRESS = (0.020, 0.020, 3.0, 0.012)  # the corner of bridges 1, 2, 4 and 5
+PRESS2 = (0.040, 0.022, 2.0, 0.010)  # across the seam of bridges 2 and 5
 T0 = 1_750_000_000.0
 
 
@@ -32,7 +32,7 @@ def make_capture(path: Path) -> None:
 
     from cellbridge.daemon.capture import write_capture
 
-    sk = Skin()
+    sk = Skin(rows=3, cols=3)
     records = [(T0, sk.hellos() + sk.beacons())]
     plan = [(None, 15), (PRESS, 10), (None, 8), (PRESS2, 12)]
     k = 0

@@ -28,8 +28,16 @@ u32 = st.integers(0, 0xFFFF_FFFF)
 u64 = st.integers(0, 0xFFFF_FFFF_FFFF_FFFF)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 
-samples = st.builds(Sample, u16, u64, u32, u32, u8)
-data = st.builds(Data, st.sampled_from(Mode), st.lists(samples, max_size=8).map(tuple), st.integers(1, 0xFFFF))
+def _samples(limit: int) -> st.SearchStrategy[tuple[Sample, ...]]:
+    code = st.integers(0, limit)
+    return st.lists(st.builds(Sample, u16, u64, code, code, u8), max_size=8).map(tuple)
+
+
+# Counter mode: 16-bit counts, oversampling 1; ADC mode: sums of `oversampling` 8-bit codes.
+counter_data = st.builds(Data, st.just(Mode.COUNTER), _samples(0xFFFF), st.just(1))
+adc_data = st.integers(1, 0xFFFF).flatmap(
+    lambda over: st.builds(Data, st.just(Mode.ADC), _samples(255 * over), st.just(over)))
+data = counter_data | adc_data
 beacon = st.builds(Beacon, u16, u16, u8)
 hello = st.builds(Hello, u16, st.text(max_size=8), finite, finite,
                   st.floats(min_value=1e-3, max_value=1.0), u32, u32)

@@ -93,6 +93,7 @@ def test_fuzz_decoders_raise_only_protocol_error() -> None:
             pass
         else:
             decoded += 1
+            assert encode(frame) == data  # only the canonical bytes of a frame are accepted
             reassembler.receive(frame, now=i * 1e-4)
         # The serial path: the same bytes, raw or COBS-framed, in two pieces.
         serial = data if i % 2 else b"\x00" + cobs.encode(data) + b"\x00"

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import collections
+import random
+
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
@@ -16,6 +19,7 @@ from cellbridge.protocol import (
     ProtocolError,
     Reassembler,
     Sample,
+    crc16,
     decode,
     encode,
     fragment,
@@ -53,29 +57,71 @@ def test_any_order_with_duplicates_gives_the_datagram_once(n, max_frame, order, 
     assert sum(r.drops.values()) == dup_count
 
 
+@settings(max_examples=150, deadline=None)
+@given(
+    plan=st.lists(st.tuples(st.integers(1, 40), st.integers(0, 2), st.booleans()), min_size=1, max_size=10),
+    max_frame=st.integers(40, 120),
+    loss=st.sampled_from([0.0, 0.05, 0.3]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_loss_reordering_and_tag_reuse_never_deliver_an_unsent_datagram(plan, max_frame, loss, seed) -> None:
+    """One bridge sends datagrams with tags from {0, 1, 2} and sometimes resets (seq and
+    tag numbering start again, so (tag, head seq) repeats with other contents). Fragments
+    are lost, repeated and reordered: whatever comes out was sent, and no more often."""
+    rng = random.Random(seed)
+    sent: list[Frame] = []
+    arrivals: list[tuple[float, float, Frame]] = []
+    seq, t = 0, 0.0
+    for n, tag, reset in plan:
+        if reset:
+            seq = 0
+        frame = Frame(9, 0, 9, seq, Data(Mode.COUNTER, tuple(Sample(0, rng.randrange(2**32), rng.randrange(2**16),
+                                                                    15800, 0) for _ in range(n))))
+        parts = fragment(frame, tag=tag, max_frame=max_frame)
+        seq = (seq + len(parts)) & 0xFFFF
+        sent.append(frame)
+        for p in parts:
+            # a whole frame passes straight through: repeating it is the DuplicateFilter's business
+            copies = 0 if rng.random() < loss else 1 + (rng.random() < 0.2 and len(parts) > 1)
+            arrivals += [(t + rng.uniform(0.0, 0.4), rng.random(), p) for _ in range(copies)]
+        t += rng.uniform(0.0, 0.3)
+    arrivals.sort(key=lambda a: a[:2])
+    r = Reassembler()
+    out = [x for x in (r.receive(decode(encode(p)), now) for now, _, p in arrivals) if x is not None]
+    sent_count = collections.Counter(repr(f) for f in sent)
+    out_count = collections.Counter(repr(f) for f in out)
+    assert all(out_count[k] <= sent_count[k] for k in out_count), "delivered a datagram that was not sent"
+    assert r.slot_count <= r.max_slots
+
+
 def test_small_frames_pass_through_untouched() -> None:
     frame = big_frame(1)
     assert fragment(frame, tag=1) == [frame]
     assert Reassembler().receive(frame, 0.0) is frame
 
 
-def _frag(offset: int, data: bytes, total: int = 30, tag: int = 1, origin: int = 4,
-          ftype: FrameType = FrameType.DATA) -> Frame:
-    return Frame(origin, 0, origin, offset, Fragment(ftype, tag, offset, total, data))
+def _frag(index: int, data: bytes, total: int = 30, tag: int = 1, origin: int = 4,
+          ftype: FrameType = FrameType.DATA, step: int = 10, head_seq: int = 0) -> Frame:
+    """Fragment ``index`` of a datagram cut in ``step``-byte slices, numbered from ``head_seq``."""
+    return Frame(origin, 0, origin, (head_seq + index) & 0xFFFF, Fragment(ftype, tag, index * step, total, data))
+
+
+def _sealed(payload: bytes) -> bytes:
+    """A datagram's bytes: the payload and its CRC-16."""
+    return payload + crc16(payload).to_bytes(2, "big")
 
 
 def test_non_first_fragment_without_state_is_dropped() -> None:
     r = Reassembler()
-    assert r.receive(_frag(10, b"x" * 10), 0.0) is None
+    assert r.receive(_frag(1, b"x" * 10), 0.0) is None
     assert r.drops == {"no_state": 1} and r.slot_count == 0
 
 
 @pytest.mark.parametrize(
     "second,cause",
-    [(_frag(0, b"B" * 10), "conflict"),  # same offset, other bytes
-     (_frag(5, b"A" * 10), "overlap"),  # partly overlapping slice
-     (_frag(10, b"A" * 10, total=40), "conflict"),  # another total
-     (_frag(10, b"A" * 10, ftype=FrameType.STATUS), "conflict")],  # another type
+    [(_frag(0, b"B" * 10), "conflict"),  # same fragment, other bytes
+     (_frag(1, b"A" * 10, total=40), "conflict"),  # another total
+     (_frag(1, b"A" * 10, ftype=FrameType.STATUS), "conflict")],  # another type
 )
 def test_conflicting_fragments_drop_the_datagram(second: Frame, cause: str) -> None:
     r = Reassembler()
@@ -83,22 +129,40 @@ def test_conflicting_fragments_drop_the_datagram(second: Frame, cause: str) -> N
     assert r.receive(second, 0.1) is None
     assert r.drops == {cause: 1} and r.slot_count == 0
     # The datagram is gone: its remaining fragments find no state.
-    assert r.receive(_frag(20, b"A" * 10), 0.2) is None
+    assert r.receive(_frag(2, b"A" * 10), 0.2) is None
     assert r.drops["no_state"] == 1
 
 
-def test_overlap_with_following_slice() -> None:
+@pytest.mark.parametrize(
+    "stranger",
+    [Frame(4, 0, 4, 1, Fragment(FrameType.DATA, 1, 5, 30, b"A" * 10)),  # not at a multiple of the step
+     _frag(1, b"A" * 10, head_seq=7),  # not numbered consecutively from the head
+     _frag(1, b"A" * 6),  # a short slice that is not the last
+     _frag(2, b"A" * 12, total=32)],  # a last slice longer than the step
+)
+def test_fragments_that_do_not_belong_are_dropped_alone(stranger: Frame) -> None:
     r = Reassembler()
-    r.receive(_frag(0, b"A" * 5), 0.0)
-    r.receive(_frag(10, b"A" * 10), 0.0)
-    assert r.receive(_frag(5, b"A" * 6), 0.0) is None
-    assert r.drops == {"overlap": 1}
+    r.receive(_frag(0, b"A" * 10), 0.0)
+    assert r.receive(stranger, 0.0) is None
+    assert r.drops == {"mismatch": 1} and r.slot_count == 1  # the datagram is still open
+
+
+def test_spliced_datagrams_fail_the_checksum() -> None:
+    # Two datagrams with one tag and one head seq (a bridge that reset twice):
+    # only the datagram checksum tells their fragments apart.
+    a = _sealed(b"a" * 28)
+    b = _sealed(b"b" * 28)
+    r = Reassembler()
+    r.receive(_frag(0, a[:10], total=len(a)), 0.0)
+    r.receive(_frag(1, a[10:20], total=len(a)), 0.0)
+    assert r.receive(_frag(2, b[20:], total=len(b)), 0.0) is None
+    assert r.drops == {"checksum": 1} and r.completed == 0
 
 
 def test_timeout_frees_the_slot() -> None:
     r = Reassembler(timeout=1.0)
     r.receive(_frag(0, b"A" * 10), 0.0)
-    r.receive(_frag(10, b"A" * 10), 0.5)
+    r.receive(_frag(1, b"A" * 10), 0.5)
     assert r.slot_count == 1
     r.expire(1.01)
     assert r.slot_count == 0 and r.drops == {"timeout": 1}
@@ -106,21 +170,39 @@ def test_timeout_frees_the_slot() -> None:
 
 def test_invalid_reassembled_payload_is_counted() -> None:
     r = Reassembler()
-    r.receive(_frag(0, b"\xc1" * 15), 0.0)
-    assert r.receive(_frag(15, b"\xc1" * 15), 0.0) is None
+    body = _sealed(b"\xc1" * 28)
+    r.receive(_frag(0, body[:15], step=15), 0.0)
+    assert r.receive(_frag(1, body[15:], step=15), 0.0) is None
     assert r.drops == {"payload": 1}
+
+
+def test_a_new_head_with_the_same_tag_replaces_an_incomplete_datagram() -> None:
+    r = Reassembler()
+    r.receive(_frag(0, b"A" * 10), 0.0)
+    r.receive(_frag(0, b"B" * 10, head_seq=50), 0.1)
+    assert r.drops == {"replaced": 1} and r.slot_count == 1
+    assert r.receive(_frag(1, b"A" * 10), 0.2) is None  # a fragment of the abandoned one
+    assert r.drops["mismatch"] == 1
+
+
+def test_reset_forgets_an_origin() -> None:
+    r = Reassembler()
+    r.receive(_frag(0, b"A" * 10, origin=4), 0.0)
+    r.receive(_frag(0, b"A" * 10, origin=5), 0.0)
+    r.reset(4)
+    assert r.slot_count == 1 and r.drops == {"reset": 1}
 
 
 def test_slot_limits_evict_the_oldest() -> None:
     r = Reassembler(max_per_origin=2, max_slots=3)
     for tag in range(3):
-        r.receive(_frag(0, b"A", tag=tag, origin=1), 0.0)
+        r.receive(_frag(0, b"A", tag=tag, origin=1, step=1), 0.0)
     assert r.slot_count == 2 and r.drops == {"evicted": 1}
     for origin in (2, 3):
-        r.receive(_frag(0, b"A", origin=origin), 0.0)
+        r.receive(_frag(0, b"A", origin=origin, step=1), 0.0)
     assert r.slot_count == 3 and r.drops == {"evicted": 2}
     # Oldest surviving slot of origin 1 was tag 1: evicted last, its next fragment has no state.
-    assert r.receive(_frag(1, b"A", tag=1, origin=1), 0.0) is None
+    assert r.receive(_frag(1, b"A", tag=1, origin=1, step=1), 0.0) is None
     assert r.drops["no_state"] == 1
 
 
@@ -142,7 +224,7 @@ def test_recent_memory_is_bounded_and_ages_out() -> None:
     r = Reassembler(remember=5, remember_for=10.0)
     for tag in range(20):
         r.receive(_frag(0, b"A" * 30, tag=tag), float(tag))
-    assert r.completed == 0 and r.drops["payload"] == 20  # b"A"*30 is not msgpack: counted anyway
+    assert r.completed == 0 and r.drops["checksum"] == 20  # b"A"*30 fails the checksum: counted anyway
     assert r.recent_count <= 5
     r.expire(100.0)
     assert r.recent_count == 0
@@ -153,3 +235,14 @@ def test_fragment_rejects_bad_sizes() -> None:
         fragment(big_frame(400), tag=1)  # > MAX_DATAGRAM
     with pytest.raises(ProtocolError):
         fragment(big_frame(50), tag=1, max_frame=20)
+
+
+def test_completions_are_forgotten_after_remember_for_whatever_the_order_of_origins() -> None:
+    r = Reassembler(remember_for=10.0)
+    body = _sealed(b"\x93\x01\x14\x02")  # a BEACON [1, 20, 2]
+    beacon = lambda origin, tag: Frame(origin, 0, origin, 0, Fragment(FrameType.BEACON, tag, 0, len(body), body))
+    assert r.receive(beacon(1, 0), 0.0) is not None
+    assert r.receive(beacon(2, 0), 1.0) is not None
+    assert r.receive(beacon(1, 1), 9.0) is not None  # origin 1 completed last: it is now behind origin 2
+    assert r.receive(beacon(1, 0), 10.5) is not None  # 10.5 s after its completion: a new datagram
+    assert r.receive(beacon(2, 0), 10.6) is None and r.drops["late_duplicate"] == 1

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import tracemalloc
+
 from cobs import cobs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -97,3 +99,20 @@ def test_max_encoded_len_bounds_cobs() -> None:
     for n in (0, 1, 253, 254, 255, 600):
         for data in (bytes(n), b"\xff" * n, bytes(range(256))[:n]):
             assert len(cobs.encode(data)) <= max_encoded_len(n)
+
+
+def test_feed_iter_yields_what_feed_returns_without_holding_it() -> None:
+    frames = [Frame(7, 0, 7, i & 0xFFFF, Beacon(1, 20, 2)) for i in range(40_000)]
+    stream = b"".join(encode_stream(f) for f in frames) + b"\x05ab"  # ~1 MB, many windows, a partial tail
+    a, b = StreamDecoder(), StreamDecoder()
+    assert list(b.feed_iter(stream)) == a.feed(stream) == frames
+    assert a.counters() == b.counters() and a.buffered == 3
+    c = StreamDecoder()
+    tracemalloc.start()
+    try:
+        count = sum(1 for _ in c.feed_iter(stream))
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert count == len(frames)
+    assert peak < 2_000_000  # feed holds ~8 MB here: the 40 000 frames in its list

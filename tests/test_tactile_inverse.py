@@ -223,3 +223,15 @@ def test_option_validation():
         inverse(1e-12, 1e-12, noise=-1.0)
     with pytest.raises(ValueError):
         solve(1e-12, 1e-12, max_error=0.0)
+
+
+@pytest.mark.parametrize("c1, c2", [(1e308, 1e-300), (1e300, 1e300), (-1e308, 1e308), (1e-320, 1e308)])
+def test_huge_or_tiny_inputs_warn_nothing_and_are_invalid(c1, c2):
+    # Overflow inside the inverse is expected for garbage; it must not leak out as a
+    # RuntimeWarning (an error under ``-W error``), and the answer must be invalid.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = solve(np.array([c1, 1e-12]), np.array([c2, 1e-12]))
+    assert not r.valid[0] and np.isnan(r.force[0])

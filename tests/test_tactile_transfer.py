@@ -112,12 +112,12 @@ def test_crystal_offset_scales_counts():
 
 
 def test_counts_round_trip():
-    c = np.linspace(6e-12, 80e-12, 500)
+    c = np.linspace(6.2e-12, 80e-12, 500)  # from the synchroniser's limit (≈6.14 pF)
     assert counts_to_capacitance(expected_counts(c)) == approx(c, rel=1e-13)
     # One integer count is worth ≈ 1/1250 pF at rest on C1.
     raw, _ = counts(P.C1_rest)
     assert float(counts_to_capacitance(raw)) == pytest.approx(P.C1_rest, abs=1e-15, rel=0)
-    assert counts_to_capacitance(0) == np.inf
+    assert np.isnan(counts_to_capacitance(0))  # no edges: no reading, not C = ∞
 
 
 def test_counter_wraps_and_unwraps():
@@ -240,3 +240,176 @@ def test_counter_delta_is_within_one_count_of_the_truth() -> None:
     lsb = 1.0 / counts_per_farad(rest + dC)  # one count, in farads
     assert np.all(np.abs(got - dC) <= 1.01 * lsb)
     assert np.any(got != dC)  # it does quantise
+
+
+# ------------------------------------------------------- issue 9: points 12-15
+
+
+def test_long_gates_are_refused_not_unwrapped_wrongly():
+    from cellbridge.tactile.transfer import check_gate, max_gate_cycles
+
+    # The old rule (count nearest the rest count, overflow flag) at 510 000 cycles:
+    # +7.65 pF on C1 comes back as a plausible negative ΔC. The gate is refused now.
+    chip = ChipParams(gate_cycles=510_000)
+    raw, ov = counts(P.C1_rest + 7.65e-12, chip, 0.3)
+    wrong = counts_to_capacitance(unwrap_counts(raw, expected_counts(P.C1_rest, chip), chip, ov), chip)
+    assert float(wrong) - P.C1_rest == pytest.approx(-3.87e-12, abs=0.05e-12)
+    for gate in (510_000, 1_000_000, 300_000):
+        with pytest.raises(ValueError, match="half the counter"):
+            check_gate(ChipParams(gate_cycles=gate))
+    limit = max_gate_cycles()
+    assert 150_000 < limit < 300_000
+    check_gate(ChipParams(gate_cycles=limit))
+    with pytest.raises(ValueError):
+        check_gate(ChipParams(gate_cycles=limit + 1))
+    check_gate(CHIP)  # the default 2 ms gate is fine
+
+
+def test_unwrapper_follows_each_channel_from_its_previous_sample():
+    from cellbridge.tactile.transfer import CounterUnwrapper
+
+    # 12-bit counter, 1 ms gate: the rest counts (≈9 800 / 7 900) are two moduli
+    # and more. The parasitics drift 3 pF below the nominal rest (counts +2 300,
+    # more than half a modulus) and then a +3 pF press comes and goes: only the
+    # previous sample knows which wrap the count is on.
+    chip = ChipParams(counter_bits=12, gate_cycles=50_000)
+    un = CounterUnwrapper(C_REST * 0.98, C_REST + 3e-12, chip, start=C_REST)
+    rng = np.random.default_rng(5)
+    base = C_REST - np.linspace(0, 3e-12, 300)[:, None] * np.array([1.0, 0.8])
+    press = np.concatenate([np.linspace(0, 3e-12, 20), np.linspace(3e-12, 0, 20)])[:, None]
+    path = np.concatenate([base, base[-1] + press * np.array([1.0, 0.6])])
+    for c in path:
+        ph = rng.uniform(0, 1, 2)
+        raw, ov = counts(c, chip, ph)
+        n, amb = un.unwrap(raw, ov)
+        assert list(n) == list(np.ceil(expected_counts(c, chip) - ph).astype(np.int64))
+        assert not amb.any()
+    assert list(un.ambiguous) == [0, 0]
+    # The stateless rule (nearest to the rest count) is a modulus off by now.
+    raw, ov = counts(base[-1], chip, 0.5)
+    bad = unwrap_counts(raw, expected_counts(C_REST, chip), chip, ov)
+    assert abs(int(bad[0]) - float(expected_counts(base[-1], chip)[0])) > 4000
+
+
+def test_unwrapper_flags_implausible_and_contradictory_samples():
+    from cellbridge.tactile.transfer import CounterUnwrapper
+
+    un = CounterUnwrapper(C_REST * 0.9, C_REST + 20e-12, CHIP, start=C_REST)
+    raw, ov = counts(C_REST, CHIP, 0.5)
+    n, amb = un.unwrap(raw, ov)
+    assert not amb.any()
+    # A count no plausible capacitance gives (a glitch), and a wrong overflow flag.
+    n2, amb2 = un.unwrap(np.array([100, int(raw[1])]), np.array([False, True]))
+    assert list(amb2) == [True, True]
+    assert list(un.ambiguous) == [1, 1]
+    # The reference is not dragged by a flagged sample: the next good one is exact.
+    n3, amb3 = un.unwrap(raw, ov)
+    assert not amb3.any() and list(n3) == list(n)
+    with pytest.raises(ValueError, match="half the counter"):
+        CounterUnwrapper(C_REST * 0.9, C_REST + 20e-12, ChipParams(gate_cycles=510_000))
+    with pytest.raises(ValueError):
+        un.unwrap(np.array([1, 2, 3]))
+
+
+def test_adc_rails_are_never_a_capacitance():
+    # An open channel (C → 0) sits on the top code, a shorted one (C → ∞) on code 0;
+    # 64 dithered conversions must never invert to 0 F, inf or a number.
+    rng = np.random.default_rng(9)
+    for c in (1e-15, 1e-14, 1e-4, 1e-3):
+        means = adc_code(np.full((2000, 64), c), noise=rng.normal(0, 0.5, (2000, 64))).mean(axis=1)
+        got = adc_mean_to_capacitance(means)
+        assert np.isnan(got).all(), c
+    for m in (0.0, 0.01, 0.3, 254.9, 255.0, -1.0, 256.0):
+        assert np.isnan(adc_mean_to_capacitance(m)), m
+    # Inside the band every mean inverts to a finite, positive capacitance.
+    from cellbridge.tactile.transfer import adc_mean_band
+
+    lo, hi = adc_mean_band()
+    assert 0.3 < lo < 1.0 and 254.0 < hi < 255.0
+    inside = adc_mean_to_capacitance(np.linspace(lo, hi, 200))
+    assert np.all(np.isfinite(inside) & (inside > 0))
+
+
+@pytest.mark.parametrize("sigma", [0.15, 0.25, 0.5, 2.0])
+def test_mean_code_inversion_is_bracketed_and_checked(sigma):
+    c = np.linspace(5e-12, 80e-12, 4001)
+    m = adc_mean_code(c, noise_lsb=sigma)
+    back = adc_mean_to_capacitance(m, noise_lsb=sigma)
+    ok = np.isfinite(back)
+    assert ok.mean() > 0.99
+    np.testing.assert_allclose(back[ok], c[ok], rtol=1e-6)
+
+
+def test_mean_code_inversion_gives_nan_where_the_mean_is_flat():
+    # With 0.02 LSB of noise the mean is flat to rounding between codes: no
+    # capacitance can be read from it, and none is invented.
+    c = np.linspace(15e-12, 16e-12, 2001)
+    m = adc_mean_code(c, noise_lsb=0.02)
+    back = adc_mean_to_capacitance(m, noise_lsb=0.02)
+    ok = np.isfinite(back)
+    assert ok.any() and not ok.all()
+    np.testing.assert_allclose(back[ok], c[ok], rtol=1e-4)
+
+
+def test_garbage_in_is_rejected_or_flagged():
+    # Non-finite input never reaches an integer cast.
+    with pytest.raises(ValueError):
+        adc_code(P.C1_rest, noise=np.nan)
+    with pytest.raises(ValueError):
+        adc_code(P.C1_rest, noise=np.inf)
+    with pytest.raises(ValueError):
+        counts(np.nan)
+    with pytest.raises(ValueError):
+        code_to_capacitance(np.nan)
+    with pytest.raises(ValueError):
+        code_to_capacitance(3.5)
+    # Out of the chip's range: too small for the synchroniser, or pF passed as F.
+    with pytest.raises(ValueError, match="synchroniser"):
+        counts(1e-30)
+    with pytest.raises(ValueError, match="synchroniser"):
+        counts(5e-12)
+    for bad in (15.67, 0.5):
+        with pytest.raises(ValueError, match="farads"):
+            counts(bad)
+        with pytest.raises(ValueError, match="farads"):
+            adc_code(bad)
+        with pytest.raises(ValueError, match="farads"):
+            expected_counts(bad)
+    # Host side: a count is NaN-in NaN-out, and counts no oscillator in range can
+    # produce (zero, negative, faster than the synchroniser) are NaN, not a value.
+    assert np.isnan(counts_to_capacitance(np.nan))
+    assert np.isnan(counts_to_capacitance(0))
+    assert np.isnan(counts_to_capacitance(-5))
+    assert np.isnan(counts_to_capacitance(CHIP.gate_cycles))  # T = 1 cycle
+    assert np.isfinite(counts_to_capacitance(19_593))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 0.999)),
+             min_size=1, max_size=30),
+    st.floats(-100.0, 100.0),
+)
+def test_unwrapper_is_exact_for_any_plausible_sequence_at_the_longest_gate(path, ppm):
+    # Any jump between plausible readings, from one sample to the next, at the
+    # longest gate check_gate allows: the count is exact and never flagged.
+    from cellbridge.tactile.transfer import CounterUnwrapper, max_gate_cycles, plausible_capacitance
+
+    lo, hi = plausible_capacitance()
+    chip = ChipParams(gate_cycles=max_gate_cycles(chip=CHIP.with_ppm(ppm)), clock_ppm=ppm)
+    un = CounterUnwrapper(lo, hi, chip, start=C_REST)
+    for u1, u2, ph in path:
+        c = lo + np.array([u1, u2]) * (hi - lo)
+        raw, ov = counts(c, chip, ph)
+        n, amb = un.unwrap(raw, ov)
+        assert list(n) == list(np.ceil(expected_counts(c, chip) - ph).astype(np.int64))
+        assert not amb.any()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(6e-12, 200e-12), st.floats(0.05, 3.0))
+def test_mean_code_inversion_is_right_or_nan(c, sigma):
+    back = float(adc_mean_to_capacitance(adc_mean_code(c, noise_lsb=sigma), noise_lsb=sigma))
+    assert math.isnan(back) or back == pytest.approx(c, rel=1e-5)
+    if sigma >= 0.15:
+        assert not math.isnan(back)

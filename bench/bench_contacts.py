@@ -1,0 +1,245 @@
+"""Contact estimation at frame rate: accuracy at 1 fF noise, time per contact and per frame.
+
+Prints tables; asserts nothing. Run (one core, about a minute):
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bench_contacts.py
+
+* Accuracy: random contacts straddling the seams of the 2×2 skin (D 10-30 mm,
+  F 2-10 N, half across one seam, half near the corner), Gaussian noise of 1 fF on
+  every reading: RMS position error on the axes the readings resolve (contacts
+  with a valid pressure), force error at p95 over those, and how often the
+  reported σ covers the error (|error| ≤ 2σ, per axis, every axis of every fitted
+  contact counted, light touches included). Light touches (the inverse's ambiguous
+  low-pressure region: the position is an interval) are reported apart.
+* Speed, uniform model: one random contact per frame anywhere on a 4×4 and a
+  16×16 skin (D 10-30 mm, F 2-10 N, 1 fF noise; ``active`` = elements the contact
+  really touches, as the calibrator's touch flags give), ``estimate()`` per frame;
+  a 16×16 frame with 8 simultaneous contacts; the spread model (s = 2 mm) per
+  contact; the tracker's ``update()`` on the 8-contact frames; ``estimate_frames()``
+  on chunks of the same frames (time per frame; its p99 is over chunks). Today's code
+  (``bench/_legacy_contacts.py``, the estimator before this kernel) runs on the same
+  readings in the same run for the speed-up.
+
+Times are wall clock (``perf_counter``) and CPU time of this thread
+(``thread_time``): the machine is shared, so the wall p99 includes time other
+processes held the core; the CPU figures are what the estimator itself costs.
+The numba kernels are compiled (or loaded from their cache) before timing.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import math  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout too
+
+from _legacy_contacts import ContactEstimator as LegacyEstimator  # noqa: E402
+from timing import pin_to_one_core, table  # noqa: E402
+
+from cellbridge.tactile.contacts import ContactEstimator, cluster_elements  # noqa: E402
+from cellbridge.tactile.skin import grid_layout, skin_response  # noqa: E402
+from cellbridge.tactile.tracker import ContactTracker  # noqa: E402
+
+MM = 1e-3
+NOISE = 1e-15
+SPREAD = 0.002
+SEPARATION: list[list[object]] = []
+
+
+def noisy(lay, contacts, rng, spread=0.0):
+    dc1, dc2 = skin_response(lay, contacts, spread=spread)
+    active = (dc1 > 3 * NOISE) | (dc2 > 3 * NOISE)
+    return dc1 + rng.normal(0, NOISE, lay.n), dc2 + rng.normal(0, NOISE, lay.n), active
+
+
+def random_disk(rng, lo, hi):
+    d = rng.uniform(0.010, 0.030)
+    x, y = rng.uniform(lo, hi, 2)
+    return [x, y, rng.uniform(2.0, 10.0), d]
+
+
+def timed(fn, frames):
+    wall, cpu, out = [], [], []
+    for f in frames:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        out.append(fn(*f))
+        cpu.append(time.thread_time() - c0)
+        wall.append(time.perf_counter() - t0)
+    return np.array(wall), np.array(cpu), out
+
+
+def ms(a, q=50):
+    return f"{1e3 * np.percentile(a, q):.3f}"
+
+
+def accuracy(n=300):
+    rng = np.random.default_rng(5)
+    lay = grid_layout(2, 2)
+    est = ContactEstimator(lay, noise=NOISE)
+    err, ferr, light, cover, axes, n_fit = [], [], [], 0, 0, 0
+    for _ in range(n):
+        d = rng.uniform(0.010, 0.030)
+        f = rng.uniform(2.0, 10.0)
+        x, y = rng.uniform(0.020 - d / 2, 0.020 + d / 2, 2)
+        if rng.uniform() < 0.5:
+            y = rng.uniform(-0.015 + d / 2, 0.015 - d / 2)
+        dc1, dc2, _ = noisy(lay, [x, y, f, d], rng)
+        cs = est.estimate(dc1, dc2)
+        if len(cs) != 1 or not cs[0].fit_ok:
+            continue
+        c = cs[0]
+        n_fit += 1
+        if c.valid:
+            ferr.append(abs(c.force / f - 1.0))
+        for ax, (t, e, s) in enumerate(((x, c.x, c.sigma_x), (y, c.y, c.sigma_y))):
+            axes += 1
+            cover += abs(e - t) <= 2 * s
+            if c.observable[ax] and c.valid:
+                err.append(e - t)
+            elif c.observable[ax]:
+                light.append(e - t)
+    err = np.array(err)
+    light = np.array(light)
+    table(
+        "Accuracy: random straddling contacts on the 2×2 skin, 1 fF Gaussian noise per reading",
+        ["contacts", "fitted", "valid", "resolved axes (valid)", "RMS err mm", "max err mm", "F err p95 %",
+         "σ covers (2σ, all axes) %", "light-touch axes", "their RMS err mm"],
+        [[n, n_fit, len(ferr), err.size, f"{math.sqrt(np.mean(err ** 2)) / MM:.4f}",
+          f"{np.max(np.abs(err)) / MM:.4f}", f"{100 * np.percentile(ferr, 95):.3f}", f"{100 * cover / axes:.1f}",
+          light.size, f"{math.sqrt(np.mean(light ** 2)) / MM:.2f}" if light.size else "-"]],
+    )
+
+
+def batched(rows, est, name, what, frames, chunk):
+    """estimate_frames() on chunks of frames: time per frame."""
+    groups = [frames[i : i + chunk] for i in range(0, len(frames) - chunk + 1, chunk)]
+    stacked = [tuple(np.stack([f[j] for f in g]) for j in range(3)) for g in groups]
+    wall, cpu, out = timed(est.estimate_frames, stacked)
+    per = np.mean([len(c) for o in out for c in o])
+    rows.append([name, f"{what}, estimate_frames × {chunk}", len(groups) * chunk, ms(wall / chunk),
+                 ms(wall / chunk, 99), ms(cpu / chunk), ms(cpu / chunk, 99), f"{per:.2f}"])
+
+
+def speed_single(rows, rows_legacy, name, lay, n, n_legacy, rng):
+    pitch = lay.side
+    extent = lay.extent
+    frames = [noisy(lay, random_disk(rng, extent[0] + 0.1 * pitch, extent[2] - 0.1 * pitch), rng) for _ in range(n)]
+    est = ContactEstimator(lay, noise=NOISE)
+    for f in frames[:20]:
+        est.estimate(*f)
+    wall, cpu, out = timed(est.estimate, frames)
+    per = np.array([len(o) for o in out])
+    rows.append([name, "one contact per frame", n, ms(wall), ms(wall, 99), ms(cpu), ms(cpu, 99),
+                 f"{per.mean():.2f}"])
+    batched(rows, est, name, "one contact per frame", frames, 50)
+    leg = LegacyEstimator(lay, noise=NOISE)
+    lw, lc, _ = timed(leg.estimate, frames[:n_legacy])
+    rows_legacy.append([name, "one contact per frame", n_legacy, ms(lw), ms(lc),
+                        f"{np.median(lc) / np.median(cpu[:n_legacy]):.0f}×"])
+    return est
+
+
+def speed_frame8(rows, rows_legacy, rng, n=200, n_legacy=10):
+    lay = grid_layout(16, 16)
+    frames = []
+    while len(frames) < n:
+        disks = []
+        while len(disks) < 8:
+            d = random_disk(rng, 0.0, 0.600)
+            # Separate fingers: footprints at least a pitch apart (touching pairs are
+            # the split test's business, not this timing).
+            if all(math.hypot(d[0] - e[0], d[1] - e[1]) > 0.5 * (d[3] + e[3]) + 0.040 for e in disks):
+                disks.append(d)
+        frames.append(noisy(lay, disks, rng))
+    est = ContactEstimator(lay, noise=NOISE)
+    for f in frames[:10]:
+        est.estimate(*f)
+    wall, cpu, out = timed(est.estimate, frames)
+    per = np.array([len(o) for o in out])
+    rows.append(["16×16", "8 contacts per frame", n, ms(wall), ms(wall, 99), ms(cpu), ms(cpu, 99),
+                 f"{per.mean():.2f}"])
+    batched(rows, est, "16×16", "8 contacts per frame", frames, 10)
+    # Fingers 40 mm apart edge to edge can still press neighbouring elements: their
+    # clusters merge, and the two-disk split has to separate them.
+    ncl = np.array([cluster_elements(lay, f[2]).max() + 1 for f in frames])
+    SEPARATION.append(["16×16, 8 fingers", n, f"{ncl.mean():.2f}", int((ncl < 8).sum()),
+                       int(((ncl < 8) & (per == 8)).sum()), f"{per.mean():.2f}"])
+    leg = LegacyEstimator(lay, noise=NOISE)
+    lw, lc, _ = timed(leg.estimate, frames[:n_legacy])
+    rows_legacy.append(["16×16", "8 contacts per frame", n_legacy, ms(lw), ms(lc),
+                        f"{np.median(lc) / np.median(cpu[:n_legacy]):.0f}×"])
+    tr = ContactTracker(est, birth_frames=1)
+    # The tracker sees the same fingers frame after frame: replay each frame 5 times.
+    replay = [f for f in frames[:40] for _ in range(5)]
+    tw, tc, _ = timed(tr.update, replay)
+    rows.append(["16×16", "8 contacts, tracker.update (warm)", len(replay), ms(tw), ms(tw, 99), ms(tc),
+                 ms(tc, 99), "8"])
+
+
+def speed_spread(rows, rows_legacy, rng, n=60, n_legacy=4):
+    lay = grid_layout(2, 2)
+    frames = []
+    for _ in range(n):
+        d = rng.uniform(0.010, 0.020)
+        x = rng.uniform(0.020 - 0.4 * d, 0.020 + 0.4 * d)
+        frames.append(noisy(lay, [x, rng.uniform(-0.01, 0.01), rng.uniform(2.0, 8.0), d], rng, spread=SPREAD))
+    t0 = time.perf_counter()
+    est = ContactEstimator(lay, noise=NOISE, spread=SPREAD)  # builds the profile rows
+    est.estimate(*frames[0])
+    cold = time.perf_counter() - t0
+    for f in frames[:10]:
+        est.estimate(*f)
+    wall, cpu, out = timed(est.estimate, frames)
+    rows.append(["2×2", f"spread s = {SPREAD / MM:.0f} mm, one contact", n, ms(wall), ms(wall, 99), ms(cpu),
+                 ms(cpu, 99), f"{np.mean([len(o) for o in out]):.2f}"])
+    leg = LegacyEstimator(lay, noise=NOISE, spread=SPREAD)
+    lw, lc, _ = timed(leg.estimate, frames[:n_legacy])
+    rows_legacy.append(["2×2", f"spread s = {SPREAD / MM:.0f} mm, one contact", n_legacy, ms(lw), ms(lc),
+                        f"{np.median(lc) / np.median(cpu[:n_legacy]):.0f}×"])
+    return cold
+
+
+def main() -> None:
+    pin_to_one_core()
+    t0 = time.perf_counter()
+    print("cellbridge contact estimation bench — 40 mm elements, 1 fF noise, one core")
+    accuracy()
+    rng = np.random.default_rng(11)
+    rows, rows_legacy = [], []
+    speed_single(rows, rows_legacy, "4×4", grid_layout(4, 4), 400, 40, rng)
+    speed_single(rows, rows_legacy, "16×16", grid_layout(16, 16), 400, 20, rng)
+    speed_frame8(rows, rows_legacy, rng)
+    cold = speed_spread(rows, rows_legacy, rng)
+    table(
+        "Time per estimate() call (ms; uniform model unless stated); targets: one contact median ≤ 0.5, "
+        "p99 ≤ 2; 8 contacts ≤ 4; spread ≤ 5",
+        ["skin", "frames", "n", "wall median", "wall p99", "CPU median", "CPU p99", "contacts/frame"],
+        rows,
+    )
+    table(
+        "Today's estimator (bench/_legacy_contacts.py) on the first frames of the same sets",
+        ["skin", "frames", "n", "wall median", "CPU median", "speed-up (CPU medians)"],
+        rows_legacy,
+    )
+    table(
+        "Touching fingers: frames whose clusters merged, and how many came back as all 8 contacts "
+        "(two disks per cluster at most)",
+        ["skin", "frames", "clusters/frame", "frames with merged clusters", "of them all 8 found", "contacts/frame"],
+        SEPARATION,
+    )
+    print(f"\nspread model, construction and first contact of the process (profile rows built): "
+          f"{1e3 * cold:.0f} ms")
+    print(f"total bench time {time.perf_counter() - t0:.1f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,49 @@
+#!/usr/bin/env python3
+"""Subscribe to the cellbridge daemon and print each message as one JSON line.
+
+Needs only pyzmq and msgpack (pip install pyzmq msgpack), not cellbridge.
+
+    python3 subscriber.py                         # every topic from tcp://127.0.0.1:5560
+    python3 subscriber.py contact health -n 10    # two topics, ten messages
+    python3 subscriber.py -e tcp://robot:5560 -s server.key -k me.key_secret   # CURVE
+
+-s/-k: the daemon's public key file and this client's secret key file, both
+written by `cellbridge keys gen`; the client's .key must be allowed by the daemon.
+"""
+
+import argparse
+import json
+
+import msgpack
+import zmq
+import zmq.auth
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description="Print the cellbridge daemon's messages as JSON lines.")
+    parser.add_argument("topics", nargs="*", help="topic prefixes (default: all)")
+    parser.add_argument("-e", "--endpoint", default="tcp://127.0.0.1:5560")
+    parser.add_argument("-n", "--count", type=int, default=0, help="stop after N messages")
+    parser.add_argument("-s", "--server-key", help="daemon's public key file (CURVE)")
+    parser.add_argument("-k", "--client-key", help="this client's secret key file (CURVE)")
+    args = parser.parse_args()
+
+    sock = zmq.Context.instance().socket(zmq.SUB)
+    if args.server_key and args.client_key:
+        sock.curve_serverkey, _ = zmq.auth.load_certificate(args.server_key)
+        sock.curve_publickey, sock.curve_secretkey = zmq.auth.load_certificate(args.client_key)
+    for topic in args.topics or [""]:
+        sock.subscribe(topic)
+    sock.connect(args.endpoint)
+
+    received = 0
+    while not args.count or received < args.count:
+        topic, payload = sock.recv_multipart()
+        message = msgpack.unpackb(payload, strict_map_key=False)  # every payload carries "v" and "t_host"
+        print(json.dumps({"topic": topic.decode(), "payload": message}, default=bytes.hex), flush=True)
+        received += 1
+    sock.close(linger=0)
+
+
+if __name__ == "__main__":
+    main()

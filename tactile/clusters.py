@@ -1,0 +1,63 @@
+"""Which touched elements belong to one contact, and the paper's centroid of a contact.
+
+Clustering is by the layout's geometry (elements sharing a border), so a convex
+contact is one cluster wherever it lies; two contacts whose footprints press
+neighbouring elements form one cluster too, which the estimator then splits when two
+disks explain the readings significantly better than one.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cellbridge.tactile.skin import SkinLayout
+
+__all__ = ["cluster_elements", "force_centroid"]
+
+IntArray = NDArray[np.int64]
+
+
+def cluster_elements(
+    layout: SkinLayout,
+    active: ArrayLike,
+    connectivity: Literal["edge", "corner"] = "edge",
+) -> IntArray:
+    """Connected components of the active elements: a label per element, -1 if inactive.
+
+    Labels are 0..K-1, numbered by the lowest element index in each component.
+    Neighbourhood comes from the layout's geometry (edge-sharing by default).
+    """
+    a = np.asarray(active, dtype=bool)
+    if a.shape != (layout.n,):
+        raise ValueError(f"active must have shape ({layout.n},), got {a.shape}")
+    e = layout.edges if connectivity == "edge" else layout.corner_edges
+    e = e[a[e[:, 0]] & a[e[:, 1]]]
+    lab = np.arange(layout.n)
+    while True:  # min-label propagation with pointer jumping: O(log diameter) passes
+        m = np.minimum(lab[e[:, 0]], lab[e[:, 1]])
+        new = lab.copy()
+        np.minimum.at(new, e[:, 0], m)
+        np.minimum.at(new, e[:, 1], m)
+        new = new[new]
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    out = np.full(layout.n, -1, dtype=np.int64)
+    roots = np.unique(lab[a])
+    out[a] = np.searchsorted(roots, lab[a])
+    return out
+
+
+def force_centroid(layout: SkinLayout, weights: ArrayLike, members: ArrayLike) -> tuple[float, float]:
+    """The paper's spatial centroid Σw_i·c_i/Σw_i over ``members`` (indices)."""
+    idx = np.asarray(members, dtype=np.int64)
+    w = np.asarray(weights, dtype=np.float64)[idx]
+    w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
+    tot = w.sum()
+    c = layout.centres[idx]
+    if not tot > 0:
+        return float(c[:, 0].mean()), float(c[:, 1].mean())
+    return float(w @ c[:, 0] / tot), float(w @ c[:, 1] / tot)

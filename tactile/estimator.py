@@ -1,0 +1,311 @@
+"""Contacts from one frame of element readings: clusters, inverse, fits, results.
+
+One element cannot tell where on it a contact sits (eq. 3 integrates over it). The
+array can, as soon as a contact straddles a seam: how the footprint is shared
+between the elements it lies on depends on where it is. Per cluster of touched
+elements the estimator reports the paper's force-weighted centroid (§III.B, Fig. 7)
+and a model-based fit of one uniform-pressure disk (centre, diameter, force) to
+what every element of the cluster and its ring of neighbours measured; when two
+disks explain a cluster significantly better than one (two fingers on neighbouring
+elements), it reports both.
+
+This module holds the orchestration only: the compiled model and fit are in
+:mod:`cellbridge.tactile.disk_model` and :mod:`cellbridge.tactile.fit_kernel` (the
+spread model in :mod:`cellbridge.tactile.spread_model`), the problems they are posed
+in :mod:`cellbridge.tactile.fit_problems`, the two-disk split in
+:mod:`cellbridge.tactile.two_disks` and the light touch in
+:mod:`cellbridge.tactile.light_touch`. Every fit of a frame runs in one kernel call
+per kind (one-disk, two-disk, fixed-diameter).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cellbridge.tactile.clusters import cluster_elements
+from cellbridge.tactile.contact_result import Contact
+from cellbridge.tactile.element import ElementParams
+from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits
+from cellbridge.tactile.inversion import DEFAULT_NOISE, solve
+from cellbridge.tactile.light_touch import locate_light, unlocated
+from cellbridge.tactile.skin import SkinLayout, _check_spread, _spread_cells
+from cellbridge.tactile.spread_model import DV, PROFILE_ROWS
+from cellbridge.tactile.two_disks import split_clusters
+
+__all__ = ["ContactEstimator", "estimate_contacts"]
+
+FloatArray = NDArray[np.float64]
+
+
+class ContactEstimator:
+    """Turns per-element ΔC (and touch flags) of one time step into :class:`Contact` s.
+
+    ``noise`` is the rms noise of one ΔC reading (F, scalar or per channel); it
+    weights the fit and scales every reported uncertainty. ``spread`` is the
+    membrane-tension model of :func:`cellbridge.tactile.skin.skin_response` (0: the
+    paper's assumption). ``method`` picks what the disk is fitted to:
+    ``"capacitance"`` (ΔC of the cluster and its neighbours; default) or ``"area"``
+    (the per-element areas from the inverse; uniform pressure only). ``split``
+    allows a cluster to be reported as two contacts when two disks explain it
+    significantly better than one.
+    """
+
+    def __init__(
+        self,
+        layout: SkinLayout,
+        params: ElementParams | None = None,
+        *,
+        spread: float = 0.0,
+        noise: float | Sequence[float] = DEFAULT_NOISE,
+        method: Literal["capacitance", "area"] = "capacitance",
+        connectivity: Literal["edge", "corner"] = "edge",
+        quad_step: float | None = None,
+        inverse_options: dict[str, float] | None = None,
+        split: bool = True,
+    ):
+        self.layout = layout
+        self.params = params if params is not None else ElementParams(side=layout.side)
+        self.spread = _check_spread(spread)
+        nz = np.broadcast_to(np.asarray(noise, dtype=np.float64), (2,)).copy()
+        if not np.all(np.isfinite(nz)) or not np.all(nz > 0):
+            raise ValueError("noise must be > 0 F (one value or one per channel)")
+        self.noise = nz
+        if method not in ("capacitance", "area"):
+            raise ValueError(f"method must be 'capacitance' or 'area', got {method!r}")
+        if method == "area" and self.spread > 0:
+            raise ValueError("method='area' assumes uniform pressure; use 'capacitance' with spread")
+        self.method = method
+        if connectivity not in ("edge", "corner"):
+            raise ValueError(f"connectivity must be 'edge' or 'corner', got {connectivity!r}")
+        self.connectivity = connectivity
+        self.quad_step = quad_step
+        self.inverse_options = dict(inverse_options or {})
+        self.split = bool(split)
+        self._runner = FitRunner(layout, self.params, nz, method == "area")
+        self._adj_edge = layout.adjacency("edge") if layout.n <= 4096 else None
+        if self.spread > 0:
+            _spread_cells(layout.side, self.spread, quad_step)  # validates quad_step now
+            # The spread model's profile rows for disks up to an element side, built
+            # now (≈ 1 s once per process, at most 300 rows) rather than in a frame.
+            PROFILE_ROWS.upto(min(int(math.ceil((0.5 * layout.side / self.spread + 2.0) / DV)) + 2, 300))
+
+    # -- public -----------------------------------------------------------------------
+    def estimate(
+        self,
+        dC1: ArrayLike,
+        dC2: ArrayLike,
+        active: ArrayLike | None = None,
+        *,
+        hints: ArrayLike | None = None,
+    ) -> list[Contact]:
+        """Contacts from ΔC (F) of every element; ``active`` = touched elements.
+
+        Without ``active``, an element is active when either channel exceeds three
+        noise sigmas. NaN readings count as inactive and are left out of the fits.
+        ``hints`` are ``(x, y, diameter, force)`` rows of contacts expected in this
+        frame (the previous frame's, from :class:`~cellbridge.tactile.tracker.ContactTracker`):
+        a cluster containing one starts its fit there.
+        """
+        h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64)
+        if h.ndim == 1 and h.size in (0, 4):
+            h = h.reshape(-1, 4)
+        if h.ndim != 2 or h.shape[1] != 4:
+            raise ValueError(f"hints must be (x, y, diameter, force) rows, got shape {h.shape}")
+        (per_frame,) = self._estimate(*self._readings(dC1, dC2, active, 1), h)
+        return per_frame
+
+    def estimate_frames(
+        self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None
+    ) -> list[list[Contact]]:
+        """:meth:`estimate` for T frames at once: ``dC1``, ``dC2`` (and ``active``)
+        of shape (T, N); one list of contacts per frame.
+
+        The same answers, cheaper per frame: one inverse call and one kernel call per
+        kind of fit serve every frame (for a backlog, a recording, or several skins'
+        frames that arrive together).
+        """
+        c1, c2, act = self._readings(dC1, dC2, active, None)
+        return self._estimate(c1, c2, act, np.zeros((0, 4)))
+
+    # -- per frame ------------------------------------------------------------------------
+    def _readings(
+        self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None, frames: int | None
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """(T, N) readings and active flags, checked; ``frames=1``: one frame of (N,)."""
+        n = self.layout.n
+        c1 = np.asarray(dC1, dtype=np.float64)
+        c2 = np.asarray(dC2, dtype=np.float64)
+        want = (n,) if frames == 1 else (c1.shape[0] if c1.ndim == 2 else -1, n)
+        if c1.shape != want or c2.shape != want:
+            shape = f"({n},)" if frames == 1 else f"(T, {n})"
+            raise ValueError(f"dC1 and dC2 must have shape {shape}, got {c1.shape} and {c2.shape}")
+        c1, c2 = c1.reshape(-1, n), c2.reshape(-1, n)
+        finite = np.isfinite(c1) & np.isfinite(c2)
+        if active is None:
+            act = finite & ((c1 > 3 * self.noise[0]) | (c2 > 3 * self.noise[1]))
+        else:
+            act = np.asarray(active, dtype=bool)
+            if act.shape != want:
+                raise ValueError(f"active must have the readings' shape {want}, got {act.shape}")
+            act = act.reshape(-1, n) & finite
+        return c1, c2, act
+
+    def _estimate(
+        self, c1: FloatArray, c2: FloatArray, act: NDArray[np.bool_], hints: FloatArray
+    ) -> list[list[Contact]]:
+        lay = self.layout
+        valid = np.zeros(c1.shape, dtype=bool)
+        force = np.full(c1.shape, np.nan)
+        area = np.full(c1.shape, np.nan)
+        if act.any():
+            inv = solve(c1[act], c2[act], self.params, noise=float(self.noise.max()), **self.inverse_options)
+            valid[act] = inv.valid
+            force[act] = inv.force
+            area[act] = inv.area
+        clusters: list[Cluster] = []
+        frame_of: list[int] = []
+        for t in range(c1.shape[0]):
+            if not act[t].any():
+                continue
+            labels = cluster_elements(lay, act[t], self.connectivity)
+            order = np.argsort(labels, kind="stable")
+            k_max = int(labels.max())
+            starts = np.searchsorted(labels[order], np.arange(k_max + 2))
+            finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
+            for k in range(k_max + 1):
+                clusters.append(self._runner.cluster(
+                    order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t]))
+                frame_of.append(t)
+        out: list[list[Contact]] = [[] for _ in clusters]
+        good = [k for k, cl in enumerate(clusters) if cl.valid]
+        if good:
+            for k, cs in zip(good, self._fit_valid([clusters[k] for k in good], hints)):
+                out[k] = cs
+        # A light touch on one element says nothing finer than the element: no fit.
+        light = [k for k, cl in enumerate(clusters) if not cl.valid and cl.members.size > 1]
+        for k, cl in enumerate(clusters):
+            if not cl.valid and cl.members.size == 1:
+                out[k] = [unlocated(cl, lay.side)]
+        if light:
+            for k, c in zip(light, locate_light(self._runner, [clusters[k] for k in light])):
+                out[k] = [c]
+        frames: list[list[Contact]] = [[] for _ in range(c1.shape[0])]
+        for t, cs in zip(frame_of, out):
+            frames[t].extend(cs)
+        return frames
+
+    # -- clusters with a pressure ---------------------------------------------------------
+    def _fit_valid(self, clusters: list[Cluster], hints: FloatArray) -> list[list[Contact]]:
+        nd_free = np.array([True, True, True, self.method != "area"])
+        run = self._runner
+        st = run.starts(clusters)
+        theta0 = np.empty((len(clusters), 4))
+        theta0[:, :2] = st[:, :2]
+        theta0[:, 2] = np.log(2.0 * st[:, 2])
+        theta0[:, 3] = np.log(np.array([cl.sigma0 for cl in clusters]) * math.pi * st[:, 2] ** 2)
+        pair_hints: dict[int, FloatArray] = {}
+        hinted = np.zeros(len(clusters), dtype=bool)
+        for k, cl in enumerate(clusters):
+            inside = self._hints_in(cl, hints, 2.0 * st[k, 2])
+            if inside.shape[0] >= 1:
+                hinted[k] = True
+                theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
+            if inside.shape[0] >= 2:
+                pair_hints[k] = inside[:2]
+        free = np.tile(nd_free, (len(clusters), 1))
+        batch = run.batch(clusters)
+        fits = run.run(batch, theta0, free, 1, True)
+        # A warm start in the wrong valley (the disk moved far since last frame) is
+        # caught by its fit quality and redone from the readings' own start.
+        dof = batch.dof(4 if self.method != "area" else 3)
+        redo = np.nonzero(hinted & (fits.chi2 > dof + 3.0 * np.sqrt(2.0 * np.maximum(dof, 1)) + 1.0))[0]
+        if redo.size:
+            sub = [clusters[k] for k in redo]
+            t0 = np.column_stack([st[redo, :2], np.log(2 * st[redo, 2]),
+                                  np.log([clusters[k].sigma0 * math.pi * st[k, 2] ** 2 for k in redo])])
+            again = run.run(run.batch(sub), t0, free[redo], 1, True)
+            for j, k in enumerate(redo):
+                if again.cost[j] < fits.cost[k]:
+                    fits.take(k, again, j)
+        if self.spread > 0:
+            fits = self._spread_refine(batch, fits)
+        area_force = self.method == "area"
+        results = {k: [fits.contact(cl, k, int(dof[k]), area_force)] for k, cl in enumerate(clusters)}
+        # Two disks need the uniform model: under a spread, a one-disk misfit of the
+        # uniform model is no evidence of a second contact.
+        split: dict[int, list[Contact]] = {}
+        if self.split and self.method != "area" and self.spread == 0:
+            split = split_clusters(run, clusters, fits, dof, pair_hints, self._adj_edge)
+            results.update(split)
+        # A pressure from an element's inverse that no disk (nor two) agrees with (a
+        # reading that passed the inverse's checks on the wrong branch): locate the
+        # touch as one without a pressure, if that finds a disk that fits.
+        failed = [k for k in range(len(clusters))
+                  if not fits.ok[k] and clusters[k].members.size > 1 and k not in split]
+        if failed:
+            for k, c in zip(failed, locate_light(run, [clusters[k] for k in failed])):
+                if c.fit_ok:
+                    results[k] = [c]
+        return list(results.values())
+
+    def _spread_refine(self, batch: Batch, uni: Fits) -> Fits:
+        """The uniform fits, refined with the spread model (cheap start, close position).
+
+        Axes the uniform fit found unresolved stay at the middle of their range (a
+        disk inside one element sees its position under tension only through the
+        tails, which the readings resolve no better); the others, D and F are fitted
+        again, and their σ come from the spread model's curvature.
+        """
+        s = self.spread
+        d_max = float(np.exp(uni.theta[:, 2]).max())
+        rows = PROFILE_ROWS.upto(int(math.ceil((0.5 * d_max * 1.5 / s + 2.0) / DV)) + 2)
+        sm = (s, _spread_cells(self.layout.side, s, self.quad_step), rows)
+        free = np.ones(uni.theta.shape, dtype=bool)
+        free[:, :2] = ~uni.flat[:, :2]
+        good = uni.ok
+        out = self._runner.run(batch, uni.theta, free, 1, False, sm)
+        for j in range(2):
+            keep = uni.flat[:, j] | ~good
+            out.sig[keep, j] = uni.sig[keep, j]
+            out.flat[:, j] = uni.flat[:, j]
+        out.ok &= good
+        return out
+
+    def _hints_in(self, cl: Cluster, hints: FloatArray, d_start: float) -> FloatArray:
+        """The hints that can be this cluster's disk, nearest its centroid first.
+
+        A hint must sit on one of the cluster's elements (a quarter side of slack:
+        the disk moved) and have a diameter within a factor 2 of what the readings
+        say now; anything else (a finger lifted here and pressed there) would start
+        the fit in a wrong valley, slower and worse than the readings' own start.
+        """
+        if hints.shape[0] == 0:
+            return hints
+        b = self.layout.bounds[cl.members]
+        m = 0.25 * self.layout.side
+        on = (
+            (hints[:, None, 0] >= b[None, :, 0] - m) & (hints[:, None, 0] <= b[None, :, 2] + m)
+            & (hints[:, None, 1] >= b[None, :, 1] - m) & (hints[:, None, 1] <= b[None, :, 3] + m)
+        ).any(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            size_ok = np.abs(np.log(hints[:, 2] / d_start)) <= math.log(2.0)
+        ok = on & np.all(np.isfinite(hints), axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0) & size_ok
+        h = hints[ok]
+        cx, cy = cl.centroid
+        return h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))]
+
+
+def estimate_contacts(
+    layout: SkinLayout,
+    dC1: ArrayLike,
+    dC2: ArrayLike,
+    active: ArrayLike | None = None,
+    params: ElementParams | None = None,
+    **options: object,
+) -> list[Contact]:
+    """One-shot :class:`ContactEstimator` (same keyword options)."""
+    return ContactEstimator(layout, params, **options).estimate(dC1, dC2, active)  # type: ignore[arg-type]

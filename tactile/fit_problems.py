@@ -1,0 +1,224 @@
+"""One frame's fit problems: per-cluster data, the kernel's flat arrays, the results.
+
+The estimator, the two-disk split and the light-touch locator all pose fits the same
+way: a cluster's observed elements (the cluster, then its quiet ring) with their
+readings, a start and which parameters are free. :class:`FitRunner` turns lists of
+such problems into one call of :func:`cellbridge.tactile.fit_kernel.fit_batch` and
+hands back :class:`Fits`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellbridge.tactile.clusters import force_centroid
+from cellbridge.tactile.contact_result import Contact
+from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
+from cellbridge.tactile.element import ElementParams
+from cellbridge.tactile.fit_kernel import UNIFORM, fit_batch, share_start
+from cellbridge.tactile.skin import SkinLayout
+
+__all__ = ["Cluster", "Batch", "Fits", "FitRunner", "major_axis"]
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass
+class Cluster:
+    """One cluster's data in one frame (indices are layout rows)."""
+
+    members: IntArray
+    obs: IntArray  # members first, then the quiet ring
+    sigma0: float  # shared pressure from the valid elements (NaN: none)
+    area: FloatArray  # per observed element
+    y: FloatArray  # (2, observed) ΔC1, ΔC2 read: a cluster carries its frame's readings
+    centroid: tuple[float, float]
+    valid: bool  # a pressure and a positive area: the disk can be fitted
+    base: dict = field(default_factory=dict)  # Contact fields known before any fit
+
+
+@dataclass
+class Batch:
+    """Flat arrays of several fit problems, as the kernel takes them."""
+
+    off: IntArray
+    bounds: FloatArray
+    y: FloatArray
+    quiet: NDArray[np.bool_]
+    w: FloatArray
+    nch: int
+
+    @property
+    def n(self) -> int:
+        return self.off.size - 1
+
+    def dof(self, nfree: int) -> FloatArray:
+        """Readings minus free parameters, per problem."""
+        return (self.nch * np.diff(self.off) - nfree).astype(np.float64)
+
+
+@dataclass
+class Fits:
+    """Kernel results, one row per problem (parameters ``(x, y, ln D, ln F)`` per disk)."""
+
+    theta: FloatArray
+    sig: FloatArray
+    flat: NDArray[np.bool_]
+    cov: FloatArray
+    chi2: FloatArray
+    cost: FloatArray
+    ok: NDArray[np.bool_]
+
+    def take(self, k: int, other: Fits, j: int) -> None:
+        """Row k becomes row j of ``other``."""
+        for name in ("theta", "sig", "flat", "cov", "chi2", "cost", "ok"):
+            getattr(self, name)[k] = getattr(other, name)[j]
+
+    def contact(self, cl: Cluster, k: int, dof: int, area_force: bool = False, disk: int = 0,
+                **over: object) -> Contact:
+        """The :class:`Contact` of disk ``disk`` of problem k (``over`` replaces base fields).
+
+        ``area_force``: the force is σ₀·πD²/4 (fits to areas, where F is no parameter).
+        """
+        th = self.theta[k, 4 * disk : 4 * disk + 4]
+        sig = self.sig[k, 4 * disk : 4 * disk + 4]
+        flat = self.flat[k, 4 * disk : 4 * disk + 2]
+        cv = self.cov[k, 4 * disk : 4 * disk + 4, 4 * disk : 4 * disk + 4]
+        ok = bool(self.ok[k])
+        base = dict(cl.base)
+        base.update(over)
+        diam = float(math.exp(th[2]))
+        if area_force:
+            force = cl.sigma0 * math.pi * diam * diam / 4.0
+            s_lnf = 2.0 * sig[2]
+        else:
+            force = float(math.exp(th[3]))
+            s_lnf = sig[3]
+        cxy = float(cv[0, 1]) if not flat.any() and np.isfinite(cv[0, 1]) else 0.0
+        sx, sy = float(sig[0]), float(sig[1])
+        cx, cy = base["centroid_x"], base["centroid_y"]
+        return Contact(
+            x=float(th[0]) if ok else cx, y=float(th[1]) if ok else cy,
+            force=force if ok else base["force_sum"],
+            diameter=diam if ok else 2.0 * math.sqrt(max(base["area"], 0.0) / math.pi),
+            model_x=float(th[0]) if ok else math.nan, model_y=float(th[1]) if ok else math.nan,
+            sigma_x=sx, sigma_y=sy, sigma_xy=major_axis(sx * sx, sy * sy, cxy), cov=((sx * sx, cxy), (cxy, sy * sy)),
+            sigma_force=float(force * s_lnf) if ok else math.nan,
+            sigma_diameter=float(diam * sig[2]) if ok else math.nan,
+            valid=True, fit_ok=ok, observable=(not bool(flat[0]), not bool(flat[1])),
+            chi2=float(self.chi2[k]), dof=dof, **base,
+        )
+
+
+def major_axis(vx: float, vy: float, cxy: float) -> float:
+    """Larger semi-axis (one sigma) of a 2×2 covariance, in closed form."""
+    half = 0.5 * (vx + vy)
+    return math.sqrt(max(half + math.hypot(0.5 * (vx - vy), cxy), 0.0))
+
+
+class FitRunner:
+    """Builds clusters and kernel batches for one skin, and runs the kernel."""
+
+    def __init__(self, layout: SkinLayout, params: ElementParams, noise: FloatArray, area_method: bool):
+        self.layout = layout
+        self.params = params
+        self.noise = noise
+        self.area_method = area_method
+        self.par = element_vector(params)
+        e = layout.corner_edges
+        self._ring_of = [np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]]) for i in range(layout.n)]
+
+    def g(self, sigma: float) -> tuple[float, float]:
+        """Sensitivities (g1, g2) at one pressure (the compiled scalar: no array overhead)."""
+        p = self.par
+        return sensitivity_slope(sigma, *p[:4])[0], sensitivity_slope(sigma, *p[4:])[0]
+
+    def cluster(
+        self, members: IntArray, labels: IntArray, c1: FloatArray, c2: FloatArray,
+        finite: NDArray[np.bool_], valid: NDArray[np.bool_], force: FloatArray, area: FloatArray,
+    ) -> Cluster:
+        """A cluster's observed elements, shared pressure, areas, centroid and base fields."""
+        lay = self.layout
+        members = np.sort(members)
+        ring = np.unique(np.concatenate([self._ring_of[i] for i in members]))
+        ring = ring[(labels[ring] < 0) & finite[ring]]
+        obs = np.concatenate([members, ring])
+        vm = valid[members]
+        sigma0 = float(force[members][vm].sum() / area[members][vm].sum()) if vm.any() else math.nan
+        # Area per observed element: the inverse's where valid; elsewhere the
+        # least-squares area at the cluster's pressure, A = (g·ΔC)/(g·g).
+        a = area[obs].copy()
+        f = force[obs].copy()
+        if math.isfinite(sigma0):
+            g1, g2 = self.g(sigma0)
+            w1, w2 = 1.0 / self.noise[0] ** 2, 1.0 / self.noise[1] ** 2
+            est = (w1 * g1 * c1[obs] + w2 * g2 * c2[obs]) / (w1 * g1 * g1 + w2 * g2 * g2)
+            bad = ~valid[obs]
+            a[bad] = est[bad]
+            f[bad] = sigma0 * est[bad]
+        nm = members.size
+        wts = np.where(np.isfinite(f[:nm]), f[:nm], 0.0)
+        if not (wts > 0).any():
+            wts = np.maximum(c1[members], 0.0)  # no pressure known: weight by ΔC1
+        full_w = np.zeros(lay.n)
+        full_w[members] = wts
+        cx, cy = force_centroid(lay, full_w, members)
+        s_tot = float(np.nansum(np.maximum(a[:nm], 0.0)))
+        ok = bool(vm.any())
+        base = dict(
+            centroid_x=cx, centroid_y=cy, elements=tuple(int(i) for i in lay.ids[members]),
+            pressure=sigma0, force_sum=float(np.nansum(f[:nm])) if ok else math.nan,
+            area=s_tot if ok else math.nan,
+        )
+        y = np.stack([c1[obs], c2[obs]])
+        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base)
+
+    def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
+        """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)
+        fits the per-element areas instead of ΔC."""
+        lay = self.layout
+        area_fit = self.area_method if areas is None else areas
+        sizes = np.array([cl.obs.size for cl in clusters])
+        off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        allobs = np.concatenate([cl.obs for cl in clusters])
+        quiet = np.concatenate([np.arange(cl.obs.size) >= cl.members.size for cl in clusters])
+        if area_fit:
+            y = np.zeros((2, allobs.size))
+            y[0] = np.nan_to_num(np.concatenate([cl.area for cl in clusters]))
+            w = np.empty((len(clusters), 2))
+            for k, cl in enumerate(clusters):
+                g1, g2 = self.g(cl.sigma0)
+                # Area noise of one element: the ΔC noise through both sensitivities.
+                w[k] = math.sqrt((g1 / self.noise[0]) ** 2 + (g2 / self.noise[1]) ** 2)
+        else:
+            y = np.concatenate([cl.y for cl in clusters], axis=1)
+            w = np.tile(1.0 / self.noise, (len(clusters), 1))
+        return Batch(off, np.ascontiguousarray(lay.bounds[allobs]), np.ascontiguousarray(y), quiet, w,
+                     1 if area_fit else 2)
+
+    def run(self, b: Batch, theta0: FloatArray, free: NDArray[np.bool_], nd: int, assess: bool,
+            sm: tuple = UNIFORM) -> Fits:
+        """Fit every problem of the batch (``nd`` disks each) in one kernel call."""
+        n, p = b.n, 4 * nd
+        r = Fits(np.empty((n, p)), np.empty((n, p)), np.zeros((n, p), dtype=bool), np.empty((n, p, p)),
+                 np.empty(n), np.empty(n), np.zeros(n, dtype=bool))
+        fit_batch(b.off, b.bounds, b.y, b.quiet, np.ascontiguousarray(theta0, dtype=np.float64),
+                  np.ascontiguousarray(free), nd, b.w, b.nch, self.par, float(self.layout.side), assess,
+                  r.theta, r.sig, r.flat, r.cov, r.chi2, r.cost, r.ok, sm)
+        return r
+
+    def starts(self, clusters: list[Cluster], areas: list[FloatArray] | None = None) -> FloatArray:
+        """(K, 3) share-based (x, y, r) of each cluster (areas over its members)."""
+        mem = [cl.members for cl in clusters]
+        ar = [cl.area[: cl.members.size] for cl in clusters] if areas is None else areas
+        nmem = np.array([m.size for m in mem], dtype=np.int64)
+        off = np.concatenate([[0], np.cumsum(nmem)]).astype(np.int64)
+        out = np.empty((len(mem), 3))
+        share_start(off, nmem, np.ascontiguousarray(self.layout.bounds[np.concatenate(mem)]),
+                    np.nan_to_num(np.concatenate(ar)), out)
+        return out

@@ -1,0 +1,125 @@
+"""Where a light touch is, when the inverse gives it no pressure.
+
+Too light a touch, or the inverse's ambiguous low-pressure region, leaves a cluster
+with no valid element: no force and no diameter. At low pressure ΔC ≈ k·F whatever
+the area, so the diameter is not known; but for any given diameter the elements'
+shares still fix the centre along a straddled axis. So the disk is fitted at fixed
+diameters over the plausible range (force free), and again with the diameter free
+from each local minimum of that grid (the ambiguous region has two discrete branches,
+which a coarse grid can step over). The fits within +4 of the best cost (95 % for
+one parameter; and two grid points either side, so a diameter between grid points
+is bracketed with room to spare) give the span of centres, ± their own σ: the contact is reported at its middle with
+σ = √(span²/12 + σ_fit²).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellbridge.tactile.contact_result import Contact
+from cellbridge.tactile.fit_problems import Cluster, FitRunner
+
+__all__ = ["locate_light", "unlocated"]
+
+FloatArray = NDArray[np.float64]
+
+N_DIAMETERS = 20  #: grid of fixed diameters, log-spaced over 0.05–1.5 element sides
+#: Cost rise that still counts as consistent: the 95 % range of a one-parameter
+#: profile (the diameter), so the span holds the truth at least as often as the 2σ
+#: the contact reports.
+CONSISTENT = 4.0
+
+
+def unlocated(cl: Cluster, side: float) -> Contact:
+    """Nothing finer than the elements: the ΔC1-weighted centroid, σ = side/√12 per element."""
+    sx = sy = side / math.sqrt(12.0) * cl.members.size
+    x, y = cl.centroid
+    return Contact(
+        x=float(x), y=float(y), force=math.nan, diameter=math.nan, model_x=math.nan, model_y=math.nan,
+        sigma_x=sx, sigma_y=sy, sigma_xy=sx, cov=((sx * sx, 0.0), (0.0, sy * sy)), sigma_force=math.nan,
+        sigma_diameter=math.nan, valid=False, fit_ok=False, observable=(False, False), chi2=math.nan,
+        dof=0, **cl.base,
+    )
+
+
+def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
+    """A contact per cluster: located by the span of consistent fits, or :func:`unlocated`."""
+    lay = runner.layout
+    diam = np.geomspace(0.05 * lay.side, 1.5 * lay.side, N_DIAMETERS)
+    p = runner.params
+    k_low = p.eps1 * (p.d1 - p.d10) / (p.E1 * p.d1 * p.d1)  # g1/σ as σ → 0
+    probs: list[Cluster] = []
+    areas, lnf = [], []
+    for cl in clusters:
+        nm = cl.members.size
+        s1 = np.maximum(cl.y[0, :nm], 0.0)
+        tot = s1.sum()
+        share = s1 / tot if tot > 0 else np.full(nm, 1.0 / nm)
+        f0 = max(tot / k_low, 1e-6) if tot > 0 else 1e-3
+        for d in diam:
+            areas.append(share * math.pi * d * d / 4)
+            lnf.append(math.log(f0))
+            probs.append(cl)
+    st = runner.starts(probs, areas)
+    t0 = np.column_stack([st[:, :2], np.log(np.tile(diam, len(clusters))), lnf])
+    free = np.tile(np.array([True, True, False, True]), (len(probs), 1))
+    # ΔC fits whatever the estimator's method: the area method needs a pressure.
+    fits = runner.run(runner.batch(probs, areas=False), t0, free, 1, False)
+    cost = fits.cost.reshape(len(clusters), N_DIAMETERS)
+    padded = np.pad(cost, ((0, 0), (1, 1)), constant_values=np.inf)
+    loc = np.isfinite(cost) & (cost <= padded[:, :-2]) & (cost <= padded[:, 2:])
+    qk, qd = np.nonzero(loc)
+    ref = runner.run(runner.batch([clusters[k] for k in qk], areas=False),
+                     fits.theta[qk * N_DIAMETERS + qd], np.ones((qk.size, 4), dtype=bool), 1, False)
+    out = []
+    for i, cl in enumerate(clusters):
+        sl = slice(i * N_DIAMETERS, (i + 1) * N_DIAMETERS)
+        mine = qk == i
+        c_ref = ref.cost[mine]
+        floor = min(float(np.nanmin(cost[i])), float(np.nanmin(c_ref)) if c_ref.size else np.inf)
+        best = np.isfinite(cost[i]) & (cost[i] <= floor + CONSISTENT)
+        keep = best.copy()
+        for step in (1, 2):
+            keep[step:] |= best[:-step]
+            keep[:-step] |= best[step:]
+        keep &= np.isfinite(cost[i])
+        kref = np.isfinite(c_ref) & (c_ref <= floor + CONSISTENT)
+        b = lay.bounds[cl.members]
+        pos, sig, obs = [0.0, 0.0], [0.0, 0.0], [False, False]
+        for ax in (0, 1):
+            # A free-diameter refinement whose covariance is singular (at low pressure
+            # D and F nearly trade off) only sets the cost floor; the fixed-diameter
+            # fits around it carry its position.
+            rs = ref.sig[mine, ax][kref]
+            v = np.concatenate([fits.theta[sl, ax][keep], ref.theta[mine, ax][kref][np.isfinite(rs)]])
+            s = np.concatenate([fits.sig[sl, ax][keep], rs[np.isfinite(rs)]])
+            if v.size and np.all(np.isfinite(s)) and s.max() < 0.25 * lay.side:
+                lo, hi = float(np.min(v - s)), float(np.max(v + s))
+                pos[ax] = 0.5 * (lo + hi)
+                sig[ax] = math.sqrt((hi - lo) ** 2 / 12.0 + float(np.mean(s * s)))
+                obs[ax] = True
+            else:
+                # Unseen: uniform over the cluster's extent less the smallest disk.
+                lo_e, hi_e = b[:, ax].min(), b[:, ax + 2].max()
+                dmin = float(diam[keep].min()) if keep.any() else 0.0
+                pos[ax] = 0.5 * (lo_e + hi_e)
+                sig[ax] = max(hi_e - lo_e - dmin, 0.0) / math.sqrt(12.0)
+        # A best fit far worse than the noise found no disk that explains the
+        # readings (the search missed, or it is no disk): no interval then.
+        dof = 2 * cl.obs.size - 3
+        plausible = floor <= dof + 5.0 * math.sqrt(2.0 * max(dof, 1)) + 10.0
+        if not ((keep.any() or kref.any()) and any(obs) and plausible):
+            out.append(unlocated(cl, lay.side))
+            continue
+        (x, y), (sx, sy) = pos, sig
+        out.append(Contact(
+            x=float(x), y=float(y), force=math.nan, diameter=math.nan, model_x=float(x), model_y=float(y),
+            sigma_x=float(sx), sigma_y=float(sy), sigma_xy=float(max(sx, sy)),
+            cov=((float(sx * sx), 0.0), (0.0, float(sy * sy))), sigma_force=math.nan,
+            sigma_diameter=math.nan, valid=False, fit_ok=True, observable=(bool(obs[0]), bool(obs[1])),
+            chi2=float(fits.chi2[sl][int(np.nanargmin(cost[i]))]), dof=int(dof), **cl.base,
+        ))
+    return out

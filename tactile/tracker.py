@@ -1,0 +1,197 @@
+"""Contacts across frames: stable ids, a birth only after a contact persists.
+
+A robot wants "finger 3 moved 2 mm", not a fresh list every frame. The tracker
+associates each frame's contacts with the tracks of the previous frames, gives a
+track an id only once it has been seen in ``birth_frames`` consecutive frames (a
+noise spike on one frame is never a contact), keeps it through ``max_missed`` frames
+without a match (a reading that briefly falls under the touch threshold), and feeds
+each track's last disk to the estimator as the start of the next fit.
+
+Association: a contact and a track may match when they share an element, or when
+their positions agree within ``gate`` standard deviations per axis, the variance
+being both reported variances plus ``motion²`` (how far a contact may move between
+frames). An axis the readings do not resolve carries an element-wide σ, so a disk
+that slides from inside an element to across a seam (its reported x jumps from the
+element's centre to the true position) keeps its id. Pairs are taken greedily,
+closest first. Sans-I/O: frames and times go in, tracks come out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from cellbridge.tactile.contact_result import Contact
+from cellbridge.tactile.estimator import ContactEstimator
+
+__all__ = ["TrackedContact", "ContactTracker"]
+
+
+@dataclass(frozen=True)
+class TrackedContact:
+    """One confirmed contact in the current frame.
+
+    ``id`` is stable for the contact's life; ``age`` counts frames since it was
+    first seen (including those before its birth), ``missed`` the consecutive frames
+    it went unmatched (0: ``contact`` is from this frame; otherwise it is the last
+    one seen), ``t`` the time given with the frame that last matched it.
+    """
+
+    id: int
+    contact: Contact
+    age: int
+    missed: int
+    t: float | None
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain dict of Python scalars and lists (msgpack/JSON ready)."""
+        return {"id": self.id, "age": self.age, "missed": self.missed, "t": self.t, **self.contact.to_dict()}
+
+
+@dataclass
+class _Track:
+    contact: Contact
+    first_frame: int
+    hits: int = 1
+    missed: int = 0
+    id: int | None = None  # given at birth
+    t: float | None = None
+    elements: frozenset[int] = field(default_factory=frozenset)
+
+
+class ContactTracker:
+    """Tracks the contacts of successive frames of one skin.
+
+    ``update(dC1, dC2, active, t)`` estimates and tracks one frame;
+    ``step(contacts, t)`` tracks contacts estimated elsewhere. Both return the
+    confirmed tracks, ordered by id. Counters: ``births``, ``deaths`` (confirmed
+    tracks that ended) and ``rejected`` (candidates that vanished before their birth,
+    e.g. one-frame noise spikes).
+    """
+
+    def __init__(
+        self,
+        estimator: ContactEstimator,
+        *,
+        birth_frames: int = 3,
+        max_missed: int = 2,
+        gate: float = 3.0,
+        motion: float = 0.010,
+    ):
+        if int(birth_frames) != birth_frames or birth_frames < 1:
+            raise ValueError(f"birth_frames must be an integer >= 1, got {birth_frames!r}")
+        if int(max_missed) != max_missed or max_missed < 0:
+            raise ValueError(f"max_missed must be an integer >= 0, got {max_missed!r}")
+        if not (math.isfinite(gate) and gate > 0):
+            raise ValueError(f"gate must be > 0 standard deviations, got {gate!r}")
+        if not (math.isfinite(motion) and motion >= 0):
+            raise ValueError(f"motion must be >= 0 m, got {motion!r}")
+        self.estimator = estimator
+        self.birth_frames = int(birth_frames)
+        self.max_missed = int(max_missed)
+        self.gate = float(gate)
+        self.motion = float(motion)
+        self._tracks: list[_Track] = []
+        self._next_id = 0
+        self.frame = 0
+        self.births = 0
+        self.deaths = 0
+        self.rejected = 0
+
+    # -- public ---------------------------------------------------------------------------
+    def update(
+        self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None, t: float | None = None
+    ) -> list[TrackedContact]:
+        """Estimate one frame (warm-started from the tracks) and track its contacts."""
+        return self.step(self.estimator.estimate(dC1, dC2, active, hints=self.hints()), t)
+
+    def hints(self) -> np.ndarray:
+        """``(x, y, diameter, force)`` of every track's last fitted disk: next frame's starts."""
+        rows = [
+            (c.x, c.y, c.diameter, c.force)
+            for c in (tr.contact for tr in self._tracks)
+            if c.valid and c.fit_ok and math.isfinite(c.diameter) and math.isfinite(c.force)
+        ]
+        return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+    def step(self, contacts: Sequence[Contact], t: float | None = None) -> list[TrackedContact]:
+        """Associate one frame's contacts with the tracks; return the confirmed ones."""
+        self.frame += 1
+        pairs = self._associate(contacts)
+        matched_t = set()
+        matched_c = set()
+        for ti, ci in pairs:
+            tr = self._tracks[ti]
+            c = contacts[ci]
+            tr.contact = c
+            tr.hits += 1
+            tr.missed = 0
+            tr.t = t
+            tr.elements = frozenset(c.elements)
+            matched_t.add(ti)
+            matched_c.add(ci)
+        keep = []
+        for i, tr in enumerate(self._tracks):
+            if i not in matched_t:
+                tr.missed += 1
+                if tr.id is None:
+                    self.rejected += 1  # a candidate must persist without a gap
+                    continue
+                if tr.missed > self.max_missed:
+                    self.deaths += 1
+                    continue
+            keep.append(tr)
+        for ci, c in enumerate(contacts):
+            if ci not in matched_c:
+                keep.append(_Track(c, self.frame, t=t, elements=frozenset(c.elements)))
+        for tr in keep:
+            if tr.id is None and tr.hits >= self.birth_frames:
+                tr.id = self._next_id
+                self._next_id += 1
+                self.births += 1
+        self._tracks = keep
+        out = [
+            TrackedContact(tr.id, tr.contact, self.frame - tr.first_frame + 1, tr.missed, tr.t)
+            for tr in keep
+            if tr.id is not None
+        ]
+        return sorted(out, key=lambda tc: tc.id)
+
+    @property
+    def candidates(self) -> int:
+        """Tracks seen but not yet born."""
+        return sum(tr.id is None for tr in self._tracks)
+
+    def reset(self) -> None:
+        """Forget every track (ids keep counting up, so an old id never comes back)."""
+        self._tracks = []
+
+    # -- association ----------------------------------------------------------------------
+    def _distance(self, a: Contact, b: Contact) -> float:
+        m2 = self.motion * self.motion
+        dx = (a.x - b.x) ** 2 / (a.sigma_x**2 + b.sigma_x**2 + m2 + 1e-18)
+        dy = (a.y - b.y) ** 2 / (a.sigma_y**2 + b.sigma_y**2 + m2 + 1e-18)
+        return math.sqrt(max(dx, dy))
+
+    def _associate(self, contacts: Sequence[Contact]) -> list[tuple[int, int]]:
+        cand = []
+        for ti, tr in enumerate(self._tracks):
+            for ci, c in enumerate(contacts):
+                d = self._distance(tr.contact, c)
+                if d <= self.gate or tr.elements & set(c.elements):
+                    # Confirmed tracks first at equal distance: a contact continues the
+                    # finger it belongs to rather than a fresh candidate beside it.
+                    cand.append((d, tr.id is None, ti, ci))
+        cand.sort()
+        used_t, used_c, pairs = set(), set(), []
+        for _, _, ti, ci in cand:
+            if ti in used_t or ci in used_c:
+                continue
+            used_t.add(ti)
+            used_c.add(ci)
+            pairs.append((ti, ci))
+        return pairs

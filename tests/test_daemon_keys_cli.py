@@ -1,0 +1,64 @@
+"""`cellbridge keys gen` (the installed command): a usable key pair, the secret 0600 from the start."""
+
+from __future__ import annotations
+
+import os
+import stat
+import subprocess
+from pathlib import Path
+
+import zmq
+from zmq.auth import load_certificate
+
+from cellbridge.daemon.keys import write_keypair
+from cellbridge.daemon.security import load_curve
+from test_cli import CLI
+
+
+def keys_gen(*args: str, umask: int = 0o022) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([CLI, "keys", "gen", *args], capture_output=True, text=True, timeout=60,
+                          preexec_fn=lambda: os.umask(umask))
+
+
+def mode(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+def test_gen_writes_a_matching_pair_with_a_private_secret(tmp_path: Path) -> None:
+    out = keys_gen("--dir", str(tmp_path), "server", umask=0)  # even a permissive umask leaves the secret private
+    assert out.returncode == 0, out.stderr
+    public_file, secret_file = tmp_path / "server.key", tmp_path / "server.key_secret"
+    assert mode(secret_file) == 0o600 and mode(public_file) == 0o644
+    public, no_secret = load_certificate(public_file)
+    public_again, secret = load_certificate(secret_file)
+    assert no_secret is None and public == public_again
+    assert secret is not None and zmq.curve_public(secret) == public  # a real pair, not two random keys
+    assert public.decode() in out.stdout
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left behind
+
+
+def test_generated_files_configure_the_daemon(tmp_path: Path) -> None:
+    (tmp_path / "clients").mkdir()
+    assert keys_gen("--dir", str(tmp_path)).returncode == 0  # default name: server
+    assert keys_gen("--dir", str(tmp_path / "clients"), "arm").returncode == 0
+    curve = load_curve({"server_secret_file": "server.key_secret", "allowed_clients_dir": "clients"}, base_dir=tmp_path)
+    assert curve is not None
+
+
+def test_gen_refuses_to_overwrite_unless_forced(tmp_path: Path) -> None:
+    write_keypair(tmp_path, "server")
+    before = (tmp_path / "server.key_secret").read_bytes()
+    again = keys_gen("--dir", str(tmp_path))
+    assert again.returncode == 2 and "exists (use --force" in again.stderr
+    assert (tmp_path / "server.key_secret").read_bytes() == before
+    forced = keys_gen("--dir", str(tmp_path), "--force")
+    assert forced.returncode == 0 and (tmp_path / "server.key_secret").read_bytes() != before
+    assert mode(tmp_path / "server.key_secret") == 0o600
+
+
+def test_gen_bad_input_gives_clear_errors(tmp_path: Path) -> None:
+    bad_name = keys_gen("--dir", str(tmp_path), "../escape")
+    assert bad_name.returncode == 2 and "plain file name" in bad_name.stderr
+    missing_dir = keys_gen("--dir", str(tmp_path / "nope"))
+    assert missing_dir.returncode == 2 and "cannot write into" in missing_dir.stderr
+    assert "Traceback" not in bad_name.stderr + missing_dir.stderr

@@ -1,0 +1,103 @@
+"""The subscriber examples in examples/ (Python, C, JavaScript), run against a live PUB socket.
+
+All three take the same options (-e ENDPOINT -n COUNT [-s SERVER.key -k CLIENT.key_secret]
+[TOPIC...]) and print {"topic", "payload"} JSON lines, so one test drives them all.
+The C example is built with its Makefile where a compiler and the libzmq and
+msgpack-c headers exist; the JavaScript one runs where node finds its npm packages
+(``npm install`` in examples/javascript). Elsewhere they skip and say why.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import zmq
+
+from cellbridge.daemon.keys import write_keypair
+from cellbridge.daemon.security import CurveKeys, CurveServer
+from pub_helpers import json_lines, publisher, run_subscriber
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+JS_DIR = EXAMPLES / "javascript"
+
+
+def _pkg_config_ok(*packages: str) -> bool:
+    return shutil.which("pkg-config") is not None and subprocess.run(
+        ["pkg-config", "--exists", *packages], capture_output=True).returncode == 0
+
+
+def c_subscriber(tmp_path: Path) -> list[str]:
+    if shutil.which("cc") is None or shutil.which("make") is None:
+        pytest.skip("C example: no C compiler (cc) or make on this machine")
+    if not (_pkg_config_ok("libzmq") and (_pkg_config_ok("msgpack-c") or _pkg_config_ok("msgpack"))):
+        pytest.skip("C example: libzmq or msgpack-c development files are missing "
+                    "(Debian: apt-get install libzmq3-dev libmsgpack-dev)")
+    build = tmp_path / "c"
+    shutil.copytree(EXAMPLES / "c", build)
+    (build / "subscriber").unlink(missing_ok=True)
+    out = subprocess.run(["make", "-C", str(build)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "warning" not in out.stderr
+    return [str(build / "subscriber")]
+
+
+def js_subscriber(tmp_path: Path) -> list[str]:
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("JavaScript example: node is not installed")
+    probe = subprocess.run([node, "-e", "require('zeromq'); require('@msgpack/msgpack')"],
+                           cwd=JS_DIR, capture_output=True, timeout=60)
+    if probe.returncode != 0:
+        pytest.skip("JavaScript example: npm packages zeromq and @msgpack/msgpack are not installed "
+                    "(run `npm install` in examples/javascript; the suite downloads nothing)")
+    return [node, str(JS_DIR / "subscriber.js")]
+
+
+def py_subscriber(tmp_path: Path) -> list[str]:
+    return [sys.executable, str(EXAMPLES / "python" / "subscriber.py")]
+
+
+EXAMPLE_COMMANDS: dict[str, Callable[[Path], list[str]]] = {
+    "python": py_subscriber, "c": c_subscriber, "javascript": js_subscriber}
+
+
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_prints_the_topics_it_subscribed(language: str, tmp_path: Path) -> None:
+    cmd = EXAMPLE_COMMANDS[language](tmp_path)
+    with publisher() as endpoint:
+        out = run_subscriber([*cmd, "-e", endpoint, "-n", "6", "contact", "raw"], cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    lines = json_lines(out.stdout)
+    assert len(lines) == 6
+    assert {ln["topic"] for ln in lines} <= {"contact", "raw"}  # health was not subscribed
+    assert all(ln["payload"]["v"] == 1 and isinstance(ln["payload"]["t_host"], float) for ln in lines)
+    contacts = [ln["payload"] for ln in lines if ln["topic"] == "contact"]
+    raws = [ln["payload"] for ln in lines if ln["topic"] == "raw"]
+    assert contacts and raws
+    assert contacts[0]["contacts"] == [{"id": 3, "x": 12.5, "y": -3.25, "force": 0.75, "valid": True}]
+    assert raws[0]["frame"] == "01fe" and raws[0]["bridge"] == 7  # bytes as hex, as `cellbridge sub` prints them
+
+
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_as_curve_client(language: str, tmp_path: Path) -> None:
+    cmd = EXAMPLE_COMMANDS[language](tmp_path)
+    (tmp_path / "clients").mkdir()
+    server_pub, server_secret = write_keypair(tmp_path, "server")
+    write_keypair(tmp_path / "clients", "arm")
+    client_secret = tmp_path / "clients" / "arm.key_secret"
+    context = zmq.Context()
+    curve = CurveServer(context, CurveKeys(server_secret, tmp_path / "clients"))
+    try:
+        with publisher(setup=curve.apply, context=context) as endpoint:
+            out = run_subscriber([*cmd, "-e", endpoint, "-n", "2", "-s", str(server_pub), "-k", str(client_secret),
+                                  "health"], cwd=tmp_path)
+    finally:
+        curve.stop()
+        context.term()
+    assert out.returncode == 0, out.stderr
+    assert [ln["topic"] for ln in json_lines(out.stdout)] == ["health", "health"]

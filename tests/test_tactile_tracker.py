@@ -1,0 +1,117 @@
+"""Contacts across frames (cellbridge.tactile.tracker)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from cellbridge.tactile.contacts import ContactEstimator
+from cellbridge.tactile.skin import grid_layout, skin_response
+from cellbridge.tactile.tracker import ContactTracker
+
+MM = 1e-3
+NOISE = 1e-15
+LAY = grid_layout(3, 3)
+
+
+def frame(contacts, rng, lay=LAY):
+    dc1, dc2 = skin_response(lay, contacts)
+    return dc1 + rng.normal(0, NOISE, lay.n), dc2 + rng.normal(0, NOISE, lay.n)
+
+
+def tracker(**kw):
+    return ContactTracker(ContactEstimator(LAY, noise=NOISE), **kw)
+
+
+def test_contact_is_born_after_it_persists_and_keeps_its_id():
+    rng = np.random.default_rng(1)
+    tr = tracker(birth_frames=3)
+    press = [0.018, 0.004, 4.0, 0.012]
+    seen = [tr.update(*frame(press, rng), t=0.004 * k) for k in range(6)]
+    assert [len(s) for s in seen] == [0, 0, 1, 1, 1, 1]
+    ids = {s[0].id for s in seen[2:]}
+    assert ids == {0}
+    last = seen[-1][0]
+    assert last.age == 6 and last.missed == 0 and last.t == pytest.approx(0.020)
+    assert abs(last.contact.x - 0.018) < 0.1 * MM
+    json.dumps(last.to_dict())
+    assert tr.births == 1 and tr.rejected == 0
+
+
+def test_one_frame_spike_on_an_untouched_element_never_becomes_a_contact():
+    rng = np.random.default_rng(2)
+    tr = tracker(birth_frames=2)
+    press = [0.0, 0.0, 4.0, 0.012]  # a steady contact on element 0
+    for k in range(12):
+        dc1, dc2 = frame(press, rng)
+        if k == 5:  # a spike on element 8, far from the press, on one frame only
+            dc1[8] += 0.4e-12
+            dc2[8] += 0.2e-12
+        out = tr.update(dc1, dc2)
+        assert [tc.id for tc in out] == ([] if k == 0 else [0])
+        assert all(8 not in tc.contact.elements for tc in out)
+    assert tr.births == 1 and tr.rejected == 1 and tr.candidates == 0
+    # The same spike held for two frames is a contact: the rejection was the gap.
+    tr2 = tracker(birth_frames=2)
+    for k in range(3):
+        dc1, dc2 = frame([], rng)
+        dc1[8] += 0.4e-12
+        dc2[8] += 0.2e-12
+        out = tr2.update(dc1, dc2)
+    assert len(out) == 1
+
+
+def test_id_persists_while_a_disk_slides_across_a_seam():
+    rng = np.random.default_rng(3)
+    tr = tracker(birth_frames=2)
+    ids, xs = set(), []
+    for x in np.arange(0.004, 0.036, 0.0005):  # element 0 → seam at 20 mm → element 1
+        out = tr.update(*frame([x, 0.002, 5.0, 0.014], rng))
+        if out:
+            assert len(out) == 1
+            ids.add(out[0].id)
+            c = out[0].contact
+            if c.observable[0]:
+                xs.append(c.x - x)
+    assert ids == {0}
+    assert tr.births == 1 and tr.deaths == 0
+    assert xs and max(abs(e) for e in xs) < 0.1 * MM  # across the seam it was located
+
+
+def test_two_fingers_keep_their_ids_and_a_lifted_one_dies():
+    rng = np.random.default_rng(4)
+    tr = tracker(birth_frames=2, max_missed=1)
+    a = [0.018, 0.0, 3.0, 0.012]
+    b = [0.078, 0.060, 6.0, 0.016]
+    for _ in range(4):
+        out = tr.update(*frame([a, b], rng))
+    by_x = {round(tc.contact.x, 2): tc.id for tc in out}
+    assert len(by_x) == 2
+    for _ in range(3):
+        out = tr.update(*frame([b], rng))  # finger a lifted
+    assert len(out) == 1 and out[0].id == by_x[round(0.078, 2)]
+    assert tr.deaths == 1
+
+
+def test_warm_start_gives_the_same_answer_as_a_cold_fit():
+    rng = np.random.default_rng(5)
+    est = ContactEstimator(LAY, noise=NOISE)
+    tr = ContactTracker(est, birth_frames=1)
+    for x in (0.0170, 0.0175, 0.0180):
+        dc1, dc2 = frame([x, 0.021, 4.0, 0.014], rng)
+        (warm,) = tr.update(dc1, dc2)
+        (cold,) = est.estimate(dc1, dc2)
+        assert math.hypot(warm.contact.x - cold.x, warm.contact.y - cold.y) < 1e-3 * MM
+        assert warm.contact.force == pytest.approx(cold.force, rel=1e-6)
+
+
+def test_bad_settings_are_named():
+    est = ContactEstimator(LAY)
+    with pytest.raises(ValueError, match="hints"):
+        est.estimate(np.zeros(LAY.n), np.zeros(LAY.n), hints=np.zeros((2, 3)))
+    for kw in ({"birth_frames": 0}, {"max_missed": -1}, {"gate": 0.0}, {"motion": -1.0}):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            ContactTracker(est, **kw)

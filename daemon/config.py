@@ -119,6 +119,10 @@ SECTIONS: dict[str, dict[str, Key]] = {
                     reloadable=True),
         "method": Key(str, "capacitance", "model fit in capacitance (default) or area space",
                       _one_of("capacitance", "area"), reloadable=True),
+        "birth_frames": Key(int, 3, "estimates a contact must persist before it is reported (with a stable id)",
+                            lambda v: None if v >= 1 else "must be >= 1", reloadable=True),
+        "max_missed": Key(int, 2, "estimates a reported contact may be missing before it ends",
+                          lambda v: None if v >= 0 else "must be >= 0", reloadable=True),
     },
     "health": {
         "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _positive,

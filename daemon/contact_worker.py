@@ -25,6 +25,7 @@ class ContactWorker:
         self.log = log
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
         self.busy = False
+        self._quiet = 0  # estimates in a row with nothing touched
         self.stats: dict[str, Any] = {"runs": 0, "errors": 0, "last_ms": 0.0, "max_ms": 0.0, "feeds_skipped": 0}
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
@@ -39,8 +40,10 @@ class ContactWorker:
     async def estimate(self, spec: ContactSpec, snap: ContactSnapshot) -> list[dict[str, Any]] | None:
         """Contacts of one snapshot; None when the estimate failed (logged and counted)."""
         t0 = time.perf_counter()
-        if not snap.touched.any():
-            contacts: list[dict[str, Any]] = []  # nothing touched: no need to ask the worker
+        touched = bool(snap.touched.any())
+        self._quiet = 0 if touched else self._quiet + 1
+        if self._quiet > spec.max_missed + 1:
+            contacts: list[dict[str, Any]] = []  # nothing touched and every track has ended: no need to ask
         else:
             self.busy = True
             try:

@@ -19,6 +19,7 @@ from cellbridge.tactile import (
     Calibrator,
     ChipParams,
     ContactEstimator,
+    ContactTracker,
     ElementParams,
     InverseStatus,
     SkinLayout,
@@ -188,16 +189,20 @@ class ContactSpec:
     neighbour_gap: float
     noise: float
     method: str
+    birth_frames: int = 3
+    max_missed: int = 2
 
     @classmethod
-    def of(cls, layout: SkinLayout, noise: float, method: str) -> ContactSpec:
+    def of(cls, layout: SkinLayout, noise: float, contact: dict[str, Any]) -> ContactSpec:
         return cls(tuple(int(i) for i in layout.ids), tuple((float(x), float(y)) for x, y in layout.centres),
-                   layout.side, float(layout.neighbour_gap), noise, method)  # type: ignore[arg-type]
+                   layout.side, float(layout.neighbour_gap), noise, contact["method"],  # type: ignore[arg-type]
+                   contact["birth_frames"], contact["max_missed"])
 
     def build(self) -> ContactStage:
         layout = SkinLayout(np.array(self.centres), side=self.side, ids=np.array(self.ids),
                             neighbour_gap=self.neighbour_gap)
-        return ContactStage(layout, default_params(layout), self.noise, self.method)
+        return ContactStage(layout, default_params(layout), self.noise, self.method, self.birth_frames,
+                            self.max_missed)
 
 
 _WORKER_STAGE: dict[ContactSpec, ContactStage] = {}
@@ -217,17 +222,25 @@ def warm_up() -> None:
 
 
 class ContactStage:
-    """The contact estimator for one layout, run on one snapshot at a time."""
+    """Contact estimation and tracking for one layout, one snapshot at a time.
 
-    def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str) -> None:
+    Contacts keep a stable ``id`` across estimates and are reported only once they have
+    persisted ``birth_frames`` estimates (a one-frame spike is no contact); each track's
+    last disk warm-starts the next fit.
+    """
+
+    def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str,
+                 birth_frames: int = 3, max_missed: int = 2) -> None:
         self.layout = layout
         self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]
+        self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
-        if not snap.touched.any():
-            return []
-        contacts = self.estimator.estimate(snap.dc[:, 0], snap.dc[:, 1], active=snap.touched)
-        return [_finite(c.to_dict()) for c in contacts]
+        if snap.touched.any():
+            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host)
+        else:  # an empty frame still counts: tracks miss it and end
+            tracks = self.tracker.step([], snap.t_host)
+        return [_finite(tc.to_dict()) for tc in tracks]
 
 
 def _finite(d: dict[str, Any]) -> dict[str, Any]:

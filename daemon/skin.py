@@ -55,8 +55,8 @@ class Skin:
         self.layout = layout
         cal = self.sections["calibration"]
         self.elements = ElementStage(layout, params, calibration_config(cal), inv["noise"], cal["max_step_rate"])
-        self.contacts = ContactStage(layout, params, inv["noise"], self.sections["contact"]["method"])
-        self.contact_spec = ContactSpec.of(layout, inv["noise"], self.sections["contact"]["method"])
+        self.contact_spec = ContactSpec.of(layout, inv["noise"], self.sections["contact"])
+        self.contacts = self.contact_spec.build()
         self.channels = ChannelHealth(layout.n)
         self.row[:] = -1
         ids = layout.ids

@@ -49,23 +49,37 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
     sk = Skin(rows=3, cols=3)  # pressing every element at once would read as a common-mode step
     pty.write(sk.hellos() + sk.beacons())
     feed(pty, sk, 40)
-    feed(pty, sk, 20, CORNER, start=40)
 
     def newest_slot(m: dict) -> list[int]:
         return [i for i, c in enumerate(m["cycle"]) if c == max(m["cycle"])]
 
-    el = client.wait_for("element", lambda m: len(newest_slot(m)) == 9
-                         and [m["bridge"][i] for i in newest_slot(m) if m["touched"][i]] == [1, 2, 4, 5])
+    def pressed(m: dict) -> bool:
+        return len(newest_slot(m)) == 9 and [m["bridge"][i] for i in newest_slot(m) if m["touched"][i]] == [1, 2, 4, 5]
+
+    found: dict[str, dict] = {}
+    end = time.monotonic() + 20
+    k = 40
+    while len(found) < 2 and time.monotonic() < end:  # press until a contact is born (3 estimates)
+        pty.write(sk.slot(k, CORNER))
+        k += 1
+        got = client.recv(0.005)
+        while got is not None:
+            if got[0] == "element" and pressed(got[1]):
+                found.setdefault("element", got[1])
+            elif got[0] == "contact" and got[1]["contacts"]:
+                found["contact"] = got[1]
+            got = client.recv(0)
+    el, c = found["element"], found["contact"]
     assert el["v"] == 1 and isinstance(el["t_host"], float) and len(el["cycle"]) == len(el["bridge"])
     forces = [el["force"][i] for i in newest_slot(el) if el["valid"][i]]
     assert sum(forces) == pytest.approx(3.0, rel=0.05)  # each element's share of one press
-    c = client.wait_for("contact", lambda m: m["contacts"])
     (contact,) = c["contacts"]
     assert contact["x"] == pytest.approx(CORNER[0], abs=1e-3)
     assert contact["y"] == pytest.approx(CORNER[1], abs=1e-3)
     assert contact["force"] == pytest.approx(3.0, rel=0.01)
     assert contact["diameter"] == pytest.approx(0.012, abs=2e-4)
     assert c["v"] == 1 and c["t_host"] > 0 and sorted(contact["elements"]) == [1, 2, 4, 5]
+    assert contact["id"] == 0 and contact["age"] >= 3  # tracked: a stable id, born after 3 estimates
 
 
 def announce(pty: Pty, client: Client, slots: int) -> Skin:
@@ -294,9 +308,9 @@ def test_count_drops_counts_what_a_full_subscriber_queue_refused(tmp_path: Path)
     stuck = control.ctx.socket(zmq.SUB)  # tiny queues: it fills after a few messages
     stuck.setsockopt(zmq.RCVHWM, 1)
     stuck.setsockopt(zmq.RCVBUF, 1024)
-    stuck.setsockopt(zmq.SUBSCRIBE, b"element")
+    stuck.setsockopt(zmq.SUBSCRIBE, b"")  # everything, raw columns included: its queues fill at once
     stuck.connect(endpoints["pub"])
-    slots = 4000
+    slots = 6000
     try:
         with daemon(cfg):
             control.ready()
@@ -304,13 +318,13 @@ def test_count_drops_counts_what_a_full_subscriber_queue_refused(tmp_path: Path)
             pty.write(sk.hellos())
             for _, data in sk.stream(slots):
                 pty.write(data)
-            end = time.monotonic() + 30
+            end = time.monotonic() + 60
             st = control.request({"v": 1, "cmd": "status"})
             while sum(b["samples"] for b in st["bridges"].values()) < 4 * slots and time.monotonic() < end:
                 time.sleep(0.2)
                 st = control.request({"v": 1, "cmd": "status"})
             assert sum(b["samples"] for b in st["bridges"].values()) == 4 * slots  # ingest went on
-            assert st["pub"]["dropped"].get("element", 0) > 0  # and the refusals were counted
+            assert sum(st["pub"]["dropped"].values()) > 0  # and the refusals were counted
     finally:
         stuck.close(0)
         control.close()

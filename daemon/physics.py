@@ -26,6 +26,8 @@ from cellbridge.tactile import (
     adc_mean_code,
     counts_to_capacitance,
     expected_counts,
+    grid_layout,
+    skin_response,
     solve,
     unwrap_counts,
 )
@@ -218,7 +220,14 @@ def estimate_in_worker(spec: ContactSpec, snap: ContactSnapshot) -> list[dict[st
 
 
 def warm_up() -> None:
-    """Run in the worker at start: its imports (numpy, the estimator) happen before the first touch."""
+    """Run in the worker at start: imports, and the estimator's compiled kernels loaded by one
+    estimate on a small skin, happen before the first touch instead of delaying it."""
+    layout = grid_layout(2, 2)
+    dc1, dc2 = skin_response(layout, [(0.02, 0.0, 1.0, 0.012)])
+    touched = dc1 > 1e-13
+    stage = ContactStage(layout, default_params(layout), 2e-15, "capacitance", birth_frames=1)
+    stage.run(ContactSnapshot(np.stack([dc1, dc2], axis=1), touched, 0.0, np.zeros(layout.n),
+                              np.zeros(layout.n, dtype=np.uint64), layout.ids))
 
 
 class ContactStage:

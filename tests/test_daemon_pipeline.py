@@ -358,3 +358,17 @@ def test_reconfigure_takes_a_new_layout_and_keeps_hello_geometry() -> None:
     assert set(p.skin.geometry) == {1, 2, 3, 4}  # what the bridges said is remembered
     p.reconfigure(p.config, None)  # and the layout file removed again: back to HELLO geometry
     assert p.skin.layout is not None and p.skin.layout.n == 4
+
+
+def test_contact_worker_warm_up_estimates_a_press() -> None:
+    from cellbridge.daemon import physics
+
+    calls = []
+    run = physics.ContactStage.run
+    physics.ContactStage.run = lambda self, snap: calls.append(run(self, snap)) or calls[-1]  # type: ignore[method-assign]
+    try:
+        physics.warm_up()
+    finally:
+        physics.ContactStage.run = run  # type: ignore[method-assign]
+    (contacts,) = calls
+    assert len(contacts) == 1 and contacts[0]["force"] == pytest.approx(1.0, rel=0.05)

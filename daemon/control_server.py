@@ -1,0 +1,124 @@
+"""The control socket's shell: receive requests, run each in its own task, send the replies.
+
+Parsing and validation are sans-I/O (:mod:`cellbridge.daemon.control`); commands that
+travel to bridges wait here on a future the service resolves as replies come in, so a
+client waiting for a slow bridge holds up no other client and no ingest.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import Any, Protocol
+
+import zmq.asyncio
+
+from cellbridge._version import __version__
+from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply
+from cellbridge.daemon.links import Link
+from cellbridge.daemon.logs import event
+from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.publisher import pack
+from cellbridge.daemon.wire import PING
+
+
+class Host(Protocol):
+    """What the control server needs of the service."""
+
+    pipeline: Pipeline
+    links: dict[str, Link]
+    config: Any
+
+    def status_body(self, now: float) -> dict[str, Any]: ...
+
+
+class ControlServer:
+    def __init__(self, sock: zmq.asyncio.Socket, host: Host, log: logging.Logger) -> None:
+        self.sock = sock
+        self.host = host
+        self.log = log
+        self._waiting: dict[int, asyncio.Future[dict[str, Any]]] = {}
+        self._answers: set[asyncio.Task[Any]] = set()
+
+    async def serve(self) -> None:
+        while True:
+            frames = await self.sock.recv_multipart()
+            task = asyncio.create_task(self._answer(frames))  # a slow command never holds up others
+            self._answers.add(task)
+            task.add_done_callback(self._answers.discard)
+
+    async def finish(self, limit: float = 1.0) -> None:
+        """Let requests in progress answer (commands still waiting get their timeout reply)."""
+        self.resolve(time.time() + 3600.0)
+        if self._answers:
+            await asyncio.wait(self._answers, timeout=limit)
+
+    def resolve(self, now: float) -> None:
+        """Complete the commands whose bridges all answered or whose time ran out."""
+        for p in self.host.pipeline.commands.done(now):
+            fut = self._waiting.pop(p.token, None)
+            if fut is not None and not fut.done():
+                fut.set_result(p.result())
+
+    async def command(self, op: int, value: int | None, target: int | None, timeout: float) -> dict[str, Any]:
+        now = time.time()
+        pending, writes = self.host.pipeline.command(op, value, target, now, timeout)
+        fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
+        self._waiting[pending.token] = fut
+        links = self.host.links
+        sent = [name for name, data in writes if name in links and links[name].write(data)]
+        self.resolve(now)  # a broadcast with nobody alive completes at once
+        result = await asyncio.wait_for(fut, timeout + 1.0)
+        result["sent_on"] = sent
+        return result
+
+    async def _answer(self, frames: list[bytes]) -> None:
+        envelope, body = frames[:-1], frames[-1]
+        try:
+            req = parse_request(body)
+        except RequestError as exc:
+            event(self.log, "info", "bad control request", error=str(exc))
+            rep = error(str(exc))
+        else:
+            try:
+                rep = await self._execute(req)
+            except ValueError as exc:
+                rep = error(str(exc), req.id)
+            except Exception as exc:  # never let one request take the daemon down
+                self.log.exception("control request failed")
+                rep = error(f"internal error: {type(exc).__name__}: {exc}", req.id)
+        await self.sock.send_multipart([*envelope, pack(rep)])
+
+    async def _execute(self, req: Request) -> dict[str, Any]:
+        now = time.time()
+        pipeline = self.host.pipeline
+        timeout = req.timeout or self.host.config["control"]["command_timeout"]
+        if req.cmd == "status":
+            return reply(True, req.id, **self.host.status_body(now))
+        if req.cmd == "topology":
+            return reply(True, req.id, **pipeline.topology_body(now))
+        if req.cmd == "tare":
+            n = pipeline.tare(None if req.bridges is None else list(req.bridges))
+            return reply(True, req.id, tared_elements=n)
+        if req.cmd == "ping" and req.bridge is None:
+            return reply(True, req.id, pong=True, version=__version__, t_host=now, commands=COMMANDS)
+        op, value = (int(PING), None) if req.cmd == "ping" else (req.op, req.value)
+        result = await self.command(op, value, req.bridge, timeout)  # type: ignore[arg-type]
+        replies = result["replies"]
+        ok = bool(replies) and not result["missing"] and all(r["status"] == "OK" for r in replies.values())
+        if not ok:
+            result["error"] = _command_error(result)
+        return reply(ok, req.id, **result)
+
+
+def _command_error(result: dict[str, Any]) -> str:
+    if not result["replies"] and not result["missing"]:
+        return "no bridge is alive to receive the command"
+    bad = {b: r["status"] for b, r in result["replies"].items() if r["status"] != "OK"}
+    parts = []
+    if result["missing"]:
+        parts.append(f"no reply within the timeout from bridges {result['missing']}")
+    if bad:
+        parts.append(f"refused: {bad}")
+    return "; ".join(parts)

@@ -1,0 +1,141 @@
+"""Which bridge and element sits where: the layout file, else the bridges' HELLO geometry.
+
+Owns the layout-dependent stages (calibration + inverse, contact estimation, channel
+health) and rebuilds them when the HELLO-derived layout changes. A bridge the layout
+does not place is *reported* (health ``unplaced``), never guessed into a position.
+Layout ids are bridge ids; a bridge's element index 0 is the element the layout places.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellbridge.daemon.health import ChannelHealth
+from cellbridge.daemon.physics import (
+    ContactSnapshot,
+    ContactSpec,
+    ContactStage,
+    ElementStage,
+    calibration_config,
+    default_params,
+    layout_dict,
+    layout_from_geometry,
+)
+from cellbridge.tactile import SkinLayout
+
+_IDS = 0x10000
+
+
+class Skin:
+    def __init__(self, sections: dict[str, dict[str, Any]], layout: SkinLayout | None) -> None:
+        self.sections = sections
+        self.from_file = layout is not None
+        self.geometry: dict[int, tuple[float, float, float]] = {}  # HELLO: bridge -> (x, y, side)
+        self.rejected: list[int] = []
+        self.layout: SkinLayout | None = None
+        self.elements: ElementStage | None = None
+        self.contacts: ContactStage | None = None  # in this process (tests, tools)
+        self.contact_spec: ContactSpec | None = None  # what the service's worker process builds from
+        self.channels: ChannelHealth | None = None
+        self.row = np.full(_IDS, -1, dtype=np.int64)
+        self.t_sample = np.zeros(0)
+        self.cycle = np.zeros(0, dtype=np.uint64)
+        self.rebuilds = 0
+        self.dirty = False  # new element data since the last contact snapshot
+        self.snapshot_t = 0.0
+        if layout is not None:
+            self._install(layout)
+
+    def _install(self, layout: SkinLayout) -> None:
+        params = default_params(layout)
+        inv = self.sections["inverse"]
+        self.layout = layout
+        cal = self.sections["calibration"]
+        self.elements = ElementStage(layout, params, calibration_config(cal), inv["noise"], cal["max_step_rate"])
+        self.contact_spec = ContactSpec.of(layout, inv["noise"], self.sections["contact"])
+        self.contacts = self.contact_spec.build()
+        self.channels = ChannelHealth(layout.n)
+        self.row[:] = -1
+        ids = layout.ids
+        inside = (ids >= 0) & (ids < _IDS)
+        self.row[ids[inside]] = np.nonzero(inside)[0]
+        self.t_sample = np.full(layout.n, np.nan)
+        self.cycle = np.zeros(layout.n, dtype=np.uint64)
+        self.rebuilds += 1
+
+    def reconfigure(self, sections: dict[str, dict[str, Any]]) -> None:
+        """New calibration/inverse/contact settings (SIGHUP): stages are rebuilt, baselines re-taken."""
+        self.sections = sections
+        if self.layout is not None:
+            self._install(self.layout)
+
+    def hello(self, geometry: dict[int, tuple[float, float, float]]) -> bool:
+        """Geometry {bridge: (x, y, side)} announced in HELLOs; True when the layout changed."""
+        new = {b: g for b, g in geometry.items() if self.geometry.get(b) != g}
+        if not new:
+            return False
+        self.geometry.update(new)
+        if self.from_file:
+            return False
+        layout, self.rejected = layout_from_geometry(self.geometry)
+        if layout is None:
+            return False
+        self._install(layout)
+        return True
+
+    def rows_of(self, origin: NDArray[np.int64], element: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Layout row of each sample, -1 where the layout does not place it."""
+        return np.where(element == 0, self.row[origin], -1)
+
+    def placed(self, bridge: int) -> bool:
+        return bool(self.row[bridge] >= 0)
+
+    def snapshot(self, now: float) -> ContactSnapshot | None:
+        if self.elements is None or not self.dirty:
+            return None
+        self.dirty = False
+        self.snapshot_t = now
+        e = self.elements
+        return ContactSnapshot(e.latest.copy(), e.touched.copy(), now, self.t_sample.copy(), self.cycle.copy(),
+                               self.layout.ids)  # type: ignore[union-attr]
+
+    def tare(self, bridges: list[int] | None) -> int:
+        if self.elements is None:
+            return 0
+        if bridges is None:
+            self.elements.tare(None)
+            return self.layout.n  # type: ignore[union-attr]
+        rows = self.row[np.asarray(bridges, dtype=np.int64)]
+        rows = rows[rows >= 0]
+        if rows.size:
+            self.elements.tare(rows)
+        return int(rows.size)
+
+    def report(self, now: float, stuck_after: float) -> dict[str, Any]:
+        out: dict[str, Any] = {"source": "file" if self.from_file else "hello", "rebuilds": self.rebuilds,
+                               "rejected": self.rejected}
+        if self.layout is None:
+            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[])
+            return out
+        ids = self.layout.ids
+        ch = self.channels
+        assert ch is not None and self.elements is not None
+        stuck = ch.stuck(stuck_after)
+        out.update(
+            elements=self.layout.n,
+            stuck=[{"bridge": int(ids[i]), "channel": int(c) + 1} for i, c in zip(*np.nonzero(stuck))],
+            saturated=[{"bridge": int(ids[i]), "channel": int(c) + 1} for i, c in zip(*np.nonzero(ch.saturated))],
+            saturated_samples=int(ch.saturated_samples.sum()),
+            touched=ids[self.elements.touched].tolist(),
+            not_ready=ids[~self.elements.calibrator.ready].tolist(),
+        )
+        cal = self.elements.calibrator.health()
+        cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids
+        out["calibration"] = cal
+        return out
+
+    def layout_report(self) -> dict[str, Any] | None:
+        return None if self.layout is None else layout_dict(self.layout)

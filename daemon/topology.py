@@ -1,0 +1,84 @@
+"""The mesh as the host sees it: which bridges are alive, their parents, path costs and gateway.
+
+Built from the routing frames bridges send anyway (BEACON: parent and path cost;
+STATUS: parent, neighbours and counters) and from which link and which gateway
+bridge each bridge's traffic arrives through. Published when its *shape* changes,
+so subscribers can redraw the mesh without polling.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(slots=True)
+class Node:
+    parent: int | None = None
+    path_etx: int | None = None  # tenths of an expected transmission
+    hops: int | None = None
+    neighbours: dict[int, int] = field(default_factory=dict)  # id -> link ETX (tenths)
+    link: str = ""
+    gateway: int | None = None  # the bridge holding the serial line this bridge's traffic comes in on
+    last_seen: float = 0.0
+    queue_drops: int = 0
+    retries: int = 0
+    resets: int = 0
+
+
+class Topology:
+    def __init__(self) -> None:
+        self.nodes: dict[int, Node] = {}
+        self.gateways: dict[str, set[int]] = {}  # link -> gateway bridge ids heard on it
+        self._published: object = None
+
+    def node(self, bridge: int) -> Node:
+        n = self.nodes.get(bridge)
+        if n is None:
+            n = self.nodes[bridge] = Node()
+        return n
+
+    def heard(self, bridge: int, link: str, gateways: set[int], now: float) -> None:
+        n = self.node(bridge)
+        n.link, n.last_seen = link, now
+        if len(gateways) == 1:
+            n.gateway = next(iter(gateways))
+        self.gateways.setdefault(link, set()).update(gateways)
+
+    def beacon(self, bridge: int, parent: int, path_etx: int, hops: int) -> None:
+        n = self.node(bridge)
+        n.parent, n.path_etx, n.hops = parent, path_etx, hops
+
+    def status(self, bridge: int, parent: int, path_etx: int, neighbours: dict[int, int],
+               queue_drops: int, retries: int, resets: int) -> None:
+        n = self.node(bridge)
+        n.parent, n.path_etx, n.neighbours = parent, path_etx, neighbours
+        n.queue_drops, n.retries, n.resets = queue_drops, retries, resets
+
+    def report(self, now: float, timeout: float) -> dict[str, Any]:
+        bridges = {}
+        for bid in sorted(self.nodes):
+            n = self.nodes[bid]
+            bridges[str(bid)] = {
+                "alive": now - n.last_seen <= timeout, "parent": n.parent, "path_etx": n.path_etx,
+                "path_cost": None if n.path_etx is None else n.path_etx / 10.0, "hops": n.hops,
+                "link": n.link, "gateway": n.gateway, "last_seen": n.last_seen,
+                "neighbours": {str(k): v / 10.0 for k, v in sorted(n.neighbours.items())},
+            }
+        return {"bridges": bridges, "gateways": {k: sorted(v) for k, v in sorted(self.gateways.items())}}
+
+    def changed(self, report: dict[str, Any]) -> bool:
+        """True once per change of alive set, parents, costs, gateways or links."""
+        shape = (
+            tuple((k, b["alive"], b["parent"], b["path_etx"], b["link"], b["gateway"])
+                  for k, b in report["bridges"].items()),
+            tuple((k, tuple(v)) for k, v in report["gateways"].items()),
+        )
+        if shape == self._published:
+            return False
+        self._published = shape
+        return True
+
+    def links_of(self, bridge: int) -> list[str]:
+        n = self.nodes.get(bridge)
+        return [n.link] if n is not None and n.link else []

@@ -1,0 +1,157 @@
+"""Real processes, ptys and ZeroMQ sockets around a `cellbridge daemon` (tests and benchmarks)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import zmq
+
+CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Pty:
+    """A pseudo-terminal whose slave is reachable through a stable symlink, like a gateway's."""
+
+    def __init__(self, link: Path) -> None:
+        self.link = link
+        self.master = -1
+        self.open()
+
+    def open(self) -> None:
+        self.master, slave = os.openpty()
+        name = os.ttyname(slave)
+        os.close(slave)  # the daemon opens it by path
+        tmp = self.link.with_suffix(".tmp")
+        if tmp.is_symlink():
+            tmp.unlink()
+        tmp.symlink_to(name)
+        tmp.replace(self.link)
+
+    def write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            n = os.write(self.master, view)
+            view = view[n:]
+
+    def read(self, timeout: float = 2.0) -> bytes:
+        import select
+
+        ready, _, _ = select.select([self.master], [], [], timeout)
+        return os.read(self.master, 4096) if ready else b""
+
+    def close(self) -> None:
+        if self.master >= 0:
+            os.close(self.master)
+            self.master = -1
+
+
+def write_config(path: Path, links: list[dict[str, Any]], **sections: dict[str, Any]) -> dict[str, str]:
+    endpoints = {"pub": f"tcp://127.0.0.1:{free_port()}", "control": f"tcp://127.0.0.1:{free_port()}"}
+    lines = []
+    base: dict[str, dict[str, Any]] = {"pub": {"endpoint": endpoints["pub"]},
+                                       "control": {"endpoint": endpoints["control"]},
+                                       "health": {"interval": 0.2}, "daemon": {"log_format": "json"}}
+    for name, values in sections.items():
+        base.setdefault(name, {}).update(values)
+    endpoints = {"pub": base["pub"]["endpoint"], "control": base["control"]["endpoint"]}
+    for name, values in base.items():
+        lines.append(f"[{name}]")
+        lines += [f"{k} = {_toml(v)}" for k, v in values.items()]
+    for link in links:
+        lines.append("[[link]]")
+        lines += [f"{k} = {_toml(v)}" for k, v in link.items()]
+    path.write_text("\n".join(lines) + "\n")
+    return endpoints
+
+
+def _toml(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (str, Path)):
+        return '"' + str(v) + '"'
+    return repr(v)
+
+
+@contextmanager
+def daemon(config: Path, stderr: Path | None = None) -> Iterator[subprocess.Popen[bytes]]:
+    """The daemon as a real process in its own process group; always stopped on exit."""
+    err = open(stderr, "wb") if stderr else subprocess.DEVNULL  # noqa: SIM115
+    proc = subprocess.Popen([CLI, "daemon", "--config", str(config)], stderr=err, stdout=subprocess.DEVNULL,
+                            start_new_session=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(5)
+        if stderr:
+            err.close()  # type: ignore[union-attr]
+
+
+class Client:
+    """Subscriber and control client on loopback."""
+
+    def __init__(self, endpoints: dict[str, str], topics: tuple[bytes, ...] = (b"",)) -> None:
+        self.ctx = zmq.Context()
+        self.endpoints = endpoints
+        self.sub = self.ctx.socket(zmq.SUB)
+        self.sub.setsockopt(zmq.LINGER, 0)
+        self.sub.setsockopt(zmq.RCVHWM, 0)
+        for t in topics:
+            self.sub.setsockopt(zmq.SUBSCRIBE, t)
+        self.sub.connect(endpoints["pub"])
+
+    def recv(self, timeout: float = 5.0) -> tuple[str, dict[str, Any]] | None:
+        if not self.sub.poll(int(timeout * 1000)):
+            return None
+        topic, payload = self.sub.recv_multipart()
+        return topic.decode(), msgpack.unpackb(payload, raw=False)
+
+    def wait_for(self, topic: str, pred: Any = lambda m: True, timeout: float = 10.0) -> dict[str, Any]:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            got = self.recv(max(0.01, end - time.monotonic()))
+            if got is not None and got[0] == topic and pred(got[1]):
+                return got[1]
+        raise AssertionError(f"no matching {topic!r} message within {timeout} s")
+
+    def request(self, body: bytes | dict[str, Any], timeout: float = 5.0) -> dict[str, Any]:
+        req = self.ctx.socket(zmq.REQ)
+        req.setsockopt(zmq.LINGER, 0)
+        req.connect(self.endpoints["control"])
+        try:
+            req.send(body if isinstance(body, bytes) else msgpack.packb(body))
+            if not req.poll(int(timeout * 1000)):
+                raise AssertionError(f"no control reply within {timeout} s")
+            return msgpack.unpackb(req.recv(), raw=False)
+        finally:
+            req.close()
+
+    def ready(self, timeout: float = 15.0) -> None:
+        """Until the daemon answers ping and this subscriber gets messages (joined)."""
+        self.request({"v": 1, "cmd": "ping"}, timeout)
+        self.wait_for("health", timeout=timeout)
+
+    def close(self) -> None:
+        self.ctx.destroy(linger=0)

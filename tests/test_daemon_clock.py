@@ -1,0 +1,71 @@
+"""Per-bridge clock sync: offset and skew from delayed arrivals, counter wrap, bridge reset."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cellbridge.daemon.clock import BridgeClock
+
+HZ = 50e6
+
+
+def _run(clock: BridgeClock, ppm: float, t0: float, seconds: float, rng: np.random.Generator,
+         c0: int = 10**9, bits: int = 64, rate: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
+    """Feed observations of a bridge whose crystal is ``ppm`` off; returns (true times, cycles)."""
+    ts = np.arange(0.0, seconds, 1.0 / rate)
+    cycles = (c0 + np.round(ts * HZ * (1 + ppm * 1e-6)).astype(np.int64)) % np.int64(min(1 << bits, 1 << 62))
+    delays = 0.002 + rng.exponential(0.003, ts.size)  # never negative, jittery
+    for t, c, d in zip(ts, cycles, delays):
+        clock.observe(int(c), t0 + t + d)
+    return t0 + ts, cycles.astype(np.uint64)
+
+
+@settings(max_examples=25, deadline=None)
+@given(ppm=st.floats(-80, 80), seed=st.integers(0, 2**32 - 1))
+def test_recovers_offset_and_skew_from_delayed_arrivals(ppm: float, seed: int) -> None:
+    clock = BridgeClock(HZ)
+    truth, cycles = _run(clock, ppm, 5000.0, 30.0, np.random.default_rng(seed))
+    err = clock.to_host(cycles[-500:]) - truth[-500:]
+    # Mapped to the least-delayed arrival: within the 2 ms minimum delay plus a little, no jitter.
+    assert np.all(err > 0.0015) and np.all(err < 0.0030), (err.min(), err.max())
+    assert abs(clock.skew + ppm * 1e-6) < 10e-6  # a fast crystal (ppm > 0) runs ahead: host time is slower
+
+
+def test_jitter_does_not_reach_the_timestamps() -> None:
+    clock = BridgeClock(HZ)
+    truth, cycles = _run(clock, 30.0, 0.0, 20.0, np.random.default_rng(1))
+    err = clock.to_host(cycles) - truth
+    assert np.std(err[-200:]) < 2e-4  # arrival jitter is 3 ms rms
+
+
+def test_counter_wrap_is_unwrapped() -> None:
+    bits = 32
+    clock = BridgeClock(HZ, bits=bits)
+    start = (1 << bits) - int(HZ * 3)  # wraps 3 s in
+    truth, cycles = _run(clock, 0.0, 100.0, 10.0, np.random.default_rng(2), c0=start, bits=bits)
+    assert cycles.min() < 10**8 and cycles.max() > (1 << bits) - 10**8  # it did wrap
+    err = clock.to_host(cycles[-100:]) - truth[-100:]
+    assert np.all(np.abs(err) < 0.01)
+    assert clock.resets == 0
+
+
+def test_long_run_with_a_narrow_counter_keeps_its_fit() -> None:
+    clock = BridgeClock(HZ, bits=32)  # wraps every 86 s; the origin must move, not reset
+    truth, cycles = _run(clock, 20.0, 0.0, 200.0, np.random.default_rng(3), rate=10.0)
+    assert clock.resets == 0
+    assert np.all(np.abs(clock.to_host(cycles[-50:]) - truth[-50:]) < 0.01)
+
+
+def test_bridge_reset_restarts_the_fit() -> None:
+    clock = BridgeClock(HZ)
+    rng = np.random.default_rng(4)
+    _run(clock, 10.0, 0.0, 10.0, rng, c0=10**10)
+    truth, cycles = _run(clock, 10.0, 10.5, 5.0, rng, c0=0)  # counter restarted from zero
+    assert clock.resets == 1
+    assert np.all(np.abs(clock.to_host(cycles[-50:]) - truth[-50:]) < 0.01)
+
+
+def test_unsynced_clock_maps_to_nan() -> None:
+    assert np.isnan(BridgeClock(HZ).to_host(np.array([1, 2], dtype=np.uint64))).all()

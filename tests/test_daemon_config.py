@@ -1,0 +1,97 @@
+"""The daemon's config: defaults, every bad key named at once, --print-config round trip."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from cellbridge.daemon.config import SECTIONS, ConfigError, default_toml, load_config, parse_config
+
+
+def test_defaults_are_valid_and_documented() -> None:
+    cfg = parse_config({"link": [{"url": "/dev/ttyUSB0"}]})
+    assert cfg["pub"]["endpoint"] == "tcp://127.0.0.1:5560"
+    assert cfg["control"]["endpoint"] == "tcp://127.0.0.1:5561"
+    assert cfg.links[0].name == "link0"
+    for section, keys in SECTIONS.items():
+        for key, spec in keys.items():
+            assert spec.doc, f"{section}.{key} has no doc"
+
+
+def test_every_problem_is_named_at_once() -> None:
+    bad = {
+        "pub": {"endpoint": "localhost:5560", "hwm": 0, "colour": "red"},
+        "calibration": {"tau": -1.0, "n_baseline": "many"},
+        "contact": {"method": "guess"},
+        "nonsense": {},
+        "link": [{"name": "a"}, {"name": "a", "url": "x", "replay_speed": -2}],
+    }
+    with pytest.raises(ConfigError) as exc:
+        parse_config(bad, "my.toml")
+    text = str(exc.value)
+    for needle in ("pub.endpoint = 'localhost:5560'", "pub.hwm = 0", "pub.colour: unknown key",
+                   "calibration.tau = -1.0", "calibration.n_baseline = 'many': must be an integer",
+                   "contact.method = 'guess'", "[nonsense]: unknown section", "link[0].url: missing",
+                   "link[1].replay_speed = -2", "link name 'a' used twice", "my.toml"):
+        assert needle in text, needle
+    assert len(exc.value.problems) == 10
+
+
+def test_bool_is_not_a_number() -> None:
+    with pytest.raises(ConfigError, match="health.interval = True"):
+        parse_config({"health": {"interval": True}})
+
+
+def test_print_config_parses_back_to_the_defaults(tmp_path: Path) -> None:
+    text = default_toml()
+    data = tomllib.loads(text)
+    cfg = parse_config(data)
+    for section, keys in SECTIONS.items():
+        for key, spec in keys.items():
+            assert cfg[section][key] == spec.default
+    f = tmp_path / "d.toml"
+    f.write_text(text)
+    assert load_config(f).links[0].url == "/dev/ttyUSB0"
+
+
+def test_missing_file_and_bad_toml(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "nope.toml")
+    f = tmp_path / "bad.toml"
+    f.write_text("[pub\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(f)
+
+
+def test_layout_path_is_relative_to_the_config(tmp_path: Path) -> None:
+    f = tmp_path / "d.toml"
+    f.write_text('[layout]\nfile = "skin.toml"\n[[link]]\nurl = "/dev/null"\n')
+    assert load_config(f).layout_path() == tmp_path.resolve() / "skin.toml"
+
+
+def test_cli_print_config_check_and_errors(tmp_path: Path) -> None:
+    import subprocess
+
+    from daemon_harness import CLI
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([CLI, "daemon", *args], capture_output=True, text=True, timeout=60)
+
+    help_text = run("--help").stdout
+    assert "--print-config" in help_text and "replay:FILE" in help_text and "docs/zmq-api.md" in help_text
+    printed = run("--print-config")
+    assert printed.returncode == 0
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(printed.stdout)
+    ok = run("--config", str(cfg), "--check")
+    assert ok.returncode == 0 and "ok (1 link(s))" in ok.stdout
+    cfg.write_text(printed.stdout.replace('hwm = 1000', 'hwm = "lots"').replace("[layout]\nfile = \"\"",
+                                                                              "[layout]\nfile = \"nope.toml\""))
+    bad = run("--config", str(cfg), "--check")
+    assert bad.returncode == 2 and "pub.hwm = 'lots': must be an integer" in bad.stderr
+    cfg.write_text(printed.stdout.replace("[layout]\nfile = \"\"", "[layout]\nfile = \"nope.toml\""))
+    bad = run("--config", str(cfg), "--check")
+    assert bad.returncode == 2 and "nope.toml" in bad.stderr and "cannot read layout" in bad.stderr
+    assert run().returncode == 2

@@ -1,0 +1,374 @@
+"""The daemon's sans-I/O pipeline on synthesized gateway traffic (no sockets, no asyncio)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cellbridge.config import load_layout
+from cellbridge.daemon.config import parse_config
+from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.protocol import (
+    ADDR_BROADCAST,
+    Command,
+    Data,
+    Frame,
+    Mode,
+    Op,
+    Sample,
+    StreamDecoder,
+    encode_stream,
+    fragment,
+)
+from cellbridge.tactile import adc_code, grid_layout, layout_to_toml
+from daemon_traffic import CLOCK, Skin
+
+T0 = 1_700_000_000.0
+STRADDLE = (0.020, 0.006, 3.0, 0.012)  # on the seam of bridges 1 and 2
+
+
+def make(extra: dict | None = None, layout=None) -> Pipeline:
+    cfg = parse_config({"link": [{"name": "gw", "url": "/dev/null"}, {"name": "gw2", "url": "/dev/null"}],
+                        **(extra or {})})
+    return Pipeline(cfg, layout)
+
+
+def settle(p: Pipeline, sk: Skin, n: int = 60, link: str = "gw") -> float:
+    p.feed(link, sk.hellos() + sk.beacons(), T0)
+    for k, data in sk.stream(n):
+        p.feed(link, data, T0 + k / sk.rate)
+    return T0 + n / sk.rate
+
+
+def press(p: Pipeline, sk: Skin, contact, start: int, n: int = 10) -> list:
+    out = []
+    for k, data in sk.stream(n, contact, start=start):
+        out = p.feed("gw", data, T0 + k / sk.rate)
+    return out
+
+
+def topic(out: list, name: str) -> dict:
+    return [m for t, m in out if t == name][-1]
+
+
+def test_press_gives_force_on_element_and_position_on_contact() -> None:
+    snap = None
+    sk = Skin()
+    p = make()
+    settle(p, sk)
+    out = press(p, sk, STRADDLE, 60)
+    el = topic(out, "element")
+    assert el["v"] == 1 and "t_host" in el and len(el["cycle"]) == 4
+    force = np.nansum(np.where(el["valid"], el["force"], 0.0))
+    touched = [b for b, t in zip(el["bridge"], el["touched"]) if t]
+    assert touched == [1, 2]
+    for _ in range(3):  # a contact is reported once it persisted three estimates
+        snap = p.contact_snapshot() or snap
+        contacts = p.skin.contacts.run(snap)  # type: ignore[union-attr]
+        p.skin.dirty = True
+    _, msg = p.contact_message(snap, contacts)
+    (c,) = msg["contacts"]
+    assert c["id"] == 0 and c["age"] == 3
+    assert c["x"] == pytest.approx(STRADDLE[0], abs=1e-3)
+    assert c["force"] == pytest.approx(3.0, rel=0.01)
+    assert force == pytest.approx(3.0, rel=0.05)  # per element shares of the same press
+    assert sorted(c["elements"]) == [1, 2] and len(c["cycles"]) == 2
+    assert msg["v"] == 1 and msg["t_sample"] is not None
+
+
+def test_sample_times_follow_the_bridge_clock() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 200)
+    out = press(p, sk, None, 200, 5)
+    el = topic(out, "element")
+    k = 204
+    assert el["t_bridge"][0] == pytest.approx((sk.cycle0 + k * CLOCK / sk.rate) / CLOCK)
+    assert el["t_sample"][0] == pytest.approx(T0 + k / sk.rate, abs=1e-6)
+
+
+def test_garbage_and_truncated_frames_are_counted_not_fatal() -> None:
+    sk = Skin()
+    p = make()
+    t = settle(p, sk, 60)
+    one = sk.slot(61).split(b"\x00")[1]  # the COBS bytes of one frame
+    junk = b"\x00garbage\x01\x02\x00" + one[: len(one) // 2] + b"\x00" + bytes(range(1, 200)) + b"\x00"
+    p.feed("gw", junk, t)
+    out = p.feed("gw", sk.slot(62), t + 0.01)
+    assert len(topic(out, "element")["bridge"]) == 4
+    links = p.health_body(t)["links"]["gw"]
+    assert links["framing_errors"] + links["crc_errors"] >= 3
+    assert links["bytes"] > 0
+
+
+def test_cross_link_duplicates_are_removed_and_loss_counted() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 60)
+    slots = [sk.slot(k) for k in range(60, 70)]
+    n_elem = 0
+    for i, data in enumerate(slots):
+        t = T0 + (60 + i) / 100
+        for link in ("gw", "gw2"):  # both gateways hear everything
+            for _, m in p.feed(link, data, t):
+                if "force" in m:
+                    n_elem += len(m["bridge"])
+    assert n_elem == 40
+    assert p.health_body(T0 + 1)["links"]["gw2"]["duplicates"] == 40
+    sk.slot(70)  # one slot lost on the way
+    p.feed("gw", sk.slot(71), T0 + 0.71)
+    bridges = p.health_body(T0 + 0.72)["bridges"]
+    assert all(bridges[str(b)]["lost"] == 1 for b in sk.ids)
+
+
+def test_fragmented_data_is_reassembled() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 60)
+    samples = tuple(Sample(0, sk.cycle0 + 61 * 500_000 + i, 19600, 15800, 0) for i in range(30))
+    big = Frame(src=1, dst=0, origin=1, seq=sk.seq[1], payload=Data(Mode.COUNTER, samples))
+    frags = fragment(big, tag=9)
+    assert len(frags) > 1
+    out = p.feed("gw", b"".join(encode_stream(f) for f in frags), T0 + 0.61)
+    assert len(topic(out, "element")["bridge"]) == 30
+
+
+def test_commands_go_to_the_link_a_bridge_was_heard_on_and_complete_on_reply() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 5, link="gw2")
+    pending, writes = p.command(int(Op.SET_GATE), 50_000, 3, T0, 1.0)
+    assert [link for link, _ in writes] == ["gw2"]
+    (frame,) = StreamDecoder().feed(writes[0][1])
+    assert frame.dst == 3 and frame.payload == Command(pending.token, Op.SET_GATE, 50_000)
+    p.feed("gw2", sk.reply(3, pending.token, Op.SET_GATE), T0 + 0.01)
+    (done,) = p.commands.done(T0 + 0.01)
+    assert done.result()["replies"]["3"]["status"] == "OK" and done.result()["missing"] == []
+    assert p.gate[3] == 50_000.0
+    bpending, bwrites = p.command(int(Op.SET_RATE), 50, None, T0, 1.0)
+    assert sorted(link for link, _ in bwrites) == ["gw", "gw2"]
+    assert StreamDecoder().feed(bwrites[0][1])[0].dst == ADDR_BROADCAST
+    p.feed("gw2", sk.reply(1, bpending.token, Op.SET_RATE), T0 + 0.02)
+    assert p.commands.done(T0 + 0.5) == []
+    (late,) = p.commands.done(T0 + 1.5)
+    assert late.result()["missing"] == [2, 3, 4]
+    with pytest.raises(ValueError, match="bridge 99"):
+        p.command(int(Op.PING), None, 99, T0, 1.0)
+
+
+def test_halved_gate_reads_the_same_capacitance() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 60)
+    pending, _ = p.command(int(Op.SET_GATE), 50_000, 2, T0, 1.0)
+    p.feed("gw", sk.reply(2, pending.token, Op.SET_GATE, 50_000), T0 + 0.6)
+    k1, k2 = sk.counts_for(None, np.zeros((2, 4)))
+    data = encode_stream(Frame(1, 0, 2, sk.seq[2], Data(Mode.COUNTER, (Sample(0, 10**9, int(k1[1]) // 2,
+                                                                               int(k2[1]) // 2, 0),))))
+    el = topic(p.feed("gw", data, T0 + 0.61), "element")
+    assert el["c1"][0] == pytest.approx(sk.params.C1_rest, rel=2e-4)
+
+
+def test_adc_mode_is_converted() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 60)
+    rng = np.random.default_rng(0)
+    over = 64
+    codes = adc_code(np.full(over, sk.params.C1_rest), sk.chip, rng.normal(0, 0.5, over)).sum()
+    codes2 = adc_code(np.full(over, sk.params.C2_rest), sk.chip, rng.normal(0, 0.5, over)).sum()
+    data = encode_stream(Frame(1, 0, 3, sk.seq[3], Data(Mode.ADC, (Sample(0, 10**9, int(codes), int(codes2), 0),),
+                                                       over)))
+    el = topic(p.feed("gw", data, T0 + 0.61), "element")
+    assert el["c1"][0] == pytest.approx(sk.params.C1_rest, rel=0.02)
+    assert el["c2"][0] == pytest.approx(sk.params.C2_rest, rel=0.02)
+
+
+def test_tare_retakes_the_baseline() -> None:
+    sk = Skin()
+    p = make({"calibration": {"n_baseline": 5}})
+    settle(p, sk, 10)
+    press(p, sk, STRADDLE, 10, 5)
+    assert p.skin.elements.touched[:2].all()  # type: ignore[union-attr]
+    assert p.tare([1, 2]) == 2
+    out = press(p, sk, STRADDLE, 15, 8)  # the press is now part of the baseline
+    el = topic(out, "element")
+    assert not any(el["touched"])
+    assert max(abs(x) for x in el["dc1"]) < 1e-14
+
+
+def test_layout_file_places_bridges_and_reports_strangers(tmp_path: Path) -> None:
+    f = tmp_path / "skin.toml"
+    f.write_text(layout_to_toml(grid_layout(1, 2, first_id=1)))
+    p = make(layout=load_layout(f))
+    sk = Skin()
+    settle(p, sk, 60)
+    out = press(p, sk, None, 60, 2)
+    assert sorted(set(topic(out, "element")["bridge"])) == [1, 2]
+    h = p.health_body(T0 + 1)
+    assert h["unplaced"] == [3, 4]
+    assert h["bridges"]["3"]["unmapped_samples"] > 0
+    assert h["layout"]["source"] == "file"
+
+
+def test_hello_layout_and_topology() -> None:
+    sk = Skin()
+    p = make()
+    out = p.feed("gw", sk.hellos() + sk.beacons(), T0)
+    topo = topic(out, "topology")
+    assert topo["layout"]["ids"] == [1, 2, 3, 4]
+    ticked = p.tick(T0 + 0.1)
+    topo = topic(ticked, "topology")
+    assert topo["bridges"]["2"]["parent"] == 1 and topo["bridges"]["2"]["gateway"] == 1
+    assert topo["bridges"]["2"]["link"] == "gw" and topo["bridges"]["1"]["alive"]
+    assert [t for t, _ in p.tick(T0 + 1.2)] == ["health"]  # unchanged: health only
+    ticked = p.tick(T0 + 10)  # all silent now: topology changes, silence reported
+    assert topic(ticked, "topology")["bridges"]["1"]["alive"] is False
+    assert topic(ticked, "health")["silent"] == [1, 2, 3, 4]
+    assert any("no data from bridge 1" in text for _, text in p.events)
+
+
+def test_stuck_channel_is_reported() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 10)
+    k1, k2 = sk.counts_for(None)
+    for k in range(10, 400):
+        data = encode_stream(Frame(1, 0, 4, sk.seq[4], Data(Mode.COUNTER, (Sample(0, k * 500_000, int(k1[3]),
+                                                                                   int(k2[3]), 0),))))
+        sk.seq[4] += 1
+        p.feed("gw", data, T0 + k / 100)
+    stuck = p.health_body(T0 + 4)["layout"]["stuck"]
+    assert {"bridge": 4, "channel": 1} in stuck and {"bridge": 4, "channel": 2} in stuck
+    assert not any(s["bridge"] == 1 for s in stuck)  # silent since t=0.1 s, which is not stuck
+
+
+def test_unwanted_topics_are_not_built() -> None:
+    sk = Skin()
+    p = make()
+    p.wanted = {"contact"}
+    settle(p, sk, 5)
+    assert press(p, sk, None, 5, 2) == []
+
+
+def test_reassembly_drops_are_reported_per_bridge() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 5)
+    samples = tuple(Sample(0, 10**9 + i, 19600, 15800, 0) for i in range(30))
+    frags = fragment(Frame(1, 0, 3, 100, Data(Mode.COUNTER, samples)), tag=4)
+    p.feed("gw", encode_stream(frags[1]), T0 + 0.1)  # a later fragment with no first one: dropped
+    h = p.health_body(T0 + 0.1)
+    assert h["bridges"]["3"]["reassembly_drops"] == 1 and h["bridges"]["2"]["reassembly_drops"] == 0
+    assert h["reassembly"]["drops"] == {"no_state": 1}
+
+
+def test_topology_tracks_status_neighbours_and_the_gateway_of_each_link() -> None:
+    from cellbridge.protocol import BridgeStatus, Neighbour
+
+    sk = Skin()
+    p = make()
+    p.feed("gw", sk.hellos() + sk.beacons(), T0)
+    st = encode_stream(Frame(3, 0, 4, sk.seq[4], BridgeStatus(3, 12, (Neighbour(3, 11), Neighbour(2, 25)), 0, 1, 0,
+                                                                  10**6)))
+    p.feed("gw2", st, T0 + 0.05)  # bridge 4 now heard through gateway 3 on the second line
+    topo = topic(p.tick(T0 + 0.1), "topology")
+    b4 = topo["bridges"]["4"]
+    assert b4["parent"] == 3 and b4["link"] == "gw2" and b4["gateway"] == 3
+    assert b4["neighbours"] == {"2": 2.5, "3": 1.1}
+    assert topo["gateways"] == {"gw": [1], "gw2": [3]}
+    _, writes = p.command(int(Op.PING), None, 4, T0 + 0.1, 1.0)
+    assert [link for link, _ in writes] == ["gw2"]  # commands follow the bridge to its new gateway
+
+
+def test_every_published_field_is_documented() -> None:
+    doc = (Path(__file__).parent.parent / "docs" / "zmq-api.md").read_text()
+    sk = Skin()
+    p = make()
+    settle(p, sk, 60)
+    out = press(p, sk, STRADDLE, 60, 5) + p.tick(T0 + 2)
+    snap = p.contact_snapshot()
+    for _ in range(3):  # born after three estimates
+        contacts = p.skin.contacts.run(snap)  # type: ignore[union-attr]
+    assert contacts
+    out.append(p.contact_message(snap, contacts))
+    seen: set[str] = set()
+    for _, m in out:
+        seen |= set(m)
+        for c in m.get("contacts", []):
+            seen |= set(c)
+        for group in ("links", "bridges"):
+            for entry in m.get(group, {}).values():
+                if isinstance(entry, dict):
+                    seen |= set(entry)
+        if isinstance(m.get("layout"), dict):
+            seen |= set(m["layout"])
+    missing = sorted(k for k in seen if f"`{k}`" not in doc and f"`{k}:" not in doc and f"`{k} " not in doc)
+    assert not missing, f"fields not in docs/zmq-api.md: {missing}"
+
+
+def test_bridge_reset_is_followed() -> None:
+    """A bridge restarts: sequence numbers and cycle counter from zero, HELLO again."""
+    sk = Skin()
+    p = make()
+    t = settle(p, sk, 300)
+    sk.seq = {b: 0 for b in sk.ids}
+    sk.cycle0 = 0
+    t_reset = t + 1.0
+    p.feed("gw", sk.hellos(), t_reset)
+    out = []
+    for k, data in sk.stream(20):
+        out = p.feed("gw", data, t_reset + 0.01 + k / sk.rate)
+    el = topic(out, "element")
+    assert len(el["bridge"]) == 4  # nothing taken for a duplicate of the old numbering
+    assert el["t_sample"][0] == pytest.approx(t_reset + 0.01 + 19 / sk.rate, abs=0.02)
+    h = p.health_body(t_reset + 1)["bridges"]["1"]
+    assert h["clock_resets"] == 1 and h["seq_restarts"] == 1
+
+
+def test_elements_read_just_after_a_calibration_step_are_not_left_out() -> None:
+    """Bridge 1's frame always comes in one read, the others' 0.1 ms later in the next:
+    the calibrator steps at most every 4 ms, on everything read since its last step."""
+    sk = Skin()
+    p = make({"calibration": {"n_baseline": 5}})
+    p.feed("gw", sk.hellos(), T0)
+    out: list = []
+    for k in range(30):
+        press_k = STRADDLE if k >= 20 else None
+        parts = sk.slot(k, press_k).split(b"\x00\x00")
+        t = T0 + k / sk.rate
+        p.feed("gw", parts[0] + b"\x00", t)
+        out = p.feed("gw", b"\x00" + b"\x00\x00".join(parts[1:]), t + 1e-4)
+    el = topic(out, "element")
+    assert el["bridge"] == [2, 3, 4] and el["touched"] == [True, False, False]
+    assert not any(math.isnan(x) for x in el["dc1"])  # every element has its baseline
+    assert p.skin.elements.touched.tolist() == [True, True, False, False]  # type: ignore[union-attr]
+
+
+def test_reconfigure_takes_a_new_layout_and_keeps_hello_geometry() -> None:
+    sk = Skin()
+    p = make()
+    settle(p, sk, 5)
+    assert p.skin.layout is not None and p.skin.layout.n == 4
+    p.reconfigure(p.config, grid_layout(1, 2, first_id=1))  # SIGHUP with a layout file now named
+    assert p.skin.from_file and p.skin.layout.n == 2  # type: ignore[union-attr]
+    assert set(p.skin.geometry) == {1, 2, 3, 4}  # what the bridges said is remembered
+    p.reconfigure(p.config, None)  # and the layout file removed again: back to HELLO geometry
+    assert p.skin.layout is not None and p.skin.layout.n == 4
+
+
+def test_contact_worker_warm_up_estimates_a_press() -> None:
+    from cellbridge.daemon import physics
+
+    calls = []
+    run = physics.ContactStage.run
+    physics.ContactStage.run = lambda self, snap: calls.append(run(self, snap)) or calls[-1]  # type: ignore[method-assign]
+    try:
+        physics.warm_up()
+    finally:
+        physics.ContactStage.run = run  # type: ignore[method-assign]
+    (contacts,) = calls
+    assert len(contacts) == 1 and contacts[0]["force"] == pytest.approx(1.0, rel=0.05)

@@ -1,0 +1,102 @@
+"""Capture and replay: recorded traffic gives the golden output, in-process and through the real daemon."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from cellbridge.daemon.capture import MAGIC, read_capture, write_capture
+from daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise, pipeline_output
+from daemon_harness import Client, Pty, daemon, write_config
+from daemon_traffic import Skin
+
+
+def test_pipeline_replay_matches_golden() -> None:
+    diffs = compare(pipeline_output(), load_golden())
+    assert not diffs, diffs[:10]
+
+
+def test_golden_holds_what_the_capture_was_made_of() -> None:
+    g = load_golden()
+    (c,) = g["last_contact"]["contacts"]
+    assert c["x"] == pytest.approx(0.040, abs=1e-3) and c["y"] == pytest.approx(0.022, abs=1e-3)
+    assert c["force"] == pytest.approx(2.0, rel=0.01) and sorted(c["elements"]) == [2, 5]
+    pressed = [m for m in g["element"] if any(m["touched"])][:6]  # the first press, on four elements
+    assert sorted({b for m in pressed for b, t in zip(m["bridge"], m["touched"]) if t}) == [1, 2, 4, 5]
+
+
+def test_comparison_catches_a_moved_contact_and_a_changed_force() -> None:
+    import copy
+
+    g = load_golden()
+    moved = copy.deepcopy(g)
+    moved["last_contact"]["contacts"][0]["x"] += 1e-3
+    assert compare(moved, g) == [f"contacts[0].x: {moved['last_contact']['contacts'][0]['x']!r} != "
+                                 f"{g['last_contact']['contacts'][0]['x']!r}"]
+    changed = copy.deepcopy(g)
+    i, m = next((i, m) for i, m in enumerate(g["element"]) if any(f == f for f in m["force"]))  # a pressed one
+    changed["element"][i]["force"] = [f * 1.0001 for f in m["force"]]
+    assert len(compare(changed, g)) == sum(f == f for f in m["force"])  # each valid force is caught
+
+
+def test_daemon_replaying_the_capture_publishes_the_golden_output(tmp_path: Path) -> None:
+    cfg = tmp_path / "replay.toml"
+    text = CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{CAPTURE}")
+    endpoints = write_config(tmp_path / "endpoints.toml", [])
+    cfg.write_text(f'[pub]\nendpoint = "{endpoints["pub"]}"\n[control]\nendpoint = "{endpoints["control"]}"\n'
+                   + text)
+    client = Client(endpoints, (b"element", b"contact"))
+    messages = []
+    try:
+        with daemon(cfg, tmp_path / "err.log") as proc:
+            end = time.monotonic() + 30
+            while time.monotonic() < end:
+                got = client.recv(0.5)
+                if got is not None:
+                    messages.append(got)
+                elif proc.poll() is not None:
+                    break
+            assert proc.wait(10) == 0  # exit_when_done: it stops by itself, cleanly
+    finally:
+        client.close()
+    got = normalise(messages)
+    diffs = compare(got, load_golden())
+    assert not diffs, diffs[:10]
+
+
+def test_capture_records_what_the_link_read(tmp_path: Path) -> None:
+    pty = Pty(tmp_path / "gw")
+    cap = tmp_path / "gw.cbcap"
+    cfg = tmp_path / "daemon.toml"
+    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link, "capture": cap}])
+    client = Client(endpoints)
+    sk = Skin()
+    sent = sk.hellos() + b"\x00junk\x00" + b"".join(d for _, d in sk.stream(20))
+    try:
+        with daemon(cfg) as proc:
+            client.ready()
+            for i in range(0, len(sent), 300):
+                pty.write(sent[i:i + 300])
+                time.sleep(0.005)
+            client.wait_for("health", lambda m: m["links"]["gw"]["bytes"] == len(sent))
+            proc.terminate()
+            assert proc.wait(10) == 0
+    finally:
+        client.close()
+        pty.close()
+    records = list(read_capture(cap))
+    assert b"".join(d for _, d in records) == sent
+    times = [t for t, _ in records]
+    assert times == sorted(times) and abs(times[0] - time.time()) < 60
+
+
+def test_truncated_capture_reads_to_its_last_whole_record(tmp_path: Path) -> None:
+    f = tmp_path / "c.cbcap"
+    write_capture(f, [(1.0, b"abc"), (2.0, b"defg")])
+    f.write_bytes(f.read_bytes()[:-2])
+    assert list(read_capture(f)) == [(1.0, b"abc")]
+    (tmp_path / "bad").write_bytes(b"nope" + MAGIC)
+    with pytest.raises(ValueError, match="not a cellbridge capture"):
+        list(read_capture(tmp_path / "bad"))

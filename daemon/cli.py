@@ -46,6 +46,12 @@ def _load(args: argparse.Namespace) -> Config:
     from cellbridge.daemon.service import read_layout
 
     read_layout(config)  # a bad layout file is a config error too
+    from cellbridge.daemon.ops import curve_keys
+    from cellbridge.daemon.security import check_bind
+
+    curve = curve_keys(config)  # and so are missing or unsafe CURVE key files
+    for section in ("pub", "control"):  # and a bind beyond loopback without them
+        check_bind(config[section]["endpoint"], curve)
     return config
 
 

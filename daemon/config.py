@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cellbridge.tactile import DEFAULT_NOISE
+
 Check = Callable[[Any], str | None]  # returns a complaint, or None when the value is fine
 
 
@@ -110,7 +112,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
                              "newest reading); the gate limit of the bridges is enough", _positive, reloadable=True),
     },
     "inverse": {
-        "noise": Key(NUM, 2e-15, "F, rms noise of one ΔC reading (weights the inverse and contact fit)",
+        "noise": Key(NUM, DEFAULT_NOISE, "F, rms noise of one ΔC reading (weights the inverse and contact fit)",
                      _positive, reloadable=True),
     },
     "contact": {

@@ -28,50 +28,10 @@ from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.control_server import ControlServer
 from cellbridge.daemon.links import Link, ReplayLink, SerialLink
 from cellbridge.daemon.logs import event, setup
+from cellbridge.daemon.ops import OpsHooks
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
 from cellbridge.tactile import SkinLayout
-
-
-class OpsHooks:
-    """Where the operations pieces plug in (see DAEMON_OPS_API.md); no-ops here.
-
-    On merge the lead wires ``cellbridge.daemon.security`` and
-    ``cellbridge.daemon.notify.Notifier`` in, at exactly the points the agreed interface
-    names, e.g.::
-
-        self.curve = load_curve(config.security)          # __init__ (also for --check)
-        self.notifier = Notifier()
-        self.watchdog_interval = self.notifier.watchdog_interval
-        def secure(...):  check_bind(endpoint, self.curve); CurveServer(ctx, self.curve).apply(socket)
-        def ready(...):   self.notifier.ready(status)  ... and so on for status/watchdog/reloading/stopping
-    """
-
-    watchdog_interval: float | None = None  # s; Notifier.watchdog_interval
-
-    def __init__(self, config: Config) -> None:
-        self.config = config
-
-    def secure(self, ctx: zmq.asyncio.Context, socket: zmq.Socket, endpoint: str) -> None:  # BINDING
-        """Before binding ``socket`` to ``endpoint``: refuse a non-loopback bind without CURVE keys."""
-
-    def ready(self, status: str) -> None:  # READINESS: links and sockets are up
-        pass
-
-    def status(self, text: str) -> None:  # one-line summary every few seconds
-        pass
-
-    def watchdog(self) -> None:  # WATCHDOG: from the event loop, every watchdog_interval
-        pass
-
-    def reloading(self) -> None:  # SIGHUP
-        pass
-
-    def stopping(self) -> None:  # SIGTERM
-        pass
-
-    def close(self) -> None:  # after the sockets are closed (stop the ZAP authenticator)
-        pass
 
 
 def read_layout(config: Config) -> SkinLayout | None:
@@ -193,7 +153,11 @@ class Service:
         ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
                   "ms_per_read_p99": p99, "ms_per_read_max": float(recent.max() * 1e3) if recent.size else None,
                   "loop_lag_ms_max": self._lag_max * 1e3}
-        return {"pub": self.pub.stats(), "contact_estimation": dict(self.contacts.stats), "ingest": ingest}
+        out = {"pub": self.pub.stats(), "contact_estimation": dict(self.contacts.stats), "ingest": ingest}
+        security = self.hooks.counters()
+        if security:
+            out["security"] = security
+        return out
 
     def status_body(self, now: float) -> dict[str, Any]:
         body = self.pipeline.health_body(now)
@@ -251,6 +215,10 @@ class Service:
         self.config = new
         self.log.setLevel(new["daemon"]["log_level"].upper())
         self.pipeline.reconfigure(new, layout)
+        try:
+            self.hooks.reload_keys()
+        except ValueError as exc:
+            event(self.log, "error", "allowed client keys not reloaded, keeping the previous ones", error=str(exc))
         event(self.log, "info", "config reloaded", source=new.source)
         self.hooks.ready("reloaded")
 

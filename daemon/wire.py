@@ -21,7 +21,6 @@ from cellbridge.protocol import (
     ADDR_HOST,
     Beacon,
     BridgeStatus,
-    Bundle,
     Command,
     CommandReply,
     Data,
@@ -29,6 +28,7 @@ from cellbridge.protocol import (
     Fragment,
     Frame,
     Hello,
+    HostReceiver,
     Mode,
     Op,
     Reassembler,
@@ -97,12 +97,18 @@ class Decoded:
 
 
 class Ingress:
-    """Per-link stream decoders plus the shared duplicate filter and reassembler."""
+    """Per-link stream decoders in front of the protocol's host receive path.
+
+    :class:`~cellbridge.protocol.HostReceiver` reassembles first and filters whole frames
+    (bundles opened), the order in which a second gateway's copies make up for the first
+    one's losses; the counters it moves during one link's read are charged to that link.
+    """
 
     def __init__(self, dedupe_window: int = 256, reassembly_timeout: float = 2.0) -> None:
         self.decoders: dict[str, StreamDecoder] = {}
-        self.dedupe = DuplicateFilter(window=dedupe_window)
-        self.reassembler = Reassembler(timeout=reassembly_timeout)
+        self.receiver = HostReceiver(DuplicateFilter(window=dedupe_window), Reassembler(timeout=reassembly_timeout))
+        self.dedupe = self.receiver.dedupe
+        self.reassembler = self.receiver.reassembler
         self.duplicates_by_link: dict[str, int] = {}
         self.reassembly_drops: Counter[int] = Counter()  # by origin: drops met handling its fragments
 
@@ -125,43 +131,32 @@ class Ingress:
         out = Decoded()
         rows: list[tuple[int, ...]] = []
         meta: list[tuple[int, int, int, int, int]] = []  # (origin, mode, oversampling, n, seq)
-        dup = self.dedupe.is_duplicate
+        dedupe, reassembler, receive = self.dedupe, self.reassembler, self.receiver.receive
+        dropped_before = dedupe.duplicates + dedupe.stale
         for frame in self.decoder(link).feed(data):
             out.gateways.add(frame.src)
-            if dup(frame.origin, frame.seq, type(frame.payload) is Hello):  # a HELLO may restart numbering
-                self.duplicates_by_link[link] += 1
-                continue
-            out.frames_by_origin.setdefault(frame.origin, []).append(frame.seq)
             if type(frame.payload) is Fragment:
-                whole = self._reassemble(frame, now)
+                reassembler.expire(now)  # timeouts first, so a drop below is this bridge's own doing
+                before = reassembler.drops.total()
+                wholes = receive(frame, now)
+                lost = reassembler.drops.total() - before
+                if lost:
+                    self.reassembly_drops[frame.origin] += lost
             else:
-                whole = frame
-            if whole is not None:
+                wholes = receive(frame, now)
+            for whole in wholes:
+                out.frames_by_origin.setdefault(whole.origin, []).append(whole.seq)
                 self._route(whole, out, rows, meta)
+        self.duplicates_by_link[link] += dedupe.duplicates + dedupe.stale - dropped_before
         if rows:
             out.samples = _columns(rows, meta)
         return out
-
-    def _reassemble(self, frame: Frame, now: float) -> Frame | None:
-        r = self.reassembler
-        r.expire(now)  # timeouts first, so what follows is this bridge's own doing
-        before = r.drops.total()
-        whole = r.receive(frame, now)
-        lost = r.drops.total() - before
-        if lost:
-            self.reassembly_drops[frame.origin] += lost
-        return whole
 
     def _route(self, frame: Frame, out: Decoded, rows: list, meta: list) -> None:
         p = frame.payload
         if type(p) is Data:
             rows.extend(p.samples)
             meta.append((frame.origin, int(p.mode), p.oversampling, len(p.samples), frame.seq))
-        elif type(p) is Bundle:
-            for inner in p.frames:
-                if not self.dedupe.is_duplicate(inner.origin, inner.seq, type(inner.payload) is Hello):
-                    out.frames_by_origin.setdefault(inner.origin, []).append(inner.seq)
-                    self._route(inner, out, rows, meta)
         elif type(p) is Hello:
             out.hellos.append((frame.origin, p))
         elif type(p) is Beacon:

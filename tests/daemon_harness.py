@@ -90,11 +90,11 @@ def _toml(v: Any) -> str:
 
 
 @contextmanager
-def daemon(config: Path, stderr: Path | None = None) -> Iterator[subprocess.Popen[bytes]]:
+def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None = None) -> Iterator[subprocess.Popen[bytes]]:
     """The daemon as a real process in its own process group; always stopped on exit."""
     err = open(stderr, "wb") if stderr else subprocess.DEVNULL  # noqa: SIM115
     proc = subprocess.Popen([CLI, "daemon", "--config", str(config)], stderr=err, stdout=subprocess.DEVNULL,
-                            start_new_session=True)
+                            start_new_session=True, env=env)
     try:
         yield proc
     finally:

@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " elements meet, and prints the contact the daemon published next to the press."
     )
     parser.add_argument("--x", type=float, default=0.057, help="press centre x in metres (default 0.057: across the seam at 0.06)")
-    parser.add_argument("--y", type=float, default=0.043, help="press centre y in metres (default 0.043)")
+    parser.add_argument("--y", type=float, default=0.040, help="press centre y in metres (default 0.040: the row's centre line)")
     parser.add_argument("--force", type=float, default=3.0, help="press force in newtons (default 3)")
     parser.add_argument("--diameter", type=float, default=0.02, help="press diameter in metres (default 0.02)")
     parser.add_argument("--duration", type=float, default=3.0, help="press duration in seconds (default 3)")
@@ -162,7 +162,7 @@ def _wait_ready(sub: zmq.Socket, n: int, daemon: subprocess.Popen[Any], mesh: su
 def _press_and_collect(args: argparse.Namespace, base_port: int, sub: zmq.Socket) -> list[dict[str, Any]]:
     subprocess.run(_cellbridge("press", str(args.x), str(args.y), "--force", str(args.force),
                                "--diameter", str(args.diameter), "--duration", str(args.duration),
-                               "--base-port", str(base_port)), check=True, timeout=30)
+                               "--base-port", str(base_port)), check=True, timeout=30, stdout=subprocess.DEVNULL)
     seen: list[dict[str, Any]] = []
     end = time.monotonic() + args.duration + 1.0
     while time.monotonic() < end:
@@ -187,7 +187,8 @@ def _summarise(args: argparse.Namespace, contacts: list[dict[str, Any]]) -> dict
         v = sorted(float(c[key]) for c in steady)
         return v[len(v) // 2]
 
-    got = {k: median(k) for k in ("x", "y", "force", "diameter", "centroid_x", "centroid_y")}
+    got = {k: median(k) for k in ("x", "y", "force", "diameter", "centroid_x", "centroid_y", "sigma_x", "sigma_y")}
+    got["observable"] = steady[-1].get("observable")
     out.update(reported=got, ids=sorted(set(ids)),
                position_error_mm=1e3 * math.hypot(got["x"] - args.x, got["y"] - args.y),
                centroid_error_mm=1e3 * math.hypot(got["centroid_x"] - args.x, got["centroid_y"] - args.y),
@@ -202,8 +203,10 @@ def _print_table(r: dict[str, Any]) -> None:
         return
     g = r["reported"]
     print(f"{'':22}{'pressed':>12}{'reported':>12}")
-    print(f"{'x (mm)':22}{1e3 * p['x']:12.2f}{1e3 * g['x']:12.2f}")
-    print(f"{'y (mm)':22}{1e3 * p['y']:12.2f}{1e3 * g['y']:12.2f}")
+    obs = g.get("observable") or [True, True]
+    for k, axis in enumerate("xy"):
+        note = f"  ± {1e3 * g['sigma_' + axis]:.3f}" + ("" if obs[k] else "  (inside one element: not resolved, centre of the range)")
+        print(f"{axis + ' (mm)':22}{1e3 * p[axis]:12.2f}{1e3 * g[axis]:12.2f}{note}")
     print(f"{'force (N)':22}{p['force']:12.3f}{g['force']:12.3f}")
     print(f"{'diameter (mm)':22}{1e3 * p['diameter']:12.2f}{1e3 * g['diameter']:12.2f}")
     print(f"position error {r['position_error_mm']:.2f} mm (the paper's centroid: "

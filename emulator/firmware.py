@@ -104,6 +104,9 @@ class Firmware:
         # Commands seen survive a RESET command (kept in memory a reset does not clear), so
         # the flood's repeated copies of that RESET do not reset the bridge again.
         self.seen_cmd = DuplicateFilter()
+        # Totals of the parts a RESET command rebuilds (link, radio, router, reporter),
+        # from earlier lives, so a counter never goes back.
+        self._past: Counter[str] = Counter()
         self._power_on(boot_tick)
 
     # -- state ----------------------------------------------------------------------
@@ -149,14 +152,31 @@ class Firmware:
         self.seq = (s + 1) & 0xFFFF
         return s
 
+    def _life_totals(self) -> Counter[str]:
+        """Totals kept by the parts a reset rebuilds, for this life only."""
+        c = Counter(self.link.counters)
+        c.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
+                 bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
+                 neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed)
+        return c
+
+    def power_off(self) -> None:
+        """Count what a power-off or reset discards: queued, in-flight and pending broadcast
+        frames (``power_off_frames``) and samples batched but not yet in a DATA frame
+        (``power_off_samples``). Nothing is lost without a count."""
+        link = self.link
+        frames = len(link.queue) + len(link.broadcasts) + len(self.floods)
+        if link.inflight is not None:
+            frames += len(link.inflight.frames)
+        self.counters["power_off_frames"] += frames
+        self.counters["power_off_samples"] += len(self.sampler.batch)
+
     def counters_snapshot(self) -> dict[str, int]:
         out = dict(self.counters)
-        out.update(self.link.counters)
-        out.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
-                   bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
-                   neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed,
-                   resets=self.resets, queue_len=len(self.link.queue),
-                   has_route=int(self.router.has_route))
+        totals = Counter(self._past)
+        totals.update(self._life_totals())
+        out.update(totals)
+        out.update(resets=self.resets, queue_len=len(self.link.queue), has_route=int(self.router.has_route))
         return out
 
     # -- inputs ---------------------------------------------------------------------
@@ -340,6 +360,8 @@ class Firmware:
         if 0 <= self.reset_at <= tick:
             self.resets += 1
             self.counters["command_resets"] += 1
+            self.power_off()
+            self._past += self._life_totals()
             self._power_on(tick)
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None

@@ -155,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
                 except zmq.Again:
                     pass
     finally:
+        fw.power_off()  # what this process still held is lost with it: counted
         counters = fw.counters_snapshot()
         counters["late_gates"] = late
         counters["behind_gates"] = behind

@@ -130,6 +130,7 @@ class VirtualMesh:
             self.dead.add(bridge)
             self.medium.kill(bridge)
             old = self.nodes.pop(bridge)
+            old.power_off()
             self._retired[bridge].update(old.counters_snapshot())
             self._wake.pop(bridge, None)
         self.at(at, do)
@@ -137,6 +138,7 @@ class VirtualMesh:
     def restart(self, bridge: int, at: float) -> None:
         def do() -> None:
             if bridge in self.nodes:  # a running bridge is power-cycled
+                self.nodes[bridge].power_off()
                 self._retired[bridge].update(self.nodes[bridge].counters_snapshot())
             self.dead.discard(bridge)
             self.medium.revive(bridge)

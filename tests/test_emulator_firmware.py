@@ -212,3 +212,39 @@ def test_lazy_sampling_keeps_the_samples_due_before_a_command(op: Op, value: int
     lazy, eager = run(True), run(False)
     assert len(lazy[3]) == len(eager[3])
     assert lazy == eager
+
+
+def test_counters_never_go_back_across_a_reset_command() -> None:
+    # A RESET rebuilds the link, radio and router; the totals a user reads must keep
+    # what earlier lives counted (only states such as queue_len start again).
+    vm = VirtualMesh(meshgen.line(3), seed=3)
+    vm.host_write(1, cmd(1, 3, Op.RESET), at=2.0)
+    before = vm.run(1.99).counters[3]
+    after = vm.run(0.5).counters[3]
+    assert after["command_resets"] == 1 and after["resets"] == 1
+    for k, v in before.items():
+        if k not in ("queue_len", "has_route", "alive"):
+            assert after.get(k, 0) >= v, k
+    assert after["transmissions"] > before["transmissions"]
+
+
+def test_a_reset_counts_the_frames_and_samples_it_discards() -> None:
+    # A bridge without a route holds its HELLO, DATA and the RESET's reply in its queue;
+    # the reset loses them, as a real one would, but never silently.
+    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.protocol import encode
+
+    fw = Firmware(FirmwareConfig(5, (1,)), default_chip(5, 0))
+    for t in range(0, CLOCK_HZ, CLOCK_HZ // 100):
+        fw.advance(t)
+    fw.receive(encode(cmd(1, 5, Op.RESET)), CLOCK_HZ, 1)
+    assert len(fw.link.queue) >= 3  # HELLO, DATA, the RESET's reply: no route to send them
+    while fw.counters["command_resets"] == 0:
+        fw.advance(fw.next_tick)
+    c = fw.counters_snapshot()
+    assert c["power_off_frames"] >= 3
+    # every sample taken is sent, still batched, or counted as discarded
+    assert c["samples"] == c.get("samples_sent", 0) + len(fw.sampler.batch) + c["power_off_samples"]
+    assert c["power_off_samples"] > 0
+    assert fw.link.queue[0].seq == 0 and fw.link.queue[0].type == FrameType.HELLO  # numbering from 0, HELLO first

@@ -18,6 +18,7 @@ bytes and the element's capacitance (``sense(tick) -> (C1, C2)`` in farads).
 from __future__ import annotations
 
 import random
+from bisect import insort
 from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -58,6 +59,11 @@ _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LI
 _BUNDLE = int(FrameType.BUNDLE)
 _HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
+_FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
+
+
+def _when(item: tuple[int, bytes]) -> int:
+    return item[0]
 
 
 @dataclass(frozen=True)
@@ -323,11 +329,13 @@ class Firmware:
         if target != self.me:
             # controlled flooding: every bridge repeats a new command a few times at random
             # moments (a broadcast has no ACK; one lost copy must not cut a branch off)
-            data = encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost))
-            for lo, hi in _FLOOD_REPEATS:
-                self.floods.append((tick + lo + self.rng.randrange(hi - lo), data))
-            self.floods.sort(key=lambda x: x[0])
-            self.counters["flooded"] += 1
+            if len(self.floods) + len(_FLOOD_REPEATS) > _FLOOD_MAX:
+                self.counters["flood_drops"] += 1  # a host flooding commands: bounded memory
+            else:
+                data = encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost))
+                for lo, hi in _FLOOD_REPEATS:
+                    insort(self.floods, (tick + lo + self.rng.randrange(hi - lo), data), key=_when)
+                self.counters["flooded"] += 1
         if target in (self.me, ADDR_BROADCAST):
             cmd: Command = f.payload  # type: ignore[assignment]
             self.counters["commands"] += 1

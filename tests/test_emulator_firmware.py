@@ -248,3 +248,21 @@ def test_a_reset_counts_the_frames_and_samples_it_discards() -> None:
     assert c["samples"] == c.get("samples_sent", 0) + len(fw.sampler.batch) + c["power_off_samples"]
     assert c["power_off_samples"] > 0
     assert fw.link.queue[0].seq == 0 and fw.link.queue[0].type == FrameType.HELLO  # numbering from 0, HELLO first
+
+
+def test_a_host_flooding_commands_is_bounded_and_counted() -> None:
+    # A host (or garbage that decodes) writing thousands of CMDs for bridges nobody
+    # knows: the gateway keeps a bounded number of flood copies and counts each command
+    # it could not repeat; every command is accounted for.
+    from cellbridge.protocol import encode_stream
+
+    vm = VirtualMesh(meshgen.line(3), seed=3)
+    vm.run(0.5)
+    gw = vm.nodes[1]
+    n = 2000
+    gw.serial_in(b"".join(encode_stream(cmd(i, 999, Op.PING)) for i in range(1, n + 1)), vm.tick)
+    assert len(gw.floods) <= 48
+    assert gw.counters["flooded"] + gw.counters["flood_drops"] == n
+    r = vm.run(1.0)
+    assert r.counters[1]["flood_drops"] > 0
+    assert r.counters[2]["flooded"] == r.counters[1]["flooded"]  # those it repeated reached the next bridge

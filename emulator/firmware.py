@@ -360,8 +360,13 @@ class Firmware:
                 self._reroute(tick)
                 self._send_beacon(tick)
         if 0 <= self.hello_at <= tick:
-            self._say_hello()
-            self.hello_at = tick + self.config.hello_period
+            if self.seq == 0:
+                # the numbering wrapped: a HELLO numbered 0 is the evidence of a restart
+                # (docs/protocol.md §7), so a periodic one waits for the next number
+                self.hello_at = tick + _MS
+            else:
+                self._say_hello()
+                self.hello_at = tick + self.config.hello_period
         if self.status_at <= tick:
             self._status(tick)
             self.status_at = tick + self.config.status_period

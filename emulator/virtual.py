@@ -49,14 +49,24 @@ class MeshResult:
         """(origin, boot, seq, frame) of every frame at every gateway, in each gateway's order.
 
         A bridge numbers from 0 again after a reset and says so with a HELLO numbered 0, so
-        (origin, seq) repeats across boots; ``boot`` counts those HELLOs per origin."""
+        (origin, seq) repeats across boots; ``boot`` counts those HELLOs per origin. In a
+        long run the numbering also wraps from 65535 to 0: ``seq`` is counted on past the
+        wrap (serial-number arithmetic against the highest seen), so (origin, boot, seq)
+        names one frame however long the run."""
         out = []
         for frames in self.gateway_frames.values():
             boots: dict[int, int] = {}
+            highest: dict[int, int] = {}  # origin -> highest extended seq of this boot
             for f in frames:
+                o = f.origin
                 if f.type is FrameType.HELLO and f.seq == 0:
-                    boots[f.origin] = boots.get(f.origin, -1) + 1
-                out.append((f.origin, boots.get(f.origin, 0), f.seq, f))
+                    boots[o] = boots.get(o, -1) + 1
+                    highest[o] = 0
+                top = highest.get(o, f.seq)
+                ahead = (f.seq - top) & 0xFFFF
+                seq = top + ahead if ahead < 0x8000 else top - (0x10000 - ahead)
+                highest[o] = max(top, seq)
+                out.append((o, boots.get(o, 0), seq, f))
         return out
 
     def samples(self) -> dict[int, list]:

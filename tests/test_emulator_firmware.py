@@ -266,3 +266,43 @@ def test_a_host_flooding_commands_is_bounded_and_counted() -> None:
     r = vm.run(1.0)
     assert r.counters[1]["flood_drops"] > 0
     assert r.counters[2]["flooded"] == r.counters[1]["flooded"]  # those it repeated reached the next bridge
+
+
+def test_only_a_boot_sends_a_hello_numbered_0_even_after_the_numbering_wraps() -> None:
+    # A HELLO numbered 0 tells the host's duplicate filter that the bridge restarted; a
+    # periodic HELLO that happened to fall on seq 0 after a wrap would be taken as one.
+    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.protocol import StreamDecoder
+
+    fw = Firmware(FirmwareConfig(1, (1,), gateway=True), default_chip(1, 0))
+    t = CLOCK_HZ
+    fw.advance(t)
+    fw.seq = 0  # a long run's numbering has just wrapped
+    fw.hello_at = t
+    fw.advance(t)
+    while t < 2 * CLOCK_HZ:
+        t = fw.next_tick
+        fw.advance(t)
+    frames = StreamDecoder().feed(fw.take_serial())
+    hellos = [f.seq for f in frames if f.type is FrameType.HELLO]
+    assert hellos[0] == 0  # the boot's
+    assert len(hellos) == 2 and hellos[1] != 0  # the periodic one, not numbered 0
+    assert 0 in [f.seq for f in frames[1:]]  # the wrap itself went ahead
+
+
+def test_mesh_result_keeps_every_sample_across_the_sequence_wrap() -> None:
+    # (origin, boot, seq) must name one frame in a long run: after 65536 frames the
+    # numbering wraps without a reset, and samples() must not take the new frames for
+    # copies of the boot's first ones.
+    vm = VirtualMesh(meshgen.line(3), seed=3)
+    vm.run(1.0)
+    for last in (False, False, True):  # a long run's numbering, in steps the filters follow
+        for b in (2, 3):
+            vm.nodes[b].seq = 0xFFFF - 100 if last else vm.nodes[b].seq + 30000
+        vm.run(1.0)
+    r = vm.run(10.0)
+    assert all(vm.nodes[b].seq < 2000 for b in (2, 3))  # wrapped
+    got = r.samples()
+    for b in (1, 2, 3):
+        assert len(got[b]) == r.counters[b]["samples_sent"] > 1000

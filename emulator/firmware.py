@@ -46,11 +46,12 @@ from cellbridge.protocol import (
     encode,
 )
 from cellbridge.emulator.rawframe import Raw, addressed_to, build, own, parse, to_serial
-from cellbridge.emulator.commands import Settings, execute
+from cellbridge.emulator.commands import MAX_GATE, Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
 from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
+from cellbridge.tactile.transfer import max_gate_cycles
 
 FIRMWARE_VERSION = f"cellbridge-emu {__version__}"
 _ACK = int(Flags.ACK_REQUEST)
@@ -110,6 +111,8 @@ class Firmware:
         # Commands seen survive a RESET command (kept in memory a reset does not clear), so
         # the flood's repeated copies of that RESET do not reset the bridge again.
         self.seen_cmd = DuplicateFilter()
+        params = getattr(chip, "params", None)  # the chip as tactile.transfer describes it
+        self.max_gate = MAX_GATE if params is None else min(MAX_GATE, max_gate_cycles(chip=params))
         # Totals of the parts a RESET command rebuilds (link, radio, router, reporter),
         # from earlier lives, so a counter never goes back.
         self._past: Counter[str] = Counter()
@@ -339,7 +342,7 @@ class Firmware:
         if target in (self.me, ADDR_BROADCAST):
             cmd: Command = f.payload  # type: ignore[assignment]
             self.counters["commands"] += 1
-            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick)
+            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick, self.max_gate)
             self._own(reply)
             if new is not None:
                 for data in self.sampler.apply(new, tick):

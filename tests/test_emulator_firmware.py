@@ -306,3 +306,21 @@ def test_mesh_result_keeps_every_sample_across_the_sequence_wrap() -> None:
     got = r.samples()
     for b in (1, 2, 3):
         assert len(got[b]) == r.counters[b]["samples_sent"] > 1000
+
+
+def test_set_gate_beyond_what_the_host_can_unwrap_is_refused() -> None:
+    # tactile.transfer.check_gate: beyond max_gate_cycles a press and a counter wrap
+    # look alike. The bridge refuses such a gate instead of sending ambiguous counts.
+    from cellbridge.tactile.transfer import max_gate_cycles
+
+    vm = VirtualMesh(meshgen.line(2), seed=1)
+    limit = max_gate_cycles(chip=vm.nodes[2].chip.params)  # type: ignore[attr-defined]
+    vm.host_write(1, cmd(1, 2, Op.SET_RATE, 10, token=1), at=0.5)
+    vm.host_write(1, cmd(2, 2, Op.SET_GATE, limit + 1, token=2), at=0.6)
+    vm.host_write(1, cmd(3, 2, Op.SET_GATE, 1_000_000, token=3), at=0.7)
+    vm.host_write(1, cmd(4, 2, Op.SET_GATE, limit, token=4), at=0.8)
+    r = vm.run(2.0)
+    got = {c.token: c.status for c in replies(r.gateway_frames[1])[2]}
+    assert got == {1: Status.OK, 2: Status.BAD_VALUE, 3: Status.BAD_VALUE, 4: Status.OK}
+    late = [s for s in r.samples()[2] if s.cycle > 0.9 * CLOCK_HZ]
+    assert late and not any(s.flags for s in late)  # at the limit: no counter wraps

@@ -148,3 +148,14 @@ def test_cli_run_in_virtual_time_with_scenario_and_capture(tmp_path: Path) -> No
     bad.write_text("[[contact]]\nstart = 0\n")
     r = subprocess.run([CLI, "mesh", "run", str(mesh), "--scenario", str(bad)], capture_output=True, timeout=60)
     assert r.returncode == 2 and b"missing key" in r.stderr
+
+
+@given(st.text(max_size=40))
+@settings(max_examples=200, deadline=None)
+def test_any_mesh_name_round_trips_through_toml(name: str) -> None:
+    # a user's name with quotes, backslashes, newlines or control characters must not
+    # make mesh_to_toml write a file that no longer parses (or parses to another name)
+    from dataclasses import replace
+
+    mesh = replace(meshgen.line(2), name=name, _by_id={})
+    assert parse_mesh(mesh_to_toml(mesh)).name == name

@@ -186,6 +186,11 @@ class Firmware:
         totals.update(self._life_totals())
         out.update(totals)
         out.update(resets=self.resets, queue_len=len(self.link.queue), has_route=int(self.router.has_route))
+        if self.config.gateway:  # what the host wrote that was not a frame: counted by cause
+            dec = self._serial_in
+            out["serial_rx_bytes_dropped"] = sum(dec.bytes_dropped.values())
+            for cause, n in dec.frames_dropped.items():
+                out[f"serial_rx_{cause}"] = n
         return out
 
     # -- inputs ---------------------------------------------------------------------

@@ -324,3 +324,24 @@ def test_set_gate_beyond_what_the_host_can_unwrap_is_refused() -> None:
     assert got == {1: Status.OK, 2: Status.BAD_VALUE, 3: Status.BAD_VALUE, 4: Status.OK}
     late = [s for s in r.samples()[2] if s.cycle > 0.9 * CLOCK_HZ]
     assert late and not any(s.flags for s in late)  # at the limit: no counter wraps
+
+
+def test_a_gateway_counts_the_garbage_the_host_writes() -> None:
+    # Bytes on the serial line that are not frames are dropped, as the UART's decoder
+    # must, but counted by cause; the command after the garbage is still executed.
+    import random as _random
+
+    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.protocol import StreamDecoder, encode_stream
+
+    fw = Firmware(FirmwareConfig(1, (1,), gateway=True), default_chip(1, 0))
+    fw.advance(CLOCK_HZ // 10)
+    garbage = _random.Random(1).randbytes(5000) + b"\x00" + b"\x05\x01\x02\x03\x04\x00" + b"\x01" * 600 + b"\x00"
+    fw.serial_in(garbage + encode_stream(cmd(1, 1, Op.PING, token=9)), CLOCK_HZ // 10)
+    c = fw.counters_snapshot()
+    assert c["serial_rx_bytes_dropped"] >= 4000
+    assert c.get("serial_rx_overlong", 0) >= 1
+    assert sum(v for k, v in c.items() if k.startswith("serial_rx_") and k != "serial_rx_bytes_dropped") >= 2
+    out = StreamDecoder().feed(fw.take_serial())
+    assert [f.payload.token for f in out if f.type is FrameType.CMD_REPLY] == [9]

@@ -345,3 +345,19 @@ def test_a_gateway_counts_the_garbage_the_host_writes() -> None:
     assert sum(v for k, v in c.items() if k.startswith("serial_rx_") and k != "serial_rx_bytes_dropped") >= 2
     out = StreamDecoder().feed(fw.take_serial())
     assert [f.payload.token for f in out if f.type is FrameType.CMD_REPLY] == [9]
+
+
+def test_event_reporting_with_threshold_0_sends_every_change_only() -> None:
+    # docs/protocol.md: value 0 is periodic; any other value is event-based, threshold
+    # in bits 0-31, so 0 | H << 32 sends a sample when it differs at all (or H passed),
+    # and identical samples are suppressed.
+    from cellbridge.protocol import Sample
+
+    m = ReportingMode.from_value(500 << 32)
+    assert not m.periodic and (m.threshold, m.heartbeat_ms) == (0, 500)
+    assert m.to_value() == 500 << 32
+    rep = Reporter(m, cycles_per_ms=50_000)
+    sent = [rep.wants(Sample(0, i * 500_000, c, 100)) for i, c in enumerate([7, 7, 7, 8, 8, 7])]
+    assert sent == [True, False, False, True, False, True]
+    assert rep.suppressed == 3
+    assert ReportingMode.from_value(0).periodic and ReportingMode.from_value(0).to_value() == 0

@@ -61,6 +61,7 @@ _BUNDLE = int(FrameType.BUNDLE)
 _HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
 _FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
+_RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and flood copies to leave
 
 
 def _when(item: tuple[int, bytes]) -> int:
@@ -141,6 +142,9 @@ class Firmware:
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period
         self.reset_at = -1
+        self._reset_by = -1
+        self._reset_waits_for: tuple[tuple[int, int], bytes | None] = ((0, 0), None)
+        self._last_flood: bytes | None = None
         self.floods: list[tuple[int, bytes]] = []  # (when, frame) command copies still to send
 
     @property
@@ -341,6 +345,7 @@ class Firmware:
                 self.counters["flood_drops"] += 1  # a host flooding commands: bounded memory
             else:
                 data = encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost))
+                self._last_flood = data
                 for lo, hi in _FLOOD_REPEATS:
                     insort(self.floods, (tick + lo + self.rng.randrange(hi - lo), data), key=_when)
                 self.counters["flooded"] += 1
@@ -348,12 +353,18 @@ class Firmware:
             cmd: Command = f.payload  # type: ignore[assignment]
             self.counters["commands"] += 1
             reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick, self.max_gate)
+            reply_key = (self.me, self.seq)
             self._own(reply)
             if new is not None:
                 for data in self.sampler.apply(new, tick):
                     self._own(data)
-            if reply.op.name == "RESET" and reply.status == 0:
-                self.reset_at = tick + 50 * _MS  # time for the reply to leave
+            if reply.op.name == "RESET" and reply.status == 0 and self.reset_at < 0:
+                # reset once the reply has left (acknowledged by the next hop) and the
+                # command's flood copies are sent, so the host hears the RESET was taken
+                # and the rest of the mesh hears the command; at most _RESET_WAIT later
+                self.reset_at = tick
+                self._reset_by = tick + _RESET_WAIT
+                self._reset_waits_for = (reply_key, self._last_flood if target != self.me else None)
 
     # -- time -----------------------------------------------------------------------
     def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
@@ -378,7 +389,9 @@ class Firmware:
         if self.status_at <= tick:
             self._status(tick)
             self.status_at = tick + self.config.status_period
-        if 0 <= self.reset_at <= tick:
+        if 0 <= self.reset_at <= tick and tick < self._reset_by and self._reset_pending():
+            self.reset_at = tick + _MS  # look again soon
+        elif 0 <= self.reset_at <= tick:
             self.resets += 1
             self.counters["command_resets"] += 1
             self.power_off()
@@ -398,6 +411,17 @@ class Firmware:
             self.link.results.clear()
             self._reroute(tick)
         return out
+
+    def _reset_pending(self) -> bool:
+        """Whether the RESET's reply or flood copies are still waiting to leave."""
+        key, flood = self._reset_waits_for
+        link = self.link
+        if link.queue or link.inflight is not None:
+            return True
+        if flood is not None and (any(d is flood for _, d in self.floods)
+                                  or any(d is flood for d in link.broadcasts)):
+            return True
+        return False
 
     def _status(self, tick: int) -> None:
         r = self.router

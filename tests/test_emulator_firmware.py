@@ -361,3 +361,22 @@ def test_event_reporting_with_threshold_0_sends_every_change_only() -> None:
     assert sent == [True, False, False, True, False, True]
     assert rep.suppressed == 3
     assert ReportingMode.from_value(0).periodic and ReportingMode.from_value(0).to_value() == 0
+
+
+def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
+    # A bridge resets once its reply and its copies of the command have left (at most
+    # 3 s later), not after a fixed 50 ms: relays that reset at once threw away the
+    # replies of the bridges behind them, and the host could not tell who had reset.
+    from cellbridge.emulator.commands import Settings as _Settings
+
+    mesh = meshgen.grid(6, 6)
+    vm = VirtualMesh(mesh, seed=4, settings=_Settings(rate_hz=20))  # not saturated
+    vm.host_write(1, cmd(1, ADDR_BROADCAST, Op.RESET, token=5), at=2.0)
+    r = vm.run(8.0)
+    got = replies(r.gateway_frames[1])
+    assert set(got) == set(mesh.ids)
+    assert all([c.token for c in v] == [5] for v in got.values())
+    assert r.total("command_resets") == len(mesh.ids)
+    assert r.total("power_off_frames") == 0  # nothing was held at the reset
+    boots = [f.origin for f in r.gateway_frames[1] if f.type is FrameType.HELLO and f.seq == 0]
+    assert all(boots.count(b) == 2 for b in mesh.ids)  # power-on, then the reset: HELLO 0 each

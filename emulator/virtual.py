@@ -70,13 +70,22 @@ class MeshResult:
         return out
 
     def samples(self) -> dict[int, list]:
-        """origin -> every sample delivered to any gateway (duplicates across gateways removed)."""
+        """origin -> every sample delivered to any gateway (duplicates across gateways removed).
+
+        A sample is named by (origin, element, cycle): in virtual time a chip's cycle counter
+        runs on across restarts, so this holds where (origin, boot, seq) cannot (a bridge
+        that restarted while routed to one gateway and then moved to another: the second
+        gateway never saw the HELLO, and its boot count lags)."""
         seen: set[tuple[int, int, int]] = set()
         out: dict[int, list] = {}
-        for origin, boot, seq, f in self.delivered():
-            if f.type is FrameType.DATA and (origin, boot, seq) not in seen:
-                seen.add((origin, boot, seq))
-                out.setdefault(origin, []).extend(f.payload.samples)  # type: ignore[union-attr]
+        for frames in self.gateway_frames.values():
+            for f in frames:
+                if f.type is FrameType.DATA:
+                    for x in f.payload.samples:  # type: ignore[union-attr]
+                        key = (f.origin, x.element, x.cycle)
+                        if key not in seen:
+                            seen.add(key)
+                            out.setdefault(f.origin, []).append(x)
         return out
 
     def total(self, name: str) -> int:

@@ -37,6 +37,13 @@ class Settings:
     def period_cycles(self, clock_hz: int) -> int:
         return clock_hz // self.rate_hz
 
+    def check(self, clock_hz: int) -> None:
+        """ValueError naming the value when these settings cannot run: a sample's gates
+        must fit its period (the limit the SET_ commands enforce, also at power-on)."""
+        if type(self.rate_hz) is not int or not 1 <= self.rate_hz <= self.max_rate(clock_hz):
+            raise ValueError(f"sampling rate {self.rate_hz!r} Hz: must be 1..{self.max_rate(clock_hz)} Hz "
+                             f"(a sample takes {self.measure_cycles()} cycles at {clock_hz} Hz)")
+
 
 def execute(cmd: Command, s: Settings, clock_hz: int, cycle: int,
             max_gate: int = MAX_GATE) -> tuple[CommandReply, Settings | None]:

@@ -100,6 +100,7 @@ def _rest(_tick: int) -> tuple[float, float]:
 class Firmware:
     def __init__(self, config: FirmwareConfig, chip: object, sense: Callable[[int], tuple[float, float]] = _rest,
                  seed: int = 0, boot_tick: int = 0, resets: int = 0) -> None:
+        config.settings.check(config.clock_hz)
         self.config = config
         self.me = config.bridge
         self.chip = chip

@@ -18,10 +18,13 @@ def _run_virtual(args: argparse.Namespace) -> int:
 
     from cellbridge.emulator.commands import Settings
     from cellbridge.emulator.virtual import VirtualMesh
-    from cellbridge.emulator.world import World, load_scenario
+    from cellbridge.emulator.world import World, check_on_skin, load_scenario
 
     mesh = load_mesh(args.mesh)
-    world = World(mesh, load_scenario(args.scenario) if args.scenario else [])
+    contacts = load_scenario(args.scenario) if args.scenario else []
+    for i, c in enumerate(contacts):
+        check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")
+    world = World(mesh, contacts)
     vm = VirtualMesh(mesh, seed=args.seed, world=world, settings=Settings(rate_hz=args.rate))
     result = vm.run(args.seconds)
     if args.capture:

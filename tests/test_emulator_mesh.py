@@ -180,3 +180,14 @@ def test_sampling_rates_the_gates_cannot_hold_are_refused(tmp_path: Path) -> Non
                         (["bridge", "--mesh", str(path), "--id", "2", "--rate", "0"], b"sampling rate 0 Hz")]:
         r = subprocess.run([CLI, *args], capture_output=True, timeout=60)
         assert r.returncode == 2 and words in r.stderr and b"Traceback" not in r.stderr, (args, r.stderr)
+
+
+def test_cli_run_refuses_a_scenario_contact_beside_the_skin(tmp_path: Path) -> None:
+    path = tmp_path / "l2.toml"
+    path.write_text(mesh_to_toml(meshgen.line(2)))
+    scenario = tmp_path / "s.toml"
+    scenario.write_text("[[contact]]\nstart = 0.1\nduration = 0.2\nposition = [40.0, 0.0]\n"
+                        "force = 2.0\ndiameter = 0.02\n")
+    r = subprocess.run([CLI, "mesh", "run", str(path), "--seconds", "0.5", "--scenario", str(scenario)],
+                       capture_output=True, timeout=60)
+    assert r.returncode == 2 and b"contact[0]" in r.stderr and b"touches no element" in r.stderr, r.stderr

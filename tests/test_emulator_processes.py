@@ -237,3 +237,34 @@ def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> 
     counters = json.loads(line.removeprefix("medium: ").replace("'", '"'))
     assert counters["delivered"] >= 1
     assert counters["rx_unreachable"] == counters["delivered"]
+
+
+def test_press_beside_the_skin_is_refused(tmp_path: Path) -> None:
+    # A press that touches no element (a typo, metres for millimetres) did nothing and
+    # said "pressed"; the world knows the mesh and says where the skin is.
+    mesh_path = tmp_path / "grid-2x2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.grid(2, 2)))
+    base = free_base_port()
+    world = subprocess.Popen([*PY, "world", "--mesh", str(mesh_path), "--base-port", str(base)],
+                             stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        def press(*args: str) -> subprocess.CompletedProcess[bytes]:
+            return subprocess.run([*PY, "press", *args, "--timeout", "10", "--base-port", str(base)],
+                                  capture_output=True, timeout=30)
+
+        r = press("1e308", "1e308")
+        assert r.returncode == 2 and b"touches no element" in r.stderr and b"skin spans" in r.stderr, r.stderr
+        r = press("40", "40")  # millimetres for metres
+        assert r.returncode == 2 and b"touches no element" in r.stderr, r.stderr
+        r = press("0.5", "0.0", "--velocity", "-0.5", "0", "--duration", "2")  # slides onto the skin
+        assert r.returncode == 0, r.stderr
+        r = press("0.04", "0.04")
+        assert r.returncode == 0 and b"pressed" in r.stdout, r.stderr
+    finally:
+        world.send_signal(signal.SIGTERM)
+        try:
+            world.wait(15)
+        except subprocess.TimeoutExpired:
+            os.killpg(world.pid, signal.SIGKILL)
+            world.wait()
+    assert processes_mentioning(str(mesh_path)) == []

@@ -144,7 +144,7 @@ class Firmware:
         self.hello_at = tick + c.hello_period
         self.reset_at = -1
         self._reset_by = -1
-        self._reset_waits_for: tuple[tuple[int, int], bytes | None] = ((0, 0), None)
+        self._reset_flood: bytes | None = None  # the RESET's flood copies a reset waits for
         self._last_flood: bytes | None = None
         self.floods: list[tuple[int, bytes]] = []  # (when, frame) command copies still to send
 
@@ -354,7 +354,6 @@ class Firmware:
             cmd: Command = f.payload  # type: ignore[assignment]
             self.counters["commands"] += 1
             reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick, self.max_gate)
-            reply_key = (self.me, self.seq)
             self._own(reply)
             if new is not None:
                 for data in self.sampler.apply(new, tick):
@@ -365,7 +364,7 @@ class Firmware:
                 # and the rest of the mesh hears the command; at most _RESET_WAIT later
                 self.reset_at = tick
                 self._reset_by = tick + _RESET_WAIT
-                self._reset_waits_for = (reply_key, self._last_flood if target != self.me else None)
+                self._reset_flood = self._last_flood if target != self.me else None
 
     # -- time -----------------------------------------------------------------------
     def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
@@ -414,8 +413,9 @@ class Firmware:
         return out
 
     def _reset_pending(self) -> bool:
-        """Whether the RESET's reply or flood copies are still waiting to leave."""
-        key, flood = self._reset_waits_for
+        """Whether frames (the RESET's reply among them) or the RESET's flood copies are
+        still waiting to leave."""
+        flood = self._reset_flood
         link = self.link
         if link.queue or link.inflight is not None:
             return True

@@ -216,6 +216,14 @@ def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> 
     ctx = zmq.Context()
     sock = ctx.socket(zmq.DEALER)
     try:
+        end = time.monotonic() + 30  # a loaded machine takes a while to start a process
+        while True:  # bound: the medium is serving (and counts what it is told to send)
+            try:
+                socket.create_connection(("127.0.0.1", base), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < end and proc.poll() is None, "medium did not start"
+                time.sleep(0.1)
         sock.setsockopt(zmq.IDENTITY, b"1")
         sock.setsockopt(zmq.LINGER, 0)
         sock.connect(f"tcp://127.0.0.1:{base}")

@@ -40,6 +40,7 @@ from cellbridge.protocol import (
     LinkAck,
     Message,
     Neighbour,
+    Op,
     ProtocolError,
     StreamDecoder,
     decode,
@@ -113,8 +114,7 @@ class Firmware:
         # Commands seen survive a RESET command (kept in memory a reset does not clear), so
         # the flood's repeated copies of that RESET do not reset the bridge again.
         self.seen_cmd = DuplicateFilter()
-        params = getattr(chip, "params", None)  # the chip as tactile.transfer describes it
-        self.max_gate = MAX_GATE if params is None else min(MAX_GATE, max_gate_cycles(chip=params))
+        self._max_gate: int | None = None
         # Totals of the parts a RESET command rebuilds (link, radio, router, reporter),
         # from earlier lives, so a counter never goes back.
         self._past: Counter[str] = Counter()
@@ -147,6 +147,15 @@ class Firmware:
         self._reset_flood: bytes | None = None  # the RESET's flood copies a reset waits for
         self._last_flood: bytes | None = None
         self.floods: list[tuple[int, bytes]] = []  # (when, frame) command copies still to send
+
+    @property
+    def max_gate(self) -> int:
+        """Longest gate SET_GATE accepts: what the host can still unwrap on this chip.
+        Computed on first use (it costs milliseconds; a mesh boots thousands of bridges)."""
+        if self._max_gate is None:
+            params = getattr(self.chip, "params", None)  # the chip as tactile.transfer describes it
+            self._max_gate = MAX_GATE if params is None else min(MAX_GATE, max_gate_cycles(chip=params))
+        return self._max_gate
 
     @property
     def next_tick(self) -> int:
@@ -353,7 +362,8 @@ class Firmware:
         if target in (self.me, ADDR_BROADCAST):
             cmd: Command = f.payload  # type: ignore[assignment]
             self.counters["commands"] += 1
-            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick, self.max_gate)
+            limit = self.max_gate if cmd.op is Op.SET_GATE else MAX_GATE
+            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick, limit)
             self._own(reply)
             if new is not None:
                 for data in self.sampler.apply(new, tick):

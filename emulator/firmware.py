@@ -179,6 +179,7 @@ class Firmware:
         """Totals kept by the parts a reset rebuilds, for this life only."""
         c = Counter(self.link.counters)
         c.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
+                 acks_dropped=self.radio.acks_dropped,
                  bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
                  neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed)
         return c

@@ -37,9 +37,21 @@ class Settings:
     def period_cycles(self, clock_hz: int) -> int:
         return clock_hz // self.rate_hz
 
+    def check(self, clock_hz: int) -> None:
+        """ValueError naming the value when these settings cannot run: a sample's gates
+        must fit its period (the limit the SET_ commands enforce, also at power-on)."""
+        if type(self.rate_hz) is not int or not 1 <= self.rate_hz <= self.max_rate(clock_hz):
+            raise ValueError(f"sampling rate {self.rate_hz!r} Hz: must be 1..{self.max_rate(clock_hz)} Hz "
+                             f"(a sample takes {self.measure_cycles()} cycles at {clock_hz} Hz)")
 
-def execute(cmd: Command, s: Settings, clock_hz: int, cycle: int) -> tuple[CommandReply, Settings | None]:
-    """Apply ``cmd``: (reply, new settings or None when nothing changes)."""
+
+def execute(cmd: Command, s: Settings, clock_hz: int, cycle: int,
+            max_gate: int = MAX_GATE) -> tuple[CommandReply, Settings | None]:
+    """Apply ``cmd``: (reply, new settings or None when nothing changes).
+
+    ``max_gate`` is the longest gate whose counts the host can still unwrap
+    (:func:`cellbridge.tactile.transfer.max_gate_cycles` of this chip): a longer one
+    makes a press and a counter wrap look alike, so it is refused (BAD_VALUE)."""
     op, v = cmd.op, cmd.value
 
     def reply(status: Status, value: int | None = None) -> CommandReply:
@@ -59,7 +71,7 @@ def execute(cmd: Command, s: Settings, clock_hz: int, cycle: int) -> tuple[Comma
             return reply(Status.BAD_VALUE), None
         new = replace(s, mode=Mode(v))
     elif op is Op.SET_GATE:
-        if not MIN_GATE <= v <= MAX_GATE:
+        if not MIN_GATE <= v <= min(MAX_GATE, max_gate):
             return reply(Status.BAD_VALUE), None
         new = replace(s, gate_cycles=v)
     elif op is Op.SET_OVERSAMPLING:

@@ -18,6 +18,7 @@ bytes and the element's capacitance (``sense(tick) -> (C1, C2)`` in farads).
 from __future__ import annotations
 
 import random
+from bisect import insort
 from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -39,17 +40,19 @@ from cellbridge.protocol import (
     LinkAck,
     Message,
     Neighbour,
+    Op,
     ProtocolError,
     StreamDecoder,
     decode,
     encode,
 )
 from cellbridge.emulator.rawframe import Raw, addressed_to, build, own, parse, to_serial
-from cellbridge.emulator.commands import Settings, execute
+from cellbridge.emulator.commands import MAX_GATE, Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
 from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
+from cellbridge.tactile.transfer import max_gate_cycles
 
 FIRMWARE_VERSION = f"cellbridge-emu {__version__}"
 _ACK = int(Flags.ACK_REQUEST)
@@ -58,6 +61,12 @@ _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LI
 _BUNDLE = int(FrameType.BUNDLE)
 _HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
+_FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
+_RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and flood copies to leave
+
+
+def _when(item: tuple[int, bytes]) -> int:
+    return item[0]
 
 
 @dataclass(frozen=True)
@@ -92,6 +101,7 @@ def _rest(_tick: int) -> tuple[float, float]:
 class Firmware:
     def __init__(self, config: FirmwareConfig, chip: object, sense: Callable[[int], tuple[float, float]] = _rest,
                  seed: int = 0, boot_tick: int = 0, resets: int = 0) -> None:
+        config.settings.check(config.clock_hz)
         self.config = config
         self.me = config.bridge
         self.chip = chip
@@ -104,6 +114,10 @@ class Firmware:
         # Commands seen survive a RESET command (kept in memory a reset does not clear), so
         # the flood's repeated copies of that RESET do not reset the bridge again.
         self.seen_cmd = DuplicateFilter()
+        self._max_gate: int | None = None
+        # Totals of the parts a RESET command rebuilds (link, radio, router, reporter),
+        # from earlier lives, so a counter never goes back.
+        self._past: Counter[str] = Counter()
         self._power_on(boot_tick)
 
     # -- state ----------------------------------------------------------------------
@@ -129,7 +143,19 @@ class Firmware:
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period
         self.reset_at = -1
+        self._reset_by = -1
+        self._reset_flood: bytes | None = None  # the RESET's flood copies a reset waits for
+        self._last_flood: bytes | None = None
         self.floods: list[tuple[int, bytes]] = []  # (when, frame) command copies still to send
+
+    @property
+    def max_gate(self) -> int:
+        """Longest gate SET_GATE accepts: what the host can still unwrap on this chip.
+        Computed on first use (it costs milliseconds; a mesh boots thousands of bridges)."""
+        if self._max_gate is None:
+            params = getattr(self.chip, "params", None)  # the chip as tactile.transfer describes it
+            self._max_gate = MAX_GATE if params is None else min(MAX_GATE, max_gate_cycles(chip=params))
+        return self._max_gate
 
     @property
     def next_tick(self) -> int:
@@ -149,14 +175,37 @@ class Firmware:
         self.seq = (s + 1) & 0xFFFF
         return s
 
+    def _life_totals(self) -> Counter[str]:
+        """Totals kept by the parts a reset rebuilds, for this life only."""
+        c = Counter(self.link.counters)
+        c.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
+                 acks_dropped=self.radio.acks_dropped,
+                 bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
+                 neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed)
+        return c
+
+    def power_off(self) -> None:
+        """Count what a power-off or reset discards: queued, in-flight and pending broadcast
+        frames (``power_off_frames``) and samples batched but not yet in a DATA frame
+        (``power_off_samples``). Nothing is lost without a count."""
+        link = self.link
+        frames = len(link.queue) + len(link.broadcasts) + len(self.floods)
+        if link.inflight is not None:
+            frames += len(link.inflight.frames)
+        self.counters["power_off_frames"] += frames
+        self.counters["power_off_samples"] += len(self.sampler.batch)
+
     def counters_snapshot(self) -> dict[str, int]:
         out = dict(self.counters)
-        out.update(self.link.counters)
-        out.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
-                   bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
-                   neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed,
-                   resets=self.resets, queue_len=len(self.link.queue),
-                   has_route=int(self.router.has_route))
+        totals = Counter(self._past)
+        totals.update(self._life_totals())
+        out.update(totals)
+        out.update(resets=self.resets, queue_len=len(self.link.queue), has_route=int(self.router.has_route))
+        if self.config.gateway:  # what the host wrote that was not a frame: counted by cause
+            dec = self._serial_in
+            out["serial_rx_bytes_dropped"] = sum(dec.bytes_dropped.values())
+            for cause, n in dec.frames_dropped.items():
+                out[f"serial_rx_{cause}"] = n
         return out
 
     # -- inputs ---------------------------------------------------------------------
@@ -303,21 +352,30 @@ class Firmware:
         if target != self.me:
             # controlled flooding: every bridge repeats a new command a few times at random
             # moments (a broadcast has no ACK; one lost copy must not cut a branch off)
-            data = encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost))
-            for lo, hi in _FLOOD_REPEATS:
-                self.floods.append((tick + lo + self.rng.randrange(hi - lo), data))
-            self.floods.sort(key=lambda x: x[0])
-            self.counters["flooded"] += 1
+            if len(self.floods) + len(_FLOOD_REPEATS) > _FLOOD_MAX:
+                self.counters["flood_drops"] += 1  # a host flooding commands: bounded memory
+            else:
+                data = encode(Frame(self.me, target, f.origin, f.seq, f.payload, f.hops + 1, f.cost))
+                self._last_flood = data
+                for lo, hi in _FLOOD_REPEATS:
+                    insort(self.floods, (tick + lo + self.rng.randrange(hi - lo), data), key=_when)
+                self.counters["flooded"] += 1
         if target in (self.me, ADDR_BROADCAST):
             cmd: Command = f.payload  # type: ignore[assignment]
             self.counters["commands"] += 1
-            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick)
+            limit = self.max_gate if cmd.op is Op.SET_GATE else MAX_GATE
+            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick, limit)
             self._own(reply)
             if new is not None:
                 for data in self.sampler.apply(new, tick):
                     self._own(data)
-            if reply.op.name == "RESET" and reply.status == 0:
-                self.reset_at = tick + 50 * _MS  # time for the reply to leave
+            if reply.op.name == "RESET" and reply.status == 0 and self.reset_at < 0:
+                # reset once the reply has left (acknowledged by the next hop) and the
+                # command's flood copies are sent, so the host hears the RESET was taken
+                # and the rest of the mesh hears the command; at most _RESET_WAIT later
+                self.reset_at = tick
+                self._reset_by = tick + _RESET_WAIT
+                self._reset_flood = self._last_flood if target != self.me else None
 
     # -- time -----------------------------------------------------------------------
     def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
@@ -332,14 +390,23 @@ class Firmware:
                 self._reroute(tick)
                 self._send_beacon(tick)
         if 0 <= self.hello_at <= tick:
-            self._say_hello()
-            self.hello_at = tick + self.config.hello_period
+            if self.seq == 0:
+                # the numbering wrapped: a HELLO numbered 0 is the evidence of a restart
+                # (docs/protocol.md §7), so a periodic one waits for the next number
+                self.hello_at = tick + _MS
+            else:
+                self._say_hello()
+                self.hello_at = tick + self.config.hello_period
         if self.status_at <= tick:
             self._status(tick)
             self.status_at = tick + self.config.status_period
-        if 0 <= self.reset_at <= tick:
+        if 0 <= self.reset_at <= tick and tick < self._reset_by and self._reset_pending():
+            self.reset_at = tick + _MS  # look again soon
+        elif 0 <= self.reset_at <= tick:
             self.resets += 1
             self.counters["command_resets"] += 1
+            self.power_off()
+            self._past += self._life_totals()
             self._power_on(tick)
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
@@ -355,6 +422,18 @@ class Firmware:
             self.link.results.clear()
             self._reroute(tick)
         return out
+
+    def _reset_pending(self) -> bool:
+        """Whether frames (the RESET's reply among them) or the RESET's flood copies are
+        still waiting to leave."""
+        flood = self._reset_flood
+        link = self.link
+        if link.queue or link.inflight is not None:
+            return True
+        if flood is not None and (any(d is flood for _, d in self.floods)
+                                  or any(d is flood for d in link.broadcasts)):
+            return True
+        return False
 
     def _status(self, tick: int) -> None:
         r = self.router

@@ -334,11 +334,24 @@ def _num(v: float) -> str:
     return repr(float(v))
 
 
+def _toml_string(text: str) -> str:
+    """A TOML basic string: quotes, backslashes and control characters escaped."""
+    out = []
+    for ch in text:
+        if ch in '"\\':
+            out.append("\\" + ch)
+        elif ch < " " and ch != "\t" or ch == "\x7f":
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
 def mesh_to_toml(mesh: Mesh) -> str:
     """The mesh as a TOML file that :func:`parse_mesh` reads back to an equal mesh."""
     out = []
     if mesh.name:
-        out.append(f'name = "{mesh.name}"')
+        out.append(f"name = {_toml_string(mesh.name)}")
     out += [f"loss = {_num(mesh.loss)}", f"ber = {_num(mesh.ber)}", f"side = {_num(mesh.side)}",
             f"bitrate = {mesh.bitrate}", ""]
     for c in mesh.cells:

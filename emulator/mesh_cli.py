@@ -8,6 +8,7 @@ import sys
 
 from cellbridge.emulator.mesh import MeshError, load_mesh, mesh_to_toml
 from cellbridge.emulator.meshgen import generate
+from cellbridge.emulator.realtime import rate_arg, seconds_arg
 from cellbridge.emulator.world import ScenarioError
 
 
@@ -17,10 +18,13 @@ def _run_virtual(args: argparse.Namespace) -> int:
 
     from cellbridge.emulator.commands import Settings
     from cellbridge.emulator.virtual import VirtualMesh
-    from cellbridge.emulator.world import World, load_scenario
+    from cellbridge.emulator.world import World, check_on_skin, load_scenario
 
     mesh = load_mesh(args.mesh)
-    world = World(mesh, load_scenario(args.scenario) if args.scenario else [])
+    contacts = load_scenario(args.scenario) if args.scenario else []
+    for i, c in enumerate(contacts):
+        check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")
+    world = World(mesh, contacts)
     vm = VirtualMesh(mesh, seed=args.seed, world=world, settings=Settings(rate_hz=args.rate))
     result = vm.run(args.seconds)
     if args.capture:
@@ -74,10 +78,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     chk.add_argument("mesh")
     rn = sub.add_parser("run", help="run a mesh in virtual time (faster than real time, deterministic)")
     rn.add_argument("mesh")
-    rn.add_argument("--seconds", type=float, default=5.0, help="virtual seconds to run (default 5)")
+    rn.add_argument("--seconds", type=seconds_arg, default=5.0, help="virtual seconds to run (default 5)")
     rn.add_argument("--scenario", help="TOML file of [[contact]] stimuli")
     rn.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
-    rn.add_argument("--rate", type=int, default=100, help="sampling rate in Hz (default 100)")
+    rn.add_argument("--rate", type=rate_arg, default=100, help="sampling rate in Hz, 1..250 (default 100)")
     rn.add_argument("--capture", metavar="DIR",
                     help="write each gateway's serial stream to DIR/gateway-<id>.bin (read it with cellbridge decode)")
     up = sub.add_parser("up", help="start the medium, the world and one process per bridge (real time)")

@@ -29,7 +29,7 @@ from cellbridge.emulator.process_medium import _CELL, _CS, pack_cells
 from cellbridge.emulator.process_world import decode_contacts
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.realtime import (
-    CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick,
+    CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
 )
 from cellbridge.emulator.virtual import default_chip
 from cellbridge.emulator.world import World
@@ -46,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh", required=True, help="mesh file (TOML)")
     parser.add_argument("--id", type=int, required=True, help="this bridge's id in the mesh file")
     parser.add_argument("--seed", type=int, default=0, help="seed of the chip noise and backoff (default 0)")
-    parser.add_argument("--rate", type=int, default=100, help="sampling rate in Hz at power-on (default 100)")
+    parser.add_argument("--rate", type=rate_arg, default=100,
+                        help="sampling rate in Hz at power-on, 1..250 (default 100)")
     parser.add_argument("--tcp", type=int, default=None, metavar="PORT",
                         help="gateway: also serve the serial stream on 127.0.0.1:PORT (0 = any free port)")
     parser.add_argument("--pty-fd", type=int, default=None, help=argparse.SUPPRESS)  # from mesh up
@@ -155,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
                 except zmq.Again:
                     pass
     finally:
+        fw.power_off()  # what this process still held is lost with it: counted
         counters = fw.counters_snapshot()
         counters["late_gates"] = late
         counters["behind_gates"] = behind

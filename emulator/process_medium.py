@@ -13,7 +13,9 @@ first gets the carrier already on its cells): an idle transceiver ignores carrie
 and these messages would otherwise cost every bridge more CPU than its firmware.
 
 Ticks are 50 MHz cycles of the host's monotonic clock (shared by every process on the
-host). ZeroMQ reconnects by itself, so a bridge or this process may die and return.
+host). ZeroMQ reconnects by itself, so a bridge or this process may die and return;
+a message for a bridge that is not connected (or not reading) is lost and counted
+(``rx_unreachable``, ``rx_backlog``, ``carrier_*``), as a delivery to a dead bridge is.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import heapq
 import math
 import struct
 import sys
+from collections import Counter
 
 import zmq
 
@@ -56,11 +59,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_endpoint_arguments(parser)
 
 
+def _send(sock: zmq.Socket, parts: list[bytes], counters: Counter[str], what: str) -> None:
+    """Send to one bridge without blocking; a bridge not connected (dead, not started, or
+    not heard yet by a restarted medium) or not reading counts as ``<what>_unreachable``
+    or ``<what>_backlog``."""
+    try:
+        sock.send_multipart(parts, zmq.NOBLOCK)
+    except zmq.Again:
+        counters[f"{what}_backlog"] += 1
+    except zmq.ZMQError as exc:
+        if exc.errno != zmq.EHOSTUNREACH:
+            raise
+        counters[f"{what}_unreachable"] += 1
+
+
 def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
     ctx = zmq.Context.instance()
     sock = ctx.socket(zmq.ROUTER)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.ROUTER_HANDOVER, 1)  # a restarted bridge takes its identity back
+    sock.setsockopt(zmq.ROUTER_MANDATORY, 1)  # an unroutable message raises: counted, not silent
     sock.bind(endpoint)
     known = {str(b).encode(): b for b in medium.mesh.ids}
     cells_of = {b.id: b.cells for b in medium.mesh.bridges}
@@ -85,7 +103,7 @@ def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
                             contending.add(src)
                             for c in cells_of[src]:
                                 if c in busy and busy[c][1] > tick:
-                                    sock.send_multipart([msg[0], b"cs", _CS.pack(c, *busy[c])])
+                                    _send(sock, [msg[0], b"cs", _CS.pack(c, *busy[c])], medium.counters, "carrier")
                         else:
                             contending.discard(src)
                         continue
@@ -98,14 +116,15 @@ def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
                         busy[c] = (old[0], max(old[1], tx.end)) if old and old[1] > tick else (tick, tx.end)
                     for r, cell in tx.receivers:
                         if r in contending:
-                            sock.send_multipart([str(r).encode(), b"cs", _CS.pack(cell, tick, tx.end)])
+                            _send(sock, [str(r).encode(), b"cs", _CS.pack(cell, tick, tx.end)],
+                                  medium.counters, "carrier")
                     heapq.heappush(pending, (tx.end, tx.id, tx))
             now = now_tick()
             while pending and pending[0][0] <= now:
                 tx = heapq.heappop(pending)[2]
                 for r, cell, data in medium.finish(tx):
                     if addressed_to(data, r):  # a bridge drops others' unicasts anyway: save the message
-                        sock.send_multipart([str(r).encode(), b"rx", _CELL.pack(cell), data])
+                        _send(sock, [str(r).encode(), b"rx", _CELL.pack(cell), data], medium.counters, "rx")
     finally:
         sock.close()
 

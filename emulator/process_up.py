@@ -22,7 +22,7 @@ import time
 
 from cellbridge.emulator.gateway_port import open_pty
 from cellbridge.emulator.mesh import load_mesh
-from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, die_with_parent
+from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, die_with_parent, rate_arg
 
 GRACE_S = 5.0
 
@@ -30,7 +30,7 @@ GRACE_S = 5.0
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", help="TOML file of [[contact]] stimuli, timed from start-up")
     parser.add_argument("--seed", type=int, default=0, help="seed of chip noise, backoff and loss (default 0)")
-    parser.add_argument("--rate", type=int, default=100, help="sampling rate in Hz (default 100)")
+    parser.add_argument("--rate", type=rate_arg, default=100, help="sampling rate in Hz, 1..250 (default 100)")
     parser.add_argument("--tcp", action="store_true",
                         help="also serve each gateway's stream on a TCP port (the mesh file's 'tcp', "
                              "else a free one), usable as pyserial's socket://127.0.0.1:PORT")

@@ -17,7 +17,8 @@ import msgpack
 import zmq
 
 from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, endpoints
-from cellbridge.emulator.world import Contact, ScenarioError, contact_from_mapping, load_scenario
+from cellbridge.emulator.mesh import Mesh, MeshError, load_mesh
+from cellbridge.emulator.world import Contact, ScenarioError, check_on_skin, contact_from_mapping, load_scenario
 
 REPUBLISH_S = 0.5
 
@@ -37,12 +38,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = ("Publish stimuli (contacts) to the bridge processes of a running mesh: "
                           "the scenario file's contacts, timed from this process's start, and any "
                           "'cellbridge press'.")
-    parser.add_argument("--mesh", help="mesh file (accepted for symmetry with the other processes)")
+    parser.add_argument("--mesh", help="mesh file: a press that touches no element of it is refused")
     parser.add_argument("--scenario", help="TOML file of [[contact]] stimuli")
     add_endpoint_arguments(parser)
 
 
-def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag) -> None:
+def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag, mesh: Mesh | None = None) -> None:
     ctx = zmq.Context.instance()
     pub = ctx.socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
@@ -58,6 +59,8 @@ def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag) -> 
                     req = msgpack.unpackb(ctl.recv())
                     now = time.monotonic()
                     c = contact_from_mapping({**req, "start": 0.0}, "press")
+                    if mesh is not None:
+                        check_on_skin(mesh, c, "press")
                     contacts.append(Contact(now + float(req.get("start", 0.0)), c.duration, c.x, c.y,
                                             c.force, c.diameter, c.vx, c.vy))
                     ctl.send(msgpack.packb({"ok": True, "start": contacts[-1].start}))
@@ -76,12 +79,16 @@ def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag) -> 
 
 def run(args: argparse.Namespace) -> int:
     try:
+        mesh = load_mesh(args.mesh) if args.mesh else None
         scenario = load_scenario(args.scenario) if args.scenario else []
-    except ScenarioError as exc:
+        if mesh is not None:
+            for i, c in enumerate(scenario):
+                check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")
+    except (ScenarioError, MeshError) as exc:
         print(f"cellbridge world: {exc}", file=sys.stderr)
         return 2
     t0 = time.monotonic()
     contacts = [Contact(t0 + c.start, c.duration, c.x, c.y, c.force, c.diameter, c.vx, c.vy) for c in scenario]
     ep = endpoints(args)
-    serve(contacts, ep.world, ep.control, StopFlag())
+    serve(contacts, ep.world, ep.control, StopFlag(), mesh)
     return 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import math
 import signal
 import time
 from dataclasses import dataclass
@@ -53,6 +54,30 @@ def add_endpoint_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default=LOOPBACK,
                         help="host of the medium and world processes (default 127.0.0.1; "
                              "bridges on other hosts point here)")
+
+
+def rate_arg(text: str) -> int:
+    """argparse type of ``--rate``: a sampling rate the default gates can hold."""
+    from cellbridge.emulator.commands import Settings
+
+    try:
+        rate = int(text)
+        Settings(rate_hz=rate).check(CLOCK_HZ)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc) if "sampling rate" in str(exc)
+                                         else f"expected an integer rate in Hz, got {text!r}") from None
+    return rate
+
+
+def seconds_arg(text: str) -> float:
+    """argparse type of a duration: a finite number of seconds >= 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, got {text!r}")
+    return v
 
 
 def endpoints(args: argparse.Namespace) -> Endpoints:

@@ -22,12 +22,13 @@ MAX_HEARTBEAT_MS = 600_000
 
 @dataclass(frozen=True)
 class ReportingMode:
-    threshold: int = 0  #: 0 = periodic
+    #: None = periodic; otherwise event-based with this threshold (0: every change is sent)
+    threshold: int | None = None
     heartbeat_ms: int = DEFAULT_HEARTBEAT_MS
 
     @property
     def periodic(self) -> bool:
-        return self.threshold == 0
+        return self.threshold is None
 
     @classmethod
     def from_value(cls, value: int) -> ReportingMode:
@@ -35,10 +36,12 @@ class ReportingMode:
         threshold, heartbeat = value & 0xFFFF_FFFF, value >> 32
         if heartbeat > MAX_HEARTBEAT_MS:
             raise ValueError(f"heartbeat {heartbeat} ms exceeds {MAX_HEARTBEAT_MS}")
-        return cls(threshold, heartbeat or DEFAULT_HEARTBEAT_MS)
+        if value == 0:
+            return cls()
+        return cls(threshold, heartbeat or DEFAULT_HEARTBEAT_MS)  # threshold 0: any change
 
     def to_value(self) -> int:
-        return 0 if self.periodic else self.threshold | (self.heartbeat_ms << 32)
+        return 0 if self.threshold is None else self.threshold | (self.heartbeat_ms << 32)
 
 
 class Reporter:
@@ -63,7 +66,7 @@ class Reporter:
     def wants(self, s: Sample) -> bool:
         m = self.mode
         last = self._last
-        if (m.periodic or last is None
+        if (m.threshold is None or last is None
                 or s.cycle - last.cycle >= m.heartbeat_ms * self._cpm
                 or self._moved(s.c1, last.c1) > m.threshold
                 or self._moved(s.c2, last.c2) > m.threshold

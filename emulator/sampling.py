@@ -68,8 +68,10 @@ class Sampler:
 
     def apply(self, new: Settings, tick: int) -> list[Data]:
         """New settings from a command; a schedule change closes the current batch."""
+        # Samples due before the command were taken before it on the chip; with lazy
+        # sampling they may not be computed yet, and must be under the old settings.
+        out = self.advance(tick - 1)
         old, self.settings = self.settings, new
-        out: list[Data] = []
         if new.reporting != old.reporting or new.mode != old.mode:
             self.reporter.set_mode(new.reporting, _COUNTER_MODULUS if new.mode is Mode.COUNTER else 0)
         if (new.period_cycles(self.clock_hz) != old.period_cycles(self.clock_hz)

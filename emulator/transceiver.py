@@ -61,6 +61,7 @@ class Transceiver:
         self.contenders = 0  #: bridges heard on our cells (set by the firmware from its neighbours)
         self.transmissions = 0
         self.bits_sent = 0
+        self.acks_dropped = 0
 
     def airtime(self, n_bytes: int) -> int:
         """Cycles one frame of ``n_bytes`` occupies the cell."""
@@ -85,7 +86,12 @@ class Transceiver:
         self._plan(tick)
 
     def send_ack(self, frame: bytes, cells: tuple[int, ...], tick: int) -> None:
-        """Send an acknowledgement SIFS after ``tick`` (the end of the frame it answers)."""
+        """Send an acknowledgement SIFS after ``tick`` (the end of the frame it answers).
+        One radio sends one ACK at a time: a second frame to acknowledge before the first
+        ACK left (two cells, frames ending together) replaces it, counted in ``acks_dropped``
+        (its sender retries, as after a lost ACK)."""
+        if self._urgent is not None:
+            self.acks_dropped += 1
         self._urgent = frame
         self._urgent_cells = cells
         self._urgent_at = max(tick, self.tx_until) + self.config.sifs_bits * self.config.bit_cycles

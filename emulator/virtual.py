@@ -49,24 +49,43 @@ class MeshResult:
         """(origin, boot, seq, frame) of every frame at every gateway, in each gateway's order.
 
         A bridge numbers from 0 again after a reset and says so with a HELLO numbered 0, so
-        (origin, seq) repeats across boots; ``boot`` counts those HELLOs per origin."""
+        (origin, seq) repeats across boots; ``boot`` counts those HELLOs per origin. In a
+        long run the numbering also wraps from 65535 to 0: ``seq`` is counted on past the
+        wrap (serial-number arithmetic against the highest seen), so (origin, boot, seq)
+        names one frame however long the run."""
         out = []
         for frames in self.gateway_frames.values():
             boots: dict[int, int] = {}
+            highest: dict[int, int] = {}  # origin -> highest extended seq of this boot
             for f in frames:
+                o = f.origin
                 if f.type is FrameType.HELLO and f.seq == 0:
-                    boots[f.origin] = boots.get(f.origin, -1) + 1
-                out.append((f.origin, boots.get(f.origin, 0), f.seq, f))
+                    boots[o] = boots.get(o, -1) + 1
+                    highest[o] = 0
+                top = highest.get(o, f.seq)
+                ahead = (f.seq - top) & 0xFFFF
+                seq = top + ahead if ahead < 0x8000 else top - (0x10000 - ahead)
+                highest[o] = max(top, seq)
+                out.append((o, boots.get(o, 0), seq, f))
         return out
 
     def samples(self) -> dict[int, list]:
-        """origin -> every sample delivered to any gateway (duplicates across gateways removed)."""
+        """origin -> every sample delivered to any gateway (duplicates across gateways removed).
+
+        A sample is named by (origin, element, cycle): in virtual time a chip's cycle counter
+        runs on across restarts, so this holds where (origin, boot, seq) cannot (a bridge
+        that restarted while routed to one gateway and then moved to another: the second
+        gateway never saw the HELLO, and its boot count lags)."""
         seen: set[tuple[int, int, int]] = set()
         out: dict[int, list] = {}
-        for origin, boot, seq, f in self.delivered():
-            if f.type is FrameType.DATA and (origin, boot, seq) not in seen:
-                seen.add((origin, boot, seq))
-                out.setdefault(origin, []).extend(f.payload.samples)  # type: ignore[union-attr]
+        for frames in self.gateway_frames.values():
+            for f in frames:
+                if f.type is FrameType.DATA:
+                    for x in f.payload.samples:  # type: ignore[union-attr]
+                        key = (f.origin, x.element, x.cycle)
+                        if key not in seen:
+                            seen.add(key)
+                            out.setdefault(f.origin, []).append(x)
         return out
 
     def total(self, name: str) -> int:
@@ -130,6 +149,7 @@ class VirtualMesh:
             self.dead.add(bridge)
             self.medium.kill(bridge)
             old = self.nodes.pop(bridge)
+            old.power_off()
             self._retired[bridge].update(old.counters_snapshot())
             self._wake.pop(bridge, None)
         self.at(at, do)
@@ -137,6 +157,7 @@ class VirtualMesh:
     def restart(self, bridge: int, at: float) -> None:
         def do() -> None:
             if bridge in self.nodes:  # a running bridge is power-cycled
+                self.nodes[bridge].power_off()
                 self._retired[bridge].update(self.nodes[bridge].counters_snapshot())
             self.dead.discard(bridge)
             self.medium.revive(bridge)

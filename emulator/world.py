@@ -83,6 +83,36 @@ def contact_from_mapping(e: Mapping[str, Any], where: str) -> Contact:
                    _num(e, "force", where, 0.0, True), _num(e, "diameter", where, 0.0, True), vx, vy)
 
 
+def touched(mesh: Mesh, c: Contact) -> list[int]:
+    """Bridges whose element the contact's disk overlaps at some moment of its path
+    (checked every half element along a moving contact's track)."""
+    r, half = c.diameter / 2, mesh.side / 2
+    length = math.hypot(c.vx, c.vy) * c.duration
+    steps = min(10_000, int(length / half) + 1) if math.isfinite(length) else 10_000
+    dt = c.duration / steps if steps > 1 else 0.0
+    pts = np.array([b.position for b in mesh.bridges])
+    hit = np.zeros(len(pts), dtype=bool)
+    with np.errstate(over="ignore", invalid="ignore"):  # a contact far off: inf, not a hit
+        for k in range(steps + 1 if steps > 1 else 1):
+            x, y = c.x + c.vx * dt * k, c.y + c.vy * dt * k
+            dx = np.maximum(np.abs(pts[:, 0] - x) - half, 0.0)  # distance from the disk centre
+            dy = np.maximum(np.abs(pts[:, 1] - y) - half, 0.0)  # to each element's square
+            hit |= dx * dx + dy * dy < r * r
+    return [b.id for b, h in zip(mesh.bridges, hit) if h]
+
+
+def check_on_skin(mesh: Mesh, c: Contact, where: str) -> None:
+    """ScenarioError when the contact touches no element: a press beside the skin (a
+    typo in a coordinate, metres taken for millimetres) would otherwise do nothing."""
+    if not touched(mesh, c):
+        pts = np.array([b.position for b in mesh.bridges])
+        half = mesh.side / 2
+        raise ScenarioError(
+            f"{where}: a {c.diameter} m contact at ({c.x}, {c.y}) touches no element; the skin spans "
+            f"x {pts[:, 0].min() - half:g}..{pts[:, 0].max() + half:g}, "
+            f"y {pts[:, 1].min() - half:g}..{pts[:, 1].max() + half:g} m")
+
+
 def parse_scenario(text: str, source: str = "scenario") -> list[Contact]:
     try:
         data = tomllib.loads(text)

@@ -196,3 +196,187 @@ def test_event_reporting_sends_far_fewer_frames_when_idle_and_reports_every_pres
             base = [s for s in samples[b] if s.cycle < p.start * CLOCK_HZ][-1]
             assert during and min(s.c1 for s in during[1:] or during) < base.c1 - 40  # more C, fewer counts
     assert r.total("suppressed") > 0
+
+
+@pytest.mark.parametrize("op, value", [(Op.SET_RATE, 50), (Op.SET_GATE, 50_000),
+                                       (Op.SET_REPORTING, 5 | 100 << 32)])
+def test_lazy_sampling_keeps_the_samples_due_before_a_command(op: Op, value: int) -> None:
+    # Lazy sampling computes periodic samples only when their frame is due; a command
+    # that changes the schedule must not drop (or re-measure) the samples taken before
+    # it: the host sees exactly what gate-by-gate sampling gives.
+    def run(lazy: bool) -> dict[int, list]:
+        vm = VirtualMesh(meshgen.line(3), seed=3, lazy_sampling=lazy)
+        vm.host_write(1, cmd(1, 3, op, value), at=2.31)
+        return vm.run(3.0).samples()
+
+    lazy, eager = run(True), run(False)
+    assert len(lazy[3]) == len(eager[3])
+    assert lazy == eager
+
+
+def test_counters_never_go_back_across_a_reset_command() -> None:
+    # A RESET rebuilds the link, radio and router; the totals a user reads must keep
+    # what earlier lives counted (only states such as queue_len start again).
+    vm = VirtualMesh(meshgen.line(3), seed=3)
+    vm.host_write(1, cmd(1, 3, Op.RESET), at=2.0)
+    before = vm.run(1.99).counters[3]
+    after = vm.run(0.5).counters[3]
+    assert after["command_resets"] == 1 and after["resets"] == 1
+    for k, v in before.items():
+        if k not in ("queue_len", "has_route", "alive"):
+            assert after.get(k, 0) >= v, k
+    assert after["transmissions"] > before["transmissions"]
+
+
+def test_a_reset_counts_the_frames_and_samples_it_discards() -> None:
+    # A bridge without a route holds its HELLO, DATA and the RESET's reply in its queue;
+    # the reset loses them, as a real one would, but never silently.
+    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.protocol import encode
+
+    fw = Firmware(FirmwareConfig(5, (1,)), default_chip(5, 0))
+    for t in range(0, CLOCK_HZ, CLOCK_HZ // 100):
+        fw.advance(t)
+    fw.receive(encode(cmd(1, 5, Op.RESET)), CLOCK_HZ, 1)
+    assert len(fw.link.queue) >= 3  # HELLO, DATA, the RESET's reply: no route to send them
+    while fw.counters["command_resets"] == 0:
+        fw.advance(fw.next_tick)
+    c = fw.counters_snapshot()
+    assert c["power_off_frames"] >= 3
+    # every sample taken is sent, still batched, or counted as discarded
+    assert c["samples"] == c.get("samples_sent", 0) + len(fw.sampler.batch) + c["power_off_samples"]
+    assert c["power_off_samples"] > 0
+    assert fw.link.queue[0].seq == 0 and fw.link.queue[0].type == FrameType.HELLO  # numbering from 0, HELLO first
+
+
+def test_a_host_flooding_commands_is_bounded_and_counted() -> None:
+    # A host (or garbage that decodes) writing thousands of CMDs for bridges nobody
+    # knows: the gateway keeps a bounded number of flood copies and counts each command
+    # it could not repeat; every command is accounted for.
+    from cellbridge.protocol import encode_stream
+
+    vm = VirtualMesh(meshgen.line(3), seed=3)
+    vm.run(0.5)
+    gw = vm.nodes[1]
+    n = 2000
+    gw.serial_in(b"".join(encode_stream(cmd(i, 999, Op.PING)) for i in range(1, n + 1)), vm.tick)
+    assert len(gw.floods) <= 48
+    assert gw.counters["flooded"] + gw.counters["flood_drops"] == n
+    r = vm.run(1.0)
+    assert r.counters[1]["flood_drops"] > 0
+    assert r.counters[2]["flooded"] == r.counters[1]["flooded"]  # those it repeated reached the next bridge
+
+
+def test_only_a_boot_sends_a_hello_numbered_0_even_after_the_numbering_wraps() -> None:
+    # A HELLO numbered 0 tells the host's duplicate filter that the bridge restarted; a
+    # periodic HELLO that happened to fall on seq 0 after a wrap would be taken as one.
+    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.protocol import StreamDecoder
+
+    fw = Firmware(FirmwareConfig(1, (1,), gateway=True), default_chip(1, 0))
+    t = CLOCK_HZ
+    fw.advance(t)
+    fw.seq = 0  # a long run's numbering has just wrapped
+    fw.hello_at = t
+    fw.advance(t)
+    while t < 2 * CLOCK_HZ:
+        t = fw.next_tick
+        fw.advance(t)
+    frames = StreamDecoder().feed(fw.take_serial())
+    hellos = [f.seq for f in frames if f.type is FrameType.HELLO]
+    assert hellos[0] == 0  # the boot's
+    assert len(hellos) == 2 and hellos[1] != 0  # the periodic one, not numbered 0
+    assert 0 in [f.seq for f in frames[1:]]  # the wrap itself went ahead
+
+
+def test_mesh_result_keeps_every_sample_across_the_sequence_wrap() -> None:
+    # (origin, boot, seq) must name one frame in a long run: after 65536 frames the
+    # numbering wraps without a reset, and samples() must not take the new frames for
+    # copies of the boot's first ones.
+    vm = VirtualMesh(meshgen.line(3), seed=3)
+    vm.run(1.0)
+    for last in (False, False, True):  # a long run's numbering, in steps the filters follow
+        for b in (2, 3):
+            vm.nodes[b].seq = 0xFFFF - 100 if last else vm.nodes[b].seq + 30000
+        vm.run(1.0)
+    r = vm.run(10.0)
+    assert all(vm.nodes[b].seq < 2000 for b in (2, 3))  # wrapped
+    got = r.samples()
+    for b in (1, 2, 3):
+        assert len(got[b]) == r.counters[b]["samples_sent"] > 1000
+
+
+def test_set_gate_beyond_what_the_host_can_unwrap_is_refused() -> None:
+    # tactile.transfer.check_gate: beyond max_gate_cycles a press and a counter wrap
+    # look alike. The bridge refuses such a gate instead of sending ambiguous counts.
+    from cellbridge.tactile.transfer import max_gate_cycles
+
+    vm = VirtualMesh(meshgen.line(2), seed=1)
+    limit = max_gate_cycles(chip=vm.nodes[2].chip.params)  # type: ignore[attr-defined]
+    vm.host_write(1, cmd(1, 2, Op.SET_RATE, 10, token=1), at=0.5)
+    vm.host_write(1, cmd(2, 2, Op.SET_GATE, limit + 1, token=2), at=0.6)
+    vm.host_write(1, cmd(3, 2, Op.SET_GATE, 1_000_000, token=3), at=0.7)
+    vm.host_write(1, cmd(4, 2, Op.SET_GATE, limit, token=4), at=0.8)
+    r = vm.run(2.0)
+    got = {c.token: c.status for c in replies(r.gateway_frames[1])[2]}
+    assert got == {1: Status.OK, 2: Status.BAD_VALUE, 3: Status.BAD_VALUE, 4: Status.OK}
+    late = [s for s in r.samples()[2] if s.cycle > 0.9 * CLOCK_HZ]
+    assert late and not any(s.flags for s in late)  # at the limit: no counter wraps
+
+
+def test_a_gateway_counts_the_garbage_the_host_writes() -> None:
+    # Bytes on the serial line that are not frames are dropped, as the UART's decoder
+    # must, but counted by cause; the command after the garbage is still executed.
+    import random as _random
+
+    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.protocol import StreamDecoder, encode_stream
+
+    fw = Firmware(FirmwareConfig(1, (1,), gateway=True), default_chip(1, 0))
+    fw.advance(CLOCK_HZ // 10)
+    garbage = _random.Random(1).randbytes(5000) + b"\x00" + b"\x05\x01\x02\x03\x04\x00" + b"\x01" * 600 + b"\x00"
+    fw.serial_in(garbage + encode_stream(cmd(1, 1, Op.PING, token=9)), CLOCK_HZ // 10)
+    c = fw.counters_snapshot()
+    assert c["serial_rx_bytes_dropped"] >= 4000
+    assert c.get("serial_rx_overlong", 0) >= 1
+    assert sum(v for k, v in c.items() if k.startswith("serial_rx_") and k != "serial_rx_bytes_dropped") >= 2
+    out = StreamDecoder().feed(fw.take_serial())
+    assert [f.payload.token for f in out if f.type is FrameType.CMD_REPLY] == [9]
+
+
+def test_event_reporting_with_threshold_0_sends_every_change_only() -> None:
+    # docs/protocol.md: value 0 is periodic; any other value is event-based, threshold
+    # in bits 0-31, so 0 | H << 32 sends a sample when it differs at all (or H passed),
+    # and identical samples are suppressed.
+    from cellbridge.protocol import Sample
+
+    m = ReportingMode.from_value(500 << 32)
+    assert not m.periodic and (m.threshold, m.heartbeat_ms) == (0, 500)
+    assert m.to_value() == 500 << 32
+    rep = Reporter(m, cycles_per_ms=50_000)
+    sent = [rep.wants(Sample(0, i * 500_000, c, 100)) for i, c in enumerate([7, 7, 7, 8, 8, 7])]
+    assert sent == [True, False, False, True, False, True]
+    assert rep.suppressed == 3
+    assert ReportingMode.from_value(0).periodic and ReportingMode.from_value(0).to_value() == 0
+
+
+def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
+    # A bridge resets once its reply and its copies of the command have left (at most
+    # 3 s later), not after a fixed 50 ms: relays that reset at once threw away the
+    # replies of the bridges behind them, and the host could not tell who had reset.
+    from cellbridge.emulator.commands import Settings as _Settings
+
+    mesh = meshgen.grid(6, 6)
+    vm = VirtualMesh(mesh, seed=4, settings=_Settings(rate_hz=20))  # not saturated
+    vm.host_write(1, cmd(1, ADDR_BROADCAST, Op.RESET, token=5), at=2.0)
+    r = vm.run(8.0)
+    got = replies(r.gateway_frames[1])
+    assert set(got) == set(mesh.ids)
+    assert all([c.token for c in v] == [5] for v in got.values())
+    assert r.total("command_resets") == len(mesh.ids)
+    assert r.total("power_off_frames") == 0  # nothing was held at the reset
+    boots = [f.origin for f in r.gateway_frames[1] if f.type is FrameType.HELLO and f.seq == 0]
+    assert all(boots.count(b) == 2 for b in mesh.ids)  # power-on, then the reset: HELLO 0 each

@@ -148,3 +148,46 @@ def test_cli_run_in_virtual_time_with_scenario_and_capture(tmp_path: Path) -> No
     bad.write_text("[[contact]]\nstart = 0\n")
     r = subprocess.run([CLI, "mesh", "run", str(mesh), "--scenario", str(bad)], capture_output=True, timeout=60)
     assert r.returncode == 2 and b"missing key" in r.stderr
+
+
+@given(st.text(max_size=40))
+@settings(max_examples=200, deadline=None)
+def test_any_mesh_name_round_trips_through_toml(name: str) -> None:
+    # a user's name with quotes, backslashes, newlines or control characters must not
+    # make mesh_to_toml write a file that no longer parses (or parses to another name)
+    from dataclasses import replace
+
+    mesh = replace(meshgen.line(2), name=name, _by_id={})
+    assert parse_mesh(mesh_to_toml(mesh)).name == name
+
+
+def test_sampling_rates_the_gates_cannot_hold_are_refused(tmp_path: Path) -> None:
+    # --rate 0 crashed every process with a traceback; --rate 1000 (four times the gate
+    # limit) ran with overlapping gates, a schedule no chip can keep.
+    from cellbridge.emulator.commands import Settings
+    from cellbridge.emulator.virtual import VirtualMesh
+
+    for rate in (0, -5, 251, 1000):
+        with pytest.raises(ValueError, match=f"sampling rate {rate} Hz: must be 1..250 Hz"):
+            VirtualMesh(meshgen.line(2), settings=Settings(rate_hz=rate))
+    path = tmp_path / "l2.toml"
+    path.write_text(mesh_to_toml(meshgen.line(2)))
+    for args, words in [(["mesh", "run", str(path), "--rate", "0"], b"sampling rate 0 Hz"),
+                        (["mesh", "run", str(path), "--rate", "1000"], b"must be 1..250 Hz"),
+                        (["mesh", "run", str(path), "--seconds", "nan"], b"--seconds"),
+                        (["mesh", "run", str(path), "--seconds", "-1"], b"--seconds"),
+                        (["mesh", "up", str(path), "--rate", "1000"], b"must be 1..250 Hz"),
+                        (["bridge", "--mesh", str(path), "--id", "2", "--rate", "0"], b"sampling rate 0 Hz")]:
+        r = subprocess.run([CLI, *args], capture_output=True, timeout=60)
+        assert r.returncode == 2 and words in r.stderr and b"Traceback" not in r.stderr, (args, r.stderr)
+
+
+def test_cli_run_refuses_a_scenario_contact_beside_the_skin(tmp_path: Path) -> None:
+    path = tmp_path / "l2.toml"
+    path.write_text(mesh_to_toml(meshgen.line(2)))
+    scenario = tmp_path / "s.toml"
+    scenario.write_text("[[contact]]\nstart = 0.1\nduration = 0.2\nposition = [40.0, 0.0]\n"
+                        "force = 2.0\ndiameter = 0.02\n")
+    r = subprocess.run([CLI, "mesh", "run", str(path), "--seconds", "0.5", "--scenario", str(scenario)],
+                       capture_output=True, timeout=60)
+    assert r.returncode == 2 and b"contact[0]" in r.stderr and b"touches no element" in r.stderr, r.stderr

@@ -195,3 +195,84 @@ def test_press_without_a_world_says_so() -> None:
     r = subprocess.run([*PY, "press", "0", "0", "--timeout", "0.5", "--base-port", str(free_base_port())],
                        capture_output=True, timeout=30)
     assert r.returncode == 1 and b"no world process answered" in r.stderr
+
+
+def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> None:
+    # A delivery for a bridge process that is not connected (dead, not yet started, or
+    # not yet heard by a medium that restarted) is lost: the medium must count it, not
+    # drop it silently in its ROUTER socket.
+    import json
+
+    import zmq
+
+    from cellbridge.emulator.process_medium import pack_cells
+    from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
+
+    mesh_path = tmp_path / "line-2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
+    base = free_base_port()
+    proc = subprocess.Popen([*PY, "medium", "--mesh", str(mesh_path), "--base-port", str(base)],
+                            stderr=subprocess.PIPE, start_new_session=True)
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.DEALER)
+    try:
+        end = time.monotonic() + 30  # a loaded machine takes a while to start a process
+        while True:  # bound: the medium is serving (and counts what it is told to send)
+            try:
+                socket.create_connection(("127.0.0.1", base), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < end and proc.poll() is None, "medium did not start"
+                time.sleep(0.1)
+        sock.setsockopt(zmq.IDENTITY, b"1")
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.connect(f"tcp://127.0.0.1:{base}")
+        beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
+        for _ in range(20):  # bridge 2 shares cell 1 and never connects
+            sock.send_multipart([b"tx", pack_cells((1,)), beacon])
+            time.sleep(0.05)
+        time.sleep(0.3)
+    finally:
+        sock.close()
+        ctx.term()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            _, err = proc.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            _, err = proc.communicate()
+    line = [x for x in err.decode().splitlines() if x.startswith("medium: ")][-1]
+    counters = json.loads(line.removeprefix("medium: ").replace("'", '"'))
+    assert counters["delivered"] >= 1
+    assert counters["rx_unreachable"] == counters["delivered"]
+
+
+def test_press_beside_the_skin_is_refused(tmp_path: Path) -> None:
+    # A press that touches no element (a typo, metres for millimetres) did nothing and
+    # said "pressed"; the world knows the mesh and says where the skin is.
+    mesh_path = tmp_path / "grid-2x2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.grid(2, 2)))
+    base = free_base_port()
+    world = subprocess.Popen([*PY, "world", "--mesh", str(mesh_path), "--base-port", str(base)],
+                             stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        def press(*args: str) -> subprocess.CompletedProcess[bytes]:
+            return subprocess.run([*PY, "press", *args, "--timeout", "10", "--base-port", str(base)],
+                                  capture_output=True, timeout=30)
+
+        r = press("1e308", "1e308")
+        assert r.returncode == 2 and b"touches no element" in r.stderr and b"skin spans" in r.stderr, r.stderr
+        r = press("40", "40")  # millimetres for metres
+        assert r.returncode == 2 and b"touches no element" in r.stderr, r.stderr
+        r = press("0.5", "0.0", "--velocity", "-0.5", "0", "--duration", "2")  # slides onto the skin
+        assert r.returncode == 0, r.stderr
+        r = press("0.04", "0.04")
+        assert r.returncode == 0 and b"pressed" in r.stdout, r.stderr
+    finally:
+        world.send_signal(signal.SIGTERM)
+        try:
+            world.wait(15)
+        except subprocess.TimeoutExpired:
+            os.killpg(world.pid, signal.SIGKILL)
+            world.wait()
+    assert processes_mentioning(str(mesh_path)) == []

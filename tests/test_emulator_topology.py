@@ -174,3 +174,21 @@ def test_same_seed_same_run_other_seed_other_run() -> None:
 
     assert stream(1) == stream(1)
     assert stream(1) != stream(2)
+
+
+def test_samples_survive_a_restart_then_a_move_to_the_other_gateway() -> None:
+    # Bridge 2 restarts while routed to gateway 1, then gateway 1 dies and it moves to
+    # gateway 5, which never saw its restart HELLO: samples() must not take its new
+    # frames for copies of the old boot's frames that gateway 1 delivered.
+    mesh = meshgen.line(5, gateways=(1, 5))
+    vm = VirtualMesh(mesh, seed=4)
+    vm.restart(2, at=2.0)
+    vm.kill(1, at=3.0)
+    r = vm.run(8.0)
+    delivered = {(f.origin, x.cycle) for fr in r.gateway_frames.values() for f in fr
+                 if f.type is FrameType.DATA for x in f.payload.samples}
+    got = r.samples()
+    assert {f.origin for f in r.gateway_frames[5] if f.type is FrameType.DATA} >= {2}
+    for b in mesh.ids:
+        assert len(got[b]) == len({c for o, c in delivered if o == b}), b
+    assert len(got[2]) == r.counters[2]["samples_sent"]

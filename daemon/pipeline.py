@@ -60,6 +60,7 @@ class Pipeline:
         self.started: float | None = None
         self.last_feed = 0.0
         self._next_health = -math.inf
+        self._last_tick = -math.inf
         self.announced_silent: set[int] = set()
         self.events: list[tuple[str, str]] = []  # (level, text) for the shell to log
 
@@ -217,6 +218,9 @@ class Pipeline:
     def tick(self, now: float, force: bool = False) -> list[Message]:
         """Health every ``health.interval`` (or now, if forced) and topology when it changed."""
         h = self.config["health"]
+        if now < self._last_tick:
+            self._clock_stepped_back(now)
+        self._last_tick = now
         if now < self._next_health and not force:
             return []
         interval = h["interval"]
@@ -238,6 +242,19 @@ class Pipeline:
         if self.topology.changed(topo) and self._want("topology"):
             out.append(self._message("topology", now, topo))
         return out
+
+    def _clock_stepped_back(self, now: float) -> None:
+        """The host clock went back (NTP step, RTC set): times kept from before lie in the
+        future and would hold back health, silence and command deadlines for as long as
+        the step. They are taken as "now": a dead bridge is then reported silent
+        ``bridge_timeout`` after the step, not hours later."""
+        self._next_health = min(self._next_health, now)
+        for b in self.bridges.values():
+            b.last_seen = min(b.last_seen, now)
+            b.first_seen = min(b.first_seen, now)
+        self.topology.clock_stepped_back(now)
+        self.commands.clock_stepped_back(now)
+        self.events.append(("warning", "host clock stepped back; liveness and deadlines counted from now"))
 
     def health_body(self, now: float) -> dict[str, Any]:
         h = self.config["health"]

@@ -372,3 +372,29 @@ def test_contact_worker_warm_up_estimates_a_press() -> None:
         physics.ContactStage.run = run  # type: ignore[method-assign]
     (contacts,) = calls
     assert len(contacts) == 1 and contacts[0]["force"] == pytest.approx(1.0, rel=0.05)
+
+
+def test_host_clock_stepping_back_neither_stops_health_nor_hides_a_dead_bridge() -> None:
+    """An NTP step of an hour back: health goes on at its interval, and a bridge that
+    stops right after the step is reported silent after bridge_timeout, not an hour later."""
+    sk = Skin()
+    p = make({"health": {"interval": 0.5, "bridge_timeout": 2.0}})
+    t = settle(p, sk, 100)
+    assert [x for x, _ in p.tick(t)] == ["health", "topology"]
+    back = t - 3600.0
+    ticks = [[x for x, _ in p.tick(back + i * 0.1)] for i in range(1, 51)]  # 5 s, no data
+    assert sum(x.count("health") for x in ticks) >= 9
+    body = p.health_body(back + 5.0)
+    assert body["silent"] == [1, 2, 3, 4]
+    assert all(not b["alive"] for b in p.topology_body(back + 5.0)["bridges"].values())
+
+
+def test_a_command_sent_before_the_host_clock_steps_back_still_times_out() -> None:
+    sk = Skin()
+    p = make()
+    t = settle(p, sk, 20)
+    p.tick(t)
+    pending, _ = p.command(int(Op.PING), None, 1, t, 1.0)
+    back = t - 3600.0
+    p.tick(back)
+    assert p.commands.done(back + 1.5) == [pending]

@@ -39,7 +39,8 @@ class BridgeHealth:
     _samples_at_tick: int = 0
     silent: bool = False
 
-    def frames_seen(self, seqs: list[int], window: int) -> None:
+    def frames_seen(self, seqs: list[int], window: int, boot: bool = False) -> None:
+        """``boot``: the bridge's HELLO numbered 0 is among them (it restarted)."""
         for seq in seqs:
             self.frames += 1
             if self.last_seq is None:
@@ -49,7 +50,7 @@ class BridgeHealth:
             if ahead < _SEQ_HALF:
                 self.lost += ahead - 1
                 self.last_seq = seq
-            elif _SEQ_MOD - ahead >= window:  # far behind: the bridge restarted its numbering
+            elif _SEQ_MOD - ahead >= window or (boot and seq == 0):  # the bridge restarted its numbering
                 self.seq_restarts += 1
                 self.last_seq = seq
             else:  # an earlier gap filled in late

@@ -106,9 +106,13 @@ class Pipeline:
         window = self.ingress.dedupe.window
         for origin, seqs in dec.frames_by_origin.items():
             b = self._bridge(origin, now)
-            b.frames_seen(seqs, window)
+            b.frames_seen(seqs, window, origin in dec.boots)
             b.last_seen, b.link = now, link
             self.topology.heard(origin, link, dec.gateways, now)
+        for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
+            if origin in self.clocks and self.clocks.pop(origin).synced:
+                self._bridge(origin, now).clock_resets += 1
+                self.events.append(("warning", f"bridge {origin}: restarted (HELLO 0), resynchronising its clock"))
         for origin, h in dec.hellos:
             b = self._bridge(origin, now)
             if b.clock_hz != h.clock_hz and h.clock_hz > 0:

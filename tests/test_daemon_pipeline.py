@@ -398,3 +398,23 @@ def test_a_command_sent_before_the_host_clock_steps_back_still_times_out() -> No
     back = t - 3600.0
     p.tick(back)
     assert p.commands.done(back + 1.5) == [pending]
+
+
+def test_bridge_reset_soon_after_start_restarts_its_clock() -> None:
+    """A bridge that resets 0.3 s after it started (the counter goes back by less than
+    the clock's jump limit): its HELLO numbered 0 restarts the fit, so the new samples'
+    times are not the old fit's (half a second off)."""
+    sk = Skin()
+    sk.cycle0 = 0
+    p = make()
+    t = settle(p, sk, 30)
+    sk.seq = {b: 0 for b in sk.ids}
+    t_reset = t + 0.2
+    p.feed("gw", sk.hellos(), t_reset)
+    out = []
+    for k, data in sk.stream(20):
+        out = p.feed("gw", data, t_reset + 0.01 + k / sk.rate)
+    el = topic(out, "element")
+    assert el["t_sample"][0] == pytest.approx(t_reset + 0.01 + 19 / sk.rate, abs=0.02)
+    h = p.health_body(t_reset + 1)["bridges"]["1"]
+    assert h["clock_resets"] == 1 and h["seq_restarts"] == 1

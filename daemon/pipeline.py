@@ -24,7 +24,7 @@ from cellbridge.daemon.clock import BridgeClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
-from cellbridge.daemon.physics import ContactSnapshot, Frontend, chip_params, default_params
+from cellbridge.daemon.physics import ContactSnapshot, Frontend, chip_params, default_params, layout_dict
 from cellbridge.daemon.skin import Skin
 from cellbridge.daemon.topology import Topology
 from cellbridge.daemon.wire import ADDR_BROADCAST, OPS, Decoded, Ingress, SampleColumns, command_bytes
@@ -33,6 +33,7 @@ from cellbridge.tactile import ElementParams, SkinLayout
 SCHEMA_VERSION = 1
 Message = tuple[str, dict[str, Any]]
 _GATE_OP = int(OPS["gate"])
+_SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
 
 
 class Pipeline:
@@ -309,8 +310,16 @@ class Pipeline:
         return self.skin.tare(bridges)
 
     def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
-        """SIGHUP: take the reloadable settings; the element stages are rebuilt (baselines re-taken)."""
-        self.config = config
+        """SIGHUP: take the reloadable settings. The element stages are rebuilt (baselines
+        re-taken) only when their settings or the layout changed: a SIGHUP that changes
+        nothing of theirs (log rotation, client keys) must not erase a press being held."""
+        old, self.config = self.config, config
+        sk = self.skin
+        same_layout = (layout is None and not sk.from_file) or (
+            layout is not None and sk.from_file and sk.layout is not None and layout_dict(layout) == layout_dict(sk.layout))
+        if same_layout and all(old[s] == config[s] for s in _SKIN_SECTIONS):
+            sk.sections = config.sections
+            return
         geometry = self.skin.geometry
         self.skin = Skin(config.sections, layout)
         self.skin.hello(geometry)

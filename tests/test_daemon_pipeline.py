@@ -418,3 +418,22 @@ def test_bridge_reset_soon_after_start_restarts_its_clock() -> None:
     assert el["t_sample"][0] == pytest.approx(t_reset + 0.01 + 19 / sk.rate, abs=0.02)
     h = p.health_body(t_reset + 1)["bridges"]["1"]
     assert h["clock_resets"] == 1 and h["seq_restarts"] == 1
+
+
+def test_a_reload_that_changes_nothing_of_the_skin_keeps_a_held_press() -> None:
+    """SIGHUP for log rotation or new client keys: the baselines stay, so a hand resting
+    on the skin still reads as touched with its force (it used to vanish: baselines were
+    re-taken under the hand). A changed calibration still rebuilds."""
+    sk = Skin()
+    p = make()
+    settle(p, sk, 100)
+    assert topic(press(p, sk, STRADDLE, 100, 20), "element")["touched"] == [True, True, False, False]
+    p.reconfigure(make({"health": {"interval": 3.0}}).config, None)
+    el = topic(press(p, sk, STRADDLE, 120, 40), "element")
+    assert el["touched"] == [True, True, False, False]
+    assert el["force"][0] + el["force"][1] == pytest.approx(3.0, rel=0.05)
+    assert p.config["health"]["interval"] == 3.0 and p.skin.rebuilds == 1
+    p.reconfigure(make({"calibration": {"n_baseline": 20}}).config, None)
+    assert p.skin.rebuilds == 1 and p.skin.layout is not None  # a new Skin, built from the HELLO geometry
+    assert p.skin.sections["calibration"]["n_baseline"] == 20
+    assert topic(press(p, sk, STRADDLE, 160, 5), "element")["touched"] == [False, False, False, False]

@@ -133,6 +133,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
                               reloadable=True),
         "stuck_after": Key(NUM, 2.0, "s a channel may repeat one raw value before it is reported stuck",
                            _positive, reloadable=True),
+        "forget_after": Key(NUM, 600.0, "s of silence after which a bridge the layout does not place is "
+                            "forgotten (placed bridges stay reported silent)", _positive, reloadable=True),
     },
     "protocol": {
         "dedupe_window": Key(int, 256, "sequence numbers remembered per bridge for duplicate removal",

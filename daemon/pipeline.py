@@ -62,6 +62,7 @@ class Pipeline:
         self.last_feed = 0.0
         self._next_health = -math.inf
         self._last_tick = -math.inf
+        self.forgotten_bridges = 0
         self.announced_silent: set[int] = set()
         self.events: list[tuple[str, str]] = []  # (level, text) for the shell to log
 
@@ -240,6 +241,7 @@ class Pipeline:
             elif b.silent and not silent:
                 self.events.append(("info", f"bridge {bid} is back"))
             b.silent = silent
+        self._forget(now - h["forget_after"])
         out = []
         if self._want("health"):
             out.append(self._message("health", now, self.health_body(now)))
@@ -247,6 +249,17 @@ class Pipeline:
         if self.topology.changed(topo) and self._want("topology"):
             out.append(self._message("topology", now, topo))
         return out
+
+    def _forget(self, before: float) -> None:
+        """Drop bridges the layout does not place that were last heard ``before``: phantoms
+        of a noisy line or strangers would otherwise grow health and every tick forever."""
+        gone = [bid for bid, b in self.bridges.items() if b.last_seen < before and not self.skin.placed(bid)]
+        for bid in gone:
+            del self.bridges[bid]
+            self.clocks.pop(bid, None)
+            self.topology.nodes.pop(bid, None)
+            self.ingress.reassembly_drops.pop(bid, None)
+        self.forgotten_bridges += len(gone)
 
     def _clock_stepped_back(self, now: float) -> None:
         """The host clock went back (NTP step, RTC set): times kept from before lie in the
@@ -273,6 +286,7 @@ class Pipeline:
                         for b, bh in sorted(self.bridges.items())},
             "silent": sorted(b for b, bh in self.bridges.items() if bh.silent),
             "unplaced": unplaced,
+            "forgotten_bridges": self.forgotten_bridges,
             "layout": layout_report,
             "reassembly": self.ingress.reassembler.counters(),
             "duplicates": self.ingress.dedupe.duplicates,

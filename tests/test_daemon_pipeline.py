@@ -437,3 +437,27 @@ def test_a_reload_that_changes_nothing_of_the_skin_keeps_a_held_press() -> None:
     assert p.skin.rebuilds == 1 and p.skin.layout is not None  # a new Skin, built from the HELLO geometry
     assert p.skin.sections["calibration"]["n_baseline"] == 20
     assert topic(press(p, sk, STRADDLE, 160, 5), "element")["touched"] == [False, False, False, False]
+
+
+def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_never() -> None:
+    """Thousands of origins the layout does not place (CRC-16 phantoms of a noisy line, a
+    stranger's frames) used to stay in every health message forever: health grew without
+    bound and each tick walked them all. Silent for ``health.forget_after`` s and not
+    placed: forgotten (counted); a placed bridge that dies stays reported silent."""
+    sk = Skin()
+    p = make({"health": {"forget_after": 60.0}})
+    t = settle(p, sk, 20)
+    buf = b"".join(encode_stream(Frame(src=1, dst=0, origin=o, seq=0,
+                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
+                   for o in range(100, 3100))
+    p.feed("gw", buf, t)
+    assert len(p.health_body(t)["bridges"]) == 3004
+    p.tick(t + 30.0)
+    assert len(p.tick(t + 61.0, force=True)[0][1]["bridges"]) == 4
+    body = p.health_body(t + 61.0)
+    assert body["silent"] == [1, 2, 3, 4] and body["forgotten_bridges"] == 3000
+    assert len(p.clocks) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
+    again = encode_stream(Frame(src=1, dst=0, origin=100, seq=1,
+                                payload=Data(Mode.COUNTER, (Sample(0, 2000, 100, 100, 0),))))
+    p.feed("gw", again, t + 62.0)  # a forgotten origin that speaks again is back
+    assert "100" in p.health_body(t + 62.0)["bridges"]

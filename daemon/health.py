@@ -85,6 +85,10 @@ class ChannelHealth:
         self.saturated = np.zeros((n, 2), dtype=bool)
         self.saturated_samples = np.zeros((n, 2), dtype=np.int64)
 
+    def adopt(self, old: ChannelHealth, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
+        for name in ("last_raw", "changed_at", "seen_at", "saturated", "saturated_samples"):
+            getattr(self, name)[rows] = getattr(old, name)[old_rows]
+
     def update(self, rows: NDArray[np.int64], raw: NDArray[np.int64], sat: NDArray[np.bool_],
                groups: tuple[NDArray[np.int64], NDArray[np.int64]], now: float) -> None:
         """``raw``, ``sat``: (k, 2) for the k samples of layout rows ``rows``; ``groups``:

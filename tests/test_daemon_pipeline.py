@@ -461,3 +461,26 @@ def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_neve
                                 payload=Data(Mode.COUNTER, (Sample(0, 2000, 100, 100, 0),))))
     p.feed("gw", again, t + 62.0)  # a forgotten origin that speaks again is back
     assert "100" in p.health_body(t + 62.0)["bridges"]
+
+
+def test_a_bridge_joining_late_does_not_retake_the_other_elements_baselines() -> None:
+    """A HELLO from a bridge that was not there (booted late) grows the HELLO layout; the
+    elements already placed keep their baselines and touch state, so a press being held
+    goes on reading as touched with its force (it used to vanish: every baseline was
+    re-taken, under the press). A bridge that moved is a new element: its baseline is new."""
+    from cellbridge.protocol import Hello
+
+    sk = Skin()
+    p = make()
+    t = settle(p, sk, 100)
+    assert topic(press(p, sk, STRADDLE, 100, 20), "element")["touched"] == [True, True, False, False]
+    late = Hello(77, "test-1", 0.5, 0.5, float(sk.layout.side), CLOCK, 3)
+    p.feed("gw", encode_stream(Frame(src=1, dst=0, origin=77, seq=0, payload=late)), t + 0.21)
+    assert p.skin.layout is not None and p.skin.layout.n == 5
+    el = topic(press(p, sk, STRADDLE, 121, 40), "element")
+    assert el["touched"] == [True, True, False, False]
+    assert el["force"][0] + el["force"][1] == pytest.approx(3.0, rel=0.05)
+    assert p.health_body(t + 1.0)["layout"]["not_ready"] == [77]
+    moved = Hello(4, "test-1", 0.7, 0.7, float(sk.layout.side), CLOCK, 3)
+    p.feed("gw", encode_stream(Frame(src=1, dst=0, origin=4, seq=0, payload=moved)), t + 0.62)
+    assert p.health_body(t + 1.0)["layout"]["not_ready"] == [4, 77]

@@ -126,6 +126,12 @@ class SerialLink(Link):
         if self.capture is not None:
             self.capture.flush()
 
+    def stats(self) -> dict[str, object]:
+        out = super().stats()
+        if self.capture is not None:
+            out.update(self.capture.stats())
+        return out
+
     def write(self, data: bytes) -> bool:
         ser = self._ser
         if ser is None:

@@ -112,25 +112,34 @@ class Service:
     async def _ticker(self) -> None:
         next_status = 0.0
         while True:
-            now = time.time()
-            for topic, payload in self.pipeline.tick(now):
-                if topic == "health":
-                    payload.update(self._shell_health())
-                    self._lag_max = 0.0  # each health message reports the lag since the one before
-                self.pub.publish(topic, payload)
-            self.control.resolve(now)
-            self._log_events()
-            if now >= next_status or next_status - now > 5.0:  # (the host clock may step back)
-                next_status = now + 5.0
-                self.hooks.status(self._summary(now))
-                for link in self.links.values():
-                    cap = getattr(link, "capture", None)
-                    if cap is not None:
-                        cap.flush()
+            try:
+                next_status = self._tick_once(next_status)
+            except Exception:  # a bug must cost one tick, not every health message from now on
+                self.log.exception("tick failed")
             asked = time.perf_counter()
             await asyncio.sleep(self.TICK)
             # How late the loop woke us: time the loop spent on other work (or did not get the CPU).
             self._lag_max = max(self._lag_max, time.perf_counter() - asked - self.TICK)
+
+    def _tick_once(self, next_status: float) -> float:
+        """Health, command deadlines, logged events, and every 5 s sd_notify STATUS and
+        capture flushes; returns when the next STATUS is due."""
+        now = time.time()
+        for topic, payload in self.pipeline.tick(now):
+            if topic == "health":
+                payload.update(self._shell_health())
+                self._lag_max = 0.0  # each health message reports the lag since the one before
+            self.pub.publish(topic, payload)
+        self.control.resolve(now)
+        self._log_events()
+        if now >= next_status or next_status - now > 5.0:  # (the host clock may step back)
+            next_status = now + 5.0
+            self.hooks.status(self._summary(now))
+            for link in self.links.values():
+                cap = getattr(link, "capture", None)
+                if cap is not None:
+                    cap.flush()
+        return next_status
 
     async def _watchdog(self, interval: float) -> None:
         while True:

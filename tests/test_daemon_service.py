@@ -349,3 +349,28 @@ def test_count_drops_counts_what_a_full_subscriber_queue_refused(tmp_path: Path)
         stuck.close(0)
         control.close()
         pty.close()
+
+
+def test_a_capture_on_a_full_disk_costs_the_capture_not_health_or_ingest(tmp_path: Path) -> None:
+    """/dev/full answers every write with ENOSPC, as a full disk does. The capture's
+    first flush used to raise in the ticker task, which died: no health ever again, and
+    every read raised before reaching the pipeline. Now the capture stops (counted and
+    named in health) and the link keeps being read."""
+    pty = Pty(tmp_path / "gw")
+    cfg = tmp_path / "daemon.toml"
+    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link, "capture": "/dev/full"}],
+                             contact={"enabled": False})
+    client = Client(endpoints)
+    try:
+        with daemon(cfg, tmp_path / "stderr.log") as proc:
+            client.ready()
+            sk = announce(pty, client, 5)
+            feed(pty, sk, 5, start=5)
+            el = client.wait_for("element", lambda m: max(m["cycle"]) == sk.cycle0 + 9 * 500_000)
+            assert el["bridge"] == [1, 2, 3, 4]
+            h = client.wait_for("health", lambda m: m["links"]["gw"].get("capture_dropped", 0) >= 1)
+            assert "No space left" in h["links"]["gw"]["capture_error"]
+            assert proc.poll() is None
+    finally:
+        client.close()
+        pty.close()

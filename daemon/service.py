@@ -125,6 +125,7 @@ class Service:
         """Health, command deadlines, logged events, and every 5 s sd_notify STATUS and
         capture flushes; returns when the next STATUS is due."""
         now = time.time()
+        self._link_stats()
         for topic, payload in self.pipeline.tick(now):
             if topic == "health":
                 payload.update(self._shell_health())
@@ -152,11 +153,14 @@ class Service:
         up = sum(1 for h in self.pipeline.links.values() if h.connected)
         return f"{up}/{len(self.links)} links up, {alive}/{len(bridges)} bridges alive"
 
-    def _shell_health(self) -> dict[str, Any]:
+    def _link_stats(self) -> None:
+        """The links' own counters into the pipeline's link health, before it builds health."""
         for name, link in self.links.items():
             lh = self.pipeline.links.get(name)
             if lh is not None:
                 lh.extra = link.stats()
+
+    def _shell_health(self) -> dict[str, Any]:
         recent = self._busy[:min(self._n_reads, self._busy.shape[0])]
         p50, p99 = (np.percentile(recent, [50, 99]) * 1e3).tolist() if recent.size else (None, None)
         ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
@@ -169,6 +173,7 @@ class Service:
         return out
 
     def status_body(self, now: float) -> dict[str, Any]:
+        self._link_stats()
         body = self.pipeline.health_body(now)
         body.update(self._shell_health(), version=__version__, t_host=now)
         return body
@@ -303,6 +308,7 @@ class Service:
         await self.control.finish()
         await self._contact_once()  # the newest state, if the last estimate did not see it
         now = time.time()
+        self._link_stats()
         for topic, payload in self.pipeline.tick(now, force=True):
             if topic == "health":
                 payload.update(self._shell_health())

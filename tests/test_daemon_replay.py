@@ -100,3 +100,31 @@ def test_truncated_capture_reads_to_its_last_whole_record(tmp_path: Path) -> Non
     (tmp_path / "bad").write_bytes(b"nope" + MAGIC)
     with pytest.raises(ValueError, match="not a cellbridge capture"):
         list(read_capture(tmp_path / "bad"))
+
+
+def test_the_last_health_of_a_replay_says_it_finished(tmp_path: Path) -> None:
+    """The final health (published while stopping) carries the links' own counters as
+    they are then: it used to carry the ones taken at the health before, so a replay that
+    exited when done reported replay_finished false and too few replayed_records."""
+    cfg = tmp_path / "replay.toml"
+    text = CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{CAPTURE}")
+    endpoints = write_config(tmp_path / "endpoints.toml", [])
+    cfg.write_text(f'[pub]\nendpoint = "{endpoints["pub"]}"\n[control]\nendpoint = "{endpoints["control"]}"\n'
+                   f"[health]\ninterval = 30.0\n" + text)
+    client = Client(endpoints, (b"health",))
+    last = None
+    try:
+        with daemon(cfg, tmp_path / "err.log") as proc:
+            end = time.monotonic() + 30
+            while time.monotonic() < end:
+                got = client.recv(0.5)
+                if got is not None:
+                    last = got[1]
+                elif proc.poll() is not None:
+                    break
+            assert proc.wait(10) == 0
+    finally:
+        client.close()
+    assert last is not None
+    gw = last["links"]["gw"]
+    assert gw["replay_finished"] is True and gw["replayed_records"] == sum(1 for _ in read_capture(CAPTURE))

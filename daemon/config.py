@@ -125,6 +125,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
                             lambda v: None if v >= 1 else "must be >= 1", reloadable=True),
         "max_missed": Key(int, 2, "estimates a reported contact may be missing before it ends",
                           lambda v: None if v >= 0 else "must be >= 0", reloadable=True),
+        "worker_timeout": Key(NUM, 30.0, "s one estimate may take before the worker process is taken as hung, "
+                              "killed and replaced", _positive, reloadable=True),
     },
     "health": {
         "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _positive,

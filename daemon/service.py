@@ -198,7 +198,7 @@ class Service:
             return
         self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
         self._feeds_since_snapshot = 0
-        contacts = await self.contacts.estimate(spec, snap)
+        contacts = await self.contacts.estimate(spec, snap, self.config["contact"]["worker_timeout"])
         if contacts is None:
             return
         if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without

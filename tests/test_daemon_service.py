@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -372,5 +373,73 @@ def test_a_capture_on_a_full_disk_costs_the_capture_not_health_or_ingest(tmp_pat
             assert "No space left" in h["links"]["gw"]["capture_error"]
             assert proc.poll() is None
     finally:
+        client.close()
+        pty.close()
+
+
+def _worker_pids(daemon_pid: int) -> list[int]:
+    """The contact worker processes among the daemon's children (not the resource tracker)."""
+    out = []
+    for pid in subprocess.run(["pgrep", "-P", str(daemon_pid)], capture_output=True, text=True).stdout.split():
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmd:
+            out.append(int(pid))
+    return out
+
+
+def test_a_hung_contact_worker_is_killed_and_replaced_and_contacts_resume(tmp_path: Path) -> None:
+    """The worker stops answering (SIGSTOP: as a worker stuck in a loop). The daemon used
+    to wait for it forever: no contact was ever published again, nothing said why, and
+    SIGTERM hung in the drain. Now an estimate past contact.worker_timeout kills it
+    (counted), a new worker takes over, contacts come back, and SIGTERM exits cleanly."""
+    pty = Pty(tmp_path / "gw")
+    cfg = tmp_path / "daemon.toml"
+    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link}], calibration={"n_baseline": 10},
+                             contact={"worker_timeout": 2.0})
+    client = Client(endpoints)
+    stopped: list[int] = []
+    try:
+        with daemon(cfg, tmp_path / "stderr.log") as proc:
+            client.ready()
+            sk = Skin(rows=3, cols=3)
+            pty.write(sk.hellos() + sk.beacons())
+            k = 0
+
+            def press_until(pred, limit: float = 30.0) -> dict:
+                nonlocal k
+                end = time.monotonic() + limit
+                while time.monotonic() < end:
+                    pty.write(sk.slot(k, CORNER if k >= 200 else None))
+                    k += 1
+                    got = client.recv(0.005)
+                    while got is not None:
+                        if pred(got):
+                            return got[1]
+                        got = client.recv(0)
+                raise AssertionError("not seen while pressing")
+
+            while k < 200:  # quiet slots for the baselines, then the press
+                pty.write(sk.slot(k))
+                k += 1
+                time.sleep(0.002)
+            press_until(lambda g: g[0] == "contact" and g[1]["contacts"])
+            (worker,) = _worker_pids(proc.pid)
+            os.kill(worker, signal.SIGSTOP)
+            stopped.append(worker)
+            h = press_until(lambda g: g[0] == "health" and g[1]["contact_estimation"].get("worker_restarts", 0) >= 1)
+            assert h["contact_estimation"]["errors"] >= 1
+            press_until(lambda g: g[0] == "contact" and g[1]["contacts"])  # from the new worker
+            assert worker not in _worker_pids(proc.pid)
+            os.killpg(proc.pid, signal.SIGTERM)
+            assert proc.wait(30) == 0
+    finally:
+        for pid in stopped:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
         client.close()
         pty.close()

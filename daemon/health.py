@@ -35,7 +35,7 @@ class BridgeHealth:
     last_cycle: int = 0
     clock_hz: float = 0.0
     unmapped_samples: int = 0  # samples of elements the layout does not place
-    rate: float = 0.0  # samples/s over the last health interval
+    rate: float = 0.0  # samples/s since the health before
     _samples_at_tick: int = 0
     silent: bool = False
 

@@ -62,6 +62,7 @@ class Pipeline:
         self.last_feed = 0.0
         self._next_health = -math.inf
         self._last_tick = -math.inf
+        self._last_health = -math.inf
         self.forgotten_bridges = 0
         self.announced_silent: set[int] = set()
         self.events: list[tuple[str, str]] = []  # (level, text) for the shell to log
@@ -231,9 +232,12 @@ class Pipeline:
             return []
         interval = h["interval"]
         self._next_health = now + interval
+        # Over the time since the health before (often more than the interval), not the interval.
+        elapsed = now - self._last_health if 0 < now - self._last_health < math.inf else interval
+        self._last_health = now
         self.ingress.reassembler.expire(now)
         for bid, b in self.bridges.items():
-            b.rate = (b.samples - b._samples_at_tick) / interval
+            b.rate = (b.samples - b._samples_at_tick) / elapsed
             b._samples_at_tick = b.samples
             silent = now - b.last_seen > h["bridge_timeout"]
             if silent and not b.silent:

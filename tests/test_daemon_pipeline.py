@@ -484,3 +484,17 @@ def test_a_bridge_joining_late_does_not_retake_the_other_elements_baselines() ->
     moved = Hello(4, "test-1", 0.7, 0.7, float(sk.layout.side), CLOCK, 3)
     p.feed("gw", encode_stream(Frame(src=1, dst=0, origin=4, seq=0, payload=moved)), t + 0.62)
     assert p.health_body(t + 1.0)["layout"]["not_ready"] == [4, 77]
+
+
+def test_sample_rate_is_over_the_time_that_passed_not_the_configured_interval() -> None:
+    """Health runs at least ``interval`` apart, often later (a 0.1 s tick, a loaded loop,
+    a reload): a bridge's sample_rate divided the samples since the last health by the
+    configured interval, so 100 samples/s read as 150 when health came 1.5 s apart."""
+    sk = Skin()
+    p = make({"health": {"interval": 1.0}})
+    t = settle(p, sk, 50)
+    p.tick(t)
+    for k, data in sk.stream(150, start=50):
+        p.feed("gw", data, T0 + k / sk.rate)
+    body = dict(p.tick(t + 1.5))["health"]
+    assert body["bridges"]["1"]["sample_rate"] == pytest.approx(sk.rate)

@@ -15,7 +15,7 @@ A file cut short (daemon killed mid-write) reads up to its last whole record.
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
@@ -25,29 +25,58 @@ MAX_RECORD = 1 << 24
 
 
 class CaptureWriter:
+    """Never raises once open: a capture that fails (disk full, I/O error) stops, names
+    its error and counts the records it could not keep. The line it records is what
+    matters; a full disk must cost the capture, never ingest or health."""
+
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._fh: BinaryIO | None = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._fh.write(MAGIC)
         self.records = 0
         self.bytes = 0
+        self.dropped = 0  # records not kept: buffered when the capture failed, or read since
+        self.error = ""
+        self._unflushed = 0
+        self._guard(lambda fh: fh.write(MAGIC))
+
+    def _guard(self, op: Callable[[BinaryIO], object]) -> bool:
+        if self._fh is None:
+            return False
+        try:
+            op(self._fh)
+            return True
+        except OSError as exc:
+            self.error = f"{self.path}: {exc.strerror or exc}"
+            self.dropped += self._unflushed
+            self._unflushed = 0
+            fh, self._fh = self._fh, None
+            try:
+                fh.close()
+            except OSError:
+                pass  # what is still buffered cannot be written either
+            return False
 
     def write(self, t: float, data: bytes) -> None:
         if self._fh is None:
+            self.dropped += bool(self.error)
             return
-        self._fh.write(_REC.pack(t, len(data)))
-        self._fh.write(data)
-        self.records += 1
-        self.bytes += len(data)
+        self._unflushed += 1
+        if self._guard(lambda fh: (fh.write(_REC.pack(t, len(data))), fh.write(data))):
+            self.records += 1
+            self.bytes += len(data)
 
     def flush(self) -> None:
-        if self._fh is not None:
-            self._fh.flush()
+        if self._guard(lambda fh: fh.flush()):
+            self._unflushed = 0
 
     def close(self) -> None:
+        self.flush()
         if self._fh is not None:
-            self._fh.close()
+            self._guard(lambda fh: fh.close())
             self._fh = None
+
+    def stats(self) -> dict[str, object]:
+        return {"capture_records": self.records, "capture_dropped": self.dropped, "capture_error": self.error}
 
 
 def read_capture(path: str | Path) -> Iterator[tuple[float, bytes]]:

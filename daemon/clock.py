@@ -28,12 +28,14 @@ class BridgeClock:
     """Clock model of one bridge; feed ``observe(cycle, arrival)``, then map with ``to_host``."""
 
     def __init__(self, hz: float, bits: int = 64, block: float = 1.0, blocks: int = 64,
-                 max_jump: float = 1.0) -> None:
+                 max_jump: float = 1.0, max_step: float = 0.05) -> None:
         self.hz = float(hz)
         self.bits = bits
         self._mod = 1 << bits
         self.block = block
         self.max_jump = max_jump
+        self.max_step = max_step  # s: a block minimum this far off the line is a host clock step
+        self.steps = 0
         self._minima: deque[tuple[float, float]] = deque(maxlen=blocks)  # (x, residual) per closed block
         self._ref_raw: int | None = None  # raw cycle at the fit's origin
         self._ref_arrival = 0.0
@@ -97,6 +99,7 @@ class BridgeClock:
         if x - self._cur_start >= self.block:  # a block closed: refit (once a block, not per frame)
             if self._cur is not None:
                 self._minima.append(self._cur)
+                self._follow_step()
             self._cur, self._cur_start = (x, r), x
             self._fit()
         elif self._cur is None or r < self._cur[1]:
@@ -105,6 +108,27 @@ class BridgeClock:
             if below < 0 or len(self._minima) < 2:  # a new lowest point: lower the line onto it
                 self._fit() if len(self._minima) < 2 else setattr(self, "offset", self.offset + below)
         return False
+
+    def _follow_step(self) -> None:
+        """The host clock stepped (NTP) by less than ``max_jump``: every arrival since moves
+        by the step, so the envelope does. The newest block minimum ``max_step`` below the
+        line of the earlier ones (delay cannot go negative), or the two newest above it,
+        is such a step: the minima from before it are moved by it, keeping the skew,
+        instead of a fit across the step for a whole window of wrong times."""
+        pts = list(self._minima)
+        if len(pts) < 5:
+            return
+        icpt, slope = _line(pts[:-2])
+        dev = [r - (icpt + slope * x) for x, r in pts]
+        if dev[-1] < -self.max_step:
+            d = dev[-1]
+        elif min(dev[-2:]) > self.max_step:
+            d = min(dev[-2:])
+        else:
+            return
+        self.steps += 1
+        self._minima = deque(((x, r + d) if abs(dv - d) > self.max_step else (x, r)
+                              for (x, r), dv in zip(pts, dev)), maxlen=self._minima.maxlen)
 
     def _fit(self) -> None:
         """Least-squares line through the closed blocks' minima (the open block's first
@@ -115,12 +139,7 @@ class BridgeClock:
                 pts.append(self._cur)
             self.offset, self.skew = min(p[1] for p in pts), 0.0
             return
-        n = len(pts)
-        mx = sum(p[0] for p in pts) / n
-        mr = sum(p[1] for p in pts) / n
-        sxx = sum((p[0] - mx) ** 2 for p in pts)
-        slope = sum((p[0] - mx) * (p[1] - mr) for p in pts) / sxx if sxx > 0 else 0.0
-        icpt = mr - slope * mx
+        icpt, slope = _line(pts)
         icpt += min(0.0, min(p[1] - (icpt + slope * p[0]) for p in pts))
         self.offset, self.skew = icpt, slope
 
@@ -136,6 +155,16 @@ class BridgeClock:
         n = cycles.shape[0]
         return rows_to_host(cycles, np.full(n, ref, dtype=np.uint64), np.full(n, t), np.full(n, k), np.full(n, hz),
                             self.bits)
+
+
+def _line(pts: list[tuple[float, float]]) -> tuple[float, float]:
+    """Least-squares (intercept, slope) through points (x, residual)."""
+    n = len(pts)
+    mx = sum(p[0] for p in pts) / n
+    mr = sum(p[1] for p in pts) / n
+    sxx = sum((p[0] - mx) ** 2 for p in pts)
+    slope = sum((p[0] - mx) * (p[1] - mr) for p in pts) / sxx if sxx > 0 else 0.0
+    return mr - slope * mx, slope
 
 
 def rows_to_host(cycles: NDArray[np.uint64], ref: NDArray[np.uint64], t: NDArray[np.float64],

@@ -70,5 +70,12 @@ class CommandTracker:
             del self._pending[p.token]
         return out
 
+    def clock_stepped_back(self, now: float) -> None:
+        """Keep each command's full timeout from now instead of waiting out the step."""
+        for p in self._pending.values():
+            if p.sent_at > now:
+                p.deadline = now + (p.deadline - p.sent_at)
+                p.sent_at = now
+
     def __len__(self) -> int:
         return len(self._pending)

@@ -125,6 +125,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
                             lambda v: None if v >= 1 else "must be >= 1", reloadable=True),
         "max_missed": Key(int, 2, "estimates a reported contact may be missing before it ends",
                           lambda v: None if v >= 0 else "must be >= 0", reloadable=True),
+        "worker_timeout": Key(NUM, 30.0, "s one estimate may take before the worker process is taken as hung, "
+                              "killed and replaced", _positive, reloadable=True),
     },
     "health": {
         "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _positive,
@@ -133,6 +135,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
                               reloadable=True),
         "stuck_after": Key(NUM, 2.0, "s a channel may repeat one raw value before it is reported stuck",
                            _positive, reloadable=True),
+        "forget_after": Key(NUM, 600.0, "s of silence after which a bridge the layout does not place is "
+                            "forgotten (placed bridges stay reported silent)", _positive, reloadable=True),
     },
     "protocol": {
         "dedupe_window": Key(int, 256, "sequence numbers remembered per bridge for duplicate removal",

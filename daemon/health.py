@@ -35,11 +35,12 @@ class BridgeHealth:
     last_cycle: int = 0
     clock_hz: float = 0.0
     unmapped_samples: int = 0  # samples of elements the layout does not place
-    rate: float = 0.0  # samples/s over the last health interval
+    rate: float = 0.0  # samples/s since the health before
     _samples_at_tick: int = 0
     silent: bool = False
 
-    def frames_seen(self, seqs: list[int], window: int) -> None:
+    def frames_seen(self, seqs: list[int], window: int, boot: bool = False) -> None:
+        """``boot``: the bridge's HELLO numbered 0 is among them (it restarted)."""
         for seq in seqs:
             self.frames += 1
             if self.last_seq is None:
@@ -49,7 +50,7 @@ class BridgeHealth:
             if ahead < _SEQ_HALF:
                 self.lost += ahead - 1
                 self.last_seq = seq
-            elif _SEQ_MOD - ahead >= window:  # far behind: the bridge restarted its numbering
+            elif _SEQ_MOD - ahead >= window or (boot and seq == 0):  # the bridge restarted its numbering
                 self.seq_restarts += 1
                 self.last_seq = seq
             else:  # an earlier gap filled in late
@@ -83,6 +84,10 @@ class ChannelHealth:
         self.seen_at = np.full((n, 2), np.nan)
         self.saturated = np.zeros((n, 2), dtype=bool)
         self.saturated_samples = np.zeros((n, 2), dtype=np.int64)
+
+    def adopt(self, old: ChannelHealth, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
+        for name in ("last_raw", "changed_at", "seen_at", "saturated", "saturated_samples"):
+            getattr(self, name)[rows] = getattr(old, name)[old_rows]
 
     def update(self, rows: NDArray[np.int64], raw: NDArray[np.int64], sat: NDArray[np.bool_],
                groups: tuple[NDArray[np.int64], NDArray[np.int64]], now: float) -> None:

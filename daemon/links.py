@@ -126,6 +126,12 @@ class SerialLink(Link):
         if self.capture is not None:
             self.capture.flush()
 
+    def stats(self) -> dict[str, object]:
+        out = super().stats()
+        if self.capture is not None:
+            out.update(self.capture.stats())
+        return out
+
     def write(self, data: bytes) -> bool:
         ser = self._ser
         if ser is None:
@@ -193,20 +199,24 @@ class ReplayLink(Link):
         self._on_state(self.name, True, "")
         speed, recorded = self.cfg.replay_speed, self.cfg.replay_clock == "recorded"
         start = time.time()
+        why = "replay finished"
         if first is not None:
             t_first = first[0]
-            for t, data in _chain(first, records):
-                rel = t - t_first
-                if speed > 0:
-                    wait = start + rel / speed - time.time()
-                    if wait > 0:
-                        await asyncio.sleep(wait)
-                elif self.records % 64 == 0:
-                    await asyncio.sleep(0)  # let sockets and control run between records
-                self.records += 1
-                self._on_data(self.name, data, t if recorded else start + (rel / speed if speed > 0 else rel))
+            try:
+                for t, data in _chain(first, records):
+                    rel = t - t_first
+                    if speed > 0:
+                        wait = start + rel / speed - time.time()
+                        if wait > 0:
+                            await asyncio.sleep(wait)
+                    elif self.records % 64 == 0:
+                        await asyncio.sleep(0)  # let sockets and control run between records
+                    self.records += 1
+                    self._on_data(self.name, data, t if recorded else start + (rel / speed if speed > 0 else rel))
+            except (OSError, ValueError) as exc:  # a record further on is corrupt: the replay ends there
+                why = f"replay failed after {self.records} records: {exc}"
         self.finished = True
-        self._on_state(self.name, False, "replay finished")
+        self._on_state(self.name, False, why)
         if self._on_done is not None:
             self._on_done(self.name)
 

@@ -162,6 +162,13 @@ class ElementStage:
             force[signal], area[signal], valid[signal], status[signal] = inv.force, inv.area, inv.valid, inv.status
         return {"force": force, "area": area, "valid": valid, "status": status}
 
+    def adopt(self, old: ElementStage, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
+        """Keep the calibration and touch state of elements carried over from ``old``'s layout."""
+        self.calibrator.adopt(old.calibrator, rows, old_rows)
+        self.latest[rows] = old.latest[old_rows]
+        self.touched[rows] = old.touched[old_rows]
+        self._last_step, self._t = old._last_step, old._t
+
     def tare(self, rows: NDArray[np.int64] | None) -> None:
         self.calibrator.tare(rows)
         sel = slice(None) if rows is None else rows

@@ -24,7 +24,7 @@ from cellbridge.daemon.clock import BridgeClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
-from cellbridge.daemon.physics import ContactSnapshot, Frontend, chip_params, default_params
+from cellbridge.daemon.physics import ContactSnapshot, Frontend, chip_params, default_params, layout_dict
 from cellbridge.daemon.skin import Skin
 from cellbridge.daemon.topology import Topology
 from cellbridge.daemon.wire import ADDR_BROADCAST, OPS, Decoded, Ingress, SampleColumns, command_bytes
@@ -33,6 +33,7 @@ from cellbridge.tactile import ElementParams, SkinLayout
 SCHEMA_VERSION = 1
 Message = tuple[str, dict[str, Any]]
 _GATE_OP = int(OPS["gate"])
+_SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
 
 
 class Pipeline:
@@ -60,6 +61,9 @@ class Pipeline:
         self.started: float | None = None
         self.last_feed = 0.0
         self._next_health = -math.inf
+        self._last_tick = -math.inf
+        self._last_health = -math.inf
+        self.forgotten_bridges = 0
         self.announced_silent: set[int] = set()
         self.events: list[tuple[str, str]] = []  # (level, text) for the shell to log
 
@@ -105,9 +109,13 @@ class Pipeline:
         window = self.ingress.dedupe.window
         for origin, seqs in dec.frames_by_origin.items():
             b = self._bridge(origin, now)
-            b.frames_seen(seqs, window)
+            b.frames_seen(seqs, window, origin in dec.boots)
             b.last_seen, b.link = now, link
             self.topology.heard(origin, link, dec.gateways, now)
+        for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
+            if origin in self.clocks and self.clocks.pop(origin).synced:
+                self._bridge(origin, now).clock_resets += 1
+                self.events.append(("warning", f"bridge {origin}: restarted (HELLO 0), resynchronising its clock"))
         for origin, h in dec.hellos:
             b = self._bridge(origin, now)
             if b.clock_hz != h.clock_hz and h.clock_hz > 0:
@@ -217,13 +225,19 @@ class Pipeline:
     def tick(self, now: float, force: bool = False) -> list[Message]:
         """Health every ``health.interval`` (or now, if forced) and topology when it changed."""
         h = self.config["health"]
+        if now < self._last_tick:
+            self._clock_stepped_back(now)
+        self._last_tick = now
         if now < self._next_health and not force:
             return []
         interval = h["interval"]
         self._next_health = now + interval
+        # Over the time since the health before (often more than the interval), not the interval.
+        elapsed = now - self._last_health if 0 < now - self._last_health < math.inf else interval
+        self._last_health = now
         self.ingress.reassembler.expire(now)
         for bid, b in self.bridges.items():
-            b.rate = (b.samples - b._samples_at_tick) / interval
+            b.rate = (b.samples - b._samples_at_tick) / elapsed
             b._samples_at_tick = b.samples
             silent = now - b.last_seen > h["bridge_timeout"]
             if silent and not b.silent:
@@ -231,6 +245,7 @@ class Pipeline:
             elif b.silent and not silent:
                 self.events.append(("info", f"bridge {bid} is back"))
             b.silent = silent
+        self._forget(now - h["forget_after"])
         out = []
         if self._want("health"):
             out.append(self._message("health", now, self.health_body(now)))
@@ -238,6 +253,30 @@ class Pipeline:
         if self.topology.changed(topo) and self._want("topology"):
             out.append(self._message("topology", now, topo))
         return out
+
+    def _forget(self, before: float) -> None:
+        """Drop bridges the layout does not place that were last heard ``before``: phantoms
+        of a noisy line or strangers would otherwise grow health and every tick forever."""
+        gone = [bid for bid, b in self.bridges.items() if b.last_seen < before and not self.skin.placed(bid)]
+        for bid in gone:
+            del self.bridges[bid]
+            self.clocks.pop(bid, None)
+            self.topology.nodes.pop(bid, None)
+            self.ingress.reassembly_drops.pop(bid, None)
+        self.forgotten_bridges += len(gone)
+
+    def _clock_stepped_back(self, now: float) -> None:
+        """The host clock went back (NTP step, RTC set): times kept from before lie in the
+        future and would hold back health, silence and command deadlines for as long as
+        the step. They are taken as "now": a dead bridge is then reported silent
+        ``bridge_timeout`` after the step, not hours later."""
+        self._next_health = min(self._next_health, now)
+        for b in self.bridges.values():
+            b.last_seen = min(b.last_seen, now)
+            b.first_seen = min(b.first_seen, now)
+        self.topology.clock_stepped_back(now)
+        self.commands.clock_stepped_back(now)
+        self.events.append(("warning", "host clock stepped back; liveness and deadlines counted from now"))
 
     def health_body(self, now: float) -> dict[str, Any]:
         h = self.config["health"]
@@ -251,6 +290,7 @@ class Pipeline:
                         for b, bh in sorted(self.bridges.items())},
             "silent": sorted(b for b, bh in self.bridges.items() if bh.silent),
             "unplaced": unplaced,
+            "forgotten_bridges": self.forgotten_bridges,
             "layout": layout_report,
             "reassembly": self.ingress.reassembler.counters(),
             "duplicates": self.ingress.dedupe.duplicates,
@@ -288,8 +328,16 @@ class Pipeline:
         return self.skin.tare(bridges)
 
     def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
-        """SIGHUP: take the reloadable settings; the element stages are rebuilt (baselines re-taken)."""
-        self.config = config
+        """SIGHUP: take the reloadable settings. The element stages are rebuilt (baselines
+        re-taken) only when their settings or the layout changed: a SIGHUP that changes
+        nothing of theirs (log rotation, client keys) must not erase a press being held."""
+        old, self.config = self.config, config
+        sk = self.skin
+        same_layout = (layout is None and not sk.from_file) or (
+            layout is not None and sk.from_file and sk.layout is not None and layout_dict(layout) == layout_dict(sk.layout))
+        if same_layout and all(old[s] == config[s] for s in _SKIN_SECTIONS):
+            sk.sections = config.sections
+            return
         geometry = self.skin.geometry
         self.skin = Skin(config.sections, layout)
         self.skin.hello(geometry)

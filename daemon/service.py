@@ -112,25 +112,35 @@ class Service:
     async def _ticker(self) -> None:
         next_status = 0.0
         while True:
-            now = time.time()
-            for topic, payload in self.pipeline.tick(now):
-                if topic == "health":
-                    payload.update(self._shell_health())
-                    self._lag_max = 0.0  # each health message reports the lag since the one before
-                self.pub.publish(topic, payload)
-            self.control.resolve(now)
-            self._log_events()
-            if now >= next_status:
-                next_status = now + 5.0
-                self.hooks.status(self._summary(now))
-                for link in self.links.values():
-                    cap = getattr(link, "capture", None)
-                    if cap is not None:
-                        cap.flush()
+            try:
+                next_status = self._tick_once(next_status)
+            except Exception:  # a bug must cost one tick, not every health message from now on
+                self.log.exception("tick failed")
             asked = time.perf_counter()
             await asyncio.sleep(self.TICK)
             # How late the loop woke us: time the loop spent on other work (or did not get the CPU).
             self._lag_max = max(self._lag_max, time.perf_counter() - asked - self.TICK)
+
+    def _tick_once(self, next_status: float) -> float:
+        """Health, command deadlines, logged events, and every 5 s sd_notify STATUS and
+        capture flushes; returns when the next STATUS is due."""
+        now = time.time()
+        self._link_stats()
+        for topic, payload in self.pipeline.tick(now):
+            if topic == "health":
+                payload.update(self._shell_health())
+                self._lag_max = 0.0  # each health message reports the lag since the one before
+            self.pub.publish(topic, payload)
+        self.control.resolve(now)
+        self._log_events()
+        if now >= next_status or next_status - now > 5.0:  # (the host clock may step back)
+            next_status = now + 5.0
+            self.hooks.status(self._summary(now))
+            for link in self.links.values():
+                cap = getattr(link, "capture", None)
+                if cap is not None:
+                    cap.flush()
+        return next_status
 
     async def _watchdog(self, interval: float) -> None:
         while True:
@@ -143,11 +153,14 @@ class Service:
         up = sum(1 for h in self.pipeline.links.values() if h.connected)
         return f"{up}/{len(self.links)} links up, {alive}/{len(bridges)} bridges alive"
 
-    def _shell_health(self) -> dict[str, Any]:
+    def _link_stats(self) -> None:
+        """The links' own counters into the pipeline's link health, before it builds health."""
         for name, link in self.links.items():
             lh = self.pipeline.links.get(name)
             if lh is not None:
                 lh.extra = link.stats()
+
+    def _shell_health(self) -> dict[str, Any]:
         recent = self._busy[:min(self._n_reads, self._busy.shape[0])]
         p50, p99 = (np.percentile(recent, [50, 99]) * 1e3).tolist() if recent.size else (None, None)
         ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
@@ -160,6 +173,7 @@ class Service:
         return out
 
     def status_body(self, now: float) -> dict[str, Any]:
+        self._link_stats()
         body = self.pipeline.health_body(now)
         body.update(self._shell_health(), version=__version__, t_host=now)
         return body
@@ -184,7 +198,7 @@ class Service:
             return
         self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
         self._feeds_since_snapshot = 0
-        contacts = await self.contacts.estimate(spec, snap)
+        contacts = await self.contacts.estimate(spec, snap, self.config["contact"]["worker_timeout"])
         if contacts is None:
             return
         if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without
@@ -294,6 +308,7 @@ class Service:
         await self.control.finish()
         await self._contact_once()  # the newest state, if the last estimate did not see it
         now = time.time()
+        self._link_stats()
         for topic, payload in self.pipeline.tick(now, force=True):
             if topic == "health":
                 payload.update(self._shell_health())

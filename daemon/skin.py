@@ -50,6 +50,8 @@ class Skin:
             self._install(layout)
 
     def _install(self, layout: SkinLayout) -> None:
+        old_layout, old_elements, old_channels = self.layout, self.elements, self.channels
+        old_t, old_cycle = self.t_sample, self.cycle
         params = default_params(layout)
         inv = self.sections["inverse"]
         self.layout = layout
@@ -65,12 +67,15 @@ class Skin:
         self.t_sample = np.full(layout.n, np.nan)
         self.cycle = np.zeros(layout.n, dtype=np.uint64)
         self.rebuilds += 1
-
-    def reconfigure(self, sections: dict[str, dict[str, Any]]) -> None:
-        """New calibration/inverse/contact settings (SIGHUP): stages are rebuilt, baselines re-taken."""
-        self.sections = sections
-        if self.layout is not None:
-            self._install(self.layout)
+        if old_layout is not None and old_elements is not None and old_layout.side == layout.side:
+            # Elements that kept their place keep their baselines: a bridge joining late (or
+            # one moved) must not re-take every other element's baseline under a press.
+            rows, old_rows = _kept(old_layout, layout)
+            if rows.size:
+                self.elements.adopt(old_elements, rows, old_rows)
+                assert old_channels is not None
+                self.channels.adopt(old_channels, rows, old_rows)
+                self.t_sample[rows], self.cycle[rows] = old_t[old_rows], old_cycle[old_rows]
 
     def hello(self, geometry: dict[int, tuple[float, float, float]]) -> bool:
         """Geometry {bridge: (x, y, side)} announced in HELLOs; True when the layout changed."""
@@ -139,3 +144,12 @@ class Skin:
 
     def layout_report(self) -> dict[str, Any] | None:
         return None if self.layout is None else layout_dict(self.layout)
+
+
+def _kept(old: SkinLayout, new: SkinLayout) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Rows of ``new`` and of ``old`` holding the same element id at the same centre."""
+    where = {(int(i), float(c[0]), float(c[1])): r for r, (i, c) in enumerate(zip(old.ids, old.centres))}
+    pairs = [(r, where[k]) for r, (i, c) in enumerate(zip(new.ids, new.centres))
+             if (k := (int(i), float(c[0]), float(c[1]))) in where]
+    a = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    return a[:, 0], a[:, 1]

@@ -45,6 +45,10 @@ class Topology:
             n.gateway = next(iter(gateways))
         self.gateways.setdefault(link, set()).update(gateways)
 
+    def clock_stepped_back(self, now: float) -> None:
+        for n in self.nodes.values():
+            n.last_seen = min(n.last_seen, now)
+
     def beacon(self, bridge: int, parent: int, path_etx: int, hops: int) -> None:
         n = self.node(bridge)
         n.parent, n.path_etx, n.hops = parent, path_etx, hops

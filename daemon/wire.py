@@ -88,6 +88,7 @@ class Decoded:
 
     samples: SampleColumns | None = None
     hellos: list[tuple[int, Hello]] = field(default_factory=list)
+    boots: list[int] = field(default_factory=list)  # origins whose HELLO is numbered 0: they restarted
     beacons: list[tuple[int, int, Beacon]] = field(default_factory=list)  # (origin, src, beacon)
     statuses: list[tuple[int, BridgeStatus]] = field(default_factory=list)
     replies: list[tuple[int, CommandReply]] = field(default_factory=list)
@@ -159,6 +160,8 @@ class Ingress:
             meta.append((frame.origin, int(p.mode), p.oversampling, len(p.samples), frame.seq))
         elif type(p) is Hello:
             out.hellos.append((frame.origin, p))
+            if frame.seq == 0:  # a bridge numbers from 0 after every reset and says HELLO first
+                out.boots.append(frame.origin)
         elif type(p) is Beacon:
             out.beacons.append((frame.origin, frame.src, p))
         elif type(p) is BridgeStatus:

@@ -241,6 +241,21 @@ class Calibrator:
         self._last_jump: dict[str, object] | None = None
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
 
+    _PER_ELEMENT = ("_buf", "_count", "_base", "_noise", "_state", "_last_t", "_since", "_below_since",
+                    "_rebaselines")
+
+    def adopt(self, old: Calibrator, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
+        """Take over ``old``'s state of its elements ``old_rows`` as this calibrator's
+        ``rows`` (a layout that grew: the elements already there keep their baselines and
+        touch state instead of being re-taken under a press). Same configuration only."""
+        if old.config != self.config or old.n_channels != self.n_channels:
+            raise ValueError("adopt needs a calibrator of the same configuration and channel count")
+        for name in self._PER_ELEMENT:
+            getattr(self, name)[rows] = getattr(old, name)[old_rows]
+        self._common = old._common.copy()
+        self._common_jumps, self._catchups, self._last_jump = old._common_jumps, old._catchups, old._last_jump
+        self._thr = None
+
     def _per_channel(self, v: float | Sequence[float], name: str) -> FloatArray:
         a = np.asarray(v, dtype=np.float64)
         if a.ndim == 0:

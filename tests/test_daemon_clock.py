@@ -69,3 +69,24 @@ def test_bridge_reset_restarts_the_fit() -> None:
 
 def test_unsynced_clock_maps_to_nan() -> None:
     assert np.isnan(BridgeClock(HZ).to_host(np.array([1, 2], dtype=np.uint64))).all()
+
+
+@settings(max_examples=6, deadline=None)
+@given(step=st.sampled_from([-0.9, -0.5, -0.2, 0.2, 0.5, 0.9]), ppm=st.floats(-80, 80))
+def test_a_host_clock_step_below_the_jump_limit_is_followed_within_seconds(step: float, ppm: float) -> None:
+    """An NTP step of the host clock by less than ``max_jump``: the lower envelope moves
+    by the step at once. The fit used to mix minima from both sides of it for a whole
+    window (64 s) of times up to the step off; now it follows within a few blocks."""
+    rng = np.random.default_rng(3)
+    clock = BridgeClock(HZ)
+    ts = np.arange(0.0, 200.0, 0.05)
+    cycles = (10**9 + np.round(ts * HZ * (1 + ppm * 1e-6))).astype(np.int64)
+    host = 5000.0 + ts + np.where(ts >= 100.0, step, 0.0)  # the host's clock, stepped at t = 100 s
+    errs = []
+    for t, c, h in zip(ts, cycles, host):
+        clock.observe(int(c), h + 0.002 + rng.exponential(0.003))
+        errs.append(clock.to_host(np.array([c], dtype=np.uint64))[0] - h)
+    err = np.array(errs)
+    after = ts >= 104.0
+    assert np.all(np.abs(err[after]) < 0.005), (err[after].min(), err[after].max())
+    assert clock.resets == 0 and abs(clock.skew + ppm * 1e-6) < 10e-6

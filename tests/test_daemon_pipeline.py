@@ -372,3 +372,129 @@ def test_contact_worker_warm_up_estimates_a_press() -> None:
         physics.ContactStage.run = run  # type: ignore[method-assign]
     (contacts,) = calls
     assert len(contacts) == 1 and contacts[0]["force"] == pytest.approx(1.0, rel=0.05)
+
+
+def test_host_clock_stepping_back_neither_stops_health_nor_hides_a_dead_bridge() -> None:
+    """An NTP step of an hour back: health goes on at its interval, and a bridge that
+    stops right after the step is reported silent after bridge_timeout, not an hour later."""
+    sk = Skin()
+    p = make({"health": {"interval": 0.5, "bridge_timeout": 2.0}})
+    t = settle(p, sk, 100)
+    assert [x for x, _ in p.tick(t)] == ["health", "topology"]
+    back = t - 3600.0
+    ticks = [[x for x, _ in p.tick(back + i * 0.1)] for i in range(1, 51)]  # 5 s, no data
+    assert sum(x.count("health") for x in ticks) >= 9
+    body = p.health_body(back + 5.0)
+    assert body["silent"] == [1, 2, 3, 4]
+    assert all(not b["alive"] for b in p.topology_body(back + 5.0)["bridges"].values())
+
+
+def test_a_command_sent_before_the_host_clock_steps_back_still_times_out() -> None:
+    sk = Skin()
+    p = make()
+    t = settle(p, sk, 20)
+    p.tick(t)
+    pending, _ = p.command(int(Op.PING), None, 1, t, 1.0)
+    back = t - 3600.0
+    p.tick(back)
+    assert p.commands.done(back + 1.5) == [pending]
+
+
+def test_bridge_reset_soon_after_start_restarts_its_clock() -> None:
+    """A bridge that resets 0.3 s after it started (the counter goes back by less than
+    the clock's jump limit): its HELLO numbered 0 restarts the fit, so the new samples'
+    times are not the old fit's (half a second off)."""
+    sk = Skin()
+    sk.cycle0 = 0
+    p = make()
+    t = settle(p, sk, 30)
+    sk.seq = {b: 0 for b in sk.ids}
+    t_reset = t + 0.2
+    p.feed("gw", sk.hellos(), t_reset)
+    out = []
+    for k, data in sk.stream(20):
+        out = p.feed("gw", data, t_reset + 0.01 + k / sk.rate)
+    el = topic(out, "element")
+    assert el["t_sample"][0] == pytest.approx(t_reset + 0.01 + 19 / sk.rate, abs=0.02)
+    h = p.health_body(t_reset + 1)["bridges"]["1"]
+    assert h["clock_resets"] == 1 and h["seq_restarts"] == 1
+
+
+def test_a_reload_that_changes_nothing_of_the_skin_keeps_a_held_press() -> None:
+    """SIGHUP for log rotation or new client keys: the baselines stay, so a hand resting
+    on the skin still reads as touched with its force (it used to vanish: baselines were
+    re-taken under the hand). A changed calibration still rebuilds."""
+    sk = Skin()
+    p = make()
+    settle(p, sk, 100)
+    assert topic(press(p, sk, STRADDLE, 100, 20), "element")["touched"] == [True, True, False, False]
+    p.reconfigure(make({"health": {"interval": 3.0}}).config, None)
+    el = topic(press(p, sk, STRADDLE, 120, 40), "element")
+    assert el["touched"] == [True, True, False, False]
+    assert el["force"][0] + el["force"][1] == pytest.approx(3.0, rel=0.05)
+    assert p.config["health"]["interval"] == 3.0 and p.skin.rebuilds == 1
+    p.reconfigure(make({"calibration": {"n_baseline": 20}}).config, None)
+    assert p.skin.rebuilds == 1 and p.skin.layout is not None  # a new Skin, built from the HELLO geometry
+    assert p.skin.sections["calibration"]["n_baseline"] == 20
+    assert topic(press(p, sk, STRADDLE, 160, 5), "element")["touched"] == [False, False, False, False]
+
+
+def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_never() -> None:
+    """Thousands of origins the layout does not place (CRC-16 phantoms of a noisy line, a
+    stranger's frames) used to stay in every health message forever: health grew without
+    bound and each tick walked them all. Silent for ``health.forget_after`` s and not
+    placed: forgotten (counted); a placed bridge that dies stays reported silent."""
+    sk = Skin()
+    p = make({"health": {"forget_after": 60.0}})
+    t = settle(p, sk, 20)
+    buf = b"".join(encode_stream(Frame(src=1, dst=0, origin=o, seq=0,
+                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
+                   for o in range(100, 3100))
+    p.feed("gw", buf, t)
+    assert len(p.health_body(t)["bridges"]) == 3004
+    p.tick(t + 30.0)
+    assert len(p.tick(t + 61.0, force=True)[0][1]["bridges"]) == 4
+    body = p.health_body(t + 61.0)
+    assert body["silent"] == [1, 2, 3, 4] and body["forgotten_bridges"] == 3000
+    assert len(p.clocks) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
+    again = encode_stream(Frame(src=1, dst=0, origin=100, seq=1,
+                                payload=Data(Mode.COUNTER, (Sample(0, 2000, 100, 100, 0),))))
+    p.feed("gw", again, t + 62.0)  # a forgotten origin that speaks again is back
+    assert "100" in p.health_body(t + 62.0)["bridges"]
+
+
+def test_a_bridge_joining_late_does_not_retake_the_other_elements_baselines() -> None:
+    """A HELLO from a bridge that was not there (booted late) grows the HELLO layout; the
+    elements already placed keep their baselines and touch state, so a press being held
+    goes on reading as touched with its force (it used to vanish: every baseline was
+    re-taken, under the press). A bridge that moved is a new element: its baseline is new."""
+    from cellbridge.protocol import Hello
+
+    sk = Skin()
+    p = make()
+    t = settle(p, sk, 100)
+    assert topic(press(p, sk, STRADDLE, 100, 20), "element")["touched"] == [True, True, False, False]
+    late = Hello(77, "test-1", 0.5, 0.5, float(sk.layout.side), CLOCK, 3)
+    p.feed("gw", encode_stream(Frame(src=1, dst=0, origin=77, seq=0, payload=late)), t + 0.21)
+    assert p.skin.layout is not None and p.skin.layout.n == 5
+    el = topic(press(p, sk, STRADDLE, 121, 40), "element")
+    assert el["touched"] == [True, True, False, False]
+    assert el["force"][0] + el["force"][1] == pytest.approx(3.0, rel=0.05)
+    assert p.health_body(t + 1.0)["layout"]["not_ready"] == [77]
+    moved = Hello(4, "test-1", 0.7, 0.7, float(sk.layout.side), CLOCK, 3)
+    p.feed("gw", encode_stream(Frame(src=1, dst=0, origin=4, seq=0, payload=moved)), t + 0.62)
+    assert p.health_body(t + 1.0)["layout"]["not_ready"] == [4, 77]
+
+
+def test_sample_rate_is_over_the_time_that_passed_not_the_configured_interval() -> None:
+    """Health runs at least ``interval`` apart, often later (a 0.1 s tick, a loaded loop,
+    a reload): a bridge's sample_rate divided the samples since the last health by the
+    configured interval, so 100 samples/s read as 150 when health came 1.5 s apart."""
+    sk = Skin()
+    p = make({"health": {"interval": 1.0}})
+    t = settle(p, sk, 50)
+    p.tick(t)
+    for k, data in sk.stream(150, start=50):
+        p.feed("gw", data, T0 + k / sk.rate)
+    body = dict(p.tick(t + 1.5))["health"]
+    assert body["bridges"]["1"]["sample_rate"] == pytest.approx(sk.rate)

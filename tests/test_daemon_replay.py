@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 import time
 from pathlib import Path
 
@@ -100,3 +101,63 @@ def test_truncated_capture_reads_to_its_last_whole_record(tmp_path: Path) -> Non
     (tmp_path / "bad").write_bytes(b"nope" + MAGIC)
     with pytest.raises(ValueError, match="not a cellbridge capture"):
         list(read_capture(tmp_path / "bad"))
+
+
+def test_the_last_health_of_a_replay_says_it_finished(tmp_path: Path) -> None:
+    """The final health (published while stopping) carries the links' own counters as
+    they are then: it used to carry the ones taken at the health before, so a replay that
+    exited when done reported replay_finished false and too few replayed_records."""
+    cfg = tmp_path / "replay.toml"
+    text = CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{CAPTURE}")
+    endpoints = write_config(tmp_path / "endpoints.toml", [])
+    cfg.write_text(f'[pub]\nendpoint = "{endpoints["pub"]}"\n[control]\nendpoint = "{endpoints["control"]}"\n'
+                   f"[health]\ninterval = 30.0\n" + text)
+    client = Client(endpoints, (b"health",))
+    last = None
+    try:
+        with daemon(cfg, tmp_path / "err.log") as proc:
+            end = time.monotonic() + 30
+            while time.monotonic() < end:
+                got = client.recv(0.5)
+                if got is not None:
+                    last = got[1]
+                elif proc.poll() is not None:
+                    break
+            assert proc.wait(10) == 0
+    finally:
+        client.close()
+    assert last is not None
+    gw = last["links"]["gw"]
+    assert gw["replay_finished"] is True and gw["replayed_records"] == sum(1 for _ in read_capture(CAPTURE))
+
+
+def test_a_capture_corrupt_midway_ends_the_replay_with_its_error(tmp_path: Path) -> None:
+    """A record header past the first one that is garbage (a length beyond MAX_RECORD)
+    raised inside the replay task, which died unseen: the link stayed 'connected', the
+    error was never named, and with exit_when_done the daemon never exited. Now the
+    replay ends there, says why, and a daemon told to exit when done does."""
+    records = list(read_capture(CAPTURE))[:5]
+    bad = tmp_path / "bad.cbcap"
+    write_capture(bad, records)
+    bad.write_bytes(bad.read_bytes() + struct.pack("<dI", 9.0, 0xFFFFFFFF) + b"x" * 16)
+    cfg = tmp_path / "replay.toml"
+    text = CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{bad}")
+    endpoints = write_config(tmp_path / "endpoints.toml", [])
+    cfg.write_text(f'[pub]\nendpoint = "{endpoints["pub"]}"\n[control]\nendpoint = "{endpoints["control"]}"\n'
+                   + text)
+    client = Client(endpoints, (b"health",))
+    last = None
+    try:
+        with daemon(cfg, tmp_path / "err.log") as proc:
+            end = time.monotonic() + 30
+            while time.monotonic() < end and proc.poll() is None:
+                got = client.recv(0.5)
+                if got is not None:
+                    last = got[1]
+            assert proc.wait(10) == 0
+    finally:
+        client.close()
+    assert last is not None
+    gw = last["links"]["gw"]
+    assert gw["replayed_records"] == 5 and gw["replay_finished"] is True
+    assert "corrupt record" in gw["last_error"] and gw["connected"] is False

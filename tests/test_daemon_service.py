@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -44,11 +45,32 @@ def feed(pty: Pty, sk: Skin, n: int, press=None, start: int = 0, pause: float = 
         time.sleep(pause)
 
 
+def calibrated(health: dict, n: int) -> bool:
+    """A health message that places ``n`` elements, every one with its baseline taken."""
+    layout = health["layout"]
+    return layout["elements"] == n and not layout["not_ready"]
+
+
 def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
     pty, client, _ = rig
     sk = Skin(rows=3, cols=3)  # pressing every element at once would read as a common-mode step
     pty.write(sk.hellos() + sk.beacons())
     feed(pty, sk, 40)
+    # The calibrator steps on host time (at most calibration.max_step_rate a second), so a
+    # loaded daemon that reads the quiet slots in a few large reads has not finished its
+    # baselines after 40 of them; pressing then would go into the baselines and never read
+    # as touched. Quiet slots go on until health says every element is calibrated.
+    k = 40
+    ready = False
+    end = time.monotonic() + 20
+    while not ready and time.monotonic() < end:
+        pty.write(sk.slot(k))
+        k += 1
+        got = client.recv(0.005)
+        while got is not None and not ready:
+            ready = got[0] == "health" and calibrated(got[1], 9)
+            got = client.recv(0)
+    assert ready, "the elements' baselines were never all taken"
 
     def newest_slot(m: dict) -> list[int]:
         return [i for i, c in enumerate(m["cycle"]) if c == max(m["cycle"])]
@@ -58,7 +80,6 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
 
     found: dict[str, dict] = {}
     end = time.monotonic() + 20
-    k = 40
     while len(found) < 2 and time.monotonic() < end:  # press until a contact is born (3 estimates)
         pty.write(sk.slot(k, CORNER))
         k += 1
@@ -328,4 +349,97 @@ def test_count_drops_counts_what_a_full_subscriber_queue_refused(tmp_path: Path)
     finally:
         stuck.close(0)
         control.close()
+        pty.close()
+
+
+def test_a_capture_on_a_full_disk_costs_the_capture_not_health_or_ingest(tmp_path: Path) -> None:
+    """/dev/full answers every write with ENOSPC, as a full disk does. The capture's
+    first flush used to raise in the ticker task, which died: no health ever again, and
+    every read raised before reaching the pipeline. Now the capture stops (counted and
+    named in health) and the link keeps being read."""
+    pty = Pty(tmp_path / "gw")
+    cfg = tmp_path / "daemon.toml"
+    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link, "capture": "/dev/full"}],
+                             contact={"enabled": False})
+    client = Client(endpoints)
+    try:
+        with daemon(cfg, tmp_path / "stderr.log") as proc:
+            client.ready()
+            sk = announce(pty, client, 5)
+            feed(pty, sk, 5, start=5)
+            el = client.wait_for("element", lambda m: max(m["cycle"]) == sk.cycle0 + 9 * 500_000)
+            assert el["bridge"] == [1, 2, 3, 4]
+            h = client.wait_for("health", lambda m: m["links"]["gw"].get("capture_dropped", 0) >= 1)
+            assert "No space left" in h["links"]["gw"]["capture_error"]
+            assert proc.poll() is None
+    finally:
+        client.close()
+        pty.close()
+
+
+def _worker_pids(daemon_pid: int) -> list[int]:
+    """The contact worker processes among the daemon's children (not the resource tracker)."""
+    out = []
+    for pid in subprocess.run(["pgrep", "-P", str(daemon_pid)], capture_output=True, text=True).stdout.split():
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmd:
+            out.append(int(pid))
+    return out
+
+
+def test_a_hung_contact_worker_is_killed_and_replaced_and_contacts_resume(tmp_path: Path) -> None:
+    """The worker stops answering (SIGSTOP: as a worker stuck in a loop). The daemon used
+    to wait for it forever: no contact was ever published again, nothing said why, and
+    SIGTERM hung in the drain. Now an estimate past contact.worker_timeout kills it
+    (counted), a new worker takes over, contacts come back, and SIGTERM exits cleanly."""
+    pty = Pty(tmp_path / "gw")
+    cfg = tmp_path / "daemon.toml"
+    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link}], calibration={"n_baseline": 10},
+                             contact={"worker_timeout": 2.0})
+    client = Client(endpoints)
+    stopped: list[int] = []
+    try:
+        with daemon(cfg, tmp_path / "stderr.log") as proc:
+            client.ready()
+            sk = Skin(rows=3, cols=3)
+            pty.write(sk.hellos() + sk.beacons())
+            k = 0
+
+            def press_until(pred, limit: float = 30.0) -> dict:
+                nonlocal k
+                end = time.monotonic() + limit
+                while time.monotonic() < end:
+                    pty.write(sk.slot(k, CORNER if k >= 200 else None))
+                    k += 1
+                    got = client.recv(0.005)
+                    while got is not None:
+                        if pred(got):
+                            return got[1]
+                        got = client.recv(0)
+                raise AssertionError("not seen while pressing")
+
+            while k < 200:  # quiet slots for the baselines, then the press
+                pty.write(sk.slot(k))
+                k += 1
+                time.sleep(0.002)
+            press_until(lambda g: g[0] == "contact" and g[1]["contacts"])
+            (worker,) = _worker_pids(proc.pid)
+            os.kill(worker, signal.SIGSTOP)
+            stopped.append(worker)
+            h = press_until(lambda g: g[0] == "health" and g[1]["contact_estimation"].get("worker_restarts", 0) >= 1)
+            assert h["contact_estimation"]["errors"] >= 1
+            press_until(lambda g: g[0] == "contact" and g[1]["contacts"])  # from the new worker
+            assert worker not in _worker_pids(proc.pid)
+            os.killpg(proc.pid, signal.SIGTERM)
+            assert proc.wait(30) == 0
+    finally:
+        for pid in stopped:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        client.close()
         pty.close()

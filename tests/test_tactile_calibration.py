@@ -686,3 +686,16 @@ def test_common_spread_is_validated_and_inf_restores_the_fraction_rule_alone():
     cal, t0, rng = ready_skin(9, CalibrationConfig(common_spread=math.inf))
     s = feed(cal, t0, 20 * pF + np.stack([d1, d2], axis=1))
     assert s.common_jump and s.touched.sum() <= 4  # the palm taken for a common step
+
+
+def test_adopt_carries_elements_over_to_a_grown_calibrator() -> None:
+    cfg = CalibrationConfig(n_baseline=3)
+    old = Calibrator(2, 2, cfg)
+    for k in range(3):
+        old.update(float(k), np.array([[1.0, 2.0], [3.0, 4.0]]) * 1e-12)
+    new = Calibrator(3, 2, cfg)
+    new.adopt(old, np.array([2, 0]), np.array([0, 1]))
+    assert np.allclose(new.baseline[[2, 0]], np.array([[1.0, 2.0], [3.0, 4.0]]) * 1e-12, rtol=1e-9, atol=0)
+    assert new.ready.tolist() == [True, False, True]
+    with pytest.raises(ValueError, match="same configuration"):
+        Calibrator(3, 2, CalibrationConfig(n_baseline=4)).adopt(old, np.array([0]), np.array([0]))

@@ -101,3 +101,45 @@ def test_example_as_curve_client(language: str, tmp_path: Path) -> None:
         context.term()
     assert out.returncode == 0, out.stderr
     assert [ln["topic"] for ln in json_lines(out.stdout)] == ["health", "health"]
+
+
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_reads_the_live_daemon(language: str, tmp_path: Path) -> None:
+    """The same subscribers against a real `cellbridge daemon` fed a skin's traffic on a pty."""
+    import threading
+
+    from daemon_harness import Pty, daemon, write_config
+    from daemon_traffic import Skin
+
+    cmd = EXAMPLE_COMMANDS[language](tmp_path)
+    pty = Pty(tmp_path / "gw")
+    cfg = tmp_path / "d.toml"
+    ends = write_config(cfg, [{"name": "gw", "url": str(tmp_path / "gw")}])
+    sk = Skin(rows=2, cols=2)
+    stop = threading.Event()
+
+    def feed() -> None:  # the gateway keeps talking while the subscriber reads
+        k = 0
+        while not stop.is_set():
+            if k % 50 == 0:  # HELLOs again and again: the daemon may open the pty after the first ones
+                pty.write(sk.hellos() + sk.beacons())
+            pty.write(sk.slot(k))
+            k += 1
+            stop.wait(0.01)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    try:
+        with daemon(cfg):
+            feeder.start()
+            out = run_subscriber([*cmd, "-e", ends["pub"], "-n", "3", "element"], cwd=tmp_path, timeout=60)
+    finally:
+        stop.set()
+        feeder.join(5)
+        pty.close()
+    assert out.returncode == 0, out.stderr
+    lines = json_lines(out.stdout)
+    assert len(lines) == 3 and {ln["topic"] for ln in lines} == {"element"}
+    for ln in lines:
+        p = ln["payload"]
+        assert p["v"] == 1 and isinstance(p["t_host"], float)
+        assert set(p["bridge"]) <= set(sk.ids) and len(p["c1"]) == len(p["bridge"])

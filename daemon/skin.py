@@ -8,12 +8,14 @@ Layout ids are bridge ids; a bridge's element index 0 is the element the layout 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellbridge.daemon.health import ChannelHealth
+from cellbridge.daemon.moment import Moments
 from cellbridge.daemon.physics import (
     ContactSnapshot,
     ContactSpec,
@@ -41,11 +43,9 @@ class Skin:
         self.contact_spec: ContactSpec | None = None  # what the service's worker process builds from
         self.channels: ChannelHealth | None = None
         self.row = np.full(_IDS, -1, dtype=np.int64)
-        self.t_sample = np.zeros(0)
-        self.cycle = np.zeros(0, dtype=np.uint64)
+        self.moments: Moments | None = None
         self.rebuilds = 0
-        self.dirty = False  # new element data since the last contact snapshot
-        self.snapshot_t = 0.0
+        self.dirty = False  # the next contact snapshot is due even if the moment did not advance (tare)
         if layout is not None:
             self._install(layout)
 
@@ -62,8 +62,7 @@ class Skin:
         ids = layout.ids
         inside = (ids >= 0) & (ids < _IDS)
         self.row[ids[inside]] = np.nonzero(inside)[0]
-        self.t_sample = np.full(layout.n, np.nan)
-        self.cycle = np.zeros(layout.n, dtype=np.uint64)
+        self.moments = Moments(layout.n)
         self.rebuilds += 1
 
     def reconfigure(self, sections: dict[str, dict[str, Any]]) -> None:
@@ -93,25 +92,50 @@ class Skin:
     def placed(self, bridge: int) -> bool:
         return bool(self.row[bridge] >= 0)
 
-    def snapshot(self, now: float) -> ContactSnapshot | None:
-        if self.elements is None or not self.dirty:
+    def record(self, rows: NDArray[np.int64], t_sample: NDArray[np.float64], cycle: NDArray[np.uint64],
+               res: dict[str, NDArray[Any]], unique: bool, now: float) -> None:
+        """Keep a batch's readings (ΔC from ``ElementStage.step``) for the contact snapshot."""
+        assert self.moments is not None and self.elements is not None
+        enter, leave = self.elements.calibrator.thresholds()
+        self.moments.record(rows, t_sample, cycle, np.stack([res["dc1"], res["dc2"]], axis=1), unique, now,
+                            enter, leave)
+        self.moments.settle(self.elements.stepped, self.elements.touched)
+
+    def snapshot(self, now: float, bridge_timeout: float) -> ContactSnapshot | None:
+        """The skin at the newest moment every live element has reported past, if that
+        moment advanced since the last snapshot (see :mod:`cellbridge.daemon.moment`)."""
+        if self.elements is None or self.moments is None:
             return None
+        m = self.moments
+        m.settle(self.elements.flush(now), self.elements.touched)
+        t = m.moment(now, bridge_timeout)
+        if math.isnan(t) or (t <= m.t_moment and not self.dirty):
+            return None
+        dc, touched, t_sample, cycle, transition = m.at(t)
+        if transition and not self.dirty:  # a press or release between two samples of an element
+            if math.isnan(m.hold_since):
+                m.hold_since = t
+            if t - m.hold_since < transition:
+                return None  # wait for a moment past it: one sample period of that element at most
+        m.hold_since = math.nan
         self.dirty = False
-        self.snapshot_t = now
-        e = self.elements
-        return ContactSnapshot(e.latest.copy(), e.touched.copy(), now, self.t_sample.copy(), self.cycle.copy(),
-                               self.layout.ids)  # type: ignore[union-attr]
+        m.t_moment = t
+        return ContactSnapshot(dc, touched, now, t_sample, cycle, self.layout.ids, t)  # type: ignore[union-attr]
 
     def tare(self, bridges: list[int] | None) -> int:
         if self.elements is None:
             return 0
+        assert self.moments is not None
+        self.dirty = True
         if bridges is None:
             self.elements.tare(None)
+            self.moments.forget(slice(None))
             return self.layout.n  # type: ignore[union-attr]
         rows = self.row[np.asarray(bridges, dtype=np.int64)]
         rows = rows[rows >= 0]
         if rows.size:
             self.elements.tare(rows)
+            self.moments.forget(rows)
         return int(rows.size)
 
     def report(self, now: float, stuck_after: float) -> dict[str, Any]:

@@ -117,7 +117,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
     },
     "contact": {
         "enabled": Key(bool, True, "estimate contacts (topic contact)", reloadable=True),
-        "rate": Key(NUM, 100.0, "Hz, at most this many estimates a second, each on the latest frame", _positive,
+        "rate": Key(NUM, 100.0, "Hz, at most this many estimates a second, each on the newest consistent moment", _positive,
                     reloadable=True),
         "method": Key(str, "capacitance", "model fit in capacitance (default) or area space",
                       _one_of("capacitance", "area"), reloadable=True),
@@ -125,6 +125,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
                             lambda v: None if v >= 1 else "must be >= 1", reloadable=True),
         "max_missed": Key(int, 2, "estimates a reported contact may be missing before it ends",
                           lambda v: None if v >= 0 else "must be >= 0", reloadable=True),
+        "max_lag": Key(NUM, 1.0, "s a bridge's data may trail the newest and still hold the estimated moment "
+                       "back (contacts are estimated on one moment of the skin); a bridge later than that "
+                       "is left out (its elements unknown) until it catches up", _positive, reloadable=True),
     },
     "health": {
         "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _positive,

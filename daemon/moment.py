@@ -25,15 +25,14 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
-#: Readings kept per element: enough to reach back over several sample periods of
-#: stagger between bridges (a reading older than the oldest kept one is never needed).
-DEPTH = 16
+#: Readings kept per element beyond ``max_lag`` at the fastest sampling rate.
+SPARE = 4
 
 
 class Moments:
     """The last ``depth`` readings (ΔC, touch flag, sample time, cycle) of every element."""
 
-    def __init__(self, n: int, depth: int = DEPTH) -> None:
+    def __init__(self, n: int, depth: int) -> None:
         self.depth = depth
         self.t = np.full((n, depth), np.nan)  # host time of the sample (NaN: empty slot)
         self.dc = np.full((n, depth, 2), np.nan)
@@ -44,6 +43,7 @@ class Moments:
         self.arrival = np.full(n, -math.inf)  # host time the newest reading arrived
         self.t_moment = -math.inf  # the moment of the last snapshot
         self.hold_since = math.nan  # first moment held back for a transition (NaN: none held)
+        self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: unknown)
         self._all = np.arange(n)
 
     def record(self, rows: NDArray[np.int64], t: FloatArray, cycle: NDArray[np.uint64], dc: FloatArray,
@@ -96,16 +96,22 @@ class Moments:
         """Tare: the readings taken against the old baselines no longer count."""
         self.dc[rows] = np.nan
 
-    def moment(self, now: float, timeout: float) -> float:
-        """The newest time every live element has reported past (NaN: none reported yet)."""
+    def moment(self, now: float, timeout: float, max_lag: float) -> float:
+        """The newest time every live element has reported past (NaN: none reported yet).
+        Elements silent for ``timeout`` or trailing the newest data by more than
+        ``max_lag`` hold nothing back; :meth:`at` reports them unknown."""
         live = (now - self.arrival <= timeout) & np.isfinite(self.settled)
         if not live.any():
+            self.holding = live
             return math.nan
-        return max(float(self.settled[live].min()), self.t_moment)
+        newest = float(self.settled[live].max())
+        self.holding = live & (self.settled >= newest - max_lag)
+        return max(float(self.settled[self.holding].min()), self.t_moment)
 
     def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64], float]:
         """(ΔC (n, 2), touched, sample time, cycle) of each element's reading at or just
-        before ``moment`` (its oldest kept one if all are later; NaN/False if none), and
+        before ``moment`` (NaN/False — unknown — for elements the moment did not wait
+        for, or with no reading kept that old), and
         how long the skin is still in transition there: an element whose next reading
         is touched where this one is not (or the reverse) was pressed or released
         between its two samples, so at ``moment`` its state is unknown for up to the
@@ -115,11 +121,13 @@ class Moments:
             after = self.t > moment
         j = np.where(before, self.t, -math.inf).argmax(axis=1)
         none_before = ~before.any(axis=1)
-        if none_before.any():
-            oldest = np.where(np.isnan(self.t), math.inf, self.t).argmin(axis=1)
-            j = np.where(none_before, oldest, j)
         rows = self._all
         nxt = np.where(after, self.t, math.inf).argmin(axis=1)
-        changing = after.any(axis=1) & ~none_before & (self.touched[rows, j] != self.touched[rows, nxt])
+        changing = self.holding & after.any(axis=1) & ~none_before & (self.touched[rows, j] != self.touched[rows, nxt])
         gap = float((self.t[changing, nxt[changing]] - self.t[changing, j[changing]]).max()) if changing.any() else 0.0
-        return self.dc[rows, j], self.touched[rows, j], self.t[rows, j], self.cycle[rows, j], gap
+        dc, touched = self.dc[rows, j], self.touched[rows, j]
+        unknown = ~self.holding | none_before  # silent, too late, or nothing kept that old: no reading
+        if unknown.any():
+            dc[unknown] = np.nan
+            touched[unknown] = False
+        return dc, touched, self.t[rows, j], self.cycle[rows, j], gap

@@ -106,7 +106,10 @@ class Pipeline:
         window = self.ingress.dedupe.window
         for origin, seqs in dec.frames_by_origin.items():
             b = self._bridge(origin, now)
+            restarts = b.seq_restarts
             b.frames_seen(seqs, window)
+            if b.seq_restarts != restarts and origin in self.clocks:  # numbering restarted: a reset
+                self.clocks[origin].suspect_reset()
             b.last_seen, b.link = now, link
             self.topology.heard(origin, link, dec.gateways, now)
         for origin, h in dec.hellos:

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellbridge.daemon.health import ChannelHealth
-from cellbridge.daemon.moment import Moments
+from cellbridge.daemon.moment import SPARE, Moments
 from cellbridge.daemon.physics import (
     ContactSnapshot,
     ContactSpec,
@@ -62,7 +62,8 @@ class Skin:
         ids = layout.ids
         inside = (ids >= 0) & (ids < _IDS)
         self.row[ids[inside]] = np.nonzero(inside)[0]
-        self.moments = Moments(layout.n)
+        depth = math.ceil(self.sections["contact"]["max_lag"] * cal["max_step_rate"]) + SPARE
+        self.moments = Moments(layout.n, depth)
         self.rebuilds += 1
 
     def reconfigure(self, sections: dict[str, dict[str, Any]]) -> None:
@@ -108,7 +109,7 @@ class Skin:
             return None
         m = self.moments
         m.settle(self.elements.flush(now), self.elements.touched)
-        t = m.moment(now, bridge_timeout)
+        t = m.moment(now, bridge_timeout, self.sections["contact"]["max_lag"])
         if math.isnan(t) or (t <= m.t_moment and not self.dirty):
             return None
         dc, touched, t_sample, cycle, transition = m.at(t)

@@ -81,7 +81,7 @@ class Moments:
         if idx is None:
             self.count[r] += 1
         else:
-            np.add.at(self.count, r, 1)
+            self.count += np.bincount(r, minlength=self.count.shape[0])
         self.arrival[r] = now
 
     def settle(self, rows: NDArray[np.int64], touched: NDArray[np.bool_]) -> None:

@@ -44,6 +44,8 @@ class Moments:
         self.t_moment = -math.inf  # the moment of the last snapshot
         self.hold_since = math.nan  # first moment held back for a transition (NaN: none held)
         self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: unknown)
+        self.late = np.zeros(n, dtype=bool)  # live elements left out: their data trail by more than max_lag
+        self.late_estimates = 0  # snapshots that left a live element out for being late
         self._all = np.arange(n)
 
     def record(self, rows: NDArray[np.int64], t: FloatArray, cycle: NDArray[np.uint64], dc: FloatArray,
@@ -102,10 +104,11 @@ class Moments:
         ``max_lag`` hold nothing back; :meth:`at` reports them unknown."""
         live = (now - self.arrival <= timeout) & np.isfinite(self.settled)
         if not live.any():
-            self.holding = live
+            self.holding = self.late = live
             return math.nan
         newest = float(self.settled[live].max())
         self.holding = live & (self.settled >= newest - max_lag)
+        self.late = live & ~self.holding
         return max(float(self.settled[self.holding].min()), self.t_moment)
 
     def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64], float]:

@@ -119,6 +119,7 @@ class Skin:
             if t - m.hold_since < transition:
                 return None  # wait for a moment past it: one sample period of that element at most
         m.hold_since = math.nan
+        m.late_estimates += bool(m.late.any())
         self.dirty = False
         m.t_moment = t
         return ContactSnapshot(dc, touched, now, t_sample, cycle, self.layout.ids, t)  # type: ignore[union-attr]
@@ -143,7 +144,7 @@ class Skin:
         out: dict[str, Any] = {"source": "file" if self.from_file else "hello", "rebuilds": self.rebuilds,
                                "rejected": self.rejected}
         if self.layout is None:
-            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[])
+            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[], late=[], late_estimates=0)
             return out
         ids = self.layout.ids
         ch = self.channels
@@ -156,6 +157,8 @@ class Skin:
             saturated_samples=int(ch.saturated_samples.sum()),
             touched=ids[self.elements.touched].tolist(),
             not_ready=ids[~self.elements.calibrator.ready].tolist(),
+            late=ids[self.moments.late].tolist() if self.moments is not None else [],
+            late_estimates=self.moments.late_estimates if self.moments is not None else 0,
         )
         cal = self.elements.calibrator.health()
         cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids

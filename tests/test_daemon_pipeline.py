@@ -427,3 +427,24 @@ def test_a_silent_bridge_does_not_freeze_contacts() -> None:
             assert snap is None  # bridges 1..3 are ahead of the moment bridge 4 reported last
     assert snap is not None and snap.t_moment == pytest.approx(T0 + 199 / sk.rate, abs=0.011)
     assert sorted(snap.ids[snap.touched].tolist()) == [1, 2]
+
+
+def test_a_bridge_trailing_by_more_than_max_lag_is_left_out_and_reported() -> None:
+    """Bridge 4's frames come 0.5 s late; with max_lag 0.3 s the moment does not wait for
+    it: its element is unknown in the estimate (not stale), and health names it."""
+    sk = Skin()
+    p = make({"contact": {"max_lag": 0.3}})
+    settle(p, sk, 60)
+    queue: list[tuple[float, bytes]] = []
+    for k in range(61, 160):
+        frames = sk.slot(k, STRADDLE).split(b"\x00\x00")
+        t = T0 + k / sk.rate
+        queue.append((t + 0.5, b"\x00" + frames[3]))
+        p.feed("gw", b"\x00\x00".join(frames[:3]) + b"\x00", t)
+        while queue and queue[0][0] <= t:
+            p.feed("gw", queue.pop(0)[1], t)
+    snap = p.contact_snapshot()
+    assert snap is not None and snap.t_moment == pytest.approx(T0 + 159 / sk.rate, abs=0.011)
+    assert np.isnan(snap.dc[3]).all() and not snap.touched[3]
+    layout = p.health_body(T0 + 1.6)["layout"]
+    assert layout["late"] == [4] and layout["late_estimates"] >= 1

@@ -125,9 +125,10 @@ SECTIONS: dict[str, dict[str, Key]] = {
                             lambda v: None if v >= 1 else "must be >= 1", reloadable=True),
         "max_missed": Key(int, 2, "estimates a reported contact may be missing before it ends",
                           lambda v: None if v >= 0 else "must be >= 0", reloadable=True),
-        "max_lag": Key(NUM, 1.0, "s a bridge's data may trail the newest and still hold the estimated moment "
+        "max_lag": Key(NUM, 0.5, "s a bridge's data may trail the newest and still hold the estimated moment "
                        "back (contacts are estimated on one moment of the skin); a bridge later than that "
-                       "is left out (its elements unknown) until it catches up", _positive, reloadable=True),
+                       "contributes its newest reading and is named in health layout.late", _positive,
+                       reloadable=True),
     },
     "health": {
         "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _positive,

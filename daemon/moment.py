@@ -43,8 +43,8 @@ class Moments:
         self.arrival = np.full(n, -math.inf)  # host time the newest reading arrived
         self.t_moment = -math.inf  # the moment of the last snapshot
         self.hold_since = math.nan  # first moment held back for a transition (NaN: none held)
-        self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: unknown)
-        self.late = np.zeros(n, dtype=bool)  # live elements left out: their data trail by more than max_lag
+        self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: their newest)
+        self.late = np.zeros(n, dtype=bool)  # live elements not waited for: their data trail by more than max_lag
         self.late_estimates = 0  # snapshots that left a live element out for being late
         self._all = np.arange(n)
 
@@ -101,7 +101,7 @@ class Moments:
     def moment(self, now: float, timeout: float, max_lag: float) -> float:
         """The newest time every live element has reported past (NaN: none reported yet).
         Elements silent for ``timeout`` or trailing the newest data by more than
-        ``max_lag`` hold nothing back; :meth:`at` reports them unknown."""
+        ``max_lag`` hold nothing back; :meth:`at` gives their newest reading."""
         live = (now - self.arrival <= timeout) & np.isfinite(self.settled)
         if not live.any():
             self.holding = self.late = live
@@ -113,8 +113,8 @@ class Moments:
 
     def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64], float]:
         """(ΔC (n, 2), touched, sample time, cycle) of each element's reading at or just
-        before ``moment`` (NaN/False — unknown — for elements the moment did not wait
-        for, or with no reading kept that old), and
+        before ``moment`` — the newest one for elements the moment did not wait for
+        (silent, or late), NaN/False (unknown) if none is kept — and
         how long the skin is still in transition there: an element whose next reading
         is touched where this one is not (or the reverse) was pressed or released
         between its two samples, so at ``moment`` its state is unknown for up to the
@@ -128,8 +128,10 @@ class Moments:
         nxt = np.where(after, self.t, math.inf).argmin(axis=1)
         changing = self.holding & after.any(axis=1) & ~none_before & (self.touched[rows, j] != self.touched[rows, nxt])
         gap = float((self.t[changing, nxt[changing]] - self.t[changing, j[changing]]).max()) if changing.any() else 0.0
+        newest = (self.count - 1) % self.depth
+        j = np.where(self.holding, j, newest)  # silent or late: the newest reading, the best there is
         dc, touched = self.dc[rows, j], self.touched[rows, j]
-        unknown = ~self.holding | none_before  # silent, too late, or nothing kept that old: no reading
+        unknown = (self.holding & none_before) | (self.count == 0)  # nothing kept that old, or nothing at all
         if unknown.any():
             dc[unknown] = np.nan
             touched[unknown] = False

@@ -10,9 +10,15 @@ block minima gives offset and skew (crystal error, tens of ppm). Host times are 
 smallest delay, and free of the delay's jitter.
 
 Counter wrap: cycles are taken modulo ``2**bits`` and unwrapped by the short way.
-Bridge reset: a cycle count that runs backwards, or one whose predicted host time is
-off from the arrival by more than ``max_jump`` seconds, restarts the fit (counted in
-``resets``) instead of publishing nonsense times.
+Bridge reset: a frame arriving more than ``max_jump`` seconds *before* its predicted
+time; one whose count runs back more than ``max_jump`` or that arrives more than
+``max_jump`` late just after the bridge's frame numbering restarted; or counts that stay
+that far back for ``confirm`` bridge seconds on end: each restarts the fit (counted in
+``resets``) instead of publishing nonsense times. Otherwise a frame far behind is an old
+frame delayed (a queue or a long route in the mesh) and is kept out of the fit, and a
+frame far late is a long delay, never a reset.
+The skew is bounded by ``max_skew`` (crystals are tens of ppm off): over a few blocks,
+wandering delays would otherwise pass for a clock running percents fast.
 """
 
 from __future__ import annotations
@@ -28,14 +34,18 @@ class BridgeClock:
     """Clock model of one bridge; feed ``observe(cycle, arrival)``, then map with ``to_host``."""
 
     def __init__(self, hz: float, bits: int = 64, block: float = 1.0, blocks: int = 64,
-                 max_jump: float = 1.0, max_step: float = 0.05) -> None:
+                 max_jump: float = 1.0, confirm: float = 2.0,
+                 max_skew: float = 500e-6) -> None:
         self.hz = float(hz)
         self.bits = bits
         self._mod = 1 << bits
         self.block = block
         self.max_jump = max_jump
-        self.max_step = max_step  # s: a block minimum this far off the line is a host clock step
         self.steps = 0
+        self.confirm = confirm
+        self.max_skew = max_skew
+        self._late_from: float | None = None  # bridge time of a run of frames far behind (see observe)
+        self._suspect = False  # the frame numbering restarted: the next odd frame is a reset
         self._minima: deque[tuple[float, float]] = deque(maxlen=blocks)  # (x, residual) per closed block
         self._ref_raw: int | None = None  # raw cycle at the fit's origin
         self._ref_arrival = 0.0
@@ -64,8 +74,14 @@ class BridgeClock:
         self._cur = (0.0, 0.0)
         self._cur_start = 0.0
         self._x_last = 0.0
+        self._late_from = None
+        self._suspect = False
         self.offset = 0.0
         self.skew = 0.0
+
+    def suspect_reset(self) -> None:
+        """The bridge's frame numbering restarted (it does when it starts): a frame that does not fit is a reset."""
+        self._suspect = True
 
     def _rebase(self, raw: int, dx: float) -> None:
         """Move the origin to ``raw`` (dx bridge seconds later); residuals are unchanged."""
@@ -87,10 +103,26 @@ class BridgeClock:
             return False
         x = self._x(raw)
         predicted = self._ref_arrival + self.offset + x * (1.0 + self.skew)
-        if x < self._x_last - self.max_jump or abs(arrival - predicted) > self.max_jump:
+        # A frame whose count is far behind the newest is mostly an old frame delayed (a
+        # queue or a long route in the mesh), and one far later than predicted is a long
+        # delay: restarting on either would anchor the fit to its delay. A reset is a frame
+        # that does not fit just after the bridge's frame numbering restarted, or counts
+        # that stay far behind for ``confirm`` bridge seconds on end.
+        behind = x < self._x_last - self.max_jump
+        late = arrival - predicted > self.max_jump
+        if not behind:
+            self._late_from = None
+        elif self._late_from is None or x < self._late_from:
+            self._late_from = x
+        confirmed = (self._suspect and (behind or late)) or (
+            behind and x - self._late_from >= self.confirm)  # type: ignore[operator]
+        if predicted - arrival > self.max_jump or confirmed:  # no delay makes a frame arrive early
             self.resets += 1
             self._restart(raw, arrival)
             return True
+        self._suspect = False
+        if behind:
+            return False  # kept out of the fit: an old frame says nothing about the envelope
         if x > (self._mod >> 3) / self.hz:  # stay far from half the modulus: move the origin
             self._rebase(raw, x)
             x = 0.0
@@ -99,7 +131,6 @@ class BridgeClock:
         if x - self._cur_start >= self.block:  # a block closed: refit (once a block, not per frame)
             if self._cur is not None:
                 self._minima.append(self._cur)
-                self._follow_step()
             self._cur, self._cur_start = (x, r), x
             self._fit()
         elif self._cur is None or r < self._cur[1]:
@@ -109,26 +140,15 @@ class BridgeClock:
                 self._fit() if len(self._minima) < 2 else setattr(self, "offset", self.offset + below)
         return False
 
-    def _follow_step(self) -> None:
-        """The host clock stepped (NTP) by less than ``max_jump``: every arrival since moves
-        by the step, so the envelope does. The newest block minimum ``max_step`` below the
-        line of the earlier ones (delay cannot go negative), or the two newest above it,
-        is such a step: the minima from before it are moved by it, keeping the skew,
-        instead of a fit across the step for a whole window of wrong times."""
-        pts = list(self._minima)
-        if len(pts) < 5:
-            return
-        icpt, slope = _line(pts[:-2])
-        dev = [r - (icpt + slope * x) for x, r in pts]
-        if dev[-1] < -self.max_step:
-            d = dev[-1]
-        elif min(dev[-2:]) > self.max_step:
-            d = min(dev[-2:])
-        else:
-            return
+    def host_step(self, delta: float) -> None:
+        """The host's wall clock stepped by ``delta`` seconds (the service sees it as a change
+        of wall minus monotonic time): every arrival from now on is ``delta`` later, so
+        the envelope, its minima and the line move by it at once."""
+        self._minima = deque(((x, r + delta) for x, r in self._minima), maxlen=self._minima.maxlen)
+        if self._cur is not None:
+            self._cur = (self._cur[0], self._cur[1] + delta)
+        self.offset += delta
         self.steps += 1
-        self._minima = deque(((x, r + d) if abs(dv - d) > self.max_step else (x, r)
-                              for (x, r), dv in zip(pts, dev)), maxlen=self._minima.maxlen)
 
     def _fit(self) -> None:
         """Least-squares line through the closed blocks' minima (the open block's first
@@ -139,7 +159,8 @@ class BridgeClock:
                 pts.append(self._cur)
             self.offset, self.skew = min(p[1] for p in pts), 0.0
             return
-        icpt, slope = _line(pts)
+        # Crystals are off by tens of ppm: a steeper line is the delays' wander, not skew.
+        icpt, slope = _line(pts, self.max_skew)
         icpt += min(0.0, min(p[1] - (icpt + slope * p[0]) for p in pts))
         self.offset, self.skew = icpt, slope
 
@@ -157,13 +178,14 @@ class BridgeClock:
                             self.bits)
 
 
-def _line(pts: list[tuple[float, float]]) -> tuple[float, float]:
-    """Least-squares (intercept, slope) through points (x, residual)."""
+def _line(pts: list[tuple[float, float]], max_slope: float = math.inf) -> tuple[float, float]:
+    """Least-squares (intercept, slope) through points (x, residual), the slope within ±max_slope."""
     n = len(pts)
     mx = sum(p[0] for p in pts) / n
     mr = sum(p[1] for p in pts) / n
     sxx = sum((p[0] - mx) ** 2 for p in pts)
     slope = sum((p[0] - mx) * (p[1] - mr) for p in pts) / sxx if sxx > 0 else 0.0
+    slope = min(max(slope, -max_slope), max_slope)
     return mr - slope * mx, slope
 
 

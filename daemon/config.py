@@ -117,7 +117,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
     },
     "contact": {
         "enabled": Key(bool, True, "estimate contacts (topic contact)", reloadable=True),
-        "rate": Key(NUM, 100.0, "Hz, at most this many estimates a second, each on the latest frame", _positive,
+        "rate": Key(NUM, 100.0, "Hz, at most this many estimates a second, each on the newest consistent moment", _positive,
                     reloadable=True),
         "method": Key(str, "capacitance", "model fit in capacitance (default) or area space",
                       _one_of("capacitance", "area"), reloadable=True),
@@ -127,6 +127,10 @@ SECTIONS: dict[str, dict[str, Key]] = {
                           lambda v: None if v >= 0 else "must be >= 0", reloadable=True),
         "worker_timeout": Key(NUM, 30.0, "s one estimate may take before the worker process is taken as hung, "
                               "killed and replaced", _positive, reloadable=True),
+        "max_lag": Key(NUM, 0.5, "s a bridge's data may trail the newest and still hold the estimated moment "
+                       "back (contacts are estimated on one moment of the skin); a bridge later than that "
+                       "contributes its newest reading and is named in health layout.late", _positive,
+                       reloadable=True),
     },
     "health": {
         "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _positive,

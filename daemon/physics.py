@@ -115,9 +115,10 @@ class ElementStage:
         self.noise = noise
         self.calibrator = Calibrator(layout.n, 2, cal)
         self.min_step = 1.0 / max_step_rate
-        self.latest = np.full((layout.n, 2), np.nan)  # newest ΔC per element, for contact estimation
         self.touched = np.zeros(layout.n, dtype=bool)
         self._pending = np.full((layout.n, 2), np.nan)  # newest readings since the last step
+        self._pending_rows = np.zeros(layout.n, dtype=bool)
+        self.stepped = np.zeros(0, dtype=np.int64)  # rows the last step classified (their newest reading)
         self._last_step = -math.inf
         self._t = -math.inf
 
@@ -128,23 +129,37 @@ class ElementStage:
         self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
         uniq, newest = groups
         self._pending[uniq] = caps[newest]
+        self._pending_rows[uniq] = True
+        self.stepped = self.stepped[:0]
         if self._t - self._last_step >= self.min_step:
-            steps = [self._pending]
+            early = None
             if uniq.shape[0] != rows.shape[0]:  # several samples per element: also step on the first ones
                 first_rows, first = np.unique(rows, return_index=True)
                 early = np.full((self.layout.n, 2), np.nan)
                 early[first_rows] = caps[first]
-                steps.insert(0, early)
-            for values in steps:
-                st = self.calibrator.update(self._t, values)
-            self.touched = st.touched
-            self._pending = np.full((self.layout.n, 2), np.nan)
-            self._last_step = self._t
+            self._step(early)
         delta = caps - self.calibrator.baseline[rows]  # NaN while an element's baseline is being taken
-        self.latest[uniq] = delta[newest]
         out = {"dc1": delta[:, 0], "dc2": delta[:, 1], "touched": self.touched[rows]}
         out.update(self._inverse(delta))
         return out
+
+    def flush(self, now: float) -> NDArray[np.int64]:
+        """Step on the readings still waiting for one, if the rate allows it now (the contact
+        snapshot asks: their touch flags are then from them). The rows stepped."""
+        self._t = max(self._t, now)
+        self.stepped = self.stepped[:0]
+        if self._pending_rows.any() and self._t - self._last_step >= self.min_step:
+            self._step(None)
+        return self.stepped
+
+    def _step(self, early: FloatArray | None) -> None:
+        for values in ([self._pending] if early is None else [early, self._pending]):
+            st = self.calibrator.update(self._t, values)
+        self.touched = st.touched
+        self.stepped = np.flatnonzero(self._pending_rows)
+        self._pending = np.full((self.layout.n, 2), np.nan)
+        self._pending_rows[:] = False
+        self._last_step = self._t
 
     def _inverse(self, delta: FloatArray) -> dict[str, FloatArray]:
         """The inverse on the rows that can pass its noise floor; the others are answered
@@ -165,26 +180,24 @@ class ElementStage:
     def adopt(self, old: ElementStage, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
         """Keep the calibration and touch state of elements carried over from ``old``'s layout."""
         self.calibrator.adopt(old.calibrator, rows, old_rows)
-        self.latest[rows] = old.latest[old_rows]
         self.touched[rows] = old.touched[old_rows]
         self._last_step, self._t = old._last_step, old._t
 
     def tare(self, rows: NDArray[np.int64] | None) -> None:
         self.calibrator.tare(rows)
-        sel = slice(None) if rows is None else rows
-        self.latest[sel] = np.nan
 
 
 @dataclass(frozen=True)
 class ContactSnapshot:
     """What contact estimation needs of one moment; copied so the estimator may run in a thread."""
 
-    dc: FloatArray  # (n, 2)
+    dc: FloatArray  # (n, 2) each element's ΔC at the moment (see daemon.moment)
     touched: NDArray[np.bool_]
     t_host: float
-    t_sample: FloatArray  # (n,) host time of each element's newest sample (NaN: none)
+    t_sample: FloatArray  # (n,) host time of each element's sample used (NaN: none)
     cycle: NDArray[np.uint64]  # (n,) its bridge cycle count
     ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
+    t_moment: float  # host time the skin is estimated at: every element's reading at or just before it
 
 
 @dataclass(frozen=True)
@@ -234,7 +247,7 @@ def warm_up() -> None:
     touched = dc1 > 1e-13
     stage = ContactStage(layout, default_params(layout), 2e-15, "capacitance", birth_frames=1)
     stage.run(ContactSnapshot(np.stack([dc1, dc2], axis=1), touched, 0.0, np.zeros(layout.n),
-                              np.zeros(layout.n, dtype=np.uint64), layout.ids))
+                              np.zeros(layout.n, dtype=np.uint64), layout.ids, 0.0))
 
 
 class ContactStage:

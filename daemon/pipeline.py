@@ -8,8 +8,9 @@ their recorded times (which is what makes golden-output tests exact). One call o
 every later stage works on numpy columns of all the batch's samples.
 
 Contact estimation is deliberately *not* in ``feed``: it is slow next to ingest, so
-the shell asks :meth:`Pipeline.contact_snapshot` for the newest state whenever it is
-free and runs the estimator on that (latest frame only, never a backlog).
+the shell asks :meth:`Pipeline.contact_snapshot` for the newest consistent state whenever
+it is free and runs the estimator on that (one moment of the skin, never a backlog;
+see :mod:`cellbridge.daemon.moment`).
 """
 
 from __future__ import annotations
@@ -109,7 +110,10 @@ class Pipeline:
         window = self.ingress.dedupe.window
         for origin, seqs in dec.frames_by_origin.items():
             b = self._bridge(origin, now)
+            restarts = b.seq_restarts
             b.frames_seen(seqs, window, origin in dec.boots)
+            if b.seq_restarts != restarts and origin in self.clocks and origin not in dec.boots:
+                self.clocks[origin].suspect_reset()  # numbering restarted without a HELLO: perhaps a reset
             b.last_seen, b.link = now, link
             self.topology.heard(origin, link, dec.gateways, now)
         for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
@@ -187,10 +191,7 @@ class Pipeline:
         assert sk.channels is not None
         sk.channels.update(r, raw[sel], sat_all[sel], groups, now)
         res = sk.elements.step(r, caps, groups, now)
-        uniq, newest_i = groups
-        sk.t_sample[uniq] = t_sample[sel][newest_i]
-        sk.cycle[uniq] = s.cycle[sel][newest_i]
-        sk.dirty = True
+        sk.record(r, t_sample[sel], s.cycle[sel], res, groups[0].shape[0] == r.shape[0], now)
         if self._want("element"):
             out.append(self._message("element", now, {
                 "bridge": o[sel].tolist(), "element": s.element[sel].tolist(),
@@ -204,11 +205,14 @@ class Pipeline:
 
     # -- contacts -----------------------------------------------------------------------
     def contact_snapshot(self) -> ContactSnapshot | None:
-        """The newest per-element state if anything changed since the last snapshot,
-        stamped with the arrival time of the newest data in it."""
+        """The skin at one moment, if that moment advanced since the last snapshot: each
+        element's reading at or just before the newest time every live element has
+        reported past (bridges silent for ``bridge_timeout`` hold nothing back), stamped
+        with the arrival time of the newest data. Not the newest reading of each element:
+        bridges' frames arrive staggered, and a skin half pressed, half not, gives ghosts."""
         if not self.config["contact"]["enabled"]:
             return None
-        return self.skin.snapshot(self.last_feed)
+        return self.skin.snapshot(self.last_feed, self.config["health"]["bridge_timeout"])
 
     def contact_message(self, snap: ContactSnapshot, contacts: list[dict[str, Any]]) -> Message:
         index = {int(b): i for i, b in enumerate(snap.ids)}
@@ -217,11 +221,16 @@ class Pipeline:
             c["cycles"] = [int(snap.cycle[i]) for i in rows]
             ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
             c["t_sample"] = max(ts) if ts else None
-        with np.errstate(invalid="ignore"):
-            t = float(np.nanmax(snap.t_sample)) if np.isfinite(snap.t_sample).any() else None
+        t = snap.t_moment if math.isfinite(snap.t_moment) else None
         return self._message("contact", snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": contacts})
 
     # -- periodic -----------------------------------------------------------------------
+    def host_clock_step(self, delta: float) -> None:
+        """The host's wall clock stepped by ``delta`` s (NTP): every bridge clock follows at once."""
+        for clk in self.clocks.values():
+            clk.host_step(delta)
+        self.events.append(("warning", f"host clock stepped by {delta:+.3f} s; bridge clocks follow"))
+
     def tick(self, now: float, force: bool = False) -> list[Message]:
         """Health every ``health.interval`` (or now, if forced) and topology when it changed."""
         h = self.config["health"]

@@ -41,6 +41,7 @@ def read_layout(config: Config) -> SkinLayout | None:
 
 class Service:
     TICK = 0.1  # s between pipeline ticks (health itself goes out every health.interval)
+    HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
 
     def __init__(self, config: Config, layout: SkinLayout | None = None, *, config_path: str | Path | None = None,
                  hooks: OpsHooks | None = None) -> None:
@@ -48,6 +49,7 @@ class Service:
         self.config_path = config_path
         self.log = setup(config["daemon"]["log_level"], config["daemon"]["log_format"])
         self.pipeline = Pipeline(config, layout)
+        self._wall_offset = time.time() - time.monotonic()
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
@@ -125,6 +127,10 @@ class Service:
         """Health, command deadlines, logged events, and every 5 s sd_notify STATUS and
         capture flushes; returns when the next STATUS is due."""
         now = time.time()
+        step = (now - time.monotonic()) - self._wall_offset
+        if abs(step) > self.HOST_STEP:  # the wall clock stepped (NTP): the bridge clocks follow at once
+            self._wall_offset += step
+            self.pipeline.host_clock_step(step)
         self._link_stats()
         for topic, payload in self.pipeline.tick(now):
             if topic == "health":

@@ -8,12 +8,14 @@ Layout ids are bridge ids; a bridge's element index 0 is the element the layout 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellbridge.daemon.health import ChannelHealth
+from cellbridge.daemon.moment import SPARE, Moments
 from cellbridge.daemon.physics import (
     ContactSnapshot,
     ContactSpec,
@@ -41,17 +43,14 @@ class Skin:
         self.contact_spec: ContactSpec | None = None  # what the service's worker process builds from
         self.channels: ChannelHealth | None = None
         self.row = np.full(_IDS, -1, dtype=np.int64)
-        self.t_sample = np.zeros(0)
-        self.cycle = np.zeros(0, dtype=np.uint64)
+        self.moments: Moments | None = None
         self.rebuilds = 0
-        self.dirty = False  # new element data since the last contact snapshot
-        self.snapshot_t = 0.0
+        self.dirty = False  # the next contact snapshot is due even if the moment did not advance (tare)
         if layout is not None:
             self._install(layout)
 
     def _install(self, layout: SkinLayout) -> None:
         old_layout, old_elements, old_channels = self.layout, self.elements, self.channels
-        old_t, old_cycle = self.t_sample, self.cycle
         params = default_params(layout)
         inv = self.sections["inverse"]
         self.layout = layout
@@ -64,8 +63,8 @@ class Skin:
         ids = layout.ids
         inside = (ids >= 0) & (ids < _IDS)
         self.row[ids[inside]] = np.nonzero(inside)[0]
-        self.t_sample = np.full(layout.n, np.nan)
-        self.cycle = np.zeros(layout.n, dtype=np.uint64)
+        depth = math.ceil(self.sections["contact"]["max_lag"] * cal["max_step_rate"]) + SPARE
+        self.moments = Moments(layout.n, depth)
         self.rebuilds += 1
         if old_layout is not None and old_elements is not None and old_layout.side == layout.side:
             # Elements that kept their place keep their baselines: a bridge joining late (or
@@ -75,7 +74,6 @@ class Skin:
                 self.elements.adopt(old_elements, rows, old_rows)
                 assert old_channels is not None
                 self.channels.adopt(old_channels, rows, old_rows)
-                self.t_sample[rows], self.cycle[rows] = old_t[old_rows], old_cycle[old_rows]
 
     def hello(self, geometry: dict[int, tuple[float, float, float]]) -> bool:
         """Geometry {bridge: (x, y, side)} announced in HELLOs; True when the layout changed."""
@@ -98,32 +96,58 @@ class Skin:
     def placed(self, bridge: int) -> bool:
         return bool(self.row[bridge] >= 0)
 
-    def snapshot(self, now: float) -> ContactSnapshot | None:
-        if self.elements is None or not self.dirty:
+    def record(self, rows: NDArray[np.int64], t_sample: NDArray[np.float64], cycle: NDArray[np.uint64],
+               res: dict[str, NDArray[Any]], unique: bool, now: float) -> None:
+        """Keep a batch's readings (ΔC from ``ElementStage.step``) for the contact snapshot."""
+        assert self.moments is not None and self.elements is not None
+        enter, leave = self.elements.calibrator.thresholds()
+        self.moments.record(rows, t_sample, cycle, np.stack([res["dc1"], res["dc2"]], axis=1), unique, now,
+                            enter, leave)
+        self.moments.settle(self.elements.stepped, self.elements.touched)
+
+    def snapshot(self, now: float, bridge_timeout: float) -> ContactSnapshot | None:
+        """The skin at the newest moment every live element has reported past, if that
+        moment advanced since the last snapshot (see :mod:`cellbridge.daemon.moment`)."""
+        if self.elements is None or self.moments is None:
             return None
+        m = self.moments
+        m.settle(self.elements.flush(now), self.elements.touched)
+        t = m.moment(now, bridge_timeout, self.sections["contact"]["max_lag"])
+        if math.isnan(t) or (t <= m.t_moment and not self.dirty):
+            return None
+        dc, touched, t_sample, cycle, transition = m.at(t)
+        if transition and not self.dirty:  # a press or release between two samples of an element
+            if math.isnan(m.hold_since):
+                m.hold_since = t
+            if t - m.hold_since < transition:
+                return None  # wait for a moment past it: one sample period of that element at most
+        m.hold_since = math.nan
+        m.late_estimates += bool(m.late.any())
         self.dirty = False
-        self.snapshot_t = now
-        e = self.elements
-        return ContactSnapshot(e.latest.copy(), e.touched.copy(), now, self.t_sample.copy(), self.cycle.copy(),
-                               self.layout.ids)  # type: ignore[union-attr]
+        m.t_moment = t
+        return ContactSnapshot(dc, touched, now, t_sample, cycle, self.layout.ids, t)  # type: ignore[union-attr]
 
     def tare(self, bridges: list[int] | None) -> int:
         if self.elements is None:
             return 0
+        assert self.moments is not None
+        self.dirty = True
         if bridges is None:
             self.elements.tare(None)
+            self.moments.forget(slice(None))
             return self.layout.n  # type: ignore[union-attr]
         rows = self.row[np.asarray(bridges, dtype=np.int64)]
         rows = rows[rows >= 0]
         if rows.size:
             self.elements.tare(rows)
+            self.moments.forget(rows)
         return int(rows.size)
 
     def report(self, now: float, stuck_after: float) -> dict[str, Any]:
         out: dict[str, Any] = {"source": "file" if self.from_file else "hello", "rebuilds": self.rebuilds,
                                "rejected": self.rejected}
         if self.layout is None:
-            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[])
+            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[], late=[], late_estimates=0)
             return out
         ids = self.layout.ids
         ch = self.channels
@@ -136,6 +160,8 @@ class Skin:
             saturated_samples=int(ch.saturated_samples.sum()),
             touched=ids[self.elements.touched].tolist(),
             not_ready=ids[~self.elements.calibrator.ready].tolist(),
+            late=ids[self.moments.late].tolist() if self.moments is not None else [],
+            late_estimates=self.moments.late_estimates if self.moments is not None else 0,
         )
         cal = self.elements.calibrator.health()
         cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids

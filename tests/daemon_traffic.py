@@ -98,3 +98,29 @@ class Skin:
     def reply(self, origin: int, token: int, op: Op, value: int | None = None) -> bytes:
         return self._frame(origin, CommandReply(token, op, Status.OK, value))
 
+
+
+def staggered(sk: Skin, n_slots: int, press: tuple[float, float, float, float], on: int, off: int,
+              max_delay: float, per_frame: int = 1, seed: int = 3) -> list[tuple[float, bytes]]:
+    """(arrival time from 0, one DATA frame) of every bridge, sorted by arrival: the skin
+    as it reaches a host for real. Each bridge samples at its own phase within a slot and
+    sees ``press`` in slots ``on`` ≤ k < ``off`` of its own sampling; it sends
+    ``per_frame`` samples a frame, which arrives 0..``max_delay`` s after its last sample
+    (a bridge's frames never overtake each other)."""
+    rng = np.random.default_rng(seed)
+    period = 1.0 / sk.rate
+    phase = rng.uniform(0.0, 1.0, sk.layout.n)
+    quiet, pressed = sk.counts_for(None), sk.counts_for(press)
+    frames: list[tuple[float, bytes]] = []
+    for i, b in enumerate(sk.ids):
+        last = 0.0
+        for k0 in range(0, n_slots, per_frame):
+            samples = []
+            for k in range(k0, min(k0 + per_frame, n_slots)):
+                k1, k2 = pressed if on <= k < off else quiet
+                samples.append(Sample(0, sk.cycle0 + int((k + phase[i]) * period * CLOCK), int(k1[i]), int(k2[i]), 0))
+            t = (k + phase[i]) * period
+            last = max(last, t + rng.uniform(0.0, max_delay))
+            frames.append((last, sk._frame(b, Data(Mode.COUNTER, tuple(samples)))))
+    frames.sort(key=lambda f: f[0])
+    return frames

@@ -84,9 +84,37 @@ def test_a_host_clock_step_below_the_jump_limit_is_followed_within_seconds(step:
     host = 5000.0 + ts + np.where(ts >= 100.0, step, 0.0)  # the host's clock, stepped at t = 100 s
     errs = []
     for t, c, h in zip(ts, cycles, host):
+        if t == 100.0:
+            clock.host_step(step)  # the service sees wall minus monotonic time change
         clock.observe(int(c), h + 0.002 + rng.exponential(0.003))
         errs.append(clock.to_host(np.array([c], dtype=np.uint64))[0] - h)
     err = np.array(errs)
     after = ts >= 104.0
     assert np.all(np.abs(err[after]) < 0.005), (err[after].min(), err[after].max())
     assert clock.resets == 0 and abs(clock.skew + ppm * 1e-6) < 10e-6
+def test_seconds_of_congestion_are_a_delay_not_a_reset() -> None:
+    """The mesh holds a bridge's frames back 1.5..3 s for 10 s, and old frames arrive after
+    newer ones: no reset, and the times stay on the least-delayed frames seen before."""
+    clock = BridgeClock(HZ)
+    rng = np.random.default_rng(5)
+    truth, cycles = _run(clock, 20.0, 0.0, 5.0, rng, c0=10**10)
+    ts = np.arange(5.0, 15.0, 0.02)
+    cyc = 10**10 + np.round(ts * HZ * (1 + 20e-6)).astype(np.int64)
+    order = np.arange(ts.size)
+    order[100:400:7], order[101:401:7] = order[101:401:7], order[100:400:7]  # old frames after newer ones
+    for i in order:
+        clock.observe(int(cyc[i]), ts[i] + 1.5 + rng.uniform(0.0, 1.5))
+    assert clock.resets == 0
+    err = clock.to_host(cyc[-50:].astype(np.uint64)) - ts[-50:]
+    assert np.all(np.abs(err) < 0.01), (err.min(), err.max())
+    assert abs(clock.skew) <= clock.max_skew
+
+
+def test_a_reset_is_taken_at_once_after_the_numbering_restarted() -> None:
+    clock = BridgeClock(HZ)
+    rng = np.random.default_rng(6)
+    _run(clock, 0.0, 0.0, 3.0, rng, c0=10**10)
+    clock.suspect_reset()  # the pipeline saw the bridge's frame numbers start again
+    truth, cycles = _run(clock, 0.0, 3.5, 0.2, rng, c0=10**5)  # booted again: counter near zero
+    assert clock.resets == 1
+    assert np.all(np.abs(clock.to_host(cycles[-5:]) - truth[-5:]) < 0.02)

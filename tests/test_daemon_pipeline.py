@@ -24,7 +24,7 @@ from cellbridge.protocol import (
     fragment,
 )
 from cellbridge.tactile import adc_code, grid_layout, layout_to_toml
-from daemon_traffic import CLOCK, Skin
+from daemon_traffic import CLOCK, Skin, staggered
 
 T0 = 1_700_000_000.0
 STRADDLE = (0.020, 0.006, 3.0, 0.012)  # on the seam of bridges 1 and 2
@@ -498,3 +498,77 @@ def test_sample_rate_is_over_the_time_that_passed_not_the_configured_interval() 
         p.feed("gw", data, T0 + k / sk.rate)
     body = dict(p.tick(t + 1.5))["health"]
     assert body["bridges"]["1"]["sample_rate"] == pytest.approx(sk.rate)
+@pytest.mark.parametrize("max_delay, per_frame, seed", [(2, 1, 3), (4, 1, 4), (2, 5, 5)])
+def test_frames_of_one_press_arriving_staggered_give_one_steady_contact(max_delay: int, per_frame: int,
+                                                                         seed: int) -> None:
+    """A 4x4 skin pressed across the corner of four elements; every bridge samples at its
+    own phase and its frames reach the host up to ``max_delay`` sample periods late.
+    Contacts are estimated on one moment of the skin, so the press is one contact whose
+    force and position hold from its birth to its end — no ghost from a skin half
+    pressed, half not (on the newest reading of every element, this fails)."""
+    sk = Skin(rows=4, cols=4)
+    corner = (0.0585, 0.0625, 3.0, 0.020)  # across the corner of bridges 6, 7, 10 and 11
+    p = make({"calibration": {"n_baseline": 10}})  # every element ready before the press, however reads fall
+    p.feed("gw", sk.hellos() + sk.beacons(), T0)
+    period = 1.0 / sk.rate
+    seen: dict[int, list[dict]] = {}
+    next_estimate = -math.inf
+    for t, data in staggered(sk, 160, corner, on=80, off=130, max_delay=max_delay * period, per_frame=per_frame,
+                             seed=seed):
+        now = T0 + 0.001 + t
+        p.feed("gw", data, now)
+        if now < next_estimate:  # the service's pace: [contact] rate estimates a second
+            continue
+        next_estimate = now + 1.0 / p.config["contact"]["rate"]
+        snap = p.contact_snapshot()
+        if snap is None:
+            continue
+        _, msg = p.contact_message(snap, p.skin.contacts.run(snap))  # type: ignore[union-attr]
+        for c in msg["contacts"]:
+            seen.setdefault(c["id"], []).append(c)
+    assert list(seen) == [0], {i: [(c["x"], c["y"], c["force"], c["elements"]) for c in cs] for i, cs in seen.items()}
+    reports = [c for c in seen[0] if c["missed"] == 0]
+    # the press was seen for most of its 0.5 s: the moment advances a frame of the bridges at a time
+    assert len(reports) >= min(25, 0.35 / (per_frame * period))
+    for c in reports:
+        assert sorted(c["elements"]) == [6, 7, 10, 11]
+        assert c["force"] == pytest.approx(3.0, rel=0.05)
+        assert math.hypot(c["x"] - corner[0], c["y"] - corner[1]) <= 1e-3
+        assert T0 + 0.80 <= c["t_sample"] <= T0 + 1.31  # within the press, on the moment's samples
+
+
+def test_a_silent_bridge_does_not_freeze_contacts() -> None:
+    """Bridge 4 stops: the moment waits for it only until it is ``bridge_timeout`` silent."""
+    sk = Skin()
+    p = make({"health": {"bridge_timeout": 0.5}})
+    t = settle(p, sk, 60)
+    assert p.contact_snapshot() is not None
+    for k in range(61, 200):
+        frames = sk.slot(k, STRADDLE).split(b"\x00\x00")  # one frame a bridge, bridge 4's last
+        p.feed("gw", b"\x00\x00".join(frames[:3]) + b"\x00", T0 + k / sk.rate)
+        snap = p.contact_snapshot()
+        if T0 + k / sk.rate - t < 0.5 - 0.02:
+            assert snap is None  # bridges 1..3 are ahead of the moment bridge 4 reported last
+    assert snap is not None and snap.t_moment == pytest.approx(T0 + 199 / sk.rate, abs=0.011)
+    assert sorted(snap.ids[snap.touched].tolist()) == [1, 2]
+
+
+def test_a_bridge_trailing_by_more_than_max_lag_does_not_hold_contacts_back_and_is_reported() -> None:
+    """Bridge 4's frames come 0.5 s late; with max_lag 0.3 s the moment does not wait for
+    it: its element contributes its newest reading, and health names it."""
+    sk = Skin()
+    p = make({"contact": {"max_lag": 0.3}})
+    settle(p, sk, 60)
+    queue: list[tuple[float, bytes]] = []
+    for k in range(61, 160):
+        frames = sk.slot(k, STRADDLE).split(b"\x00\x00")
+        t = T0 + k / sk.rate
+        queue.append((t + 0.5, b"\x00" + frames[3]))
+        p.feed("gw", b"\x00\x00".join(frames[:3]) + b"\x00", t)
+        while queue and queue[0][0] <= t:
+            p.feed("gw", queue.pop(0)[1], t)
+    snap = p.contact_snapshot()
+    assert snap is not None and snap.t_moment == pytest.approx(T0 + 159 / sk.rate, abs=0.011)
+    assert snap.t_sample[3] == pytest.approx(T0 + 109 / sk.rate, abs=0.011)  # its newest, 0.5 s old
+    layout = p.health_body(T0 + 1.6)["layout"]
+    assert layout["late"] == [4] and layout["late_estimates"] >= 1

@@ -29,7 +29,8 @@ from cellbridge.emulator.process_medium import _CELL, _CS, pack_cells
 from cellbridge.emulator.process_world import decode_contacts
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.realtime import (
-    CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
+    CLOCK_HZ, REPORTING_HELP, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
+    reporting_arg,
 )
 from cellbridge.emulator.virtual import default_chip
 from cellbridge.emulator.world import World
@@ -48,6 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the chip noise and backoff (default 0)")
     parser.add_argument("--rate", type=rate_arg, default=100,
                         help="sampling rate in Hz at power-on, 1..250 (default 100)")
+    parser.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE",
+                        help=REPORTING_HELP)
     parser.add_argument("--tcp", type=int, default=None, metavar="PORT",
                         help="gateway: also serve the serial stream on 127.0.0.1:PORT (0 = any free port)")
     parser.add_argument("--pty-fd", type=int, default=None, help=argparse.SUPPRESS)  # from mesh up
@@ -79,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
 
     world = World(mesh, bridges=[br.id])
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
-                                 settings=Settings(rate_hz=args.rate), ack_slack=ACK_SLACK,
+                                 settings=Settings(rate_hz=args.rate, reporting=args.reporting), ack_slack=ACK_SLACK,
                                  transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate),
                                  lazy_sampling=False),  # real gates, so late ones can be counted
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())

@@ -25,7 +25,9 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.gateway_port import GatewayPort, open_pty
 from cellbridge.emulator.mesh import MeshError, load_mesh
-from cellbridge.emulator.process_medium import _CELL, _CS, pack_cells
+from cellbridge.emulator.medium_wire import (
+    CARRIER, NOBLOCK, RX, WANT_OFF, WANT_ON, decode_carrier, decode_rx, encode_tx,
+)
 from cellbridge.emulator.process_world import decode_contacts
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.realtime import (
@@ -120,14 +122,14 @@ def run(args: argparse.Namespace) -> int:
             if medium in ready:
                 while True:
                     try:
-                        msg = medium.recv_multipart(zmq.NOBLOCK)
+                        msg = medium.recv(NOBLOCK)
                     except zmq.Again:
                         break
-                    if msg[0] == b"rx" and len(msg) == 3:
-                        fw.receive(msg[2], tick, _CELL.unpack(msg[1])[0])
-                    elif msg[0] == b"cs" and len(msg) == 2:
-                        cell, start, end = _CS.unpack(msg[1])
-                        fw.carrier(cell, start, end)
+                    kind = msg[0] if msg else -1
+                    if kind == RX and (rx := decode_rx(msg)) is not None:
+                        fw.receive(rx[1], tick, rx[0])
+                    elif kind == CARRIER and (cs := decode_carrier(msg)) is not None:
+                        fw.carrier(*cs)
             if stimuli in ready:
                 while True:
                     try:
@@ -144,17 +146,18 @@ def run(args: argparse.Namespace) -> int:
                 late += (tick - sampler.ready) // period + 1
                 behind += (tick - sampler.ready) // period
             out = fw.advance(tick)
-            if out is not None:
+            want = not fw.radio.idle
+            if out is not None:  # the contention state after it travels with it: one message
                 try:
-                    medium.send_multipart([b"tx", pack_cells(out[1]), out[0]], zmq.NOBLOCK)
+                    medium.send(encode_tx(out[1], out[0], want), NOBLOCK)
+                    wanting, told = want, tick
                 except zmq.Again:  # the medium is away: the transmission is lost, as on a cut cell
                     fw.counters["medium_unreachable"] += 1
             if port is not None and fw.serial_out:
                 port.write(fw.take_serial())
-            want = not fw.radio.idle
             if want != wanting or (want and tick - told > CLOCK_HZ):  # repeated: a medium may restart
                 try:
-                    medium.send_multipart([b"want", b"1" if want else b"0"], zmq.NOBLOCK)
+                    medium.send(WANT_ON if want else WANT_OFF, NOBLOCK)
                     wanting, told = want, tick
                 except zmq.Again:
                     pass

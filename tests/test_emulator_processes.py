@@ -217,7 +217,7 @@ def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> 
 
     import zmq
 
-    from cellbridge.emulator.process_medium import pack_cells
+    from cellbridge.emulator.medium_wire import encode_tx
     from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
 
     mesh_path = tmp_path / "line-2.toml"
@@ -241,7 +241,7 @@ def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> 
         sock.connect(f"tcp://127.0.0.1:{base}")
         beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
         for _ in range(20):  # bridge 2 shares cell 1 and never connects
-            sock.send_multipart([b"tx", pack_cells((1,)), beacon])
+            sock.send(encode_tx((1,), beacon, False))
             time.sleep(0.05)
         time.sleep(0.3)
     finally:

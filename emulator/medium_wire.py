@@ -29,6 +29,7 @@ WANT_ON, WANT_OFF = b"w1", b"w0"
 #: pyzmq flags as plain ints: or-ing its enum flags per message costs microseconds
 NOBLOCK = int(zmq.NOBLOCK)
 MORE_NOBLOCK = int(zmq.SNDMORE | zmq.NOBLOCK)
+EVENTS, POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)
 
 
 def pack_cells(cells: tuple[int, ...]) -> bytes:

@@ -26,7 +26,7 @@ from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.gateway_port import GatewayPort, open_pty
 from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
-    CARRIER, NOBLOCK, RX, WANT_OFF, WANT_ON, decode_carrier, decode_rx, encode_tx,
+    CARRIER, EVENTS, NOBLOCK, POLLIN, RX, WANT_OFF, WANT_ON, decode_carrier, decode_rx, encode_tx,
 )
 from cellbridge.emulator.process_world import decode_contacts
 from cellbridge.emulator.transceiver import TransceiverConfig
@@ -120,22 +120,16 @@ def run(args: argparse.Namespace) -> int:
             if mark["asked"]:
                 mark.update(late=late, behind=behind, samples=fw.counters["samples"], set=True, asked=False)
             if medium in ready:
-                while True:
-                    try:
-                        msg = medium.recv(NOBLOCK)
-                    except zmq.Again:
-                        break
+                while medium.getsockopt(EVENTS) & POLLIN:  # drained without raising zmq.Again each time
+                    msg = medium.recv(NOBLOCK)
                     kind = msg[0] if msg else -1
                     if kind == RX and (rx := decode_rx(msg)) is not None:
                         fw.receive(rx[1], tick, rx[0])
                     elif kind == CARRIER and (cs := decode_carrier(msg)) is not None:
                         fw.carrier(*cs)
             if stimuli in ready:
-                while True:
-                    try:
-                        world.set_contacts(decode_contacts(stimuli.recv(zmq.NOBLOCK)))
-                    except zmq.Again:
-                        break
+                while stimuli.getsockopt(EVENTS) & POLLIN:
+                    world.set_contacts(decode_contacts(stimuli.recv(NOBLOCK)))
             if port is not None:
                 data = port.read({k for k in ready if isinstance(k, int)})
                 if data:

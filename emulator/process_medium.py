@@ -28,7 +28,7 @@ import zmq
 from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
-    MORE_NOBLOCK, NOBLOCK, TX, WANT, WANT_OFF, WANT_ON, decode_tx, encode_carrier, encode_rx,
+    EVENTS, MORE_NOBLOCK, NOBLOCK, POLLIN, TX, WANT, WANT_OFF, WANT_ON, decode_tx, encode_carrier, encode_rx,
 )
 from cellbridge.emulator.rawframe import addressed_to
 from cellbridge.emulator.realtime import (
@@ -95,11 +95,8 @@ def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
             if pending:
                 timeout = max(0, math.ceil((pending[0][0] - now_tick()) * 1000 / CLOCK_HZ))
             if poller.poll(timeout):
-                while True:
-                    try:
-                        who = sock.recv(NOBLOCK)
-                    except zmq.Again:
-                        break
+                while sock.getsockopt(EVENTS) & POLLIN:  # drained without raising zmq.Again each time
+                    who = sock.recv(NOBLOCK)
                     msg = sock.recv(NOBLOCK) if sock.getsockopt(rcvmore) else b""
                     extra = False
                     while sock.getsockopt(rcvmore):  # not ours: drain the rest of it

@@ -1,13 +1,18 @@
 """How many bridge processes this machine holds in real time (100 Hz, < 1 % late gates).
 
-Run: ``.venv/bin/python bench/bench_processes.py [--max 64] [--seconds 8]``.
-For growing square meshes it runs ``cellbridge mesh up`` (medium, world, one process
-per bridge), waits until every bridge is up, marks that moment (SIGUSR1), lets the
-skin run, stops it with SIGTERM and adds up the bridges' ``late_gates_since_mark``:
-samples computed more than one gate (2 ms) after they were due; "a period late" are
-those more than a whole sampling period late (the process fell behind). Target: 64
-bridges with < 1 % late gates. The figure depends on what else the machine is doing.
-It stops at the first size that misses the target unless --all is given.
+Run: ``.venv/bin/python bench/bench_processes.py [--reporting both] [--max 64] [--seconds 8]``.
+For growing square meshes (4, 16, 36, 64 bridges) it runs ``cellbridge mesh up``
+(medium, world, one process per bridge), waits until every bridge is up, marks that
+moment (SIGUSR1), lets the skin run, stops it with SIGTERM and adds up the bridges'
+``late_gates_since_mark``: samples computed more than one gate (2 ms) after they were
+due; "a period late" are those more than a whole sampling period late (the process
+fell behind). Target: 64 bridges with < 1 % late gates. It prints one table per
+reporting mode: periodic (every sample sent: at 64 bridges more than one gateway's
+1 Mbit/s link carries) and event-based (``--reporting event:40``, as a large skin runs:
+idle elements send a heartbeat a second). The CPU columns are the share of one core
+the average bridge process and the medium used while measured. The figures depend on
+what else the machine is doing: the load average is printed before each size. A
+mode stops at its first size that misses the target unless --all is given.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from cellbridge.emulator import meshgen
@@ -59,14 +65,49 @@ def catches_usr1(pid: int) -> bool:
     return False
 
 
-def run_one(n_side: int, seconds: float, tmp: str) -> tuple[int, int, int, float, float]:
+def medium_pid(mesh_path: str) -> int | None:
+    for pid in os.listdir("/proc"):
+        if pid.isdigit():
+            try:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if mesh_path.encode() in cmd and b"medium" in cmd:
+                return int(pid)
+    return None
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (0 when it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@dataclass
+class Result:
+    bridges: int
+    measured: int = 0
+    samples: int = 0
+    late: float = 1.0
+    behind: float = 1.0
+    bridge_cpu: float = 0.0  #: mean share of one core per bridge process
+    medium_cpu: float = 0.0
+    load: float = 0.0
+
+
+def run_one(n_side: int, seconds: float, tmp: str, reporting: str) -> Result:
     mesh = meshgen.grid(n_side, n_side)
-    path = os.path.join(tmp, f"grid{n_side}.toml")
+    path = os.path.join(tmp, f"grid{n_side}-{reporting.replace(':', '_')}.toml")
     Path(path).write_text(mesh_to_toml(mesh))
-    err = open(os.path.join(tmp, f"grid{n_side}.err"), "a+")
-    p = subprocess.Popen([sys.executable, "-m", "cellbridge", "mesh", "up", path, "--base-port",
-                          str(free_base_port())], stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+    err = open(path + ".err", "a+")
     n = n_side * n_side
+    res = Result(n, load=os.getloadavg()[0])
+    p = subprocess.Popen([sys.executable, "-m", "cellbridge", "mesh", "up", path, "--base-port",
+                          str(free_base_port()), "--reporting", reporting],
+                         stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
     try:
         deadline = time.monotonic() + 60 + 2 * n
         while time.monotonic() < deadline:
@@ -75,9 +116,19 @@ def run_one(n_side: int, seconds: float, tmp: str) -> tuple[int, int, int, float
                 break
             time.sleep(0.5)
         time.sleep(2.0)  # the last ones finish booting
-        for pid in bridge_pids(path):
+        pids = bridge_pids(path)
+        med = medium_pid(path)
+        t0 = time.monotonic()
+        cpu0 = {q: cpu_seconds(q) for q in pids}
+        med0 = cpu_seconds(med) if med else 0.0
+        for pid in pids:
             os.kill(pid, signal.SIGUSR1)
         time.sleep(seconds)
+        dt = time.monotonic() - t0
+        if pids:
+            res.bridge_cpu = sum(cpu_seconds(q) - cpu0[q] for q in pids) / len(pids) / dt
+        if med:
+            res.medium_cpu = (cpu_seconds(med) - med0) / dt
     finally:
         p.send_signal(signal.SIGTERM)
         try:
@@ -94,35 +145,47 @@ def run_one(n_side: int, seconds: float, tmp: str) -> tuple[int, int, int, float
             behind += c.get("behind_gates_since_mark", 0)
             samples += c.get("samples_since_mark", 0)
             reported += "samples_since_mark" in c
-    if not samples:
-        return n, reported, 0, 1.0, 1.0
-    return n, reported, samples, late / samples, behind / samples
+    res.measured, res.samples = reported, samples
+    if samples:
+        res.late, res.behind = late / samples, behind / samples
+    return res
+
+
+def bench_mode(reporting: str, args: argparse.Namespace, tmp: str) -> None:
+    print(f"\nreporting {reporting}")
+    print(f"{'bridges':>7} {'load':>5} {'measured':>8} {'samples':>8} {'late gates':>10} {'a period late':>13} "
+          f"{'CPU/bridge':>10} {'CPU medium':>10} {'ok':>4}")
+    best = 0
+    for side in (2, 4, 6, 8):
+        if side * side > args.max or side * side < args.min:
+            continue
+        r = run_one(side, args.seconds, tmp, reporting)
+        good = r.late < TARGET and r.measured == r.bridges
+        print(f"{r.bridges:>7} {r.load:>5.1f} {r.measured:>8} {r.samples:>8} {r.late:>10.2%} {r.behind:>13.2%} "
+              f"{r.bridge_cpu:>10.1%} {r.medium_cpu:>10.1%} {'yes' if good else 'NO':>4}", flush=True)
+        if good:
+            best = max(best, r.bridges)
+        elif not args.all:
+            break
+    print(f"held in real time with < 1 % late gates ({reporting}): {best} bridges (target 64)")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reporting", default="both",
+                    help="'periodic', an event mode such as 'event:40' (as 'mesh up --reporting'), "
+                         "or 'both' (periodic, then event:40; default)")
+    ap.add_argument("--min", type=int, default=1, help="smallest number of bridges to try (default 1: from 4)")
     ap.add_argument("--max", type=int, default=64, help="largest number of bridges to try (default 64)")
     ap.add_argument("--seconds", type=float, default=8.0, help="measured seconds per size (default 8)")
     ap.add_argument("--all", action="store_true", help="try every size even after one misses the target")
     args = ap.parse_args()
+    modes = ["periodic", "event:40"] if args.reporting == "both" else [args.reporting]
     print(f"real-time bridge processes at 100 Hz on {os.cpu_count()} cores "
-          f"(load average {os.getloadavg()[0]:.1f} before start)")
-    print(f"{'bridges':>7} {'measured':>8} {'samples':>8} {'late gates':>10} {'a period late':>13} "
-          f"{'target':>7} {'ok':>4}")
-    best = 0
+          f"(load average {os.getloadavg()[0]:.1f} before start; target < {TARGET:.0%} late gates)")
     with tempfile.TemporaryDirectory() as tmp:
-        for side in (2, 4, 6, 8):
-            if side * side > args.max:
-                break
-            n, reported, samples, late, behind = run_one(side, args.seconds, tmp)
-            good = late < TARGET and reported == n
-            print(f"{n:>7} {reported:>8} {samples:>8} {late:>10.2%} {behind:>13.2%} {'<1%':>7} "
-                  f"{'yes' if good else 'NO':>4}", flush=True)
-            if not good and not args.all:
-                break
-            if good:
-                best = max(best, n)
-    print(f"held in real time with < 1 % late gates: {best} bridges (target 64)")
+        for mode in modes:
+            bench_mode(mode, args, tmp)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 from cellbridge.emulator.mesh import Mesh
+from cellbridge.emulator.transceiver import PREAMBLE_BITS
 
 
 @dataclass
@@ -75,8 +76,6 @@ class Medium:
 
     # -- transmissions --------------------------------------------------------------
     def airtime(self, n_bytes: int) -> int:
-        from cellbridge.emulator.transceiver import PREAMBLE_BITS
-
         return (n_bytes * 8 + PREAMBLE_BITS) * self.bit_cycles
 
     def start(self, src: int, data: bytes, cells: tuple[int, ...], tick: int) -> Transmission:

@@ -8,7 +8,7 @@ import sys
 
 from cellbridge.emulator.mesh import MeshError, load_mesh, mesh_to_toml
 from cellbridge.emulator.meshgen import generate
-from cellbridge.emulator.realtime import rate_arg, seconds_arg
+from cellbridge.emulator.realtime import REPORTING_HELP, rate_arg, reporting_arg, seconds_arg
 from cellbridge.emulator.world import ScenarioError
 
 
@@ -25,7 +25,7 @@ def _run_virtual(args: argparse.Namespace) -> int:
     for i, c in enumerate(contacts):
         check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")
     world = World(mesh, contacts)
-    vm = VirtualMesh(mesh, seed=args.seed, world=world, settings=Settings(rate_hz=args.rate))
+    vm = VirtualMesh(mesh, seed=args.seed, world=world, settings=Settings(rate_hz=args.rate, reporting=args.reporting))
     result = vm.run(args.seconds)
     if args.capture:
         os.makedirs(args.capture, exist_ok=True)
@@ -62,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "  cellbridge mesh gen random 32 --seed 7 --loss 0.01\n"
         "  cellbridge mesh check line8.toml\n"
         "  cellbridge mesh run line8.toml --seconds 5 --scenario presses.toml --capture out/\n"
-        "  cellbridge mesh up line8.toml                   # one process per bridge"
+        "  cellbridge mesh up line8.toml                   # one process per bridge\n"
+        "  cellbridge mesh up grid8.toml --reporting event:40:1000   # idle elements: heartbeats only"
     )
     sub = parser.add_subparsers(dest="mesh_command", metavar="ACTION", required=True)
     gen = sub.add_parser("gen", help="write a generated mesh file (line N | ring N | grid R C | random N)")
@@ -82,6 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rn.add_argument("--scenario", help="TOML file of [[contact]] stimuli")
     rn.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
     rn.add_argument("--rate", type=rate_arg, default=100, help="sampling rate in Hz, 1..250 (default 100)")
+    rn.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE", help=REPORTING_HELP)
     rn.add_argument("--capture", metavar="DIR",
                     help="write each gateway's serial stream to DIR/gateway-<id>.bin (read it with cellbridge decode)")
     up = sub.add_parser("up", help="start the medium, the world and one process per bridge (real time)")

@@ -25,11 +25,14 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.gateway_port import GatewayPort, open_pty
 from cellbridge.emulator.mesh import MeshError, load_mesh
-from cellbridge.emulator.process_medium import _CELL, _CS, pack_cells
+from cellbridge.emulator.medium_wire import (
+    CARRIER, EVENTS, NOBLOCK, POLLIN, RX, WANT_OFF, WANT_ON, decode_carrier, decode_rx, encode_tx,
+)
 from cellbridge.emulator.process_world import decode_contacts
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.realtime import (
-    CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
+    CLOCK_HZ, REPORTING_HELP, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
+    reporting_arg,
 )
 from cellbridge.emulator.virtual import default_chip
 from cellbridge.emulator.world import World
@@ -48,6 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the chip noise and backoff (default 0)")
     parser.add_argument("--rate", type=rate_arg, default=100,
                         help="sampling rate in Hz at power-on, 1..250 (default 100)")
+    parser.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE",
+                        help=REPORTING_HELP)
     parser.add_argument("--tcp", type=int, default=None, metavar="PORT",
                         help="gateway: also serve the serial stream on 127.0.0.1:PORT (0 = any free port)")
     parser.add_argument("--pty-fd", type=int, default=None, help=argparse.SUPPRESS)  # from mesh up
@@ -79,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
 
     world = World(mesh, bridges=[br.id])
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
-                                 settings=Settings(rate_hz=args.rate), ack_slack=ACK_SLACK,
+                                 settings=Settings(rate_hz=args.rate, reporting=args.reporting), ack_slack=ACK_SLACK,
                                  transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate),
                                  lazy_sampling=False),  # real gates, so late ones can be counted
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
@@ -115,22 +120,16 @@ def run(args: argparse.Namespace) -> int:
             if mark["asked"]:
                 mark.update(late=late, behind=behind, samples=fw.counters["samples"], set=True, asked=False)
             if medium in ready:
-                while True:
-                    try:
-                        msg = medium.recv_multipart(zmq.NOBLOCK)
-                    except zmq.Again:
-                        break
-                    if msg[0] == b"rx" and len(msg) == 3:
-                        fw.receive(msg[2], tick, _CELL.unpack(msg[1])[0])
-                    elif msg[0] == b"cs" and len(msg) == 2:
-                        cell, start, end = _CS.unpack(msg[1])
-                        fw.carrier(cell, start, end)
+                while medium.getsockopt(EVENTS) & POLLIN:  # drained without raising zmq.Again each time
+                    msg = medium.recv(NOBLOCK)
+                    kind = msg[0] if msg else -1
+                    if kind == RX and (rx := decode_rx(msg)) is not None:
+                        fw.receive(rx[1], tick, rx[0])
+                    elif kind == CARRIER and (cs := decode_carrier(msg)) is not None:
+                        fw.carrier(*cs)
             if stimuli in ready:
-                while True:
-                    try:
-                        world.set_contacts(decode_contacts(stimuli.recv(zmq.NOBLOCK)))
-                    except zmq.Again:
-                        break
+                while stimuli.getsockopt(EVENTS) & POLLIN:
+                    world.set_contacts(decode_contacts(stimuli.recv(NOBLOCK)))
             if port is not None:
                 data = port.read({k for k in ready if isinstance(k, int)})
                 if data:
@@ -141,17 +140,18 @@ def run(args: argparse.Namespace) -> int:
                 late += (tick - sampler.ready) // period + 1
                 behind += (tick - sampler.ready) // period
             out = fw.advance(tick)
-            if out is not None:
+            want = not fw.radio.idle
+            if out is not None:  # the contention state after it travels with it: one message
                 try:
-                    medium.send_multipart([b"tx", pack_cells(out[1]), out[0]], zmq.NOBLOCK)
+                    medium.send(encode_tx(out[1], out[0], want), NOBLOCK)
+                    wanting, told = want, tick
                 except zmq.Again:  # the medium is away: the transmission is lost, as on a cut cell
                     fw.counters["medium_unreachable"] += 1
             if port is not None and fw.serial_out:
                 port.write(fw.take_serial())
-            want = not fw.radio.idle
             if want != wanting or (want and tick - told > CLOCK_HZ):  # repeated: a medium may restart
                 try:
-                    medium.send_multipart([b"want", b"1" if want else b"0"], zmq.NOBLOCK)
+                    medium.send(WANT_ON if want else WANT_OFF, NOBLOCK)
                     wanting, told = want, tick
                 except zmq.Again:
                     pass

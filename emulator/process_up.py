@@ -22,7 +22,9 @@ import time
 
 from cellbridge.emulator.gateway_port import open_pty
 from cellbridge.emulator.mesh import load_mesh
-from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, die_with_parent, rate_arg
+from cellbridge.emulator.realtime import (
+    REPORTING_HELP, StopFlag, add_endpoint_arguments, die_with_parent, rate_arg, reporting_arg, reporting_text,
+)
 
 GRACE_S = 5.0
 
@@ -31,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", help="TOML file of [[contact]] stimuli, timed from start-up")
     parser.add_argument("--seed", type=int, default=0, help="seed of chip noise, backoff and loss (default 0)")
     parser.add_argument("--rate", type=rate_arg, default=100, help="sampling rate in Hz, 1..250 (default 100)")
+    parser.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE",
+                        help=REPORTING_HELP)
     parser.add_argument("--tcp", action="store_true",
                         help="also serve each gateway's stream on a TCP port (the mesh file's 'tcp', "
                              "else a free one), usable as pyserial's socket://127.0.0.1:PORT")
@@ -67,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         spawn("world", world)
         for b in mesh.bridges:
             cmd = _cmd("bridge", "--mesh", args.mesh, "--id", str(b.id), "--seed", str(args.seed),
-                       "--rate", str(args.rate), *common)
+                       "--rate", str(args.rate), "--reporting", reporting_text(args.reporting), *common)
             fds: tuple[int, ...] = ()
             if b.gateway:
                 master, slave, device = open_pty()

@@ -15,6 +15,10 @@ import math
 import signal
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from cellbridge.emulator.reporting import ReportingMode
 
 CLOCK_HZ = 50_000_000
 DEFAULT_BASE_PORT = 5570
@@ -67,6 +71,44 @@ def rate_arg(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc) if "sampling rate" in str(exc)
                                          else f"expected an integer rate in Hz, got {text!r}") from None
     return rate
+
+
+REPORTING_HELP = (
+    "what each bridge reports from power-on: 'periodic' (every sample, the default) or "
+    "'event[:THRESHOLD[:HEARTBEAT_MS]]': a sample is sent only when its c1 or c2 moved by more "
+    "than THRESHOLD counts (default 0: any change) since the last one sent, or HEARTBEAT_MS "
+    "(default 1000) passed; as the SET_REPORTING command (docs/protocol.md). Large skins fit "
+    "one 1 Mbit/s gateway link only this way (e.g. --reporting event:40:1000)")
+
+
+def reporting_arg(text: str) -> "ReportingMode":
+    """argparse type of ``--reporting``: ``periodic`` or ``event[:THRESHOLD[:HEARTBEAT_MS]]``,
+    the two modes of SET_REPORTING, so a skin can boot event-based without a host command."""
+    from cellbridge.emulator.reporting import DEFAULT_HEARTBEAT_MS, MAX_HEARTBEAT_MS, ReportingMode
+
+    parts = text.strip().lower().split(":")
+    if parts == ["periodic"]:
+        return ReportingMode()
+    if parts[0] != "event" or len(parts) > 3:
+        raise argparse.ArgumentTypeError(
+            f"expected 'periodic' or 'event[:THRESHOLD[:HEARTBEAT_MS]]', got {text!r}")
+    try:
+        threshold = int(parts[1]) if len(parts) > 1 and parts[1] else 0
+        heartbeat = int(parts[2]) if len(parts) > 2 and parts[2] else DEFAULT_HEARTBEAT_MS
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: THRESHOLD and HEARTBEAT_MS must be integers") from None
+    if not 0 <= threshold <= 0xFFFF_FFFF:
+        raise argparse.ArgumentTypeError(f"{text!r}: THRESHOLD {threshold} must be 0..{0xFFFF_FFFF}")
+    if not 0 <= heartbeat <= MAX_HEARTBEAT_MS:
+        raise argparse.ArgumentTypeError(f"{text!r}: HEARTBEAT_MS {heartbeat} must be 0..{MAX_HEARTBEAT_MS} "
+                                         f"(0: {DEFAULT_HEARTBEAT_MS})")
+    return ReportingMode(threshold, heartbeat or DEFAULT_HEARTBEAT_MS)
+
+
+def reporting_text(mode: "ReportingMode") -> str:
+    """The ``--reporting`` value that gives ``mode`` (a supervisor passes it on to bridges)."""
+    return "periodic" if mode.periodic else f"event:{mode.threshold}:{mode.heartbeat_ms}"
 
 
 def seconds_arg(text: str) -> float:

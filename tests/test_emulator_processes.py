@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import socket
@@ -9,6 +10,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -16,6 +18,8 @@ import serial
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.realtime import reporting_arg, reporting_text
+from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.protocol import Command, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
 
 PY = [sys.executable, "-m", "cellbridge"]
@@ -75,12 +79,14 @@ class Skin:
         return frames
 
 
-@pytest.fixture
-def skin(tmp_path: Path) -> Iterator[Skin]:
+@contextmanager
+def running_skin(tmp_path: Path, *extra: str) -> Iterator[Skin]:
+    """``mesh up`` of a 2x2 grid (gateway 1) with ``extra`` options; every process is
+    stopped afterwards, also when the test fails."""
     mesh_path = tmp_path / "skin-2x2.toml"
     mesh_path.write_text(mesh_to_toml(meshgen.grid(2, 2)))
     base = free_base_port()
-    proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(base), "--tcp"],
+    proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(base), "--tcp", *extra],
                             stdout=subprocess.PIPE, start_new_session=True)
     try:
         line = proc.stdout.readline().decode().split()  # type: ignore[union-attr]
@@ -96,6 +102,12 @@ def skin(tmp_path: Path) -> Iterator[Skin]:
             proc.wait()
         for pid in processes_mentioning(str(mesh_path)):  # a failed test still leaves nothing
             os.kill(pid, signal.SIGKILL)
+
+
+@pytest.fixture
+def skin(tmp_path: Path) -> Iterator[Skin]:
+    with running_skin(tmp_path) as s:
+        yield s
 
 
 def data_by_origin(frames: list[Frame]) -> dict[int, list]:
@@ -205,7 +217,7 @@ def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> 
 
     import zmq
 
-    from cellbridge.emulator.process_medium import pack_cells
+    from cellbridge.emulator.medium_wire import encode_tx
     from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
 
     mesh_path = tmp_path / "line-2.toml"
@@ -229,7 +241,7 @@ def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> 
         sock.connect(f"tcp://127.0.0.1:{base}")
         beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
         for _ in range(20):  # bridge 2 shares cell 1 and never connects
-            sock.send_multipart([b"tx", pack_cells((1,)), beacon])
+            sock.send(encode_tx((1,), beacon, False))
             time.sleep(0.05)
         time.sleep(0.3)
     finally:
@@ -275,4 +287,59 @@ def test_press_beside_the_skin_is_refused(tmp_path: Path) -> None:
         except subprocess.TimeoutExpired:
             os.killpg(world.pid, signal.SIGKILL)
             world.wait()
+    assert processes_mentioning(str(mesh_path)) == []
+
+
+def test_mesh_up_event_reporting_sends_heartbeats_when_idle_and_reports_a_press(tmp_path: Path) -> None:
+    # Booted event-based (threshold 40 counts, heartbeat 500 ms): an untouched skin sends
+    # a heartbeat per bridge twice a second instead of 100 samples; a press is reported.
+    with running_skin(tmp_path, "--reporting", "event:40:500") as skin, \
+            serial.Serial(skin.gateways[1][0], 115200, timeout=0.1) as pty:
+        skin.wait_for(pty, {1, 2, 3, 4}, seconds=20.0)
+        skin.read(pty, 1.0)  # start-up traffic drains
+        idle = data_by_origin(skin.read(pty, 3.0))
+        assert set(idle) == {1, 2, 3, 4}, idle.keys()
+        cycles = {b: sorted({s.cycle for s in v}) for b, v in idle.items()}  # a retried frame may repeat
+        assert all(len(c) >= 3 for c in cycles.values()), cycles  # periodic: ~300 each
+        gaps = {b: [y - x for x, y in zip(c, c[1:])] for b, c in cycles.items()}
+        assert all(g >= 400 * 50_000 for v in gaps.values() for g in v), gaps  # heartbeats only
+        rest = idle[4][-1].c1
+
+        r = subprocess.run([*PY, "press", "0.04", "0.04", "--force", "3", "--diameter", "0.02",
+                            "--duration", "2", "--base-port", str(skin.base)], capture_output=True, timeout=20)
+        assert r.returncode == 0, r.stderr
+        pressed = data_by_origin(skin.read(pty, 1.5))
+        assert any(s.c1 < rest - 200 for s in pressed.get(4, [])), pressed.get(4)
+        assert all(len(pressed.get(b, [])) <= 5 for b in (1, 2, 3)), {b: len(v) for b, v in pressed.items()}
+
+
+@pytest.mark.parametrize("text, mode", [
+    ("periodic", ReportingMode()),
+    ("event", ReportingMode(0, 1000)),
+    ("event:40", ReportingMode(40, 1000)),
+    ("event:40:250", ReportingMode(40, 250)),
+    ("Event:7:0", ReportingMode(7, 1000)),  # heartbeat 0 = the default, as in SET_REPORTING
+])
+def test_reporting_option_means_what_set_reporting_means(text: str, mode: ReportingMode) -> None:
+    got = reporting_arg(text)
+    assert got == mode
+    assert reporting_arg(reporting_text(got)) == got
+
+
+@pytest.mark.parametrize("text, says", [
+    ("events", "periodic"), ("event:x", "integers"), ("event:-1", "THRESHOLD"),
+    ("event:1:600001", "HEARTBEAT_MS"), ("event:1:2:3", "periodic"), ("", "periodic"),
+])
+def test_reporting_option_refuses_bad_values_naming_them(text: str, says: str) -> None:
+    with pytest.raises(argparse.ArgumentTypeError, match=says):
+        reporting_arg(text)
+
+
+def test_bad_reporting_option_is_refused_by_mesh_up_and_bridge(tmp_path: Path) -> None:
+    mesh_path = tmp_path / "g.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.grid(2, 2)))
+    for cmd in (["mesh", "up", str(mesh_path)], ["bridge", "--mesh", str(mesh_path), "--id", "1"],
+                ["mesh", "run", str(mesh_path)]):
+        r = subprocess.run([*PY, *cmd, "--reporting", "event:fast"], capture_output=True, timeout=30)
+        assert r.returncode == 2 and b"--reporting" in r.stderr and b"Traceback" not in r.stderr, (cmd, r.stderr)
     assert processes_mentioning(str(mesh_path)) == []

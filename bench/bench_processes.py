@@ -41,7 +41,8 @@ def free_base_port() -> int:
         return min(s.getsockname()[1], 60000)
 
 
-def bridge_pids(mesh_path: str) -> list[int]:
+def pids_of(mesh_path: str, role: bytes) -> list[int]:
+    """Processes of this mesh (its file on their command line) in one role (b"bridge", b"medium")."""
     out = []
     for pid in os.listdir("/proc"):
         if pid.isdigit():
@@ -49,32 +50,18 @@ def bridge_pids(mesh_path: str) -> list[int]:
                 cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
             except OSError:
                 continue
-            if mesh_path.encode() in cmd and b"bridge" in cmd:
+            if mesh_path.encode() in cmd and role in cmd:
                 out.append(int(pid))
     return out
 
 
-def catches_usr1(pid: int) -> bool:
-    """Whether the process has installed its SIGUSR1 handler (else the signal would kill it)."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("SigCgt:"):
-                return bool(int(line.split()[1], 16) & (1 << (signal.SIGUSR1 - 1)))
-    except OSError:
-        pass
-    return False
+def bridge_pids(mesh_path: str) -> list[int]:
+    return pids_of(mesh_path, b"bridge")
 
 
 def medium_pid(mesh_path: str) -> int | None:
-    for pid in os.listdir("/proc"):
-        if pid.isdigit():
-            try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-            except OSError:
-                continue
-            if mesh_path.encode() in cmd and b"medium" in cmd:
-                return int(pid)
-    return None
+    found = pids_of(mesh_path, b"medium")
+    return found[0] if found else None
 
 
 def cpu_seconds(pid: int) -> float:

@@ -59,6 +59,17 @@ def bridge_pids(mesh_path: str) -> list[int]:
     return pids_of(mesh_path, b"bridge")
 
 
+def catches_usr1(pid: int) -> bool:
+    """Whether the process has installed its SIGUSR1 handler (else the signal would kill it)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("SigCgt:"):
+                return bool(int(line.split()[1], 16) & (1 << (signal.SIGUSR1 - 1)))
+    except OSError:
+        pass
+    return False
+
+
 def medium_pid(mesh_path: str) -> int | None:
     found = pids_of(mesh_path, b"medium")
     return found[0] if found else None

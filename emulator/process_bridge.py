@@ -3,10 +3,13 @@
 The chip's cycle counter is the host's monotonic clock at 50 MHz. The loop sleeps in
 ``poll`` until the firmware's next timer or until a message arrives (the medium's
 carrier reports and deliveries, the world's contacts, the host's bytes on a gateway's
-serial line); nothing busy-waits. A gate whose sample is computed more than one gate
-late counts as ``late_gates``, the measure of whether a machine holds the mesh in
-real time; one taken more than a whole sampling period late (the bridge fell behind)
-also counts as ``behind_gates``. SIGUSR1 marks a moment (``late_gates_since_mark`` and
+serial line); nothing busy-waits. Samples are computed lazily, when their DATA frame
+(or the decision that none is due) is, with the capacitance at their gate: the bridge
+wakes once per frame, not once per gate, and the cell sees the same frames at the same
+times. A sample computed at a wake that came more than one gate (2 ms) after the
+firmware asked for it counts as ``late_gates``, the measure of whether a machine
+holds the mesh in real time; more than a whole sampling period after (the bridge
+fell behind), also as ``behind_gates``. SIGUSR1 marks a moment (``late_gates_since_mark`` and
 ``samples_since_mark`` count from it: a benchmark marks the end of start-up). On
 SIGTERM/SIGINT it prints its counters as JSON on stderr and exits.
 """
@@ -86,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
                                  settings=Settings(rate_hz=args.rate, reporting=args.reporting), ack_slack=ACK_SLACK,
                                  transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate),
-                                 lazy_sampling=False),  # real gates, so late ones can be counted
+                                 lazy_sampling=True),
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
     port = None
     if br.gateway:
@@ -114,9 +117,11 @@ def run(args: argparse.Namespace) -> int:
                 for fd in registered - fds:
                     poller.unregister(fd)
                 registered = fds
+            due = fw.sampler.next_tick  # when the samples computed at the next wake were wanted
             wait_ms = max(0, math.ceil((fw.next_tick - now_tick()) * 1000 / CLOCK_HZ))  # never spin
             ready = dict(poller.poll(min(wait_ms, 200)))
             tick = now_tick()
+            taken = fw.counters["samples"]
             if mark["asked"]:
                 mark.update(late=late, behind=behind, samples=fw.counters["samples"], set=True, asked=False)
             if medium in ready:
@@ -129,17 +134,22 @@ def run(args: argparse.Namespace) -> int:
                         fw.carrier(*cs)
             if stimuli in ready:
                 while stimuli.getsockopt(EVENTS) & POLLIN:
-                    world.set_contacts(decode_contacts(stimuli.recv(NOBLOCK)))
+                    contacts = decode_contacts(stimuli.recv(NOBLOCK))
+                    if contacts is None:
+                        fw.counters["stimuli_malformed"] += 1
+                    else:
+                        world.set_contacts(contacts)
             if port is not None:
                 data = port.read({k for k in ready if isinstance(k, int)})
                 if data:
                     fw.serial_in(data, tick)
-            sampler = fw.sampler
-            if sampler.ready + sampler.settings.gate_cycles < tick:  # more than one gate late
-                period = sampler.settings.period_cycles(CLOCK_HZ)
-                late += (tick - sampler.ready) // period + 1
-                behind += (tick - sampler.ready) // period
             out = fw.advance(tick)
+            settings = fw.sampler.settings
+            if tick - due > settings.gate_cycles:  # this wake came more than one gate late
+                n = fw.counters["samples"] - taken
+                late += n
+                if tick - due > settings.period_cycles(CLOCK_HZ):
+                    behind += n
             want = not fw.radio.idle
             if out is not None:  # the contention state after it travels with it: one message
                 try:

@@ -3,7 +3,9 @@
 The world process owns the list of contacts (from a scenario file, plus presses
 injected live) and publishes all of it on a PUB socket whenever it changes and every
 half second, so a bridge that (re)connects late has it within 0.5 s. Contact times
-on the wire are absolute host monotonic seconds, the bridges' clock. ``press`` sends
+on the wire are absolute host monotonic seconds, the bridges' clock. A contact stays
+in the list for ``KEEP_ENDED_S`` after it ends: bridges compute samples lazily (up to a
+DATA frame's latency after their gate), and a sample taken during a press must see it. ``press`` sends
 one contact to the world's control socket (REQ/REP, :mod:`.process_press`).
 """
 
@@ -21,17 +23,20 @@ from cellbridge.emulator.mesh import Mesh, MeshError, load_mesh
 from cellbridge.emulator.world import Contact, ScenarioError, check_on_skin, contact_from_mapping, load_scenario
 
 REPUBLISH_S = 0.5
+KEEP_ENDED_S = 2.0  #: well beyond a bridge's lazy-sampling horizon (a frame's max latency, 50 ms)
 
 
 def encode_contacts(contacts: list[Contact]) -> bytes:
     return msgpack.packb([[c.start, c.duration, c.x, c.y, c.force, c.diameter, c.vx, c.vy] for c in contacts])
 
 
-def decode_contacts(data: bytes) -> list[Contact]:
+def decode_contacts(data: bytes) -> list[Contact] | None:
+    """The contacts, or None for a malformed message (ignored, never fatal to a bridge,
+    and never taken for "no contacts", which would release every press)."""
     try:
         return [Contact(*map(float, row)) for row in msgpack.unpackb(data)]
-    except Exception:  # a malformed message is ignored, never fatal to a bridge
-        return []
+    except Exception:
+        return None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -69,7 +74,7 @@ def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag, mes
                     ctl.send(msgpack.packb({"ok": False, "error": str(exc)}))
             now = time.monotonic()
             if now - last >= REPUBLISH_S:
-                contacts[:] = [c for c in contacts if c.start + c.duration > now]
+                contacts[:] = [c for c in contacts if c.start + c.duration > now - KEEP_ENDED_S]
                 pub.send(encode_contacts(contacts))
                 last = now
     finally:

@@ -46,11 +46,15 @@ class Sampler:
 
     @property
     def next_tick(self) -> int:
-        """When sampling next needs the bridge's attention. Periodic reports change nothing
-        outside the bridge until a DATA frame is due (full, or ``max_latency`` old), so
-        with ``lazy`` the samples in between are computed then, all at once, with the
-        same cycles and values (a virtual-time speed-up, invisible on the cell)."""
-        if not (self.lazy and self.reporter.mode.periodic):
+        """When sampling next needs the bridge's attention. Samples change nothing outside
+        the bridge until a DATA frame is due (full, or its oldest sample ``max_latency``
+        old), so with ``lazy`` the samples in between are computed then, all at once, with
+        the same cycles and values: invisible on the cell, and a bridge wakes once per
+        frame instead of once per gate. Event-based reporting too: the wake is planned as
+        if every sample were kept (the earliest a frame can be due), and a sample kept
+        there waits ``max_latency`` for company anyway. The capacitance a lazily computed
+        sample sees is the one at its gate (``sense`` is called with the gate's tick)."""
+        if not self.lazy:
             return self.ready if self.flush_at < 0 else min(self.ready, self.flush_at)
         room = max(1, min(self.batch_max - len(self.batch),
                           (MAX_FRAME - _DATA_OVERHEAD - self.batch_bytes) // _MAX_SAMPLE_BYTES))

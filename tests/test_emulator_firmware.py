@@ -214,6 +214,28 @@ def test_lazy_sampling_keeps_the_samples_due_before_a_command(op: Op, value: int
     assert lazy == eager
 
 
+def test_event_reporting_lazy_sampling_sends_what_gate_by_gate_sampling_sends() -> None:
+    # The real-time bridge computes event-based samples lazily (once per frame, not per
+    # gate): the frames, their samples and their times on the cell must be exactly those
+    # of gate-by-gate sampling, presses included (the capacitance is the one at the gate).
+    mesh = meshgen.line(3)
+    presses = [Contact(0.8, 0.3, 0.04, 0.0, 2.0, 0.02), Contact(1.6, 0.05, 0.08, 0.0, 4.0, 0.02)]
+
+    def run(lazy: bool) -> tuple[dict, list]:
+        vm = VirtualMesh(mesh, seed=5, world=World(mesh, list(presses)), lazy_sampling=lazy,
+                         settings=Settings(reporting=ReportingMode(40, 300)))
+        written: list[tuple[int, bytes]] = []  # (tick, bytes) on the gateway's serial line
+        serial_out = vm._gateway_out
+        vm._gateway_out = lambda b, data: (written.append((vm.tick, data)), serial_out(b, data))  # type: ignore[method-assign]
+        return vm.run(2.5).samples(), written
+
+    (lazy_samples, lazy_frames), (eager_samples, eager_frames) = run(True), run(False)
+    pressed = [s for s in eager_samples[2] if 0.8 * CLOCK_HZ <= s.cycle < 1.2 * CLOCK_HZ]
+    assert len(pressed) >= 2  # the press and its release were reported
+    assert lazy_samples == eager_samples
+    assert lazy_frames == eager_frames
+
+
 def test_counters_never_go_back_across_a_reset_command() -> None:
     # A RESET rebuilds the link, radio and router; the totals a user reads must keep
     # what earlier lives counted (only states such as queue_len start again).

@@ -1,35 +1,39 @@
-"""The messages between bridge processes and the medium process (one ZeroMQ frame each).
+"""The datagrams between bridge processes and the medium process.
 
-Every message is a single ZeroMQ frame whose first byte says what it is (the medium's
-ROUTER adds the bridge's identity frame in front). One frame rather than a multipart
-message, and the contention state carried inside the transmission that changes it,
-because at 100 Hz on dozens of bridges the cost of a message is mostly per frame and
-per wake-up of the ZeroMQ I/O threads, not per byte:
+Bridges and the medium exchange UDP datagrams (loopback by default; the medium's
+address may be another host's). One datagram per message, its first byte says what
+it is. UDP rather than a message library: at 100 Hz on dozens of bridges the cost
+of a message is per wake-up and per system call, and a datagram is one ``send`` and
+one ``recv`` with no I/O thread in between (a ZeroMQ message cost ~75 µs of CPU at
+the receiver on the development VM, a datagram ~10 µs: ``bench/bench_processes.py``).
 
-* bridge → medium ``TX``: ``b"t"``, want (``b"1"`` the transceiver still contends
-  after this transmission, ``b"0"`` not), u8 number of cells, u32 big-endian cells, frame;
-* bridge → medium ``WANT``: ``b"w"`` then ``b"1"`` or ``b"0"`` (contending or not);
-* medium → bridge ``CARRIER``: ``b"c"``, cell u32, start u64, end u64 (ticks);
-* medium → bridge ``RX``: ``b"r"``, cell u32, the frame as received.
+Bridge → medium messages carry the sender's id (the medium learns each bridge's
+address from them, so a bridge or the medium may restart at any time):
+
+* ``TX``: ``b"t"``, bridge u32, want (``b"1"`` the transceiver still contends after
+  this transmission, ``b"0"`` not), u8 number of cells, u32 cells, frame;
+* ``WANT``: ``b"w"``, bridge u32, ``b"1"`` or ``b"0"`` (contending or not); a bridge
+  also sends it at least once a second, so a medium that restarted learns it is there.
+
+Medium → bridge:
+
+* ``CARRIER``: ``b"c"``, cell u32, start u64, end u64 (ticks);
+* ``RX``: ``b"r"``, cell u32, the frame as received.
+
+All integers big-endian. A malformed message decodes to None, never an exception.
 """
 
 from __future__ import annotations
 
 import struct
 
-import zmq
-
 TX, WANT, CARRIER, RX = b"t"[0], b"w"[0], b"c"[0], b"r"[0]
+MAX_DATAGRAM = 2048  #: larger than any message (a frame is at most 255 bytes)
 _CS = struct.Struct(">cIQQ")
 _RX = struct.Struct(">cI")
-_TX = struct.Struct(">ccB")
+_TX = struct.Struct(">cIcB")
+_WANT = struct.Struct(">cIc")
 _CELL = struct.Struct(">I")
-WANT_ON, WANT_OFF = b"w1", b"w0"
-
-#: pyzmq flags as plain ints: or-ing its enum flags per message costs microseconds
-NOBLOCK = int(zmq.NOBLOCK)
-MORE_NOBLOCK = int(zmq.SNDMORE | zmq.NOBLOCK)
-EVENTS, POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)
 
 
 def pack_cells(cells: tuple[int, ...]) -> bytes:
@@ -40,19 +44,36 @@ def unpack_cells(data: bytes) -> tuple[int, ...]:
     return tuple(_CELL.unpack_from(data, i)[0] for i in range(0, len(data) - len(data) % 4, 4))
 
 
-def encode_tx(cells: tuple[int, ...], frame: bytes, want: bool) -> bytes:
-    return _TX.pack(b"t", b"1" if want else b"0", len(cells)) + pack_cells(cells) + frame
+def encode_tx(bridge: int, cells: tuple[int, ...], frame: bytes, want: bool) -> bytes:
+    return _TX.pack(b"t", bridge, b"1" if want else b"0", len(cells)) + pack_cells(cells) + frame
 
 
-def decode_tx(msg: bytes) -> tuple[tuple[int, ...], bytes, bool] | None:
-    """(cells, frame, still contending), or None for a malformed message."""
-    if len(msg) < _TX.size:
+def decode_tx(msg: bytes) -> tuple[int, tuple[int, ...], bytes, bool] | None:
+    """(bridge, cells, frame, still contending), or None for a malformed message."""
+    if len(msg) < _TX.size or msg[0] != TX:
         return None
-    _, want, n = _TX.unpack_from(msg)
+    _, bridge, want, n = _TX.unpack_from(msg)
     end = _TX.size + 4 * n
     if n == 0 or len(msg) < end or want not in (b"0", b"1"):
         return None
-    return unpack_cells(msg[_TX.size:end]), msg[end:], want == b"1"
+    return bridge, unpack_cells(msg[_TX.size:end]), msg[end:], want == b"1"
+
+
+def encode_want(bridge: int, on: bool) -> bytes:
+    return _WANT.pack(b"w", bridge, b"1" if on else b"0")
+
+
+def decode_want(msg: bytes) -> tuple[int, bool] | None:
+    """(bridge, contending), or None for a malformed message."""
+    if len(msg) != _WANT.size or msg[0] != WANT:
+        return None
+    _, bridge, on = _WANT.unpack(msg)
+    return (bridge, on == b"1") if on in (b"0", b"1") else None
+
+
+def sender(msg: bytes) -> int | None:
+    """The bridge id a bridge → medium message names, without decoding the rest."""
+    return _CELL.unpack_from(msg, 1)[0] if len(msg) >= 5 else None
 
 
 def encode_carrier(cell: int, start: int, end: int) -> bytes:
@@ -60,7 +81,7 @@ def encode_carrier(cell: int, start: int, end: int) -> bytes:
 
 
 def decode_carrier(msg: bytes) -> tuple[int, int, int] | None:
-    if len(msg) != _CS.size:
+    if len(msg) != _CS.size or msg[0] != CARRIER:
         return None
     _, cell, start, end = _CS.unpack(msg)
     return cell, start, end
@@ -71,6 +92,6 @@ def encode_rx(cell: int, frame: bytes) -> bytes:
 
 
 def decode_rx(msg: bytes) -> tuple[int, bytes] | None:
-    if len(msg) < _RX.size:
+    if len(msg) < _RX.size or msg[0] != RX:
         return None
     return _RX.unpack_from(msg)[1], msg[_RX.size:]

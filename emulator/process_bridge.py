@@ -9,27 +9,33 @@ wakes once per frame, not once per gate, and the cell sees the same frames at th
 times. A sample computed at a wake that came more than one gate (2 ms) after the
 firmware asked for it counts as ``late_gates``, the measure of whether a machine
 holds the mesh in real time; more than a whole sampling period after (the bridge
-fell behind), also as ``behind_gates``. SIGUSR1 marks a moment (``late_gates_since_mark`` and
-``samples_since_mark`` count from it: a benchmark marks the end of start-up). On
+fell behind), also as ``behind_gates``. SIGUSR1 opens a window (``late_gates_since_mark``,
+``behind_gates_since_mark`` and ``samples_since_mark`` count in it: a benchmark marks
+the end of start-up) and a second SIGUSR1 closes it (so that the stop of many processes
+at once is not measured). On
 SIGTERM/SIGINT it prints its counters as JSON on stderr and exits.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
+import select
 import signal
+import socket
 import sys
 
 import zmq
 
+from cellbridge.emulator import udp
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.gateway_port import GatewayPort, open_pty
 from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
-    CARRIER, EVENTS, NOBLOCK, POLLIN, RX, WANT_OFF, WANT_ON, decode_carrier, decode_rx, encode_tx,
+    CARRIER, MAX_DATAGRAM, RX, decode_carrier, decode_rx, encode_tx, encode_want,
 )
 from cellbridge.emulator.process_world import decode_contacts
 from cellbridge.emulator.transceiver import TransceiverConfig
@@ -42,6 +48,9 @@ from cellbridge.emulator.world import World
 
 
 ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the medium: allow 10 ms
+STIMULI_CHECK = CLOCK_HZ // 5  # the world's socket is looked at at least this often (its fd is edge-like)
+_POLLIN = select.POLLIN
+_EVENTS, _ZMQ_POLLIN, _NOBLOCK = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.NOBLOCK)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,8 +72,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    mark = {"late": 0, "behind": 0, "samples": 0, "set": False, "asked": False}
-    signal.signal(signal.SIGUSR1, lambda *_: mark.update(asked=True))  # before anything slow
+    window = Window()
+    signal.signal(signal.SIGUSR1, window.ask)  # before anything slow
     try:
         mesh = load_mesh(args.mesh)
         br = mesh.bridge(args.id)
@@ -73,13 +82,13 @@ def run(args: argparse.Namespace) -> int:
         return 2
     ep = endpoints(args)
     stop = StopFlag()
+    try:
+        medium = udp.connect(*ep.medium)
+    except OSError as exc:
+        print(f"cellbridge bridge: cannot reach the medium at UDP {ep.host}:{ep.base_port}: "
+              f"{exc.strerror or exc}", file=sys.stderr)
+        return 1
     ctx = zmq.Context.instance()
-    medium = ctx.socket(zmq.DEALER)
-    medium.setsockopt(zmq.IDENTITY, str(br.id).encode())
-    medium.setsockopt(zmq.LINGER, 0)
-    medium.setsockopt(zmq.SNDHWM, 1000)
-    medium.setsockopt(zmq.IMMEDIATE, 1)  # no medium: a transmission is lost now, not replayed later
-    medium.connect(ep.medium)
     stimuli = ctx.socket(zmq.SUB)
     stimuli.setsockopt(zmq.LINGER, 0)
     stimuli.setsockopt(zmq.SUBSCRIBE, b"")
@@ -88,8 +97,7 @@ def run(args: argparse.Namespace) -> int:
     world = World(mesh, bridges=[br.id])
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
                                  settings=Settings(rate_hz=args.rate, reporting=args.reporting), ack_slack=ACK_SLACK,
-                                 transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate),
-                                 lazy_sampling=True),
+                                 transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate)),
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
     port = None
     if br.gateway:
@@ -102,45 +110,64 @@ def run(args: argparse.Namespace) -> int:
         if port.tcp_port is not None:
             print(f"gateway {br.id} socket://127.0.0.1:{port.tcp_port}", flush=True)
 
-    poller = zmq.Poller()
-    poller.register(medium, zmq.POLLIN)
-    poller.register(stimuli, zmq.POLLIN)
+    # select.poll, not zmq.Poller: the cell's datagrams are plain fds, and zmq_poll costs
+    # tens of microseconds a call. The world's SUB socket joins by its ZMQ_FD, which only
+    # says "look at ZMQ_EVENTS": it is drained when that fd wakes us and every 200 ms.
+    poller = select.poll()
+    medium_fd, stimuli_fd = medium.fileno(), stimuli.getsockopt(zmq.FD)
+    poller.register(medium_fd, _POLLIN)
+    poller.register(stimuli_fd, _POLLIN)
     registered: set[int] = set()
     late = behind = 0
-    wanting, told = False, 0.0  # contention state last reported to the medium, and when
+    wanting, told = False, -CLOCK_HZ  # contention state last told the medium, and when
+    stimuli_at = 0
+    me = br.id
+    # What start-up built (modules, the chip, the layout) lives as long as the process:
+    # out of the collector's reach, a full collection scans only what the loop made
+    # (it took ~6 ms, more with cold caches, and a wake that late is a late gate).
+    gc.freeze()
     try:
         while not stop.stopped:
             if port is not None:
                 fds = set(port.fds())
                 for fd in fds - registered:
-                    poller.register(fd, zmq.POLLIN)
+                    poller.register(fd, _POLLIN)
                 for fd in registered - fds:
                     poller.unregister(fd)
                 registered = fds
             due = fw.sampler.next_tick  # when the samples computed at the next wake were wanted
             wait_ms = max(0, math.ceil((fw.next_tick - now_tick()) * 1000 / CLOCK_HZ))  # never spin
-            ready = dict(poller.poll(min(wait_ms, 200)))
+            ready = {fd for fd, _ in poller.poll(min(wait_ms, 200))}
             tick = now_tick()
             taken = fw.counters["samples"]
-            if mark["asked"]:
-                mark.update(late=late, behind=behind, samples=fw.counters["samples"], set=True, asked=False)
-            if medium in ready:
-                while medium.getsockopt(EVENTS) & POLLIN:  # drained without raising zmq.Again each time
-                    msg = medium.recv(NOBLOCK)
+            if window.asked:
+                window.take((late, behind, fw.counters["samples"]))
+            if medium_fd in ready:
+                while True:
+                    try:
+                        msg = medium.recv(MAX_DATAGRAM)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    except OSError:  # an earlier send found no medium listening
+                        fw.counters["medium_unreachable"] += 1
+                        continue
                     kind = msg[0] if msg else -1
                     if kind == RX and (rx := decode_rx(msg)) is not None:
                         fw.receive(rx[1], tick, rx[0])
                     elif kind == CARRIER and (cs := decode_carrier(msg)) is not None:
                         fw.carrier(*cs)
-            if stimuli in ready:
-                while stimuli.getsockopt(EVENTS) & POLLIN:
-                    contacts = decode_contacts(stimuli.recv(NOBLOCK))
+                    else:
+                        fw.counters["medium_malformed"] += 1
+            if stimuli_fd in ready or tick >= stimuli_at:
+                stimuli_at = tick + STIMULI_CHECK
+                while stimuli.getsockopt(_EVENTS) & _ZMQ_POLLIN:
+                    contacts = decode_contacts(stimuli.recv(_NOBLOCK))
                     if contacts is None:
                         fw.counters["stimuli_malformed"] += 1
                     else:
                         world.set_contacts(contacts)
             if port is not None:
-                data = port.read({k for k in ready if isinstance(k, int)})
+                data = port.read(ready)
                 if data:
                     fw.serial_in(data, tick)
             out = fw.advance(tick)
@@ -152,28 +179,20 @@ def run(args: argparse.Namespace) -> int:
                     behind += n
             want = not fw.radio.idle
             if out is not None:  # the contention state after it travels with it: one message
-                try:
-                    medium.send(encode_tx(out[1], out[0], want), NOBLOCK)
+                if _send(medium, encode_tx(me, out[1], out[0], want), fw):
                     wanting, told = want, tick
-                except zmq.Again:  # the medium is away: the transmission is lost, as on a cut cell
-                    fw.counters["medium_unreachable"] += 1
             if port is not None and fw.serial_out:
                 port.write(fw.take_serial())
-            if want != wanting or (want and tick - told > CLOCK_HZ):  # repeated: a medium may restart
-                try:
-                    medium.send(WANT_ON if want else WANT_OFF, NOBLOCK)
+            if want != wanting or tick - told > CLOCK_HZ:  # also once a second: a medium may restart
+                if _send(medium, encode_want(me, want), fw):
                     wanting, told = want, tick
-                except zmq.Again:
-                    pass
     finally:
         fw.power_off()  # what this process still held is lost with it: counted
         counters = fw.counters_snapshot()
         counters["late_gates"] = late
         counters["behind_gates"] = behind
-        if mark["set"]:
-            counters["late_gates_since_mark"] = late - mark["late"]
-            counters["behind_gates_since_mark"] = behind - mark["behind"]
-            counters["samples_since_mark"] = fw.counters["samples"] - mark["samples"]
+        counters["udp_drops"] = udp.drops(medium)
+        counters.update(window.report((late, behind, fw.counters["samples"])))
         if port is not None:
             counters.update(port.counters)
             port.close()
@@ -183,3 +202,40 @@ def run(args: argparse.Namespace) -> int:
         medium.close()
         stimuli.close()
     return 0
+
+
+class Window:
+    """The measuring window SIGUSR1 opens and a second SIGUSR1 closes (late, behind and
+    samples counted in it). The handler only counts; the loop takes the marks."""
+
+    NAMES = ("late_gates_since_mark", "behind_gates_since_mark", "samples_since_mark")
+
+    def __init__(self) -> None:
+        self.asked = 0
+        self.marks: list[tuple[int, int, int]] = []
+
+    def ask(self, *_: object) -> None:
+        self.asked += 1
+
+    def take(self, now: tuple[int, int, int]) -> None:
+        for _ in range(self.asked):
+            if len(self.marks) < 2:
+                self.marks.append(now)
+        self.asked = 0
+
+    def report(self, now: tuple[int, int, int]) -> dict[str, int]:
+        if not self.marks:
+            return {}
+        end = self.marks[1] if len(self.marks) > 1 else now
+        return {name: b - a for name, a, b in zip(self.NAMES, self.marks[0], end)}
+
+
+def _send(medium: socket.socket, msg: bytes, fw: Firmware) -> bool:
+    """One datagram to the medium; False (counted) when it cannot go: no medium is
+    listening (the transmission is lost, as on a cut cell) or the socket is full."""
+    try:
+        medium.send(msg)
+        return True
+    except OSError:
+        fw.counters["medium_unreachable"] += 1
+        return False

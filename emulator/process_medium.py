@@ -1,44 +1,53 @@
-"""``cellbridge medium``: relays transmissions between bridge processes over ZeroMQ.
+"""``cellbridge medium``: relays transmissions between bridge processes over UDP.
 
-A thin shell around :class:`~cellbridge.emulator.medium.Medium`: bridges connect a
-DEALER socket (identity = bridge id) to this ROUTER. The messages (transmissions with
-the sender's contention state, contention changes, carrier reports, deliveries; one
-ZeroMQ frame each) are in :mod:`cellbridge.emulator.medium_wire`.
+A thin shell around :class:`~cellbridge.emulator.medium.Medium`: bridges send their
+transmissions and contention changes as datagrams to this process's UDP port (the
+base port); it sends carrier reports and deliveries back (messages in
+:mod:`cellbridge.emulator.medium_wire`). It learns each bridge's address from the
+bridge's own messages (every bridge says it is there at least once a second), so a
+bridge or this process may die and return at any time.
 
 Carrier reports go only to bridges that are contending (one that starts contending
 first gets the carrier already on its cells): an idle transceiver ignores carrier,
 and these messages would otherwise cost every bridge more CPU than its firmware.
 
 Ticks are 50 MHz cycles of the host's monotonic clock (shared by every process on the
-host). ZeroMQ reconnects by itself, so a bridge or this process may die and return;
-a message for a bridge that is not connected (or not reading) is lost and counted
-(``rx_unreachable``, ``rx_backlog``, ``carrier_*``), as a delivery to a dead bridge is.
+host). A message for a bridge not heard from for ``GONE_S`` (dead, not started, or not
+heard yet by a restarted medium) is lost and counted (``rx_unreachable``,
+``carrier_unreachable``), as a delivery to a dead bridge is; one the kernel could not
+queue counts as ``*_backlog``, and datagrams the kernel dropped on arrival as
+``udp_drops``.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import heapq
 import math
+import select
+import socket
 import sys
 from collections import Counter
 
-import zmq
-
+from cellbridge.emulator import udp
 from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
-    EVENTS, MORE_NOBLOCK, NOBLOCK, POLLIN, TX, WANT, WANT_OFF, WANT_ON, decode_tx, encode_carrier, encode_rx,
+    MAX_DATAGRAM, TX, WANT, decode_tx, decode_want, encode_carrier, encode_rx, sender,
 )
 from cellbridge.emulator.rawframe import addressed_to
 from cellbridge.emulator.realtime import (
     CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick,
 )
 
+GONE_S = 3.0  #: a bridge silent this long is taken for gone (it says it is there every second)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = ("Relay cell transmissions between bridge processes (collisions, loss and "
-                          "bit errors as in the mesh file). Started by 'cellbridge mesh up'; run it "
-                          "yourself to put bridges on other hosts.")
+                          "bit errors as in the mesh file) over UDP on the base port. Started by "
+                          "'cellbridge mesh up'; run it yourself to put bridges on other hosts.")
     parser.add_argument("--mesh", required=True, help="mesh file (TOML)")
     parser.add_argument("--seed", type=int, default=0, help="seed of loss and bit errors (default 0)")
     parser.add_argument("--bind", default=None,
@@ -46,38 +55,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_endpoint_arguments(parser)
 
 
-def _send(sock: zmq.Socket, to: bytes, msg: bytes, counters: Counter[str], what: str) -> None:
-    """Send to one bridge without blocking; a bridge not connected (dead, not started, or
-    not heard yet by a restarted medium) or not reading counts as ``<what>_unreachable``
-    or ``<what>_backlog``. (The identity part fails or the whole message goes.)"""
-    try:
-        sock.send(to, MORE_NOBLOCK)
-        sock.send(msg, NOBLOCK)
-    except zmq.Again:
-        counters[f"{what}_backlog"] += 1
-    except zmq.ZMQError as exc:
-        if exc.errno != zmq.EHOSTUNREACH:
-            raise
-        counters[f"{what}_unreachable"] += 1
+class Bridges:
+    """Where each bridge process is, as its own messages say, and whether it still is."""
+
+    def __init__(self, sock: socket.socket, ids: tuple[int, ...], counters: Counter[str]) -> None:
+        self.sock = sock
+        self.known = set(ids)
+        self.addr: dict[int, object] = {}
+        self.heard: dict[int, int] = {}
+        self.counters = counters
+        self.gone = int(GONE_S * CLOCK_HZ)
+
+    def heard_from(self, bridge: int, addr: object, tick: int) -> None:
+        self.addr[bridge] = addr  # a restarted bridge comes from a new port: it takes its id back
+        self.heard[bridge] = tick
+
+    def send(self, bridge: int, msg: bytes, tick: int, what: str) -> None:
+        addr = self.addr.get(bridge)
+        if addr is None or tick - self.heard[bridge] > self.gone:
+            self.counters[f"{what}_unreachable"] += 1
+            return
+        try:
+            self.sock.sendto(msg, addr)
+        except BlockingIOError:
+            self.counters[f"{what}_backlog"] += 1
+        except OSError:
+            self.counters[f"{what}_unreachable"] += 1
 
 
-def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
-    ctx = zmq.Context.instance()
-    sock = ctx.socket(zmq.ROUTER)
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.setsockopt(zmq.ROUTER_HANDOVER, 1)  # a restarted bridge takes its identity back
-    sock.setsockopt(zmq.ROUTER_MANDATORY, 1)  # an unroutable message raises: counted, not silent
-    sock.bind(endpoint)
-    poller = zmq.Poller()  # one, not one per wait (Socket.poll builds a Poller each call)
-    poller.register(sock, zmq.POLLIN)
-    known = {str(b).encode(): b for b in medium.mesh.ids}
-    ident = {b: str(b).encode() for b in medium.mesh.ids}
+def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
+    """Relay until ``stop``; ``sock`` is the bound, non-blocking UDP socket."""
+    poller = select.poll()
+    poller.register(sock, select.POLLIN)
+    counters = medium.counters
+    bridges = Bridges(sock, medium.mesh.ids, counters)
     cells_of = {b.id: b.cells for b in medium.mesh.bridges}
     pending: list[tuple[int, int, Transmission]] = []
     busy: dict[int, tuple[int, int]] = {}  # cell -> (start, end) of its latest transmission
     contending: set[int] = set()
-    counters = medium.counters
-    rcvmore = zmq.RCVMORE
 
     def want(src: int, on: bool, tick: int) -> None:
         if on:
@@ -85,51 +100,53 @@ def serve(medium: Medium, endpoint: str, stop: StopFlag) -> None:
                 contending.add(src)
                 for c in cells_of[src]:
                     if c in busy and busy[c][1] > tick:
-                        _send(sock, ident[src], encode_carrier(c, *busy[c]), counters, "carrier")
+                        bridges.send(src, encode_carrier(c, *busy[c]), tick, "carrier")
         else:
             contending.discard(src)
 
-    try:
-        while not stop.stopped:
-            timeout = 100
-            if pending:
-                timeout = max(0, math.ceil((pending[0][0] - now_tick()) * 1000 / CLOCK_HZ))
-            if poller.poll(timeout):
-                while sock.getsockopt(EVENTS) & POLLIN:  # drained without raising zmq.Again each time
-                    who = sock.recv(NOBLOCK)
-                    msg = sock.recv(NOBLOCK) if sock.getsockopt(rcvmore) else b""
-                    extra = False
-                    while sock.getsockopt(rcvmore):  # not ours: drain the rest of it
-                        sock.recv(NOBLOCK)
-                        extra = True
-                    src = known.get(who)
-                    tick = now_tick()
-                    kind = msg[0] if msg and not extra and src is not None else -1
-                    if kind == WANT and msg in (WANT_ON, WANT_OFF):
-                        want(src, msg == WANT_ON, tick)  # type: ignore[arg-type]
-                        continue
-                    tx_msg = decode_tx(msg) if kind == TX else None
-                    if tx_msg is None:
-                        counters["bad_messages"] += 1
-                        continue
-                    cells, frame, still = tx_msg
-                    tx = medium.start(src, frame, cells, tick)  # type: ignore[arg-type]
-                    for c in cells:
-                        old = busy.get(c)
-                        busy[c] = (old[0], max(old[1], tx.end)) if old and old[1] > tick else (tick, tx.end)
-                    for r, cell in tx.receivers:
-                        if r in contending:
-                            _send(sock, ident[r], encode_carrier(cell, tick, tx.end), counters, "carrier")
-                    heapq.heappush(pending, (tx.end, tx.id, tx))
-                    want(src, still, tick)  # type: ignore[arg-type]
-            now = now_tick()
-            while pending and pending[0][0] <= now:
-                tx = heapq.heappop(pending)[2]
-                for r, cell, data in medium.finish(tx):
-                    if addressed_to(data, r):  # a bridge drops others' unicasts anyway: save the message
-                        _send(sock, ident[r], encode_rx(cell, data), counters, "rx")
-    finally:
-        sock.close()
+    while not stop.stopped:
+        timeout = 100
+        if pending:
+            timeout = max(0, math.ceil((pending[0][0] - now_tick()) * 1000 / CLOCK_HZ))
+        if poller.poll(timeout):
+            while True:
+                try:
+                    msg, addr = sock.recvfrom(MAX_DATAGRAM)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:  # an error queued by an earlier send: the bridge went away
+                    continue
+                tick = now_tick()
+                src = sender(msg)
+                if src not in bridges.known:
+                    counters["bad_messages"] += 1
+                    continue
+                kind = msg[0]
+                if kind == WANT and (w := decode_want(msg)) is not None:
+                    bridges.heard_from(src, addr, tick)  # type: ignore[arg-type]
+                    want(src, w[1], tick)  # type: ignore[arg-type]
+                    continue
+                tx_msg = decode_tx(msg) if kind == TX else None
+                if tx_msg is None:
+                    counters["bad_messages"] += 1
+                    continue
+                bridges.heard_from(src, addr, tick)  # type: ignore[arg-type]
+                _, cells, frame, still = tx_msg
+                tx = medium.start(src, frame, cells, tick)  # type: ignore[arg-type]
+                for c in cells:
+                    old = busy.get(c)
+                    busy[c] = (old[0], max(old[1], tx.end)) if old and old[1] > tick else (tick, tx.end)
+                for r, cell in tx.receivers:
+                    if r in contending:
+                        bridges.send(r, encode_carrier(cell, tick, tx.end), tick, "carrier")
+                heapq.heappush(pending, (tx.end, tx.id, tx))
+                want(src, still, tick)  # type: ignore[arg-type]
+        now = now_tick()
+        while pending and pending[0][0] <= now:
+            tx = heapq.heappop(pending)[2]
+            for r, cell, data in medium.finish(tx):
+                if addressed_to(data, r):  # a bridge drops others' unicasts anyway: save the message
+                    bridges.send(r, encode_rx(cell, data), now, "rx")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -138,10 +155,20 @@ def run(args: argparse.Namespace) -> int:
     except MeshError as exc:
         print(f"cellbridge medium: {exc}", file=sys.stderr)
         return 2
-    ep = endpoints(args)
-    bind = f"tcp://{args.bind}:{args.base_port}" if args.bind else ep.medium
+    host = args.bind or endpoints(args).host
     stop = StopFlag()
+    try:
+        sock = udp.bind(host, args.base_port)
+    except OSError as exc:
+        print(f"cellbridge medium: cannot bind UDP {host}:{args.base_port}: {exc.strerror or exc}",
+              file=sys.stderr)
+        return 1
     medium = Medium(mesh, args.seed)
-    serve(medium, bind, stop)
+    gc.freeze()  # start-up's objects out of the collector's reach: no long pauses while relaying
+    try:
+        serve(medium, sock, stop)
+    finally:
+        medium.counters["udp_drops"] = udp.drops(sock)
+        sock.close()
     print(f"medium: {dict(medium.counters)}", file=sys.stderr)
     return 0

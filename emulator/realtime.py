@@ -4,7 +4,7 @@ Every process on one host reads the same monotonic clock, so a tick (a 50 MHz cy
 of host time) means the same instant in the medium and in every bridge: carrier
 reports and deliveries need no clock exchange. Endpoints are derived from one base
 port so that ``mesh up``, ``bridge``, ``medium``, ``world`` and ``press`` agree without
-a registry: medium = base, world stimuli = base + 1, world control = base + 2.
+a registry: medium = UDP base, world stimuli = TCP base + 1, world control = TCP base + 2.
 """
 
 from __future__ import annotations
@@ -39,8 +39,9 @@ class Endpoints:
     base_port: int = DEFAULT_BASE_PORT
 
     @property
-    def medium(self) -> str:
-        return f"tcp://{self.host}:{self.base_port}"
+    def medium(self) -> tuple[str, int]:
+        """The medium's UDP address."""
+        return self.host, self.base_port
 
     @property
     def world(self) -> str:
@@ -53,7 +54,7 @@ class Endpoints:
 
 def add_endpoint_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--base-port", type=int, default=DEFAULT_BASE_PORT,
-                        help=f"ZeroMQ ports: medium = base, world = base+1, world control = base+2 "
+                        help=f"ports: medium = UDP base, world = TCP base+1, world control = TCP base+2 "
                              f"(default {DEFAULT_BASE_PORT})")
     parser.add_argument("--host", default=LOOPBACK,
                         help="host of the medium and world processes (default 127.0.0.1; "

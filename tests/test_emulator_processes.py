@@ -209,54 +209,89 @@ def test_press_without_a_world_says_so() -> None:
     assert r.returncode == 1 and b"no world process answered" in r.stderr
 
 
-def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> None:
-    # A delivery for a bridge process that is not connected (dead, not yet started, or
-    # not yet heard by a medium that restarted) is lost: the medium must count it, not
-    # drop it silently in its ROUTER socket.
+def _udp_port_taken(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return True
+    return False
+
+
+def _medium_counters(err: bytes) -> dict[str, int]:
     import json
 
-    import zmq
+    line = [x for x in err.decode().splitlines() if x.startswith("medium: ")][-1]
+    return json.loads(line.removeprefix("medium: ").replace("'", '"'))
 
-    from cellbridge.emulator.medium_wire import encode_tx
-    from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
 
-    mesh_path = tmp_path / "line-2.toml"
+@contextmanager
+def running_medium(tmp_path: Path, mesh_name: str = "line-2") -> Iterator[tuple[int, dict[str, int]]]:
+    """A ``cellbridge medium`` on a line of 2; yields (base port, its counters after stop)."""
+    mesh_path = tmp_path / f"{mesh_name}.toml"
     mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
     base = free_base_port()
     proc = subprocess.Popen([*PY, "medium", "--mesh", str(mesh_path), "--base-port", str(base)],
                             stderr=subprocess.PIPE, start_new_session=True)
-    ctx = zmq.Context()
-    sock = ctx.socket(zmq.DEALER)
+    counters: dict[str, int] = {}
     try:
         end = time.monotonic() + 30  # a loaded machine takes a while to start a process
-        while True:  # bound: the medium is serving (and counts what it is told to send)
-            try:
-                socket.create_connection(("127.0.0.1", base), timeout=1).close()
-                break
-            except OSError:
-                assert time.monotonic() < end and proc.poll() is None, "medium did not start"
-                time.sleep(0.1)
-        sock.setsockopt(zmq.IDENTITY, b"1")
-        sock.setsockopt(zmq.LINGER, 0)
-        sock.connect(f"tcp://127.0.0.1:{base}")
-        beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
-        for _ in range(20):  # bridge 2 shares cell 1 and never connects
-            sock.send(encode_tx((1,), beacon, False))
-            time.sleep(0.05)
-        time.sleep(0.3)
+        while not _udp_port_taken(base):  # bound: the medium is serving
+            assert time.monotonic() < end and proc.poll() is None, "medium did not start"
+            time.sleep(0.1)
+        yield base, counters
     finally:
-        sock.close()
-        ctx.term()
         proc.send_signal(signal.SIGTERM)
         try:
             _, err = proc.communicate(timeout=15)
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             _, err = proc.communicate()
-    line = [x for x in err.decode().splitlines() if x.startswith("medium: ")][-1]
-    counters = json.loads(line.removeprefix("medium: ").replace("'", '"'))
+        counters.update(_medium_counters(err))
+
+
+def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> None:
+    # A delivery for a bridge process that is not there (dead, not yet started, or not
+    # yet heard by a medium that restarted) is lost: the medium must count it, not drop
+    # it silently.
+    from cellbridge.emulator.medium_wire import encode_tx
+    from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
+
+    beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
+    with running_medium(tmp_path) as (base, counters):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as bridge1:
+            bridge1.connect(("127.0.0.1", base))
+            for _ in range(20):  # bridge 2 shares cell 1 and never says it is there
+                bridge1.send(encode_tx(1, (1,), beacon, False))
+                time.sleep(0.05)
+            time.sleep(0.3)
     assert counters["delivered"] >= 1
     assert counters["rx_unreachable"] == counters["delivered"]
+
+
+def test_medium_relays_between_two_bridge_sockets_and_refuses_strangers(tmp_path: Path) -> None:
+    # The medium learns where each bridge is from its own messages: bridge 2 says it is
+    # there (WANT), bridge 1 transmits on their cell, bridge 2 receives the frame. A
+    # datagram naming a bridge the mesh does not have, or garbage, is counted, never relayed.
+    from cellbridge.emulator.medium_wire import decode_rx, encode_tx, encode_want
+    from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
+
+    beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
+    with running_medium(tmp_path) as (base, counters):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b1, \
+                socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b2:
+            for s in (b1, b2):
+                s.connect(("127.0.0.1", base))
+                s.settimeout(5)
+            b2.send(encode_want(2, False))
+            b1.send(encode_tx(99, (1,), beacon, False))  # no bridge 99 in the mesh
+            b1.send(b"\xff" * 9)
+            time.sleep(0.2)
+            b1.send(encode_tx(1, (1,), beacon, False))
+            got = decode_rx(b2.recv(4096))
+    assert got == (1, beacon)
+    assert counters["bad_messages"] == 2 and counters["delivered"] == 1
+    assert counters.get("rx_unreachable", 0) == 0 and counters["udp_drops"] == 0
 
 
 def test_press_beside_the_skin_is_refused(tmp_path: Path) -> None:

@@ -46,8 +46,8 @@ def pids_of(mesh_path: str, role: bytes) -> list[int]:
     out = []
     for pid in os.listdir("/proc"):
         if pid.isdigit():
-            try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            try:  # a bridge forked by `mesh up` has its command as one title: split on spaces too
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").split()
             except OSError:
                 continue
             if mesh_path.encode() in cmd and role in cmd:

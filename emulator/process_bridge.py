@@ -140,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
             ready = {fd for fd, _ in poller.poll(min(wait_ms, 200))}
             tick = now_tick()
             taken = fw.counters["samples"]
+            fed = False  # whether the firmware was given something to act on now
             if window.asked:
                 window.take((late, behind, fw.counters["samples"]))
             if medium_fd in ready:
@@ -153,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
                         continue
                     kind = msg[0] if msg else -1
                     if kind == RX and (rx := decode_rx(msg)) is not None:
-                        fw.receive(rx[1], tick, rx[0])
+                        fed |= fw.receive(rx[1], tick, rx[0])
                     elif kind == CARRIER and (cs := decode_carrier(msg)) is not None:
                         fw.carrier(*cs)
                     else:
@@ -170,7 +171,11 @@ def run(args: argparse.Namespace) -> int:
                 data = port.read(ready)
                 if data:
                     fw.serial_in(data, tick)
-            out = fw.advance(tick)
+                    fed = True
+            # Only when something is due or the firmware took a frame or command: a wake for
+            # the world's contacts (every bridge at once, twice a second) or a carrier report
+            # computes nothing early, so it stays cheap and no herd of wakes forms.
+            out = fw.advance(tick) if fed or tick >= fw.next_tick else None
             settings = fw.sampler.settings
             if tick - due > settings.gate_cycles:  # this wake came more than one gate late
                 n = fw.counters["samples"] - taken

@@ -378,3 +378,21 @@ def test_bad_reporting_option_is_refused_by_mesh_up_and_bridge(tmp_path: Path) -
         r = subprocess.run([*PY, *cmd, "--reporting", "event:fast"], capture_output=True, timeout=30)
         assert r.returncode == 2 and b"--reporting" in r.stderr and b"Traceback" not in r.stderr, (cmd, r.stderr)
     assert processes_mentioning(str(mesh_path)) == []
+
+
+def test_mesh_up_starts_gateways_first_then_outwards() -> None:
+    # Bridges boot beside neighbours that already route: the gateway, then by hops.
+    from cellbridge.emulator.process_up import start_order
+
+    assert [b.id for b in start_order(meshgen.line(5, gateways=(3,)))] == [3, 2, 4, 1, 5]
+    order = [b.id for b in start_order(meshgen.grid(3, 3))]
+    hops = {1: 0, 2: 1, 4: 1, 3: 2, 5: 2, 7: 2, 6: 3, 8: 3, 9: 4}
+    assert sorted(order) == list(range(1, 10))
+    assert [hops[b] for b in order] == sorted(hops[b] for b in order)
+
+
+def test_mesh_up_refuses_a_bad_start_interval(tmp_path: Path) -> None:
+    mesh_path = tmp_path / "line-2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
+    r = subprocess.run([*PY, "mesh", "up", str(mesh_path), "--start-interval", "-1"], capture_output=True, timeout=30)
+    assert r.returncode == 2 and b"--start-interval" in r.stderr and b"Traceback" not in r.stderr

@@ -113,7 +113,7 @@ def run_one(n_side: int, seconds: float, tmp: str, reporting: str) -> Result:
             if len(pids) == n and all(catches_usr1(q) for q in pids):
                 break
             time.sleep(0.5)
-        time.sleep(2.0)  # the last ones finish booting
+        time.sleep(5.0)  # the last ones boot and find their routes
         pids = bridge_pids(path)
         med = medium_pid(path)
         t0 = time.monotonic()

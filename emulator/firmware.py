@@ -281,7 +281,7 @@ class Firmware:
         t = f.type
         if t is FrameType.LINK_ACK:
             ack: LinkAck = f.payload  # type: ignore[assignment]
-            return f.dst == self.me and self.link.acked(ack.origin, ack.seq, f.src)
+            return f.dst == self.me and self.link.acked(ack.origin, ack.seq, f.src, tick)
         if t is FrameType.BEACON:
             self._beacon(f, tick)
         else:

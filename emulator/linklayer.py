@@ -48,6 +48,7 @@ class _InFlight:
     next_hop: int
     attempts: int = 0
     deadline: int = -1  #: ack deadline once on the cell; -1 while still contending
+    missed: int = -1  #: the deadline that passed without an acknowledgement (last one)
 
 
 class LinkLayer:
@@ -65,6 +66,12 @@ class LinkLayer:
         self.inflight: _InFlight | None = None
         c = radio.config
         self._ack_wait = (c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.airtime(ack_bytes) + ack_slack
+        # Extra wait learnt from acknowledgements that came after their deadline (message
+        # latency of a real-time mesh: a fixed allowance is too short when the host is busy,
+        # and every retransmission it causes loads the cells further). Late ACKs raise it,
+        # timely ones let it decay; it stays 0 where ACKs are never late (virtual time).
+        self.extra_wait = 0
+        self._max_extra = 4 * self._ack_wait
         self.counters: Counter[str] = Counter()
         self.results: list[tuple[int, int, bool]] = []  #: (next hop, attempts, ok) not yet read
 
@@ -82,7 +89,7 @@ class LinkLayer:
             return
         self.broadcasts.append(data)
 
-    def acked(self, origin: int, seq: int, src: int) -> bool:
+    def acked(self, origin: int, seq: int, src: int, tick: int = -1) -> bool:
         """A LINK_ACK from ``src`` naming (origin, seq): True when it ends the transmission
         in flight. One that comes after the deadline, while the retransmission still waits
         for the cell, counts (late, not lost): the retransmission is withdrawn."""
@@ -92,6 +99,11 @@ class LinkLayer:
         if f.deadline < 0:  # a retransmission is contending: it is not needed any more
             self.radio.cancel(f.data)
             self.counters["late_acks"] += 1
+            if tick >= f.missed >= 0:
+                late = tick - f.missed
+                self.extra_wait = min(self._max_extra, max(self.extra_wait, 2 * late))
+        elif f.attempts == 1:
+            self.extra_wait -= self.extra_wait // 16
         self.results.append((f.next_hop, f.attempts, True))
         self.counters["frames_acked"] += len(f.frames)
         if self._rounds:
@@ -155,7 +167,7 @@ class LinkLayer:
                 self.inflight = f = None
             else:
                 self.counters["retries"] += 1
-                f.deadline = -1
+                f.missed, f.deadline = f.deadline, -1
                 radio.send(f.data, self.cells, tick, f.attempts)
         if radio.idle and f is None:
             if self.broadcasts:
@@ -168,7 +180,7 @@ class LinkLayer:
             f = self.inflight
             if f is not None and out[0] is f.data and f.deadline < 0:
                 f.attempts += 1
-                f.deadline = radio.tx_until + self._ack_wait
+                f.deadline = radio.tx_until + self._ack_wait + self.extra_wait
         return out, used
 
     @property

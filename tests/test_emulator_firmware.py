@@ -509,3 +509,24 @@ def test_a_copy_three_hops_longer_went_round_a_loop() -> None:
     assert fw.receive(_data(20, 10, 6, src=8), tick + CLOCK_HZ // 100, 3)
     assert fw.counters["loops_detected"] == 1
     assert fw.router.parent is None  # dropped until heard again
+
+
+def test_late_acks_lengthen_the_wait_for_the_next_ones() -> None:
+    # A fixed allowance for the ACK is too short when a real-time host is busy: each late
+    # ACK costs a retransmission that loads the cells. The wait grows with the lateness
+    # seen (and decays while ACKs are timely); where ACKs are never late it stays 0.
+    from cellbridge.emulator.rawframe import Raw
+
+    link = _link()
+    t, _ = _next_transmission(link, 0, 2, {2})
+    first_wait = link.next_tick - link.radio.tx_until
+    deadline = link.next_tick
+    link.advance(deadline, 2, 0, 10, {2})  # the retransmission is contending
+    late = CLOCK_HZ // 500  # the ACK comes 2 ms after the deadline
+    assert link.acked(20, 9, 2, deadline + late)
+    assert link.extra_wait == 2 * late
+    assert link.enqueue(Raw(int(FrameType.DATA), 0, 20, 10, 2, 0, b""))
+    _next_transmission(link, deadline + late, 2, {2})
+    assert link.next_tick - link.radio.tx_until == first_wait + 2 * late
+    assert link.acked(20, 10, 2, link.next_tick - 1)  # in time: the extra wait decays
+    assert 0 < link.extra_wait < 2 * late

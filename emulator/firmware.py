@@ -60,6 +60,14 @@ _MS = 50_000  # cycles per millisecond at 50 MHz
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
 _BUNDLE = int(FrameType.BUNDLE)
 _HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
+# A frame that went round a loop through us comes back with as many more hops as the loop
+# has bridges. A loop of two (our parent took us as its parent) is broken as soon as the
+# parent sends us a frame (Router.child_sent), before its copy is looked at here; so a
+# loop seen here has at least three. A copy one or two hops longer is the same frame sent
+# up two paths (a sender whose acknowledgement was late or lost sent it again via another
+# neighbour): the common case under message latency, and not evidence of a loop. Taking
+# it for one dropped a good parent, which made more frames go up two paths.
+_LOOP_MIN_HOPS = 3
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
 _FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
 _RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and flood copies to leave
@@ -273,7 +281,7 @@ class Firmware:
         t = f.type
         if t is FrameType.LINK_ACK:
             ack: LinkAck = f.payload  # type: ignore[assignment]
-            return f.dst == self.me and self.link.acked(ack.origin, ack.seq, f.src)
+            return f.dst == self.me and self.link.acked(ack.origin, ack.seq, f.src, tick)
         if t is FrameType.BEACON:
             self._beacon(f, tick)
         else:
@@ -316,8 +324,9 @@ class Firmware:
         if self.seen.is_duplicate(f.origin, f.seq, f.type == FrameType.HELLO):
             self.counters["duplicates"] += 1
             first = self.hops_seen.get(key)
-            if first is not None and f.hops > first and not self.config.gateway:
-                # the same frame again with more hops: it went round a loop through us
+            if first is not None and f.hops >= first + _LOOP_MIN_HOPS and not self.config.gateway:
+                # the same frame again with at least three hops more: it went round a loop
+                # through us (a copy only one or two hops longer took a detour: see _LOOP_MIN_HOPS)
                 self.counters["loops_detected"] += 1
                 self.router.loop_detected()
                 self.trickle.reset(tick)
@@ -413,9 +422,9 @@ class Firmware:
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
         if p is not None:
-            out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)))
+            out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)), r.table)
         else:
-            out, used = self.link.advance(tick, None, self.seq, PERFECT_LINK)
+            out, used = self.link.advance(tick, None, self.seq, PERFECT_LINK, r.table)
         if used:
             self._next_seq()
         if self.link.results:

@@ -7,8 +7,17 @@ acknowledges with one LINK_ACK; without the acknowledgement the transmission is
 repeated with a wider backoff up to ``max_retries`` times. Its frames then go back to
 the head of the queue for the next parent the routing picks (a dead parent is
 evicted after a few such failures), at most ``max_rounds`` times, then are given up
-(counted as ``frames_failed``). A parent change while a transmission is in flight
-also sends its frames back to the queue.
+(counted as ``frames_failed``).
+
+A parent change while a transmission waits for its acknowledgement does not send its
+frames to the new parent while the old next hop is still a neighbour: the old one has
+most likely received them (its acknowledgement is late or lost), and a second copy
+sent up another path is a duplicate that meets the first one higher up with more hops,
+which looks like a routing loop there (and costs the cells twice). The retries go to the
+old next hop; only when it is gone (evicted from the neighbour table) or the retries
+are spent do the frames go back to the queue for the new parent. For the same reason a
+LINK_ACK that arrives after the deadline, while the retransmission still waits for the
+cell (message latency of a real-time mesh), is taken: the retransmission is withdrawn.
 Broadcasts (beacons, command floods) have their own small queue, go first and are
 never acknowledged.
 """
@@ -16,6 +25,7 @@ never acknowledged.
 from __future__ import annotations
 
 from collections import Counter, deque
+from collections.abc import Container
 from dataclasses import dataclass
 
 import msgpack
@@ -38,6 +48,7 @@ class _InFlight:
     next_hop: int
     attempts: int = 0
     deadline: int = -1  #: ack deadline once on the cell; -1 while still contending
+    missed: int = -1  #: the deadline that passed without an acknowledgement (last one)
 
 
 class LinkLayer:
@@ -55,6 +66,12 @@ class LinkLayer:
         self.inflight: _InFlight | None = None
         c = radio.config
         self._ack_wait = (c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.airtime(ack_bytes) + ack_slack
+        # Extra wait learnt from acknowledgements that came after their deadline (message
+        # latency of a real-time mesh: a fixed allowance is too short when the host is busy,
+        # and every retransmission it causes loads the cells further). Late ACKs raise it,
+        # timely ones let it decay; it stays 0 where ACKs are never late (virtual time).
+        self.extra_wait = 0
+        self._max_extra = 4 * self._ack_wait
         self.counters: Counter[str] = Counter()
         self.results: list[tuple[int, int, bool]] = []  #: (next hop, attempts, ok) not yet read
 
@@ -72,10 +89,21 @@ class LinkLayer:
             return
         self.broadcasts.append(data)
 
-    def acked(self, origin: int, seq: int, src: int) -> bool:
+    def acked(self, origin: int, seq: int, src: int, tick: int = -1) -> bool:
+        """A LINK_ACK from ``src`` naming (origin, seq): True when it ends the transmission
+        in flight. One that comes after the deadline, while the retransmission still waits
+        for the cell, counts (late, not lost): the retransmission is withdrawn."""
         f = self.inflight
-        if f is None or f.deadline < 0 or (origin, seq) != f.key or src != f.next_hop:
+        if f is None or f.attempts == 0 or (origin, seq) != f.key or src != f.next_hop:
             return False
+        if f.deadline < 0:  # a retransmission is contending: it is not needed any more
+            self.radio.cancel(f.data)
+            self.counters["late_acks"] += 1
+            if tick >= f.missed >= 0:
+                late = tick - f.missed
+                self.extra_wait = min(self._max_extra, max(self.extra_wait, 2 * late))
+        elif f.attempts == 1:
+            self.extra_wait -= self.extra_wait // 16
         self.results.append((f.next_hop, f.attempts, True))
         self.counters["frames_acked"] += len(f.frames)
         if self._rounds:
@@ -122,21 +150,24 @@ class LinkLayer:
         self.counters["bundled_frames"] += len(taken)
         return _InFlight(build(bundle, self.me, parent, _ACK), (self.me, seq), taken, parent), True
 
-    def advance(self, tick: int, parent: int | None, next_seq: int, cost_add: int) -> tuple[tuple[bytes, tuple[int, ...]] | None, bool]:
-        """((bytes, cells) to put on the cells now, or None; whether ``next_seq`` was used)."""
+    def advance(self, tick: int, parent: int | None, next_seq: int, cost_add: int,
+                neighbours: Container[int] = ()) -> tuple[tuple[bytes, tuple[int, ...]] | None, bool]:
+        """((bytes, cells) to put on the cells now, or None; whether ``next_seq`` was used).
+        ``neighbours``: the bridges still in the routing table; a transmission whose next
+        hop is no longer the parent keeps retrying it while it is one of them."""
         used = False
         f = self.inflight
         radio = self.radio
         if f is not None and 0 <= f.deadline <= tick and radio.idle:  # no acknowledgement in time
-            if f.attempts > self.max_retries or parent != f.next_hop:
-                if parent == f.next_hop:
+            if f.attempts > self.max_retries or (parent != f.next_hop and f.next_hop not in neighbours):
+                if f.attempts > self.max_retries:
                     self.counters["tx_failed"] += 1
                     self.results.append((f.next_hop, f.attempts, False))
                 self._give_back(f)
                 self.inflight = f = None
             else:
                 self.counters["retries"] += 1
-                f.deadline = -1
+                f.missed, f.deadline = f.deadline, -1
                 radio.send(f.data, self.cells, tick, f.attempts)
         if radio.idle and f is None:
             if self.broadcasts:
@@ -149,7 +180,7 @@ class LinkLayer:
             f = self.inflight
             if f is not None and out[0] is f.data and f.deadline < 0:
                 f.attempts += 1
-                f.deadline = radio.tx_until + self._ack_wait
+                f.deadline = radio.tx_until + self._ack_wait + self.extra_wait
         return out, used
 
     @property

@@ -85,6 +85,14 @@ class Transceiver:
         self._slots = self._rng.randrange(self._cw)
         self._plan(tick)
 
+    def cancel(self, frame: bytes) -> bool:
+        """Withdraw ``frame`` if it still waits for the cell (its acknowledgement came
+        late, after the retransmission was handed over); True when it was withdrawn."""
+        if self._frame is frame:
+            self._frame = None
+            return True
+        return False
+
     def send_ack(self, frame: bytes, cells: tuple[int, ...], tick: int) -> None:
         """Send an acknowledgement SIFS after ``tick`` (the end of the frame it answers).
         One radio sends one ACK at a time: a second frame to acknowledge before the first

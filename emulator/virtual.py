@@ -4,11 +4,21 @@ Events are ordered by (tick, priority, seq): transmissions end before faults app
 faults before firmware timers, and ``seq`` breaks the remaining ties in the order
 events were made, so a run is a pure function of the mesh, the scenario and the
 seed. ``run`` returns what reached each gateway's serial line and every counter.
+
+By default the bridges and the medium talk without delay, as one chip's wire would.
+``latency=Latency(...)`` models what a real-time mesh (one process per bridge, the medium
+relaying datagrams) adds, still deterministically from its own seed: a transmission
+reaches the medium a little after the bridge started it, carrier reports and deliveries
+reach a bridge a little after the medium made them, and a bridge wakes for a timer at
+the next millisecond at best (``poll`` takes milliseconds) and later still under load.
+It exists so that what the real-time mesh does can be reproduced and tested here.
 """
 
 from __future__ import annotations
 
 import heapq
+import math
+import random
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -24,7 +34,21 @@ from cellbridge.protocol import Frame, FrameType, StreamDecoder, encode_stream
 
 CLOCK_HZ = 50_000_000
 _STATES = frozenset({"has_route", "queue_len", "resets"})  # counters that are states, not totals
-_FINISH, _FAULT, _WAKE = 0, 1, 2
+_FINISH, _FAULT, _MSG, _WAKE = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class Latency:
+    """Delays of a real-time mesh, in seconds (each drawn from an exponential with this
+    mean on top of ``floor``). Messages between one bridge and the medium keep their
+    order, as on one socket."""
+
+    up: float = 0.0005  #: a transmission's message, bridge -> medium
+    down: float = 0.0005  #: a carrier report or delivery, medium -> bridge
+    floor: float = 0.0001  #: least delay of any message
+    wake_grain: float = 0.001  #: a timer's wait is rounded up to this (poll's milliseconds)
+    wake_late: float = 0.0003  #: mean extra lateness of a wake (scheduling)
+    seed: int = 0
 
 
 def default_chip(bridge: int, seed: int) -> Chip:
@@ -95,7 +119,7 @@ class MeshResult:
 class VirtualMesh:
     def __init__(self, mesh: Mesh, seed: int = 0, world: World | None = None,
                  settings: Settings = Settings(), chip: Callable[[int, int], object] = default_chip,
-                 **firmware: object) -> None:
+                 latency: Latency | None = None, **firmware: object) -> None:
         self.mesh = mesh
         self.seed = seed
         self.world = world or World(mesh)
@@ -107,6 +131,12 @@ class VirtualMesh:
         self._heap: list[tuple[int, int, int, object]] = []
         self._seq = 0
         self._wake: dict[int, int] = {}
+        self.latency = latency
+        if latency is not None:
+            self._lat_rng = random.Random(latency.seed * 7_919 + seed)
+            self._wanted: dict[int, int] = {}  # bridge -> timer tick its pending wake is for
+            self._up_last: dict[int, int] = {}  # bridge -> arrival of its last message at the medium
+            self._down_last: dict[int, int] = {}  # bridge -> arrival of its last message from it
         self.nodes: dict[int, Firmware] = {}
         self.resets: Counter[int] = Counter()
         self.serial: dict[int, bytearray] = {g: bytearray() for g in mesh.gateways}
@@ -133,9 +163,27 @@ class VirtualMesh:
         self._seq += 1
         heapq.heappush(self._heap, (tick, prio, self._seq, item))
 
+    def _delay(self, mean: float) -> int:
+        lat = self.latency
+        assert lat is not None
+        return int((lat.floor + (self._lat_rng.expovariate(1.0 / mean) if mean > 0 else 0.0)) * CLOCK_HZ)
+
     def _schedule(self, b: int, t: int) -> None:
         if t < self.tick:
             t = self.tick
+        lat = self.latency
+        if lat is not None:  # woken at the next poll granule after the timer, and a bit later
+            if self._wanted.get(b) == t and b in self._wake:
+                return
+            self._wanted[b] = t
+            wait = t - self.tick
+            if wait > 0:
+                grain = int(lat.wake_grain * CLOCK_HZ)
+                if grain > 0:
+                    wait = math.ceil(wait / grain) * grain
+                if lat.wake_late > 0:
+                    wait += int(self._lat_rng.expovariate(1.0 / lat.wake_late) * CLOCK_HZ)
+            t = self.tick + wait
         if self._wake.get(b) != t:
             self._wake[b] = t
             self._push(t, _WAKE, b)
@@ -148,6 +196,8 @@ class VirtualMesh:
         def do() -> None:
             self.dead.add(bridge)
             self.medium.kill(bridge)
+            if self.latency is not None:
+                self._wanted.pop(bridge, None)
             old = self.nodes.pop(bridge)
             old.power_off()
             self._retired[bridge].update(old.counters_snapshot())
@@ -187,14 +237,34 @@ class VirtualMesh:
         tick = self.tick
         out = fw.advance(tick)
         if out is not None:
-            tx = self.medium.start(b, out[0], out[1], tick)
-            self._push(tx.end, _FINISH, tx)
-            for r, cell in tx.receivers:
-                self.nodes[r].carrier(cell, tick, tx.end)
+            if self.latency is None:
+                self._start(b, out[0], out[1])
+            else:  # the medium starts it when the message arrives
+                at = max(tick + self._delay(self.latency.up), self._up_last.get(b, 0))
+                self._up_last[b] = at
+                data, cells = out
+                self._push(at, _FAULT, lambda: self._start(b, data, cells))
         if fw.serial_out:
             self._gateway_out(b, fw.take_serial())
         nt = fw.next_tick
         self._schedule(b, nt if nt > tick else tick + 1)
+
+    def _start(self, b: int, data: bytes, cells: tuple[int, ...]) -> None:
+        tick = self.tick
+        tx = self.medium.start(b, data, cells, tick)
+        self._push(tx.end, _FINISH, tx)
+        for r, cell in tx.receivers:
+            if self.latency is None:
+                self.nodes[r].carrier(cell, tick, tx.end)
+            else:
+                self._down(r, lambda fw, cell=cell: fw.carrier(cell, tick, tx.end))
+
+    def _down(self, b: int, action: Callable[[Firmware], object]) -> None:
+        """A message from the medium reaches ``b`` later (in order); ``b`` then wakes."""
+        assert self.latency is not None
+        at = max(self.tick + self._delay(self.latency.down), self._down_last.get(b, 0))
+        self._down_last[b] = at
+        self._push(at, _MSG, (b, action))
 
     def _gateway_out(self, b: int, data: bytes) -> None:
         self.serial[b] += data
@@ -211,13 +281,24 @@ class VirtualMesh:
             if prio == _WAKE:
                 if self._wake.get(item) == tick and item in nodes:  # type: ignore[arg-type]
                     del self._wake[item]  # type: ignore[arg-type]
+                    if self.latency is not None:
+                        self._wanted.pop(item, None)  # type: ignore[arg-type]
                     self._run(item)  # type: ignore[arg-type]
             elif prio == _FINISH:
                 tx: Transmission = item  # type: ignore[assignment]
                 for r, cell, data in self.medium.finish(tx):
+                    if self.latency is not None:
+                        self._down(r, lambda fw, data=data, cell=cell: fw.receive(data, self.tick, cell))
+                        continue
                     fw = nodes.get(r)
                     if fw is not None and fw.receive(data, tick, cell):
                         self._run(r)
+            elif prio == _MSG:
+                r, action = item  # type: ignore[misc]
+                fw = nodes.get(r)
+                if fw is not None:  # a real-time bridge runs its timers at every wake
+                    action(fw)
+                    self._run(r)
             else:
                 item()  # type: ignore[operator]
         self.tick = end
@@ -239,4 +320,4 @@ class VirtualMesh:
                           {g: len(s) for g, s in self.serial.items()})
 
 
-__all__ = ["CLOCK_HZ", "MeshResult", "VirtualMesh", "default_chip"]
+__all__ = ["CLOCK_HZ", "Latency", "MeshResult", "VirtualMesh", "default_chip"]

@@ -402,3 +402,131 @@ def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
     assert r.total("power_off_frames") == 0  # nothing was held at the reset
     boots = [f.origin for f in r.gateway_frames[1] if f.type is FrameType.HELLO and f.seq == 0]
     assert all(boots.count(b) == 2 for b in mesh.ids)  # power-on, then the reset: HELLO 0 each
+
+
+# -- link layer and loop detection under message latency (real-time meshes) -------------
+
+def _link() -> "LinkLayer":
+    import random
+
+    from cellbridge.emulator.linklayer import LinkLayer
+    from cellbridge.emulator.transceiver import Transceiver
+
+    link = LinkLayer(5, (1, 2), Transceiver(random.Random(3)), ack_slack=CLOCK_HZ // 100)
+    from cellbridge.emulator.rawframe import Raw
+    assert link.enqueue(Raw(int(FrameType.DATA), 0, 20, 9, 2, 0, b""))
+    return link
+
+
+def _next_transmission(link, tick: int, parent: int, neighbours: set[int]) -> tuple[int, int]:
+    """Run the link until it puts a frame on the cells: (tick, link destination)."""
+    from cellbridge.emulator.rawframe import parse
+
+    for _ in range(100):
+        out, _used = link.advance(tick, parent, 0, 10, neighbours)
+        if out is not None:
+            return tick, parse(out[0])[1]
+        tick = link.next_tick
+    raise AssertionError("nothing was sent")
+
+
+def test_a_parent_change_while_waiting_for_an_ack_retries_the_old_next_hop() -> None:
+    # The old parent most likely has the frame (its ACK is late or lost); sending it to the
+    # new parent too puts a second copy on another path, which meets the first higher up
+    # with more hops: a false loop there, a dropped parent, more copies (real-time churn).
+    link = _link()
+    t, dst = _next_transmission(link, 0, 2, {2, 3})
+    assert dst == 2
+    t, dst = _next_transmission(link, link.next_tick, 3, {2, 3})  # parent is now 3
+    assert dst == 2 and link.counters["frames_requeued"] == 0
+    assert link.acked(20, 9, 2) and link.inflight is None
+
+
+def test_a_parent_change_sends_the_frame_to_the_new_parent_when_the_old_one_is_gone() -> None:
+    link = _link()
+    _next_transmission(link, 0, 2, {2, 3})
+    t, dst = _next_transmission(link, link.next_tick, 3, {3})  # 2 evicted: dead or a loop
+    assert dst == 3 and link.counters["frames_requeued"] == 1
+    assert link.counters["tx_failed"] == 0  # a gone next hop is no link failure to count again
+
+
+def test_a_late_ack_withdraws_the_retransmission_still_waiting_for_the_cell() -> None:
+    # In a real-time mesh the LINK_ACK can arrive after the deadline, once the retransmission
+    # is contending: it is late, not lost, and the frame needs no second transmission.
+    link = _link()
+    _next_transmission(link, 0, 2, {2})
+    deadline = link.next_tick
+    out, _ = link.advance(deadline, 2, 0, 10, {2})
+    assert out is None and not link.radio.idle and link.counters["retries"] == 1  # contending
+    assert link.acked(20, 9, 2)
+    assert link.inflight is None and link.radio.idle and link.counters["late_acks"] == 1
+    assert link.next_tick is None  # nothing more to send
+    assert link.results == [(2, 1, True)]
+
+
+def test_an_ack_for_a_frame_never_sent_is_ignored() -> None:
+    link = _link()
+    out, _ = link.advance(0, 2, 0, 10, {2})  # handed to the radio, still contending
+    assert out is None and link.inflight is not None and link.inflight.attempts == 0
+    assert not link.acked(20, 9, 2)  # an ACK for another transmission of that frame
+
+
+def _routed(me: int = 5):
+    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.protocol import ADDR_BROADCAST, Beacon, Frame, encode
+
+    fw = Firmware(FirmwareConfig(me, (1, 2, 3)), default_chip(me, 0))
+    fw.receive(encode(Frame(1, ADDR_BROADCAST, 1, 1, Beacon(0, 0, 0))), CLOCK_HZ // 10, 1)
+    assert fw.router.parent == 1
+    return fw
+
+
+def _data(origin: int, seq: int, hops: int, src: int, dst: int = 5) -> bytes:
+    from cellbridge.emulator.rawframe import Raw, build
+    from cellbridge.protocol import Flags
+
+    return build(Raw(int(FrameType.DATA), 0, origin, seq, hops, 0, b""), src, dst, int(Flags.ACK_REQUEST))
+
+
+def test_a_copy_two_hops_longer_is_a_detour_not_a_loop() -> None:
+    # The same frame via two children, the second two hops longer (its sender re-sent it
+    # via another neighbour): a duplicate, not a loop; the parent is kept.
+    fw = _routed()
+    tick = CLOCK_HZ // 5
+    assert fw.receive(_data(20, 9, 3, src=7), tick, 2)
+    assert fw.receive(_data(20, 9, 5, src=8), tick + CLOCK_HZ // 100, 3)
+    assert fw.counters["duplicates"] == 1 and fw.counters["loops_detected"] == 0
+    assert fw.router.parent == 1
+
+
+def test_a_copy_three_hops_longer_went_round_a_loop() -> None:
+    # A loop through us has at least three bridges (two-bridge loops are broken when the
+    # parent sends us a frame): that copy still makes us drop the parent.
+    fw = _routed()
+    tick = CLOCK_HZ // 5
+    assert fw.receive(_data(20, 10, 3, src=7), tick, 2)
+    assert fw.receive(_data(20, 10, 6, src=8), tick + CLOCK_HZ // 100, 3)
+    assert fw.counters["loops_detected"] == 1
+    assert fw.router.parent is None  # dropped until heard again
+
+
+def test_late_acks_lengthen_the_wait_for_the_next_ones() -> None:
+    # A fixed allowance for the ACK is too short when a real-time host is busy: each late
+    # ACK costs a retransmission that loads the cells. The wait grows with the lateness
+    # seen (and decays while ACKs are timely); where ACKs are never late it stays 0.
+    from cellbridge.emulator.rawframe import Raw
+
+    link = _link()
+    t, _ = _next_transmission(link, 0, 2, {2})
+    first_wait = link.next_tick - link.radio.tx_until
+    deadline = link.next_tick
+    link.advance(deadline, 2, 0, 10, {2})  # the retransmission is contending
+    late = CLOCK_HZ // 500  # the ACK comes 2 ms after the deadline
+    assert link.acked(20, 9, 2, deadline + late)
+    assert link.extra_wait == 2 * late
+    assert link.enqueue(Raw(int(FrameType.DATA), 0, 20, 10, 2, 0, b""))
+    _next_transmission(link, deadline + late, 2, {2})
+    assert link.next_tick - link.radio.tx_until == first_wait + 2 * late
+    assert link.acked(20, 10, 2, link.next_tick - 1)  # in time: the extra wait decays
+    assert 0 < link.extra_wait < 2 * late

@@ -103,7 +103,11 @@ class ForkedBridge:
         sys.stderr.flush()
         pid = os.fork()
         if pid == 0:  # the bridge: never returns into the supervisor's code
-            os._exit(_bridge_main(argv, keep_fd, close_fds))
+            code = 1
+            try:  # not even by an exception (a last word to a stderr nobody reads: EPIPE)
+                code = _bridge_main(argv, keep_fd, close_fds)
+            finally:
+                os._exit(code)
         self.pid = pid
 
     def poll(self) -> int | None:
@@ -208,13 +212,22 @@ def run(args: argparse.Namespace) -> int:
             for name, p in children.items():
                 if p.poll() is not None and name not in reported:
                     reported.add(name)
-                    print(f"cellbridge mesh up: {name} exited with status {p.returncode}; "
-                          f"the rest keep running", file=sys.stderr, flush=True)
+                    _report(f"cellbridge mesh up: {name} exited with status {p.returncode}; "
+                            f"the rest keep running")
     finally:
         _stop_all(children)
         for fd in held:
             os.close(fd)
     return 0
+
+
+def _report(line: str) -> None:
+    """A line on stderr; when nobody reads it any more (``mesh up 2>&1 | grep ...`` ended),
+    the line is lost, not the skin: the rest keep running, as the line says."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except OSError:
+        pass
 
 
 def _wait_for_medium(host: str, port: int, medium: subprocess.Popen[bytes], seconds: float = 10.0) -> None:

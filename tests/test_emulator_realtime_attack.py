@@ -1,0 +1,121 @@
+"""The real-time emulator under a hostile network and a careless operator: real processes,
+ptys and sockets on loopback. Every process a test starts is stopped, also when it fails
+(its own session, SIGKILL of the group after a timeout, then anything naming its mesh)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from test_emulator_processes import PY, free_base_port, processes_mentioning, running_medium
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.mesh import Mesh, mesh_to_toml
+
+
+def _roles(mesh_path: Path) -> dict[str, int]:
+    """pid of each process naming ``mesh_path``, by role ('up', 'medium', 'world', 'bridge N')."""
+    out: dict[str, int] = {}
+    for pid in processes_mentioning(str(mesh_path)):
+        try:
+            if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                continue  # exited, not yet reaped
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode().split()
+        except OSError:
+            continue
+        if "up" in cmd:
+            out["up"] = pid
+        elif "bridge" in cmd:
+            out[f"bridge {cmd[cmd.index('--id') + 1]}"] = pid
+        elif "medium" in cmd or "world" in cmd:
+            out["medium" if "medium" in cmd else "world"] = pid
+    return out
+
+
+@contextmanager
+def mesh_up(tmp_path: Path, mesh: Mesh, *extra: str, stderr: int | None = None) -> Iterator[tuple[Path, subprocess.Popen[bytes]]]:
+    """``cellbridge mesh up`` of ``mesh`` in its own session; everything stopped afterwards."""
+    mesh_path = tmp_path / "attack.toml"
+    mesh_path.write_text(mesh_to_toml(mesh))
+    proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(free_base_port()), *extra],
+                            stdout=subprocess.PIPE, stderr=stderr, start_new_session=True)
+    try:
+        yield mesh_path, proc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        for pid in processes_mentioning(str(mesh_path)):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def _wait_roles(mesh_path: Path, want: set[str], seconds: float = 20.0) -> dict[str, int]:
+    end = time.monotonic() + seconds
+    while True:
+        roles = _roles(mesh_path)
+        if want <= set(roles) or time.monotonic() > end:
+            return roles
+        time.sleep(0.1)
+
+
+# -- a forked bridge and a broken stderr ---------------------------------------------------
+
+_ESCAPE = """
+import os, sys
+from cellbridge.emulator import process_up
+r, w = os.pipe()
+os.close(r)
+os.dup2(w, 2)  # whoever read stderr went away: every write to it fails (EPIPE)
+me = os.getpid()
+try:
+    b = process_up.ForkedBridge(["bridge", "--mesh", sys.argv[1], "--id", "1"], None, [])
+except BaseException:
+    os._exit(3 if os.getpid() != me else 4)
+if os.getpid() != me:
+    os._exit(5)
+sys.exit(0 if b.wait(20) not in (3, 5) else 6)
+"""
+
+
+def test_a_forked_bridge_never_returns_into_the_supervisor(tmp_path: Path) -> None:
+    # A forked bridge whose last words (an error, its counters) cannot be written must
+    # still end in os._exit: an exception out of the child unwound into the supervisor's
+    # code, which then ran in the child as a second supervisor (its `finally` stopping
+    # the processes it knew of).
+    r = subprocess.run([sys.executable, "-c", _ESCAPE, str(tmp_path / "no-such-mesh.toml")],
+                       capture_output=True, timeout=30)
+    assert r.returncode == 0, (r.returncode, r.stderr)
+
+
+def test_mesh_up_keeps_running_when_its_stderr_reader_is_gone(tmp_path: Path) -> None:
+    # `mesh up ... 2>&1 | grep gateway` and the grep ends: a bridge that dies then (its
+    # counters go to stderr) took the whole skin down: the child escaped into the
+    # supervisor's code, and the supervisor died writing "bridge N exited" to stderr.
+    with mesh_up(tmp_path, meshgen.line(3), "--start-interval", "0", stderr=subprocess.PIPE) as (mesh_path, proc):
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline().split()[:2] == [b"gateway", b"1"]
+        roles = _wait_roles(mesh_path, {"medium", "world", "bridge 1", "bridge 2", "bridge 3"})
+        proc.stderr.close()
+        os.kill(roles["bridge 3"], signal.SIGTERM)
+        time.sleep(1.5)
+        after = _roles(mesh_path)
+        assert proc.poll() is None, "mesh up died"
+        assert {k: after.get(k) for k in ("medium", "world", "bridge 1", "bridge 2")} == \
+            {k: roles[k] for k in ("medium", "world", "bridge 1", "bridge 2")}
+        assert "bridge 3" not in after
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0

@@ -196,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
                     line += f" socket://127.0.0.1:{port}"
                 lines.append(line)
             if started:
-                time.sleep(args.start_interval)
+                _pause(args.start_interval, stop)
             if stop.stopped:
                 break
             children[f"bridge {b.id}"] = ForkedBridge(argv, master, held)
@@ -219,6 +219,15 @@ def run(args: argparse.Namespace) -> int:
         for fd in held:
             os.close(fd)
     return 0
+
+
+def _pause(seconds: float, stop: StopFlag) -> None:
+    """Wait ``seconds`` or until SIGINT/SIGTERM, whichever comes first. Not one
+    ``time.sleep``: it resumes after a signal's handler (PEP 475), so a SIGTERM during a
+    long --start-interval would wait for its end, and beyond time_t it raises."""
+    end = time.monotonic() + seconds
+    while not stop.stopped and (left := end - time.monotonic()) > 0:
+        time.sleep(min(left, 0.05))
 
 
 def _report(line: str) -> None:

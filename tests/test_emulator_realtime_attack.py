@@ -14,6 +14,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import pytest
+
 from test_emulator_processes import PY, free_base_port, processes_mentioning, running_medium
 
 from cellbridge.emulator import meshgen
@@ -119,3 +121,26 @@ def test_mesh_up_keeps_running_when_its_stderr_reader_is_gone(tmp_path: Path) ->
         assert "bridge 3" not in after
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(15) == 0
+
+
+# -- stopping mesh up while it starts ------------------------------------------------------
+
+@pytest.mark.parametrize("interval", ["1000", "1e300"])
+def test_sigterm_during_a_long_start_interval_stops_at_once(tmp_path: Path, interval: str) -> None:
+    # time.sleep() resumes after a signal handler (PEP 475): a SIGTERM while mesh up waited
+    # between two bridges' starts was seen only when the pause ended (1000 s). A pause
+    # beyond time_t (1e300, a finite number --start-interval accepts) was a traceback.
+    with mesh_up(tmp_path, meshgen.line(2), "--start-interval", interval,
+                 stderr=subprocess.PIPE) as (mesh_path, proc):
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline().split()[:2] == [b"gateway", b"1"]
+        _wait_roles(mesh_path, {"medium", "world", "bridge 1"})
+        time.sleep(0.5)
+        assert proc.poll() is None, proc.stderr.read().decode()
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+        assert time.monotonic() - t0 < 6.0  # the bridges' grace is 5 s; they stop in far less
+        assert b"Traceback" not in proc.stderr.read()
+        time.sleep(0.3)
+        assert processes_mentioning(str(mesh_path)) == []

@@ -144,3 +144,34 @@ def test_sigterm_during_a_long_start_interval_stops_at_once(tmp_path: Path, inte
         assert b"Traceback" not in proc.stderr.read()
         time.sleep(0.3)
         assert processes_mentioning(str(mesh_path)) == []
+
+
+# -- what mesh up prints ---------------------------------------------------------------------
+
+def _lines(proc: subprocess.Popen[bytes], seconds: float) -> list[str]:
+    """What ``proc`` printed on stdout within ``seconds``."""
+    import select
+
+    assert proc.stdout is not None
+    fd, buf, end = proc.stdout.fileno(), b"", time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        if select.select([fd], [], [], left)[0]:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                break
+            buf += chunk
+    return buf.decode().splitlines()
+
+
+def test_mesh_up_prints_one_line_per_gateway_device_first(tmp_path: Path) -> None:
+    # Documented: one 'gateway <id> <device> [socket://...]' per gateway. A forked gateway
+    # bridge also printed its own 'gateway <id> socket://...' within milliseconds, before
+    # the supervisor's lines (it waits --start-interval for the next gateway): a script
+    # taking the first line's third word as the device got a socket URL.
+    with mesh_up(tmp_path, meshgen.line(3, gateways=(1, 3)), "--tcp") as (mesh_path, proc):
+        lines = _lines(proc, 3.0)
+        _wait_roles(mesh_path, {"bridge 1", "bridge 2", "bridge 3"})
+        lines += _lines(proc, 0.5)
+    words = [line.split() for line in lines]
+    assert [w[:2] for w in words] == [["gateway", "1"], ["gateway", "3"]], lines
+    assert all(w[2].startswith("/dev/pts/") and w[3].startswith("socket://127.0.0.1:") for w in words), lines

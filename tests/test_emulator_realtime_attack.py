@@ -175,3 +175,41 @@ def test_mesh_up_prints_one_line_per_gateway_device_first(tmp_path: Path) -> Non
     words = [line.split() for line in lines]
     assert [w[:2] for w in words] == [["gateway", "1"], ["gateway", "3"]], lines
     assert all(w[2].startswith("/dev/pts/") and w[3].startswith("socket://127.0.0.1:") for w in words), lines
+
+
+# -- hostile datagrams at the medium ---------------------------------------------------------
+
+def test_medium_refuses_transmissions_a_bridge_cannot_make(tmp_path: Path) -> None:
+    # The medium took any TX naming a bridge of the mesh: on cells that bridge is not on
+    # (each remembered in its carrier table for ever: 4 000 datagrams of 255 random cells
+    # grew it by 140 MB), a frame longer than a frame can be (256 bytes), and a datagram
+    # beyond its receive size, silently cut to 2 048 bytes. All counted as transmissions;
+    # now refused and counted as bad_messages, and the real transmission still goes through.
+    import random
+
+    from cellbridge.emulator.medium_wire import decode_rx, encode_tx, encode_want
+    from cellbridge.protocol import ADDR_BROADCAST, Beacon, Frame, encode
+
+    beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
+    rnd = random.Random(7)
+    with running_medium(tmp_path) as (base, counters):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b1, \
+                socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b2:
+            for s in (b1, b2):
+                s.connect(("127.0.0.1", base))
+                s.settimeout(5)
+            b2.send(encode_want(2, False))
+            b1.send(encode_tx(1, (2,), beacon, False))  # line of 2: bridge 1 is on cell 1 only
+            b1.send(encode_tx(1, (1, 77), beacon, False))  # one of them not its own
+            b1.send(encode_tx(1, tuple(rnd.randrange(2**32) for _ in range(255)), beacon, False))
+            b1.send(encode_tx(1, (1,), beacon + bytes(256 - len(beacon)), False))  # 256-byte frame
+            b1.send(encode_tx(1, (1,), bytes(5000), False))  # cut to 2 048 bytes on receipt
+            time.sleep(0.2)
+            b1.send(encode_tx(1, (1,), beacon, False))
+            got = decode_rx(b2.recv(4096))
+            b2.settimeout(0.3)
+            with pytest.raises(socket.timeout):
+                b2.recv(4096)  # nothing else reached bridge 2
+    assert got == (1, beacon)
+    assert counters["bad_messages"] == 5, counters
+    assert counters["transmissions"] == 1 and counters["delivered"] == 1, counters

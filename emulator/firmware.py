@@ -159,8 +159,6 @@ class Firmware:
 
     @property
     def next_tick(self) -> int:
-        if self.serial_out:  # bytes for the host (a gateway's HELLO at power-on): due now
-            return self.boot_tick
         t = min(self.sampler.next_tick, self.trickle.next_tick, self.status_at)
         if self.floods and self.floods[0][0] < t:
             t = self.floods[0][0]

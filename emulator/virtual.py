@@ -127,7 +127,9 @@ class VirtualMesh:
     def _boot(self, b: int, tick: int) -> None:
         self.nodes[b] = Firmware(self._config(b), self._chip(b, self.seed), self.world.sense_for(b),
                                  self.seed, tick, self.resets[b])
-        self._schedule(b, self.nodes[b].next_tick)
+        fw = self.nodes[b]
+        # a gateway's power-on HELLO is on its serial line at once, not at its first timer
+        self._schedule(b, tick if fw.serial_out else fw.next_tick)
 
     def _push(self, tick: int, prio: int, item: object) -> None:
         self._seq += 1

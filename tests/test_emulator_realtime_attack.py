@@ -213,3 +213,95 @@ def test_medium_refuses_transmissions_a_bridge_cannot_make(tmp_path: Path) -> No
     assert got == (1, beacon)
     assert counters["bad_messages"] == 5, counters
     assert counters["transmissions"] == 1 and counters["delivered"] == 1, counters
+
+
+# -- stimuli the world cannot have sent ------------------------------------------------------
+
+def test_a_bridge_survives_stimuli_no_world_would_publish(tmp_path: Path) -> None:
+    # Whatever publishes on the world's port (another mesh's world on the same base port, a
+    # stale or foreign process that took the port while the world restarted) reaches every
+    # bridge at once. A contact with a NaN position, an infinite force or a negative
+    # diameter decoded as valid and the next sample raised ValueError ('contacts must be
+    # finite'): every bridge of the skin died of one message. Such a message is malformed
+    # (stimuli_malformed), as decode_contacts promises.
+    import json
+
+    import msgpack
+    import zmq
+
+    mesh_path = tmp_path / "line-2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
+    base = free_base_port()
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    pub.bind(f"tcp://127.0.0.1:{base + 1}")
+    bridge = subprocess.Popen([*PY, "bridge", "--mesh", str(mesh_path), "--id", "2", "--base-port", str(base)],
+                              stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        nan = float("nan")
+        bad = [[0.0, 1e9, nan, 0.0, 3.0, 0.02, 0.0, 0.0], [0.0, 1e9, 0.04, 0.0, float("inf"), 0.02, 0.0, 0.0],
+               [0.0, 1e9, 0.04, 0.0, 3.0, -0.02, 0.0, 0.0], [0.0, 1e9, 0.04, 0.0, -3.0, 0.02, 0.0, 0.0],
+               [0.0, nan, 0.04, 0.0, 3.0, 0.02, 0.0, 0.0], [0.0, 1e9, 0.04, 0.0, 3.0, 0.02, float("inf"), 0.0]]
+        end = time.monotonic() + 4.0  # the subscription takes a while: publish until it must have been heard
+        while time.monotonic() < end and bridge.poll() is None:
+            for row in bad:
+                pub.send(msgpack.packb([row]))
+            time.sleep(0.1)
+        assert bridge.poll() is None, bridge.communicate(timeout=10)[1].decode()[-2000:]
+        bridge.send_signal(signal.SIGTERM)
+        _, err = bridge.communicate(timeout=15)
+    finally:
+        if bridge.poll() is None:
+            os.killpg(bridge.pid, signal.SIGKILL)
+            bridge.wait()
+        pub.close()
+        ctx.term()
+    counters = json.loads(err.decode().strip().splitlines()[-1])["counters"]
+    assert counters["stimuli_malformed"] >= len(bad), counters
+
+
+def test_world_refuses_a_press_whose_track_leaves_the_numbers(tmp_path: Path) -> None:
+    # `cellbridge press 0.04 0.04 --velocity 1e308 0 --duration 2` was accepted ("pressed"):
+    # 1.8 s in, the contact's position overflowed to inf, and every bridge of a running
+    # 2x2 skin died at its next sample ('contacts must be finite'). A start the world
+    # cannot place in time (a raw request: "inf", NaN) was taken as well.
+    import msgpack
+    import zmq
+
+    from cellbridge.emulator.world import ScenarioError, parse_scenario
+
+    with pytest.raises(ScenarioError, match="velocity"):
+        parse_scenario("[[contact]]\nstart = 0\nduration = 2\nposition = [0.04, 0.04]\nforce = 1\n"
+                       "diameter = 0.02\nvelocity = [1e308, 0]\n")
+    mesh_path = tmp_path / "grid-2x2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.grid(2, 2)))
+    base = free_base_port()
+    world = subprocess.Popen([*PY, "world", "--mesh", str(mesh_path), "--base-port", str(base)],
+                             stderr=subprocess.PIPE, start_new_session=True)
+    ctx = zmq.Context()
+    try:
+        r = subprocess.run([*PY, "press", "0.04", "0.04", "--velocity", "1e308", "0", "--duration", "2",
+                            "--timeout", "10", "--base-port", str(base)], capture_output=True, timeout=30)
+        assert r.returncode == 2 and b"velocity" in r.stderr, (r.returncode, r.stdout, r.stderr)
+        req = ctx.socket(zmq.REQ)
+        req.setsockopt(zmq.LINGER, 0)
+        req.connect(f"tcp://127.0.0.1:{base + 2}")
+        for start in ("inf", float("nan"), float("inf"), -1.0, [1]):
+            req.send(msgpack.packb({"duration": 1.0, "position": [0.04, 0.04], "force": 1.0,
+                                    "diameter": 0.02, "start": start}))
+            assert req.poll(10_000), "the world did not answer"
+            answer = msgpack.unpackb(req.recv())
+            assert answer["ok"] is False and "start" in answer["error"], (start, answer)
+        req.send(msgpack.packb({"duration": 1.0, "position": [0.04, 0.04], "force": 1.0,
+                                "diameter": 0.02, "start": 0.5}))
+        assert req.poll(10_000) and msgpack.unpackb(req.recv())["ok"] is True
+        req.close()
+    finally:
+        ctx.term()
+        world.send_signal(signal.SIGTERM)
+        try:
+            world.wait(15)
+        except subprocess.TimeoutExpired:
+            os.killpg(world.pid, signal.SIGKILL)
+            world.wait()

@@ -84,7 +84,7 @@ os.close(r)
 os.dup2(w, 2)  # whoever read stderr went away: every write to it fails (EPIPE)
 me = os.getpid()
 try:
-    b = process_up.ForkedBridge(["bridge", "--mesh", sys.argv[1], "--id", "1"], None, [])
+    b = process_up.ForkedBridge(["bridge", "--mesh", sys.argv[1], "--id", "1"], None)
 except BaseException:
     os._exit(3 if os.getpid() != me else 4)
 if os.getpid() != me:
@@ -305,3 +305,42 @@ def test_world_refuses_a_press_whose_track_leaves_the_numbers(tmp_path: Path) ->
         except subprocess.TimeoutExpired:
             os.killpg(world.pid, signal.SIGKILL)
             world.wait()
+
+
+# -- what a forked bridge holds ----------------------------------------------------------
+
+def test_forked_bridges_hold_no_descriptor_they_were_not_given(tmp_path: Path) -> None:
+    # A forked bridge inherits every descriptor of the supervisor; the medium and the world
+    # (subprocess, close_fds) do not. Whatever the launcher of mesh up left open (a pipe
+    # it waits on for EOF, a log file) stayed open in every bridge, and each bridge kept
+    # an extra /dev/null. A bridge holds its stdio, its own pty (a gateway) and what it opens.
+    r, w = os.pipe()
+    try:
+        mesh_path = tmp_path / "attack.toml"
+        mesh_path.write_text(mesh_to_toml(meshgen.line(3, gateways=(1, 3))))
+        proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(free_base_port()),
+                                 "--start-interval", "0"], stdout=subprocess.PIPE, pass_fds=(w,),
+                                start_new_session=True)
+        try:
+            roles = _wait_roles(mesh_path, {"bridge 1", "bridge 2", "bridge 3"})
+            time.sleep(0.5)
+            pipe = f"pipe:[{os.fstat(w).st_ino}]"
+            held = {}
+            for role in ("bridge 1", "bridge 2", "bridge 3"):
+                fd_dir = Path(f"/proc/{roles[role]}/fd")
+                held[role] = sorted(os.readlink(fd_dir / fd) for fd in os.listdir(fd_dir))
+            assert all(pipe not in links for links in held.values()), held
+            assert all(links.count("/dev/null") == 1 for links in held.values()), held  # stdin only
+            assert [links.count("/dev/ptmx") for links in held.values()] == [1, 0, 1], held
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+            for pid in processes_mentioning(str(mesh_path)):
+                os.kill(pid, signal.SIGKILL)
+    finally:
+        os.close(r)
+        os.close(w)

@@ -107,7 +107,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"gateway {br.id} {device}", flush=True)
         tcp = args.tcp if args.tcp is not None else br.tcp
         port = GatewayPort(master, tcp)
-        if port.tcp_port is not None:
+        # Started by mesh up (--pty-fd), the supervisor prints this bridge's line, URL
+        # included: a second line of another shape, printed before the supervisor's, broke
+        # "one 'gateway <id> <device> [socket://...]' line per gateway".
+        if port.tcp_port is not None and args.pty_fd is None:
             print(f"gateway {br.id} socket://127.0.0.1:{port.tcp_port}", flush=True)
 
     # select.poll, not zmq.Poller: the cell's datagrams are plain fds, and zmq_poll costs

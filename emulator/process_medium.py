@@ -37,6 +37,7 @@ from cellbridge.emulator.medium_wire import (
     MAX_DATAGRAM, TX, WANT, decode_tx, decode_want, encode_carrier, encode_rx, sender,
 )
 from cellbridge.emulator.rawframe import addressed_to
+from cellbridge.protocol.frame import MAX_FRAME
 from cellbridge.emulator.realtime import (
     CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick,
 )
@@ -90,6 +91,7 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
     counters = medium.counters
     bridges = Bridges(sock, medium.mesh.ids, counters)
     cells_of = {b.id: b.cells for b in medium.mesh.bridges}
+    cells_set = {b: frozenset(cs) for b, cs in cells_of.items()}
     pending: list[tuple[int, int, Transmission]] = []
     busy: dict[int, tuple[int, int]] = {}  # cell -> (start, end) of its latest transmission
     contending: set[int] = set()
@@ -127,7 +129,11 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
                     want(src, w[1], tick)  # type: ignore[arg-type]
                     continue
                 tx_msg = decode_tx(msg) if kind == TX else None
-                if tx_msg is None:
+                # A bridge sends a frame (at most MAX_FRAME bytes; a datagram cut to
+                # MAX_DATAGRAM on receipt is longer) on cells it is on: anything else is no
+                # transmission, and its cells would stay in ``busy`` for ever.
+                if (tx_msg is None or len(tx_msg[2]) > MAX_FRAME
+                        or not set(tx_msg[1]) <= cells_set[src]):  # type: ignore[index]
                     counters["bad_messages"] += 1
                     continue
                 bridges.heard_from(src, addr, tick)  # type: ignore[arg-type]

@@ -46,6 +46,7 @@ GRACE_S = 5.0
 #: looked lossy, parents flipped (7 500 parent changes in 25 s, 1 of 9 frames acknowledged)
 #: and the churn outlived the start. 0.1 s apart: 134 parent changes, no failed frame.
 START_INTERVAL_S = 0.1
+_MAXFD = os.sysconf("SC_OPEN_MAX")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -96,14 +97,18 @@ class ForkedBridge:
     """A bridge process forked from this one, with the part of ``subprocess.Popen``'s
     interface the supervisor uses."""
 
-    def __init__(self, argv: list[str], keep_fd: int | None, close_fds: list[int]) -> None:
+    def __init__(self, argv: list[str], keep_fd: int | None) -> None:
         self.args = argv
         self.returncode: int | None = None
         sys.stdout.flush()
         sys.stderr.flush()
         pid = os.fork()
         if pid == 0:  # the bridge: never returns into the supervisor's code
-            os._exit(_bridge_main(argv, keep_fd, close_fds))
+            code = 1
+            try:  # not even by an exception (a last word to a stderr nobody reads: EPIPE)
+                code = _bridge_main(argv, keep_fd)
+            finally:
+                os._exit(code)
         self.pid = pid
 
     def poll(self) -> int | None:
@@ -133,16 +138,23 @@ class ForkedBridge:
         self.send_signal(signal.SIGKILL)
 
 
-def _bridge_main(argv: list[str], keep_fd: int | None, close_fds: list[int]) -> int:
+def _bridge_main(argv: list[str], keep_fd: int | None) -> int:
     """The forked child: drop what belongs to the supervisor, then run ``cellbridge bridge``."""
     try:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)  # until the bridge installs its own
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         die_with_parent()
-        for fd in close_fds:
-            if fd != keep_fd:
-                os.close(fd)
-        os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+        # Nothing of the supervisor's but stdout, stderr and this bridge's own pty: not the
+        # other gateways' held lines, nor what mesh up's launcher left open
+        # (a bridge holding a pipe its launcher waits on for EOF), as subprocess's close_fds.
+        if keep_fd is None:
+            os.closerange(3, _MAXFD)
+        else:
+            os.closerange(3, keep_fd)
+            os.closerange(keep_fd + 1, _MAXFD)
+        null = os.open(os.devnull, os.O_RDONLY)
+        os.dup2(null, 0)
+        os.close(null)
         setproctitle.setproctitle(" ".join(_cmd(*argv)))
         parser = argparse.ArgumentParser(prog="cellbridge bridge")
         process_bridge.add_arguments(parser)
@@ -192,10 +204,10 @@ def run(args: argparse.Namespace) -> int:
                     line += f" socket://127.0.0.1:{port}"
                 lines.append(line)
             if started:
-                time.sleep(args.start_interval)
+                _pause(args.start_interval, stop)
             if stop.stopped:
                 break
-            children[f"bridge {b.id}"] = ForkedBridge(argv, master, held)
+            children[f"bridge {b.id}"] = ForkedBridge(argv, master)
             started += 1
             if master is not None:
                 os.close(master)  # the bridge has its own copy
@@ -208,13 +220,31 @@ def run(args: argparse.Namespace) -> int:
             for name, p in children.items():
                 if p.poll() is not None and name not in reported:
                     reported.add(name)
-                    print(f"cellbridge mesh up: {name} exited with status {p.returncode}; "
-                          f"the rest keep running", file=sys.stderr, flush=True)
+                    _report(f"cellbridge mesh up: {name} exited with status {p.returncode}; "
+                            f"the rest keep running")
     finally:
         _stop_all(children)
         for fd in held:
             os.close(fd)
     return 0
+
+
+def _pause(seconds: float, stop: StopFlag) -> None:
+    """Wait ``seconds`` or until SIGINT/SIGTERM, whichever comes first. Not one
+    ``time.sleep``: it resumes after a signal's handler (PEP 475), so a SIGTERM during a
+    long --start-interval would wait for its end, and beyond time_t it raises."""
+    end = time.monotonic() + seconds
+    while not stop.stopped and (left := end - time.monotonic()) > 0:
+        time.sleep(min(left, 0.05))
+
+
+def _report(line: str) -> None:
+    """A line on stderr; when nobody reads it any more (``mesh up 2>&1 | grep ...`` ended),
+    the line is lost, not the skin: the rest keep running, as the line says."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except OSError:
+        pass
 
 
 def _wait_for_medium(host: str, port: int, medium: subprocess.Popen[bytes], seconds: float = 10.0) -> None:

@@ -20,7 +20,9 @@ import zmq
 
 from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, endpoints
 from cellbridge.emulator.mesh import Mesh, MeshError, load_mesh
-from cellbridge.emulator.world import Contact, ScenarioError, check_on_skin, contact_from_mapping, load_scenario
+from cellbridge.emulator.world import (
+    Contact, ScenarioError, check_on_skin, contact_from_mapping, contact_problem, load_scenario,
+)
 
 REPUBLISH_S = 0.5
 KEEP_ENDED_S = 2.0  #: well beyond a bridge's lazy-sampling horizon (a frame's max latency, 50 ms)
@@ -34,9 +36,12 @@ def decode_contacts(data: bytes) -> list[Contact] | None:
     """The contacts, or None for a malformed message (ignored, never fatal to a bridge,
     and never taken for "no contacts", which would release every press)."""
     try:
-        return [Contact(*map(float, row)) for row in msgpack.unpackb(data)]
+        contacts = [Contact(*map(float, row)) for row in msgpack.unpackb(data)]
     except Exception:
         return None
+    # values no world publishes (NaN, inf, a negative diameter, a track that overflows)
+    # would stop the bridge at its next sample: the whole message is malformed
+    return None if any(contact_problem(c) for c in contacts) else contacts
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,10 +68,10 @@ def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag, mes
                 try:
                     req = msgpack.unpackb(ctl.recv())
                     now = time.monotonic()
-                    c = contact_from_mapping({**req, "start": 0.0}, "press")
+                    c = contact_from_mapping({"start": 0.0, **req}, "press")  # start: from now, checked
                     if mesh is not None:
                         check_on_skin(mesh, c, "press")
-                    contacts.append(Contact(now + float(req.get("start", 0.0)), c.duration, c.x, c.y,
+                    contacts.append(Contact(now + c.start, c.duration, c.x, c.y,
                                             c.force, c.diameter, c.vx, c.vy))
                     ctl.send(msgpack.packb({"ok": True, "start": contacts[-1].start}))
                     last = 0.0

@@ -79,8 +79,30 @@ def contact_from_mapping(e: Mapping[str, Any], where: str) -> Contact:
         raise ScenarioError(f"{where}: missing key 'position'")
     x, y = _pair(e, "position", where)
     vx, vy = _pair(e, "velocity", where) if "velocity" in e else (0.0, 0.0)
-    return Contact(_num(e, "start", where, 0.0), _num(e, "duration", where, 0.0, True), x, y,
-                   _num(e, "force", where, 0.0, True), _num(e, "diameter", where, 0.0, True), vx, vy)
+    c = Contact(_num(e, "start", where, 0.0), _num(e, "duration", where, 0.0, True), x, y,
+                _num(e, "force", where, 0.0, True), _num(e, "diameter", where, 0.0, True), vx, vy)
+    if not _track_finite(c):
+        raise ScenarioError(f"{where}.velocity: {[vx, vy]!r} for {c.duration} s moves the contact beyond "
+                            f"the finite numbers (its position would be inf)")
+    return c
+
+
+def _track_finite(c: Contact) -> bool:
+    # the position is linear in time: finite at both ends of the contact, finite between
+    return math.isfinite(c.x + c.vx * c.duration) and math.isfinite(c.y + c.vy * c.duration)
+
+
+def contact_problem(c: Contact) -> str | None:
+    """Why ``c`` cannot be sampled (the skin model refuses it, at the first sample that
+    sees it), or None. For contacts that come from elsewhere, e.g. over the wire: one
+    that fails would stop every process sampling it."""
+    if not all(math.isfinite(v) for v in (c.start, c.duration, c.x, c.y, c.force, c.diameter, c.vx, c.vy)):
+        return "a value is not finite"
+    if not (c.duration > 0 and c.force >= 0 and c.diameter > 0):
+        return "duration and diameter must be > 0, force >= 0"
+    if not _track_finite(c):
+        return "its track leaves the finite numbers"
+    return None
 
 
 def touched(mesh: Mesh, c: Contact) -> list[int]:

@@ -34,6 +34,7 @@ from cellbridge.protocol import (
     Command,
     DuplicateFilter,
     Flags,
+    Fragment,
     Frame,
     FrameType,
     Hello,
@@ -223,7 +224,9 @@ class Firmware:
     def serial_in(self, data: bytes, tick: int) -> None:
         """Bytes the host wrote to the gateway's serial line (COBS frames)."""
         for f in self._serial_in.feed(data):
-            if f.type is FrameType.CMD:
+            if isinstance(f.payload, Fragment):  # the host never fragments a command
+                self.counters["serial_fragmented_control"] += 1
+            elif f.type is FrameType.CMD:
                 self._command(f, tick)
             else:
                 self.counters["serial_ignored"] += 1
@@ -275,6 +278,9 @@ class Firmware:
             f = decode(data)
         except ProtocolError as exc:
             self.counters[f"rx_{exc.cause}"] += 1
+            return False
+        if isinstance(f.payload, Fragment):  # control frames always fit one frame: a forgery
+            self.counters["rx_fragmented_control"] += 1
             return False
         t = f.type
         if t is FrameType.LINK_ACK:

@@ -102,11 +102,12 @@ class ForkedBridge:
         self.returncode: int | None = None
         sys.stdout.flush()
         sys.stderr.flush()
+        supervisor = os.getpid()
         pid = os.fork()
         if pid == 0:  # the bridge: never returns into the supervisor's code
             code = 1
             try:  # not even by an exception (a last word to a stderr nobody reads: EPIPE)
-                code = _bridge_main(argv, keep_fd)
+                code = _bridge_main(argv, keep_fd, supervisor)
             finally:
                 os._exit(code)
         self.pid = pid
@@ -138,12 +139,14 @@ class ForkedBridge:
         self.send_signal(signal.SIGKILL)
 
 
-def _bridge_main(argv: list[str], keep_fd: int | None) -> int:
+def _bridge_main(argv: list[str], keep_fd: int | None, supervisor: int) -> int:
     """The forked child: drop what belongs to the supervisor, then run ``cellbridge bridge``."""
     try:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)  # until the bridge installs its own
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         die_with_parent()
+        if os.getppid() != supervisor:  # it died before the death signal was armed
+            return 1
         # Nothing of the supervisor's but stdout, stderr and this bridge's own pty: not the
         # other gateways' held lines, nor what mesh up's launcher left open
         # (a bridge holding a pipe its launcher waits on for EOF), as subprocess's close_fds.

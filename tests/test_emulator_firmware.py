@@ -530,3 +530,24 @@ def test_late_acks_lengthen_the_wait_for_the_next_ones() -> None:
     assert link.next_tick - link.radio.tx_until == first_wait + 2 * late
     assert link.acked(20, 10, 2, link.next_tick - 1)  # in time: the extra wait decays
     assert 0 < link.extra_wait < 2 * late
+
+
+def test_a_fragmented_control_frame_is_counted_not_a_crash() -> None:
+    # BEACON, LINK_ACK and CMD always fit one frame; one flagged FRAGMENT (from a hostile
+    # neighbour on the cell, or the host on a gateway's serial line) decoded to a Fragment
+    # payload and the firmware died on its missing fields, taking the bridge process down.
+    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.protocol import Fragment, encode, encode_stream
+
+    fw = Firmware(FirmwareConfig(2, (1,)), default_chip(2, 0))
+    gw = Firmware(FirmwareConfig(1, (1,), gateway=True), default_chip(1, 0))
+    for t in (FrameType.BEACON, FrameType.LINK_ACK, FrameType.CMD):
+        frag = Frame(1, ADDR_BROADCAST if t is FrameType.BEACON else 2, 1, 7, Fragment(t, 3, 0, 9, b"\x93\x00\x00\x00"))
+        assert fw.receive(encode(frag), CLOCK_HZ, 1) is False
+        fw.advance(CLOCK_HZ)
+    assert fw.counters["rx_fragmented_control"] == 3
+    cmd = Frame(0, 1, 0, 9, Fragment(FrameType.CMD, 3, 0, 9, b"\x93\x00\x00\x00"))
+    gw.serial_in(encode_stream(cmd), CLOCK_HZ)
+    gw.advance(CLOCK_HZ)
+    assert gw.counters["serial_fragmented_control"] == 1

@@ -2,10 +2,11 @@
 
 Run: ``.venv/bin/python bench/bench_processes.py [--reporting both] [--max 64] [--seconds 8]``.
 For growing square meshes (4, 16, 36, 64 bridges) it runs ``cellbridge mesh up``
-(medium, world, one process per bridge), waits until every bridge is up, marks that
-moment (SIGUSR1), lets the skin run, stops it with SIGTERM and adds up the bridges'
-``late_gates_since_mark``: samples computed more than one gate (2 ms) after they were
-due; "a period late" are those more than a whole sampling period late (the process
+(medium, world, one process per bridge), waits until every bridge is up and 5 s more
+(routes settle), opens a window (SIGUSR1), lets the skin run, closes the window (a
+second SIGUSR1, so that stopping every process at once is not measured), stops it with
+SIGTERM and adds up the bridges' ``late_gates_since_mark``: samples computed at a wake
+that came more than one gate (2 ms) after the firmware asked for it; "a period late" are those more than a whole sampling period late (the process
 fell behind). Target: 64 bridges with < 1 % late gates. It prints one table per
 reporting mode: periodic (every sample sent: at 64 bridges more than one gateway's
 1 Mbit/s link carries) and event-based (``--reporting event:40``, as a large skin runs:

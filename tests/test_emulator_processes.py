@@ -93,15 +93,24 @@ def running_skin(tmp_path: Path, *extra: str) -> Iterator[Skin]:
         assert line[:2] == ["gateway", "1"] and line[2].startswith("/dev/pts/"), line
         yield Skin(mesh_path, base, proc, {1: line[2:]})
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
+        stop_and_sweep(proc, mesh_path)
+
+
+def stop_and_sweep(proc: subprocess.Popen[bytes], mesh_path: Path) -> None:
+    """SIGTERM to ``mesh up`` (its session killed after 15 s), then SIGKILL to anything
+    still naming the mesh file: a failed test still leaves nothing running."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(15)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    for pid in processes_mentioning(str(mesh_path)):
         try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        for pid in processes_mentioning(str(mesh_path)):  # a failed test still leaves nothing
             os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
 
 
 @pytest.fixture

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from test_emulator_processes import PY, free_base_port, processes_mentioning, running_medium
+from test_emulator_processes import PY, free_base_port, processes_mentioning, running_medium, stop_and_sweep
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh, mesh_to_toml
@@ -51,18 +51,7 @@ def mesh_up(tmp_path: Path, mesh: Mesh, *extra: str, stderr: int | None = None) 
     try:
         yield mesh_path, proc
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        for pid in processes_mentioning(str(mesh_path)):
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+        stop_and_sweep(proc, mesh_path)
 
 
 def _wait_roles(mesh_path: Path, want: set[str], seconds: float = 20.0) -> dict[str, int]:
@@ -333,14 +322,7 @@ def test_forked_bridges_hold_no_descriptor_they_were_not_given(tmp_path: Path) -
             assert all(links.count("/dev/null") == 1 for links in held.values()), held  # stdin only
             assert [links.count("/dev/ptmx") for links in held.values()] == [1, 0, 1], held
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-            for pid in processes_mentioning(str(mesh_path)):
-                os.kill(pid, signal.SIGKILL)
+            stop_and_sweep(proc, mesh_path)
     finally:
         os.close(r)
         os.close(w)

@@ -259,6 +259,21 @@ def running_medium(tmp_path: Path, mesh_name: str = "line-2") -> Iterator[tuple[
         counters.update(_medium_counters(err))
 
 
+@contextmanager
+def posing_bridges(base: int) -> Iterator[tuple[socket.socket, socket.socket]]:
+    """Two sockets talking to the medium at ``base`` as bridges 1 and 2 of a line of 2;
+    bridge 2 has said it is there (WANT), so deliveries for it are sent."""
+    from cellbridge.emulator.medium_wire import encode_want
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b1, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b2:
+        for s in (b1, b2):
+            s.connect(("127.0.0.1", base))
+            s.settimeout(5)
+        b2.send(encode_want(2, False))
+        yield b1, b2
+
+
 def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> None:
     # A delivery for a bridge process that is not there (dead, not yet started, or not
     # yet heard by a medium that restarted) is lost: the medium must count it, not drop
@@ -282,17 +297,12 @@ def test_medium_relays_between_two_bridge_sockets_and_refuses_strangers(tmp_path
     # The medium learns where each bridge is from its own messages: bridge 2 says it is
     # there (WANT), bridge 1 transmits on their cell, bridge 2 receives the frame. A
     # datagram naming a bridge the mesh does not have, or garbage, is counted, never relayed.
-    from cellbridge.emulator.medium_wire import decode_rx, encode_tx, encode_want
+    from cellbridge.emulator.medium_wire import decode_rx, encode_tx
     from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
 
     beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
     with running_medium(tmp_path) as (base, counters):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b1, \
-                socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b2:
-            for s in (b1, b2):
-                s.connect(("127.0.0.1", base))
-                s.settimeout(5)
-            b2.send(encode_want(2, False))
+        with posing_bridges(base) as (b1, b2):
             b1.send(encode_tx(99, (1,), beacon, False))  # no bridge 99 in the mesh
             b1.send(b"\xff" * 9)
             time.sleep(0.2)

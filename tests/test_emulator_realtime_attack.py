@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from test_emulator_processes import PY, free_base_port, processes_mentioning, running_medium, stop_and_sweep
+from test_emulator_processes import PY, free_base_port, processes_mentioning, posing_bridges, running_medium, stop_and_sweep
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh, mesh_to_toml
@@ -176,18 +176,13 @@ def test_medium_refuses_transmissions_a_bridge_cannot_make(tmp_path: Path) -> No
     # now refused and counted as bad_messages, and the real transmission still goes through.
     import random
 
-    from cellbridge.emulator.medium_wire import decode_rx, encode_tx, encode_want
+    from cellbridge.emulator.medium_wire import decode_rx, encode_tx
     from cellbridge.protocol import ADDR_BROADCAST, Beacon, Frame, encode
 
     beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
     rnd = random.Random(7)
     with running_medium(tmp_path) as (base, counters):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b1, \
-                socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b2:
-            for s in (b1, b2):
-                s.connect(("127.0.0.1", base))
-                s.settimeout(5)
-            b2.send(encode_want(2, False))
+        with posing_bridges(base) as (b1, b2):
             b1.send(encode_tx(1, (2,), beacon, False))  # line of 2: bridge 1 is on cell 1 only
             b1.send(encode_tx(1, (1, 77), beacon, False))  # one of them not its own
             b1.send(encode_tx(1, tuple(rnd.randrange(2**32) for _ in range(255)), beacon, False))

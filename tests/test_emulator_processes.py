@@ -96,16 +96,21 @@ def running_skin(tmp_path: Path, *extra: str) -> Iterator[Skin]:
         stop_and_sweep(proc, mesh_path)
 
 
-def stop_and_sweep(proc: subprocess.Popen[bytes], mesh_path: Path) -> None:
-    """SIGTERM to ``mesh up`` (its session killed after 15 s), then SIGKILL to anything
-    still naming the mesh file: a failed test still leaves nothing running."""
+def terminate(proc: subprocess.Popen[bytes], seconds: float = 15.0) -> None:
+    """SIGTERM, and SIGKILL to its whole session when it has not stopped after ``seconds``."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
     try:
-        proc.wait(15)
+        proc.wait(seconds)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
+
+
+def stop_and_sweep(proc: subprocess.Popen[bytes], mesh_path: Path) -> None:
+    """``terminate`` ``mesh up``, then SIGKILL to anything still naming the mesh file:
+    a failed test still leaves nothing running."""
+    terminate(proc)
     for pid in processes_mentioning(str(mesh_path)):
         try:
             os.kill(pid, signal.SIGKILL)
@@ -335,12 +340,7 @@ def test_press_beside_the_skin_is_refused(tmp_path: Path) -> None:
         r = press("0.04", "0.04")
         assert r.returncode == 0 and b"pressed" in r.stdout, r.stderr
     finally:
-        world.send_signal(signal.SIGTERM)
-        try:
-            world.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(world.pid, signal.SIGKILL)
-            world.wait()
+        terminate(world)
     assert processes_mentioning(str(mesh_path)) == []
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from test_emulator_processes import PY, free_base_port, processes_mentioning, posing_bridges, running_medium, stop_and_sweep
+from test_emulator_processes import PY, free_base_port, processes_mentioning, posing_bridges, running_medium, stop_and_sweep, terminate
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh, mesh_to_toml
@@ -283,12 +283,7 @@ def test_world_refuses_a_press_whose_track_leaves_the_numbers(tmp_path: Path) ->
         req.close()
     finally:
         ctx.term()
-        world.send_signal(signal.SIGTERM)
-        try:
-            world.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(world.pid, signal.SIGKILL)
-            world.wait()
+        terminate(world)
 
 
 # -- what a forked bridge holds ----------------------------------------------------------

@@ -9,7 +9,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -90,11 +90,14 @@ def _toml(v: Any) -> str:
 
 
 @contextmanager
-def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None = None) -> Iterator[subprocess.Popen[bytes]]:
-    """The daemon as a real process in its own process group; always stopped on exit."""
+def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None = None,
+           preexec_fn: Callable[[], None] | None = None) -> Iterator[subprocess.Popen[bytes]]:
+    """The daemon as a real process in its own process group; always stopped on exit.
+
+    ``preexec_fn`` runs in the child before the command (resource limits, umask)."""
     err = open(stderr, "wb") if stderr else subprocess.DEVNULL  # noqa: SIM115
     proc = subprocess.Popen([CLI, "daemon", "--config", str(config)], stderr=err, stdout=subprocess.DEVNULL,
-                            start_new_session=True, env=env)
+                            start_new_session=True, env=env, preexec_fn=preexec_fn)
     try:
         yield proc
     finally:

@@ -12,7 +12,8 @@ default ``[peers]`` and ``[control]`` settings. Then:
    line comes back after a blip (the pty closed and reopened).
 2. **A huge control request.** One request of M MB (a ping whose ``id`` is M MB of
    text). Printed: the daemon's resident memory before, its peak (``VmHWM``), 5 s
-   later, the size of the reply, and whether a normal ping is answered afterwards.
+   later, the size of the reply, and whether a normal ping is answered afterwards;
+   then the reply to a 200 kB one.
 
 Figures are the daemon's own (``/proc/PID``); nothing here is timed against a target.
 """
@@ -137,6 +138,9 @@ def main() -> int:
                       f"5 s later {status_kb(proc.pid, 'VmRSS') / 1024:.0f} MB")
                 print(f"  reply: {reply_size} bytes after {elapsed:.1f} s (-1: none, the connection was dropped)")
                 print(f"  control ping answered afterwards: {ping(client)}")
+                small = client.request({"v": 1, "cmd": "ping", "id": "x" * 200_000}, 10.0)
+                print(f"a 200 kB request: ok={small['ok']}, reply {len(msgpack.packb(small))} bytes, "
+                      f"error {small.get('error', '')!r}")
         finally:
             for s in held:
                 s.close()

@@ -26,7 +26,10 @@ replay:FILE to play back a capture recorded with the link's `capture = "FILE"` k
 Subscribers connect to tcp://127.0.0.1:5560 (topics contact, element, raw, health,
 topology; msgpack payloads); control is a msgpack request/reply on tcp://127.0.0.1:5561.
 docs/zmq-api.md describes every message. SIGTERM drains and exits 0; SIGHUP reloads
-the settings marked (reload) in --print-config.
+the settings marked (reload) in --print-config (one sent during start-up is taken once
+the daemon is up). Clients are bounded by [peers]: connections per socket and per
+address, handshake time; the descriptor limit must hold them (docs/zmq-api.md, Limits).
+On real hardware name a gateway by /dev/serial/by-id/..., which survives re-plugging.
 """
 
 

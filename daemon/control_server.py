@@ -59,8 +59,7 @@ class ControlServer:
                 await self._send(envelope, too_large(size, limits["max_request_bytes"]))
             elif len(self._answers) >= limits["max_pending"]:
                 self.counts["busy"] += 1
-                await self._send(envelope, error(f"busy: {len(self._answers)} requests in progress "
-                                                 f"(control.max_pending); try again"))
+                await self._send(envelope, _busy(body, len(self._answers)))
             else:
                 task = asyncio.create_task(self._answer(envelope, body))  # a slow command never holds up others
                 self._answers.add(task)
@@ -158,6 +157,16 @@ class ControlServer:
         if not ok:
             result["error"] = _command_error(result)
         return reply(ok, req.id, **result)
+
+
+def _busy(body: bytes, in_progress: int) -> dict[str, Any]:
+    """The reply when ``control.max_pending`` requests are in progress (with the request's
+    id, so a client pipelining over DEALER knows which one to send again)."""
+    try:
+        rid = parse_request(body).id
+    except RequestError as exc:
+        return error(str(exc))
+    return error(f"busy: {in_progress} requests in progress (control.max_pending); send it again later", rid)
 
 
 def _command_error(result: dict[str, Any]) -> str:

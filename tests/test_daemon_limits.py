@@ -213,3 +213,40 @@ def test_subscriptions_are_bounded_in_size_and_kind(limited) -> None:
         ctx.destroy(linger=0)
     assert client.request({"v": 1, "cmd": "ping"})["ok"]
     assert _peak_rss_mb(pid) - peak < 20, "a 50 MB subscription was read into memory"
+
+
+def test_requests_beyond_max_pending_are_answered_busy(tmp_path: Path) -> None:
+    """Commands wait for bridges; a client pipelining thousands of them over DEALER must
+    not make the daemon hold thousands of waiting tasks."""
+    from daemon_traffic import Skin
+
+    pty = Pty(tmp_path / "gw")
+    cfg = tmp_path / "daemon.toml"
+    endpoints = write_config(cfg, [{"name": "gw", "url": pty.link}], contact={"enabled": False},
+                             control={"max_pending": 2})
+    client = Client(endpoints)
+    try:
+        with daemon(cfg, tmp_path / "stderr.log"):
+            client.ready()
+            sk = Skin()
+            pty.write(sk.hellos())
+            for _, data in sk.stream(3):
+                pty.write(data)
+            client.wait_for("element")
+            dealer = client.ctx.socket(zmq.DEALER)
+            dealer.setsockopt(zmq.LINGER, 0)
+            dealer.connect(endpoints["control"])
+            for i in range(5):  # nobody answers the pings: each waits its timeout
+                dealer.send(msgpack.packb({"v": 1, "cmd": "ping", "bridge": 2, "timeout": 3.0, "id": i}))
+            replies = []
+            while len(replies) < 5 and dealer.poll(10_000):
+                replies.append(msgpack.unpackb(dealer.recv()))
+            busy = [r for r in replies if "busy" in r.get("error", "")]
+            waited = [r for r in replies if "no reply within the timeout" in r.get("error", "")]
+            assert len(busy) == 3 and len(waited) == 2, replies
+            assert sorted(r["id"] for r in busy) == [2, 3, 4]  # which ones to send again
+            assert client.request({"v": 1, "cmd": "status"})["control"]["busy"] == 3
+            dealer.close(0)
+    finally:
+        client.close()
+        pty.close()

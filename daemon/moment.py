@@ -19,6 +19,7 @@ the slowest live bridge plus its delay relative to the others.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +28,17 @@ FloatArray = NDArray[np.float64]
 
 #: Readings kept per element beyond ``max_lag`` at the fastest sampling rate.
 SPARE = 4
+
+
+class Moment(NamedTuple):
+    """Each element's reading at one moment ``t`` (host time): ΔC (n, 2), touched (n,), the
+    sample time (NaN: unknown) and bridge cycle of the reading used."""
+
+    t: float
+    dc: FloatArray
+    touched: NDArray[np.bool_]
+    t_sample: FloatArray
+    cycle: NDArray[np.uint64]
 
 
 class Moments:
@@ -97,6 +109,27 @@ class Moments:
     def forget(self, rows: NDArray[np.int64] | slice) -> None:
         """Tare: the readings taken against the old baselines no longer count."""
         self.dc[rows] = np.nan
+
+    def take(self, now: float, timeout: float, max_lag: float, force: bool = False) -> Moment | None:
+        """The skin at the newest moment every live element has reported past (:meth:`moment`),
+        if that moment advanced since the last one taken (or ``force``: a tare asks for
+        one at once). None while it did not, and while an element is between a touched
+        and an untouched reading at it: a press or release fell between two of its
+        samples, so the moment is held back until it is past that (one sample period of
+        that element at most; ``force`` does not wait)."""
+        t = self.moment(now, timeout, max_lag)
+        if math.isnan(t) or (t <= self.t_moment and not force):
+            return None
+        dc, touched, t_sample, cycle, transition = self.at(t)
+        if transition and not force:
+            if math.isnan(self.hold_since):
+                self.hold_since = t
+            if t - self.hold_since < transition:
+                return None
+        self.hold_since = math.nan
+        self.late_estimates += bool(self.late.any())
+        self.t_moment = t
+        return Moment(t, dc, touched, t_sample, cycle)
 
     def moment(self, now: float, timeout: float, max_lag: float) -> float:
         """The newest time every live element has reported past (NaN: none reported yet).

@@ -8,6 +8,7 @@ the daemon never depends on that layer's internals and a change there stays loca
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -227,16 +228,35 @@ class ContactSpec:
                             self.max_missed)
 
 
-_WORKER_STAGE: dict[ContactSpec, ContactStage] = {}
+@dataclass(frozen=True)
+class ContactJob:
+    """One contact estimate to run: the skin at one moment and what its estimator is built from.
+
+    ``owner`` names the pipeline that made it: its contacts are tracked (ids, ages) apart
+    from any other pipeline's, even when several share a process (tests, tools)."""
+
+    owner: str
+    spec: ContactSpec
+    snapshot: ContactSnapshot
 
 
-def estimate_in_worker(spec: ContactSpec, snap: ContactSnapshot) -> list[dict[str, Any]]:
-    """Entry point in the contact worker process: the estimator for ``spec``, built once."""
-    stage = _WORKER_STAGE.get(spec)
-    if stage is None:
-        _WORKER_STAGE.clear()
-        stage = _WORKER_STAGE[spec] = spec.build()
-    return stage.run(snap)
+#: The estimator each owner's jobs run on, built once per spec: in the worker process (or
+#: the caller's, with an inline executor). A few owners at most are kept.
+_STAGES: OrderedDict[str, tuple[ContactSpec, ContactStage]] = OrderedDict()
+_MAX_OWNERS = 8
+
+
+def estimate(job: ContactJob) -> list[dict[str, Any]]:
+    """The contacts of ``job`` (tracked across its owner's jobs): what the contact worker runs.
+
+    The owner's estimator is rebuilt (its tracks restarted) only when the spec changed."""
+    kept = _STAGES.get(job.owner)
+    if kept is None or kept[0] != job.spec:
+        kept = _STAGES[job.owner] = (job.spec, job.spec.build())
+    _STAGES.move_to_end(job.owner)
+    while len(_STAGES) > _MAX_OWNERS:
+        _STAGES.popitem(last=False)
+    return kept[1].run(job.snapshot)
 
 
 def warm_up() -> None:

@@ -45,11 +45,13 @@ from cellbridge.daemon.messages import (
 from cellbridge.daemon.physics import ContactJob, Frontend, chip_params, default_params, layout_dict
 from cellbridge.daemon.skin import Skin
 from cellbridge.daemon.topology import Topology as Routes
-from cellbridge.daemon.wire import ADDR_BROADCAST, OPS, Decoded, Ingress, SampleColumns, command_bytes
+from cellbridge.daemon.wire import ADDR_BROADCAST, HELD, NO_MESH_TIME, OPS, Decoded, Ingress, SampleColumns, command_bytes
 from cellbridge.tactile import ElementParams, SkinLayout
 
 SCHEMA_VERSION = 1
 _GATE_OP = int(OPS["gate"])
+_NO_MESH_TIME = np.int64(NO_MESH_TIME)
+_HELD = np.int64(HELD)
 _SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
 _OWNERS = itertools.count()
 _P = TypeVar("_P", bound=Publish)
@@ -89,6 +91,11 @@ class Pipeline:
         self._k = np.ones(0x10000)
         self._hz = np.full(0x10000, float(self.chip.clock_hz))
         self.clocks: dict[int, BridgeClock] = {}
+        # Mesh time -> host time, one map for the whole skin: every bridge on mesh time samples
+        # on the same global clock (its root's counter), and the gateways' own samples, one
+        # hop away over a short, steady serial line, measure how it maps (docs/time.md).
+        self.skin_clock = BridgeClock(self.chip.clock_hz, bits=64)
+        self.skin_clock_resets = 0
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
         self.topology = Routes()
@@ -154,7 +161,7 @@ class Pipeline:
         out: list[Message] = []
         self._routing(link, dec, now, out)
         if dec.samples is not None:
-            self._samples(link, dec.samples, now, out)
+            self._samples(link, dec.samples, now, out, dec.gateways)
         return self._drain_log(out)
 
     def _routing(self, link: str, dec: Decoded, now: float, out: list[Message]) -> None:
@@ -192,8 +199,24 @@ class Pipeline:
                 if gate:
                     self.gate[origin] = float(gate)
 
-    def _sync_clocks(self, s: SampleColumns, now: float) -> tuple[np.ndarray, np.ndarray]:
-        """Feed each bridge's clock its newest sample; (host time, bridge time) of every sample."""
+    def _sync_clocks(self, s: SampleColumns, now: float, gateways: set[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Feed the clocks; (host time, bridge time, global cycle or -1) of every sample.
+
+        A sample on mesh time (no ``NO_MESH_TIME`` flag, a rate) started its C1 gate at
+        global time ``index / rate``: its host time comes from the skin's one map, so two
+        bridges' samples of one index get one host time. Other samples (a bridge booting
+        or cut off, protocol version 1) are timed from their bridge's own arrival fit."""
+        on_time = ((s.flags & _NO_MESH_TIME) == 0) & (s.rate > 0)
+        g = np.full(s.origin.shape[0], -1, dtype=np.int64)
+        if on_time.any():
+            rate = np.where(on_time, s.rate, 1).astype(np.uint64)
+            g = np.where(on_time, (s.index * np.uint64(int(self.chip.clock_hz)) // rate).astype(np.int64), -1)
+            own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
+            if own.size:
+                newest = own[np.argmax(g[own])]
+                if self.skin_clock.observe(int(g[newest]), now):
+                    self.skin_clock_resets += 1
+                    self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
         origin_list = s.origin.tolist()
         newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
         counts = Counter(origin_list)
@@ -210,10 +233,12 @@ class Pipeline:
         o = s.origin
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
-        return t_sample, s.cycle.astype(np.float64) / hz
+        if on_time.any() and self.skin_clock.synced:
+            t_sample = np.where(on_time, self.skin_clock.to_host(np.maximum(g, 0).astype(np.uint64)), t_sample)
+        return t_sample, s.cycle.astype(np.float64) / hz, g
 
-    def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message]) -> None:
-        t_sample, t_bridge = self._sync_clocks(s, now)
+    def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message], gateways: set[int]) -> None:
+        t_sample, t_bridge, g = self._sync_clocks(s, now, gateways)
         o = s.origin
         raw = np.stack([s.c1, s.c2], axis=1)
         caps_all, sat_all = self.frontend.capacitance(s.mode, s.oversampling, raw, s.flags, self.gate[o])
@@ -234,12 +259,18 @@ class Pipeline:
             return
         sel = slice(None) if all_placed else placed
         caps = caps_all[sel]
-        res = self.skin.step(rows[sel], raw[sel], sat_all[sel], caps, t_sample[sel], s.cycle[sel], now)
+        flags = s.flags[sel]
+        rate = s.rate[sel]
+        with np.errstate(divide="ignore"):
+            period = np.where(rate > 0, 1.0 / rate, np.nan)
+        res = self.skin.step(rows[sel], raw[sel], sat_all[sel], caps, t_sample[sel], s.cycle[sel], now,
+                             (flags & _HELD) != 0, g[sel] >= 0, period)
         if self._want("element"):
             out.append(self._message(ElementBatch, now, {
                 "bridge": o[sel].tolist(), "element": s.element[sel].tolist(),
                 "cycle": s.cycle[sel].tolist(), "t_bridge": t_bridge[sel].tolist(),
-                "t_sample": t_sample[sel].tolist(), "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
+                "t_sample": t_sample[sel].tolist(), "index": s.index[sel].tolist(), "on_time": (g[sel] >= 0).tolist(),
+                "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
                 "dc1": res["dc1"].tolist(), "dc2": res["dc2"].tolist(), "force": res["force"].tolist(),
                 "area": res["area"].tolist(), "valid": res["valid"].tolist(), "status": res["status"].tolist(),
                 "touched": res["touched"].tolist(),
@@ -276,7 +307,9 @@ class Pipeline:
             ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
             out.append({**c, "cycles": [int(snap.cycle[i]) for i in rows], "t_sample": max(ts) if ts else None})
         t = snap.t_moment if math.isfinite(snap.t_moment) else None
-        return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out})
+        unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
+        return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
+                                                         "unknown": unknown})
 
     # -- periodic -----------------------------------------------------------------------
     def host_clock_step(self, delta: float) -> list[Message]:
@@ -284,6 +317,7 @@ class Pipeline:
         once. Returns the log event saying so."""
         for clk in self.clocks.values():
             clk.host_step(delta)
+        self.skin_clock.host_step(delta)
         self._event("warning", f"host clock stepped by {delta:+.3f} s; bridge clocks follow")
         return self._drain_log([])
 

@@ -52,6 +52,8 @@ SCHEMA_VERSION = 1
 _GATE_OP = int(OPS["gate"])
 _NO_MESH_TIME = np.int64(NO_MESH_TIME)
 _HELD = np.int64(HELD)
+_FRAME_MEMORY = 10.0  # s of frames whose host time is kept once given
+_FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at (250 Hz x 10 s)
 _SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
 _OWNERS = itertools.count()
 _P = TypeVar("_P", bound=Publish)
@@ -96,6 +98,8 @@ class Pipeline:
         # hop away over a short, steady serial line, measure how it maps (docs/time.md).
         self.skin_clock = BridgeClock(self.chip.clock_hz, bits=64)
         self.skin_clock_resets = 0
+        self._frame_memo: dict[int, float] = {}  # global cycle of a frame -> its host time
+        self._frame_newest = -1
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
         self.topology = Routes()
@@ -216,6 +220,8 @@ class Pipeline:
                 newest = own[np.argmax(g[own])]
                 if self.skin_clock.observe(int(g[newest]), now):
                     self.skin_clock_resets += 1
+                    self._frame_memo.clear()
+                    self._frame_newest = -1
                     self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
         origin_list = s.origin.tolist()
         newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
@@ -234,8 +240,28 @@ class Pipeline:
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
         if on_time.any() and self.skin_clock.synced:
-            t_sample = np.where(on_time, self.skin_clock.to_host(np.maximum(g, 0).astype(np.uint64)), t_sample)
+            t_sample = np.where(on_time, self._frame_times(g, on_time), t_sample)
         return t_sample, s.cycle.astype(np.float64) / hz, g
+
+    def _frame_times(self, g: np.ndarray, on_time: np.ndarray) -> np.ndarray:
+        """Host time of each mesh-time sample's frame (global cycle ``g``). A frame's time is
+        fixed when its first sample arrives: the map keeps learning (a lower envelope point
+        moves it by up to a read's granularity), and two bridges' samples of one index must
+        still carry one time. Frames older than the newest by ``_FRAME_MEMORY`` are forgotten."""
+        keys, inverse = np.unique(np.where(on_time, g, -1), return_inverse=True)
+        memo = self._frame_memo
+        new = [k for k in keys.tolist() if k >= 0 and k not in memo]
+        if new:
+            mapped = self.skin_clock.to_host(np.array(new, dtype=np.uint64)).tolist()
+            memo.update(zip(new, mapped))
+            newest = max(new)
+            if newest > self._frame_newest:
+                self._frame_newest = newest
+                if len(memo) > 4 * _FRAME_MEMORY_KEYS:
+                    horizon = newest - int(_FRAME_MEMORY * self.chip.clock_hz)
+                    self._frame_memo = memo = {k: v for k, v in memo.items() if k >= horizon}
+        t = np.array([memo.get(k, math.nan) for k in keys.tolist()])
+        return t[inverse]
 
     def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message], gateways: set[int]) -> None:
         t_sample, t_bridge, g = self._sync_clocks(s, now, gateways)
@@ -277,7 +303,7 @@ class Pipeline:
             }))
 
     # -- contacts -----------------------------------------------------------------------
-    def contact_job(self) -> ContactJob | None:
+    def contact_job(self, now: float | None = None) -> ContactJob | None:
         """The next contact estimate to run, or None: estimation off, nobody subscribed
         to ``contact``, no layout, or the skin's moment did not advance since the last job.
 
@@ -287,10 +313,11 @@ class Pipeline:
         newest data. Not the newest reading of each element: bridges' frames arrive
         staggered, and a skin half pressed, half not, gives ghosts. Run it with
         :class:`~cellbridge.daemon.contact_worker.ContactWorker` (any executor) and pass
-        the contacts to :meth:`contact_frame`."""
+        the contacts to :meth:`contact_frame`. ``now``: the host time (default: the last
+        read's); a shell passes it also when no data comes, so that silence is noticed."""
         if not self.config["contact"]["enabled"] or not self._want("contact"):
             return None
-        snap = self.skin.snapshot(self.last_feed, self.config["health"]["bridge_timeout"])
+        snap = self.skin.snapshot(self.last_feed if now is None else now, self.config["health"]["bridge_timeout"])
         if snap is None or self.skin.contact_spec is None:
             return None
         return ContactJob(self._owner, self.skin.contact_spec, snap)
@@ -318,6 +345,7 @@ class Pipeline:
         for clk in self.clocks.values():
             clk.host_step(delta)
         self.skin_clock.host_step(delta)
+        self._frame_memo = {k: v + delta for k, v in self._frame_memo.items()}
         self._event("warning", f"host clock stepped by {delta:+.3f} s; bridge clocks follow")
         return self._drain_log([])
 

@@ -141,6 +141,7 @@ class Service:
             self._act(self.pipeline.host_clock_step(step))
         self._link_stats()
         self._act(self.pipeline.tick(now))
+        self._fresh.set()  # contacts are looked at without new data too: silence ends them
         self.control.resolve(now)
         if now >= next_status or next_status - now > 5.0:  # (the host clock may step back)
             next_status = now + 5.0
@@ -191,7 +192,7 @@ class Service:
                 await asyncio.sleep(rest)
 
     async def _contact_once(self) -> None:
-        job = self.pipeline.contact_job()
+        job = self.pipeline.contact_job(time.time())
         if job is None:
             return
         self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)

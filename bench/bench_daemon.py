@@ -39,6 +39,7 @@ from daemon_harness import Client, Pty, daemon, free_port, write_config  # noqa:
 
 from cellbridge.daemon.capture import CaptureWriter  # noqa: E402
 from cellbridge.daemon.config import parse_config  # noqa: E402
+from cellbridge.daemon.messages import Publish  # noqa: E402
 from cellbridge.daemon.pipeline import Pipeline  # noqa: E402
 from cellbridge.daemon.publisher import Publisher  # noqa: E402
 from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream  # noqa: E402
@@ -110,13 +111,14 @@ def ingest_in_process(per_frame: int, samples: int) -> float:
 
     def run() -> None:
         p = Pipeline(config(calibration={"n_baseline": 5}, contact={"enabled": False}))
-        p.wanted = {"element"}
+        p.want({"element"})
         t = 1000.0
         p.feed("gw", head, t)
         for c in chunks:
             t += 0.004
-            for topic, payload in p.feed("gw", c, t):
-                pub.publish(topic, payload)
+            for m in p.feed("gw", c, t):
+                if isinstance(m, Publish):
+                    pub.publish(m.topic, m.payload)
         zsock = zmq.Socket.shadow(reader.underlying)
         while zsock.poll(0):
             got[0] += len(msgpack.unpackb(zsock.recv_multipart()[1])["bridge"])

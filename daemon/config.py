@@ -180,12 +180,15 @@ SECTIONS: dict[str, dict[str, Key]] = {
                           reloadable=True),
         "worker_timeout": Key(NUM, 30.0, "s one estimate may take before the worker process is taken as hung, "
                               "killed and replaced", _up_to(3600), reloadable=True),
-        "max_lag": Key(NUM, 0.5, "s a bridge's data may trail the newest and still hold the estimated moment "
-                       "back (contacts are estimated on one moment of the skin); a bridge later than that "
-                       "contributes its newest reading and is named in health layout.late", _up_to(10),
-                       reloadable=True),
-        "max_lag_readings": Key(int, 128, "readings kept per element to hold a moment back (memory: elements x "
-                                "this x 33 bytes); max_lag reaches back at most this many readings at "
+        "max_lag": Key(NUM, 0.5, "s a bridge's data may trail the newest and still hold the estimated skin "
+                       "frame back (contacts are estimated on whole skin frames); a periodic bridge later than "
+                       "that is unknown for the newer frames (listed in the contact message's unknown) and "
+                       "named in health layout.late", _up_to(10), reloadable=True),
+        "held_wait": Key(NUM, 0.05, "s an event-based bridge's newest (held) reading may trail the newest data "
+                         "and still hold the frame back; an idle one's older reading stands for the frame",
+                         _up_to(10), reloadable=True),
+        "max_lag_readings": Key(int, 128, "readings kept per element to hold a skin frame back (memory: elements "
+                                "x this x 33 bytes); max_lag reaches back at most this many readings at "
                                 "calibration.max_step_rate", _count(1, 4096), reloadable=True),
     },
     "health": {

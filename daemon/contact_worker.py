@@ -1,9 +1,12 @@
-"""Contact estimation off the event loop: one spawned worker process, on the newest snapshot only.
+"""Contact estimation off the event loop: one worker, on the newest snapshot only.
 
-A thread would not do: the estimator's Python code holds the interpreter lock for
-milliseconds at a time, and every one of them would stall ingest. The worker builds
-its own estimator from a small :class:`~cellbridge.daemon.physics.ContactSpec` and keeps
-it while the layout stays the same; a worker that dies is replaced at the next estimate.
+Production runs the worker in one spawned *process*: a thread would not do, as the
+estimator's Python code holds the interpreter lock for milliseconds at a time and every
+one of them would stall ingest. The worker takes its executor from a factory, so tests,
+tools and the golden files run the very same path on an :class:`InlineExecutor`. The
+worker builds its own estimator from a small :class:`~cellbridge.daemon.physics.ContactSpec`
+and keeps it while the layout stays the same; a worker that dies is replaced at the next
+estimate.
 """
 
 from __future__ import annotations
@@ -14,47 +17,85 @@ import concurrent.futures.process
 import logging
 import multiprocessing
 import time
+from collections.abc import Callable
 from typing import Any
 
 from cellbridge.daemon.logs import event
-from cellbridge.daemon.physics import ContactSnapshot, ContactSpec, estimate_in_worker, warm_up
+from cellbridge.daemon.physics import ContactJob, estimate, warm_up
+
+Contacts = list[dict[str, Any]]
+
+
+def process_pool() -> concurrent.futures.Executor:
+    """The production executor: one spawned process (a fork would copy the daemon's sockets)."""
+    return concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+
+
+class InlineExecutor(concurrent.futures.Executor):
+    """Runs each job in the caller at once: the production contact path without a process."""
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # handed to whoever reads the future, as a pool does
+            fut.set_exception(exc)
+        return fut
 
 
 class ContactWorker:
-    def __init__(self, log: logging.Logger) -> None:
+    """Runs contact jobs (:class:`~cellbridge.daemon.physics.ContactJob`) on an executor from
+    ``executor`` (default: one spawned process).
+
+    :meth:`estimate` (async, with a hung-worker timeout) is the service's entry point,
+    :meth:`estimate_now` the synchronous one for tests and tools; both skip asking once
+    nothing has been touched for longer than every track can live."""
+
+    def __init__(self, log: logging.Logger,
+                 executor: Callable[[], concurrent.futures.Executor] = process_pool) -> None:
         self.log = log
-        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._make_executor = executor
+        self._pool: concurrent.futures.Executor | None = None
         self.busy = False
         self._quiet = 0  # estimates in a row with nothing touched
         self.stats: dict[str, Any] = {"runs": 0, "errors": 0, "last_ms": 0.0, "max_ms": 0.0, "feeds_skipped": 0,
                                       "worker_restarts": 0}
         self._answered = False  # the current worker has finished an estimate (its warm-up is behind it)
 
-    def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
+    def _executor(self) -> concurrent.futures.Executor:
         if self._pool is None:
-            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self._pool = self._make_executor()
         return self._pool
 
     def start(self) -> None:
         """Start the worker now, so its imports are done before the first touch."""
         self._executor().submit(warm_up)
 
-    async def estimate(self, spec: ContactSpec, snap: ContactSnapshot,
-                       timeout: float = 30.0) -> list[dict[str, Any]] | None:
-        """Contacts of one snapshot; None when the estimate failed (logged and counted).
+    def _needed(self, job: ContactJob) -> bool:
+        """False once nothing is touched and every track has ended: no need to ask."""
+        self._quiet = 0 if bool(job.snapshot.touched.any()) else self._quiet + 1
+        return self._quiet <= job.spec.max_missed + 1
+
+    def estimate_now(self, job: ContactJob) -> Contacts:
+        """The contacts of ``job``, waiting for them (an inline executor: at once). Raises
+        what the estimate raised."""
+        t0 = time.perf_counter()
+        contacts = self._executor().submit(estimate, job).result() if self._needed(job) else []
+        self._count(t0)
+        return contacts
+
+    async def estimate(self, job: ContactJob, timeout: float = 30.0) -> Contacts | None:
+        """The contacts of ``job``; None when the estimate failed (logged and counted).
         An estimate past ``timeout`` (once the worker has answered before: its first one
         waits for the warm-up) means a hung worker: it is killed and a new one started."""
         t0 = time.perf_counter()
-        touched = bool(snap.touched.any())
-        self._quiet = 0 if touched else self._quiet + 1
-        if self._quiet > spec.max_missed + 1:
-            contacts: list[dict[str, Any]] = []  # nothing touched and every track has ended: no need to ask
+        if not self._needed(job):
+            contacts: Contacts = []
         else:
             self.busy = True
             try:
-                loop = asyncio.get_running_loop()
-                job = loop.run_in_executor(self._executor(), estimate_in_worker, spec, snap)
-                contacts = await asyncio.wait_for(job, timeout if self._answered else None)
+                fut = asyncio.wrap_future(self._executor().submit(estimate, job))
+                contacts = await asyncio.wait_for(fut, timeout if self._answered else None)
                 self._answered = True
             except Exception as exc:  # a bad estimate (or a dead worker) must not end contact publishing
                 self.stats["errors"] += 1
@@ -68,11 +109,14 @@ class ContactWorker:
                 return None
             finally:
                 self.busy = False
+        self._count(t0)
+        return contacts
+
+    def _count(self, t0: float) -> None:
         ms = (time.perf_counter() - t0) * 1e3
         st = self.stats
         st["runs"] += 1
         st["last_ms"], st["max_ms"] = ms, max(st["max_ms"], ms)
-        return contacts
 
     def _replace(self) -> None:
         """Kill the worker (hung, or dead already) and warm up a new one."""

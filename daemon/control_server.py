@@ -104,7 +104,7 @@ class ControlServer:
 
     def resolve(self, now: float) -> None:
         """Complete the commands whose bridges all answered or whose time ran out."""
-        for p in self.host.pipeline.commands.done(now):
+        for p in self.host.pipeline.finished_commands(now):
             fut = self._waiting.pop(p.token, None)
             if fut is not None and not fut.done():
                 fut.set_result(p.result())
@@ -115,7 +115,7 @@ class ControlServer:
         fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
         self._waiting[pending.token] = fut
         links = self.host.links
-        sent = [name for name, data in writes if name in links and links[name].write(data)]
+        sent = [w.link for w in writes if w.link in links and links[w.link].write(w.data)]
         self.resolve(now)  # a broadcast with nobody alive completes at once
         result = await asyncio.wait_for(fut, timeout + 1.0)
         result["sent_on"] = sent

@@ -8,6 +8,7 @@ the daemon never depends on that layer's internals and a change there stays loca
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -198,6 +199,7 @@ class ContactSnapshot:
     cycle: NDArray[np.uint64]  # (n,) its bridge cycle count
     ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
     t_moment: float  # host time the skin is estimated at: every element's reading at or just before it
+    unknown: NDArray[np.bool_] | None = None  # (n,) elements with no reading of this frame (None: all known)
 
 
 @dataclass(frozen=True)
@@ -227,16 +229,35 @@ class ContactSpec:
                             self.max_missed)
 
 
-_WORKER_STAGE: dict[ContactSpec, ContactStage] = {}
+@dataclass(frozen=True)
+class ContactJob:
+    """One contact estimate to run: the skin at one moment and what its estimator is built from.
+
+    ``owner`` names the pipeline that made it: its contacts are tracked (ids, ages) apart
+    from any other pipeline's, even when several share a process (tests, tools)."""
+
+    owner: str
+    spec: ContactSpec
+    snapshot: ContactSnapshot
 
 
-def estimate_in_worker(spec: ContactSpec, snap: ContactSnapshot) -> list[dict[str, Any]]:
-    """Entry point in the contact worker process: the estimator for ``spec``, built once."""
-    stage = _WORKER_STAGE.get(spec)
-    if stage is None:
-        _WORKER_STAGE.clear()
-        stage = _WORKER_STAGE[spec] = spec.build()
-    return stage.run(snap)
+#: The estimator each owner's jobs run on, built once per spec: in the worker process (or
+#: the caller's, with an inline executor). A few owners at most are kept.
+_STAGES: OrderedDict[str, tuple[ContactSpec, ContactStage]] = OrderedDict()
+_MAX_OWNERS = 8
+
+
+def estimate(job: ContactJob) -> list[dict[str, Any]]:
+    """The contacts of ``job`` (tracked across its owner's jobs): what the contact worker runs.
+
+    The owner's estimator is rebuilt (its tracks restarted) only when the spec changed."""
+    kept = _STAGES.get(job.owner)
+    if kept is None or kept[0] != job.spec:
+        kept = _STAGES[job.owner] = (job.spec, job.spec.build())
+    _STAGES.move_to_end(job.owner)
+    while len(_STAGES) > _MAX_OWNERS:
+        _STAGES.popitem(last=False)
+    return kept[1].run(job.snapshot)
 
 
 def warm_up() -> None:
@@ -269,6 +290,12 @@ class ContactStage:
             tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host)
         else:  # an empty frame still counts: tracks miss it and end
             tracks = self.tracker.step([], snap.t_host)
+        if snap.unknown is not None and snap.unknown.any():
+            # a contact that only unknown elements supported is no longer known: it ends
+            # now, not after the frames a missed contact is kept through
+            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[snap.unknown]})
+            if gone:
+                tracks = [tc for tc in tracks if tc.id not in gone]
         return [_finite(tc.to_dict()) for tc in tracks]
 
 

@@ -1,23 +1,29 @@
-"""The daemon's sans-I/O core: (link, bytes, host time) in → messages to publish out;
-commands in → CMD frames out.
+"""The daemon's sans-I/O core: (link, bytes, host time) in → frozen messages out.
 
 No sockets, no asyncio, no clock: the shells pass the time, so the same object runs
 under the service, in tests fed synthesized bytes, and on replayed captures with
 their recorded times (which is what makes golden-output tests exact). One call of
 :meth:`Pipeline.feed` handles one read of a link as a batch: frames are decoded, then
-every later stage works on numpy columns of all the batch's samples.
+every later stage works on numpy columns of all the batch's samples. What comes back
+is a list of :mod:`cellbridge.daemon.messages`: messages to publish, log events, bytes
+to write on a link; the shell does what each says and never reads the pipeline's
+attributes.
 
 Contact estimation is deliberately *not* in ``feed``: it is slow next to ingest, so
-the shell asks :meth:`Pipeline.contact_snapshot` for the newest consistent state whenever
-it is free and runs the estimator on that (one moment of the skin, never a backlog;
-see :mod:`cellbridge.daemon.moment`).
+the shell asks :meth:`Pipeline.contact_job` for the newest consistent state whenever
+its worker is free, runs it (:mod:`cellbridge.daemon.contact_worker`) and hands the
+contacts back to :meth:`Pipeline.contact_frame` (one moment of the skin, never a
+backlog; see :mod:`cellbridge.daemon.moment`).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
 from collections import Counter
-from typing import Any
+from collections.abc import Iterable
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -25,21 +31,55 @@ from cellbridge.daemon.clock import BridgeClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
-from cellbridge.daemon.physics import ContactSnapshot, Frontend, chip_params, default_params, layout_dict
+from cellbridge.daemon.messages import (
+    ContactFrame,
+    ElementBatch,
+    Health,
+    LinkWrite,
+    LogEvent,
+    Message,
+    Publish,
+    RawBatch,
+    Topology,
+)
+from cellbridge.daemon.physics import ContactJob, Frontend, chip_params, default_params, layout_dict
 from cellbridge.daemon.skin import Skin
-from cellbridge.daemon.topology import Topology
-from cellbridge.daemon.wire import ADDR_BROADCAST, OPS, Decoded, Ingress, SampleColumns, command_bytes
+from cellbridge.daemon.topology import Topology as Routes
+from cellbridge.daemon.wire import ADDR_BROADCAST, HELD, NO_MESH_TIME, OPS, Decoded, Ingress, SampleColumns, command_bytes
 from cellbridge.tactile import ElementParams, SkinLayout
 
 SCHEMA_VERSION = 1
-Message = tuple[str, dict[str, Any]]
 _GATE_OP = int(OPS["gate"])
+_NO_MESH_TIME = np.int64(NO_MESH_TIME)
+_HELD = np.int64(HELD)
+_FRAME_MEMORY = 10.0  # s of frames whose host time is kept once given
+_FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at (250 Hz x 10 s)
 _SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
+_OWNERS = itertools.count()
+_P = TypeVar("_P", bound=Publish)
 
 
 class Pipeline:
+    """Everything the daemon knows, fed by the shell; the shell's whole interface is methods.
+
+    - :meth:`feed` (one read of a link) and :meth:`tick` (time passing) return the
+      messages to act on, in order; :meth:`link_state`, :meth:`host_clock_step` likewise.
+    - :meth:`contact_job` / :meth:`contact_frame`: the next contact estimate and its message.
+    - :meth:`command` / :meth:`finished_commands`: commands to bridges and their outcome.
+    - :meth:`want` (topics with subscribers), :meth:`link_stats` (the shell's own link
+      counters), :meth:`health_body`, :meth:`topology_body`, :meth:`summary`,
+      :meth:`tare`, :meth:`reconfigure`.
+
+    ``config`` is a validated :class:`~cellbridge.daemon.config.Config`; ``layout`` the
+    layout file's, or None to place bridges by their HELLO geometry. Every time argument
+    is host time in seconds and must come from one clock (a step back is handled, see
+    :meth:`tick`). Nothing here raises on what arrives on a link: bad bytes are counted.
+    The attributes are for tests and tools to inspect; a shell does not use them.
+    """
+
     def __init__(self, config: Config, layout: SkinLayout | None = None) -> None:
         self.config = config
+        self._owner = f"{os.getpid()}.{next(_OWNERS)}"  # whose tracks a contact job continues
         s = config.sections
         self.ingress = Ingress(s["protocol"]["dedupe_window"], s["protocol"]["reassembly_timeout"])
         self.chip = chip_params(s["chip"])
@@ -53,9 +93,16 @@ class Pipeline:
         self._k = np.ones(0x10000)
         self._hz = np.full(0x10000, float(self.chip.clock_hz))
         self.clocks: dict[int, BridgeClock] = {}
+        # Mesh time -> host time, one map for the whole skin: every bridge on mesh time samples
+        # on the same global clock (its root's counter), and the gateways' own samples, one
+        # hop away over a short, steady serial line, measure how it maps (docs/time.md).
+        self.skin_clock = BridgeClock(self.chip.clock_hz, bits=64)
+        self.skin_clock_resets = 0
+        self._frame_memo: dict[int, float] = {}  # global cycle of a frame -> its host time
+        self._frame_newest = -1
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
-        self.topology = Topology()
+        self.topology = Routes()
         self.commands = CommandTracker()
         self.wanted: set[str] | None = None  # topics with subscribers; None = build all
         self.seq: dict[str, int] = {}
@@ -66,13 +113,22 @@ class Pipeline:
         self._last_health = -math.inf
         self.forgotten_bridges = 0
         self.announced_silent: set[int] = set()
-        self.events: list[tuple[str, str]] = []  # (level, text) for the shell to log
+        self._log: list[Message] = []  # log events, handed out with the next messages returned
 
     # -- helpers ------------------------------------------------------------------------
-    def _message(self, topic: str, now: float, body: dict[str, Any]) -> Message:
-        n = self.seq.get(topic, 0)
-        self.seq[topic] = n + 1
-        return topic, {"v": SCHEMA_VERSION, "seq": n, "t_host": now, **body}
+    def _message(self, kind: type[_P], now: float, body: dict[str, Any]) -> _P:
+        n = self.seq.get(kind.topic, 0)
+        self.seq[kind.topic] = n + 1
+        return kind({"v": SCHEMA_VERSION, "seq": n, "t_host": now, **body})
+
+    def _event(self, level: str, text: str) -> None:
+        self._log.append(LogEvent(level, text))
+
+    def _drain_log(self, out: list[Message]) -> list[Message]:
+        if self._log:
+            out.extend(self._log)
+            self._log.clear()
+        return out
 
     def _want(self, topic: str) -> bool:
         return self.wanted is None or topic in self.wanted
@@ -92,6 +148,12 @@ class Pipeline:
 
     # -- ingest -------------------------------------------------------------------------
     def feed(self, link: str, data: bytes, now: float) -> list[Message]:
+        """One read of ``link`` (a configured link's name; another name is taken as a new
+        link), ``data`` as it came off the line (any split of the stream), arriving at
+        host time ``now``. Returns, in order, the messages the read produced: ``topology``
+        when HELLOs changed the layout, ``raw`` and ``element`` for its samples (each
+        only while :meth:`want` asks for its topic), and log events. Never raises for
+        bad bytes (they are counted in health)."""
         if self.started is None:
             self.started = now
         self.last_feed = now
@@ -103,8 +165,8 @@ class Pipeline:
         out: list[Message] = []
         self._routing(link, dec, now, out)
         if dec.samples is not None:
-            out.extend(self._samples(link, dec.samples, now))
-        return out
+            self._samples(link, dec.samples, now, out, dec.gateways)
+        return self._drain_log(out)
 
     def _routing(self, link: str, dec: Decoded, now: float, out: list[Message]) -> None:
         window = self.ingress.dedupe.window
@@ -119,7 +181,7 @@ class Pipeline:
         for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
             if origin in self.clocks and self.clocks.pop(origin).synced:
                 self._bridge(origin, now).clock_resets += 1
-                self.events.append(("warning", f"bridge {origin}: restarted (HELLO 0), resynchronising its clock"))
+                self._event("warning", f"bridge {origin}: restarted (HELLO 0), resynchronising its clock")
         for origin, h in dec.hellos:
             b = self._bridge(origin, now)
             if b.clock_hz != h.clock_hz and h.clock_hz > 0:
@@ -131,9 +193,9 @@ class Pipeline:
             self.topology.status(origin, st.parent, st.path_etx, {n.bridge: n.link_etx for n in st.neighbours},
                                  st.queue_drops, st.retries, st.resets)
         if dec.hellos and self.skin.hello({o: (h.x, h.y, h.side) for o, h in dec.hellos}):
-            self.events.append(("info", f"layout from HELLO now has {self.skin.layout.n} elements"))  # type: ignore[union-attr]
+            self._event("info", f"layout from HELLO now has {self.skin.layout.n} elements")  # type: ignore[union-attr]
             if self._want("topology"):
-                out.append(self._message("topology", now, self._topology_body(now)))
+                out.append(self._message(Topology, now, self.topology_body(now)))
         for origin, reply in dec.replies:
             p = self.commands.reply(origin, reply, now)
             if p is not None and p.op == _GATE_OP and reply.status.name == "OK":
@@ -141,8 +203,26 @@ class Pipeline:
                 if gate:
                     self.gate[origin] = float(gate)
 
-    def _sync_clocks(self, s: SampleColumns, now: float) -> tuple[np.ndarray, np.ndarray]:
-        """Feed each bridge's clock its newest sample; (host time, bridge time) of every sample."""
+    def _sync_clocks(self, s: SampleColumns, now: float, gateways: set[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Feed the clocks; (host time, bridge time, global cycle or -1) of every sample.
+
+        A sample on mesh time (no ``NO_MESH_TIME`` flag, a rate) started its C1 gate at
+        global time ``index / rate``: its host time comes from the skin's one map, so two
+        bridges' samples of one index get one host time. Other samples (a bridge booting
+        or cut off, protocol version 1) are timed from their bridge's own arrival fit."""
+        on_time = ((s.flags & _NO_MESH_TIME) == 0) & (s.rate > 0)
+        g = np.full(s.origin.shape[0], -1, dtype=np.int64)
+        if on_time.any():
+            rate = np.where(on_time, s.rate, 1).astype(np.uint64)
+            g = np.where(on_time, (s.index * np.uint64(int(self.chip.clock_hz)) // rate).astype(np.int64), -1)
+            own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
+            if own.size:
+                newest = own[np.argmax(g[own])]
+                if self.skin_clock.observe(int(g[newest]), now):
+                    self.skin_clock_resets += 1
+                    self._frame_memo.clear()
+                    self._frame_newest = -1
+                    self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
         origin_list = s.origin.tolist()
         newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
         counts = Counter(origin_list)
@@ -152,17 +232,39 @@ class Pipeline:
             cyc = int(s.cycle[i])
             if clk.observe(cyc, now):
                 b.clock_resets += 1
-                self.events.append(("warning", f"bridge {o}: clock restarted (reset?), resynchronising"))
+                self._event("warning", f"bridge {o}: clock restarted (reset?), resynchronising")
             b.samples += counts[o]
             b.last_cycle = cyc
             self._ref[o], self._t_ref[o], self._k[o], self._hz[o] = clk.params()
         o = s.origin
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
-        return t_sample, s.cycle.astype(np.float64) / hz
+        if on_time.any() and self.skin_clock.synced:
+            t_sample = np.where(on_time, self._frame_times(g, on_time), t_sample)
+        return t_sample, s.cycle.astype(np.float64) / hz, g
 
-    def _samples(self, link: str, s: SampleColumns, now: float) -> list[Message]:
-        t_sample, t_bridge = self._sync_clocks(s, now)
+    def _frame_times(self, g: np.ndarray, on_time: np.ndarray) -> np.ndarray:
+        """Host time of each mesh-time sample's frame (global cycle ``g``). A frame's time is
+        fixed when its first sample arrives: the map keeps learning (a lower envelope point
+        moves it by up to a read's granularity), and two bridges' samples of one index must
+        still carry one time. Frames older than the newest by ``_FRAME_MEMORY`` are forgotten."""
+        keys, inverse = np.unique(np.where(on_time, g, -1), return_inverse=True)
+        memo = self._frame_memo
+        new = [k for k in keys.tolist() if k >= 0 and k not in memo]
+        if new:
+            mapped = self.skin_clock.to_host(np.array(new, dtype=np.uint64)).tolist()
+            memo.update(zip(new, mapped))
+            newest = max(new)
+            if newest > self._frame_newest:
+                self._frame_newest = newest
+                if len(memo) > 4 * _FRAME_MEMORY_KEYS:
+                    horizon = newest - int(_FRAME_MEMORY * self.chip.clock_hz)
+                    self._frame_memo = memo = {k: v for k, v in memo.items() if k >= horizon}
+        t = np.array([memo.get(k, math.nan) for k in keys.tolist()])
+        return t[inverse]
+
+    def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message], gateways: set[int]) -> None:
+        t_sample, t_bridge, g = self._sync_clocks(s, now, gateways)
         o = s.origin
         raw = np.stack([s.c1, s.c2], axis=1)
         caps_all, sat_all = self.frontend.capacitance(s.mode, s.oversampling, raw, s.flags, self.gate[o])
@@ -172,73 +274,92 @@ class Pipeline:
         if not all_placed:
             for b_id, cnt in Counter(o[~placed].tolist()).items():
                 self.bridges[b_id].unmapped_samples += cnt
-        out: list[Message] = []
         if self._want("raw"):
-            out.append(self._message("raw", now, {
+            out.append(self._message(RawBatch, now, {
                 "link": link, "bridge": s.origin.tolist(), "element": s.element.tolist(),
                 "cycle": s.cycle.tolist(), "t_bridge": t_bridge.tolist(), "c1": s.c1.tolist(),
                 "c2": s.c2.tolist(), "flags": s.flags.tolist(), "mode": s.mode.tolist(),
                 "oversampling": s.oversampling.tolist(),
             }))
-        sk = self.skin
-        if sk.elements is None or not placed.any():
-            return out
+        if not self.skin.ready or not placed.any():
+            return
         sel = slice(None) if all_placed else placed
-        r = rows[sel]
         caps = caps_all[sel]
-        last = {x: i for i, x in enumerate(r.tolist())}  # each element's newest sample
-        groups = (np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last)))
-        assert sk.channels is not None
-        sk.channels.update(r, raw[sel], sat_all[sel], groups, now)
-        res = sk.elements.step(r, caps, groups, now)
-        sk.record(r, t_sample[sel], s.cycle[sel], res, groups[0].shape[0] == r.shape[0], now)
+        flags = s.flags[sel]
+        rate = s.rate[sel]
+        with np.errstate(divide="ignore"):
+            period = np.where(rate > 0, 1.0 / rate, np.nan)
+        res = self.skin.step(rows[sel], raw[sel], sat_all[sel], caps, t_sample[sel], s.cycle[sel], now,
+                             (flags & _HELD) != 0, g[sel] >= 0, period)
         if self._want("element"):
-            out.append(self._message("element", now, {
+            out.append(self._message(ElementBatch, now, {
                 "bridge": o[sel].tolist(), "element": s.element[sel].tolist(),
                 "cycle": s.cycle[sel].tolist(), "t_bridge": t_bridge[sel].tolist(),
-                "t_sample": t_sample[sel].tolist(), "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
+                "t_sample": t_sample[sel].tolist(), "index": s.index[sel].tolist(), "on_time": (g[sel] >= 0).tolist(),
+                "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
                 "dc1": res["dc1"].tolist(), "dc2": res["dc2"].tolist(), "force": res["force"].tolist(),
                 "area": res["area"].tolist(), "valid": res["valid"].tolist(), "status": res["status"].tolist(),
                 "touched": res["touched"].tolist(),
             }))
-        return out
 
     # -- contacts -----------------------------------------------------------------------
-    def contact_snapshot(self) -> ContactSnapshot | None:
-        """The skin at one moment, if that moment advanced since the last snapshot: each
-        element's reading at or just before the newest time every live element has
-        reported past (bridges silent for ``bridge_timeout`` hold nothing back), stamped
-        with the arrival time of the newest data. Not the newest reading of each element:
-        bridges' frames arrive staggered, and a skin half pressed, half not, gives ghosts."""
-        if not self.config["contact"]["enabled"]:
-            return None
-        return self.skin.snapshot(self.last_feed, self.config["health"]["bridge_timeout"])
+    def contact_job(self, now: float | None = None) -> ContactJob | None:
+        """The next contact estimate to run, or None: estimation off, nobody subscribed
+        to ``contact``, no layout, or the skin's moment did not advance since the last job.
 
-    def contact_message(self, snap: ContactSnapshot, contacts: list[dict[str, Any]]) -> Message:
+        The job holds the skin at one moment: each element's reading at or just before
+        the newest time every live element has reported past (bridges silent for
+        ``bridge_timeout`` hold nothing back), stamped with the arrival time of the
+        newest data. Not the newest reading of each element: bridges' frames arrive
+        staggered, and a skin half pressed, half not, gives ghosts. Run it with
+        :class:`~cellbridge.daemon.contact_worker.ContactWorker` (any executor) and pass
+        the contacts to :meth:`contact_frame`. ``now``: the host time (default: the last
+        read's); a shell passes it also when no data comes, so that silence is noticed."""
+        if not self.config["contact"]["enabled"] or not self._want("contact"):
+            return None
+        snap = self.skin.snapshot(self.last_feed if now is None else now, self.config["health"]["bridge_timeout"])
+        if snap is None or self.skin.contact_spec is None:
+            return None
+        return ContactJob(self._owner, self.skin.contact_spec, snap)
+
+    def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
+        """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave
+        it, copied) with the cycle count of each of its elements' readings and the newest
+        of their sample times."""
+        snap = job.snapshot
         index = {int(b): i for i, b in enumerate(snap.ids)}
+        out = []
         for c in contacts:
             rows = [index[e] for e in c["elements"]]
-            c["cycles"] = [int(snap.cycle[i]) for i in rows]
             ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
-            c["t_sample"] = max(ts) if ts else None
+            out.append({**c, "cycles": [int(snap.cycle[i]) for i in rows], "t_sample": max(ts) if ts else None})
         t = snap.t_moment if math.isfinite(snap.t_moment) else None
-        return self._message("contact", snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": contacts})
+        unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
+        return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
+                                                         "unknown": unknown})
 
     # -- periodic -----------------------------------------------------------------------
-    def host_clock_step(self, delta: float) -> None:
-        """The host's wall clock stepped by ``delta`` s (NTP): every bridge clock follows at once."""
+    def host_clock_step(self, delta: float) -> list[Message]:
+        """The host's wall clock stepped by ``delta`` s (NTP): every bridge clock follows at
+        once. Returns the log event saying so."""
         for clk in self.clocks.values():
             clk.host_step(delta)
-        self.events.append(("warning", f"host clock stepped by {delta:+.3f} s; bridge clocks follow"))
+        self.skin_clock.host_step(delta)
+        self._frame_memo = {k: v + delta for k, v in self._frame_memo.items()}
+        self._event("warning", f"host clock stepped by {delta:+.3f} s; bridge clocks follow")
+        return self._drain_log([])
 
     def tick(self, now: float, force: bool = False) -> list[Message]:
-        """Health every ``health.interval`` (or now, if forced) and topology when it changed."""
+        """Time passes (the shell calls this often, ~10 Hz): ``health`` every
+        ``health.interval`` (or now, if ``force``), ``topology`` when it changed, and log
+        events (bridges gone silent or back, the host clock stepping back: a ``now``
+        before the last tick's is taken as such a step)."""
         h = self.config["health"]
         if now < self._last_tick:
             self._clock_stepped_back(now)
         self._last_tick = now
         if now < self._next_health and not force:
-            return []
+            return self._drain_log([])
         interval = h["interval"]
         self._next_health = now + interval
         # Over the time since the health before (often more than the interval), not the interval.
@@ -250,18 +371,18 @@ class Pipeline:
             b._samples_at_tick = b.samples
             silent = now - b.last_seen > h["bridge_timeout"]
             if silent and not b.silent:
-                self.events.append(("warning", f"no data from bridge {bid} for {now - b.last_seen:.1f} s"))
+                self._event("warning", f"no data from bridge {bid} for {now - b.last_seen:.1f} s")
             elif b.silent and not silent:
-                self.events.append(("info", f"bridge {bid} is back"))
+                self._event("info", f"bridge {bid} is back")
             b.silent = silent
         self._forget(now - h["forget_after"])
-        out = []
+        out: list[Message] = []
         if self._want("health"):
-            out.append(self._message("health", now, self.health_body(now)))
-        topo = self._topology_body(now)
+            out.append(self._message(Health, now, self.health_body(now)))
+        topo = self.topology_body(now)
         if self.topology.changed(topo) and self._want("topology"):
-            out.append(self._message("topology", now, topo))
-        return out
+            out.append(self._message(Topology, now, topo))
+        return self._drain_log(out)
 
     def _forget(self, before: float) -> None:
         """Drop bridges the layout does not place that were last heard ``before``: phantoms
@@ -285,9 +406,10 @@ class Pipeline:
             b.first_seen = min(b.first_seen, now)
         self.topology.clock_stepped_back(now)
         self.commands.clock_stepped_back(now)
-        self.events.append(("warning", "host clock stepped back; liveness and deadlines counted from now"))
+        self._event("warning", "host clock stepped back; liveness and deadlines counted from now")
 
     def health_body(self, now: float) -> dict[str, Any]:
+        """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
         h = self.config["health"]
         layout_report = self.skin.report(now, h["stuck_after"])
         unplaced = sorted(b for b, bh in self.bridges.items() if bh.unmapped_samples and not self.skin.placed(b))
@@ -307,33 +429,41 @@ class Pipeline:
             "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
         }
 
-    def _topology_body(self, now: float) -> dict[str, Any]:
+    def topology_body(self, now: float) -> dict[str, Any]:
+        """The fields of a ``topology`` message at ``now`` (control's ``topology`` answers with them)."""
         body = self.topology.report(now, self.config["health"]["bridge_timeout"])
         body["t_bridge"] = None
         body["layout"] = self.skin.layout_report()
         return body
 
-    def topology_body(self, now: float) -> dict[str, Any]:
-        return self._topology_body(now)
-
     # -- commands -----------------------------------------------------------------------
     def command(self, op: int, value: int | None, target: int | None, now: float,
-                timeout: float) -> tuple[Pending, list[tuple[str, bytes]]]:
-        """Start a command to one bridge (``target``) or all (None); returns it and the
-        (link, bytes) writes. Raises ValueError for a bridge never heard from."""
+                timeout: float) -> tuple[Pending, list[LinkWrite]]:
+        """Start a command to one bridge (``target``) or all alive (None): returns it (its
+        ``token`` names it in :meth:`finished_commands`) and the link writes that send it.
+        Raises ValueError for a bridge never heard from."""
         if target is None:
             alive = {b for b, bh in self.bridges.items() if not bh.silent}
             pending = self.commands.start(op, value, alive, now, timeout)
             data = command_bytes(ADDR_BROADCAST, pending.token, op, value)  # type: ignore[arg-type]
-            return pending, [(name, data) for name in self.links]
+            return pending, [LinkWrite(name, data) for name in self.links]
         links = self.topology.links_of(target)
         if not links:
             raise ValueError(f"bridge {target} has not been heard from on any link")
         pending = self.commands.start(op, value, {target}, now, timeout)
         data = command_bytes(target, pending.token, op, value)  # type: ignore[arg-type]
-        return pending, [(name, data) for name in links]
+        return pending, [LinkWrite(name, data) for name in links]
+
+    def finished_commands(self, now: float) -> list[Pending]:
+        """Commands whose bridges all answered, or whose time ran out by ``now`` (each once)."""
+        return self.commands.done(now) if len(self.commands) else []
+
+    def commands_in_flight(self) -> int:
+        return len(self.commands)
 
     def tare(self, bridges: list[int] | None) -> int:
+        """Re-take the baselines of ``bridges``' elements (None: all) now; the next
+        :meth:`contact_job` comes at once. Returns how many elements were tared."""
         return self.skin.tare(bridges)
 
     def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
@@ -351,11 +481,28 @@ class Pipeline:
         self.skin = Skin(config.sections, layout)
         self.skin.hello(geometry)
 
-    # -- links ----------------------------------------------------------------------------
+    # -- links and subscribers --------------------------------------------------------------
     def link_state(self, link: str, connected: bool, now: float, error: str = "") -> None:
+        """``link`` came up (its stream decoder starts afresh) or went down (``error``: why)."""
         lh = self.links.get(link)
         if lh is None:
             lh = self.links[link] = LinkHealth(link)
         lh.set_state(connected, now, error)
         if connected:
             self.ingress.reset_link(link)
+
+    def link_stats(self, link: str, stats: dict[str, Any]) -> None:
+        """The shell's own counters of ``link`` (writes dropped, capture): shown in its health."""
+        lh = self.links.get(link)
+        if lh is not None:
+            lh.extra = stats
+
+    def want(self, topics: set[str] | None) -> None:
+        """Build only messages of ``topics`` (those with subscribers); None: every topic."""
+        self.wanted = None if topics is None else set(topics)
+
+    def summary(self) -> str:
+        """One line for the service manager's status: links up, bridges alive."""
+        alive = sum(1 for b in self.bridges.values() if not b.silent)
+        up = sum(1 for h in self.links.values() if h.connected)
+        return f"{up}/{len(self.links)} links up, {alive}/{len(self.bridges)} bridges alive"

@@ -28,6 +28,7 @@ from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.control_server import ControlServer
 from cellbridge.daemon.links import Link, ReplayLink, SerialLink
 from cellbridge.daemon.logs import event, setup
+from cellbridge.daemon.messages import Health, LinkWrite, LogEvent, Message
 from cellbridge.daemon.ops import OpsHooks
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
@@ -67,21 +68,33 @@ class Service:
     def _on_data(self, link: str, data: bytes, now: float) -> None:
         t0 = time.perf_counter()
         p = self.pipeline
-        publish = self.pub.publish
         try:
-            for topic, payload in p.feed(link, data, now):
-                publish(topic, payload)
+            self._act(p.feed(link, data, now))
         except Exception:  # a bug must cost one read, not the daemon
             self.ingest_errors += 1
             self.log.exception("ingest failed on one read", extra={"fields": {"link": link, "bytes": len(data)}})
-        if len(p.commands):
+        if p.commands_in_flight():
             self.control.resolve(now)
-        if p.events:
-            self._log_events()
         self._feeds_since_snapshot += 1
         self._fresh.set()
         self._busy[self._n_reads % self._busy.shape[0]] = time.perf_counter() - t0
         self._n_reads += 1
+
+    def _act(self, messages: list[Message]) -> None:
+        """Do what the pipeline's messages say: publish, log, write on a link."""
+        publish = self.pub.publish
+        for m in messages:
+            if isinstance(m, LogEvent):
+                event(self.log, m.level, m.text, **m.fields)
+            elif isinstance(m, LinkWrite):
+                link = self.links.get(m.link)
+                if link is not None:
+                    link.write(m.data)
+            else:
+                if isinstance(m, Health):
+                    m = m.with_fields(self._shell_health())
+                    self._lag_max = 0.0  # each health message reports the lag since the one before
+                publish(m.topic, m.payload)
 
     def _on_state(self, link: str, connected: bool, why: str) -> None:
         self.pipeline.link_state(link, connected, time.time(), why)
@@ -89,11 +102,6 @@ class Service:
             event(self.log, "info", "link up", link=link, url=self.links[link].cfg.url)
         else:
             event(self.log, "warning", "link down", link=link, reason=why)
-
-    def _log_events(self) -> None:
-        for level, text in self.pipeline.events:
-            event(self.log, level, text)
-        self.pipeline.events.clear()
 
     def _make_link(self, cfg: Any) -> Link:
         if cfg.is_replay:
@@ -130,18 +138,14 @@ class Service:
         step = (now - time.monotonic()) - self._wall_offset
         if abs(step) > self.HOST_STEP:  # the wall clock stepped (NTP): the bridge clocks follow at once
             self._wall_offset += step
-            self.pipeline.host_clock_step(step)
+            self._act(self.pipeline.host_clock_step(step))
         self._link_stats()
-        for topic, payload in self.pipeline.tick(now):
-            if topic == "health":
-                payload.update(self._shell_health())
-                self._lag_max = 0.0  # each health message reports the lag since the one before
-            self.pub.publish(topic, payload)
+        self._act(self.pipeline.tick(now))
+        self._fresh.set()  # contacts are looked at without new data too: silence ends them
         self.control.resolve(now)
-        self._log_events()
         if now >= next_status or next_status - now > 5.0:  # (the host clock may step back)
             next_status = now + 5.0
-            self.hooks.status(self._summary(now))
+            self.hooks.status(self.pipeline.summary())
             for link in self.links.values():
                 cap = getattr(link, "capture", None)
                 if cap is not None:
@@ -153,18 +157,10 @@ class Service:
             self.hooks.watchdog()
             await asyncio.sleep(interval)
 
-    def _summary(self, now: float) -> str:
-        bridges = self.pipeline.bridges
-        alive = sum(1 for b in bridges.values() if not b.silent)
-        up = sum(1 for h in self.pipeline.links.values() if h.connected)
-        return f"{up}/{len(self.links)} links up, {alive}/{len(bridges)} bridges alive"
-
     def _link_stats(self) -> None:
         """The links' own counters into the pipeline's link health, before it builds health."""
         for name, link in self.links.items():
-            lh = self.pipeline.links.get(name)
-            if lh is not None:
-                lh.extra = link.stats()
+            self.pipeline.link_stats(name, link.stats())
 
     def _shell_health(self) -> dict[str, Any]:
         recent = self._busy[:min(self._n_reads, self._busy.shape[0])]
@@ -197,19 +193,16 @@ class Service:
                 await asyncio.sleep(rest)
 
     async def _contact_once(self) -> None:
-        if "contact" not in self.pub.wanted:
-            return
-        snap = self.pipeline.contact_snapshot()
-        spec = self.pipeline.skin.contact_spec
-        if snap is None or spec is None:
+        job = self.pipeline.contact_job(time.time())
+        if job is None:
             return
         self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
         self._feeds_since_snapshot = 0
-        contacts = await self.contacts.estimate(spec, snap, self.config["contact"]["worker_timeout"])
+        contacts = await self.contacts.estimate(job, self.config["contact"]["worker_timeout"])
         if contacts is None:
             return
         if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without
-            self.pub.publish(*self.pipeline.contact_message(snap, contacts))
+            self._act([self.pipeline.contact_frame(job, contacts)])
         self._contacts_shown = bool(contacts)
 
     # -- reload -------------------------------------------------------------------------
@@ -254,10 +247,7 @@ class Service:
             self.hooks.secure(ctx, sock, endpoint)  # OPS: security check, CURVE and peer bounds, before bind
             sock.bind(endpoint)
             self.hooks.bound(sock, endpoint)  # OPS: an ipc:// socket file's mode and group
-        self.pub.on_wanted = self._wanted_changed
-
-    def _wanted_changed(self, wanted: set[str]) -> None:
-        self.pipeline.wanted = wanted
+        self.pub.on_wanted = self.pipeline.want
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
@@ -269,7 +259,7 @@ class Service:
             self.hooks.close()
             ctx.destroy(linger=0)
             return 1
-        self.pipeline.wanted = set()
+        self.pipeline.want(set())
         for cfg in self.config.links:
             self.links[cfg.name] = self._make_link(cfg)
         loop.add_signal_handler(signal.SIGTERM, self._stop.set)
@@ -289,7 +279,7 @@ class Service:
         # collector's full passes, which pause the event loop for the time they take.
         gc.collect()
         gc.freeze()
-        self.hooks.ready(self._summary(time.time()))  # OPS: READY=1 once links run and sockets are bound
+        self.hooks.ready(self.pipeline.summary())  # OPS: READY=1 once links run and sockets are bound
         try:
             await self._stop.wait()
         finally:
@@ -319,11 +309,7 @@ class Service:
         await self._contact_once()  # the newest state, if the last estimate did not see it
         now = time.time()
         self._link_stats()
-        for topic, payload in self.pipeline.tick(now, force=True):
-            if topic == "health":
-                payload.update(self._shell_health())
-            self.pub.publish(topic, payload)
-        self._log_events()
+        self._act(self.pipeline.tick(now, force=True))
 
 
 def run_service(config_path: str | Path | None, config: Config) -> int:

@@ -19,7 +19,6 @@ from cellbridge.daemon.moment import SPARE, Moments
 from cellbridge.daemon.physics import (
     ContactSnapshot,
     ContactSpec,
-    ContactStage,
     ElementStage,
     calibration_config,
     default_params,
@@ -39,7 +38,6 @@ class Skin:
         self.rejected: list[int] = []
         self.layout: SkinLayout | None = None
         self.elements: ElementStage | None = None
-        self.contacts: ContactStage | None = None  # in this process (tests, tools)
         self.contact_spec: ContactSpec | None = None  # what the service's worker process builds from
         self.channels: ChannelHealth | None = None
         self.row = np.full(_IDS, -1, dtype=np.int64)
@@ -57,7 +55,6 @@ class Skin:
         cal = self.sections["calibration"]
         self.elements = ElementStage(layout, params, calibration_config(cal), inv["noise"], cal["max_step_rate"])
         self.contact_spec = ContactSpec.of(layout, inv["noise"], self.sections["contact"])
-        self.contacts = self.contact_spec.build()
         self.channels = ChannelHealth(layout.n)
         self.row[:] = -1
         ids = layout.ids
@@ -97,36 +94,47 @@ class Skin:
     def placed(self, bridge: int) -> bool:
         return bool(self.row[bridge] >= 0)
 
-    def record(self, rows: NDArray[np.int64], t_sample: NDArray[np.float64], cycle: NDArray[np.uint64],
-               res: dict[str, NDArray[Any]], unique: bool, now: float) -> None:
-        """Keep a batch's readings (ΔC from ``ElementStage.step``) for the contact snapshot."""
-        assert self.moments is not None and self.elements is not None
+    @property
+    def ready(self) -> bool:
+        """A layout is in place: samples can be calibrated and contacts estimated."""
+        return self.elements is not None
+
+    def step(self, rows: NDArray[np.int64], raw: NDArray[np.int64], saturated: NDArray[np.bool_],
+             caps: NDArray[np.float64], t_sample: NDArray[np.float64], cycle: NDArray[np.uint64],
+             now: float, held: NDArray[np.bool_], on_time: NDArray[np.bool_],
+             period: NDArray[np.float64]) -> dict[str, NDArray[Any]]:
+        """One read's placed samples through channel health → calibration and inverse →
+        the moments contacts are estimated on; the element stage's columns back.
+
+        ``rows``: layout row of each sample (all placed); ``raw``/``saturated``/``caps``:
+        (n, 2) readings, their saturation and capacitance (F); ``t_sample``: host time of
+        each sample; ``now``: the read's arrival time; ``held``, ``on_time``, ``period``:
+        each reading's kind and sample period (:meth:`Moments.record`). Requires :attr:`ready`."""
+        assert self.elements is not None and self.channels is not None and self.moments is not None
+        last = {x: i for i, x in enumerate(rows.tolist())}  # each element's newest sample
+        groups = (np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last)))
+        self.channels.update(rows, raw, saturated, groups, now)
+        res = self.elements.step(rows, caps, groups, now)
         enter, leave = self.elements.calibrator.thresholds()
-        self.moments.record(rows, t_sample, cycle, np.stack([res["dc1"], res["dc2"]], axis=1), unique, now,
-                            enter, leave)
+        self.moments.record(rows, t_sample, cycle, np.stack([res["dc1"], res["dc2"]], axis=1),
+                            groups[0].shape[0] == rows.shape[0], now, enter, leave, held, on_time, period)
         self.moments.settle(self.elements.stepped, self.elements.touched)
+        return res
 
     def snapshot(self, now: float, bridge_timeout: float) -> ContactSnapshot | None:
         """The skin at the newest moment every live element has reported past, if that
         moment advanced since the last snapshot (see :mod:`cellbridge.daemon.moment`)."""
-        if self.elements is None or self.moments is None:
+        if self.elements is None or self.moments is None or self.layout is None:
             return None
         m = self.moments
         m.settle(self.elements.flush(now), self.elements.touched)
-        t = m.moment(now, bridge_timeout, self.sections["contact"]["max_lag"])
-        if math.isnan(t) or (t <= m.t_moment and not self.dirty):
+        c = self.sections["contact"]
+        got = m.take(now, bridge_timeout, c["max_lag"], force=self.dirty, held_wait=c["held_wait"])
+        if got is None:
             return None
-        dc, touched, t_sample, cycle, transition = m.at(t)
-        if transition and not self.dirty:  # a press or release between two samples of an element
-            if math.isnan(m.hold_since):
-                m.hold_since = t
-            if t - m.hold_since < transition:
-                return None  # wait for a moment past it: one sample period of that element at most
-        m.hold_since = math.nan
-        m.late_estimates += bool(m.late.any())
         self.dirty = False
-        m.t_moment = t
-        return ContactSnapshot(dc, touched, now, t_sample, cycle, self.layout.ids, t)  # type: ignore[union-attr]
+        return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t,
+                               got.unknown)
 
     def tare(self, bridges: list[int] | None) -> int:
         if self.elements is None:

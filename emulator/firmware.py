@@ -3,15 +3,16 @@
 One :class:`Firmware` is one bridge. Its owner (the virtual-time mesh or a real-time
 process shell) calls:
 
-* ``receive(data, tick)`` with bytes the medium delivered from the cell,
+* ``receive(data, tick, cell, sof)`` with bytes the medium delivered from the cell (``sof``:
+  the tick the transmission started, for mesh time; by default its end minus its airtime),
 * ``carrier(until)`` when the medium reports another bridge transmitting,
 * ``serial_in(data, tick)`` (gateways) with bytes the host wrote to the serial line,
 * ``advance(tick)`` at or after ``next_tick``; it runs every timer due and returns the
   bytes whose cell transmission starts at ``tick`` (or None),
 * ``take_serial()`` (gateways) for the bytes to write to the host.
 
-Everything the bridge does — sampling (C1 gate then C2 gate), reporting, routing,
-forwarding, commands — happens inside those calls; the owner supplies only time,
+Everything the bridge does — mesh time, sampling (C1 gate then C2 gate), reporting,
+routing, forwarding, commands — happens inside those calls; the owner supplies only time,
 bytes and the element's capacitance (``sense(tick) -> (C1, C2)`` in farads).
 """
 
@@ -50,6 +51,7 @@ from cellbridge.protocol import (
 from cellbridge.emulator.rawframe import Raw, addressed_to, build, own, parse, to_serial
 from cellbridge.emulator.commands import MAX_GATE, Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
+from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig, Timebase
 from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
@@ -71,6 +73,7 @@ _HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
 _LOOP_MIN_HOPS = 3
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
 _FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
+_FORWARD_MIN, _FORWARD_SPREAD = 2 * _MS, 20 * _MS  # a new round of mesh time goes on 2-22 ms after it came
 _RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and flood copies to leave
 
 
@@ -100,6 +103,14 @@ class FirmwareConfig:
     max_hops: int = 32
     ack_slack: int = 0  #: extra wait for a LINK_ACK (real-time shells: message latency)
     lazy_sampling: bool = True  #: compute periodic samples when their frame is due (False: at each gate)
+    #: A beacon at least this often (routing and mesh time): neighbours stay fresh, and the
+    #: mesh clock gets a reference point per period (docs/time.md).
+    sync_period: int = 500 * _MS
+    mesh_clock: MeshClockConfig = field(default_factory=MeshClockConfig)
+    clock_epoch: int = 0  #: the chip's cycle counter at tick 0 (its crystal's own origin)
+    #: Start-of-frame detection jitter of the receiver, cycles (uniform 0..n): the limit of
+    #: MAC-layer timestamps (a quarter of a bit at 1 Mbit/s)
+    sof_jitter: int = 12
     transceiver: TransceiverConfig = field(default_factory=TransceiverConfig)
 
 
@@ -118,6 +129,11 @@ class Firmware:
         self.rng = random.Random(seed * 1_000_003 + config.bridge * 7919 + resets)
         self.counters: Counter[str] = Counter()
         self.resets = resets
+        # the chip's crystal: its own rate (from the chip's configuration) and origin
+        ppm = getattr(getattr(chip, "config", None), "crystal_ppm", 0.0)
+        self.crystal = Crystal(float(ppm), config.clock_epoch)
+        self._sof_rng = random.Random(seed * 1_000_033 + config.bridge * 104_729 + resets)
+        self._clock_past: Counter[str] = Counter()
         self.serial_out = bytearray()
         self._serial_in = StreamDecoder()
         # Commands seen survive a RESET command (kept in memory a reset does not clear), so
@@ -137,7 +153,16 @@ class Firmware:
         # evidence of a restart, without which the host and the relays would drop the new
         # numbering as stale or duplicate (docs/protocol.md, duplicate filter).
         self.seq = 0
+        # Frames that never reach the host (beacons, link acknowledgements, bundles) number
+        # from a counter of their own: had they taken numbers from ``seq``, the host would
+        # see gaps in every bridge's numbering and count them as lost (health's loss).
+        self.link_seq = 0
         self.radio = Transceiver(self.rng, c.transceiver)
+        self.radio.stamper = self._stamp
+        # mesh time is in RAM: a reset starts it again (the crystal runs on)
+        self.clock = MeshClock(self.me, c.gateway, c.mesh_clock, self.crystal.local(tick))
+        self.timebase = Timebase(self.crystal, self.clock, c.clock_hz)
+        self.time_beacon_at = tick + self.rng.randrange(c.sync_period)
         self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries, ack_slack=c.ack_slack)
         self.router = Router(self.me, c.gateway, max_hops=c.max_hops,
                              neighbour_timeout=4 * c.trickle_imax)
@@ -147,7 +172,7 @@ class Firmware:
         self.hops_seen: OrderedDict[tuple[int, int], int] = OrderedDict()  # (origin, seq) -> hops
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
-                               c.batch_max, c.max_latency, c.lazy_sampling, self.counters)
+                               c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase)
         self.status_at = tick + c.status_period
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period
@@ -168,7 +193,7 @@ class Firmware:
 
     @property
     def next_tick(self) -> int:
-        t = min(self.sampler.next_tick, self.trickle.next_tick, self.status_at)
+        t = min(self.sampler.next_tick, self.trickle.next_tick, self.status_at, self.time_beacon_at)
         if self.floods and self.floods[0][0] < t:
             t = self.floods[0][0]
         for x in (self.hello_at, self.reset_at):
@@ -184,9 +209,15 @@ class Firmware:
         self.seq = (s + 1) & 0xFFFF
         return s
 
+    def _next_link_seq(self) -> int:
+        s = self.link_seq
+        self.link_seq = (s + 1) & 0xFFFF
+        return s
+
     def _life_totals(self) -> Counter[str]:
         """Totals kept by the parts a reset rebuilds, for this life only."""
         c = Counter(self.link.counters)
+        c.update(self.clock.counters)
         c.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
                  acks_dropped=self.radio.acks_dropped,
                  bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
@@ -209,7 +240,8 @@ class Firmware:
         totals = Counter(self._past)
         totals.update(self._life_totals())
         out.update(totals)
-        out.update(resets=self.resets, queue_len=len(self.link.queue), has_route=int(self.router.has_route))
+        out.update(resets=self.resets, queue_len=len(self.link.queue), has_route=int(self.router.has_route),
+                   mesh_time=int(self.clock.has_fit()), time_root=int(self.clock.is_root))
         if self.config.gateway:  # what the host wrote that was not a frame: counted by cause
             dec = self._serial_in
             out["serial_rx_bytes_dropped"] = sum(dec.bytes_dropped.values())
@@ -236,22 +268,23 @@ class Firmware:
         self.serial_out.clear()
         return out
 
-    def receive(self, data: bytes, tick: int, cell: int) -> bool:
-        """A frame from ``cell``; False when the bridge ignored it (no need to advance)."""
+    def receive(self, data: bytes, tick: int, cell: int, sof: int | None = None) -> bool:
+        """A frame from ``cell``, its transmission started at ``sof`` (default: ``tick``
+        minus its airtime, ``tick`` being its end); False when the bridge ignored it."""
         # Address filter before any decoding, as a radio does: unicasts for other bridges
         # are dropped from the header bytes alone (type at 2, dst at 5-6).
         if not addressed_to(data, self.me):
             self.counters["overheard"] += 1
             return False
         if len(data) > 7 and data[2] in _PARSED:
-            return self._receive_parsed(data, tick)
+            return self._receive_parsed(data, tick, tick - self.radio.airtime(len(data)) if sof is None else sof)
         got = parse(data)
         if got is None:
             self.counters["rx_crc"] += 1
             return False
         src, _, f = got
         if f.flags & _ACK:
-            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_seq()), self.me, src),
+            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_link_seq()), self.me, src),
                                 self.config.cells, tick)
         if self.router.child_sent(src):
             self.counters["loops_broken"] += 1
@@ -273,7 +306,7 @@ class Firmware:
             self._upward(f, tick)
         return True
 
-    def _receive_parsed(self, data: bytes, tick: int) -> bool:
+    def _receive_parsed(self, data: bytes, tick: int, sof: int) -> bool:
         try:
             f = decode(data)
         except ProtocolError as exc:
@@ -287,14 +320,25 @@ class Firmware:
             ack: LinkAck = f.payload  # type: ignore[assignment]
             return f.dst == self.me and self.link.acked(ack.origin, ack.seq, f.src, tick)
         if t is FrameType.BEACON:
-            self._beacon(f, tick)
+            self._beacon(f, tick, sof)
         else:
             self._command(f, tick)
         return True
 
     # -- routing --------------------------------------------------------------------
-    def _beacon(self, f: Frame, tick: int) -> None:
+    def _beacon(self, f: Frame, tick: int, sof: int) -> None:
         b: Beacon = f.payload  # type: ignore[assignment]
+        if b.time is not None:
+            # samples due before the clock moves are taken with the clock as it was (their
+            # gates were planned with it): lazy sampling stays gate-by-gate exact
+            for data in self.sampler.advance(tick):
+                self._own(data)
+            if self.clock.heard(b.time, self.crystal.local(sof) + self._sof_rng.randint(0, self.config.sof_jitter)):
+                # a new round: pass it on soon (a flood crosses the skin in tens of
+                # milliseconds instead of a beacon period per hop), still once per round
+                soon = tick + _FORWARD_MIN + self.rng.randrange(_FORWARD_SPREAD)
+                if soon < self.time_beacon_at:
+                    self.time_beacon_at = soon
         self.router.on_beacon(f.src, b.parent, b.path_etx, b.hops, tick)
         self.radio.contenders = len(self.router.table)
         if b.parent == self.me and b.path_etx < INFINITE and b.path_etx <= self.router.path_etx:
@@ -312,11 +356,28 @@ class Firmware:
         if had and not self.router.has_route:
             self.counters["route_lost"] += 1
 
-    def _send_beacon(self, tick: int) -> None:
+    def _beacon_message(self, tick: int) -> Beacon:
         r = self.router
-        beacon = Beacon(0 if r.gateway or r.parent is None else r.parent, r.path_etx, r.hops)
-        self.link.broadcast(encode(Frame(self.me, ADDR_BROADCAST, self.me, self._next_seq(), beacon)))
+        return Beacon(0 if r.gateway or r.parent is None else r.parent, r.path_etx, r.hops,
+                      self.clock.stamp(self.crystal.local(tick)))
+
+    def _send_beacon(self, tick: int) -> None:
+        # The seq comes from a counter of its own: a beacon never reaches the host, and a
+        # number it took from the frames' sequence would look lost there (health's loss).
+        frame = Frame(self.me, ADDR_BROADCAST, self.me, self._next_link_seq(), self._beacon_message(tick))
+        self.link.broadcast(encode(frame))
         self.counters["beacons"] += 1
+
+    def _stamp(self, data: bytes, tick: int) -> bytes:
+        """MAC-layer timestamp: a beacon of ours gets the routing state and mesh time of
+        the cycle its transmission starts (the transceiver calls this then)."""
+        try:
+            f = decode(data)
+        except ProtocolError:
+            return data
+        if f.origin != self.me:
+            return data
+        return encode(Frame(f.src, f.dst, f.origin, f.seq, self._beacon_message(tick), f.hops, f.cost, f.flags))
 
     # -- upward traffic -------------------------------------------------------------
     def _upward(self, f: Raw, tick: int) -> None:
@@ -347,7 +408,14 @@ class Firmware:
 
     def _say_hello(self) -> None:
         c = self.config
-        self._own(Hello(self.me, FIRMWARE_VERSION, c.position[0], c.position[1], c.side, c.clock_hz, 3))
+        self._own(Hello(self.me, FIRMWARE_VERSION, c.position[0], c.position[1], c.side, c.clock_hz, 3,
+                        self.boots))
+
+    @property
+    def boots(self) -> int:
+        """Power-ons and resets of this chip, this one included (kept in its non-volatile
+        memory: ``resets`` at construction counts the lives before this one)."""
+        return self.resets + 1
 
     def _own(self, message: Message) -> None:
         self._emit(own(message, self.me, self._next_seq()))
@@ -379,7 +447,7 @@ class Firmware:
             cmd: Command = f.payload  # type: ignore[assignment]
             self.counters["commands"] += 1
             limit = self.max_gate if cmd.op is Op.SET_GATE else MAX_GATE
-            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, tick, limit)
+            reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, self.crystal.local(tick), limit)
             self._own(reply)
             if new is not None:
                 for data in self.sampler.apply(new, tick):
@@ -399,11 +467,19 @@ class Firmware:
             self._own(data)
         while self.floods and self.floods[0][0] <= tick:
             self.link.broadcast(self.floods.pop(0)[1])
+        beacon = False
         if self.trickle.next_tick <= tick:
-            if self.trickle.advance(tick, force=not self.router.has_route):
-                self.router.expire(tick)
-                self._reroute(tick)
-                self._send_beacon(tick)
+            beacon = self.trickle.advance(tick, force=not self.router.has_route)
+        if self.time_beacon_at <= tick:
+            local = self.crystal.local(tick)
+            self.clock.tick(local)
+            self.clock.next_round(local)
+            self.time_beacon_at = tick + self.config.sync_period
+            beacon = True
+        if beacon:
+            self.router.expire(tick)
+            self._reroute(tick)
+            self._send_beacon(tick)
         if 0 <= self.hello_at <= tick:
             if self.seq == 0:
                 # the numbering wrapped: a HELLO numbered 0 is the evidence of a restart
@@ -426,11 +502,11 @@ class Firmware:
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
         if p is not None:
-            out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)), r.table)
+            out, used = self.link.advance(tick, p.id, self.link_seq, int(round(p.link_etx)), r.table)
         else:
-            out, used = self.link.advance(tick, None, self.seq, PERFECT_LINK, r.table)
+            out, used = self.link.advance(tick, None, self.link_seq, PERFECT_LINK, r.table)
         if used:
-            self._next_seq()
+            self._next_link_seq()
         if self.link.results:
             for nbr, attempts, ok in self.link.results:
                 self.router.on_link_result(nbr, attempts, ok)

@@ -1,7 +1,12 @@
 """The bridge's measurement schedule and the DATA frames it fills.
 
 One sample is a C1 gate then a C2 gate on the counter (or two bursts of ADC
-conversions), repeated at the sampling rate. Samples the reporter keeps are batched
+conversions), repeated at the sampling rate. With mesh time (:mod:`.meshtime`) sample
+``k`` starts its C1 gate at global time ``k / rate`` on every bridge, so one index is one
+instant of the whole skin; without it (booting, cut off) the bridge samples on its own
+crystal and flags its samples ``NO_MESH_TIME``. The next gate is planned when a sample is
+taken, with the mesh clock as it is then; the firmware takes every sample due before it
+changes the clock (:meth:`Sampler.advance`), so lazy and gate-by-gate sampling agree. Samples the reporter keeps are batched
 into one DATA payload until it is full (255-byte frame, ``batch_max`` samples) or its
 oldest sample is ``max_latency`` old: fewer, larger frames carry more samples per bit
 of air time.
@@ -15,20 +20,24 @@ from collections.abc import Callable
 import msgpack
 
 from cellbridge.emulator.commands import Settings
+from cellbridge.emulator.meshtime import Timebase
 from cellbridge.emulator.reporting import Reporter
 from cellbridge.protocol import Data, Mode, Sample, SampleFlags
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
 
-# header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes)
-_DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3
-_MAX_SAMPLE_BYTES = 1 + 3 + 9 + 5 + 5 + 2  # msgpack of [element, cycle, c1, c2, flags] at the widest
+# header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes), rate
+_DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3 + 3
+# msgpack of [element, cycle, c1, c2, flags, index] at the widest
+_MAX_SAMPLE_BYTES = 1 + 3 + 9 + 5 + 5 + 2 + 9
+_NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
+_HELD = int(SampleFlags.HELD)
 _COUNTER_MODULUS = 1 << 16
 
 
 class Sampler:
     def __init__(self, settings: Settings, chip: object, sense: Callable[[int], tuple[float, float]],
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
-                 counters: Counter[str]) -> None:
+                 counters: Counter[str], timebase: Timebase) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
@@ -41,7 +50,10 @@ class Sampler:
         self.batch: list[Sample] = []
         self.batch_bytes = 0
         self.flush_at = -1
+        self.timebase = timebase
         self.start = first_start
+        self.index = 0  #: index of the sample whose gate starts at ``start``
+        self.on_time = False  #: whether that gate is on mesh time
         self.ready = first_start + settings.measure_cycles()
 
     @property
@@ -58,7 +70,10 @@ class Sampler:
             return self.ready if self.flush_at < 0 else min(self.ready, self.flush_at)
         room = max(1, min(self.batch_max - len(self.batch),
                           (MAX_FRAME - _DATA_OVERHEAD - self.batch_bytes) // _MAX_SAMPLE_BYTES))
-        full = self.ready + (room - 1) * self.settings.period_cycles(self.clock_hz)
+        # planned a little early (a crystal 0.1 % fast at most): a wake too early costs
+        # nothing, one too late would send the frame later than gate-by-gate sampling does
+        period = self.settings.period_cycles(self.clock_hz)
+        full = self.ready + (room - 1) * (period - period // 1000)
         return min(full, self.flush_at if self.batch else self.ready + self.max_latency)
 
     def advance(self, tick: int) -> list[Data]:
@@ -80,10 +95,40 @@ class Sampler:
             self.reporter.set_mode(new.reporting, _COUNTER_MODULUS if new.mode is Mode.COUNTER else 0)
         if (new.period_cycles(self.clock_hz) != old.period_cycles(self.clock_hz)
                 or new.measure_cycles() != old.measure_cycles() or new.mode != old.mode):
-            self._flush(out)  # one DATA payload holds one mode
-            self.start = max(tick, self.start)
-            self.ready = self.start + new.measure_cycles()
+            self._flush(out)  # one DATA payload holds one mode (and one rate)
+            at = max(tick, self.start)
+            self._plan(at, at, new.rate_hz != old.rate_hz)
         return out
+
+    def _plan(self, earliest: int, free: int, restart: bool = False) -> None:
+        """Plan the next gate at or after ``earliest`` (a tick): on mesh time, the next index
+        whose global instant this bridge has not passed; else at ``free`` (the bridge's own
+        schedule). Indices on mesh time only grow (``restart``: a new rate, new indices)."""
+        st = self.settings
+        rate = st.rate_hz
+        tb = self.timebase
+        if tb.synced(earliest):
+            # At the gate limit a sample fills its whole period; a crystal slower than the
+            # root's overruns it by its offset (<= 0.1 %): the next gate starts on time.
+            slack = st.measure_cycles() // 1000
+            k = tb.first_index(earliest - slack, rate)
+            if self.on_time and not restart and k <= self.index:
+                k = self.index + 1
+            t = tb.gate_tick(k, rate)
+            while t < earliest - slack:  # the fit moved between the two calls: the next one
+                k += 1
+                t = tb.gate_tick(k, rate)
+            if self.on_time and not restart and k > self.index + 1:
+                self.counters["frames_skipped"] += k - self.index - 1
+            self.start, self.index, self.on_time = t, k, True
+        else:
+            if self.on_time or restart:
+                self.index = 0
+            else:
+                self.index += 1
+            self.start = free
+            self.on_time = False
+        self.ready = self.start + st.measure_cycles()
 
     def _sample(self, out: list[Data]) -> None:
         st = self.settings
@@ -97,7 +142,11 @@ class Sampler:
             v1, took = self.chip.convert(0, c1, start, st.oversampling)  # type: ignore[attr-defined]
             v2, _ = self.chip.convert(1, c2, start + took, st.oversampling)  # type: ignore[attr-defined]
             flags = 0
-        s = Sample(0, start, v1, v2, int(flags))
+        if not self.on_time:
+            flags |= _NO_MESH_TIME
+        if not st.reporting.periodic:
+            flags |= _HELD
+        s = Sample(0, self.timebase.local(start), v1, v2, int(flags), self.index)
         self.counters["samples"] += 1
         if self.reporter.wants(s):
             size = len(msgpack.packb(s))  # a NamedTuple packs as the wire's array
@@ -109,13 +158,12 @@ class Sampler:
                 self.flush_at = self.ready + self.max_latency
             if len(self.batch) >= self.batch_max:
                 self._flush(out)
-        self.start = start + st.period_cycles(self.clock_hz)
-        self.ready = self.start + st.measure_cycles()
+        self._plan(start + st.measure_cycles(), self.timebase.after_local(start, st.period_cycles(self.clock_hz)))
 
     def _flush(self, out: list[Data]) -> None:
         if self.batch:
             st = self.settings
-            out.append(Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1))
+            out.append(Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1, st.rate_hz))
             self.counters["data_frames"] += 1
             self.counters["samples_sent"] += len(self.batch)
             self.batch = []

@@ -23,9 +23,11 @@ between a frame and its acknowledgement.
 from __future__ import annotations
 
 import random
+from collections.abc import Callable
 from dataclasses import dataclass
 
 PREAMBLE_BITS = 16  #: sync word before every frame on the cell
+_BEACON = 2  # FrameType.BEACON, at byte 2 of a frame
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,9 @@ class Transceiver:
         self.transmissions = 0
         self.bits_sent = 0
         self.acks_dropped = 0
+        #: MAC-layer timestamping: called with a BEACON's bytes and the tick its
+        #: transmission starts, returns the bytes to send (with the time of that instant)
+        self.stamper: Callable[[bytes, int], bytes] | None = None
 
     def airtime(self, n_bytes: int) -> int:
         """Cycles one frame of ``n_bytes`` occupies the cell."""
@@ -177,6 +182,8 @@ class Transceiver:
         return self._start(out, self._cells, tick)
 
     def _start(self, data: bytes, cells: tuple[int, ...], tick: int) -> tuple[bytes, tuple[int, ...]]:
+        if self.stamper is not None and len(data) > 2 and data[2] == _BEACON:
+            data = self.stamper(data, tick)
         self.tx_until = tick + self.airtime(len(data))
         self.transmissions += 1
         self.bits_sent += len(data) * 8

@@ -119,8 +119,11 @@ class MeshResult:
 class VirtualMesh:
     def __init__(self, mesh: Mesh, seed: int = 0, world: World | None = None,
                  settings: Settings = Settings(), chip: Callable[[int, int], object] = default_chip,
-                 latency: Latency | None = None, **firmware: object) -> None:
+                 latency: Latency | None = None, random_epochs: bool = False, **firmware: object) -> None:
         self.mesh = mesh
+        #: chips whose cycle counters started at unrelated moments (as after separate power-ons):
+        #: sample cycles are then far from the virtual ticks, and mesh time must find the offsets
+        self.random_epochs = random_epochs
         self.seed = seed
         self.world = world or World(mesh)
         self.settings = settings
@@ -140,6 +143,8 @@ class VirtualMesh:
         self.nodes: dict[int, Firmware] = {}
         self.resets: Counter[int] = Counter()
         self.serial: dict[int, bytearray] = {g: bytearray() for g in mesh.gateways}
+        #: what each gateway wrote to its serial line, as (tick, bytes) in order: a host's reads
+        self.serial_chunks: dict[int, list[tuple[int, bytes]]] = {g: [] for g in mesh.gateways}
         self.decoders: dict[int, StreamDecoder] = {g: StreamDecoder() for g in mesh.gateways}
         self.frames: dict[int, list[Frame]] = {g: [] for g in mesh.gateways}
         self.dead: set[int] = set()
@@ -150,9 +155,12 @@ class VirtualMesh:
     # -- set-up and faults ----------------------------------------------------------
     def _config(self, b: int) -> FirmwareConfig:
         br = self.mesh.bridge(b)
+        kw = dict(self._fw_kw)
+        if self.random_epochs:
+            kw.setdefault("clock_epoch", random.Random(self.seed * 131_071 + b).randrange(1 << 40))
         return FirmwareConfig(b, br.cells, br.gateway, br.position, self.mesh.side, settings=self.settings,
                               transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // self.mesh.bitrate),
-                              **self._fw_kw)  # type: ignore[arg-type]
+                              **kw)  # type: ignore[arg-type]
 
     def _boot(self, b: int, tick: int) -> None:
         self.nodes[b] = Firmware(self._config(b), self._chip(b, self.seed), self.world.sense_for(b),
@@ -270,6 +278,7 @@ class VirtualMesh:
 
     def _gateway_out(self, b: int, data: bytes) -> None:
         self.serial[b] += data
+        self.serial_chunks[b].append((self.tick, data))
         self.frames[b].extend(self.decoders[b].feed(data))
 
     def run(self, seconds: float) -> MeshResult:
@@ -290,7 +299,8 @@ class VirtualMesh:
                 tx: Transmission = item  # type: ignore[assignment]
                 for r, cell, data in self.medium.finish(tx):
                     if self.latency is not None:
-                        self._down(r, lambda fw, data=data, cell=cell: fw.receive(data, self.tick, cell))
+                        self._down(r, lambda fw, data=data, cell=cell, sof=tx.start:
+                                   fw.receive(data, self.tick, cell, sof))
                         continue
                     fw = nodes.get(r)
                     if fw is not None and fw.receive(data, tick, cell):

@@ -34,6 +34,7 @@ from cellbridge.protocol.messages import (
     Hello,
     LinkAck,
     Message,
+    MeshTime,
     Mode,
     Neighbour,
     Op,
@@ -46,7 +47,7 @@ from cellbridge.protocol.stream import StreamDecoder, encode_stream
 __all__ = [
     "ADDR_BROADCAST", "ADDR_HOST", "MAX_DATAGRAM", "MAX_FRAME", "VERSION", "CRC_CHECK",
     "Beacon", "BridgeStatus", "Bundle", "Command", "CommandReply", "Data", "DuplicateFilter",
-    "Flags", "Fragment", "Frame", "FrameType", "Hello", "HostReceiver", "LinkAck", "Message", "Mode",
+    "Flags", "Fragment", "Frame", "FrameType", "Hello", "HostReceiver", "LinkAck", "MeshTime", "Message", "Mode",
     "Neighbour", "Op", "ProtocolError", "Reassembler", "Sample", "SampleFlags", "Status",
     "StreamDecoder", "crc16", "decode", "encode", "encode_stream", "fragment",
 ]

@@ -2,7 +2,7 @@
 
 Layout (big-endian; docs/protocol.md is the normative text)::
 
-    0  version   u8    = 1
+    0  version   u8    = 2 (1 is still read: docs/protocol.md §3)
     1  flags     u8    bits 0-3 optional, bits 4-7 must-understand
     2  type      u8    FrameType
     3  src       u16   link source (bridge id that transmitted this hop)
@@ -37,7 +37,10 @@ from cellbridge.protocol.messages import (
     unpack_payload,
 )
 
-VERSION = 1
+VERSION = 2
+#: Versions :func:`decode` reads: version 1 frames decode into today's messages, with the
+#: fields version 2 added at their defaults (old captures replay); :func:`encode` writes 2.
+READ_VERSIONS = frozenset({1, 2})
 MAX_FRAME = 255  #: whole frame, header to CRC, before COBS
 MAX_DATAGRAM = 4096  #: largest fragmented datagram (payload and its 2-byte checksum)
 DATAGRAM_CRC_LEN = 2  #: CRC-16 of the payload, ending every fragmented datagram
@@ -163,8 +166,8 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
     if crc16(data):  # a frame followed by its big-endian CRC-16/CCITT-FALSE leaves a residue of 0
         raise ProtocolError("crc", "CRC mismatch")
     ver, flags, ftype, src, dst, origin, seq, hops, cost = _HEADER.unpack_from(data)
-    if ver != VERSION:
-        raise ProtocolError("version", f"version {ver} not supported (this is {VERSION})")
+    if ver not in READ_VERSIONS:
+        raise ProtocolError("version", f"version {ver} not supported (this reads {sorted(READ_VERSIONS)})")
     if flags & _UNKNOWN_MUST_UNDERSTAND:
         raise ProtocolError("must_understand", f"unknown must-understand flags 0x{flags:02x}")
     if ftype not in MESSAGE_CLASSES:
@@ -181,7 +184,7 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
             raise ProtocolError("fragment", "a bundle is never fragmented")
         payload = Fragment(FrameType(ftype), tag, offset, total, chunk)
     else:
-        payload = unpack_payload(ftype, data[HEADER_LEN:-CRC_LEN])
+        payload = unpack_payload(ftype, data[HEADER_LEN:-CRC_LEN], ver)
         if ftype == _HELLO:
             check_origin(origin, payload)
     return Frame(src, dst, origin, seq, payload, hops, cost, flags & OPTIONAL_MASK)

@@ -24,6 +24,7 @@ U8, U16, U32, U64 = 0xFF, 0xFFFF, 0xFFFF_FFFF, 0xFFFF_FFFF_FFFF_FFFF
 MAX_FW_VERSION_LEN = 32
 MAX_NEIGHBOURS = 32
 _FRAGMENT_FLAG = 0x10  # header flag FRAGMENT (frame.Flags imports this module, so not from there)
+_NO_MESH_TIME = 0x04  # SampleFlags.NO_MESH_TIME, as a plain int for the hot path
 
 
 class FrameType(IntEnum):
@@ -53,6 +54,14 @@ _new_tuple = tuple.__new__
 class SampleFlags(IntEnum):
     OVERFLOW_C1 = 0x01  #: the 16-bit counter of C1 wrapped during the gate
     OVERFLOW_C2 = 0x02
+    #: The bridge had no mesh time at this gate (booting, or cut off from the time root
+    #: for too long): ``index`` counts the bridge's own samples, not the skin's frames,
+    #: and the host falls back to timing the sample from its arrival.
+    NO_MESH_TIME = 0x04
+    #: Event-based reporting: until this bridge's next sample, its readings stay within the
+    #: reporting threshold of this one; a skin frame it does not send is this reading.
+    #: Without the flag (periodic reporting) a frame not sent is a sample lost.
+    HELD = 0x08
 
 
 class Op(IntEnum):
@@ -99,6 +108,10 @@ class Sample(NamedTuple):
     c1: int  #: counter value (u16) or sum of ADC codes (u32) for C1
     c2: int  #: the same for C2
     flags: int = 0  #: :class:`SampleFlags` bits (u8)
+    #: Sample index (u64): the C1 gate started at mesh time ``index / rate`` seconds, so one
+    #: index is one instant of the whole skin (a *skin frame*); with ``NO_MESH_TIME`` set,
+    #: the bridge's own sample count instead.
+    index: int = 0
 
 
 @dataclass(slots=True)
@@ -113,17 +126,35 @@ class Data:
     mode: Mode
     samples: tuple[Sample, ...]
     oversampling: int = 1  #: ADC conversions summed into c1/c2 (1 in counter mode)
+    #: Sampling rate in Hz (u16) the samples' ``index`` counts in; 0: none (frames of
+    #: protocol version 1, which had no index, decode with 0), and the host then times
+    #: the samples from their arrival as if each were flagged ``NO_MESH_TIME``.
+    rate: int = 0
 
     def to_wire(self) -> list[Any]:
-        return [int(self.mode), self.oversampling, [list(s) for s in self.samples]]
+        return [int(self.mode), self.oversampling, [list(s) for s in self.samples], self.rate]
 
     @classmethod
     def from_wire(cls, obj: Any) -> Data:
-        # The host's hottest path: checks are inlined and samples built with
-        # tuple.__new__ (a NamedTuple's own constructor costs twice as much).
+        if type(obj) is not list or len(obj) != 4:
+            raise _bad("DATA", "expected an array of 4 fields")
+        rate = obj[3]
+        if type(rate) is not int or not 0 <= rate <= U16:
+            raise _bad("DATA", f"rate must be an integer in 0..{U16}, got {rate!r}")
+        return cls._parse(obj[0], obj[1], obj[2], 6, rate)
+
+    @classmethod
+    def from_wire_v1(cls, obj: Any) -> Data:
+        """Protocol version 1 (no rate, samples without index): samples flagged
+        ``NO_MESH_TIME`` with index 0, so old captures still replay."""
         if type(obj) is not list or len(obj) != 3:
             raise _bad("DATA", "expected an array of 3 fields")
-        mode, over, raw = obj
+        return cls._parse(obj[0], obj[1], obj[2], 5, 0)
+
+    @classmethod
+    def _parse(cls, mode: Any, over: Any, raw: Any, width: int, rate: int) -> Data:
+        # The host's hottest path: checks are inlined and samples built with
+        # tuple.__new__ (a NamedTuple's own constructor costs twice as much).
         # The ranges depend on the mode, so a decoded sample is one the chip could produce.
         if mode == 0 and type(mode) is int:
             if over != 1 or type(over) is not int:
@@ -139,17 +170,44 @@ class Data:
             raise _bad("DATA", "samples must be an array")
         samples = []
         for s in raw:
-            if type(s) is not list or len(s) != 5:
-                raise _bad("DATA", "a sample is [element, cycle, c1, c2, flags]")
-            e, cyc, c1, c2, fl = s
+            if type(s) is not list or len(s) != width:
+                raise _bad("DATA", "a sample is [element, cycle, c1, c2, flags, index]" if width == 6
+                           else "a version 1 sample is [element, cycle, c1, c2, flags]")
+            e, cyc, c1, c2, fl = s[0], s[1], s[2], s[3], s[4]
             if not (
                 type(e) is int and type(cyc) is int and type(c1) is int and type(c2) is int and type(fl) is int
                 and 0 <= e <= U16 and 0 <= cyc <= U64 and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= U8
             ):
                 raise _bad("DATA", f"sample field out of range for {_MODES[mode].name} mode "
                                    f"(c1, c2 at most {limit}): {s!r}")
-            samples.append(_new_tuple(Sample, s))
-        return cls(_MODES[mode], tuple(samples), over)
+            if width == 6:
+                k = s[5]
+                if type(k) is not int or not 0 <= k <= U64:
+                    raise _bad("DATA", f"sample index must be an integer in 0..{U64}, got {k!r}")
+                samples.append(_new_tuple(Sample, s))
+            else:
+                samples.append(_new_tuple(Sample, (e, cyc, c1, c2, fl | _NO_MESH_TIME, 0)))
+        return cls(_MODES[mode], tuple(samples), over, rate)
+
+
+@dataclass(frozen=True, slots=True)
+class MeshTime:
+    """The time part of a BEACON (docs/time.md): the sender's estimate of the mesh's
+    global time, taken at the cycle its transmission started (the transceiver stamps it
+    then, not when the beacon was queued), and which flood of the root it descends from."""
+
+    root: int  #: the time root's bridge id (u16): the lowest-id gateway that is alive
+    seq: int  #: the root's round number this estimate descends from (u16, wraps)
+    time: int  #: global time in cycles of the root's clock at the start of the frame (u64)
+
+    def to_wire(self) -> list[int]:
+        return [self.root, self.seq, self.time]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> MeshTime:
+        r, q, t = _array(obj, 3, "BEACON")
+        return cls(_uint(r, U16, "BEACON", "root"), _uint(q, U16, "BEACON", "time seq"),
+                   _uint(t, U64, "BEACON", "time"))
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,15 +218,21 @@ class Beacon:
     parent: int  #: the sender's parent bridge id (0 = the sender is a gateway)
     path_etx: int  #: path cost to the sink in tenths of an expected transmission (u16)
     hops: int  #: hops to the sink (u8)
+    time: MeshTime | None = None  #: the sender's mesh time (None: it has none to pass on)
 
     def to_wire(self) -> list[Any]:
-        return [self.parent, self.path_etx, self.hops]
+        return [self.parent, self.path_etx, self.hops, None if self.time is None else self.time.to_wire()]
 
     @classmethod
     def from_wire(cls, obj: Any) -> Beacon:
-        p, etx, hops = _array(obj, 3, "BEACON")
+        p, etx, hops, t = _array(obj, 4, "BEACON")
         return cls(_uint(p, U16, "BEACON", "parent"), _uint(etx, U16, "BEACON", "path_etx"),
-                   _uint(hops, U8, "BEACON", "hops"))
+                   _uint(hops, U8, "BEACON", "hops"), None if t is None else MeshTime.from_wire(t))
+
+    @classmethod
+    def from_wire_v1(cls, obj: Any) -> Beacon:
+        p, etx, hops = _array(obj, 3, "BEACON")
+        return cls.from_wire([p, etx, hops, None])
 
 
 @dataclass(frozen=True, slots=True)
@@ -183,13 +247,24 @@ class Hello:
     side: float  #: element side length, metres
     clock_hz: int  #: nominal clock frequency (u32)
     capabilities: int = 0  #: bit mask (u32); bit 0: ADC mode, bit 1: counter mode
+    #: Boot counter (u32), kept in the chip's non-volatile memory and raised at every
+    #: power-on or reset: a restart is known from evidence, not guessed from numbering.
+    #: 0 in version 1 frames (which had none).
+    boots: int = 0
 
     def to_wire(self) -> list[Any]:
         return [self.bridge, self.firmware, [float(self.x), float(self.y), float(self.side)],
-                self.clock_hz, self.capabilities]
+                self.clock_hz, self.capabilities, self.boots]
 
     @classmethod
     def from_wire(cls, obj: Any) -> Hello:
+        fields = _array(obj, 6, "HELLO")
+        hello = cls.from_wire_v1(fields[:5])
+        return cls(hello.bridge, hello.firmware, hello.x, hello.y, hello.side, hello.clock_hz,
+                   hello.capabilities, _uint(fields[5], U32, "HELLO", "boots"))
+
+    @classmethod
+    def from_wire_v1(cls, obj: Any) -> Hello:
         b, fw, geo, clk, caps = _array(obj, 5, "HELLO")
         if type(fw) is not str or len(fw.encode()) > MAX_FW_VERSION_LEN:
             raise _bad("HELLO", f"firmware must be a string of at most {MAX_FW_VERSION_LEN} bytes")
@@ -361,7 +436,13 @@ def pack_payload(message: Message) -> bytes:
     return _pack(message.to_wire())
 
 
-def unpack_payload(frame_type: int, data: bytes) -> Message:
+#: Parsers of the payloads whose layout protocol version 1 had shorter (docs/protocol.md §3):
+#: old captures still decode, into today's messages with the new fields at their defaults.
+_V1_PARSERS: dict[int, Any] = {FrameType.DATA: Data.from_wire_v1, FrameType.BEACON: Beacon.from_wire_v1,
+                               FrameType.HELLO: Hello.from_wire_v1}
+
+
+def unpack_payload(frame_type: int, data: bytes, version: int = 2) -> Message:
     """Parse and validate a payload; any malformation becomes :class:`ProtocolError`.
 
     Only the canonical encoding is accepted (``pack_payload(unpack_payload(x)) == x``):
@@ -379,6 +460,8 @@ def unpack_payload(frame_type: int, data: bytes) -> Message:
     if not canonical:
         raise ProtocolError("payload", "not the canonical msgpack encoding (smallest forms, float64)")
     try:
+        if version == 1 and frame_type in _V1_PARSERS:
+            return _V1_PARSERS[frame_type](obj)  # type: ignore[no-any-return]
         return MESSAGE_CLASSES[frame_type].from_wire(obj)
     except ProtocolError:
         raise

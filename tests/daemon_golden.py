@@ -96,19 +96,24 @@ def compare(got: dict[str, Any], golden: dict[str, Any]) -> list[str]:
 
 def pipeline_output() -> dict[str, Any]:
     """Replay the capture through the sans-I/O pipeline with the golden config."""
+    import logging
+
     from cellbridge.daemon.capture import read_capture
     from cellbridge.daemon.config import load_config
+    from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
+    from cellbridge.daemon.messages import Publish
     from cellbridge.daemon.pipeline import Pipeline
 
     cfg = load_config(CONFIG)
     p = Pipeline(cfg)
-    p.wanted = {"element", "contact"}
+    p.want({"element", "contact"})
+    worker = ContactWorker(logging.getLogger("golden"), InlineExecutor)
     out: list[tuple[str, dict[str, Any]]] = []
     for t, data in read_capture(CAPTURE):
-        out += p.feed("gw", data, t)
-    snap = p.contact_snapshot()
-    assert snap is not None and p.skin.contacts is not None
-    out.append(p.contact_message(snap, p.skin.contacts.run(snap)))
+        out += [(m.topic, m.payload) for m in p.feed("gw", data, t) if isinstance(m, Publish)]
+    job = p.contact_job()
+    assert job is not None
+    out.append(("contact", p.contact_frame(job, worker.estimate_now(job)).payload))
     return normalise(out)
 
 

@@ -18,6 +18,7 @@ from cellbridge.protocol import (
     Mode,
     Neighbour,
     Op,
+    MeshTime,
     Sample,
     Status,
 )
@@ -30,17 +31,17 @@ finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 
 def _samples(limit: int) -> st.SearchStrategy[tuple[Sample, ...]]:
     code = st.integers(0, limit)
-    return st.lists(st.builds(Sample, u16, u64, code, code, u8), max_size=8).map(tuple)
+    return st.lists(st.builds(Sample, u16, u64, code, code, u8, u64), max_size=8).map(tuple)
 
 
 # Counter mode: 16-bit counts, oversampling 1; ADC mode: sums of `oversampling` 8-bit codes.
-counter_data = st.builds(Data, st.just(Mode.COUNTER), _samples(0xFFFF), st.just(1))
+counter_data = st.builds(Data, st.just(Mode.COUNTER), _samples(0xFFFF), st.just(1), u16)
 adc_data = st.integers(1, 0xFFFF).flatmap(
-    lambda over: st.builds(Data, st.just(Mode.ADC), _samples(255 * over), st.just(over)))
+    lambda over: st.builds(Data, st.just(Mode.ADC), _samples(255 * over), st.just(over), u16))
 data = counter_data | adc_data
-beacon = st.builds(Beacon, u16, u16, u8)
+beacon = st.builds(Beacon, u16, u16, u8, st.none() | st.builds(MeshTime, u16, u16, u64))
 hello = st.builds(Hello, u16, st.text(max_size=8), finite, finite,
-                  st.floats(min_value=1e-3, max_value=1.0), u32, u32)
+                  st.floats(min_value=1e-3, max_value=1.0), u32, u32, u32)
 status = st.builds(BridgeStatus, u16, u16, st.lists(st.builds(Neighbour, u16, u16), max_size=6).map(tuple),
                    u32, u32, u32, u64)
 value = st.none() | u64

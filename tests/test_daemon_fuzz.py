@@ -11,6 +11,7 @@ from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream
 from daemon_traffic import Skin
+from pipeline_helpers import published, worker
 
 CFG = parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 2}})
 U64 = 2**64 - 1
@@ -47,15 +48,15 @@ def test_any_data_frames_and_noise_never_raise(frames: list[Frame], noise: bytes
     t = 1000.0
     for f in frames:
         t += dt  # host time may even go backwards (a clock step)
-        for topic, msg in p.feed("gw", noise + encode_stream(f), t):
+        for topic, msg in published(p.feed("gw", noise + encode_stream(f), t)):
             assert msg["v"] == 1
             if topic == "element":
                 assert all(isinstance(x, float) for x in msg["c1"])
-    h = p.tick(t + 10.0, force=True)
+    h = published(p.tick(t + 10.0, force=True))
     assert h and h[0][0] == "health"
-    snap = p.contact_snapshot()
-    if snap is not None and p.skin.contacts is not None:
-        for c in p.skin.contacts.run(snap):
+    job = p.contact_job()
+    if job is not None:
+        for c in worker().estimate_now(job):
             assert math.isfinite(c["x"]) or not c["valid"]
 
 

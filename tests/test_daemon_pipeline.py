@@ -25,6 +25,7 @@ from cellbridge.protocol import (
 )
 from cellbridge.tactile import adc_code, grid_layout, layout_to_toml
 from daemon_traffic import CLOCK, Skin, staggered
+from pipeline_helpers import estimate, logged, published, snapshot, worker
 
 T0 = 1_700_000_000.0
 STRADDLE = (0.020, 0.006, 3.0, 0.012)  # on the seam of bridges 1 and 2
@@ -51,11 +52,10 @@ def press(p: Pipeline, sk: Skin, contact, start: int, n: int = 10) -> list:
 
 
 def topic(out: list, name: str) -> dict:
-    return [m for t, m in out if t == name][-1]
+    return [m for t, m in published(out) if t == name][-1]
 
 
 def test_press_gives_force_on_element_and_position_on_contact() -> None:
-    snap = None
     sk = Skin()
     p = make()
     settle(p, sk)
@@ -65,11 +65,9 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
     force = np.nansum(np.where(el["valid"], el["force"], 0.0))
     touched = [b for b, t in zip(el["bridge"], el["touched"]) if t]
     assert touched == [1, 2]
-    for _ in range(3):  # a contact is reported once it persisted three estimates
-        snap = p.contact_snapshot() or snap
-        contacts = p.skin.contacts.run(snap)  # type: ignore[union-attr]
-        p.skin.dirty = True
-    _, msg = p.contact_message(snap, contacts)
+    job = p.contact_job()
+    assert job is not None
+    _, msg = estimate(p, job, runs=3)  # a contact is reported once it persisted three estimates
     (c,) = msg["contacts"]
     assert c["id"] == 0 and c["age"] == 3
     assert c["x"] == pytest.approx(STRADDLE[0], abs=1e-3)
@@ -113,7 +111,7 @@ def test_cross_link_duplicates_are_removed_and_loss_counted() -> None:
     for i, data in enumerate(slots):
         t = T0 + (60 + i) / 100
         for link in ("gw", "gw2"):  # both gateways hear everything
-            for _, m in p.feed(link, data, t):
+            for _, m in published(p.feed(link, data, t)):
                 if "force" in m:
                     n_elem += len(m["bridge"])
     assert n_elem == 40
@@ -141,16 +139,16 @@ def test_commands_go_to_the_link_a_bridge_was_heard_on_and_complete_on_reply() -
     p = make()
     settle(p, sk, 5, link="gw2")
     pending, writes = p.command(int(Op.SET_GATE), 50_000, 3, T0, 1.0)
-    assert [link for link, _ in writes] == ["gw2"]
-    (frame,) = StreamDecoder().feed(writes[0][1])
+    assert [w.link for w in writes] == ["gw2"]
+    (frame,) = StreamDecoder().feed(writes[0].data)
     assert frame.dst == 3 and frame.payload == Command(pending.token, Op.SET_GATE, 50_000)
     p.feed("gw2", sk.reply(3, pending.token, Op.SET_GATE), T0 + 0.01)
     (done,) = p.commands.done(T0 + 0.01)
     assert done.result()["replies"]["3"]["status"] == "OK" and done.result()["missing"] == []
     assert p.gate[3] == 50_000.0
     bpending, bwrites = p.command(int(Op.SET_RATE), 50, None, T0, 1.0)
-    assert sorted(link for link, _ in bwrites) == ["gw", "gw2"]
-    assert StreamDecoder().feed(bwrites[0][1])[0].dst == ADDR_BROADCAST
+    assert sorted(w.link for w in bwrites) == ["gw", "gw2"]
+    assert StreamDecoder().feed(bwrites[0].data)[0].dst == ADDR_BROADCAST
     p.feed("gw2", sk.reply(1, bpending.token, Op.SET_RATE), T0 + 0.02)
     assert p.commands.done(T0 + 0.5) == []
     (late,) = p.commands.done(T0 + 1.5)
@@ -224,11 +222,11 @@ def test_hello_layout_and_topology() -> None:
     topo = topic(ticked, "topology")
     assert topo["bridges"]["2"]["parent"] == 1 and topo["bridges"]["2"]["gateway"] == 1
     assert topo["bridges"]["2"]["link"] == "gw" and topo["bridges"]["1"]["alive"]
-    assert [t for t, _ in p.tick(T0 + 1.2)] == ["health"]  # unchanged: health only
+    assert [t for t, _ in published(p.tick(T0 + 1.2))] == ["health"]  # unchanged: health only
     ticked = p.tick(T0 + 10)  # all silent now: topology changes, silence reported
     assert topic(ticked, "topology")["bridges"]["1"]["alive"] is False
     assert topic(ticked, "health")["silent"] == [1, 2, 3, 4]
-    assert any("no data from bridge 1" in text for _, text in p.events)
+    assert any("no data from bridge 1" in text for text in logged(ticked))
 
 
 def test_stuck_channel_is_reported() -> None:
@@ -249,7 +247,7 @@ def test_stuck_channel_is_reported() -> None:
 def test_unwanted_topics_are_not_built() -> None:
     sk = Skin()
     p = make()
-    p.wanted = {"contact"}
+    p.want({"contact"})
     settle(p, sk, 5)
     assert press(p, sk, None, 5, 2) == []
 
@@ -281,7 +279,7 @@ def test_topology_tracks_status_neighbours_and_the_gateway_of_each_link() -> Non
     assert b4["neighbours"] == {"2": 2.5, "3": 1.1}
     assert topo["gateways"] == {"gw": [1], "gw2": [3]}
     _, writes = p.command(int(Op.PING), None, 4, T0 + 0.1, 1.0)
-    assert [link for link, _ in writes] == ["gw2"]  # commands follow the bridge to its new gateway
+    assert [w.link for w in writes] == ["gw2"]  # commands follow the bridge to its new gateway
 
 
 def test_every_published_field_is_documented() -> None:
@@ -290,13 +288,12 @@ def test_every_published_field_is_documented() -> None:
     p = make()
     settle(p, sk, 60)
     out = press(p, sk, STRADDLE, 60, 5) + p.tick(T0 + 2)
-    snap = p.contact_snapshot()
-    for _ in range(3):  # born after three estimates
-        contacts = p.skin.contacts.run(snap)  # type: ignore[union-attr]
-    assert contacts
-    out.append(p.contact_message(snap, contacts))
+    job = p.contact_job()
+    assert job is not None
+    contact = estimate(p, job, runs=3)  # born after three estimates
+    assert contact[1]["contacts"]
     seen: set[str] = set()
-    for _, m in out:
+    for _, m in published(out) + [contact]:
         seen |= set(m)
         for c in m.get("contacts", []):
             seen |= set(c)
@@ -380,9 +377,9 @@ def test_host_clock_stepping_back_neither_stops_health_nor_hides_a_dead_bridge()
     sk = Skin()
     p = make({"health": {"interval": 0.5, "bridge_timeout": 2.0}})
     t = settle(p, sk, 100)
-    assert [x for x, _ in p.tick(t)] == ["health", "topology"]
+    assert [x for x, _ in published(p.tick(t))] == ["health", "topology"]
     back = t - 3600.0
-    ticks = [[x for x, _ in p.tick(back + i * 0.1)] for i in range(1, 51)]  # 5 s, no data
+    ticks = [[x for x, _ in published(p.tick(back + i * 0.1))] for i in range(1, 51)]  # 5 s, no data
     assert sum(x.count("health") for x in ticks) >= 9
     body = p.health_body(back + 5.0)
     assert body["silent"] == [1, 2, 3, 4]
@@ -453,7 +450,7 @@ def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_neve
     p.feed("gw", buf, t)
     assert len(p.health_body(t)["bridges"]) == 3004
     p.tick(t + 30.0)
-    assert len(p.tick(t + 61.0, force=True)[0][1]["bridges"]) == 4
+    assert len(published(p.tick(t + 61.0, force=True))[0][1]["bridges"]) == 4
     body = p.health_body(t + 61.0)
     assert body["silent"] == [1, 2, 3, 4] and body["forgotten_bridges"] == 3000
     assert len(p.clocks) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
@@ -496,7 +493,7 @@ def test_sample_rate_is_over_the_time_that_passed_not_the_configured_interval() 
     p.tick(t)
     for k, data in sk.stream(150, start=50):
         p.feed("gw", data, T0 + k / sk.rate)
-    body = dict(p.tick(t + 1.5))["health"]
+    body = dict(published(p.tick(t + 1.5)))["health"]
     assert body["bridges"]["1"]["sample_rate"] == pytest.approx(sk.rate)
 @pytest.mark.parametrize("max_delay, per_frame, seed", [(2, 1, 3), (4, 1, 4), (2, 5, 5)])
 def test_frames_of_one_press_arriving_staggered_give_one_steady_contact(max_delay: int, per_frame: int,
@@ -513,6 +510,7 @@ def test_frames_of_one_press_arriving_staggered_give_one_steady_contact(max_dela
     period = 1.0 / sk.rate
     seen: dict[int, list[dict]] = {}
     next_estimate = -math.inf
+    w = worker()
     for t, data in staggered(sk, 160, corner, on=80, off=130, max_delay=max_delay * period, per_frame=per_frame,
                              seed=seed):
         now = T0 + 0.001 + t
@@ -520,10 +518,10 @@ def test_frames_of_one_press_arriving_staggered_give_one_steady_contact(max_dela
         if now < next_estimate:  # the service's pace: [contact] rate estimates a second
             continue
         next_estimate = now + 1.0 / p.config["contact"]["rate"]
-        snap = p.contact_snapshot()
-        if snap is None:
+        job = p.contact_job()
+        if job is None:
             continue
-        _, msg = p.contact_message(snap, p.skin.contacts.run(snap))  # type: ignore[union-attr]
+        msg = p.contact_frame(job, w.estimate_now(job)).payload
         for c in msg["contacts"]:
             seen.setdefault(c["id"], []).append(c)
     assert list(seen) == [0], {i: [(c["x"], c["y"], c["force"], c["elements"]) for c in cs] for i, cs in seen.items()}
@@ -542,11 +540,11 @@ def test_a_silent_bridge_does_not_freeze_contacts() -> None:
     sk = Skin()
     p = make({"health": {"bridge_timeout": 0.5}})
     t = settle(p, sk, 60)
-    assert p.contact_snapshot() is not None
+    assert snapshot(p) is not None
     for k in range(61, 200):
         frames = sk.slot(k, STRADDLE).split(b"\x00\x00")  # one frame a bridge, bridge 4's last
         p.feed("gw", b"\x00\x00".join(frames[:3]) + b"\x00", T0 + k / sk.rate)
-        snap = p.contact_snapshot()
+        snap = snapshot(p)
         if T0 + k / sk.rate - t < 0.5 - 0.02:
             assert snap is None  # bridges 1..3 are ahead of the moment bridge 4 reported last
     assert snap is not None and snap.t_moment == pytest.approx(T0 + 199 / sk.rate, abs=0.011)
@@ -567,7 +565,7 @@ def test_a_bridge_trailing_by_more_than_max_lag_does_not_hold_contacts_back_and_
         p.feed("gw", b"\x00\x00".join(frames[:3]) + b"\x00", t)
         while queue and queue[0][0] <= t:
             p.feed("gw", queue.pop(0)[1], t)
-    snap = p.contact_snapshot()
+    snap = snapshot(p)
     assert snap is not None and snap.t_moment == pytest.approx(T0 + 159 / sk.rate, abs=0.011)
     assert snap.t_sample[3] == pytest.approx(T0 + 109 / sk.rate, abs=0.011)  # its newest, 0.5 s old
     layout = p.health_body(T0 + 1.6)["layout"]

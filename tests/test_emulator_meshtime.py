@@ -1,0 +1,259 @@
+"""Mesh time: crystals, the FTSP-style clock of each bridge, and aligned sampling.
+
+Virtual time with crystals drawn within ±50 ppm (and, where it matters, chips whose
+counters started at unrelated epochs): every bridge's estimate of global time against
+the root's, hop by hop; sync after boot, after a relay dies, after the root dies; the
+gate starts of one sample index across a skin.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.mesh import Mesh
+from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig
+from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.protocol import FrameType, MeshTime, SampleFlags
+
+US = CLOCK_HZ // 1_000_000  # cycles per microsecond
+PERIOD_S = 0.5  # FirmwareConfig.sync_period
+
+
+# -- the crystal -----------------------------------------------------------------------
+@given(st.floats(-100.0, 100.0), st.integers(0, 2**40), st.integers(0, 2**45))
+def test_crystal_tick_at_is_the_exact_inverse_of_local(ppm: float, epoch: int, tick: int) -> None:
+    c = Crystal(ppm, epoch)
+    local = c.local(tick)
+    first = c.tick_at(local)
+    assert first <= tick and c.local(first) == local and (first == 0 or c.local(first - 1) < local)
+
+
+def test_crystal_rejects_nonsense() -> None:
+    with pytest.raises(ValueError, match="ppm"):
+        Crystal(5000.0)
+    with pytest.raises(ValueError, match="epoch"):
+        Crystal(0.0, -1)
+
+
+# -- the clock alone -------------------------------------------------------------------
+def _feed(clock: MeshClock, root: Crystal, me: Crystal, ticks: list[int], seq0: int = 1, root_id: int = 1) -> None:
+    for i, t in enumerate(ticks):
+        clock.heard(MeshTime(root_id, (seq0 + i) & 0xFFFF, root.local(t)), me.local(t))
+
+
+def test_regression_measures_the_skew_and_extrapolates_between_beacons() -> None:
+    root, me = Crystal(31.0, 10**9), Crystal(-44.0, 7 * 10**11)
+    clock = MeshClock(5, False)
+    _feed(clock, root, me, [int(i * 0.5 * CLOCK_HZ) for i in range(1, 9)])
+    assert clock.synced(me.local(int(4.2 * CLOCK_HZ)))
+    assert abs(clock.skew() - ((1 + 31e-6) / (1 - 44e-6) - 1)) < 1e-8
+    for t in (4.3, 4.9, 6.0):  # between and beyond the last beacon
+        tick = int(t * CLOCK_HZ)
+        assert abs(clock.global_at(me.local(tick)) - root.local(tick)) <= 2
+        g = root.local(tick)
+        assert abs(me.tick_at(clock.local_at(g)) - tick) <= 2  # and back
+
+
+def test_an_old_round_is_never_taken_and_the_table_is_bounded() -> None:
+    root, me = Crystal(10.0), Crystal(-10.0)
+    clock = MeshClock(5, False)
+    _feed(clock, root, me, [CLOCK_HZ, 2 * CLOCK_HZ], seq0=10)
+    assert not clock.heard(MeshTime(1, 10, root.local(3 * CLOCK_HZ)), me.local(3 * CLOCK_HZ))  # same round again
+    assert not clock.heard(MeshTime(1, 5, root.local(3 * CLOCK_HZ)), me.local(3 * CLOCK_HZ))  # older
+    assert clock.counters["time_ignored"] == 2
+    _feed(clock, root, me, [int((3 + i) * CLOCK_HZ) for i in range(20)], seq0=12)
+    assert len(clock._points) == clock.config.table
+
+
+def test_a_lower_root_takes_over_and_an_outlier_is_not_taken() -> None:
+    a, me = Crystal(20.0), Crystal(0.0, 5 * 10**9)
+    clock = MeshClock(5, False)
+    _feed(clock, a, me, [CLOCK_HZ, 2 * CLOCK_HZ, 3 * CLOCK_HZ], root_id=3)
+    t = int(3.5 * CLOCK_HZ)
+    # one bad point from the same root: ignored, the fit stays
+    assert not clock.heard(MeshTime(3, 9, a.local(t) + 100 * US), me.local(t))
+    assert clock.counters["time_outliers"] == 1 and clock.root == 3
+    # a lower root: followed at once
+    b = Crystal(-20.0, 3 * 10**9)
+    assert clock.heard(MeshTime(2, 1, b.local(t)), me.local(t))
+    assert clock.root == 2 and clock.counters["root_changes"] == 1
+
+
+def test_a_gateway_becomes_root_after_the_timeout_and_carries_the_time_on() -> None:
+    cfg = MeshClockConfig()
+    root, me = Crystal(40.0, 10**10), Crystal(-40.0)
+    gw = MeshClock(7, True, cfg, boot_local=0)
+    gw.tick(me.local(int(0.1 * CLOCK_HZ)))
+    assert not gw.is_root  # listening for a root first
+    _feed(gw, root, me, [int(i * 0.5 * CLOCK_HZ) for i in range(1, 6)], root_id=1)
+    assert gw.root == 1
+    before = gw.global_at(me.local(int(2.5 * CLOCK_HZ)))
+    gw.tick(me.local(int(2.6 * CLOCK_HZ)))
+    assert gw.root == 1  # not yet timed out
+    late = int(2.5 * CLOCK_HZ) + cfg.root_timeout + 10_000  # (counted in its own, slower, cycles)
+    gw.tick(me.local(late))
+    assert gw.is_root
+    # the new root's global time is the estimate it had: no jump against the old root
+    assert abs(gw.global_at(me.local(late)) - root.local(late)) < 5 * US
+    assert gw.global_at(me.local(int(2.5 * CLOCK_HZ))) == before
+
+
+def test_a_bridge_without_points_for_stale_after_flags_its_samples() -> None:
+    root, me = Crystal(0.0), Crystal(0.0)
+    clock = MeshClock(5, False)
+    _feed(clock, root, me, [CLOCK_HZ, 2 * CLOCK_HZ])
+    assert clock.synced(2 * CLOCK_HZ + clock.config.stale_after)
+    assert not clock.synced(2 * CLOCK_HZ + clock.config.stale_after + 1)
+
+
+# -- the mesh in virtual time ----------------------------------------------------------
+def _hops(mesh: Mesh, root: int) -> dict[int, int]:
+    nb = mesh.neighbours()
+    d = {root: 0}
+    q = deque([root])
+    while q:
+        b = q.popleft()
+        for n in nb.get(b, ()):
+            if n not in d:
+                d[n] = d[b] + 1
+                q.append(n)
+    return d
+
+
+def _errors(vm: VirtualMesh, root: int) -> dict[int, float]:
+    """Each synced bridge's |global time - the root's| now, in microseconds."""
+    r = vm.nodes[root]
+    g0 = r.clock.global_at(r.crystal.local(vm.tick))
+    return {b: abs(fw.clock.global_at(fw.crystal.local(vm.tick)) - g0) / US
+            for b, fw in vm.nodes.items() if b != root and fw.clock.has_fit()}
+
+
+def bound(hops: int) -> float:
+    """The target (DESIGN.md): p99 <= 2 us at one hop, <= 10 us at eight, linear between."""
+    return 2.0 + max(0, hops - 1) * 8.0 / 7.0
+
+
+def _run_and_measure(mesh: Mesh, seconds: float, seed: int, after: float) -> tuple[dict[int, list[float]], dict[int, float]]:
+    vm = VirtualMesh(mesh, seed=seed, random_epochs=True)
+    root = min(mesh.gateways)
+    hops = _hops(mesh, root)
+    errs: dict[int, list[float]] = {}
+    first: dict[int, float] = {}
+    for _ in range(int(seconds * 20)):
+        vm.run(0.05)
+        now = vm.tick / CLOCK_HZ
+        for b, e in _errors(vm, root).items():
+            first.setdefault(b, now)
+            if now >= after:
+                errs.setdefault(hops[b], []).append(e)
+    synced_by = {h: max(first.get(b, float("inf")) for b in hops if hops[b] == h) for h in set(hops.values()) if h}
+    return errs, synced_by
+
+
+@pytest.mark.parametrize("name, mesh", [
+    ("line of 9 (8 hops)", meshgen.line(9)),
+    ("4x4 grid", meshgen.grid(4, 4)),
+    ("random 32", meshgen.random_mesh(32, seed=3)),
+])
+def test_mesh_time_error_per_hop_and_sync_after_boot(name: str, mesh: Mesh) -> None:
+    errs, synced_by = _run_and_measure(mesh, 12.0, seed=2, after=8.0)
+    for h, e in errs.items():
+        p99 = float(np.percentile(e, 99))
+        assert p99 <= bound(h), (name, h, p99)
+    boot_listen = MeshClockConfig().boot_listen / CLOCK_HZ
+    for h, t in synced_by.items():  # within 3 beacon periods per hop once the root is root
+        assert t <= boot_listen + 3 * PERIOD_S * h + 0.05, (name, h, t)
+
+
+def test_samples_carry_the_skin_frame_index_and_flag_the_time_before_sync() -> None:
+    mesh = meshgen.grid(3, 3)
+    vm = VirtualMesh(mesh, seed=5, random_epochs=True)
+    r = vm.run(6.0)
+    samples = r.samples()
+    for b, ss in samples.items():
+        early = [s for s in ss if s.flags & SampleFlags.NO_MESH_TIME]
+        late = [s for s in ss if not s.flags & SampleFlags.NO_MESH_TIME]
+        assert early and late, b  # every bridge booted without time and then had it
+        idx = [s.index for s in late]
+        assert idx == sorted(set(idx)), b  # on mesh time the index only grows
+    # one index is one instant: the gates of index k started within 20 us of each other
+    common = set.intersection(*({s.index for s in ss if not s.flags & SampleFlags.NO_MESH_TIME}
+                                for ss in samples.values()))
+    assert len(common) > 100
+    for k in sorted(common)[-50:]:
+        starts = [vm.nodes[b].crystal.tick_at(s.cycle) for b, ss in samples.items() for s in ss
+                  if s.index == k and not s.flags & SampleFlags.NO_MESH_TIME]
+        assert (max(starts) - min(starts)) / US <= 20.0, k
+
+
+def test_gate_starts_of_one_index_across_an_8x8_skin_within_20_us() -> None:
+    mesh = meshgen.grid(8, 8)
+    vm = VirtualMesh(mesh, seed=7, random_epochs=True)
+    vm.run(14.0)  # 14 hops from the far corner: synced by about 0.6 + 14 * 1.5 s at worst
+    assert all(fw.clock.synced(fw.crystal.local(vm.tick)) for fw in vm.nodes.values())
+    rate = 100
+    for _ in range(5):
+        vm.run(0.5)
+        k = vm.nodes[1].timebase.first_index(vm.tick, rate) + 10
+        starts = [fw.timebase.gate_tick(k, rate) for fw in vm.nodes.values()]
+        assert (max(starts) - min(starts)) / US <= 20.0
+
+
+def test_after_a_relay_dies_its_children_keep_time_through_other_neighbours() -> None:
+    mesh = meshgen.grid(4, 4)
+    vm = VirtualMesh(mesh, seed=3, random_epochs=True)
+    vm.kill(6, at=8.0)
+    vm.run(8.0 + 3 * PERIOD_S)
+    root = min(mesh.gateways)
+    hops = _hops(mesh, root)
+    for _ in range(20):
+        vm.run(0.1)
+        for b, e in _errors(vm, root).items():
+            assert e <= bound(hops[b]), (b, e)
+    assert all(fw.clock.synced(fw.crystal.local(vm.tick)) for fw in vm.nodes.values())
+
+
+def test_after_the_root_gateway_dies_the_other_gateway_carries_the_time_on() -> None:
+    mesh = meshgen.grid(4, 4, gateways=(1, 16))
+    vm = VirtualMesh(mesh, seed=4, random_epochs=True)
+    vm.run(8.0)
+    assert vm.nodes[16].clock.root == 1 and vm.nodes[1].clock.is_root
+    g16 = vm.nodes[16]
+    vm.kill(1, at=8.0)
+    cfg = MeshClockConfig()
+    hops = _hops(mesh, 16)
+    # while the root is gone and until the other gateway takes over, every bridge
+    # extrapolates with the skew it measured: the error stays within the bounds
+    for _ in range(int((cfg.root_timeout / CLOCK_HZ + 3 * PERIOD_S) / 0.1)):
+        vm.run(0.1)
+        r = g16
+        g0 = r.clock.global_at(r.crystal.local(vm.tick))
+        for b, fw in vm.nodes.items():
+            e = abs(fw.clock.global_at(fw.crystal.local(vm.tick)) - g0) / US
+            assert e <= bound(hops[b]) + bound(hops[1]), (b, e)
+    assert g16.clock.is_root
+    assert all(fw.clock.root == 16 for fw in vm.nodes.values())
+    for _ in range(10):
+        vm.run(0.1)
+        errs = _errors(vm, 16)
+        assert len(errs) == 14 and max(errs.values()) <= 10.0, errs
+    # no bridge restarted its table: the skin's time went on without a jump
+    assert sum(fw.clock.counters["time_resyncs"] for fw in vm.nodes.values()) == 0
+
+
+def test_beacons_and_link_acks_take_no_numbers_from_the_frames_the_host_receives() -> None:
+    """Health's loss is computed from gaps in each origin's numbering at the host: frames
+    that never reach it (beacons, acknowledgements, bundles) must not make gaps."""
+    mesh = meshgen.line(4)
+    vm = VirtualMesh(mesh, seed=1)
+    r = vm.run(5.0)
+    for origin in mesh.ids:
+        seqs = [f.seq for f in r.gateway_frames[1] if f.origin == origin and f.type is not FrameType.BEACON]
+        assert seqs, origin
+        assert len(set(seqs)) == max(seqs) + 1, (origin, sorted(set(range(max(seqs) + 1)) - set(seqs))[:10])

@@ -21,8 +21,6 @@ Figures are the daemon's own (``/proc/PID``); nothing here is timed against a ta
 from __future__ import annotations
 
 import argparse
-import errno
-import os
 import resource
 import socket
 import sys
@@ -34,36 +32,12 @@ import msgpack
 import zmq
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from daemon_harness import Client, Pty, daemon, write_config  # noqa: E402
+from daemon_harness import (  # noqa: E402
+    Client, Pty, daemon, idle_connects, open_descriptors, proc_status_kb, write_config)
 
 
 def _limit_fds() -> None:
     resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024))
-
-
-def fds(pid: int) -> int:
-    return len(os.listdir(f"/proc/{pid}/fd"))
-
-
-def status_kb(pid: int, key: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1])
-    raise KeyError(key)
-
-
-def idle_connect(endpoint: str, n: int) -> list[socket.socket]:
-    host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
-    out = []
-    for _ in range(n):
-        s = socket.socket()
-        s.setblocking(False)
-        err = s.connect_ex((host, int(port)))
-        if err not in (0, errno.EINPROGRESS):
-            s.close()
-            continue
-        out.append(s)
-    return out
 
 
 def ping(client: Client, timeout: float = 5.0) -> bool:
@@ -102,15 +76,15 @@ def main() -> int:
         try:
             with daemon(cfg, tmp_path / "stderr.log", preexec_fn=_limit_fds) as proc:
                 client.ready()
-                print(f"daemon pid {proc.pid}, RLIMIT_NOFILE 1024:1024, {fds(proc.pid)} descriptors at rest")
-                held = idle_connect(endpoints["control"], args.connections)
-                held += idle_connect(endpoints["pub"], args.connections // 2)
+                print(f"daemon pid {proc.pid}, RLIMIT_NOFILE 1024:1024, {open_descriptors(proc.pid)} descriptors at rest")
+                held = idle_connects(endpoints["control"], args.connections)
+                held += idle_connects(endpoints["pub"], args.connections // 2)
                 time.sleep(3.0)
                 print(f"{len(held)} idle connections open ({args.connections} control, {args.connections // 2} pub)")
-                print(f"  descriptors held by the daemon: {fds(proc.pid)}")
+                print(f"  descriptors held by the daemon: {open_descriptors(proc.pid)}")
                 print(f"  control ping answered: {ping(client)}")
                 print(f"  gateway line back after a blip: {link_up_after_blip(pty, client)}")
-                print(f"  descriptors held by the daemon: {fds(proc.pid)}")
+                print(f"  descriptors held by the daemon: {open_descriptors(proc.pid)}")
                 for s in held:
                     s.close()
                 held = []
@@ -118,7 +92,7 @@ def main() -> int:
                 if not ping(client, 10.0):
                     print("  control does not answer after the connections closed; stopping")
                     return 1
-                before = status_kb(proc.pid, "VmRSS")
+                before = proc_status_kb(proc.pid, "VmRSS")
                 size = args.request_mb * 1_000_000
                 body = msgpack.packb({"v": 1, "cmd": "ping", "id": "x" * size})
                 req = client.ctx.socket(zmq.REQ)
@@ -134,8 +108,8 @@ def main() -> int:
                 elapsed = time.monotonic() - t0
                 time.sleep(5.0)
                 print(f"one {args.request_mb} MB control request:")
-                print(f"  resident memory before {before / 1024:.0f} MB, peak {status_kb(proc.pid, 'VmHWM') / 1024:.0f} MB, "
-                      f"5 s later {status_kb(proc.pid, 'VmRSS') / 1024:.0f} MB")
+                print(f"  resident memory before {before / 1024:.0f} MB, peak {proc_status_kb(proc.pid, 'VmHWM') / 1024:.0f} MB, "
+                      f"5 s later {proc_status_kb(proc.pid, 'VmRSS') / 1024:.0f} MB")
                 print(f"  reply: {reply_size} bytes after {elapsed:.1f} s (-1: none, the connection was dropped)")
                 print(f"  control ping answered afterwards: {ping(client)}")
                 small = client.request({"v": 1, "cmd": "ping", "id": "x" * 200_000}, 10.0)

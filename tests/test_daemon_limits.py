@@ -8,8 +8,6 @@ as a real process with systemd's default descriptor limit and attack it over loo
 
 from __future__ import annotations
 
-import errno
-import os
 import resource
 import socket
 import subprocess
@@ -24,36 +22,13 @@ import zmq
 
 from cellbridge.daemon.control import MAX_ID_BYTES, RequestError, parse_request
 from cellbridge.daemon.peers import PeerLimits
-from daemon_harness import Client, Pty, daemon, write_config
+from daemon_harness import Client, Pty, daemon, idle_connects, open_descriptors, proc_status_kb, write_config
 
 SERVICE_NOFILE = 1024  # what systemd gives a service unless LimitNOFILE= says otherwise
 
 
 def _service_nofile() -> None:
     resource.setrlimit(resource.RLIMIT_NOFILE, (SERVICE_NOFILE, SERVICE_NOFILE))
-
-
-def _fds(pid: int) -> int:
-    return len(os.listdir(f"/proc/{pid}/fd"))
-
-
-def _peak_rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError("no VmHWM")
-
-
-def _idle_connects(endpoint: str, n: int) -> list[socket.socket]:
-    """``n`` TCP connections that never send a byte (non-blocking: a full backlog does not stall us)."""
-    host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
-    out = []
-    for _ in range(n):
-        s = socket.socket()
-        s.setblocking(False)
-        assert s.connect_ex((host, int(port))) in (0, errno.EINPROGRESS)
-        out.append(s)
-    return out
 
 
 @pytest.fixture
@@ -81,7 +56,7 @@ def test_idle_connections_cannot_take_the_descriptors_of_control_or_the_gateway(
     pty, client, endpoints, pid = limited
     held: list[socket.socket] = []
     try:
-        held = _idle_connects(endpoints["control"], 2000) + _idle_connects(endpoints["pub"], 1000)
+        held = idle_connects(endpoints["control"], 2000) + idle_connects(endpoints["pub"], 1000)
         time.sleep(1.0)  # let the daemon accept (and refuse) what it will
         assert client.request({"v": 1, "cmd": "ping"}, timeout=10.0)["ok"]
         pty.close()  # a blip on the gateway line: the daemon must be able to open it again
@@ -93,7 +68,7 @@ def test_idle_connections_cannot_take_the_descriptors_of_control_or_the_gateway(
         for role in ("control", "pub"):  # silent connects were dropped for newer ones, or refused
             assert peers[role]["evicted"] + peers[role]["refused"] > 0
         assert peers["control"]["connected"] <= 64 and peers["pub"]["connected"] <= 256
-        assert _fds(pid) < 64 + 256 + 100
+        assert open_descriptors(pid) < 64 + 256 + 100
     finally:
         for s in held:
             s.close()
@@ -109,7 +84,7 @@ def test_peers_that_never_handshake_are_dropped(tmp_path: Path) -> None:
     try:
         with daemon(cfg, tmp_path / "stderr.log"):
             client.ready()
-            s = _idle_connects(endpoints["control"], 1)[0]
+            s = idle_connects(endpoints["control"], 1)[0]
             s.setblocking(True)
             s.settimeout(20.0)
             try:
@@ -165,7 +140,7 @@ def test_oversize_requests_get_an_error_and_huge_ones_cost_no_memory(limited) ->
     _, client, endpoints, pid = limited
     rep = client.request({"v": 1, "cmd": "ping", "id": "x" * 200_000})  # over max_request_bytes (64 KiB)
     assert not rep["ok"] and "max_request_bytes" in rep["error"] and "id" not in rep
-    peak = _peak_rss_mb(pid)
+    peak = proc_status_kb(pid, "VmHWM") / 1024
     ctx = zmq.Context()
     try:
         req = ctx.socket(zmq.REQ)
@@ -176,7 +151,7 @@ def test_oversize_requests_get_an_error_and_huge_ones_cost_no_memory(limited) ->
     finally:
         ctx.destroy(linger=0)
     assert client.request({"v": 1, "cmd": "ping"})["ok"]
-    assert _peak_rss_mb(pid) - peak < 50, "a 200 MB request was read into memory"
+    assert proc_status_kb(pid, "VmHWM") / 1024 - peak < 50, "a 200 MB request was read into memory"
     client.wait_for("health", lambda m: m["control"]["oversize"] == 1)
 
 
@@ -197,7 +172,7 @@ def test_subscriptions_are_bounded_in_size_and_kind(limited) -> None:
     the socket's subscription tree and handed up); prefixes that can match no topic are
     counted, never kept by the daemon itself."""
     _, client, endpoints, pid = limited
-    peak = _peak_rss_mb(pid)
+    peak = proc_status_kb(pid, "VmHWM") / 1024
     subprocess.run([sys.executable, "-c", HUGE_SUBSCRIPTION, endpoints["pub"]], timeout=60, capture_output=True)
     ctx = zmq.Context()
     try:
@@ -212,7 +187,7 @@ def test_subscriptions_are_bounded_in_size_and_kind(limited) -> None:
     finally:
         ctx.destroy(linger=0)
     assert client.request({"v": 1, "cmd": "ping"})["ok"]
-    assert _peak_rss_mb(pid) - peak < 20, "a 50 MB subscription was read into memory"
+    assert proc_status_kb(pid, "VmHWM") / 1024 - peak < 20, "a 50 MB subscription was read into memory"
 
 
 def test_requests_beyond_max_pending_are_answered_busy(tmp_path: Path) -> None:

@@ -18,8 +18,8 @@ from cellbridge._version import __version__
 
 SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("demo", "cellbridge.demo", "the whole chain: an emulated 4x4 skin, the daemon on its gateway, a press, the contact"),
-    ("decode", "cellbridge.protocol.cli", "decode serial-line bytes (COBS frames) into readable frames"),
-    ("plot", "cellbridge.tactile.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
+    ("decode", "cellbridge.decode", "decode serial-line bytes (COBS frames) into readable frames"),
+    ("plot", "cellbridge.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
     ("daemon", "cellbridge.daemon.cli", "run the host service: gateway serial lines in, ZeroMQ messages out"),
     ("mesh", "cellbridge.emulator.mesh_cli", "generate, check, run and start emulated skins (mesh files)"),
     ("bridge", "cellbridge.emulator.process_bridge", "run one emulated bridge in real time (started by 'mesh up')"),

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cellbridge.daemon.wire import ADC_MODE, OVERFLOW_C1, OVERFLOW_C2
 from cellbridge.tactile import (
     CalibrationConfig,
     Calibrator,
@@ -34,8 +35,6 @@ from cellbridge.tactile import (
 )
 
 FloatArray = NDArray[np.float64]
-_OVERFLOW_C1, _OVERFLOW_C2 = 0x01, 0x02
-ADC_MODE = 1  # protocol Mode.ADC; the daemon's wire adapter guarantees the numbering
 
 
 class Frontend:
@@ -56,7 +55,7 @@ class Frontend:
         order = np.argsort(means, kind="stable")
         self._adc_means, self._adc_caps = means[order], caps[order]
         self._adc_top = chip.adc_levels - 1
-        self._ov_bits = np.array([_OVERFLOW_C1, _OVERFLOW_C2])
+        self._ov_bits = np.array([OVERFLOW_C1, OVERFLOW_C2])
 
     def capacitance(self, mode: NDArray[np.int64], over: NDArray[np.int64], raw: NDArray[np.int64],
                     flags: NDArray[np.int64], gate: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:

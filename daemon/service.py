@@ -27,7 +27,7 @@ import zmq
 import zmq.asyncio
 
 from cellbridge._version import __version__
-from cellbridge.config import load_layout
+from cellbridge.daemon.layout_file import load_layout
 from cellbridge.daemon.config import SECTIONS, Config, ConfigError, load_config
 from cellbridge.daemon.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.control_server import ControlServer

@@ -32,11 +32,18 @@ from cellbridge.protocol import (
     Mode,
     Op,
     Reassembler,
+    SampleFlags,
     StreamDecoder,
     encode_stream,
 )
 
-__all__ = ["ADDR_BROADCAST", "Decoded", "Ingress", "Mode", "OPS", "SampleColumns", "command_bytes", "mode_value"]
+__all__ = ["ADC_MODE", "ADDR_BROADCAST", "Decoded", "Ingress", "Mode", "OPS", "OVERFLOW_C1", "OVERFLOW_C2",
+           "SampleColumns", "command_bytes", "mode_value"]
+
+#: The protocol's numbers the sample columns carry, as plain ints for numpy.
+ADC_MODE = int(Mode.ADC)
+OVERFLOW_C1 = int(SampleFlags.OVERFLOW_C1)
+OVERFLOW_C2 = int(SampleFlags.OVERFLOW_C2)
 
 #: Control parameter names → downlink op. SET_REPORTING is added by the emulator's protocol
 #: change; it is offered exactly when the protocol defines it.

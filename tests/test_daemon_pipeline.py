@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellbridge.config import load_layout
+from cellbridge.daemon.layout_file import load_layout
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import (

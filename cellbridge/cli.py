@@ -29,6 +29,8 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("sub", "cellbridge.daemon.subscribe", "print what the daemon publishes as JSON lines"),
     ("keys", "cellbridge.daemon.keys", "CURVE key pairs for binding the daemon beyond loopback"),
 ]
+#: Process entry points 'mesh up' starts: runnable (each has its --help), not listed in the top-level --help.
+INTERNAL = {"bridge", "medium", "world"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -43,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"cellbridge {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module_name, help_text in SUBCOMMANDS:
-        sp = sub.add_parser(name, help=help_text, description=help_text)
+        listed = {} if name in INTERNAL else {"help": help_text}  # a parser given no help= is not listed
+        sp = sub.add_parser(name, description=help_text, **listed)
         sp.set_defaults(_module=module_name)
         try:
             importlib.import_module(module_name).add_arguments(sp)

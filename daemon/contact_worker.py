@@ -4,7 +4,7 @@ Production runs the worker in one spawned *process*: a thread would not do, as t
 estimator's Python code holds the interpreter lock for milliseconds at a time and every
 one of them would stall ingest. The worker takes its executor from a factory, so tests,
 tools and the golden files run the very same path on an :class:`InlineExecutor`. The
-worker builds its own estimator from a small :class:`~cellbridge.daemon.physics.ContactSpec`
+worker builds its own estimator from a small :class:`~cellbridge.daemon.contacts.ContactSpec`
 and keeps it while the layout stays the same; a worker that dies is replaced at the next
 estimate.
 """
@@ -21,7 +21,7 @@ from collections.abc import Callable
 from typing import Any
 
 from cellbridge.daemon.logs import event
-from cellbridge.daemon.physics import ContactJob, estimate, warm_up
+from cellbridge.daemon.contacts import ContactJob, estimate, warm_up
 
 Contacts = list[dict[str, Any]]
 #: Makes the worker's executor (again after a hung or dead one was killed).
@@ -46,7 +46,7 @@ class InlineExecutor(concurrent.futures.Executor):
 
 
 class ContactWorker:
-    """Runs contact jobs (:class:`~cellbridge.daemon.physics.ContactJob`) on an executor from
+    """Runs contact jobs (:class:`~cellbridge.daemon.contacts.ContactJob`) on an executor from
     ``executor`` (default: one spawned process).
 
     :meth:`estimate` (async, with a hung-worker timeout) is the service's entry point,

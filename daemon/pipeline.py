@@ -26,11 +26,14 @@ from collections.abc import Iterable
 from typing import Any, TypeVar
 
 import numpy as np
-
 from cellbridge.daemon.clock import BridgeClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
+from cellbridge.daemon.contacts import ContactJob
+from cellbridge.daemon.elements import default_params
+from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
+from cellbridge.daemon.layout import LayoutStages, layout_dict
 from cellbridge.daemon.messages import (
     ContactFrame,
     ElementBatch,
@@ -42,8 +45,6 @@ from cellbridge.daemon.messages import (
     RawBatch,
     Topology,
 )
-from cellbridge.daemon.physics import ContactJob, Frontend, chip_params, default_params, layout_dict
-from cellbridge.daemon.skin import Skin
 from cellbridge.daemon.topology import Topology as Routes
 from cellbridge.daemon.wire import ADDR_BROADCAST, HELD, NO_MESH_TIME, OPS, Decoded, Ingress, SampleColumns, command_bytes
 from cellbridge.tactile import ElementParams, SkinLayout
@@ -84,7 +85,7 @@ class Pipeline:
         self.ingress = Ingress(s["protocol"]["dedupe_window"], s["protocol"]["reassembly_timeout"])
         self.chip = chip_params(s["chip"])
         self.frontend = Frontend(default_params(layout) if layout is not None else ElementParams(), self.chip)
-        self.skin = Skin(s, layout)
+        self.skin = LayoutStages(s, layout)
         self.gate = np.full(0x10000, float(self.chip.gate_cycles))
         self._bits = s["chip"]["cycle_bits"]
         # Each bridge's clock parameters, indexed by bridge id, so a batch maps in one vector step.
@@ -501,7 +502,7 @@ class Pipeline:
             sk.sections = config.sections
             return
         geometry = self.skin.geometry
-        self.skin = Skin(config.sections, layout)
+        self.skin = LayoutStages(config.sections, layout)
         self.skin.hello(geometry)
 
     # -- links and subscribers --------------------------------------------------------------

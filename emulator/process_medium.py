@@ -36,8 +36,7 @@ from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
     MAX_DATAGRAM, TX, WANT, decode_tx, decode_want, encode_carrier, encode_rx, sender,
 )
-from cellbridge.emulator.rawframe import addressed_to
-from cellbridge.protocol.frame import MAX_FRAME
+from cellbridge.protocol import MAX_FRAME, addressed_to
 from cellbridge.emulator.realtime import (
     CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick,
 )

@@ -48,6 +48,7 @@ ADDR_HOST = 0x0000  #: the host (sink) behind every gateway
 ADDR_BROADCAST = 0xFFFF
 
 _HEADER = struct.Struct(">BBBHHHHBH")
+HEADER = _HEADER  #: the header's layout (version, flags, type, src, dst, origin, seq, hops, cost)
 _FRAG = struct.Struct(">HHH")
 _CRC = struct.Struct(">H")
 HEADER_LEN = _HEADER.size  # 14

@@ -23,6 +23,15 @@ def test_help_lists_subcommands() -> None:
     assert b"decode" in out.stdout
 
 
+def test_internal_entry_points_run_but_stay_out_of_the_top_level_help() -> None:
+    listed = run("--help").stdout.decode()
+    for name in ("bridge", "medium", "world"):  # started by 'mesh up', not by people
+        assert f"    {name} " not in listed
+        out = run(name, "--help")
+        assert out.returncode == 0 and f"cellbridge {name}" in out.stdout.decode()
+    assert "    mesh " in listed and "    daemon " in listed
+
+
 def test_version() -> None:
     from cellbridge import __version__
     assert run("--version").stdout.decode().strip() == f"cellbridge {__version__}"

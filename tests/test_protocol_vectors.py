@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from cellbridge.protocol import Reassembler, StreamDecoder, crc16, decode, encode, encode_stream
-from cellbridge.protocol.cli import frame_to_json
+from cellbridge.decode import frame_to_json
 
 SPEC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 BLOCK = re.compile(r"```(vector(?:-crc|-datagram)?)\n(.*?)```", re.S)

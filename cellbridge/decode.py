@@ -12,9 +12,7 @@ import sys
 from dataclasses import fields, is_dataclass
 from typing import Any
 
-from cellbridge.protocol.fragment import Reassembler
-from cellbridge.protocol.frame import Frame
-from cellbridge.protocol.stream import StreamDecoder
+from cellbridge.protocol import Frame, Reassembler, StreamDecoder
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

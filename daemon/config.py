@@ -127,10 +127,13 @@ SECTIONS: dict[str, dict[str, Key]] = {
                           lambda v: None if v >= 0 else "must be >= 0", reloadable=True),
         "worker_timeout": Key(NUM, 30.0, "s one estimate may take before the worker process is taken as hung, "
                               "killed and replaced", _positive, reloadable=True),
-        "max_lag": Key(NUM, 0.5, "s a bridge's data may trail the newest and still hold the estimated moment "
-                       "back (contacts are estimated on one moment of the skin); a bridge later than that "
-                       "contributes its newest reading and is named in health layout.late", _positive,
-                       reloadable=True),
+        "max_lag": Key(NUM, 0.5, "s a bridge's data may trail the newest and still hold the estimated skin "
+                       "frame back (contacts are estimated on whole skin frames); a periodic bridge later than "
+                       "that is unknown for the newer frames (listed in the contact message's unknown) and "
+                       "named in health layout.late", _positive, reloadable=True),
+        "held_wait": Key(NUM, 0.05, "s an event-based bridge's newest (held) reading may trail the newest data "
+                         "and still hold the frame back; an idle one's older reading stands for the frame",
+                         _positive, reloadable=True),
     },
     "health": {
         "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _positive,

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from typing import Any, Protocol
 
 import zmq.asyncio
@@ -32,6 +31,10 @@ class Host(Protocol):
 
     def status_body(self, now: float) -> dict[str, Any]: ...
 
+    def now(self) -> float:
+        """The pipeline's time base (command deadlines are kept on it)."""
+        ...
+
 
 class ControlServer:
     def __init__(self, sock: zmq.asyncio.Socket, host: Host, log: logging.Logger) -> None:
@@ -50,7 +53,7 @@ class ControlServer:
 
     async def finish(self, limit: float = 1.0) -> None:
         """Let requests in progress answer (commands still waiting get their timeout reply)."""
-        self.resolve(time.time() + 3600.0)
+        self.resolve(self.host.now() + 3600.0)
         if self._answers:
             await asyncio.wait(self._answers, timeout=limit)
 
@@ -62,7 +65,7 @@ class ControlServer:
                 fut.set_result(p.result())
 
     async def command(self, op: int, value: int | None, target: int | None, timeout: float) -> dict[str, Any]:
-        now = time.time()
+        now = self.host.now()
         pending, writes = self.host.pipeline.command(op, value, target, now, timeout)
         fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
         self._waiting[pending.token] = fut
@@ -91,7 +94,7 @@ class ControlServer:
         await self.sock.send_multipart([*envelope, pack(rep)])
 
     async def _execute(self, req: Request) -> dict[str, Any]:
-        now = time.time()
+        now = self.host.now()
         pipeline = self.host.pipeline
         timeout = req.timeout or self.host.config["control"]["command_timeout"]
         if req.cmd == "status":

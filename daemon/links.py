@@ -98,9 +98,9 @@ class SerialLink(Link):
                     lost.set_result(f"device lost: {exc}")
                 return
             if data:
-                now = time.time()
+                now = time.monotonic()  # the pipeline's time base; captures keep wall-clock time
                 if capture is not None:
-                    capture.write(now, data)
+                    capture.write(time.time(), data)
                 on_data(name, data, now)
 
         self._ser = ser
@@ -198,7 +198,7 @@ class ReplayLink(Link):
             await self._gate()
         self._on_state(self.name, True, "")
         speed, recorded = self.cfg.replay_speed, self.cfg.replay_clock == "recorded"
-        start = time.time()
+        start = time.monotonic()  # shifted: records replayed on the pipeline's (monotonic) time base
         why = "replay finished"
         if first is not None:
             t_first = first[0]
@@ -206,7 +206,7 @@ class ReplayLink(Link):
                 for t, data in _chain(first, records):
                     rel = t - t_first
                     if speed > 0:
-                        wait = start + rel / speed - time.time()
+                        wait = start + rel / speed - time.monotonic()
                         if wait > 0:
                             await asyncio.sleep(wait)
                     elif self.records % 64 == 0:

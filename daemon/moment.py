@@ -1,19 +1,24 @@
-"""The skin at one moment: each element's reading at (or just before) a common sample time.
+"""The skin at one moment: a skin frame, each element's reading of it or *unknown*.
 
-Bridges sample at their own phases and their frames reach the host after different
-delays (hops, queues, a late bridge process), so the *newest* reading of every element
-mixes elements that already see a press (or its release) with elements that do not
-yet. Physically the elements change together; an estimator shown such a skin reports
-a contact where only part of the footprint is, or a second, ghost contact. Contacts are
-therefore estimated on the skin at the newest time ``T`` that every live element has
-reported past, in host time from the per-bridge clock sync (``t_sample``); each element
-contributes its reading at or just before ``T``.
+On mesh time every bridge starts sample ``k`` at the same global instant, and the
+pipeline gives all samples of one index one host time (``t_sample``): a skin frame.
+Contacts are estimated on the newest frame every live element has reported (their
+frames reach the host after different delays). An element contributes its reading *of
+that frame*, never an older one: a sample lost or still in flight makes the element
+unknown for the frame. Two kinds of reading stand for more than their own instant:
 
-A reading counts as reported once the calibrator has classified it (its touch flag is
-from that reading, not the one before). Elements whose bridge has sent nothing for
-``bridge_timeout`` do not hold ``T`` back (a dead bridge must not freeze contacts);
-they contribute their last reading. The extra latency is about one sample period of
-the slowest live bridge plus its delay relative to the others.
+* a **held** reading (event-based reporting, flag ``HELD``): the bridge promised that
+  its readings stay within the threshold of it until it sends another, so it stands
+  for the frames after it (while the bridge is live);
+* a reading without mesh time (a bridge booting or cut off: timed from its arrival):
+  the one at or just before the moment, within one sample period, as close as the
+  host can tell.
+
+Elements silent for ``timeout`` (``bridge_timeout``) are unknown, not touched, and hold
+nothing back. A periodic element whose data trail the newest by more than ``max_lag``
+holds nothing back either (it is unknown for the newer frames); a held element holds
+the moment back only while its newest reading is within ``held_wait`` of the newest
+(an idle element's heartbeat, seconds apart, must not delay every contact).
 """
 
 from __future__ import annotations
@@ -32,13 +37,15 @@ SPARE = 4
 
 class Moment(NamedTuple):
     """Each element's reading at one moment ``t`` (host time): ΔC (n, 2), touched (n,), the
-    sample time (NaN: unknown) and bridge cycle of the reading used."""
+    sample time (NaN: unknown) and bridge cycle of the reading used, and which elements
+    are unknown at ``t`` (no reading of that frame: lost, late, or the bridge silent)."""
 
     t: float
     dc: FloatArray
     touched: NDArray[np.bool_]
     t_sample: FloatArray
     cycle: NDArray[np.uint64]
+    unknown: NDArray[np.bool_]
 
 
 class Moments:
@@ -50,6 +57,11 @@ class Moments:
         self.dc = np.full((n, depth, 2), np.nan)
         self.touched = np.zeros((n, depth), dtype=bool)
         self.cycle = np.zeros((n, depth), dtype=np.uint64)
+        self.held = np.zeros((n, depth), dtype=bool)  # event-based: stands for the frames after it
+        self.on_time = np.zeros((n, depth), dtype=bool)  # a mesh-time reading (its frame's exact time)
+        self.period = np.full(n, np.nan)  # s between the element's samples (1 / rate; NaN: not known)
+        self.silent_told = False  # a moment with every element unknown was taken since the data stopped
+        self.live = np.ones(n, dtype=bool)  # elements heard within the timeout, as of the last moment()
         self.count = np.zeros(n, dtype=np.int64)  # readings ever written (ring position)
         self.settled = np.full(n, np.nan)  # sample time of the newest reading the calibrator classified
         self.arrival = np.full(n, -math.inf)  # host time the newest reading arrived
@@ -61,8 +73,11 @@ class Moments:
         self._all = np.arange(n)
 
     def record(self, rows: NDArray[np.int64], t: FloatArray, cycle: NDArray[np.uint64], dc: FloatArray,
-               unique: bool, now: float, enter: FloatArray, leave: FloatArray) -> None:
-        """One batch of readings in arrival order; ``unique``: each row occurs once.
+               unique: bool, now: float, enter: FloatArray, leave: FloatArray,
+               held: NDArray[np.bool_], on_time: NDArray[np.bool_], period: FloatArray) -> None:
+        """One batch of readings in arrival order; ``unique``: each row occurs once;
+        ``held``/``on_time``: each reading's kind (see the module); ``period``: each
+        reading's sample period in s (NaN: not known).
 
         The calibrator classifies an element's newest reading when it steps (at most
         ``max_step_rate`` times a second; :meth:`settle`), not each reading. Until then a
@@ -87,11 +102,16 @@ class Moments:
             idx, rank = order[keep], rank_s[keep]
             r = rows[idx]
             t, cycle, dc, touched = t[idx], cycle[idx], dc[idx], touched[idx]
+            held, on_time, period = held[idx], on_time[idx], period[idx]
         pos = (self.count[r] + rank) % self.depth
         self.t[r, pos] = t
         self.cycle[r, pos] = cycle
         self.dc[r, pos] = dc
         self.touched[r, pos] = touched
+        self.held[r, pos] = held
+        self.on_time[r, pos] = on_time
+        self.period[r] = period
+        self.silent_told = False
         if idx is None:
             self.count[r] += 1
         else:
@@ -110,17 +130,20 @@ class Moments:
         """Tare: the readings taken against the old baselines no longer count."""
         self.dc[rows] = np.nan
 
-    def take(self, now: float, timeout: float, max_lag: float, force: bool = False) -> Moment | None:
+    def take(self, now: float, timeout: float, max_lag: float, force: bool = False,
+             held_wait: float = 0.05) -> Moment | None:
         """The skin at the newest moment every live element has reported past (:meth:`moment`),
         if that moment advanced since the last one taken (or ``force``: a tare asks for
         one at once). None while it did not, and while an element is between a touched
         and an untouched reading at it: a press or release fell between two of its
         samples, so the moment is held back until it is past that (one sample period of
         that element at most; ``force`` does not wait)."""
-        t = self.moment(now, timeout, max_lag)
-        if math.isnan(t) or (t <= self.t_moment and not force):
+        t = self.moment(now, timeout, max_lag, held_wait)
+        if math.isnan(t):
+            return self._all_silent()
+        if t <= self.t_moment and not force:
             return None
-        dc, touched, t_sample, cycle, transition = self.at(t)
+        dc, touched, t_sample, cycle, unknown, transition = self.at(t)
         if transition and not force:
             if math.isnan(self.hold_since):
                 self.hold_since = t
@@ -129,25 +152,38 @@ class Moments:
         self.hold_since = math.nan
         self.late_estimates += bool(self.late.any())
         self.t_moment = t
-        return Moment(t, dc, touched, t_sample, cycle)
+        return Moment(t, dc, touched, t_sample, cycle, unknown)
 
-    def moment(self, now: float, timeout: float, max_lag: float) -> float:
-        """The newest time every live element has reported past (NaN: none reported yet).
-        Elements silent for ``timeout`` or trailing the newest data by more than
-        ``max_lag`` hold nothing back; :meth:`at` gives their newest reading."""
+    def _all_silent(self) -> Moment | None:
+        """No element is live (every bridge silent, or the gateway line down): once, a
+        moment with every element unknown, so that subscribers learn that the contacts
+        they hold are no longer known; then nothing until data comes back."""
+        if self.silent_told or not math.isfinite(self.t_moment):
+            return None
+        self.silent_told = True
+        n = self.count.shape[0]
+        return Moment(self.t_moment, np.full((n, 2), np.nan), np.zeros(n, dtype=bool), np.full(n, np.nan),
+                      np.zeros(n, dtype=np.uint64), np.ones(n, dtype=bool))
+
+    def moment(self, now: float, timeout: float, max_lag: float, held_wait: float = 0.05) -> float:
+        """The newest time every live element has reported past (NaN: no element live).
+        Elements silent for ``timeout``, trailing the newest data by more than ``max_lag``
+        (periodic) or ``held_wait`` (held) hold nothing back."""
         live = (now - self.arrival <= timeout) & np.isfinite(self.settled)
+        self.live = live
         if not live.any():
             self.holding = self.late = live
             return math.nan
         newest = float(self.settled[live].max())
-        self.holding = live & (self.settled >= newest - max_lag)
-        self.late = live & ~self.holding
+        held = self.held[self._all, (self.count - 1) % self.depth]
+        self.holding = live & (self.settled >= newest - np.where(held, min(held_wait, max_lag), max_lag))
+        self.late = live & ~self.holding & ~held
         return max(float(self.settled[self.holding].min()), self.t_moment)
 
-    def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64], float]:
-        """(ΔC (n, 2), touched, sample time, cycle) of each element's reading at or just
-        before ``moment`` — the newest one for elements the moment did not wait for
-        (silent, or late), NaN/False (unknown) if none is kept — and
+    def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64],
+                                         NDArray[np.bool_], float]:
+        """(ΔC (n, 2), touched, sample time, cycle, unknown) of each element at ``moment``
+        (see the module for which reading counts; an unknown element has NaN/False) and
         how long the skin is still in transition there: an element whose next reading
         is touched where this one is not (or the reverse) was pressed or released
         between its two samples, so at ``moment`` its state is unknown for up to the
@@ -162,10 +198,20 @@ class Moments:
         changing = self.holding & after.any(axis=1) & ~none_before & (self.touched[rows, j] != self.touched[rows, nxt])
         gap = float((self.t[changing, nxt[changing]] - self.t[changing, j[changing]]).max()) if changing.any() else 0.0
         newest = (self.count - 1) % self.depth
-        j = np.where(self.holding, j, newest)  # silent or late: the newest reading, the best there is
+        j = np.where(self.holding, j, newest)  # not waited for: its newest reading, if that still stands
         dc, touched = self.dc[rows, j], self.touched[rows, j]
-        unknown = (self.holding & none_before) | (self.count == 0)  # nothing kept that old, or nothing at all
+        t_j = self.t[rows, j]
+        held = self.held[rows, j]
+        # Which reading stands for the moment: a mesh-time reading of this very frame (a
+        # quarter period covers rounding of the host's map), a held one at or before it, a
+        # reading timed from its arrival within one period before it.
+        with np.errstate(invalid="ignore"):
+            age = moment - t_j
+            tol = np.where(np.isfinite(self.period), self.period, np.inf)  # no rate (protocol 1): as before
+            stands = np.where(self.on_time[rows, j], age <= 0.25 * tol, age <= tol)
+        stands = (stands | held) & (age >= -1e-9)
+        unknown = ~self.live | ~stands | (self.count == 0) | (self.holding & none_before)
         if unknown.any():
             dc[unknown] = np.nan
             touched[unknown] = False
-        return dc, touched, self.t[rows, j], self.cycle[rows, j], gap
+        return dc, touched, t_j, self.cycle[rows, j], unknown, gap

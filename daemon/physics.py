@@ -199,6 +199,7 @@ class ContactSnapshot:
     cycle: NDArray[np.uint64]  # (n,) its bridge cycle count
     ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
     t_moment: float  # host time the skin is estimated at: every element's reading at or just before it
+    unknown: NDArray[np.bool_] | None = None  # (n,) elements with no reading of this frame (None: all known)
 
 
 @dataclass(frozen=True)
@@ -289,6 +290,12 @@ class ContactStage:
             tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host)
         else:  # an empty frame still counts: tracks miss it and end
             tracks = self.tracker.step([], snap.t_host)
+        if snap.unknown is not None and snap.unknown.any():
+            # a contact that only unknown elements supported is no longer known: it ends
+            # now, not after the frames a missed contact is kept through
+            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[snap.unknown]})
+            if gone:
+                tracks = [tc for tc in tracks if tc.id not in gone]
         return [_finite(tc.to_dict()) for tc in tracks]
 
 

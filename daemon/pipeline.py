@@ -45,11 +45,15 @@ from cellbridge.daemon.messages import (
 from cellbridge.daemon.physics import ContactJob, Frontend, chip_params, default_params, layout_dict
 from cellbridge.daemon.skin import Skin
 from cellbridge.daemon.topology import Topology as Routes
-from cellbridge.daemon.wire import ADDR_BROADCAST, OPS, Decoded, Ingress, SampleColumns, command_bytes
+from cellbridge.daemon.wire import ADDR_BROADCAST, HELD, NO_MESH_TIME, OPS, Decoded, Ingress, SampleColumns, command_bytes
 from cellbridge.tactile import ElementParams, SkinLayout
 
 SCHEMA_VERSION = 1
 _GATE_OP = int(OPS["gate"])
+_NO_MESH_TIME = np.int64(NO_MESH_TIME)
+_HELD = np.int64(HELD)
+_FRAME_MEMORY = 10.0  # s of frames whose host time is kept once given
+_FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at (250 Hz x 10 s)
 _SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
 _OWNERS = itertools.count()
 _P = TypeVar("_P", bound=Publish)
@@ -89,6 +93,13 @@ class Pipeline:
         self._k = np.ones(0x10000)
         self._hz = np.full(0x10000, float(self.chip.clock_hz))
         self.clocks: dict[int, BridgeClock] = {}
+        # Mesh time -> host time, one map for the whole skin: every bridge on mesh time samples
+        # on the same global clock (its root's counter), and the gateways' own samples, one
+        # hop away over a short, steady serial line, measure how it maps (docs/time.md).
+        self.skin_clock = BridgeClock(self.chip.clock_hz, bits=64)
+        self.skin_clock_resets = 0
+        self._frame_memo: dict[int, float] = {}  # global cycle of a frame -> its host time
+        self._frame_newest = -1
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
         self.topology = Routes()
@@ -103,12 +114,25 @@ class Pipeline:
         self.forgotten_bridges = 0
         self.announced_silent: set[int] = set()
         self._log: list[Message] = []  # log events, handed out with the next messages returned
+        # The pipeline runs on one time base, the host's monotonic clock as the shell passes
+        # it: silence, frames and deadlines never see the wall clock step. Wall-clock time
+        # is only stamped on what is published: monotonic time + this offset.
+        self.wall_offset = 0.0
 
     # -- helpers ------------------------------------------------------------------------
     def _message(self, kind: type[_P], now: float, body: dict[str, Any]) -> _P:
         n = self.seq.get(kind.topic, 0)
         self.seq[kind.topic] = n + 1
-        return kind({"v": SCHEMA_VERSION, "seq": n, "t_host": now, **body})
+        return kind({"v": SCHEMA_VERSION, "seq": n, "t_host": now + self.wall_offset, **body})
+
+    def _wall(self, t: float | None) -> float | None:
+        return None if t is None else t + self.wall_offset
+
+    def set_wall_offset(self, offset: float) -> None:
+        """Wall-clock minus the time base the shell feeds (``time.time() - time.monotonic()``
+        for a service on the monotonic clock; 0 when fed wall-clock or recorded times).
+        Only published stamps use it."""
+        self.wall_offset = float(offset)
 
     def _event(self, level: str, text: str) -> None:
         self._log.append(LogEvent(level, text))
@@ -154,7 +178,7 @@ class Pipeline:
         out: list[Message] = []
         self._routing(link, dec, now, out)
         if dec.samples is not None:
-            self._samples(link, dec.samples, now, out)
+            self._samples(link, dec.samples, now, out, dec.gateways)
         return self._drain_log(out)
 
     def _routing(self, link: str, dec: Decoded, now: float, out: list[Message]) -> None:
@@ -192,8 +216,28 @@ class Pipeline:
                 if gate:
                     self.gate[origin] = float(gate)
 
-    def _sync_clocks(self, s: SampleColumns, now: float) -> tuple[np.ndarray, np.ndarray]:
-        """Feed each bridge's clock its newest sample; (host time, bridge time) of every sample."""
+    def _sync_clocks(self, s: SampleColumns, now: float, gateways: set[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Feed the clocks; (host time, bridge time, global cycle or -1) of every sample.
+
+        A sample on mesh time (no ``NO_MESH_TIME`` flag, a rate) started its C1 gate at
+        global time ``index / rate``: its host time comes from the skin's one map, so two
+        bridges' samples of one index get one host time. Other samples (a bridge booting
+        or cut off, protocol version 1) are timed from their bridge's own arrival fit."""
+        on_time = ((s.flags & _NO_MESH_TIME) == 0) & (s.rate > 0)
+        with np.errstate(divide="ignore"):  # an index whose instant does not fit 63 bits is nonsense
+            on_time &= s.index.astype(np.float64) * self.chip.clock_hz / np.maximum(s.rate, 1) < 2.0**62
+        g = np.full(s.origin.shape[0], -1, dtype=np.int64)
+        if on_time.any():
+            rate = np.where(on_time, s.rate, 1).astype(np.uint64)
+            g = np.where(on_time, (s.index * np.uint64(int(self.chip.clock_hz)) // rate).astype(np.int64), -1)
+            own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
+            if own.size:
+                newest = own[np.argmax(g[own])]
+                if self.skin_clock.observe(int(g[newest]), now):
+                    self.skin_clock_resets += 1
+                    self._frame_memo.clear()
+                    self._frame_newest = -1
+                    self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
         origin_list = s.origin.tolist()
         newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
         counts = Counter(origin_list)
@@ -210,10 +254,32 @@ class Pipeline:
         o = s.origin
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
-        return t_sample, s.cycle.astype(np.float64) / hz
+        if on_time.any() and self.skin_clock.synced:
+            t_sample = np.where(on_time, self._frame_times(g, on_time), t_sample)
+        return t_sample, s.cycle.astype(np.float64) / hz, g
 
-    def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message]) -> None:
-        t_sample, t_bridge = self._sync_clocks(s, now)
+    def _frame_times(self, g: np.ndarray, on_time: np.ndarray) -> np.ndarray:
+        """Host time of each mesh-time sample's frame (global cycle ``g``). A frame's time is
+        fixed when its first sample arrives: the map keeps learning (a lower envelope point
+        moves it by up to a read's granularity), and two bridges' samples of one index must
+        still carry one time. Frames older than the newest by ``_FRAME_MEMORY`` are forgotten."""
+        keys, inverse = np.unique(np.where(on_time, g, -1), return_inverse=True)
+        memo = self._frame_memo
+        new = [k for k in keys.tolist() if k >= 0 and k not in memo]
+        if new:
+            mapped = self.skin_clock.to_host(np.array(new, dtype=np.uint64)).tolist()
+            memo.update(zip(new, mapped))
+            newest = max(new)
+            if newest > self._frame_newest:
+                self._frame_newest = newest
+                if len(memo) > 4 * _FRAME_MEMORY_KEYS:
+                    horizon = newest - int(_FRAME_MEMORY * self.chip.clock_hz)
+                    self._frame_memo = memo = {k: v for k, v in memo.items() if k >= horizon}
+        t = np.array([memo.get(k, math.nan) for k in keys.tolist()])
+        return t[inverse]
+
+    def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message], gateways: set[int]) -> None:
+        t_sample, t_bridge, g = self._sync_clocks(s, now, gateways)
         o = s.origin
         raw = np.stack([s.c1, s.c2], axis=1)
         caps_all, sat_all = self.frontend.capacitance(s.mode, s.oversampling, raw, s.flags, self.gate[o])
@@ -234,19 +300,25 @@ class Pipeline:
             return
         sel = slice(None) if all_placed else placed
         caps = caps_all[sel]
-        res = self.skin.step(rows[sel], raw[sel], sat_all[sel], caps, t_sample[sel], s.cycle[sel], now)
+        flags = s.flags[sel]
+        rate = s.rate[sel]
+        with np.errstate(divide="ignore"):
+            period = np.where(rate > 0, 1.0 / rate, np.nan)
+        res = self.skin.step(rows[sel], raw[sel], sat_all[sel], caps, t_sample[sel], s.cycle[sel], now,
+                             (flags & _HELD) != 0, g[sel] >= 0, period)
         if self._want("element"):
             out.append(self._message(ElementBatch, now, {
                 "bridge": o[sel].tolist(), "element": s.element[sel].tolist(),
                 "cycle": s.cycle[sel].tolist(), "t_bridge": t_bridge[sel].tolist(),
-                "t_sample": t_sample[sel].tolist(), "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
+                "t_sample": (t_sample[sel] + self.wall_offset).tolist(), "index": s.index[sel].tolist(), "on_time": (g[sel] >= 0).tolist(),
+                "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
                 "dc1": res["dc1"].tolist(), "dc2": res["dc2"].tolist(), "force": res["force"].tolist(),
                 "area": res["area"].tolist(), "valid": res["valid"].tolist(), "status": res["status"].tolist(),
                 "touched": res["touched"].tolist(),
             }))
 
     # -- contacts -----------------------------------------------------------------------
-    def contact_job(self) -> ContactJob | None:
+    def contact_job(self, now: float | None = None) -> ContactJob | None:
         """The next contact estimate to run, or None: estimation off, nobody subscribed
         to ``contact``, no layout, or the skin's moment did not advance since the last job.
 
@@ -256,10 +328,11 @@ class Pipeline:
         newest data. Not the newest reading of each element: bridges' frames arrive
         staggered, and a skin half pressed, half not, gives ghosts. Run it with
         :class:`~cellbridge.daemon.contact_worker.ContactWorker` (any executor) and pass
-        the contacts to :meth:`contact_frame`."""
+        the contacts to :meth:`contact_frame`. ``now``: the host time (default: the last
+        read's); a shell passes it also when no data comes, so that silence is noticed."""
         if not self.config["contact"]["enabled"] or not self._want("contact"):
             return None
-        snap = self.skin.snapshot(self.last_feed, self.config["health"]["bridge_timeout"])
+        snap = self.skin.snapshot(self.last_feed if now is None else now, self.config["health"]["bridge_timeout"])
         if snap is None or self.skin.contact_spec is None:
             return None
         return ContactJob(self._owner, self.skin.contact_spec, snap)
@@ -274,17 +347,21 @@ class Pipeline:
         for c in contacts:
             rows = [index[e] for e in c["elements"]]
             ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
-            out.append({**c, "cycles": [int(snap.cycle[i]) for i in rows], "t_sample": max(ts) if ts else None})
-        t = snap.t_moment if math.isfinite(snap.t_moment) else None
-        return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out})
+            out.append({**c, "t": self._wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
+                        "t_sample": self._wall(max(ts)) if ts else None})
+        t = self._wall(snap.t_moment) if math.isfinite(snap.t_moment) else None
+        unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
+        return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
+                                                         "unknown": unknown})
 
     # -- periodic -----------------------------------------------------------------------
     def host_clock_step(self, delta: float) -> list[Message]:
-        """The host's wall clock stepped by ``delta`` s (NTP): every bridge clock follows at
-        once. Returns the log event saying so."""
-        for clk in self.clocks.values():
-            clk.host_step(delta)
-        self._event("warning", f"host clock stepped by {delta:+.3f} s; bridge clocks follow")
+        """The host's wall clock stepped by ``delta`` s (NTP, chrony ``makestep``): the stamps
+        published from now on move by it, and nothing else does (the pipeline runs on the
+        monotonic time base). Returns the log event saying so."""
+        self.wall_offset += delta
+        self._event("warning", f"host wall clock stepped by {delta:+.3f} s; published times follow, "
+                               "the skin is not affected")
         return self._drain_log([])
 
     def tick(self, now: float, force: bool = False) -> list[Message]:
@@ -354,7 +431,8 @@ class Pipeline:
         return {
             "t_bridge": None,
             "uptime": 0.0 if self.started is None else now - self.started,
-            "links": {name: link_report(lh, self.ingress.counters(name)) for name, lh in self.links.items()},
+            "links": {name: self._wall_link(link_report(lh, self.ingress.counters(name)))
+                      for name, lh in self.links.items()},
             "bridges": {str(b): {**bh.report(now), "reassembly_drops": self.ingress.reassembly_drops.get(b, 0)}
                         for b, bh in sorted(self.bridges.items())},
             "silent": sorted(b for b, bh in self.bridges.items() if bh.silent),
@@ -367,9 +445,16 @@ class Pipeline:
             "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
         }
 
+    def _wall_link(self, report: dict[str, Any]) -> dict[str, Any]:
+        for key in ("connected_since", "last_data"):
+            report[key] = self._wall(report[key])
+        return report
+
     def topology_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``topology`` message at ``now`` (control's ``topology`` answers with them)."""
         body = self.topology.report(now, self.config["health"]["bridge_timeout"])
+        for node in body["bridges"].values():
+            node["last_seen"] = self._wall(node["last_seen"])
         body["t_bridge"] = None
         body["layout"] = self.skin.layout_report()
         return body

@@ -50,7 +50,11 @@ class Service:
         self.config_path = config_path
         self.log = setup(config["daemon"]["log_level"], config["daemon"]["log_format"])
         self.pipeline = Pipeline(config, layout)
+        # The pipeline runs on the monotonic clock; a replay in recorded time feeds recorded
+        # wall-clock times instead, and then nothing is added to them.
+        self._recorded = any(ln.is_replay and ln.replay_clock == "recorded" for ln in config.links)
         self._wall_offset = time.time() - time.monotonic()
+        self.pipeline.set_wall_offset(0.0 if self._recorded else self._wall_offset)
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
@@ -63,6 +67,11 @@ class Service:
         self._busy = np.zeros(4096)  # s spent on each of the last reads, bytes to published messages
         self._n_reads = 0
         self._lag_max = 0.0  # s, since the last health message
+
+    def now(self) -> float:
+        """The pipeline's time base: the monotonic clock (wall-clock time while a replay feeds
+        recorded wall-clock times, so that they and now are on one base)."""
+        return time.time() if self._recorded else time.monotonic()
 
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
@@ -97,7 +106,7 @@ class Service:
                 publish(m.topic, m.payload)
 
     def _on_state(self, link: str, connected: bool, why: str) -> None:
-        self.pipeline.link_state(link, connected, time.time(), why)
+        self.pipeline.link_state(link, connected, self.now(), why)
         if connected:
             event(self.log, "info", "link up", link=link, url=self.links[link].cfg.url)
         else:
@@ -134,13 +143,14 @@ class Service:
     def _tick_once(self, next_status: float) -> float:
         """Health, command deadlines, logged events, and every 5 s sd_notify STATUS and
         capture flushes; returns when the next STATUS is due."""
-        now = time.time()
-        step = (now - time.monotonic()) - self._wall_offset
-        if abs(step) > self.HOST_STEP:  # the wall clock stepped (NTP): the bridge clocks follow at once
+        now = self.now()
+        step = (time.time() - time.monotonic()) - self._wall_offset
+        if abs(step) > self.HOST_STEP and not self._recorded:  # the wall clock stepped (NTP)
             self._wall_offset += step
             self._act(self.pipeline.host_clock_step(step))
         self._link_stats()
         self._act(self.pipeline.tick(now))
+        self._fresh.set()  # contacts are looked at without new data too: silence ends them
         self.control.resolve(now)
         if now >= next_status or next_status - now > 5.0:  # (the host clock may step back)
             next_status = now + 5.0
@@ -191,7 +201,7 @@ class Service:
                 await asyncio.sleep(rest)
 
     async def _contact_once(self) -> None:
-        job = self.pipeline.contact_job()
+        job = self.pipeline.contact_job(self.now())
         if job is None:
             return
         self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
@@ -302,7 +312,7 @@ class Service:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         await self.control.finish()
         await self._contact_once()  # the newest state, if the last estimate did not see it
-        now = time.time()
+        now = self.now()
         self._link_stats()
         self._act(self.pipeline.tick(now, force=True))
 

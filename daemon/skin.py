@@ -100,13 +100,15 @@ class Skin:
 
     def step(self, rows: NDArray[np.int64], raw: NDArray[np.int64], saturated: NDArray[np.bool_],
              caps: NDArray[np.float64], t_sample: NDArray[np.float64], cycle: NDArray[np.uint64],
-             now: float) -> dict[str, NDArray[Any]]:
+             now: float, held: NDArray[np.bool_], on_time: NDArray[np.bool_],
+             period: NDArray[np.float64]) -> dict[str, NDArray[Any]]:
         """One read's placed samples through channel health → calibration and inverse →
         the moments contacts are estimated on; the element stage's columns back.
 
         ``rows``: layout row of each sample (all placed); ``raw``/``saturated``/``caps``:
         (n, 2) readings, their saturation and capacitance (F); ``t_sample``: host time of
-        each sample; ``now``: the read's arrival time. Requires :attr:`ready`."""
+        each sample; ``now``: the read's arrival time; ``held``, ``on_time``, ``period``:
+        each reading's kind and sample period (:meth:`Moments.record`). Requires :attr:`ready`."""
         assert self.elements is not None and self.channels is not None and self.moments is not None
         last = {x: i for i, x in enumerate(rows.tolist())}  # each element's newest sample
         groups = (np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last)))
@@ -114,7 +116,7 @@ class Skin:
         res = self.elements.step(rows, caps, groups, now)
         enter, leave = self.elements.calibrator.thresholds()
         self.moments.record(rows, t_sample, cycle, np.stack([res["dc1"], res["dc2"]], axis=1),
-                            groups[0].shape[0] == rows.shape[0], now, enter, leave)
+                            groups[0].shape[0] == rows.shape[0], now, enter, leave, held, on_time, period)
         self.moments.settle(self.elements.stepped, self.elements.touched)
         return res
 
@@ -125,11 +127,13 @@ class Skin:
             return None
         m = self.moments
         m.settle(self.elements.flush(now), self.elements.touched)
-        got = m.take(now, bridge_timeout, self.sections["contact"]["max_lag"], force=self.dirty)
+        c = self.sections["contact"]
+        got = m.take(now, bridge_timeout, c["max_lag"], force=self.dirty, held_wait=c["held_wait"])
         if got is None:
             return None
         self.dirty = False
-        return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t)
+        return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t,
+                               got.unknown)
 
     def tare(self, bridges: list[int] | None) -> int:
         if self.elements is None:

@@ -32,11 +32,17 @@ from cellbridge.protocol import (
     Mode,
     Op,
     Reassembler,
+    SampleFlags,
     StreamDecoder,
     encode_stream,
 )
 
-__all__ = ["ADDR_BROADCAST", "Decoded", "Ingress", "Mode", "OPS", "SampleColumns", "command_bytes", "mode_value"]
+#: Sample flags the daemon acts on (docs/protocol.md): a sample without mesh time is timed
+#: from its arrival; a held sample (event-based reporting) stands for the frames not sent.
+NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
+HELD = int(SampleFlags.HELD)
+
+__all__ = ["ADDR_BROADCAST", "HELD", "NO_MESH_TIME", "Decoded", "Ingress", "Mode", "OPS", "SampleColumns", "command_bytes", "mode_value"]
 
 #: Control parameter names → downlink op. SET_REPORTING is added by the emulator's protocol
 #: change; it is offered exactly when the protocol defines it.
@@ -77,6 +83,8 @@ class SampleColumns:
     mode: NDArray[np.int64]
     oversampling: NDArray[np.int64]
     seq: NDArray[np.int64]  # sequence number of the frame each sample came in
+    index: NDArray[np.uint64]  # sample index: the skin frame (with NO_MESH_TIME: the bridge's own count)
+    rate: NDArray[np.int64]  # sampling rate (Hz) the index counts in; 0: none (protocol version 1)
 
     def __len__(self) -> int:
         return int(self.origin.shape[0])
@@ -131,7 +139,7 @@ class Ingress:
     def feed(self, link: str, data: bytes, now: float) -> Decoded:
         out = Decoded()
         rows: list[tuple[int, ...]] = []
-        meta: list[tuple[int, int, int, int, int]] = []  # (origin, mode, oversampling, n, seq)
+        meta: list[tuple[int, int, int, int, int, int]] = []  # (origin, mode, oversampling, n, seq, rate)
         dedupe, reassembler, receive = self.dedupe, self.reassembler, self.receiver.receive
         dropped_before = dedupe.duplicates + dedupe.stale
         for frame in self.decoder(link).feed(data):
@@ -157,7 +165,7 @@ class Ingress:
         p = frame.payload
         if type(p) is Data:
             rows.extend(p.samples)
-            meta.append((frame.origin, int(p.mode), p.oversampling, len(p.samples), frame.seq))
+            meta.append((frame.origin, int(p.mode), p.oversampling, len(p.samples), frame.seq, p.rate))
         elif type(p) is Hello:
             out.hellos.append((frame.origin, p))
             if frame.seq == 0:  # a bridge numbers from 0 after every reset and says HELLO first
@@ -177,8 +185,8 @@ class Ingress:
         return c
 
 
-def _columns(rows: list[tuple[int, ...]], meta: list[tuple[int, int, int, int, int]]) -> SampleColumns:
-    a = np.array(rows, dtype=np.uint64).reshape(-1, 5)  # every field is unsigned; cycle needs 64 bits
+def _columns(rows: list[tuple[int, ...]], meta: list[tuple[int, int, int, int, int, int]]) -> SampleColumns:
+    a = np.array(rows, dtype=np.uint64).reshape(-1, 6)  # every field is unsigned; cycle and index need 64 bits
     m = np.array(meta, dtype=np.int64)
     counts = m[:, 3]
     return SampleColumns(
@@ -191,6 +199,8 @@ def _columns(rows: list[tuple[int, ...]], meta: list[tuple[int, int, int, int, i
         mode=np.repeat(m[:, 1], counts),
         oversampling=np.repeat(m[:, 2], counts),
         seq=np.repeat(m[:, 4], counts),
+        index=a[:, 5],
+        rate=np.repeat(m[:, 5], counts),
     )
 
 

@@ -30,6 +30,7 @@ _DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3 + 3
 # msgpack of [element, cycle, c1, c2, flags, index] at the widest
 _MAX_SAMPLE_BYTES = 1 + 3 + 9 + 5 + 5 + 2 + 9
 _NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
+_HELD = int(SampleFlags.HELD)
 _COUNTER_MODULUS = 1 << 16
 
 
@@ -141,8 +142,11 @@ class Sampler:
             v1, took = self.chip.convert(0, c1, start, st.oversampling)  # type: ignore[attr-defined]
             v2, _ = self.chip.convert(1, c2, start + took, st.oversampling)  # type: ignore[attr-defined]
             flags = 0
-        s = Sample(0, self.timebase.local(start), v1, v2, int(flags) | (0 if self.on_time else _NO_MESH_TIME),
-                   self.index)
+        if not self.on_time:
+            flags |= _NO_MESH_TIME
+        if not st.reporting.periodic:
+            flags |= _HELD
+        s = Sample(0, self.timebase.local(start), v1, v2, int(flags), self.index)
         self.counters["samples"] += 1
         if self.reporter.wants(s):
             size = len(msgpack.packb(s))  # a NamedTuple packs as the wire's array

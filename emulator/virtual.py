@@ -143,6 +143,8 @@ class VirtualMesh:
         self.nodes: dict[int, Firmware] = {}
         self.resets: Counter[int] = Counter()
         self.serial: dict[int, bytearray] = {g: bytearray() for g in mesh.gateways}
+        #: what each gateway wrote to its serial line, as (tick, bytes) in order: a host's reads
+        self.serial_chunks: dict[int, list[tuple[int, bytes]]] = {g: [] for g in mesh.gateways}
         self.decoders: dict[int, StreamDecoder] = {g: StreamDecoder() for g in mesh.gateways}
         self.frames: dict[int, list[Frame]] = {g: [] for g in mesh.gateways}
         self.dead: set[int] = set()
@@ -276,6 +278,7 @@ class VirtualMesh:
 
     def _gateway_out(self, b: int, data: bytes) -> None:
         self.serial[b] += data
+        self.serial_chunks[b].append((self.tick, data))
         self.frames[b].extend(self.decoders[b].feed(data))
 
     def run(self, seconds: float) -> MeshResult:

@@ -58,6 +58,10 @@ class SampleFlags(IntEnum):
     #: for too long): ``index`` counts the bridge's own samples, not the skin's frames,
     #: and the host falls back to timing the sample from its arrival.
     NO_MESH_TIME = 0x04
+    #: Event-based reporting: until this bridge's next sample, its readings stay within the
+    #: reporting threshold of this one; a skin frame it does not send is this reading.
+    #: Without the flag (periodic reporting) a frame not sent is a sample lost.
+    HELD = 0x08
 
 
 class Op(IntEnum):

@@ -177,6 +177,22 @@ class ContactTracker:
         """Tracks seen but not yet born."""
         return sum(tr.id is None for tr in self._tracks)
 
+    def end_unsupported(self, unknown: set[int]) -> set[int]:
+        """End the tracks this frame did not match whose elements are all in ``unknown``
+        (elements the host has no reading of: nothing supports them any more). Returns the
+        ids of the confirmed contacts ended (their ids are never given again)."""
+        gone: set[int] = set()
+        keep = []
+        for tr in self._tracks:
+            if tr.missed > 0 and tr.elements and tr.elements <= unknown:
+                if tr.id is not None:
+                    gone.add(tr.id)
+                    self.deaths += 1
+                continue
+            keep.append(tr)
+        self._tracks = keep
+        return gone
+
     def reset(self) -> None:
         """Forget every track (ids keep counting up, so an old id never comes back)."""
         self._tracks = []

@@ -1,0 +1,132 @@
+"""The daemon on skin frames, fed by the virtual mesh's gateway bytes at their virtual times.
+
+The two sans-I/O cores joined in memory, deterministic by seed: bridges on mesh time
+sample together, the pipeline times every sample of one index alike, and contacts tell
+the truth when bridges fall silent or the line goes down.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import pytest
+
+from cellbridge.daemon.config import parse_config
+from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world import Contact, World
+from pipeline_helpers import published, worker
+
+T0 = 1_800_000_000.0
+CORNER = (0.0585, 0.0625)  # across the corner of bridges 6, 7, 10 and 11 of a 4x4 grid
+UNDER = {6, 7, 10, 11}
+
+
+def gateway_reads(seconds: float, presses: list[Contact], kill: tuple[int, ...] = (), kill_at: float = 0.0,
+                  seed: int = 1) -> list[tuple[float, bytes]]:
+    mesh = meshgen.grid(4, 4)
+    vm = VirtualMesh(mesh, seed=seed, world=World(mesh, presses), random_epochs=True)
+    for b in kill:
+        vm.kill(b, at=kill_at)
+    vm.run(seconds)
+    return [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+
+
+def drive(reads: list[tuple[float, bytes]], until: float, step: float = 0.01,
+          stop_feeding_at: float = math.inf) -> Iterator[tuple[float, str, dict]]:
+    """The service's part, in virtual time: feed each read at its time, tick and estimate
+    contacts every ``step`` s (also when no data comes). Yields (time, topic, payload)."""
+    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}]}))
+    w = worker()
+    i = 0
+    now = T0
+    shown = False
+    while now < T0 + until:
+        now += step
+        while i < len(reads) and reads[i][0] <= now:
+            if reads[i][0] < T0 + stop_feeding_at:
+                for topic, payload in published(p.feed("gw", reads[i][1], reads[i][0])):
+                    yield reads[i][0], topic, payload
+            i += 1
+        for topic, payload in published(p.tick(now)):
+            yield now, topic, payload
+        job = p.contact_job(now)
+        if job is not None:
+            contacts = w.estimate_now(job)
+            if contacts or shown:
+                yield now, "contact", p.contact_frame(job, contacts).payload
+            shown = bool(contacts)
+
+
+@pytest.fixture(scope="module")
+def press_reads() -> list[tuple[float, bytes]]:
+    return gateway_reads(7.0, [Contact(4.0, 2.5, *CORNER, 3.0, 0.020)])
+
+
+def test_samples_of_one_index_get_one_host_time(press_reads) -> None:
+    times: dict[int, set[float]] = {}
+    bridges: dict[int, set[int]] = {}
+    for _, topic, m in drive(press_reads, 7.0):
+        if topic == "element":
+            for b, k, on, t in zip(m["bridge"], m["index"], m["on_time"], m["t_sample"]):
+                if on:
+                    times.setdefault(k, set()).add(t)
+                    bridges.setdefault(k, set()).add(b)
+    whole = [k for k, bs in bridges.items() if len(bs) == 16]
+    assert len(whole) > 200
+    late = sorted(whole)[len(whole) // 2:]  # once the map settled
+    assert all(max(times[k]) - min(times[k]) <= 50e-6 for k in late)
+
+
+def test_a_held_press_is_one_contact_at_the_pressed_place(press_reads) -> None:
+    ids = set()
+    reports = []
+    for t, topic, m in drive(press_reads, 7.0):
+        if topic == "contact":
+            ids |= {c["id"] for c in m["contacts"]}
+            reports += [c for c in m["contacts"] if c["missed"] == 0]
+            if 4.5 < t - T0 < 6.4:
+                assert not m["unknown"], m["unknown"]
+    assert len(ids) == 1 and len(reports) > 60  # frames complete as the bridges' DATA batches arrive
+    mid = reports[len(reports) // 2]
+    assert math.hypot(mid["x"] - CORNER[0], mid["y"] - CORNER[1]) < 1e-3
+    assert mid["force"] == pytest.approx(3.0, rel=0.05)
+
+
+def test_bridges_under_a_held_press_going_silent_end_the_contact() -> None:
+    """They lose power mid-press while the rest of the skin reports: the press must not be
+    published on their old readings (it was, ~60 times a second, for as long as they were
+    silent). The contact ends within bridge_timeout plus one frame, with ``contacts: []``."""
+    kill_at = 5.0
+    reads = gateway_reads(9.0, [Contact(4.0, 4.5, *CORNER, 3.0, 0.020)], kill=tuple(UNDER), kill_at=kill_at)
+    last_with, empty_at = -1.0, None
+    for t, topic, m in drive(reads, 9.0):
+        if topic != "contact":
+            continue
+        if m["contacts"]:
+            last_with = t - T0
+            assert empty_at is None, "a contact came back"
+        elif empty_at is None and last_with > 0:
+            empty_at = t - T0
+            assert UNDER <= set(m["unknown"])
+    bridge_timeout = 2.0
+    assert empty_at is not None and kill_at < empty_at <= kill_at + bridge_timeout + 0.02, (last_with, empty_at)
+
+
+def test_the_gateway_line_going_down_mid_press_is_told_within_bridge_timeout(press_reads) -> None:
+    """No data at all from 5 s on: subscribers must learn that the press they hold is no
+    longer known (every element unknown, ``contacts: []``) within bridge_timeout."""
+    stop = 5.0
+    told = None
+    held = False
+    for t, topic, m in drive(press_reads, 8.0, stop_feeding_at=stop):
+        if topic == "contact" and t - T0 > stop:
+            if m["contacts"]:
+                held = True
+            elif told is None:
+                told = t - T0
+                assert len(m["unknown"]) == 16
+    assert told is not None and told <= stop + 2.0 + 0.02, told
+    assert not held or told is not None

@@ -41,7 +41,7 @@ from cellbridge.protocol import (
 )
 
 SEEDS = [
-    Frame(1, 0, 1, 1, Data(Mode.COUNTER, (Sample(0, 123456, 19600, 15800, 0, 70_000),
+    Frame(1, 0, 1, 1, Data(Mode.COUNTER, (Sample(0, 123456, 19600, 15800, SampleFlags.HELD, 70_000),
                                           Sample(0, 223456, 19590, 15790, 2 | SampleFlags.NO_MESH_TIME, 12)), 1, 100)),
     Frame(2, 0xFFFF, 2, 2, Beacon(1, 35, 2), flags=1),
     Frame(2, 0xFFFF, 2, 3, Beacon(1, 35, 2, MeshTime(1, 513, 2**40 + 12345))),

@@ -40,7 +40,7 @@ from cellbridge.emulator.medium_wire import (
 from cellbridge.emulator.process_world import decode_contacts
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.realtime import (
-    CLOCK_HZ, REPORTING_HELP, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
+    CLOCK_HZ, REPORTING_HELP, Endpoints, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
     reporting_arg,
 )
 from cellbridge.emulator.virtual import default_chip
@@ -81,6 +81,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge bridge: {exc}", file=sys.stderr)
         return 2
     ep = endpoints(args)
+    try:
+        claim = claim_id(ep, br.id)
+    except OSError:
+        print(f"cellbridge bridge: bridge {br.id} already runs on this host for base port {ep.base_port} "
+              f"(a second process would send its samples under the same origin)", file=sys.stderr)
+        return 1
     stop = StopFlag()
     try:
         medium = udp.connect(*ep.medium)
@@ -209,7 +215,21 @@ def run(args: argparse.Namespace) -> int:
         sys.stderr.flush()
         medium.close()
         stimuli.close()
+        claim.close()
     return 0
+
+
+def claim_id(ep: Endpoints, bridge: int) -> socket.socket:
+    """Hold this bridge id for the medium at ``ep`` while the process lives: an abstract
+    Unix socket named after both, which a second process cannot bind (OSError) and the
+    kernel releases when this one dies, however it dies."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        s.bind(f"\0cellbridge-bridge/{ep.host}:{ep.base_port}/{bridge}")
+    except OSError:
+        s.close()
+        raise
+    return s
 
 
 class Window:

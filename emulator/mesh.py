@@ -18,7 +18,8 @@ bridges *hear* each other when they share a cell. The file format (TOML)::
     cells = [1]
     position = [0.0, 0.0]   # element centre (m)
     gateway = true          # optional, default false
-    tcp = 0                 # optional: gateway also serves its stream on this TCP port
+    tcp = 0                 # optional: the TCP port of this gateway's stream with `mesh up --tcp`
+                            # (0 or absent: any free port; without --tcp, none)
 
     [[link]]            # optional per-edge overrides between two bridges
     a = 1

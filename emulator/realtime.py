@@ -1,4 +1,4 @@
-"""What the real-time process shells share: the clock, the ZeroMQ endpoints, shutdown.
+"""What the real-time process shells share: the clock, the endpoints (UDP medium, ZeroMQ world), shutdown.
 
 Every process on one host reads the same monotonic clock, so a tick (a 50 MHz cycle
 of host time) means the same instant in the medium and in every bridge: carrier

@@ -248,3 +248,35 @@ def test_no_descriptor_left_to_accept_a_tcp_client_does_not_end_the_gateway():
     out = subprocess.run([sys.executable, "-c", EMFILE_SCRIPT], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "'tcp_accept_failed': 1" in out.stdout and out.stdout.strip().endswith("False"), out.stdout
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "1e20", "-1", "0"])
+def test_press_timeout_must_be_a_finite_positive_number_of_seconds(value):
+    """nan, inf and 1e20 raised a traceback; -1 waited for ever (zmq's 'no timeout')."""
+    out = subprocess.run([*PY, "press", "0", "0", "--timeout", value, "--base-port", str(free_base_port())],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out
+    assert "--timeout" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("value", ["70000", "65535", "65534", "0", "-5", "x"])
+def test_base_port_leaves_room_for_the_worlds_two_ports(tmp_path, value):
+    """70000 raised a traceback; 65535 ran without a world (base+1 and base+2 do not exist)."""
+    mesh_path = _grid(tmp_path)
+    proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", value],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        _, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"mesh up ran with --base-port {value}")
+    finally:
+        stop_and_sweep(proc, mesh_path)
+    assert proc.returncode == 2, err
+    assert b"--base-port" in err and b"Traceback" not in err
+
+
+def test_the_medium_is_described_as_udp_not_zeromq():
+    for args in (["--help"], ["medium", "--help"]):
+        out = subprocess.run([*PY, *args], capture_output=True, text=True, timeout=60).stdout
+        line = [ln for ln in out.splitlines() if "relay cell transmissions" in ln.lower()] or [out]
+        assert "ZeroMQ" not in " ".join(line) and "UDP" in out, out

@@ -278,6 +278,8 @@ def ports_in_use(host: str, base: int) -> str:
     for kind, port, what in ((socket.SOCK_DGRAM, base, "UDP"), (socket.SOCK_STREAM, base + 1, "TCP"),
                              (socket.SOCK_STREAM, base + 2, "TCP")):
         with socket.socket(family, kind) as s:
+            if kind == socket.SOCK_STREAM:  # as ZeroMQ binds: a closed mesh's TIME_WAIT is no user
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 s.bind((host, port))
             except OSError as exc:

@@ -272,6 +272,25 @@ def solve(
 
 
 @compiled
+def _interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
+    """np.interp for one x (numba's costs a pass over the table per call): bisection."""
+    n = xp.size
+    if not x >= xp[0]:  # NaN included, as np.interp gives fp[0] below the table
+        return fp[0] if x == x else x
+    if x >= xp[n - 1]:
+        return fp[n - 1]
+    lo, hi = 0, n - 1
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if xp[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    slope = (fp[hi] - fp[lo]) / (xp[hi] - xp[lo])
+    return slope * (x - xp[lo]) + fp[lo]
+
+
+@compiled
 def _solve_kernel(
     c1: np.ndarray, c2: np.ndarray, par: np.ndarray, hi_q: np.ndarray, hi_lns: np.ndarray, ln_r_pk: float,
     ln_r_end: float, sigma_peak: float, lo_r: np.ndarray, lo_c1_full: np.ndarray, elem_area: float,
@@ -311,7 +330,7 @@ def _solve_kernel(
             continue
         # Falling-branch pressure: table, then one Newton step in ln σ.
         q = math.sqrt(max(ln_r_pk - lnr, 0.0))
-        lns = np.interp(q, hi_q, hi_lns)
+        lns = _interp(q, hi_q, hi_lns)
         g1, e1 = layer_response(math.exp(lns), par[0], par[1], par[2], par[3])
         g2, e2 = layer_response(math.exp(lns), par[4], par[5], par[6], par[7])
         slope = e1 - e2
@@ -343,7 +362,7 @@ def _solve_kernel(
         # Ambiguity (see _ambiguous): the box ±floor around the reading against the lens.
         r_max = (a + floor) / (b - floor)
         r_min = (a - floor) / (b + floor)
-        h = np.interp(min(r_max, r_pk), lo_r, lo_c1_full)
+        h = _interp(min(r_max, r_pk), lo_r, lo_c1_full)
         if r_max >= r0 and r_min <= r_pk and a - floor <= h:
             st |= 8  # AMBIGUOUS
         status[i] = st

@@ -23,7 +23,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("daemon", "cellbridge.daemon.cli", "run the host service: gateway serial lines in, ZeroMQ messages out"),
     ("mesh", "cellbridge.emulator.mesh_cli", "generate, check, run and start emulated skins (mesh files)"),
     ("bridge", "cellbridge.emulator.process_bridge", "run one emulated bridge in real time (started by 'mesh up')"),
-    ("medium", "cellbridge.emulator.process_medium", "relay cell transmissions between bridge processes (ZeroMQ)"),
+    ("medium", "cellbridge.emulator.process_medium", "relay cell transmissions between bridge processes (UDP on the base port)"),
     ("world", "cellbridge.emulator.process_world", "publish stimuli (contacts) to bridge processes"),
     ("press", "cellbridge.emulator.process_press", "press on a running emulated skin"),
     ("sub", "cellbridge.daemon.subscribe", "print what the daemon publishes as JSON lines"),

@@ -19,17 +19,19 @@ from cellbridge._version import __version__
 
 SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("demo", "cellbridge.demo", "the whole chain: an emulated 4x4 skin, the daemon on its gateway, a press, the contact"),
-    ("decode", "cellbridge.protocol.cli", "decode serial-line bytes (COBS frames) into readable frames"),
-    ("plot", "cellbridge.tactile.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
+    ("decode", "cellbridge.decode", "decode serial-line bytes (COBS frames) into readable frames"),
+    ("plot", "cellbridge.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
     ("daemon", "cellbridge.daemon.cli", "run the host service: gateway serial lines in, ZeroMQ messages out"),
     ("mesh", "cellbridge.emulator.mesh_cli", "generate, check, run and start emulated skins (mesh files)"),
     ("bridge", "cellbridge.emulator.process_bridge", "run one emulated bridge in real time (started by 'mesh up')"),
-    ("medium", "cellbridge.emulator.process_medium", "relay cell transmissions between bridge processes (ZeroMQ)"),
+    ("medium", "cellbridge.emulator.process_medium", "relay cell transmissions between bridge processes (UDP on the base port)"),
     ("world", "cellbridge.emulator.process_world", "publish stimuli (contacts) to bridge processes"),
     ("press", "cellbridge.emulator.process_press", "press on a running emulated skin"),
     ("sub", "cellbridge.daemon.subscribe", "print what the daemon publishes as JSON lines"),
     ("keys", "cellbridge.daemon.keys", "CURVE key pairs for binding the daemon beyond loopback"),
 ]
+#: Process entry points 'mesh up' starts: runnable (each has its --help), not listed in the top-level --help.
+INTERNAL = {"bridge", "medium", "world"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"cellbridge {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module_name, help_text in SUBCOMMANDS:
-        sp = sub.add_parser(name, help=help_text, description=help_text)
+        listed = {} if name in INTERNAL else {"help": help_text}  # a parser given no help= is not listed
+        sp = sub.add_parser(name, description=help_text, **listed)
         sp.set_defaults(_module=module_name)
         try:
             importlib.import_module(module_name).add_arguments(sp)

@@ -1,7 +1,8 @@
 """The host daemon: reads the gateways' serial lines and publishes the skin on ZeroMQ.
 
 Sans-I/O core (:mod:`cellbridge.daemon.pipeline`: bytes and a time in, messages out),
-thin asyncio shells around it (links, publisher, control, service). It imports the
-protocol and tactile layers only through :mod:`cellbridge.daemon.wire` and
-:mod:`cellbridge.daemon.physics`, and never the emulator: a robot runs the daemon alone.
+thin asyncio shells around it (links, publisher, control, service). It uses the
+protocol layer through :mod:`cellbridge.daemon.wire`, the tactile physics through
+:mod:`cellbridge.daemon.frontend`, :mod:`~cellbridge.daemon.elements` and
+:mod:`~cellbridge.daemon.contacts`, and never the emulator: a robot runs the daemon alone.
 """

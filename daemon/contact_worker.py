@@ -4,7 +4,7 @@ Production runs the worker in one spawned *process*: a thread would not do, as t
 estimator's Python code holds the interpreter lock for milliseconds at a time and every
 one of them would stall ingest. The worker takes its executor from a factory, so tests,
 tools and the golden files run the very same path on an :class:`InlineExecutor`. The
-worker builds its own estimator from a small :class:`~cellbridge.daemon.physics.ContactSpec`
+worker builds its own estimator from a small :class:`~cellbridge.daemon.contacts.ContactSpec`
 and keeps it while the layout stays the same; a worker that dies is replaced at the next
 estimate.
 """
@@ -21,9 +21,11 @@ from collections.abc import Callable
 from typing import Any
 
 from cellbridge.daemon.logs import event
-from cellbridge.daemon.physics import ContactJob, estimate, warm_up
+from cellbridge.daemon.contacts import ContactJob, estimate, warm_up
 
 Contacts = list[dict[str, Any]]
+#: Makes the worker's executor (again after a hung or dead one was killed).
+ExecutorFactory = Callable[[], concurrent.futures.Executor]
 
 
 def process_pool() -> concurrent.futures.Executor:
@@ -44,7 +46,7 @@ class InlineExecutor(concurrent.futures.Executor):
 
 
 class ContactWorker:
-    """Runs contact jobs (:class:`~cellbridge.daemon.physics.ContactJob`) on an executor from
+    """Runs contact jobs (:class:`~cellbridge.daemon.contacts.ContactJob`) on an executor from
     ``executor`` (default: one spawned process).
 
     :meth:`estimate` (async, with a hung-worker timeout) is the service's entry point,
@@ -52,7 +54,7 @@ class ContactWorker:
     nothing has been touched for longer than every track can live."""
 
     def __init__(self, log: logging.Logger,
-                 executor: Callable[[], concurrent.futures.Executor] = process_pool) -> None:
+                 executor: ExecutorFactory = process_pool) -> None:
         self.log = log
         self._make_executor = executor
         self._pool: concurrent.futures.Executor | None = None
@@ -61,6 +63,8 @@ class ContactWorker:
         self.stats: dict[str, Any] = {"runs": 0, "errors": 0, "last_ms": 0.0, "max_ms": 0.0, "feeds_skipped": 0,
                                       "worker_restarts": 0}
         self._answered = False  # the current worker has finished an estimate (its warm-up is behind it)
+        self._job: concurrent.futures.Future[Contacts] | None = None  # the last estimate handed to the worker
+        self._stopping = False
 
     def _executor(self) -> concurrent.futures.Executor:
         if self._pool is None:
@@ -70,6 +74,16 @@ class ContactWorker:
     def start(self) -> None:
         """Start the worker now, so its imports are done before the first touch."""
         self._executor().submit(warm_up)
+
+    def stop(self) -> None:
+        """The daemon is stopping: from now on every estimate has its timeout (even the
+        first), and a hung or dead worker is killed but not replaced."""
+        self._stopping = True
+
+    @property
+    def working(self) -> bool:
+        """The worker is still on an estimate (perhaps one nobody waits for any more: hung)."""
+        return self._job is not None and not self._job.done()
 
     def _needed(self, job: ContactJob) -> bool:
         """False once nothing is touched and every track has ended: no need to ask."""
@@ -94,8 +108,9 @@ class ContactWorker:
         else:
             self.busy = True
             try:
-                fut = asyncio.wrap_future(self._executor().submit(estimate, job))
-                contacts = await asyncio.wait_for(fut, timeout if self._answered else None)
+                self._job = self._executor().submit(estimate, job)
+                limit = timeout if self._answered or self._stopping else None
+                contacts = await asyncio.wait_for(asyncio.wrap_future(self._job), limit)
                 self._answered = True
             except Exception as exc:  # a bad estimate (or a dead worker) must not end contact publishing
                 self.stats["errors"] += 1
@@ -124,10 +139,9 @@ class ContactWorker:
         self._answered = False
         self.stats["worker_restarts"] += 1
         if pool is not None:
-            for proc in list(getattr(pool, "_processes", {}).values()):  # the executor offers no kill
-                proc.kill()
-            pool.shutdown(wait=False, cancel_futures=True)
-        self.start()
+            _kill(pool)
+        if not self._stopping:
+            self.start()
 
     async def idle(self, limit: float = 5.0) -> None:
         """Until a running estimate has finished (at most ``limit`` s)."""
@@ -136,6 +150,24 @@ class ContactWorker:
             await asyncio.sleep(0.01)
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        """End the worker: at once if it is still on an estimate (hung, or abandoned by a
+        stop), else after it exits."""
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        if self.working:
+            _kill(pool)
+        else:
+            pool.shutdown(wait=True)
+
+
+def _kill(pool: concurrent.futures.Executor) -> None:
+    """End ``pool`` now, whatever it is running: its own ``kill()`` where it has one (a
+    test's fake; ProcessPoolExecutor from Python 3.14), else kill its processes."""
+    kill = getattr(pool, "kill", None)
+    if kill is not None:
+        kill()
+    else:
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.kill()
+    pool.shutdown(wait=False, cancel_futures=True)

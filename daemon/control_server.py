@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections import Counter
 from typing import Any, Protocol
 
@@ -37,6 +36,10 @@ class Host(Protocol):
     config: Any
 
     def status_body(self, now: float) -> dict[str, Any]: ...
+
+    def now(self) -> float:
+        """The pipeline's time base (command deadlines are kept on it)."""
+        ...
 
 
 class ControlServer:
@@ -98,7 +101,7 @@ class ControlServer:
 
     async def finish(self, limit: float = 1.0) -> None:
         """Let requests in progress answer (commands still waiting get their timeout reply)."""
-        self.resolve(time.time() + 3600.0)
+        self.resolve(self.host.now() + 3600.0)
         if self._answers:
             await asyncio.wait(self._answers, timeout=limit)
 
@@ -110,7 +113,7 @@ class ControlServer:
                 fut.set_result(p.result())
 
     async def command(self, op: int, value: int | None, target: int | None, timeout: float) -> dict[str, Any]:
-        now = time.time()
+        now = self.host.now()
         pending, writes = self.host.pipeline.command(op, value, target, now, timeout)
         fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
         self._waiting[pending.token] = fut
@@ -138,7 +141,7 @@ class ControlServer:
         await self._send(envelope, rep)
 
     async def _execute(self, req: Request) -> dict[str, Any]:
-        now = time.time()
+        now = self.host.now()
         pipeline = self.host.pipeline
         timeout = req.timeout or self.host.config["control"]["command_timeout"]
         if req.cmd == "status":

@@ -6,6 +6,10 @@ is non-blocking (timeout 0), opening runs in a worker thread (a ``socket://`` co
 may take seconds). When the device goes away (USB pulled, pty closed, peer gone) the
 link reports it and reopens with exponential backoff, forever: a robot's daemon must
 outlive its cables. ``ReplayLink`` plays a capture file back as if it were a line.
+
+A ``SerialLink`` takes its device from an *opener* and its time and waits from a
+:class:`Clock`, so tests run it on a fake device and a fake clock: unplugged and
+replugged, bytes one at a time or lost, backoff without waiting it out.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import asyncio
 import os
 import time
 from collections.abc import Awaitable, Callable
+from typing import Protocol
 
 import serial
 import serial.serialposix
@@ -24,6 +29,52 @@ from cellbridge.daemon.config import LinkConfig
 DataCallback = Callable[[str, bytes, float], None]
 StateCallback = Callable[[str, bool, str], None]
 READ_SIZE = 1 << 16
+
+
+class Port(Protocol):
+    """What a link needs of an open device (a pyserial port, or a test's fake): a file
+    descriptor that polls readable when there is data or the device is gone, and
+    non-blocking reads (``b""``: nothing now) and writes. Reads and writes raise
+    :class:`serial.SerialException` (or OSError) once the device is gone."""
+
+    def fileno(self) -> int: ...
+    def read(self, size: int = 1) -> bytes: ...
+    def write(self, data: bytes) -> int | None: ...
+    def close(self) -> None: ...
+
+
+#: Opens the device of a link's configuration; raises SerialException, OSError or ValueError.
+Opener = Callable[[LinkConfig], Port]
+
+
+def open_serial(cfg: LinkConfig) -> Port:
+    """Any pyserial URL. timeout=0: reads never wait; a socket:// write waits at most write_timeout."""
+    return serial.serial_for_url(cfg.url, baudrate=cfg.baudrate, timeout=0, write_timeout=0.05)  # type: ignore[no-any-return]
+
+
+class Clock(Protocol):
+    """Where a shell reads the host time and waits. ``time`` is the pipeline's time base
+    (monotonic: a wall-clock step must not move it); ``wall`` is for what is kept on disk."""
+
+    def time(self) -> float: ...
+    def wall(self) -> float: ...
+    async def sleep(self, seconds: float) -> None: ...
+
+
+class SystemClock:
+    """The host's monotonic clock, its wall clock and the event loop's timers."""
+
+    def time(self) -> float:
+        return time.monotonic()
+
+    def wall(self) -> float:
+        return time.time()
+
+    async def sleep(self, seconds: float) -> None:
+        await asyncio.sleep(seconds)
+
+
+SYSTEM_CLOCK = SystemClock()
 
 
 class Link:
@@ -48,16 +99,23 @@ class Link:
 
 
 class SerialLink(Link):
-    def __init__(self, cfg: LinkConfig, on_data: DataCallback, on_state: StateCallback) -> None:
+    """A gateway's serial line: reads go to ``on_data(name, bytes, host time)``, state
+    changes to ``on_state(name, up, why)``; reopened with exponential backoff
+    (``reconnect_min`` doubling to ``reconnect_max``, back to the minimum after a
+    successful open) until the task is cancelled."""
+
+    def __init__(self, cfg: LinkConfig, on_data: DataCallback, on_state: StateCallback,
+                 opener: Opener = open_serial, clock: Clock = SYSTEM_CLOCK) -> None:
         super().__init__(cfg, on_data, on_state)
-        self._ser: serial.SerialBase | None = None
+        self._opener = opener
+        self._clock = clock
+        self._ser: Port | None = None
         self.capture: CaptureWriter | None = None
         if cfg.capture:
             self.capture = CaptureWriter(cfg.capture)
 
-    def _open(self) -> serial.SerialBase:
-        # timeout=0: reads never wait; a socket:// write waits at most write_timeout
-        return serial.serial_for_url(self.cfg.url, baudrate=self.cfg.baudrate, timeout=0, write_timeout=0.05)
+    def _open(self) -> Port:
+        return self._opener(self.cfg)
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -68,24 +126,24 @@ class SerialLink(Link):
                     ser = await loop.run_in_executor(None, self._open)
                 except (serial.SerialException, OSError, ValueError) as exc:
                     self._on_state(self.name, False, f"open failed: {exc}")
-                    await asyncio.sleep(delay)
+                    await self._clock.sleep(delay)
                     delay = min(delay * 2, self.cfg.reconnect_max)
                     continue
                 delay = self.cfg.reconnect_min
                 reason = await self._pump(loop, ser)
                 self._on_state(self.name, False, reason)
-                await asyncio.sleep(delay)
+                await self._clock.sleep(delay)
         finally:
             if self._ser is not None:
                 self._close(loop)
             if self.capture is not None:
                 self.capture.close()
 
-    async def _pump(self, loop: asyncio.AbstractEventLoop, ser: serial.SerialBase) -> str:
+    async def _pump(self, loop: asyncio.AbstractEventLoop, ser: Port) -> str:
         lost: asyncio.Future[str] = loop.create_future()
         fd = ser.fileno()
         capture = self.capture
-        on_data, name = self._on_data, self.name
+        on_data, name, clock = self._on_data, self.name, self._clock
 
         read = _reader(ser)
 
@@ -98,9 +156,9 @@ class SerialLink(Link):
                     lost.set_result(f"device lost: {exc}")
                 return
             if data:
-                now = time.time()
+                now = clock.time()  # the pipeline's time base; captures keep wall-clock time
                 if capture is not None:
-                    capture.write(now, data)
+                    capture.write(clock.wall(), data)
                 on_data(name, data, now)
 
         self._ser = ser
@@ -149,7 +207,7 @@ class SerialLink(Link):
             return super().write(data)
 
 
-def _reader(ser: serial.SerialBase) -> Callable[[], bytes]:
+def _reader(ser: Port) -> Callable[[], bytes]:
     """One non-blocking read of what is there. A tty or pty is read with a single
     ``os.read`` (pyserial's ``read`` polls around it, three system calls a read)."""
     if isinstance(ser, serial.serialposix.Serial):
@@ -198,7 +256,7 @@ class ReplayLink(Link):
             await self._gate()
         self._on_state(self.name, True, "")
         speed, recorded = self.cfg.replay_speed, self.cfg.replay_clock == "recorded"
-        start = time.time()
+        start = time.monotonic()  # shifted: records replayed on the pipeline's (monotonic) time base
         why = "replay finished"
         if first is not None:
             t_first = first[0]
@@ -206,7 +264,7 @@ class ReplayLink(Link):
                 for t, data in _chain(first, records):
                     rel = t - t_first
                     if speed > 0:
-                        wait = start + rel / speed - time.time()
+                        wait = start + rel / speed - time.monotonic()
                         if wait > 0:
                             await asyncio.sleep(wait)
                     elif self.records % 64 == 0:

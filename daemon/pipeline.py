@@ -26,11 +26,14 @@ from collections.abc import Iterable
 from typing import Any, TypeVar
 
 import numpy as np
-
 from cellbridge.daemon.clock import BridgeClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
+from cellbridge.daemon.contacts import ContactJob
+from cellbridge.daemon.elements import default_params
+from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
+from cellbridge.daemon.layout import LayoutStages, layout_dict
 from cellbridge.daemon.messages import (
     ContactFrame,
     ElementBatch,
@@ -42,8 +45,6 @@ from cellbridge.daemon.messages import (
     RawBatch,
     Topology,
 )
-from cellbridge.daemon.physics import ContactJob, Frontend, chip_params, default_params, layout_dict
-from cellbridge.daemon.skin import Skin
 from cellbridge.daemon.topology import Topology as Routes
 from cellbridge.daemon.wire import ADDR_BROADCAST, HELD, NO_MESH_TIME, OPS, Decoded, Ingress, SampleColumns, command_bytes
 from cellbridge.tactile import ElementParams, SkinLayout
@@ -84,7 +85,7 @@ class Pipeline:
         self.ingress = Ingress(s["protocol"]["dedupe_window"], s["protocol"]["reassembly_timeout"])
         self.chip = chip_params(s["chip"])
         self.frontend = Frontend(default_params(layout) if layout is not None else ElementParams(), self.chip)
-        self.skin = Skin(s, layout)
+        self.skin = LayoutStages(s, layout)
         self.gate = np.full(0x10000, float(self.chip.gate_cycles))
         self._bits = s["chip"]["cycle_bits"]
         # Each bridge's clock parameters, indexed by bridge id, so a batch maps in one vector step.
@@ -114,12 +115,25 @@ class Pipeline:
         self.forgotten_bridges = 0
         self.announced_silent: set[int] = set()
         self._log: list[Message] = []  # log events, handed out with the next messages returned
+        # The pipeline runs on one time base, the host's monotonic clock as the shell passes
+        # it: silence, frames and deadlines never see the wall clock step. Wall-clock time
+        # is only stamped on what is published: monotonic time + this offset.
+        self.wall_offset = 0.0
 
     # -- helpers ------------------------------------------------------------------------
     def _message(self, kind: type[_P], now: float, body: dict[str, Any]) -> _P:
         n = self.seq.get(kind.topic, 0)
         self.seq[kind.topic] = n + 1
-        return kind({"v": SCHEMA_VERSION, "seq": n, "t_host": now, **body})
+        return kind({"v": SCHEMA_VERSION, "seq": n, "t_host": now + self.wall_offset, **body})
+
+    def _wall(self, t: float | None) -> float | None:
+        return None if t is None else t + self.wall_offset
+
+    def set_wall_offset(self, offset: float) -> None:
+        """Wall-clock minus the time base the shell feeds (``time.time() - time.monotonic()``
+        for a service on the monotonic clock; 0 when fed wall-clock or recorded times).
+        Only published stamps use it."""
+        self.wall_offset = float(offset)
 
     def _event(self, level: str, text: str) -> None:
         self._log.append(LogEvent(level, text))
@@ -211,6 +225,8 @@ class Pipeline:
         bridges' samples of one index get one host time. Other samples (a bridge booting
         or cut off, protocol version 1) are timed from their bridge's own arrival fit."""
         on_time = ((s.flags & _NO_MESH_TIME) == 0) & (s.rate > 0)
+        with np.errstate(divide="ignore"):  # an index whose instant does not fit 63 bits is nonsense
+            on_time &= s.index.astype(np.float64) * self.chip.clock_hz / np.maximum(s.rate, 1) < 2.0**62
         g = np.full(s.origin.shape[0], -1, dtype=np.int64)
         if on_time.any():
             rate = np.where(on_time, s.rate, 1).astype(np.uint64)
@@ -295,7 +311,7 @@ class Pipeline:
             out.append(self._message(ElementBatch, now, {
                 "bridge": o[sel].tolist(), "element": s.element[sel].tolist(),
                 "cycle": s.cycle[sel].tolist(), "t_bridge": t_bridge[sel].tolist(),
-                "t_sample": t_sample[sel].tolist(), "index": s.index[sel].tolist(), "on_time": (g[sel] >= 0).tolist(),
+                "t_sample": (t_sample[sel] + self.wall_offset).tolist(), "index": s.index[sel].tolist(), "on_time": (g[sel] >= 0).tolist(),
                 "c1": caps[:, 0].tolist(), "c2": caps[:, 1].tolist(),
                 "dc1": res["dc1"].tolist(), "dc2": res["dc2"].tolist(), "force": res["force"].tolist(),
                 "area": res["area"].tolist(), "valid": res["valid"].tolist(), "status": res["status"].tolist(),
@@ -332,21 +348,21 @@ class Pipeline:
         for c in contacts:
             rows = [index[e] for e in c["elements"]]
             ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
-            out.append({**c, "cycles": [int(snap.cycle[i]) for i in rows], "t_sample": max(ts) if ts else None})
-        t = snap.t_moment if math.isfinite(snap.t_moment) else None
+            out.append({**c, "t": self._wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
+                        "t_sample": self._wall(max(ts)) if ts else None})
+        t = self._wall(snap.t_moment) if math.isfinite(snap.t_moment) else None
         unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
         return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
                                                          "unknown": unknown})
 
     # -- periodic -----------------------------------------------------------------------
     def host_clock_step(self, delta: float) -> list[Message]:
-        """The host's wall clock stepped by ``delta`` s (NTP): every bridge clock follows at
-        once. Returns the log event saying so."""
-        for clk in self.clocks.values():
-            clk.host_step(delta)
-        self.skin_clock.host_step(delta)
-        self._frame_memo = {k: v + delta for k, v in self._frame_memo.items()}
-        self._event("warning", f"host clock stepped by {delta:+.3f} s; bridge clocks follow")
+        """The host's wall clock stepped by ``delta`` s (NTP, chrony ``makestep``): the stamps
+        published from now on move by it, and nothing else does (the pipeline runs on the
+        monotonic time base). Returns the log event saying so."""
+        self.wall_offset += delta
+        self._event("warning", f"host wall clock stepped by {delta:+.3f} s; published times follow, "
+                               "the skin is not affected")
         return self._drain_log([])
 
     def tick(self, now: float, force: bool = False) -> list[Message]:
@@ -416,7 +432,8 @@ class Pipeline:
         return {
             "t_bridge": None,
             "uptime": 0.0 if self.started is None else now - self.started,
-            "links": {name: link_report(lh, self.ingress.counters(name)) for name, lh in self.links.items()},
+            "links": {name: self._wall_link(link_report(lh, self.ingress.counters(name)))
+                      for name, lh in self.links.items()},
             "bridges": {str(b): {**bh.report(now), "reassembly_drops": self.ingress.reassembly_drops.get(b, 0)}
                         for b, bh in sorted(self.bridges.items())},
             "silent": sorted(b for b, bh in self.bridges.items() if bh.silent),
@@ -429,9 +446,16 @@ class Pipeline:
             "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
         }
 
+    def _wall_link(self, report: dict[str, Any]) -> dict[str, Any]:
+        for key in ("connected_since", "last_data"):
+            report[key] = self._wall(report[key])
+        return report
+
     def topology_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``topology`` message at ``now`` (control's ``topology`` answers with them)."""
         body = self.topology.report(now, self.config["health"]["bridge_timeout"])
+        for node in body["bridges"].values():
+            node["last_seen"] = self._wall(node["last_seen"])
         body["t_bridge"] = None
         body["layout"] = self.skin.layout_report()
         return body
@@ -478,7 +502,7 @@ class Pipeline:
             sk.sections = config.sections
             return
         geometry = self.skin.geometry
-        self.skin = Skin(config.sections, layout)
+        self.skin = LayoutStages(config.sections, layout)
         self.skin.hello(geometry)
 
     # -- links and subscribers --------------------------------------------------------------

@@ -5,6 +5,10 @@ outside (serial lines, ZeroMQ sockets, signals) and the sans-I/O pipeline. Conta
 estimation runs in one worker *process* on the newest snapshot whenever the worker is
 free, so a slow estimate delays the next estimate, never ingest (a thread would hold
 the interpreter lock for milliseconds at a time and stall the event loop).
+
+Every outside part comes in through the constructor (the ZeroMQ context, the serial
+opener, the clock the links stamp and wait with, the contact worker's executor), so
+tests run a whole service in-process on fakes and ``inproc://`` endpoints.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import logging
+import math
 import signal
 import time
 from pathlib import Path
@@ -22,11 +27,11 @@ import zmq
 import zmq.asyncio
 
 from cellbridge._version import __version__
-from cellbridge.config import load_layout
+from cellbridge.daemon.layout_file import load_layout
 from cellbridge.daemon.config import SECTIONS, Config, ConfigError, load_config
-from cellbridge.daemon.contact_worker import ContactWorker
+from cellbridge.daemon.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.control_server import ControlServer
-from cellbridge.daemon.links import Link, ReplayLink, SerialLink
+from cellbridge.daemon.links import SYSTEM_CLOCK, Clock, Link, Opener, ReplayLink, SerialLink, open_serial
 from cellbridge.daemon.logs import event, setup
 from cellbridge.daemon.messages import Health, LinkWrite, LogEvent, Message
 from cellbridge.daemon.ops import OpsHooks
@@ -41,28 +46,53 @@ def read_layout(config: Config) -> SkinLayout | None:
 
 
 class Service:
+    """The daemon around one :class:`Pipeline`: :meth:`run` until SIGTERM/SIGINT (or every
+    replay with ``exit_when_done`` finished), :meth:`reload` on SIGHUP.
+
+    ``ctx``: the ZeroMQ context to bind in (default: a new one, terminated at the end;
+    a given one is left to its owner). ``opener``/``clock``: how serial links open their
+    device and read the time; ``contact_executor``: makes the contact worker's executor.
+    ``drain_limit``: seconds a stop may take from SIGTERM to the last message (under the
+    unit's ``TimeoutStopSec``), whatever hangs."""
+
     TICK = 0.1  # s between pipeline ticks (health itself goes out every health.interval)
     HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
+    DRAIN_LIMIT = 10.0  # s: systemd's TimeoutStopSec=15 kills a daemon that takes longer
 
     def __init__(self, config: Config, layout: SkinLayout | None = None, *, config_path: str | Path | None = None,
-                 hooks: OpsHooks | None = None) -> None:
+                 hooks: OpsHooks | None = None, ctx: zmq.asyncio.Context | None = None,
+                 opener: Opener = open_serial, clock: Clock = SYSTEM_CLOCK,
+                 contact_executor: ExecutorFactory = process_pool, drain_limit: float = DRAIN_LIMIT) -> None:
         self.config = config
+        self._ctx = ctx
+        self._opener = opener
+        self._clock = clock
+        self.drain_limit = drain_limit
         self.config_path = config_path
         self.log = setup(config["daemon"]["log_level"], config["daemon"]["log_format"])
         self.pipeline = Pipeline(config, layout)
-        self._wall_offset = time.time() - time.monotonic()
+        # The pipeline runs on the monotonic clock; a replay in recorded time feeds recorded
+        # wall-clock times instead, and then nothing is added to them.
+        self._recorded = any(ln.is_replay and ln.replay_clock == "recorded" for ln in config.links)
+        self._wall_offset = clock.wall() - clock.time()
+        self.pipeline.set_wall_offset(0.0 if self._recorded else self._wall_offset)
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
-        self.contacts = ContactWorker(self.log)
+        self.contacts = ContactWorker(self.log, contact_executor)
         self._contacts_shown = False
         self._feeds_since_snapshot = 0
         self.ingest_errors = 0
         self._busy = np.zeros(4096)  # s spent on each of the last reads, bytes to published messages
         self._n_reads = 0
         self._lag_max = 0.0  # s, since the last health message
+
+    def now(self) -> float:
+        """The pipeline's time base: the monotonic clock (wall-clock time while a replay feeds
+        recorded wall-clock times, so that they and now are on one base)."""
+        return self._clock.wall() if self._recorded else self._clock.time()
 
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
@@ -97,7 +127,7 @@ class Service:
                 publish(m.topic, m.payload)
 
     def _on_state(self, link: str, connected: bool, why: str) -> None:
-        self.pipeline.link_state(link, connected, time.time(), why)
+        self.pipeline.link_state(link, connected, self.now(), why)
         if connected:
             event(self.log, "info", "link up", link=link, url=self.links[link].cfg.url)
         else:
@@ -107,7 +137,7 @@ class Service:
         if cfg.is_replay:
             gate = self._wait_subscriber if cfg.wait_for_subscriber else None
             return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done)
-        return SerialLink(cfg, self._on_data, self._on_state)
+        return SerialLink(cfg, self._on_data, self._on_state, self._opener, self._clock)
 
     async def _wait_subscriber(self) -> None:
         await self.pub.subscribed.wait()
@@ -134,9 +164,9 @@ class Service:
     def _tick_once(self, next_status: float) -> float:
         """Health, command deadlines, logged events, and every 5 s sd_notify STATUS and
         capture flushes; returns when the next STATUS is due."""
-        now = time.time()
-        step = (now - time.monotonic()) - self._wall_offset
-        if abs(step) > self.HOST_STEP:  # the wall clock stepped (NTP): the bridge clocks follow at once
+        now = self.now()
+        step = (self._clock.wall() - self._clock.time()) - self._wall_offset
+        if abs(step) > self.HOST_STEP and not self._recorded:  # the wall clock stepped (NTP)
             self._wall_offset += step
             self._act(self.pipeline.host_clock_step(step))
         self._link_stats()
@@ -192,13 +222,14 @@ class Service:
             if rest > 0:
                 await asyncio.sleep(rest)
 
-    async def _contact_once(self) -> None:
-        job = self.pipeline.contact_job(time.time())
+    async def _contact_once(self, limit: float = math.inf) -> None:
+        # (a replay in recorded time: its data's own time, or the whole recording looks silent)
+        job = self.pipeline.contact_job(None if self._recorded else self.now())
         if job is None:
             return
         self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
         self._feeds_since_snapshot = 0
-        contacts = await self.contacts.estimate(job, self.config["contact"]["worker_timeout"])
+        contacts = await self.contacts.estimate(job, min(limit, self.config["contact"]["worker_timeout"]))
         if contacts is None:
             return
         if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without
@@ -251,13 +282,14 @@ class Service:
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
-        ctx = zmq.asyncio.Context()
+        ctx = self._ctx if self._ctx is not None else zmq.asyncio.Context()
         try:
             self._bind(ctx)
         except (zmq.ZMQError, ValueError) as exc:
             event(self.log, "error", "cannot bind", error=str(exc))
             self.hooks.close()
-            ctx.destroy(linger=0)
+            if self._ctx is None:
+                ctx.destroy(linger=0)
             return 1
         self.pipeline.want(set())
         for cfg in self.config.links:
@@ -289,7 +321,8 @@ class Service:
             for s in (self.pub.sock, self.ctl):
                 s.close()
             self.hooks.close()
-            ctx.term()
+            if self._ctx is None:
+                ctx.term()
             self.contacts.close()
             for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
                 loop.remove_signal_handler(sig)
@@ -297,17 +330,27 @@ class Service:
         return 0
 
     async def _drain(self, link_tasks: list[asyncio.Task[Any]]) -> None:
-        """Stop reading, finish what was read (last contact estimate, pending replies), say goodbye."""
+        """Stop reading, finish what was read (last contact estimate, pending replies), say
+        goodbye, all within ``drain_limit`` s of the stop whatever hangs: a contact worker
+        still on an estimate when its share of the time is up is left to :meth:`run`,
+        which kills it; none is started in its place."""
+        end = time.monotonic() + self.drain_limit
+
+        def left(share: float) -> float:
+            return max(0.0, min(share, end - time.monotonic()))
+
+        self.contacts.stop()
         for t in link_tasks:
             t.cancel()
         await asyncio.gather(*link_tasks, return_exceptions=True)
-        await self.contacts.idle()  # a running estimate finishes and is published
+        await self.contacts.idle(left(self.drain_limit / 2))  # a running estimate finishes and is published
         for t in self._tasks:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        await self.control.finish()
-        await self._contact_once()  # the newest state, if the last estimate did not see it
-        now = time.time()
+        await self.control.finish(left(1.0))
+        if not self.contacts.working and left(math.inf) > 0:
+            await self._contact_once(left(math.inf))  # the newest state, if the last estimate did not see it
+        now = self.now()
         self._link_stats()
         self._act(self.pipeline.tick(now, force=True))
 

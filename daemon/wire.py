@@ -37,12 +37,17 @@ from cellbridge.protocol import (
     encode_stream,
 )
 
+__all__ = ["ADC_MODE", "ADDR_BROADCAST", "Decoded", "HELD", "NO_MESH_TIME", "Ingress", "Mode", "OPS", "OVERFLOW_C1", "OVERFLOW_C2",
+           "SampleColumns", "command_bytes", "mode_value"]
+
+#: The protocol's numbers the sample columns carry, as plain ints for numpy.
+ADC_MODE = int(Mode.ADC)
+OVERFLOW_C1 = int(SampleFlags.OVERFLOW_C1)
+OVERFLOW_C2 = int(SampleFlags.OVERFLOW_C2)
 #: Sample flags the daemon acts on (docs/protocol.md): a sample without mesh time is timed
 #: from its arrival; a held sample (event-based reporting) stands for the frames not sent.
 NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 HELD = int(SampleFlags.HELD)
-
-__all__ = ["ADDR_BROADCAST", "HELD", "NO_MESH_TIME", "Decoded", "Ingress", "Mode", "OPS", "SampleColumns", "command_bytes", "mode_value"]
 
 #: Control parameter names → downlink op. SET_REPORTING is added by the emulator's protocol
 #: change; it is offered exactly when the protocol defines it.

@@ -23,8 +23,8 @@ from bisect import insort
 from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from importlib import metadata
 
-from cellbridge import __version__
 import msgpack
 
 from cellbridge.protocol import (
@@ -48,7 +48,9 @@ from cellbridge.protocol import (
     decode,
     encode,
 )
-from cellbridge.emulator.rawframe import Raw, addressed_to, build, own, parse, to_serial
+from cellbridge.protocol import Raw, addressed_to, own, to_serial
+from cellbridge.protocol import peek as parse
+from cellbridge.protocol import reframe as build
 from cellbridge.emulator.commands import MAX_GATE, Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
 from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig, Timebase
@@ -57,7 +59,16 @@ from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
 from cellbridge.tactile.transfer import max_gate_cycles
 
-FIRMWARE_VERSION = f"cellbridge-emu {__version__}"
+def _package_version() -> str:
+    """The installed distribution's version, read from its metadata: the emulator does not
+    import the top package (the layers below it never do)."""
+    try:
+        return " " + metadata.version("cellbridge")
+    except metadata.PackageNotFoundError:  # run from a source tree that was never installed
+        return ""
+
+
+FIRMWARE_VERSION = "cellbridge-emu" + _package_version()  #: HELLO's firmware string unless configured
 _ACK = int(Flags.ACK_REQUEST)
 _MS = 50_000  # cycles per millisecond at 50 MHz
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
@@ -112,6 +123,7 @@ class FirmwareConfig:
     #: MAC-layer timestamps (a quarter of a bit at 1 Mbit/s)
     sof_jitter: int = 12
     transceiver: TransceiverConfig = field(default_factory=TransceiverConfig)
+    firmware: str = FIRMWARE_VERSION  #: the version string HELLO announces
 
 
 def _rest(_tick: int) -> tuple[float, float]:
@@ -408,7 +420,7 @@ class Firmware:
 
     def _say_hello(self) -> None:
         c = self.config
-        self._own(Hello(self.me, FIRMWARE_VERSION, c.position[0], c.position[1], c.side, c.clock_hz, 3,
+        self._own(Hello(self.me, c.firmware, c.position[0], c.position[1], c.side, c.clock_hz, 3,
                         self.boots))
 
     @property

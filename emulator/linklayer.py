@@ -30,10 +30,8 @@ from dataclasses import dataclass
 
 import msgpack
 
-from cellbridge.emulator.rawframe import Raw, build
 from cellbridge.emulator.transceiver import Transceiver
-from cellbridge.protocol import Flags, FrameType
-from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
+from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Flags, FrameType, Raw, reframe
 
 _ACK = int(Flags.ACK_REQUEST)
 _BUNDLE = int(FrameType.BUNDLE)
@@ -129,26 +127,26 @@ class LinkLayer:
             self._rounds.pop((x.origin, x.seq), None)
             self.counters["queue_drops"] += 1
 
-    def _build(self, parent: int, seq: int, cost_add: int) -> tuple[_InFlight, bool]:
+    def _reframe(self, parent: int, seq: int, cost_add: int) -> tuple[_InFlight, bool]:
         """Take queued frames for ``parent``; True in the result when a bundle seq was used."""
         first = self.queue.popleft()
         taken = [first]
-        encoded = [build(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent)]
+        encoded = [reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent)]
         size = _BUNDLE_OVERHEAD + len(encoded[0]) + 2
         while self.queue:
             f = self.queue[0]
             if size + HEADER_LEN + CRC_LEN + len(f.body) + 2 > MAX_FRAME:
                 break
             taken.append(self.queue.popleft())
-            encoded.append(build(f._replace(cost=min(0xFFFF, f.cost + cost_add)), self.me, parent))
+            encoded.append(reframe(f._replace(cost=min(0xFFFF, f.cost + cost_add)), self.me, parent))
             size += len(encoded[-1]) + 2
         if len(taken) == 1:
-            data = build(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent, _ACK)
+            data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent, _ACK)
             return _InFlight(data, (first.origin, first.seq), taken, parent), False
         bundle = Raw(_BUNDLE, 0, self.me, seq, 0, 0, msgpack.packb(encoded, use_bin_type=True))
         self.counters["bundles"] += 1
         self.counters["bundled_frames"] += len(taken)
-        return _InFlight(build(bundle, self.me, parent, _ACK), (self.me, seq), taken, parent), True
+        return _InFlight(reframe(bundle, self.me, parent, _ACK), (self.me, seq), taken, parent), True
 
     def advance(self, tick: int, parent: int | None, next_seq: int, cost_add: int,
                 neighbours: Container[int] = ()) -> tuple[tuple[bytes, tuple[int, ...]] | None, bool]:
@@ -173,7 +171,7 @@ class LinkLayer:
             if self.broadcasts:
                 radio.send(self.broadcasts.popleft(), self.cells, tick)
             elif parent is not None and self.queue:
-                self.inflight, used = self._build(parent, next_seq, cost_add)
+                self.inflight, used = self._reframe(parent, next_seq, cost_add)
                 radio.send(self.inflight.data, self.cells, tick)
         out = radio.advance(tick)
         if out is not None:

@@ -18,7 +18,8 @@ bridges *hear* each other when they share a cell. The file format (TOML)::
     cells = [1]
     position = [0.0, 0.0]   # element centre (m)
     gateway = true          # optional, default false
-    tcp = 0                 # optional: gateway also serves its stream on this TCP port
+    tcp = 0                 # optional: the TCP port of this gateway's stream with `mesh up --tcp`
+                            # (0 or absent: any free port; without --tcp, none)
 
     [[link]]            # optional per-edge overrides between two bridges
     a = 1
@@ -33,12 +34,16 @@ problem, so a user can fix it without reading this module.
 from __future__ import annotations
 
 import math
+import os
 import tomllib
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 DEFAULT_SIDE = 0.040
+#: The element model's largest side (cellbridge.tactile.skin.MAX_SIDE): a bridge builds
+#: its element from the file's side and could not start beyond it.
+MAX_SIDE = 1.0
 DEFAULT_BITRATE = 1_000_000
 MAX_BRIDGE_ID = 0xFFFE
 
@@ -90,9 +95,15 @@ class Mesh:
     bitrate: int = DEFAULT_BITRATE
     name: str = ""
     _by_id: dict[int, Bridge] = field(default_factory=dict, repr=False, compare=False)
+    _cell_by_id: dict[int, Cell] = field(default_factory=dict, repr=False, compare=False)
+    _link_of: dict[frozenset[int], Link] = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        # Lookups by id: a 10 000-bridge mesh asks these once per pair of neighbours.
         self._by_id.update({b.id: b for b in self.bridges})
+        self._cell_by_id.update({c.id: c for c in self.cells})
+        for ln in self.links:
+            self._link_of.setdefault(frozenset((ln.a, ln.b)), ln)
 
     def bridge(self, bridge_id: int) -> Bridge:
         try:
@@ -109,10 +120,10 @@ class Mesh:
         return [b.id for b in self.bridges if b.gateway]
 
     def cell(self, cell_id: int) -> Cell:
-        for c in self.cells:
-            if c.id == cell_id:
-                return c
-        raise MeshError(f"cell {cell_id}: no such cell in the mesh")
+        try:
+            return self._cell_by_id[cell_id]
+        except KeyError:
+            raise MeshError(f"cell {cell_id}: no such cell in the mesh") from None
 
     def members(self, cut: frozenset[int] = frozenset()) -> dict[int, list[int]]:
         """Cell id -> bridges on it (cells in ``cut`` left out)."""
@@ -157,14 +168,14 @@ class Mesh:
 
     def link_params(self, a: int, b: int, cell: int) -> tuple[float, float]:
         """(loss, ber) of a delivery from a to b over ``cell``: link, then cell, then default."""
-        for ln in self.links:
-            if {ln.a, ln.b} == {a, b}:
-                c = self.cell(cell)
-                loss = ln.loss if ln.loss is not None else (c.loss if c.loss is not None else self.loss)
-                ber = ln.ber if ln.ber is not None else (c.ber if c.ber is not None else self.ber)
-                return loss, ber
         c = self.cell(cell)
-        return (c.loss if c.loss is not None else self.loss, c.ber if c.ber is not None else self.ber)
+        loss = c.loss if c.loss is not None else self.loss
+        ber = c.ber if c.ber is not None else self.ber
+        ln = self._link_of.get(frozenset((a, b)))
+        if ln is not None:
+            loss = ln.loss if ln.loss is not None else loss
+            ber = ln.ber if ln.ber is not None else ber
+        return loss, ber
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -210,26 +221,30 @@ def mesh_from_mapping(data: Mapping[str, Any], source: str = "mesh") -> Mesh:
     loss = _prob(data.get("loss", 0.0), f"{source}: loss")
     ber = _prob(data.get("ber", 0.0), f"{source}: ber")
     side = data.get("side", DEFAULT_SIDE)
-    if type(side) not in (int, float) or not (math.isfinite(side) and side > 0):
-        raise MeshError(f"{source}: side must be a length > 0 in metres, got {side!r}")
+    if type(side) not in (int, float) or not (math.isfinite(side) and 0 < side <= MAX_SIDE):
+        raise MeshError(f"{source}: side must be a length > 0 and <= {MAX_SIDE:g} m (an element's "
+                        f"side, in metres), got {side!r}")
     bitrate = _int(data.get("bitrate", DEFAULT_BITRATE), f"{source}: bitrate", 1_000, 50_000_000)
     name = data.get("name", "")
     if not isinstance(name, str):
         raise MeshError(f"{source}: name must be a string")
 
     cells: list[Cell] = []
+    cell_ids: set[int] = set()
     for i, e in enumerate(_table_list(data, "cell", source)):
         w = f"{source}: {_where('cell', i, e)}"
         _unknown(set(e), _CELL_KEYS, w)
         if "id" not in e:
             raise MeshError(f"{w}: missing key 'id'")
         cid = _int(e["id"], f"{w}.id", 0, 2**31)
-        if any(c.id == cid for c in cells):
+        if cid in cell_ids:
             raise MeshError(f"{w}.id: duplicate cell id {cid}")
+        cell_ids.add(cid)
         cells.append(Cell(cid, _opt_prob(e, "loss", w), _opt_prob(e, "ber", w)))
-    cell_ids = {c.id for c in cells}
 
     bridges: list[Bridge] = []
+    bridge_ids: set[int] = set()
+    tcp_of: dict[int, int] = {}  # a gateway's fixed TCP port -> its bridge
     for i, e in enumerate(_table_list(data, "bridge", source)):
         w = f"{source}: {_where('bridge', i, e)}"
         _unknown(set(e), _BRIDGE_KEYS, w)
@@ -237,8 +252,9 @@ def mesh_from_mapping(data: Mapping[str, Any], source: str = "mesh") -> Mesh:
             if key not in e:
                 raise MeshError(f"{w}: missing key '{key}'")
         bid = _int(e["id"], f"{w}.id", 1, MAX_BRIDGE_ID)
-        if any(b.id == bid for b in bridges):
+        if bid in bridge_ids:
             raise MeshError(f"{w}.id: duplicate bridge id {bid}")
+        bridge_ids.add(bid)
         cl = e["cells"]
         if not isinstance(cl, list) or not all(type(c) is int for c in cl):
             raise MeshError(f"{w}.cells: must be an array of cell ids")
@@ -261,28 +277,39 @@ def mesh_from_mapping(data: Mapping[str, Any], source: str = "mesh") -> Mesh:
             _int(tcp, f"{w}.tcp", 0, 65535)
             if not gw:
                 raise MeshError(f"{w}.tcp: only a gateway serves a TCP port")
+            if tcp and tcp in tcp_of:  # 0: any free port, as many as wanted
+                raise MeshError(f"{w}.tcp: port {tcp} is already bridge {tcp_of[tcp]}'s (two gateways "
+                                f"cannot serve one port)")
+            tcp_of[tcp] = bid
         bridges.append(Bridge(bid, tuple(cl), (float(pos[0]), float(pos[1])), gw, tcp))
     if not bridges:
         raise MeshError(f"{source}: no [[bridge]] in the mesh")
-    bridge_ids = {b.id for b in bridges}
 
     links: list[Link] = []
+    link_at: dict[frozenset[int], int] = {}
+    cells_of = {b.id: set(b.cells) for b in bridges}
     for i, e in enumerate(_table_list(data, "link", source)):
         w = f"{source}: link[{i}]"
         _unknown(set(e), _LINK_KEYS, w)
         for key in ("a", "b"):
             if key not in e:
                 raise MeshError(f"{w}: missing key '{key}'")
+            _int(e[key], f"{w}.{key}", 1, MAX_BRIDGE_ID)  # `true` is no bridge id (True == 1)
             if e[key] not in bridge_ids:
                 raise MeshError(f"{w}.{key}: missing bridge {e[key]!r} (no [[bridge]] with that id)")
-        if e["a"] == e["b"]:
+        a, b = e["a"], e["b"]
+        if a == b:
             raise MeshError(f"{w}: a link joins two different bridges")
-        links.append(Link(e["a"], e["b"], _opt_prob(e, "loss", w), _opt_prob(e, "ber", w)))
+        pair = frozenset((a, b))
+        if pair in link_at:
+            raise MeshError(f"{w}: link {min(a, b)}-{max(a, b)} is already set by link[{link_at[pair]}] "
+                            f"(one [[link]] per pair: which loss would hold?)")
+        link_at[pair] = i
+        if not cells_of[a] & cells_of[b]:
+            raise MeshError(f"{source}: link {a}-{b}: the bridges share no cell")
+        links.append(Link(a, b, _opt_prob(e, "loss", w), _opt_prob(e, "ber", w)))
 
     mesh = Mesh(tuple(cells), tuple(bridges), tuple(links), loss, ber, float(side), bitrate, name)
-    for ln in mesh.links:
-        if (ln.a, ln.b) not in mesh.shared_cells():
-            raise MeshError(f"{source}: link {ln.a}-{ln.b}: the bridges share no cell")
     if not mesh.gateways:
         raise MeshError(f"{source}: no bridge has 'gateway = true'; a mesh needs at least one gateway")
     lost = sorted(bridge_ids - mesh.reachable())
@@ -294,16 +321,23 @@ def mesh_from_mapping(data: Mapping[str, Any], source: str = "mesh") -> Mesh:
 
 
 def _check_positions(mesh: Mesh, source: str) -> None:
-    """Elements are squares of ``side`` at the positions: they may not overlap."""
-    pts = sorted((b.position, b.id) for b in mesh.bridges)
-    tol = mesh.side * (1 - 1e-9)
-    for i, ((x, y), a) in enumerate(pts):
-        for (x2, y2), b in pts[i + 1:]:
-            if x2 - x >= tol:
-                break
-            if abs(y2 - y) < tol:
-                raise MeshError(f"{source}: bridge {b}.position: its element overlaps bridge {a}'s "
-                                f"(elements are {mesh.side} m squares)")
+    """Elements are squares of ``side`` at the positions: they may not overlap. Each
+    element is compared with those in its own and the 8 neighbouring side-sized grid
+    squares only (linear in the bridges, whatever the layout)."""
+    side = mesh.side
+    tol = side * (1 - 1e-9)
+    grid: dict[tuple[int, int], list[tuple[float, float, int]]] = {}
+    for b in mesh.bridges:
+        x, y = b.position
+        gx, gy = math.floor(x / side), math.floor(y / side)
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for x2, y2, other in grid.get((gx + dx, gy + dy), ()):
+                    if abs(x2 - x) < tol and abs(y2 - y) < tol:
+                        first, second = sorted((other, b.id), key=lambda i: (mesh.bridge(i).position, i))
+                        raise MeshError(f"{source}: bridge {second}.position: its element overlaps bridge "
+                                        f"{first}'s (elements are {side} m squares)")
+        grid.setdefault((gx, gy), []).append((x, y, b.id))
 
 
 def parse_mesh(text: str, source: str = "mesh") -> Mesh:
@@ -325,9 +359,28 @@ def read_text(path: str, what: str, error: type[ValueError]) -> str:
         raise error(f"{path}: {what} is not UTF-8 text") from None
 
 
+_LOADED: dict[str, tuple[tuple[int, int, int], Mesh]] = {}
+
+
 def load_mesh(path: str) -> Mesh:
-    """Read and validate a mesh file; every problem is a :class:`MeshError` naming the file."""
-    return parse_mesh(read_text(path, "mesh file", MeshError), path)
+    """Read and validate a mesh file; every problem is a :class:`MeshError` naming the file.
+
+    The last mesh read from each path is kept while the file is unchanged (same inode,
+    size and modification time): the bridges ``mesh up`` forks inherit it instead of
+    parsing a 10 000-bridge file again each (seconds of CPU apiece).
+    """
+    try:
+        st = os.stat(path)
+        key = (st.st_ino, st.st_size, st.st_mtime_ns)
+    except OSError:
+        key = None
+    if key is not None and path in _LOADED and _LOADED[path][0] == key:
+        return _LOADED[path][1]
+    mesh = parse_mesh(read_text(path, "mesh file", MeshError), path)
+    if key is not None:
+        _LOADED.clear()  # one file at a time: a process runs one mesh
+        _LOADED[path] = (key, mesh)
+    return mesh
 
 
 def _num(v: float) -> str:

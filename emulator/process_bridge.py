@@ -40,7 +40,7 @@ from cellbridge.emulator.medium_wire import (
 from cellbridge.emulator.process_world import decode_contacts
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.realtime import (
-    CLOCK_HZ, REPORTING_HELP, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
+    CLOCK_HZ, REPORTING_HELP, Endpoints, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
     reporting_arg,
 )
 from cellbridge.emulator.virtual import default_chip
@@ -49,6 +49,7 @@ from cellbridge.emulator.world import World
 
 ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the medium: allow 10 ms
 STIMULI_CHECK = CLOCK_HZ // 5  # the world's socket is looked at at least this often (its fd is edge-like)
+FILE_TCP = -1  #: ``--tcp`` without a port: the mesh file's
 _POLLIN = select.POLLIN
 _EVENTS, _ZMQ_POLLIN, _NOBLOCK = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.NOBLOCK)
 
@@ -65,8 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sampling rate in Hz at power-on, 1..250 (default 100)")
     parser.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE",
                         help=REPORTING_HELP)
-    parser.add_argument("--tcp", type=int, default=None, metavar="PORT",
-                        help="gateway: also serve the serial stream on 127.0.0.1:PORT (0 = any free port)")
+    parser.add_argument("--tcp", type=int, nargs="?", const=FILE_TCP, default=None, metavar="PORT",
+                        help="gateway: also serve the serial stream on 127.0.0.1:PORT (0 = any free port; "
+                             "no PORT: the mesh file's 'tcp', else any free port). Without --tcp, "
+                             "no TCP port, whatever the file says")
     parser.add_argument("--pty-fd", type=int, default=None, help=argparse.SUPPRESS)  # from mesh up
     add_endpoint_arguments(parser)
 
@@ -81,6 +84,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge bridge: {exc}", file=sys.stderr)
         return 2
     ep = endpoints(args)
+    try:
+        claim = claim_id(ep, br.id)
+    except OSError:
+        print(f"cellbridge bridge: bridge {br.id} already runs on this host for base port {ep.base_port} "
+              f"(a second process would send its samples under the same origin)", file=sys.stderr)
+        return 1
     stop = StopFlag()
     try:
         medium = udp.connect(*ep.medium)
@@ -105,8 +114,15 @@ def run(args: argparse.Namespace) -> int:
         if master is None:
             master, _slave, device = open_pty()  # keep the slave open: no EIO while nobody reads
             print(f"gateway {br.id} {device}", flush=True)
-        tcp = args.tcp if args.tcp is not None else br.tcp
-        port = GatewayPort(master, tcp)
+        tcp = args.tcp
+        if tcp == FILE_TCP:
+            tcp = br.tcp or 0
+        try:
+            port = GatewayPort(master, tcp)
+        except OSError as exc:
+            print(f"cellbridge bridge: gateway {br.id}: cannot serve TCP 127.0.0.1:{tcp}: "
+                  f"{exc.strerror or exc}", file=sys.stderr)
+            return 1
         # Started by mesh up (--pty-fd), the supervisor prints this bridge's line, URL
         # included: a second line of another shape, printed before the supervisor's, broke
         # "one 'gateway <id> <device> [socket://...]' line per gateway".
@@ -189,8 +205,10 @@ def run(args: argparse.Namespace) -> int:
             if out is not None:  # the contention state after it travels with it: one message
                 if _send(medium, encode_tx(me, out[1], out[0], want), fw):
                     wanting, told = want, tick
-            if port is not None and fw.serial_out:
-                port.write(fw.take_serial())
+            if port is not None:
+                if fw.serial_out:
+                    port.write(fw.take_serial())
+                port.expire_unread(tick / CLOCK_HZ)
             if want != wanting or tick - told > CLOCK_HZ:  # also once a second: a medium may restart
                 if _send(medium, encode_want(me, want), fw):
                     wanting, told = want, tick
@@ -209,7 +227,21 @@ def run(args: argparse.Namespace) -> int:
         sys.stderr.flush()
         medium.close()
         stimuli.close()
+        claim.close()
     return 0
+
+
+def claim_id(ep: Endpoints, bridge: int) -> socket.socket:
+    """Hold this bridge id for the medium at ``ep`` while the process lives: an abstract
+    Unix socket named after both, which a second process cannot bind (OSError) and the
+    kernel releases when this one dies, however it dies."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        s.bind(f"\0cellbridge-bridge/{ep.host}:{ep.base_port}/{bridge}")
+    except OSError:
+        s.close()
+        raise
+    return s
 
 
 class Window:

@@ -36,10 +36,9 @@ from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
     MAX_DATAGRAM, TX, WANT, decode_tx, decode_want, encode_carrier, encode_rx, sender,
 )
-from cellbridge.emulator.rawframe import addressed_to
-from cellbridge.protocol.frame import MAX_FRAME
+from cellbridge.protocol import MAX_FRAME, addressed_to
 from cellbridge.emulator.realtime import (
-    CLOCK_HZ, StopFlag, add_endpoint_arguments, endpoints, now_tick,
+    CLOCK_HZ, StopFlag, add_endpoint_arguments, add_ready_argument, endpoints, now_tick, signal_ready,
 )
 
 GONE_S = 3.0  #: a bridge silent this long is taken for gone (it says it is there every second)
@@ -54,6 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bind", default=None,
                         help="address to bind (default: the --host address, 127.0.0.1)")
     add_endpoint_arguments(parser)
+    add_ready_argument(parser)
 
 
 class Bridges:
@@ -170,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     medium = Medium(mesh, args.seed)
+    signal_ready(args.ready_fd)
     gc.freeze()  # start-up's objects out of the collector's reach: no long pauses while relaying
     try:
         serve(medium, sock, stop)

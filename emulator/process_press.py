@@ -3,12 +3,29 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 import msgpack
 import zmq
 
 from cellbridge.emulator.realtime import add_endpoint_arguments, endpoints
+
+
+#: Longest --timeout: a day (zmq's poll takes milliseconds as a C int; beyond, it overflowed).
+MAX_TIMEOUT_S = 86400.0
+
+
+def timeout_arg(text: str) -> float:
+    """argparse type of ``--timeout``: finite seconds in (0, MAX_TIMEOUT_S] (a negative one
+    meant 'wait for ever' to zmq, NaN or 1e20 a traceback)."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and 0 < v <= MAX_TIMEOUT_S):
+        raise argparse.ArgumentTypeError(f"expected seconds > 0 and <= {MAX_TIMEOUT_S:g}, got {text!r}")
+    return v
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,7 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=1.0, help="seconds (default 1)")
     parser.add_argument("--velocity", type=float, nargs=2, default=None, metavar=("VX", "VY"),
                         help="optional straight-line motion in m/s")
-    parser.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the world (default 3)")
+    parser.add_argument("--timeout", type=timeout_arg, default=3.0, metavar="SECONDS",
+                        help=f"seconds to wait for the world's answer, > 0 and <= {MAX_TIMEOUT_S:g} (default 3)")
     add_endpoint_arguments(parser)
 
 
@@ -37,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     sock.connect(endpoints(args).control)
     try:
         sock.send(msgpack.packb(req))
-        if not sock.poll(int(args.timeout * 1000)):
+        if not sock.poll(max(1, round(args.timeout * 1000))):
             print(f"cellbridge press: no world process answered at {endpoints(args).control} "
                   f"(is 'cellbridge mesh up' running with this --base-port?)", file=sys.stderr)
             return 1

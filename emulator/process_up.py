@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import errno
 import os
+import select
 import signal
 import socket
 import subprocess
@@ -188,13 +189,31 @@ def run(args: argparse.Namespace) -> int:
         children[name] = subprocess.Popen(cmd, pass_fds=pass_fds, preexec_fn=die_with_parent,
                                           stdin=subprocess.DEVNULL)
 
+    busy = ports_in_use(args.host, args.base_port)
+    if busy:
+        _report(f"cellbridge mesh up: base port {args.base_port}: {busy} already in use (another mesh up "
+                f"on it?); choose another --base-port. Nothing started.")
+        return 1
     try:
-        spawn("medium", _cmd("medium", "--mesh", args.mesh, "--seed", str(args.seed), *common))
-        world = _cmd("world", "--mesh", args.mesh, *common)
-        if args.scenario:
-            world += ["--scenario", args.scenario]
-        spawn("world", world)
-        _wait_for_medium(args.host, args.base_port, children["medium"])
+        readies = []
+        for name, cmd in (("medium", _cmd("medium", "--mesh", args.mesh, "--seed", str(args.seed), *common)),
+                          ("world", _cmd("world", "--mesh", args.mesh, *common,
+                                         *(["--scenario", args.scenario] if args.scenario else [])))):
+            r, w = os.pipe()
+            try:
+                spawn(name, [*cmd, "--ready-fd", str(w)], pass_fds=(w,))
+            finally:
+                os.close(w)
+            readies.append((name, r))
+        failed = [name for name, r in readies if not _wait_ready(r, children[name], stop)]
+        if stop.stopped:
+            return 0
+        if failed:
+            what = {"medium": f"UDP {args.host}:{args.base_port}",
+                    "world": f"TCP {args.host}:{args.base_port + 1} and :{args.base_port + 2}"}
+            _report(f"cellbridge mesh up: the {' and the '.join(failed)} did not start on base port "
+                    f"{args.base_port} ({'; '.join(what[n] for n in failed)}); no bridge started")
+            return 1
         started, n_gateways = 0, len(mesh.gateways)
         for b in start_order(mesh):
             argv = ["bridge", "--mesh", args.mesh, "--id", str(b.id), "--seed", str(args.seed),
@@ -256,21 +275,46 @@ def _report(line: str) -> None:
         pass
 
 
-def _wait_for_medium(host: str, port: int, medium: subprocess.Popen[bytes], seconds: float = 10.0) -> None:
-    """Until the medium has bound its UDP port (at most ``seconds``): forked bridges start
-    in milliseconds, a new interpreter takes a while, and what a bridge sends before the
-    medium is there is lost (counted, but needlessly). A port this host cannot bind
-    (another host's address) is not waited for."""
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and medium.poll() is None:
-        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_DGRAM) as s:
+def ports_in_use(host: str, base: int) -> str:
+    """Which of the base port's three (UDP base, TCP base+1, base+2) this host has bound
+    already, as text ('' when all are free). A quick check for a clear message; the
+    readiness of the medium and world is what proves they bound them."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    busy = []
+    for kind, port, what in ((socket.SOCK_DGRAM, base, "UDP"), (socket.SOCK_STREAM, base + 1, "TCP"),
+                             (socket.SOCK_STREAM, base + 2, "TCP")):
+        with socket.socket(family, kind) as s:
+            if kind == socket.SOCK_STREAM:  # as ZeroMQ binds: a closed mesh's TIME_WAIT is no user
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 s.bind((host, port))
             except OSError as exc:
                 if exc.errno == errno.EADDRINUSE:
-                    return  # the medium has it
-                return  # not an address of this host: nothing to wait for
-        time.sleep(0.05)
+                    busy.append(f"{what} {host}:{port}")
+    return ", ".join(busy)
+
+
+def _wait_ready(fd: int, proc: subprocess.Popen[bytes], stop: StopFlag, seconds: float = 60.0) -> bool:
+    """Whether the process said it bound its ports (a line on its ready pipe) before it
+    exited, closed the pipe, or ``seconds`` passed (a loaded machine may take seconds to
+    start an interpreter). Closes ``fd``."""
+    end = time.monotonic() + seconds
+    got = b""
+    try:
+        while not stop.stopped and (left := end - time.monotonic()) > 0:
+            ready, _, _ = select.select([fd], [], [], min(left, 0.2))
+            if ready:
+                chunk = os.read(fd, 64)
+                if not chunk:
+                    break
+                got += chunk
+                if b"\n" in got:
+                    return got.startswith(b"ready")
+            elif proc.poll() is not None:
+                break
+        return False
+    finally:
+        os.close(fd)
 
 
 def _stop_all(children: dict[str, subprocess.Popen[bytes] | ForkedBridge]) -> None:

@@ -18,7 +18,7 @@ import time
 import msgpack
 import zmq
 
-from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, endpoints
+from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, add_ready_argument, endpoints, signal_ready
 from cellbridge.emulator.mesh import Mesh, MeshError, load_mesh
 from cellbridge.emulator.world import (
     Contact, ScenarioError, check_on_skin, contact_from_mapping, contact_problem, load_scenario,
@@ -51,18 +51,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh", help="mesh file: a press that touches no element of it is refused")
     parser.add_argument("--scenario", help="TOML file of [[contact]] stimuli")
     add_endpoint_arguments(parser)
+    add_ready_argument(parser)
 
 
-def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag, mesh: Mesh | None = None) -> None:
+def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag, mesh: Mesh | None = None,
+          ready_fd: int | None = None) -> None:
+    """Publish and take presses until ``stop``; zmq.ZMQError when an endpoint cannot be bound."""
     ctx = zmq.Context.instance()
     pub = ctx.socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
-    pub.bind(pub_ep)
     ctl = ctx.socket(zmq.REP)
     ctl.setsockopt(zmq.LINGER, 0)
-    ctl.bind(ctl_ep)
     last = 0.0
     try:
+        pub.bind(pub_ep)
+        ctl.bind(ctl_ep)
+        signal_ready(ready_fd)
         while not stop.stopped:
             if ctl.poll(100):
                 try:
@@ -100,5 +104,9 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     contacts = [Contact(t0 + c.start, c.duration, c.x, c.y, c.force, c.diameter, c.vx, c.vy) for c in scenario]
     ep = endpoints(args)
-    serve(contacts, ep.world, ep.control, StopFlag(), mesh)
+    try:
+        serve(contacts, ep.world, ep.control, StopFlag(), mesh, args.ready_fd)
+    except zmq.ZMQError as exc:
+        print(f"cellbridge world: cannot bind {ep.world} and {ep.control}: {exc}", file=sys.stderr)
+        return 1
     return 0

@@ -1,4 +1,4 @@
-"""What the real-time process shells share: the clock, the ZeroMQ endpoints, shutdown.
+"""What the real-time process shells share: the clock, the endpoints (UDP medium, ZeroMQ world), shutdown.
 
 Every process on one host reads the same monotonic clock, so a tick (a 50 MHz cycle
 of host time) means the same instant in the medium and in every bridge: carrier
@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import math
+import os
 import signal
 import time
 from dataclasses import dataclass
@@ -52,8 +53,21 @@ class Endpoints:
         return f"tcp://{self.host}:{self.base_port + 2}"
 
 
+def base_port_arg(text: str) -> int:
+    """argparse type of ``--base-port``: the medium's UDP port, with base+1 and base+2
+    (the world's) also valid ports."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer port, got {text!r}") from None
+    if not 1 <= port <= 65535 - 2:
+        raise argparse.ArgumentTypeError(
+            f"{port}: must be 1..65533 (the world uses base+1 and base+2, ports end at 65535)")
+    return port
+
+
 def add_endpoint_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--base-port", type=int, default=DEFAULT_BASE_PORT,
+    parser.add_argument("--base-port", type=base_port_arg, default=DEFAULT_BASE_PORT,
                         help=f"ports: medium = UDP base, world = TCP base+1, world control = TCP base+2 "
                              f"(default {DEFAULT_BASE_PORT})")
     parser.add_argument("--host", default=LOOPBACK,
@@ -121,6 +135,25 @@ def seconds_arg(text: str) -> float:
     if not (math.isfinite(v) and v >= 0):
         raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, got {text!r}")
     return v
+
+
+def add_ready_argument(parser: argparse.ArgumentParser) -> None:
+    """``--ready-fd``: a pipe on which a process started by ``mesh up`` says it has bound
+    its ports (hidden: only a supervisor passes it)."""
+    parser.add_argument("--ready-fd", type=int, default=None, help=argparse.SUPPRESS)
+
+
+def signal_ready(fd: int | None) -> None:
+    """Tell the supervisor this process has bound its ports (a line, then EOF); nothing
+    without ``--ready-fd``. A supervisor that reads EOF without it knows the start failed."""
+    if fd is None:
+        return
+    try:
+        os.write(fd, b"ready\n")
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def endpoints(args: argparse.Namespace) -> Endpoints:

@@ -22,8 +22,7 @@ import msgpack
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.meshtime import Timebase
 from cellbridge.emulator.reporting import Reporter
-from cellbridge.protocol import Data, Mode, Sample, SampleFlags
-from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN, MAX_FRAME
+from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Data, Mode, Sample, SampleFlags
 
 # header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes), rate
 _DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3 + 3

@@ -13,8 +13,11 @@ from cellbridge.protocol.fragment import Reassembler, fragment
 from cellbridge.protocol.frame import (
     ADDR_BROADCAST,
     ADDR_HOST,
+    CRC_LEN,
+    HEADER_LEN,
     MAX_DATAGRAM,
     MAX_FRAME,
+    MIN_FRAME,
     VERSION,
     Flags,
     Fragment,
@@ -42,12 +45,15 @@ from cellbridge.protocol.messages import (
     SampleFlags,
     Status,
 )
+from cellbridge.protocol.relay import Raw, addressed_to, own, peek, reframe, to_serial
 from cellbridge.protocol.stream import StreamDecoder, encode_stream
 
 __all__ = [
-    "ADDR_BROADCAST", "ADDR_HOST", "MAX_DATAGRAM", "MAX_FRAME", "VERSION", "CRC_CHECK",
+    "ADDR_BROADCAST", "ADDR_HOST", "CRC_LEN", "HEADER_LEN", "MAX_DATAGRAM", "MAX_FRAME", "MIN_FRAME", "VERSION",
+    "CRC_CHECK",
     "Beacon", "BridgeStatus", "Bundle", "Command", "CommandReply", "Data", "DuplicateFilter",
     "Flags", "Fragment", "Frame", "FrameType", "Hello", "HostReceiver", "LinkAck", "MeshTime", "Message", "Mode",
     "Neighbour", "Op", "ProtocolError", "Reassembler", "Sample", "SampleFlags", "Status",
-    "StreamDecoder", "crc16", "decode", "encode", "encode_stream", "fragment",
+    "Raw", "StreamDecoder", "addressed_to", "crc16", "decode", "encode", "encode_stream", "fragment", "own",
+    "peek", "reframe", "to_serial",
 ]

@@ -103,7 +103,7 @@ class Reassembler:
     datagram); datagram events: ``timeout``, ``evicted`` (slot limit reached,
     oldest given up), ``replaced`` (a new head with the same tag but another seq
     abandons the incomplete datagram), ``reset`` (given up by ``reset(origin)``),
-    ``conflict`` (same fragment with other bytes, or another total or type),
+    ``conflict`` (same fragment with other bytes, or another total, type or version),
     ``checksum`` (the reassembled bytes fail the datagram's CRC-16: fragments of
     different datagrams), ``payload`` (reassembled bytes are not a valid payload).
 
@@ -218,7 +218,7 @@ class Reassembler:
             return None
         head = slot.head.payload
         assert isinstance(head, Fragment)
-        if frag.total != head.total or frag.frame_type != head.frame_type:
+        if frag.total != head.total or frag.frame_type != head.frame_type or frag.version != head.version:
             self._drop(key, "conflict")
             return None
         return self._insert(key, slot, frag)
@@ -269,7 +269,7 @@ class Reassembler:
             self.drops["checksum"] += 1
             return None
         try:
-            payload = unpack_payload(frag.frame_type, body)
+            payload = unpack_payload(frag.frame_type, body, frag.version)
             check_origin(head.origin, payload)
         except ProtocolError:
             self.drops["payload"] += 1

@@ -48,6 +48,7 @@ ADDR_HOST = 0x0000  #: the host (sink) behind every gateway
 ADDR_BROADCAST = 0xFFFF
 
 _HEADER = struct.Struct(">BBBHHHHBH")
+HEADER = _HEADER  #: the header's layout (version, flags, type, src, dst, origin, seq, hops, cost)
 _FRAG = struct.Struct(">HHH")
 _CRC = struct.Struct(">H")
 HEADER_LEN = _HEADER.size  # 14
@@ -81,6 +82,10 @@ class Fragment:
     offset: int  #: byte offset of ``data`` in the datagram
     total: int  #: length of the whole datagram's payload
     data: bytes
+    #: Protocol version of the datagram the slice belongs to (header byte 0): a slice of a
+    #: version 1 datagram holds version 1 payload bytes, so it is relayed as version 1 and
+    #: its datagram is parsed as one (docs/protocol.md §3).
+    version: int = VERSION
 
 
 @dataclass(slots=True)
@@ -119,8 +124,10 @@ def _check_u(value: int, limit: int, name: str) -> None:
 
 
 def encode(frame: Frame) -> bytes:
-    """Frame to wire bytes (no COBS). Raises :class:`ProtocolError` for a frame that
-    cannot be sent: a field out of range or a payload too large for one frame."""
+    """Frame to wire bytes (no COBS), version :data:`VERSION`; a fragment keeps its own
+    datagram's version (its slice is that version's bytes). Raises :class:`ProtocolError`
+    for a frame that cannot be sent: a field out of range or a payload too large for one
+    frame."""
     for name, limit in (("src", U16), ("dst", U16), ("origin", U16), ("seq", U16), ("hops", 0xFF),
                         ("cost", U16)):
         _check_u(getattr(frame, name), limit, name)
@@ -132,7 +139,9 @@ def encode(frame: Frame) -> bytes:
             raise ProtocolError("fragment", "fragment must be a non-empty slice within total <= MAX_DATAGRAM")
         if p.frame_type == _BUNDLE:
             raise ProtocolError("fragment", "a bundle is never fragmented")
-        head = _HEADER.pack(VERSION, frame.flags | _FRAGMENT, p.frame_type, frame.src, frame.dst,
+        if p.version not in READ_VERSIONS:
+            raise ProtocolError("version", f"fragment of version {p.version}; versions are {sorted(READ_VERSIONS)}")
+        head = _HEADER.pack(p.version, frame.flags | _FRAGMENT, p.frame_type, frame.src, frame.dst,
                             frame.origin, frame.seq, frame.hops, frame.cost)
         body = head + _FRAG.pack(p.tag, p.offset, p.total) + p.data
     else:
@@ -153,8 +162,11 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
     Raises only :class:`ProtocolError`; its ``cause`` names what was wrong
     (``short``, ``too_large``, ``crc``, ``version``, ``must_understand``, ``type``,
     ``fragment``, ``payload``, ``nested_bundle``, ``bundle``, and ``inner_<cause>``
-    for a bundled frame that fails). Only the canonical encoding of a frame is
-    accepted: ``encode(decode(x)) == x``.
+    for a bundled frame that fails). Reads every version in :data:`READ_VERSIONS`.
+    Only the canonical encoding of a frame is accepted: ``encode(decode(x)) == x`` for a
+    version 2 frame and for a fragment of either version; a whole version 1 frame decodes
+    into today's message (the fields version 2 added at their defaults), which
+    ``encode`` writes as version 2: ``decode(encode(decode(x))) == decode(x)``.
     """
     n = len(data)
     if n < MIN_FRAME:
@@ -182,7 +194,7 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
             raise ProtocolError("fragment", f"slice {offset}+{len(chunk)} outside datagram of {total} bytes")
         if ftype == _BUNDLE:
             raise ProtocolError("fragment", "a bundle is never fragmented")
-        payload = Fragment(FrameType(ftype), tag, offset, total, chunk)
+        payload = Fragment(FrameType(ftype), tag, offset, total, chunk, ver)
     else:
         payload = unpack_payload(ftype, data[HEADER_LEN:-CRC_LEN], ver)
         if ftype == _HELLO:

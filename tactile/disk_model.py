@@ -35,7 +35,7 @@ from cellbridge.tactile._jit import compiled
 from cellbridge.tactile.element import ElementParams
 
 __all__ = [
-    "PRIOR_OFF", "element_vector", "overlap_grad", "sensitivity_slope", "disk_residuals", "prior_row", "whiten",
+    "PRIOR_OFF", "element_vector", "overlap_grad", "layer_response", "sensitivity_slope", "disk_residuals", "prior_row", "whiten",
 ]
 
 #: One-sigma width of the on-skin prior, as a fraction of the disk lying on no
@@ -110,8 +110,9 @@ def overlap_grad(
 
 
 @compiled
-def sensitivity_slope(sig: float, E: float, d: float, d0: float, eps: float) -> tuple[float, float]:
-    """g(σ) of one layer (F/m²) and dg/dσ, for σ >= 0 (see element._stretch)."""
+def layer_response(sig: float, E: float, d: float, d0: float, eps: float) -> tuple[float, float]:
+    """g(σ) of one layer (F/m²) and its elasticity e = d ln g / d ln σ, for σ >= 0
+    (the closed forms of element._stretch and inversion._elasticity, scalar)."""
     u = sig / E
     if u <= 1.0:
         us3 = u * u * u
@@ -130,10 +131,17 @@ def sensitivity_slope(sig: float, E: float, d: float, d0: float, eps: float) -> 
     span = d - d0
     inner = d0 + span * lam
     g = eps * span * one_m / (d * inner)
-    if sig <= 0.0:
-        return 0.0, eps * span / (E * d * d)
     lam2 = lam * lam
     e = lam * (1.0 + lam + lam2) * d / ((1.0 + 2.0 * lam2 * lam) * inner)
+    return g, e
+
+
+@compiled
+def sensitivity_slope(sig: float, E: float, d: float, d0: float, eps: float) -> tuple[float, float]:
+    """g(σ) of one layer (F/m²) and dg/dσ, for σ >= 0 (see element._stretch)."""
+    if sig <= 0.0:
+        return 0.0, eps * (d - d0) / (E * d * d)
+    g, e = layer_response(sig, E, d, d0, eps)
     return g, g * e / sig
 
 

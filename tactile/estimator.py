@@ -34,7 +34,7 @@ from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_in
 from cellbridge.tactile.light_touch import locate_light, unlocated
 from cellbridge.tactile.skin import SkinLayout, _check_spread, _spread_cells
 from cellbridge.tactile.spread_model import DV, PROFILE_ROWS
-from cellbridge.tactile.two_disks import split_clusters
+from cellbridge.tactile.two_disks import MODEL_ERROR, split_clusters
 
 __all__ = ["ContactEstimator", "estimate_contacts"]
 
@@ -54,7 +54,11 @@ class ContactEstimator:
     ``"capacitance"`` (ΔC of the cluster and its neighbours; default) or ``"area"``
     (the per-element areas from the inverse; uniform pressure only). ``split``
     allows a cluster to be reported as two contacts when two disks explain it
-    significantly better than one.
+    significantly better than one; ``model_error`` is how far (relative to a
+    cluster's largest reading) any reading may stray from the model for another
+    reason than noise (gain errors, the sheets' tension, foam ageing): a second disk
+    must explain more than that (:mod:`cellbridge.tactile.two_disks`). 0 trusts the
+    model to the noise, which only readings the model made deserve.
     """
 
     def __init__(
@@ -69,6 +73,7 @@ class ContactEstimator:
         quad_step: float | None = None,
         inverse_options: dict[str, float] | None = None,
         split: bool = True,
+        model_error: float = MODEL_ERROR,
     ):
         self.layout = layout
         self.params = params if params is not None else ElementParams(side=layout.side)
@@ -88,6 +93,9 @@ class ContactEstimator:
         self.quad_step = quad_step
         self.inverse_options = dict(inverse_options or {})
         self.split = bool(split)
+        if not (math.isfinite(model_error) and 0.0 <= model_error < 1.0):
+            raise ValueError(f"model_error must be a fraction in [0, 1), got {model_error!r}")
+        self.model_error = float(model_error)
         self._runner = FitRunner(layout, self.params, nz, method == "area")
         self._sigma_unique = branch_info(self.params).sigma_unique
         lo, hi = layout.bounds[:, :2].min(axis=0), layout.bounds[:, 2:].max(axis=0)
@@ -260,7 +268,7 @@ class ContactEstimator:
         # uniform model is no evidence of a second contact.
         split: dict[int, list[Contact]] = {}
         if self.split and self.method != "area" and self.spread == 0:
-            split = split_clusters(run, clusters, fits, dof, pair_hints, self._adj_edge)
+            split = split_clusters(run, clusters, fits, dof, pair_hints, self._adj_edge, self.model_error)
             results.update(split)
         # A pressure from an element's inverse that no disk (nor two) agrees with (a
         # reading that passed the inverse's checks on the wrong branch): locate the

@@ -423,9 +423,10 @@ def _layout_from_mapping(data: Mapping[str, Any]) -> SkinLayout:
 def parse_layout(text: str, source: str = "layout") -> SkinLayout:
     """Build a skin layout from the text of a TOML layout file (metres throughout).
 
-    Takes text, not a path, so this layer stays free of I/O; ``cellbridge.config.load_layout``
-    reads the file. Every problem is a ``ValueError`` that starts with ``source`` and
-    names the key (``arm.toml: [grid].rows must be an integer, got inf``). Types are
+    Takes text, not a path, so this layer stays free of I/O;
+    ``cellbridge.daemon.layout_file.load_layout`` reads the file. Every problem is a
+    ``ValueError`` that starts with ``source`` and names the key
+    (``arm.toml: [grid].rows must be an integer, got inf``). Types are
     strict: counts and ids are TOML integers, lengths are numbers (an integer is
     fine), never booleans or strings.
 

@@ -461,8 +461,14 @@ def counter_delta(
 ) -> FloatArray:
     """ΔC as one counter gate reports it: ``C_rest + dC`` counted, unwrapped and
     converted back, minus ``C_rest``. The quantisation a host sees from a noise-free
-    element, for simulations and benchmarks of everything downstream of the counter."""
+    element, for simulations and benchmarks of everything downstream of the counter.
+
+    ValueError for a gate :func:`check_gate` refuses (as the host's
+    :class:`CounterUnwrapper` does): beyond it a press unwraps as a wrap, and a +7.65 pF
+    press came back as −3.87 pF, a plausible wrong answer rather than a visible one.
+    """
     ch = _chip(chip)
+    check_gate(ch)
     rest = np.asarray(C_rest, dtype=np.float64)
     raw, overflow = counts(rest + np.asarray(dC, dtype=np.float64), ch, phase)
     n = unwrap_counts(raw, expected_counts(rest, ch), ch, overflow)

@@ -7,7 +7,7 @@ from typing import Any
 
 from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
 from cellbridge.daemon.messages import LogEvent, Message, Publish
-from cellbridge.daemon.physics import ContactJob, ContactSnapshot
+from cellbridge.daemon.contacts import ContactJob, ContactSnapshot
 from cellbridge.daemon.pipeline import Pipeline
 
 

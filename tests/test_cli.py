@@ -8,7 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from cellbridge.protocol import Beacon, Frame, encode_stream
+from cobs import cobs
+from protocol_v1 import encode_v1
+
+from cellbridge.protocol import Beacon, Data, Frame, Hello, MeshTime, Mode, Sample, SampleFlags, encode_stream
 
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
 
@@ -21,6 +24,15 @@ def test_help_lists_subcommands() -> None:
     out = run("--help")
     assert out.returncode == 0
     assert b"decode" in out.stdout
+
+
+def test_internal_entry_points_run_but_stay_out_of_the_top_level_help() -> None:
+    listed = run("--help").stdout.decode()
+    for name in ("bridge", "medium", "world"):  # started by 'mesh up', not by people
+        assert f"    {name} " not in listed
+        out = run(name, "--help")
+        assert out.returncode == 0 and f"cellbridge {name}" in out.stdout.decode()
+    assert "    mesh " in listed and "    daemon " in listed
 
 
 def test_version() -> None:
@@ -46,6 +58,24 @@ def test_decode_hex_from_stdin() -> None:
     frame = Frame(5, 0, 5, 1, Beacon(1, 20, 2))
     out = run("decode", "--hex", "-", stdin=encode_stream(frame).hex(" ").encode())
     assert out.returncode == 0 and json.loads(out.stdout)["seq"] == 1
+
+
+def test_decode_shows_version_2_fields_and_reads_version_1(tmp_path: Path) -> None:
+    data = Frame(7, 0, 7, 3, Data(Mode.COUNTER, (Sample(0, 10**6, 19600, 15800, SampleFlags.NO_MESH_TIME, 17),), 1, 100))
+    beacon = Frame(3, 0xFFFF, 3, 4, Beacon(1, 35, 2, MeshTime(1, 812, 2_250_000_000)))
+    hello = Frame(5, 0, 5, 0, Hello(5, "0.1.0", 0.04, 0.08, 0.04, 50_000_000, 3, 12))
+    old = Frame(7, 0, 7, 5, Data(Mode.COUNTER, (Sample(0, 2 * 10**6, 19601, 15801, 0, 99),), 1, 100))
+    capture = tmp_path / "capture.bin"
+    capture.write_bytes(b"".join(encode_stream(f) for f in (data, beacon, hello)) + b"\x00"
+                        + cobs.encode(encode_v1(old)) + b"\x00")
+    out = run("decode", str(capture))
+    assert out.returncode == 0, out.stderr
+    d, b, h, v1 = (json.loads(line)["payload"] for line in out.stdout.decode().splitlines())
+    assert d["rate"] == 100 and d["samples"] == [[0, 10**6, 19600, 15800, 4, 17]]
+    assert b["time"] == {"root": 1, "seq": 812, "time": 2_250_000_000}
+    assert h["boots"] == 12
+    assert v1["rate"] == 0 and v1["samples"] == [[0, 2 * 10**6, 19601, 15801, 4, 0]]  # version 1: defaults
+    assert b"index" in run("decode", "--help").stdout
 
 
 def test_decode_bad_input_gives_clear_errors(tmp_path: Path) -> None:

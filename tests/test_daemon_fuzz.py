@@ -23,14 +23,16 @@ samples = st.builds(
     c1=st.integers(0, 2**32 - 1),
     c2=st.integers(0, 2**32 - 1),
     flags=st.integers(0, 255),
+    index=st.one_of(st.integers(0, U64), st.integers(0, 10**6)),
 )
 data_frames = st.builds(
-    lambda origin, seq, mode, over, ss: Frame(1, 0, origin, seq, Data(mode, tuple(ss), over)),
+    lambda origin, seq, mode, over, ss, rate: Frame(1, 0, origin, seq, Data(mode, tuple(ss), over, rate)),
     origin=st.integers(1, 6),
     seq=st.integers(0, 0xFFFF),
     mode=st.sampled_from(list(Mode)),
     over=st.integers(1, 0xFFFF),
     ss=st.lists(samples, min_size=1, max_size=8),
+    rate=st.integers(0, 0xFFFF),
 )
 
 

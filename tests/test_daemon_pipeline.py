@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellbridge.config import load_layout
+from cellbridge.daemon.layout_file import load_layout
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import (
@@ -358,7 +358,7 @@ def test_reconfigure_takes_a_new_layout_and_keeps_hello_geometry() -> None:
 
 
 def test_contact_worker_warm_up_estimates_a_press() -> None:
-    from cellbridge.daemon import physics
+    from cellbridge.daemon import contacts as physics
 
     calls = []
     run = physics.ContactStage.run

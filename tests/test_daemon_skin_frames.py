@@ -35,16 +35,22 @@ def gateway_reads(seconds: float, presses: list[Contact], kill: tuple[int, ...] 
 
 
 def drive(reads: list[tuple[float, bytes]], until: float, step: float = 0.01,
-          stop_feeding_at: float = math.inf) -> Iterator[tuple[float, str, dict]]:
+          stop_feeding_at: float = math.inf, wall_steps: dict[float, float] | None = None,
+          ) -> Iterator[tuple[float, str, dict]]:
     """The service's part, in virtual time: feed each read at its time, tick and estimate
-    contacts every ``step`` s (also when no data comes). Yields (time, topic, payload)."""
+    contacts every ``step`` s (also when no data comes); at each time of ``wall_steps``
+    the wall clock steps by its value (the service tells the pipeline so; its time base,
+    the monotonic clock, does not move). Yields (time, topic, payload)."""
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}]}))
+    steps = sorted((wall_steps or {}).items())
     w = worker()
     i = 0
     now = T0
     shown = False
     while now < T0 + until:
         now += step
+        while steps and now - T0 >= steps[0][0]:
+            p.host_clock_step(steps.pop(0)[1])
         while i < len(reads) and reads[i][0] <= now:
             if reads[i][0] < T0 + stop_feeding_at:
                 for topic, payload in published(p.feed("gw", reads[i][1], reads[i][0])):
@@ -130,3 +136,28 @@ def test_the_gateway_line_going_down_mid_press_is_told_within_bridge_timeout(pre
                 assert len(m["unknown"]) == 16
     assert told is not None and told <= stop + 2.0 + 0.02, told
     assert not held or told is not None
+
+
+def _contacts(run):
+    return [(round(t - T0, 2), m["t_host"], [(c["id"], round(c["force"], 3), c["missed"]) for c in m["contacts"]])
+            for t, topic, m in run if topic == "contact"]
+
+
+@pytest.fixture(scope="module")
+def plain_contacts(press_reads):
+    return _contacts(drive(press_reads, 8.0))
+
+
+@pytest.mark.parametrize("steps", [{5.0: -60.0, 6.8: 700.0}, {5.0: 700.0, 6.8: -60.0}])
+def test_a_wall_clock_step_moves_only_the_published_stamps(press_reads, plain_contacts, steps) -> None:
+    """NTP (chrony makestep) steps the wall clock back 60 s or forward 700 s (more than
+    max_touch) during a press (5 s) and after its release (6.8 s): the press, its release and
+    the contact go on as without the steps; only the published wall-clock stamps move."""
+    plain = plain_contacts
+    stepped = _contacts(drive(press_reads, 8.0, wall_steps=steps))
+    assert [(t, c) for t, _, c in plain] == [(t, c) for t, _, c in stepped]
+    assert any(c for t, _, c in plain if 4.5 < t < 6.4) and not any(c for t, _, c in plain if t > 6.7)
+    for (t, th0, _), (_, th1, _) in zip(plain, stepped):
+        if all(abs(t - at) > 0.015 for at in steps):  # (a step lands on the first 10 ms tick at or after it)
+            moved = sum(d for at, d in steps.items() if t > at)
+            assert th1 - th0 == pytest.approx(moved, abs=1e-6)

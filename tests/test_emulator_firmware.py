@@ -415,14 +415,14 @@ def _link() -> "LinkLayer":
     from cellbridge.emulator.transceiver import Transceiver
 
     link = LinkLayer(5, (1, 2), Transceiver(random.Random(3)), ack_slack=CLOCK_HZ // 100)
-    from cellbridge.emulator.rawframe import Raw
+    from cellbridge.protocol import Raw
     assert link.enqueue(Raw(int(FrameType.DATA), 0, 20, 9, 2, 0, b""))
     return link
 
 
 def _next_transmission(link, tick: int, parent: int, neighbours: set[int]) -> tuple[int, int]:
     """Run the link until it puts a frame on the cells: (tick, link destination)."""
-    from cellbridge.emulator.rawframe import parse
+    from cellbridge.protocol import peek as parse
 
     for _ in range(100):
         out, _used = link.advance(tick, parent, 0, 10, neighbours)
@@ -485,7 +485,8 @@ def _routed(me: int = 5):
 
 
 def _data(origin: int, seq: int, hops: int, src: int, dst: int = 5) -> bytes:
-    from cellbridge.emulator.rawframe import Raw, build
+    from cellbridge.protocol import Raw
+    from cellbridge.protocol import reframe as build
     from cellbridge.protocol import Flags
 
     return build(Raw(int(FrameType.DATA), 0, origin, seq, hops, 0, b""), src, dst, int(Flags.ACK_REQUEST))
@@ -517,7 +518,7 @@ def test_late_acks_lengthen_the_wait_for_the_next_ones() -> None:
     # A fixed allowance for the ACK is too short when a real-time host is busy: each late
     # ACK costs a retransmission that loads the cells. The wait grows with the lateness
     # seen (and decays while ACKs are timely); where ACKs are never late it stays 0.
-    from cellbridge.emulator.rawframe import Raw
+    from cellbridge.protocol import Raw
 
     link = _link()
     t, _ = _next_transmission(link, 0, 2, {2})

@@ -56,6 +56,16 @@ def test_good_file_parses() -> None:
     (lambda t: "loss = 2.0\n" + t, ["loss", "probability"]),
     (lambda t: t.replace("id = 3\ncells", "cells"), ["bridge[2]", "missing key 'id'"]),
     (lambda t: t + "\n[[bridge]\n", ["not valid TOML"]),
+    # issue 17, point 19: every bridge crashed on a side its element model refuses
+    (lambda t: "side = 2.0\n" + t, ["side", "1"]),
+    # ... a = true is bridge 1 to Python (True == 1); a repeated pair's loss was ignored
+    (lambda t: t + "\n[[link]]\na = true\nb = 2\n", ["link[0].a", "integer"]),
+    (lambda t: t + "\n[[link]]\na = 1\nb = 2\nloss = 0.1\n[[link]]\na = 2\nb = 1\nloss = 0.5\n",
+     ["link[1]", "1-2", "link[0]"]),
+    # point 18: the second gateway died on the port the first had bound
+    (lambda t: t.replace("gateway = true", "gateway = true\ntcp = 6000").replace(
+        "position = [0.08, 0.0]", "position = [0.08, 0.0]\ngateway = true\ntcp = 6000"),
+     ["bridge[2]", "tcp", "6000", "bridge 1"]),
 ])
 def test_bad_files_are_refused_naming_the_problem(edit, words) -> None:
     with pytest.raises(MeshError) as exc:

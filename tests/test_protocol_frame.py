@@ -16,7 +16,9 @@ from cellbridge.protocol import (
     Bundle,
     Data,
     Frame,
+    VERSION,
     FrameType,
+    MeshTime,
     Mode,
     ProtocolError,
     Sample,
@@ -85,10 +87,14 @@ def test_any_byte_error_is_detected(pos: int, xor: int) -> None:
     assert err.value.cause == "crc"
 
 
+def test_header_writes_version_2() -> None:
+    assert encode(SAMPLE)[0] == VERSION == 2
+
+
 @pytest.mark.parametrize(
     "offset,value,cause",
-    [(0, 2, "version"), (1, 0x20, "must_understand"), (1, 0x80, "must_understand"), (2, 0, "type"),
-     (2, 99, "type")],
+    [(0, 0, "version"), (0, 3, "version"), (0, 0xFF, "version"), (1, 0x20, "must_understand"),
+     (1, 0x80, "must_understand"), (2, 0, "type"), (2, 99, "type")],
 )
 def test_header_policy(offset: int, value: int, cause: str) -> None:
     body = bytearray(encode(SAMPLE)[:-CRC_LEN])
@@ -117,22 +123,60 @@ def test_size_limits(data: bytes, cause: str) -> None:
     "payload",
     [
         b"\xc1",  # never-used msgpack byte
-        b"\x93\x00\x01",  # truncated array
-        b"\x93\x05\x01\x90",  # unknown mode
-        b"\x93\x00\x00\x90",  # oversampling 0
-        b"\x93\x00\x01\x91\x94\x00\x00\x00\x00",  # sample with 4 fields
-        b"\x93\x00\x01\x91\x95\xff\x00\x00\x00\x00",  # negative element
-        b"\x93\x00\x01\x91\x95\xc3\x00\x00\x00\x00",  # bool element
+        b"\x94\x00\x01\x90",  # truncated array
+        b"\x94\x05\x01\x90\x64",  # unknown mode
+        b"\x94\x00\x00\x90\x64",  # oversampling 0
+        b"\x94\x00\x01\x91\x95\x00\x00\x00\x00\x00\x64",  # sample with 5 fields (version 1's)
+        b"\x94\x00\x01\x91\x97\x00\x00\x00\x00\x00\x00\x00\x64",  # sample with 7 fields
+        b"\x94\x00\x01\x91\x96\xff\x00\x00\x00\x00\x00\x64",  # negative element
+        b"\x94\x00\x01\x91\x96\xc3\x00\x00\x00\x00\x00\x64",  # bool element
+        b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\xff\x64",  # negative index
+        b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\xc3\x64",  # bool index
+        b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\xc0\x64",  # nil index
+        b"\x94\x00\x01\x90\xce\x00\x01\x00\x00",  # rate 65536: more than a u16
+        b"\x94\x00\x01\x90\xff",  # negative rate
+        b"\x94\x00\x01\x90\xc0",  # nil rate
+        b"\x93\x00\x01\x90",  # version 1's DATA (no rate) in a version 2 frame
         b"\x92\x00\x01",  # wrong arity
         b"\xd4\x01\x00",  # ext type
-        b"\x93\x00\x01\x90\x00",  # trailing data
+        b"\x94\x00\x01\x90\x64\x00",  # trailing data
     ],
 )
 def test_bad_payloads(payload: bytes) -> None:
     head = encode(SAMPLE)[:HEADER_LEN]
+    assert head[0] == VERSION
     with pytest.raises(ProtocolError) as err:
         decode(_reseal(head + payload))
     assert err.value.cause == "payload"
+
+
+def test_the_bad_payloads_are_bad_only_where_they_say() -> None:
+    """The well-formed neighbour of the cases above decodes, so each is refused for its defect."""
+    head = encode(SAMPLE)[:HEADER_LEN]
+    frame = decode(_reseal(head + b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\x00\x64"))
+    assert frame.payload == Data(Mode.COUNTER, (Sample(0, 0, 0, 0, 0, 0),), 1, 100)
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        b"\x93\x01\x14\x02",  # version 1's BEACON (no time) in a version 2 frame
+        b"\x94\x01\x14\x02\x92\x01\x02",  # time of 2 fields
+        b"\x94\x01\x14\x02\x93\xce\x00\x01\x00\x00\x02\x03",  # root > u16
+        b"\x94\x01\x14\x02\x93\x01\xce\x00\x01\x00\x00\x03",  # round seq > u16
+        b"\x94\x01\x14\x02\x93\x01\x02\xff",  # negative time
+        b"\x94\x01\x14\x02\x93\x01\x02\xc2",  # bool time
+        b"\x94\x01\x14\x02\x05",  # time neither nil nor an array
+    ],
+)
+def test_bad_beacon_time(payload: bytes) -> None:
+    head = bytearray(encode(SAMPLE)[:HEADER_LEN])
+    head[2] = FrameType.BEACON
+    with pytest.raises(ProtocolError) as err:
+        decode(_reseal(bytes(head) + payload))
+    assert err.value.cause == "payload"
+    ok = decode(_reseal(bytes(head) + b"\x94\x01\x14\x02\x93\x01\x02\x03"))
+    assert ok.payload == Beacon(1, 20, 2, MeshTime(1, 2, 3))
 
 
 def test_bundle_cannot_nest() -> None:
@@ -184,7 +228,7 @@ def test_a_hello_that_names_another_bridge_than_its_origin_is_dropped() -> None:
     wire = encode(good)
     assert decode(wire) == good
     body = bytearray(wire[:-CRC_LEN])
-    _HEADER.pack_into(body, 0, 1, 0, 3, 5, 0, 6, 0, 0, 0)  # origin 6, payload still says bridge 5
+    _HEADER.pack_into(body, 0, VERSION, 0, 3, 5, 0, 6, 0, 0, 0)  # origin 6, payload still says bridge 5
     with pytest.raises(ProtocolError) as err:
         decode(_reseal(bytes(body)))
     assert err.value.cause == "payload"

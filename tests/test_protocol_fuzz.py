@@ -10,23 +10,28 @@ import random
 import struct
 
 from cobs import cobs
+from protocol_v1 import encode_v1, same_header
 
 from cellbridge.protocol import (
+    VERSION,
     Beacon,
     BridgeStatus,
     Bundle,
     Command,
     CommandReply,
     Data,
+    Fragment,
     Frame,
     Hello,
     LinkAck,
+    MeshTime,
     Mode,
     Neighbour,
     Op,
     ProtocolError,
     Reassembler,
     Sample,
+    SampleFlags,
     Status,
     StreamDecoder,
     crc16,
@@ -36,18 +41,22 @@ from cellbridge.protocol import (
 )
 
 SEEDS = [
-    Frame(1, 0, 1, 1, Data(Mode.COUNTER, (Sample(0, 123456, 19600, 15800, 0), Sample(0, 223456, 19590, 15790, 2)))),
+    Frame(1, 0, 1, 1, Data(Mode.COUNTER, (Sample(0, 123456, 19600, 15800, SampleFlags.HELD, 70_000),
+                                          Sample(0, 223456, 19590, 15790, 2 | SampleFlags.NO_MESH_TIME, 12)), 1, 100)),
     Frame(2, 0xFFFF, 2, 2, Beacon(1, 35, 2), flags=1),
-    Frame(3, 0, 3, 3, Hello(3, "0.1.0", 0.04, 0.08, 0.04, 50_000_000, 3)),
+    Frame(2, 0xFFFF, 2, 3, Beacon(1, 35, 2, MeshTime(1, 513, 2**40 + 12345))),
+    Frame(3, 0, 3, 3, Hello(3, "0.1.0", 0.04, 0.08, 0.04, 50_000_000, 3, 7)),
     Frame(4, 0, 4, 4, BridgeStatus(1, 20, (Neighbour(1, 10), Neighbour(5, 14)), 0, 3, 1, 10**9)),
     Frame(0, 5, 0, 5, Command(77, Op.SET_RATE, 100)),
     Frame(5, 0, 5, 6, CommandReply(77, Op.SET_RATE, Status.OK, 100)),
     Frame(6, 5, 6, 7, LinkAck(5, 6)),
-    Frame(7, 0, 7, 8, Bundle((Frame(8, 7, 8, 1, Beacon(7, 20, 2)), Frame(9, 7, 9, 1, LinkAck(7, 8))))),
-    *fragment(Frame(9, 0, 9, 100, Data(Mode.ADC, tuple(Sample(0, 10**6 * i, 142 * 16, 123 * 16, 0)
-                                                       for i in range(30)), 16)), tag=5, max_frame=64),
+    Frame(7, 0, 7, 8, Bundle((Frame(8, 7, 8, 1, Beacon(7, 20, 2, MeshTime(1, 4, 99))),
+                              Frame(9, 7, 9, 1, LinkAck(7, 8))))),
+    *fragment(Frame(9, 0, 9, 100, Data(Mode.ADC, tuple(Sample(0, 10**6 * i, 142 * 16, 123 * 16, 0, 500 + i)
+                                                       for i in range(30)), 16, 200)), tag=5, max_frame=64),
 ]
-WIRE = [encode(f) for f in SEEDS]
+# Version 1 frames are still read (docs/protocol.md §3): old senders' bytes are fuzzed too.
+WIRE = [encode(f) for f in SEEDS] + [encode_v1(f) for f in SEEDS if not isinstance(f.payload, Fragment)]
 
 
 def mutate(rng: random.Random, data: bytes) -> bytes:
@@ -80,7 +89,7 @@ def test_fuzz_decoders_raise_only_protocol_error() -> None:
     rng = random.Random(20261122)
     stream = StreamDecoder()
     reassembler = Reassembler(max_per_origin=2, max_slots=8)
-    decoded = 0
+    decoded = decoded_v1 = 0
     n = 100_000
     for i in range(n):
         if i % 4 == 0:
@@ -93,7 +102,16 @@ def test_fuzz_decoders_raise_only_protocol_error() -> None:
             pass
         else:
             decoded += 1
-            assert encode(frame) == data  # only the canonical bytes of a frame are accepted
+            if data[0] == VERSION or isinstance(frame.payload, Fragment):
+                assert encode(frame) == data  # only the canonical bytes of a frame are accepted
+            else:  # a whole version 1 frame: read into today's message, written back as version 2
+                decoded_v1 += 1
+                try:
+                    again = encode(frame)
+                except ProtocolError as exc:  # version 2's extra fields overflow a full version 1 frame
+                    assert exc.cause == "too_large"
+                else:
+                    assert again[0] == VERSION and same_header(again, data) and decode(again) == frame
             reassembler.receive(frame, now=i * 1e-4)
         # The serial path: the same bytes, raw or COBS-framed, in two pieces.
         serial = data if i % 2 else b"\x00" + cobs.encode(data) + b"\x00"
@@ -102,6 +120,6 @@ def test_fuzz_decoders_raise_only_protocol_error() -> None:
         assert stream.buffered <= stream.max_buffer
         assert reassembler.slot_count <= 8
     # The fuzzer must have reached past the CRC into the parsers, or it proved little.
-    assert decoded > n // 20
+    assert decoded > n // 20 and decoded_v1 > n // 200
     assert sum(stream.frames_dropped.values()) > 0 and stream.frames_ok > n // 40
     assert reassembler.completed + sum(reassembler.drops.values()) > 0

@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from protocol_strategies import data as data_strategy
 
 from cellbridge.protocol import (
+    VERSION,
     Beacon,
     Bundle,
     Data,
@@ -147,7 +148,7 @@ def test_fragments_of_two_datagrams_with_one_tag_are_not_spliced() -> None:
 
 # -- 4. canonical msgpack -----------------------------------------------------------------------
 
-LINK_ACK_HEAD = bytes.fromhex("01000700010005000100370000 00".replace(" ", ""))
+LINK_ACK_HEAD = bytes.fromhex("02000700010005000100370000 00".replace(" ", ""))
 
 
 @pytest.mark.parametrize("payload", [
@@ -170,19 +171,37 @@ def test_non_canonical_link_ack_is_refused(payload: str) -> None:
     assert err.value.cause == "payload"
 
 
-def _hello_wire(geometry: bytes, fw: bytes) -> bytes:
-    head = bytes.fromhex("0100030005000100050000000000")
-    return _reseal(head + b"\x95\x05" + fw + b"\x93" + geometry + b"\xce\x02\xfa\xf0\x80\x03")
+def _hello_wire(geometry: bytes, fw: bytes, boots: bytes = b"\x01") -> bytes:
+    head = bytes.fromhex("0200030005000100050000000000")
+    return _reseal(head + b"\x96\x05" + fw + b"\x93" + geometry + b"\xce\x02\xfa\xf0\x80\x03" + boots)
 
 
 def test_hello_refuses_float32_geometry_and_str8_strings() -> None:
-    f64 = b"".join(b"\xcb" + msgpack.packb(v, use_single_float=False)[1:] for v in (0.5, 0.25, 0.04))
     f32 = b"".join(msgpack.packb(v, use_single_float=True) for v in (0.5, 0.25, 0.04))
-    assert decode(_hello_wire(f64, b"\xa50.1.0")).payload.side == 0.04
-    for bad in (_hello_wire(f32, b"\xa50.1.0"), _hello_wire(f64, b"\xd9\x050.1.0")):
+    assert decode(_hello_wire(_F64, b"\xa50.1.0")).payload.side == 0.04
+    for bad in (_hello_wire(f32, b"\xa50.1.0"), _hello_wire(_F64, b"\xd9\x050.1.0")):
         with pytest.raises(ProtocolError) as err:
             decode(bad)
         assert err.value.cause == "payload"
+
+
+_F64 = b"".join(b"\xcb" + msgpack.packb(v, use_single_float=False)[1:] for v in (0.5, 0.25, 0.04))
+
+
+@pytest.mark.parametrize("boots,accepted", [
+    (b"\x00", 0), (b"\xce\xff\xff\xff\xff", 2**32 - 1),  # u32, smallest form
+    (b"\xcf\x00\x00\x00\x01\x00\x00\x00\x00", None),  # 2**32: more than a u32
+    (b"\xff", None), (b"\xc3", None), (b"\xc0", None),  # negative, bool, nil
+    (b"\xcc\x05", None),  # 5 in a wider form than needed
+])
+def test_hello_boots_is_a_canonical_u32(boots: bytes, accepted: int | None) -> None:
+    wire = _hello_wire(_F64, b"\xa50.1.0", boots)
+    if accepted is not None:
+        assert decode(wire).payload.boots == accepted
+        return
+    with pytest.raises(ProtocolError) as err:
+        decode(wire)
+    assert err.value.cause == "payload"
 
 
 # -- 5. DATA ranges and BUNDLE -----------------------------------------------------------------
@@ -190,7 +209,8 @@ def test_hello_refuses_float32_geometry_and_str8_strings() -> None:
 def _data_wire(mode: int, over: int, c1: int) -> bytes:
     head = encode(Frame(7, 0, 7, 1, Beacon(0, 0, 0)))[:HEADER_LEN]
     head = head[:2] + bytes([FrameType.DATA]) + head[3:]
-    return _reseal(head + msgpack.packb([mode, over, [[0, 1000, c1, 100, 0]]]))
+    assert head[0] == VERSION
+    return _reseal(head + msgpack.packb([mode, over, [[0, 1000, c1, 100, 0, 7]], 100]))
 
 
 @pytest.mark.parametrize("mode,over,c1", [(0, 500, 100), (0, 1, 70_000), (1, 4, 255 * 4 + 1)])
@@ -224,7 +244,7 @@ def test_bundle_is_never_fragmented() -> None:
     frag = Frame(1, 0, 1, 2, Fragment(FrameType.BUNDLE, 1, 0, len(body), body))
     with pytest.raises(ProtocolError):
         encode(frag)
-    head = bytes.fromhex("01 10 08 00 01 00 00 00 01 00 02 00 00 00")
+    head = bytes.fromhex("02 10 08 00 01 00 00 00 01 00 02 00 00 00")
     forged = _reseal(head + (1).to_bytes(2, "big") + bytes(2) + len(body).to_bytes(2, "big") + body)
     with pytest.raises(ProtocolError) as err:
         decode(forged)

@@ -8,11 +8,20 @@ from pathlib import Path
 
 import pytest
 
-from cellbridge.protocol import Reassembler, StreamDecoder, crc16, decode, encode, encode_stream
-from cellbridge.protocol.cli import frame_to_json
+from cellbridge.protocol import (
+    VERSION,
+    Reassembler,
+    SampleFlags,
+    StreamDecoder,
+    crc16,
+    decode,
+    encode,
+    encode_stream,
+)
+from cellbridge.decode import frame_to_json
 
 SPEC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
-BLOCK = re.compile(r"```(vector(?:-crc|-datagram)?)\n(.*?)```", re.S)
+BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1)?)\n(.*?)```", re.S)
 
 
 def _blocks(kind: str) -> list[dict[str, str]]:
@@ -25,23 +34,51 @@ def _blocks(kind: str) -> list[dict[str, str]]:
 
 
 VECTORS = _blocks("vector")
+V1_VECTORS = _blocks("vector-v1")
+NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 
 
 def test_every_frame_type_has_a_vector() -> None:
-    types = {json.loads(v["frame"])["type"] for v in VECTORS}
+    frames = [json.loads(v["frame"]) for v in VECTORS]
+    types = {f["type"] for f in frames}
     assert types == {"DATA", "BEACON", "HELLO", "STATUS", "CMD", "CMD_REPLY", "LINK_ACK", "BUNDLE"}
-    assert any(json.loads(v["frame"])["flags"] for v in VECTORS)
-    assert any("tag" in json.loads(v["frame"])["payload"] for v in VECTORS)  # fragments
+    assert any(f["flags"] for f in frames)
+    assert any("tag" in f["payload"] for f in frames)  # fragments
+    # version 2's fields, each shown with a value other than its default
+    payloads = [f["payload"] for f in frames]
+    data = [p for f, p in zip(frames, payloads) if f["type"] == "DATA" and "samples" in p]
+    assert any(p["rate"] and all(s[5] and not s[4] & NO_MESH_TIME for s in p["samples"]) for p in data)
+    assert any(p["rate"] and all(s[4] & NO_MESH_TIME for s in p["samples"]) for p in data)
+    assert any(f["type"] == "BEACON" and f["payload"]["time"] is not None for f in frames)
+    assert any(f["type"] == "BEACON" and f["payload"]["time"] is None for f in frames)
+    assert any(f["type"] == "HELLO" and f["payload"]["boots"] for f in frames)
 
 
 @pytest.mark.parametrize("vector", VECTORS, ids=lambda v: json.loads(v["frame"])["type"])
 def test_vector(vector: dict[str, str]) -> None:
     wire, serial = bytes.fromhex(vector["wire"]), bytes.fromhex(vector["serial"])
+    assert wire[0] == VERSION
     frame = decode(wire)
     assert frame_to_json(frame) == json.loads(vector["frame"])
     assert encode(frame) == wire
     assert encode_stream(frame) == serial
     assert StreamDecoder().feed(serial) == [frame]
+
+
+@pytest.mark.parametrize("vector", V1_VECTORS, ids=lambda v: json.loads(v["frame"])["type"])
+def test_version_1_vector_is_still_read(vector: dict[str, str]) -> None:
+    wire, serial = bytes.fromhex(vector["wire"]), bytes.fromhex(vector["serial"])
+    assert wire[0] == 1
+    frame = decode(wire)
+    assert frame_to_json(frame) == json.loads(vector["frame"])
+    assert StreamDecoder().feed(serial) == [frame]
+    encoded = bytes.fromhex(vector["encoded"])
+    assert encoded[0] == VERSION and encode(frame) == encoded  # the canonical re-encoding is version 2
+    assert decode(encoded) == frame
+
+
+def test_there_is_a_version_1_data_vector() -> None:
+    assert any(json.loads(v["frame"])["type"] == "DATA" for v in V1_VECTORS)
 
 
 def test_crc_vector() -> None:

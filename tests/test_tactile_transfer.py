@@ -514,3 +514,18 @@ def test_unwrapper_refuses_a_sampled_mask_it_would_read_across_channels():
     assert list(n[:, 0]) == [raw[0, 0], 0] and list(n[1]) == [0, 0] and not amb.any()
     n, amb = un.unwrap(raw, ov, True)
     np.testing.assert_array_equal(n, raw)
+
+
+def test_counter_delta_refuses_a_gate_check_gate_refuses():
+    """Issue 17, point 20: at a 510 000-cycle gate the simulation helper returned
+    −3.87 pF for a +7.65 pF press, silently; the host path refuses such a gate."""
+    from cellbridge.tactile import ElementParams, counter_delta
+    from cellbridge.tactile.transfer import ChipParams, check_gate, max_gate_cycles
+
+    long_gate = ChipParams(gate_cycles=510_000)
+    with pytest.raises(ValueError):
+        check_gate(long_gate)
+    with pytest.raises(ValueError, match="longest unambiguous gate"):
+        counter_delta(7.65e-12, ElementParams().C1_rest, 0.0, long_gate)
+    ok = ChipParams(gate_cycles=max_gate_cycles())
+    assert counter_delta(7.65e-12, ElementParams().C1_rest, 0.0, ok) == pytest.approx(7.65e-12, rel=1e-3)

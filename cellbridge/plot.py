@@ -1,4 +1,4 @@
-"""``cellbridge plot``: figures of the tactile model (the only I/O in this package).
+"""``cellbridge plot``: figures of the tactile model (the tactile layer itself does no I/O).
 
 matplotlib is an optional extra (``pip install 'cellbridge[plot]'``); it is imported
 only when a figure is drawn, with the Agg backend so no display is needed.
@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, forward
-from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info, solve
+from cellbridge.tactile import DEFAULT_NOISE, ElementParams, InverseStatus, branch_info, forward, solve
+from cellbridge.tactile.element import DEFAULT_PARAMS
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.figure import Figure

@@ -1,7 +1,9 @@
-"""Which bridge and element sits where: the layout file, else the bridges' HELLO geometry.
+"""Which bridge and element sits where (the layout file, else the bridges' HELLO geometry),
+and the stages built for that layout.
 
-Owns the layout-dependent stages (calibration + inverse, contact estimation, channel
-health) and rebuilds them when the HELLO-derived layout changes. A bridge the layout
+:class:`LayoutStages` owns the layout-dependent stages (channel health, calibration and
+inverse, the moments contacts are estimated on, the contact spec) and rebuilds them when
+the HELLO-derived layout changes. A bridge the layout
 does not place is *reported* (health ``unplaced``), never guessed into a position.
 Layout ids are bridge ids; a bridge's element index 0 is the element the layout places.
 """
@@ -12,25 +14,19 @@ import math
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
-
+from cellbridge.daemon.contacts import ContactSnapshot, ContactSpec
+from cellbridge.daemon.elements import ElementStage, calibration_config, default_params
 from cellbridge.daemon.health import ChannelHealth
 from cellbridge.daemon.moment import SPARE, Moments
-from cellbridge.daemon.physics import (
-    ContactSnapshot,
-    ContactSpec,
-    ElementStage,
-    calibration_config,
-    default_params,
-    layout_dict,
-    layout_from_geometry,
-)
 from cellbridge.tactile import SkinLayout
+from numpy.typing import NDArray
 
 _IDS = 0x10000
 
 
-class Skin:
+class LayoutStages:
+    """The layout and its stages; see the module's docstring. ``sections``: the config's."""
+
     def __init__(self, sections: dict[str, dict[str, Any]], layout: SkinLayout | None) -> None:
         self.sections = sections
         self.from_file = layout is not None
@@ -188,3 +184,38 @@ def _kept(old: SkinLayout, new: SkinLayout) -> tuple[NDArray[np.int64], NDArray[
              if (k := (int(i), float(c[0]), float(c[1]))) in where]
     a = np.array(pairs, dtype=np.int64).reshape(-1, 2)
     return a[:, 0], a[:, 1]
+
+
+def layout_from_geometry(geometry: dict[int, tuple[float, float, float]]) -> tuple[SkinLayout | None, list[int]]:
+    """A layout from the bridges' HELLO geometry {bridge: (x, y, side)}.
+
+    Returns (layout, rejected bridges). Elements must share one side length (the layout
+    model's); bridges announcing another side, or overlapping an earlier bridge, are
+    rejected and reported rather than placed wrongly.
+    """
+    if not geometry:
+        return None, []
+    ids = sorted(geometry)
+    sides = [geometry[i][2] for i in ids]
+    side = max(set(sides), key=sides.count)
+    kept: list[int] = []
+    rejected = [i for i in ids if not math.isclose(geometry[i][2], side, rel_tol=1e-6)]
+    for i in ids:
+        if i in rejected:
+            continue
+        trial = kept + [i]
+        try:
+            SkinLayout(np.array([geometry[j][:2] for j in trial]), side=side, ids=np.array(trial))
+        except ValueError:
+            rejected.append(i)
+            continue
+        kept.append(i)
+    if not kept:
+        return None, sorted(rejected)
+    layout = SkinLayout(np.array([geometry[j][:2] for j in kept]), side=side, ids=np.array(kept))
+    return layout, sorted(rejected)
+
+
+def layout_dict(layout: SkinLayout) -> dict[str, Any]:
+    return {"side": layout.side, "ids": layout.ids.tolist(), "x": layout.centres[:, 0].tolist(),
+            "y": layout.centres[:, 1].tolist()}

@@ -12,9 +12,7 @@ import sys
 from dataclasses import fields, is_dataclass
 from typing import Any
 
-from cellbridge.protocol.fragment import Reassembler
-from cellbridge.protocol.frame import Frame
-from cellbridge.protocol.stream import StreamDecoder
+from cellbridge.protocol import Frame, Reassembler, StreamDecoder
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,9 +20,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Decode a serial-line capture (COBS frames separated by 0x00) and print one JSON\n"
         "line per frame, fragments reassembled, then the drop counters on stderr.\n\n"
+        "Fields are named as in docs/protocol.md. A DATA sample prints as\n"
+        "[element, cycle, c1, c2, flags, index] (flags: 1, 2 counter of C1, C2 wrapped;\n"
+        "4 no mesh time, index is then the bridge's own count; 8 held, event-based\n"
+        "reporting), with the frame's sampling \"rate\"; a BEACON's \"time\" is null or\n"
+        "{root, seq, time}; a HELLO has \"boots\". Frames of protocol version 1 are read\n"
+        "too and print with those fields at their defaults (rate 0, flag 4, index 0,\n"
+        "time null, boots 0).\n\n"
         "examples:\n"
         "  cellbridge decode capture.bin\n"
-        "  echo '00 22 01 ... 00' | cellbridge decode --hex -"
+        "  echo '00 02 02 02 01 ... 00' | cellbridge decode --hex -"
     )
     parser.add_argument("input", help="capture file, or - for standard input")
     parser.add_argument("--hex", action="store_true",

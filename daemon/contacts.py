@@ -1,0 +1,147 @@
+"""Contacts from the skin at one moment: what a contact estimate needs (snapshot, spec,
+job), and the estimator and tracker it runs, in the contact worker's process or inline.
+
+The worker builds its estimator from a small :class:`ContactSpec` and keeps it (with its
+tracks) per owner while the spec stays the same, so the estimate itself only ships the
+readings of one moment."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from cellbridge.daemon.elements import default_params
+from cellbridge.tactile import (
+    ContactEstimator,
+    ContactTracker,
+    ElementParams,
+    SkinLayout,
+    grid_layout,
+    skin_response,
+)
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ContactSnapshot:
+    """What contact estimation needs of one moment; copied so the estimator may run in a thread."""
+
+    dc: FloatArray  # (n, 2) each element's ΔC at the moment (see daemon.moment)
+    touched: NDArray[np.bool_]
+    t_host: float
+    t_sample: FloatArray  # (n,) host time of each element's sample used (NaN: none)
+    cycle: NDArray[np.uint64]  # (n,) its bridge cycle count
+    ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
+    t_moment: float  # host time the skin is estimated at: every element's reading at or just before it
+    unknown: NDArray[np.bool_] | None = None  # (n,) elements with no reading of this frame (None: all known)
+
+
+@dataclass(frozen=True)
+class ContactSpec:
+    """Everything a contact estimator is built from: small, picklable and hashable, so a
+    worker process can build (and keep) its own estimator for the current layout."""
+
+    ids: tuple[int, ...]
+    centres: tuple[tuple[float, float], ...]
+    side: float
+    neighbour_gap: float
+    noise: float
+    method: str
+    birth_frames: int = 3
+    max_missed: int = 2
+
+    @classmethod
+    def of(cls, layout: SkinLayout, noise: float, contact: dict[str, Any]) -> ContactSpec:
+        return cls(tuple(int(i) for i in layout.ids), tuple((float(x), float(y)) for x, y in layout.centres),
+                   layout.side, float(layout.neighbour_gap), noise, contact["method"],  # type: ignore[arg-type]
+                   contact["birth_frames"], contact["max_missed"])
+
+    def build(self) -> ContactStage:
+        layout = SkinLayout(np.array(self.centres), side=self.side, ids=np.array(self.ids),
+                            neighbour_gap=self.neighbour_gap)
+        return ContactStage(layout, default_params(layout), self.noise, self.method, self.birth_frames,
+                            self.max_missed)
+
+
+@dataclass(frozen=True)
+class ContactJob:
+    """One contact estimate to run: the skin at one moment and what its estimator is built from.
+
+    ``owner`` names the pipeline that made it: its contacts are tracked (ids, ages) apart
+    from any other pipeline's, even when several share a process (tests, tools)."""
+
+    owner: str
+    spec: ContactSpec
+    snapshot: ContactSnapshot
+
+
+#: The estimator each owner's jobs run on, built once per spec: in the worker process (or
+#: the caller's, with an inline executor). A few owners at most are kept.
+_STAGES: OrderedDict[str, tuple[ContactSpec, ContactStage]] = OrderedDict()
+_MAX_OWNERS = 8
+
+
+def estimate(job: ContactJob) -> list[dict[str, Any]]:
+    """The contacts of ``job`` (tracked across its owner's jobs): what the contact worker runs.
+
+    The owner's estimator is rebuilt (its tracks restarted) only when the spec changed."""
+    kept = _STAGES.get(job.owner)
+    if kept is None or kept[0] != job.spec:
+        kept = _STAGES[job.owner] = (job.spec, job.spec.build())
+    _STAGES.move_to_end(job.owner)
+    while len(_STAGES) > _MAX_OWNERS:
+        _STAGES.popitem(last=False)
+    return kept[1].run(job.snapshot)
+
+
+def warm_up() -> None:
+    """Run in the worker at start: imports, and the estimator's compiled kernels loaded by one
+    estimate on a small skin, happen before the first touch instead of delaying it."""
+    layout = grid_layout(2, 2)
+    dc1, dc2 = skin_response(layout, [(0.02, 0.0, 1.0, 0.012)])
+    touched = dc1 > 1e-13
+    stage = ContactStage(layout, default_params(layout), 2e-15, "capacitance", birth_frames=1)
+    stage.run(ContactSnapshot(np.stack([dc1, dc2], axis=1), touched, 0.0, np.zeros(layout.n),
+                              np.zeros(layout.n, dtype=np.uint64), layout.ids, 0.0))
+
+
+class ContactStage:
+    """Contact estimation and tracking for one layout, one snapshot at a time.
+
+    Contacts keep a stable ``id`` across estimates and are reported only once they have
+    persisted ``birth_frames`` estimates (a one-frame spike is no contact); each track's
+    last disk warm-starts the next fit.
+    """
+
+    def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str,
+                 birth_frames: int = 3, max_missed: int = 2) -> None:
+        self.layout = layout
+        self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]
+        self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
+
+    def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
+        if snap.touched.any():
+            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host)
+        else:  # an empty frame still counts: tracks miss it and end
+            tracks = self.tracker.step([], snap.t_host)
+        if snap.unknown is not None and snap.unknown.any():
+            # a contact that only unknown elements supported is no longer known: it ends
+            # now, not after the frames a missed contact is kept through
+            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[snap.unknown]})
+            if gone:
+                tracks = [tc for tc in tracks if tc.id not in gone]
+        return [_finite(tc.to_dict()) for tc in tracks]
+
+
+def _finite(d: dict[str, Any]) -> dict[str, Any]:
+    """Plain Python floats (msgpack-ready); numpy scalars converted."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        out[k] = v
+    return out

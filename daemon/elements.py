@@ -1,0 +1,113 @@
+"""Per element, a batch at a time: capacitance → ΔC against a tracked baseline (the
+Calibrator), touch state, and (F, S) with a validity flag (the inverse)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from cellbridge.tactile import CalibrationConfig, Calibrator, ElementParams, InverseStatus, SkinLayout, solve
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def calibration_config(section: dict[str, Any]) -> CalibrationConfig:
+    keys = ("n_baseline", "enter", "leave", "k_enter", "k_leave", "holdoff", "tau", "tau_negative", "max_drift")
+    return CalibrationConfig(**{k: section[k] for k in keys}, max_touch=section["max_touch"] or None)
+
+
+def default_params(layout: SkinLayout) -> ElementParams:
+    return ElementParams(side=layout.side)
+
+
+class ElementStage:
+    """Calibration and inverse for the elements of one layout, a batch at a time.
+
+    The Calibrator's baseline, drift and touch state need one step per sampling period,
+    not one per serial read: it steps at most ``max_step_rate`` times a second, each
+    time on the newest reading of every element since the step before (so no element
+    is left out however reads fall). A read holding several samples of an element (a
+    backlog) steps on the first ones too: two steps at most, so a large read costs a
+    bounded amount while baselines still collect from it. Every sample gets ΔC against
+    the current baseline, and the inverse runs on all of a read's samples in one call.
+    """
+
+    def __init__(self, layout: SkinLayout, params: ElementParams, cal: CalibrationConfig, noise: float,
+                 max_step_rate: float = 250.0) -> None:
+        self.layout = layout
+        self.params = params
+        self.noise = noise
+        self.calibrator = Calibrator(layout.n, 2, cal)
+        self.min_step = 1.0 / max_step_rate
+        self.touched = np.zeros(layout.n, dtype=bool)
+        self._pending = np.full((layout.n, 2), np.nan)  # newest readings since the last step
+        self._pending_rows = np.zeros(layout.n, dtype=bool)
+        self.stepped = np.zeros(0, dtype=np.int64)  # rows the last step classified (their newest reading)
+        self._last_step = -math.inf
+        self._t = -math.inf
+
+    def step(self, rows: NDArray[np.int64], caps: FloatArray, groups: tuple[NDArray[np.int64], NDArray[np.int64]],
+             now: float) -> dict[str, FloatArray]:
+        """``rows``: layout row of each sample; ``caps``: (n, 2) farads; ``groups``: the
+        distinct rows and the index of each one's newest sample."""
+        self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
+        uniq, newest = groups
+        self._pending[uniq] = caps[newest]
+        self._pending_rows[uniq] = True
+        self.stepped = self.stepped[:0]
+        if self._t - self._last_step >= self.min_step:
+            early = None
+            if uniq.shape[0] != rows.shape[0]:  # several samples per element: also step on the first ones
+                first_rows, first = np.unique(rows, return_index=True)
+                early = np.full((self.layout.n, 2), np.nan)
+                early[first_rows] = caps[first]
+            self._step(early)
+        delta = caps - self.calibrator.baseline[rows]  # NaN while an element's baseline is being taken
+        out = {"dc1": delta[:, 0], "dc2": delta[:, 1], "touched": self.touched[rows]}
+        out.update(self._inverse(delta))
+        return out
+
+    def flush(self, now: float) -> NDArray[np.int64]:
+        """Step on the readings still waiting for one, if the rate allows it now (the contact
+        snapshot asks: their touch flags are then from them). The rows stepped."""
+        self._t = max(self._t, now)
+        self.stepped = self.stepped[:0]
+        if self._pending_rows.any() and self._t - self._last_step >= self.min_step:
+            self._step(None)
+        return self.stepped
+
+    def _step(self, early: FloatArray | None) -> None:
+        for values in ([self._pending] if early is None else [early, self._pending]):
+            st = self.calibrator.update(self._t, values)
+        self.touched = st.touched
+        self.stepped = np.flatnonzero(self._pending_rows)
+        self._pending = np.full((self.layout.n, 2), np.nan)
+        self._pending_rows[:] = False
+        self._last_step = self._t
+
+    def _inverse(self, delta: FloatArray) -> dict[str, FloatArray]:
+        """The inverse on the rows that can pass its noise floor; the others are answered
+        here as the inverse would (NaN, invalid, BELOW_NOISE or NONFINITE) — a quiet
+        skin then costs no call at all, and the call has a large fixed cost."""
+        n = delta.shape[0]
+        force, area = np.full(n, np.nan), np.full(n, np.nan)
+        valid = np.zeros(n, dtype=bool)
+        finite = np.isfinite(delta).all(axis=1)
+        status = np.where(finite, int(InverseStatus.BELOW_NOISE), int(InverseStatus.NONFINITE)).astype(np.uint8)
+        with np.errstate(invalid="ignore"):
+            signal = finite & (delta > self.noise).all(axis=1)  # the inverse asks for k_sigma (3) noise sigmas
+        if signal.any():
+            inv = solve(delta[signal, 0], delta[signal, 1], self.params, noise=self.noise)
+            force[signal], area[signal], valid[signal], status[signal] = inv.force, inv.area, inv.valid, inv.status
+        return {"force": force, "area": area, "valid": valid, "status": status}
+
+    def adopt(self, old: ElementStage, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
+        """Keep the calibration and touch state of elements carried over from ``old``'s layout."""
+        self.calibrator.adopt(old.calibrator, rows, old_rows)
+        self.touched[rows] = old.touched[old_rows]
+        self._last_step, self._t = old._last_step, old._t
+
+    def tare(self, rows: NDArray[np.int64] | None) -> None:
+        self.calibrator.tare(rows)

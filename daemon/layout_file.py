@@ -1,0 +1,23 @@
+"""Reading the skin layout file the daemon's ``[layout] file`` names (the file I/O the
+tactile layer leaves out: :func:`cellbridge.tactile.parse_layout` takes text)."""
+
+from __future__ import annotations
+
+from os import PathLike
+
+from cellbridge.tactile.skin import SkinLayout, parse_layout
+
+
+def load_layout(path: str | PathLike[str]) -> SkinLayout:
+    """Read a skin layout TOML file (format: :func:`cellbridge.tactile.parse_layout`).
+
+    Every problem, a missing file included, is a ``ValueError`` naming the file.
+    """
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read layout: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: layout is not UTF-8 text") from None
+    return parse_layout(text, source=str(path))

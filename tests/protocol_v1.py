@@ -1,0 +1,63 @@
+"""A test-only writer of protocol version 1 frames (docs/protocol.md §3), to prove that
+``decode`` still reads them: today's ``encode`` writes version 2 only.
+
+Version 1 differs from version 2 in three payloads: DATA had no ``rate`` and its samples
+no ``index`` (``[element, cycle, c1, c2, flags]``), BEACON no ``time``, HELLO no
+``boots``. Everything else, header included, is the same byte for byte.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import struct
+from typing import Any
+
+import msgpack
+
+from cellbridge.protocol import Beacon, Bundle, Data, Frame, Hello, SampleFlags, crc16
+from cellbridge.protocol.frame import HEADER_LEN
+
+_HEADER = struct.Struct(">BBBHHHHBH")
+
+
+def payload_v1(message: Any) -> list[Any]:
+    """The version 1 wire form of ``message`` (fields version 2 added are left out)."""
+    if isinstance(message, Data):
+        return [int(message.mode), message.oversampling, [list(s[:5]) for s in message.samples]]
+    if isinstance(message, Beacon):
+        return message.to_wire()[:3]
+    if isinstance(message, Hello):
+        return message.to_wire()[:5]
+    if isinstance(message, Bundle):
+        return [encode_v1(f) for f in message.frames]
+    return message.to_wire()  # type: ignore[no-any-return]
+
+
+def encode_v1(frame: Frame) -> bytes:
+    """``frame`` as a version 1 sender wrote it (whole frames only, not fragments)."""
+    head = _HEADER.pack(1, frame.flags, frame.type, frame.src, frame.dst, frame.origin, frame.seq,
+                        frame.hops, frame.cost)
+    body = head + msgpack.packb(payload_v1(frame.payload), use_bin_type=True)
+    return body + crc16(body).to_bytes(2, "big")
+
+
+def as_read_from_v1(frame: Frame) -> Frame:
+    """What ``decode(encode_v1(frame))`` must give: the fields version 2 added at their
+    defaults (samples flagged NO_MESH_TIME with index 0, rate 0, no time, boots 0)."""
+    p = frame.payload
+    if isinstance(p, Data):
+        samples = tuple(s._replace(flags=s.flags | SampleFlags.NO_MESH_TIME, index=0) for s in p.samples)
+        p = Data(p.mode, samples, p.oversampling, 0)
+    elif isinstance(p, Beacon):
+        p = dataclasses.replace(p, time=None)
+    elif isinstance(p, Hello):
+        p = dataclasses.replace(p, boots=0)
+    elif isinstance(p, Bundle):
+        p = Bundle(tuple(as_read_from_v1(f) for f in p.frames))
+    return Frame(frame.src, frame.dst, frame.origin, frame.seq, p, frame.hops, frame.cost, frame.flags)
+
+
+def same_header(a: bytes, b: bytes) -> bool:
+    """Whether two frames' headers agree on everything after the version byte."""
+    return a[1:HEADER_LEN] == b[1:HEADER_LEN]
+

@@ -1,0 +1,337 @@
+"""The daemon's shells in-process, on fakes: a serial device unplugged and replugged, a
+clock that moves only when a link waits, a contact worker that hangs, and a whole
+service bound to ``inproc://`` endpoints — reconnect and backoff, SIGHUP reload,
+drain on SIGTERM, a hung worker, a control timeout, in milliseconds each. And the two
+sans-I/O cores joined in memory: the virtual mesh's gateway bytes, at their virtual
+times, through ``Pipeline.feed``. (Real ptys and processes: test_daemon_service.py.)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import pytest
+import zmq
+import zmq.asyncio
+
+from cellbridge.daemon.config import load_config, parse_config
+from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
+from cellbridge.daemon.links import SerialLink
+from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.service import Service
+from daemon_traffic import Skin
+from pipeline_helpers import published, worker
+from shell_fakes import FakeClock, FakeDevice, RecordingHooks, ScriptedExecutor, until
+
+STRADDLE = (0.020, 0.006, 3.0, 0.012)  # on the seam of bridges 1 and 2
+
+
+def _link_config(**kw: Any) -> Any:
+    return parse_config({"link": [{"name": "gw", "url": "/dev/ttyFAKE0", **kw}]}).links[0]
+
+
+# -- links ----------------------------------------------------------------------------------
+
+
+def test_a_link_reads_byte_by_byte_and_reconnects_with_backoff_reset_after_an_open() -> None:
+    async def scenario() -> None:
+        dev, clock = FakeDevice(chunk=1), FakeClock()
+        got = bytearray()
+        states: list[tuple[bool, str]] = []
+        link = SerialLink(_link_config(reconnect_min=0.1, reconnect_max=1.6),
+                          lambda name, data, t: got.extend(data), lambda name, up, why: states.append((up, why)),
+                          dev.open, clock)
+        task = asyncio.create_task(link.run())
+        try:
+            await until(lambda: states == [(True, "")])
+            dev.send(b"\x00hello\x00")
+            await until(lambda: bytes(got) == b"\x00hello\x00")
+            assert dev.port is not None and dev.port.reads == [1] * 7  # one byte a read
+            dev.unplug()
+            await until(lambda: len(clock.sleeps) >= 8)
+            assert states[1] == (False, "device lost: device disconnected")
+            assert "open failed" in states[2][1]
+            # after the loss, then after each failed open: doubling, capped at reconnect_max
+            assert clock.sleeps[:8] == [0.1, 0.1, 0.2, 0.4, 0.8, 1.6, 1.6, 1.6]
+            dev.replug()
+            await until(lambda: states[-1] == (True, ""))
+            assert dev.opens == 2
+            dev.send(b"again")
+            await until(lambda: bytes(got).endswith(b"again"))
+            assert link.write(b"\x00cmd\x00") and bytes(dev.written) == b"\x00cmd\x00"
+            n = len(clock.sleeps)
+            dev.unplug()
+            await until(lambda: len(clock.sleeps) >= n + 2)
+            assert clock.sleeps[n:n + 2] == [0.1, 0.1]  # an open succeeded: back to reconnect_min
+            assert not link.write(b"lost") and link.stats()["writes_dropped"] == 1
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        assert dev.port is not None and dev.port.closed
+
+    asyncio.run(scenario())
+
+
+def test_bytes_lost_on_the_line_cost_frames_that_are_counted_and_the_rest_is_decoded() -> None:
+    async def scenario(seed: int) -> tuple[int, int, dict[str, Any]]:
+        sk = Skin()
+        dev = FakeDevice(chunk=7, loss=0.002, seed=seed)
+        p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/ttyFAKE0"}]}))
+        elements = [0]
+
+        def on_data(name: str, data: bytes, t: float) -> None:
+            for topic, m in published(p.feed(name, data, t)):
+                if topic == "element":
+                    elements[0] += len(m["bridge"])
+
+        link = SerialLink(_link_config(), on_data, lambda *a: p.link_state(a[0], a[1], 0.0, a[2]), dev.open,
+                          FakeClock())
+        task = asyncio.create_task(link.run())
+        await until(lambda: dev.port is not None)
+        total = 0
+        for data in [sk.hellos() + sk.beacons()] + [d for _, d in sk.stream(300)]:
+            dev.send(data)
+            total += len(data)
+            await asyncio.sleep(0)
+        await until(lambda: p.health_body(0.0)["links"]["gw"]["bytes"] + dev.lost >= total)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        return elements[0], dev.lost, p.health_body(0.0)["links"]["gw"]
+
+    samples, lost, health = asyncio.run(scenario(1))
+    assert lost > 0 and 0 < samples < 300 * 4  # each lost byte costs at most its frame
+    assert health["framing_errors"] + health["crc_errors"] > 0
+    assert health["connected"]
+    assert asyncio.run(scenario(1))[:2] == (samples, lost)  # deterministic by seed
+
+
+# -- the contact worker ---------------------------------------------------------------------
+
+
+def _job(p: Pipeline) -> Any:
+    sk = Skin()
+    p.feed("gw", sk.hellos() + sk.beacons(), 1000.0)
+    for k, data in sk.stream(80):
+        p.feed("gw", data, 1000.0 + k / sk.rate)
+    for k, data in sk.stream(20, STRADDLE, start=80):
+        p.feed("gw", data, 1000.0 + k / sk.rate)
+    job = p.contact_job()
+    assert job is not None
+    return job
+
+
+def test_a_hung_contact_worker_is_killed_and_a_new_one_answers() -> None:
+    async def scenario() -> None:
+        make = ScriptedExecutor.factory(answers=1)
+        w = ContactWorker(logging.getLogger("tests"), make)
+        p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 5}}))
+        job = _job(p)
+        assert await w.estimate(job, timeout=0.05) is not None  # answered: the worker is warm
+        assert await w.estimate(job, timeout=0.05) is None  # hangs past its timeout
+        assert w.stats["errors"] == 1 and w.stats["worker_restarts"] == 1
+        assert ScriptedExecutor.made[0].killed and len(ScriptedExecutor.made) == 2
+        assert await w.estimate(job, timeout=0.05) is not None  # the new worker answers
+        w.close()
+
+    asyncio.run(scenario())
+
+
+def test_the_inline_executor_runs_the_production_contact_path() -> None:
+    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 5}}))
+    job = _job(p)
+    w = ContactWorker(logging.getLogger("tests"), InlineExecutor)
+    for _ in range(3):  # born after three estimates
+        contacts = w.estimate_now(job)
+    (c,) = p.contact_frame(job, contacts).payload["contacts"]
+    assert sorted(c["elements"]) == [1, 2] and c["force"] == pytest.approx(3.0, rel=0.02)
+    assert w.stats["runs"] == 3
+
+
+# -- the whole service, in-process --------------------------------------------------------------
+
+_N = [0]
+
+
+def _write_config(path: Path, **sections: dict[str, Any]) -> None:
+    base: dict[str, dict[str, Any]] = {
+        "pub": {"endpoint": f"inproc://pub-{_N[0]}"}, "control": {"endpoint": f"inproc://control-{_N[0]}"},
+        "health": {"interval": 0.1}, "calibration": {"n_baseline": 5}, "daemon": {"log_level": "warning"}}
+    for name, values in sections.items():
+        base.setdefault(name, {}).update(values)
+    lines = []
+    for name, values in base.items():
+        lines.append(f"[{name}]")
+        lines += [f"{k} = {v!r}".replace("'", '"') for k, v in values.items()]
+    lines += ["[[link]]", 'name = "gw"', 'url = "/dev/ttyFAKE0"']
+    path.write_text("\n".join(lines).replace("True", "true").replace("False", "false") + "\n")
+
+
+@asynccontextmanager
+async def running(tmp_path: Path, dev: FakeDevice, **kw: Any) -> AsyncIterator[tuple[Service, zmq.asyncio.Context]]:
+    """A service on inproc endpoints and ``dev``; stopped (SIGTERM) on exit if still running."""
+    _N[0] += 1
+    path = tmp_path / "daemon.toml"
+    if not path.exists():
+        _write_config(path)
+    cfg = load_config(path)
+    ctx = zmq.asyncio.Context()
+    hooks = RecordingHooks(cfg)
+    kw.setdefault("contact_executor", InlineExecutor)  # no worker process to spawn and warm up
+    svc = Service(cfg, config_path=path, hooks=hooks, ctx=ctx, opener=dev.open, **kw)
+    task = asyncio.create_task(svc.run())
+    try:
+        await until(lambda: any(what == "ready" for what, _ in hooks.said) or task.done())
+        assert not task.done(), "the service did not start"
+        await until(lambda: dev.port is not None)  # the link opened its device (bytes before that are lost)
+        svc.task = task  # type: ignore[attr-defined]
+        yield svc, ctx
+    finally:
+        if not task.done():
+            os.kill(os.getpid(), signal.SIGTERM)
+        await asyncio.wait_for(task, 20.0)  # a guard against a hang
+        ctx.destroy(linger=0)
+
+
+def _sub(ctx: zmq.asyncio.Context, svc: Service, *topics: str) -> zmq.asyncio.Socket:
+    s = ctx.socket(zmq.SUB)
+    for t in topics:
+        s.setsockopt(zmq.SUBSCRIBE, t.encode())
+    s.connect(svc.config["pub"]["endpoint"])
+    return s
+
+
+async def _recv(sock: zmq.asyncio.Socket) -> tuple[str, dict[str, Any]]:
+    topic, payload = await asyncio.wait_for(sock.recv_multipart(), 5.0)
+    return topic.decode(), msgpack.unpackb(payload)
+
+
+def test_sighup_reloads_the_config_and_sigterm_drains_to_a_last_health(tmp_path: Path) -> None:
+    async def scenario() -> None:
+        dev = FakeDevice()
+        sk = Skin()
+        async with running(tmp_path, dev) as (svc, ctx):
+            health = _sub(ctx, svc, "health")
+            await until(lambda: "health" in svc.pub.wanted)
+            dev.send(sk.hellos() + sk.beacons())
+            for _, data in sk.stream(20):
+                dev.send(data)
+            _write_config(tmp_path / "daemon.toml", health={"interval": 0.25})
+            os.kill(os.getpid(), signal.SIGHUP)
+            hooks: RecordingHooks = svc.hooks  # type: ignore[assignment]
+            await until(lambda: ("ready", "reloaded") in hooks.said)
+            assert svc.config["health"]["interval"] == 0.25
+            await until(lambda: svc.pipeline.health_body(0.0)["bridges"].get("4", {}).get("samples", 0) == 20)
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert await asyncio.wait_for(svc.task, 20.0) == 0  # type: ignore[attr-defined]
+            assert ("stopping", "") in hooks.said
+            assert dev.port is not None and dev.port.closed
+            last = None
+            while await health.poll(0):
+                last = await _recv(health)
+            assert last is not None and last[0] == "health"
+            assert last[1]["bridges"]["4"]["samples"] == 20  # the drain's health saw everything read
+            health.close(0)
+
+    asyncio.run(scenario())
+
+
+def test_a_control_command_to_a_bridge_that_never_answers_times_out(tmp_path: Path) -> None:
+    async def scenario() -> None:
+        dev = FakeDevice()
+        sk = Skin()
+        async with running(tmp_path, dev) as (svc, ctx):
+            dev.send(sk.hellos())
+            await until(lambda: "2" in svc.pipeline.health_body(0.0)["bridges"])
+            ctl = ctx.socket(zmq.DEALER)
+            ctl.connect(svc.config["control"]["endpoint"])
+            await ctl.send_multipart([b"", msgpack.packb({"v": 1, "cmd": "ping", "bridge": 2, "timeout": 0.05,
+                                                         "id": 7})])
+            frames = await asyncio.wait_for(ctl.recv_multipart(), 5.0)
+            rep = msgpack.unpackb(frames[-1])
+            assert rep["ok"] is False and rep["id"] == 7 and rep["missing"] == [2]
+            assert "no reply within the timeout" in rep["error"]
+            assert dev.written  # the PING went out on the line
+            ctl.close(0)
+
+    asyncio.run(scenario())
+
+
+def test_sigterm_with_a_hung_contact_worker_stops_within_the_drain_limit(tmp_path: Path) -> None:
+    """The worker answers two estimates, then hangs in the third. SIGTERM must neither
+    wait out ``worker_timeout`` (30 s here, the default; systemd kills at 15) nor start a
+    replacement worker on the way out, and the hung one is killed."""
+
+    async def scenario() -> None:
+        dev = FakeDevice()
+        sk = Skin()
+        make = ScriptedExecutor.factory(answers=2)
+        async with running(tmp_path, dev, contact_executor=make, drain_limit=0.5) as (svc, ctx):
+            contacts = _sub(ctx, svc, "contact", "health")
+            await until(lambda: "contact" in svc.pub.wanted)
+            dev.send(sk.hellos() + sk.beacons())
+            k = 0
+            while not (ScriptedExecutor.made and ScriptedExecutor.made[0].hung):
+                for _, data in sk.stream(1, STRADDLE if k > 30 else None, start=k):
+                    dev.send(data)
+                k += 1
+                await asyncio.sleep(0.002)
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert await asyncio.wait_for(svc.task, 20.0) == 0  # type: ignore[attr-defined]
+            assert len(ScriptedExecutor.made) == 1  # no replacement started during shutdown
+            assert ScriptedExecutor.made[0].killed
+            topics = []
+            while await contacts.poll(0):
+                topics.append((await _recv(contacts))[0])
+            assert topics and topics[-1] == "health"  # the last health still went out
+            contacts.close(0)
+
+    asyncio.run(scenario())
+
+
+# -- the two sans-I/O cores, joined ---------------------------------------------------------------
+
+
+def _virtual_press(seed: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    from cellbridge.emulator import meshgen
+    from cellbridge.emulator.virtual import VirtualMesh
+    from cellbridge.emulator.world import Contact, World
+
+    mesh = meshgen.grid(2, 2)
+    vm = VirtualMesh(mesh, seed=seed, world=World(mesh, [Contact(2.0, 1.0, 0.02, 0.0, 3.0, 0.012)]))
+    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}]}))
+    w = worker()
+    elements, contacts = [], []
+    sent, step, t0 = 0, 0.005, 1_700_000_000.0
+    for i in range(1, 701):  # 3.5 s of virtual time, the gateway's bytes every 5 ms
+        vm.run(step)
+        data = bytes(vm.serial[1][sent:])
+        sent += len(data)
+        if data:
+            elements += [m for topic, m in published(p.feed("gw", data, t0 + i * step)) if topic == "element"]
+        job = p.contact_job()
+        if job is not None:
+            contacts += p.contact_frame(job, w.estimate_now(job)).payload["contacts"]
+    return elements, contacts
+
+
+def test_the_virtual_mesh_feeds_the_pipeline_deterministically_by_seed() -> None:
+    elements, contacts = _virtual_press(3)
+    assert {b for m in elements for b in m["bridge"]} == {1, 2, 3, 4}
+    touched = {b for m in elements for b, t in zip(m["bridge"], m["touched"]) if t}
+    assert touched == {1, 2}
+    held = [c for c in contacts if c["missed"] == 0]
+    assert held and {c["id"] for c in contacts} == {0}
+    for c in held:
+        assert sorted(c["elements"]) == [1, 2]
+        assert c["x"] == pytest.approx(0.02, abs=1e-3) and c["force"] == pytest.approx(3.0, rel=0.05)
+    again = _virtual_press(3)
+    assert repr(again) == repr((elements, contacts))  # (repr: NaN equals NaN)
+    assert repr(_virtual_press(4)[0]) != repr(elements)  # another seed, other noise

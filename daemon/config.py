@@ -373,7 +373,8 @@ def default_toml() -> str:
         lines.append(f"[{name}]")
         for key, spec in schema.items():
             mark = " (reload)" if spec.reloadable else ""
-            lines.append(f"{key} = {_toml_value(spec.default)}    # {spec.doc}{mark}")
+            value = f"0o{spec.default:03o}" if spec.check is _file_mode else _toml_value(spec.default)
+            lines.append(f"{key} = {value}    # {spec.doc}{mark}")
         lines.append("")
     lines += ["# One [[link]] per gateway (at least one). Example:", "[[link]]"]
     example = {"name": "gw0", "url": "/dev/ttyUSB0"}

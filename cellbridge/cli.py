@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -55,16 +56,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that take SIGHUP themselves (as a reload) once their handler is installed.
+HANGUP_HANDLED = {"daemon"}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 2
-    if getattr(args, "_import_error", None) is not None:
-        print(f"cellbridge {args.command}: {args._import_error}", file=sys.stderr)
-        return 1
-    return int(importlib.import_module(args._module).run(args) or 0)
+    # SIGHUP (systemctl reload) kills a process until a handler is installed, and
+    # importing the layers takes the daemon ~0.6 s: hold SIGHUP back from here on. The
+    # daemon unblocks it once its handler is in place, so one sent meanwhile becomes a
+    # reload; every other command gets SIGHUP's usual meaning back at once.
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGHUP})
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if args.command not in HANGUP_HANDLED:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        if args.command is None:
+            parser.print_help()
+            return 2
+        if getattr(args, "_import_error", None) is not None:
+            print(f"cellbridge {args.command}: {args._import_error}", file=sys.stderr)
+            return 1
+        return int(importlib.import_module(args._module).run(args) or 0)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

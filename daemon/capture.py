@@ -14,6 +14,7 @@ A file cut short (daemon killed mid-write) reads up to its last whole record.
 
 from __future__ import annotations
 
+import os
 import struct
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -24,19 +25,61 @@ _REC = struct.Struct("<dI")
 MAX_RECORD = 1 << 24
 
 
+def capture_problem(path: str | Path) -> str | None:
+    """Why a capture could not be written at ``path`` (None: it can), for ``--check``."""
+    p = Path(path)
+    if p.is_dir():
+        return "is a directory"
+    parent = p.parent
+    if not parent.is_dir():
+        return f"directory {str(parent)!r} does not exist"
+    if p.exists() and not p.is_file():  # a device or a pipe is written to as it is
+        return None if os.access(p, os.W_OK) else "not writable"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"directory {str(parent)!r} is not writable (a capture is created there, an old one renamed)"
+    return None
+
+
+def rotate(path: Path) -> Path | None:
+    """Move a non-empty capture out of the way as ``PATH.N`` (N one above the highest
+    there), so a restart never overwrites what the last run recorded; returns where it went."""
+    try:
+        if not path.is_file() or path.stat().st_size == 0:
+            return None
+    except OSError:
+        return None
+    taken = [int(q.name[len(path.name) + 1:]) for q in path.parent.glob(path.name + ".*")
+             if q.name[len(path.name) + 1:].isdigit()]
+    target = path.with_name(f"{path.name}.{max(taken, default=0) + 1}")
+    path.rename(target)
+    return target
+
+
 class CaptureWriter:
-    """Never raises once open: a capture that fails (disk full, I/O error) stops, names
-    its error and counts the records it could not keep. The line it records is what
-    matters; a full disk must cost the capture, never ingest or health."""
+    """Never raises: a capture that cannot be opened, or fails later (disk full, I/O
+    error), stops, names its error (health ``capture_error``) and counts the records it
+    could not keep. The line it records is what matters; a capture must never cost
+    ingest, health, or the daemon's start.
+
+    A non-empty file already at ``path`` (the last run's capture) is first renamed to
+    ``PATH.1``, ``PATH.2``, ... (:func:`rotate`), never truncated.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._fh: BinaryIO | None = open(self.path, "wb")  # noqa: SIM115 - closed in close()
         self.records = 0
         self.bytes = 0
         self.dropped = 0  # records not kept: buffered when the capture failed, or read since
         self.error = ""
         self._unflushed = 0
+        self.rotated_to: Path | None = None
+        self._fh: BinaryIO | None = None
+        try:
+            self.rotated_to = rotate(self.path)
+            self._fh = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        except OSError as exc:
+            self.error = f"{self.path}: cannot open: {exc.strerror or exc}"
+            return
         self._guard(lambda fh: fh.write(MAGIC))
 
     def _guard(self, op: Callable[[BinaryIO], object]) -> bool:

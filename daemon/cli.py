@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from cellbridge.daemon.capture import capture_problem
 from cellbridge.daemon.config import Config, ConfigError, default_toml, load_config
 from cellbridge.daemon.wire import OPS
 
@@ -25,7 +26,10 @@ replay:FILE to play back a capture recorded with the link's `capture = "FILE"` k
 Subscribers connect to tcp://127.0.0.1:5560 (topics contact, element, raw, health,
 topology; msgpack payloads); control is a msgpack request/reply on tcp://127.0.0.1:5561.
 docs/zmq-api.md describes every message. SIGTERM drains and exits 0; SIGHUP reloads
-the settings marked (reload) in --print-config.
+the settings marked (reload) in --print-config (one sent during start-up is taken once
+the daemon is up). Clients are bounded by [peers]: connections per socket and per
+address, handshake time; the descriptor limit must hold them (docs/zmq-api.md, Limits).
+On real hardware name a gateway by /dev/serial/by-id/..., which survives re-plugging.
 """
 
 
@@ -52,6 +56,9 @@ def _load(args: argparse.Namespace) -> Config:
     curve = curve_keys(config)  # and so are missing or unsafe CURVE key files
     for section in ("pub", "control"):  # and a bind beyond loopback without them
         check_bind(config[section]["endpoint"], curve)
+    from cellbridge.daemon.peers import reserve_descriptors
+
+    reserve_descriptors(config)  # and a descriptor limit that cannot hold the peers it admits
     return config
 
 
@@ -67,9 +74,18 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, ValueError) as exc:
         print(f"cellbridge daemon: {exc}", file=sys.stderr)
         return 2
+    # A capture that cannot be written costs the capture, not the daemon (the link runs,
+    # health names capture_error); --check says so before it happens.
+    captures = [f"link[{i}].capture = {ln.capture!r}: {why}" for i, ln in enumerate(config.links)
+                if ln.capture and (why := capture_problem(ln.capture))]
     if args.check:
+        if captures:
+            print(f"cellbridge daemon: {ConfigError(config.source, captures)}", file=sys.stderr)
+            return 2
         print(f"{config.source}: ok ({len(config.links)} link(s))")
         return 0
+    for problem in captures:
+        print(f"cellbridge daemon: warning: {problem}; the link runs without its capture", file=sys.stderr)
     from cellbridge.daemon.service import run_service
 
     return run_service(args.config, config)

@@ -9,6 +9,7 @@ default, check and meaning; :func:`load_config` reports all violations at once a
 
 from __future__ import annotations
 
+import grp
 import math
 import tomllib
 from collections.abc import Callable, Mapping
@@ -38,14 +39,6 @@ class Key:
     reloadable: bool = False  # SIGHUP applies it without a restart
 
 
-def _positive(v: Any) -> str | None:
-    return None if math.isfinite(v) and v > 0 else "must be > 0"
-
-
-def _non_negative(v: Any) -> str | None:
-    return None if math.isfinite(v) and v >= 0 else "must be >= 0"
-
-
 def _one_of(*allowed: str) -> Check:
     return lambda v: None if v in allowed else f"must be one of {', '.join(map(repr, allowed))}"
 
@@ -60,6 +53,35 @@ def _bits(v: int) -> str | None:
     return None if 16 <= v <= 64 else "must be in 16..64"
 
 
+def _up_to(hi: float, *, lo: float = 0.0, open_lo: bool = True) -> Check:
+    """A number in (lo, hi] (or [lo, hi]): every setting has an upper bound, so no value
+    ``--check`` accepts can size a buffer or a timer beyond what the host has."""
+    def check(v: Any) -> str | None:
+        low_ok = v > lo if open_lo else v >= lo
+        if math.isfinite(v) and low_ok and v <= hi:
+            return None
+        return f"must be in {'(' if open_lo else '['}{lo:g}, {hi:g}]"
+    return check
+
+
+def _count(lo: int, hi: int) -> Check:
+    return lambda v: None if lo <= v <= hi else f"must be in {lo}..{hi}"
+
+
+def _file_mode(v: int) -> str | None:
+    return None if 0 <= v <= 0o777 else "must be permission bits in 0o000..0o777 (e.g. 0o660)"
+
+
+def _group(v: str) -> str | None:
+    if not v:
+        return None
+    try:
+        grp.getgrnam(v)
+    except KeyError:
+        return "no such group on this host (create it, or leave empty for the daemon's own group)"
+    return None
+
+
 NUM = (int, float)
 
 SECTIONS: dict[str, dict[str, Key]] = {
@@ -72,99 +94,133 @@ SECTIONS: dict[str, dict[str, Key]] = {
     "pub": {
         "endpoint": Key(str, "tcp://127.0.0.1:5560", "where subscribers connect (tcp:// or ipc://)", _endpoint),
         "hwm": Key(int, 1000, "messages queued per subscriber before that subscriber loses messages",
-                   lambda v: None if v >= 1 else "must be >= 1"),
+                   _count(1, 1_000_000)),
         "count_drops": Key(bool, False, "true: a message any subscriber has no room for is dropped for all and "
                            "counted in health; false: only that subscriber misses it (a gap in its seq)"),
+        "ipc_mode": Key(int, 0o666, "ipc:// endpoint only: permission bits of the socket file (0o666: any local "
+                        "user may subscribe, as over loopback TCP; 0o660: ipc_group only)", _file_mode),
+        "ipc_group": Key(str, "", "ipc:// endpoint only: group of the socket file (empty: the daemon's own)", _group),
     },
     "control": {
         "endpoint": Key(str, "tcp://127.0.0.1:5561", "control requests (ROUTER; clients use REQ or DEALER)",
                         _endpoint),
-        "command_timeout": Key(NUM, 1.0, "s to wait for bridges to answer a command", _positive, reloadable=True),
+        "command_timeout": Key(NUM, 1.0, "s to wait for bridges to answer a command", _up_to(60),
+                               reloadable=True),
+        "max_request_bytes": Key(int, 65536, "largest request answered; a larger one gets an error reply, one "
+                                 "over 16 times this is refused by the transport (the connection is dropped)",
+                                 _count(1024, 1 << 24)),
+        "max_pending": Key(int, 256, "requests in progress at once (commands wait for bridges); more are "
+                           "answered 'busy' at once", _count(1, 65536)),
+        "ipc_mode": Key(int, 0o660, "ipc:// endpoint only: permission bits of the socket file (0o660: the "
+                        "daemon's user and ipc_group may control the skin)", _file_mode),
+        "ipc_group": Key(str, "", "ipc:// endpoint only: group of the socket file, whose members may connect "
+                         "(empty: the daemon's own group)", _group),
+    },
+    "peers": {
+        "handshake_timeout": Key(NUM, 2.0, "s a connection may take to complete its ZeroMQ (and CURVE) handshake "
+                                 "before it is dropped: idle connects cost a descriptor only this long",
+                                 _up_to(60)),
+        "max_pub": Key(int, 256, "connections the PUB socket holds at once (subscribers); more are closed at "
+                       "once and counted", _count(1, 16384)),
+        "max_control": Key(int, 64, "connections the control socket holds at once; more are closed at once "
+                           "and counted", _count(1, 16384)),
+        "max_per_address": Key(int, 64, "connections one peer address (an IP; the user id for ipc://) may hold "
+                               "on each socket; on loopback every local client shares one address",
+                               _count(1, 16384)),
+        "fd_reserve": Key(int, 64, "descriptors kept beyond the peers' for the links, capture files, the "
+                          "contact worker and ZeroMQ itself; the daemon refuses to start when its descriptor "
+                          "limit cannot hold peers + reserve", _count(16, 65536)),
     },
     "layout": {
         "file": Key(str, "", "skin layout TOML (see docs/contacts.md); empty: geometry from the bridges' HELLO",
                     reloadable=True),
     },
     "chip": {
-        "clock_hz": Key(NUM, 50e6, "nominal bridge clock when a bridge has not said (HELLO)", _positive),
-        "gate_cycles": Key(int, 100_000, "counter gate until a SET_GATE is acknowledged",
-                           lambda v: None if v >= 1 else "must be >= 1"),
+        "clock_hz": Key(NUM, 50e6, "nominal bridge clock when a bridge has not said (HELLO)", _up_to(1e9)),
+        "gate_cycles": Key(int, 100_000, "counter gate until a SET_GATE is acknowledged", _count(1, 1 << 32)),
         "cycle_bits": Key(int, 64, "width of the bridges' cycle counter (wrap-around)", _bits),
     },
     "calibration": {
-        "n_baseline": Key(int, 50, "quiet readings per element before its baseline is set",
-                          lambda v: None if v >= 1 else "must be >= 1", reloadable=True),
-        "enter": Key(NUM, 50e-15, "F; ΔC above which an element counts as touched", _non_negative, reloadable=True),
-        "leave": Key(NUM, 25e-15, "F; every channel below this: released", _non_negative, reloadable=True),
-        "k_enter": Key(NUM, 8.0, "touch threshold in noise sigmas, if larger than enter", _non_negative,
+        "n_baseline": Key(int, 50, "quiet readings per element before its baseline is set (memory: elements "
+                          "x this x 16 bytes)", _count(1, 10_000), reloadable=True),
+        "enter": Key(NUM, 50e-15, "F; ΔC above which an element counts as touched", _up_to(1e-9, open_lo=False),
+                     reloadable=True),
+        "leave": Key(NUM, 25e-15, "F; every channel below this: released", _up_to(1e-9, open_lo=False),
+                     reloadable=True),
+        "k_enter": Key(NUM, 8.0, "touch threshold in noise sigmas, if larger than enter",
+                       _up_to(1000, open_lo=False), reloadable=True),
+        "k_leave": Key(NUM, 4.0, "release threshold in noise sigmas", _up_to(1000, open_lo=False), reloadable=True),
+        "holdoff": Key(NUM, 2.0, "s after release before drift tracking resumes", _up_to(3600, open_lo=False),
                        reloadable=True),
-        "k_leave": Key(NUM, 4.0, "release threshold in noise sigmas", _non_negative, reloadable=True),
-        "holdoff": Key(NUM, 2.0, "s after release before drift tracking resumes", _non_negative, reloadable=True),
-        "tau": Key(NUM, 10.0, "s, drift tracker time constant (untouched elements only)", _positive,
+        "tau": Key(NUM, 10.0, "s, drift tracker time constant (untouched elements only)", _up_to(86400),
                    reloadable=True),
-        "tau_negative": Key(NUM, 3.0, "s, tracker time constant while the reading is below baseline", _positive,
-                            reloadable=True),
+        "tau_negative": Key(NUM, 3.0, "s, tracker time constant while the reading is below baseline",
+                            _up_to(86400), reloadable=True),
         "max_drift": Key(NUM, 1e-15, "F/s, fastest drift of one element followed; a press rising faster is "
-                         "reported, not absorbed", _positive, reloadable=True),
+                         "reported, not absorbed", _up_to(1e-9), reloadable=True),
         "max_touch": Key(NUM, 600.0, "s an element may stay touched before it is re-baselined (and counted); "
-                         "0: never", _non_negative, reloadable=True),
+                         "0: never", _up_to(1e7, open_lo=False), reloadable=True),
         "max_step_rate": Key(NUM, 250.0, "Hz, most baseline/touch updates a second (each on every element's "
-                             "newest reading); the gate limit of the bridges is enough", _positive, reloadable=True),
+                             "newest reading); the gate limit of the bridges is enough", _up_to(10_000),
+                             reloadable=True),
     },
     "inverse": {
         "noise": Key(NUM, DEFAULT_NOISE, "F, rms noise of one ΔC reading (weights the inverse and contact fit)",
-                     _positive, reloadable=True),
+                     _up_to(1e-9), reloadable=True),
     },
     "contact": {
         "enabled": Key(bool, True, "estimate contacts (topic contact)", reloadable=True),
-        "rate": Key(NUM, 100.0, "Hz, at most this many estimates a second, each on the newest consistent moment", _positive,
-                    reloadable=True),
+        "rate": Key(NUM, 100.0, "Hz, at most this many estimates a second, each on the newest consistent moment",
+                    _up_to(1000), reloadable=True),
         "method": Key(str, "capacitance", "model fit in capacitance (default) or area space",
                       _one_of("capacitance", "area"), reloadable=True),
         "birth_frames": Key(int, 3, "estimates a contact must persist before it is reported (with a stable id)",
-                            lambda v: None if v >= 1 else "must be >= 1", reloadable=True),
-        "max_missed": Key(int, 2, "estimates a reported contact may be missing before it ends",
-                          lambda v: None if v >= 0 else "must be >= 0", reloadable=True),
+                            _count(1, 1000), reloadable=True),
+        "max_missed": Key(int, 2, "estimates a reported contact may be missing before it ends", _count(0, 1000),
+                          reloadable=True),
         "worker_timeout": Key(NUM, 30.0, "s one estimate may take before the worker process is taken as hung, "
-                              "killed and replaced", _positive, reloadable=True),
+                              "killed and replaced", _up_to(3600), reloadable=True),
         "max_lag": Key(NUM, 0.5, "s a bridge's data may trail the newest and still hold the estimated skin "
                        "frame back (contacts are estimated on whole skin frames); a periodic bridge later than "
                        "that is unknown for the newer frames (listed in the contact message's unknown) and "
-                       "named in health layout.late", _positive, reloadable=True),
+                       "named in health layout.late", _up_to(10), reloadable=True),
         "held_wait": Key(NUM, 0.05, "s an event-based bridge's newest (held) reading may trail the newest data "
                          "and still hold the frame back; an idle one's older reading stands for the frame",
-                         _positive, reloadable=True),
+                         _up_to(10), reloadable=True),
+        "max_lag_readings": Key(int, 128, "readings kept per element to hold a skin frame back (memory: elements "
+                                "x this x 33 bytes); max_lag reaches back at most this many readings at "
+                                "calibration.max_step_rate", _count(1, 4096), reloadable=True),
     },
     "health": {
-        "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _positive,
+        "interval": Key(NUM, 1.0, "s between health messages (and topology change checks)", _up_to(3600),
                         reloadable=True),
-        "bridge_timeout": Key(NUM, 2.0, "s without data before a bridge is reported silent", _positive,
+        "bridge_timeout": Key(NUM, 2.0, "s without data before a bridge is reported silent", _up_to(3600),
                               reloadable=True),
         "stuck_after": Key(NUM, 2.0, "s a channel may repeat one raw value before it is reported stuck",
-                           _positive, reloadable=True),
+                           _up_to(86400), reloadable=True),
         "forget_after": Key(NUM, 600.0, "s of silence after which a bridge the layout does not place is "
-                            "forgotten (placed bridges stay reported silent)", _positive, reloadable=True),
+                            "forgotten (placed bridges stay reported silent)", _up_to(86400), reloadable=True),
     },
     "protocol": {
         "dedupe_window": Key(int, 256, "sequence numbers remembered per bridge for duplicate removal",
                              lambda v: None if 1 <= v < 32768 else "must be in 1..32767"),
-        "reassembly_timeout": Key(NUM, 2.0, "s a fragmented datagram may take to complete", _positive),
+        "reassembly_timeout": Key(NUM, 2.0, "s a fragmented datagram may take to complete", _up_to(60)),
     },
 }
 
 LINK_KEYS: dict[str, Key] = {
     "name": Key(str, "", "name used in health and logs (default: link0, link1, ...)"),
     "url": Key(str, "", "pyserial URL: /dev/ttyUSB0, a pty path, socket://HOST:PORT; or replay:FILE"),
-    "baudrate": Key(int, 1_000_000, "serial line speed (ignored by ptys and sockets)",
-                    lambda v: None if v > 0 else "must be > 0"),
+    "baudrate": Key(int, 1_000_000, "serial line speed (ignored by ptys and sockets)", _count(1, 100_000_000)),
     "capture": Key(str, "", "record this link's raw bytes (with arrival times) to this file"),
-    "replay_speed": Key(NUM, 1.0, "replay: links: 1 = recorded speed, 0 = as fast as possible", _non_negative),
+    "replay_speed": Key(NUM, 1.0, "replay: links: 1 = recorded speed, 0 = as fast as possible",
+                        _up_to(1e6, open_lo=False)),
     "replay_clock": Key(str, "shifted", "replay: links: host times shifted to now, or as recorded",
                         _one_of("shifted", "recorded")),
     "wait_for_subscriber": Key(bool, False, "replay: links: start once a subscriber is connected"),
     "exit_when_done": Key(bool, False, "replay: links: stop the daemon (exit 0) when the replay ends"),
-    "reconnect_min": Key(NUM, 0.1, "s, first reconnect delay (doubles up to reconnect_max)", _positive),
-    "reconnect_max": Key(NUM, 5.0, "s, longest reconnect delay", _positive),
+    "reconnect_min": Key(NUM, 0.1, "s, first reconnect delay (doubles up to reconnect_max)", _up_to(3600)),
+    "reconnect_max": Key(NUM, 5.0, "s, longest reconnect delay", _up_to(3600)),
 }
 
 

@@ -26,8 +26,29 @@ COMMANDS = {
 }
 
 
+#: Largest ``id`` echoed back (a string or bytes); a number is always fine.
+MAX_ID_BYTES = 64
+
+
 class RequestError(ValueError):
     pass
+
+
+def _request_id(rid: Any) -> Any:
+    """The request's ``id`` if it is small: it comes back in the reply, so a client must
+    not be able to make the daemon build (and send) a reply as large as its request."""
+    if rid is None or isinstance(rid, (bool, int, float)):
+        return rid
+    if isinstance(rid, (str, bytes)) and len(rid.encode() if isinstance(rid, str) else rid) <= MAX_ID_BYTES:
+        return rid
+    kind = type(rid).__name__
+    size = f" of {len(rid)} characters" if isinstance(rid, (str, bytes)) else ""
+    raise RequestError(f"id must be a number or a string of at most {MAX_ID_BYTES} bytes, got a {kind}{size}")
+
+
+def too_large(size: int, limit: int) -> dict[str, Any]:
+    """The reply to a request over ``control.max_request_bytes`` (not parsed: its id is unknown)."""
+    return error(f"request of {size} bytes exceeds control.max_request_bytes ({limit})")
 
 
 @dataclass(frozen=True)
@@ -86,7 +107,7 @@ def parse_request(body: bytes) -> Request:
     if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float))
                                 or not 0 < timeout <= 60):
         raise RequestError(f"timeout must be seconds in (0, 60], got {timeout!r}")
-    rid = obj.get("id")
+    rid = _request_id(obj.get("id"))
     if cmd == "ping":
         b = obj.get("bridge")
         return Request(cmd, bridge=None if b is None else _bridge_id(b, "bridge"), timeout=timeout, id=rid,

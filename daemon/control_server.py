@@ -9,17 +9,23 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections import Counter
 from typing import Any, Protocol
 
+import zmq
 import zmq.asyncio
 
 from cellbridge._version import __version__
-from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply
+from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply, too_large
 from cellbridge.daemon.links import Link
 from cellbridge.daemon.logs import event
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import pack
 from cellbridge.daemon.wire import PING
+
+
+#: Frames one request may have (routing envelope, delimiter, body); more make it oversize.
+MAX_FRAMES = 16
 
 
 class Host(Protocol):
@@ -43,13 +49,55 @@ class ControlServer:
         self.log = log
         self._waiting: dict[int, asyncio.Future[dict[str, Any]]] = {}
         self._answers: set[asyncio.Task[Any]] = set()
+        self.counts: Counter[str] = Counter({"requests": 0, "errors": 0, "oversize": 0, "busy": 0})
 
     async def serve(self) -> None:
+        limits = self.host.config["control"]
         while True:
-            frames = await self.sock.recv_multipart()
-            task = asyncio.create_task(self._answer(frames))  # a slow command never holds up others
-            self._answers.add(task)
-            task.add_done_callback(self._answers.discard)
+            envelope, body, size = await self._receive(limits["max_request_bytes"])
+            self.counts["requests"] += 1
+            if body is None:
+                self.counts["oversize"] += 1
+                event(self.log, "info", "control request too large", bytes=size)
+                await self._send(envelope, too_large(size, limits["max_request_bytes"]))
+            elif len(self._answers) >= limits["max_pending"]:
+                self.counts["busy"] += 1
+                await self._send(envelope, _busy(body, len(self._answers)))
+            else:
+                task = asyncio.create_task(self._answer(envelope, body))  # a slow command never holds up others
+                self._answers.add(task)
+                task.add_done_callback(self._answers.discard)
+
+    async def _receive(self, limit: int) -> tuple[list[bytes], bytes | None, int]:
+        """One request: (envelope, body, size in bytes). Its frames are read one at a time;
+        past ``limit`` bytes (or ``MAX_FRAMES`` frames) the rest is read and dropped and the
+        body is None, so no client can make the daemon hold more than ``limit`` for it."""
+        frames: list[bytes] = []
+        size, whole = 0, True
+        more = True
+        while more:
+            part = await self.sock.recv()
+            more = bool(self.sock.getsockopt(zmq.RCVMORE))
+            size += len(part)
+            if whole and (size > limit or len(frames) >= MAX_FRAMES):
+                whole = False
+            if whole:
+                frames.append(part)
+            elif len(frames) < 2 and not part:
+                frames.append(part)  # the REQ delimiter still belongs to the envelope
+        if not whole:
+            envelope = frames[:1] + [f for f in frames[1:2] if not f]
+            return envelope, None, size
+        return frames[:-1], frames[-1], size
+
+    async def _send(self, envelope: list[bytes], rep: dict[str, Any]) -> None:
+        if not rep.get("ok"):
+            self.counts["errors"] += 1
+        await self.sock.send_multipart([*envelope, pack(rep)])
+
+    def stats(self) -> dict[str, int]:
+        """Requests read, answered with an error, refused as too large, refused as busy; in progress."""
+        return {**self.counts, "in_progress": len(self._answers)}
 
     async def finish(self, limit: float = 1.0) -> None:
         """Let requests in progress answer (commands still waiting get their timeout reply)."""
@@ -76,8 +124,7 @@ class ControlServer:
         result["sent_on"] = sent
         return result
 
-    async def _answer(self, frames: list[bytes]) -> None:
-        envelope, body = frames[:-1], frames[-1]
+    async def _answer(self, envelope: list[bytes], body: bytes) -> None:
         try:
             req = parse_request(body)
         except RequestError as exc:
@@ -91,7 +138,7 @@ class ControlServer:
             except Exception as exc:  # never let one request take the daemon down
                 self.log.exception("control request failed")
                 rep = error(f"internal error: {type(exc).__name__}: {exc}", req.id)
-        await self.sock.send_multipart([*envelope, pack(rep)])
+        await self._send(envelope, rep)
 
     async def _execute(self, req: Request) -> dict[str, Any]:
         now = self.host.now()
@@ -113,6 +160,16 @@ class ControlServer:
         if not ok:
             result["error"] = _command_error(result)
         return reply(ok, req.id, **result)
+
+
+def _busy(body: bytes, in_progress: int) -> dict[str, Any]:
+    """The reply when ``control.max_pending`` requests are in progress (with the request's
+    id, so a client pipelining over DEALER knows which one to send again)."""
+    try:
+        rid = parse_request(body).id
+    except RequestError as exc:
+        return error(str(exc))
+    return error(f"busy: {in_progress} requests in progress (control.max_pending); send it again later", rid)
 
 
 def _command_error(result: dict[str, Any]) -> str:

@@ -56,7 +56,8 @@ class LayoutStages:
         ids = layout.ids
         inside = (ids >= 0) & (ids < _IDS)
         self.row[ids[inside]] = np.nonzero(inside)[0]
-        depth = math.ceil(self.sections["contact"]["max_lag"] * cal["max_step_rate"]) + SPARE
+        con = self.sections["contact"]  # memory in readings: max_lag reaches back at most max_lag_readings
+        depth = min(math.ceil(con["max_lag"] * cal["max_step_rate"]), con["max_lag_readings"]) + SPARE
         self.moments = Moments(layout.n, depth)
         self.rebuilds += 1
         if old_layout is not None and old_elements is not None and old_layout.side == layout.side:

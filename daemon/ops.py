@@ -13,7 +13,8 @@ import zmq
 
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.notify import Notifier
-from cellbridge.daemon.security import CurveKeys, CurveServer, check_bind, load_curve
+from cellbridge.daemon.peers import PeerGuard, PeerLimits, bound_socket
+from cellbridge.daemon.security import CurveKeys, CurveServer, check_bind, load_curve, restrict_ipc
 
 
 def curve_keys(config: Config) -> CurveKeys | None:
@@ -22,27 +23,47 @@ def curve_keys(config: Config) -> CurveKeys | None:
 
 
 class OpsHooks:
-    """sd_notify (a no-op without ``NOTIFY_SOCKET``) and loopback-or-CURVE binding."""
+    """sd_notify (a no-op without ``NOTIFY_SOCKET``), loopback-or-CURVE binding, and the
+    bounds on what peers may hold (:mod:`cellbridge.daemon.peers`)."""
 
     def __init__(self, config: Config, env: Mapping[str, str] | None = None) -> None:
+        self.config = config
         self.curve = curve_keys(config)
         self.notifier = Notifier(env)
         self.watchdog_interval = self.notifier.watchdog_interval
         self._server: CurveServer | None = None
+        self._guard: PeerGuard | None = None
 
     def secure(self, ctx: zmq.Context, socket: zmq.Socket, endpoint: str) -> None:
-        """Before binding: refuse a non-loopback endpoint without keys; with keys, a CURVE server."""
+        """Before binding: refuse a non-loopback endpoint without keys; with keys, a CURVE
+        server; in any case bound what one peer and all of them may hold."""
         check_bind(endpoint, self.curve)
+        # The ZAP handler and the peer guard run on threads with blocking sockets: give
+        # them a plain context that shares the asyncio context's libzmq context (ZAP and
+        # inproc:// monitors are per context).
+        plain = zmq.Context.shadow(ctx.underlying)
+        role = "pub" if socket.socket_type in (zmq.XPUB, zmq.PUB) else "control"
+        peers = self.config["peers"]
+        bound_socket(socket, role, peers, self.config["control"])
+        if self._guard is None:
+            self._guard = PeerGuard(plain)
+        self._guard.watch(role, socket, PeerLimits(peers[f"max_{role}"], peers["max_per_address"]))
         if self.curve is None:
             return
         if self._server is None:
-            # The ZAP handler runs on a thread with blocking sockets: give it a plain
-            # context that shares the asyncio context's libzmq context (ZAP is per context).
-            self._server = CurveServer(zmq.Context.shadow(ctx.underlying), self.curve)
+            self._server = CurveServer(plain, self.curve)
         self._server.apply(socket)
 
-    def counters(self) -> dict[str, int]:
-        return self._server.counters() if self._server is not None else {}
+    def bound(self, socket: zmq.Socket, endpoint: str) -> None:
+        """After binding: an ipc:// socket file gets its section's ``ipc_mode`` and ``ipc_group``."""
+        section = self.config["pub" if socket.socket_type in (zmq.XPUB, zmq.PUB) else "control"]
+        restrict_ipc(endpoint, section["ipc_mode"], section["ipc_group"])
+
+    def counters(self) -> dict[str, object]:
+        out: dict[str, object] = dict(self._server.counters()) if self._server is not None else {}
+        if self._guard is not None:
+            out["peers"] = self._guard.stats()
+        return out
 
     def reload_keys(self) -> None:
         """SIGHUP: read the allowed clients' keys again (a bad directory keeps the old keys)."""
@@ -65,6 +86,9 @@ class OpsHooks:
         self.notifier.stopping()
 
     def close(self) -> None:
+        if self._guard is not None:
+            self._guard.stop()
+            self._guard = None
         if self._server is not None:
             self._server.stop()
             self._server = None

@@ -26,6 +26,14 @@ import zmq.asyncio
 TOPICS = ("contact", "element", "raw", "health", "topology")
 
 
+_TOPIC_BYTES = tuple(t.encode() for t in TOPICS)
+
+
+def _can_match(prefix: bytes) -> bool:
+    """A subscription matches a topic frame when it is a prefix of it ("" matches all)."""
+    return any(t.startswith(prefix) for t in _TOPIC_BYTES)
+
+
 def _default(obj: Any) -> Any:
     if isinstance(obj, np.generic):
         return obj.item()
@@ -45,6 +53,7 @@ class Publisher:
         self.sock.setsockopt(zmq.SNDHWM, hwm)
         if strict:
             self.sock.setsockopt(zmq.XPUB_NODROP, 1)
+        self.subscriptions_unmatched = 0  # (first) subscriptions to a prefix that matches no topic
         self.sock.setsockopt(zmq.LINGER, 1000)  # on shutdown, 1 s to flush what is queued
         self._raw = zmq.Socket.shadow(self.sock.underlying)  # plain non-blocking sends: no futures
         self._prefixes: Counter[bytes] = Counter()
@@ -65,12 +74,17 @@ class Publisher:
             self.dropped[topic] += 1
 
     async def watch_subscriptions(self) -> None:
-        """Keep :attr:`wanted` (topics some subscriber asked for) up to date."""
+        """Keep :attr:`wanted` (topics some subscriber asked for) up to date; count the
+        subscriptions that can match no topic (``subscriptions_unmatched``: a client's bug)
+        without keeping them here."""
         while True:
             msg = await self.sock.recv()
             if not msg:
                 continue
             prefix = bytes(msg[1:])
+            if not _can_match(prefix):
+                self.subscriptions_unmatched += msg[0] == 1
+                continue
             if msg[0] == 1:
                 self._prefixes[prefix] += 1
             elif msg[0] == 0 and self._prefixes[prefix] > 0:
@@ -85,7 +99,7 @@ class Publisher:
 
     def stats(self) -> dict[str, Any]:
         return {"endpoint": self.endpoint, "sent": dict(self.sent), "dropped": dict(self.dropped),
-                "subscribed_topics": sorted(self.wanted)}
+                "subscribed_topics": sorted(self.wanted), "subscriptions_unmatched": self.subscriptions_unmatched}
 
     def close(self) -> None:
         self.sock.close()

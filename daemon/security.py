@@ -9,6 +9,7 @@ then only clients whose public key lies in the allowed directory get anything
 
 from __future__ import annotations
 
+import grp
 import ipaddress
 import os
 from collections.abc import Mapping
@@ -116,6 +117,28 @@ def check_bind(endpoint: str, curve: CurveKeys | None) -> None:
             f"refusing to bind {endpoint!r}: it is not a loopback endpoint, so other hosts could reach it, "
             "and no CURVE keys are configured; bind to 127.0.0.1 or ipc://, or set server_secret_file and "
             "allowed_clients_dir in [security] (create keys with `cellbridge keys gen`)")
+
+
+def restrict_ipc(endpoint: str, mode: int, group: str) -> None:
+    """After binding an ipc:// endpoint: give its socket file ``mode`` and ``group``.
+
+    A unix socket admits whoever may write its file. It is created under the process's
+    umask (the unit's 0027: owner only), then opened up to exactly ``mode`` for ``group``
+    (empty: the daemon's own), so that group's members, and no one else, may connect.
+    tcp://, inproc:// and abstract (``ipc://@name``) endpoints have no file: nothing to do.
+    OSError (for instance a group the daemon is not a member of) names the path.
+    """
+    transport, _, path = endpoint.partition("://")
+    if transport != "ipc" or not path or path.startswith("@"):
+        return
+    try:
+        if group:
+            os.chown(path, -1, grp.getgrnam(group).gr_gid)
+        os.chmod(path, mode)
+    except (OSError, KeyError) as exc:
+        raise SecurityError(f"{endpoint}: cannot give the socket file mode {mode:04o} and group "
+                            f"{group or '(own)'!r}: {exc} (the daemon must be a member of the group: "
+                            "SupplementaryGroups= in the unit)") from None
 
 
 class CurveServer:

@@ -198,7 +198,8 @@ class Service:
         ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
                   "ms_per_read_p99": p99, "ms_per_read_max": float(recent.max() * 1e3) if recent.size else None,
                   "loop_lag_ms_max": self._lag_max * 1e3}
-        out = {"pub": self.pub.stats(), "contact_estimation": dict(self.contacts.stats), "ingest": ingest}
+        out = {"pub": self.pub.stats(), "control": self.control.stats(), "contact_estimation": dict(self.contacts.stats),
+               "ingest": ingest}
         security = self.hooks.counters()
         if security:
             out["security"] = security
@@ -274,8 +275,9 @@ class Service:
         self.ctl.setsockopt(zmq.LINGER, 500)
         self.control = ControlServer(self.ctl, self, self.log)
         for sock, endpoint in ((self.pub.sock, c["pub"]["endpoint"]), (self.ctl, c["control"]["endpoint"])):
-            self.hooks.secure(ctx, sock, endpoint)  # OPS: security check and CURVE, before bind
+            self.hooks.secure(ctx, sock, endpoint)  # OPS: security check, CURVE and peer bounds, before bind
             sock.bind(endpoint)
+            self.hooks.bound(sock, endpoint)  # OPS: an ipc:// socket file's mode and group
         self.pub.on_wanted = self.pipeline.want
 
     async def run(self) -> int:
@@ -285,6 +287,7 @@ class Service:
             self._bind(ctx)
         except (zmq.ZMQError, ValueError) as exc:
             event(self.log, "error", "cannot bind", error=str(exc))
+            self.hooks.close()
             if self._ctx is None:
                 ctx.destroy(linger=0)
             return 1
@@ -294,6 +297,7 @@ class Service:
         loop.add_signal_handler(signal.SIGTERM, self._stop.set)
         loop.add_signal_handler(signal.SIGINT, self._stop.set)
         loop.add_signal_handler(signal.SIGHUP, self.reload)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGHUP})  # held back since the command began (cli.main)
         link_tasks = [asyncio.create_task(ln.run(), name=f"link {n}") for n, ln in self.links.items()]
         self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self.control.serve(),
                                                         self.pub.watch_subscriptions())]

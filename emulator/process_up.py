@@ -36,6 +36,7 @@ import setproctitle
 from cellbridge.emulator import process_bridge
 from cellbridge.emulator.gateway_port import open_pty
 from cellbridge.emulator.mesh import Bridge, Mesh, load_mesh
+from cellbridge.emulator.pty_link import link_gateway
 from cellbridge.emulator.realtime import (
     REPORTING_HELP, StopFlag, add_endpoint_arguments, die_with_parent, rate_arg, reporting_arg, reporting_text,
     seconds_arg,
@@ -63,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"pause between two bridges' starts, gateways first, then outwards "
                              f"(default {START_INTERVAL_S}: on a small machine a whole skin booting at "
                              f"once delays acknowledgements until routes churn)")
+    parser.add_argument("--pty-link", metavar="DIR",
+                        help="also keep a symlink DIR/gateway-<id> to each gateway's pty (its /dev/pts number "
+                             "changes on every start; configure the daemon with the link)")
     add_endpoint_arguments(parser)
 
 
@@ -224,6 +228,8 @@ def run(args: argparse.Namespace) -> int:
                     port = b.tcp or _free_port()
                     argv += ["--tcp", str(port)]
                     line += f" socket://127.0.0.1:{port}"
+                if args.pty_link:
+                    line += f" {link_gateway(args.pty_link, b.id, device)}"
                 lines.append(line)
             if started:
                 _pause(args.start_interval, stop)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import signal
@@ -9,7 +10,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,34 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def idle_connects(endpoint: str, n: int) -> list[socket.socket]:
+    """``n`` TCP connections to ``endpoint`` that never send a byte; non-blocking, so a
+    full listen backlog does not stall the caller. The caller closes them."""
+    host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
+    out = []
+    for _ in range(n):
+        s = socket.socket()
+        s.setblocking(False)
+        err = s.connect_ex((host, int(port)))
+        if err not in (0, errno.EINPROGRESS):
+            s.close()
+            raise OSError(err, f"connect to {endpoint}: {os.strerror(err)}")
+        out.append(s)
+    return out
+
+
+def proc_status_kb(pid: int, key: str) -> int:
+    """A ``/proc/PID/status`` figure in kB (``VmRSS``, ``VmHWM``: peak resident memory)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    raise KeyError(key)
+
+
+def open_descriptors(pid: int) -> int:
+    return len(os.listdir(f"/proc/{pid}/fd"))
 
 
 class Pty:
@@ -90,11 +119,14 @@ def _toml(v: Any) -> str:
 
 
 @contextmanager
-def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None = None) -> Iterator[subprocess.Popen[bytes]]:
-    """The daemon as a real process in its own process group; always stopped on exit."""
+def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None = None,
+           preexec_fn: Callable[[], None] | None = None) -> Iterator[subprocess.Popen[bytes]]:
+    """The daemon as a real process in its own process group; always stopped on exit.
+
+    ``preexec_fn`` runs in the child before the command (resource limits, umask)."""
     err = open(stderr, "wb") if stderr else subprocess.DEVNULL  # noqa: SIM115
     proc = subprocess.Popen([CLI, "daemon", "--config", str(config)], stderr=err, stdout=subprocess.DEVNULL,
-                            start_new_session=True, env=env)
+                            start_new_session=True, env=env, preexec_fn=preexec_fn)
     try:
         yield proc
     finally:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from cellbridge.daemon.config import SECTIONS, ConfigError, default_toml, load_config, parse_config
+from cellbridge.daemon.config import LINK_KEYS, SECTIONS, ConfigError, default_toml, load_config, parse_config
 
 
 def test_defaults_are_valid_and_documented() -> None:
@@ -95,3 +95,40 @@ def test_cli_print_config_check_and_errors(tmp_path: Path) -> None:
     bad = run("--config", str(cfg), "--check")
     assert bad.returncode == 2 and "nope.toml" in bad.stderr and "cannot read layout" in bad.stderr
     assert run().returncode == 2
+
+
+def test_max_lag_that_would_take_gigabytes_is_refused() -> None:
+    """max_lag = 3600 passed --check and sized a buffer of 37 GB on a 32x32 skin."""
+    with pytest.raises(ConfigError, match=r"contact.max_lag = 3600"):
+        parse_config({"contact": {"max_lag": 3600}})
+
+
+def test_every_number_has_an_upper_bound() -> None:
+    """Every size-like (and every other numeric) setting is bounded: a value a thousand
+    times beyond any sane one is refused, never sized into memory or a timer."""
+    unbounded = []
+    tables = [*((s, k, {s: {k: 10**15}}) for s, keys in SECTIONS.items() for k in keys),
+              *(("link", k, {"link": [{"url": "/dev/ttyUSB0", k: 10**15}]}) for k in LINK_KEYS)]
+    for section, key, data in tables:
+        spec = (SECTIONS[section] if section in SECTIONS else LINK_KEYS)[key]
+        if spec.kind is bool or spec.kind is str:
+            continue
+        try:
+            parse_config(data)
+        except ConfigError:
+            continue
+        unbounded.append(f"{section}.{key}")
+    assert not unbounded
+
+
+def test_the_moment_buffer_is_sized_in_readings() -> None:
+    """The longest max_lag at the fastest step rate still keeps at most max_lag_readings per element."""
+    from cellbridge.daemon.pipeline import Pipeline
+    from cellbridge.tactile.skin import grid_layout
+
+    cfg = parse_config({"contact": {"max_lag": 10.0, "max_lag_readings": 256},
+                        "calibration": {"max_step_rate": 1000.0}})
+    layout = grid_layout(32, 32)
+    p = Pipeline(cfg, layout)
+    assert p.skin.moments.depth <= 256 + 8
+    assert p.skin.moments.t.nbytes <= layout.n * (256 + 8) * 8

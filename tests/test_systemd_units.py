@@ -125,3 +125,16 @@ def test_daemon_unit_lets_the_contact_kernels_compile_and_keeps_their_cache() ->
         pytest.skip("this kernel has no PR_SET_MDWE (Linux < 6.3)")
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip() == "estimated 0.02"
+
+
+def test_daemon_unit_keeps_its_files_private_and_has_descriptors_for_its_peer_bounds() -> None:
+    """UMask=0000 made ipc sockets and captures world-writable; the descriptor limit must
+    hold every peer the daemon admits (docs/daemon.md, Limits) plus a reserve for its lines."""
+    from cellbridge.daemon.config import parse_config
+    from cellbridge.daemon.peers import descriptors_needed
+
+    unit = "cellbridge-daemon.service"
+    (umask,) = values(unit, "UMask")
+    assert int(umask, 8) & 0o007 == 0o007, "others must get nothing"
+    (nofile,) = values(unit, "LimitNOFILE")
+    assert int(nofile) >= descriptors_needed(parse_config({"link": [{"url": "/dev/ttyUSB0"}] * 8}))

@@ -66,6 +66,7 @@ class Service:
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
         t0 = time.perf_counter()
+        self.pub.serial(link, data, now)
         p = self.pipeline
         publish = self.pub.publish
         try:
@@ -245,7 +246,7 @@ class Service:
     # -- lifecycle ----------------------------------------------------------------------
     def _bind(self, ctx: zmq.asyncio.Context) -> None:
         c = self.config
-        self.pub = Publisher(ctx, c["pub"]["endpoint"], c["pub"]["hwm"], c["pub"]["count_drops"])
+        self.pub = Publisher(ctx, c["pub"]["endpoint"], c["pub"]["hwm"], c["pub"]["count_drops"], c["pub"]["source"])
         self.ctl = ctx.socket(zmq.ROUTER)
         self.ctl.setsockopt(zmq.LINGER, 500)
         self.control = ControlServer(self.ctl, self, self.log)

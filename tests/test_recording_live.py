@@ -130,17 +130,9 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
                                     "replay_speed": 1.0, "replay_clock": "shifted",
                                     "wait_for_subscriber": True, "exit_when_done": True}])
     client = Client(endpoints, (b"element", b"contact"))
-    got: list[tuple[str, dict[str, Any]]] = []
     try:
         with daemon(cfg, tmp_path / "err.log") as proc:
-            end = time.monotonic() + 180
-            while time.monotonic() < end:
-                m = client.recv(0.5)
-                if m is not None:
-                    got.append(m)
-                elif proc.poll() is not None:
-                    break
-            assert proc.wait(10) == 0
+            got = client.until_exit(proc, 180)
     finally:
         client.close()
     live = live_recording["live"].payloads()

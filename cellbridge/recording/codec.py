@@ -29,6 +29,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from cellbridge.daemon.publisher import pack
+
 NONFINITE = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}
 #: Topics whose payloads hold no free text: their non-finite floats are found by a
 #: pattern on the encoded text (fast) instead of a walk over every value.
@@ -104,16 +106,8 @@ def decode(topic: str, data: bytes) -> dict[str, Any]:
 
 
 def to_msgpack(payload: dict[str, Any]) -> bytes:
-    """As the daemon packs it (docs/zmq-api.md): what a replay sends."""
-    return msgpack.packb(payload, use_bin_type=True, default=_pack_default)
-
-
-def _pack_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"cannot pack {type(obj).__name__}")
+    """Packed by the daemon's own packer (docs/zmq-api.md): what a replay sends."""
+    return pack(payload)
 
 
 def from_msgpack(data: bytes) -> dict[str, Any]:

@@ -185,5 +185,18 @@ class Client:
         self.request({"v": 1, "cmd": "ping"}, timeout)
         self.wait_for("health", timeout=timeout)
 
+    def until_exit(self, proc: subprocess.Popen[bytes], timeout: float = 30.0) -> list[tuple[str, dict[str, Any]]]:
+        """Every message until ``proc`` (a daemon with ``exit_when_done``) exits by itself, cleanly."""
+        messages = []
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            got = self.recv(0.5)
+            if got is not None:
+                messages.append(got)
+            elif proc.poll() is not None:
+                break
+        assert proc.wait(10) == 0  # exit_when_done: it stops by itself, cleanly
+        return messages
+
     def close(self) -> None:
         self.ctx.destroy(linger=0)

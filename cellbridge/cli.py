@@ -27,6 +27,9 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("world", "cellbridge.emulator.process_world", "publish stimuli (contacts) to bridge processes"),
     ("press", "cellbridge.emulator.process_press", "press on a running emulated skin"),
     ("sub", "cellbridge.daemon.subscribe", "print what the daemon publishes as JSON lines"),
+    ("watch", "cellbridge.views.watch", "the skin in a terminal (works over SSH): forces, contacts, health"),
+    ("web", "cellbridge.views.web", "the skin on a web page served on loopback, live over a WebSocket"),
+    ("foxglove", "cellbridge.views.foxglove", "the skin as a Foxglove live channel (Grid, SceneUpdate, JSON)"),
     ("keys", "cellbridge.daemon.keys", "CURVE key pairs for binding the daemon beyond loopback"),
 ]
 

@@ -8,6 +8,8 @@ stopped, with its profile in a temporary folder.
 
 from __future__ import annotations
 
+from contextlib import ExitStack
+
 import base64
 import itertools
 import json
@@ -31,7 +33,8 @@ class Page:
     def __init__(self, ws_url: str) -> None:
         from websockets.sync.client import connect
 
-        self.ws = connect(ws_url, max_size=64 * 1024 * 1024, open_timeout=10)
+        self._stack = ExitStack()  # websockets wants its connections used as context managers
+        self.ws = self._stack.enter_context(connect(ws_url, max_size=64 * 1024 * 1024, open_timeout=10))
         self.ids = itertools.count(1)
 
     def call(self, method: str, timeout: float = 20.0, **params: Any) -> dict[str, Any]:
@@ -52,11 +55,17 @@ class Page:
         return r["result"].get("value")
 
     def wait_for(self, expression: str, timeout: float = 20.0, what: str = "") -> Any:
-        """Until ``expression`` is truthy in the page; returns its value."""
+        """Until ``expression`` is truthy in the page (an exception, e.g. while the page
+        still loads, counts as false); returns its value."""
         end = time.monotonic() + timeout
         value = None
         while time.monotonic() < end:
-            value = self.evaluate(expression)
+            try:
+                value = self.evaluate(expression)
+            except RuntimeError as exc:
+                value = str(exc)[-200:]
+                time.sleep(0.05)
+                continue
             if value:
                 return value
             time.sleep(0.05)
@@ -73,7 +82,7 @@ class Page:
         return png
 
     def close(self) -> None:
-        self.ws.close()
+        self._stack.close()
 
 
 @contextmanager

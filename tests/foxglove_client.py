@@ -9,6 +9,8 @@ FileDescriptorSet), not with a copy of Foxglove's ``.proto`` files.
 
 from __future__ import annotations
 
+from contextlib import ExitStack
+
 import base64
 import json
 import struct
@@ -25,8 +27,9 @@ class FoxgloveClient:
     def __init__(self, url: str) -> None:
         from websockets.sync.client import connect
 
-        self.ws = connect(url, subprotocols=SUBPROTOCOLS, max_size=64 * 1024 * 1024, open_timeout=10,
-                          compression=None)
+        self._stack = ExitStack()  # websockets wants its connections used as context managers
+        self.ws = self._stack.enter_context(connect(url, subprotocols=SUBPROTOCOLS, max_size=64 * 1024 * 1024, open_timeout=10,
+                          compression=None))
         self.server_info: dict[str, Any] | None = None
         self.channels: dict[int, dict[str, Any]] = {}
         self.subs: dict[int, int] = {}  # subscription id -> channel id
@@ -108,4 +111,4 @@ class FoxgloveClient:
                     return log_time, decoded
 
     def close(self) -> None:
-        self.ws.close()
+        self._stack.close()

@@ -94,7 +94,9 @@ class Feeder(threading.Thread):
 
 def wait_ready(client: Client, timeout: float = 30.0) -> None:
     """Until the daemon has every element's baseline (the feeder may press from then on)."""
-    client.ready(timeout)
+    client.request({"v": 1, "cmd": "ping"}, timeout)
+    while client.recv(0.0) is not None:  # what an earlier daemon published is still queued here
+        pass
     client.wait_for("health", lambda m: (m.get("layout", {}).get("calibration", {}).get("ready", 0)
                                          >= m.get("layout", {}).get("elements", 1) > 0), timeout)
 

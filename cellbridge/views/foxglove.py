@@ -198,7 +198,7 @@ class FoxgloveView:
     def publish(self, now: float) -> None:
         stamp = time.time_ns()
         frame = self.model.frame(now)
-        if frame.cells:
+        if frame.cells and self.model.layout:  # not before the layout: no cell would be where it belongs
             self.grid.log(make_grid(frame, stamp), log_time=stamp)
         self.scene.log(make_scene(frame, stamp), log_time=stamp)
         self.elements.log(elements_json(self.model), log_time=stamp)

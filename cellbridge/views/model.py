@@ -91,6 +91,7 @@ class Cell:
     touched: bool
     force: float
     dc1: float
+    quantity: str = "force"  # what level and label show: "force" (N), "dc" (ΔC1, pF) or "none"
 
 
 @dataclass
@@ -116,8 +117,8 @@ class Frame:
     cols: int
     side: float
     origin: tuple[float, float]  # (x, y) of the grid's corner, m
-    quantity: str  # "force" or "dc"
-    scale: float  # value at colour level 1 (N or pF)
+    quantity: str  # "force" when some element shows a force, else "dc" (cells say their own)
+    scale: float  # value at colour level 1 (N or pF) of ``quantity``
     cells: list[Cell]
     contacts: list[DrawnContact]
     status: list[str]
@@ -174,8 +175,8 @@ class SkinView:
     """
 
     def __init__(self, force_scale: float = 5.0, dc_scale: float = 2.0, stale_after: float = STALE_AFTER) -> None:
-        self.force_scale = force_scale
-        self.dc_scale = dc_scale
+        self.force_scale = force_scale  # N at full colour
+        self.dc_scale = dc_scale  # pF at full colour
         self.stale_after = stale_after
         self.elements: dict[int, Element] = {}
         self.layout: dict[int, tuple[float, float]] = {}
@@ -334,14 +335,7 @@ class SkinView:
         if unplaced:
             cols = max(cols, len(unplaced))
             rows += 1
-        any_force = any(math.isfinite(e.shown_force()) for e in self.elements.values())
-        quantity = "force" if any_force or not self.elements else "dc"
-        if quantity == "dc":
-            for c in cells:
-                e = self.elements.get(c.bridge)
-                dc = e.dc1 * 1e12 if e else math.nan
-                c.level = min(1.0, max(0.0, dc / self.dc_scale)) if math.isfinite(dc) else math.nan
-                c.label = "?" if not math.isfinite(dc) else (f"{dc:.1f}pF" if abs(dc) >= 0.05 else "")
+        quantity = "force" if not cells or any(c.quantity == "force" for c in cells) else "dc"
         drawn = []
         for c in self.contacts:
             d = c.diameter if math.isfinite(c.diameter) else 0.0
@@ -356,16 +350,20 @@ class SkinView:
                      counters=self.counters())
 
     def _cell(self, bridge: int, row: int, col: int) -> Cell:
+        """An element's force where the inverse gives one (0 when untouched); else its ΔC1
+        (a light, ambiguous touch); else grey: "cal" while its baseline is taken, "?"."""
         e = self.elements.get(bridge)
         if e is None:
             return Cell(bridge, row, col, math.nan, "·", False, math.nan, math.nan)
         f = e.shown_force()
         if math.isfinite(f):
-            level = min(1.0, max(0.0, f / self.force_scale))
-            label = f"{f:.1f}N" if f > 0 else ""
-        else:
-            level, label = math.nan, "?"
-        return Cell(bridge, row, col, level, label, e.touched, f, e.dc1)
+            return Cell(bridge, row, col, min(1.0, max(0.0, f / self.force_scale)), f"{f:.1f}N" if f > 0 else "",
+                        e.touched, f, e.dc1)
+        dc = e.dc1 * 1e12
+        if math.isfinite(dc):
+            return Cell(bridge, row, col, min(1.0, max(0.0, dc / self.dc_scale)), f"{dc:.1f}pF", e.touched, f, e.dc1,
+                        quantity="dc")
+        return Cell(bridge, row, col, math.nan, "cal" if e.status & 1 else "?", e.touched, f, e.dc1, quantity="none")
 
     def counters(self) -> dict[str, Any]:
         return {"received": dict(self.received), "lost": dict(self.lost), "malformed": self.malformed,

@@ -71,14 +71,64 @@ def run(args: argparse.Namespace) -> int:
 
 def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any:
     # Textual is imported here so that `cellbridge --help` stays fast.
+    from rich.segment import Segment
     from rich.style import Style
     from rich.text import Text
     from textual.app import App, ComposeResult
     from textual.containers import ScrollableContainer
+    from textual.geometry import Region
     from textual.screen import ModalScreen
+    from textual.strip import Strip
+    from textual.widget import Widget
     from textual.widgets import Static
 
     from cellbridge.views import textgrid
+
+    styles: dict[tuple[Any, Any], Style] = {}
+
+    def style(fg: tuple[int, int, int], bg: tuple[int, int, int]) -> Style:
+        st = styles.get((fg, bg))
+        if st is None:
+            st = styles[(fg, bg)] = Style(color=f"rgb({fg[0]},{fg[1]},{fg[2]})", bgcolor=f"rgb({bg[0]},{bg[1]},{bg[2]})")
+        return st
+
+    class SkinGrid(Widget):
+        """The element grid. Only rows that changed are repainted: over a slow link a
+        refresh costs what changed on the skin, not the whole screen."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.lines: list[list[Segment]] = []
+
+        def show(self, grid: textgrid.TextGrid) -> None:
+            lines = []
+            for row in grid.rows:  # runs of one colour pair as one segment
+                segs: list[Segment] = []
+                run, key = "", None
+                for ch, fg, bg in row:
+                    if (fg, bg) != key and run:
+                        segs.append(Segment(run, style(*key)))  # type: ignore[misc]
+                        run = ""
+                    key = (fg, bg)
+                    run += ch
+                if run:
+                    segs.append(Segment(run, style(*key)))  # type: ignore[misc]
+                lines.append(segs)
+            width = len(grid.rows[0]) if grid.rows else 0
+            old = self.lines
+            self.lines = lines
+            if len(old) != len(lines) or self.styles.width is None or self.styles.width.value != width:
+                self.styles.width, self.styles.height = width, len(lines)
+                self.refresh()
+                return
+            for y, (a, b) in enumerate(zip(old, lines)):
+                if a != b:
+                    self.refresh(Region(0, y, width, 1))
+
+        def render_line(self, y: int) -> Strip:
+            if y < len(self.lines):
+                return Strip(self.lines[y])
+            return Strip.blank(self.size.width)
 
     class ConfirmTare(ModalScreen[bool]):
         BINDINGS = [("y", "answer(True)", "yes"), ("n", "answer(False)", "no"), ("escape", "answer(False)", "no")]
@@ -97,6 +147,7 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
         Screen { layout: vertical; }
         #head { height: 1; background: $primary-background; }
         #skin { height: 1fr; }
+        #empty { height: auto; }
         #contacts { height: auto; max-height: 4; }
         #status { height: auto; color: $text-muted; }
         #keys { height: 1; background: $primary-background; }
@@ -107,7 +158,8 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
         def compose(self) -> ComposeResult:
             yield Static(f"cellbridge watch  {endpoint}", id="head")
             with ScrollableContainer(id="skin"):
-                yield Static(id="grid")
+                yield SkinGrid()
+            yield Static(id="empty")
             yield Static(id="contacts")
             yield Static(id="status")
             yield Static(KEYS, id="keys")
@@ -129,23 +181,22 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
             frame = model.frame(now)
             box = self.query_one("#skin").size
             width, height = (box.width, box.height) if box.width else (self.size.width, max(4, self.size.height - 10))
-            grid = textgrid.layout(frame, width, height)
-            text = Text(no_wrap=True, overflow="crop")
-            for i, row in enumerate(grid.rows):
-                if i:
-                    text.append("\n")
-                for ch, fg, bg in row:
-                    text.append(ch, Style(color=f"rgb({fg[0]},{fg[1]},{fg[2]})", bgcolor=f"rgb({bg[0]},{bg[1]},{bg[2]})"))
-            if not frame.cells:
-                text = Text("no elements yet (waiting for the daemon's layout and readings)")
-            self.query_one("#grid", Static).update(text)
+            self.query_one(SkinGrid).show(textgrid.layout(frame, width, height))
+            self.set_text("#empty", "" if frame.cells else
+                          "no elements yet (waiting for the daemon's layout and readings)")
             what = "force" if frame.quantity == "force" else "ΔC1 (no force yet)"
-            lines = [c.line for c in frame.contacts] or ["no contact"]
-            self.query_one("#contacts", Static).update(Text("\n".join(lines), no_wrap=True, overflow="ellipsis"))
+            self.set_text("#contacts", "\n".join([c.line for c in frame.contacts] or ["no contact"]))
             status = list(frame.status)
             status.append(f"colour: {what}, full at {frame.scale:g} {'N' if frame.quantity == 'force' else 'pF'}"
                           + (f"   {source.notice}" if source.notice else ""))
-            self.query_one("#status", Static).update(Text("\n".join(status), no_wrap=True, overflow="ellipsis"))
+            self.set_text("#status", "\n".join(status))
+
+        def set_text(self, selector: str, text: str) -> None:
+            """Update a text area only when its text changed (no repaint for nothing)."""
+            widget = self.query_one(selector, Static)
+            if getattr(widget, "_shown", None) != text:
+                widget._shown = text  # type: ignore[attr-defined]
+                widget.update(Text(text, no_wrap=True, overflow="ellipsis"))
 
         def action_pause(self) -> None:
             model.paused = not model.paused

@@ -8,7 +8,7 @@
   const token = new URLSearchParams(location.search).get("token");
   const state = {
     frame: null, ws: null, select: null, series: [], geometry: null,
-    frames: 0, connects: 0, paints: [],   // paints: [wall ms, touched bridges] whenever the touched set changes
+    frames: 0, connects: 0, paints: [],   // paints: [wall ms, touched bridges] whenever the touched set changes (last 1000)
     lastTouched: "",
   };
   window.cellbridge = state;
@@ -108,8 +108,10 @@
         `\npage: ${state.frames} frames, ${state.connects} connections`;
       const touched = f.cells.filter((c) => c.touched).map((c) => c.bridge).join(",");
       if (touched !== state.lastTouched) {
+        if (state.paints.length >= 1000) state.paints.shift();
         state.lastTouched = touched;
-        requestAnimationFrame(() => state.paints.push([performance.timeOrigin + performance.now(), touched]));
+        // a task queued in the frame's callback runs once that frame is rendered
+        setTimeout(() => state.paints.push([performance.timeOrigin + performance.now(), touched]), 0);
       }
     });
   }

@@ -32,7 +32,6 @@ import argparse
 import json
 import os
 import select
-import signal
 import struct
 import subprocess
 import sys
@@ -56,6 +55,7 @@ from view_harness import (  # noqa: E402
     fed_skin,
     free_port,
     skin_config,
+    stop_session,
     view_process,
     wait_ready,
 )
@@ -252,12 +252,7 @@ def slow_terminal(tmp: Path, bandwidth: float | None, window: float) -> dict[str
                 try:
                     return _read_terminal(master, bandwidth, window)
                 finally:
-                    os.killpg(proc.pid, signal.SIGTERM)
-                    try:
-                        proc.wait(10)
-                    except subprocess.TimeoutExpired:
-                        os.killpg(proc.pid, signal.SIGKILL)
-                        proc.wait(5)
+                    stop_session(proc)
                     os.close(master)
         finally:
             client.close()

@@ -416,10 +416,17 @@ def test_a_killed_view_leaves_nothing_behind(live: Any, kind: str) -> None:
     assert pub.client.wait_for("health")["seq"] > seq0  # the daemon goes on
 
 
+def _wmem_max() -> int:
+    return int(Path("/proc/sys/net/ipv4/tcp_wmem").read_text().split()[2])
+
+
 def test_a_view_that_stops_reading_loses_its_own_messages_and_counts_them(tmp_path: Path) -> None:
     """SIGSTOP a web view under a 16×16 skin at 100 Hz: the daemon goes on publishing to
     everyone else without a gap, and the view, once resumed, shows how many it lost."""
+    import msgpack
     from websockets.sync.client import connect
+
+    from cellbridge.views.source import RCVBUF, RCVHWM
 
     with fed_skin(tmp_path, rows=16, cols=16) as (pty, feeder):
         cfg, ep = skin_config(tmp_path, pty, pub={"hwm": 20})
@@ -431,12 +438,18 @@ def test_a_view_that_stops_reading_loses_its_own_messages_and_counts_them(tmp_pa
                 wait_ready(client, timeout=60)
                 os.kill(web.pid, signal.SIGSTOP)
                 try:
-                    seqs = []
-                    end = time.monotonic() + 6
+                    # stopped until more was published than every queue on the way can hold:
+                    # the view's (RCVHWM messages, RCVBUF), the daemon's (hwm), the sender's kernel buffer
+                    seqs, sizes = [], []
+                    end = time.monotonic() + 120
                     while time.monotonic() < end:
-                        got = client.recv(0.5)
-                        if got is not None and got[0] == "element":
-                            seqs.append(got[1]["seq"])
+                        got = client.sub.recv_multipart() if client.sub.poll(500) else None
+                        if got is not None and got[0] == b"element":
+                            seqs.append(msgpack.unpackb(got[1])["seq"])
+                            sizes.append(len(got[1]))
+                            bound = max(sizes) * (RCVHWM + 20) + 2 * RCVBUF + _wmem_max() + (2 << 20)
+                            if sum(sizes) > bound:
+                                break
                 finally:
                     os.kill(web.pid, signal.SIGCONT)
                 assert len(seqs) > 100 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # the others lost nothing

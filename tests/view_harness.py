@@ -9,8 +9,6 @@ the first pressed sample's bytes were written.
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -19,7 +17,7 @@ from pathlib import Path
 import threading
 import time
 
-from daemon_harness import CLI, Client, Pty, daemon, free_port, write_config
+from daemon_harness import CLI, Client, Pty, daemon, free_port, stop_session, write_config
 from daemon_traffic import Skin
 
 PRESS = (0.040, 0.022, 2.0, 0.010)  # across the seam of bridges 2 and 5 of a 3×3 skin
@@ -120,14 +118,8 @@ def view_process(argv: list[str], **kw: object) -> Iterator[subprocess.Popen[byt
     try:
         yield proc
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(5)
+        stop_session(proc)
 
 
 __all__ = ["CLI", "PRESS", "PRESSED", "Client", "Feeder", "daemon", "fed_skin", "free_port", "skin_config",
-           "view_process", "wait_ready"]
+           "stop_session", "view_process", "wait_ready"]

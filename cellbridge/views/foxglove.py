@@ -32,7 +32,7 @@ from typing import Any
 
 from cellbridge.daemon.subscribe import jsonable
 from cellbridge.views.model import Frame, SkinView, level_rgb
-from cellbridge.views.source import Source, add_source_arguments, check_source_arguments
+from cellbridge.views.source import add_source_arguments, open_source
 from cellbridge.views.web import is_loopback_host
 
 DEFAULT_PORT = 8765
@@ -215,22 +215,17 @@ def run(args: argparse.Namespace) -> int:
     if args.write_layout is not None:
         args.write_layout.write_text(json.dumps(json.loads(layout().to_json()), indent=1, ensure_ascii=False) + "\n")
         return 0
-    problem = check_source_arguments(args)
-    if problem is None and not 1 <= args.rate <= 240:
+    problem = None
+    if not 1 <= args.rate <= 240:
         problem = f"--rate must be within 1..240, got {args.rate}"
-    if problem is None and not is_loopback_host(args.host):
+    elif not is_loopback_host(args.host):
         problem = (f"refusing to listen on {args.host}: the Foxglove protocol has no access control; "
                    "listen on loopback and use an SSH tunnel (ssh -L 8765:127.0.0.1:8765 HOST)")
-    if problem:
-        print(f"cellbridge foxglove: {problem}", file=sys.stderr)
+    source = open_source("foxglove", args, problem)
+    if source is None:
         return 2
     import foxglove
 
-    try:
-        source = Source(args.endpoint, args.control, args.server_key, args.client_key)
-    except (ValueError, OSError) as exc:
-        print(f"cellbridge foxglove: {exc}", file=sys.stderr)
-        return 2
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

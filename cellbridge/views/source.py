@@ -1,7 +1,7 @@
 """The views' thin ZeroMQ shell: a SUB socket on the daemon's PUB, a DEALER on its control.
 
 Every view is a subscriber like any other (``docs/zmq-api.md``): it never slows the
-daemon. Its receive queue is bounded (``RCVHWM``); a view that falls behind loses
+daemon. Its receive queue is bounded (``RCVHWM``, ``RCVBUF``); a view that falls behind loses
 messages inside ZeroMQ, sees them as gaps in ``seq`` and shows the count
 (:attr:`SkinView.lost`). ZeroMQ reconnects by itself when the daemon restarts; the
 model notices the restart (sequence numbers start again) and asks for the layout anew.
@@ -10,6 +10,7 @@ model notices the restart (sequence numbers start again) and asks for the layout
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,11 @@ from cellbridge.views.model import TOPICS, SkinView
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
 DEFAULT_CONTROL = "tcp://127.0.0.1:5561"
-RCVHWM = 2000  # messages queued for this view inside ZeroMQ before it loses some
+# A view draws the newest state: a backlog would only show the past late. So at most
+# RCVHWM messages wait inside ZeroMQ and RCVBUF bytes in the kernel (about a second of a
+# 16×16 skin at 100 Hz); beyond that the view loses messages, and counts them.
+RCVHWM = 200
+RCVBUF = 1 << 20
 TOPOLOGY_RETRY = 1.0  # s between layout requests while the layout is unknown
 
 
@@ -49,6 +54,19 @@ def check_source_arguments(args: argparse.Namespace) -> str | None:
     return None
 
 
+def open_source(command: str, args: argparse.Namespace, problem: str | None) -> Source | None:
+    """The view's :class:`Source`, or None after saying on stderr why not: ``problem``
+    (the view's own option checks), a bad shared option, or a bad key file."""
+    problem = check_source_arguments(args) or problem
+    if problem is None:
+        try:
+            return Source(args.endpoint, args.control, args.server_key, args.client_key)
+        except (ValueError, OSError) as exc:
+            problem = str(exc)
+    print(f"cellbridge {command}: {problem}", file=sys.stderr)
+    return None
+
+
 class Source:
     """The daemon's stream, drained into a :class:`SkinView` without blocking."""
 
@@ -62,6 +80,7 @@ class Source:
             if server_key is not None and client_key is not None:
                 apply_client(s, server_key, client_key)
         self.sub.rcvhwm = RCVHWM
+        self.sub.rcvbuf = RCVBUF
         for t in topics:
             self.sub.subscribe(t)
         self.sub.connect(endpoint)

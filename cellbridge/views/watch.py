@@ -16,7 +16,7 @@ import time
 from typing import Any
 
 from cellbridge.views.model import SkinView
-from cellbridge.views.source import Source, add_source_arguments, check_source_arguments
+from cellbridge.views.source import Source, add_source_arguments, open_source
 
 KEYS = "q quit  p pause  t tare  +/- force scale"
 
@@ -45,19 +45,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    problem = check_source_arguments(args)
-    if problem is None and not 1 <= args.fps <= 120:
+    problem = None
+    if not 1 <= args.fps <= 120:
         problem = f"--fps must be within 1..120, got {args.fps}"
-    if problem:
-        print(f"cellbridge watch: {problem}", file=sys.stderr)
-        return 2
-    if not sys.stdout.isatty():
-        print("cellbridge watch: needs a terminal (for JSON lines use 'cellbridge sub')", file=sys.stderr)
-        return 2
-    try:
-        source = Source(args.endpoint, args.control, args.server_key, args.client_key)
-    except (ValueError, OSError) as exc:
-        print(f"cellbridge watch: {exc}", file=sys.stderr)
+    elif not sys.stdout.isatty():
+        problem = "needs a terminal (for JSON lines use 'cellbridge sub')"
+    source = open_source("watch", args, problem)
+    if source is None:
         return 2
     try:
         app = _make_app(source, SkinView(force_scale=args.force_scale), args.fps, args.endpoint)

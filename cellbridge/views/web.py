@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from cellbridge.views.model import Frame, SkinView, level_rgb
-from cellbridge.views.source import Source, add_source_arguments, check_source_arguments
+from cellbridge.views.source import Source, add_source_arguments, open_source
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
@@ -247,8 +247,8 @@ def _fin(v: float) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    problem = check_source_arguments(args)
-    if problem is None and not 1 <= args.max_rate <= 240:
+    problem = None
+    if not 1 <= args.max_rate <= 240:
         problem = f"--max-rate must be within 1..240, got {args.max_rate}"
     if problem is None and not 0 <= args.port <= 65535:
         problem = f"--port must be within 0..65535, got {args.port}"
@@ -261,13 +261,8 @@ def run(args: argparse.Namespace) -> int:
     if problem is None and token is None and not is_loopback_host(args.host):
         problem = (f"refusing to serve on {args.host}: beyond loopback the page needs a token "
                    f"(--token-file FILE; e.g. python3 -c 'import secrets; print(secrets.token_urlsafe())' > FILE)")
-    if problem:
-        print(f"cellbridge web: {problem}", file=sys.stderr)
-        return 2
-    try:
-        source = Source(args.endpoint, args.control, args.server_key, args.client_key)
-    except (ValueError, OSError) as exc:
-        print(f"cellbridge web: {exc}", file=sys.stderr)
+    source = open_source("web", args, problem)
+    if source is None:
         return 2
     view = WebView(source, SkinView(force_scale=args.force_scale), token, args.max_rate)
     try:

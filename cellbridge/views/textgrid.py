@@ -2,7 +2,7 @@
 
 A :class:`~cellbridge.views.model.Frame` and a size in characters in, rows of
 ``(char, fg_rgb, bg_rgb)`` out. Each element is a block of ``cw`` × ``ch`` characters
-coloured by its level, its label centred in it; each contact is a marker at its
+coloured by its level (its id in the corner when there is room), its label centred in it; each contact is a marker at its
 estimated position (finer than the element) with its id beside it. The layout's +y is
 drawn up, as on the web page and in Foxglove. Cells never shrink below 4×1
 characters: a skin that does not fit then grows the grid beyond the size given, and
@@ -55,12 +55,17 @@ def layout(frame: Frame, width: int, height: int) -> TextGrid:
         ink = _ink(bg)
         top = (frame.rows - 1 - cell.row) * ch
         left = cell.col * cw
+        gap_row = ch >= 3  # a blank line under each element when there is room, as the column on its right
         for r in range(ch):
             for c in range(cw):
                 # a one-character gap on the right keeps neighbouring elements apart
-                grid[top + r][left + c] = (" ", ink, bg if c < cw - 1 or cw <= MIN_W - 1 else bg0)
+                inside = c < cw - 1 and not (gap_row and r == ch - 1)
+                grid[top + r][left + c] = (" ", ink, bg if inside else bg0)
+        if gap_row and cw >= 6:  # the element's id in its corner
+            for i, chx in enumerate(str(cell.bridge)[: cw - 2]):
+                grid[top][left + i] = (chx, ink, bg)
         label = cell.label[: cw - 1]
-        r = top + (ch - 1) // 2
+        r = top + (ch - 1) // 2 if not gap_row else top + max(1, (ch - 2) // 2)
         start = left + max(0, (cw - 1 - len(label)) // 2)
         for i, chx in enumerate(label):
             grid[r][start + i] = (chx, ink, bg)

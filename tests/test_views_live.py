@@ -257,12 +257,7 @@ def test_web_page_colours_the_pressed_elements_and_labels_the_contact(live: Any,
         series = page.evaluate("cellbridge.series.slice(-10).map(p => p[1])")
         assert all(v == pytest.approx(forces[5], abs=0.05) for v in series), series
         time.sleep(0.3)
-        picture("web.png", page.screenshot())
-        # at least 30 frames a second while the skin streams at 100 Hz
-        n0, t0 = page.evaluate("cellbridge.frames"), time.monotonic()
-        time.sleep(2.0)
-        rate = (page.evaluate("cellbridge.frames") - n0) / (time.monotonic() - t0)
-        assert rate >= 30, rate
+        picture("web.png", page.screenshot())  # the frame rate is bench/bench_views.py's to measure
 
 
 def _centre(rect: dict[str, float]) -> tuple[float, float]:

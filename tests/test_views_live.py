@@ -459,3 +459,45 @@ def test_a_view_that_stops_reading_loses_its_own_messages_and_counts_them(tmp_pa
                 assert any(f"lost {sum(frame['counters']['lost'].values())}" in s for s in frame["status"])
         finally:
             client.close()
+
+
+def test_views_speak_curve_to_a_daemon_that_requires_it(tmp_path: Path) -> None:
+    """With the daemon's CURVE keys a view gets the stream (its health says so); with a key
+    the daemon does not allow it gets nothing, and the daemon counts the refusal."""
+    from foxglove_client import FoxgloveClient
+
+    from cellbridge.daemon.keys import write_keypair
+    from cellbridge.views.foxglove import TOPICS
+
+    (tmp_path / "clients").mkdir()
+    (tmp_path / "other").mkdir()
+    server_pub, server_secret = write_keypair(tmp_path, "server")
+    write_keypair(tmp_path / "clients", "arm")
+    write_keypair(tmp_path / "other", "stranger")
+    with fed_skin(tmp_path) as (pty, feeder):
+        cfg, ep = skin_config(tmp_path, pty, security={"server_secret_file": server_secret,
+                                                       "allowed_clients_dir": tmp_path / "clients"})
+        ports = {who: free_port() for who in ("arm", "stranger")}
+        secrets = {"arm": tmp_path / "clients" / "arm.key_secret", "stranger": tmp_path / "other" / "stranger.key_secret"}
+        with daemon(cfg, tmp_path / "daemon.log"), \
+                view_process(["foxglove", "--port", str(ports["arm"]), *view_args(ep), "--server-key", str(server_pub),
+                              "--client-key", str(secrets["arm"])], stdout=subprocess.PIPE) as arm, \
+                view_process(["foxglove", "--port", str(ports["stranger"]), *view_args(ep), "--server-key",
+                              str(server_pub), "--client-key", str(secrets["stranger"])], stdout=subprocess.PIPE) as other:
+            wait_line(arm)
+            wait_line(other)
+            clients = {who: FoxgloveClient(f"ws://127.0.0.1:{port}") for who, port in ports.items()}
+            try:
+                for c in clients.values():
+                    c.wait_channels([TOPICS["health"], TOPICS["elements"]])
+                    c.subscribe(TOPICS["health"])
+                    c.subscribe(TOPICS["elements"])
+                _, health = clients["arm"].next_message(
+                    TOPICS["health"], timeout=60, pred=lambda h: h.get("security", {}).get("handshakes_denied", 0) >= 1)
+                _, elements = clients["arm"].next_message(TOPICS["elements"], pred=lambda m: len(m["elements"]) == 9)
+                _, nothing = clients["stranger"].next_message(TOPICS["elements"])
+            finally:
+                for c in clients.values():
+                    c.close()
+    assert health["security"]["handshakes_accepted"] >= 2  # the allowed view's SUB and control sockets
+    assert nothing == {"elements": []}  # refused at the handshake: not one reading

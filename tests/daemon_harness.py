@@ -118,6 +118,17 @@ def _toml(v: Any) -> str:
     return repr(v)
 
 
+def stop_session(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM to the process group of ``proc`` (started with ``start_new_session``), SIGKILL after 10 s."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+
+
 @contextmanager
 def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None = None,
            preexec_fn: Callable[[], None] | None = None) -> Iterator[subprocess.Popen[bytes]]:
@@ -130,13 +141,7 @@ def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None 
     try:
         yield proc
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(5)
+        stop_session(proc)
         if stderr:
             err.close()  # type: ignore[union-attr]
 

@@ -6,11 +6,16 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench install clean help
+.PHONY: demo test bench install tools clean help
+
+# Programs the views' tests drive (tmux for `cellbridge watch`, Debian's chromium for
+# `cellbridge web`): installed with apt-get when missing and this runs as root; else their
+# tests skip and say why.
+TOOLS := tmux chromium
 
 help:
 	@echo "make demo   create .venv if missing, install, run an emulated skin and the daemon, press, show the contact"
-	@echo "make test   create .venv if missing, install cellbridge into it, run the test suite"
+	@echo "make test   create .venv if missing, install cellbridge into it (and tmux/chromium as root), run the test suite"
 	@echo "make bench  run the benchmarks in bench/ and print their tables"
 	@echo "make clean  remove .venv and build leftovers"
 
@@ -25,7 +30,17 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/cellbridge demo
 
-test: $(STAMP)
+tools:
+	@missing=""; for t in $(TOOLS); do command -v $$t >/dev/null 2>&1 || missing="$$missing $$t"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    echo "installing$$missing (apt-get) for the views' tests"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq$$missing fonts-dejavu-core >/dev/null \
+	      || echo "could not install$$missing: their tests will skip"; \
+	  else echo "missing$$missing (not root or no apt-get): their tests will skip"; fi; \
+	fi
+
+test: $(STAMP) tools
 	$(PY) -m pytest -q
 
 bench: $(STAMP)

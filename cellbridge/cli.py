@@ -28,7 +28,14 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("world", "cellbridge.emulator.process_world", "publish stimuli (contacts) to bridge processes"),
     ("press", "cellbridge.emulator.process_press", "press on a running emulated skin"),
     ("sub", "cellbridge.daemon.subscribe", "print what the daemon publishes as JSON lines"),
+    ("watch", "cellbridge.views.watch", "the skin in a terminal (works over SSH): forces, contacts, health"),
+    ("web", "cellbridge.views.web", "the skin on a web page served on loopback, live over a WebSocket"),
+    ("foxglove", "cellbridge.views.foxglove", "the skin as a Foxglove live channel (Grid, SceneUpdate, JSON)"),
     ("keys", "cellbridge.daemon.keys", "CURVE key pairs for binding the daemon beyond loopback"),
+    ("record", "cellbridge.recording.record_cli", "record what a daemon publishes into an MCAP file (Foxglove opens it)"),
+    ("replay", "cellbridge.recording.replay", "publish an MCAP recording on ZeroMQ as the daemon published it"),
+    ("info", "cellbridge.recording.info", "summarise an MCAP recording: topics, counts, duration, bridges, contacts"),
+    ("proxy", "cellbridge.proxy", "several daemons as one stream: libzmq's XSUB/XPUB proxy, CURVE as the daemon"),
 ]
 #: Process entry points 'mesh up' starts: runnable (each has its --help), not listed in the top-level --help.
 INTERNAL = {"bridge", "medium", "world"}

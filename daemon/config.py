@@ -95,6 +95,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "endpoint": Key(str, "tcp://127.0.0.1:5560", "where subscribers connect (tcp:// or ipc://)", _endpoint),
         "hwm": Key(int, 1000, "messages queued per subscriber before that subscriber loses messages",
                    _count(1, 1_000_000)),
+        "source": Key(str, "", "the daemon's name in every payload's source field (several daemons behind one "
+                      "cellbridge proxy); empty: the host name"),
         "count_drops": Key(bool, False, "true: a message any subscriber has no room for is dropped for all and "
                            "counted in health; false: only that subscriber misses it (a gap in its seq)"),
         "ipc_mode": Key(int, 0o666, "ipc:// endpoint only: permission bits of the socket file (0o666: any local "

@@ -5,7 +5,8 @@ and reads it from the event loop's reader callback, never blocking the loop: the
 is non-blocking (timeout 0), opening runs in a worker thread (a ``socket://`` connect
 may take seconds). When the device goes away (USB pulled, pty closed, peer gone) the
 link reports it and reopens with exponential backoff, forever: a robot's daemon must
-outlive its cables. ``ReplayLink`` plays a capture file back as if it were a line.
+outlive its cables. ``ReplayLink`` plays a capture file or an MCAP recording's serial
+channel back as if it were a line.
 
 A ``SerialLink`` takes its device from an *opener* and its time and waits from a
 :class:`Clock`, so tests run it on a fake device and a fake clock: unplugged and
@@ -23,7 +24,8 @@ from typing import Protocol
 import serial
 import serial.serialposix
 
-from cellbridge.daemon.capture import CaptureWriter, read_capture
+from cellbridge.daemon.capture import CaptureWriter
+from cellbridge.daemon.replay_source import read_records
 from cellbridge.daemon.config import LinkConfig
 
 DataCallback = Callable[[str, bytes, float], None]
@@ -247,7 +249,7 @@ class ReplayLink(Link):
 
     async def run(self) -> None:
         try:
-            records = read_capture(self.path)
+            records = read_records(self.path, self.name)
             first = next(records, None)
         except (OSError, ValueError) as exc:
             self._on_state(self.name, False, f"replay failed: {exc}")

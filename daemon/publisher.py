@@ -9,11 +9,19 @@ per-topic ``seq`` so each subscriber can count its own gaps. What the daemon its
 could not hand to ZeroMQ is counted here (``dropped``): with ``strict`` (config
 ``pub.count_drops``) a message is refused when *any* subscriber's queue is full, so
 every drop is counted exactly, at the price of that message missing for everyone.
+
+Every payload names its daemon (``source``, config ``pub.source``, default the host
+name), added here where messages are serialised, so that several daemons behind one
+``cellbridge proxy`` read as one stream a subscriber can still tell apart. The
+``serial`` topic carries each link read's bytes exactly as read (the daemon's capture
+stream), so a recorder can keep them and the whole pipeline can be re-run later; like
+every topic it costs nothing while nobody subscribes to it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import socket
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
@@ -23,7 +31,7 @@ import numpy as np
 import zmq
 import zmq.asyncio
 
-TOPICS = ("contact", "element", "raw", "health", "topology")
+TOPICS = ("contact", "element", "raw", "health", "topology", "serial")
 
 
 _TOPIC_BYTES = tuple(t.encode() for t in TOPICS)
@@ -42,13 +50,20 @@ def _default(obj: Any) -> Any:
     raise TypeError(f"cannot pack {type(obj).__name__}")
 
 
+def default_source() -> str:
+    """The host name: what ``source`` says when the config does not name the daemon."""
+    return socket.gethostname()
+
+
 def pack(payload: dict[str, Any]) -> bytes:
     return msgpack.packb(payload, use_bin_type=True, default=_default)
 
 
 class Publisher:
-    def __init__(self, ctx: zmq.asyncio.Context, endpoint: str, hwm: int, strict: bool = False) -> None:
+    def __init__(self, ctx: zmq.asyncio.Context, endpoint: str, hwm: int, strict: bool = False,
+                 source: str = "") -> None:
         self.endpoint = endpoint
+        self.source = source or default_source()
         self.sock = ctx.socket(zmq.XPUB)
         self.sock.setsockopt(zmq.SNDHWM, hwm)
         if strict:
@@ -62,16 +77,25 @@ class Publisher:
         self.sent: Counter[str] = Counter()
         self.dropped: Counter[str] = Counter()
         self.on_wanted: Callable[[set[str]], None] | None = None
+        self._serial_seq = 0
 
     def bind(self) -> None:
         self.sock.bind(self.endpoint)
 
     def publish(self, topic: str, payload: dict[str, Any]) -> None:
+        payload["source"] = self.source
         try:
             self._raw.send_multipart([topic.encode(), pack(payload)], zmq.NOBLOCK)
             self.sent[topic] += 1
         except zmq.Again:
             self.dropped[topic] += 1
+
+    def serial(self, link: str, data: bytes, now: float) -> None:
+        """One link read on topic ``serial`` (``link``, ``t_host`` = its arrival, ``data``), if wanted."""
+        if "serial" in self.wanted:
+            self.publish("serial", {"v": 1, "seq": self._serial_seq, "t_host": now, "t_bridge": None,
+                                    "link": link, "data": data})
+            self._serial_seq += 1
 
     async def watch_subscriptions(self) -> None:
         """Keep :attr:`wanted` (topics some subscriber asked for) up to date; count the

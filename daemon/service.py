@@ -97,6 +97,7 @@ class Service:
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
         t0 = time.perf_counter()
+        self.pub.serial(link, data, now + self.pipeline.wall_offset)  # published: wall-clock time
         p = self.pipeline
         try:
             self._act(p.feed(link, data, now))
@@ -270,7 +271,7 @@ class Service:
     # -- lifecycle ----------------------------------------------------------------------
     def _bind(self, ctx: zmq.asyncio.Context) -> None:
         c = self.config
-        self.pub = Publisher(ctx, c["pub"]["endpoint"], c["pub"]["hwm"], c["pub"]["count_drops"])
+        self.pub = Publisher(ctx, c["pub"]["endpoint"], c["pub"]["hwm"], c["pub"]["count_drops"], c["pub"]["source"])
         self.ctl = ctx.socket(zmq.ROUTER)
         self.ctl.setsockopt(zmq.LINGER, 500)
         self.control = ControlServer(self.ctl, self, self.log)

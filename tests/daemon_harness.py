@@ -118,6 +118,17 @@ def _toml(v: Any) -> str:
     return repr(v)
 
 
+def stop_session(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM to the process group of ``proc`` (started with ``start_new_session``), SIGKILL after 10 s."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+
+
 @contextmanager
 def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None = None,
            preexec_fn: Callable[[], None] | None = None) -> Iterator[subprocess.Popen[bytes]]:
@@ -130,13 +141,7 @@ def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None 
     try:
         yield proc
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(5)
+        stop_session(proc)
         if stderr:
             err.close()  # type: ignore[union-attr]
 
@@ -184,6 +189,19 @@ class Client:
         """Until the daemon answers ping and this subscriber gets messages (joined)."""
         self.request({"v": 1, "cmd": "ping"}, timeout)
         self.wait_for("health", timeout=timeout)
+
+    def until_exit(self, proc: subprocess.Popen[bytes], timeout: float = 30.0) -> list[tuple[str, dict[str, Any]]]:
+        """Every message until ``proc`` (a daemon with ``exit_when_done``) exits by itself, cleanly."""
+        messages = []
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            got = self.recv(0.5)
+            if got is not None:
+                messages.append(got)
+            elif proc.poll() is not None:
+                break
+        assert proc.wait(10) == 0  # exit_when_done: it stops by itself, cleanly
+        return messages
 
     def close(self) -> None:
         self.ctx.destroy(linger=0)

@@ -49,17 +49,9 @@ def test_daemon_replaying_the_capture_publishes_the_golden_output(tmp_path: Path
     cfg.write_text(f'[pub]\nendpoint = "{endpoints["pub"]}"\n[control]\nendpoint = "{endpoints["control"]}"\n'
                    + text)
     client = Client(endpoints, (b"element", b"contact"))
-    messages = []
     try:
         with daemon(cfg, tmp_path / "err.log") as proc:
-            end = time.monotonic() + 30
-            while time.monotonic() < end:
-                got = client.recv(0.5)
-                if got is not None:
-                    messages.append(got)
-                elif proc.poll() is not None:
-                    break
-            assert proc.wait(10) == 0  # exit_when_done: it stops by itself, cleanly
+            messages = client.until_exit(proc)
     finally:
         client.close()
     got = normalise(messages)

@@ -1,0 +1,1 @@
+"""Recordings of the daemon's topics in MCAP: record, replay, info."""

@@ -1,0 +1,159 @@
+"""``cellbridge record OUT.mcap``: subscribe to a daemon, keep its messages in MCAP.
+
+The shell around :class:`cellbridge.recording.recorder.Recorder`: one SUB socket, the
+signals, and a line of counters at the end. SIGINT and SIGTERM finish the file (summary
+and index) and exit 0; a failed write (disk full) is reported and exits 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import socket
+import sys
+import time
+from pathlib import Path
+
+import zmq
+
+from cellbridge._version import __version__
+from cellbridge.daemon.security import apply_client
+from cellbridge.recording.mcapfile import RecordingWriter
+from cellbridge.recording.recorder import Recorder
+
+DEFAULT_PUB = "tcp://127.0.0.1:5560"
+ALL_TOPICS = ("contact", "element", "raw", "health", "topology", "serial")
+DEFAULT_TOPICS = ("contact", "element", "health", "topology")
+
+
+def add_curve_client_arguments(parser: argparse.ArgumentParser, what: str = "the daemon") -> None:
+    parser.add_argument("--server-key", type=Path, metavar="FILE",
+                        help=f"{what}'s public key file (NAME.key) when it runs with CURVE")
+    parser.add_argument("--client-key", type=Path, metavar="FILE",
+                        help=f"this client's secret key file (NAME.key_secret); its NAME.key must be allowed by {what}")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.description = (
+        "Subscribe to a daemon and write what it publishes into an MCAP file (JSON messages\n"
+        "with JSON Schemas: Foxglove opens it), chunked and zstd-compressed. Log time is each\n"
+        "message's t_host, publish time when it was received. Ctrl-C or SIGTERM finish the file;\n"
+        "a recorder killed outright leaves a file readable up to its last whole chunk\n"
+        "(chunks are finished every --chunk-seconds). A full disk stops the recording with a\n"
+        "message and exit status 1; the daemon is not affected.\n\n"
+        "Topics: contact, element, raw, health, topology, and serial (each gateway read's bytes:\n"
+        "a daemon can later be run on them, link url replay:FILE.mcap). Default: all but raw\n"
+        "and serial.\n\n"
+        "examples:\n"
+        "  cellbridge record skin.mcap                       # contact, element, health, topology\n"
+        "  cellbridge record skin.mcap --serial              # ... and the gateway lines' bytes\n"
+        "  cellbridge record skin.mcap --topics contact      # contacts only\n"
+        "  cellbridge record skin.mcap --rotate-size 500     # skin-0000.mcap, skin-0001.mcap, ... of 500 MB\n"
+        "  cellbridge record skin.mcap --rotate-minutes 60   # a file an hour"
+    )
+    parser.add_argument("out", type=Path, metavar="OUT.mcap", help="file to write (with rotation: OUT-NNNN.mcap)")
+    parser.add_argument("--endpoint", default=DEFAULT_PUB, help=f"daemon's PUB endpoint (default: {DEFAULT_PUB})")
+    parser.add_argument("--topics", default=",".join(DEFAULT_TOPICS),
+                        help=f"comma-separated topics, or 'all' (default: {','.join(DEFAULT_TOPICS)})")
+    parser.add_argument("--raw", action="store_true", help="also record the raw topic")
+    parser.add_argument("--serial", action="store_true", help="also record the gateway lines' bytes (serial)")
+    parser.add_argument("--rotate-size", type=float, default=0.0, metavar="MB",
+                        help="start a new file when the current one reaches this size (default: never)")
+    parser.add_argument("--rotate-minutes", type=float, default=0.0, metavar="MIN",
+                        help="start a new file after this many minutes (default: never)")
+    parser.add_argument("--chunk-size", type=float, default=1.0, metavar="MB",
+                        help="uncompressed chunk size (default: 1 MB)")
+    parser.add_argument("--chunk-seconds", type=float, default=1.0, metavar="S",
+                        help="finish a chunk at least this often: the most a kill can lose (default: 1 s)")
+    parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
+                        help="chunk compression (default: zstd)")
+    parser.add_argument("--no-fsync", action="store_true",
+                        help="do not fsync on each chunk (faster; a power loss may lose more than a chunk)")
+    parser.add_argument("--count", type=int, default=0, metavar="N", help="stop after N messages")
+    parser.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds")
+    add_curve_client_arguments(parser)
+
+
+def topics_of(args: argparse.Namespace) -> list[str]:
+    names = ALL_TOPICS if args.topics == "all" else [t.strip() for t in args.topics.split(",") if t.strip()]
+    unknown = [t for t in names if t not in ALL_TOPICS]
+    if unknown:
+        raise ValueError(f"unknown topic {unknown[0]!r} (known: {', '.join(ALL_TOPICS)}, or all)")
+    out = list(dict.fromkeys([*names, *(["raw"] if args.raw else []), *(["serial"] if args.serial else [])]))
+    if not out:
+        raise ValueError("no topic to record")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    if (args.server_key is None) != (args.client_key is None):
+        print("cellbridge record: --server-key and --client-key go together (CURVE needs both)", file=sys.stderr)
+        return 2
+    try:
+        topics = topics_of(args)
+    except ValueError as exc:
+        print(f"cellbridge record: {exc}", file=sys.stderr)
+        return 2
+    if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds, args.count, args.duration) < 0 \
+            or args.chunk_size <= 0:
+        print("cellbridge record: sizes, times and counts must not be negative", file=sys.stderr)
+        return 2
+    meta = {"endpoint": args.endpoint, "topics": ",".join(topics), "recorder_host": socket.gethostname(),
+            "cellbridge_version": __version__, "started": f"{time.time():.6f}"}
+
+    def opener(path: Path) -> RecordingWriter:
+        return RecordingWriter(path, chunk_size=int(args.chunk_size * 1e6), compression=args.compression,
+                               fsync=not args.no_fsync, metadata=meta)
+
+    rec = Recorder(args.out, opener, rotate_bytes=int(args.rotate_size * 1e6),
+                   rotate_seconds=args.rotate_minutes * 60, chunk_seconds=args.chunk_seconds)
+    stop = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.append(True))
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.SUB)
+    sock.linger = 0
+    sock.rcvhwm = 100_000  # a slow disk moment must not cost messages
+    try:
+        if args.server_key is not None:
+            apply_client(sock, args.server_key, args.client_key)
+        for t in topics:
+            sock.subscribe(t)
+        sock.connect(args.endpoint)
+        end = time.monotonic() + args.duration if args.duration else None
+        total = 0
+        while not stop and not rec.stopped and (not args.count or total < args.count):
+            if end is not None and time.monotonic() >= end:
+                break
+            if sock.poll(100):
+                while True:  # drain what is queued before looking at the clock again
+                    try:
+                        parts = sock.recv_multipart(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                    now = time.time()
+                    total += 1
+                    if len(parts) != 2:
+                        rec.malformed += 1
+                    else:
+                        rec.feed(parts[0].decode("ascii", "replace"), parts[1], now)
+                    if rec.stopped or (args.count and total >= args.count):
+                        break
+            rec.tick(time.time())
+    except ValueError as exc:
+        print(f"cellbridge record: {exc}", file=sys.stderr)
+        return 2
+    except zmq.ZMQError as exc:
+        print(f"cellbridge record: {args.endpoint}: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        sock.close()
+        ctx.term()
+        rec.close()
+        print(json.dumps(rec.stats()), file=sys.stderr)
+    if rec.error:
+        print(f"cellbridge record: {rec.error}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,137 @@
+"""The recorder's core: daemon messages in, MCAP files out, rotated, nothing lost silently.
+
+Fed ``(topic, msgpack payload, receive time)`` by a shell (``cellbridge record``), it
+writes each as a JSON message (log time = the payload's ``t_host``, publish time = when
+it was received, sequence = its ``seq``) into the current file, opens the next file when
+the current one reaches ``rotate_bytes`` or ``rotate_seconds``, and finishes the chunk in
+progress every ``chunk_seconds`` so a kill loses at most that much.
+
+A write that fails (disk full, I/O error) stops the recording: the error is kept in
+:attr:`error`, the file keeps its whole chunks, later messages are counted in
+:attr:`dropped`. It never raises into the shell: whatever happens to the disk, the
+recorder says what and the daemon it listens to is untouched (it is another process).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from cellbridge.recording import codec
+from cellbridge.recording.mcapfile import RecordingWriter
+
+Opener = Callable[[Path], RecordingWriter]
+
+
+def rotated_path(out: Path, index: int) -> Path:
+    """``skin.mcap`` → ``skin-0000.mcap``, ``skin-0001.mcap``, ... (rotation on)."""
+    return out.with_name(f"{out.stem}-{index:04d}{out.suffix or '.mcap'}")
+
+
+class Recorder:
+    def __init__(self, out: str | Path, opener: Opener, *, rotate_bytes: int = 0, rotate_seconds: float = 0.0,
+                 chunk_seconds: float = 1.0) -> None:
+        self.out = Path(out)
+        self._open = opener
+        self.rotate_bytes = rotate_bytes
+        self.rotate_seconds = rotate_seconds
+        self.chunk_seconds = chunk_seconds
+        self.writer: RecordingWriter | None = None
+        self.files: list[Path] = []
+        self._opened_at = 0.0
+        self._flushed_at = 0.0
+        self.recorded: Counter[str] = Counter()
+        self.malformed = 0  # messages that were not [topic, msgpack map]: skipped, counted
+        self.dropped = 0  # messages received after the recording stopped on an error
+        self.error = ""
+
+    @property
+    def rotating(self) -> bool:
+        return self.rotate_bytes > 0 or self.rotate_seconds > 0
+
+    @property
+    def stopped(self) -> bool:
+        return bool(self.error)
+
+    def _guard(self, op: Callable[[], Any]) -> bool:
+        try:
+            op()
+            return True
+        except OSError as exc:
+            self._fail(exc)
+            return False
+
+    def _fail(self, exc: OSError) -> None:
+        where = self.writer.path if self.writer is not None else self.out
+        self.error = f"{where}: {exc.strerror or exc}; recording stopped (the file keeps its whole chunks)"
+        if self.writer is not None:
+            try:
+                self.writer.abandon()
+            except OSError:
+                pass
+        self.writer = None
+
+    def _next_file(self, now: float) -> bool:
+        if self.writer is not None and not self._guard(self.writer.finish):
+            return False
+        path = rotated_path(self.out, len(self.files)) if self.rotating else self.out
+        try:
+            self.writer = self._open(path)
+        except OSError as exc:
+            self._fail(exc)
+            return False
+        self.files.append(path)
+        self._opened_at = self._flushed_at = now
+        return True
+
+    def feed(self, topic: str, payload: bytes, now: float) -> None:
+        """One message as received from the daemon at host time ``now`` (s, epoch)."""
+        if self.stopped:
+            self.dropped += 1
+            return
+        try:
+            p = codec.from_msgpack(payload)
+            data = codec.encode(topic, p)
+        except (ValueError, TypeError):
+            self.malformed += 1
+            return
+        w = self.writer
+        if w is None or (self.rotate_bytes and w.size >= self.rotate_bytes) or \
+                (self.rotate_seconds and now - self._opened_at >= self.rotate_seconds):
+            if not self._next_file(now):
+                self.dropped += 1
+                return
+            w = self.writer
+        assert w is not None
+        t_host = p.get("t_host")
+        log_ns = int(t_host * 1e9) if isinstance(t_host, (int, float)) and t_host == t_host and t_host > 0 \
+            else int(now * 1e9)
+        seq = p.get("seq")
+        if self._guard(lambda: w.add(topic, data, log_ns, int(now * 1e9), seq if isinstance(seq, int) else 0)):
+            self.recorded[topic] += 1
+        else:
+            self.dropped += 1
+        self.tick(now)
+
+    def tick(self, now: float) -> None:
+        """Finish the chunk in progress if it is ``chunk_seconds`` old (call also when idle)."""
+        if self.writer is not None and self.chunk_seconds > 0 and now - self._flushed_at >= self.chunk_seconds:
+            self._flushed_at = now
+            self._guard(self.writer.flush)
+
+    def close(self) -> None:
+        """Finish the current file (summary and index): a viewer opens it at once."""
+        if self.writer is not None:
+            w, self.writer = self.writer, None
+            try:
+                w.finish()
+            except OSError as exc:
+                self.writer = w
+                self._fail(exc)
+
+    def stats(self) -> dict[str, Any]:
+        return {"recorded": dict(self.recorded), "messages": sum(self.recorded.values()),
+                "malformed": self.malformed, "dropped": self.dropped, "files": [str(f) for f in self.files],
+                "error": self.error}

@@ -1,0 +1,140 @@
+"""``cellbridge replay IN.mcap``: a recording back onto ZeroMQ, as the daemon published it.
+
+Each recorded message is sent as the daemon sent it: multipart ``[topic, msgpack
+payload]``, the very payload (:mod:`cellbridge.recording.codec` is lossless), in the
+order it was received, at its recorded time offsets (publish times) scaled by ``--rate``,
+or as fast as possible. A subscriber cannot tell the replay from the daemon, except by
+the clock: the payloads' ``t_host`` are the recorded ones.
+
+:class:`Pacer` is the timing core (recorded offsets in, due times out); the shell sleeps
+until each due time and sends.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+import zmq
+
+from cellbridge.recording import codec
+from cellbridge.recording.mcapfile import ReadResult, read_messages
+
+DEFAULT_PUB = "tcp://127.0.0.1:5560"
+SPIN = 0.001  #: s before a message is due that the replay waits awake (timing within a millisecond)
+
+
+class Pacer:
+    """When to send each message: ``start + (t - t_first) / rate``; rate 0: at once."""
+
+    def __init__(self, rate: float) -> None:
+        if rate < 0:
+            raise ValueError("rate must be >= 0 (0: as fast as possible)")
+        self.rate = rate
+        self._first: float | None = None
+        self._start = 0.0
+
+    def due(self, recorded: float, now: float) -> float:
+        """Host time (monotonic) at which the message recorded at ``recorded`` (s) goes out."""
+        if self._first is None:
+            self._first, self._start = recorded, now
+        if self.rate == 0:
+            return now
+        return self._start + (recorded - self._first) / self.rate
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.description = (
+        "Publish a recording (cellbridge record) on a ZeroMQ PUB socket exactly as the daemon\n"
+        "published it: same topics, same payloads, same order, at the recorded timing (or\n"
+        "--rate times it, or --fast). Subscribers (cellbridge sub, watch, the examples) connect\n"
+        "to it as to a daemon.\n\n"
+        "examples:\n"
+        "  cellbridge replay skin.mcap                          # real time on tcp://127.0.0.1:5560\n"
+        "  cellbridge replay skin.mcap --rate 10 --topics contact\n"
+        "  cellbridge replay skin.mcap --fast --wait-subscriber # flat out, once someone listens"
+    )
+    parser.add_argument("inputs", type=Path, nargs="+", metavar="IN.mcap", help="recording(s), played in order")
+    parser.add_argument("--endpoint", default=DEFAULT_PUB, help=f"PUB endpoint to bind (default: {DEFAULT_PUB})")
+    parser.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1: recorded timing)")
+    parser.add_argument("--fast", action="store_true", help="as fast as possible (same as --rate 0)")
+    parser.add_argument("--topics", default="", help="comma-separated topics to replay (default: all recorded)")
+    parser.add_argument("--wait-subscriber", action="store_true",
+                        help="start once a subscriber has subscribed (nothing is lost to a slow connect)")
+    parser.add_argument("--hwm", type=int, default=100_000, help="messages queued per subscriber (default 100000)")
+
+
+def run(args: argparse.Namespace) -> int:
+    rate = 0.0 if args.fast else args.rate
+    try:
+        pacer = Pacer(rate)
+    except ValueError as exc:
+        print(f"cellbridge replay: {exc}", file=sys.stderr)
+        return 2
+    for p in args.inputs:
+        if not p.is_file():
+            print(f"cellbridge replay: {p}: no such file", file=sys.stderr)
+            return 2
+    topics = {t.strip() for t in args.topics.split(",") if t.strip()} or None
+    stop: list[bool] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.append(True))
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.XPUB)
+    sock.sndhwm = args.hwm
+    sock.linger = 2000
+    sent = 0
+    notes: list[str] = []
+    try:
+        sock.bind(args.endpoint)
+        if args.wait_subscriber:
+            while not stop:
+                if sock.poll(100) and sock.recv()[:1] == b"\x01":
+                    break
+        gc.disable()  # decoded payloads hold no cycles; a collection would only delay a message
+        t0 = time.monotonic()
+        for path in args.inputs:
+            result = ReadResult()
+            for m in read_messages(path, result, topics):
+                if stop:
+                    break
+                payload = codec.to_msgpack(codec.decode(m.topic, m.data))
+                due = pacer.due(m.publish_ns * 1e-9, time.monotonic())
+                while not stop:
+                    wait = due - time.monotonic()
+                    if wait <= 0:
+                        break
+                    if wait > SPIN:  # sleep to just before it is due, then spin: wake-ups are late
+                        time.sleep(min(wait - SPIN, 0.1))
+                        _drain_subscriptions(sock)
+                sock.send_multipart([m.topic.encode(), payload])
+                sent += 1
+            if not result.complete:
+                notes.append(result.error)
+        elapsed = time.monotonic() - t0
+    except ValueError as exc:
+        print(f"cellbridge replay: {exc}", file=sys.stderr)
+        return 2
+    except zmq.ZMQError as exc:
+        print(f"cellbridge replay: {args.endpoint}: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        sock.close()
+        ctx.term()
+    print(json.dumps({"sent": sent, "seconds": round(elapsed, 3), "incomplete": notes}), file=sys.stderr)
+    return 0
+
+
+def _drain_subscriptions(sock: zmq.Socket) -> None:
+    """An XPUB reports (un)subscriptions; read them so they never pile up."""
+    try:
+        while True:
+            sock.recv(zmq.NOBLOCK)
+    except zmq.Again:
+        pass

@@ -1,0 +1,159 @@
+"""The views' thin ZeroMQ shell: a SUB socket on the daemon's PUB, a DEALER on its control.
+
+Every view is a subscriber like any other (``docs/zmq-api.md``): it never slows the
+daemon. Its receive queue is bounded (``RCVHWM``, ``RCVBUF``); a view that falls behind loses
+messages inside ZeroMQ, sees them as gaps in ``seq`` and shows the count
+(:attr:`SkinView.lost`). ZeroMQ reconnects by itself when the daemon restarts; the
+model notices the restart (sequence numbers start again) and asks for the layout anew.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import zmq
+
+from cellbridge.daemon.security import apply_client
+from cellbridge.views.model import TOPICS, SkinView
+
+DEFAULT_PUB = "tcp://127.0.0.1:5560"
+DEFAULT_CONTROL = "tcp://127.0.0.1:5561"
+# A view draws the newest state: a backlog would only show the past late. So at most
+# RCVHWM messages wait inside ZeroMQ and RCVBUF bytes in the kernel (about a second of a
+# 16×16 skin at 100 Hz); beyond that the view loses messages, and counts them.
+RCVHWM = 200
+RCVBUF = 1 << 20
+TOPOLOGY_RETRY = 1.0  # s between layout requests while the layout is unknown
+
+
+def add_source_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options every view shares: where the daemon is, its CURVE keys, colour scale."""
+    g = parser.add_argument_group("daemon")
+    g.add_argument("--endpoint", default=DEFAULT_PUB, help=f"the daemon's PUB endpoint (default: {DEFAULT_PUB})")
+    g.add_argument("--control", default=DEFAULT_CONTROL,
+                   help=f"the daemon's control endpoint, for the layout and tare (default: {DEFAULT_CONTROL})")
+    g.add_argument("--server-key", type=Path, metavar="FILE",
+                   help="the daemon's public key file (NAME.key) when it runs with CURVE")
+    g.add_argument("--client-key", type=Path, metavar="FILE",
+                   help="this client's secret key file (NAME.key_secret); its NAME.key must be allowed")
+    g.add_argument("--force-scale", type=float, default=5.0, metavar="N",
+                   help="force drawn at full colour, newtons (default: 5)")
+
+
+def check_source_arguments(args: argparse.Namespace) -> str | None:
+    """A sentence saying what is wrong with the shared options, or None."""
+    if (args.server_key is None) != (args.client_key is None):
+        return "--server-key and --client-key go together (CURVE needs both)"
+    if not args.force_scale > 0:
+        return f"--force-scale must be > 0, got {args.force_scale}"
+    return None
+
+
+def open_source(command: str, args: argparse.Namespace, problem: str | None) -> Source | None:
+    """The view's :class:`Source`, or None after saying on stderr why not: ``problem``
+    (the view's own option checks), a bad shared option, or a bad key file."""
+    problem = check_source_arguments(args) or problem
+    if problem is None:
+        try:
+            return Source(args.endpoint, args.control, args.server_key, args.client_key)
+        except (ValueError, OSError) as exc:
+            problem = str(exc)
+    print(f"cellbridge {command}: {problem}", file=sys.stderr)
+    return None
+
+
+class Source:
+    """The daemon's stream, drained into a :class:`SkinView` without blocking."""
+
+    def __init__(self, endpoint: str, control: str, server_key: Path | None = None,
+                 client_key: Path | None = None, topics: tuple[str, ...] = TOPICS) -> None:
+        self.context = zmq.Context()
+        self.sub = self.context.socket(zmq.SUB)
+        self.ctl = self.context.socket(zmq.DEALER)
+        for s in (self.sub, self.ctl):
+            s.linger = 0
+            if server_key is not None and client_key is not None:
+                apply_client(s, server_key, client_key)
+        self.sub.rcvhwm = RCVHWM
+        self.sub.rcvbuf = RCVBUF
+        for t in topics:
+            self.sub.subscribe(t)
+        self.sub.connect(endpoint)
+        self.ctl.connect(control)
+        self.poller = zmq.Poller()
+        self.poller.register(self.sub, zmq.POLLIN)
+        self.poller.register(self.ctl, zmq.POLLIN)
+        self._next_id = 0
+        self._pending: dict[int, str] = {}
+        self._topology_at = -1e9
+        self.notice = ""  # the last control reply worth showing ("tare: 16 elements")
+
+    def poll(self, timeout_ms: int) -> bool:
+        """Whether something is waiting (blocks up to ``timeout_ms``)."""
+        return bool(self.poller.poll(timeout_ms))
+
+    def drain(self, model: SkinView, max_messages: int = 100_000) -> int:
+        """Feed every waiting message to ``model``; returns how many. Also asks for the
+        layout when the model needs it and handles control replies."""
+        n = 0
+        now = time.monotonic()
+        while n < max_messages:
+            try:
+                parts = self.sub.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            n += 1
+            if len(parts) != 2:
+                model.feed_malformed(now)
+                continue
+            try:
+                payload = msgpack.unpackb(parts[1], raw=False, strict_map_key=False)
+            except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
+                model.feed_malformed(now)
+                continue
+            model.feed(parts[0].decode("ascii", "replace"), payload, now)
+        self._replies(model)
+        if model.needs_topology and now - self._topology_at >= TOPOLOGY_RETRY:
+            self._topology_at = now
+            self.request({"v": 1, "cmd": "topology"})
+        return n
+
+    def request(self, body: dict[str, Any]) -> None:
+        """Send a control request; its reply is taken in a later :meth:`drain`."""
+        self._next_id += 1
+        body = dict(body, id=self._next_id)
+        self._pending[self._next_id] = str(body.get("cmd"))
+        if len(self._pending) > 16:  # a daemon that never answers: forget the oldest
+            self._pending.pop(next(iter(self._pending)))
+        try:
+            self.ctl.send(msgpack.packb(body), zmq.NOBLOCK)
+        except zmq.Again:
+            self.notice = f"{body.get('cmd')}: the daemon's control socket is not reachable"
+
+    def _replies(self, model: SkinView) -> None:
+        while True:
+            try:
+                frames = self.ctl.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            try:
+                reply = msgpack.unpackb(frames[-1], raw=False, strict_map_key=False)
+            except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
+                continue
+            if not isinstance(reply, dict):
+                continue
+            cmd = self._pending.pop(reply.get("id"), None) if isinstance(reply.get("id"), int) else None
+            if cmd == "topology" and reply.get("ok"):
+                model.feed_topology(reply)
+            elif cmd == "tare":
+                self.notice = (f"tare: {reply.get('tared_elements')} elements re-baselining"
+                               if reply.get("ok") else f"tare refused: {reply.get('error')}")
+                model.changed = True
+
+    def close(self) -> None:
+        self.context.destroy(linger=0)

@@ -1,0 +1,84 @@
+"""The skin as a grid of character cells: pure layout for the terminal view.
+
+A :class:`~cellbridge.views.model.Frame` and a size in characters in, rows of
+``(char, fg_rgb, bg_rgb)`` out. Each element is a block of ``cw`` × ``ch`` characters
+coloured by its level (its id in the corner when there is room), its label centred in it; each contact is a marker at its
+estimated position (finer than the element) with its id beside it. The layout's +y is
+drawn up, as on the web page and in Foxglove. Cells never shrink below 4×1
+characters: a skin that does not fit then grows the grid beyond the size given, and
+the terminal view scrolls it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from cellbridge.views.model import Frame, level_rgb
+
+RGB = tuple[int, int, int]
+MIN_W, MIN_H = 4, 1
+MAX_W, MAX_H = 20, 8
+
+
+@dataclass
+class TextGrid:
+    cw: int  # characters per element, across
+    ch: int  # rows per element
+    rows: list[list[tuple[str, RGB, RGB]]]
+
+    def text(self) -> list[str]:
+        return ["".join(c for c, _, _ in row) for row in self.rows]
+
+
+def _ink(bg: RGB) -> RGB:
+    """Black or white text, whichever reads on ``bg``."""
+    lum = 0.299 * bg[0] + 0.587 * bg[1] + 0.114 * bg[2]
+    return (0, 0, 0) if lum > 140 else (255, 255, 255)
+
+
+def cell_size(rows: int, cols: int, width: int, height: int) -> tuple[int, int]:
+    """(cw, ch): as large as fits, about twice as wide as tall (a terminal character is tall)."""
+    if rows <= 0 or cols <= 0:
+        return MIN_W, MIN_H
+    ch = max(MIN_H, min(MAX_H, height // rows))
+    cw = max(MIN_W, min(MAX_W, width // cols, 2 * ch + 4))
+    return cw, ch
+
+
+def layout(frame: Frame, width: int, height: int) -> TextGrid:
+    cw, ch = cell_size(frame.rows, frame.cols, width, height)
+    bg0: RGB = (0, 0, 0)
+    grid = [[(" ", (200, 200, 200), bg0) for _ in range(frame.cols * cw)] for _ in range(frame.rows * ch)]
+    for cell in frame.cells:
+        bg = level_rgb(cell.level)
+        ink = _ink(bg)
+        top = (frame.rows - 1 - cell.row) * ch
+        left = cell.col * cw
+        gap_row = ch >= 3  # a blank line under each element when there is room, as the column on its right
+        for r in range(ch):
+            for c in range(cw):
+                # a one-character gap on the right keeps neighbouring elements apart
+                inside = c < cw - 1 and not (gap_row and r == ch - 1)
+                grid[top + r][left + c] = (" ", ink, bg if inside else bg0)
+        if gap_row and cw >= 6:  # the element's id in its corner
+            for i, chx in enumerate(str(cell.bridge)[: cw - 2]):
+                grid[top][left + i] = (chx, ink, bg)
+        label = cell.label[: cw - 1]
+        r = top + (ch - 1) // 2 if not gap_row else top + max(1, (ch - 2) // 2)
+        start = left + max(0, (cw - 1 - len(label)) // 2)
+        for i, chx in enumerate(label):
+            grid[r][start + i] = (chx, ink, bg)
+    for con in frame.contacts:
+        if not (math.isfinite(con.col) and math.isfinite(con.row)):
+            continue
+        c = min(frame.cols * cw - 1, max(0, int(con.col * cw)))
+        r = min(frame.rows * ch - 1, max(0, int((frame.rows - con.row) * ch)))
+        ox, oy = con.observable
+        mark = "●" if ox and oy else ("↔" if oy else ("↕" if ox else "✚"))
+        text = mark + str(con.id)
+        for i, chx in enumerate(text):
+            if c + i < len(grid[r]):
+                _, _, bg = grid[r][c + i]
+                grid[r][c + i] = (chx, (255, 255, 255) if i == 0 else _ink(bg), bg)
+    return TextGrid(cw, ch, grid)

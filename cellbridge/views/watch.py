@@ -1,0 +1,214 @@
+"""``cellbridge watch``: the skin in a terminal, over SSH too (Textual).
+
+A full-screen view of what the daemon publishes: the element grid coloured by force
+(by ΔC1 while no element has a force yet, e.g. before calibration ends), each contact
+marked at its estimated position with its id, a line per contact (position, force,
+diameter; an axis the readings do not determine is shown as unresolved), and the
+mesh's health. Drawing happens at most ``--fps`` times a second on the newest state,
+whatever the rate of the skin; messages are all read (and counted) in between.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+from cellbridge.views.model import SkinView
+from cellbridge.views.source import Source, add_source_arguments, open_source
+
+KEYS = "q quit  p pause  t tare  +/- force scale"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.description = (
+        "A full-screen terminal view of a running daemon: the skin's elements coloured by\n"
+        "force, each contact at its estimated position (finer than an element) with its\n"
+        "id, force and diameter, and the mesh's health. Works over SSH in 80x24; a larger\n"
+        "skin scrolls (arrow keys / mouse wheel).\n\n"
+        "keys:\n"
+        "  q        quit\n"
+        "  p        pause the display (messages are still read and counted)\n"
+        "  t        tare: re-take every element's baseline (asks for confirmation: y / n)\n"
+        "  + / -    force at full colour x2 / /2\n\n"
+        "examples:\n"
+        "  cellbridge watch\n"
+        "  ssh robot -t cellbridge watch\n"
+        "  cellbridge watch --endpoint tcp://robot:5560 --control tcp://robot:5561 \\\n"
+        "      --server-key server.key --client-key me.key_secret"
+    )
+    add_source_arguments(parser)
+    parser.add_argument("--fps", type=float, default=30.0,
+                        help="most screen refreshes a second (default: 30)")
+
+
+def run(args: argparse.Namespace) -> int:
+    problem = None
+    if not 1 <= args.fps <= 120:
+        problem = f"--fps must be within 1..120, got {args.fps}"
+    elif not sys.stdout.isatty():
+        problem = "needs a terminal (for JSON lines use 'cellbridge sub')"
+    source = open_source("watch", args, problem)
+    if source is None:
+        return 2
+    try:
+        app = _make_app(source, SkinView(force_scale=args.force_scale), args.fps, args.endpoint)
+        app.run()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        source.close()
+    return 0
+
+
+def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any:
+    # Textual is imported here so that `cellbridge --help` stays fast.
+    from rich.segment import Segment
+    from rich.style import Style
+    from rich.text import Text
+    from textual.app import App, ComposeResult
+    from textual.containers import ScrollableContainer
+    from textual.geometry import Region
+    from textual.screen import ModalScreen
+    from textual.strip import Strip
+    from textual.widget import Widget
+    from textual.widgets import Static
+
+    from cellbridge.views import textgrid
+
+    styles: dict[tuple[Any, Any], Style] = {}
+
+    def style(fg: tuple[int, int, int], bg: tuple[int, int, int]) -> Style:
+        st = styles.get((fg, bg))
+        if st is None:
+            st = styles[(fg, bg)] = Style(color=f"rgb({fg[0]},{fg[1]},{fg[2]})", bgcolor=f"rgb({bg[0]},{bg[1]},{bg[2]})")
+        return st
+
+    class SkinGrid(Widget):
+        """The element grid. Only rows that changed are repainted: over a slow link a
+        refresh costs what changed on the skin, not the whole screen."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.lines: list[list[Segment]] = []
+
+        def show(self, grid: textgrid.TextGrid) -> None:
+            lines = []
+            for row in grid.rows:  # runs of one colour pair as one segment
+                segs: list[Segment] = []
+                run, key = "", None
+                for ch, fg, bg in row:
+                    if (fg, bg) != key and run:
+                        segs.append(Segment(run, style(*key)))  # type: ignore[misc]
+                        run = ""
+                    key = (fg, bg)
+                    run += ch
+                if run:
+                    segs.append(Segment(run, style(*key)))  # type: ignore[misc]
+                lines.append(segs)
+            width = len(grid.rows[0]) if grid.rows else 0
+            old = self.lines
+            self.lines = lines
+            if len(old) != len(lines) or self.styles.width is None or self.styles.width.value != width:
+                self.styles.width, self.styles.height = width, len(lines)
+                self.refresh()
+                return
+            for y, (a, b) in enumerate(zip(old, lines)):
+                if a != b:
+                    self.refresh(Region(0, y, width, 1))
+
+        def render_line(self, y: int) -> Strip:
+            if y < len(self.lines):
+                return Strip(self.lines[y])
+            return Strip.blank(self.size.width)
+
+    class ConfirmTare(ModalScreen[bool]):
+        BINDINGS = [("y", "answer(True)", "yes"), ("n", "answer(False)", "no"), ("escape", "answer(False)", "no")]
+        DEFAULT_CSS = "ConfirmTare { align: center middle; } ConfirmTare > Static { width: 60; border: heavy red; padding: 1 2; }"
+
+        def compose(self) -> ComposeResult:
+            yield Static("Tare: re-take the baseline of every element?\n"
+                         "Press nothing on the skin meanwhile.\n\n  y  tare      n  cancel")
+
+        def action_answer(self, yes: bool) -> None:
+            self.dismiss(yes)
+
+    class WatchApp(App[None]):
+        TITLE = "cellbridge watch"
+        CSS = """
+        Screen { layout: vertical; }
+        #head { height: 1; background: $primary-background; }
+        #skin { height: 1fr; }
+        #empty { height: auto; }
+        #contacts { height: auto; max-height: 4; }
+        #status { height: auto; color: $text-muted; }
+        #keys { height: 1; background: $primary-background; }
+        """
+        BINDINGS = [("q", "quit", "quit"), ("p", "pause", "pause"), ("t", "tare", "tare"),
+                    ("plus", "scale(0.5)", ""), ("equals_sign", "scale(0.5)", ""), ("minus", "scale(2.0)", "")]
+
+        def compose(self) -> ComposeResult:
+            yield Static(f"cellbridge watch  {endpoint}", id="head")
+            with ScrollableContainer(id="skin"):
+                yield SkinGrid()
+            yield Static(id="empty")
+            yield Static(id="contacts")
+            yield Static(id="status")
+            yield Static(KEYS, id="keys")
+
+        def on_mount(self) -> None:
+            self.set_interval(1.0 / fps, self.tick)
+            self._shown_live: bool | None = None
+
+        def tick(self) -> None:
+            source.drain(model)
+            now = time.monotonic()
+            live = model.live(now)
+            if model.paused or not (model.changed or live != self._shown_live or not live):
+                return
+            self._shown_live = live
+            self.draw(now)
+
+        def draw(self, now: float) -> None:
+            frame = model.frame(now)
+            box = self.query_one("#skin").size
+            width, height = (box.width, box.height) if box.width else (self.size.width, max(4, self.size.height - 10))
+            self.query_one(SkinGrid).show(textgrid.layout(frame, width, height))
+            self.set_text("#empty", "" if frame.cells else
+                          "no elements yet (waiting for the daemon's layout and readings)")
+            what = "force" if frame.quantity == "force" else "ΔC1 (no force yet)"
+            self.set_text("#contacts", "\n".join([c.line for c in frame.contacts] or ["no contact"]))
+            status = list(frame.status)
+            status.append(f"colour: {what}, full at {frame.scale:g} {'N' if frame.quantity == 'force' else 'pF'}"
+                          + (f"   {source.notice}" if source.notice else ""))
+            self.set_text("#status", "\n".join(status))
+
+        def set_text(self, selector: str, text: str) -> None:
+            """Update a text area only when its text changed (no repaint for nothing)."""
+            widget = self.query_one(selector, Static)
+            if getattr(widget, "_shown", None) != text:
+                widget._shown = text  # type: ignore[attr-defined]
+                widget.update(Text(text, no_wrap=True, overflow="ellipsis"))
+
+        def action_pause(self) -> None:
+            model.paused = not model.paused
+            self.draw(time.monotonic())
+
+        def action_scale(self, factor: float) -> None:
+            model.force_scale *= factor
+            model.dc_scale *= factor
+            self.draw(time.monotonic())
+
+        def action_tare(self) -> None:
+            def answered(yes: bool | None) -> None:
+                if yes:
+                    source.request({"v": 1, "cmd": "tare"})
+                    source.notice = "tare: sent"
+                else:
+                    source.notice = "tare: cancelled"
+                self.draw(time.monotonic())
+            self.push_screen(ConfirmTare(), answered)
+
+    return WatchApp()

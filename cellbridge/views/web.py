@@ -1,0 +1,280 @@
+"""``cellbridge web``: the skin on one web page, served on loopback, live over a WebSocket.
+
+The page (``static/``: HTML, JavaScript and CSS shipped in the package: no CDN, no build
+step) draws what :class:`~cellbridge.views.model.SkinView` computes: the element grid by
+force, each contact as a disk at its estimated position with its id, force and
+diameter, the force over time of a clicked element, and the mesh's health. It
+reconnects by itself, to this server and (through ZeroMQ) to a restarted daemon.
+
+Threads: one drains the daemon's ZeroMQ stream into the model (never blocking the
+daemon: a slow view loses messages in its own queue and counts them); the asyncio
+loop serves HTTP and pushes a frame to every page at most ``--max-rate`` times a
+second. A page that does not keep up is skipped for that frame (counted), never queued.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import hmac
+import ipaddress
+import json
+import math
+import signal
+import sys
+import threading
+import time
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from cellbridge.views.model import Frame, SkinView, level_rgb
+from cellbridge.views.source import Source, add_source_arguments, open_source
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8080
+STATIC = ("index.html", "app.js", "style.css")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.description = (
+        "Serve one page that shows a running daemon's skin: elements coloured by force,\n"
+        "contacts as disks at their estimated position (id, force, diameter), the force\n"
+        "over time of a clicked element, and the mesh's health. Open the printed URL.\n\n"
+        "The page is on loopback (127.0.0.1) by default, reachable from this host only.\n"
+        "Binding elsewhere (--host 0.0.0.0, a LAN address) is refused unless access is\n"
+        "protected by a token (--token-file): the page and its WebSocket then answer only\n"
+        "to URLs carrying ?token=... . The token travels in clear over plain HTTP: on an\n"
+        "untrusted network prefer loopback and an SSH tunnel (ssh -L 8080:127.0.0.1:8080).\n\n"
+        "examples:\n"
+        "  cellbridge web                                  # http://127.0.0.1:8080/\n"
+        "  cellbridge web --port 8090 --endpoint tcp://127.0.0.1:5560\n"
+        "  cellbridge web --host 0.0.0.0 --token-file /etc/cellbridge/web.token"
+    )
+    add_source_arguments(parser)
+    g = parser.add_argument_group("page")
+    g.add_argument("--host", default=DEFAULT_HOST, help=f"address to serve on (default: {DEFAULT_HOST})")
+    g.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default: {DEFAULT_PORT}; 0: any free port)")
+    g.add_argument("--token-file", type=Path, metavar="FILE",
+                   help="file holding the access token (one line); required beyond loopback")
+    g.add_argument("--max-rate", type=float, default=60.0, metavar="HZ",
+                   help="most frames pushed to a page a second (default: 60)")
+
+
+def is_loopback_host(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def read_token(path: Path) -> str:
+    token = path.read_text().strip()
+    if len(token) < 16:
+        raise ValueError(f"{path}: the token must be at least 16 characters (e.g. python3 -c "
+                         f"'import secrets; print(secrets.token_urlsafe())' > {path})")
+    return token
+
+
+def frame_json(frame: Frame) -> dict[str, Any]:
+    """A frame as the page's JSON: colours computed here (one ramp for every view), NaN as null."""
+    def num(v: float) -> float | None:
+        return v if math.isfinite(v) else None
+    return {
+        "type": "frame", "rows": frame.rows, "cols": frame.cols, "side": frame.side,
+        "quantity": frame.quantity, "scale": frame.scale, "live": frame.live, "paused": frame.paused,
+        "cells": [{"bridge": c.bridge, "row": c.row, "col": c.col, "rgb": level_rgb(c.level), "label": c.label,
+                   "touched": c.touched, "force": num(c.force)} for c in frame.cells],
+        "contacts": [{"id": c.id, "col": num(c.col), "row": num(c.row), "diameter": num(c.diameter),
+                      "rgb": level_rgb(c.level), "label": c.label, "line": c.line, "force": num(c.force),
+                      "x": num(c.x), "y": num(c.y), "diameter_m": num(c.diameter_m),
+                      "observable": list(c.observable)} for c in frame.contacts],
+        "status": frame.status, "counters": frame.counters,
+    }
+
+
+class WebView:
+    """The page server: shared model, ZeroMQ thread, pages and their frames."""
+
+    def __init__(self, source: Source, model: SkinView, token: str | None, max_rate: float) -> None:
+        self.source, self.model = source, model
+        self.token = token
+        self.period = 1.0 / max_rate
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+        self.pages: dict[Any, dict[str, Any]] = {}  # websocket -> {"select": bridge, "sent_t": t, "busy": bool}
+        self.counters = {"frames": 0, "skipped": 0, "pages": 0}
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.wake: asyncio.Event | None = None
+
+    # ---- ZeroMQ thread -------------------------------------------------------------
+
+    def pump(self) -> None:
+        while not self.stop.is_set():
+            ready = self.source.poll(200)
+            with self.lock:
+                n = self.source.drain(self.model) if ready else self.source.drain(self.model, 0)
+            if (n or not ready) and self.loop is not None and self.wake is not None:
+                self.loop.call_soon_threadsafe(self.wake.set)
+
+    # ---- asyncio side --------------------------------------------------------------
+
+    def allowed(self, request: Any) -> bool:
+        if self.token is None:
+            return True
+        given = request.query.get("token", "")
+        return hmac.compare_digest(given.encode(), self.token.encode())
+
+    async def index(self, request: Any) -> Any:
+        from aiohttp import web
+        if not self.allowed(request):
+            return web.Response(status=403, text="403: this page needs ?token=... (see cellbridge web --help)\n")
+        return await self.static_file(request, "index.html")
+
+    async def static(self, request: Any) -> Any:
+        return await self.static_file(request, request.match_info["name"])
+
+    async def static_file(self, request: Any, name: str) -> Any:
+        from aiohttp import web
+        if name not in STATIC:
+            raise web.HTTPNotFound()
+        body = resources.files("cellbridge.views").joinpath("static", name).read_bytes()
+        ctype = {"html": "text/html", "js": "text/javascript", "css": "text/css"}[name.rsplit(".", 1)[1]]
+        return web.Response(body=body, content_type=ctype, charset="utf-8",
+                            headers={"Cache-Control": "no-cache"})
+
+    async def websocket(self, request: Any) -> Any:
+        from aiohttp import WSMsgType, web
+        if not self.allowed(request):
+            return web.Response(status=403, text="403: token required\n")
+        ws = web.WebSocketResponse(heartbeat=10.0)
+        await ws.prepare(request)
+        self.pages[ws] = {"select": None, "sent_t": -math.inf, "busy": False}
+        self.counters["pages"] += 1
+        try:
+            async for msg in ws:
+                if msg.type != WSMsgType.TEXT:
+                    continue
+                try:
+                    body = json.loads(msg.data)
+                except ValueError:
+                    continue
+                if isinstance(body, dict) and "select" in body:
+                    sel = body["select"]
+                    self.pages[ws].update(select=sel if isinstance(sel, int) else None, sent_t=-math.inf)
+                    if self.wake is not None:
+                        self.wake.set()
+        finally:
+            self.pages.pop(ws, None)
+        return ws
+
+    async def broadcast(self) -> None:
+        assert self.wake is not None
+        while True:
+            await self.wake.wait()
+            self.wake.clear()
+            now = time.monotonic()
+            if self.pages:
+                with self.lock:
+                    frame = frame_json(self.model.frame(now))
+                    series = {ws: self._series(st) for ws, st in self.pages.items()}
+                frame["view"] = dict(self.counters)
+                for ws, st in list(self.pages.items()):
+                    if st["busy"]:
+                        self.counters["skipped"] += 1
+                        continue
+                    body = dict(frame, series=series.get(ws))
+                    st["busy"] = True
+                    asyncio.ensure_future(self._send(ws, st, json.dumps(body, allow_nan=False)))
+                self.counters["frames"] += 1
+            await asyncio.sleep(max(0.0, self.period - (time.monotonic() - now)))
+
+    def _series(self, st: dict[str, Any]) -> dict[str, Any] | None:
+        """New (t, force, ΔC1) points of the page's selected element since the last frame sent."""
+        b = st["select"]
+        e = self.model.elements.get(b) if b is not None else None
+        if e is None:
+            return None
+        after = st["sent_t"]
+        pts = [[t, _fin(f), _fin(d * 1e12)] for t, f, d in e.history if t > after or not math.isfinite(after)]
+        if e.history:
+            st["sent_t"] = e.history[-1][0]
+        return {"bridge": b, "points": pts, "reset": not math.isfinite(after)}
+
+    async def _send(self, ws: Any, st: dict[str, Any], text: str) -> None:
+        try:
+            await ws.send_str(text)
+        except (ConnectionError, RuntimeError):
+            pass
+        finally:
+            st["busy"] = False
+
+    async def serve(self, host: str, port: int) -> None:
+        from aiohttp import web
+        self.loop = asyncio.get_running_loop()
+        self.wake = asyncio.Event()
+        app = web.Application()
+        app.router.add_get("/", self.index)
+        app.router.add_get("/static/{name}", self.static)
+        app.router.add_get("/ws", self.websocket)
+        runner = web.AppRunner(app, access_log=None)
+        await runner.setup()
+        site = web.TCPSite(runner, host, port)
+        await site.start()
+        bound = runner.addresses[0][1] if runner.addresses else port
+        query = f"?token={self.token}" if self.token else ""
+        print(f"cellbridge web: http://{host if ':' not in host else f'[{host}]'}:{bound}/{query}", flush=True)
+        thread = threading.Thread(target=self.pump, name="zmq", daemon=True)
+        thread.start()
+        main = asyncio.current_task()
+        for sig in (signal.SIGTERM, signal.SIGHUP):  # stop as on Ctrl-C: pages closed, port freed
+            self.loop.add_signal_handler(sig, main.cancel)  # type: ignore[union-attr]
+        try:
+            await self.broadcast()
+        except asyncio.CancelledError:
+            pass
+        finally:
+            self.stop.set()
+            thread.join(2)
+            await runner.cleanup()
+
+
+def _fin(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+def run(args: argparse.Namespace) -> int:
+    problem = None
+    if not 1 <= args.max_rate <= 240:
+        problem = f"--max-rate must be within 1..240, got {args.max_rate}"
+    if problem is None and not 0 <= args.port <= 65535:
+        problem = f"--port must be within 0..65535, got {args.port}"
+    token = None
+    if problem is None and args.token_file is not None:
+        try:
+            token = read_token(args.token_file)
+        except (OSError, ValueError) as exc:
+            problem = str(exc)
+    if problem is None and token is None and not is_loopback_host(args.host):
+        problem = (f"refusing to serve on {args.host}: beyond loopback the page needs a token "
+                   f"(--token-file FILE; e.g. python3 -c 'import secrets; print(secrets.token_urlsafe())' > FILE)")
+    source = open_source("web", args, problem)
+    if source is None:
+        return 2
+    view = WebView(source, SkinView(force_scale=args.force_scale), token, args.max_rate)
+    try:
+        asyncio.run(view.serve(args.host, args.port))
+    except KeyboardInterrupt:
+        pass
+    except OSError as exc:
+        print(f"cellbridge web: cannot serve on {args.host}:{args.port}: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        view.stop.set()
+        source.close()
+    return 0
+
+

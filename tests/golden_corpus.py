@@ -1,0 +1,370 @@
+"""The golden corpus: MCAP recordings of the virtual mesh's gateway lines and the daemon's output on them.
+
+Each scenario below runs the deterministic virtual mesh (``cellbridge.emulator.virtual``),
+keeps every gateway's serial bytes with their virtual arrival times as a recording's
+``serial`` channel (what ``cellbridge record --serial`` keeps from a live daemon), and
+writes next to it the daemon's output on that recording as one line per message
+(``NAME.chk``: ``element`` and ``contact`` messages with their fields rounded to what
+matters, and a last ``health`` line with the counters a scenario exercises), so a change
+of the daemon's output is a readable ``diff``. ``tests/test_golden_corpus.py`` replays
+them all. The files live in ``tests/data/golden/`` with ``README.md`` saying how each was
+made (the same note is in each recording's ``cellbridge`` metadata).
+
+Commands (from the repository root)::
+
+    .venv/bin/python tests/golden_corpus.py --regen     # the daemon's output changed on purpose:
+                                                        # rewrite every .chk from the recordings
+    .venv/bin/python tests/golden_corpus.py --remake    # the emulator changed: run the mesh again,
+                                                        # rewrite the recordings and the .chk files
+    .venv/bin/python tests/golden_corpus.py --diff      # what would change, as a unified diff
+
+then review ``git diff tests/data/golden`` and commit it with the change that caused it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+DATA = Path(__file__).parent / "data" / "golden"
+T0 = 1_750_000_000.0  #: host time (epoch) of virtual time 0
+READ_GRAIN = 0.001  #: s; a host read returns what arrived within this (a pty read's batching)
+ESTIMATE_EVERY = 0.02  #: s of recorded time between contact estimates
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    note: str  #: how it was made, for README.md and the recording's metadata
+    mesh: Callable[[], Any]
+    seconds: float
+    presses: tuple[tuple[float, float, float, float, float, float], ...] = ()  # start, duration, x, y, F, d
+    restart: tuple[tuple[int, float], ...] = ()  # (bridge, at)
+    adc: bool = False
+    transform: str = ""  # "fragments", "wrap24", "noise": what is done to the gateway's bytes
+    config: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def _grid(rows: int, cols: int, gateways: tuple[int, ...] = (1,)) -> Callable[[], Any]:
+    def make() -> Any:
+        from cellbridge.emulator import meshgen
+        return meshgen.grid(rows, cols, gateways=gateways)
+    return make
+
+
+def _line(n: int) -> Callable[[], Any]:
+    def make() -> Any:
+        from cellbridge.emulator import meshgen
+        return meshgen.line(n)
+    return make
+
+
+SCENARIOS: tuple[Scenario, ...] = (
+    Scenario("multihop_line", "a line of 6 bridges, gateway at bridge 1 (up to 5 hops); a 3 N press on "
+             "bridge 5's element from 1.0 s to 2.0 s", _line(6), 2.5,
+             presses=((1.0, 1.0, 0.180, 0.020, 3.0, 0.02),)),
+    Scenario("two_gateways", "a 3x3 grid with gateways at bridges 1 and 9, one link each (gw1, gw9), each bridge "
+             "routing to one of them; a 2 N press across a seam between two elements from 1.0 s to 2.0 s",
+             _grid(3, 3, (1, 9)), 2.5, presses=((1.0, 1.0, 0.080, 0.060, 2.0, 0.015),)),
+    Scenario("fragments", "a 2x2 grid whose gateway line carries its DATA frames split into fragments of at "
+             "most 40 bytes (cellbridge.protocol.fragment, each origin's frames renumbered as a bridge that "
+             "fragments numbers them); a 3 N press on the corner of all four from 1.0 s to 2.0 s",
+             _grid(2, 2), 2.5, presses=((1.0, 1.0, 0.040, 0.040, 3.0, 0.02),), transform="fragments"),
+    Scenario("adc_mode", "a 2x2 grid sampling with the 8-bit ADC (16 conversions a sample) instead of the "
+             "counter; a 3 N press on bridge 2's element from 1.0 s to 2.0 s", _grid(2, 2), 2.5,
+             presses=((1.0, 1.0, 0.060, 0.020, 3.0, 0.02),), adc=True),
+    Scenario("bridge_reset", "a 3x3 grid; bridge 5 (the centre) is power-cycled at 1.0 s and boots again "
+             "(HELLO numbered 0, its cycle counter from 0); a 3 N press on it from 1.6 s to 2.4 s",
+             _grid(3, 3), 3.0, presses=((1.6, 0.8, 0.060, 0.060, 3.0, 0.02),), restart=((5, 1.0),)),
+    Scenario("counter_wrap", "a 2x2 grid whose bridges' cycle counters are 24 bits wide (the samples' cycle "
+             "field taken modulo 2**24: it wraps every 0.34 s), daemon chip.cycle_bits = 24; a 3 N press "
+             "from 1.0 s to 2.0 s across the seam of bridges 2 and 4 (a press on every element of a skin at once, "
+             "as a corner press of a 2x2 skin is on mesh time, is what common-mode drift looks like)",
+             _grid(2, 2), 2.5, presses=((1.0, 1.0, 0.040, 0.020, 3.0, 0.02),),
+             transform="wrap24", config={"chip": {"cycle_bits": 24}}),
+    Scenario("line_noise", "a 2x2 grid whose gateway line picks up noise: every 25th read gets 7 stray bytes, "
+             "every 40th loses its last 5 bytes (a cut frame), every 55th has one bit flipped; a 3 N press from "
+             "1.0 s to 2.0 s", _grid(2, 2), 2.5, presses=((1.0, 1.0, 0.040, 0.020, 3.0, 0.02),),
+             transform="noise"),
+)
+
+BASE_CONFIG: dict[str, dict[str, Any]] = {
+    "calibration": {"n_baseline": 20},
+    "contact": {"birth_frames": 2},
+}
+
+
+# -- making recordings ---------------------------------------------------------------------
+def run_mesh(sc: Scenario) -> dict[int, list[tuple[float, bytes]]]:
+    """Every gateway's serial output as (virtual time, bytes) chunks."""
+    from cellbridge.emulator.commands import Settings
+    from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+    from cellbridge.emulator.world import Contact
+    from cellbridge.protocol import Mode
+
+    out: dict[int, list[tuple[float, bytes]]] = {}
+
+    class Recording(VirtualMesh):
+        def _gateway_out(self, b: int, data: bytes) -> None:
+            super()._gateway_out(b, data)
+            out.setdefault(b, []).append((self.tick / CLOCK_HZ, data))
+
+    settings = Settings(mode=Mode.ADC) if sc.adc else Settings()
+    vm = Recording(sc.mesh(), seed=1, settings=settings)
+    for start, duration, x, y, force, diameter in sc.presses:
+        vm.press(Contact(start, duration, x, y, force, diameter))
+    for bridge, at in sc.restart:
+        vm.restart(bridge, at)
+    vm.run(sc.seconds)
+    return out
+
+
+def _reframe(chunks: list[tuple[float, bytes]], edit: Callable[[Any], list[Any]]) -> list[tuple[float, bytes]]:
+    from cellbridge.protocol import StreamDecoder, encode_stream
+
+    dec = StreamDecoder()
+    out = []
+    for t, data in chunks:
+        frames = [g for f in dec.feed(data) for g in edit(f)]
+        if frames:
+            out.append((t, b"".join(encode_stream(f) for f in frames)))
+    return out
+
+
+def _fragments(chunks: list[tuple[float, bytes]]) -> list[tuple[float, bytes]]:
+    from cellbridge.protocol import FrameType
+    from cellbridge.protocol.fragment import fragment
+
+    seqs: dict[int, int] = {}
+
+    def edit(f: Any) -> list[Any]:
+        pieces = fragment(f, seqs.get(f.origin, 0), 40) if f.type is FrameType.DATA else [f]
+        out = []
+        for p in pieces:
+            out.append(replace(p, seq=seqs.get(f.origin, 0) & 0xFFFF))
+            seqs[f.origin] = seqs.get(f.origin, 0) + 1
+        return out
+
+    return _reframe(chunks, edit)
+
+
+def _wrap24(chunks: list[tuple[float, bytes]]) -> list[tuple[float, bytes]]:
+    from cellbridge.protocol import FrameType
+
+    def edit(f: Any) -> list[Any]:
+        if f.type is FrameType.DATA:
+            f.payload.samples = [s._replace(cycle=s.cycle % (1 << 24)) for s in f.payload.samples]
+        return [f]
+
+    return _reframe(chunks, edit)
+
+
+def host_reads(chunks: list[tuple[float, bytes]], transform: str) -> list[tuple[float, bytes]]:
+    """The chunks as a host reads them: what arrived within READ_GRAIN in one read, at its end."""
+    if transform == "fragments":
+        chunks = _fragments(chunks)
+    elif transform == "wrap24":
+        chunks = _wrap24(chunks)
+    reads: list[tuple[float, bytearray]] = []
+    for t, data in chunks:
+        at = math.ceil(t / READ_GRAIN - 1e-9) * READ_GRAIN
+        if reads and reads[-1][0] == at:
+            reads[-1][1].extend(data)
+        else:
+            reads.append((at, bytearray(data)))
+    out = []
+    for i, (t, data) in enumerate(reads):
+        b = bytes(data)
+        if transform == "noise":
+            if i % 25 == 24:
+                b = b"\x13\x37noise" + b
+            if i % 40 == 39:
+                b = b[:-5]
+            if i % 55 == 54 and len(b) > 8:
+                b = b[:8] + bytes([b[8] ^ 0x10]) + b[9:]
+        out.append((T0 + t, b))
+    return out
+
+
+def make_recording(sc: Scenario, path: Path) -> None:
+    from cellbridge.recording import codec
+    from cellbridge.recording.mcapfile import RecordingWriter
+
+    w = RecordingWriter(path, chunk_size=256 * 1024, fsync=False,
+                        metadata={"scenario": sc.name, "note": sc.note, "made_by": "tests/golden_corpus.py --remake",
+                                  "seed": "1", "t0": repr(T0)})
+    reads = sorted((t, f"gw{g}", data) for g, chunks in run_mesh(sc).items() for t, data in host_reads(chunks, sc.transform))
+    seq = 0
+    for t, link, data in reads:
+        payload = {"v": 1, "seq": seq, "t_host": t, "t_bridge": None, "link": link, "data": data,
+                   "source": "virtual-mesh"}
+        w.add("serial", codec.encode("serial", payload), int(t * 1e9), int(t * 1e9), seq)
+        seq += 1
+    w.finish()
+
+
+# -- the daemon's output -------------------------------------------------------------------
+def config_for(sc: Scenario, links: list[str]) -> Any:
+    from cellbridge.daemon.config import parse_config
+
+    data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
+    for k, v in sc.config.items():
+        data.setdefault(k, {}).update(v)
+    data["link"] = [{"name": n, "url": f"/dev/null-{n}"} for n in links]
+    return parse_config(data, f"golden {sc.name}")
+
+
+def serial_reads(path: Path) -> list[tuple[str, float, bytes]]:
+    from cellbridge.recording import codec
+    from cellbridge.recording.mcapfile import read_messages
+
+    out = []
+    for m in read_messages(path, topics={"serial"}):
+        p = codec.decode("serial", m.data)
+        out.append((p["link"], p["t_host"], p["data"]))
+    return out
+
+
+def daemon_output(sc: Scenario, recording: Path) -> list[str]:
+    """The daemon's pipeline on the recording's serial channel, one line per message,
+    contacts through the production contact path (an inline worker)."""
+    from cellbridge.daemon.pipeline import Pipeline
+    from pipeline_helpers import published, worker
+
+    reads = serial_reads(recording)
+    p = Pipeline(config_for(sc, sorted({link for link, _, _ in reads})))
+    p.want({"element", "contact"})
+    w = worker()
+    lines: list[str] = []
+    shown = False
+    next_estimate = reads[0][1] + ESTIMATE_EVERY if reads else 0.0
+    t = T0
+    for link, t, data in reads:
+        for topic, msg in published(p.feed(link, data, t)):
+            lines.append(render(topic, msg))
+        if t >= next_estimate:
+            next_estimate = t + ESTIMATE_EVERY
+            job = p.contact_job()
+            if job is not None:
+                contacts = w.estimate_now(job)
+                if contacts or shown:
+                    m = p.contact_frame(job, contacts)
+                    lines.append(render(m.topic, m.payload))
+                shown = bool(contacts)
+    p.want({"health"})
+    health = [m for topic, m in published(p.tick(t, force=True)) if topic == "health"]
+    lines += [render("health", m) for m in health]
+    return lines
+
+
+def _f(v: Any, scale: float, digits: int) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    text = f"{v * scale:.{digits}f}"
+    return text[1:] if text.startswith("-") and not text.strip("-0.") else text  # no "-0.0"
+
+
+def _col(m: dict[str, Any], key: str, scale: float, digits: int) -> str:
+    return ",".join(_f(v, scale, digits) for v in m[key])
+
+
+def render(topic: str, m: dict[str, Any]) -> str:
+    """One message as one line: the fields a reviewer judges, rounded to their meaning."""
+    t = f"t={m['t_host'] - T0:.4f}"
+    if topic == "element":
+        return (f"element {t} b={','.join(map(str, m['bridge']))} cycle={','.join(map(str, m['cycle']))} "
+                f"c1={_col(m, 'c1', 1e12, 4)}pF c2={_col(m, 'c2', 1e12, 4)}pF "
+                f"dc1={_col(m, 'dc1', 1e15, 1)}fF dc2={_col(m, 'dc2', 1e15, 1)}fF "
+                f"F={_col(m, 'force', 1, 3)}N S={_col(m, 'area', 1e6, 1)}mm2 "
+                f"touched={''.join('1' if x else '0' for x in m['touched'])}")
+    if topic == "contact":
+        ts = m["t_sample"]
+        parts = [f"contact {t} t_sample={_f(ts - T0 if ts is not None else None, 1, 4)} n={len(m['contacts'])}"]
+        for c in sorted(m["contacts"], key=lambda c: c["id"]):
+            parts.append(f"| id={c['id']} x={_f(c['x'], 1e3, 1)}mm y={_f(c['y'], 1e3, 1)}mm "
+                         f"F={_f(c['force'], 1, 2)}N d={_f(c['diameter'], 1e3, 1)}mm "
+                         f"elements={','.join(map(str, sorted(c['elements'])))} valid={int(bool(c['valid']))}")
+        return " ".join(parts)
+    if topic == "health":
+        bridges = m.get("bridges", {})
+        per = " ".join(f"b{b}:frames={h.get('frames')},lost={h.get('lost')},restarts={h.get('seq_restarts')},"
+                       f"clock_resets={h.get('clock_resets')}" for b, h in sorted(bridges.items(), key=lambda x: int(x[0])))
+        links = " ".join(f"{n}:frames={h.get('frames')},crc={h.get('crc_errors')},framing={h.get('framing_errors')}"
+                         for n, h in sorted(m.get("links", {}).items()))
+        r = m.get("reassembly", {})
+        return (f"health {t} duplicates={m.get('duplicates')} reassembly_completed={r.get('completed')} "
+                f"reassembly_drops={sum((r.get('drops') or {}).values())} {links} {per}")
+    raise ValueError(f"no line format for topic {topic!r}")
+
+
+# -- the corpus on disk ----------------------------------------------------------------------
+def paths(sc: Scenario) -> tuple[Path, Path]:
+    return DATA / f"{sc.name}.mcap", DATA / f"{sc.name}.chk"
+
+
+def expected(sc: Scenario) -> list[str]:
+    return paths(sc)[1].read_text().splitlines()
+
+
+def diff(sc: Scenario, got: list[str]) -> list[str]:
+    mcap, chk = paths(sc)
+    return list(difflib.unified_diff(expected(sc), got, f"{chk.name} (committed)", f"{chk.name} (daemon now)",
+                                     lineterm="", n=1))
+
+
+def write_readme() -> None:
+    lines = ["# Golden recordings", "",
+             "MCAP recordings of the virtual mesh's gateway lines (the `serial` channel, as",
+             "`cellbridge record --serial` keeps them) and, in `NAME.chk`, the daemon's output on each,",
+             "one line per message. Made by `tests/golden_corpus.py` (virtual mesh seed 1, host time",
+             f"{T0:.0f} at virtual time 0, reads batched per {READ_GRAIN * 1e3:g} ms);",
+             "`tests/test_golden_corpus.py` replays them all.", "",
+             "- `.venv/bin/python tests/golden_corpus.py --regen`: the daemon's output changed on purpose;",
+             "  rewrite the `.chk` files, review `git diff tests/data/golden`, commit with the change.",
+             "- `.venv/bin/python tests/golden_corpus.py --remake`: the emulator changed; make the",
+             "  recordings again (and the `.chk` files).",
+             "- `.venv/bin/python tests/golden_corpus.py --diff`: show what would change.", "",
+             "| recording | how it was made |", "|---|---|"]
+    lines += [f"| `{sc.name}.mcap` | {sc.note} ({sc.seconds:g} s) |" for sc in SCENARIOS]
+    (DATA / "README.md").write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--regen", action="store_true", help="rewrite the .chk files from the committed recordings")
+    ap.add_argument("--remake", action="store_true", help="run the virtual mesh again: recordings and .chk files")
+    ap.add_argument("--diff", action="store_true", help="print what would change, change nothing")
+    ap.add_argument("only", nargs="*", help="scenario names (default: all)")
+    args = ap.parse_args(argv)
+    chosen = [sc for sc in SCENARIOS if not args.only or sc.name in args.only]
+    DATA.mkdir(parents=True, exist_ok=True)
+    changed = 0
+    for sc in chosen:
+        mcap, chk = paths(sc)
+        if args.remake:
+            make_recording(sc, mcap)
+        got = daemon_output(sc, mcap)
+        if args.diff:
+            d = diff(sc, got) if chk.exists() else [f"(no {chk.name} yet)"]
+            changed += bool(d)
+            print("\n".join(d) if d else f"{sc.name}: unchanged")
+        elif args.regen or args.remake:
+            chk.write_text("\n".join(got) + "\n")
+            print(f"{sc.name}: {mcap.stat().st_size} bytes of recording, {len(got)} lines of output")
+    if args.remake:
+        write_readme()
+    if not (args.regen or args.remake or args.diff):
+        ap.print_help()
+        return 2
+    return 1 if changed else 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    sys.exit(main())

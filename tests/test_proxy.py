@@ -1,0 +1,116 @@
+"""`cellbridge proxy`: two daemons on two emulated skins read as one stream, told apart by `source`;
+CURVE on the proxy's front as the daemon does it; subscriptions passed upstream."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from contextlib import ExitStack
+from pathlib import Path
+
+import msgpack
+import pytest
+import zmq
+
+from cellbridge.daemon.keys import write_keypair
+from cellbridge.daemon.security import apply_client
+from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
+from pub_helpers import json_lines, run_subscriber
+from test_examples import c_subscriber
+
+
+def _proxy_cmd(front: str, backs: list[str], *extra: str) -> list[str]:
+    return cellbridge_cmd("proxy", "--front", front, *[a for b in backs for a in ("--back", b)], *extra)
+
+
+def _sources(sock: zmq.Socket, want: set[str], seconds: float) -> dict[str, int]:
+    """Messages per source until every wanted source was seen (or the time is up)."""
+    seen: dict[str, int] = {}
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and not want <= set(seen):
+        if sock.poll(100):
+            _, payload = sock.recv_multipart()
+            src = msgpack.unpackb(payload)["source"]
+            seen[src] = seen.get(src, 0) + 1
+    return seen
+
+
+def test_two_skins_behind_one_curve_proxy_reach_the_c_subscriber_told_apart_by_source(tmp_path: Path) -> None:
+    c_cmd = c_subscriber(tmp_path)
+    keys = tmp_path / "keys"
+    (keys / "allowed").mkdir(parents=True)
+    proxy_pub, proxy_secret = write_keypair(keys, "proxy")
+    _, arm_secret = write_keypair(keys / "allowed", "arm")
+    _, stranger_secret = write_keypair(keys, "stranger")  # a key pair the proxy does not allow
+    front = f"tcp://127.0.0.1:{free_port()}"
+    ctx = zmq.Context()
+    with ExitStack() as stack:
+        skins = []
+        for name in ("skin-a", "skin-b"):
+            skin = stack.enter_context(live_skin(tmp_path / name, 2, 2, name))
+            watch = Collector(skin.pub, (b"health",), ctx)
+            stack.callback(watch.close)
+            stack.enter_context(skin.daemon(skin.daemon_config(source=name)))
+            watch.pump(120, until=calibrated(4))
+            skins.append(skin)
+        proxy = stack.enter_context(group(
+            _proxy_cmd(front, [s.pub for s in skins], "--server-secret", str(proxy_secret),
+                       "--allowed-clients", str(keys / "allowed")),
+            stderr=open(tmp_path / "proxy.log", "wb")))  # noqa: SIM115
+
+        def subscriber(secret: Path) -> zmq.Socket:
+            sock = ctx.socket(zmq.SUB)
+            sock.linger = 0
+            apply_client(sock, proxy_pub, secret)
+            sock.subscribe(b"health")
+            sock.connect(front)
+            stack.callback(sock.close)
+            return sock
+
+        allowed, stranger = subscriber(arm_secret), subscriber(stranger_secret)
+        assert set(_sources(allowed, {"skin-a", "skin-b"}, 30)) == {"skin-a", "skin-b"}
+        assert _sources(stranger, {"skin-a"}, 3) == {}  # a foreign key gets nothing
+        out = run_subscriber([*c_cmd, "-e", front, "-n", "30", "-s", str(proxy_pub), "-k", str(arm_secret),
+                              "health"], cwd=tmp_path, timeout=60)
+        assert out.returncode == 0, out.stderr
+        lines = json_lines(out.stdout)
+        assert len(lines) == 30 and {ln["topic"] for ln in lines} == {"health"}
+        assert {ln["payload"]["source"] for ln in lines} == {"skin-a", "skin-b"}
+        os.killpg(proxy.pid, signal.SIGTERM)
+        assert proxy.wait(15) == 0
+    ctx.term()
+    stopped = json.loads((tmp_path / "proxy.log").read_text().strip().splitlines()[-1])
+    assert stopped["proxy"] == "stopped" and stopped["handshakes_denied"] >= 1 and stopped["handshakes_accepted"] >= 2
+
+
+def test_subscriptions_reach_the_daemons_through_the_proxy(tmp_path: Path) -> None:
+    """A daemon builds a topic only while someone subscribes to it: through the proxy too."""
+    with live_skin(tmp_path, 2, 2) as skin, skin.daemon(skin.daemon_config(source="solo")):
+        front = f"tcp://127.0.0.1:{free_port()}"
+        with group(_proxy_cmd(front, [skin.pub]), stderr=subprocess.DEVNULL) as proxy:
+            sub = Collector(front, (b"raw",))
+            try:
+                sub.pump(60, until=lambda t, m: t == "raw")
+                assert sub.payloads("raw") and all(m["source"] == "solo" for _, m in sub.payloads())
+            finally:
+                sub.close()
+            os.killpg(proxy.pid, signal.SIGTERM)
+            assert proxy.wait(15) == 0
+
+
+def test_proxy_refuses_a_front_beyond_loopback_without_curve(tmp_path: Path) -> None:
+    r = subprocess.run(_proxy_cmd("tcp://0.0.0.0:5999", ["tcp://127.0.0.1:5560"]), capture_output=True, text=True,
+                       timeout=30)
+    assert r.returncode == 2 and "refusing to bind" in r.stderr and "CURVE" in r.stderr
+    r = subprocess.run(_proxy_cmd("tcp://127.0.0.1:5999", ["tcp://127.0.0.1:5560=missing.key"]),
+                       capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2 and "--client-key" in r.stderr
+
+
+@pytest.mark.parametrize("bad", ["5560", "http://x"])
+def test_proxy_names_a_bad_backend(bad: str) -> None:
+    r = subprocess.run(cellbridge_cmd("proxy", "--back", bad), capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2 and "ZeroMQ endpoint" in r.stderr

@@ -1,0 +1,274 @@
+"""A recording of a live daemon (an emulated 4×4 skin in real processes, a press): what it holds,
+its replay onto ZeroMQ, and the daemon re-run on its serial channel; the recorder killed and
+short of disk space while a daemon publishes."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import resource
+import signal
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pytest
+from mcap.reader import make_reader
+
+from cellbridge.recording import codec
+from cellbridge.tactile import DEFAULT_NOISE
+from cellbridge.recording.mcapfile import ReadResult, read_messages
+from daemon_golden import CAPTURE, CONFIG, CONTACT_REL, CONTACT_TOL
+from daemon_harness import Client, daemon, write_config
+from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
+from recording_helpers import same_payload
+
+PRESS = (0.057, 0.040)  # across the seam of two elements of the 4x4 skin
+
+
+def _stop(proc: subprocess.Popen[Any], sig: int = signal.SIGTERM, timeout: float = 15) -> int:
+    os.killpg(proc.pid, sig)
+    return proc.wait(timeout)
+
+
+@pytest.fixture(scope="module")
+def live_recording(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """Record a live daemon from its start (so the recording holds every byte it read) through a press."""
+    work = tmp_path_factory.mktemp("live")
+    out = work / "skin.mcap"
+    with live_skin(work) as skin:
+        config = skin.daemon_config(source="skin-a")
+        live = Collector(skin.pub)
+        try:
+            with group(cellbridge_cmd("record", str(out), "--endpoint", skin.pub, "--topics", "all",
+                                      "--chunk-seconds", "0.5"), stderr=open(work / "record.log", "wb")) as rec:
+                time.sleep(0.3)  # both subscribers connect before the daemon binds: they see it from its start
+                with skin.daemon(config) as proc:
+                    live.pump(120, until=calibrated(skin.elements))
+                    assert proc.poll() is None and rec.poll() is None
+                    skin.press(*PRESS, duration=2.0)
+                    live.pump(3.0)
+                    assert _stop(rec) == 0  # SIGTERM: the file is finished, status 0
+                    live.pump(0.5)
+        finally:
+            live.close()
+    stats = json.loads((work / "record.log").read_text().strip().splitlines()[-1])
+    return {"work": work, "file": out, "live": live, "config": config, "record_stats": stats}
+
+
+def _recorded(path: Path) -> list[tuple[str, dict[str, Any]]]:
+    result = ReadResult()
+    out = [(m.topic, codec.decode(m.topic, m.data)) for m in read_messages(path, result)]
+    assert result.complete, result.error
+    return out
+
+
+def test_the_recording_opens_with_the_mcap_reader_and_every_message_fits_its_schema(live_recording: dict) -> None:
+    counts: dict[str, int] = {}
+    with open(live_recording["file"], "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None and summary.chunk_indexes  # chunked, indexed
+        assert {ci.compression for ci in summary.chunk_indexes} == {"zstd"}
+        validators = {sid: jsonschema.Draft202012Validator(json.loads(s.data)) for sid, s in summary.schemas.items()}
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            assert schema is not None and schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            validators[schema.id].validate(json.loads(message.data))
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    assert {"element", "raw", "health", "topology", "serial", "contact"} <= set(counts)
+    assert counts == live_recording["record_stats"]["recorded"]
+
+
+def test_the_recording_holds_what_the_daemon_published_in_its_order(live_recording: dict) -> None:
+    live = live_recording["live"].payloads()
+    recorded = _recorded(live_recording["file"])
+    index = {(t, m["seq"]): i for i, (t, m) in enumerate(live)}
+    first = index[(recorded[0][0], recorded[0][1]["seq"])]
+    window = live[first:first + len(recorded)]
+    assert len(window) == len(recorded)
+    bad = [i for i, (a, b) in enumerate(zip(window, recorded)) if a[0] != b[0] or not same_payload(a[1], b[1])]
+    assert not bad, f"{len(bad)} differ, first at {bad[0]}: {window[bad[0]]} != {recorded[bad[0]]}"
+    assert all(m["source"] == "skin-a" for _, m in recorded)
+    contacts = [c for t, m in recorded if t == "contact" for c in m["contacts"]]
+    assert any(abs(c["x"] - PRESS[0]) < 2e-3 and abs(c["y"] - PRESS[1]) < 2e-3 for c in contacts)
+
+
+def test_replay_publishes_the_same_payloads_in_the_same_order(live_recording: dict, tmp_path: Path) -> None:
+    endpoint = f"tcp://127.0.0.1:{free_port()}"
+    sub = Collector(endpoint)
+    try:
+        with group(cellbridge_cmd("replay", str(live_recording["file"]), "--endpoint", endpoint, "--fast",
+                                  "--wait-subscriber"), stderr=open(tmp_path / "replay.log", "wb")) as proc:
+            expected = _recorded(live_recording["file"])
+            end = time.monotonic() + 60
+            while len(sub.messages) < len(expected) and time.monotonic() < end:
+                sub.pump(0.5)
+            assert proc.wait(30) == 0
+    finally:
+        sub.close()
+    got = sub.payloads()
+    assert len(got) == len(expected)
+    assert all(a[0] == b[0] and same_payload(a[1], b[1]) for a, b in zip(got, expected))
+    live = {(t, m["seq"]): m for t, m in live_recording["live"].payloads()}
+    assert all(same_payload(m, live[(t, m["seq"])]) for t, m in got)  # ... and as the daemon published them
+
+
+def _close(a: float, b: float, rel: float = 1e-9) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or math.isclose(a, b, rel_tol=rel, abs_tol=1e-24)
+
+
+def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(live_recording: dict,
+                                                                                tmp_path: Path) -> None:
+    """The recorded reads at their recorded pace (host times shifted to now, as a daemon on a line
+    would stamp them): the same samples give the same elements and the same contacts, within the
+    tactile tolerances (the daemon's periodic work, e.g. drift tracking, runs at other instants)."""
+    cfg = tmp_path / "rerun.toml"
+    endpoints = write_config(cfg, [{"name": "gateway", "url": f"replay:{live_recording['file']}",
+                                    "replay_speed": 1.0, "replay_clock": "shifted",
+                                    "wait_for_subscriber": True, "exit_when_done": True}])
+    client = Client(endpoints, (b"element", b"contact"))
+    try:
+        with daemon(cfg, tmp_path / "err.log") as proc:
+            got = client.until_exit(proc, 180)
+    finally:
+        client.close()
+    live = live_recording["live"].payloads()
+
+    def samples(msgs: list[tuple[str, dict[str, Any]]]) -> dict[tuple[int, int], dict[str, Any]]:
+        """Per sample (bridge, cycle): its columns and the message's t_host."""
+        out = {}
+        for t, m in msgs:
+            if t == "element":
+                for i, key in enumerate(zip(m["bridge"], m["cycle"])):
+                    out[key] = {"t_host": m["t_host"], **{k: m[k][i] for k in ELEMENT_COLUMNS}}
+        return out
+
+    a, b = samples(got), samples(live)
+    both = sorted(set(a) & set(b))
+    assert len(both) >= 0.95 * len(b) and len(both) >= 0.95 * len(a), (len(both), len(a), len(b))
+    shifts = [a[k]["t_host"] - b[k]["t_host"] for k in both]
+    shift = sorted(shifts)[len(shifts) // 2]
+    assert max(abs(s - shift) for s in shifts) < 1e-5  # the same reads at the same relative times
+    bad = []
+    for k in both:
+        x, y = a[k], b[k]
+        for col in ("c1", "c2"):
+            if not _close(x[col], y[col]):
+                bad.append((k, col, x[col], y[col]))
+        for col in ("dc1", "dc2"):  # the baselines: one noise sigma
+            if not (_nan(x[col]) and _nan(y[col])) and not abs(x[col] - y[col]) <= DEFAULT_NOISE:
+                bad.append((k, col, x[col], y[col]))
+        if x["valid"] and y["valid"] and not math.isclose(x["force"], y["force"], rel_tol=0.01, abs_tol=0.01):
+            bad.append((k, "force", x["force"], y["force"]))
+    assert len(bad) <= 0.01 * len(both), bad[:10]
+    live_contacts = [m for t, m in live if t == "contact" and m["contacts"]]
+    pairs = []
+    for t, m in got:
+        if t == "contact" and m["contacts"]:
+            same = [c for c in live_contacts if abs(c["t_sample"] + shift - m["t_sample"]) < 1e-5]
+            if same:
+                pairs.append((m, same[0]))
+    assert len(pairs) >= 10, f"only {len(pairs)} contact estimates at moments the live daemon also estimated"
+    for p, q in pairs:
+        assert len(p["contacts"]) == len(q["contacts"])
+        for x, y in zip(sorted(p["contacts"], key=lambda c: c["x"]), sorted(q["contacts"], key=lambda c: c["x"])):
+            for k, tol in CONTACT_TOL.items():
+                assert abs(x[k] - y[k]) <= tol, (k, x[k], y[k])
+            for k, rel in CONTACT_REL.items():
+                assert math.isclose(x[k], y[k], rel_tol=rel), (k, x[k], y[k])
+            assert sorted(x["elements"]) == sorted(y["elements"])
+
+
+ELEMENT_COLUMNS = ("c1", "c2", "dc1", "dc2", "force", "area", "valid", "touched")
+
+
+def _nan(v: float) -> bool:
+    return isinstance(v, float) and math.isnan(v)
+
+
+def _replay_daemon(tmp_path: Path, speed: float = 1.0) -> tuple[Path, dict[str, str]]:
+    """A daemon replaying the committed capture (real time) once someone subscribes."""
+    cfg = tmp_path / "replay.toml"
+    endpoints = write_config(tmp_path / "endpoints.toml", [])
+    text = CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{CAPTURE}")
+    text = text.replace("replay_speed = 0", f"replay_speed = {speed}").replace("exit_when_done = true",
+                                                                               "exit_when_done = false")
+    cfg.write_text(f'[pub]\nendpoint = "{endpoints["pub"]}"\nsource = "capture"\n'
+                   f'[control]\nendpoint = "{endpoints["control"]}"\n[health]\ninterval = 0.05\n' + text)
+    return cfg, endpoints
+
+
+def test_a_recorder_killed_outright_leaves_every_chunk_it_finished(tmp_path: Path) -> None:
+    cfg, endpoints = _replay_daemon(tmp_path, speed=0.25)
+    out = tmp_path / "killed.mcap"
+    watch = Collector(endpoints["pub"], (b"health",))
+    try:
+        with daemon(cfg, tmp_path / "err.log") as proc, \
+                group(cellbridge_cmd("record", str(out), "--endpoint", endpoints["pub"], "--topics", "all",
+                                     "--chunk-seconds", "0.2"), stderr=open(tmp_path / "rec.log", "wb")) as rec:
+            watch.pump(30, until=lambda t, m: m["links"]["gw"].get("replayed_records", 0) >= 40)
+            assert rec.poll() is None and proc.poll() is None
+            assert _stop(rec, signal.SIGKILL) == -signal.SIGKILL
+            chunks_before = _whole_chunks(out)
+            assert _ping(endpoints)  # the daemon did not notice
+    finally:
+        watch.close()
+    result = ReadResult()
+    got = [(m.topic, codec.decode(m.topic, m.data)) for m in read_messages(out, result)]
+    assert not result.complete and "cut short" in result.error
+    assert len(got) == chunks_before > 0  # every message of every chunk written before the kill
+    seqs: dict[str, list[int]] = {}
+    for t, m in got:
+        seqs.setdefault(t, []).append(m["seq"])
+    assert all(s == list(range(s[0], s[0] + len(s))) for s in seqs.values())  # nothing missing inside
+
+
+def _whole_chunks(path: Path) -> int:
+    """Messages in the file's whole chunks, counted with the mcap package's own stream reader."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    n = 0
+    with open(path, "rb") as fh:
+        records = StreamReader(fh, emit_chunks=True).records
+        try:
+            for rec in records:
+                if isinstance(rec, Chunk):
+                    n += sum(1 for r in breakup_chunk(rec) if type(r).__name__ == "Message")
+        except Exception:  # noqa: BLE001 - the cut at the end
+            pass
+    return n
+
+
+def test_a_full_disk_stops_the_recording_with_a_message_and_the_daemon_goes_on(tmp_path: Path) -> None:
+    """A size-limited file (RLIMIT_FSIZE: writes past 15 kB fail as on a full disk)."""
+    cfg, endpoints = _replay_daemon(tmp_path, speed=0.5)
+    out = tmp_path / "full.mcap"
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (15_000, resource.RLIM_INFINITY))
+
+    with daemon(cfg, tmp_path / "err.log") as proc:
+        rec = subprocess.run(cellbridge_cmd("record", str(out), "--endpoint", endpoints["pub"], "--topics", "all",
+                                            "--chunk-size", "0.004"),
+                             capture_output=True, text=True, timeout=60, preexec_fn=limit, start_new_session=True)
+        assert rec.returncode == 1, rec.stderr
+        assert "File too large" in rec.stderr and "recording stopped" in rec.stderr
+        assert "Traceback" not in rec.stderr
+        assert proc.poll() is None and _ping(endpoints)
+    stats = json.loads(rec.stderr.strip().splitlines()[-2])
+    result = ReadResult()
+    got = list(read_messages(out, result))
+    assert not result.complete and 0 < len(got) <= stats["messages"]
+
+
+def _ping(endpoints: dict[str, str]) -> bool:
+    client = Client(endpoints, ())
+    try:
+        return bool(client.request({"v": 1, "cmd": "ping"})["ok"])
+    finally:
+        client.close()

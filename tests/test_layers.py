@@ -19,7 +19,8 @@ RULES: dict[str, tuple[set[str], set[str]]] = {
     "protocol": ({"protocol"}, {"msgpack", "cobs"}),
     "tactile": ({"tactile"}, {"numpy", "numba"}),  # numba: compiled kernels of the same numpy code
     "emulator": ({"emulator", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "setproctitle"}),
-    "daemon": ({"daemon", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "serial"}),
+    # mcap: the daemon takes a recording's serial channel as a link (``replay:FILE.mcap``)
+    "daemon": ({"daemon", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "serial", "mcap"}),
 }
 #: The one module of the top package any layer may read: the version string (a leaf, no imports).
 SHARED = {"_version"}

@@ -38,6 +38,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+from cellbridge.errors import CellbridgeError
+
 DEFAULT_SIDE = 0.040
 DEFAULT_BITRATE = 1_000_000
 MAX_BRIDGE_ID = 0xFFFE
@@ -48,7 +50,7 @@ _BRIDGE_KEYS = {"id", "cells", "position", "gateway", "tcp"}
 _LINK_KEYS = {"a", "b", "loss", "ber"}
 
 
-class MeshError(ValueError):
+class MeshError(CellbridgeError, ValueError):
     """A mesh description that cannot be used; the message names the key and the problem."""
 
 

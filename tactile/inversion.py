@@ -39,6 +39,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _stretch
 
 __all__ = [
@@ -53,7 +54,6 @@ __all__ = [
     "ratio_slope",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Default rms noise of one ΔC measurement (F): one 2 ms counter gate, as measured on
 #: the emulated chip (bench/bench_chip.py, docs/emulator-chip.md): 0.27 fF on C1 and

@@ -2,7 +2,7 @@
 
 Prints tables; asserts nothing. Run (one core, about a minute):
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bench_contacts.py
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/bench_contacts.py [--against REV]
 
 * Accuracy: random contacts straddling the seams of the 2×2 skin (D 10-30 mm,
   F 2-10 N, half across one seam, half near the corner), Gaussian noise of 1 fF on
@@ -16,9 +16,10 @@ Prints tables; asserts nothing. Run (one core, about a minute):
   really touches, as the calibrator's touch flags give), ``estimate()`` per frame;
   a 16×16 frame with 8 simultaneous contacts; the spread model (s = 2 mm) per
   contact; the tracker's ``update()`` on the 8-contact frames; ``estimate_frames()``
-  on chunks of the same frames (time per frame; its p99 is over chunks). Today's code
-  (``bench/_legacy_contacts.py``, the estimator before this kernel) runs on the same
-  readings in the same run for the speed-up.
+  on chunks of the same frames (time per frame; its p99 is over chunks). The estimator
+  of another git revision (``--against REV``; default: the one before the compiled
+  kernel) runs on the same readings in the same run, in a process of its own on that
+  revision's package, for the speed-up.
 * Speed on readings the model did not make: one random contact per frame on a 4×4
   skin (D 8-30 mm, F 2-15 N, 1 fF noise), the same disks read four ways: made by the
   fitted model itself; each element's overlap integrated independently on a 0.1 mm
@@ -41,27 +42,30 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import argparse  # noqa: E402
 import math  # noqa: E402
+import pickle  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from timing import pin_to_one_core, revision_tree, run_at_revision, table  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout too
+# The package's public names only: the same script runs on an older revision (--against).
+from cellbridge.tactile import ContactEstimator, cluster_elements, grid_layout, skin_response  # noqa: E402
 
-from _legacy_contacts import ContactEstimator as LegacyEstimator  # noqa: E402
-from timing import pin_to_one_core, table  # noqa: E402
-
-from cellbridge.tactile.contacts import ContactEstimator, cluster_elements  # noqa: E402
 from cellbridge.tactile.element import sensitivity  # noqa: E402
-from cellbridge.tactile.skin import disk_element_overlap, grid_layout, skin_response  # noqa: E402
-from cellbridge.tactile.tracker import ContactTracker  # noqa: E402
+from cellbridge.tactile.overlap import disk_element_overlap  # noqa: E402
+#: The estimator before the compiled fit kernel (commit de1ca21): what --against compares with by default.
+BEFORE_KERNEL = "de1ca21^"
 
 MM = 1e-3
 NOISE = 1e-15
 SPREAD = 0.002
 SEPARATION: list[list[object]] = []
+LEGACY: list[tuple] = []  # (rows, [skin, frames], (rows, cols), spread, frames, today's CPU median) for --against
 
 
 def noisy(lay, contacts, rng, spread=0.0):
@@ -221,10 +225,9 @@ def speed_single(rows, rows_legacy, name, lay, n, n_legacy, rng):
     rows.append([name, "one contact per frame", n, ms(wall), ms(wall, 99), ms(cpu), ms(cpu, 99),
                  f"{per.mean():.2f}"])
     batched(rows, est, name, "one contact per frame", frames, 50)
-    leg = LegacyEstimator(lay, noise=NOISE)
-    lw, lc, _ = timed(leg.estimate, frames[:n_legacy])
-    rows_legacy.append([name, "one contact per frame", n_legacy, ms(lw), ms(lc),
-                        f"{np.median(lc) / np.median(cpu[:n_legacy]):.0f}×"])
+    side = math.isqrt(lay.n)
+    LEGACY.append((rows_legacy, [name, "one contact per frame"], (side, side), 0.0, frames[:n_legacy],
+                   np.median(cpu[:n_legacy])))
     return est
 
 
@@ -253,10 +256,10 @@ def speed_frame8(rows, rows_legacy, rng, n=200, n_legacy=10):
     ncl = np.array([cluster_elements(lay, f[2]).max() + 1 for f in frames])
     SEPARATION.append(["16×16, 8 fingers", n, f"{ncl.mean():.2f}", int((ncl < 8).sum()),
                        int(((ncl < 8) & (per == 8)).sum()), f"{per.mean():.2f}"])
-    leg = LegacyEstimator(lay, noise=NOISE)
-    lw, lc, _ = timed(leg.estimate, frames[:n_legacy])
-    rows_legacy.append(["16×16", "8 contacts per frame", n_legacy, ms(lw), ms(lc),
-                        f"{np.median(lc) / np.median(cpu[:n_legacy]):.0f}×"])
+    LEGACY.append((rows_legacy, ["16×16", "8 contacts per frame"], (16, 16), 0.0, frames[:n_legacy],
+                   np.median(cpu[:n_legacy])))
+    from cellbridge.tactile import ContactTracker  # (not at every revision --against may run)
+
     tr = ContactTracker(est, birth_frames=1)
     # The tracker sees the same fingers frame after frame: replay each frame 5 times.
     replay = [f for f in frames[:40] for _ in range(5)]
@@ -281,14 +284,44 @@ def speed_spread(rows, rows_legacy, rng, n=60, n_legacy=4):
     wall, cpu, out = timed(est.estimate, frames)
     rows.append(["2×2", f"spread s = {SPREAD / MM:.0f} mm, one contact", n, ms(wall), ms(wall, 99), ms(cpu),
                  ms(cpu, 99), f"{np.mean([len(o) for o in out]):.2f}"])
-    leg = LegacyEstimator(lay, noise=NOISE, spread=SPREAD)
-    lw, lc, _ = timed(leg.estimate, frames[:n_legacy])
-    rows_legacy.append(["2×2", f"spread s = {SPREAD / MM:.0f} mm, one contact", n_legacy, ms(lw), ms(lc),
-                        f"{np.median(lc) / np.median(cpu[:n_legacy]):.0f}×"])
+    LEGACY.append((rows_legacy, ["2×2", f"spread s = {SPREAD / MM:.0f} mm, one contact"], (2, 2), SPREAD,
+                   frames[:n_legacy], np.median(cpu[:n_legacy])))
     return cold
 
 
+def estimate_only() -> None:
+    """``--estimate-only``, run by ``--against`` on the other revision's package: each job
+    on stdin ((rows, cols), spread, frames) timed with that revision's estimator."""
+    pin_to_one_core()
+    out = []
+    for (r, c), spread, frames in pickle.load(sys.stdin.buffer):
+        lay = grid_layout(r, c)
+        est = ContactEstimator(lay, noise=NOISE, spread=spread) if spread else ContactEstimator(lay, noise=NOISE)
+        wall, cpu, _ = timed(est.estimate, frames)
+        out.append((wall, cpu))
+    pickle.dump(out, sys.stdout.buffer)
+
+
+def against(rev: str) -> None:
+    """The same frames through the estimator of git revision ``rev``, in a process of its own."""
+    jobs = [(shape, spread, frames) for _, _, shape, spread, frames, _ in LEGACY]
+    with tempfile.TemporaryDirectory() as d:
+        tree = revision_tree(rev, Path(__file__).resolve().parents[1], Path(d))
+        got = pickle.loads(run_at_revision(tree, __file__, ["--estimate-only"], pickle.dumps(jobs)))
+    for (rows, head, _, _, frames, today), (lw, lc) in zip(LEGACY, got):
+        rows.append([*head, len(frames), ms(lw), ms(lc), f"{np.median(lc) / today:.0f}×"])
+
+
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--against", default=BEFORE_KERNEL, metavar="REV",
+                    help=f"git revision whose estimator runs on the same frames (default {BEFORE_KERNEL}: "
+                         "the estimator before the compiled kernel); '' skips it")
+    ap.add_argument("--estimate-only", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.estimate_only:
+        estimate_only()
+        return
     pin_to_one_core()
     t0 = time.perf_counter()
     print("cellbridge contact estimation bench — 40 mm elements, 1 fF noise, one core")
@@ -300,6 +333,8 @@ def main() -> None:
     speed_frame8(rows, rows_legacy, rng)
     cold = speed_spread(rows, rows_legacy, rng)
     speed_perturbed(np.random.default_rng(21))
+    if args.against:
+        against(args.against)
     table(
         "Time per estimate() call (ms; uniform model unless stated); targets: one contact median ≤ 0.5, "
         "p99 ≤ 2; 8 contacts ≤ 4; spread ≤ 5",
@@ -307,7 +342,7 @@ def main() -> None:
         rows,
     )
     table(
-        "Today's estimator (bench/_legacy_contacts.py) on the first frames of the same sets",
+        f"The estimator at git revision {args.against or '-'} on the first frames of the same sets",
         ["skin", "frames", "n", "wall median", "CPU median", "speed-up (CPU medians)"],
         rows_legacy,
     )

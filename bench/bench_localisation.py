@@ -28,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a check
 
 from cellbridge.tactile.contacts import ContactEstimator  # noqa: E402
 from cellbridge.tactile.element import ElementParams  # noqa: E402
-from cellbridge.tactile.skin import grid_layout, skin_response  # noqa: E402
+from cellbridge.tactile.layout import grid_layout  # noqa: E402
+from cellbridge.tactile.response import skin_response  # noqa: E402
 from cellbridge.tactile.transfer import counter_delta, counts_per_farad  # noqa: E402
 from timing import table  # noqa: E402
 

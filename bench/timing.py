@@ -4,8 +4,13 @@ script in bench/ runs, since Python puts the script's folder first on sys.path).
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import sys
 import time
+import tomllib
 from collections.abc import Callable
+from pathlib import Path
 
 
 def pin_to_one_core() -> None:
@@ -40,3 +45,44 @@ def table(title: str, head: list[str], rows: list[list[object]]) -> None:
     print(row(["-" * w for w in widths], widths))
     for r in rows:
         print(row(r, widths))
+
+
+# ----------------------------------------------------------------- another git revision
+
+#: Runs a script on a source tree given as argv[1] instead of the installed package: the
+#: editable install's finder (consulted before the import path) is taken away.
+_AT_REVISION = """
+import os, runpy, sys
+tree, script = sys.argv[1], os.path.abspath(sys.argv[2])
+sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in repr(f).lower()]
+sys.path[:0] = [tree, os.path.dirname(script)]  # first: the revision's package wins over any other
+sys.argv = sys.argv[2:]
+runpy.run_path(script, run_name='__main__')
+"""
+
+def revision_tree(rev: str, root: Path, into: Path) -> Path:
+    """The package of git revision ``rev`` of the repository at ``root``, laid out under
+    ``into`` as an install would (``[tool.setuptools.package-dir]``): a folder to put first
+    on the import path. Raises CalledProcessError for an unknown revision."""
+    src = into / "src"
+    src.mkdir(parents=True)
+    archive = subprocess.run(["git", "-C", str(root), "archive", rev], check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(src)], input=archive, check=True)
+    dirs = tomllib.loads((src / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    tree = into / "tree"
+    for package, folder in sorted(dirs.items()):
+        target = tree.joinpath(*package.split("."))
+        if "." in package:
+            target.symlink_to(src / folder, target_is_directory=True)
+        else:
+            shutil.copytree(src / folder, target)
+    return tree
+
+
+def run_at_revision(tree: Path, script: str, args: list[str], data: bytes) -> bytes:
+    """stdout of ``script args`` run on ``tree`` (see :func:`revision_tree`), ``data`` on its stdin."""
+    out = subprocess.run([sys.executable, "-c", _AT_REVISION, str(tree), script, *args], input=data,
+                         capture_output=True, check=False, timeout=3600)
+    if out.returncode:
+        raise RuntimeError(f"{script} at the revision failed:\n{out.stderr.decode(errors='replace')[-2000:]}")
+    return out.stdout

@@ -17,12 +17,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cellbridge.errors import CellbridgeError
 from cellbridge.tactile import DEFAULT_NOISE
 
 Check = Callable[[Any], str | None]  # returns a complaint, or None when the value is fine
 
 
-class ConfigError(ValueError):
+class ConfigError(CellbridgeError, ValueError):
     """Every problem of a config, one per line, each naming the key and the value."""
 
     def __init__(self, source: str, problems: list[str]) -> None:

@@ -21,9 +21,8 @@ from cellbridge.tactile import (
     grid_layout,
     skin_response,
 )
+from cellbridge.tactile.arrays import FloatArray
 from numpy.typing import NDArray
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

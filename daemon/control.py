@@ -14,6 +14,7 @@ from typing import Any
 import msgpack
 
 from cellbridge.daemon.wire import OPS, mode_value
+from cellbridge.errors import CellbridgeError
 
 VERSION = 1
 MAX_BRIDGE = 0xFFFE  # 0xFFFF is the broadcast address
@@ -30,7 +31,7 @@ COMMANDS = {
 MAX_ID_BYTES = 64
 
 
-class RequestError(ValueError):
+class RequestError(CellbridgeError, ValueError):
     pass
 
 

@@ -8,9 +8,8 @@ from typing import Any
 
 import numpy as np
 from cellbridge.tactile import CalibrationConfig, Calibrator, ElementParams, InverseStatus, SkinLayout, solve
+from cellbridge.tactile.arrays import FloatArray
 from numpy.typing import NDArray
-
-FloatArray = NDArray[np.float64]
 
 
 def calibration_config(section: dict[str, Any]) -> CalibrationConfig:

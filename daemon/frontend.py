@@ -15,9 +15,8 @@ from cellbridge.tactile import (
     expected_counts,
     unwrap_counts,
 )
+from cellbridge.tactile.arrays import FloatArray
 from numpy.typing import NDArray
-
-FloatArray = NDArray[np.float64]
 
 
 class Frontend:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from os import PathLike
 
-from cellbridge.tactile.skin import SkinLayout, parse_layout
+from cellbridge.tactile.layout import parse_layout, SkinLayout
 
 
 def load_layout(path: str | PathLike[str]) -> SkinLayout:

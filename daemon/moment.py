@@ -29,7 +29,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
+from cellbridge.tactile.arrays import FloatArray
+
 
 #: Readings kept per element beyond ``max_lag`` at the fastest sampling rate.
 SPARE = 4

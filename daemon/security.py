@@ -21,10 +21,12 @@ import zmq
 from zmq.auth import load_certificate, load_certificates
 from zmq.auth.thread import ThreadAuthenticator
 
+from cellbridge.errors import CellbridgeError
+
 SECURITY_KEYS = ("server_secret_file", "allowed_clients_dir")
 
 
-class SecurityError(ValueError):
+class SecurityError(CellbridgeError, ValueError):
     """A bind that would expose the daemon beyond this host without CURVE."""
 
 

@@ -40,6 +40,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+from cellbridge.errors import CellbridgeError
+
 DEFAULT_SIDE = 0.040
 #: The element model's largest side (cellbridge.tactile.skin.MAX_SIDE): a bridge builds
 #: its element from the file's side and could not start beyond it.
@@ -53,7 +55,7 @@ _BRIDGE_KEYS = {"id", "cells", "position", "gateway", "tcp"}
 _LINK_KEYS = {"a", "b", "loss", "ber"}
 
 
-class MeshError(ValueError):
+class MeshError(CellbridgeError, ValueError):
     """A mesh description that cannot be used; the message names the key and the problem."""
 
 

@@ -27,12 +27,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from cellbridge.emulator.mesh import Mesh, read_text
+from cellbridge.errors import CellbridgeError
 from cellbridge.tactile import ElementParams, SkinLayout, skin_response
 
 _CONTACT_KEYS = {"start", "duration", "position", "force", "diameter", "velocity"}
 
 
-class ScenarioError(ValueError):
+class ScenarioError(CellbridgeError, ValueError):
     """A scenario that cannot be used; the message names the key and the problem."""
 
 

@@ -8,8 +8,10 @@ the drop counter the error is tallied under.
 
 from __future__ import annotations
 
+from cellbridge.errors import CellbridgeError
 
-class ProtocolError(ValueError):
+
+class ProtocolError(CellbridgeError, ValueError):
     """Malformed, unsupported or inconsistent wire data."""
 
     def __init__(self, cause: str, detail: str = "") -> None:

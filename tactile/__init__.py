@@ -93,18 +93,15 @@ __all__ = [
 from cellbridge.tactile.calibration import CalibrationConfig, CalibrationStep, Calibrator  # noqa: E402
 from cellbridge.tactile.clusters import cluster_elements, force_centroid  # noqa: E402
 from cellbridge.tactile.contact_result import Contact  # noqa: E402
-from cellbridge.tactile.skin import (  # noqa: E402
+from cellbridge.tactile.layout import (  # noqa: E402
     SkinLayout,
-    disk_element_overlap,
-    disk_rect_overlap,
-    disk_response,
     grid_layout,
     layout_from_mapping,
     layout_to_toml,
     parse_layout,
-    pressure_field,
-    skin_response,
 )
+from cellbridge.tactile.overlap import disk_element_overlap, disk_rect_overlap  # noqa: E402
+from cellbridge.tactile.response import disk_response, pressure_field, skin_response  # noqa: E402
 
 __all__ += [
     # skin array

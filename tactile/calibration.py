@@ -56,6 +56,8 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cellbridge.tactile.arrays import FloatArray
+
 __all__ = [
     "CalibrationConfig",
     "CalibrationStep",
@@ -65,8 +67,6 @@ __all__ = [
     "TOUCHED",
     "HOLDOFF",
 ]
-
-FloatArray = NDArray[np.float64]
 
 
 def _is_count(v: object, minimum: int = 1) -> bool:

@@ -11,13 +11,12 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-from cellbridge.tactile.skin import SkinLayout
+from cellbridge.tactile.arrays import IntArray
+from cellbridge.tactile.layout import SkinLayout
 
 __all__ = ["cluster_elements", "force_centroid"]
-
-IntArray = NDArray[np.int64]
 
 
 def cluster_elements(

@@ -9,7 +9,7 @@ parameter. Everything here is scalar and allocation-light so that the fit kernel
 (:mod:`cellbridge.tactile.fit_kernel`) can loop over every contact of a frame.
 
 Exact geometry: the disk ∩ rectangle area is the closed form of
-:func:`cellbridge.tactile.skin.disk_rect_overlap` (same formulas, scalar), and its
+:func:`cellbridge.tactile.overlap.disk_rect_overlap` (same formulas, scalar), and its
 derivatives are boundary integrals, also closed form:
 
 * moving the centre by dx changes the area by (chord on the left edge − chord on the

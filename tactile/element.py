@@ -22,7 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+
+from cellbridge.tactile.arrays import FloatArray
 
 __all__ = [
     "EPS0",
@@ -36,8 +38,6 @@ __all__ = [
 
 #: Vacuum permittivity (F/m), CODATA 2018.
 EPS0 = 8.8541878128e-12
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -26,13 +26,15 @@ from typing import Literal, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.clusters import cluster_elements
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits
 from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info, solve
 from cellbridge.tactile.light_touch import locate_light, unlocated
-from cellbridge.tactile.skin import SkinLayout, _check_spread, _spread_cells
+from cellbridge.tactile.layout import SkinLayout
+from cellbridge.tactile.response import _check_spread, _spread_cells
 from cellbridge.tactile.spread_model import DV, PROFILE_ROWS
 from cellbridge.tactile.two_disks import MODEL_ERROR, split_clusters
 
@@ -41,15 +43,13 @@ __all__ = ["ContactEstimator", "estimate_contacts"]
 #: Steps in ln F above a hard press's fit where its profile cost is taken.
 FIRM_STEPS = np.array([0.05, 0.1, 0.2, 0.4, 0.8, 1.6])
 
-FloatArray = NDArray[np.float64]
-
 
 class ContactEstimator:
     """Turns per-element ΔC (and touch flags) of one time step into :class:`Contact` s.
 
     ``noise`` is the rms noise of one ΔC reading (F, scalar or per channel); it
     weights the fit and scales every reported uncertainty. ``spread`` is the
-    membrane-tension model of :func:`cellbridge.tactile.skin.skin_response` (0: the
+    membrane-tension model of :func:`cellbridge.tactile.response.skin_response` (0: the
     paper's assumption). ``method`` picks what the disk is fitted to:
     ``"capacitance"`` (ΔC of the cluster and its neighbours; default) or ``"area"``
     (the per-element areas from the inverse; uniform pressure only). ``split``

@@ -15,17 +15,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.clusters import force_centroid
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.fit_kernel import UNIFORM, fit_batch, share_start
-from cellbridge.tactile.skin import SkinLayout
+from cellbridge.tactile.layout import SkinLayout
 
 __all__ = ["Cluster", "Batch", "Fits", "FitRunner", "major_axis"]
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 
 @dataclass

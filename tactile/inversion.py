@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from cellbridge.tactile._jit import compiled
 from cellbridge.tactile.disk_model import element_vector, layer_response
+from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _stretch
 
 __all__ = [
@@ -56,7 +57,6 @@ __all__ = [
     "ratio_slope",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Default rms noise of one ΔC measurement (F): one 2 ms counter gate, as measured on
 #: the emulated chip (bench/bench_chip.py, docs/emulator-chip.md): 0.27 fF on C1 and

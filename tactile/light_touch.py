@@ -17,14 +17,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.fit_problems import Cluster, FitRunner
 
 __all__ = ["locate_light", "unlocated"]
 
-FloatArray = NDArray[np.float64]
 
 N_DIAMETERS = 20  #: grid of fixed diameters, log-spaced over 0.05–1.5 element sides
 #: Cost rise that still counts as consistent: the 95 % range of a one-parameter

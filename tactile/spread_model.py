@@ -2,14 +2,14 @@
 
 With a spread s the pressure is the disk's F/S blurred by a 2-D Gaussian, and an
 element reads ``∫ g_n(σ·Φ(ρ)) dA`` over its area, Φ being the blurred disk's radial
-profile (:func:`cellbridge.tactile.skin._disk_blur`). Φ depends on ρ/s and R/s
+profile (:func:`cellbridge.tactile.response._disk_blur`). Φ depends on ρ/s and R/s
 only, so it is tabulated once per dimensionless radius v = R/s (rows every 0.05 in
 v, 1/40 in u = ρ/s, built on demand and kept for the process, whatever s is) and
 interpolated linearly in both. Per evaluation the kernel turns the two neighbouring
 rows into tables of g, ∂g/∂u, ∂g/∂ln F and ∂g/∂ln R along u (a few hundred
 sensitivity evaluations), then sums them over the quadrature nodes of each observed
 element that the blurred disk reaches: the same 2×2-point Gauss rule on cells of
-``quad_step`` as :func:`cellbridge.tactile.skin.skin_response`, generated on the fly.
+``quad_step`` as :func:`cellbridge.tactile.response.skin_response`, generated on the fly.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 from cellbridge.tactile._jit import compiled
 
 from cellbridge.tactile.disk_model import overlap_grad, prior_row, sensitivity_slope, whiten
-from cellbridge.tactile.skin import _disk_blur
+from cellbridge.tactile.response import _disk_blur
 
 __all__ = ["ProfileRows", "spread_residuals", "DV", "DU", "U_SPAN"]
 

@@ -44,6 +44,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.element import ElementParams
 
 __all__ = [
@@ -71,8 +72,6 @@ __all__ = [
     "adc_resolution",
 ]
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 _LN2x2 = 2.0 * math.log(2.0)
 

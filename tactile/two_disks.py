@@ -29,14 +29,14 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.clusters import force_centroid
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.fit_problems import Cluster, FitRunner, Fits
-from cellbridge.tactile.skin import disk_rect_overlap
+from cellbridge.tactile.overlap import disk_rect_overlap
 
 __all__ = ["MODEL_ERROR", "SPLIT_DCHI2", "split_clusters"]
 
-FloatArray = NDArray[np.float64]
 
 #: Δχ² (in units of the noise, or of the two-disk fit's reduced χ² when that is
 #: worse) that a second disk must gain to be reported.

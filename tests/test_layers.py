@@ -22,8 +22,8 @@ RULES: dict[str, tuple[set[str], set[str]]] = {
     # mcap: the daemon takes a recording's serial channel as a link (``replay:FILE.mcap``)
     "daemon": ({"daemon", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "serial", "mcap"}),
 }
-#: The one module of the top package any layer may read: the version string (a leaf, no imports).
-SHARED = {"_version"}
+#: The modules of the top package any layer may read: leaves without imports (version, root error).
+SHARED = {"_version", "errors"}
 #: Standard-library modules that would put I/O, event loops or clocks into the pure protocol layer.
 IMPURE = {"asyncio", "socket", "selectors", "select", "serial", "threading", "time", "os", "subprocess", "io"}
 

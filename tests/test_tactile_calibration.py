@@ -19,7 +19,8 @@ from cellbridge.tactile.calibration import (
 )
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.inversion import inverse
-from cellbridge.tactile.skin import grid_layout, skin_response
+from cellbridge.tactile.layout import grid_layout
+from cellbridge.tactile.response import skin_response
 
 pF = 1e-12
 fF = 1e-15

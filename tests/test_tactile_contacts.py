@@ -18,7 +18,8 @@ from cellbridge.tactile.contacts import (
     force_centroid,
 )
 from cellbridge.tactile.element import ElementParams
-from cellbridge.tactile.skin import grid_layout, skin_response
+from cellbridge.tactile.layout import grid_layout
+from cellbridge.tactile.response import skin_response
 from cellbridge.tactile.transfer import counter_delta, counts_per_farad
 
 LAY = grid_layout(2, 2)  # the paper's 2×2 array, 40 mm pitch; seams at x = 20 mm, y = 20 mm

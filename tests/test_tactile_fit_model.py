@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 from cellbridge.tactile.disk_model import disk_residuals, element_vector, overlap_grad, sensitivity_slope
 from cellbridge.tactile.element import ElementParams, sensitivity
 from cellbridge.tactile.fit_kernel import share_start
-from cellbridge.tactile.skin import _spread_cells, disk_rect_overlap, grid_layout, skin_response
+from cellbridge.tactile.layout import grid_layout
+from cellbridge.tactile.overlap import disk_rect_overlap
+from cellbridge.tactile.response import skin_response, _spread_cells
 from cellbridge.tactile.spread_model import PROFILE_ROWS, DV, spread_residuals
 
 P = ElementParams()

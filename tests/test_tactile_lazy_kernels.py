@@ -3,7 +3,7 @@
 numba needs executable memory, which a service unit's ``MemoryDenyWriteExecute=yes``
 forbids (``import numba`` raises PermissionError there), and costs time at start-up.
 The emulated mesh (``cellbridge.tactile.transfer``), the daemon's configuration
-(``cellbridge.config`` → ``cellbridge.tactile.skin``) and the CLI's ``--help`` must
+(``cellbridge.config`` → ``cellbridge.tactile.layout``) and the CLI's ``--help`` must
 not pay for the contact estimator's kernels.
 """
 

@@ -1,4 +1,4 @@
-"""Skin array: layout, exact disk–rectangle overlap, array response (cellbridge.tactile.skin)."""
+"""Skin array: layout, exact disk–rectangle overlap, array response (cellbridge.tactile.layout, .overlap, .response)."""
 
 from __future__ import annotations
 
@@ -11,19 +11,9 @@ from hypothesis import strategies as st
 
 from cellbridge.config import load_layout
 from cellbridge.tactile.element import ElementParams, forward, sensitivity
-from cellbridge.tactile.skin import (
-    SkinLayout,
-    _disk_blur,
-    disk_element_overlap,
-    disk_rect_overlap,
-    disk_response,
-    grid_layout,
-    layout_from_mapping,
-    layout_to_toml,
-    parse_layout,
-    pressure_field,
-    skin_response,
-)
+from cellbridge.tactile.layout import grid_layout, layout_from_mapping, layout_to_toml, parse_layout, SkinLayout
+from cellbridge.tactile.overlap import disk_element_overlap, disk_rect_overlap
+from cellbridge.tactile.response import _disk_blur, disk_response, pressure_field, skin_response
 
 # ----------------------------------------------------------------- reference areas
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from cellbridge.tactile.contacts import ContactEstimator
-from cellbridge.tactile.skin import grid_layout, skin_response
+from cellbridge.tactile.layout import grid_layout
+from cellbridge.tactile.response import skin_response
 from cellbridge.tactile.tracker import ContactTracker
 
 MM = 1e-3

@@ -73,6 +73,7 @@ class RealSkin:
     extra_args: tuple[str, ...] = ()
     arrivals: list[Arrival] = field(default_factory=list)
     counters: dict[int, dict[str, int]] = field(default_factory=dict)
+    gates: dict[int, dict[int, int]] = field(default_factory=dict)  #: bridge -> planned gate ticks by index
     stderr_lines: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -182,12 +183,26 @@ class RealSkin:
                 try:
                     d = json.loads(line)
                     self.counters[d["bridge"]] = d["counters"]
+                    self.gates[d["bridge"]] = {int(k): v for k, v in d.get("gates", {}).items()}
                 except (ValueError, KeyError):
                     pass
             else:
                 self.stderr_lines.append(line.rstrip())
         self._err.close()
         self._tmp.cleanup()
+
+    def gate_spread_us(self) -> tuple[int, int, float]:
+        """(index, bridges reporting it, max - min of their planned gate starts in µs) for
+        the index most bridges reported at exit (see ``process_bridge.planned_gates``)."""
+        by: dict[int, list[int]] = {}
+        for g in self.gates.values():
+            for k, t in g.items():
+                by.setdefault(k, []).append(t)
+        if not by:
+            return -1, 0, float("nan")
+        k = max(by, key=lambda i: len(by[i]))
+        ts = by[k]
+        return k, len(ts), (max(ts) - min(ts)) / (CLOCK_HZ / 1e6)
 
     def snapshot(self) -> list[Arrival]:
         with self._lock:

@@ -14,7 +14,8 @@ fell behind), also as ``behind_gates``. SIGUSR1 opens a window (``late_gates_sin
 ``behind_gates_since_mark`` and ``samples_since_mark`` count in it: a benchmark marks
 the end of start-up) and a second SIGUSR1 closes it (so that the stop of many processes
 at once is not measured). On
-SIGTERM/SIGINT it prints its counters as JSON on stderr and exits.
+SIGTERM/SIGINT it prints its counters as JSON on stderr (with ``gates``: the ticks it will
+start the gates of two whole-second sample indices, :func:`planned_gates`) and exits.
 """
 
 from __future__ import annotations
@@ -218,11 +219,25 @@ def run(args: argparse.Namespace) -> int:
             counters.update(port.counters)
             port.close()
         # one write, so the lines of many bridges sharing a stderr never interleave
-        sys.stderr.write(json.dumps({"bridge": br.id, "counters": counters}) + "\n")
+        sys.stderr.write(json.dumps({"bridge": br.id, "counters": counters, "gates": planned_gates(fw)}) + "\n")
         sys.stderr.flush()
         medium.close()
         stimuli.close()
     return 0
+
+
+def planned_gates(fw: Firmware) -> dict[str, int]:
+    """Sample index -> the tick this bridge will start that sample's C1 gate, for the first
+    two whole seconds of global time at least a second ahead; empty without mesh time.
+    Every bridge of a skin names the same indices (unless they stop across a second's
+    boundary), so the spread of one index's gate starts across the skin is read straight
+    off the bridges' last lines: how well mesh time aligns what the chips do."""
+    tick = now_tick()
+    if not fw.timebase.synced(tick):
+        return {}
+    rate = fw.sampler.settings.rate_hz
+    second = fw.clock.global_at(fw.crystal.local(tick)) // fw.config.clock_hz + 2
+    return {str(k): fw.timebase.gate_tick(k, rate) for k in (second * rate, (second + 1) * rate)}
 
 
 class Window:

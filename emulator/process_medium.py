@@ -34,6 +34,7 @@ import math
 import select
 import socket
 import sys
+import time
 from collections import Counter
 
 from cellbridge.emulator import udp
@@ -131,7 +132,13 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
         timeout = 100
         if pending or starting:
             first = min(x[0] for x in (pending[:1] + starting[:1]))  # type: ignore[operator]
-            timeout = max(0, math.ceil((first - now_tick()) * 1000 / CLOCK_HZ))
+            wait = first - now_tick()
+            timeout = max(0, math.ceil(wait * 1000 / CLOCK_HZ))
+            if 0 < wait < CLOCK_HZ // 1000 and not poller.poll(0):
+                # under a millisecond: slept for exactly (poll counts milliseconds, and a
+                # delivery or deferred start a millisecond late delays every hop)
+                time.sleep(wait / CLOCK_HZ)
+                timeout = 0
         if poller.poll(timeout):
             while True:
                 try:
@@ -170,7 +177,7 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
         now = now_tick()
         while starting and starting[0][0] <= now:
             at, _, src, cells, frame, sent = heapq.heappop(starting)
-            begin(src, cells, frame, now, sent)
+            begin(src, cells, frame, at, sent)  # at its reserved tick: the next reservation follows it
         while pending and pending[0][0] <= now:
             tx = heapq.heappop(pending)[2]
             for r, cell, data in medium.finish(tx):

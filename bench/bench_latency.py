@@ -49,7 +49,7 @@ def main() -> None:
     for a in skin.arrivals:
         if lo <= a.gate < hi:
             per[a.bridge].append(a)
-    hops = meshgen_hops(mesh)
+    hops = mesh.hops()
     rows = []
     due = args.rate * (hi - lo)
     worst_share = 1.0
@@ -83,22 +83,6 @@ def main() -> None:
     print(f"\nworst bridge delivered {worst_share:.2%} (target >= 99.9 %)")
     for line in skin.stderr_lines[-5:]:
         print("  stderr:", line)
-
-
-def meshgen_hops(mesh) -> dict[int, int]:
-    """Hops of each bridge from the nearest gateway (breadth first over shared cells)."""
-    nb = mesh.neighbours()
-    dist = {g: 0 for g in mesh.gateways}
-    todo = list(mesh.gateways)
-    while todo:
-        nxt = []
-        for b in todo:
-            for m in nb[b]:
-                if m not in dist:
-                    dist[m] = dist[b] + 1
-                    nxt.append(m)
-        todo = nxt
-    return dist
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ fell behind), also as ``behind_gates``. SIGUSR1 opens a window (``late_gates_sin
 the end of start-up) and a second SIGUSR1 closes it (so that the stop of many processes
 at once is not measured). On
 SIGTERM/SIGINT it prints its counters as JSON on stderr (with ``gates``: the ticks it will
-start the gates of two whole-second sample indices, :func:`planned_gates`) and exits.
+start the gates of two sample indices 10 s apart, :func:`planned_gates`) and exits.
 """
 
 from __future__ import annotations
@@ -227,17 +227,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def planned_gates(fw: Firmware) -> dict[str, int]:
-    """Sample index -> the tick this bridge will start that sample's C1 gate, for the first
-    two whole seconds of global time at least a second ahead; empty without mesh time.
-    Every bridge of a skin names the same indices (unless they stop across a second's
-    boundary), so the spread of one index's gate starts across the skin is read straight
-    off the bridges' last lines: how well mesh time aligns what the chips do."""
+    """Sample index -> the tick this bridge will start that sample's C1 gate, for the next
+    two multiples of 10 s of global time at least a second ahead; empty without mesh time.
+    Every bridge of a skin stopped within the same few seconds names the same indices, so
+    the spread of one index's gate starts across the skin is read straight off the
+    bridges' last lines: how well mesh time aligns what the chips will do (the plan the
+    sampler follows, extrapolated with the skew each bridge measured)."""
     tick = now_tick()
     if not fw.timebase.synced(tick):
         return {}
     rate = fw.sampler.settings.rate_hz
-    second = fw.clock.global_at(fw.crystal.local(tick)) // fw.config.clock_hz + 2
-    return {str(k): fw.timebase.gate_tick(k, rate) for k in (second * rate, (second + 1) * rate)}
+    step = 10 * fw.config.clock_hz
+    first = (fw.clock.global_at(fw.crystal.local(tick)) + fw.config.clock_hz) // step + 1
+    return {str(k * 10 * rate): fw.timebase.gate_tick(k * 10 * rate, rate) for k in (first, first + 1)}
 
 
 class Window:

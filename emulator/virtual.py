@@ -329,6 +329,13 @@ class VirtualMesh:
         self.tick = end
         return self.result()
 
+    def time_errors(self, root: int) -> dict[int, float]:
+        """Each bridge with a mesh-time fit: |its global time − ``root``'s| now, in µs."""
+        r = self.nodes[root]
+        g0 = r.clock.global_at(r.crystal.local(self.tick))
+        return {b: abs(fw.clock.global_at(fw.crystal.local(self.tick)) - g0) * 1e6 / CLOCK_HZ
+                for b, fw in self.nodes.items() if b != root and fw.clock.has_fit()}
+
     def result(self) -> MeshResult:
         counters = {}
         for b in self.mesh.ids:

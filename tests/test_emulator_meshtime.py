@@ -8,7 +8,6 @@ gate starts of one sample index across a skin.
 
 from __future__ import annotations
 
-from collections import deque
 
 import numpy as np
 import pytest
@@ -114,24 +113,12 @@ def test_a_bridge_without_points_for_stale_after_flags_its_samples() -> None:
 
 # -- the mesh in virtual time ----------------------------------------------------------
 def _hops(mesh: Mesh, root: int) -> dict[int, int]:
-    nb = mesh.neighbours()
-    d = {root: 0}
-    q = deque([root])
-    while q:
-        b = q.popleft()
-        for n in nb.get(b, ()):
-            if n not in d:
-                d[n] = d[b] + 1
-                q.append(n)
-    return d
+    return mesh.hops(root)
 
 
 def _errors(vm: VirtualMesh, root: int) -> dict[int, float]:
     """Each synced bridge's |global time - the root's| now, in microseconds."""
-    r = vm.nodes[root]
-    g0 = r.clock.global_at(r.crystal.local(vm.tick))
-    return {b: abs(fw.clock.global_at(fw.crystal.local(vm.tick)) - g0) / US
-            for b, fw in vm.nodes.items() if b != root and fw.clock.has_fit()}
+    return vm.time_errors(root)
 
 
 def bound(hops: int) -> float:

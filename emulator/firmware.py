@@ -47,6 +47,7 @@ from cellbridge.protocol import (
     StreamDecoder,
     decode,
     encode,
+    unpack_payload,
 )
 from cellbridge.protocol import Raw, addressed_to, own, to_serial
 from cellbridge.protocol import peek as parse
@@ -70,6 +71,8 @@ def _package_version() -> str:
 
 FIRMWARE_VERSION = "cellbridge-emu" + _package_version()  #: HELLO's firmware string unless configured
 _ACK = int(Flags.ACK_REQUEST)
+_FRAGMENT = int(Flags.FRAGMENT)
+_HELLO = int(FrameType.HELLO)
 _MS = 50_000  # cycles per millisecond at 50 MHz
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
 _BUNDLE = int(FrameType.BUNDLE)
@@ -85,7 +88,20 @@ _LOOP_MIN_HOPS = 3
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
 _FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
 _FORWARD_MIN, _FORWARD_SPREAD = 2 * _MS, 20 * _MS  # a new round of mesh time goes on 2-22 ms after it came
+_ROUTE_HELLO_EVERY = 200 * _MS  # a HELLO on a parent change at most this often
 _RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and flood copies to leave
+
+
+def _hello_boots(f: Raw) -> int | None:
+    """The boot counter of a relayed HELLO (None: a version 1 HELLO, or not readable): the
+    duplicate filter's evidence of a restart."""
+    if f.flags & _FRAGMENT:
+        return None
+    try:
+        hello = unpack_payload(_HELLO, f.body)
+    except ProtocolError:
+        return None
+    return hello.boots or None  # type: ignore[union-attr]
 
 
 def _when(item: tuple[int, bytes]) -> int:
@@ -104,7 +120,14 @@ class FirmwareConfig:
     clock_hz: int = 50_000_000
     settings: Settings = field(default_factory=Settings)
     batch_max: int = 16  #: samples per DATA frame at most (also bounded by the frame size)
-    max_latency: int = 50 * _MS  #: a sample waits at most this long for company in a DATA frame
+    #: A sample waits at most this long for company in a DATA frame (periodic reporting).
+    #: The trade-off of latency against air time: at saturation 50 ms keeps >= 70 % of a
+    #: cell's bits for samples (bench_emulator), 10 ms only ~47 %; a 4x4 skin at 100 Hz
+    #: delivers its samples p99 ~90 ms after their gate at 50 ms, ~56 ms at 25 ms, and loses
+    #: samples at 10 ms (bench/bench_latency.py, virtual time with the latency model).
+    max_latency: int = 50 * _MS
+    #: The same under event-based reporting (few samples travel: a press's onset goes at once).
+    event_latency: int = 10 * _MS
     queue_len: int = 64
     max_retries: int = 5
     trickle_imin: int = 50 * _MS
@@ -165,6 +188,7 @@ class Firmware:
         # evidence of a restart, without which the host and the relays would drop the new
         # numbering as stale or duplicate (docs/protocol.md, duplicate filter).
         self.seq = 0
+        self._route_hello_at = tick
         # Frames that never reach the host (beacons, link acknowledgements, bundles) number
         # from a counter of their own: had they taken numbers from ``seq``, the host would
         # see gaps in every bridge's numbering and count them as lost (health's loss).
@@ -184,7 +208,8 @@ class Firmware:
         self.hops_seen: OrderedDict[tuple[int, int], int] = OrderedDict()  # (origin, seq) -> hops
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
-                               c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase)
+                               c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
+                               c.event_latency)
         self.status_at = tick + c.status_period
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period
@@ -365,6 +390,17 @@ class Firmware:
         had = self.router.has_route
         if self.router.select():
             self.trickle.reset(tick)
+            if (self.router.parent is not None and tick >= self._route_hello_at
+                    and not any(f.type == _HELLO for f in self.link.queue)):
+                # A new path may end at a gateway (or pass relays) that never saw this
+                # boot's HELLO; their duplicate filters still hold the last boot's numbers,
+                # and a young boot's numbers fall among them. A HELLO ahead of the queued
+                # frames gives them the boot counter first: the restart is seen, not guessed.
+                self._route_hello_at = tick + _ROUTE_HELLO_EVERY
+                c = self.config
+                hello = Hello(self.me, c.firmware, c.position[0], c.position[1], c.side, c.clock_hz, 3, self.boots)
+                if not self.config.gateway and self.link.enqueue(own(hello, self.me, self._next_seq()), first=True):
+                    self.counters["route_hellos"] += 1
         if had and not self.router.has_route:
             self.counters["route_lost"] += 1
 
@@ -398,7 +434,8 @@ class Firmware:
             # once more; the duplicate filter stops a second return
             self.counters["own_returned"] += 1
         key = (f.origin, f.seq)
-        if self.seen.is_duplicate(f.origin, f.seq, f.type == FrameType.HELLO):
+        hello = f.type == _HELLO
+        if self.seen.is_duplicate(f.origin, f.seq, hello, _hello_boots(f) if hello else None):
             self.counters["duplicates"] += 1
             first = self.hops_seen.get(key)
             if first is not None and f.hops >= first + _LOOP_MIN_HOPS and not self.config.gateway:

@@ -34,6 +34,9 @@ class Transmission:
     end: int
     receivers: list[tuple[int, int]]  #: (bridge, cell) that sense it (carrier) and may receive it
     spoiled: dict[tuple[int, int], str] = field(default_factory=dict)  #: (receiver, cell) -> cause
+    #: the tick the sender's transceiver started it (its start-of-frame stamp); ``start``
+    #: unless a real-time medium heard of it later
+    sent: int = -1
 
 
 class Medium:
@@ -82,11 +85,13 @@ class Medium:
     def airtime(self, n_bytes: int) -> int:
         return (n_bytes * 8 + PREAMBLE_BITS) * self.bit_cycles
 
-    def start(self, src: int, data: bytes, cells: tuple[int, ...], tick: int) -> Transmission:
-        """``src`` starts sending ``data`` on ``cells`` at ``tick``; returns the
-        transmission (its ``receivers`` should be told the carrier until ``end``)."""
+    def start(self, src: int, data: bytes, cells: tuple[int, ...], tick: int, sent: int = -1) -> Transmission:
+        """``src`` starts sending ``data`` on ``cells`` at ``tick`` (its transceiver started
+        it at ``sent``, by default ``tick``); returns the transmission (its ``receivers``
+        should be told the carrier until ``end``)."""
         self._next_id += 1
-        tx = Transmission(self._next_id, src, data, tick, tick + self.airtime(len(data)), [])
+        tx = Transmission(self._next_id, src, data, tick, tick + self.airtime(len(data)), [],
+                          sent=tick if sent < 0 else sent)
         self.counters["transmissions"] += 1
         self.counters["bits"] += len(data) * 8
         if src in self.dead:

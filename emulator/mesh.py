@@ -155,6 +155,21 @@ class Mesh:
                 out[a].add(b)
         return {k: sorted(v) for k, v in out.items()}
 
+    def hops(self, *roots: int) -> dict[int, int]:
+        """Bridge -> hops from the nearest of ``roots`` (default: the gateways), over shared
+        cells; bridges no path reaches are left out."""
+        nb = self.neighbours()
+        start = roots or tuple(self.gateways)
+        dist = {r: 0 for r in start}
+        todo = deque(start)
+        while todo:
+            b = todo.popleft()
+            for n in nb[b]:
+                if n not in dist:
+                    dist[n] = dist[b] + 1
+                    todo.append(n)
+        return dist
+
     def reachable(self, cut: frozenset[int] = frozenset(),
                   dead: frozenset[int] = frozenset()) -> set[int]:
         """Bridges with a path of live bridges and uncut cells to a live gateway."""

@@ -3,7 +3,8 @@
 The chip's cycle counter is the host's monotonic clock at 50 MHz. The loop sleeps in
 ``poll`` until the firmware's next timer or until a message arrives (the medium's
 carrier reports and deliveries, the world's contacts, the host's bytes on a gateway's
-serial line); nothing busy-waits. Samples are computed lazily, when their DATA frame
+serial line); nothing busy-waits, and a timer less than a millisecond away is slept for
+to the microsecond (``poll`` counts milliseconds). Samples are computed lazily, when their DATA frame
 (or the decision that none is due) is, with the capacitance at their gate: the bridge
 wakes once per frame, not once per gate, and the cell sees the same frames at the same
 times. A sample computed at a wake that came more than one gate (2 ms) after the
@@ -13,7 +14,8 @@ fell behind), also as ``behind_gates``. SIGUSR1 opens a window (``late_gates_sin
 ``behind_gates_since_mark`` and ``samples_since_mark`` count in it: a benchmark marks
 the end of start-up) and a second SIGUSR1 closes it (so that the stop of many processes
 at once is not measured). On
-SIGTERM/SIGINT it prints its counters as JSON on stderr and exits.
+SIGTERM/SIGINT it prints its counters as JSON on stderr (with ``gates``: the ticks it will
+start the gates of two sample indices 10 s apart, :func:`planned_gates`) and exits.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import select
 import signal
 import socket
 import sys
+import time
 
 import zmq
 
@@ -47,6 +50,7 @@ from cellbridge.emulator.virtual import default_chip
 from cellbridge.emulator.world import World
 
 
+SHORT_TIMER = CLOCK_HZ // 1000  #: a timer this close is slept for exactly, not polled for (ms granularity)
 ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the medium: allow 10 ms
 STIMULI_CHECK = CLOCK_HZ // 5  # the world's socket is looked at at least this often (its fd is edge-like)
 FILE_TCP = -1  #: ``--tcp`` without a port: the mesh file's
@@ -155,8 +159,17 @@ def run(args: argparse.Namespace) -> int:
                     poller.unregister(fd)
                 registered = fds
             due = fw.sampler.next_tick  # when the samples computed at the next wake were wanted
-            wait_ms = max(0, math.ceil((fw.next_tick - now_tick()) * 1000 / CLOCK_HZ))  # never spin
-            ready = {fd for fd, _ in poller.poll(min(wait_ms, 200))}
+            wait = fw.next_tick - now_tick()
+            if wait >= SHORT_TIMER:
+                ready = {fd for fd, _ in poller.poll(min(math.ceil(wait * 1000 / CLOCK_HZ), 200))}
+            else:
+                # A timer less than a millisecond away (an acknowledgement SIFS after a frame,
+                # a backoff of a few slots) is kept to the microsecond: poll's milliseconds
+                # would send every acknowledgement a millisecond late, after the other bridges'
+                # next frames, and the retransmissions that followed choked the cells.
+                ready = {fd for fd, _ in poller.poll(0)}
+                if not ready and wait > 0:
+                    time.sleep(wait / CLOCK_HZ)
             tick = now_tick()
             taken = fw.counters["samples"]
             fed = False  # whether the firmware was given something to act on now
@@ -173,7 +186,8 @@ def run(args: argparse.Namespace) -> int:
                         continue
                     kind = msg[0] if msg else -1
                     if kind == RX and (rx := decode_rx(msg)) is not None:
-                        fed |= fw.receive(rx[1], tick, rx[0])
+                        # the sender's start tick is the frame's start of frame (mesh time)
+                        fed |= fw.receive(rx[1], tick, rx[0], rx[2] or None)
                     elif kind == CARRIER and (cs := decode_carrier(msg)) is not None:
                         fw.carrier(*cs)
                     else:
@@ -203,7 +217,7 @@ def run(args: argparse.Namespace) -> int:
                     behind += n
             want = not fw.radio.idle
             if out is not None:  # the contention state after it travels with it: one message
-                if _send(medium, encode_tx(me, out[1], out[0], want), fw):
+                if _send(medium, encode_tx(me, out[1], out[0], want, tick), fw):
                     wanting, told = want, tick
             if port is not None:
                 if fw.serial_out:
@@ -223,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
             counters.update(port.counters)
             port.close()
         # one write, so the lines of many bridges sharing a stderr never interleave
-        sys.stderr.write(json.dumps({"bridge": br.id, "counters": counters}) + "\n")
+        sys.stderr.write(json.dumps({"bridge": br.id, "counters": counters, "gates": planned_gates(fw)}) + "\n")
         sys.stderr.flush()
         medium.close()
         stimuli.close()
@@ -242,6 +256,22 @@ def claim_id(ep: Endpoints, bridge: int) -> socket.socket:
         s.close()
         raise
     return s
+
+
+def planned_gates(fw: Firmware) -> dict[str, int]:
+    """Sample index -> the tick this bridge will start that sample's C1 gate, for the next
+    two multiples of 10 s of global time at least a second ahead; empty without mesh time.
+    Every bridge of a skin stopped within the same few seconds names the same indices, so
+    the spread of one index's gate starts across the skin is read straight off the
+    bridges' last lines: how well mesh time aligns what the chips will do (the plan the
+    sampler follows, extrapolated with the skew each bridge measured)."""
+    tick = now_tick()
+    if not fw.timebase.synced(tick):
+        return {}
+    rate = fw.sampler.settings.rate_hz
+    step = 10 * fw.config.clock_hz
+    first = (fw.clock.global_at(fw.crystal.local(tick)) + fw.config.clock_hz) // step + 1
+    return {str(k * 10 * rate): fw.timebase.gate_tick(k * 10 * rate, rate) for k in (first, first + 1)}
 
 
 class Window:

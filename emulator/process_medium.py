@@ -7,6 +7,11 @@ base port); it sends carrier reports and deliveries back (messages in
 bridge's own messages (every bridge says it is there at least once a second), so a
 bridge or this process may die and return at any time.
 
+A transmission its sender started after the cell went busy (its carrier report had not
+reached it yet: message latency) is started when the cell is free, as the sender's carrier
+sense would have done (:mod:`~cellbridge.emulator.carrier_arbiter`, counted ``deferred``);
+deliveries carry the sender's start tick, the frame's start-of-frame instant for mesh time.
+
 Carrier reports go only to bridges that are contending (one that starts contending
 first gets the carrier already on its cells): an idle transceiver ignores carrier,
 and these messages would otherwise cost every bridge more CPU than its firmware.
@@ -24,13 +29,16 @@ from __future__ import annotations
 import argparse
 import gc
 import heapq
+import itertools
 import math
 import select
 import socket
 import sys
+import time
 from collections import Counter
 
 from cellbridge.emulator import udp
+from cellbridge.emulator.carrier_arbiter import CarrierArbiter
 from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
@@ -95,6 +103,20 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
     pending: list[tuple[int, int, Transmission]] = []
     busy: dict[int, tuple[int, int]] = {}  # cell -> (start, end) of its latest transmission
     contending: set[int] = set()
+    arbiter = CarrierArbiter(medium.bit_cycles)
+    arbiter.counters = counters  # deferred, deferred_cycles: with the medium's own
+    starting: list[tuple[int, int, int, tuple[int, ...], bytes, int]] = []  # deferred starts
+    order = itertools.count()
+
+    def begin(src: int, cells: tuple[int, ...], frame: bytes, tick: int, sent: int) -> None:
+        tx = medium.start(src, frame, cells, tick, sent)
+        for c in cells:
+            old = busy.get(c)
+            busy[c] = (old[0], max(old[1], tx.end)) if old and old[1] > tick else (tick, tx.end)
+        for r, cell in tx.receivers:
+            if r in contending:
+                bridges.send(r, encode_carrier(cell, tick, tx.end), tick, "carrier")
+        heapq.heappush(pending, (tx.end, tx.id, tx))
 
     def want(src: int, on: bool, tick: int) -> None:
         if on:
@@ -108,8 +130,15 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
 
     while not stop.stopped:
         timeout = 100
-        if pending:
-            timeout = max(0, math.ceil((pending[0][0] - now_tick()) * 1000 / CLOCK_HZ))
+        if pending or starting:
+            first = min(x[0] for x in (pending[:1] + starting[:1]))  # type: ignore[operator]
+            wait = first - now_tick()
+            timeout = max(0, math.ceil(wait * 1000 / CLOCK_HZ))
+            if 0 < wait < CLOCK_HZ // 1000 and not poller.poll(0):
+                # under a millisecond: slept for exactly (poll counts milliseconds, and a
+                # delivery or deferred start a millisecond late delays every hop)
+                time.sleep(wait / CLOCK_HZ)
+                timeout = 0
         if poller.poll(timeout):
             while True:
                 try:
@@ -137,22 +166,23 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
                     counters["bad_messages"] += 1
                     continue
                 bridges.heard_from(src, addr, tick)  # type: ignore[arg-type]
-                _, cells, frame, still = tx_msg
-                tx = medium.start(src, frame, cells, tick)  # type: ignore[arg-type]
-                for c in cells:
-                    old = busy.get(c)
-                    busy[c] = (old[0], max(old[1], tx.end)) if old and old[1] > tick else (tick, tx.end)
-                for r, cell in tx.receivers:
-                    if r in contending:
-                        bridges.send(r, encode_carrier(cell, tick, tx.end), tick, "carrier")
-                heapq.heappush(pending, (tx.end, tx.id, tx))
+                _, cells, frame, still, sent = tx_msg  # type: ignore[misc]
+                sent = sent or tick
+                at = arbiter.admit(cells, sent, tick, medium.airtime(len(frame)))
+                if at > tick:  # its sender's carrier sense would have held it back: start it later
+                    heapq.heappush(starting, (at, next(order), src, cells, frame, sent))
+                else:
+                    begin(src, cells, frame, tick, sent)
                 want(src, still, tick)  # type: ignore[arg-type]
         now = now_tick()
+        while starting and starting[0][0] <= now:
+            at, _, src, cells, frame, sent = heapq.heappop(starting)
+            begin(src, cells, frame, at, sent)  # at its reserved tick: the next reservation follows it
         while pending and pending[0][0] <= now:
             tx = heapq.heappop(pending)[2]
             for r, cell, data in medium.finish(tx):
                 if addressed_to(data, r):  # a bridge drops others' unicasts anyway: save the message
-                    bridges.send(r, encode_rx(cell, data), now, "rx")
+                    bridges.send(r, encode_rx(cell, data, tx.sent), now, "rx")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -8,8 +8,8 @@ crystal and flags its samples ``NO_MESH_TIME``. The next gate is planned when a 
 taken, with the mesh clock as it is then; the firmware takes every sample due before it
 changes the clock (:meth:`Sampler.advance`), so lazy and gate-by-gate sampling agree. Samples the reporter keeps are batched
 into one DATA payload until it is full (255-byte frame, ``batch_max`` samples) or its
-oldest sample is ``max_latency`` old: fewer, larger frames carry more samples per bit
-of air time.
+oldest sample is ``max_latency`` old (``event_latency`` under event-based reporting):
+fewer, larger frames carry more samples per bit of air time.
 """
 
 from __future__ import annotations
@@ -36,13 +36,16 @@ _COUNTER_MODULUS = 1 << 16
 class Sampler:
     def __init__(self, settings: Settings, chip: object, sense: Callable[[int], tuple[float, float]],
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
-                 counters: Counter[str], timebase: Timebase) -> None:
+                 counters: Counter[str], timebase: Timebase, event_latency: int | None = None) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
         self.clock_hz = clock_hz
         self.batch_max = batch_max
         self.max_latency = max_latency
+        #: the same bound under event-based reporting: few samples travel, so a short wait
+        #: costs little air time, and the sample that shows a press's onset goes at once
+        self.event_latency = max_latency if event_latency is None else event_latency
         self.lazy = lazy
         self.counters = counters
         self.reporter = Reporter(settings.reporting, clock_hz // 1000)
@@ -73,7 +76,12 @@ class Sampler:
         # nothing, one too late would send the frame later than gate-by-gate sampling does
         period = self.settings.period_cycles(self.clock_hz)
         full = self.ready + (room - 1) * (period - period // 1000)
-        return min(full, self.flush_at if self.batch else self.ready + self.max_latency)
+        return min(full, self.flush_at if self.batch else self.ready + self.latency)
+
+    @property
+    def latency(self) -> int:
+        """How long a sample waits at most for company in a DATA frame, in this reporting mode."""
+        return self.max_latency if self.settings.reporting.periodic else self.event_latency
 
     def advance(self, tick: int) -> list[Data]:
         """Take every sample due by ``tick``; the DATA payloads that are complete."""
@@ -154,7 +162,7 @@ class Sampler:
             self.batch.append(s)
             self.batch_bytes += size
             if self.flush_at < 0:
-                self.flush_at = self.ready + self.max_latency
+                self.flush_at = self.ready + self.latency
             if len(self.batch) >= self.batch_max:
                 self._flush(out)
         self._plan(start + st.measure_cycles(), self.timebase.after_local(start, st.period_cycles(self.clock_hz)))

@@ -9,8 +9,10 @@ By default the bridges and the medium talk without delay, as one chip's wire wou
 ``latency=Latency(...)`` models what a real-time mesh (one process per bridge, the medium
 relaying datagrams) adds, still deterministically from its own seed: a transmission
 reaches the medium a little after the bridge started it, carrier reports and deliveries
-reach a bridge a little after the medium made them, and a bridge wakes for a timer at
-the next millisecond at best (``poll`` takes milliseconds) and later still under load.
+reach a bridge a little after the medium made them (the medium starts a transmission its
+sender began on a cell already busy when the cell is free, as the real-time medium's
+carrier arbiter does), and a bridge wakes for a timer at the next millisecond at best
+(``poll`` takes milliseconds; a shorter wait is slept exactly) and later still under load.
 It exists so that what the real-time mesh does can be reproduced and tested here.
 """
 
@@ -23,6 +25,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from cellbridge.emulator.carrier_arbiter import CarrierArbiter
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.medium import Medium, Transmission
@@ -46,7 +49,9 @@ class Latency:
     up: float = 0.0005  #: a transmission's message, bridge -> medium
     down: float = 0.0005  #: a carrier report or delivery, medium -> bridge
     floor: float = 0.0001  #: least delay of any message
-    wake_grain: float = 0.001  #: a timer's wait is rounded up to this (poll's milliseconds)
+    #: a timer's wait is rounded up to this (poll's milliseconds); a shorter one is slept
+    #: for exactly, as the bridge process does
+    wake_grain: float = 0.001
     wake_late: float = 0.0003  #: mean extra lateness of a wake (scheduling)
     seed: int = 0
 
@@ -140,6 +145,8 @@ class VirtualMesh:
             self._wanted: dict[int, int] = {}  # bridge -> timer tick its pending wake is for
             self._up_last: dict[int, int] = {}  # bridge -> arrival of its last message at the medium
             self._down_last: dict[int, int] = {}  # bridge -> arrival of its last message from it
+            self._arbiter = CarrierArbiter(self.medium.bit_cycles)
+            self._arbiter.counters = self.medium.counters
         self.nodes: dict[int, Firmware] = {}
         self.resets: Counter[int] = Counter()
         self.serial: dict[int, bytearray] = {g: bytearray() for g in mesh.gateways}
@@ -189,7 +196,7 @@ class VirtualMesh:
             wait = t - self.tick
             if wait > 0:
                 grain = int(lat.wake_grain * CLOCK_HZ)
-                if grain > 0:
+                if wait >= grain > 0:  # a shorter wait is slept for exactly (the shell does)
                     wait = math.ceil(wait / grain) * grain
                 if lat.wake_late > 0:
                     wait += int(self._lat_rng.expovariate(1.0 / lat.wake_late) * CLOCK_HZ)
@@ -253,15 +260,24 @@ class VirtualMesh:
                 at = max(tick + self._delay(self.latency.up), self._up_last.get(b, 0))
                 self._up_last[b] = at
                 data, cells = out
-                self._push(at, _FAULT, lambda: self._start(b, data, cells))
+                self._push(at, _FAULT, lambda: self._heard(b, data, cells, tick))
         if fw.serial_out:
             self._gateway_out(b, fw.take_serial())
         nt = fw.next_tick
         self._schedule(b, nt if nt > tick else tick + 1)
 
-    def _start(self, b: int, data: bytes, cells: tuple[int, ...]) -> None:
+    def _heard(self, b: int, data: bytes, cells: tuple[int, ...], sent: int) -> None:
+        """The medium hears of a transmission ``b`` started at ``sent`` (as the real-time
+        medium does: its carrier arbiter starts it now or when the cells are free)."""
+        at = self._arbiter.admit(cells, sent, self.tick, self.medium.airtime(len(data)))
+        if at > self.tick:
+            self._push(at, _FAULT, lambda: self._start(b, data, cells, sent))
+        else:
+            self._start(b, data, cells, sent)
+
+    def _start(self, b: int, data: bytes, cells: tuple[int, ...], sent: int = -1) -> None:
         tick = self.tick
-        tx = self.medium.start(b, data, cells, tick)
+        tx = self.medium.start(b, data, cells, tick, sent)
         self._push(tx.end, _FINISH, tx)
         for r, cell in tx.receivers:
             if self.latency is None:
@@ -299,7 +315,7 @@ class VirtualMesh:
                 tx: Transmission = item  # type: ignore[assignment]
                 for r, cell, data in self.medium.finish(tx):
                     if self.latency is not None:
-                        self._down(r, lambda fw, data=data, cell=cell, sof=tx.start:
+                        self._down(r, lambda fw, data=data, cell=cell, sof=tx.sent:
                                    fw.receive(data, self.tick, cell, sof))
                         continue
                     fw = nodes.get(r)
@@ -315,6 +331,13 @@ class VirtualMesh:
                 item()  # type: ignore[operator]
         self.tick = end
         return self.result()
+
+    def time_errors(self, root: int) -> dict[int, float]:
+        """Each bridge with a mesh-time fit: |its global time − ``root``'s| now, in µs."""
+        r = self.nodes[root]
+        g0 = r.clock.global_at(r.crystal.local(self.tick))
+        return {b: abs(fw.clock.global_at(fw.crystal.local(self.tick)) - g0) * 1e6 / CLOCK_HZ
+                for b, fw in self.nodes.items() if b != root and fw.clock.has_fit()}
 
     def result(self) -> MeshResult:
         counters = {}

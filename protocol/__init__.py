@@ -27,6 +27,7 @@ from cellbridge.protocol.frame import (
 )
 from cellbridge.protocol.host import HostReceiver
 from cellbridge.protocol.messages import (
+    unpack_payload,
     Beacon,
     BridgeStatus,
     Bundle,
@@ -55,5 +56,5 @@ __all__ = [
     "Flags", "Fragment", "Frame", "FrameType", "Hello", "HostReceiver", "LinkAck", "MeshTime", "Message", "Mode",
     "Neighbour", "Op", "ProtocolError", "Reassembler", "Sample", "SampleFlags", "Status",
     "Raw", "StreamDecoder", "addressed_to", "crc16", "decode", "encode", "encode_stream", "fragment", "own",
-    "peek", "reframe", "to_serial",
+    "peek", "reframe", "to_serial", "unpack_payload",
 ]

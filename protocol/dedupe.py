@@ -50,7 +50,7 @@ class _Origin:
     """Window of one origin plus the evidence gathered for a restart."""
 
     __slots__ = ("highest", "mask", "hello", "run_last", "run_mask", "run_len", "old_highest", "old_mask",
-                 "since")
+                 "since", "boot")
 
     def __init__(self, seq: int, hello: bool) -> None:
         self.highest = seq
@@ -62,6 +62,7 @@ class _Origin:
         self.old_mask = 0  #: window of the numbering before the last restart (0: none kept)
         self.old_highest = 0
         self.since = 0  #: seq the window restarted at
+        self.boot = -1  #: boot counter of the origin's last HELLO (-1: none known)
 
 
 class DuplicateFilter:
@@ -95,16 +96,28 @@ class DuplicateFilter:
         return {"origins": len(self._state), "duplicates": self.duplicates, "stale": self.stale,
                 "restarts": self.restarts, "evicted_origins": self.evicted_origins}
 
-    def is_duplicate(self, origin: int, seq: int, hello: bool = False) -> bool:
-        """True when the frame (origin, seq) must be dropped; ``hello``: the frame is a HELLO."""
+    def is_duplicate(self, origin: int, seq: int, hello: bool = False, boot: int | None = None) -> bool:
+        """True when the frame (origin, seq) must be dropped; ``hello``: the frame is a HELLO,
+        ``boot``: its boot counter (protocol version 2). A HELLO whose boot counter differs
+        from the last one this origin announced is a restart, by evidence: the numbering
+        begins again there, however close its number is to the last boot's."""
         st = self._state.get(origin)
         if st is None:
             if len(self._state) >= self.max_origins:
                 self._state.popitem(last=False)
                 self.evicted_origins += 1
-            self._state[origin] = _Origin(seq, hello)
+            st = self._state[origin] = _Origin(seq, hello)
+            if hello and boot is not None:
+                st.boot = boot
             return False
         self._state.move_to_end(origin)
+        if hello and boot is not None:
+            if st.boot >= 0 and boot != st.boot:
+                st.boot = boot
+                self._restart(st, seq, 1)
+                st.hello = seq
+                return False
+            st.boot = boot
         ahead = (seq - st.highest) % _MOD
         if 0 < ahead < _HALF:  # newer: slide the window forward
             if st.old_mask:  # restarted lately: a lagging gateway may still replay the old numbering

@@ -34,7 +34,11 @@ class HostReceiver:
         if isinstance(frame.payload, Bundle):
             return [f for inner in frame.payload.frames for f in self.receive(inner, now)]
         whole = self.reassembler.receive(frame, now)
-        if whole is None or self.dedupe.is_duplicate(whole.origin, whole.seq, hello=isinstance(whole.payload, Hello)):
+        if whole is None:
+            return []
+        p = whole.payload
+        hello = isinstance(p, Hello)
+        if self.dedupe.is_duplicate(whole.origin, whole.seq, hello, p.boots or None if hello else None):  # type: ignore[union-attr]
             return []
         return [whole]
 

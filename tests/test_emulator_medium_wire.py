@@ -14,11 +14,14 @@ cells = st.lists(st.integers(0, 2**32 - 1), min_size=1, max_size=255).map(tuple)
 ids = st.integers(0, 2**32 - 1)
 
 
-@given(ids, cells, st.binary(max_size=300), st.booleans())
-def test_tx_round_trips(bridge: int, cs: tuple[int, ...], frame: bytes, want: bool) -> None:
-    msg = encode_tx(bridge, cs, frame, want)
+ticks = st.integers(0, 2**64 - 1)
+
+
+@given(ids, cells, st.binary(max_size=300), st.booleans(), ticks)
+def test_tx_round_trips(bridge: int, cs: tuple[int, ...], frame: bytes, want: bool, start: int) -> None:
+    msg = encode_tx(bridge, cs, frame, want, start)
     assert msg[0] == TX and sender(msg) == bridge
-    assert decode_tx(msg) == (bridge, cs, frame, want)
+    assert decode_tx(msg) == (bridge, cs, frame, want, start)
 
 
 @given(ids, st.booleans())
@@ -33,10 +36,10 @@ def test_carrier_round_trips(cell: int, start: int, end: int) -> None:
     assert msg[0] == CARRIER and decode_carrier(msg) == (cell, start, end)
 
 
-@given(st.integers(0, 2**32 - 1), st.binary(max_size=300))
-def test_rx_round_trips(cell: int, frame: bytes) -> None:
-    msg = encode_rx(cell, frame)
-    assert msg[0] == RX and decode_rx(msg) == (cell, frame)
+@given(st.integers(0, 2**32 - 1), st.binary(max_size=300), ticks)
+def test_rx_round_trips(cell: int, frame: bytes, start: int) -> None:
+    msg = encode_rx(cell, frame, start)
+    assert msg[0] == RX and decode_rx(msg) == (cell, frame, start)
 
 
 @given(st.binary(max_size=40))
@@ -57,6 +60,8 @@ def test_a_message_of_one_kind_is_not_decoded_as_another() -> None:
 def test_truncated_tx_is_refused() -> None:
     msg = encode_tx(7, (1, 2, 3), b"", True)
     assert decode_tx(msg[:-1]) is None  # a cell cut short
-    assert decode_tx(b"t\x00\x00\x00\x071\x00") is None  # no cells
-    assert decode_tx(b"t\x00\x00\x00\x07x\x01\x00\x00\x00\x01") is None  # want neither 0 nor 1
+    start = bytes(8)
+    assert decode_tx(b"t\x00\x00\x00\x071" + start + b"\x00") is None  # no cells
+    assert decode_tx(b"t\x00\x00\x00\x07x" + start + b"\x01\x00\x00\x00\x01") is None  # want neither 0 nor 1
+    assert decode_tx(b"t\x00\x00\x00\x071" + start + b"\x01\x00\x00\x00\x01") is not None  # the same, well formed
     assert decode_want(b"w\x00\x00\x00\x07x") is None

@@ -311,9 +311,9 @@ def test_medium_relays_between_two_bridge_sockets_and_refuses_strangers(tmp_path
             b1.send(encode_tx(99, (1,), beacon, False))  # no bridge 99 in the mesh
             b1.send(b"\xff" * 9)
             time.sleep(0.2)
-            b1.send(encode_tx(1, (1,), beacon, False))
+            b1.send(encode_tx(1, (1,), beacon, False, 1234567))
             got = decode_rx(b2.recv(4096))
-    assert got == (1, beacon)
+    assert got == (1, beacon, 1234567)  # the sender's start tick passed on (mesh time's stamp)
     assert counters["bad_messages"] == 2 and counters["delivered"] == 1
     assert counters.get("rx_unreachable", 0) == 0 and counters["udp_drops"] == 0
 

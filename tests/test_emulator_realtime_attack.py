@@ -189,12 +189,12 @@ def test_medium_refuses_transmissions_a_bridge_cannot_make(tmp_path: Path) -> No
             b1.send(encode_tx(1, (1,), beacon + bytes(256 - len(beacon)), False))  # 256-byte frame
             b1.send(encode_tx(1, (1,), bytes(5000), False))  # cut to 2 048 bytes on receipt
             time.sleep(0.2)
-            b1.send(encode_tx(1, (1,), beacon, False))
+            b1.send(encode_tx(1, (1,), beacon, False, 4242))
             got = decode_rx(b2.recv(4096))
             b2.settimeout(0.3)
             with pytest.raises(socket.timeout):
                 b2.recv(4096)  # nothing else reached bridge 2
-    assert got == (1, beacon)
+    assert got == (1, beacon, 4242)
     assert counters["bad_messages"] == 5, counters
     assert counters["transmissions"] == 1 and counters["delivered"] == 1, counters
 

@@ -9,21 +9,33 @@ import pytest
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
-from cellbridge.protocol import FrameType
+from cellbridge.protocol import FrameType, SampleFlags
 
 PERIOD = CLOCK_HZ // 100  # 100 Hz
 BEACON_PERIOD = 0.5  # FirmwareConfig.trickle_imax
 
 
 def missing(result: MeshResult, bridge: int, lo: float, hi: float, period: int = PERIOD) -> int:
-    """Samples of ``bridge`` started in [lo, hi) seconds that never reached a gateway."""
-    cycles = sorted({s.cycle for s in result.samples().get(bridge, [])
-                     if lo * CLOCK_HZ <= s.cycle < hi * CLOCK_HZ})
-    if not cycles:
+    """Samples of ``bridge`` started in [lo, hi) seconds that never reached a gateway.
+
+    On mesh time consecutive samples have consecutive indices; before it (and across the
+    switch to it, which moves the bridge's sampling phase by up to one period) their
+    cycles are a period apart."""
+    byc = {s.cycle: s for s in result.samples().get(bridge, []) if lo * CLOCK_HZ <= s.cycle < hi * CLOCK_HZ}
+    ss = [byc[c] for c in sorted(byc)]
+    if not ss:
         return int((hi - lo) * CLOCK_HZ / period)
-    gaps = sum(round((b - a) / period) - 1 for a, b in zip(cycles, cycles[1:]))
-    head = (cycles[0] - lo * CLOCK_HZ) // period
-    tail = (hi * CLOCK_HZ - cycles[-1] - 1) // period
+    gaps = 0
+    for a, b in zip(ss, ss[1:]):
+        on_a, on_b = not a.flags & SampleFlags.NO_MESH_TIME, not b.flags & SampleFlags.NO_MESH_TIME
+        if on_a and on_b:
+            gaps += b.index - a.index - 1
+        elif on_a == on_b:
+            gaps += round((b.cycle - a.cycle) / period) - 1
+        else:
+            gaps += max(0, (b.cycle - a.cycle) // period - 1)
+    head = (ss[0].cycle - lo * CLOCK_HZ) // period
+    tail = (hi * CLOCK_HZ - ss[-1].cycle - 1) // period
     return int(gaps + head + tail)
 
 

@@ -17,8 +17,8 @@ from numpy.typing import ArrayLike
 
 from cellbridge.tactile._jit import compiled
 from cellbridge.tactile.disk_model import element_vector, layer_response
-from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams
-from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseResult, _tables
+from cellbridge.tactile.element import ElementParams
+from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseResult, _inputs
 
 __all__ = ["solve_compiled"]
 
@@ -34,15 +34,7 @@ def solve_compiled(
     k_sigma: float = 3.0,
 ) -> InverseResult:
     """:func:`cellbridge.tactile.inversion.solve`, compiled (same arguments, same answers)."""
-    p = DEFAULT_PARAMS if params is None else params
-    if not (np.isfinite(noise) and noise >= 0):
-        raise ValueError(f"noise must be a finite rms capacitance >= 0 F, got {noise!r}")
-    if not (max_error > 0 and min_slope >= 0 and k_sigma >= 0):
-        raise ValueError("need max_error > 0, min_slope >= 0 and k_sigma >= 0")
-    tab = _tables(p)
-    c1, c2 = np.broadcast_arrays(
-        np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64)
-    )
+    p, tab, c1, c2 = _inputs(dC1, dC2, params, noise, max_error, min_slope, k_sigma)
     shape = c1.shape
     n = c1.size
     out = np.empty((6, n))

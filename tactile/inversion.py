@@ -250,6 +250,20 @@ _B_ILL_CONDITIONED = np.uint8(InverseStatus.ILL_CONDITIONED)
 _B_AREA_EXCEEDS = np.uint8(InverseStatus.AREA_EXCEEDS)
 
 
+def _inputs(
+    dC1: ArrayLike, dC2: ArrayLike, params: ElementParams | None, noise: float, max_error: float,
+    min_slope: float, k_sigma: float,
+) -> tuple[ElementParams, _Tables, FloatArray, FloatArray]:
+    """The checked options of :func:`solve` (and its compiled twin): element, tables, readings."""
+    p = DEFAULT_PARAMS if params is None else params
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"noise must be a finite rms capacitance >= 0 F, got {noise!r}")
+    if not (max_error > 0 and min_slope >= 0 and k_sigma >= 0):
+        raise ValueError("need max_error > 0, min_slope >= 0 and k_sigma >= 0")
+    c1, c2 = np.broadcast_arrays(np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64))
+    return p, _tables(p), c1, c2
+
+
 def solve(
     dC1: ArrayLike,
     dC2: ArrayLike,
@@ -268,15 +282,7 @@ def solve(
     sets how many sigmas a signal must clear, and how wide the ambiguity and area
     checks look. See the module docstring for the rules.
     """
-    p = DEFAULT_PARAMS if params is None else params
-    if not (np.isfinite(noise) and noise >= 0):
-        raise ValueError(f"noise must be a finite rms capacitance >= 0 F, got {noise!r}")
-    if not (max_error > 0 and min_slope >= 0 and k_sigma >= 0):
-        raise ValueError("need max_error > 0, min_slope >= 0 and k_sigma >= 0")
-    tab = _tables(p)
-    c1, c2 = np.broadcast_arrays(
-        np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64)
-    )
+    p, tab, c1, c2 = _inputs(dC1, dC2, params, noise, max_error, min_slope, k_sigma)
     shape = c1.shape
     c1 = c1.ravel()
     c2 = c2.ravel()

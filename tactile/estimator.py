@@ -31,7 +31,8 @@ from cellbridge.tactile.clusters import cluster_elements
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits
-from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info, solve
+from cellbridge.tactile.inverse_kernel import solve_compiled as solve
+from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info
 from cellbridge.tactile.light_touch import locate_light, unlocated
 from cellbridge.tactile.layout import SkinLayout
 from cellbridge.tactile.response import _check_spread, _spread_cells

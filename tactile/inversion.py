@@ -34,14 +34,11 @@ from __future__ import annotations
 
 import enum
 import functools
-import math
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cellbridge.tactile._jit import compiled
-from cellbridge.tactile.disk_model import element_vector, layer_response
 from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _stretch
 
@@ -224,6 +221,49 @@ def branch_info(params: ElementParams | None = None) -> BranchInfo:
     return _tables(DEFAULT_PARAMS if params is None else params).info
 
 
+def _ambiguous(c1: FloatArray, c2: FloatArray, margin: float, tab: _Tables) -> NDArray[np.bool_]:
+    """True where a rising-branch contact inside the element may give the same reading.
+
+    The rising branch maps onto the lens ρ ∈ [ρ(0), ρ_pk], ΔC1 ≤ h(ρ) where
+    h(ρ) = A·g1(σ_low(ρ)) is the whole-element reading at that ratio (h grows with
+    ρ). A reading is ambiguous when its box ±``margin`` on each channel may touch
+    the lens. The test is conservative: the smallest ΔC1 of the box against h at the
+    largest ratio the box reaches (capped at the peak), so noise can never carry a
+    reading across the lens boundary unflagged.
+    """
+    r0 = tab.lo_r[0]
+    r_pk = tab.lo_r[-1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_max = (c1 + margin) / (c2 - margin)
+        r_min = (c1 - margin) / (c2 + margin)
+    # c2 ≤ margin only happens for readings already rejected as below the noise.
+    r_max = np.where(c2 > margin, r_max, np.inf)
+    h = np.interp(np.minimum(r_max, r_pk), tab.lo_r, tab.lo_c1_full)
+    return (r_max >= r0) & (r_min <= r_pk) & (c1 - margin <= h)
+
+
+_B_NONFINITE = np.uint8(InverseStatus.NONFINITE)
+_B_BELOW_NOISE = np.uint8(InverseStatus.BELOW_NOISE)
+_B_NO_SOLUTION = np.uint8(InverseStatus.NO_SOLUTION)
+_B_AMBIGUOUS = np.uint8(InverseStatus.AMBIGUOUS)
+_B_ILL_CONDITIONED = np.uint8(InverseStatus.ILL_CONDITIONED)
+_B_AREA_EXCEEDS = np.uint8(InverseStatus.AREA_EXCEEDS)
+
+
+def _inputs(
+    dC1: ArrayLike, dC2: ArrayLike, params: ElementParams | None, noise: float, max_error: float,
+    min_slope: float, k_sigma: float,
+) -> tuple[ElementParams, _Tables, FloatArray, FloatArray]:
+    """The checked options of :func:`solve` (and its compiled twin): element, tables, readings."""
+    p = DEFAULT_PARAMS if params is None else params
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"noise must be a finite rms capacitance >= 0 F, got {noise!r}")
+    if not (max_error > 0 and min_slope >= 0 and k_sigma >= 0):
+        raise ValueError("need max_error > 0, min_slope >= 0 and k_sigma >= 0")
+    c1, c2 = np.broadcast_arrays(np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64))
+    return p, _tables(p), c1, c2
+
+
 def solve(
     dC1: ArrayLike,
     dC2: ArrayLike,
@@ -242,137 +282,85 @@ def solve(
     sets how many sigmas a signal must clear, and how wide the ambiguity and area
     checks look. See the module docstring for the rules.
     """
-    p = DEFAULT_PARAMS if params is None else params
-    if not (np.isfinite(noise) and noise >= 0):
-        raise ValueError(f"noise must be a finite rms capacitance >= 0 F, got {noise!r}")
-    if not (max_error > 0 and min_slope >= 0 and k_sigma >= 0):
-        raise ValueError("need max_error > 0, min_slope >= 0 and k_sigma >= 0")
-    tab = _tables(p)
-    c1, c2 = np.broadcast_arrays(
-        np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64)
-    )
+    p, tab, c1, c2 = _inputs(dC1, dC2, params, noise, max_error, min_slope, k_sigma)
     shape = c1.shape
-    n = c1.size
-    out = np.empty((6, n))
-    status = np.empty(n, dtype=np.uint8)
-    _solve_kernel(
-        np.ascontiguousarray(c1).ravel(), np.ascontiguousarray(c2).ravel(), element_vector(p), tab.hi_q,
-        tab.hi_lns, tab.ln_r_pk, tab.ln_r_end, tab.info.sigma_peak, tab.lo_r, tab.lo_c1_full, p.area,
-        float(noise), float(max_error), float(min_slope), float(k_sigma), out, status,
-    )
-    return InverseResult(
-        out[0].reshape(shape),
-        out[1].reshape(shape),
-        (status == 0).reshape(shape),
-        out[2].reshape(shape),
-        out[3].reshape(shape),
-        out[4].reshape(shape),
-        status.reshape(shape),
-    )
+    c1 = c1.ravel()
+    c2 = c2.ravel()
+    status = np.zeros(c1.shape, dtype=np.uint8)
 
-
-@compiled
-def _interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
-    """np.interp for one x (numba's costs a pass over the table per call): bisection."""
-    n = xp.size
-    if not x >= xp[0]:  # NaN included, as np.interp gives fp[0] below the table
-        return fp[0] if x == x else x
-    if x >= xp[n - 1]:
-        return fp[n - 1]
-    lo, hi = 0, n - 1
-    while hi - lo > 1:
-        mid = (lo + hi) >> 1
-        if xp[mid] <= x:
-            lo = mid
-        else:
-            hi = mid
-    slope = (fp[hi] - fp[lo]) / (xp[hi] - xp[lo])
-    return slope * (x - xp[lo]) + fp[lo]
-
-
-@compiled
-def _solve_kernel(
-    c1: np.ndarray, c2: np.ndarray, par: np.ndarray, hi_q: np.ndarray, hi_lns: np.ndarray, ln_r_pk: float,
-    ln_r_end: float, sigma_peak: float, lo_r: np.ndarray, lo_c1_full: np.ndarray, elem_area: float,
-    noise: float, max_error: float, min_slope: float, k_sigma: float, out: np.ndarray, status: np.ndarray,
-) -> None:
-    """The rules of :func:`solve`, one reading at a time (compiled: a frame's dozen
-    elements cost microseconds, not the ~170 µs of numpy's per-call overhead).
-
-    ``out`` rows: force, area, pressure, force_rms, diameter_rms (NaN where the
-    rules say so); ``status``: the :class:`InverseStatus` bits.
-    """
+    finite = np.isfinite(c1) & np.isfinite(c2)
+    status[~finite] |= _B_NONFINITE
     floor = k_sigma * noise
-    r0 = lo_r[0]
-    r_pk = lo_r[-1]
-    nan = np.nan
-    for i in range(c1.size):
-        a = c1[i]
-        b = c2[i]
-        for k in range(5):
-            out[k, i] = nan
-        st = 0
-        finite = math.isfinite(a) and math.isfinite(b)
-        if not finite:
-            st |= 1  # NONFINITE
-        # `not >` keeps NaN out and demands a strictly positive signal when noise is 0.
-        if not (a > floor and b > floor and a > 0.0 and b > 0.0):
-            if finite:
-                st |= 2  # BELOW_NOISE
-            status[i] = st
-            continue
-        if not finite:
-            status[i] = st
-            continue
-        lnr = math.log(a) - math.log(b)
-        if not (lnr >= ln_r_end and lnr <= ln_r_pk):
-            status[i] = st | 4  # NO_SOLUTION
-            continue
+    # `not >` keeps NaN out and demands a strictly positive signal when noise is 0.
+    weak = ~((c1 > floor) & (c2 > floor) & (c1 > 0) & (c2 > 0))
+    status[weak & finite] |= _B_BELOW_NOISE
+
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        lnr = np.log(c1) - np.log(c2)
+        out_of_range = ~((lnr >= tab.ln_r_end) & (lnr <= tab.ln_r_pk))
+        status[out_of_range & ~weak & finite] |= _B_NO_SOLUTION
+
         # Falling-branch pressure: table, then one Newton step in ln σ.
-        q = math.sqrt(max(ln_r_pk - lnr, 0.0))
-        lns = _interp(q, hi_q, hi_lns)
-        g1, e1 = layer_response(math.exp(lns), par[0], par[1], par[2], par[3])
-        g2, e2 = layer_response(math.exp(lns), par[4], par[5], par[6], par[7])
+        q = np.sqrt(np.maximum(tab.ln_r_pk - lnr, 0.0))
+        lns = np.interp(q, tab.hi_q, tab.hi_lns)
+        g1, g2, e1, e2 = _layers(np.exp(lns), p)
         slope = e1 - e2
-        converged = slope != 0.0
-        if converged:
-            lns = lns - (math.log(g1) - math.log(g2) - lnr) / slope
-        sigma = math.exp(lns)
-        g1, e1 = layer_response(sigma, par[0], par[1], par[2], par[3])
-        g2, e2 = layer_response(sigma, par[4], par[5], par[6], par[7])
+        lns = lns - (np.log(g1) - np.log(g2) - lnr) / slope
+        sigma = np.exp(lns)
+        g1, g2, e1, e2 = _layers(sigma, p)
         slope = e1 - e2
         # What the step left over, as an error of ln σ; a guard, not a tolerance
         # that normal readings come near (they reach ~1e-10).
-        converged = converged and slope != 0.0 and abs((math.log(g1) - math.log(g2) - lnr) / slope) <= 1e-8
-        on_branch = sigma >= sigma_peak
-        area = a / g1
+        converged = np.abs((np.log(g1) - np.log(g2) - lnr) / slope) <= 1e-8
+        on_branch = sigma >= tab.info.sigma_peak
+
+        area = c1 / g1
         force = sigma * area
+
         # First-order noise propagation through the log-Jacobian
         # [[e1, 1−e1], [e2, 1−e2]] of (ln F, ln S) → (ln ΔC1, ln ΔC2).
-        n1 = noise / a
-        n2 = noise / b
-        inv = 1.0 / abs(slope) if slope != 0.0 else math.inf
-        rel_f = math.hypot((1.0 - e2) * n1, (1.0 - e1) * n2) * inv
-        rel_s = math.hypot(e2 * n1, e1 * n2) * inv
+        n1 = noise / c1
+        n2 = noise / c2
+        inv = 1.0 / np.abs(slope)
+        rel_f = np.hypot((1.0 - e2) * n1, (1.0 - e1) * n2) * inv
+        rel_s = np.hypot(e2 * n1, e1 * n2) * inv
         rel_d = 0.5 * rel_s
-        if not (abs(slope) >= min_slope and rel_f <= max_error and rel_d <= max_error and converged and on_branch):
-            st |= 16  # ILL_CONDITIONED
-        if not (area - k_sigma * rel_s * area <= elem_area * (1.0 + 1e-9)):
-            st |= 32  # AREA_EXCEEDS
-        # Ambiguity (see _ambiguous): the box ±floor around the reading against the lens.
-        r_max = (a + floor) / (b - floor)
-        r_min = (a - floor) / (b + floor)
-        h = _interp(min(r_max, r_pk), lo_r, lo_c1_full)
-        if r_max >= r0 and r_min <= r_pk and a - floor <= h:
-            st |= 8  # AMBIGUOUS
-        status[i] = st
-        if st == 0:
-            out[0, i] = force
-            out[1, i] = area
-        out[2, i] = sigma
-        diam = 2.0 * math.sqrt(a / g1 / math.pi)
-        out[3, i] = rel_f * sigma * a / g1
-        out[4, i] = rel_d * diam
+
+        ill = ~(
+            (np.abs(slope) >= min_slope)
+            & (rel_f <= max_error)
+            & (rel_d <= max_error)
+            & converged
+            & on_branch
+        )
+        too_big = ~(area - k_sigma * rel_s * area <= p.area * (1.0 + 1e-9))
+
+        amb = _ambiguous(c1, c2, floor, tab)
+
+    solvable = finite & ~weak & ~out_of_range
+    status[solvable & ill] |= _B_ILL_CONDITIONED
+    status[solvable & too_big] |= _B_AREA_EXCEEDS
+    status[solvable & amb] |= _B_AMBIGUOUS
+    valid = status == 0
+
+    nan = np.float64(np.nan)
+    sigma = np.where(solvable, sigma, nan)
+    force = np.where(valid, force, nan)
+    area = np.where(valid, area, nan)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        # Garbage readings (e.g. 1e308 F) overflow here too; they are flagged above.
+        diam = 2.0 * np.sqrt(np.where(solvable, c1 / g1, nan) / np.pi)
+        force_rms = np.where(solvable, rel_f * sigma * c1 / g1, nan)
+        diameter_rms = np.where(solvable, rel_d * diam, nan)
+    return InverseResult(
+        force.reshape(shape),
+        area.reshape(shape),
+        valid.reshape(shape),
+        sigma.reshape(shape),
+        force_rms.reshape(shape),
+        diameter_rms.reshape(shape),
+        status.reshape(shape),
+    )
 
 
 def inverse(

@@ -235,3 +235,24 @@ def test_huge_or_tiny_inputs_warn_nothing_and_are_invalid(c1, c2):
         warnings.simplefilter("error")
         r = solve(np.array([c1, 1e-12]), np.array([c2, 1e-12]))
     assert not r.valid[0] and np.isnan(r.force[0])
+
+
+def test_the_compiled_inverse_gives_solves_answers():
+    """The contact estimator's compiled inverse (issue 17, point 21: numpy's per-call
+    overhead was a third of a frame) follows the same rules as solve()."""
+    from cellbridge.tactile.inverse_kernel import solve_compiled
+    from cellbridge.tactile.inversion import solve
+
+    rng = np.random.default_rng(0)
+    n = 50_000
+    c1 = 10 ** rng.uniform(-16, -10, n)
+    c2 = c1 / rng.uniform(0.3, 2.5, n)
+    c1[:100], c2[100:200], c1[200:300], c2[300:400], c1[400:500] = np.nan, -1e-13, 0.0, np.inf, 1e308
+    for noise in (0.0, 7e-16, 1e-14):
+        a, b = solve(c1, c2, noise=noise), solve_compiled(c1, c2, noise=noise)
+        assert np.array_equal(a.status, b.status)
+        for name in ("force", "area", "pressure", "force_rms", "diameter_rms"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert np.array_equal(np.isnan(x), np.isnan(y))
+            ok = ~np.isnan(x)
+            assert np.allclose(x[ok], y[ok], rtol=1e-10, atol=0.0), name

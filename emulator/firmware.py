@@ -88,7 +88,6 @@ _LOOP_MIN_HOPS = 3
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
 _FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
 _FORWARD_MIN, _FORWARD_SPREAD = 2 * _MS, 20 * _MS  # a new round of mesh time goes on 2-22 ms after it came
-_ROUTE_HELLO_EVERY = 200 * _MS  # a HELLO on a parent change at most this often
 _RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and flood copies to leave
 
 
@@ -188,11 +187,6 @@ class Firmware:
         # evidence of a restart, without which the host and the relays would drop the new
         # numbering as stale or duplicate (docs/protocol.md, duplicate filter).
         self.seq = 0
-        self._route_hello_at = tick
-        # Frames that never reach the host (beacons, link acknowledgements, bundles) number
-        # from a counter of their own: had they taken numbers from ``seq``, the host would
-        # see gaps in every bridge's numbering and count them as lost (health's loss).
-        self.link_seq = 0
         self.radio = Transceiver(self.rng, c.transceiver)
         self.radio.stamper = self._stamp
         # mesh time is in RAM: a reset starts it again (the crystal runs on)
@@ -246,10 +240,6 @@ class Firmware:
         self.seq = (s + 1) & 0xFFFF
         return s
 
-    def _next_link_seq(self) -> int:
-        s = self.link_seq
-        self.link_seq = (s + 1) & 0xFFFF
-        return s
 
     def _life_totals(self) -> Counter[str]:
         """Totals kept by the parts a reset rebuilds, for this life only."""
@@ -321,7 +311,7 @@ class Firmware:
             return False
         src, _, f = got
         if f.flags & _ACK:
-            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_link_seq()), self.me, src),
+            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_seq()), self.me, src),
                                 self.config.cells, tick)
         if self.router.child_sent(src):
             self.counters["loops_broken"] += 1
@@ -390,17 +380,6 @@ class Firmware:
         had = self.router.has_route
         if self.router.select():
             self.trickle.reset(tick)
-            if (self.router.parent is not None and tick >= self._route_hello_at
-                    and not any(f.type == _HELLO for f in self.link.queue)):
-                # A new path may end at a gateway (or pass relays) that never saw this
-                # boot's HELLO; their duplicate filters still hold the last boot's numbers,
-                # and a young boot's numbers fall among them. A HELLO ahead of the queued
-                # frames gives them the boot counter first: the restart is seen, not guessed.
-                self._route_hello_at = tick + _ROUTE_HELLO_EVERY
-                c = self.config
-                hello = Hello(self.me, c.firmware, c.position[0], c.position[1], c.side, c.clock_hz, 3, self.boots)
-                if not self.config.gateway and self.link.enqueue(own(hello, self.me, self._next_seq()), first=True):
-                    self.counters["route_hellos"] += 1
         if had and not self.router.has_route:
             self.counters["route_lost"] += 1
 
@@ -412,7 +391,7 @@ class Firmware:
     def _send_beacon(self, tick: int) -> None:
         # The seq comes from a counter of its own: a beacon never reaches the host, and a
         # number it took from the frames' sequence would look lost there (health's loss).
-        frame = Frame(self.me, ADDR_BROADCAST, self.me, self._next_link_seq(), self._beacon_message(tick))
+        frame = Frame(self.me, ADDR_BROADCAST, self.me, self._next_seq(), self._beacon_message(tick))
         self.link.broadcast(encode(frame))
         self.counters["beacons"] += 1
 
@@ -551,11 +530,11 @@ class Firmware:
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
         if p is not None:
-            out, used = self.link.advance(tick, p.id, self.link_seq, int(round(p.link_etx)), r.table)
+            out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)), r.table)
         else:
-            out, used = self.link.advance(tick, None, self.link_seq, PERFECT_LINK, r.table)
+            out, used = self.link.advance(tick, None, self.seq, PERFECT_LINK, r.table)
         if used:
-            self._next_link_seq()
+            self._next_seq()
         if self.link.results:
             for nbr, attempts, ok in self.link.results:
                 self.router.on_link_result(nbr, attempts, ok)

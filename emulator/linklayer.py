@@ -73,16 +73,12 @@ class LinkLayer:
         self.counters: Counter[str] = Counter()
         self.results: list[tuple[int, int, bool]] = []  #: (next hop, attempts, ok) not yet read
 
-    def enqueue(self, frame: Raw, first: bool = False) -> bool:
-        """Queue a frame for the parent (``first``: ahead of the others); False (and
-        counted) when the queue is full."""
+    def enqueue(self, frame: Raw) -> bool:
+        """Queue a frame for the parent; False (and counted) when the queue is full."""
         if len(self.queue) >= self.queue_len:
             self.counters["queue_drops"] += 1
             return False
-        if first:
-            self.queue.appendleft(frame)
-        else:
-            self.queue.append(frame)
+        self.queue.append(frame)
         return True
 
     def broadcast(self, data: bytes) -> None:

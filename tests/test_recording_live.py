@@ -263,7 +263,9 @@ def test_a_full_disk_stops_the_recording_with_a_message_and_the_daemon_goes_on(t
     stats = json.loads(rec.stderr.strip().splitlines()[-2])
     result = ReadResult()
     got = list(read_messages(out, result))
-    assert not result.complete and 0 < len(got) <= stats["messages"]
+    # every message of every chunk written before the failure reads back; those of the chunk that
+    # failed (unconfirmed, and the message whose arrival wrote it, counted dropped) may or may not
+    assert not result.complete and 0 < stats["messages"] - stats["unconfirmed"] <= len(got) <= stats["messages"] + 1
 
 
 def _ping(endpoints: dict[str, str]) -> bool:

@@ -8,7 +8,8 @@ progress every ``chunk_seconds`` so a kill loses at most that much.
 
 A write that fails (disk full, I/O error) stops the recording: the error is kept in
 :attr:`error`, the file keeps its whole chunks, later messages are counted in
-:attr:`dropped`. It never raises into the shell: whatever happens to the disk, the
+:attr:`dropped`, and those of the chunk that could not be written in :attr:`unconfirmed`
+(``recorded`` counts every message handed to the file, these included). It never raises into the shell: whatever happens to the disk, the
 recorder says what and the daemon it listens to is untouched (it is another process).
 """
 
@@ -45,6 +46,7 @@ class Recorder:
         self.recorded: Counter[str] = Counter()
         self.malformed = 0  # messages that were not [topic, msgpack map]: skipped, counted
         self.dropped = 0  # messages received after the recording stopped on an error
+        self.unconfirmed = 0  # messages in the chunk being built or written when a write failed: may be lost
         self.error = ""
 
     @property
@@ -65,6 +67,8 @@ class Recorder:
 
     def _fail(self, exc: OSError) -> None:
         where = self.writer.path if self.writer is not None else self.out
+        if self.writer is not None:
+            self.unconfirmed = self.writer.pending
         self.error = f"{where}: {exc.strerror or exc}; recording stopped (the file keeps its whole chunks)"
         if self.writer is not None:
             try:
@@ -133,5 +137,5 @@ class Recorder:
 
     def stats(self) -> dict[str, Any]:
         return {"recorded": dict(self.recorded), "messages": sum(self.recorded.values()),
-                "malformed": self.malformed, "dropped": self.dropped, "files": [str(f) for f in self.files],
+                "malformed": self.malformed, "dropped": self.dropped, "unconfirmed": self.unconfirmed, "files": [str(f) for f in self.files],
                 "error": self.error}

@@ -50,7 +50,8 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
                     live.pump(120, until=calibrated(skin.elements))
                     assert proc.poll() is None and rec.poll() is None
                     skin.press(*PRESS, duration=2.0)
-                    live.pump(3.0)
+                    live.pump(60, until=lambda t, m: t == "contact" and bool(m["contacts"]))  # (a loaded machine)
+                    live.pump(2.0)
                     assert _stop(rec) == 0  # SIGTERM: the file is finished, status 0
                     live.pump(0.5)
         finally:

@@ -1,4 +1,5 @@
-"""A recording of a live daemon (an emulated 4×4 skin in real processes, a press): what it holds,
+"""A recording of a live daemon (an emulated 2×2 skin in real processes, a press; the 4×4 skin is
+bench/bench_recording.py's: 16 real-time bridge processes are too many for a loaded test run): what it holds,
 its replay onto ZeroMQ, and the daemon re-run on its serial channel; the recorder killed and
 short of disk space while a daemon publishes."""
 
@@ -26,7 +27,7 @@ from daemon_harness import Client, daemon, write_config
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from recording_helpers import same_payload
 
-PRESS = (0.057, 0.040)  # across the seam of two elements of the 4x4 skin
+PRESS = (0.040, 0.020)  # across the seam of two elements of the 2x2 skin
 
 
 def _stop(proc: subprocess.Popen[Any], sig: int = signal.SIGTERM, timeout: float = 15) -> int:
@@ -39,7 +40,7 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """Record a live daemon from its start (so the recording holds every byte it read) through a press."""
     work = tmp_path_factory.mktemp("live")
     out = work / "skin.mcap"
-    with live_skin(work) as skin:
+    with live_skin(work, 2, 2) as skin:
         config = skin.daemon_config(source="skin-a")
         live = Collector(skin.pub)
         try:
@@ -129,7 +130,8 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
     cfg = tmp_path / "rerun.toml"
     endpoints = write_config(cfg, [{"name": "gateway", "url": f"replay:{live_recording['file']}",
                                     "replay_speed": 1.0, "replay_clock": "shifted",
-                                    "wait_for_subscriber": True, "exit_when_done": True}])
+                                    "wait_for_subscriber": True, "exit_when_done": True}],
+                             pub={"hwm": 100_000})  # a starved test process must not lose messages
     client = Client(endpoints, (b"element", b"contact"))
     try:
         with daemon(cfg, tmp_path / "err.log") as proc:

@@ -145,4 +145,4 @@ def test_a_curve_daemon_behind_the_proxy_is_reached_with_its_key_and_the_proxys_
     assert len(sub.messages) >= 60 and counters["handshakes_accepted"] >= 1 and counters["handshakes_denied"] == 0
     # both publishers got through: the secured one every 20 ms, the plain one every 50 ms
     seqs = [msgpack.unpackb(p)["seq"] for _, p, _ in sub.messages]
-    assert len(seqs) > len(set(seqs))  # the same seq from two publishers
+    assert any(b < a for a, b in zip(seqs, seqs[1:]))  # two numberings interleaved: both came through

@@ -98,7 +98,8 @@ def round_trip(tmp: Path, press_s: float) -> dict[str, float]:
                 with skin.daemon(skin.daemon_config(source="bench")):
                     live.pump(120, until=calibrated(skin.elements))
                     skin.press(0.057, 0.040, duration=press_s)
-                    live.pump(press_s + 1.0)
+                    live.pump(60, until=lambda t, m: t == "contact" and bool(m["contacts"]))
+                    live.pump(press_s)
                     os.killpg(rec.pid, signal.SIGTERM)
                     rec.wait(15)
         finally:

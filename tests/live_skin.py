@@ -44,10 +44,12 @@ class LiveSkin:
     def elements(self) -> int:
         return self.rows * self.cols
 
-    def daemon_config(self, name: str = "daemon", source: str = "", link: str = "gateway", extra: str = "") -> Path:
+    def daemon_config(self, name: str = "daemon", source: str = "", link: str = "gateway", extra: str = "",
+                      hwm: int = 100_000) -> Path:
+        """A daemon config; ``hwm``: room for a test's subscribers, which a loaded machine starves."""
         path = self.work / f"{name}.toml"
         src = f'source = "{source}"\n' if source else ""
-        path.write_text(f'[pub]\nendpoint = "{self.pub}"\n{src}\n[control]\nendpoint = "{self.control}"\n\n'
+        path.write_text(f'[pub]\nendpoint = "{self.pub}"\nhwm = {hwm}\n{src}\n[control]\nendpoint = "{self.control}"\n\n'
                         f'[health]\ninterval = 0.2\n\n[daemon]\nlog_format = "text"\n\n{extra}\n'
                         f'[[link]]\nname = "{link}"\nurl = "{self.device}"\n')
         return path

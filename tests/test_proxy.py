@@ -114,3 +114,35 @@ def test_proxy_refuses_a_front_beyond_loopback_without_curve(tmp_path: Path) -> 
 def test_proxy_names_a_bad_backend(bad: str) -> None:
     r = subprocess.run(cellbridge_cmd("proxy", "--back", bad), capture_output=True, text=True, timeout=30)
     assert r.returncode == 2 and "ZeroMQ endpoint" in r.stderr
+
+
+def test_a_curve_daemon_behind_the_proxy_is_reached_with_its_key_and_the_proxys_own(tmp_path: Path) -> None:
+    """CURVE on the back side: a publisher that allows only the proxy's key, next to a plain one."""
+    from cellbridge.daemon.security import CurveKeys, CurveServer
+    from pub_helpers import publisher
+
+    (tmp_path / "allowed").mkdir()
+    server_pub, server_secret = write_keypair(tmp_path, "daemon")
+    _, proxy_secret = write_keypair(tmp_path / "allowed", "proxy")
+    context = zmq.Context()
+    curve = CurveServer(context, CurveKeys(server_secret, tmp_path / "allowed"))
+    front = f"tcp://127.0.0.1:{free_port()}"
+    try:
+        with publisher(setup=curve.apply, context=context) as secured, publisher(period=0.05) as plain, \
+                group(_proxy_cmd(front, [f"{secured}={server_pub}", plain], "--client-key", str(proxy_secret)),
+                      stderr=subprocess.DEVNULL) as proxy:
+            sub = Collector(front, (b"contact",))
+            try:
+                sub.pump(20, until=lambda t, m: len(sub.messages) >= 60)
+            finally:
+                sub.close()
+            os.killpg(proxy.pid, signal.SIGTERM)
+            assert proxy.wait(15) == 0
+        counters = curve.counters()
+    finally:
+        curve.stop()
+        context.term()
+    assert len(sub.messages) >= 60 and counters["handshakes_accepted"] >= 1 and counters["handshakes_denied"] == 0
+    # both publishers got through: the secured one every 20 ms, the plain one every 50 ms
+    seqs = [msgpack.unpackb(p)["seq"] for _, p, _ in sub.messages]
+    assert any(b < a for a, b in zip(seqs, seqs[1:]))  # two numberings interleaved: both came through

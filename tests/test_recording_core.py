@@ -158,7 +158,7 @@ def test_a_failed_write_stops_the_recording_names_it_and_counts_the_rest(tmp_pat
             rec.close()
             s = rec.stats()
             ok = ("File too large" in s["error"] and "recording stopped" in s["error"]
-                  and s["messages"] + s["dropped"] == 400 and 0 < s["messages"] < 400)
+                  and s["messages"] + s["dropped"] == 400 and 0 < s["messages"] < 400 and s["unconfirmed"] > 0)
             code = 0 if ok else 3
         finally:
             os._exit(code)
@@ -170,13 +170,16 @@ def test_a_failed_write_stops_the_recording_names_it_and_counts_the_rest(tmp_pat
     assert not result.complete and seqs == list(range(len(seqs))) and len(seqs) > 0
 
 
-def test_a_message_that_is_not_msgpack_is_counted_not_recorded(tmp_path: Path) -> None:
+def test_a_message_that_is_not_msgpack_or_never_arrived_is_counted(tmp_path: Path) -> None:
     rec = Recorder(tmp_path / "m.mcap", _writer)
     rec.feed("element", b"\xc1junk", 1.0)
     rec.feed("element", msgpack.packb([1, 2]), 1.0)
     rec.feed("element", codec.to_msgpack(element(0, 1.0)), 1.0)
+    rec.feed("element", codec.to_msgpack(element(4, 1.1)), 1.1)  # 1, 2 and 3 never arrived
+    rec.feed("element", codec.to_msgpack(element(0, 1.2)), 1.2)  # the daemon restarted: no loss
     rec.close()
-    assert rec.stats()["malformed"] == 2 and rec.stats()["messages"] == 1
+    s = rec.stats()
+    assert s["malformed"] == 2 and s["messages"] == 3 and s["missed"] == {"element": 3}
 
 
 def test_pacer_keeps_recorded_offsets_scaled_by_the_rate() -> None:

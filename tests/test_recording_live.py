@@ -1,4 +1,5 @@
-"""A recording of a live daemon (an emulated 4×4 skin in real processes, a press): what it holds,
+"""A recording of a live daemon (an emulated 2×2 skin in real processes, a press; the 4×4 skin is
+bench/bench_recording.py's: 16 real-time bridge processes are too many for a loaded test run): what it holds,
 its replay onto ZeroMQ, and the daemon re-run on its serial channel; the recorder killed and
 short of disk space while a daemon publishes."""
 
@@ -26,7 +27,7 @@ from daemon_harness import Client, daemon, write_config
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from recording_helpers import same_payload
 
-PRESS = (0.057, 0.040)  # across the seam of two elements of the 4x4 skin
+PRESS = (0.040, 0.020)  # across the seam of two elements of the 2x2 skin
 
 
 def _stop(proc: subprocess.Popen[Any], sig: int = signal.SIGTERM, timeout: float = 15) -> int:
@@ -39,7 +40,7 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """Record a live daemon from its start (so the recording holds every byte it read) through a press."""
     work = tmp_path_factory.mktemp("live")
     out = work / "skin.mcap"
-    with live_skin(work) as skin:
+    with live_skin(work, 2, 2) as skin:
         config = skin.daemon_config(source="skin-a")
         live = Collector(skin.pub)
         try:
@@ -50,7 +51,8 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
                     live.pump(120, until=calibrated(skin.elements))
                     assert proc.poll() is None and rec.poll() is None
                     skin.press(*PRESS, duration=2.0)
-                    live.pump(3.0)
+                    live.pump(60, until=lambda t, m: t == "contact" and bool(m["contacts"]))  # (a loaded machine)
+                    live.pump(2.0)
                     assert _stop(rec) == 0  # SIGTERM: the file is finished, status 0
                     live.pump(0.5)
         finally:
@@ -128,7 +130,8 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
     cfg = tmp_path / "rerun.toml"
     endpoints = write_config(cfg, [{"name": "gateway", "url": f"replay:{live_recording['file']}",
                                     "replay_speed": 1.0, "replay_clock": "shifted",
-                                    "wait_for_subscriber": True, "exit_when_done": True}])
+                                    "wait_for_subscriber": True, "exit_when_done": True}],
+                             pub={"hwm": 100_000})  # a starved test process must not lose messages
     client = Client(endpoints, (b"element", b"contact"))
     try:
         with daemon(cfg, tmp_path / "err.log") as proc:
@@ -146,7 +149,11 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
                     out[key] = {"t_host": m["t_host"], **{k: m[k][i] for k in ELEMENT_COLUMNS}}
         return out
 
-    a, b = samples(got), samples(live)
+    # the reads the recording holds (a recorder that connected late, on a loaded machine, or was
+    # stopped first, has fewer than the daemon read; the live subscriber saw them all)
+    reads = [m["t_host"] for t, m in _recorded(live_recording["file"]) if t == "serial"]
+    a = samples(got)
+    b = {k: v for k, v in samples(live).items() if reads[0] <= v["t_host"] <= reads[-1]}
     both = sorted(set(a) & set(b))
     assert len(both) >= 0.95 * len(b) and len(both) >= 0.95 * len(a), (len(both), len(a), len(b))
     shifts = [a[k]["t_host"] - b[k]["t_host"] for k in both]
@@ -263,7 +270,9 @@ def test_a_full_disk_stops_the_recording_with_a_message_and_the_daemon_goes_on(t
     stats = json.loads(rec.stderr.strip().splitlines()[-2])
     result = ReadResult()
     got = list(read_messages(out, result))
-    assert not result.complete and 0 < len(got) <= stats["messages"]
+    # every message of every chunk written before the failure reads back; those of the chunk that
+    # failed (unconfirmed, and the message whose arrival wrote it, counted dropped) may or may not
+    assert not result.complete and 0 < stats["messages"] - stats["unconfirmed"] <= len(got) <= stats["messages"] + 1
 
 
 def _ping(endpoints: dict[str, str]) -> bool:

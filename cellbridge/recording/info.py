@@ -110,7 +110,11 @@ def run(args: argparse.Namespace) -> int:
     for path in args.files:
         try:
             info = summarise(path)
-        except (OSError, ValueError) as exc:
+        except OSError as exc:
+            print(f"cellbridge info: {path}: {exc.strerror or exc}", file=sys.stderr)
+            status = 1
+            continue
+        except ValueError as exc:
             print(f"cellbridge info: {exc}", file=sys.stderr)
             status = 1
             continue

@@ -82,6 +82,7 @@ class RecordingWriter:
             raise
         self._channels: dict[str, int] = {}
         self.messages = 0
+        self.pending = 0  #: messages in the chunk being built (not in the file yet)
         self.first_ns: int | None = None
         self.finished = False
 
@@ -100,8 +101,11 @@ class RecordingWriter:
 
     def add(self, topic: str, data: bytes, log_ns: int, publish_ns: int, sequence: int = 0) -> None:
         """One JSON message (:func:`cellbridge.recording.codec.encode`)."""
+        before = self._file.pos
         self._writer.add_message(self.channel(topic), log_time=log_ns, data=data, publish_time=publish_ns,
                                  sequence=sequence & 0xFFFFFFFF)
+        # the writer finished a chunk (this message in it): on disk; else one more waits in memory
+        self.pending = 0 if self._file.pos != before else self.pending + 1
         self.messages += 1
         if self.first_ns is None:
             self.first_ns = publish_ns
@@ -109,6 +113,7 @@ class RecordingWriter:
     def flush(self) -> None:
         """Finish the chunk in progress: everything added so far survives a kill."""
         self._writer.flush()
+        self.pending = 0
 
     def finish(self) -> None:
         """Summary, index and footer: the file is complete (a viewer seeks in it)."""

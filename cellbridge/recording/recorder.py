@@ -6,9 +6,14 @@ it was received, sequence = its ``seq``) into the current file, opens the next f
 the current one reaches ``rotate_bytes`` or ``rotate_seconds``, and finishes the chunk in
 progress every ``chunk_seconds`` so a kill loses at most that much.
 
+Messages the daemon published that never arrived (a subscriber's ZeroMQ queue is bounded;
+a recorder that falls behind loses messages there) show as gaps in each topic's ``seq``,
+counted per topic in :attr:`missed`.
+
 A write that fails (disk full, I/O error) stops the recording: the error is kept in
 :attr:`error`, the file keeps its whole chunks, later messages are counted in
-:attr:`dropped`. It never raises into the shell: whatever happens to the disk, the
+:attr:`dropped`, and those of the chunk that could not be written in :attr:`unconfirmed`
+(``recorded`` counts every message handed to the file, these included). It never raises into the shell: whatever happens to the disk, the
 recorder says what and the daemon it listens to is untouched (it is another process).
 """
 
@@ -45,6 +50,9 @@ class Recorder:
         self.recorded: Counter[str] = Counter()
         self.malformed = 0  # messages that were not [topic, msgpack map]: skipped, counted
         self.dropped = 0  # messages received after the recording stopped on an error
+        self.unconfirmed = 0  # messages in the chunk being built or written when a write failed: may be lost
+        self.missed: Counter[str] = Counter()  # per topic: gaps in seq, messages that never reached us
+        self._seq: dict[tuple[str, str], int] = {}  # (topic, source) -> last seq
         self.error = ""
 
     @property
@@ -65,6 +73,8 @@ class Recorder:
 
     def _fail(self, exc: OSError) -> None:
         where = self.writer.path if self.writer is not None else self.out
+        if self.writer is not None:
+            self.unconfirmed = self.writer.pending
         self.error = f"{where}: {exc.strerror or exc}; recording stopped (the file keeps its whole chunks)"
         if self.writer is not None:
             try:
@@ -109,6 +119,12 @@ class Recorder:
         log_ns = int(t_host * 1e9) if isinstance(t_host, (int, float)) and t_host == t_host and t_host > 0 \
             else int(now * 1e9)
         seq = p.get("seq")
+        if isinstance(seq, int):
+            key = (topic, str(p.get("source", "")))
+            last = self._seq.get(key)
+            if last is not None and seq > last + 1:  # (lower: the daemon restarted, numbering from 0)
+                self.missed[topic] += seq - last - 1
+            self._seq[key] = seq
         if self._guard(lambda: w.add(topic, data, log_ns, int(now * 1e9), seq if isinstance(seq, int) else 0)):
             self.recorded[topic] += 1
         else:
@@ -133,5 +149,6 @@ class Recorder:
 
     def stats(self) -> dict[str, Any]:
         return {"recorded": dict(self.recorded), "messages": sum(self.recorded.values()),
-                "malformed": self.malformed, "dropped": self.dropped, "files": [str(f) for f in self.files],
+                "malformed": self.malformed, "dropped": self.dropped, "unconfirmed": self.unconfirmed,
+                "missed": dict(self.missed), "files": [str(f) for f in self.files],
                 "error": self.error}

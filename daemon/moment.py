@@ -132,7 +132,7 @@ class Moments:
         self.dc[rows] = np.nan
 
     def take(self, now: float, timeout: float, max_lag: float, force: bool = False,
-             held_wait: float = 0.05) -> Moment | None:
+             held_wait: float = 0.5) -> Moment | None:
         """The skin at the newest moment every live element has reported past (:meth:`moment`),
         if that moment advanced since the last one taken (or ``force``: a tare asks for
         one at once). None while it did not, and while an element is between a touched
@@ -166,7 +166,7 @@ class Moments:
         return Moment(self.t_moment, np.full((n, 2), np.nan), np.zeros(n, dtype=bool), np.full(n, np.nan),
                       np.zeros(n, dtype=np.uint64), np.ones(n, dtype=bool))
 
-    def moment(self, now: float, timeout: float, max_lag: float, held_wait: float = 0.05) -> float:
+    def moment(self, now: float, timeout: float, max_lag: float, held_wait: float = 0.5) -> float:
         """The newest time every live element has reported past (NaN: no element live).
         Elements silent for ``timeout``, trailing the newest data by more than ``max_lag``
         (periodic) or ``held_wait`` (held) hold nothing back."""

@@ -43,7 +43,7 @@ from typing import Any, Mapping
 from cellbridge.errors import CellbridgeError
 
 DEFAULT_SIDE = 0.040
-#: The element model's largest side (cellbridge.tactile.skin.MAX_SIDE): a bridge builds
+#: The element model's largest side (cellbridge.tactile.layout.MAX_SIDE): a bridge builds
 #: its element from the file's side and could not start beyond it.
 MAX_SIDE = 1.0
 DEFAULT_BITRATE = 1_000_000

@@ -124,7 +124,7 @@ def test_every_number_has_an_upper_bound() -> None:
 def test_the_moment_buffer_is_sized_in_readings() -> None:
     """The longest max_lag at the fastest step rate still keeps at most max_lag_readings per element."""
     from cellbridge.daemon.pipeline import Pipeline
-    from cellbridge.tactile.skin import grid_layout
+    from cellbridge.tactile import grid_layout
 
     cfg = parse_config({"contact": {"max_lag": 10.0, "max_lag_readings": 256},
                         "calibration": {"max_step_rate": 1000.0}})

@@ -107,16 +107,17 @@ def test_bridges_under_a_held_press_going_silent_end_the_contact() -> None:
     silent). The contact ends within bridge_timeout plus one frame, with ``contacts: []``."""
     kill_at = 5.0
     reads = gateway_reads(9.0, [Contact(4.0, 4.5, *CORNER, 3.0, 0.020)], kill=tuple(UNDER), kill_at=kill_at)
-    last_with, empty_at = -1.0, None
+    last_with, empty_at, elements = -1.0, None, set()
     for t, topic, m in drive(reads, 9.0):
         if topic != "contact":
             continue
         if m["contacts"]:
             last_with = t - T0
+            elements = {e for c in m["contacts"] for e in c["elements"]}
             assert empty_at is None, "a contact came back"
         elif empty_at is None and last_with > 0:
             empty_at = t - T0
-            assert UNDER <= set(m["unknown"])
+            assert elements <= set(m["unknown"]) and elements <= UNDER, (elements, m["unknown"])
     bridge_timeout = 2.0
     assert empty_at is not None and kill_at < empty_at <= kill_at + bridge_timeout + 0.02, (last_with, empty_at)
 

@@ -179,7 +179,14 @@ class Moments:
         held = self.held[self._all, (self.count - 1) % self.depth]
         self.holding = live & (self.settled >= newest - np.where(held, min(held_wait, max_lag), max_lag))
         self.late = live & ~self.holding & ~held
-        return max(float(self.settled[self.holding].min()), self.t_moment)
+        t = max(float(self.settled[self.holding].min()), self.t_moment)
+        # On mesh time the moment is a frame: the newest frame instant at or before it. (A
+        # bridge timed from its arrivals, booting or cut off, would otherwise put the moment
+        # between two frames, where no bridge on mesh time has a reading.)
+        with np.errstate(invalid="ignore"):
+            frames = np.where(self.on_time & (self.t <= t) & live[:, None], self.t, -math.inf)
+        frame = float(frames.max()) if frames.size else -math.inf
+        return max(frame, self.t_moment) if math.isfinite(frame) else t
 
     def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64],
                                          NDArray[np.bool_], float]:

@@ -233,7 +233,9 @@ def run(args: argparse.Namespace) -> int:
         pub, ctl = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
         n = args.rows * args.cols
         say(f"starting an emulated {args.rows}x{args.cols} skin: {n} bridge processes, medium and world ...")
-        with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port)),
+        # event-based reporting, as a large skin runs: an idle element sends a heartbeat, a
+        # pressed one every sample; periodic 100 Hz from 16 bridges crowds the gateway's cell
+        with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port), "--reporting", "event:40"),
                     stdout=subprocess.PIPE, stderr=open(work / "mesh.log", "w"), text=True) as mesh:
             device = _wait_gateway(mesh)
             say(f"gateway on {device}; starting the daemon on it (pub {pub}) ...")

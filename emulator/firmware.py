@@ -205,6 +205,8 @@ class Firmware:
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
                                c.event_latency)
         self.status_at = tick + c.status_period
+        self._boot_hello: Raw | None = None  # this boot's HELLO (seq 0), kept to repeat on a new path
+        self._hello_via: set[int] = set()  # parents this boot's HELLO went to
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period
         self.reset_at = -1
@@ -436,8 +438,34 @@ class Firmware:
 
     def _say_hello(self) -> None:
         c = self.config
-        self._own(Hello(self.me, c.firmware, c.position[0], c.position[1], c.side, c.clock_hz, 3,
-                        self.boots))
+        f = own(Hello(self.me, c.firmware, c.position[0], c.position[1], c.side, c.clock_hz, 3, self.boots),
+                self.me, self._next_seq())
+        if f.seq == 0 and self._boot_hello is None:
+            self._boot_hello = f
+        self._emit(f)
+
+    def _announce_boot(self, parent: int) -> None:
+        """Send this boot's HELLO (a copy of seq 0) ahead of the queue to a parent it did not go to.
+
+        A new parent can lead to relays and a gateway that never saw this boot's HELLO; their
+        duplicate filters still hold the last boot's numbers, and a young boot's numbers fall
+        among them (dropped as duplicates until they pass the old highest). The copy carries
+        the boot counter: there the restart is seen, not guessed. Filters that saw the HELLO
+        take the copy for one (same boot counter), so nothing is delivered twice. Only while
+        the boot is young (fewer numbers than the filters' ``hello_guard``): the gap that
+        matters is the first moments after a restart, and a filter that lost its memory
+        (a gateway reset since) takes a late HELLO 0 for a restart, so copies stay few and
+        close to the HELLO, where every filter takes them for copies."""
+        f = self._boot_hello
+        if f is None or self.config.gateway or self.seq >= self.seen.hello_guard:
+            return
+        self._hello_via.add(parent)
+        if self.link.holds(f.origin, f.seq):
+            return  # the HELLO itself has not left yet: it goes to this parent
+        if self.link.enqueue(f, first=True):
+            self.counters["boot_hellos_repeated"] += 1
+        else:
+            self.counters["queue_full"] += 1
 
     @property
     def boots(self) -> int:
@@ -529,6 +557,8 @@ class Firmware:
             self._power_on(tick)
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
+        if p is not None and p.id not in self._hello_via:
+            self._announce_boot(p.id)
         if p is not None:
             out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)), r.table)
         else:

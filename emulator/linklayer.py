@@ -73,13 +73,24 @@ class LinkLayer:
         self.counters: Counter[str] = Counter()
         self.results: list[tuple[int, int, bool]] = []  #: (next hop, attempts, ok) not yet read
 
-    def enqueue(self, frame: Raw) -> bool:
-        """Queue a frame for the parent; False (and counted) when the queue is full."""
+    def enqueue(self, frame: Raw, first: bool = False) -> bool:
+        """Queue a frame for the parent (``first``: ahead of the queued frames); False (and
+        counted) when the queue is full."""
         if len(self.queue) >= self.queue_len:
             self.counters["queue_drops"] += 1
             return False
-        self.queue.append(frame)
+        if first:
+            self.queue.appendleft(frame)
+        else:
+            self.queue.append(frame)
         return True
+
+    def holds(self, origin: int, seq: int) -> bool:
+        """True while the frame (origin, seq) waits in the queue or is in flight."""
+        f = self.inflight
+        if f is not None and any((x.origin, x.seq) == (origin, seq) for x in f.frames):
+            return True
+        return any((x.origin, x.seq) == (origin, seq) for x in self.queue)
 
     def broadcast(self, data: bytes) -> None:
         if len(self.broadcasts) >= 16:

@@ -330,9 +330,9 @@ class Firmware:
                 if g is None:
                     self.counters["rx_bad_bundle"] += 1
                 else:
-                    self._upward(g[2], tick)
+                    self._upward(g[2], tick, src)
         else:
-            self._upward(f, tick)
+            self._upward(f, tick, src)
         return True
 
     def _receive_parsed(self, data: bytes, tick: int, sof: int) -> bool:
@@ -409,7 +409,8 @@ class Firmware:
         return encode(Frame(f.src, f.dst, f.origin, f.seq, self._beacon_message(tick), f.hops, f.cost, f.flags))
 
     # -- upward traffic -------------------------------------------------------------
-    def _upward(self, f: Raw, tick: int) -> None:
+    def _upward(self, f: Raw, tick: int, src: int = -1) -> None:
+        """Relay an upward frame that neighbour ``src`` sent us."""
         if f.origin == self.me:
             # our own frame came back (a parent change raced with a neighbour's): send it on
             # once more; the duplicate filter stops a second return
@@ -419,13 +420,29 @@ class Firmware:
         if self.seen.is_duplicate(f.origin, f.seq, hello, _hello_boots(f) if hello else None):
             self.counters["duplicates"] += 1
             first = self.hops_seen.get(key)
-            if first is not None and f.hops >= first + _LOOP_MIN_HOPS and not self.config.gateway:
+            if first is None or self.config.gateway:
+                return
+            if f.hops >= first + _LOOP_MIN_HOPS:
                 # the same frame again with at least three hops more: it went round a loop
                 # through us (a copy only one or two hops longer took a detour: see _LOOP_MIN_HOPS)
                 self.counters["loops_detected"] += 1
                 self.router.loop_detected()
                 self.trickle.reset(tick)
                 self._reroute(tick)
+            elif not (f.hops > first and self.link.handed.get(key) == src):
+                return  # a copy from a detour: the first went on
+            # The copy that came back (round a loop, or from the neighbour that acknowledged
+            # it: a loop of two, which Router.child_sent breaks) is the
+            # frame's only copy: we handed it on with an acknowledgement and it went round
+            # instead of up. Dropping it lost the frame (a boot's HELLO in the routing churn
+            # of a broadcast RESET); it goes on once more on the new route instead. A next
+            # return needs more hops again, and max_hops ends any circling.
+            self.hops_seen[key] = f.hops
+            if f.hops + 1 > self.config.max_hops:
+                self.counters["loop_drops"] += 1
+            else:
+                self.counters["loop_returns_forwarded"] += 1
+                self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
             return
         self.hops_seen[key] = f.hops
         if len(self.hops_seen) > _HOPS_MEMORY:

@@ -21,6 +21,9 @@ numbering at 0 again, so a restart is taken only from evidence:
 - ``restart_run`` stale frames in a row with consecutive numbers (gaps of at most
   ``_RUN_GAP``), the first below ``window``, with no accepted frame in between:
   a reset whose HELLO was lost. Those first frames are dropped as stale;
+- a HELLO's boot counter (protocol version 2): a different one from the origin's last
+  is a restart wherever its number falls; the same one marks a copy of that boot's
+  HELLO (a bridge repeats it on a new path), never a restart;
 - ``reset(origin)``, for a caller that knows better (a bridge replaced, a link
   re-plugged).
 

@@ -21,6 +21,9 @@ numbering at 0 again, so a restart is taken only from evidence:
 - ``restart_run`` stale frames in a row with consecutive numbers (gaps of at most
   ``_RUN_GAP``), the first below ``window``, with no accepted frame in between:
   a reset whose HELLO was lost. Those first frames are dropped as stale;
+- a HELLO's boot counter (protocol version 2): a different one from the origin's last
+  is a restart wherever its number falls; the same one marks a copy of that boot's
+  HELLO (a bridge repeats it on a new path), never a restart;
 - ``reset(origin)``, for a caller that knows better (a bridge replaced, a link
   re-plugged).
 
@@ -100,7 +103,9 @@ class DuplicateFilter:
         """True when the frame (origin, seq) must be dropped; ``hello``: the frame is a HELLO,
         ``boot``: its boot counter (protocol version 2). A HELLO whose boot counter differs
         from the last one this origin announced is a restart, by evidence: the numbering
-        begins again there, however close its number is to the last boot's."""
+        begins again there, however close its number is to the last boot's. A HELLO numbered 0
+        with the boot counter this origin last announced is a copy of that boot's HELLO (a
+        bridge sends it again on a new path), however late: never a restart."""
         st = self._state.get(origin)
         if st is None:
             if len(self._state) >= self.max_origins:
@@ -111,12 +116,14 @@ class DuplicateFilter:
                 st.boot = boot
             return False
         self._state.move_to_end(origin)
+        same_boot = False
         if hello and boot is not None:
             if st.boot >= 0 and boot != st.boot:
                 st.boot = boot
                 self._restart(st, seq, 1)
                 st.hello = seq
                 return False
+            same_boot = st.boot == boot
             st.boot = boot
         ahead = (seq - st.highest) % _MOD
         if 0 < ahead < _HALF:  # newer: slide the window forward
@@ -143,7 +150,7 @@ class DuplicateFilter:
                 st.hello = seq
             return False
         # Seen or stale: a repeat, unless a HELLO says the origin numbers again.
-        if hello and not seq and not (seq == st.hello and behind < self.hello_guard):
+        if hello and not seq and not same_boot and not (seq == st.hello and behind < self.hello_guard):
             self._restart(st, seq, 1)
             st.hello = seq
             return False

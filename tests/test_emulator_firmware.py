@@ -389,9 +389,6 @@ def test_event_reporting_with_threshold_0_sends_every_change_only() -> None:
     assert ReportingMode.from_value(0).periodic and ReportingMode.from_value(0).to_value() == 0
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "known open defect since mesh time (issue 13): after a broadcast RESET of a 6x6 skin the power-on "
-    "HELLO of a few far bridges (3 of 36 here) does not reach the host; every reply does"))
 def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
     # A bridge resets once its reply and its copies of the command have left (at most
     # 3 s later), not after a fixed 50 ms: relays that reset at once threw away the

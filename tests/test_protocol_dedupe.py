@@ -170,6 +170,20 @@ def test_a_hello_heard_through_two_gateways_is_one_restart() -> None:
     assert f.counters()["restarts"] == 1
 
 
+def test_a_late_copy_of_a_boot_hello_with_its_boot_counter_is_no_restart() -> None:
+    """A bridge sends its boot HELLO again to a new parent; where the HELLO already passed,
+    the copy (same boot counter) is a duplicate however many frames followed it, not a
+    restart that would let the boot's numbers through a second time."""
+    f = DuplicateFilter(hello_guard=4)
+    assert not f.is_duplicate(1, 0, hello=True, boot=2)
+    assert not any(f.is_duplicate(1, s) for s in range(1, 40))
+    assert f.is_duplicate(1, 0, hello=True, boot=2)  # 39 frames later: past hello_guard
+    assert all(f.is_duplicate(1, s) for s in range(1, 40))
+    assert f.counters()["restarts"] == 0
+    assert not f.is_duplicate(1, 0, hello=True, boot=3)  # another boot: a restart
+    assert f.counters()["restarts"] == 1
+
+
 def test_a_reordered_hello_is_no_restart() -> None:
     f = DuplicateFilter()
     assert not any(f.is_duplicate(1, s) for s in range(100))

@@ -55,6 +55,10 @@ _NO_MESH_TIME = np.int64(NO_MESH_TIME)
 _HELD = np.int64(HELD)
 _FRAME_MEMORY = 10.0  # s of frames whose host time is kept once given
 _FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at (250 Hz x 10 s)
+# Unplaced bridges health lists one by one: beyond this, only their count. One corrupt frame in
+# ~65 536 passes CRC-16 with a random origin, so a noisy line makes thousands of phantoms; each
+# would cost ~240 bytes in every health message (15 MB at 65 530) until forgotten.
+_UNPLACED_SHOWN = 64
 _SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
 _OWNERS = itertools.count()
 _P = TypeVar("_P", bound=Publish)
@@ -192,6 +196,7 @@ class Pipeline:
                 self.clocks[origin].suspect_reset()  # numbering restarted without a HELLO: perhaps a reset
             b.last_seen, b.link = now, link
             self.topology.heard(origin, link, dec.gateways, now)
+        self.topology.gateways_heard(link, dec.gateways, now)
         for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
             if origin in self.clocks and self.clocks.pop(origin).synced:
                 self._bridge(origin, now).clock_resets += 1
@@ -410,6 +415,7 @@ class Pipeline:
             self.topology.nodes.pop(bid, None)
             self.ingress.reassembly_drops.pop(bid, None)
         self.forgotten_bridges += len(gone)
+        self.topology.forget_gateways(before, self.skin.placed)
 
     def _clock_stepped_back(self, now: float) -> None:
         """The host clock went back (NTP step, RTC set): times kept from before lie in the
@@ -428,16 +434,24 @@ class Pipeline:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
         h = self.config["health"]
         layout_report = self.skin.report(now, h["stuck_after"])
-        unplaced = sorted(b for b, bh in self.bridges.items() if bh.unmapped_samples and not self.skin.placed(b))
+        placed = self.skin.placed
+        unplaced = sorted(b for b, bh in self.bridges.items() if bh.unmapped_samples and not placed(b))
+        # Every placed bridge is reported; of the others (phantoms, strangers, bridges not yet
+        # placed by a HELLO) the lowest ids up to _UNPLACED_SHOWN, the rest only counted.
+        others = sorted(b for b in self.bridges if not placed(b))
+        shown = sorted([b for b in self.bridges if placed(b)] + others[:_UNPLACED_SHOWN])
         return {
             "t_bridge": None,
             "uptime": 0.0 if self.started is None else now - self.started,
             "links": {name: self._wall_link(link_report(lh, self.ingress.counters(name)))
                       for name, lh in self.links.items()},
-            "bridges": {str(b): {**bh.report(now), "reassembly_drops": self.ingress.reassembly_drops.get(b, 0)}
-                        for b, bh in sorted(self.bridges.items())},
-            "silent": sorted(b for b, bh in self.bridges.items() if bh.silent),
-            "unplaced": unplaced,
+            "bridges": {str(b): {**self.bridges[b].report(now), "reassembly_drops": self.ingress.reassembly_drops.get(b, 0)}
+                        for b in shown},
+            "bridges_not_shown": len(self.bridges) - len(shown),
+            "silent": sorted(b for b in shown if self.bridges[b].silent),
+            "silent_count": sum(1 for bh in self.bridges.values() if bh.silent),
+            "unplaced": unplaced[:_UNPLACED_SHOWN],
+            "unplaced_count": len(unplaced),
             "forgotten_bridges": self.forgotten_bridges,
             "layout": layout_report,
             "reassembly": self.ingress.reassembler.counters(),

@@ -8,6 +8,7 @@ so subscribers can redraw the mesh without polling.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,7 +30,7 @@ class Node:
 class Topology:
     def __init__(self) -> None:
         self.nodes: dict[int, Node] = {}
-        self.gateways: dict[str, set[int]] = {}  # link -> gateway bridge ids heard on it
+        self.gateways: dict[str, dict[int, float]] = {}  # link -> gateway bridge id -> last heard
         self._published: object = None
 
     def node(self, bridge: int) -> Node:
@@ -43,11 +44,32 @@ class Topology:
         n.link, n.last_seen = link, now
         if len(gateways) == 1:
             n.gateway = next(iter(gateways))
-        self.gateways.setdefault(link, set()).update(gateways)
+
+    def gateways_heard(self, link: str, gateways: set[int], now: float) -> None:
+        """The link-level senders of one read of ``link`` (once per read, not per origin)."""
+        if gateways:
+            self.gateways.setdefault(link, {}).update(dict.fromkeys(gateways, now))
+
+    def forget_gateways(self, before: float, keep: Callable[[int], bool]) -> int:
+        """Drop gateway ids last heard ``before`` unless ``keep(id)`` (a placed bridge): a
+        corrupt frame that passes the CRC names a random sender, and such phantom gateways
+        would otherwise stay in topology for the life of the daemon. Returns how many."""
+        n = 0
+        for link, ids in list(self.gateways.items()):
+            gone = [g for g, t in ids.items() if t < before and not keep(g)]
+            for g in gone:
+                del ids[g]
+            n += len(gone)
+            if not ids:
+                del self.gateways[link]
+        return n
 
     def clock_stepped_back(self, now: float) -> None:
         for n in self.nodes.values():
             n.last_seen = min(n.last_seen, now)
+        for ids in self.gateways.values():
+            for g, t in ids.items():
+                ids[g] = min(t, now)
 
     def beacon(self, bridge: int, parent: int, path_etx: int, hops: int) -> None:
         n = self.node(bridge)

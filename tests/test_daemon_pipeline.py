@@ -448,7 +448,7 @@ def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_neve
                                        payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
                    for o in range(100, 3100))
     p.feed("gw", buf, t)
-    assert len(p.health_body(t)["bridges"]) == 3004
+    assert p.health_body(t)["unplaced_count"] == 3000
     p.tick(t + 30.0)
     assert len(published(p.tick(t + 61.0, force=True))[0][1]["bridges"]) == 4
     body = p.health_body(t + 61.0)
@@ -570,3 +570,30 @@ def test_a_bridge_trailing_by_more_than_max_lag_does_not_hold_contacts_back_and_
     assert snap.t_sample[3] == pytest.approx(T0 + 109 / sk.rate, abs=0.011)  # its newest, 0.5 s old
     layout = p.health_body(T0 + 1.6)["layout"]
     assert layout["late"] == [4] and layout["late_estimates"] >= 1
+
+
+def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_pruned() -> None:
+    """One junk frame from each of thousands of origins (CRC-16 phantoms, each with a random
+    sender) made every health message list each one (15.5 MB at 65 530) for ``forget_after``,
+    and their sender ids stayed in topology's gateways for ever. Health now lists every placed
+    bridge and at most a bounded number of the others, with their counts; phantom gateway ids
+    are pruned when their bridges are forgotten, the real gateway is kept."""
+    from cellbridge.daemon.pipeline import _UNPLACED_SHOWN
+
+    sk = Skin()
+    p = make({"health": {"forget_after": 60.0}})
+    t = settle(p, sk, 20)
+    n = 3000
+    buf = b"".join(encode_stream(Frame(src=5000 + o, dst=0, origin=o, seq=0,
+                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
+                   for o in range(100, 100 + n))
+    p.feed("gw", buf, t)
+    h = p.health_body(t + 1.0)
+    assert {"1", "2", "3", "4"} <= set(h["bridges"])  # placed bridges always reported
+    assert len(h["bridges"]) == 4 + _UNPLACED_SHOWN and h["bridges_not_shown"] == n - _UNPLACED_SHOWN
+    assert h["unplaced"] == list(range(100, 100 + _UNPLACED_SHOWN)) and h["unplaced_count"] == n
+    assert len(p.topology_body(t + 1.0)["gateways"]["gw"]) == n + 1
+    p.tick(t + 61.0, force=True)
+    h = p.health_body(t + 61.0)
+    assert h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0 and h["silent_count"] == 4
+    assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}  # the placed gateway stays

@@ -1,0 +1,59 @@
+"""What phantom origins cost the daemon's core: health size, tick time, topology.
+
+Run: ``.venv/bin/python bench/bench_bogus_origins.py [--origins N]``.
+
+A noisy line lets about one corrupt frame in 65 536 past CRC-16, each from a random
+origin and a random link-level sender. This feeds one junk DATA frame from each of N
+origins (each with its own sender id) into a pipeline that also hears a small real
+skin, then prints the size of one ``health`` message (msgpack), the time of one
+``tick`` that publishes health and topology, and how many gateway ids topology holds,
+while the phantoms are remembered and after ``forget_after``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import msgpack
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from daemon_traffic import Skin  # noqa: E402
+
+from cellbridge.daemon.config import parse_config
+from cellbridge.daemon.messages import Publish
+from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.protocol import Data, Frame, Mode, Sample, encode_stream
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--origins", type=int, default=65530)
+    args = ap.parse_args()
+    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "health": {"forget_after": 600.0}}))
+    sk = Skin()
+    t = 1000.0
+    p.feed("gw", sk.hellos() + sk.beacons(), t)
+    for k, data in sk.stream(20):
+        p.feed("gw", data, t + k / sk.rate)
+    t += 1.0
+    junk = b"".join(encode_stream(Frame(src=(o * 7919) % 0xFFF0 + 1, dst=0, origin=o, seq=0,
+                                        payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
+                    for o in range(5, 5 + args.origins))
+    p.feed("gw", junk, t)
+    print(f"{'when':<28} {'health bytes':>14} {'tick ms':>9} {'gateway ids':>12} {'topology nodes':>15}")
+    for label, now in (("phantoms remembered", t + 10.0), ("after forget_after", t + 601.0)):
+        p.tick(now - 5.0, force=True)
+        t0 = time.perf_counter()
+        out = p.tick(now, force=True)
+        dt = (time.perf_counter() - t0) * 1e3
+        health = next(m.payload for m in out if isinstance(m, Publish) and m.topic == "health")
+        size = len(msgpack.packb(health))
+        gw = sum(len(v) for v in p.topology.gateways.values())
+        print(f"{label:<28} {size:>14,} {dt:>9.1f} {gw:>12,} {len(p.topology.nodes):>15,}")
+
+
+if __name__ == "__main__":
+    main()

@@ -21,7 +21,9 @@ def missing(result: MeshResult, bridge: int, lo: float, hi: float, period: int =
                      if lo * CLOCK_HZ <= s.cycle < hi * CLOCK_HZ})
     if not cycles:
         return int((hi - lo) * CLOCK_HZ / period)
-    gaps = sum(round((b - a) / period) - 1 for a, b in zip(cycles, cycles[1:]))
+    # a gap shorter than a period is the switch from the bridge's own schedule to mesh
+    # time (the first on-time gate may come early), not a sample found twice
+    gaps = sum(max(0, round((b - a) / period) - 1) for a, b in zip(cycles, cycles[1:]))
     head = (cycles[0] - lo * CLOCK_HZ) // period
     tail = (hi * CLOCK_HZ - cycles[-1] - 1) // period
     return int(gaps + head + tail)

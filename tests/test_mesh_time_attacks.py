@@ -3,7 +3,6 @@ forged or corrupted beacons, clocks at their limits. Each test is a defect once 
 
 from __future__ import annotations
 
-import pytest
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh

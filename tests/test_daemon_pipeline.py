@@ -597,3 +597,26 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     h = p.health_body(t + 61.0)
     assert h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0 and h["silent_count"] == 4
     assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}  # the placed gateway stays
+
+
+def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:
+    """Ids restarted at 0 whenever the tracker was built afresh: a replaced contact worker
+    (a new process), or a SIGHUP that changed the estimation settings: four presses came
+    back as ids [0, 1, 0, 0]. The pipeline keeps the lowest id it never published and every
+    job carries it, so a rebuilt tracker numbers from there."""
+    from cellbridge.daemon import contacts
+
+    sk = Skin()
+    p = make()
+    settle(p, sk)
+    ids = []
+    press(p, sk, STRADDLE, 60)
+    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    contacts._STAGES.clear()  # the worker process was replaced: its trackers are new
+    press(p, sk, STRADDLE, 70)
+    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    p.reconfigure(make({"contact": {"birth_frames": 2}}).config, None)  # SIGHUP: estimation changed
+    settle(p, sk, 60)
+    press(p, sk, STRADDLE, 80, 40)
+    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    assert len(set(ids)) == 3 and ids == sorted(ids), ids

@@ -76,6 +76,7 @@ class ContactJob:
     owner: str
     spec: ContactSpec
     snapshot: ContactSnapshot
+    first_id: int = 0  # the owner's lowest id never used: a rebuilt tracker numbers from here
 
 
 #: The estimator each owner's jobs run on, built once per spec: in the worker process (or
@@ -94,6 +95,7 @@ def estimate(job: ContactJob) -> list[dict[str, Any]]:
     _STAGES.move_to_end(job.owner)
     while len(_STAGES) > _MAX_OWNERS:
         _STAGES.popitem(last=False)
+    kept[1].tracker.ids_from(job.first_id)
     return kept[1].run(job.snapshot)
 
 

@@ -200,15 +200,28 @@ def layout_from_geometry(geometry: dict[int, tuple[float, float, float]]) -> tup
     side = max(set(sides), key=sides.count)
     kept: list[int] = []
     rejected = [i for i in ids if not math.isclose(geometry[i][2], side, rel_tol=1e-6)]
+    # Overlap is checked against a grid of side-sized cells (an element can only overlap one
+    # whose centre lies in its own or a neighbouring cell): O(n) per rebuild, where a trial
+    # layout per bridge was O(n² log n) and blocked the loop ~1 s per join at 1 000 bridges.
+    grid: dict[tuple[int, int], list[tuple[float, float]]] = {}
+    eps = 1e-9 * side
+    skip = set(rejected)
     for i in ids:
-        if i in rejected:
+        if i in skip:
             continue
-        trial = kept + [i]
+        x, y = geometry[i][0], geometry[i][1]
         try:
-            SkinLayout(np.array([geometry[j][:2] for j in trial]), side=side, ids=np.array(trial))
+            SkinLayout(np.array([[x, y]]), side=side, ids=np.array([i]))  # this element alone is valid
         except ValueError:
             rejected.append(i)
             continue
+        cx, cy = math.floor(x / side), math.floor(y / side)
+        near = (p for dx in (-1, 0, 1) for dy in (-1, 0, 1) for p in grid.get((cx + dx, cy + dy), ()))
+        # The rectangles' signed gaps, as SkinLayout measures them: both < -eps is an overlap.
+        if any(abs(x - px) - side < -eps and abs(y - py) - side < -eps for px, py in near):
+            rejected.append(i)
+            continue
+        grid.setdefault((cx, cy), []).append((x, y))
         kept.append(i)
     if not kept:
         return None, sorted(rejected)

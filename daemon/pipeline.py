@@ -117,6 +117,7 @@ class Pipeline:
         self._last_tick = -math.inf
         self._last_health = -math.inf
         self.forgotten_bridges = 0
+        self._next_contact_id = 0  # lowest contact id never published (see contact_job)
         self.announced_silent: set[int] = set()
         self._log: list[Message] = []  # log events, handed out with the next messages returned
         # The pipeline runs on one time base, the host's monotonic clock as the shell passes
@@ -341,7 +342,7 @@ class Pipeline:
         snap = self.skin.snapshot(self.last_feed if now is None else now, self.config["health"]["bridge_timeout"])
         if snap is None or self.skin.contact_spec is None:
             return None
-        return ContactJob(self._owner, self.skin.contact_spec, snap)
+        return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id)
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave
@@ -351,6 +352,8 @@ class Pipeline:
         index = {int(b): i for i, b in enumerate(snap.ids)}
         out = []
         for c in contacts:
+            if isinstance(c.get("id"), int):  # ids never go back, whatever rebuilt the tracker
+                self._next_contact_id = max(self._next_contact_id, c["id"] + 1)
             rows = [index[e] for e in c["elements"]]
             ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
             out.append({**c, "t": self._wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],

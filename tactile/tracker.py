@@ -104,6 +104,11 @@ class ContactTracker:
         self.rejected = 0
 
     # -- public ---------------------------------------------------------------------------
+    def ids_from(self, first: int) -> None:
+        """Number contacts born from now on from ``first`` at least: a tracker built afresh
+        (new layout, new worker process) must never hand out an id its owner already used."""
+        self._next_id = max(self._next_id, int(first))
+
     def update(
         self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None, t: float | None = None
     ) -> list[TrackedContact]:

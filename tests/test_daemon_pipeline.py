@@ -597,3 +597,49 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     h = p.health_body(t + 61.0)
     assert h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0 and h["silent_count"] == 4
     assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}  # the placed gateway stays
+
+
+def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:
+    """Ids restarted at 0 whenever the tracker was built afresh: a replaced contact worker
+    (a new process), or a SIGHUP that changed the estimation settings: four presses came
+    back as ids [0, 1, 0, 0]. The pipeline keeps the lowest id it never published and every
+    job carries it, so a rebuilt tracker numbers from there."""
+    from cellbridge.daemon import contacts
+
+    sk = Skin()
+    p = make()
+    settle(p, sk)
+    ids = []
+    press(p, sk, STRADDLE, 60)
+    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    contacts._STAGES.clear()  # the worker process was replaced: its trackers are new
+    press(p, sk, STRADDLE, 70)
+    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    p.reconfigure(make({"contact": {"birth_frames": 2}}).config, None)  # SIGHUP: estimation changed
+    settle(p, sk, 60)
+    press(p, sk, STRADDLE, 80, 40)
+    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    assert len(set(ids)) == 3 and ids == sorted(ids), ids
+
+
+def test_hello_layout_overlap_check_by_grid_rejects_exactly_the_overlapping_bridges() -> None:
+    """The HELLO layout checks each bridge against a grid of its neighbours (a trial layout
+    per bridge was O(n² log n): ~1 s of blocked loop per join at 1 000 bridges). The grid
+    must reject exactly what a pairwise check in id order rejects: touching edges are fine,
+    any overlap in both coordinates is not, whichever cell the centres fall in."""
+    from cellbridge.daemon.layout import layout_from_geometry
+
+    rng = np.random.default_rng(7)
+    side = 0.02
+    for _ in range(20):
+        pts = np.round(rng.uniform(-0.1, 0.1, (60, 2)) / (side / 4)) * (side / 4)  # many exact touches
+        geometry = {i: (float(x), float(y), side) for i, (x, y) in enumerate(pts, start=1)}
+        kept: list[int] = []
+        for i in sorted(geometry):
+            x, y, _ = geometry[i]
+            if all(not (abs(x - geometry[j][0]) < side - 1e-9 * side and abs(y - geometry[j][1]) < side - 1e-9 * side)
+                   for j in kept):
+                kept.append(i)
+        layout, rejected = layout_from_geometry(geometry)
+        assert layout is not None and layout.ids.tolist() == kept
+        assert rejected == sorted(set(geometry) - set(kept))

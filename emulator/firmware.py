@@ -422,12 +422,7 @@ class Firmware:
             first = self.hops_seen.get(key)
             if first is None or self.config.gateway:
                 return
-            if f.hops >= first + _LOOP_MIN_HOPS and hello and not f.seq:
-                # a boot's HELLO again with three hops more: round a loop, or the copy its
-                # bridge sends to a new parent (_announce_boot) up a longer path. Not evidence
-                # enough to drop our parent; it goes on in case it is the only copy
-                self.counters["hello_returns"] += 1
-            elif f.hops >= first + _LOOP_MIN_HOPS:
+            if f.hops >= first + _LOOP_MIN_HOPS:
                 # the same frame again with at least three hops more: it went round a loop
                 # through us (a copy only one or two hops longer took a detour: see _LOOP_MIN_HOPS)
                 self.counters["loops_detected"] += 1

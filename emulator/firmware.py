@@ -205,8 +205,6 @@ class Firmware:
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
                                c.event_latency)
         self.status_at = tick + c.status_period
-        self._boot_hello: Raw | None = None  # this boot's HELLO (seq 0), kept to repeat on a new path
-        self._hello_via: set[int] = set()  # parents this boot's HELLO went to
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period
         self.reset_at = -1
@@ -330,9 +328,9 @@ class Firmware:
                 if g is None:
                     self.counters["rx_bad_bundle"] += 1
                 else:
-                    self._upward(g[2], tick, src)
+                    self._upward(g[2], tick)
         else:
-            self._upward(f, tick, src)
+            self._upward(f, tick)
         return True
 
     def _receive_parsed(self, data: bytes, tick: int, sof: int) -> bool:
@@ -409,8 +407,7 @@ class Firmware:
         return encode(Frame(f.src, f.dst, f.origin, f.seq, self._beacon_message(tick), f.hops, f.cost, f.flags))
 
     # -- upward traffic -------------------------------------------------------------
-    def _upward(self, f: Raw, tick: int, src: int = -1) -> None:
-        """Relay an upward frame that neighbour ``src`` sent us."""
+    def _upward(self, f: Raw, tick: int) -> None:
         if f.origin == self.me:
             # our own frame came back (a parent change raced with a neighbour's): send it on
             # once more; the duplicate filter stops a second return
@@ -420,34 +417,13 @@ class Firmware:
         if self.seen.is_duplicate(f.origin, f.seq, hello, _hello_boots(f) if hello else None):
             self.counters["duplicates"] += 1
             first = self.hops_seen.get(key)
-            if first is None or self.config.gateway:
-                return
-            if f.hops >= first + _LOOP_MIN_HOPS and hello and not f.seq:
-                # a boot's HELLO again with three hops more: round a loop, or the copy its
-                # bridge sends to a new parent (_announce_boot) up a longer path. Not evidence
-                # enough to drop our parent; it goes on in case it is the only copy
-                self.counters["hello_returns"] += 1
-            elif f.hops >= first + _LOOP_MIN_HOPS:
+            if first is not None and f.hops >= first + _LOOP_MIN_HOPS and not self.config.gateway:
                 # the same frame again with at least three hops more: it went round a loop
                 # through us (a copy only one or two hops longer took a detour: see _LOOP_MIN_HOPS)
                 self.counters["loops_detected"] += 1
                 self.router.loop_detected()
                 self.trickle.reset(tick)
                 self._reroute(tick)
-            elif not (f.hops > first and self.link.handed.get(key) == src):
-                return  # a copy from a detour: the first went on
-            # The copy that came back (round a loop, or from the neighbour that acknowledged
-            # it: a loop of two, which Router.child_sent breaks) is the
-            # frame's only copy: we handed it on with an acknowledgement and it went round
-            # instead of up. Dropping it lost the frame (a boot's HELLO in the routing churn
-            # of a broadcast RESET); it goes on once more on the new route instead. A next
-            # return needs more hops again, and max_hops ends any circling.
-            self.hops_seen[key] = f.hops
-            if f.hops + 1 > self.config.max_hops:
-                self.counters["loop_drops"] += 1
-            else:
-                self.counters["loop_returns_forwarded"] += 1
-                self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
             return
         self.hops_seen[key] = f.hops
         if len(self.hops_seen) > _HOPS_MEMORY:
@@ -460,34 +436,8 @@ class Firmware:
 
     def _say_hello(self) -> None:
         c = self.config
-        f = own(Hello(self.me, c.firmware, c.position[0], c.position[1], c.side, c.clock_hz, 3, self.boots),
-                self.me, self._next_seq())
-        if f.seq == 0 and self._boot_hello is None:
-            self._boot_hello = f
-        self._emit(f)
-
-    def _announce_boot(self, parent: int) -> None:
-        """Send this boot's HELLO (a copy of seq 0) ahead of the queue to a parent it did not go to.
-
-        A new parent can lead to relays and a gateway that never saw this boot's HELLO; their
-        duplicate filters still hold the last boot's numbers, and a young boot's numbers fall
-        among them (dropped as duplicates until they pass the old highest). The copy carries
-        the boot counter: there the restart is seen, not guessed. Filters that saw the HELLO
-        take the copy for one (same boot counter), so nothing is delivered twice. Only while
-        the boot is young (fewer numbers than the filters' ``hello_guard``): the gap that
-        matters is the first moments after a restart, and a filter that lost its memory
-        (a gateway reset since) takes a late HELLO 0 for a restart, so copies stay few and
-        close to the HELLO, where every filter takes them for copies."""
-        f = self._boot_hello
-        if f is None or self.config.gateway or self.seq >= self.seen.hello_guard:
-            return
-        self._hello_via.add(parent)
-        if self.link.holds(f.origin, f.seq):
-            return  # the HELLO itself has not left yet: it goes to this parent
-        if self.link.enqueue(f, first=True):
-            self.counters["boot_hellos_repeated"] += 1
-        else:
-            self.counters["queue_full"] += 1
+        self._own(Hello(self.me, c.firmware, c.position[0], c.position[1], c.side, c.clock_hz, 3,
+                        self.boots))
 
     @property
     def boots(self) -> int:
@@ -579,8 +529,6 @@ class Firmware:
             self._power_on(tick)
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
-        if p is not None and p.id not in self._hello_via:
-            self._announce_boot(p.id)
         if p is not None:
             out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)), r.table)
         else:

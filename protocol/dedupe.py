@@ -23,7 +23,7 @@ numbering at 0 again, so a restart is taken only from evidence:
   a reset whose HELLO was lost. Those first frames are dropped as stale;
 - a HELLO's boot counter (protocol version 2): a different one from the origin's last
   is a restart wherever its number falls; the same one marks a copy of that boot's
-  HELLO (a bridge repeats it on a new path), never a restart;
+  HELLO (a late or repeated copy), never a restart;
 - ``reset(origin)``, for a caller that knows better (a bridge replaced, a link
   re-plugged).
 
@@ -105,7 +105,7 @@ class DuplicateFilter:
         from the last one this origin announced is a restart, by evidence: the numbering
         begins again there, however close its number is to the last boot's. A HELLO numbered 0
         with the boot counter this origin last announced is a copy of that boot's HELLO (a
-        bridge sends it again on a new path), however late: never a restart."""
+        late or repeated copy), however late: never a restart."""
         st = self._state.get(origin)
         if st is None:
             if len(self._state) >= self.max_origins:

@@ -161,6 +161,8 @@ def main() -> None:
     ap.add_argument("--contact", action="append", default=[], metavar="KEY=VALUE",
                     help="a [contact] setting for the daemon (e.g. held_wait=0.1); repeatable")
     ap.add_argument("--verbose", action="store_true", help="print every contact message seen")
+    ap.add_argument("--at", type=float, nargs=2, metavar=("X", "Y"), default=None,
+                    help="press here every time instead of at random points (m)")
     ap.add_argument("--virtual", action="store_true", help="virtual time (deterministic; no machine load in it)")
     args = ap.parse_args()
     mesh = meshgen.grid(args.side, args.side)
@@ -220,7 +222,7 @@ def main() -> None:
         missed = 0
         health: dict = {}
         for _ in range(args.presses):
-            x, y = rng.uniform(0, span), rng.uniform(0, span)
+            x, y = args.at if args.at else (rng.uniform(0, span), rng.uniform(0, span))
             start = _press(ctx, base, x, y)
             seen = None
             end = start + PRESS_S + 1.0
@@ -233,7 +235,8 @@ def main() -> None:
                 if topic == b"health":
                     health = msg
                 elif args.verbose and msg.get("contacts"):
-                    print(f"  {got - start:+.3f} s {[(round(c['x'], 4), round(c['y'], 4)) for c in msg['contacts']]} "
+                    print(f"  {got - start:+.3f} s {[(c['id'], round(c['x'], 4), round(c['y'], 4), round(c['force'], 3), c['missed']) for c in msg['contacts']]} "
+                          f"unknown {msg.get('unknown')} "
                           f"pressed ({x:.4f}, {y:.4f})")
                 if topic == b"contact" and seen is None and got >= start and any(
                         (c["x"] - x) ** 2 + (c["y"] - y) ** 2 <= NEAR_M ** 2 for c in msg.get("contacts", [])):

@@ -199,7 +199,7 @@ class Moments:
         wait = min(held_wait, max_lag)
         # a held element has reported past what a change of its would have reached us by
         bound = np.fmin(np.nan_to_num(self.delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
-        through = np.where(held, np.fmax(self.settled, np.minimum(now - bound, newest)), self.settled)
+        through = np.where(held, np.fmax(self.settled, now - bound), self.settled)
         self.holding = live & (through >= newest - np.where(held, wait, max_lag))
         self.late = live & ~self.holding & ~held
         t = max(float(through[self.holding].min()), self.t_moment)

@@ -69,12 +69,12 @@ def _stop(proc: subprocess.Popen) -> None:
             pass
 
 
-def _press(ctx: zmq.Context, base_port: int, x: float, y: float) -> float:
+def _press(ctx: zmq.Context, base_port: int, x: float, y: float, hold: float = PRESS_S) -> float:
     s = ctx.socket(zmq.REQ)
     s.setsockopt(zmq.LINGER, 0)
     s.connect(f"tcp://127.0.0.1:{base_port + 2}")
     try:
-        s.send(msgpack.packb({"duration": PRESS_S, "position": [x, y], "force": 3.0, "diameter": 0.02}))
+        s.send(msgpack.packb({"duration": hold, "position": [x, y], "force": 3.0, "diameter": 0.02}))
         if not s.poll(3000):
             raise RuntimeError("the world did not answer")
         answer = msgpack.unpackb(s.recv())
@@ -161,6 +161,7 @@ def main() -> None:
     ap.add_argument("--contact", action="append", default=[], metavar="KEY=VALUE",
                     help="a [contact] setting for the daemon (e.g. held_wait=0.1); repeatable")
     ap.add_argument("--verbose", action="store_true", help="print every contact message seen")
+    ap.add_argument("--hold", type=float, default=PRESS_S, help=f"seconds each press lasts (default {PRESS_S})")
     ap.add_argument("--at", type=float, nargs=2, metavar=("X", "Y"), default=None,
                     help="press here every time instead of at random points (m)")
     ap.add_argument("--virtual", action="store_true", help="virtual time (deterministic; no machine load in it)")
@@ -223,9 +224,9 @@ def main() -> None:
         health: dict = {}
         for _ in range(args.presses):
             x, y = args.at if args.at else (rng.uniform(0, span), rng.uniform(0, span))
-            start = _press(ctx, base, x, y)
+            start = _press(ctx, base, x, y, args.hold)
             seen = None
-            end = start + PRESS_S + 1.0
+            end = start + args.hold + 1.0
             while time.monotonic() < end:
                 if not sub.poll(50):
                     continue

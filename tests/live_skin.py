@@ -44,6 +44,11 @@ class LiveSkin:
     def elements(self) -> int:
         return self.rows * self.cols
 
+    @property
+    def world_control(self) -> str:
+        """The world process's control socket (REQ/REP, as ``cellbridge press`` talks to it)."""
+        return f"tcp://127.0.0.1:{self.base_port + 2}"
+
     def daemon_config(self, name: str = "daemon", source: str = "", link: str = "gateway", extra: str = "",
                       hwm: int = 100_000) -> Path:
         """A daemon config; ``hwm``: room for a test's subscribers, which a loaded machine starves."""
@@ -67,14 +72,17 @@ class LiveSkin:
 
 
 @contextmanager
-def live_skin(work: Path, rows: int = 4, cols: int = 4, name: str = "skin") -> Iterator[LiveSkin]:
-    """An emulated skin in real processes serving its gateway on a pty (no daemon yet)."""
+def live_skin(work: Path, rows: int = 4, cols: int = 4, name: str = "skin",
+              reporting: str = "periodic") -> Iterator[LiveSkin]:
+    """An emulated skin in real processes serving its gateway on a pty (no daemon yet);
+    ``reporting`` as ``cellbridge mesh up --reporting``."""
     _warm_kernels()
     work.mkdir(parents=True, exist_ok=True)
     mesh_file = work / f"{name}.toml"
     mesh_file.write_text(mesh_to_toml(meshgen.grid(rows, cols)))
     base_port = _free_port_block(3)
-    with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port)),
+    with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port),
+                            "--reporting", reporting),
                 stdout=subprocess.PIPE, stderr=open(work / f"{name}-mesh.log", "w"), text=True) as mesh:  # noqa: SIM115
         yield LiveSkin(work, rows, cols, _wait_gateway(mesh), base_port, mesh)
 

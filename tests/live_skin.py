@@ -8,6 +8,7 @@ The recording, replay and proxy tests and bench/bench_recording.py use it.
 from __future__ import annotations
 
 import subprocess
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -114,6 +115,38 @@ class Collector:
                 self.messages.append((topic.decode(), payload, time.time()))
                 if until is not None and until(topic.decode(), msgpack.unpackb(payload, strict_map_key=False)):
                     return
+
+    @contextmanager
+    def in_background(self) -> Iterator["Collector"]:
+        """Receive in a thread of its own meanwhile, so every receive time is taken as the
+        message comes (the caller may block, e.g. on a subprocess); the socket is the
+        thread's until the block ends."""
+        done = threading.Event()
+
+        def run() -> None:
+            while not done.is_set():
+                self.pump(0.1)
+
+        th = threading.Thread(target=run, daemon=True)
+        th.start()
+        try:
+            yield self
+        finally:
+            done.set()
+            th.join()
+
+    def wait(self, until: Any, seconds: float) -> bool:
+        """While receiving :meth:`in_background`: until a message received from now on makes
+        ``until(topic, payload)`` true (True), or ``seconds`` pass (False)."""
+        seen, end = len(self.messages), time.monotonic() + seconds
+        while time.monotonic() < end:
+            while seen < len(self.messages):
+                topic, payload, _ = self.messages[seen]
+                seen += 1
+                if until(topic, msgpack.unpackb(payload, strict_map_key=False)):
+                    return True
+            time.sleep(0.02)
+        return False
 
     def payloads(self, topic: str | None = None) -> list[tuple[str, dict[str, Any]]]:
         return [(t, msgpack.unpackb(p, strict_map_key=False)) for t, p, _ in self.messages

@@ -1,7 +1,6 @@
-"""A recording of a live daemon (an emulated 2×2 skin in real processes, a press; the 4×4 skin is
-bench/bench_recording.py's: 16 real-time bridge processes are too many for a loaded test run): what it holds,
-its replay onto ZeroMQ, and the daemon re-run on its serial channel; the recorder killed and
-short of disk space while a daemon publishes."""
+"""A recording of a live daemon (an emulated 4×4 skin in real processes, event-based reporting as
+``cellbridge demo`` runs it, a press): what it holds, its replay onto ZeroMQ, and the daemon
+re-run on its serial channel; the recorder killed and short of disk space while a daemon publishes."""
 
 from __future__ import annotations
 
@@ -27,7 +26,7 @@ from daemon_harness import Client, daemon, write_config
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from recording_helpers import same_payload
 
-PRESS = (0.040, 0.020)  # across the seam of two elements of the 2x2 skin
+PRESS = (0.040, 0.020)  # across the seam of two elements of the 4x4 skin's bottom row
 
 
 def _stop(proc: subprocess.Popen[Any], sig: int = signal.SIGTERM, timeout: float = 15) -> int:
@@ -40,7 +39,7 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """Record a live daemon from its start (so the recording holds every byte it read) through a press."""
     work = tmp_path_factory.mktemp("live")
     out = work / "skin.mcap"
-    with live_skin(work, 2, 2) as skin:
+    with live_skin(work, 4, 4, reporting="event:40") as skin:
         config = skin.daemon_config(source="skin-a")
         live = Collector(skin.pub)
         try:

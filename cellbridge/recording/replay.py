@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
     sock.sndhwm = args.hwm
     sock.linger = 2000
     sent = 0
+    late: list[float] = []  # s each paced message went out after it was due (what the replay adds to timing)
     notes: list[str] = []
     try:
         sock.bind(args.endpoint)
@@ -114,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
                         time.sleep(min(wait - SPIN, 0.1))
                         _drain_subscriptions(sock)
                 sock.send_multipart([m.topic.encode(), payload])
+                if rate:
+                    late.append(time.monotonic() - due)
                 sent += 1
             if not result.complete:
                 notes.append(result.error)
@@ -127,8 +130,18 @@ def run(args: argparse.Namespace) -> int:
     finally:
         sock.close()
         ctx.term()
-    print(json.dumps({"sent": sent, "seconds": round(elapsed, 3), "incomplete": notes}), file=sys.stderr)
+    print(json.dumps({"sent": sent, "seconds": round(elapsed, 3), "incomplete": notes, "late_ms": lateness(late)}),
+          file=sys.stderr)
     return 0
+
+
+def lateness(late: list[float]) -> dict[str, float]:
+    """p50, p99 and max (ms) of how late paced messages went out; empty when none was paced."""
+    if not late:
+        return {}
+    xs = sorted(late)
+    q = (lambda f: round(xs[min(len(xs) - 1, int(f * len(xs)))] * 1e3, 3))
+    return {"p50": q(0.5), "p99": q(0.99), "max": round(xs[-1] * 1e3, 3)}
 
 
 def _drain_subscriptions(sock: zmq.Socket) -> None:

@@ -103,3 +103,14 @@ def test_a_port_in_use_is_an_oserror() -> None:
         s.listen()
         with pytest.raises(OSError):
             SubprotocolFront("127.0.0.1", s.getsockname()[1], 1)
+
+
+def test_without_the_front_the_sdk_server_refuses_the_former_name(front: tuple) -> None:
+    """Why the front exists: the SDK's own server answers foxglove.websocket.v1 with 400."""
+    from websockets.exceptions import InvalidStatus
+
+    fr, _ = front
+    with pytest.raises(InvalidStatus) as refused:
+        with _connect(fr.upstream_port, [LEGACY]):
+            pass
+    assert refused.value.response.status_code == 400

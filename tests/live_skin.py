@@ -117,7 +117,7 @@ class Collector:
                     return
 
     @contextmanager
-    def in_background(self) -> Iterator["Collector"]:
+    def in_background(self) -> Iterator[Collector]:
         """Receive in a thread of its own meanwhile, so every receive time is taken as the
         message comes (the caller may block, e.g. on a subprocess); the socket is the
         thread's until the block ends."""

@@ -14,7 +14,14 @@ from collections.abc import Iterator
 
 import pytest
 
-from cellbridge.views.subprotocol import LEGACY, SDK, SubprotocolFront, offered, rewrite_request, rewrite_response
+from cellbridge.views.subprotocol import (
+    LEGACY,
+    SDK,
+    SubprotocolFront,
+    offered,
+    rewrite_request,
+    rewrite_response,
+)
 
 REQUEST = (b"GET / HTTP/1.1\r\nHost: 127.0.0.1:8765\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
            b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n%s\r\n")
@@ -89,9 +96,8 @@ def test_a_client_of_neither_name_is_refused_as_the_sdk_server_refuses_it(front:
     from websockets.exceptions import InvalidStatus
 
     fr, _ = front
-    with pytest.raises(InvalidStatus) as refused:
-        with _connect(fr.port, ["some.other.v1"]):
-            pass
+    with pytest.raises(InvalidStatus) as refused, _connect(fr.port, ["some.other.v1"]):
+        pass
     assert refused.value.response.status_code == 400
 
 
@@ -110,7 +116,6 @@ def test_without_the_front_the_sdk_server_refuses_the_former_name(front: tuple) 
     from websockets.exceptions import InvalidStatus
 
     fr, _ = front
-    with pytest.raises(InvalidStatus) as refused:
-        with _connect(fr.upstream_port, [LEGACY]):
-            pass
+    with pytest.raises(InvalidStatus) as refused, _connect(fr.upstream_port, [LEGACY]):
+        pass
     assert refused.value.response.status_code == 400

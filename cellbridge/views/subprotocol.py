@@ -114,7 +114,7 @@ class SubprotocolFront:
             answer = await asyncio.wait_for(up_reader.readuntil(b"\r\n\r\n"), HEAD_TIMEOUT)
             writer.write(rewrite_response(answer, legacy))
             await asyncio.gather(_pipe(reader, upstream), _pipe(up_reader, writer))
-        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, asyncio.TimeoutError):
+        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError):
             pass  # a client gone, a head too long or too slow: that connection ends, no other
         finally:
             for w in (writer, upstream):

@@ -102,7 +102,7 @@ def pct(x: float) -> str:
 
 # ---- 1. press to pixels ----------------------------------------------------------------------
 
-WORLD_PRESS = (0.060, 0.060, 3.0, 0.020)  # x, y (m), force (N), diameter (m): on one element of the 4x4 skin
+WORLD_PRESS = (0.080, 0.080, 3.0, 0.020)  # x, y (m), force (N), diameter (m): centred on bridge 11 of the 4x4 grid
 
 
 def press_in_world(control: str, start_in: float, duration: float) -> float:

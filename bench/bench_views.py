@@ -392,8 +392,11 @@ def main() -> int:
         tmp = Path(td)
         load = os.getloadavg()
         print(f"load average at start: {load[0]:.1f} {load[1]:.1f} {load[2]:.1f} ({os.cpu_count()} cores)")
+        (tmp / "world").mkdir()
+        (tmp / "lat").mkdir()
         world, asked = world_press_to_pixels(tmp / "world", presses, args.reporting)
         wlat = np.array(world) * 1e3
+        print(f"1a measured: {len(wlat)} of {asked} presses; ms: {sorted(np.round(wlat, 1).tolist())}", flush=True)
         lat = np.array(press_to_pixels(tmp / "lat", presses)) * 1e3
         prow = (lambda name, x: [name, len(x), f"{np.percentile(x, 50):.1f}", f"{np.percentile(x, 99):.1f}",
                                  f"{x.max():.1f}"] if len(x) else [name, 0, "-", "-", "-"])

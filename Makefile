@@ -9,9 +9,12 @@ STAMP  := $(VENV)/.installed-stamp
 .PHONY: demo test bench install tools clean help
 
 # Programs the views' tests drive (tmux for `cellbridge watch`, Debian's chromium for
-# `cellbridge web`): installed with apt-get when missing and this runs as root; else their
-# tests skip and say why.
+# `cellbridge web`), and what the C subscriber example's test builds it with (a compiler,
+# make, pkg-config, the libzmq and msgpack-c headers): installed with apt-get when missing
+# and this runs as root; else their tests skip and say why.
 TOOLS := tmux chromium
+# pkg-config names (any of, comma-separated) -> Debian package of the C example's libraries
+C_LIBS := libzmq:libzmq3-dev msgpack-c,msgpack:libmsgpack-dev
 
 help:
 	@echo "make demo   create .venv if missing, install, run an emulated skin and the daemon, press, show the contact"
@@ -32,9 +35,14 @@ demo: $(STAMP)
 
 tools:
 	@missing=""; for t in $(TOOLS); do command -v $$t >/dev/null 2>&1 || missing="$$missing $$t"; done; \
+	command -v cc >/dev/null 2>&1 || missing="$$missing gcc libc6-dev"; \
+	command -v make >/dev/null 2>&1 || missing="$$missing make"; \
+	command -v pkg-config >/dev/null 2>&1 || missing="$$missing pkg-config"; \
+	for l in $(C_LIBS); do found=""; for n in $$(echo $${l%%:*} | tr , ' '); do \
+	  pkg-config --exists $$n 2>/dev/null && found=1; done; [ -n "$$found" ] || missing="$$missing $${l#*:}"; done; \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
-	    echo "installing$$missing (apt-get) for the views' tests"; \
+	    echo "installing$$missing (apt-get) for the views' and the C example's tests"; \
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq$$missing fonts-dejavu-core >/dev/null \
 	      || echo "could not install$$missing: their tests will skip"; \
 	  else echo "missing$$missing (not root or no apt-get): their tests will skip"; fi; \

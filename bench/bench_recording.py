@@ -10,7 +10,9 @@ Run: ``.venv/bin/python bench/bench_recording.py [--quick]``.
 2. **Round trip timing**: a live emulated 4×4 skin in real processes and its daemon,
    recorded through a press, then ``cellbridge replay --rate 1`` onto ZeroMQ: for every
    pair of consecutive messages, |interval at the replay's subscriber − interval as
-   recorded|, and whether every payload came back equal, in order.
+   recorded|, and whether every payload came back equal, in order; then where the time
+   goes: the same against a live subscriber of the daemon, the recorder's stamps against
+   that subscriber, and how late the replay sent (its own report).
 3. **Replay as fast as possible**: the 16×16 recording with ``raw`` through
    ``cellbridge replay --fast`` to a subscriber that counts (messages/s).
 4. **Proxy added latency**: a PUB sending 2 000 stamped messages at 1 kHz to a SUB,
@@ -22,6 +24,7 @@ The machine is shared: timing figures are sensitive to other load.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import signal
@@ -87,19 +90,29 @@ def recorder_cost(tmp: Path, capture: Path, seconds: float, extra: list[str], na
 
 
 def round_trip(tmp: Path, press_s: float) -> dict[str, float]:
+    """Record a live 4x4 skin through a press, replay it at --rate 1, and compare intervals.
+
+    Three subscribers' clocks: a live one beside the recorder (receiving in a thread of its
+    own, so this script's waits do not delay its stamps), the recorder's stamps in the file
+    (publish time), and the replay's subscriber. For each pair of consecutive messages:
+    |interval replayed - interval recorded| (what replay adds), |interval replayed -
+    interval live| (the whole round trip against what a subscriber of the daemon saw), and
+    |interval recorded - interval live| (what recording adds, with the two subscribers'
+    own wake-up jitter). The replay also reports how late it sent each message."""
     work = tmp / "live"
     out = work / "skin.mcap"
     with live_skin(work) as skin:
         live = Collector(skin.pub, (b"",))
         try:
             with group(cellbridge_cmd("record", str(out), "--endpoint", skin.pub, "--topics", "all"),
-                       stderr=open(work / "record.log", "wb")) as rec:  # noqa: SIM115
+                       stderr=open(work / "record.log", "wb")) as rec, live.in_background():  # noqa: SIM115
                 time.sleep(0.3)
                 with skin.daemon(skin.daemon_config(source="bench")):
-                    live.pump(120, until=calibrated(skin.elements))
+                    if not live.wait(calibrated(skin.elements), 120):
+                        raise RuntimeError("the daemon did not calibrate within 120 s")
                     skin.press(0.057, 0.040, duration=press_s)
-                    live.pump(60, until=lambda t, m: t == "contact" and bool(m["contacts"]))
-                    live.pump(press_s)
+                    live.wait(lambda t, m: t == "contact" and bool(m["contacts"]), 60)
+                    time.sleep(press_s)
                     os.killpg(rec.pid, signal.SIGTERM)
                     rec.wait(15)
         finally:
@@ -109,10 +122,12 @@ def round_trip(tmp: Path, press_s: float) -> dict[str, float]:
     sub = Collector(endpoint)
     try:
         with group(cellbridge_cmd("replay", str(out), "--endpoint", endpoint, "--rate", "1", "--wait-subscriber"),
-                   stderr=subprocess.DEVNULL) as proc:
+                   stderr=subprocess.PIPE) as proc:
             while len(sub.messages) < len(recorded) and proc.poll() is None:
                 sub.pump(0.5)
             sub.pump(0.5)
+            proc.wait(30)
+            report = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
     finally:
         sub.close()
     got = sub.payloads()
@@ -121,14 +136,16 @@ def round_trip(tmp: Path, press_s: float) -> dict[str, float]:
     rec_t = np.array([t for _, t, _ in recorded])
     rep_t = np.array([t for _, _, t in sub.messages[:len(recorded)]])
     err = np.abs(np.diff(rep_t) - np.diff(rec_t[:len(rep_t)])) * 1e3
-    # The floor of this measurement on this machine now: a second subscriber of the live daemon
-    # against the recorder, the same messages received by two processes.
     at = {(t, m["seq"]): rt for (t, _, rt), (_, m) in zip(live.messages, live.payloads())}
-    pairs = [(pt, at[(t, m["seq"])]) for t, pt, m in recorded if (t, m["seq"]) in at]
-    floor = np.abs(np.diff([b for _, b in pairs]) - np.diff([a for a, _ in pairs])) * 1e3
-    return {"messages": len(recorded), "same": same, "p50": float(np.percentile(err, 50)),
-            "p99": float(np.percentile(err, 99)), "max": float(err.max()),
-            "seconds": float(rec_t[-1] - rec_t[0]), "floor_p99": float(np.percentile(floor, 99))}
+    triples = [(pt, at[(t, m["seq"])], rt) for (t, pt, m), rt in zip(recorded, rep_t) if (t, m["seq"]) in at]
+    rec_live = np.abs(np.diff([a for a, _, _ in triples]) - np.diff([b for _, b, _ in triples])) * 1e3
+    rep_live = np.abs(np.diff([c for _, _, c in triples]) - np.diff([b for _, b, _ in triples])) * 1e3
+    q = (lambda x, p: float(np.percentile(x, p)) if len(x) else float("nan"))
+    return {"messages": len(recorded), "same": same, "p50": q(err, 50), "p99": q(err, 99),
+            "max": float(err.max()) if len(err) else float("nan"),
+            "seconds": float(rec_t[-1] - rec_t[0]), "floor_p99": q(rec_live, 99), "floor_p50": q(rec_live, 50),
+            "live_p50": q(rep_live, 50), "live_p99": q(rep_live, 99), "matched": len(triples),
+            "late": report.get("late_ms", {})}
 
 
 def replay_fast(tmp: Path, recording: Path) -> tuple[int, float, int]:
@@ -226,12 +243,26 @@ def main() -> int:
             table("Replay as fast as possible (the 16x16 recording with raw)",
                   ["messages", "messages/s", "received"], [[n, f"{rate:.0f}", got]])
         if part("roundtrip"):
-            rt = round_trip(tmp, 2.0)
+            gc.disable()  # the subscribers here are the instrument: no collection pauses in their stamps
+            try:
+                rt = round_trip(tmp, 2.0)
+            finally:
+                gc.enable()
+            print(f"load average now: {os.getloadavg()[0]:.1f} ({os.cpu_count()} cores)")
             table("Round trip: live 4x4 skin recorded through a press, replayed at --rate 1",
-                  ["messages", "recorded s", "same payloads, order", "|Δinterval| p50 ms", "p99 ms", "max ms",
-                   "floor p99 ms"],
+                  ["messages", "recorded s", "same payloads, order", "|Δinterval| p50 ms", "p99 ms", "max ms"],
                   [[rt["messages"], f"{rt['seconds']:.1f}", rt["same"], f"{rt['p50']:.3f}", f"{rt['p99']:.3f}",
-                    f"{rt['max']:.2f}", f"{rt['floor_p99']:.3f}"]])
+                    f"{rt['max']:.2f}"]])
+            late = rt["late"]
+            table(f"Round trip, where the time goes (|Δinterval| between two clocks, {rt['matched']} messages)",
+                  ["clocks compared", "p50 ms", "p99 ms"],
+                  [["replay's subscriber vs recorded publish times (replay)", f"{rt['p50']:.3f}", f"{rt['p99']:.3f}"],
+                   ["replay's subscriber vs a live subscriber (whole round trip)", f"{rt['live_p50']:.3f}",
+                    f"{rt['live_p99']:.3f}"],
+                   ["recorded publish times vs a live subscriber (recording + 2 subscribers' jitter)",
+                    f"{rt['floor_p50']:.3f}", f"{rt['floor_p99']:.3f}"],
+                   ["replay's sends after their due time (its own report)", f"{late.get('p50', float('nan')):.3f}",
+                    f"{late.get('p99', float('nan')):.3f}"]])
         if not part("proxy"):
             return 0
         direct, via = proxy_latency(1000 if args.quick else 2000)

@@ -17,19 +17,20 @@ import struct
 import time
 from typing import Any
 
-# The protocol's v1 under both of its names: foxglove-sdk servers (since the SDK replaced
-# the ws-protocol libraries) accept only "foxglove.sdk.v1", which is the same protocol as
-# "foxglove.websocket.v1" renamed; a client offers both and the server picks.
+# The protocol's v1 under both of its names: "foxglove.sdk.v1" (the SDK's) is
+# "foxglove.websocket.v1" (the ws-protocol spec's) renamed; a client offers both and the
+# server picks (cellbridge/views/subprotocol.py).
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 
 
 class FoxgloveClient:
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, subprotocols: list[str] | None = None) -> None:
+        """``subprotocols``: what the client offers (default both names, as Foxglove's app does)."""
         from websockets.sync.client import connect
 
         self._stack = ExitStack()  # websockets wants its connections used as context managers
-        self.ws = self._stack.enter_context(connect(url, subprotocols=SUBPROTOCOLS, max_size=64 * 1024 * 1024, open_timeout=10,
-                          compression=None))
+        self.ws = self._stack.enter_context(connect(url, subprotocols=subprotocols or SUBPROTOCOLS,  # type: ignore[arg-type]
+                                                    max_size=64 * 1024 * 1024, open_timeout=10, compression=None))
         self.server_info: dict[str, Any] | None = None
         self.channels: dict[int, dict[str, Any]] = {}
         self.subs: dict[int, int] = {}  # subscription id -> channel id

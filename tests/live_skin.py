@@ -8,6 +8,7 @@ The recording, replay and proxy tests and bench/bench_recording.py use it.
 from __future__ import annotations
 
 import subprocess
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -44,6 +45,11 @@ class LiveSkin:
     def elements(self) -> int:
         return self.rows * self.cols
 
+    @property
+    def world_control(self) -> str:
+        """The world process's control socket (REQ/REP, as ``cellbridge press`` talks to it)."""
+        return f"tcp://127.0.0.1:{self.base_port + 2}"
+
     def daemon_config(self, name: str = "daemon", source: str = "", link: str = "gateway", extra: str = "",
                       hwm: int = 100_000) -> Path:
         """A daemon config; ``hwm``: room for a test's subscribers, which a loaded machine starves."""
@@ -67,14 +73,17 @@ class LiveSkin:
 
 
 @contextmanager
-def live_skin(work: Path, rows: int = 4, cols: int = 4, name: str = "skin") -> Iterator[LiveSkin]:
-    """An emulated skin in real processes serving its gateway on a pty (no daemon yet)."""
+def live_skin(work: Path, rows: int = 4, cols: int = 4, name: str = "skin",
+              reporting: str = "periodic") -> Iterator[LiveSkin]:
+    """An emulated skin in real processes serving its gateway on a pty (no daemon yet);
+    ``reporting`` as ``cellbridge mesh up --reporting``."""
     _warm_kernels()
     work.mkdir(parents=True, exist_ok=True)
     mesh_file = work / f"{name}.toml"
     mesh_file.write_text(mesh_to_toml(meshgen.grid(rows, cols)))
     base_port = _free_port_block(3)
-    with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port)),
+    with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port),
+                            "--reporting", reporting),
                 stdout=subprocess.PIPE, stderr=open(work / f"{name}-mesh.log", "w"), text=True) as mesh:  # noqa: SIM115
         yield LiveSkin(work, rows, cols, _wait_gateway(mesh), base_port, mesh)
 
@@ -106,6 +115,38 @@ class Collector:
                 self.messages.append((topic.decode(), payload, time.time()))
                 if until is not None and until(topic.decode(), msgpack.unpackb(payload, strict_map_key=False)):
                     return
+
+    @contextmanager
+    def in_background(self) -> Iterator[Collector]:
+        """Receive in a thread of its own meanwhile, so every receive time is taken as the
+        message comes (the caller may block, e.g. on a subprocess); the socket is the
+        thread's until the block ends."""
+        done = threading.Event()
+
+        def run() -> None:
+            while not done.is_set():
+                self.pump(0.1)
+
+        th = threading.Thread(target=run, daemon=True)
+        th.start()
+        try:
+            yield self
+        finally:
+            done.set()
+            th.join()
+
+    def wait(self, until: Any, seconds: float) -> bool:
+        """While receiving :meth:`in_background`: until a message received from now on makes
+        ``until(topic, payload)`` true (True), or ``seconds`` pass (False)."""
+        seen, end = len(self.messages), time.monotonic() + seconds
+        while time.monotonic() < end:
+            while seen < len(self.messages):
+                topic, payload, _ = self.messages[seen]
+                seen += 1
+                if until(topic, msgpack.unpackb(payload, strict_map_key=False)):
+                    return True
+            time.sleep(0.02)
+        return False
 
     def payloads(self, topic: str | None = None) -> list[tuple[str, dict[str, Any]]]:
         return [(t, msgpack.unpackb(p, strict_map_key=False)) for t, p, _ in self.messages

@@ -36,7 +36,7 @@ def c_subscriber(tmp_path: Path) -> list[str]:
         pytest.skip("C example: no C compiler (cc) or make on this machine")
     if not (_pkg_config_ok("libzmq") and (_pkg_config_ok("msgpack-c") or _pkg_config_ok("msgpack"))):
         pytest.skip("C example: libzmq or msgpack-c development files are missing "
-                    "(Debian: apt-get install libzmq3-dev libmsgpack-dev)")
+                    "(Debian: apt-get install libzmq3-dev libmsgpack-dev; `make test` run as root installs them)")
     build = tmp_path / "c"
     shutil.copytree(EXAMPLES / "c", build)
     (build / "subscriber").unlink(missing_ok=True)

@@ -1,7 +1,7 @@
-"""A recording of a live daemon (an emulated 2×2 skin in real processes, a press; the 4×4 skin is
-bench/bench_recording.py's: 16 real-time bridge processes are too many for a loaded test run): what it holds,
-its replay onto ZeroMQ, and the daemon re-run on its serial channel; the recorder killed and
-short of disk space while a daemon publishes."""
+"""A recording of a live daemon (an emulated 2×2 skin in real processes, a press; a 4×4 skin's 16
+real-time bridge processes did not hold up on a loaded machine: bridges silent for seconds, the
+press's contact not estimated): what it holds, its replay onto ZeroMQ, and the daemon re-run
+on its serial channel; the recorder killed and short of disk space while a daemon publishes."""
 
 from __future__ import annotations
 
@@ -30,6 +30,10 @@ from recording_helpers import same_payload
 PRESS = (0.040, 0.020)  # across the seam of two elements of the 2x2 skin
 
 
+def _at_press(contact: dict[str, Any]) -> bool:
+    return abs(contact["x"] - PRESS[0]) < 2e-3 and abs(contact["y"] - PRESS[1]) < 2e-3
+
+
 def _stop(proc: subprocess.Popen[Any], sig: int = signal.SIGTERM, timeout: float = 15) -> int:
     os.killpg(proc.pid, sig)
     return proc.wait(timeout)
@@ -51,7 +55,7 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
                     live.pump(120, until=calibrated(skin.elements))
                     assert proc.poll() is None and rec.poll() is None
                     skin.press(*PRESS, duration=2.0)
-                    live.pump(60, until=lambda t, m: t == "contact" and bool(m["contacts"]))  # (a loaded machine)
+                    live.pump(60, until=lambda t, m: t == "contact" and any(_at_press(c) for c in m["contacts"]))
                     live.pump(2.0)
                     assert _stop(rec) == 0  # SIGTERM: the file is finished, status 0
                     live.pump(0.5)
@@ -95,7 +99,7 @@ def test_the_recording_holds_what_the_daemon_published_in_its_order(live_recordi
     assert not bad, f"{len(bad)} differ, first at {bad[0]}: {window[bad[0]]} != {recorded[bad[0]]}"
     assert all(m["source"] == "skin-a" for _, m in recorded)
     contacts = [c for t, m in recorded if t == "contact" for c in m["contacts"]]
-    assert any(abs(c["x"] - PRESS[0]) < 2e-3 and abs(c["y"] - PRESS[1]) < 2e-3 for c in contacts)
+    assert any(_at_press(c) for c in contacts)
 
 
 def test_replay_publishes_the_same_payloads_in_the_same_order(live_recording: dict, tmp_path: Path) -> None:

@@ -338,17 +338,20 @@ def test_web_beyond_loopback_answers_only_with_the_token(live: Any, tmp_path: Pa
 
 # ---- cellbridge foxglove to a Foxglove protocol client --------------------------------------
 
-def test_foxglove_advertises_and_sends_the_grid_and_contacts_as_published(live: Any) -> None:
-    from foxglove_client import SUBPROTOCOLS, FoxgloveClient
+@pytest.mark.parametrize("subprotocol", ["foxglove.websocket.v1", "foxglove.sdk.v1"])
+def test_foxglove_advertises_and_sends_the_grid_and_contacts_as_published(live: Any, subprotocol: str) -> None:
+    """A client speaking the protocol under either name (the issue's foxglove.websocket.v1,
+    or foxglove.sdk.v1 as today's Foxglove app) gets it and the same channels."""
+    from foxglove_client import FoxgloveClient
     from cellbridge.views.foxglove import TOPICS
 
     ep, feeder, pub, _ = live
     port = free_port()
     with view_process(["foxglove", "--port", str(port), *view_args(ep)], stdout=subprocess.PIPE) as fx:
         assert wait_line(fx).strip() == f"cellbridge foxglove: ws://127.0.0.1:{port} (Foxglove WebSocket)"
-        client = FoxgloveClient(f"ws://127.0.0.1:{port}")
+        client = FoxgloveClient(f"ws://127.0.0.1:{port}", [subprotocol])
         try:
-            assert client.subprotocol in SUBPROTOCOLS
+            assert client.subprotocol == subprotocol
             client.wait_channels(list(TOPICS.values()))
             grid_ch, scene_ch = client.by_topic(TOPICS["grid"]), client.by_topic(TOPICS["scene"])
             assert (grid_ch["encoding"], grid_ch["schemaName"]) == ("protobuf", "foxglove.Grid")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections import Counter
 from pathlib import Path
@@ -118,5 +119,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"cellbridge info: {exc}", file=sys.stderr)
             status = 1
             continue
-        print(json.dumps(info) if args.json else format_text(info))
+        try:
+            print(json.dumps(info) if args.json else format_text(info), flush=True)
+        except BrokenPipeError:  # read by `head` and the like: the reader has what it wanted
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return status
     return status

@@ -3,6 +3,12 @@
 The shell around :class:`cellbridge.recording.recorder.Recorder`: one SUB socket, the
 signals, and a line of counters at the end. SIGINT and SIGTERM finish the file (summary
 and index) and exit 0; a failed write (disk full) is reported and exits 1.
+
+A message's publish time in the file is when it left ZeroMQ here, and ``cellbridge
+replay`` reproduces those intervals. So a thread of its own (:class:`Receiver`) takes
+messages off the socket and stamps them, while the main thread encodes them and writes
+chunks: a chunk's compression, write and fsync (milliseconds, tens of them on a busy disk)
+no longer hold back the stamps of the messages that arrive meanwhile.
 """
 
 from __future__ import annotations
@@ -10,8 +16,10 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import queue
 import socket
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -25,6 +33,44 @@ from cellbridge.recording.recorder import Recorder
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
 ALL_TOPICS = ("contact", "element", "raw", "health", "topology", "serial")
 DEFAULT_TOPICS = ("contact", "element", "health", "topology")
+#: Messages stamped but not yet written that the receiver holds before it leaves the rest in
+#: ZeroMQ's queue (bounded by its high-water mark; what overflows shows as ``missed``).
+BACKLOG = 100_000
+#: The interpreter's thread switch interval while recording (default 5 ms): the receiver
+#: gets the GIL within this while the writer encodes JSON, so a stamp is at most this late.
+SWITCH_INTERVAL = 0.0005
+
+
+class Receiver(threading.Thread):
+    """Takes messages off the SUB socket as they come and stamps them with the wall clock.
+
+    Hands ``(parts, time received)`` to :attr:`messages`; the socket is this thread's
+    alone once started. Stops when :attr:`stop` is set (within 0.1 s).
+    """
+
+    def __init__(self, sock: zmq.Socket) -> None:
+        super().__init__(name="record-receiver", daemon=True)
+        self.sock = sock
+        self.messages: queue.SimpleQueue[tuple[list[bytes], float]] = queue.SimpleQueue()
+        self.stop = threading.Event()
+        self.error: zmq.ZMQError | None = None
+
+    def run(self) -> None:
+        try:
+            while not self.stop.is_set():
+                if self.messages.qsize() >= BACKLOG:  # the writer is behind: leave the rest to ZeroMQ's queue
+                    time.sleep(0.01)
+                    continue
+                if not self.sock.poll(100):
+                    continue
+                while self.messages.qsize() < BACKLOG:
+                    try:
+                        parts = self.sock.recv_multipart(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                    self.messages.put((parts, time.time()))
+        except zmq.ZMQError as exc:
+            self.error = exc
 
 
 def add_curve_client_arguments(parser: argparse.ArgumentParser, what: str = "the daemon") -> None:
@@ -116,32 +162,50 @@ def run(args: argparse.Namespace) -> int:
     sock = ctx.socket(zmq.SUB)
     sock.linger = 0
     sock.rcvhwm = 100_000  # a slow disk moment must not cost messages
+    receiver: Receiver | None = None
+    switch = sys.getswitchinterval()
     try:
         if args.server_key is not None:
             apply_client(sock, args.server_key, args.client_key)
         for t in topics:
             sock.subscribe(t)
         sock.connect(args.endpoint)
+        sys.setswitchinterval(SWITCH_INTERVAL)
+        receiver = Receiver(sock)
+        receiver.start()
         end = time.monotonic() + args.duration if args.duration else None
         total = 0
+
+        def take(parts: list[bytes], now: float) -> None:
+            if len(parts) != 2:
+                rec.malformed += 1
+            else:
+                rec.feed(parts[0].decode("ascii", "replace"), parts[1], now)
+
         while not stop and not rec.stopped and (not args.count or total < args.count):
             if end is not None and time.monotonic() >= end:
                 break
-            if sock.poll(100):
-                while True:  # drain what is queued before looking at the clock again
-                    try:
-                        parts = sock.recv_multipart(zmq.NOBLOCK)
-                    except zmq.Again:
-                        break
-                    now = time.time()
-                    total += 1
-                    if len(parts) != 2:
-                        rec.malformed += 1
-                    else:
-                        rec.feed(parts[0].decode("ascii", "replace"), parts[1], now)
-                    if rec.stopped or (args.count and total >= args.count):
-                        break
-            rec.tick(time.time())
+            if receiver.error is not None:
+                raise receiver.error
+            try:
+                parts, now = receiver.messages.get(timeout=0.1)
+            except queue.Empty:
+                rec.tick(time.time())
+                continue
+            total += 1
+            take(parts, now)
+        receiver.stop.set()
+        receiver.join()
+        if stop and not rec.stopped:  # what was received before the signal goes into the file too
+            while not args.count or total < args.count:
+                try:
+                    parts, now = receiver.messages.get_nowait()
+                except queue.Empty:
+                    break
+                total += 1
+                take(parts, now)
+        if rec.stopped:  # received, never written: counted with the recorder's drops
+            rec.dropped += receiver.messages.qsize()
     except ValueError as exc:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
@@ -149,6 +213,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge record: {args.endpoint}: {exc}", file=sys.stderr)
         return 2
     finally:
+        if receiver is not None:
+            receiver.stop.set()
+            receiver.join()
+        sys.setswitchinterval(switch)
         sock.close()
         ctx.term()
         rec.close()

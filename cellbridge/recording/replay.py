@@ -18,7 +18,10 @@ import json
 import signal
 import sys
 import time
+from collections import deque
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import zmq
 
@@ -27,6 +30,45 @@ from cellbridge.recording.mcapfile import ReadResult, read_messages
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
 SPIN = 0.001  #: s before a message is due that the replay waits awake (timing within a millisecond)
+WORK_SLACK = 0.003  #: s of slack before the next message is due in which the replay prepares later ones
+AHEAD = 2000  #: most messages read and encoded ahead of their turn
+
+
+class Ahead:
+    """The recordings' messages read, decoded and encoded to msgpack ahead of their turn.
+
+    Reading (a chunk's decompression) and encoding take time; done right after a send,
+    they made the next message late when it was due soon after (a burst: ``element``,
+    ``contact`` and ``raw`` of one moment). The sending loop calls :meth:`prepare` while it
+    has slack, so that work falls into the gaps between messages."""
+
+    def __init__(self, paths: list[Path], topics: set[str] | None) -> None:
+        self.queue: deque[tuple[bytes, bytes, float]] = deque()  # (topic, payload, recorded publish time s)
+        self.notes: list[str] = []  # why a file ended early
+        self._files = iter(paths)
+        self._topics = topics
+        self._messages: Iterator[Any] | None = None
+        self._result = ReadResult()
+
+    def prepare(self) -> bool:
+        """Read and encode one more message (False: none left, or :data:`AHEAD` are waiting)."""
+        if len(self.queue) >= AHEAD:
+            return False
+        while True:
+            if self._messages is None:
+                path = next(self._files, None)
+                if path is None:
+                    return False
+                self._result = ReadResult()
+                self._messages = iter(read_messages(path, self._result, self._topics))
+            m = next(self._messages, None)
+            if m is not None:
+                self.queue.append((m.topic.encode(), codec.to_msgpack(codec.decode(m.topic, m.data)),
+                                   m.publish_ns * 1e-9))
+                return True
+            if not self._result.complete:
+                self.notes.append(self._result.error)
+            self._messages = None
 
 
 class Pacer:
@@ -90,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
     sock.sndhwm = args.hwm
     sock.linger = 2000
     sent = 0
+    late: list[float] = []  # s each paced message went out after it was due (what the replay adds to timing)
     notes: list[str] = []
     try:
         sock.bind(args.endpoint)
@@ -99,24 +142,28 @@ def run(args: argparse.Namespace) -> int:
                     break
         gc.disable()  # decoded payloads hold no cycles; a collection would only delay a message
         t0 = time.monotonic()
-        for path in args.inputs:
-            result = ReadResult()
-            for m in read_messages(path, result, topics):
-                if stop:
+        ahead = Ahead(args.inputs, topics)
+        while not stop:
+            if not ahead.queue and not ahead.prepare():
+                break
+            topic, payload, recorded = ahead.queue.popleft()
+            due = pacer.due(recorded, time.monotonic())
+            while not stop:
+                wait = due - time.monotonic()
+                if wait <= 0:
                     break
-                payload = codec.to_msgpack(codec.decode(m.topic, m.data))
-                due = pacer.due(m.publish_ns * 1e-9, time.monotonic())
-                while not stop:
-                    wait = due - time.monotonic()
-                    if wait <= 0:
-                        break
-                    if wait > SPIN:  # sleep to just before it is due, then spin: wake-ups are late
-                        time.sleep(min(wait - SPIN, 0.1))
-                        _drain_subscriptions(sock)
-                sock.send_multipart([m.topic.encode(), payload])
-                sent += 1
-            if not result.complete:
-                notes.append(result.error)
+                if wait > SPIN + WORK_SLACK and ahead.prepare():  # idle: read and encode the next ones now
+                    continue
+                if wait > SPIN:  # sleep to just before it is due, then spin: wake-ups are late
+                    time.sleep(min(wait - SPIN, 0.1))
+                    _drain_subscriptions(sock)
+            if stop:
+                break
+            sock.send_multipart([topic, payload])
+            if rate:
+                late.append(time.monotonic() - due)
+            sent += 1
+        notes += ahead.notes
         elapsed = time.monotonic() - t0
     except ValueError as exc:
         print(f"cellbridge replay: {exc}", file=sys.stderr)
@@ -127,8 +174,18 @@ def run(args: argparse.Namespace) -> int:
     finally:
         sock.close()
         ctx.term()
-    print(json.dumps({"sent": sent, "seconds": round(elapsed, 3), "incomplete": notes}), file=sys.stderr)
+    print(json.dumps({"sent": sent, "seconds": round(elapsed, 3), "incomplete": notes, "late_ms": lateness(late)}),
+          file=sys.stderr)
     return 0
+
+
+def lateness(late: list[float]) -> dict[str, float]:
+    """p50, p99 and max (ms) of how late paced messages went out; empty when none was paced."""
+    if not late:
+        return {}
+    xs = sorted(late)
+    q = (lambda f: round(xs[min(len(xs) - 1, int(f * len(xs)))] * 1e3, 3))
+    return {"p50": q(0.5), "p99": q(0.99), "max": round(xs[-1] * 1e3, 3)}
 
 
 def _drain_subscriptions(sock: zmq.Socket) -> None:

@@ -1,7 +1,9 @@
 """``cellbridge foxglove``: the skin as a Foxglove live connection (``foxglove-sdk``).
 
-A Foxglove WebSocket server (protocol ``foxglove.websocket.v1``) fed from the daemon's
-ZeroMQ stream through the shared view model. Channels:
+A Foxglove WebSocket server fed from the daemon's ZeroMQ stream through the shared view
+model. It speaks the protocol under both its names, ``foxglove.sdk.v1`` (today's Foxglove
+app, the SDK's server) and ``foxglove.websocket.v1`` (older Foxglove Studio, Lichtblick,
+ws-protocol clients): :mod:`cellbridge.views.subprotocol` says how. Channels:
 
 | topic | schema | what |
 |---|---|---|
@@ -33,6 +35,7 @@ from typing import Any
 from cellbridge.daemon.subscribe import jsonable
 from cellbridge.views.model import Frame, SkinView, level_rgb
 from cellbridge.views.source import add_source_arguments, open_source
+from cellbridge.views.subprotocol import LEGACY, SDK, SubprotocolFront
 from cellbridge.views.web import is_loopback_host
 
 DEFAULT_PORT = 8765
@@ -53,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"  {TOPICS['health']:<26} JSON: the daemon's health and this view's counters\n\n"
         "In Foxglove: Open connection -> Foxglove WebSocket -> ws://127.0.0.1:8765, then\n"
         "import the layout docs/foxglove-layout.json (or write it with --write-layout).\n"
+        f"Clients offering either name of the protocol connect: {SDK} (Foxglove\n"
+        f"today) or {LEGACY} (older Foxglove Studio, Lichtblick, ws-protocol clients).\n"
         "The server listens on loopback only: the protocol has no access control, so from\n"
         "another machine use an SSH tunnel (ssh -L 8765:127.0.0.1:8765 robot).\n\n"
         "examples:\n"
@@ -230,14 +235,22 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     server = None
+    front: SubprotocolFront | None = None
     try:
         try:
-            server = foxglove.start_server(name="cellbridge", host=args.host, port=args.port)
-        except Exception as exc:  # the SDK raises its own error types for a port in use
-            print(f"cellbridge foxglove: cannot listen on {args.host}:{args.port}: {exc}", file=sys.stderr)
+            front = SubprotocolFront(args.host, args.port, 0)
+        except OSError as exc:
+            print(f"cellbridge foxglove: cannot listen on {args.host}:{args.port}: {exc.strerror or exc}",
+                  file=sys.stderr)
             return 1
+        try:  # the SDK's server behind the front, on a loopback port of its own
+            server = foxglove.start_server(name="cellbridge", host="127.0.0.1", port=0)
+        except Exception as exc:  # the SDK raises its own error types
+            print(f"cellbridge foxglove: cannot start the Foxglove server: {exc}", file=sys.stderr)
+            return 1
+        front.upstream_port = server.port
         view = FoxgloveView(SkinView(force_scale=args.force_scale))
-        print(f"cellbridge foxglove: ws://{args.host}:{server.port} (Foxglove WebSocket)", flush=True)
+        print(f"cellbridge foxglove: ws://{args.host}:{front.port} (Foxglove WebSocket)", flush=True)
         period = 1.0 / args.rate
         last = -math.inf
         while not stop.is_set():
@@ -249,6 +262,8 @@ def run(args: argparse.Namespace) -> int:
                 view.publish(now)
                 last = now
     finally:
+        if front is not None:
+            front.close()
         if server is not None:
             server.stop()
         source.close()

@@ -390,15 +390,16 @@ class Pipeline:
         elapsed = now - self._last_health if 0 < now - self._last_health < math.inf else interval
         self._last_health = now
         self.ingress.reassembler.expire(now)
+        went_silent: list[int] = []
+        came_back: list[int] = []
         for bid, b in self.bridges.items():
             b.rate = (b.samples - b._samples_at_tick) / elapsed
             b._samples_at_tick = b.samples
             silent = now - b.last_seen > h["bridge_timeout"]
-            if silent and not b.silent:
-                self._event("warning", f"no data from bridge {bid} for {now - b.last_seen:.1f} s")
-            elif b.silent and not silent:
-                self._event("info", f"bridge {bid} is back")
+            if silent != b.silent:
+                (went_silent if silent else came_back).append(bid)
             b.silent = silent
+        self._silence_events(went_silent, came_back, now)
         self._forget(now - h["forget_after"])
         out: list[Message] = []
         if self._want("health"):
@@ -407,6 +408,21 @@ class Pipeline:
         if self.topology.changed(topo) and self._want("topology"):
             out.append(self._message(Topology, now, topo))
         return self._drain_log(out)
+
+    def _silence_events(self, went_silent: list[int], came_back: list[int], now: float) -> None:
+        """Log bridges gone silent or back: each placed bridge by itself, of the others
+        (phantom origins of a noisy line, strangers) the first ``_UNPLACED_SHOWN`` and
+        one summary with the count: 65 530 phantoms going quiet at once must not make
+        65 530 log events in one tick."""
+        placed = self.skin.placed
+        for bids, level, what in ((went_silent, "warning", "went silent"), (came_back, "info", "are back")):
+            others = [b for b in bids if not placed(b)]
+            for b in [b for b in bids if placed(b)] + others[:_UNPLACED_SHOWN]:
+                self._event(level, f"no data from bridge {b} for {now - self.bridges[b].last_seen:.1f} s"
+                            if bids is went_silent else f"bridge {b} is back")
+            if len(others) > _UNPLACED_SHOWN:
+                self._event(level, f"{len(others) - _UNPLACED_SHOWN} more bridges the layout does not place "
+                                   f"{what} (not logged one by one)")
 
     def _forget(self, before: float) -> None:
         """Drop bridges the layout does not place that were last heard ``before``: phantoms
@@ -470,7 +486,7 @@ class Pipeline:
 
     def topology_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``topology`` message at ``now`` (control's ``topology`` answers with them)."""
-        body = self.topology.report(now, self.config["health"]["bridge_timeout"])
+        body = self.topology.report(now, self.config["health"]["bridge_timeout"], self.skin.placed, _UNPLACED_SHOWN)
         for node in body["bridges"].values():
             node["last_seen"] = self._wall(node["last_seen"])
         body["t_bridge"] = None

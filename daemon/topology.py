@@ -8,7 +8,8 @@ so subscribers can redraw the mesh without polling.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import heapq
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -81,9 +82,16 @@ class Topology:
         n.parent, n.path_etx, n.neighbours = parent, path_etx, neighbours
         n.queue_drops, n.retries, n.resets = queue_drops, retries, resets
 
-    def report(self, now: float, timeout: float) -> dict[str, Any]:
+    def report(self, now: float, timeout: float, placed: Callable[[int], bool] = lambda _b: True,
+               shown: int | None = None) -> dict[str, Any]:
+        """The mesh at ``now``. Every bridge (and gateway id) ``placed`` is listed; of the
+        others (phantom origins of a noisy line, strangers, bridges not yet placed) only
+        the ``shown`` lowest ids, the rest counted in ``bridges_not_shown`` and
+        ``gateways_not_shown``: 65 530 phantoms must not make every topology message (and
+        the tick that builds it) tens of megabytes long. ``shown=None``: no bound."""
+        ids = self._bounded(self.nodes, placed, shown)
         bridges = {}
-        for bid in sorted(self.nodes):
+        for bid in ids:
             n = self.nodes[bid]
             bridges[str(bid)] = {
                 "alive": now - n.last_seen <= timeout, "parent": n.parent, "path_etx": n.path_etx,
@@ -91,7 +99,21 @@ class Topology:
                 "link": n.link, "gateway": n.gateway, "last_seen": n.last_seen,
                 "neighbours": {str(k): v / 10.0 for k, v in sorted(n.neighbours.items())},
             }
-        return {"bridges": bridges, "gateways": {k: sorted(v) for k, v in sorted(self.gateways.items())}}
+        gateways = {k: self._bounded(v, placed, shown) for k, v in sorted(self.gateways.items())}
+        return {"bridges": bridges, "gateways": gateways,
+                "bridges_not_shown": len(self.nodes) - len(ids),
+                "gateways_not_shown": sum(len(self.gateways[k]) - len(v) for k, v in gateways.items())}
+
+    @staticmethod
+    def _bounded(ids: Iterable[int], placed: Callable[[int], bool], shown: int | None) -> list[int]:
+        """Sorted: every placed id and the ``shown`` lowest of the others."""
+        if shown is None:
+            return sorted(ids)
+        keep: list[int] = []
+        others: list[int] = []
+        for b in ids:
+            (keep if placed(b) else others).append(b)
+        return sorted(keep + heapq.nsmallest(shown, others))
 
     def changed(self, report: dict[str, Any]) -> bool:
         """True once per change of alive set, parents, costs, gateways or links."""
@@ -99,6 +121,7 @@ class Topology:
             tuple((k, b["alive"], b["parent"], b["path_etx"], b["link"], b["gateway"])
                   for k, b in report["bridges"].items()),
             tuple((k, tuple(v)) for k, v in report["gateways"].items()),
+            report.get("bridges_not_shown", 0), report.get("gateways_not_shown", 0),
         )
         if shape == self._published:
             return False

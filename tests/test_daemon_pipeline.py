@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -592,11 +593,41 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     assert {"1", "2", "3", "4"} <= set(h["bridges"])  # placed bridges always reported
     assert len(h["bridges"]) == 4 + _UNPLACED_SHOWN and h["bridges_not_shown"] == n - _UNPLACED_SHOWN
     assert h["unplaced"] == list(range(100, 100 + _UNPLACED_SHOWN)) and h["unplaced_count"] == n
-    assert len(p.topology_body(t + 1.0)["gateways"]["gw"]) == n + 1
+    topo = p.topology_body(t + 1.0)
+    assert topo["gateways"]["gw"][0] == 1 and len(topo["gateways"]["gw"]) == 1 + _UNPLACED_SHOWN
+    assert topo["gateways_not_shown"] == n - _UNPLACED_SHOWN
     p.tick(t + 61.0, force=True)
     h = p.health_body(t + 61.0)
     assert h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0 and h["silent_count"] == 4
     assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}  # the placed gateway stays
+
+
+def test_bogus_origins_cost_a_tick_a_bounded_topology_and_a_bounded_number_of_log_events() -> None:
+    """65 530 phantom origins made every tick 0.5 s long: topology listed each one (and its
+    sender as a gateway), and when they went quiet each got its own "no data" event. Topology
+    now lists every placed bridge and at most ``_UNPLACED_SHOWN`` others (the rest counted),
+    and their silence is logged one by one only up to that bound, then as one summary."""
+    from cellbridge.daemon.pipeline import _UNPLACED_SHOWN
+
+    sk = Skin()
+    p = make({"health": {"forget_after": 600.0}})
+    t = settle(p, sk, 20)
+    n = 3000
+    buf = b"".join(encode_stream(Frame(src=5000 + o, dst=0, origin=o, seq=0,
+                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
+                   for o in range(100, 100 + n))
+    p.feed("gw", buf, t)
+    for k, data in sk.stream(20):  # the real skin goes on talking
+        p.feed("gw", data, t + 9.0 + k / sk.rate)
+    out = p.tick(t + 10.0, force=True)
+    texts = logged(out)
+    assert len(texts) == _UNPLACED_SHOWN + 1
+    assert f"{n - _UNPLACED_SHOWN} more bridges" in texts[-1]
+    topo = next(body for topic, body in published(out) if topic == "topology")
+    assert {"1", "2", "3", "4"} <= set(topo["bridges"])
+    assert len(topo["bridges"]) == 4 + _UNPLACED_SHOWN and topo["bridges_not_shown"] == n - _UNPLACED_SHOWN
+    assert len(topo["gateways"]["gw"]) == 1 + _UNPLACED_SHOWN and topo["gateways_not_shown"] == n - _UNPLACED_SHOWN
+    assert len(msgpack.packb(topo)) < 64_000
 
 
 def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:

@@ -27,8 +27,13 @@ _IDS = 0x10000
 class LayoutStages:
     """The layout and its stages; see the module's docstring. ``sections``: the config's."""
 
-    def __init__(self, sections: dict[str, dict[str, Any]], layout: SkinLayout | None) -> None:
+    def __init__(self, sections: dict[str, dict[str, Any]], layout: SkinLayout | None,
+                 previous: LayoutStages | None = None) -> None:
+        """``previous``: the stages these replace (a SIGHUP that changed the layout or the
+        contact settings, not calibration or inverse): elements that kept their place keep
+        their baselines and touch state, so a press held across the reload goes on."""
         self.sections = sections
+        self._previous = previous
         self.from_file = layout is not None
         self.geometry: dict[int, tuple[float, float, float]] = {}  # HELLO: bridge -> (x, y, side)
         self.rejected: list[int] = []
@@ -44,7 +49,9 @@ class LayoutStages:
             self._install(layout)
 
     def _install(self, layout: SkinLayout) -> None:
-        old_layout, old_elements, old_channels = self.layout, self.elements, self.channels
+        src = self if self.layout is not None or self._previous is None else self._previous
+        self._previous = None
+        old_layout, old_elements, old_channels = src.layout, src.elements, src.channels
         params = default_params(layout)
         inv = self.sections["inverse"]
         self.layout = layout

@@ -118,6 +118,7 @@ class Pipeline:
         self._last_health = -math.inf
         self.forgotten_bridges = 0
         self._next_contact_id = 0  # lowest contact id never published (see contact_job)
+        self._carry: tuple[dict[str, Any], ...] = ()  # the contacts last published, as the worker gave them
         self.announced_silent: set[int] = set()
         self._log: list[Message] = []  # log events, handed out with the next messages returned
         # The pipeline runs on one time base, the host's monotonic clock as the shell passes
@@ -342,7 +343,7 @@ class Pipeline:
         snap = self.skin.snapshot(self.last_feed if now is None else now, self.config["health"]["bridge_timeout"])
         if snap is None or self.skin.contact_spec is None:
             return None
-        return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id)
+        return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id, self._carry)
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave
@@ -351,6 +352,8 @@ class Pipeline:
         snap = job.snapshot
         index = {int(b): i for i, b in enumerate(snap.ids)}
         out = []
+        contacts = list(contacts)
+        self._carry = tuple(contacts)
         for c in contacts:
             if isinstance(c.get("id"), int):  # ids never go back, whatever rebuilt the tracker
                 self._next_contact_id = max(self._next_contact_id, c["id"] + 1)
@@ -524,9 +527,11 @@ class Pipeline:
         return self.skin.tare(bridges)
 
     def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
-        """SIGHUP: take the reloadable settings. The element stages are rebuilt (baselines
-        re-taken) only when their settings or the layout changed: a SIGHUP that changes
-        nothing of theirs (log rotation, client keys) must not erase a press being held."""
+        """SIGHUP: take the reloadable settings. The element stages are rebuilt only when
+        their settings or the layout changed: a SIGHUP that changes nothing of theirs (log
+        rotation, client keys) must not erase a press being held. Baselines are re-taken
+        only when calibration or inverse settings changed, and then only for every element;
+        a new layout or new contact settings keep those of elements that kept their place."""
         old, self.config = self.config, config
         sk = self.skin
         same_layout = (layout is None and not sk.from_file) or (
@@ -535,7 +540,10 @@ class Pipeline:
             sk.sections = config.sections
             return
         geometry = self.skin.geometry
-        self.skin = LayoutStages(config.sections, layout)
+        # Calibration and inverse unchanged: elements that keep their place keep their
+        # baselines (a press held across the reload goes on, and so does its contact's id).
+        same_elements = all(old[s] == config[s] for s in ("calibration", "inverse"))
+        self.skin = LayoutStages(config.sections, layout, sk if same_elements else None)
         self.skin.hello(geometry)
 
     # -- links and subscribers --------------------------------------------------------------

@@ -634,23 +634,65 @@ def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:
     """Ids restarted at 0 whenever the tracker was built afresh: a replaced contact worker
     (a new process), or a SIGHUP that changed the estimation settings: four presses came
     back as ids [0, 1, 0, 0]. The pipeline keeps the lowest id it never published and every
-    job carries it, so a rebuilt tracker numbers from there."""
+    job carries it, so a rebuilt tracker numbers a new press from there."""
     from cellbridge.daemon import contacts
 
     sk = Skin()
     p = make()
     settle(p, sk)
     ids = []
-    press(p, sk, STRADDLE, 60)
-    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+
+    def press_and_release(start: int) -> None:
+        press(p, sk, STRADDLE, start, 10)
+        ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+        press(p, sk, None, start + 10, 10)
+        assert estimate(p, p.contact_job(), runs=4)[1]["contacts"] == []  # type: ignore[arg-type]
+
+    press_and_release(60)
     contacts._STAGES.clear()  # the worker process was replaced: its trackers are new
-    press(p, sk, STRADDLE, 70)
-    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    press_and_release(80)
     p.reconfigure(make({"contact": {"birth_frames": 2}}).config, None)  # SIGHUP: estimation changed
-    settle(p, sk, 60)
-    press(p, sk, STRADDLE, 80, 40)
-    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    press_and_release(100)
     assert len(set(ids)) == 3 and ids == sorted(ids), ids
+
+
+@pytest.mark.parametrize("cause", ["late_hello", "worker_replaced", "sighup_contact", "sighup_layout"])
+def test_a_contact_held_across_a_rebuild_keeps_its_id(cause: str) -> None:
+    """A press held while the contact tracker is rebuilt used to come back under a new id
+    (after ``birth_frames`` estimates without it): a late bridge's HELLO changing the
+    layout, a replaced worker process, a SIGHUP changing the contact settings or the layout
+    file. Each job carries the contacts last published; a tracker built afresh continues
+    them (matched by position or element), and the SIGHUP keeps the baselines of elements
+    that kept their place, so the held press is the same contact at once."""
+    from cellbridge.daemon import contacts
+    from cellbridge.protocol import Hello
+    from cellbridge.tactile import SkinLayout
+
+    sk = Skin()
+    p = make(layout=sk.layout if cause == "sighup_layout" else None)
+    t = settle(p, sk, 100)
+    press(p, sk, STRADDLE, 100, 20)
+    before = estimate(p, p.contact_job(), runs=3)[1]["contacts"]  # type: ignore[arg-type]
+    assert len(before) == 1
+    if cause == "late_hello":
+        late = Hello(77, "test-1", 0.5, 0.5, float(sk.layout.side), CLOCK, 3)
+        p.feed("gw", encode_stream(Frame(src=1, dst=0, origin=77, seq=0, payload=late)), t + 0.21)
+        assert p.skin.layout is not None and p.skin.layout.n == 5
+    elif cause == "worker_replaced":
+        contacts._STAGES.clear()  # a new worker process: no trackers
+    elif cause == "sighup_contact":
+        p.reconfigure(make({"contact": {"birth_frames": 2}}).config, None)
+    else:
+        grown = SkinLayout(np.vstack([sk.layout.centres, [[0.5, 0.5]]]), side=sk.layout.side,
+                           ids=np.array([*sk.ids, 77]))
+        p.reconfigure(make().config, grown)
+        assert p.skin.layout is not None and p.skin.layout.n == 5
+    press(p, sk, STRADDLE, 120, 20)
+    job = p.contact_job()
+    assert job is not None
+    after = estimate(p, job)[1]["contacts"]  # type: ignore[arg-type]
+    assert [c["id"] for c in after] == [before[0]["id"]]
+    assert after[0]["force"] == pytest.approx(before[0]["force"], rel=0.05)
 
 
 def test_hello_layout_overlap_check_by_grid_rejects_exactly_the_overlapping_bridges() -> None:

@@ -695,6 +695,52 @@ def test_a_contact_held_across_a_rebuild_keeps_its_id(cause: str) -> None:
     assert after[0]["force"] == pytest.approx(before[0]["force"], rel=0.05)
 
 
+def _hello(bid: int, x: float, y: float, seq: int = 0) -> bytes:
+    from cellbridge.protocol import Hello
+
+    return encode_stream(Frame(src=1, dst=0, origin=bid, seq=seq, payload=Hello(bid, "test-1", x, y, 0.02, CLOCK, 3)))
+
+
+def test_a_bridge_joining_a_placed_skin_never_displaces_a_placed_one() -> None:
+    """A join used to re-place the whole skin in id order: a late bridge with a lower id
+    overlapping a placed one took its place (the placed element lost its place, baseline and
+    any press on it). A joining bridge is now checked alone against the placed ones: it is
+    rejected, and placed once the element in its way moves off."""
+    p = make()
+    p.feed("gw", _hello(10, 0.0, 0.0) + _hello(11, 0.02, 0.0), T0)
+    assert p.skin.layout is not None and p.skin.layout.ids.tolist() == [10, 11]
+    p.feed("gw", _hello(5, 0.03, 0.0), T0 + 1.0)  # overlaps 11 by half an element
+    assert p.skin.layout.ids.tolist() == [10, 11] and p.skin.rejected == [5]
+    assert p.health_body(T0 + 1.0)["layout"]["rejected"] == [5]
+    p.feed("gw", _hello(11, 0.1, 0.0, seq=1), T0 + 2.0)  # 11 moves away: 5 fits now
+    assert p.skin.layout.ids.tolist() == [5, 10, 11] and p.skin.rejected == []
+    assert p.skin.layout.centres.tolist() == [[0.03, 0.0], [0.0, 0.0], [0.1, 0.0]]
+
+
+def test_a_join_checks_only_the_joining_bridge_whatever_the_skin_size(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A join re-placed every bridge (one trial SkinLayout each: ~0.5 s of blocked loop per
+    join at 1 000 bridges). Counted, not timed: a join builds one layout, at 10 bridges as at
+    400, and its elements keep their baselines."""
+    from cellbridge.tactile import SkinLayout
+
+    built = []
+    init = SkinLayout.__post_init__
+
+    def counted(self: SkinLayout) -> None:
+        built.append(self.centres.shape[0])
+        init(self)
+
+    for n in (10, 400):
+        p = make()
+        p.feed("gw", b"".join(_hello(b, (b % 32) * 0.02, (b // 32) * 0.02) for b in range(1, n + 1)), T0)
+        assert p.skin.layout is not None and p.skin.layout.n == n
+        monkeypatch.setattr(SkinLayout, "__post_init__", counted)
+        built.clear()
+        p.feed("gw", _hello(n + 1, ((n + 1) % 32) * 0.02, ((n + 1) // 32) * 0.02), T0 + 1.0)
+        assert p.skin.layout.n == n + 1 and built == [n + 1]
+        monkeypatch.setattr(SkinLayout, "__post_init__", init)
+
+
 def test_hello_layout_overlap_check_by_grid_rejects_exactly_the_overlapping_bridges() -> None:
     """The HELLO layout checks each bridge against a grid of its neighbours (a trial layout
     per bridge was O(n² log n): ~1 s of blocked loop per join at 1 000 bridges). The grid

@@ -417,10 +417,9 @@ class Pipeline:
         (phantom origins of a noisy line, strangers) the first ``_UNPLACED_SHOWN`` and
         one summary with the count: 65 530 phantoms going quiet at once must not make
         65 530 log events in one tick."""
-        placed = self.skin.placed
         for bids, level, what in ((went_silent, "warning", "went silent"), (came_back, "info", "are back")):
-            others = [b for b in bids if not placed(b)]
-            for b in [b for b in bids if placed(b)] + others[:_UNPLACED_SHOWN]:
+            placed, others = self.skin.split_placed(bids)
+            for b in placed + others[:_UNPLACED_SHOWN]:
                 self._event(level, f"no data from bridge {b} for {now - self.bridges[b].last_seen:.1f} s"
                             if bids is went_silent else f"bridge {b} is back")
             if len(others) > _UNPLACED_SHOWN:
@@ -456,12 +455,12 @@ class Pipeline:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
         h = self.config["health"]
         layout_report = self.skin.report(now, h["stuck_after"])
-        placed = self.skin.placed
-        unplaced = sorted(b for b, bh in self.bridges.items() if bh.unmapped_samples and not placed(b))
+        placed, others = self.skin.split_placed(self.bridges)
+        others.sort()
+        unplaced = [b for b in others if self.bridges[b].unmapped_samples]
         # Every placed bridge is reported; of the others (phantoms, strangers, bridges not yet
         # placed by a HELLO) the lowest ids up to _UNPLACED_SHOWN, the rest only counted.
-        others = sorted(b for b in self.bridges if not placed(b))
-        shown = sorted([b for b in self.bridges if placed(b)] + others[:_UNPLACED_SHOWN])
+        shown = sorted(placed + others[:_UNPLACED_SHOWN])
         return {
             "t_bridge": None,
             "uptime": 0.0 if self.started is None else now - self.started,
@@ -489,7 +488,8 @@ class Pipeline:
 
     def topology_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``topology`` message at ``now`` (control's ``topology`` answers with them)."""
-        body = self.topology.report(now, self.config["health"]["bridge_timeout"], self.skin.placed, _UNPLACED_SHOWN)
+        body = self.topology.report(now, self.config["health"]["bridge_timeout"], self.skin.split_placed,
+                                    _UNPLACED_SHOWN)
         for node in body["bridges"].values():
             node["last_seen"] = self._wall(node["last_seen"])
         body["t_bridge"] = None

@@ -28,6 +28,10 @@ class Node:
     resets: int = 0
 
 
+#: ids -> (those the layout places, the others)
+Split = Callable[[Iterable[int]], tuple[list[int], list[int]]]
+
+
 class Topology:
     def __init__(self) -> None:
         self.nodes: dict[int, Node] = {}
@@ -82,14 +86,15 @@ class Topology:
         n.parent, n.path_etx, n.neighbours = parent, path_etx, neighbours
         n.queue_drops, n.retries, n.resets = queue_drops, retries, resets
 
-    def report(self, now: float, timeout: float, placed: Callable[[int], bool] = lambda _b: True,
-               shown: int | None = None) -> dict[str, Any]:
-        """The mesh at ``now``. Every bridge (and gateway id) ``placed`` is listed; of the
-        others (phantom origins of a noisy line, strangers, bridges not yet placed) only
-        the ``shown`` lowest ids, the rest counted in ``bridges_not_shown`` and
-        ``gateways_not_shown``: 65 530 phantoms must not make every topology message (and
-        the tick that builds it) tens of megabytes long. ``shown=None``: no bound."""
-        ids = self._bounded(self.nodes, placed, shown)
+    def report(self, now: float, timeout: float, split: Split | None = None,
+               shown: int = 0) -> dict[str, Any]:
+        """The mesh at ``now``. With ``split`` (ids -> (placed, not placed)), every placed
+        bridge (and gateway id) is listed; of the others (phantom origins of a noisy line,
+        strangers, bridges not yet placed) only the ``shown`` lowest ids, the rest counted
+        in ``bridges_not_shown`` and ``gateways_not_shown``: 65 530 phantoms must not make
+        every topology message (and the tick that builds it) megabytes long. Without
+        ``split``: every id."""
+        ids = self._bounded(self.nodes, split, shown)
         bridges = {}
         for bid in ids:
             n = self.nodes[bid]
@@ -99,20 +104,17 @@ class Topology:
                 "link": n.link, "gateway": n.gateway, "last_seen": n.last_seen,
                 "neighbours": {str(k): v / 10.0 for k, v in sorted(n.neighbours.items())},
             }
-        gateways = {k: self._bounded(v, placed, shown) for k, v in sorted(self.gateways.items())}
+        gateways = {k: self._bounded(v, split, shown) for k, v in sorted(self.gateways.items())}
         return {"bridges": bridges, "gateways": gateways,
                 "bridges_not_shown": len(self.nodes) - len(ids),
                 "gateways_not_shown": sum(len(self.gateways[k]) - len(v) for k, v in gateways.items())}
 
     @staticmethod
-    def _bounded(ids: Iterable[int], placed: Callable[[int], bool], shown: int | None) -> list[int]:
+    def _bounded(ids: Iterable[int], split: Split | None, shown: int) -> list[int]:
         """Sorted: every placed id and the ``shown`` lowest of the others."""
-        if shown is None:
+        if split is None:
             return sorted(ids)
-        keep: list[int] = []
-        others: list[int] = []
-        for b in ids:
-            (keep if placed(b) else others).append(b)
+        keep, others = split(ids)
         return sorted(keep + heapq.nsmallest(shown, others))
 
     def changed(self, report: dict[str, Any]) -> bool:

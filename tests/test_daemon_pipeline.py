@@ -573,6 +573,18 @@ def test_a_bridge_trailing_by_more_than_max_lag_does_not_hold_contacts_back_and_
     assert layout["late"] == [4] and layout["late_estimates"] >= 1
 
 
+def _phantoms(sk: Skin, forget_after: float, n: int = 3000) -> tuple[Pipeline, float, int]:
+    """A pipeline hearing ``sk``, then one junk DATA frame from each of ``n`` origins (100
+    on), each with its own sender (CRC-16 phantoms of a noisy line): (pipeline, time, n)."""
+    p = make({"health": {"forget_after": forget_after}})
+    t = settle(p, sk, 20)
+    buf = b"".join(encode_stream(Frame(src=5000 + o, dst=0, origin=o, seq=0,
+                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
+                   for o in range(100, 100 + n))
+    p.feed("gw", buf, t)
+    return p, t, n
+
+
 def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_pruned() -> None:
     """One junk frame from each of thousands of origins (CRC-16 phantoms, each with a random
     sender) made every health message list each one (15.5 MB at 65 530) for ``forget_after``,
@@ -582,13 +594,7 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     from cellbridge.daemon.pipeline import _UNPLACED_SHOWN
 
     sk = Skin()
-    p = make({"health": {"forget_after": 60.0}})
-    t = settle(p, sk, 20)
-    n = 3000
-    buf = b"".join(encode_stream(Frame(src=5000 + o, dst=0, origin=o, seq=0,
-                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
-                   for o in range(100, 100 + n))
-    p.feed("gw", buf, t)
+    p, t, n = _phantoms(sk, 60.0)
     h = p.health_body(t + 1.0)
     assert {"1", "2", "3", "4"} <= set(h["bridges"])  # placed bridges always reported
     assert len(h["bridges"]) == 4 + _UNPLACED_SHOWN and h["bridges_not_shown"] == n - _UNPLACED_SHOWN
@@ -610,13 +616,7 @@ def test_bogus_origins_cost_a_tick_a_bounded_topology_and_a_bounded_number_of_lo
     from cellbridge.daemon.pipeline import _UNPLACED_SHOWN
 
     sk = Skin()
-    p = make({"health": {"forget_after": 600.0}})
-    t = settle(p, sk, 20)
-    n = 3000
-    buf = b"".join(encode_stream(Frame(src=5000 + o, dst=0, origin=o, seq=0,
-                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
-                   for o in range(100, 100 + n))
-    p.feed("gw", buf, t)
+    p, t, n = _phantoms(sk, 600.0)
     for k, data in sk.stream(20):  # the real skin goes on talking
         p.feed("gw", data, t + 9.0 + k / sk.rate)
     out = p.tick(t + 10.0, force=True)

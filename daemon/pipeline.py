@@ -117,6 +117,10 @@ class Pipeline:
         self._last_tick = -math.inf
         self._last_health = -math.inf
         self.forgotten_bridges = 0
+        # Bridges whose rate or silence a health tick must look at: heard since, or not yet
+        # silent with a rate of 0. A silent bridge costs the tick nothing (65 530 phantoms).
+        self._awake: set[int] = set()
+        self._forget_floor = -math.inf  # nothing unplaced was last heard before this
         self._next_contact_id = 0  # lowest contact id never published (see contact_job)
         self._carry: tuple[dict[str, Any], ...] = ()  # the contacts last published, as the worker gave them
         self.announced_silent: set[int] = set()
@@ -157,6 +161,7 @@ class Pipeline:
         b = self.bridges.get(bid)
         if b is None:
             b = self.bridges[bid] = BridgeHealth(first_seen=now, clock_hz=self.chip.clock_hz)
+        self._awake.add(bid)
         return b
 
     def _clock(self, bid: int) -> BridgeClock:
@@ -214,6 +219,7 @@ class Pipeline:
             self.topology.status(origin, st.parent, st.path_etx, {n.bridge: n.link_etx for n in st.neighbours},
                                  st.queue_drops, st.retries, st.resets)
         if dec.hellos and self.skin.hello({o: (h.x, h.y, h.side) for o, h in dec.hellos}):
+            self._forget_floor = -math.inf  # a bridge the layout no longer places may be due
             self._event("info", f"layout from HELLO now has {self.skin.layout.n} elements")  # type: ignore[union-attr]
             if self._want("topology"):
                 out.append(self._message(Topology, now, self.topology_body(now)))
@@ -395,13 +401,16 @@ class Pipeline:
         self.ingress.reassembler.expire(now)
         went_silent: list[int] = []
         came_back: list[int] = []
-        for bid, b in self.bridges.items():
+        for bid in list(self._awake):
+            b = self.bridges[bid]
             b.rate = (b.samples - b._samples_at_tick) / elapsed
             b._samples_at_tick = b.samples
             silent = now - b.last_seen > h["bridge_timeout"]
             if silent != b.silent:
                 (went_silent if silent else came_back).append(bid)
             b.silent = silent
+            if silent and not b.rate:
+                self._awake.discard(bid)
         self._silence_events(went_silent, came_back, now)
         self._forget(now - h["forget_after"])
         out: list[Message] = []
@@ -429,14 +438,24 @@ class Pipeline:
     def _forget(self, before: float) -> None:
         """Drop bridges the layout does not place that were last heard ``before``: phantoms
         of a noisy line or strangers would otherwise grow health and every tick forever."""
+        if before < self._forget_floor:  # nothing can be due: no scan of every origin per tick
+            return
         gone = [bid for bid, b in self.bridges.items() if b.last_seen < before and not self.skin.placed(bid)]
         for bid in gone:
             del self.bridges[bid]
             self.clocks.pop(bid, None)
             self.topology.nodes.pop(bid, None)
             self.ingress.reassembly_drops.pop(bid, None)
+            self._awake.discard(bid)
         self.forgotten_bridges += len(gone)
         self.topology.forget_gateways(before, self.skin.placed)
+        # Last-heard times only grow (a step back resets this), and a bridge heard later is
+        # newer: until the oldest one left is due, a scan forgets nothing.
+        _, others = self.skin.split_placed(self.bridges)
+        times = [self.bridges[b].last_seen for b in others]
+        for ids in self.topology.gateways.values():
+            times += [ids[g] for g in self.skin.split_placed(ids)[1]]
+        self._forget_floor = min(times, default=math.inf)
 
     def _clock_stepped_back(self, now: float) -> None:
         """The host clock went back (NTP step, RTC set): times kept from before lie in the
@@ -444,6 +463,8 @@ class Pipeline:
         the step. They are taken as "now": a dead bridge is then reported silent
         ``bridge_timeout`` after the step, not hours later."""
         self._next_health = min(self._next_health, now)
+        self._awake.update(self.bridges)
+        self._forget_floor = -math.inf
         for b in self.bridges.values():
             b.last_seen = min(b.last_seen, now)
             b.first_seen = min(b.first_seen, now)
@@ -470,7 +491,8 @@ class Pipeline:
                         for b in shown},
             "bridges_not_shown": len(self.bridges) - len(shown),
             "silent": sorted(b for b in shown if self.bridges[b].silent),
-            "silent_count": sum(1 for bh in self.bridges.values() if bh.silent),
+            # a bridge not awake is silent: counted without walking every origin
+            "silent_count": len(self.bridges) - sum(1 for b in self._awake if not self.bridges[b].silent),
             "unplaced": unplaced[:_UNPLACED_SHOWN],
             "unplaced_count": len(unplaced),
             "forgotten_bridges": self.forgotten_bridges,
@@ -545,6 +567,7 @@ class Pipeline:
         same_elements = all(old[s] == config[s] for s in ("calibration", "inverse"))
         self.skin = LayoutStages(config.sections, layout, sk if same_elements else None)
         self.skin.hello(geometry)
+        self._forget_floor = -math.inf
 
     # -- links and subscribers --------------------------------------------------------------
     def link_state(self, link: str, connected: bool, now: float, error: str = "") -> None:

@@ -440,7 +440,7 @@ class Pipeline:
         of a noisy line or strangers would otherwise grow health and every tick forever."""
         if before < self._forget_floor:  # nothing can be due: no scan of every origin per tick
             return
-        gone = [bid for bid, b in self.bridges.items() if b.last_seen < before and not self.skin.placed(bid)]
+        gone = [b for b in self.skin.split_placed(self.bridges)[1] if self.bridges[b].last_seen < before]
         for bid in gone:
             del self.bridges[bid]
             self.clocks.pop(bid, None)
@@ -448,7 +448,7 @@ class Pipeline:
             self.ingress.reassembly_drops.pop(bid, None)
             self._awake.discard(bid)
         self.forgotten_bridges += len(gone)
-        self.topology.forget_gateways(before, self.skin.placed)
+        self.topology.forget_gateways(before, self.skin.split_placed)
         # Last-heard times only grow (a step back resets this), and a bridge heard later is
         # newer: until the oldest one left is due, a scan forgets nothing.
         _, others = self.skin.split_placed(self.bridges)

@@ -55,13 +55,14 @@ class Topology:
         if gateways:
             self.gateways.setdefault(link, {}).update(dict.fromkeys(gateways, now))
 
-    def forget_gateways(self, before: float, keep: Callable[[int], bool]) -> int:
-        """Drop gateway ids last heard ``before`` unless ``keep(id)`` (a placed bridge): a
-        corrupt frame that passes the CRC names a random sender, and such phantom gateways
-        would otherwise stay in topology for the life of the daemon. Returns how many."""
+    def forget_gateways(self, before: float, split: Split) -> int:
+        """Drop gateway ids last heard ``before`` unless placed (``split``: ids -> (placed,
+        the others)): a corrupt frame that passes the CRC names a random sender, and such
+        phantom gateways would otherwise stay in topology for the life of the daemon.
+        Returns how many."""
         n = 0
         for link, ids in list(self.gateways.items()):
-            gone = [g for g, t in ids.items() if t < before and not keep(g)]
+            gone = [g for g in split(ids)[1] if ids[g] < before]
             for g in gone:
                 del ids[g]
             n += len(gone)

@@ -5,14 +5,17 @@ Run: ``.venv/bin/python bench/bench_bogus_origins.py [--origins N]``.
 A noisy line lets about one corrupt frame in 65 536 past CRC-16, each from a random
 origin and a random link-level sender. This feeds one junk DATA frame from each of N
 origins (each with its own sender id) into a pipeline that also hears a small real
-skin, then prints the size of one ``health`` message (msgpack), the time of one
-``tick`` that publishes health and topology, and how many gateway ids topology holds,
-while the phantoms are remembered and after ``forget_after``.
+skin, then prints the size of one ``health`` and one ``topology`` message (msgpack),
+the time of the second ``tick`` after the junk (it publishes health and topology) and
+the median of the five ticks after it, the log events of those two ticks, and how many
+gateway ids and nodes topology holds, while the phantoms are remembered and after
+``forget_after``.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -23,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from daemon_traffic import Skin  # noqa: E402
 
 from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.messages import Publish
+from cellbridge.daemon.messages import LogEvent, Publish
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import Data, Frame, Mode, Sample, encode_stream
 
@@ -43,16 +46,25 @@ def main() -> None:
                                         payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
                     for o in range(5, 5 + args.origins))
     p.feed("gw", junk, t)
-    print(f"{'when':<28} {'health bytes':>14} {'tick ms':>9} {'gateway ids':>12} {'topology nodes':>15}")
+    print(f"{'when':<28} {'health bytes':>14} {'topology bytes':>15} {'tick ms':>9} {'later ticks ms':>15} "
+          f"{'log events':>11} {'gateway ids':>12} {'topology nodes':>15}")
     for label, now in (("phantoms remembered", t + 10.0), ("after forget_after", t + 601.0)):
-        p.tick(now - 5.0, force=True)
+        events = sum(isinstance(m, LogEvent) for m in p.tick(now - 5.0, force=True))
         t0 = time.perf_counter()
         out = p.tick(now, force=True)
         dt = (time.perf_counter() - t0) * 1e3
+        events += sum(isinstance(m, LogEvent) for m in out)
+        later = []
+        for k in range(1, 6):  # the ticks that follow, a second apart (median)
+            t0 = time.perf_counter()
+            p.tick(now + k, force=True)
+            later.append((time.perf_counter() - t0) * 1e3)
         health = next(m.payload for m in out if isinstance(m, Publish) and m.topic == "health")
         size = len(msgpack.packb(health))
+        topo = len(msgpack.packb(p.topology_body(now)))
         gw = sum(len(v) for v in p.topology.gateways.values())
-        print(f"{label:<28} {size:>14,} {dt:>9.1f} {gw:>12,} {len(p.topology.nodes):>15,}")
+        print(f"{label:<28} {size:>14,} {topo:>15,} {dt:>9.1f} {statistics.median(later):>15.1f} {events:>11,} "
+              f"{gw:>12,} {len(p.topology.nodes):>15,}")
 
 
 if __name__ == "__main__":

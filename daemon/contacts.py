@@ -77,6 +77,9 @@ class ContactJob:
     spec: ContactSpec
     snapshot: ContactSnapshot
     first_id: int = 0  # the owner's lowest id never used: a rebuilt tracker numbers from here
+    # The owner's contacts last published (as the worker gave them): a tracker built afresh
+    # (new layout or settings, a replaced worker) continues them, so a held contact keeps its id.
+    carry: tuple[dict[str, Any], ...] = ()
 
 
 #: The estimator each owner's jobs run on, built once per spec: in the worker process (or
@@ -88,10 +91,12 @@ _MAX_OWNERS = 8
 def estimate(job: ContactJob) -> list[dict[str, Any]]:
     """The contacts of ``job`` (tracked across its owner's jobs): what the contact worker runs.
 
-    The owner's estimator is rebuilt (its tracks restarted) only when the spec changed."""
+    The owner's estimator is rebuilt only when the spec changed (or this process has none:
+    a replaced worker); the rebuilt tracker continues the contacts the job carries."""
     kept = _STAGES.get(job.owner)
     if kept is None or kept[0] != job.spec:
         kept = _STAGES[job.owner] = (job.spec, job.spec.build())
+        kept[1].tracker.carry(job.carry)
     _STAGES.move_to_end(job.owner)
     while len(_STAGES) > _MAX_OWNERS:
         _STAGES.popitem(last=False)

@@ -117,7 +117,12 @@ class Pipeline:
         self._last_tick = -math.inf
         self._last_health = -math.inf
         self.forgotten_bridges = 0
+        # Bridges whose rate or silence a health tick must look at: heard since, or not yet
+        # silent with a rate of 0. A silent bridge costs the tick nothing (65 530 phantoms).
+        self._awake: set[int] = set()
+        self._forget_floor = -math.inf  # nothing unplaced was last heard before this
         self._next_contact_id = 0  # lowest contact id never published (see contact_job)
+        self._carry: tuple[dict[str, Any], ...] = ()  # the contacts last published, as the worker gave them
         self.announced_silent: set[int] = set()
         self._log: list[Message] = []  # log events, handed out with the next messages returned
         # The pipeline runs on one time base, the host's monotonic clock as the shell passes
@@ -156,6 +161,7 @@ class Pipeline:
         b = self.bridges.get(bid)
         if b is None:
             b = self.bridges[bid] = BridgeHealth(first_seen=now, clock_hz=self.chip.clock_hz)
+        self._awake.add(bid)
         return b
 
     def _clock(self, bid: int) -> BridgeClock:
@@ -213,6 +219,7 @@ class Pipeline:
             self.topology.status(origin, st.parent, st.path_etx, {n.bridge: n.link_etx for n in st.neighbours},
                                  st.queue_drops, st.retries, st.resets)
         if dec.hellos and self.skin.hello({o: (h.x, h.y, h.side) for o, h in dec.hellos}):
+            self._forget_floor = -math.inf  # a bridge the layout no longer places may be due
             self._event("info", f"layout from HELLO now has {self.skin.layout.n} elements")  # type: ignore[union-attr]
             if self._want("topology"):
                 out.append(self._message(Topology, now, self.topology_body(now)))
@@ -342,7 +349,7 @@ class Pipeline:
         snap = self.skin.snapshot(self.last_feed if now is None else now, self.config["health"]["bridge_timeout"])
         if snap is None or self.skin.contact_spec is None:
             return None
-        return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id)
+        return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id, self._carry)
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave
@@ -351,6 +358,8 @@ class Pipeline:
         snap = job.snapshot
         index = {int(b): i for i, b in enumerate(snap.ids)}
         out = []
+        contacts = list(contacts)
+        self._carry = tuple(contacts)
         for c in contacts:
             if isinstance(c.get("id"), int):  # ids never go back, whatever rebuilt the tracker
                 self._next_contact_id = max(self._next_contact_id, c["id"] + 1)
@@ -390,15 +399,19 @@ class Pipeline:
         elapsed = now - self._last_health if 0 < now - self._last_health < math.inf else interval
         self._last_health = now
         self.ingress.reassembler.expire(now)
-        for bid, b in self.bridges.items():
+        went_silent: list[int] = []
+        came_back: list[int] = []
+        for bid in list(self._awake):
+            b = self.bridges[bid]
             b.rate = (b.samples - b._samples_at_tick) / elapsed
             b._samples_at_tick = b.samples
             silent = now - b.last_seen > h["bridge_timeout"]
-            if silent and not b.silent:
-                self._event("warning", f"no data from bridge {bid} for {now - b.last_seen:.1f} s")
-            elif b.silent and not silent:
-                self._event("info", f"bridge {bid} is back")
+            if silent != b.silent:
+                (went_silent if silent else came_back).append(bid)
             b.silent = silent
+            if silent and not b.rate:
+                self._awake.discard(bid)
+        self._silence_events(went_silent, came_back, now)
         self._forget(now - h["forget_after"])
         out: list[Message] = []
         if self._want("health"):
@@ -408,17 +421,41 @@ class Pipeline:
             out.append(self._message(Topology, now, topo))
         return self._drain_log(out)
 
+    def _silence_events(self, went_silent: list[int], came_back: list[int], now: float) -> None:
+        """Log bridges gone silent or back: each placed bridge by itself, of the others
+        (phantom origins of a noisy line, strangers) the first ``_UNPLACED_SHOWN`` and
+        one summary with the count: 65 530 phantoms going quiet at once must not make
+        65 530 log events in one tick."""
+        for bids, level, what in ((went_silent, "warning", "went silent"), (came_back, "info", "are back")):
+            placed, others = self.skin.split_placed(bids)
+            for b in placed + others[:_UNPLACED_SHOWN]:
+                self._event(level, f"no data from bridge {b} for {now - self.bridges[b].last_seen:.1f} s"
+                            if bids is went_silent else f"bridge {b} is back")
+            if len(others) > _UNPLACED_SHOWN:
+                self._event(level, f"{len(others) - _UNPLACED_SHOWN} more bridges the layout does not place "
+                                   f"{what} (not logged one by one)")
+
     def _forget(self, before: float) -> None:
         """Drop bridges the layout does not place that were last heard ``before``: phantoms
         of a noisy line or strangers would otherwise grow health and every tick forever."""
-        gone = [bid for bid, b in self.bridges.items() if b.last_seen < before and not self.skin.placed(bid)]
+        if before < self._forget_floor:  # nothing can be due: no scan of every origin per tick
+            return
+        gone = [b for b in self.skin.split_placed(self.bridges)[1] if self.bridges[b].last_seen < before]
         for bid in gone:
             del self.bridges[bid]
             self.clocks.pop(bid, None)
             self.topology.nodes.pop(bid, None)
             self.ingress.reassembly_drops.pop(bid, None)
+            self._awake.discard(bid)
         self.forgotten_bridges += len(gone)
-        self.topology.forget_gateways(before, self.skin.placed)
+        self.topology.forget_gateways(before, self.skin.split_placed)
+        # Last-heard times only grow (a step back resets this), and a bridge heard later is
+        # newer: until the oldest one left is due, a scan forgets nothing.
+        _, others = self.skin.split_placed(self.bridges)
+        times = [self.bridges[b].last_seen for b in others]
+        for ids in self.topology.gateways.values():
+            times += [ids[g] for g in self.skin.split_placed(ids)[1]]
+        self._forget_floor = min(times, default=math.inf)
 
     def _clock_stepped_back(self, now: float) -> None:
         """The host clock went back (NTP step, RTC set): times kept from before lie in the
@@ -426,6 +463,8 @@ class Pipeline:
         the step. They are taken as "now": a dead bridge is then reported silent
         ``bridge_timeout`` after the step, not hours later."""
         self._next_health = min(self._next_health, now)
+        self._awake.update(self.bridges)
+        self._forget_floor = -math.inf
         for b in self.bridges.values():
             b.last_seen = min(b.last_seen, now)
             b.first_seen = min(b.first_seen, now)
@@ -437,12 +476,12 @@ class Pipeline:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
         h = self.config["health"]
         layout_report = self.skin.report(now, h["stuck_after"])
-        placed = self.skin.placed
-        unplaced = sorted(b for b, bh in self.bridges.items() if bh.unmapped_samples and not placed(b))
+        placed, others = self.skin.split_placed(self.bridges)
+        others.sort()
+        unplaced = [b for b in others if self.bridges[b].unmapped_samples]
         # Every placed bridge is reported; of the others (phantoms, strangers, bridges not yet
         # placed by a HELLO) the lowest ids up to _UNPLACED_SHOWN, the rest only counted.
-        others = sorted(b for b in self.bridges if not placed(b))
-        shown = sorted([b for b in self.bridges if placed(b)] + others[:_UNPLACED_SHOWN])
+        shown = sorted(placed + others[:_UNPLACED_SHOWN])
         return {
             "t_bridge": None,
             "uptime": 0.0 if self.started is None else now - self.started,
@@ -452,7 +491,8 @@ class Pipeline:
                         for b in shown},
             "bridges_not_shown": len(self.bridges) - len(shown),
             "silent": sorted(b for b in shown if self.bridges[b].silent),
-            "silent_count": sum(1 for bh in self.bridges.values() if bh.silent),
+            # a bridge not awake is silent: counted without walking every origin
+            "silent_count": len(self.bridges) - sum(1 for b in self._awake if not self.bridges[b].silent),
             "unplaced": unplaced[:_UNPLACED_SHOWN],
             "unplaced_count": len(unplaced),
             "forgotten_bridges": self.forgotten_bridges,
@@ -470,7 +510,8 @@ class Pipeline:
 
     def topology_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``topology`` message at ``now`` (control's ``topology`` answers with them)."""
-        body = self.topology.report(now, self.config["health"]["bridge_timeout"])
+        body = self.topology.report(now, self.config["health"]["bridge_timeout"], self.skin.split_placed,
+                                    _UNPLACED_SHOWN)
         for node in body["bridges"].values():
             node["last_seen"] = self._wall(node["last_seen"])
         body["t_bridge"] = None
@@ -508,9 +549,11 @@ class Pipeline:
         return self.skin.tare(bridges)
 
     def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
-        """SIGHUP: take the reloadable settings. The element stages are rebuilt (baselines
-        re-taken) only when their settings or the layout changed: a SIGHUP that changes
-        nothing of theirs (log rotation, client keys) must not erase a press being held."""
+        """SIGHUP: take the reloadable settings. The element stages are rebuilt only when
+        their settings or the layout changed: a SIGHUP that changes nothing of theirs (log
+        rotation, client keys) must not erase a press being held. Baselines are re-taken
+        only when calibration or inverse settings changed, and then only for every element;
+        a new layout or new contact settings keep those of elements that kept their place."""
         old, self.config = self.config, config
         sk = self.skin
         same_layout = (layout is None and not sk.from_file) or (
@@ -519,8 +562,12 @@ class Pipeline:
             sk.sections = config.sections
             return
         geometry = self.skin.geometry
-        self.skin = LayoutStages(config.sections, layout)
+        # Calibration and inverse unchanged: elements that keep their place keep their
+        # baselines (a press held across the reload goes on, and so does its contact's id).
+        same_elements = all(old[s] == config[s] for s in ("calibration", "inverse"))
+        self.skin = LayoutStages(config.sections, layout, sk if same_elements else None)
         self.skin.hello(geometry)
+        self._forget_floor = -math.inf
 
     # -- links and subscribers --------------------------------------------------------------
     def link_state(self, link: str, connected: bool, now: float, error: str = "") -> None:

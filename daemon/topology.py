@@ -8,7 +8,8 @@ so subscribers can redraw the mesh without polling.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import heapq
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +26,10 @@ class Node:
     queue_drops: int = 0
     retries: int = 0
     resets: int = 0
+
+
+#: ids -> (those the layout places, the others)
+Split = Callable[[Iterable[int]], tuple[list[int], list[int]]]
 
 
 class Topology:
@@ -50,13 +55,14 @@ class Topology:
         if gateways:
             self.gateways.setdefault(link, {}).update(dict.fromkeys(gateways, now))
 
-    def forget_gateways(self, before: float, keep: Callable[[int], bool]) -> int:
-        """Drop gateway ids last heard ``before`` unless ``keep(id)`` (a placed bridge): a
-        corrupt frame that passes the CRC names a random sender, and such phantom gateways
-        would otherwise stay in topology for the life of the daemon. Returns how many."""
+    def forget_gateways(self, before: float, split: Split) -> int:
+        """Drop gateway ids last heard ``before`` unless placed (``split``: ids -> (placed,
+        the others)): a corrupt frame that passes the CRC names a random sender, and such
+        phantom gateways would otherwise stay in topology for the life of the daemon.
+        Returns how many."""
         n = 0
         for link, ids in list(self.gateways.items()):
-            gone = [g for g, t in ids.items() if t < before and not keep(g)]
+            gone = [g for g in split(ids)[1] if ids[g] < before]
             for g in gone:
                 del ids[g]
             n += len(gone)
@@ -81,9 +87,17 @@ class Topology:
         n.parent, n.path_etx, n.neighbours = parent, path_etx, neighbours
         n.queue_drops, n.retries, n.resets = queue_drops, retries, resets
 
-    def report(self, now: float, timeout: float) -> dict[str, Any]:
+    def report(self, now: float, timeout: float, split: Split | None = None,
+               shown: int = 0) -> dict[str, Any]:
+        """The mesh at ``now``. With ``split`` (ids -> (placed, not placed)), every placed
+        bridge (and gateway id) is listed; of the others (phantom origins of a noisy line,
+        strangers, bridges not yet placed) only the ``shown`` lowest ids, the rest counted
+        in ``bridges_not_shown`` and ``gateways_not_shown``: 65 530 phantoms must not make
+        every topology message (and the tick that builds it) megabytes long. Without
+        ``split``: every id."""
+        ids = self._bounded(self.nodes, split, shown)
         bridges = {}
-        for bid in sorted(self.nodes):
+        for bid in ids:
             n = self.nodes[bid]
             bridges[str(bid)] = {
                 "alive": now - n.last_seen <= timeout, "parent": n.parent, "path_etx": n.path_etx,
@@ -91,7 +105,18 @@ class Topology:
                 "link": n.link, "gateway": n.gateway, "last_seen": n.last_seen,
                 "neighbours": {str(k): v / 10.0 for k, v in sorted(n.neighbours.items())},
             }
-        return {"bridges": bridges, "gateways": {k: sorted(v) for k, v in sorted(self.gateways.items())}}
+        gateways = {k: self._bounded(v, split, shown) for k, v in sorted(self.gateways.items())}
+        return {"bridges": bridges, "gateways": gateways,
+                "bridges_not_shown": len(self.nodes) - len(ids),
+                "gateways_not_shown": sum(len(self.gateways[k]) - len(v) for k, v in gateways.items())}
+
+    @staticmethod
+    def _bounded(ids: Iterable[int], split: Split | None, shown: int) -> list[int]:
+        """Sorted: every placed id and the ``shown`` lowest of the others."""
+        if split is None:
+            return sorted(ids)
+        keep, others = split(ids)
+        return sorted(keep + heapq.nsmallest(shown, others))
 
     def changed(self, report: dict[str, Any]) -> bool:
         """True once per change of alive set, parents, costs, gateways or links."""
@@ -99,6 +124,7 @@ class Topology:
             tuple((k, b["alive"], b["parent"], b["path_etx"], b["link"], b["gateway"])
                   for k, b in report["bridges"].items()),
             tuple((k, tuple(v)) for k, v in report["gateways"].items()),
+            report.get("bridges_not_shown", 0), report.get("gateways_not_shown", 0),
         )
         if shape == self._published:
             return False

@@ -547,7 +547,7 @@ class Firmware:
             self._next_seq()
         if self.link.results:
             for nbr, attempts, ok in self.link.results:
-                self.router.on_link_result(nbr, attempts, ok)
+                self.router.on_link_result(nbr, attempts, ok, tick)
             self.link.results.clear()
             self._reroute(tick)
         return out

@@ -119,8 +119,10 @@ class Router:
             n = self.table[src] = Neighbour(src)
         n.parent, n.path_etx, n.hops, n.heard = parent, path_etx, hops, tick
 
-    def on_link_result(self, nbr: int, attempts: int, ok: bool) -> None:
-        """Feed the outcome of one frame sent to ``nbr`` (``attempts`` transmissions)."""
+    def on_link_result(self, nbr: int, attempts: int, ok: bool, tick: int | None = None) -> None:
+        """Feed the outcome of one frame sent to ``nbr`` (``attempts`` transmissions) at
+        ``tick``. An acknowledged frame proves the neighbour alive as a beacon does: a
+        parent that Trickle keeps quiet is not expired while it acknowledges our frames."""
         n = self.table.get(nbr)
         if n is None:
             return
@@ -128,6 +130,8 @@ class Router:
         n.link_etx = 0.8 * n.link_etx + 0.2 * sample
         if ok:
             n.failures = 0
+            if tick is not None:
+                n.heard = max(n.heard, tick)
         else:
             n.failures += 1
             if n.failures >= self.max_failures:

@@ -19,8 +19,8 @@ closest first. Sans-I/O: frames and times go in, tracks come out.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -108,6 +108,23 @@ class ContactTracker:
         """Number contacts born from now on from ``first`` at least: a tracker built afresh
         (new layout, new worker process) must never hand out an id its owner already used."""
         self._next_id = max(self._next_id, int(first))
+
+    def carry(self, contacts: Sequence[dict[str, Any]]) -> int:
+        """Continue the confirmed contacts a tracker before this one published (``to_dict``
+        of each): a tracker built afresh for a new layout, new estimation settings or in a
+        replaced worker process takes them as its tracks, so a contact held across the
+        rebuild is matched by position (or a shared element id) and keeps its id. Only a
+        tracker with no tracks yet takes them; ids count on above every id carried.
+        Returns how many were taken."""
+        if self._tracks or self.frame:
+            return 0
+        for d in contacts:
+            c = _contact_of(d)
+            age = max(1, int(d.get("age", self.birth_frames)))
+            self._tracks.append(_Track(c, 1 - age, hits=max(self.birth_frames, age), missed=int(d.get("missed", 0)),
+                                       id=int(d["id"]), t=d.get("t"), elements=frozenset(c.elements)))
+            self._next_id = max(self._next_id, int(d["id"]) + 1)
+        return len(self._tracks)
 
     def update(
         self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None, t: float | None = None
@@ -231,3 +248,15 @@ class ContactTracker:
             used_c.add(ci)
             pairs.append((ti, ci))
         return pairs
+
+
+_CONTACT_FIELDS = tuple(f.name for f in fields(Contact))
+
+
+def _contact_of(d: dict[str, Any]) -> Contact:
+    """The :class:`Contact` a ``to_dict`` (possibly through msgpack) was made of."""
+    v = {k: d[k] for k in _CONTACT_FIELDS}
+    v["cov"] = tuple(tuple(float(x) for x in row) for row in v["cov"])
+    v["elements"] = tuple(int(e) for e in v["elements"])
+    v["observable"] = tuple(bool(o) for o in v["observable"])
+    return Contact(**v)

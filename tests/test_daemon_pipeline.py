@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -572,6 +573,18 @@ def test_a_bridge_trailing_by_more_than_max_lag_does_not_hold_contacts_back_and_
     assert layout["late"] == [4] and layout["late_estimates"] >= 1
 
 
+def _phantoms(sk: Skin, forget_after: float, n: int = 3000) -> tuple[Pipeline, float, int]:
+    """A pipeline hearing ``sk``, then one junk DATA frame from each of ``n`` origins (100
+    on), each with its own sender (CRC-16 phantoms of a noisy line): (pipeline, time, n)."""
+    p = make({"health": {"forget_after": forget_after}})
+    t = settle(p, sk, 20)
+    buf = b"".join(encode_stream(Frame(src=5000 + o, dst=0, origin=o, seq=0,
+                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
+                   for o in range(100, 100 + n))
+    p.feed("gw", buf, t)
+    return p, t, n
+
+
 def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_pruned() -> None:
     """One junk frame from each of thousands of origins (CRC-16 phantoms, each with a random
     sender) made every health message list each one (15.5 MB at 65 530) for ``forget_after``,
@@ -581,45 +594,151 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     from cellbridge.daemon.pipeline import _UNPLACED_SHOWN
 
     sk = Skin()
-    p = make({"health": {"forget_after": 60.0}})
-    t = settle(p, sk, 20)
-    n = 3000
-    buf = b"".join(encode_stream(Frame(src=5000 + o, dst=0, origin=o, seq=0,
-                                       payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
-                   for o in range(100, 100 + n))
-    p.feed("gw", buf, t)
+    p, t, n = _phantoms(sk, 60.0)
     h = p.health_body(t + 1.0)
     assert {"1", "2", "3", "4"} <= set(h["bridges"])  # placed bridges always reported
     assert len(h["bridges"]) == 4 + _UNPLACED_SHOWN and h["bridges_not_shown"] == n - _UNPLACED_SHOWN
     assert h["unplaced"] == list(range(100, 100 + _UNPLACED_SHOWN)) and h["unplaced_count"] == n
-    assert len(p.topology_body(t + 1.0)["gateways"]["gw"]) == n + 1
+    topo = p.topology_body(t + 1.0)
+    assert topo["gateways"]["gw"][0] == 1 and len(topo["gateways"]["gw"]) == 1 + _UNPLACED_SHOWN
+    assert topo["gateways_not_shown"] == n - _UNPLACED_SHOWN
     p.tick(t + 61.0, force=True)
     h = p.health_body(t + 61.0)
     assert h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0 and h["silent_count"] == 4
     assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}  # the placed gateway stays
 
 
+def test_bogus_origins_cost_a_tick_a_bounded_topology_and_a_bounded_number_of_log_events() -> None:
+    """65 530 phantom origins made every tick 0.5 s long: topology listed each one (and its
+    sender as a gateway), and when they went quiet each got its own "no data" event. Topology
+    now lists every placed bridge and at most ``_UNPLACED_SHOWN`` others (the rest counted),
+    and their silence is logged one by one only up to that bound, then as one summary."""
+    from cellbridge.daemon.pipeline import _UNPLACED_SHOWN
+
+    sk = Skin()
+    p, t, n = _phantoms(sk, 600.0)
+    for k, data in sk.stream(20):  # the real skin goes on talking
+        p.feed("gw", data, t + 9.0 + k / sk.rate)
+    out = p.tick(t + 10.0, force=True)
+    texts = logged(out)
+    assert len(texts) == _UNPLACED_SHOWN + 1
+    assert f"{n - _UNPLACED_SHOWN} more bridges" in texts[-1]
+    topo = next(body for topic, body in published(out) if topic == "topology")
+    assert {"1", "2", "3", "4"} <= set(topo["bridges"])
+    assert len(topo["bridges"]) == 4 + _UNPLACED_SHOWN and topo["bridges_not_shown"] == n - _UNPLACED_SHOWN
+    assert len(topo["gateways"]["gw"]) == 1 + _UNPLACED_SHOWN and topo["gateways_not_shown"] == n - _UNPLACED_SHOWN
+    assert len(msgpack.packb(topo)) < 64_000
+
+
 def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:
     """Ids restarted at 0 whenever the tracker was built afresh: a replaced contact worker
     (a new process), or a SIGHUP that changed the estimation settings: four presses came
     back as ids [0, 1, 0, 0]. The pipeline keeps the lowest id it never published and every
-    job carries it, so a rebuilt tracker numbers from there."""
+    job carries it, so a rebuilt tracker numbers a new press from there."""
     from cellbridge.daemon import contacts
 
     sk = Skin()
     p = make()
     settle(p, sk)
     ids = []
-    press(p, sk, STRADDLE, 60)
-    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+
+    def press_and_release(start: int) -> None:
+        press(p, sk, STRADDLE, start, 10)
+        ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+        press(p, sk, None, start + 10, 10)
+        assert estimate(p, p.contact_job(), runs=4)[1]["contacts"] == []  # type: ignore[arg-type]
+
+    press_and_release(60)
     contacts._STAGES.clear()  # the worker process was replaced: its trackers are new
-    press(p, sk, STRADDLE, 70)
-    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    press_and_release(80)
     p.reconfigure(make({"contact": {"birth_frames": 2}}).config, None)  # SIGHUP: estimation changed
-    settle(p, sk, 60)
-    press(p, sk, STRADDLE, 80, 40)
-    ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+    press_and_release(100)
     assert len(set(ids)) == 3 and ids == sorted(ids), ids
+
+
+@pytest.mark.parametrize("cause", ["late_hello", "worker_replaced", "sighup_contact", "sighup_layout"])
+def test_a_contact_held_across_a_rebuild_keeps_its_id(cause: str) -> None:
+    """A press held while the contact tracker is rebuilt used to come back under a new id
+    (after ``birth_frames`` estimates without it): a late bridge's HELLO changing the
+    layout, a replaced worker process, a SIGHUP changing the contact settings or the layout
+    file. Each job carries the contacts last published; a tracker built afresh continues
+    them (matched by position or element), and the SIGHUP keeps the baselines of elements
+    that kept their place, so the held press is the same contact at once."""
+    from cellbridge.daemon import contacts
+    from cellbridge.protocol import Hello
+    from cellbridge.tactile import SkinLayout
+
+    sk = Skin()
+    p = make(layout=sk.layout if cause == "sighup_layout" else None)
+    t = settle(p, sk, 100)
+    press(p, sk, STRADDLE, 100, 20)
+    before = estimate(p, p.contact_job(), runs=3)[1]["contacts"]  # type: ignore[arg-type]
+    assert len(before) == 1
+    if cause == "late_hello":
+        late = Hello(77, "test-1", 0.5, 0.5, float(sk.layout.side), CLOCK, 3)
+        p.feed("gw", encode_stream(Frame(src=1, dst=0, origin=77, seq=0, payload=late)), t + 0.21)
+        assert p.skin.layout is not None and p.skin.layout.n == 5
+    elif cause == "worker_replaced":
+        contacts._STAGES.clear()  # a new worker process: no trackers
+    elif cause == "sighup_contact":
+        p.reconfigure(make({"contact": {"birth_frames": 2}}).config, None)
+    else:
+        grown = SkinLayout(np.vstack([sk.layout.centres, [[0.5, 0.5]]]), side=sk.layout.side,
+                           ids=np.array([*sk.ids, 77]))
+        p.reconfigure(make().config, grown)
+        assert p.skin.layout is not None and p.skin.layout.n == 5
+    press(p, sk, STRADDLE, 120, 20)
+    job = p.contact_job()
+    assert job is not None
+    after = estimate(p, job)[1]["contacts"]  # type: ignore[arg-type]
+    assert [c["id"] for c in after] == [before[0]["id"]]
+    assert after[0]["force"] == pytest.approx(before[0]["force"], rel=0.05)
+
+
+def _hello(bid: int, x: float, y: float, seq: int = 0) -> bytes:
+    from cellbridge.protocol import Hello
+
+    return encode_stream(Frame(src=1, dst=0, origin=bid, seq=seq, payload=Hello(bid, "test-1", x, y, 0.02, CLOCK, 3)))
+
+
+def test_a_bridge_joining_a_placed_skin_never_displaces_a_placed_one() -> None:
+    """A join used to re-place the whole skin in id order: a late bridge with a lower id
+    overlapping a placed one took its place (the placed element lost its place, baseline and
+    any press on it). A joining bridge is now checked alone against the placed ones: it is
+    rejected, and placed once the element in its way moves off."""
+    p = make()
+    p.feed("gw", _hello(10, 0.0, 0.0) + _hello(11, 0.02, 0.0), T0)
+    assert p.skin.layout is not None and p.skin.layout.ids.tolist() == [10, 11]
+    p.feed("gw", _hello(5, 0.03, 0.0), T0 + 1.0)  # overlaps 11 by half an element
+    assert p.skin.layout.ids.tolist() == [10, 11] and p.skin.rejected == [5]
+    assert p.health_body(T0 + 1.0)["layout"]["rejected"] == [5]
+    p.feed("gw", _hello(11, 0.1, 0.0, seq=1), T0 + 2.0)  # 11 moves away: 5 fits now
+    assert p.skin.layout.ids.tolist() == [5, 10, 11] and p.skin.rejected == []
+    assert p.skin.layout.centres.tolist() == [[0.03, 0.0], [0.0, 0.0], [0.1, 0.0]]
+
+
+def test_a_join_checks_only_the_joining_bridge_whatever_the_skin_size(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A join re-placed every bridge (one trial SkinLayout each: ~0.5 s of blocked loop per
+    join at 1 000 bridges). Counted, not timed: a join builds one layout, at 10 bridges as at
+    400, and its elements keep their baselines."""
+    from cellbridge.tactile import SkinLayout
+
+    built = []
+    init = SkinLayout.__post_init__
+
+    def counted(self: SkinLayout) -> None:
+        built.append(self.centres.shape[0])
+        init(self)
+
+    for n in (10, 400):
+        p = make()
+        p.feed("gw", b"".join(_hello(b, (b % 32) * 0.02, (b // 32) * 0.02) for b in range(1, n + 1)), T0)
+        assert p.skin.layout is not None and p.skin.layout.n == n
+        monkeypatch.setattr(SkinLayout, "__post_init__", counted)
+        built.clear()
+        p.feed("gw", _hello(n + 1, ((n + 1) % 32) * 0.02, ((n + 1) // 32) * 0.02), T0 + 1.0)
+        assert p.skin.layout.n == n + 1 and built == [n + 1]
+        monkeypatch.setattr(SkinLayout, "__post_init__", init)
 
 
 def test_hello_layout_overlap_check_by_grid_rejects_exactly_the_overlapping_bridges() -> None:

@@ -241,3 +241,46 @@ def test_latency_model_is_deterministic() -> None:
         return [(o, b, s) for o, b, s, _ in vm.run(1.5).delivered()]
 
     assert run() == run()
+
+
+def test_an_acknowledged_neighbour_is_alive_though_its_beacons_are_suppressed() -> None:
+    """A neighbour expired ``neighbour_timeout`` after its last beacon, while Trickle keeps a
+    live one quiet for longer: a parent acknowledging every frame was evicted. An
+    acknowledged frame now counts as hearing it; an unacknowledged one does not."""
+    from cellbridge.emulator.routing import Router
+
+    r = Router(me=2, gateway=False, neighbour_timeout=1000)
+    r.on_beacon(1, parent=0, path_etx=0, hops=0, tick=0)
+    r.on_beacon(3, parent=0, path_etx=0, hops=0, tick=0)
+    r.select()
+    assert r.parent == 1
+    r.on_link_result(1, attempts=1, ok=True, tick=900)
+    r.on_link_result(3, attempts=1, ok=False, tick=900)
+    r.expire(1500)
+    assert set(r.table) == {1} and r.evictions == 1
+    r.select()
+    assert r.parent == 1 and r.parent_changes == 1
+
+
+def test_routes_stay_put_on_a_static_lossless_idle_mesh_past_trickles_long_interval() -> None:
+    # Neighbours expired 2 s after their last beacon while Trickle suppression kept live
+    # ones quiet longer: an 8x8 mesh changed parents 91 times in 30 s, lost routes and
+    # evicted live neighbours for ever. After the routes form, a static lossless mesh with
+    # nothing to report but heartbeats must keep them for a minute (120 long intervals):
+    # no neighbour evicted, no route lost. A few bridges may still move once to a path
+    # cheaper by at least the hysteresis (frames that collided and were retried raise a
+    # link's ETX), never back and forth.
+    from cellbridge.emulator.reporting import ReportingMode
+
+    mesh = meshgen.grid(8, 8)
+    vm = VirtualMesh(mesh, seed=4, settings=Settings(reporting=ReportingMode(40, 1000)))
+    formed = vm.run(10.0)
+    assert formed.cut_off == []
+    end = vm.run(60.0)
+    after = {b: {k: end.counters[b].get(k, 0) - formed.counters[b].get(k, 0)
+                 for k in ("parent_changes", "route_lost", "neighbour_evictions")} for b in mesh.ids}
+    assert sum(a["route_lost"] for a in after.values()) == 0
+    assert sum(a["neighbour_evictions"] for a in after.values()) == 0
+    assert sum(a["parent_changes"] for a in after.values()) <= len(mesh.ids) // 8
+    assert max(a["parent_changes"] for a in after.values()) <= 1
+    assert end.cut_off == [] and sum(end.parents[b] != formed.parents[b] for b in mesh.ids) <= len(mesh.ids) // 8

@@ -162,3 +162,27 @@ def test_time_going_back_or_not_finite_is_refused_and_changes_nothing():
     assert tr.frame == 3
     (out,) = tr.step([a], t=1.004)
     assert out.t == 1.004 and out.age == 4
+
+
+def test_a_tracker_built_afresh_continues_the_contacts_carried_over_with_their_ids():
+    """A new tracker (new layout, settings or worker process) given the contacts the old one
+    published (through msgpack) matches a held press to its id at once, with its age going
+    on; a press elsewhere is new and numbered above every carried id; a tracker that has
+    already seen frames takes nothing."""
+    import msgpack
+
+    rng = np.random.default_rng(3)
+    old = tracker(birth_frames=3)
+    press = [0.018, 0.004, 4.0, 0.012]
+    for k in range(5):
+        last = old.update(*frame(press, rng), t=0.01 * k)
+    wire = msgpack.unpackb(msgpack.packb([tc.to_dict() for tc in last]))
+    new = tracker(birth_frames=3)
+    new.ids_from(7)
+    assert new.carry(wire) == 1
+    out = new.update(*frame([press, [0.042, 0.042, 3.0, 0.012]], rng), t=0.05)
+    assert [tc.id for tc in out] == [last[0].id] and out[0].age == last[0].age + 1
+    for k in range(2):
+        out = new.update(*frame([press, [0.042, 0.042, 3.0, 0.012]], rng), t=0.06 + 0.01 * k)
+    assert [tc.id for tc in out] == [last[0].id, 7]
+    assert new.carry(wire) == 0

@@ -437,7 +437,7 @@ class Calibrator:
         self._catch_up(live & (st == TRACKING), tt, delta)
         contact = self._contact_readings(live, delta)
         rebased = self._hysteresis(live, tt, delta, enter, leave, contact)
-        self._track(live & (st == TRACKING), live, tt, delta, enter, contact)
+        self._track(live & (st == TRACKING), live, tt, delta, enter, leave, contact)
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps, rebased)
@@ -556,19 +556,22 @@ class Calibrator:
 
     def _track(
         self, trk: NDArray[np.bool_], live: NDArray[np.bool_], tt: FloatArray,
-        delta: FloatArray, enter: FloatArray, contact: NDArray[np.bool_] | None,
+        delta: FloatArray, enter: FloatArray, leave: FloatArray, contact: NDArray[np.bool_] | None,
     ) -> None:
         """Element drift: clipped exponential tracker, unclipped and faster on a
         channel that has stayed below −enter for ``negative_after`` seconds, and on
         every channel of an element that has read above ``enter`` what no contact
-        gives for as long (a missing reading neither restarts nor ends either wait)."""
+        gives for as long (a missing reading neither restarts nor ends either wait);
+        followed so until it is back below ``leave`` (or reads a contact's reading), so
+        a steady drift is followed closely, not held at ``enter``."""
         cfg = self.config
         below = trk[:, None] & (delta < -enter)
         since = np.where(live[:, None], np.inf, self._below_since)
         self._below_since = np.where(below, np.minimum(self._below_since, tt[:, None]), since)
         fast = below & (tt[:, None] - self._below_since >= cfg.negative_after)
         if contact is not None:
-            off = trk & ~contact & np.any(delta > enter, axis=1)
+            following = tt - self._off_since >= cfg.negative_after
+            off = trk & ~contact & (np.any(delta > enter, axis=1) | (following & np.any(delta > leave, axis=1)))
             kept = np.where(live, np.inf, self._off_since)
             self._off_since = np.where(off, np.minimum(self._off_since, tt), kept)
             fast |= (off & (tt - self._off_since >= cfg.negative_after))[:, None]

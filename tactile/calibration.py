@@ -223,10 +223,11 @@ class Calibrator:
     """Baselines, drift tracking and touch hysteresis for N elements × C channels."""
 
     def __init__(self, n_elements: int, n_channels: int = 2, config: CalibrationConfig | None = None,
-                 is_contact: Callable[[FloatArray], NDArray[np.bool_]] | None = None):
-        """``is_contact(delta)`` takes (k, C) ΔC rows and says which a contact can make
-        (see :class:`~cellbridge.tactile.ContactSurface`); None: every reading could be
-        a contact's, and a touch still ends at ``max_touch`` (no way to tell a phantom)."""
+                 is_contact: Callable[[FloatArray, FloatArray], NDArray[np.bool_]] | None = None):
+        """``is_contact(delta, noise)`` takes (k, C) ΔC rows and their measured noise
+        (k, C; 0 where not known) and says which a contact can make (see
+        :class:`~cellbridge.tactile.ContactSurface`); None: every reading could be a
+        contact's, and a touch still ends at ``max_touch`` (no way to tell a phantom)."""
         if not _is_count(n_elements):
             raise ValueError(f"n_elements must be an integer >= 1, got {n_elements!r}")
         if not _is_count(n_channels):
@@ -449,7 +450,7 @@ class Calibrator:
             return None
         ok = np.ones(self.n_elements, dtype=bool)
         if live.any():
-            ok[live] = np.asarray(self.is_contact(delta[live]), dtype=bool)
+            ok[live] = np.asarray(self.is_contact(delta[live], np.nan_to_num(self._noise[live])), dtype=bool)
         return ok
 
     def _update_common(

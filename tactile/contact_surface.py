@@ -31,8 +31,11 @@ __all__ = ["ContactSurface"]
 
 
 class ContactSurface:
-    """Callable test ``surface(delta) -> (N,) bool``: True where the (N, 2) reading ΔC
-    lies within ``k_sigma·noise`` (per channel, farads) of a reading some contact makes.
+    """Callable test ``surface(delta, noise=None) -> (N,) bool``: True where the (N, 2)
+    reading ΔC lies within ``k_sigma`` noise sigmas (per channel) of a reading some
+    contact makes. The noise is the larger of this object's ``noise`` and the optional
+    (N, 2) measured noise of each reading (F): an ADC front end's coarse steps widen the
+    tolerance by themselves.
 
     Rows with a non-finite value are False (no reading is no contact's reading). The
     tolerance keeps a light press whose ratio noise pushes past the peak on the surface:
@@ -48,17 +51,22 @@ class ContactSurface:
         self.ratio_low = float(info.ratio_inf)  #: ΔC1/ΔC2 of a fully saturated press
         self.ratio_high = float(info.ratio_peak)  #: the largest ΔC1/ΔC2 any pressure gives
         self.dc1_max = float(params.area * params.g1_max)  #: ΔC1 of the whole element saturated
-        self.tol = float(k_sigma * noise)
+        self.noise = float(noise)
+        self.k_sigma = float(k_sigma)
 
-    def __call__(self, delta: FloatArray) -> NDArray[np.bool_]:
+    def __call__(self, delta: FloatArray, noise: FloatArray | None = None) -> NDArray[np.bool_]:
         d = np.asarray(delta, dtype=np.float64)
         if d.ndim != 2 or d.shape[1] != 2:
             raise ValueError(f"delta must have shape (N, 2), got {d.shape}")
-        x, y, tol = d[:, 0], d[:, 1], self.tol
-        # the box of half-width tol around (x, y) meets the cone ρ∞·y' ≤ x' ≤ ρ_peak·y', y' ≥ 0:
-        # some y' in [y − tol, y + tol] (and ≥ 0) with (x − tol)/ρ_peak ≤ y' ≤ (x + tol)/ρ∞
+        sigma = np.full(d.shape, self.noise)
+        if noise is not None:
+            sigma = np.fmax(sigma, np.broadcast_to(np.asarray(noise, dtype=np.float64), d.shape))
+        x, y = d[:, 0], d[:, 1]
+        t1, t2 = self.k_sigma * sigma[:, 0], self.k_sigma * sigma[:, 1]
+        # the box of half-widths (t1, t2) around (x, y) meets the cone ρ∞·y' ≤ x' ≤ ρ_peak·y',
+        # y' ≥ 0: some y' in [y − t2, y + t2] (and ≥ 0) with (x − t1)/ρ_peak ≤ y' ≤ (x + t1)/ρ∞
         with np.errstate(invalid="ignore"):
-            lo = np.maximum(np.maximum((x - tol) / self.ratio_high, y - tol), 0.0)
-            hi = np.minimum((x + tol) / self.ratio_low, y + tol)
-            ok = (lo <= hi) & (x <= self.dc1_max + tol)
+            lo = np.maximum(np.maximum((x - t1) / self.ratio_high, y - t2), 0.0)
+            hi = np.minimum((x + t1) / self.ratio_low, y + t2)
+            ok = (lo <= hi) & (x <= self.dc1_max + t1)
         return ok & np.isfinite(d).all(axis=1)

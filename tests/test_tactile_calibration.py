@@ -728,6 +728,8 @@ def test_contact_surface_holds_every_press_and_refuses_one_layer_alone():
                 assert surf(dc).all(), (force, d, at)
     assert not surf(np.array([[0.0, 300 * fF], [300 * fF, 0.0], [300 * fF, 50 * fF], [np.nan, 1 * fF]])).any()
     assert not surf(np.array([[1.1 * p.area * p.g1_max, 1e-9]])).any()  # more than the element saturated
+    # an ADC front end's measured noise (0.2 pF steps) widens the tolerance of its readings
+    assert surf(np.array([[0.0, 300 * fF]]), np.array([[200 * fF, 200 * fF]])).all()
     with pytest.raises(ValueError):
         surf(np.zeros(3))
     with pytest.raises(ValueError):

@@ -161,7 +161,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
                             _up_to(86400), reloadable=True),
         "max_drift": Key(NUM, 1e-15, "F/s, fastest drift of one element followed; a press rising faster is "
                          "reported, not absorbed", _up_to(1e-9), reloadable=True),
-        "max_touch": Key(NUM, 600.0, "s an element may stay touched before it is re-baselined (and counted); "
+        "max_touch": Key(NUM, 600.0, "s an element may stay touched before it is re-baselined (counted, named "
+                         "on contact) unless its reading is still a contact's (a held press is kept, "
+                         "looked at again after as long); "
                          "0: never", _up_to(1e7, open_lo=False), reloadable=True),
         "max_step_rate": Key(NUM, 250.0, "Hz, most baseline/touch updates a second (each on every element's "
                              "newest reading); the gate limit of the bridges is enough", _up_to(10_000),

@@ -7,7 +7,15 @@ import math
 from typing import Any
 
 import numpy as np
-from cellbridge.tactile import CalibrationConfig, Calibrator, ElementParams, InverseStatus, SkinLayout, solve
+from cellbridge.tactile import (
+    CalibrationConfig,
+    Calibrator,
+    ContactSurface,
+    ElementParams,
+    InverseStatus,
+    SkinLayout,
+    solve,
+)
 from cellbridge.tactile.arrays import FloatArray
 from numpy.typing import NDArray
 
@@ -31,6 +39,11 @@ class ElementStage:
     backlog) steps on the first ones too: two steps at most, so a large read costs a
     bounded amount while baselines still collect from it. Every sample gets ΔC against
     the current baseline, and the inverse runs on all of a read's samples in one call.
+
+    The calibrator tells a held press from a drifting element by the element's (F, S)
+    surface (:class:`ContactSurface` at the inverse's noise): a touch reaching
+    ``max_touch`` with a contact's reading is kept; the elements it does re-baseline are
+    collected for the next ``contact`` message (:meth:`take_rebaselined`).
     """
 
     def __init__(self, layout: SkinLayout, params: ElementParams, cal: CalibrationConfig, noise: float,
@@ -38,7 +51,8 @@ class ElementStage:
         self.layout = layout
         self.params = params
         self.noise = noise
-        self.calibrator = Calibrator(layout.n, 2, cal)
+        self.calibrator = Calibrator(layout.n, 2, cal, is_contact=ContactSurface(params, noise))
+        self.rebaselined = np.zeros(layout.n, dtype=bool)  # re-baselined since take_rebaselined()
         self.min_step = 1.0 / max_step_rate
         self.touched = np.zeros(layout.n, dtype=bool)
         self._pending = np.full((layout.n, 2), np.nan)  # newest readings since the last step
@@ -80,11 +94,19 @@ class ElementStage:
     def _step(self, early: FloatArray | None) -> None:
         for values in ([self._pending] if early is None else [early, self._pending]):
             st = self.calibrator.update(self._t, values)
+            if st.rebaselined is not None:
+                self.rebaselined |= st.rebaselined
         self.touched = st.touched
         self.stepped = np.flatnonzero(self._pending_rows)
         self._pending = np.full((self.layout.n, 2), np.nan)
         self._pending_rows[:] = False
         self._last_step = self._t
+
+    def take_rebaselined(self) -> NDArray[np.int64]:
+        """Layout rows re-baselined after ``max_touch`` since the last call (each once)."""
+        rows = np.flatnonzero(self.rebaselined)
+        self.rebaselined[:] = False
+        return rows
 
     def _inverse(self, delta: FloatArray) -> dict[str, FloatArray]:
         """The inverse on the rows that can pass its noise floor; the others are answered
@@ -106,6 +128,7 @@ class ElementStage:
         """Keep the calibration and touch state of elements carried over from ``old``'s layout."""
         self.calibrator.adopt(old.calibrator, rows, old_rows)
         self.touched[rows] = old.touched[old_rows]
+        self.rebaselined[rows] = old.rebaselined[old_rows]
         self._last_step, self._t = old._last_step, old._t
 
     def tare(self, rows: NDArray[np.int64] | None) -> None:

@@ -370,7 +370,15 @@ class Pipeline:
         t = self._wall(snap.t_moment) if math.isfinite(snap.t_moment) else None
         unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
         return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
-                                                         "unknown": unknown})
+                                                         "unknown": unknown, "rebaselined": self._rebaselined()})
+
+    def _rebaselined(self) -> list[int]:
+        """Bridge ids of the elements re-baselined under a touch (after ``max_touch``, their
+        reading no contact's) since the last ``contact`` message, each once."""
+        stage, layout = self.skin.elements, self.skin.layout
+        if stage is None or layout is None:
+            return []
+        return [int(b) for b in layout.ids[stage.take_rebaselined()]]
 
     # -- periodic -----------------------------------------------------------------------
     def host_clock_step(self, delta: float) -> list[Message]:

@@ -56,6 +56,25 @@ class Contact:
         return (self.x + self.vx * dt, self.y + self.vy * dt, self.force, self.diameter)
 
 
+@dataclass(frozen=True)
+class Drift:
+    """One element's capacitances changing by themselves, at a steady rate from ``start``
+    for ``duration`` seconds (then held): a parasitic moving with temperature (one
+    channel) or a foam's permittivity (both). Nothing presses; the daemon must not
+    report a contact for it. Rates in F/s per channel."""
+
+    bridge: int
+    start: float
+    rate1: float  #: F/s on C1
+    rate2: float  #: F/s on C2
+    duration: float = math.inf
+
+    def offset(self, t: float) -> tuple[float, float]:
+        """(ΔC1, ΔC2) the drift has added by time ``t`` (s)."""
+        dt = min(max(t - self.start, 0.0), self.duration)
+        return self.rate1 * dt, self.rate2 * dt
+
+
 def _num(e: Mapping[str, Any], key: str, where: str, lo: float, strict: bool = False) -> float:
     if key not in e:
         raise ScenarioError(f"{where}: missing key '{key}'")
@@ -159,14 +178,21 @@ class World:
 
     def __init__(self, mesh: Mesh, contacts: list[Contact] | None = None,
                  params: ElementParams | None = None, clock_hz: int = 50_000_000,
-                 quantum: float = 1e-3, bridges: list[int] | None = None) -> None:
+                 quantum: float = 1e-3, bridges: list[int] | None = None,
+                 drifts: list[Drift] | None = None) -> None:
         """``bridges`` limits the elements evaluated (a bridge process needs only its own:
-        without membrane spread an element's response depends on nothing else)."""
+        without membrane spread an element's response depends on nothing else);
+        ``drifts``: elements whose capacitances change by themselves (ValueError for a
+        bridge not in the mesh)."""
         self.params = params or ElementParams(side=mesh.side)
         ids = list(mesh.ids if bridges is None else bridges)
         self.layout = SkinLayout(np.array([mesh.bridge(b).position for b in ids]), mesh.side, np.array(ids))
         self.index = {b: i for i, b in enumerate(ids)}
         self.contacts: list[Contact] = list(contacts or [])
+        unknown = sorted({d.bridge for d in drifts or []} - set(mesh.ids))
+        if unknown:
+            raise ValueError(f"drift on bridge {unknown[0]}, which is not in the mesh")
+        self.drifts = [d for d in drifts or [] if d.bridge in self.index]
         self.clock_hz = clock_hz
         self.quantum = quantum  # moving contacts are re-evaluated at most this often
         self.rest = (self.params.C1_rest, self.params.C2_rest)
@@ -185,7 +211,19 @@ class World:
             self._key = None
 
     def capacitances(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """(C1, C2) of every element at time ``t`` (s), parasitics included."""
+        """(C1, C2) of every element at time ``t`` (s), parasitics and drifts included."""
+        c1, c2 = self._pressed(t)
+        if not self.drifts:
+            return c1, c2
+        c1, c2 = c1.copy(), c2.copy()
+        for d in self.drifts:
+            o1, o2 = d.offset(t)
+            c1[self.index[d.bridge]] += o1
+            c2[self.index[d.bridge]] += o2
+        return c1, c2
+
+    def _pressed(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(C1, C2) of every element at ``t`` from the contacts alone (cached)."""
         active = tuple(i for i, c in enumerate(self.contacts) if c.active(t))
         moving = any(self.contacts[i].vx or self.contacts[i].vy for i in active)
         key = (active, math.floor(t / self.quantum) if moving else None)
@@ -206,7 +244,7 @@ class World:
         clock = float(self.clock_hz)
 
         def sense(tick: int) -> tuple[float, float]:
-            if not self.contacts:
+            if not self.contacts and not self.drifts:
                 return self.rest
             c1, c2 = self.capacitances(tick / clock)
             return float(c1[i]), float(c2[i])

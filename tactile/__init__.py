@@ -91,6 +91,7 @@ __all__ = [
 
 # Skin array, calibration and contact estimation (paper §III).
 from cellbridge.tactile.calibration import CalibrationConfig, CalibrationStep, Calibrator  # noqa: E402
+from cellbridge.tactile.contact_surface import ContactSurface  # noqa: E402
 from cellbridge.tactile.clusters import cluster_elements, force_centroid  # noqa: E402
 from cellbridge.tactile.contact_result import Contact  # noqa: E402
 from cellbridge.tactile.layout import (  # noqa: E402
@@ -119,6 +120,7 @@ __all__ += [
     "CalibrationConfig",
     "CalibrationStep",
     "Calibrator",
+    "ContactSurface",
     # contacts
     "Contact",
     "ContactEstimator",

@@ -34,10 +34,20 @@ gone. So:
   on the skin — is followed unclipped on ``tau_negative``. An element back from a
   silence longer than ``tau`` may have drifted ``max_drift`` per second of it: a
   change within that is taken as baseline at once (counted), a larger one is a touch.
+* **Contact readings** (optional ``is_contact``, e.g. a
+  :class:`~cellbridge.tactile.ContactSurface`): the two layers tell a press from an
+  element drifting by itself. A press moves (ΔC1, ΔC2) along the element's (F, S)
+  surface; one layer drifting alone does not. An element whose reading is above
+  ``enter`` but no contact's is not touched: it is drift, and after ``negative_after``
+  seconds of such readings its baseline follows them unclipped on ``tau_negative`` (as a
+  channel below −enter is followed), so it is never reported and never latches.
 * **Stuck touch**: an element touched for longer than ``max_touch`` seconds is
   re-baselined (as by :meth:`Calibrator.tare`) and the event counted per element
-  (:attr:`Calibrator.rebaselines`, :meth:`Calibrator.health`), so a phantom cannot
-  latch forever and the user can see that it happened.
+  (:attr:`Calibrator.rebaselines`, :meth:`Calibrator.health`, and the step's
+  ``rebaselined``), so a phantom cannot latch forever and the user can see that it
+  happened — unless ``is_contact`` is given and the element's reading is still a
+  contact's: then the touch is a press held that long, it is kept (its ``max_touch``
+  clock restarts, counted in :attr:`Calibrator.holds`) and nothing is re-baselined.
 * **Tare** re-takes the baseline of all or some elements on command.
 
 Plain object, no clocks or I/O: :meth:`Calibrator.update` takes one time and the
@@ -51,7 +61,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -204,17 +214,26 @@ class CalibrationStep(NamedTuple):
     #: this step's common offset took a jump: a common step, or a press lifting
     #: (nearly) every tracked element at once, which cannot be told apart here
     common_jump: bool = False
+    #: (N,) elements re-baselined by this step after ``max_touch`` (all touched until
+    #: then: a re-baseline under what was reported as a contact); None: none
+    rebaselined: NDArray[np.bool_] | None = None
 
 
 class Calibrator:
     """Baselines, drift tracking and touch hysteresis for N elements × C channels."""
 
-    def __init__(self, n_elements: int, n_channels: int = 2, config: CalibrationConfig | None = None):
+    def __init__(self, n_elements: int, n_channels: int = 2, config: CalibrationConfig | None = None,
+                 is_contact: Callable[[FloatArray, FloatArray], NDArray[np.bool_]] | None = None):
+        """``is_contact(delta, noise)`` takes (k, C) ΔC rows and their measured noise
+        (k, C; 0 where not known) and says which a contact can make (see
+        :class:`~cellbridge.tactile.ContactSurface`); None: every reading could be a
+        contact's, and a touch still ends at ``max_touch`` (no way to tell a phantom)."""
         if not _is_count(n_elements):
             raise ValueError(f"n_elements must be an integer >= 1, got {n_elements!r}")
         if not _is_count(n_channels):
             raise ValueError(f"n_channels must be an integer >= 1, got {n_channels!r}")
         self.config = CalibrationConfig() if config is None else config
+        self.is_contact = is_contact
         n, c = int(n_elements), int(n_channels)
         self.n_elements, self.n_channels = n, c
         cfg = self.config
@@ -236,13 +255,15 @@ class Calibrator:
         self._since = np.full(n, -np.inf)  # time of the last state change into TOUCHED/HOLDOFF
         self._below_since = np.full((n, c), np.inf)  # reading below −enter since (per channel)
         self._rebaselines = np.zeros(n, dtype=np.int64)
+        self._holds = np.zeros(n, dtype=np.int64)  # touches kept past max_touch: still a contact's reading
+        self._off_since = np.full(n, np.inf)  # tracked, above enter, reading no contact's, since
         self._common_jumps = 0
         self._catchups = 0
         self._last_jump: dict[str, object] | None = None
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
 
     _PER_ELEMENT = ("_buf", "_count", "_base", "_noise", "_state", "_last_t", "_since", "_below_since",
-                    "_rebaselines")
+                    "_rebaselines", "_holds", "_off_since")
 
     def adopt(self, old: Calibrator, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
         """Take over ``old``'s state of its elements ``old_rows`` as this calibrator's
@@ -298,6 +319,17 @@ class Calibrator:
         """(N,) how often each element was re-baselined after ``max_touch`` (not tares)."""
         return self._rebaselines.copy()
 
+    @property
+    def holds(self) -> NDArray[np.int64]:
+        """(N,) how often each element's touch reached ``max_touch`` with a contact's
+        reading and was kept (a press held that long), not re-baselined."""
+        return self._holds.copy()
+
+    @property
+    def drifting(self) -> NDArray[np.bool_]:
+        """(N,) tracked elements reading above ``enter`` what no contact gives (drift)."""
+        return np.isfinite(self._off_since)
+
     def health(self) -> dict[str, object]:
         """Plain-Python summary for a health message (element *indices*, not ids)."""
         st = self._state
@@ -309,6 +341,8 @@ class Calibrator:
             "holdoff": int(np.count_nonzero(st == HOLDOFF)),
             "rebaselines_total": int(self._rebaselines.sum()),
             "rebaselined": [[int(i), int(self._rebaselines[i])] for i in hit],
+            "holds_total": int(self._holds.sum()),
+            "drifting": int(np.count_nonzero(np.isfinite(self._off_since))),
             "common_offset": [float(x) for x in self._common],
             "common_jumps": self._common_jumps,
             "outage_catchups": self._catchups,
@@ -340,6 +374,7 @@ class Calibrator:
         self._base[sel] = np.nan
         self._noise[sel] = np.nan
         self._below_since[sel] = np.inf
+        self._off_since[sel] = np.inf
         self._thr = None
 
     def _select(self, elements: ArrayLike | None) -> NDArray[np.bool_]:
@@ -401,11 +436,22 @@ class Calibrator:
         delta = np.full((n, c), np.nan)
         delta[live] = resid[live] - self._common
         self._catch_up(live & (st == TRACKING), tt, delta)
-        self._hysteresis(live, tt, delta, enter, leave)
-        self._track(live & (st == TRACKING), live, tt, delta, enter)
+        contact = self._contact_readings(live, delta)
+        rebased = self._hysteresis(live, tt, delta, enter, leave, contact)
+        self._track(live & (st == TRACKING), live, tt, delta, enter, leave, contact)
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
-        return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps)
+        return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps, rebased)
+
+    def _contact_readings(self, live: NDArray[np.bool_], delta: FloatArray) -> NDArray[np.bool_] | None:
+        """(N,) whether each live element's ΔC is a reading some contact makes (True where
+        not live); None without ``is_contact``."""
+        if self.is_contact is None:
+            return None
+        ok = np.ones(self.n_elements, dtype=bool)
+        if live.any():
+            ok[live] = np.asarray(self.is_contact(delta[live], np.nan_to_num(self._noise[live])), dtype=bool)
+        return ok
 
     def _update_common(
         self, resid: FloatArray, trk: NDArray[np.bool_], enter: FloatArray, tt: FloatArray
@@ -478,11 +524,14 @@ class Calibrator:
 
     def _hysteresis(
         self, live: NDArray[np.bool_], tt: FloatArray, delta: FloatArray,
-        enter: FloatArray, leave: FloatArray,
-    ) -> None:
+        enter: FloatArray, leave: FloatArray, contact: NDArray[np.bool_] | None,
+    ) -> NDArray[np.bool_] | None:
+        """Touch state changes; the elements re-baselined after ``max_touch`` (or None)."""
         cfg = self.config
         st = self._state
         up = live & (st != TOUCHED) & np.any(delta > enter, axis=1)
+        if contact is not None:
+            up &= contact  # above enter, but no contact's reading: drift, never a touch
         down = live & (st == TOUCHED) & np.all(delta < leave, axis=1)
         st[up] = TOUCHED
         self._since[up] = tt[up]
@@ -490,26 +539,45 @@ class Calibrator:
         self._since[down] = tt[down]
         back = (st == HOLDOFF) & (tt - self._since >= cfg.holdoff)
         st[back] = TRACKING
-        if cfg.max_touch is not None:
-            stuck = (st == TOUCHED) & (tt - self._since >= cfg.max_touch)
-            if stuck.any():
-                self._rebaselines[stuck] += 1
-                self.tare(stuck)
+        if cfg.max_touch is None:
+            return None
+        stuck = (st == TOUCHED) & (tt - self._since >= cfg.max_touch)
+        if contact is not None:
+            # judged on a reading of its own: a silent element waits for its next one
+            stuck &= live
+            held = stuck & contact
+            self._holds[held] += 1
+            self._since[held] = tt[held]  # a press held this long: keep it, look again later
+            stuck &= ~contact
+        if not stuck.any():
+            return None
+        self._rebaselines[stuck] += 1
+        self.tare(stuck)
+        return stuck
 
     def _track(
         self, trk: NDArray[np.bool_], live: NDArray[np.bool_], tt: FloatArray,
-        delta: FloatArray, enter: FloatArray,
+        delta: FloatArray, enter: FloatArray, leave: FloatArray, contact: NDArray[np.bool_] | None,
     ) -> None:
         """Element drift: clipped exponential tracker, unclipped and faster on a
-        channel that has stayed below −enter for ``negative_after`` seconds (a
-        missing reading neither restarts nor ends that wait)."""
+        channel that has stayed below −enter for ``negative_after`` seconds, and on
+        every channel of an element that has read above ``enter`` what no contact
+        gives for as long (a missing reading neither restarts nor ends either wait);
+        followed so until it is back below ``leave`` (or reads a contact's reading), so
+        a steady drift is followed closely, not held at ``enter``."""
         cfg = self.config
         below = trk[:, None] & (delta < -enter)
         since = np.where(live[:, None], np.inf, self._below_since)
         self._below_since = np.where(below, np.minimum(self._below_since, tt[:, None]), since)
+        fast = below & (tt[:, None] - self._below_since >= cfg.negative_after)
+        if contact is not None:
+            following = tt - self._off_since >= cfg.negative_after
+            off = trk & ~contact & (np.any(delta > enter, axis=1) | (following & np.any(delta > leave, axis=1)))
+            kept = np.where(live, np.inf, self._off_since)
+            self._off_since = np.where(off, np.minimum(self._off_since, tt), kept)
+            fast |= (off & (tt - self._off_since >= cfg.negative_after))[:, None]
         if not trk.any():
             return
-        fast = below & (tt[:, None] - self._below_since >= cfg.negative_after)
         dt = tt - self._last_t
         dt = np.where(trk & np.isfinite(dt), dt, 0.0)  # first tracked reading: no step
         tau = np.where(fast, cfg.tau_negative, cfg.tau)

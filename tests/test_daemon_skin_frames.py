@@ -36,12 +36,13 @@ def gateway_reads(seconds: float, presses: list[Contact], kill: tuple[int, ...] 
 
 def drive(reads: list[tuple[float, bytes]], until: float, step: float = 0.01,
           stop_feeding_at: float = math.inf, wall_steps: dict[float, float] | None = None,
-          ) -> Iterator[tuple[float, str, dict]]:
+          sections: dict | None = None) -> Iterator[tuple[float, str, dict]]:
     """The service's part, in virtual time: feed each read at its time, tick and estimate
     contacts every ``step`` s (also when no data comes); at each time of ``wall_steps``
     the wall clock steps by its value (the service tells the pipeline so; its time base,
-    the monotonic clock, does not move). Yields (time, topic, payload)."""
-    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}]}))
+    the monotonic clock, does not move). ``sections``: more of the daemon's configuration.
+    Yields (time, topic, payload)."""
+    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], **(sections or {})}))
     steps = sorted((wall_steps or {}).items())
     w = worker()
     i = 0

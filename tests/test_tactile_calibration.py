@@ -700,3 +700,93 @@ def test_adopt_carries_elements_over_to_a_grown_calibrator() -> None:
     assert new.ready.tolist() == [True, False, True]
     with pytest.raises(ValueError, match="same configuration"):
         Calibrator(3, 2, CalibrationConfig(n_baseline=4)).adopt(old, np.array([0]), np.array([0]))
+
+
+# -- a press held past max_touch, an element drifting by itself (ContactSurface) -------------
+
+def _surface_calibrator(n: int, max_touch: float = 10.0) -> Calibrator:
+    from cellbridge.tactile import ContactSurface
+
+    cfg = CalibrationConfig(n_baseline=3, max_touch=max_touch)
+    cal = Calibrator(n, 2, cfg, is_contact=ContactSurface(ElementParams(side=0.04), noise=2 * fF))
+    for k in range(3):
+        feed(cal, 0.1 * k, np.full((n, 2), 20 * pF))
+    return cal
+
+
+def test_contact_surface_holds_every_press_and_refuses_one_layer_alone():
+    from cellbridge.tactile import ContactSurface
+
+    p = ElementParams(side=0.04)
+    surf = ContactSurface(p, noise=2 * fF)
+    lay = grid_layout(3, 3)
+    for force in (0.05, 0.3, 1.0, 3.0, 15.0, 50.0):
+        for d in (0.008, 0.02, 0.03):
+            for at in ((0.04, 0.04), (0.06, 0.05)):  # inside one element, straddling four
+                d1, d2 = skin_response(lay, [(*at, force, d)], p)
+                dc = np.stack([d1, d2], axis=1)[d1 > 1 * fF]
+                assert surf(dc).all(), (force, d, at)
+    assert not surf(np.array([[0.0, 300 * fF], [300 * fF, 0.0], [300 * fF, 50 * fF], [np.nan, 1 * fF]])).any()
+    assert not surf(np.array([[1.1 * p.area * p.g1_max, 1e-9]])).any()  # more than the element saturated
+    # an ADC front end's measured noise (0.2 pF steps) widens the tolerance of its readings
+    assert surf(np.array([[0.0, 300 * fF]]), np.array([[200 * fF, 200 * fF]])).all()
+    with pytest.raises(ValueError):
+        surf(np.zeros(3))
+    with pytest.raises(ValueError):
+        ContactSurface(p, noise=-1.0)
+
+
+def test_a_press_held_past_max_touch_is_kept_while_its_reading_is_a_contacts():
+    """Main re-baselined every touch at max_touch: a press held for an hour vanished."""
+    p = ElementParams(side=0.04)
+    d1, d2 = skin_response(grid_layout(1, 1), [(0.0, 0.0, 3.0, 0.02)], p)
+    cal = _surface_calibrator(2)
+    press = np.array([[20 * pF + d1[0], 20 * pF + d2[0]], [20 * pF, 20 * pF]])
+    t = 1.0
+    while t < 65.0:
+        s = feed(cal, t, press)
+        assert s.touched[0] and s.rebaselined is None, t
+        t += 0.1
+    assert s.delta[0] == pytest.approx([d1[0], d2[0]], rel=1e-9)
+    assert cal.holds[0] == 6 and cal.rebaselines.sum() == 0 and cal.health()["holds_total"] == 6
+
+
+def test_a_touch_whose_reading_left_the_surface_is_rebaselined_at_max_touch_and_said():
+    cal = _surface_calibrator(1)
+    feed(cal, 1.0, [[20 * pF + 200 * fF, 20 * pF + 100 * fF]])  # a press's ratio: touched
+    assert cal.touched[0]
+    t, said = 1.1, []
+    while t < 12.0:
+        s = feed(cal, t, [[20 * pF + 900 * fF, 20 * pF + 100 * fF]])  # C1 alone moved on: ratio 9
+        if s.rebaselined is not None:
+            said.append((round(t, 1), s.rebaselined.tolist()))
+        t += 0.1
+    assert len(said) == 1 and 11.0 <= said[0][0] <= 11.1 and said[0][1] == [True]  # touched at 1 s
+    assert cal.rebaselines[0] == 1 and cal.holds[0] == 0
+
+
+@pytest.mark.parametrize("channel", [0, 1])
+def test_one_layer_drifting_is_never_touched_and_is_followed(channel):
+    """5 fF/s on one channel, five times max_drift: main touched it once it passed enter."""
+    cal = _surface_calibrator(3, max_touch=600.0)
+    t, worst = 0.3, 0.0
+    while t < 120.0:
+        v = np.full((3, 2), 20 * pF)
+        v[1, channel] += 5 * fF * t
+        s = feed(cal, t, v)
+        assert not s.touched.any(), t
+        if t > 60.0:
+            worst = max(worst, float(np.abs(s.delta[1]).max()))
+        t += 0.1
+    assert worst < 70 * fF and cal.drifting.sum() <= 1
+
+
+def test_without_a_surface_test_max_touch_behaves_as_before():
+    cfg = CalibrationConfig(n_baseline=3, max_touch=10.0)
+    cal = ready_calibrator(1, cfg)
+    s = None
+    for k in range(120):
+        s = feed(cal, 1.0 + 0.1 * k, [[20 * pF + 200 * fF, 20 * pF + 100 * fF]])
+        if s.rebaselined is not None:
+            break
+    assert s is not None and s.rebaselined is not None and cal.rebaselines[0] == 1

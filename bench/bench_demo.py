@@ -52,6 +52,8 @@ def main() -> None:
     ap.add_argument("--burn", action="store_true", help="keep every core busy while measuring")
     ap.add_argument("--cases", default="seam,corner", help="comma-separated: seam, corner")
     args = ap.parse_args()
+    # SIGTERM (a kill, a timeout) unwinds like Ctrl-C, so every process started is stopped
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     burners: list[subprocess.Popen] = []
     if args.burn:
         burners = [subprocess.Popen([sys.executable, "-c", BURN], start_new_session=True)

@@ -166,6 +166,8 @@ def main() -> None:
                     help="press here every time instead of at random points (m)")
     ap.add_argument("--virtual", action="store_true", help="virtual time (deterministic; no machine load in it)")
     args = ap.parse_args()
+    # SIGTERM (a kill, a timeout) unwinds like Ctrl-C, so every process started is stopped
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     mesh = meshgen.grid(args.side, args.side)
     n = len(mesh.bridges)
     if args.virtual:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import random
 from bisect import insort
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -50,6 +50,7 @@ from cellbridge.protocol import (
     unpack_payload,
 )
 from cellbridge.protocol import Raw, addressed_to, own, to_serial
+from cellbridge.protocol.copies import RecentFrames
 from cellbridge.protocol import peek as parse
 from cellbridge.protocol import reframe as build
 from cellbridge.emulator.commands import MAX_GATE, Settings, execute
@@ -76,7 +77,11 @@ _HELLO = int(FrameType.HELLO)
 _MS = 50_000  # cycles per millisecond at 50 MHz
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
 _BUNDLE = int(FrameType.BUNDLE)
-_HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
+#: A relay takes a frame it forwarded this recently for a copy (a retransmission, a detour,
+#: a loop's return: all within the retries of a hop or the few hops of a loop); an older
+#: one goes on, and the host's duplicate filter judges it.
+_COPY_AGE = 1000 * _MS
+_COPY_MEMORY = 1024  # frames remembered at most (per bridge, all origins)
 # A frame that went round a loop through us comes back with as many more hops as the loop
 # has bridges. A loop of two (our parent took us as its parent) is broken as soon as the
 # parent sends us a frame (Router.child_sent), before its copy is looked at here; so a
@@ -93,7 +98,7 @@ _RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and fl
 
 def _hello_boots(f: Raw) -> int | None:
     """The boot counter of a relayed HELLO (None: a version 1 HELLO, or not readable): the
-    duplicate filter's evidence of a restart."""
+    copy filter's evidence of a restart."""
     if f.flags & _FRAGMENT:
         return None
     try:
@@ -198,8 +203,9 @@ class Firmware:
                              neighbour_timeout=4 * c.trickle_imax)
         self.trickle = Trickle(self.rng, c.trickle_imin, c.trickle_imax)
         self.trickle.start(tick)
-        self.seen = DuplicateFilter()  # upward frames: (origin, seq)
-        self.hops_seen: OrderedDict[tuple[int, int], int] = OrderedDict()  # (origin, seq) -> hops
+        # Upward frames forwarded lately, with their hop counts (copies and loop returns).
+        # Not a numbering window: a new boot's HELLO may have gone another way (protocol/copies.py).
+        self.seen = RecentFrames(_COPY_AGE, _COPY_MEMORY)
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
@@ -412,12 +418,11 @@ class Firmware:
             # our own frame came back (a parent change raced with a neighbour's): send it on
             # once more; the duplicate filter stops a second return
             self.counters["own_returned"] += 1
-        key = (f.origin, f.seq)
-        hello = f.type == _HELLO
-        if self.seen.is_duplicate(f.origin, f.seq, hello, _hello_boots(f) if hello else None):
+        boot = _hello_boots(f) if f.type == _HELLO else None
+        first = self.seen.first(f.origin, f.seq, f.hops, tick, boot)
+        if first is not None:
             self.counters["duplicates"] += 1
-            first = self.hops_seen.get(key)
-            if first is not None and f.hops >= first + _LOOP_MIN_HOPS and not self.config.gateway:
+            if f.hops >= first + _LOOP_MIN_HOPS and not self.config.gateway:
                 # the same frame again with at least three hops more: it went round a loop
                 # through us (a copy only one or two hops longer took a detour: see _LOOP_MIN_HOPS)
                 self.counters["loops_detected"] += 1
@@ -425,9 +430,6 @@ class Firmware:
                 self.trickle.reset(tick)
                 self._reroute(tick)
             return
-        self.hops_seen[key] = f.hops
-        if len(self.hops_seen) > _HOPS_MEMORY:
-            self.hops_seen.popitem(last=False)
         if f.hops + 1 > self.config.max_hops:
             self.counters["loop_drops"] += 1
             return

@@ -319,7 +319,7 @@ class Firmware:
         if f.flags & _ACK:
             self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_seq()), self.me, src),
                                 self.config.cells, tick)
-        if self.router.child_sent(src):
+        if self.router.child_sent(src):  # our parent sent it: a loop of two, broken now
             self.counters["loops_broken"] += 1
             self.trickle.reset(tick)
         elif self.router.inconsistent(src):
@@ -334,9 +334,9 @@ class Firmware:
                 if g is None:
                     self.counters["rx_bad_bundle"] += 1
                 else:
-                    self._upward(g[2], tick)
+                    self._upward(g[2], tick, src)
         else:
-            self._upward(f, tick)
+            self._upward(f, tick, src)
         return True
 
     def _receive_parsed(self, data: bytes, tick: int, sof: int) -> bool:
@@ -413,7 +413,8 @@ class Firmware:
         return encode(Frame(f.src, f.dst, f.origin, f.seq, self._beacon_message(tick), f.hops, f.cost, f.flags))
 
     # -- upward traffic -------------------------------------------------------------
-    def _upward(self, f: Raw, tick: int) -> None:
+    def _upward(self, f: Raw, tick: int, src: int = -1) -> None:
+        """Forward an upward frame that neighbour ``src`` sent us."""
         if f.origin == self.me:
             # our own frame came back (a parent change raced with a neighbour's): send it on
             # once more; the duplicate filter stops a second return
@@ -429,11 +430,33 @@ class Firmware:
                 self.router.loop_detected()
                 self.trickle.reset(tick)
                 self._reroute(tick)
+                self._loop_return(f, tick)
+            elif f.hops > first and self.link.handed.get((f.origin, f.seq)) == src and not self.config.gateway:
+                # back from the neighbour that acknowledged it: round a loop of two (which
+                # Router.child_sent breaks), not a detour's copy (that comes from elsewhere)
+                self._loop_return(f, tick)
             return
         if f.hops + 1 > self.config.max_hops:
             self.counters["loop_drops"] += 1
             return
         self.counters["forwarded"] += 1
+        self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
+
+    def _loop_return(self, f: Raw, tick: int) -> None:
+        """Send a frame that came back round a loop on once more, on the route chosen now.
+
+        It is the frame's only copy: we handed it on with an acknowledgement and it went
+        round instead of up (routes churn while a skin reboots after a broadcast RESET, and
+        a boot's HELLO lost this way left the host unaware of the restart). CTP does the
+        same (a looping packet is no duplicate). It goes on only once we have a parent again
+        (else the loop would take it straight back: it waits in the queue like any frame),
+        and the copy filter now holds its new hop count, so a second return needs another
+        full loop; ``max_hops`` ends any circling."""
+        self.seen.remember(f.origin, f.seq, f.hops, tick)
+        if f.hops + 1 > self.config.max_hops:
+            self.counters["loop_drops"] += 1
+            return
+        self.counters["loop_returns_forwarded"] += 1
         self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
 
     def _say_hello(self) -> None:

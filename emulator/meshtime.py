@@ -103,12 +103,15 @@ class MeshClock:
         # a root before it becomes one (a skin that boots together has one root at once)
         self._heard = boot_local - (config.root_timeout - config.boot_listen if eligible_root else 0)
         self._outliers = 0
+        # the root given up last and the newest round taken from it: beacons of neighbours
+        # that have not timed out yet still carry those rounds, and are no root
+        self._gone: tuple[int, int] | None = None
         # fit: global = local + offset + skew * (local - x0)
         self._x0 = 0
         self._offset = 0.0
         self._skew = 0.0
         self.counters = {"time_points": 0, "time_outliers": 0, "time_resyncs": 0, "root_changes": 0,
-                         "time_ignored": 0}
+                         "time_ignored": 0, "time_echoes": 0}
 
     # -- the estimate -----------------------------------------------------------------
     @property
@@ -159,6 +162,14 @@ class MeshClock:
     def heard(self, t: MeshTime, local: int) -> bool:
         """A beacon's time, its start of frame stamped ``local`` here; True when taken."""
         c = self.counters
+        gone = self._gone
+        if gone is not None and t.root == gone[0] and not _newer(t.seq, gone[1]):
+            # an echo of the root this bridge gave up: a neighbour that has not timed out
+            # yet still passes its last rounds on. Following it again (a gateway that just
+            # took over cleared its table for it, then ran on its bare crystal: 7 µs/s off)
+            # would bring back a root that is gone.
+            c["time_echoes"] += 1
+            return False
         if self.is_root:
             if t.root < self.me:  # a lower-id root: follow it, with a fresh table
                 self._follow(t.root)
@@ -183,6 +194,8 @@ class MeshClock:
         gateway then becomes the root, carrying on its own estimate of global time."""
         if self.is_root or local - self._heard <= self.config.root_timeout:
             return
+        if self.root is not None:
+            self._gone = (self.root, self.seq)
         if self.eligible_root:
             # Freeze the fit: the root's global time is its estimate as it was, so the skin's
             # time carries on instead of jumping to this bridge's own counter.

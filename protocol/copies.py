@@ -78,5 +78,14 @@ class RecentFrames:
             self.forgotten += 1
         return None
 
+    def remember(self, origin: int, seq: int, hops: int, now: int) -> None:
+        """Hold (origin, seq) again as forwarded at ``now`` with ``hops`` (a relay that sends a
+        frame on once more: its next copy is measured against this one)."""
+        self._frames.pop((origin, seq), None)
+        self._frames[(origin, seq)] = (now, hops)
+        if len(self._frames) > self.capacity:
+            self._frames.popitem(last=False)
+            self.forgotten += 1
+
     def counters(self) -> dict[str, int]:
         return {"held": len(self._frames), "copies": self.copies, "boots": self.boots, "forgotten": self.forgotten}

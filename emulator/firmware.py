@@ -93,6 +93,7 @@ _LOOP_MIN_HOPS = 3
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
 _FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
 _FORWARD_MIN, _FORWARD_SPREAD = 2 * _MS, 20 * _MS  # a new round of mesh time goes on 2-22 ms after it came
+_LINK_GUARD = 64  # link numbers stay this far from the host numbering (see Firmware._link_candidate)
 _RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and flood copies to leave
 
 
@@ -192,6 +193,7 @@ class Firmware:
         # evidence of a restart, without which the host and the relays would drop the new
         # numbering as stale or duplicate (docs/protocol.md, duplicate filter).
         self.seq = 0
+        self.link_seq = 0  # frames that end at the next hop: beacons, link acks, bundles
         self.radio = Transceiver(self.rng, c.transceiver)
         self.radio.stamper = self._stamp
         # mesh time is in RAM: a reset starts it again (the crystal runs on)
@@ -242,9 +244,27 @@ class Firmware:
         return t
 
     def _next_seq(self) -> int:
+        """The next number of a frame for the host (DATA, HELLO, STATUS, CMD_REPLY): these
+        alone share one numbering, so a gap the host sees is a frame lost (health's loss)."""
         s = self.seq
         self.seq = (s + 1) & 0xFFFF
         return s
+
+    def _link_candidate(self) -> int:
+        """The number the next frame that ends at the next hop would take (docs/protocol.md §1).
+
+        Kept clear of the host numbering's neighbourhood: a bundle is acknowledged by
+        (origin, seq) like our own frames, and a late LINK_ACK for our frame n must not
+        end the transmission of a bundle numbered n."""
+        x = self.link_seq
+        if (x - self.seq + _LINK_GUARD) & 0xFFFF < 2 * _LINK_GUARD:
+            x = (self.seq + _LINK_GUARD) & 0xFFFF
+        return x
+
+    def _next_link_seq(self) -> int:
+        x = self._link_candidate()
+        self.link_seq = (x + 1) & 0xFFFF
+        return x
 
 
     def _life_totals(self) -> Counter[str]:
@@ -317,7 +337,7 @@ class Firmware:
             return False
         src, _, f = got
         if f.flags & _ACK:
-            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_seq()), self.me, src),
+            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_link_seq()), self.me, src),
                                 self.config.cells, tick)
         if self.router.child_sent(src):  # our parent sent it: a loop of two, broken now
             self.counters["loops_broken"] += 1
@@ -395,9 +415,9 @@ class Firmware:
                       self.clock.stamp(self.crystal.local(tick)))
 
     def _send_beacon(self, tick: int) -> None:
-        # The seq comes from a counter of its own: a beacon never reaches the host, and a
-        # number it took from the frames' sequence would look lost there (health's loss).
-        frame = Frame(self.me, ADDR_BROADCAST, self.me, self._next_seq(), self._beacon_message(tick))
+        # The seq comes from the link numbering: a beacon never reaches the host, and a
+        # number it took from the host's numbering would look lost there (health's loss).
+        frame = Frame(self.me, ADDR_BROADCAST, self.me, self._next_link_seq(), self._beacon_message(tick))
         self.link.broadcast(encode(frame))
         self.counters["beacons"] += 1
 
@@ -555,11 +575,11 @@ class Firmware:
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
         if p is not None:
-            out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)), r.table)
+            out, used = self.link.advance(tick, p.id, self._link_candidate(), int(round(p.link_etx)), r.table)
         else:
-            out, used = self.link.advance(tick, None, self.seq, PERFECT_LINK, r.table)
-        if used:
-            self._next_seq()
+            out, used = self.link.advance(tick, None, self._link_candidate(), PERFECT_LINK, r.table)
+        if used:  # a bundle took the link number
+            self._next_link_seq()
         if self.link.results:
             for nbr, attempts, ok in self.link.results:
                 self.router.on_link_result(nbr, attempts, ok)

@@ -103,6 +103,32 @@ def test_a_gateway_becomes_root_after_the_timeout_and_carries_the_time_on() -> N
     assert gw.global_at(me.local(int(2.5 * CLOCK_HZ))) == before
 
 
+def test_a_gateway_that_took_over_ignores_the_dead_roots_echoes() -> None:
+    # A neighbour that has not timed out yet still passes the dead root's last round on.
+    # The new root took that beacon for "a lower root appears", followed the dead root
+    # with a cleared table and ran on its bare crystal: 40 ppm off, 40 us a second.
+    cfg = MeshClockConfig()
+    root, me = Crystal(40.0, 10**10), Crystal(-40.0)
+    gw = MeshClock(7, True, cfg, boot_local=0)
+    _feed(gw, root, me, [int(i * 0.5 * CLOCK_HZ) for i in range(1, 6)], seq0=20, root_id=1)  # rounds 20..24
+    late = int(2.5 * CLOCK_HZ) + cfg.root_timeout + 10_000
+    gw.tick(me.local(late))
+    assert gw.is_root
+    for seq in (24, 23):  # the last round taken, or an older one: an echo of the dead root
+        t = late + CLOCK_HZ // 10
+        assert not gw.heard(MeshTime(1, seq, root.local(t) - 30 * US), me.local(t))
+    assert gw.is_root and gw.counters["time_echoes"] == 2
+    t = late + 2 * CLOCK_HZ
+    assert abs(gw.global_at(me.local(t)) - root.local(t)) < 5 * US  # still on the skin's time
+    # a bridge that gave the root up (no gateway) takes no echo for its next root either
+    br = MeshClock(9, False, cfg)
+    _feed(br, root, me, [int(i * 0.5 * CLOCK_HZ) for i in range(1, 6)], seq0=20, root_id=1)
+    br.tick(me.local(late))
+    assert br.root is None
+    assert not br.heard(MeshTime(1, 24, root.local(late)), me.local(late)) and br.root is None
+    assert br.heard(MeshTime(7, 25, root.local(late + 1000)), me.local(late + 1000)) and br.root == 7
+
+
 def test_a_bridge_without_points_for_stale_after_flags_its_samples() -> None:
     root, me = Crystal(0.0), Crystal(0.0)
     clock = MeshClock(5, False)

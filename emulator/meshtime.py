@@ -171,8 +171,8 @@ class MeshClock:
             c["time_echoes"] += 1
             return False
         if self.is_root:
-            if t.root < self.me:  # a lower-id root: follow it, with a fresh table
-                self._follow(t.root)
+            if t.root < self.me:  # a lower-id root: follow it
+                self._follow(t, local)
                 return self._take(t, local)
             c["time_ignored"] += 1
             return False
@@ -181,8 +181,8 @@ class MeshClock:
             # root's time on: the table stays, an outlier check guards it)
             self.root = t.root
             return self._take(t, local)
-        if t.root < self.root:  # another skin's root, lower: its time is not ours
-            self._follow(t.root)
+        if t.root < self.root:  # a lower root: back after a failover, or another skin's
+            self._follow(t, local)
             return self._take(t, local)
         if t.root == self.root and _newer(t.seq, self.seq):
             return self._take(t, local)
@@ -211,10 +211,17 @@ class MeshClock:
         return self._heard + self.config.root_timeout + 1
 
     # -- internals ----------------------------------------------------------------------
-    def _follow(self, root: int) -> None:
+    def _follow(self, t: MeshTime, local: int) -> None:
+        """Follow the lower root of ``t``. Its time is the skin's when it agrees with this
+        bridge's fit within ``throwout`` (the root gateway back after a failover or a cut:
+        the gateway that took over carried its time on): the table stays, so the skin's
+        time neither jumps nor loses its measured skew (a cleared table left every bridge
+        unsynced for a round, its samples off mesh time, then on one point and a bare
+        crystal: 27 µs off). Another skin's time starts the table again."""
         self.counters["root_changes"] += 1
-        self.root = root
-        self._clear()
+        self.root = t.root
+        if len(self._points) < self.config.min_points or abs(self.global_at(local) - t.time) > self.config.throwout:
+            self._clear()
 
     def _clear(self) -> None:
         self._points.clear()

@@ -49,8 +49,7 @@ from cellbridge.protocol import (
     encode,
     unpack_payload,
 )
-from cellbridge.protocol import Raw, addressed_to, own, to_serial
-from cellbridge.protocol.copies import RecentFrames
+from cellbridge.protocol import Raw, RecentFrames, addressed_to, own, to_serial
 from cellbridge.protocol import peek as parse
 from cellbridge.protocol import reframe as build
 from cellbridge.emulator.commands import MAX_GATE, Settings, execute
@@ -437,7 +436,7 @@ class Firmware:
         """Forward an upward frame that neighbour ``src`` sent us."""
         if f.origin == self.me:
             # our own frame came back (a parent change raced with a neighbour's): send it on
-            # once more; the duplicate filter stops a second return
+            # once more; the copy filter stops a second return
             self.counters["own_returned"] += 1
         boot = _hello_boots(f) if f.type == _HELLO else None
         first = self.seen.first(f.origin, f.seq, f.hops, tick, boot)

@@ -103,9 +103,9 @@ class MeshClock:
         # a root before it becomes one (a skin that boots together has one root at once)
         self._heard = boot_local - (config.root_timeout - config.boot_listen if eligible_root else 0)
         self._outliers = 0
-        # the root given up last and the newest round taken from it: beacons of neighbours
-        # that have not timed out yet still carry those rounds, and are no root
-        self._gone: tuple[int, int] | None = None
+        # the root given up last, the newest round taken from it, and until when (local)
+        # beacons of neighbours that have not timed out yet may still carry its rounds
+        self._gone: tuple[int, int, int] | None = None
         # fit: global = local + offset + skew * (local - x0)
         self._x0 = 0
         self._offset = 0.0
@@ -163,11 +163,13 @@ class MeshClock:
         """A beacon's time, its start of frame stamped ``local`` here; True when taken."""
         c = self.counters
         gone = self._gone
-        if gone is not None and t.root == gone[0] and not _newer(t.seq, gone[1]):
+        if gone is not None and t.root == gone[0] and not _newer(t.seq, gone[1]) and local <= gone[2]:
             # an echo of the root this bridge gave up: a neighbour that has not timed out
             # yet still passes its last rounds on. Following it again (a gateway that just
             # took over cleared its table for it, then ran on its bare crystal: 7 µs/s off)
-            # would bring back a root that is gone.
+            # would bring back a root that is gone. Only for ``root_timeout`` after giving it
+            # up (every neighbour has timed out by then): a root that rebooted numbers its
+            # rounds from 1 again, and must be heard.
             c["time_echoes"] += 1
             return False
         if self.is_root:
@@ -195,7 +197,7 @@ class MeshClock:
         if self.is_root or local - self._heard <= self.config.root_timeout:
             return
         if self.root is not None:
-            self._gone = (self.root, self.seq)
+            self._gone = (self.root, self.seq, local + self.config.root_timeout)
         if self.eligible_root:
             # Freeze the fit: the root's global time is its estimate as it was, so the skin's
             # time carries on instead of jumping to this bridge's own counter.

@@ -127,6 +127,13 @@ def test_a_gateway_that_took_over_ignores_the_dead_roots_echoes() -> None:
     assert br.root is None
     assert not br.heard(MeshTime(1, 24, root.local(late)), me.local(late)) and br.root is None
     assert br.heard(MeshTime(7, 25, root.local(late + 1000)), me.local(late + 1000)) and br.root == 7
+    # once every neighbour has timed out, the old root's rounds are its own again: a root
+    # gateway that rebooted numbers them from 1 and must be heard
+    br2 = MeshClock(9, False, cfg)
+    _feed(br2, root, me, [int(i * 0.5 * CLOCK_HZ) for i in range(1, 6)], seq0=20, root_id=1)
+    br2.tick(me.local(late))
+    t = late + cfg.root_timeout + CLOCK_HZ // 10
+    assert br2.heard(MeshTime(1, 2, root.local(t)), me.local(t)) and br2.root == 1
 
 
 def test_a_bridge_without_points_for_stale_after_flags_its_samples() -> None:

@@ -79,4 +79,4 @@ def test_loss_is_the_share_of_frames_dropped_on_the_line(reads) -> None:
         true = (dropped[o] - tail) / (sent[o] - tail)
         assert h["lost"] == dropped[o] - tail, (b, h["lost"], dropped[o], tail)
         assert h["loss"] == pytest.approx(true, abs=1e-9), (b, h["loss"], true)
-        assert 0.03 < h["loss"] < 0.2, (b, h["loss"])
+        assert 0.02 < h["loss"] < 0.3, (b, h["loss"])  # about the 10 % dropped, for every bridge

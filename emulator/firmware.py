@@ -283,7 +283,8 @@ class Firmware:
         c.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
                  acks_dropped=self.radio.acks_dropped,
                  bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
-                 neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed)
+                 neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed,
+                 copies_forgotten=self.seen.forgotten)
         return c
 
     def power_off(self) -> None:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import random
 from bisect import insort
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -49,7 +49,7 @@ from cellbridge.protocol import (
     encode,
     unpack_payload,
 )
-from cellbridge.protocol import Raw, addressed_to, own, to_serial
+from cellbridge.protocol import Raw, RecentFrames, addressed_to, own, to_serial
 from cellbridge.protocol import peek as parse
 from cellbridge.protocol import reframe as build
 from cellbridge.emulator.commands import MAX_GATE, Settings, execute
@@ -76,7 +76,11 @@ _HELLO = int(FrameType.HELLO)
 _MS = 50_000  # cycles per millisecond at 50 MHz
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
 _BUNDLE = int(FrameType.BUNDLE)
-_HOPS_MEMORY = 512  # recent frames whose hop count is kept for loop detection
+#: A relay takes a frame it forwarded this recently for a copy (a retransmission, a detour,
+#: a loop's return: all within the retries of a hop or the few hops of a loop); an older
+#: one goes on, and the host's duplicate filter judges it.
+_COPY_AGE = 1000 * _MS
+_COPY_MEMORY = 1024  # frames remembered at most (per bridge, all origins)
 # A frame that went round a loop through us comes back with as many more hops as the loop
 # has bridges. A loop of two (our parent took us as its parent) is broken as soon as the
 # parent sends us a frame (Router.child_sent), before its copy is looked at here; so a
@@ -88,12 +92,13 @@ _LOOP_MIN_HOPS = 3
 _FLOOD_REPEATS = ((0, 2 * _MS), (10 * _MS, 30 * _MS), (40 * _MS, 80 * _MS))  # windows of the copies
 _FLOOD_MAX = 16 * len(_FLOOD_REPEATS)  # copies waiting at most: 16 commands being flooded
 _FORWARD_MIN, _FORWARD_SPREAD = 2 * _MS, 20 * _MS  # a new round of mesh time goes on 2-22 ms after it came
+_LINK_GUARD = 64  # link numbers stay this far from the host numbering (see Firmware._link_candidate)
 _RESET_WAIT = 3000 * _MS  # a RESET waits at most this long for its reply and flood copies to leave
 
 
 def _hello_boots(f: Raw) -> int | None:
     """The boot counter of a relayed HELLO (None: a version 1 HELLO, or not readable): the
-    duplicate filter's evidence of a restart."""
+    copy filter's evidence of a restart."""
     if f.flags & _FRAGMENT:
         return None
     try:
@@ -197,6 +202,7 @@ class Firmware:
         # evidence of a restart, without which the host and the relays would drop the new
         # numbering as stale or duplicate (docs/protocol.md, duplicate filter).
         self.seq = 0
+        self.link_seq = 0  # frames that end at the next hop: beacons, link acks, bundles
         self.radio = Transceiver(self.rng, c.transceiver)
         self.radio.stamper = self._stamp
         # mesh time is in RAM: a reset starts it again (the crystal runs on)
@@ -208,8 +214,9 @@ class Firmware:
                              neighbour_timeout=4 * c.trickle_imax)
         self.trickle = Trickle(self.rng, c.trickle_imin, c.trickle_imax)
         self.trickle.start(tick)
-        self.seen = DuplicateFilter()  # upward frames: (origin, seq)
-        self.hops_seen: OrderedDict[tuple[int, int], int] = OrderedDict()  # (origin, seq) -> hops
+        # Upward frames forwarded lately, with their hop counts (copies and loop returns).
+        # Not a numbering window: a new boot's HELLO may have gone another way (protocol/copies.py).
+        self.seen = RecentFrames(_COPY_AGE, _COPY_MEMORY)
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
@@ -246,9 +253,27 @@ class Firmware:
         return t
 
     def _next_seq(self) -> int:
+        """The next number of a frame for the host (DATA, HELLO, STATUS, CMD_REPLY): these
+        alone share one numbering, so a gap the host sees is a frame lost (health's loss)."""
         s = self.seq
         self.seq = (s + 1) & 0xFFFF
         return s
+
+    def _link_candidate(self) -> int:
+        """The number the next frame that ends at the next hop would take (docs/protocol.md §1).
+
+        Kept clear of the host numbering's neighbourhood: a bundle is acknowledged by
+        (origin, seq) like our own frames, and a late LINK_ACK for our frame n must not
+        end the transmission of a bundle numbered n."""
+        x = self.link_seq
+        if (x - self.seq + _LINK_GUARD) & 0xFFFF < 2 * _LINK_GUARD:
+            x = (self.seq + _LINK_GUARD) & 0xFFFF
+        return x
+
+    def _next_link_seq(self) -> int:
+        x = self._link_candidate()
+        self.link_seq = (x + 1) & 0xFFFF
+        return x
 
 
     def _life_totals(self) -> Counter[str]:
@@ -258,7 +283,8 @@ class Firmware:
         c.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
                  acks_dropped=self.radio.acks_dropped,
                  bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
-                 neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed)
+                 neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed,
+                 copies_forgotten=self.seen.forgotten)
         return c
 
     def power_off(self) -> None:
@@ -321,9 +347,9 @@ class Firmware:
             return False
         src, _, f = got
         if f.flags & _ACK:
-            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_seq()), self.me, src),
+            self.radio.send_ack(build(own(LinkAck(f.origin, f.seq), self.me, self._next_link_seq()), self.me, src),
                                 self.config.cells, tick)
-        if self.router.child_sent(src):
+        if self.router.child_sent(src):  # our parent sent it: a loop of two, broken now
             self.counters["loops_broken"] += 1
             self.trickle.reset(tick)
         elif self.router.inconsistent(src):
@@ -338,9 +364,9 @@ class Firmware:
                 if g is None:
                     self.counters["rx_bad_bundle"] += 1
                 else:
-                    self._upward(g[2], tick)
+                    self._upward(g[2], tick, src)
         else:
-            self._upward(f, tick)
+            self._upward(f, tick, src)
         return True
 
     def _receive_parsed(self, data: bytes, tick: int, sof: int) -> bool:
@@ -399,9 +425,9 @@ class Firmware:
                       self.clock.stamp(self.crystal.local(tick)))
 
     def _send_beacon(self, tick: int) -> None:
-        # The seq comes from a counter of its own: a beacon never reaches the host, and a
-        # number it took from the frames' sequence would look lost there (health's loss).
-        frame = Frame(self.me, ADDR_BROADCAST, self.me, self._next_seq(), self._beacon_message(tick))
+        # The seq comes from the link numbering: a beacon never reaches the host, and a
+        # number it took from the host's numbering would look lost there (health's loss).
+        frame = Frame(self.me, ADDR_BROADCAST, self.me, self._next_link_seq(), self._beacon_message(tick))
         self.link.broadcast(encode(frame))
         self.counters["beacons"] += 1
 
@@ -417,31 +443,50 @@ class Firmware:
         return encode(Frame(f.src, f.dst, f.origin, f.seq, self._beacon_message(tick), f.hops, f.cost, f.flags))
 
     # -- upward traffic -------------------------------------------------------------
-    def _upward(self, f: Raw, tick: int) -> None:
+    def _upward(self, f: Raw, tick: int, src: int = -1) -> None:
+        """Forward an upward frame that neighbour ``src`` sent us."""
         if f.origin == self.me:
             # our own frame came back (a parent change raced with a neighbour's): send it on
-            # once more; the duplicate filter stops a second return
+            # once more; the copy filter stops a second return
             self.counters["own_returned"] += 1
-        key = (f.origin, f.seq)
-        hello = f.type == _HELLO
-        if self.seen.is_duplicate(f.origin, f.seq, hello, _hello_boots(f) if hello else None):
+        boot = _hello_boots(f) if f.type == _HELLO else None
+        first = self.seen.first(f.origin, f.seq, f.hops, tick, boot)
+        if first is not None:
             self.counters["duplicates"] += 1
-            first = self.hops_seen.get(key)
-            if first is not None and f.hops >= first + _LOOP_MIN_HOPS and not self.config.gateway:
+            if f.hops >= first + _LOOP_MIN_HOPS and not self.config.gateway:
                 # the same frame again with at least three hops more: it went round a loop
                 # through us (a copy only one or two hops longer took a detour: see _LOOP_MIN_HOPS)
                 self.counters["loops_detected"] += 1
                 self.router.loop_detected()
                 self.trickle.reset(tick)
                 self._reroute(tick)
+                self._loop_return(f, tick)
+            elif f.hops > first and self.link.handed.get((f.origin, f.seq)) == src and not self.config.gateway:
+                # back from the neighbour that acknowledged it: round a loop of two (which
+                # Router.child_sent breaks), not a detour's copy (that comes from elsewhere)
+                self._loop_return(f, tick)
             return
-        self.hops_seen[key] = f.hops
-        if len(self.hops_seen) > _HOPS_MEMORY:
-            self.hops_seen.popitem(last=False)
         if f.hops + 1 > self.config.max_hops:
             self.counters["loop_drops"] += 1
             return
         self.counters["forwarded"] += 1
+        self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
+
+    def _loop_return(self, f: Raw, tick: int) -> None:
+        """Send a frame that came back round a loop on once more, on the route chosen now.
+
+        It is the frame's only copy: we handed it on with an acknowledgement and it went
+        round instead of up (routes churn while a skin reboots after a broadcast RESET, and
+        a boot's HELLO lost this way left the host unaware of the restart). CTP does the
+        same (a looping packet is no duplicate). It goes on only once we have a parent again
+        (else the loop would take it straight back: it waits in the queue like any frame),
+        and the copy filter now holds its new hop count, so a second return needs another
+        full loop; ``max_hops`` ends any circling."""
+        self.seen.remember(f.origin, f.seq, f.hops, tick)
+        if f.hops + 1 > self.config.max_hops:
+            self.counters["loop_drops"] += 1
+            return
+        self.counters["loop_returns_forwarded"] += 1
         self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
 
     def _say_hello(self) -> None:
@@ -540,11 +585,11 @@ class Firmware:
         r = self.router
         p = r.table.get(r.parent) if r.parent is not None else None
         if p is not None:
-            out, used = self.link.advance(tick, p.id, self.seq, int(round(p.link_etx)), r.table)
+            out, used = self.link.advance(tick, p.id, self._link_candidate(), int(round(p.link_etx)), r.table)
         else:
-            out, used = self.link.advance(tick, None, self.seq, PERFECT_LINK, r.table)
-        if used:
-            self._next_seq()
+            out, used = self.link.advance(tick, None, self._link_candidate(), PERFECT_LINK, r.table)
+        if used:  # a bundle took the link number
+            self._next_link_seq()
         if self.link.results:
             for nbr, attempts, ok in self.link.results:
                 self.router.on_link_result(nbr, attempts, ok, tick)

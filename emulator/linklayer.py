@@ -24,7 +24,7 @@ never acknowledged.
 
 from __future__ import annotations
 
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Container
 from dataclasses import dataclass
 
@@ -35,6 +35,7 @@ from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Flags, FrameType
 
 _ACK = int(Flags.ACK_REQUEST)
 _BUNDLE = int(FrameType.BUNDLE)
+_HANDED_MEMORY = 512  # frames whose acknowledging neighbour is kept
 _BUNDLE_OVERHEAD = HEADER_LEN + CRC_LEN + 3  # header, CRC, msgpack array header (<= 3 bytes)
 
 
@@ -60,6 +61,9 @@ class LinkLayer:
         self.queue_len = queue_len
         self.max_retries = max_retries
         self.queue: deque[Raw] = deque()
+        #: (origin, seq) -> the neighbour that acknowledged it, for the last frames handed on:
+        #: a copy coming back from that neighbour went round a loop, not up
+        self.handed: OrderedDict[tuple[int, int], int] = OrderedDict()
         self.broadcasts: deque[bytes] = deque()
         self.inflight: _InFlight | None = None
         c = radio.config
@@ -104,6 +108,10 @@ class LinkLayer:
             self.extra_wait -= self.extra_wait // 16
         self.results.append((f.next_hop, f.attempts, True))
         self.counters["frames_acked"] += len(f.frames)
+        for x in f.frames:
+            self.handed[(x.origin, x.seq)] = f.next_hop
+        while len(self.handed) > _HANDED_MEMORY:
+            self.handed.popitem(last=False)
         if self._rounds:
             for x in f.frames:
                 self._rounds.pop((x.origin, x.seq), None)

@@ -103,12 +103,15 @@ class MeshClock:
         # a root before it becomes one (a skin that boots together has one root at once)
         self._heard = boot_local - (config.root_timeout - config.boot_listen if eligible_root else 0)
         self._outliers = 0
+        # the root given up last, the newest round taken from it, and until when (local)
+        # beacons of neighbours that have not timed out yet may still carry its rounds
+        self._gone: tuple[int, int, int] | None = None
         # fit: global = local + offset + skew * (local - x0)
         self._x0 = 0
         self._offset = 0.0
         self._skew = 0.0
         self.counters = {"time_points": 0, "time_outliers": 0, "time_resyncs": 0, "root_changes": 0,
-                         "time_ignored": 0}
+                         "time_ignored": 0, "time_echoes": 0}
 
     # -- the estimate -----------------------------------------------------------------
     @property
@@ -159,9 +162,19 @@ class MeshClock:
     def heard(self, t: MeshTime, local: int) -> bool:
         """A beacon's time, its start of frame stamped ``local`` here; True when taken."""
         c = self.counters
+        gone = self._gone
+        if gone is not None and t.root == gone[0] and not _newer(t.seq, gone[1]) and local <= gone[2]:
+            # an echo of the root this bridge gave up: a neighbour that has not timed out
+            # yet still passes its last rounds on. Following it again (a gateway that just
+            # took over cleared its table for it, then ran on its bare crystal: 7 µs/s off)
+            # would bring back a root that is gone. Only for ``root_timeout`` after giving it
+            # up (every neighbour has timed out by then): a root that rebooted numbers its
+            # rounds from 1 again, and must be heard.
+            c["time_echoes"] += 1
+            return False
         if self.is_root:
-            if t.root < self.me:  # a lower-id root: follow it, with a fresh table
-                self._follow(t.root)
+            if t.root < self.me:  # a lower-id root: follow it
+                self._follow(t, local)
                 return self._take(t, local)
             c["time_ignored"] += 1
             return False
@@ -170,8 +183,8 @@ class MeshClock:
             # root's time on: the table stays, an outlier check guards it)
             self.root = t.root
             return self._take(t, local)
-        if t.root < self.root:  # another skin's root, lower: its time is not ours
-            self._follow(t.root)
+        if t.root < self.root:  # a lower root: back after a failover, or another skin's
+            self._follow(t, local)
             return self._take(t, local)
         if t.root == self.root and _newer(t.seq, self.seq):
             return self._take(t, local)
@@ -183,6 +196,8 @@ class MeshClock:
         gateway then becomes the root, carrying on its own estimate of global time."""
         if self.is_root or local - self._heard <= self.config.root_timeout:
             return
+        if self.root is not None:
+            self._gone = (self.root, self.seq, local + self.config.root_timeout)
         if self.eligible_root:
             # Freeze the fit: the root's global time is its estimate as it was, so the skin's
             # time carries on instead of jumping to this bridge's own counter.
@@ -198,10 +213,17 @@ class MeshClock:
         return self._heard + self.config.root_timeout + 1
 
     # -- internals ----------------------------------------------------------------------
-    def _follow(self, root: int) -> None:
+    def _follow(self, t: MeshTime, local: int) -> None:
+        """Follow the lower root of ``t``. Its time is the skin's when it agrees with this
+        bridge's fit within ``throwout`` (the root gateway back after a failover or a cut:
+        the gateway that took over carried its time on): the table stays, so the skin's
+        time neither jumps nor loses its measured skew (a cleared table left every bridge
+        unsynced for a round, its samples off mesh time, then on one point and a bare
+        crystal: 27 µs off). Another skin's time starts the table again."""
         self.counters["root_changes"] += 1
-        self.root = root
-        self._clear()
+        self.root = t.root
+        if len(self._points) < self.config.min_points or abs(self.global_at(local) - t.time) > self.config.throwout:
+            self._clear()
 
     def _clear(self) -> None:
         self._points.clear()

@@ -6,6 +6,7 @@ in bridge emulators, in virtual-time simulations and in the host daemon.
 ``docs/protocol.md`` is the specification.
 """
 
+from cellbridge.protocol.copies import RecentFrames
 from cellbridge.protocol.crc import CRC_CHECK, crc16
 from cellbridge.protocol.dedupe import DuplicateFilter
 from cellbridge.protocol.errors import ProtocolError
@@ -54,7 +55,7 @@ __all__ = [
     "CRC_CHECK",
     "Beacon", "BridgeStatus", "Bundle", "Command", "CommandReply", "Data", "DuplicateFilter",
     "Flags", "Fragment", "Frame", "FrameType", "Hello", "HostReceiver", "LinkAck", "MeshTime", "Message", "Mode",
-    "Neighbour", "Op", "ProtocolError", "Reassembler", "Sample", "SampleFlags", "Status",
+    "Neighbour", "Op", "ProtocolError", "Reassembler", "RecentFrames", "Sample", "SampleFlags", "Status",
     "Raw", "StreamDecoder", "addressed_to", "crc16", "decode", "encode", "encode_stream", "fragment", "own",
     "peek", "reframe", "to_serial", "unpack_payload",
 ]

@@ -1,4 +1,8 @@
-"""Duplicate filter over (origin, seq).
+"""Duplicate filter over (origin, seq): the host's.
+
+(A relay catches copies by time instead: :mod:`cellbridge.protocol.copies`. A restart's
+HELLO reaches only the relays on its path, and a numbering window elsewhere would take
+the new boot's frames for the last boot's.)
 
 Frames reach the host twice when a link ACK is lost and the hop retransmits, or
 when two gateways both hear a bridge (one path may run far behind the other). The

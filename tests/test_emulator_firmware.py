@@ -408,12 +408,6 @@ def test_event_reporting_with_threshold_0_sends_every_change_only() -> None:
     assert ReportingMode.from_value(0).periodic and ReportingMode.from_value(0).to_value() == 0
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "known open defect since mesh time (issue 13): after a broadcast RESET of a 6x6 skin the reset "
-    "HELLO 0 of a few far bridges (28, 30, 35 here) is handed on, acknowledged, into a transient routing "
-    "loop (29->23->24->30->29, 29->30->29) and the relay it comes back to drops it as a duplicate: the "
-    "frame's only copy. Forwarding a returned copy again fixes this test but moved the mesh-time error "
-    "of test_after_the_root_gateway_dies_the_other_gateway_carries_the_time_on past its bound"))
 def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
     # A bridge resets once its reply and its copies of the command have left (at most
     # 3 s later), not after a fixed 50 ms: relays that reset at once threw away the

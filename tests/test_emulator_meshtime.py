@@ -103,6 +103,39 @@ def test_a_gateway_becomes_root_after_the_timeout_and_carries_the_time_on() -> N
     assert gw.global_at(me.local(int(2.5 * CLOCK_HZ))) == before
 
 
+def test_a_gateway_that_took_over_ignores_the_dead_roots_echoes() -> None:
+    # A neighbour that has not timed out yet still passes the dead root's last round on.
+    # The new root took that beacon for "a lower root appears", followed the dead root
+    # with a cleared table and ran on its bare crystal: 40 ppm off, 40 us a second.
+    cfg = MeshClockConfig()
+    root, me = Crystal(40.0, 10**10), Crystal(-40.0)
+    gw = MeshClock(7, True, cfg, boot_local=0)
+    _feed(gw, root, me, [int(i * 0.5 * CLOCK_HZ) for i in range(1, 6)], seq0=20, root_id=1)  # rounds 20..24
+    late = int(2.5 * CLOCK_HZ) + cfg.root_timeout + 10_000
+    gw.tick(me.local(late))
+    assert gw.is_root
+    for seq in (24, 23):  # the last round taken, or an older one: an echo of the dead root
+        t = late + CLOCK_HZ // 10
+        assert not gw.heard(MeshTime(1, seq, root.local(t) - 30 * US), me.local(t))
+    assert gw.is_root and gw.counters["time_echoes"] == 2
+    t = late + 2 * CLOCK_HZ
+    assert abs(gw.global_at(me.local(t)) - root.local(t)) < 5 * US  # still on the skin's time
+    # a bridge that gave the root up (no gateway) takes no echo for its next root either
+    br = MeshClock(9, False, cfg)
+    _feed(br, root, me, [int(i * 0.5 * CLOCK_HZ) for i in range(1, 6)], seq0=20, root_id=1)
+    br.tick(me.local(late))
+    assert br.root is None
+    assert not br.heard(MeshTime(1, 24, root.local(late)), me.local(late)) and br.root is None
+    assert br.heard(MeshTime(7, 25, root.local(late + 1000)), me.local(late + 1000)) and br.root == 7
+    # once every neighbour has timed out, the old root's rounds are its own again: a root
+    # gateway that rebooted numbers them from 1 and must be heard
+    br2 = MeshClock(9, False, cfg)
+    _feed(br2, root, me, [int(i * 0.5 * CLOCK_HZ) for i in range(1, 6)], seq0=20, root_id=1)
+    br2.tick(me.local(late))
+    t = late + cfg.root_timeout + CLOCK_HZ // 10
+    assert br2.heard(MeshTime(1, 2, root.local(t)), me.local(t)) and br2.root == 1
+
+
 def test_a_bridge_without_points_for_stale_after_flags_its_samples() -> None:
     root, me = Crystal(0.0), Crystal(0.0)
     clock = MeshClock(5, False)
@@ -231,4 +264,46 @@ def test_after_the_root_gateway_dies_the_other_gateway_carries_the_time_on() -> 
         errs = _errors(vm, 16)
         assert len(errs) == 14 and max(errs.values()) <= 10.0, errs
     # no bridge restarted its table: the skin's time went on without a jump
+    assert sum(fw.clock.counters["time_resyncs"] for fw in vm.nodes.values()) == 0
+
+
+@pytest.mark.parametrize("how", ["cut", "restart"])
+def test_the_root_gateway_back_after_a_failover_leaves_the_skin_time_unmoved(how: str) -> None:
+    # Gateway 1 (the root) is cut off or powered off at 8 s; gateway 16 takes the skin's
+    # time on. At 12 s gateway 1 is back: cut off, it stayed a root and its rounds name a
+    # lower root than 16; restarted, it boots into a skin that has a root and follows it.
+    # Either way the skin's time goes on the line it was on: no bridge jumps by more than
+    # the sync bounds, none loses mesh time (a cleared table left bridges unsynced for a
+    # round, their samples off mesh time, then on one point and a bare crystal: 27 us off).
+    mesh = meshgen.grid(4, 4, gateways=(1, 16))
+    vm = VirtualMesh(mesh, seed=4, random_epochs=True)
+    if how == "cut":
+        for c in next(b for b in mesh.bridges if b.id == 1).cells:
+            vm.cut(c, at=8.0)
+            vm.at(12.0, lambda c=c: vm.medium.restore_cell(c))
+    else:
+        vm.kill(1, at=8.0)
+        vm.restart(1, at=12.0)
+    vm.run(11.5)
+    g16 = vm.nodes[16]
+    assert g16.clock.is_root
+    # the skin's time while 16 is root: a line in true time (its fit is frozen)
+    t1, y1 = vm.tick, g16.clock.global_at(g16.crystal.local(vm.tick))
+    vm.run(0.4)
+    t2, y2 = vm.tick, g16.clock.global_at(g16.crystal.local(vm.tick))
+    hops = _hops(mesh, 16)
+    for _ in range(60):
+        vm.run(0.1)
+        line = y1 + (y2 - y1) / (t2 - t1) * (vm.tick - t1)
+        for b, fw in vm.nodes.items():
+            local = fw.crystal.local(vm.tick)
+            if b == 1:
+                continue  # its own time until it hears the skin (restart), or the root's (cut)
+            assert fw.clock.synced(local), (b, vm.tick / CLOCK_HZ)
+            e = abs(fw.clock.global_at(local) - line) / US
+            assert e <= bound(hops[b]) + bound(hops[1]), (b, e)
+    root = 1 if how == "cut" else 16  # a restarted gateway follows the root it finds
+    assert all(fw.clock.root == root for fw in vm.nodes.values())
+    errs = _errors(vm, root)
+    assert len(errs) == 15 and all(e <= bound(_hops(mesh, root)[b]) for b, e in errs.items()), errs
     assert sum(fw.clock.counters["time_resyncs"] for fw in vm.nodes.values()) == 0

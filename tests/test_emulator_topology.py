@@ -188,12 +188,6 @@ def test_same_seed_same_run_other_seed_other_run() -> None:
     assert stream(1) != stream(2)
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "known open defect (issue 13, boot identity): a bridge that restarts, sends its boot HELLO up one "
-    "path and then switches to a gateway that never saw it loses ~0.9 s of samples there: that "
-    "gateway's duplicate filter takes the new boot's low numbers for the old boot's until they pass "
-    "them. Repeating HELLO 0 to each new parent while the boot is young fixes this test and keeps the "
-    "emulator tests green, but breaks tests/test_demo.py (the real-time demo reports no contact)"))
 def test_samples_survive_a_restart_then_a_move_to_the_other_gateway() -> None:
     # Bridge 2 restarts while routed to gateway 1, then gateway 1 dies and it moves to
     # gateway 5, which never saw its restart HELLO: samples() must not take its new

@@ -3,8 +3,6 @@ forged or corrupted beacons, clocks at their limits. Each test is a defect once 
 
 from __future__ import annotations
 
-import pytest
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
@@ -14,10 +12,6 @@ CORNER = (0.0585, 0.0625)  # across the corner of bridges 6, 7, 10 and 11 of a 4
 UNDER = (6, 7, 10, 11)
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "known open defect (issue 13, boot identity): a restarted bridge whose HELLO went to one parent and "
-    "whose next frames go to another is silenced by that relay's duplicate filter until its numbering "
-    "passes the last boot's; the HELLO repeated on a young boot's new path fixed it but broke the demo"))
 def test_bridges_reset_under_a_press_deliver_again_within_a_second() -> None:
     """The four bridges under a held press reset at 5 s. A restarted bridge whose HELLO went
     to one parent and whose next frames go to another was silenced by that relay's duplicate

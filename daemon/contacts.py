@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from cellbridge.daemon.config import ContactSection
 from cellbridge.daemon.elements import default_params
 from cellbridge.tactile import (
     ContactEstimator,
@@ -54,10 +55,10 @@ class ContactSpec:
     max_missed: int = 2
 
     @classmethod
-    def of(cls, layout: SkinLayout, noise: float, contact: dict[str, Any]) -> ContactSpec:
+    def of(cls, layout: SkinLayout, noise: float, contact: ContactSection) -> ContactSpec:
         return cls(tuple(int(i) for i in layout.ids), tuple((float(x), float(y)) for x, y in layout.centres),
-                   layout.side, float(layout.neighbour_gap), noise, contact["method"],  # type: ignore[arg-type]
-                   contact["birth_frames"], contact["max_missed"])
+                   layout.side, float(layout.neighbour_gap), noise, contact.method,  # type: ignore[arg-type]
+                   contact.birth_frames, contact.max_missed)
 
     def build(self) -> ContactStage:
         layout = SkinLayout(np.array(self.centres), side=self.side, ids=np.array(self.ids),

@@ -14,6 +14,7 @@ import math
 from typing import Any
 
 import numpy as np
+from cellbridge.daemon.config import CalibrationSection, Config, ContactSection, InverseSection
 from cellbridge.daemon.contacts import ContactSnapshot, ContactSpec
 from cellbridge.daemon.elements import ElementStage, calibration_config, default_params
 from cellbridge.daemon.health import ChannelHealth
@@ -24,11 +25,16 @@ from numpy.typing import NDArray
 _IDS = 0x10000
 
 
-class LayoutStages:
-    """The layout and its stages; see the module's docstring. ``sections``: the config's."""
+def skin_settings(config: Config) -> tuple[CalibrationSection, InverseSection, ContactSection]:
+    """The settings :class:`LayoutStages` builds its stages from (a change rebuilds them)."""
+    return config.calibration, config.inverse, config.contact
 
-    def __init__(self, sections: dict[str, dict[str, Any]], layout: SkinLayout | None) -> None:
-        self.sections = sections
+
+class LayoutStages:
+    """The layout and its stages; see the module's docstring. ``config``: the daemon's."""
+
+    def __init__(self, config: Config, layout: SkinLayout | None) -> None:
+        self.config = config
         self.from_file = layout is not None
         self.geometry: dict[int, tuple[float, float, float]] = {}  # HELLO: bridge -> (x, y, side)
         self.rejected: list[int] = []
@@ -46,18 +52,18 @@ class LayoutStages:
     def _install(self, layout: SkinLayout) -> None:
         old_layout, old_elements, old_channels = self.layout, self.elements, self.channels
         params = default_params(layout)
-        inv = self.sections["inverse"]
+        inv = self.config.inverse
         self.layout = layout
-        cal = self.sections["calibration"]
-        self.elements = ElementStage(layout, params, calibration_config(cal), inv["noise"], cal["max_step_rate"])
-        self.contact_spec = ContactSpec.of(layout, inv["noise"], self.sections["contact"])
+        cal = self.config.calibration
+        self.elements = ElementStage(layout, params, calibration_config(cal), inv.noise, cal.max_step_rate)
+        self.contact_spec = ContactSpec.of(layout, inv.noise, self.config.contact)
         self.channels = ChannelHealth(layout.n)
         self.row[:] = -1
         ids = layout.ids
         inside = (ids >= 0) & (ids < _IDS)
         self.row[ids[inside]] = np.nonzero(inside)[0]
-        con = self.sections["contact"]  # memory in readings: max_lag reaches back at most max_lag_readings
-        depth = min(math.ceil(con["max_lag"] * cal["max_step_rate"]), con["max_lag_readings"]) + SPARE
+        con = self.config.contact  # memory in readings: max_lag reaches back at most max_lag_readings
+        depth = min(math.ceil(con.max_lag * cal.max_step_rate), con.max_lag_readings) + SPARE
         self.moments = Moments(layout.n, depth)
         self.rebuilds += 1
         if old_layout is not None and old_elements is not None and old_layout.side == layout.side:
@@ -124,8 +130,8 @@ class LayoutStages:
             return None
         m = self.moments
         m.settle(self.elements.flush(now), self.elements.touched)
-        c = self.sections["contact"]
-        got = m.take(now, bridge_timeout, c["max_lag"], force=self.dirty, held_wait=c["held_wait"])
+        c = self.config.contact
+        got = m.take(now, bridge_timeout, c.max_lag, force=self.dirty, held_wait=c.held_wait)
         if got is None:
             return None
         self.dirty = False

@@ -33,7 +33,7 @@ from cellbridge.daemon.contacts import ContactJob
 from cellbridge.daemon.elements import default_params
 from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
-from cellbridge.daemon.layout import LayoutStages, layout_dict
+from cellbridge.daemon.layout import LayoutStages, layout_dict, skin_settings
 from cellbridge.daemon.messages import (
     ContactFrame,
     ElementBatch,
@@ -59,7 +59,6 @@ _FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at
 # ~65 536 passes CRC-16 with a random origin, so a noisy line makes thousands of phantoms; each
 # would cost ~240 bytes in every health message (15 MB at 65 530) until forgotten.
 _UNPLACED_SHOWN = 64
-_SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
 _OWNERS = itertools.count()
 _P = TypeVar("_P", bound=Publish)
 
@@ -85,13 +84,12 @@ class Pipeline:
     def __init__(self, config: Config, layout: SkinLayout | None = None) -> None:
         self.config = config
         self._owner = f"{os.getpid()}.{next(_OWNERS)}"  # whose tracks a contact job continues
-        s = config.sections
-        self.ingress = Ingress(s["protocol"]["dedupe_window"], s["protocol"]["reassembly_timeout"])
-        self.chip = chip_params(s["chip"])
+        self.ingress = Ingress(config.protocol.dedupe_window, config.protocol.reassembly_timeout)
+        self.chip = chip_params(config.chip)
         self.frontend = Frontend(default_params(layout) if layout is not None else ElementParams(), self.chip)
-        self.skin = LayoutStages(s, layout)
+        self.skin = LayoutStages(config, layout)
         self.gate = np.full(0x10000, float(self.chip.gate_cycles))
-        self._bits = s["chip"]["cycle_bits"]
+        self._bits = config.chip.cycle_bits
         # Each bridge's clock parameters, indexed by bridge id, so a batch maps in one vector step.
         self._ref = np.zeros(0x10000, dtype=np.uint64)
         self._t_ref = np.full(0x10000, np.nan)
@@ -162,7 +160,7 @@ class Pipeline:
         c = self.clocks.get(bid)
         if c is None:
             hz = self.bridges[bid].clock_hz if bid in self.bridges else self.chip.clock_hz
-            c = self.clocks[bid] = BridgeClock(hz, bits=self.config["chip"]["cycle_bits"])
+            c = self.clocks[bid] = BridgeClock(hz, bits=self.config.chip.cycle_bits)
         return c
 
     # -- ingest -------------------------------------------------------------------------
@@ -337,9 +335,9 @@ class Pipeline:
         :class:`~cellbridge.daemon.contact_worker.ContactWorker` (any executor) and pass
         the contacts to :meth:`contact_frame`. ``now``: the host time (default: the last
         read's); a shell passes it also when no data comes, so that silence is noticed."""
-        if not self.config["contact"]["enabled"] or not self._want("contact"):
+        if not self.config.contact.enabled or not self._want("contact"):
             return None
-        snap = self.skin.snapshot(self.last_feed if now is None else now, self.config["health"]["bridge_timeout"])
+        snap = self.skin.snapshot(self.last_feed if now is None else now, self.config.health.bridge_timeout)
         if snap is None or self.skin.contact_spec is None:
             return None
         return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id)
@@ -378,13 +376,13 @@ class Pipeline:
         ``health.interval`` (or now, if ``force``), ``topology`` when it changed, and log
         events (bridges gone silent or back, the host clock stepping back: a ``now``
         before the last tick's is taken as such a step)."""
-        h = self.config["health"]
+        h = self.config.health
         if now < self._last_tick:
             self._clock_stepped_back(now)
         self._last_tick = now
         if now < self._next_health and not force:
             return self._drain_log([])
-        interval = h["interval"]
+        interval = h.interval
         self._next_health = now + interval
         # Over the time since the health before (often more than the interval), not the interval.
         elapsed = now - self._last_health if 0 < now - self._last_health < math.inf else interval
@@ -393,13 +391,13 @@ class Pipeline:
         for bid, b in self.bridges.items():
             b.rate = (b.samples - b._samples_at_tick) / elapsed
             b._samples_at_tick = b.samples
-            silent = now - b.last_seen > h["bridge_timeout"]
+            silent = now - b.last_seen > h.bridge_timeout
             if silent and not b.silent:
                 self._event("warning", f"no data from bridge {bid} for {now - b.last_seen:.1f} s")
             elif b.silent and not silent:
                 self._event("info", f"bridge {bid} is back")
             b.silent = silent
-        self._forget(now - h["forget_after"])
+        self._forget(now - h.forget_after)
         out: list[Message] = []
         if self._want("health"):
             out.append(self._message(Health, now, self.health_body(now)))
@@ -435,8 +433,8 @@ class Pipeline:
 
     def health_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
-        h = self.config["health"]
-        layout_report = self.skin.report(now, h["stuck_after"])
+        h = self.config.health
+        layout_report = self.skin.report(now, h.stuck_after)
         placed = self.skin.placed
         unplaced = sorted(b for b, bh in self.bridges.items() if bh.unmapped_samples and not placed(b))
         # Every placed bridge is reported; of the others (phantoms, strangers, bridges not yet
@@ -470,7 +468,7 @@ class Pipeline:
 
     def topology_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``topology`` message at ``now`` (control's ``topology`` answers with them)."""
-        body = self.topology.report(now, self.config["health"]["bridge_timeout"])
+        body = self.topology.report(now, self.config.health.bridge_timeout)
         for node in body["bridges"].values():
             node["last_seen"] = self._wall(node["last_seen"])
         body["t_bridge"] = None
@@ -515,11 +513,11 @@ class Pipeline:
         sk = self.skin
         same_layout = (layout is None and not sk.from_file) or (
             layout is not None and sk.from_file and sk.layout is not None and layout_dict(layout) == layout_dict(sk.layout))
-        if same_layout and all(old[s] == config[s] for s in _SKIN_SECTIONS):
-            sk.sections = config.sections
+        if same_layout and skin_settings(old) == skin_settings(config):
+            sk.config = config
             return
         geometry = self.skin.geometry
-        self.skin = LayoutStages(config.sections, layout)
+        self.skin = LayoutStages(config, layout)
         self.skin.hello(geometry)
 
     # -- links and subscribers --------------------------------------------------------------

@@ -429,10 +429,10 @@ def test_a_reload_that_changes_nothing_of_the_skin_keeps_a_held_press() -> None:
     el = topic(press(p, sk, STRADDLE, 120, 40), "element")
     assert el["touched"] == [True, True, False, False]
     assert el["force"][0] + el["force"][1] == pytest.approx(3.0, rel=0.05)
-    assert p.config["health"]["interval"] == 3.0 and p.skin.rebuilds == 1
+    assert p.config.health.interval == 3.0 and p.skin.rebuilds == 1
     p.reconfigure(make({"calibration": {"n_baseline": 20}}).config, None)
     assert p.skin.rebuilds == 1 and p.skin.layout is not None  # a new Skin, built from the HELLO geometry
-    assert p.skin.sections["calibration"]["n_baseline"] == 20
+    assert p.skin.config.calibration.n_baseline == 20
     assert topic(press(p, sk, STRADDLE, 160, 5), "element")["touched"] == [False, False, False, False]
 
 
@@ -517,7 +517,7 @@ def test_frames_of_one_press_arriving_staggered_give_one_steady_contact(max_dela
         p.feed("gw", data, now)
         if now < next_estimate:  # the service's pace: [contact] rate estimates a second
             continue
-        next_estimate = now + 1.0 / p.config["contact"]["rate"]
+        next_estimate = now + 1.0 / p.config.contact.rate
         job = p.contact_job()
         if job is None:
             continue

@@ -204,7 +204,7 @@ def _sub(ctx: zmq.asyncio.Context, svc: Service, *topics: str) -> zmq.asyncio.So
     s = ctx.socket(zmq.SUB)
     for t in topics:
         s.setsockopt(zmq.SUBSCRIBE, t.encode())
-    s.connect(svc.config["pub"]["endpoint"])
+    s.connect(svc.config.pub.endpoint)
     return s
 
 
@@ -227,7 +227,7 @@ def test_sighup_reloads_the_config_and_sigterm_drains_to_a_last_health(tmp_path:
             os.kill(os.getpid(), signal.SIGHUP)
             hooks: RecordingHooks = svc.hooks  # type: ignore[assignment]
             await until(lambda: ("ready", "reloaded") in hooks.said)
-            assert svc.config["health"]["interval"] == 0.25
+            assert svc.config.health.interval == 0.25
             await until(lambda: svc.pipeline.health_body(0.0)["bridges"].get("4", {}).get("samples", 0) == 20)
             os.kill(os.getpid(), signal.SIGTERM)
             assert await asyncio.wait_for(svc.task, 20.0) == 0  # type: ignore[attr-defined]
@@ -251,7 +251,7 @@ def test_a_control_command_to_a_bridge_that_never_answers_times_out(tmp_path: Pa
             dev.send(sk.hellos())
             await until(lambda: "2" in svc.pipeline.health_body(0.0)["bridges"])
             ctl = ctx.socket(zmq.DEALER)
-            ctl.connect(svc.config["control"]["endpoint"])
+            ctl.connect(svc.config.control.endpoint)
             await ctl.send_multipart([b"", msgpack.packb({"v": 1, "cmd": "ping", "bridge": 2, "timeout": 0.05,
                                                          "id": 7})])
             frames = await asyncio.wait_for(ctl.recv_multipart(), 5.0)

@@ -208,7 +208,10 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="shorter runs (figures less steady)")
     ap.add_argument("--only", choices=("recorder", "roundtrip", "proxy"), help="one part only (recorder: and replay)")
     args = ap.parse_args()
-    part = (lambda name: args.only in (None, name))
+
+    def part(name: str) -> bool:
+        return args.only in (None, name)
+
     seconds = 10.0 if args.quick else 30.0
     with tempfile.TemporaryDirectory(prefix="bench-recording-") as d:
         tmp = Path(d)

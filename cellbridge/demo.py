@@ -121,7 +121,7 @@ def _wait_gateway(proc: subprocess.Popen[str]) -> str:
         parts = line.split()
         if len(parts) >= 3 and parts[0] == "gateway":
             return parts[2]
-    raise RuntimeError("'mesh up' named no gateway within %.0f s" % GATEWAY_TIMEOUT)
+    raise RuntimeError(f"'mesh up' named no gateway within {GATEWAY_TIMEOUT:.0f} s")
 
 
 def _warm_kernels() -> None:

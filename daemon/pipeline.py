@@ -205,7 +205,7 @@ class Pipeline:
             if b.clock_hz != h.clock_hz and h.clock_hz > 0:
                 b.clock_hz = float(h.clock_hz)
                 self.clocks.pop(origin, None)
-        for origin, src, bc in dec.beacons:
+        for origin, _src, bc in dec.beacons:
             self.topology.beacon(origin, bc.parent, bc.path_etx, bc.hops)
         for origin, st in dec.statuses:
             self.topology.status(origin, st.parent, st.path_etx, {n.bridge: n.link_etx for n in st.neighbours},

@@ -85,7 +85,7 @@ class ChipConfig:
             )
         # The transfer parameters check the rest (counter/ADC widths, crystal range).
         try:
-            self.transfer_params
+            _ = self.transfer_params
         except ValueError as exc:
             raise ValueError(f"ChipConfig: {exc}") from None
 

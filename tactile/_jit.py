@@ -14,7 +14,8 @@ warning says how to give it a cache (``NUMBA_CACHE_DIR``).
 from __future__ import annotations
 
 import warnings
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 from numba import njit
 

@@ -51,7 +51,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -71,8 +72,8 @@ __all__ = [
 
 def _is_count(v: object, minimum: int = 1) -> bool:
     """An integer (Python or numpy, never a bool) of at least ``minimum``."""
-    return (isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
-            and v >= minimum)
+    return bool(isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+                and v >= minimum)
 
 #: A reading this many times its channel's absolute touch threshold is in another
 #: unit (farads: 20 pF / 50 fF = 400; picofarads against farad thresholds: 4e14).

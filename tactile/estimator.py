@@ -21,7 +21,8 @@ per kind (one-disk, two-disk, fixed-diameter).
 from __future__ import annotations
 
 import math
-from typing import Literal, Sequence
+from typing import Literal
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -253,7 +254,7 @@ class ContactEstimator:
             t0 = np.column_stack([st[redo, :2], np.log(2 * st[redo, 2]),
                                   np.log([clusters[k].sigma0 * math.pi * st[k, 2] ** 2 for k in redo])])
             again = run.run(run.batch(sub), t0, free[redo], 1, True)
-            for j, k in enumerate(redo):
+            for j, k in enumerate(redo.tolist()):
                 if again.cost[j] < fits.cost[k]:
                     fits.take(k, again, j)
         # Measured on the uniform fit (the foam's saturation, not the tension, makes

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
@@ -14,7 +16,9 @@ from cellbridge.protocol import (
     SampleFlags,
     ADDR_BROADCAST, Command, CommandReply, Flags, Frame, FrameType, Mode, Op, Status,
 )
-from cellbridge.tactile import ElementParams, expected_counts
+
+if TYPE_CHECKING:
+    from cellbridge.emulator.linklayer import LinkLayer
 
 HOST = 0
 
@@ -416,7 +420,7 @@ def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
 
 # -- link layer and loop detection under message latency (real-time meshes) -------------
 
-def _link() -> "LinkLayer":
+def _link() -> LinkLayer:
     import random
 
     from cellbridge.emulator.linklayer import LinkLayer

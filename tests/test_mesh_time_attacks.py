@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from cellbridge.emulator import meshgen
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.virtual import VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data
 

@@ -35,7 +35,7 @@ from cellbridge.protocol import (
     encode,
     encode_stream,
 )
-from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
+from cellbridge.protocol.frame import CRC_LEN
 
 NO_MESH_TIME = SampleFlags.NO_MESH_TIME
 

@@ -187,7 +187,8 @@ def _summarise(args: argparse.Namespace, contacts: list[dict[str, Any]]) -> dict
         v = sorted(float(c[key]) for c in steady)
         return v[len(v) // 2]
 
-    got = {k: median(k) for k in ("x", "y", "force", "diameter", "centroid_x", "centroid_y", "sigma_x", "sigma_y")}
+    got: dict[str, Any] = {k: median(k) for k in ("x", "y", "force", "diameter", "centroid_x", "centroid_y",
+                                                  "sigma_x", "sigma_y")}
     got["observable"] = steady[-1].get("observable")
     out.update(reported=got, ids=sorted(set(ids)),
                position_error_mm=1e3 * math.hypot(got["x"] - args.x, got["y"] - args.y),
@@ -242,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
             config = work / "daemon.toml"
             config.write_text(f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n'
                               f'[daemon]\nlog_format = "text"\n\n[[link]]\nname = "gateway"\nurl = "{device}"\n')
-            ctx = zmq.Context.instance()
+            ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
             sub = ctx.socket(zmq.SUB)
             sub.setsockopt(zmq.LINGER, 0)
             for topic in (b"contact", b"health"):

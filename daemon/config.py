@@ -351,7 +351,8 @@ def _type_ok(value: Any, kind: type | tuple[type, ...]) -> bool:
 
 
 def _kind_name(kind: type | tuple[type, ...]) -> str:
-    return "a number" if kind == NUM else {bool: "true or false", int: "an integer", str: "a string"}[kind]
+    names: dict[type | tuple[type, ...], str] = {bool: "true or false", int: "an integer", str: "a string"}
+    return "a number" if kind == NUM else names[kind]
 
 
 def _table(where: str, raw: Mapping[str, Any], schema: dict[str, Key], problems: list[str]) -> dict[str, Any]:

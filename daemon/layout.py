@@ -174,7 +174,7 @@ class LayoutStages:
             late=ids[self.moments.late].tolist() if self.moments is not None else [],
             late_estimates=self.moments.late_estimates if self.moments is not None else 0,
         )
-        cal = self.elements.calibrator.health()
+        cal: dict[str, Any] = self.elements.calibrator.health()
         cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids
         out["calibration"] = cal
         return out

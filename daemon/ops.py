@@ -41,7 +41,7 @@ class OpsHooks:
         # The ZAP handler and the peer guard run on threads with blocking sockets: give
         # them a plain context that shares the asyncio context's libzmq context (ZAP and
         # inproc:// monitors are per context).
-        plain = zmq.Context.shadow(ctx.underlying)
+        plain: zmq.Context[zmq.Socket[bytes]] = zmq.Context.shadow(ctx.underlying)
         role = "pub" if socket.socket_type in (zmq.XPUB, zmq.PUB) else "control"
         peers = self.config.peers
         bound_socket(socket, role, peers, self.config.control)

@@ -27,7 +27,7 @@ import socket
 import struct
 import threading
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import zmq
@@ -213,7 +213,7 @@ class PeerGuard:
             for pair in by_socket:
                 pair.close(linger=0)
 
-    def _event(self, name: str, limits: PeerLimits, ev: dict[str, Any]) -> None:
+    def _event(self, name: str, limits: PeerLimits, ev: Mapping[str, Any]) -> None:
         kind, fd = ev["event"], ev["value"]
         if kind == zmq.EVENT_ACCEPTED:
             address = peer_address(fd)

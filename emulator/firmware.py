@@ -478,8 +478,8 @@ class Firmware:
             reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, self.crystal.local(tick), limit)
             self._own(reply)
             if new is not None:
-                for data in self.sampler.apply(new, tick):
-                    self._own(data)
+                for sample in self.sampler.apply(new, tick):
+                    self._own(sample)
             if reply.op.name == "RESET" and reply.status == 0 and self.reset_at < 0:
                 # reset once the reply has left (acknowledged by the next hop) and the
                 # command's flood copies are sent, so the host hears the RESET was taken

@@ -80,7 +80,7 @@ def recorder_cost(tmp: Path, capture: Path, seconds: float, extra: list[str], na
         if rec.returncode is None:
             os.killpg(rec.pid, signal.SIGKILL)
             rec.wait()
-    stats = json.loads(rec.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
+    stats = json.loads(rec.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]  # started with stderr=PIPE
     cpu = (usage.ru_utime + usage.ru_stime) / seconds
     mb_h = out.stat().st_size / 1e6 / seconds * 3600
     return 100 * cpu, mb_h, stats["messages"]
@@ -146,7 +146,7 @@ def replay_fast(tmp: Path, recording: Path) -> tuple[int, float, int]:
             sub.recv_multipart()
             got += 1
         proc.wait(60)
-        report = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
+        report = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]  # started with stderr=PIPE
     sub.close(0)
     ctx.term()
     return n, report["sent"] / report["seconds"], got

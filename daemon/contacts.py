@@ -57,7 +57,7 @@ class ContactSpec:
     @classmethod
     def of(cls, layout: SkinLayout, noise: float, contact: ContactSection) -> ContactSpec:
         return cls(tuple(int(i) for i in layout.ids), tuple((float(x), float(y)) for x, y in layout.centres),
-                   layout.side, float(layout.neighbour_gap), noise, contact.method,  # type: ignore[arg-type]
+                   layout.side, float(layout.neighbour_gap), noise, contact.method,  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
                    contact.birth_frames, contact.max_missed)
 
     def build(self) -> ContactStage:
@@ -122,7 +122,7 @@ class ContactStage:
     def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str,
                  birth_frames: int = 3, max_missed: int = 2) -> None:
         self.layout = layout
-        self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]
+        self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
         self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:

@@ -155,7 +155,7 @@ class ControlServer:
         if req.cmd == "ping" and req.bridge is None:
             return reply(True, req.id, pong=True, version=__version__, t_host=now, commands=COMMANDS)
         op, value = (int(PING), None) if req.cmd == "ping" else (req.op, req.value)
-        result = await self.command(op, value, req.bridge, timeout)  # type: ignore[arg-type]
+        result = await self.command(op, value, req.bridge, timeout)  # type: ignore[arg-type]  # a bridge command's op and value, checked by parse_request
         replies = result["replies"]
         ok = bool(replies) and not result["missing"] and all(r["status"] == "OK" for r in replies.values())
         if not ok:

@@ -146,7 +146,7 @@ class LayoutStages:
         if bridges is None:
             self.elements.tare(None)
             self.moments.forget(slice(None))
-            return self.layout.n  # type: ignore[union-attr]
+            return self.layout.n  # type: ignore[union-attr]  # elements exist only with a layout
         rows = self.row[np.asarray(bridges, dtype=np.int64)]
         rows = rows[rows >= 0]
         if rows.size:

@@ -211,7 +211,7 @@ class Pipeline:
             self.topology.status(origin, st.parent, st.path_etx, {n.bridge: n.link_etx for n in st.neighbours},
                                  st.queue_drops, st.retries, st.resets)
         if dec.hellos and self.skin.hello({o: (h.x, h.y, h.side) for o, h in dec.hellos}):
-            self._event("info", f"layout from HELLO now has {self.skin.layout.n} elements")  # type: ignore[union-attr]
+            self._event("info", f"layout from HELLO now has {self.skin.layout.n} elements")  # type: ignore[union-attr]  # hello() returned True: a layout is in place
             if self._want("topology"):
                 out.append(self._message(Topology, now, self.topology_body(now)))
         for origin, reply in dec.replies:
@@ -484,13 +484,13 @@ class Pipeline:
         if target is None:
             alive = {b for b, bh in self.bridges.items() if not bh.silent}
             pending = self.commands.start(op, value, alive, now, timeout)
-            data = command_bytes(ADDR_BROADCAST, pending.token, op, value)  # type: ignore[arg-type]
+            data = command_bytes(ADDR_BROADCAST, pending.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
             return pending, [LinkWrite(name, data) for name in self.links]
         links = self.topology.links_of(target)
         if not links:
             raise ValueError(f"bridge {target} has not been heard from on any link")
         pending = self.commands.start(op, value, {target}, now, timeout)
-        data = command_bytes(target, pending.token, op, value)  # type: ignore[arg-type]
+        data = command_bytes(target, pending.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
         return pending, [LinkWrite(name, data) for name in links]
 
     def finished_commands(self, now: float) -> list[Pending]:

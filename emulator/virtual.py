@@ -111,7 +111,7 @@ class MeshResult:
         for frames in self.gateway_frames.values():
             for f in frames:
                 if f.type is FrameType.DATA:
-                    for x in f.payload.samples:  # type: ignore[union-attr]
+                    for x in f.payload.samples:  # type: ignore[union-attr]  # a DATA frame's payload is a Data
                         key = (f.origin, x.element, x.cycle)
                         if key not in seen:
                             seen.add(key)
@@ -170,7 +170,7 @@ class VirtualMesh:
             kw.setdefault("clock_epoch", random.Random(self.seed * 131_071 + b).randrange(1 << 40))
         return FirmwareConfig(b, br.cells, br.gateway, br.position, self.mesh.side, settings=self.settings,
                               transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // self.mesh.bitrate),
-                              **kw)  # type: ignore[arg-type]
+                              **kw)  # type: ignore[arg-type]  # VirtualMesh's firmware keywords, checked by FirmwareConfig
 
     def _boot(self, b: int, tick: int) -> None:
         self.nodes[b] = Firmware(self._config(b), self._chip(b, self.seed), self.world.sense_for(b),

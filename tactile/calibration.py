@@ -389,7 +389,7 @@ class Calibrator:
             raise ValueError("time went backwards for an element")
         if self._thr is None:
             self.thresholds()
-        enter, leave = self._thr  # type: ignore[misc]
+        enter, leave = self._thr  # type: ignore[misc]  # thresholds() has just set _thr
         st = self._state
         _check_unit(v, sampled & (st == COLLECTING), self._enter)
         live = sampled & (st != COLLECTING)  # ready elements with a reading this step

@@ -378,4 +378,4 @@ def estimate_contacts(
     **options: object,
 ) -> list[Contact]:
     """One-shot :class:`ContactEstimator` (same keyword options)."""
-    return ContactEstimator(layout, params, **options).estimate(dC1, dC2, active)  # type: ignore[arg-type]
+    return ContactEstimator(layout, params, **options).estimate(dC1, dC2, active)  # type: ignore[arg-type]  # the options are ContactEstimator's own keywords, checked there

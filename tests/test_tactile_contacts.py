@@ -221,7 +221,7 @@ def test_active_mask_nan_and_output_format():
     with pytest.raises(ValueError):
         EST.estimate(np.zeros(4), np.zeros(4), active=np.ones(2, dtype=bool))
     with pytest.raises(ValueError):
-        ContactEstimator(LAY, method="centroid")  # type: ignore[arg-type]
+        ContactEstimator(LAY, method="centroid")  # type: ignore[arg-type]  # the point: an unknown method is refused
     with pytest.raises(ValueError):
         ContactEstimator(LAY, noise=0.0)
 

@@ -138,7 +138,7 @@ def level_rgb(level: float) -> tuple[int, int, int]:
     for (a, ca), (b, cb) in zip(stops, stops[1:]):
         if level <= b:
             t = (level - a) / (b - a)
-            return tuple(int(round(u + (v - u) * t)) for u, v in zip(ca, cb))  # type: ignore[return-value]
+            return tuple(int(round(u + (v - u) * t)) for u, v in zip(ca, cb))  # type: ignore[return-value]  # three channels in, three out
     return stops[-1][1]
 
 

@@ -158,3 +158,11 @@ def test_sections_are_typed_frozen_and_the_only_way_in() -> None:
         for f in dataclasses.fields(cls):
             assert type(getattr(section, f.name)) is kinds[str(f.type)], f"{name}.{f.name}"
     assert Config().contact == ContactSection()  # a section's defaults are its dataclass's
+
+
+def test_a_reload_names_exactly_the_changed_settings_that_need_a_restart() -> None:
+    old = parse_config({"link": [{"url": "/dev/ttyUSB0"}]})
+    new = parse_config({"pub": {"hwm": 5}, "contact": {"rate": 50.0}, "daemon": {"log_level": "debug"},
+                        "link": [{"url": "/dev/ttyUSB1"}]})
+    assert old.needs_restart(new) == ["pub.hwm", "link"]  # contact.rate and the log level: reloadable
+    assert old.needs_restart(parse_config({"link": [{"url": "/dev/ttyUSB0"}]})) == []

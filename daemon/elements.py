@@ -6,10 +6,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from cellbridge.daemon.config import CalibrationSection
 from cellbridge.tactile import CalibrationConfig, Calibrator, ElementParams, InverseStatus, SkinLayout, solve
 from cellbridge.tactile.arrays import FloatArray
 from numpy.typing import NDArray
+from cellbridge.daemon.config import CalibrationSection
 
 
 def calibration_config(s: CalibrationSection) -> CalibrationConfig:

@@ -38,8 +38,7 @@ import os
 import tomllib
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
-from collections.abc import Mapping
+from typing import Any, Mapping
 
 from cellbridge.errors import CellbridgeError
 

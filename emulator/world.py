@@ -22,8 +22,7 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass
-from typing import Any
-from collections.abc import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 

@@ -14,8 +14,7 @@ warning says how to give it a cache (``NUMBA_CACHE_DIR``).
 from __future__ import annotations
 
 import warnings
-from typing import Any
-from collections.abc import Callable
+from typing import Any, Callable
 
 from numba import njit
 

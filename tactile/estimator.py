@@ -21,8 +21,7 @@ per kind (one-disk, two-disk, fixed-diameter).
 from __future__ import annotations
 
 import math
-from typing import Literal
-from collections.abc import Sequence
+from typing import Literal, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray

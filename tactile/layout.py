@@ -8,8 +8,7 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, Literal
-from collections.abc import Mapping
+from typing import Any, Literal, Mapping
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray

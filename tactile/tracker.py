@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from collections.abc import Sequence
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike

@@ -80,7 +80,7 @@ def recorder_cost(tmp: Path, capture: Path, seconds: float, extra: list[str], na
         if rec.returncode is None:
             os.killpg(rec.pid, signal.SIGKILL)
             rec.wait()
-    stats = json.loads(rec.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]  # started with stderr=PIPE
+    stats = json.loads(rec.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
     cpu = (usage.ru_utime + usage.ru_stime) / seconds
     mb_h = out.stat().st_size / 1e6 / seconds * 3600
     return 100 * cpu, mb_h, stats["messages"]
@@ -146,7 +146,7 @@ def replay_fast(tmp: Path, recording: Path) -> tuple[int, float, int]:
             sub.recv_multipart()
             got += 1
         proc.wait(60)
-        report = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]  # started with stderr=PIPE
+        report = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
     sub.close(0)
     ctx.term()
     return n, report["sent"] / report["seconds"], got
@@ -208,10 +208,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="shorter runs (figures less steady)")
     ap.add_argument("--only", choices=("recorder", "roundtrip", "proxy"), help="one part only (recorder: and replay)")
     args = ap.parse_args()
-
-    def part(name: str) -> bool:
-        return args.only in (None, name)
-
+    part = (lambda name: args.only in (None, name))
     seconds = 10.0 if args.quick else 30.0
     with tempfile.TemporaryDirectory(prefix="bench-recording-") as d:
         tmp = Path(d)

@@ -240,10 +240,7 @@ def test_fragment_rejects_bad_sizes() -> None:
 def test_completions_are_forgotten_after_remember_for_whatever_the_order_of_origins() -> None:
     r = Reassembler(remember_for=10.0)
     body = _sealed(b"\x94\x01\x14\x02\xc0")  # a BEACON [1, 20, 2, nil]
-
-    def beacon(origin: int, tag: int) -> Frame:
-        return Frame(origin, 0, origin, 0, Fragment(FrameType.BEACON, tag, 0, len(body), body))
-
+    beacon = lambda origin, tag: Frame(origin, 0, origin, 0, Fragment(FrameType.BEACON, tag, 0, len(body), body))
     assert r.receive(beacon(1, 0), 0.0) is not None
     assert r.receive(beacon(2, 0), 1.0) is not None
     assert r.receive(beacon(1, 1), 9.0) is not None  # origin 1 completed last: it is now behind origin 2

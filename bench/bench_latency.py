@@ -35,6 +35,9 @@ def main() -> None:
     ap.add_argument("--rate", type=int, default=100)
     ap.add_argument("--reporting", default="periodic")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-latency", type=float, default=None,
+                    help="ms a periodic sample waits at most for company in a DATA frame (virtual "
+                         "time only; default: the firmware's)")
     ap.add_argument("--virtual", choices=["default", "quiet", "none"], default=None,
                     help="virtual time with this latency model instead of real processes")
     args = ap.parse_args()
@@ -105,8 +108,10 @@ def run_virtual(mesh, args):  # type: ignore[no-untyped-def]
 
     lat = {"default": Latency(), "quiet": Latency(up=0.0001, down=0.0001, floor=0.00005, wake_late=0.0001),
            "none": None}[args.virtual]
+    extra = {} if args.max_latency is None else {"max_latency": int(args.max_latency * CLOCK_HZ / 1000)}
     vm = VirtualMesh(mesh, seed=args.seed, latency=lat, ack_slack=CLOCK_HZ // 100 if lat else 0,
-                     settings=Settings(rate_hz=args.rate, reporting=reporting_arg(args.reporting)))
+                     settings=Settings(rate_hz=args.rate, reporting=reporting_arg(args.reporting)),
+                     **extra)
     host = HostReceiver()
     arrivals: list[Arrival] = []
     feed = vm._gateway_out

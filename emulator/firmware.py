@@ -103,6 +103,12 @@ def _hello_boots(f: Raw) -> int | None:
     return hello.boots or None  # type: ignore[union-attr]  # unpacked as a HELLO: a Hello
 
 
+def _stagger(bridge: int, most: int) -> int:
+    """The bridge's own offset in [0, most): spread by a multiplicative hash of its id, so
+    neighbours (consecutive ids) land far apart."""
+    return (bridge * 2_654_435_761 % 4_294_967_296) * most >> 32
+
+
 def _when(item: tuple[int, bytes]) -> int:
     return item[0]
 
@@ -127,6 +133,10 @@ class FirmwareConfig:
     max_latency: int = 50 * _MS
     #: The same under event-based reporting (few samples travel: a press's onset goes at once).
     event_latency: int = 10 * _MS
+    #: An aligned batch (periodic, on mesh time: emulator/sampling.py) leaves up to this long
+    #: after its last sample, each bridge at its own offset (drawn from its id), so the
+    #: bridges of one cell do not all contend for it at the same instant.
+    batch_stagger: int = 4 * _MS
     queue_len: int = 64
     max_retries: int = 5
     trickle_imin: int = 50 * _MS
@@ -203,7 +213,7 @@ class Firmware:
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
-                               c.event_latency)
+                               c.event_latency, _stagger(c.bridge, c.batch_stagger))
         self.status_at = tick + c.status_period
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period

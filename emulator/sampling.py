@@ -6,10 +6,19 @@ conversions), repeated at the sampling rate. With mesh time (:mod:`.meshtime`) s
 instant of the whole skin; without it (booting, cut off) the bridge samples on its own
 crystal and flags its samples ``NO_MESH_TIME``. The next gate is planned when a sample is
 taken, with the mesh clock as it is then; the firmware takes every sample due before it
-changes the clock (:meth:`Sampler.advance`), so lazy and gate-by-gate sampling agree. Samples the reporter keeps are batched
-into one DATA payload until it is full (255-byte frame, ``batch_max`` samples) or its
-oldest sample is ``max_latency`` old (``event_latency`` under event-based reporting):
-fewer, larger frames carry more samples per bit of air time.
+changes the clock (:meth:`Sampler.advance`), so lazy and gate-by-gate sampling agree.
+
+Samples the reporter keeps are batched into one DATA payload: fewer, larger frames carry
+more samples per bit of air time. Periodic samples on mesh time go in *aligned batches*:
+indices ``[j·n, (j+1)·n)`` share a frame, with ``n`` the samples that fit in
+``max_latency`` (and in a frame), and the frame leaves when the batch's last sample is
+taken. Every bridge closes the same batch at the same global instant, so one index
+reaches the host from every bridge within the relay delays of each other; with batches
+closed at each bridge's own phase, one bridge's sample of an index could trail another's
+by a whole ``max_latency``, and the host waits for the slowest before it has a skin
+frame. Any other sample (no mesh time, event-based reporting) waits until the batch is
+full (255-byte frame, ``batch_max`` samples) or its oldest sample is ``max_latency`` old
+(``event_latency`` under event-based reporting).
 """
 
 from __future__ import annotations
@@ -36,7 +45,8 @@ _COUNTER_MODULUS = 1 << 16
 class Sampler:
     def __init__(self, settings: Settings, chip: object, sense: Callable[[int], tuple[float, float]],
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
-                 counters: Counter[str], timebase: Timebase, event_latency: int | None = None) -> None:
+                 counters: Counter[str], timebase: Timebase, event_latency: int | None = None,
+                 stagger: int = 0) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
@@ -52,6 +62,11 @@ class Sampler:
         self.batch: list[Sample] = []
         self.batch_bytes = 0
         self.flush_at = -1
+        self._batch_aligned = False  #: the open batch is an aligned one
+        self._closed = False  #: the aligned batch is complete and waits ``stagger`` to leave
+        #: An aligned batch leaves this long after its last sample: bridges sharing a cell
+        #: get different offsets, so they do not all contend for it at the same instant
+        self.stagger = stagger
         self.timebase = timebase
         self.start = first_start
         self.index = 0  #: index of the sample whose gate starts at ``start``
@@ -72,11 +87,25 @@ class Sampler:
             return self.ready if self.flush_at < 0 else min(self.ready, self.flush_at)
         room = max(1, min(self.batch_max - len(self.batch),
                           (MAX_FRAME - _DATA_OVERHEAD - self.batch_bytes) // _MAX_SAMPLE_BYTES))
+        if self._aligned():  # the ready tick of the batch's last index, at the latest
+            room = min(room, self.aligned_batch() - self.index % self.aligned_batch())
         # planned a little early (a crystal 0.1 % fast at most): a wake too early costs
         # nothing, one too late would send the frame later than gate-by-gate sampling does
         period = self.settings.period_cycles(self.clock_hz)
         full = self.ready + (room - 1) * (period - period // 1000)
         return min(full, self.flush_at if self.batch else self.ready + self.latency)
+
+    def aligned_batch(self) -> int:
+        """Samples per aligned batch: as many sample periods as fit in ``max_latency``,
+        at least one, and never more than a frame holds (a batch that overflowed its frame
+        would close early and lose its alignment)."""
+        fit = (MAX_FRAME - _DATA_OVERHEAD) // _MAX_SAMPLE_BYTES
+        per = self.max_latency * self.settings.rate_hz // self.clock_hz
+        return max(1, min(per, self.batch_max, fit))
+
+    def _aligned(self) -> bool:
+        """Whether the sample planned next goes in an aligned batch (periodic, on mesh time)."""
+        return self.on_time and self.settings.reporting.periodic
 
     @property
     def latency(self) -> int:
@@ -140,6 +169,11 @@ class Sampler:
     def _sample(self, out: list[Data]) -> None:
         st = self.settings
         start = self.start
+        ready = self.ready
+        aligned = self._aligned()
+        if self.batch and (aligned != self._batch_aligned or self._closed):
+            self._flush(out)  # a batch is either aligned or timed, never both
+        self._batch_aligned = aligned
         c1, c2 = self.sense(start)
         if st.mode is Mode.COUNTER:
             v1, o1 = self.chip.count(0, c1, start, st.gate_cycles)  # type: ignore[attr-defined]  # the chip model is pluggable (tests pass their own); count/convert are its interface
@@ -165,7 +199,17 @@ class Sampler:
                 self.flush_at = self.ready + self.latency
             if len(self.batch) >= self.batch_max:
                 self._flush(out)
+        index = self.index
         self._plan(start + st.measure_cycles(), self.timebase.after_local(start, st.period_cycles(self.clock_hz)))
+        if aligned and self.batch:
+            per = self.aligned_batch()
+            # the batch's last index is taken, or the next sample is in a later batch (indices
+            # skipped) or off mesh time: the frame leaves now, as on every other bridge
+            if not self._aligned() or self.index // per != index // per:
+                self._closed = True
+                self.flush_at = ready + self.stagger
+                if self.stagger == 0:
+                    self._flush(out)
 
     def _flush(self, out: list[Data]) -> None:
         if self.batch:
@@ -176,3 +220,4 @@ class Sampler:
             self.batch = []
             self.batch_bytes = 0
         self.flush_at = -1
+        self._closed = False

@@ -36,6 +36,9 @@ class ConfigError(CellbridgeError, ValueError):
 
 @dataclass(frozen=True)
 class Key:
+    """One key of the schema, as validation and ``--print-config`` read it (made from a
+    section field by :func:`_schema`)."""
+
     kind: type | tuple[type, ...]
     default: Any
     doc: str

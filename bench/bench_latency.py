@@ -111,7 +111,7 @@ def run_virtual(mesh, args):  # type: ignore[no-untyped-def]
     extra = {} if args.max_latency is None else {"max_latency": int(args.max_latency * CLOCK_HZ / 1000)}
     vm = VirtualMesh(mesh, seed=args.seed, latency=lat, ack_slack=CLOCK_HZ // 100 if lat else 0,
                      settings=Settings(rate_hz=args.rate, reporting=reporting_arg(args.reporting)),
-                     **extra)
+                     random_epochs=True, **extra)
     host = HostReceiver()
     arrivals: list[Arrival] = []
     feed = vm._gateway_out

@@ -243,10 +243,10 @@ class ContactSection:
                           "frame back (contacts are estimated on whole skin frames); a periodic bridge later than "
                           "that is unknown for the newer frames (listed in the contact message's unknown) and "
                           "named in health layout.late", _up_to(10), reloadable=True)
-    held_wait: float = _key(0.5, "s an event-based bridge's newest (held) reading may trail the newest data "
-                            "and still hold the frame back (a press it saw may still be on its way); beyond that "
-                            "its older reading stands for the frame. Shorter: contacts sooner on an idle skin, "
-                            "but a bridge whose frames come later than this shows its old reading",
+    held_wait: float = _key(0.5, "s an event-based bridge may hold the frame back at most (a press it saw "
+                            "may still be on its way); it holds it back by its own delivery delay as measured, "
+                            "and this long only while that is not known yet. Beyond it, its older (held) "
+                            "reading stands for the frame",
                             _up_to(10), reloadable=True)
     max_lag_readings: int = _key(128, "readings kept per element to hold a skin frame back (memory: elements "
                                  "x this x 33 bytes); max_lag reaches back at most this many readings at "

@@ -16,9 +16,15 @@ unknown for the frame. Two kinds of reading stand for more than their own instan
 
 Elements silent for ``timeout`` (``bridge_timeout``) are unknown, not touched, and hold
 nothing back. A periodic element whose data trail the newest by more than ``max_lag``
-holds nothing back either (it is unknown for the newer frames); a held element holds
-the moment back only while its newest reading is within ``held_wait`` of the newest
-(an idle element's heartbeat, seconds apart, must not delay every contact).
+holds nothing back either (it is unknown for the newer frames). A held element has
+reported past every instant a change of its would already have reached the host: its
+bridge sends a change at once, so a held element holds the moment back only to ``now``
+minus its own delivery delay (the decaying high-water mark of arrival minus sample time
+of its on-time readings, with a margin), and never more than ``held_wait`` behind the
+newest data. Waiting by the element's own delay, not a fixed ``held_wait``, is what makes
+an event-based skin's contacts come tens of milliseconds after a press, not half a
+second: an idle element's last heartbeat is up to a heartbeat old, and what matters is
+only whether a change could still be on its way.
 """
 
 from __future__ import annotations
@@ -34,6 +40,13 @@ from cellbridge.tactile.arrays import FloatArray
 
 #: Readings kept per element beyond ``max_lag`` at the fastest sampling rate.
 SPARE = 4
+#: An element's delivery delay bound forgets old delays by this factor per reading (a
+#: half-life of ~700 readings: seconds at 100 Hz, so a route that got faster is learnt).
+DELAY_DECAY = 0.999
+#: A held element is waited for this many times its delay high-water mark, plus ``DELAY_MARGIN`` s
+#: (the mark is already the largest delay seen lately: a change later than that is rare).
+DELAY_FACTOR = 1.0
+DELAY_MARGIN = 0.005
 
 
 class Moment(NamedTuple):
@@ -66,6 +79,7 @@ class Moments:
         self.count = np.zeros(n, dtype=np.int64)  # readings ever written (ring position)
         self.settled = np.full(n, np.nan)  # sample time of the newest reading the calibrator classified
         self.arrival = np.full(n, -math.inf)  # host time the newest reading arrived
+        self.delay = np.full(n, np.nan)  # decaying high-water of arrival - sample time, on-time readings
         self.t_moment = -math.inf  # the moment of the last snapshot
         self.hold_since = math.nan  # first moment held back for a transition (NaN: none held)
         self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: their newest)
@@ -119,6 +133,11 @@ class Moments:
         else:
             self.count += np.bincount(r, minlength=self.count.shape[0])
         self.arrival[r] = now
+        if on_time.any():
+            d = np.full(self.delay.shape[0], -math.inf)
+            np.maximum.at(d, r[on_time], now - t[on_time])
+            seen = np.isfinite(d)
+            self.delay[seen] = np.fmax(self.delay[seen] * DELAY_DECAY, d[seen])
 
     def settle(self, rows: NDArray[np.int64], touched: NDArray[np.bool_]) -> None:
         """The calibrator stepped on the newest reading of ``rows``: their touch flags."""
@@ -178,16 +197,29 @@ class Moments:
             return math.nan
         newest = float(self.settled[live].max())
         held = self.held[self._all, (self.count - 1) % self.depth]
-        self.holding = live & (self.settled >= newest - np.where(held, min(held_wait, max_lag), max_lag))
+        wait = min(held_wait, max_lag)
+        # a held element has reported past what a change of its would have reached us by
+        bound = np.fmin(np.nan_to_num(self.delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
+        through = np.where(held, np.fmax(self.settled, now - bound), self.settled)
+        self.holding = live & (through >= newest - np.where(held, wait, max_lag))
         self.late = live & ~self.holding & ~held
-        t = max(float(self.settled[self.holding].min()), self.t_moment)
+        t = max(float(through[self.holding].min()), self.t_moment)
         # On mesh time the moment is a frame: the newest frame instant at or before it. (A
         # bridge timed from its arrivals, booting or cut off, would otherwise put the moment
         # between two frames, where no bridge on mesh time has a reading.)
         with np.errstate(invalid="ignore"):
             frames = np.where(self.on_time & (self.t <= t) & live[:, None], self.t, -math.inf)
         frame = float(frames.max()) if frames.size else -math.inf
-        return max(frame, self.t_moment) if math.isfinite(frame) else t
+        if not math.isfinite(frame):
+            return t
+        # Frames go on where no new reading came: a held reading stands for the frames
+        # after it (an event-based skin sends little), so the moment moves on the frame
+        # grid up to ``t`` (a periodic element's own readings reach ``t`` anyway).
+        with np.errstate(invalid="ignore"):
+            per = float(np.nanmin(np.where(live, self.period, np.nan))) if np.isfinite(self.period[live]).any() else math.nan
+        if per > 0 and t - frame >= per:
+            frame += math.floor((t - frame) / per) * per
+        return max(frame, self.t_moment)
 
     def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64],
                                          NDArray[np.bool_], float]:

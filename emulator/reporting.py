@@ -3,7 +3,8 @@
 Event-based reporting is how a large skin stays inside one shared 1 Mbit/s link: an
 untouched element sends a heartbeat now and then; a sample goes out as soon as it
 differs from the last one *sent* by more than the threshold on either channel, so a
-press is never missed and a slow drift is reported once it adds up.
+press is never missed and a slow drift is reported once it adds up, and the sample after
+a change goes out too (the change may have begun during the changed sample's gates).
 
 The command ``SET_REPORTING`` carries the choice in one u64 (docs/protocol.md):
 0 = periodic; otherwise bits 0–31 are the threshold (counts or summed codes) and
@@ -52,26 +53,36 @@ class Reporter:
         self._cpm = cycles_per_ms
         self._mod = modulus
         self._last: Sample | None = None
+        self._follow = False  #: the last sample sent was a change: send the next one too
         self.suppressed = 0
 
     def set_mode(self, mode: ReportingMode, counter_modulus: int) -> None:
         self.mode = mode
         self._mod = counter_modulus
         self._last = None  # the next sample is sent, so the host has a fresh reference
+        self._follow = False
 
     def _moved(self, a: int, b: int) -> int:
         d = abs(a - b)
         return min(d, self._mod - d) if self._mod else d
 
     def wants(self, s: Sample) -> bool:
+        """Whether ``s`` is sent. Event-based, a sample sent for a change is followed by the
+        next one as well: a press or release that began during the sample's gates left it
+        part-way, and the clean sample after it may differ from it by less than the
+        threshold; without it the host would hold the part-way reading as the element's
+        value until the next change or heartbeat (up to a second: a corner press came out
+        millimetres off and light for that long)."""
         m = self.mode
         last = self._last
-        if (m.threshold is None or last is None
-                or s.cycle - last.cycle >= m.heartbeat_ms * self._cpm
-                or self._moved(s.c1, last.c1) > m.threshold
-                or self._moved(s.c2, last.c2) > m.threshold
-                or s.flags != last.flags):
+        if m.threshold is None or last is None:
             self._last = s
+            return True
+        changed = (self._moved(s.c1, last.c1) > m.threshold or self._moved(s.c2, last.c2) > m.threshold
+                   or s.flags != last.flags)
+        if changed or self._follow or s.cycle - last.cycle >= m.heartbeat_ms * self._cpm:
+            self._last = s
+            self._follow = changed
             return True
         self.suppressed += 1
         return False

@@ -95,7 +95,9 @@ def test_a_held_press_is_one_contact_at_the_pressed_place(press_reads) -> None:
             reports += [c for c in m["contacts"] if c["missed"] == 0]
             if 4.5 < t - T0 < 6.4:
                 assert not m["unknown"], m["unknown"]
-    assert len(ids) == 1 and len(reports) > 60  # frames complete as the bridges' DATA batches arrive
+    # frames complete as the bridges' aligned DATA batches arrive: one batch (5 frames at 100 Hz)
+    # from every bridge within a few ms, so ~20 estimates a second over the 2.5 s press
+    assert len(ids) == 1 and len(reports) > 40
     mid = reports[len(reports) // 2]
     assert math.hypot(mid["x"] - CORNER[0], mid["y"] - CORNER[1]) < 1e-3
     assert mid["force"] == pytest.approx(3.0, rel=0.05)
@@ -124,7 +126,7 @@ def test_bridges_under_a_held_press_going_silent_end_the_contact() -> None:
 
 def test_the_gateway_line_going_down_mid_press_is_told_within_bridge_timeout(press_reads) -> None:
     """No data at all from 5 s on: subscribers must learn that the press they hold is no
-    longer known (every element unknown, ``contacts: []``) within bridge_timeout."""
+    longer known (``contacts: []``, the pressed elements unknown) within bridge_timeout."""
     stop = 5.0
     told = None
     held = False
@@ -134,7 +136,7 @@ def test_the_gateway_line_going_down_mid_press_is_told_within_bridge_timeout(pre
                 held = True
             elif told is None:
                 told = t - T0
-                assert len(m["unknown"]) == 16
+                assert UNDER <= set(m["unknown"]), m["unknown"]
     assert told is not None and told <= stop + 2.0 + 0.02, told
     assert not held or told is not None
 

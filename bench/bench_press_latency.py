@@ -1,0 +1,268 @@
+"""Press in the world → its contact on ZeroMQ: the latency a robot feels, real processes.
+
+Run: ``.venv/bin/python bench/bench_press_latency.py [--presses 40] [--reporting periodic]``
+(``--reporting event:40`` as ``cellbridge demo`` runs its skin; ``--side 4``; ``--rate 100``;
+``--virtual``: the same in virtual time, see below).
+
+Starts ``cellbridge mesh up`` (a side×side grid, one gateway) and ``cellbridge daemon`` on
+its gateway's pty, as a robot runs them, and subscribes to the daemon's ``contact`` topic.
+Once every element is calibrated it presses ``--presses`` times, one at a time, at random
+points of the skin (0.3 s each, 3 N, 20 mm), through the world process, which answers with
+the host monotonic second the press starts; a press's latency is from that second to the
+first ``contact`` message holding a contact within one element's side (40 mm) of the press, received here (same
+host, same monotonic clock). Prints p50/p99/max and presses never seen, then the daemon's
+own account (health: late elements, unknown frames). Every process is stopped on exit.
+
+``--virtual`` runs the skin in virtual time (``VirtualMesh`` with the real-time latency
+model) and feeds its gateway's bytes, at their virtual times, into the daemon's pipeline
+with the production contact path inline, estimating at the daemon's contact rate: the
+same latency without the machine's load in it (deterministic by ``--seed``), and split
+into its parts (first sample showing the press at the host; first contact).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import msgpack
+import zmq
+from timing import table
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.mesh import mesh_to_toml
+
+PRESS_S = 1.0
+GAP_S = 0.5
+#: A contact this close to a press is its contact: one element's side (a press inside one
+#: element is reported at the element's centre along an axis it cannot resolve)
+NEAR_M = 0.040
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _start(cmd: list[str], **kw: object) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "cellbridge", *cmd], start_new_session=True, **kw)  # type: ignore[call-overload]
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+        except ProcessLookupError:
+            pass
+
+
+def _press(ctx: zmq.Context, base_port: int, x: float, y: float, hold: float = PRESS_S) -> float:
+    s = ctx.socket(zmq.REQ)
+    s.setsockopt(zmq.LINGER, 0)
+    s.connect(f"tcp://127.0.0.1:{base_port + 2}")
+    try:
+        s.send(msgpack.packb({"duration": hold, "position": [x, y], "force": 3.0, "diameter": 0.02}))
+        if not s.poll(3000):
+            raise RuntimeError("the world did not answer")
+        answer = msgpack.unpackb(s.recv())
+    finally:
+        s.close()
+    if not answer.get("ok"):
+        raise RuntimeError(answer.get("error"))
+    return float(answer["start"])
+
+
+def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float], int]:  # type: ignore[no-untyped-def]
+    """(press -> first sample showing it at the host, press -> first contact near it, missed)
+    in virtual time; milliseconds."""
+    import logging
+
+    from cellbridge.daemon.config import parse_config
+    from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
+    from cellbridge.daemon.messages import Publish
+    from cellbridge.daemon.pipeline import Pipeline
+    from cellbridge.emulator.commands import Settings
+    from cellbridge.emulator.realtime import reporting_arg
+    from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
+    from cellbridge.emulator.world import Contact, World
+
+    rng = random.Random(args.seed)
+    span = (args.side - 1) * mesh.side
+    # routes formed, mesh time and calibration settled (n_baseline quiet readings: event-based
+    # bridges send an idle element's reading once a heartbeat, 1 s)
+    first = len(mesh.bridges) * 0.1 + (20.0 if args.reporting == "periodic" else 60.0)
+    presses = [Contact(first + i * (PRESS_S + GAP_S), PRESS_S, rng.uniform(0, span), rng.uniform(0, span), 3.0, 0.02)
+               for i in range(args.presses)]
+    vm = VirtualMesh(mesh, seed=args.seed, world=World(mesh, presses), latency=Latency(),
+                     ack_slack=CLOCK_HZ // 100, random_epochs=True,
+                     settings=Settings(rate_hz=args.rate, reporting=reporting_arg(args.reporting)))
+    vm.run(presses[-1].start + PRESS_S + 1.0)
+    reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
+    contact = {kv.split("=")[0]: float(kv.split("=")[1]) for kv in args.contact}
+    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}))
+    step = 1.0 / contact.get("rate", 100.0)  # the daemon's [contact] rate
+    w = ContactWorker(logging.getLogger("bench"), InlineExecutor)
+    sample_at: dict[int, float] = {}
+    contact_at: dict[int, float] = {}
+    i, now = 0, 0.0
+    end = reads[-1][0]
+
+    def near(x: float, y: float) -> list[int]:
+        return [k for k, c in enumerate(presses) if c.start <= now < c.start + PRESS_S + 0.5
+                and (c.x - x) ** 2 + (c.y - y) ** 2 <= NEAR_M ** 2]
+
+    while now < end:
+        now += step
+        while i < len(reads) and reads[i][0] <= now:
+            t_read = reads[i][0]
+            for m in p.feed("gw", reads[i][1], t_read):
+                if isinstance(m, Publish) and m.topic == "element":
+                    for _b, touched in zip(m.payload["bridge"], m.payload["touched"]):
+                        if touched:
+                            for k, c in enumerate(presses):
+                                if c.start <= t_read < c.start + PRESS_S and k not in sample_at:
+                                    sample_at[k] = t_read - c.start
+            i += 1
+        p.tick(now)
+        job = p.contact_job(now)
+        if job is not None:
+            snap = job.snapshot
+            if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):
+                print(f"  {now:.3f} moment lag {1000 * (now - snap.t_moment):.0f} ms, touched "
+                      f"{int(snap.touched.sum())}, unknown {int(snap.unknown.sum()) if snap.unknown is not None else 0}")
+            for c in p.contact_frame(job, w.estimate_now(job)).payload["contacts"]:
+                for k in near(c["x"], c["y"]):
+                    contact_at.setdefault(k, now - presses[k].start)
+    lat_s = [1000 * v for v in sample_at.values()]
+    lat_c = [1000 * v for v in contact_at.values()]
+    return lat_s, lat_c, len(presses) - len(contact_at)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--side", type=int, default=4)
+    ap.add_argument("--rate", type=int, default=100)
+    ap.add_argument("--reporting", default="periodic", help="periodic or event:THRESHOLD (default periodic)")
+    ap.add_argument("--presses", type=int, default=40)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--contact", action="append", default=[], metavar="KEY=VALUE",
+                    help="a [contact] setting for the daemon (e.g. held_wait=0.1); repeatable")
+    ap.add_argument("--verbose", action="store_true", help="print every contact message seen")
+    ap.add_argument("--hold", type=float, default=PRESS_S, help=f"seconds each press lasts (default {PRESS_S})")
+    ap.add_argument("--at", type=float, nargs=2, metavar=("X", "Y"), default=None,
+                    help="press here every time instead of at random points (m)")
+    ap.add_argument("--virtual", action="store_true", help="virtual time (deterministic; no machine load in it)")
+    args = ap.parse_args()
+    mesh = meshgen.grid(args.side, args.side)
+    n = len(mesh.bridges)
+    if args.virtual:
+        lat_s, lat_c, missed = run_virtual(args, mesh)
+        rows = []
+        for name, xs in (("first touched sample at the host", lat_s), ("first contact near the press", lat_c)):
+            xs.sort()
+            rows.append([name, len(xs)] + [f"{xs[min(len(xs) - 1, int(q * len(xs)))]:.1f}" if xs else "nan"
+                                           for q in (0.5, 0.9, 0.99)] + [f"{xs[-1]:.1f}" if xs else "nan"])
+        table(f"{mesh.name}, {args.rate} Hz, {args.reporting}, virtual time (real-time latency model): "
+              f"press in the world ->", ["what", "presses", "p50 ms", "p90 ms", "p99 ms", "max ms"], rows)
+        print(f"\nmissed presses: {missed}")
+        return
+    work = Path(tempfile.mkdtemp(prefix="bench-press-"))
+    (work / "skin.toml").write_text(mesh_to_toml(mesh))
+    base = min(_free_port(), 60000)
+    pub, ctl = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
+    print(f"{mesh.name}: {n} bridges at {args.rate} Hz ({args.reporting}), {os.cpu_count()} cores, "
+          f"load {os.getloadavg()[0]:.1f}")
+    procs: list[subprocess.Popen] = []
+    ctx = zmq.Context.instance()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    for t in (b"contact", b"health"):
+        sub.setsockopt(zmq.SUBSCRIBE, t)
+    sub.connect(pub)
+    try:
+        up = _start(["mesh", "up", str(work / "skin.toml"), "--base-port", str(base), "--rate", str(args.rate),
+                     "--reporting", args.reporting], stdout=subprocess.PIPE, stderr=open(work / "mesh.log", "w"),
+                    text=True)
+        procs.append(up)
+        device = ""
+        deadline = time.monotonic() + 60
+        while not device and time.monotonic() < deadline:
+            line = up.stdout.readline()
+            if not line:
+                raise RuntimeError(f"mesh up ended: {(work / 'mesh.log').read_text()[-500:]}")
+            device = next((w for w in line.split() if w.startswith("/dev/")), "")
+        (work / "daemon.toml").write_text(
+            f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n[daemon]\nlog_format = "text"\n\n'
+            f'[[link]]\nname = "gateway"\nurl = "{device}"\n'
+            + ("\n[contact]\n" + "".join(f"{kv}\n" for kv in args.contact) if args.contact else ""))
+        procs.append(_start(["daemon", "--config", str(work / "daemon.toml")], stderr=open(work / "daemon.log", "w")))
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            if sub.poll(1000):
+                topic, body = sub.recv_multipart()
+                if topic == b"health" and msgpack.unpackb(body).get("layout", {}).get("calibration", {}).get("ready", 0) >= n:
+                    break
+        else:
+            raise RuntimeError("the daemon did not calibrate every element in 180 s")
+        rng = random.Random(args.seed)
+        span = (args.side - 1) * mesh.side
+        lat: list[float] = []
+        missed = 0
+        health: dict = {}
+        for _ in range(args.presses):
+            x, y = args.at if args.at else (rng.uniform(0, span), rng.uniform(0, span))
+            start = _press(ctx, base, x, y, args.hold)
+            seen = None
+            end = start + args.hold + 1.0
+            while time.monotonic() < end:
+                if not sub.poll(50):
+                    continue
+                topic, body = sub.recv_multipart()
+                got = time.monotonic()
+                msg = msgpack.unpackb(body)
+                if topic == b"health":
+                    health = msg
+                elif args.verbose and msg.get("contacts"):
+                    print(f"  {got - start:+.3f} s {[(c['id'], round(c['x'], 4), round(c['y'], 4), round(c['force'], 3), c['missed']) for c in msg['contacts']]} "
+                          f"unknown {msg.get('unknown')} "
+                          f"pressed ({x:.4f}, {y:.4f})")
+                if topic == b"contact" and seen is None and got >= start and any(
+                        (c["x"] - x) ** 2 + (c["y"] - y) ** 2 <= NEAR_M ** 2 for c in msg.get("contacts", [])):
+                    seen = got - start
+            if seen is None:
+                missed += 1
+            else:
+                lat.append(1000 * seen)
+            time.sleep(GAP_S)
+        lat.sort()
+
+        def pct(q: float) -> str:
+            return f"{lat[min(len(lat) - 1, int(q * len(lat)))]:.1f}" if lat else "nan"
+
+        table("press in the world -> first contact near it on ZeroMQ",
+              ["presses", "seen", "p50 ms", "p90 ms", "p99 ms", "max ms", "load"],
+              [[args.presses, len(lat), pct(0.5), pct(0.9), pct(0.99), f"{lat[-1]:.1f}" if lat else "nan",
+                f"{os.getloadavg()[0]:.1f}"]])
+        late = health.get("late_estimates", health.get("moments", {}).get("late_estimates", "?"))
+        print(f"\nmissed presses: {missed}; health late estimates: {late}")
+    finally:
+        sub.close()
+        for p in reversed(procs):
+            _stop(p)
+
+
+if __name__ == "__main__":
+    main()

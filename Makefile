@@ -6,7 +6,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench install tools clean help
+.PHONY: demo test lint bench install tools clean help
 
 # Programs the views' tests drive (tmux for `cellbridge watch`, Debian's chromium for
 # `cellbridge web`), and what the C subscriber example's test builds it with (a compiler,
@@ -18,7 +18,8 @@ C_LIBS := libzmq:libzmq3-dev msgpack-c,msgpack:libmsgpack-dev
 
 help:
 	@echo "make demo   create .venv if missing, install, run an emulated skin and the daemon, press, show the contact"
-	@echo "make test   create .venv if missing, install cellbridge into it (and tmux/chromium as root), run the test suite"
+	@echo "make test   create .venv if missing, install cellbridge into it (and tmux/chromium as root), lint, run the test suite"
+	@echo "make lint   ruff (pyproject's [tool.ruff]) and mypy ([tool.mypy], through .ci/typecheck); make test runs it first"
 	@echo "make bench  run the benchmarks in bench/ and print their tables"
 	@echo "make clean  remove .venv and build leftovers"
 
@@ -48,11 +49,16 @@ tools:
 	  else echo "missing$$missing (not root or no apt-get): their tests will skip"; fi; \
 	fi
 
-test: $(STAMP) tools
+# Lint and type-check first: a finding fails `make test` before the suite runs.
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	.ci/typecheck $(PY)
+
+test: $(STAMP) tools lint
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
 	@for f in bench/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done
 
 clean:
-	rm -rf $(VENV) build dist *.egg-info .pytest_cache .hypothesis
+	rm -rf $(VENV) build dist *.egg-info .pytest_cache .hypothesis .mypy_cache .ruff_cache

@@ -55,7 +55,7 @@ def calibration_rows() -> list[tuple[int, float]]:
         v[: max(1, n // 100)] += 1e-12  # 1 % of the skin touched
         state = {"t": 0.05}
 
-        def step() -> None:
+        def step(cal: Calibrator = cal, v: np.ndarray = v, state: dict[str, float] = state) -> None:
             for _ in range(200):
                 state["t"] += 0.01
                 cal.update(state["t"], v + 1e-16 * state["t"])

@@ -39,7 +39,7 @@ def speed_rows(chip: Chip, caps: dict[str, float]) -> list[tuple[str, float, flo
     for name, c in caps.items():
         starts = range(1000, 1000 + FAST_CALLS * gate, gate)
 
-        def fast(c: float = c) -> None:
+        def fast(c: float = c, starts: range = starts) -> None:
             for s in starts:
                 chip.count(0, c, s, gate)
 

@@ -68,7 +68,6 @@ def main() -> None:
                 t0 = time.monotonic()
                 res = one_run(x, y)
                 results.append(res)
-                got = res.get("reported") or {}
                 print(f"  {name} {i + 1}/{args.runs}: {'ok ' if res['ok'] else 'BAD'} ids {res.get('ids')} "
                       f"pos {res.get('position_error_mm', float('nan')):.3f} mm "
                       f"force {res.get('force_error_pct', float('nan')):.2f} % {res['error']} "

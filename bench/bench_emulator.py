@@ -79,7 +79,7 @@ def efficiency() -> None:
         secs = 2.0
         r = vm.run(secs)
         bits = sum(8 * len(msgpack.packb(s)) for f in r.gateway_frames[1][first:]
-                   if f.type is FrameType.DATA and f.origin != 1 for s in f.payload.samples)  # type: ignore[union-attr]
+                   if f.type is FrameType.DATA and f.origin != 1 for s in f.payload.samples)  # type: ignore[union-attr]  # a DATA frame's payload is a Data
         share = bits / secs / mesh.bitrate
         offered = n * 250 * 14 * 8 / 1000
         print(f"{n:>7} {offered:>14.0f} {bits / secs / 1000:>16.0f} {share:>6.1%} "
@@ -111,7 +111,7 @@ def reporting_modes() -> None:
             vm = VirtualMesh(mesh, seed=3, world=World(mesh, list(contacts)), settings=Settings(reporting=mode))
             r = vm.run(5.0)
             frames = [f for f in r.gateway_frames[1] if f.type is FrameType.DATA
-                      and f.payload.samples[0].cycle >= CLOCK_HZ]  # type: ignore[union-attr]
+                      and f.payload.samples[0].cycle >= CLOCK_HZ]  # type: ignore[union-attr]  # a DATA frame's payload is a Data
             rates[mode.periodic] = len(frames) / 4.0
             if not mode.periodic:
                 seen = len({f.origin for f in frames})

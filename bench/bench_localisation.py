@@ -128,7 +128,7 @@ def random_straddles(n=150):
             c = cs[0]
             n_seen += 1
             n_light += not c.valid
-            for ax, (t, e, s) in enumerate(((x, c.x, c.sigma_x), (y, c.y, c.sigma_y))):
+            for ax, (t, e, _s) in enumerate(((x, c.x, c.sigma_x), (y, c.y, c.sigma_y))):
                 # Resolved axes of contacts with a pressure; a light touch's position
                 # is an interval (its σ is counted in the coverage column).
                 if c.observable[ax] and c.valid:

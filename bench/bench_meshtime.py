@@ -144,7 +144,7 @@ def costs() -> None:
     prof.disable()
     st = pstats.Stats(prof)
     mesh_time = firmware = 0.0
-    for (path, _line, fn), (_cc, _nc, tt, _ct, _callers) in st.stats.items():  # type: ignore[attr-defined]
+    for (path, _line, fn), (_cc, _nc, tt, _ct, _callers) in st.stats.items():  # type: ignore[attr-defined]  # pstats keeps its table in an undocumented attribute
         if path.endswith("meshtime.py") or fn in ("_stamp", "_beacon_message"):
             mesh_time += tt
         if "/emulator/" in path and not path.endswith(("virtual.py", "medium.py", "world.py")):
@@ -196,7 +196,7 @@ def press_latency_virtual() -> list[list[object]]:
                         cr = vm.nodes[f.origin].crystal
                         arr[f.origin] += [(cr.tick_at(x.cycle) / CLOCK_HZ, vm.tick / CLOCK_HZ, x.c1)
                                           for x in f.payload.samples]
-        vm._gateway_out = out  # type: ignore[method-assign]
+        vm._gateway_out = out  # type: ignore[method-assign]  # the benchmark taps the gateway's output
         presses = []
         for i in range(40):
             b = mesh.bridges[(i * 7) % len(mesh.bridges)]

@@ -130,7 +130,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
             t_read = reads[i][0]
             for m in p.feed("gw", reads[i][1], t_read):
                 if isinstance(m, Publish) and m.topic == "element":
-                    for b, touched in zip(m.payload["bridge"], m.payload["touched"]):
+                    for _b, touched in zip(m.payload["bridge"], m.payload["touched"]):
                         if touched:
                             for k, c in enumerate(presses):
                                 if c.start <= t_read < c.start + PRESS_S and k not in sample_at:

@@ -6,7 +6,12 @@ python running this). A 3x3 skin is calibrated and pressed until a contact is
 published, then the contact worker process is stopped (SIGSTOP: hung mid-estimate),
 an estimate is sent its way, and the daemon gets SIGTERM. The unit's TimeoutStopSec is 15 s.
 """
-import os, signal, subprocess, sys, tempfile, time
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
 from pathlib import Path
 tree = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(tree / "tests"))
@@ -25,7 +30,8 @@ with tempfile.TemporaryDirectory() as d:
         pty.write(sk.hellos() + sk.beacons())
         k, ready, end = 0, False, time.monotonic() + 60
         while not ready and time.monotonic() < end:
-            pty.write(sk.slot(k)); k += 1
+            pty.write(sk.slot(k))
+            k += 1
             got = client.recv(0.005)
             while got is not None and not ready:
                 ready = got[0] == "health" and got[1]["layout"]["elements"] == 9 and not got[1]["layout"]["not_ready"]
@@ -33,7 +39,8 @@ with tempfile.TemporaryDirectory() as d:
         assert ready
         seen, end = False, time.monotonic() + 60
         while not seen and time.monotonic() < end:
-            pty.write(sk.slot(k, (0.020, 0.020, 3.0, 0.012))); k += 1
+            pty.write(sk.slot(k, (0.020, 0.020, 3.0, 0.012)))
+            k += 1
             got = client.recv(0.005)
             while got is not None:
                 seen = seen or (got[0] == "contact" and bool(got[1]["contacts"]))
@@ -45,7 +52,8 @@ with tempfile.TemporaryDirectory() as d:
         for w in kids:
             os.kill(int(w), signal.SIGSTOP)  # the worker hangs
         for _ in range(30):  # an estimate goes to the hung worker
-            pty.write(sk.slot(k, (0.020, 0.020, 3.0, 0.012))); k += 1
+            pty.write(sk.slot(k, (0.020, 0.020, 3.0, 0.012)))
+            k += 1
             time.sleep(0.01)
         time.sleep(0.5)
         t0 = time.monotonic()

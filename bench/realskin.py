@@ -90,7 +90,7 @@ class RealSkin:
     def gate_time(self, bridge: int, cycle: int) -> float:
         return self._crystals[bridge].tick_at(cycle) / CLOCK_HZ
 
-    def __enter__(self) -> "RealSkin":
+    def __enter__(self) -> RealSkin:
         self._err = open(self.path + ".err", "w+")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "cellbridge", "mesh", "up", self.path, "--base-port", str(self.base_port),

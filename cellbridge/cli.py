@@ -14,6 +14,7 @@ import importlib
 import signal
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from cellbridge._version import __version__
 
@@ -53,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"cellbridge {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module_name, help_text in SUBCOMMANDS:
-        listed = {} if name in INTERNAL else {"help": help_text}  # a parser given no help= is not listed
+        listed: dict[str, Any] = {} if name in INTERNAL else {"help": help_text}  # a parser given no help= is not listed
         sp = sub.add_parser(name, description=help_text, **listed)
         sp.set_defaults(_module=module_name)
         try:

@@ -121,7 +121,7 @@ def _wait_gateway(proc: subprocess.Popen[str]) -> str:
         parts = line.split()
         if len(parts) >= 3 and parts[0] == "gateway":
             return parts[2]
-    raise RuntimeError("'mesh up' named no gateway within %.0f s" % GATEWAY_TIMEOUT)
+    raise RuntimeError(f"'mesh up' named no gateway within {GATEWAY_TIMEOUT:.0f} s")
 
 
 def _warm_kernels() -> None:
@@ -187,7 +187,8 @@ def _summarise(args: argparse.Namespace, contacts: list[dict[str, Any]]) -> dict
         v = sorted(float(c[key]) for c in steady)
         return v[len(v) // 2]
 
-    got = {k: median(k) for k in ("x", "y", "force", "diameter", "centroid_x", "centroid_y", "sigma_x", "sigma_y")}
+    got: dict[str, Any] = {k: median(k) for k in ("x", "y", "force", "diameter", "centroid_x", "centroid_y",
+                                                  "sigma_x", "sigma_y")}
     got["observable"] = steady[-1].get("observable")
     out.update(reported=got, ids=sorted(set(ids)),
                position_error_mm=1e3 * math.hypot(got["x"] - args.x, got["y"] - args.y),
@@ -245,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
             config.write_text(f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n'
                               f'[daemon]\nlog_format = "text"\n\n[calibration]\nn_baseline = 10\n\n'
                               f'[[link]]\nname = "gateway"\nurl = "{device}"\n')
-            ctx = zmq.Context.instance()
+            ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
             sub = ctx.socket(zmq.SUB)
             sub.setsockopt(zmq.LINGER, 0)
             for topic in (b"contact", b"health"):

@@ -54,8 +54,8 @@ def _load(args: argparse.Namespace) -> Config:
     from cellbridge.daemon.security import check_bind
 
     curve = curve_keys(config)  # and so are missing or unsafe CURVE key files
-    for section in ("pub", "control"):  # and a bind beyond loopback without them
-        check_bind(config[section]["endpoint"], curve)
+    for endpoint in (config.pub.endpoint, config.control.endpoint):  # and a bind beyond loopback without them
+        check_bind(endpoint, curve)
     from cellbridge.daemon.peers import reserve_descriptors
 
     reserve_descriptors(config)  # and a descriptor limit that cannot hold the peers it admits

@@ -62,7 +62,7 @@ class BridgeClock:
         return self._ref_raw is not None
 
     def _x(self, raw: int) -> float:
-        d = (raw - self._ref_raw) % self._mod  # type: ignore[operator]
+        d = (raw - self._ref_raw) % self._mod  # type: ignore[operator]  # called only once synced (_ref_raw set)
         if d >= self._mod >> 1:
             d -= self._mod
         return d / self.hz
@@ -115,7 +115,7 @@ class BridgeClock:
         elif self._late_from is None or x < self._late_from:
             self._late_from = x
         confirmed = (self._suspect and (behind or late)) or (
-            behind and x - self._late_from >= self.confirm)  # type: ignore[operator]
+            behind and x - self._late_from >= self.confirm)  # type: ignore[operator]  # behind: _late_from was set just above
         if predicted - arrival > self.max_jump or confirmed:  # no delay makes a frame arrive early
             self.resets += 1
             self._restart(raw, arrival)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from cellbridge.daemon.config import ContactSection
 from cellbridge.daemon.elements import default_params
 from cellbridge.tactile import (
     ContactEstimator,
@@ -54,10 +55,10 @@ class ContactSpec:
     max_missed: int = 2
 
     @classmethod
-    def of(cls, layout: SkinLayout, noise: float, contact: dict[str, Any]) -> ContactSpec:
+    def of(cls, layout: SkinLayout, noise: float, contact: ContactSection) -> ContactSpec:
         return cls(tuple(int(i) for i in layout.ids), tuple((float(x), float(y)) for x, y in layout.centres),
-                   layout.side, float(layout.neighbour_gap), noise, contact["method"],  # type: ignore[arg-type]
-                   contact["birth_frames"], contact["max_missed"])
+                   layout.side, float(layout.neighbour_gap), noise, contact.method,  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
+                   contact.birth_frames, contact.max_missed)
 
     def build(self) -> ContactStage:
         layout = SkinLayout(np.array(self.centres), side=self.side, ids=np.array(self.ids),
@@ -126,7 +127,7 @@ class ContactStage:
     def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str,
                  birth_frames: int = 3, max_missed: int = 2) -> None:
         self.layout = layout
-        self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]
+        self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
         self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:

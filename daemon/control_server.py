@@ -16,6 +16,7 @@ import zmq
 import zmq.asyncio
 
 from cellbridge._version import __version__
+from cellbridge.daemon.config import Config
 from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply, too_large
 from cellbridge.daemon.links import Link
 from cellbridge.daemon.logs import event
@@ -33,7 +34,7 @@ class Host(Protocol):
 
     pipeline: Pipeline
     links: dict[str, Link]
-    config: Any
+    config: Config
 
     def status_body(self, now: float) -> dict[str, Any]: ...
 
@@ -52,15 +53,15 @@ class ControlServer:
         self.counts: Counter[str] = Counter({"requests": 0, "errors": 0, "oversize": 0, "busy": 0})
 
     async def serve(self) -> None:
-        limits = self.host.config["control"]
+        limits = self.host.config.control
         while True:
-            envelope, body, size = await self._receive(limits["max_request_bytes"])
+            envelope, body, size = await self._receive(limits.max_request_bytes)
             self.counts["requests"] += 1
             if body is None:
                 self.counts["oversize"] += 1
                 event(self.log, "info", "control request too large", bytes=size)
-                await self._send(envelope, too_large(size, limits["max_request_bytes"]))
-            elif len(self._answers) >= limits["max_pending"]:
+                await self._send(envelope, too_large(size, limits.max_request_bytes))
+            elif len(self._answers) >= limits.max_pending:
                 self.counts["busy"] += 1
                 await self._send(envelope, _busy(body, len(self._answers)))
             else:
@@ -143,7 +144,7 @@ class ControlServer:
     async def _execute(self, req: Request) -> dict[str, Any]:
         now = self.host.now()
         pipeline = self.host.pipeline
-        timeout = req.timeout or self.host.config["control"]["command_timeout"]
+        timeout = req.timeout or self.host.config.control.command_timeout
         if req.cmd == "status":
             return reply(True, req.id, **self.host.status_body(now))
         if req.cmd == "topology":
@@ -154,7 +155,7 @@ class ControlServer:
         if req.cmd == "ping" and req.bridge is None:
             return reply(True, req.id, pong=True, version=__version__, t_host=now, commands=COMMANDS)
         op, value = (int(PING), None) if req.cmd == "ping" else (req.op, req.value)
-        result = await self.command(op, value, req.bridge, timeout)  # type: ignore[arg-type]
+        result = await self.command(op, value, req.bridge, timeout)  # type: ignore[arg-type]  # a bridge command's op and value, checked by parse_request
         replies = result["replies"]
         ok = bool(replies) and not result["missing"] and all(r["status"] == "OK" for r in replies.values())
         if not ok:

@@ -4,7 +4,6 @@ Calibrator), touch state, and (F, S) with a validity flag (the inverse)."""
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 from cellbridge.tactile import (
@@ -18,11 +17,13 @@ from cellbridge.tactile import (
 )
 from cellbridge.tactile.arrays import FloatArray
 from numpy.typing import NDArray
+from cellbridge.daemon.config import CalibrationSection
 
 
-def calibration_config(section: dict[str, Any]) -> CalibrationConfig:
-    keys = ("n_baseline", "enter", "leave", "k_enter", "k_leave", "holdoff", "tau", "tau_negative", "max_drift")
-    return CalibrationConfig(**{k: section[k] for k in keys}, max_touch=section["max_touch"] or None)
+def calibration_config(s: CalibrationSection) -> CalibrationConfig:
+    return CalibrationConfig(n_baseline=s.n_baseline, enter=s.enter, leave=s.leave, k_enter=s.k_enter,
+                             k_leave=s.k_leave, holdoff=s.holdoff, tau=s.tau, tau_negative=s.tau_negative,
+                             max_drift=s.max_drift, max_touch=s.max_touch or None)
 
 
 def default_params(layout: SkinLayout) -> ElementParams:

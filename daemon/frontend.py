@@ -3,9 +3,9 @@ capacitances, through the chip's transfer functions in :mod:`cellbridge.tactile`
 
 from __future__ import annotations
 
-from typing import Any
 
 import numpy as np
+from cellbridge.daemon.config import ChipSection
 from cellbridge.daemon.wire import ADC_MODE, OVERFLOW_C1, OVERFLOW_C2
 from cellbridge.tactile import (
     ChipParams,
@@ -73,5 +73,5 @@ class Frontend:
         return caps, sat
 
 
-def chip_params(section: dict[str, Any]) -> ChipParams:
-    return ChipParams(clock_hz=section["clock_hz"], gate_cycles=section["gate_cycles"])
+def chip_params(section: ChipSection) -> ChipParams:
+    return ChipParams(clock_hz=section.clock_hz, gate_cycles=section.gate_cycles)

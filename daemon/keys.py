@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 from pathlib import Path
 
 import zmq
@@ -37,7 +37,7 @@ def write_keypair(directory: Path, name: str, *, force: bool = False) -> tuple[P
             if path.exists():
                 raise FileExistsError(f"{path} exists (use --force to replace the pair)")
     public, secret = (k.decode("ascii") for k in zmq.curve_keypair())
-    when = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    when = datetime.now(UTC).isoformat(timespec="seconds")
     curve = f'curve\n    public-key = "{public}"\n'
     _write_atomic(secret_path, _BANNER.format(kind="Secret", when=when) + _SECRET_NOTE + "metadata\n"
                   + curve + f'    secret-key = "{secret}"\n', 0o600)

@@ -15,6 +15,7 @@ from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
+from cellbridge.daemon.config import CalibrationSection, Config, ContactSection, InverseSection
 from cellbridge.daemon.contacts import ContactSnapshot, ContactSpec
 from cellbridge.daemon.elements import ElementStage, calibration_config, default_params
 from cellbridge.daemon.health import ChannelHealth
@@ -26,15 +27,20 @@ from numpy.typing import NDArray
 _IDS = 0x10000
 
 
-class LayoutStages:
-    """The layout and its stages; see the module's docstring. ``sections``: the config's."""
+def skin_settings(config: Config) -> tuple[CalibrationSection, InverseSection, ContactSection]:
+    """The settings :class:`LayoutStages` builds its stages from (a change rebuilds them)."""
+    return config.calibration, config.inverse, config.contact
 
-    def __init__(self, sections: dict[str, dict[str, Any]], layout: SkinLayout | None,
+
+class LayoutStages:
+    """The layout and its stages; see the module's docstring. ``config``: the daemon's."""
+
+    def __init__(self, config: Config, layout: SkinLayout | None,
                  previous: LayoutStages | None = None) -> None:
         """``previous``: the stages these replace (a SIGHUP that changed the layout or the
         contact settings, not calibration or inverse): elements that kept their place keep
         their baselines and touch state, so a press held across the reload goes on."""
-        self.sections = sections
+        self.config = config
         self._previous = previous
         self.from_file = layout is not None
         self.geometry: dict[int, tuple[float, float, float]] = {}  # HELLO: bridge -> (x, y, side)
@@ -56,18 +62,18 @@ class LayoutStages:
         self._previous = None
         old_layout, old_elements, old_channels = src.layout, src.elements, src.channels
         params = default_params(layout)
-        inv = self.sections["inverse"]
+        inv = self.config.inverse
         self.layout = layout
-        cal = self.sections["calibration"]
-        self.elements = ElementStage(layout, params, calibration_config(cal), inv["noise"], cal["max_step_rate"])
-        self.contact_spec = ContactSpec.of(layout, inv["noise"], self.sections["contact"])
+        cal = self.config.calibration
+        self.elements = ElementStage(layout, params, calibration_config(cal), inv.noise, cal.max_step_rate)
+        self.contact_spec = ContactSpec.of(layout, inv.noise, self.config.contact)
         self.channels = ChannelHealth(layout.n)
         self.row[:] = -1
         ids = layout.ids
         inside = (ids >= 0) & (ids < _IDS)
         self.row[ids[inside]] = np.nonzero(inside)[0]
-        con = self.sections["contact"]  # memory in readings: max_lag reaches back at most max_lag_readings
-        depth = min(math.ceil(con["max_lag"] * cal["max_step_rate"]), con["max_lag_readings"]) + SPARE
+        con = self.config.contact  # memory in readings: max_lag reaches back at most max_lag_readings
+        depth = min(math.ceil(con.max_lag * cal.max_step_rate), con.max_lag_readings) + SPARE
         self.moments = Moments(layout.n, depth)
         self.rebuilds += 1
         if old_layout is not None and old_elements is not None and old_layout.side == layout.side:
@@ -182,8 +188,8 @@ class LayoutStages:
             return None
         m = self.moments
         m.settle(self.elements.flush(now), self.elements.touched)
-        c = self.sections["contact"]
-        got = m.take(now, bridge_timeout, c["max_lag"], force=self.dirty, held_wait=c["held_wait"])
+        c = self.config.contact
+        got = m.take(now, bridge_timeout, c.max_lag, force=self.dirty, held_wait=c.held_wait)
         if got is None:
             return None
         self.dirty = False
@@ -198,7 +204,7 @@ class LayoutStages:
         if bridges is None:
             self.elements.tare(None)
             self.moments.forget(slice(None))
-            return self.layout.n  # type: ignore[union-attr]
+            return self.layout.n  # type: ignore[union-attr]  # elements exist only with a layout
         rows = self.row[np.asarray(bridges, dtype=np.int64)]
         rows = rows[rows >= 0]
         if rows.size:
@@ -226,7 +232,7 @@ class LayoutStages:
             late=ids[self.moments.late].tolist() if self.moments is not None else [],
             late_estimates=self.moments.late_estimates if self.moments is not None else 0,
         )
-        cal = self.elements.calibrator.health()
+        cal: dict[str, Any] = self.elements.calibrator.health()
         cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids
         out["calibration"] = cal
         return out

@@ -18,7 +18,7 @@ from __future__ import annotations
 import asyncio
 import os
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
 from typing import Protocol
 
 import serial
@@ -51,7 +51,7 @@ Opener = Callable[[LinkConfig], Port]
 
 def open_serial(cfg: LinkConfig) -> Port:
     """Any pyserial URL. timeout=0: reads never wait; a socket:// write waits at most write_timeout."""
-    return serial.serial_for_url(cfg.url, baudrate=cfg.baudrate, timeout=0, write_timeout=0.05)  # type: ignore[no-any-return]
+    return serial.serial_for_url(cfg.url, baudrate=cfg.baudrate, timeout=0, write_timeout=0.05)
 
 
 class Clock(Protocol):
@@ -197,7 +197,7 @@ class SerialLink(Link):
         if ser is None:
             return super().write(data)
         try:
-            if isinstance(ser, serial.serialposix.Serial):
+            if isinstance(ser, serial.serialposix.Serial) and ser.fd is not None:
                 # A few dozen bytes: the driver's buffer takes them at once, or the line is
                 # stuck and the command is dropped (counted) instead of stalling the loop.
                 # A partial write is a dropped command too (the next frame's leading
@@ -212,8 +212,8 @@ class SerialLink(Link):
 def _reader(ser: Port) -> Callable[[], bytes]:
     """One non-blocking read of what is there. A tty or pty is read with a single
     ``os.read`` (pyserial's ``read`` polls around it, three system calls a read)."""
-    if isinstance(ser, serial.serialposix.Serial):
-        fd = ser.fd
+    fd = ser.fd if isinstance(ser, serial.serialposix.Serial) else None
+    if fd is not None:
 
         def read_fd() -> bytes:
             try:
@@ -284,6 +284,6 @@ class ReplayLink(Link):
         return {**super().stats(), "replayed_records": self.records, "replay_finished": self.finished}
 
 
-def _chain(first: tuple[float, bytes], rest: object) -> object:
+def _chain(first: tuple[float, bytes], rest: Iterator[tuple[float, bytes]]) -> Iterator[tuple[float, bytes]]:
     yield first
-    yield from rest  # type: ignore[misc]
+    yield from rest

@@ -104,6 +104,7 @@ class Moments:
             over_leave = (dc > leave[rows]).any(axis=1)
         prev = self.touched[rows, (self.count[rows] - 1) % self.depth] & (self.count[rows] > 0)
         touched = over_enter | (prev & over_leave)
+        rank: int | NDArray[np.int64]  # each reading's slot after the element's newest
         if unique:
             idx, rank = None, 0
             r = rows

@@ -41,13 +41,13 @@ class OpsHooks:
         # The ZAP handler and the peer guard run on threads with blocking sockets: give
         # them a plain context that shares the asyncio context's libzmq context (ZAP and
         # inproc:// monitors are per context).
-        plain = zmq.Context.shadow(ctx.underlying)
+        plain: zmq.Context[zmq.Socket[bytes]] = zmq.Context.shadow(ctx.underlying)
         role = "pub" if socket.socket_type in (zmq.XPUB, zmq.PUB) else "control"
-        peers = self.config["peers"]
-        bound_socket(socket, role, peers, self.config["control"])
+        peers = self.config.peers
+        bound_socket(socket, role, peers, self.config.control)
         if self._guard is None:
             self._guard = PeerGuard(plain)
-        self._guard.watch(role, socket, PeerLimits(peers[f"max_{role}"], peers["max_per_address"]))
+        self._guard.watch(role, socket, PeerLimits(peers.max_pub if role == "pub" else peers.max_control, peers.max_per_address))
         if self.curve is None:
             return
         if self._server is None:
@@ -56,8 +56,8 @@ class OpsHooks:
 
     def bound(self, socket: zmq.Socket, endpoint: str) -> None:
         """After binding: an ipc:// socket file gets its section's ``ipc_mode`` and ``ipc_group``."""
-        section = self.config["pub" if socket.socket_type in (zmq.XPUB, zmq.PUB) else "control"]
-        restrict_ipc(endpoint, section["ipc_mode"], section["ipc_group"])
+        section = self.config.pub if socket.socket_type in (zmq.XPUB, zmq.PUB) else self.config.control
+        restrict_ipc(endpoint, section.ipc_mode, section.ipc_group)
 
     def counters(self) -> dict[str, object]:
         out: dict[str, object] = dict(self._server.counters()) if self._server is not None else {}

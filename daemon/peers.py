@@ -27,10 +27,11 @@ import socket
 import struct
 import threading
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import zmq
+from cellbridge.daemon.config import Config, ControlSection, PeersSection
 from zmq.utils.monitor import parse_monitor_message
 
 #: Largest subscription message the PUB socket reads (a topic prefix is a few bytes; the
@@ -212,7 +213,7 @@ class PeerGuard:
             for pair in by_socket:
                 pair.close(linger=0)
 
-    def _event(self, name: str, limits: PeerLimits, ev: dict[str, Any]) -> None:
+    def _event(self, name: str, limits: PeerLimits, ev: Mapping[str, Any]) -> None:
         kind, fd = ev["event"], ev["value"]
         if kind == zmq.EVENT_ACCEPTED:
             address = peer_address(fd)
@@ -239,34 +240,34 @@ class PeerGuard:
             self._new = []
 
 
-def bound_socket(sock: zmq.Socket, role: str, peers: dict[str, Any], control: dict[str, Any]) -> None:
+def bound_socket(sock: zmq.Socket, role: str, peers: PeersSection, control: ControlSection) -> None:
     """Socket options that bound one peer: handshake time, message size, queued requests.
 
     ``role`` is ``"pub"`` or ``"control"``; call before bind."""
-    sock.setsockopt(zmq.HANDSHAKE_IVL, max(1, round(peers["handshake_timeout"] * 1000)))
+    sock.setsockopt(zmq.HANDSHAKE_IVL, max(1, round(peers.handshake_timeout * 1000)))
     if role == "pub":
         sock.setsockopt(zmq.MAXMSGSIZE, MAX_SUBSCRIPTION_BYTES)
     else:
-        sock.setsockopt(zmq.MAXMSGSIZE, HARD_REQUEST_FACTOR * control["max_request_bytes"])
+        sock.setsockopt(zmq.MAXMSGSIZE, HARD_REQUEST_FACTOR * control.max_request_bytes)
         sock.setsockopt(zmq.RCVHWM, CONTROL_RCVHWM)
 
 
-def descriptors_needed(config: Any) -> int:
+def descriptors_needed(config: Config) -> int:
     """Descriptors the daemon may hold: every peer admitted, the links, and the reserve."""
-    p = config["peers"]
-    return p["max_pub"] + p["max_control"] + p["fd_reserve"] + PER_LINK * len(config.links)
+    p = config.peers
+    return p.max_pub + p.max_control + p.fd_reserve + PER_LINK * len(config.links)
 
 
-def reserve_descriptors(config: Any) -> int:
+def reserve_descriptors(config: Config) -> int:
     """Raise the soft descriptor limit to what the bounds need (up to the hard limit);
     ValueError naming the numbers when even the hard limit is too low. Returns the limit."""
     need = descriptors_needed(config)
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if soft == resource.RLIM_INFINITY or soft >= need:
         return int(need if soft == resource.RLIM_INFINITY else soft)
-    p = config["peers"]
-    why = (f"the descriptor limit ({soft}, at most {hard}) cannot hold peers.max_pub {p['max_pub']} + "
-           f"peers.max_control {p['max_control']} + peers.fd_reserve {p['fd_reserve']} + {PER_LINK} per link "
+    p = config.peers
+    why = (f"the descriptor limit ({soft}, at most {hard}) cannot hold peers.max_pub {p.max_pub} + "
+           f"peers.max_control {p.max_control} + peers.fd_reserve {p.fd_reserve} + {PER_LINK} per link "
            f"= {need}: raise LimitNOFILE= in the unit (ulimit -n) or lower those settings")
     if hard != resource.RLIM_INFINITY and hard < need:
         raise ValueError(why)

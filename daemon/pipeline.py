@@ -33,7 +33,7 @@ from cellbridge.daemon.contacts import ContactJob
 from cellbridge.daemon.elements import default_params
 from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
-from cellbridge.daemon.layout import LayoutStages, layout_dict
+from cellbridge.daemon.layout import LayoutStages, layout_dict, skin_settings
 from cellbridge.daemon.messages import (
     ContactFrame,
     ElementBatch,
@@ -59,7 +59,6 @@ _FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at
 # ~65 536 passes CRC-16 with a random origin, so a noisy line makes thousands of phantoms; each
 # would cost ~240 bytes in every health message (15 MB at 65 530) until forgotten.
 _UNPLACED_SHOWN = 64
-_SKIN_SECTIONS = ("calibration", "inverse", "contact")  # what the element and contact stages are built from
 _OWNERS = itertools.count()
 _P = TypeVar("_P", bound=Publish)
 
@@ -85,13 +84,12 @@ class Pipeline:
     def __init__(self, config: Config, layout: SkinLayout | None = None) -> None:
         self.config = config
         self._owner = f"{os.getpid()}.{next(_OWNERS)}"  # whose tracks a contact job continues
-        s = config.sections
-        self.ingress = Ingress(s["protocol"]["dedupe_window"], s["protocol"]["reassembly_timeout"])
-        self.chip = chip_params(s["chip"])
+        self.ingress = Ingress(config.protocol.dedupe_window, config.protocol.reassembly_timeout)
+        self.chip = chip_params(config.chip)
         self.frontend = Frontend(default_params(layout) if layout is not None else ElementParams(), self.chip)
-        self.skin = LayoutStages(s, layout)
+        self.skin = LayoutStages(config, layout)
         self.gate = np.full(0x10000, float(self.chip.gate_cycles))
-        self._bits = s["chip"]["cycle_bits"]
+        self._bits = config.chip.cycle_bits
         # Each bridge's clock parameters, indexed by bridge id, so a batch maps in one vector step.
         self._ref = np.zeros(0x10000, dtype=np.uint64)
         self._t_ref = np.full(0x10000, np.nan)
@@ -168,7 +166,7 @@ class Pipeline:
         c = self.clocks.get(bid)
         if c is None:
             hz = self.bridges[bid].clock_hz if bid in self.bridges else self.chip.clock_hz
-            c = self.clocks[bid] = BridgeClock(hz, bits=self.config["chip"]["cycle_bits"])
+            c = self.clocks[bid] = BridgeClock(hz, bits=self.config.chip.cycle_bits)
         return c
 
     # -- ingest -------------------------------------------------------------------------
@@ -213,14 +211,14 @@ class Pipeline:
             if b.clock_hz != h.clock_hz and h.clock_hz > 0:
                 b.clock_hz = float(h.clock_hz)
                 self.clocks.pop(origin, None)
-        for origin, src, bc in dec.beacons:
+        for origin, _src, bc in dec.beacons:
             self.topology.beacon(origin, bc.parent, bc.path_etx, bc.hops)
         for origin, st in dec.statuses:
             self.topology.status(origin, st.parent, st.path_etx, {n.bridge: n.link_etx for n in st.neighbours},
                                  st.queue_drops, st.retries, st.resets)
         if dec.hellos and self.skin.hello({o: (h.x, h.y, h.side) for o, h in dec.hellos}):
             self._forget_floor = -math.inf  # a bridge the layout no longer places may be due
-            self._event("info", f"layout from HELLO now has {self.skin.layout.n} elements")  # type: ignore[union-attr]
+            self._event("info", f"layout from HELLO now has {self.skin.layout.n} elements")  # type: ignore[union-attr]  # hello() returned True: a layout is in place
             if self._want("topology"):
                 out.append(self._message(Topology, now, self.topology_body(now)))
         for origin, reply in dec.replies:
@@ -344,9 +342,9 @@ class Pipeline:
         :class:`~cellbridge.daemon.contact_worker.ContactWorker` (any executor) and pass
         the contacts to :meth:`contact_frame`. ``now``: the host time (default: the last
         read's); a shell passes it also when no data comes, so that silence is noticed."""
-        if not self.config["contact"]["enabled"] or not self._want("contact"):
+        if not self.config.contact.enabled or not self._want("contact"):
             return None
-        snap = self.skin.snapshot(self.last_feed if now is None else now, self.config["health"]["bridge_timeout"])
+        snap = self.skin.snapshot(self.last_feed if now is None else now, self.config.health.bridge_timeout)
         if snap is None or self.skin.contact_spec is None:
             return None
         return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id, self._carry)
@@ -395,13 +393,13 @@ class Pipeline:
         ``health.interval`` (or now, if ``force``), ``topology`` when it changed, and log
         events (bridges gone silent or back, the host clock stepping back: a ``now``
         before the last tick's is taken as such a step)."""
-        h = self.config["health"]
+        h = self.config.health
         if now < self._last_tick:
             self._clock_stepped_back(now)
         self._last_tick = now
         if now < self._next_health and not force:
             return self._drain_log([])
-        interval = h["interval"]
+        interval = h.interval
         self._next_health = now + interval
         # Over the time since the health before (often more than the interval), not the interval.
         elapsed = now - self._last_health if 0 < now - self._last_health < math.inf else interval
@@ -413,14 +411,14 @@ class Pipeline:
             b = self.bridges[bid]
             b.rate = (b.samples - b._samples_at_tick) / elapsed
             b._samples_at_tick = b.samples
-            silent = now - b.last_seen > h["bridge_timeout"]
+            silent = now - b.last_seen > h.bridge_timeout
             if silent != b.silent:
                 (went_silent if silent else came_back).append(bid)
             b.silent = silent
             if silent and not b.rate:
                 self._awake.discard(bid)
         self._silence_events(went_silent, came_back, now)
-        self._forget(now - h["forget_after"])
+        self._forget(now - h.forget_after)
         out: list[Message] = []
         if self._want("health"):
             out.append(self._message(Health, now, self.health_body(now)))
@@ -482,8 +480,8 @@ class Pipeline:
 
     def health_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
-        h = self.config["health"]
-        layout_report = self.skin.report(now, h["stuck_after"])
+        h = self.config.health
+        layout_report = self.skin.report(now, h.stuck_after)
         placed, others = self.skin.split_placed(self.bridges)
         others.sort()
         unplaced = [b for b in others if self.bridges[b].unmapped_samples]
@@ -518,7 +516,7 @@ class Pipeline:
 
     def topology_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``topology`` message at ``now`` (control's ``topology`` answers with them)."""
-        body = self.topology.report(now, self.config["health"]["bridge_timeout"], self.skin.split_placed,
+        body = self.topology.report(now, self.config.health.bridge_timeout, self.skin.split_placed,
                                     _UNPLACED_SHOWN)
         for node in body["bridges"].values():
             node["last_seen"] = self._wall(node["last_seen"])
@@ -535,13 +533,13 @@ class Pipeline:
         if target is None:
             alive = {b for b, bh in self.bridges.items() if not bh.silent}
             pending = self.commands.start(op, value, alive, now, timeout)
-            data = command_bytes(ADDR_BROADCAST, pending.token, op, value)  # type: ignore[arg-type]
+            data = command_bytes(ADDR_BROADCAST, pending.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
             return pending, [LinkWrite(name, data) for name in self.links]
         links = self.topology.links_of(target)
         if not links:
             raise ValueError(f"bridge {target} has not been heard from on any link")
         pending = self.commands.start(op, value, {target}, now, timeout)
-        data = command_bytes(target, pending.token, op, value)  # type: ignore[arg-type]
+        data = command_bytes(target, pending.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
         return pending, [LinkWrite(name, data) for name in links]
 
     def finished_commands(self, now: float) -> list[Pending]:
@@ -566,14 +564,14 @@ class Pipeline:
         sk = self.skin
         same_layout = (layout is None and not sk.from_file) or (
             layout is not None and sk.from_file and sk.layout is not None and layout_dict(layout) == layout_dict(sk.layout))
-        if same_layout and all(old[s] == config[s] for s in _SKIN_SECTIONS):
-            sk.sections = config.sections
+        if same_layout and skin_settings(old) == skin_settings(config):
+            sk.config = config
             return
         geometry = self.skin.geometry
         # Calibration and inverse unchanged: elements that keep their place keep their
         # baselines (a press held across the reload goes on, and so does its contact's id).
-        same_elements = all(old[s] == config[s] for s in ("calibration", "inverse"))
-        self.skin = LayoutStages(config.sections, layout, sk if same_elements else None)
+        same_elements = (old.calibration, old.inverse) == (config.calibration, config.inverse)
+        self.skin = LayoutStages(config, layout, sk if same_elements else None)
         self.skin.hello(geometry)
         self._forget_floor = -math.inf
 

@@ -70,7 +70,7 @@ class Publisher:
             self.sock.setsockopt(zmq.XPUB_NODROP, 1)
         self.subscriptions_unmatched = 0  # (first) subscriptions to a prefix that matches no topic
         self.sock.setsockopt(zmq.LINGER, 1000)  # on shutdown, 1 s to flush what is queued
-        self._raw = zmq.Socket.shadow(self.sock.underlying)  # plain non-blocking sends: no futures
+        self._raw: zmq.Socket[bytes] = zmq.Socket.shadow(self.sock.underlying)  # plain non-blocking sends: no futures
         self._prefixes: Counter[bytes] = Counter()
         self.wanted: set[str] = set()
         self.subscribed = asyncio.Event()

@@ -28,7 +28,7 @@ import zmq.asyncio
 
 from cellbridge._version import __version__
 from cellbridge.daemon.layout_file import load_layout
-from cellbridge.daemon.config import SECTIONS, Config, ConfigError, load_config
+from cellbridge.daemon.config import Config, ConfigError, load_config
 from cellbridge.daemon.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.control_server import ControlServer
 from cellbridge.daemon.links import SYSTEM_CLOCK, Clock, Link, Opener, ReplayLink, SerialLink, open_serial
@@ -69,7 +69,7 @@ class Service:
         self._clock = clock
         self.drain_limit = drain_limit
         self.config_path = config_path
-        self.log = setup(config["daemon"]["log_level"], config["daemon"]["log_format"])
+        self.log = setup(config.daemon.log_level, config.daemon.log_format)
         self.pipeline = Pipeline(config, layout)
         # The pipeline runs on the monotonic clock; a replay in recorded time feeds recorded
         # wall-clock times instead, and then nothing is added to them.
@@ -219,7 +219,7 @@ class Service:
             self._fresh.clear()
             started = time.perf_counter()
             await self._contact_once()
-            rest = 1.0 / self.config["contact"]["rate"] - (time.perf_counter() - started)
+            rest = 1.0 / self.config.contact.rate - (time.perf_counter() - started)
             if rest > 0:
                 await asyncio.sleep(rest)
 
@@ -230,7 +230,7 @@ class Service:
             return
         self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
         self._feeds_since_snapshot = 0
-        contacts = await self.contacts.estimate(job, min(limit, self.config["contact"]["worker_timeout"]))
+        contacts = await self.contacts.estimate(job, min(limit, self.config.contact.worker_timeout))
         if contacts is None:
             return
         if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without
@@ -252,14 +252,11 @@ class Service:
             event(self.log, "error", "reload rejected, keeping the running config", error=str(exc))
             self.hooks.ready("reload rejected")
             return
-        fixed = [f"{s}.{k}" for s, keys in SECTIONS.items() for k, spec in keys.items()
-                 if not spec.reloadable and new[s][k] != self.config[s][k]]
-        if new.links != self.config.links:
-            fixed.append("link")
+        fixed = self.config.needs_restart(new)
         if fixed:
             event(self.log, "warning", "reload: these changes need a restart", keys=fixed)
         self.config = new
-        self.log.setLevel(new["daemon"]["log_level"].upper())
+        self.log.setLevel(new.daemon.log_level.upper())
         self.pipeline.reconfigure(new, layout)
         try:
             self.hooks.reload_keys()
@@ -271,11 +268,11 @@ class Service:
     # -- lifecycle ----------------------------------------------------------------------
     def _bind(self, ctx: zmq.asyncio.Context) -> None:
         c = self.config
-        self.pub = Publisher(ctx, c["pub"]["endpoint"], c["pub"]["hwm"], c["pub"]["count_drops"], c["pub"]["source"])
+        self.pub = Publisher(ctx, c.pub.endpoint, c.pub.hwm, c.pub.count_drops, c.pub.source)
         self.ctl = ctx.socket(zmq.ROUTER)
         self.ctl.setsockopt(zmq.LINGER, 500)
         self.control = ControlServer(self.ctl, self, self.log)
-        for sock, endpoint in ((self.pub.sock, c["pub"]["endpoint"]), (self.ctl, c["control"]["endpoint"])):
+        for sock, endpoint in ((self.pub.sock, c.pub.endpoint), (self.ctl, c.control.endpoint)):
             self.hooks.secure(ctx, sock, endpoint)  # OPS: security check, CURVE and peer bounds, before bind
             sock.bind(endpoint)
             self.hooks.bound(sock, endpoint)  # OPS: an ipc:// socket file's mode and group
@@ -302,12 +299,12 @@ class Service:
         link_tasks = [asyncio.create_task(ln.run(), name=f"link {n}") for n, ln in self.links.items()]
         self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self.control.serve(),
                                                         self.pub.watch_subscriptions())]
-        if self.config["contact"]["enabled"]:
+        if self.config.contact.enabled:
             self.contacts.start()
         if self.hooks.watchdog_interval:
             self._tasks.append(asyncio.create_task(self._watchdog(self.hooks.watchdog_interval)))
-        event(self.log, "info", "daemon started", version=__version__, pub=self.config["pub"]["endpoint"],
-              control=self.config["control"]["endpoint"], links=list(self.links))
+        event(self.log, "info", "daemon started", version=__version__, pub=self.config.pub.endpoint,
+              control=self.config.control.endpoint, links=list(self.links))
         # Start-up objects (numpy, zmq, the layout) never die: keep them out of the cyclic
         # collector's full passes, which pause the event loop for the time they take.
         gc.collect()

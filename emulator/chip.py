@@ -85,7 +85,7 @@ class ChipConfig:
             )
         # The transfer parameters check the rest (counter/ADC widths, crystal range).
         try:
-            self.transfer_params
+            _ = self.transfer_params
         except ValueError as exc:
             raise ValueError(f"ChipConfig: {exc}") from None
 
@@ -127,7 +127,7 @@ def _check_int(name: str, v: object, minimum: int) -> int:
 
 def _check_capacitance(c: object) -> float:
     try:
-        v = float(c)  # type: ignore[arg-type]
+        v = float(c)  # type: ignore[arg-type]  # any object: float() decides whether it is a number
     except (TypeError, ValueError):
         raise ValueError(f"capacitance must be a number in farads, got {c!r}") from None
     if not (math.isfinite(v) and v > 0):

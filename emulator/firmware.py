@@ -105,7 +105,7 @@ def _hello_boots(f: Raw) -> int | None:
         hello = unpack_payload(_HELLO, f.body)
     except ProtocolError:
         return None
-    return hello.boots or None  # type: ignore[union-attr]
+    return hello.boots or None  # type: ignore[union-attr]  # unpacked as a HELLO: a Hello
 
 
 def _stagger(bridge: int, most: int) -> int:
@@ -380,7 +380,7 @@ class Firmware:
             return False
         t = f.type
         if t is FrameType.LINK_ACK:
-            ack: LinkAck = f.payload  # type: ignore[assignment]
+            ack: LinkAck = f.payload  # type: ignore[assignment]  # a LINK_ACK frame's payload is a LinkAck
             return f.dst == self.me and self.link.acked(ack.origin, ack.seq, f.src, tick)
         if t is FrameType.BEACON:
             self._beacon(f, tick, sof)
@@ -390,7 +390,7 @@ class Firmware:
 
     # -- routing --------------------------------------------------------------------
     def _beacon(self, f: Frame, tick: int, sof: int) -> None:
-        b: Beacon = f.payload  # type: ignore[assignment]
+        b: Beacon = f.payload  # type: ignore[assignment]  # a BEACON frame's payload is a Beacon
         if b.time is not None:
             # samples due before the clock moves are taken with the clock as it was (their
             # gates were planned with it): lazy sampling stays gate-by-gate exact
@@ -527,14 +527,14 @@ class Firmware:
                     insort(self.floods, (tick + lo + self.rng.randrange(hi - lo), data), key=_when)
                 self.counters["flooded"] += 1
         if target in (self.me, ADDR_BROADCAST):
-            cmd: Command = f.payload  # type: ignore[assignment]
+            cmd: Command = f.payload  # type: ignore[assignment]  # the control frames that reach here are COMMANDs
             self.counters["commands"] += 1
             limit = self.max_gate if cmd.op is Op.SET_GATE else MAX_GATE
             reply, new = execute(cmd, self.sampler.settings, self.config.clock_hz, self.crystal.local(tick), limit)
             self._own(reply)
             if new is not None:
-                for data in self.sampler.apply(new, tick):
-                    self._own(data)
+                for sample in self.sampler.apply(new, tick):
+                    self._own(sample)
             if reply.op.name == "RESET" and reply.status == 0 and self.reset_at < 0:
                 # reset once the reply has left (acknowledged by the next hop) and the
                 # command's flood copies are sent, so the host hears the RESET was taken

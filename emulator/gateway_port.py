@@ -144,7 +144,7 @@ class GatewayPort:
 
     def _accept(self) -> None:
         try:
-            conn, _ = self.listener.accept()  # type: ignore[union-attr]
+            conn, _ = self.listener.accept()  # type: ignore[union-attr]  # called only while listening
         except (BlockingIOError, InterruptedError, ConnectionAbortedError):
             return
         except OSError:  # EMFILE, ENFILE, ENOBUFS: no room for one more descriptor now

@@ -138,7 +138,7 @@ class Medium:
             if cause is not None:
                 self.counters[cause] += 1
                 continue
-            loss, ber = edge  # type: ignore[misc]
+            loss, ber = edge  # type: ignore[misc]  # edge is set here: a missing edge made cause 'cut' above
             if loss and self._rng.random() < loss:
                 self.counters["lost"] += 1
                 continue

@@ -117,4 +117,4 @@ def generate(kind: str, size: Sequence[int], **kw: object) -> Mesh:
     fn = {"line": line, "ring": ring, "grid": grid, "random": random_mesh}[kind]
     if kind != "random":
         kw.pop("seed", None)
-    return fn(*size, **kw)  # type: ignore[operator]
+    return fn(*size, **kw)  # type: ignore[operator]  # each generator takes its kind's size numbers, counted above

@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge bridge: cannot reach the medium at UDP {ep.host}:{ep.base_port}: "
               f"{exc.strerror or exc}", file=sys.stderr)
         return 1
-    ctx = zmq.Context.instance()
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
     stimuli = ctx.socket(zmq.SUB)
     stimuli.setsockopt(zmq.LINGER, 0)
     stimuli.setsockopt(zmq.SUBSCRIBE, b"")
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     # tens of microseconds a call. The world's SUB socket joins by its ZMQ_FD, which only
     # says "look at ZMQ_EVENTS": it is drained when that fd wakes us and every 200 ms.
     poller = select.poll()
-    medium_fd, stimuli_fd = medium.fileno(), stimuli.getsockopt(zmq.FD)
+    medium_fd, stimuli_fd = medium.fileno(), stimuli.fileno()  # the socket's ZMQ_FD
     poller.register(medium_fd, _POLLIN)
     poller.register(stimuli_fd, _POLLIN)
     registered: set[int] = set()
@@ -194,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
                         fw.counters["medium_malformed"] += 1
             if stimuli_fd in ready or tick >= stimuli_at:
                 stimuli_at = tick + STIMULI_CHECK
-                while stimuli.getsockopt(_EVENTS) & _ZMQ_POLLIN:
+                while stimuli.getsockopt(_EVENTS) & _ZMQ_POLLIN:  # type: ignore[operator]  # an int option (pyzmq types all int | bytes)
                     contacts = decode_contacts(stimuli.recv(_NOBLOCK))
                     if contacts is None:
                         fw.counters["stimuli_malformed"] += 1

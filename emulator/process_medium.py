@@ -36,6 +36,8 @@ import socket
 import sys
 import time
 from collections import Counter
+from collections.abc import Iterable
+from typing import Any
 
 from cellbridge.emulator import udp
 from cellbridge.emulator.carrier_arbiter import CarrierArbiter
@@ -67,15 +69,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 class Bridges:
     """Where each bridge process is, as its own messages say, and whether it still is."""
 
-    def __init__(self, sock: socket.socket, ids: tuple[int, ...], counters: Counter[str]) -> None:
+    def __init__(self, sock: socket.socket, ids: Iterable[int], counters: Counter[str]) -> None:
         self.sock = sock
         self.known = set(ids)
-        self.addr: dict[int, object] = {}
+        self.addr: dict[int, Any] = {}  # bridge -> its UDP (host, port)
         self.heard: dict[int, int] = {}
         self.counters = counters
         self.gone = int(GONE_S * CLOCK_HZ)
 
-    def heard_from(self, bridge: int, addr: object, tick: int) -> None:
+    def heard_from(self, bridge: int, addr: Any, tick: int) -> None:
         self.addr[bridge] = addr  # a restarted bridge comes from a new port: it takes its id back
         self.heard[bridge] = tick
 
@@ -131,7 +133,7 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
     while not stop.stopped:
         timeout = 100
         if pending or starting:
-            first = min(x[0] for x in (pending[:1] + starting[:1]))  # type: ignore[operator]
+            first = min(x[0] for x in (pending[:1] + starting[:1]))
             wait = first - now_tick()
             timeout = max(0, math.ceil(wait * 1000 / CLOCK_HZ))
             if 0 < wait < CLOCK_HZ // 1000 and not poller.poll(0):
@@ -154,26 +156,26 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
                     continue
                 kind = msg[0]
                 if kind == WANT and (w := decode_want(msg)) is not None:
-                    bridges.heard_from(src, addr, tick)  # type: ignore[arg-type]
-                    want(src, w[1], tick)  # type: ignore[arg-type]
+                    bridges.heard_from(src, addr, tick)
+                    want(src, w[1], tick)
                     continue
                 tx_msg = decode_tx(msg) if kind == TX else None
                 # A bridge sends a frame (at most MAX_FRAME bytes; a datagram cut to
                 # MAX_DATAGRAM on receipt is longer) on cells it is on: anything else is no
                 # transmission, and its cells would stay in ``busy`` for ever.
                 if (tx_msg is None or len(tx_msg[2]) > MAX_FRAME
-                        or not set(tx_msg[1]) <= cells_set[src]):  # type: ignore[index]
+                        or not set(tx_msg[1]) <= cells_set[src]):
                     counters["bad_messages"] += 1
                     continue
-                bridges.heard_from(src, addr, tick)  # type: ignore[arg-type]
-                _, cells, frame, still, sent = tx_msg  # type: ignore[misc]
+                bridges.heard_from(src, addr, tick)
+                _, cells, frame, still, sent = tx_msg
                 sent = sent or tick
                 at = arbiter.admit(cells, sent, tick, medium.airtime(len(frame)))
                 if at > tick:  # its sender's carrier sense would have held it back: start it later
                     heapq.heappush(starting, (at, next(order), src, cells, frame, sent))
                 else:
                     begin(src, cells, frame, tick, sent)
-                want(src, still, tick)  # type: ignore[arg-type]
+                want(src, still, tick)
         now = now_tick()
         while starting and starting[0][0] <= now:
             at, _, src, cells, frame, sent = heapq.heappop(starting)

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
            "diameter": args.diameter}
     if args.velocity:
         req["velocity"] = list(args.velocity)
-    ctx = zmq.Context.instance()
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
     sock = ctx.socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
     sock.connect(endpoints(args).control)

@@ -294,7 +294,7 @@ def ports_in_use(host: str, base: int) -> str:
     return ", ".join(busy)
 
 
-def _wait_ready(fd: int, proc: subprocess.Popen[bytes], stop: StopFlag, seconds: float = 60.0) -> bool:
+def _wait_ready(fd: int, proc: subprocess.Popen[bytes] | ForkedBridge, stop: StopFlag, seconds: float = 60.0) -> bool:
     """Whether the process said it bound its ports (a line on its ready pipe) before it
     exited, closed the pipe, or ``seconds`` passed (a loaded machine may take seconds to
     start an interpreter). Closes ``fd``."""

@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def serve(contacts: list[Contact], pub_ep: str, ctl_ep: str, stop: StopFlag, mesh: Mesh | None = None,
           ready_fd: int | None = None) -> None:
     """Publish and take presses until ``stop``; zmq.ZMQError when an endpoint cannot be bound."""
-    ctx = zmq.Context.instance()
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
     pub = ctx.socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
     ctl = ctx.socket(zmq.REP)

@@ -96,7 +96,7 @@ REPORTING_HELP = (
     "one 1 Mbit/s gateway link only this way (e.g. --reporting event:40:1000)")
 
 
-def reporting_arg(text: str) -> "ReportingMode":
+def reporting_arg(text: str) -> ReportingMode:
     """argparse type of ``--reporting``: ``periodic`` or ``event[:THRESHOLD[:HEARTBEAT_MS]]``,
     the two modes of SET_REPORTING, so a skin can boot event-based without a host command."""
     from cellbridge.emulator.reporting import DEFAULT_HEARTBEAT_MS, MAX_HEARTBEAT_MS, ReportingMode
@@ -121,7 +121,7 @@ def reporting_arg(text: str) -> "ReportingMode":
     return ReportingMode(threshold, heartbeat or DEFAULT_HEARTBEAT_MS)
 
 
-def reporting_text(mode: "ReportingMode") -> str:
+def reporting_text(mode: ReportingMode) -> str:
     """The ``--reporting`` value that gives ``mode`` (a supervisor passes it on to bridges)."""
     return "periodic" if mode.periodic else f"event:{mode.threshold}:{mode.heartbeat_ms}"
 

@@ -23,6 +23,7 @@ import math
 import random
 from collections import Counter
 from collections.abc import Callable
+from typing import Any
 from dataclasses import dataclass, field
 
 from cellbridge.emulator.carrier_arbiter import CarrierArbiter
@@ -110,7 +111,7 @@ class MeshResult:
         for frames in self.gateway_frames.values():
             for f in frames:
                 if f.type is FrameType.DATA:
-                    for x in f.payload.samples:  # type: ignore[union-attr]
+                    for x in f.payload.samples:  # type: ignore[union-attr]  # a DATA frame's payload is a Data
                         key = (f.origin, x.element, x.cycle)
                         if key not in seen:
                             seen.add(key)
@@ -136,7 +137,9 @@ class VirtualMesh:
         self._fw_kw = firmware
         self.medium = Medium(mesh, seed)
         self.tick = 0
-        self._heap: list[tuple[int, int, int, object]] = []
+        # (tick, prio, seq, item): item is a bridge id (_WAKE), a Transmission (_FINISH) or
+        # (bridge, action) (_MSG)
+        self._heap: list[tuple[int, int, int, Any]] = []
         self._seq = 0
         self._wake: dict[int, int] = {}
         self.latency = latency
@@ -167,7 +170,7 @@ class VirtualMesh:
             kw.setdefault("clock_epoch", random.Random(self.seed * 131_071 + b).randrange(1 << 40))
         return FirmwareConfig(b, br.cells, br.gateway, br.position, self.mesh.side, settings=self.settings,
                               transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // self.mesh.bitrate),
-                              **kw)  # type: ignore[arg-type]
+                              **kw)  # type: ignore[arg-type]  # VirtualMesh's firmware keywords, checked by FirmwareConfig
 
     def _boot(self, b: int, tick: int) -> None:
         self.nodes[b] = Firmware(self._config(b), self._chip(b, self.seed), self.world.sense_for(b),
@@ -285,7 +288,7 @@ class VirtualMesh:
             else:
                 self._down(r, lambda fw, cell=cell: fw.carrier(cell, tick, tx.end))
 
-    def _down(self, b: int, action: Callable[[Firmware], object]) -> None:
+    def _down(self, b: int, action: Callable[..., object]) -> None:
         """A message from the medium reaches ``b`` later (in order); ``b`` then wakes."""
         assert self.latency is not None
         at = max(self.tick + self._delay(self.latency.down), self._down_last.get(b, 0))
@@ -306,13 +309,13 @@ class VirtualMesh:
             tick, prio, _, item = heapq.heappop(heap)
             self.tick = tick
             if prio == _WAKE:
-                if self._wake.get(item) == tick and item in nodes:  # type: ignore[arg-type]
-                    del self._wake[item]  # type: ignore[arg-type]
+                if self._wake.get(item) == tick and item in nodes:
+                    del self._wake[item]
                     if self.latency is not None:
-                        self._wanted.pop(item, None)  # type: ignore[arg-type]
-                    self._run(item)  # type: ignore[arg-type]
+                        self._wanted.pop(item, None)
+                    self._run(item)
             elif prio == _FINISH:
-                tx: Transmission = item  # type: ignore[assignment]
+                tx: Transmission = item
                 for r, cell, data in self.medium.finish(tx):
                     if self.latency is not None:
                         self._down(r, lambda fw, data=data, cell=cell, sof=tx.sent:
@@ -322,13 +325,13 @@ class VirtualMesh:
                     if fw is not None and fw.receive(data, tick, cell):
                         self._run(r)
             elif prio == _MSG:
-                r, action = item  # type: ignore[misc]
+                r, action = item
                 fw = nodes.get(r)
                 if fw is not None:  # a real-time bridge runs its timers at every wake
                     action(fw)
                     self._run(r)
             else:
-                item()  # type: ignore[operator]
+                item()
         self.tick = end
         return self.result()
 

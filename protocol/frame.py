@@ -114,8 +114,8 @@ class Frame:
 def check_origin(origin: int, payload: Message) -> None:
     """A HELLO is its origin announcing itself: a HELLO naming another bridge contradicts its
     header (geometry filed under one id, the restart under another), so it is refused."""
-    if payload.frame_type == _HELLO and payload.bridge != origin:  # type: ignore[union-attr]
-        raise ProtocolError("payload", f"HELLO: bridge {payload.bridge} is not the frame's origin {origin}")  # type: ignore[union-attr]
+    if payload.frame_type == _HELLO and payload.bridge != origin:  # type: ignore[union-attr]  # frame_type HELLO: the payload is a Hello
+        raise ProtocolError("payload", f"HELLO: bridge {payload.bridge} is not the frame's origin {origin}")  # type: ignore[union-attr]  # frame_type HELLO: the payload is a Hello
 
 
 def _check_u(value: int, limit: int, name: str) -> None:

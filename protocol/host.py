@@ -38,7 +38,7 @@ class HostReceiver:
             return []
         p = whole.payload
         hello = isinstance(p, Hello)
-        if self.dedupe.is_duplicate(whole.origin, whole.seq, hello, p.boots or None if hello else None):  # type: ignore[union-attr]
+        if self.dedupe.is_duplicate(whole.origin, whole.seq, hello, p.boots or None if hello else None):  # type: ignore[union-attr]  # boots is read only when p is a Hello
             return []
         return [whole]
 

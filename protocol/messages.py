@@ -111,7 +111,7 @@ class Sample(NamedTuple):
     #: Sample index (u64): the C1 gate started at mesh time ``index / rate`` seconds, so one
     #: index is one instant of the whole skin (a *skin frame*); with ``NO_MESH_TIME`` set,
     #: the bridge's own sample count instead.
-    index: int = 0
+    index: int = 0  # type: ignore[assignment]  # the wire's name; it shadows tuple.index, unused here
 
 
 @dataclass(slots=True)
@@ -461,7 +461,7 @@ def unpack_payload(frame_type: int, data: bytes, version: int = 2) -> Message:
         raise ProtocolError("payload", "not the canonical msgpack encoding (smallest forms, float64)")
     try:
         if version == 1 and frame_type in _V1_PARSERS:
-            return _V1_PARSERS[frame_type](obj)  # type: ignore[no-any-return]
+            return _V1_PARSERS[frame_type](obj)
         return MESSAGE_CLASSES[frame_type].from_wire(obj)
     except ProtocolError:
         raise

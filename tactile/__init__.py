@@ -1,5 +1,7 @@
 """Tactile physics of the two-layer nonlinear element (paper §II.B, §III): pure numpy."""
 
+from typing import TYPE_CHECKING
+
 from cellbridge.tactile.element import (
     EPS0,
     ElementParams,
@@ -142,6 +144,10 @@ _LAZY = {
     "ContactTracker": "cellbridge.tactile.tracker",
     "TrackedContact": "cellbridge.tactile.tracker",
 }
+
+if TYPE_CHECKING:  # what the lazy names are, for type checkers (no import at run time)
+    from cellbridge.tactile.estimator import ContactEstimator, estimate_contacts
+    from cellbridge.tactile.tracker import ContactTracker, TrackedContact
 
 
 def __getattr__(name: str) -> object:

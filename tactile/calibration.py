@@ -81,8 +81,8 @@ __all__ = [
 
 def _is_count(v: object, minimum: int = 1) -> bool:
     """An integer (Python or numpy, never a bool) of at least ``minimum``."""
-    return (isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
-            and v >= minimum)
+    return bool(isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+                and v >= minimum)
 
 #: A reading this many times its channel's absolute touch threshold is in another
 #: unit (farads: 20 pF / 50 fF = 400; picofarads against farad thresholds: 4e14).
@@ -423,7 +423,7 @@ class Calibrator:
             raise ValueError("time went backwards for an element")
         if self._thr is None:
             self.thresholds()
-        enter, leave = self._thr  # type: ignore[misc]
+        enter, leave = self._thr  # type: ignore[misc]  # thresholds() has just set _thr
         st = self._state
         _check_unit(v, sampled & (st == COLLECTING), self._enter)
         live = sampled & (st != COLLECTING)  # ready elements with a reading this step

@@ -253,7 +253,7 @@ class ContactEstimator:
             t0 = np.column_stack([st[redo, :2], np.log(2 * st[redo, 2]),
                                   np.log([clusters[k].sigma0 * math.pi * st[k, 2] ** 2 for k in redo])])
             again = run.run(run.batch(sub), t0, free[redo], 1, True)
-            for j, k in enumerate(redo):
+            for j, k in enumerate(redo.tolist()):
                 if again.cost[j] < fits.cost[k]:
                     fits.take(k, again, j)
         # Measured on the uniform fit (the foam's saturation, not the tension, makes
@@ -377,4 +377,4 @@ def estimate_contacts(
     **options: object,
 ) -> list[Contact]:
     """One-shot :class:`ContactEstimator` (same keyword options)."""
-    return ContactEstimator(layout, params, **options).estimate(dC1, dC2, active)  # type: ignore[arg-type]
+    return ContactEstimator(layout, params, **options).estimate(dC1, dC2, active)  # type: ignore[arg-type]  # the options are ContactEstimator's own keywords, checked there

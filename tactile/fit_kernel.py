@@ -473,7 +473,7 @@ def fit_one(
             for i in range(p):
                 cov[i, j] *= infl
     ok = (conv or data <= max(dof, 1)) and np.all(np.isfinite(theta)) and not hopeless
-    return data, cost, ok
+    return data, cost, ok  # type: ignore[return-value]  # numpy's bool from np.all; compiled, it is a bool
 
 
 @compiled

@@ -107,6 +107,7 @@ class Fits:
             # The position is the centroid, which says only that the contact is on the
             # cluster: σ of a uniform spread out to the farther edge of the cluster on
             # each side (a failed fit's covariance says nothing about the centroid).
+            assert cl.bounds is not None  # every cluster built here carries its layout's bounds
             b = cl.bounds[cl.members]
             sx, sy = (max(c - float(b[:, a].min()), float(b[:, a + 2].max()) - c) / math.sqrt(3.0)
                       for a, c in ((0, cx), (1, cy)))

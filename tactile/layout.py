@@ -99,7 +99,7 @@ class SkinLayout:
 
     centres: FloatArray
     side: float = _DEFAULT_SIDE
-    ids: IntArray = field(default=None)  # type: ignore[assignment]
+    ids: IntArray = field(default=None)  # type: ignore[arg-type]  # None: __post_init__ numbers the elements
     neighbour_gap: float | None = None
 
     def __post_init__(self) -> None:
@@ -177,6 +177,7 @@ class SkinLayout:
         O(N) for a skin instead of all N² pairs (30 000 elements in well under a
         second instead of 44 s). Sorted by (i, j).
         """
+        assert self.neighbour_gap is not None  # resolved by __post_init__
         h = self.side + self.neighbour_gap
         cell = np.floor((self.centres - self.centres.min(axis=0)) / h).astype(np.int64)
         width = int(cell[:, 1].max()) + 3
@@ -223,6 +224,7 @@ class SkinLayout:
             raise ValueError(f"connectivity must be 'edge' or 'corner', got {connectivity!r}")
         share = 1e-6 * self.side  # a shared border must be longer than this
         gx, gy = self._pair_gaps()
+        assert self.neighbour_gap is not None  # resolved by __post_init__
         close_x = gx <= self.neighbour_gap
         close_y = gy <= self.neighbour_gap
         if connectivity == "edge":

@@ -326,7 +326,7 @@ def skin_response(
         if p is not None:
             press[p[0]] += p[1]
     g1, g2 = sensitivity(press, params)
-    return (
+    return (  # type: ignore[return-value]  # numpy's stubs type bincount as integer even with float weights
         np.bincount(nodes.elem, weights=g1 * nodes.w, minlength=layout.n),
         np.bincount(nodes.elem, weights=g2 * nodes.w, minlength=layout.n),
     )

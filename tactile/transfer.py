@@ -271,7 +271,7 @@ def counter_span(C_lo: ArrayLike, C_hi: ArrayLike, chip: ChipParams | None = Non
 def _range(C_lo: ArrayLike | None, C_hi: ArrayLike | None) -> tuple[FloatArray, FloatArray]:
     if (C_lo is None) != (C_hi is None):
         raise ValueError("give both C_lo and C_hi, or neither (the default element's range)")
-    if C_lo is None:
+    if C_lo is None or C_hi is None:
         return plausible_capacitance()
     lo, hi = np.broadcast_arrays(_cap(C_lo), _cap(C_hi))
     if np.any(hi <= lo):

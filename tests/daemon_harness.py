@@ -143,7 +143,7 @@ def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None 
     finally:
         stop_session(proc)
         if stderr:
-            err.close()  # type: ignore[union-attr]
+            err.close()  # type: ignore[union-attr]  # opened when stderr was asked for
 
 
 class Client:

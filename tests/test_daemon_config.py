@@ -12,8 +12,8 @@ from cellbridge.daemon.config import LINK_KEYS, SECTIONS, ConfigError, default_t
 
 def test_defaults_are_valid_and_documented() -> None:
     cfg = parse_config({"link": [{"url": "/dev/ttyUSB0"}]})
-    assert cfg["pub"]["endpoint"] == "tcp://127.0.0.1:5560"
-    assert cfg["control"]["endpoint"] == "tcp://127.0.0.1:5561"
+    assert cfg.pub.endpoint == "tcp://127.0.0.1:5560"
+    assert cfg.control.endpoint == "tcp://127.0.0.1:5561"
     assert cfg.links[0].name == "link0"
     for section, keys in SECTIONS.items():
         for key, spec in keys.items():
@@ -50,7 +50,7 @@ def test_print_config_parses_back_to_the_defaults(tmp_path: Path) -> None:
     cfg = parse_config(data)
     for section, keys in SECTIONS.items():
         for key, spec in keys.items():
-            assert cfg[section][key] == spec.default
+            assert getattr(getattr(cfg, section), key) == spec.default
     f = tmp_path / "d.toml"
     f.write_text(text)
     assert load_config(f).links[0].url == "/dev/ttyUSB0"
@@ -132,3 +132,37 @@ def test_the_moment_buffer_is_sized_in_readings() -> None:
     p = Pipeline(cfg, layout)
     assert p.skin.moments.depth <= 256 + 8
     assert p.skin.moments.t.nbytes <= layout.n * (256 + 8) * 8
+
+
+def test_sections_are_typed_frozen_and_the_only_way_in() -> None:
+    """Settings are read as ``config.contact.rate``: each table a frozen dataclass whose
+    fields are exactly the schema's keys, each value of its declared type; no dict access."""
+    import dataclasses
+
+    from cellbridge.daemon.config import SECTION_TYPES, Config, ContactSection
+
+    cfg = parse_config({"contact": {"rate": 50, "max_lag": 1}, "link": [{"url": "/dev/ttyUSB0"}]})
+    assert cfg.contact.rate == 50.0 and isinstance(cfg.contact.rate, float)  # an integer in TOML, a float here
+    assert isinstance(cfg.contact.max_lag, float) and cfg.contact.birth_frames == 3
+    assert isinstance(cfg.contact, ContactSection)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.contact.rate = 1.0  # type: ignore[misc]  # the point: a validated config cannot be changed
+    with pytest.raises(TypeError):
+        cfg["contact"]  # type: ignore[index]  # the point: no string lookups
+    assert list(SECTION_TYPES) == list(SECTIONS)
+    kinds = {"bool": bool, "int": int, "str": str, "float": float}  # the annotations, as strings
+    for name, cls in SECTION_TYPES.items():
+        section = getattr(cfg, name)
+        assert type(section) is cls and dataclasses.is_dataclass(section)
+        assert [f.name for f in dataclasses.fields(cls)] == list(SECTIONS[name])
+        for f in dataclasses.fields(cls):
+            assert type(getattr(section, f.name)) is kinds[str(f.type)], f"{name}.{f.name}"
+    assert Config().contact == ContactSection()  # a section's defaults are its dataclass's
+
+
+def test_a_reload_names_exactly_the_changed_settings_that_need_a_restart() -> None:
+    old = parse_config({"link": [{"url": "/dev/ttyUSB0"}]})
+    new = parse_config({"pub": {"hwm": 5}, "contact": {"rate": 50.0}, "daemon": {"log_level": "debug"},
+                        "link": [{"url": "/dev/ttyUSB1"}]})
+    assert old.needs_restart(new) == ["pub.hwm", "link"]  # contact.rate and the log level: reloadable
+    assert old.needs_restart(parse_config({"link": [{"url": "/dev/ttyUSB0"}]})) == []

@@ -191,7 +191,7 @@ def test_tare_retakes_the_baseline() -> None:
     p = make({"calibration": {"n_baseline": 5}})
     settle(p, sk, 10)
     press(p, sk, STRADDLE, 10, 5)
-    assert p.skin.elements.touched[:2].all()  # type: ignore[union-attr]
+    assert p.skin.elements.touched[:2].all()  # type: ignore[union-attr]  # the layout is in place by now
     assert p.tare([1, 2]) == 2
     out = press(p, sk, STRADDLE, 15, 8)  # the press is now part of the baseline
     el = topic(out, "element")
@@ -343,7 +343,7 @@ def test_elements_read_just_after_a_calibration_step_are_not_left_out() -> None:
     el = topic(out, "element")
     assert el["bridge"] == [2, 3, 4] and el["touched"] == [True, False, False]
     assert not any(math.isnan(x) for x in el["dc1"])  # every element has its baseline
-    assert p.skin.elements.touched.tolist() == [True, True, False, False]  # type: ignore[union-attr]
+    assert p.skin.elements.touched.tolist() == [True, True, False, False]  # type: ignore[union-attr]  # the layout is in place by now
 
 
 def test_reconfigure_takes_a_new_layout_and_keeps_hello_geometry() -> None:
@@ -352,7 +352,7 @@ def test_reconfigure_takes_a_new_layout_and_keeps_hello_geometry() -> None:
     settle(p, sk, 5)
     assert p.skin.layout is not None and p.skin.layout.n == 4
     p.reconfigure(p.config, grid_layout(1, 2, first_id=1))  # SIGHUP with a layout file now named
-    assert p.skin.from_file and p.skin.layout.n == 2  # type: ignore[union-attr]
+    assert p.skin.from_file and p.skin.layout.n == 2
     assert set(p.skin.geometry) == {1, 2, 3, 4}  # what the bridges said is remembered
     p.reconfigure(p.config, None)  # and the layout file removed again: back to HELLO geometry
     assert p.skin.layout is not None and p.skin.layout.n == 4
@@ -363,11 +363,11 @@ def test_contact_worker_warm_up_estimates_a_press() -> None:
 
     calls = []
     run = physics.ContactStage.run
-    physics.ContactStage.run = lambda self, snap: calls.append(run(self, snap)) or calls[-1]  # type: ignore[method-assign]
+    physics.ContactStage.run = lambda self, snap: calls.append(run(self, snap)) or calls[-1]  # type: ignore[method-assign]  # the test counts the runs
     try:
         physics.warm_up()
     finally:
-        physics.ContactStage.run = run  # type: ignore[method-assign]
+        physics.ContactStage.run = run  # type: ignore[method-assign]  # restored
     (contacts,) = calls
     assert len(contacts) == 1 and contacts[0]["force"] == pytest.approx(1.0, rel=0.05)
 
@@ -430,10 +430,10 @@ def test_a_reload_that_changes_nothing_of_the_skin_keeps_a_held_press() -> None:
     el = topic(press(p, sk, STRADDLE, 120, 40), "element")
     assert el["touched"] == [True, True, False, False]
     assert el["force"][0] + el["force"][1] == pytest.approx(3.0, rel=0.05)
-    assert p.config["health"]["interval"] == 3.0 and p.skin.rebuilds == 1
+    assert p.config.health.interval == 3.0 and p.skin.rebuilds == 1
     p.reconfigure(make({"calibration": {"n_baseline": 20}}).config, None)
     assert p.skin.rebuilds == 1 and p.skin.layout is not None  # a new Skin, built from the HELLO geometry
-    assert p.skin.sections["calibration"]["n_baseline"] == 20
+    assert p.skin.config.calibration.n_baseline == 20
     assert topic(press(p, sk, STRADDLE, 160, 5), "element")["touched"] == [False, False, False, False]
 
 
@@ -518,7 +518,7 @@ def test_frames_of_one_press_arriving_staggered_give_one_steady_contact(max_dela
         p.feed("gw", data, now)
         if now < next_estimate:  # the service's pace: [contact] rate estimates a second
             continue
-        next_estimate = now + 1.0 / p.config["contact"]["rate"]
+        next_estimate = now + 1.0 / p.config.contact.rate
         job = p.contact_job()
         if job is None:
             continue
@@ -644,9 +644,9 @@ def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:
 
     def press_and_release(start: int) -> None:
         press(p, sk, STRADDLE, start, 10)
-        ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]
+        ids.append(estimate(p, p.contact_job(), runs=3)[1]["contacts"][0]["id"])  # type: ignore[arg-type]  # a contact job is due here
         press(p, sk, None, start + 10, 10)
-        assert estimate(p, p.contact_job(), runs=4)[1]["contacts"] == []  # type: ignore[arg-type]
+        assert estimate(p, p.contact_job(), runs=4)[1]["contacts"] == []  # type: ignore[arg-type]  # a contact job is due here
 
     press_and_release(60)
     contacts._STAGES.clear()  # the worker process was replaced: its trackers are new

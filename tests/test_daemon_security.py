@@ -56,7 +56,7 @@ def test_exposed_binds_are_accepted_with_keys(endpoint: str, keys: dict[str, Pat
 
 
 @given(st.ip_addresses(), st.integers(1, 65535))
-def test_loopback_is_exactly_the_loopback_addresses(address, port: int) -> None:  # type: ignore[no-untyped-def]
+def test_loopback_is_exactly_the_loopback_addresses(address, port: int) -> None:
     host = f"[{address}]" if address.version == 6 else str(address)
     assert is_loopback(f"tcp://{host}:{port}") == (address.is_loopback or (
         address.version == 6 and address.ipv4_mapped is not None and address.ipv4_mapped.is_loopback))

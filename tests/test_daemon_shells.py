@@ -191,7 +191,7 @@ async def running(tmp_path: Path, dev: FakeDevice, **kw: Any) -> AsyncIterator[t
         await until(lambda: any(what == "ready" for what, _ in hooks.said) or task.done())
         assert not task.done(), "the service did not start"
         await until(lambda: dev.port is not None)  # the link opened its device (bytes before that are lost)
-        svc.task = task  # type: ignore[attr-defined]
+        svc.task = task  # type: ignore[attr-defined]  # the test keeps the service's task on it
         yield svc, ctx
     finally:
         if not task.done():
@@ -204,7 +204,7 @@ def _sub(ctx: zmq.asyncio.Context, svc: Service, *topics: str) -> zmq.asyncio.So
     s = ctx.socket(zmq.SUB)
     for t in topics:
         s.setsockopt(zmq.SUBSCRIBE, t.encode())
-    s.connect(svc.config["pub"]["endpoint"])
+    s.connect(svc.config.pub.endpoint)
     return s
 
 
@@ -225,12 +225,12 @@ def test_sighup_reloads_the_config_and_sigterm_drains_to_a_last_health(tmp_path:
                 dev.send(data)
             _write_config(tmp_path / "daemon.toml", health={"interval": 0.25})
             os.kill(os.getpid(), signal.SIGHUP)
-            hooks: RecordingHooks = svc.hooks  # type: ignore[assignment]
+            hooks: RecordingHooks = svc.hooks  # type: ignore[assignment]  # the test passed RecordingHooks
             await until(lambda: ("ready", "reloaded") in hooks.said)
-            assert svc.config["health"]["interval"] == 0.25
+            assert svc.config.health.interval == 0.25
             await until(lambda: svc.pipeline.health_body(0.0)["bridges"].get("4", {}).get("samples", 0) == 20)
             os.kill(os.getpid(), signal.SIGTERM)
-            assert await asyncio.wait_for(svc.task, 20.0) == 0  # type: ignore[attr-defined]
+            assert await asyncio.wait_for(svc.task, 20.0) == 0  # type: ignore[attr-defined]  # the test keeps the service's task on it
             assert ("stopping", "") in hooks.said
             assert dev.port is not None and dev.port.closed
             last = None
@@ -251,7 +251,7 @@ def test_a_control_command_to_a_bridge_that_never_answers_times_out(tmp_path: Pa
             dev.send(sk.hellos())
             await until(lambda: "2" in svc.pipeline.health_body(0.0)["bridges"])
             ctl = ctx.socket(zmq.DEALER)
-            ctl.connect(svc.config["control"]["endpoint"])
+            ctl.connect(svc.config.control.endpoint)
             await ctl.send_multipart([b"", msgpack.packb({"v": 1, "cmd": "ping", "bridge": 2, "timeout": 0.05,
                                                          "id": 7})])
             frames = await asyncio.wait_for(ctl.recv_multipart(), 5.0)
@@ -284,7 +284,7 @@ def test_sigterm_with_a_hung_contact_worker_stops_within_the_drain_limit(tmp_pat
                 k += 1
                 await asyncio.sleep(0.002)
             os.kill(os.getpid(), signal.SIGTERM)
-            assert await asyncio.wait_for(svc.task, 20.0) == 0  # type: ignore[attr-defined]
+            assert await asyncio.wait_for(svc.task, 20.0) == 0  # type: ignore[attr-defined]  # the test keeps the service's task on it
             assert len(ScriptedExecutor.made) == 1  # no replacement started during shutdown
             assert ScriptedExecutor.made[0].killed
             topics = []

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
@@ -14,7 +16,9 @@ from cellbridge.protocol import (
     SampleFlags,
     ADDR_BROADCAST, Command, CommandReply, Flags, Frame, FrameType, Mode, Op, Status,
 )
-from cellbridge.tactile import ElementParams, expected_counts
+
+if TYPE_CHECKING:
+    from cellbridge.emulator.linklayer import LinkLayer
 
 HOST = 0
 
@@ -27,7 +31,7 @@ def replies(frames: list[Frame]) -> dict[int, list[CommandReply]]:
     out: dict[int, list[CommandReply]] = {}
     for f in frames:
         if f.type is FrameType.CMD_REPLY:
-            out.setdefault(f.origin, []).append(f.payload)  # type: ignore[arg-type]
+            out.setdefault(f.origin, []).append(f.payload)  # type: ignore[arg-type]  # a CMD_REPLY frame's payload is a CommandReply
     return out
 
 
@@ -243,7 +247,7 @@ def test_event_reporting_lazy_sampling_sends_what_gate_by_gate_sampling_sends() 
                          settings=Settings(reporting=ReportingMode(40, 300)))
         written: list[tuple[int, bytes]] = []  # (tick, bytes) on the gateway's serial line
         serial_out = vm._gateway_out
-        vm._gateway_out = lambda b, data: (written.append((vm.tick, data)), serial_out(b, data))  # type: ignore[method-assign]
+        vm._gateway_out = lambda b, data: (written.append((vm.tick, data)), serial_out(b, data))  # type: ignore[method-assign]  # the test taps the gateway's output
         return vm.run(2.5).samples(), written
 
     (lazy_samples, lazy_frames), (eager_samples, eager_frames) = run(True), run(False)
@@ -358,7 +362,7 @@ def test_set_gate_beyond_what_the_host_can_unwrap_is_refused() -> None:
     from cellbridge.tactile.transfer import max_gate_cycles
 
     vm = VirtualMesh(meshgen.line(2), seed=1)
-    limit = max_gate_cycles(chip=vm.nodes[2].chip.params)  # type: ignore[attr-defined]
+    limit = max_gate_cycles(chip=vm.nodes[2].chip.params)  # type: ignore[attr-defined]  # the virtual mesh's chips are emulator Chips
     vm.host_write(1, cmd(1, 2, Op.SET_RATE, 10, token=1), at=0.5)
     vm.host_write(1, cmd(2, 2, Op.SET_GATE, limit + 1, token=2), at=0.6)
     vm.host_write(1, cmd(3, 2, Op.SET_GATE, 1_000_000, token=3), at=0.7)
@@ -429,7 +433,7 @@ def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
 
 # -- link layer and loop detection under message latency (real-time meshes) -------------
 
-def _link() -> "LinkLayer":
+def _link() -> LinkLayer:
     import random
 
     from cellbridge.emulator.linklayer import LinkLayer

@@ -18,7 +18,7 @@ from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh
 from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-from cellbridge.protocol import FrameType, MeshTime, SampleFlags
+from cellbridge.protocol import MeshTime, SampleFlags
 
 US = CLOCK_HZ // 1_000_000  # cycles per microsecond
 PERIOD_S = 0.5  # FirmwareConfig.sync_period

@@ -89,7 +89,7 @@ def running_skin(tmp_path: Path, *extra: str) -> Iterator[Skin]:
     proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(base), "--tcp", *extra],
                             stdout=subprocess.PIPE, start_new_session=True)
     try:
-        line = proc.stdout.readline().decode().split()  # type: ignore[union-attr]
+        line = proc.stdout.readline().decode().split()  # type: ignore[union-attr]  # started with stdout=PIPE
         assert line[:2] == ["gateway", "1"] and line[2].startswith("/dev/pts/"), line
         yield Skin(mesh_path, base, proc, {1: line[2:]})
     finally:
@@ -128,7 +128,7 @@ def data_by_origin(frames: list[Frame]) -> dict[int, list]:
     out: dict[int, list] = {}
     for f in frames:
         if f.type is FrameType.DATA:
-            out.setdefault(f.origin, []).extend(f.payload.samples)  # type: ignore[union-attr]
+            out.setdefault(f.origin, []).extend(f.payload.samples)  # type: ignore[union-attr]  # a DATA frame's payload is a Data
     return out
 
 

@@ -177,7 +177,7 @@ def test_the_mesh_files_tcp_port_is_served_only_with_tcp(tmp_path):
         proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(free_base_port()), *extra],
                                 stdout=subprocess.PIPE, start_new_session=True)
         try:
-            line = proc.stdout.readline().decode().split()  # type: ignore[union-attr]
+            line = proc.stdout.readline().decode().split()  # type: ignore[union-attr]  # started with stdout=PIPE
             assert line[:2] == ["gateway", "1"], line
             assert (f"socket://127.0.0.1:{tcp}" in line) == served, line
             time.sleep(1.0)  # the gateway bridge has started (its line is printed once it runs)

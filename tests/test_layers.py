@@ -1,4 +1,5 @@
-"""The layers' import rules (the table of DESIGN.md, "Layout and names"), checked on the source.
+"""The layers' import rules (the table of DESIGN.md, "Layout and names"), and the daemon's cores
+and shells (docs/daemon.md, "Cores and shells"), checked on the source.
 
 Every ``import`` of every module of a layer folder is read from its syntax tree, those
 inside functions included (a lazy import is still a dependency), and held against what
@@ -88,3 +89,71 @@ def test_the_check_catches_a_daemon_importing_the_emulator_and_a_protocol_import
     assert any("emulator/ imports cellbridge.__version__" in v for v in got)
     assert any("emulator/ imports cellbridge.daemon " in v for v in got)
     assert any("tactile/ imports zmq" in v for v in got)
+
+
+# -- the daemon's cores and shells (docs/daemon.md, "Cores and shells") -----------------------
+
+#: What a daemon core may not import: event loops, sockets, devices, threads, processes,
+#: signals, clocks and loggers (a core is fed the time and returns its log events).
+CORE_FORBIDDEN = {"asyncio", "socket", "selectors", "select", "signal", "threading", "multiprocessing",
+                  "concurrent", "subprocess", "time", "logging", "zmq", "serial", "mcap"}
+
+
+def daemon_kinds(doc: Path) -> dict[str, str]:
+    """{module: "core" | "shell"} from the table under ``## Cores and shells`` in ``doc``."""
+    kinds: dict[str, str] = {}
+    inside = False
+    for line in doc.read_text(encoding="utf-8").splitlines():
+        if line.startswith("## "):
+            inside = line.strip() == "## Cores and shells"
+        elif inside and line.startswith("| `"):
+            cells = [c.strip() for c in line.split("|")[1:-1]]
+            kinds[cells[0].strip("`")] = cells[1]
+    return kinds
+
+
+def core_violations(root: Path, doc: Path) -> list[str]:
+    """Every import of a daemon core (a module the table does not call a shell) that a core
+    may not make, and every table row naming no module or an unknown kind."""
+    kinds = daemon_kinds(doc)
+    modules = {p.stem for p in (root / "daemon").glob("*.py")} - {"__init__"}
+    found = [f"{doc.name}: `{m}` is listed but daemon/{m}.py does not exist" for m in sorted(set(kinds) - modules)]
+    found += [f"{doc.name}: `{m}` is a {k!r}, not a core or a shell" for m, k in sorted(kinds.items())
+              if k not in ("core", "shell")]
+    shells = {m for m, k in kinds.items() if k == "shell"}
+    for module in sorted(modules - shells):
+        path = root / "daemon" / f"{module}.py"
+        for line, name in imports(path, root):
+            top, _, rest = name.partition(".")
+            if top in CORE_FORBIDDEN:
+                found.append(f"daemon/{module}.py:{line}: the core imports {name} (I/O belongs in a shell)")
+            elif top == "cellbridge" and rest.startswith("daemon.") and rest.split(".")[1] in shells:
+                found.append(f"daemon/{module}.py:{line}: the core imports the shell {name}")
+    return found
+
+
+def test_daemon_cores_do_no_io_and_import_no_shell() -> None:
+    kinds = daemon_kinds(ROOT / "docs" / "daemon.md")
+    assert {"pipeline", "wire", "clock"} <= {m for m, k in kinds.items() if k == "core"}
+    assert {"service", "links", "publisher", "control_server", "notify"} <= {m for m, k in kinds.items()
+                                                                           if k == "shell"}
+    found = core_violations(ROOT, ROOT / "docs" / "daemon.md")
+    assert not found, "\n".join(found)
+
+
+def test_the_core_check_catches_io_in_a_core_and_a_core_reaching_a_shell(tmp_path: Path) -> None:
+    (tmp_path / "daemon").mkdir()
+    doc = tmp_path / "daemon.md"
+    doc.write_text("## Cores and shells\n\n| module | kind | what |\n|---|---|---|\n"
+                   "| `pipeline` | core | x |\n| `service` | shell | y |\n| `gone` | core | z |\n"
+                   "| `odd` | both | w |\n\n## Next\n| `late` | shell | not this table |\n")
+    (tmp_path / "daemon" / "pipeline.py").write_text("import time\nfrom cellbridge.daemon.service import Service\n")
+    (tmp_path / "daemon" / "service.py").write_text("import asyncio\nimport zmq\n")  # a shell may
+    (tmp_path / "daemon" / "odd.py").write_text("")
+    (tmp_path / "daemon" / "late.py").write_text("def f():\n    import zmq.asyncio\n")  # unlisted: a core
+    got = core_violations(tmp_path, doc)
+    assert len(got) == 5, got
+    assert "daemon/pipeline.py:1: the core imports time (I/O belongs in a shell)" in got
+    assert "daemon/pipeline.py:2: the core imports the shell cellbridge.daemon.service" in got
+    assert "daemon/late.py:2: the core imports zmq.asyncio (I/O belongs in a shell)" in got
+    assert any("`gone` is listed" in v for v in got) and any("`odd` is a 'both'" in v for v in got)

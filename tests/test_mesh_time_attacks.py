@@ -4,7 +4,7 @@ forged or corrupted beacons, clocks at their limits. Each test is a defect once 
 from __future__ import annotations
 
 from cellbridge.emulator import meshgen
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.virtual import VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data
 

@@ -35,7 +35,7 @@ from cellbridge.protocol import (
     encode,
     encode_stream,
 )
-from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
+from cellbridge.protocol.frame import CRC_LEN
 
 NO_MESH_TIME = SampleFlags.NO_MESH_TIME
 
@@ -71,7 +71,7 @@ def test_version_1_data_is_flagged_without_mesh_time() -> None:
     assert isinstance(got, Data)
     assert got.rate == 0
     assert [(s.flags, s.index) for s in got.samples] == [(NO_MESH_TIME, 0), (NO_MESH_TIME | 1, 0)]
-    assert [s[:4] for s in got.samples] == [s[:4] for s in frame.payload.samples]  # type: ignore[union-attr]
+    assert [s[:4] for s in got.samples] == [s[:4] for s in frame.payload.samples]  # type: ignore[union-attr]  # a DATA frame's payload is a Data
 
 
 def test_version_1_beacon_and_hello_have_no_time_and_boot_count_0() -> None:
@@ -148,8 +148,8 @@ def test_a_version_1_datagram_reassembles_as_version_1() -> None:
 
 def test_fragments_of_one_datagram_in_two_versions_conflict() -> None:
     pieces = _fragments_v1(BIG, tag=5, step=40)
-    relabelled = Frame(9, 0, 9, pieces[1].seq, Fragment(FrameType.DATA, 5, 40, pieces[1].payload.total,  # type: ignore[union-attr]
-                                                        pieces[1].payload.data, VERSION))  # type: ignore[union-attr]
+    relabelled = Frame(9, 0, 9, pieces[1].seq, Fragment(FrameType.DATA, 5, 40, pieces[1].payload.total,  # type: ignore[union-attr]  # a fragment's payload is a Fragment
+                                                        pieces[1].payload.data, VERSION))  # type: ignore[union-attr]  # a fragment's payload is a Fragment
     r = Reassembler()
     assert r.receive(pieces[0], 0.0) is None
     assert r.receive(relabelled, 0.0) is None

@@ -221,7 +221,7 @@ def test_active_mask_nan_and_output_format():
     with pytest.raises(ValueError):
         EST.estimate(np.zeros(4), np.zeros(4), active=np.ones(2, dtype=bool))
     with pytest.raises(ValueError):
-        ContactEstimator(LAY, method="centroid")  # type: ignore[arg-type]
+        ContactEstimator(LAY, method="centroid")  # type: ignore[arg-type]  # the point: an unknown method is refused
     with pytest.raises(ValueError):
         ContactEstimator(LAY, noise=0.0)
 
@@ -248,7 +248,7 @@ def test_two_disks_of_different_force_in_one_cluster_come_back_as_two():
         cs = est.estimate(*noisy(truth, LAY34, rng))
         assert len(cs) == 2
         got = sorted(cs, key=lambda c: c.x)
-        for c, (x, y, f, d) in zip(got, truth):
+        for c, (x, y, f, _d) in zip(got, truth):
             assert math.hypot(c.x - x, c.y - y) < 1 * MM
             assert c.force == pytest.approx(f, rel=0.05)
             assert c.observable == (True, True)
@@ -383,7 +383,7 @@ def test_two_fingers_with_a_touched_neighbour_that_reads_nothing_do_not_crash_th
     # element, and only their 14 % different pressures tell them from one disk.
     cs = ContactEstimator(lay, model_error=0.0).estimate(dc1, dc2, active)
     assert len(cs) == 2
-    for (x, y, f, d), c in zip(sorted(truth), sorted(cs, key=lambda c: c.x)):
+    for (x, y, f, _d), c in zip(sorted(truth), sorted(cs, key=lambda c: c.x)):
         assert c.valid and c.fit_ok
         assert abs(c.x - x) <= 3 * c.sigma_x + 1e-6 and abs(c.y - y) <= 3 * c.sigma_y + 1e-6
         assert c.force == pytest.approx(f, rel=1e-3)

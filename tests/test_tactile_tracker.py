@@ -57,7 +57,7 @@ def test_one_frame_spike_on_an_untouched_element_never_becomes_a_contact():
     assert tr.births == 1 and tr.rejected == 1 and tr.candidates == 0
     # The same spike held for two frames is a contact: the rejection was the gap.
     tr2 = tracker(birth_frames=2)
-    for k in range(3):
+    for _k in range(3):
         dc1, dc2 = frame([], rng)
         dc1[8] += 0.4e-12
         dc2[8] += 0.2e-12

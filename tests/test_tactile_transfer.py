@@ -225,7 +225,7 @@ def test_chip_params_validation():
     with pytest.raises(ValueError):
         ChipParams(R_osc=-1.0)
     with pytest.raises(ValueError):
-        ChipParams(gate_cycles=1.5)  # type: ignore[arg-type]
+        ChipParams(gate_cycles=1.5)  # type: ignore[arg-type]  # the point: a wrong type is refused
     with pytest.raises(ValueError):
         expected_counts(-1e-12)
 

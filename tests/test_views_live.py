@@ -109,7 +109,7 @@ class Tmux:
         self.sock = str(tmp_path / "tmux.sock")
 
     def __call__(self, *args: str) -> str:
-        return subprocess.run([TMUX, "-S", self.sock, *args], capture_output=True, text=True, timeout=20).stdout  # type: ignore[list-item]
+        return subprocess.run([TMUX, "-S", self.sock, *args], capture_output=True, text=True, timeout=20).stdout  # type: ignore[list-item]  # TMUX was found, or the test skipped
 
     def capture(self, colour: bool = False) -> str:
         return self("capture-pane", "-p", *(["-e"] if colour else []), "-t", "v")
@@ -220,7 +220,7 @@ def pixel(png: bytes, x: float, y: float) -> tuple[int, int, int]:
     from PIL import Image
 
     img = Image.open(io.BytesIO(png)).convert("RGB")
-    return img.getpixel((int(x), int(y)))  # type: ignore[return-value]
+    return img.getpixel((int(x), int(y)))  # type: ignore[return-value]  # an RGB image: a pixel is a 3-tuple
 
 
 @needs_chromium

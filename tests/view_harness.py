@@ -114,7 +114,7 @@ def fed_skin(tmp_path: Path, rows: int = 3, cols: int = 3, rate: float = 100.0) 
 @contextmanager
 def view_process(argv: list[str], **kw: object) -> Iterator[subprocess.Popen[bytes]]:
     """A view as a real process in its own session; always stopped (TERM, then KILL)."""
-    proc = subprocess.Popen([CLI, *argv], start_new_session=True, **kw)  # type: ignore[call-overload]
+    proc = subprocess.Popen([CLI, *argv], start_new_session=True, **kw)  # type: ignore[call-overload]  # the caller's Popen keywords
     try:
         yield proc
     finally:

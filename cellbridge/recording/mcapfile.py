@@ -73,7 +73,7 @@ class RecordingWriter:
         self._file = _UnbufferedFile(self.path, fsync)
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         try:
-            self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)  # type: ignore[arg-type]
+            self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)  # type: ignore[arg-type]  # a file-like of our own (write, tell, flush), not an IO[bytes]
             self._writer.start(profile=PROFILE, library=LIBRARY)
             if metadata:
                 self._writer.add_metadata("cellbridge", metadata)
@@ -204,4 +204,4 @@ def _read_stream(fh: Any, result: ReadResult, topics: set[str] | None, path: str
             yield Recorded(ch.topic, rec.data, rec.log_time, rec.publish_time, rec.sequence,
                            schemas_by_id.get(ch.schema_id))
         elif type(rec).__name__ == "Metadata":
-            result.metadata[rec.name] = dict(rec.metadata)  # type: ignore[attr-defined]
+            result.metadata[rec.name] = dict(rec.metadata)  # type: ignore[attr-defined]  # a Metadata record, matched by its class name

@@ -138,7 +138,7 @@ def level_rgb(level: float) -> tuple[int, int, int]:
     for (a, ca), (b, cb) in zip(stops, stops[1:]):
         if level <= b:
             t = (level - a) / (b - a)
-            return tuple(int(round(u + (v - u) * t)) for u, v in zip(ca, cb))  # type: ignore[return-value]
+            return tuple(int(round(u + (v - u) * t)) for u, v in zip(ca, cb))  # type: ignore[return-value]  # three channels in, three out
     return stops[-1][1]
 
 
@@ -395,21 +395,25 @@ class SkinView:
         return lines
 
 
+def _table(p: dict[str, Any], key: str) -> dict[Any, Any]:
+    """``p[key]`` when it is a map, else an empty one."""
+    v = p.get(key)
+    return v if isinstance(v, dict) else {}
+
+
 def summarise_health(p: dict[str, Any]) -> dict[str, Any]:
     """The few figures of a ``health`` payload a status area shows (defensive: any may be absent)."""
-    links = p.get("links") if isinstance(p.get("links"), dict) else {}
-    bridges = p.get("bridges") if isinstance(p.get("bridges"), dict) else {}
+    links = _table(p, "links")
+    bridges = _table(p, "bridges")
     up = [n for n, ln in links.items() if isinstance(ln, dict) and ln.get("connected")]
     silent = [b for b, br in bridges.items() if isinstance(br, dict) and br.get("silent")]
     lost = sum(_num(br.get("lost")) for br in bridges.values() if isinstance(br, dict) and math.isfinite(_num(br.get("lost"))))
     frames = sum(_num(br.get("frames")) for br in bridges.values() if isinstance(br, dict) and math.isfinite(_num(br.get("frames"))))
     rate = sum(_num(br.get("sample_rate")) for br in bridges.values()
                if isinstance(br, dict) and math.isfinite(_num(br.get("sample_rate"))))
-    est = p.get("contact_estimation") if isinstance(p.get("contact_estimation"), dict) else {}
-    layout = p.get("layout") if isinstance(p.get("layout"), dict) else {}
-    cal = layout.get("calibration") if isinstance(layout.get("calibration"), dict) else {}
-    pub = p.get("pub") if isinstance(p.get("pub"), dict) else {}
-    dropped = pub.get("dropped") if isinstance(pub.get("dropped"), dict) else {}
+    est = _table(p, "contact_estimation")
+    cal = _table(_table(p, "layout"), "calibration")
+    dropped = _table(_table(p, "pub"), "dropped")
     link_text = "  ".join(f"{n}:{'up' if n in up else 'DOWN'}" for n in sorted(links)[:4])
     return {
         "uptime": _num(p.get("uptime")),

@@ -147,7 +147,8 @@ class Source:
                 continue
             if not isinstance(reply, dict):
                 continue
-            cmd = self._pending.pop(reply.get("id"), None) if isinstance(reply.get("id"), int) else None
+            rid = reply.get("id")
+            cmd = self._pending.pop(rid, None) if isinstance(rid, int) else None
             if cmd == "topology" and reply.get("ok"):
                 model.feed_topology(reply)
             elif cmd == "tare":

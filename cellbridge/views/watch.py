@@ -101,12 +101,12 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
                 run, key = "", None
                 for ch, fg, bg in row:
                     if (fg, bg) != key and run:
-                        segs.append(Segment(run, style(*key)))  # type: ignore[misc]
+                        segs.append(Segment(run, style(*key)))  # type: ignore[misc]  # key is set whenever run is not empty
                         run = ""
                     key = (fg, bg)
                     run += ch
                 if run:
-                    segs.append(Segment(run, style(*key)))  # type: ignore[misc]
+                    segs.append(Segment(run, style(*key)))  # type: ignore[misc]  # key is set whenever run is not empty
                 lines.append(segs)
             width = len(grid.rows[0]) if grid.rows else 0
             old = self.lines
@@ -189,7 +189,7 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
             """Update a text area only when its text changed (no repaint for nothing)."""
             widget = self.query_one(selector, Static)
             if getattr(widget, "_shown", None) != text:
-                widget._shown = text  # type: ignore[attr-defined]
+                widget._shown = text  # type: ignore[attr-defined]  # a marker attribute of our own on the widget
                 widget.update(Text(text, no_wrap=True, overflow="ellipsis"))
 
         def action_pause(self) -> None:

@@ -231,7 +231,7 @@ class WebView:
         thread.start()
         main = asyncio.current_task()
         for sig in (signal.SIGTERM, signal.SIGHUP):  # stop as on Ctrl-C: pages closed, port freed
-            self.loop.add_signal_handler(sig, main.cancel)  # type: ignore[union-attr]
+            self.loop.add_signal_handler(sig, main.cancel)  # type: ignore[union-attr]  # this runs inside a task
         try:
             await self.broadcast()
         except asyncio.CancelledError:

@@ -40,9 +40,11 @@ from cellbridge.tactile.arrays import FloatArray
 
 #: Readings kept per element beyond ``max_lag`` at the fastest sampling rate.
 SPARE = 4
-#: An element's delivery delay bound forgets old delays by this factor per reading (a
-#: half-life of ~700 readings: seconds at 100 Hz, so a route that got faster is learnt).
-DELAY_DECAY = 0.999
+#: An element's delivery delay bound forgets old delays with this time constant (s): a
+#: route that got faster, or the seconds-long delays of a skin still forming its routes,
+#: stop holding frames back within seconds, whether the element reports 100 times a
+#: second or sends a heartbeat a second.
+DELAY_FORGET_S = 5.0
 #: A held element is waited for this many times its delay high-water mark, plus ``DELAY_MARGIN`` s
 #: (the mark is already the largest delay seen lately: a change later than that is rare).
 DELAY_FACTOR = 1.0
@@ -80,6 +82,7 @@ class Moments:
         self.settled = np.full(n, np.nan)  # sample time of the newest reading the calibrator classified
         self.arrival = np.full(n, -math.inf)  # host time the newest reading arrived
         self.delay = np.full(n, np.nan)  # decaying high-water of arrival - sample time, on-time readings
+        self.delay_at = np.zeros(n)  # host time the delay mark was last updated
         self.t_moment = -math.inf  # the moment of the last snapshot
         self.hold_since = math.nan  # first moment held back for a transition (NaN: none held)
         self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: their newest)
@@ -137,7 +140,9 @@ class Moments:
             d = np.full(self.delay.shape[0], -math.inf)
             np.maximum.at(d, r[on_time], now - t[on_time])
             seen = np.isfinite(d)
-            self.delay[seen] = np.fmax(self.delay[seen] * DELAY_DECAY, d[seen])
+            kept = self.delay[seen] * np.exp(-np.clip(now - self.delay_at[seen], 0.0, None) / DELAY_FORGET_S)
+            self.delay[seen] = np.fmax(kept, d[seen])
+            self.delay_at[seen] = now
 
     def settle(self, rows: NDArray[np.int64], touched: NDArray[np.bool_]) -> None:
         """The calibrator stepped on the newest reading of ``rows``: their touch flags."""

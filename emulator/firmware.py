@@ -142,6 +142,12 @@ class FirmwareConfig:
     #: after its last sample, each bridge at its own offset (drawn from its id), so the
     #: bridges of one cell do not all contend for it at the same instant.
     batch_stagger: int = 4 * _MS
+    #: Aligned batches (above). Off by default: in virtual time with the real-time latency
+    #: model they keep a 4x4 skin at 100 Hz from saturating the gateway's cells, but real
+    #: processes (``mesh up``, quiet machine) delivered less with them (71-74 % against 98 %
+    #: of the farthest bridge's samples, bench/bench_latency.py): the skin's bridges sending
+    #: within a few ms of each other collide on the UDP medium, whose carrier reports lag.
+    aligned_batches: bool = False
     queue_len: int = 64
     max_retries: int = 5
     trickle_imin: int = 50 * _MS
@@ -220,7 +226,7 @@ class Firmware:
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
-                               c.event_latency, _stagger(c.bridge, c.batch_stagger))
+                               c.event_latency, _stagger(c.bridge, c.batch_stagger), c.aligned_batches)
         self.status_at = tick + c.status_period
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period

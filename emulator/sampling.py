@@ -9,7 +9,8 @@ taken, with the mesh clock as it is then; the firmware takes every sample due be
 changes the clock (:meth:`Sampler.advance`), so lazy and gate-by-gate sampling agree.
 
 Samples the reporter keeps are batched into one DATA payload: fewer, larger frames carry
-more samples per bit of air time. Periodic samples on mesh time go in *aligned batches*:
+more samples per bit of air time. Optionally (``aligned``, off in the firmware's default
+configuration: see ``FirmwareConfig.aligned_batches``), periodic samples on mesh time go in *aligned batches*:
 indices ``[j·n, (j+1)·n)`` share a frame, with ``n`` the samples that fit in
 ``max_latency`` (and in a frame), and the frame leaves when the batch's last sample is
 taken. Every bridge closes the same batch at the same global instant, so one index
@@ -46,7 +47,7 @@ class Sampler:
     def __init__(self, settings: Settings, chip: object, sense: Callable[[int], tuple[float, float]],
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
                  counters: Counter[str], timebase: Timebase, event_latency: int | None = None,
-                 stagger: int = 0) -> None:
+                 stagger: int = 0, aligned: bool = True) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
@@ -67,6 +68,7 @@ class Sampler:
         #: An aligned batch leaves this long after its last sample: bridges sharing a cell
         #: get different offsets, so they do not all contend for it at the same instant
         self.stagger = stagger
+        self.aligned = aligned  #: periodic samples on mesh time go in aligned batches
         self.timebase = timebase
         self.start = first_start
         self.index = 0  #: index of the sample whose gate starts at ``start``
@@ -105,7 +107,7 @@ class Sampler:
 
     def _aligned(self) -> bool:
         """Whether the sample planned next goes in an aligned batch (periodic, on mesh time)."""
-        return self.on_time and self.settings.reporting.periodic
+        return self.aligned and self.on_time and self.settings.reporting.periodic
 
     @property
     def latency(self) -> int:

@@ -579,3 +579,14 @@ def test_a_fragmented_control_frame_is_counted_not_a_crash() -> None:
     gw.serial_in(encode_stream(cmd), CLOCK_HZ)
     gw.advance(CLOCK_HZ)
     assert gw.counters["serial_fragmented_control"] == 1
+
+
+def test_aligned_batches_put_one_group_of_indices_in_each_frame_on_every_bridge() -> None:
+    # With aligned batches every bridge closes batch j (indices [5j, 5j + 5) at 100 Hz and
+    # max_latency 50 ms) at the same global instant: no DATA frame mixes two batches.
+    vm = VirtualMesh(meshgen.grid(3, 3), seed=2, random_epochs=True, aligned_batches=True)
+    r = vm.run(6.0)
+    groups = [{s.index // 5 for s in f.payload.samples} for f in r.gateway_frames[1]
+              if f.type is FrameType.DATA and not any(s.flags & SampleFlags.NO_MESH_TIME for s in f.payload.samples)]
+    assert len(groups) > 100
+    assert all(len(g) == 1 for g in groups)

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import msgpack
 import zmq
+from realskin import world_press
 from timing import table
 
 from cellbridge.emulator import meshgen
@@ -67,22 +68,6 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait(5)
         except ProcessLookupError:
             pass
-
-
-def _press(ctx: zmq.Context, base_port: int, x: float, y: float, hold: float = PRESS_S) -> float:
-    s = ctx.socket(zmq.REQ)
-    s.setsockopt(zmq.LINGER, 0)
-    s.connect(f"tcp://127.0.0.1:{base_port + 2}")
-    try:
-        s.send(msgpack.packb({"duration": hold, "position": [x, y], "force": 3.0, "diameter": 0.02}))
-        if not s.poll(3000):
-            raise RuntimeError("the world did not answer")
-        answer = msgpack.unpackb(s.recv())
-    finally:
-        s.close()
-    if not answer.get("ok"):
-        raise RuntimeError(answer.get("error"))
-    return float(answer["start"])
 
 
 def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float], int]:  # type: ignore[no-untyped-def]
@@ -226,7 +211,7 @@ def main() -> None:
         health: dict = {}
         for _ in range(args.presses):
             x, y = args.at if args.at else (rng.uniform(0, span), rng.uniform(0, span))
-            start = _press(ctx, base, x, y, args.hold)
+            start = world_press(base, x, y, args.hold)
             seen = None
             end = start + args.hold + 1.0
             while time.monotonic() < end:

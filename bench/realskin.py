@@ -51,6 +51,26 @@ def percentile(xs: list[float], q: float) -> float:
     return ys[min(len(ys) - 1, int(q * len(ys)))]
 
 
+def world_press(base_port: int, x: float, y: float, duration: float = 0.5, force: float = 3.0,
+                diameter: float = 0.02) -> float:
+    """Ask the world of the ``mesh up`` on ``base_port`` for a press now; the host monotonic
+    second the press starts (as the world set it). RuntimeError when it refuses or is silent."""
+    ctx = zmq.Context.instance()
+    s = ctx.socket(zmq.REQ)
+    s.setsockopt(zmq.LINGER, 0)
+    s.connect(f"tcp://127.0.0.1:{base_port + 2}")
+    try:
+        s.send(msgpack.packb({"duration": duration, "position": [x, y], "force": force, "diameter": diameter}))
+        if not s.poll(3000):
+            raise RuntimeError("the world did not answer")
+        answer = msgpack.unpackb(s.recv())
+    finally:
+        s.close()
+    if not answer.get("ok"):
+        raise RuntimeError(answer.get("error"))
+    return float(answer["start"])
+
+
 @dataclass
 class Arrival:
     bridge: int
@@ -136,21 +156,7 @@ class RealSkin:
     def press(self, x: float, y: float, duration: float = 0.5, force: float = 3.0,
               diameter: float = 0.02) -> float:
         """Press now; the host monotonic second the press starts (as the world set it)."""
-        ctx = zmq.Context.instance()
-        s = ctx.socket(zmq.REQ)
-        s.setsockopt(zmq.LINGER, 0)
-        s.connect(f"tcp://127.0.0.1:{self.base_port + 2}")
-        try:
-            s.send(msgpack.packb({"duration": duration, "position": [x, y], "force": force,
-                                  "diameter": diameter}))
-            if not s.poll(3000):
-                raise RuntimeError("the world did not answer")
-            answer = msgpack.unpackb(s.recv())
-        finally:
-            s.close()
-        if not answer.get("ok"):
-            raise RuntimeError(answer.get("error"))
-        return float(answer["start"])
+        return world_press(self.base_port, x, y, duration, force, diameter)
 
     def pids(self, role: bytes = b"bridge") -> list[int]:
         out = []

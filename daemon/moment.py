@@ -193,8 +193,9 @@ class Moments:
 
     def moment(self, now: float, timeout: float, max_lag: float, held_wait: float = 0.5) -> float:
         """The newest time every live element has reported past (NaN: no element live).
-        Elements silent for ``timeout``, trailing the newest data by more than ``max_lag``
-        (periodic) or ``held_wait`` (held) hold nothing back."""
+        Elements silent for ``timeout``, or periodic ones trailing the newest data by more
+        than ``max_lag``, hold nothing back; a held element has reported past ``now`` minus
+        its own delivery delay (at most ``held_wait``: see the module)."""
         live = (now - self.arrival <= timeout) & np.isfinite(self.settled)
         self.live = live
         if not live.any():

@@ -175,10 +175,12 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
         for col in ("c1", "c2"):
             if not _close(x[col], y[col]):
                 bad.append((k, col, x[col], y[col]))
-        for col in ("dc1", "dc2"):  # the baselines: one noise sigma
+        # the baselines: each daemon averaged its own window of noisy, quantised reads (and drift
+        # tracking moved them at other instants), so they may differ by a few noise sigma
+        for col in ("dc1", "dc2"):
             if _nan(x[col]) and x["t_host"] < baseline_from.get(k[0], math.inf):
                 continue
-            if not (_nan(x[col]) and _nan(y[col])) and not abs(x[col] - y[col]) <= DEFAULT_NOISE:
+            if not (_nan(x[col]) and _nan(y[col])) and not abs(x[col] - y[col]) <= 3 * DEFAULT_NOISE:
                 bad.append((k, col, x[col], y[col]))
         if x["valid"] and y["valid"] and not math.isclose(x["force"], y["force"], rel_tol=0.01, abs_tol=0.01):
             bad.append((k, "force", x["force"], y["force"]))

@@ -96,7 +96,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
                      settings=Settings(rate_hz=args.rate, reporting=reporting_arg(args.reporting)))
     vm.run(presses[-1].start + PRESS_S + 1.0)
     reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
-    contact = {kv.split("=")[0]: float(kv.split("=")[1]) for kv in args.contact}
+    contact = dict(_setting(kv) for kv in args.contact)
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}))
     step = 1.0 / contact.get("rate", 100.0)  # the daemon's [contact] rate
     w = ContactWorker(logging.getLogger("bench"), InlineExecutor)
@@ -134,6 +134,15 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     lat_s = [1000 * v for v in sample_at.values()]
     lat_c = [1000 * v for v in contact_at.values()]
     return lat_s, lat_c, len(presses) - len(contact_at)
+
+
+def _setting(text: str) -> tuple[str, int | float]:
+    """``KEY=VALUE`` of ``--contact``: an integer stays one (birth_frames), anything else is a float."""
+    key, _, value = text.partition("=")
+    try:
+        return key, int(value)
+    except ValueError:
+        return key, float(value)
 
 
 def main() -> None:

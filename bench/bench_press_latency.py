@@ -15,7 +15,7 @@ own account (health: late elements, unknown frames). Every process is stopped on
 
 ``--virtual`` runs the skin in virtual time (``VirtualMesh`` with the real-time latency
 model) and feeds its gateway's bytes, at their virtual times, into the daemon's pipeline
-with the production contact path inline, estimating at the daemon's contact rate: the
+with the production contact path inline, estimating when the daemon would: the
 same latency without the machine's load in it (deterministic by ``--seed``), and split
 into its parts (first sample showing the press at the host; first contact).
 """
@@ -23,6 +23,7 @@ into its parts (first sample showing the press at the host; first contact).
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import random
 import signal
@@ -45,6 +46,7 @@ PRESS_S = 1.0
 GAP_S = 0.5
 #: A contact this close to a press is its contact: one element's side (a press inside one
 #: element is reported at the element's centre along an axis it cannot resolve)
+TICK_S = 0.1  # the daemon's pipeline tick (service.TICK)
 NEAR_M = 0.040
 
 
@@ -98,7 +100,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
     contact = dict(_setting(kv) for kv in args.contact)
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}))
-    step = 1.0 / contact.get("rate", 100.0)  # the daemon's [contact] rate
+    step = 1.0 / contact.get("rate", 100.0)  # the daemon's [contact] rate (estimates a second at most)
     w = ContactWorker(logging.getLogger("bench"), InlineExecutor)
     sample_at: dict[int, float] = {}
     contact_at: dict[int, float] = {}
@@ -109,8 +111,18 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         return [k for k, c in enumerate(presses) if c.start <= now < c.start + PRESS_S + 0.5
                 and (c.x - x) ** 2 + (c.y - y) ** 2 <= NEAR_M ** 2]
 
+    # The daemon's schedule (service._contacts): an estimate when data came or when the
+    # held elements' holds run out (Pipeline.contact_due), at most `rate` a second; the tick
+    # every 0.1 s also asks for one.
+    last, tick_at = -math.inf, 0.0
     while now < end:
-        now += step
+        due = p.contact_due(now)
+        after = reads[i][0] if i < len(reads) else math.inf
+        now = max(last + step, min(after, due, tick_at))
+        last = now
+        ticked = now >= tick_at
+        if ticked:
+            tick_at = now + TICK_S
         while i < len(reads) and reads[i][0] <= now:
             t_read = reads[i][0]
             for m in p.feed("gw", reads[i][1], t_read):
@@ -121,7 +133,8 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
                                 if c.start <= t_read < c.start + PRESS_S and k not in sample_at:
                                     sample_at[k] = t_read - c.start
             i += 1
-        p.tick(now)
+        if ticked:
+            p.tick(now)
         job = p.contact_job(now)
         if job is not None:
             snap = job.snapshot

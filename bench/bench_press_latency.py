@@ -91,12 +91,16 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     # routes formed, mesh time and calibration settled (n_baseline quiet readings: event-based
     # bridges send an idle element's reading once a heartbeat, 1 s)
     first = len(mesh.bridges) * 0.1 + (20.0 if args.reporting == "periodic" else 60.0)
-    presses = [Contact(first + i * (PRESS_S + GAP_S), PRESS_S, rng.uniform(0, span), rng.uniform(0, span), 3.0, 0.02)
-               for i in range(args.presses)]
+    presses = []
+    for i in range(args.presses):
+        x, y = args.at if args.at else (rng.uniform(0, span), rng.uniform(0, span))
+        # a press starts anywhere within the sampling period (a part-way sample, or none)
+        start = first + i * (args.hold + GAP_S) + (rng.uniform(0, 1.0 / args.rate) if args.at else 0.0)
+        presses.append(Contact(start, args.hold, x, y, 3.0, 0.02))
     vm = VirtualMesh(mesh, seed=args.seed, world=World(mesh, presses), latency=Latency(),
                      ack_slack=CLOCK_HZ // 100, random_epochs=True,
                      settings=Settings(rate_hz=args.rate, reporting=reporting_arg(args.reporting)))
-    vm.run(presses[-1].start + PRESS_S + 1.0)
+    vm.run(presses[-1].start + args.hold + 1.0)
     reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
     contact = dict(_setting(kv) for kv in args.contact)
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}))
@@ -104,11 +108,12 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     w = ContactWorker(logging.getLogger("bench"), InlineExecutor)
     sample_at: dict[int, float] = {}
     contact_at: dict[int, float] = {}
+    seen: dict[int, list[dict]] = {k: [] for k in range(len(presses))}  # contacts during each press
     i, now = 0, 0.0
     end = reads[-1][0]
 
     def near(x: float, y: float) -> list[int]:
-        return [k for k, c in enumerate(presses) if c.start <= now < c.start + PRESS_S + 0.5
+        return [k for k, c in enumerate(presses) if c.start <= now < c.start + c.duration + 0.5
                 and (c.x - x) ** 2 + (c.y - y) ** 2 <= NEAR_M ** 2]
 
     # The daemon's schedule (service._contacts): an estimate when data came or when the
@@ -144,9 +149,25 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
             for c in p.contact_frame(job, w.estimate_now(job)).payload["contacts"]:
                 for k in near(c["x"], c["y"]):
                     contact_at.setdefault(k, now - presses[k].start)
+                for k, pr in enumerate(presses):
+                    if pr.start <= now < pr.start + pr.duration and c.get("missed", 0) == 0:
+                        seen[k].append(c)
     lat_s = [1000 * v for v in sample_at.values()]
     lat_c = [1000 * v for v in contact_at.values()]
-    return lat_s, lat_c, len(presses) - len(contact_at)
+    return lat_s, lat_c, len(presses) - len(contact_at), [_truth(presses[k], cs) for k, cs in seen.items()]
+
+
+def _truth(press: Contact, contacts: list[dict]) -> tuple[float, float, int]:
+    """What ``cellbridge demo --check`` judges: the median position (mm) and force (%) errors
+    of the steady half of the press's longest-lived id, and how many ids it got."""
+    if not contacts:
+        return math.nan, math.nan, 0
+    ids = [c["id"] for c in contacts]
+    main = max(set(ids), key=ids.count)
+    mine = [c for c in contacts if c["id"] == main]
+    steady = mine[len(mine) // 2:]
+    x, y, f = (sorted(c[k] for c in steady)[len(steady) // 2] for k in ("x", "y", "force"))
+    return 1e3 * math.hypot(x - press.x, y - press.y), 100 * abs(f - press.force) / press.force, len(set(ids))
 
 
 def _setting(text: str) -> tuple[str, int | float]:
@@ -178,15 +199,20 @@ def main() -> None:
     mesh = meshgen.grid(args.side, args.side)
     n = len(mesh.bridges)
     if args.virtual:
-        lat_s, lat_c, missed = run_virtual(args, mesh)
+        lat_s, lat_c, missed, truth = run_virtual(args, mesh)
         rows = []
-        for name, xs in (("first touched sample at the host", lat_s), ("first contact near the press", lat_c)):
+        pos = [t[0] for t in truth if math.isfinite(t[0])]
+        force = [t[1] for t in truth if math.isfinite(t[1])]
+        for name, xs in (("first touched sample at the host", lat_s), ("first contact near the press", lat_c),
+                         ("position error mm (steady half)", pos), ("force error % (steady half)", force)):
             xs.sort()
             rows.append([name, len(xs)] + [f"{xs[min(len(xs) - 1, int(q * len(xs)))]:.1f}" if xs else "nan"
                                            for q in (0.5, 0.9, 0.99)] + [f"{xs[-1]:.1f}" if xs else "nan"])
         table(f"{mesh.name}, {args.rate} Hz, {args.reporting}, virtual time (real-time latency model): "
               f"press in the world ->", ["what", "presses", "p50 ms", "p90 ms", "p99 ms", "max ms"], rows)
-        print(f"\nmissed presses: {missed}")
+        bad = [k for k, t in enumerate(truth) if not (t[0] <= 1.0 and t[1] <= 5.0 and t[2] == 1)]
+        print(f"\nmissed presses: {missed}; presses not within 1 mm and 5 % with one id: {len(bad)} "
+              f"{[(k, *truth[k]) for k in bad[:5]]}")
         return
     work = Path(tempfile.mkdtemp(prefix="bench-press-"))
     (work / "skin.toml").write_text(mesh_to_toml(mesh))

@@ -651,7 +651,7 @@ def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:
     press_and_release(60)
     contacts._STAGES.clear()  # the worker process was replaced: its trackers are new
     press_and_release(80)
-    p.reconfigure(make({"contact": {"birth_frames": 3}}).config, None)  # SIGHUP: estimation changed
+    p.reconfigure(make({"contact": {"birth_frames": 2}}).config, None)  # SIGHUP: estimation changed
     press_and_release(100)
     assert len(set(ids)) == 3 and ids == sorted(ids), ids
 
@@ -681,7 +681,7 @@ def test_a_contact_held_across_a_rebuild_keeps_its_id(cause: str) -> None:
     elif cause == "worker_replaced":
         contacts._STAGES.clear()  # a new worker process: no trackers
     elif cause == "sighup_contact":
-        p.reconfigure(make({"contact": {"birth_frames": 3}}).config, None)
+        p.reconfigure(make({"contact": {"birth_frames": 2}}).config, None)
     else:
         grown = SkinLayout(np.vstack([sk.layout.centres, [[0.5, 0.5]]]), side=sk.layout.side,
                            ids=np.array([*sk.ids, 77]))

@@ -148,7 +148,7 @@ def test_the_inline_executor_runs_the_production_contact_path() -> None:
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 5}}))
     job = _job(p)
     w = ContactWorker(logging.getLogger("tests"), InlineExecutor)
-    for _ in range(3):  # born after birth_frames (2) estimates: the third one too
+    for _ in range(3):  # born after three estimates
         contacts = w.estimate_now(job)
     (c,) = p.contact_frame(job, contacts).payload["contacts"]
     assert sorted(c["elements"]) == [1, 2] and c["force"] == pytest.approx(3.0, rel=0.02)

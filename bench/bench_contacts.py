@@ -56,8 +56,6 @@ from timing import pin_to_one_core, revision_tree, run_at_revision, table  # noq
 # The package's public names only: the same script runs on an older revision (--against).
 from cellbridge.tactile import ContactEstimator, cluster_elements, grid_layout, skin_response  # noqa: E402
 
-from cellbridge.tactile.element import sensitivity  # noqa: E402
-from cellbridge.tactile.overlap import disk_element_overlap  # noqa: E402
 #: The estimator before the compiled fit kernel (commit de1ca21): what --against compares with by default.
 BEFORE_KERNEL = "de1ca21^"
 
@@ -140,6 +138,8 @@ def grid_response(lay, contact):
     """(ΔC1, ΔC2) of one uniform disk, each element's overlap counted on a 0.1 mm grid
     of cell centres anchored at the disk's centre (not at the element edges): an
     integration independent of the fit's closed-form overlap."""
+    from cellbridge.tactile.element import sensitivity  # here: --against runs this script on older trees
+
     x, y, f, d = contact
     r = 0.5 * d
     g1, g2 = sensitivity(np.array([f / (math.pi * r * r)]))
@@ -153,6 +153,8 @@ def grid_response(lay, contact):
 
 def perturbed_sets(lay, n, rng):
     """The same n disks read four ways (see the module docstring), with their kinds."""
+    from cellbridge.tactile.overlap import disk_element_overlap  # here: --against runs this script on older trees
+
     ext = lay.extent
     disks = [[*rng.uniform(ext[0] + 0.004, ext[2] - 0.004, 2), rng.uniform(2.0, 15.0), rng.uniform(0.008, 0.030)]
              for _ in range(n)]

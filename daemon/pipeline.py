@@ -55,6 +55,9 @@ _NO_MESH_TIME = np.int64(NO_MESH_TIME)
 _HELD = np.int64(HELD)
 _FRAME_MEMORY = 10.0  # s of frames whose host time is kept once given
 _FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at (250 Hz x 10 s)
+# s a frame's host time may lie after the arrival of its sample: the map from mesh time is the
+# lower envelope of the gateways' arrivals, off by milliseconds at most; later, the index is wrong.
+_FUTURE_SLACK = 0.25
 # Unplaced bridges health lists one by one: beyond this, only their count. One corrupt frame in
 # ~65 536 passes CRC-16 with a random origin, so a noisy line makes thousands of phantoms; each
 # would cost ~240 bytes in every health message (15 MB at 65 530) until forgotten.
@@ -267,20 +270,35 @@ class Pipeline:
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
         if on_time.any() and self.skin_clock.synced:
-            t_sample = np.where(on_time, self._frame_times(g, on_time), t_sample)
+            frame_t = self._frame_times(g, on_time, now)
+            # A frame the map puts after the sample's own arrival was never taken: its index is
+            # wrong (a frame corrupted past the CRC, a bridge on some other time). Believed, it
+            # would move the skin frame that far ahead and stop every estimate until then.
+            wrong = on_time & np.isnan(frame_t)
+            if wrong.any():
+                for b_id, cnt in Counter(o[wrong].tolist()).items():
+                    self.bridges[b_id].index_rejected += cnt
+                g = np.where(wrong, -1, g)
+                on_time &= ~wrong
+            t_sample = np.where(on_time, frame_t, t_sample)
         return t_sample, s.cycle.astype(np.float64) / hz, g
 
-    def _frame_times(self, g: np.ndarray, on_time: np.ndarray) -> np.ndarray:
-        """Host time of each mesh-time sample's frame (global cycle ``g``). A frame's time is
-        fixed when its first sample arrives: the map keeps learning (a lower envelope point
-        moves it by up to a read's granularity), and two bridges' samples of one index must
-        still carry one time. Frames older than the newest by ``_FRAME_MEMORY`` are forgotten."""
+    def _frame_times(self, g: np.ndarray, on_time: np.ndarray, now: float) -> np.ndarray:
+        """Host time of each mesh-time sample's frame (global cycle ``g``), NaN for a frame
+        that would lie more than ``_FUTURE_SLACK`` after ``now``, the samples' arrival (never
+        remembered). A frame's time is fixed when its first sample arrives: the map keeps
+        learning (a lower envelope point moves it by up to a read's granularity), and two
+        bridges' samples of one index must still carry one time. Frames older than the
+        newest by ``_FRAME_MEMORY`` are forgotten."""
         keys, inverse = np.unique(np.where(on_time, g, -1), return_inverse=True)
         memo = self._frame_memo
         new = [k for k in keys.tolist() if k >= 0 and k not in memo]
         if new:
             mapped = self.skin_clock.to_host(np.array(new, dtype=np.uint64)).tolist()
-            memo.update(zip(new, mapped))
+            kept = [(k, t) for k, t in zip(new, mapped) if t <= now + _FUTURE_SLACK]
+            new = [k for k, _ in kept]
+            memo.update(kept)
+        if new:
             newest = max(new)
             if newest > self._frame_newest:
                 self._frame_newest = newest

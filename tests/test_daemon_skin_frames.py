@@ -17,6 +17,7 @@ from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
+from cellbridge.protocol import Data, StreamDecoder, encode_stream
 from pipeline_helpers import published, worker
 
 T0 = 1_800_000_000.0
@@ -165,3 +166,43 @@ def test_a_wall_clock_step_moves_only_the_published_stamps(press_reads, plain_co
         if all(abs(t - at) > 0.015 for at in steps):  # (a step lands on the first 10 ms tick at or after it)
             moved = sum(d for at, d in steps.items() if t > at)
             assert th1 - th0 == pytest.approx(moved, abs=1e-6)
+
+
+def _with_index_moved(reads: list[tuple[float, bytes]], origin: int, after: float,
+                      by: int) -> list[tuple[float, bytes]]:
+    """``reads`` with the first DATA frame of ``origin`` read after ``after`` s carrying sample
+    indices ``by`` later: what a frame corrupted past the CRC (one in ~65 536 of the corrupted
+    ones) or a bridge with a wrong mesh time delivers."""
+    out, done = [], False
+    for t, data in reads:
+        if not done and t - T0 > after:
+            frames = StreamDecoder().feed(data)
+            hit = next((f for f in frames if f.origin == origin and isinstance(f.payload, Data)), None)
+            if hit is not None:
+                p = hit.payload
+                hit.payload = Data(p.mode, tuple(s._replace(index=s.index + by) for s in p.samples),
+                                   p.oversampling, p.rate)
+                data, done = b"".join(encode_stream(f) for f in frames), True
+        out.append((t, data))
+    assert done
+    return out
+
+
+def test_a_sample_index_from_the_future_neither_stops_nor_fakes_contacts(press_reads) -> None:
+    """One frame of a pressed bridge carries indices an hour ahead. No sample is taken after
+    it arrives: the skin frame must not jump an hour ahead (it did: a one-element contact
+    at the wrong place with every other element unknown, then no estimate for the hour, the
+    release never told), and health counts the samples whose index was not believed."""
+    reads = _with_index_moved(press_reads, 6, 5.0, 100 * 3600)
+    contacts = [(t - T0, m) for t, topic, m in drive(reads, 7.0) if topic == "contact"]
+    for t, m in contacts:
+        assert m["t_sample"] is None or m["t_sample"] <= T0 + t + 1e-9, (t, m["t_sample"] - T0)
+        if 5.0 < t < 6.4:
+            assert len(m["contacts"]) == 1 and not m["unknown"], (t, m)
+            c = m["contacts"][0]
+            assert math.hypot(c["x"] - CORNER[0], c["y"] - CORNER[1]) < 1e-3 and c["force"] == pytest.approx(3.0, rel=0.05)
+    assert sum(1 for t, m in contacts if 5.1 < t < 6.4) > 20
+    assert any(not m["contacts"] for t, m in contacts if t > 6.5), "the release was never published"
+    health = [m for _, topic, m in drive(reads, 7.0) if topic == "health"][-1]
+    assert health["bridges"]["6"]["index_rejected"] > 0
+    assert all(h["index_rejected"] == 0 for b, h in health["bridges"].items() if b != "6")

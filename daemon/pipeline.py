@@ -106,6 +106,7 @@ class Pipeline:
         self.skin_clock_resets = 0
         self._frame_memo: dict[int, float] = {}  # global cycle of a frame -> its host time
         self._frame_newest = -1
+        self._skin_jump: tuple[int, float] | None = None  # (g, arrival) of a gateway sample ahead of the map
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
         self.topology = Routes()
@@ -248,7 +249,7 @@ class Pipeline:
             own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
             if own.size:
                 newest = own[np.argmax(g[own])]
-                if self.skin_clock.observe(int(g[newest]), now):
+                if self._skin_time_believed(int(g[newest]), now) and self.skin_clock.observe(int(g[newest]), now):
                     self.skin_clock_resets += 1
                     self._frame_memo.clear()
                     self._frame_newest = -1
@@ -282,6 +283,20 @@ class Pipeline:
                 on_time &= ~wrong
             t_sample = np.where(on_time, frame_t, t_sample)
         return t_sample, s.cycle.astype(np.float64) / hz, g
+
+    def _skin_time_believed(self, g: int, now: float) -> bool:
+        """Whether a gateway's own sample of global cycle ``g``, arrived at ``now``, may teach
+        the map. One the map puts after its own arrival is either a jump of the skin's time
+        (a new root on another time) or a frame corrupted past the CRC: it is believed once
+        the gateway's next read agrees with it. (One corrupted frame remapped the skin at once,
+        and the true frames after it then lay an hour back: no estimate for 2 s, then a press
+        ended and came back with a new id.)"""
+        clock = self.skin_clock
+        if not clock.synced or float(clock.to_host(np.array([g], dtype=np.uint64))[0]) <= now + _FUTURE_SLACK:
+            self._skin_jump = None
+            return True
+        seen, self._skin_jump = self._skin_jump, (g, now)
+        return seen is not None and abs((g - seen[0]) / clock.hz - (now - seen[1])) <= _FUTURE_SLACK
 
     def _frame_times(self, g: np.ndarray, on_time: np.ndarray, now: float) -> np.ndarray:
         """Host time of each mesh-time sample's frame (global cycle ``g``), NaN for a frame

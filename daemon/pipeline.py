@@ -526,7 +526,7 @@ class Pipeline:
             "uptime": 0.0 if self.started is None else now - self.started,
             "links": {name: self._wall_link(link_report(lh, self.ingress.counters(name)))
                       for name, lh in self.links.items()},
-            "bridges": {str(b): {**self.bridges[b].report(now), "reassembly_drops": self.ingress.reassembly_drops.get(b, 0)}
+            "bridges": {str(b): self._wall_bridge(self.bridges[b].report(now), self.ingress.reassembly_drops.get(b, 0))
                         for b in shown},
             "bridges_not_shown": len(self.bridges) - len(shown),
             "silent": sorted(b for b in shown if self.bridges[b].silent),
@@ -541,6 +541,12 @@ class Pipeline:
             "dedupe": self.ingress.dedupe.counters(),
             "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
         }
+
+    def _wall_bridge(self, report: dict[str, Any], reassembly_drops: int) -> dict[str, Any]:
+        for key in ("first_seen", "last_seen"):
+            report[key] = self._wall(report[key])
+        report["reassembly_drops"] = reassembly_drops
+        return report
 
     def _wall_link(self, report: dict[str, Any]) -> dict[str, Any]:
         for key in ("connected_since", "last_data"):

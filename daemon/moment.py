@@ -5,7 +5,10 @@ pipeline gives all samples of one index one host time (``t_sample``): a skin fra
 Contacts are estimated on the newest frame every live element has reported (their
 frames reach the host after different delays). An element contributes its reading *of
 that frame*, never an older one: a sample lost or still in flight makes the element
-unknown for the frame. Two kinds of reading stand for more than their own instant:
+unknown for the frame. (Bridges may sample at different rates, one set faster by the
+``set rate`` control request: at a frame of a finer rate, an element's last sample is its
+reading of that frame until its next sample is due.) Two kinds of reading stand for more
+than their own instant:
 
 * a **held** reading (event-based reporting, flag ``HELD``): the bridge promised that
   its readings stay within the threshold of it until it sends another, so it stands
@@ -249,13 +252,17 @@ class Moments:
         dc, touched = self.dc[rows, j], self.touched[rows, j]
         t_j = self.t[rows, j]
         held = self.held[rows, j]
-        # Which reading stands for the moment: a mesh-time reading of this very frame (a
-        # quarter period covers rounding of the host's map), a held one at or before it, a
+        # Which reading stands for the moment: a mesh-time reading until the element's next
+        # sample was due (of this very frame; at a frame of a finer rate between its own
+        # samples, its last one: bridges may sample at different rates; a quarter of the
+        # finest period covers rounding of the host's map), a held one at or before it, a
         # reading timed from its arrival within one period before it.
         with np.errstate(invalid="ignore"):
             age = moment - t_j
             tol = np.where(np.isfinite(self.period), self.period, np.inf)  # no rate (protocol 1): as before
-            stands = np.where(self.on_time[rows, j], age <= 0.25 * tol, age <= tol)
+            rates = self.period[self.live & np.isfinite(self.period)]
+            slack = 0.25 * float(rates.min()) if rates.size else 0.0
+            stands = np.where(self.on_time[rows, j], age < tol - slack, age <= tol)
         stands = (stands | held) & (age >= -1e-9)
         unknown = ~self.live | ~stands | (self.count == 0) | (self.holding & none_before)
         if unknown.any():

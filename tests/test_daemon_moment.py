@@ -50,3 +50,39 @@ def test_a_held_element_never_heard_on_time_is_waited_for_up_to_held_wait() -> N
     now = 10.3 + DELAY
     t = m.moment(now, timeout=2.0, max_lag=0.5, held_wait=0.2)
     assert abs(t - (now - 0.2)) <= PERIOD + 1e-9, t  # no delay known for it: held_wait behind now
+
+
+def _record_at(m: Moments, row: int, t: float, period: float) -> None:
+    rows = np.array([row])
+    zero = np.zeros((2, 2))
+    m.record(rows, np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True, t + DELAY,
+             zero + 1.0, zero + 0.5, np.array([False]), np.array([True]), np.array([period]))
+    m.settle(rows, np.zeros(2, dtype=bool))
+
+
+def test_bridges_at_different_rates_are_known_at_every_frame_between_their_samples() -> None:
+    """One bridge set to 250 Hz (control ``set rate`` with a ``bridge``), its neighbour at
+    100 Hz. At a frame of one rate the other has no sample of that instant, and its last
+    sample is its reading there, as a held reading is: it was taken, nothing is lost. Each
+    element was unknown at a third of the frames (a contact on it ended and was born again).
+    A sample that was due and did not come still makes its element unknown."""
+    m = Moments(2, 128)
+    unknown = np.zeros(2, dtype=int)
+    taken = told = 0
+    lost = 2.50  # the 100 Hz sample of this instant never arrives
+    for k in range(3000):  # 1 ms steps
+        t = round(k * 0.001, 6)
+        if k % 10 == 0 and t != lost:
+            _record_at(m, 0, t, 0.01)
+        if k % 4 == 0:
+            _record_at(m, 1, t, 0.004)
+        got = m.take(t + DELAY, 2.0, 0.5)
+        if got is None or got.t < 1.0:
+            continue
+        if lost <= got.t < lost + 0.01:
+            assert got.unknown[0], got.t  # its sample of 2.50 was due: unknown until the next one
+            told += 1
+            continue
+        taken += 1
+        unknown += got.unknown
+    assert taken > 250 and told and not unknown.any(), (taken, told, unknown)

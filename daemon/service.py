@@ -212,7 +212,7 @@ class Service:
     def status_body(self, now: float) -> dict[str, Any]:
         self._link_stats()
         body = self.pipeline.health_body(now)
-        body.update(self._shell_health(), version=__version__, t_host=now)
+        body.update(self._shell_health(), version=__version__, t_host=now + self.pipeline.wall_offset)
         return body
 
     # -- contacts -----------------------------------------------------------------------

@@ -298,6 +298,28 @@ def test_a_control_command_to_a_bridge_that_never_answers_times_out(tmp_path: Pa
     asyncio.run(scenario())
 
 
+def test_control_replies_stamp_wall_clock_time(tmp_path: Path) -> None:
+    """``ping`` and ``status`` answer with ``t_host``, epoch seconds like every published
+    stamp. They answered with the pipeline's time base, the monotonic clock (seconds since
+    boot on a robot), and a wall-clock step did not move it."""
+    async def scenario() -> None:
+        dev, clock = FakeDevice(), FakeClock(t=1000.0)
+        clock.wall_offset = 1_700_000_000.0
+        async with running(tmp_path, dev, clock=clock) as (svc, ctx):
+            ctl = ctx.socket(zmq.DEALER)
+            ctl.connect(svc.config.control.endpoint)
+            for step in (0.0, -60.0):
+                clock.wall_offset += step
+                await until(lambda: svc.pipeline.wall_offset == clock.wall_offset)  # a tick saw the step
+                for i, cmd in enumerate(("ping", "status")):
+                    await ctl.send_multipart([b"", msgpack.packb({"v": 1, "cmd": cmd, "id": i})])
+                    rep = msgpack.unpackb((await asyncio.wait_for(ctl.recv_multipart(), 5.0))[-1])
+                    assert rep["ok"] and rep["t_host"] == pytest.approx(clock.wall(), abs=1.0), (cmd, rep["t_host"])
+            ctl.close(0)
+
+    asyncio.run(scenario())
+
+
 def test_sigterm_with_a_hung_contact_worker_stops_within_the_drain_limit(tmp_path: Path) -> None:
     """The worker answers two estimates, then hangs in the third. SIGTERM must neither
     wait out ``worker_timeout`` (30 s here, the default; systemd kills at 15) nor start a

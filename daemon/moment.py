@@ -207,8 +207,10 @@ class Moments:
         newest = float(self.settled[live].max())
         held = self.held[self._all, (self.count - 1) % self.depth]
         wait = min(held_wait, max_lag)
-        # a held element has reported past what a change of its would have reached us by
-        bound = np.fmin(np.nan_to_num(self.delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
+        # a held element has reported past what a change of its would have reached us by (its
+        # delay mark forgets between its readings too: a heartbeat may be seconds apart)
+        delay = self.delay * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
+        bound = np.fmin(np.nan_to_num(delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
         through = np.where(held, np.fmax(self.settled, now - bound), self.settled)
         self.holding = live & (through >= newest - np.where(held, wait, max_lag))
         self.late = live & ~self.holding & ~held

@@ -8,9 +8,11 @@ on its way must, for as long as its own readings take to arrive.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from cellbridge.daemon.moment import Moments
+from cellbridge.daemon.moment import DELAY_FORGET_S, DELAY_MARGIN, Moments
 
 PERIOD = 0.01  # 100 Hz
 DELAY = 0.03  # each reading arrives 30 ms after its sample time
@@ -86,3 +88,23 @@ def test_bridges_at_different_rates_are_known_at_every_frame_between_their_sampl
         taken += 1
         unknown += got.unknown
     assert taken > 250 and told and not unknown.any(), (taken, told, unknown)
+
+
+def test_the_delay_mark_forgets_between_readings_too() -> None:
+    """The delay a held element is waited for forgets with ``DELAY_FORGET_S`` whether it
+    reports 100 times a second or a heartbeat in 10 s: the mark only decayed when a reading
+    came, so after one late heartbeat the frame trailed by ``held_wait`` until the next."""
+    m = Moments(2, 64)
+    for k in range(1500):  # element 0 periodic at 100 Hz; element 1 held, a heartbeat every 10 s
+        t = round(k * PERIOD, 6)
+        _record_at(m, 0, t, PERIOD)
+        if k == 0:
+            rows = np.array([1])
+            zero = np.zeros((2, 2))
+            m.record(rows, np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True, t + 2.0,
+                     zero + 1.0, zero + 0.5, np.array([True]), np.array([True]), np.array([PERIOD]))
+            m.settle(rows, np.zeros(2, dtype=bool))  # delivered 2 s late: the mark is 2 s
+    now = 14.99 + DELAY  # 13 s after that reading arrived, before the next heartbeat
+    lag = now - m.moment(now, timeout=30.0, max_lag=0.5, held_wait=0.5)
+    expected = 2.0 * math.exp(-(now - 2.0) / DELAY_FORGET_S) + DELAY_MARGIN  # ~0.15 s
+    assert lag <= expected + PERIOD + 1e-9, (lag, expected)

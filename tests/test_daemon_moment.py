@@ -18,11 +18,12 @@ PERIOD = 0.01  # 100 Hz
 DELAY = 0.03  # each reading arrives 30 ms after its sample time
 
 
-def _record(m: Moments, row: int, t: float, held: bool = True) -> None:
+def _record(m: Moments, row: int, t: float, held: bool = True, period: float = PERIOD, delay: float = DELAY) -> None:
+    """One mesh-time reading of ``row`` taken at ``t``, arriving ``delay`` later."""
     rows = np.array([row])
     zero = np.zeros((2, 2))
-    m.record(rows, np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True, t + DELAY,
-             zero + 1.0, zero + 0.5, np.array([held]), np.array([True]), np.array([PERIOD]))
+    m.record(rows, np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True, t + delay,
+             zero + 1.0, zero + 0.5, np.array([held]), np.array([True]), np.array([period]))
     m.settle(rows, np.zeros(2, dtype=bool))
 
 
@@ -54,14 +55,6 @@ def test_a_held_element_never_heard_on_time_is_waited_for_up_to_held_wait() -> N
     assert abs(t - (now - 0.2)) <= PERIOD + 1e-9, t  # no delay known for it: held_wait behind now
 
 
-def _record_at(m: Moments, row: int, t: float, period: float) -> None:
-    rows = np.array([row])
-    zero = np.zeros((2, 2))
-    m.record(rows, np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True, t + DELAY,
-             zero + 1.0, zero + 0.5, np.array([False]), np.array([True]), np.array([period]))
-    m.settle(rows, np.zeros(2, dtype=bool))
-
-
 def test_bridges_at_different_rates_are_known_at_every_frame_between_their_samples() -> None:
     """One bridge set to 250 Hz (control ``set rate`` with a ``bridge``), its neighbour at
     100 Hz. At a frame of one rate the other has no sample of that instant, and its last
@@ -75,9 +68,9 @@ def test_bridges_at_different_rates_are_known_at_every_frame_between_their_sampl
     for k in range(3000):  # 1 ms steps
         t = round(k * 0.001, 6)
         if k % 10 == 0 and t != lost:
-            _record_at(m, 0, t, 0.01)
+            _record(m, 0, t, held=False, period=0.01)
         if k % 4 == 0:
-            _record_at(m, 1, t, 0.004)
+            _record(m, 1, t, held=False, period=0.004)
         got = m.take(t + DELAY, 2.0, 0.5)
         if got is None or got.t < 1.0:
             continue
@@ -97,13 +90,9 @@ def test_the_delay_mark_forgets_between_readings_too() -> None:
     m = Moments(2, 64)
     for k in range(1500):  # element 0 periodic at 100 Hz; element 1 held, a heartbeat every 10 s
         t = round(k * PERIOD, 6)
-        _record_at(m, 0, t, PERIOD)
+        _record(m, 0, t, held=False)
         if k == 0:
-            rows = np.array([1])
-            zero = np.zeros((2, 2))
-            m.record(rows, np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True, t + 2.0,
-                     zero + 1.0, zero + 0.5, np.array([True]), np.array([True]), np.array([PERIOD]))
-            m.settle(rows, np.zeros(2, dtype=bool))  # delivered 2 s late: the mark is 2 s
+            _record(m, 1, t, delay=2.0)  # delivered 2 s late: the mark is 2 s
     now = 14.99 + DELAY  # 13 s after that reading arrived, before the next heartbeat
     lag = now - m.moment(now, timeout=30.0, max_lag=0.5, held_wait=0.5)
     expected = 2.0 * math.exp(-(now - 2.0) / DELAY_FORGET_S) + DELAY_MARGIN  # ~0.15 s

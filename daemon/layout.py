@@ -196,6 +196,14 @@ class LayoutStages:
         return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t,
                                got.unknown)
 
+    def snapshot_due(self, now: float, bridge_timeout: float) -> float:
+        """When the skin's moment moves on without new data (:meth:`Moments.due`); ``inf``:
+        only with new data, or no layout."""
+        if self.moments is None:
+            return math.inf
+        c = self.config.contact
+        return self.moments.due(now, bridge_timeout, c.max_lag, c.held_wait)
+
     def tare(self, bridges: list[int] | None) -> int:
         if self.elements is None:
             return 0

@@ -205,12 +205,9 @@ class Moments:
             self.holding = self.late = live
             return math.nan
         newest = float(self.settled[live].max())
-        held = self.held[self._all, (self.count - 1) % self.depth]
+        held = self._held_now()
         wait = min(held_wait, max_lag)
-        # a held element has reported past what a change of its would have reached us by (its
-        # delay mark forgets between its readings too: a heartbeat may be seconds apart)
-        delay = self.delay * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
-        bound = np.fmin(np.nan_to_num(delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
+        bound = self._bound(wait, now)
         through = np.where(held, np.fmax(self.settled, now - bound), self.settled)
         self.holding = live & (through >= newest - np.where(held, wait, max_lag))
         self.late = live & ~self.holding & ~held
@@ -231,6 +228,38 @@ class Moments:
         if per > 0 and t - frame >= per:
             frame += math.floor((t - frame) / per) * per
         return max(frame, self.t_moment)
+
+    def due(self, now: float, timeout: float, max_lag: float, held_wait: float = 0.5) -> float:
+        """When the moment moves on to its next frame with no new data: the host time at
+        which the held elements it waits for have reported past that frame (their holds
+        run out), or ``inf`` when only new data moves it (an element it waits for is
+        periodic, none is held, none is live, no rate known). An event-based skin sends
+        little: a shell that estimated only when data came would take a press's
+        frames up to a heartbeat late; it sleeps until this time or until data comes."""
+        t = self.moment(now, timeout, max_lag, held_wait)
+        live = self.live
+        if math.isnan(t) or not np.isfinite(self.period[live]).any():
+            return math.inf
+        nxt = t + float(np.nanmin(np.where(live, self.period, np.nan)))
+        with np.errstate(invalid="ignore"):
+            waits = self.holding & ~(self.settled >= nxt)
+        held = self._held_now()
+        if not waits.any() or (waits & ~held).any():
+            return math.inf
+        # (a microsecond on: at the exact instant, rounding may leave the frame one short)
+        return nxt + float(self._bound(min(held_wait, max_lag), now)[waits].max()) + 1e-6
+
+    def _held_now(self) -> NDArray[np.bool_]:
+        """Whether each element's newest reading is held (stands for the frames after it)."""
+        return self.held[self._all, (self.count - 1) % self.depth]
+
+    def _bound(self, wait: float, now: float) -> FloatArray:
+        """How far behind ``now`` each held element has reported: a change of its would have
+        reached the host by its delivery delay (with a margin); ``wait`` at most, and while
+        its delay is not known yet. The delay mark forgets between the element's readings
+        too (a heartbeat may be seconds apart)."""
+        delay = self.delay * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
+        return np.fmin(np.nan_to_num(delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
 
     def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64],
                                          NDArray[np.bool_], float]:

@@ -382,6 +382,15 @@ class Pipeline:
             return None
         return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id, self._carry)
 
+    def contact_due(self, now: float) -> float:
+        """The host time at which :meth:`contact_job` has a new moment without new data
+        (event-based elements' holds run out), ``inf`` when only new data brings one. A shell
+        asks for a job when data comes or at this time, whichever is first (at most
+        ``contact.rate`` a second); the periodic tick notices silence."""
+        if not self.config.contact.enabled or not self._want("contact"):
+            return math.inf
+        return self.skin.snapshot_due(now, self.config.health.bridge_timeout)
+
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave
         it, copied) with the cycle count of each of its elements' readings and the newest

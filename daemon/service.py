@@ -14,6 +14,7 @@ tests run a whole service in-process on fakes and ``inproc://`` endpoints.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import logging
 import math
@@ -218,7 +219,14 @@ class Service:
     # -- contacts -----------------------------------------------------------------------
     async def _contacts(self) -> None:
         while True:
-            await self._fresh.wait()
+            # data came, the tick looked for silence, or held elements' holds run out
+            # (an event-based skin: a press's next frames come with no new data)
+            due = self.pipeline.contact_due(self.now()) - self.now()
+            if not self._fresh.is_set() and due < self.TICK:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._fresh.wait(), max(due, 0.0))
+            else:
+                await self._fresh.wait()
             self._fresh.clear()
             started = time.perf_counter()
             await self._contact_once()

@@ -136,8 +136,11 @@ class FirmwareConfig:
     #: delivers its samples p99 ~90 ms after their gate at 50 ms, ~56 ms at 25 ms, and loses
     #: samples at 10 ms (bench/bench_latency.py, virtual time with the latency model).
     max_latency: int = 50 * _MS
-    #: The same under event-based reporting (few samples travel: a press's onset goes at once).
-    event_latency: int = 10 * _MS
+    #: The same under event-based reporting: 1 ms, a sample goes almost as soon as it is
+    #: taken. Few samples travel, and at 100 Hz a 10 ms wait put two in a frame at most
+    #: while the host saw every press 10 ms later (press to its first sample at the host,
+    #: virtual time: p50 23.5 -> 14 ms, bench/bench_press_latency.py --virtual --reporting event:40).
+    event_latency: int = 1 * _MS
     #: An aligned batch (periodic, on mesh time: emulator/sampling.py) leaves up to this long
     #: after its last sample, each bridge at its own offset (drawn from its id), so the
     #: bridges of one cell do not all contend for it at the same instant.

@@ -97,3 +97,38 @@ def test_the_delay_mark_forgets_between_readings_too() -> None:
     lag = now - m.moment(now, timeout=30.0, max_lag=0.5, held_wait=0.5)
     expected = 2.0 * math.exp(-(now - 2.0) / DELAY_FORGET_S) + DELAY_MARGIN  # ~0.15 s
     assert lag <= expected + PERIOD + 1e-9, (lag, expected)
+
+
+def test_with_no_new_data_the_moment_moves_on_at_due_and_not_before() -> None:
+    """An event-based skin sends a press's onset and then little: the frames after it come
+    from the holds running out, with no data to wake a shell. ``due`` names when the next
+    one is there; the shell estimates then (and a shell that waited for data took a press's
+    next frames up to a heartbeat late)."""
+    m = Moments(2, 64)
+    for k in range(50):  # both report for a while: their delivery delay is learnt
+        _record(m, 0, 9.5 + k * PERIOD)
+        _record(m, 1, 9.5 + k * PERIOD)
+    now = 9.5 + 49 * PERIOD + DELAY
+    first = m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5)
+    assert first is not None
+    frames = [first.t]
+    for _ in range(5):  # no data comes: each due brings the next frame, a moment earlier nothing
+        due = m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5)
+        assert now < due < now + 2 * PERIOD, (now, due)
+        assert m.take(due - 1e-4, timeout=2.0, max_lag=0.5, held_wait=0.5) is None
+        got = m.take(due, timeout=2.0, max_lag=0.5, held_wait=0.5)
+        assert got is not None and abs(got.t - (frames[-1] + PERIOD)) < 1e-9, (got, frames)
+        frames.append(got.t)
+        now = due
+
+
+def test_due_is_never_while_a_periodic_element_is_waited_for() -> None:
+    """A periodic element's frame comes only with its data: no time to wake for."""
+    m = Moments(2, 64)
+    for k in range(50):
+        _record(m, 0, 9.5 + k * PERIOD)
+        _record(m, 1, 9.5 + k * PERIOD, held=False)
+    now = 9.5 + 49 * PERIOD + DELAY
+    assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is not None
+    assert m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5) == float("inf")
+    assert m.due(now + 10.0, timeout=2.0, max_lag=0.5, held_wait=0.5) == float("inf")  # all silent

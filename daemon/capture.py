@@ -9,6 +9,10 @@ Format (little-endian)::
     magic  8 bytes  b"CBCAP1\\n\\x00"
     record*         f64 host time (s since the epoch) | u32 length | bytes
 
+The host time is the wall clock's at the capture's start, then the monotonic clock's, so
+a wall-clock step during the capture does not enter it (a replay in recorded time takes
+these times as its one time base).
+
 A file cut short (daemon killed mid-write) reads up to its last whole record.
 """
 

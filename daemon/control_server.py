@@ -153,7 +153,8 @@ class ControlServer:
             n = pipeline.tare(None if req.bridges is None else list(req.bridges))
             return reply(True, req.id, tared_elements=n)
         if req.cmd == "ping" and req.bridge is None:
-            return reply(True, req.id, pong=True, version=__version__, t_host=now, commands=COMMANDS)
+            return reply(True, req.id, pong=True, version=__version__, t_host=now + pipeline.wall_offset,
+                         commands=COMMANDS)
         op, value = (int(PING), None) if req.cmd == "ping" else (req.op, req.value)
         result = await self.command(op, value, req.bridge, timeout)  # type: ignore[arg-type]  # a bridge command's op and value, checked by parse_request
         replies = result["replies"]

@@ -35,6 +35,7 @@ class BridgeHealth:
     last_cycle: int = 0
     clock_hz: float = 0.0
     unmapped_samples: int = 0  # samples of elements the layout does not place
+    index_rejected: int = 0  # mesh-time samples whose index put them after their own arrival
     rate: float = 0.0  # samples/s since the health before
     _samples_at_tick: int = 0
     silent: bool = False
@@ -66,6 +67,7 @@ class BridgeHealth:
             "loss": self.lost / expected if expected else 0.0, "seq_restarts": self.seq_restarts,
             "clock_resets": self.clock_resets, "t_bridge": self.last_cycle / self.clock_hz if self.clock_hz else None,
             "cycle": self.last_cycle, "unmapped_samples": self.unmapped_samples,
+            "index_rejected": self.index_rejected,
         }
 
 

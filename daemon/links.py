@@ -115,6 +115,10 @@ class SerialLink(Link):
         self.capture: CaptureWriter | None = None
         if cfg.capture:
             self.capture = CaptureWriter(cfg.capture)
+        # A capture's times are the wall clock's at its start, then the monotonic clock's: a
+        # replay in recorded time takes them as its one time base, which a wall-clock step
+        # (NTP) must not move (replayed, a step back stopped every contact estimate).
+        self._capture_offset = clock.wall() - clock.time()
 
     def _open(self) -> Port:
         return self._opener(self.cfg)
@@ -158,9 +162,9 @@ class SerialLink(Link):
                     lost.set_result(f"device lost: {exc}")
                 return
             if data:
-                now = clock.time()  # the pipeline's time base; captures keep wall-clock time
+                now = clock.time()  # the pipeline's time base
                 if capture is not None:
-                    capture.write(clock.wall(), data)
+                    capture.write(now + self._capture_offset, data)
                 on_data(name, data, now)
 
         self._ser = ser

@@ -5,7 +5,10 @@ pipeline gives all samples of one index one host time (``t_sample``): a skin fra
 Contacts are estimated on the newest frame every live element has reported (their
 frames reach the host after different delays). An element contributes its reading *of
 that frame*, never an older one: a sample lost or still in flight makes the element
-unknown for the frame. Two kinds of reading stand for more than their own instant:
+unknown for the frame. (Bridges may sample at different rates, one set faster by the
+``set rate`` control request: at a frame of a finer rate, an element's last sample is its
+reading of that frame until its next sample is due.) Two kinds of reading stand for more
+than their own instant:
 
 * a **held** reading (event-based reporting, flag ``HELD``): the bridge promised that
   its readings stay within the threshold of it until it sends another, so it stands
@@ -204,7 +207,7 @@ class Moments:
         newest = float(self.settled[live].max())
         held = self._held_now()
         wait = min(held_wait, max_lag)
-        bound = self._bound(wait)
+        bound = self._bound(wait, now)
         through = np.where(held, np.fmax(self.settled, now - bound), self.settled)
         self.holding = live & (through >= newest - np.where(held, wait, max_lag))
         self.late = live & ~self.holding & ~held
@@ -244,17 +247,19 @@ class Moments:
         if not waits.any() or (waits & ~held).any():
             return math.inf
         # (a microsecond on: at the exact instant, rounding may leave the frame one short)
-        return nxt + float(self._bound(min(held_wait, max_lag))[waits].max()) + 1e-6
+        return nxt + float(self._bound(min(held_wait, max_lag), now)[waits].max()) + 1e-6
 
     def _held_now(self) -> NDArray[np.bool_]:
         """Whether each element's newest reading is held (stands for the frames after it)."""
         return self.held[self._all, (self.count - 1) % self.depth]
 
-    def _bound(self, wait: float) -> FloatArray:
+    def _bound(self, wait: float, now: float) -> FloatArray:
         """How far behind ``now`` each held element has reported: a change of its would have
         reached the host by its delivery delay (with a margin); ``wait`` at most, and while
-        its delay is not known yet."""
-        return np.fmin(np.nan_to_num(self.delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
+        its delay is not known yet. The delay mark forgets between the element's readings
+        too (a heartbeat may be seconds apart)."""
+        delay = self.delay * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
+        return np.fmin(np.nan_to_num(delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
 
     def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64],
                                          NDArray[np.bool_], float]:
@@ -278,13 +283,17 @@ class Moments:
         dc, touched = self.dc[rows, j], self.touched[rows, j]
         t_j = self.t[rows, j]
         held = self.held[rows, j]
-        # Which reading stands for the moment: a mesh-time reading of this very frame (a
-        # quarter period covers rounding of the host's map), a held one at or before it, a
+        # Which reading stands for the moment: a mesh-time reading until the element's next
+        # sample was due (of this very frame; at a frame of a finer rate between its own
+        # samples, its last one: bridges may sample at different rates; a quarter of the
+        # finest period covers rounding of the host's map), a held one at or before it, a
         # reading timed from its arrival within one period before it.
         with np.errstate(invalid="ignore"):
             age = moment - t_j
             tol = np.where(np.isfinite(self.period), self.period, np.inf)  # no rate (protocol 1): as before
-            stands = np.where(self.on_time[rows, j], age <= 0.25 * tol, age <= tol)
+            rates = self.period[self.live & np.isfinite(self.period)]
+            slack = 0.25 * float(rates.min()) if rates.size else 0.0
+            stands = np.where(self.on_time[rows, j], age < tol - slack, age <= tol)
         stands = (stands | held) & (age >= -1e-9)
         unknown = ~self.live | ~stands | (self.count == 0) | (self.holding & none_before)
         if unknown.any():

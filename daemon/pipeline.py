@@ -55,6 +55,9 @@ _NO_MESH_TIME = np.int64(NO_MESH_TIME)
 _HELD = np.int64(HELD)
 _FRAME_MEMORY = 10.0  # s of frames whose host time is kept once given
 _FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at (250 Hz x 10 s)
+# s a frame's host time may lie after the arrival of its sample: the map from mesh time is the
+# lower envelope of the gateways' arrivals, off by milliseconds at most; later, the index is wrong.
+_FUTURE_SLACK = 0.25
 # Unplaced bridges health lists one by one: beyond this, only their count. One corrupt frame in
 # ~65 536 passes CRC-16 with a random origin, so a noisy line makes thousands of phantoms; each
 # would cost ~240 bytes in every health message (15 MB at 65 530) until forgotten.
@@ -103,6 +106,7 @@ class Pipeline:
         self.skin_clock_resets = 0
         self._frame_memo: dict[int, float] = {}  # global cycle of a frame -> its host time
         self._frame_newest = -1
+        self._skin_jump: tuple[int, float] | None = None  # (g, arrival) of a gateway sample ahead of the map
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
         self.topology = Routes()
@@ -245,7 +249,7 @@ class Pipeline:
             own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
             if own.size:
                 newest = own[np.argmax(g[own])]
-                if self.skin_clock.observe(int(g[newest]), now):
+                if self._skin_time_believed(int(g[newest]), now) and self.skin_clock.observe(int(g[newest]), now):
                     self.skin_clock_resets += 1
                     self._frame_memo.clear()
                     self._frame_newest = -1
@@ -267,20 +271,49 @@ class Pipeline:
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
         if on_time.any() and self.skin_clock.synced:
-            t_sample = np.where(on_time, self._frame_times(g, on_time), t_sample)
+            frame_t = self._frame_times(g, on_time, now)
+            # A frame the map puts after the sample's own arrival was never taken: its index is
+            # wrong (a frame corrupted past the CRC, a bridge on some other time). Believed, it
+            # would move the skin frame that far ahead and stop every estimate until then.
+            wrong = on_time & np.isnan(frame_t)
+            if wrong.any():
+                for b_id, cnt in Counter(o[wrong].tolist()).items():
+                    self.bridges[b_id].index_rejected += cnt
+                g = np.where(wrong, -1, g)
+                on_time &= ~wrong
+            t_sample = np.where(on_time, frame_t, t_sample)
         return t_sample, s.cycle.astype(np.float64) / hz, g
 
-    def _frame_times(self, g: np.ndarray, on_time: np.ndarray) -> np.ndarray:
-        """Host time of each mesh-time sample's frame (global cycle ``g``). A frame's time is
-        fixed when its first sample arrives: the map keeps learning (a lower envelope point
-        moves it by up to a read's granularity), and two bridges' samples of one index must
-        still carry one time. Frames older than the newest by ``_FRAME_MEMORY`` are forgotten."""
+    def _skin_time_believed(self, g: int, now: float) -> bool:
+        """Whether a gateway's own sample of global cycle ``g``, arrived at ``now``, may teach
+        the map. One the map puts after its own arrival is either a jump of the skin's time
+        (a new root on another time) or a frame corrupted past the CRC: it is believed once
+        the gateway's next read agrees with it. (One corrupted frame remapped the skin at once,
+        and the true frames after it then lay an hour back: no estimate for 2 s, then a press
+        ended and came back with a new id.)"""
+        clock = self.skin_clock
+        if not clock.synced or float(clock.to_host(np.array([g], dtype=np.uint64))[0]) <= now + _FUTURE_SLACK:
+            self._skin_jump = None
+            return True
+        seen, self._skin_jump = self._skin_jump, (g, now)
+        return seen is not None and abs((g - seen[0]) / clock.hz - (now - seen[1])) <= _FUTURE_SLACK
+
+    def _frame_times(self, g: np.ndarray, on_time: np.ndarray, now: float) -> np.ndarray:
+        """Host time of each mesh-time sample's frame (global cycle ``g``), NaN for a frame
+        that would lie more than ``_FUTURE_SLACK`` after ``now``, the samples' arrival (never
+        remembered). A frame's time is fixed when its first sample arrives: the map keeps
+        learning (a lower envelope point moves it by up to a read's granularity), and two
+        bridges' samples of one index must still carry one time. Frames older than the
+        newest by ``_FRAME_MEMORY`` are forgotten."""
         keys, inverse = np.unique(np.where(on_time, g, -1), return_inverse=True)
         memo = self._frame_memo
         new = [k for k in keys.tolist() if k >= 0 and k not in memo]
         if new:
             mapped = self.skin_clock.to_host(np.array(new, dtype=np.uint64)).tolist()
-            memo.update(zip(new, mapped))
+            kept = [(k, t) for k, t in zip(new, mapped) if t <= now + _FUTURE_SLACK]
+            new = [k for k, _ in kept]
+            memo.update(kept)
+        if new:
             newest = max(new)
             if newest > self._frame_newest:
                 self._frame_newest = newest
@@ -502,7 +535,7 @@ class Pipeline:
             "uptime": 0.0 if self.started is None else now - self.started,
             "links": {name: self._wall_link(link_report(lh, self.ingress.counters(name)))
                       for name, lh in self.links.items()},
-            "bridges": {str(b): {**self.bridges[b].report(now), "reassembly_drops": self.ingress.reassembly_drops.get(b, 0)}
+            "bridges": {str(b): self._wall_bridge(self.bridges[b].report(now), self.ingress.reassembly_drops.get(b, 0))
                         for b in shown},
             "bridges_not_shown": len(self.bridges) - len(shown),
             "silent": sorted(b for b in shown if self.bridges[b].silent),
@@ -517,6 +550,12 @@ class Pipeline:
             "dedupe": self.ingress.dedupe.counters(),
             "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
         }
+
+    def _wall_bridge(self, report: dict[str, Any], reassembly_drops: int) -> dict[str, Any]:
+        for key in ("first_seen", "last_seen"):
+            report[key] = self._wall(report[key])
+        report["reassembly_drops"] = reassembly_drops
+        return report
 
     def _wall_link(self, report: dict[str, Any]) -> dict[str, Any]:
         for key in ("connected_since", "last_data"):

@@ -90,11 +90,12 @@ class Publisher:
         except zmq.Again:
             self.dropped[topic] += 1
 
-    def serial(self, link: str, data: bytes, now: float) -> None:
-        """One link read on topic ``serial`` (``link``, ``t_host`` = its arrival, ``data``), if wanted."""
+    def serial(self, link: str, data: bytes, now: float, t_read: float) -> None:
+        """One link read on topic ``serial`` (``link``, ``t_host`` = its arrival on the wall
+        clock, ``t_read`` = on the clock a replay runs on, ``data``), if wanted."""
         if "serial" in self.wanted:
-            self.publish("serial", {"v": 1, "seq": self._serial_seq, "t_host": now, "t_bridge": None,
-                                    "link": link, "data": data})
+            self.publish("serial", {"v": 1, "seq": self._serial_seq, "t_host": now, "t_read": t_read,
+                                    "t_bridge": None, "link": link, "data": data})
             self._serial_seq += 1
 
     async def watch_subscriptions(self) -> None:

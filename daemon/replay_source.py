@@ -60,7 +60,8 @@ def _serial_messages(path: Path) -> Iterator[tuple[str, float, bytes]]:
                 channels.add(rec.id)
             elif isinstance(rec, Message) and rec.channel_id in channels:
                 m = json.loads(rec.data)
-                yield str(m.get("link", "")), float(m["t_host"]), base64.b64decode(m["data"])
+                # t_read: never stepped with the wall clock (recordings before it: t_host)
+                yield str(m.get("link", "")), float(m.get("t_read", m["t_host"])), base64.b64decode(m["data"])
 
 
 def _mcap_serial(path: Path, link: str) -> Iterator[tuple[float, bytes]]:

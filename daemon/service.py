@@ -77,6 +77,9 @@ class Service:
         self._recorded = any(ln.is_replay and ln.replay_clock == "recorded" for ln in config.links)
         self._wall_offset = clock.wall() - clock.time()
         self.pipeline.set_wall_offset(0.0 if self._recorded else self._wall_offset)
+        # The reads' times as a recording keeps them for a replay: the wall clock's at the
+        # start, then the time base's, so that a wall-clock step never enters a replay.
+        self._read_offset = self.pipeline.wall_offset
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
@@ -98,7 +101,7 @@ class Service:
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
         t0 = time.perf_counter()
-        self.pub.serial(link, data, now + self.pipeline.wall_offset)  # published: wall-clock time
+        self.pub.serial(link, data, now + self.pipeline.wall_offset, now + self._read_offset)
         p = self.pipeline
         try:
             self._act(p.feed(link, data, now))
@@ -210,7 +213,7 @@ class Service:
     def status_body(self, now: float) -> dict[str, Any]:
         self._link_stats()
         body = self.pipeline.health_body(now)
-        body.update(self._shell_health(), version=__version__, t_host=now)
+        body.update(self._shell_health(), version=__version__, t_host=now + self.pipeline.wall_offset)
         return body
 
     # -- contacts -----------------------------------------------------------------------

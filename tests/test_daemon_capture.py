@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
 import subprocess
 from pathlib import Path
 
 from cellbridge.daemon.capture import CaptureWriter, read_capture
+from cellbridge.daemon.config import parse_config
+from cellbridge.daemon.links import SerialLink
 from daemon_harness import CLI, Client, Pty, daemon, write_config
+from shell_fakes import FakeClock, FakeDevice, until
 
 
 def test_a_restart_keeps_the_previous_capture(tmp_path: Path) -> None:
@@ -65,3 +69,33 @@ def test_an_unopenable_capture_costs_the_capture_not_the_link(tmp_path: Path) ->
     finally:
         client.close()
         pty.close()
+
+
+def test_a_wall_clock_step_does_not_enter_a_capture(tmp_path: Path) -> None:
+    """A capture is replayed in recorded time as the pipeline's one time base. It kept each
+    read's wall-clock time, so NTP stepping the clock back 60 s mid-capture made the replay
+    step back too: every bridge's clock 'restarted' and no contact was estimated for the
+    rest of the press (forward 700 s: every bridge silent, a held press re-baselined). The
+    capture's times are wall-clock time at its start, then the monotonic clock's."""
+    async def scenario() -> None:
+        dev, clock = FakeDevice(), FakeClock()
+        cfg = parse_config({"link": [{"name": "gw", "url": "/dev/ttyFAKE0",
+                                      "capture": str(tmp_path / "gw.cbcap")}]}).links[0]
+        got = bytearray()
+        link = SerialLink(cfg, lambda name, data, t: got.extend(data), lambda *a: None, dev.open, clock)
+        task = asyncio.create_task(link.run())
+        try:
+            await until(lambda: dev.port is not None)
+            for k, (step, data) in enumerate([(0.0, b"\x00one\x00"), (-60.0, b"two\x00"), (760.0, b"three\x00")]):
+                clock.wall_offset += step
+                clock.t += 0.5
+                dev.send(data)
+                await until(lambda n=len(data): len(got) == sum(map(len, (b"\x00one\x00", b"two\x00", b"three\x00")[:k + 1])))
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    start = FakeClock().t
+    asyncio.run(scenario())
+    times = [t for t, _ in read_capture(tmp_path / "gw.cbcap")]
+    assert times == [start + 0.5, start + 1.0, start + 1.5]

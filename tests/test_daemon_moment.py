@@ -8,19 +8,22 @@ on its way must, for as long as its own readings take to arrive.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from cellbridge.daemon.moment import Moments
+from cellbridge.daemon.moment import DELAY_FORGET_S, DELAY_MARGIN, Moments
 
 PERIOD = 0.01  # 100 Hz
 DELAY = 0.03  # each reading arrives 30 ms after its sample time
 
 
-def _record(m: Moments, row: int, t: float, held: bool = True) -> None:
+def _record(m: Moments, row: int, t: float, held: bool = True, period: float = PERIOD, delay: float = DELAY) -> None:
+    """One mesh-time reading of ``row`` taken at ``t``, arriving ``delay`` later."""
     rows = np.array([row])
     zero = np.zeros((2, 2))
-    m.record(rows, np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True, t + DELAY,
-             zero + 1.0, zero + 0.5, np.array([held]), np.array([True]), np.array([PERIOD]))
+    m.record(rows, np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True, t + delay,
+             zero + 1.0, zero + 0.5, np.array([held]), np.array([True]), np.array([period]))
     m.settle(rows, np.zeros(2, dtype=bool))
 
 
@@ -50,6 +53,50 @@ def test_a_held_element_never_heard_on_time_is_waited_for_up_to_held_wait() -> N
     now = 10.3 + DELAY
     t = m.moment(now, timeout=2.0, max_lag=0.5, held_wait=0.2)
     assert abs(t - (now - 0.2)) <= PERIOD + 1e-9, t  # no delay known for it: held_wait behind now
+
+
+def test_bridges_at_different_rates_are_known_at_every_frame_between_their_samples() -> None:
+    """One bridge set to 250 Hz (control ``set rate`` with a ``bridge``), its neighbour at
+    100 Hz. At a frame of one rate the other has no sample of that instant, and its last
+    sample is its reading there, as a held reading is: it was taken, nothing is lost. Each
+    element was unknown at a third of the frames (a contact on it ended and was born again).
+    A sample that was due and did not come still makes its element unknown."""
+    m = Moments(2, 128)
+    unknown = np.zeros(2, dtype=int)
+    taken = told = 0
+    lost = 2.50  # the 100 Hz sample of this instant never arrives
+    for k in range(3000):  # 1 ms steps
+        t = round(k * 0.001, 6)
+        if k % 10 == 0 and t != lost:
+            _record(m, 0, t, held=False, period=0.01)
+        if k % 4 == 0:
+            _record(m, 1, t, held=False, period=0.004)
+        got = m.take(t + DELAY, 2.0, 0.5)
+        if got is None or got.t < 1.0:
+            continue
+        if lost <= got.t < lost + 0.01:
+            assert got.unknown[0], got.t  # its sample of 2.50 was due: unknown until the next one
+            told += 1
+            continue
+        taken += 1
+        unknown += got.unknown
+    assert taken > 250 and told and not unknown.any(), (taken, told, unknown)
+
+
+def test_the_delay_mark_forgets_between_readings_too() -> None:
+    """The delay a held element is waited for forgets with ``DELAY_FORGET_S`` whether it
+    reports 100 times a second or a heartbeat in 10 s: the mark only decayed when a reading
+    came, so after one late heartbeat the frame trailed by ``held_wait`` until the next."""
+    m = Moments(2, 64)
+    for k in range(1500):  # element 0 periodic at 100 Hz; element 1 held, a heartbeat every 10 s
+        t = round(k * PERIOD, 6)
+        _record(m, 0, t, held=False)
+        if k == 0:
+            _record(m, 1, t, delay=2.0)  # delivered 2 s late: the mark is 2 s
+    now = 14.99 + DELAY  # 13 s after that reading arrived, before the next heartbeat
+    lag = now - m.moment(now, timeout=30.0, max_lag=0.5, held_wait=0.5)
+    expected = 2.0 * math.exp(-(now - 2.0) / DELAY_FORGET_S) + DELAY_MARGIN  # ~0.15 s
+    assert lag <= expected + PERIOD + 1e-9, (lag, expected)
 
 
 def test_with_no_new_data_the_moment_moves_on_at_due_and_not_before() -> None:

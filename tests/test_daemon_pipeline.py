@@ -387,6 +387,27 @@ def test_host_clock_stepping_back_neither_stops_health_nor_hides_a_dead_bridge()
     assert all(not b["alive"] for b in p.topology_body(back + 5.0)["bridges"].values())
 
 
+def test_every_time_health_and_topology_publish_is_wall_clock_time() -> None:
+    """The pipeline runs on the monotonic clock (seconds since boot in the service); what it
+    publishes is wall-clock time, and a wall-clock step moves it. Health's per-bridge
+    ``first_seen`` and ``last_seen`` went out on the monotonic clock (seconds since boot,
+    documented as epoch seconds) and never moved with a step."""
+    sk = Skin()
+    p = make()
+    wall = 5_000.0  # wall-clock minus monotonic time
+    p.set_wall_offset(wall)
+    t = settle(p, sk, 20)
+    for step in (0.0, -60.0):
+        p.host_clock_step(step)
+        offset = wall + step
+        h = p.health_body(t)
+        for b in h["bridges"].values():
+            assert b["first_seen"] == pytest.approx(T0 + offset, abs=1.0) and b["last_seen"] == pytest.approx(t + offset, abs=0.1)
+        assert h["links"]["gw"]["last_data"] == pytest.approx(t + offset, abs=0.1)
+        for node in p.topology_body(t)["bridges"].values():
+            assert node["last_seen"] == pytest.approx(t + offset, abs=0.1)
+
+
 def test_a_command_sent_before_the_host_clock_steps_back_still_times_out() -> None:
     sk = Skin()
     p = make()

@@ -26,7 +26,11 @@ from cellbridge.daemon.config import load_config, parse_config
 from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
 from cellbridge.daemon.links import SerialLink
 from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.replay_source import read_records
 from cellbridge.daemon.service import Service
+from cellbridge.recording import codec
+from cellbridge.recording.mcapfile import RecordingWriter
+from cellbridge.recording.recorder import Recorder
 from daemon_traffic import Skin
 from pipeline_helpers import published, worker
 from shell_fakes import FakeClock, FakeDevice, RecordingHooks, ScriptedExecutor, until
@@ -243,6 +247,36 @@ def test_sighup_reloads_the_config_and_sigterm_drains_to_a_last_health(tmp_path:
     asyncio.run(scenario())
 
 
+def test_a_wall_clock_step_does_not_enter_the_reads_a_recording_replays(tmp_path: Path) -> None:
+    """``cellbridge record --serial`` keeps the ``serial`` topic and a ``replay:FILE.mcap``
+    link re-runs the pipeline on its times. They were wall-clock times: replayed across an
+    NTP step back, every bridge's clock 'restarted' and no contact came for the rest of the
+    press. ``t_read`` is the read's arrival on a clock that never steps; ``t_host`` follows
+    the wall clock, as every published stamp does."""
+    async def scenario() -> None:
+        dev, clock = FakeDevice(), FakeClock()
+        async with running(tmp_path, dev, clock=clock) as (svc, ctx):
+            sub = _sub(ctx, svc, "serial")
+            await until(lambda: "serial" in svc.pub.wanted)
+            got = []
+            for step, data in ((0.0, b"\x00one\x00"), (-60.0, b"\x00two\x00"), (700.0, b"\x00three\x00")):
+                clock.wall_offset += step
+                clock.t += 0.5
+                await until(lambda: svc.pipeline.wall_offset == clock.wall_offset)  # a tick saw the step
+                dev.send(data)
+                got.append((await _recv(sub))[1])
+            sub.close(0)
+        assert [m["t_read"] - got[0]["t_read"] for m in got] == [0.0, 0.5, 1.0]
+        assert [m["t_host"] - m["t_read"] for m in got] == [0.0, -60.0, 640.0]
+        rec = Recorder(tmp_path / "s.mcap", RecordingWriter)
+        for m in got:
+            rec.feed("serial", codec.to_msgpack(m), m["t_host"])
+        rec.close()
+        assert [t for t, _ in read_records(tmp_path / "s.mcap", "gw")] == [m["t_read"] for m in got]
+
+    asyncio.run(scenario())
+
+
 def test_a_control_command_to_a_bridge_that_never_answers_times_out(tmp_path: Path) -> None:
     async def scenario() -> None:
         dev = FakeDevice()
@@ -259,6 +293,28 @@ def test_a_control_command_to_a_bridge_that_never_answers_times_out(tmp_path: Pa
             assert rep["ok"] is False and rep["id"] == 7 and rep["missing"] == [2]
             assert "no reply within the timeout" in rep["error"]
             assert dev.written  # the PING went out on the line
+            ctl.close(0)
+
+    asyncio.run(scenario())
+
+
+def test_control_replies_stamp_wall_clock_time(tmp_path: Path) -> None:
+    """``ping`` and ``status`` answer with ``t_host``, epoch seconds like every published
+    stamp. They answered with the pipeline's time base, the monotonic clock (seconds since
+    boot on a robot), and a wall-clock step did not move it."""
+    async def scenario() -> None:
+        dev, clock = FakeDevice(), FakeClock(t=1000.0)
+        clock.wall_offset = 1_700_000_000.0
+        async with running(tmp_path, dev, clock=clock) as (svc, ctx):
+            ctl = ctx.socket(zmq.DEALER)
+            ctl.connect(svc.config.control.endpoint)
+            for step in (0.0, -60.0):
+                clock.wall_offset += step
+                await until(lambda: svc.pipeline.wall_offset == clock.wall_offset)  # a tick saw the step
+                for i, cmd in enumerate(("ping", "status")):
+                    await ctl.send_multipart([b"", msgpack.packb({"v": 1, "cmd": cmd, "id": i})])
+                    rep = msgpack.unpackb((await asyncio.wait_for(ctl.recv_multipart(), 5.0))[-1])
+                    assert rep["ok"] and rep["t_host"] == pytest.approx(clock.wall(), abs=1.0), (cmd, rep["t_host"])
             ctl.close(0)
 
     asyncio.run(scenario())

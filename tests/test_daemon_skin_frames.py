@@ -17,6 +17,7 @@ from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
+from cellbridge.protocol import Data, StreamDecoder, encode_stream
 from pipeline_helpers import published, worker
 
 T0 = 1_800_000_000.0
@@ -165,3 +166,70 @@ def test_a_wall_clock_step_moves_only_the_published_stamps(press_reads, plain_co
         if all(abs(t - at) > 0.015 for at in steps):  # (a step lands on the first 10 ms tick at or after it)
             moved = sum(d for at, d in steps.items() if t > at)
             assert th1 - th0 == pytest.approx(moved, abs=1e-6)
+
+
+def _with_index_moved(reads: list[tuple[float, bytes]], origin: int | None, after: float,
+                      by: int) -> list[tuple[float, bytes]]:
+    """``reads`` with sample indices ``by`` later: in the first DATA frame of ``origin`` read
+    after ``after`` s (what a frame corrupted past the CRC, one in ~65 536 of the corrupted
+    ones, or a bridge with a wrong mesh time delivers), or with ``origin`` None in every DATA
+    frame from then on (the skin's time jumped: a new time root on another time)."""
+    out, done = [], False
+    for t, data in reads:
+        if not done and t - T0 > after:
+            frames = StreamDecoder().feed(data)
+            hit = [f for f in frames if isinstance(f.payload, Data) and origin in (None, f.origin)][:1 if origin else None]
+            for f in hit:
+                p = f.payload
+                f.payload = Data(p.mode, tuple(s._replace(index=s.index + by) for s in p.samples), p.oversampling, p.rate)
+            if hit:
+                data, done = b"".join(encode_stream(f) for f in frames), origin is not None
+        out.append((t, data))
+    assert done or origin is None
+    return out
+
+
+def test_a_sample_index_from_the_future_neither_stops_nor_fakes_contacts(press_reads) -> None:
+    """One frame of a pressed bridge carries indices an hour ahead. No sample is taken after
+    it arrives: the skin frame must not jump an hour ahead (it did: a one-element contact
+    at the wrong place with every other element unknown, then no estimate for the hour, the
+    release never told), and health counts the samples whose index was not believed."""
+    reads = _with_index_moved(press_reads, 6, 5.0, 100 * 3600)
+    contacts = [(t - T0, m) for t, topic, m in drive(reads, 7.0) if topic == "contact"]
+    for t, m in contacts:
+        assert m["t_sample"] is None or m["t_sample"] <= T0 + t + 1e-9, (t, m["t_sample"] - T0)
+        if 5.0 < t < 6.4:
+            assert len(m["contacts"]) == 1 and not m["unknown"], (t, m)
+            c = m["contacts"][0]
+            assert math.hypot(c["x"] - CORNER[0], c["y"] - CORNER[1]) < 1e-3 and c["force"] == pytest.approx(3.0, rel=0.05)
+    assert sum(1 for t, m in contacts if 5.1 < t < 6.4) > 20
+    assert any(not m["contacts"] for t, m in contacts if t > 6.5), "the release was never published"
+    health = [m for _, topic, m in drive(reads, 7.0) if topic == "health"][-1]
+    assert health["bridges"]["6"]["index_rejected"] > 0
+    assert all(h["index_rejected"] == 0 for b, h in health["bridges"].items() if b != "6")
+
+
+def test_one_gateway_frame_with_a_wrong_index_does_not_remap_the_skin_time(press_reads) -> None:
+    """The gateway's own samples map mesh time to host time. One of its frames, corrupted
+    past the CRC, carrying indices an hour ahead, remapped the skin's time at once; the true
+    frames after it then lay an hour back: no estimate for 2 s, then the press ended
+    (``contacts: []``, 14 elements unknown) and came back as a new contact id."""
+    reads = _with_index_moved(press_reads, 1, 5.0, 100 * 3600)
+    contacts = [(t - T0, m) for t, topic, m in drive(reads, 7.0) if topic == "contact"]
+    during = [(t, m) for t, m in contacts if 5.0 < t < 6.4]
+    assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
+    assert all(len(m["contacts"]) == 1 and not m["unknown"] for _, m in during), during
+    assert max(b - a for a, b in zip([5.0] + [t for t, _ in during], [t for t, _ in during] + [6.4])) < 0.1
+
+
+def test_a_jump_of_the_skin_time_is_followed(press_reads) -> None:
+    """Every bridge's indices an hour later from 5 s on (a new time root on another time): the
+    map follows after a read, the press goes on as one contact, and every sample is on mesh
+    time again."""
+    reads = _with_index_moved(press_reads, None, 5.0, 100 * 3600)
+    run = list(drive(reads, 7.0))
+    during = [(t - T0, m) for t, topic, m in run if topic == "contact" and 5.0 < t - T0 < 6.4]
+    assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
+    assert sum(1 for _, m in during if len(m["contacts"]) == 1 and not m["unknown"]) > 20
+    late = [on for t, topic, m in run if topic == "element" and t - T0 > 5.5 for on in m["on_time"]]
+    assert late and all(late)

@@ -90,6 +90,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     "serial": _payload(
         "serial", "one read of a gateway line, the bytes exactly as read (re-run the daemon on them)",
         {"link": {"type": "string", "description": "the link's name in the daemon config"},
+         "t_read": {"type": "number", "description": "the read's arrival on the clock a replay runs on: the "
+                                                     "wall clock's at the daemon's start, then the monotonic clock's"},
          "data": {"type": "string", "contentEncoding": "base64", "description": "the bytes read"}},
         ["link", "data"]),
 }

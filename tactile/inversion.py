@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cellbridge.tactile.arrays import FloatArray
-from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _stretch
+from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _elasticity, _g_of, _stretch
 
 __all__ = [
     "DEFAULT_NOISE",
@@ -95,26 +95,14 @@ class BranchInfo(NamedTuple):
     sigma_unique: float  #: Pa on the falling branch where ρ = ρ(0): above it no ambiguity at all
 
 
-def _elasticity(lam: FloatArray, d: float, d0: float) -> FloatArray:
-    """d ln g / d ln σ for one layer, written in λ so it never cancels.
-
-    From g ∝ (1−λ)/(d0 + (d−d0)λ) and dσ/dλ of eq. 2:
-    ``e = λ(1+λ+λ²)·d / ((1+2λ³)(d0 + (d−d0)λ))`` — 1 at rest, → 0 in saturation.
-    """
-    lam2 = lam * lam
-    return lam * (1.0 + lam + lam2) * d / ((1.0 + 2.0 * lam2 * lam) * (d0 + (d - d0) * lam))
-
-
 def _layers(
     sigma: FloatArray, p: ElementParams
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """g1, g2 (F/m²) and their elasticities e1, e2 at σ."""
     lam1, om1 = _stretch(sigma / p.E1)
     lam2, om2 = _stretch(sigma / p.E2)
-    s1 = p.d1 - p.d10
-    s2 = p.d2 - p.d20
-    g1 = p.eps1 * s1 * om1 / (p.d1 * (p.d10 + s1 * lam1))
-    g2 = p.eps2 * s2 * om2 / (p.d2 * (p.d20 + s2 * lam2))
+    g1 = _g_of(lam1, om1, p.d1, p.d10, p.eps1)
+    g2 = _g_of(lam2, om2, p.d2, p.d20, p.eps2)
     return g1, g2, _elasticity(lam1, p.d1, p.d10), _elasticity(lam2, p.d2, p.d20)
 
 

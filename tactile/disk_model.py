@@ -18,8 +18,8 @@ derivatives are boundary integrals, also closed form:
   gives ``r·∂A/∂r = 2A − Σ_edges offset·chord`` without any arc-length bookkeeping.
 
 Physics: eqs. 2-3 of the paper through the sensitivity g_n(σ) of
-:mod:`cellbridge.tactile.element` (same closed form), with the slope
-``dg/dσ = g·e(λ)/σ`` from the elasticity of :mod:`cellbridge.tactile.inversion`.
+:mod:`cellbridge.tactile.element`, with the slope ``dg/dσ = g·e(λ)/σ`` from the
+elasticity e; both are element's own closed forms compiled here (one copy of them).
 
 Parameters of a disk are ``(x, y, ln D, ln F)``: logarithms keep D and F positive
 and make steps relative, which is how their uncertainty behaves.

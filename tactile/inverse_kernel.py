@@ -35,6 +35,9 @@ def solve_compiled(
 ) -> InverseResult:
     """:func:`cellbridge.tactile.inversion.solve`, compiled: the same keywords with the
     same defaults (``noise``, ``max_error``, ``min_slope``, ``k_sigma``), the same answers."""
+    if not options.keys() <= _SOLVE_DEFAULTS.keys():
+        raise TypeError(f"solve_compiled() takes solve()'s keywords {sorted(_SOLVE_DEFAULTS)}, "
+                        f"not {sorted(options.keys() - _SOLVE_DEFAULTS.keys())}")
     return _solve_with(_solve_flat, dC1, dC2, params, **{**_SOLVE_DEFAULTS, **options})
 
 

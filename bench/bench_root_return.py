@@ -17,56 +17,39 @@ against gateway 16 while the root was gone (8-11.5 s).
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-
-US = CLOCK_HZ // 1_000_000
-
-
-def bound(hops: int) -> float:
-    return 2.0 + max(0, hops - 1) * 8.0 / 7.0
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from root_return import (  # noqa: E402  # the scenario tests/test_emulator_meshtime.py asserts on
+    HEIR, HOWS, ROOT, US, How, errors_from_line, root_goes_and_returns, skin_time_line, sync_bound,
+)
 
 
-def run(seed: int, how: str) -> tuple[float, float, float, int, int | None]:
+def run(seed: int, how: How) -> tuple[float, float, float, int, int | None]:
     """(worst failover error µs, worst return error µs, its share of the bound, unsynced steps, root at the end)."""
-    mesh = meshgen.grid(4, 4, gateways=(1, 16))
-    vm = VirtualMesh(mesh, seed=seed, random_epochs=True)
-    if how == "cut":
-        for c in next(b for b in mesh.bridges if b.id == 1).cells:
-            vm.cut(c, at=8.0)
-            vm.at(12.0, lambda c=c: vm.medium.restore_cell(c))
-    else:
-        vm.kill(1, at=8.0)
-        vm.restart(1, at=12.0)
+    mesh, vm = root_goes_and_returns(seed, how)
     vm.run(8.0)
-    hops = mesh.hops(16)
-    g16 = vm.nodes[16]
+    hops = mesh.hops(HEIR)
+    heir = vm.nodes[HEIR]
     failover = 0.0
     for _ in range(35):
         vm.run(0.1)
-        g0 = g16.clock.global_at(g16.crystal.local(vm.tick))
+        g0 = heir.clock.global_at(heir.crystal.local(vm.tick))
         for b, fw in vm.nodes.items():
-            if b != 1 and fw.clock.has_fit():
+            if b != ROOT and fw.clock.has_fit():
                 failover = max(failover, abs(fw.clock.global_at(fw.crystal.local(vm.tick)) - g0) / US)
-    t1, y1 = vm.tick, g16.clock.global_at(g16.crystal.local(vm.tick))
-    vm.run(0.4)
-    t2, y2 = vm.tick, g16.clock.global_at(g16.crystal.local(vm.tick))
+    line = skin_time_line(vm)
     worst = share = 0.0
     unsynced = 0
     for _ in range(60):
         vm.run(0.1)
-        line = y1 + (y2 - y1) / (t2 - t1) * (vm.tick - t1)
-        for b, fw in vm.nodes.items():
-            if b == 1:
-                continue
-            local = fw.crystal.local(vm.tick)
-            if not fw.clock.synced(local):
+        for b, e in errors_from_line(vm, line).items():
+            if e is None:
                 unsynced += 1
                 continue
-            e = abs(fw.clock.global_at(local) - line) / US
             worst = max(worst, e)
-            share = max(share, e / (bound(hops[b]) + bound(hops[1])))
+            share = max(share, e / (sync_bound(hops[b]) + sync_bound(hops[ROOT])))
     roots = {fw.clock.root for fw in vm.nodes.values()}
     return failover, worst, share, unsynced, roots.pop() if len(roots) == 1 else None
 
@@ -76,7 +59,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=5, help="runs per case, seeds 1..N (default 5)")
     args = ap.parse_args()
     print(f"{'case':>8} {'seed':>4} {'failover µs':>11} {'return µs':>9} {'of bound':>8} {'unsynced':>8} {'root':>4}")
-    for how in ("cut", "restart"):
+    for how in HOWS:
         for seed in range(1, args.seeds + 1):
             f, w, s, u, root = run(seed, how)
             print(f"{how:>8} {seed:>4} {f:>11.2f} {w:>9.2f} {s:>8.2f} {u:>8} {str(root):>4}")

@@ -155,11 +155,14 @@ class Mesh:
                 out[a].add(b)
         return {k: sorted(v) for k, v in out.items()}
 
-    def hops(self, *roots: int) -> dict[int, int]:
+    def hops(self, *roots: int, cut: frozenset[int] = frozenset(),
+             dead: frozenset[int] = frozenset()) -> dict[int, int]:
         """Bridge -> hops from the nearest of ``roots`` (default: the gateways), over shared
-        cells; bridges no path reaches are left out."""
-        nb = self.neighbours()
-        start = roots or tuple(self.gateways)
+        cells that are not ``cut`` and through bridges that are not ``dead``; bridges no
+        path reaches are left out. Keys come in breadth-first order: the roots, then
+        outwards (the order a skin boots in, see ``process_up.start_order``)."""
+        nb = self.neighbours(cut, dead)
+        start = tuple(r for r in (roots or self.gateways) if r not in dead)
         dist = {r: 0 for r in start}
         todo = deque(start)
         while todo:
@@ -173,15 +176,7 @@ class Mesh:
     def reachable(self, cut: frozenset[int] = frozenset(),
                   dead: frozenset[int] = frozenset()) -> set[int]:
         """Bridges with a path of live bridges and uncut cells to a live gateway."""
-        nb = self.neighbours(cut, dead)
-        seen = {g for g in self.gateways if g not in dead}
-        todo = deque(seen)
-        while todo:
-            for n in nb[todo.popleft()]:
-                if n not in seen:
-                    seen.add(n)
-                    todo.append(n)
-        return seen
+        return set(self.hops(cut=cut, dead=dead))
 
     def link_params(self, a: int, b: int, cell: int) -> tuple[float, float]:
         """(loss, ber) of a delivery from a to b over ``cell``: link, then cell, then default."""

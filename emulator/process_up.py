@@ -29,7 +29,6 @@ import subprocess
 import sys
 import time
 import traceback
-from collections import deque
 
 import setproctitle
 
@@ -74,17 +73,8 @@ def start_order(mesh: Mesh) -> list[Bridge]:
     """Gateways first, then bridges by hops from them (breadth first), unreachable ones
     last: each bridge then boots beside neighbours that already have a route, as a skin
     that grows, and its first beacons find a settled tree."""
-    nb = mesh.neighbours()
-    order = [g for g in mesh.gateways]
-    seen = set(order)
-    todo = deque(order)
-    while todo:
-        for n in nb[todo.popleft()]:
-            if n not in seen:
-                seen.add(n)
-                order.append(n)
-                todo.append(n)
-    order += [b for b in mesh.ids if b not in seen]
+    hops = mesh.hops()  # breadth first from the gateways, in that order
+    order = [*hops, *(b for b in mesh.ids if b not in hops)]
     return [mesh.bridge(b) for b in order]
 
 

@@ -24,10 +24,16 @@ __all__ = ["compiled", "UNCACHED"]
 UNCACHED: list[str] = []
 
 
-def compiled(fn: Callable[..., Any]) -> Any:
-    """``numba.njit(cache=True)``, or without the cache where numba finds no place for it."""
+def compiled(fn: Callable[..., Any], **options: Any) -> Any:
+    """``numba.njit(cache=True, **options)``, or without the cache where numba finds no place for it.
+
+    Used as ``@compiled`` on a kernel, or as ``compiled(f, error_model="numpy")`` on a
+    plain numpy function written for arrays and floats alike, so one copy of a rule
+    serves both numpy and the compiled loops (``error_model="numpy"``: x/0 gives
+    inf or NaN as in numpy, instead of raising).
+    """
     try:
-        return njit(cache=True)(fn)
+        return njit(cache=True, **options)(fn)
     except RuntimeError as exc:
         if "cannot cache" not in str(exc):
             raise
@@ -40,4 +46,4 @@ def compiled(fn: Callable[..., Any]) -> Any:
             stacklevel=2,
         )
     UNCACHED.append(f"{fn.__module__}.{fn.__qualname__}")
-    return njit(fn)
+    return njit(**options)(fn)

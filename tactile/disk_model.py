@@ -18,8 +18,8 @@ derivatives are boundary integrals, also closed form:
   gives ``r·∂A/∂r = 2A − Σ_edges offset·chord`` without any arc-length bookkeeping.
 
 Physics: eqs. 2-3 of the paper through the sensitivity g_n(σ) of
-:mod:`cellbridge.tactile.element` (same closed form), with the slope
-``dg/dσ = g·e(λ)/σ`` from the elasticity of :mod:`cellbridge.tactile.inversion`.
+:mod:`cellbridge.tactile.element`, with the slope ``dg/dσ = g·e(λ)/σ`` from the
+elasticity e; both are element's own closed forms compiled here (one copy of them).
 
 Parameters of a disk are ``(x, y, ln D, ln F)``: logarithms keep D and F positive
 and make steps relative, which is how their uncertainty behaves.
@@ -32,6 +32,7 @@ import math
 import numpy as np
 from cellbridge.tactile._jit import compiled
 
+from cellbridge.tactile import element
 from cellbridge.tactile.element import ElementParams
 
 __all__ = [
@@ -109,31 +110,24 @@ def overlap_grad(
     return area, dx, dy, max(dr, 0.0)
 
 
+# element's closed forms, compiled as they are (one copy of the physics for numpy and here).
+_stretch_small = compiled(element._stretch_small)
+_stretch_large = compiled(element._stretch_large)
+_g_of = compiled(element._g_of)
+_elasticity = compiled(element._elasticity)
+
+
 @compiled
 def layer_response(sig: float, E: float, d: float, d0: float, eps: float) -> tuple[float, float]:
     """g(σ) of one layer (F/m²) and its elasticity e = d ln g / d ln σ, for σ >= 0
-    (the closed forms of element._stretch and inversion._elasticity, scalar)."""
+    (element._stretch's branches, one value at a time, and the same closed forms)."""
     u = sig / E
     if u <= 1.0:
-        us3 = u * u * u
-        s = math.sqrt(0.25 + us3)
-        a = np.cbrt(0.5 + s)
-        a2 = a * a
-        den = a2 * a2 + a2 * u + u * u
-        am1 = us3 / ((s + 0.5) * (a2 + a + 1.0))
-        lam = a2 / den
-        one_m = (a2 * am1 * (a + 1.0) + a2 * u + u * u) / den
+        lam, one_m = _stretch_small(u)
     else:
-        w = u**-1.5
-        rr = np.cbrt((0.5 * w + math.sqrt(0.25 * w * w + 1.0)) ** 2)
-        lam = rr / (u * (rr * rr + rr + 1.0))
+        lam = _stretch_large(u)
         one_m = 1.0 - lam
-    span = d - d0
-    inner = d0 + span * lam
-    g = eps * span * one_m / (d * inner)
-    lam2 = lam * lam
-    e = lam * (1.0 + lam + lam2) * d / ((1.0 + 2.0 * lam2 * lam) * inner)
-    return g, e
+    return _g_of(lam, one_m, d, d0, eps), _elasticity(lam, d, d0)
 
 
 @compiled

@@ -151,29 +151,59 @@ def _stretch(u: FloatArray) -> tuple[FloatArray, FloatArray]:
     # all on one side, and numpy's per-call overhead is most of their cost.
     if not all_big:
         # Small branch, evaluated on u clipped to [0, 1] so it never overflows.
-        us = np.minimum(u, 1.0)
-        us3 = us * us * us
-        s = np.sqrt(0.25 + us3)
-        a = np.cbrt(0.5 + s)
-        a2 = a * a
-        den = a2 * a2 + a2 * us + us * us
-        am1 = us3 / ((s + 0.5) * (a2 + a + 1.0))
-        lam_s = a2 / den
-        one_m_s = (a2 * am1 * (a + 1.0) + a2 * us + us * us) / den
+        lam_s, one_m_s = _stretch_small(np.minimum(u, 1.0))
         if not any_big:
             return np.asarray(lam_s), np.asarray(one_m_s)
 
     # Large branch, on u clipped to [1, ∞].
-    ub = np.maximum(u, 1.0)
-    w = ub**-1.5
-    r = np.cbrt(np.square(0.5 * w + np.sqrt(0.25 * w * w + 1.0)))
     with np.errstate(invalid="ignore"):  # u = inf: inf·(finite) is fine, r/inf → 0
-        lam_b = r / (ub * (r * r + r + 1.0))
+        lam_b = _stretch_large(np.maximum(u, 1.0))
     if all_big:
         return np.asarray(lam_b), np.asarray(1.0 - lam_b)
     lam = np.where(big, lam_b, lam_s)
     one_m = np.where(big, 1.0 - lam_b, one_m_s)
     return lam, one_m
+
+
+# The closed forms themselves, elementwise (operators and numpy ufuncs only): numpy
+# arrays here and in the inverse, floats in the compiled kernels, which compile these
+# same functions (cellbridge.tactile.disk_model.layer_response), so one copy of the
+# physics serves both.
+
+
+def _stretch_small(u: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """λ and 1 − λ for 0 ≤ u ≤ 1, without cancellation (see :func:`_stretch`)."""
+    us3 = u * u * u
+    s = np.sqrt(0.25 + us3)
+    a = np.cbrt(0.5 + s)
+    a2 = a * a
+    den = a2 * a2 + a2 * u + u * u
+    am1 = us3 / ((s + 0.5) * (a2 + a + 1.0))
+    return a2 / den, (a2 * am1 * (a + 1.0) + a2 * u + u * u) / den
+
+
+def _stretch_large(u: FloatArray) -> FloatArray:
+    """λ for u ≥ 1 (1 − λ does not cancel there), no overflow up to u = inf (see :func:`_stretch`)."""
+    w = u**-1.5
+    r = np.cbrt(np.square(0.5 * w + np.sqrt(0.25 * w * w + 1.0)))
+    return r / (u * (r * r + r + 1.0))
+
+
+def _g_of(lam: FloatArray, one_m: FloatArray, d: float, d0: float, eps: float) -> FloatArray:
+    """ΔC per unit contact area of one layer from its stretch λ and 1 − λ (eq. 3's integrand)."""
+    span = d - d0
+    # d − Δd = d0 + (d − d0)·λ: written this way it never cancels near saturation.
+    return eps * span * one_m / (d * (d0 + span * lam))
+
+
+def _elasticity(lam: FloatArray, d: float, d0: float) -> FloatArray:
+    """d ln g / d ln σ for one layer, written in λ so it never cancels.
+
+    From g ∝ (1−λ)/(d0 + (d−d0)λ) and dσ/dλ of eq. 2:
+    ``e = λ(1+λ+λ²)·d / ((1+2λ³)(d0 + (d−d0)λ))`` — 1 at rest, → 0 in saturation.
+    """
+    lam2 = lam * lam
+    return lam * (1.0 + lam + lam2) * d / ((1.0 + 2.0 * lam2 * lam) * (d0 + (d - d0) * lam))
 
 
 def _as_float_array(x: ArrayLike, name: str) -> FloatArray:
@@ -210,9 +240,7 @@ def compression(sigma: ArrayLike, E: float, d: float, d0: float) -> FloatArray:
 def _g(sigma: FloatArray, E: float, d: float, d0: float, eps: float) -> FloatArray:
     """ΔC per unit contact area of one layer; no input checks (internal hot path)."""
     lam, one_m = _stretch(sigma / E)
-    span = d - d0
-    # d − Δd = d0 + (d − d0)·λ: written this way it never cancels near saturation.
-    return eps * span * one_m / (d * (d0 + span * lam))
+    return _g_of(lam, one_m, d, d0, eps)
 
 
 def _sensitivity(sigma: FloatArray, p: ElementParams) -> tuple[FloatArray, FloatArray]:

@@ -6,6 +6,12 @@ contact estimator, which already runs compiled kernels. :func:`solve` itself sta
 numpy: the daemon's per-element physics must import and run where numba cannot
 (no executable memory under ``MemoryDenyWriteExecute``). tests/test_tactile_inverse.py
 checks that both give the same status bits and values within 1e-10.
+
+One copy of the rules: the per-reading functions of :mod:`cellbridge.tactile.inversion`
+(noise floor, branch range, Newton step, conditioning, area, ambiguity box) are
+compiled here as they are, and :func:`solve_compiled` shares :func:`solve`'s checks,
+tables and result through ``_solve_with``. Only the loop and the two table look-ups
+are this module's own.
 """
 
 from __future__ import annotations
@@ -15,39 +21,55 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
+from cellbridge.tactile import inversion
 from cellbridge.tactile._jit import compiled
 from cellbridge.tactile.disk_model import element_vector, layer_response
 from cellbridge.tactile.element import ElementParams
-from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseResult, _inputs
+from cellbridge.tactile.inversion import InverseResult, _Tables, _solve_with, solve
 
 __all__ = ["solve_compiled"]
 
 
 def solve_compiled(
-    dC1: ArrayLike,
-    dC2: ArrayLike,
-    params: ElementParams | None = None,
-    *,
-    noise: float = DEFAULT_NOISE,
-    max_error: float = 0.05,
-    min_slope: float = 0.02,
-    k_sigma: float = 3.0,
+    dC1: ArrayLike, dC2: ArrayLike, params: ElementParams | None = None, **options: float
 ) -> InverseResult:
-    """:func:`cellbridge.tactile.inversion.solve`, compiled (same arguments, same answers)."""
-    p, tab, c1, c2 = _inputs(dC1, dC2, params, noise, max_error, min_slope, k_sigma)
-    shape = c1.shape
+    """:func:`cellbridge.tactile.inversion.solve`, compiled: the same keywords with the
+    same defaults (``noise``, ``max_error``, ``min_slope``, ``k_sigma``), the same answers."""
+    if not options.keys() <= _SOLVE_DEFAULTS.keys():
+        raise TypeError(f"solve_compiled() takes solve()'s keywords {sorted(_SOLVE_DEFAULTS)}, "
+                        f"not {sorted(options.keys() - _SOLVE_DEFAULTS.keys())}")
+    return _solve_with(_solve_flat, dC1, dC2, params, **{**_SOLVE_DEFAULTS, **options})
+
+
+#: solve()'s keyword defaults, taken from solve itself so they are written once.
+_SOLVE_DEFAULTS: dict[str, float] = dict(solve.__kwdefaults__ or {})
+
+
+def _solve_flat(
+    c1: np.ndarray, c2: np.ndarray, p: ElementParams, tab: _Tables, noise: float, max_error: float,
+    min_slope: float, k_sigma: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:data:`cellbridge.tactile.inversion.FlatSolver`, compiled."""
     n = c1.size
-    out = np.empty((6, n))
+    out = np.empty((5, n))
     status = np.empty(n, dtype=np.uint8)
     _solve_kernel(
-        np.ascontiguousarray(c1).ravel(), np.ascontiguousarray(c2).ravel(), element_vector(p), tab.hi_q,
-        tab.hi_lns, tab.ln_r_pk, tab.ln_r_end, tab.info.sigma_peak, tab.lo_r, tab.lo_c1_full, p.area,
-        float(noise), float(max_error), float(min_slope), float(k_sigma), out, status,
+        np.ascontiguousarray(c1), np.ascontiguousarray(c2), element_vector(p), tab.hi_q, tab.hi_lns, tab.ln_r_pk,
+        tab.ln_r_end, tab.info.sigma_peak, tab.lo_r, tab.lo_c1_full, p.area, noise, max_error, min_slope,
+        k_sigma, out, status,
     )
-    return InverseResult(
-        out[0].reshape(shape), out[1].reshape(shape), (status == 0).reshape(shape), out[2].reshape(shape),
-        out[3].reshape(shape), out[4].reshape(shape), status.reshape(shape),
-    )
+    return out[0], out[1], out[2], out[3], out[4], status
+
+
+# inversion's per-reading rules, compiled as they are (numpy's error model: x/0 is
+# inf or NaN as in the numpy inverse, which the rules then reject).
+_strong = compiled(inversion._strong, error_model="numpy")
+_on_falling_range = compiled(inversion._on_falling_range, error_model="numpy")
+_branch_q = compiled(inversion._branch_q, error_model="numpy")
+_newton_step = compiled(inversion._newton_step, error_model="numpy")
+_judge = compiled(inversion._judge, error_model="numpy")
+_noise_box = compiled(inversion._noise_box, error_model="numpy")
+_in_lens = compiled(inversion._in_lens, error_model="numpy")
 
 
 @compiled
@@ -67,6 +89,7 @@ def _interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
             hi = mid
     slope = (fp[hi] - fp[lo]) / (xp[hi] - xp[lo])
     return slope * (x - xp[lo]) + fp[lo]
+
 
 
 @compiled
@@ -94,8 +117,7 @@ def _solve_kernel(
         finite = math.isfinite(a) and math.isfinite(b)
         if not finite:
             st |= 1  # NONFINITE
-        # `not >` keeps NaN out and demands a strictly positive signal when noise is 0.
-        if not (a > floor and b > floor and a > 0.0 and b > 0.0):
+        if not _strong(a, b, floor):
             if finite:
                 st |= 2  # BELOW_NOISE
             status[i] = st
@@ -104,51 +126,32 @@ def _solve_kernel(
             status[i] = st
             continue
         lnr = math.log(a) - math.log(b)
-        if not (lnr >= ln_r_end and lnr <= ln_r_pk):
+        if not _on_falling_range(lnr, ln_r_end, ln_r_pk):
             status[i] = st | 4  # NO_SOLUTION
             continue
         # Falling-branch pressure: table, then one Newton step in ln σ.
-        q = math.sqrt(max(ln_r_pk - lnr, 0.0))
-        lns = _interp(q, hi_q, hi_lns)
+        lns = _interp(_branch_q(lnr, ln_r_pk), hi_q, hi_lns)
         g1, e1 = layer_response(math.exp(lns), par[0], par[1], par[2], par[3])
         g2, e2 = layer_response(math.exp(lns), par[4], par[5], par[6], par[7])
-        slope = e1 - e2
-        converged = slope != 0.0
-        if converged:
-            lns = lns - (math.log(g1) - math.log(g2) - lnr) / slope
+        lns = lns - _newton_step(lnr, g1, g2, e1 - e2)
         sigma = math.exp(lns)
         g1, e1 = layer_response(sigma, par[0], par[1], par[2], par[3])
         g2, e2 = layer_response(sigma, par[4], par[5], par[6], par[7])
-        slope = e1 - e2
-        # What the step left over, as an error of ln σ; a guard, not a tolerance
-        # that normal readings come near (they reach ~1e-10).
-        converged = converged and slope != 0.0 and abs((math.log(g1) - math.log(g2) - lnr) / slope) <= 1e-8
-        on_branch = sigma >= sigma_peak
-        area = a / g1
-        force = sigma * area
-        # First-order noise propagation through the log-Jacobian
-        # [[e1, 1−e1], [e2, 1−e2]] of (ln F, ln S) → (ln ΔC1, ln ΔC2).
-        n1 = noise / a
-        n2 = noise / b
-        inv = 1.0 / abs(slope) if slope != 0.0 else math.inf
-        rel_f = math.hypot((1.0 - e2) * n1, (1.0 - e1) * n2) * inv
-        rel_s = math.hypot(e2 * n1, e1 * n2) * inv
-        rel_d = 0.5 * rel_s
-        if not (abs(slope) >= min_slope and rel_f <= max_error and rel_d <= max_error and converged and on_branch):
+        force, area, force_rms, diameter_rms, well, fits = _judge(
+            a, b, sigma, g1, e1, e2, _newton_step(lnr, g1, g2, e1 - e2), sigma_peak, elem_area, noise, max_error,
+            min_slope, k_sigma,
+        )
+        if not well:
             st |= 16  # ILL_CONDITIONED
-        if not (area - k_sigma * rel_s * area <= elem_area * (1.0 + 1e-9)):
+        if not fits:
             st |= 32  # AREA_EXCEEDS
-        # Ambiguity (see _ambiguous): the box ±floor around the reading against the lens.
-        r_max = (a + floor) / (b - floor)
-        r_min = (a - floor) / (b + floor)
-        h = _interp(min(r_max, r_pk), lo_r, lo_c1_full)
-        if r_max >= r0 and r_min <= r_pk and a - floor <= h:
+        r_max, r_min = _noise_box(a, b, floor)
+        if _in_lens(a, r_max, r_min, floor, _interp(min(r_max, r_pk), lo_r, lo_c1_full), r0, r_pk):
             st |= 8  # AMBIGUOUS
         status[i] = st
         if st == 0:
             out[0, i] = force
             out[1, i] = area
         out[2, i] = sigma
-        diam = 2.0 * math.sqrt(a / g1 / math.pi)
-        out[3, i] = rel_f * sigma * a / g1
-        out[4, i] = rel_d * diam
+        out[3, i] = force_rms
+        out[4, i] = diameter_rms

@@ -34,13 +34,13 @@ from __future__ import annotations
 
 import enum
 import functools
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cellbridge.tactile.arrays import FloatArray
-from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _stretch
+from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _elasticity, _g_of, _stretch
 
 __all__ = [
     "DEFAULT_NOISE",
@@ -95,26 +95,14 @@ class BranchInfo(NamedTuple):
     sigma_unique: float  #: Pa on the falling branch where ρ = ρ(0): above it no ambiguity at all
 
 
-def _elasticity(lam: FloatArray, d: float, d0: float) -> FloatArray:
-    """d ln g / d ln σ for one layer, written in λ so it never cancels.
-
-    From g ∝ (1−λ)/(d0 + (d−d0)λ) and dσ/dλ of eq. 2:
-    ``e = λ(1+λ+λ²)·d / ((1+2λ³)(d0 + (d−d0)λ))`` — 1 at rest, → 0 in saturation.
-    """
-    lam2 = lam * lam
-    return lam * (1.0 + lam + lam2) * d / ((1.0 + 2.0 * lam2 * lam) * (d0 + (d - d0) * lam))
-
-
 def _layers(
     sigma: FloatArray, p: ElementParams
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """g1, g2 (F/m²) and their elasticities e1, e2 at σ."""
     lam1, om1 = _stretch(sigma / p.E1)
     lam2, om2 = _stretch(sigma / p.E2)
-    s1 = p.d1 - p.d10
-    s2 = p.d2 - p.d20
-    g1 = p.eps1 * s1 * om1 / (p.d1 * (p.d10 + s1 * lam1))
-    g2 = p.eps2 * s2 * om2 / (p.d2 * (p.d20 + s2 * lam2))
+    g1 = _g_of(lam1, om1, p.d1, p.d10, p.eps1)
+    g2 = _g_of(lam2, om2, p.d2, p.d20, p.eps2)
     return g1, g2, _elasticity(lam1, p.d1, p.d10), _elasticity(lam2, p.d2, p.d20)
 
 
@@ -221,6 +209,79 @@ def branch_info(params: ElementParams | None = None) -> BranchInfo:
     return _tables(DEFAULT_PARAMS if params is None else params).info
 
 
+# The rules per reading, written once. Each function is elementwise: solve() calls it
+# on numpy arrays, and :mod:`cellbridge.tactile.inverse_kernel` compiles these same
+# functions (numba, numpy's error model) for its loop over floats, so the numpy
+# inverse and the compiled one cannot drift apart. Only operators and numpy ufuncs
+# here, no branches on values: that is what both numpy and numba take as they are.
+
+
+def _strong(c1: FloatArray, c2: FloatArray, floor: float) -> NDArray[np.bool_]:
+    """Both readings clear the noise floor; written as `>` so NaN fails it, and a
+    strictly positive signal is demanded when the floor is 0."""
+    return (c1 > floor) & (c2 > floor) & (c1 > 0) & (c2 > 0)
+
+
+def _on_falling_range(lnr: FloatArray, ln_r_end: float, ln_r_pk: float) -> NDArray[np.bool_]:
+    """ln ρ lies on the falling branch's table (else no contact gives the reading)."""
+    return (lnr >= ln_r_end) & (lnr <= ln_r_pk)
+
+
+def _branch_q(lnr: FloatArray, ln_r_pk: float) -> FloatArray:
+    """The falling-branch table's coordinate √(ln ρ_pk − ln ρ) of a ratio."""
+    return np.sqrt(np.maximum(ln_r_pk - lnr, 0.0))
+
+
+def _newton_step(lnr: FloatArray, g1: FloatArray, g2: FloatArray, slope: FloatArray) -> FloatArray:
+    """Newton step in ln σ towards ln(g1/g2) = ln ρ, with ``slope`` = e1 − e2 = d ln ρ / d ln σ."""
+    return (np.log(g1) - np.log(g2) - lnr) / slope
+
+
+def _judge(
+    c1: FloatArray, c2: FloatArray, sigma: FloatArray, g1: FloatArray, e1: FloatArray, e2: FloatArray,
+    left: FloatArray, sigma_peak: float, elem_area: float, noise: float, max_error: float, min_slope: float,
+    k_sigma: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
+    """Force, area, their noise and the two tests of a solved reading.
+
+    ``sigma`` is the falling-branch pressure after the Newton step, g1, e1, e2 the
+    layers' response there and ``left`` the next Newton step from it. Returns (force,
+    area, force_rms, diameter_rms, well_conditioned, fits_element); the caller masks
+    what its status rejects.
+    """
+    slope = e1 - e2
+    # What the step left over, as an error of ln σ; a guard, not a tolerance
+    # that normal readings come near (they reach ~1e-10).
+    converged = np.abs(left) <= 1e-8
+    on_branch = sigma >= sigma_peak
+    area = c1 / g1
+    force = sigma * area
+    # First-order noise propagation through the log-Jacobian
+    # [[e1, 1−e1], [e2, 1−e2]] of (ln F, ln S) → (ln ΔC1, ln ΔC2).
+    n1 = noise / c1
+    n2 = noise / c2
+    inv = 1.0 / np.abs(slope)
+    rel_f = np.hypot((1.0 - e2) * n1, (1.0 - e1) * n2) * inv
+    rel_s = np.hypot(e2 * n1, e1 * n2) * inv
+    rel_d = 0.5 * rel_s
+    well = (np.abs(slope) >= min_slope) & (rel_f <= max_error) & (rel_d <= max_error) & converged & on_branch
+    fits = area - k_sigma * rel_s * area <= elem_area * (1.0 + 1e-9)
+    diam = 2.0 * np.sqrt(c1 / g1 / np.pi)
+    return force, area, rel_f * sigma * c1 / g1, rel_d * diam, well, fits
+
+
+def _noise_box(c1: FloatArray, c2: FloatArray, margin: float) -> tuple[FloatArray, FloatArray]:
+    """Largest and smallest ratio ΔC1/ΔC2 in the box ±``margin`` around a reading."""
+    return (c1 + margin) / (c2 - margin), (c1 - margin) / (c2 + margin)
+
+
+def _in_lens(
+    c1: FloatArray, r_max: FloatArray, r_min: FloatArray, margin: float, h: FloatArray, r0: float, r_pk: float
+) -> NDArray[np.bool_]:
+    """The noise box may touch the rising branch's lens; ``h`` = h(min(r_max, ρ_pk))."""
+    return (r_max >= r0) & (r_min <= r_pk) & (c1 - margin <= h)
+
+
 def _ambiguous(c1: FloatArray, c2: FloatArray, margin: float, tab: _Tables) -> NDArray[np.bool_]:
     """True where a rising-branch contact inside the element may give the same reading.
 
@@ -233,13 +294,11 @@ def _ambiguous(c1: FloatArray, c2: FloatArray, margin: float, tab: _Tables) -> N
     """
     r0 = tab.lo_r[0]
     r_pk = tab.lo_r[-1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r_max = (c1 + margin) / (c2 - margin)
-        r_min = (c1 - margin) / (c2 + margin)
+    r_max, r_min = _noise_box(c1, c2, margin)
     # c2 ≤ margin only happens for readings already rejected as below the noise.
     r_max = np.where(c2 > margin, r_max, np.inf)
     h = np.interp(np.minimum(r_max, r_pk), tab.lo_r, tab.lo_c1_full)
-    return (r_max >= r0) & (r_min <= r_pk) & (c1 - margin <= h)
+    return _in_lens(c1, r_max, r_min, margin, h, r0, r_pk)
 
 
 _B_NONFINITE = np.uint8(InverseStatus.NONFINITE)
@@ -249,19 +308,40 @@ _B_AMBIGUOUS = np.uint8(InverseStatus.AMBIGUOUS)
 _B_ILL_CONDITIONED = np.uint8(InverseStatus.ILL_CONDITIONED)
 _B_AREA_EXCEEDS = np.uint8(InverseStatus.AREA_EXCEEDS)
 
+#: What an inverse computes on flat (1-D) readings: (force, area, pressure, force_rms,
+#: diameter_rms, status), NaN where the status says so. Arguments: c1, c2, element,
+#: tables, noise, max_error, min_slope, k_sigma (already checked).
+FlatSolver = Callable[
+    [FloatArray, FloatArray, ElementParams, _Tables, float, float, float, float],
+    tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.uint8]],
+]
 
-def _inputs(
-    dC1: ArrayLike, dC2: ArrayLike, params: ElementParams | None, noise: float, max_error: float,
-    min_slope: float, k_sigma: float,
-) -> tuple[ElementParams, _Tables, FloatArray, FloatArray]:
-    """The checked options of :func:`solve` (and its compiled twin): element, tables, readings."""
+
+def _solve_with(
+    flat: FlatSolver, dC1: ArrayLike, dC2: ArrayLike, params: ElementParams | None, noise: float,
+    max_error: float, min_slope: float, k_sigma: float,
+) -> InverseResult:
+    """:func:`solve`'s checks, tables and shapes around ``flat``, the per-reading work
+    (numpy here, compiled in :mod:`cellbridge.tactile.inverse_kernel`)."""
     p = DEFAULT_PARAMS if params is None else params
     if not (np.isfinite(noise) and noise >= 0):
         raise ValueError(f"noise must be a finite rms capacitance >= 0 F, got {noise!r}")
     if not (max_error > 0 and min_slope >= 0 and k_sigma >= 0):
         raise ValueError("need max_error > 0, min_slope >= 0 and k_sigma >= 0")
     c1, c2 = np.broadcast_arrays(np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64))
-    return p, _tables(p), c1, c2
+    shape = c1.shape
+    force, area, sigma, force_rms, diameter_rms, status = flat(
+        c1.ravel(), c2.ravel(), p, _tables(p), float(noise), float(max_error), float(min_slope), float(k_sigma)
+    )
+    return InverseResult(
+        force.reshape(shape),
+        area.reshape(shape),
+        (status == 0).reshape(shape),
+        sigma.reshape(shape),
+        force_rms.reshape(shape),
+        diameter_rms.reshape(shape),
+        status.reshape(shape),
+    )
 
 
 def solve(
@@ -282,84 +362,54 @@ def solve(
     sets how many sigmas a signal must clear, and how wide the ambiguity and area
     checks look. See the module docstring for the rules.
     """
-    p, tab, c1, c2 = _inputs(dC1, dC2, params, noise, max_error, min_slope, k_sigma)
-    shape = c1.shape
-    c1 = c1.ravel()
-    c2 = c2.ravel()
+    return _solve_with(_solve_flat, dC1, dC2, params, noise, max_error, min_slope, k_sigma)
+
+
+def _solve_flat(
+    c1: FloatArray, c2: FloatArray, p: ElementParams, tab: _Tables, noise: float, max_error: float,
+    min_slope: float, k_sigma: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.uint8]]:
+    """The rules on flat arrays, in numpy (see :data:`FlatSolver`)."""
     status = np.zeros(c1.shape, dtype=np.uint8)
 
     finite = np.isfinite(c1) & np.isfinite(c2)
     status[~finite] |= _B_NONFINITE
     floor = k_sigma * noise
-    # `not >` keeps NaN out and demands a strictly positive signal when noise is 0.
-    weak = ~((c1 > floor) & (c2 > floor) & (c1 > 0) & (c2 > 0))
+    weak = ~_strong(c1, c2, floor)
     status[weak & finite] |= _B_BELOW_NOISE
 
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        # Garbage readings (e.g. 1e308 F) overflow here too; they are flagged.
         lnr = np.log(c1) - np.log(c2)
-        out_of_range = ~((lnr >= tab.ln_r_end) & (lnr <= tab.ln_r_pk))
+        out_of_range = ~_on_falling_range(lnr, tab.ln_r_end, tab.ln_r_pk)
         status[out_of_range & ~weak & finite] |= _B_NO_SOLUTION
 
         # Falling-branch pressure: table, then one Newton step in ln σ.
-        q = np.sqrt(np.maximum(tab.ln_r_pk - lnr, 0.0))
-        lns = np.interp(q, tab.hi_q, tab.hi_lns)
+        lns = np.interp(_branch_q(lnr, tab.ln_r_pk), tab.hi_q, tab.hi_lns)
         g1, g2, e1, e2 = _layers(np.exp(lns), p)
-        slope = e1 - e2
-        lns = lns - (np.log(g1) - np.log(g2) - lnr) / slope
+        lns = lns - _newton_step(lnr, g1, g2, e1 - e2)
         sigma = np.exp(lns)
         g1, g2, e1, e2 = _layers(sigma, p)
-        slope = e1 - e2
-        # What the step left over, as an error of ln σ; a guard, not a tolerance
-        # that normal readings come near (they reach ~1e-10).
-        converged = np.abs((np.log(g1) - np.log(g2) - lnr) / slope) <= 1e-8
-        on_branch = sigma >= tab.info.sigma_peak
-
-        area = c1 / g1
-        force = sigma * area
-
-        # First-order noise propagation through the log-Jacobian
-        # [[e1, 1−e1], [e2, 1−e2]] of (ln F, ln S) → (ln ΔC1, ln ΔC2).
-        n1 = noise / c1
-        n2 = noise / c2
-        inv = 1.0 / np.abs(slope)
-        rel_f = np.hypot((1.0 - e2) * n1, (1.0 - e1) * n2) * inv
-        rel_s = np.hypot(e2 * n1, e1 * n2) * inv
-        rel_d = 0.5 * rel_s
-
-        ill = ~(
-            (np.abs(slope) >= min_slope)
-            & (rel_f <= max_error)
-            & (rel_d <= max_error)
-            & converged
-            & on_branch
+        force, area, force_rms, diameter_rms, well, fits = _judge(
+            c1, c2, sigma, g1, e1, e2, _newton_step(lnr, g1, g2, e1 - e2), tab.info.sigma_peak, p.area, noise,
+            max_error, min_slope, k_sigma,
         )
-        too_big = ~(area - k_sigma * rel_s * area <= p.area * (1.0 + 1e-9))
-
         amb = _ambiguous(c1, c2, floor, tab)
 
     solvable = finite & ~weak & ~out_of_range
-    status[solvable & ill] |= _B_ILL_CONDITIONED
-    status[solvable & too_big] |= _B_AREA_EXCEEDS
+    status[solvable & ~well] |= _B_ILL_CONDITIONED
+    status[solvable & ~fits] |= _B_AREA_EXCEEDS
     status[solvable & amb] |= _B_AMBIGUOUS
     valid = status == 0
 
     nan = np.float64(np.nan)
-    sigma = np.where(solvable, sigma, nan)
-    force = np.where(valid, force, nan)
-    area = np.where(valid, area, nan)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
-        # Garbage readings (e.g. 1e308 F) overflow here too; they are flagged above.
-        diam = 2.0 * np.sqrt(np.where(solvable, c1 / g1, nan) / np.pi)
-        force_rms = np.where(solvable, rel_f * sigma * c1 / g1, nan)
-        diameter_rms = np.where(solvable, rel_d * diam, nan)
-    return InverseResult(
-        force.reshape(shape),
-        area.reshape(shape),
-        valid.reshape(shape),
-        sigma.reshape(shape),
-        force_rms.reshape(shape),
-        diameter_rms.reshape(shape),
-        status.reshape(shape),
+    return (
+        np.where(valid, force, nan),
+        np.where(valid, area, nan),
+        np.where(solvable, sigma, nan),
+        np.where(solvable, force_rms, nan),
+        np.where(solvable, diameter_rms, nan),
+        status,
     )
 
 

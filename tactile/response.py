@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -136,14 +137,45 @@ def pressure_field(
     out = np.zeros(flat.shape[0])
     for x, y, f, d in c:
         rad = 0.5 * d
-        sigma = f / (math.pi * rad * rad)
+        sigma = _nominal_pressure(f, rad)
         rho = np.hypot(flat[:, 0] - x, flat[:, 1] - y)
         if s == 0.0:
             out += np.where(rho <= rad, sigma, 0.0)
         else:
-            grid, prof = _disk_profile(rad, s)
-            out += sigma * np.interp(rho, grid, prof, left=prof[0], right=0.0)
+            out += _blurred_pressure(rho, rad, sigma, s)
     return out.reshape(p.shape[:-1])
+
+
+_Real = TypeVar("_Real", float, FloatArray)
+
+
+def _nominal_pressure(force: _Real, radius: _Real) -> _Real:
+    """Eq. 1: F/S of a disk, the pressure on its footprint before any spread."""
+    return force / (math.pi * radius * radius)
+
+
+def _blurred_pressure(rho: FloatArray, radius: float, sigma: float, s: float) -> FloatArray:
+    """Pressure at distances ρ from the centre of a disk of nominal pressure σ after
+    the tension spread s > 0 (through the disk's tabulated profile)."""
+    grid, prof = _disk_profile(radius, s)
+    return sigma * _on_profile(rho, grid, prof)
+
+
+def _on_profile(rho: FloatArray, grid: FloatArray, table: FloatArray) -> FloatArray:
+    """A table over a disk's profile grid at distances ρ: its first value inside the
+    grid's start (the flat middle of the disk), 0 beyond the blurred rim."""
+    return np.interp(rho, grid, table, left=table[0], right=0.0)
+
+
+def _per_element(
+    elem: IntArray, w: FloatArray, g1: FloatArray, g2: FloatArray, n: int
+) -> tuple[FloatArray, FloatArray]:
+    """(ΔC1, ΔC2) of ``n`` elements: the quadrature sums of g1 and g2 at nodes
+    ``elem`` of weights ``w``."""
+    return (  # type: ignore[return-value]  # numpy's stubs type bincount as integer even with float weights
+        np.bincount(elem, weights=g1 * w, minlength=n),
+        np.bincount(elem, weights=g2 * w, minlength=n),
+    )
 
 
 #: Smallest non-zero spread (m): below it the blurred rim is narrower than float64
@@ -193,7 +225,7 @@ def _disk_response(
     if m == 0:
         return np.zeros((0, n)), np.zeros((0, n))
     rad = 0.5 * c[:, 3]
-    sigma = c[:, 2] / (math.pi * rad * rad)
+    sigma = _nominal_pressure(c[:, 2], rad)
     if s == 0.0:
         g1, g2 = sensitivity(sigma, params)
         a = disk_rect_overlap(
@@ -209,8 +241,7 @@ def _disk_response(
         if p is None:
             continue
         idx, g1, g2 = p
-        out1[k] = np.bincount(nodes.elem[idx], weights=g1 * nodes.w[idx], minlength=n)
-        out2[k] = np.bincount(nodes.elem[idx], weights=g2 * nodes.w[idx], minlength=n)
+        out1[k], out2[k] = _per_element(nodes.elem[idx], nodes.w[idx], g1, g2, n)
     return out1, out2
 
 
@@ -263,7 +294,7 @@ def _profile_near(
     if idx.size == 0:
         return None
     grid, prof = _disk_profile(rad, s)
-    return idx, rho, grid, prof, f / (math.pi * rad * rad)
+    return idx, rho, grid, prof, _nominal_pressure(f, rad)
 
 
 def _blurred_on_nodes(nodes: _Nodes, contact: FloatArray, s: float) -> tuple[IntArray, FloatArray] | None:
@@ -271,7 +302,7 @@ def _blurred_on_nodes(nodes: _Nodes, contact: FloatArray, s: float) -> tuple[Int
     if near is None:
         return None
     idx, rho, grid, prof, sigma = near
-    return idx, sigma * np.interp(rho, grid, prof, left=prof[0], right=0.0)
+    return idx, sigma * _on_profile(rho, grid, prof)
 
 
 def _disk_g_on_nodes(
@@ -285,9 +316,7 @@ def _disk_g_on_nodes(
         return None
     idx, rho, grid, prof, sigma = near
     g1t, g2t = sensitivity(sigma * prof, params)
-    g1 = np.interp(rho, grid, g1t, left=g1t[0], right=0.0)
-    g2 = np.interp(rho, grid, g2t, left=g2t[0], right=0.0)
-    return idx, g1, g2
+    return idx, _on_profile(rho, grid, g1t), _on_profile(rho, grid, g2t)
 
 
 def skin_response(
@@ -326,7 +355,4 @@ def skin_response(
         if p is not None:
             press[p[0]] += p[1]
     g1, g2 = sensitivity(press, params)
-    return (  # type: ignore[return-value]  # numpy's stubs type bincount as integer even with float weights
-        np.bincount(nodes.elem, weights=g1 * nodes.w, minlength=layout.n),
-        np.bincount(nodes.elem, weights=g2 * nodes.w, minlength=layout.n),
-    )
+    return _per_element(nodes.elem, nodes.w, g1, g2, layout.n)

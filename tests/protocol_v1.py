@@ -13,8 +13,9 @@ import struct
 from typing import Any
 
 import msgpack
+from protocol_wire import sealed
 
-from cellbridge.protocol import Beacon, Bundle, Data, Frame, Hello, SampleFlags, crc16
+from cellbridge.protocol import Beacon, Bundle, Data, Frame, Hello, SampleFlags
 from cellbridge.protocol.frame import HEADER_LEN
 
 _HEADER = struct.Struct(">BBBHHHHBH")
@@ -38,7 +39,7 @@ def encode_v1(frame: Frame) -> bytes:
     head = _HEADER.pack(1, frame.flags, frame.type, frame.src, frame.dst, frame.origin, frame.seq,
                         frame.hops, frame.cost)
     body = head + msgpack.packb(payload_v1(frame.payload), use_bin_type=True)
-    return body + crc16(body).to_bytes(2, "big")
+    return sealed(body)
 
 
 def as_read_from_v1(frame: Frame) -> Frame:

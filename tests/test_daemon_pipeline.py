@@ -308,19 +308,25 @@ def test_every_published_field_is_documented() -> None:
     assert not missing, f"fields not in docs/zmq-api.md: {missing}"
 
 
+def _rebooted(p: Pipeline, sk: Skin, t_reset: float) -> dict:
+    """The skin's bridges boot again at ``t_reset``: numbering from 0, HELLOs, then 20
+    samples; the last element message the pipeline published."""
+    sk.seq = {b: 0 for b in sk.ids}
+    p.feed("gw", sk.hellos(), t_reset)
+    out = []
+    for k, data in sk.stream(20):
+        out = p.feed("gw", data, t_reset + 0.01 + k / sk.rate)
+    return topic(out, "element")
+
+
 def test_bridge_reset_is_followed() -> None:
     """A bridge restarts: sequence numbers and cycle counter from zero, HELLO again."""
     sk = Skin()
     p = make()
     t = settle(p, sk, 300)
-    sk.seq = {b: 0 for b in sk.ids}
     sk.cycle0 = 0
     t_reset = t + 1.0
-    p.feed("gw", sk.hellos(), t_reset)
-    out = []
-    for k, data in sk.stream(20):
-        out = p.feed("gw", data, t_reset + 0.01 + k / sk.rate)
-    el = topic(out, "element")
+    el = _rebooted(p, sk, t_reset)
     assert len(el["bridge"]) == 4  # nothing taken for a duplicate of the old numbering
     assert el["t_sample"][0] == pytest.approx(t_reset + 0.01 + 19 / sk.rate, abs=0.02)
     h = p.health_body(t_reset + 1)["bridges"]["1"]
@@ -427,13 +433,8 @@ def test_bridge_reset_soon_after_start_restarts_its_clock() -> None:
     sk.cycle0 = 0
     p = make()
     t = settle(p, sk, 30)
-    sk.seq = {b: 0 for b in sk.ids}
     t_reset = t + 0.2
-    p.feed("gw", sk.hellos(), t_reset)
-    out = []
-    for k, data in sk.stream(20):
-        out = p.feed("gw", data, t_reset + 0.01 + k / sk.rate)
-    el = topic(out, "element")
+    el = _rebooted(p, sk, t_reset)
     assert el["t_sample"][0] == pytest.approx(t_reset + 0.01 + 19 / sk.rate, abs=0.02)
     h = p.health_body(t_reset + 1)["bridges"]["1"]
     assert h["clock_resets"] == 1 and h["seq_restarts"] == 1

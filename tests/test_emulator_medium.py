@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import random
 
+from protocol_wire import sealed
+
 from cellbridge.emulator.medium import Medium
 from cellbridge.emulator.mesh import Bridge, Cell, Link, Mesh
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
@@ -46,7 +48,7 @@ def test_loss_bit_errors_and_cuts() -> None:
     assert lossy.counters["lost"] == 1
     noisy = Medium(mesh(ber=0.01), seed=3)
     body = bytes(range(40))
-    frame = body + crc16(body).to_bytes(2, "big")
+    frame = sealed(body)
     flipped = 0
     for i in range(50):
         tx = noisy.start(1, frame, (1,), i * 10**6)

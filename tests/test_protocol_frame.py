@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import struct
-
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from protocol_strategies import frames_of, messages_by_type
+from protocol_wire import sealed
 
 from cellbridge.protocol import (
     CRC_CHECK,
@@ -27,11 +26,6 @@ from cellbridge.protocol import (
     encode,
 )
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
-
-
-def _reseal(body: bytes) -> bytes:
-    """Body with a correct CRC, so a test reaches the checks behind the CRC."""
-    return body + struct.pack(">H", crc16(body))
 
 
 def test_crc_parameters() -> None:
@@ -100,16 +94,16 @@ def test_header_policy(offset: int, value: int, cause: str) -> None:
     body = bytearray(encode(SAMPLE)[:-CRC_LEN])
     body[offset] = value
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(bytes(body)))
+        decode(sealed(bytes(body)))
     assert err.value.cause == cause
 
 
 def test_unknown_optional_flags_are_kept() -> None:
     body = bytearray(encode(SAMPLE)[:-CRC_LEN])
     body[1] = 0x0E  # optional bits the receiver does not know
-    frame = decode(_reseal(bytes(body)))
+    frame = decode(sealed(bytes(body)))
     assert frame.flags == 0x0E and frame.payload == SAMPLE.payload
-    assert encode(frame) == _reseal(bytes(body))  # a forwarder passes them on unchanged
+    assert encode(frame) == sealed(bytes(body))  # a forwarder passes them on unchanged
 
 
 @pytest.mark.parametrize("data,cause", [(b"", "short"), (b"\x01" * 15, "short"), (b"\x01" * 256, "too_large")])
@@ -146,14 +140,14 @@ def test_bad_payloads(payload: bytes) -> None:
     head = encode(SAMPLE)[:HEADER_LEN]
     assert head[0] == VERSION
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(head + payload))
+        decode(sealed(head + payload))
     assert err.value.cause == "payload"
 
 
 def test_the_bad_payloads_are_bad_only_where_they_say() -> None:
     """The well-formed neighbour of the cases above decodes, so each is refused for its defect."""
     head = encode(SAMPLE)[:HEADER_LEN]
-    frame = decode(_reseal(head + b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\x00\x64"))
+    frame = decode(sealed(head + b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\x00\x64"))
     assert frame.payload == Data(Mode.COUNTER, (Sample(0, 0, 0, 0, 0, 0),), 1, 100)
 
 
@@ -173,9 +167,9 @@ def test_bad_beacon_time(payload: bytes) -> None:
     head = bytearray(encode(SAMPLE)[:HEADER_LEN])
     head[2] = FrameType.BEACON
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(bytes(head) + payload))
+        decode(sealed(bytes(head) + payload))
     assert err.value.cause == "payload"
-    ok = decode(_reseal(bytes(head) + b"\x94\x01\x14\x02\x93\x01\x02\x03"))
+    ok = decode(sealed(bytes(head) + b"\x94\x01\x14\x02\x93\x01\x02\x03"))
     assert ok.payload == Beacon(1, 20, 2, MeshTime(1, 2, 3))
 
 
@@ -190,7 +184,7 @@ def test_bundle_cannot_nest() -> None:
     import msgpack
     head = encode(outer)[:HEADER_LEN]
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(head + msgpack.packb([encode(outer)])))
+        decode(sealed(head + msgpack.packb([encode(outer)])))
     assert err.value.cause == "nested_bundle"
 
 
@@ -230,7 +224,7 @@ def test_a_hello_that_names_another_bridge_than_its_origin_is_dropped() -> None:
     body = bytearray(wire[:-CRC_LEN])
     _HEADER.pack_into(body, 0, VERSION, 0, 3, 5, 0, 6, 0, 0, 0)  # origin 6, payload still says bridge 5
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(bytes(body)))
+        decode(sealed(bytes(body)))
     assert err.value.cause == "payload"
     bad = Frame(5, 0, 6, 0, good.payload)
     with pytest.raises(ProtocolError):

@@ -7,10 +7,10 @@ checksum into the header, fragment and msgpack parsers instead of dying at the C
 from __future__ import annotations
 
 import random
-import struct
 
 from cobs import cobs
 from protocol_v1 import encode_v1, same_header
+from protocol_wire import sealed
 
 from cellbridge.protocol import (
     VERSION,
@@ -34,7 +34,6 @@ from cellbridge.protocol import (
     SampleFlags,
     Status,
     StreamDecoder,
-    crc16,
     decode,
     encode,
     fragment,
@@ -80,8 +79,7 @@ def mutate(rng: random.Random, data: bytes) -> bytes:
             pos = rng.randrange(14)
             b[pos] = rng.choice([0, 1, 0x0F, 0x10, 0x7F, 0x80, 0xFF])
     if rng.random() < 0.5 and len(b) >= 2:
-        body = bytes(b[:-2])
-        b = bytearray(body + struct.pack(">H", crc16(body)))
+        b = bytearray(sealed(bytes(b[:-2])))
     return bytes(b)
 
 

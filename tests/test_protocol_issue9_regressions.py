@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from protocol_strategies import data as data_strategy
+from protocol_wire import sealed
 
 from cellbridge.protocol import (
     VERSION,
@@ -25,7 +26,6 @@ from cellbridge.protocol import (
     Reassembler,
     Sample,
     StreamDecoder,
-    crc16,
     decode,
     encode,
     encode_stream,
@@ -33,10 +33,6 @@ from cellbridge.protocol import (
 )
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
 from cellbridge.tactile import transfer
-
-
-def _reseal(body: bytes) -> bytes:
-    return body + crc16(body).to_bytes(2, "big")
 
 
 # -- 1. duplicate filter ------------------------------------------------------------------------
@@ -155,7 +151,7 @@ LINK_ACK_HEAD = bytes.fromhex("02000700010005000100370000 00".replace(" ", ""))
     "92 05 cd 01 2c",  # the canonical form, accepted
 ])
 def test_canonical_link_ack_is_accepted(payload: str) -> None:
-    assert decode(_reseal(LINK_ACK_HEAD + bytes.fromhex(payload))).payload.seq == 300
+    assert decode(sealed(LINK_ACK_HEAD + bytes.fromhex(payload))).payload.seq == 300
 
 
 @pytest.mark.parametrize("payload", [
@@ -167,13 +163,13 @@ def test_canonical_link_ack_is_accepted(payload: str) -> None:
 ])
 def test_non_canonical_link_ack_is_refused(payload: str) -> None:
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(LINK_ACK_HEAD + bytes.fromhex(payload)))
+        decode(sealed(LINK_ACK_HEAD + bytes.fromhex(payload)))
     assert err.value.cause == "payload"
 
 
 def _hello_wire(geometry: bytes, fw: bytes, boots: bytes = b"\x01") -> bytes:
     head = bytes.fromhex("0200030005000100050000000000")
-    return _reseal(head + b"\x96\x05" + fw + b"\x93" + geometry + b"\xce\x02\xfa\xf0\x80\x03" + boots)
+    return sealed(head + b"\x96\x05" + fw + b"\x93" + geometry + b"\xce\x02\xfa\xf0\x80\x03" + boots)
 
 
 def test_hello_refuses_float32_geometry_and_str8_strings() -> None:
@@ -210,7 +206,7 @@ def _data_wire(mode: int, over: int, c1: int) -> bytes:
     head = encode(Frame(7, 0, 7, 1, Beacon(0, 0, 0)))[:HEADER_LEN]
     head = head[:2] + bytes([FrameType.DATA]) + head[3:]
     assert head[0] == VERSION
-    return _reseal(head + msgpack.packb([mode, over, [[0, 1000, c1, 100, 0, 7]], 100]))
+    return sealed(head + msgpack.packb([mode, over, [[0, 1000, c1, 100, 0, 7]], 100]))
 
 
 @pytest.mark.parametrize("mode,over,c1", [(0, 500, 100), (0, 1, 70_000), (1, 4, 255 * 4 + 1)])
@@ -228,7 +224,7 @@ def test_data_ranges_at_their_limits_are_accepted(mode: int, over: int, c1: int)
 def test_bundle_refuses_fragments() -> None:
     parts = fragment(_datagram(100, 19000), tag=1, max_frame=64)
     head = encode(Frame(1, 0, 1, 2, Bundle((Frame(3, 1, 3, 1, Beacon(1, 10, 1)),))))[:HEADER_LEN]
-    forged = _reseal(head + msgpack.packb([encode(parts[1])]))
+    forged = sealed(head + msgpack.packb([encode(parts[1])]))
     with pytest.raises(ProtocolError) as err:
         decode(forged)
     assert err.value.cause == "bundle"
@@ -245,7 +241,7 @@ def test_bundle_is_never_fragmented() -> None:
     with pytest.raises(ProtocolError):
         encode(frag)
     head = bytes.fromhex("02 10 08 00 01 00 00 00 01 00 02 00 00 00")
-    forged = _reseal(head + (1).to_bytes(2, "big") + bytes(2) + len(body).to_bytes(2, "big") + body)
+    forged = sealed(head + (1).to_bytes(2, "big") + bytes(2) + len(body).to_bytes(2, "big") + body)
     with pytest.raises(ProtocolError) as err:
         decode(forged)
     assert err.value.cause == "fragment"
@@ -256,7 +252,7 @@ def test_inner_frame_bad_crc_is_the_inner_frames_problem() -> None:
     inner[-1] ^= 0xFF
     head = encode(Frame(1, 0, 1, 2, Bundle((Frame(3, 1, 3, 1, Beacon(1, 10, 1)),))))[:HEADER_LEN]
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(head + msgpack.packb([bytes(inner)])))
+        decode(sealed(head + msgpack.packb([bytes(inner)])))
     assert err.value.cause == "inner_crc"
 
 

@@ -8,6 +8,7 @@ import random
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from protocol_wire import sealed
 
 from cellbridge.protocol import (
     MAX_FRAME,
@@ -19,7 +20,6 @@ from cellbridge.protocol import (
     ProtocolError,
     Reassembler,
     Sample,
-    crc16,
     decode,
     encode,
     fragment,
@@ -106,11 +106,6 @@ def _frag(index: int, data: bytes, total: int = 30, tag: int = 1, origin: int = 
     return Frame(origin, 0, origin, (head_seq + index) & 0xFFFF, Fragment(ftype, tag, index * step, total, data))
 
 
-def _sealed(payload: bytes) -> bytes:
-    """A datagram's bytes: the payload and its CRC-16."""
-    return payload + crc16(payload).to_bytes(2, "big")
-
-
 def test_non_first_fragment_without_state_is_dropped() -> None:
     r = Reassembler()
     assert r.receive(_frag(1, b"x" * 10), 0.0) is None
@@ -150,8 +145,8 @@ def test_fragments_that_do_not_belong_are_dropped_alone(stranger: Frame) -> None
 def test_spliced_datagrams_fail_the_checksum() -> None:
     # Two datagrams with one tag and one head seq (a bridge that reset twice):
     # only the datagram checksum tells their fragments apart.
-    a = _sealed(b"a" * 28)
-    b = _sealed(b"b" * 28)
+    a = sealed(b"a" * 28)
+    b = sealed(b"b" * 28)
     r = Reassembler()
     r.receive(_frag(0, a[:10], total=len(a)), 0.0)
     r.receive(_frag(1, a[10:20], total=len(a)), 0.0)
@@ -170,7 +165,7 @@ def test_timeout_frees_the_slot() -> None:
 
 def test_invalid_reassembled_payload_is_counted() -> None:
     r = Reassembler()
-    body = _sealed(b"\xc1" * 28)
+    body = sealed(b"\xc1" * 28)
     r.receive(_frag(0, body[:15], step=15), 0.0)
     assert r.receive(_frag(1, body[15:], step=15), 0.0) is None
     assert r.drops == {"payload": 1}
@@ -239,7 +234,7 @@ def test_fragment_rejects_bad_sizes() -> None:
 
 def test_completions_are_forgotten_after_remember_for_whatever_the_order_of_origins() -> None:
     r = Reassembler(remember_for=10.0)
-    body = _sealed(b"\x94\x01\x14\x02\xc0")  # a BEACON [1, 20, 2, nil]
+    body = sealed(b"\x94\x01\x14\x02\xc0")  # a BEACON [1, 20, 2, nil]
     beacon = lambda origin, tag: Frame(origin, 0, origin, 0, Fragment(FrameType.BEACON, tag, 0, len(body), body))
     assert r.receive(beacon(1, 0), 0.0) is not None
     assert r.receive(beacon(2, 0), 1.0) is not None

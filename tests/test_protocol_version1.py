@@ -13,6 +13,7 @@ from cobs import cobs
 from hypothesis import HealthCheck, assume, given, settings
 from protocol_strategies import frames
 from protocol_v1 import as_read_from_v1, encode_v1, payload_v1, same_header
+from protocol_wire import sealed
 
 from cellbridge.protocol import (
     MAX_FRAME,
@@ -30,7 +31,6 @@ from cellbridge.protocol import (
     Sample,
     SampleFlags,
     StreamDecoder,
-    crc16,
     decode,
     encode,
     encode_stream,
@@ -38,10 +38,6 @@ from cellbridge.protocol import (
 from cellbridge.protocol.frame import CRC_LEN
 
 NO_MESH_TIME = SampleFlags.NO_MESH_TIME
-
-
-def _reseal(body: bytes) -> bytes:
-    return body + crc16(body).to_bytes(2, "big")
 
 
 @settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow])
@@ -92,13 +88,13 @@ def test_version_2_payloads_in_a_version_1_frame_are_refused(message: Data | Bea
     body = bytearray(good[:-CRC_LEN])
     body[0] = 1
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(bytes(body)))
+        decode(sealed(bytes(body)))
     assert err.value.cause == "payload"
     v1 = encode_v1(Frame(5, 0, 5, 0, message))
     body = bytearray(v1[:-CRC_LEN])
     body[0] = VERSION
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(bytes(body)))
+        decode(sealed(bytes(body)))
     assert err.value.cause == "payload"
 
 
@@ -106,7 +102,7 @@ def test_a_version_1_hello_naming_another_bridge_is_refused() -> None:
     v1 = bytearray(encode_v1(Frame(5, 0, 5, 0, Hello(5, "0.1.0", 0.04, 0.08, 0.04, 50_000_000, 3)))[:-CRC_LEN])
     v1[7:9] = (6).to_bytes(2, "big")  # origin 6, payload says bridge 5
     with pytest.raises(ProtocolError) as err:
-        decode(_reseal(bytes(v1)))
+        decode(sealed(bytes(v1)))
     assert err.value.cause == "payload"
 
 
@@ -120,8 +116,7 @@ def test_the_stream_decoder_reads_version_1_and_2_alike() -> None:
 
 def _fragments_v1(frame: Frame, tag: int, step: int) -> list[Frame]:
     """A version 1 sender's fragments of ``frame``: version 1 payload bytes, sliced."""
-    body = msgpack.packb(payload_v1(frame.payload))
-    body += crc16(body).to_bytes(2, "big")
+    body = sealed(msgpack.packb(payload_v1(frame.payload)))
     return [Frame(frame.src, frame.dst, frame.origin, (frame.seq + i) & 0xFFFF,
                   Fragment(frame.type, tag, off, len(body), body[off:off + step], 1))
             for i, off in enumerate(range(0, len(body), step))]

@@ -256,3 +256,16 @@ def test_the_compiled_inverse_gives_solves_answers():
             assert np.array_equal(np.isnan(x), np.isnan(y))
             ok = ~np.isnan(x)
             assert np.allclose(x[ok], y[ok], rtol=1e-10, atol=0.0), name
+
+
+def test_the_compiled_inverse_takes_solves_keywords_and_no_others():
+    """solve_compiled takes solve's keyword defaults from solve itself; a misspelt
+    option is refused by name, not ignored or reported against a private helper."""
+    from cellbridge.tactile.inverse_kernel import solve_compiled
+    from cellbridge.tactile.inversion import solve
+
+    c1, c2 = forward(5.0, 4e-4)
+    a, b = solve(c1, c2, k_sigma=2.0), solve_compiled(c1, c2, k_sigma=2.0)
+    assert a.status == b.status and a.force == pytest.approx(b.force, rel=1e-10)
+    with pytest.raises(TypeError, match=r"solve_compiled\(\).*\['max_eror'\]"):
+        solve_compiled(c1, c2, max_eror=0.1)

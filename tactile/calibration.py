@@ -248,6 +248,7 @@ class Calibrator:
         self._buf = np.zeros((n, cfg.n_baseline, c))
         self._count = np.zeros(n, dtype=np.int64)
         self._base = np.full((n, c), np.nan)  # element's own baseline, without the common offset
+        self._base0 = np.full((n, c), np.nan)  # that baseline as collected: own drift is _base − _base0
         self._common = np.zeros(c)  # the skin's common offset, carried by every element
         self._noise = np.full((n, c), np.nan)
         self._state = np.full(n, COLLECTING, dtype=np.int8)
@@ -262,7 +263,7 @@ class Calibrator:
         self._last_jump: dict[str, object] | None = None
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
 
-    _PER_ELEMENT = ("_buf", "_count", "_base", "_noise", "_state", "_last_t", "_since", "_below_since",
+    _PER_ELEMENT = ("_buf", "_count", "_base", "_base0", "_noise", "_state", "_last_t", "_since", "_below_since",
                     "_rebaselines", "_holds", "_off_since")
 
     def adopt(self, old: Calibrator, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
@@ -372,6 +373,7 @@ class Calibrator:
         self._state[sel] = COLLECTING
         self._count[sel] = 0
         self._base[sel] = np.nan
+        self._base0[sel] = np.nan
         self._noise[sel] = np.nan
         self._below_since[sel] = np.inf
         self._off_since[sel] = np.inf
@@ -430,7 +432,7 @@ class Calibrator:
         resid = v - self._base  # NaN where not ready or not sampled
         jumps = self._common_jumps
         if self.config.common_mode:
-            self._update_common(resid, live & (st == TRACKING), enter, tt)
+            self._update_common(resid, live & self._reference(enter), enter, tt)
         self._collect(sampled & (st == COLLECTING), v)
 
         delta = np.full((n, c), np.nan)
@@ -439,6 +441,8 @@ class Calibrator:
         contact = self._contact_readings(live, delta)
         rebased = self._hysteresis(live, tt, delta, enter, leave, contact)
         self._track(live & (st == TRACKING), live, tt, delta, enter, leave, contact)
+        if self.config.common_mode:
+            self._anchor(enter)
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps, rebased)
@@ -482,6 +486,54 @@ class Calibrator:
                 }
             self._common = new
 
+    def _reference(self, enter: FloatArray) -> NDArray[np.bool_]:
+        """(N,) the elements whose readings tell the skin's drift: tracked, and not
+        drifting by themselves (own drift within ``enter`` of the baseline they started
+        from, not reading above ``enter`` what no contact gives) — or every tracked
+        element when fewer than ``min_common`` of the skin are that steady.
+
+        An element drifting by itself is followed by its tracker with a lag (up to
+        ``enter`` on the clipped tracker): in a step where few elements report, a median
+        of two is their mean, and that lag moved the offset of the whole skin by half of
+        it for the step (25 fF on a press's ΔC2, in one of every 20 steps)."""
+        trk = self._state == TRACKING
+        steady = trk & np.all(np.abs(self._base - self._base0) <= enter, axis=1) & ~np.isfinite(self._off_since)
+        return steady if int(steady.sum()) >= self.config.min_common else trk
+
+    def _anchor(self, enter: FloatArray) -> None:
+        """Keep the tracked elements' own drift centred on zero: their median is the
+        skin's, and belongs in the common offset.
+
+        The common offset and the elements' own baselines are only known through their
+        sum: each step the offset is the median residual against the tracked baselines,
+        and the trackers then follow what is left. An offset estimate biased by ε (one
+        element's tracker lagging its own drift is enough: a step's median of few
+        elements, or one outlier on one side of the median) pulls every tracked
+        baseline down by α·ε, which lifts the next median: the offset ratchets by about
+        ε/tau per second with no restoring force. Tracked elements do not mind (their
+        sum stays right), but a touched element carries the offset on a frozen
+        baseline, so a press held for an hour read 10 % low on ΔC2. Moving the median
+        own drift of the tracked elements back into the offset (their sums unchanged)
+        removes the ratchet: what a touched element carries is then what the tracked
+        elements moved together since their baselines were taken. Elements whose own
+        drift passed ``enter`` drift by themselves and are left out of the median
+        (:meth:`_reference`).
+        """
+        ref = self._reference(enter)
+        if int(ref.sum()) < self.config.min_common:
+            return
+        trk = self._state == TRACKING
+        r = np.median(self._base[ref] - self._base0[ref], axis=0)
+        if not np.any(r):
+            return
+        self._base[trk] -= r
+        self._common += r
+        col = self._state == COLLECTING
+        if col.any():  # collected relative to the offset of their step: re-centre them too
+            idx = np.nonzero(col)[0]
+            stored = np.arange(self.config.n_baseline)[None, :] < self._count[idx, None]
+            self._buf[idx] -= np.where(stored[:, :, None], r, 0.0)
+
     def _collect(self, col: NDArray[np.bool_], v: FloatArray) -> None:
         """Baseline collection (relative to the common offset of each reading's step)."""
         if not col.any():
@@ -495,6 +547,7 @@ class Calibrator:
             b = self._buf[done]
             med = np.median(b, axis=1)
             self._base[done] = med
+            self._base0[done] = med
             self._noise[done] = 1.4826 * np.median(np.abs(b - med[:, None, :]), axis=1)
             self._state[done] = TRACKING
             self._count[done] = 0

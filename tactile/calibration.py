@@ -431,8 +431,9 @@ class Calibrator:
         live = sampled & (st != COLLECTING)  # ready elements with a reading this step
         resid = v - self._base  # NaN where not ready or not sampled
         jumps = self._common_jumps
+        ref = self._reference(enter)
         if self.config.common_mode:
-            self._update_common(resid, live & self._reference(enter), enter, tt)
+            self._update_common(resid, live & ref, enter, tt)
         self._collect(sampled & (st == COLLECTING), v)
 
         delta = np.full((n, c), np.nan)
@@ -442,7 +443,7 @@ class Calibrator:
         rebased = self._hysteresis(live, tt, delta, enter, leave, contact)
         self._track(live & (st == TRACKING), live, tt, delta, enter, leave, contact)
         if self.config.common_mode:
-            self._anchor(enter)
+            self._anchor(ref & (st == TRACKING))
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps, rebased)
@@ -500,7 +501,7 @@ class Calibrator:
         steady = trk & np.all(np.abs(self._base - self._base0) <= enter, axis=1) & ~np.isfinite(self._off_since)
         return steady if int(steady.sum()) >= self.config.min_common else trk
 
-    def _anchor(self, enter: FloatArray) -> None:
+    def _anchor(self, ref: NDArray[np.bool_]) -> None:
         """Keep the tracked elements' own drift centred on zero: their median is the
         skin's, and belongs in the common offset.
 
@@ -517,9 +518,8 @@ class Calibrator:
         removes the ratchet: what a touched element carries is then what the tracked
         elements moved together since their baselines were taken. Elements whose own
         drift passed ``enter`` drift by themselves and are left out of the median
-        (:meth:`_reference`).
+        (``ref``: :meth:`_reference`, still tracked after this step).
         """
-        ref = self._reference(enter)
         if int(ref.sum()) < self.config.min_common:
             return
         trk = self._state == TRACKING

@@ -489,16 +489,26 @@ class Calibrator:
 
     def _reference(self, enter: FloatArray) -> NDArray[np.bool_]:
         """(N,) the elements whose readings tell the skin's drift: tracked, and not
-        drifting by themselves (own drift within ``enter`` of the baseline they started
-        from, not reading above ``enter`` what no contact gives) — or every tracked
-        element when fewer than ``min_common`` of the skin are that steady.
+        drifting by themselves — or every tracked element when fewer than
+        ``min_common`` of the skin are that steady.
 
-        An element drifting by itself is followed by its tracker with a lag (up to
-        ``enter`` on the clipped tracker): in a step where few elements report, a median
-        of two is their mean, and that lag moved the offset of the whole skin by half of
-        it for the step (25 fF on a press's ΔC2, in one of every 20 steps)."""
+        Drifting by itself: reading above ``enter`` what no contact gives, or an own
+        drift (since the element's baseline was taken) that stands out from the other
+        tracked elements' by more than ``enter`` (or ``k_enter`` times their spread, so a
+        skin whose elements all wander apart over days keeps them all). Such an element
+        is followed with a lag (up to ``enter`` on the clipped tracker): in a step where
+        few elements report, a median of two is their mean, and that lag moved the
+        offset of the whole skin by half of it for the step (25 fF on a press's ΔC2, in
+        one of every 20 steps)."""
         trk = self._state == TRACKING
-        steady = trk & np.all(np.abs(self._base - self._base0) <= enter, axis=1) & ~np.isfinite(self._off_since)
+        if int(trk.sum()) < self.config.min_common:
+            return trk
+        own = self._base[trk] - self._base0[trk]
+        dev = np.abs(own - np.median(own, axis=0))
+        allowed = np.maximum(enter[trk], self.config.k_enter * 1.4826 * np.median(dev, axis=0))
+        steady = trk.copy()
+        steady[trk] = np.all(dev <= allowed, axis=1)
+        steady &= ~np.isfinite(self._off_since)
         return steady if int(steady.sum()) >= self.config.min_common else trk
 
     def _anchor(self, ref: NDArray[np.bool_]) -> None:
@@ -516,9 +526,9 @@ class Calibrator:
         baseline, so a press held for an hour read 10 % low on ΔC2. Moving the median
         own drift of the tracked elements back into the offset (their sums unchanged)
         removes the ratchet: what a touched element carries is then what the tracked
-        elements moved together since their baselines were taken. Elements whose own
-        drift passed ``enter`` drift by themselves and are left out of the median
-        (``ref``: :meth:`_reference`, still tracked after this step).
+        elements moved together since their baselines were taken. Elements drifting by
+        themselves are left out of the median (``ref``: :meth:`_reference`, still
+        tracked after this step).
         """
         if int(ref.sum()) < self.config.min_common:
             return

@@ -19,7 +19,12 @@ gone. So:
   them all equally does (that one is absorbed, and reported as a common jump). The
   offset is subtracted from *every* ready element (tracked, touched, held off, or
   without a reading this step), so a press held for minutes neither fades nor picks up the
-  skin's drift, and an element that was silent comes back corrected.
+  skin's drift, and an element that was silent comes back corrected. Elements drifting
+  by themselves (own drift standing out from the others', or reading what no contact
+  gives) are no reference for it while enough others are, and the tracked elements'
+  median own drift is moved into the offset each step: the offset and the own
+  baselines are only known through their sum, and without that anchor a biased median
+  ratcheted the offset under a press held for an hour (see :meth:`Calibrator._anchor`).
 * **Touch state** with hysteresis: an element becomes *touched* when any channel rises
   above ``enter`` and *released* when every channel is back below ``leave``
   (``leave < enter``), both raised to a multiple of the measured noise if that is

@@ -22,7 +22,7 @@ gone. So:
   skin's drift, and an element that was silent comes back corrected. Elements drifting
   by themselves (own drift standing out from the others', or reading what no contact
   gives) are no reference for it while enough others are, and the tracked elements'
-  median own drift is moved into the offset each step: the offset and the own
+  median own drift is moved into the offset every 8 steps: the offset and the own
   baselines are only known through their sum, and without that anchor a biased median
   ratcheted the offset under a press held for an hour (see :meth:`Calibrator._anchor`).
 * **Touch state** with hysteresis: an element becomes *touched* when any channel rises
@@ -82,6 +82,14 @@ __all__ = [
     "TOUCHED",
     "HOLDOFF",
 ]
+
+
+#: Steps between two measurements of the spread of the tracked elements' own drift
+#: (:meth:`Calibrator._reference`), and between two anchorings of the common offset
+#: (:meth:`Calibrator._anchor`): each is a median over the skin, and what they correct
+#: moves far slower than a step (the offset's ratchet: about 0.04 fF/s).
+_SPREAD_EVERY = 32
+_ANCHOR_EVERY = 8
 
 
 def _is_count(v: object, minimum: int = 1) -> bool:
@@ -267,6 +275,9 @@ class Calibrator:
         self._catchups = 0
         self._last_jump: dict[str, object] | None = None
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
+        self._spread = np.zeros(c)  # spread of the tracked elements' own drift (1.4826·MAD about 0)
+        self._spread_age = 0  # steps until it is measured again
+        self._anchor_age = 0  # steps until the offset is anchored again
 
     _PER_ELEMENT = ("_buf", "_count", "_base", "_base0", "_noise", "_state", "_last_t", "_since", "_below_since",
                     "_rebaselines", "_holds", "_off_since")
@@ -508,11 +519,13 @@ class Calibrator:
         trk = self._state == TRACKING
         if int(trk.sum()) < self.config.min_common:
             return trk
-        own = self._base[trk] - self._base0[trk]
-        dev = np.abs(own - np.median(own, axis=0))
-        allowed = np.maximum(enter[trk], self.config.k_enter * 1.4826 * np.median(dev, axis=0))
-        steady = trk.copy()
-        steady[trk] = np.all(dev <= allowed, axis=1)
+        own = np.abs(self._base - self._base0)  # about zero, where the anchor keeps their median
+        if self._spread_age <= 0:  # the spread moves slowly: a median now and then is enough
+            self._spread = 1.4826 * np.median(own[trk], axis=0)
+            self._spread_age = _SPREAD_EVERY
+        self._spread_age -= 1
+        with np.errstate(invalid="ignore"):  # NaN own drift: not ready, and not tracked
+            steady = trk & np.all(own <= np.maximum(enter, self.config.k_enter * self._spread), axis=1)
         steady &= ~np.isfinite(self._off_since)
         return steady if int(steady.sum()) >= self.config.min_common else trk
 
@@ -529,19 +542,21 @@ class Calibrator:
         ε/tau per second with no restoring force. Tracked elements do not mind (their
         sum stays right), but a touched element carries the offset on a frozen
         baseline, so a press held for an hour read 10 % low on ΔC2. Moving the median
-        own drift of the tracked elements back into the offset (their sums unchanged)
-        removes the ratchet: what a touched element carries is then what the tracked
+        own drift of the tracked elements back into the offset (their sums unchanged),
+        every ``_ANCHOR_EVERY`` steps (what builds up between: far below a fF), removes
+        the ratchet: what a touched element carries is then what the tracked
         elements moved together since their baselines were taken. Elements drifting by
         themselves are left out of the median (``ref``: :meth:`_reference`, still
         tracked after this step).
         """
-        if int(ref.sum()) < self.config.min_common:
+        self._anchor_age -= 1
+        if self._anchor_age > 0 or int(ref.sum()) < self.config.min_common:
             return
-        trk = self._state == TRACKING
+        self._anchor_age = _ANCHOR_EVERY
         r = np.median(self._base[ref] - self._base0[ref], axis=0)
         if not np.any(r):
             return
-        self._base[trk] -= r
+        self._base -= np.where((self._state == TRACKING)[:, None], r, 0.0)
         self._common += r
         col = self._state == COLLECTING
         if col.any():  # collected relative to the offset of their step: re-centre them too

@@ -19,7 +19,12 @@ gone. So:
   them all equally does (that one is absorbed, and reported as a common jump). The
   offset is subtracted from *every* ready element (tracked, touched, held off, or
   without a reading this step), so a press held for minutes neither fades nor picks up the
-  skin's drift, and an element that was silent comes back corrected.
+  skin's drift, and an element that was silent comes back corrected. Elements drifting
+  by themselves (own drift standing out from the others', or reading what no contact
+  gives) are no reference for it while enough others are, and the tracked elements'
+  median own drift is moved into the offset every 8 steps: the offset and the own
+  baselines are only known through their sum, and without that anchor a biased median
+  ratcheted the offset under a press held for an hour (see :meth:`Calibrator._anchor`).
 * **Touch state** with hysteresis: an element becomes *touched* when any channel rises
   above ``enter`` and *released* when every channel is back below ``leave``
   (``leave < enter``), both raised to a multiple of the measured noise if that is
@@ -77,6 +82,14 @@ __all__ = [
     "TOUCHED",
     "HOLDOFF",
 ]
+
+
+#: Steps between two measurements of the spread of the tracked elements' own drift
+#: (:meth:`Calibrator._reference`), and between two anchorings of the common offset
+#: (:meth:`Calibrator._anchor`): each is a median over the skin, and what they correct
+#: moves far slower than a step (the offset's ratchet: about 0.04 fF/s).
+_SPREAD_EVERY = 32
+_ANCHOR_EVERY = 8
 
 
 def _is_count(v: object, minimum: int = 1) -> bool:
@@ -248,6 +261,7 @@ class Calibrator:
         self._buf = np.zeros((n, cfg.n_baseline, c))
         self._count = np.zeros(n, dtype=np.int64)
         self._base = np.full((n, c), np.nan)  # element's own baseline, without the common offset
+        self._base0 = np.full((n, c), np.nan)  # that baseline as collected: own drift is _base − _base0
         self._common = np.zeros(c)  # the skin's common offset, carried by every element
         self._noise = np.full((n, c), np.nan)
         self._state = np.full(n, COLLECTING, dtype=np.int8)
@@ -261,8 +275,11 @@ class Calibrator:
         self._catchups = 0
         self._last_jump: dict[str, object] | None = None
         self._thr: tuple[FloatArray, FloatArray] | None = None  # cache, reset when noise changes
+        self._spread = np.zeros(c)  # spread of the tracked elements' own drift (1.4826·MAD about 0)
+        self._spread_age = 0  # steps until it is measured again
+        self._anchor_age = 0  # steps until the offset is anchored again
 
-    _PER_ELEMENT = ("_buf", "_count", "_base", "_noise", "_state", "_last_t", "_since", "_below_since",
+    _PER_ELEMENT = ("_buf", "_count", "_base", "_base0", "_noise", "_state", "_last_t", "_since", "_below_since",
                     "_rebaselines", "_holds", "_off_since")
 
     def adopt(self, old: Calibrator, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
@@ -372,6 +389,7 @@ class Calibrator:
         self._state[sel] = COLLECTING
         self._count[sel] = 0
         self._base[sel] = np.nan
+        self._base0[sel] = np.nan
         self._noise[sel] = np.nan
         self._below_since[sel] = np.inf
         self._off_since[sel] = np.inf
@@ -429,8 +447,9 @@ class Calibrator:
         live = sampled & (st != COLLECTING)  # ready elements with a reading this step
         resid = v - self._base  # NaN where not ready or not sampled
         jumps = self._common_jumps
+        ref = self._reference(enter)
         if self.config.common_mode:
-            self._update_common(resid, live & (st == TRACKING), enter, tt)
+            self._update_common(resid, live & ref, enter, tt)
         self._collect(sampled & (st == COLLECTING), v)
 
         delta = np.full((n, c), np.nan)
@@ -439,6 +458,8 @@ class Calibrator:
         contact = self._contact_readings(live, delta)
         rebased = self._hysteresis(live, tt, delta, enter, leave, contact)
         self._track(live & (st == TRACKING), live, tt, delta, enter, leave, contact)
+        if self.config.common_mode:
+            self._anchor(ref & (st == TRACKING))
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps, rebased)
@@ -482,6 +503,67 @@ class Calibrator:
                 }
             self._common = new
 
+    def _reference(self, enter: FloatArray) -> NDArray[np.bool_]:
+        """(N,) the elements whose readings tell the skin's drift: tracked, and not
+        drifting by themselves — or every tracked element when fewer than
+        ``min_common`` of the skin are that steady.
+
+        Drifting by itself: reading above ``enter`` what no contact gives, or an own
+        drift (since the element's baseline was taken) that stands out from the other
+        tracked elements' by more than ``enter`` (or ``k_enter`` times their spread, so a
+        skin whose elements all wander apart over days keeps them all). Such an element
+        is followed with a lag (up to ``enter`` on the clipped tracker): in a step where
+        few elements report, a median of two is their mean, and that lag moved the
+        offset of the whole skin by half of it for the step (25 fF on a press's ΔC2, in
+        one of every 20 steps)."""
+        trk = self._state == TRACKING
+        if int(trk.sum()) < self.config.min_common:
+            return trk
+        own = np.abs(self._base - self._base0)  # about zero, where the anchor keeps their median
+        if self._spread_age <= 0:  # the spread moves slowly: a median now and then is enough
+            self._spread = 1.4826 * np.median(own[trk], axis=0)
+            self._spread_age = _SPREAD_EVERY
+        self._spread_age -= 1
+        with np.errstate(invalid="ignore"):  # NaN own drift: not ready, and not tracked
+            steady = trk & np.all(own <= np.maximum(enter, self.config.k_enter * self._spread), axis=1)
+        steady &= ~np.isfinite(self._off_since)
+        return steady if int(steady.sum()) >= self.config.min_common else trk
+
+    def _anchor(self, ref: NDArray[np.bool_]) -> None:
+        """Keep the tracked elements' own drift centred on zero: their median is the
+        skin's, and belongs in the common offset.
+
+        The common offset and the elements' own baselines are only known through their
+        sum: each step the offset is the median residual against the tracked baselines,
+        and the trackers then follow what is left. An offset estimate biased by ε (one
+        element's tracker lagging its own drift is enough: a step's median of few
+        elements, or one outlier on one side of the median) pulls every tracked
+        baseline down by α·ε, which lifts the next median: the offset ratchets by about
+        ε/tau per second with no restoring force. Tracked elements do not mind (their
+        sum stays right), but a touched element carries the offset on a frozen
+        baseline, so a press held for an hour read 10 % low on ΔC2. Moving the median
+        own drift of the tracked elements back into the offset (their sums unchanged),
+        every ``_ANCHOR_EVERY`` steps (what builds up between: far below a fF), removes
+        the ratchet: what a touched element carries is then what the tracked
+        elements moved together since their baselines were taken. Elements drifting by
+        themselves are left out of the median (``ref``: :meth:`_reference`, still
+        tracked after this step).
+        """
+        self._anchor_age -= 1
+        if self._anchor_age > 0 or int(ref.sum()) < self.config.min_common:
+            return
+        self._anchor_age = _ANCHOR_EVERY
+        r = np.median(self._base[ref] - self._base0[ref], axis=0)
+        if not np.any(r):
+            return
+        self._base -= np.where((self._state == TRACKING)[:, None], r, 0.0)
+        self._common += r
+        col = self._state == COLLECTING
+        if col.any():  # collected relative to the offset of their step: re-centre them too
+            idx = np.nonzero(col)[0]
+            stored = np.arange(self.config.n_baseline)[None, :] < self._count[idx, None]
+            self._buf[idx] -= np.where(stored[:, :, None], r, 0.0)
+
     def _collect(self, col: NDArray[np.bool_], v: FloatArray) -> None:
         """Baseline collection (relative to the common offset of each reading's step)."""
         if not col.any():
@@ -495,6 +577,7 @@ class Calibrator:
             b = self._buf[done]
             med = np.median(b, axis=1)
             self._base[done] = med
+            self._base0[done] = med
             self._noise[done] = 1.4826 * np.median(np.abs(b - med[:, None, :]), axis=1)
             self._state[done] = TRACKING
             self._count[done] = 0

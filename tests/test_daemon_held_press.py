@@ -94,6 +94,40 @@ def test_a_rebaseline_under_a_contact_is_said_on_the_contact_topic() -> None:
     assert ended is not None and ended >= said[0][0] - 0.05, (ended, said)
 
 
+def test_a_press_held_beside_a_drifting_element_keeps_its_reading_and_force() -> None:
+    """The hour of ``bench/bench_held_press.py``, shortened: the corner's C2 drifts by itself
+    at 2 fF/s (twice ``max_drift``: its tracker lags it by up to ``enter``) beside the held
+    press. On main the skin's common offset ratcheted up through that lag (0.04 fF/s), and
+    the pressed element's frozen baseline carried it: its ΔC2 read 4–7 fF low after 3 min
+    and 140 fF (10 %) low after an hour, the force 7.6 % off; and in a step where the
+    lagging corner was one of two elements reporting, the whole skin moved by half its lag
+    (ΔC2 −30 fF, the force −1.7 % for that step). From one minute on (the corner's own
+    drift is past ``enter`` by then), the pressed element's ΔC now stays within 5 fF of
+    what the press makes, the offset near zero (the world has no common drift) and the
+    force within 0.5 %."""
+    seconds = 180.0
+    p = ElementParams(side=0.04)
+    d1, d2 = skin_response(grid_layout(3, 3), [(*CENTRE, FORCE, DIAMETER)], p)
+    truth = np.array([d1.max(), d2.max()])
+    press = Contact(PRESS_AT, 1e6, *CENTRE, FORCE, DIAMETER)
+    err, forces, health = [], [], None
+    for t, topic, m in drive(reads(seconds, [press], [Drift(DRIFTING, 0.0, 0.0, 2e-15)]), seconds, step=0.1,
+                             sections=SECTIONS):
+        if topic == "element":
+            err += [np.array([a, c]) - truth for b, a, c in zip(m["bridge"], m["dc1"], m["dc2"])
+                    if b == PRESSED and t - T0 > 60.0]
+            assert not any(b == DRIFTING and x for b, x in zip(m["bridge"], m["touched"]))
+        elif topic == "health":
+            health = m["layout"]["calibration"]
+        elif topic == "contact":
+            forces += [c["force"] for c in m["contacts"] if c["missed"] == 0 and t - T0 > 60.0]
+    e = np.abs(np.asarray(err))
+    assert len(err) > 1000 and e.max() < 5e-15, (len(err), e.max(axis=0))
+    assert health is not None and np.all(np.abs(health["common_offset"]) < 3e-15), health["common_offset"]
+    f = np.asarray(forces)
+    assert f.size > 1000 and np.all(np.abs(f / FORCE - 1.0) < 0.005), (f.min(), f.max())
+
+
 @pytest.mark.parametrize("rates", [(0.0, 5e-15), (5e-15, 0.0)])
 def test_one_layer_drifting_alone_is_followed_not_touched(rates) -> None:
     """No press at all: an element whose one layer drifts at 5 fF/s for a minute (290 fF,

@@ -790,3 +790,41 @@ def test_without_a_surface_test_max_touch_behaves_as_before():
         if s.rebaselined is not None:
             break
     assert s is not None and s.rebaselined is not None and cal.rebaselines[0] == 1
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_held_press_does_not_carry_a_ratchet_of_the_common_offset(seed):
+    """A 3×3 skin read at 10 Hz as the daemon feeds it: each frame's readings arrive in
+    two to four groups, one step each. The corner's C2 drifts by itself at 2 fF/s (its
+    clipped tracker lags by up to ``enter``) while the centre is pressed. On main the
+    offset climbed 9–10 fF in 5 min with no drift in the world (the tracked baselines
+    followed each step's biased median down, lifting the next one), the press's frozen
+    baseline carried it (35 fF off on C2 at worst), and it grows with the hold (140 fF in
+    an hour). Now the press's baseline stays within 4 fF of the element at rest from 60 s
+    on (1.9 fF at worst: a median of the few elements of a step), and the offset near
+    zero."""
+    from cellbridge.tactile import ContactSurface
+
+    rng = np.random.default_rng(seed)
+    n, pressed, drifting = 9, 4, 8
+    press = np.array([2.22 * pF, 1.37 * pF])
+    cal = Calibrator(n, 2, CalibrationConfig(), is_contact=ContactSurface(ElementParams(side=0.04), 2 * fF))
+    worst = np.zeros(2)
+    for k in range(3000):
+        t = 0.1 * k
+        truth = np.tile([8 * pF, 6 * pF], (n, 1))
+        truth[drifting, 1] += 2 * fF * t
+        if t >= 10.0:
+            truth[pressed] += press
+        v = np.round((truth + rng.normal(0.0, 0.5 * fF, (n, 2))) / (0.83 * fF)) * 0.83 * fF  # counter steps
+        groups = np.split(rng.permutation(n), np.sort(rng.choice(np.arange(1, n), rng.integers(1, 4), replace=False)))
+        for j, g in enumerate(groups):
+            x = np.full((n, 2), np.nan)
+            x[g] = v[g]
+            s = feed(cal, t + 0.001 * j, x)
+            if t > 60.0 and pressed in g:
+                assert s.touched[pressed]
+                worst = np.maximum(worst, np.abs(cal.baseline[pressed] - [8 * pF, 6 * pF]))
+    assert np.all(worst < 4 * fF), worst / fF
+    assert np.all(np.abs(cal.common_drift) < 1 * fF), cal.common_drift / fF
+    assert not cal.touched[drifting]

@@ -158,5 +158,5 @@ def test_fragments_of_one_datagram_in_two_versions_conflict() -> None:
 
 def test_a_fragment_of_an_unknown_version_cannot_be_encoded() -> None:
     with pytest.raises(ProtocolError) as err:
-        encode(Frame(9, 0, 9, 1, Fragment(FrameType.DATA, 5, 0, 10, b"abc", 3)))
+        encode(Frame(9, 0, 9, 1, Fragment(FrameType.DATA, 5, 0, 10, b"abc", 4)))
     assert err.value.cause == "version"

@@ -18,10 +18,11 @@ from cellbridge.protocol import (
     encode,
     encode_stream,
 )
+from cellbridge.protocol.frame import HEADER_LEN
 from cellbridge.decode import frame_to_json
 
 SPEC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
-BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1)?)\n(.*?)```", re.S)
+BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1|-v2)?)\n(.*?)```", re.S)
 
 
 def _blocks(kind: str) -> list[dict[str, str]]:
@@ -35,6 +36,7 @@ def _blocks(kind: str) -> list[dict[str, str]]:
 
 VECTORS = _blocks("vector")
 V1_VECTORS = _blocks("vector-v1")
+V2_VECTORS = _blocks("vector-v2")
 NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 
 
@@ -52,6 +54,13 @@ def test_every_frame_type_has_a_vector() -> None:
     assert any(f["type"] == "BEACON" and f["payload"]["time"] is not None for f in frames)
     assert any(f["type"] == "BEACON" and f["payload"]["time"] is None for f in frames)
     assert any(f["type"] == "HELLO" and f["payload"]["boots"] for f in frames)
+    # version 3's packing: a frame of several samples, one with an index skipped and a negative
+    # residual, and one whose index jumps (mesh time taken); every DATA vector has its period
+    assert all(p["period"] == 50_000_000 // p["rate"] for p in data)
+    steps = [[b[5] - a[5] for a, b in zip(p["samples"], p["samples"][1:])] for p in data]
+    assert any(len(p["samples"]) >= 5 and 2 in st for p, st in zip(data, steps))
+    assert any(b[1] < a[1] + (b[5] - a[5]) * p["period"] for p in data for a, b in zip(p["samples"], p["samples"][1:]))
+    assert any(s > 1000 for st in steps for s in st)
 
 
 @pytest.mark.parametrize("vector", VECTORS, ids=lambda v: json.loads(v["frame"])["type"])
@@ -75,6 +84,25 @@ def test_version_1_vector_is_still_read(vector: dict[str, str]) -> None:
     encoded = bytes.fromhex(vector["encoded"])
     assert encoded[0] == VERSION and encode(frame) == encoded  # the canonical re-encoding is version 2
     assert decode(encoded) == frame
+
+
+@pytest.mark.parametrize("vector", V2_VECTORS, ids=lambda v: json.loads(v["frame"])["type"])
+def test_version_2_vector_is_still_read(vector: dict[str, str]) -> None:
+    wire, serial = bytes.fromhex(vector["wire"]), bytes.fromhex(vector["serial"])
+    assert wire[0] == 2
+    frame = decode(wire)
+    assert frame_to_json(frame) == json.loads(vector["frame"])
+    assert frame.payload.period == 0  # version 2 had none: its samples are all absolute
+    assert StreamDecoder().feed(serial) == [frame]
+    encoded = bytes.fromhex(vector["encoded"])
+    assert encoded[0] == VERSION and encode(frame) == encoded  # the canonical re-encoding is version 3
+    assert encoded[1:HEADER_LEN] == wire[1:HEADER_LEN] and decode(encoded) == frame
+
+
+def test_there_are_version_2_vectors_of_every_data_kind() -> None:
+    kinds = {(json.loads(v["frame"])["payload"]["mode"], bool(json.loads(v["frame"])["payload"]["samples"][0][4] & NO_MESH_TIME))
+             for v in V2_VECTORS}
+    assert kinds == {(0, False), (1, False), (0, True)}
 
 
 def test_there_is_a_version_1_data_vector() -> None:

@@ -1,5 +1,8 @@
-"""A test-only writer of protocol version 1 frames (docs/protocol.md §3), to prove that
-``decode`` still reads them: today's ``encode`` writes version 2 only.
+"""Test-only writers of protocol version 1 and 2 frames (docs/protocol.md §3), to prove
+that ``decode`` still reads them: today's ``encode`` writes version 3 only.
+
+Version 2 differs from version 3 in DATA alone: no ``period``, and every sample written
+absolute (version 3 packs the samples after a frame's first).
 
 Version 1 differs from version 2 in three payloads: DATA had no ``rate`` and its samples
 no ``index`` (``[element, cycle, c1, c2, flags]``), BEACON no ``time``, HELLO no
@@ -41,13 +44,40 @@ def encode_v1(frame: Frame) -> bytes:
     return body + crc16(body).to_bytes(2, "big")
 
 
+def payload_v2(message: Any) -> list[Any]:
+    """The version 2 wire form of ``message`` (DATA without period, every sample absolute)."""
+    if isinstance(message, Data):
+        return [int(message.mode), message.oversampling, [list(s) for s in message.samples], message.rate]
+    if isinstance(message, Bundle):
+        return [encode_v2(f) for f in message.frames]
+    return message.to_wire()
+
+
+def encode_v2(frame: Frame) -> bytes:
+    """``frame`` as a version 2 sender wrote it (whole frames only, not fragments)."""
+    head = _HEADER.pack(2, frame.flags, frame.type, frame.src, frame.dst, frame.origin, frame.seq,
+                        frame.hops, frame.cost)
+    body = head + msgpack.packb(payload_v2(frame.payload), use_bin_type=True)
+    return body + crc16(body).to_bytes(2, "big")
+
+
+def as_read_from_v2(frame: Frame) -> Frame:
+    """What ``decode(encode_v2(frame))`` must give: DATA's period 0, everything else as sent."""
+    p = frame.payload
+    if isinstance(p, Data):
+        p = dataclasses.replace(p, period=0)
+    elif isinstance(p, Bundle):
+        p = Bundle(tuple(as_read_from_v2(f) for f in p.frames))
+    return Frame(frame.src, frame.dst, frame.origin, frame.seq, p, frame.hops, frame.cost, frame.flags)
+
+
 def as_read_from_v1(frame: Frame) -> Frame:
     """What ``decode(encode_v1(frame))`` must give: the fields version 2 added at their
     defaults (samples flagged NO_MESH_TIME with index 0, rate 0, no time, boots 0)."""
     p = frame.payload
     if isinstance(p, Data):
         samples = tuple(s._replace(flags=s.flags | SampleFlags.NO_MESH_TIME, index=0) for s in p.samples)
-        p = Data(p.mode, samples, p.oversampling, 0)
+        p = Data(p.mode, samples, p.oversampling, 0, 0)
     elif isinstance(p, Beacon):
         p = dataclasses.replace(p, time=None)
     elif isinstance(p, Hello):

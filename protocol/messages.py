@@ -155,37 +155,12 @@ class Data:
     def from_wire(cls, obj: Any) -> Data:
         if type(obj) is not list or len(obj) != 5:
             raise _bad("DATA", "expected an array of 5 fields")
-        mode, over, raw, rate, period = obj
+        rate, period = obj[3], obj[4]
         if type(rate) is not int or not 0 <= rate <= U16:
             raise _bad("DATA", f"rate must be an integer in 0..{U16}, got {rate!r}")
         if type(period) is not int or not 0 <= period <= U32:
             raise _bad("DATA", f"period must be an integer in 0..{U32}, got {period!r}")
-        limit = _code_limit(mode, over)
-        if type(raw) is not list:
-            raise _bad("DATA", "samples must be an array")
-        if not raw:
-            return cls(_MODES[mode], (), over, rate, period)
-        # The host's hottest path (version 3): the first sample is checked as version 2's
-        # are, the later ones unpacked inline (see packed_sample for the arithmetic).
-        first = _absolute(raw[0], mode, limit, 6)
-        samples = [first]
-        append = samples.append
-        _, c, _, _, _, k = first
-        for s in raw[1:]:
-            if type(s) is not list or len(s) != 6:
-                raise _bad("DATA", "a packed sample is [element, cycle residual, c1, c2, flags, index step]")
-            e, r, c1, c2, fl, dk = s
-            if not (
-                type(e) is int and type(r) is int and type(c1) is int and type(c2) is int and type(fl) is int
-                and type(dk) is int and 0 <= e <= U16 and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= U8
-                and _I64_MIN <= r <= _I64_MAX and _I64_MIN <= dk <= _I64_MAX
-            ):
-                raise _bad("DATA", f"packed sample field out of range for {_MODES[mode].name} mode "
-                                   f"(c1, c2 at most {limit}; residual, step signed 64-bit): {s!r}")
-            k = (k + dk) & U64
-            c = (c + dk * period + r) & U64
-            append(_new_tuple(Sample, (e, c, c1, c2, fl, k)))
-        return cls(_MODES[mode], tuple(samples), over, rate, period)
+        return cls._parse(obj[0], obj[1], obj[2], 6, rate, period)
 
     @classmethod
     def from_wire_v2(cls, obj: Any) -> Data:
@@ -195,7 +170,7 @@ class Data:
         rate = obj[3]
         if type(rate) is not int or not 0 <= rate <= U16:
             raise _bad("DATA", f"rate must be an integer in 0..{U16}, got {rate!r}")
-        return cls._parse(obj[0], obj[1], obj[2], 6, rate)
+        return cls._parse(obj[0], obj[1], obj[2], 6, rate, None)
 
     @classmethod
     def from_wire_v1(cls, obj: Any) -> Data:
@@ -203,52 +178,77 @@ class Data:
         ``NO_MESH_TIME`` with index 0, so old captures still replay."""
         if type(obj) is not list or len(obj) != 3:
             raise _bad("DATA", "expected an array of 3 fields")
-        return cls._parse(obj[0], obj[1], obj[2], 5, 0)
+        return cls._parse(obj[0], obj[1], obj[2], 5, 0, None)
 
     @classmethod
-    def _parse(cls, mode: Any, over: Any, raw: Any, width: int, rate: int) -> Data:
-        """Versions 1 and 2, where every sample is absolute."""
-        limit = _code_limit(mode, over)
+    def _parse(cls, mode: Any, over: Any, raw: Any, width: int, rate: int, period: int | None) -> Data:
+        """The samples of every version: all absolute (versions 1 and 2, ``period`` None), or
+        the first absolute and the later ones packed (version 3, :func:`packed_sample`)."""
+        # The host's hottest path: checks are inlined and samples built with
+        # tuple.__new__ (a NamedTuple's own constructor costs twice as much).
+        # The ranges depend on the mode, so a decoded sample is one the chip could produce.
+        if mode == 0 and type(mode) is int:
+            if over != 1 or type(over) is not int:
+                raise _bad("DATA", f"oversampling must be 1 in counter mode, got {over!r}")
+            limit = U16  # 16-bit counter register
+        elif mode == 1 and type(mode) is int:
+            if type(over) is not int or not 1 <= over <= U16:
+                raise _bad("DATA", f"oversampling must be an integer in 1..{U16}, got {over!r}")
+            limit = U8 * over  # sum of `over` 8-bit codes
+        else:
+            raise _bad("DATA", f"unknown mode {mode!r}")
         if type(raw) is not list:
             raise _bad("DATA", "samples must be an array")
-        return cls(_MODES[mode], tuple([_absolute(s, mode, limit, width) for s in raw]), over, rate)
-
-
-def _code_limit(mode: Any, over: Any) -> int:
-    """The largest ``c1``/``c2`` a chip produces in ``mode``: the ranges depend on the mode,
-    so a decoded sample is one the chip could produce."""
-    if mode == 0 and type(mode) is int:
-        if over != 1 or type(over) is not int:
-            raise _bad("DATA", f"oversampling must be 1 in counter mode, got {over!r}")
-        return U16  # 16-bit counter register
-    if mode == 1 and type(mode) is int:
-        if type(over) is not int or not 1 <= over <= U16:
-            raise _bad("DATA", f"oversampling must be an integer in 1..{U16}, got {over!r}")
-        return U8 * over  # sum of `over` 8-bit codes
-    raise _bad("DATA", f"unknown mode {mode!r}")
-
-
-def _absolute(s: Any, mode: int, limit: int, width: int) -> Sample:
-    """One sample written as it is (every sample of versions 1 and 2, the first of version 3).
-
-    The host's hottest path: checks are inlined and samples built with tuple.__new__ (a
-    NamedTuple's own constructor costs twice as much)."""
-    if type(s) is not list or len(s) != width:
-        raise _bad("DATA", "a sample is [element, cycle, c1, c2, flags, index]" if width == 6
-                   else "a version 1 sample is [element, cycle, c1, c2, flags]")
-    e, cyc, c1, c2, fl = s[0], s[1], s[2], s[3], s[4]
-    if not (
-        type(e) is int and type(cyc) is int and type(c1) is int and type(c2) is int and type(fl) is int
-        and 0 <= e <= U16 and 0 <= cyc <= U64 and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= U8
-    ):
-        raise _bad("DATA", f"sample field out of range for {_MODES[mode].name} mode "
-                           f"(c1, c2 at most {limit}): {s!r}")
-    if width == 6:
-        k = s[5]
-        if type(k) is not int or not 0 <= k <= U64:
-            raise _bad("DATA", f"sample index must be an integer in 0..{U64}, got {k!r}")
-        return _new_tuple(Sample, s)
-    return _new_tuple(Sample, (e, cyc, c1, c2, fl | _NO_MESH_TIME, 0))
+        samples: list[Sample] = []
+        append = samples.append
+        rest = iter(raw)
+        for s in rest:  # every sample of versions 1 and 2; the first of version 3
+            if type(s) is not list or len(s) != width:
+                raise _bad("DATA", "a sample is [element, cycle, c1, c2, flags, index]" if width == 6
+                           else "a version 1 sample is [element, cycle, c1, c2, flags]")
+            e, cyc, c1, c2, fl = s[0], s[1], s[2], s[3], s[4]
+            if not (
+                type(e) is int and type(cyc) is int and type(c1) is int and type(c2) is int and type(fl) is int
+                and 0 <= e <= U16 and 0 <= cyc <= U64 and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= U8
+            ):
+                raise _bad("DATA", f"sample field out of range for {_MODES[mode].name} mode "
+                                   f"(c1, c2 at most {limit}): {s!r}")
+            if width == 6:
+                k = s[5]
+                if type(k) is not int or not 0 <= k <= U64:
+                    raise _bad("DATA", f"sample index must be an integer in 0..{U64}, got {k!r}")
+                append(_new_tuple(Sample, s))
+            else:
+                append(_new_tuple(Sample, (e, cyc, c1, c2, fl | _NO_MESH_TIME, 0)))
+            if period is not None:
+                break
+        if period is None:
+            return cls(_MODES[mode], tuple(samples), over, rate)
+        for s in rest:  # version 3's packed samples, from the first's cyc and k: the periodic
+            # case (step 1) and the wrap modulo 2^64 (rare) taken apart, for fewer big-integer
+            # operations per sample
+            if type(s) is not list or len(s) != 6:
+                raise _bad("DATA", "a packed sample is [element, residual, c1, c2, flags, step]")
+            e, r, c1, c2, fl, dk = s
+            if not (
+                type(e) is int and type(r) is int and type(c1) is int and type(c2) is int and type(fl) is int
+                and type(dk) is int and 0 <= e <= U16 and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= U8
+                and _I64_MIN <= r <= _I64_MAX and _I64_MIN <= dk <= _I64_MAX
+            ):
+                raise _bad("DATA", f"packed sample field out of range for {_MODES[mode].name} mode "
+                                   f"(c1, c2 at most {limit}; residual, step signed 64-bit): {s!r}")
+            if dk == 1:
+                k += 1
+                cyc += period + r
+            else:
+                k += dk
+                cyc += dk * period + r
+            if not 0 <= cyc <= U64:
+                cyc &= U64
+            if not 0 <= k <= U64:
+                k &= U64
+            append(_new_tuple(Sample, (e, cyc, c1, c2, fl, k)))
+        return cls(_MODES[mode], tuple(samples), over, rate, period)
 
 
 def _wrap64(x: int) -> int:

@@ -30,6 +30,7 @@ from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import FrameType
+from cellbridge.protocol.messages import packed_samples
 
 
 def ok(flag: bool) -> str:
@@ -78,8 +79,9 @@ def efficiency() -> None:
         first = len(vm.frames[1])
         secs = 2.0
         r = vm.run(secs)
-        bits = sum(8 * len(msgpack.packb(s)) for f in r.gateway_frames[1][first:]
-                   if f.type is FrameType.DATA and f.origin != 1 for s in f.payload.samples)  # type: ignore[union-attr]  # a DATA frame's payload is a Data
+        # the samples' bytes as they travel (protocol version 3 packs all but a frame's first)
+        bits = sum(8 * len(msgpack.packb(x)) for f in r.gateway_frames[1][first:] if f.type is FrameType.DATA
+                   and f.origin != 1 for x in packed_samples(f.payload.samples, f.payload.period))  # type: ignore[union-attr]  # a DATA frame's payload is a Data
         share = bits / secs / mesh.bitrate
         offered = n * 250 * 14 * 8 / 1000
         print(f"{n:>7} {offered:>14.0f} {bits / secs / 1000:>16.0f} {share:>6.1%} "

@@ -41,6 +41,7 @@ from timing import table
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.world import Contact
 
 PRESS_S = 1.0
 GAP_S = 0.5
@@ -84,7 +85,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     from cellbridge.emulator.commands import Settings
     from cellbridge.emulator.realtime import reporting_arg
     from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
-    from cellbridge.emulator.world import Contact, World
+    from cellbridge.emulator.world import World
 
     rng = random.Random(args.seed)
     span = (args.side - 1) * mesh.side

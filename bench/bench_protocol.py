@@ -1,13 +1,19 @@
-"""Protocol throughput on one core: encode, decode and serial stream decoding.
+"""Protocol throughput on one core: encode, decode and serial stream decoding; DATA bytes per sample.
 
 Run: ``.venv/bin/python bench/bench_protocol.py`` (or ``make bench``). The frame is
-a DATA frame with one sample, 32 bytes on the wire before COBS: the smallest frame
-a bridge sends, so the per-frame cost dominates. Target: >= 200 000 decoded
-frames/s through the stream decoder.
+a DATA frame with one sample: the smallest frame a bridge sends, so the per-frame
+cost dominates. Target: >= 200 000 decoded frames/s through the stream decoder.
+A second DATA frame holds 5 samples of a periodic bridge 3 minutes after boot (the
+reference firmware's frame at 100 Hz), so the per-sample cost of unpacking version 3's
+packed samples shows too.
+
+The last table is the wire cost of a DATA sample in protocol version 2 (every sample
+absolute) and version 3 (samples after a frame's first packed: docs/protocol.md §4).
 """
 
 from __future__ import annotations
 
+import msgpack
 from timing import best_rate, pin_to_one_core
 
 from cellbridge.protocol import (
@@ -25,6 +31,42 @@ from cellbridge.protocol import (
 
 N = 200_000
 TARGET_STREAM = 200_000
+CLOCK_HZ = 50_000_000
+RATE = 100
+PERIOD = CLOCK_HZ // RATE
+
+
+def periodic(n: int, cycle: int, index: int) -> tuple[Sample, ...]:
+    """``n`` samples of a periodic bridge whose crystal drifts a few cycles per period."""
+    out, c = [], cycle
+    for i in range(n):
+        out.append(Sample(0, c, 19_600 - i, 15_800 + i % 2, 0, index + i))
+        c += PERIOD + (3, -2, 1, 0)[i % 4]
+    return tuple(out)
+
+
+def periodic_data(samples: tuple[Sample, ...]) -> Data:
+    data = Data(Mode.COUNTER, samples, 1, RATE)
+    if "period" in Data.__dataclass_fields__:  # protocol version 3
+        data.period = PERIOD  # type: ignore[attr-defined]  # absent before version 3
+    return data
+
+
+def bytes_per_sample() -> None:
+    """Wire bytes of a DATA sample, version 2 against what ``encode`` writes now."""
+    print("\nDATA bytes per sample, counter mode, 100 Hz (msgpack of the sample; frame: header and CRC included)")
+    print(f"{'cycle, index':<24} {'v2 sample':>10} {'now first':>10} {'now later':>10} "
+          f"{'v2 frame of 5':>14} {'now frame of 5':>15} {'v2 B/sample':>12} {'now B/sample':>13}")
+    for name, cycle, index in (("32-bit, 16-bit", 40_000_000, 4_000), ("64-bit, 16-bit", 9_000_000_123, 18_000),
+                               ("64-bit, 32-bit", 40_000_000_000, 80_000)):
+        samples = periodic(5, cycle, index)
+        v2 = [len(msgpack.packb(list(s))) for s in samples]
+        v2_frame = 16 + len(msgpack.packb([0, 1, [list(s) for s in samples], RATE]))
+        now_frame = len(encode(Frame(7, 0, 7, 1, periodic_data(samples))))
+        first = len(encode(Frame(7, 0, 7, 1, periodic_data(samples[:1]))))
+        later = len(encode(Frame(7, 0, 7, 1, periodic_data(samples[:2])))) - first
+        print(f"{name:<24} {v2[0]:>10} {v2[0]:>10} {later:>10} {v2_frame:>14} {now_frame:>15} "
+              f"{v2_frame / 5:>12.1f} {now_frame / 5:>13.1f}")
 
 
 def main() -> None:
@@ -70,9 +112,17 @@ def main() -> None:
         got = sum(len(rx.receive(f, 1.0)) for f in parts_twice)
         assert got == N // 20
 
+    five = Frame(7, 0, 7, 1, periodic_data(periodic(5, 9_000_000_123, 18_000)), hops=3, cost=31)
+    fives = [encode(Frame(7, 0, 7, i & 0xFFFF, five.payload, 3, 31)) for i in range(N // 5)]
+
+    def do_decode_five() -> None:
+        for w in fives:
+            decode(w)
+
     rows = [
         ("encode", best_rate(do_encode, N), None),
         ("decode", best_rate(do_decode, N), None),
+        ("decode, 5-sample frames (per sample)", best_rate(do_decode_five, N), None),
         ("stream decode (COBS + decode, 4 KiB reads)", best_rate(do_stream, N), TARGET_STREAM),
         ("host receive, each frame twice (per copy)", best_rate(do_host, len(twice)), None),
         ("host receive, fragments twice (per copy)", best_rate(do_host_fragments, len(parts_twice)), None),
@@ -82,6 +132,7 @@ def main() -> None:
     for name, rate, target in rows:
         ok = "" if target is None else ("yes" if rate >= target else "NO")
         print(f"{name:<44} {rate:>12,.0f} {'' if target is None else f'{target:,}':>10} {ok:>4}")
+    bytes_per_sample()
 
 
 if __name__ == "__main__":

@@ -23,13 +23,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Fields are named as in docs/protocol.md. A DATA sample prints as\n"
         "[element, cycle, c1, c2, flags, index] (flags: 1, 2 counter of C1, C2 wrapped;\n"
         "4 no mesh time, index is then the bridge's own count; 8 held, event-based\n"
-        "reporting), with the frame's sampling \"rate\"; a BEACON's \"time\" is null or\n"
-        "{root, seq, time}; a HELLO has \"boots\". Frames of protocol version 1 are read\n"
-        "too and print with those fields at their defaults (rate 0, flag 4, index 0,\n"
-        "time null, boots 0).\n\n"
+        "reporting), with the frame's sampling \"rate\" and \"period\" (cycles per sample;\n"
+        "samples print unpacked, as absolute values, whatever the wire packed); a BEACON's\n"
+        "\"time\" is null or {root, seq, time}; a HELLO has \"boots\". Frames of protocol\n"
+        "versions 1 and 2 are read too and print with the fields they lack at their\n"
+        "defaults (version 1: rate 0, flag 4, index 0, time null, boots 0; both: period 0).\n\n"
         "examples:\n"
         "  cellbridge decode capture.bin\n"
-        "  echo '00 02 02 02 01 ... 00' | cellbridge decode --hex -"
+        "  echo '00 02 03 02 01 ... 00' | cellbridge decode --hex -"
     )
     parser.add_argument("input", help="capture file, or - for standard input")
     parser.add_argument("--hex", action="store_true",

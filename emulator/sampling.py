@@ -33,14 +33,21 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.meshtime import Timebase
 from cellbridge.emulator.reporting import Reporter
 from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Data, Mode, Sample, SampleFlags
+from cellbridge.protocol.messages import packed_sample
 
-# header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes), rate
-_DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3 + 3
-# msgpack of [element, cycle, c1, c2, flags, index] at the widest
+# header, CRC, DATA array, mode, oversampling (<= 3 bytes), samples array header (<= 3 bytes),
+# rate (<= 3 bytes), period (u32, <= 5 bytes)
+_DATA_OVERHEAD = HEADER_LEN + CRC_LEN + 1 + 1 + 3 + 3 + 3 + 5
+# msgpack of a frame's first sample, [element, cycle, c1, c2, flags, index], at the widest
 _MAX_SAMPLE_BYTES = 1 + 3 + 9 + 5 + 5 + 2 + 9
 _NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 _HELD = int(SampleFlags.HELD)
 _COUNTER_MODULUS = 1 << 16
+
+
+def _uint_bytes(value: int) -> int:
+    """msgpack bytes of a non-negative integer up to ``value``."""
+    return 1 if value < 128 else 2 if value <= 0xFF else 3 if value <= 0xFFFF else 5 if value <= 0xFFFF_FFFF else 9
 
 
 class Sampler:
@@ -87,8 +94,7 @@ class Sampler:
         sample sees is the one at its gate (``sense`` is called with the gate's tick)."""
         if not self.lazy:
             return self.ready if self.flush_at < 0 else min(self.ready, self.flush_at)
-        room = max(1, min(self.batch_max - len(self.batch),
-                          (MAX_FRAME - _DATA_OVERHEAD - self.batch_bytes) // _MAX_SAMPLE_BYTES))
+        room = max(1, min(self.batch_max - len(self.batch), self._fit(self.batch_bytes, bool(self.batch))))
         if self._aligned():  # the ready tick of the batch's last index, at the latest
             room = min(room, self.aligned_batch() - self.index % self.aligned_batch())
         # planned a little early (a crystal 0.1 % fast at most): a wake too early costs
@@ -101,9 +107,29 @@ class Sampler:
         """Samples per aligned batch: as many sample periods as fit in ``max_latency``,
         at least one, and never more than a frame holds (a batch that overflowed its frame
         would close early and lose its alignment)."""
-        fit = (MAX_FRAME - _DATA_OVERHEAD) // _MAX_SAMPLE_BYTES
+        fit = self._fit(0, False)
         per = self.max_latency * self.settings.rate_hz // self.clock_hz
         return max(1, min(per, self.batch_max, fit))
+
+    def _fit(self, used: int, started: bool) -> int:
+        """How many more samples a DATA frame holding ``used`` bytes of samples takes, as the
+        planner counts them: a frame's first sample at its widest, every later one packed
+        (protocol version 3: :func:`~cellbridge.protocol.messages.packed_sample`) with its
+        values at the widest this mode gives (element and flags below 128), its index step
+        below 128 and its cycle residual within 16 bits (a crystal's drift and mesh-time
+        corrections over one period; 655 µs at 50 MHz). A sample packed wider than that (an
+        index jump when mesh time is taken, a clock step) is still counted exactly when it
+        is batched: its frame then only fills sooner than planned."""
+        free = MAX_FRAME - _DATA_OVERHEAD - used
+        n = 0
+        if not started:
+            if free < _MAX_SAMPLE_BYTES:
+                return 0
+            free -= _MAX_SAMPLE_BYTES
+            n = 1
+        st = self.settings
+        code = 3 if st.mode is Mode.COUNTER else _uint_bytes(255 * st.oversampling)
+        return n + free // (1 + 1 + 3 + 2 * code + 1 + 1)
 
     def _aligned(self) -> bool:
         """Whether the sample planned next goes in an aligned batch (periodic, on mesh time)."""
@@ -192,9 +218,11 @@ class Sampler:
         s = Sample(0, self.timebase.local(start), v1, v2, int(flags), self.index)
         self.counters["samples"] += 1
         if self.reporter.wants(s):
-            size = len(msgpack.packb(s))  # a NamedTuple packs as the wire's array
+            period = st.period_cycles(self.clock_hz)
+            size = len(msgpack.packb(packed_sample(self.batch[-1] if self.batch else None, s, period)))
             if self.batch and _DATA_OVERHEAD + self.batch_bytes + size > MAX_FRAME:
                 self._flush(out)
+                size = len(msgpack.packb(packed_sample(None, s, period)))  # now the first of its frame
             self.batch.append(s)
             self.batch_bytes += size
             if self.flush_at < 0:
@@ -216,7 +244,8 @@ class Sampler:
     def _flush(self, out: list[Data]) -> None:
         if self.batch:
             st = self.settings
-            out.append(Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1, st.rate_hz))
+            out.append(Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1, st.rate_hz,
+                            st.period_cycles(self.clock_hz)))
             self.counters["data_frames"] += 1
             self.counters["samples_sent"] += len(self.batch)
             self.batch = []

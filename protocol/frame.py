@@ -2,7 +2,7 @@
 
 Layout (big-endian; docs/protocol.md is the normative text)::
 
-    0  version   u8    = 2 (1 is still read: docs/protocol.md §3)
+    0  version   u8    = 3 (1 and 2 are still read: docs/protocol.md §3)
     1  flags     u8    bits 0-3 optional, bits 4-7 must-understand
     2  type      u8    FrameType
     3  src       u16   link source (bridge id that transmitted this hop)
@@ -31,16 +31,17 @@ from cellbridge.protocol.errors import ProtocolError
 from cellbridge.protocol.messages import (
     MESSAGE_CLASSES,
     U16,
+    VERSION,
     FrameType,
     Message,
     pack_payload,
     unpack_payload,
 )
 
-VERSION = 2
-#: Versions :func:`decode` reads: version 1 frames decode into today's messages, with the
-#: fields version 2 added at their defaults (old captures replay); :func:`encode` writes 2.
-READ_VERSIONS = frozenset({1, 2})
+#: Versions :func:`decode` reads: frames of versions 1 and 2 decode into today's messages,
+#: with the fields later versions added at their defaults (old captures replay);
+#: :func:`encode` writes :data:`VERSION` (3).
+READ_VERSIONS = frozenset({1, 2, 3})
 MAX_FRAME = 255  #: whole frame, header to CRC, before COBS
 MAX_DATAGRAM = 4096  #: largest fragmented datagram (payload and its 2-byte checksum)
 DATAGRAM_CRC_LEN = 2  #: CRC-16 of the payload, ending every fragmented datagram
@@ -164,9 +165,9 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
     ``fragment``, ``payload``, ``nested_bundle``, ``bundle``, and ``inner_<cause>``
     for a bundled frame that fails). Reads every version in :data:`READ_VERSIONS`.
     Only the canonical encoding of a frame is accepted: ``encode(decode(x)) == x`` for a
-    version 2 frame and for a fragment of either version; a whole version 1 frame decodes
-    into today's message (the fields version 2 added at their defaults), which
-    ``encode`` writes as version 2: ``decode(encode(decode(x))) == decode(x)``.
+    version 3 frame and for a fragment of any version; a whole frame of version 1 or 2
+    decodes into today's message (the fields later versions added at their defaults),
+    which ``encode`` writes as version 3: ``decode(encode(decode(x))) == decode(x)``.
     """
     n = len(data)
     if n < MIN_FRAME:

@@ -21,8 +21,13 @@ if TYPE_CHECKING:
     from cellbridge.protocol.frame import Frame
 
 U8, U16, U32, U64 = 0xFF, 0xFFFF, 0xFFFF_FFFF, 0xFFFF_FFFF_FFFF_FFFF
+_I64_MIN, _I64_MAX = -(1 << 63), (1 << 63) - 1  #: a packed sample's signed fields (version 3)
+_I64_MIN_NEG = 1 << 63
 MAX_FW_VERSION_LEN = 32
 MAX_NEIGHBOURS = 32
+#: The protocol version :func:`unpack_payload` reads by default and the frame layer writes
+#: (``cellbridge.protocol.frame.VERSION``, header byte 0).
+VERSION = 3
 _FRAGMENT_FLAG = 0x10  # header flag FRAGMENT (frame.Flags imports this module, so not from there)
 _NO_MESH_TIME = 0x04  # SampleFlags.NO_MESH_TIME, as a plain int for the hot path
 
@@ -120,6 +125,12 @@ class Data:
 
     Not frozen, like :class:`~cellbridge.protocol.frame.Frame`: it is built once per
     frame on the host's hot path.
+
+    On the wire (version 3, docs/protocol.md §4) the first sample is written as it is and
+    every later one *relative to the one before it*: its index step and its cycle's
+    residual from the bridge's nominal schedule (``period`` cycles per index step), which
+    are one byte each on a periodic bridge instead of 5 and 9. ``samples`` always holds
+    the absolute samples: nothing above the protocol layer sees the packing.
     """
 
     frame_type: ClassVar[FrameType] = FrameType.DATA
@@ -130,18 +141,36 @@ class Data:
     #: protocol version 1, which had no index, decode with 0), and the host then times
     #: the samples from their arrival as if each were flagged ``NO_MESH_TIME``.
     rate: int = 0
+    #: The bridge's nominal sampling period in its own cycles (u32: ``clock_hz // rate``),
+    #: the step the packed cycles are predicted with; any value encodes any samples (it
+    #: only changes how many bytes they take), and 0 (frames of versions 1 and 2, which
+    #: had none) packs each cycle as its difference from the one before.
+    period: int = 0
 
     def to_wire(self) -> list[Any]:
-        return [int(self.mode), self.oversampling, [list(s) for s in self.samples], self.rate]
+        return [int(self.mode), self.oversampling, packed_samples(self.samples, self.period), self.rate,
+                self.period]
 
     @classmethod
     def from_wire(cls, obj: Any) -> Data:
+        if type(obj) is not list or len(obj) != 5:
+            raise _bad("DATA", "expected an array of 5 fields")
+        rate, period = obj[3], obj[4]
+        if type(rate) is not int or not 0 <= rate <= U16:
+            raise _bad("DATA", f"rate must be an integer in 0..{U16}, got {rate!r}")
+        if type(period) is not int or not 0 <= period <= U32:
+            raise _bad("DATA", f"period must be an integer in 0..{U32}, got {period!r}")
+        return cls._parse(obj[0], obj[1], obj[2], 6, rate, period)
+
+    @classmethod
+    def from_wire_v2(cls, obj: Any) -> Data:
+        """Protocol version 2 (every sample absolute, no period): read as sent, ``period`` 0."""
         if type(obj) is not list or len(obj) != 4:
             raise _bad("DATA", "expected an array of 4 fields")
         rate = obj[3]
         if type(rate) is not int or not 0 <= rate <= U16:
             raise _bad("DATA", f"rate must be an integer in 0..{U16}, got {rate!r}")
-        return cls._parse(obj[0], obj[1], obj[2], 6, rate)
+        return cls._parse(obj[0], obj[1], obj[2], 6, rate, None)
 
     @classmethod
     def from_wire_v1(cls, obj: Any) -> Data:
@@ -149,10 +178,12 @@ class Data:
         ``NO_MESH_TIME`` with index 0, so old captures still replay."""
         if type(obj) is not list or len(obj) != 3:
             raise _bad("DATA", "expected an array of 3 fields")
-        return cls._parse(obj[0], obj[1], obj[2], 5, 0)
+        return cls._parse(obj[0], obj[1], obj[2], 5, 0, None)
 
     @classmethod
-    def _parse(cls, mode: Any, over: Any, raw: Any, width: int, rate: int) -> Data:
+    def _parse(cls, mode: Any, over: Any, raw: Any, width: int, rate: int, period: int | None) -> Data:
+        """The samples of every version: all absolute (versions 1 and 2, ``period`` None), or
+        the first absolute and the later ones packed (version 3, :func:`packed_sample`)."""
         # The host's hottest path: checks are inlined and samples built with
         # tuple.__new__ (a NamedTuple's own constructor costs twice as much).
         # The ranges depend on the mode, so a decoded sample is one the chip could produce.
@@ -168,8 +199,10 @@ class Data:
             raise _bad("DATA", f"unknown mode {mode!r}")
         if type(raw) is not list:
             raise _bad("DATA", "samples must be an array")
-        samples = []
-        for s in raw:
+        samples: list[Sample] = []
+        append = samples.append
+        rest = iter(raw)
+        for s in rest:  # every sample of versions 1 and 2; the first of version 3
             if type(s) is not list or len(s) != width:
                 raise _bad("DATA", "a sample is [element, cycle, c1, c2, flags, index]" if width == 6
                            else "a version 1 sample is [element, cycle, c1, c2, flags]")
@@ -184,10 +217,71 @@ class Data:
                 k = s[5]
                 if type(k) is not int or not 0 <= k <= U64:
                     raise _bad("DATA", f"sample index must be an integer in 0..{U64}, got {k!r}")
-                samples.append(_new_tuple(Sample, s))
+                append(_new_tuple(Sample, s))
             else:
-                samples.append(_new_tuple(Sample, (e, cyc, c1, c2, fl | _NO_MESH_TIME, 0)))
-        return cls(_MODES[mode], tuple(samples), over, rate)
+                append(_new_tuple(Sample, (e, cyc, c1, c2, fl | _NO_MESH_TIME, 0)))
+            if period is not None:
+                break
+        if period is None:
+            return cls(_MODES[mode], tuple(samples), over, rate)
+        for s in rest:  # version 3's packed samples, from the first's cyc and k: the periodic
+            # case (step 1) and the wrap modulo 2^64 (rare) taken apart, for fewer big-integer
+            # operations per sample
+            if type(s) is not list or len(s) != 6:
+                raise _bad("DATA", "a packed sample is [element, residual, c1, c2, flags, step]")
+            e, r, c1, c2, fl, dk = s
+            if not (
+                type(e) is int and type(r) is int and type(c1) is int and type(c2) is int and type(fl) is int
+                and type(dk) is int and 0 <= e <= U16 and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= U8
+                and _I64_MIN <= r <= _I64_MAX and _I64_MIN <= dk <= _I64_MAX
+            ):
+                raise _bad("DATA", f"packed sample field out of range for {_MODES[mode].name} mode "
+                                   f"(c1, c2 at most {limit}; residual, step signed 64-bit): {s!r}")
+            if dk == 1:
+                k += 1
+                cyc += period + r
+            else:
+                k += dk
+                cyc += dk * period + r
+            if not 0 <= cyc <= U64:
+                cyc &= U64
+            if not 0 <= k <= U64:
+                k &= U64
+            append(_new_tuple(Sample, (e, cyc, c1, c2, fl, k)))
+        return cls(_MODES[mode], tuple(samples), over, rate, period)
+
+
+def _wrap64(x: int) -> int:
+    """``x`` modulo 2⁶⁴ as a signed 64-bit integer (two's complement), -2⁶³..2⁶³-1."""
+    return ((x + _I64_MIN_NEG) & U64) - _I64_MIN_NEG
+
+
+def packed_sample(prev: Sample | None, s: Sample, period: int) -> list[int]:
+    """The version 3 wire form of ``s`` in a DATA frame after ``prev`` (None: the first).
+
+    The first sample is ``[element, cycle, c1, c2, flags, index]`` as it is; a later one
+    ``[element, residual, c1, c2, flags, step]`` with ``step = index - prev.index`` and
+    ``residual = cycle - (prev.cycle + step * period)``, both modulo 2⁶⁴ as signed 64-bit
+    integers (what a chip's u64 arithmetic gives for free): a periodic bridge's step is 1
+    and its residual its crystal's drift over one period plus mesh-time corrections, each
+    a one-byte msgpack fixint. Wrapping makes every sequence of samples encodable (an
+    index that restarts at 0, a cycle counter at its limit) in exactly one way; the
+    decoder adds modulo 2⁶⁴, so a rebuilt cycle and index are always in their u64 range.
+    """
+    if prev is None:
+        return list(s)
+    step = _wrap64(s[5] - prev[5])
+    return [s[0], _wrap64(s[1] - prev[1] - step * period), s[2], s[3], s[4], step]
+
+
+def packed_samples(samples: tuple[Sample, ...] | list[Sample], period: int) -> list[list[int]]:
+    """The version 3 wire form of a DATA frame's samples (:func:`packed_sample` of each)."""
+    out = []
+    prev = None
+    for s in samples:
+        out.append(packed_sample(prev, s, period))
+        prev = s
+    return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -436,18 +530,23 @@ def pack_payload(message: Message) -> bytes:
     return _pack(message.to_wire())
 
 
-#: Parsers of the payloads whose layout protocol version 1 had shorter (docs/protocol.md §3):
-#: old captures still decode, into today's messages with the new fields at their defaults.
-_V1_PARSERS: dict[int, Any] = {FrameType.DATA: Data.from_wire_v1, FrameType.BEACON: Beacon.from_wire_v1,
-                               FrameType.HELLO: Hello.from_wire_v1}
+#: Parsers of the payloads whose layout an older protocol version had otherwise
+#: (docs/protocol.md §3): old captures still decode, into today's messages (the fields a later
+#: version added at their defaults). Version 1 had DATA, BEACON and HELLO shorter; version 2
+#: wrote every DATA sample absolute.
+_OLD_PARSERS: dict[int, dict[int, Any]] = {
+    1: {FrameType.DATA: Data.from_wire_v1, FrameType.BEACON: Beacon.from_wire_v1, FrameType.HELLO: Hello.from_wire_v1},
+    2: {FrameType.DATA: Data.from_wire_v2},
+}
 
 
-def unpack_payload(frame_type: int, data: bytes, version: int = 2) -> Message:
-    """Parse and validate a payload; any malformation becomes :class:`ProtocolError`.
+def unpack_payload(frame_type: int, data: bytes, version: int = VERSION) -> Message:
+    """Parse and validate a payload of protocol ``version``; any malformation becomes
+    :class:`ProtocolError`.
 
-    Only the canonical encoding is accepted (``pack_payload(unpack_payload(x)) == x``):
-    one message has exactly one byte string, so byte-level duplicate detection and
-    caches see one frame as one frame.
+    Only the canonical encoding is accepted (``pack_payload(unpack_payload(x)) == x`` for
+    the current version): one message has exactly one byte string, so byte-level duplicate
+    detection and caches see one frame as one frame.
     """
     try:
         obj = msgpack.unpackb(data)
@@ -460,8 +559,10 @@ def unpack_payload(frame_type: int, data: bytes, version: int = 2) -> Message:
     if not canonical:
         raise ProtocolError("payload", "not the canonical msgpack encoding (smallest forms, float64)")
     try:
-        if version == 1 and frame_type in _V1_PARSERS:
-            return _V1_PARSERS[frame_type](obj)
+        if version != VERSION:
+            old = _OLD_PARSERS[version].get(frame_type)
+            if old is not None:
+                return old(obj)
         return MESSAGE_CLASSES[frame_type].from_wire(obj)
     except ProtocolError:
         raise

@@ -35,9 +35,10 @@ def _samples(limit: int) -> st.SearchStrategy[tuple[Sample, ...]]:
 
 
 # Counter mode: 16-bit counts, oversampling 1; ADC mode: sums of `oversampling` 8-bit codes.
-counter_data = st.builds(Data, st.just(Mode.COUNTER), _samples(0xFFFF), st.just(1), u16)
+# The period (version 3) only changes how the samples pack: any u32 with any samples.
+counter_data = st.builds(Data, st.just(Mode.COUNTER), _samples(0xFFFF), st.just(1), u16, u32)
 adc_data = st.integers(1, 0xFFFF).flatmap(
-    lambda over: st.builds(Data, st.just(Mode.ADC), _samples(255 * over), st.just(over), u16))
+    lambda over: st.builds(Data, st.just(Mode.ADC), _samples(255 * over), st.just(over), u16, u32))
 data = counter_data | adc_data
 beacon = st.builds(Beacon, u16, u16, u8, st.none() | st.builds(MeshTime, u16, u16, u64))
 hello = st.builds(Hello, u16, st.text(max_size=8), finite, finite,

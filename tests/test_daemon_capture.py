@@ -90,7 +90,8 @@ def test_a_wall_clock_step_does_not_enter_a_capture(tmp_path: Path) -> None:
                 clock.wall_offset += step
                 clock.t += 0.5
                 dev.send(data)
-                await until(lambda n=len(data): len(got) == sum(map(len, (b"\x00one\x00", b"two\x00", b"three\x00")[:k + 1])))
+                want = sum(map(len, (b"\x00one\x00", b"two\x00", b"three\x00")[:k + 1]))
+                await until(lambda want=want: len(got) == want)
         finally:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)

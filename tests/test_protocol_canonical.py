@@ -22,8 +22,8 @@ from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
 
 def _int_forms(n: int) -> list[bytes]:
     forms = []
-    if n < 0x80:
-        forms.append(bytes([n]))
+    if -32 <= n < 0x80:  # positive fixint, or negative fixint (version 3's packed samples)
+        forms.append(bytes([n & 0xFF]))
     for code, fmt, lo, hi in ((0xCC, ">B", 0, 0xFF), (0xCD, ">H", 0, 0xFFFF), (0xCE, ">I", 0, 2**32 - 1),
                               (0xCF, ">Q", 0, 2**64 - 1), (0xD0, ">b", -128, 127), (0xD1, ">h", -2**15, 2**15 - 1),
                               (0xD2, ">i", -2**31, 2**31 - 1), (0xD3, ">q", -2**63, 2**63 - 1)):

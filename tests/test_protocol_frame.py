@@ -81,13 +81,13 @@ def test_any_byte_error_is_detected(pos: int, xor: int) -> None:
     assert err.value.cause == "crc"
 
 
-def test_header_writes_version_2() -> None:
-    assert encode(SAMPLE)[0] == VERSION == 2
+def test_header_writes_version_3() -> None:
+    assert encode(SAMPLE)[0] == VERSION == 3
 
 
 @pytest.mark.parametrize(
     "offset,value,cause",
-    [(0, 0, "version"), (0, 3, "version"), (0, 0xFF, "version"), (1, 0x20, "must_understand"),
+    [(0, 0, "version"), (0, 4, "version"), (0, 0xFF, "version"), (1, 0x20, "must_understand"),
      (1, 0x80, "must_understand"), (2, 0, "type"), (2, 99, "type")],
 )
 def test_header_policy(offset: int, value: int, cause: str) -> None:
@@ -131,14 +131,16 @@ def test_size_limits(data: bytes, cause: str) -> None:
         b"\x94\x00\x01\x90\xff",  # negative rate
         b"\x94\x00\x01\x90\xc0",  # nil rate
         b"\x93\x00\x01\x90",  # version 1's DATA (no rate) in a version 2 frame
+        b"\x95\x00\x01\x90\x64\x00",  # version 3's DATA (with a period) in a version 2 frame
         b"\x92\x00\x01",  # wrong arity
         b"\xd4\x01\x00",  # ext type
         b"\x94\x00\x01\x90\x64\x00",  # trailing data
     ],
 )
 def test_bad_payloads(payload: bytes) -> None:
-    head = encode(SAMPLE)[:HEADER_LEN]
-    assert head[0] == VERSION
+    """Version 2's DATA layout (still read, docs/protocol.md §3), in a version 2 frame."""
+    head = _V2_HEAD
+    assert head[0] == 2
     with pytest.raises(ProtocolError) as err:
         decode(sealed(head + payload))
     assert err.value.cause == "payload"
@@ -146,9 +148,70 @@ def test_bad_payloads(payload: bytes) -> None:
 
 def test_the_bad_payloads_are_bad_only_where_they_say() -> None:
     """The well-formed neighbour of the cases above decodes, so each is refused for its defect."""
-    head = encode(SAMPLE)[:HEADER_LEN]
-    frame = decode(sealed(head + b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\x00\x64"))
+    frame = decode(sealed(_V2_HEAD + b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\x00\x64"))
     assert frame.payload == Data(Mode.COUNTER, (Sample(0, 0, 0, 0, 0, 0),), 1, 100)
+    assert decode(sealed(_V3_HEAD + _packb(V3_GOOD))).payload == V3_GOOD_DATA  # version 3's neighbour
+
+
+_V3_HEAD = encode(SAMPLE)[:HEADER_LEN]
+_V2_HEAD = bytes([2]) + _V3_HEAD[1:]
+#: A version 3 DATA payload, two samples, period 10: the second packed (residual -1, step 1).
+V3_GOOD = [0, 1, [[0, 5, 0, 0, 0, 0], [0, -1, 0, 0, 0, 1]], 100, 10]
+V3_GOOD_DATA = Data(Mode.COUNTER, (Sample(0, 5, 0, 0, 0, 0), Sample(0, 14, 0, 0, 0, 1)), 1, 100, 10)
+
+
+def _v3_with(path: tuple[int, ...], value: object) -> list:
+    """V3_GOOD with the field at ``path`` replaced by ``value`` (``...``: removed)."""
+    import copy
+    out = copy.deepcopy(V3_GOOD)
+    parent = out
+    for i in path[:-1]:
+        parent = parent[i]
+    if value is ...:
+        del parent[path[-1]]
+    else:
+        parent[path[-1]] = value
+    return out
+
+
+def _packb(obj: object) -> bytes:
+    import msgpack
+    return msgpack.packb(obj)
+
+
+#: Version 3 DATA payloads, each wrong in one field (its comment) and otherwise V3_GOOD.
+V3_BAD_PAYLOADS = [
+    _packb(V3_GOOD[:4]),  # no period (version 2's DATA in a version 3 frame)
+    _packb(_v3_with((4,), -1)),  # negative period
+    _packb(_v3_with((4,), None)),  # nil period
+    _packb(_v3_with((4,), True)),  # bool period
+    _packb(_v3_with((4,), 2**32)),  # period more than a u32
+    _packb(_v3_with((2, 0, 1), -1)),  # first sample's cycle negative (it is absolute)
+    _packb(_v3_with((2, 0, 5), -1)),  # first sample's index negative
+    _packb(_v3_with((2, 1, 5), ...)),  # packed sample of 5 fields
+    _packb(_v3_with((2, 1), [0, -1, 0, 0, 0, 1, 0])),  # packed sample of 7 fields
+    _packb(_v3_with((2, 1), None)),  # packed sample not an array
+    _packb(_v3_with((2, 1, 0), -1)),  # negative element
+    _packb(_v3_with((2, 1, 0), 0x10000)),  # element more than a u16
+    _packb(_v3_with((2, 1, 1), True)),  # bool residual
+    _packb(_v3_with((2, 1, 1), None)),  # nil residual
+    _packb(_v3_with((2, 1, 1), 2**63)),  # residual beyond a signed 64-bit field
+    _packb(_v3_with((2, 1, 5), 2**63)),  # step beyond a signed 64-bit field
+    _packb(_v3_with((2, 1, 5), False)),  # bool step
+    _packb(_v3_with((2, 1, 2), -1)),  # negative c1
+    _packb(_v3_with((2, 1, 3), 0x10000)),  # c2 more than the 16-bit counter holds
+    _packb(_v3_with((2, 1, 4), 0x100)),  # flags more than a u8
+    _packb(_v3_with((2, 1, 4), 1.0)),  # float flags
+    _packb(_v3_with((1,), 2)),  # oversampling 2 in counter mode
+    _packb(V3_GOOD) + b"\x00",  # trailing data
+]
+
+
+@pytest.mark.parametrize("payload", V3_BAD_PAYLOADS)
+def test_bad_version_3_data(payload: bytes) -> None:
+    with pytest.raises(ProtocolError) as err:
+        decode(sealed(_V3_HEAD + payload))
+    assert err.value.cause == "payload"
 
 
 @pytest.mark.parametrize(
@@ -198,7 +261,7 @@ def test_encode_rejects_out_of_range_fields(field: str, value) -> None:
 
 
 def test_encode_refuses_oversized_frames() -> None:
-    big = Frame(1, 0, 1, 1, Data(Mode.COUNTER, tuple(Sample(0, 2**40, 1, 1, 0) for _ in range(30))))
+    big = Frame(1, 0, 1, 1, Data(Mode.COUNTER, tuple(Sample(0, 2**40 + 2**35 * i, 1, 1, 0) for i in range(30))))
     with pytest.raises(ProtocolError) as err:
         encode(big)
     assert err.value.cause == "too_large"

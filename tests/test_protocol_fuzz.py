@@ -9,7 +9,7 @@ from __future__ import annotations
 import random
 
 from cobs import cobs
-from protocol_v1 import encode_v1, same_header
+from protocol_v1 import encode_v1, encode_v2, same_header
 from protocol_wire import sealed
 
 from cellbridge.protocol import (
@@ -42,6 +42,14 @@ from cellbridge.protocol import (
 SEEDS = [
     Frame(1, 0, 1, 1, Data(Mode.COUNTER, (Sample(0, 123456, 19600, 15800, SampleFlags.HELD, 70_000),
                                           Sample(0, 223456, 19590, 15790, 2 | SampleFlags.NO_MESH_TIME, 12)), 1, 100)),
+    # version 3 packs the samples after the first: a periodic bridge past 2^32 cycles, a gap,
+    # mesh time lost (the index back to 0) and cycles at the u64 edge
+    Frame(1, 0, 1, 2, Data(Mode.COUNTER, (Sample(0, 9_000_000_123, 19600, 15800, 0, 18_000),
+                                          Sample(0, 9_000_500_126, 19599, 15801, 0, 18_001),
+                                          Sample(0, 9_001_500_120, 19598, 15800, 0, 18_003),
+                                          Sample(0, 9_002_000_120, 19597, 15800, 4, 0),
+                                          Sample(0, 2**64 - 1, 19597, 15800, 4, 1),
+                                          Sample(0, 499_999, 19597, 15800, 4, 2)), 1, 100, 500_000)),
     Frame(2, 0xFFFF, 2, 2, Beacon(1, 35, 2), flags=1),
     Frame(2, 0xFFFF, 2, 3, Beacon(1, 35, 2, MeshTime(1, 513, 2**40 + 12345))),
     Frame(3, 0, 3, 3, Hello(3, "0.1.0", 0.04, 0.08, 0.04, 50_000_000, 3, 7)),
@@ -54,8 +62,9 @@ SEEDS = [
     *fragment(Frame(9, 0, 9, 100, Data(Mode.ADC, tuple(Sample(0, 10**6 * i, 142 * 16, 123 * 16, 0, 500 + i)
                                                        for i in range(30)), 16, 200)), tag=5, max_frame=64),
 ]
-# Version 1 frames are still read (docs/protocol.md §3): old senders' bytes are fuzzed too.
-WIRE = [encode(f) for f in SEEDS] + [encode_v1(f) for f in SEEDS if not isinstance(f.payload, Fragment)]
+# Versions 1 and 2 are still read (docs/protocol.md §3): old senders' bytes are fuzzed too.
+WIRE = ([encode(f) for f in SEEDS] + [encode_v1(f) for f in SEEDS if not isinstance(f.payload, Fragment)]
+        + [encode_v2(f) for f in SEEDS if not isinstance(f.payload, Fragment)])
 
 
 def mutate(rng: random.Random, data: bytes) -> bytes:
@@ -87,7 +96,7 @@ def test_fuzz_decoders_raise_only_protocol_error() -> None:
     rng = random.Random(20261122)
     stream = StreamDecoder()
     reassembler = Reassembler(max_per_origin=2, max_slots=8)
-    decoded = decoded_v1 = 0
+    decoded = decoded_v1 = decoded_v2 = 0
     n = 100_000
     for i in range(n):
         if i % 4 == 0:
@@ -102,11 +111,12 @@ def test_fuzz_decoders_raise_only_protocol_error() -> None:
             decoded += 1
             if data[0] == VERSION or isinstance(frame.payload, Fragment):
                 assert encode(frame) == data  # only the canonical bytes of a frame are accepted
-            else:  # a whole version 1 frame: read into today's message, written back as version 2
-                decoded_v1 += 1
+            else:  # a whole version 1 or 2 frame: read into today's message, written back as version 3
+                decoded_v1 += data[0] == 1
+                decoded_v2 += data[0] == 2
                 try:
                     again = encode(frame)
-                except ProtocolError as exc:  # version 2's extra fields overflow a full version 1 frame
+                except ProtocolError as exc:  # later versions' extra fields overflow a full old frame
                     assert exc.cause == "too_large"
                 else:
                     assert again[0] == VERSION and same_header(again, data) and decode(again) == frame
@@ -118,6 +128,6 @@ def test_fuzz_decoders_raise_only_protocol_error() -> None:
         assert stream.buffered <= stream.max_buffer
         assert reassembler.slot_count <= 8
     # The fuzzer must have reached past the CRC into the parsers, or it proved little.
-    assert decoded > n // 20 and decoded_v1 > n // 200
+    assert decoded > n // 20 and decoded_v1 > n // 200 and decoded_v2 > n // 200
     assert sum(stream.frames_dropped.values()) > 0 and stream.frames_ok > n // 40
     assert reassembler.completed + sum(reassembler.drops.values()) > 0

@@ -27,7 +27,7 @@ def _traffic(n: int, start_seq: int) -> tuple[list[Frame], list[Frame]]:
     for d in range(n):
         frame = Frame(9, 0, 9, seq, Data(Mode.COUNTER, tuple(Sample(0, 10**6 * d + i, 19000 + i, 15000, 0)
                                                              for i in range(30))))
-        parts = fragment(frame, tag=d, max_frame=128)
+        parts = fragment(frame, tag=d, max_frame=100)  # 5 fragments each, as version 2 cut them at 128
         sent.append(frame)
         wire += parts
         seq = (seq + len(parts)) & 0xFFFF

@@ -206,7 +206,7 @@ def _data_wire(mode: int, over: int, c1: int) -> bytes:
     head = encode(Frame(7, 0, 7, 1, Beacon(0, 0, 0)))[:HEADER_LEN]
     head = head[:2] + bytes([FrameType.DATA]) + head[3:]
     assert head[0] == VERSION
-    return sealed(head + msgpack.packb([mode, over, [[0, 1000, c1, 100, 0, 7]], 100]))
+    return sealed(head + msgpack.packb([mode, over, [[0, 1000, c1, 100, 0, 7]], 100, 500_000]))
 
 
 @pytest.mark.parametrize("mode,over,c1", [(0, 500, 100), (0, 1, 70_000), (1, 4, 255 * 4 + 1)])

@@ -20,10 +20,11 @@ from cellbridge.protocol import (
     encode,
     encode_stream,
 )
+from cellbridge.protocol.frame import HEADER_LEN
 from cellbridge.decode import frame_to_json
 
 SPEC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
-BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1)?)\n(.*?)```", re.S)
+BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1|-v2)?)\n(.*?)```", re.S)
 
 
 def _blocks(kind: str) -> list[dict[str, str]]:
@@ -53,6 +54,7 @@ def _read(vector: dict[str, str], version: int) -> tuple[Frame, bytes, bytes]:
 
 VECTORS = _blocks("vector")
 V1_VECTORS = _blocks("vector-v1")
+V2_VECTORS = _blocks("vector-v2")
 NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 
 
@@ -70,6 +72,13 @@ def test_every_frame_type_has_a_vector() -> None:
     assert any(f["type"] == "BEACON" and f["payload"]["time"] is not None for f in frames)
     assert any(f["type"] == "BEACON" and f["payload"]["time"] is None for f in frames)
     assert any(f["type"] == "HELLO" and f["payload"]["boots"] for f in frames)
+    # version 3's packing: a frame of several samples, one with an index skipped and a negative
+    # residual, and one whose index jumps (mesh time taken); every DATA vector has its period
+    assert all(p["period"] == 50_000_000 // p["rate"] for p in data)
+    steps = [[b[5] - a[5] for a, b in zip(p["samples"], p["samples"][1:])] for p in data]
+    assert any(len(p["samples"]) >= 5 and 2 in st for p, st in zip(data, steps))
+    assert any(b[1] < a[1] + (b[5] - a[5]) * p["period"] for p in data for a, b in zip(p["samples"], p["samples"][1:]))
+    assert any(s > 1000 for st in steps for s in st)
 
 
 @pytest.mark.parametrize("vector", VECTORS, ids=lambda v: _json(v)["type"])
@@ -79,12 +88,20 @@ def test_vector(vector: dict[str, str]) -> None:
     assert encode_stream(frame) == serial
 
 
-@pytest.mark.parametrize("vector", V1_VECTORS, ids=lambda v: _json(v)["type"])
-def test_version_1_vector_is_still_read(vector: dict[str, str]) -> None:
-    frame, _, _ = _read(vector, 1)
+@pytest.mark.parametrize("version,vector", [(1, v) for v in V1_VECTORS] + [(2, v) for v in V2_VECTORS],
+                         ids=lambda v: _json(v)["type"] if isinstance(v, dict) else f"v{v}")
+def test_an_older_version_vector_is_still_read(version: int, vector: dict[str, str]) -> None:
+    frame, wire, _ = _read(vector, version)
+    assert frame.payload.period == 0  # versions 1 and 2 had none: their samples are all absolute
     encoded = bytes.fromhex(vector["encoded"])
-    assert encoded[0] == VERSION and encode(frame) == encoded  # the canonical re-encoding is version 2
-    assert decode(encoded) == frame
+    assert encoded[0] == VERSION and encode(frame) == encoded  # the canonical re-encoding is version 3
+    assert encoded[1:HEADER_LEN] == wire[1:HEADER_LEN] and decode(encoded) == frame
+
+
+def test_there_are_version_2_vectors_of_every_data_kind() -> None:
+    kinds = {(json.loads(v["frame"])["payload"]["mode"], bool(json.loads(v["frame"])["payload"]["samples"][0][4] & NO_MESH_TIME))
+             for v in V2_VECTORS}
+    assert kinds == {(0, False), (1, False), (0, True)}
 
 
 def test_there_is_a_version_1_data_vector() -> None:

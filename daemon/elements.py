@@ -45,6 +45,15 @@ class ElementStage:
     surface (:class:`ContactSurface` at the inverse's noise): a touch reaching
     ``max_touch`` with a contact's reading is kept; the elements it does re-baseline are
     collected for the next ``contact`` message (:meth:`take_rebaselined`).
+
+    A held reading (event-based reporting, flag ``HELD``) stands for the frames after it:
+    its bridge sends again as soon as the element changes. Each step gives the Calibrator
+    the newest reading of every element, so a ready element whose newest reading is held
+    takes part with that reading (for ``tau`` seconds after it came at most: a bridge
+    silent that long is treated as silent). Without it a step held only the elements
+    that changed, the ones under a press, and the Calibrator took their rise, alike on
+    all of them, for a common step of the whole skin: the press was cut to a sliver and
+    every other element went negative (one came back as a ghost contact).
     """
 
     def __init__(self, layout: SkinLayout, params: ElementParams, cal: CalibrationConfig, noise: float,
@@ -58,18 +67,24 @@ class ElementStage:
         self.touched = np.zeros(layout.n, dtype=bool)
         self._pending = np.full((layout.n, 2), np.nan)  # newest readings since the last step
         self._pending_rows = np.zeros(layout.n, dtype=bool)
+        self._held = np.full((layout.n, 2), np.nan)  # newest reading of each element, if held
+        self._held_at = np.full(layout.n, -math.inf)  # when it came
+        self._held_for = cal.tau
         self.stepped = np.zeros(0, dtype=np.int64)  # rows the last step classified (their newest reading)
         self._last_step = -math.inf
         self._t = -math.inf
 
     def step(self, rows: NDArray[np.int64], caps: FloatArray, groups: tuple[NDArray[np.int64], NDArray[np.int64]],
-             now: float) -> dict[str, FloatArray]:
+             now: float, held: NDArray[np.bool_] | None = None) -> dict[str, FloatArray]:
         """``rows``: layout row of each sample; ``caps``: (n, 2) farads; ``groups``: the
-        distinct rows and the index of each one's newest sample."""
+        distinct rows and the index of each one's newest sample; ``held``: each sample's
+        ``HELD`` flag (None: none is held)."""
         self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
         uniq, newest = groups
         self._pending[uniq] = caps[newest]
         self._pending_rows[uniq] = True
+        self._held[uniq] = np.nan if held is None else np.where(held[newest, None], caps[newest], np.nan)
+        self._held_at[uniq] = self._t
         self.stepped = self.stepped[:0]
         if self._t - self._last_step >= self.min_step:
             early = None
@@ -92,8 +107,20 @@ class ElementStage:
             self._step(None)
         return self.stepped
 
+    def _standing(self, values: FloatArray) -> FloatArray:
+        """``values`` with the held readings that still stand filled in where an element
+        has no new reading (a ready element's only: a baseline is taken from readings)."""
+        fill = (np.isnan(values).any(axis=1) & np.isfinite(self._held).all(axis=1)
+                & (self._t - self._held_at <= self._held_for) & self.calibrator.ready)
+        if not fill.any():
+            return values
+        out = values.copy()
+        out[fill] = self._held[fill]
+        return out
+
     def _step(self, early: FloatArray | None) -> None:
         for values in ([self._pending] if early is None else [early, self._pending]):
+            values = self._standing(values)
             st = self.calibrator.update(self._t, values)
             if st.rebaselined is not None:
                 self.rebaselined |= st.rebaselined

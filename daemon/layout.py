@@ -174,7 +174,7 @@ class LayoutStages:
         last = {x: i for i, x in enumerate(rows.tolist())}  # each element's newest sample
         groups = (np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last)))
         self.channels.update(rows, raw, saturated, groups, now)
-        res = self.elements.step(rows, caps, groups, now)
+        res = self.elements.step(rows, caps, groups, now, held)
         enter, leave = self.elements.calibrator.thresholds()
         self.moments.record(rows, t_sample, cycle, np.stack([res["dc1"], res["dc2"]], axis=1),
                             groups[0].shape[0] == rows.shape[0], now, enter, leave, held, on_time, period)

@@ -150,6 +150,7 @@ class FirmwareConfig:
     #: processes (``mesh up``, quiet machine) delivered less with them (71-74 % against 98 %
     #: of the farthest bridge's samples, bench/bench_latency.py): the skin's bridges sending
     #: within a few ms of each other collide on the UDP medium, whose carrier reports lag.
+    #: With packed DATA (protocol 3) unaligned batches deliver 100 % there, aligned 99.2 %.
     aligned_batches: bool = False
     queue_len: int = 64
     max_retries: int = 5

@@ -230,7 +230,8 @@ class Firmware:
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
-                               c.event_latency, _stagger(c.bridge, c.batch_stagger), c.aligned_batches)
+                               c.event_latency, _stagger(c.bridge, c.batch_stagger), c.aligned_batches,
+                               _stagger(c.bridge, 1 << 16) / (1 << 16))
         self.status_at = tick + c.status_period
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period

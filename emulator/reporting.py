@@ -6,6 +6,16 @@ differs from the last one *sent* by more than the threshold on either channel, s
 press is never missed and a slow drift is reported once it adds up, and the sample after
 a change goes out too (the change may have begun during the changed sample's gates).
 
+On mesh time every bridge samples the same instants, so heartbeats timed only from the
+last sample sent would leave all bridges in the same frame once a second: a burst that
+contends for the cells, delays every heartbeat by tens of milliseconds and, through the
+delivery delays the host learns from them, holds every skin frame back as long. Each
+bridge therefore sends its heartbeat in its own *slot* of the heartbeat period (its
+``phase``, spread by its id): the first sample after the last one sent whose index ≡ slot
+modulo the heartbeat in samples, so never more than one heartbeat apart, and a change
+costs at most one early heartbeat. Off mesh time (no shared index) a heartbeat is one
+heartbeat after the last sample sent.
+
 The command ``SET_REPORTING`` carries the choice in one u64 (docs/protocol.md):
 0 = periodic; otherwise bits 0–31 are the threshold (counts or summed codes) and
 bits 32–63 the heartbeat in milliseconds (0 = the default heartbeat).
@@ -48,9 +58,15 @@ class ReportingMode:
 class Reporter:
     """Decides per sample whether it is sent; counts what it suppressed."""
 
-    def __init__(self, mode: ReportingMode, cycles_per_ms: int, modulus: int = 1 << 16) -> None:
+    def __init__(self, mode: ReportingMode, cycles_per_ms: int, modulus: int = 1 << 16,
+                 phase: float = 0.0) -> None:
+        """``phase`` in [0, 1): the bridge's heartbeat slot as a fraction of the heartbeat
+        period (see the module); 0 for every bridge puts all heartbeats in one frame."""
+        if not 0.0 <= phase < 1.0:
+            raise ValueError(f"phase {phase} must be in [0, 1)")
         self.mode = mode
         self._cpm = cycles_per_ms
+        self._phase = phase
         self._mod = modulus
         self._last: Sample | None = None
         self._follow = False  #: the last sample sent was a change: send the next one too
@@ -66,13 +82,26 @@ class Reporter:
         d = abs(a - b)
         return min(d, self._mod - d) if self._mod else d
 
-    def wants(self, s: Sample) -> bool:
+    def _heartbeat(self, s: Sample, last: Sample, period_cycles: int, on_time: bool) -> bool:
+        """Whether ``s`` is the heartbeat after ``last``: in the bridge's slot (on mesh time,
+        where indices are shared), else one heartbeat on."""
+        beat = self.mode.heartbeat_ms * self._cpm
+        if s.cycle - last.cycle >= beat:
+            return True
+        if not on_time or period_cycles <= 0:
+            return False
+        per_beat = max(1, beat // period_cycles)
+        return s.index % per_beat == int(self._phase * per_beat)
+
+    def wants(self, s: Sample, period_cycles: int = 0, on_time: bool = False) -> bool:
         """Whether ``s`` is sent. Event-based, a sample sent for a change is followed by the
         next one as well: a press or release that began during the sample's gates left it
         part-way, and the clean sample after it may differ from it by less than the
         threshold; without it the host would hold the part-way reading as the element's
         value until the next change or heartbeat (up to a second: a corner press came out
-        millimetres off and light for that long)."""
+        millimetres off and light for that long). ``period_cycles`` (the sampling period)
+        and ``on_time`` (``s.index`` is the mesh-time sample index) place the heartbeat in
+        the bridge's slot; without them it is one heartbeat after the last sample sent."""
         m = self.mode
         last = self._last
         if m.threshold is None or last is None:
@@ -80,7 +109,7 @@ class Reporter:
             return True
         changed = (self._moved(s.c1, last.c1) > m.threshold or self._moved(s.c2, last.c2) > m.threshold
                    or s.flags != last.flags)
-        if changed or self._follow or s.cycle - last.cycle >= m.heartbeat_ms * self._cpm:
+        if changed or self._follow or self._heartbeat(s, last, period_cycles, on_time):
             self._last = s
             self._follow = changed
             return True

@@ -54,7 +54,7 @@ class Sampler:
     def __init__(self, settings: Settings, chip: object, sense: Callable[[int], tuple[float, float]],
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
                  counters: Counter[str], timebase: Timebase, event_latency: int | None = None,
-                 stagger: int = 0, aligned: bool = True) -> None:
+                 stagger: int = 0, aligned: bool = True, heartbeat_phase: float = 0.0) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
@@ -66,7 +66,7 @@ class Sampler:
         self.event_latency = max_latency if event_latency is None else event_latency
         self.lazy = lazy
         self.counters = counters
-        self.reporter = Reporter(settings.reporting, clock_hz // 1000)
+        self.reporter = Reporter(settings.reporting, clock_hz // 1000, phase=heartbeat_phase)
         self.batch: list[Sample] = []
         self.batch_bytes = 0
         self.flush_at = -1
@@ -217,8 +217,8 @@ class Sampler:
             flags |= _HELD
         s = Sample(0, self.timebase.local(start), v1, v2, int(flags), self.index)
         self.counters["samples"] += 1
-        if self.reporter.wants(s):
-            period = st.period_cycles(self.clock_hz)
+        period = st.period_cycles(self.clock_hz)
+        if self.reporter.wants(s, period, self.on_time):
             size = len(msgpack.packb(packed_sample(self.batch[-1] if self.batch else None, s, period)))
             if self.batch and _DATA_OVERHEAD + self.batch_bytes + size > MAX_FRAME:
                 self._flush(out)

@@ -17,6 +17,7 @@ import argparse
 import json
 import math
 import os
+import random
 import shutil
 import signal
 import socket
@@ -54,16 +55,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep", action="store_true", help="keep the working folder (mesh, config, logs)")
 
 
+#: The demo's listening ports come from [LISTEN_FLOOR, the kernel's ephemeral range): a port
+#: in that range, free when chosen, can be taken a moment later as the local end of any
+#: process's outgoing connection before the emulator or daemon binds it (a demo run on a
+#: busy machine lost its medium's port that way and stopped before the press).
+LISTEN_FLOOR = 20_000
+
+
+def ephemeral_low() -> int:
+    """The first port of the kernel's ephemeral range (32768 where it cannot be read)."""
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return _free_port_block(1)
 
 
 def _free_port_block(n: int) -> int:
-    """A base port with ``n`` consecutive free ports after it (the emulator's ZeroMQ ports)."""
+    """A base port with ``n`` consecutive free ports on 127.0.0.1 after it, below the
+    ephemeral range (see ``LISTEN_FLOOR``; any free block where that range leaves no room).
+    RuntimeError when 50 tries found none."""
+    rng = random.SystemRandom()
+    top = ephemeral_low() - n
     for _ in range(50):
-        base = _free_port()
+        if top - LISTEN_FLOOR >= 1000:
+            base = rng.randrange(LISTEN_FLOOR, top)
+        else:
+            with socket.socket() as probe:
+                probe.bind(("127.0.0.1", 0))
+                base = int(probe.getsockname()[1])
         socks = []
         try:
             for k in range(n):

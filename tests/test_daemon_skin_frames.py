@@ -233,3 +233,23 @@ def test_a_jump_of_the_skin_time_is_followed(press_reads) -> None:
     assert sum(1 for _, m in during if len(m["contacts"]) == 1 and not m["unknown"]) > 20
     late = [on for t, topic, m in run if topic == "element" and t - T0 > 5.5 for on in m["on_time"]]
     assert late and all(late)
+
+
+@pytest.mark.parametrize("back", [100 * 3600, 150, 50])
+def test_a_jump_back_of_the_skin_time_is_followed(back) -> None:
+    """Every bridge's indices ``back`` frames earlier from 5 s on (a new time root whose time
+    is behind the skin's: two skins joined, or the root gateway restarted with its counter
+    at 0), as a jump ahead is (the test above). The map waited for 2 s of frames behind it
+    before it started again: no estimate for as long as the jump (at most 2 s) while the
+    press went on, and after an hour's jump the press came back under a new contact id."""
+    reads = _with_index_moved(gateway_reads(8.0, [Contact(4.0, 3.5, *CORNER, 3.0, 0.020)]), None, 5.0, -back)
+    run = list(drive(reads, 8.0))
+    during = [(t - T0, m) for t, topic, m in run if topic == "contact" and 5.0 < t - T0 < 7.4]
+    assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
+    ts = [5.0] + [t for t, _ in during] + [7.4]
+    assert max(b - a for a, b in zip(ts, ts[1:])) < 0.1, max(b - a for a, b in zip(ts, ts[1:]))
+    assert sum(1 for _, m in during if len(m["contacts"]) == 1 and not m["unknown"]) > 60
+    lag = [t - (m["t_sample"] - T0) for t, m in during if t > 5.5]
+    assert 0.0 <= min(lag) and max(lag) < 0.1, (min(lag), max(lag))  # frames timed as taken, not `back` earlier
+    late = [on for t, topic, m in run if topic == "element" and t - T0 > 5.5 for on in m["on_time"]]
+    assert late and all(late)

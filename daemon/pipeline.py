@@ -247,7 +247,10 @@ class Pipeline:
         g = np.full(s.origin.shape[0], -1, dtype=np.int64)
         if on_time.any():
             rate = np.where(on_time, s.rate, 1).astype(np.uint64)
-            g = np.where(on_time, (s.index * np.uint64(int(self.chip.clock_hz)) // rate).astype(np.int64), -1)
+            cps = np.uint64(int(self.chip.clock_hz))
+            # index · clock_hz // rate without index · clock_hz, which wraps in uint64 below the check above
+            # (at a high rate): a corrupted index was put on some frame of the last 65 days
+            g = np.where(on_time, (s.index // rate * cps + s.index % rate * cps // rate).astype(np.int64), -1)
             own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
             if own.size:
                 newest = own[np.argmax(g[own])]

@@ -253,3 +253,40 @@ def test_a_jump_back_of_the_skin_time_is_followed(back) -> None:
     assert 0.0 <= min(lag) and max(lag) < 0.1, (min(lag), max(lag))  # frames timed as taken, not `back` earlier
     late = [on for t, topic, m in run if topic == "element" and t - T0 > 5.5 for on in m["on_time"]]
     assert late and all(late)
+
+
+def _wrapping_index(g: int, rate: int) -> int:
+    """An index at ``rate`` whose instant ``index · CLOCK_HZ / rate`` fits 62 bits (years ahead)
+    while ``index · CLOCK_HZ`` does not fit 64: taken modulo 2⁶⁴ (what uint64 arithmetic gives), divided by ``rate``,
+    is global cycle ``g``."""
+    two = (CLOCK_HZ & -CLOCK_HZ).bit_length() - 1  # CLOCK_HZ = 2^two · odd
+    odd, bits = CLOCK_HZ >> two, 64 - two
+    lo = g * rate
+    for v in range(-(-lo // (1 << two)) << two, lo + rate, 1 << two):
+        index = (v >> two) * pow(odd, -1, 1 << bits) % (1 << bits)
+        if (1 << 64) <= index * CLOCK_HZ < (1 << 62) * rate and (index * CLOCK_HZ % (1 << 64)) // rate == g:
+            return index
+    raise AssertionError("no such index")
+
+
+def test_an_index_whose_instant_overflows_64_bits_is_not_on_a_skin_frame(press_reads) -> None:
+    """One frame of a pressed bridge carries a rate of 65535 Hz and indices whose instants lie
+    years ahead (a frame corrupted past the CRC). The global cycle was computed
+    in uint64, which wrapped below the check meant for it: each sample was put on a skin frame
+    1 s before its own (crafted so; any frame in 65 days of mesh time, by chance) and believed.
+    Its instant is far in the future: it is not believed, and counted."""
+    out, hit = [], 0
+    for t, data in press_reads:
+        if not hit and t - T0 > 5.0:
+            frames = StreamDecoder().feed(data)
+            for f in frames:
+                if isinstance(f.payload, Data) and f.origin == 6 and not hit:
+                    p = f.payload
+                    moved = tuple(s._replace(index=_wrapping_index(s.index * (CLOCK_HZ // p.rate) - CLOCK_HZ, 65535))
+                                  for s in p.samples)
+                    f.payload, hit = Data(p.mode, moved, p.oversampling, 65535), len(moved)
+            data = b"".join(encode_stream(f) for f in frames)
+        out.append((t, data))
+    assert hit
+    health = [m for _, topic, m in drive(out, 5.5) if topic == "health"][-1]
+    assert health["bridges"]["6"]["index_rejected"] == hit

@@ -60,7 +60,7 @@ class LayoutStages:
     def _install(self, layout: SkinLayout) -> None:
         src = self if self.layout is not None or self._previous is None else self._previous
         self._previous = None
-        old_layout, old_elements, old_channels = src.layout, src.elements, src.channels
+        old_layout, old_elements, old_channels, old_moments = src.layout, src.elements, src.channels, src.moments
         params = default_params(layout)
         inv = self.config.inverse
         self.layout = layout
@@ -82,8 +82,9 @@ class LayoutStages:
             rows, old_rows = _kept(old_layout, layout)
             if rows.size:
                 self.elements.adopt(old_elements, rows, old_rows)
-                assert old_channels is not None
+                assert old_channels is not None and old_moments is not None
                 self.channels.adopt(old_channels, rows, old_rows)
+                self.moments.adopt(old_moments, rows, old_rows)
 
     def hello(self, geometry: dict[int, tuple[float, float, float]]) -> bool:
         """Geometry {bridge: (x, y, side)} announced in HELLOs; True when the layout changed.

@@ -15,6 +15,8 @@ import pytest
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen
+from cellbridge.emulator.commands import Settings
+from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, StreamDecoder, encode_stream
@@ -290,3 +292,25 @@ def test_an_index_whose_instant_overflows_64_bits_is_not_on_a_skin_frame(press_r
     assert hit
     health = [m for _, topic, m in drive(out, 5.5) if topic == "health"][-1]
     assert health["bridges"]["6"]["index_rejected"] == hit
+
+
+def test_a_held_press_on_an_event_based_skin_keeps_its_contact_when_a_bridge_joins() -> None:
+    """An event-based 4x4 skin whose bridge 16 boots late, at 6 s, while a corner press is held
+    (4-9 s). Its HELLO extends the layout; the moments began empty, and the pressed elements,
+    steady, do not send again before their heartbeat: the press ended (``contacts: []``, 15
+    elements unknown) and came back as a new id at a third of its force, with a phantom
+    second contact, for most of a second."""
+    mesh = meshgen.grid(4, 4)
+    vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(4.0, 5.0, *CORNER, 3.0, 0.020)]), random_epochs=True,
+                     settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+    vm.kill(16, at=0.0)
+    vm.restart(16, at=6.0)
+    vm.run(9.5)
+    reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+    run = list(drive(reads, 9.5, sections={"calibration": {"n_baseline": 3}}))
+    assert any(topic == "topology" and "16" in m["bridges"] and 6.0 < t - T0 < 7.0 for t, topic, m in run)
+    during = [m for t, topic, m in run if topic == "contact" and 4.3 < t - T0 < 8.9]
+    assert len(during) > 100
+    for m in during:
+        assert len(m["contacts"]) == 1 and m["contacts"][0]["id"] == during[0]["contacts"][0]["id"], m
+        assert m["contacts"][0]["force"] == pytest.approx(3.0, rel=0.05)

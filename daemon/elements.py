@@ -159,12 +159,12 @@ class ElementStage:
 
     def adopt(self, old: ElementStage, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
         """Keep the calibration and touch state of elements carried over from ``old``'s layout,
-        and their readings still to step and held readings (lost, a press's first elements
-        stepped alone until every other element sent again, and were a common step)."""
+        and their held readings (lost, a press's first elements stepped alone until every
+        other element sent again, and were a common step)."""
         self.calibrator.adopt(old.calibrator, rows, old_rows)
         self.touched[rows] = old.touched[old_rows]
         self.rebaselined[rows] = old.rebaselined[old_rows]
-        for name in ("_pending", "_pending_rows", "_held", "_held_at"):
+        for name in ("_held", "_held_at"):
             getattr(self, name)[rows] = getattr(old, name)[old_rows]
         self.held_for = old.held_for
         self._last_step, self._t = old._last_step, old._t

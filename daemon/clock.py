@@ -79,6 +79,13 @@ class BridgeClock:
         self.offset = 0.0
         self.skew = 0.0
 
+    def restart(self, cycle: int, arrival: float) -> None:
+        """Begin the fit again at ``cycle``, arrived at ``arrival``, and count it: the owner
+        knows the counts jumped (the skin's time went back), which :meth:`observe` only
+        concludes after ``confirm`` bridge seconds of counts behind the newest."""
+        self.resets += 1
+        self._restart(int(cycle) % self._mod, arrival)
+
     def suspect_reset(self) -> None:
         """The bridge's frame numbering restarted (it does when it starts): a frame that does not fit is a reset."""
         self._suspect = True

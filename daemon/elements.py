@@ -49,8 +49,11 @@ class ElementStage:
     A held reading (event-based reporting, flag ``HELD``) stands for the frames after it:
     its bridge sends again as soon as the element changes. Each step gives the Calibrator
     the newest reading of every element, so a ready element whose newest reading is held
-    takes part with that reading (for ``tau`` seconds after it came at most: a bridge
-    silent that long is treated as silent). Without it a step held only the elements
+    takes part with that reading while its bridge is live (:attr:`held_for`: the daemon
+    sets the longer of ``tau`` and ``bridge_timeout``; a bridge silent that long is treated
+    as silent). A bridge's heartbeat may be longer than ``tau`` (SET_REPORTING allows
+    600 s), and ``tau`` shorter than the heartbeat: a reading standing for ``tau`` alone
+    lapsed between heartbeats, and the first elements of a press stepped alone again. Without it a step held only the elements
     that changed, the ones under a press, and the Calibrator took their rise, alike on
     all of them, for a common step of the whole skin: the press was cut to a sliver and
     every other element went negative (one came back as a ghost contact).
@@ -69,7 +72,9 @@ class ElementStage:
         self._pending_rows = np.zeros(layout.n, dtype=bool)
         self._held = np.full((layout.n, 2), np.nan)  # newest reading of each element, if held
         self._held_at = np.full(layout.n, -math.inf)  # when it came
-        self._held_for = cal.tau
+        #: s a held reading stands after it came (the bridge is live that long); the
+        #: daemon's :class:`~cellbridge.daemon.layout.LayoutStages` keeps it current
+        self.held_for = cal.tau
         self.stepped = np.zeros(0, dtype=np.int64)  # rows the last step classified (their newest reading)
         self._last_step = -math.inf
         self._t = -math.inf
@@ -111,7 +116,7 @@ class ElementStage:
         """``values`` with the held readings that still stand filled in where an element
         has no new reading (a ready element's only: a baseline is taken from readings)."""
         fill = (np.isnan(values).any(axis=1) & np.isfinite(self._held).all(axis=1)
-                & (self._t - self._held_at <= self._held_for) & self.calibrator.ready)
+                & (self._t - self._held_at <= self.held_for) & self.calibrator.ready)
         if not fill.any():
             return values
         out = values.copy()
@@ -153,10 +158,15 @@ class ElementStage:
         return {"force": force, "area": area, "valid": valid, "status": status}
 
     def adopt(self, old: ElementStage, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
-        """Keep the calibration and touch state of elements carried over from ``old``'s layout."""
+        """Keep the calibration and touch state of elements carried over from ``old``'s layout,
+        and their held readings (lost, a press's first elements stepped alone until every
+        other element sent again, and were a common step)."""
         self.calibrator.adopt(old.calibrator, rows, old_rows)
         self.touched[rows] = old.touched[old_rows]
         self.rebaselined[rows] = old.rebaselined[old_rows]
+        for name in ("_held", "_held_at"):
+            getattr(self, name)[rows] = getattr(old, name)[old_rows]
+        self.held_for = old.held_for
         self._last_step, self._t = old._last_step, old._t
 
     def tare(self, rows: NDArray[np.int64] | None) -> None:

@@ -60,7 +60,7 @@ class LayoutStages:
     def _install(self, layout: SkinLayout) -> None:
         src = self if self.layout is not None or self._previous is None else self._previous
         self._previous = None
-        old_layout, old_elements, old_channels = src.layout, src.elements, src.channels
+        old_layout, old_elements, old_channels, old_moments = src.layout, src.elements, src.channels, src.moments
         params = default_params(layout)
         inv = self.config.inverse
         self.layout = layout
@@ -82,8 +82,9 @@ class LayoutStages:
             rows, old_rows = _kept(old_layout, layout)
             if rows.size:
                 self.elements.adopt(old_elements, rows, old_rows)
-                assert old_channels is not None
+                assert old_channels is not None and old_moments is not None
                 self.channels.adopt(old_channels, rows, old_rows)
+                self.moments.adopt(old_moments, rows, old_rows)
 
     def hello(self, geometry: dict[int, tuple[float, float, float]]) -> bool:
         """Geometry {bridge: (x, y, side)} announced in HELLOs; True when the layout changed.
@@ -171,6 +172,7 @@ class LayoutStages:
         each sample; ``now``: the read's arrival time; ``held``, ``on_time``, ``period``:
         each reading's kind and sample period (:meth:`Moments.record`). Requires :attr:`ready`."""
         assert self.elements is not None and self.channels is not None and self.moments is not None
+        self.elements.held_for = self._held_for()
         last = {x: i for i, x in enumerate(rows.tolist())}  # each element's newest sample
         groups = (np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last)))
         self.channels.update(rows, raw, saturated, groups, now)
@@ -187,6 +189,7 @@ class LayoutStages:
         if self.elements is None or self.moments is None or self.layout is None:
             return None
         m = self.moments
+        self.elements.held_for = self._held_for()
         m.settle(self.elements.flush(now), self.elements.touched)
         c = self.config.contact
         got = m.take(now, bridge_timeout, c.max_lag, force=self.dirty, held_wait=c.held_wait)
@@ -195,6 +198,12 @@ class LayoutStages:
         self.dirty = False
         return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t,
                                got.unknown)
+
+    def _held_for(self) -> float:
+        """How long a held reading stands in the calibrator's steps: while its bridge is live
+        (``bridge_timeout``, reloadable), and ``tau`` at least (a heartbeat may be longer than
+        ``tau``; then the idle elements' readings lapsed between heartbeats)."""
+        return max(self.config.calibration.tau, self.config.health.bridge_timeout)
 
     def snapshot_due(self, now: float, bridge_timeout: float) -> float:
         """When the skin's moment moves on without new data (:meth:`Moments.due`); ``inf``:

@@ -93,6 +93,25 @@ class Moments:
         self.late_estimates = 0  # snapshots that left a live element out for being late
         self._all = np.arange(n)
 
+    _PER_ELEMENT = ("period", "live", "settled", "arrival", "delay", "delay_at", "holding", "late")
+    _RINGS = ("t", "dc", "touched", "cycle", "held", "on_time")
+
+    def adopt(self, old: Moments, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
+        """Take over ``old``'s readings of its elements ``old_rows`` as ``rows`` (a layout that
+        grew: a bridge joined late). Begun empty, every element was unknown until it sent
+        again, and a held element under a steady press sends only at its heartbeat: the
+        press ended and came back under a new id. The newest readings that fit are kept."""
+        k = min(self.depth, old.depth)
+        count = old.count[old_rows]
+        shift = np.where(count >= k, count - k, 0)
+        src = (shift[:, None] + np.arange(k)[None, :]) % old.depth
+        for name in self._RINGS:
+            getattr(self, name)[rows, :k] = getattr(old, name)[old_rows[:, None], src]
+        self.count[rows] = np.minimum(count, k)
+        for name in self._PER_ELEMENT:
+            getattr(self, name)[rows] = getattr(old, name)[old_rows]
+        self.t_moment, self.silent_told, self.late_estimates = old.t_moment, old.silent_told, old.late_estimates
+
     def record(self, rows: NDArray[np.int64], t: FloatArray, cycle: NDArray[np.uint64], dc: FloatArray,
                unique: bool, now: float, enter: FloatArray, leave: FloatArray,
                held: NDArray[np.bool_], on_time: NDArray[np.bool_], period: FloatArray) -> None:

@@ -106,7 +106,9 @@ class Pipeline:
         self.skin_clock_resets = 0
         self._frame_memo: dict[int, float] = {}  # global cycle of a frame -> its host time
         self._frame_newest = -1
-        self._skin_jump: tuple[int, float] | None = None  # (g, arrival) of a gateway sample ahead of the map
+        self._skin_jump: tuple[int, float] | None = None  # (g, arrival) of a gateway sample ahead of or behind the map
+        self._skin_newest: dict[int, int] = {}  # gateway -> newest global cycle of its own the map took
+        self._skin_back = -1  # while a jump back waits for confirmation: frames behind this are not believed
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
         self.topology = Routes()
@@ -245,11 +247,26 @@ class Pipeline:
         g = np.full(s.origin.shape[0], -1, dtype=np.int64)
         if on_time.any():
             rate = np.where(on_time, s.rate, 1).astype(np.uint64)
-            g = np.where(on_time, (s.index * np.uint64(int(self.chip.clock_hz)) // rate).astype(np.int64), -1)
+            cps = np.uint64(int(self.chip.clock_hz))
+            # index · clock_hz // rate without index · clock_hz, which wraps in uint64 below the check above
+            # (at a high rate): a corrupted index was put on some frame of the last 65 days
+            g = np.where(on_time, (s.index // rate * cps + s.index % rate * cps // rate).astype(np.int64), -1)
             own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
             if own.size:
                 newest = own[np.argmax(g[own])]
-                if self._skin_time_believed(int(g[newest]), now) and self.skin_clock.observe(int(g[newest]), now):
+                gw, gn = int(s.origin[newest]), int(g[newest])
+                back = gn < self._skin_floor(gw)
+                jumped = taught = self._skin_time_believed(gn, now, back)
+                if taught and back:
+                    self.skin_clock.restart(gn, now)  # the skin's time went back: two reads agree
+                elif taught:
+                    jumped = self.skin_clock.observe(gn, now)
+                if jumped:
+                    self._skin_newest.clear()
+                if taught:
+                    self._skin_newest[gw] = max(self._skin_newest.get(gw, -1), gn) if not jumped else gn
+                self._skin_back = self._skin_floor(gw) if back and not taught else -1
+                if jumped:
                     self.skin_clock_resets += 1
                     self._frame_memo.clear()
                     self._frame_newest = -1
@@ -276,6 +293,11 @@ class Pipeline:
             # wrong (a frame corrupted past the CRC, a bridge on some other time). Believed, it
             # would move the skin frame that far ahead and stop every estimate until then.
             wrong = on_time & np.isnan(frame_t)
+            if self._skin_back >= 0:
+                # Likewise, while a gateway's own sample behind the map waits for the next read
+                # to confirm a jump back: believed, frames behind it would lie that far back,
+                # every element late until the map restarts (a held press got a new id).
+                wrong |= on_time & (g < self._skin_back)
             if wrong.any():
                 for b_id, cnt in Counter(o[wrong].tolist()).items():
                     self.bridges[b_id].index_rejected += cnt
@@ -284,15 +306,26 @@ class Pipeline:
             t_sample = np.where(on_time, frame_t, t_sample)
         return t_sample, s.cycle.astype(np.float64) / hz, g
 
-    def _skin_time_believed(self, g: int, now: float) -> bool:
+    def _skin_floor(self, gateway: int) -> int:
+        """The global cycle more than the slack behind the newest of ``gateway``'s own samples
+        the map took (its samples come in order: one behind that is the skin's time gone back,
+        or a corrupted frame; another gateway's link may lag)."""
+        return self._skin_newest.get(gateway, -1) - int(_FUTURE_SLACK * self.skin_clock.hz)
+
+    def _skin_time_believed(self, g: int, now: float, back: bool = False) -> bool:
         """Whether a gateway's own sample of global cycle ``g``, arrived at ``now``, may teach
         the map. One the map puts after its own arrival is either a jump of the skin's time
         (a new root on another time) or a frame corrupted past the CRC: it is believed once
         the gateway's next read agrees with it. (One corrupted frame remapped the skin at once,
         and the true frames after it then lay an hour back: no estimate for 2 s, then a press
-        ended and came back with a new id.)"""
+        ended and came back with a new id.) So is one ``back``, behind the gateway's own newest
+        (:meth:`_skin_floor`): the skin's time went back (a new root behind it: two skins
+        joined, the root gateway restarted at 0), or a corrupted frame. (The map waited for 2 s
+        of such frames: every frame lay as far back as the jump, no estimate came for as long,
+        2 s at most, and after an hour's jump a held press came back under a new id.)"""
         clock = self.skin_clock
-        if not clock.synced or float(clock.to_host(np.array([g], dtype=np.uint64))[0]) <= now + _FUTURE_SLACK:
+        if not clock.synced or (not back and float(clock.to_host(np.array([g], dtype=np.uint64))[0])
+                                <= now + _FUTURE_SLACK):
             self._skin_jump = None
             return True
         seen, self._skin_jump = self._skin_jump, (g, now)

@@ -123,3 +123,71 @@ def test_periodic_readings_are_not_held_over() -> None:
     stage, t = ready_stage(held=False)
     stage.step(UNDER[:2], np.tile(REST + PRESS, (2, 1)), groups(UNDER[:2]), t + 0.1, np.zeros(2, dtype=bool))
     assert np.isnan(stage._standing(np.full((16, 2), np.nan))).all()
+
+
+@pytest.mark.parametrize("heartbeat, settings", [
+    (20.0, {"health": {"bridge_timeout": 30.0}}),  # a long heartbeat (SET_REPORTING allows 600 s)
+    (1.0, {"calibration": {"n_baseline": 3, "tau": 0.5}}),  # a short drift time constant
+])
+def test_a_held_reading_stands_while_its_bridge_is_live_even_past_tau(heartbeat, settings) -> None:
+    # A held reading stood for tau (10 s) only. A bridge whose heartbeat is longer than
+    # that (and a bridge_timeout that keeps it live), or a tau shorter than the heartbeat,
+    # let the idle elements' readings lapse between heartbeats: the first elements of a
+    # press then stepped alone, rose alike, and were absorbed as a common step of the skin
+    # (ΔC 0, nothing touched, the offset at the press's ΔC) — the fault the held fill was
+    # made for. A held reading stands while its bridge is live (bridge_timeout), tau at least.
+    layout = grid_layout(4, 4)
+    cfg = {"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 3}}
+    cfg.update(settings)
+    skin = LayoutStages(parse_config(cfg), layout)
+    everyone = np.arange(layout.n)
+
+    def read(rows: np.ndarray, t: float, dc: np.ndarray) -> None:
+        k = rows.shape[0]
+        index = round(t * RATE)
+        skin.step(rows, np.tile([19_593, 15_786], (k, 1)), np.zeros((k, 2), dtype=bool), np.tile(REST + dc, (k, 1)),
+                  np.full(k, index / RATE), np.full(k, index * 500_000, dtype=np.uint64), t + 0.005,
+                  np.ones(k, dtype=bool), np.ones(k, dtype=bool), np.full(k, 1.0 / RATE))
+
+    for beat in range(4):  # heartbeats: the baselines (3 readings each), then one more
+        read(everyone, beat * heartbeat, np.zeros(2))
+    press = 3 * heartbeat + 0.75 * heartbeat  # between two heartbeats
+    read(UNDER[[1, 3]], press, PRESS)
+    read(UNDER[[0, 2]], press + 0.01, PRESS)
+    cal = skin.elements.calibrator
+    assert cal.touched[UNDER].all() and cal.touched.sum() == UNDER.shape[0]
+    np.testing.assert_allclose(cal.baseline[UNDER], np.tile(REST, (4, 1)), atol=5e-15)
+    assert np.abs(cal.common_drift).max() < 5e-15 and cal.health()["common_jumps"] == 0
+
+
+def test_held_readings_stand_across_a_bridge_joining_the_layout() -> None:
+    # A late bridge's HELLO extends the layout (normal while a large skin boots bridge by
+    # bridge); the elements that kept their place keep their baselines and touch state, and
+    # their held readings went with the old stage: until each sent again (a heartbeat, a
+    # second) a press's first elements stepped alone and were absorbed as a common step.
+    layout = grid_layout(4, 4)
+    skin = LayoutStages(parse_config({"link": [{"name": "gw", "url": "/dev/null"}],
+                                      "calibration": {"n_baseline": 3}}), None)
+    geometry = {int(b) + 1: (float(x), float(y), layout.side) for b, (x, y) in zip(layout.ids, layout.centres)}
+    late = 16
+    assert skin.hello({b: g for b, g in geometry.items() if b != late})
+    bridges = np.array(sorted(b for b in geometry if b != late))
+
+    def read(ids: np.ndarray, index: int, now: float, dc: np.ndarray) -> None:
+        k = ids.shape[0]
+        rows = skin.rows_of(ids, np.zeros(k, dtype=np.int64))
+        skin.step(rows, np.tile([19_593, 15_786], (k, 1)), np.zeros((k, 2), dtype=bool), np.tile(REST + dc, (k, 1)),
+                  np.full(k, index / RATE), np.full(k, index * 500_000, dtype=np.uint64), now,
+                  np.ones(k, dtype=bool), np.ones(k, dtype=bool), np.full(k, 1.0 / RATE))
+
+    for beat in range(4):  # heartbeats: the baselines (3 readings each), then one more
+        read(bridges, 100 * beat, beat + 0.005, np.zeros(2))
+    assert skin.hello({late: geometry[late]})  # the late bridge joins at 3.5 s
+    under = UNDER + 1  # bridge ids of the rows under a corner press
+    read(under[[1, 3]], 400, 4.006, np.asarray(PRESS))
+    read(under[[0, 2]], 400, 4.012, np.asarray(PRESS))
+    cal = skin.elements.calibrator
+    rows = skin.rows_of(under, np.zeros(4, dtype=np.int64))
+    assert cal.touched[rows].all() and cal.touched.sum() == 4
+    np.testing.assert_allclose(cal.baseline[rows], np.tile(REST, (4, 1)), atol=5e-15)
+    assert np.abs(cal.common_drift).max() < 5e-15 and cal.health()["common_jumps"] == 0

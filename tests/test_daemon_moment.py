@@ -132,3 +132,19 @@ def test_due_is_never_while_a_periodic_element_is_waited_for() -> None:
     assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is not None
     assert m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5) == float("inf")
     assert m.due(now + 10.0, timeout=2.0, max_lag=0.5, held_wait=0.5) == float("inf")  # all silent
+
+
+def test_adopt_keeps_the_newest_readings_that_fit_in_either_depth() -> None:
+    """A layout that grew (or a SIGHUP that changed ``max_lag``, so the depth) keeps each
+    carried element's newest readings, newest last, as many as both rings hold."""
+    for old_depth, new_depth in ((8, 5), (5, 8), (6, 6)):
+        for count in (0, 3, 5, 6, 13):
+            old = Moments(2, old_depth)
+            for k in range(count):
+                _record(old, 1, float(k))
+            new = Moments(3, new_depth)
+            new.adopt(old, np.array([2]), np.array([1]))
+            n = int(new.count[2])
+            kept = [float(new.t[2, (n - 1 - i) % new_depth]) for i in range(min(n, new_depth))]
+            assert kept == [float(count - 1 - i) for i in range(min(count, old_depth, new_depth))]
+            assert new.t_moment == old.t_moment and np.isnan(new.t[0]).all()

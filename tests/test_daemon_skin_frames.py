@@ -15,6 +15,8 @@ import pytest
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen
+from cellbridge.emulator.commands import Settings
+from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, StreamDecoder, encode_stream
@@ -233,3 +235,82 @@ def test_a_jump_of_the_skin_time_is_followed(press_reads) -> None:
     assert sum(1 for _, m in during if len(m["contacts"]) == 1 and not m["unknown"]) > 20
     late = [on for t, topic, m in run if topic == "element" and t - T0 > 5.5 for on in m["on_time"]]
     assert late and all(late)
+
+
+@pytest.mark.parametrize("back", [100 * 3600, 150, 50])
+def test_a_jump_back_of_the_skin_time_is_followed(back) -> None:
+    """Every bridge's indices ``back`` frames earlier from 5 s on (a new time root whose time
+    is behind the skin's: two skins joined, or the root gateway restarted with its counter
+    at 0), as a jump ahead is (the test above). The map waited for 2 s of frames behind it
+    before it started again: no estimate for as long as the jump (at most 2 s) while the
+    press went on, and after an hour's jump the press came back under a new contact id."""
+    reads = _with_index_moved(gateway_reads(8.0, [Contact(4.0, 3.5, *CORNER, 3.0, 0.020)]), None, 5.0, -back)
+    run = list(drive(reads, 8.0))
+    during = [(t - T0, m) for t, topic, m in run if topic == "contact" and 5.0 < t - T0 < 7.4]
+    assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
+    ts = [5.0] + [t for t, _ in during] + [7.4]
+    assert max(b - a for a, b in zip(ts, ts[1:])) < 0.1, max(b - a for a, b in zip(ts, ts[1:]))
+    assert sum(1 for _, m in during if len(m["contacts"]) == 1 and not m["unknown"]) > 60
+    lag = [t - (m["t_sample"] - T0) for t, m in during if t > 5.5]
+    assert 0.0 <= min(lag) and max(lag) < 0.1, (min(lag), max(lag))  # frames timed as taken, not `back` earlier
+    late = [on for t, topic, m in run if topic == "element" and t - T0 > 5.5 for on in m["on_time"]]
+    assert late and all(late)
+
+
+def _wrapping_index(g: int, rate: int) -> int:
+    """An index at ``rate`` whose instant ``index · CLOCK_HZ / rate`` fits 62 bits (years ahead)
+    while ``index · CLOCK_HZ`` does not fit 64: taken modulo 2⁶⁴ (what uint64 arithmetic gives), divided by ``rate``,
+    is global cycle ``g``."""
+    two = (CLOCK_HZ & -CLOCK_HZ).bit_length() - 1  # CLOCK_HZ = 2^two · odd
+    odd, bits = CLOCK_HZ >> two, 64 - two
+    lo = g * rate
+    for v in range(-(-lo // (1 << two)) << two, lo + rate, 1 << two):
+        index = (v >> two) * pow(odd, -1, 1 << bits) % (1 << bits)
+        if (1 << 64) <= index * CLOCK_HZ < (1 << 62) * rate and (index * CLOCK_HZ % (1 << 64)) // rate == g:
+            return index
+    raise AssertionError("no such index")
+
+
+def test_an_index_whose_instant_overflows_64_bits_is_not_on_a_skin_frame(press_reads) -> None:
+    """One frame of a pressed bridge carries a rate of 65535 Hz and indices whose instants lie
+    years ahead (a frame corrupted past the CRC). The global cycle was computed
+    in uint64, which wrapped below the check meant for it: each sample was put on a skin frame
+    1 s before its own (crafted so; any frame in 65 days of mesh time, by chance) and believed.
+    Its instant is far in the future: it is not believed, and counted."""
+    out, hit = [], 0
+    for t, data in press_reads:
+        if not hit and t - T0 > 5.0:
+            frames = StreamDecoder().feed(data)
+            for f in frames:
+                if isinstance(f.payload, Data) and f.origin == 6 and not hit:
+                    p = f.payload
+                    moved = tuple(s._replace(index=_wrapping_index(s.index * (CLOCK_HZ // p.rate) - CLOCK_HZ, 65535))
+                                  for s in p.samples)
+                    f.payload, hit = Data(p.mode, moved, p.oversampling, 65535), len(moved)
+            data = b"".join(encode_stream(f) for f in frames)
+        out.append((t, data))
+    assert hit
+    health = [m for _, topic, m in drive(out, 5.5) if topic == "health"][-1]
+    assert health["bridges"]["6"]["index_rejected"] == hit
+
+
+def test_a_held_press_on_an_event_based_skin_keeps_its_contact_when_a_bridge_joins() -> None:
+    """An event-based 4x4 skin whose bridge 16 boots late, at 6 s, while a corner press is held
+    (4-9 s). Its HELLO extends the layout; the moments began empty, and the pressed elements,
+    steady, do not send again before their heartbeat: the press ended (``contacts: []``, 15
+    elements unknown) and came back as a new id at a third of its force, with a phantom
+    second contact, for most of a second."""
+    mesh = meshgen.grid(4, 4)
+    vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(4.0, 5.0, *CORNER, 3.0, 0.020)]), random_epochs=True,
+                     settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+    vm.kill(16, at=0.0)
+    vm.restart(16, at=6.0)
+    vm.run(9.5)
+    reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+    run = list(drive(reads, 9.5, sections={"calibration": {"n_baseline": 3}}))
+    assert any(topic == "topology" and "16" in m["bridges"] and 6.0 < t - T0 < 7.0 for t, topic, m in run)
+    during = [m for t, topic, m in run if topic == "contact" and 4.3 < t - T0 < 8.9]
+    assert len(during) > 100
+    for m in during:
+        assert len(m["contacts"]) == 1 and m["contacts"][0]["id"] == during[0]["contacts"][0]["id"], m
+        assert m["contacts"][0]["force"] == pytest.approx(3.0, rel=0.05)

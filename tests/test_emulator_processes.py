@@ -20,7 +20,7 @@ from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.emulator.realtime import reporting_arg, reporting_text
 from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.protocol import Command, Flags, SampleFlags, Frame, FrameType, Op, StreamDecoder, encode_stream
+from cellbridge.protocol import Command, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
 
 PY = [sys.executable, "-m", "cellbridge"]
 
@@ -355,14 +355,20 @@ def test_mesh_up_event_reporting_sends_heartbeats_when_idle_and_reports_a_press(
         assert set(idle) == {1, 2, 3, 4}, idle.keys()
         cycles = {b: sorted({s.cycle for s in v}) for b, v in idle.items()}  # a retried frame may repeat
         assert all(len(c) >= 3 for c in cycles.values()), cycles  # periodic: ~300 each
-        # heartbeats only (a bridge that gets mesh time meanwhile sends two samples more: its
-        # flags changed, so the host learns it is on the skin's clock, and the sample after
-        # a change goes too)
-        on_time = {b: sorted({s.cycle for s in v if not s.flags & SampleFlags.NO_MESH_TIME}) for b, v in idle.items()}
-        on_time = {b: c[1:] if any(s.flags & SampleFlags.NO_MESH_TIME for s in idle[b]) else c
-                   for b, c in on_time.items()}
-        gaps = {b: [y - x for x, y in zip(c, c[1:])] for b, c in on_time.items()}
-        assert all(g >= 400 * 50_000 for v in gaps.values() for g in v), gaps
+        # heartbeats only, never more than one heartbeat apart, and a heartbeat apart unless a
+        # change came before: a sample that moved by more than the threshold, or whose flags
+        # changed (a bridge that gets mesh time meanwhile: the host learns it is on the skin's
+        # clock), goes at once, the sample after it too, and the next heartbeat comes in the
+        # bridge's slot of the heartbeat period, sooner than a heartbeat after them.
+        for b, v in idle.items():
+            got = sorted({s.cycle: s for s in v}.values(), key=lambda s: s.cycle)  # a retried frame may repeat
+            early = 3  # samples before this may come sooner than a heartbeat (the window may open on a change)
+            for i, (a, s) in enumerate(zip(got, got[1:]), start=1):
+                gap = s.cycle - a.cycle
+                assert gap <= 520 * 50_000, (b, i, gap)
+                if s.flags != a.flags or abs(s.c1 - a.c1) > 40 or abs(s.c2 - a.c2) > 40:
+                    early = i + 3  # the change, the sample after it, the heartbeat in the slot
+                assert gap >= 400 * 50_000 or i < early, (b, i, gap, [x.cycle for x in got])
         rest = idle[4][-1].c1
 
         r = subprocess.run([*PY, "press", "0.04", "0.04", "--force", "3", "--diameter", "0.02",

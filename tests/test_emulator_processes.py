@@ -376,7 +376,16 @@ def test_mesh_up_event_reporting_sends_heartbeats_when_idle_and_reports_a_press(
         assert r.returncode == 0, r.stderr
         pressed = data_by_origin(skin.read(pty, 1.5))
         assert any(s.c1 < rest - 200 for s in pressed.get(4, [])), pressed.get(4)
-        assert all(len(pressed.get(b, [])) <= 5 for b in (1, 2, 3)), {b: len(v) for b, v in pressed.items()}
+        # the untouched bridges still send only heartbeats (periodic: a sample each 10 ms): one
+        # per 400 ms of the span they cover (the read also drains what queued while `press`
+        # ran), and 3 more for each change (a bridge losing or regaining mesh time on a busy
+        # machine changes its flags: the change, the sample after it, an early slot heartbeat)
+        for b in (1, 2, 3):
+            got = sorted({s.cycle: s for s in pressed.get(b, [])}.values(), key=lambda s: s.cycle)
+            changes = sum(s.flags != a.flags or abs(s.c1 - a.c1) > 40 or abs(s.c2 - a.c2) > 40
+                          for a, s in zip(got, got[1:]))
+            span = got[-1].cycle - got[0].cycle if got else 0
+            assert len(got) <= 1 + span // (400 * 50_000) + 3 * changes, (b, changes, [(s.cycle, s.flags) for s in got])
 
 
 @pytest.mark.parametrize("text, mode", [

@@ -120,12 +120,13 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     # The daemon's schedule (service._contacts): an estimate when data came or when the
     # held elements' holds run out (Pipeline.contact_due), at most `rate` a second; the tick
     # every 0.1 s also asks for one.
-    last, tick_at = -math.inf, 0.0
+    # After an estimate (or a look that found the frame due yet none), the next look waits
+    # out the rate; after a look that found nothing new, it comes with data or when due.
+    rest_until, tick_at = -math.inf, 0.0
     while now < end:
         due = p.contact_due(now)
         after = reads[i][0] if i < len(reads) else math.inf
-        now = max(last + step, min(after, due, tick_at))
-        last = now
+        now = max(now, rest_until, min(after, due, tick_at))
         ticked = now >= tick_at
         if ticked:
             tick_at = now + TICK_S
@@ -142,6 +143,8 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         if ticked:
             p.tick(now)
         job = p.contact_job(now)
+        if job is not None or p.contact_due(now) <= now:
+            rest_until = now + step
         if job is not None:
             snap = job.snapshot
             if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):

@@ -235,7 +235,9 @@ class ContactSection:
                        _up_to(1000), reloadable=True)
     method: str = _key("capacitance", "model fit in capacitance (default) or area space",
                        _one_of("capacitance", "area"), reloadable=True)
-    birth_frames: int = _key(3, "estimates a contact must persist before it is reported (with a stable id)",
+    birth_frames: int = _key(1, "estimates a contact must persist before it is reported (with a stable id); "
+                             "1: at once (a touch needs 8 noise sigmas), more to ride out impulsive noise, "
+                             "each costing one sample period of latency",
                              _count(1, 1000), reloadable=True)
     max_missed: int = _key(2, "estimates a reported contact may be missing before it ends", _count(0, 1000),
                            reloadable=True)

@@ -51,7 +51,7 @@ class ContactSpec:
     neighbour_gap: float
     noise: float
     method: str
-    birth_frames: int = 3
+    birth_frames: int = 1
     max_missed: int = 2
 
     @classmethod
@@ -125,7 +125,7 @@ class ContactStage:
     """
 
     def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str,
-                 birth_frames: int = 3, max_missed: int = 2) -> None:
+                 birth_frames: int = 1, max_missed: int = 2) -> None:
         self.layout = layout
         self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
         self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)

@@ -74,7 +74,7 @@ class LayoutStages:
         self.row[ids[inside]] = np.nonzero(inside)[0]
         con = self.config.contact  # memory in readings: max_lag reaches back at most max_lag_readings
         depth = min(math.ceil(con.max_lag * cal.max_step_rate), con.max_lag_readings) + SPARE
-        self.moments = Moments(layout.n, depth)
+        self.moments = Moments(layout.n, depth, layout.corner_edges)
         self.rebuilds += 1
         if old_layout is not None and old_elements is not None and old_layout.side == layout.side:
             # Elements that kept their place keep their baselines: a bridge joining late (or

@@ -18,7 +18,9 @@ than their own instant:
   host can tell.
 
 Elements silent for ``timeout`` (``bridge_timeout``) are unknown, not touched, and hold
-nothing back. A periodic element whose data trail the newest by more than ``max_lag``
+nothing back. At a press's onset, the untouched neighbours of a touch just begun are
+unknown for a frame until they reported past it (``ONSET_WAIT``): their held readings from
+before the press may be overtaken by a change still on its way. A periodic element whose data trail the newest by more than ``max_lag``
 holds nothing back either (it is unknown for the newer frames). A held element has
 reported past every instant a change of its would already have reached the host: its
 bridge sends a change at once, so a held element holds the moment back only to ``now``
@@ -52,6 +54,15 @@ DELAY_FORGET_S = 5.0
 #: (the mark is already the largest delay seen lately: a change later than that is rare).
 DELAY_FACTOR = 1.0
 DELAY_MARGIN = 0.005
+#: The untouched neighbours of an element that began a touch within this long (s) of a
+#: frame are *unknown* for that frame until they have reported past it, or until their
+#: delivery delay plus this much has passed. A press sets off the bridges under it at
+#: one instant, and they contend for the same cells: one of them retried (a collision
+#: costs an acknowledgement timeout, 10 ms and more) reaches the host after its usual
+#: delay. Its held reading from before the press would say "not touched", and a corner
+#: press seen on three of its four elements is fitted as two contacts (an extra id).
+#: Unknown, it leaves the fit free there and holds nothing back.
+ONSET_WAIT = 0.030
 
 
 class Moment(NamedTuple):
@@ -70,8 +81,12 @@ class Moment(NamedTuple):
 class Moments:
     """The last ``depth`` readings (ΔC, touch flag, sample time, cycle) of every element."""
 
-    def __init__(self, n: int, depth: int) -> None:
+    def __init__(self, n: int, depth: int, near: NDArray[np.int64] | None = None) -> None:
+        """``n`` elements, ``depth`` readings kept of each; ``near``: (E, 2) pairs of
+        elements next to each other, corners included (``SkinLayout.corner_edges``; None:
+        no element is a neighbour of another)."""
         self.depth = depth
+        self.near = np.zeros((0, 2), dtype=np.int64) if near is None else np.asarray(near, dtype=np.int64)
         self.t = np.full((n, depth), np.nan)  # host time of the sample (NaN: empty slot)
         self.dc = np.full((n, depth, 2), np.nan)
         self.touched = np.zeros((n, depth), dtype=bool)
@@ -91,9 +106,10 @@ class Moments:
         self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: their newest)
         self.late = np.zeros(n, dtype=bool)  # live elements not waited for: their data trail by more than max_lag
         self.late_estimates = 0  # snapshots that left a live element out for being late
+        self.touch_began = np.full(n, -math.inf)  # sample time of the reading that began the element's touch
         self._all = np.arange(n)
 
-    _PER_ELEMENT = ("period", "live", "settled", "arrival", "delay", "delay_at", "holding", "late")
+    _PER_ELEMENT = ("period", "live", "settled", "arrival", "delay", "delay_at", "holding", "late", "touch_began")
     _RINGS = ("t", "dc", "touched", "cycle", "held", "on_time")
 
     def adopt(self, old: Moments, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
@@ -129,6 +145,9 @@ class Moments:
             over_leave = (dc > leave[rows]).any(axis=1)
         prev = self.touched[rows, (self.count[rows] - 1) % self.depth] & (self.count[rows] > 0)
         touched = over_enter | (prev & over_leave)
+        began = touched & ~prev
+        if began.any():  # the newest onset of an element counts
+            np.maximum.at(self.touch_began, rows[began], t[began])
         rank: int | NDArray[np.int64]  # each reading's slot after the element's newest
         if unique:
             idx, rank = None, 0
@@ -191,7 +210,7 @@ class Moments:
             return self._all_silent()
         if t <= self.t_moment and not force:
             return None
-        dc, touched, t_sample, cycle, unknown, transition = self.at(t)
+        dc, touched, t_sample, cycle, unknown, transition = self.at(t, now)
         if transition and not force:
             if math.isnan(self.hold_since):
                 self.hold_since = t
@@ -268,6 +287,23 @@ class Moments:
         # (a microsecond on: at the exact instant, rounding may leave the frame one short)
         return nxt + float(self._bound(min(held_wait, max_lag), now)[waits].max()) + 1e-6
 
+    def _onset_pending(self, moment: float, now: float, touched: NDArray[np.bool_], t_j: FloatArray,
+                       held: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Untouched held elements next to a touch that began within ``ONSET_WAIT`` of
+        ``moment``, that have not reported past ``moment`` and whose delay plus
+        ``ONSET_WAIT`` has not passed since: a change of theirs may still be retried."""
+        pending = np.zeros(touched.shape[0], dtype=bool)
+        fresh = touched & (moment - self.touch_began < ONSET_WAIT)
+        if not fresh.any() or self.near.shape[0] == 0:
+            return pending
+        a, b = self.near[:, 0], self.near[:, 1]
+        pending[b[fresh[a]]] = True
+        pending[a[fresh[b]]] = True
+        with np.errstate(invalid="ignore"):
+            reported = self.settled >= moment - 1e-9
+            waited = now - moment >= np.nan_to_num(self._delay_bound(now), nan=0.0) + ONSET_WAIT
+        return pending & ~touched & held & (t_j < moment - 1e-9) & ~reported & ~waited
+
     def _held_now(self) -> NDArray[np.bool_]:
         """Whether each element's newest reading is held (stands for the frames after it)."""
         return self.held[self._all, (self.count - 1) % self.depth]
@@ -277,13 +313,20 @@ class Moments:
         reached the host by its delivery delay (with a margin); ``wait`` at most, and while
         its delay is not known yet. The delay mark forgets between the element's readings
         too (a heartbeat may be seconds apart)."""
-        delay = self.delay * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
-        return np.fmin(np.nan_to_num(delay * DELAY_FACTOR + DELAY_MARGIN, nan=wait), wait)
+        return np.fmin(np.nan_to_num(self._delay_bound(now), nan=wait), wait)
 
-    def at(self, moment: float) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.uint64],
-                                         NDArray[np.bool_], float]:
+    def _delay_bound(self, now: float) -> FloatArray:
+        """Each element's delivery delay mark, forgotten down to ``now``, with its margin
+        (NaN: not known yet)."""
+        delay = self.delay * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
+        return delay * DELAY_FACTOR + DELAY_MARGIN
+
+    def at(self, moment: float, now: float = math.inf) -> tuple[FloatArray, NDArray[np.bool_], FloatArray,
+                                                               NDArray[np.uint64], NDArray[np.bool_], float]:
         """(ΔC (n, 2), touched, sample time, cycle, unknown) of each element at ``moment``
-        (see the module for which reading counts; an unknown element has NaN/False) and
+        (see the module for which reading counts; an unknown element has NaN/False; at
+        host time ``now``, an untouched neighbour of a touch just begun may still be
+        unknown: ``ONSET_WAIT``) and
         how long the skin is still in transition there: an element whose next reading
         is touched where this one is not (or the reverse) was pressed or released
         between its two samples, so at ``moment`` its state is unknown for up to the
@@ -315,6 +358,7 @@ class Moments:
             stands = np.where(self.on_time[rows, j], age < tol - slack, age <= tol)
         stands = (stands | held) & (age >= -1e-9)
         unknown = ~self.live | ~stands | (self.count == 0) | (self.holding & none_before)
+        unknown |= self._onset_pending(moment, now, touched & ~unknown, t_j, held)
         if unknown.any():
             dc[unknown] = np.nan
             touched[unknown] = False

@@ -80,7 +80,7 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
 
     found: dict[str, dict] = {}
     end = time.monotonic() + 20
-    while len(found) < 2 and time.monotonic() < end:  # press until a contact is born (3 estimates)
+    while len(found) < 2 and time.monotonic() < end:  # press until a contact is reported
         pty.write(sk.slot(k, CORNER))
         k += 1
         got = client.recv(0.005)
@@ -100,7 +100,7 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
     assert contact["force"] == pytest.approx(3.0, rel=0.01)
     assert contact["diameter"] == pytest.approx(0.012, abs=2e-4)
     assert c["v"] == 1 and c["t_host"] > 0 and sorted(contact["elements"]) == [1, 2, 4, 5]
-    assert contact["id"] == 0 and contact["age"] >= 3  # tracked: a stable id, born after 3 estimates
+    assert contact["id"] == 0 and contact["age"] >= 1  # tracked: a stable id, from its first estimate (birth_frames 1)
 
 
 def announce(pty: Pty, client: Client, slots: int) -> Skin:

@@ -314,3 +314,31 @@ def test_a_held_press_on_an_event_based_skin_keeps_its_contact_when_a_bridge_joi
     for m in during:
         assert len(m["contacts"]) == 1 and m["contacts"][0]["id"] == during[0]["contacts"][0]["id"], m
         assert m["contacts"][0]["force"] == pytest.approx(3.0, rel=0.05)
+
+
+def test_corner_presses_on_a_contended_event_based_skin_keep_one_id_from_their_first_frame() -> None:
+    """The real-time shells' latency model (message delays, 10 ms acknowledgement slack):
+    the four bridges under a corner press send their onset samples at one instant and
+    contend. With ``birth_frames = 1`` every frame counts, and one retried onset sample
+    made a frame of three touched elements and one "untouched": two contacts, an extra id
+    (press 11 of these 12, before its neighbours were unknown at the onset)."""
+    import random
+
+    from cellbridge.emulator.virtual import Latency
+
+    mesh = meshgen.grid(4, 4)
+    rng = random.Random(0)
+    presses = [Contact(61.6 + i * 1.5 + rng.uniform(0, 0.01), 1.0, *CORNER, 3.0, 0.020) for i in range(12)]
+    vm = VirtualMesh(mesh, seed=0, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
+                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+    vm.run(presses[-1].start + 1.6)
+    reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+    run = [(t - T0, m) for t, topic, m in drive(reads, presses[-1].start + 1.6, step=0.005,
+                                                  sections={"contact": {"birth_frames": 1}})
+           if topic == "contact" and t - T0 > 60.0]
+    for k, c in enumerate(presses):
+        during = [m for t, m in run if c.start <= t < c.start + c.duration + 0.3]
+        ids = {d["id"] for m in during for d in m["contacts"]}
+        assert len(ids) == 1, (k, ids)
+        steady = [d for t, m in run if c.start + 0.3 <= t < c.start + 0.8 for d in m["contacts"]]
+        assert steady and all(abs(d["force"] - 3.0) <= 0.15 for d in steady), k

@@ -342,3 +342,36 @@ def test_corner_presses_on_a_contended_event_based_skin_keep_one_id_from_their_f
         assert len(ids) == 1, (k, ids)
         steady = [d for t, m in run if c.start + 0.3 <= t < c.start + 0.8 for d in m["contacts"]]
         assert steady and all(abs(d["force"] - 3.0) <= 0.15 for d in steady), k
+
+
+def test_presses_sliding_across_seams_of_an_event_based_skin_keep_one_id() -> None:
+    """A press sliding across a seam (or releasing element by element) is fitted as two
+    disks for a frame now and then: its elements' held readings are of slightly different
+    instants (a bridge sends a change only beyond its threshold). With ``birth_frames`` 1
+    each such frame gave the press a second id beside it for a frame or two, with half its
+    force (slides 3, 5 and 6 of these 6, 2.65 + 0.61 N, 2.03 + 0.87 N, 2.43 + 0.29 N, before
+    a split of a confirmed contact had to persist the tracker's ``split_frames``)."""
+    import random
+
+    from cellbridge.emulator.virtual import Latency
+
+    mesh = meshgen.grid(4, 4)
+    rng = random.Random(3)
+    presses, end = [], 62.0
+    for _ in range(2):
+        for x, y, vx, vy, hold in ((0.005, 0.06, 0.11, 0.0, 1.0), (0.005, 0.005, 0.11, 0.11, 0.9),
+                                   (0.06, 0.002, 0.0, 0.3, 0.38)):
+            j = rng.uniform(0, 0.01)
+            y += rng.uniform(-0.01, 0.01) if vy == 0.0 else 0.0
+            presses.append(Contact(end + j, hold - j, x, y, 3.0, 0.020, vx, vy))
+            end += hold + 0.7
+    vm = VirtualMesh(mesh, seed=3, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
+                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+    vm.run(end)
+    reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+    run = [(t - T0, m) for t, topic, m in drive(reads, end - 0.3, step=0.005)
+           if topic == "contact" and t - T0 > 61.0]
+    for k, c in enumerate(presses):
+        during = [m for t, m in run if c.start <= t < c.start + c.duration + 0.3]
+        assert {d["id"] for m in during for d in m["contacts"]} and all(len(m["contacts"]) <= 1 for m in during), k
+        assert len({d["id"] for m in during for d in m["contacts"]}) == 1, k

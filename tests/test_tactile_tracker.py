@@ -113,7 +113,7 @@ def test_bad_settings_are_named():
     est = ContactEstimator(LAY)
     with pytest.raises(ValueError, match="hints"):
         est.estimate(np.zeros(LAY.n), np.zeros(LAY.n), hints=np.zeros((2, 3)))
-    for kw in ({"birth_frames": 0}, {"max_missed": -1}, {"gate": 0.0}, {"motion": -1.0}):
+    for kw in ({"birth_frames": 0}, {"max_missed": -1}, {"gate": 0.0}, {"motion": -1.0}, {"split_frames": 0}):
         with pytest.raises(ValueError, match=next(iter(kw))):
             ContactTracker(est, **kw)
 
@@ -145,6 +145,37 @@ def test_a_contact_with_an_unbounded_sigma_only_continues_the_track_it_touches()
         ids_a = _born(tr2, [a])
         out = tr2.step([replace(blind, elements=(4,)), a])
         assert {tc.contact.elements: tc.id for tc in out} == ids_a and tr2.candidates == 1
+
+
+def test_a_split_of_a_confirmed_contact_waits_for_split_frames_a_press_elsewhere_does_not():
+    """With ``birth_frames`` 1, a contact fitted beside a confirmed one on its elements (a
+    press sliding across a seam, or releasing element by element, fitted as two disks
+    for a frame) was born at once: an extra id on the press for one frame. A split must
+    persist ``split_frames``; a press on other elements is still born at once."""
+    from dataclasses import replace
+
+    est = ContactEstimator(LAY, noise=NOISE)
+    rng = np.random.default_rng(7)
+    (a,) = est.estimate(*frame([0.020, 0.020, 3.0, 0.020], rng))  # across elements 0, 1, 3, 4
+    assert len(a.elements) == 4
+    part = replace(a, x=a.x + 0.035, y=a.y, elements=a.elements[1:2])  # one of its elements, beyond the gate
+    (far,) = est.estimate(*frame([0.080, 0.080, 3.0, 0.012], rng))  # on element 8
+    tr = ContactTracker(est, birth_frames=1)
+    (first,) = tr.step([a])
+    assert first.id == 0  # born at once (birth_frames 1)
+    out = tr.step([a, part, far])
+    assert sorted(tc.id for tc in out) == [0, 1]  # the press elsewhere at once, the split not
+    assert {tc.id: tc.contact.elements for tc in out}[1] == far.elements
+    out = tr.step([a, part, far])
+    assert sorted(tc.id for tc in out) == [0, 1] and tr.candidates == 1
+    out = tr.step([a, part, far])  # persisted split_frames (3): a contact
+    assert sorted(tc.id for tc in out) == [0, 1, 2]
+    # a one-frame split is never a contact
+    tr = ContactTracker(est, birth_frames=1)
+    for frame_contacts in ([a], [a, part], [a], [a]):
+        out = tr.step(frame_contacts)
+        assert [tc.id for tc in out] == [0]
+    assert tr.rejected == 1
 
 
 def test_time_going_back_or_not_finite_is_refused_and_changes_nothing():

@@ -146,6 +146,10 @@ class Moments:
         prev = self.touched[rows, (self.count[rows] - 1) % self.depth] & (self.count[rows] > 0)
         touched = over_enter | (prev & over_leave)
         began = touched & ~prev
+        if not unique and began.any():  # after another reading of its element in this batch: that one's flag
+            order = np.argsort(rows, kind="stable")
+            after = np.flatnonzero(rows[order][1:] == rows[order][:-1]) + 1
+            began[order[after]] &= ~touched[order[after - 1]]
         if began.any():  # the newest onset of an element counts
             np.maximum.at(self.touch_began, rows[began], t[began])
         rank: int | NDArray[np.int64]  # each reading's slot after the element's newest

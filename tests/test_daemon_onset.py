@@ -106,3 +106,25 @@ def test_the_onset_holds_no_frame_back() -> None:
     for row in range(3):
         _record(m, row, T0, True, T0 + DELAY)
     assert m.moment(T0 + DELAY + DELAY_MARGIN + 0.001, timeout=2.0, max_lag=0.5) == T0
+
+
+def test_a_touch_whose_first_readings_arrive_in_one_batch_began_at_the_first() -> None:
+    """A bridge retried under contention sends its queued samples together: the onset and
+    the readings after it in one batch. Each touched reading of the batch counted as an
+    onset (the hysteresis looked at the reading before the batch), so the touch 'began' at
+    the batch's newest reading and its neighbours stayed unknown up to 30 ms past the
+    documented window (40 ms after the press here)."""
+    m = _skin()
+    rows = np.zeros(5, dtype=np.int64)
+    t = T0 + PERIOD * np.arange(5)
+    thresholds = np.full((4, 2), 1.0)
+    arrive = t[-1] + DELAY
+    m.record(rows, t, np.zeros(5, dtype=np.uint64), np.full((5, 2), 2.0), False, arrive, thresholds,
+             thresholds * 0.5, np.ones(5, dtype=bool), np.ones(5, dtype=bool), np.full(5, PERIOD))
+    flags = np.array([True, False, False, False])
+    m.settle(np.array([0]), flags)
+    assert m.touch_began[0] == T0
+    moment = T0 + 4 * PERIOD  # 40 ms into the touch: past the onset wait
+    _dc, touched, _t, _cycle, unknown, _gap = m.at(moment, arrive + DELAY_MARGIN + 0.001)
+    assert touched.tolist() == [True, False, False, False]
+    assert not unknown.any()

@@ -18,7 +18,8 @@ than their own instant:
   host can tell.
 
 Elements silent for ``timeout`` (``bridge_timeout``) are unknown, not touched, and hold
-nothing back. At a press's onset, the untouched neighbours of a touch just begun are
+nothing back; so is an element whose reading has no ΔC (no baseline yet: at start, or
+after a tare until ``n_baseline`` new readings came). At a press's onset, the untouched neighbours of a touch just begun are
 unknown for a frame until they reported past it (``ONSET_WAIT``): their held readings from
 before the press may be overtaken by a change still on its way. A periodic element whose data trail the newest by more than ``max_lag``
 holds nothing back either (it is unknown for the newer frames). A held element has
@@ -362,6 +363,7 @@ class Moments:
             stands = np.where(self.on_time[rows, j], age < tol - slack, age <= tol)
         stands = (stands | held) & (age >= -1e-9)
         unknown = ~self.live | ~stands | (self.count == 0) | (self.holding & none_before)
+        unknown |= np.isnan(dc).all(axis=1)  # no ΔC: no baseline yet (at start, after a tare), or forgotten
         unknown |= self._onset_pending(moment, now, touched & ~unknown, t_j, held)
         if unknown.any():
             dc[unknown] = np.nan

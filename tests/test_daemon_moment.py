@@ -148,3 +148,28 @@ def test_adopt_keeps_the_newest_readings_that_fit_in_either_depth() -> None:
             kept = [float(new.t[2, (n - 1 - i) % new_depth]) for i in range(min(n, new_depth))]
             assert kept == [float(count - 1 - i) for i in range(min(count, old_depth, new_depth))]
             assert new.t_moment == old.t_moment and np.isnan(new.t[0]).all()
+
+
+def test_an_element_without_a_baseline_is_unknown_not_untouched() -> None:
+    """After a tare (or at start) an element has no baseline until ``n_baseline`` quiet
+    readings came: the calibrator gives no ΔC (NaN), and on an event-based skin an idle
+    element sends one reading a heartbeat, so that is ~50 s. Its readings, and the ones
+    the tare told to forget, said nothing, yet the contact message listed no element as
+    unknown: a press there was simply not seen (virtual 4x4, event:40, a 3 N corner press
+    6 s after a tare: no contact, ``unknown`` empty)."""
+    m = Moments(2, 64)
+    for k in range(50):
+        _record(m, 0, 9.5 + k * PERIOD)
+        _record(m, 1, 9.5 + k * PERIOD)
+    m.forget(np.array([1]))  # a tare of element 1: its readings so far no longer count
+    now = 9.5 + 49 * PERIOD + DELAY + 0.006
+    got = m.take(now, timeout=2.0, max_lag=0.5)
+    assert got is not None and got.unknown.tolist() == [False, True]
+    rows = np.array([1])  # a reading after the tare, while the baseline is still collected
+    zero = np.zeros((2, 2))
+    m.record(rows, np.array([10.0]), np.array([0], dtype=np.uint64), np.full((1, 2), np.nan), True, 10.0 + DELAY,
+             zero + 1.0, zero + 0.5, np.array([True]), np.array([True]), np.array([PERIOD]))
+    m.settle(rows, np.zeros(2, dtype=bool))
+    _record(m, 0, 10.0)
+    got = m.take(10.0 + DELAY + 0.006, timeout=2.0, max_lag=0.5)
+    assert got is not None and got.t == 10.0 and got.unknown.tolist() == [False, True]

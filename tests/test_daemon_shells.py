@@ -391,3 +391,37 @@ def test_the_virtual_mesh_feeds_the_pipeline_deterministically_by_seed() -> None
     again = _virtual_press(3)
     assert repr(again) == repr((elements, contacts))  # (repr: NaN equals NaN)
     assert repr(_virtual_press(4)[0]) != repr(elements)  # another seed, other noise
+
+
+def test_a_flood_of_reads_that_move_no_frame_costs_few_contact_looks(tmp_path: Path) -> None:
+    """``[contact] rate`` bounds estimates; a look that finds no new frame was followed by
+    the next read's look at once: a serial line read in small pieces (a USB adapter's 32-byte
+    chunks; the daemon at 20 % CPU on an emulated 4x4 skin) cost a skin-frame computation per
+    read (246 looks a second against 69, 9 % of a core against 2.5 %). After such a look the
+    next waits for data and at least a quarter of the estimate period, or until the frame is
+    due. A count, not a speed: a slower run gives fewer looks and a larger bound."""
+    async def scenario() -> None:
+        _write_config(tmp_path / "daemon.toml", contact={"rate": 4.0})  # an estimate period of 0.25 s
+        dev = FakeDevice()
+        async with running(tmp_path, dev) as (svc, _ctx):
+            looks = [0]
+            job = svc.pipeline.contact_job
+
+            def counted(now: float | None = None) -> Any:
+                looks[0] += 1
+                return job(now)
+
+            svc.pipeline.contact_job = counted  # type: ignore[method-assign]  # counts the real method's calls
+            loop = asyncio.get_running_loop()
+            await asyncio.sleep(0.3)  # the start's looks are over
+            start, looks[0], reads = loop.time(), 0, svc._n_reads
+            for _ in range(300):
+                dev.send(b"\x01\x02")  # a read that completes no frame
+                await asyncio.sleep(0.001)
+            await until(lambda: svc._n_reads >= reads + 300)
+            elapsed = loop.time() - start
+            gap = 0.25 / svc.config.contact.rate
+            # a look per gap at most, plus the tick's ten a second (each a read's look's chance)
+            assert looks[0] <= elapsed / gap + elapsed / svc.TICK + 3, (looks[0], elapsed)
+
+    asyncio.run(scenario())

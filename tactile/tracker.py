@@ -3,7 +3,9 @@
 A robot wants "finger 3 moved 2 mm", not a fresh list every frame. The tracker
 associates each frame's contacts with the tracks of the previous frames, gives a
 track an id only once it has been seen in ``birth_frames`` consecutive frames (a
-noise spike on one frame is never a contact), keeps it through ``max_missed`` frames
+noise spike on one frame is never a contact; a new contact on or next to the elements
+of another waits ``split_frames``: one press read as two for a frame is no second
+contact), keeps it through ``max_missed`` frames
 without a match (a reading that briefly falls under the touch threshold), and feeds
 each track's last disk to the estimator as the start of the next fit.
 
@@ -61,6 +63,7 @@ class _Track:
     id: int | None = None  # given at birth
     t: float | None = None
     elements: frozenset[int] = field(default_factory=frozenset)
+    need: int = 1  # consecutive frames to be seen in before its birth
 
 
 class ContactTracker:
@@ -81,9 +84,12 @@ class ContactTracker:
         max_missed: int = 2,
         gate: float = 3.0,
         motion: float = 0.010,
+        split_frames: int = 3,
     ):
         if int(birth_frames) != birth_frames or birth_frames < 1:
             raise ValueError(f"birth_frames must be an integer >= 1, got {birth_frames!r}")
+        if int(split_frames) != split_frames or split_frames < 1:
+            raise ValueError(f"split_frames must be an integer >= 1, got {split_frames!r}")
         if int(max_missed) != max_missed or max_missed < 0:
             raise ValueError(f"max_missed must be an integer >= 0, got {max_missed!r}")
         if not (math.isfinite(gate) and gate > 0):
@@ -92,6 +98,13 @@ class ContactTracker:
             raise ValueError(f"motion must be >= 0 m, got {motion!r}")
         self.estimator = estimator
         self.birth_frames = int(birth_frames)
+        self.split_frames = int(split_frames)
+        lay = estimator.layout
+        reach: dict[int, set[int]] = {int(i): {int(i)} for i in lay.ids}
+        for a, b in lay.corner_edges.tolist():
+            reach[int(lay.ids[a])].add(int(lay.ids[b]))
+            reach[int(lay.ids[b])].add(int(lay.ids[a]))
+        self._reach = {k: frozenset(v) for k, v in reach.items()}  # each element id and its neighbours
         self.max_missed = int(max_missed)
         self.gate = float(gate)
         self.motion = float(motion)
@@ -178,11 +191,21 @@ class ContactTracker:
                     self.deaths += 1
                     continue
             keep.append(tr)
+        held = frozenset().union(*(tr.elements for tr in keep))
         for ci, c in enumerate(contacts):
             if ci not in matched_c:
-                keep.append(_Track(c, self.frame, t=t, elements=frozenset(c.elements)))
+                els = frozenset(c.elements)
+                # A new contact on or next to the elements of another contact of this frame
+                # or of a kept track may be one press read in two: most often a frame with
+                # one of its elements' readings late (a corner press on three of its four
+                # elements fits no one disk). Such a contact needs ``split_frames`` frames,
+                # however small ``birth_frames`` is; one far from the others does not.
+                others = held.union(*(contacts[k].elements for k in range(len(contacts)) if k != ci))
+                near = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in els)) & others
+                need = max(self.birth_frames, self.split_frames) if near else self.birth_frames
+                keep.append(_Track(c, self.frame, t=t, elements=els, need=need))
         for tr in keep:
-            if tr.id is None and tr.hits >= self.birth_frames:
+            if tr.id is None and tr.hits >= tr.need:
                 tr.id = self._next_id
                 self._next_id += 1
                 self.births += 1

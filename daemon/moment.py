@@ -54,7 +54,7 @@ DELAY_FORGET_S = 5.0
 #: A held element is waited for this many times its delay high-water mark, plus ``DELAY_MARGIN`` s
 #: (the mark is already the largest delay seen lately: a change later than that is rare).
 DELAY_FACTOR = 1.0
-DELAY_MARGIN = 0.005
+DELAY_MARGIN = 0.002
 #: The untouched neighbours of an element that began a touch within this long (s) of a
 #: frame are *unknown* for that frame until they have reported past it, or until their
 #: delivery delay plus this much has passed. A press sets off the bridges under it at

@@ -3,8 +3,9 @@
 A robot wants "finger 3 moved 2 mm", not a fresh list every frame. The tracker
 associates each frame's contacts with the tracks of the previous frames, gives a
 track an id only once it has been seen in ``birth_frames`` consecutive frames (a
-noise spike on one frame is never a contact), and in ``split_frames`` at least when it
-shares an element with a confirmed contact (see below), keeps it through ``max_missed`` frames
+noise spike on one frame is never a contact; a new contact on or next to the elements
+of another waits ``split_frames``: one press read as two for a frame is no second
+contact), keeps it through ``max_missed`` frames
 without a match (a reading that briefly falls under the touch threshold), and feeds
 each track's last disk to the estimator as the start of the next fit.
 
@@ -15,16 +16,6 @@ frames). An axis the readings do not resolve carries an element-wide σ, so a di
 that slides from inside an element to across a seam (its reported x jumps from the
 element's centre to the true position) keeps its id. Pairs are taken greedily,
 closest first. Sans-I/O: frames and times go in, tracks come out.
-
-A contact that appears on the elements of a confirmed one is a *split* of it far more
-often than a second finger: a press sliding across a seam, or releasing element by
-element, is fitted as two disks for a frame or two, when its elements' readings are of
-slightly different instants (event-based bridges send a change only beyond their
-threshold). With ``birth_frames`` 1 each such frame gave an extra id, a ghost beside
-the press for one frame (virtual 4×4 skin, event-based, presses sliding at 0.1–0.3 m/s:
-9 of 36 slides). Such a candidate is born after ``split_frames`` (default 3) frames: a
-second finger landing on a pressed element's cluster is reported two frames later, a
-press anywhere else still at once.
 """
 
 from __future__ import annotations
@@ -72,7 +63,7 @@ class _Track:
     id: int | None = None  # given at birth
     t: float | None = None
     elements: frozenset[int] = field(default_factory=frozenset)
-    split: bool = False  # first seen on the elements of a confirmed track: born after split_frames
+    need: int = 1  # consecutive frames to be seen in before its birth
 
 
 class ContactTracker:
@@ -97,17 +88,23 @@ class ContactTracker:
     ):
         if int(birth_frames) != birth_frames or birth_frames < 1:
             raise ValueError(f"birth_frames must be an integer >= 1, got {birth_frames!r}")
-        if int(max_missed) != max_missed or max_missed < 0:
-            raise ValueError(f"max_missed must be an integer >= 0, got {max_missed!r}")
         if int(split_frames) != split_frames or split_frames < 1:
             raise ValueError(f"split_frames must be an integer >= 1, got {split_frames!r}")
+        if int(max_missed) != max_missed or max_missed < 0:
+            raise ValueError(f"max_missed must be an integer >= 0, got {max_missed!r}")
         if not (math.isfinite(gate) and gate > 0):
             raise ValueError(f"gate must be > 0 standard deviations, got {gate!r}")
         if not (math.isfinite(motion) and motion >= 0):
             raise ValueError(f"motion must be >= 0 m, got {motion!r}")
         self.estimator = estimator
         self.birth_frames = int(birth_frames)
-        self.split_frames = max(self.birth_frames, int(split_frames))
+        self.split_frames = int(split_frames)
+        lay = estimator.layout
+        reach: dict[int, set[int]] = {int(i): {int(i)} for i in lay.ids}
+        for a, b in lay.corner_edges.tolist():
+            reach[int(lay.ids[a])].add(int(lay.ids[b]))
+            reach[int(lay.ids[b])].add(int(lay.ids[a]))
+        self._reach = {k: frozenset(v) for k, v in reach.items()}  # each element id and its neighbours
         self.max_missed = int(max_missed)
         self.gate = float(gate)
         self.motion = float(motion)
@@ -194,14 +191,21 @@ class ContactTracker:
                     self.deaths += 1
                     continue
             keep.append(tr)
-        confirmed = [tr.elements for tr in keep if tr.id is not None]
+        held = frozenset().union(*(tr.elements for tr in keep))
         for ci, c in enumerate(contacts):
             if ci not in matched_c:
-                elements = frozenset(c.elements)
-                keep.append(_Track(c, self.frame, t=t, elements=elements,
-                                   split=any(elements & e for e in confirmed)))
+                els = frozenset(c.elements)
+                # A new contact on or next to the elements of another contact of this frame
+                # or of a kept track may be one press read in two: most often a frame with
+                # one of its elements' readings late (a corner press on three of its four
+                # elements fits no one disk). Such a contact needs ``split_frames`` frames,
+                # however small ``birth_frames`` is; one far from the others does not.
+                others = held.union(*(contacts[k].elements for k in range(len(contacts)) if k != ci))
+                near = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in els)) & others
+                need = max(self.birth_frames, self.split_frames) if near else self.birth_frames
+                keep.append(_Track(c, self.frame, t=t, elements=els, need=need))
         for tr in keep:
-            if tr.id is None and tr.hits >= (self.split_frames if tr.split else self.birth_frames):
+            if tr.id is None and tr.hits >= tr.need:
                 tr.id = self._next_id
                 self._next_id += 1
                 self.births += 1

@@ -217,3 +217,47 @@ def test_a_tracker_built_afresh_continues_the_contacts_carried_over_with_their_i
         out = new.update(*frame([press, [0.042, 0.042, 3.0, 0.012]], rng), t=0.06 + 0.01 * k)
     assert [tc.id for tc in out] == [last[0].id, 7]
     assert new.carry(wire) == 0
+
+
+CORNER_PRESS = [0.0185, 0.0225, 3.0, 0.020]  # across the corner of elements 0, 1, 3 and 4
+
+
+def _one_late(press, late, rng):
+    """A frame of ``press`` in which element ``late``'s reading is its old, untouched one."""
+    dc1, dc2 = frame(press, rng)
+    dc1[late] = rng.normal(0, NOISE)
+    dc2[late] = rng.normal(0, NOISE)
+    return dc1, dc2
+
+
+@pytest.mark.parametrize("late", [0, 1, 3, 4])
+def test_a_corner_press_read_in_two_for_a_frame_keeps_one_id(late):
+    """``birth_frames`` 1: a frame with one of the four elements' readings late fits no one
+    disk (two contacts); the split-off must not be born as a second id."""
+    rng = np.random.default_rng(late)
+    tr = tracker(birth_frames=1)
+    ids = set()
+    for k in range(8):
+        out = tr.update(*(_one_late(CORNER_PRESS, late, rng) if k == 3 else frame(CORNER_PRESS, rng)))
+        assert len(out) == 1, (k, out)
+        ids |= {tc.id for tc in out}
+    assert ids == {0}
+
+
+@pytest.mark.parametrize("late", [0, 1, 3, 4])
+def test_a_corner_press_read_in_two_at_its_first_frame_is_born_once(late):
+    rng = np.random.default_rng(10 + late)
+    tr = tracker(birth_frames=1)
+    seen = [tr.update(*(_one_late(CORNER_PRESS, late, rng) if k == 0 else frame(CORNER_PRESS, rng)))
+            for k in range(8)]
+    assert all(len(s) <= 1 for s in seen) and {tc.id for s in seen for tc in s} == {0}
+    assert [len(s) for s in seen[2:]] == [1] * 6  # born by the third frame at the latest
+
+
+def test_a_lone_press_and_two_far_apart_are_born_at_their_first_frame():
+    rng = np.random.default_rng(5)
+    tr = tracker(birth_frames=1)
+    assert len(tr.update(*frame(CORNER_PRESS, rng))) == 1
+    tr2 = tracker(birth_frames=1)
+    far = [[0.0, 0.0, 3.0, 0.012], [0.08, 0.08, 3.0, 0.012]]  # elements 0 and 8: not neighbours
+    assert len(tr2.update(*frame(far, rng))) == 2

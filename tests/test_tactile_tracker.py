@@ -154,12 +154,13 @@ def test_a_split_of_a_confirmed_contact_waits_for_split_frames_a_press_elsewhere
     persist ``split_frames``; a press on other elements is still born at once."""
     from dataclasses import replace
 
-    est = ContactEstimator(LAY, noise=NOISE)
+    lay = grid_layout(4, 4)  # (on 3x3 every element is next to the middle one)
+    est = ContactEstimator(lay, noise=NOISE)
     rng = np.random.default_rng(7)
-    (a,) = est.estimate(*frame([0.020, 0.020, 3.0, 0.020], rng))  # across elements 0, 1, 3, 4
+    (a,) = est.estimate(*frame([0.020, 0.020, 3.0, 0.020], rng, lay))  # across elements 0, 1, 4, 5
     assert len(a.elements) == 4
     part = replace(a, x=a.x + 0.035, y=a.y, elements=a.elements[1:2])  # one of its elements, beyond the gate
-    (far,) = est.estimate(*frame([0.080, 0.080, 3.0, 0.012], rng))  # on element 8
+    (far,) = est.estimate(*frame([0.120, 0.120, 3.0, 0.012], rng, lay))  # on element 15, not next to them
     tr = ContactTracker(est, birth_frames=1)
     (first,) = tr.step([a])
     assert first.id == 0  # born at once (birth_frames 1)

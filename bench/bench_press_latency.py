@@ -121,7 +121,8 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     # held elements' holds run out (Pipeline.contact_due), at most `rate` a second; the tick
     # every 0.1 s also asks for one.
     # After an estimate (or a look that found the frame due yet none), the next look waits
-    # out the rate; after a look that found nothing new, it comes with data or when due.
+    # out the rate; after a look that found nothing new, it comes with data or when due,
+    # but no sooner than a quarter period.
     rest_until, tick_at = -math.inf, 0.0
     while now < end:
         due = p.contact_due(now)
@@ -143,8 +144,11 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         if ticked:
             p.tick(now)
         job = p.contact_job(now)
-        if job is not None or p.contact_due(now) <= now:
+        due_now = p.contact_due(now)
+        if job is not None or due_now <= now:
             rest_until = now + step
+        else:  # (service.EMPTY_LOOK_GAP: a look that found nothing rests a quarter period, or until due)
+            rest_until = min(now + 0.25 * step, due_now)
         if job is not None:
             snap = job.snapshot
             if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):

@@ -19,7 +19,7 @@ import serial
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen
-from realskin import RealSkin
+from realskin import RealSkin, read_now
 
 
 class PipelineSkin(RealSkin):
@@ -38,7 +38,7 @@ class PipelineSkin(RealSkin):
         port = serial.Serial(device, timeout=0.05)
         try:
             while not self._stop.is_set():
-                chunk = port.read(65536)
+                chunk = read_now(port)
                 if chunk:
                     now = time.monotonic()
                     with self._lock:

@@ -44,6 +44,15 @@ def free_base_port() -> int:
         return min(s.getsockname()[1], 60000)
 
 
+def read_now(port: serial.Serial) -> bytes:
+    """What the port holds now, as soon as a byte is there (b"" after the port's timeout).
+    ``port.read(n)`` with a timeout waits for all ``n`` bytes or the whole timeout: every
+    arrival would be stamped up to that timeout late, and batches of frames that came
+    tens of milliseconds apart would share one stamp."""
+    first = port.read(1)
+    return first + port.read(port.in_waiting) if first and port.in_waiting else first
+
+
 def percentile(xs: list[float], q: float) -> float:
     if not xs:
         return float("nan")
@@ -136,7 +145,7 @@ class RealSkin:
         host = HostReceiver()
         try:
             while not self._stop.is_set():
-                chunk = port.read(65536)
+                chunk = read_now(port)
                 now = time.monotonic()
                 if not chunk:
                     continue

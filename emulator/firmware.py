@@ -132,26 +132,32 @@ class FirmwareConfig:
     batch_max: int = 16  #: samples per DATA frame at most (also bounded by the frame size)
     #: A sample waits at most this long for company in a DATA frame (periodic reporting).
     #: The trade-off of latency against air time: at saturation 50 ms keeps >= 70 % of a
-    #: cell's bits for samples (bench_emulator), 10 ms only ~47 %; a 4x4 skin at 100 Hz
-    #: delivers its samples p99 ~90 ms after their gate at 50 ms, ~56 ms at 25 ms, and loses
-    #: samples at 10 ms (bench/bench_latency.py, virtual time with the latency model).
+    #: cell's bits for samples (bench_emulator), 10 ms only ~47 %; with aligned batches a
+    #: 4x4 skin at 100 Hz spreads one index p99 ~85 ms at 50 ms, 115 ms at 30 ms, and
+    #: saturates its cells at 20 ms (bench/bench_latency.py, virtual time with the latency
+    #: model; docs/emulator.md).
     max_latency: int = 50 * _MS
     #: The same under event-based reporting: 1 ms, a sample goes almost as soon as it is
     #: taken. Few samples travel, and at 100 Hz a 10 ms wait put two in a frame at most
     #: while the host saw every press 10 ms later (press to its first sample at the host,
     #: virtual time: p50 23.5 -> 14 ms, bench/bench_press_latency.py --virtual --reporting event:40).
     event_latency: int = 1 * _MS
-    #: An aligned batch (periodic, on mesh time: emulator/sampling.py) leaves up to this long
-    #: after its last sample, each bridge at its own offset (drawn from its id), so the
-    #: bridges of one cell do not all contend for it at the same instant.
-    batch_stagger: int = 4 * _MS
-    #: Aligned batches (above). Off by default: in virtual time with the real-time latency
-    #: model they keep a 4x4 skin at 100 Hz from saturating the gateway's cells, but real
-    #: processes (``mesh up``, quiet machine) delivered less with them (71-74 % against 98 %
-    #: of the farthest bridge's samples, bench/bench_latency.py): the skin's bridges sending
-    #: within a few ms of each other collide on the UDP medium, whose carrier reports lag.
-    #: With packed DATA (protocol 3) unaligned batches deliver 100 % there, aligned 99.2 %.
-    aligned_batches: bool = False
+    #: An aligned batch (periodic, on mesh time: emulator/sampling.py) leaves in its
+    #: bridge's *slot* after the batch closes: the deepest bridges first, one ``depth_slot``
+    #: per hop, so a far bridge's batch has crossed the hops below it by the time those
+    #: bridges send theirs, and the batches of one index meet at the relays instead of all
+    #: contending for the gateway's cells at once. A bridge ``d`` hops from the gateway
+    #: sends ``(slot_depths - d) * depth_slot`` after the close (deeper than ``slot_depths``:
+    #: at once), plus its own offset up to ``slot_jitter`` (a hash of its id), so the bridges
+    #: of one depth do not start together. ``depth_slot`` is what one hop takes in the
+    #: real-time shells (a frame, its LINK_ACK and the processes' message delays: ~3 ms)
+    #: with the jitter on top, so a relay's slot comes after its children's frames reached it.
+    depth_slot: int = 4 * _MS
+    slot_jitter: int = 1 * _MS
+    slot_depths: int = 6
+    #: Aligned batches (above): one index reaches the host from every bridge within the
+    #: relay delays of each other.
+    aligned_batches: bool = True
     queue_len: int = 64
     max_retries: int = 5
     trickle_imin: int = 50 * _MS
@@ -230,7 +236,7 @@ class Firmware:
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
-                               c.event_latency, _stagger(c.bridge, c.batch_stagger), c.aligned_batches,
+                               c.event_latency, self._batch_slot, c.aligned_batches,
                                _stagger(c.bridge, 1 << 16) / (1 << 16))
         self.status_at = tick + c.status_period
         self._say_hello()  # queued until there is a route
@@ -307,7 +313,7 @@ class Firmware:
         if link.inflight is not None:
             frames += len(link.inflight.frames)
         self.counters["power_off_frames"] += frames
-        self.counters["power_off_samples"] += len(self.sampler.batch)
+        self.counters["power_off_samples"] += self.sampler.unsent
 
     def counters_snapshot(self) -> dict[str, int]:
         out = dict(self.counters)
@@ -499,6 +505,13 @@ class Firmware:
             return
         self.counters["loop_returns_forwarded"] += 1
         self._emit(f._replace(hops=f.hops + 1, flags=f.flags & ~_ACK))
+
+    def _batch_slot(self) -> int:
+        """When this bridge's aligned batch leaves after its close (cycles): its depth's slot
+        (the deepest first) and its own offset within it (FirmwareConfig.depth_slot)."""
+        c = self.config
+        depth = min(self.router.hops, c.slot_depths) if self.router.has_route or c.gateway else c.slot_depths
+        return (c.slot_depths - depth) * c.depth_slot + _stagger(c.bridge, c.slot_jitter)
 
     def _say_hello(self) -> None:
         c = self.config

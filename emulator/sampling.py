@@ -9,15 +9,15 @@ taken, with the mesh clock as it is then; the firmware takes every sample due be
 changes the clock (:meth:`Sampler.advance`), so lazy and gate-by-gate sampling agree.
 
 Samples the reporter keeps are batched into one DATA payload: fewer, larger frames carry
-more samples per bit of air time. Optionally (``aligned``, off in the firmware's default
-configuration: see ``FirmwareConfig.aligned_batches``), periodic samples on mesh time go in *aligned batches*:
-indices ``[j·n, (j+1)·n)`` share a frame, with ``n`` the samples that fit in
-``max_latency`` (and in a frame), and the frame leaves when the batch's last sample is
-taken. Every bridge closes the same batch at the same global instant, so one index
-reaches the host from every bridge within the relay delays of each other; with batches
-closed at each bridge's own phase, one bridge's sample of an index could trail another's
-by a whole ``max_latency``, and the host waits for the slowest before it has a skin
-frame. Any other sample (no mesh time, event-based reporting) waits until the batch is
+more samples per bit of air time. Periodic samples on mesh time go in *aligned batches*
+(``aligned``: ``FirmwareConfig.aligned_batches``, on by default): indices ``[j·n, (j+1)·n)``
+share a frame, with ``n`` the samples that fit in ``max_latency`` (and in a frame). Every
+bridge closes the same batch at the same global instant, so one index waits as long on
+every bridge; the closed batch then leaves in the bridge's slot (``slot``, asked at each
+close: the firmware's depth-ordered slots, deepest first), while the next batch fills.
+With batches closed at each bridge's own phase, one bridge's sample of an index could
+trail another's by a whole ``max_latency``, and the host waits for the slowest before it
+has a skin frame. Any other sample (no mesh time, event-based reporting) waits until the batch is
 full (255-byte frame, ``batch_max`` samples) or its oldest sample is ``max_latency`` old
 (``event_latency`` under event-based reporting).
 """
@@ -54,7 +54,7 @@ class Sampler:
     def __init__(self, settings: Settings, chip: object, sense: Callable[[int], tuple[float, float]],
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
                  counters: Counter[str], timebase: Timebase, event_latency: int | None = None,
-                 stagger: int = 0, aligned: bool = True, heartbeat_phase: float = 0.0) -> None:
+                 slot: Callable[[], int] = lambda: 0, aligned: bool = True, heartbeat_phase: float = 0.0) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
@@ -71,10 +71,12 @@ class Sampler:
         self.batch_bytes = 0
         self.flush_at = -1
         self._batch_aligned = False  #: the open batch is an aligned one
-        self._closed = False  #: the aligned batch is complete and waits ``stagger`` to leave
-        #: An aligned batch leaves this long after its last sample: bridges sharing a cell
-        #: get different offsets, so they do not all contend for it at the same instant
-        self.stagger = stagger
+        #: closed aligned batches waiting for their slot, as (tick they leave, payload), in order
+        self._leaving: list[tuple[int, Data]] = []
+        #: How long an aligned batch waits after its last sample before it leaves (asked at
+        #: each close: the bridge's depth may have changed): bridges sharing a cell get
+        #: different slots, so they do not all contend for it at the same instant
+        self.slot = slot
         self.aligned = aligned  #: periodic samples on mesh time go in aligned batches
         self.timebase = timebase
         self.start = first_start
@@ -92,8 +94,11 @@ class Sampler:
         if every sample were kept (the earliest a frame can be due), and a sample kept
         there waits ``max_latency`` for company anyway. The capacitance a lazily computed
         sample sees is the one at its gate (``sense`` is called with the gate's tick)."""
+        leave = self._leaving[0][0] if self._leaving else self.ready
         if not self.lazy:
-            return self.ready if self.flush_at < 0 else min(self.ready, self.flush_at)
+            return min(self.ready if self.flush_at < 0 else min(self.ready, self.flush_at), leave)
+        if self.batch and self._batch_aligned != self._aligned():
+            return min(self.ready, leave)  # the next sample closes the batch: aligned or timed, never both
         room = max(1, min(self.batch_max - len(self.batch), self._fit(self.batch_bytes, bool(self.batch))))
         if self._aligned():  # the ready tick of the batch's last index, at the latest
             room = min(room, self.aligned_batch() - self.index % self.aligned_batch())
@@ -101,7 +106,7 @@ class Sampler:
         # nothing, one too late would send the frame later than gate-by-gate sampling does
         period = self.settings.period_cycles(self.clock_hz)
         full = self.ready + (room - 1) * (period - period // 1000)
-        return min(full, self.flush_at if self.batch else self.ready + self.latency)
+        return min(full, self.flush_at if self.batch else self.ready + self.latency, leave)
 
     def aligned_batch(self) -> int:
         """Samples per aligned batch: as many sample periods as fit in ``max_latency``,
@@ -147,7 +152,15 @@ class Sampler:
             self._sample(out)
         if 0 <= self.flush_at <= tick:
             self._flush(out)
+        while self._leaving and self._leaving[0][0] <= tick:
+            self._emit(out, self._leaving.pop(0)[1])
         return out
+
+    @property
+    def unsent(self) -> int:
+        """Samples taken and kept but not yet handed on in a DATA payload (what a power-off
+        loses): the open batch and closed aligned batches waiting for their slot."""
+        return len(self.batch) + sum(len(d.samples) for _, d in self._leaving)
 
     def apply(self, new: Settings, tick: int) -> list[Data]:
         """New settings from a command; a schedule change closes the current batch."""
@@ -199,7 +212,7 @@ class Sampler:
         start = self.start
         ready = self.ready
         aligned = self._aligned()
-        if self.batch and (aligned != self._batch_aligned or self._closed):
+        if self.batch and aligned != self._batch_aligned:
             self._flush(out)  # a batch is either aligned or timed, never both
         self._batch_aligned = aligned
         c1, c2 = self.sense(start)
@@ -234,21 +247,35 @@ class Sampler:
         if aligned and self.batch:
             per = self.aligned_batch()
             # the batch's last index is taken, or the next sample is in a later batch (indices
-            # skipped) or off mesh time: the frame leaves now, as on every other bridge
+            # skipped) or off mesh time: the batch is closed, as on every other bridge, and
+            # leaves in this bridge's slot; the next batch fills meanwhile
             if not self._aligned() or self.index // per != index // per:
-                self._closed = True
-                self.flush_at = ready + self.stagger
-                if self.stagger == 0:
+                wait = self.slot()
+                if wait == 0:
                     self._flush(out)
+                else:
+                    self._leaving.append((ready + wait, self._take()))
+
+    def _take(self) -> Data:
+        """The open batch as a DATA payload; the batch starts empty."""
+        st = self.settings
+        data = Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1, st.rate_hz,
+                    st.period_cycles(self.clock_hz))
+        self.batch = []
+        self.batch_bytes = 0
+        self.flush_at = -1
+        return data
+
+    def _emit(self, out: list[Data], data: Data) -> None:
+        out.append(data)
+        self.counters["data_frames"] += 1
+        self.counters["samples_sent"] += len(data.samples)
 
     def _flush(self, out: list[Data]) -> None:
+        """Hand on the open batch now; closed batches still waiting for their slot go first
+        (a bridge's frames leave in the order of their samples)."""
+        while self._leaving:
+            self._emit(out, self._leaving.pop(0)[1])
         if self.batch:
-            st = self.settings
-            out.append(Data(st.mode, tuple(self.batch), st.oversampling if st.mode is Mode.ADC else 1, st.rate_hz,
-                            st.period_cycles(self.clock_hz)))
-            self.counters["data_frames"] += 1
-            self.counters["samples_sent"] += len(self.batch)
-            self.batch = []
-            self.batch_bytes = 0
+            self._emit(out, self._take())
         self.flush_at = -1
-        self._closed = False

@@ -23,17 +23,36 @@ def cluster_elements(
     layout: SkinLayout,
     active: ArrayLike,
     connectivity: Literal["edge", "corner"] = "edge",
+    unknown: ArrayLike | None = None,
 ) -> IntArray:
     """Connected components of the active elements: a label per element, -1 if inactive.
 
     Labels are 0..K-1, numbered by the lowest element index in each component.
     Neighbourhood comes from the layout's geometry (edge-sharing by default).
+
+    ``unknown`` (optional, per element): elements whose reading is not known (a silent
+    bridge, a frame it has not reported yet). The active elements around one unknown
+    element (edges and corners) are one component: the press may well cover it, and
+    the two sides of a press read apart only because its middle is missing would
+    otherwise be fitted as two contacts (a corner press whose two edge elements are
+    late comes out as two diagonal elements). Only one unknown element bridges: touches
+    farther apart stay apart, however much of the skin is unknown.
     """
     a = np.asarray(active, dtype=bool)
     if a.shape != (layout.n,):
         raise ValueError(f"active must have shape ({layout.n},), got {a.shape}")
     e = layout.edges if connectivity == "edge" else layout.corner_edges
     e = e[a[e[:, 0]] & a[e[:, 1]]]
+    if unknown is not None:
+        u = np.asarray(unknown, dtype=bool)
+        if u.shape != (layout.n,):
+            raise ValueError(f"unknown must have shape ({layout.n},), got {u.shape}")
+        ce = np.concatenate([layout.corner_edges, layout.corner_edges[:, ::-1]])
+        ce = ce[u[ce[:, 0]] & ~u[ce[:, 1]] & a[ce[:, 1]]]  # (unknown, active neighbour)
+        if ce.size:
+            ce = ce[np.lexsort((ce[:, 1], ce[:, 0]))]
+            same = ce[1:, 0] == ce[:-1, 0]  # chain the active neighbours of each unknown element
+            e = np.concatenate([e, np.stack([ce[:-1, 1][same], ce[1:, 1][same]], axis=1)])
     lab = np.arange(layout.n)
     while True:  # min-label propagation with pointer jumping: O(log diameter) passes
         m = np.minimum(lab[e[:, 0]], lab[e[:, 1]])

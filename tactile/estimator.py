@@ -195,11 +195,11 @@ class ContactEstimator:
         for t in range(c1.shape[0]):
             if not act[t].any():
                 continue
-            labels = cluster_elements(lay, act[t], self.connectivity)
+            finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
+            labels = cluster_elements(lay, act[t], self.connectivity, unknown=~finite)
             order = np.argsort(labels, kind="stable")
             k_max = int(labels.max())
             starts = np.searchsorted(labels[order], np.arange(k_max + 2))
-            finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
             for k in range(k_max + 1):
                 clusters.append(self._runner.cluster(
                     order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t],

@@ -220,7 +220,9 @@ def test_one_gateway_frame_with_a_wrong_index_does_not_remap_the_skin_time(press
     contacts = [(t - T0, m) for t, topic, m in drive(reads, 7.0) if topic == "contact"]
     during = [(t, m) for t, m in contacts if 5.0 < t < 6.4]
     assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
-    assert all(len(m["contacts"]) == 1 and not m["unknown"] for _, m in during), during
+    # the corrupted frame's own samples are rejected: the gateway's element may be unknown
+    # for the frames it carried, nothing else
+    assert all(len(m["contacts"]) == 1 and set(m["unknown"]) <= {1} for _, m in during), during
     assert max(b - a for a, b in zip([5.0] + [t for t, _ in during], [t for t, _ in during] + [6.4])) < 0.1
 
 
@@ -250,7 +252,8 @@ def test_a_jump_back_of_the_skin_time_is_followed(back) -> None:
     assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
     ts = [5.0] + [t for t, _ in during] + [7.4]
     assert max(b - a for a, b in zip(ts, ts[1:])) < 0.1, max(b - a for a, b in zip(ts, ts[1:]))
-    assert sum(1 for _, m in during if len(m["contacts"]) == 1 and not m["unknown"]) > 60
+    # aligned batches: five frames complete at once every 50 ms, the newest is estimated
+    assert sum(1 for _, m in during if len(m["contacts"]) == 1 and not m["unknown"]) > 40
     lag = [t - (m["t_sample"] - T0) for t, m in during if t > 5.5]
     assert 0.0 <= min(lag) and max(lag) < 0.1, (min(lag), max(lag))  # frames timed as taken, not `back` earlier
     late = [on for t, topic, m in run if topic == "element" and t - T0 > 5.5 for on in m["on_time"]]

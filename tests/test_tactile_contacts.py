@@ -62,6 +62,47 @@ def test_clusters_are_connected_components():
         cluster_elements(lay, np.ones(5, dtype=bool))
 
 
+def test_active_elements_around_one_unknown_element_are_one_cluster():
+    lay = grid_layout(4, 4)
+    active = np.zeros(16, dtype=bool)
+    active[[5, 10]] = True  # diagonal: apart by edges
+    unknown = np.zeros(16, dtype=bool)
+    assert len(set(cluster_elements(lay, active, unknown=unknown)[[5, 10]])) == 2
+    unknown[6] = True  # the corner's other element: the press may cover it
+    lab = cluster_elements(lay, active, unknown=unknown)
+    assert lab[5] == lab[10] and lab[6] == -1
+    # two apart in a row across one unknown element: one cluster; across two: apart
+    row = np.zeros(16, dtype=bool)
+    row[[0, 2]] = True
+    assert len(set(cluster_elements(lay, row, unknown=np.eye(16, dtype=bool)[1])[[0, 2]])) == 1
+    far = np.zeros(16, dtype=bool)
+    far[[0, 3]] = True
+    assert len(set(cluster_elements(lay, far, unknown=np.eye(16, dtype=bool)[1] | np.eye(16, dtype=bool)[2])[[0, 3]])) == 2
+    with pytest.raises(ValueError):
+        cluster_elements(lay, active, unknown=np.ones(5, dtype=bool))
+
+
+def test_a_corner_press_whose_two_edge_elements_are_unknown_is_one_contact():
+    # The daemon estimates a skin frame with elements it has no reading of (a late bridge,
+    # a line that just came back) as NaN. A corner press read on its two diagonal elements
+    # only came out as two contacts, each with a quarter of the force: a second contact
+    # id for as long as the middle stayed unknown.
+    lay = grid_layout(4, 4)
+    corner = (0.0585, 0.0625, 3.0, 0.020)  # across the corner of elements 5, 6, 9 and 10
+    dc1, dc2 = measure([corner], lay)
+    assert (dc1[[5, 6, 9, 10]] > 0).all()
+    dc1[[6, 9]] = np.nan
+    dc2[[6, 9]] = np.nan
+    cs = ContactEstimator(lay).estimate(dc1, dc2)
+    assert len(cs) == 1, cs
+    c = cs[0]
+    # the two diagonal elements do not place it along their diagonal: the fit says so,
+    # and puts it at the corner, the middle of what they allow
+    assert c.observable == (False, False)
+    assert math.hypot(c.x - 0.060, c.y - 0.060) < 1 * MM
+    assert c.force == pytest.approx(3.0, rel=0.10)
+
+
 def test_force_centroid():
     w = np.array([1.0, 3.0, 0.0, 0.0])
     assert force_centroid(LAY, w, [0, 1]) == pytest.approx((0.030, 0.0))

@@ -581,6 +581,32 @@ def test_a_fragmented_control_frame_is_counted_not_a_crash() -> None:
     assert gw.counters["serial_fragmented_control"] == 1
 
 
+def test_aligned_batches_leave_in_depth_slots_deepest_first() -> None:
+    # A line of 4: bridge b is b - 1 hops from the gateway. Each closed batch leaves
+    # (slot_depths - depth) * depth_slot after the close (plus <= 1 ms): the deepest first,
+    # so at the gateway every batch arrives deepest first, the gateway's own last, and the
+    # gateway's own leaves 6 * 4 ms after its close, not at once.
+    from cellbridge.protocol import StreamDecoder
+    vm = VirtualMesh(meshgen.line(4), seed=3)
+    vm.run(6.0)
+    arrivals: dict[int, list[tuple[int, int]]] = {}  # batch -> [(origin, tick)] in arrival order
+    dec = StreamDecoder()
+    own_waits = []
+    for tick, chunk in vm.serial_chunks[1]:
+        for f in dec.feed(chunk):
+            if f.type is FrameType.DATA and not any(x.flags & SampleFlags.NO_MESH_TIME for x in f.payload.samples):
+                j = f.payload.samples[0].index // 5
+                arrivals.setdefault(j, []).append((f.origin, tick))
+                if f.origin == 1:
+                    last = vm.nodes[1].crystal.tick_at(f.payload.samples[-1].cycle)
+                    own_waits.append((tick - last) / CLOCK_HZ)
+    whole = [a for j, a in sorted(arrivals.items()) if {o for o, _ in a} == {1, 2, 3, 4}][5:]
+    assert len(whole) > 50
+    assert all([o for o, _ in a] == [4, 3, 2, 1] for a in whole), whole[:3]
+    # its own batch: the last gate (2 ms + 2 ms of gates), then its slot of 24-25 ms
+    assert own_waits and all(0.024 <= w <= 0.030 for w in own_waits[5:]), own_waits[:10]
+
+
 def test_aligned_batches_put_one_group_of_indices_in_each_frame_on_every_bridge() -> None:
     # With aligned batches every bridge closes batch j (indices [5j, 5j + 5) at 100 Hz and
     # max_latency 50 ms) at the same global instant: no DATA frame mixes two batches.

@@ -26,7 +26,7 @@ from typing import Literal, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cellbridge.tactile.arrays import FloatArray
+from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.clusters import cluster_elements
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams
@@ -123,7 +123,9 @@ class ContactEstimator:
         noise sigmas. NaN readings count as inactive and are left out of the fits.
         ``hints`` are ``(x, y, diameter, force)`` rows of contacts expected in this
         frame (the previous frame's, from :class:`~cellbridge.tactile.tracker.ContactTracker`):
-        a cluster containing one starts its fit there.
+        a cluster containing one starts its fit there (rows with NaN diameter or force only
+        say where a contact was: touches on two sides of an element with no reading stay
+        two clusters where each side holds one).
         """
         h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64)
         if h.ndim == 1 and h.size in (0, 4):
@@ -196,7 +198,7 @@ class ContactEstimator:
             if not act[t].any():
                 continue
             finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
-            labels = cluster_elements(lay, act[t], self.connectivity, unknown=~finite)
+            labels = self._clusters(act[t], finite, hints)
             order = np.argsort(labels, kind="stable")
             k_max = int(labels.max())
             starts = np.searchsorted(labels[order], np.arange(k_max + 2))
@@ -222,6 +224,36 @@ class ContactEstimator:
         for t, cs in zip(frame_of, out):
             frames[t].extend(cs)
         return frames
+
+    def _clusters(self, act: NDArray[np.bool_], finite: NDArray[np.bool_], hints: FloatArray) -> IntArray:
+        """Cluster labels of one frame's active elements (see ``cluster_elements``).
+
+        Active elements around one unknown element are one cluster: a corner press whose
+        two edge elements have no reading yet would otherwise come out as two contacts on
+        its diagonal elements. Their readings alone cannot tell that from two presses, one
+        on each diagonal element: where the hints (the contacts of the frames before) put
+        a contact on each side, the sides stay apart."""
+        lay = self.layout
+        edge = cluster_elements(lay, act, self.connectivity)
+        if finite.all():
+            return edge
+        joined = cluster_elements(lay, act, self.connectivity, unknown=~finite)
+        if hints.shape[0] >= 2:
+            owners = lay.element_at(hints[:, :2])
+            held = np.unique(edge[owners[owners >= 0]])
+            held = held[held >= 0]  # the edge clusters a hinted contact lies on
+            if held.size >= 2:
+                sel = np.isin(edge, held)
+                pairs = np.unique(np.stack([joined[sel], edge[sel]], axis=1), axis=0)
+                two = np.bincount(pairs[:, 0], minlength=int(joined.max()) + 1) >= 2
+                keep = act & two[np.maximum(joined, 0)]
+                if keep.any():  # those joined clusters go back to their edge clusters
+                    pieces = np.where(keep, edge + int(joined.max()) + 1, joined)[act]
+                    _, first, inv = np.unique(pieces, return_index=True, return_inverse=True)
+                    res = np.full(lay.n, -1, dtype=np.int64)
+                    res[act] = np.argsort(np.argsort(first))[inv]  # numbered by lowest element
+                    return res
+        return joined
 
     # -- clusters with a pressure ---------------------------------------------------------
     def _fit_valid(self, clusters: list[Cluster], hints: FloatArray) -> list[list[Contact]]:

@@ -146,11 +146,16 @@ class ContactTracker:
         return self.step(self.estimator.estimate(dC1, dC2, active, hints=self.hints()), t)
 
     def hints(self) -> np.ndarray:
-        """``(x, y, diameter, force)`` of every track's last fitted disk: next frame's starts."""
+        """``(x, y, diameter, force)`` of every track's last contact: next frame's starts
+        where it is a fitted disk, and where the contacts were (diameter and force NaN for
+        a light or unfitted one: the estimator keeps apart what lay apart, even across
+        elements with no reading)."""
         rows = [
             (c.x, c.y, c.diameter, c.force)
-            for c in (tr.contact for tr in self._tracks)
             if c.valid and c.fit_ok and math.isfinite(c.diameter) and math.isfinite(c.force)
+            else (c.x, c.y, math.nan, math.nan)
+            for c in (tr.contact for tr in self._tracks)
+            if math.isfinite(c.x) and math.isfinite(c.y)
         ]
         return np.array(rows, dtype=np.float64).reshape(-1, 4)
 

@@ -103,6 +103,30 @@ def test_a_corner_press_whose_two_edge_elements_are_unknown_is_one_contact():
     assert c.force == pytest.approx(3.0, rel=0.10)
 
 
+def test_two_presses_read_on_two_diagonal_elements_stay_two_where_the_last_frame_had_two():
+    # Two presses, one inside each diagonal element, the elements between them unknown:
+    # their readings fit one disk over the corner as well as two (each element reads its
+    # own area and force only). The frames before had two contacts there: they stay two.
+    lay = grid_layout(4, 4)
+    presses = [(0.045, 0.045, 2.0, 0.015), (0.085, 0.085, 2.0, 0.015)]  # in elements 5 and 10
+    dc1, dc2 = measure(presses, lay)
+    est = ContactEstimator(lay)
+    both = est.estimate(dc1, dc2)
+    assert len(both) == 2
+    dc1[[6, 9]] = np.nan
+    dc2[[6, 9]] = np.nan
+    hints = [(c.x, c.y, c.diameter, c.force) for c in both]
+    cs = est.estimate(dc1, dc2, hints=hints)
+    assert len(cs) == 2, cs
+    assert sorted(round(c.force, 1) for c in cs) == [2.0, 2.0]
+    # light touches (no fitted disk: the hint says only where they were) stay two as well
+    light = [(0.045, 0.045, 0.0, math.nan), (0.085, 0.085, 0.0, math.nan)]
+    cs = est.estimate(dc1, dc2, hints=light)
+    assert len(cs) == 2, cs
+    # one hint (the frames before had one contact): the corner's one press
+    assert len(est.estimate(dc1, dc2, hints=hints[:1])) == 1
+
+
 def test_force_centroid():
     w = np.array([1.0, 3.0, 0.0, 0.0])
     assert force_centroid(LAY, w, [0, 1]) == pytest.approx((0.030, 0.0))

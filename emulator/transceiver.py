@@ -23,10 +23,14 @@ between a frame and its acknowledgement.
 from __future__ import annotations
 
 import random
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
 PREAMBLE_BITS = 16  #: sync word before every frame on the cell
+#: Acknowledgements waiting to be sent at most (frames ending together on all of a
+#: bridge's cells, and a real-time bridge's wake reading several at once)
+MAX_ACKS = 4
 _BEACON = 2  # FrameType.BEACON, at byte 2 of a frame
 
 
@@ -52,12 +56,12 @@ class Transceiver:
         self.tx_until = 0  #: own transmission ends at this tick
         self._frame: bytes | None = None
         self._cells: tuple[int, ...] = ()
-        self._urgent_cells: tuple[int, ...] = ()
         self._at = 0  #: planned start of the pending frame
         self._t0 = 0  #: when the backoff countdown began (cell idle for DIFS)
         self._slots = 0  #: backoff slots still to count down
         self._cw = config.cw_min
-        self._urgent: bytes | None = None
+        #: acknowledgements to send, in order, as (bytes, cells); the first at ``_urgent_at``
+        self._acks: deque[tuple[bytes, tuple[int, ...]]] = deque()
         self._urgent_at = 0
         self.cca_busy = 0  #: planned starts that found the cell busy and backed off again
         self.contenders = 0  #: bridges heard on our cells (set by the firmware from its neighbours)
@@ -100,14 +104,18 @@ class Transceiver:
 
     def send_ack(self, frame: bytes, cells: tuple[int, ...], tick: int) -> None:
         """Send an acknowledgement SIFS after ``tick`` (the end of the frame it answers).
-        One radio sends one ACK at a time: a second frame to acknowledge before the first
-        ACK left (two cells, frames ending together) replaces it, counted in ``acks_dropped``
+        Two frames to acknowledge at once (on two cells, ending together; or read in one
+        wake of a real-time bridge) get their ACKs one after the other, SIFS apart: the
+        second once replaced the first, and that frame's sender, never acknowledged, sent
+        it again after its ACK wait (nearly every retransmission of a 4x4 skin at 100 Hz).
+        At most ``MAX_ACKS`` wait; one more is dropped and counted in ``acks_dropped``
         (its sender retries, as after a lost ACK)."""
-        if self._urgent is not None:
+        if len(self._acks) >= MAX_ACKS:
             self.acks_dropped += 1
-        self._urgent = frame
-        self._urgent_cells = cells
-        self._urgent_at = max(tick, self.tx_until) + self.config.sifs_bits * self.config.bit_cycles
+            return
+        if not self._acks:
+            self._urgent_at = max(tick, self.tx_until) + self.config.sifs_bits * self.config.bit_cycles
+        self._acks.append((frame, cells))
 
     def carrier(self, cell: int, start: int, until: int) -> None:
         """The medium reports a transmission on ``cell`` over [start, until)."""
@@ -154,20 +162,23 @@ class Transceiver:
 
     @property
     def next_tick(self) -> int | None:
-        if self._urgent is not None:
+        if self._acks:
             return self._urgent_at
         return self._at if self._frame is not None else None
 
     def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
         """(bytes, cells) to put on the cells now, if a transmission starts at ``tick``."""
-        if self._urgent is not None:
+        if self._acks:
             if tick < self._urgent_at:
                 return None
             if tick < self.tx_until:  # still sending: go right after
                 self._urgent_at = self.tx_until
                 return None
-            out, self._urgent = self._urgent, None
-            return self._start(out, self._urgent_cells, tick)
+            out, cells = self._acks.popleft()
+            sent = self._start(out, cells, tick)
+            if self._acks:  # the next one SIFS after this one
+                self._urgent_at = self.tx_until + self.config.sifs_bits * self.config.bit_cycles
+            return sent
         if self._frame is None or tick < self._at:
             return None
         if tick < self.tx_until:  # our own acknowledgement went out meanwhile

@@ -83,21 +83,37 @@ def test_acknowledgement_goes_sifs_after_the_frame_without_backoff() -> None:
     assert radio.advance(20_000 + 12 * BIT) == (b"ack", (1,))
 
 
-def test_an_ack_replaced_before_it_left_is_counted() -> None:
+def test_two_acks_due_together_both_go_out_one_after_the_other() -> None:
     # A bridge on two cells can finish receiving two frames that both want an ACK within
-    # SIFS; its one radio sends the later ACK only. The lost one must be counted, also
-    # in the firmware's counters (it happens: 6 of 7859 ACKs in a 40-bridge random mesh).
+    # SIFS (and a real-time bridge reads several frames in one wake). Its one radio sent
+    # the later ACK only: the other frame's sender retried after its ACK wait. On a 4x4
+    # skin at 100 Hz with the real-time latency model that was 582 of 597 retransmissions.
     radio = Transceiver(random.Random(2))
     radio.send_ack(b"ack1", (1,), 20_000)
     radio.send_ack(b"ack2", (2,), 20_000 + BIT)
+    assert radio.acks_dropped == 0
+    t1 = radio.next_tick
+    assert t1 == 20_000 + 12 * BIT and radio.advance(t1) == (b"ack1", (1,))
+    t2 = radio.next_tick
+    assert t2 == radio.tx_until + 12 * BIT  # SIFS after the first one ends
+    assert radio.advance(t2 - 1) is None and radio.advance(t2) == (b"ack2", (2,))
+    assert radio.next_tick is None
+    # a bounded queue: one more than it holds is dropped and counted (its sender retries)
+    from cellbridge.emulator.transceiver import MAX_ACKS
+    for i in range(MAX_ACKS + 1):
+        radio.send_ack(b"a%d" % i, (1,), 40_000)
     assert radio.acks_dropped == 1
-    assert radio.advance(radio.next_tick) == (b"ack2", (2,))
 
+
+def test_a_skin_whose_relays_hear_frames_together_needs_few_retransmissions() -> None:
     from cellbridge.emulator import meshgen
-    from cellbridge.emulator.virtual import VirtualMesh
+    from cellbridge.emulator.commands import Settings
+    from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
 
-    r = VirtualMesh(meshgen.random_mesh(40, seed=3), seed=1).run(5.0)
-    assert r.total("acks_dropped") > 0
+    r = VirtualMesh(meshgen.grid(4, 4), seed=0, latency=Latency(), ack_slack=CLOCK_HZ // 100,
+                    settings=Settings(rate_hz=100), random_epochs=True).run(8.0)
+    assert r.total("data_frames") > 2000  # 16 bridges, 20 a second each
+    assert r.total("retries") < 50 and r.total("acks_dropped") == 0, (r.total("retries"), r.total("acks_dropped"))
 
 
 def test_bit_errors_follow_the_ber() -> None:

@@ -5,6 +5,12 @@ untouched element sends a heartbeat now and then; a sample goes out as soon as i
 differs from the last one *sent* by more than the threshold on either channel, so a
 press is never missed and a slow drift is reported once it adds up, and the sample after
 a change goes out too (the change may have begun during the changed sample's gates).
+After a change the bridge watches the reading settle: once ``SETTLE_SAMPLES`` samples in
+a row agree within the *settle band* (an eighth of the threshold, at least one count),
+the last of them goes out if it lies outside that band of the last sample sent. A press
+sliding off an element changes it a little per sample; its last sent reading could stay
+up to a threshold away from where it came to rest (still "touched" at the host) until
+the heartbeat, up to a second later. Settling costs one sample per change at most.
 
 On mesh time every bridge samples the same instants, so heartbeats timed only from the
 last sample sent would leave all bridges in the same frame once a second: a burst that
@@ -28,6 +34,8 @@ from dataclasses import dataclass
 from cellbridge.protocol import Sample
 
 DEFAULT_HEARTBEAT_MS = 1000
+#: Samples in a row that must agree within the settle band for a reading to have settled.
+SETTLE_SAMPLES = 3
 MAX_HEARTBEAT_MS = 600_000
 
 
@@ -70,6 +78,8 @@ class Reporter:
         self._mod = modulus
         self._last: Sample | None = None
         self._follow = False  #: the last sample sent was a change: send the next one too
+        #: samples since a change, while the reading has not settled (None: not watching)
+        self._settling: list[Sample] | None = None
         self.suppressed = 0
 
     def set_mode(self, mode: ReportingMode, counter_modulus: int) -> None:
@@ -77,6 +87,7 @@ class Reporter:
         self._mod = counter_modulus
         self._last = None  # the next sample is sent, so the host has a fresh reference
         self._follow = False
+        self._settling = None
 
     def _moved(self, a: int, b: int) -> int:
         d = abs(a - b)
@@ -112,6 +123,30 @@ class Reporter:
         if changed or self._follow or self._heartbeat(s, last, period_cycles, on_time):
             self._last = s
             self._follow = changed
+            if changed:
+                self._settling = []
+            return True
+        if self._settling is not None and self._settled(s, last):
             return True
         self.suppressed += 1
+        return False
+
+    def _settled(self, s: Sample, last: Sample) -> bool:
+        """Watching a change settle: True when ``s`` completes ``SETTLE_SAMPLES`` samples
+        that agree within the settle band and the first of them lies outside it from the
+        last sample sent (then ``s`` is sent: the settled reading, a sample later)."""
+        watch = self._settling
+        assert watch is not None
+        band = max(1, (self.mode.threshold or 0) // 8)
+        watch.append(s)
+        first = watch[0]
+        if any(self._moved(x.c1, first.c1) > band or self._moved(x.c2, first.c2) > band for x in watch):
+            del watch[:-1]  # still moving: start again from this sample
+            return False
+        if len(watch) < SETTLE_SAMPLES:
+            return False
+        self._settling = None
+        if self._moved(s.c1, last.c1) > band or self._moved(s.c2, last.c2) > band:
+            self._last = s
+            return True
         return False

@@ -113,6 +113,24 @@ def test_event_reporting_sends_the_clean_sample_after_a_part_way_one() -> None:
     assert sent == [True, False, True, True, False, False]
 
 
+def test_event_reporting_sends_where_a_slow_change_came_to_rest() -> None:
+    """A press sliding off an element lowers its reading a little per sample; the last
+    sample sent for a change can stay up to a threshold from where the reading came to
+    rest, and the host held it (the element still touched) until the heartbeat, up to a
+    second later. Once the reading settles (3 samples within an eighth of the threshold)
+    the settled reading goes out, once."""
+    from cellbridge.protocol import Sample
+
+    rep = Reporter(ReportingMode(40, 1000), cycles_per_ms=50_000)
+    counts = [600, 600, 650, 690, 700, 730, 760, 790, 800, 801, 800, 800, 801, 800, 800, 800]
+    sent = [c for i, c in enumerate(counts) if rep.wants(Sample(0, i * 500_000, c, c))]
+    # 600 first; 650 (a change), 690 (its follow); 760 (a change), 790 (its follow); then
+    # 800 once settled (790 -> 800 is within the threshold: without settling it stays 790)
+    assert sent == [600, 650, 690, 760, 790, 800]
+    # noise around a steady reading sends nothing more
+    assert all(not rep.wants(Sample(0, (20 + i) * 500_000, 800 + i % 2, 800)) for i in range(20))
+
+
 # -- the world -----------------------------------------------------------------------
 
 

@@ -152,7 +152,7 @@ class FirmwareConfig:
     #: of one depth do not start together. ``depth_slot`` is what one hop takes in the
     #: real-time shells (a frame, its LINK_ACK and the processes' message delays: ~3 ms)
     #: with the jitter on top, so a relay's slot comes after its children's frames reached it.
-    depth_slot: int = 4 * _MS
+    depth_slot: int = 3 * _MS
     slot_jitter: int = 1 * _MS
     slot_depths: int = 6
     #: Aligned batches (above): one index reaches the host from every bridge within the

@@ -621,8 +621,13 @@ def test_aligned_batches_leave_in_depth_slots_deepest_first() -> None:
     whole = [a for j, a in sorted(arrivals.items()) if {o for o, _ in a} == {1, 2, 3, 4}][5:]
     assert len(whole) > 50
     assert all([o for o, _ in a] == [4, 3, 2, 1] for a in whole), whole[:3]
-    # its own batch: the last gate (2 ms + 2 ms of gates), then its slot of 24-25 ms
-    assert own_waits and all(0.024 <= w <= 0.030 for w in own_waits[5:]), own_waits[:10]
+    # its own batch: the last sample's gates (2 + 2 ms), then its slot (slot_depths *
+    # depth_slot, plus its offset of at most slot_jitter)
+    from cellbridge.emulator.firmware import FirmwareConfig
+    fc = FirmwareConfig(1)
+    slot = fc.slot_depths * fc.depth_slot / CLOCK_HZ
+    assert own_waits and all(slot + 0.004 <= w <= slot + 0.004 + fc.slot_jitter / CLOCK_HZ + 0.001
+                             for w in own_waits[5:]), (slot, own_waits[:10])
 
 
 def test_aligned_batches_put_one_group_of_indices_in_each_frame_on_every_bridge() -> None:

@@ -131,10 +131,16 @@ class ContactStage:
         self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
+        # When each known element's reading was taken: a new contact next to another waits
+        # until the elements between them were read since the press began (one of them
+        # late splits one press in two; see ContactTracker.step)
+        known = np.isfinite(snap.t_sample) if snap.unknown is None else np.isfinite(snap.t_sample) & ~snap.unknown
+        read_at = dict(zip(snap.ids[known].tolist(), snap.t_sample[known].tolist()))
         if snap.touched.any():
-            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host)
+            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host,
+                                         at=snap.t_moment, read_at=read_at)
         else:  # an empty frame still counts: tracks miss it and end
-            tracks = self.tracker.step([], snap.t_host)
+            tracks = self.tracker.step([], snap.t_host, at=snap.t_moment, read_at=read_at)
         if snap.unknown is not None and snap.unknown.any():
             # a contact that only unknown elements supported is no longer known: it ends
             # now, not after the frames a missed contact is kept through

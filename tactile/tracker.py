@@ -69,6 +69,7 @@ class _Track:
     elements: frozenset[int] = field(default_factory=frozenset)
     need: int = 1  # consecutive frames to be seen in before its birth
     since: float = -math.inf  # instant of its first frame (-inf: not known, e.g. carried over)
+    read: dict[int, float] = field(default_factory=dict)  # element -> read time of the reading it last used
 
 
 class ContactTracker:
@@ -77,8 +78,9 @@ class ContactTracker:
     ``update(dC1, dC2, active, t)`` estimates and tracks one frame;
     ``step(contacts, t)`` tracks contacts estimated elsewhere. Both return the
     confirmed tracks, ordered by id. Counters: ``births``, ``deaths`` (confirmed
-    tracks that ended) and ``rejected`` (candidates that vanished before their birth,
-    e.g. one-frame noise spikes).
+    tracks that ended), ``rejected`` (candidates that vanished before their birth,
+    e.g. one-frame noise spikes) and ``remnants`` (contacts made only of readings a track
+    had already used, taken as that track's: see :meth:`step`).
     """
 
     def __init__(
@@ -120,6 +122,7 @@ class ContactTracker:
         self.births = 0
         self.deaths = 0
         self.rejected = 0
+        self.remnants = 0
 
     # -- public ---------------------------------------------------------------------------
     def ids_from(self, first: int) -> None:
@@ -175,7 +178,11 @@ class ContactTracker:
         read at or after the instant the earlier of the two was first seen: a reading
         from before says "untouched" without knowing, and a held reading whose change is
         still on its way (a loaded host, a bridge retried) splits one press in two for
-        as long as it is late. Without ``read_at`` only ``split_frames`` applies.
+        as long as it is late. Without ``read_at`` only ``split_frames`` applies. Given
+        ``read_at``, a contact made only of readings a track already used (the same
+        element readings, taken at the same instants) is no new contact either: it
+        continues that track, or is dropped when the track matched another contact (a
+        released press whose release reading is late on one element).
         """
         if t is not None:
             if not math.isfinite(t):
@@ -185,8 +192,9 @@ class ContactTracker:
             self._last_t = float(t)
         self.frame += 1
         pairs = self._associate(contacts)
+        dropped = self._remnants(contacts, pairs, read_at)
         matched_t = set()
-        matched_c = set()
+        matched_c = set(dropped)
         for ti, ci in pairs:
             tr = self._tracks[ti]
             c = contacts[ci]
@@ -195,6 +203,8 @@ class ContactTracker:
             tr.missed = 0
             tr.t = t
             tr.elements = frozenset(c.elements)
+            if read_at is not None:
+                tr.read.update({e: read_at.get(e, math.nan) for e in tr.elements})
             matched_t.add(ti)
             matched_c.add(ci)
         keep = []
@@ -221,7 +231,8 @@ class ContactTracker:
                 near = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in els)) & others
                 need = max(self.birth_frames, self.split_frames) if near else self.birth_frames
                 since = at if at is not None else (t if t is not None else -math.inf)
-                keep.append(_Track(c, self.frame, t=t, elements=els, need=need, since=since))
+                read = {} if read_at is None else {e: read_at.get(e, math.nan) for e in els}
+                keep.append(_Track(c, self.frame, t=t, elements=els, need=need, since=since, read=read))
         for tr in keep:
             if tr.id is None and tr.hits >= tr.need and not self._unread_between(tr, keep, read_at):
                 tr.id = self._next_id
@@ -234,6 +245,38 @@ class ContactTracker:
             if tr.id is not None
         ]
         return sorted(out, key=lambda tc: tc.id)
+
+    def _remnants(self, contacts: Sequence[Contact], pairs: list[tuple[int, int]],
+                  read_at: Mapping[int, float] | None) -> set[int]:
+        """A contact no track matched, made only of readings one track already used (each
+        element's reading taken at the very instant the track last used it), is what is
+        left of that track, not a new contact: an element under a released press whose
+        release reading is late still holds its touched reading. It continues the track
+        when the track is unmatched (appended to ``pairs``), and is dropped when the track
+        matched another contact (returned, counted in ``remnants``)."""
+        if read_at is None:
+            return set()
+        used_t = {ti for ti, _ in pairs}
+        used_c = {ci for _, ci in pairs}
+        dropped: set[int] = set()
+        for ci, c in enumerate(contacts):
+            if ci in used_c or not c.elements:
+                continue
+            mine = [
+                ti for ti, tr in enumerate(self._tracks)
+                if all(math.isfinite(read_at.get(e, math.nan)) and tr.read.get(e) == read_at.get(e) for e in c.elements)
+            ]
+            if not mine:
+                continue
+            mine.sort(key=lambda ti: (self._tracks[ti].id is None, ti))  # a confirmed track first
+            free = [ti for ti in mine if ti not in used_t]
+            if free:
+                pairs.append((free[0], ci))
+                used_t.add(free[0])
+            else:
+                dropped.add(ci)
+            self.remnants += 1
+        return dropped
 
     def _unread_between(self, tr: _Track, tracks: Sequence[_Track], read_at: Mapping[int, float] | None) -> bool:
         """Whether a known element next to both ``tr`` and another track near it (and on

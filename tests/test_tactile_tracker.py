@@ -367,3 +367,56 @@ def test_a_press_whole_again_continues_the_confirmed_id_not_a_split_off_closer_t
     seen = [tr.step([part, off]) for _ in range(2)] + [tr.step([whole]) for _ in range(4)]
     assert {tc.id for s in seen for tc in s} == {0}
     assert seen[-1][0].contact is whole
+
+
+def test_a_released_press_with_one_release_reading_late_keeps_one_id():
+    """A corner press released: two diagonal elements' release readings are late, so their
+    held touched readings stand alone for a few frames, two one-element contacts. The
+    confirmed press continued as one of them and the other was new: born after
+    ``split_frames`` as a second id (in virtual time, a corner bridge's frames held back
+    300 ms at the release). It is made only of a reading the press had used: what is left
+    of the press, no new contact."""
+    rng = np.random.default_rng(26)
+    whole = frame(CORNER_PRESS, rng)
+    late = (whole[0].copy(), whole[1].copy())
+    for e in (0, 4):  # released; 1 and 3 (diagonal) still hold their touched readings
+        late[0][e] = rng.normal(0, NOISE)
+        late[1][e] = rng.normal(0, NOISE)
+    one = (late[0].copy(), late[1].copy())
+    one[0][3] = rng.normal(0, NOISE)
+    one[1][3] = rng.normal(0, NOISE)
+    held = {e: 0.0 for e in (0, 1, 3, 4)}  # the press's onset readings, held since
+    frames = [(whole, held)] * 5 + [(late, {**held, 0: 0.05, 4: 0.05})] * 6 + [(one, {**held, 0: 0.05, 4: 0.05, 3: 0.11})] * 3
+
+    def run(with_times):
+        tr = tracker(birth_frames=1)
+        seen, two = [], 0
+        for k, ((dc1, dc2), reads) in enumerate(frames):
+            kw = {"at": 0.01 * k, "read_at": {**_reads(0.01 * k, set()), **reads}} if with_times else {}
+            two += len(tr.estimator.estimate(dc1, dc2, hints=tr.hints())) == 2
+            seen.append(tr.update(dc1, dc2, t=0.01 * k, **kw))
+        return tr, seen, two
+
+    tr, seen, two = run(True)
+    assert two == 6  # the frames with the two late elements are two contacts
+    assert {tc.id for s in seen for tc in s} == {0} and all(len(s) == 1 for s in seen)
+    assert tr.remnants == 6
+    tr, seen, _ = run(False)  # without the reading times: a second id
+    assert {tc.id for s in seen for tc in s} == {0, 1}
+
+
+def test_only_readings_a_track_used_are_its_remnant_a_new_reading_is_a_candidate():
+    """Split off a confirmed contact on two elements: with the reading it used, the split-off
+    is its remnant (dropped, counted); with a newer reading there it may be a new contact."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(27)
+    a = _finger(0.02, 0.0, rng)  # across the seam of elements 0 and 1
+    assert a.elements == (0, 1)
+    left, right = replace(a, elements=(0,)), replace(a, x=0.045, elements=(1,))
+    for new_read, remnants, candidates in ((0.0, 1, 0), (0.05, 0, 1)):
+        tr = tracker(birth_frames=1)
+        tr.step([a], t=0.0, at=0.0, read_at=_reads(0.0, {0, 1}))
+        out = tr.step([left, right], t=0.1, at=0.1, read_at={**_reads(0.0, {0, 1}), 1: new_read})
+        assert [tc.id for tc in out] == [0] and out[0].contact.elements == (0,)
+        assert (tr.remnants, tr.candidates) == (remnants, candidates)

@@ -6,8 +6,9 @@ track an id only once it has been seen in ``birth_frames`` consecutive frames (a
 noise spike on one frame is never a contact; a new contact on or next to the elements
 of another waits ``split_frames``, and, when the frame says when each element was read,
 until the elements between the two have been read since the press began: one press
-read as two, while one of its elements' readings is late, is no second contact), keeps
-it through ``max_missed`` frames
+read as two, while one of its elements' readings is late, is no second contact; nor is
+a contact made only of readings a track already used: what a released press leaves
+while one element's release reading is late), keeps it through ``max_missed`` frames
 without a match (a reading that briefly falls under the touch threshold), and feeds
 each track's last disk to the estimator as the start of the next fit.
 

@@ -254,7 +254,7 @@ class ContactTracker:
         left of that track, not a new contact: an element under a released press whose
         release reading is late still holds its touched reading. It continues the track
         when the track is unmatched (appended to ``pairs``), and is dropped when the track
-        matched another contact (returned, counted in ``remnants``)."""
+        matched another contact (returned); either way it is counted in ``remnants``."""
         if read_at is None:
             return set()
         used_t = {ti for ti, _ in pairs}

@@ -8,6 +8,7 @@ readings of one moment."""
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -129,12 +130,19 @@ class ContactStage:
         self.layout = layout
         self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
         self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
+        self._row = {int(e): i for i, e in enumerate(layout.ids.tolist())}
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
         if snap.touched.any():
-            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host)
-        else:  # an empty frame still counts: tracks miss it and end
-            tracks = self.tracker.step([], snap.t_host)
+            # When each known element's reading was taken: a new contact next to another
+            # waits until the elements between them were read since the press began (one
+            # of them late splits one press in two; see ContactTracker.step)
+            read_at = _ReadTimes(self._row, snap.t_sample if snap.unknown is None
+                                 else np.where(snap.unknown, np.nan, snap.t_sample))
+            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host,
+                                         at=snap.t_moment, read_at=read_at)
+        else:  # an empty frame still counts: tracks miss it and end (no contact to be born)
+            tracks = self.tracker.step([], snap.t_host, at=snap.t_moment)
         if snap.unknown is not None and snap.unknown.any():
             # a contact that only unknown elements supported is no longer known: it ends
             # now, not after the frames a missed contact is kept through
@@ -142,6 +150,24 @@ class ContactStage:
             if gone:
                 tracks = [tc for tc in tracks if tc.id not in gone]
         return [_finite(tc.to_dict()) for tc in tracks]
+
+
+class _ReadTimes(Mapping[int, float]):
+    """Element id → sample time of its reading in a snapshot (NaN: unknown), looked up in
+    the snapshot's array: the tracker asks only about the few elements around a new
+    contact, so a skin of thousands of elements builds no table per frame."""
+
+    def __init__(self, row: dict[int, int], t: FloatArray) -> None:
+        self._row, self._t = row, t
+
+    def __getitem__(self, element: int) -> float:
+        return float(self._t[self._row[element]])
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._row)
+
+    def __len__(self) -> int:
+        return len(self._row)
 
 
 def _finite(d: dict[str, Any]) -> dict[str, Any]:

@@ -4,8 +4,11 @@ A robot wants "finger 3 moved 2 mm", not a fresh list every frame. The tracker
 associates each frame's contacts with the tracks of the previous frames, gives a
 track an id only once it has been seen in ``birth_frames`` consecutive frames (a
 noise spike on one frame is never a contact; a new contact on or next to the elements
-of another waits ``split_frames``: one press read as two for a frame is no second
-contact), keeps it through ``max_missed`` frames
+of another waits ``split_frames``, and, when the frame says when each element was read,
+until the elements between the two have been read since the press began: one press
+read as two, while one of its elements' readings is late, is no second contact; nor is
+a contact made only of readings a track already used: what a released press leaves
+while one element's release reading is late), keeps it through ``max_missed`` frames
 without a match (a reading that briefly falls under the touch threshold), and feeds
 each track's last disk to the estimator as the start of the next fit.
 
@@ -14,15 +17,17 @@ their positions agree within ``gate`` standard deviations per axis, the variance
 being both reported variances plus ``motion²`` (how far a contact may move between
 frames). An axis the readings do not resolve carries an element-wide σ, so a disk
 that slides from inside an element to across a seam (its reported x jumps from the
-element's centre to the true position) keeps its id. Pairs are taken greedily,
-closest first. Sans-I/O: frames and times go in, tracks come out.
+element's centre to the true position) keeps its id. Pairs are taken greedily:
+first a confirmed contact and a contact on its elements, then closest first (a press
+read in two for a while and then whole again continues its id, not the split-off's).
+Sans-I/O: frames and times go in, tracks come out.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -64,6 +69,8 @@ class _Track:
     t: float | None = None
     elements: frozenset[int] = field(default_factory=frozenset)
     need: int = 1  # consecutive frames to be seen in before its birth
+    since: float = -math.inf  # instant of its first frame (-inf: not known, e.g. carried over)
+    read: dict[int, float] = field(default_factory=dict)  # element -> read time of the reading it last used
 
 
 class ContactTracker:
@@ -72,8 +79,9 @@ class ContactTracker:
     ``update(dC1, dC2, active, t)`` estimates and tracks one frame;
     ``step(contacts, t)`` tracks contacts estimated elsewhere. Both return the
     confirmed tracks, ordered by id. Counters: ``births``, ``deaths`` (confirmed
-    tracks that ended) and ``rejected`` (candidates that vanished before their birth,
-    e.g. one-frame noise spikes).
+    tracks that ended), ``rejected`` (candidates that vanished before their birth,
+    e.g. one-frame noise spikes) and ``remnants`` (contacts made only of readings a track
+    had already used, taken as that track's: see :meth:`step`).
     """
 
     def __init__(
@@ -115,6 +123,7 @@ class ContactTracker:
         self.births = 0
         self.deaths = 0
         self.rejected = 0
+        self.remnants = 0
 
     # -- public ---------------------------------------------------------------------------
     def ids_from(self, first: int) -> None:
@@ -140,10 +149,12 @@ class ContactTracker:
         return len(self._tracks)
 
     def update(
-        self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None, t: float | None = None
+        self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None, t: float | None = None, *,
+        at: float | None = None, read_at: Mapping[int, float] | None = None,
     ) -> list[TrackedContact]:
-        """Estimate one frame (warm-started from the tracks) and track its contacts."""
-        return self.step(self.estimator.estimate(dC1, dC2, active, hints=self.hints()), t)
+        """Estimate one frame (warm-started from the tracks) and track its contacts
+        (``at``, ``read_at``: see :meth:`step`)."""
+        return self.step(self.estimator.estimate(dC1, dC2, active, hints=self.hints()), t, at=at, read_at=read_at)
 
     def hints(self) -> np.ndarray:
         """``(x, y, diameter, force)`` of every track's last contact: next frame's starts
@@ -159,11 +170,25 @@ class ContactTracker:
         ]
         return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
-    def step(self, contacts: Sequence[Contact], t: float | None = None) -> list[TrackedContact]:
+    def step(self, contacts: Sequence[Contact], t: float | None = None, *, at: float | None = None,
+             read_at: Mapping[int, float] | None = None) -> list[TrackedContact]:
         """Associate one frame's contacts with the tracks; return the confirmed ones.
 
         ``t`` (s, optional) must be finite and never go back (as for the calibrator):
         a frame that breaks this is refused with ValueError and changes nothing.
+
+        ``at`` (s, default ``t``): the instant the frame stands for; ``read_at``: when
+        each element's reading in this frame was taken (element id → s, on the clock of
+        ``at``; unknown elements left out or NaN). Given both, a new contact next to
+        another is born only once every known element next to both (not on either) was
+        read at or after the instant the earlier of the two was first seen: a reading
+        from before says "untouched" without knowing, and a held reading whose change is
+        still on its way (a loaded host, a bridge retried) splits one press in two for
+        as long as it is late. Without ``read_at`` only ``split_frames`` applies. Given
+        ``read_at``, a contact made only of readings a track already used (the same
+        element readings, taken at the same instants) is no new contact either: it
+        continues that track, or is dropped when the track matched another contact (a
+        released press whose release reading is late on one element).
         """
         if t is not None:
             if not math.isfinite(t):
@@ -173,8 +198,9 @@ class ContactTracker:
             self._last_t = float(t)
         self.frame += 1
         pairs = self._associate(contacts)
+        dropped = self._remnants(contacts, pairs, read_at)
         matched_t = set()
-        matched_c = set()
+        matched_c = set(dropped)
         for ti, ci in pairs:
             tr = self._tracks[ti]
             c = contacts[ci]
@@ -183,6 +209,8 @@ class ContactTracker:
             tr.missed = 0
             tr.t = t
             tr.elements = frozenset(c.elements)
+            if read_at is not None:
+                tr.read.update({e: read_at.get(e, math.nan) for e in tr.elements})
             matched_t.add(ti)
             matched_c.add(ci)
         keep = []
@@ -208,9 +236,11 @@ class ContactTracker:
                 others = held.union(*(contacts[k].elements for k in range(len(contacts)) if k != ci))
                 near = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in els)) & others
                 need = max(self.birth_frames, self.split_frames) if near else self.birth_frames
-                keep.append(_Track(c, self.frame, t=t, elements=els, need=need))
+                since = at if at is not None else (t if t is not None else -math.inf)
+                read = {} if read_at is None else {e: read_at.get(e, math.nan) for e in els}
+                keep.append(_Track(c, self.frame, t=t, elements=els, need=need, since=since, read=read))
         for tr in keep:
-            if tr.id is None and tr.hits >= tr.need:
+            if tr.id is None and tr.hits >= tr.need and not self._unread_between(tr, keep, read_at):
                 tr.id = self._next_id
                 self._next_id += 1
                 self.births += 1
@@ -221,6 +251,58 @@ class ContactTracker:
             if tr.id is not None
         ]
         return sorted(out, key=lambda tc: tc.id)
+
+    def _remnants(self, contacts: Sequence[Contact], pairs: list[tuple[int, int]],
+                  read_at: Mapping[int, float] | None) -> set[int]:
+        """A contact no track matched, made only of readings one track already used (each
+        element's reading taken at the very instant the track last used it), is what is
+        left of that track, not a new contact: an element under a released press whose
+        release reading is late still holds its touched reading. It continues the track
+        when the track is unmatched (appended to ``pairs``), and is dropped when the track
+        matched another contact (returned); either way it is counted in ``remnants``."""
+        if read_at is None:
+            return set()
+        used_t = {ti for ti, _ in pairs}
+        used_c = {ci for _, ci in pairs}
+        dropped: set[int] = set()
+        for ci, c in enumerate(contacts):
+            if ci in used_c or not c.elements:
+                continue
+            mine = [
+                ti for ti, tr in enumerate(self._tracks)
+                if all(math.isfinite(read_at.get(e, math.nan)) and tr.read.get(e) == read_at.get(e) for e in c.elements)
+            ]
+            if not mine:
+                continue
+            mine.sort(key=lambda ti: (self._tracks[ti].id is None, ti))  # a confirmed track first
+            free = [ti for ti in mine if ti not in used_t]
+            if free:
+                pairs.append((free[0], ci))
+                used_t.add(free[0])
+            else:
+                dropped.add(ci)
+            self.remnants += 1
+        return dropped
+
+    def _unread_between(self, tr: _Track, tracks: Sequence[_Track], read_at: Mapping[int, float] | None) -> bool:
+        """Whether a known element next to both ``tr`` and another track near it (and on
+        neither) was last read before the earlier of the two was first seen: nothing says
+        the press did not reach it, so the two may be one press read in two."""
+        if read_at is None:
+            return False
+        mine = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in tr.elements))
+        for other in tracks:
+            if other is tr or not (mine & other.elements):
+                continue
+            onset = min(tr.since, other.since)
+            if not math.isfinite(onset):
+                continue
+            theirs = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in other.elements))
+            for e in (mine & theirs) - tr.elements - other.elements:
+                r = read_at.get(e, math.nan)
+                if math.isfinite(r) and r < onset - 1e-9:
+                    return True
+        return False
 
     @property
     def candidates(self) -> int:
@@ -263,13 +345,16 @@ class ContactTracker:
         for ti, tr in enumerate(self._tracks):
             for ci, c in enumerate(contacts):
                 d = self._distance(tr.contact, c)
-                if d <= self.gate or tr.elements & set(c.elements):
-                    # Confirmed tracks first at equal distance: a contact continues the
-                    # finger it belongs to rather than a fresh candidate beside it.
-                    cand.append((d, tr.id is None, ti, ci))
+                shared = bool(tr.elements & set(c.elements))
+                if d <= self.gate or shared:
+                    # A contact on a confirmed track's elements continues it before any
+                    # candidate (a press read in two for a while, then whole again, keeps
+                    # its id rather than taking the split-off's); then closest first, and
+                    # confirmed tracks first at equal distance.
+                    cand.append((not (shared and tr.id is not None), d, tr.id is None, ti, ci))
         cand.sort()
         used_t, used_c, pairs = set(), set(), []
-        for _, _, ti, ci in cand:
+        for _, _, _, ti, ci in cand:
             if ti in used_t or ci in used_c:
                 continue
             used_t.add(ti)

@@ -378,3 +378,80 @@ def test_presses_sliding_across_seams_of_an_event_based_skin_keep_one_id() -> No
         during = [m for t, m in run if c.start <= t < c.start + c.duration + 0.3]
         assert {d["id"] for m in during for d in m["contacts"]} and all(len(m["contacts"]) <= 1 for m in during), k
         assert len({d["id"] for m in during for d in m["contacts"]}) == 1, k
+
+
+def _held_back(reads: list[tuple[float, bytes]], origin: int, windows: list[tuple[float, float]]) -> list[tuple[float, bytes]]:
+    """``reads`` with every frame of bridge ``origin`` read within a window (s, start and end)
+    held back to the window's end, in order: what the host reads when that bridge's process
+    gets no CPU for a while (both cores busy), its frames, onset samples included, a few
+    hundred ms late and at once."""
+    out: list[tuple[float, bytes]] = []
+    held: list[bytes] = []
+    win = iter(sorted(windows))
+    cur = next(win, None)
+    for t, data in reads:
+        while cur is not None and t - T0 >= cur[1]:
+            if held:
+                out.append((T0 + cur[1], b"".join(held)))
+                held = []
+            cur = next(win, None)
+        if cur is None or t - T0 < cur[0]:
+            out.append((t, data))
+            continue
+        frames = StreamDecoder().feed(data)
+        assert b"".join(encode_stream(f) for f in frames) == data  # a read holds whole frames
+        mine = [f for f in frames if f.origin == origin]
+        held += [encode_stream(f) for f in mine]
+        rest = [f for f in frames if f.origin != origin]
+        if rest:
+            out.append((t, b"".join(encode_stream(f) for f in rest)))
+    assert not held
+    return out
+
+
+def _corner_presses_held_back(phase: str, n: int) -> list[tuple[Contact, set[int]]]:
+    """``n`` corner presses on an event-based 4x4 skin (the real-time shells' latency model),
+    each with one of the four bridges under it held back 300 ms (in turn) from the press's
+    start (``phase`` "onset") or end ("release"); each press and the contact ids published
+    from its start to 0.5 s after its end. Checks each press's steady contact."""
+    from cellbridge.emulator.virtual import Latency
+
+    mesh = meshgen.grid(4, 4)
+    presses = [Contact(6.0 + 1.5 * k, 1.0, *CORNER, 3.0, 0.020) for k in range(n)]
+    vm = VirtualMesh(mesh, seed=2, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
+                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+    end = presses[-1].start + 1.6
+    vm.run(end)
+    reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+    for k, c in enumerate(presses):
+        at = c.start if phase == "onset" else c.start + c.duration + 0.005 * (k // 4)
+        reads = _held_back(reads, sorted(UNDER)[k % 4], [(at, at + 0.3)])
+    run = [(t - T0, m) for t, topic, m in drive(reads, end, step=0.005, sections={"calibration": {"n_baseline": 3}})
+           if topic == "contact"]
+    for k, c in enumerate(presses):
+        steady = [d for t, m in run if c.start + 0.4 <= t < c.start + 0.9 for d in m["contacts"]]
+        assert steady and all(abs(d["force"] - 3.0) <= 0.15 for d in steady), k
+        assert all(abs(d["x"] - CORNER[0]) <= 1e-3 and abs(d["y"] - CORNER[1]) <= 1e-3 for d in steady), k
+    return [(c, {d["id"] for t, m in run if c.start <= t < c.start + c.duration + 0.5 for d in m["contacts"]})
+            for c in presses]
+
+
+def test_a_corner_press_with_one_bridge_starved_at_its_onset_keeps_one_id() -> None:
+    """Both cores busy (``cellbridge demo --check`` with two CPU burners): one bridge under a
+    corner press got no CPU for a while, and its onset sample reached the host hundreds of
+    ms after the others' (caught: 457 and 946 ms after it was taken), far beyond the onset
+    rule's wait (30 ms plus its delay mark). Its held reading from before the press said
+    "untouched", the frames fitted the press as two contacts, and the split-off was born
+    after ``split_frames``: a second id (position and force right). Here each of the four
+    bridges in turn is held back 300 ms from the press's start (before: 2 ids each)."""
+    got = _corner_presses_held_back("onset", 4)
+    assert [len(ids) for _, ids in got] == [1] * 4, [sorted(ids) for _, ids in got]
+
+
+def test_a_corner_press_with_one_bridge_starved_at_its_release_keeps_one_id() -> None:
+    """The release's mirror: a bridge's release reading held back 300 ms, its held touched
+    reading stood alone beside the released press, and was born as a new contact (press 1
+    of these 8, before a contact made only of readings a track had used was taken as that
+    track's)."""
+    got = _corner_presses_held_back("release", 8)
+    assert [len(ids) for _, ids in got] == [1] * 8, [sorted(ids) for _, ids in got]

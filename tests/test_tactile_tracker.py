@@ -262,3 +262,161 @@ def test_a_lone_press_and_two_far_apart_are_born_at_their_first_frame():
     tr2 = tracker(birth_frames=1)
     far = [[0.0, 0.0, 3.0, 0.012], [0.08, 0.08, 3.0, 0.012]]  # elements 0 and 8: not neighbours
     assert len(tr2.update(*frame(far, rng))) == 2
+
+
+def _reads(at, fresh, stale_at=-0.5):
+    """``read_at`` of a 3x3 frame: the elements in ``fresh`` read at ``at``, the others last
+    read at ``stale_at`` (an event-based skin's held readings: a heartbeat before)."""
+    return {e: (at if e in fresh else stale_at) for e in range(LAY.n)}
+
+
+def test_a_press_read_in_two_while_an_element_between_is_late_keeps_one_id():
+    """Both cores busy: one element of a corner press got its onset reading to the host
+    hundreds of ms after the others (its held reading from before the press said
+    "untouched" all that while). The press was first seen on one element (born at once),
+    then fitted as two contacts for 12 frames, then whole: the split-off was born after
+    ``split_frames`` as a second id. The frame's reading times tell: the element between
+    the two was last read before the press began, so nothing says the press missed it."""
+    rng = np.random.default_rng(21)
+    onset_only_0 = frame(CORNER_PRESS, rng)
+    for e in (1, 3, 4):
+        onset_only_0[0][e] = rng.normal(0, NOISE)
+        onset_only_0[1][e] = rng.normal(0, NOISE)
+    frames = [(onset_only_0, {0})] + [(_one_late(CORNER_PRESS, 4, rng), {0, 1, 3})] * 12
+    frames += [(frame(CORNER_PRESS, rng), {0, 1, 3, 4})] * 4
+
+    def run(with_times):
+        tr = tracker(birth_frames=1)
+        seen, split = [], 0
+        for k, ((dc1, dc2), fresh) in enumerate(frames):
+            at = 0.01 * k
+            kw = {"at": at, "read_at": _reads(0.0, fresh)} if with_times else {}
+            split += len(tr.estimator.estimate(dc1, dc2, hints=tr.hints())) == 2
+            seen.append(tr.update(dc1, dc2, t=at, **kw))
+        return seen, split
+
+    seen, split = run(True)
+    assert split >= 10  # the frames with element 4 late are fitted as two contacts
+    assert len(seen[0]) == 1  # the press is born at its first frame
+    assert {tc.id for s in seen for tc in s} == {0}
+    (last,) = seen[-1]
+    assert abs(last.contact.x - CORNER_PRESS[0]) < 0.1 * MM and abs(last.contact.y - CORNER_PRESS[1]) < 0.1 * MM
+    # without the reading times only split_frames holds the split-off back: a second id
+    seen, _ = run(False)
+    assert {tc.id for s in seen for tc in s} == {0, 1}
+
+
+def _finger(x, y, rng):
+    (c,) = ContactEstimator(LAY, noise=NOISE).estimate(*frame([x, y, 3.0, 0.012], rng))
+    return c
+
+
+def test_a_second_finger_next_to_a_held_one_is_born_after_split_frames():
+    """The elements between the two were read (heartbeats) after the first finger came: the
+    second is told from a split at once, and born after ``split_frames`` as before."""
+    rng = np.random.default_rng(22)
+    a, b = _finger(0.0, 0.0, rng), _finger(0.04, 0.0, rng)  # on elements 0 and 1: neighbours
+    assert a.elements == (0,) and b.elements == (1,)
+    tr = tracker(birth_frames=1)
+    for k in range(100):  # a held 1 s from t = 0
+        (out,) = tr.step([a], t=0.01 * k, at=0.01 * k, read_at=_reads(0.01 * k, {0}, stale_at=0.7))
+    seen = [tr.step([a, b], t=1.0 + 0.01 * k, at=1.0 + 0.01 * k, read_at=_reads(1.0 + 0.01 * k, {0, 1}, stale_at=0.7))
+            for k in range(4)]
+    assert [len(s) for s in seen] == [1, 1, 2, 2]
+    assert {tc.id for s in seen for tc in s} == {0, 1}
+
+
+def test_two_fingers_landing_next_to_each_other_wait_for_a_reading_between_them():
+    """Landing together on neighbouring elements, the second is born once the elements
+    between them were read after the first came (their next heartbeat), not before."""
+    rng = np.random.default_rng(23)
+    a, b = _finger(0.0, 0.0, rng), _finger(0.04, 0.0, rng)
+    tr = tracker(birth_frames=1)
+    assert [tc.id for tc in tr.step([a], t=0.0, at=0.0, read_at=_reads(0.0, {0}))] == [0]
+    seen = [tr.step([a, b], t=0.01 * k, at=0.01 * k, read_at=_reads(0.01, {0, 1})) for k in range(1, 30)]
+    assert all(len(s) == 1 for s in seen) and tr.candidates == 1
+    heartbeat = {**_reads(0.01, {0, 1}), 3: 0.25, 4: 0.29}  # elements 3 and 4 (next to both) reported
+    out = tr.step([a, b], t=0.30, at=0.30, read_at=heartbeat)
+    assert [tc.id for tc in out] == [0, 1] and out[1].contact.elements == (1,)
+
+
+def test_reading_times_leave_a_lone_press_born_at_its_first_frame():
+    """Stale readings around a lone press (nothing next to it) hold nothing back."""
+    rng = np.random.default_rng(24)
+    tr = tracker(birth_frames=1)
+    out = tr.update(*frame(CORNER_PRESS, rng), t=0.0, at=0.0, read_at=_reads(0.0, {0, 1, 3, 4}))
+    assert [tc.id for tc in out] == [0]
+
+
+def test_a_press_whole_again_continues_the_confirmed_id_not_a_split_off_closer_to_it():
+    """A press fitted as two (the confirmed part on two elements, the split-off on a third)
+    and then whole: its whole disk lies closer, in gate units, to the split-off (both
+    element-wide σ) than to the confirmed part, and closest-first gave it the candidate's
+    track; the confirmed id missed and ended, and the candidate was born as a second id."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(25)
+    est = ContactEstimator(LAY, noise=NOISE)
+    (whole,) = est.estimate(*frame(CORNER_PRESS, rng))
+    assert set(whole.elements) == {0, 1, 3, 4}
+    part = _finger(0.02, 0.0, rng)  # across the seam of elements 0 and 1
+    off = replace(_finger(0.0, 0.04, rng), elements=(3,))
+    tr = tracker(birth_frames=1)
+    tr.step([part])
+    assert tr._distance(off, whole) < tr._distance(part, whole)  # closest first would give it the split-off
+    seen = [tr.step([part, off]) for _ in range(2)] + [tr.step([whole]) for _ in range(4)]
+    assert {tc.id for s in seen for tc in s} == {0}
+    assert seen[-1][0].contact is whole
+
+
+def test_a_released_press_with_one_release_reading_late_keeps_one_id():
+    """A corner press released: two diagonal elements' release readings are late, so their
+    held touched readings stand alone for a few frames, two one-element contacts. The
+    confirmed press continued as one of them and the other was new: born after
+    ``split_frames`` as a second id (in virtual time, a corner bridge's frames held back
+    300 ms at the release). It is made only of a reading the press had used: what is left
+    of the press, no new contact."""
+    rng = np.random.default_rng(26)
+    whole = frame(CORNER_PRESS, rng)
+    late = (whole[0].copy(), whole[1].copy())
+    for e in (0, 4):  # released; 1 and 3 (diagonal) still hold their touched readings
+        late[0][e] = rng.normal(0, NOISE)
+        late[1][e] = rng.normal(0, NOISE)
+    one = (late[0].copy(), late[1].copy())
+    one[0][3] = rng.normal(0, NOISE)
+    one[1][3] = rng.normal(0, NOISE)
+    held = {e: 0.0 for e in (0, 1, 3, 4)}  # the press's onset readings, held since
+    frames = [(whole, held)] * 5 + [(late, {**held, 0: 0.05, 4: 0.05})] * 6 + [(one, {**held, 0: 0.05, 4: 0.05, 3: 0.11})] * 3
+
+    def run(with_times):
+        tr = tracker(birth_frames=1)
+        seen, two = [], 0
+        for k, ((dc1, dc2), reads) in enumerate(frames):
+            kw = {"at": 0.01 * k, "read_at": {**_reads(0.01 * k, set()), **reads}} if with_times else {}
+            two += len(tr.estimator.estimate(dc1, dc2, hints=tr.hints())) == 2
+            seen.append(tr.update(dc1, dc2, t=0.01 * k, **kw))
+        return tr, seen, two
+
+    tr, seen, two = run(True)
+    assert two == 6  # the frames with the two late elements are two contacts
+    assert {tc.id for s in seen for tc in s} == {0} and all(len(s) == 1 for s in seen)
+    assert tr.remnants == 6
+    tr, seen, _ = run(False)  # without the reading times: a second id
+    assert {tc.id for s in seen for tc in s} == {0, 1}
+
+
+def test_only_readings_a_track_used_are_its_remnant_a_new_reading_is_a_candidate():
+    """Split off a confirmed contact on two elements: with the reading it used, the split-off
+    is its remnant (dropped, counted); with a newer reading there it may be a new contact."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(27)
+    a = _finger(0.02, 0.0, rng)  # across the seam of elements 0 and 1
+    assert a.elements == (0, 1)
+    left, right = replace(a, elements=(0,)), replace(a, x=0.045, elements=(1,))
+    for new_read, remnants, candidates in ((0.0, 1, 0), (0.05, 0, 1)):
+        tr = tracker(birth_frames=1)
+        tr.step([a], t=0.0, at=0.0, read_at=_reads(0.0, {0, 1}))
+        out = tr.step([left, right], t=0.1, at=0.1, read_at={**_reads(0.0, {0, 1}), 1: new_read})
+        assert [tc.id for tc in out] == [0] and out[0].contact.elements == (0,)
+        assert (tr.remnants, tr.candidates) == (remnants, candidates)

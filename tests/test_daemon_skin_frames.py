@@ -201,7 +201,9 @@ def test_a_sample_index_from_the_future_neither_stops_nor_fakes_contacts(press_r
     for t, m in contacts:
         assert m["t_sample"] is None or m["t_sample"] <= T0 + t + 1e-9, (t, m["t_sample"] - T0)
         if 5.0 < t < 6.4:
-            assert len(m["contacts"]) == 1 and not m["unknown"], (t, m)
+            # the frame's own samples are not believed: element 6 is unknown for the frames
+            # it carried (an aligned batch: five), nothing else
+            assert len(m["contacts"]) == 1 and set(m["unknown"]) <= {6}, (t, m)
             c = m["contacts"][0]
             assert math.hypot(c["x"] - CORNER[0], c["y"] - CORNER[1]) < 1e-3 and c["force"] == pytest.approx(3.0, rel=0.05)
     assert sum(1 for t, m in contacts if 5.1 < t < 6.4) > 20

@@ -201,6 +201,9 @@ def main() -> None:
     ap.add_argument("--at", type=float, nargs=2, metavar=("X", "Y"), default=None,
                     help="press here every time instead of at random points (m)")
     ap.add_argument("--virtual", action="store_true", help="virtual time (deterministic; no machine load in it)")
+    ap.add_argument("--trace", action="store_true",
+                    help="run the daemon with a timing trace (bench/press_trace.py) and print, for the median "
+                         "and the slowest tenth of presses, what their contact waited for")
     args = ap.parse_args()
     # SIGTERM (a kill, a timeout) unwinds like Ctrl-C, so every process started is stopped
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
@@ -251,7 +254,13 @@ def main() -> None:
             f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n[daemon]\nlog_format = "text"\n\n'
             f'[[link]]\nname = "gateway"\nurl = "{device}"\n'
             + ("\n[contact]\n" + "".join(f"{kv}\n" for kv in args.contact) if args.contact else ""))
-        procs.append(_start(["daemon", "--config", str(work / "daemon.toml")], stderr=open(work / "daemon.log", "w")))
+        if args.trace:
+            daemon = subprocess.Popen([sys.executable, str(Path(__file__).with_name("press_trace.py")), "--config",
+                                       str(work / "daemon.toml"), "--trace", str(work / "trace.msgpack")],
+                                      start_new_session=True, stderr=open(work / "daemon.log", "w"))
+        else:
+            daemon = _start(["daemon", "--config", str(work / "daemon.toml")], stderr=open(work / "daemon.log", "w"))
+        procs.append(daemon)
         deadline = time.monotonic() + 180
         while time.monotonic() < deadline:
             if sub.poll(1000):
@@ -263,6 +272,7 @@ def main() -> None:
         rng = random.Random(args.seed)
         span = (args.side - 1) * mesh.side
         lat: list[float] = []
+        pressed: list[tuple[float, float, float, float | None]] = []  # (start, x, y, latency ms)
         missed = 0
         health: dict = {}
         for _ in range(args.presses):
@@ -285,6 +295,7 @@ def main() -> None:
                 if topic == b"contact" and seen is None and got >= start and any(
                         (c["x"] - x) ** 2 + (c["y"] - y) ** 2 <= NEAR_M ** 2 for c in msg.get("contacts", [])):
                     seen = got - start
+            pressed.append((start, x, y, None if seen is None else 1000 * seen))
             if seen is None:
                 missed += 1
             else:
@@ -301,6 +312,13 @@ def main() -> None:
                 f"{os.getloadavg()[0]:.1f}"]])
         late = health.get("late_estimates", health.get("moments", {}).get("late_estimates", "?"))
         print(f"\nmissed presses: {missed}; health late estimates: {late}")
+        if args.trace:
+            _stop(daemon)
+            with open(work / "trace.msgpack", "rb") as f:
+                trace = msgpack.unpack(f, strict_map_key=False)
+            from press_trace import breakdown, print_breakdown
+
+            print_breakdown(breakdown(trace, pressed, 1.0 / args.rate, args.hold))
     finally:
         sub.close()
         for p in reversed(procs):

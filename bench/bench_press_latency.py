@@ -81,6 +81,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     from cellbridge.daemon.config import parse_config
     from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
     from cellbridge.daemon.messages import Publish
+    from cellbridge.daemon.pacing import Pacer
     from cellbridge.daemon.pipeline import Pipeline
     from cellbridge.emulator.commands import Settings
     from cellbridge.emulator.realtime import reporting_arg
@@ -105,7 +106,6 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
     contact = dict(_setting(kv) for kv in args.contact)
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}))
-    step = 1.0 / contact.get("rate", 100.0)  # the daemon's [contact] rate (estimates a second at most)
     w = ContactWorker(logging.getLogger("bench"), InlineExecutor)
     sample_at: dict[int, float] = {}
     contact_at: dict[int, float] = {}
@@ -117,12 +117,10 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         return [k for k, c in enumerate(presses) if c.start <= now < c.start + c.duration + 0.5
                 and (c.x - x) ** 2 + (c.y - y) ** 2 <= NEAR_M ** 2]
 
-    # The daemon's schedule (service._contacts): an estimate when data came or when the
-    # held elements' holds run out (Pipeline.contact_due), at most `rate` a second; the tick
-    # every 0.1 s also asks for one.
-    # After an estimate (or a look that found the frame due yet none), the next look waits
-    # out the rate; after a look that found nothing new, it comes with data or when due,
-    # but no sooner than a quarter period.
+    # The daemon's schedule (service._contacts): a look when data came, when the held
+    # elements' holds run out (Pipeline.contact_due) or at the tick (every 0.1 s), and no
+    # sooner than the pacer allows after the last look (daemon/pacing.py).
+    pacer = Pacer(contact.get("rate", 100.0))
     rest_until, tick_at = -math.inf, 0.0
     while now < end:
         due = p.contact_due(now)
@@ -144,11 +142,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         if ticked:
             p.tick(now)
         job = p.contact_job(now)
-        due_now = p.contact_due(now)
-        if job is not None or due_now <= now:
-            rest_until = now + step
-        else:  # (service.EMPTY_LOOK_GAP: a look that found nothing rests a quarter period, or until due)
-            rest_until = min(now + 0.25 * step, due_now)
+        rest_until = pacer.after_look(now, job is not None, p.contact_due(now))
         if job is not None:
             snap = job.snapshot
             if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):

@@ -53,14 +53,19 @@ class Pacer:
             self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
             self._at = now
 
-    def after_look(self, now: float, estimated: bool, due: float) -> float:
-        """A look at ``now`` ran an estimate (``estimated``) or found nothing new; ``due``:
-        when the next frame is there with no new data (:meth:`Pipeline.contact_due`). The
-        earliest time of the next look (data coming earlier wakes the loop no sooner)."""
-        self._refill(now)
+    def after_look(self, began: float, estimated: bool, due: float) -> float:
+        """A look that began at ``began`` ran an estimate (``estimated``) or found nothing
+        new; ``due``: when the next frame is there with no new data
+        (:meth:`Pipeline.contact_due`, asked after the look). The earliest time of the next
+        look (data coming earlier wakes the loop no sooner).
+
+        The look is judged by when it began: a frame that came due while it ran (due after
+        ``began``) is looked at again at once. Judged by its end, such a look "found the
+        frame due yet none" and rested a whole period (+10 ms on a press's first contact)."""
+        self._refill(began)
         if estimated:
             self._tokens -= 1.0
-            return now + max(0.0, 1.0 - self._tokens) / self.rate
-        if due <= now:  # due, yet none came: rest a whole period, no spinning
-            return now + 1.0 / self.rate
-        return min(now + self.empty_gap / self.rate, due)
+            return began + max(0.0, 1.0 - self._tokens) / self.rate
+        if due <= began:  # due, yet none came (a transition holds it back): a period, no spinning
+            return began + 1.0 / self.rate
+        return min(began + self.empty_gap / self.rate, due)  # (at once when it came due meanwhile)

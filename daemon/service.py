@@ -231,12 +231,14 @@ class Service:
                 await self._fresh.wait()
             self._fresh.clear()
             # ``rate`` bounds the estimates, not the looks, and a late estimate does not
-            # make the next one late (daemon/pacing.py)
+            # make the next one late; a frame that came due while the look ran is looked
+            # at again at once (daemon/pacing.py)
+            started = time.perf_counter()
             estimated = await self._contact_once()
             now = self.now()
             t = time.perf_counter()
             self._pacer.set_rate(self.config.contact.rate)
-            rest = self._pacer.after_look(t, estimated, t + (self.pipeline.contact_due(now) - now)) - t
+            rest = self._pacer.after_look(started, estimated, t + (self.pipeline.contact_due(now) - now)) - t
             if rest > 0:
                 await asyncio.sleep(rest)
 

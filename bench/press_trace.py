@@ -60,8 +60,8 @@ def _instrument() -> None:
         TRACE["d"].append((now, _f(due)))
         return due
 
-    def traced_step(self: LayoutStages, rows, raw, saturated, caps, t_sample, cycle, now, held, on_time,  # type: ignore[no-untyped-def]
-                    period):
+    def traced_step(self: LayoutStages, rows, raw, saturated, caps, t_sample, cycle,  # type: ignore[no-untyped-def]
+                    now, held, on_time, period):
         res = step(self, rows, raw, saturated, caps, t_sample, cycle, now, held, on_time, period)
         m, ids = self.moments, self.layout.ids
         for r, t, h in zip(rows.tolist(), t_sample.tolist(), held.tolist()):
@@ -130,10 +130,6 @@ if __name__ == "__main__":
 NEAR_M = 0.040  #: a contact this close to a press is its contact (bench_press_latency)
 
 
-def _first(rows: list[Any], pred: Any) -> Any:
-    return next((r for r in rows if pred(r)), None)
-
-
 def breakdown(trace: dict[str, list[Any]], presses: list[tuple[float, float, float, float | None]],
               period: float, hold: float) -> list[dict[str, Any]]:
     """One dict per press ``(start, x, y, latency ms or None)``: the times (ms after the
@@ -161,7 +157,7 @@ def breakdown(trace: dict[str, list[Any]], presses: list[tuple[float, float, flo
         ids, bounds, held = lk[3], lk[2], lk[5]
         ends = []
         for j, b in enumerate(ids):
-            got = _first(samples, lambda r, b=b: r[1] == b and r[2] >= tk - 1e-6 and r[0] >= start)
+            got = next((r for r in samples if r[1] == b and r[2] >= tk - 1e-6 and r[0] >= start), None)
             end = got[0] if got else math.inf
             if held[j] and bounds[j] is not None:
                 end = min(end, tk + bounds[j])
@@ -169,17 +165,17 @@ def breakdown(trace: dict[str, list[Any]], presses: list[tuple[float, float, flo
         e_end, e_b, e_bound = max(ends)
         row["hold"] = 1e3 * (e_end - tk)
         row["holder"] = (e_b, None if e_bound is None else round(1e3 * e_bound, 1))
-        look = _first(looks, lambda lk: lk[0] >= start and lk[1] is not None and lk[1] >= tk - 1e-6)
+        look = next((lk for lk in looks if lk[0] >= start and lk[1] is not None and lk[1] >= tk - 1e-6), None)
         if look is not None:
             row["look"] = 1e3 * (look[0] - tk)
-        pub = _first(pubs, lambda p: p[0] >= start and any(
-            (c[1] - x) ** 2 + (c[2] - y) ** 2 <= NEAR_M ** 2 for c in p[3]))
+        pub = next((p for p in pubs if p[0] >= start and any(
+            (c[1] - x) ** 2 + (c[2] - y) ** 2 <= NEAR_M ** 2 for c in p[3])), None)
         if pub is None:
             continue
         tp = pub[1] - off
         row["pub"] = 1e3 * (pub[0] - tk)
         row["frames_after"] = round((tp - tk) / period)
-        est = _first(ests, lambda e: e[2] is not None and abs(e[2] - tp) < 1e-6)
+        est = next((e for e in ests if e[2] is not None and abs(e[2] - tp) < 1e-6), None)
         if est is not None:
             row["est"] = (1e3 * (est[0] - tk), 1e3 * (est[1] - tk))
         if lat is not None:

@@ -23,6 +23,7 @@ into its parts (first sample showing the press at the host; first contact).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import random
@@ -313,6 +314,8 @@ def main() -> None:
             from press_trace import breakdown, print_breakdown
 
             print_breakdown(breakdown(trace, pressed, 1.0 / args.rate, args.hold))
+            (work / "presses.json").write_text(json.dumps(pressed))
+            print(f"\ntrace and presses kept in {work}")
     finally:
         sub.close()
         for p in reversed(procs):

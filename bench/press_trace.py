@@ -221,7 +221,15 @@ def print_breakdown(rows: list[dict[str, Any]], share: float = 0.1) -> None:
     def fmt(v: Any) -> str:
         return f"{v:12.1f}" if isinstance(v, float) else f"{v!s:>12}"
 
-    for label, rs in (("median", [seen[len(seen) // 2]]), ("slowest", slow)):
+    for q in (0.5, 0.9):  # each column's own quantile over every press seen
+        cells = []
+        for c in cols:
+            xs = sorted(r[c] for r in seen if isinstance(r.get(c), (int, float)))
+            cells.append(fmt(float(xs[min(len(xs) - 1, int(q * len(xs)))])) if xs else fmt("-"))
+        print(f" p{round(100 * q)} of each column:\n  " + "  ".join(cells))
+    late = [r for r in seen if r.get("frames_after")]
+    print(f" presses whose first contact was not on their first touched frame: {len(late)} of {len(seen)}")
+    for label, rs in (("median press", [seen[len(seen) // 2]]), ("slowest", slow)):
         print(f" {label}:")
         for r in rs:
             print("  " + "  ".join(fmt(r.get(c, "-")) for c in cols) + f"  {r.get('holder')}  {r.get('looked')}")

@@ -122,17 +122,24 @@ def test_with_no_new_data_the_moment_moves_on_at_due_and_not_before() -> None:
         now = due
 
 
-def test_a_frame_whose_holds_ran_out_before_anyone_looked_is_due_at_once() -> None:
-    """A shell wakes a little after ``due`` (timer slack, a read in between) and asks
-    again before it looks: the frame it woke for is there now. ``due`` named the frame
-    after it, so the shell slept a whole frame more and the press's first frame was
-    skipped (+10 ms on about a tenth of presses, real processes, bench_press_latency --trace)."""
+def _learnt_and_taken() -> tuple[Moments, float]:
+    """Two held elements that reported 50 frames (their delivery delay learnt), and the
+    host time at which their newest frame was taken."""
     m = Moments(2, 64)
     for k in range(50):
         _record(m, 0, 9.5 + k * PERIOD)
         _record(m, 1, 9.5 + k * PERIOD)
     now = 9.5 + 49 * PERIOD + DELAY
     assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is not None
+    return m, now
+
+
+def test_a_frame_whose_holds_ran_out_before_anyone_looked_is_due_at_once() -> None:
+    """A shell wakes a little after ``due`` (timer slack, a read in between) and asks
+    again before it looks: the frame it woke for is there now. ``due`` named the frame
+    after it, so the shell slept a whole frame more and the press's first frame was
+    skipped (+10 ms on about a tenth of presses, real processes, bench_press_latency --trace)."""
+    m, now = _learnt_and_taken()
     due = m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5)
     woke = due + 0.002  # 2 ms late
     assert m.due(woke, timeout=2.0, max_lag=0.5, held_wait=0.5) <= woke
@@ -145,12 +152,7 @@ def test_a_frame_held_back_by_a_transition_is_not_due_until_the_frame_after_it()
     """An element touched in its newest reading and untouched in the one before: the
     frames between them are held back (:meth:`Moments.take`). ``due`` must not call
     them due now (a shell would look, find nothing and rest a whole period)."""
-    m = Moments(2, 64)
-    for k in range(50):
-        _record(m, 0, 9.5 + k * PERIOD)
-        _record(m, 1, 9.5 + k * PERIOD)
-    now = 9.5 + 49 * PERIOD + DELAY
-    assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is not None
+    m, now = _learnt_and_taken()
     t = 9.5 + 60 * PERIOD  # element 0 pressed: its first touched reading, after ten quiet frames
     zero = np.zeros((2, 2))
     now = t + 0.005

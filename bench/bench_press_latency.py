@@ -18,6 +18,13 @@ model) and feeds its gateway's bytes, at their virtual times, into the daemon's 
 with the production contact path inline, estimating when the daemon would: the
 same latency without the machine's load in it (deterministic by ``--seed``), and split
 into its parts (first sample showing the press at the host; first contact).
+
+``--trace`` (real processes) runs the daemon through ``bench/press_trace.py``, which notes
+when each reading, look, estimate and publish happened, and prints per press what its
+contact waited for (each step's p50/p90 over every press, then the median press and the
+slowest tenth step by step). Run the skin at real-time priority so other work does not
+count: ``chrt -f 1 .venv/bin/python bench/bench_press_latency.py --reporting event:40
+--presses 60 --trace``.
 """
 
 from __future__ import annotations

@@ -18,11 +18,19 @@ model) and feeds its gateway's bytes, at their virtual times, into the daemon's 
 with the production contact path inline, estimating when the daemon would: the
 same latency without the machine's load in it (deterministic by ``--seed``), and split
 into its parts (first sample showing the press at the host; first contact).
+
+``--trace`` (real processes) runs the daemon through ``bench/press_trace.py``, which notes
+when each reading, look, estimate and publish happened, and prints per press what its
+contact waited for (each step's p50/p90 over every press, then the median press and the
+slowest tenth step by step). Run the skin at real-time priority so other work does not
+count: ``chrt -f 1 .venv/bin/python bench/bench_press_latency.py --reporting event:40
+--presses 60 --trace``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import random
@@ -81,6 +89,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     from cellbridge.daemon.config import parse_config
     from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
     from cellbridge.daemon.messages import Publish
+    from cellbridge.daemon.pacing import Pacer
     from cellbridge.daemon.pipeline import Pipeline
     from cellbridge.emulator.commands import Settings
     from cellbridge.emulator.realtime import reporting_arg
@@ -105,7 +114,6 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
     contact = dict(_setting(kv) for kv in args.contact)
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}))
-    step = 1.0 / contact.get("rate", 100.0)  # the daemon's [contact] rate (estimates a second at most)
     w = ContactWorker(logging.getLogger("bench"), InlineExecutor)
     sample_at: dict[int, float] = {}
     contact_at: dict[int, float] = {}
@@ -117,12 +125,10 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         return [k for k, c in enumerate(presses) if c.start <= now < c.start + c.duration + 0.5
                 and (c.x - x) ** 2 + (c.y - y) ** 2 <= NEAR_M ** 2]
 
-    # The daemon's schedule (service._contacts): an estimate when data came or when the
-    # held elements' holds run out (Pipeline.contact_due), at most `rate` a second; the tick
-    # every 0.1 s also asks for one.
-    # After an estimate (or a look that found the frame due yet none), the next look waits
-    # out the rate; after a look that found nothing new, it comes with data or when due,
-    # but no sooner than a quarter period.
+    # The daemon's schedule (service._contacts): a look when data came, when the held
+    # elements' holds run out (Pipeline.contact_due) or at the tick (every 0.1 s), and no
+    # sooner than the pacer allows after the last look (daemon/pacing.py).
+    pacer = Pacer(contact.get("rate", 100.0))
     rest_until, tick_at = -math.inf, 0.0
     while now < end:
         due = p.contact_due(now)
@@ -144,11 +150,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         if ticked:
             p.tick(now)
         job = p.contact_job(now)
-        due_now = p.contact_due(now)
-        if job is not None or due_now <= now:
-            rest_until = now + step
-        else:  # (service.EMPTY_LOOK_GAP: a look that found nothing rests a quarter period, or until due)
-            rest_until = min(now + 0.25 * step, due_now)
+        rest_until = pacer.after_look(now, job is not None, p.contact_due(now))
         if job is not None:
             snap = job.snapshot
             if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):
@@ -201,6 +203,9 @@ def main() -> None:
     ap.add_argument("--at", type=float, nargs=2, metavar=("X", "Y"), default=None,
                     help="press here every time instead of at random points (m)")
     ap.add_argument("--virtual", action="store_true", help="virtual time (deterministic; no machine load in it)")
+    ap.add_argument("--trace", action="store_true",
+                    help="run the daemon with a timing trace (bench/press_trace.py) and print, for the median "
+                         "and the slowest tenth of presses, what their contact waited for")
     args = ap.parse_args()
     # SIGTERM (a kill, a timeout) unwinds like Ctrl-C, so every process started is stopped
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
@@ -251,7 +256,13 @@ def main() -> None:
             f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n[daemon]\nlog_format = "text"\n\n'
             f'[[link]]\nname = "gateway"\nurl = "{device}"\n'
             + ("\n[contact]\n" + "".join(f"{kv}\n" for kv in args.contact) if args.contact else ""))
-        procs.append(_start(["daemon", "--config", str(work / "daemon.toml")], stderr=open(work / "daemon.log", "w")))
+        if args.trace:
+            daemon = subprocess.Popen([sys.executable, str(Path(__file__).with_name("press_trace.py")), "--config",
+                                       str(work / "daemon.toml"), "--trace", str(work / "trace.msgpack")],
+                                      start_new_session=True, stderr=open(work / "daemon.log", "w"))
+        else:
+            daemon = _start(["daemon", "--config", str(work / "daemon.toml")], stderr=open(work / "daemon.log", "w"))
+        procs.append(daemon)
         deadline = time.monotonic() + 180
         while time.monotonic() < deadline:
             if sub.poll(1000):
@@ -263,6 +274,7 @@ def main() -> None:
         rng = random.Random(args.seed)
         span = (args.side - 1) * mesh.side
         lat: list[float] = []
+        pressed: list[tuple[float, float, float, float | None]] = []  # (start, x, y, latency ms)
         missed = 0
         health: dict = {}
         for _ in range(args.presses):
@@ -285,6 +297,7 @@ def main() -> None:
                 if topic == b"contact" and seen is None and got >= start and any(
                         (c["x"] - x) ** 2 + (c["y"] - y) ** 2 <= NEAR_M ** 2 for c in msg.get("contacts", [])):
                     seen = got - start
+            pressed.append((start, x, y, None if seen is None else 1000 * seen))
             if seen is None:
                 missed += 1
             else:
@@ -301,6 +314,15 @@ def main() -> None:
                 f"{os.getloadavg()[0]:.1f}"]])
         late = health.get("late_estimates", health.get("moments", {}).get("late_estimates", "?"))
         print(f"\nmissed presses: {missed}; health late estimates: {late}")
+        if args.trace:
+            _stop(daemon)
+            with open(work / "trace.msgpack", "rb") as f:
+                trace = msgpack.unpack(f, strict_map_key=False)
+            from press_trace import breakdown, print_breakdown
+
+            print_breakdown(breakdown(trace, pressed, 1.0 / args.rate, args.hold))
+            (work / "presses.json").write_text(json.dumps(pressed))
+            print(f"\ntrace and presses kept in {work}")
     finally:
         sub.close()
         for p in reversed(procs):

@@ -231,7 +231,8 @@ class ContactSection:
     """``[contact]``: contact estimation and tracking."""
 
     enabled: bool = _key(True, "estimate contacts (topic contact)", reloadable=True)
-    rate: float = _key(100.0, "Hz, at most this many estimates a second, each on the newest consistent moment",
+    rate: float = _key(100.0, "Hz, at most this many estimates a second on average (one late estimate may be "
+                       "followed by the next sooner, on its frame's time), each on the newest consistent moment",
                        _up_to(1000), reloadable=True)
     method: str = _key("capacitance", "model fit in capacitance (default) or area space",
                        _one_of("capacitance", "area"), reloadable=True)

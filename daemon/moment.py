@@ -219,7 +219,7 @@ class Moments:
         if transition and not force:
             if math.isnan(self.hold_since):
                 self.hold_since = t
-            if t - self.hold_since < transition:
+            if self._in_transition(t, transition):
                 return None
         self.hold_since = math.nan
         self.late_estimates += bool(self.late.any())
@@ -283,6 +283,12 @@ class Moments:
         live = self.live
         if math.isnan(t) or not np.isfinite(self.period[live]).any():
             return math.inf
+        # A frame not taken yet is there now (its holds ran out before anyone looked),
+        # unless a transition holds it back: then the frame after it is what comes next.
+        # (Naming the frame after it here put a shell that woke a moment past a due to
+        # sleep a whole frame more: the press's first frame was skipped, +10 ms.)
+        if t > self.t_moment and not self._in_transition(t, self.at(t, now)[5]):
+            return now
         nxt = t + float(np.nanmin(np.where(live, self.period, np.nan)))
         with np.errstate(invalid="ignore"):
             waits = self.holding & ~(self.settled >= nxt)
@@ -291,6 +297,13 @@ class Moments:
             return math.inf
         # (a microsecond on: at the exact instant, rounding may leave the frame one short)
         return nxt + float(self._bound(min(held_wait, max_lag), now)[waits].max()) + 1e-6
+
+    def _in_transition(self, t: float, transition: float) -> bool:
+        """Whether the moment ``t`` is held back for an element between a touched and an
+        untouched reading there (``transition``: the longest such interval, 0.0: none),
+        counted from the first moment held back (:meth:`take`)."""
+        since = t if math.isnan(self.hold_since) else self.hold_since
+        return transition > 0 and t - since < transition
 
     def _onset_pending(self, moment: float, now: float, touched: NDArray[np.bool_], t_j: FloatArray,
                        held: NDArray[np.bool_]) -> NDArray[np.bool_]:

@@ -36,6 +36,7 @@ from cellbridge.daemon.links import SYSTEM_CLOCK, Clock, Link, Opener, ReplayLin
 from cellbridge.daemon.logs import event, setup
 from cellbridge.daemon.messages import Health, LinkWrite, LogEvent, Message
 from cellbridge.daemon.ops import OpsHooks
+from cellbridge.daemon.pacing import Pacer
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
 from cellbridge.tactile import SkinLayout
@@ -58,12 +59,6 @@ class Service:
 
     TICK = 0.1  # s between pipeline ticks (health itself goes out every health.interval)
     HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
-    #: After a contact look that found no new frame, the next waits at least this fraction
-    #: of the estimate period (1 / ``[contact] rate``), or until the frame is due: a serial
-    #: line read in small pieces (a USB adapter's 32-byte chunks) cost a look per read, 246
-    #: a second on an emulated 4x4 skin against 69 (2.5 ms at 100 Hz: a quarter of the
-    #: period the first contact waited before, when every look rested a whole period).
-    EMPTY_LOOK_GAP = 0.25
     DRAIN_LIMIT = 10.0  # s: systemd's TimeoutStopSec=15 kills a daemon that takes longer
 
     def __init__(self, config: Config, layout: SkinLayout | None = None, *, config_path: str | Path | None = None,
@@ -98,6 +93,7 @@ class Service:
         self._busy = np.zeros(4096)  # s spent on each of the last reads, bytes to published messages
         self._n_reads = 0
         self._lag_max = 0.0  # s, since the last health message
+        self._pacer = Pacer(config.contact.rate)
 
     def now(self) -> float:
         """The pipeline's time base: the monotonic clock (wall-clock time while a replay feeds
@@ -234,21 +230,15 @@ class Service:
             else:
                 await self._fresh.wait()
             self._fresh.clear()
+            # ``rate`` bounds the estimates, not the looks, and a late estimate does not
+            # make the next one late; a frame that came due while the look ran is looked
+            # at again at once (daemon/pacing.py)
             started = time.perf_counter()
-            # ``rate`` bounds the estimates, not the looks: data that did not move the
-            # frame on must not keep the frame due a moment later waiting a whole period
-            # (that was up to 10 ms on a press's first contact at 100 Hz). Unless the
-            # frame is due already and still none came (no spinning then). Nor may every
-            # read cost a look (a skin-frame computation): after one that found nothing,
-            # the next comes no sooner than EMPTY_LOOK_GAP of the period, or when due.
-            if not await self._contact_once():
-                due = self.pipeline.contact_due(self.now()) - self.now()
-                if due > 0:
-                    gap = self.EMPTY_LOOK_GAP / self.config.contact.rate - (time.perf_counter() - started)
-                    if min(gap, due) > 0:
-                        await asyncio.sleep(min(gap, due))
-                    continue
-            rest = 1.0 / self.config.contact.rate - (time.perf_counter() - started)
+            estimated = await self._contact_once()
+            now = self.now()
+            t = time.perf_counter()
+            self._pacer.set_rate(self.config.contact.rate)
+            rest = self._pacer.after_look(started, estimated, t + (self.pipeline.contact_due(now) - now)) - t
             if rest > 0:
                 await asyncio.sleep(rest)
 

@@ -122,6 +122,47 @@ def test_with_no_new_data_the_moment_moves_on_at_due_and_not_before() -> None:
         now = due
 
 
+def _learnt_and_taken() -> tuple[Moments, float]:
+    """Two held elements that reported 50 frames (their delivery delay learnt), and the
+    host time at which their newest frame was taken."""
+    m = Moments(2, 64)
+    for k in range(50):
+        _record(m, 0, 9.5 + k * PERIOD)
+        _record(m, 1, 9.5 + k * PERIOD)
+    now = 9.5 + 49 * PERIOD + DELAY
+    assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is not None
+    return m, now
+
+
+def test_a_frame_whose_holds_ran_out_before_anyone_looked_is_due_at_once() -> None:
+    """A shell wakes a little after ``due`` (timer slack, a read in between) and asks
+    again before it looks: the frame it woke for is there now. ``due`` named the frame
+    after it, so the shell slept a whole frame more and the press's first frame was
+    skipped (+10 ms on about a tenth of presses, real processes, bench_press_latency --trace)."""
+    m, now = _learnt_and_taken()
+    due = m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5)
+    woke = due + 0.002  # 2 ms late
+    assert m.due(woke, timeout=2.0, max_lag=0.5, held_wait=0.5) <= woke
+    got = m.take(woke, timeout=2.0, max_lag=0.5, held_wait=0.5)
+    assert got is not None
+    assert m.due(woke, timeout=2.0, max_lag=0.5, held_wait=0.5) > woke  # taken: the next one is later
+
+
+def test_a_frame_held_back_by_a_transition_is_not_due_until_the_frame_after_it() -> None:
+    """An element touched in its newest reading and untouched in the one before: the
+    frames between them are held back (:meth:`Moments.take`). ``due`` must not call
+    them due now (a shell would look, find nothing and rest a whole period)."""
+    m, now = _learnt_and_taken()
+    t = 9.5 + 60 * PERIOD  # element 0 pressed: its first touched reading, after ten quiet frames
+    zero = np.zeros((2, 2))
+    now = t + 0.005
+    m.record(np.array([0]), np.array([t]), np.array([0], dtype=np.uint64), np.full((1, 2), 2.0), True, now,
+             zero + 1.0, zero + 0.5, np.array([True]), np.array([True]), np.array([PERIOD]))
+    assert m.moment(now, timeout=2.0, max_lag=0.5, held_wait=0.5) > m.t_moment  # a new frame, before t
+    assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is None  # held back: in transition
+    assert m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5) > now
+
+
 def test_due_is_never_while_a_periodic_element_is_waited_for() -> None:
     """A periodic element's frame comes only with its data: no time to wake for."""
     m = Moments(2, 64)

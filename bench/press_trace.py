@@ -1,0 +1,242 @@
+"""``cellbridge daemon`` with a per-press timing trace: what a press's contact waited for.
+
+Run by ``bench/bench_press_latency.py --trace`` in place of ``cellbridge daemon``:
+``python bench/press_trace.py --config FILE --trace OUT``. The daemon is the production
+one (same service, pipeline, contact worker process); this script wraps a few of its
+methods, in this process only, to note on the host monotonic clock:
+
+* ``s``: every reading that reaches the skin frames (arrival, bridge, sample time,
+  touched, held);
+* ``l``: every contact look (``LayoutStages.snapshot``): its time, the frame it took
+  (or none), and each element's hold (delay mark plus margin) at that time;
+* ``e``: every estimate (start, end, the frame, its unknown elements);
+* ``p``: every ``contact`` message handed to ZeroMQ (time, frame, contacts).
+
+The trace is written as msgpack when the daemon stops (SIGTERM). Nothing here runs in a
+daemon started the ordinary way: the diagnostic costs the production path nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from typing import Any
+
+import msgpack
+
+from cellbridge.daemon.cli import _load
+from cellbridge.daemon.layout import LayoutStages
+from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.publisher import Publisher
+from cellbridge.daemon.service import Service, run_service
+
+TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": []}
+
+
+def _f(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def _instrument() -> None:
+    step, snapshot = LayoutStages.step, LayoutStages.snapshot
+    contact_once, publish = Service._contact_once, Publisher.publish
+    on_data, tick_once, contact_due = Service._on_data, Service._tick_once, Pipeline.contact_due
+
+    def traced_on_data(self: Service, link: str, data: bytes, now: float) -> None:
+        t0 = time.monotonic()
+        on_data(self, link, data, now)
+        TRACE["b"].append(("read", t0, time.monotonic()))
+
+    def traced_tick_once(self: Service, next_status: float) -> float:
+        t0 = time.monotonic()
+        out = tick_once(self, next_status)
+        TRACE["b"].append(("tick", t0, time.monotonic()))
+        return out
+
+    def traced_contact_due(self: Pipeline, now: float) -> float:
+        due = contact_due(self, now)
+        TRACE["d"].append((now, _f(due)))
+        return due
+
+    def traced_step(self: LayoutStages, rows, raw, saturated, caps, t_sample, cycle,  # type: ignore[no-untyped-def]
+                    now, held, on_time, period):
+        res = step(self, rows, raw, saturated, caps, t_sample, cycle, now, held, on_time, period)
+        m, ids = self.moments, self.layout.ids
+        for r, t, h in zip(rows.tolist(), t_sample.tolist(), held.tolist()):
+            slot = m.t[r] == t  # the reading's slot in the skin frames: its touch flag as they hold it
+            TRACE["s"].append((now, int(ids[r]), t, bool(slot.any() and m.touched[r, slot.argmax()]), bool(h)))
+        return res
+
+    def traced_snapshot(self: LayoutStages, now: float, bridge_timeout: float):  # type: ignore[no-untyped-def]
+        got = snapshot(self, now, bridge_timeout)
+        m = self.moments
+        if m is not None and self.layout is not None:
+            c = self.config.contact
+            bound = m._bound(min(c.held_wait, c.max_lag), now)
+            mo = m.moment(now, bridge_timeout, c.max_lag, c.held_wait)  # the frame it could take (same state)
+            TRACE["l"].append((now, _f(got.t_moment) if got is not None else None,
+                               [_f(b) for b in bound.tolist()], self.layout.ids.tolist(),
+                               m.settled.tolist(), m._held_now().tolist(), _f(mo)))
+        return got
+
+    async def traced_contact_once(self: Service, limit: float = math.inf) -> bool:
+        t0 = time.monotonic()
+        n = len(TRACE["l"])
+        did = await contact_once(self, limit)
+        if did:
+            looks = TRACE["l"][n:]
+            frame = next((lk[1] for lk in looks if lk[1] is not None), None)
+            TRACE["e"].append((t0, time.monotonic(), frame))
+        return did
+
+    def traced_publish(self: Publisher, topic: str, payload: dict[str, Any]) -> Any:
+        out = publish(self, topic, payload)
+        if topic == "contact":
+            TRACE["p"].append((time.monotonic(), payload.get("t_sample"), payload.get("unknown"),
+                               [(c.get("id"), c.get("x"), c.get("y"), c.get("force")) for c in payload["contacts"]]))
+        return out
+
+    Service._on_data = traced_on_data  # type: ignore[method-assign]
+    Service._tick_once = traced_tick_once  # type: ignore[method-assign]
+    Pipeline.contact_due = traced_contact_due  # type: ignore[method-assign]
+    LayoutStages.step = traced_step  # type: ignore[method-assign]
+    LayoutStages.snapshot = traced_snapshot  # type: ignore[method-assign]
+    Service._contact_once = traced_contact_once  # type: ignore[method-assign]
+    Publisher.publish = traced_publish  # type: ignore[method-assign]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", required=True)
+    ap.add_argument("--trace", required=True, help="msgpack file the trace is written to at the stop")
+    args = ap.parse_args()
+    config = _load(argparse.Namespace(config=args.config))
+    _instrument()
+    try:
+        return run_service(args.config, config)
+    finally:
+        TRACE["wall_offset"] = [time.time() - time.monotonic()]
+        with open(args.trace, "wb") as f:
+            msgpack.pack(TRACE, f)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+
+# -- reading a trace ---------------------------------------------------------------------
+NEAR_M = 0.040  #: a contact this close to a press is its contact (bench_press_latency)
+
+
+def breakdown(trace: dict[str, list[Any]], presses: list[tuple[float, float, float, float | None]],
+              period: float, hold: float) -> list[dict[str, Any]]:
+    """One dict per press ``(start, x, y, latency ms or None)``: the times (ms after the
+    press's first touched frame ``tk``, or after the start) of each step its contact went
+    through. See :func:`print_breakdown` for the columns."""
+    samples = sorted(trace["s"], key=lambda r: r[0])
+    looks, pubs, ests = trace["l"], trace["p"], trace["e"]
+    off = trace["wall_offset"][0]
+    out = []
+    for start, x, y, lat in presses:
+        row: dict[str, Any] = {"start": start, "lat": lat}
+        out.append(row)
+        during = [r for r in samples if start <= r[0] < start + hold and r[3] and r[2] >= start - period]
+        if not during:
+            continue
+        tk = min(r[2] for r in during)
+        row["gate"] = 1e3 * (tk - start)
+        a1 = min(r[0] for r in during if abs(r[2] - tk) < 1e-6)
+        row["first"] = 1e3 * (a1 - tk)
+        of_k = [r for r in samples if abs(r[2] - tk) < 1e-6 and r[0] >= start]
+        row["sent_k"] = sorted((r[1], round(1e3 * (r[0] - tk), 1), r[3]) for r in of_k)
+        row["last_k"] = 1e3 * (max(r[0] for r in of_k) - tk)
+        before = [lk for lk in looks if lk[0] <= a1]
+        lk = before[-1] if before else looks[0]
+        ids, bounds, held = lk[3], lk[2], lk[5]
+        ends = []
+        for j, b in enumerate(ids):
+            got = next((r for r in samples if r[1] == b and r[2] >= tk - 1e-6 and r[0] >= start), None)
+            end = got[0] if got else math.inf
+            if held[j] and bounds[j] is not None:
+                end = min(end, tk + bounds[j])
+            ends.append((end, b, bounds[j]))
+        e_end, e_b, e_bound = max(ends)
+        row["hold"] = 1e3 * (e_end - tk)
+        row["holder"] = (e_b, None if e_bound is None else round(1e3 * e_bound, 1))
+        look = next((lk for lk in looks if lk[0] >= start and lk[1] is not None and lk[1] >= tk - 1e-6), None)
+        if look is not None:
+            row["look"] = 1e3 * (look[0] - tk)
+        pub = next((p for p in pubs if p[0] >= start and any(
+            (c[1] - x) ** 2 + (c[2] - y) ** 2 <= NEAR_M ** 2 for c in p[3])), None)
+        if pub is None:
+            continue
+        tp = pub[1] - off
+        row["pub"] = 1e3 * (pub[0] - tk)
+        row["frames_after"] = round((tp - tk) / period)
+        est = next((e for e in ests if e[2] is not None and abs(e[2] - tp) < 1e-6), None)
+        if est is not None:
+            row["est"] = (1e3 * (est[0] - tk), 1e3 * (est[1] - tk))
+        if lat is not None:
+            row["recv"] = lat - 1e3 * (pub[0] - start)
+        # what the frames between the first touched one and the contact's said
+        why = []
+        for p in pubs:
+            t = p[1] - off if p[1] is not None else math.nan
+            if p[0] >= start and tk - 1e-6 <= t < tp - 1e-6:
+                why.append((round((t - tk) / period), [(c[0], round(1e3 * c[1], 1), round(1e3 * c[2], 1))
+                                                       for c in p[3]], p[2]))
+        row["between"] = why
+        row["looked"] = [round((lk[1] - tk) / period) for lk in looks
+                         if lk[1] is not None and start <= lk[0] <= pub[0] and lk[1] >= tk - 1e-6]
+        # every look from the first touched reading to the contact: (ms after tk, frame it could
+        # take, frame it took), frames counted from tk
+        row["looks"] = [(round(1e3 * (lk[0] - tk), 1), None if lk[6] is None else round((lk[6] - tk) / period),
+                         None if lk[1] is None else round((lk[1] - tk) / period))
+                        for lk in looks if a1 <= lk[0] <= pub[0]]
+        row["dues"] = [(round(1e3 * (d[0] - tk), 1), None if d[1] is None else round(1e3 * (d[1] - tk), 1))
+                       for d in trace["d"] if a1 <= d[0] <= pub[0]]
+        row["busy"] = [(b[0], round(1e3 * (b[1] - tk), 1), round(1e3 * (b[2] - b[1]), 1))
+                       for b in trace["b"] if a1 <= b[2] and b[1] <= pub[0] and b[2] - b[1] > 0.001]
+    return out
+
+
+def print_breakdown(rows: list[dict[str, Any]], share: float = 0.1) -> None:
+    """The slowest ``share`` of presses, and the median press, step by step (ms)."""
+    seen = sorted((r for r in rows if r.get("lat") is not None), key=lambda r: r["lat"])
+    if not seen:
+        print("no press seen")
+        return
+    slow = seen[-max(1, round(share * len(seen))):]
+    cols = ["lat", "gate", "first", "last_k", "hold", "look", "pub", "recv", "frames_after"]
+    print("\nper press, ms: gate = first touched frame's gate after the press start; first/last_k = "
+          "its first touched / last reading of that frame at the daemon; hold = when that frame "
+          "became estimable (every element reported it or its hold ran out); look = the first "
+          "look that took it; pub = its contact handed to ZeroMQ; (all after the frame's gate); "
+          "recv = ZeroMQ to the subscriber; frames_after = frames between the first touched one "
+          "and the first contact's")
+    print("  " + "  ".join(f"{c:>12}" for c in cols) + "  holder(bound)  looked frames")
+
+    def fmt(v: Any) -> str:
+        return f"{v:12.1f}" if isinstance(v, float) else f"{v!s:>12}"
+
+    for q in (0.5, 0.9):  # each column's own quantile over every press seen
+        cells = []
+        for c in cols:
+            xs = sorted(r[c] for r in seen if isinstance(r.get(c), (int, float)))
+            cells.append(fmt(float(xs[min(len(xs) - 1, int(q * len(xs)))])) if xs else fmt("-"))
+        print(f" p{round(100 * q)} of each column:\n  " + "  ".join(cells))
+    late = [r for r in seen if r.get("frames_after")]
+    print(f" presses whose first contact was not on their first touched frame: {len(late)} of {len(seen)}")
+    for label, rs in (("median press", [seen[len(seen) // 2]]), ("slowest", slow)):
+        print(f" {label}:")
+        for r in rs:
+            print("  " + "  ".join(fmt(r.get(c, "-")) for c in cols) + f"  {r.get('holder')}  {r.get('looked')}")
+            if r.get("frames_after"):
+                print(f"      frames before the contact's: {r.get('between')}")
+            if label == "slowest":
+                print(f"      looks (ms after tk, frame it could take, frame taken): {r.get('looks')}")
+                print(f"      contact_due (ms after tk: asked, due): {r.get('dues')}")
+                print(f"      loop busy > 1 ms (what, ms after tk, ms): {r.get('busy')}")
+            print(f"      readings of the first touched frame (bridge, ms after its gate, touched): {r.get('sent_k')}")

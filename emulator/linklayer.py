@@ -175,19 +175,34 @@ class LinkLayer:
                 self.counters["retries"] += 1
                 f.missed, f.deadline = f.deadline, -1
                 radio.send(f.data, self.cells, tick, f.attempts)
-        if radio.idle and f is None:
-            if self.broadcasts:
-                radio.send(self.broadcasts.popleft(), self.cells, tick)
-            elif parent is not None and self.queue:
-                self.inflight, used = self._reframe(parent, next_seq, cost_add)
-                radio.send(self.inflight.data, self.cells, tick)
+        if f is None:
+            used = self._hand_over(tick, parent, next_seq, cost_add)
         out = radio.advance(tick)
         if out is not None:
             f = self.inflight
             if f is not None and out[0] is f.data and f.deadline < 0:
                 f.attempts += 1
                 f.deadline = radio.tx_until + self._ack_wait + self.extra_wait
+            elif f is None:
+                # a broadcast just went out: the next frame contends for the cell after it
+                # now, not at the bridge's next wake (a relay held a child's frame until its
+                # next gate or batch then, and lazy and gate-by-gate sampling sent different frames)
+                used = self._hand_over(tick, parent, next_seq, cost_add) or used
         return out, used
+
+    def _hand_over(self, tick: int, parent: int | None, next_seq: int, cost_add: int) -> bool:
+        """Give the radio the next frame if it holds none (broadcasts first); whether
+        ``next_seq`` was used."""
+        radio = self.radio
+        if not radio.idle:
+            return False
+        if self.broadcasts:
+            radio.send(self.broadcasts.popleft(), self.cells, tick)
+        elif parent is not None and self.queue:
+            self.inflight, used = self._reframe(parent, next_seq, cost_add)
+            radio.send(self.inflight.data, self.cells, tick)
+            return used
+        return False
 
     @property
     def next_tick(self) -> int | None:

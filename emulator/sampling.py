@@ -98,7 +98,9 @@ class Sampler:
         if not self.lazy:
             return min(self.ready if self.flush_at < 0 else min(self.ready, self.flush_at), leave)
         if self.batch and self._batch_aligned != self._aligned():
-            return min(self.ready, leave)  # the next sample closes the batch: aligned or timed, never both
+            # the next sample closes the batch (aligned or timed, never both), unless its
+            # ``max_latency`` comes first
+            return min(self.ready, self.flush_at, leave)
         room = max(1, min(self.batch_max - len(self.batch), self._fit(self.batch_bytes, bool(self.batch))))
         if self._aligned():  # the ready tick of the batch's last index, at the latest
             room = min(room, self.aligned_batch() - self.index % self.aligned_batch())

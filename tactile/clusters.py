@@ -36,7 +36,8 @@ def cluster_elements(
     the two sides of a press read apart only because its middle is missing would
     otherwise be fitted as two contacts (a corner press whose two edge elements are
     late comes out as two diagonal elements). Only one unknown element bridges: touches
-    farther apart stay apart, however much of the skin is unknown.
+    farther apart stay apart, however much of the skin is unknown; so do two with a
+    known untouched element on the line between them.
     """
     a = np.asarray(active, dtype=bool)
     if a.shape != (layout.n,):
@@ -47,12 +48,7 @@ def cluster_elements(
         u = np.asarray(unknown, dtype=bool)
         if u.shape != (layout.n,):
             raise ValueError(f"unknown must have shape ({layout.n},), got {u.shape}")
-        ce = np.concatenate([layout.corner_edges, layout.corner_edges[:, ::-1]])
-        ce = ce[u[ce[:, 0]] & ~u[ce[:, 1]] & a[ce[:, 1]]]  # (unknown, active neighbour)
-        if ce.size:
-            ce = ce[np.lexsort((ce[:, 1], ce[:, 0]))]
-            same = ce[1:, 0] == ce[:-1, 0]  # chain the active neighbours of each unknown element
-            e = np.concatenate([e, np.stack([ce[:-1, 1][same], ce[1:, 1][same]], axis=1)])
+        e = np.concatenate([e, _across_unknown(layout, a, u)])
     lab = np.arange(layout.n)
     while True:  # min-label propagation with pointer jumping: O(log diameter) passes
         m = np.minimum(lab[e[:, 0]], lab[e[:, 1]])
@@ -67,6 +63,29 @@ def cluster_elements(
     roots = np.unique(lab[a])
     out[a] = np.searchsorted(roots, lab[a])
     return out
+
+
+def _across_unknown(layout: SkinLayout, a: np.ndarray, u: np.ndarray) -> IntArray:
+    """Pairs of active elements that one unknown element may join (both among its edge and
+    corner neighbours), less those with a known untouched element on the line between their
+    centres: one disk over both would press that element too. (Two presses two elements
+    apart along a row whose neighbour row is unknown, a line down, read their untouched
+    element between them: they are two, not one contact on that element.)"""
+    ce = np.concatenate([layout.corner_edges, layout.corner_edges[:, ::-1]])
+    ce = ce[u[ce[:, 0]] & ~u[ce[:, 1]] & a[ce[:, 1]]]  # (unknown, active neighbour)
+    if not ce.size:
+        return np.zeros((0, 2), dtype=np.int64)
+    ce = ce[np.lexsort((ce[:, 1], ce[:, 0]))]
+    groups = np.split(ce[:, 1], np.flatnonzero(np.diff(ce[:, 0])) + 1)
+    pairs = np.array([(m[i], m[j]) for m in groups for i in range(len(m)) for j in range(i + 1, len(m))],
+                     dtype=np.int64).reshape(-1, 2)
+    if not pairs.size:
+        return pairs
+    c = layout.centres
+    t = np.array([1 / 3, 2 / 3])[None, :, None]  # not the middle: a shared corner for a diagonal pair
+    under = layout.element_at(c[pairs[:, :1]] + t * (c[pairs[:, 1:]] - c[pairs[:, :1]]))  # (pairs, 2)
+    blocked = ((under >= 0) & ~u[under] & ~a[under]).any(axis=1)
+    return pairs[~blocked]
 
 
 def force_centroid(layout: SkinLayout, weights: ArrayLike, members: ArrayLike) -> tuple[float, float]:

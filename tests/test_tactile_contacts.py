@@ -82,6 +82,31 @@ def test_active_elements_around_one_unknown_element_are_one_cluster():
         cluster_elements(lay, active, unknown=np.ones(5, dtype=bool))
 
 
+def test_presses_with_a_known_untouched_element_between_them_stay_apart_beside_unknown_ones():
+    # A gateway line drops and the row next to two presses goes unknown. Each unknown
+    # element touches both presses at its corners, yet the element between the presses
+    # reads untouched: one disk over both would press it. They were one contact of the
+    # summed force, placed on that untouched element.
+    lay = grid_layout(4, 4)
+    row = np.zeros(16, dtype=bool)
+    row[[0, 2]] = True
+    behind = np.zeros(16, dtype=bool)
+    behind[4:8] = True  # row 1 unknown; element 1 known and untouched
+    lab = cluster_elements(lay, row, unknown=behind)
+    assert lab[0] != lab[2]
+    dc1, dc2 = measure([(0.0, 0.0, 2.0, 0.015), (0.080, 0.0, 2.0, 0.015)], lay)
+    assert dc1[1] == 0 and (dc1[[0, 2]] > 0).all()
+    dc1[4:8] = np.nan
+    dc2[4:8] = np.nan
+    cs = sorted(ContactEstimator(lay).estimate(dc1, dc2), key=lambda c: c.x)
+    assert len(cs) == 2, cs
+    assert [round(c.x, 3) for c in cs] == [0.0, 0.08]
+    assert [round(c.force, 1) for c in cs] == [2.0, 2.0]
+    # the element between them unknown too: they may be one press over it (one cluster)
+    lab = cluster_elements(lay, row, unknown=behind | np.eye(16, dtype=bool)[1])
+    assert lab[0] == lab[2]
+
+
 def test_a_corner_press_whose_two_edge_elements_are_unknown_is_one_contact():
     # The daemon estimates a skin frame with elements it has no reading of (a late bridge,
     # a line that just came back) as NaN. A corner press read on its two diagonal elements

@@ -169,12 +169,18 @@ class Sampler:
         # Samples due before the command were taken before it on the chip; with lazy
         # sampling they may not be computed yet, and must be under the old settings.
         out = self.advance(tick - 1)
-        old, self.settings = self.settings, new
+        old = self.settings
+        schedule = (new.period_cycles(self.clock_hz) != old.period_cycles(self.clock_hz)
+                    or new.measure_cycles() != old.measure_cycles() or new.mode != old.mode)
+        if schedule:
+            # one DATA payload holds one mode (and one rate): the open batch leaves labelled
+            # with the settings its samples were taken under (labelled with the new rate, a
+            # 100 Hz index read as a 50 Hz one: seconds off on mesh time)
+            self._flush(out)
+        self.settings = new
         if new.reporting != old.reporting or new.mode != old.mode:
             self.reporter.set_mode(new.reporting, _COUNTER_MODULUS if new.mode is Mode.COUNTER else 0)
-        if (new.period_cycles(self.clock_hz) != old.period_cycles(self.clock_hz)
-                or new.measure_cycles() != old.measure_cycles() or new.mode != old.mode):
-            self._flush(out)  # one DATA payload holds one mode (and one rate)
+        if schedule:
             at = max(tick, self.start)
             self._plan(at, at, new.rate_hz != old.rate_hz)
         return out

@@ -181,7 +181,8 @@ class ContactTracker:
         each element's reading in this frame was taken (element id → s, on the clock of
         ``at``; unknown elements left out or NaN). Given both, a new contact next to
         another is born only once every known element next to both (not on either) was
-        read at or after the instant the earlier of the two was first seen: a reading
+        read at or after the instant the earlier of the two was first seen (the earlier
+        one is born as it would be alone; the later one waits): a reading
         from before says "untouched" without knowing, and a held reading whose change is
         still on its way (a loaded host, a bridge retried) splits one press in two for
         as long as it is late. Without ``read_at`` only ``split_frames`` applies. Given
@@ -287,13 +288,21 @@ class ContactTracker:
     def _unread_between(self, tr: _Track, tracks: Sequence[_Track], read_at: Mapping[int, float] | None) -> bool:
         """Whether a known element next to both ``tr`` and another track near it (and on
         neither) was last read before the earlier of the two was first seen: nothing says
-        the press did not reach it, so the two may be one press read in two."""
+        the press did not reach it, so the two may be one press read in two.
+
+        Only the later of the two waits: ``other`` counts when it is born (this frame's
+        earlier births included) or a candidate seen before ``tr``. One of a press read in
+        two is enough to be born; held back for each other, a first finger with a second
+        landing diagonally next to it within its birth frames was no contact at all until
+        the elements between were read again (a heartbeat: up to a second)."""
         if read_at is None:
             return False
         mine = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in tr.elements))
         for other in tracks:
             if other is tr or not (mine & other.elements):
                 continue
+            if other.id is None and other.first_frame >= tr.first_frame:
+                continue  # a later (or as old) candidate waits for this one, not this for it
             onset = min(tr.since, other.since)
             if not math.isfinite(onset):
                 continue

@@ -192,6 +192,28 @@ def test_commands_reach_their_target_and_reply() -> None:
     assert len(rate4) == 100  # 200 Hz for half a second
 
 
+@pytest.mark.parametrize("lazy", [True, False])
+def test_samples_taken_before_a_rate_change_go_out_at_the_rate_they_were_taken_at(lazy: bool) -> None:
+    # SET_RATE closes the open batch: its samples were taken at the old rate, yet the
+    # DATA payload was labelled with the new one (100 -> 50 Hz: indices 225, 226 of
+    # 100 Hz sent as indices of 50 Hz, 4.5 s instead of 2.25 s on mesh time). A host
+    # placed them 2 s in the future.
+    vm = VirtualMesh(meshgen.line(2), seed=5, lazy_sampling=lazy)
+    vm.host_write(1, cmd(101, 2, Op.SET_RATE, 50, token=12), at=2.268)
+    vm.host_write(1, cmd(102, 2, Op.SET_RATE, 200, token=13), at=2.947)
+    r = vm.run(3.5)
+    assert [x.status for x in replies(r.gateway_frames[1])[2]] == [Status.OK, Status.OK]
+    rates = set()
+    for f in r.gateway_frames[1]:
+        if f.origin == 2 and f.type is FrameType.DATA:
+            for s in f.payload.samples:  # type: ignore[union-attr]  # a DATA frame's payload is a Data
+                if not s.flags & SampleFlags.NO_MESH_TIME:
+                    rates.add(f.payload.rate)  # type: ignore[union-attr]  # as above
+                    # in virtual time a chip's cycles are mesh time to within a crystal's drift
+                    assert abs(s.cycle / CLOCK_HZ - s.index / f.payload.rate) < 0.005, (f.payload.rate, s)  # type: ignore[union-attr]  # as above
+    assert rates == {50, 100, 200}
+
+
 def test_broadcast_command_reaches_every_bridge() -> None:
     mesh = meshgen.grid(3, 3)
     vm = VirtualMesh(mesh, seed=3)

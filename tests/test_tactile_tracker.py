@@ -340,6 +340,24 @@ def test_two_fingers_landing_next_to_each_other_wait_for_a_reading_between_them(
     assert [tc.id for tc in out] == [0, 1] and out[1].contact.elements == (1,)
 
 
+def test_a_first_finger_is_born_on_time_when_a_second_lands_diagonally_next_to_it():
+    """Event-based reporting: the elements between two diagonal presses were last read a
+    heartbeat before. The first finger, alone for a frame, was held back with the second
+    (both candidates, neither born) until those elements' next heartbeat: no contact at
+    all for up to a second, where the first was born at its third frame before. Only the
+    later of the two waits for a reading between them."""
+    rng = np.random.default_rng(28)
+    a, b = _finger(0.0, 0.0, rng), _finger(0.04, 0.04, rng)  # elements 0 and 4: diagonal
+    assert a.elements == (0,) and b.elements == (4,)
+    tr = tracker(birth_frames=3)
+    seen = [tr.step([a] if k == 0 else [a, b], t=0.01 * k, at=0.01 * k,
+                    read_at=_reads(0.01 * k, {0, 4} if k else {0})) for k in range(10)]
+    assert [[tc.id for tc in s] for s in seen] == [[], [], [0]] + [[0]] * 7  # the first: its third frame
+    heartbeat = {**_reads(0.10, {0, 4}), 1: 0.095, 3: 0.098}  # elements 1 and 3 (next to both) reported
+    out = tr.step([a, b], t=0.10, at=0.10, read_at=heartbeat)
+    assert [tc.id for tc in out] == [0, 1] and out[1].contact.elements == (4,)
+
+
 def test_reading_times_leave_a_lone_press_born_at_its_first_frame():
     """Stale readings around a lone press (nothing next to it) hold nothing back."""
     rng = np.random.default_rng(24)

@@ -72,8 +72,9 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _start(cmd: list[str], **kw: object) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "cellbridge", *cmd], start_new_session=True, **kw)  # type: ignore[call-overload]
+def _start(cmd: list[str], prefix: tuple[str, ...] = (), **kw: object) -> subprocess.Popen:
+    """``cellbridge CMD`` in a session of its own (``prefix``: e.g. a ``chrt`` command)."""
+    return subprocess.Popen([*prefix, sys.executable, "-m", "cellbridge", *cmd], start_new_session=True, **kw)  # type: ignore[call-overload]
 
 
 def _stop(proc: subprocess.Popen) -> None:
@@ -88,14 +89,14 @@ def _stop(proc: subprocess.Popen) -> None:
             pass
 
 
-def _host_priority(same: bool) -> list[str]:
+def _host_priority(same: bool) -> tuple[str, ...]:
     """The command prefix that runs the daemon one real-time priority above the skin (this
     process's FIFO priority, inherited by ``mesh up``); none when this process is not
     real-time or ``same``."""
     if same or os.sched_getscheduler(0) != os.SCHED_FIFO:
-        return []
+        return ()
     top = os.sched_get_priority_max(os.SCHED_FIFO)
-    return ["chrt", "-f", str(min(top, os.sched_getparam(0).sched_priority + 1))]
+    return ("chrt", "-f", str(min(top, os.sched_getparam(0).sched_priority + 1)))
 
 
 def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float], int]:  # type: ignore[no-untyped-def]
@@ -285,9 +286,8 @@ def main() -> None:
                                        str(work / "daemon.toml"), "--trace", str(work / "trace.msgpack")],
                                       start_new_session=True, stderr=open(work / "daemon.log", "w"))
         else:
-            daemon = subprocess.Popen([*host, sys.executable, "-m", "cellbridge", "daemon", "--config",
-                                       str(work / "daemon.toml")], start_new_session=True,
-                                      stderr=open(work / "daemon.log", "w"))
+            daemon = _start(["daemon", "--config", str(work / "daemon.toml")], host,
+                            stderr=open(work / "daemon.log", "w"))
         procs.append(daemon)
         if host:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(host[2])))

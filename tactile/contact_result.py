@@ -51,7 +51,7 @@ class Contact:
     def to_dict(self) -> dict[str, object]:
         """Plain dict of Python scalars and lists (msgpack/JSON ready)."""
         # (a field at a time, not ``dataclasses.asdict``: its recursive deep copy was a
-        # quarter of a frame's estimate, on the path of every contact to ZeroMQ)
+        # fifth of a frame's estimate, on the path of every contact to ZeroMQ)
         d = {name: getattr(self, name) for name in _FIELDS}
         d["cov"] = [list(r) for r in self.cov]
         d["elements"] = list(self.elements)

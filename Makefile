@@ -19,6 +19,7 @@ C_LIBS := libzmq:libzmq3-dev msgpack-c,msgpack:libmsgpack-dev
 help:
 	@echo "make demo   create .venv if missing, install, run an emulated skin and the daemon, press, show the contact"
 	@echo "make test   create .venv if missing, install cellbridge into it (and tmux/chromium as root), lint, run the test suite"
+	@echo "            on TEST_JOBS workers (default 2; TEST_JOBS=0: one process)"
 	@echo "make lint   ruff (pyproject's [tool.ruff]) and mypy ([tool.mypy], through .ci/typecheck); make test runs it first"
 	@echo "make bench  run the benchmarks in bench/ and print their tables"
 	@echo "make clean  remove .venv and build leftovers"
@@ -54,8 +55,13 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	.ci/typecheck $(PY)
 
+# The suite runs on TEST_JOBS pytest-xdist workers (default 2: half its time is real
+# processes waiting on real time; its timing tests are built to pass with both cores busy).
+# `make test TEST_JOBS=0` runs it in one process, as `pytest` alone does.
+TEST_JOBS ?= 2
+
 test: $(STAMP) tools lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_JOBS)
 
 bench: $(STAMP)
 	@for f in bench/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done

@@ -168,13 +168,14 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         if ticked:
             p.tick(now)
         job = p.contact_job(now)
-        rest_until = pacer.after_look(now, job is not None, p.contact_due(now))
+        contacts = w.estimate_now(job) if job is not None else []
+        rest_until = pacer.after_look(now, job is not None and w.last_ran(), p.contact_due(now))
         if job is not None:
             snap = job.snapshot
             if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):
                 print(f"  {now:.3f} moment lag {1000 * (now - snap.t_moment):.0f} ms, touched "
                       f"{int(snap.touched.sum())}, unknown {int(snap.unknown.sum()) if snap.unknown is not None else 0}")
-            for c in p.contact_frame(job, w.estimate_now(job)).payload["contacts"]:
+            for c in p.contact_frame(job, contacts).payload["contacts"]:
                 for k in near(c["x"], c["y"]):
                     contact_at.setdefault(k, now - presses[k].start)
                 for k, pr in enumerate(presses):

@@ -65,6 +65,7 @@ class ContactWorker:
         self._answered = False  # the current worker has finished an estimate (its warm-up is behind it)
         self._job: concurrent.futures.Future[Contacts] | None = None  # the last estimate handed to the worker
         self._stopping = False
+        self._ran = False  # the last estimate asked for ran the job (not skipped: nothing to track)
 
     def _executor(self) -> concurrent.futures.Executor:
         if self._pool is None:
@@ -88,7 +89,14 @@ class ContactWorker:
     def _needed(self, job: ContactJob) -> bool:
         """False once nothing is touched and every track has ended: no need to ask."""
         self._quiet = 0 if bool(job.snapshot.touched.any()) else self._quiet + 1
-        return self._quiet <= job.spec.max_missed + 1
+        self._ran = self._quiet <= job.spec.max_missed + 1
+        return self._ran
+
+    def last_ran(self) -> bool:
+        """Whether the last estimate asked for ran its job (False: skipped, as nothing was
+        touched and every track had ended; its answer was no contacts at no cost). The
+        contact loop's pacer counts only those that ran against ``[contact] rate``."""
+        return self._ran
 
     def estimate_now(self, job: ContactJob) -> Contacts:
         """The contacts of ``job``, waiting for them (an inline executor: at once). Raises

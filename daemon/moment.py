@@ -356,7 +356,13 @@ class Moments:
         none_before = ~before.any(axis=1)
         rows = self._all
         nxt = np.where(after, self.t, math.inf).argmin(axis=1)
-        changing = self.holding & after.any(axis=1) & ~none_before & (self.touched[rows, j] != self.touched[rows, nxt])
+        # A held reading on mesh time followed by one on mesh time is no transition: its
+        # bridge sampled every frame between the two and would have sent a change, so the
+        # frames before the next reading are known (holding them back put a press's first
+        # frame off by one whenever a neighbour's touch began a frame later: +10 ms).
+        exact = self.held[rows, j] & self.on_time[rows, j] & self.on_time[rows, nxt]
+        changing = (self.holding & after.any(axis=1) & ~none_before & ~exact
+                    & (self.touched[rows, j] != self.touched[rows, nxt]))
         gap = float((self.t[changing, nxt[changing]] - self.t[changing, j[changing]]).max()) if changing.any() else 0.0
         newest = (self.count - 1) % self.depth
         j = np.where(self.holding, j, newest)  # not waited for: its newest reading, if that still stands

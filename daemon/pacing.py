@@ -5,7 +5,10 @@ service sleeps until then (or until data comes), and ``bench/bench_press_latency
 --virtual`` runs the very same schedule in virtual time.
 
 ``[contact] rate`` bounds the *estimates* (each a skin-frame snapshot shipped to the
-contact worker and fitted), as a token bucket that holds ``BURST`` estimates: on average
+contact worker and fitted; a frame with nothing touched and no track left is not shipped,
+so it is a look, not an estimate: counted, an idle event-based skin's frames, one per
+period at their due times, kept the bucket empty at the frame rate, and a press's first
+frame waited up to a period past its due), as a token bucket that holds ``BURST`` estimates: on average
 at most ``rate`` a second, and an estimate that came late (a read or a tick in the way) does
 not push the next one late too. With a rest of a whole period after each estimate, the
 phase between the frames' due times and the estimates was whatever the first late one

@@ -243,7 +243,10 @@ class Service:
                 await asyncio.sleep(rest)
 
     async def _contact_once(self, limit: float = math.inf) -> bool:
-        """Estimate the skin's newest frame if it moved on; whether it did (a job ran)."""
+        """Estimate the skin's newest frame if it moved on; whether a job ran in the worker
+        (a frame taken with nothing touched and no track left is not shipped, and costs
+        the estimate rate nothing: counted, idle frames kept the loop's token bucket empty
+        and each frame of a press's onset was estimated up to a period after it was due)."""
         # (a replay in recorded time: its data's own time, or the whole recording looks silent)
         job = self.pipeline.contact_job(None if self._recorded else self.now())
         if job is None:
@@ -256,7 +259,7 @@ class Service:
         if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without
             self._act([self.pipeline.contact_frame(job, contacts)])
         self._contacts_shown = bool(contacts)
-        return True
+        return self.contacts.last_ran()
 
     # -- reload -------------------------------------------------------------------------
     def reload(self) -> None:

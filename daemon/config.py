@@ -232,7 +232,8 @@ class ContactSection:
 
     enabled: bool = _key(True, "estimate contacts (topic contact)", reloadable=True)
     rate: float = _key(100.0, "Hz, at most this many estimates a second on average (one late estimate may be "
-                       "followed by the next sooner, on its frame's time), each on the newest consistent moment",
+                       "followed by the next sooner, on its frame's time), each on the newest consistent moment; "
+                       "frames with nothing touched and no contact left are not estimated and do not count",
                        _up_to(1000), reloadable=True)
     method: str = _key("capacitance", "model fit in capacitance (default) or area space",
                        _one_of("capacitance", "area"), reloadable=True)

@@ -229,6 +229,12 @@ def print_breakdown(rows: list[dict[str, Any]], share: float = 0.1) -> None:
         print(f" p{round(100 * q)} of each column:\n  " + "  ".join(cells))
     late = [r for r in seen if r.get("frames_after")]
     print(f" presses whose first contact was not on their first touched frame: {len(late)} of {len(seen)}")
+    # the usual reason: the frame's holds ran out before its first touched reading came, so
+    # it was estimated with the pressed elements' held (untouched) readings
+    early = [r for r in late if isinstance(r.get("first"), float) and isinstance(r.get("hold"), float)
+             and r["first"] > r["hold"]]
+    print(f"   of which the frame was estimable before its first touched reading arrived (an onset "
+          f"later than the holds): {len(early)}, by {sorted(round(r['first'] - r['hold'], 1) for r in early)} ms")
     for label, rs in (("median press", [seen[len(seen) // 2]]), ("slowest", slow)):
         print(f" {label}:")
         for r in rs:

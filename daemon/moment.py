@@ -103,6 +103,7 @@ class Moments:
         self.delay = np.full(n, np.nan)  # decaying high-water of arrival - sample time, on-time readings
         self.delay_at = np.zeros(n)  # host time the delay mark was last updated
         self.t_moment = -math.inf  # the moment of the last snapshot
+        self.on_grid = True  # the last moment() was a frame (False: no live element on mesh time)
         self.hold_since = math.nan  # first moment held back for a transition (NaN: none held)
         self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: their newest)
         self.late = np.zeros(n, dtype=bool)  # live elements not waited for: their data trail by more than max_lag
@@ -261,7 +262,8 @@ class Moments:
         with np.errstate(invalid="ignore"):
             frames = np.where(self.on_time & (self.t <= t) & live[:, None], self.t, -math.inf)
         frame = float(frames.max()) if frames.size else -math.inf
-        if not math.isfinite(frame):
+        self.on_grid = math.isfinite(frame)
+        if not self.on_grid:
             return t
         # Frames go on where no new reading came: a held reading stands for the frames
         # after it (an event-based skin sends little), so the moment moves on the frame
@@ -287,9 +289,18 @@ class Moments:
         # unless a transition holds it back: then the frame after it is what comes next.
         # (Naming the frame after it here put a shell that woke a moment past a due to
         # sleep a whole frame more: the press's first frame was skipped, +10 ms.)
-        if t > self.t_moment and not self._in_transition(t, self.at(t, now)[5]):
-            return now
-        nxt = t + float(np.nanmin(np.where(live, self.period, np.nan)))
+        # Off the grid (no live element on mesh time: every reading timed from its arrival)
+        # the moment moves on with ``now``, a held element's by the microsecond: a moment
+        # less than a period past the last one taken is no new frame. (Called due at once,
+        # it woke the contact loop back to back on an idle skin: a look that ships nothing
+        # costs the pacer nothing, so nothing else spaced the looks: a core at 100 %.)
+        per = float(np.nanmin(np.where(live, self.period, np.nan)))
+        if t > self.t_moment and (self.on_grid or t >= self.t_moment + per):
+            if not self._in_transition(t, self.at(t, now)[5]):
+                return now
+            nxt = t + per
+        else:
+            nxt = (t if self.on_grid else self.t_moment) + per
         with np.errstate(invalid="ignore"):
             waits = self.holding & ~(self.settled >= nxt)
         held = self._held_now()

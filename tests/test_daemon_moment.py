@@ -184,6 +184,39 @@ def test_the_frame_before_a_held_elements_onset_is_taken_with_its_held_reading()
     assert not got.touched[0] and not got.unknown[0]  # its held reading: untouched, known
 
 
+def test_an_idle_event_based_skin_off_mesh_time_is_looked_at_once_a_frame_not_back_to_back() -> None:
+    """Every bridge without mesh time (``NO_MESH_TIME``: booting, cut off, or firmware that
+    has none), event-based and idle: its readings are timed from their arrival, so the
+    moment is off the frame grid and moves on with ``now``. ``due`` said "now" after every
+    look, and a look that finds nothing touched costs the pacer nothing (it ships no
+    estimate): the contact loop looked again at once, back to back, a core at 100 %
+    (6000 looks a second at 0.1 ms each, here). A moment less than a period past the
+    last one taken is no new frame."""
+    from cellbridge.daemon.pacing import Pacer
+
+    m = Moments(2, 64)
+    zero = np.zeros((2, 2))
+    for k in range(50):
+        for row in (0, 1):
+            t = 9.5 + k * PERIOD
+            m.record(np.array([row]), np.array([t]), np.array([0], dtype=np.uint64), np.zeros((1, 2)), True,
+                     t + DELAY, zero + 1.0, zero + 0.5, np.array([True]), np.array([False]), np.array([PERIOD]))
+            m.settle(np.array([row]), np.zeros(2, dtype=bool))
+    pacer, now, looks, taken, cost = Pacer(1.0 / PERIOD), 10.1, 0, 0, 1e-4
+    while now < 12.1:  # the service's contact loop (daemon/service.py _contacts), a look costing 0.1 ms
+        now = max(now, min(m.due(now, 2.0, 0.5, 0.5), now + 0.1))  # woken at due (or by the tick)
+        began = now
+        got = m.take(now, 2.0, 0.5, held_wait=0.5)
+        if began >= 11.1:  # the second second (in the first, no delay known: held_wait behind)
+            looks += 1
+            taken += got is not None
+        now += cost
+        # nothing touched, no track: not shipped to the worker, not counted as an estimate
+        now = max(now, pacer.after_look(began, False, m.due(now, 2.0, 0.5, 0.5)))
+    assert looks <= 2.0 / PERIOD, looks
+    assert taken >= 0.8 / PERIOD, taken  # and the moment still moves on, about a frame a period
+
+
 def test_due_is_never_while_a_periodic_element_is_waited_for() -> None:
     """A periodic element's frame comes only with its data: no time to wake for."""
     m = Moments(2, 64)

@@ -17,9 +17,7 @@ CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cell
 
 @pytest.mark.parametrize("x, y", [(0.057, 0.040), (0.0585, 0.0625)])  # across a seam; across a corner
 def test_a_press_across_a_seam_comes_back_at_that_point_with_that_force(x: float, y: float, tmp_path: Path) -> None:
-    # The demo's work folder goes under this test's own tmp_path (TMPDIR): the check for
-    # processes left behind looks for this run's alone, not for another demo running on
-    # the machine (the other case on a second pytest-xdist worker)
+    # its work folder under this test's own folder: see _left_behind
     r = subprocess.run([CLI, "demo", "--check", "--json", "--x", str(x), "--y", str(y)],
                        capture_output=True, text=True, timeout=280, env={**os.environ, "TMPDIR": str(tmp_path)})
     assert r.stdout.strip(), r.stderr
@@ -29,5 +27,41 @@ def test_a_press_across_a_seam_comes_back_at_that_point_with_that_force(x: float
     assert abs(got["force"] - 3.0) <= 0.05 * 3.0, result
     assert len(result["ids"]) == 1, result  # one press, one tracked contact
     assert r.returncode == 0, r.stderr
-    left = subprocess.run(["pgrep", "-af", f"{tmp_path}/cellbridge-demo-"], capture_output=True, text=True)  # its work folder
-    assert left.stdout == "", f"processes left behind: {left.stdout}"
+    left = _left_behind(tmp_path)
+    assert left == [], f"processes left behind: {left}"
+
+
+def _left_behind(root: Path) -> list[str]:
+    """Command lines of processes naming a demo's work folder made under ``root`` (the
+    demo's TMPDIR). ``make test`` runs two pytest-xdist workers: any demo's work folder
+    (``pgrep -af cellbridge-demo-``) also found the one the other worker's demo was running
+    in, and this test failed on processes that were not its own."""
+    mark = f"{root}{os.sep}cellbridge-demo-"
+    found = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if mark in cmd:
+            found.append(f"{pid} {cmd}")
+    return found
+
+
+def test_a_demo_running_beside_this_one_is_not_left_behind_by_it(tmp_path: Path) -> None:
+    """The other xdist worker runs the other demo at the same time: its processes, in a work
+    folder of its own, are not this test's leftovers; one naming this test's are."""
+    beside = tmp_path / "other-worker" / "cellbridge-demo-x1" / "skin.toml"  # another demo's work folder
+    mine = tmp_path / "mine"
+    sleeper = [sys.executable, "-c", "import time; time.sleep(30)"]
+    procs = [subprocess.Popen([*sleeper, str(beside)]), subprocess.Popen([*sleeper, str(mine / "cellbridge-demo-y2")])]
+    try:
+        assert _left_behind(tmp_path / "other") == []
+        left = _left_behind(mine)
+        assert len(left) == 1 and str(procs[1].pid) == left[0].split()[0], left
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()

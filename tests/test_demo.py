@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -58,6 +59,10 @@ def test_a_demo_running_beside_this_one_is_not_left_behind_by_it(tmp_path: Path)
     sleeper = [sys.executable, "-c", "import time; time.sleep(30)"]
     procs = [subprocess.Popen([*sleeper, str(beside)]), subprocess.Popen([*sleeper, str(mine / "cellbridge-demo-y2")])]
     try:
+        for p in procs:  # until each shows its own command line (a loaded machine: not at once)
+            end = time.monotonic() + 10.0
+            while b"time.sleep" not in Path(f"/proc/{p.pid}/cmdline").read_bytes() and time.monotonic() < end:
+                time.sleep(0.01)
         assert _left_behind(tmp_path / "other") == []
         left = _left_behind(mine)
         assert len(left) == 1 and str(procs[1].pid) == left[0].split()[0], left

@@ -149,7 +149,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     pacer = Pacer(contact.get("rate", 100.0))
     rest_until, tick_at = -math.inf, 0.0
     while now < end:
-        due = p.contact_due(now)
+        due = p.contact_due(now, not w.last_ran())
         after = reads[i][0] if i < len(reads) else math.inf
         now = max(now, rest_until, min(after, due, tick_at))
         ticked = now >= tick_at
@@ -169,7 +169,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
             p.tick(now)
         job = p.contact_job(now)
         contacts = w.estimate_now(job) if job is not None else []
-        rest_until = pacer.after_look(now, job is not None and w.last_ran(), p.contact_due(now))
+        rest_until = pacer.after_look(now, job is not None and w.last_ran(), p.contact_due(now, not w.last_ran()))
         if job is not None:
             snap = job.snapshot
             if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):

@@ -55,8 +55,8 @@ def _instrument() -> None:
         TRACE["b"].append(("tick", t0, time.monotonic()))
         return out
 
-    def traced_contact_due(self: Pipeline, now: float) -> float:
-        due = contact_due(self, now)
+    def traced_contact_due(self: Pipeline, now: float, idle: bool = False) -> float:
+        due = contact_due(self, now, idle)
         TRACE["d"].append((now, _f(due)))
         return due
 

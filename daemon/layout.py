@@ -205,10 +205,11 @@ class LayoutStages:
         ``tau``; then the idle elements' readings lapsed between heartbeats)."""
         return max(self.config.calibration.tau, self.config.health.bridge_timeout)
 
-    def snapshot_due(self, now: float, bridge_timeout: float) -> float:
+    def snapshot_due(self, now: float, bridge_timeout: float, idle: bool = False) -> float:
         """When the skin's moment moves on without new data (:meth:`Moments.due`); ``inf``:
-        only with new data, or no layout."""
-        if self.moments is None:
+        only with new data, or no layout, or ``idle`` (the last estimate had nothing to
+        track) with no reading newer than the last moment taken (:meth:`Moments.unseen`)."""
+        if self.moments is None or (idle and not self.moments.unseen()):
             return math.inf
         c = self.config.contact
         return self.moments.due(now, bridge_timeout, c.max_lag, c.held_wait)

@@ -309,6 +309,14 @@ class Moments:
         # (a microsecond on: at the exact instant, rounding may leave the frame one short)
         return nxt + float(self._bound(min(held_wait, max_lag), now)[waits].max()) + 1e-6
 
+    def unseen(self) -> bool:
+        """Whether some element has a reading newer than the last moment taken. Until one
+        comes, the frames after that moment repeat its held readings: an idle skin's
+        (nothing touched, no contact left) need no look."""
+        newest = self.t[self._all, (self.count - 1) % self.depth]
+        with np.errstate(invalid="ignore"):
+            return bool(((newest > self.t_moment) & (self.count > 0)).any())
+
     def _in_transition(self, t: float, transition: float) -> bool:
         """Whether the moment ``t`` is held back for an element between a touched and an
         untouched reading there (``transition``: the longest such interval, 0.0: none),

@@ -415,14 +415,17 @@ class Pipeline:
             return None
         return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id, self._carry)
 
-    def contact_due(self, now: float) -> float:
+    def contact_due(self, now: float, idle: bool = False) -> float:
         """The host time at which :meth:`contact_job` has a new moment without new data
         (event-based elements' holds run out), ``inf`` when only new data brings one. A shell
         asks for a job when data comes or at this time, whichever is first (at most
-        ``contact.rate`` a second); the periodic tick notices silence."""
+        ``contact.rate`` a second); the periodic tick notices silence. ``idle``: the last
+        estimate had nothing to track (the worker skipped it): the frames after it are worth
+        a look only once a reading newer than it came (an idle event-based skin's frames,
+        looked at one per period, cost a look each whatever ``contact.rate``)."""
         if not self.config.contact.enabled or not self._want("contact"):
             return math.inf
-        return self.skin.snapshot_due(now, self.config.health.bridge_timeout)
+        return self.skin.snapshot_due(now, self.config.health.bridge_timeout, idle)
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave

@@ -223,7 +223,8 @@ class Service:
         while True:
             # data came, the tick looked for silence, or held elements' holds run out
             # (an event-based skin: a press's next frames come with no new data)
-            due = self.pipeline.contact_due(self.now()) - self.now()
+            idle = not self.contacts.last_ran()
+            due = self.pipeline.contact_due(self.now(), idle) - self.now()
             if not self._fresh.is_set() and due < self.TICK:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._fresh.wait(), max(due, 0.0))
@@ -238,7 +239,8 @@ class Service:
             now = self.now()
             t = time.perf_counter()
             self._pacer.set_rate(self.config.contact.rate)
-            rest = self._pacer.after_look(started, estimated, t + (self.pipeline.contact_due(now) - now)) - t
+            due_at = self.pipeline.contact_due(now, not self.contacts.last_ran())
+            rest = self._pacer.after_look(started, estimated, t + (due_at - now)) - t
             if rest > 0:
                 await asyncio.sleep(rest)
 

@@ -268,3 +268,33 @@ def test_an_element_without_a_baseline_is_unknown_not_untouched() -> None:
     _record(m, 0, 10.0)
     got = m.take(10.0 + DELAY + 0.006, timeout=2.0, max_lag=0.5)
     assert got is not None and got.t == 10.0 and got.unknown.tolist() == [False, True]
+
+
+def test_an_idle_skin_has_nothing_unseen_until_a_reading_newer_than_its_last_frame_comes() -> None:
+    """The contact loop's idle rule (``Pipeline.contact_due(now, idle=True)``): after a frame
+    with nothing to track, the frames after it repeat its held readings, so they are looked
+    at only once a newer reading came. An idle event-based skin was otherwise looked at
+    once a period whatever ``[contact] rate`` (rate 1: 1.2 % of a core idle became 11.6 %),
+    while the onset of a press must still be taken when its frame is due, not at the tick."""
+    m, now = _learnt_and_taken()
+    assert not m.unseen()  # every reading is in the frame taken: nothing to look at
+    for _ in range(30):  # frames of held readings come due; taken, they change nothing
+        due = m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5)
+        assert math.isfinite(due)  # (without the idle rule a shell would wake for each)
+        now = max(now, due)
+        assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is not None
+        assert not m.unseen()
+    t = m.t_moment + 3 * PERIOD  # a press's onset on element 0, on mesh time
+    zero = np.zeros((2, 2))
+    m.record(np.array([0]), np.array([t]), np.array([0], dtype=np.uint64), np.full((1, 2), 2.0), True, t + DELAY,
+             zero + 1.0, zero + 0.5, np.array([True]), np.array([True]), np.array([PERIOD]))
+    m.settle(np.array([0]), np.array([True, False]))
+    assert m.unseen()  # a reading past the last frame: its frame is worth a look when due
+    now, taken = t + DELAY, []
+    while m.unseen() and len(taken) < 10:  # the frames up to the onset's, each when due
+        now = max(now, m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5))
+        got = m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5)
+        assert got is not None
+        taken.append(got)
+    assert taken[-1].t == t and taken[-1].touched[0]  # the onset's frame, then nothing unseen
+    assert now <= t + DELAY + 2 * DELAY_MARGIN + 1e-9, now - t  # when due: not at a tick 0.1 s on

@@ -45,6 +45,8 @@ def main() -> None:
                     help="aligned batches' slots: depths, ms per depth, ms of jitter (virtual time only)")
     ap.add_argument("--unaligned", action="store_true",
                     help="periodic batches closed at each bridge's own phase (virtual time only)")
+    ap.add_argument("--worst", type=int, default=0,
+                    help="also print the N indices of largest spread: each bridge's arrival after the first (ms)")
     ap.add_argument("--virtual", choices=["default", "quiet", "none"], default=None,
                     help="virtual time with this latency model instead of real processes")
     args = ap.parse_args()
@@ -110,6 +112,17 @@ def main() -> None:
             f"{max(spread) if spread else float('nan'):.1f}", f"{percentile(complete, 0.5):.1f}",
             f"{percentile(complete, 0.99):.1f}", f"{percentile(all_delays, 0.5):.1f}",
             f"{percentile(all_delays, 0.99):.1f}"]])
+    if args.worst:
+        by_bridge: dict[int, dict[int, float]] = defaultdict(dict)
+        for b, xs in per.items():
+            for a in xs:
+                by_bridge[a.index][b] = a.arrived
+        worst = sorted(whole, key=lambda k: max(whole[k]) - min(whole[k]), reverse=True)[:args.worst]
+        for k in worst:
+            got = sorted(by_bridge[k].items(), key=lambda kv: kv[1])
+            first = got[0][1]
+            print(f"index {k} (gate +{(first - gate_of[k]) * 1000:.1f} ms to first): "
+                  + " ".join(f"{b}@{(t - first) * 1000:.1f}" for b, t in got))
     print(f"\nworst bridge delivered {worst_share:.2%} (target >= 99.9 %)")
     print(f"medium: {medium}")
 

@@ -40,18 +40,24 @@ from collections.abc import Iterable
 from typing import Any
 
 from cellbridge.emulator import udp
-from cellbridge.emulator.carrier_arbiter import CarrierArbiter
+from cellbridge.emulator.carrier_arbiter import HOLD, CarrierArbiter
 from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
     MAX_DATAGRAM, TX, WANT, decode_tx, decode_want, encode_carrier, encode_rx, sender,
 )
-from cellbridge.protocol import MAX_FRAME, addressed_to
+from cellbridge.protocol import MAX_FRAME, FrameType, addressed_to
+from cellbridge.protocol.frame import Flags
 from cellbridge.emulator.realtime import (
     CLOCK_HZ, StopFlag, add_endpoint_arguments, add_ready_argument, endpoints, now_tick, signal_ready,
 )
 
 GONE_S = 3.0  #: a bridge silent this long is taken for gone (it says it is there every second)
+#: How long transmissions after an ack on the wire wait for that ack to reach this process
+#: after its frame (:mod:`~cellbridge.emulator.carrier_arbiter`): its receiver's process must wake, answer
+#: and be heard; on a 4×4 skin at 100 Hz on two busy cores that takes up to a few ms.
+ACK_GUARD = 4 * CLOCK_HZ // 1000
+_LINK_ACK, _ACK_REQUEST = int(FrameType.LINK_ACK), int(Flags.ACK_REQUEST)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -105,10 +111,36 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
     pending: list[tuple[int, int, Transmission]] = []
     busy: dict[int, tuple[int, int]] = {}  # cell -> (start, end) of its latest transmission
     contending: set[int] = set()
-    arbiter = CarrierArbiter(medium.bit_cycles)
-    arbiter.counters = counters  # deferred, deferred_cycles: with the medium's own
+    arbiter = CarrierArbiter(medium.bit_cycles, ack_guard=ACK_GUARD)
+    arbiter.counters = counters  # deferred, deferred_cycles, held_for_ack: with the medium's own
     starting: list[tuple[int, int, int, tuple[int, ...], bytes, int]] = []  # deferred starts
+    held: list[tuple[int, tuple[int, ...], bytes, int, int]] = []  # waiting for an ack, in arrival order
     order = itertools.count()
+
+    def admit(src: int, cells: tuple[int, ...], frame: bytes, sent: int, tick: int) -> bool:
+        """Start (now or later) or hold a transmission; whether it was an ack that started."""
+        dst = (frame[5] << 8 | frame[6]) if len(frame) > 6 else -1
+        ack_for = dst if frame[2] == _LINK_ACK else -1
+        acker = dst if dst >= 0 and frame[1] & _ACK_REQUEST else -1
+        at = arbiter.admit(cells, sent, tick, medium.airtime(len(frame)), src, ack_for, acker)
+        if at == HOLD:
+            held.append((src, cells, frame, sent, ack_for))
+            return False
+        if at > tick:  # its sender's carrier sense would have held it back: start it later
+            heapq.heappush(starting, (at, next(order), src, cells, frame, sent))
+        else:
+            begin(src, cells, frame, tick, sent)
+        return ack_for >= 0
+
+    def release(tick: int) -> None:
+        """Admit the held transmissions again (an ack came, or a hold ran out)."""
+        again = True
+        while again and held:
+            waiting = held[:]
+            held.clear()
+            again = False
+            for src, cells, frame, sent, _ in waiting:
+                again = admit(src, cells, frame, sent, tick) or again
 
     def begin(src: int, cells: tuple[int, ...], frame: bytes, tick: int, sent: int) -> None:
         tx = medium.start(src, frame, cells, tick, sent)
@@ -132,8 +164,10 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
 
     while not stop.stopped:
         timeout = 100
-        if pending or starting:
-            first = min(x[0] for x in (pending[:1] + starting[:1]))
+        release_at = arbiter.next_release() if held else None
+        if pending or starting or release_at is not None:
+            first = min([x[0] for x in (pending[:1] + starting[:1])]
+                        + ([] if release_at is None else [release_at]))
             wait = first - now_tick()
             timeout = max(0, math.ceil(wait * 1000 / CLOCK_HZ))
             if 0 < wait < CLOCK_HZ // 1000 and not poller.poll(0):
@@ -170,21 +204,28 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
                 bridges.heard_from(src, addr, tick)
                 _, cells, frame, still, sent = tx_msg
                 sent = sent or tick
-                at = arbiter.admit(cells, sent, tick, medium.airtime(len(frame)))
-                if at > tick:  # its sender's carrier sense would have held it back: start it later
-                    heapq.heappush(starting, (at, next(order), src, cells, frame, sent))
-                else:
-                    begin(src, cells, frame, tick, sent)
+                if admit(src, cells, frame, sent, tick) and held:
+                    release(tick)
                 want(src, still, tick)
         now = now_tick()
+        if held and (release_at := arbiter.next_release()) is not None and release_at <= now:
+            release(now)
+        elif held and release_at is None:
+            release(now)  # every hold ended (its ack came)
         while starting and starting[0][0] <= now:
             at, _, src, cells, frame, sent = heapq.heappop(starting)
             begin(src, cells, frame, at, sent)  # at its reserved tick: the next reservation follows it
         while pending and pending[0][0] <= now:
             tx = heapq.heappop(pending)[2]
+            acker = (tx.data[5] << 8 | tx.data[6]) if len(tx.data) > 6 and tx.data[1] & _ACK_REQUEST else -1
             for r, cell, data in medium.finish(tx):
                 if addressed_to(data, r):  # a bridge drops others' unicasts anyway: save the message
                     bridges.send(r, encode_rx(cell, data, tx.sent), now, "rx")
+                    if r == acker:
+                        acker = -1
+            if acker >= 0:  # it did not reach its addressee: no ack comes
+                arbiter.no_ack(tx.src, acker)
+                release(now)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -136,7 +136,8 @@ class ContactStage:
         if snap.touched.any():
             # When each known element's reading was taken: a new contact next to another
             # waits until the elements between them were read since the press began (one
-            # of them late splits one press in two; see ContactTracker.step)
+            # of them late splits one press in two), while one disk could be both without
+            # those readings (see ContactTracker.step)
             read_at = _ReadTimes(self._row, snap.t_sample if snap.unknown is None
                                  else np.where(snap.unknown, np.nan, snap.t_sample))
             tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host,

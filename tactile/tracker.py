@@ -5,8 +5,9 @@ associates each frame's contacts with the tracks of the previous frames, gives a
 track an id only once it has been seen in ``birth_frames`` consecutive frames (a
 noise spike on one frame is never a contact; a new contact on or next to the elements
 of another waits ``split_frames``, and, when the frame says when each element was read,
-until the elements between the two have been read since the press began: one press
-read as two, while one of its elements' readings is late, is no second contact; nor is
+until the elements between the two have been read since the press began, as long as one
+disk could be both without those elements' readings: one press read as two, while one of
+its elements' readings is late, is no second contact; nor is
 a contact made only of readings a track already used: what a released press leaves
 while one element's release reading is late), keeps it through ``max_missed`` frames
 without a match (a reading that briefly falls under the touch threshold), and feeds
@@ -19,7 +20,9 @@ frames). An axis the readings do not resolve carries an element-wide σ, so a di
 that slides from inside an element to across a seam (its reported x jumps from the
 element's centre to the true position) keeps its id. Pairs are taken greedily:
 first a confirmed contact and a contact on its elements, then closest first (a press
-read in two for a while and then whole again continues its id, not the split-off's).
+read in two for a while and then whole again continues its id, not the split-off's),
+distances taken from each track's last fitted contact (a failed fit's centroid, e.g. two
+fingers read as one for a frame, is no place of the track's).
 Sans-I/O: frames and times go in, tracks come out.
 """
 
@@ -34,6 +37,7 @@ from numpy.typing import ArrayLike
 
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.estimator import ContactEstimator
+from cellbridge.tactile.two_disks import SPLIT_DCHI2
 
 __all__ = ["TrackedContact", "ContactTracker"]
 
@@ -71,6 +75,15 @@ class _Track:
     need: int = 1  # consecutive frames to be seen in before its birth
     since: float = -math.inf  # instant of its first frame (-inf: not known, e.g. carried over)
     read: dict[int, float] = field(default_factory=dict)  # element -> read time of the reading it last used
+    # Its last contact a disk was fitted to (or that is a light touch; or its last contact,
+    # if none was): where association looks for it. A failed fit (valid, fit_ok False: no
+    # disk explains the cluster, e.g. two presses on one cluster with too few readings to
+    # fit two) reports the cluster's centroid, which says nothing about where this is.
+    anchor: Contact | None = None
+
+    def __post_init__(self) -> None:
+        if self.anchor is None:
+            self.anchor = self.contact
 
 
 class ContactTracker:
@@ -124,6 +137,9 @@ class ContactTracker:
         self.deaths = 0
         self.rejected = 0
         self.remnants = 0
+        self._row = {int(e): i for i, e in enumerate(lay.ids.tolist())}
+        # the readings of the frame being tracked, when :meth:`update` has them: (ΔC1, ΔC2, active)
+        self._frame: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
 
     # -- public ---------------------------------------------------------------------------
     def ids_from(self, first: int) -> None:
@@ -153,8 +169,15 @@ class ContactTracker:
         at: float | None = None, read_at: Mapping[int, float] | None = None,
     ) -> list[TrackedContact]:
         """Estimate one frame (warm-started from the tracks) and track its contacts
-        (``at``, ``read_at``: see :meth:`step`)."""
-        return self.step(self.estimator.estimate(dC1, dC2, active, hints=self.hints()), t, at=at, read_at=read_at)
+        (``at``, ``read_at``: see :meth:`step`; with the readings at hand, a new contact
+        next to another is told from one press read in two by them too)."""
+        contacts = self.estimator.estimate(dC1, dC2, active, hints=self.hints())
+        self._frame = (np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64),
+                       None if active is None else np.asarray(active, dtype=bool))
+        try:
+            return self.step(contacts, t, at=at, read_at=read_at)
+        finally:
+            self._frame = None
 
     def hints(self) -> np.ndarray:
         """``(x, y, diameter, force)`` of every track's last contact: next frame's starts
@@ -185,7 +208,9 @@ class ContactTracker:
         one is born as it would be alone; the later one waits): a reading
         from before says "untouched" without knowing, and a held reading whose change is
         still on its way (a loaded host, a bridge retried) splits one press in two for
-        as long as it is late. Without ``read_at`` only ``split_frames`` applies. Given
+        as long as it is late; from :meth:`update`, only while one disk explains the two
+        with those elements' readings left out (two fingers are still two without them).
+        Without ``read_at`` only ``split_frames`` applies. Given
         ``read_at``, a contact made only of readings a track already used (the same
         element readings, taken at the same instants) is no new contact either: it
         continues that track, or is dropped when the track matched another contact (a
@@ -210,8 +235,14 @@ class ContactTracker:
             tr.missed = 0
             tr.t = t
             tr.elements = frozenset(c.elements)
-            if read_at is not None:
-                tr.read.update({e: read_at.get(e, math.nan) for e in tr.elements})
+            # A failed fit (a pressure, but no disk explains the cluster: two presses in one
+            # cluster with too few readings to fit two, each finger's centroid between them)
+            # is no place of this contact's, nor are its readings all this contact's: the
+            # track is looked for where it was last fitted, and keeps its own readings.
+            if _placed(c) or tr.anchor is None or not _placed(tr.anchor):
+                tr.anchor = c
+                if read_at is not None:
+                    tr.read.update({e: read_at.get(e, math.nan) for e in tr.elements})
             matched_t.add(ti)
             matched_c.add(ci)
         keep = []
@@ -287,14 +318,21 @@ class ContactTracker:
 
     def _unread_between(self, tr: _Track, tracks: Sequence[_Track], read_at: Mapping[int, float] | None) -> bool:
         """Whether a known element next to both ``tr`` and another track near it (and on
-        neither) was last read before the earlier of the two was first seen: nothing says
-        the press did not reach it, so the two may be one press read in two.
+        neither) was last read before the earlier of the two was first seen, and one press
+        could be what the two are: nothing says the press did not reach that element.
 
         Only the later of the two waits: ``other`` counts when it is born (this frame's
         earlier births included) or a candidate seen before ``tr``. One of a press read in
         two is enough to be born; held back for each other, a first finger with a second
         landing diagonally next to it within its birth frames was no contact at all until
-        the elements between were read again (a heartbeat: up to a second)."""
+        the elements between were read again (a heartbeat: up to a second).
+
+        With the frame's readings at hand (:meth:`update`), such elements hold the birth
+        back only while one disk explains the two contacts' readings with those elements
+        left out (:meth:`_one_press`). Two fingers sharing an element have that element's
+        whole ring of neighbours "next to both", elements beside the pair as well as between
+        them, and an idle element of an event-based skin is read once a heartbeat (1 s):
+        the second finger waited for the last of up to six heartbeats, longer than a press."""
         if read_at is None:
             return False
         mine = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in tr.elements))
@@ -307,11 +345,47 @@ class ContactTracker:
             if not math.isfinite(onset):
                 continue
             theirs = frozenset().union(*(self._reach.get(e, frozenset((e,))) for e in other.elements))
+            unread = set()
             for e in (mine & theirs) - tr.elements - other.elements:
                 r = read_at.get(e, math.nan)
                 if math.isfinite(r) and r < onset - 1e-9:
-                    return True
+                    unread.add(e)
+            if unread and self._one_press(tr, other, unread):
+                return True
         return False
+
+    def _one_press(self, tr: _Track, other: _Track, unread: set[int]) -> bool:
+        """Whether one press could be what ``tr`` and ``other`` are, were the ``unread``
+        elements' readings (taken before it began, so saying "untouched" without knowing)
+        left out: the touched elements of both, estimated again without them, are one
+        contact, and either the estimator weighed two disks against it and kept one, or
+        (too few readings left for two disks) one disk explains them, its χ² counted with
+        the model tolerance as the split test counts it within what that test leaves to
+        noise. Without the frame's readings (:meth:`step` called alone), it could."""
+        if self._frame is None:
+            return True
+        c1, c2, active = self._frame
+        est = self.estimator
+        gone = [self._row[e] for e in unread if e in self._row]
+        d1, d2 = c1.copy(), c2.copy()
+        d1[gone] = math.nan
+        d2[gone] = math.nan
+        keep = np.zeros(est.layout.n, dtype=bool)
+        keep[[self._row[e] for e in tr.elements | other.elements if e in self._row]] = True
+        touched = active if active is not None else (d1 > 3 * est.noise[0]) | (d2 > 3 * est.noise[1])
+        keep &= touched & np.isfinite(d1) & np.isfinite(d2)
+        if not keep.any():
+            return True
+        found = est.estimate(d1, d2, keep)
+        if len(found) != 1:
+            return not found  # still two (or more) contacts without them: no one press
+        (c,) = found
+        if not (c.valid and math.isfinite(c.chi2)) or (c.dof - 4 >= 2 and int(keep.sum()) >= 2):
+            return True  # a touch without a pressure, or one the split test weighed and kept whole
+        # χ² in units of the noise and of the model tolerance together, as the split test counts it
+        tol = est.model_error * np.array([np.abs(d1[keep]).max(), np.abs(d2[keep]).max()])
+        scale = 1.0 / (1.0 + float(np.max(tol / est.noise)) ** 2)
+        return c.chi2 * scale <= max(c.dof, 0) + SPLIT_DCHI2
 
     @property
     def candidates(self) -> int:
@@ -352,8 +426,9 @@ class ContactTracker:
     def _associate(self, contacts: Sequence[Contact]) -> list[tuple[int, int]]:
         cand = []
         for ti, tr in enumerate(self._tracks):
+            ref = tr.anchor if tr.anchor is not None else tr.contact
             for ci, c in enumerate(contacts):
-                d = self._distance(tr.contact, c)
+                d = self._distance(ref, c)
                 shared = bool(tr.elements & set(c.elements))
                 if d <= self.gate or shared:
                     # A contact on a confirmed track's elements continues it before any
@@ -370,6 +445,12 @@ class ContactTracker:
             used_c.add(ci)
             pairs.append((ti, ci))
         return pairs
+
+
+def _placed(c: Contact) -> bool:
+    """Whether ``c`` says where its contact is: a fitted disk, or a touch without a pressure
+    (located as one); not a failed fit, reported at its cluster's centroid."""
+    return c.fit_ok or not c.valid
 
 
 _CONTACT_FIELDS = tuple(f.name for f in fields(Contact))

@@ -457,3 +457,56 @@ def test_a_corner_press_with_one_bridge_starved_at_its_release_keeps_one_id() ->
     track's)."""
     got = _corner_presses_held_back("release", 8)
     assert [len(ids) for _, ids in got] == [1] * 8, [sorted(ids) for _, ids in got]
+
+
+#: Two-finger presses on an event-based 4x4 skin: each pair 56 mm apart along a diagonal of
+#: element 6, each finger over the corner of four elements (element 6 among them), the second
+#: 9-20 ms after the first. (start of the first, (x, y) of the first, (x, y) of the second, gap)
+FINGER_PAIRS = [
+    (6.0058, (0.0577, 0.0229), (0.0178, 0.0621), 0.0157),
+    (7.5084, (0.0191, 0.0632), (0.0577, 0.0227), 0.0142),
+    (9.0002, (0.0571, 0.0223), (0.0187, 0.0628), 0.0175),
+    (10.5087, (0.0605, 0.0198), (0.0206, 0.0578), 0.0142),
+]
+
+
+def test_two_fingers_sharing_an_element_each_get_an_id_within_the_split_wait() -> None:
+    """Two fingers landing 9-20 ms apart, 56 mm apart, both footprints on element 6. A new
+    contact next to another waited, as a possible split of it, until every element next to
+    both had been read since the first landed: for two sharing element 6, that was element
+    6's whole ring, and an idle element of an event-based skin is read once a heartbeat
+    (1 s). The second finger of the fourth pair got no contact for its whole 0.8 s press (15
+    of 96 such pairs over six seeds). Each finger gets its own id within the split wait of
+    its onset (``split_frames``: two frames more than a finger landing alone), keeps it, and
+    is read right from the first report."""
+    from cellbridge.emulator.virtual import Latency
+
+    mesh = meshgen.grid(4, 4)
+    n = len(FINGER_PAIRS)
+    fingers = [Contact(t, 0.8, *a, 3.0, 0.020) for t, a, _, _ in FINGER_PAIRS]
+    fingers += [Contact(t + gap, 0.8, *b, 3.0, 0.020) for t, _, b, gap in FINGER_PAIRS]
+    end = max(c.start for c in fingers) + 1.3
+    vm = VirtualMesh(mesh, seed=3, world=World(mesh, fingers), latency=Latency(), ack_slack=CLOCK_HZ // 100,
+                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+    vm.run(end)
+    reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+    run = [(t - T0, m) for t, topic, m in drive(reads, end, step=0.005, sections={"calibration": {"n_baseline": 3}})
+           if topic == "contact"]
+    ids = []
+    for k, c in enumerate(fingers):
+        other = fingers[(k + n) % (2 * n)]
+        # this finger's contacts: those nearer to it than to the other finger of its pair
+        mine = [(t, m["t_sample"] - T0, d) for t, m in run if c.start <= t < c.start + c.duration
+                for d in m["contacts"] if math.dist((d["x"], d["y"]), (c.x, c.y)) < math.dist((d["x"], d["y"]), (other.x, other.y))]
+        assert mine, f"finger {k} got no contact"
+        # published within 0.1 s, on a frame at most 4 periods after the onset (its first
+        # touched frame is one of the next two; split_frames 3 holds a split two more)
+        (t, frame, _) = mine[0]
+        assert t - c.start < 0.1 and frame - c.start < 0.04, (k, t - c.start, frame - c.start)
+        ids.append({d["id"] for _, _, d in mine})
+        assert len(ids[k]) == 1, (k, ids[k])
+        for _, _, d in mine:
+            if d["missed"] == 0:
+                assert math.dist((d["x"], d["y"]), (c.x, c.y)) <= 1e-3 and abs(d["force"] - 3.0) <= 0.15, (k, d)
+    for k in range(n):
+        assert ids[k] != ids[k + n], k

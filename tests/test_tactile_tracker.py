@@ -438,3 +438,59 @@ def test_only_readings_a_track_used_are_its_remnant_a_new_reading_is_a_candidate
         out = tr.step([left, right], t=0.1, at=0.1, read_at={**_reads(0.0, {0, 1}), 1: new_read})
         assert [tc.id for tc in out] == [0] and out[0].contact.elements == (0,)
         assert (tr.remnants, tr.candidates) == (remnants, candidates)
+
+
+def _event_reads(at, fresh, held=None, stale_at=-0.5):
+    """``read_at`` of a 3x3 frame on an event-based skin: the elements in ``fresh`` read at
+    ``at``, those in ``held`` (element -> time) at that time (a steady press is not sent
+    again), the others at ``stale_at`` (idle: a heartbeat before)."""
+    return {**_reads(at, fresh, stale_at), **(held or {})}
+
+
+def test_two_fingers_sharing_an_element_are_born_without_waiting_for_the_ring():
+    """Two fingers 56 mm apart along a diagonal of the middle element, each over the corner
+    of four elements, the second a frame after the first: both footprints on element 4. A
+    new contact next to another waited until every element next to both had been read
+    since the first came; sharing element 4, those were its corners 0 and 8, idle (read a
+    heartbeat before, up to a second): the second finger was no contact at all. Left out,
+    their readings still leave no one disk that explains the two: born after split_frames."""
+    rng = np.random.default_rng(31)
+    a, b = [0.0198, 0.0561, 3.0, 0.020], [0.0606, 0.0178, 3.0, 0.020]  # elements 3, 4, 6, 7 and 1, 2, 4, 5
+    tr = tracker(birth_frames=1)
+    seen = []
+    for k in range(8):
+        reads = _event_reads(0.01 if k else 0.0, {1, 2, 4, 5} if k else {3, 4, 6, 7}, {3: 0.0, 6: 0.0, 7: 0.0} if k else None)
+        seen.append(tr.update(*frame([a] if k == 0 else [a, b], rng), t=0.01 * k, at=0.01 * k, read_at=reads))
+    assert [[tc.id for tc in s] for s in seen] == [[0]] * 3 + [[0, 1]] * 5  # the second: its third frame
+    for tc in seen[-1]:
+        x, y, force, _ = a if tc.id == 0 else b
+        assert math.hypot(tc.contact.x - x, tc.contact.y - y) < 0.1 * MM and tc.contact.force == pytest.approx(force, rel=0.02)
+
+
+def test_two_fingers_fitted_as_one_failed_disk_for_a_frame_keep_apart_ids():
+    """The same on a column (elements 7, 4 and 1; 2 N and 4 N): the second finger's first
+    frame had its ring unknown, three elements' readings, too few for two disks, and one
+    disk failed (the centroid between them). The first finger's track took it and then,
+    closest first from that centroid, continued as the second finger; the first finger was
+    new and never born (its ring read a heartbeat before). Nor may the failed fit's
+    readings count as the track's: the second finger's, not sent again while it is steady,
+    then read as what was left of the track (a remnant) and were dropped."""
+    rng = np.random.default_rng(32)
+    a, b = [0.04, 0.0668, 2.0, 0.020], [0.04, 0.0129, 4.0, 0.020]  # elements 4, 7 and 1, 4
+    tr = tracker(birth_frames=1)
+    seen = []
+    for k in range(8):
+        dc1, dc2 = frame([a] if k == 0 else [a, b], rng)
+        reads = _event_reads(0.01 * k, {4, 7} if k == 0 else {1, 4} if k == 1 else set(),
+                             {7: 0.0} if k == 1 else {1: 0.01, 4: 0.01, 7: 0.0} if k else None)
+        if k == 1:  # the ring has no reading of this frame yet
+            for e in (0, 2, 3, 5, 6, 8):
+                dc1[e] = dc2[e] = reads[e] = math.nan
+        seen.append(tr.update(dc1, dc2, t=0.01 * k, at=0.01 * k, read_at=reads))
+    assert not seen[1][0].contact.fit_ok and set(seen[1][0].contact.elements) == {1, 4, 7}
+    assert [[tc.id for tc in s] for s in seen] == [[0]] * 4 + [[0, 1]] * 4  # split_frames after its frame 2
+    for s in seen[2:]:
+        for tc in s:
+            _, y, force, _ = a if tc.id == 0 else b
+            assert abs(tc.contact.y - y) < 0.1 * MM and tc.contact.force == pytest.approx(force, rel=0.02)
+    assert tr.remnants == 0

@@ -76,3 +76,59 @@ def test_a_transmission_with_a_frame_shorter_than_3_bytes_does_not_kill_the_medi
             assert not errors, errors
             assert t.is_alive()
             assert got is not None and got[1] == beacon
+
+
+# -- the arbiter ---------------------------------------------------------------------
+S, D, X, Y = 1, 2, 3, 4  # sender asking D for an ack on cell 1; X and Y third bridges
+
+
+def _frame_to_d(a: CarrierArbiter) -> int:
+    assert a.admit((1,), sent=0, now=0, airtime=10_000, src=S, acker=D) == 0
+    return 10_000
+
+
+def test_a_held_transmission_keeps_its_place_on_its_cells() -> None:
+    # X broadcasts on cells 1 (S's) and 2 after S's frame: held for the ack. Y, on cell 2
+    # only (it cannot reach S), started on the wire well after X (its carrier sense heard
+    # X on cell 2), reaches the medium later: it is admitted at once, on the cell X should
+    # hold, and X (re-admitted when the ack comes) goes after it: Y overtook X.
+    a = CarrierArbiter(BIT, ack_guard=GUARD)
+    end = _frame_to_d(a)
+    x_sent = end + DIFS
+    assert a.admit((1, 2), sent=x_sent, now=end + 500, airtime=8000, src=X) == HOLD
+    y_at = a.admit((2,), sent=x_sent + 3000, now=end + 3500, airtime=8000, src=Y)
+    ack_at = end + 60_000
+    a.admit((1, 5), sent=end + 600, now=ack_at, airtime=1000, src=D, ack_for=S)
+    x_at = a.admit((1, 2), sent=x_sent, now=ack_at + 10, airtime=8000, src=X)
+    assert x_at != HOLD
+    assert y_at >= x_at + 8000, (x_at, y_at)  # Y after X, as on the wire
+
+
+def test_a_bridge_whose_frame_is_held_does_not_transmit_twice_at_once() -> None:
+    # X's unicast on cell 1 (S's) is held; X, done with it on its own clock, sends a
+    # bundle on its other cell 2 (not S's): admitted at once. When the ack comes X's held
+    # frame starts while the bundle is still on air: one transmitter, two frames at once
+    # (and in the reverse of the order X sent them).
+    a = CarrierArbiter(BIT, ack_guard=GUARD)
+    end = _frame_to_d(a)
+    x_sent = end + DIFS
+    assert a.admit((1,), sent=x_sent, now=end + 500, airtime=3000, src=X) == HOLD
+    y_sent = x_sent + 3000 + DIFS  # after the first ended, on X's clock
+    y_at = a.admit((2,), sent=y_sent, now=y_sent + 500, airtime=100_000, src=X)
+    ack_at = y_sent + 2000
+    a.admit((1, 5), sent=end + 600, now=ack_at, airtime=1000, src=D, ack_for=S)
+    x_at = a.admit((1,), sent=x_sent, now=ack_at + 10, airtime=3000, src=X)
+    assert x_at != HOLD
+    assert x_at + 3000 <= y_at or x_at >= y_at + 100_000, (x_at, y_at)
+
+
+def test_deferred_counts_a_transmission_once_however_often_it_is_held() -> None:
+    # admit() runs carrier sense (counting deferred, deferred_cycles) before it decides to
+    # hold: every re-admission of a held transmission while its cells are busy counts again.
+    a = CarrierArbiter(BIT, ack_guard=GUARD)
+    assert a.admit((7,), sent=0, now=0, airtime=1_000_000, src=Y) == 0  # cell 7 busy for 20 ms
+    end = _frame_to_d(a)
+    for k in range(5):  # held, re-admitted (say, after other holds ended), held again
+        assert a.admit((1, 7), sent=end + DIFS, now=end + 500 + k, airtime=3000, src=X) == HOLD
+    assert a.admit((1, 7), sent=end + DIFS, now=end + GUARD, airtime=3000, src=X) == 1_000_000 + DIFS
+    assert a.counters["deferred"] == 1, a.counters

@@ -71,7 +71,7 @@ def test_a_transmission_with_a_frame_shorter_than_3_bytes_does_not_kill_the_medi
             try:
                 while got is None or got[1] != beacon:
                     got = decode_rx(b2.recv(4096))
-            except socket.timeout:
+            except TimeoutError:
                 pass
             assert not errors, errors
             assert t.is_alive()

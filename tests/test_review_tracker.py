@@ -33,3 +33,31 @@ def test_a_contact_that_stays_a_failed_fit_while_it_slides_keeps_its_id() -> Non
         out = tr.step([c], t=0.01 * k)
         ids.append([tc.id for tc in out])
     assert ids == [[0]] * 6, ids
+
+
+def test_a_corner_press_with_two_diagonal_onsets_late_keeps_one_id() -> None:
+    # Held up: a corner press (elements 0, 1, 3, 4 of a 3x3) whose diagonal onsets 1 and 3
+    # reach the host 120 ms after 0 and 4 (two contacts meanwhile): _one_press, estimating 0
+    # and 4 without 1 and 3, finds one press, and the split-off waits.
+    import numpy as np
+
+    import test_tactile_tracker as t
+
+    rng = np.random.default_rng(41)
+    press = t.CORNER_PRESS
+    frames = []
+    for k in range(16):
+        dc1, dc2 = t.frame(press, rng)
+        fresh = {0, 1, 3, 4} if k >= 12 else {0, 4}
+        if k < 12:
+            for e in (1, 3):
+                dc1[e] = rng.normal(0, t.NOISE)
+                dc2[e] = rng.normal(0, t.NOISE)
+        frames.append((dc1, dc2, fresh))
+    tr = t.tracker(birth_frames=1)
+    seen, split = [], 0
+    for k, (dc1, dc2, fresh) in enumerate(frames):
+        split += len(tr.estimator.estimate(dc1, dc2, hints=tr.hints())) == 2
+        seen.append(tr.update(dc1, dc2, t=0.01 * k, at=0.01 * k, read_at=t._reads(0.0, fresh)))
+    assert split >= 10  # read as two while 1 and 3 are late
+    assert {tc.id for s in seen for tc in s} == {0}, [[tc.id for tc in s] for s in seen]

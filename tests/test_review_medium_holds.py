@@ -88,6 +88,8 @@ def _frame_to_d(a: CarrierArbiter) -> int:
 
 
 def test_a_held_transmission_keeps_its_place_on_its_cells() -> None:
+    # Needs a cell of three bridges or more (S, D, X on cell 1): meshgen's grids and lines
+    # have two a cell, where only the waiter's own frames are ever held. A mesh file may not.
     # X broadcasts on cells 1 (S's) and 2 after S's frame: held for the ack. Y, on cell 2
     # only (it cannot reach S), started on the wire well after X (its carrier sense heard
     # X on cell 2), reaches the medium later: it is admitted at once, on the cell X should
@@ -105,6 +107,8 @@ def test_a_held_transmission_keeps_its_place_on_its_cells() -> None:
 
 
 def test_a_bridge_whose_frame_is_held_does_not_transmit_twice_at_once() -> None:
+    # (a cell of three bridges again; the arbiter's plain deferral has the same shape, for
+    # up to a frame's airtime rather than the 4 ms guard)
     # X's unicast on cell 1 (S's) is held; X, done with it on its own clock, sends a
     # bundle on its other cell 2 (not S's): admitted at once. When the ack comes X's held
     # frame starts while the bundle is still on air: one transmitter, two frames at once

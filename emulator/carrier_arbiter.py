@@ -108,6 +108,9 @@ class CarrierArbiter:
                 if src != a.acker and start >= a.after and (src == waiter or not a.cells.isdisjoint(cells)):
                     self.counters["held_for_ack"] += 1
                     return HOLD
+        if start > now:  # counted once it is admitted, not at each hold
+            self.counters["deferred"] += 1
+            self.counters["deferred_cycles"] += start - now
         if self._hearing and ack_for < 0:
             for waiter, (wcells, answering, end) in list(self._hearing.items()):
                 if end <= now:
@@ -141,6 +144,4 @@ class CarrierArbiter:
         start = now
         if busy_until > now and not collides:
             start = busy_until + self.difs
-            self.counters["deferred"] += 1
-            self.counters["deferred_cycles"] += start - now
         return start

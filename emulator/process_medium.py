@@ -120,7 +120,7 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
     def admit(src: int, cells: tuple[int, ...], frame: bytes, sent: int, tick: int) -> bool:
         """Start (now or later) or hold a transmission; whether it was an ack that started."""
         dst = (frame[5] << 8 | frame[6]) if len(frame) > 6 else -1
-        ack_for = dst if frame[2] == _LINK_ACK else -1
+        ack_for = dst if dst >= 0 and frame[2] == _LINK_ACK else -1  # dst: 7 bytes or more
         acker = dst if dst >= 0 and frame[1] & _ACK_REQUEST else -1
         at = arbiter.admit(cells, sent, tick, medium.airtime(len(frame)), src, ack_for, acker)
         if at == HOLD:

@@ -29,7 +29,7 @@ Sans-I/O: frames and times go in, tracks come out.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -230,7 +230,7 @@ class ContactTracker:
         for ti, ci in pairs:
             tr = self._tracks[ti]
             c = contacts[ci]
-            tr.contact = c
+            prev, tr.contact = tr.contact, c
             tr.hits += 1
             tr.missed = 0
             tr.t = t
@@ -243,6 +243,12 @@ class ContactTracker:
                 tr.anchor = c
                 if read_at is not None:
                     tr.read.update({e: read_at.get(e, math.nan) for e in tr.elements})
+            elif not _placed(prev) and all(map(math.isfinite, (c.x, c.y, prev.x, prev.y))):
+                # failed fits frame after frame (an edge, a palm, two fingers that stay one
+                # cluster): the anchor moves as the cluster does, or a sliding one is lost
+                # once it has left the elements of its last fit
+                a = tr.anchor
+                tr.anchor = replace(a, x=a.x + c.x - prev.x, y=a.y + c.y - prev.y)
             matched_t.add(ti)
             matched_c.add(ci)
         keep = []

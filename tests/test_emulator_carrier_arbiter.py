@@ -131,6 +131,10 @@ def test_an_admitted_ack_is_never_overlapped_by_what_reaches_its_waiting_sender_
     acks_on_air: dict[int, tuple[int, int, frozenset[int], int]] = {}  # waiter -> (start, end, cells, acker)
     latest = 0  # the latest end admitted
     held: list[tuple[tuple[int, ...], int, int, int]] = []
+    # waiter -> (acker, end of its hold) of its latest admitted frame asking for an ack: only
+    # that one's ack is waited for (a newer frame's replaces an older one's; a late ack, past
+    # the hold, answers nobody waiting)
+    waits: dict[int, tuple[int, int]] = {}
     for src, peer, gap, kind, air in txs:
         now += gap
         cells = (src, src + 1)
@@ -152,8 +156,13 @@ def test_an_admitted_ack_is_never_overlapped_by_what_reaches_its_waiting_sender_
                 continue
             assert start >= now
             latest = max(latest, start + air)
+            if ak >= 0:
+                waits[s] = (ak, start + air + GUARD)
             if af >= 0:
-                acks_on_air[af] = (start, start + air, frozenset((af, af + 1)), s)
+                w = waits.get(af)
+                if w is not None and w[0] == s and now < w[1]:
+                    del waits[af]
+                    acks_on_air[af] = (start, start + air, frozenset((af, af + 1)), s)
             else:
                 for waiter, (s0, e0, wcells, answering) in acks_on_air.items():
                     if s not in (waiter, answering) and not wcells.isdisjoint(c) and s0 <= now < e0:

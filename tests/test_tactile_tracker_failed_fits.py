@@ -1,4 +1,4 @@
-"""Hostile review of the tracker's anchor (8952a35)."""
+"""The tracker's anchor: a contact that stays a failed fit, and late onsets at a corner."""
 
 from __future__ import annotations
 

@@ -170,6 +170,13 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
     for k in sorted(both, key=lambda k: a[k]["t_host"]):
         if not _nan(a[k]["dc1"]):
             baseline_from.setdefault(k[0], a[k]["t_host"])
+    # and the other way round: the live daemon's baseline window of a bridge may close after
+    # the re-run's (its first reads came in a burst when it was starved; failed 1 run in 4,
+    # quiet: 15 samples of the gateway bridge unknown live, known in the re-run)
+    live_baseline_from: dict[int, float] = {}
+    for k in sorted(both, key=lambda k: b[k]["t_host"]):
+        if not _nan(b[k]["dc1"]):
+            live_baseline_from.setdefault(k[0], b[k]["t_host"])
     for k in both:
         x, y = a[k], b[k]
         for col in ("c1", "c2"):
@@ -179,6 +186,8 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
         # tracking moved them at other instants), so they may differ by a few noise sigma
         for col in ("dc1", "dc2"):
             if _nan(x[col]) and x["t_host"] < baseline_from.get(k[0], math.inf):
+                continue
+            if _nan(y[col]) and y["t_host"] < live_baseline_from.get(k[0], math.inf):
                 continue
             if not (_nan(x[col]) and _nan(y[col])) and not abs(x[col] - y[col]) <= 3 * DEFAULT_NOISE:
                 bad.append((k, col, x[col], y[col]))

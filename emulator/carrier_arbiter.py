@@ -65,10 +65,6 @@ class CarrierArbiter:
         #: cell -> (sender's start tick, medium start, end) of the latest transmission admitted on it
         self._on: dict[int, tuple[int, int, int]] = {}
         self._acks: dict[int, _Ack] = {}  #: waiting sender -> the ack it waits for, not yet admitted
-        #: held transmissions, (src, sent) -> cells, in arrival order: what comes later on
-        #: their cells, or from their sender, waits behind them
-        self._waiting: dict[tuple[int, int], frozenset[int]] = {}
-        self._sending: dict[int, int] = {}  #: sender -> end of its latest transmission admitted
         #: waiting sender -> (its cells, the acker, the ack's end): acks on air
         self._hearing: dict[int, tuple[frozenset[int], int, int]] = {}
         self.counters: Counter[str] = Counter()
@@ -98,9 +94,9 @@ class CarrierArbiter:
         ``ack_guard`` after its end, transmissions that would start after it and reach
         ``src`` (share one of ``cells``) or are ``src``'s own are held; acks never are. A
         sender waits for one ack at a time: a newer frame's replaces it. A held
-        transmission keeps its place: one arriving later on its cells, or from its sender,
-        is held behind it (a held one is known by ``(src, sent)``: admit it again with the
-        same values)."""
+        transmission does not reserve its cells: one arriving later there that does not
+        reach the waiting sender is not held, and may go first (a cell of three bridges or
+        more)."""
         expected = None
         if self._acks:
             for waiter in [w for w, a in self._acks.items() if a.until <= now]:
@@ -110,24 +106,11 @@ class CarrierArbiter:
             if a is not None and a.acker == src:
                 expected = self._acks.pop(ack_for)
         start = self._start(cells, sent, now)
-        if ack_for < 0 and (self._acks or self._waiting):  # an ack goes SIFS after its frame: never held
-            key = (src, sent)
-            mine = frozenset(cells)
-            # behind a held one on its cells or of its sender: it keeps its place (on the
-            # wire its sender heard that one; a bridge sends one frame at a time)
-            for k, wcells in self._waiting.items():
-                if k == key:
-                    break
-                if k[0] == src or not wcells.isdisjoint(mine):
-                    self.counters["held_behind"] += 1
-                    self._waiting[key] = mine
-                    return HOLD
+        if ack_for < 0 and self._acks:  # an ack goes SIFS after its frame, before anyone: never held
             for waiter, a in self._acks.items():
-                if src != a.acker and start >= a.after and (src == waiter or not a.cells.isdisjoint(mine)):
+                if src != a.acker and start >= a.after and (src == waiter or not a.cells.isdisjoint(cells)):
                     self.counters["held_for_ack"] += 1
-                    self._waiting[key] = mine
                     return HOLD
-            self._waiting.pop(key, None)
         if start > now:  # counted once it is admitted, not at each hold
             self.counters["deferred"] += 1
             self.counters["deferred_cycles"] += start - now
@@ -138,11 +121,7 @@ class CarrierArbiter:
                 elif src != answering and end > start and (src == waiter or not wcells.isdisjoint(cells)):
                     start = end  # it came after the ack: it starts after the ack here too
                     self.counters["after_ack"] += 1
-        if src >= 0:  # a transceiver sends one frame at a time
-            start = max(start, self._sending.get(src, start))
         end = start + airtime
-        if src >= 0:
-            self._sending[src] = end
         if expected is not None:
             self._hearing[ack_for] = (expected.cells, src, end)
         if acker >= 0 and self.ack_guard > 0:

@@ -11,6 +11,8 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import pytest
+
 from cellbridge.emulator import meshgen, udp
 from cellbridge.emulator.carrier_arbiter import HOLD, CarrierArbiter
 from cellbridge.emulator.medium import Medium
@@ -87,6 +89,8 @@ def _frame_to_d(a: CarrierArbiter) -> int:
     return 10_000
 
 
+@pytest.mark.xfail(strict=True, reason="a held transmission does not reserve its cells (docs/emulator.md): "
+                   "holding what comes behind it made every delay 150-500 ms at p99")
 def test_a_held_transmission_keeps_its_place_on_its_cells() -> None:
     # Needs a cell of three bridges or more (S, D, X on cell 1): meshgen's grids and lines
     # have two a cell, where only the waiter's own frames are ever held. A mesh file may not.
@@ -108,6 +112,8 @@ def test_a_held_transmission_keeps_its_place_on_its_cells() -> None:
     assert y_at >= x_at + 8000, (x_at, y_at)  # Y after X, as on the wire
 
 
+@pytest.mark.xfail(strict=True, reason="a held transmission does not reserve its cells (docs/emulator.md): "
+                   "holding what comes behind it made every delay 150-500 ms at p99")
 def test_a_bridge_whose_frame_is_held_does_not_transmit_twice_at_once() -> None:
     # (a cell of three bridges again; the arbiter's plain deferral has the same shape, for
     # up to a frame's airtime rather than the 4 ms guard)

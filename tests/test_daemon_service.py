@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import pytest
 import zmq
 
@@ -78,29 +79,37 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
     def pressed(m: dict) -> bool:
         return len(newest_slot(m)) == 9 and [m["bridge"][i] for i in newest_slot(m) if m["touched"][i]] == [1, 2, 4, 5]
 
-    found: dict[str, dict] = {}
+    # Each sample's counts carry the counter's quantisation (a random phase a sample), so
+    # one estimate's force scatters by about 0.3 % (1 sigma; the tails of a few hundred
+    # frames reach 1.1 %): every estimate is held to 3 %, their median to 1 %.
+    element: dict | None = None
+    reports: list[dict] = []
     end = time.monotonic() + 20
-    while len(found) < 2 and time.monotonic() < end:  # press until a contact is reported
+    while (element is None or len(reports) < 10) and time.monotonic() < end:  # press until contacts come
         pty.write(sk.slot(k, CORNER))
         k += 1
         got = client.recv(0.005)
         while got is not None:
             if got[0] == "element" and pressed(got[1]):
-                found.setdefault("element", got[1])
+                element = element or got[1]
             elif got[0] == "contact" and got[1]["contacts"]:
-                found["contact"] = got[1]
+                reports.append(got[1])
             got = client.recv(0)
-    el, c = found["element"], found["contact"]
+    assert element is not None and len(reports) >= 10, (element, len(reports))
+    el = element
     assert el["v"] == 1 and isinstance(el["t_host"], float) and len(el["cycle"]) == len(el["bridge"])
     forces = [el["force"][i] for i in newest_slot(el) if el["valid"][i]]
     assert sum(forces) == pytest.approx(3.0, rel=0.05)  # each element's share of one press
-    (contact,) = c["contacts"]
-    assert contact["x"] == pytest.approx(CORNER[0], abs=1e-3)
-    assert contact["y"] == pytest.approx(CORNER[1], abs=1e-3)
-    assert contact["force"] == pytest.approx(3.0, rel=0.01)
-    assert contact["diameter"] == pytest.approx(0.012, abs=2e-4)
-    assert c["v"] == 1 and c["t_host"] > 0 and sorted(contact["elements"]) == [1, 2, 4, 5]
-    assert contact["id"] == 0 and contact["age"] >= 1  # tracked: a stable id, from its first estimate (birth_frames 1)
+    for c in reports:
+        (contact,) = c["contacts"]
+        assert contact["x"] == pytest.approx(CORNER[0], abs=1e-3)
+        assert contact["y"] == pytest.approx(CORNER[1], abs=1e-3)
+        assert contact["force"] == pytest.approx(3.0, rel=0.03)
+        assert contact["diameter"] == pytest.approx(0.012, abs=2e-4)
+        assert c["v"] == 1 and c["t_host"] > 0 and sorted(contact["elements"]) == [1, 2, 4, 5]
+        assert contact["id"] == 0  # tracked: one stable id, from its first estimate (birth_frames 1)
+    assert reports[-1]["contacts"][0]["age"] >= 1
+    assert float(np.median([c["contacts"][0]["force"] for c in reports])) == pytest.approx(3.0, rel=0.01)
 
 
 def announce(pty: Pty, client: Client, slots: int) -> Skin:

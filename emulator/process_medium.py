@@ -114,7 +114,7 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
     arbiter = CarrierArbiter(medium.bit_cycles, ack_guard=ACK_GUARD)
     arbiter.counters = counters  # deferred, deferred_cycles, held_for_ack: with the medium's own
     starting: list[tuple[int, int, int, tuple[int, ...], bytes, int]] = []  # deferred starts
-    held: list[tuple[int, tuple[int, ...], bytes, int, int]] = []  # waiting for an ack, in arrival order
+    held: list[tuple[int, tuple[int, ...], bytes, int]] = []  # waiting for an ack, in arrival order
     order = itertools.count()
 
     def admit(src: int, cells: tuple[int, ...], frame: bytes, sent: int, tick: int) -> bool:
@@ -124,7 +124,7 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
         acker = dst if dst >= 0 and frame[1] & _ACK_REQUEST else -1
         at = arbiter.admit(cells, sent, tick, medium.airtime(len(frame)), src, ack_for, acker)
         if at == HOLD:
-            held.append((src, cells, frame, sent, ack_for))
+            held.append((src, cells, frame, sent))
             return False
         if at > tick:  # its sender's carrier sense would have held it back: start it later
             heapq.heappush(starting, (at, next(order), src, cells, frame, sent))
@@ -133,14 +133,12 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
         return ack_for >= 0
 
     def release(tick: int) -> None:
-        """Admit the held transmissions again (an ack came, or a hold ran out)."""
-        again = True
-        while again and held:
-            waiting = held[:]
-            held.clear()
-            again = False
-            for src, cells, frame, sent, _ in waiting:
-                again = admit(src, cells, frame, sent, tick) or again
+        """Admit the held transmissions again, in arrival order (an ack came, or a hold ran
+        out); one pass: acks are never held, so none of them can end another's hold."""
+        waiting = held[:]
+        held.clear()
+        for src, cells, frame, sent in waiting:
+            admit(src, cells, frame, sent, tick)
 
     def begin(src: int, cells: tuple[int, ...], frame: bytes, tick: int, sent: int) -> None:
         tx = medium.start(src, frame, cells, tick, sent)

@@ -67,7 +67,11 @@ class LinkLayer:
         self.broadcasts: deque[bytes] = deque()
         self.inflight: _InFlight | None = None
         c = radio.config
-        self._ack_wait = (c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.airtime(ack_bytes) + ack_slack
+        # SIFS, a slot, the acknowledgement; before it, at most one frame its sender may
+        # wait for (the receiver hearing another on another cell) and one more
+        # acknowledgement due first (Transceiver.ack_defer)
+        self._ack_wait = ((c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.ack_defer
+                          + 2 * radio.airtime(ack_bytes) + ack_slack)
         # Extra wait learnt from acknowledgements that came after their deadline (message
         # latency of a real-time mesh: a fixed allowance is too short when the host is busy,
         # and every retransmission it causes loads the cells further). Late ACKs raise it,

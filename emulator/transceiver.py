@@ -24,9 +24,10 @@ An acknowledgement waits for a frame still arriving on another of the bridge's c
 once it would spoil that frame (half duplex): a bridge's children on different cells do
 not hear each other, so a relay answering one of them while another's frame came in
 lost that frame, and its sender retried after its whole ack wait. On a 4×4 skin at
-100 Hz in virtual time this was nearly every loss (22 459 frames lost to half duplex in
-25 s, 292 after), and one sample index spread p99 50 ms across the bridges (34 ms
-after). Senders wait ``ack_defer`` longer for their acknowledgement
+100 Hz in virtual time without message latency this was nearly every loss (22 459–24 013
+frames lost to half duplex in 25 s, seeds 0–2; 194–270 after), and one sample index
+spread p99 42–50 ms across the bridges (24–32 ms after; ``bench/bench_latency.py
+--virtual none``). Senders wait ``ack_defer`` longer for their acknowledgement
 (:class:`~cellbridge.emulator.linklayer.LinkLayer`).
 """
 

@@ -27,11 +27,12 @@ count: ``chrt -f 1 .venv/bin/python bench/bench_press_latency.py --reporting eve
 --presses 60 --trace``.
 
 Run so (real-time priority P), the daemon, its contact worker and this subscriber run at
-P + 1, one above the emulated skin: on a robot the bridges are chips on the skin and take
+P + 2, above the emulated skin (the bridges at P, the medium at P + 1: it stands for the
+wire, ``emulator/realtime.py``): on a robot the bridges are chips on the skin and take
 no time of the host's CPU, while here 16 bridge processes, the medium and the world share
 two cores with the daemon, and at one priority a FIFO scheduler lets any of them finish
-its turn before the daemon runs. ``--same-priority`` keeps every process at P (the skin's
-emulation then counts in the latency, as it did before this option).
+its turn before the daemon runs. ``--same-priority`` keeps the daemon and the subscriber
+at P (the skin's emulation then counts in the latency, as it did before this option).
 """
 
 from __future__ import annotations
@@ -90,13 +91,13 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 def _host_priority(same: bool) -> tuple[str, ...]:
-    """The command prefix that runs the daemon one real-time priority above the skin (this
-    process's FIFO priority, inherited by ``mesh up``); none when this process is not
-    real-time or ``same``."""
+    """The command prefix that runs the daemon above the skin: two real-time priorities
+    above this process's FIFO priority, which ``mesh up``'s bridges inherit (its medium
+    runs one above them); none when this process is not real-time or ``same``."""
     if same or os.sched_getscheduler(0) != os.SCHED_FIFO:
         return ()
     top = os.sched_get_priority_max(os.SCHED_FIFO)
-    return ("chrt", "-f", str(min(top, os.sched_getparam(0).sched_priority + 1)))
+    return ("chrt", "-f", str(min(top, os.sched_getparam(0).sched_priority + 2)))
 
 
 def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float], int]:  # type: ignore[no-untyped-def]
@@ -224,7 +225,7 @@ def main() -> None:
     ap.add_argument("--virtual", action="store_true", help="virtual time (deterministic; no machine load in it)")
     ap.add_argument("--same-priority", action="store_true",
                     help="under chrt, run the daemon and this subscriber at the skin's real-time priority, "
-                         "not one above it (see the module)")
+                         "not above it (see the module)")
     ap.add_argument("--trace", action="store_true",
                     help="run the daemon with a timing trace (bench/press_trace.py) and print, for the median "
                          "and the slowest tenth of presses, what their contact waited for")
@@ -255,7 +256,7 @@ def main() -> None:
     pub, ctl = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
     rt = os.sched_getscheduler(0) == os.SCHED_FIFO
     prio = (f"skin at real-time priority {os.sched_getparam(0).sched_priority}, daemon and subscriber "
-            + ("at the same" if args.same_priority else "one above") if rt else "no real-time priority")
+            + ("at the same" if args.same_priority else "two above (the medium one above)") if rt else "no real-time priority")
     print(f"{mesh.name}: {n} bridges at {args.rate} Hz ({args.reporting}), {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}; {prio}")
     procs: list[subprocess.Popen] = []

@@ -49,7 +49,8 @@ from cellbridge.emulator.medium_wire import (
 from cellbridge.protocol import MAX_FRAME, FrameType, addressed_to
 from cellbridge.protocol.frame import Flags
 from cellbridge.emulator.realtime import (
-    CLOCK_HZ, StopFlag, add_endpoint_arguments, add_ready_argument, endpoints, now_tick, signal_ready,
+    CLOCK_HZ, StopFlag, above_the_chips, add_endpoint_arguments, add_ready_argument, endpoints, now_tick,
+    signal_ready,
 )
 
 GONE_S = 3.0  #: a bridge silent this long is taken for gone (it says it is there every second)
@@ -241,6 +242,7 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     medium = Medium(mesh, args.seed)
+    above_the_chips()  # the wire never waits behind a chip (real-time runs only)
     signal_ready(args.ready_fd)
     gc.freeze()  # start-up's objects out of the collector's reach: no long pauses while relaying
     try:

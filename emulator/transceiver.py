@@ -73,10 +73,10 @@ class Transceiver:
         self._t0 = 0  #: when the backoff countdown began (cell idle for DIFS)
         self._slots = 0  #: backoff slots still to count down
         self._cw = config.cw_min
-        #: acknowledgements to send, in order, as (bytes, cells); the first at ``_urgent_at``
-        self._acks: deque[tuple[bytes, tuple[int, ...]]] = deque()
+        #: acknowledgements to send, in order, as (bytes, cells, due): each was due SIFS after
+        #: the frame it answers (its own deferral counts from there); the first at ``_urgent_at``
+        self._acks: deque[tuple[bytes, tuple[int, ...], int]] = deque()
         self._urgent_at = 0
-        self._ack_due = 0  #: when the first waiting acknowledgement was due
         #: cycles an acknowledgement waits at most for a frame arriving on another cell:
         #: one of the largest frames, and SIFS after it
         self.ack_defer = self.airtime(MAX_FRAME) + config.sifs_bits * config.bit_cycles
@@ -130,10 +130,10 @@ class Transceiver:
         if len(self._acks) >= MAX_ACKS:
             self.acks_dropped += 1
             return
+        due = max(tick, self.tx_until) + self.config.sifs_bits * self.config.bit_cycles
         if not self._acks:
-            self._urgent_at = max(tick, self.tx_until) + self.config.sifs_bits * self.config.bit_cycles
-            self._ack_due = self._urgent_at
-        self._acks.append((frame, cells))
+            self._urgent_at = due
+        self._acks.append((frame, cells, due))
 
     def carrier(self, cell: int, start: int, until: int) -> None:
         """The medium reports a transmission on ``cell`` over [start, until)."""
@@ -203,13 +203,16 @@ class Transceiver:
                 self._urgent_at = self.tx_until
                 return None
             arriving = self._arriving_until(tick)
-            if arriving > tick and arriving <= self._ack_due + self.ack_defer:  # it would be spoilt
+            # it would be spoilt: wait, but no longer than ack_defer after this ack was due
+            # (counted from its own frame, not from the ack before it: an ack queued behind
+            # a deferred one deferred again came after its sender's ack wait)
+            if arriving > tick and arriving <= self._acks[0][2] + self.ack_defer:
                 self._urgent_at = arriving + self.config.sifs_bits * self.config.bit_cycles
                 return None
-            out, cells = self._acks.popleft()
+            out, cells, _ = self._acks.popleft()
             sent = self._start(out, cells, tick)
             if self._acks:  # the next one SIFS after this one
-                self._urgent_at = self._ack_due = self.tx_until + self.config.sifs_bits * self.config.bit_cycles
+                self._urgent_at = self.tx_until + self.config.sifs_bits * self.config.bit_cycles
             return sent
         if self._frame is None or tick < self._at:
             return None

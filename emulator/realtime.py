@@ -193,13 +193,16 @@ def above_the_chips() -> int | None:
     collided instead: on a 4×4 skin at 100 Hz (``bench/bench_latency.py``, seeds 0–2)
     250–360 retransmissions in 25 s, against 47–88 one priority above them."""
     try:
-        policy = os.sched_getscheduler(0)
+        got = os.sched_getscheduler(0)
+        # ``chrt -R``: the policy comes with SCHED_RESET_ON_FORK or-ed in (kept when set again)
+        reset = getattr(os, "SCHED_RESET_ON_FORK", 0)
+        policy = got & ~reset
         if policy not in (os.SCHED_FIFO, os.SCHED_RR):
             return None
         up = os.sched_getparam(0).sched_priority + 1
         if up > os.sched_get_priority_max(policy):
             return None
-        os.sched_setscheduler(0, policy, os.sched_param(up))
+        os.sched_setscheduler(0, got, os.sched_param(up))
     except (OSError, AttributeError):  # not permitted (RLIMIT_RTPRIO), or no sched_* here
         return None
     return up

@@ -76,3 +76,17 @@ def test_mesh_up_under_chrt_starts_the_medium_above_the_bridges(tmp_path) -> Non
         except subprocess.TimeoutExpired:
             os.killpg(up.pid, signal.SIGKILL)
             up.wait(10)
+
+
+def test_with_reset_on_fork_it_still_rises_one_priority() -> None:
+    """``chrt -R``: sched_getscheduler reports the policy with SCHED_RESET_ON_FORK or-ed
+    in, which the helper took for no real-time policy (a medium started so stayed at its
+    bridges' priority); the flag is kept."""
+    if shutil.which("chrt") is None or subprocess.run(["chrt", "-f", "-R", "3", "true"], capture_output=True,
+                                                      timeout=10).returncode != 0:
+        pytest.skip("real-time priorities (with reset-on-fork) are not permitted here")
+    show = _SHOW.replace("print(", "print(os.sched_getscheduler(0) & os.SCHED_RESET_ON_FORK != 0, ")
+    out = subprocess.run(["chrt", "-f", "-R", "3", sys.executable, "-c", show], capture_output=True, text=True,
+                         timeout=30)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["True", "4", "4"]

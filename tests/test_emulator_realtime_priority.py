@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
 
 import pytest
+from daemon_harness import stop_session
 from test_emulator_processes import free_base_port
 
 from cellbridge.emulator import meshgen
@@ -70,12 +69,7 @@ def test_mesh_up_under_chrt_starts_the_medium_above_the_bridges(tmp_path) -> Non
                         prio[name] = int(rt)
         assert prio == {"medium": 2, "bridge": 1}, prio
     finally:
-        os.killpg(up.pid, signal.SIGTERM)
-        try:
-            up.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait(10)
+        stop_session(up)
 
 
 def test_with_reset_on_fork_it_still_rises_one_priority() -> None:

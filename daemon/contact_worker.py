@@ -12,6 +12,7 @@ estimate.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import concurrent.futures
 import concurrent.futures.process
 import logging
@@ -66,6 +67,7 @@ class ContactWorker:
         self._job: concurrent.futures.Future[Contacts] | None = None  # the last estimate handed to the worker
         self._stopping = False
         self._ran = False  # the last estimate asked for ran the job (not skipped: nothing to track)
+        self._warm: concurrent.futures.Future[None] | None = None  # the current worker's warm-up
 
     def _executor(self) -> concurrent.futures.Executor:
         if self._pool is None:
@@ -74,7 +76,16 @@ class ContactWorker:
 
     def start(self) -> None:
         """Start the worker now, so its imports are done before the first touch."""
-        self._executor().submit(warm_up)
+        self._warm = self._executor().submit(warm_up)
+
+    async def warm(self, limit: float) -> bool:
+        """Until the worker's warm-up has finished (at most ``limit`` s); whether it has. On a
+        fresh installation the warm-up compiles the estimator's kernels (about 20 s)."""
+        if self._warm is None:
+            return True
+        with contextlib.suppress(Exception):  # a failed warm-up is the first estimate's to report
+            await asyncio.wait_for(asyncio.shield(asyncio.wrap_future(self._warm)), limit)
+        return self._warm.done()
 
     def stop(self) -> None:
         """The daemon is stopping: from now on every estimate has its timeout (even the

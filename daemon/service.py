@@ -60,6 +60,7 @@ class Service:
     TICK = 0.1  # s between pipeline ticks (health itself goes out every health.interval)
     HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
     DRAIN_LIMIT = 10.0  # s: systemd's TimeoutStopSec=15 kills a daemon that takes longer
+    REPLAY_WARM_LIMIT = 300.0  # s a finished replay waits for the contact worker's warm-up
 
     def __init__(self, config: Config, layout: SkinLayout | None = None, *, config_path: str | Path | None = None,
                  hooks: OpsHooks | None = None, ctx: zmq.asyncio.Context | None = None,
@@ -153,7 +154,18 @@ class Service:
         event(self.log, "info", "replay finished", link=name, records=self.links[name].stats()["replayed_records"])
         exits = [ln for ln in self.links.values() if ln.cfg.exit_when_done]
         if exits and all(isinstance(ln, ReplayLink) and ln.finished for ln in exits):
-            self._stop.set()
+            self._tasks.append(asyncio.create_task(self._finish_replay()))
+
+    async def _finish_replay(self) -> None:
+        """Stop once the contacts of what was replayed are estimated. A stop's drain gives the
+        contact worker a share of ``drain_limit`` (systemd's stop timeout); a replay that ends
+        is no such stop: on a fresh installation the worker's warm-up (compiling its kernels,
+        about 20 s) outlasts a short capture, and its contacts were lost."""
+        if self.config.contact.enabled and not await self.contacts.warm(self.REPLAY_WARM_LIMIT):
+            event(self.log, "error", "replay finished before the contact worker started: its contacts are lost",
+                  waited=self.REPLAY_WARM_LIMIT)
+        await self.contacts.idle(self.config.contact.worker_timeout)  # the estimate under way is published
+        self._stop.set()
 
     # -- periodic -----------------------------------------------------------------------
     async def _ticker(self) -> None:

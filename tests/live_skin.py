@@ -96,6 +96,7 @@ class Collector:
         self.sock = self.ctx.socket(zmq.SUB)
         self.sock.linger = 0
         self.sock.rcvhwm = 0
+        self.sock.reconnect_ivl = 10  # ms: joins a daemon started after it as soon as it binds
         for t in topics:
             self.sock.subscribe(t)
         self.sock.connect(endpoint)

@@ -19,6 +19,7 @@ import concurrent.futures
 import concurrent.futures.process
 import os
 import random
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -209,3 +210,27 @@ async def until(cond: Callable[[], bool], limit: float = 30.0) -> None:
         if loop.time() > end:
             raise AssertionError("condition not reached")
         await asyncio.sleep(0.001)
+
+
+class SlowStartExecutor(concurrent.futures.ThreadPoolExecutor):
+    """One worker thread whose warm-up takes ``delay`` s: a worker process on a fresh
+    installation, compiling the estimator's kernels before its first estimate."""
+
+    def __init__(self, delay: float) -> None:
+        super().__init__(1)
+        self.delay = delay
+
+    @classmethod
+    def factory(cls, delay: float) -> Callable[[], SlowStartExecutor]:
+        return lambda: cls(delay)
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
+        if fn.__name__ == "warm_up":
+            delay = self.delay
+
+            def slow(*a: Any, **kw: Any) -> Any:
+                time.sleep(delay)
+                return fn(*a, **kw)
+
+            return super().submit(slow, *args, **kwargs)
+        return super().submit(fn, *args, **kwargs)

@@ -425,3 +425,33 @@ def test_a_flood_of_reads_that_move_no_frame_costs_few_contact_looks(tmp_path: P
             assert looks[0] <= elapsed / gap + elapsed / svc.TICK + 3, (looks[0], elapsed)
 
     asyncio.run(scenario())
+
+
+def test_a_finished_replay_waits_for_the_contact_workers_warm_up(tmp_path: Path) -> None:
+    """The worker's warm-up (on a fresh installation: compiling the kernels, about 20 s)
+    outlasts the golden capture's replay. The daemon stopped as soon as the replay ended,
+    gave the pending estimate a share of ``drain_limit`` and published no contact at all."""
+    from daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise
+    from shell_fakes import SlowStartExecutor
+
+    async def scenario() -> None:
+        path = tmp_path / "replay.toml"
+        path.write_text('[pub]\nendpoint = "inproc://replay-pub"\n[control]\nendpoint = "inproc://replay-ctl"\n'
+                        + CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{CAPTURE}"))
+        cfg = load_config(path)
+        ctx = zmq.asyncio.Context()
+        svc = Service(cfg, config_path=path, hooks=RecordingHooks(cfg), ctx=ctx,
+                      contact_executor=SlowStartExecutor.factory(1.5), drain_limit=0.5)
+        task = asyncio.create_task(svc.run())
+        await until(lambda: hasattr(svc, "pub") or task.done())
+        sub = _sub(ctx, svc, "element", "contact")
+        assert await asyncio.wait_for(task, 30.0) == 0
+        messages = []
+        while await sub.poll(0):
+            messages.append(await _recv(sub))
+        sub.close(0)
+        ctx.destroy(linger=0)
+        diffs = compare(normalise(messages), load_golden())
+        assert not diffs, diffs[:10]
+
+    asyncio.run(scenario())

@@ -162,6 +162,9 @@ def run(args: argparse.Namespace) -> int:
     sock = ctx.socket(zmq.SUB)
     sock.linger = 0
     sock.rcvhwm = 100_000  # a slow disk moment must not cost messages
+    # Retry a daemon not yet bound every 10 ms, not ZeroMQ's 100: a recorder started first
+    # then has the daemon's first messages too (the first read's serial bytes among them).
+    sock.reconnect_ivl = 10
     receiver: Receiver | None = None
     switch = sys.getswitchinterval()
     try:

@@ -12,9 +12,9 @@ estimate.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import concurrent.futures
 import concurrent.futures.process
+import contextlib
 import logging
 import multiprocessing
 import time

@@ -101,7 +101,11 @@ class Moments:
         self.settled = np.full(n, np.nan)  # sample time of the newest reading the calibrator classified
         self.arrival = np.full(n, -math.inf)  # host time the newest reading arrived
         self.delay = np.full(n, np.nan)  # decaying high-water of arrival - sample time, on-time readings
-        self.delay_at = np.zeros(n)  # host time the delay mark was last updated
+        # ... and the second-highest: the mark an element away from any touch is waited by
+        # (one retried frame, late by an acknowledgement wait, must not hold every frame of
+        # the skin back for seconds; see _near_touch)
+        self.delay2 = np.full(n, np.nan)
+        self.delay_at = np.zeros(n)  # host time the delay marks were last updated
         self.t_moment = -math.inf  # the moment of the last snapshot
         self.on_grid = True  # the last moment() was a frame (False: no live element on mesh time)
         self.hold_since = math.nan  # first moment held back for a transition (NaN: none held)
@@ -111,7 +115,7 @@ class Moments:
         self.touch_began = np.full(n, -math.inf)  # sample time of the reading that began the element's touch
         self._all = np.arange(n)
 
-    _PER_ELEMENT = ("period", "live", "settled", "arrival", "delay", "delay_at", "holding", "late", "touch_began")
+    _PER_ELEMENT = ("period", "live", "settled", "arrival", "delay", "delay2", "delay_at", "holding", "late", "touch_began")
     _RINGS = ("t", "dc", "touched", "cycle", "held", "on_time")
 
     def adopt(self, old: Moments, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
@@ -187,8 +191,14 @@ class Moments:
             d = np.full(self.delay.shape[0], -math.inf)
             np.maximum.at(d, r[on_time], now - t[on_time])
             seen = np.isfinite(d)
-            kept = self.delay[seen] * np.exp(-np.clip(now - self.delay_at[seen], 0.0, None) / DELAY_FORGET_S)
-            self.delay[seen] = np.fmax(kept, d[seen])
+            fade = np.exp(-np.clip(now - self.delay_at[seen], 0.0, None) / DELAY_FORGET_S)
+            first = np.nan_to_num(self.delay[seen] * fade, nan=-math.inf)
+            second = np.nan_to_num(self.delay2[seen] * fade, nan=-math.inf)
+            new = d[seen]
+            top = new >= first
+            self.delay2[seen] = np.where(top, first, np.fmax(second, new))
+            self.delay[seen] = np.where(top, new, first)
+            self.delay2[seen] = np.where(np.isfinite(self.delay2[seen]), self.delay2[seen], np.nan)
             self.delay_at[seen] = now
 
     def settle(self, rows: NDArray[np.int64], touched: NDArray[np.bool_]) -> None:
@@ -355,8 +365,25 @@ class Moments:
     def _delay_bound(self, now: float) -> FloatArray:
         """Each element's delivery delay mark, forgotten down to ``now``, with its margin
         (NaN: not known yet)."""
-        delay = self.delay * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
+        mark = np.where(self._near_touch() | np.isnan(self.delay2), self.delay, self.delay2)
+        delay = mark * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
         return delay * DELAY_FACTOR + DELAY_MARGIN
+
+    def _near_touch(self) -> NDArray[np.bool_]:
+        """Elements touched now (their newest reading) and their neighbours: a change of
+        theirs shapes a contact (a slide across a seam seen on one side only is two disks),
+        so they are waited for by their highest delay lately. The others, by the second
+        highest: one retried frame of an idle element held every frame of the skin back."""
+        out = self.touched[self._all, (self.count - 1) % self.depth] & (self.count > 0)
+        # (a touch just begun: its untouched neighbours are unknown until they reported
+        # past it or their delay and ONSET_WAIT passed, see _onset_pending)
+        out &= self.t_moment - self.touch_began >= ONSET_WAIT
+        if out.any() and self.near.shape[0]:
+            a, b = self.near[:, 0], self.near[:, 1]
+            touched = out.copy()
+            out[b[touched[a]]] = True
+            out[a[touched[b]]] = True
+        return out
 
     def at(self, moment: float, now: float = math.inf) -> tuple[FloatArray, NDArray[np.bool_], FloatArray,
                                                                NDArray[np.uint64], NDArray[np.bool_], float]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import gc
 import logging
 import math
@@ -143,12 +144,21 @@ class Service:
 
     def _make_link(self, cfg: Any) -> Link:
         if cfg.is_replay:
-            gate = self._wait_subscriber if cfg.wait_for_subscriber else None
+            gate = functools.partial(self._replay_gate, cfg.wait_for_subscriber)
             return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done)
         return SerialLink(cfg, self._on_data, self._on_state, self._opener, self._clock)
 
-    async def _wait_subscriber(self) -> None:
-        await self.pub.subscribed.wait()
+    async def _replay_gate(self, subscriber: bool) -> None:
+        """A replay starts once a subscriber is there (``wait_for_subscriber``) and the contact
+        worker is warm: started before, a recording's first seconds were estimated late or
+        not at all, by how long the warm-up took on this machine (on a fresh installation
+        it compiles the kernels, about half a minute), where the daemon that recorded them
+        had its worker warm long before: a replay must not depend on that."""
+        if subscriber:
+            await self.pub.subscribed.wait()
+        if self.config.contact.enabled and not await self.contacts.warm(self.REPLAY_WARM_LIMIT):
+            event(self.log, "error", "contact worker not started: the replay goes on without waiting",
+                  waited=self.REPLAY_WARM_LIMIT)
 
     def _replay_done(self, name: str) -> None:
         event(self.log, "info", "replay finished", link=name, records=self.links[name].stats()["replayed_records"])
@@ -334,11 +344,11 @@ class Service:
         loop.add_signal_handler(signal.SIGINT, self._stop.set)
         loop.add_signal_handler(signal.SIGHUP, self.reload)
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGHUP})  # held back since the command began (cli.main)
+        if self.config.contact.enabled:  # (before the links: a replay waits for its warm-up)
+            self.contacts.start()
         link_tasks = [asyncio.create_task(ln.run(), name=f"link {n}") for n, ln in self.links.items()]
         self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self.control.serve(),
                                                         self.pub.watch_subscriptions())]
-        if self.config.contact.enabled:
-            self.contacts.start()
         if self.hooks.watchdog_interval:
             self._tasks.append(asyncio.create_task(self._watchdog(self.hooks.watchdog_interval)))
         event(self.log, "info", "daemon started", version=__version__, pub=self.config.pub.endpoint,

@@ -99,6 +99,27 @@ def test_the_delay_mark_forgets_between_readings_too() -> None:
     assert lag <= expected + PERIOD + 1e-9, (lag, expected)
 
 
+def test_one_late_delivery_does_not_hold_the_frames_back_but_two_do() -> None:
+    """A held element is waited for by the second-highest delay it had lately: one frame
+    of its late by an acknowledgement wait (a retry, here 60 ms) held every frame of the
+    skin back by that much for seconds (press p99 in real processes), while two late
+    ones say the route is slow now."""
+    def lag(late: list[int]) -> float:
+        m = Moments(2, 64)
+        for k in range(100):  # element 0 pressed, reporting; element 1 held, its heartbeats
+            t = round(9.0 + k * PERIOD, 6)
+            _record(m, 0, t)
+            if k % 10 == 0:
+                _record(m, 1, t, delay=0.06 if k in late else DELAY)
+        now = 9.0 + 99 * PERIOD + DELAY
+        return now - m.moment(now, timeout=2.0, max_lag=0.5, held_wait=0.5)
+
+    steady = lag([])
+    assert steady <= DELAY + DELAY_MARGIN + PERIOD + 1e-9, steady
+    assert lag([50]) == steady  # one retry: as if it had come on time
+    assert lag([30, 60]) >= 0.06 * math.exp(-0.4 / DELAY_FORGET_S), lag([30, 60])  # two: waited for
+
+
 def test_with_no_new_data_the_moment_moves_on_at_due_and_not_before() -> None:
     """An event-based skin sends a press's onset and then little: the frames after it come
     from the holds running out, with no data to wake a shell. ``due`` names when the next

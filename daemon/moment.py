@@ -377,7 +377,8 @@ class Moments:
         out = self.touched[self._all, (self.count - 1) % self.depth] & (self.count > 0)
         # (a touch just begun: its untouched neighbours are unknown until they reported
         # past it or their delay and ONSET_WAIT passed, see _onset_pending)
-        out &= self.t_moment - self.touch_began >= ONSET_WAIT
+        with np.errstate(invalid="ignore"):  # (no moment yet and no touch: -inf - -inf)
+            out &= self.t_moment - self.touch_began >= ONSET_WAIT
         if out.any() and self.near.shape[0]:
             a, b = self.near[:, 0], self.near[:, 1]
             touched = out.copy()

@@ -25,9 +25,10 @@ before the press may be overtaken by a change still on its way. A periodic eleme
 holds nothing back either (it is unknown for the newer frames). A held element has
 reported past every instant a change of its would already have reached the host: its
 bridge sends a change at once, so a held element holds the moment back only to ``now``
-minus its own delivery delay (the decaying high-water mark of arrival minus sample time
-of its on-time readings, with a margin), and never more than ``held_wait`` behind the
-newest data. Waiting by the element's own delay, not a fixed ``held_wait``, is what makes
+minus its own delivery delay (a decaying mark of arrival minus sample time of its
+on-time readings, with a margin: the highest lately for an element touched or next to a
+touch, the second highest for the others, see ``_near_touch``), and never more than
+``held_wait`` behind the newest data. Waiting by the element's own delay, not a fixed ``held_wait``, is what makes
 an event-based skin's contacts come tens of milliseconds after a press, not half a
 second: an idle element's last heartbeat is up to a heartbeat old, and what matters is
 only whether a change could still be on its way.

@@ -74,7 +74,7 @@ def _instrument() -> None:
         m = self.moments
         if m is not None and self.layout is not None:
             c = self.config.contact
-            bound = m._bound(min(c.held_wait, c.max_lag), now)
+            bound = m._hold(min(c.held_wait, c.max_lag), now)
             mo = m.moment(now, bridge_timeout, c.max_lag, c.held_wait)  # the frame it could take (same state)
             TRACE["l"].append((now, _f(got.t_moment) if got is not None else None,
                                [_f(b) for b in bound.tolist()], self.layout.ids.tolist(),

@@ -87,6 +87,10 @@ class ContactWorker:
             await asyncio.wait_for(asyncio.shield(asyncio.wrap_future(self._warm)), limit)
         return self._warm.done()
 
+    def warmed(self) -> bool:
+        """Whether the worker's warm-up has finished (True when none was started)."""
+        return self._warm is None or self._warm.done()
+
     def stop(self) -> None:
         """The daemon is stopping: from now on every estimate has its timeout (even the
         first), and a hung or dead worker is killed but not replaced."""
@@ -170,12 +174,13 @@ class ContactWorker:
 
     def close(self) -> None:
         """End the worker: at once if it is still on an estimate (hung, or abandoned by a
-        stop), else after it exits."""
+        stop) or on its warm-up, else after it exits."""
         pool, self._pool = self._pool, None
         if pool is None:
             return
-        if self.working:
+        if self.working or not self.warmed():  # (a warm-up compiling the kernels takes half a minute)
             _kill(pool)
+            pool.shutdown(wait=False, cancel_futures=True)
         else:
             pool.shutdown(wait=True)
 

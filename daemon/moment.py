@@ -27,7 +27,7 @@ reported past every instant a change of its would already have reached the host:
 bridge sends a change at once, so a held element holds the moment back only to ``now``
 minus its own delivery delay (a decaying mark of arrival minus sample time of its
 on-time readings, with a margin: the highest lately for an element touched or next to a
-touch, the second highest for the others, see ``_near_touch``), and never more than
+touch, the second highest for the others, see ``_hold``), and never more than
 ``held_wait`` behind the newest data. Waiting by the element's own delay, not a fixed ``held_wait``, is what makes
 an event-based skin's contacts come tens of milliseconds after a press, not half a
 second: an idle element's last heartbeat is up to a heartbeat old, and what matters is
@@ -104,7 +104,7 @@ class Moments:
         self.delay = np.full(n, np.nan)  # decaying high-water of arrival - sample time, on-time readings
         # ... and the second-highest: the mark an element away from any touch is waited by
         # (one retried frame, late by an acknowledgement wait, must not hold every frame of
-        # the skin back for seconds; see _near_touch)
+        # the skin back for seconds; see _hold)
         self.delay2 = np.full(n, np.nan)
         self.delay_at = np.zeros(n)  # host time the delay marks were last updated
         self.t_moment = -math.inf  # the moment of the last snapshot
@@ -262,8 +262,7 @@ class Moments:
         newest = float(self.settled[live].max())
         held = self._held_now()
         wait = min(held_wait, max_lag)
-        bound = self._bound(wait, now)
-        through = np.where(held, np.fmax(self.settled, now - bound), self.settled)
+        through = np.where(held, np.fmax(self.settled, now - self._hold(wait, now)), self.settled)
         self.holding = live & (through >= newest - np.where(held, wait, max_lag))
         self.late = live & ~self.holding & ~held
         t = max(float(through[self.holding].min()), self.t_moment)
@@ -318,7 +317,7 @@ class Moments:
         if not waits.any() or (waits & ~held).any():
             return math.inf
         # (a microsecond on: at the exact instant, rounding may leave the frame one short)
-        return nxt + float(self._bound(min(held_wait, max_lag), now)[waits].max()) + 1e-6
+        return nxt + float(self._hold_for(nxt, min(held_wait, max_lag), now)[waits].max()) + 1e-6
 
     def unseen(self) -> bool:
         """Whether some element has a reading newer than the last moment taken. Until one
@@ -349,43 +348,52 @@ class Moments:
         pending[a[fresh[b]]] = True
         with np.errstate(invalid="ignore"):
             reported = self.settled >= moment - 1e-9
-            waited = now - moment >= np.nan_to_num(self._delay_bound(now), nan=0.0) + ONSET_WAIT
+            waited = now - moment >= np.nan_to_num(self._marks(now)[0], nan=0.0) + ONSET_WAIT
         return pending & ~touched & held & (t_j < moment - 1e-9) & ~reported & ~waited
 
     def _held_now(self) -> NDArray[np.bool_]:
         """Whether each element's newest reading is held (stands for the frames after it)."""
         return self.held[self._all, (self.count - 1) % self.depth]
 
-    def _bound(self, wait: float, now: float) -> FloatArray:
+    def _marks(self, now: float) -> tuple[FloatArray, FloatArray]:
+        """Each element's delivery delay marks, forgotten down to ``now``, with their margin:
+        (highest, second highest; the highest where only one delay is known). NaN: none known."""
+        fade = np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
+        second = np.where(np.isnan(self.delay2), self.delay, self.delay2)
+        return (self.delay * fade * DELAY_FACTOR + DELAY_MARGIN, second * fade * DELAY_FACTOR + DELAY_MARGIN)
+
+    def _onset_end(self) -> FloatArray:
+        """Per element, the last instant of the onset window (``ONSET_WAIT``) of the earliest
+        touch on it or on a neighbour now (inf: no touch there). Up to that instant an
+        untouched neighbour is unknown until it reported (:meth:`_onset_pending`); past it,
+        a change of the element shapes a contact (a slide across a seam seen on one side
+        only is two disks) and it is waited for by its highest delay lately."""
+        touched = self.touched[self._all, (self.count - 1) % self.depth] & (self.count > 0)
+        began = np.where(touched, self.touch_began, math.inf)
+        if touched.any() and self.near.shape[0]:
+            own = began.copy()
+            a, b = self.near[:, 0], self.near[:, 1]
+            np.minimum.at(began, b, own[a])
+            np.minimum.at(began, a, own[b])
+        return began + (ONSET_WAIT - 1e-9)
+
+    def _hold(self, wait: float, now: float) -> FloatArray:
         """How far behind ``now`` each held element has reported: a change of its would have
         reached the host by its delivery delay (with a margin); ``wait`` at most, and while
-        its delay is not known yet. The delay mark forgets between the element's readings
-        too (a heartbeat may be seconds apart)."""
-        return np.fmin(np.nan_to_num(self._delay_bound(now), nan=wait), wait)
+        its delay is not known yet. Away from a touch (and before a touch's onset window
+        ended) the delay is its second highest lately: one retried frame of an idle element
+        held every frame of the skin back; past the onset window of a touch on it or next
+        to it, the highest (:meth:`_onset_end`). The marks forget between the element's
+        readings too (a heartbeat may be seconds apart)."""
+        full, second = (np.fmin(np.nan_to_num(b, nan=wait), wait) for b in self._marks(now))
+        by_second, end = now - second, self._onset_end()
+        return now - np.where(np.isinf(end), by_second, np.fmax(now - full, np.fmin(by_second, end)))
 
-    def _delay_bound(self, now: float) -> FloatArray:
-        """Each element's delivery delay mark, forgotten down to ``now``, with its margin
-        (NaN: not known yet)."""
-        mark = np.where(self._near_touch() | np.isnan(self.delay2), self.delay, self.delay2)
-        delay = mark * np.exp(-np.clip(now - self.delay_at, 0.0, None) / DELAY_FORGET_S)
-        return delay * DELAY_FACTOR + DELAY_MARGIN
-
-    def _near_touch(self) -> NDArray[np.bool_]:
-        """Elements touched now (their newest reading) and their neighbours: a change of
-        theirs shapes a contact (a slide across a seam seen on one side only is two disks),
-        so they are waited for by their highest delay lately. The others, by the second
-        highest: one retried frame of an idle element held every frame of the skin back."""
-        out = self.touched[self._all, (self.count - 1) % self.depth] & (self.count > 0)
-        # (a touch just begun: its untouched neighbours are unknown until they reported
-        # past it or their delay and ONSET_WAIT passed, see _onset_pending)
-        with np.errstate(invalid="ignore"):  # (no moment yet and no touch: -inf - -inf)
-            out &= self.t_moment - self.touch_began >= ONSET_WAIT
-        if out.any() and self.near.shape[0]:
-            a, b = self.near[:, 0], self.near[:, 1]
-            touched = out.copy()
-            out[b[touched[a]]] = True
-            out[a[touched[b]]] = True
-        return out
+    def _hold_for(self, frame: float, wait: float, now: float) -> FloatArray:
+        """Each element's hold for ``frame`` (:meth:`_hold`): the time after ``frame`` at
+        which it has reported past it."""
+        full, second = (np.fmin(np.nan_to_num(b, nan=wait), wait) for b in self._marks(now))
+        return np.where(frame > self._onset_end(), full, second)
 
     def at(self, moment: float, now: float = math.inf) -> tuple[FloatArray, NDArray[np.bool_], FloatArray,
                                                                NDArray[np.uint64], NDArray[np.bool_], float]:

@@ -167,14 +167,12 @@ class Service:
             self._tasks.append(asyncio.create_task(self._finish_replay()))
 
     async def _finish_replay(self) -> None:
-        """Stop once the contacts of what was replayed are estimated. A stop's drain gives the
-        contact worker a share of ``drain_limit`` (systemd's stop timeout); a replay that ends
-        is no such stop: on a fresh installation the worker's warm-up (compiling its kernels,
-        about 20 s) outlasts a short capture, and its contacts were lost."""
-        if self.config.contact.enabled and not await self.contacts.warm(self.REPLAY_WARM_LIMIT):
-            event(self.log, "error", "replay finished before the contact worker started: its contacts are lost",
-                  waited=self.REPLAY_WARM_LIMIT)
-        await self.contacts.idle(self.config.contact.worker_timeout)  # the estimate under way is published
+        """Stop once the contacts of what was replayed are estimated: a stop's drain gives
+        the estimate under way a share of ``drain_limit`` (systemd's stop timeout), and a
+        replay that ends is no such stop."""
+        # (the replay began after the warm-up, or after its gate gave up on it: no second wait)
+        if self.contacts.warmed():
+            await self.contacts.idle(self.config.contact.worker_timeout)  # the estimate under way is published
         self._stop.set()
 
     # -- periodic -----------------------------------------------------------------------

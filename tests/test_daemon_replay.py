@@ -42,16 +42,6 @@ def test_comparison_catches_a_moved_contact_and_a_changed_force() -> None:
     assert len(compare(changed, g)) == sum(f == f for f in m["force"])  # each valid force is caught
 
 
-@pytest.fixture
-def warm_kernels() -> None:
-    """The estimator's kernels in numba's cache before the daemon's worker needs them: on a
-    fresh checkout its warm-up compiles them (half a minute, more on a loaded machine) and
-    the daemon, waiting for it, outlasts the test's patience."""
-    from cellbridge.demo import _warm_kernels
-
-    _warm_kernels()
-
-
 def test_daemon_replaying_the_capture_publishes_the_golden_output(tmp_path: Path, warm_kernels: None) -> None:
     cfg = tmp_path / "replay.toml"
     text = CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{CAPTURE}")

@@ -427,7 +427,7 @@ def test_a_flood_of_reads_that_move_no_frame_costs_few_contact_looks(tmp_path: P
     asyncio.run(scenario())
 
 
-def test_a_finished_replay_waits_for_the_contact_workers_warm_up(tmp_path: Path) -> None:
+def test_a_finished_replay_waits_for_the_contact_workers_warm_up(tmp_path: Path, warm_kernels: None) -> None:
     """The worker's warm-up (on a fresh installation: compiling the kernels, about 20 s)
     outlasts the golden capture's replay. The daemon stopped as soon as the replay ended,
     gave the pending estimate a share of ``drain_limit`` and published no contact at all."""

@@ -1,0 +1,100 @@
+"""A replay waits for the contact worker's warm-up (Service._replay_gate,
+Service._finish_replay, ContactWorker.warm): under a stop, and with a warm-up that never ends."""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import zmq
+import zmq.asyncio
+
+from cellbridge.daemon.config import load_config
+from cellbridge.daemon.service import Service
+from daemon_golden import CAPTURE, CONFIG
+from shell_fakes import RecordingHooks, until
+
+
+class HungWarmUp(concurrent.futures.ThreadPoolExecutor):
+    """One worker thread whose warm-up does not end until ``release`` is set (a worker
+    process compiling the kernels on a loaded machine, or hung in it)."""
+
+    release = threading.Event()
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
+        if fn.__name__ == "warm_up":
+            return super().submit(self.release.wait, 60.0)
+        return super().submit(fn, *args, **kwargs)
+
+
+def _service(tmp_path: Path, worker_timeout: float = 30.0, exit_when_done: bool = True, **kw: Any) -> tuple[Service, zmq.asyncio.Context]:
+    path = tmp_path / "replay.toml"
+    path.write_text('[pub]\nendpoint = "inproc://gate-pub"\n[control]\nendpoint = "inproc://gate-ctl"\n'
+                    + CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{CAPTURE}")
+                    .replace("wait_for_subscriber = true", "wait_for_subscriber = false")
+                    .replace("exit_when_done = true", f"exit_when_done = {str(exit_when_done).lower()}")
+                    .replace("birth_frames = 1", f"birth_frames = 1\nworker_timeout = {worker_timeout}"))
+    cfg = load_config(path)
+    ctx = zmq.asyncio.Context()
+    return Service(cfg, config_path=path, hooks=RecordingHooks(cfg), ctx=ctx, **kw), ctx
+
+
+def test_sigterm_while_a_replay_waits_for_the_warm_up_stops_within_the_drain_limit(tmp_path: Path) -> None:
+    """SIGTERM while the replay waits at its gate for a warm-up still going (on a fresh
+    installation: the kernels compiling, 20-30 s): the daemon must stop within
+    ``drain_limit`` (systemd kills at TimeoutStopSec), not when the warm-up ends."""
+    HungWarmUp.release.clear()
+    threading.Timer(6.0, HungWarmUp.release.set).start()  # the warm-up ends 6 s in (a slow compile)
+
+    async def scenario() -> float:
+        svc, ctx = _service(tmp_path, exit_when_done=False, contact_executor=lambda: HungWarmUp(1), drain_limit=0.5)
+        task = asyncio.create_task(svc.run())
+        try:
+            await until(lambda: any(w == "ready" for w, _ in svc.hooks.said) or task.done())  # type: ignore[attr-defined]
+            await asyncio.sleep(0.3)  # the replay at its gate
+            t0 = time.monotonic()
+            os.kill(os.getpid(), signal.SIGTERM)
+            await asyncio.wait_for(asyncio.shield(task), 20.0)
+            return time.monotonic() - t0
+        finally:
+            HungWarmUp.release.set()
+            await asyncio.wait_for(task, 70.0)
+            ctx.destroy(linger=0)
+
+    took = asyncio.run(scenario())
+    assert took < 0.5 + 1.0, f"SIGTERM took {took:.1f} s with drain_limit 0.5 s"
+
+
+def test_a_hung_warm_up_delays_a_finished_replay_by_the_warm_limit_once(tmp_path: Path) -> None:
+    """A warm-up that never ends: the gate gives up after REPLAY_WARM_LIMIT and the replay
+    goes on; the finished replay must not wait out the same hung warm-up a second time
+    (300 s + 300 s in production) before it stops."""
+    HungWarmUp.release.clear()
+    threading.Timer(8.0, HungWarmUp.release.set).start()  # (only so that the test ends)
+    limit = 2.0
+
+    async def scenario() -> float:
+        svc, ctx = _service(tmp_path, worker_timeout=0.5, contact_executor=lambda: HungWarmUp(1), drain_limit=0.5)
+        svc.REPLAY_WARM_LIMIT = limit  # type: ignore[misc]
+        stopping: list[float] = []
+        said = svc.hooks.stopping
+        svc.hooks.stopping = lambda: (stopping.append(time.monotonic()), said())  # type: ignore[method-assign]
+        t0 = time.monotonic()
+        task = asyncio.create_task(svc.run())
+        try:
+            await until(lambda: bool(stopping), 30.0)
+            return stopping[0] - t0
+        finally:
+            HungWarmUp.release.set()
+            await asyncio.wait_for(task, 70.0)
+            ctx.destroy(linger=0)
+
+    took = asyncio.run(scenario())
+    assert took < limit + 1.5, f"the replay daemon began to stop after {took:.1f} s with REPLAY_WARM_LIMIT {limit} s"

@@ -197,9 +197,9 @@ class Moments:
             second = np.nan_to_num(self.delay2[seen] * fade, nan=-math.inf)
             new = d[seen]
             top = new >= first
-            self.delay2[seen] = np.where(top, first, np.fmax(second, new))
+            runner_up = np.where(top, first, np.fmax(second, new))
             self.delay[seen] = np.where(top, new, first)
-            self.delay2[seen] = np.where(np.isfinite(self.delay2[seen]), self.delay2[seen], np.nan)
+            self.delay2[seen] = np.where(np.isfinite(runner_up), runner_up, np.nan)
             self.delay_at[seen] = now
 
     def settle(self, rows: NDArray[np.int64], touched: NDArray[np.bool_]) -> None:
@@ -385,15 +385,20 @@ class Moments:
         held every frame of the skin back; past the onset window of a touch on it or next
         to it, the highest (:meth:`_onset_end`). The marks forget between the element's
         readings too (a heartbeat may be seconds apart)."""
-        full, second = (np.fmin(np.nan_to_num(b, nan=wait), wait) for b in self._marks(now))
+        full, second = self._capped_marks(wait, now)
         by_second, end = now - second, self._onset_end()
         return now - np.where(np.isinf(end), by_second, np.fmax(now - full, np.fmin(by_second, end)))
 
     def _hold_for(self, frame: float, wait: float, now: float) -> FloatArray:
         """Each element's hold for ``frame`` (:meth:`_hold`): the time after ``frame`` at
         which it has reported past it."""
-        full, second = (np.fmin(np.nan_to_num(b, nan=wait), wait) for b in self._marks(now))
+        full, second = self._capped_marks(wait, now)
         return np.where(frame > self._onset_end(), full, second)
+
+    def _capped_marks(self, wait: float, now: float) -> tuple[FloatArray, FloatArray]:
+        """:meth:`_marks`, each at most ``wait`` and ``wait`` where not known yet."""
+        full, second = self._marks(now)
+        return np.fmin(np.nan_to_num(full, nan=wait), wait), np.fmin(np.nan_to_num(second, nan=wait), wait)
 
     def at(self, moment: float, now: float = math.inf) -> tuple[FloatArray, NDArray[np.bool_], FloatArray,
                                                                NDArray[np.uint64], NDArray[np.bool_], float]:

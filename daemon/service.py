@@ -61,7 +61,7 @@ class Service:
     TICK = 0.1  # s between pipeline ticks (health itself goes out every health.interval)
     HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
     DRAIN_LIMIT = 10.0  # s: systemd's TimeoutStopSec=15 kills a daemon that takes longer
-    REPLAY_WARM_LIMIT = 300.0  # s a finished replay waits for the contact worker's warm-up
+    REPLAY_WARM_LIMIT = 300.0  # s a replay waits at its start for the contact worker's warm-up
 
     def __init__(self, config: Config, layout: SkinLayout | None = None, *, config_path: str | Path | None = None,
                  hooks: OpsHooks | None = None, ctx: zmq.asyncio.Context | None = None,

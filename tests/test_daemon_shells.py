@@ -334,7 +334,9 @@ def test_sigterm_with_a_hung_contact_worker_stops_within_the_drain_limit(tmp_pat
             await until(lambda: "contact" in svc.pub.wanted)
             dev.send(sk.hellos() + sk.beacons())
             k = 0
+            end = asyncio.get_running_loop().time() + 60.0  # a guard against a hang, not a speed check
             while not (ScriptedExecutor.made and ScriptedExecutor.made[0].hung):
+                assert asyncio.get_running_loop().time() < end, f"no third estimate after {k} slots"
                 for _, data in sk.stream(1, STRADDLE if k > 30 else None, start=k):
                     dev.send(data)
                 k += 1

@@ -42,7 +42,7 @@ class OpsHooks:
         # them a plain context that shares the asyncio context's libzmq context (ZAP and
         # inproc:// monitors are per context).
         plain: zmq.Context[zmq.Socket[bytes]] = zmq.Context.shadow(ctx.underlying)
-        role = "pub" if socket.socket_type in (zmq.XPUB, zmq.PUB) else "control"
+        role = "pub" if socket.type in (zmq.XPUB, zmq.PUB) else "control"
         peers = self.config.peers
         bound_socket(socket, role, peers, self.config.control)
         if self._guard is None:
@@ -56,7 +56,7 @@ class OpsHooks:
 
     def bound(self, socket: zmq.Socket, endpoint: str) -> None:
         """After binding: an ipc:// socket file gets its section's ``ipc_mode`` and ``ipc_group``."""
-        section = self.config.pub if socket.socket_type in (zmq.XPUB, zmq.PUB) else self.config.control
+        section = self.config.pub if socket.type in (zmq.XPUB, zmq.PUB) else self.config.control
         restrict_ipc(endpoint, section.ipc_mode, section.ipc_group)
 
     def counters(self) -> dict[str, object]:

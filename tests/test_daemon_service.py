@@ -23,7 +23,8 @@ CORNER = (0.020, 0.020, 3.0, 0.012)  # on the corner of four elements: x and y b
 
 
 @pytest.fixture
-def rig(tmp_path: Path) -> Iterator[tuple[Pty, Client, Path]]:
+def rig(tmp_path: Path, warm_kernels: None) -> Iterator[tuple[Pty, Client, Path]]:
+    """A daemon on a pty with its kernels compiled: tests wait for its contacts."""
     pty = Pty(tmp_path / "gw")
     cfg = tmp_path / "daemon.toml"
     endpoints = write_config(cfg, [{"name": "gw", "url": pty.link, "reconnect_min": 0.05, "reconnect_max": 0.2}],
@@ -401,7 +402,7 @@ def _worker_pids(daemon_pid: int) -> list[int]:
     return out
 
 
-def test_a_hung_contact_worker_is_killed_and_replaced_and_contacts_resume(tmp_path: Path) -> None:
+def test_a_hung_contact_worker_is_killed_and_replaced_and_contacts_resume(tmp_path: Path, warm_kernels: None) -> None:
     """The worker stops answering (SIGSTOP: as a worker stuck in a loop). The daemon used
     to wait for it forever: no contact was ever published again, nothing said why, and
     SIGTERM hung in the drain. Now an estimate past contact.worker_timeout kills it

@@ -19,6 +19,7 @@ import math
 import os
 import random
 import shutil
+import select
 import signal
 import socket
 import subprocess
@@ -134,16 +135,26 @@ def _cellbridge(*args: str) -> list[str]:
 
 
 def _wait_gateway(proc: subprocess.Popen[str]) -> str:
+    """The gateway's device that ``mesh up`` names on its standard output. Raises
+    RuntimeError when it ends first or names none within GATEWAY_TIMEOUT: read from the
+    pipe as bytes come (a blocking line read waited for ever on a 'mesh up' that went
+    silent, whatever the timeout said)."""
     deadline = time.monotonic() + GATEWAY_TIMEOUT
     assert proc.stdout is not None
-    os.set_blocking(proc.stdout.fileno(), True)
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
+    fd = proc.stdout.fileno()
+    got = b""
+    while (left := deadline - time.monotonic()) > 0:
+        if not select.select([fd], [], [], min(left, 0.5))[0]:
+            continue
+        chunk = os.read(fd, 4096)
+        if not chunk:
             raise RuntimeError(f"'mesh up' ended (status {proc.wait()}) before naming its gateway")
-        parts = line.split()
-        if len(parts) >= 3 and parts[0] == "gateway":
-            return parts[2]
+        got += chunk
+        *lines, got = got.split(b"\n")
+        for line in lines:
+            parts = line.decode(errors="replace").split()
+            if len(parts) >= 3 and parts[0] == "gateway":
+                return parts[2]
     raise RuntimeError(f"'mesh up' named no gateway within {GATEWAY_TIMEOUT:.0f} s")
 
 

@@ -193,8 +193,8 @@ class Moments:
             np.maximum.at(d, r[on_time], now - t[on_time])
             seen = np.isfinite(d)
             fade = np.exp(-np.clip(now - self.delay_at[seen], 0.0, None) / DELAY_FORGET_S)
-            first = np.nan_to_num(self.delay[seen] * fade, nan=-math.inf)
-            second = np.nan_to_num(self.delay2[seen] * fade, nan=-math.inf)
+            first = np.fmax(self.delay[seen] * fade, -math.inf)  # (fmax: -inf where no mark, NaN)
+            second = np.fmax(self.delay2[seen] * fade, -math.inf)
             new = d[seen]
             top = new >= first
             runner_up = np.where(top, first, np.fmax(second, new))
@@ -398,7 +398,7 @@ class Moments:
     def _capped_marks(self, wait: float, now: float) -> tuple[FloatArray, FloatArray]:
         """:meth:`_marks`, each at most ``wait`` and ``wait`` where not known yet."""
         full, second = self._marks(now)
-        return np.fmin(np.nan_to_num(full, nan=wait), wait), np.fmin(np.nan_to_num(second, nan=wait), wait)
+        return np.fmin(full, wait), np.fmin(second, wait)  # (fmin: ``wait`` where a mark is NaN)
 
     def at(self, moment: float, now: float = math.inf) -> tuple[FloatArray, NDArray[np.bool_], FloatArray,
                                                                NDArray[np.uint64], NDArray[np.bool_], float]:

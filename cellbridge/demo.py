@@ -123,7 +123,11 @@ def _stop(proc: subprocess.Popen[Any], grace: float = 10.0) -> None:
 
 @contextmanager
 def _group(cmd: list[str], **kw: Any) -> Iterator[subprocess.Popen[Any]]:
-    proc = subprocess.Popen(cmd, start_new_session=True, **kw)
+    """``cmd`` in its own session, stopped on exit; told to stop (SIGTERM) if the demo dies
+    first, too: a demo killed by a timeout left its skin and its daemon running."""
+    from cellbridge.emulator.realtime import die_with_parent
+
+    proc = subprocess.Popen(cmd, start_new_session=True, preexec_fn=die_with_parent, **kw)
     try:
         yield proc
     finally:

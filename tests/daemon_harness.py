@@ -65,6 +65,7 @@ class Pty:
 
     def open(self) -> None:
         self.master, slave = os.openpty()
+        os.set_blocking(self.master, False)  # writes wait in select (write), never in the kernel
         name = os.ttyname(slave)
         os.close(slave)  # the daemon opens it by path
         tmp = self.link.with_suffix(".tmp")
@@ -73,9 +74,17 @@ class Pty:
         tmp.symlink_to(name)
         tmp.replace(self.link)
 
-    def write(self, data: bytes) -> None:
+    def write(self, data: bytes, limit: float = 10.0) -> None:
+        """All of ``data`` into the line, waiting at most ``limit`` s for room: a pty holds
+        about 12 KB, and a daemon that stopped reading (died, or its link ended) would
+        otherwise block the test for ever instead of failing it."""
+        import select
+
         view = memoryview(data)
+        end = time.monotonic() + limit
         while view:
+            if not select.select([], [self.master], [], max(0.0, end - time.monotonic()))[1]:
+                raise AssertionError(f"nobody read the pty for {limit:.0f} s ({len(view)} bytes left to write)")
             n = os.write(self.master, view)
             view = view[n:]
 

@@ -59,6 +59,7 @@ def test_sigterm_while_a_replay_waits_for_the_warm_up_stops_within_the_drain_lim
         try:
             await until(lambda: any(w == "ready" for w, _ in svc.hooks.said) or task.done())  # type: ignore[attr-defined]
             await asyncio.sleep(0.3)  # the replay at its gate
+            assert not task.done(), "the service ended before its signal handlers were in place"
             t0 = time.monotonic()
             os.kill(os.getpid(), signal.SIGTERM)
             await asyncio.wait_for(asyncio.shield(task), 20.0)

@@ -27,6 +27,8 @@ from cellbridge.daemon.contacts import ContactJob, estimate, warm_up
 Contacts = list[dict[str, Any]]
 #: Makes the worker's executor (again after a hung or dead one was killed).
 ExecutorFactory = Callable[[], concurrent.futures.Executor]
+#: Seconds an idle worker has to exit when the daemon stops, before it is killed.
+CLOSE_WAIT = 2.0
 
 
 def process_pool() -> concurrent.futures.Executor:
@@ -174,15 +176,27 @@ class ContactWorker:
 
     def close(self) -> None:
         """End the worker: at once if it is still on an estimate (hung, or abandoned by a
-        stop) or on its warm-up, else after it exits."""
+        stop) or on its warm-up, else once it exits, killed if that takes ``CLOSE_WAIT``
+        (an idle worker that does not answer: stopped, or stuck between jobs, kept the
+        daemon from exiting until systemd killed it)."""
         pool, self._pool = self._pool, None
         if pool is None:
             return
         if self.working or not self.warmed():  # (a warm-up compiling the kernels takes half a minute)
             _kill(pool)
-            pool.shutdown(wait=False, cancel_futures=True)
-        else:
+            return
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        if not procs:  # an executor of threads, or inline: nothing to kill
             pool.shutdown(wait=True)
+            return
+        pool.shutdown(wait=False)
+        end = time.monotonic() + CLOSE_WAIT
+        for proc in procs:
+            proc.join(max(0.0, end - time.monotonic()))
+        if any(proc.is_alive() for proc in procs):
+            event(self.log, "warning", "contact worker did not exit: killed", waited=CLOSE_WAIT)
+            for proc in procs:  # (the shut-down pool no longer lists them)
+                proc.kill()
 
 
 def _kill(pool: concurrent.futures.Executor) -> None:

@@ -1,0 +1,60 @@
+"""A stop ends the contact worker process in bounded time, whatever state it is in
+(daemon/contact_worker.py ContactWorker.close)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import time
+
+from cellbridge.daemon import contact_worker
+from cellbridge.daemon.contact_worker import ContactWorker
+
+
+def _worker_pid(worker: ContactWorker) -> int:
+    pool = worker._executor()
+    (pid,) = pool._processes  # type: ignore[attr-defined]  # the one process of a ProcessPoolExecutor
+    return int(pid)
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+def test_an_idle_worker_that_does_not_exit_is_killed_within_the_close_wait(warm_kernels: None) -> None:
+    """Warmed up and idle, then stopped (SIGSTOP: as a worker stuck between jobs): close()
+    waited for its exit for ever, and the daemon with it, until systemd killed it."""
+    worker = ContactWorker(logging.getLogger("test"))
+    worker.start()
+    assert asyncio.run(worker.warm(120.0)), "the worker did not warm up"
+    pid = _worker_pid(worker)
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        t0 = time.monotonic()
+        worker.close()
+        took = time.monotonic() - t0
+        end = time.monotonic() + 5.0
+        while not _gone(pid) and time.monotonic() < end:
+            time.sleep(0.02)
+        assert _gone(pid), "the stopped worker was left running"
+        assert took < contact_worker.CLOSE_WAIT + 2.0, f"close() took {took:.1f} s"
+    finally:
+        if not _gone(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+def test_an_idle_worker_exits_by_itself_at_close(warm_kernels: None) -> None:
+    worker = ContactWorker(logging.getLogger("test"))
+    worker.start()
+    assert asyncio.run(worker.warm(120.0))
+    pid = _worker_pid(worker)
+    t0 = time.monotonic()
+    worker.close()
+    assert time.monotonic() - t0 < contact_worker.CLOSE_WAIT
+    assert _gone(pid)

@@ -361,16 +361,21 @@ class Service:
         finally:
             self.hooks.stopping()  # OPS: STOPPING=1
             event(self.log, "info", "stopping: draining")
-            await self._drain(link_tasks)
-            for s in (self.pub.sock, self.ctl):
-                s.close()
-            self.hooks.close()
-            if self._ctx is None:
-                ctx.term()
-            self.contacts.close()
-            for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-                loop.remove_signal_handler(sig)
-            event(self.log, "info", "stopped")
+            try:
+                await self._drain(link_tasks)
+            finally:  # (also when the drain is cancelled: the sockets, the peer guard's thread
+                # and the worker process would be left open, and a term() of the context hung)
+                for t in (*link_tasks, *self._tasks):
+                    t.cancel()
+                for s in (self.pub.sock, self.ctl):
+                    s.close()
+                self.hooks.close()
+                if self._ctx is None:
+                    ctx.term()
+                self.contacts.close()
+                for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+                    loop.remove_signal_handler(sig)
+                event(self.log, "info", "stopped")
         return 0
 
     async def _drain(self, link_tasks: list[asyncio.Task[Any]]) -> None:

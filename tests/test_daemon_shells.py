@@ -9,6 +9,7 @@ times, through ``Pipeline.feed``. (Real ptys and processes: test_daemon_service.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import signal
@@ -200,7 +201,8 @@ async def running(tmp_path: Path, dev: FakeDevice, **kw: Any) -> AsyncIterator[t
     finally:
         if not task.done():
             os.kill(os.getpid(), signal.SIGTERM)
-        await asyncio.wait_for(task, 20.0)  # a guard against a hang
+        if not task.cancelled():  # (a test may have cancelled it)
+            await asyncio.wait_for(task, 20.0)  # a guard against a hang
         ctx.destroy(linger=0)
 
 
@@ -455,5 +457,41 @@ def test_a_finished_replay_waits_for_the_contact_workers_warm_up(tmp_path: Path,
         ctx.destroy(linger=0)
         diffs = compare(normalise(messages), load_golden())
         assert not diffs, diffs[:10]
+
+    asyncio.run(scenario())
+
+
+def test_a_drain_cancelled_midway_still_closes_the_sockets_and_ends_the_worker(tmp_path: Path) -> None:
+    """The service's task cancelled while it drains (an embedding program's timeout, a test's
+    wait_for): the sockets, the ops hooks and the worker process were left open (a later
+    term() of the context hung on them)."""
+
+    async def scenario() -> None:
+        dev = FakeDevice()
+        sk = Skin()
+        make = ScriptedExecutor.factory(answers=2)
+        async with running(tmp_path, dev, contact_executor=make, drain_limit=10.0) as (svc, ctx):
+            contacts = _sub(ctx, svc, "contact")
+            await until(lambda: "contact" in svc.pub.wanted)
+            dev.send(sk.hellos() + sk.beacons())
+            k = 0
+            end = asyncio.get_running_loop().time() + 60.0
+            while not (ScriptedExecutor.made and ScriptedExecutor.made[0].hung):
+                assert asyncio.get_running_loop().time() < end, f"no third estimate after {k} slots"
+                for _, data in sk.stream(1, STRADDLE if k > 30 else None, start=k):
+                    dev.send(data)
+                k += 1
+                await asyncio.sleep(0.002)
+            task = svc.task  # type: ignore[attr-defined]
+            svc._stop.set()  # the drain now waits up to 5 s for the hung estimate
+            await until(lambda: any(w == "stopping" for w, _ in svc.hooks.said))  # type: ignore[attr-defined]
+            await asyncio.sleep(0.2)
+            assert not task.done()
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.wait_for(task, 5.0)
+            assert svc.pub.sock.closed and svc.ctl.closed
+            assert ScriptedExecutor.made[0].killed
+            contacts.close(0)
 
     asyncio.run(scenario())

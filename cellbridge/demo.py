@@ -138,9 +138,15 @@ def _cellbridge(*args: str) -> list[str]:
     return [sys.executable, "-m", "cellbridge", *args]
 
 
-def _wait_gateway(proc: subprocess.Popen[str]) -> str:
-    """The gateway's device that ``mesh up`` names on its standard output. Raises
-    RuntimeError when it ends first or names none within GATEWAY_TIMEOUT: read from the
+def _wait_gateway(proc: subprocess.Popen[Any]) -> str:
+    """The gateway's device that ``mesh up`` names on its standard output (see
+    :func:`gateway_line`)."""
+    return gateway_line(proc)[2]
+
+
+def gateway_line(proc: subprocess.Popen[Any]) -> list[str]:
+    """The words of the first ``gateway <id> <device> ...`` line ``mesh up`` prints. Raises
+    RuntimeError when it ends first or prints none within GATEWAY_TIMEOUT: read from the
     pipe as bytes come (a blocking line read waited for ever on a 'mesh up' that went
     silent, whatever the timeout said)."""
     deadline = time.monotonic() + GATEWAY_TIMEOUT
@@ -158,7 +164,7 @@ def _wait_gateway(proc: subprocess.Popen[str]) -> str:
         for line in lines:
             parts = line.decode(errors="replace").split()
             if len(parts) >= 3 and parts[0] == "gateway":
-                return parts[2]
+                return parts
     raise RuntimeError(f"'mesh up' named no gateway within {GATEWAY_TIMEOUT:.0f} s")
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import serial
 
+from cellbridge.demo import gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.emulator.realtime import reporting_arg, reporting_text
@@ -89,7 +90,7 @@ def running_skin(tmp_path: Path, *extra: str) -> Iterator[Skin]:
     proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(base), "--tcp", *extra],
                             stdout=subprocess.PIPE, start_new_session=True)
     try:
-        line = proc.stdout.readline().decode().split()  # type: ignore[union-attr]  # started with stdout=PIPE
+        line = gateway_line(proc)
         assert line[:2] == ["gateway", "1"] and line[2].startswith("/dev/pts/"), line
         yield Skin(mesh_path, base, proc, {1: line[2:]})
     finally:

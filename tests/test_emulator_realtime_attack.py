@@ -18,6 +18,7 @@ import pytest
 
 from test_emulator_processes import PY, free_base_port, processes_mentioning, posing_bridges, running_medium, stop_and_sweep, terminate
 
+from cellbridge.demo import gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh, mesh_to_toml
 
@@ -98,7 +99,7 @@ def test_mesh_up_keeps_running_when_its_stderr_reader_is_gone(tmp_path: Path) ->
     # supervisor's code, and the supervisor died writing "bridge N exited" to stderr.
     with mesh_up(tmp_path, meshgen.line(3), "--start-interval", "0", stderr=subprocess.PIPE) as (mesh_path, proc):
         assert proc.stdout is not None and proc.stderr is not None
-        assert proc.stdout.readline().split()[:2] == [b"gateway", b"1"]
+        assert gateway_line(proc)[:2] == ["gateway", "1"]
         roles = _wait_roles(mesh_path, {"medium", "world", "bridge 1", "bridge 2", "bridge 3"})
         proc.stderr.close()
         os.kill(roles["bridge 3"], signal.SIGTERM)
@@ -122,7 +123,7 @@ def test_sigterm_during_a_long_start_interval_stops_at_once(tmp_path: Path, inte
     with mesh_up(tmp_path, meshgen.line(2), "--start-interval", interval,
                  stderr=subprocess.PIPE) as (mesh_path, proc):
         assert proc.stdout is not None and proc.stderr is not None
-        assert proc.stdout.readline().split()[:2] == [b"gateway", b"1"]
+        assert gateway_line(proc)[:2] == ["gateway", "1"]
         _wait_roles(mesh_path, {"medium", "world", "bridge 1"})
         time.sleep(0.5)
         assert proc.poll() is None, proc.stderr.read().decode()

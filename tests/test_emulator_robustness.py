@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from cellbridge.demo import gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 from test_emulator_processes import PY, free_base_port, running_skin, stop_and_sweep, terminate
@@ -177,7 +178,7 @@ def test_the_mesh_files_tcp_port_is_served_only_with_tcp(tmp_path):
         proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(free_base_port()), *extra],
                                 stdout=subprocess.PIPE, start_new_session=True)
         try:
-            line = proc.stdout.readline().decode().split()  # type: ignore[union-attr]  # started with stdout=PIPE
+            line = gateway_line(proc)
             assert line[:2] == ["gateway", "1"], line
             assert (f"socket://127.0.0.1:{tcp}" in line) == served, line
             time.sleep(1.0)  # the gateway bridge has started (its line is printed once it runs)

@@ -322,6 +322,20 @@ def test_control_replies_stamp_wall_clock_time(tmp_path: Path) -> None:
     asyncio.run(scenario())
 
 
+async def _press_until_an_estimate_hangs(dev: FakeDevice, sk: Skin) -> None:
+    """Stream the skin's slots (a press across a seam from the 31st) until the service's
+    ScriptedExecutor holds a hung estimate (at most 60 s: a guard, not a speed check)."""
+    dev.send(sk.hellos() + sk.beacons())
+    k = 0
+    end = asyncio.get_running_loop().time() + 60.0
+    while not (ScriptedExecutor.made and ScriptedExecutor.made[0].hung):
+        assert asyncio.get_running_loop().time() < end, f"no hung estimate after {k} slots"
+        for _, data in sk.stream(1, STRADDLE if k > 30 else None, start=k):
+            dev.send(data)
+        k += 1
+        await asyncio.sleep(0.002)
+
+
 def test_sigterm_with_a_hung_contact_worker_stops_within_the_drain_limit(tmp_path: Path) -> None:
     """The worker answers two estimates, then hangs in the third. SIGTERM must neither
     wait out ``worker_timeout`` (30 s here, the default; systemd kills at 15) nor start a
@@ -334,15 +348,7 @@ def test_sigterm_with_a_hung_contact_worker_stops_within_the_drain_limit(tmp_pat
         async with running(tmp_path, dev, contact_executor=make, drain_limit=0.5) as (svc, ctx):
             contacts = _sub(ctx, svc, "contact", "health")
             await until(lambda: "contact" in svc.pub.wanted)
-            dev.send(sk.hellos() + sk.beacons())
-            k = 0
-            end = asyncio.get_running_loop().time() + 60.0  # a guard against a hang, not a speed check
-            while not (ScriptedExecutor.made and ScriptedExecutor.made[0].hung):
-                assert asyncio.get_running_loop().time() < end, f"no third estimate after {k} slots"
-                for _, data in sk.stream(1, STRADDLE if k > 30 else None, start=k):
-                    dev.send(data)
-                k += 1
-                await asyncio.sleep(0.002)
+            await _press_until_an_estimate_hangs(dev, sk)
             os.kill(os.getpid(), signal.SIGTERM)
             assert await asyncio.wait_for(svc.task, 20.0) == 0  # type: ignore[attr-defined]  # the test keeps the service's task on it
             assert len(ScriptedExecutor.made) == 1  # no replacement started during shutdown
@@ -473,15 +479,7 @@ def test_a_drain_cancelled_midway_still_closes_the_sockets_and_ends_the_worker(t
         async with running(tmp_path, dev, contact_executor=make, drain_limit=10.0) as (svc, ctx):
             contacts = _sub(ctx, svc, "contact")
             await until(lambda: "contact" in svc.pub.wanted)
-            dev.send(sk.hellos() + sk.beacons())
-            k = 0
-            end = asyncio.get_running_loop().time() + 60.0
-            while not (ScriptedExecutor.made and ScriptedExecutor.made[0].hung):
-                assert asyncio.get_running_loop().time() < end, f"no third estimate after {k} slots"
-                for _, data in sk.stream(1, STRADDLE if k > 30 else None, start=k):
-                    dev.send(data)
-                k += 1
-                await asyncio.sleep(0.002)
+            await _press_until_an_estimate_hangs(dev, sk)
             task = svc.task  # type: ignore[attr-defined]
             svc._stop.set()  # the drain now waits up to 5 s for the hung estimate
             await until(lambda: any(w == "stopping" for w, _ in svc.hooks.said))  # type: ignore[attr-defined]

@@ -126,7 +126,7 @@ def test_example_reads_the_live_daemon(language: str, tmp_path: Path) -> None:
             if k % 50 == 0:  # HELLOs again and again: the daemon may open the pty after the first ones
                 data = sk.hellos() + sk.beacons() + data
             with contextlib.suppress(AssertionError):  # nobody reads (the daemon stopping): lost, as a device's
-                pty.write(data, limit=1.0)
+                pty.write(data, limit=30.0)
             k += 1
             stop.wait(0.01)
 

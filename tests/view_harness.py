@@ -54,7 +54,7 @@ class Feeder(threading.Thread):
         self.stop_event = threading.Event()
         self.onsets: list[tuple[int, float]] = []  # (slot, wall time its bytes were written) of each press onset
         self.late = 0  # slots written more than one period late (the feeder could not keep up)
-        self.unread = 0  # writes given up after a second with nobody reading the line
+        self.unread = 0  # writes given up after 30 s with nobody reading the line
 
     def press(self, pattern: Callable[[int], tuple[float, float, float, float] | None] | None = lambda k: PRESS
               ) -> None:
@@ -73,7 +73,7 @@ class Feeder(threading.Thread):
             if k % int(sk.rate) == 0:
                 data = sk.hellos() + sk.beacons() + data
             try:
-                self.pty.write(data, limit=1.0)
+                self.pty.write(data, limit=30.0)
             except AssertionError:  # nobody reads the line (a daemon stopping, or between two runs)
                 self.unread += 1  # its bytes are lost, as a device's are: the feeder goes on
             except OSError:

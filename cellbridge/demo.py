@@ -138,12 +138,6 @@ def _cellbridge(*args: str) -> list[str]:
     return [sys.executable, "-m", "cellbridge", *args]
 
 
-def _wait_gateway(proc: subprocess.Popen[Any]) -> str:
-    """The gateway's device that ``mesh up`` names on its standard output (see
-    :func:`gateway_line`)."""
-    return gateway_line(proc)[2]
-
-
 def gateway_line(proc: subprocess.Popen[Any]) -> list[str]:
     """The words of the first ``gateway <id> <device> ...`` line ``mesh up`` prints. Raises
     RuntimeError when it ends first or prints none within GATEWAY_TIMEOUT: read from the
@@ -282,7 +276,7 @@ def run(args: argparse.Namespace) -> int:
         # pressed one every sample; periodic 100 Hz from 16 bridges crowds the gateway's cell
         with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port), "--reporting", "event:40"),
                     stdout=subprocess.PIPE, stderr=open(work / "mesh.log", "w"), text=True) as mesh:
-            device = _wait_gateway(mesh)
+            device = gateway_line(mesh)[2]
             say(f"gateway on {device}; starting the daemon on it (pub {pub}) ...")
             config = work / "daemon.toml"
             # baselines from 10 quiet readings (the default 50 take 50 s at the skin's 1 s

@@ -19,7 +19,7 @@ from typing import Any
 import msgpack
 import zmq
 
-from cellbridge.demo import _cellbridge, _free_port, _free_port_block, _group, _wait_gateway, _warm_kernels
+from cellbridge.demo import _cellbridge, _free_port, _free_port_block, _group, _warm_kernels, gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 
@@ -85,7 +85,7 @@ def live_skin(work: Path, rows: int = 4, cols: int = 4, name: str = "skin",
     with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port),
                             "--reporting", reporting),
                 stdout=subprocess.PIPE, stderr=open(work / f"{name}-mesh.log", "w"), text=True) as mesh:  # noqa: SIM115
-        yield LiveSkin(work, rows, cols, _wait_gateway(mesh), base_port, mesh)
+        yield LiveSkin(work, rows, cols, gateway_line(mesh)[2], base_port, mesh)
 
 
 class Collector:

@@ -33,7 +33,7 @@ def test_a_silent_mesh_up_is_given_up_on_at_the_timeout(monkeypatch: pytest.Monk
     with _child("import time; time.sleep(30)") as proc:
         t0 = time.monotonic()
         with pytest.raises(RuntimeError, match="named no gateway within"):
-            demo._wait_gateway(proc)
+            demo.gateway_line(proc)
         assert time.monotonic() - t0 < 5.0
 
 
@@ -41,10 +41,10 @@ def test_the_gateway_line_is_found_when_it_comes_in_pieces_after_other_lines() -
     with _child("import sys, time\n"
                 "sys.stdout.write('starting\\ngate'); sys.stdout.flush(); time.sleep(0.3)\n"
                 "sys.stdout.write('way 1 /dev/pts/9\\n'); sys.stdout.flush(); time.sleep(30)") as proc:
-        assert demo._wait_gateway(proc) == "/dev/pts/9"
+        assert demo.gateway_line(proc)[:3] == ["gateway", "1", "/dev/pts/9"]
 
 
 def test_a_mesh_up_that_ends_first_is_reported_with_its_status() -> None:
     with _child("import sys; print('cannot start'); sys.exit(3)") as proc, \
             pytest.raises(RuntimeError, match=r"ended \(status 3\)"):
-        demo._wait_gateway(proc)
+        demo.gateway_line(proc)

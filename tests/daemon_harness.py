@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import os
+import select
 import shutil
 import signal
 import socket
@@ -78,8 +79,6 @@ class Pty:
         """All of ``data`` into the line, waiting at most ``limit`` s for room: a pty holds
         about 12 KB, and a daemon that stopped reading (died, or its link ended) would
         otherwise block the test for ever instead of failing it."""
-        import select
-
         view = memoryview(data)
         end = time.monotonic() + limit
         while view:
@@ -89,8 +88,6 @@ class Pty:
             view = view[n:]
 
     def read(self, timeout: float = 2.0) -> bytes:
-        import select
-
         ready, _, _ = select.select([self.master], [], [], timeout)
         return os.read(self.master, 4096) if ready else b""
 

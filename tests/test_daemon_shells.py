@@ -13,6 +13,7 @@ import contextlib
 import logging
 import os
 import signal
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -493,3 +494,39 @@ def test_a_drain_cancelled_midway_still_closes_the_sockets_and_ends_the_worker(t
             contacts.close(0)
 
     asyncio.run(scenario())
+
+
+def test_a_shifted_replay_that_falls_behind_never_feeds_a_read_before_the_time_it_is_fed(tmp_path: Path) -> None:
+    """A shifted replay at recorded speed on a starved loop (here a read that blocks it for
+    0.3 s): the records due meanwhile are fed late. Stamped on their schedule they came
+    0.3 s before the time the pipeline's looks and ticks had already run at, and a daemon
+    re-run on a recording took its baselines from other readings than the recorded run's
+    (9 fF apart). Now they are stamped when fed, counted, and the replay is back on its
+    schedule after them, as a line is after the kernel held its bytes."""
+    from cellbridge.daemon.capture import write_capture
+    from cellbridge.daemon.config import LinkConfig
+    from cellbridge.daemon.links import ReplayLink
+
+    path = tmp_path / "line.cbcap"
+    write_capture(path, [(1000.0 + 0.01 * i, bytes([i])) for i in range(60)])
+    fed: list[tuple[float, float]] = []  # (stamp, monotonic time when fed)
+
+    def on_data(name: str, data: bytes, now: float) -> None:
+        fed.append((now, time.monotonic()))
+        if data == bytes([20]):
+            time.sleep(0.3)
+
+    link = ReplayLink(LinkConfig(name="gw", url=f"replay:{path}", replay_speed=1.0, replay_clock="shifted"),
+                      on_data, lambda *a: None)
+    asyncio.run(asyncio.wait_for(link.run(), 10))
+    assert len(fed) == 60
+    assert all(stamp >= fed_at - ReplayLink.LATE - 1e-3 for stamp, fed_at in fed), \
+        max(fed_at - stamp for stamp, fed_at in fed)
+    stamps = [s for s, _ in fed]
+    assert all(b >= a for a, b in zip(stamps, stamps[1:]))
+    start = stamps[0]
+    on_schedule = [i for i, s in enumerate(stamps) if abs(s - start - 0.01 * i) < 1e-6]
+    late = [i for i in range(60) if i not in on_schedule]
+    assert on_schedule[:21] == list(range(21)) and on_schedule[-5:] == list(range(55, 60)) and late, late
+    stats = link.stats()
+    assert stats["replay_late"] == len(late) and 0.25 < stats["replay_late_max"] < 0.35, stats

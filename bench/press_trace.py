@@ -10,7 +10,10 @@ methods, in this process only, to note on the host monotonic clock:
 * ``l``: every contact look (``LayoutStages.snapshot``): its time, the frame it took
   (or none), and each element's hold (delay mark plus margin) at that time;
 * ``e``: every estimate (start, end, the frame, its unknown elements);
-* ``p``: every ``contact`` message handed to ZeroMQ (time, frame, contacts).
+* ``p``: every ``contact`` message handed to ZeroMQ (time, frame, contacts);
+* ``x``: every job handed to the contact worker: when it was submitted, when the worker
+  began and ended it (the worker process notes these in a file), and when its future was
+  done in the daemon (the executor's result thread), all on the one monotonic clock.
 
 The trace is written as msgpack when the daemon stops (SIGTERM). Nothing here runs in a
 daemon started the ordinary way: the diagnostic costs the production path nothing.
@@ -19,6 +22,7 @@ daemon started the ordinary way: the diagnostic costs the production path nothin
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import time
@@ -32,7 +36,22 @@ from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
 from cellbridge.daemon.service import Service, run_service
 
-TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": []}
+TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": [], "x": []}
+WORKER_TRACE = "CB_PRESS_TRACE_WORKER"  #: env: the file the contact worker notes its jobs in
+
+
+def timed_estimate(job: Any) -> Any:
+    """The worker's estimate, its start and end appended to the file $CB_PRESS_TRACE_WORKER
+    names (the worker imports this module by name: bench/ is on its sys.path)."""
+    import os
+
+    from cellbridge.daemon.contacts import estimate
+
+    t0 = time.monotonic()
+    out = estimate(job)
+    with open(os.environ[WORKER_TRACE], "a") as f:
+        f.write(f"{t0!r} {time.monotonic()!r}\n")
+    return out
 
 
 def _f(x: float) -> float | None:
@@ -98,6 +117,21 @@ def _instrument() -> None:
                                [(c.get("id"), c.get("x"), c.get("y"), c.get("force")) for c in payload["contacts"]]))
         return out
 
+    import concurrent.futures
+
+    from cellbridge.daemon import contact_worker
+
+    submit = concurrent.futures.ProcessPoolExecutor.submit
+
+    def traced_submit(self: Any, fn: Any, /, *args: Any, **kwargs: Any) -> Any:
+        t0 = time.monotonic()
+        fut = submit(self, fn, *args, **kwargs)
+        if fn is timed_estimate:
+            fut.add_done_callback(lambda _: TRACE["x"].append((t0, time.monotonic())))
+        return fut
+
+    concurrent.futures.ProcessPoolExecutor.submit = traced_submit  # type: ignore[method-assign]
+    contact_worker.estimate = timed_estimate  # type: ignore[attr-defined]
     Service._on_data = traced_on_data  # type: ignore[method-assign]
     Service._tick_once = traced_tick_once  # type: ignore[method-assign]
     Pipeline.contact_due = traced_contact_due  # type: ignore[method-assign]
@@ -113,11 +147,19 @@ def main() -> int:
     ap.add_argument("--trace", required=True, help="msgpack file the trace is written to at the stop")
     args = ap.parse_args()
     config = _load(argparse.Namespace(config=args.config))
+    import os
+
+    worker_file = args.trace + ".worker"
+    os.environ[WORKER_TRACE] = worker_file
     _instrument()
     try:
         return run_service(args.config, config)
     finally:
         TRACE["wall_offset"] = [time.time() - time.monotonic()]
+        with contextlib.suppress(OSError):
+            ran = [tuple(map(float, line.split())) for line in open(worker_file)]
+            # each submitted job with the worker's start and end of it (jobs run one at a time, in order)
+            TRACE["x"] = [(a, s, e, b) for (a, b), (s, e) in zip(sorted(TRACE["x"]), ran)]
         with open(args.trace, "wb") as f:
             msgpack.pack(TRACE, f)
 
@@ -175,6 +217,11 @@ def breakdown(trace: dict[str, list[Any]], presses: list[tuple[float, float, flo
         tp = pub[1] - off
         row["pub"] = 1e3 * (pub[0] - tk)
         row["frames_after"] = round((tp - tk) / period)
+        job = next((j for j in reversed(trace.get("x", [])) if j[0] <= pub[0] and j[3] <= pub[0]), None)
+        if job is not None and "look" in row and job[0] >= tk + row["look"] / 1e3 - 1e-4:
+            # the contact's job: submitted → worker began → worker ended → future done → published
+            row["job"] = tuple(round(1e3 * v, 2) for v in (job[1] - job[0], job[2] - job[1], job[3] - job[2],
+                                                            pub[0] - job[3]))
         est = next((e for e in ests if e[2] is not None and abs(e[2] - tp) < 1e-6), None)
         if est is not None:
             row["est"] = (1e3 * (est[0] - tk), 1e3 * (est[1] - tk))
@@ -227,6 +274,14 @@ def print_breakdown(rows: list[dict[str, Any]], share: float = 0.1) -> None:
             xs = sorted(r[c] for r in seen if isinstance(r.get(c), (int, float)))
             cells.append(fmt(float(xs[min(len(xs) - 1, int(q * len(xs)))])) if xs else fmt("-"))
         print(f" p{round(100 * q)} of each column:\n  " + "  ".join(cells))
+    jobs = [r["job"] for r in seen if r.get("job")]
+    if jobs:
+        print(f" the contact's job in the worker ({len(jobs)} presses), ms, p50/p90/p99/max:")
+        for i, what in enumerate(("submitted -> worker began", "worker's estimate", "worker ended -> future done",
+                                  "future done -> published")):
+            xs = sorted(j[i] for j in jobs)
+            qs = [xs[min(len(xs) - 1, int(q * len(xs)))] for q in (0.5, 0.9, 0.99)] + [xs[-1]]
+            print(f"   {what:<28}" + "".join(f"{v:8.2f}" for v in qs))
     late = [r for r in seen if r.get("frames_after")]
     print(f" presses whose first contact was not on their first touched frame: {len(late)} of {len(seen)}")
     # the usual reason: the frame's holds ran out before its first touched reading came, so

@@ -117,11 +117,10 @@ def _instrument() -> None:
                                [(c.get("id"), c.get("x"), c.get("y"), c.get("force")) for c in payload["contacts"]]))
         return out
 
-    import concurrent.futures
-
     from cellbridge.daemon import contact_worker
+    from cellbridge.daemon.worker_process import WorkerProcess
 
-    submit = concurrent.futures.ProcessPoolExecutor.submit
+    submit = WorkerProcess.submit
 
     def traced_submit(self: Any, fn: Any, /, *args: Any, **kwargs: Any) -> Any:
         t0 = time.monotonic()
@@ -130,7 +129,7 @@ def _instrument() -> None:
             fut.add_done_callback(lambda _: TRACE["x"].append((t0, time.monotonic())))
         return fut
 
-    concurrent.futures.ProcessPoolExecutor.submit = traced_submit  # type: ignore[method-assign]
+    WorkerProcess.submit = traced_submit  # type: ignore[method-assign]
     contact_worker.estimate = timed_estimate  # type: ignore[attr-defined]
     Service._on_data = traced_on_data  # type: ignore[method-assign]
     Service._tick_once = traced_tick_once  # type: ignore[method-assign]

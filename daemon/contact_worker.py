@@ -16,13 +16,13 @@ import concurrent.futures
 import concurrent.futures.process
 import contextlib
 import logging
-import multiprocessing
 import time
 from collections.abc import Callable
 from typing import Any
 
 from cellbridge.daemon.logs import event
 from cellbridge.daemon.contacts import ContactJob, estimate, warm_up
+from cellbridge.daemon.worker_process import WorkerProcess
 
 Contacts = list[dict[str, Any]]
 #: Makes the worker's executor (again after a hung or dead one was killed).
@@ -32,8 +32,8 @@ CLOSE_WAIT = 2.0
 
 
 def process_pool() -> concurrent.futures.Executor:
-    """The production executor: one spawned process (a fork would copy the daemon's sockets)."""
-    return concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    """The production executor: one spawned process (:class:`~cellbridge.daemon.worker_process.WorkerProcess`)."""
+    return WorkerProcess()
 
 
 class InlineExecutor(concurrent.futures.Executor):
@@ -185,27 +185,17 @@ class ContactWorker:
         if self.working or not self.warmed():  # (a warm-up compiling the kernels takes half a minute)
             _kill(pool)
             return
-        procs = list((getattr(pool, "_processes", None) or {}).values())
-        if not procs:  # an executor of threads, or inline: nothing to kill
+        if not isinstance(pool, WorkerProcess):  # an executor of threads, or inline: nothing to kill
             pool.shutdown(wait=True)
             return
-        pool.shutdown(wait=False)
-        end = time.monotonic() + CLOSE_WAIT
-        for proc in procs:
-            proc.join(max(0.0, end - time.monotonic()))
-        if any(proc.is_alive() for proc in procs):
+        if not pool.end(CLOSE_WAIT):
             event(self.log, "warning", "contact worker did not exit: killed", waited=CLOSE_WAIT)
-            for proc in procs:  # (the shut-down pool no longer lists them)
-                proc.kill()
 
 
 def _kill(pool: concurrent.futures.Executor) -> None:
-    """End ``pool`` now, whatever it is running: its own ``kill()`` where it has one (a
-    test's fake; ProcessPoolExecutor from Python 3.14), else kill its processes."""
+    """End ``pool`` now, whatever it is running: its ``kill()`` where it has one (the worker
+    process, a test's fake), then shut it down without waiting."""
     kill = getattr(pool, "kill", None)
     if kill is not None:
         kill()
-    else:
-        for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            proc.kill()
     pool.shutdown(wait=False, cancel_futures=True)

@@ -11,12 +11,13 @@ import time
 
 from cellbridge.daemon import contact_worker
 from cellbridge.daemon.contact_worker import ContactWorker
+from cellbridge.daemon.worker_process import WorkerProcess
 
 
 def _worker_pid(worker: ContactWorker) -> int:
     pool = worker._executor()
-    (pid,) = pool._processes  # type: ignore[attr-defined]  # the one process of a ProcessPoolExecutor
-    return int(pid)
+    assert isinstance(pool, WorkerProcess) and pool.pid is not None
+    return pool.pid
 
 
 def _gone(pid: int) -> bool:

@@ -406,11 +406,12 @@ class Service:
 
 
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms). A
-#: contact job reaches the worker process, and its result the loop, through the executor's
-#: own threads; with the loop busy on a read (1-5 ms of numpy work) each hand-off waited
-#: up to a whole interval. Measured on a 4x4 skin, press to contact
-#: (bench/bench_press_latency.py --trace): submitted -> worker began 3.9 / 5.4 ms (p90/p99)
-#: with the default, 2.2 / 3.8 ms with this one.
+#: contact estimate's result reaches the loop through the worker's result thread
+#: (daemon/worker_process.py), and ZeroMQ's authenticator answers from its own; with the
+#: loop busy on reads (1-5 ms of numpy work each, back to back around a press) such a
+#: thread waited up to a whole interval for its turn. Measured with the process pool the
+#: daemon used before, press to contact (bench/bench_press_latency.py --trace): submitted
+#: -> worker began 3.9 / 5.4 ms (p90/p99) with the default, 2.2 / 3.8 ms with this one.
 GIL_SWITCH_INTERVAL = 0.0005
 
 

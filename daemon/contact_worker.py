@@ -124,17 +124,25 @@ class ContactWorker:
         return contacts
 
     async def estimate(self, job: ContactJob, timeout: float = 30.0) -> Contacts | None:
-        """The contacts of ``job``; None when the estimate failed (logged and counted).
-        An estimate past ``timeout`` (once the worker has answered before: its first one
-        waits for the warm-up) means a hung worker: it is killed and a new one started."""
+        """The contacts of ``job``; None when the estimate failed (logged and counted), or
+        when the daemon is stopping and its worker is gone (a stop never starts a new one).
+        An estimate past ``timeout`` means a hung worker: it is killed and a new one
+        started. The worker's warm-up (about 20 s on a fresh installation, compiling the
+        kernels) is waited for first, without a bound; a worker started without one has
+        no bound on its first estimate."""
         t0 = time.perf_counter()
+        if self._stopping and self._pool is None:
+            return None
         if not self._needed(job):
             contacts: Contacts = []
         else:
             self.busy = True
             try:
+                if self._warm is not None and not self._warm.done() and not self._stopping:
+                    with contextlib.suppress(Exception):  # a failed warm-up is the estimate's to report
+                        await asyncio.shield(asyncio.wrap_future(self._warm))
                 self._job = self._executor().submit(estimate, job)
-                limit = timeout if self._answered or self._stopping else None
+                limit = timeout if self._answered or self._stopping or self._warm is not None else None
                 contacts = await asyncio.wait_for(asyncio.wrap_future(self._job), limit)
                 self._answered = True
             except Exception as exc:  # a bad estimate (or a dead worker) must not end contact publishing

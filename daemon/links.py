@@ -249,6 +249,8 @@ class ReplayLink(Link):
     its time went backwards, the element stage skipped steps, and a re-run took its
     baselines from other readings than the recorded run (9 fF apart, on a loaded machine).
     Counted in ``replay_late`` (records stamped after their due time) and ``replay_late_max`` (s).
+    A replay behind its schedule lets the loop's other tasks run every 64 records (ticks,
+    estimates, the watchdog); a recording whose times step back is paced on its newest time.
     """
 
     #: s a paced record may be fed after its due time and still carry it (a sleep's wake-up)
@@ -281,24 +283,36 @@ class ReplayLink(Link):
         why = "replay finished"
         if first is not None:
             t_first = first[0]
-            last = -math.inf
+            last, ahead, unyielded = -math.inf, 0.0, 0
             try:
                 for t, data in _chain(first, records):
                     rel = t - t_first
-                    due = stamp = start + (rel / speed if speed > 0 else rel)
                     if speed > 0:
+                        # paced on the recording's newest time so far: a recording whose times
+                        # step back is replayed at once, not counted as a machine running late
+                        ahead = max(ahead, rel)
+                        due = stamp = start + ahead / speed
                         wait = due - time.monotonic()
                         if wait > 0:
                             await asyncio.sleep(wait)
-                        elif wait < -self.LATE:
+                            unyielded = 0
+                            wait = due - time.monotonic()  # the sleep itself may end late (a busy loop)
+                        elif unyielded >= 64:  # behind: the loop's other tasks run now and then
+                            await asyncio.sleep(0)
+                            unyielded = 0
+                            wait = due - time.monotonic()
+                        unyielded += 1
+                        if wait < -self.LATE:
                             stamp = due - wait
                         stamp = max(stamp, last)  # one on time behind a late one: not before it
                         last = stamp
                         if stamp > due and not recorded:
                             self.late += 1
                             self.late_max = max(self.late_max, stamp - due)
-                    elif self.records % 64 == 0:
-                        await asyncio.sleep(0)  # let sockets and control run between records
+                    else:
+                        stamp = start + rel
+                        if self.records % 64 == 0:
+                            await asyncio.sleep(0)  # let sockets and control run between records
                     self.records += 1
                     self._on_data(self.name, data, t if recorded else stamp)
             except (OSError, ValueError) as exc:  # a record further on is corrupt: the replay ends there

@@ -10,25 +10,36 @@ Here the caller writes the job down the process's pipe itself, and one thread re
 results: ``bench/bench_worker_handoff.py`` measures both under a loop busy like the
 daemon's.
 
-The process is spawned (a fork would copy the daemon's sockets). It ignores SIGINT (a
-Ctrl-C in a terminal reaches the whole process group; the daemon decides when its worker
-ends) and exits when its pipe closes: at :meth:`WorkerProcess.shutdown`, and when the
-daemon dies, however it dies.
+The process is spawned (a fork would copy the daemon's sockets). It ignores SIGINT and
+SIGTERM, from its first instruction on (a Ctrl-C in a terminal reaches the whole process
+group, and ``systemctl stop`` the whole unit: the worker must outlive the daemon's drain,
+whose last estimate it runs), and the daemon ends it: it exits when its pipe closes (at
+:meth:`WorkerProcess.shutdown`, or when the daemon dies: an idle worker reads the end, a
+busy one fails to send), it is killed (a hung job; the daemon's exit, see
+:func:`_kill_left_over`), and the kernel kills it when the daemon dies outright
+(``PR_SET_PDEATHSIG``: a job that never ends must not outlive it).
 """
 
 from __future__ import annotations
 
+import atexit
 import collections
 import concurrent.futures
 import concurrent.futures.process
+import ctypes
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
 import threading
+import weakref
 from collections.abc import Callable
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 BrokenWorker = concurrent.futures.process.BrokenProcessPool  #: what a job's future holds when the process died
+_ENDED_BY_DAEMON = {signal.SIGINT, signal.SIGTERM}  #: signals the worker leaves to the daemon
+_LIVE: weakref.WeakSet[WorkerProcess] = weakref.WeakSet()  # workers started and not yet ended
 
 
 class WorkerProcess(concurrent.futures.Executor):
@@ -40,13 +51,22 @@ class WorkerProcess(concurrent.futures.Executor):
     def __init__(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
-        self._proc = ctx.Process(target=_serve, args=(child,), name="cellbridge-contact-worker", daemon=True)
-        self._proc.start()
+        self._proc = ctx.Process(target=_serve, args=(child, os.getpid()), name="cellbridge-contact-worker",
+                                 daemon=True)
+        # blocked across the spawn, inherited: a Ctrl-C while the new interpreter boots
+        # (at the daemon's start, at every replacement) would kill it before _serve ran
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, _ENDED_BY_DAEMON)
+        try:
+            self._proc.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         child.close()  # the child's end lives in the child only: its exit is our EOF
         self._pending: collections.deque[concurrent.futures.Future[Any]] = collections.deque()
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the pending futures and the state below
+        self._send_lock = threading.Lock()  # the pipe's order of jobs (the reader never takes it)
         self._broken = ""  # why the process can take no more jobs ("" while it can)
         self._shut = False
+        _LIVE.add(self)
         self._reader = threading.Thread(target=self._read, name="contact-worker-results", daemon=True)
         self._reader.start()
 
@@ -61,36 +81,51 @@ class WorkerProcess(concurrent.futures.Executor):
         :meth:`shutdown`; a dead process gives a future failed with ``BrokenProcessPool``."""
         fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
         fut.set_running_or_notify_cancel()  # sent at once: cancelling cannot take it back
-        with self._lock:
-            if self._shut:
-                raise RuntimeError("cannot submit to a worker process after shutdown")
-            if self._broken:
-                fut.set_exception(BrokenWorker(self._broken))
-                return fut
-            self._pending.append(fut)
-            try:
-                self._conn.send((fn, args, kwargs))
+        try:  # before it is queued: a job that does not pickle fails alone, later results stay theirs
+            data = bytes(ForkingPickler.dumps((fn, args, kwargs)))
+        except Exception as exc:
+            fut.set_exception(exc)
+            return fut
+        with self._send_lock:
+            with self._lock:
+                if self._shut:
+                    raise RuntimeError("cannot submit to a worker process after shutdown")
+                if self._broken:
+                    fut.set_exception(BrokenWorker(self._broken))
+                    return fut
+                self._pending.append(fut)
+            try:  # (without the futures' lock: the reader takes the results meanwhile)
+                self._conn.send_bytes(data)
             except (OSError, ValueError) as exc:  # the process's end is gone
-                self._pending.pop()
-                fut.set_exception(BrokenWorker(f"the contact worker process is gone: {exc}"))
+                with self._lock:
+                    if fut in self._pending:
+                        self._pending.remove(fut)
+                if not fut.done():
+                    fut.set_exception(BrokenWorker(f"the contact worker process is gone: {exc}"))
         return fut
 
     def _read(self) -> None:
-        while True:
-            try:
-                ok, value = self._conn.recv()
-            except (EOFError, OSError):
-                break
-            with self._lock:
-                if not self._pending:  # a result that came in as the process was killed
-                    continue
-                fut = self._pending.popleft()
-            if ok:
-                fut.set_result(value)
-            else:
-                fut.set_exception(value)
-        self._fail("the contact worker process ended")
-        self._conn.close()
+        try:
+            while True:
+                try:
+                    data = self._conn.recv_bytes()
+                except (EOFError, OSError):
+                    break
+                try:
+                    ok, value = ForkingPickler.loads(data)
+                except Exception as exc:  # pickled in the worker, does not unpickle here
+                    ok, value = False, RuntimeError(f"the job's reply does not unpickle: {type(exc).__name__}: {exc}")
+                with self._lock:
+                    if not self._pending:  # a result that came in as the process was killed
+                        continue
+                    fut = self._pending.popleft()
+                if ok:
+                    fut.set_result(value)
+                else:
+                    fut.set_exception(value)
+        finally:
+            self._fail("the contact worker process ended")
+            self._conn.close()
 
     def _fail(self, why: str) -> None:
         with self._lock:
@@ -102,6 +137,7 @@ class WorkerProcess(concurrent.futures.Executor):
     def kill(self) -> None:
         """End the process now, whatever it runs; its pending futures fail."""
         self._proc.kill()
+        _LIVE.discard(self)
         self._fail("the contact worker process was killed")
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
@@ -112,14 +148,15 @@ class WorkerProcess(concurrent.futures.Executor):
         if cancel_futures:
             self.kill()
         elif first:
-            with self._lock:
+            with self._send_lock:
                 try:
-                    self._conn.send(None)  # (the process reads it after the jobs before it)
+                    self._conn.send_bytes(_END)  # (the process reads it after the jobs before it)
                 except (OSError, ValueError):
                     pass  # gone already
         if wait:
             self._proc.join()
             self._reader.join()
+            _LIVE.discard(self)
 
     def end(self, wait: float) -> bool:
         """Shut down and give the process ``wait`` s to exit, then kill it; whether it exited
@@ -130,13 +167,46 @@ class WorkerProcess(concurrent.futures.Executor):
             self.kill()
             self._proc.join(1.0)
             return False
+        _LIVE.discard(self)
         return True
 
 
-def _serve(conn: multiprocessing.connection.Connection) -> None:
+_END = bytes(ForkingPickler.dumps(None))  #: the last message a worker reads
+
+
+@atexit.register
+def _kill_left_over() -> None:
+    """At the daemon's exit, kill the workers still running (an exit past the service's own
+    stop: an exception in its teardown). Registered after multiprocessing's exit hook, so it
+    runs first: that hook sends a daemonic child SIGTERM, which a worker ignores, and then
+    waits for it without a bound."""
+    for worker in list(_LIVE):
+        worker.kill()
+        worker._proc.join(1.0)
+
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with(parent: int) -> None:
+    """Have the kernel kill this process when ``parent`` dies (Linux; elsewhere the pipe's
+    end does it once a job ends)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # it died before the request was made
+        os._exit(0)
+
+
+def _serve(conn: multiprocessing.connection.Connection, parent: int) -> None:
     """The process: run each job as it comes, send back ``(True, result)`` or ``(False,
     exception)``; end at ``None`` or when the pipe closes."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in _ENDED_BY_DAEMON:
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _ENDED_BY_DAEMON)
+    _die_with(parent)
     while True:
         try:
             job = conn.recv()

@@ -1,0 +1,123 @@
+"""Attacks on a replay's pacing and late stamping (daemon/links.py ReplayLink.run): a sleep that
+ends late, a replay far behind, a recording whose times step back."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+
+from cellbridge.daemon.capture import write_capture
+from cellbridge.daemon.config import LinkConfig
+from cellbridge.daemon.links import ReplayLink
+
+
+def _link(path: Path, speed: float, clock: str, on_data) -> ReplayLink:  # type: ignore[no-untyped-def]
+    return ReplayLink(LinkConfig(name="gw", url=f"replay:{path}", replay_speed=speed, replay_clock=clock),
+                      on_data, lambda *a: None)
+
+
+def test_a_record_fed_late_after_the_replay_slept_is_stamped_when_fed(tmp_path: Path) -> None:
+    """The starved loop of the commit's story, starved by ANOTHER task (a contact result, a
+    tick, a big publish) while the replay sleeps towards its next record: the sleep wakes
+    0.3 s late and the record is stamped with its due time, 0.3 s before the time it is fed
+    and before the ticks that ran in between. Only a record whose lateness is seen before
+    the sleep gets the fed-time stamp."""
+    path = tmp_path / "line.cbcap"
+    write_capture(path, [(1000.0 + 0.01 * i, bytes([i])) for i in range(40)])
+    fed: list[tuple[float, float]] = []
+    ticks: list[float] = []
+
+    def on_data(name: str, data: bytes, now: float) -> None:
+        fed.append((now, time.monotonic()))
+
+    async def hog() -> None:
+        await asyncio.sleep(0.105)  # mid-way between two records
+        ticks.append(time.monotonic())
+        time.sleep(0.3)  # the loop is busy elsewhere
+        ticks.append(time.monotonic())  # e.g. the pipeline ticked at this time
+
+    async def main() -> None:
+        link = _link(path, 1.0, "shifted", on_data)
+        await asyncio.gather(link.run(), hog())
+
+    asyncio.run(asyncio.wait_for(main(), 10))
+    worst = max(fed_at - stamp for stamp, fed_at in fed)
+    first_after = next(s for s, f in fed if f > ticks[1])
+    assert worst <= ReplayLink.LATE + 1e-3, \
+        f"a record fed {worst * 1e3:.0f} ms after its stamp; first stamp after the hog {first_after - ticks[1]:+.3f} s vs its end"
+
+
+def test_a_fast_replay_that_is_behind_lets_the_loop_run(tmp_path: Path) -> None:
+    """Paced (speed > 0) but behind: every record's due time is past, the loop feeds them all
+    without one await (speed 0 yields every 64 records). At a high speed, or after a long
+    stall, the whole rest of the recording is fed with the loop blocked: no tick, no
+    contact estimate, no control reply, no systemd watchdog (WatchdogSec=10s)."""
+    path = tmp_path / "line.cbcap"
+    n = 20000
+    write_capture(path, [(1000.0 + 0.001 * i, bytes([i % 256])) for i in range(n)])
+    spins = [0]
+    fed_during: list[int] = []
+
+    def on_data(name: str, data: bytes, now: float) -> None:
+        if len(fed_during) < 1 or fed_during[-1] != spins[0]:
+            fed_during.append(spins[0])
+        for _ in range(200):  # a little ingest work per read
+            pass
+
+    async def other() -> None:
+        while True:
+            spins[0] += 1
+            await asyncio.sleep(0)
+
+    async def main() -> tuple[int, float]:
+        t = asyncio.create_task(other())
+        await asyncio.sleep(0)
+        link = _link(path, 1e6, "shifted", on_data)  # 20 s of recording at 1e6x
+        t0 = time.monotonic()
+        await link.run()
+        took = time.monotonic() - t0
+        t.cancel()
+        return spins[0], took
+
+    s, took = asyncio.run(asyncio.wait_for(main(), 60))
+    assert s > 10, f"the other task ran {s} times while the replay fed {n} records in {took:.2f} s"
+
+
+def test_a_recording_that_steps_back_is_not_counted_late(tmp_path: Path) -> None:
+    """A recording whose times step back 0.3 s (two captures appended, a wall-clock step in a
+    foreign recording): every later record's due time is in the past, so each is fed at
+    once (a 0.3 s burst) and counted in replay_late, on a machine that was never late."""
+    path = tmp_path / "line.cbcap"
+    times = [1000.0 + 0.01 * i for i in range(40)] + [1000.1 + 0.01 * i for i in range(40)]
+    write_capture(path, [(t, bytes([i % 256])) for i, t in enumerate(times)])
+    fed: list[tuple[float, float]] = []
+    link = _link(path, 1.0, "shifted", lambda n, d, now: fed.append((now, time.monotonic())))
+    asyncio.run(asyncio.wait_for(link.run(), 10))
+    stamps = [s for s, _ in fed]
+    assert all(b >= a for a, b in zip(stamps, stamps[1:]))
+    st = link.stats()
+    assert st["replay_late"] == 0, f"{st['replay_late']} records counted late (max {st['replay_late_max']:.3f} s)"
+
+
+# -- things that should hold -------------------------------------------------------------------
+
+def test_stamps_never_go_back_or_run_ahead_when_paced(tmp_path: Path) -> None:
+    path = tmp_path / "line.cbcap"
+    times = [1000.0 + 0.002 * i for i in range(200)]
+    times[50] = times[49]  # a duplicate
+    times[120:125] = [times[119]] * 5
+    write_capture(path, [(t, bytes([i % 256])) for i, t in enumerate(times)])
+    for speed in (0.5, 1.0, 7.0, 1e9):
+        fed: list[tuple[float, float]] = []
+
+        def on_data(name: str, data: bytes, now: float, fed: list[tuple[float, float]] = fed) -> None:
+            fed.append((now, time.monotonic()))
+            if len(fed) % 37 == 0:
+                time.sleep(0.02)
+
+        link = _link(path, speed, "shifted", on_data)
+        asyncio.run(asyncio.wait_for(link.run(), 20))
+        stamps = [s for s, _ in fed]
+        assert all(b >= a for a, b in zip(stamps, stamps[1:])), speed
+        assert all(s <= f + 1e-6 for s, f in fed), speed  # never ahead of the clock when fed

@@ -97,7 +97,8 @@ def test_a_recording_that_steps_back_is_not_counted_late(tmp_path: Path) -> None
     stamps = [s for s, _ in fed]
     assert all(b >= a for a, b in zip(stamps, stamps[1:]))
     st = link.stats()
-    assert st["replay_late"] == 0, f"{st['replay_late']} records counted late (max {st['replay_late_max']:.3f} s)"
+    # (a busy machine may wake a sleep a few ms late: that is late; the 0.3 s step is not)
+    assert st["replay_late_max"] < 0.1, f"{st['replay_late']} records counted late (max {st['replay_late_max']:.3f} s)"
 
 
 # -- things that should hold -------------------------------------------------------------------

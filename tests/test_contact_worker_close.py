@@ -12,20 +12,13 @@ import time
 from cellbridge.daemon import contact_worker
 from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.worker_process import WorkerProcess
+from process_state import gone
 
 
 def _worker_pid(worker: ContactWorker) -> int:
     pool = worker._executor()
     assert isinstance(pool, WorkerProcess) and pool.pid is not None
     return pool.pid
-
-
-def _gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
 
 
 def test_an_idle_worker_that_does_not_exit_is_killed_within_the_close_wait(warm_kernels: None) -> None:
@@ -41,12 +34,12 @@ def test_an_idle_worker_that_does_not_exit_is_killed_within_the_close_wait(warm_
         worker.close()
         took = time.monotonic() - t0
         end = time.monotonic() + 5.0
-        while not _gone(pid) and time.monotonic() < end:
+        while not gone(pid) and time.monotonic() < end:
             time.sleep(0.02)
-        assert _gone(pid), "the stopped worker was left running"
+        assert gone(pid), "the stopped worker was left running"
         assert took < contact_worker.CLOSE_WAIT + 2.0, f"close() took {took:.1f} s"
     finally:
-        if not _gone(pid):
+        if not gone(pid):
             os.kill(pid, signal.SIGKILL)
 
 
@@ -58,4 +51,4 @@ def test_an_idle_worker_exits_by_itself_at_close(warm_kernels: None) -> None:
     t0 = time.monotonic()
     worker.close()
     assert time.monotonic() - t0 < contact_worker.CLOSE_WAIT
-    assert _gone(pid)
+    assert gone(pid)

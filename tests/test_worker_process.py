@@ -15,21 +15,7 @@ from collections.abc import Iterator
 import pytest
 
 from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
-
-
-def _gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
-
-
-def _until_gone(pid: int, limit: float = 10.0) -> bool:
-    end = time.monotonic() + limit
-    while not _gone(pid) and time.monotonic() < end:
-        time.sleep(0.02)
-    return _gone(pid)
+from process_state import gone, until_gone
 
 
 @pytest.fixture
@@ -81,7 +67,7 @@ def test_kill_ends_a_hung_job_at_once(worker: WorkerProcess) -> None:
     worker.kill()
     with pytest.raises(BrokenWorker):
         hung.result(5)
-    assert time.monotonic() - t0 < 5 and worker.pid is not None and _until_gone(worker.pid)
+    assert time.monotonic() - t0 < 5 and worker.pid is not None and until_gone(worker.pid)
 
 
 def test_shutdown_runs_the_jobs_sent_then_the_process_exits_by_itself() -> None:
@@ -89,7 +75,7 @@ def test_shutdown_runs_the_jobs_sent_then_the_process_exits_by_itself() -> None:
     futs = [w.submit(pow, 2, i) for i in range(5)]
     w.shutdown(wait=True)
     assert [f.result(0) for f in futs] == [1, 2, 4, 8, 16]
-    assert w.pid is not None and _gone(w.pid)
+    assert w.pid is not None and gone(w.pid)
     with pytest.raises(RuntimeError):
         w.submit(pow, 2, 2)
 
@@ -102,9 +88,9 @@ def test_end_kills_a_process_that_does_not_exit_in_its_wait() -> None:
     t0 = time.monotonic()
     try:
         assert w.end(0.5) is False
-        assert time.monotonic() - t0 < 3 and _until_gone(w.pid)
+        assert time.monotonic() - t0 < 3 and until_gone(w.pid)
     finally:
-        if not _gone(w.pid):
+        if not gone(w.pid):
             os.kill(w.pid, signal.SIGKILL)
 
 
@@ -123,12 +109,12 @@ def test_the_process_ignores_ctrl_c_and_ends_with_the_daemon_that_dies_without_a
         pid = int(line)
         os.kill(pid, signal.SIGINT)
         time.sleep(0.3)
-        assert not _gone(pid), "Ctrl-C ended the worker"
+        assert not gone(pid), "Ctrl-C ended the worker"
         os.kill(parent.pid, signal.SIGKILL)
         parent.wait(10)
-        assert _until_gone(pid), "the worker outlived its daemon"
+        assert until_gone(pid), "the worker outlived its daemon"
     finally:
-        with_pids = [p for p in (pid, parent.pid) if p and not _gone(p)]
+        with_pids = [p for p in (pid, parent.pid) if p and not gone(p)]
         for p in with_pids:
             os.kill(p, signal.SIGKILL)
         parent.wait(10)

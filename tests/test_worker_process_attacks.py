@@ -21,21 +21,7 @@ import pytest
 from cellbridge.daemon import contact_worker
 from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
-
-
-def _gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
-
-
-def _until_gone(pid: int, limit: float = 5.0) -> bool:
-    end = time.monotonic() + limit
-    while not _gone(pid) and time.monotonic() < end:
-        time.sleep(0.02)
-    return _gone(pid)
+from process_state import gone, until_gone
 
 
 def _end(w: WorkerProcess) -> None:
@@ -43,7 +29,7 @@ def _end(w: WorkerProcess) -> None:
     w.kill()
     w.shutdown(wait=False)
     if pid:
-        _until_gone(pid)
+        until_gone(pid)
 
 
 class TwoArgs(Exception):
@@ -168,10 +154,10 @@ def test_the_worker_survives_a_sigterm_to_the_process_group_as_it_does_a_ctrl_c(
         assert w.pid is not None
         os.kill(w.pid, signal.SIGINT)
         time.sleep(0.3)
-        assert not _gone(w.pid)
+        assert not gone(w.pid)
         os.kill(w.pid, signal.SIGTERM)
         time.sleep(0.3)
-        assert not _gone(w.pid), "SIGTERM to the group killed the worker before the daemon's drain"
+        assert not gone(w.pid), "SIGTERM to the group killed the worker before the daemon's drain"
     finally:
         _end(w)
 
@@ -236,7 +222,7 @@ def test_a_daemon_exiting_with_a_stopped_worker_still_exits() -> None:
                         "for a stopped worker for ever")
     finally:
         for p in (pid, parent.pid):
-            if p and not _gone(p):
+            if p and not gone(p):
                 os.kill(p, signal.SIGKILL)
         parent.wait(5)
         if parent.stdout:
@@ -309,7 +295,7 @@ def test_no_fd_or_thread_leak_across_replacements() -> None:
         w.submit(pow, 2, 2)
         contact_worker._kill(w)
     del w
-    assert all(_until_gone(p) for p in pids if p)
+    assert all(until_gone(p) for p in pids if p)
     end = time.monotonic() + 10  # each result thread closes its pipe once it reads the end
     while threading.active_count() > threads0 and time.monotonic() < end:
         time.sleep(0.05)

@@ -11,6 +11,11 @@ methods, in this process only, to note on the host monotonic clock:
   (or none), and each element's hold (delay mark plus margin) at that time;
 * ``e``: every estimate (start, end, the frame, its unknown elements);
 * ``p``: every ``contact`` message handed to ZeroMQ (time, frame, contacts);
+* ``b``: what kept the loop busy: each read, each tick, each run of the cyclic garbage
+  collector (``gc0``-``gc2``), each callback of the event loop that ran over 1 ms (``cb``
+  and what it ran: a task's step names the task's method);
+* ``w``: every wait of the event loop in its selector (entered, left, the thread's CPU
+  time at both, the timeout, events ready);
 * ``x``: every job handed to the contact worker: when it was submitted, when the worker
   began and ended it (the worker process notes these in a file), and when its future was
   done in the daemon (the executor's result thread), all on the one monotonic clock.
@@ -22,7 +27,9 @@ daemon started the ordinary way: the diagnostic costs the production path nothin
 from __future__ import annotations
 
 import argparse
+import asyncio
 import contextlib
+import gc
 import math
 import sys
 import time
@@ -36,7 +43,7 @@ from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
 from cellbridge.daemon.service import Service, run_service
 
-TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": [], "x": []}
+TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": [], "x": [], "w": []}
 WORKER_TRACE = "CB_PRESS_TRACE_WORKER"  #: env: the file the contact worker notes its jobs in
 
 
@@ -80,8 +87,8 @@ def _instrument() -> None:
         return due
 
     def traced_step(self: LayoutStages, rows, raw, saturated, caps, t_sample, cycle,  # type: ignore[no-untyped-def]
-                    now, held, on_time, period):
-        res = step(self, rows, raw, saturated, caps, t_sample, cycle, now, held, on_time, period)
+                    now, held, on_time, period, inverse=True):
+        res = step(self, rows, raw, saturated, caps, t_sample, cycle, now, held, on_time, period, inverse)
         m, ids = self.moments, self.layout.ids
         for r, t, h in zip(rows.tolist(), t_sample.tolist(), held.tolist()):
             slot = m.t[r] == t  # the reading's slot in the skin frames: its touch flag as they hold it
@@ -129,6 +136,53 @@ def _instrument() -> None:
             fut.add_done_callback(lambda _: TRACE["x"].append((t0, time.monotonic())))
         return fut
 
+    gc_began = [0.0]
+
+    def traced_gc(phase: str, info: dict[str, Any]) -> None:
+        # the interpreter's cyclic collector stops the loop too: noted as busy "gc<generation>"
+        if phase == "start":
+            gc_began[0] = time.monotonic()
+        else:
+            TRACE["b"].append((f"gc{info['generation']}", gc_began[0], time.monotonic()))
+
+    gc.callbacks.append(traced_gc)
+
+    run_handle = asyncio.events.Handle._run
+
+    def traced_run(self: asyncio.events.Handle) -> None:
+        # every callback of the loop that held it for more than 1 ms, by what it ran
+        t0 = time.monotonic()
+        run_handle(self)
+        t1 = time.monotonic()
+        if t1 - t0 > 0.001:
+            cb = self._callback
+            task = getattr(cb, "__self__", None)
+            what = (task.get_coro().__qualname__ if isinstance(task, asyncio.Task)
+                    else getattr(cb, "__qualname__", type(cb).__name__))
+            TRACE["b"].append((f"cb {what}"[:80], t0, t1))
+
+    asyncio.events.Handle._run = traced_run  # type: ignore[method-assign]
+
+    run_once = asyncio.BaseEventLoop._run_once  # type: ignore[attr-defined]
+
+    def traced_run_once(self: asyncio.BaseEventLoop) -> None:
+        # each turn of the loop that waited in its selector, and the thread's CPU time then:
+        # a turn whose wait was short, yet the wall time passed, was the thread not scheduled
+        sel = self._selector  # type: ignore[attr-defined]
+        if not hasattr(sel, "_cb_traced"):
+            select = sel.select
+
+            def traced_select(timeout: float | None = None) -> Any:
+                t0, c0 = time.monotonic(), time.thread_time()
+                out = select(timeout)
+                TRACE["w"].append((t0, time.monotonic(), c0, time.thread_time(), -1.0 if timeout is None else timeout, len(out)))
+                return out
+
+            sel.select = traced_select
+            sel._cb_traced = True
+        run_once(self)
+
+    asyncio.BaseEventLoop._run_once = traced_run_once  # type: ignore[attr-defined]
     WorkerProcess.submit = traced_submit  # type: ignore[method-assign]
     contact_worker.estimate = timed_estimate  # type: ignore[attr-defined]
     Service._on_data = traced_on_data  # type: ignore[method-assign]

@@ -163,9 +163,10 @@ class LayoutStages:
     def step(self, rows: NDArray[np.int64], raw: NDArray[np.int64], saturated: NDArray[np.bool_],
              caps: NDArray[np.float64], t_sample: NDArray[np.float64], cycle: NDArray[np.uint64],
              now: float, held: NDArray[np.bool_], on_time: NDArray[np.bool_],
-             period: NDArray[np.float64]) -> dict[str, NDArray[Any]]:
+             period: NDArray[np.float64], inverse: bool = True) -> dict[str, NDArray[Any]]:
         """One read's placed samples through channel health → calibration and inverse →
-        the moments contacts are estimated on; the element stage's columns back.
+        the moments contacts are estimated on; the element stage's columns back (force
+        and area only with ``inverse``: :meth:`ElementStage.step`).
 
         ``rows``: layout row of each sample (all placed); ``raw``/``saturated``/``caps``:
         (n, 2) readings, their saturation and capacitance (F); ``t_sample``: host time of
@@ -176,7 +177,7 @@ class LayoutStages:
         last = {x: i for i, x in enumerate(rows.tolist())}  # each element's newest sample
         groups = (np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last)))
         self.channels.update(rows, raw, saturated, groups, now)
-        res = self.elements.step(rows, caps, groups, now, held)
+        res = self.elements.step(rows, caps, groups, now, held, inverse)
         enter, leave = self.elements.calibrator.thresholds()
         self.moments.record(rows, t_sample, cycle, np.stack([res["dc1"], res["dc2"]], axis=1),
                             groups[0].shape[0] == rows.shape[0], now, enter, leave, held, on_time, period)
@@ -234,7 +235,7 @@ class LayoutStages:
         out: dict[str, Any] = {"source": "file" if self.from_file else "hello", "rebuilds": self.rebuilds,
                                "rejected": self.rejected}
         if self.layout is None:
-            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[], late=[], late_estimates=0)
+            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[], late=[], late_estimates=0, retaken=0)
             return out
         ids = self.layout.ids
         ch = self.channels
@@ -249,6 +250,7 @@ class LayoutStages:
             not_ready=ids[~self.elements.calibrator.ready].tolist(),
             late=ids[self.moments.late].tolist() if self.moments is not None else [],
             late_estimates=self.moments.late_estimates if self.moments is not None else 0,
+            retaken=self.moments.retaken if self.moments is not None else 0,
         )
         cal: dict[str, Any] = self.elements.calibrator.health()
         cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids

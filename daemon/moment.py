@@ -31,7 +31,9 @@ touch, the second highest for the others, see ``_hold``), and never more than
 ``held_wait`` behind the newest data. Waiting by the element's own delay, not a fixed ``held_wait``, is what makes
 an event-based skin's contacts come tens of milliseconds after a press, not half a
 second: an idle element's last heartbeat is up to a heartbeat old, and what matters is
-only whether a change could still be on its way.
+only whether a change could still be on its way. A held reading that begins a touch and
+arrives after its frame was taken (an onset later than the holds: the bridges under a
+press contend for the cells) has the last frame taken again at once, not a frame later.
 """
 
 from __future__ import annotations
@@ -113,6 +115,10 @@ class Moments:
         self.holding = np.zeros(n, dtype=bool)  # elements the last moment waited for (the others: their newest)
         self.late = np.zeros(n, dtype=bool)  # live elements not waited for: their data trail by more than max_lag
         self.late_estimates = 0  # snapshots that left a live element out for being late
+        # A held reading that began a touch arrived for a frame already taken (an onset
+        # later than the frame's holds): the last frame is taken again at the next look.
+        self.retake = False
+        self.retaken = 0  # frames taken again for a late onset
         self.touch_began = np.full(n, -math.inf)  # sample time of the reading that began the element's touch
         self._all = np.arange(n)
 
@@ -134,6 +140,7 @@ class Moments:
         for name in self._PER_ELEMENT:
             getattr(self, name)[rows] = getattr(old, name)[old_rows]
         self.t_moment, self.silent_told, self.late_estimates = old.t_moment, old.silent_told, old.late_estimates
+        self.retaken = old.retaken
 
     def record(self, rows: NDArray[np.int64], t: FloatArray, cycle: NDArray[np.uint64], dc: FloatArray,
                unique: bool, now: float, enter: FloatArray, leave: FloatArray,
@@ -159,6 +166,10 @@ class Moments:
             began[order[after]] &= ~touched[order[after - 1]]
         if began.any():  # the newest onset of an element counts
             np.maximum.at(self.touch_began, rows[began], t[began])
+            # an onset later than its frame's holds: that frame (or one after it, which
+            # this held reading stands for) was taken with the element untouched
+            with np.errstate(invalid="ignore"):
+                self.retake |= bool((began & held & (t <= self.t_moment + 1e-9)).any())
         rank: int | NDArray[np.int64]  # each reading's slot after the element's newest
         if unique:
             idx, rank = None, 0
@@ -218,14 +229,18 @@ class Moments:
              held_wait: float = 0.5) -> Moment | None:
         """The skin at the newest moment every live element has reported past (:meth:`moment`),
         if that moment advanced since the last one taken (or ``force``: a tare asks for
-        one at once). None while it did not, and while an element is between a touched
+        one at once; or a held reading that began a touch came for a frame already
+        taken: that frame again, once, at the first look after it came; counted in
+        ``retaken``). None while it did not, and while an element is between a touched
         and an untouched reading at it: a press or release fell between two of its
         samples, so the moment is held back until it is past that (one sample period of
         that element at most; ``force`` does not wait)."""
         t = self.moment(now, timeout, max_lag, held_wait)
+        retake, self.retake = self.retake, False  # one look only, whatever it finds
         if math.isnan(t):
             return self._all_silent()
-        if t <= self.t_moment and not force:
+        retake = retake and t <= self.t_moment
+        if t <= self.t_moment and not (force or retake):
             return None
         dc, touched, t_sample, cycle, unknown, transition = self.at(t, now)
         if transition and not force:
@@ -235,6 +250,7 @@ class Moments:
                 return None
         self.hold_since = math.nan
         self.late_estimates += bool(self.late.any())
+        self.retaken += retake
         self.t_moment = t
         return Moment(t, dc, touched, t_sample, cycle, unknown)
 
@@ -293,6 +309,8 @@ class Moments:
         frames up to a heartbeat late; it sleeps until this time or until data comes."""
         t = self.moment(now, timeout, max_lag, held_wait)
         live = self.live
+        if self.retake and not math.isnan(t):  # a late onset: the frame taken without it, again
+            return now
         if math.isnan(t) or not np.isfinite(self.period[live]).any():
             return math.inf
         # A frame not taken yet is there now (its holds ran out before anyone looked),
@@ -322,7 +340,10 @@ class Moments:
     def unseen(self) -> bool:
         """Whether some element has a reading newer than the last moment taken. Until one
         comes, the frames after that moment repeat its held readings: an idle skin's
-        (nothing touched, no contact left) need no look."""
+        (nothing touched, no contact left) need no look. A late onset of a frame taken
+        (:meth:`take`) is worth one."""
+        if self.retake:
+            return True
         newest = self.t[self._all, (self.count - 1) % self.depth]
         with np.errstate(invalid="ignore"):
             return bool(((newest > self.t_moment) & (self.count > 0)).any())

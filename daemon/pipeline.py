@@ -383,7 +383,7 @@ class Pipeline:
         with np.errstate(divide="ignore"):
             period = np.where(rate > 0, 1.0 / rate, np.nan)
         res = self.skin.step(rows[sel], raw[sel], sat_all[sel], caps, t_sample[sel], s.cycle[sel], now,
-                             (flags & _HELD) != 0, g[sel] >= 0, period)
+                             (flags & _HELD) != 0, g[sel] >= 0, period, inverse=self._want("element"))
         if self._want("element"):
             out.append(self._message(ElementBatch, now, {
                 "bridge": o[sel].tolist(), "element": s.element[sel].tolist(),

@@ -319,3 +319,62 @@ def test_an_idle_skin_has_nothing_unseen_until_a_reading_newer_than_its_last_fra
         taken.append(got)
     assert taken[-1].t == t and taken[-1].touched[0]  # the onset's frame, then nothing unseen
     assert now <= t + DELAY + 2 * DELAY_MARGIN + 1e-9, now - t  # when due: not at a tick 0.1 s on
+
+
+def _onset(m: Moments, row: int, t: float, now: float, held: bool = True) -> None:
+    """Element ``row``'s reading of frame ``t`` says touched (a press's onset), arriving at ``now``."""
+    zero = np.zeros((2, 2))
+    m.record(np.array([row]), np.array([t]), np.array([0], dtype=np.uint64), np.full((1, 2), 2.0), True, now,
+             zero + 1.0, zero + 0.5, np.array([held]), np.array([True]), np.array([PERIOD]))
+    touched = np.zeros(2, dtype=bool)
+    touched[row] = True
+    m.settle(np.array([row]), touched)
+
+
+def _idle_frames_taken(k: int) -> tuple[Moments, float]:
+    """:func:`_learnt_and_taken`, then ``k`` more frames taken when due, on the two
+    elements' held readings (no new data), and the host time of the last look."""
+    m, now = _learnt_and_taken()
+    for _ in range(k):
+        now = max(now, m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5))
+        assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is not None
+    return m, now
+
+
+def test_a_frame_estimated_before_its_late_onset_came_is_taken_again_at_once() -> None:
+    """An onset later than the frame's holds: the bridges under a press send at one instant
+    and contend for the cells, so the first touched reading can reach the host after its
+    frame was taken with the element's held, untouched reading. That frame is taken again
+    as soon as the onset comes, not left to the next frame (+10 ms on 10 of 120 presses of
+    a traced run on real processes, bench_press_latency --trace, the tenth that made p99)."""
+    m, now = _idle_frames_taken(3)
+    frame = m.t_moment
+    now += 0.004
+    _onset(m, 0, frame, now)  # its reading of the frame already taken: touched
+    assert m.unseen()  # (an idle skin's loop looks again)
+    assert m.due(now, timeout=2.0, max_lag=0.5, held_wait=0.5) <= now
+    got = m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5)
+    assert got is not None and got.t == frame and got.touched[0] and not got.touched[1]
+    assert m.retaken == 1
+    assert m.take(now, timeout=2.0, max_lag=0.5, held_wait=0.5) is None  # once
+    assert not m.unseen()
+
+
+def test_an_onset_older_than_the_frame_taken_retakes_that_frame_with_its_held_reading() -> None:
+    m, now = _idle_frames_taken(3)
+    frame = m.t_moment
+    _onset(m, 1, frame - 2 * PERIOD, now + 0.003)  # a retried frame two back: it stands for the frames after it
+    got = m.take(now + 0.003, timeout=2.0, max_lag=0.5, held_wait=0.5)
+    assert got is not None and got.t == frame and got.touched[1]
+
+
+def test_readings_that_begin_no_touch_or_are_not_held_take_no_frame_again() -> None:
+    """A late untouched heartbeat changes no contact; a periodic reading of a frame taken
+    without it was late past ``max_lag`` and is unknown there anyway."""
+    m, now = _idle_frames_taken(3)
+    frame = m.t_moment
+    _record(m, 0, frame, delay=now + 0.004 - frame)  # an untouched reading of the frame taken
+    assert m.take(now + 0.004, timeout=2.0, max_lag=0.5, held_wait=0.5) is None
+    _onset(m, 1, frame, now + 0.005, held=False)
+    assert m.take(now + 0.005, timeout=2.0, max_lag=0.5, held_wait=0.5) is None
+    assert m.retaken == 0

@@ -253,6 +253,25 @@ def test_unwanted_topics_are_not_built() -> None:
     assert press(p, sk, None, 5, 2) == []
 
 
+def test_force_and_area_per_reading_are_computed_for_element_subscribers_only() -> None:
+    """The inverse per reading is for ``element`` messages alone: without a subscriber to
+    them a read skips it (a third of a touched read's time, and a press's contact waits
+    behind the read), and the skin frames contacts are estimated on are the same."""
+    runs = []
+    for topics in ({"contact"}, {"contact", "element"}):
+        sk, p = Skin(), make()
+        p.want(topics)
+        settle(p, sk)
+        out = press(p, sk, STRADDLE, 60)
+        job = p.contact_job(T0 + 0.7)
+        assert job is not None and job.snapshot.touched.any()
+        runs.append((job.snapshot, [t for t, _ in published(out)]))
+    (lean, lean_topics), (full, full_topics) = runs
+    assert "element" not in lean_topics and "element" in full_topics
+    assert np.array_equal(lean.dc, full.dc, equal_nan=True) and np.array_equal(lean.touched, full.touched)
+    assert np.array_equal(lean.t_sample, full.t_sample, equal_nan=True)
+
+
 def test_reassembly_drops_are_reported_per_bridge() -> None:
     sk = Skin()
     p = make()

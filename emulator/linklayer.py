@@ -69,8 +69,10 @@ class LinkLayer:
         c = radio.config
         # SIFS, a slot, the acknowledgement; before it, at most one frame its sender may
         # wait for (the receiver hearing another on another cell) and one more
-        # acknowledgement due first (Transceiver.ack_defer)
-        self._ack_wait = ((c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.ack_defer
+        # acknowledgement due first (Transceiver.ack_defer), each SIFS after the one before
+        # (three SIFS in all: with one, an ack queued behind a fully deferred one ended
+        # 16 bits after its sender gave up, and the frame was sent again)
+        self._ack_wait = ((3 * c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.ack_defer
                           + 2 * radio.airtime(ack_bytes) + ack_slack)
         # Extra wait learnt from acknowledgements that came after their deadline (message
         # latency of a real-time mesh: a fixed allowance is too short when the host is busy,

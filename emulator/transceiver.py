@@ -163,13 +163,16 @@ class Transceiver:
                 end = b[1]
         return end
 
-    def _arriving_until(self, tick: int) -> int:
-        """The end of the latest frame arriving at ``tick`` on any of our cells, as far as
-        carrier says (``tick`` when none is)."""
+    def _arriving_until(self, tick: int, limit: int) -> int:
+        """The end of the latest frame arriving at ``tick`` on any of our cells that ends by
+        ``limit``, as far as carrier says (``tick`` when none does). A carrier running past
+        ``limit`` (overlapping transmissions reported as one, longer than any frame) is
+        spoilt whatever the wait; it must not make the ack spoil a frame on another cell
+        that ends in time as well."""
         end = tick
         cca = self.config.cca_bits * self.config.bit_cycles
         for seen, until in self._busy.values():
-            if seen - cca <= tick < until and until > end:
+            if seen - cca <= tick < until and end < until <= limit:
                 end = until
         return end
 
@@ -202,11 +205,11 @@ class Transceiver:
             if tick < self.tx_until:  # still sending: go right after
                 self._urgent_at = self.tx_until
                 return None
-            arriving = self._arriving_until(tick)
             # it would be spoilt: wait, but no longer than ack_defer after this ack was due
             # (counted from its own frame, not from the ack before it: an ack queued behind
             # a deferred one deferred again came after its sender's ack wait)
-            if arriving > tick and arriving <= self._acks[0][2] + self.ack_defer:
+            arriving = self._arriving_until(tick, self._acks[0][2] + self.ack_defer)
+            if arriving > tick:
                 self._urgent_at = arriving + self.config.sifs_bits * self.config.bit_cycles
                 return None
             out, cells, _ = self._acks.popleft()

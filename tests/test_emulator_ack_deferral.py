@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import random
 
-import pytest
 
 from cellbridge.emulator.linklayer import LinkLayer
 from cellbridge.emulator.transceiver import Transceiver
@@ -49,12 +48,6 @@ def _two_acks_behind_a_full_deferral(more_carrier: bool) -> tuple[list[int], int
     return ends, _sender_deadline(end)
 
 
-@pytest.mark.xfail(strict=True, reason="the link layer's ack wait counts SIFS and a slot where the acks take "
-                                       "3 SIFS: an ack queued behind a fully deferred one ends 16 bits (800 "
-                                       "cycles) after its sender's deadline; three SIFS in the wait fix it, but "
-                                       "the longer wait turned test_no_frame_circulates_in_a_loop_under_churn's "
-                                       "seed (a chaotic run: HEAD duplicates a frame on 1 of seeds 0-10) into one "
-                                       "with a duplicate")
 def test_two_acks_behind_a_full_deferral_both_end_within_their_senders_ack_wait() -> None:
     # The second ack goes SIFS after the first, which went SIFS after the frame on cell 3.
     ends, deadline = _two_acks_behind_a_full_deferral(False)
@@ -77,11 +70,6 @@ def test_the_second_ack_does_not_defer_again_past_its_own_frames_bound() -> None
     assert max(ends) < _sender_deadline(end), [e - _sender_deadline(end) for e in ends]
 
 
-@pytest.mark.xfail(strict=True, reason="an over-long carrier on one cell (overlapping transmissions reported as "
-                                       "one) makes the ack go at once over a frame on another cell that ends in "
-                                       "its bound; waiting for that frame fixes it, but that perturbation too "
-                                       "turned test_no_frame_circulates_in_a_loop_under_churn's seed 10 into a "
-                                       "run with a duplicate delivery (that test's run is chaotic)")
 def test_carrier_running_past_the_bound_on_one_cell_does_not_stop_the_wait_for_another() -> None:
     # Cell 2 carries overlapping transmissions reported as one, longer than any frame; a
     # frame on cell 3 ends well within the bound. The ack went at once and spoilt the

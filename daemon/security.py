@@ -9,6 +9,7 @@ then only clients whose public key lies in the allowed directory get anything
 
 from __future__ import annotations
 
+import contextlib
 import grp
 import ipaddress
 import os
@@ -18,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import zmq
-from zmq.auth import load_certificate, load_certificates
+from zmq.auth import Authenticator, load_certificate, load_certificates
 from zmq.auth.thread import ThreadAuthenticator
 
 from cellbridge.errors import CellbridgeError
@@ -198,8 +199,28 @@ class CurveServer:
         socket.curve_publickey = self._public
         socket.curve_server = True
 
-    def stop(self) -> None:
-        self._auth.stop()
+    def stop(self, timeout: float = 2.0) -> bool:
+        """End the ZAP thread; whether it ended within ``timeout`` s.
+
+        pyzmq's own stop sends TERMINATE on a PAIR pipe and joins the thread without a
+        bound: a ZAP thread that died (its end of the pipe closed) left the send blocked,
+        and the daemon hung at its stop until the service manager killed it. Here the
+        send does not block and the join is bounded; a thread that did not end is left
+        (a daemon thread: the process still exits)."""
+        auth = self._auth
+        thread, pipe = auth.thread, auth.pipe
+        ended = True
+        if pipe is not None:
+            with contextlib.suppress(zmq.ZMQError):  # (zmq.Again: nobody reads the pipe any more)
+                pipe.send(b"TERMINATE", zmq.NOBLOCK)
+            if thread is not None:
+                thread.join(timeout)
+                ended = not thread.is_alive()
+            pipe.close(linger=0)
+            auth.pipe = None  # type: ignore[assignment]  # (pyzmq's stop does the same)
+            auth.thread = None  # type: ignore[assignment]
+        Authenticator.stop(auth)  # the ZAP socket
+        return ended
 
 
 def apply_client(socket: zmq.Socket, server_public_file: Path, client_secret_file: Path) -> None:

@@ -176,3 +176,27 @@ def test_apply_client_names_a_bad_key_file(keys: dict[str, Path], tmp_path: Path
     finally:
         sock.close(linger=0)
         context.term()
+
+
+def test_stop_returns_when_the_zap_thread_has_died(keys: dict[str, Path]) -> None:
+    """pyzmq's stop sends TERMINATE on a pipe nobody reads once the ZAP thread died, and
+    blocks there: the daemon hung at its stop until the service manager killed it. The
+    stop is bounded and says the thread is gone."""
+    import threading
+
+    context = zmq.Context()
+    curve = CurveServer(context, CurveKeys(keys["server.key_secret"], keys["clients"]))
+    try:
+        zap = curve._auth.thread
+        curve._auth.pipe.send(b"TERMINATE")  # the ZAP thread ends behind the server's back ...
+        zap.join(5)
+        assert not zap.is_alive()  # ... and its end of the pipe is closed
+        result: list[bool] = []
+        stopper = threading.Thread(target=lambda: result.append(curve.stop()), daemon=True)
+        stopper.start()
+        stopper.join(10)
+        assert not stopper.is_alive(), "CurveServer.stop() blocked"
+        assert result == [True]
+    finally:
+        if not curve._auth.pipe:  # (a blocked stop leaves its pipe open: the context would never end)
+            context.term()

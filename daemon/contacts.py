@@ -39,6 +39,7 @@ class ContactSnapshot:
     ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
     t_moment: float  # host time the skin is estimated at: every element's reading at or just before it
     unknown: NDArray[np.bool_] | None = None  # (n,) elements with no reading of this frame (None: all known)
+    again: bool = False  # the frame estimated last, taken again (a late onset of it came: Moments.take)
 
 
 @dataclass(frozen=True)
@@ -141,9 +142,9 @@ class ContactStage:
             read_at = _ReadTimes(self._row, snap.t_sample if snap.unknown is None
                                  else np.where(snap.unknown, np.nan, snap.t_sample))
             tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host,
-                                         at=snap.t_moment, read_at=read_at)
+                                         at=snap.t_moment, read_at=read_at, again=snap.again)
         else:  # an empty frame still counts: tracks miss it and end (no contact to be born)
-            tracks = self.tracker.step([], snap.t_host, at=snap.t_moment)
+            tracks = self.tracker.step([], snap.t_host, at=snap.t_moment, again=snap.again)
         if snap.unknown is not None and snap.unknown.any():
             # a contact that only unknown elements supported is no longer known: it ends
             # now, not after the frames a missed contact is kept through

@@ -198,7 +198,7 @@ class LayoutStages:
             return None
         self.dirty = False
         return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t,
-                               got.unknown)
+                               got.unknown, got.again)
 
     def _held_for(self) -> float:
         """How long a held reading stands in the calibrator's steps: while its bridge is live

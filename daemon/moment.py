@@ -80,6 +80,7 @@ class Moment(NamedTuple):
     t_sample: FloatArray
     cycle: NDArray[np.uint64]
     unknown: NDArray[np.bool_]
+    again: bool = False  # the moment taken last, taken again (a late onset of it came)
 
 
 class Moments:
@@ -119,10 +120,12 @@ class Moments:
         # later than the frame's holds): the last frame is taken again at the next look.
         self.retake = False
         self.retaken = 0  # frames taken again for a late onset
+        self.last_touched = np.zeros(n, dtype=bool)  # each element's touch flag in the last moment taken
         self.touch_began = np.full(n, -math.inf)  # sample time of the reading that began the element's touch
         self._all = np.arange(n)
 
-    _PER_ELEMENT = ("period", "live", "settled", "arrival", "delay", "delay2", "delay_at", "holding", "late", "touch_began")
+    _PER_ELEMENT = ("period", "live", "settled", "arrival", "delay", "delay2", "delay_at", "holding", "late", "touch_began",
+                    "last_touched")
     _RINGS = ("t", "dc", "touched", "cycle", "held", "on_time")
 
     def adopt(self, old: Moments, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
@@ -140,7 +143,7 @@ class Moments:
         for name in self._PER_ELEMENT:
             getattr(self, name)[rows] = getattr(old, name)[old_rows]
         self.t_moment, self.silent_told, self.late_estimates = old.t_moment, old.silent_told, old.late_estimates
-        self.retaken = old.retaken
+        self.retake, self.retaken = old.retake, old.retaken  # (a late onset not looked at yet is still owed)
 
     def record(self, rows: NDArray[np.int64], t: FloatArray, cycle: NDArray[np.uint64], dc: FloatArray,
                unique: bool, now: float, enter: FloatArray, leave: FloatArray,
@@ -243,6 +246,8 @@ class Moments:
         if t <= self.t_moment and not (force or retake):
             return None
         dc, touched, t_sample, cycle, unknown, transition = self.at(t, now)
+        if retake and not force and np.array_equal(touched, self.last_touched):
+            return None  # the onset's element is not touched there after all (released since, or drift): no news
         if transition and not force:
             if math.isnan(self.hold_since):
                 self.hold_since = t
@@ -252,7 +257,8 @@ class Moments:
         self.late_estimates += bool(self.late.any())
         self.retaken += retake
         self.t_moment = t
-        return Moment(t, dc, touched, t_sample, cycle, unknown)
+        self.last_touched = touched.copy()
+        return Moment(t, dc, touched, t_sample, cycle, unknown, retake)
 
     def _all_silent(self) -> Moment | None:
         """No element is live (every bridge silent, or the gateway line down): once, a
@@ -262,6 +268,7 @@ class Moments:
             return None
         self.silent_told = True
         n = self.count.shape[0]
+        self.last_touched = np.zeros(n, dtype=bool)
         return Moment(self.t_moment, np.full((n, 2), np.nan), np.zeros(n, dtype=bool), np.full(n, np.nan),
                       np.zeros(n, dtype=np.uint64), np.ones(n, dtype=bool))
 

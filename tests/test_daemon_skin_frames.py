@@ -505,7 +505,13 @@ def test_two_fingers_sharing_an_element_each_get_an_id_within_the_split_wait() -
         assert t - c.start < 0.1 and frame - c.start < 0.04, (k, t - c.start, frame - c.start)
         ids.append({d["id"] for _, _, d in mine})
         assert len(ids[k]) == 1, (k, ids[k])
-        for _, _, d in mine:
+        # right in each frame's last report: an untouched neighbour whose onset may still be
+        # on its way is unknown for the frame (listed), and the fit of the part seen may be
+        # off; when that onset comes the frame is taken again (finger 0: its two far
+        # elements' onsets came 5 ms after its first frame was estimated, 17.7 mm and 1.94
+        # of 3 N, then right, same frame)
+        last = {frame: d for _, frame, d in mine}
+        for d in last.values():
             if d["missed"] == 0:
                 assert math.dist((d["x"], d["y"]), (c.x, c.y)) <= 1e-3 and abs(d["force"] - 3.0) <= 0.15, (k, d)
     for k in range(n):

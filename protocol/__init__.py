@@ -43,6 +43,8 @@ from cellbridge.protocol.messages import (
     Mode,
     Neighbour,
     Op,
+    Readout,
+    ReadoutSample,
     Sample,
     SampleFlags,
     Status,
@@ -55,7 +57,7 @@ __all__ = [
     "CRC_CHECK",
     "Beacon", "BridgeStatus", "Bundle", "Command", "CommandReply", "Data", "DuplicateFilter",
     "Flags", "Fragment", "Frame", "FrameType", "Hello", "HostReceiver", "LinkAck", "MeshTime", "Message", "Mode",
-    "Neighbour", "Op", "ProtocolError", "Reassembler", "RecentFrames", "Sample", "SampleFlags", "Status",
+    "Neighbour", "Op", "ProtocolError", "Readout", "ReadoutSample", "Reassembler", "RecentFrames", "Sample", "SampleFlags", "Status",
     "Raw", "StreamDecoder", "addressed_to", "crc16", "decode", "encode", "encode_stream", "fragment", "own",
     "peek", "reframe", "to_serial", "unpack_payload",
 ]

@@ -2,7 +2,7 @@
 
 Layout (big-endian; docs/protocol.md is the normative text)::
 
-    0  version   u8    = 3 (1 and 2 are still read: docs/protocol.md §3)
+    0  version   u8    = 4 (1 to 3 are still read: docs/protocol.md §3)
     1  flags     u8    bits 0-3 optional, bits 4-7 must-understand
     2  type      u8    FrameType
     3  src       u16   link source (bridge id that transmitted this hop)
@@ -40,8 +40,11 @@ from cellbridge.protocol.messages import (
 
 #: Versions :func:`decode` reads: frames of versions 1 and 2 decode into today's messages,
 #: with the fields later versions added at their defaults (old captures replay);
-#: :func:`encode` writes :data:`VERSION` (3).
-READ_VERSIONS = frozenset({1, 2, 3})
+#: :func:`encode` writes :data:`VERSION` (4).
+READ_VERSIONS = frozenset({1, 2, 3, 4})
+#: The first version that has each frame type; older versions did not know it (a frame of
+#: that type and an older version is dropped as an unknown type).
+_SINCE = {int(FrameType.READOUT): 4}
 MAX_FRAME = 255  #: whole frame, header to CRC, before COBS
 MAX_DATAGRAM = 4096  #: largest fragmented datagram (payload and its 2-byte checksum)
 DATAGRAM_CRC_LEN = 2  #: CRC-16 of the payload, ending every fragmented datagram
@@ -183,8 +186,8 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
         raise ProtocolError("version", f"version {ver} not supported (this reads {sorted(READ_VERSIONS)})")
     if flags & _UNKNOWN_MUST_UNDERSTAND:
         raise ProtocolError("must_understand", f"unknown must-understand flags 0x{flags:02x}")
-    if ftype not in MESSAGE_CLASSES:
-        raise ProtocolError("type", f"unknown frame type {ftype}")
+    if ftype not in MESSAGE_CLASSES or ver < _SINCE.get(ftype, 0):
+        raise ProtocolError("type", f"unknown frame type {ftype} in version {ver}")
     payload: Message | Fragment
     if flags & _FRAGMENT:
         if n < MIN_FRAME + FRAG_LEN + 1:

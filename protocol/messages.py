@@ -27,9 +27,10 @@ MAX_FW_VERSION_LEN = 32
 MAX_NEIGHBOURS = 32
 #: The protocol version :func:`unpack_payload` reads by default and the frame layer writes
 #: (``cellbridge.protocol.frame.VERSION``, header byte 0).
-VERSION = 3
+VERSION = 4
 _FRAGMENT_FLAG = 0x10  # header flag FRAGMENT (frame.Flags imports this module, so not from there)
 _NO_MESH_TIME = 0x04  # SampleFlags.NO_MESH_TIME, as a plain int for the hot path
+_OVERFLOWS = 0x03  # SampleFlags.OVERFLOW_C1 | OVERFLOW_C2: the flags a readout sample may carry
 
 
 class FrameType(IntEnum):
@@ -43,6 +44,7 @@ class FrameType(IntEnum):
     CMD_REPLY = 6
     LINK_ACK = 7
     BUNDLE = 8
+    READOUT = 9  #: version 4: one skin frame of a subtree, every element accounted for
 
 
 class Mode(IntEnum):
@@ -513,11 +515,111 @@ class Bundle:
         return cls(tuple(frames))
 
 
-Message = Data | Beacon | Hello | BridgeStatus | Command | CommandReply | LinkAck | Bundle
+class ReadoutSample(NamedTuple):
+    """One element's sample of a skin frame, in a :class:`Readout` (its element is the
+    bridge's element 0, its time the frame's: ``index / rate`` on mesh time)."""
+
+    bridge: int  #: the bridge that sampled it (u16)
+    c1: int  #: counter value (u16) or sum of ADC codes for C1, in the record's mode
+    c2: int
+    flags: int = 0  #: :class:`SampleFlags` bits (u8); the overflow bits only
+
+
+@dataclass(frozen=True, slots=True)
+class Readout:
+    """One skin frame as a subtree read it out (protocol version 4, docs/protocol.md §4).
+
+    A bridge on the readout schedule sends, for every frame ``index``, one record holding
+    its own element and every element of its subtree, each exactly once, in one of three
+    states: a *sample* (``samples``: periodic, or event-based and changed), *unchanged*
+    (``unchanged``: event-based, within the reporting threshold of the last sample it
+    sent; a bit, not a sample) or *missing* (``missing``: its slot stayed empty after the
+    retry, or its sample was not taken). A record too large for one frame, or holding
+    samples of two modes, is sent as ``parts`` frames numbered ``part`` 0..parts-1, each
+    with its own disjoint elements: a gateway's record of frame ``index`` is complete once
+    all its parts arrived, and then it says what the host knows of every element routed
+    through that gateway. ``span_us``: the schedule's readout length, from the frame's
+    gate start to the end of the slots that filled this record (the host's deadline for
+    the frame builds on it). Every list is strictly increasing by bridge id, and a bridge
+    appears in one list of one part only (checked across the parts by the host).
+    """
+
+    frame_type: ClassVar[FrameType] = FrameType.READOUT
+    index: int  #: the skin frame (u64): its gates started at mesh time index / rate
+    rate: int  #: Hz the index counts in (u16, > 0)
+    mode: Mode
+    oversampling: int
+    samples: tuple[ReadoutSample, ...]
+    unchanged: tuple[int, ...] = ()
+    missing: tuple[int, ...] = ()
+    span_us: int = 0  #: readout length of the schedule (u32, microseconds)
+    part: int = 0  #: this frame's number among the record's parts (u8)
+    parts: int = 1  #: frames the record is made of (u8, >= 1)
+
+    def to_wire(self) -> list[Any]:
+        return [self.index, self.rate, int(self.mode), self.oversampling,
+                [list(s) for s in self.samples], list(self.unchanged), list(self.missing),
+                self.span_us, self.part, self.parts]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> Readout:
+        k, rate, mode, over, raw, unchanged, missing, span, part, parts = _array(obj, 10, "READOUT")
+        _uint(k, U64, "READOUT", "index")
+        if type(rate) is not int or not 1 <= rate <= U16:
+            raise _bad("READOUT", f"rate must be an integer in 1..{U16}, got {rate!r}")
+        _uint(span, U32, "READOUT", "span_us")
+        if type(parts) is not int or not 1 <= parts <= U8:
+            raise _bad("READOUT", f"parts must be an integer in 1..{U8}, got {parts!r}")
+        if type(part) is not int or not 0 <= part < parts:
+            raise _bad("READOUT", f"part must be an integer in 0..{parts - 1}, got {part!r}")
+        if type(mode) is not int or mode not in (0, 1):
+            raise _bad("READOUT", f"unknown mode {mode!r}")
+        if mode == 0:
+            if over != 1 or type(over) is not int:
+                raise _bad("READOUT", f"oversampling must be 1 in counter mode, got {over!r}")
+            limit = U16
+        else:
+            if type(over) is not int or not 1 <= over <= U16:
+                raise _bad("READOUT", f"oversampling must be an integer in 1..{U16}, got {over!r}")
+            limit = U8 * over
+        if type(raw) is not list or type(unchanged) is not list or type(missing) is not list:
+            raise _bad("READOUT", "samples, unchanged and missing must be arrays")
+        samples = []
+        last = -1
+        for s in raw:
+            if type(s) is not list or len(s) != 4:
+                raise _bad("READOUT", "a sample is [bridge, c1, c2, flags]")
+            b, c1, c2, fl = s
+            if not (type(b) is int and type(c1) is int and type(c2) is int and type(fl) is int
+                    and last < b <= U16 and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= _OVERFLOWS):
+                raise _bad("READOUT", f"sample out of range or out of order (bridges increasing, c1, c2 at most "
+                                      f"{limit}, flags overflow bits only): {s!r}")
+            last = b
+            samples.append(_new_tuple(ReadoutSample, s))
+        seen = {s[0] for s in samples}
+        lists = []
+        for name, ids in (("unchanged", unchanged), ("missing", missing)):
+            last = -1
+            for b in ids:
+                if type(b) is not int or not last < b <= U16:
+                    raise _bad("READOUT", f"{name} must be strictly increasing bridge ids, got {b!r}")
+                if b in seen:
+                    raise _bad("READOUT", f"bridge {b} is in two states of one frame")
+                last = b
+            seen.update(ids)
+            lists.append(tuple(ids))
+        return cls(k, rate, _MODES[mode], over, tuple(samples), lists[0], lists[1], span, part, parts)
+
+    def bridges(self) -> int:
+        """How many elements the record accounts for."""
+        return len(self.samples) + len(self.unchanged) + len(self.missing)
+
+
+Message = Data | Beacon | Hello | BridgeStatus | Command | CommandReply | LinkAck | Bundle | Readout
 
 MESSAGE_CLASSES: dict[int, type[Any]] = {
     cls.frame_type: cls
-    for cls in (Data, Beacon, Hello, BridgeStatus, Command, CommandReply, LinkAck, Bundle)
+    for cls in (Data, Beacon, Hello, BridgeStatus, Command, CommandReply, LinkAck, Bundle, Readout)
 }
 
 
@@ -537,6 +639,7 @@ def pack_payload(message: Message) -> bytes:
 _OLD_PARSERS: dict[int, dict[int, Any]] = {
     1: {FrameType.DATA: Data.from_wire_v1, FrameType.BEACON: Beacon.from_wire_v1, FrameType.HELLO: Hello.from_wire_v1},
     2: {FrameType.DATA: Data.from_wire_v2},
+    3: {},  # version 4 only added READOUT: every version 3 payload reads as today's
 }
 
 

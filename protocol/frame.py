@@ -38,7 +38,7 @@ from cellbridge.protocol.messages import (
     unpack_payload,
 )
 
-#: Versions :func:`decode` reads: frames of versions 1 and 2 decode into today's messages,
+#: Versions :func:`decode` reads: frames of versions 1 to 3 decode into today's messages,
 #: with the fields later versions added at their defaults (old captures replay);
 #: :func:`encode` writes :data:`VERSION` (4).
 READ_VERSIONS = frozenset({1, 2, 3, 4})
@@ -145,6 +145,8 @@ def encode(frame: Frame) -> bytes:
             raise ProtocolError("fragment", "a bundle is never fragmented")
         if p.version not in READ_VERSIONS:
             raise ProtocolError("version", f"fragment of version {p.version}; versions are {sorted(READ_VERSIONS)}")
+        if p.version < _SINCE.get(p.frame_type, 0):  # what decode would drop: never written
+            raise ProtocolError("type", f"frame type {p.frame_type} did not exist in version {p.version}")
         head = _HEADER.pack(p.version, frame.flags | _FRAGMENT, p.frame_type, frame.src, frame.dst,
                             frame.origin, frame.seq, frame.hops, frame.cost)
         body = head + _FRAG.pack(p.tag, p.offset, p.total) + p.data
@@ -168,9 +170,10 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
     ``fragment``, ``payload``, ``nested_bundle``, ``bundle``, and ``inner_<cause>``
     for a bundled frame that fails). Reads every version in :data:`READ_VERSIONS`.
     Only the canonical encoding of a frame is accepted: ``encode(decode(x)) == x`` for a
-    version 3 frame and for a fragment of any version; a whole frame of version 1 or 2
+    version 4 frame and for a fragment of any version; a whole frame of versions 1 to 3
     decodes into today's message (the fields later versions added at their defaults),
-    which ``encode`` writes as version 3: ``decode(encode(decode(x))) == decode(x)``.
+    which ``encode`` writes as version 4: ``decode(encode(decode(x))) == decode(x)``. A
+    frame type newer than the frame's version (READOUT before version 4) is ``type``.
     """
     n = len(data)
     if n < MIN_FRAME:

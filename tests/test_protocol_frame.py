@@ -81,14 +81,14 @@ def test_any_byte_error_is_detected(pos: int, xor: int) -> None:
     assert err.value.cause == "crc"
 
 
-def test_header_writes_version_3() -> None:
-    assert encode(SAMPLE)[0] == VERSION == 3
+def test_header_writes_version_4() -> None:
+    assert encode(SAMPLE)[0] == VERSION == 4
 
 
 @pytest.mark.parametrize(
     "offset,value,cause",
-    [(0, 0, "version"), (0, 4, "version"), (0, 0xFF, "version"), (1, 0x20, "must_understand"),
-     (1, 0x80, "must_understand"), (2, 0, "type"), (2, 99, "type")],
+    [(0, 0, "version"), (0, 5, "version"), (0, 0xFF, "version"), (1, 0x20, "must_understand"),
+     (1, 0x80, "must_understand"), (2, 0, "type"), (2, 10, "type"), (2, 99, "type")],
 )
 def test_header_policy(offset: int, value: int, cause: str) -> None:
     body = bytearray(encode(SAMPLE)[:-CRC_LEN])
@@ -151,11 +151,13 @@ def test_the_bad_payloads_are_bad_only_where_they_say() -> None:
     frame = decode(sealed(_V2_HEAD + b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\x00\x64"))
     assert frame.payload == Data(Mode.COUNTER, (Sample(0, 0, 0, 0, 0, 0),), 1, 100)
     assert decode(sealed(_V3_HEAD + _packb(V3_GOOD))).payload == V3_GOOD_DATA  # version 3's neighbour
+    assert decode(sealed(_V4_HEAD + _packb(V3_GOOD))).payload == V3_GOOD_DATA  # version 4 kept its DATA
 
 
-_V3_HEAD = encode(SAMPLE)[:HEADER_LEN]
-_V2_HEAD = bytes([2]) + _V3_HEAD[1:]
-#: A version 3 DATA payload, two samples, period 10: the second packed (residual -1, step 1).
+_V4_HEAD = encode(SAMPLE)[:HEADER_LEN]
+_V3_HEAD = bytes([3]) + _V4_HEAD[1:]
+_V2_HEAD = bytes([2]) + _V4_HEAD[1:]
+#: A version 3 DATA payload (version 4's too), two samples, period 10: the second packed (residual -1, step 1).
 V3_GOOD = [0, 1, [[0, 5, 0, 0, 0, 0], [0, -1, 0, 0, 0, 1]], 100, 10]
 V3_GOOD_DATA = Data(Mode.COUNTER, (Sample(0, 5, 0, 0, 0, 0), Sample(0, 14, 0, 0, 0, 1)), 1, 100, 10)
 
@@ -207,10 +209,11 @@ V3_BAD_PAYLOADS = [
 ]
 
 
+@pytest.mark.parametrize("head", [_V3_HEAD, _V4_HEAD], ids=["v3", "v4"])
 @pytest.mark.parametrize("payload", V3_BAD_PAYLOADS)
-def test_bad_version_3_data(payload: bytes) -> None:
+def test_bad_version_3_data(payload: bytes, head: bytes) -> None:
     with pytest.raises(ProtocolError) as err:
-        decode(sealed(_V3_HEAD + payload))
+        decode(sealed(head + payload))
     assert err.value.cause == "payload"
 
 

@@ -254,6 +254,34 @@ def test_bundle_cannot_nest() -> None:
     assert err.value.cause == "nested_bundle"
 
 
+@pytest.mark.parametrize("outer,inner", [(4, 3), (4, 2), (4, 1), (3, 4), (3, 2), (2, 3), (1, 2)])
+def test_a_bundle_carries_frames_of_its_own_version_only(outer: int, inner: int) -> None:
+    """A forwarder bundles frames of the version it writes (it relays no other), so a bundle
+    holding another version is refused (cause ``bundle``). Before this check a version 4
+    bundle of a version 3 frame decoded, and encode wrote it back as other bytes (its inner
+    frame relabelled): two byte strings for one frame. And a version 3 bundle delivered a
+    version 4 READOUT, a type version 3 did not have."""
+    import msgpack
+    from protocol_v1 import encode_old
+
+    from cellbridge.protocol import Readout
+
+    def bundle_of(version: int, frames: list[bytes]) -> bytes:
+        head = bytes([version]) + encode(Frame(1, 0, 1, 2, Bundle((Frame(3, 1, 3, 1, Beacon(1, 10, 1)),))))[1:HEADER_LEN]
+        return sealed(head + msgpack.packb(frames))
+
+    beacon = Frame(3, 1, 3, 1, Beacon(1, 10, 1))
+    same = bundle_of(outer, [encode_old(beacon, outer) if outer < VERSION else encode(beacon)])
+    assert decode(same).payload.frames == (beacon,)  # the bundle's own version reads
+    for inner_frame in (beacon, Frame(1, 0, 1, 1, Readout(5, 100, Mode.COUNTER, 1, (), (1,)))):
+        if inner_frame.type is FrameType.READOUT and inner < 4:
+            continue  # a READOUT of an older version is refused as an unknown type already
+        raw = encode_old(inner_frame, inner) if inner < VERSION else encode(inner_frame)
+        with pytest.raises(ProtocolError) as err:
+            decode(bundle_of(outer, [raw]))
+        assert err.value.cause == "bundle"
+
+
 @pytest.mark.parametrize("field,value", [("src", -1), ("seq", 0x10000), ("hops", 256), ("flags", 0x10),
                                          ("cost", 1.5)])
 def test_encode_rejects_out_of_range_fields(field: str, value) -> None:

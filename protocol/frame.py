@@ -45,6 +45,8 @@ READ_VERSIONS = frozenset({1, 2, 3, 4})
 #: The first version that has each frame type; older versions did not know it (a frame of
 #: that type and an older version is dropped as an unknown type).
 _SINCE = {int(FrameType.READOUT): 4}
+#: The frame types each version has: one lookup per decoded frame checks version and type.
+_TYPES_OF = {v: frozenset(t for t in MESSAGE_CLASSES if _SINCE.get(t, 0) <= v) for v in READ_VERSIONS}
 MAX_FRAME = 255  #: whole frame, header to CRC, before COBS
 MAX_DATAGRAM = 4096  #: largest fragmented datagram (payload and its 2-byte checksum)
 DATAGRAM_CRC_LEN = 2  #: CRC-16 of the payload, ending every fragmented datagram
@@ -185,11 +187,12 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
     if crc16(data):  # a frame followed by its big-endian CRC-16/CCITT-FALSE leaves a residue of 0
         raise ProtocolError("crc", "CRC mismatch")
     ver, flags, ftype, src, dst, origin, seq, hops, cost = _HEADER.unpack_from(data)
-    if ver not in READ_VERSIONS:
+    types = _TYPES_OF.get(ver)
+    if types is None:
         raise ProtocolError("version", f"version {ver} not supported (this reads {sorted(READ_VERSIONS)})")
     if flags & _UNKNOWN_MUST_UNDERSTAND:
         raise ProtocolError("must_understand", f"unknown must-understand flags 0x{flags:02x}")
-    if ftype not in MESSAGE_CLASSES or ver < _SINCE.get(ftype, 0):
+    if ftype not in types:
         raise ProtocolError("type", f"unknown frame type {ftype} in version {ver}")
     payload: Message | Fragment
     if flags & _FRAGMENT:

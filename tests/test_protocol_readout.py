@@ -146,6 +146,14 @@ def test_a_part_not_below_parts_is_refused(part: int, parts: int) -> None:
     _refused(bad)
 
 
+@given(readouts(), st.integers(0, 0xFF), st.integers(0, 0xFF))
+def test_any_part_not_below_parts_is_refused(r: Readout, part: int, parts: int) -> None:
+    assume(part >= parts)
+    bad = r.to_wire()
+    bad[8:10] = [part, parts]
+    _refused(bad)
+
+
 @given(st.integers(1, 255).flatmap(lambda n: st.tuples(st.integers(0, n - 1), st.just(n))))
 def test_every_part_below_parts_is_read(pp: tuple[int, int]) -> None:
     part, parts = pp
@@ -167,6 +175,18 @@ def test_codes_beyond_the_mode_are_refused(mode: int, over: int, c1: int) -> Non
     assert _decode_payload(_sample_wire(mode, over, c1 - 1, c1 - 1)).samples[0].c1 == c1 - 1
     _refused(_sample_wire(mode, over, c1))
     _refused(_sample_wire(mode, over, 0, c1))
+
+
+@given(readouts(), st.data())
+def test_any_code_beyond_the_records_mode_is_refused(r: Readout, data: st.DataObject) -> None:
+    """A counter counts to 65535, an ADC sum to 255 per conversion: a sample above its
+    record's mode is one no chip produced (or one read in another mode: another part)."""
+    assume(r.samples)
+    limit = 0xFFFF if r.mode is Mode.COUNTER else 255 * r.oversampling
+    bad = r.to_wire()
+    sample = bad[SAMPLES][data.draw(st.integers(0, len(r.samples) - 1))]
+    sample[data.draw(st.sampled_from([1, 2]))] = limit + data.draw(st.integers(1, 2**32))
+    _refused(bad)
 
 
 @pytest.mark.parametrize("mode,over", [

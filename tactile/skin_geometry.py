@@ -342,6 +342,34 @@ class SkinGeometry:
                                       _t3(pts[j]), _t3(nrm[j]), _t3(du[j]), _t3(dv[j]))
         return out  # type: ignore[return-value]  # every index belongs to one chart: all filled
 
+    def atlas_of(self, link: str, point: Sequence[float]) -> tuple[float, float, float] | None:
+        """Atlas (x, y) of the point of ``link``'s skin nearest a point in the link frame,
+        and the point's distance from that surface (m, + outside); None when the link has no
+        patch. Of several surfaces of the link, the one whose chart holds the point (within
+        a side of its elements' extent) and lies nearest."""
+        p = np.asarray(point, dtype=np.float64)
+        best: tuple[float, float, float, float] | None = None
+        for c in self.charts:
+            if c.link != link:
+                continue
+            m = np.asarray(c.pose)
+            local = m[:3, :3].T @ (p - m[:3, 3])
+            if c.shape == "cylinder":
+                dist = math.hypot(local[0], local[1]) - c.radius
+                u = c.radius * math.atan2(local[1], local[0])
+                u = c.u0 + (u - c.u0) % (2 * math.pi * c.radius)
+                if not c.period and u - c.u0 > c.width + 0.5 * (2 * math.pi * c.radius - c.width):
+                    u -= 2 * math.pi * c.radius  # nearer the chart's start than its end
+            else:
+                dist, u = float(local[2]), float(local[0])
+            v = float(local[1] if c.shape == "plane" else local[2])
+            x, y = c.x0 + u - c.u0, c.y0 + v - c.v0
+            off = max(c.x0 - x, x - c.x0 - c.width, c.y0 - y, y - c.y0 - c.height, 0.0)
+            score = abs(dist) + off
+            if best is None or score < best[3]:
+                best = (x, y, dist, score)
+        return None if best is None else (best[0], best[1], best[2])
+
     def wrap_x(self, x: float, y: float) -> float:
         """``x`` taken into its band (unchanged off every band)."""
         for b in self.bands:

@@ -297,7 +297,7 @@ def scenario(skin: SkinGeometry, contacts: int, seed: int = 0, gap: float = 0.25
     two presses at once (on different links, or far apart on one), ``gap`` s apart."""
     rng = random.Random(seed)
     presses: list[Press] = []
-    t = 1.0  # the skin calibrates first
+    t = 3.0  # the skin forms its routes and calibrates first
     kinds = ["single", "single", "wrap", "patch_seam", "slide", "two"]
     n = 0
     while n < contacts:

@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         print(arm_mjcf(arm_skin()))
         return 0
     try:
-        import mujoco  # noqa: F401
+        import mujoco  # type: ignore[import-untyped]  # noqa: F401  # only whether it is installed
     except ImportError:
         if args.robot_command == "run":
             print("cellbridge robot: needs MuJoCo: pip install 'cellbridge[robot]'", file=sys.stderr)

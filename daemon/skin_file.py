@@ -33,7 +33,7 @@ def _read(path: str | PathLike[str], what: str) -> str:
 def urdf_links(path: str | PathLike[str]) -> list[LinkFrame]:
     """The links of a URDF file: name, parent link and the joint's origin (4×4) between them."""
     try:
-        import yourdfpy
+        import yourdfpy  # type: ignore[import-untyped]  # no type information published
     except ImportError:
         raise SkinError(f"{path}: reading a URDF needs yourdfpy: pip install 'cellbridge[robot]'") from None
     if not Path(path).is_file():

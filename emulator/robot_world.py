@@ -339,7 +339,7 @@ def _arm_angles(t: float) -> tuple[float, float]:
 def simulate(skin: SkinGeometry, presses: list[Press], seconds: float) -> Timeline:
     """Run MuJoCo for ``seconds`` with the arm moving and the fingers pressing: the timeline
     of disks on the atlas and the ground truth of every contact."""
-    import mujoco
+    import mujoco  # type: ignore[import-untyped]  # no type information published
 
     model = mujoco.MjModel.from_xml_string(arm_mjcf(skin))
     data = mujoco.MjData(model)
@@ -373,9 +373,9 @@ def simulate(skin: SkinGeometry, presses: list[Press], seconds: float) -> Timeli
         data.ctrl[0], data.ctrl[1] = sh, el
         started = []
         while todo and todo[0].start <= t:
-            p = todo.pop(0)
-            active[p.finger] = p
-            started.append(p.finger)
+            new = todo.pop(0)
+            active[new.finger] = new
+            started.append(new.finger)
         for i in range(FINGERS):
             p = active[i]
             if p is None:
@@ -442,14 +442,14 @@ def simulate(skin: SkinGeometry, presses: list[Press], seconds: float) -> Timeli
             s[2] += fn * np.asarray(con.pos)
         step_disks = []
         for i in range(FINGERS):
-            s = sums.get(i)
-            if s is None or s[1] < TOUCH:
+            got = sums.get(i)
+            if got is None or got[1] < TOUCH:
                 if i in open_truth:
-                    tr = open_truth.pop(i)
-                    tr.end = t
-                    truths.append(tr)
+                    ended = open_truth.pop(i)
+                    ended.end = t
+                    truths.append(ended)
                 continue
-            link, fsum, wpos = s
+            link, fsum, wpos = got
             b = body[link]
             rot = data.xmat[b].reshape(3, 3)
             local = rot.T @ (wpos / fsum - data.xpos[b])
@@ -459,15 +459,15 @@ def simulate(skin: SkinGeometry, presses: list[Press], seconds: float) -> Timeli
             ax, ay, _ = at
             ax = skin.wrap_x(ax, ay)
             (sp,) = skin.locate([ax], [ay])
-            p = active[i]
-            pad = p.pad if p is not None else 0.02
-            tr = open_truth.get(i)
-            if tr is None or tr.link != link:
-                if tr is not None:
-                    tr.end = t
-                    truths.append(tr)
-                tr = open_truth[i] = Truth(i, link, p.kind if p is not None else "stray", math.pi * pad * pad / 4,
-                                           pad, t)
+            by = active[i]
+            pad = by.pad if by is not None else 0.02
+            old = open_truth.get(i)
+            if old is None or old.link != link:
+                if old is not None:
+                    old.end = t
+                    truths.append(old)
+                open_truth[i] = Truth(i, link, by.kind if by is not None else "stray", math.pi * pad * pad / 4, pad, t)
+            tr = open_truth[i]
             tr.t.append(t)
             tr.point.append(sp.position)
             tr.normal.append(sp.normal)

@@ -500,7 +500,8 @@ def _links(data: Mapping[str, Any], source: str, urdf_links: Sequence[LinkFrame]
         if ln.parent is not None and ln.parent not in links:
             raise SkinError(f"{source}: link {ln.name!r}: parent {ln.parent!r} is not a link of the description")
     for name in links:  # no cycles
-        seen, cur = set(), name
+        seen: set[str] = set()
+        cur: str | None = name
         while cur is not None:
             if cur in seen:
                 raise SkinError(f"{source}: link {name!r}: its parents go round in a circle")
@@ -597,11 +598,11 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
     ids_l, patch_l, row_l, col_l, chart_l, u_l, v_l = [], [], [], [], [], [], []
     for k, p in enumerate(patches):
         uv = p.element_uv()
-        r, c = np.divmod(np.arange(p.n), p.cols)
+        r, cc = np.divmod(np.arange(p.n), p.cols)
         ids_l.append(p.first_id + np.arange(p.n))
         patch_l.append(np.full(p.n, k))
         row_l.append(r)
-        col_l.append(c)
+        col_l.append(cc)
         chart_l.append(np.full(p.n, chart_of_patch[k]))
         u_l.append(uv[:, 0] + offsets[k][0])
         v_l.append(uv[:, 1] + offsets[k][1])

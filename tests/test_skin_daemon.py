@@ -26,7 +26,7 @@ def skin():
 def _contacts(skin, press: Contact, seconds: float = 4.0) -> tuple[list[dict], dict]:
     world = World(mesh_from_skin(skin), [press])
     reports, topology = [], {}
-    for t, topic, m in run_daemon_on_skin(skin, world, seconds):
+    for _t, topic, m in run_daemon_on_skin(skin, world, seconds):
         if topic == "contact":
             reports += [c for c in m["contacts"] if c["missed"] == 0]
         elif topic == "topology":

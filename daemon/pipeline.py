@@ -52,7 +52,7 @@ from cellbridge.daemon.wire import ADDR_BROADCAST, HELD, NO_MESH_TIME, OPS, Deco
 from cellbridge.tactile import ElementParams, SkinLayout
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: contacts in link frames (link, position, normal, force_vector), topology.skin
 _GATE_OP = int(OPS["gate"])
 _NO_MESH_TIME = np.int64(NO_MESH_TIME)
 _HELD = np.int64(HELD)

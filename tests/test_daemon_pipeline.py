@@ -62,7 +62,7 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
     settle(p, sk)
     out = press(p, sk, STRADDLE, 60)
     el = topic(out, "element")
-    assert el["v"] == 1 and "t_host" in el and len(el["cycle"]) == 4
+    assert el["v"] == 2 and "t_host" in el and len(el["cycle"]) == 4
     force = np.nansum(np.where(el["valid"], el["force"], 0.0))
     touched = [b for b, t in zip(el["bridge"], el["touched"]) if t]
     assert touched == [1, 2]

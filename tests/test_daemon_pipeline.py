@@ -75,7 +75,7 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
     assert c["force"] == pytest.approx(3.0, rel=0.01)
     assert force == pytest.approx(3.0, rel=0.05)  # per element shares of the same press
     assert sorted(c["elements"]) == [1, 2] and len(c["cycles"]) == 2
-    assert msg["v"] == 1 and msg["t_sample"] is not None
+    assert msg["v"] == 2 and msg["t_sample"] is not None
 
 
 def test_sample_times_follow_the_bridge_clock() -> None:

@@ -20,6 +20,7 @@ from cellbridge._version import __version__
 
 SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("demo", "cellbridge.demo", "the whole chain: an emulated 4x4 skin, the daemon on its gateway, a press, the contact"),
+    ("robot", "cellbridge.robot", "a simulated robot (MuJoCo) touches its emulated skin; contacts scored against it"),
     ("decode", "cellbridge.decode", "decode serial-line bytes (COBS frames) into readable frames"),
     ("plot", "cellbridge.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
     ("daemon", "cellbridge.daemon.cli", "run the host service: gateway serial lines in, ZeroMQ messages out"),

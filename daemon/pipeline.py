@@ -23,13 +23,15 @@ import math
 import os
 from collections import Counter
 from collections.abc import Iterable
+from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
 from cellbridge.daemon.clock import BridgeClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
-from cellbridge.daemon.contacts import ContactJob
+from cellbridge.daemon.contacts import ContactJob, ContactSpec
+from cellbridge.daemon.surface import contact_fields, skin_report
 from cellbridge.daemon.elements import default_params
 from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
@@ -48,8 +50,9 @@ from cellbridge.daemon.messages import (
 from cellbridge.daemon.topology import Topology as Routes
 from cellbridge.daemon.wire import ADDR_BROADCAST, HELD, NO_MESH_TIME, OPS, Decoded, Ingress, SampleColumns, command_bytes
 from cellbridge.tactile import ElementParams, SkinLayout
+from cellbridge.tactile.skin_geometry import SkinGeometry
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: contacts in link frames (link, position, normal, force_vector), topology.skin
 _GATE_OP = int(OPS["gate"])
 _NO_MESH_TIME = np.int64(NO_MESH_TIME)
 _HELD = np.int64(HELD)
@@ -133,6 +136,9 @@ class Pipeline:
         # it: silence, frames and deadlines never see the wall clock step. Wall-clock time
         # is only stamped on what is published: monotonic time + this offset.
         self.wall_offset = 0.0
+        #: the skin description (links, patches) the layout is the atlas of; set by the shell
+        self.surface: SkinGeometry | None = None
+        self._spec_memo: tuple[ContactSpec, ContactSpec] | None = None
 
     # -- helpers ------------------------------------------------------------------------
     def _message(self, kind: type[_P], now: float, body: dict[str, Any]) -> _P:
@@ -413,7 +419,8 @@ class Pipeline:
         snap = self.skin.snapshot(self.last_feed if now is None else now, self.config.health.bridge_timeout)
         if snap is None or self.skin.contact_spec is None:
             return None
-        return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id, self._carry)
+        return ContactJob(self._owner, self._surface_spec(self.skin.contact_spec), snap, self._next_contact_id,
+                          self._carry)
 
     def contact_due(self, now: float, idle: bool = False) -> float:
         """The host time at which :meth:`contact_job` has a new moment without new data
@@ -443,6 +450,7 @@ class Pipeline:
             ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
             out.append({**c, "t": self._wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
                         "t_sample": self._wall(max(ts)) if ts else None})
+        out = contact_fields(self.surface, out)  # link, 3-D position, normal, force vector
         t = self._wall(snap.t_moment) if math.isfinite(snap.t_moment) else None
         unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
         return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
@@ -606,7 +614,20 @@ class Pipeline:
             node["last_seen"] = self._wall(node["last_seen"])
         body["t_bridge"] = None
         body["layout"] = self.skin.layout_report()
+        body["skin"] = skin_report(self.surface)
         return body
+
+    # -- the skin description (links, patches; see daemon/surface.py) --------------------
+    def _surface_spec(self, spec: ContactSpec) -> ContactSpec:
+        """The contact spec with the description's bands (contacts across wrap seams), when
+        there is a description and its atlas is the layout."""
+        bands = self.surface.bands if self.surface is not None else ()
+        if not bands or spec.bands == bands:
+            return spec
+        memo = self._spec_memo
+        if memo is None or memo[0] is not spec:
+            self._spec_memo = memo = (spec, replace(spec, bands=bands))
+        return memo[1]
 
     # -- commands -----------------------------------------------------------------------
     def command(self, op: int, value: int | None, target: int | None, now: float,

@@ -62,7 +62,7 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
     settle(p, sk)
     out = press(p, sk, STRADDLE, 60)
     el = topic(out, "element")
-    assert el["v"] == 1 and "t_host" in el and len(el["cycle"]) == 4
+    assert el["v"] == 2 and "t_host" in el and len(el["cycle"]) == 4
     force = np.nansum(np.where(el["valid"], el["force"], 0.0))
     touched = [b for b, t in zip(el["bridge"], el["touched"]) if t]
     assert touched == [1, 2]
@@ -75,7 +75,7 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
     assert c["force"] == pytest.approx(3.0, rel=0.01)
     assert force == pytest.approx(3.0, rel=0.05)  # per element shares of the same press
     assert sorted(c["elements"]) == [1, 2] and len(c["cycles"]) == 2
-    assert msg["v"] == 1 and msg["t_sample"] is not None
+    assert msg["v"] == 2 and msg["t_sample"] is not None
 
 
 def test_sample_times_follow_the_bridge_clock() -> None:

@@ -16,8 +16,7 @@ import sys
 import threading
 import time
 
-from cellbridge.ros2.convert import DEFAULT_FRAME, Converter
-from cellbridge.ros2.daemon_feed import PayloadModel
+from cellbridge.ros2 import DEFAULT_FRAME, MISSING
 from cellbridge.ros2.qos import BadTopicName, topics
 from cellbridge.views.source import add_source_arguments, open_source
 
@@ -82,10 +81,16 @@ def _problem(args: argparse.Namespace) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        from cellbridge.ros2.convert import Converter
+        from cellbridge.ros2.daemon_feed import PayloadModel
+        from cellbridge.ros2.graph import BadInterface, Graph, dds_config
+    except ImportError as exc:
+        print(f"cellbridge ros2: {MISSING} ({exc})", file=sys.stderr)
+        return 1
     source = open_source("ros2", args, _problem(args))
     if source is None:
         return 2
-    from cellbridge.ros2.graph import BadInterface, Graph, dds_config
 
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):

@@ -42,10 +42,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from cellbridge.ros2 import DEFAULT_FRAME
 from cellbridge.ros2 import types as T
 from cellbridge.views.model import UNTOUCHED, Contact, contact_line, level_rgb, summarise_health
 
-DEFAULT_FRAME = "cellbridge_skin"
 MARKER_PERIOD = 1 / 30  # s: the most markers a second is 30 (rviz redraws no faster)
 ARROW_PER_NEWTON = 0.01  # m of arrow per N
 UP = (0.0, 0.0, 1.0)

@@ -19,7 +19,6 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from cellbridge.ros2 import types as T
 
 RELIABLE, BEST_EFFORT = "reliable", "best_effort"
 #: rmw's enum values, as rosbag2 stores them in ``offered_qos_profiles``.
@@ -30,13 +29,16 @@ _RMW = {"keep_last": 1, RELIABLE: 1, BEST_EFFORT: 2, "volatile": 2, "automatic":
 class TopicSpec:
     key: str
     name: str  # the ROS 2 topic name, e.g. /cellbridge/tactile_state
-    type: type  # the message class of cellbridge.ros2.types
+    ros_type: str  # e.g. tactile_msgs/msg/TactileState
     reliability: str
     depth: int
 
     @property
-    def ros_type(self) -> str:
-        return str(self.type.ROS)  # type: ignore[attr-defined]  # every class of types has ROS
+    def message_class(self) -> type:
+        """Its class in :mod:`cellbridge.ros2.types` (imported here: it needs Cyclone DDS)."""
+        from cellbridge.ros2.types import ALL
+
+        return ALL[self.ros_type]
 
     @property
     def dds_name(self) -> str:
@@ -68,8 +70,8 @@ def topics(namespace: str = "/cellbridge", diagnostics: str = "/diagnostics") ->
     ns = check_name(namespace.rstrip("/"))
     check_name(diagnostics)
     return {
-        "state": TopicSpec("state", f"{ns}/tactile_state", T.TactileState, BEST_EFFORT, 5),
-        "contacts": TopicSpec("contacts", f"{ns}/contacts", T.TactileContacts, RELIABLE, 10),
-        "markers": TopicSpec("markers", f"{ns}/markers", T.MarkerArray, RELIABLE, 10),
-        "diagnostics": TopicSpec("diagnostics", diagnostics, T.DiagnosticArray, RELIABLE, 10),
+        "state": TopicSpec("state", f"{ns}/tactile_state", "tactile_msgs/msg/TactileState", BEST_EFFORT, 5),
+        "contacts": TopicSpec("contacts", f"{ns}/contacts", "tactile_msgs/msg/TactileContacts", RELIABLE, 10),
+        "markers": TopicSpec("markers", f"{ns}/markers", "visualization_msgs/msg/MarkerArray", RELIABLE, 10),
+        "diagnostics": TopicSpec("diagnostics", diagnostics, "diagnostic_msgs/msg/DiagnosticArray", RELIABLE, 10),
     }

@@ -46,7 +46,7 @@ from cellbridge.ros2 import DEFAULT_FRAME
 from cellbridge.ros2 import types as T
 from cellbridge.views.model import UNTOUCHED, Contact, contact_line, level_rgb, summarise_health
 
-MARKER_PERIOD = 1 / 30  # s: the most markers a second is 30 (rviz redraws no faster)
+MARKER_PERIOD = 0.1  # s: at most 10 pictures a second (a 16x16 skin's picture costs ~10 ms to build and encode)
 ARROW_PER_NEWTON = 0.01  # m of arrow per N
 UP = (0.0, 0.0, 1.0)
 LOSS_WARN = 0.05  # a bridge losing more than this fraction of its frames is a warning

@@ -184,7 +184,10 @@ def main() -> int:
         for rows, cols, rate in ((4, 4, 250.0), (16, 16, 100.0)):
             sub = Path(td) / f"{rows}x{cols}"
             sub.mkdir()
-            results.append(((rows, cols, rate), run_case(sub, rows, cols, rate, window)))
+            try:
+                results.append(((rows, cols, rate), run_case(sub, rows, cols, rate, window)))
+            except AssertionError as exc:  # a daemon starved on a busy machine estimated no contact
+                print(f"{rows}x{cols} at {rate:.0f} Hz: not measured ({exc})", flush=True)
     q = (lambda x, p: f"{np.percentile(x, p):.2f}" if len(x) else "-")
     table("1. added latency: contact on ZeroMQ -> the same frame's TactileContacts over DDS (ms)",
           ["skin", "contacts", "p50", "p99", "max", "not matched"],

@@ -13,7 +13,6 @@ import math
 import os
 import signal
 import subprocess
-import time
 from pathlib import Path
 from typing import Any
 

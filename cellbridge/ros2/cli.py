@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     specs = topics(args.namespace, args.diagnostics_topic)
     converter = Converter(args.frame_id, marker_period=1.0 / args.marker_rate, force_scale=args.force_scale)
     model = PayloadModel(converter, force_scale=args.force_scale)
-    graph = None
+    graph: Graph | None = None
     try:
         try:
             config = args.dds_config if args.dds_config else dds_config(args.interface)
@@ -123,7 +123,8 @@ def run(args: argparse.Namespace) -> int:
         if graph is not None:
             graph.close()
         source.close()
-        print(json.dumps({"published": graph.published if graph else {}, "dropped": graph.dropped if graph else {},
+        print(json.dumps({"published": graph.published if graph is not None else {},
+                          "dropped": graph.dropped if graph is not None else {},
                           "malformed": model.malformed + converter.malformed, "lost": model.lost,
                           "daemon_restarts": model.daemon_restarts, "t": round(time.time(), 3)}), file=sys.stderr)
     return 0

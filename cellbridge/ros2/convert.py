@@ -224,9 +224,9 @@ class Converter:
 
     def _health(self, p: dict[str, Any]) -> T.DiagnosticArray:
         s = summarise_health(p)
-        source = p.get("source") if isinstance(p.get("source"), str) else ""
-        links = p.get("links") if isinstance(p.get("links"), dict) else {}
-        bridges = p.get("bridges") if isinstance(p.get("bridges"), dict) else {}
+        source = p["source"] if isinstance(p.get("source"), str) else ""
+        links: dict[Any, Any] = p["links"] if isinstance(p.get("links"), dict) else {}
+        bridges: dict[Any, Any] = p["bridges"] if isinstance(p.get("bridges"), dict) else {}
         lost_here = sum(self.lost.values())
         level, problems = T.DiagnosticStatus.OK, []
         if s["links"] and s["links_up"] < s["links"]:

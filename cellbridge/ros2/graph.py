@@ -73,7 +73,7 @@ class Graph:
         self.participant = DomainParticipant(domain)
         self.writers: dict[str, DataWriter] = {}
         for key, spec in specs.items():
-            topic = Topic(self.participant, spec.dds_name, spec.message_class)
+            topic: Topic[Any] = Topic(self.participant, spec.dds_name, spec.message_class)
             self.writers[key] = DataWriter(self.participant, topic, qos=writer_qos(spec))
         self.published: dict[str, int] = {k: 0 for k in specs}
         self.dropped: dict[str, int] = {k: 0 for k in specs}

@@ -13,7 +13,7 @@ own text, then the text of every type it uses, each after a line of 80 ``=`` and
 from __future__ import annotations
 
 import re
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 INTERFACES = Path(__file__).resolve().parent / "interfaces"
@@ -39,7 +39,7 @@ def full(name: str) -> str:
     return f"{pkg}/msg/{rest.rsplit('/', 1)[-1]}"
 
 
-@lru_cache(maxsize=None)
+@cache
 def text(name: str) -> str:
     """The ``.msg`` text of a type, as shipped."""
     pkg, _, msg = short(name).partition("/")
@@ -77,7 +77,7 @@ def dependencies(name: str) -> list[str]:
     return out
 
 
-@lru_cache(maxsize=None)
+@cache
 def schema(name: str) -> str:
     """The ``ros2msg`` schema text of ``name``: its .msg and those of all it uses."""
     parts = [text(name).rstrip("\n")]

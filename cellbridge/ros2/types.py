@@ -14,10 +14,16 @@ annotations`` here: Cyclone DDS reads the annotations as objects.)
 
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl._support import Endianness
-from cyclonedds.idl.types import byte, float32, float64, int32, sequence, uint8, uint32
+from cyclonedds.idl.types import byte, float32, float64, int32, uint8, uint32
+
+if TYPE_CHECKING:  # to a type checker an IDL sequence is the list it holds
+    from builtins import list as sequence
+else:
+    from cyclonedds.idl.types import sequence
 
 
 def _dds(name: str) -> str:

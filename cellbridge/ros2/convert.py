@@ -155,17 +155,19 @@ class Converter:
             r = self.readings.get(b)
             if r is None:
                 r = self.readings[b] = Reading()
-            f, a = _num(force), _num(area)
-            if valid is True and math.isfinite(f):
-                r.force, r.area = f, a
-            elif isinstance(status, int) and status & UNTOUCHED and touched is not True:
+            # (floats as they come, the rest through _num: this loop runs 256 times a message on a 16x16 skin)
+            f = force if force.__class__ is float else _num(force)
+            if valid is True and f == f and f not in (math.inf, -math.inf):
+                r.force, r.area = f, area if area.__class__ is float else _num(area)
+            elif status.__class__ is int and status & UNTOUCHED and touched is not True:
                 r.force, r.area = 0.0, 0.0
             else:
                 r.force, r.area = math.nan, math.nan
-            r.dc1, r.dc2 = _num(dc1), _num(dc2)
-            t = _num(ts)
-            if math.isfinite(t):
-                newest = max(newest, t)
+            r.dc1 = dc1 if dc1.__class__ is float else _num(dc1)
+            r.dc2 = dc2 if dc2.__class__ is float else _num(dc2)
+            t = ts if ts.__class__ is float else _num(ts)
+            if t > newest and t != math.inf:
+                newest = t
         if not math.isfinite(newest):
             newest = _num(p.get("t_host"))
         return self.state(newest)

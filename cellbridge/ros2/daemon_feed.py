@@ -29,6 +29,16 @@ class PayloadModel(SkinView):
             self.malformed += 1
         self.pending.append((topic, payload, now))
 
+    def _feed_element(self, p: dict[str, Any]) -> None:
+        """Only whether an element the layout does not place is reporting (then the layout is
+        asked for again): the readings themselves are the converter's (a view's per-element
+        history would cost a third of the time a 16x16 skin's message takes here)."""
+        bridges = p.get("bridge")
+        if not isinstance(bridges, list):
+            raise ValueError("element without bridge column")
+        if self.layout and not self.needs_topology and any(b not in self.layout for b in bridges):
+            self.needs_topology = True
+
     def feed_topology(self, payload: dict[str, Any]) -> None:
         super().feed_topology(payload)
         self.converter.set_layout(payload)

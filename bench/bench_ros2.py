@@ -133,6 +133,9 @@ def run_case(tmp: Path, rows: int, cols: int, rate: float, window: float) -> dic
             peer.subscribe(f"{NS}/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", reliable=True)
             with daemon(cfg, tmp / "daemon.log") as d:
                 wait_ready(client, 120)
+                n = rows * cols  # every element placed and calibrated (a 16x16 layout grows over a few HELLOs:
+                client.wait_for("health", lambda m: m.get("layout", {}).get("elements") == n  # a press in a
+                                and m["layout"].get("calibration", {}).get("ready", 0) >= n, 120)  # baseline is none)
                 feeder.press(lambda k: press)
                 client.wait_for("contact", lambda m: len(m["contacts"]) >= 1, timeout=120)
                 with view_process(["ros2", "--endpoint", ep["pub"], "--control", ep["control"], "--domain",

@@ -9,6 +9,7 @@ times, through ``Pipeline.feed``. (Real ptys and processes: test_daemon_service.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import os
@@ -146,6 +147,47 @@ def test_a_hung_contact_worker_is_killed_and_a_new_one_answers() -> None:
         assert ScriptedExecutor.made[0].killed and len(ScriptedExecutor.made) == 2
         assert await w.estimate(job, timeout=0.05) is not None  # the new worker answers
         w.close()
+
+    asyncio.run(scenario())
+
+
+class _HeldExecutor(concurrent.futures.Executor):
+    """Hands out futures the test completes (a worker whose answer comes when the test says)."""
+
+    def __init__(self) -> None:
+        self.futures: list[concurrent.futures.Future[Any]] = []
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        fut.set_running_or_notify_cancel()
+        self.futures.append(fut)
+        return fut
+
+
+def test_an_estimate_cancelled_the_step_after_its_answer_came_is_cancelled() -> None:
+    """Python 3.11's wait_for returns a result that came in the loop step before its task
+    was cancelled, and the cancel is lost: an estimate cancelled by a stop right after its
+    answer returned the answer, and the service's contact loop went on. Whichever step after
+    the answer the cancel comes in, the estimate ends cancelled."""
+    async def scenario() -> None:
+        p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 5}}))
+        job = _job(p)
+        ex = _HeldExecutor()
+        w = ContactWorker(logging.getLogger("tests"), lambda: ex)
+        w._answered = True  # a warm worker: its estimates have their timeout
+        lost = []
+        for steps in range(6):
+            task = asyncio.create_task(w.estimate(job, timeout=30.0))
+            await until(lambda n=steps + 1: len(ex.futures) == n)  # type: ignore[misc]  # (bound now)
+            ex.futures[-1].set_result([])
+            for _ in range(steps):
+                await asyncio.sleep(0)
+            asked = task.cancel()  # (False: the estimate had returned already)
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            if asked and not task.cancelled():
+                lost.append(steps)
+        assert not lost, f"the cancel was lost {lost} steps after the answer"
 
     asyncio.run(scenario())
 
@@ -492,6 +534,78 @@ def test_a_drain_cancelled_midway_still_closes_the_sockets_and_ends_the_worker(t
             assert svc.pub.sock.closed and svc.ctl.closed
             assert ScriptedExecutor.made[0].killed
             contacts.close(0)
+
+    asyncio.run(scenario())
+
+
+def test_the_contact_loop_ends_when_cancelled_the_step_after_data_came(tmp_path: Path) -> None:
+    """The daemon once hung at a stop (its log said "stopping: draining", never "stopped")
+    with an event-based skin and views subscribed: the contact loop then waits for new data
+    or for held elements' next look (wait_for on its event), and Python 3.11's wait_for,
+    cancelled in the step after the event was set (a tick sets it ten times a second),
+    returns instead of raising: the cancel was lost, the loop went on, and the drain
+    waited for it for ever. Whichever step the cancel comes in, the loop ends."""
+    async def scenario() -> None:
+        cfg = parse_config({"link": [{"name": "gw", "url": "/dev/ttyFAKE0"}], "daemon": {"log_level": "warning"}})
+        svc = Service(cfg, hooks=RecordingHooks(cfg), contact_executor=InlineExecutor)
+        svc.pipeline.contact_due = lambda now, idle=False: now + 0.05  # type: ignore[method-assign]  # a look due soon
+        went_on = []
+        for steps in range(6):
+            task = asyncio.create_task(svc._contacts())
+            await asyncio.sleep(0.01)  # in its wait for data or the look
+            svc._fresh.set()
+            for _ in range(steps):
+                await asyncio.sleep(0)
+            task.cancel()
+            done, _ = await asyncio.wait([task], timeout=1.0)
+            if not done:
+                went_on.append(steps)
+                while not task.done():  # (cancelled until it ends: the test must not leave it)
+                    task.cancel()
+                    await asyncio.wait([task], timeout=0.1)
+        assert not went_on, f"the contact loop went on after a cancel {went_on} steps after data came"
+
+    asyncio.run(scenario())
+
+
+def test_a_stop_is_bounded_when_a_task_does_not_end_when_cancelled(tmp_path: Path) -> None:
+    """The drain waited for its tasks with gather, without a bound: one task that did not
+    end on its cancel (the contact loop's lost cancel, above) held the daemon at "stopping:
+    draining" until it was killed. A task that outlives ``TASK_END_LIMIT`` is logged and
+    left; the drain goes on, publishes its last health, and the service stops."""
+    async def scenario() -> None:
+        dev = FakeDevice()
+        release = asyncio.Event()
+
+        async def stubborn() -> None:
+            while not release.is_set():
+                with contextlib.suppress(asyncio.CancelledError):
+                    await asyncio.sleep(1.0)
+
+        left = asyncio.create_task(stubborn(), name="stubborn")
+        try:
+            async with running(tmp_path, dev, drain_limit=5.0) as (svc, ctx):
+                try:
+                    health = _sub(ctx, svc, "health")
+                    await until(lambda: "health" in svc.pub.wanted)
+                    svc._tasks.append(left)
+                    t0 = time.monotonic()
+                    os.kill(os.getpid(), signal.SIGTERM)
+                    async with asyncio.timeout(15.0):  # a guard against the hang
+                        assert await asyncio.shield(svc.task) == 0  # type: ignore[attr-defined]  # the test keeps the service's task on it
+                    assert time.monotonic() - t0 < 5.0
+                    assert svc.pub.sock.closed and svc.ctl.closed and not left.done()
+                    topics = []
+                    while await health.poll(0):
+                        topics.append((await _recv(health))[0])
+                    assert topics and topics[-1] == "health"  # the drain's last health went out
+                    health.close(0)
+                finally:
+                    release.set()  # (a hung drain then ends: the test fails, it does not hang)
+        finally:
+            release.set()
+            left.cancel()
+            await asyncio.wait([left], timeout=2.0)
 
     asyncio.run(scenario())
 

@@ -610,6 +610,59 @@ def test_a_stop_is_bounded_when_a_task_does_not_end_when_cancelled(tmp_path: Pat
     asyncio.run(scenario())
 
 
+_LEFT_OPEN = """
+import asyncio, os, signal, sys
+import zmq
+sys.path.insert(0, {tests!r})
+from cellbridge.daemon.config import load_config
+from cellbridge.daemon.contact_worker import InlineExecutor
+from cellbridge.daemon.service import Service
+from shell_fakes import FakeDevice, RecordingHooks
+
+
+class Hooks(RecordingHooks):
+    def secure(self, ctx, socket, endpoint):
+        super().secure(ctx, socket, endpoint)
+        self.left = zmq.Context.shadow(ctx.underlying).socket(zmq.PAIR)  # a helper's, never closed
+
+
+async def main():
+    cfg = load_config({config!r})
+    dev = FakeDevice()
+    svc = Service(cfg, hooks=Hooks(cfg), opener=dev.open, contact_executor=InlineExecutor)  # its own context
+    task = asyncio.create_task(svc.run())
+    while not any(what == "ready" for what, _ in svc.hooks.said):
+        await asyncio.sleep(0.01)
+    os.kill(os.getpid(), signal.SIGTERM)
+    print("returned", await task, flush=True)
+
+asyncio.run(main())
+"""
+
+
+def test_a_socket_left_open_in_the_services_context_does_not_hold_its_stop(tmp_path: Path) -> None:
+    """``term()`` of the service's ZeroMQ context waits for every socket of it to be closed,
+    without a bound: a helper thread's socket left open (its thread did not end in its
+    time) held the daemon after its drain. A separate process: the old stop hung in it."""
+    import subprocess
+    import sys
+
+    _N[0] += 1
+    config = tmp_path / "daemon.toml"
+    _write_config(config, daemon={"log_level": "info"})
+    script = _LEFT_OPEN.format(tests=str(Path(__file__).parent), config=str(config))
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"the stop hung: {err.decode()[-400:]}")
+    assert proc.returncode == 0 and b"returned 0" in out, err
+    assert b"ZeroMQ context did not terminate" in err and b"stopped" in err, err
+
+
 def test_a_shifted_replay_that_falls_behind_never_feeds_a_read_before_the_time_it_is_fed(tmp_path: Path) -> None:
     """A shifted replay at recorded speed on a starved loop (here a read that blocks it for
     0.3 s): the records due meanwhile are fed late. Stamped on their schedule they came

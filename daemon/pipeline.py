@@ -127,7 +127,7 @@ class Pipeline:
         # Bridges whose rate or silence a health tick must look at: heard since, or not yet
         # silent with a rate of 0. A silent bridge costs the tick nothing (65 530 phantoms).
         self._awake: set[int] = set()
-        self._forget_floor = -math.inf  # nothing unplaced was last heard before this
+        self._forget_floor = -math.inf  # no bridge nor gateway id _forget could drop was last heard before this
         self._next_contact_id = 0  # lowest contact id never published (see contact_job)
         self._carry: tuple[dict[str, Any], ...] = ()  # the contacts last published, as the worker gave them
         self.announced_silent: set[int] = set()
@@ -171,6 +171,7 @@ class Pipeline:
         b = self.bridges.get(bid)
         if b is None:
             b = self.bridges[bid] = BridgeHealth(first_seen=now, clock_hz=self.chip.clock_hz)
+            self._forget_floor = min(self._forget_floor, now)  # it may be due to be forgotten some day
         self._awake.add(bid)
         return b
 
@@ -213,7 +214,8 @@ class Pipeline:
                 self.clocks[origin].suspect_reset()  # numbering restarted without a HELLO: perhaps a reset
             b.last_seen, b.link = now, link
             self.topology.heard(origin, link, dec.gateways, now)
-        self.topology.gateways_heard(link, dec.gateways, now)
+        if self.topology.gateways_heard(link, dec.gateways, now):
+            self._forget_floor = min(self._forget_floor, now)
         for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
             if origin in self.clocks and self.clocks.pop(origin).synced:
                 self._bridge(origin, now).clock_resets += 1
@@ -540,14 +542,13 @@ class Pipeline:
             self.ingress.reassembly_drops.pop(bid, None)
             self._awake.discard(bid)
         self.forgotten_bridges += len(gone)
-        self.topology.forget_gateways(before, self.skin.split_placed)
-        # Last-heard times only grow (a step back resets this), and a bridge heard later is
-        # newer: until the oldest one left is due, a scan forgets nothing.
+        self.topology.forget_gateways(before)
+        # Last-heard times only grow (a step back resets this), and a bridge or gateway id heard
+        # later is newer: until the oldest one left is due, a scan forgets nothing. A new one
+        # (heard for the first time, or again after it was forgotten) lowers this again.
         _, others = self.skin.split_placed(self.bridges)
-        times = [self.bridges[b].last_seen for b in others]
-        for ids in self.topology.gateways.values():
-            times += [ids[g] for g in self.skin.split_placed(ids)[1]]
-        self._forget_floor = min(times, default=math.inf)
+        oldest = min((self.bridges[b].last_seen for b in others), default=math.inf)
+        self._forget_floor = min(oldest, self.topology.oldest_gateway())
 
     def _clock_stepped_back(self, now: float) -> None:
         """The host clock went back (NTP step, RTC set): times kept from before lie in the

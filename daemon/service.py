@@ -32,7 +32,6 @@ import zmq.asyncio
 
 from cellbridge._version import __version__
 from cellbridge.daemon.layout_file import load_layout
-from cellbridge.daemon.skin_file import is_skin_file, load_skin
 from cellbridge.daemon.config import Config, ConfigError, load_config
 from cellbridge.daemon.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.control_server import ControlServer
@@ -44,24 +43,11 @@ from cellbridge.daemon.pacing import Pacer
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
 from cellbridge.tactile import SkinLayout
-from cellbridge.tactile.skin_geometry import SkinGeometry
 
 
 def read_layout(config: Config) -> SkinLayout | None:
     path = config.layout_path()
     return None if path is None else load_layout(path)
-
-
-def read_surface(config: Config) -> SkinGeometry | None:
-    """The skin description the layout file is (links, patches), or None (a plain layout, none)."""
-    path = config.layout_path()
-    if path is None:
-        return None
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError):
-        return None  # read_layout says what is wrong with it
-    return load_skin(path) if is_skin_file(text) else None
 
 
 class Service:
@@ -93,7 +79,6 @@ class Service:
         self.config_path = config_path
         self.log = setup(config.daemon.log_level, config.daemon.log_format)
         self.pipeline = Pipeline(config, layout)
-        self.pipeline.surface = read_surface(config)  # the layout file as a skin description (links, patches)
         # The pipeline runs on the monotonic clock; a replay in recorded time feeds recorded
         # wall-clock times instead, and then nothing is added to them.
         self._recorded = any(ln.is_replay and ln.replay_clock == "recorded" for ln in config.links)
@@ -317,7 +302,6 @@ class Service:
         try:
             new = load_config(self.config_path)
             layout = read_layout(new)
-            surface = read_surface(new)
         except (ConfigError, ValueError) as exc:
             event(self.log, "error", "reload rejected, keeping the running config", error=str(exc))
             self.hooks.ready("reload rejected")
@@ -328,7 +312,6 @@ class Service:
         self.config = new
         self.log.setLevel(new.daemon.log_level.upper())
         self.pipeline.reconfigure(new, layout)
-        self.pipeline.surface = surface
         try:
             self.hooks.reload_keys()
         except ValueError as exc:
@@ -453,7 +436,8 @@ class Service:
         worker.start()
         worker.join(limit)
         if worker.is_alive():
-            event(self.log, "error", "ZeroMQ context did not terminate: a socket is still open", waited=limit)
+            event(self.log, "error", "ZeroMQ context did not terminate: a socket is still open or still sending",
+                  waited=limit)
 
 
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms). A

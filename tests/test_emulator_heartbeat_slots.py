@@ -73,7 +73,6 @@ def test_an_idle_event_based_skin_spreads_its_heartbeats_over_the_frames() -> No
     bridges (before the slots, every bridge's heartbeat shared one index)."""
     mesh = meshgen.grid(4, 4)
     vm = VirtualMesh(mesh, seed=3, random_epochs=True, readout=False,  # DATA heartbeats (unscheduled path)
-                    
                      settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
     vm.run(14.0)
     per_index: Counter[int] = Counter()

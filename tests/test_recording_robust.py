@@ -260,27 +260,31 @@ def _chunks(data: bytes) -> list[tuple[int, int]]:
     return [(pos, length) for pos, op, length in rm.records(data) if op == 0x06]
 
 
-def _chunk_seqs(data: bytes, pos: int) -> list[tuple[str, int]]:
-    """(topic, seq) of the messages of the chunk at ``pos``, read from an intact copy."""
-    return [(m.topic, json.loads(m.data)["seq"]) for m in _messages_of(data) if m.offset == pos]
+def _chunk_seqs(path: Path, pos: int) -> list[tuple[str, int]]:
+    """(topic, seq) of the messages of the chunk at ``pos`` of an intact file, read by the mcap
+    package's own reader."""
+    from mcap.reader import make_reader
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader, breakup_chunk
 
-
-def _messages_of(data: bytes) -> list[Any]:
-    import tempfile
-
-    with tempfile.NamedTemporaryFile(suffix=".mcap") as fh:
-        fh.write(data)
-        fh.flush()
-        return list(read_messages(fh.name))
+    with open(path, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+        assert summary is not None
+        fh.seek(pos)
+        chunk = next(StreamReader(fh, skip_magic=True, emit_chunks=True).records)
+    assert isinstance(chunk, Chunk)
+    return [(summary.channels[r.channel_id].topic, json.loads(r.data)["seq"])
+            for r in breakup_chunk(chunk) if isinstance(r, Message)]
 
 
 def test_a_chunk_damaged_in_place_is_skipped_named_and_the_rest_is_info_and_replay(tmp_path: Path) -> None:
-    seed = rm.write_seed(tmp_path / "seed.mcap").read_bytes()
-    every = [(m.topic, json.loads(m.data)["seq"]) for m in _messages_of(seed)]
+    seed_path = rm.write_seed(tmp_path / "seed.mcap")
+    seed = seed_path.read_bytes()
+    every = [(m.topic, json.loads(m.data)["seq"]) for m in read_messages(seed_path)]
     chunks = _chunks(seed)
     assert len(chunks) > 10
     pos, _ = chunks[len(chunks) // 2]
-    lost = _chunk_seqs(seed, pos)
+    lost = _chunk_seqs(seed_path, pos)
     assert lost
     damaged = bytearray(seed)
     (name_len,) = struct.unpack_from("<I", damaged, pos + 9 + 28)

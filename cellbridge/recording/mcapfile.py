@@ -269,18 +269,14 @@ class _Index:
 
     def __init__(self) -> None:
         self.starts: list[int] = []
+        self.lengths: dict[int, int] = {}  # chunk start -> its record's length, opcode and length field included
         self.channels: dict[int, frozenset[int]] = {}  # chunk start -> channel ids in it
         self.topics: dict[int, str] = {}  # channel id -> topic
         self.trusted = False
 
-    def next_chunk(self, after: int) -> int | None:
-        i = bisect.bisect_right(self.starts, after)
-        return self.starts[i] if i < len(self.starts) else None
-
-    def chunk_inside(self, start: int, end: int) -> int | None:
-        """The first indexed chunk that starts inside (start, end): a record there is misframed."""
-        c = self.next_chunk(start)
-        return c if c is not None and c < end else None
+    def chunks_after(self, after: int) -> Iterator[int]:
+        for i in range(bisect.bisect_right(self.starts, after), len(self.starts)):
+            yield self.starts[i]
 
 
 class _Reader:
@@ -297,6 +293,25 @@ class _Reader:
     def _read_at(self, pos: int, n: int) -> bytes:
         self.fh.seek(pos)
         return bytes(self.fh.read(n))
+
+    def _chunk_at(self, pos: int, end: int) -> bool:
+        """Whether the index's chunk at ``pos`` is there: a chunk record of the length the index
+        gives (a file spliced after it was finished has its chunks elsewhere)."""
+        head = self._read_at(pos, _HEAD.size)
+        if len(head) < _HEAD.size:
+            return False
+        opcode, length = _HEAD.unpack(head)
+        return opcode == Opcode.CHUNK and _HEAD.size + length == self.index.lengths.get(pos) \
+            and pos + _HEAD.size + length <= end
+
+    def _next_chunk(self, after: int, end: int, before: int | None = None) -> int | None:
+        """The first chunk the index names after ``after`` (and before ``before``) that is there."""
+        for c in self.index.chunks_after(after):
+            if c >= end or (before is not None and c >= before):
+                return None
+            if self._chunk_at(c, end):
+                return c
+        return None
 
     # -- the end of the file: footer and summary ------------------------------------------
     def read_footer(self) -> None:
@@ -337,6 +352,7 @@ class _Reader:
                 ci: ChunkIndex = _parse(ChunkIndex, body)
                 if ci.chunk_start_offset < self.size:
                     index.starts.append(ci.chunk_start_offset)
+                    index.lengths[ci.chunk_start_offset] = ci.chunk_length
                     ids = frozenset(ci.message_index_offsets)
                     chunk_channels[ci.chunk_start_offset] = shared.setdefault(ids, ids)
             elif opcode == Opcode.CHANNEL:
@@ -367,15 +383,16 @@ class _Reader:
                 break
             opcode, length = _HEAD.unpack(head)
             rec_end = pos + _HEAD.size + length
-            inside = self.index.chunk_inside(pos, rec_end) if self.index.trusted else None
+            # a chunk of the index inside this record: its length is wrong (damaged framing)
+            inside = self._next_chunk(pos, end, before=rec_end) if self.index.trusted else None
             if rec_end > end or inside is not None or opcode == 0:
                 if self.footer_at is None and rec_end > end and opcode != 0:
                     self._cut_short(f"inside a record of {length} bytes at byte {pos}")
                     break
                 self.result.add_damage(f"byte {pos}: a record of {length} bytes (opcode {opcode:#x}) "
                                        f"does not fit: framing lost")
-                nxt = inside if inside is not None else self.index.next_chunk(pos)
-                if nxt is None or nxt >= end:
+                nxt = inside if inside is not None else self._next_chunk(pos, end)
+                if nxt is None:
                     break
                 pos = nxt
                 continue
@@ -401,8 +418,8 @@ class _Reader:
         if self.index.trusted:
             lost = [c for c in self.index.starts if c not in seen]
             if lost:
-                self.result.add_damage(f"{len(lost)} indexed chunk{'s' if len(lost) != 1 else ''} never reached "
-                                       f"(first at byte {lost[0]})")
+                self.result.add_damage(f"{len(lost)} chunk{'s' if len(lost) != 1 else ''} of the index not read "
+                                       f"where it says (first at byte {lost[0]})")
         if self.footer_at is None and self.result.complete:
             self._cut_short(f"after byte {pos}")
 

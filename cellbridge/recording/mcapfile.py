@@ -55,6 +55,11 @@ MAX_RATIO = 1000
 RATIO_FLOOR = 64 << 10
 #: Largest record a reader reads into memory (a chunk as stored: compressed, or not).
 MAX_RECORD_BYTES = MAX_CHUNK_BYTES + (1 << 20)
+#: Longest topic name read (the daemon's are a word); metadata records kept (larger ones
+#: and more are not kept: nothing reads them but a person).
+MAX_TOPIC = 200
+MAX_METADATA = 64 << 10
+MAX_METADATA_RECORDS = 64
 #: Largest chunk size the writer is given (``cellbridge record --chunk-size``).
 MAX_CHUNK_SIZE = 8_000_000
 
@@ -268,9 +273,9 @@ class _Index:
     the channels in each (to skip chunks of other topics)."""
 
     def __init__(self) -> None:
-        self.starts: list[int] = []
-        self.lengths: dict[int, int] = {}  # chunk start -> its record's length, opcode and length field included
-        self.channels: dict[int, frozenset[int]] = {}  # chunk start -> channel ids in it
+        self.starts: list[int] = []  # sorted
+        self.lengths: list[int] = []  # of each chunk's record, opcode and length field included
+        self.channels: dict[int, frozenset[int]] = {}  # chunk start -> channel ids in it (reading some topics)
         self.topics: dict[int, str] = {}  # channel id -> topic
         self.trusted = False
 
@@ -301,8 +306,9 @@ class _Reader:
         if len(head) < _HEAD.size:
             return False
         opcode, length = _HEAD.unpack(head)
-        return opcode == Opcode.CHUNK and _HEAD.size + length == self.index.lengths.get(pos) \
-            and pos + _HEAD.size + length <= end
+        i = bisect.bisect_left(self.index.starts, pos)
+        return opcode == Opcode.CHUNK and i < len(self.index.starts) and self.index.starts[i] == pos \
+            and _HEAD.size + length == self.index.lengths[i] and pos + _HEAD.size + length <= end
 
     def _next_chunk(self, after: int, end: int, before: int | None = None) -> int | None:
         """The first chunk the index names after ``after`` (and before ``before``) that is there."""
@@ -337,6 +343,7 @@ class _Reader:
         index = _Index()
         running = 0
         pos = start
+        chunks: list[tuple[int, int]] = []
         chunk_channels: dict[int, frozenset[int]] = {}
         shared: dict[frozenset[int], frozenset[int]] = {}
         while pos < end:
@@ -351,16 +358,18 @@ class _Reader:
             if opcode == Opcode.CHUNK_INDEX:
                 ci: ChunkIndex = _parse(ChunkIndex, body)
                 if ci.chunk_start_offset < self.size:
-                    index.starts.append(ci.chunk_start_offset)
-                    index.lengths[ci.chunk_start_offset] = ci.chunk_length
-                    ids = frozenset(ci.message_index_offsets)
-                    chunk_channels[ci.chunk_start_offset] = shared.setdefault(ids, ids)
+                    chunks.append((ci.chunk_start_offset, ci.chunk_length))
+                    if self.topics is not None:
+                        ids = frozenset(ci.message_index_offsets)
+                        chunk_channels[ci.chunk_start_offset] = shared.setdefault(ids, ids)
             elif opcode == Opcode.CHANNEL:
                 ch: Channel = _parse(Channel, body)
-                index.topics[ch.id] = ch.topic
+                index.topics[ch.id] = ch.topic[:MAX_TOPIC + 1]
             pos += _HEAD.size + length
         running = zlib.crc32(self._read_at(end, 1 + 8 + 8 + 8), running)
-        index.starts.sort()
+        chunks.sort()
+        index.starts = [c for c, _ in chunks]
+        index.lengths = [n for _, n in chunks]
         if crc != 0 and running != crc:
             self.result.add_damage(f"summary at byte {start}: CRC mismatch (the index is not used)")
             return
@@ -372,7 +381,10 @@ class _Reader:
     def messages(self) -> Iterator[Recorded]:
         end = self.footer_at if self.footer_at is not None else self.size
         pos = len(MAGIC)
-        seen: set[int] = set()
+        starts = self.index.starts if self.index.trusted else []
+        passed = 0  # of the index's chunks (in file order), those the reading has come to
+        lost = 0  # ... and of those, the ones not found where the index says
+        first_lost = 0
         while pos < end:
             head = self._read_at(pos, _HEAD.size)
             if len(head) < _HEAD.size:
@@ -400,7 +412,11 @@ class _Reader:
                 break
             try:
                 if opcode == Opcode.CHUNK:
-                    seen.add(pos)
+                    while passed < len(starts) and starts[passed] <= pos:
+                        if starts[passed] < pos:
+                            first_lost = first_lost or starts[passed]
+                            lost += 1
+                        passed += 1
                     yield from self._chunk(pos, length)
                 elif opcode in (Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA):
                     if length > MAX_RECORD_BYTES:
@@ -415,11 +431,12 @@ class _Reader:
             except _Damage as exc:
                 self.result.add_damage(f"{_NAMES.get(opcode, 'record')} at byte {pos}: {exc}")
             pos = rec_end
-        if self.index.trusted:
-            lost = [c for c in self.index.starts if c not in seen]
-            if lost:
-                self.result.add_damage(f"{len(lost)} chunk{'s' if len(lost) != 1 else ''} of the index not read "
-                                       f"where it says (first at byte {lost[0]})")
+        if passed < len(starts):
+            first_lost = first_lost or starts[passed]
+            lost += len(starts) - passed
+        if lost:
+            self.result.add_damage(f"{lost} chunk{'s' if lost != 1 else ''} of the index not read "
+                                   f"where it says (first at byte {first_lost})")
         if self.footer_at is None and self.result.complete:
             self._cut_short(f"after byte {pos}")
 
@@ -430,11 +447,12 @@ class _Reader:
     def _other(self, opcode: int, body: bytes) -> None:
         if opcode == Opcode.CHANNEL:
             ch: Channel = _parse(Channel, body)
+            if len(ch.topic) > MAX_TOPIC:
+                raise _Damage(f"channel {ch.id}: a topic of {len(ch.topic)} characters")
             self.channels[ch.id] = ch.topic
-        elif opcode == Opcode.METADATA:
+        elif opcode == Opcode.METADATA and len(body) <= MAX_METADATA and len(self.result.metadata) < MAX_METADATA_RECORDS:
             md: Metadata = _parse(Metadata, body)
-            if len(self.result.metadata) < 64:
-                self.result.metadata[md.name] = dict(md.metadata)
+            self.result.metadata[md.name] = dict(md.metadata)
 
     def _message(self, body: memoryview, offset: int) -> Recorded | None:
         if len(body) < _MESSAGE_HEAD.size:

@@ -483,3 +483,12 @@ def test_info_and_replay_end_cleanly_on_120_mutated_recordings(tmp_path: Path) -
     fat = [(Path(x.file).name, x.tool, round(x.rss_mb)) for x in runs if x.rss_mb >= 200]
     assert not fat, fat
     assert {x.code for x in runs} == {0, 1}  # some read whole, some damaged
+
+
+def test_reading_some_topics_skips_chunks_by_the_index_and_loses_none(tmp_path: Path) -> None:
+    path = rm.write_seed(tmp_path / "seed.mcap", chunk_size=1500)
+    every = [(m.topic, m.data) for m in read_messages(path)]
+    for topics in ({"health"}, {"contact", "topology"}, {"none"}):
+        result = ReadResult()
+        got = [(m.topic, m.data) for m in read_messages(path, result, topics)]
+        assert got == [m for m in every if m[0] in topics] and result.ok and result.complete

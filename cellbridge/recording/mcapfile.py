@@ -459,6 +459,8 @@ class _Reader:
             raise _Damage(f"message record of {len(body)} bytes, shorter than its header")
         channel, seq, log_ns, publish_ns = _MESSAGE_HEAD.unpack_from(body)
         topic = self.channels.get(channel)
+        if topic is None and self.index.trusted:  # defined in a chunk skipped for its topics
+            topic = self.index.topics.get(channel)
         if topic is None:
             raise _Damage(f"message on channel {channel}, which no channel record defines")
         if self.topics is not None and topic not in self.topics:

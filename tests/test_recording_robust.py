@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import struct
 import subprocess
 import sys
@@ -473,10 +475,16 @@ def test_info_and_replay_end_cleanly_on_120_mutated_recordings(tmp_path: Path) -
     naming the file; never a traceback; peak RSS under 200 MB. (Times: bench/bench_recording_fuzz.py.)"""
     files = rm.corpus(tmp_path / "corpus", 120)
     assert {k for _, k in files} == set(rm.KINDS)
-    r = subprocess.run([sys.executable, str(Path(rm.__file__)), str(tmp_path / "corpus")], capture_output=True,
-                       text=True, timeout=400, cwd=Path(rm.__file__).parent, start_new_session=True)
-    assert r.returncode == 0, r.stderr[-3000:]
-    runs = [rm.Run(**json.loads(line)) for line in r.stdout.splitlines()]
+    proc = subprocess.Popen([sys.executable, str(Path(rm.__file__)), str(tmp_path / "corpus")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=Path(rm.__file__).parent, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=400)
+    finally:
+        if proc.poll() is None:  # the runner and the run it forked
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, err[-3000:]
+    runs = [rm.Run(**json.loads(line)) for line in out.splitlines()]
     assert len(runs) == 2 * len(files)
     bad = [(Path(x.file).name, x.tool, v) for x in runs if (v := rm.verdict(x))]
     assert not bad, bad[:10]

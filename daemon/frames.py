@@ -139,6 +139,10 @@ class SkinFrames:
             ("records", "late_records", "rejected_records", "duplicate_parts", "conflicts", "frames_complete",
              "frames_incomplete", "frames_by_deadline", "frames_pushed_out", "frames_missed", "restarts"), 0)
 
+    def configure(self, margin: float, active_for: float, max_pending: int) -> None:
+        """A reload's settings (the frames waiting keep their deadlines)."""
+        self.margin, self.active_for, self.max_pending = float(margin), float(active_for), int(max_pending)
+
     # -- in ------------------------------------------------------------------------------
     def add(self, gateway: int, rec: RecordPart, arrival: float, t_frame: float, serial: float = 0.0) -> None:
         """One record part written by ``gateway``, arrived at host time ``arrival``;
@@ -159,6 +163,10 @@ class SkinFrames:
         if key <= self._done:
             if not self._went_back(gateway, g, key, arrival):
                 self.counts["late_records"] += 1
+                if key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one joining, or
+                    # back): it is active, and the frames after this wait for it
+                    g.arrival, g.last_key = arrival, max(g.last_key, key)
+                    g.span, g.serial = span, float(serial)
                 return
         g.back = 0
         g.last_key, g.arrival, g.span, g.serial = key, arrival, span, float(serial)

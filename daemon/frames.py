@@ -303,8 +303,7 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, owner: SkinFrames) ->
         for rec in parts.values():
             n = len(rec.samples)
             if n:
-                b, c1, c2, fl = zip(*rec.samples)
-                for col, vals in zip(cols, (b, c1, c2, fl)):
+                for col, vals in zip(cols, zip(*rec.samples)):
                     col.extend(vals)
                 cols[4].extend([int(rec.mode)] * n)
                 cols[5].extend([rec.oversampling] * n)
@@ -315,7 +314,8 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, owner: SkinFrames) ->
     every = np.concatenate([arrays[0], u, m])
     if np.unique(every).size != every.size:  # a bridge in two parts or two gateways' records
         arrays, u, m = _merge(arrays, u, m, owner)
-    return SkinFrame(p.index, p.rate, p.t, *arrays, u, m, complete, by_deadline, tuple(sorted(p.records)))
+    b, c1, c2, fl, mo, ov = arrays
+    return SkinFrame(p.index, p.rate, p.t, b, c1, c2, fl, mo, ov, u, m, complete, by_deadline, tuple(sorted(p.records)))
 
 
 def _merge(arrays: list[NDArray[np.int64]], u: NDArray[np.int64], m: NDArray[np.int64],

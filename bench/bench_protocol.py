@@ -7,8 +7,11 @@ A second DATA frame holds 5 samples of a periodic bridge 3 minutes after boot (t
 reference firmware's frame at 100 Hz), so the per-sample cost of unpacking version 3's
 packed samples shows too.
 
-The last table is the wire cost of a DATA sample in protocol version 2 (every sample
+The next table is the wire cost of a DATA sample in protocol version 2 (every sample
 absolute) and version 3 (samples after a frame's first packed: docs/protocol.md §4).
+
+The last two are version 4's READOUT (docs/protocol.md §4): the bytes of one element in
+each state by its bridge id, and the frames a gateway's record takes per skin frame.
 """
 
 from __future__ import annotations
@@ -21,6 +24,9 @@ from cellbridge.protocol import (
     Frame,
     HostReceiver,
     Mode,
+    ProtocolError,
+    Readout,
+    ReadoutSample,
     Sample,
     StreamDecoder,
     decode,
@@ -67,6 +73,56 @@ def bytes_per_sample() -> None:
         later = len(encode(Frame(7, 0, 7, 1, periodic_data(samples[:2])))) - first
         print(f"{name:<24} {v2[0]:>10} {v2[0]:>10} {later:>10} {v2_frame:>14} {now_frame:>15} "
               f"{v2_frame / 5:>12.1f} {now_frame / 5:>13.1f}")
+
+
+def _readout_len(r: Readout) -> int:
+    return len(encode(Frame(1, 0, 1, 7, r)))
+
+
+def readout_bytes() -> None:
+    """Wire bytes of a READOUT element in each state, and of whole records."""
+    print("\nREADOUT bytes per element (msgpack of the entry), by bridge id")
+    print(f"{'entry':<44} {'1-127':>6} {'128-255':>8} {'256-65534':>10}")
+    base = Readout(2**20, RATE, Mode.COUNTER, 1, (), span_us=3000)
+    rows = [("sample, counter mode (c1, c2 256-65535)", Mode.COUNTER, 1, 19_600, 15_800),
+            ("sample, ADC mode x16 (c1, c2 256-4080)", Mode.ADC, 16, 2_272, 1_968),
+            ("sample, ADC mode x1 (c1, c2 128-255)", Mode.ADC, 1, 200, 180),
+            ("sample, ADC mode x1 (c1, c2 0-127)", Mode.ADC, 1, 100, 90)]
+    for name, mode, over, c1, c2 in rows:
+        empty = Readout(2**20, RATE, mode, over, (), span_us=3000)
+        cost = [_readout_len(Readout(2**20, RATE, mode, over, (ReadoutSample(b, c1, c2),), span_us=3000))
+                - _readout_len(empty) for b in (5, 200, 4000)]
+        print(f"{name:<44} {cost[0]:>6} {cost[1]:>8} {cost[2]:>10}")
+    cost = [_readout_len(Readout(2**20, RATE, Mode.COUNTER, 1, (), (b,), span_us=3000)) - _readout_len(base)
+            for b in (5, 200, 4000)]
+    print(f"{'unchanged or missing':<44} {cost[0]:>6} {cost[1]:>8} {cost[2]:>10}")
+
+    print("\nREADOUT records per skin frame, counter mode, 100 Hz (index past 2^16, span_us 3000)")
+    print(f"{'record':<48} {'payload B':>10} {'frames':>7} {'bytes on cell':>14} {'B/element':>10}")
+    grid16, grid64 = range(1, 17), range(1, 65)
+    records = [
+        ("4x4 periodic", Readout(2**20, RATE, Mode.COUNTER, 1, tuple(ReadoutSample(b, 19_600, 15_800) for b in grid16),
+                                 span_us=3000)),
+        ("4x4 event-based, at rest", Readout(2**20, RATE, Mode.COUNTER, 1, (), tuple(grid16), span_us=3000)),
+        ("4x4 event-based, one element moving", Readout(2**20, RATE, Mode.COUNTER, 1, (ReadoutSample(6, 21_000, 15_800),),
+                                                        tuple(b for b in grid16 if b != 6), span_us=3000)),
+        ("4x4 event-based, four presses (8 moving)", Readout(
+            2**20, RATE, Mode.COUNTER, 1, tuple(ReadoutSample(b, 21_000, 15_800) for b in grid16 if b % 2),
+            tuple(b for b in grid16 if not b % 2), span_us=3000)),
+        ("8x8 periodic", Readout(2**20, RATE, Mode.COUNTER, 1, tuple(ReadoutSample(b, 19_600, 15_800) for b in grid64),
+                                 span_us=3000)),
+        ("8x8 event-based, at rest", Readout(2**20, RATE, Mode.COUNTER, 1, (), tuple(grid64), span_us=3000)),
+    ]
+    for name, r in records:
+        payload = len(msgpack.packb(r.to_wire()))
+        try:
+            frames = [_readout_len(r)]
+        except ProtocolError:  # more than one frame: the record in parts of at most 24 samples
+            step = 24
+            frames = [_readout_len(Readout(r.index, r.rate, r.mode, r.oversampling, r.samples[i:i + step],
+                                           span_us=r.span_us, part=k, parts=-(-len(r.samples) // step)))
+                      for k, i in enumerate(range(0, len(r.samples), step))]
+        print(f"{name:<48} {payload:>10} {len(frames):>7} {sum(frames):>14} {sum(frames) / r.bridges():>10.1f}")
 
 
 def main() -> None:
@@ -133,6 +189,7 @@ def main() -> None:
         ok = "" if target is None else ("yes" if rate >= target else "NO")
         print(f"{name:<44} {rate:>12,.0f} {'' if target is None else f'{target:,}':>10} {ok:>4}")
     bytes_per_sample()
+    readout_bytes()
 
 
 if __name__ == "__main__":

@@ -25,12 +25,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "4 no mesh time, index is then the bridge's own count; 8 held, event-based\n"
         "reporting), with the frame's sampling \"rate\" and \"period\" (cycles per sample;\n"
         "samples print unpacked, as absolute values, whatever the wire packed); a BEACON's\n"
-        "\"time\" is null or {root, seq, time}; a HELLO has \"boots\". Frames of protocol\n"
-        "versions 1 and 2 are read too and print with the fields they lack at their\n"
-        "defaults (version 1: rate 0, flag 4, index 0, time null, boots 0; both: period 0).\n\n"
+        "\"time\" is null or {root, seq, time}; a HELLO has \"boots\". A READOUT (one skin\n"
+        "frame \"index\" of every element routed through its sender) prints its \"samples\" as\n"
+        "[bridge, c1, c2, flags] and the bridge ids \"unchanged\" and \"missing\"; a record in\n"
+        "several frames prints a line per frame, numbered \"part\" of \"parts\". Frames of\n"
+        "protocol versions 1 to 3 are read too and print with the fields they lack at their\n"
+        "defaults (version 1: rate 0, flag 4, index 0, time null, boots 0; 1 and 2: period 0).\n\n"
         "examples:\n"
         "  cellbridge decode capture.bin\n"
-        "  echo '00 02 03 02 01 ... 00' | cellbridge decode --hex -"
+        "  echo '00 02 04 02 01 ... 00' | cellbridge decode --hex -"
     )
     parser.add_argument("input", help="capture file, or - for standard input")
     parser.add_argument("--hex", action="store_true",

@@ -86,7 +86,8 @@ class ContactWorker:
         if self._warm is None:
             return True
         with contextlib.suppress(Exception):  # a failed warm-up is the first estimate's to report
-            await asyncio.wait_for(asyncio.shield(asyncio.wrap_future(self._warm)), limit)
+            async with asyncio.timeout(limit):  # (not wait_for: see estimate)
+                await asyncio.shield(asyncio.wrap_future(self._warm))
         return self._warm.done()
 
     def warmed(self) -> bool:
@@ -143,7 +144,11 @@ class ContactWorker:
                         await asyncio.shield(asyncio.wrap_future(self._warm))
                 self._job = self._executor().submit(estimate, job)
                 limit = timeout if self._answered or self._stopping or self._warm is not None else None
-                contacts = await asyncio.wait_for(asyncio.wrap_future(self._job), limit)
+                # asyncio.timeout, not wait_for: Python 3.11's wait_for returns a result that
+                # came in the step before its task was cancelled, and the cancel is lost (the
+                # service's contact loop then went on, and a stop waited for it for ever)
+                async with asyncio.timeout(limit):
+                    contacts = await asyncio.wrap_future(self._job)
                 self._answered = True
             except Exception as exc:  # a bad estimate (or a dead worker) must not end contact publishing
                 self.stats["errors"] += 1

@@ -121,7 +121,8 @@ class ControlServer:
         links = self.host.links
         sent = [w.link for w in writes if w.link in links and links[w.link].write(w.data)]
         self.resolve(now)  # a broadcast with nobody alive completes at once
-        result = await asyncio.wait_for(fut, timeout + 1.0)
+        async with asyncio.timeout(timeout + 1.0):  # (not wait_for: it can lose a cancel, see the service)
+            result = await fut
         result["sent_on"] = sent
         return result
 

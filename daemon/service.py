@@ -21,6 +21,7 @@ import logging
 import math
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -63,6 +64,8 @@ class Service:
     HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
     DRAIN_LIMIT = 10.0  # s: systemd's TimeoutStopSec=15 kills a daemon that takes longer
     REPLAY_WARM_LIMIT = 300.0  # s a replay waits at its start for the contact worker's warm-up
+    TASK_END_LIMIT = 1.0  # s a stop waits for the links' and the service's tasks to end once cancelled
+    TERM_LIMIT = 2.0  # s a stop waits for its ZeroMQ context to terminate (PUB lingers 1 s)
 
     def __init__(self, config: Config, layout: SkinLayout | None = None, *, config_path: str | Path | None = None,
                  hooks: OpsHooks | None = None, ctx: zmq.asyncio.Context | None = None,
@@ -247,8 +250,12 @@ class Service:
             idle = not self.contacts.last_ran()
             due = self.pipeline.contact_due(self.now(), idle) - self.now()
             if not self._fresh.is_set() and due < self.TICK:
+                # asyncio.timeout, not wait_for: Python 3.11's wait_for returns the result of
+                # a wait that ended in the step before its task was cancelled, and the cancel
+                # is lost; this loop then went on, and a stop's drain waited for it for ever.
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._fresh.wait(), max(due, 0.0))
+                    async with asyncio.timeout(max(due, 0.0)):
+                        await self._fresh.wait()
             else:
                 await self._fresh.wait()
             self._fresh.clear()
@@ -374,7 +381,7 @@ class Service:
                     s.close()
                 self.hooks.close()
                 if self._ctx is None:
-                    ctx.term()
+                    self._term(ctx, self.TERM_LIMIT)
                 self.contacts.close()
                 for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
                     loop.remove_signal_handler(sig)
@@ -392,19 +399,46 @@ class Service:
             return max(0.0, min(share, end - time.monotonic()))
 
         self.contacts.stop()
-        for t in link_tasks:
-            t.cancel()
-        await asyncio.gather(*link_tasks, return_exceptions=True)
+        await self._end(link_tasks, left(self.TASK_END_LIMIT))
         await self.contacts.idle(left(self.drain_limit / 2))  # a running estimate finishes and is published
-        for t in self._tasks:
-            t.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self._end(self._tasks, left(self.TASK_END_LIMIT))
         await self.control.finish(left(1.0))
         if not self.contacts.working and left(math.inf) > 0:
             await self._contact_once(left(math.inf))  # the newest state, if the last estimate did not see it
         now = self.now()
         self._link_stats()
         self._act(self.pipeline.tick(now, force=True))
+
+    async def _end(self, tasks: list[asyncio.Task[Any]], limit: float) -> None:
+        """Cancel ``tasks`` and wait for them to end, at most ``limit`` s, cancelling those
+        still running again every 0.1 s (a cancel can be lost: Python 3.11's wait_for took
+        one in as the end of its wait). A task that outlives the bound is logged and left
+        (:func:`run_service` gives it a last bounded chance); the stop goes on."""
+        end = time.monotonic() + limit
+        pending = {t for t in tasks if not t.done()}
+        while pending:
+            for t in pending:
+                t.cancel()
+            wait = min(end - time.monotonic(), 0.1)
+            if wait <= 0:
+                break
+            _, pending = await asyncio.wait(pending, timeout=wait)
+        for t in tasks:  # what they raised is theirs, not the stop's (as gather's return_exceptions)
+            if t.done() and not t.cancelled():
+                t.exception()
+        if pending:
+            event(self.log, "error", "tasks did not end when cancelled, left behind",
+                  tasks=sorted(t.get_name() for t in pending), waited=limit)
+
+    def _term(self, ctx: zmq.asyncio.Context, limit: float) -> None:
+        """Terminate the service's own ZeroMQ context, waiting at most ``limit`` s. ``term()``
+        waits for every socket of the context to be closed, without a bound: one left open
+        (a helper thread that did not end in its time) held the daemon after its drain."""
+        worker = threading.Thread(target=ctx.term, name="cellbridge zmq term", daemon=True)
+        worker.start()
+        worker.join(limit)
+        if worker.is_alive():
+            event(self.log, "error", "ZeroMQ context did not terminate: a socket is still open", waited=limit)
 
 
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms). A
@@ -417,12 +451,45 @@ class Service:
 GIL_SWITCH_INTERVAL = 0.0005
 
 
+#: s the event loop's close gives tasks left after the service stopped, and the default executor
+LEFTOVER_LIMIT = 1.0
+
+
 def run_service(config_path: str | Path | None, config: Config) -> int:
-    """The daemon's process: the service on a new event loop until it stops; its exit status."""
+    """The daemon's process: the service on a new event loop until it stops; its exit status.
+
+    Not ``asyncio.run``: its close cancels the tasks left and waits for them without a
+    bound; a task that does not end when cancelled (the service logged it) would keep the
+    daemon from exiting after it said "stopped". Here they get ``LEFTOVER_LIMIT``."""
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
     layout = read_layout(config)
     service = Service(config, layout, config_path=config_path)
-    return asyncio.run(service.run())
+    loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)
+    try:
+        return loop.run_until_complete(service.run())
+    finally:
+        try:
+            close_loop(loop, LEFTOVER_LIMIT)
+        finally:
+            asyncio.set_event_loop(None)
+            loop.close()
+
+
+def close_loop(loop: asyncio.AbstractEventLoop, limit: float) -> None:
+    """What ``asyncio.run`` does after its coroutine, each wait bounded by ``limit`` s:
+    cancel the tasks left and wait for them, close async generators, shut the default
+    executor down."""
+    left = asyncio.all_tasks(loop)
+    for t in left:
+        t.cancel()
+    if left:
+        loop.run_until_complete(asyncio.wait(left, timeout=limit))
+        for t in left:
+            if t.done() and not t.cancelled():
+                t.exception()  # retrieved: a task's error at exit is not the daemon's to print
+    loop.run_until_complete(loop.shutdown_asyncgens())
+    loop.run_until_complete(asyncio.wait([loop.create_task(loop.shutdown_default_executor())], timeout=limit))
 
 
 logging.getLogger("asyncio").setLevel(logging.WARNING)

@@ -41,9 +41,13 @@ from cellbridge.protocol import (
     Hello,
     LinkAck,
     Message,
+    Mode,
     Neighbour,
     Op,
     ProtocolError,
+    Readout,
+    ReadoutSample,
+    Sample,
     StreamDecoder,
     decode,
     encode,
@@ -55,6 +59,7 @@ from cellbridge.protocol import reframe as build
 from cellbridge.emulator.commands import MAX_GATE, Settings, execute
 from cellbridge.emulator.linklayer import LinkLayer
 from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig, Timebase
+from cellbridge.emulator.readout import FrameReadout, ReadoutConfig, State
 from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
@@ -76,6 +81,8 @@ _HELLO = int(FrameType.HELLO)
 _MS = 50_000  # cycles per millisecond at 50 MHz
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
 _BUNDLE = int(FrameType.BUNDLE)
+_READOUT = int(FrameType.READOUT)
+_OVERFLOWS = 0x03  # the sample flags a readout record carries (its state says the rest)
 #: A relay takes a frame it forwarded this recently for a copy (a retransmission, a detour,
 #: a loop's return: all within the retries of a hop or the few hops of a loop); an older
 #: one goes on, and the host's duplicate filter judges it.
@@ -177,6 +184,18 @@ class FirmwareConfig:
     sof_jitter: int = 12
     transceiver: TransceiverConfig = field(default_factory=TransceiverConfig)
     firmware: str = FIRMWARE_VERSION  #: the version string HELLO announces
+    #: The scheduled readout (emulator/readout.py, docs/time.md): samples on mesh time are
+    #: read out frame by frame along the routing tree, every element accounted for; samples
+    #: without mesh time still go in DATA frames. False: every sample in DATA frames.
+    readout: bool = True
+    #: Levels of the readout schedule (a bridge deeper sends in the deepest slot): the
+    #: skin's depth from its gateways; the mesh builders set it from the mesh file.
+    readout_depths: int = 8
+    #: Cycles per level of the schedule: a full frame, its acknowledgement and a retry in
+    #: virtual time (the real-time shells add their message latency).
+    readout_window: int = 6 * _MS
+    #: A child whose records stopped this long ago is no longer expected (nor its subtree).
+    readout_forget: int = 2000 * _MS
 
 
 def _rest(_tick: int) -> tuple[float, float]:
@@ -233,11 +252,15 @@ class Firmware:
         # Upward frames forwarded lately, with their hop counts (copies and loop returns).
         # Not a numbering window: a new boot's HELLO may have gone another way (protocol/copies.py).
         self.seen = RecentFrames(_COPY_AGE, _COPY_MEMORY)
+        self.readout = (FrameReadout(self.me, ReadoutConfig(c.readout_depths, c.readout_window, c.readout_forget),
+                                     self.counters) if c.readout else None)
+        self._readout_at = -1  # a child's record may have completed a frame: look at this tick
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
                                c.event_latency, self._batch_slot, c.aligned_batches,
-                               _stagger(c.bridge, 1 << 16) / (1 << 16))
+                               _stagger(c.bridge, 1 << 16) / (1 << 16),
+                               self._readout_sample if c.readout else None)
         self.status_at = tick + c.status_period
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period
@@ -267,6 +290,12 @@ class Firmware:
         lt = self.link.next_tick
         if lt is not None and lt < t:
             t = lt
+        if self.readout is not None:
+            rt = self.readout.next_tick
+            if rt is not None and rt < t:
+                t = rt
+            if 0 <= self._readout_at < t:
+                t = self._readout_at
         return t
 
     def _next_seq(self) -> int:
@@ -309,11 +338,13 @@ class Firmware:
         frames (``power_off_frames``) and samples batched but not yet in a DATA frame
         (``power_off_samples``). Nothing is lost without a count."""
         link = self.link
-        frames = len(link.queue) + len(link.broadcasts) + len(self.floods)
+        frames = len(link.queue) + len(link.broadcasts) + len(self.floods) + len(link.urgent)
         if link.inflight is not None:
             frames += len(link.inflight.frames)
         self.counters["power_off_frames"] += frames
         self.counters["power_off_samples"] += self.sampler.unsent
+        if self.readout is not None:
+            self.counters["power_off_readouts"] += self.readout.waiting()
 
     def counters_snapshot(self) -> dict[str, int]:
         out = dict(self.counters)
@@ -372,6 +403,15 @@ class Firmware:
         elif self.router.inconsistent(src):
             self.counters["inconsistencies"] += 1
             self.trickle.reset(tick)
+        if f.type == _READOUT and self.readout is not None and not f.flags & _FRAGMENT:
+            try:
+                record: Readout = unpack_payload(_READOUT, f.body)  # type: ignore[assignment]  # a READOUT payload
+            except ProtocolError:
+                self.counters["rx_bad_readout"] += 1
+                return False
+            self.readout.child(src, record, tick)
+            self._readout_at = tick
+            return True
         if f.type == _BUNDLE:
             try:
                 inner = [parse(b) for b in msgpack.unpackb(f.body)]
@@ -513,6 +553,30 @@ class Firmware:
         depth = min(self.router.hops, c.slot_depths) if self.router.has_route or c.gateway else c.slot_depths
         return (c.slot_depths - depth) * c.depth_slot + _stagger(c.bridge, c.slot_jitter)
 
+    def _readout_sample(self, s: Sample, kept: bool, start: int) -> None:
+        """A sample on mesh time (the sampler's readout hook): its state goes into the
+        frame's record, due at this bridge's slot (its depth's: deepest first)."""
+        c = self.config
+        r = self.readout
+        assert r is not None
+        if not (c.gateway or self.router.has_route):
+            self.counters["readout_no_route"] += 1  # nowhere to send it: the host sees no record of it
+            return
+        st = self.sampler.settings
+        state: State = ReadoutSample(self.me, s.c1, s.c2, s.flags & _OVERFLOWS) if kept else "u"
+        depth = 0 if c.gateway else self.router.hops
+        gates = st.measure_cycles()
+        span = gates + r.slot(0)
+        r.own(s.index, st.rate_hz, st.mode, st.oversampling if st.mode is Mode.ADC else 1, state,
+              start + gates + r.slot(depth), span)
+
+    def _readout_rank(self) -> int:
+        """This bridge's place among the neighbours it hears at its own depth (by id): the
+        slots its records wait on a shared cell, so those neighbours' records of one frame
+        follow each other, deterministically, instead of colliding."""
+        me, hops = self.me, self.router.hops
+        return sum(1 for n in self.router.table.values() if n.hops == hops and n.id < me)
+
     def _say_hello(self) -> None:
         c = self.config
         self._own(Hello(self.me, c.firmware, c.position[0], c.position[1], c.side, c.clock_hz, 3,
@@ -572,6 +636,13 @@ class Firmware:
         """Run every timer due at ``tick``; the (bytes, cells) to transmit now, if any."""
         for data in self.sampler.advance(tick):
             self._own(data)
+        if self.readout is not None:
+            self._readout_at = -1
+            for record in self.readout.take(tick):
+                if self.config.gateway:
+                    self._own(record)
+                else:
+                    self.link.enqueue_urgent(own(record, self.me, self._next_link_seq()), tick, self._readout_rank())
         while self.floods and self.floods[0][0] <= tick:
             self.link.broadcast(self.floods.pop(0)[1])
         beacon = False
@@ -614,6 +685,11 @@ class Firmware:
             out, used = self.link.advance(tick, None, self._link_candidate(), PERFECT_LINK, r.table)
         if used:  # a bundle took the link number
             self._next_link_seq()
+        if self.link.urgent_results:
+            if self.readout is not None:
+                for ok in self.link.urgent_results:
+                    self.readout.sent(ok)
+            self.link.urgent_results.clear()
         if self.link.results:
             for nbr, attempts, ok in self.link.results:
                 self.router.on_link_result(nbr, attempts, ok, tick)

@@ -48,6 +48,8 @@ class _InFlight:
     attempts: int = 0
     deadline: int = -1  #: ack deadline once on the cell; -1 while still contending
     missed: int = -1  #: the deadline that passed without an acknowledgement (last one)
+    urgent: bool = False  #: a readout record: sent without backoff, one retry, never requeued
+    rank: int = 0  #: a readout record's backoff slots
 
 
 class LinkLayer:
@@ -65,6 +67,15 @@ class LinkLayer:
         #: a copy coming back from that neighbour went round a loop, not up
         self.handed: OrderedDict[tuple[int, int], int] = OrderedDict()
         self.broadcasts: deque[bytes] = deque()
+        #: Readout records (:mod:`.readout`): each goes alone, before anything else, without
+        #: backoff, and is given up after ``urgent_retries`` retries (its slot is over by then)
+        self.urgent: deque[tuple[int, Raw, int]] = deque()  # (tick queued, record, rank)
+        self.urgent_retries = 1
+        #: a record still queued this long after it was (no parent meanwhile) is given up:
+        #: its frame's slots are over, and the relays above listed it missing already
+        self.urgent_ttl = 200 * 50_000
+        #: outcomes of readout records not yet read by the firmware (True: acknowledged)
+        self.urgent_results: list[bool] = []
         self.inflight: _InFlight | None = None
         c = radio.config
         # SIFS, a slot, the acknowledgement; before it, at most one frame its sender may
@@ -91,6 +102,15 @@ class LinkLayer:
         self.queue.append(frame)
         return True
 
+    def enqueue_urgent(self, frame: Raw, tick: int, rank: int = 0) -> None:
+        """Queue a readout record for the parent (bounded like the queue; counted when full);
+        ``rank``: its backoff in slots (:meth:`Transceiver.send`)."""
+        if len(self.urgent) >= self.queue_len:
+            self.counters["urgent_drops"] += 1
+            self.urgent_results.append(False)
+            return
+        self.urgent.append((tick, frame, rank))
+
     def broadcast(self, data: bytes) -> None:
         if len(self.broadcasts) >= 16:
             self.counters["broadcast_drops"] += 1
@@ -113,6 +133,8 @@ class LinkLayer:
         elif f.attempts == 1:
             self.extra_wait -= self.extra_wait // 16
         self.results.append((f.next_hop, f.attempts, True))
+        if f.urgent:
+            self.urgent_results.append(True)
         self.counters["frames_acked"] += len(f.frames)
         for x in f.frames:
             self.handed[(x.origin, x.seq)] = f.next_hop
@@ -171,16 +193,21 @@ class LinkLayer:
         f = self.inflight
         radio = self.radio
         if f is not None and 0 <= f.deadline <= tick and radio.idle:  # no acknowledgement in time
-            if f.attempts > self.max_retries or (parent != f.next_hop and f.next_hop not in neighbours):
-                if f.attempts > self.max_retries:
+            limit = self.urgent_retries if f.urgent else self.max_retries
+            if f.attempts > limit or (parent != f.next_hop and f.next_hop not in neighbours):
+                if f.attempts > limit:
                     self.counters["tx_failed"] += 1
                     self.results.append((f.next_hop, f.attempts, False))
-                self._give_back(f)
+                if f.urgent:
+                    self.counters["urgent_failed"] += 1
+                    self.urgent_results.append(False)
+                else:
+                    self._give_back(f)
                 self.inflight = f = None
             else:
                 self.counters["retries"] += 1
                 f.missed, f.deadline = f.deadline, -1
-                radio.send(f.data, self.cells, tick, f.attempts)
+                radio.send(f.data, self.cells, tick, f.attempts, urgent=f.urgent, rank=f.rank)
         if f is None:
             used = self._hand_over(tick, parent, next_seq, cost_add)
         out = radio.advance(tick)
@@ -202,6 +229,16 @@ class LinkLayer:
         radio = self.radio
         if not radio.idle:
             return False
+        while self.urgent and tick - self.urgent[0][0] > self.urgent_ttl:
+            self.urgent.popleft()
+            self.counters["urgent_expired"] += 1
+            self.urgent_results.append(False)
+        if parent is not None and self.urgent:
+            _, first, rank = self.urgent.popleft()
+            data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent, _ACK)
+            self.inflight = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank)
+            radio.send(data, self.cells, tick, urgent=True, rank=rank)
+            return False
         if self.broadcasts:
             radio.send(self.broadcasts.popleft(), self.cells, tick)
         elif parent is not None and self.queue:
@@ -219,5 +256,5 @@ class LinkLayer:
         return t
 
     def has_work(self) -> bool:
-        return bool(self.queue or self.broadcasts)
+        return bool(self.queue or self.broadcasts or self.urgent)
 

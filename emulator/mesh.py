@@ -173,6 +173,11 @@ class Mesh:
                     todo.append(n)
         return dist
 
+    def readout_depths(self) -> int:
+        """Levels the readout schedule needs (``FirmwareConfig.readout_depths``): the deepest
+        bridge's hops from its nearest gateway, and two more for routes that take a detour."""
+        return max(self.hops().values(), default=0) + 2
+
     def reachable(self, cut: frozenset[int] = frozenset(),
                   dead: frozenset[int] = frozenset()) -> set[int]:
         """Bridges with a path of live bridges and uncut cells to a live gateway."""

@@ -52,6 +52,10 @@ from cellbridge.emulator.world import World
 
 SHORT_TIMER = CLOCK_HZ // 1000  #: a timer this close is slept for exactly, not polled for (ms granularity)
 ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the medium: allow 10 ms
+#: A level of the readout schedule in the real-time shells: a record crosses two processes
+#: and the medium per hop (a record normally goes on as soon as it is complete; this bounds
+#: how long a relay waits for a child whose record was lost)
+READOUT_WINDOW = 8 * CLOCK_HZ // 1000
 STIMULI_CHECK = CLOCK_HZ // 5  # the world's socket is looked at at least this often (its fd is edge-like)
 FILE_TCP = -1  #: ``--tcp`` without a port: the mesh file's
 _POLLIN = select.POLLIN
@@ -110,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
     world = World(mesh, bridges=[br.id])
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
                                  settings=Settings(rate_hz=args.rate, reporting=args.reporting), ack_slack=ACK_SLACK,
+                                 readout_depths=mesh.readout_depths(), readout_window=READOUT_WINDOW,
                                  transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate)),
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
     port = None

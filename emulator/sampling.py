@@ -54,7 +54,8 @@ class Sampler:
     def __init__(self, settings: Settings, chip: object, sense: Callable[[int], tuple[float, float]],
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
                  counters: Counter[str], timebase: Timebase, event_latency: int | None = None,
-                 slot: Callable[[], int] = lambda: 0, aligned: bool = True, heartbeat_phase: float = 0.0) -> None:
+                 slot: Callable[[], int] = lambda: 0, aligned: bool = True, heartbeat_phase: float = 0.0,
+                 readout: Callable[[Sample, bool, int], None] | None = None) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
@@ -83,6 +84,10 @@ class Sampler:
         self.index = 0  #: index of the sample whose gate starts at ``start``
         self.on_time = False  #: whether that gate is on mesh time
         self.ready = first_start + settings.measure_cycles()
+        #: The scheduled readout (:mod:`.readout`): a sample on mesh time goes there, with
+        #: whether the reporter keeps it (False: unchanged) and its gate start tick, instead
+        #: of into a DATA frame. None: every sample goes in DATA frames.
+        self.readout = readout
 
     @property
     def next_tick(self) -> int:
@@ -95,7 +100,9 @@ class Sampler:
         there waits ``max_latency`` for company anyway. The capacitance a lazily computed
         sample sees is the one at its gate (``sense`` is called with the gate's tick)."""
         leave = self._leaving[0][0] if self._leaving else self.ready
-        if not self.lazy:
+        if not self.lazy or (self.readout is not None and self.on_time):
+            # on the readout schedule every sample is due at its gate end (its frame's record
+            # goes then at the earliest)
             return min(self.ready if self.flush_at < 0 else min(self.ready, self.flush_at), leave)
         if self.batch and self._batch_aligned != self._aligned():
             # the next sample closes the batch (aligned or timed, never both), unless its
@@ -239,6 +246,12 @@ class Sampler:
         s = Sample(0, self.timebase.local(start), v1, v2, int(flags), self.index)
         self.counters["samples"] += 1
         period = st.period_cycles(self.clock_hz)
+        if self.readout is not None and self.on_time:
+            if self.batch:
+                self._flush(out)  # samples taken before mesh time leave first
+            self.readout(s, self.reporter.wants(s, period, True), start)
+            self._plan(start + st.measure_cycles(), self.timebase.after_local(start, period))
+            return
         if self.reporter.wants(s, period, self.on_time):
             size = len(msgpack.packb(packed_sample(self.batch[-1] if self.batch else None, s, period)))
             if self.batch and _DATA_OVERHEAD + self.batch_bytes + size > MAX_FRAME:

@@ -68,6 +68,7 @@ class Transceiver:
         self._busy: dict[int, tuple[int, int]] = {}  #: cell -> (carrier from, until)
         self.tx_until = 0  #: own transmission ends at this tick
         self._frame: bytes | None = None
+        self._urgent = False  #: the pending frame is a scheduled one (no backoff, SIFS)
         self._cells: tuple[int, ...] = ()
         self._at = 0  #: planned start of the pending frame
         self._t0 = 0  #: when the backoff countdown began (cell idle for DIFS)
@@ -98,17 +99,26 @@ class Transceiver:
         """No frame waiting for the cell (a new one may be handed over)."""
         return self._frame is None
 
-    def send(self, frame: bytes, cells: tuple[int, ...], tick: int, attempt: int = 0) -> None:
+    def send(self, frame: bytes, cells: tuple[int, ...], tick: int, attempt: int = 0, urgent: bool = False,
+             rank: int = 0) -> None:
         """Contend for ``cells`` with ``frame`` (the previous one must have gone out).
-        ``attempt`` > 0 (a retransmission) starts with a wider contention window."""
+        ``attempt`` > 0 (a retransmission) starts with a wider contention window.
+        ``urgent`` (a scheduled readout record): no random backoff but ``rank`` slots (the
+        bridge's place among the neighbours that send records at the same depth: distinct
+        on a shared cell, so their records follow each other instead of colliding), and it
+        goes before the contending frames of its neighbours, whose backoff is random."""
         if self._frame is not None:
             raise RuntimeError("transceiver already holds a frame")
         self._frame = frame
         self._cells = cells
+        self._urgent = urgent
         c = self.config
-        base = max(c.cw_min, c.slots_per_contender * self.contenders)
-        self._cw = min(base << min(attempt, 8), c.cw_max)
-        self._slots = self._rng.randrange(self._cw)
+        if urgent:
+            self._slots = rank
+        else:
+            base = max(c.cw_min, c.slots_per_contender * self.contenders)
+            self._cw = min(base << min(attempt, 8), c.cw_max)
+            self._slots = self._rng.randrange(self._cw)
         self._plan(tick)
 
     def cancel(self, frame: bytes) -> bool:

@@ -34,7 +34,7 @@ from cellbridge.emulator.mesh import Mesh
 from cellbridge.emulator.chip import Chip, ChipConfig
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.world import Contact, World
-from cellbridge.protocol import Frame, FrameType, StreamDecoder, encode_stream
+from cellbridge.protocol import Frame, FrameType, Readout, Sample, StreamDecoder, encode_stream
 
 CLOCK_HZ = 50_000_000
 _STATES = frozenset({"has_route", "queue_len", "resets"})  # counters that are states, not totals
@@ -116,6 +116,14 @@ class MeshResult:
                         if key not in seen:
                             seen.add(key)
                             out.setdefault(f.origin, []).append(x)
+                elif f.type is FrameType.READOUT:
+                    r: Readout = f.payload  # type: ignore[assignment]  # a READOUT frame's payload
+                    cycle = r.index * CLOCK_HZ // r.rate  # the frame's global gate start: a record has no cycles
+                    for y in r.samples:
+                        key = (y.bridge, -1 - r.rate, r.index)  # readout samples are named by their frame
+                        if key not in seen:
+                            seen.add(key)
+                            out.setdefault(y.bridge, []).append(Sample(0, cycle, y.c1, y.c2, y.flags, r.index))
         return out
 
     def total(self, name: str) -> int:
@@ -166,6 +174,7 @@ class VirtualMesh:
     def _config(self, b: int) -> FirmwareConfig:
         br = self.mesh.bridge(b)
         kw = dict(self._fw_kw)
+        kw.setdefault("readout_depths", self.mesh.readout_depths())
         if self.random_epochs:
             kw.setdefault("clock_epoch", random.Random(self.seed * 131_071 + b).randrange(1 << 40))
         return FirmwareConfig(b, br.cells, br.gateway, br.position, self.mesh.side, settings=self.settings,

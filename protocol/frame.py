@@ -38,13 +38,15 @@ from cellbridge.protocol.messages import (
     unpack_payload,
 )
 
-#: Versions :func:`decode` reads: frames of versions 1 and 2 decode into today's messages,
+#: Versions :func:`decode` reads: frames of versions 1 to 3 decode into today's messages,
 #: with the fields later versions added at their defaults (old captures replay);
 #: :func:`encode` writes :data:`VERSION` (4).
 READ_VERSIONS = frozenset({1, 2, 3, 4})
 #: The first version that has each frame type; older versions did not know it (a frame of
 #: that type and an older version is dropped as an unknown type).
 _SINCE = {int(FrameType.READOUT): 4}
+#: The frame types each version has: one lookup per decoded frame checks version and type.
+_TYPES_OF = {v: frozenset(t for t in MESSAGE_CLASSES if _SINCE.get(t, 0) <= v) for v in READ_VERSIONS}
 MAX_FRAME = 255  #: whole frame, header to CRC, before COBS
 MAX_DATAGRAM = 4096  #: largest fragmented datagram (payload and its 2-byte checksum)
 DATAGRAM_CRC_LEN = 2  #: CRC-16 of the payload, ending every fragmented datagram
@@ -145,6 +147,8 @@ def encode(frame: Frame) -> bytes:
             raise ProtocolError("fragment", "a bundle is never fragmented")
         if p.version not in READ_VERSIONS:
             raise ProtocolError("version", f"fragment of version {p.version}; versions are {sorted(READ_VERSIONS)}")
+        if p.version < _SINCE.get(p.frame_type, 0):  # what decode would drop: never written
+            raise ProtocolError("type", f"frame type {p.frame_type} did not exist in version {p.version}")
         head = _HEADER.pack(p.version, frame.flags | _FRAGMENT, p.frame_type, frame.src, frame.dst,
                             frame.origin, frame.seq, frame.hops, frame.cost)
         body = head + _FRAG.pack(p.tag, p.offset, p.total) + p.data
@@ -168,9 +172,10 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
     ``fragment``, ``payload``, ``nested_bundle``, ``bundle``, and ``inner_<cause>``
     for a bundled frame that fails). Reads every version in :data:`READ_VERSIONS`.
     Only the canonical encoding of a frame is accepted: ``encode(decode(x)) == x`` for a
-    version 3 frame and for a fragment of any version; a whole frame of version 1 or 2
+    version 4 frame and for a fragment of any version; a whole frame of versions 1 to 3
     decodes into today's message (the fields later versions added at their defaults),
-    which ``encode`` writes as version 3: ``decode(encode(decode(x))) == decode(x)``.
+    which ``encode`` writes as version 4: ``decode(encode(decode(x))) == decode(x)``. A
+    frame type newer than the frame's version (READOUT before version 4) is ``type``.
     """
     n = len(data)
     if n < MIN_FRAME:
@@ -182,11 +187,12 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
     if crc16(data):  # a frame followed by its big-endian CRC-16/CCITT-FALSE leaves a residue of 0
         raise ProtocolError("crc", "CRC mismatch")
     ver, flags, ftype, src, dst, origin, seq, hops, cost = _HEADER.unpack_from(data)
-    if ver not in READ_VERSIONS:
+    types = _TYPES_OF.get(ver)
+    if types is None:
         raise ProtocolError("version", f"version {ver} not supported (this reads {sorted(READ_VERSIONS)})")
     if flags & _UNKNOWN_MUST_UNDERSTAND:
         raise ProtocolError("must_understand", f"unknown must-understand flags 0x{flags:02x}")
-    if ftype not in MESSAGE_CLASSES or ver < _SINCE.get(ftype, 0):
+    if ftype not in types:
         raise ProtocolError("type", f"unknown frame type {ftype} in version {ver}")
     payload: Message | Fragment
     if flags & _FRAGMENT:

@@ -12,6 +12,10 @@ sees each whole frame once, as (origin, seq of its first fragment).
 A BUNDLE is a hop's container, not a frame of its own to the host: two gateways may
 bundle the same frames differently, so the frames inside are what is reassembled and
 filtered.
+
+A READOUT passes like DATA: reassembled when its record came fragmented, then filtered
+by (origin, seq). Each part of a record is a frame of its own and is delivered on its
+own; joining the parts, and the gateways' records of one skin frame, is the caller's.
 """
 
 from __future__ import annotations

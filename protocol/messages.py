@@ -478,7 +478,9 @@ class LinkAck:
 class Bundle:
     """Several frames for the same next hop in one link transmission (forwarder aggregation).
 
-    Inner frames are complete frames (own header and CRC); a bundle never holds a bundle.
+    Inner frames are complete frames (own header and CRC) of the bundle's own protocol
+    version (a forwarder bundles what it relays, and relays only its own version); a
+    bundle never holds a bundle.
     """
 
     frame_type: ClassVar[FrameType] = FrameType.BUNDLE
@@ -495,7 +497,11 @@ class Bundle:
         return [encode(f) for f in self.frames]
 
     @classmethod
-    def from_wire(cls, obj: Any) -> Bundle:
+    def from_wire(cls, obj: Any, version: int = VERSION) -> Bundle:
+        """The bundle of a frame of protocol ``version``: its inner frames must be of that
+        version too (cause ``bundle``), or a bundle would have two encodings (``encode``
+        writes every inner frame in today's version) and an older version's bundle could
+        carry a type that version did not have."""
         from cellbridge.protocol.frame import decode
 
         if type(obj) is not list or not obj:
@@ -512,6 +518,8 @@ class Bundle:
                 frames.append(decode(raw))
             except ProtocolError as exc:  # the inner frame's fault, not the bundle's: say so
                 raise ProtocolError(f"inner_{exc.cause}", f"bundled frame {i}: {exc.detail}") from None
+            if raw[0] != version:  # a sound frame, but not one a forwarder of this version bundles
+                raise ProtocolError("bundle", f"bundled frame {i} is version {raw[0]} in a version {version} bundle")
         return cls(tuple(frames))
 
 
@@ -624,6 +632,7 @@ MESSAGE_CLASSES: dict[int, type[Any]] = {
 
 
 _pack = msgpack.Packer(use_bin_type=True).pack
+_BUNDLE_TYPE = int(FrameType.BUNDLE)  # plain int: comparing with an enum member costs more per frame
 
 
 def pack_payload(message: Message) -> bytes:
@@ -666,6 +675,8 @@ def unpack_payload(frame_type: int, data: bytes, version: int = VERSION) -> Mess
             old = _OLD_PARSERS[version].get(frame_type)
             if old is not None:
                 return old(obj)
+        if frame_type == _BUNDLE_TYPE:
+            return Bundle.from_wire(obj, version)
         return MESSAGE_CLASSES[frame_type].from_wire(obj)
     except ProtocolError:
         raise

@@ -1,5 +1,8 @@
-"""Test-only writers of protocol version 1 and 2 frames (docs/protocol.md §3), to prove
-that ``decode`` still reads them: today's ``encode`` writes version 3 only.
+"""Test-only writers of protocol version 1, 2 and 3 frames (docs/protocol.md §3), to prove
+that ``decode`` still reads them: today's ``encode`` writes version 4 only.
+
+Version 3 differs from version 4 in one thing: it had no READOUT frame type. Every other
+payload, and the header, is the same byte for byte (only the version byte and the CRC differ).
 
 Version 2 differs from version 3 in DATA alone: no ``period``, and every sample written
 absolute (version 3 packs the samples after a frame's first).
@@ -7,6 +10,9 @@ absolute (version 3 packs the samples after a frame's first).
 Version 1 differs from version 2 in three payloads: DATA had no ``rate`` and its samples
 no ``index`` (``[element, cycle, c1, c2, flags]``), BEACON no ``time``, HELLO no
 ``boots``. Everything else, header included, is the same byte for byte.
+
+These writers write any message in any version, READOUT included, so a test can also
+show what a receiver does with a type the version did not have (drops it, cause ``type``).
 """
 
 from __future__ import annotations
@@ -25,9 +31,9 @@ _HEADER = struct.Struct(">BBBHHHHBH")
 
 
 def payload_old(message: Any, version: int) -> list[Any]:
-    """The wire form of ``message`` in protocol ``version`` 1 or 2 (the fields later versions
-    added left out; DATA's samples all absolute)."""
-    if isinstance(message, Data):
+    """The wire form of ``message`` in protocol ``version`` 1, 2 or 3 (the fields later versions
+    added left out; DATA's samples all absolute before version 3)."""
+    if isinstance(message, Data) and version < 3:
         if version == 1:
             return [int(message.mode), message.oversampling, [list(s[:5]) for s in message.samples]]
         return [int(message.mode), message.oversampling, [list(s) for s in message.samples], message.rate]
@@ -46,7 +52,7 @@ def payload_v1(message: Any) -> list[Any]:
 
 
 def encode_old(frame: Frame, version: int) -> bytes:
-    """``frame`` as a version 1 or 2 sender wrote it (whole frames only, not fragments)."""
+    """``frame`` as a version 1, 2 or 3 sender wrote it (whole frames only, not fragments)."""
     head = _HEADER.pack(version, frame.flags, frame.type, frame.src, frame.dst, frame.origin, frame.seq,
                         frame.hops, frame.cost)
     body = head + msgpack.packb(payload_old(frame.payload, version), use_bin_type=True)
@@ -59,6 +65,10 @@ def encode_v1(frame: Frame) -> bytes:
 
 def encode_v2(frame: Frame) -> bytes:
     return encode_old(frame, 2)
+
+
+def encode_v3(frame: Frame) -> bytes:
+    return encode_old(frame, 3)
 
 
 def read_back(frame: Frame, wire: bytes, expected: Frame) -> bytes | None:

@@ -9,9 +9,22 @@ import sys
 from pathlib import Path
 
 from cobs import cobs
-from protocol_v1 import encode_v1
+from protocol_v1 import encode_v1, encode_v3
 
-from cellbridge.protocol import Beacon, Data, Frame, Hello, MeshTime, Mode, Sample, SampleFlags, encode_stream
+from cellbridge.protocol import (
+    Beacon,
+    Data,
+    Frame,
+    Hello,
+    MeshTime,
+    Mode,
+    Readout,
+    ReadoutSample,
+    Sample,
+    SampleFlags,
+    encode_stream,
+    fragment,
+)
 
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
 
@@ -76,6 +89,36 @@ def test_decode_shows_version_2_fields_and_reads_version_1(tmp_path: Path) -> No
     assert h["boots"] == 12
     assert v1["rate"] == 0 and v1["samples"] == [[0, 2 * 10**6, 19601, 15801, 4, 0]]  # version 1: defaults
     assert b"index" in run("decode", "--help").stdout
+
+
+def test_decode_prints_readout_records_parts_and_fragments(tmp_path: Path) -> None:
+    """A READOUT prints as one JSON line per frame (each part of a record its own line), a
+    fragmented record once reassembled, and a READOUT in a version 3 frame is dropped as an
+    unknown type, counted."""
+    part0 = Frame(2, 0, 2, 90, Readout(4600, 100, Mode.COUNTER, 1, (ReadoutSample(2, 19600, 15800),), (5,), (),
+                                       2840, 0, 2))
+    part1 = Frame(2, 0, 2, 91, Readout(4600, 100, Mode.ADC, 16, (ReadoutSample(9, 2272, 1968, 1),), (), (10,),
+                                       2840, 1, 2))
+    big = Frame(1, 0, 1, 7, Readout(4601, 100, Mode.COUNTER, 1,
+                                    tuple(ReadoutSample(b, 19600 + b, 15800) for b in range(1, 65)), span_us=5200))
+    pieces = fragment(big, tag=3)
+    assert len(pieces) == 3
+    capture = tmp_path / "readout.bin"
+    capture.write_bytes(b"".join(encode_stream(f) for f in (part0, part1, *pieces))
+                        + b"\x00" + cobs.encode(encode_v3(part0)) + b"\x00")
+    out = run("decode", str(capture))
+    assert out.returncode == 0, out.stderr
+    lines = [json.loads(line) for line in out.stdout.decode().splitlines()]
+    assert [ln["type"] for ln in lines] == ["READOUT"] * 3
+    assert lines[0]["payload"] == {"index": 4600, "rate": 100, "mode": 0, "oversampling": 1,
+                                   "samples": [[2, 19600, 15800, 0]], "unchanged": [5], "missing": [],
+                                   "span_us": 2840, "part": 0, "parts": 2}
+    assert lines[1]["payload"]["samples"] == [[9, 2272, 1968, 1]] and lines[1]["payload"]["missing"] == [10]
+    assert lines[2]["seq"] == 7 and len(lines[2]["payload"]["samples"]) == 64  # reassembled from 3 fragments
+    counters = json.loads(out.stderr.decode().strip().splitlines()[-1])
+    assert counters["stream"]["frames_dropped"] == {"type": 1}  # the version 3 READOUT
+    assert counters["reassembly"]["completed"] == 1
+    assert b"READOUT" in run("decode", "--help").stdout
 
 
 def test_decode_bad_input_gives_clear_errors(tmp_path: Path) -> None:

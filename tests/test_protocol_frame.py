@@ -81,14 +81,14 @@ def test_any_byte_error_is_detected(pos: int, xor: int) -> None:
     assert err.value.cause == "crc"
 
 
-def test_header_writes_version_3() -> None:
-    assert encode(SAMPLE)[0] == VERSION == 3
+def test_header_writes_version_4() -> None:
+    assert encode(SAMPLE)[0] == VERSION == 4
 
 
 @pytest.mark.parametrize(
     "offset,value,cause",
-    [(0, 0, "version"), (0, 4, "version"), (0, 0xFF, "version"), (1, 0x20, "must_understand"),
-     (1, 0x80, "must_understand"), (2, 0, "type"), (2, 99, "type")],
+    [(0, 0, "version"), (0, 5, "version"), (0, 0xFF, "version"), (1, 0x20, "must_understand"),
+     (1, 0x80, "must_understand"), (2, 0, "type"), (2, 10, "type"), (2, 99, "type")],
 )
 def test_header_policy(offset: int, value: int, cause: str) -> None:
     body = bytearray(encode(SAMPLE)[:-CRC_LEN])
@@ -151,11 +151,13 @@ def test_the_bad_payloads_are_bad_only_where_they_say() -> None:
     frame = decode(sealed(_V2_HEAD + b"\x94\x00\x01\x91\x96\x00\x00\x00\x00\x00\x00\x64"))
     assert frame.payload == Data(Mode.COUNTER, (Sample(0, 0, 0, 0, 0, 0),), 1, 100)
     assert decode(sealed(_V3_HEAD + _packb(V3_GOOD))).payload == V3_GOOD_DATA  # version 3's neighbour
+    assert decode(sealed(_V4_HEAD + _packb(V3_GOOD))).payload == V3_GOOD_DATA  # version 4 kept its DATA
 
 
-_V3_HEAD = encode(SAMPLE)[:HEADER_LEN]
-_V2_HEAD = bytes([2]) + _V3_HEAD[1:]
-#: A version 3 DATA payload, two samples, period 10: the second packed (residual -1, step 1).
+_V4_HEAD = encode(SAMPLE)[:HEADER_LEN]
+_V3_HEAD = bytes([3]) + _V4_HEAD[1:]
+_V2_HEAD = bytes([2]) + _V4_HEAD[1:]
+#: A version 3 DATA payload (version 4's too), two samples, period 10: the second packed (residual -1, step 1).
 V3_GOOD = [0, 1, [[0, 5, 0, 0, 0, 0], [0, -1, 0, 0, 0, 1]], 100, 10]
 V3_GOOD_DATA = Data(Mode.COUNTER, (Sample(0, 5, 0, 0, 0, 0), Sample(0, 14, 0, 0, 0, 1)), 1, 100, 10)
 
@@ -207,10 +209,11 @@ V3_BAD_PAYLOADS = [
 ]
 
 
+@pytest.mark.parametrize("head", [_V3_HEAD, _V4_HEAD], ids=["v3", "v4"])
 @pytest.mark.parametrize("payload", V3_BAD_PAYLOADS)
-def test_bad_version_3_data(payload: bytes) -> None:
+def test_bad_version_3_data(payload: bytes, head: bytes) -> None:
     with pytest.raises(ProtocolError) as err:
-        decode(sealed(_V3_HEAD + payload))
+        decode(sealed(head + payload))
     assert err.value.cause == "payload"
 
 
@@ -249,6 +252,34 @@ def test_bundle_cannot_nest() -> None:
     with pytest.raises(ProtocolError) as err:
         decode(sealed(head + msgpack.packb([encode(outer)])))
     assert err.value.cause == "nested_bundle"
+
+
+@pytest.mark.parametrize("outer,inner", [(4, 3), (4, 2), (4, 1), (3, 4), (3, 2), (2, 3), (1, 2)])
+def test_a_bundle_carries_frames_of_its_own_version_only(outer: int, inner: int) -> None:
+    """A forwarder bundles frames of the version it writes (it relays no other), so a bundle
+    holding another version is refused (cause ``bundle``). Before this check a version 4
+    bundle of a version 3 frame decoded, and encode wrote it back as other bytes (its inner
+    frame relabelled): two byte strings for one frame. And a version 3 bundle delivered a
+    version 4 READOUT, a type version 3 did not have."""
+    import msgpack
+    from protocol_v1 import encode_old
+
+    from cellbridge.protocol import Readout
+
+    def bundle_of(version: int, frames: list[bytes]) -> bytes:
+        head = bytes([version]) + encode(Frame(1, 0, 1, 2, Bundle((Frame(3, 1, 3, 1, Beacon(1, 10, 1)),))))[1:HEADER_LEN]
+        return sealed(head + msgpack.packb(frames))
+
+    beacon = Frame(3, 1, 3, 1, Beacon(1, 10, 1))
+    same = bundle_of(outer, [encode_old(beacon, outer) if outer < VERSION else encode(beacon)])
+    assert decode(same).payload.frames == (beacon,)  # the bundle's own version reads
+    for inner_frame in (beacon, Frame(1, 0, 1, 1, Readout(5, 100, Mode.COUNTER, 1, (), (1,)))):
+        if inner_frame.type is FrameType.READOUT and inner < 4:
+            continue  # a READOUT of an older version is refused as an unknown type already
+        raw = encode_old(inner_frame, inner) if inner < VERSION else encode(inner_frame)
+        with pytest.raises(ProtocolError) as err:
+            decode(bundle_of(outer, [raw]))
+        assert err.value.cause == "bundle"
 
 
 @pytest.mark.parametrize("field,value", [("src", -1), ("seq", 0x10000), ("hops", 256), ("flags", 0x10),

@@ -1,16 +1,23 @@
-"""The test vectors of docs/protocol.md, read from the document itself."""
+"""The test vectors of docs/protocol.md, read from the document itself.
+
+``tests/protocol_doc_vectors.py`` regenerates their bytes; the first test here checks that
+the document holds what it would write, so a vector can neither drift from the encoder nor
+be edited by hand into another truth.
+"""
 
 from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 from typing import Any
 
 import pytest
 
+from protocol_doc_vectors import SPEC, regenerate
+
 from cellbridge.protocol import (
     VERSION,
+    Fragment,
     Frame,
     Reassembler,
     SampleFlags,
@@ -20,11 +27,10 @@ from cellbridge.protocol import (
     encode,
     encode_stream,
 )
-from cellbridge.protocol.frame import HEADER_LEN
+from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
 from cellbridge.decode import frame_to_json
 
-SPEC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
-BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1|-v2)?)\n(.*?)```", re.S)
+BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1|-v2|-v3)?)\n(.*?)```", re.S)
 
 
 def _blocks(kind: str) -> list[dict[str, str]]:
@@ -55,13 +61,22 @@ def _read(vector: dict[str, str], version: int) -> tuple[Frame, bytes, bytes]:
 VECTORS = _blocks("vector")
 V1_VECTORS = _blocks("vector-v1")
 V2_VECTORS = _blocks("vector-v2")
+V3_VECTORS = _blocks("vector-v3")
 NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
+
+
+def test_the_vectors_in_the_document_are_current() -> None:
+    """What ``tests/protocol_doc_vectors.py`` would write is what the document holds (run it
+    after a change of the encoding: ``.venv/bin/python tests/protocol_doc_vectors.py``)."""
+    text = SPEC.read_text()
+    assert len(BLOCK.findall(text)) >= 30
+    assert regenerate(text) == text
 
 
 def test_every_frame_type_has_a_vector() -> None:
     frames = [_json(v) for v in VECTORS]
     types = {f["type"] for f in frames}
-    assert types == {"DATA", "BEACON", "HELLO", "STATUS", "CMD", "CMD_REPLY", "LINK_ACK", "BUNDLE"}
+    assert types == {"DATA", "BEACON", "HELLO", "STATUS", "CMD", "CMD_REPLY", "LINK_ACK", "BUNDLE", "READOUT"}
     assert any(f["flags"] for f in frames)
     assert any("tag" in f["payload"] for f in frames)  # fragments
     # version 2's fields, each shown with a value other than its default
@@ -81,6 +96,27 @@ def test_every_frame_type_has_a_vector() -> None:
     assert any(s > 1000 for st in steps for s in st)
 
 
+def test_the_readout_vectors_show_every_state_and_a_record_in_parts() -> None:
+    """Version 4's READOUT: a periodic record (samples only), an event-based one with samples,
+    unchanged and missing elements, and both parts of one record."""
+    readouts = [f for f in map(_json, VECTORS) if f["type"] == "READOUT"]
+    for f in readouts:
+        p = f["payload"]
+        ids = [s[0] for s in p["samples"]] + p["unchanged"] + p["missing"]
+        assert len(ids) == len(set(ids)) and f["dst"] == 0  # a gateway's record, to the host
+    whole = [f["payload"] for f in readouts if f["payload"]["parts"] == 1]
+    assert any(p["samples"] and not p["unchanged"] and not p["missing"] for p in whole)
+    assert any(p["samples"] and p["unchanged"] and p["missing"] for p in whole)
+    parts = [f for f in readouts if f["payload"]["parts"] == 2]
+    assert sorted(f["payload"]["part"] for f in parts) == [0, 1]
+    assert len({(f["origin"], f["payload"]["index"], f["payload"]["span_us"]) for f in parts}) == 1
+    assert [f["seq"] for f in parts] == [parts[0]["seq"], parts[0]["seq"] + 1]  # a frame each, numbered in turn
+    assert {f["payload"]["mode"] for f in parts} == {0, 1}  # split by mode
+    every = [s[0] for f in parts for s in f["payload"]["samples"]] + [b for f in parts for b in
+                                                                      f["payload"]["unchanged"] + f["payload"]["missing"]]
+    assert len(every) == len(set(every))  # no element in two parts
+
+
 @pytest.mark.parametrize("vector", VECTORS, ids=lambda v: _json(v)["type"])
 def test_vector(vector: dict[str, str]) -> None:
     frame, wire, serial = _read(vector, VERSION)
@@ -94,8 +130,26 @@ def test_an_older_version_vector_is_still_read(version: int, vector: dict[str, s
     frame, wire, _ = _read(vector, version)
     assert frame.payload.period == 0  # versions 1 and 2 had none: their samples are all absolute
     encoded = bytes.fromhex(vector["encoded"])
-    assert encoded[0] == VERSION and encode(frame) == encoded  # the canonical re-encoding is version 3
+    assert encoded[0] == VERSION and encode(frame) == encoded  # the canonical re-encoding is version 4
     assert encoded[1:HEADER_LEN] == wire[1:HEADER_LEN] and decode(encoded) == frame
+
+
+@pytest.mark.parametrize("vector", V3_VECTORS, ids=lambda v: _json(v)["type"])
+def test_a_version_3_vector_reads_as_today(vector: dict[str, str]) -> None:
+    frame, wire, _ = _read(vector, 3)
+    encoded = bytes.fromhex(vector["encoded"])
+    assert encode(frame) == encoded and decode(encoded) == frame
+    if isinstance(frame.payload, Fragment):
+        assert encoded == wire  # a fragment keeps its datagram's version
+    else:
+        assert encoded[0] == VERSION
+        if frame.type.name != "BUNDLE":  # version 4 kept every version 3 payload
+            assert encoded[1:-CRC_LEN] == wire[1:-CRC_LEN]
+
+
+def test_there_are_version_3_vectors_of_data_a_beacon_a_bundle_and_a_fragment() -> None:
+    shown = {(_json(v)["type"], "tag" in _json(v)["payload"]) for v in V3_VECTORS}
+    assert shown == {("DATA", False), ("BEACON", False), ("BUNDLE", False), ("DATA", True)}
 
 
 def test_there_are_version_2_vectors_of_every_data_kind() -> None:

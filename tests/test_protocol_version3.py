@@ -3,7 +3,8 @@
 Each later sample travels as its index step and its cycle's residual from the bridge's
 nominal schedule (``period`` cycles per index), both signed 64-bit modulo 2⁶⁴; the
 decoder rebuilds the absolute samples, so nothing above the protocol layer changes.
-Versions 1 and 2 are still read.
+Versions 1 and 2 are still read. Version 4 kept every version 3 payload (it only added
+READOUT): a version 3 frame reads as today's and is written back as version 4.
 """
 
 from __future__ import annotations
@@ -15,8 +16,8 @@ import pytest
 from cobs import cobs
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import frames
-from protocol_v1 import as_read_from_v2, encode_v2, read_back
+from protocol_strategies import frames_v3
+from protocol_v1 import as_read_from_v2, encode_v2, encode_v3, read_back
 
 from cellbridge.protocol import (
     MAX_FRAME,
@@ -91,7 +92,7 @@ def test_packed_data_round_trips_every_sample_a_chip_can_send(drawn: tuple, rate
         r = Reassembler()
         assert [w for w in (r.receive(decode(encode(p)), 0.0) for p in fragment(frame, tag=3)) if w] == [frame]
         return
-    assert wire[0] == VERSION == 3
+    assert wire[0] == VERSION == 4
     assert decode(wire) == frame and encode(decode(wire)) == wire
     # every rebuilt cycle and index is in its u64 range (the decoder wraps, never overflows)
     assert all(0 <= s.cycle <= U64 and 0 <= s.index <= U64 for s in decode(wire).payload.samples)
@@ -174,8 +175,8 @@ def _crc(body: bytes) -> bytes:
 
 
 @settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow])
-@given(frame=frames)
-def test_a_version_2_frame_decodes_with_period_0_and_is_written_back_as_version_3(frame: Frame) -> None:
+@given(frame=frames_v3)
+def test_a_version_2_frame_decodes_with_period_0_and_is_written_back_as_the_current_version(frame: Frame) -> None:
     wire = encode_v2(frame)
     assume(len(wire) <= MAX_FRAME)
     assert wire[0] == 2
@@ -185,10 +186,26 @@ def test_a_version_2_frame_decodes_with_period_0_and_is_written_back_as_version_
         assert again[1:-CRC_LEN] == wire[1:-CRC_LEN]  # only DATA changed in version 3
 
 
-def test_version_2_data_in_a_version_3_frame_and_the_other_way_round_are_refused() -> None:
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(frame=frames_v3)
+def test_a_version_3_frame_reads_as_today_and_is_written_back_as_version_4(frame: Frame) -> None:
+    """Version 4 only added READOUT: a version 3 frame of any other type is today's frame, and
+    its version 4 form differs only in the version byte and the CRC (a bundle's inner frames too)."""
+    wire = encode_v3(frame)
+    assume(len(wire) <= MAX_FRAME)
+    assert wire[0] == 3
+    assert StreamDecoder().feed(b"\x00" + cobs.encode(wire) + b"\x00") == [frame]
+    again = read_back(frame, wire, frame)
+    assert again is not None  # nothing grew: it fits as it did
+    if frame.type is not FrameType.BUNDLE:
+        assert again[1:-CRC_LEN] == wire[1:-CRC_LEN]
+    assert again == encode(frame)
+
+
+def test_version_2_data_in_a_version_3_or_4_frame_and_the_other_way_round_are_refused() -> None:
     frame = Frame(7, 0, 7, 1, Data(Mode.COUNTER, _periodic(3, 10**6, 50), 1, 100, 500_000))
-    v3, v2 = encode(frame), encode_v2(frame)
-    for version, wire in ((2, v3), (3, v2)):
+    v4, v2 = encode(frame), encode_v2(frame)
+    for version, wire in ((2, v4), (3, v2), (4, v2)):
         body = bytes([version]) + wire[1:-CRC_LEN]
         with pytest.raises(ProtocolError) as err:
             decode(body + _crc(body))
@@ -209,10 +226,11 @@ def test_a_fragmented_version_2_datagram_is_parsed_as_version_2() -> None:
     assert out == [as_read_from_v2(frame)]
 
 
-def test_a_relay_forwards_version_3_frames_only() -> None:
+def test_a_relay_forwards_frames_of_the_current_version_only() -> None:
     frame = Frame(7, 3, 7, 1, Data(Mode.COUNTER, _periodic(3, 10**6, 50), 1, 100, 500_000))
     assert peek(encode(frame)) is not None
-    assert peek(encode_v2(frame)) is None  # it cannot turn a version 2 payload into version 3
+    assert peek(encode_v2(frame)) is None  # it cannot turn a version 2 payload into version 4
+    assert peek(encode_v3(frame)) is None  # nor relabel a version 3 frame (docs/protocol.md §3, mixed skins)
 
 
 def test_fuzzed_packed_data_raises_only_protocol_error() -> None:

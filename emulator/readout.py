@@ -1,0 +1,277 @@
+"""The scheduled readout of skin frames along the routing tree, sans-I/O.
+
+On mesh time every bridge samples frame ``k`` at the same instant. After the frame's gates
+close, the frame is read out towards the gateway *deepest first*: a bridge ``d`` hops from
+its gateway owes its parent one record of frame ``k`` by its **slot**, the frame's gate
+end plus ``(depths - d) * window`` cycles, so a relay's slot comes after its children's.
+The slot is computed from the bridge's depth alone (no negotiation), and the gateway's
+slot (depth 0) is the end of the readout: ``span`` = gates + ``depths * window``.
+
+A record (protocol ``READOUT``) holds the bridge's own element and every element of its
+subtree, each exactly once: a *sample* (periodic; event-based and changed), *unchanged*
+(event-based, within the threshold of the last sample it sent) or *missing* (a child's
+record did not come by the slot). A relay sends its record as soon as it is complete
+(its own state is in and every child it expects has sent its record of ``k``), and at its
+slot at the latest: the slot bounds the latency, the early send is what makes it short.
+A child is expected while it sent a record within ``forget`` cycles; the bridges its last
+record listed are its subtree, marked missing when its record of ``k`` does not come.
+
+A record that was lost on its way (its hop was not acknowledged after the retry) leaves
+the host without that frame of the subtree, and an *unchanged* of the next frame would
+then refer to a sample the host never got. So a bridge whose record failed sends its next
+record with every unchanged element expanded to the last sample it passed on for that
+element (a relay keeps the last sample of every element of its subtree), and the host
+takes an unchanged element as known only when it knew the element's previous frame.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+from cellbridge.protocol import MAX_FRAME, Mode, ProtocolError, Readout, ReadoutSample, encode, Frame
+
+_UNCHANGED = "u"
+
+#: An own or passed-on state of one element in one frame: a sample, or unchanged.
+State = ReadoutSample | str
+
+
+@dataclass(frozen=True)
+class ReadoutConfig:
+    """The schedule's parameters, in chip cycles; the same on every bridge of a skin."""
+
+    #: Levels of the schedule: a bridge deeper than this sends in the deepest level's slot.
+    depths: int = 8
+    #: Cycles per level: a record, its acknowledgement and one retry (and, in the
+    #: real-time shells, the processes' message latency).
+    window: int = 150_000
+    #: A child silent this long (cycles) is no longer expected, nor its subtree listed.
+    forget: int = 100_000_000
+
+
+@dataclass
+class _Pending:
+    """One frame being read out by this bridge."""
+
+    index: int
+    rate: int
+    slot: int  #: the tick the record goes at the latest
+    span: int  #: cycles from the frame's gate start to the gateway's slot
+    own: tuple[Mode, int, State] | None = None
+    #: (mode, oversampling) -> bridge -> state, from the children's records
+    got: dict[int, tuple[Mode, int, State]] | None = None
+    heard: set[int] | None = None  #: children whose record of this frame came
+
+
+class FrameReadout:
+    """One bridge's part in the readout: its own states, its children's records, and the
+    records it owes its parent (or, on a gateway, the host), each in time."""
+
+    def __init__(self, me: int, config: ReadoutConfig, counters: Counter[str]) -> None:
+        self.me = me
+        self.config = config
+        self.counters = counters
+        self._pending: dict[tuple[int, int], _Pending] = {}  # (rate, index) -> frame
+        self._members: dict[int, set[int]] = {}  # child -> the bridges its last record listed
+        self._via: dict[int, int] = {}  # bridge -> the child it came through lately
+        self._heard_at: dict[int, int] = {}  # child -> tick of its last record
+        self._last: dict[int, tuple[Mode, int, ReadoutSample]] = {}  # bridge -> last sample passed on
+        self._expand = False  # the last record sent failed: expand unchanged states once
+        self._sent: set[tuple[int, int]] = set()  # frames already sent (late records are counted)
+        self._sent_order: list[tuple[int, int]] = []
+
+    # -- inputs -----------------------------------------------------------------------
+    def own(self, index: int, rate: int, mode: Mode, oversampling: int, state: State, slot: int,
+            span: int) -> None:
+        """This bridge's state of frame ``index`` (taken at its gate end), and the frame's
+        ``slot`` (tick) and ``span`` (cycles) as this bridge's depth gives them."""
+        p = self._frame(index, rate, slot, span)
+        if p is None:
+            return
+        p.own = (mode, oversampling, state)
+        if isinstance(state, ReadoutSample):
+            self._last[self.me] = (mode, oversampling, state)
+
+    def child(self, src: int, record: Readout, tick: int) -> None:
+        """A child's record (``src``: the neighbour that sent it). A late one (its frame's
+        record already went) still says which bridges the child stands for."""
+        self._heard_at[src] = tick
+        listed = {s.bridge for s in record.samples}
+        listed.update(record.unchanged)
+        listed.update(record.missing)
+        for b in listed:  # a bridge that re-routed through this child leaves its old branch
+            old = self._via.get(b)
+            if old is not None and old != src:
+                self._members.get(old, set()).discard(b)
+            self._via[b] = src
+        self._members.setdefault(src, set()).update(listed)
+        for s in record.samples:
+            self._last[s.bridge] = (record.mode, record.oversampling, s)
+        key = (record.rate, record.index)
+        if key in self._sent:
+            self.counters["readout_late"] += 1
+            return
+        p = self._pending.get(key)
+        if p is None:
+            # a frame this bridge has not sampled (yet): its slot is planned when the own
+            # state comes; until then the record waits here
+            # (a record of a rate this bridge does not sample at goes on alone a window later)
+            p = self._pending[key] = _Pending(record.index, record.rate, tick + self.config.window, 0)
+            if len(self._pending) > 64:  # a hostile or confused child: bounded
+                self._evict()
+                if key not in self._pending:
+                    return
+        if p.got is None:
+            p.got, p.heard = {}, set()
+        assert p.heard is not None
+        p.heard.add(src)
+        m, o = record.mode, record.oversampling
+        for s in record.samples:
+            p.got[s.bridge] = (m, o, s)
+        for b in record.unchanged:
+            p.got[b] = (m, o, _UNCHANGED)
+        for b in record.missing:
+            p.got.setdefault(b, (m, o, "m"))
+
+    def sent(self, ok: bool) -> None:
+        """The outcome of the last record handed to the link (acknowledged or given up)."""
+        if not ok:
+            self.counters["readout_failed"] += 1
+            self._expand = True
+
+    # -- schedule -----------------------------------------------------------------------
+    def slot(self, depth: int) -> int:
+        """Cycles from a frame's gate end to the slot of a bridge ``depth`` hops from its gateway."""
+        c = self.config
+        return (c.depths - min(depth, c.depths)) * c.window
+
+    @property
+    def next_tick(self) -> int | None:
+        """The earliest slot among the frames waiting (None: nothing waits)."""
+        slots = [p.slot for p in self._pending.values()]
+        return min(slots) if slots else None
+
+    def take(self, tick: int) -> list[Readout]:
+        """The records due now, oldest frame first: complete, or at their slot. Each is
+        one or more READOUT payloads that each fit a frame."""
+        self._expire(tick)
+        out: list[Readout] = []
+        for key in sorted(self._pending, key=lambda k: (self._pending[k].slot, k)):
+            p = self._pending[key]
+            if tick < p.slot and (p.own is None or not self._complete(p)):
+                continue
+            del self._pending[key]
+            self._sent.add(key)
+            self._sent_order.append(key)
+            if len(self._sent_order) > 256:
+                self._sent.discard(self._sent_order.pop(0))
+            out.extend(self._records(p, tick))
+        return out
+
+    def _complete(self, p: _Pending) -> bool:
+        heard = p.heard or set()
+        return all(c in heard for c, m in self._members.items() if m)
+
+    def _expire(self, tick: int) -> None:
+        forget = self.config.forget
+        for c, at in list(self._heard_at.items()):
+            if tick - at > forget:
+                del self._heard_at[c]
+                for b in self._members.pop(c, set()):
+                    if self._via.get(b) == c:
+                        del self._via[b]
+                        self._last.pop(b, None)
+                self.counters["readout_children_forgotten"] += 1
+
+    def _evict(self) -> None:
+        oldest = min(self._pending, key=lambda k: (self._pending[k].own is not None, k[1]))
+        del self._pending[oldest]
+        self.counters["readout_evicted"] += 1
+
+    def _frame(self, index: int, rate: int, slot: int, span: int) -> _Pending | None:
+        key = (rate, index)
+        if key in self._sent:
+            self.counters["readout_own_late"] += 1
+            return None
+        p = self._pending.get(key)
+        if p is None:
+            p = self._pending[key] = _Pending(index, rate, slot, span)
+            if len(self._pending) > 64:
+                self._evict()
+        else:
+            p.slot, p.span = slot, span
+        return p
+
+    # -- records ------------------------------------------------------------------------
+    def _records(self, p: _Pending, tick: int) -> list[Readout]:
+        states: dict[int, tuple[Mode, int, State]] = dict(p.got or {})
+        if p.own is not None:
+            states[self.me] = p.own
+            expected = set().union(*self._members.values()) if self._members else set()
+            for b in expected:
+                if b not in states:
+                    states[b] = (p.own[0], p.own[1], "m")
+        else:  # a frame of another rate than this bridge's: its children's states, passed on
+            self.counters["readout_passed_on"] += 1
+        expand, self._expand = self._expand, False
+        groups: dict[tuple[Mode, int], tuple[list[ReadoutSample], list[int], list[int]]] = {}
+        for b in sorted(states):
+            mode, over, st = states[b]
+            if st == _UNCHANGED and expand and b in self._last:
+                mode, over, st = self._last[b]
+                self.counters["readout_expanded"] += 1
+            g = groups.setdefault((mode, over), ([], [], []))
+            if isinstance(st, ReadoutSample):
+                g[0].append(st._replace(bridge=b))
+            elif st == _UNCHANGED:
+                g[1].append(b)
+            else:
+                g[2].append(b)
+        missing = sum(len(g[2]) for g in groups.values())
+        if missing:
+            self.counters["readout_missing"] += missing
+        span_us = p.span // 50 if p.span else self.config.window * (self.config.depths + 1) // 50
+        out: list[Readout] = []
+        for (mode, over), (samples, unchanged, miss) in groups.items():
+            out.extend(_split(Readout(p.index, p.rate, mode, over, tuple(samples), tuple(unchanged), tuple(miss),
+                                      min(span_us, 0xFFFF_FFFF))))
+        n = len(out)
+        if n > 1:
+            out = [Readout(r.index, r.rate, r.mode, r.oversampling, r.samples, r.unchanged, r.missing, r.span_us,
+                           i, n) for i, r in enumerate(out)]
+        self.counters["readout_records"] += 1
+        self.counters["readout_frames"] += n
+        return out
+
+    def waiting(self) -> int:
+        """Frames whose record has not gone yet (a power-off loses them)."""
+        return len(self._pending)
+
+
+def _fits(r: Readout) -> bool:
+    try:
+        encode(Frame(0, 0, 0, 0, r))
+    except ProtocolError:
+        return False
+    return True
+
+
+def _split(r: Readout) -> list[Readout]:
+    """``r`` as payloads that each fit one frame (halved until they do)."""
+    if _fits(r):
+        return [r]
+    items = [("s", s) for s in r.samples] + [("u", b) for b in r.unchanged] + [("m", b) for b in r.missing]
+    if len(items) <= 1:
+        raise ProtocolError("too_large", "one readout entry does not fit a frame")
+    half = len(items) // 2
+    out = []
+    for chunk in (items[:half], items[half:]):
+        out.extend(_split(Readout(r.index, r.rate, r.mode, r.oversampling,
+                                  tuple(x for k, x in chunk if k == "s"),  # type: ignore[misc]
+                                  tuple(x for k, x in chunk if k == "u"),  # type: ignore[misc]
+                                  tuple(x for k, x in chunk if k == "m"), r.span_us)))  # type: ignore[misc]
+    return out
+
+
+__all__ = ["FrameReadout", "ReadoutConfig", "State"]

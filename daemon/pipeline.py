@@ -137,7 +137,7 @@ class Pipeline:
         self._next_contact_id = 0  # lowest contact id never published (see contact_job)
         self._carry: tuple[dict[str, Any], ...] = ()  # the contacts last published, as the worker gave them
         self.announced_silent: set[int] = set()
-        self._log: list[Message] = []  # log events, handed out with the next messages returned
+        self._queue: list[Message] = []  # log events (and the messages of frames contact_job gave out), handed out next
         # The pipeline runs on one time base, the host's monotonic clock as the shell passes
         # it: silence, frames and deadlines never see the wall clock step. Wall-clock time
         # is only stamped on what is published: monotonic time + this offset.
@@ -159,12 +159,12 @@ class Pipeline:
         self.wall_offset = float(offset)
 
     def _event(self, level: str, text: str) -> None:
-        self._log.append(LogEvent(level, text))
+        self._queue.append(LogEvent(level, text))
 
-    def _drain_log(self, out: list[Message]) -> list[Message]:
-        if self._log:
-            out.extend(self._log)
-            self._log.clear()
+    def _drain(self, out: list[Message]) -> list[Message]:
+        if self._queue:
+            out.extend(self._queue)
+            self._queue.clear()
         return out
 
     def _want(self, topic: str) -> bool:
@@ -207,7 +207,7 @@ class Pipeline:
         if dec.readouts:
             self._readouts(link, dec.readouts, now)
             self._frames_out(self.frames.take(now), now, out)
-        return self._drain_log(out)
+        return self._drain(out)
 
     def advance(self, now: float | None = None) -> list[Message]:
         """Time passing to ``now`` (default: the last read's time): the skin frames whose
@@ -217,7 +217,7 @@ class Pipeline:
         now = self.last_feed if now is None else now
         out: list[Message] = []
         self._frames_out(self.frames.take(now), now, out)
-        return self._drain_log(out)
+        return self._drain(out)
 
     def _routing(self, link: str, dec: Decoded, now: float, out: list[Message]) -> None:
         window = self.ingress.dedupe.window
@@ -434,7 +434,7 @@ class Pipeline:
         if not self.config.contact.enabled or not self._want("contact"):
             return None
         now = self.last_feed if now is None else now
-        self._frames_out(self.frames.take(now), now, self._log)
+        self._frames_out(self.frames.take(now), now, self._queue)
         snap = self.skin.snapshot(now, self.config.health.bridge_timeout, self.frames.active(now))
         if snap is None or self.skin.contact_spec is None:
             return None
@@ -490,7 +490,7 @@ class Pipeline:
         self.wall_offset += delta
         self._event("warning", f"host wall clock stepped by {delta:+.3f} s; published times follow, "
                                "the skin is not affected")
-        return self._drain_log([])
+        return self._drain([])
 
     def tick(self, now: float, force: bool = False) -> list[Message]:
         """Time passes (the shell calls this often, ~10 Hz): ``health`` every
@@ -502,7 +502,7 @@ class Pipeline:
             self._clock_stepped_back(now)
         self._last_tick = now
         if now < self._next_health and not force:
-            return self._drain_log([])
+            return self._drain([])
         interval = h.interval
         self._next_health = now + interval
         # Over the time since the health before (often more than the interval), not the interval.
@@ -529,7 +529,7 @@ class Pipeline:
         topo = self.topology_body(now)
         if self.topology.changed(topo) and self._want("topology"):
             out.append(self._message(Topology, now, topo))
-        return self._drain_log(out)
+        return self._drain(out)
 
     def _silence_events(self, went_silent: list[int], came_back: list[int], now: float) -> None:
         """Log bridges gone silent or back: each placed bridge by itself, of the others

@@ -280,6 +280,13 @@ class SkinClock:
         seen, self._jump = self._jump, (g, now)
         return seen is not None and abs((g - seen[0]) / self.hz - (now - seen[1])) <= self.slack
 
+    def frame_time(self, g: int, now: float) -> float:
+        """:meth:`frame_times` of one frame (a readout record's), without arrays once it is mapped."""
+        t = self._memo.get(g)
+        if t is not None and g >= self._back:
+            return t
+        return float(self.frame_times(np.array([g], dtype=np.int64), now)[0])
+
     def frame_times(self, g: NDArray[np.int64], now: float) -> NDArray[np.float64]:
         """Host time of each frame's global cycle ``g`` (-1: none), NaN for none, for a frame
         the map would put more than ``slack`` after ``now`` (its arrival: never remembered),

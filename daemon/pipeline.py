@@ -59,6 +59,7 @@ from cellbridge.daemon.wire import (
     NO_MESH_TIME,
     OPS,
     Decoded,
+    PART_BYTES,
     Ingress,
     Readout,
     SampleColumns,
@@ -118,6 +119,13 @@ class Pipeline:
         self.frames = SkinFrames(f.margin, config.health.bridge_timeout, f.max_pending)
         self.unknown_element_frames = 0  # placed elements unknown in the scheduled frames given out
         self._baud = {ln.name: ln.baudrate for ln in config.links}  # s a record takes on its line: bytes x 10 / baud
+        # bridges the readout records spoke for (a sample or unchanged): when, on which link, how
+        # many samples; folded into their health when it is read (_fold_heard)
+        self._heard = np.full(0x10000, -math.inf)
+        self._heard_via = np.zeros(0x10000, dtype=np.int64)
+        self._heard_new = np.zeros(0x10000, dtype=bool)
+        self._heard_samples = np.zeros(0x10000, dtype=np.int64)
+        self._link_index: dict[str, int] = {}
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
         self.topology = Routes()
@@ -319,26 +327,44 @@ class Pipeline:
         g = index * int(self.chip.clock_hz) // rate
         return g if 0 <= g < 1 << 62 else -1
 
-    def _readouts(self, link: str, records: list[tuple[int, Readout, int]], now: float) -> None:
-        """READOUT record parts a gateway wrote (:mod:`cellbridge.daemon.frames`): each teaches
-        the skin clock (its frame's readout end reached the host at ``now`` at the earliest)
-        and joins its frame; the bridges it accounts for a sample or unchanged are alive."""
-        baud = self._baud.get(link, 1_000_000)
+    def _readouts(self, link: str, records: list[tuple[int, Readout]], now: float) -> None:
+        """READOUT record parts a gateway wrote (:mod:`cellbridge.daemon.frames`): each record
+        teaches the skin clock (its frame's readout end reached the host at ``now`` at the
+        earliest) and joins its frame; the bridges it accounts for with a sample or unchanged
+        were heard (:meth:`_fold_heard`)."""
+        part_s = PART_BYTES * 10 / self._baud.get(link, 1_000_000)  # s a part takes on the line, at most
         hz = self.chip.clock_hz
-        for gw, rec, size in records:
+        via = self._link_index.setdefault(link, len(self._link_index))
+        for gw, rec in records:
             g = self._cycle_of(rec.index, rec.rate)
             t = math.nan  # (a nonsense index: the record is refused, and counted)
             if g >= 0:
-                self._teach(gw, g + int(rec.span_us * hz // 1_000_000), now)
-                t = float(self.skin_clock.frame_times(np.array([g], dtype=np.int64), now)[0])
-            self.frames.add(gw, rec, now, t, size * 10 / baud)
-            for b in [s[0] for s in rec.samples]:
-                bh = self._bridge(b, now)
-                bh.samples += 1
-                bh.last_seen, bh.link = now, link
-            for b in rec.unchanged:
-                bh = self._bridge(b, now)
-                bh.last_seen, bh.link = now, link
+                if rec.part == 0:
+                    self._teach(gw, g + int(rec.span_us * hz // 1_000_000), now)
+                t = self.skin_clock.frame_time(g, now)
+            self.frames.add(gw, rec, now, t, rec.parts * part_s)
+            if math.isfinite(t):
+                sampled = np.array([s[0] for s in rec.samples], dtype=np.int64)
+                said = np.concatenate([sampled, np.array(rec.unchanged, dtype=np.int64)])
+                self._heard[said], self._heard_via[said], self._heard_new[said] = now, via, True
+                self._heard_samples[sampled] += 1
+
+    def _fold_heard(self) -> None:
+        """The bridges readout records spoke for since the last fold into their health: heard
+        then, on that link, their samples counted. (Done when health is read, not per record:
+        a thousand bridges a frame, a hundred frames a second.)"""
+        ids = np.flatnonzero(self._heard_new)
+        if not ids.size:
+            return
+        names = list(self._link_index)
+        for bid, at, via, n in zip(ids.tolist(), self._heard[ids].tolist(), self._heard_via[ids].tolist(),
+                                   self._heard_samples[ids].tolist()):
+            b = self._bridge(bid, at)
+            if at > b.last_seen:
+                b.last_seen, b.link = at, names[via]
+            b.samples += n
+        self._heard_new[ids] = False
+        self._heard_samples[ids] = 0
 
     def _frames_out(self, frames: list[SkinFrame], now: float, out: list[Message]) -> None:
         """Complete skin frames into the element stages and the readings contacts are
@@ -497,6 +523,7 @@ class Pipeline:
         ``health.interval`` (or now, if ``force``), ``topology`` when it changed, and log
         events (bridges gone silent or back, the host clock stepping back: a ``now``
         before the last tick's is taken as such a step)."""
+        self._fold_heard()
         h = self.config.health
         if now < self._last_tick:
             self._clock_stepped_back(now)
@@ -585,6 +612,7 @@ class Pipeline:
 
     def health_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
+        self._fold_heard()
         h = self.config.health
         layout_report = self.skin.report(now, h.stuck_after)
         placed, others = self.skin.split_placed(self.bridges)
@@ -643,6 +671,7 @@ class Pipeline:
         ``token`` names it in :meth:`finished_commands`) and the link writes that send it.
         Raises ValueError for a bridge never heard from."""
         if target is None:
+            self._fold_heard()
             alive = {b for b, bh in self.bridges.items() if not bh.silent}
             pending = self.commands.start(op, value, alive, now, timeout)
             data = command_bytes(ADDR_BROADCAST, pending.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
@@ -710,6 +739,7 @@ class Pipeline:
 
     def summary(self) -> str:
         """One line for the service manager's status: links up, bridges alive."""
+        self._fold_heard()
         alive = sum(1 for b in self.bridges.values() if not b.silent)
         up = sum(1 for h in self.links.values() if h.connected)
         return f"{up}/{len(self.links)} links up, {alive}/{len(self.bridges)} bridges alive"

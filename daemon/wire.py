@@ -28,6 +28,7 @@ from cellbridge.protocol import (
     Fragment,
     Frame,
     Hello,
+    MAX_FRAME,
     HostReceiver,
     Mode,
     Op,
@@ -37,10 +38,9 @@ from cellbridge.protocol import (
     StreamDecoder,
     encode_stream,
 )
-from cellbridge.protocol.messages import pack_payload
 
 __all__ = ["ADC_MODE", "ADDR_BROADCAST", "Decoded", "HELD", "NO_MESH_TIME", "Ingress", "Mode", "OPS", "OVERFLOW_C1", "OVERFLOW_C2",
-           "SampleColumns", "command_bytes", "mode_value"]
+           "PART_BYTES", "Readout", "SampleColumns", "command_bytes", "mode_value"]
 
 #: The protocol's numbers the sample columns carry, as plain ints for numpy.
 ADC_MODE = int(Mode.ADC)
@@ -51,8 +51,8 @@ OVERFLOW_C2 = int(SampleFlags.OVERFLOW_C2)
 NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 HELD = int(SampleFlags.HELD)
 
-#: Bytes a frame adds to its payload on the serial line: header, CRC, COBS overhead, delimiter.
-_FRAME_OVERHEAD = 16
+#: Bytes a record part takes on a serial line at most: a whole frame, COBS and the delimiters.
+PART_BYTES = MAX_FRAME + 3
 
 #: Control parameter names → downlink op. SET_REPORTING is added by the emulator's protocol
 #: change; it is offered exactly when the protocol defines it.
@@ -113,8 +113,8 @@ class Decoded:
     frames_by_origin: dict[int, list[int]] = field(default_factory=dict)  # origin -> seqs, arrival order
     gateways: set[int] = field(default_factory=set)  # link-level senders (the gateway bridge)
     # READOUT record parts a gateway wrote itself (origin = link-level sender), in arrival
-    # order: (gateway, record, bytes it took on the line)
-    readouts: list[tuple[int, Readout, int]] = field(default_factory=list)
+    # order: (gateway, record part)
+    readouts: list[tuple[int, Readout]] = field(default_factory=list)
     foreign_readouts: int = 0  # READOUT frames whose origin is not the gateway that wrote them
     ignored: int = 0  # frames the host has no use for (LINK_ACK, CMD heard back)
 
@@ -193,7 +193,7 @@ class Ingress:
         elif type(p) is Readout:
             # a gateway writes its own record on its line; one relayed is no gateway's record
             if frame.src == frame.origin:
-                out.readouts.append((frame.origin, p, len(pack_payload(p)) + _FRAME_OVERHEAD))
+                out.readouts.append((frame.origin, p))
             else:
                 out.foreign_readouts += 1
         else:

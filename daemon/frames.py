@@ -77,7 +77,9 @@ class SkinFrame:
     """One skin frame as the records said it: each bridge accounted for is in exactly one
     of ``bridges`` (a sample, with ``c1``, ``c2``, ``flags``, ``mode``, ``oversampling``
     aligned), ``unchanged`` or ``missing``; a bridge in none is unknown too (its
-    gateway's record did not arrive, or it is on no schedule)."""
+    gateway's record did not arrive, or it is on no schedule). A gateway whose record of
+    the frame before did not come (lost on its line: no bridge knows) cannot vouch for
+    "unchanged": its bridges said so are ``missing`` here (counted in ``unchanged_after_gap``)."""
 
     index: int
     rate: int
@@ -89,17 +91,18 @@ class SkinFrame:
     mode: NDArray[np.int64]
     oversampling: NDArray[np.int64]
     unchanged: NDArray[np.int64]
-    missing: NDArray[np.int64]  #: said missing, or in two records that disagree
+    missing: NDArray[np.int64]  #: said missing, in two records that disagree, or unchanged after a gap
     complete: bool  #: every active gateway's record came, whole
     by_deadline: bool  #: given out at its deadline (or pushed out by newer frames), not by the records
     gateways: tuple[int, ...]  #: the gateways whose record of it came (whole or in part)
 
 
 class _Gateway:
-    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key")
+    __slots__ = ("last_key", "last", "arrival", "span", "serial", "back", "back_key")
 
     def __init__(self) -> None:
         self.last_key = -1  # instant of its newest record taken
+        self.last: tuple[int, int] | None = None  # (index, rate) of that record
         self.arrival = -math.inf  # when that record came
         self.span = 0.0  # s, its newest record's readout span
         self.serial = 0.0  # s, its newest record's time on the line
@@ -108,11 +111,12 @@ class _Gateway:
 
 
 class _Pending:
-    __slots__ = ("index", "rate", "key", "t", "deadline", "records")
+    __slots__ = ("index", "rate", "key", "t", "deadline", "records", "gaps")
 
     def __init__(self, index: int, rate: int, key: int, t: float, deadline: float) -> None:
         self.index, self.rate, self.key, self.t, self.deadline = index, rate, key, t, deadline
         self.records: dict[int, dict[int, RecordPart]] = {}  # gateway -> part -> record part
+        self.gaps: set[int] = set()  # gateways whose record before this one was not of the frame before
 
 
 class SkinFrames:
@@ -136,8 +140,9 @@ class SkinFrames:
         self._done = -1  # instant of the newest frame given out
         self._last: tuple[int, int] | None = None  # (index, rate) of the newest frame given out
         self.counts: dict[str, int] = dict.fromkeys(
-            ("records", "late_records", "rejected_records", "duplicate_parts", "conflicts", "frames_complete",
-             "frames_incomplete", "frames_by_deadline", "frames_pushed_out", "frames_missed", "restarts"), 0)
+            ("records", "late_records", "rejected_records", "duplicate_parts", "conflicts", "unchanged_after_gap",
+             "frames_complete", "frames_incomplete", "frames_by_deadline", "frames_pushed_out", "frames_missed",
+             "restarts"), 0)
 
     def configure(self, margin: float, active_for: float, max_pending: int) -> None:
         """A reload's settings (the frames waiting keep their deadlines)."""
@@ -165,11 +170,12 @@ class SkinFrames:
                 self.counts["late_records"] += 1
                 if key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one joining, or
                     # back): it is active, and the frames after this wait for it
-                    g.arrival, g.last_key = arrival, max(g.last_key, key)
+                    g.arrival, g.last_key, g.last = arrival, max(g.last_key, key), None
                     g.span, g.serial = span, float(serial)
                 return
         g.back = 0
-        g.last_key, g.arrival, g.span, g.serial = key, arrival, span, float(serial)
+        gap = g.last is not None and g.last != (rec.index, rec.rate) and g.last != (rec.index - 1, rec.rate)
+        g.last_key, g.last, g.arrival, g.span, g.serial = key, (rec.index, rec.rate), arrival, span, float(serial)
         p = self._pending.get((rec.index, rec.rate))
         if p is None:
             if len(self._pending) >= self.max_pending:
@@ -177,6 +183,8 @@ class SkinFrames:
             p = self._pending[(rec.index, rec.rate)] = _Pending(rec.index, rec.rate, key, t_frame, math.nan)
             active = self._active(arrival)
             p.deadline = t_frame + max(g.span for g in active) + max(g.serial for g in active) + self.margin
+        if gap:
+            p.gaps.add(gateway)
         parts = p.records.setdefault(gateway, {})
         first = next(iter(parts.values()), None)
         if first is not None and first.parts != rec.parts:
@@ -201,7 +209,7 @@ class SkinFrames:
         self._flush()
         self._done, self._last = -1, None
         for o in self._gw.values():
-            o.last_key = -1
+            o.last_key, o.last = -1, None
         self.counts["restarts"] += 1
         return True
 
@@ -299,7 +307,7 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, owner: SkinFrames) ->
     cols: list[list[int]] = [[], [], [], [], [], []]  # bridge, c1, c2, flags, mode, oversampling
     unchanged: list[int] = []
     missing: list[int] = []
-    for parts in p.records.values():
+    for gw, parts in p.records.items():
         for rec in parts.values():
             n = len(rec.samples)
             if n:
@@ -307,7 +315,11 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, owner: SkinFrames) ->
                     col.extend(vals)
                 cols[4].extend([int(rec.mode)] * n)
                 cols[5].extend([rec.oversampling] * n)
-            unchanged.extend(rec.unchanged)
+            if gw in p.gaps:  # a record of this gateway was lost before: "unchanged" may refer to
+                missing.extend(rec.unchanged)  # a sample the host never got
+                owner.counts["unchanged_after_gap"] += len(rec.unchanged)
+            else:
+                unchanged.extend(rec.unchanged)
             missing.extend(rec.missing)
     arrays = [np.array(c, dtype=np.int64) for c in cols]
     u, m = np.array(unchanged, dtype=np.int64), np.array(missing, dtype=np.int64)

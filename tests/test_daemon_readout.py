@@ -57,11 +57,13 @@ def test_a_press_read_by_frames_is_one_contact_and_its_samples_carry_the_frames_
     sk = Skin(rows=4, cols=4)
     p = make()
     k = start(p, sk)
-    p.want({"element", "contact"})
+    p.want({"element", "contact", "raw"})
     w = worker()
     reports = []
     for i in range(k, k + 10):
         out = p.feed("gw", sk.readout(i, CORNER), arrive(sk, i))
+        (raw,) = [m for t, m in published(out) if t == "raw"]
+        assert raw["link"] == "gw" and raw["bridge"] == sk.ids and raw["cycle"] == [i * CLOCK // int(sk.rate)] * 16
         job = p.contact_job()
         assert job is not None and job.snapshot.t_frame == pytest.approx(T0 + i / sk.rate, abs=2e-3)
         reports += p.contact_frame(job, w.estimate_now(job)).payload["contacts"]

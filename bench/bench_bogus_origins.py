@@ -9,7 +9,9 @@ skin, then prints the size of one ``health`` and one ``topology`` message (msgpa
 the time of the second ``tick`` after the junk (it publishes health and topology) and
 the median of the five ticks after it, the log events of those two ticks, and how many
 gateway ids and nodes topology holds, while the phantoms are remembered and after
-``forget_after``.
+``forget_after``. The skin is steady: a health tick came before the junk, and the real
+skin goes on talking (its gateway is the one id that stays). The junk senders include
+some placed bridges' ids: they are dropped like the others.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ def main() -> None:
     p.feed("gw", sk.hellos() + sk.beacons(), t)
     for k, data in sk.stream(20):
         p.feed("gw", data, t + k / sk.rate)
+    p.tick(t + 0.5, force=True)  # a steady skin's health tick: nothing to forget
     t += 1.0
     junk = b"".join(encode_stream(Frame(src=(o * 7919) % 0xFFF0 + 1, dst=0, origin=o, seq=0,
                                         payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
@@ -48,7 +51,11 @@ def main() -> None:
     p.feed("gw", junk, t)
     print(f"{'when':<28} {'health bytes':>14} {'topology bytes':>15} {'tick ms':>9} {'later ticks ms':>15} "
           f"{'log events':>11} {'gateway ids':>12} {'topology nodes':>15}")
+    slot = 20
     for label, now in (("phantoms remembered", t + 10.0), ("after forget_after", t + 601.0)):
+        for k, data in sk.stream(20, start=slot):  # the real skin goes on talking
+            p.feed("gw", data, now - 6.0 + (k - slot) / sk.rate)
+        slot += 20
         events = sum(isinstance(m, LogEvent) for m in p.tick(now - 5.0, force=True))
         t0 = time.perf_counter()
         out = p.tick(now, force=True)

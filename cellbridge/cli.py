@@ -20,6 +20,7 @@ from cellbridge._version import __version__
 
 SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("demo", "cellbridge.demo", "the whole chain: an emulated 4x4 skin, the daemon on its gateway, a press, the contact"),
+    ("robot", "cellbridge.robot", "a simulated robot (MuJoCo) touches its emulated skin; contacts scored against it"),
     ("decode", "cellbridge.decode", "decode serial-line bytes (COBS frames) into readable frames"),
     ("plot", "cellbridge.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
     ("daemon", "cellbridge.daemon.cli", "run the host service: gateway serial lines in, ZeroMQ messages out"),
@@ -36,6 +37,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("record", "cellbridge.recording.record_cli", "record what a daemon publishes into an MCAP file (Foxglove opens it)"),
     ("replay", "cellbridge.recording.replay", "publish an MCAP recording on ZeroMQ as the daemon published it"),
     ("info", "cellbridge.recording.info", "summarise an MCAP recording: topics, counts, duration, bridges, contacts"),
+    ("ros2", "cellbridge.ros2.cli", "publish the skin on the ROS 2 graph (tactile_msgs, markers, diagnostics), no ROS install"),
     ("proxy", "cellbridge.proxy", "several daemons as one stream: libzmq's XSUB/XPUB proxy, CURVE as the daemon"),
 ]
 #: Process entry points 'mesh up' starts: runnable (each has its --help), not listed in the top-level --help.

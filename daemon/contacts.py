@@ -32,6 +32,8 @@ from cellbridge.tactile import (
     skin_response,
 )
 from cellbridge.tactile.arrays import FloatArray
+from cellbridge.tactile.seam_estimator import SeamEstimator
+from cellbridge.tactile.skin_geometry import Band
 from numpy.typing import NDArray
 
 
@@ -62,6 +64,7 @@ class ContactSpec:
     method: str
     birth_frames: int = 1
     max_missed: int = 2
+    bands: tuple[Band, ...] = ()  # the layout's bands that close on themselves (a skin description's)
 
     @classmethod
     def of(cls, layout: SkinLayout, noise: float, contact: ContactSection) -> ContactSpec:
@@ -73,7 +76,7 @@ class ContactSpec:
         layout = SkinLayout(np.array(self.centres), side=self.side, ids=np.array(self.ids),
                             neighbour_gap=self.neighbour_gap)
         return ContactStage(layout, default_params(layout), self.noise, self.method, self.birth_frames,
-                            self.max_missed)
+                            self.max_missed, self.bands)
 
 
 @dataclass(frozen=True)
@@ -134,9 +137,12 @@ class ContactStage:
     """
 
     def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str,
-                 birth_frames: int = 1, max_missed: int = 2) -> None:
+                 birth_frames: int = 1, max_missed: int = 2, bands: tuple[Band, ...] = ()) -> None:
         self.layout = layout
-        self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
+        if bands:  # a press across a wrap seam is one contact
+            self.estimator: ContactEstimator = SeamEstimator(layout, params, bands=bands, noise=noise, method=method)
+        else:
+            self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
         self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
         self._row = {int(e): i for i, e in enumerate(layout.ids.tolist())}
         e = layout.corner_edges

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 from os import PathLike
 
+from cellbridge.daemon.skin_file import is_skin_file, load_skin
 from cellbridge.tactile.layout import parse_layout, SkinLayout
 
 
 def load_layout(path: str | PathLike[str]) -> SkinLayout:
-    """Read a skin layout TOML file (format: :func:`cellbridge.tactile.parse_layout`).
+    """Read a skin layout TOML file (format: :func:`cellbridge.tactile.parse_layout`), or a
+    skin description (``[[patch]]`` tables: its atlas, :mod:`cellbridge.daemon.skin_file`).
 
     Every problem, a missing file included, is a ``ValueError`` naming the file.
     """
@@ -20,4 +22,6 @@ def load_layout(path: str | PathLike[str]) -> SkinLayout:
         raise ValueError(f"{path}: cannot read layout: {exc.strerror}") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: layout is not UTF-8 text") from None
+    if is_skin_file(text):
+        return load_skin(path).layout()
     return parse_layout(text, source=str(path))

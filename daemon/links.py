@@ -258,9 +258,10 @@ class ReplayLink(Link):
 
     def __init__(self, cfg: LinkConfig, on_data: DataCallback, on_state: StateCallback,
                  start_gate: Callable[[], Awaitable[None]] | None = None,
-                 on_done: Callable[[str], None] | None = None) -> None:
+                 on_done: Callable[[str], None] | None = None, clock: Clock = SYSTEM_CLOCK) -> None:
         super().__init__(cfg, on_data, on_state)
         self.path = cfg.url.split(":", 1)[1]
+        self._clock = clock  # paces a shifted replay (its time and its sleeps): a test's runs in fake time
         self._gate = start_gate
         self._on_done = on_done
         self.records = 0
@@ -279,7 +280,8 @@ class ReplayLink(Link):
             await self._gate()
         self._on_state(self.name, True, "")
         speed, recorded = self.cfg.replay_speed, self.cfg.replay_clock == "recorded"
-        start = time.monotonic()  # shifted: records replayed on the pipeline's (monotonic) time base
+        clock = self._clock
+        start = clock.time()  # shifted: records replayed on the pipeline's (monotonic) time base
         why = "replay finished"
         if first is not None:
             t_first = first[0]
@@ -292,15 +294,15 @@ class ReplayLink(Link):
                         # step back is replayed at once, not counted as a machine running late
                         ahead = max(ahead, rel)
                         due = stamp = start + ahead / speed
-                        wait = due - time.monotonic()
+                        wait = due - clock.time()
                         if wait > 0:
-                            await asyncio.sleep(wait)
+                            await clock.sleep(wait)
                             unyielded = 0
-                            wait = due - time.monotonic()  # the sleep itself may end late (a busy loop)
+                            wait = due - clock.time()  # the sleep itself may end late (a busy loop)
                         elif unyielded >= 64:  # behind: the loop's other tasks run now and then
                             await asyncio.sleep(0)
                             unyielded = 0
-                            wait = due - time.monotonic()
+                            wait = due - clock.time()
                         unyielded += 1
                         if wait < -self.LATE:
                             stamp = due - wait

@@ -19,6 +19,9 @@ import socket
 import time
 from collections.abc import Callable, Mapping
 
+#: s a notification waits for room in the service manager's queue (then it is counted as an error)
+SEND_TIMEOUT = 0.1
+
 
 class Notifier:
     """Tells systemd the daemon's state: READY, STATUS, WATCHDOG, RELOADING, STOPPING.
@@ -33,6 +36,7 @@ class Notifier:
         self._watchdog_usec = _watchdog_usec(env)
         self._socket: socket.socket | None = None
         self.send_errors = 0
+        self._stuck = False  # the last send found the manager's queue full
 
     @property
     def enabled(self) -> bool:
@@ -79,9 +83,14 @@ class Notifier:
         try:
             if self._socket is None:
                 self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            # A manager whose queue is full (busy, stuck) held a blocking send for ever, and
+            # STOPPING=1 is a stop's first act: at most SEND_TIMEOUT, none while it stays full.
+            self._socket.settimeout(0.0 if self._stuck else SEND_TIMEOUT)
             self._socket.sendto(message.encode(), self._address)
-        except OSError:
+            self._stuck = False
+        except OSError as exc:
             self.send_errors += 1
+            self._stuck = isinstance(exc, (TimeoutError, BlockingIOError))
 
 
 async def heartbeat(notifier: Notifier, summary: Callable[[], str] | None = None,

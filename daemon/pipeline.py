@@ -29,13 +29,15 @@ import math
 import os
 from collections import Counter
 from collections.abc import Iterable
+from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
 from cellbridge.daemon.clock import BridgeClock, SkinClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
-from cellbridge.daemon.contacts import ContactJob
+from cellbridge.daemon.contacts import ContactJob, ContactSpec
+from cellbridge.daemon.surface import contact_fields, skin_report
 from cellbridge.daemon.elements import default_params
 from cellbridge.daemon.frames import SkinFrame, SkinFrames
 from cellbridge.daemon.frontend import Frontend, chip_params
@@ -66,8 +68,9 @@ from cellbridge.daemon.wire import (
     command_bytes,
 )
 from cellbridge.tactile import ElementParams, SkinLayout
+from cellbridge.tactile.skin_geometry import SkinGeometry
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: contacts in link frames (link, position, normal, force_vector), topology.skin
 _GATE_OP = int(OPS["gate"])
 _NO_MESH_TIME = np.int64(NO_MESH_TIME)
 _HELD = np.int64(HELD)
@@ -141,7 +144,7 @@ class Pipeline:
         # Bridges whose rate or silence a health tick must look at: heard since, or not yet
         # silent with a rate of 0. A silent bridge costs the tick nothing (65 530 phantoms).
         self._awake: set[int] = set()
-        self._forget_floor = -math.inf  # nothing unplaced was last heard before this
+        self._forget_floor = -math.inf  # no bridge nor gateway id _forget could drop was last heard before this
         self._next_contact_id = 0  # lowest contact id never published (see contact_job)
         self._carry: tuple[dict[str, Any], ...] = ()  # the contacts last published, as the worker gave them
         self.announced_silent: set[int] = set()
@@ -150,6 +153,9 @@ class Pipeline:
         # it: silence, frames and deadlines never see the wall clock step. Wall-clock time
         # is only stamped on what is published: monotonic time + this offset.
         self.wall_offset = 0.0
+        #: the skin description (links, patches) the layout is the atlas of; set by the shell
+        self.surface: SkinGeometry | None = None
+        self._spec_memo: tuple[ContactSpec, ContactSpec] | None = None
 
     # -- helpers ------------------------------------------------------------------------
     def _message(self, kind: type[_P], now: float, body: dict[str, Any]) -> _P:
@@ -182,6 +188,7 @@ class Pipeline:
         b = self.bridges.get(bid)
         if b is None:
             b = self.bridges[bid] = BridgeHealth(first_seen=now, clock_hz=self.chip.clock_hz)
+            self._forget_floor = min(self._forget_floor, now)  # it may be due to be forgotten some day
         self._awake.add(bid)
         return b
 
@@ -237,7 +244,8 @@ class Pipeline:
                 self.clocks[origin].suspect_reset()  # numbering restarted without a HELLO: perhaps a reset
             b.last_seen, b.link = now, link
             self.topology.heard(origin, link, dec.gateways, now)
-        self.topology.gateways_heard(link, dec.gateways, now)
+        if self.topology.gateways_heard(link, dec.gateways, now):
+            self._forget_floor = min(self._forget_floor, now)
         for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
             if origin in self.clocks and self.clocks.pop(origin).synced:
                 self._bridge(origin, now).clock_resets += 1
@@ -464,7 +472,8 @@ class Pipeline:
         snap = self.skin.snapshot(now, self.config.health.bridge_timeout, self.frames.active(now))
         if snap is None or self.skin.contact_spec is None:
             return None
-        return ContactJob(self._owner, self.skin.contact_spec, snap, self._next_contact_id, self._carry)
+        return ContactJob(self._owner, self._surface_spec(self.skin.contact_spec), snap, self._next_contact_id,
+                          self._carry)
 
     def contact_due(self, now: float, idle: bool = False) -> float:
         """The host time at which :meth:`contact_job` has a new frame: ``now`` when one is
@@ -495,6 +504,7 @@ class Pipeline:
             ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
             out.append({**c, "t": self._wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
                         "t_sample": self._wall(max(ts)) if ts else None})
+        out = contact_fields(self.surface, out)  # link, 3-D position, normal, force vector
         t = self._wall(snap.t_frame) if math.isfinite(snap.t_frame) else None
         unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
         return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
@@ -586,14 +596,13 @@ class Pipeline:
             self.ingress.reassembly_drops.pop(bid, None)
             self._awake.discard(bid)
         self.forgotten_bridges += len(gone)
-        self.topology.forget_gateways(before, self.skin.split_placed)
-        # Last-heard times only grow (a step back resets this), and a bridge heard later is
-        # newer: until the oldest one left is due, a scan forgets nothing.
+        self.topology.forget_gateways(before)
+        # Last-heard times only grow (a step back resets this), and a bridge or gateway id heard
+        # later is newer: until the oldest one left is due, a scan forgets nothing. A new one
+        # (heard for the first time, or again after it was forgotten) lowers this again.
         _, others = self.skin.split_placed(self.bridges)
-        times = [self.bridges[b].last_seen for b in others]
-        for ids in self.topology.gateways.values():
-            times += [ids[g] for g in self.skin.split_placed(ids)[1]]
-        self._forget_floor = min(times, default=math.inf)
+        oldest = min((self.bridges[b].last_seen for b in others), default=math.inf)
+        self._forget_floor = min(oldest, self.topology.oldest_gateway())
 
     def _clock_stepped_back(self, now: float) -> None:
         """The host clock went back (NTP step, RTC set): times kept from before lie in the
@@ -662,7 +671,20 @@ class Pipeline:
             node["last_seen"] = self._wall(node["last_seen"])
         body["t_bridge"] = None
         body["layout"] = self.skin.layout_report()
+        body["skin"] = skin_report(self.surface)
         return body
+
+    # -- the skin description (links, patches; see daemon/surface.py) --------------------
+    def _surface_spec(self, spec: ContactSpec) -> ContactSpec:
+        """The contact spec with the description's bands (contacts across wrap seams), when
+        there is a description and its atlas is the layout."""
+        bands = self.surface.bands if self.surface is not None else ()
+        if not bands or spec.bands == bands:
+            return spec
+        memo = self._spec_memo
+        if memo is None or memo[0] is not spec:
+            self._spec_memo = memo = (spec, replace(spec, bands=bands))
+        return memo[1]
 
     # -- commands -----------------------------------------------------------------------
     def command(self, op: int, value: int | None, target: int | None, now: float,

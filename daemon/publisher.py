@@ -94,7 +94,7 @@ class Publisher:
         """One link read on topic ``serial`` (``link``, ``t_host`` = its arrival on the wall
         clock, ``t_read`` = on the clock a replay runs on, ``data``), if wanted."""
         if "serial" in self.wanted:
-            self.publish("serial", {"v": 1, "seq": self._serial_seq, "t_host": now, "t_read": t_read,
+            self.publish("serial", {"v": 2, "seq": self._serial_seq, "t_host": now, "t_read": t_read,
                                     "t_bridge": None, "link": link, "data": data})
             self._serial_seq += 1
 

@@ -438,7 +438,8 @@ class Service:
         worker.start()
         worker.join(limit)
         if worker.is_alive():
-            event(self.log, "error", "ZeroMQ context did not terminate: a socket is still open", waited=limit)
+            event(self.log, "error", "ZeroMQ context did not terminate: a socket is still open or still sending",
+                  waited=limit)
 
 
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms). A

@@ -9,6 +9,7 @@ so subscribers can redraw the mesh without polling.
 from __future__ import annotations
 
 import heapq
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -50,25 +51,35 @@ class Topology:
         if len(gateways) == 1:
             n.gateway = next(iter(gateways))
 
-    def gateways_heard(self, link: str, gateways: set[int], now: float) -> None:
-        """The link-level senders of one read of ``link`` (once per read, not per origin)."""
-        if gateways:
-            self.gateways.setdefault(link, {}).update(dict.fromkeys(gateways, now))
+    def gateways_heard(self, link: str, gateways: set[int], now: float) -> bool:
+        """The link-level senders of one read of ``link`` (once per read, not per origin).
+        True when one of them is new on ``link`` (it is due to be forgotten some day)."""
+        if not gateways:
+            return False
+        ids = self.gateways.setdefault(link, {})
+        new = not gateways <= ids.keys()
+        ids.update(dict.fromkeys(gateways, now))
+        return new
 
-    def forget_gateways(self, before: float, split: Split) -> int:
-        """Drop gateway ids last heard ``before`` unless placed (``split``: ids -> (placed,
-        the others)): a corrupt frame that passes the CRC names a random sender, and such
-        phantom gateways would otherwise stay in topology for the life of the daemon.
-        Returns how many."""
+    def forget_gateways(self, before: float) -> int:
+        """Drop gateway ids last heard on their link ``before``, placed bridges' too: a
+        corrupt frame that passes the CRC names a random sender (now and then a placed
+        bridge's id), and a bridge that held the line once may no longer; either would
+        otherwise be listed as the link's gateway for the life of the daemon. Returns how
+        many."""
         n = 0
         for link, ids in list(self.gateways.items()):
-            gone = [g for g in split(ids)[1] if ids[g] < before]
+            gone = [g for g, t in ids.items() if t < before]
             for g in gone:
                 del ids[g]
             n += len(gone)
             if not ids:
                 del self.gateways[link]
         return n
+
+    def oldest_gateway(self) -> float:
+        """The earliest last-heard time of any gateway id (``inf`` with none)."""
+        return min((min(ids.values()) for ids in self.gateways.values() if ids), default=math.inf)
 
     def clock_stepped_back(self, now: float) -> None:
         for n in self.nodes.values():

@@ -76,6 +76,12 @@ class LinkLayer:
         self.urgent_ttl = 200 * 50_000
         #: outcomes of readout records not yet read by the firmware (True: acknowledged)
         self.urgent_results: list[bool] = []
+        #: Readout records sent and waiting for their acknowledgement, by (origin, seq): not
+        #: stop-and-wait (a relay's next record does not wait for the last one's ack, which
+        #: crosses two processes in the real-time shells), each retried once at its deadline
+        self.outstanding: dict[tuple[int, int], _InFlight] = {}
+        self._on_radio: _InFlight | None = None  #: the record the radio holds, not yet on the cell
+        self._preempted = False  #: the normal frame in flight was taken off the radio for a record
         self.inflight: _InFlight | None = None
         c = radio.config
         # SIFS, a slot, the acknowledgement; before it, at most one frame its sender may
@@ -121,6 +127,15 @@ class LinkLayer:
         """A LINK_ACK from ``src`` naming (origin, seq): True when it ends the transmission
         in flight. One that comes after the deadline, while the retransmission still waits
         for the cell, counts (late, not lost): the retransmission is withdrawn."""
+        u = self.outstanding.get((origin, seq))
+        if u is not None and src == u.next_hop:
+            if u is self._on_radio:  # its retry still waits for the cell: not needed any more
+                self.radio.cancel(u.data)
+                self._on_radio = None
+            del self.outstanding[(origin, seq)]
+            self.urgent_results.append(True)
+            self.counters["frames_acked"] += 1
+            return True
         f = self.inflight
         if f is None or f.attempts == 0 or (origin, seq) != f.key or src != f.next_hop:
             return False
@@ -133,8 +148,6 @@ class LinkLayer:
         elif f.attempts == 1:
             self.extra_wait -= self.extra_wait // 16
         self.results.append((f.next_hop, f.attempts, True))
-        if f.urgent:
-            self.urgent_results.append(True)
         self.counters["frames_acked"] += len(f.frames)
         for x in f.frames:
             self.handed[(x.origin, x.seq)] = f.next_hop
@@ -192,52 +205,109 @@ class LinkLayer:
         used = False
         f = self.inflight
         radio = self.radio
+        self._urgent_due(tick, parent, neighbours)
         if f is not None and 0 <= f.deadline <= tick and radio.idle:  # no acknowledgement in time
-            limit = self.urgent_retries if f.urgent else self.max_retries
-            if f.attempts > limit or (parent != f.next_hop and f.next_hop not in neighbours):
-                if f.attempts > limit:
+            if f.attempts > self.max_retries or (parent != f.next_hop and f.next_hop not in neighbours):
+                if f.attempts > self.max_retries:
                     self.counters["tx_failed"] += 1
                     self.results.append((f.next_hop, f.attempts, False))
-                if f.urgent:
-                    self.counters["urgent_failed"] += 1
-                    self.urgent_results.append(False)
-                else:
-                    self._give_back(f)
+                self._give_back(f)
                 self.inflight = f = None
-            else:
+            elif not self._urgent_waiting(parent):
                 self.counters["retries"] += 1
                 f.missed, f.deadline = f.deadline, -1
-                radio.send(f.data, self.cells, tick, f.attempts, urgent=f.urgent, rank=f.rank)
-        if f is None:
+                radio.send(f.data, self.cells, tick, f.attempts)
+        if self._urgent_waiting(parent):
+            self._hand_urgent(tick, parent, cost_add)
+        elif f is None:
             used = self._hand_over(tick, parent, next_seq, cost_add)
         out = radio.advance(tick)
         if out is not None:
+            u = self._on_radio
             f = self.inflight
-            if f is not None and out[0] is f.data and f.deadline < 0:
+            if u is not None and out[0] is u.data:
+                u.attempts += 1
+                u.deadline = radio.tx_until + self._ack_wait + self.extra_wait
+                self._on_radio = None
+            elif f is not None and out[0] is f.data and f.deadline < 0:
                 f.attempts += 1
                 f.deadline = radio.tx_until + self._ack_wait + self.extra_wait
-            elif f is None:
+            elif f is None and not self._urgent_waiting(parent):
                 # a broadcast just went out: the next frame contends for the cell after it
                 # now, not at the bridge's next wake (a relay held a child's frame until its
                 # next gate or batch then, and lazy and gate-by-gate sampling sent different frames)
                 used = self._hand_over(tick, parent, next_seq, cost_add) or used
+        if radio.idle and f is not None and f.deadline < 0 and out is None and self._on_radio is None \
+                and not self._urgent_waiting(parent) and f is self.inflight and self._preempted:
+            self._preempted = False
+            radio.send(f.data, self.cells, tick, f.attempts)  # the frame a record went before
         return out, used
+
+    def _urgent_waiting(self, parent: int | None) -> bool:
+        """A readout record (new, or a retry) waits for the radio."""
+        if self._on_radio is not None:
+            return False
+        if parent is not None and self.urgent:
+            return True
+        return any(u.deadline == -2 for u in self.outstanding.values())
+
+    def _urgent_due(self, tick: int, parent: int | None, neighbours: Container[int]) -> None:
+        """Records whose acknowledgement did not come by their deadline: retried once (marked
+        to be sent, deadline -2), then given up; expired queued records are given up too."""
+        while self.urgent and tick - self.urgent[0][0] > self.urgent_ttl:
+            self.urgent.popleft()
+            self.counters["urgent_expired"] += 1
+            self.urgent_results.append(False)
+        for key, u in list(self.outstanding.items()):
+            if 0 <= u.deadline <= tick:
+                if u.attempts > self.urgent_retries or (parent != u.next_hop and u.next_hop not in neighbours):
+                    del self.outstanding[key]
+                    self.counters["urgent_failed"] += 1
+                    self.urgent_results.append(False)
+                    # not fed to the routing's link estimate: a record's acknowledgement that
+                    # is late (message latency of the real-time shells) is no lost link, and
+                    # a parent that died is found by its beacons' timeout
+
+                else:
+                    u.deadline = -2  # to be sent again
+
+    def _hand_urgent(self, tick: int, parent: int | None, cost_add: int) -> bool:
+        """Give the radio a readout record (a retry first, then the oldest new one); a normal
+        frame still waiting for the cell is taken back and goes after it."""
+        radio = self.radio
+        f = self.inflight
+        if not radio.idle:
+            if f is not None and f.deadline < 0 and radio.cancel(f.data):
+                self._preempted = True
+            else:
+                return False
+        retry = next((u for u in self.outstanding.values() if u.deadline == -2), None)
+        if retry is not None:
+            retry.deadline = -1
+            self.counters["retries"] += 1
+            self._on_radio = retry
+            radio.send(retry.data, self.cells, tick, retry.attempts, urgent=True, rank=retry.rank)
+            return True
+        if parent is None or not self.urgent:
+            return False
+        _, first, rank = self.urgent.popleft()
+        data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent, _ACK)
+        u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank)
+        if len(self.outstanding) >= 16:  # bounded: the oldest is given up
+            old = next(iter(self.outstanding))
+            del self.outstanding[old]
+            self.counters["urgent_failed"] += 1
+            self.urgent_results.append(False)
+        self.outstanding[u.key] = u
+        self._on_radio = u
+        radio.send(data, self.cells, tick, urgent=True, rank=rank)
+        return True
 
     def _hand_over(self, tick: int, parent: int | None, next_seq: int, cost_add: int) -> bool:
         """Give the radio the next frame if it holds none (broadcasts first); whether
         ``next_seq`` was used."""
         radio = self.radio
         if not radio.idle:
-            return False
-        while self.urgent and tick - self.urgent[0][0] > self.urgent_ttl:
-            self.urgent.popleft()
-            self.counters["urgent_expired"] += 1
-            self.urgent_results.append(False)
-        if parent is not None and self.urgent:
-            _, first, rank = self.urgent.popleft()
-            data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent, _ACK)
-            self.inflight = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank)
-            radio.send(data, self.cells, tick, urgent=True, rank=rank)
             return False
         if self.broadcasts:
             radio.send(self.broadcasts.popleft(), self.cells, tick)
@@ -253,6 +323,9 @@ class LinkLayer:
         f = self.inflight
         if f is not None and f.deadline >= 0:
             t = f.deadline if t is None else min(t, f.deadline)
+        for u in self.outstanding.values():
+            if u.deadline >= 0 and (t is None or u.deadline < t):
+                t = u.deadline
         return t
 
     def has_work(self) -> bool:

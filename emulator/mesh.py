@@ -27,6 +27,17 @@ bridges *hear* each other when they share a cell. The file format (TOML)::
     loss = 0.05
     ber = 1e-6
 
+    [[wrap]]            # optional: a band of the skin that closes on itself (a cylinder's
+    x0 = 0.0            # skin unrolled): element x in [x0, x0 + period) wraps, for element
+    period = 0.2827     # y in [y0, y1]; a press across its two ends presses both
+    y0 = 0.0
+    y1 = 0.12
+
+A skin description (``[[patch]]`` tables: :mod:`cellbridge.tactile.skin_geometry`) is a
+mesh file too: one bridge per element at its atlas position, a cell between each pair of
+neighbouring elements (across the seams of patches of one surface and across wrap seams
+too), the gateways it names (:mod:`cellbridge.emulator.skin_mesh`).
+
 A bad file is refused with a :class:`MeshError` whose message names the key and the
 problem, so a user can fix it without reading this module.
 """
@@ -41,6 +52,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from cellbridge.errors import CellbridgeError
+from cellbridge.tactile.skin_geometry import Band
 
 DEFAULT_SIDE = 0.040
 #: The element model's largest side (cellbridge.tactile.layout.MAX_SIDE): a bridge builds
@@ -49,7 +61,8 @@ MAX_SIDE = 1.0
 DEFAULT_BITRATE = 1_000_000
 MAX_BRIDGE_ID = 0xFFFE
 
-_TOP_KEYS = {"loss", "ber", "side", "bitrate", "name", "cell", "bridge", "link"}
+_TOP_KEYS = {"loss", "ber", "side", "bitrate", "name", "cell", "bridge", "link", "wrap"}
+_WRAP_KEYS = {"x0", "period", "y0", "y1"}
 _CELL_KEYS = {"id", "loss", "ber"}
 _BRIDGE_KEYS = {"id", "cells", "position", "gateway", "tcp"}
 _LINK_KEYS = {"a", "b", "loss", "ber"}
@@ -96,6 +109,8 @@ class Mesh:
     side: float = DEFAULT_SIDE
     bitrate: int = DEFAULT_BITRATE
     name: str = ""
+    #: bands of the skin that close on themselves (a cylinder's skin, unrolled)
+    wraps: tuple[Band, ...] = ()
     _by_id: dict[int, Bridge] = field(default_factory=dict, repr=False, compare=False)
     _cell_by_id: dict[int, Cell] = field(default_factory=dict, repr=False, compare=False)
     _link_of: dict[frozenset[int], Link] = field(default_factory=dict, repr=False, compare=False)
@@ -326,7 +341,24 @@ def mesh_from_mapping(data: Mapping[str, Any], source: str = "mesh") -> Mesh:
             raise MeshError(f"{source}: link {a}-{b}: the bridges share no cell")
         links.append(Link(a, b, _opt_prob(e, "loss", w), _opt_prob(e, "ber", w)))
 
-    mesh = Mesh(tuple(cells), tuple(bridges), tuple(links), loss, ber, float(side), bitrate, name)
+    wraps = []
+    for i, e in enumerate(_table_list(data, "wrap", source)):
+        w = f"{source}: wrap[{i}]"
+        _unknown(set(e), _WRAP_KEYS, w)
+        vals = {}
+        for key in sorted(_WRAP_KEYS):
+            if key not in e:
+                raise MeshError(f"{w}: missing key '{key}'")
+            v = e[key]
+            if type(v) not in (int, float) or not math.isfinite(v):
+                raise MeshError(f"{w}.{key}: must be a number (m), got {v!r}")
+            vals[key] = float(v)
+        if not vals["period"] > 2 * side:
+            raise MeshError(f"{w}.period: must be more than two element sides, got {vals['period']!r}")
+        if vals["y1"] < vals["y0"]:
+            raise MeshError(f"{w}: y1 must be >= y0")
+        wraps.append(Band(vals["x0"], vals["period"], vals["y0"], vals["y1"]))
+    mesh = Mesh(tuple(cells), tuple(bridges), tuple(links), loss, ber, float(side), bitrate, name, tuple(wraps))
     if not mesh.gateways:
         raise MeshError(f"{source}: no bridge has 'gateway = true'; a mesh needs at least one gateway")
     lost = sorted(bridge_ids - mesh.reachable())
@@ -358,10 +390,20 @@ def _check_positions(mesh: Mesh, source: str) -> None:
 
 
 def parse_mesh(text: str, source: str = "mesh") -> Mesh:
+    """A mesh from a mesh file's text, or from a skin description's (``[[patch]]`` tables)."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise MeshError(f"{source}: not valid TOML: {exc}") from None
+    if "patch" in data:
+        from cellbridge.emulator.skin_mesh import mesh_from_skin
+        from cellbridge.tactile.skin_geometry import SkinError, skin_from_mapping
+
+        try:
+            skin = skin_from_mapping(data, source)
+        except SkinError as exc:
+            raise MeshError(str(exc)) from None
+        return mesh_from_skin(skin)
     return mesh_from_mapping(data, source)
 
 
@@ -447,4 +489,7 @@ def mesh_to_toml(mesh: Mesh) -> str:
         if ln.ber is not None:
             out.append(f"ber = {_num(ln.ber)}")
         out.append("")
+    for w in mesh.wraps:
+        out += ["[[wrap]]", f"x0 = {_num(w.x0)}", f"period = {_num(w.period)}", f"y0 = {_num(w.y0)}",
+                f"y1 = {_num(w.y1)}", ""]
     return "\n".join(out)

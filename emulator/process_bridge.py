@@ -55,7 +55,7 @@ ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the me
 #: A level of the readout schedule in the real-time shells: a record crosses two processes
 #: and the medium per hop (a record normally goes on as soon as it is complete; this bounds
 #: how long a relay waits for a child whose record was lost)
-READOUT_WINDOW = 8 * CLOCK_HZ // 1000
+READOUT_WINDOW = 10 * CLOCK_HZ // 1000
 STIMULI_CHECK = CLOCK_HZ // 5  # the world's socket is looked at at least this often (its fd is edge-like)
 FILE_TCP = -1  #: ``--tcp`` without a port: the mesh file's
 _POLLIN = select.POLLIN

@@ -179,8 +179,18 @@ def run(args: argparse.Namespace) -> int:
         children[name] = subprocess.Popen(cmd, pass_fds=pass_fds, preexec_fn=die_with_parent,
                                           stdin=subprocess.DEVNULL)
 
+    # Claimed first, held for this process's life: two mesh ups started at once both found
+    # the ports free, and each took the other's bound port for its own failure.
+    claims = claim_base_port(args.base_port)
+    if not claims:
+        _report(f"cellbridge mesh up: base port {args.base_port}: another mesh up on this host holds it "
+                f"(UDP {args.base_port}, TCP {args.base_port + 1} and {args.base_port + 2}); choose another "
+                f"--base-port. Nothing started.")
+        return 1
     busy = ports_in_use(args.host, args.base_port)
     if busy:
+        for c in claims:
+            c.close()
         _report(f"cellbridge mesh up: base port {args.base_port}: {busy} already in use (another mesh up "
                 f"on it?); choose another --base-port. Nothing started.")
         return 1
@@ -244,6 +254,8 @@ def run(args: argparse.Namespace) -> int:
         _stop_all(children)
         for fd in held:
             os.close(fd)
+        for c in claims:
+            c.close()
     return 0
 
 
@@ -263,6 +275,28 @@ def _report(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
     except OSError:
         pass
+
+
+def claim_base_port(base: int) -> list[socket.socket]:
+    """Claim the base port's three ports (UDP base, TCP base+1, base+2) for this process
+    before anything binds them: an abstract Unix socket per port, which a second mesh up
+    cannot bind and the kernel releases when this process dies, however it dies. Empty
+    when another process holds one of them. Checking that the ports are free, then starting
+    the medium and world, left a window (an interpreter's start, seconds on a loaded
+    machine) in which a second mesh up found them free too. Keyed by the port alone, not
+    the ``--host``: 0.0.0.0 and 127.0.0.1 share ports."""
+    claims: list[socket.socket] = []
+    for name in (f"udp/{base}", f"tcp/{base + 1}", f"tcp/{base + 2}"):
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            s.bind(f"\0cellbridge-mesh-port/{name}")
+        except OSError:
+            s.close()
+            for c in claims:
+                c.close()
+            return []
+        claims.append(s)
+    return claims
 
 
 def ports_in_use(host: str, base: int) -> str:

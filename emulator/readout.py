@@ -29,7 +29,8 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 
-from cellbridge.protocol import MAX_FRAME, Mode, ProtocolError, Readout, ReadoutSample, encode, Frame
+from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Mode, ProtocolError, Readout, ReadoutSample
+from cellbridge.protocol.messages import pack_payload
 
 _UNCHANGED = "u"
 
@@ -250,11 +251,7 @@ class FrameReadout:
 
 
 def _fits(r: Readout) -> bool:
-    try:
-        encode(Frame(0, 0, 0, 0, r))
-    except ProtocolError:
-        return False
-    return True
+    return HEADER_LEN + CRC_LEN + len(pack_payload(r)) <= MAX_FRAME
 
 
 def _split(r: Readout) -> list[Readout]:

@@ -34,7 +34,7 @@ from cellbridge.emulator.mesh import Mesh
 from cellbridge.emulator.chip import Chip, ChipConfig
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.world import Contact, World
-from cellbridge.protocol import Frame, FrameType, Readout, Sample, StreamDecoder, encode_stream
+from cellbridge.protocol import Data, Frame, FrameType, Readout, Sample, StreamDecoder, encode_stream
 
 CLOCK_HZ = 50_000_000
 _STATES = frozenset({"has_route", "queue_len", "resets"})  # counters that are states, not totals
@@ -110,8 +110,8 @@ class MeshResult:
         out: dict[int, list] = {}
         for frames in self.gateway_frames.values():
             for f in frames:
-                if f.type is FrameType.DATA:
-                    for x in f.payload.samples:  # type: ignore[union-attr]  # a DATA frame's payload is a Data
+                if isinstance(f.payload, Data):
+                    for x in f.payload.samples:
                         key = (f.origin, x.element, x.cycle)
                         if key not in seen:
                             seen.add(key)

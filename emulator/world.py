@@ -195,6 +195,8 @@ class World:
         self.drifts = [d for d in drifts or [] if d.bridge in self.index]
         self.clock_hz = clock_hz
         self.quantum = quantum  # moving contacts are re-evaluated at most this often
+        self.wraps = mesh.wraps  # bands that close on themselves: a press across the seam presses both ends
+        self.side = mesh.side
         self.rest = (self.params.C1_rest, self.params.C2_rest)
         self._key: object = None
         self._c1 = np.full(self.layout.n, self.rest[0])
@@ -230,13 +232,24 @@ class World:
         if key != self._key:
             self._key = key
             if active:
-                d1, d2 = skin_response(self.layout, [self.contacts[i].at(t) for i in active], self.params)
+                d1, d2 = skin_response(self.layout, self.disks([self.contacts[i].at(t) for i in active]),
+                                       self.params)
                 self._c1 = self.rest[0] + d1
                 self._c2 = self.rest[1] + d2
             else:
                 self._c1 = np.full(self.layout.n, self.rest[0])
                 self._c2 = np.full(self.layout.n, self.rest[1])
         return self._c1, self._c2
+
+    def disks(self, disks: list[tuple[float, float, float, float]]) -> list[tuple[float, float, float, float]]:
+        """The ``(x, y, force, diameter)`` disks with their copies one band over, where a
+        disk reaches across a wrap seam (:meth:`Band.ghosts`)."""
+        if not self.wraps:
+            return disks
+        out = list(disks)
+        for band in self.wraps:
+            out += band.ghosts(disks, self.side)
+        return out
 
     def sense_for(self, bridge: int):
         """``sense(tick) -> (C1, C2)`` of one bridge's element, for its firmware."""

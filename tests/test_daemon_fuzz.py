@@ -51,7 +51,7 @@ def test_any_data_frames_and_noise_never_raise(frames: list[Frame], noise: bytes
     for f in frames:
         t += dt  # host time may even go backwards (a clock step)
         for topic, msg in published(p.feed("gw", noise + encode_stream(f), t)):
-            assert msg["v"] == 1
+            assert msg["v"] == 2
             if topic == "element":
                 assert all(isinstance(x, float) for x in msg["c1"])
     h = published(p.tick(t + 10.0, force=True))

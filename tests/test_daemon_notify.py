@@ -134,6 +134,29 @@ def test_a_vanished_manager_is_counted_not_raised(tmp_path: Path) -> None:
     assert n.send_errors == 2
 
 
+def test_a_manager_that_reads_nothing_costs_a_send_a_bounded_wait_not_the_daemon(tmp_path: Path) -> None:
+    """The daemon's first act on SIGTERM is STOPPING=1; a service manager whose queue is full
+    (busy, or stuck) left that send blocked for ever, and the daemon never drained. A send
+    that finds the queue full waits at most SEND_TIMEOUT, is counted as an error, and the
+    sends after it do not wait until one gets through."""
+    import threading
+
+    path = str(tmp_path / "notify")
+    with notify_socket(path):  # bound, never read
+        n = Notifier({"NOTIFY_SOCKET": path})
+        sent = threading.Event()
+
+        def flood() -> None:
+            for i in range(2000):  # past any datagram queue's length (net.unix.max_dgram_qlen)
+                n.status(f"line {i}")
+            n.stopping()
+            sent.set()
+
+        threading.Thread(target=flood, daemon=True).start()
+        assert sent.wait(30), "a send blocked on a full queue"
+        assert n.send_errors > 0
+
+
 @pytest.mark.parametrize("value", ["", "relative/path.sock", "vsock:2:1234"])
 def test_unusable_notify_socket_values_disable_it(value: str) -> None:
     assert not Notifier({"NOTIFY_SOCKET": value}).enabled

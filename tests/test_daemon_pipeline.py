@@ -14,6 +14,7 @@ from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import (
     ADDR_BROADCAST,
+    Beacon,
     Command,
     Data,
     Frame,
@@ -62,7 +63,7 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
     settle(p, sk)
     out = press(p, sk, STRADDLE, 60)
     el = topic(out, "element")
-    assert el["v"] == 1 and "t_host" in el and len(el["cycle"]) == 4
+    assert el["v"] == 2 and "t_host" in el and len(el["cycle"]) == 4
     force = np.nansum(np.where(el["valid"], el["force"], 0.0))
     touched = [b for b, t in zip(el["bridge"], el["touched"]) if t]
     assert touched == [1, 2]
@@ -75,7 +76,7 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
     assert c["force"] == pytest.approx(3.0, rel=0.01)
     assert force == pytest.approx(3.0, rel=0.05)  # per element shares of the same press
     assert sorted(c["elements"]) == [1, 2] and len(c["cycles"]) == 2
-    assert msg["v"] == 1 and msg["t_sample"] is not None
+    assert msg["v"] == 2 and msg["t_sample"] is not None
 
 
 def test_sample_times_follow_the_bridge_clock() -> None:
@@ -651,10 +652,69 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     topo = p.topology_body(t + 1.0)
     assert topo["gateways"]["gw"][0] == 1 and len(topo["gateways"]["gw"]) == 1 + _UNPLACED_SHOWN
     assert topo["gateways_not_shown"] == n - _UNPLACED_SHOWN
+    for k, data in sk.stream(20, start=20):  # the real skin goes on talking
+        p.feed("gw", data, t + 60.0 + k / sk.rate)
     p.tick(t + 61.0, force=True)
     h = p.health_body(t + 61.0)
-    assert h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0 and h["silent_count"] == 4
-    assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}  # the placed gateway stays
+    assert h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0 and h["silent_count"] == 0
+    assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}  # the gateway heard stays
+    p.tick(t + 122.0, force=True)  # and is dropped too once unheard for forget_after: the line is silent
+    assert p.topology_body(t + 122.0)["gateways"] == {} and p.health_body(t + 122.0)["silent_count"] == 4
+
+
+def test_bogus_origins_heard_after_a_tick_that_found_nothing_to_forget_are_still_forgotten() -> None:
+    """On a steady skin a health tick finds nothing it could forget and no scan was due
+    until a new unplaced origin came; but nothing said so, and every phantom heard after
+    that tick stayed for the daemon's life (65 530 of them: 601 s later none forgotten,
+    their sender ids still listed as gateways). A new origin or sender id makes the next
+    due tick look again."""
+    sk = Skin()
+    p = make({"health": {"forget_after": 60.0}})
+    t = settle(p, sk, 20)
+    p.tick(t, force=True)  # a steady skin: nothing unplaced, nothing to forget
+    for k, data in sk.stream(20, start=20):
+        p.feed("gw", data, t + k / sk.rate)
+    t += 1.0
+    n = 500
+    p.feed("gw", b"".join(encode_stream(Frame(src=5000 + o, dst=0, origin=o, seq=0,
+                                              payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),))))
+                          for o in range(100, 100 + n)), t)
+    assert p.health_body(t)["unplaced_count"] == n
+    p.tick(t + 30.0, force=True)
+    for k, data in sk.stream(20, start=40):  # the real skin goes on talking
+        p.feed("gw", data, t + 60.0 + k / sk.rate)
+    p.tick(t + 61.0, force=True)
+    h = p.health_body(t + 61.0)
+    assert h["forgotten_bridges"] == n and h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0
+    assert set(p.bridges) == {1, 2, 3, 4} and set(p.topology.nodes) == {1, 2, 3, 4}
+    assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}
+    # A second burst, after a tick that again left nothing to forget: forgotten likewise.
+    p.feed("gw", encode_stream(Frame(src=6000, dst=0, origin=9000, seq=0,
+                                     payload=Data(Mode.COUNTER, (Sample(0, 1000, 100, 100, 0),)))), t + 62.0)
+    for k, data in sk.stream(20, start=60):
+        p.feed("gw", data, t + 122.0 + k / sk.rate)
+    p.tick(t + 123.0, force=True)
+    assert p.health_body(t + 123.0)["forgotten_bridges"] == n + 1
+    assert p.topology_body(t + 123.0)["gateways"] == {"gw": [1]}
+
+
+def test_a_gateway_id_that_is_a_placed_bridge_is_dropped_once_unheard_as_a_gateway() -> None:
+    """A corrupt frame that passes the CRC names a random link-level sender; when that id is
+    a placed bridge's (or a bridge that once held the line no longer does), it was listed as
+    the link's gateway for ever, though only the real gateway is heard there. A gateway id
+    unheard on its link for ``forget_after`` s is dropped, placed or not; the bridge itself
+    stays in topology."""
+    sk = Skin()
+    p = make({"health": {"forget_after": 60.0}})
+    t = settle(p, sk, 20)
+    p.feed("gw", encode_stream(Frame(src=3, dst=0, origin=2, seq=500, payload=Beacon(1, 10, 1))), t)
+    assert p.topology_body(t)["gateways"] == {"gw": [1, 3]}
+    for k, data in sk.stream(20, start=20):  # only the real gateway is heard on the line
+        p.feed("gw", data, t + 60.0 + k / sk.rate)
+    p.tick(t + 61.0, force=True)
+    topo = p.topology_body(t + 61.0)
+    assert topo["gateways"] == {"gw": [1]}
+    assert {"1", "2", "3", "4"} <= set(topo["bridges"])
 
 
 def test_bogus_origins_cost_a_tick_a_bounded_topology_and_a_bounded_number_of_log_events() -> None:

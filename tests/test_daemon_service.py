@@ -98,7 +98,7 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
             got = client.recv(0)
     assert element is not None and len(reports) >= 10, (element, len(reports))
     el = element
-    assert el["v"] == 1 and isinstance(el["t_host"], float) and len(el["cycle"]) == len(el["bridge"])
+    assert el["v"] == 2 and isinstance(el["t_host"], float) and len(el["cycle"]) == len(el["bridge"])
     forces = [el["force"][i] for i in newest_slot(el) if el["valid"][i]]
     assert sum(forces) == pytest.approx(3.0, rel=0.05)  # each element's share of one press
     for c in reports:
@@ -107,7 +107,7 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
         assert contact["y"] == pytest.approx(CORNER[1], abs=1e-3)
         assert contact["force"] == pytest.approx(3.0, rel=0.03)
         assert contact["diameter"] == pytest.approx(0.012, abs=2e-4)
-        assert c["v"] == 1 and c["t_host"] > 0 and sorted(contact["elements"]) == [1, 2, 4, 5]
+        assert c["v"] == 2 and c["t_host"] > 0 and sorted(contact["elements"]) == [1, 2, 4, 5]
         assert contact["id"] == 0  # tracked: one stable id, from its first estimate (birth_frames 1)
     assert reports[-1]["contacts"][0]["age"] >= 1
     assert float(np.median([c["contacts"][0]["force"] for c in reports])) == pytest.approx(3.0, rel=0.01)

@@ -198,7 +198,7 @@ def test_samples_taken_before_a_rate_change_go_out_at_the_rate_they_were_taken_a
     # DATA payload was labelled with the new one (100 -> 50 Hz: indices 225, 226 of
     # 100 Hz sent as indices of 50 Hz, 4.5 s instead of 2.25 s on mesh time). A host
     # placed them 2 s in the future.
-    vm = VirtualMesh(meshgen.line(2), seed=5, lazy_sampling=lazy)
+    vm = VirtualMesh(meshgen.line(2), seed=5, lazy_sampling=lazy, readout=False)  # DATA batches
     vm.host_write(1, cmd(101, 2, Op.SET_RATE, 50, token=12), at=2.268)
     vm.host_write(1, cmd(102, 2, Op.SET_RATE, 200, token=13), at=2.947)
     r = vm.run(3.5)
@@ -399,7 +399,7 @@ def test_mesh_result_keeps_every_sample_across_the_sequence_wrap() -> None:
     # (origin, boot, seq) must name one frame in a long run: after 65536 frames the
     # numbering wraps without a reset, and samples() must not take the new frames for
     # copies of the boot's first ones.
-    vm = VirtualMesh(meshgen.line(3), seed=3)
+    vm = VirtualMesh(meshgen.line(3), seed=3, readout=False)  # DATA frames' numbering
     vm.run(1.0)
     for last in (False, False, True):  # a long run's numbering, in steps the filters follow
         for b in (2, 3):
@@ -648,7 +648,7 @@ def test_aligned_batches_leave_in_depth_slots_deepest_first() -> None:
     # so at the gateway every batch arrives deepest first, the gateway's own last, and the
     # gateway's own leaves 6 * 4 ms after its close, not at once.
     from cellbridge.protocol import StreamDecoder
-    vm = VirtualMesh(meshgen.line(4), seed=3)
+    vm = VirtualMesh(meshgen.line(4), seed=3, readout=False)  # DATA batches (the unscheduled path)
     vm.run(6.0)
     arrivals: dict[int, list[tuple[int, int]]] = {}  # batch -> [(origin, tick)] in arrival order
     dec = StreamDecoder()
@@ -676,7 +676,7 @@ def test_aligned_batches_leave_in_depth_slots_deepest_first() -> None:
 def test_aligned_batches_put_one_group_of_indices_in_each_frame_on_every_bridge() -> None:
     # With aligned batches every bridge closes batch j (indices [5j, 5j + 5) at 100 Hz and
     # max_latency 50 ms) at the same global instant: no DATA frame mixes two batches.
-    vm = VirtualMesh(meshgen.grid(3, 3), seed=2, random_epochs=True, aligned_batches=True)
+    vm = VirtualMesh(meshgen.grid(3, 3), seed=2, random_epochs=True, aligned_batches=True, readout=False)
     r = vm.run(6.0)
     groups = [{s.index // 5 for s in f.payload.samples} for f in r.gateway_frames[1]
               if f.type is FrameType.DATA and not any(s.flags & SampleFlags.NO_MESH_TIME for s in f.payload.samples)]

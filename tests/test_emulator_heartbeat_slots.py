@@ -72,7 +72,7 @@ def test_an_idle_event_based_skin_spreads_its_heartbeats_over_the_frames() -> No
     """A 4x4 idle skin on mesh time: no frame index carries the heartbeats of more than two
     bridges (before the slots, every bridge's heartbeat shared one index)."""
     mesh = meshgen.grid(4, 4)
-    vm = VirtualMesh(mesh, seed=3, random_epochs=True,
+    vm = VirtualMesh(mesh, seed=3, random_epochs=True, readout=False,  # DATA heartbeats (unscheduled path)
                      settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
     vm.run(14.0)
     per_index: Counter[int] = Counter()

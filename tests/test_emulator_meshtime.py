@@ -188,7 +188,8 @@ def test_mesh_time_error_per_hop_and_sync_after_boot(name: str, mesh: Mesh) -> N
 
 def test_samples_carry_the_skin_frame_index_and_flag_the_time_before_sync() -> None:
     mesh = meshgen.grid(3, 3)
-    vm = VirtualMesh(mesh, seed=5, random_epochs=True)
+    # DATA samples carry each gate's cycle (a readout record carries none: its frame is its time)
+    vm = VirtualMesh(mesh, seed=5, random_epochs=True, readout=False)
     r = vm.run(6.0)
     samples = r.samples()
     for b, ss in samples.items():

@@ -33,7 +33,7 @@ def _data_frames(serial: bytes) -> list[tuple[bytes, Data, int]]:
 def _run(lazy: bool) -> tuple[list[tuple[int, bytes]], bytes]:
     # Long batches (400 ms, up to 32 samples): frames fill by bytes, not by time. Timed
     # batches: an aligned one holds what the planner counts on at the widest (15 here).
-    vm = VirtualMesh(meshgen.line(3), seed=4, random_epochs=True, lazy_sampling=lazy, batch_max=32,
+    vm = VirtualMesh(meshgen.line(3), seed=4, random_epochs=True, lazy_sampling=lazy, batch_max=32, readout=False,
                      max_latency=400 * MS, aligned_batches=False)
     vm.run(4.0)
     return list(vm.serial_chunks[1]), bytes(vm.serial[1])
@@ -42,7 +42,7 @@ def _run(lazy: bool) -> tuple[list[tuple[int, bytes]], bytes]:
 def test_the_firmware_fills_version_3_frames_with_packed_samples() -> None:
     chunks, serial = _run(lazy=True)
     frames = _data_frames(serial)
-    assert frames and all(w[0] == VERSION == 3 for w, _, _ in frames)
+    assert frames and all(w[0] == VERSION == 4 for w, _, _ in frames)
     assert all(len(w) <= MAX_FRAME for w, _, _ in frames)
     assert all(d.period == CLOCK_HZ // d.rate == 500_000 for _, d, _ in frames)
     # full frames: 19 samples with a 64-bit first cycle (version 2 fitted 8 to 12)

@@ -44,6 +44,51 @@ def test_a_second_mesh_up_on_a_base_port_in_use_exits_naming_the_port_and_starts
         assert not [p for p in _processes(str(second)) if b"bridge" in _cmdline(p)]
 
 
+def test_two_mesh_ups_started_at_once_on_one_base_port_one_runs_and_the_other_starts_nothing(tmp_path):
+    """Both found the base port free, both started a medium and a world, and each took the
+    other's bound port for its own failure: the loser's medium or world failed only after
+    it had been started, and as often as not (2 runs in 5) both exited, the first skin
+    taken down by the second start. The base port is claimed before anything starts: one
+    runs, the other refuses naming the port and starts no process."""
+    base = free_base_port()
+    paths = [_grid(tmp_path, f"skin-{i}.toml") for i in range(2)]
+    procs = [subprocess.Popen([*PY, "mesh", "up", str(path), "--base-port", str(base)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, start_new_session=True) for path in paths]
+    try:
+        deadline = time.monotonic() + 60
+        while all(p.poll() is None for p in procs):
+            assert time.monotonic() < deadline, "neither mesh up refused the shared base port"
+            time.sleep(0.05)
+        loser = next(i for i, p in enumerate(procs) if p.poll() is not None)
+        winner = procs[1 - loser]
+        _, err = procs[loser].communicate(timeout=30)
+        assert procs[loser].returncode == 1
+        assert f"base port {base}" in err.decode(), err
+        # it started neither a medium nor a world (each says why it could not bind)
+        assert b"cellbridge medium" not in err and b"cellbridge world" not in err, err
+        assert gateway_line(winner)[:2] == ["gateway", "1"]  # the other skin runs, undisturbed
+        time.sleep(1.0)
+        assert winner.poll() is None, winner.stderr.read() if winner.stderr else b""  # type: ignore[union-attr]
+    finally:
+        for p, path in zip(procs, paths):
+            stop_and_sweep(p, path)
+
+
+def test_mesh_up_on_a_base_port_another_program_holds_names_the_port_and_starts_nothing(tmp_path):
+    base = free_base_port()
+    path = _grid(tmp_path)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
+        other.bind(("127.0.0.1", base))
+        proc = subprocess.Popen([*PY, "mesh", "up", str(path), "--base-port", str(base)], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            out, err = proc.communicate(timeout=60)
+        finally:
+            stop_and_sweep(proc, path)
+    assert proc.returncode == 1 and f"UDP 127.0.0.1:{base}" in err.decode() and b"Nothing started" in err, err
+    assert b"gateway" not in out
+
+
 def test_a_second_process_for_a_running_bridge_id_is_refused(tmp_path):
     with running_skin(tmp_path) as skin:
         # Bridge 4 runs under mesh up; a second one with the same id and ports must not.

@@ -20,7 +20,10 @@ def missing(result: MeshResult, bridge: int, lo: float, hi: float, period: int =
 
     On mesh time consecutive samples have consecutive indices; before it (and across the
     switch to it, which moves the bridge's sampling phase by up to one period) their
-    cycles are a period apart."""
+    cycles are a period apart. At the switch a bridge's first readout record (emulator/
+    readout.py) may come after its parent's record of that frame went (the parent did
+    not expect it yet): the host does not see that frame of the element (nor does any
+    record claim it), so one frame more is allowed there."""
     byc = {s.cycle: s for s in result.samples().get(bridge, []) if lo * CLOCK_HZ <= s.cycle < hi * CLOCK_HZ}
     ss = [byc[c] for c in sorted(byc)]
     if not ss:
@@ -33,7 +36,7 @@ def missing(result: MeshResult, bridge: int, lo: float, hi: float, period: int =
         elif on_a == on_b:
             gaps += round((b.cycle - a.cycle) / period) - 1
         else:
-            gaps += max(0, (b.cycle - a.cycle) // period - 1)
+            gaps += max(0, (b.cycle - a.cycle) // period - 2)
     head = (ss[0].cycle - lo * CLOCK_HZ) // period
     tail = (hi * CLOCK_HZ - ss[-1].cycle - 1) // period
     return int(gaps + head + tail)
@@ -43,6 +46,38 @@ def assert_complete(result: MeshResult, bridges, lo: float, hi: float, allowed: 
                     period: int = PERIOD) -> None:
     lost = {b: missing(result, b, lo, hi, period) for b in bridges}
     assert all(v <= allowed for v in lost.values()), lost
+
+
+def readout_states(result: MeshResult) -> dict[int, dict[int, str]]:
+    """bridge -> frame index -> its state in the gateways' READOUT records: ``s`` (a sample),
+    ``u`` (unchanged) or ``m`` (missing)."""
+    out: dict[int, dict[int, str]] = {}
+    for frames in result.gateway_frames.values():
+        for f in frames:
+            if f.type is FrameType.READOUT:
+                r = f.payload
+                for x in r.samples:  # type: ignore[union-attr]  # a READOUT frame's payload is a Readout
+                    out.setdefault(x.bridge, {})[r.index] = "s"  # type: ignore[union-attr]
+                for b in r.unchanged:  # type: ignore[union-attr]
+                    out.setdefault(b, {})[r.index] = "u"  # type: ignore[union-attr]
+                for b in r.missing:  # type: ignore[union-attr]
+                    out.setdefault(b, {}).setdefault(r.index, "m")  # type: ignore[union-attr]
+    return out
+
+
+def assert_known(result: MeshResult, bridges, lo: int, hi: int, share: float) -> None:
+    """Every frame index in [lo, hi) of every bridge on the readout (after its first record)
+    is in a record (known, or listed missing: never left out), and at least ``share`` known."""
+    states = readout_states(result)
+    known = total = 0
+    for b in bridges:
+        st = states.get(b)
+        assert st, f"bridge {b}: no readout record"
+        for k in range(max(lo, min(st) + 1), hi):
+            assert k in st, (b, k)
+            total += 1
+            known += st[k] in "su"
+    assert known >= share * total, (known, total)
 
 
 def hops_by_origin(result: MeshResult) -> dict[int, set[int]]:
@@ -68,12 +103,22 @@ def test_line_of_8_delivers_every_sample_over_7_hops() -> None:
 @pytest.mark.parametrize("mesh, settings", [
     (meshgen.grid(4, 4), Settings()),
     (meshgen.ring(12), Settings()),
-    (meshgen.random_mesh(32, seed=2), Settings(rate_hz=50)),
-], ids=["grid4x4", "ring12", "random32"])
+], ids=["grid4x4", "ring12"])
 def test_every_bridge_reaches_the_gateway(mesh, settings) -> None:
     r = VirtualMesh(mesh, seed=3, settings=settings).run(4.0)
     lost = {b: missing(r, b, 0.5, 3.6, CLOCK_HZ // settings.rate_hz) for b in mesh.ids}
     assert all(v == 0 for v in lost.values()), lost
+    assert r.total("queue_drops") == 0
+
+
+def test_a_random_skin_with_shared_cells_reads_out_its_frames() -> None:
+    # Cells shared by up to four bridges: the records of one depth go one after another by
+    # their rank (no collision among them); a frame lost on the way is listed missing.
+    mesh = meshgen.random_mesh(32, seed=2)
+    r = VirtualMesh(mesh, seed=3, settings=Settings(rate_hz=50)).run(4.0)
+    on = [b for b in mesh.ids if b in readout_states(r)]
+    assert len(on) >= len(mesh.ids) - 2  # the deepest may still be joining mesh time
+    assert_known(r, on, 25, 180, 0.999)
     assert r.total("queue_drops") == 0
 
 
@@ -148,7 +193,7 @@ def test_duplicates_are_suppressed() -> None:
 
 def test_no_frame_circulates_in_a_loop_under_churn() -> None:
     mesh = meshgen.random_mesh(24, seed=11, loss=0.02)
-    vm = VirtualMesh(mesh, seed=10, settings=Settings(rate_hz=50))
+    vm = VirtualMesh(mesh, seed=10, settings=Settings(rate_hz=50), readout=False)  # every DATA frame, once
     for i, b in enumerate([5, 9, 14, 3]):
         vm.kill(b, at=1.0 + i)
         vm.restart(b, at=1.5 + i)
@@ -166,7 +211,7 @@ def test_no_frame_circulates_in_a_loop_under_churn() -> None:
 
 def test_two_gateways_share_the_load() -> None:
     mesh = meshgen.line(8, gateways=(1, 8))
-    r = VirtualMesh(mesh, seed=12).run(4.0)
+    r = VirtualMesh(mesh, seed=12, readout=False).run(4.0)  # DATA frames show each bridge's gateway
     per_gw = {g: Counter(f.origin for f in fr if f.type is FrameType.DATA) for g, fr in r.gateway_frames.items()}
     # each bridge uses the nearer gateway (the middle one either, by hysteresis), never both
     assert {1, 2, 3} <= set(per_gw[1]) and {6, 7, 8} <= set(per_gw[8])
@@ -176,9 +221,18 @@ def test_two_gateways_share_the_load() -> None:
 
 def test_bit_errors_are_caught_by_crc_and_repaired_by_retries() -> None:
     mesh = meshgen.line(4, ber=2e-4)
-    r = VirtualMesh(mesh, seed=13).run(4.0)
+    r = VirtualMesh(mesh, seed=13, readout=False).run(4.0)  # DATA frames: retried until through
     assert r.total("rx_crc") > 10
     assert_complete(r, mesh.ids, 0.5, 3.7)
+
+
+def test_bit_errors_in_the_readout_leave_frames_listed_missing_never_wrong() -> None:
+    # A record gets one retry within its slot: one that fails again is listed missing by
+    # the relay above it, and every element-frame is in a record, known or missing.
+    mesh = meshgen.line(4, ber=2e-4)
+    r = VirtualMesh(mesh, seed=13).run(4.0)
+    assert r.total("rx_crc") > 10 and r.total("readout_failed") > 0
+    assert_known(r, mesh.ids, 50, 370, 0.995)
 
 
 def test_same_seed_same_run_other_seed_other_run() -> None:
@@ -197,7 +251,7 @@ def test_samples_survive_a_restart_then_a_move_to_the_other_gateway() -> None:
     # gateway 5, which never saw its restart HELLO: samples() must not take its new
     # frames for copies of the old boot's frames that gateway 1 delivered.
     mesh = meshgen.line(5, gateways=(1, 5))
-    vm = VirtualMesh(mesh, seed=4)
+    vm = VirtualMesh(mesh, seed=4, readout=False)  # DATA frames' numbering across a restart
     vm.restart(2, at=2.0)
     vm.kill(1, at=3.0)
     r = vm.run(8.0)
@@ -271,7 +325,8 @@ def test_routes_stay_put_on_a_static_lossless_idle_mesh_past_trickles_long_inter
     from cellbridge.emulator.reporting import ReportingMode
 
     mesh = meshgen.grid(8, 8)
-    vm = VirtualMesh(mesh, seed=4, settings=Settings(reporting=ReportingMode(40, 1000)))
+    # unscheduled (every frame of a readout would cost this minute-long run ten times the wakes)
+    vm = VirtualMesh(mesh, seed=4, settings=Settings(reporting=ReportingMode(40, 1000)), readout=False)
     formed = vm.run(10.0)
     assert formed.cut_off == []
     end = vm.run(60.0)

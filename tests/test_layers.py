@@ -19,9 +19,11 @@ ROOT = Path(__file__).resolve().parent.parent
 RULES: dict[str, tuple[set[str], set[str]]] = {
     "protocol": ({"protocol"}, {"msgpack", "cobs"}),
     "tactile": ({"tactile"}, {"numpy", "numba"}),  # numba: compiled kernels of the same numpy code
-    "emulator": ({"emulator", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "setproctitle"}),
-    # mcap: the daemon takes a recording's serial channel as a link (``replay:FILE.mcap``)
-    "daemon": ({"daemon", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "serial", "mcap"}),
+    # mujoco: a simulated robot as the skin's world (emulator/robot_world.py, the robot extra)
+    "emulator": ({"emulator", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "setproctitle", "mujoco"}),
+    # mcap: the daemon takes a recording's serial channel as a link (``replay:FILE.mcap``);
+    # yourdfpy: a skin description's link frames from the robot's URDF (the robot extra)
+    "daemon": ({"daemon", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "serial", "mcap", "yourdfpy"}),
 }
 #: The modules of the top package any layer may read: leaves without imports (version, root error).
 SHARED = {"_version", "errors"}

@@ -29,6 +29,7 @@ from cellbridge._version import __version__
 from cellbridge.daemon.security import apply_client
 from cellbridge.recording.mcapfile import RecordingWriter
 from cellbridge.recording.recorder import Recorder
+from cellbridge.ros2.record import add_profile_arguments
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
 ALL_TOPICS = ("contact", "element", "raw", "health", "topology", "serial")
@@ -97,7 +98,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "  cellbridge record skin.mcap --serial              # ... and the gateway lines' bytes\n"
         "  cellbridge record skin.mcap --topics contact      # contacts only\n"
         "  cellbridge record skin.mcap --rotate-size 500     # skin-0000.mcap, skin-0001.mcap, ... of 500 MB\n"
-        "  cellbridge record skin.mcap --rotate-minutes 60   # a file an hour"
+        "  cellbridge record skin.mcap --rotate-minutes 60   # a file an hour\n"
+        "  cellbridge record skin --profile ros2             # a ROS 2 bag, the directory skin/ (docs/ros2.md)"
     )
     parser.add_argument("out", type=Path, metavar="OUT.mcap", help="file to write (with rotation: OUT-NNNN.mcap)")
     parser.add_argument("--endpoint", default=DEFAULT_PUB, help=f"daemon's PUB endpoint (default: {DEFAULT_PUB})")
@@ -120,6 +122,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--count", type=int, default=0, metavar="N", help="stop after N messages")
     parser.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds")
     add_curve_client_arguments(parser)
+    add_profile_arguments(parser)
 
 
 def topics_of(args: argparse.Namespace) -> list[str]:
@@ -134,6 +137,9 @@ def topics_of(args: argparse.Namespace) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.profile == "ros2":
+        from cellbridge.ros2 import record as ros2_record
+        return ros2_record.run(args)
     if (args.server_key is None) != (args.client_key is None):
         print("cellbridge record: --server-key and --client-key go together (CURVE needs both)", file=sys.stderr)
         return 2

@@ -71,7 +71,7 @@ class Source:
     """The daemon's stream, drained into a :class:`SkinView` without blocking."""
 
     def __init__(self, endpoint: str, control: str, server_key: Path | None = None,
-                 client_key: Path | None = None, topics: tuple[str, ...] = TOPICS) -> None:
+                 client_key: Path | None = None, topics: tuple[str, ...] = TOPICS, rcvhwm: int = RCVHWM) -> None:
         self.context = zmq.Context()
         self.sub = self.context.socket(zmq.SUB)
         self.ctl = self.context.socket(zmq.DEALER)
@@ -79,7 +79,7 @@ class Source:
             s.linger = 0
             if server_key is not None and client_key is not None:
                 apply_client(s, server_key, client_key)
-        self.sub.rcvhwm = RCVHWM
+        self.sub.rcvhwm = rcvhwm  # a recorder (cellbridge record --profile ros2) keeps a deeper queue
         self.sub.rcvbuf = RCVBUF
         for t in topics:
             self.sub.subscribe(t)

@@ -1,0 +1,158 @@
+"""The scheduled readout in virtual time: schedule, latency, completeness, traffic.
+
+Run: ``.venv/bin/python bench/bench_readout.py [--quick]`` (or ``make bench``). Prints:
+
+1. the schedule (``FirmwareConfig.readout_depths`` levels of ``readout_window`` after the
+   gates) for 4x4 and 8x8 grids at 100 and 250 Hz, and what a frame took from its gate
+   start to its gateway's record on the serial line (p50, p99; records go on as soon as
+   they are complete, the slots bound them);
+2. frames complete at the gateway (every element a sample or unchanged) and element-frames
+   known, on a periodic 8x8 at 250 Hz (gateway in a corner), lossless and with 1 % frame
+   loss on every hop;
+3. event-based traffic against periodic on a 4x4 at 100 Hz, idle and with four moving
+   presses: bits put on the cells, and record bytes on the gateway's serial line;
+4. delivered sample bits at the gateway over the raw bitrate of one of its cells, at
+   250 Hz on grids with the gateway in a corner (two cells) and in the middle (four).
+
+The readings are the emulator's own (its chip and world models); no figure here depends on
+the daemon.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import Counter, defaultdict
+
+import numpy as np
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.commands import Settings
+
+from cellbridge.emulator.reporting import ReportingMode
+from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world import Contact, World
+from cellbridge.protocol import FrameType, Readout, StreamDecoder
+from cellbridge.protocol.messages import pack_payload
+
+WINDOW = 6 * CLOCK_HZ // 1000  # FirmwareConfig.readout_window's default
+
+
+def records(vm: VirtualMesh, gateway: int) -> list[tuple[int, Readout]]:
+    """(tick written, record) of every READOUT the gateway wrote on its serial line."""
+    dec = StreamDecoder()
+    out = []
+    for tick, chunk in vm.serial_chunks[gateway]:
+        for f in dec.feed(chunk):
+            if f.type is FrameType.READOUT:
+                out.append((tick, f.payload))
+    return out
+
+
+def schedule(quick: bool) -> None:
+    print("1. readout schedule and gate start -> gateway serial (virtual time, periodic)")
+    print(f"{'skin':<9} {'Hz':>4} {'levels':>6} {'window ms':>9} {'span ms':>8} {'p50 ms':>7} {'p99 ms':>7} "
+          f"{'max ms':>7}")
+    for n in (4, 8):
+        mesh = meshgen.grid(n, n)
+        for rate in (100, 250):
+            secs = 4.0 if quick else 8.0
+            vm = VirtualMesh(mesh, seed=1, settings=Settings(rate_hz=rate))
+            vm.run(secs)
+            gw = vm.nodes[1]
+            depths = mesh.readout_depths()
+            span = (4 * CLOCK_HZ // 1000 + depths * WINDOW) / CLOCK_HZ * 1000
+            lat = [(t - gw.timebase.gate_tick(r.index, rate)) / CLOCK_HZ * 1000 for t, r in records(vm, 1)
+                   if r.index >= rate * secs / 2]
+            a = np.array(lat) if lat else np.array([np.nan])
+            print(f"{mesh.name:<9} {rate:>4} {depths:>6} {WINDOW / CLOCK_HZ * 1000:>9.1f} {span:>8.1f} "
+                  f"{np.percentile(a, 50):>7.2f} {np.percentile(a, 99):>7.2f} {a.max():>7.2f}")
+
+
+def completeness(quick: bool) -> None:
+    print("\n2. frames complete at the gateway, periodic 8x8 at 250 Hz, gateway in a corner")
+    print(f"{'loss/hop':>8} {'frames':>7} {'complete':>9} {'element-frames':>14} {'known':>8} {'missing':>8} "
+          f"{'target':>7}")
+    for loss in (0.0, 0.01):
+        mesh = meshgen.grid(8, 8, loss=loss)
+        secs = 6.0 if quick else 12.0
+        vm = VirtualMesh(mesh, seed=2, settings=Settings(rate_hz=250))
+        t0 = time.perf_counter()
+        vm.run(secs)
+        wall = time.perf_counter() - t0
+        by: dict[int, Counter[str]] = defaultdict(Counter)
+        for _, r in records(vm, 1):
+            by[r.index].update(s=len(r.samples), u=len(r.unchanged), m=len(r.missing))
+        # from the moment every bridge is on the readout (mesh time spreads a hop per beacon)
+        ks = sorted(k for k, c in by.items() if c["s"] + c["u"] + c["m"] == 64)
+        ks = [k for k in ks if k >= ks[0] + 250] if ks else []
+        total = len(ks) * 64
+        known = sum(by[k]["s"] + by[k]["u"] for k in ks)
+        full = sum(1 for k in ks if by[k]["s"] + by[k]["u"] == 64)
+        print(f"{loss:>8.0%} {len(ks):>7} {full / max(1, len(ks)):>9.2%} {total:>14} {known / max(1, total):>8.3%} "
+              f"{total - known:>8} {'99.9%':>7}   ({secs:g} s virtual in {wall:.0f} s)")
+
+
+def traffic(quick: bool) -> None:
+    print("\n3. event-based against periodic, 4x4 at 100 Hz (virtual time, 5 s after 3 s)")
+    print(f"{'skin':<8} {'cell kbit/s per.':>16} {'event':>8} {'ratio':>6} {'serial B/s per.':>15} {'event':>8} "
+          f"{'ratio':>6}")
+    mesh = meshgen.grid(4, 4)
+    moving = [Contact(0.0, 100.0, 0.0, 0.02 * k + 0.01, 2.0, 0.02, vx=0.03, vy=0.0) for k in range(4)]
+    for label, contacts in (("idle", []), ("pressed", moving)):
+        bits, serial = {}, {}
+        for periodic in (True, False):
+            mode = ReportingMode() if periodic else ReportingMode(40, 1000)
+            vm = VirtualMesh(mesh, seed=3, world=World(mesh, list(contacts)), settings=Settings(reporting=mode))
+            vm.run(3.0)
+            b0 = vm.medium.counters.get("bits", 0)
+            n0 = len(vm.serial_chunks[1])
+            vm.run(5.0 if not quick else 2.0)
+            secs = 5.0 if not quick else 2.0
+            bits[periodic] = (vm.medium.counters.get("bits", 0) - b0) / secs / 1000
+            serial[periodic] = sum(len(c) for _, c in vm.serial_chunks[1][n0:]) / secs
+        print(f"{label:<8} {bits[True]:>16.0f} {bits[False]:>8.0f} {bits[False] / bits[True]:>6.1%} "
+              f"{serial[True]:>15.0f} {serial[False]:>8.0f} {serial[False] / serial[True]:>6.1%}")
+
+
+def efficiency(quick: bool) -> None:
+    print("\n4. sample bits delivered at the gateway, 250 Hz, over one of its cells' raw bitrate")
+    print(f"{'skin':<12} {'gateway cells':>13} {'sample kbit/s':>13} {'share of one cell':>17} {'target':>7}")
+    for mesh, gw in ((meshgen.grid(8, 8), 1), (meshgen.grid(8, 8, gateways=(28,)), 28)):
+        vm = VirtualMesh(mesh, seed=4, settings=Settings(rate_hz=250))
+        vm.run(6.0)
+        n0 = len(vm.serial_chunks[gw])
+        secs = 2.0 if quick else 4.0
+        vm.run(secs)
+        dec = StreamDecoder()
+        sample_bits = 0
+        for _, chunk in vm.serial_chunks[gw][n0:]:
+            for f in dec.feed(chunk):
+                if f.type is FrameType.READOUT and f.origin == gw:
+                    r: Readout = f.payload  # type: ignore[assignment]  # a READOUT frame's payload
+                    # the bits of the samples that crossed the gateway's cells (not its own)
+                    own = Readout(r.index, r.rate, r.mode, r.oversampling,
+                                  tuple(s for s in r.samples if s.bridge != gw))
+                    empty = Readout(r.index, r.rate, r.mode, r.oversampling, ())
+                    sample_bits += 8 * (len(pack_payload(own)) - len(pack_payload(empty)))
+        cells = len(mesh.bridge(gw).cells)
+        rate = sample_bits / secs
+        print(f"{mesh.name + ('/' + str(gw)):<12} {cells:>13} {rate / 1000:>13.0f} {rate / mesh.bitrate:>17.1%} "
+              f"{'90%':>7}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="shorter runs")
+    args = ap.parse_args()
+    schedule(args.quick)
+    completeness(args.quick)
+    traffic(args.quick)
+    efficiency(args.quick)
+
+
+if __name__ == "__main__":
+    main()
+
+
+

@@ -1,0 +1,155 @@
+"""Scoring the daemon's contacts against the simulated robot's ground truth.
+
+Inputs are plain records, so a run in virtual time and a recording of a real-time run
+(``cellbridge sub contact``) score alike: the ground truth of every contact (link, and per
+simulation step its point, force and atlas place: :class:`~cellbridge.emulator.robot_world.Truth`
+as a dict) and the ``contact`` messages the daemon published (each frame's ``t_sample``
+on the truth's clock, its contacts with ``link``, ``position``, ``force``,
+``observable``).
+
+A published contact *matches* a true contact active at the frame's instant on the same
+link within ``MATCH`` of its point. Per true contact: *detected* when some contact
+matched it; while it is held (from its ramp's end to the release's start), each matching
+contact's position error and force error. The position error counts the axes of the skin
+the true footprint straddles (crosses into a neighbour element): the readings of a
+footprint inside one element cannot place it along that axis, which the daemon says
+(``observable``) and reports the range's middle. *False* contacts: published contact ids
+that never matched a true contact.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from cellbridge.tactile.skin_geometry import SkinGeometry
+
+__all__ = ["MATCH", "Score", "score"]
+
+MATCH = 0.020  #: m: farthest a published contact may be from a true one and match it
+SETTLE = 0.05  #: s after a press's ramp before its readings are held steady enough to score
+
+
+@dataclass
+class Score:
+    truths: int = 0
+    detected: int = 0
+    by_kind: dict[str, list[int]] = field(default_factory=dict)  # kind -> [truths, detected]
+    position: list[float] = field(default_factory=list)  # m, along the straddled axes, per matched report
+    position_3d: list[float] = field(default_factory=list)  # m, reports of footprints straddling both axes
+    force: list[float] = field(default_factory=list)  # relative error per matched report
+    false_ids: set[int] = field(default_factory=set)
+    reports: int = 0
+    ids_per_truth: list[int] = field(default_factory=list)
+
+    def rows(self) -> list[tuple[str, str, str]]:
+        """(what, measured, target) rows of the accuracy table."""
+        pct = lambda a, q: float(np.percentile(a, q)) if len(a) else math.nan
+        det = 100.0 * self.detected / self.truths if self.truths else math.nan
+        rows = [("contacts (true)", f"{self.truths}", ">= 200 in the bench"),
+                ("detected", f"{det:.1f} %", ">= 99 %")]
+        for kind, (n, d) in sorted(self.by_kind.items()):
+            rows.append((f"  detected, {kind}", f"{d}/{n}", ""))
+        rows += [
+            ("position error, straddled axes, median", f"{1e3 * pct(self.position, 50):.2f} mm", "<= 2 mm"),
+            ("position error, straddled axes, p95", f"{1e3 * pct(self.position, 95):.2f} mm", "<= 5 mm"),
+            ("position error 3-D, both axes straddled, median", f"{1e3 * pct(self.position_3d, 50):.2f} mm", ""),
+            ("force error, median", f"{100 * pct(self.force, 50):.2f} %", "<= 3 %"),
+            ("force error, p95", f"{100 * pct(self.force, 95):.2f} %", ""),
+            ("ids per detected contact, max", f"{max(self.ids_per_truth, default=0)}", "1"),
+            ("false contacts (ids matching nothing)", f"{len(self.false_ids)}", "0"),
+            ("reports scored", f"{self.reports}", ""),
+        ]
+        return rows
+
+    def table(self) -> str:
+        rows = [("", "measured", "target")] + self.rows()
+        w = [max(len(r[i]) for r in rows) for i in range(3)]
+        return "\n".join(f"{r[0]:<{w[0]}}  {r[1]:>{w[1]}}  {r[2]}" for r in rows)
+
+
+def _straddled(skin: SkinGeometry, ax: float, ay: float, r: float) -> tuple[bool, bool]:
+    """Whether a footprint of radius ``r`` at atlas (ax, ay) reaches into a neighbour
+    element along the atlas x and y (beyond its centre element's edge, onto another one)."""
+    lay = skin.layout()
+    h = 0.5 * skin.side
+    i = int(lay.element_at([[ax, ay]])[0])
+    if i < 0:
+        return True, True  # in a seam: between elements on its axis at least
+    cx, cy = lay.centres[i]
+    out = []
+    for axis, c, a in ((0, cx, ax), (1, cy, ay)):
+        hit = False
+        for sgn in (-1.0, 1.0):
+            edge = c + sgn * h
+            if sgn * (a + sgn * r - edge) > 0.5e-3:  # half a millimetre over, at least
+                probe = [ax, ay]
+                probe[axis] = edge + sgn * 1e-3
+                px = skin.wrap_x(probe[0], probe[1])
+                hit |= int(lay.element_at([[px, probe[1]]])[0]) >= 0
+        out.append(hit)
+    return out[0], out[1]
+
+
+def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable[tuple[float, list[dict[str, Any]]]],
+          ramp: float = 0.05) -> Score:
+    """Score ``frames`` (``(t, contacts)``: each published frame's instant on the truth's
+    clock and its contacts) against ``truths`` (:meth:`Truth.to_dict` records)."""
+    tr = [t for t in truths if t["kind"] != "stray" and len(t["t"]) > 0]
+    s = Score(truths=len(tr))
+    t_arr = [np.asarray(t["t"]) for t in tr]
+    matched_ids: dict[int, set[int]] = {k: set() for k in range(len(tr))}
+    any_match: dict[int, bool] = {}
+    straddle_memo: dict[tuple[int, int], tuple[bool, bool]] = {}
+    for t, contacts in frames:
+        for c in contacts:
+            if c.get("missed", 0) != 0:
+                continue
+            cid = int(c["id"])
+            any_match.setdefault(cid, False)
+            best, best_d, best_j = None, math.inf, -1
+            for k, truth in enumerate(tr):
+                if not (truth["start"] - 0.02 <= t <= truth["end"] + 0.02) or truth["link"] != c.get("link"):
+                    continue
+                j = int(np.clip(np.searchsorted(t_arr[k], t), 0, len(t_arr[k]) - 1))
+                d = float(np.linalg.norm(np.asarray(c["position"]) - np.asarray(truth["point"][j])))
+                if d < best_d:
+                    best, best_d, best_j = k, d, j
+            if best is None or best_d > MATCH:
+                continue
+            any_match[cid] = True
+            matched_ids[best].add(cid)
+            truth = tr[best]
+            held = truth["start"] + ramp + SETTLE <= t <= truth["end"] - ramp
+            if not held:
+                continue
+            s.reports += 1
+            ft = float(truth["force"][best_j])
+            if c.get("valid") and math.isfinite(float(c["force"])) and ft > 0:
+                s.force.append(abs(float(c["force"]) - ft) / ft)
+            ax, ay = truth["atlas"][best_j]
+            key = (best, best_j // 20)  # the footprint moves little in 20 ms
+            if key not in straddle_memo:
+                straddle_memo[key] = _straddled(skin, ax, ay, 0.5 * truth["pad"])
+            sx, sy = straddle_memo[key]
+            if not (sx or sy):
+                continue
+            (sp,) = skin.locate([ax], [ay])
+            e = np.asarray(c["position"]) - np.asarray(truth["point"][best_j])
+            parts = [float(e @ np.asarray(sp.tangent_x)) if sx else 0.0, float(e @ np.asarray(sp.tangent_y)) if sy else 0.0]
+            s.position.append(math.hypot(*parts))
+            if sx and sy:
+                s.position_3d.append(float(np.linalg.norm(e)))
+    for k, truth in enumerate(tr):
+        n_d = s.by_kind.setdefault(truth["kind"], [0, 0])
+        n_d[0] += 1
+        if matched_ids[k]:
+            s.detected += 1
+            n_d[1] += 1
+            s.ids_per_truth.append(len(matched_ids[k]))
+    s.false_ids = {cid for cid, ok in any_match.items() if not ok}
+    return s

@@ -1,0 +1,342 @@
+"""The daemon's messages as ROS 2 messages: the core of ``cellbridge ros2`` and of ROS 2 bags.
+
+Sans-I/O: :class:`Converter` is fed the decoded payloads of the daemon's topics
+(``docs/zmq-api.md``) with a time, and returns the ROS 2 messages (:mod:`cellbridge.ros2.types`)
+they make, by topic key (:mod:`cellbridge.ros2.qos`):
+
+- ``element`` -> ``state``: a ``tactile_msgs/TactileState`` with every element's newest
+  reading, one ``sensor_msgs/ChannelFloat32`` per quantity, one value per element in
+  ascending element id: ``<frame>`` force (N), ``<frame>/area`` (m²), ``<frame>/dc1`` and
+  ``<frame>/dc2`` (F, change from the baseline), ``<frame>/element`` (the element ids, so
+  nobody has to guess the order). An untouched element reads 0 N; an element whose
+  force is not known (no reading yet, baseline being taken, the inverse has no unique
+  answer) reads NaN. Stamped with the newest sample time of the daemon's message.
+- ``contact`` -> ``contacts``: a ``tactile_msgs/TactileContacts``, one ``TactileContact``
+  per contact: ``name`` ``contact_<id>``, ``position`` (x, y, 0) in the frame, ``normal``
+  (0, 0, 1) (out of the skin), ``wrench`` the force the contact applies *to* the skin
+  (-F times the normal) and its torque about the frame's origin (position × force), as
+  tactile_toolbox's own contact estimation fills it. A contact without pressure
+  (``valid`` false) has a NaN wrench: its position alone is known. Stamped with the skin
+  frame the contacts were estimated on (``t_sample``). An empty list says the contacts ended.
+- ``health`` -> ``diagnostics``: a ``diagnostic_msgs/DiagnosticArray``: the daemon (OK,
+  WARN when a bridge is silent or losing frames or this subscriber lost messages, ERROR
+  when a link is down), each link and each bridge.
+- ``markers`` (from all of them, at most every ``marker_period`` s of the fed time, and
+  whenever the number of contacts changes): a ``visualization_msgs/MarkerArray``, the
+  skin's picture: a flat box per element coloured by force (the views' colour ramp),
+  a disk per contact (its fitted diameter), an arrow for its force (1 cm per N, into the
+  skin) and a label (as ``cellbridge watch`` writes it: an axis the readings cannot
+  resolve is said to be unresolved).
+
+Frames: everything is in one frame, ``frame_id`` (default ``cellbridge_skin``: the layout's
+plane, metres, z out of the skin), except a contact whose map names its own ``link``,
+which is then its frame (a skin on a robot's links).
+
+Nothing here raises on a payload: a payload that is not what the API says is counted
+in :attr:`Converter.malformed`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from cellbridge.ros2 import DEFAULT_FRAME
+from cellbridge.ros2 import types as T
+from cellbridge.views.model import UNTOUCHED, Contact, contact_line, level_rgb, summarise_health
+
+MARKER_PERIOD = 0.1  # s: at most 10 pictures a second (a 16x16 skin's picture costs ~10 ms to build and encode)
+ARROW_PER_NEWTON = 0.01  # m of arrow per N
+UP = (0.0, 0.0, 1.0)
+LOSS_WARN = 0.05  # a bridge losing more than this fraction of its frames is a warning
+
+
+def _num(value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return math.nan
+    return float(value)
+
+
+def _col(payload: dict[str, Any], key: str, n: int) -> list[Any]:
+    col = payload.get(key)
+    if not isinstance(col, list):
+        return [None] * n
+    return col[:n] + [None] * (n - len(col))
+
+
+@dataclass
+class Reading:
+    """An element's newest reading, as the ROS 2 messages give it."""
+
+    force: float = math.nan
+    area: float = math.nan
+    dc1: float = math.nan
+    dc2: float = math.nan
+
+
+class Converter:
+    """Daemon payloads in, ROS 2 messages out. ``frame_id``: the flat skin's frame."""
+
+    def __init__(self, frame_id: str = DEFAULT_FRAME, marker_period: float = MARKER_PERIOD,
+                 force_scale: float = 5.0) -> None:
+        self.frame_id = frame_id
+        self.marker_period = marker_period
+        self.force_scale = force_scale
+        self.readings: dict[int, Reading] = {}
+        self.layout: dict[int, tuple[float, float]] = {}
+        self.side = 0.04
+        self.contacts: list[dict[str, Any]] = []
+        self.lost: dict[str, int] = {}  # the shell's: messages its subscriber lost, shown in diagnostics
+        self.malformed = 0
+        self.made: dict[str, int] = {}
+        self._marker_at = -math.inf
+        self._drawn_contacts = -1
+
+    # ---- input ------------------------------------------------------------------------------
+
+    def feed(self, topic: str, payload: Any, now: float) -> list[tuple[str, Any]]:
+        """One daemon message (decoded msgpack) at time ``now`` (s; the markers' rate is
+        counted on it): the ROS 2 messages it makes, as ``(topic key, message)``."""
+        if not isinstance(payload, dict):
+            self.malformed += 1
+            return []
+        out: list[tuple[str, Any]] = []
+        try:
+            if topic == "element":
+                out.append(("state", self._element(payload)))
+            elif topic == "contact":
+                out.append(("contacts", self._contact(payload)))
+            elif topic == "health":
+                out.append(("diagnostics", self._health(payload)))
+            elif topic == "topology":
+                self.set_layout(payload)
+            else:
+                return []
+        except (TypeError, ValueError, KeyError, AttributeError, ArithmeticError):
+            self.malformed += 1
+            return []
+        if topic in ("element", "contact", "topology") and self.layout:
+            stamp = _num(payload.get("t_sample")) if topic == "contact" else _num(payload.get("t_host"))
+            if now - self._marker_at >= self.marker_period or len(self.contacts) != self._drawn_contacts:
+                self._marker_at = now
+                self._drawn_contacts = len(self.contacts)
+                out.append(("markers", self.markers(stamp)))
+        for key, _ in out:
+            self.made[key] = self.made.get(key, 0) + 1
+        return out
+
+    def set_layout(self, payload: dict[str, Any]) -> None:
+        """A ``topology`` message or the control ``topology`` reply: where the elements are."""
+        layout = payload.get("layout")
+        if not isinstance(layout, dict):
+            return
+        ids, xs, ys = layout.get("ids"), layout.get("x"), layout.get("y")
+        if not (isinstance(ids, list) and isinstance(xs, list) and isinstance(ys, list)):
+            return
+        side = _num(layout.get("side"))
+        if math.isfinite(side) and side > 0:
+            self.side = side
+        self.layout = {b: (_num(x), _num(y)) for b, x, y in zip(ids, xs, ys)
+                       if isinstance(b, int) and math.isfinite(_num(x)) and math.isfinite(_num(y))}
+
+    # ---- element ----------------------------------------------------------------------------
+
+    def _element(self, p: dict[str, Any]) -> T.TactileState:
+        bridges = p.get("bridge")
+        if not isinstance(bridges, list):
+            raise ValueError("element without bridge column")
+        n = len(bridges)
+        newest = -math.inf
+        cols = [_col(p, k, n) for k in ("force", "area", "dc1", "dc2", "valid", "touched", "status", "t_sample")]
+        for b, force, area, dc1, dc2, valid, touched, status, ts in zip(bridges, *cols):
+            if not isinstance(b, int) or isinstance(b, bool):
+                continue
+            r = self.readings.get(b)
+            if r is None:
+                r = self.readings[b] = Reading()
+            # (floats as they come, the rest through _num: this loop runs 256 times a message on a 16x16 skin)
+            f = force if force.__class__ is float else _num(force)
+            if valid is True and f == f and f not in (math.inf, -math.inf):
+                r.force, r.area = f, area if area.__class__ is float else _num(area)
+            elif status.__class__ is int and status & UNTOUCHED and touched is not True:
+                r.force, r.area = 0.0, 0.0
+            else:
+                r.force, r.area = math.nan, math.nan
+            r.dc1 = dc1 if dc1.__class__ is float else _num(dc1)
+            r.dc2 = dc2 if dc2.__class__ is float else _num(dc2)
+            t = ts if ts.__class__ is float else _num(ts)
+            if t > newest and t != math.inf:
+                newest = t
+        if not math.isfinite(newest):
+            newest = _num(p.get("t_host"))
+        return self.state(newest)
+
+    def state(self, t: float) -> T.TactileState:
+        """Every element's newest reading as a TactileState stamped ``t``."""
+        ids = sorted(set(self.layout) | set(self.readings))
+        rs = [self.readings.get(b, Reading()) for b in ids]
+        f = self.frame_id
+        return T.TactileState(header=T.Header(stamp=T.stamp(t), frame_id=f), sensors=[
+            T.ChannelFloat32(f, [r.force for r in rs]),
+            T.ChannelFloat32(f"{f}/area", [r.area for r in rs]),
+            T.ChannelFloat32(f"{f}/dc1", [r.dc1 for r in rs]),
+            T.ChannelFloat32(f"{f}/dc2", [r.dc2 for r in rs]),
+            T.ChannelFloat32(f"{f}/element", [float(b) for b in ids]),
+        ])
+
+    # ---- contact ----------------------------------------------------------------------------
+
+    def _contact(self, p: dict[str, Any]) -> T.TactileContacts:
+        contacts = p.get("contacts")
+        if not isinstance(contacts, list):
+            raise ValueError("contact without contacts")
+        t = _num(p.get("t_sample"))
+        if not math.isfinite(t):
+            t = _num(p.get("t_host"))
+        stamp = T.stamp(t)
+        kept, out = [], []
+        for c in contacts:
+            if not isinstance(c, dict) or not isinstance(c.get("id"), int):
+                self.malformed += 1
+                continue
+            kept.append(c)
+            out.append(self.tactile_contact(c, stamp))
+        self.contacts = kept
+        return T.TactileContacts(contacts=out)
+
+    def frame_of(self, c: dict[str, Any]) -> str:
+        """The frame a contact is in: its own ``link`` when the daemon names one, else the skin's."""
+        link = c.get("link")
+        return link if isinstance(link, str) and link else self.frame_id
+
+    def tactile_contact(self, c: dict[str, Any], stamp: T.Time) -> T.TactileContact:
+        px, py, pz = _num(c.get("x")), _num(c.get("y")), _num(c.get("z", 0.0))
+        normal = c.get("normal")
+        n = tuple(_num(v) for v in normal) if isinstance(normal, list) and len(normal) == 3 else UP
+        force = _num(c.get("force")) if c.get("valid") is not False else math.nan
+        fx, fy, fz = -force * n[0], -force * n[1], -force * n[2]
+        return T.TactileContact(
+            header=T.Header(stamp=stamp, frame_id=self.frame_of(c)), name=f"contact_{c['id']}",
+            position=T.Point(px, py, pz), normal=T.Vector3(*n),
+            wrench=T.Wrench(force=T.Vector3(fx, fy, fz),
+                            torque=T.Vector3(py * fz - pz * fy, pz * fx - px * fz, px * fy - py * fx)))
+
+    # ---- health -----------------------------------------------------------------------------
+
+    def _health(self, p: dict[str, Any]) -> T.DiagnosticArray:
+        s = summarise_health(p)
+        source = p["source"] if isinstance(p.get("source"), str) else ""
+        links: dict[Any, Any] = p["links"] if isinstance(p.get("links"), dict) else {}
+        bridges: dict[Any, Any] = p["bridges"] if isinstance(p.get("bridges"), dict) else {}
+        lost_here = sum(self.lost.values())
+        level, problems = T.DiagnosticStatus.OK, []
+        if s["links"] and s["links_up"] < s["links"]:
+            level = T.DiagnosticStatus.ERROR
+            problems.append(f"{s['links'] - s['links_up']} of {s['links']} links down")
+        if s["silent"]:
+            level = max(level, T.DiagnosticStatus.WARN)
+            problems.append(f"{s['silent']} bridges silent")
+        if s["loss"] > LOSS_WARN:
+            level = max(level, T.DiagnosticStatus.WARN)
+            problems.append(f"{s['loss']:.1%} of frames lost")
+        if lost_here:
+            level = max(level, T.DiagnosticStatus.WARN)
+            problems.append(f"this bridge to ROS 2 lost {lost_here} daemon messages")
+        summary = f"{s['alive']} bridges live, {s['links_up']} of {s['links']} links up"
+        kv = (lambda d: [T.KeyValue(str(k), _text(v)) for k, v in d.items()])
+        status = [T.DiagnosticStatus(
+            level=level, name="cellbridge: daemon", hardware_id=source,
+            message="; ".join(problems) or summary,
+            values=kv({"uptime_s": s["uptime"], "links_up": s["links_up"], "links": s["links"],
+                       "bridges_live": s["alive"], "bridges_silent": s["silent"], "frame_loss": s["loss"],
+                       "sample_rate_hz": s["rate"], "estimate_ms": s["est_ms"], "estimate_max_ms": s["est_max_ms"],
+                       "calibration": s["calibration"], "pub_dropped": s["pub_dropped"],
+                       "lost_by_this_subscriber": lost_here}))]
+        for name, ln in sorted(links.items(), key=lambda kv_: str(kv_[0])):
+            if not isinstance(ln, dict):
+                continue
+            up = ln.get("connected") is True
+            status.append(T.DiagnosticStatus(
+                level=T.DiagnosticStatus.OK if up else T.DiagnosticStatus.ERROR, name=f"cellbridge: link {name}",
+                hardware_id=source, message="connected" if up else f"down: {_text(ln.get('last_error'))}",
+                values=kv({k: ln.get(k) for k in ("url", "bytes", "frames", "crc_errors", "framing_errors",
+                                                  "reconnects", "duplicates") if k in ln})))
+        for bid, br in sorted(bridges.items(), key=lambda kv_: str(kv_[0])):
+            if not isinstance(br, dict):
+                continue
+            loss = _num(br.get("loss"))
+            if br.get("silent") is True:
+                lv, msg = T.DiagnosticStatus.ERROR, f"silent for {_num(br.get('age')):.1f} s"
+            elif math.isfinite(loss) and loss > LOSS_WARN:
+                lv, msg = T.DiagnosticStatus.WARN, f"losing {loss:.1%} of its frames"
+            else:
+                lv, msg = T.DiagnosticStatus.OK, "live"
+            status.append(T.DiagnosticStatus(
+                level=lv, name=f"cellbridge: bridge {bid}", hardware_id=source, message=msg,
+                values=kv({k: br.get(k) for k in ("link", "sample_rate", "loss", "lost", "frames", "age")
+                           if k in br})))
+        return T.DiagnosticArray(header=T.Header(stamp=T.stamp(_num(p.get("t_host")))), status=status)
+
+    # ---- markers ----------------------------------------------------------------------------
+
+    def markers(self, t: float) -> T.MarkerArray:
+        """The skin's picture at time ``t``: elements coloured by force, contacts, forces, labels."""
+        header = T.Header(stamp=T.stamp(t), frame_id=self.frame_id)
+        out = [T.Marker(header=header, action=T.Marker.DELETEALL)]
+        points, colors = [], []
+        for b, (x, y) in sorted(self.layout.items()):
+            r = self.readings.get(b, Reading())
+            level = min(1.0, max(0.0, r.force / self.force_scale)) if math.isfinite(r.force) else math.nan
+            points.append(T.Point(x, y, -0.001))
+            colors.append(_rgba(level, 1.0))
+        side = self.side * 0.94
+        out.append(T.Marker(header=header, ns="elements", id=0, type=T.Marker.CUBE_LIST, action=T.Marker.ADD,
+                            scale=T.Vector3(side, side, 0.002), color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0),
+                            points=points, colors=colors))
+        for c in self.contacts:
+            x, y = _num(c.get("x")), _num(c.get("y"))
+            if not (math.isfinite(x) and math.isfinite(y)):
+                continue
+            cid = int(c["id"])
+            h = T.Header(stamp=header.stamp, frame_id=self.frame_of(c))
+            force = _num(c.get("force")) if c.get("valid") is not False else math.nan
+            d = _num(c.get("diameter"))
+            d = d if math.isfinite(d) and d > 0 else 0.004
+            level = min(1.0, max(0.0, force / self.force_scale)) if math.isfinite(force) else math.nan
+            out.append(T.Marker(header=h, ns="contacts", id=cid, type=T.Marker.CYLINDER, action=T.Marker.ADD,
+                                pose=T.Pose(position=T.Point(x, y, 0.002)), scale=T.Vector3(d, d, 0.004),
+                                color=_rgba(level, 0.9)))
+            if math.isfinite(force) and force > 0:
+                length = force * ARROW_PER_NEWTON
+                out.append(T.Marker(header=h, ns="forces", id=cid, type=T.Marker.ARROW, action=T.Marker.ADD,
+                                    points=[T.Point(x, y, 0.004 + length), T.Point(x, y, 0.004)],
+                                    scale=T.Vector3(0.002, 0.005, 0.004), color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0)))
+            out.append(T.Marker(header=h, ns="labels", id=cid, type=T.Marker.TEXT_VIEW_FACING, action=T.Marker.ADD,
+                                pose=T.Pose(position=T.Point(x, y, 0.02)), scale=T.Vector3(0.0, 0.0, 0.008),
+                                color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0), text=contact_line(_view_contact(c))))
+        return T.MarkerArray(markers=out)
+
+
+def _rgba(level: float, alpha: float) -> T.ColorRGBA:
+    r, g, b = level_rgb(level)
+    return T.ColorRGBA(r / 255, g / 255, b / 255, alpha)
+
+
+def _view_contact(c: dict[str, Any]) -> Contact:
+    """The views' contact, for its one-line description."""
+    obs = c.get("observable")
+    observable = (obs[0] is not False, obs[1] is not False) if isinstance(obs, list) and len(obs) >= 2 else (True, True)
+    return Contact(id=int(c["id"]), x=_num(c.get("x")), y=_num(c.get("y")), force=_num(c.get("force")),
+                   diameter=_num(c.get("diameter")), observable=observable, valid=c.get("valid") is not False,
+                   missed=c["missed"] if isinstance(c.get("missed"), int) else 0,
+                   sigma_x=_num(c.get("sigma_x")), sigma_y=_num(c.get("sigma_y")))
+
+
+def _text(v: Any) -> str:
+    """A diagnostic value: numbers as Python writes them, None as empty, strings as they are."""
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)

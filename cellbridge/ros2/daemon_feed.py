@@ -1,0 +1,50 @@
+"""The daemon's stream as the ROS 2 side takes it: the views' model, keeping every payload.
+
+:class:`PayloadModel` is a :class:`cellbridge.views.model.SkinView`, so the views' ZeroMQ
+shell (:class:`cellbridge.views.source.Source`) drains into it as into any view: it counts
+this subscriber's losses (gaps in ``seq``), notices a restarted daemon (its numbering
+starts again) and then asks for the layout anew, as every view does. Besides, it keeps
+each payload for :class:`cellbridge.ros2.convert.Converter` (:meth:`take`), and hands
+it every layout (a ``topology`` message or the control socket's reply).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from cellbridge.ros2.convert import Converter
+from cellbridge.views.model import SkinView
+
+
+class PayloadModel(SkinView):
+    def __init__(self, converter: Converter, force_scale: float = 5.0) -> None:
+        super().__init__(force_scale=force_scale)
+        self.converter = converter
+        self.pending: list[tuple[str, Any, float]] = []
+
+    def feed(self, topic: str, payload: Any, now: float) -> None:
+        try:
+            super().feed(topic, payload, now)
+        except ArithmeticError:  # a health figure past float range: the view's summary gives up on it
+            self.malformed += 1
+        self.pending.append((topic, payload, now))
+
+    def _feed_element(self, p: dict[str, Any]) -> None:
+        """Only whether an element the layout does not place is reporting (then the layout is
+        asked for again): the readings themselves are the converter's (a view's per-element
+        history would cost a third of the time a 16x16 skin's message takes here)."""
+        bridges = p.get("bridge")
+        if not isinstance(bridges, list):
+            raise ValueError("element without bridge column")
+        if self.layout and not self.needs_topology and any(b not in self.layout for b in bridges):
+            self.needs_topology = True
+
+    def feed_topology(self, payload: dict[str, Any]) -> None:
+        super().feed_topology(payload)
+        self.converter.set_layout(payload)
+
+    def take(self) -> list[tuple[str, Any, float]]:
+        """The payloads fed since the last call, in order, as ``(topic, payload, time)``."""
+        out, self.pending = self.pending, []
+        self.converter.lost = self.lost
+        return out

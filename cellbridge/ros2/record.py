@@ -1,0 +1,135 @@
+"""``cellbridge record --profile ros2 OUT``: a ROS 2 bag of a running daemon.
+
+The daemon's stream is taken as ``cellbridge ros2`` takes it (the views' ZeroMQ shell
+drained into :class:`cellbridge.ros2.daemon_feed.PayloadModel`: a restarted daemon is
+picked up again, the layout is asked for on the control socket), turned into ROS 2
+messages (:mod:`cellbridge.ros2.convert`) and written into a bag
+(:mod:`cellbridge.ros2.bag`). A message's time in the bag is when it was received here,
+as ``ros2 bag record`` stamps it; its header holds the skin's own time.
+
+SIGINT and SIGTERM finish the bag (exit 0); a failed write (full disk) stops it with a
+message (exit 1); the counters go to stderr as one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import socket
+import sys
+import time
+from typing import Any
+
+from cellbridge._version import __version__
+from cellbridge.ros2 import DEFAULT_FRAME, MISSING
+
+PROFILES = ("mcap", "ros2")
+#: The daemon's topics a ROS 2 bag holds (raw readings and serial bytes have no ROS 2 message here).
+ROS2_TOPICS = ("contact", "element", "health", "topology")
+RCVHWM = 100_000  # messages queued for this subscriber: a slow disk moment must not cost messages
+DEFAULT_CONTROL = "tcp://127.0.0.1:5561"
+
+
+def add_profile_arguments(parser: argparse.ArgumentParser) -> None:
+    """``cellbridge record``'s options for the ROS 2 profile."""
+    g = parser.add_argument_group("ROS 2 bags (--profile ros2)")
+    g.add_argument("--profile", choices=PROFILES, default="mcap",
+                   help="mcap: JSON messages (default); ros2: a ROS 2 bag, OUT is its directory "
+                        "(tactile_msgs, markers, diagnostics in CDR, metadata.yaml; see docs/ros2.md)")
+    g.add_argument("--frame-id", default=DEFAULT_FRAME, metavar="FRAME",
+                   help=f"the skin's frame in the bag (default: {DEFAULT_FRAME})")
+    g.add_argument("--namespace", default="/cellbridge", metavar="NS", help="topic namespace (default: /cellbridge)")
+    g.add_argument("--control", default=DEFAULT_CONTROL,
+                   help=f"the daemon's control endpoint, asked for the layout (default: {DEFAULT_CONTROL})")
+
+
+def _topics(args: argparse.Namespace) -> tuple[str, ...]:
+    names = ROS2_TOPICS if args.topics == "all" else tuple(t.strip() for t in args.topics.split(",") if t.strip())
+    bad = [t for t in names if t not in ROS2_TOPICS] + (["raw"] if args.raw else []) + \
+        (["serial"] if args.serial else [])
+    if bad:
+        raise ValueError(f"a ROS 2 bag holds {', '.join(ROS2_TOPICS)}; not {bad[0]!r}")
+    return tuple(dict.fromkeys([*names, "topology"]))  # the layout: the order of the readings, the picture
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        from cellbridge.ros2.bag import BagExists, BagWriter
+        from cellbridge.ros2.convert import Converter
+        from cellbridge.ros2.daemon_feed import PayloadModel
+    except ImportError as exc:
+        print(f"cellbridge record: --profile ros2 {MISSING} ({exc})", file=sys.stderr)
+        return 1
+    from cellbridge.ros2.qos import BadTopicName, topics
+    from cellbridge.views.source import Source
+
+    try:
+        wanted = _topics(args)
+        specs = topics(args.namespace)
+        if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds, args.count, args.duration) < 0 \
+                or args.chunk_size <= 0:
+            raise ValueError("sizes, times and counts must not be negative")
+        if (args.server_key is None) != (args.client_key is None):
+            raise ValueError("--server-key and --client-key go together (CURVE needs both)")
+    except (ValueError, BadTopicName) as exc:
+        print(f"cellbridge record: {exc}", file=sys.stderr)
+        return 2
+    meta = {"endpoint": args.endpoint, "topics": ",".join(wanted), "recorder_host": socket.gethostname(),
+            "cellbridge_version": __version__, "started": f"{time.time():.6f}", "frame_id": args.frame_id}
+    try:
+        bag = BagWriter(args.out, specs, chunk_size=int(args.chunk_size * 1e6), compression=args.compression,
+                        fsync=not args.no_fsync, rotate_bytes=int(args.rotate_size * 1e6),
+                        rotate_seconds=args.rotate_minutes * 60, metadata=meta)
+    except (BagExists, OSError) as exc:
+        print(f"cellbridge record: {exc}", file=sys.stderr)
+        return 2
+    try:
+        source = Source(args.endpoint, args.control, args.server_key, args.client_key, topics=wanted, rcvhwm=RCVHWM)
+    except (ValueError, OSError) as exc:
+        bag.finish()
+        print(f"cellbridge record: {exc}", file=sys.stderr)
+        return 2
+    stop: list[bool] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.append(True))
+    converter = Converter(args.frame_id)
+    model = PayloadModel(converter)
+    received, error = 0, ""
+    stats: dict[str, Any] = {}
+    end = time.monotonic() + args.duration if args.duration else None
+    flushed = time.monotonic()
+    try:
+        while not stop and not error and (not args.count or received < args.count):
+            if end is not None and time.monotonic() >= end:
+                break
+            source.poll(100)
+            source.drain(model, max_messages=args.count - received if args.count else 100_000)
+            try:
+                for topic, payload, _ in model.take():
+                    received += 1
+                    t_host = payload.get("t_host") if isinstance(payload, dict) else None
+                    now_ns = time.time_ns()
+                    for key, message in converter.feed(topic, payload, t_host if isinstance(t_host, float) else 0.0):
+                        bag.add(key, message, now_ns)
+                if args.chunk_seconds and time.monotonic() - flushed >= args.chunk_seconds:
+                    flushed = time.monotonic()
+                    bag.flush()
+            except OSError as exc:
+                error = f"{args.out}: {exc.strerror or exc}; recording stopped (the bag keeps its whole chunks)"
+                bag.abandon()
+    finally:
+        source.close()
+        if not error:
+            try:
+                bag.finish()
+            except OSError as exc:
+                error = f"{args.out}: {exc.strerror or exc}"
+        stats = {"recorded": {specs[k].name: n for k, n in bag.counts.items()}, "messages": bag.messages,
+                 "received": received, "lost": model.lost, "malformed": model.malformed + converter.malformed,
+                 "daemon_restarts": model.daemon_restarts, "files": [str(f.path) for f in bag.files], "error": error}
+        print(json.dumps(stats), file=sys.stderr)
+    if error:
+        print(f"cellbridge record: {error}", file=sys.stderr)
+        return 1
+    return 0

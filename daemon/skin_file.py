@@ -1,0 +1,77 @@
+"""Reading a skin description (the file I/O :mod:`cellbridge.tactile.skin_geometry` leaves
+out), with the link frames of the robot's URDF when it names one.
+
+A URDF is read with yourdfpy (a maintained URDF parser: joints' origins in the URDF's
+roll-pitch-yaw convention, mimic and fixed joints, the validation of the robot's tree), in
+the optional ``robot`` extra: only a description naming a URDF needs it, and then a
+missing yourdfpy is an error saying how to install it.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+
+from cellbridge.tactile.skin_geometry import LinkFrame, SkinError, SkinGeometry, skin_from_mapping
+
+__all__ = ["is_skin_file", "load_skin", "urdf_links"]
+
+
+def _read(path: str | PathLike[str], what: str) -> str:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return fh.read()
+    except OSError as exc:
+        raise SkinError(f"{path}: cannot read {what}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise SkinError(f"{path}: {what} is not UTF-8 text") from None
+
+
+def urdf_links(path: str | PathLike[str]) -> list[LinkFrame]:
+    """The links of a URDF file: name, parent link and the joint's origin (4×4) between them."""
+    try:
+        import yourdfpy  # type: ignore[import-untyped]  # no type information published
+    except ImportError:
+        raise SkinError(f"{path}: reading a URDF needs yourdfpy: pip install 'cellbridge[robot]'") from None
+    if not Path(path).is_file():
+        raise SkinError(f"{path}: cannot read URDF: no such file")
+    try:
+        robot = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False,
+                                   build_collision_scene_graph=False, load_collision_meshes=False)
+    except Exception as exc:  # yourdfpy raises many kinds for a bad file; each is a bad URDF here
+        raise SkinError(f"{path}: not a URDF it can read: {exc}") from None
+    parent_of = {j.child: j for j in robot.robot.joints}
+    out = []
+    for link in robot.robot.links:
+        j = parent_of.get(link.name)
+        origin = np.eye(4) if j is None or j.origin is None else np.asarray(j.origin, dtype=np.float64)
+        out.append(LinkFrame(link.name, None if j is None else j.parent,
+                             tuple(tuple(float(v) for v in row) for row in origin)))
+    return out
+
+
+def is_skin_file(text: str) -> bool:
+    """Whether a TOML text is a skin description (it has ``[[patch]]`` tables)."""
+    try:
+        return "patch" in tomllib.loads(text)
+    except tomllib.TOMLDecodeError:
+        return False
+
+
+def load_skin(path: str | PathLike[str]) -> SkinGeometry:
+    """Read and validate a skin description, and the URDF it names (relative to the file).
+
+    Every problem, a missing file included, is a :class:`SkinError` naming the file."""
+    text = _read(path, "skin description")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SkinError(f"{path}: not valid TOML: {exc}") from None
+    links = None
+    urdf = data.get("urdf")
+    if isinstance(urdf, str) and urdf:
+        links = urdf_links(Path(path).parent / urdf)
+    return skin_from_mapping(data, str(path), links)

@@ -1,0 +1,77 @@
+"""Contacts and topology on the robot: what the skin description adds to the messages.
+
+The estimator works on the atlas (the skin's surfaces unrolled side by side); a
+subscriber wants the contact on the robot. :func:`contact_fields` adds each contact's
+link, patch, 3-D position, normal and force vector in the link frame (and the position's
+covariance carried there), :func:`skin_report` the links, patches and element frames for
+``topology``. Without a skin description the layout's own plane is the frame: ``link``
+None, the position (x, y, 0), the normal +z.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from cellbridge.tactile.skin_geometry import SkinGeometry
+
+__all__ = ["contact_fields", "skin_report"]
+
+
+def contact_fields(skin: SkinGeometry | None, contacts: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each contact (a ``contact`` message's dict, with ``x``, ``y``, ``force`` and ``cov``)
+    with ``link``, ``patch``, ``position``, ``normal``, ``force_vector`` and
+    ``position_cov`` added. The skin measures a normal load: the force vector is
+    ``-force·normal`` (the push into the surface), None when the force is not known."""
+    if not contacts:
+        return contacts
+    xs = [float(c["x"]) for c in contacts]
+    ys = [float(c["y"]) for c in contacts]
+    points = skin.locate(xs, ys) if skin is not None else None
+    out = []
+    for k, c in enumerate(contacts):
+        if points is None:
+            link = patch = None
+            pos = (xs[k], ys[k], 0.0)
+            nrm = (0.0, 0.0, 1.0)
+            tx, ty = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
+        else:
+            sp = points[k]
+            link, patch, pos, nrm, tx, ty = sp.link, sp.patch, sp.position, sp.normal, sp.tangent_x, sp.tangent_y
+        f = float(c["force"])
+        fv = [-f * n for n in nrm] if math.isfinite(f) else None
+        jac = np.array([tx, ty]).T  # (3, 2): atlas (x, y) -> link frame
+        cov = jac @ np.asarray(c["cov"], dtype=np.float64) @ jac.T
+        out.append({**c, "link": link, "patch": patch, "position": list(pos), "normal": list(nrm),
+                    "force_vector": fv, "position_cov": cov.tolist()})
+    return out
+
+
+def skin_report(skin: SkinGeometry | None) -> dict[str, Any] | None:
+    """The skin description for ``topology``: links (parent, pose in the parent's frame
+    at the joints' zero), patches, gateways, and each element's link, patch, grid place,
+    centre and normal in its link's frame; None without a description."""
+    if skin is None:
+        return None
+    return {
+        "name": skin.name,
+        "side": skin.side,
+        "urdf": skin.urdf,
+        "links": [{"name": ln.name, "parent": ln.parent, "origin": [list(r) for r in ln.origin],
+                   "declared": ln.declared} for ln in skin.links],
+        "patches": [{"name": p.name, "link": p.link, "shape": p.shape, "rows": p.rows, "cols": p.cols,
+                     "pitch": p.pitch, "col_pitch": p.col_pitch, "radius": p.radius if p.shape == "cylinder" else None,
+                     "wrap": p.wrap, "pose": [list(r) for r in p.pose], "start": list(p.start),
+                     "first_id": p.first_id} for p in skin.patches],
+        "gateways": [{"name": g.name, "bridge": b} for g, b in zip(skin.gateways, skin.gateway_ids())],
+        "elements": {
+            "ids": skin.ids.tolist(),
+            "patch": [skin.patches[int(i)].name for i in skin.patch_of],
+            "row": skin.row.tolist(),
+            "col": skin.col.tolist(),
+            "position": skin.position.tolist(),
+            "normal": skin.normal.tolist(),
+        },
+    }

@@ -1,0 +1,108 @@
+"""The simulated robot as the world: MuJoCo's contacts on the arm's skin, the daemon's core
+estimating them in virtual time, the scores against the ground truth (a short version of
+bench/bench_robot.py), and the scorer and the URDF link frames on their own."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cellbridge.robot_score import score
+from cellbridge.tactile.skin_geometry import parse_skin
+
+ARM = None
+
+
+def _arm():
+    from cellbridge.emulator.robot_world import arm_skin
+    return arm_skin()
+
+
+def test_the_scenario_scores_within_the_targets() -> None:
+    pytest.importorskip("mujoco")
+    from cellbridge.robot import run_scenario
+
+    s, fig = run_scenario(6, seed=0, idle=1.0)
+    kinds = {k for k, (n, _) in s.by_kind.items() if n}
+    assert {"single", "wrap", "patch_seam", "slide", "two"} <= kinds
+    assert s.truths >= 7 and s.detected == s.truths, s.table()
+    assert max(s.ids_per_truth) == 1, s.table()  # one id per contact, seams and slides included
+    assert not s.false_ids and fig["idle_false_contacts"] == 0, s.table()
+    assert len(s.position) > 50 and np.median(s.position) <= 2e-3 and np.percentile(s.position, 95) <= 5e-3, s.table()
+    assert np.median(s.force) <= 0.03, s.table()
+
+
+def test_the_truth_follows_the_finger_onto_the_link_it_touched() -> None:
+    pytest.importorskip("mujoco")
+    from cellbridge.emulator.robot_world import Press, simulate
+
+    skin = _arm()
+    band = next(b for b in skin.bands if b.period > 0.28)  # the forearm
+    press = Press(0, 0.2, band.x0 + 0.002, band.y0 + 0.06, 3.0, 0.02, 0.3)  # across its wrap seam
+    tl = simulate(skin, [press], 0.8)
+    (tr,) = tl.truths
+    assert tr.link == "forearm" and tr.start == pytest.approx(0.2, abs=0.03) and tr.end == pytest.approx(0.6, abs=0.03)
+    mid = len(tr.t) // 2
+    assert tr.force[mid] == pytest.approx(3.0, rel=0.02)
+    x, y = tr.atlas[mid]
+    assert abs(((x - press.x) + band.period / 2) % band.period - band.period / 2) < 1e-3 and y == pytest.approx(press.y, abs=1e-3)
+    (sp,) = skin.locate([press.x], [press.y])
+    assert np.linalg.norm(np.array(tr.point[mid]) - sp.position) < 1e-3
+    # the disks on the atlas: the press and its copy one period over, where the world presses both ends
+    assert any(len(d) == 1 for d in tl.disks) and tl.at(0.45)[0][2] == pytest.approx(3.0, rel=0.02)
+
+
+def test_the_scorer_counts_misses_false_contacts_and_errors() -> None:
+    skin = _arm()
+    (sp,) = skin.locate([0.08], [0.06])  # the torso, on the seam of its two patches (link y)
+    truth = {"finger": 0, "link": "torso", "kind": "single", "area": 3e-4, "pad": 0.02, "start": 1.0, "end": 2.0,
+             "t": [1.0 + 0.001 * k for k in range(1001)], "point": [sp.position] * 1001,
+             "normal": [sp.normal] * 1001, "force": [2.0] * 1001, "atlas": [(0.08, 0.06)] * 1001}
+    missed = dict(truth, start=3.0, end=4.0, t=[3.0 + 0.001 * k for k in range(1001)])
+    good = {"id": 1, "missed": 0, "link": "torso", "position": list(np.array(sp.position) + [0, 0.001, 0]),
+            "force": 2.1, "valid": True}
+    ghost = dict(good, id=2, position=[0.5, 0.5, 0.5])
+    frames = [(1.5, [good]), (1.6, [good, ghost])]
+    s = score(skin, [truth, missed], frames)
+    assert s.truths == 2 and s.detected == 1 and s.false_ids == {2}
+    assert s.position == pytest.approx([0.001, 0.001]) and s.force == pytest.approx([0.05, 0.05])
+
+
+def test_link_frames_come_from_the_urdf(tmp_path) -> None:
+    pytest.importorskip("yourdfpy")
+    from cellbridge.daemon.skin_file import load_skin
+
+    (tmp_path / "arm.urdf").write_text("""<robot name="arm">
+  <link name="base"/><link name="fore"/>
+  <joint name="elbow" type="revolute">
+    <parent link="base"/><child link="fore"/>
+    <origin xyz="0 0 0.3" rpy="0 1.5707963267948966 0"/>
+    <axis xyz="0 1 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/>
+  </joint>
+</robot>""")
+    skin_text = """urdf = "arm.urdf"
+[[patch]]
+name = "p"
+link = "fore"
+shape = "cylinder"
+radius = 0.045
+wrap = true
+rows = 1
+cols = 7
+[[gateway]]
+name = "g"
+patch = "p"
+"""
+    (tmp_path / "skin.toml").write_text(skin_text)
+    skin = load_skin(tmp_path / "skin.toml")
+    fore = skin.link("fore")
+    assert fore.parent == "base" and fore.declared
+    assert np.allclose(skin.link_pose("fore")[:3, 3], [0, 0, 0.3])
+    assert np.allclose(skin.link_pose("fore")[:3, 2], [1, 0, 0], atol=1e-9)  # z turned onto x
+    (tmp_path / "skin.toml").write_text(skin_text.replace('link = "fore"', 'link = "hand"'))
+    with pytest.raises(ValueError, match="no link 'hand'"):
+        load_skin(tmp_path / "skin.toml")
+    # without the URDF read (the emulator's way), its links are taken as named, undeclared
+    assert not parse_skin(skin_text).link("fore").declared and math.isfinite(skin.side)

@@ -1,0 +1,124 @@
+"""The ROS 2 side's core, without processes: the shipped definitions, the converter's messages."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+pytest.importorskip("cyclonedds", reason="the ros2 extra is not installed (make install installs it)")
+
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
+
+from cellbridge.ros2 import msgdefs  # noqa: E402
+from cellbridge.ros2 import types as T  # noqa: E402
+from cellbridge.ros2.convert import Converter  # noqa: E402
+from cellbridge.ros2.qos import BadTopicName, topics  # noqa: E402
+from ros2_peer import typestore  # noqa: E402
+
+LAYOUT = {"layout": {"ids": [1, 2, 3, 4], "x": [0.02, 0.06, 0.02, 0.06], "y": [0.02, 0.02, 0.06, 0.06], "side": 0.04}}
+
+
+def element(**cols: Any) -> dict[str, Any]:
+    base = {"v": 1, "seq": 0, "t_host": 1.7e9, "bridge": [1, 2, 3], "force": [2.0, math.nan, math.nan],
+            "area": [1e-4, math.nan, math.nan], "dc1": [1e-12, 2e-14, math.nan], "dc2": [5e-13, 1e-14, math.nan],
+            "valid": [True, False, False], "status": [0, 2, 8], "touched": [True, False, True],
+            "t_sample": [1.7e9 - 0.01, 1.7e9 - 0.02, math.nan]}
+    return {**base, **cols}
+
+
+def test_the_standard_definitions_are_ros_2_humbles_and_jazzys_field_for_field() -> None:
+    for store in (get_typestore(Stores.ROS2_HUMBLE), get_typestore(Stores.ROS2_JAZZY)):
+        for name in msgdefs.shipped():
+            if name.startswith("tactile_msgs/"):
+                continue
+            ours = get_types_from_msg(msgdefs.text(name), name)[name]  # our shipped text, parsed
+            assert store.fielddefs[name][1] == ours[1], name
+    # a schema lists every type the message uses, each once, as rosbag2 does
+    schema = msgdefs.schema("visualization_msgs/msg/MarkerArray")
+    rosbags_text, _ = get_typestore(Stores.ROS2_HUMBLE).generate_msgdef("visualization_msgs/msg/MarkerArray",
+                                                                       ros_version=2)
+    deps = [line for line in schema.splitlines() if line.startswith("MSG: ")]
+    assert deps == [line for line in rosbags_text.splitlines() if line.startswith("MSG: ")]
+
+
+def test_the_tactile_definitions_are_tactile_toolboxs_fields() -> None:
+    fields = {n: [(f, str(node)) for f, node in typestore().fielddefs[n][1]] for n in msgdefs.shipped()
+              if n.startswith("tactile_msgs/")}
+    assert [f for f, _ in fields["tactile_msgs/msg/TactileState"]] == ["header", "sensors"]
+    assert [f for f, _ in fields["tactile_msgs/msg/TactileContact"]] == ["header", "name", "position", "normal",
+                                                                         "wrench"]
+    assert [f for f, _ in fields["tactile_msgs/msg/TactileContacts"]] == ["contacts"]
+    assert "sensor_msgs/msg/ChannelFloat32" in fields["tactile_msgs/msg/TactileState"][1][1]
+
+
+def test_readings_untouched_read_zero_unknown_read_nan_in_element_order() -> None:
+    c = Converter()
+    c.set_layout(LAYOUT)
+    (key, state), *_ = c.feed("element", element(), 0.0)
+    assert key == "state" and state.header.frame_id == "cellbridge_skin"
+    ch = {s.name: s.values for s in state.sensors}
+    assert ch["cellbridge_skin/element"] == [1.0, 2.0, 3.0, 4.0]
+    assert ch["cellbridge_skin"][:2] == [2.0, 0.0]  # bridge 2: untouched (status 2), 0 N
+    assert math.isnan(ch["cellbridge_skin"][2]) and math.isnan(ch["cellbridge_skin"][3])  # ambiguous; never read
+    assert ch["cellbridge_skin/dc1"][:2] == [1e-12, 2e-14]
+    assert T.stamp(1.7e9 - 0.01) == state.header.stamp  # the newest sample
+
+
+def test_a_contact_is_a_tactile_contact_with_the_wrench_into_the_skin() -> None:
+    c = Converter(frame_id="palm")
+    c.set_layout(LAYOUT)
+    contacts = {"t_sample": 1.7e9, "t_host": 1.7e9 + 0.01, "contacts": [
+        {"id": 7, "x": 0.04, "y": 0.05, "force": 3.0, "valid": True, "diameter": 0.02, "observable": [True, False]},
+        {"id": 8, "x": 0.01, "y": 0.01, "force": 0.5, "valid": False},
+        {"id": 9, "x": 0.1, "y": 0.1, "force": 1.0, "link": "forearm"}]}
+    out = dict(c.feed("contact", contacts, 0.0))
+    a, b, d = out["contacts"].contacts
+    assert a.name == "contact_7" and a.header.frame_id == "palm" and a.header.stamp == T.stamp(1.7e9)
+    assert (a.position.x, a.position.y, a.position.z) == (0.04, 0.05, 0.0)
+    assert (a.wrench.force.x, a.wrench.force.y, a.wrench.force.z) == (0.0, 0.0, -3.0)
+    assert (a.wrench.torque.x, a.wrench.torque.y, a.wrench.torque.z) == pytest.approx((-0.15, 0.12, 0.0))
+    assert math.isnan(b.wrench.force.z)  # no pressure: the force is not known
+    assert d.header.frame_id == "forearm"
+    labels = [m.text for m in out["markers"].markers if m.ns == "labels"]
+    assert any("y ~50.0" in t and "unresolved" in t for t in labels), labels
+    # the contacts end: an empty list, and the picture loses them at once
+    out = dict(c.feed("contact", {"t_sample": 1.7e9 + 1, "contacts": []}, 0.001))
+    assert out["contacts"].contacts == [] and not [m for m in out["markers"].markers if m.ns == "contacts"]
+
+
+def test_health_becomes_diagnostics_with_a_level_that_says_what_is_wrong() -> None:
+    c = Converter()
+    health = {"t_host": 1.7e9, "source": "robot", "links": {"gw": {"connected": False, "last_error": "gone"}},
+              "bridges": {"1": {"silent": True, "age": 3.0}, "2": {"loss": 0.2}, "3": {"loss": 0.0}}}
+    ((key, diag),) = c.feed("health", health, 0.0)
+    s = {x.name: x for x in diag.status}
+    assert s["cellbridge: daemon"].level == T.DiagnosticStatus.ERROR and s["cellbridge: daemon"].hardware_id == "robot"
+    assert s["cellbridge: link gw"].level == T.DiagnosticStatus.ERROR and "gone" in s["cellbridge: link gw"].message
+    assert [s[f"cellbridge: bridge {b}"].level for b in (1, 2, 3)] == [2, 1, 0]
+
+
+payloads = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
+                        lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner,
+                                                                                    max_size=5), max_leaves=20)
+
+
+@settings(max_examples=300, deadline=None)
+@given(topic=st.sampled_from(["element", "contact", "health", "topology", "raw"]),
+       payload=payloads | st.fixed_dictionaries({"bridge": payloads, "contacts": payloads, "layout": payloads,
+                                                 "links": payloads, "bridges": payloads}))
+def test_no_payload_makes_the_converter_raise_or_a_message_that_does_not_serialise(topic: str, payload: Any) -> None:
+    c = Converter(marker_period=0)
+    c.set_layout(LAYOUT)
+    for _, message in c.feed(topic, payload, 0.0):
+        T.cdr(message)
+
+
+def test_topic_names_are_checked() -> None:
+    assert topics("/left/skin")["contacts"].dds_name == "rt/left/skin/contacts"
+    for bad in ("left", "/", "/a//b", "/1a", "/a b", "/a__b"):
+        with pytest.raises(BadTopicName):
+            topics(bad)

@@ -1,0 +1,200 @@
+"""Skin descriptions: patches on link surfaces, their elements in link frames, the atlas,
+and contacts across a wrap seam and across the seam of two patches of one link."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cellbridge.tactile import ContactEstimator, ContactTracker, skin_response
+from cellbridge.tactile.seam_estimator import SeamEstimator
+from cellbridge.tactile.skin_geometry import SkinError, parse_skin, pose_matrix
+
+SKIN = """
+name = "test"
+side = 0.04
+[[link]]
+name = "torso"
+[[link]]
+name = "forearm"
+parent = "torso"
+origin = [0.3, 0.0, 0.0]
+rpy = [0.0, 1.5707963267948966, 0.0]
+
+[[patch]]
+name = "fore"
+link = "forearm"
+shape = "cylinder"
+radius = 0.045
+wrap = true
+rows = 3
+cols = 7
+origin = [0.0, 0.0, 0.05]
+
+[[patch]]
+name = "chest_l"
+link = "torso"
+shape = "plane"
+rows = 2
+cols = 2
+origin = [0.0, 0.0, 0.1]
+
+[[patch]]
+name = "chest_r"
+link = "torso"
+shape = "plane"
+rows = 2
+cols = 2
+origin = [0.08, 0.0, 0.1]
+
+[[gateway]]
+name = "arm"
+patch = "fore"
+[[gateway]]
+name = "chest"
+patch = "chest_l"
+"""
+
+
+@pytest.fixture(scope="module")
+def skin():
+    return parse_skin(SKIN, "test.toml")
+
+
+def test_cylinder_elements_sit_on_the_surface_with_outward_normals(skin) -> None:
+    fore = skin.patch_of == 0
+    p, n = skin.position[fore], skin.normal[fore]
+    assert np.allclose(np.hypot(p[:, 0], p[:, 1]), 0.045)  # on the cylinder about the patch's z
+    assert np.allclose(n[:, :2] * 0.045, p[:, :2]) and np.allclose(n[:, 2], 0.0)
+    # element (row 1, col 0): angle 0 (the patch frame's x), 1 pitch along the axis
+    i = skin.row_of(skin.element_id("fore", 1, 0))
+    assert np.allclose(p[i], [0.045, 0.0, 0.05 + 0.04])
+    # the grid closes: 7 columns of 2π·r/7, the seam one pitch wide like every other
+    assert skin.patches[0].col_pitch == pytest.approx(2 * math.pi * 0.045 / 7)
+    (band,) = skin.bands
+    assert band.period == pytest.approx(2 * math.pi * 0.045)
+
+
+def test_plane_elements_and_link_poses(skin) -> None:
+    i = skin.row_of(skin.element_id("chest_r", 1, 1))
+    assert np.allclose(skin.position[i], [0.08 + 0.04, 0.04, 0.1]) and np.allclose(skin.normal[i], [0, 0, 1])
+    assert np.allclose(skin.link_pose("forearm"), pose_matrix((0.3, 0, 0), (0, math.pi / 2, 0)))
+
+
+def test_patches_on_one_surface_share_a_chart_and_the_seam_between_them_is_a_neighbour_seam(skin) -> None:
+    assert len(skin.charts) == 2 and skin.charts[1].patches == ("chest_l", "chest_r")
+    lay = skin.layout()
+    a, b = lay.index_of([skin.element_id("chest_l", 0, 1), skin.element_id("chest_r", 0, 0)])
+    assert b in lay.neighbours(int(a))
+
+
+def _press(skin, est, x, y, force=3.0, diameter=0.02):
+    disks = [(x, y, force, diameter)]
+    for band in skin.bands:
+        disks += band.ghosts(disks, skin.side)
+    d1, d2 = skin_response(skin.layout(), disks)
+    return est.estimate(d1, d2)
+
+
+def test_a_press_across_the_wrap_seam_is_one_contact_at_the_right_3d_point(skin) -> None:
+    (band,) = skin.bands
+    lay = skin.layout()
+    plain = ContactEstimator(lay)
+    seam = SeamEstimator(lay, bands=skin.bands)
+    for x in (band.x0 + 0.003, band.x0 + band.period - 0.004):  # either side of the cut
+        assert len(_press(skin, plain, x, 0.06)) == 2  # the flat atlas alone: two halves
+        (c,) = _press(skin, seam, x, 0.06)
+        assert c.x == pytest.approx(x, abs=1e-4) and c.y == pytest.approx(0.06, abs=1e-4)
+        assert c.force == pytest.approx(3.0, rel=0.01)
+        first, last = skin.element_id("fore", 1, 0), skin.element_id("fore", 1, 6)
+        assert set(c.elements) == {first, last}
+        (sp,) = skin.locate([c.x], [c.y])
+        angle = (x - band.x0 - 0.5 * skin.patches[0].col_pitch) / 0.045  # from element column 0
+        want = [0.045 * math.cos(angle), 0.045 * math.sin(angle), 0.05 + 0.04]
+        assert sp.link == "forearm" and sp.patch == "fore"
+        assert np.allclose(sp.position, want, atol=2e-4)
+        assert np.allclose(sp.normal, [math.cos(angle), math.sin(angle), 0.0], atol=5e-3)
+
+
+def test_a_press_across_two_patches_of_one_link_is_one_contact(skin) -> None:
+    est = SeamEstimator(skin.layout(), bands=skin.bands)
+    i = skin.row_of(skin.element_id("chest_r", 0, 0))
+    x = skin.atlas[i, 0] - 0.021  # 1 mm into chest_l from the seam of the two patches
+    (c,) = _press(skin, est, x, skin.atlas[i, 1] + 0.02, 2.0, 0.015)
+    assert set(c.elements) == {skin.element_id("chest_l", 0, 1), skin.element_id("chest_l", 1, 1),
+                               skin.element_id("chest_r", 0, 0), skin.element_id("chest_r", 1, 0)}
+    (sp,) = skin.locate([c.x], [c.y])
+    assert sp.link == "torso" and sp.patch == "chest_l"
+    assert np.allclose(sp.position, [0.08 - 0.021, 0.02, 0.1], atol=2e-4)
+
+
+def test_a_press_sliding_across_the_wrap_seam_keeps_its_id(skin) -> None:
+    (band,) = skin.bands
+    lay = skin.layout()
+    tracker = ContactTracker(SeamEstimator(lay, bands=skin.bands), birth_frames=2)
+    ids = set()
+    seen = 0
+    for k, x in enumerate(np.linspace(band.x0 + band.period - 0.03, band.x0 + band.period + 0.03, 41)):
+        disks = [(band.wrap(float(x)), 0.06, 3.0, 0.02)]
+        disks += band.ghosts(disks, skin.side)
+        d1, d2 = skin_response(lay, disks)
+        out = tracker.update(d1, d2, t=k * 0.01)
+        assert len(out) <= 1
+        ids |= {tc.id for tc in out}
+        if out and out[0].contact.observable[0]:  # (inside one column: its centre, not resolved)
+            seen += 1
+            assert abs(((out[0].contact.x - float(x)) + band.period / 2) % band.period - band.period / 2) < 5e-4
+    assert ids == {0} and seen >= 10
+
+
+def test_two_half_shells_on_one_cylinder_close_it_together() -> None:
+    text = """
+side = 0.04
+[[link]]
+name = "arm"
+[[patch]]
+name = "front"
+link = "arm"
+shape = "cylinder"
+radius = 0.05
+rows = 2
+cols = 4
+col_pitch = 0.039269908169872414
+[[patch]]
+name = "back"
+link = "arm"
+shape = "cylinder"
+radius = 0.05
+rows = 2
+cols = 4
+col_pitch = 0.039269908169872414
+rpy = [0.0, 0.0, 3.141592653589793]
+[[gateway]]
+name = "g"
+patch = "front"
+"""
+    with pytest.raises(SkinError, match="less than the element side"):
+        parse_skin(text)
+    s = parse_skin(text.replace("0.039269908169872414", "0.0401").replace("radius = 0.05", "radius = 0.0511"))
+    assert len(s.charts) == 1 and s.charts[0].patches == ("front", "back")
+    assert len(s.bands) == 1 and s.bands[0].period == pytest.approx(2 * math.pi * 0.0511)
+
+
+@pytest.mark.parametrize("change, message", [
+    (('link = "forearm"', 'link = "elbow"'), "no link 'elbow'"),
+    (("cols = 7", "cols = 3"), "at least 4 columns"),
+    (("radius = 0.045", "radius = 0.02"), "pitch around"),
+    (('origin = [0.08, 0.0, 0.1]', 'origin = [0.06, 0.0, 0.1]'), "overlap"),
+    (('[[gateway]]\nname = "chest"\npatch = "chest_l"', '[[gateway]]\nname = "chest"\npatch = "belly"'),
+     "no patch 'belly'"),
+    (("shape = \"plane\"\nrows = 2\ncols = 2\norigin = [0.0", "shape = \"plane\"\nwrap = true\nrows = 2\ncols = 2\norigin = [0.0"),
+     "only a cylinder"),
+    (("rows = 3", "rows = 3\ncolour = 1"), "unknown key 'colour'"),
+])
+def test_bad_descriptions_are_refused_naming_the_key(change, message) -> None:
+    text = SKIN.replace(*change)
+    assert text != SKIN
+    with pytest.raises(SkinError, match=message):
+        parse_skin(text, "test.toml")

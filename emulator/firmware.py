@@ -196,6 +196,9 @@ class FirmwareConfig:
     readout_window: int = 6 * _MS
     #: A child whose records stopped this long ago is no longer expected (nor its subtree).
     readout_forget: int = 2000 * _MS
+    #: Records ask for a per-hop acknowledgement and get one retry (False: sent once; a
+    #: lost one is listed missing above all the same)
+    readout_acks: bool = True
 
 
 def _rest(_tick: int) -> tuple[float, float]:
@@ -245,6 +248,7 @@ class Firmware:
         self.timebase = Timebase(self.crystal, self.clock, c.clock_hz)
         self.time_beacon_at = tick + self.rng.randrange(c.sync_period)
         self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries, ack_slack=c.ack_slack)
+        self.link.urgent_acks = c.readout_acks
         self.router = Router(self.me, c.gateway, max_hops=c.max_hops,
                              neighbour_timeout=4 * c.trickle_imax)
         self.trickle = Trickle(self.rng, c.trickle_imin, c.trickle_imax)

@@ -199,6 +199,11 @@ class FirmwareConfig:
     #: Records ask for a per-hop acknowledgement and get one retry (False: sent once; a
     #: lost one is listed missing above all the same)
     readout_acks: bool = True
+    #: Event-based, a bridge on the readout sends a sample at least every this many frames
+    #: (at its own phase, spread by its id), not only at its heartbeat: the host reads
+    #: "unchanged" only after a frame it knew, so an element whose record was lost on the
+    #: way is unknown until its next sample, and this bounds how long (0: heartbeat only)
+    readout_refresh: int = 10
 
 
 def _rest(_tick: int) -> tuple[float, float]:
@@ -567,6 +572,11 @@ class Firmware:
             self.counters["readout_no_route"] += 1  # nowhere to send it: the host sees no record of it
             return
         st = self.sampler.settings
+        refresh = c.readout_refresh
+        if not kept and refresh > 0 and s.index % refresh == _stagger(self.me, refresh):
+            kept = True
+            self.sampler.reporter.sent(s)
+            self.counters["readout_refreshed"] += 1
         state: State = ReadoutSample(self.me, s.c1, s.c2, s.flags & _OVERFLOWS) if kept else "u"
         depth = 0 if c.gateway else self.router.hops
         gates = st.measure_cycles()

@@ -1,22 +1,14 @@
-"""Contacts from one skin frame: what a contact estimate needs (snapshot, spec, job),
-and the estimator and tracker it runs, in the contact worker's process or inline.
+"""Contacts from the skin at one moment: what a contact estimate needs (snapshot, spec,
+job), and the estimator and tracker it runs, in the contact worker's process or inline.
 
 The worker builds its estimator from a small :class:`ContactSpec` and keeps it (with its
 tracks) per owner while the spec stays the same, so the estimate itself only ships the
-readings of one frame.
-
-**Never a confident wrong contact.** Where a contact's elements or their neighbours are
-unknown in the frame, the known readings cannot say how much of the press lies there:
-the contact lists them (``unknown_near``) and its uncertainty covers every position and
-force they leave open (:func:`bound_by_unknown`), instead of reporting the fit of the
-known share alone (a seam press with one side unknown was reported at the other side's
-centre with two thirds of its force)."""
+readings of one moment."""
 
 from __future__ import annotations
 
 from collections import OrderedDict
-import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,14 +33,15 @@ from numpy.typing import NDArray
 class ContactSnapshot:
     """What contact estimation needs of one moment; copied so the estimator may run in a thread."""
 
-    dc: FloatArray  # (n, 2) each element's ΔC in the frame (see daemon.readings)
+    dc: FloatArray  # (n, 2) each element's ΔC at the moment (see daemon.moment)
     touched: NDArray[np.bool_]
     t_host: float
     t_sample: FloatArray  # (n,) host time of each element's sample used (NaN: none)
-    cycle: NDArray[np.uint64]  # (n,) its cycle count (a scheduled sample's: its frame's global cycle)
+    cycle: NDArray[np.uint64]  # (n,) its bridge cycle count
     ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
-    t_frame: float  # host time of the skin frame estimated (its gates' start)
+    t_moment: float  # host time the skin is estimated at: every element's reading at or just before it
     unknown: NDArray[np.bool_] | None = None  # (n,) elements with no reading of this frame (None: all known)
+    again: bool = False  # the frame estimated last, taken again (a late onset of it came: Moments.take)
 
 
 @dataclass(frozen=True)
@@ -145,80 +138,44 @@ class ContactStage:
             self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
         self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
         self._row = {int(e): i for i, e in enumerate(layout.ids.tolist())}
-        e = layout.corner_edges
-        self._ring = [np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]]) for i in range(layout.n)]
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
         if snap.touched.any():
-            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host, at=snap.t_frame)
+            # When each known element's reading was taken: a new contact next to another
+            # waits until the elements between them were read since the press began (one
+            # of them late splits one press in two), while one disk could be both without
+            # those readings (see ContactTracker.step)
+            read_at = _ReadTimes(self._row, snap.t_sample if snap.unknown is None
+                                 else np.where(snap.unknown, np.nan, snap.t_sample))
+            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host,
+                                         at=snap.t_moment, read_at=read_at, again=snap.again)
         else:  # an empty frame still counts: tracks miss it and end (no contact to be born)
-            tracks = self.tracker.step([], snap.t_host, at=snap.t_frame)
-        unknown = snap.unknown if snap.unknown is not None else np.zeros(self.layout.n, dtype=bool)
-        if unknown.any():
-            # a contact that only unknown elements supported is not seen in this frame (not
-            # reported), and not missed either: it goes on under its id when they come back,
-            # within UNSEEN_FRAMES frames in a row, and ends after that
-            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[unknown]}, UNSEEN_FRAMES)
+            tracks = self.tracker.step([], snap.t_host, at=snap.t_moment, again=snap.again)
+        if snap.unknown is not None and snap.unknown.any():
+            # a contact that only unknown elements supported is no longer known: it ends
+            # now, not after the frames a missed contact is kept through
+            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[snap.unknown]})
             if gone:
                 tracks = [tc for tc in tracks if tc.id not in gone]
-        return [bound_by_unknown(_finite(tc.to_dict()), self.layout, self._row, self._ring, unknown)
-                for tc in tracks]
+        return [_finite(tc.to_dict()) for tc in tracks]
 
 
-#: Frames in a row a contact whose elements are all unknown is held (not reported, not
-#: missed) before it ends: 0.25 s at 100 Hz, longer than a lost record or a late gateway.
-UNSEEN_FRAMES = 25
+class _ReadTimes(Mapping[int, float]):
+    """Element id → sample time of its reading in a snapshot (NaN: unknown), looked up in
+    the snapshot's array: the tracker asks only about the few elements around a new
+    contact, so a skin of thousands of elements builds no table per frame."""
 
+    def __init__(self, row: dict[int, int], t: FloatArray) -> None:
+        self._row, self._t = row, t
 
-def bound_by_unknown(c: dict[str, Any], layout: SkinLayout, row: Mapping[int, int], ring: list[NDArray[np.int64]],
-                     unknown: NDArray[np.bool_]) -> dict[str, Any]:
-    """``c`` (a contact's ``to_dict``) with ``unknown_near``: the ids of the unknown elements
-    among its elements and their neighbours (corners included), sorted. Where there are any,
-    the press may reach into them by any amount the known readings leave open, so:
+    def __getitem__(self, element: int) -> float:
+        return float(self._t[self._row[element]])
 
-    * the region the contact may lie in is the bounding box of its elements and those;
-      along an axis where the unknown ones widen it, the position is the region's middle
-      and ``observable`` is False; along both axes σ covers the whole region (every
-      position in it lies within one σ), the covariance diagonal;
-    * the force may be larger by the pressure over the unknown elements' whole area, and
-      the diameter by as much: σ of each covers that.
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._row)
 
-    Without unknown neighbours ``c`` is returned as it is (with ``unknown_near`` empty)."""
-    rows = np.array([row[e] for e in c["elements"] if e in row], dtype=np.int64)
-    if rows.size == 0 or not unknown.any():
-        return {**c, "unknown_near": []}
-    near = np.unique(np.concatenate([rows, *(ring[r] for r in rows.tolist())]))
-    near = near[unknown[near]]
-    if near.size == 0:
-        return {**c, "unknown_near": []}
-    b = layout.bounds
-    own_lo, own_hi = b[rows, :2].min(axis=0), b[rows, 2:].max(axis=0)
-    every = np.concatenate([rows, near])
-    lo, hi = b[every, :2].min(axis=0), b[every, 2:].max(axis=0)
-    out = dict(c)
-    pos = [float(c["x"]), float(c["y"])]
-    sig = [float(c["sigma_x"]), float(c["sigma_y"])]
-    seen = list(c["observable"])
-    for a, (px, sx) in enumerate(zip(("x", "y"), ("sigma_x", "sigma_y"))):
-        if lo[a] < own_lo[a] - 1e-12 or hi[a] > own_hi[a] + 1e-12 or not math.isfinite(pos[a]):
-            pos[a], seen[a] = 0.5 * float(lo[a] + hi[a]), False
-        cover = max(pos[a] - float(lo[a]), float(hi[a]) - pos[a])
-        sig[a] = cover if not math.isfinite(sig[a]) else max(sig[a], cover)
-        out[px], out[sx] = pos[a], sig[a]
-    out["observable"] = seen
-    out["cov"] = [[sig[0] ** 2, 0.0], [0.0, sig[1] ** 2]]
-    out["sigma_xy"] = max(sig)
-    extra = float(np.prod(b[near, 2:] - b[near, :2], axis=1).sum())  # m² the press may also cover
-    pressure, force, diam = c.get("pressure"), c.get("force"), c.get("diameter")
-    if isinstance(pressure, float) and math.isfinite(pressure) and isinstance(force, float) and math.isfinite(force):
-        s = c.get("sigma_force")
-        out["sigma_force"] = max(s, pressure * extra) if isinstance(s, float) and math.isfinite(s) else pressure * extra
-    if isinstance(diam, float) and math.isfinite(diam):
-        wider = math.sqrt(diam * diam + 4.0 * extra / math.pi) - diam
-        s = c.get("sigma_diameter")
-        out["sigma_diameter"] = max(s, wider) if isinstance(s, float) and math.isfinite(s) else wider
-    out["unknown_near"] = [int(layout.ids[i]) for i in near.tolist()]
-    return out
+    def __len__(self) -> int:
+        return len(self._row)
 
 
 def _finite(d: dict[str, Any]) -> dict[str, Any]:

@@ -7,7 +7,6 @@ the truth when bridges fall silent or the line goes down.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Iterator
 
@@ -20,7 +19,7 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
-from cellbridge.protocol import Data, Readout, StreamDecoder, encode_stream
+from cellbridge.protocol import Data, StreamDecoder, encode_stream
 from pipeline_helpers import published, worker
 
 T0 = 1_800_000_000.0
@@ -29,11 +28,9 @@ UNDER = {6, 7, 10, 11}
 
 
 def gateway_reads(seconds: float, presses: list[Contact], kill: tuple[int, ...] = (), kill_at: float = 0.0,
-                  seed: int = 1, readout: bool = True) -> list[tuple[float, bytes]]:
-    """The gateway line's reads of a virtual 4x4 skin: readout records of skin frames, or
-    with ``readout`` False every bridge's DATA (bridges on no schedule: the fallback)."""
+                  seed: int = 1) -> list[tuple[float, bytes]]:
     mesh = meshgen.grid(4, 4)
-    vm = VirtualMesh(mesh, seed=seed, world=World(mesh, presses), random_epochs=True, readout=readout)
+    vm = VirtualMesh(mesh, seed=seed, world=World(mesh, presses), random_epochs=True)
     for b in kill:
         vm.kill(b, at=kill_at)
     vm.run(seconds)
@@ -76,17 +73,6 @@ def drive(reads: list[tuple[float, bytes]], until: float, step: float = 0.01,
 @pytest.fixture(scope="module")
 def press_reads() -> list[tuple[float, bytes]]:
     return gateway_reads(7.0, [Contact(4.0, 2.5, *CORNER, 3.0, 0.020)])
-
-
-@pytest.fixture(scope="module")
-def press_data() -> list[tuple[float, bytes]]:
-    """The same press, every bridge on no readout schedule (DATA: the fallback)."""
-    return gateway_reads(7.0, [Contact(4.0, 2.5, *CORNER, 3.0, 0.020)], readout=False)
-
-
-@pytest.fixture(scope="module", params=["readout", "data"])
-def either_reads(request, press_reads, press_data) -> list[tuple[float, bytes]]:
-    return press_reads if request.param == "readout" else press_data
 
 
 def test_samples_of_one_index_get_one_host_time(press_reads) -> None:
@@ -186,23 +172,18 @@ def test_a_wall_clock_step_moves_only_the_published_stamps(press_reads, plain_co
 
 def _with_index_moved(reads: list[tuple[float, bytes]], origin: int | None, after: float,
                       by: int) -> list[tuple[float, bytes]]:
-    """``reads`` with sample indices ``by`` later: in the first DATA frame or readout record
-    of ``origin`` read after ``after`` s (what a frame corrupted past the CRC, one in ~65 536
-    of the corrupted ones, or a bridge with a wrong mesh time delivers), or with ``origin``
-    None in every one from then on (the skin's time jumped: a new time root on another time)."""
+    """``reads`` with sample indices ``by`` later: in the first DATA frame of ``origin`` read
+    after ``after`` s (what a frame corrupted past the CRC, one in ~65 536 of the corrupted
+    ones, or a bridge with a wrong mesh time delivers), or with ``origin`` None in every DATA
+    frame from then on (the skin's time jumped: a new time root on another time)."""
     out, done = [], False
     for t, data in reads:
         if not done and t - T0 > after:
             frames = StreamDecoder().feed(data)
-            hit = [f for f in frames if isinstance(f.payload, (Data, Readout))
-                   and origin in (None, f.origin)][:1 if origin else None]
+            hit = [f for f in frames if isinstance(f.payload, Data) and origin in (None, f.origin)][:1 if origin else None]
             for f in hit:
                 p = f.payload
-                if isinstance(p, Readout):
-                    f.payload = dataclasses.replace(p, index=p.index + by)
-                else:
-                    f.payload = Data(p.mode, tuple(s._replace(index=s.index + by) for s in p.samples), p.oversampling,
-                                     p.rate)
+                f.payload = Data(p.mode, tuple(s._replace(index=s.index + by) for s in p.samples), p.oversampling, p.rate)
             if hit:
                 data, done = b"".join(encode_stream(f) for f in frames), origin is not None
         out.append((t, data))
@@ -210,12 +191,12 @@ def _with_index_moved(reads: list[tuple[float, bytes]], origin: int | None, afte
     return out
 
 
-def test_a_sample_index_from_the_future_neither_stops_nor_fakes_contacts(press_data) -> None:
-    """One DATA frame of a pressed bridge carries indices an hour ahead. No sample is taken
-    after it arrives: the skin frame must not jump an hour ahead (it did: a one-element contact
+def test_a_sample_index_from_the_future_neither_stops_nor_fakes_contacts(press_reads) -> None:
+    """One frame of a pressed bridge carries indices an hour ahead. No sample is taken after
+    it arrives: the skin frame must not jump an hour ahead (it did: a one-element contact
     at the wrong place with every other element unknown, then no estimate for the hour, the
     release never told), and health counts the samples whose index was not believed."""
-    reads = _with_index_moved(press_data, 6, 5.0, 100 * 3600)
+    reads = _with_index_moved(press_reads, 6, 5.0, 100 * 3600)
     contacts = [(t - T0, m) for t, topic, m in drive(reads, 7.0) if topic == "contact"]
     for t, m in contacts:
         assert m["t_sample"] is None or m["t_sample"] <= T0 + t + 1e-9, (t, m["t_sample"] - T0)
@@ -232,13 +213,12 @@ def test_a_sample_index_from_the_future_neither_stops_nor_fakes_contacts(press_d
     assert all(h["index_rejected"] == 0 for b, h in health["bridges"].items() if b != "6")
 
 
-def test_one_gateway_frame_with_a_wrong_index_does_not_remap_the_skin_time(either_reads) -> None:
-    """The gateway's own samples (or records) map mesh time to host time. One of its frames,
-    corrupted past the CRC, carrying indices an hour ahead, remapped the skin's time at once;
-    the true frames after it then lay an hour back: no estimate for 2 s, then the press ended
-    (``contacts: []``, 14 elements unknown) and came back as a new contact id. (A record so
-    corrupted is refused: its frame is lost, and no element is unknown.)"""
-    reads = _with_index_moved(either_reads, 1, 5.0, 100 * 3600)
+def test_one_gateway_frame_with_a_wrong_index_does_not_remap_the_skin_time(press_reads) -> None:
+    """The gateway's own samples map mesh time to host time. One of its frames, corrupted
+    past the CRC, carrying indices an hour ahead, remapped the skin's time at once; the true
+    frames after it then lay an hour back: no estimate for 2 s, then the press ended
+    (``contacts: []``, 14 elements unknown) and came back as a new contact id."""
+    reads = _with_index_moved(press_reads, 1, 5.0, 100 * 3600)
     contacts = [(t - T0, m) for t, topic, m in drive(reads, 7.0) if topic == "contact"]
     during = [(t, m) for t, m in contacts if 5.0 < t < 6.4]
     assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
@@ -248,11 +228,11 @@ def test_one_gateway_frame_with_a_wrong_index_does_not_remap_the_skin_time(eithe
     assert max(b - a for a, b in zip([5.0] + [t for t, _ in during], [t for t, _ in during] + [6.4])) < 0.1
 
 
-def test_a_jump_of_the_skin_time_is_followed(either_reads) -> None:
+def test_a_jump_of_the_skin_time_is_followed(press_reads) -> None:
     """Every bridge's indices an hour later from 5 s on (a new time root on another time): the
     map follows after a read, the press goes on as one contact, and every sample is on mesh
     time again."""
-    reads = _with_index_moved(either_reads, None, 5.0, 100 * 3600)
+    reads = _with_index_moved(press_reads, None, 5.0, 100 * 3600)
     run = list(drive(reads, 7.0))
     during = [(t - T0, m) for t, topic, m in run if topic == "contact" and 5.0 < t - T0 < 6.4]
     assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
@@ -261,16 +241,14 @@ def test_a_jump_of_the_skin_time_is_followed(either_reads) -> None:
     assert late and all(late)
 
 
-@pytest.mark.parametrize("readout", [True, False])
 @pytest.mark.parametrize("back", [100 * 3600, 150, 50])
-def test_a_jump_back_of_the_skin_time_is_followed(back, readout) -> None:
+def test_a_jump_back_of_the_skin_time_is_followed(back) -> None:
     """Every bridge's indices ``back`` frames earlier from 5 s on (a new time root whose time
     is behind the skin's: two skins joined, or the root gateway restarted with its counter
     at 0), as a jump ahead is (the test above). The map waited for 2 s of frames behind it
     before it started again: no estimate for as long as the jump (at most 2 s) while the
     press went on, and after an hour's jump the press came back under a new contact id."""
-    reads = _with_index_moved(gateway_reads(8.0, [Contact(4.0, 3.5, *CORNER, 3.0, 0.020)], readout=readout), None,
-                              5.0, -back)
+    reads = _with_index_moved(gateway_reads(8.0, [Contact(4.0, 3.5, *CORNER, 3.0, 0.020)]), None, 5.0, -back)
     run = list(drive(reads, 8.0))
     during = [(t - T0, m) for t, topic, m in run if topic == "contact" and 5.0 < t - T0 < 7.4]
     assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
@@ -298,14 +276,14 @@ def _wrapping_index(g: int, rate: int) -> int:
     raise AssertionError("no such index")
 
 
-def test_an_index_whose_instant_overflows_64_bits_is_not_on_a_skin_frame(press_data) -> None:
+def test_an_index_whose_instant_overflows_64_bits_is_not_on_a_skin_frame(press_reads) -> None:
     """One frame of a pressed bridge carries a rate of 65535 Hz and indices whose instants lie
     years ahead (a frame corrupted past the CRC). The global cycle was computed
     in uint64, which wrapped below the check meant for it: each sample was put on a skin frame
     1 s before its own (crafted so; any frame in 65 days of mesh time, by chance) and believed.
     Its instant is far in the future: it is not believed, and counted."""
     out, hit = [], 0
-    for t, data in press_data:
+    for t, data in press_reads:
         if not hit and t - T0 > 5.0:
             frames = StreamDecoder().feed(data)
             for f in frames:
@@ -527,13 +505,14 @@ def test_two_fingers_sharing_an_element_each_get_an_id_within_the_split_wait() -
         assert t - c.start < 0.1 and frame - c.start < 0.04, (k, t - c.start, frame - c.start)
         ids.append({d["id"] for _, _, d in mine})
         assert len(ids[k]) == 1, (k, ids[k])
-        # right in each frame's report, or it lists the neighbours it does not know (their
-        # record lost) and covers the truth with its σ
+        # right in each frame's last report: an untouched neighbour whose onset may still be
+        # on its way is unknown for the frame (listed), and the fit of the part seen may be
+        # off; when that onset comes the frame is taken again (finger 0: its two far
+        # elements' onsets came 5 ms after its first frame was estimated, 17.7 mm and 1.94
+        # of 3 N, then right, same frame)
         last = {frame: d for _, frame, d in mine}
         for d in last.values():
-            if d["missed"] == 0 and not d["unknown_near"]:
+            if d["missed"] == 0:
                 assert math.dist((d["x"], d["y"]), (c.x, c.y)) <= 1e-3 and abs(d["force"] - 3.0) <= 0.15, (k, d)
-            elif d["missed"] == 0:  # it says which neighbours it does not know, and its σ covers the truth
-                assert abs(d["x"] - c.x) <= d["sigma_x"] and abs(d["y"] - c.y) <= d["sigma_y"], (k, d)
     for k in range(n):
         assert ids[k] != ids[k + n], k

@@ -621,13 +621,14 @@ def _table(p: dict[str, Any], key: str) -> dict[Any, Any]:
 
 
 def _total(values: Any) -> float:
-    """The sum of the finite numbers among ``values`` (others ignored; inf if it overflows)."""
+    """The sum of the numbers among ``values`` (anything else is taken as absent); NaN
+    (shown as ``?``) when one of them is not finite: a sum it enters is not known."""
     total = 0.0
     for v in values:
         x = _num(v)
-        if math.isfinite(x):
+        if not math.isnan(x) or isinstance(v, float):
             total += x
-    return total
+    return total if math.isfinite(total) else math.nan
 
 
 def _name(key: Any) -> str:
@@ -662,7 +663,8 @@ def summarise_health(p: dict[str, Any]) -> dict[str, Any]:
     dropped = _table(_table(p, "pub"), "dropped")
     shown = sorted(((_name(n), n in up) for n in links), key=lambda t: t[0])[:4]
     link_text = "  ".join(f"{n}:{'up' if ok else 'DOWN'}" for n, ok in shown)
-    loss = lost / (lost + frames) if lost + frames > 0 else 0.0
+    seen = lost + frames
+    loss = lost / seen if seen > 0 else 0.0 if seen == 0 else math.nan  # NaN: a count not known
     return {
         "uptime": _num(p.get("uptime")),
         "links": len(links), "links_up": len(up), "link_text": link_text,

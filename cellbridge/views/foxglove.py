@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import signal
 import struct
 import sys
 import threading
@@ -35,6 +34,7 @@ from typing import Any
 from cellbridge.daemon.subscribe import jsonable
 from cellbridge.views.access import FOXGLOVE_WEB
 from cellbridge.views.model import Frame, SkinView, level_rgb
+from cellbridge.views.signals import ignore_stop_signals, on_stop_signal
 from cellbridge.views.source import add_source_arguments, open_source
 from cellbridge.views.subprotocol import LEGACY, SDK, SubprotocolFront
 from cellbridge.views.web import is_loopback_host
@@ -240,8 +240,7 @@ def run(args: argparse.Namespace) -> int:
     import foxglove
 
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):  # a second one while stopping changes nothing
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signal(stop.set)
     server = None
     front: SubprotocolFront | None = None
     try:
@@ -276,6 +275,7 @@ def run(args: argparse.Namespace) -> int:
                               f"{type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
                 last = now
     finally:
+        ignore_stop_signals()  # stopping now, however it came to it
         if server is not None:
             server.stop()  # sends every client a close frame, through the front
         if front is not None:

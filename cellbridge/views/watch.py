@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import signal
 import sys
 import time
 from typing import Any
 
 from cellbridge.views.model import SkinView, printable
+from cellbridge.views.signals import ignore_stop_signals, on_stop_signal
 from cellbridge.views.source import Source, add_source_arguments, open_source
 
 KEYS = "q quit  p pause  t tare  +/- force scale"
@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        ignore_stop_signals()
         source.close()
     return 0
 
@@ -178,8 +179,7 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
             self._shown_live: bool | None = None
             self.errors = 0
             loop = asyncio.get_running_loop()
-            for sig in (signal.SIGTERM, signal.SIGHUP):  # as q: the terminal restored (again: nothing more)
-                loop.add_signal_handler(sig, self.exit)
+            on_stop_signal(lambda: loop.call_soon_threadsafe(self.exit))  # as q: the terminal restored
 
         def tick(self) -> None:
             try:

@@ -26,7 +26,6 @@ import hmac
 import ipaddress
 import json
 import math
-import signal
 import socket
 import sys
 import threading
@@ -37,6 +36,7 @@ from typing import Any
 
 from cellbridge.views.access import host_allowed, origin_allowed
 from cellbridge.views.model import Frame, SkinView, level_rgb
+from cellbridge.views.signals import ignore_stop_signals, on_stop_signal
 from cellbridge.views.source import Source, add_source_arguments, open_source
 
 DEFAULT_HOST = "127.0.0.1"
@@ -289,13 +289,14 @@ class WebView:
         thread = threading.Thread(target=self.pump, name="zmq", daemon=True)
         thread.start()
         stopping = asyncio.Event()
-        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):  # a second one while stopping changes nothing
-            self.loop.add_signal_handler(sig, stopping.set)
+        loop = self.loop
+        on_stop_signal(lambda: loop.call_soon_threadsafe(stopping.set))
         pushing = asyncio.ensure_future(self.broadcast())
         try:
             await asyncio.wait([pushing, asyncio.ensure_future(stopping.wait())],
                                return_when=asyncio.FIRST_COMPLETED)
         finally:
+            ignore_stop_signals()
             pushing.cancel()
             await self.close_pages()
             self.stop.set()

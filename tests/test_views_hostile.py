@@ -11,6 +11,7 @@ import json
 import math
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -83,6 +84,16 @@ class WebPage:
             if pred(last):
                 return last
         raise AssertionError(f"no matching frame within {timeout} s; last: {str(last)[:2000]}")
+
+    def latest(self) -> dict[str, Any]:
+        """The newest frame: the next one, or the last of those already waiting."""
+        last = self.frame()
+        while True:
+            try:
+                last = json.loads(self.ws.recv(timeout=0))
+            except TimeoutError:
+                return last
+            self.frames += 1
 
     def close(self) -> None:
         self._stack.close()
@@ -249,13 +260,19 @@ def test_a_view_never_mixes_two_sources_into_one_picture() -> None:
     with FakeDaemon() as fd, server_view("web", fd) as (web, port):
         page = WebPage(port)
         try:
-            _two_sources(fd, 10)
-            first = page.frame(lambda f: cell(f, 5) is not None and f["counters"]["received"].get("element", 0) > 10)
-            heard = cell(first, 5)["force"]  # type: ignore[index]
-            assert heard in (1.0, 4.0)  # the first source heard, whichever it was ...
-            for _ in range(10):  # ... and only that one, frame after frame
+            seq = 0
+            end = time.monotonic() + 20
+            while time.monotonic() < end:  # robot:5560 alone, until the view hears it: the first source heard
+                fd.publish("element", element(seq, {5: 1.0, 1: 0.0}, "robot:5560"))
+                seq += 1
+                f = page.frame()
+                if cell(f, 5) is not None:
+                    break
+            for _ in range(10):  # then both, robot:5562 last: the picture stays robot:5560's
+                n = f["counters"]["received"].get("element", 0)
                 _two_sources(fd, 1)
-                assert cell(page.frame(), 5)["force"] == heard  # type: ignore[index]
+                f = page.frame(lambda f: f["counters"]["received"].get("element", 0) >= n + 2)
+                assert cell(f, 5)["force"] == 1.0  # type: ignore[index]
         finally:
             page.close()
 
@@ -401,3 +418,59 @@ def test_watch_ends_on_sigterm_and_ctrl_c_with_the_terminal_restored(how: str) -
     assert rc == 0 and "Traceback" not in text
     assert text.rfind("\x1b[?1049l") > text.rfind("\x1b[?1049h") >= 0  # back from the alternate screen
     assert took < 3.0, f"watch took {took:.1f} s to exit"
+
+
+# ---- 14: the page's contact label leaves the elements' own text readable ------------------------
+
+RECORD_TEXT = """(() => {
+  window.__texts = [];
+  const fill = CanvasRenderingContext2D.prototype.fillText;
+  const clear = CanvasRenderingContext2D.prototype.clearRect;
+  CanvasRenderingContext2D.prototype.clearRect = function (...a) {
+    if (this.canvas.id === "skin") window.__texts = [];
+    return clear.apply(this, a);
+  };
+  CanvasRenderingContext2D.prototype.fillText = function (text, x, y, ...rest) {
+    if (this.canvas.id === "skin") {
+      const m = this.measureText(text);  // the ink's box around the point drawn at
+      window.__texts.push({text: String(text), x0: x - m.actualBoundingBoxLeft, x1: x + m.actualBoundingBoxRight,
+                           y0: y - m.actualBoundingBoxAscent, y1: y + m.actualBoundingBoxDescent});
+    }
+    return fill.call(this, text, x, y, ...rest);
+  };
+  return true;
+})()"""
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium is not installed")
+@pytest.mark.parametrize("x, y", [(0.040, 0.022), (0.060, 0.028), (0.020, 0.040), (0.100, 0.110), (0.052, 0.030)])
+def test_the_pages_contact_label_is_never_drawn_over_an_elements_id_or_force(x: float, y: float,
+                                                                            tmp_path: Any) -> None:
+    """The contact's label was drawn over the force and id of the element beside it."""
+    from browser import browser
+
+    forces = {b: 2.0 for b in range(1, 10)}
+    with FakeDaemon() as fd, server_view("web", fd) as (web, port), browser(tmp_path) as page:
+        page.navigate(f"http://127.0.0.1:{port}/")
+        page.wait_for("window.cellbridge && cellbridge.connects === 1", what="the page's connection")
+        page.evaluate(RECORD_TEXT)
+        end = time.monotonic() + 30
+        texts: list[dict[str, Any]] = []
+        seq = 0
+        while time.monotonic() < end:
+            fd.publish("element", element(seq, forces))
+            fd.publish("contact", {"v": 1, "seq": seq, "source": "robot:5560", "t_sample": 1.0, "contacts": [
+                {"id": 7, "x": x, "y": y, "force": 2.0, "diameter": 0.010, "observable": [True, True]}]})
+            seq += 1
+            time.sleep(0.1)
+            texts = page.evaluate("window.__texts")
+            if any(t["text"].startswith("#7 ") for t in texts) and sum(t["text"] == "2.0N" for t in texts) == 9:
+                break
+        labels = [t for t in texts if t["text"].startswith("#")]
+        own = [t for t in texts if not t["text"].startswith("#")]
+        assert len(labels) == 1 and len(own) == 18, texts  # 9 ids, 9 forces, one contact label
+
+        def overlap(a: dict[str, float], b: dict[str, float]) -> bool:
+            return a["x0"] < b["x1"] and b["x0"] < a["x1"] and a["y0"] < b["y1"] and b["y0"] < a["y1"]
+
+        assert [t["text"] for t in own if overlap(labels[0], t)] == [], (labels[0], own)

@@ -24,12 +24,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import struct
 import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from cellbridge.daemon.subscribe import jsonable
 from cellbridge.views.access import FOXGLOVE_WEB
@@ -83,12 +84,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def grid_bytes(frame: Frame) -> bytes:
-    """The Grid's cell data: row-major from the layout's lowest y, (force N, ΔC1 pF) float32 each."""
-    nan = math.nan
-    data = [[nan, nan] for _ in range(frame.rows * frame.cols)]
+    """The Grid's cell data: row-major from the layout's lowest y, (force N, ΔC1 pF) float32
+    each; NaN where unknown, ±inf beyond float32's range."""
+    data = np.full((frame.rows * frame.cols, 2), np.nan, dtype=np.float64)
     for c in frame.cells:
-        data[c.row * frame.cols + c.col] = [c.force, c.dc1 * 1e12 if math.isfinite(c.dc1) else nan]
-    return struct.pack(f"<{2 * len(data)}f", *(v for cell in data for v in cell))
+        data[c.row * frame.cols + c.col] = (c.force, c.dc1 * 1e12)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return data.astype("<f4").tobytes()
 
 
 def make_grid(frame: Frame, stamp_ns: int) -> Any:

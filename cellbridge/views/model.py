@@ -241,19 +241,25 @@ class Frame:
     counters: dict[str, Any]
 
 
+def _ramp(level: float) -> tuple[int, int, int]:
+    stops = ((0.0, (20, 24, 60)), (0.25, (20, 110, 150)), (0.6, (240, 200, 40)), (1.0, (220, 30, 30)))
+    for (a, ca), (b, cb) in zip(stops, stops[1:]):
+        if level <= b:
+            t = (level - a) / (b - a)
+            return tuple(int(round(u + (v - u) * t)) for u, v in zip(ca, cb))  # type: ignore[return-value]  # three channels in, three out
+    return stops[-1][1]
+
+
+_RAMP = [_ramp(i / 4096) for i in range(4097)]  # the ramp in 4096 steps (a colour step is ~1/20 of that)
+
+
 def level_rgb(level: float) -> tuple[int, int, int]:
     """The colour of a level 0..1 (dark blue, through teal and yellow, to red); grey for NaN.
 
     One ramp for every view, so a force looks the same in the terminal, the page and Foxglove."""
     if not math.isfinite(level):
         return (90, 90, 90)
-    stops = ((0.0, (20, 24, 60)), (0.25, (20, 110, 150)), (0.6, (240, 200, 40)), (1.0, (220, 30, 30)))
-    level = min(1.0, max(0.0, level))
-    for (a, ca), (b, cb) in zip(stops, stops[1:]):
-        if level <= b:
-            t = (level - a) / (b - a)
-            return tuple(int(round(u + (v - u) * t)) for u, v in zip(ca, cb))  # type: ignore[return-value]  # three channels in, three out
-    return stops[-1][1]
+    return _RAMP[round(min(1.0, max(0.0, level)) * 4096)]
 
 
 def format_force(f: float) -> str:

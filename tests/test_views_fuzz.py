@@ -175,6 +175,12 @@ def test_the_views_survive_10000_random_and_mistyped_messages(tmp_path: Path) ->
                 elements = fox.last.get("/cellbridge/elements", {}).get("elements", [])
             assert any(e["bridge"] == 1 and e["force"] == 3.5 for e in elements)
             assert fox.error is None, fox.error
+            end = time.monotonic() + 30
+            while fox.last["/cellbridge/health"].get("uptime") != 4242.0 and time.monotonic() < end:
+                final_state(fd, seq)
+                seq += 1
+                time.sleep(0.2)
+            assert fox.last["/cellbridge/health"]["view"]["errors"] == 0  # its last-resort guard never caught anything
             watch.wait_for(r"uptime 4242 s", since=mark, timeout=60)
             assert web.poll() is None and fx.poll() is None and watch.proc.poll() is None
         finally:
@@ -182,5 +188,5 @@ def test_the_views_survive_10000_random_and_mistyped_messages(tmp_path: Path) ->
             client.close()
         out = bytes(watch.output[mark:]).decode("utf-8", "replace")
         assert foreign_sequences(out) == [], sorted(set(foreign_sequences(out)))[:20]
-        assert "\x1b]52" not in out and "\x1b[31m" not in out
+        assert "\x1b]52" not in out and "\x1b[31m" not in out and "view errors" not in out
         assert f["view"]["errors"] == 0  # the page server's last-resort guard never had to catch anything

@@ -271,7 +271,7 @@ def test_a_view_never_mixes_two_sources_into_one_picture() -> None:
             for _ in range(10):  # then both, robot:5562 last: the picture stays robot:5560's
                 n = f["counters"]["received"].get("element", 0)
                 _two_sources(fd, 1)
-                f = page.frame(lambda f: f["counters"]["received"].get("element", 0) >= n + 2)
+                f = page.frame(lambda f, n=n: f["counters"]["received"].get("element", 0) >= n + 2)
                 assert cell(f, 5)["force"] == 1.0  # type: ignore[index]
         finally:
             page.close()

@@ -466,7 +466,7 @@ class SkinView:
         contacts = p.get("contacts")
         if not isinstance(contacts, list):
             raise ValueError("contact without contacts")
-        out = []
+        out: list[Contact] = []
         for c in contacts[:MAX_COLUMN]:
             cid = c.get("id") if isinstance(c, dict) else None
             if not isinstance(cid, int) or isinstance(cid, bool):
@@ -543,13 +543,13 @@ class SkinView:
         quantity = "force" if not cells or any(c.quantity == "force" for c in cells) else "dc"
         drawn = []
         for c in self.contacts:
-            col, row = ((c.x - x0) / side, (c.y - y0) / side) if fits else (math.nan, math.nan)
-            if not (-MAX_GRID <= col <= 2 * MAX_GRID and -MAX_GRID <= row <= 2 * MAX_GRID):
-                col = row = math.nan  # far off the skin (or no position): listed, not drawn
+            gx, gy = ((c.x - x0) / side, (c.y - y0) / side) if fits else (math.nan, math.nan)
+            if not (-MAX_GRID <= gx <= 2 * MAX_GRID and -MAX_GRID <= gy <= 2 * MAX_GRID):
+                gx = gy = math.nan  # far off the skin (or no position): listed, not drawn
             d = min(c.diameter / side, 2.0 * MAX_GRID) if math.isfinite(c.diameter) else 0.0
             level = min(1.0, max(0.0, c.force / self.force_scale)) if math.isfinite(c.force) else math.nan
             drawn.append(DrawnContact(
-                id=c.id, col=col, row=row, diameter=d, level=level,
+                id=c.id, col=gx, row=gy, diameter=d, level=level,
                 force=c.force, x=c.x, y=c.y, diameter_m=c.diameter, observable=c.observable, valid=c.valid,
                 label=f"#{c.id} {format_force(c.force)}", line=contact_line(c)))
         return Frame(rows=rows, cols=cols, side=side, origin=(x0, y0), quantity=quantity,

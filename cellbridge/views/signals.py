@@ -13,11 +13,12 @@ from __future__ import annotations
 import signal
 from collections.abc import Callable
 from types import FrameType
+from typing import Any
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)
 
 
-def on_stop_signal(stop: Callable[[], None]) -> None:
+def on_stop_signal(stop: Callable[[], Any]) -> None:
     """Call ``stop`` (in the main thread, between two bytecodes: it should only set a flag or
     schedule the stop) on the first SIGTERM, SIGHUP or SIGINT, and ignore every later one."""
     def handler(signum: int, frame: FrameType | None) -> None:

@@ -69,11 +69,10 @@ def stop_watch(fd: FakeDaemon) -> tuple[float, str, int]:
         os.killpg(watch.proc.pid, signal.SIGTERM)
         rc = watch.proc.wait(30)
         took = time.monotonic() - t0
-        time.sleep(0.1)
-        restored = watch.text().rfind("\x1b[?1049l") > watch.text().rfind("\x1b[?1049h")
-        return took, "terminal restored" if restored else "terminal NOT restored", rc
     finally:
-        watch.stop()
+        watch.stop()  # (the reader takes every byte written before the exit)
+    restored = watch.text().rfind("\x1b[?1049l") > watch.text().rfind("\x1b[?1049h")
+    return took, "terminal restored" if restored else "terminal NOT restored", rc
 
 
 def main() -> None:

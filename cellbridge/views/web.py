@@ -69,7 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "examples:\n"
         "  cellbridge web                                  # http://127.0.0.1:8080/\n"
         "  cellbridge web --port 8090 --endpoint tcp://127.0.0.1:5560\n"
-        "  cellbridge web --host 0.0.0.0 --token-file /etc/cellbridge/web.token"
+        "  cellbridge web --host 0.0.0.0 --token-file /etc/cellbridge/web.token\n"
+        "  cellbridge web --endpoint tcp://127.0.0.1:5570 --source robot:5562 \\\n"
+        "      --control tcp://127.0.0.1:5563          # one of two daemons behind cellbridge proxy"
     )
     add_source_arguments(parser)
     g = parser.add_argument_group("page")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import hmac
 import ipaddress
 import json
@@ -43,6 +44,11 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
 STATIC = ("index.html", "app.js", "style.css")
 CLOSE_WAIT = 0.5  #: s a page has to answer the close frame on stop (then its connection is dropped)
+#: Bytes of frames the kernel holds for a page. A page that reads slowly (a slow link, a
+#: busy browser) then makes the server skip frames (counted) instead of queueing seconds
+#: of them, and the heartbeat's ping is not stuck behind megabytes.
+PAGE_SNDBUF = 256 * 1024
+HEARTBEAT = 20.0  #: s between pings to a page; one not answered within half that is closed (a dead page)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,7 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "examples:\n"
         "  cellbridge web                                  # http://127.0.0.1:8080/\n"
         "  cellbridge web --port 8090 --endpoint tcp://127.0.0.1:5560\n"
-        "  cellbridge web --host 0.0.0.0 --token-file /etc/cellbridge/web.token"
+        "  cellbridge web --host 0.0.0.0 --token-file /etc/cellbridge/web.token\n"
+        "  cellbridge web --endpoint tcp://127.0.0.1:5570 --source robot:5562 \\\n"
+        "      --control tcp://127.0.0.1:5563          # one of two daemons behind cellbridge proxy"
     )
     add_source_arguments(parser)
     g = parser.add_argument_group("page")
@@ -202,8 +210,12 @@ class WebView:
         from aiohttp import WSMsgType, web
         if not self.allowed(request):
             return web.Response(status=403, text="403: token required\n")
-        ws = web.WebSocketResponse(heartbeat=10.0, timeout=CLOSE_WAIT)
+        ws = web.WebSocketResponse(heartbeat=HEARTBEAT, timeout=CLOSE_WAIT)
         await ws.prepare(request)
+        sock = request.transport.get_extra_info("socket") if request.transport is not None else None
+        if sock is not None:  # few frames wait in the kernel: a slow page gets the newest, never a backlog
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, PAGE_SNDBUF)
         self.pages[ws] = {"select": None, "sent_t": -math.inf, "busy": False}
         self.counters["pages"] += 1
         try:

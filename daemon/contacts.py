@@ -6,11 +6,11 @@ tracks) per owner while the spec stays the same, so the estimate itself only shi
 readings of one frame.
 
 **Never a confident wrong contact.** Where a contact's elements or their neighbours are
-unknown in the frame, the known readings cannot say how much of the press lies there:
-the contact lists them (``unknown_near``) and its uncertainty covers every position and
-force they leave open (:func:`bound_by_unknown`), instead of reporting the fit of the
-known share alone (a seam press with one side unknown was reported at the other side's
-centre with two thirds of its force)."""
+unknown in the frame, the contact lists them (``unknown_near``), and where the known
+readings do not pin it, its uncertainty covers every position and force the unknown ones
+leave open (:func:`bound_by_unknown`), instead of reporting the fit of the known share
+alone (a seam press with one side unknown was reported at the other side's centre with
+half its force, σ_F 4 mN)."""
 
 from __future__ import annotations
 
@@ -167,13 +167,15 @@ class ContactStage:
 def bound_by_unknown(c: dict[str, Any], layout: SkinLayout, row: Mapping[int, int], ring: list[NDArray[np.int64]],
                      unknown: NDArray[np.bool_]) -> dict[str, Any]:
     """``c`` (a contact's ``to_dict``) with ``unknown_near``: the ids of the unknown elements
-    among its elements and their neighbours (corners included), sorted. Where there are any,
-    the press may reach into them by any amount the known readings leave open, so:
+    among its elements and their neighbours (corners included), sorted. The fit leaves them
+    out; where it still pins a coordinate (``observable``: the known readings' cost rises
+    either side), the disk is what the known readings say, whatever the unknown ones read.
+    Along an axis it does not pin (or with no fitted disk) the press may reach into the
+    unknown elements by any amount, so there:
 
-    * the region the contact may lie in is the bounding box of its elements and those;
-      along an axis where the unknown ones widen it, the position is the region's middle
-      and ``observable`` is False; along both axes σ covers the whole region (every
-      position in it lies within one σ), the covariance diagonal;
+    * the contact may lie anywhere in the bounding box of its elements and those: its
+      position is the box's middle along that axis (``observable`` stays False) and σ
+      reaches the box's far edges (every position in it within one σ);
     * the force may be larger by the pressure over the unknown elements' whole area, and
       the diameter by as much: σ of each covers that.
 
@@ -183,25 +185,29 @@ def bound_by_unknown(c: dict[str, Any], layout: SkinLayout, row: Mapping[int, in
         return {**c, "unknown_near": []}
     near = np.unique(np.concatenate([rows, *(ring[r] for r in rows.tolist())]))
     near = near[unknown[near]]
+    out = {**c, "unknown_near": [int(layout.ids[i]) for i in near.tolist()]}
     if near.size == 0:
-        return {**c, "unknown_near": []}
+        return out
     b = layout.bounds
     own_lo, own_hi = b[rows, :2].min(axis=0), b[rows, 2:].max(axis=0)
     every = np.concatenate([rows, near])
     lo, hi = b[every, :2].min(axis=0), b[every, 2:].max(axis=0)
-    out = dict(c)
+    fitted = bool(c.get("valid")) and bool(c.get("fit_ok"))
+    seen = [bool(v) for v in c["observable"]]
     pos = [float(c["x"]), float(c["y"])]
     sig = [float(c["sigma_x"]), float(c["sigma_y"])]
-    seen = list(c["observable"])
-    for a, (px, sx) in enumerate(zip(("x", "y"), ("sigma_x", "sigma_y"))):
-        if lo[a] < own_lo[a] - 1e-12 or hi[a] > own_hi[a] + 1e-12 or not math.isfinite(pos[a]):
-            pos[a], seen[a] = 0.5 * float(lo[a] + hi[a]), False
+    widened = False
+    for a in range(2):
+        reaches = lo[a] < own_lo[a] - 1e-12 or hi[a] > own_hi[a] + 1e-12  # an unknown element out along a
+        if not reaches or (fitted and seen[a] and math.isfinite(pos[a])):
+            continue
+        pos[a], seen[a], widened = 0.5 * float(lo[a] + hi[a]), False, True
         cover = max(pos[a] - float(lo[a]), float(hi[a]) - pos[a])
         sig[a] = cover if not math.isfinite(sig[a]) else max(sig[a], cover)
-        out[px], out[sx] = pos[a], sig[a]
-    out["observable"] = seen
-    out["cov"] = [[sig[0] ** 2, 0.0], [0.0, sig[1] ** 2]]
-    out["sigma_xy"] = max(sig)
+    if not widened:
+        return out
+    out.update(x=pos[0], y=pos[1], sigma_x=sig[0], sigma_y=sig[1], observable=seen, sigma_xy=max(sig),
+               cov=[[sig[0] ** 2, 0.0], [0.0, sig[1] ** 2]])
     extra = float(np.prod(b[near, 2:] - b[near, :2], axis=1).sum())  # m² the press may also cover
     pressure, force, diam = c.get("pressure"), c.get("force"), c.get("diameter")
     if isinstance(pressure, float) and math.isfinite(pressure) and isinstance(force, float) and math.isfinite(force):
@@ -211,7 +217,6 @@ def bound_by_unknown(c: dict[str, Any], layout: SkinLayout, row: Mapping[int, in
         wider = math.sqrt(diam * diam + 4.0 * extra / math.pi) - diam
         s = c.get("sigma_diameter")
         out["sigma_diameter"] = max(s, wider) if isinstance(s, float) and math.isfinite(s) else wider
-    out["unknown_near"] = [int(layout.ids[i]) for i in near.tolist()]
     return out
 
 

@@ -1,4 +1,4 @@
-"""Skin frames from the gateways' readout records: complete by construction, or by a deadline.
+"""Skin frames from the gateways' readout records: complete by the records, or by a deadline.
 
 A bridge on the readout schedule samples frame ``k`` with every other bridge (its gates
 start at mesh time ``k / rate``), and after the frame's readout its gateway writes one
@@ -6,14 +6,17 @@ READOUT record of ``k`` on its serial line, accounting for every element routed 
 it: each is a *sample*, *unchanged* (its bridge said its reading stayed within the
 reporting threshold of its last sample) or *missing* (its slot stayed empty). So the
 host needs no guess from timing. :class:`SkinFrames` is fed the decoded records with
-their arrival and gives out **complete skin frames**, in order, each once. Frame ``k``
-is complete as soon as, for every active gateway (one that delivered a record within
-``active_for``), either its record of ``k`` is in (all its parts) or a record of a
-later frame is (a serial line keeps its order: the record of ``k`` was lost, and the
-elements it would have accounted for are unknown). Else it goes out at its
-**deadline**: the frame's host time + the largest readout span of the active gateways
-+ the serial time of their largest record + ``margin``. A record of a frame already
-given out is *late*: counted, never used to rewrite what was given out.
+their arrival and gives out **skin frames**, in order, each once. Frame ``k`` is complete
+as soon as every active gateway's record of it (one that delivered a record within
+``active_for``) came whole, all its parts; else it goes out at its **deadline**: the
+frame's host time + the largest readout span of the active gateways + the serial time
+of their largest record + ``margin``, without what did not come (those elements are
+unknown). A gateway writes a record as soon as it is complete, so records of two frames
+may come in either order: a frame waits for the frames of its rate before it (each
+complete or at its deadline), and a frame given out after one of which no record came
+at all says so (``after_gap``: an "unchanged" in it may refer to a sample in the lost
+record, so its bridges are missing there). A record of a frame already given out is
+*late*: counted, never used to rewrite what was given out.
 
 Sans-I/O and layout-free: bridges are ids, times are the caller's. The caller maps a
 frame's mesh time to host time (:class:`~cellbridge.daemon.clock.SkinClock`) and turns
@@ -22,10 +25,10 @@ the states into element readings (:mod:`cellbridge.daemon.readings`).
 Bounded whatever arrives: at most ``max_pending`` frames wait (a new one beyond that
 sends the oldest out at once, as if its deadline had passed), at most ``max_gateways``
 gateways are followed, and a record whose frame lies after its own arrival (an index
-corrupted past the CRC, a gateway on another time) is refused. A gateway whose
-records go behind the frames given out while no other active gateway is ahead
-(the skin's time went back: its root restarted and counts from 0) restarts the
-sequence once its next record agrees; one such record alone is only late.
+corrupted past the CRC, a gateway on another time) is refused. A gateway whose records
+go behind the frames given out while no other active gateway is ahead (the skin's time
+went back: its root restarted and counts from 0) restarts the sequence once its next
+record agrees; one such record alone is only late.
 """
 
 from __future__ import annotations
@@ -77,9 +80,10 @@ class SkinFrame:
     """One skin frame as the records said it: each bridge accounted for is in exactly one
     of ``bridges`` (a sample, with ``c1``, ``c2``, ``flags``, ``mode``, ``oversampling``
     aligned), ``unchanged`` or ``missing``; a bridge in none is unknown too (its
-    gateway's record did not arrive, or it is on no schedule). A gateway whose record of
-    the frame before did not come (lost on its line: no bridge knows) cannot vouch for
-    "unchanged": its bridges said so are ``missing`` here (counted in ``unchanged_after_gap``)."""
+    gateway's record did not arrive, or it is on no schedule). After a frame of which no
+    record came at all (``after_gap``) no bridge is unchanged: "unchanged" may refer to a
+    sample in the lost frame, so those bridges are ``missing`` (counted in
+    ``unchanged_after_gap``)."""
 
     index: int
     rate: int
@@ -95,14 +99,14 @@ class SkinFrame:
     complete: bool  #: every active gateway's record came, whole
     by_deadline: bool  #: given out at its deadline (or pushed out by newer frames), not by the records
     gateways: tuple[int, ...]  #: the gateways whose record of it came (whole or in part)
+    after_gap: bool = False  #: frames of its rate just before it were given out by no record
 
 
 class _Gateway:
-    __slots__ = ("last_key", "last", "arrival", "span", "serial", "back", "back_key")
+    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key")
 
     def __init__(self) -> None:
         self.last_key = -1  # instant of its newest record taken
-        self.last: tuple[int, int] | None = None  # (index, rate) of that record
         self.arrival = -math.inf  # when that record came
         self.span = 0.0  # s, its newest record's readout span
         self.serial = 0.0  # s, its newest record's time on the line
@@ -111,22 +115,21 @@ class _Gateway:
 
 
 class _Pending:
-    __slots__ = ("index", "rate", "key", "t", "deadline", "records", "gaps")
+    __slots__ = ("index", "rate", "key", "t", "deadline", "records")
 
     def __init__(self, index: int, rate: int, key: int, t: float, deadline: float) -> None:
         self.index, self.rate, self.key, self.t, self.deadline = index, rate, key, t, deadline
         self.records: dict[int, dict[int, RecordPart]] = {}  # gateway -> part -> record part
-        self.gaps: set[int] = set()  # gateways whose record before this one was not of the frame before
 
 
 class SkinFrames:
-    """Readout records in, complete skin frames out (see the module).
+    """Readout records in, skin frames out (see the module).
 
     ``margin``: s added to a frame's deadline beyond its readout and serial time (the
     host's own read and scheduling delay); ``active_for``: s a gateway counts as active
     after its last record (the daemon passes ``health.bridge_timeout``)."""
 
-    def __init__(self, margin: float = 0.01, active_for: float = 2.0, max_pending: int = 64,
+    def __init__(self, margin: float = 0.02, active_for: float = 2.0, max_pending: int = 64,
                  max_gateways: int = 1024) -> None:
         if not (margin >= 0 and active_for > 0 and max_pending >= 1 and max_gateways >= 1):
             raise ValueError("SkinFrames needs margin >= 0, active_for > 0, max_pending >= 1, max_gateways >= 1")
@@ -139,9 +142,10 @@ class SkinFrames:
         self._ready: list[SkinFrame] = []  # given out at the next take (pushed out, or flushed at a restart)
         self._done = -1  # instant of the newest frame given out
         self._last: tuple[int, int] | None = None  # (index, rate) of the newest frame given out
+        self._restarted = False  # the sequence restarted: the next frame given out follows a gap
         self.counts: dict[str, int] = dict.fromkeys(
             ("records", "late_records", "rejected_records", "duplicate_parts", "conflicts", "unchanged_after_gap",
-             "frames_complete", "frames_incomplete", "frames_by_deadline", "frames_pushed_out", "frames_missed",
+             "frames_complete", "frames_by_deadline", "frames_pushed_out", "frames_missed",
              "restarts"), 0)
 
     def configure(self, margin: float, active_for: float, max_pending: int) -> None:
@@ -152,7 +156,7 @@ class SkinFrames:
     def add(self, gateway: int, rec: RecordPart, arrival: float, t_frame: float, serial: float = 0.0) -> None:
         """One record part written by ``gateway``, arrived at host time ``arrival``;
         ``t_frame``: the host time of its frame's gate start (NaN: not known, refused);
-        ``serial``: s the record took on the line. Never raises for what a line brings."""
+        ``serial``: s the record takes on the line. Never raises for what a line brings."""
         span = rec.span_us * 1e-6
         if not (math.isfinite(t_frame) and t_frame + span <= arrival + FUTURE_SLACK and rec.rate > 0):
             self.counts["rejected_records"] += 1  # its frame lies after its own arrival: a wrong index
@@ -165,26 +169,21 @@ class SkinFrames:
             g = self._gw[gateway] = _Gateway()
         key = rec.index * _NS // rec.rate
         self.counts["records"] += 1
-        if key <= self._done:
-            if not self._went_back(gateway, g, key, arrival):
-                self.counts["late_records"] += 1
-                if key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one joining, or
-                    # back): it is active, and the frames after this wait for it
-                    g.arrival, g.last_key, g.last = arrival, max(g.last_key, key), None
-                    g.span, g.serial = span, float(serial)
-                return
+        if key <= self._done and not self._went_back(gateway, g, key, arrival):
+            self.counts["late_records"] += 1
+            if key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one joining, or
+                # back): it is active, and the frames after this wait for its records
+                g.arrival, g.last_key, g.span, g.serial = arrival, max(g.last_key, key), span, float(serial)
+            return
         g.back = 0
-        gap = g.last is not None and g.last != (rec.index, rec.rate) and g.last != (rec.index - 1, rec.rate)
-        g.last_key, g.last, g.arrival, g.span, g.serial = key, (rec.index, rec.rate), arrival, span, float(serial)
+        g.last_key, g.arrival, g.span, g.serial = max(g.last_key, key), arrival, span, float(serial)
         p = self._pending.get((rec.index, rec.rate))
         if p is None:
             if len(self._pending) >= self.max_pending:
                 self._push_out()
-            p = self._pending[(rec.index, rec.rate)] = _Pending(rec.index, rec.rate, key, t_frame, math.nan)
             active = self._active(arrival)
-            p.deadline = t_frame + max(g.span for g in active) + max(g.serial for g in active) + self.margin
-        if gap:
-            p.gaps.add(gateway)
+            deadline = t_frame + max(a.span for a in active) + max(a.serial for a in active) + self.margin
+            p = self._pending[(rec.index, rec.rate)] = _Pending(rec.index, rec.rate, key, t_frame, deadline)
         parts = p.records.setdefault(gateway, {})
         first = next(iter(parts.values()), None)
         if first is not None and first.parts != rec.parts:
@@ -206,10 +205,11 @@ class SkinFrames:
         if any(o.last_key >= self._done for gw, o in self._gw.items()
                if gw != gateway and arrival - o.arrival <= self.active_for):
             return False
-        self._flush()
-        self._done, self._last = -1, None
+        for p in sorted(self._pending.values(), key=lambda q: q.key):  # the old time's frames, as they are
+            self._ready.append(self._give(p, None))
+        self._done, self._last, self._restarted = -1, None, True
         for o in self._gw.values():
-            o.last_key, o.last = -1, None
+            o.last_key = -1
         self.counts["restarts"] += 1
         return True
 
@@ -233,20 +233,16 @@ class SkinFrames:
         return any(now - g.arrival <= self.active_for for g in self._gw.values())
 
     def take(self, now: float) -> list[SkinFrame]:
-        """The frames complete by ``now`` (see the module), oldest first, each given out once."""
+        """The frames ready by ``now`` (see the module), oldest first, each given out once."""
         out, self._ready = self._ready, []
         if not self._pending:
             return out
-        active = {gw: g for gw, g in self._gw.items() if now - g.arrival <= self.active_for}
-        ordered = sorted(self._pending.values(), key=lambda p: p.key)
-        last, whole = -1, []
-        for i, p in enumerate(ordered):
-            w = self._whole(p, active)
-            whole.append(w)
-            if (w is not None and active) or p.deadline <= now:
-                last = i
-        for p, w in zip(ordered[:last + 1], whole):
-            out.append(self._give(p, w, by_deadline=w is None or not active))
+        active = [gw for gw, g in self._gw.items() if now - g.arrival <= self.active_for]
+        for p in sorted(self._pending.values(), key=lambda q: q.key):
+            whole = bool(active) and all(self._whole(p, gw) for gw in active)
+            if p.deadline > now and not (whole and not self._gap_open(p, now)):
+                break  # (in order: the frames after it wait for it)
+            out.append(self._give(p, whole))
         return out
 
     def due(self) -> float:
@@ -256,44 +252,40 @@ class SkinFrames:
             return -math.inf
         return min((p.deadline for p in self._pending.values()), default=math.inf)
 
-    def _whole(self, p: _Pending, active: dict[int, _Gateway]) -> bool | None:
-        """None while an active gateway's record of ``p`` may still come; else whether every
-        one came whole (False: one was lost, or came in part, as a later record shows)."""
-        whole = True
-        for gw, g in active.items():
-            parts = p.records.get(gw)
-            if parts and len(parts) == next(iter(parts.values())).parts:
-                continue
-            if g.last_key <= p.key:
-                return None
-            whole = False
-        return whole
+    @staticmethod
+    def _whole(p: _Pending, gateway: int) -> bool:
+        parts = p.records.get(gateway)
+        return bool(parts) and len(parts) == next(iter(parts.values())).parts
+
+    def _gap_open(self, p: _Pending, now: float) -> bool:
+        """Whether a frame of ``p``'s rate between the last given out and ``p`` may still come
+        (a gateway writes each record as soon as it is complete: two frames' records may come
+        in either order): until the deadline of the one just before ``p``."""
+        last = self._last
+        if last is None or last[1] != p.rate or not 1 < p.index - last[0] <= self.max_pending:
+            return False
+        return now < p.deadline - 1.0 / p.rate
 
     def _push_out(self) -> None:
         """More than ``max_pending`` frames waiting: the oldest goes out now."""
         p = min(self._pending.values(), key=lambda q: q.key)
         self.counts["frames_pushed_out"] += 1
-        self._ready.append(self._give(p, None, by_deadline=True))
+        self._ready.append(self._give(p, None))
 
-    def _flush(self) -> None:
-        """The sequence restarts: every frame waiting goes out as it is."""
-        for p in sorted(self._pending.values(), key=lambda q: q.key):
-            self._ready.append(self._give(p, None, by_deadline=True))
-
-    def _give(self, p: _Pending, whole: bool | None, by_deadline: bool) -> SkinFrame:
+    def _give(self, p: _Pending, whole: bool | None) -> SkinFrame:
+        """``whole``: every active gateway's record of ``p`` came (None or False: given out
+        at its deadline, or pushed out)."""
         del self._pending[(p.index, p.rate)]
         c = self.counts
-        if by_deadline:
-            c["frames_by_deadline"] += 1
-        elif whole:
-            c["frames_complete"] += 1
-        else:
-            c["frames_incomplete"] += 1
-        if self._last is not None and self._last[1] == p.rate and p.index > self._last[0] + 1:
-            c["frames_missed"] += p.index - self._last[0] - 1  # no record of them came at all
+        by_deadline = not whole
+        c["frames_by_deadline" if by_deadline else "frames_complete"] += 1
+        last, gap = self._last, self._restarted
+        if last is not None and last[1] == p.rate and p.index > last[0] + 1:
+            c["frames_missed"] += p.index - last[0] - 1  # no record of them came at all
+            gap = True
         if p.key > self._done:
-            self._done, self._last = p.key, (p.index, p.rate)
-        return _frame(p, bool(whole) and not by_deadline, by_deadline, self)
+            self._done, self._last, self._restarted = p.key, (p.index, p.rate), False
+        return _frame(p, bool(whole), by_deadline, gap, self)
 
     def counters(self, now: float) -> dict[str, Any]:
         """What health reports of the frames (counts since start, and now)."""
@@ -301,13 +293,13 @@ class SkinFrames:
                 "newest": None if self._last is None else {"index": self._last[0], "rate": self._last[1]}}
 
 
-def _frame(p: _Pending, complete: bool, by_deadline: bool, owner: SkinFrames) -> SkinFrame:
+def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owner: SkinFrames) -> SkinFrame:
     """The frame of ``p``'s record parts: every bridge in one state; a bridge two parts
     disagree on (not a sample or unchanged against missing) is missing, and counted."""
     cols: list[list[int]] = [[], [], [], [], [], []]  # bridge, c1, c2, flags, mode, oversampling
     unchanged: list[int] = []
     missing: list[int] = []
-    for gw, parts in p.records.items():
+    for parts in p.records.values():
         for rec in parts.values():
             n = len(rec.samples)
             if n:
@@ -315,19 +307,19 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, owner: SkinFrames) ->
                     col.extend(vals)
                 cols[4].extend([int(rec.mode)] * n)
                 cols[5].extend([rec.oversampling] * n)
-            if gw in p.gaps:  # a record of this gateway was lost before: "unchanged" may refer to
-                missing.extend(rec.unchanged)  # a sample the host never got
-                owner.counts["unchanged_after_gap"] += len(rec.unchanged)
-            else:
-                unchanged.extend(rec.unchanged)
+            unchanged.extend(rec.unchanged)
             missing.extend(rec.missing)
+    if after_gap and unchanged:  # "unchanged" may refer to a sample in the frame lost
+        owner.counts["unchanged_after_gap"] += len(unchanged)
+        missing, unchanged = missing + unchanged, []
     arrays = [np.array(c, dtype=np.int64) for c in cols]
     u, m = np.array(unchanged, dtype=np.int64), np.array(missing, dtype=np.int64)
     every = np.concatenate([arrays[0], u, m])
     if np.unique(every).size != every.size:  # a bridge in two parts or two gateways' records
         arrays, u, m = _merge(arrays, u, m, owner)
     b, c1, c2, fl, mo, ov = arrays
-    return SkinFrame(p.index, p.rate, p.t, b, c1, c2, fl, mo, ov, u, m, complete, by_deadline, tuple(sorted(p.records)))
+    return SkinFrame(p.index, p.rate, p.t, b, c1, c2, fl, mo, ov, u, m, complete, by_deadline,
+                     tuple(sorted(p.records)), after_gap)
 
 
 def _merge(arrays: list[NDArray[np.int64]], u: NDArray[np.int64], m: NDArray[np.int64],

@@ -337,18 +337,18 @@ class Pipeline:
 
     def _readouts(self, link: str, records: list[tuple[int, Readout]], now: float) -> None:
         """READOUT record parts a gateway wrote (:mod:`cellbridge.daemon.frames`): each record
-        teaches the skin clock (its frame's readout end reached the host at ``now`` at the
-        earliest) and joins its frame; the bridges it accounts for with a sample or unchanged
-        were heard (:meth:`_fold_heard`)."""
+        teaches the skin clock (it cannot reach the host before its frame's gates opened: a
+        gateway sends it as soon as it is complete, the schedule's end being only the latest)
+        and joins its frame; the bridges it accounts for with a sample or unchanged were heard
+        (:meth:`_fold_heard`)."""
         part_s = PART_BYTES * 10 / self._baud.get(link, 1_000_000)  # s a part takes on the line, at most
-        hz = self.chip.clock_hz
         via = self._link_index.setdefault(link, len(self._link_index))
         for gw, rec in records:
             g = self._cycle_of(rec.index, rec.rate)
             t = math.nan  # (a nonsense index: the record is refused, and counted)
             if g >= 0:
                 if rec.part == 0:
-                    self._teach(gw, g + int(rec.span_us * hz // 1_000_000), now)
+                    self._teach(gw, g, now)
                 t = self.skin_clock.frame_time(g, now)
             self.frames.add(gw, rec, now, t, rec.parts * part_s)
             if math.isfinite(t):

@@ -64,21 +64,39 @@ def test_a_frame_waits_for_every_active_gateway_then_comes_whole() -> None:
     assert f.complete and states(f) == {1: (2, 2), 9: (3, 3)} and f.gateways == (1, 9)
 
 
-def test_a_gateways_later_record_tells_its_record_of_a_frame_was_lost() -> None:
-    """A serial line keeps its order: gateway 9's record of frame 4 coming first means its
-    record of 3 will not; frame 3 goes out at once, without 9's elements, not at the deadline."""
+def test_records_of_one_gateway_in_either_order_give_the_frames_in_order() -> None:
+    """A gateway writes a record as soon as it is complete: the record of frame 4 may come
+    before the one of 3. Frame 4 waits for 3 (until 3's deadline at most), then both go
+    out, 3 first, each whole."""
+    sf = SkinFrames(0.05)
+    for k in (1, 2):
+        sf.add(1, record(k, {1: (k, k)}), arrive(k), t_of(k))
+    assert [f.index for f in sf.take(arrive(2))] == [1, 2]
+    sf.add(1, record(4, {1: (4, 4)}), arrive(4), t_of(4))
+    assert sf.take(arrive(4)) == []  # frame 3 may still come
+    sf.add(1, record(3, {1: (3, 3)}), arrive(4) + 0.001, t_of(3))
+    f3, f4 = sf.take(arrive(4) + 0.001)
+    assert (f3.index, f4.index) == (3, 4) and f3.complete and f4.complete and not f4.after_gap
+    assert sf.counts["late_records"] == 0 and sf.counts["frames_missed"] == 0
+
+
+def test_a_frame_lost_whole_holds_the_next_until_its_deadline_and_is_told() -> None:
+    """No record of frame 3 came at all: frame 4 (complete) waits until 3's deadline, then
+    goes out after a gap: its "unchanged" may refer to a sample in frame 3, so those bridges
+    are missing in it."""
     sf = SkinFrames(MARGIN)
     for k in (1, 2):
-        sf.add(1, record(k, {1: (1, 1)}), arrive(k), t_of(k))
-        sf.add(9, record(k, {9: (9, 9)}), arrive(k), t_of(k))
+        sf.add(1, record(k, {1: (k, k)}, unchanged=(2,)), arrive(k), t_of(k))
     sf.take(arrive(2))
-    sf.add(1, record(3, {1: (3, 3)}), arrive(3), t_of(3))
-    sf.add(1, record(4, {1: (4, 4)}), arrive(4), t_of(4))
-    sf.add(9, record(4, {9: (4, 4)}), arrive(4), t_of(4))  # its record of 3 was lost on the line
-    f3, f4 = sf.take(arrive(4))
-    assert (f3.index, f3.complete, f3.by_deadline) == (3, False, False)
-    assert states(f3) == {1: (3, 3)}  # 9 is in no state: unknown
-    assert f4.complete and sf.counts["frames_incomplete"] == 1
+    sf.add(1, record(4, {1: (4, 4)}, unchanged=(2,)), arrive(4), t_of(4))
+    deadline_3 = t_of(3) + SPAN_US * 1e-6 + MARGIN
+    assert sf.take(deadline_3 - 1e-6) == []
+    (f4,) = sf.take(deadline_3 + 1e-6)
+    assert f4.index == 4 and f4.complete and f4.after_gap and states(f4) == {1: (4, 4), 2: "missing"}
+    assert sf.counts["frames_missed"] == 1 and sf.counts["unchanged_after_gap"] == 1
+    sf.add(1, record(5, {1: (5, 5)}, unchanged=(2,)), arrive(5), t_of(5))
+    (f5,) = sf.take(arrive(5))
+    assert not f5.after_gap and states(f5) == {1: (5, 5), 2: "unchanged"}
 
 
 def test_a_frame_goes_out_at_its_deadline_and_not_before() -> None:
@@ -122,13 +140,14 @@ def test_a_record_in_parts_is_complete_once_every_part_came() -> None:
     assert sf.counts["duplicate_parts"] == 1
 
 
-def test_a_part_lost_leaves_its_bridges_unknown_once_a_later_record_came() -> None:
-    sf = SkinFrames(MARGIN)
+def test_a_part_lost_leaves_its_bridges_unknown_from_its_deadline() -> None:
+    sf = SkinFrames(0.05)
     sf.add(1, record(5, {1: (1, 1)}, part=0, parts=2), arrive(5), t_of(5))
     sf.add(1, record(6, {1: (1, 1), 2: (2, 2)}), arrive(6), t_of(6))
-    f5, f6 = sf.take(arrive(6))
-    assert states(f5) == {1: (1, 1)} and not f5.complete and not f5.by_deadline
-    assert f6.complete
+    assert sf.take(arrive(6)) == []  # (frame 6 waits for 5)
+    f5, f6 = sf.take(t_of(5) + SPAN_US * 1e-6 + 0.05)
+    assert states(f5) == {1: (1, 1)} and not f5.complete and f5.by_deadline
+    assert f6.complete and not f6.after_gap
 
 
 def test_a_bridge_in_two_gateways_records() -> None:
@@ -234,8 +253,9 @@ def test_gateways_followed_are_bounded() -> None:
 def test_with_records_lost_at_random_every_frame_comes_out_once_in_order_and_says_only_what_came(
         lost: list[tuple[bool, bool, bool]], gateways_lost_part: int) -> None:
     """Three gateways, each record lost or not (the last gateway's in two parts, one of them
-    lost when asked); every record that came is read exactly as written, every frame a record
-    of which came goes out once, in order, by the records or at its deadline."""
+    lost when asked); every record that came is read exactly as written (but "unchanged" after
+    a frame of which no record came), every frame a record of which came goes out once, in
+    order, by the records or at its deadline."""
     sf = SkinFrames(MARGIN)
     written: dict[int, dict[int, object]] = {}
     got: list[SkinFrame] = []
@@ -259,23 +279,12 @@ def test_with_records_lost_at_random_every_frame_comes_out_once_in_order_and_say
     assert [f.index for f in got] == sorted(written)  # each frame a record of which came, once, in order
     for f in got:
         said = written[f.index]
+        assert f.after_gap == (f.index - 1 not in written and f.index > 0)
         for b, state in states(f).items():  # nothing said that was not written; unchanged only
-            # where the gateway's record of the frame before came (else it may refer to a lost sample)
-            assert state == said[b] or (state == "missing" and said[b] == "unchanged"), (f.index, b, state)
-            if said[b] == "unchanged":
-                assert (state == "unchanged") == _came_before(lost, gateways_lost_part, f.index, b), (f.index, b)
+            # where a record of the frame before came (else it may refer to a lost sample)
+            assert state == said[b] or (state == "missing" and said[b] == "unchanged" and f.after_gap), (f.index, b)
         drop = (False, False, False) if f.index == 0 else lost[f.index - 1]
         assert f.complete == (not any(drop))  # every gateway's record came whole
-
-
-def _came_before(lost: list[tuple[bool, bool, bool]], part_lost: int, k: int, bridge: int) -> bool:
-    """Whether the record of frame k - 1 of the gateway that accounts for ``bridge`` came (or
-    frame k is its first)."""
-    if k == 0:
-        return True
-    gw = bridge // 10
-    drop = (False, False, False) if k - 1 == 0 else lost[k - 2]
-    return not drop[gw - 1] or (gw == 3 and bool(part_lost))  # (gateway 3 lost only a part: a part came)
 
 
 def _as_frame(r: Readout) -> SkinFrame:

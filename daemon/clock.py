@@ -220,20 +220,25 @@ class SkinClock:
     Jumps are believed only when confirmed: a gateway's point the map puts more than
     ``slack`` after its own arrival (a new root on another time, or a frame corrupted past
     the CRC), or more than ``slack`` behind that gateway's newest point (the skin's time
-    went back), moves the map only once the gateway's next point agrees; until then,
-    frames behind such a point are not mapped.
+    went back; or records of frames seconds old, which a confused relay may still pass
+    on in a burst), moves the map only once ``confirm`` such points in a row, over at least
+    ``confirm_time`` s of arrivals, agree with each other (their mesh times as far apart as
+    their arrivals); until then, frames behind such a point are not mapped. A point the map
+    takes in between starts the count again.
     """
 
-    def __init__(self, hz: float, slack: float = 0.25, memory: float = 10.0, memory_keys: int = 2500) -> None:
+    def __init__(self, hz: float, slack: float = 0.25, memory: float = 10.0, memory_keys: int = 2500,
+                 confirm: int = 3, confirm_time: float = 0.1) -> None:
         self.hz = float(hz)
         self.slack = slack
+        self.confirm, self.confirm_time = confirm, confirm_time
         self.memory = memory  # s of frames whose host time is kept once given
         self.memory_keys = memory_keys  # frames kept before forgetting old ones is looked at
         self.map = BridgeClock(hz, bits=64)
         self.resets = 0
         self._memo: dict[int, float] = {}  # global cycle of a frame -> its host time
         self._newest = -1
-        self._jump: tuple[int, float] | None = None  # (g, arrival) of a gateway point ahead of or behind the map
+        self._jump: list[tuple[int, float]] = []  # (g, arrival) of gateway points in a row ahead of or behind the map
         self._by_gateway: dict[int, int] = {}  # gateway -> newest global cycle of its own the map took
         self._back = -1  # while a jump back waits for confirmation: frames behind this are not believed
 
@@ -272,13 +277,19 @@ class SkinClock:
     def _believed(self, g: int, now: float, back: bool) -> bool:
         """Whether a gateway's point of global cycle ``g``, arrived at ``now``, may teach the
         map: at once unless the map puts it more than ``slack`` after its own arrival or it is
-        ``back``; then once the gateway's next point agrees with it."""
+        ``back``; then once ``confirm`` such points in a row, over ``confirm_time``, agree."""
         if not self.map.synced or (not back and float(self.map.to_host(np.array([g], dtype=np.uint64))[0])
                                    <= now + self.slack):
-            self._jump = None
+            self._jump = []
             return True
-        seen, self._jump = self._jump, (g, now)
-        return seen is not None and abs((g - seen[0]) / self.hz - (now - seen[1])) <= self.slack
+        run = self._jump
+        if run and not abs((g - run[-1][0]) / self.hz - (now - run[-1][1])) <= self.slack:
+            run.clear()  # not the same jump: a point of its own
+        run.append((g, now))
+        if len(run) < self.confirm or now - run[0][1] < self.confirm_time - 1e-9:
+            return False
+        run.clear()
+        return True
 
     def frame_time(self, g: int, now: float) -> float:
         """:meth:`frame_times` of one frame (a readout record's), without arrays once it is mapped."""

@@ -27,8 +27,8 @@ sends the oldest out at once, as if its deadline had passed), at most ``max_gate
 gateways are followed, and a record whose frame lies after its own arrival (an index
 corrupted past the CRC, a gateway on another time) is refused. A gateway whose records
 go behind the frames given out while no other active gateway is ahead (the skin's time
-went back: its root restarted and counts from 0) restarts the sequence once its next
-record agrees; one such record alone is only late.
+went back: its root restarted and counts from 0) restarts the sequence once three in a
+row over 0.1 s agree; fewer, or a burst of old records among current ones, are only late.
 """
 
 from __future__ import annotations
@@ -47,6 +47,10 @@ _NS = 1_000_000_000
 #: s a record's frame may lie after the record's arrival (the host's map is off by
 #: milliseconds at most; further, the index is wrong).
 FUTURE_SLACK = 0.25
+#: Records in a row behind the frames given out, consistent and over at least CONFIRM_TIME s
+#: of arrivals, that restart the sequence (a burst of old records is no restart).
+CONFIRM = 3
+CONFIRM_TIME = 0.1
 _SAMPLE, _UNCHANGED, _MISSING = 0, 1, 2
 
 
@@ -103,15 +107,17 @@ class SkinFrame:
 
 
 class _Gateway:
-    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key")
+    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key", "back_at", "back_since")
 
     def __init__(self) -> None:
         self.last_key = -1  # instant of its newest record taken
         self.arrival = -math.inf  # when that record came
         self.span = 0.0  # s, its newest record's readout span
         self.serial = 0.0  # s, its newest record's time on the line
-        self.back = 0  # records in a row behind the frames given out
-        self.back_key = -1
+        self.back = 0  # records in a row behind the frames given out, as far apart as their arrivals
+        self.back_key = -1  # the last of them, and when it came
+        self.back_at = -math.inf
+        self.back_since = -math.inf  # when the first of them came
 
 
 class _Pending:
@@ -179,6 +185,8 @@ class SkinFrames:
         g.last_key, g.arrival, g.span, g.serial = max(g.last_key, key), arrival, span, float(serial)
         p = self._pending.get((rec.index, rec.rate))
         if p is None:
+            if len(self._pending) >= self.max_pending:  # (a backlog read at once: those ready go first)
+                self._ready = self.take(arrival)
             if len(self._pending) >= self.max_pending:
                 self._push_out()
             active = self._active(arrival)
@@ -195,12 +203,16 @@ class SkinFrames:
         parts[rec.part] = rec
 
     def _went_back(self, gateway: int, g: _Gateway, key: int, arrival: float) -> bool:
-        """A record of ``gateway`` behind the frames given out: late, or the skin's time went
-        back. True (and the sequence restarted) when this is the gateway's second such record
-        in a row, later than the first, and no other active gateway is ahead."""
-        again = g.back > 0 and key > g.back_key
-        g.back, g.back_key = g.back + 1, key
-        if not again:
+        """A record of ``gateway`` behind the frames given out: late (a relay may pass on a
+        record seconds old), or the skin's time went back. True (and the sequence restarted)
+        when this is the gateway's ``CONFIRM``-th such record in a row, over ``CONFIRM_TIME``
+        s, each later than the one before by as much as it arrived later, and no other active
+        gateway is ahead."""
+        ok = g.back > 0 and key > g.back_key and abs((key - g.back_key) / _NS - (arrival - g.back_at)) <= FUTURE_SLACK
+        if not ok:
+            g.back_since = arrival
+        g.back, g.back_key, g.back_at = (g.back + 1 if ok else 1), key, arrival
+        if g.back < CONFIRM or arrival - g.back_since < CONFIRM_TIME - 1e-9:
             return False
         if any(o.last_key >= self._done for gw, o in self._gw.items()
                if gw != gateway and arrival - o.arrival <= self.active_for):

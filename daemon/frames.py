@@ -164,23 +164,26 @@ class SkinFrames:
         ``t_frame``: the host time of its frame's gate start (NaN: not known, refused);
         ``serial``: s the record takes on the line. Never raises for what a line brings."""
         span = rec.span_us * 1e-6
-        if not (math.isfinite(t_frame) and t_frame + span <= arrival + FUTURE_SLACK and rec.rate > 0):
-            self.counts["rejected_records"] += 1  # its frame lies after its own arrival: a wrong index
-            return
+        # a frame after the record's own arrival: a wrong index (or the host's map not yet
+        # following a jump of the skin's time); refused, though it counts towards a restart
+        mapped = math.isfinite(t_frame) and t_frame + span <= arrival + FUTURE_SLACK
         g = self._gw.get(gateway)
         if g is None:
-            if len(self._gw) >= self.max_gateways and not self._prune(arrival):
+            if not mapped or (len(self._gw) >= self.max_gateways and not self._prune(arrival)):
                 self.counts["rejected_records"] += 1
                 return
             g = self._gw[gateway] = _Gateway()
         key = rec.index * _NS // rec.rate
-        self.counts["records"] += 1
         if key <= self._done and not self._went_back(gateway, g, key, arrival):
-            self.counts["late_records"] += 1
-            if key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one joining, or
-                # back): it is active, and the frames after this wait for its records
+            self.counts["late_records" if mapped else "rejected_records"] += 1
+            if mapped and key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one
+                # joining, or back): it is active, and the frames after this wait for its records
                 g.arrival, g.last_key, g.span, g.serial = arrival, max(g.last_key, key), span, float(serial)
             return
+        if not mapped:
+            self.counts["rejected_records"] += 1
+            return
+        self.counts["records"] += 1
         g.back = 0
         g.last_key, g.arrival, g.span, g.serial = max(g.last_key, key), arrival, span, float(serial)
         p = self._pending.get((rec.index, rec.rate))

@@ -275,7 +275,9 @@ def test_a_jump_back_of_the_skin_time_is_followed(back, readout) -> None:
     during = [(t - T0, m) for t, topic, m in run if topic == "contact" and 5.0 < t - T0 < 7.4]
     assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1
     ts = [5.0] + [t for t, _ in during] + [7.4]
-    assert max(b - a for a, b in zip(ts, ts[1:])) < 0.1, max(b - a for a, b in zip(ts, ts[1:]))
+    # (the map and the frames follow once the new time has held for 0.1 s: a burst of old
+    # records passed on by a relay is no jump)
+    assert max(b - a for a, b in zip(ts, ts[1:])) < 0.15, max(b - a for a, b in zip(ts, ts[1:]))
     # aligned batches: five frames complete at once every 50 ms, the newest is estimated
     assert sum(1 for _, m in during if len(m["contacts"]) == 1 and not m["unknown"]) > 40
     lag = [t - (m["t_sample"] - T0) for t, m in during if t > 5.5]

@@ -155,13 +155,19 @@ class ContactStage:
             tracks = self.tracker.step([], snap.t_host, at=snap.t_frame)
         unknown = snap.unknown if snap.unknown is not None else np.zeros(self.layout.n, dtype=bool)
         if unknown.any():
-            # a contact that only unknown elements supported is no longer known: it ends
-            # now, not after the frames a missed contact is kept through
-            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[unknown]})
+            # a contact that only unknown elements supported is not seen in this frame (not
+            # reported), and not missed either: it goes on under its id when they come back,
+            # within UNSEEN_FRAMES frames in a row, and ends after that
+            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[unknown]}, UNSEEN_FRAMES)
             if gone:
                 tracks = [tc for tc in tracks if tc.id not in gone]
         return [bound_by_unknown(_finite(tc.to_dict()), self.layout, self._row, self._ring, unknown)
                 for tc in tracks]
+
+
+#: Frames in a row a contact whose elements are all unknown is held (not reported, not
+#: missed) before it ends: 0.25 s at 100 Hz, longer than a lost record or a late gateway.
+UNSEEN_FRAMES = 25
 
 
 def bound_by_unknown(c: dict[str, Any], layout: SkinLayout, row: Mapping[int, int], ring: list[NDArray[np.int64]],

@@ -196,6 +196,14 @@ class FirmwareConfig:
     readout_window: int = 6 * _MS
     #: A child whose records stopped this long ago is no longer expected (nor its subtree).
     readout_forget: int = 2000 * _MS
+    #: Records ask for a per-hop acknowledgement and get one retry (False: sent once; a
+    #: lost one is listed missing above all the same)
+    readout_acks: bool = True
+    #: Event-based, a bridge on the readout sends a sample at least every this many frames
+    #: (at its own phase, spread by its id), not only at its heartbeat: the host reads
+    #: "unchanged" only after a frame it knew, so an element whose record was lost on the
+    #: way is unknown until its next sample, and this bounds how long (0: heartbeat only)
+    readout_refresh: int = 10
 
 
 def _rest(_tick: int) -> tuple[float, float]:
@@ -245,6 +253,7 @@ class Firmware:
         self.timebase = Timebase(self.crystal, self.clock, c.clock_hz)
         self.time_beacon_at = tick + self.rng.randrange(c.sync_period)
         self.link = LinkLayer(self.me, c.cells, self.radio, c.queue_len, c.max_retries, ack_slack=c.ack_slack)
+        self.link.urgent_acks = c.readout_acks
         self.router = Router(self.me, c.gateway, max_hops=c.max_hops,
                              neighbour_timeout=4 * c.trickle_imax)
         self.trickle = Trickle(self.rng, c.trickle_imin, c.trickle_imax)
@@ -563,6 +572,11 @@ class Firmware:
             self.counters["readout_no_route"] += 1  # nowhere to send it: the host sees no record of it
             return
         st = self.sampler.settings
+        refresh = c.readout_refresh
+        if not kept and refresh > 0 and s.index % refresh == _stagger(self.me, refresh):
+            kept = True
+            self.sampler.reporter.sent(s)
+            self.counters["readout_refreshed"] += 1
         state: State = ReadoutSample(self.me, s.c1, s.c2, s.flags & _OVERFLOWS) if kept else "u"
         depth = 0 if c.gateway else self.router.hops
         gates = st.measure_cycles()

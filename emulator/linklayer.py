@@ -71,6 +71,10 @@ class LinkLayer:
         #: backoff, and is given up after ``urgent_retries`` retries (its slot is over by then)
         self.urgent: deque[tuple[int, Raw, int]] = deque()  # (tick queued, record, rank)
         self.urgent_retries = 1
+        #: Whether a record asks for a per-hop acknowledgement (and gets its retry). Without,
+        #: a lost record is listed missing by the relay above it all the same; the real-time
+        #: shells send records so, since an acknowledgement there crosses two processes.
+        self.urgent_acks = True
         #: a record still queued this long after it was (no parent meanwhile) is given up:
         #: its frame's slots are over, and the relays above listed it missing already
         self.urgent_ttl = 200 * 50_000
@@ -229,6 +233,8 @@ class LinkLayer:
                 u.attempts += 1
                 u.deadline = radio.tx_until + self._ack_wait + self.extra_wait
                 self._on_radio = None
+                if not self.urgent_acks:
+                    self.counters["urgent_sent"] += 1
             elif f is not None and out[0] is f.data and f.deadline < 0:
                 f.attempts += 1
                 f.deadline = radio.tx_until + self._ack_wait + self.extra_wait
@@ -291,8 +297,13 @@ class LinkLayer:
         if parent is None or not self.urgent:
             return False
         _, first, rank = self.urgent.popleft()
-        data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent, _ACK)
+        data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent,
+                       _ACK if self.urgent_acks else 0)
         u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank)
+        if not self.urgent_acks:
+            self._on_radio = u
+            radio.send(data, self.cells, tick, urgent=True, rank=rank)
+            return True
         if len(self.outstanding) >= 16:  # bounded: the oldest is given up
             old = next(iter(self.outstanding))
             del self.outstanding[old]

@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     world = World(mesh, bridges=[br.id])
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
                                  settings=Settings(rate_hz=args.rate, reporting=args.reporting), ack_slack=ACK_SLACK,
-                                 readout_depths=mesh.readout_depths(), readout_window=READOUT_WINDOW,
+                                 readout_acks=False, readout_depths=mesh.readout_depths(), readout_window=READOUT_WINDOW,
                                  transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate)),
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
     port = None

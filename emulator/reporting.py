@@ -131,6 +131,11 @@ class Reporter:
         self.suppressed += 1
         return False
 
+    def sent(self, s: Sample) -> None:
+        """``s`` went out although :meth:`wants` did not ask for it (the readout's refresh):
+        it is the reference of what follows, as any sample sent is."""
+        self._last = s
+
     def _settled(self, s: Sample, last: Sample) -> bool:
         """Watching a change settle: True when ``s`` completes ``SETTLE_SAMPLES`` samples
         that agree within the settle band and the first of them lies outside it from the

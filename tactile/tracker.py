@@ -80,6 +80,7 @@ class _Track:
     # disk explains the cluster, e.g. two presses on one cluster with too few readings to
     # fit two) reports the cluster's centroid, which says nothing about where this is.
     anchor: Contact | None = None
+    unseen: int = 0  # consecutive frames in which every element of it was unknown
 
     def __post_init__(self) -> None:
         if self.anchor is None:
@@ -398,18 +399,30 @@ class ContactTracker:
         """Tracks seen but not yet born."""
         return sum(tr.id is None for tr in self._tracks)
 
-    def end_unsupported(self, unknown: set[int]) -> set[int]:
-        """End the tracks this frame did not match whose elements are all in ``unknown``
-        (elements the host has no reading of: nothing supports them any more). Returns the
-        ids of the confirmed contacts ended (their ids are never given again)."""
+    def end_unsupported(self, unknown: set[int], hold: int = 0) -> set[int]:
+        """Tracks this frame did not match whose elements are all in ``unknown`` (elements
+        the host has no reading of): the frame says nothing of them, so it is not counted
+        as a miss, for up to ``hold`` such frames in a row (a record lost on its way must
+        not end a press and give it a new id when its elements come back); after that
+        nothing supports them any more and they end. Returns the ids of the confirmed
+        contacts not seen in this frame for that reason, ended or held: neither is
+        reported for this frame (ended ids are never given again)."""
         gone: set[int] = set()
         keep = []
         for tr in self._tracks:
             if tr.missed > 0 and tr.elements and tr.elements <= unknown:
+                tr.unseen += 1
+                if tr.unseen <= hold:
+                    tr.missed -= 1  # not a miss: unseen
+                    if tr.id is not None:
+                        gone.add(tr.id)
+                    keep.append(tr)
+                    continue
                 if tr.id is not None:
                     gone.add(tr.id)
                     self.deaths += 1
                 continue
+            tr.unseen = 0
             keep.append(tr)
         self._tracks = keep
         return gone

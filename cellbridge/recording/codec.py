@@ -17,6 +17,15 @@ Two things msgpack carries that JSON does not, and how they are kept:
 
 So :func:`decode` (:func:`encode` (p)) == p for every payload the daemon publishes, and
 a replay republishes the very payloads that were recorded.
+
+A recording is input like any other: a damaged or hostile file may hold anything in a
+message. :func:`decode` gives a map or raises :class:`PayloadError` (never another
+exception), and it refuses, before parsing, a message whose decoded form could take more
+memory than a reader should give one message: over :data:`MAX_MESSAGE_BYTES`, or with
+more than :data:`MAX_MESSAGE_VALUES` JSON values (a few bytes of ``{},`` become a Python
+dict of ~70 bytes, so the count, not the size, bounds the memory). The recorder applies
+the same bounds (:func:`check_size`) to what it writes, so every recording it makes reads
+back.
 """
 
 from __future__ import annotations
@@ -30,6 +39,19 @@ import msgpack
 import numpy as np
 
 from cellbridge.daemon.publisher import pack
+
+#: Largest message (JSON bytes) a recording holds: a health or topology message of a skin of
+#: ~10 000 bridges is a few MB.
+MAX_MESSAGE_BYTES = 8 << 20
+#: Most JSON values in one message (separators and brackets counted): at most ~70 bytes each
+#: once decoded, so one message takes at most ~70 MB. A 16x16 element message has ~5 000.
+MAX_MESSAGE_VALUES = 1_000_000
+
+
+class PayloadError(ValueError):
+    """A message that is not a payload of the daemon's API as recorded (not JSON, not a map,
+    too large): the reader skips it and counts it; the recorder does not write it."""
+
 
 NONFINITE = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}
 #: Topics whose payloads hold no free text: their non-finite floats are found by a
@@ -77,32 +99,77 @@ def encode(topic: str, payload: dict[str, Any]) -> bytes:
     return json.dumps(_finite(payload), separators=(",", ":"), default=_default, allow_nan=False).encode()
 
 
-def _restore(obj: Any) -> Any:
-    if isinstance(obj, str):
-        return NONFINITE.get(obj, obj)
-    if isinstance(obj, dict):
-        return {k: _restore(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_restore(v) for v in obj]
-    return obj
+def _restore(root: dict[str, Any] | list[Any]) -> None:
+    """Non-finite floats back from their strings, in place, without recursion (a damaged file
+    may nest as deep as the JSON parser goes; a copy would double the memory)."""
+    stack: list[dict[str, Any] | list[Any]] = [root]
+    while stack:
+        node = stack.pop()
+        items = node.items() if isinstance(node, dict) else enumerate(node)
+        for k, v in items:
+            if v.__class__ is str:
+                if v in NONFINITE:
+                    node[k] = NONFINITE[v]  # type: ignore[index]  # a key of this dict or an index of this list
+            elif v.__class__ is dict or v.__class__ is list:
+                stack.append(v)
+
+
+def json_values(data: bytes) -> int:
+    """An upper bound of the values :func:`json.loads` makes of ``data`` (counted in C: fast)."""
+    return data.count(b",") + data.count(b":") + data.count(b"[") + data.count(b"{") + 1
+
+
+def check_size(data: bytes) -> None:
+    """PayloadError if the JSON message ``data`` is over the bounds every reader applies."""
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise PayloadError(f"{len(data)} bytes, more than the {MAX_MESSAGE_BYTES} a message may have")
+    n = json_values(data)
+    if n > MAX_MESSAGE_VALUES:
+        raise PayloadError(f"up to {n} JSON values, more than the {MAX_MESSAGE_VALUES} a message may have")
 
 
 def decode(topic: str, data: bytes) -> dict[str, Any]:
-    """The payload :func:`encode` was given (as msgpack would give it back: lists, floats)."""
-    payload = json.loads(data)
+    """The payload :func:`encode` was given (as msgpack would give it back: lists, floats).
+
+    PayloadError for anything else: over the size bounds (checked before parsing), not
+    JSON, nested deeper than the parser goes, not a map, a ``serial`` message whose
+    ``data`` is not base64."""
+    check_size(data)
+    try:
+        payload = json.loads(data)
+    except RecursionError:
+        raise PayloadError("JSON nested too deep") from None
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, an integer of too many digits
+        raise PayloadError(f"not JSON: {exc}") from None
+    if payload.__class__ is not dict:
+        raise PayloadError(f"a JSON {type(payload).__name__}, not a map")
     if b'NaN"' in data or b'Infinity"' in data:
         if topic in ("element", "raw"):  # columns: only top-level lists hold numbers
             for k, v in payload.items():
                 if v.__class__ is list and not any(x.__class__ in (list, dict) for x in v):
                     if any(x.__class__ is str for x in v):
                         payload[k] = [NONFINITE.get(x, x) if x.__class__ is str else x for x in v]
-                else:
-                    payload[k] = _restore(v)
+                elif v.__class__ is str:
+                    payload[k] = NONFINITE.get(v, v)
+                elif v.__class__ in (list, dict):
+                    _restore(v)
         else:
-            payload = _restore(payload)
+            _restore(payload)
     if topic == "serial" and isinstance(payload.get("data"), str):
-        payload["data"] = base64.b64decode(payload["data"])
+        try:
+            payload["data"] = base64.b64decode(payload["data"], validate=True)
+        except ValueError:  # binascii.Error
+            raise PayloadError("serial data is not base64") from None
     return payload
+
+
+def to_msgpack_checked(payload: dict[str, Any]) -> bytes:
+    """:func:`to_msgpack`, PayloadError for what msgpack cannot hold (an integer over 64 bits,
+    nesting past its limit): a decoded message of a damaged file may be either."""
+    try:
+        return pack(payload)
+    except (ValueError, OverflowError, TypeError, RecursionError) as exc:
+        raise PayloadError(f"cannot be sent as msgpack: {exc}") from None
 
 
 def to_msgpack(payload: dict[str, Any]) -> bytes:

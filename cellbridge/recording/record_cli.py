@@ -5,7 +5,9 @@ signals, and a line of counters at the end. SIGINT and SIGTERM finish the file (
 and index) and exit 0; a failed write (disk full) is reported and exits 1.
 
 A message's publish time in the file is when it left ZeroMQ here, and ``cellbridge
-replay`` reproduces those intervals. So a thread of its own (:class:`Receiver`) takes
+replay`` reproduces those intervals. It is read on :class:`EpochClock`: the wall clock's
+time at the recorder's start, then the monotonic clock's, so that a wall-clock step (NTP,
+an operator) while recording never becomes a pause, or a burst, in a replay. A thread of its own (:class:`Receiver`) takes
 messages off the socket and stamps them, while the main thread encodes them and writes
 chunks: a chunk's compression, write and fsync (milliseconds, tens of them on a busy disk)
 no longer hold back the stamps of the messages that arrive meanwhile.
@@ -27,7 +29,7 @@ import zmq
 
 from cellbridge._version import __version__
 from cellbridge.daemon.security import apply_client
-from cellbridge.recording.mcapfile import RecordingWriter
+from cellbridge.recording.mcapfile import MAX_CHUNK_SIZE, RecordingWriter
 from cellbridge.recording.recorder import Recorder
 from cellbridge.ros2.record import add_profile_arguments
 
@@ -42,16 +44,28 @@ BACKLOG = 100_000
 SWITCH_INTERVAL = 0.0005
 
 
+class EpochClock:
+    """Seconds since the epoch that a wall-clock step never moves: the wall clock's reading
+    when made, advanced from then on by the monotonic clock."""
+
+    def __init__(self) -> None:
+        self._base = time.time() - time.monotonic()
+
+    def __call__(self) -> float:
+        return self._base + time.monotonic()
+
+
 class Receiver(threading.Thread):
-    """Takes messages off the SUB socket as they come and stamps them with the wall clock.
+    """Takes messages off the SUB socket as they come and stamps them (``clock``).
 
     Hands ``(parts, time received)`` to :attr:`messages`; the socket is this thread's
     alone once started. Stops when :attr:`stop` is set (within 0.1 s).
     """
 
-    def __init__(self, sock: zmq.Socket) -> None:
+    def __init__(self, sock: zmq.Socket, clock: EpochClock) -> None:
         super().__init__(name="record-receiver", daemon=True)
         self.sock = sock
+        self.clock = clock
         self.messages: queue.SimpleQueue[tuple[list[bytes], float]] = queue.SimpleQueue()
         self.stop = threading.Event()
         self.error: zmq.ZMQError | None = None
@@ -69,7 +83,7 @@ class Receiver(threading.Thread):
                         parts = self.sock.recv_multipart(zmq.NOBLOCK)
                     except zmq.Again:
                         break
-                    self.messages.put((parts, time.time()))
+                    self.messages.put((parts, self.clock()))
         except zmq.ZMQError as exc:
             self.error = exc
 
@@ -89,7 +103,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "message's t_host, publish time when it was received. Ctrl-C or SIGTERM finish the file;\n"
         "a recorder killed outright leaves a file readable up to its last whole chunk\n"
         "(chunks are finished every --chunk-seconds). A full disk stops the recording with a\n"
-        "message and exit status 1; the daemon is not affected.\n\n"
+        "message and exit status 1; the daemon is not affected. Publish times follow the\n"
+        "monotonic clock from the wall clock's time at the start: a clock step while\n"
+        "recording does not show in a replay. The line of counters at the end counts what\n"
+        "was not recorded as received: malformed (not [topic, msgpack map]), bad_time\n"
+        "(t_host no time: recorded with its receive time), oversized (not written), dropped,\n"
+        "unconfirmed, missed (gaps in seq).\n\n"
         "Topics: contact, element, raw, health, topology, and serial (each gateway read's bytes:\n"
         "a daemon can later be run on them, link url replay:FILE.mcap). Default: all but raw\n"
         "and serial.\n\n"
@@ -112,7 +131,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rotate-minutes", type=float, default=0.0, metavar="MIN",
                         help="start a new file after this many minutes (default: never)")
     parser.add_argument("--chunk-size", type=float, default=1.0, metavar="MB",
-                        help="uncompressed chunk size (default: 1 MB)")
+                        help=f"uncompressed chunk size (default: 1 MB, at most {MAX_CHUNK_SIZE / 1e6:g}: "
+                             "readers bound the chunks they decompress)")
     parser.add_argument("--chunk-seconds", type=float, default=1.0, metavar="S",
                         help="finish a chunk at least this often: the most a kill can lose (default: 1 s)")
     parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
@@ -152,6 +172,10 @@ def run(args: argparse.Namespace) -> int:
             or args.chunk_size <= 0:
         print("cellbridge record: sizes, times and counts must not be negative", file=sys.stderr)
         return 2
+    if args.chunk_size * 1e6 > MAX_CHUNK_SIZE:
+        print(f"cellbridge record: --chunk-size {args.chunk_size:g} MB: at most {MAX_CHUNK_SIZE / 1e6:g} MB "
+              "(readers bound the chunks they decompress)", file=sys.stderr)
+        return 2
     meta = {"endpoint": args.endpoint, "topics": ",".join(topics), "recorder_host": socket.gethostname(),
             "cellbridge_version": __version__, "started": f"{time.time():.6f}"}
 
@@ -160,7 +184,8 @@ def run(args: argparse.Namespace) -> int:
                                fsync=not args.no_fsync, metadata=meta)
 
     rec = Recorder(args.out, opener, rotate_bytes=int(args.rotate_size * 1e6),
-                   rotate_seconds=args.rotate_minutes * 60, chunk_seconds=args.chunk_seconds)
+                   rotate_seconds=args.rotate_minutes * 60, chunk_seconds=args.chunk_seconds, topics=set(topics))
+    clock = EpochClock()
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(True))
@@ -180,7 +205,7 @@ def run(args: argparse.Namespace) -> int:
             sock.subscribe(t)
         sock.connect(args.endpoint)
         sys.setswitchinterval(SWITCH_INTERVAL)
-        receiver = Receiver(sock)
+        receiver = Receiver(sock, clock)
         receiver.start()
         end = time.monotonic() + args.duration if args.duration else None
         total = 0
@@ -199,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 parts, now = receiver.messages.get(timeout=0.1)
             except queue.Empty:
-                rec.tick(time.time())
+                rec.tick(clock())
                 continue
             total += 1
             take(parts, now)

@@ -6,6 +6,14 @@ it was received, sequence = its ``seq``) into the current file, opens the next f
 the current one reaches ``rotate_bytes`` or ``rotate_seconds``, and finishes the chunk in
 progress every ``chunk_seconds`` so a kill loses at most that much.
 
+A message whose ``t_host`` is not a time an MCAP log time can hold (missing, not a
+number, NaN, infinite, negative, past the year 2554) is recorded all the same, with its
+receive time as log time, and counted in :attr:`bad_time`: a recorder that runs for days
+goes on whatever one message says. A message over the bounds every reader applies
+(:func:`cellbridge.recording.codec.check_size`) is not written and is counted in
+:attr:`oversized`; a message on a topic the recorder was not asked for (a subscription is
+a prefix) is counted with the :attr:`malformed` ones.
+
 Messages the daemon published that never arrived (a subscriber's ZeroMQ queue is bounded;
 a recorder that falls behind loses messages there) show as gaps in each topic's ``seq``,
 counted per topic in :attr:`missed`.
@@ -29,6 +37,20 @@ from cellbridge.recording.mcapfile import RecordingWriter
 
 Opener = Callable[[Path], RecordingWriter]
 
+#: Log and publish times are unsigned 64-bit nanoseconds in MCAP.
+MAX_NS = 2**64 - 1
+
+
+def log_time_ns(t_host: Any) -> int | None:
+    """``t_host`` (s since the epoch) as MCAP log time, or None if it cannot be one."""
+    if isinstance(t_host, bool) or not isinstance(t_host, (int, float)):
+        return None
+    try:
+        ns = int(t_host * 1e9)  # OverflowError for inf, ValueError for NaN
+    except (OverflowError, ValueError):
+        return None
+    return ns if 0 < ns <= MAX_NS else None
+
 
 def rotated_path(out: Path, index: int) -> Path:
     """``skin.mcap`` → ``skin-0000.mcap``, ``skin-0001.mcap``, ... (rotation on)."""
@@ -37,8 +59,11 @@ def rotated_path(out: Path, index: int) -> Path:
 
 class Recorder:
     def __init__(self, out: str | Path, opener: Opener, *, rotate_bytes: int = 0, rotate_seconds: float = 0.0,
-                 chunk_seconds: float = 1.0) -> None:
+                 chunk_seconds: float = 1.0, topics: set[str] | None = None) -> None:
+        """``topics``: the only topics written (None: any); ``feed``'s ``now`` must not go back
+        (the shell's clock is monotonic: rotation and chunk ages are measured on it)."""
         self.out = Path(out)
+        self.topics = topics
         self._open = opener
         self.rotate_bytes = rotate_bytes
         self.rotate_seconds = rotate_seconds
@@ -49,6 +74,8 @@ class Recorder:
         self._flushed_at = 0.0
         self.recorded: Counter[str] = Counter()
         self.malformed = 0  # messages that were not [topic, msgpack map]: skipped, counted
+        self.bad_time = 0  # messages whose t_host is no log time: written with the receive time as log time
+        self.oversized = 0  # messages over the readers' bounds: not written
         self.dropped = 0  # messages received after the recording stopped on an error
         self.unconfirmed = 0  # messages in the chunk being built or written when a write failed: may be lost
         self.missed: Counter[str] = Counter()  # per topic: gaps in seq, messages that never reached us
@@ -97,15 +124,23 @@ class Recorder:
         return True
 
     def feed(self, topic: str, payload: bytes, now: float) -> None:
-        """One message as received from the daemon at host time ``now`` (s, epoch)."""
+        """One message as received from the daemon at ``now`` (s since the epoch, on the shell's clock)."""
         if self.stopped:
             self.dropped += 1
+            return
+        if self.topics is not None and topic not in self.topics:
+            self.malformed += 1
             return
         try:
             p = codec.from_msgpack(payload)
             data = codec.encode(topic, p)
-        except (ValueError, TypeError):
+        except (ValueError, TypeError, RecursionError):  # not msgpack, not a map, nested past the JSON encoder
             self.malformed += 1
+            return
+        try:
+            codec.check_size(data)
+        except codec.PayloadError:
+            self.oversized += 1
             return
         w = self.writer
         if w is None or (self.rotate_bytes and w.size >= self.rotate_bytes) or \
@@ -115,9 +150,11 @@ class Recorder:
                 return
             w = self.writer
         assert w is not None
-        t_host = p.get("t_host")
-        log_ns = int(t_host * 1e9) if isinstance(t_host, (int, float)) and t_host == t_host and t_host > 0 \
-            else int(now * 1e9)
+        now_ns = min(max(int(now * 1e9), 0), MAX_NS)
+        log_ns = log_time_ns(p.get("t_host"))
+        if log_ns is None:
+            self.bad_time += 1
+            log_ns = now_ns
         seq = p.get("seq")
         if isinstance(seq, int):
             key = (topic, str(p.get("source", "")))
@@ -125,7 +162,7 @@ class Recorder:
             if last is not None and seq > last + 1:  # (lower: the daemon restarted, numbering from 0)
                 self.missed[topic] += seq - last - 1
             self._seq[key] = seq
-        if self._guard(lambda: w.add(topic, data, log_ns, int(now * 1e9), seq if isinstance(seq, int) else 0)):
+        if self._guard(lambda: w.add(topic, data, log_ns, now_ns, seq if isinstance(seq, int) else 0)):
             self.recorded[topic] += 1
         else:
             self.dropped += 1
@@ -149,6 +186,7 @@ class Recorder:
 
     def stats(self) -> dict[str, Any]:
         return {"recorded": dict(self.recorded), "messages": sum(self.recorded.values()),
-                "malformed": self.malformed, "dropped": self.dropped, "unconfirmed": self.unconfirmed,
+                "malformed": self.malformed, "bad_time": self.bad_time, "oversized": self.oversized,
+                "dropped": self.dropped, "unconfirmed": self.unconfirmed,
                 "missed": dict(self.missed), "files": [str(f) for f in self.files],
                 "error": self.error}

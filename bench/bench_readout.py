@@ -57,7 +57,7 @@ def schedule(quick: bool) -> None:
         mesh = meshgen.grid(n, n)
         for rate in (100, 250):
             secs = 4.0 if quick else 8.0
-            vm = VirtualMesh(mesh, seed=1, settings=Settings(rate_hz=rate))
+            vm = VirtualMesh(mesh, seed=1, settings=Settings(rate_hz=rate), readout=True)
             vm.run(secs)
             gw = vm.nodes[1]
             depths = mesh.readout_depths()
@@ -76,7 +76,7 @@ def completeness(quick: bool) -> None:
     for loss in (0.0, 0.01):
         mesh = meshgen.grid(8, 8, loss=loss)
         secs = 6.0 if quick else 12.0
-        vm = VirtualMesh(mesh, seed=2, settings=Settings(rate_hz=250))
+        vm = VirtualMesh(mesh, seed=2, settings=Settings(rate_hz=250), readout=True)
         t0 = time.perf_counter()
         vm.run(secs)
         wall = time.perf_counter() - t0
@@ -103,7 +103,7 @@ def traffic(quick: bool) -> None:
         bits, serial = {}, {}
         for periodic in (True, False):
             mode = ReportingMode() if periodic else ReportingMode(40, 1000)
-            vm = VirtualMesh(mesh, seed=3, world=World(mesh, list(contacts)), settings=Settings(reporting=mode))
+            vm = VirtualMesh(mesh, seed=3, world=World(mesh, list(contacts)), settings=Settings(reporting=mode), readout=True)
             vm.run(3.0)
             b0 = vm.medium.counters.get("bits", 0)
             n0 = len(vm.serial_chunks[1])
@@ -119,7 +119,7 @@ def efficiency(quick: bool) -> None:
     print("\n4. sample bits delivered at the gateway, 250 Hz, over one of its cells' raw bitrate")
     print(f"{'skin':<12} {'gateway cells':>13} {'sample kbit/s':>13} {'share of one cell':>17} {'target':>7}")
     for mesh, gw in ((meshgen.grid(8, 8), 1), (meshgen.grid(8, 8, gateways=(28,)), 28)):
-        vm = VirtualMesh(mesh, seed=4, settings=Settings(rate_hz=250))
+        vm = VirtualMesh(mesh, seed=4, settings=Settings(rate_hz=250), readout=True)
         vm.run(6.0)
         n0 = len(vm.serial_chunks[gw])
         secs = 2.0 if quick else 4.0

@@ -126,7 +126,7 @@ class PubSection:
     hwm: int = _key(1000, "messages queued per subscriber before that subscriber loses messages",
                     _count(1, 1_000_000))
     source: str = _key("", "the daemon's name in every payload's source field (several daemons behind one "
-                       "cellbridge proxy); empty: the host name")
+                       "cellbridge proxy); empty: HOST:PORT, the host name and the endpoint's port")
     count_drops: bool = _key(False, "true: a message any subscriber has no room for is dropped for all and "
                              "counted in health; false: only that subscriber misses it (a gap in its seq)")
     ipc_mode: int = _key(0o666, "ipc:// endpoint only: permission bits of the socket file (0o666: any local "

@@ -142,6 +142,7 @@ class ContactWorker:
                 if self._warm is not None and not self._warm.done() and not self._stopping:
                     with contextlib.suppress(Exception):  # a failed warm-up is the estimate's to report
                         await asyncio.shield(asyncio.wrap_future(self._warm))
+                    t0 = time.perf_counter()  # last_ms/max_ms time the estimate, not the warm-up before it
                 self._job = self._executor().submit(estimate, job)
                 limit = timeout if self._answered or self._stopping or self._warm is not None else None
                 # asyncio.timeout, not wait_for: Python 3.11's wait_for returns a result that

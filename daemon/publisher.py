@@ -11,7 +11,7 @@ could not hand to ZeroMQ is counted here (``dropped``): with ``strict`` (config
 every drop is counted exactly, at the price of that message missing for everyone.
 
 Every payload names its daemon (``source``, config ``pub.source``, default the host
-name), added here where messages are serialised, so that several daemons behind one
+name and the PUB endpoint's port), added here where messages are serialised, so that several daemons behind one
 ``cellbridge proxy`` read as one stream a subscriber can still tell apart. The
 ``serial`` topic carries each link read's bytes exactly as read (the daemon's capture
 stream), so a recorder can keep them and the whole pipeline can be re-run later; like
@@ -50,9 +50,11 @@ def _default(obj: Any) -> Any:
     raise TypeError(f"cannot pack {type(obj).__name__}")
 
 
-def default_source() -> str:
-    """The host name: what ``source`` says when the config does not name the daemon."""
-    return socket.gethostname()
+def default_source(endpoint: str) -> str:
+    """What ``source`` says when the config does not name the daemon: ``HOST:PORT`` (the
+    host name and the PUB endpoint's port; ``HOST:ipc:///path`` for another transport).
+    Unique per daemon on a host, as two daemons cannot bind one endpoint."""
+    return f"{socket.gethostname()}:{endpoint.rpartition(':')[2] if endpoint.startswith('tcp://') else endpoint}"
 
 
 def pack(payload: dict[str, Any]) -> bytes:
@@ -63,7 +65,7 @@ class Publisher:
     def __init__(self, ctx: zmq.asyncio.Context, endpoint: str, hwm: int, strict: bool = False,
                  source: str = "") -> None:
         self.endpoint = endpoint
-        self.source = source or default_source()
+        self.source = source or default_source(endpoint)
         self.sock = ctx.socket(zmq.XPUB)
         self.sock.setsockopt(zmq.SNDHWM, hwm)
         if strict:

@@ -36,6 +36,7 @@ import math
 import os
 import random
 import signal
+import subprocess
 import struct
 import sys
 import time
@@ -399,6 +400,31 @@ def _child(argv: list[str], out: str, err: str) -> None:
         os._exit(code)
 
 
+_EXEC_RUNNER = """
+import os, signal, sys, time
+exe, out, err, timeout = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
+pid = os.fork()
+if pid == 0:
+    try:
+        os.dup2(os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644), 1)
+        os.dup2(os.open(err, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644), 2)
+        os.execv(exe, [exe, *sys.argv[5:]])
+    finally:
+        os._exit(127)
+deadline = time.monotonic() + timeout
+while True:
+    wpid, status, usage = os.wait4(pid, os.WNOHANG)
+    if wpid:
+        break
+    if time.monotonic() > deadline:
+        os.kill(pid, signal.SIGKILL)
+        wpid, status, usage = os.wait4(pid, 0)
+        break
+    time.sleep(0.002)
+print(os.waitstatus_to_exitcode(status), usage.ru_maxrss)
+"""
+
+
 def run_one(argv: list[str], workdir: Path, timeout: float = 60.0, exec_cli: bool = False) -> tuple[int, float, float, str, int]:
     """(exit status, seconds, peak RSS MB, stderr, stdout bytes) of one command, forked (or exec'd)."""
     out, err = workdir / "stdout", workdir / "stderr"
@@ -406,15 +432,14 @@ def run_one(argv: list[str], workdir: Path, timeout: float = 60.0, exec_cli: boo
     sys.stderr.flush()
     t0 = time.monotonic()
     if exec_cli:
+        # Exec'd from a small runner, not forked from this process: a child's peak RSS
+        # counts what it had before its exec, and a forked copy of a test worker that has
+        # imported the whole project (and run other tests) starts at that worker's size.
         exe = str(Path(sys.executable).with_name("cellbridge"))
-        pid = os.fork()
-        if pid == 0:
-            try:
-                os.dup2(os.open(str(out), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644), 1)
-                os.dup2(os.open(str(err), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644), 2)
-                os.execv(exe, [exe, *argv])
-            finally:
-                os._exit(127)
+        runner = subprocess.run([sys.executable, "-S", "-c", _EXEC_RUNNER, exe, str(out), str(err), str(timeout),
+                                 *argv], capture_output=True, text=True, timeout=timeout + 30)
+        code, rss = (int(x) for x in runner.stdout.split())
+        return (code, time.monotonic() - t0, rss / 1024, err.read_text(errors="replace"), out.stat().st_size)
     else:
         pid = os.fork()
         if pid == 0:

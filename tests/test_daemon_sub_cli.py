@@ -26,7 +26,7 @@ def test_sub_prints_subscribed_topics_as_json_lines() -> None:
     assert out.returncode == 0, out.stderr
     lines = json_lines(out.stdout)
     assert len(lines) == 6 and {ln["topic"] for ln in lines} == {"contact", "health"}
-    assert all(ln["payload"]["v"] == 2 and isinstance(ln["payload"]["t_host"], float) for ln in lines)
+    assert all(ln["payload"]["v"] == 1 and isinstance(ln["payload"]["t_host"], float) for ln in lines)
     assert json.loads(out.stderr.splitlines()[-1]) == {"received": 6, "malformed": 0}
 
 

@@ -59,7 +59,7 @@ def records(vm: VirtualMesh) -> dict[tuple[int, int], tuple[str, ReadoutSample |
 
 def test_periodic_records_under_loss_and_a_dead_relay_say_what_each_bridge_sampled(truth: Truth) -> None:
     mesh = meshgen.grid(4, 4, loss=0.01)
-    vm = VirtualMesh(mesh, seed=7)
+    vm = VirtualMesh(mesh, seed=7, readout=True)
     vm.kill(6, at=4.0)  # a relay in the middle: its subtree re-routes
     vm.run(7.0)
     got = records(vm)
@@ -90,7 +90,7 @@ def test_event_based_records_keep_every_unchanged_element_within_its_threshold(t
     mesh = meshgen.grid(4, 4, loss=0.01)
     presses = [Contact(1.5 + 0.7 * i, 0.5, 0.02 + 0.04 * (i % 3), 0.03 + 0.03 * (i % 2), 3.0, 0.02)
                for i in range(6)]
-    vm = VirtualMesh(mesh, seed=3, world=World(mesh, presses),
+    vm = VirtualMesh(mesh, seed=3, world=World(mesh, presses), readout=True,
                      settings=Settings(reporting=ReportingMode(40, 1000)))
     vm.run(6.0)
     got = records(vm)

@@ -115,7 +115,7 @@ def test_a_random_skin_with_shared_cells_reads_out_its_frames() -> None:
     # Cells shared by up to four bridges: the records of one depth go one after another by
     # their rank (no collision among them); a frame lost on the way is listed missing.
     mesh = meshgen.random_mesh(32, seed=2)
-    r = VirtualMesh(mesh, seed=3, settings=Settings(rate_hz=50)).run(4.0)
+    r = VirtualMesh(mesh, seed=3, settings=Settings(rate_hz=50), readout=True).run(4.0)
     on = [b for b in mesh.ids if b in readout_states(r)]
     assert len(on) >= len(mesh.ids) - 2  # the deepest may still be joining mesh time
     assert_known(r, on, 25, 180, 0.999)
@@ -230,7 +230,7 @@ def test_bit_errors_in_the_readout_leave_frames_listed_missing_never_wrong() -> 
     # A record gets one retry within its slot: one that fails again is listed missing by
     # the relay above it, and every element-frame is in a record, known or missing.
     mesh = meshgen.line(4, ber=2e-4)
-    r = VirtualMesh(mesh, seed=13).run(4.0)
+    r = VirtualMesh(mesh, seed=13, readout=True).run(4.0)
     assert r.total("rx_crc") > 10 and r.total("readout_failed") > 0
     assert_known(r, mesh.ids, 50, 370, 0.995)
 

@@ -76,7 +76,7 @@ def test_example_prints_the_topics_it_subscribed(language: str, tmp_path: Path) 
     lines = json_lines(out.stdout)
     assert len(lines) == 6
     assert {ln["topic"] for ln in lines} <= {"contact", "raw"}  # health was not subscribed
-    assert all(ln["payload"]["v"] == 2 and isinstance(ln["payload"]["t_host"], float) for ln in lines)
+    assert all(ln["payload"]["v"] == 1 and isinstance(ln["payload"]["t_host"], float) for ln in lines)
     contacts = [ln["payload"] for ln in lines if ln["topic"] == "contact"]
     raws = [ln["payload"] for ln in lines if ln["topic"] == "raw"]
     assert contacts and raws

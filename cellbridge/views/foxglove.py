@@ -24,16 +24,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import signal
-import struct
 import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from cellbridge.daemon.subscribe import jsonable
+from cellbridge.views.access import FOXGLOVE_WEB
 from cellbridge.views.model import Frame, SkinView, level_rgb
+from cellbridge.views.signals import ignore_stop_signals, on_stop_signal
 from cellbridge.views.source import add_source_arguments, open_source
 from cellbridge.views.subprotocol import LEGACY, SDK, SubprotocolFront
 from cellbridge.views.web import is_loopback_host
@@ -43,6 +45,7 @@ FRAME_ID = "skin"
 TOPICS = {"grid": "/cellbridge/grid", "scene": "/cellbridge/contacts", "elements": "/cellbridge/elements",
           "contacts": "/cellbridge/contact_list", "health": "/cellbridge/health"}
 GRID_FIELDS = ("force", "dc1")  # float32 each, in this order
+CLOSE_WAIT = 0.5  #: s the clients' connections have on stop to pass the SDK server's close frames on
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"Clients offering either name of the protocol connect: {SDK} (Foxglove\n"
         f"today) or {LEGACY} (older Foxglove Studio, Lichtblick, ws-protocol clients).\n"
         "The server listens on loopback only: the protocol has no access control, so from\n"
-        "another machine use an SSH tunnel (ssh -L 8765:127.0.0.1:8765 robot).\n\n"
+        "another machine use an SSH tunnel (ssh -L 8765:127.0.0.1:8765 robot). A browser\n"
+        f"page may connect only from Foxglove's web app ({FOXGLOVE_WEB}) or an origin\n"
+        "given with --allow-origin; the desktop app (no origin) always may.\n\n"
         "examples:\n"
         "  cellbridge foxglove\n"
         "  cellbridge foxglove --port 8766 --endpoint tcp://127.0.0.1:5560\n"
@@ -71,17 +76,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default: {DEFAULT_PORT}; 0: any free port)")
     g.add_argument("--rate", type=float, default=30.0, metavar="HZ",
                    help="most grid/scene/element messages a second (default: 30)")
+    g.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                   help="a further web origin whose pages may connect (scheme://host[:port], e.g. a self-hosted "
+                        f"Lichtblick); {FOXGLOVE_WEB} always may. Repeat for more")
     g.add_argument("--write-layout", type=Path, metavar="FILE",
                    help="write the Foxglove layout that opens these panels to FILE and exit")
 
 
 def grid_bytes(frame: Frame) -> bytes:
-    """The Grid's cell data: row-major from the layout's lowest y, (force N, ΔC1 pF) float32 each."""
-    nan = math.nan
-    data = [[nan, nan] for _ in range(frame.rows * frame.cols)]
+    """The Grid's cell data: row-major from the layout's lowest y, (force N, ΔC1 pF) float32
+    each; NaN where unknown, ±inf beyond float32's range."""
+    data = np.full((frame.rows * frame.cols, 2), np.nan, dtype=np.float64)
     for c in frame.cells:
-        data[c.row * frame.cols + c.col] = [c.force, c.dc1 * 1e12 if math.isfinite(c.dc1) else nan]
-    return struct.pack(f"<{2 * len(data)}f", *(v for cell in data for v in cell))
+        data[c.row * frame.cols + c.col] = (c.force, c.dc1 * 1e12)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return data.astype("<f4").tobytes()
 
 
 def make_grid(frame: Frame, stamp_ns: int) -> Any:
@@ -199,6 +208,7 @@ class FoxgloveView:
         self.health = Channel(TOPICS["health"])
         self.health_seen = 0
         self.published = 0
+        self.errors = 0  # frames that could not be made (counted in health's view counters)
 
     def publish(self, now: float) -> None:
         stamp = time.time_ns()
@@ -208,11 +218,11 @@ class FoxgloveView:
         self.scene.log(make_scene(frame, stamp), log_time=stamp)
         self.elements.log(elements_json(self.model), log_time=stamp)
         self.contacts.log(contacts_json(self.model), log_time=stamp)
-        seen = self.model.received.get("health", 0)
+        seen = self.model.health_count
         if seen != self.health_seen:
             self.health_seen = seen
-            self.health.log(jsonable(dict(self.model.health, view=self.model.counters(), status=frame.status)),
-                            log_time=stamp)
+            self.health.log(jsonable(dict(self.model.health, view=dict(self.model.counters(), errors=self.errors),
+                                          status=frame.status)), log_time=stamp)
         self.published += 1
 
 
@@ -232,13 +242,12 @@ def run(args: argparse.Namespace) -> int:
     import foxglove
 
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signal(stop.set)
     server = None
     front: SubprotocolFront | None = None
     try:
         try:
-            front = SubprotocolFront(args.host, args.port, 0)
+            front = SubprotocolFront(args.host, args.port, 0, origins=(FOXGLOVE_WEB, *args.allow_origin))
         except OSError as exc:
             print(f"cellbridge foxglove: cannot listen on {args.host}:{args.port}: {exc.strerror or exc}",
                   file=sys.stderr)
@@ -249,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"cellbridge foxglove: cannot start the Foxglove server: {exc}", file=sys.stderr)
             return 1
         front.upstream_port = server.port
-        view = FoxgloveView(SkinView(force_scale=args.force_scale))
+        view = FoxgloveView(SkinView(force_scale=args.force_scale, source=args.source))
         print(f"cellbridge foxglove: ws://{args.host}:{front.port} (Foxglove WebSocket)", flush=True)
         period = 1.0 / args.rate
         last = -math.inf
@@ -259,12 +268,19 @@ def run(args: argparse.Namespace) -> int:
             source.drain(view.model)
             now = time.monotonic()
             if now - last >= period and (view.model.changed or now - last >= 1.0):
-                view.publish(now)
+                try:
+                    view.publish(now)
+                except Exception as exc:  # never end the view on a frame it could not make: counted, said once
+                    view.errors += 1
+                    if view.errors == 1:
+                        print(f"cellbridge foxglove: error (going on, counted in /cellbridge/health): "
+                              f"{type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
                 last = now
     finally:
-        if front is not None:
-            front.close()
+        ignore_stop_signals()  # stopping now, however it came to it
         if server is not None:
-            server.stop()
+            server.stop()  # sends every client a close frame, through the front
+        if front is not None:
+            front.close(grace=CLOSE_WAIT if server is not None else 0.0)
         source.close()
     return 0

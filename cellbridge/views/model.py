@@ -9,12 +9,24 @@ status lines) that the terminal view, the web page and the Foxglove bridge all d
 
 Fields are read defensively: a payload may carry keys this model does not know (the
 schema grows by adding), lack optional ones, or hold a wrong type; nothing here raises
-on a payload, a bad one is counted in ``malformed`` instead.
+on a payload, a bad one is counted in ``malformed`` instead. What is kept is bounded
+whatever the payloads say: at most :data:`MAX_ELEMENTS` elements and
+:data:`MAX_CONTACTS` contacts, a grid of at most :data:`MAX_GRID` cells a side (a layout
+that would need more is drawn as a list of unplaced elements, and the status says so),
+positions within :data:`MAX_COORD` of the origin, and a bounded copy of ``health``.
+Every string from the daemon that reaches a status line passes :func:`printable`:
+control characters are shown escaped (``\\x1b``), never written to a terminal.
+
+One picture shows one daemon: every payload names its daemon (``source``); a view
+shows the source it was given (``--source``) or else the first one it hears, and counts
+the messages of any other (several daemons behind one ``cellbridge proxy``) without
+drawing them.
 """
 
 from __future__ import annotations
 
 import math
+import unicodedata
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -23,6 +35,17 @@ TOPICS = ("element", "contact", "health", "topology")
 STALE_AFTER = 3.0  # s without any message: the daemon is shown as gone
 HISTORY = 1000  # samples of each element kept for plots (10 s at 100 Hz)
 UNTOUCHED = 2  # element status bit: below the noise floor
+MAX_ELEMENTS = 4096  #: elements kept (a 64×64 skin); readings of any further bridge id are counted, not kept
+MAX_CONTACTS = 64  #: contacts kept of one ``contact`` message; the rest are counted
+MAX_GRID = 128  #: most grid cells a side the layout is drawn on (5.1 m of 40 mm elements)
+UNPLACED_PER_ROW = 16  #: elements without a position are drawn in rows of at least this many
+MAX_COORD = 1e3  #: m: a position further from the origin is taken as unknown
+MAX_SIDE = 10.0  #: m: a larger element side is taken as unknown (the last good one stays)
+MAX_BRIDGE = 0xFFFF  #: bridge ids are 16-bit
+MAX_COLUMN = 65536  #: entries of one columnar message read (a real read holds far fewer)
+HISTORY_BUDGET = 256 * HISTORY  #: samples kept for plots over all elements (each at most HISTORY)
+MAX_OTHER_SOURCES = 8  #: names of other sources remembered (the rest only counted)
+SHOWN_TEXT = 60  #: characters of a daemon's string shown in a status line
 
 
 def _num(value: Any) -> float:
@@ -32,12 +55,103 @@ def _num(value: Any) -> float:
     return float(value)
 
 
+def _pos(value: Any) -> float:
+    """A position (m) from a msgpack value; NaN unless a number within :data:`MAX_COORD`."""
+    v = _num(value)
+    return v if -MAX_COORD <= v <= MAX_COORD else math.nan
+
+
+def _size(value: Any) -> float:
+    """A size or spread (m); NaN unless a number in [0, :data:`MAX_COORD`]."""
+    v = _num(value)
+    return v if 0.0 <= v <= MAX_COORD else math.nan
+
+
+def _bridge(value: Any) -> int | None:
+    """A bridge id (16-bit), or None."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_BRIDGE:
+        return None
+    return value
+
+
 def _col(payload: dict[str, Any], key: str, n: int) -> list[Any]:
     """Column ``key`` of a columnar payload, padded with None to ``n`` entries."""
     col = payload.get(key)
     if not isinstance(col, list):
         return [None] * n
     return col[:n] + [None] * (n - len(col))
+
+
+_SHOWN_AS_IS = {"Cc", "Cf", "Cs", "Zl", "Zp"}  # categories escaped: controls, formats (bidi), separators
+
+
+def printable(text: Any, limit: int = SHOWN_TEXT) -> str:
+    """``text`` safe to show anywhere, a terminal too: control and format characters (C0,
+    DEL, C1, bidi overrides, line separators) as Python escapes (``\\x1b``,
+    ``\\u202e``), at most ``limit`` characters (cut with ``…``). A value that is not a
+    string shows as its type's name in angle brackets."""
+    if not isinstance(text, str):
+        text = f"<{type(text).__name__}>"
+    out = []
+    n = 0
+    for ch in text:
+        if unicodedata.category(ch) in _SHOWN_AS_IS:
+            o = ord(ch)
+            ch = f"\\x{o:02x}" if o < 0x100 else f"\\u{o:04x}" if o < 0x10000 else f"\\U{o:08x}"
+        n += len(ch)
+        if n > limit:
+            out.append("…")
+            break
+        out.append(ch)
+    return "".join(out)
+
+
+def fmt(v: float, spec: str = ".1f") -> str:
+    """A number for a label or a status line: ``spec``, but a huge one in three digits
+    (``1e+308``, not 309 of them) and ``?`` for NaN."""
+    if math.isnan(v):
+        return "?"
+    if math.isinf(v) or abs(v) >= 1e6:
+        return f"{v:.3g}"
+    return format(v, spec)
+
+
+def bounded(value: Any, budget: int = 100_000, depth: int = 12) -> Any:
+    """A copy of a msgpack value holding at most ``budget`` items (beyond it containers are
+    cut, with a ``"…"`` entry saying how many were left out) and ``depth`` levels (deeper:
+    ``"…"``), strings at most 1000 characters: what a view keeps of a payload it passes on
+    (Foxglove's health channel), whatever its size."""
+    left = [budget]
+
+    def copy(v: Any, d: int) -> Any:
+        left[0] -= 1
+        if isinstance(v, str):
+            return v if len(v) <= 1000 else v[:1000] + "…"
+        if isinstance(v, (bytes, bytearray)):
+            return bytes(v[:1000])
+        if isinstance(v, dict):
+            if d <= 0:
+                return "…"
+            out: dict[Any, Any] = {}
+            for i, (k, x) in enumerate(v.items()):
+                if left[0] <= 0:
+                    out["…"] = f"{len(v) - i} more"
+                    break
+                out[copy(k, 0) if isinstance(k, (str, bytes)) else k] = copy(x, d - 1)
+            return out
+        if isinstance(v, (list, tuple)):
+            if d <= 0:
+                return "…"
+            items = []
+            for i, x in enumerate(v):
+                if left[0] <= 0:
+                    items.append(f"… {len(v) - i} more")
+                    break
+                items.append(copy(x, d - 1))
+            return items
+        return v if v is None or isinstance(v, (bool, int, float)) else f"<{type(v).__name__}>"
+
+    return copy(value, depth)
 
 
 @dataclass
@@ -127,14 +241,8 @@ class Frame:
     counters: dict[str, Any]
 
 
-def level_rgb(level: float) -> tuple[int, int, int]:
-    """The colour of a level 0..1 (dark blue, through teal and yellow, to red); grey for NaN.
-
-    One ramp for every view, so a force looks the same in the terminal, the page and Foxglove."""
-    if not math.isfinite(level):
-        return (90, 90, 90)
+def _ramp(level: float) -> tuple[int, int, int]:
     stops = ((0.0, (20, 24, 60)), (0.25, (20, 110, 150)), (0.6, (240, 200, 40)), (1.0, (220, 30, 30)))
-    level = min(1.0, max(0.0, level))
     for (a, ca), (b, cb) in zip(stops, stops[1:]):
         if level <= b:
             t = (level - a) / (b - a)
@@ -142,12 +250,24 @@ def level_rgb(level: float) -> tuple[int, int, int]:
     return stops[-1][1]
 
 
+_RAMP = [_ramp(i / 4096) for i in range(4097)]  # the ramp in 4096 steps (a colour step is ~1/20 of that)
+
+
+def level_rgb(level: float) -> tuple[int, int, int]:
+    """The colour of a level 0..1 (dark blue, through teal and yellow, to red); grey for NaN.
+
+    One ramp for every view, so a force looks the same in the terminal, the page and Foxglove."""
+    if not math.isfinite(level):
+        return (90, 90, 90)
+    return _RAMP[round(min(1.0, max(0.0, level)) * 4096)]
+
+
 def format_force(f: float) -> str:
-    return "?" if not math.isfinite(f) else f"{f:.2f} N"
+    return "?" if not math.isfinite(f) else f"{fmt(f, '.2f')} N"
 
 
 def format_mm(v: float) -> str:
-    return "?" if not math.isfinite(v) else f"{v * 1e3:.1f} mm"
+    return "?" if not math.isfinite(v) else f"{fmt(v * 1e3)} mm"
 
 
 def contact_line(c: Contact) -> str:
@@ -155,8 +275,8 @@ def contact_line(c: Contact) -> str:
     def axis(name: str, v: float, ok: bool, sigma: float) -> str:
         if ok:
             return f"{name} {format_mm(v)}"
-        s = f" ±{sigma * 1e3:.0f}" if math.isfinite(sigma) else ""
-        return f"{name} ~{v * 1e3:.1f}{s} mm (unresolved)"
+        s = f" ±{fmt(sigma * 1e3, '.0f')}" if math.isfinite(sigma) else ""
+        return f"{name} ~{fmt(v * 1e3)}{s} mm (unresolved)"
     parts = [f"#{c.id}", axis("x", c.x, c.observable[0], c.sigma_x), axis("y", c.y, c.observable[1], c.sigma_y),
              f"F {format_force(c.force)}", f"⌀ {format_mm(c.diameter)}"]
     if not c.valid:
@@ -166,64 +286,95 @@ def contact_line(c: Contact) -> str:
     return "  ".join(parts)
 
 
+
 class SkinView:
     """The view model: feed it messages, ask it for a :class:`Frame`.
 
     ``force_scale`` is the force (N) drawn at full colour; ``dc_scale`` the ΔC1 (pF)
     drawn at full colour while elements have no force (calibration not finished, or
-    outside the inverse's valid region).
+    outside the inverse's valid region). ``source`` is the daemon shown (a payload's
+    ``source``); None: the first one heard. Messages of any other source are counted
+    (:attr:`other_sources`) and otherwise ignored: one picture never mixes two skins.
     """
 
-    def __init__(self, force_scale: float = 5.0, dc_scale: float = 2.0, stale_after: float = STALE_AFTER) -> None:
+    def __init__(self, force_scale: float = 5.0, dc_scale: float = 2.0, stale_after: float = STALE_AFTER,
+                 source: str | None = None) -> None:
         self.force_scale = force_scale  # N at full colour
         self.dc_scale = dc_scale  # pF at full colour
         self.stale_after = stale_after
+        self.source = source
+        self.source_given = source is not None
+        self.other_sources: dict[str, int] = {}  # messages of each other source heard (names: the first few)
+        self.other_sources_more = 0  # messages of other sources beyond those names
         self.elements: dict[int, Element] = {}
         self.layout: dict[int, tuple[float, float]] = {}
         self.side = 0.04
         self.contacts: list[Contact] = []
         self.contact_t: float = math.nan
-        self.health: dict[str, Any] = {}
+        self.health: dict[str, Any] = {}  # the newest health payload, a bounded copy
         self.health_summary: dict[str, Any] = {}
+        self.health_count = 0  # health messages taken from the shown source
         self.received: dict[str, int] = {}
         self.lost: dict[str, int] = {}  # messages this subscriber missed (seq gaps), per topic
         self.malformed = 0
+        self.unknown_topics = 0  # messages on a topic this model does not draw (a prefix match of a subscription)
+        self.not_kept = 0  # readings of elements beyond MAX_ELEMENTS, contacts beyond MAX_CONTACTS
         self.daemon_restarts = 0
         self.last_seq: dict[str, int] = {}
         self.last_message: float = -math.inf
         self.changed = True
         self.paused = False
-        self._uptime = -math.inf
+        self._history_keep = HISTORY
+        self._too_large: tuple[float, float] | None = None  # (cols, rows) of a layout beyond MAX_GRID
         self.needs_topology = True  # the shell asks the control socket for the layout while set
 
     # ---- input --------------------------------------------------------------------
 
     def feed(self, topic: str, payload: Any, now: float) -> None:
-        """One message from the PUB socket, decoded; ``now`` is the receiver's monotonic time."""
-        self.last_message = now
+        """One message from the PUB socket, decoded; ``now`` is the receiver's monotonic time.
+        Never raises: a payload this model cannot read is counted in :attr:`malformed`."""
+        if topic not in TOPICS:
+            self.unknown_topics += 1
+            return
         self.received[topic] = self.received.get(topic, 0) + 1
         if not isinstance(payload, dict):
             self.malformed += 1
             return
-        self._count_seq(topic, payload)
+        if not self._shown(payload.get("source")):
+            return
+        self.last_message = now
         try:
+            self._count_seq(topic, payload)
             if topic == "element":
                 self._feed_element(payload)
             elif topic == "contact":
                 self._feed_contact(payload)
             elif topic == "health":
                 self._feed_health(payload)
-            elif topic == "topology":
-                self.feed_topology(payload)
-        except (TypeError, ValueError, KeyError, AttributeError):
+            else:
+                self._feed_topology(payload)
+        except Exception:  # a payload nobody foresaw: counted, and the view goes on ("never a crash")
             self.malformed += 1
             return
         self.changed = True
 
     def feed_malformed(self, now: float) -> None:
-        """A message that was not [topic, msgpack payload]: counted, never dropped silently."""
-        self.last_message = now
+        """A message that was not [topic, msgpack payload]: counted, never dropped silently.
+        (It says nothing of which daemon sent it, so it does not count as a sign of life.)"""
         self.malformed += 1
+
+    def _shown(self, source: Any) -> bool:
+        """Whether a payload of ``source`` belongs to the picture (else it is counted)."""
+        name = source if isinstance(source, str) else ""
+        if self.source is None:
+            self.source = name  # the first daemon heard is the one shown
+        if name == self.source:
+            return True
+        if name in self.other_sources or len(self.other_sources) < MAX_OTHER_SOURCES:
+            self.other_sources[name] = self.other_sources.get(name, 0) + 1
+        else:
+            self.other_sources_more += 1
+        return False
 
     def _count_seq(self, topic: str, payload: dict[str, Any]) -> None:
         seq = payload.get("seq")
@@ -241,39 +392,73 @@ class SkinView:
         if seq > last + 1:
             self.lost[topic] = self.lost.get(topic, 0) + seq - last - 1
 
-    def feed_topology(self, payload: dict[str, Any]) -> None:
-        """A ``topology`` message or the reply of the control request ``topology``."""
-        layout = payload.get("layout")
+    def feed_topology(self, payload: Any) -> None:
+        """The reply of the control request ``topology`` (or a ``topology`` message's
+        payload). Never raises: a reply this model cannot read is counted."""
+        try:
+            self._feed_topology(payload)
+        except Exception:  # as in feed()
+            self.malformed += 1
+
+    def _feed_topology(self, payload: Any) -> None:
+        layout = payload.get("layout") if isinstance(payload, dict) else None
         if not isinstance(layout, dict):
             return
         ids, xs, ys = layout.get("ids"), layout.get("x"), layout.get("y")
         if not (isinstance(ids, list) and isinstance(xs, list) and isinstance(ys, list)):
             return
         side = _num(layout.get("side"))
-        if math.isfinite(side) and side > 0:
+        if 0 < side <= MAX_SIDE:
             self.side = side
-        self.layout = {int(b): (_num(x), _num(y)) for b, x, y in zip(ids, xs, ys)
-                       if isinstance(b, int) and math.isfinite(_num(x)) and math.isfinite(_num(y))}
+        placed: dict[int, tuple[float, float]] = {}
+        for b, x, y in zip(ids[:MAX_COLUMN], xs, ys):
+            bridge, px, py = _bridge(b), _pos(x), _pos(y)
+            if bridge is None or not (math.isfinite(px) and math.isfinite(py)):
+                continue
+            if len(placed) >= MAX_ELEMENTS and bridge not in placed:
+                continue  # a layout of more elements than are kept: the first ones drawn
+            placed[bridge] = (px, py)
+        self.layout = placed
         self.needs_topology = not self.layout
         self.changed = True
+
+    def _history_len(self, n: int) -> int:
+        """Samples of history kept per element when ``n`` elements are kept: all
+        :data:`HISTORY` up to 256 elements, then less, so that the total stays bounded."""
+        return max(50, min(HISTORY, HISTORY_BUDGET // (1 << max(0, n - 1).bit_length())))
+
+    def _element(self, b: int) -> Element | None:
+        e = self.elements.get(b)
+        if e is not None:
+            return e
+        if len(self.elements) >= MAX_ELEMENTS:
+            self.not_kept += 1
+            return None
+        keep = self._history_len(len(self.elements) + 1)
+        if keep != self._history_keep:  # at most once per doubling of the elements kept
+            self._history_keep = keep
+            for old in self.elements.values():
+                old.history = deque(old.history, maxlen=keep)
+        e = self.elements[b] = Element(b, history=deque(maxlen=keep))
+        if b not in self.layout:
+            self.needs_topology = True
+        return e
 
     def _feed_element(self, p: dict[str, Any]) -> None:
         bridges = p.get("bridge")
         if not isinstance(bridges, list):
             raise ValueError("element without bridge column")
+        bridges = bridges[:MAX_COLUMN]
         n = len(bridges)
         cols = [_col(p, k, n) for k in ("force", "area", "dc1", "dc2", "valid", "touched", "status", "t_sample")]
         for b, force, area, dc1, dc2, valid, touched, status, ts in zip(bridges, *cols):
-            if not isinstance(b, int):
-                continue
-            e = self.elements.get(b)
+            bridge = _bridge(b)
+            e = self._element(bridge) if bridge is not None else None
             if e is None:
-                e = self.elements[b] = Element(b)
-                if b not in self.layout:
-                    self.needs_topology = True
+                continue
             e.force, e.area, e.dc1, e.dc2 = _num(force), _num(area), _num(dc1), _num(dc2)
             e.valid, e.touched = valid is True, touched is True
-            e.status = status if isinstance(status, int) else 0
+            e.status = status if isinstance(status, int) and not isinstance(status, bool) else 0
             e.t_sample = _num(ts)
             e.history.append((e.t_sample, e.shown_force(), e.dc1))
 
@@ -281,30 +466,41 @@ class SkinView:
         contacts = p.get("contacts")
         if not isinstance(contacts, list):
             raise ValueError("contact without contacts")
-        out = []
-        for c in contacts:
-            if not isinstance(c, dict) or not isinstance(c.get("id"), int):
+        out: list[Contact] = []
+        for c in contacts[:MAX_COLUMN]:
+            cid = c.get("id") if isinstance(c, dict) else None
+            if not isinstance(cid, int) or isinstance(cid, bool):
                 self.malformed += 1
+                continue
+            if len(out) >= MAX_CONTACTS:
+                self.not_kept += 1
                 continue
             obs = c.get("observable")
             observable = (obs[0] is not False, obs[1] is not False) if isinstance(obs, list) and len(obs) >= 2 \
                 else (True, True)
             elements = c.get("elements")
-            out.append(Contact(id=c["id"], x=_num(c.get("x")), y=_num(c.get("y")), force=_num(c.get("force")),
-                               diameter=_num(c.get("diameter")), observable=observable,
+            missed = c.get("missed")
+            out.append(Contact(id=cid, x=_pos(c.get("x")), y=_pos(c.get("y")), force=_num(c.get("force")),
+                               diameter=_size(c.get("diameter")), observable=observable,
                                valid=c.get("valid") is not False,
-                               missed=c["missed"] if isinstance(c.get("missed"), int) else 0,
-                               sigma_x=_num(c.get("sigma_x")), sigma_y=_num(c.get("sigma_y")),
-                               elements=tuple(e for e in elements if isinstance(e, int))
+                               missed=missed if isinstance(missed, int) and not isinstance(missed, bool) else 0,
+                               sigma_x=_size(c.get("sigma_x")), sigma_y=_size(c.get("sigma_y")),
+                               elements=tuple(b for b in elements[:MAX_CONTACTS] if _bridge(b) is not None)
                                if isinstance(elements, list) else ()))
         self.contacts = out
         self.contact_t = _num(p.get("t_sample"))
 
     def _feed_health(self, p: dict[str, Any]) -> None:
-        uptime = _num(p.get("uptime"))
-        self._uptime = uptime
-        self.health = p
-        self.health_summary = summarise_health(p)
+        summary = summarise_health(p)
+        self.health = bounded(p)
+        self.health_summary = summary
+        self.health_count += 1
+
+    def scale(self, factor: float) -> None:
+        """Multiply both colour scales by ``factor`` (the views' +/- keys), within 1e-6..1e6."""
+        self.force_scale = min(1e6, max(1e-6, self.force_scale * factor))
+        self.dc_scale = min(1e6, max(1e-6, self.dc_scale * factor))
+        self.changed = True
 
     # ---- output -------------------------------------------------------------------
 
@@ -312,36 +508,48 @@ class SkinView:
         return now - self.last_message <= self.stale_after
 
     def frame(self, now: float) -> Frame:
-        """What to draw now. Clears :attr:`changed`."""
+        """What to draw now. Clears :attr:`changed`. The grid is at most :data:`MAX_GRID`
+        cells a side for the layout, plus rows of unplaced elements (at most
+        :data:`MAX_ELEMENTS` in all); a layout that would need a larger grid is drawn as
+        unplaced elements, and a status line says so."""
         self.changed = False
-        placed = {b: xy for b, xy in self.layout.items()}
+        placed = dict(self.layout)
         for b in self.elements:  # a bridge without a known position still shows, after the placed ones
             placed.setdefault(b, (math.nan, math.nan))
         side = self.side
         finite = [xy for xy in placed.values() if math.isfinite(xy[0])]
-        x0 = min((x for x, _ in finite), default=0.0) - side / 2
-        y0 = min((y for _, y in finite), default=0.0) - side / 2
+        xs, ys = [x for x, _ in finite], [y for _, y in finite]
+        x0 = min(xs, default=0.0) - side / 2
+        y0 = min(ys, default=0.0) - side / 2
+        span = ((max(xs) - min(xs)) / side + 1, (max(ys) - min(ys)) / side + 1) if finite else (0.0, 0.0)
+        fits = span[0] <= MAX_GRID and span[1] <= MAX_GRID  # False for inf and NaN too
+        self._too_large = None if fits else span
         cells: list[Cell] = []
         rows = cols = 0
-        unplaced = sorted(b for b, xy in placed.items() if not math.isfinite(xy[0]))
-        for b, (x, y) in sorted(placed.items()):
-            if not math.isfinite(x):
-                continue
-            col, row = int(round((x - x0) / side - 0.5)), int(round((y - y0) / side - 0.5))
-            cells.append(self._cell(b, row, col))
-            rows, cols = max(rows, row + 1), max(cols, col + 1)
-        for i, b in enumerate(unplaced):  # an extra row below the skin
-            cells.append(self._cell(b, rows, i))
+        unplaced = sorted(b for b, xy in placed.items() if not (fits and math.isfinite(xy[0])))
+        if fits:
+            for b, (x, y) in sorted(placed.items()):
+                if not math.isfinite(x):
+                    continue
+                col, row = int(round((x - x0) / side - 0.5)), int(round((y - y0) / side - 0.5))
+                cells.append(self._cell(b, row, col))
+                rows, cols = max(rows, row + 1), max(cols, col + 1)
+        per_row = max(cols, UNPLACED_PER_ROW)
+        for i, b in enumerate(unplaced):  # extra rows beyond the skin
+            cells.append(self._cell(b, rows + i // per_row, i % per_row))
         if unplaced:
-            cols = max(cols, len(unplaced))
-            rows += 1
+            cols = max(cols, min(len(unplaced), per_row))
+            rows += (len(unplaced) + per_row - 1) // per_row
         quantity = "force" if not cells or any(c.quantity == "force" for c in cells) else "dc"
         drawn = []
         for c in self.contacts:
-            d = c.diameter if math.isfinite(c.diameter) else 0.0
+            gx, gy = ((c.x - x0) / side, (c.y - y0) / side) if fits else (math.nan, math.nan)
+            if not (-MAX_GRID <= gx <= 2 * MAX_GRID and -MAX_GRID <= gy <= 2 * MAX_GRID):
+                gx = gy = math.nan  # far off the skin (or no position): listed, not drawn
+            d = min(c.diameter / side, 2.0 * MAX_GRID) if math.isfinite(c.diameter) else 0.0
             level = min(1.0, max(0.0, c.force / self.force_scale)) if math.isfinite(c.force) else math.nan
             drawn.append(DrawnContact(
-                id=c.id, col=(c.x - x0) / side, row=(c.y - y0) / side, diameter=d / side, level=level,
+                id=c.id, col=gx, row=gy, diameter=d, level=level,
                 force=c.force, x=c.x, y=c.y, diameter_m=c.diameter, observable=c.observable, valid=c.valid,
                 label=f"#{c.id} {format_force(c.force)}", line=contact_line(c)))
         return Frame(rows=rows, cols=cols, side=side, origin=(x0, y0), quantity=quantity,
@@ -357,40 +565,57 @@ class SkinView:
             return Cell(bridge, row, col, math.nan, "·", False, math.nan, math.nan)
         f = e.shown_force()
         if math.isfinite(f):
-            return Cell(bridge, row, col, min(1.0, max(0.0, f / self.force_scale)), f"{f:.1f}N" if f > 0 else "",
+            return Cell(bridge, row, col, min(1.0, max(0.0, f / self.force_scale)), f"{fmt(f)}N" if f > 0 else "",
                         e.touched, f, e.dc1)
         dc = e.dc1 * 1e12
         if math.isfinite(dc):
-            return Cell(bridge, row, col, min(1.0, max(0.0, dc / self.dc_scale)), f"{dc:.1f}pF", e.touched, f, e.dc1,
-                        quantity="dc")
+            return Cell(bridge, row, col, min(1.0, max(0.0, dc / self.dc_scale)), f"{fmt(dc)}pF", e.touched, f,
+                        e.dc1, quantity="dc")
         return Cell(bridge, row, col, math.nan, "cal" if e.status & 1 else "?", e.touched, f, e.dc1, quantity="none")
 
     def counters(self) -> dict[str, Any]:
         return {"received": dict(self.received), "lost": dict(self.lost), "malformed": self.malformed,
-                "daemon_restarts": self.daemon_restarts}
+                "daemon_restarts": self.daemon_restarts,
+                "other_sources": sum(self.other_sources.values()) + self.other_sources_more,
+                "unknown_topics": self.unknown_topics, "not_kept": self.not_kept}
 
     def status_lines(self, now: float) -> list[str]:
-        """The status area: daemon, links, bridges, loss, rate, estimation time, this view's losses."""
+        """The status area: daemon, links, bridges, loss, rate, estimation time, this view's
+        losses. Every string from the daemon in it has passed :func:`printable`."""
         h = self.health_summary
         lines = []
         if self.last_message == -math.inf:
-            lines.append("daemon: waiting for the first message")
+            lines.append("daemon: waiting for the first message"
+                         + (f" of source {printable(self.source)}" if self.source_given else ""))
         elif not self.live(now):
-            lines.append(f"daemon: SILENT for {now - self.last_message:.0f} s (stopped? reconnecting by itself)")
+            lines.append(f"daemon: SILENT for {fmt(now - self.last_message, '.0f')} s "
+                         "(stopped? reconnecting by itself)")
         else:
-            lines.append(f"daemon: live  uptime {h.get('uptime', math.nan):.0f} s"
+            lines.append(f"daemon: live  uptime {fmt(h.get('uptime', math.nan), '.0f')} s"
                          + (f"  restarts seen {self.daemon_restarts}" if self.daemon_restarts else ""))
+        if self.other_sources or self.other_sources_more:
+            others = ", ".join(f"{printable(n, 30) or '(unnamed)'} ({k})" for n, k in sorted(self.other_sources.items()))
+            more = f", more: {self.other_sources_more}" if self.other_sources_more else ""
+            shown = printable(self.source, 30) or "(unnamed)"
+            lines.append(f"source: {shown}{'' if self.source_given else ' (the first heard)'}; "
+                         f"not shown: {others}{more} (pick with --source)")
         if h:
             lines.append(f"links: {h['links_up']}/{h['links']} up  {h['link_text']}")
-            lines.append(f"bridges: {h['alive']} alive, {h['silent']} silent  loss {h['loss'] * 100:.2f} %  "
-                         f"rate {h['rate']:.0f} samples/s")
-            lines.append(f"contacts: estimate {h['est_ms']:.2f} ms (max {h['est_max_ms']:.2f})  "
+            lines.append(f"bridges: {h['alive']} alive, {h['silent']} silent  loss {fmt(h['loss'] * 100, '.2f')} %  "
+                         f"rate {fmt(h['rate'], '.0f')} samples/s")
+            lines.append(f"contacts: estimate {fmt(h['est_ms'], '.2f')} ms (max {fmt(h['est_max_ms'], '.2f')})  "
                          f"calibration {h['calibration']}")
+        if self._too_large is not None:
+            lines.append(f"layout: {fmt(self._too_large[0], '.0f')} x {fmt(self._too_large[1], '.0f')} elements "
+                         f"of {fmt(self.side * 1e3, '.2f')} mm, beyond the {MAX_GRID} x {MAX_GRID} drawn: "
+                         "elements shown unplaced")
         lost = sum(self.lost.values())
         lines.append(f"this view: {sum(self.received.values())} messages, lost {lost}"
-                     + (f"  (daemon dropped {h['pub_dropped']})" if h.get("pub_dropped") else "")
+                     + (f"  (daemon dropped {fmt(h['pub_dropped'], '.0f')})" if h.get("pub_dropped") else "")
                      + (f" ({', '.join(f'{k} {v}' for k, v in sorted(self.lost.items()))})" if lost else "")
                      + (f", malformed {self.malformed}" if self.malformed else "")
+                     + (f", beyond limits {self.not_kept}" if self.not_kept else "")
+                     + (f", other topics {self.unknown_topics}" if self.unknown_topics else "")
                      + ("  [PAUSED]" if self.paused else ""))
         return lines
 
@@ -401,28 +626,59 @@ def _table(p: dict[str, Any], key: str) -> dict[Any, Any]:
     return v if isinstance(v, dict) else {}
 
 
+def _total(values: Any) -> float:
+    """The sum of the numbers among ``values`` (anything else is taken as absent); NaN
+    (shown as ``?``) when one of them is not finite: a sum it enters is not known."""
+    total = 0.0
+    for v in values:
+        x = _num(v)
+        if not math.isnan(x) or isinstance(v, float):
+            total += x
+    return total if math.isfinite(total) else math.nan
+
+
+def _name(key: Any) -> str:
+    """A map key (a link's name) as text to show."""
+    return printable(key, 24) if isinstance(key, str) else str(key) if isinstance(key, int) else printable(key)
+
+
+def _shown_value(v: Any) -> str:
+    """A scalar from the daemon as short text: numbers formatted, strings escaped."""
+    if isinstance(v, bool) or v is None:
+        return "?"
+    if isinstance(v, int):
+        return fmt(float(v), ".0f") if abs(v) >= 1e6 else str(v)
+    if isinstance(v, float):
+        return fmt(v, "g")
+    return printable(v, 12) if isinstance(v, str) else "?"
+
+
 def summarise_health(p: dict[str, Any]) -> dict[str, Any]:
-    """The few figures of a ``health`` payload a status area shows (defensive: any may be absent)."""
+    """The few figures of a ``health`` payload a status area shows (defensive: any may be
+    absent or of any type; sums that overflow show as such, never raise)."""
     links = _table(p, "links")
     bridges = _table(p, "bridges")
-    up = [n for n, ln in links.items() if isinstance(ln, dict) and ln.get("connected")]
-    silent = [b for b, br in bridges.items() if isinstance(br, dict) and br.get("silent")]
-    lost = sum(_num(br.get("lost")) for br in bridges.values() if isinstance(br, dict) and math.isfinite(_num(br.get("lost"))))
-    frames = sum(_num(br.get("frames")) for br in bridges.values() if isinstance(br, dict) and math.isfinite(_num(br.get("frames"))))
-    rate = sum(_num(br.get("sample_rate")) for br in bridges.values()
-               if isinstance(br, dict) and math.isfinite(_num(br.get("sample_rate"))))
+    up = {n for n, ln in links.items() if isinstance(ln, dict) and ln.get("connected") is True}
+    silent = sum(1 for br in bridges.values() if isinstance(br, dict) and br.get("silent") is True)
+    rows = [br for br in bridges.values() if isinstance(br, dict)]
+    lost = _total(br.get("lost") for br in rows)
+    frames = _total(br.get("frames") for br in rows)
+    rate = _total(br.get("sample_rate") for br in rows)
     est = _table(p, "contact_estimation")
     cal = _table(_table(p, "layout"), "calibration")
     dropped = _table(_table(p, "pub"), "dropped")
-    link_text = "  ".join(f"{n}:{'up' if n in up else 'DOWN'}" for n in sorted(links)[:4])
+    shown = sorted(((_name(n), n in up) for n in links), key=lambda t: t[0])[:4]
+    link_text = "  ".join(f"{n}:{'up' if ok else 'DOWN'}" for n, ok in shown)
+    seen = lost + frames
+    loss = lost / seen if seen > 0 else 0.0 if seen == 0 else math.nan  # NaN: a count not known
     return {
         "uptime": _num(p.get("uptime")),
         "links": len(links), "links_up": len(up), "link_text": link_text,
-        "alive": len(bridges) - len(silent), "silent": len(silent),
-        "loss": lost / (lost + frames) if lost + frames > 0 else 0.0,
+        "alive": len(bridges) - silent, "silent": silent,
+        "loss": loss,
         "rate": rate,
         "est_ms": _num(est.get("last_ms")), "est_max_ms": _num(est.get("max_ms")),
-        "calibration": (f"{cal.get('ready', '?')} ready, {cal.get('collecting', 0)} collecting"
+        "calibration": (f"{_shown_value(cal.get('ready', '?'))} ready, {_shown_value(cal.get('collecting', 0))} collecting"
                         if cal else "?"),
-        "pub_dropped": int(sum(v for v in dropped.values() if isinstance(v, (int, float)))),
+        "pub_dropped": _total(dropped.values()),
     }

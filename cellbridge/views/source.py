@@ -19,7 +19,7 @@ import msgpack
 import zmq
 
 from cellbridge.daemon.security import apply_client
-from cellbridge.views.model import TOPICS, SkinView
+from cellbridge.views.model import TOPICS, SkinView, printable
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
 DEFAULT_CONTROL = "tcp://127.0.0.1:5561"
@@ -32,9 +32,14 @@ TOPOLOGY_RETRY = 1.0  # s between layout requests while the layout is unknown
 
 
 def add_source_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options every view shares: where the daemon is, its CURVE keys, colour scale."""
+    """The options every view shares: where the daemon is, which one, its CURVE keys, colour scale."""
     g = parser.add_argument_group("daemon")
     g.add_argument("--endpoint", default=DEFAULT_PUB, help=f"the daemon's PUB endpoint (default: {DEFAULT_PUB})")
+    g.add_argument("--source", metavar="NAME",
+                   help="show only the daemon whose messages name this source (several daemons behind one "
+                        "'cellbridge proxy'; a daemon's source is its [pub] source, by default HOST:PORT of its "
+                        "PUB endpoint); default: the first daemon heard, others are counted, never mixed in. "
+                        "--control must then be that daemon's control endpoint")
     g.add_argument("--control", default=DEFAULT_CONTROL,
                    help=f"the daemon's control endpoint, for the layout and tare (default: {DEFAULT_CONTROL})")
     g.add_argument("--server-key", type=Path, metavar="FILE",
@@ -113,7 +118,7 @@ class Source:
                 continue
             try:
                 payload = msgpack.unpackb(parts[1], raw=False, strict_map_key=False)
-            except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
+            except Exception:  # not msgpack, too deep, a map keyed by an array (TypeError): counted
                 model.feed_malformed(now)
                 continue
             model.feed(parts[0].decode("ascii", "replace"), payload, now)
@@ -143,17 +148,19 @@ class Source:
                 return
             try:
                 reply = msgpack.unpackb(frames[-1], raw=False, strict_map_key=False)
-            except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError):
+            except Exception:  # as in drain()
+                model.feed_malformed(time.monotonic())
                 continue
             if not isinstance(reply, dict):
                 continue
             rid = reply.get("id")
             cmd = self._pending.pop(rid, None) if isinstance(rid, int) else None
-            if cmd == "topology" and reply.get("ok"):
+            if cmd == "topology" and reply.get("ok") is True:
                 model.feed_topology(reply)
             elif cmd == "tare":
-                self.notice = (f"tare: {reply.get('tared_elements')} elements re-baselining"
-                               if reply.get("ok") else f"tare refused: {reply.get('error')}")
+                n = reply.get("tared_elements")
+                self.notice = (f"tare: {n if isinstance(n, int) else '?'} elements re-baselining"
+                               if reply.get("ok") is True else f"tare refused: {printable(reply.get('error'), 80)}")
                 model.changed = True
 
     def close(self) -> None:

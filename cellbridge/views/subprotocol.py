@@ -17,8 +17,15 @@ The accept key does not depend on the subprotocol, so nothing else changes; afte
 two heads, bytes pass through untouched both ways. A client offering the new name (or
 neither) passes unchanged, and the SDK server answers it as it would directly.
 
+The front is also where a connection is admitted (:mod:`cellbridge.views.access`): a
+request whose ``Host`` is not a name of this machine's loopback (DNS rebinding) or whose
+``Origin`` is another site's page (cross-site WebSocket hijacking) is answered 403 and
+never reaches the SDK's server. Programs (the Foxglove desktop app) send no ``Origin``
+and pass; a browser page only from the origins allowed (Foxglove's web app by default).
+
 :func:`rewrite_request` and :func:`rewrite_response` are the pure core (bytes in, bytes
-out); :class:`SubprotocolFront` is the asyncio shell, in a thread of its own.
+out), :func:`refusal` the admission; :class:`SubprotocolFront` is the asyncio shell, in
+a thread of its own.
 """
 
 from __future__ import annotations
@@ -26,12 +33,41 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import threading
+from collections.abc import Iterable
+
+from cellbridge.views.access import host_allowed, origin_allowed
 
 SDK = "foxglove.sdk.v1"
 LEGACY = "foxglove.websocket.v1"
 HEADER = b"sec-websocket-protocol"
 MAX_HEAD = 16 * 1024  #: longest HTTP head taken (a browser's upgrade request is well under 2 kB)
 HEAD_TIMEOUT = 10.0  #: s a client or the server has to send its head
+
+
+def header(head: bytes, name: str) -> str | None:
+    """The value of header ``name`` in an HTTP head (the first, if repeated), or None."""
+    want = name.lower().encode()
+    for line in head.split(b"\r\n")[1:]:
+        key, sep, value = line.partition(b":")
+        if sep and key.strip().lower() == want:
+            return value.strip().decode("latin-1")
+    return None
+
+
+def refusal(head: bytes, origins: Iterable[str] = (), hosts: Iterable[str] = ()) -> bytes | None:
+    """The 403 answer to an upgrade request this server does not admit, or None to admit it:
+    ``Host`` must name this machine (a loopback name, an IP address, or one of ``hosts``)
+    and ``Origin``, when there is one, be one of ``origins`` or the server's own."""
+    host = header(head, "host")
+    if not host_allowed(host, hosts):
+        why = "this server does not answer to that host name"
+    elif not origin_allowed(header(head, "origin"), host, origins):
+        why = "connections from this origin are not allowed (cellbridge foxglove --allow-origin)"
+    else:
+        return None
+    body = f"403: {why}\n".encode()
+    return (b"HTTP/1.1 403 Forbidden\r\nContent-Type: text/plain; charset=utf-8\r\n"
+            b"Content-Length: " + str(len(body)).encode() + b"\r\nConnection: close\r\n\r\n" + body)
 
 
 def offered(head: bytes) -> list[str]:
@@ -80,15 +116,20 @@ def rewrite_response(head: bytes, legacy: bool) -> bytes:
 
 
 class SubprotocolFront:
-    """Listens on ``host:port`` and passes every connection to the SDK server on
-    ``127.0.0.1:upstream_port``, heads rewritten as above. :attr:`port` is the port bound
-    (``port`` 0: a free one); :attr:`connections` and :attr:`legacy` count what came in.
-    OSError from the constructor when it cannot listen."""
+    """Listens on ``host:port`` and passes every connection it admits (:func:`refusal`,
+    with ``origins`` and ``hosts``) to the SDK server on ``127.0.0.1:upstream_port``, heads
+    rewritten as above. :attr:`port` is the port bound (``port`` 0: a free one);
+    :attr:`connections`, :attr:`legacy` and :attr:`refused` count what came in. OSError
+    from the constructor when it cannot listen."""
 
-    def __init__(self, host: str, port: int, upstream_port: int) -> None:
+    def __init__(self, host: str, port: int, upstream_port: int, origins: Iterable[str] = (),
+                 hosts: Iterable[str] = ()) -> None:
         self.upstream_port = upstream_port
+        self.origins = tuple(origins)
+        self.hosts = (host, *hosts)
         self.connections = 0
         self.legacy = 0
+        self.refused = 0
         self.port = 0
         self._loop = asyncio.new_event_loop()
         self._server: asyncio.AbstractServer | None = None
@@ -107,6 +148,12 @@ class SubprotocolFront:
         try:
             self.connections += 1
             head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), HEAD_TIMEOUT)
+            refused = refusal(head, self.origins, self.hosts)
+            if refused is not None:
+                self.refused += 1
+                writer.write(refused)
+                await writer.drain()
+                return
             head, legacy = rewrite_request(head)
             self.legacy += legacy
             up_reader, upstream = await asyncio.open_connection("127.0.0.1", self.upstream_port, limit=MAX_HEAD)
@@ -116,23 +163,29 @@ class SubprotocolFront:
             await asyncio.gather(_pipe(reader, upstream), _pipe(up_reader, writer))
         except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError):
             pass  # a client gone, a head too long or too slow: that connection ends, no other
+        except asyncio.CancelledError:
+            pass  # the front is closing (close()): this connection ends with it, quietly
         finally:
             for w in (writer, upstream):
                 if w is not None:
                     w.close()
             self._tasks.discard(task)
 
-    def close(self) -> None:
-        """Stop listening, end every connection, and stop the thread."""
+    def close(self, grace: float = 0.0) -> None:
+        """Stop listening, end every connection, and stop the thread. Connections get
+        ``grace`` s to end by themselves first: the SDK server, stopped before, sends each
+        client a close frame through them."""
         async def shutdown() -> None:
             if self._server is not None:
                 self._server.close()
+            if self._tasks and grace > 0:
+                await asyncio.wait(list(self._tasks), timeout=grace)
             for t in list(self._tasks):
                 t.cancel()
             await asyncio.gather(*self._tasks, return_exceptions=True)
 
         if self._thread.is_alive():
-            asyncio.run_coroutine_threadsafe(shutdown(), self._loop).result(5)
+            asyncio.run_coroutine_threadsafe(shutdown(), self._loop).result(5 + grace)
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(5)
         self._loop.close()

@@ -3,7 +3,9 @@
 A :class:`~cellbridge.views.model.Frame` and a size in characters in, rows of
 ``(char, fg_rgb, bg_rgb)`` out. Each element is a block of ``cw`` × ``ch`` characters
 coloured by its level (its id in the corner when there is room), its label centred in it; each contact is a marker at its
-estimated position (finer than the element) with its id beside it. The layout's +y is
+estimated position (finer than the element) with its id beside it, moved to the nearest
+place (in element units) where a blank keeps it apart from every element's id and label:
+never ``↕02.1N`` read as one word. The layout's +y is
 drawn up, as on the web page and in Foxglove. Cells never shrink below 4×1
 characters: a skin that does not fit then grows the grid beyond the size given, and
 the terminal view scrolls it.
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 from cellbridge.views.model import Frame, level_rgb
 
@@ -46,10 +49,32 @@ def cell_size(rows: int, cols: int, width: int, height: int) -> tuple[int, int]:
     return cw, ch
 
 
+@lru_cache(maxsize=16)
+def _offsets(cw: int, ch: int) -> list[tuple[int, int]]:
+    """(row, column) moves within one element each way, nearest first in element units."""
+    moves = [(dr, dc) for dr in range(-ch, ch + 1) for dc in range(-cw, cw + 1)]
+    return sorted(moves, key=lambda m: ((m[0] / ch) ** 2 + (m[1] / cw) ** 2, abs(m[0]), abs(m[1])))
+
+
+def _place(text: str, r0: int, c0: int, taken: set[tuple[int, int]], cw: int, ch: int, rows: int, cols: int
+           ) -> tuple[int, int]:
+    """Where to write a contact's ``text``: the place nearest (r0, c0) whose characters and
+    the one on each side are not ``taken`` (ids, labels, other markers); (r0, c0) itself
+    when there is none within an element's reach."""
+    n = len(text)
+    for dr, dc in _offsets(cw, ch):
+        r, c = r0 + dr, c0 + dc
+        if 0 <= r < rows and 0 <= c and c + n <= cols \
+                and not any((r, x) in taken for x in range(c - 1, c + n + 1)):
+            return r, c
+    return r0, c0
+
+
 def layout(frame: Frame, width: int, height: int) -> TextGrid:
     cw, ch = cell_size(frame.rows, frame.cols, width, height)
     bg0: RGB = (0, 0, 0)
     grid = [[(" ", (200, 200, 200), bg0) for _ in range(frame.cols * cw)] for _ in range(frame.rows * ch)]
+    taken: set[tuple[int, int]] = set()  # characters of ids, labels and markers written so far
     for cell in frame.cells:
         bg = level_rgb(cell.level)
         ink = _ink(bg)
@@ -64,11 +89,13 @@ def layout(frame: Frame, width: int, height: int) -> TextGrid:
         if gap_row and cw >= 6:  # the element's id in its corner
             for i, chx in enumerate(str(cell.bridge)[: cw - 2]):
                 grid[top][left + i] = (chx, ink, bg)
+                taken.add((top, left + i))
         label = cell.label[: cw - 1]
         r = top + (ch - 1) // 2 if not gap_row else top + max(1, (ch - 2) // 2)
         start = left + max(0, (cw - 1 - len(label)) // 2)
         for i, chx in enumerate(label):
             grid[r][start + i] = (chx, ink, bg)
+            taken.add((r, start + i))
     for con in frame.contacts:
         if not (math.isfinite(con.col) and math.isfinite(con.row)):
             continue
@@ -77,8 +104,10 @@ def layout(frame: Frame, width: int, height: int) -> TextGrid:
         ox, oy = con.observable
         mark = "●" if ox and oy else ("↔" if oy else ("↕" if ox else "✚"))
         text = mark + str(con.id)
+        r, c = _place(text, r, c, taken, cw, ch, frame.rows * ch, frame.cols * cw)
         for i, chx in enumerate(text):
             if c + i < len(grid[r]):
                 _, _, bg = grid[r][c + i]
                 grid[r][c + i] = (chx, (255, 255, 255) if i == 0 else _ink(bg), bg)
+                taken.add((r, c + i))
     return TextGrid(cw, ch, grid)

@@ -6,19 +6,32 @@ marked at its estimated position with its id, a line per contact (position, forc
 diameter; an axis the readings do not determine is shown as unresolved), and the
 mesh's health. Drawing happens at most ``--fps`` times a second on the newest state,
 whatever the rate of the skin; messages are all read (and counted) in between.
+
+Nothing the daemon sends reaches the terminal as it is: every string is shown with its
+control characters escaped (:func:`~cellbridge.views.model.printable`), so a link name
+holding an escape sequence cannot write to the clipboard or recolour the terminal.
+SIGTERM, SIGHUP and Ctrl-C end the view as ``q`` does (the terminal restored).
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import sys
 import time
 from typing import Any
 
-from cellbridge.views.model import SkinView
+from cellbridge.views.model import SkinView, printable
+from cellbridge.views.signals import ignore_stop_signals, on_stop_signal
 from cellbridge.views.source import Source, add_source_arguments, open_source
 
 KEYS = "q quit  p pause  t tare  +/- force scale"
+
+
+def shown(text: str) -> str:
+    """Text as written to the terminal: every line through :func:`printable` (the model's
+    lines are already; this is the last gate before the screen)."""
+    return "\n".join(printable(line, 100_000) for line in text.split("\n"))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "id, force and diameter, and the mesh's health. Works over SSH in 80x24; a larger\n"
         "skin scrolls (arrow keys / mouse wheel).\n\n"
         "keys:\n"
-        "  q        quit\n"
+        "  q        quit (also Ctrl-C)\n"
         "  p        pause the display (messages are still read and counted)\n"
         "  t        tare: re-take every element's baseline (asks for confirmation: y / n)\n"
         "  + / -    force at full colour x2 / /2\n\n"
@@ -54,11 +67,12 @@ def run(args: argparse.Namespace) -> int:
     if source is None:
         return 2
     try:
-        app = _make_app(source, SkinView(force_scale=args.force_scale), args.fps, args.endpoint)
+        app = _make_app(source, SkinView(force_scale=args.force_scale, source=args.source), args.fps, args.endpoint)
         app.run()
     except KeyboardInterrupt:
         pass
     finally:
+        ignore_stop_signals()
         source.close()
     return 0
 
@@ -69,6 +83,7 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
     from rich.style import Style
     from rich.text import Text
     from textual.app import App, ComposeResult
+    from textual.binding import Binding
     from textual.containers import ScrollableContainer
     from textual.geometry import Region
     from textual.screen import ModalScreen
@@ -146,11 +161,12 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
         #status { height: auto; color: $text-muted; }
         #keys { height: 1; background: $primary-background; }
         """
-        BINDINGS = [("q", "quit", "quit"), ("p", "pause", "pause"), ("t", "tare", "tare"),
+        BINDINGS = [("q", "quit", "quit"), Binding("ctrl+c", "quit", "quit", priority=True),
+                    ("p", "pause", "pause"), ("t", "tare", "tare"),
                     ("plus", "scale(0.5)", ""), ("equals_sign", "scale(0.5)", ""), ("minus", "scale(2.0)", "")]
 
         def compose(self) -> ComposeResult:
-            yield Static(f"cellbridge watch  {endpoint}", id="head")
+            yield Static(shown(f"cellbridge watch  {endpoint}"), id="head")
             with ScrollableContainer(id="skin"):
                 yield SkinGrid()
             yield Static(id="empty")
@@ -161,15 +177,21 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
         def on_mount(self) -> None:
             self.set_interval(1.0 / fps, self.tick)
             self._shown_live: bool | None = None
+            self.errors = 0
+            loop = asyncio.get_running_loop()
+            on_stop_signal(lambda: loop.call_soon_threadsafe(self.exit))  # as q: the terminal restored
 
         def tick(self) -> None:
-            source.drain(model)
-            now = time.monotonic()
-            live = model.live(now)
-            if model.paused or not (model.changed or live != self._shown_live or not live):
-                return
-            self._shown_live = live
-            self.draw(now)
+            try:
+                source.drain(model)
+                now = time.monotonic()
+                live = model.live(now)
+                if model.paused or not (model.changed or live != self._shown_live or not live):
+                    return
+                self._shown_live = live
+                self.draw(now)
+            except Exception:  # the model never raises on a payload; should anything else, count it and go on
+                self.errors += 1
 
         def draw(self, now: float) -> None:
             frame = model.frame(now)
@@ -182,7 +204,8 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
             self.set_text("#contacts", "\n".join([c.line for c in frame.contacts] or ["no contact"]))
             status = list(frame.status)
             status.append(f"colour: {what}, full at {frame.scale:g} {'N' if frame.quantity == 'force' else 'pF'}"
-                          + (f"   {source.notice}" if source.notice else ""))
+                          + (f"   {source.notice}" if source.notice else "")
+                          + (f"   view errors {self.errors}" if self.errors else ""))
             self.set_text("#status", "\n".join(status))
 
         def set_text(self, selector: str, text: str) -> None:
@@ -190,15 +213,14 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
             widget = self.query_one(selector, Static)
             if getattr(widget, "_shown", None) != text:
                 widget._shown = text  # type: ignore[attr-defined]  # a marker attribute of our own on the widget
-                widget.update(Text(text, no_wrap=True, overflow="ellipsis"))
+                widget.update(Text(shown(text), no_wrap=True, overflow="ellipsis"))
 
         def action_pause(self) -> None:
             model.paused = not model.paused
             self.draw(time.monotonic())
 
         def action_scale(self, factor: float) -> None:
-            model.force_scale *= factor
-            model.dc_scale *= factor
+            model.scale(factor)
             self.draw(time.monotonic())
 
         def action_tare(self) -> None:

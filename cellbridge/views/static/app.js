@@ -30,8 +30,41 @@
     return { x: box.left + x * k, y: box.top + y * k, w: g.cell * k, h: g.cell * k };
   };
 
+  // The box of a text drawn centred at (x, y) in `size` px (the canvas's current font).
+  function centredBox(text, x, y, size) {
+    const w = sctx.measureText(text).width;
+    return { x: x - w / 2, y: y - size / 2, w, h: size };
+  }
+
+  function overlaps(a, b) {
+    return a.x < b.x + b.w && b.x < a.x + a.w && a.y < b.y + b.h && b.y < a.y + a.h;
+  }
+
+  // Candidate moves of a label from its contact, nearest first (computed once).
+  const MOVES = (() => {
+    const m = [];
+    for (let dx = -240; dx <= 240; dx += 6) for (let dy = -240; dy <= 240; dy += 6) m.push([dx, dy]);
+    return m.sort((a, b) => (a[0] * a[0] + a[1] * a[1]) - (b[0] * b[0] + b[1] * b[1]));
+  })();
+
+  // Where a contact's label (w × h) goes: the place nearest the disk that covers neither the
+  // disk nor any element's id or force (nor another label), inside the canvas; else right of the disk.
+  function labelSpot(cx, cy, r, w, h, boxes) {
+    const disk = { x: cx - r - 2, y: cy - r - 2, w: 2 * r + 4, h: 2 * r + 4 };
+    const reach = { x: cx - 260 - w, y: cy - 260 - h, w: 520 + 2 * w, h: 520 + 2 * h };
+    const near = boxes.filter((b) => overlaps(b, reach));
+    for (const [dx, dy] of MOVES) {
+      const spot = { x: cx + dx - w / 2, y: cy + dy - h / 2, w, h };
+      if (spot.x < 0 || spot.y < 0 || spot.x + w > skin.width || spot.y + h > skin.height) continue;
+      if (overlaps(spot, disk) || near.some((b) => overlaps(spot, b))) continue;
+      return spot;
+    }
+    return { x: cx + r + 4, y: cy - r - 4 - h, w, h };
+  }
+
   function drawSkin(f) {
     const g = state.geometry = geometry(f);
+    const boxes = [];  // element ids and forces as drawn: contact labels keep clear of them
     sctx.clearRect(0, 0, skin.width, skin.height);
     sctx.textAlign = "center"; sctx.textBaseline = "middle";
     for (const c of f.cells) {
@@ -42,24 +75,41 @@
       const lum = 0.299 * c.rgb[0] + 0.587 * c.rgb[1] + 0.114 * c.rgb[2];
       sctx.fillStyle = lum > 140 ? "#000" : "#fff";
       if (g.cell >= 40) {
-        sctx.font = `${Math.max(9, g.cell / 9)}px sans-serif`;
-        sctx.fillText(String(c.bridge), x + g.cell * 0.14, y + g.cell * 0.12);
+        const size = Math.max(9, g.cell / 9), tx = x + g.cell * 0.14, ty = y + g.cell * 0.12;
+        sctx.font = `${size}px sans-serif`;
+        sctx.fillText(String(c.bridge), tx, ty);
+        boxes.push(centredBox(String(c.bridge), tx, ty, size));
       }
-      if (g.cell >= 24 && c.label) { sctx.font = `${Math.max(9, g.cell / 6)}px sans-serif`; sctx.fillText(c.label, x + g.cell / 2, y + g.cell * 0.3); }
+      if (g.cell >= 24 && c.label) {
+        const size = Math.max(9, g.cell / 6), tx = x + g.cell / 2, ty = y + g.cell * 0.3;
+        sctx.font = `${size}px sans-serif`;
+        sctx.fillText(c.label, tx, ty);
+        boxes.push(centredBox(c.label, tx, ty, size));
+      }
     }
+    const shown = [];
     for (const k of f.contacts) {
       if (k.col === null || k.row === null) continue;
       const cx = g.pad + k.col * g.cell, cy = g.pad + (f.rows - k.row) * g.cell;
       const r = Math.max(4, (k.diameter || 0) * g.cell / 2);
+      shown.push([k, cx, cy, r]);
       sctx.beginPath(); sctx.arc(cx, cy, r, 0, 2 * Math.PI);
       sctx.fillStyle = `rgba(${k.rgb[0]},${k.rgb[1]},${k.rgb[2]},0.85)`; sctx.fill();
       sctx.lineWidth = 2; sctx.strokeStyle = "#fff"; sctx.setLineDash(k.observable[0] && k.observable[1] ? [] : [4, 3]); sctx.stroke(); sctx.setLineDash([]);
       if (!k.observable[0]) { sctx.beginPath(); sctx.moveTo(cx - g.cell / 2, cy); sctx.lineTo(cx + g.cell / 2, cy); sctx.stroke(); }
       if (!k.observable[1]) { sctx.beginPath(); sctx.moveTo(cx, cy - g.cell / 2); sctx.lineTo(cx, cy + g.cell / 2); sctx.stroke(); }
-      sctx.font = "bold 14px sans-serif"; sctx.fillStyle = "#fff"; sctx.textAlign = "left";
-      sctx.fillText(`${k.label} ⌀${k.diameter_m === null ? "?" : (k.diameter_m * 1e3).toFixed(1)} mm`, cx + r + 4, cy - r - 4);
-      sctx.textAlign = "center";
     }
+    // labels after every disk, each on a dark backing, clear of the elements' own text
+    sctx.font = "bold 14px sans-serif"; sctx.textAlign = "left";
+    for (const [i, [k, cx, cy, r]] of shown.entries()) {
+      const text = `${k.label} ⌀${k.diameter_m === null ? "?" : (k.diameter_m * 1e3).toFixed(1)} mm`;
+      const w = sctx.measureText(text).width + 6, h = 18;
+      const spot = i < 16 ? labelSpot(cx, cy, r, w, h, boxes) : { x: cx + r + 4, y: cy - r - 4 - h, w, h };
+      sctx.fillStyle = "rgba(0,0,0,0.6)"; sctx.fillRect(spot.x, spot.y, w, h);
+      sctx.fillStyle = "#fff"; sctx.fillText(text, spot.x + 3, spot.y + h / 2);
+      boxes.push(spot);
+    }
+    sctx.textAlign = "center";
     document.getElementById("legend").textContent =
       `colour: ${f.quantity === "force" ? "force" : "ΔC1 (no force yet)"}, full at ${f.scale} ${f.quantity === "force" ? "N" : "pF"}` +
       (f.live ? "" : "  (daemon silent)");

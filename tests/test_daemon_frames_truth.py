@@ -66,7 +66,7 @@ def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_l
     mesh = meshgen.grid(4, 4, loss=0.01)
     presses = [Contact(4.0 + 1.2 * i, 0.8, 0.02 + 0.025 * i, 0.1 - 0.02 * i, 3.0, 0.02) for i in range(4)]
     settings = Settings(rate_hz=RATE) if reporting is None else Settings(rate_hz=RATE, reporting=reporting)
-    vm = VirtualMesh(mesh, seed=5, world=World(mesh, presses), random_epochs=True, settings=settings)
+    vm = VirtualMesh(mesh, seed=5, world=World(mesh, presses), random_epochs=True, settings=settings, readout=True)
     vm.kill(6, at=6.0)  # a relay of the skin's middle, mid-run
     vm.run(seconds)
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 3}}))

@@ -331,7 +331,7 @@ def test_a_held_press_on_an_event_based_skin_keeps_its_contact_when_a_bridge_joi
     second contact, for most of a second."""
     mesh = meshgen.grid(4, 4)
     vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(4.0, 5.0, *CORNER, 3.0, 0.020)]), random_epochs=True,
-                     settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+                     settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.kill(16, at=0.0)
     vm.restart(16, at=6.0)
     vm.run(9.5)
@@ -359,7 +359,7 @@ def test_corner_presses_on_a_contended_event_based_skin_keep_one_id_from_their_f
     rng = random.Random(0)
     presses = [Contact(61.6 + i * 1.5 + rng.uniform(0, 0.01), 1.0, *CORNER, 3.0, 0.020) for i in range(12)]
     vm = VirtualMesh(mesh, seed=0, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
-                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.run(presses[-1].start + 1.6)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
     run = [(t - T0, m) for t, topic, m in drive(reads, presses[-1].start + 1.6, step=0.005,
@@ -395,7 +395,7 @@ def test_presses_sliding_across_seams_of_an_event_based_skin_keep_one_id() -> No
             presses.append(Contact(end + j, hold - j, x, y, 3.0, 0.020, vx, vy))
             end += hold + 0.7
     vm = VirtualMesh(mesh, seed=3, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
-                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.run(end)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
     run = [(t - T0, m) for t, topic, m in drive(reads, end - 0.3, step=0.005)
@@ -445,7 +445,7 @@ def _corner_presses_held_back(phase: str, n: int) -> list[tuple[Contact, set[int
     mesh = meshgen.grid(4, 4)
     presses = [Contact(6.0 + 1.5 * k, 1.0, *CORNER, 3.0, 0.020) for k in range(n)]
     vm = VirtualMesh(mesh, seed=2, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
-                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     end = presses[-1].start + 1.6
     vm.run(end)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
@@ -511,7 +511,7 @@ def test_two_fingers_sharing_an_element_each_get_an_id_within_the_split_wait() -
     fingers += [Contact(t + gap, 0.8, *b, 3.0, 0.020) for t, _, b, gap in FINGER_PAIRS]
     end = max(c.start for c in fingers) + 1.3
     vm = VirtualMesh(mesh, seed=3, world=World(mesh, fingers), latency=Latency(), ack_slack=CLOCK_HZ // 100,
-                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
+                     random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.run(end)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
     run = [(t - T0, m) for t, topic, m in drive(reads, end, step=0.005, sections={"calibration": {"n_baseline": 3}})

@@ -16,11 +16,11 @@ from cellbridge.daemon.layout import LayoutStages
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.firmware import Firmware
+from cellbridge.emulator.readout import FrameReadout
 from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
-from cellbridge.protocol import Readout, StreamDecoder, encode_stream
+from cellbridge.protocol import Readout, ReadoutSample, StreamDecoder, encode_stream
 
 T0 = 1_800_000_000.0
 RATE = 100
@@ -36,16 +36,19 @@ def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_l
     records lost on its serial line (a frame corrupted there: no bridge knows)."""
     truth: dict[tuple[int, int], tuple[int, int]] = {}
     sent: dict[int, tuple[int, int]] = {}
-    readout_sample = Firmware._readout_sample
+    own = FrameReadout.own
 
-    def noted(self: Firmware, s: Any, kept: bool, start: int) -> None:
-        if kept:
-            sent[self.me] = (s.c1, s.c2)
+    def noted(self: FrameReadout, index: int, rate: int, mode: Any, oversampling: int, state: Any, slot: int,
+              span: int) -> None:
+        # each bridge's state of each frame, as its firmware puts it in the record: a sample
+        # (periodic, a change, or a refresh), or unchanged against the last sample it sent
+        if isinstance(state, ReadoutSample):
+            sent[self.me] = (state.c1, state.c2)
         if self.me in sent:
-            truth[(self.me, s.index)] = sent[self.me]
-        readout_sample(self, s, kept, start)
+            truth[(self.me, index)] = sent[self.me]
+        own(self, index, rate, mode, oversampling, state, slot, span)
 
-    monkeypatch.setattr(Firmware, "_readout_sample", noted)
+    monkeypatch.setattr(FrameReadout, "own", noted)
     frames: list[tuple[int, dict[int, tuple[int, int]], set[int]]] = []
     raw_of: dict[int, tuple[int, int]] = {}  # the daemon's reference sample of each row, raw
     frame = LayoutStages.frame

@@ -270,7 +270,9 @@ class SkinFrames:
     @staticmethod
     def _whole(p: _Pending, gateway: int) -> bool:
         parts = p.records.get(gateway)
-        return parts is not None and len(parts) == next(iter(parts.values())).parts
+        if not parts:
+            return False
+        return len(parts) == next(iter(parts.values())).parts
 
     def _gap_open(self, p: _Pending, now: float) -> bool:
         """Whether a frame of ``p``'s rate between the last given out and ``p`` may still come

@@ -144,8 +144,8 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         return [k for k, c in enumerate(presses) if c.start <= now < c.start + c.duration + 0.5
                 and (c.x - x) ** 2 + (c.y - y) ** 2 <= NEAR_M ** 2]
 
-    # The daemon's schedule (service._contacts): a look when data came, when the held
-    # elements' holds run out (Pipeline.contact_due) or at the tick (every 0.1 s), and no
+    # The daemon's schedule (service._contacts): a look when data came, when a frame's
+    # deadline passes (Pipeline.contact_due) or at the tick (every 0.1 s), and no
     # sooner than the pacer allows after the last look (daemon/pacing.py).
     pacer = Pacer(contact.get("rate", 100.0))
     rest_until, tick_at = -math.inf, 0.0
@@ -174,7 +174,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
         if job is not None:
             snap = job.snapshot
             if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):
-                print(f"  {now:.3f} moment lag {1000 * (now - snap.t_moment):.0f} ms, touched "
+                print(f"  {now:.3f} frame lag {1000 * (now - snap.t_frame):.0f} ms, touched "
                       f"{int(snap.touched.sum())}, unknown {int(snap.unknown.sum()) if snap.unknown is not None else 0}")
             for c in p.contact_frame(job, contacts).payload["contacts"]:
                 for k in near(c["x"], c["y"]):
@@ -217,7 +217,7 @@ def main() -> None:
     ap.add_argument("--presses", type=int, default=40)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--contact", action="append", default=[], metavar="KEY=VALUE",
-                    help="a [contact] setting for the daemon (e.g. held_wait=0.1); repeatable")
+                    help="a [contact] setting for the daemon (e.g. rate=250); repeatable")
     ap.add_argument("--verbose", action="store_true", help="print every contact message seen")
     ap.add_argument("--hold", type=float, default=PRESS_S, help=f"seconds each press lasts (default {PRESS_S})")
     ap.add_argument("--at", type=float, nargs=2, metavar=("X", "Y"), default=None,

@@ -6,9 +6,9 @@ one (same service, pipeline, contact worker process); this script wraps a few of
 methods, in this process only, to note on the host monotonic clock:
 
 * ``s``: every reading that reaches the skin frames (arrival, bridge, sample time,
-  touched, held);
-* ``l``: every contact look (``LayoutStages.snapshot``): its time, the frame it took
-  (or none), and each element's hold (delay mark plus margin) at that time;
+  touched, held): a DATA reading, or an element a complete skin frame says something of;
+* ``l``: every contact look (``LayoutStages.snapshot``): its time and the frame it took
+  (or none);
 * ``e``: every estimate (start, end, the frame, its unknown elements);
 * ``p``: every ``contact`` message handed to ZeroMQ (time, frame, contacts);
 * ``b``: what kept the loop busy: each read, each tick, each run of the cyclic garbage
@@ -66,7 +66,7 @@ def _f(x: float) -> float | None:
 
 
 def _instrument() -> None:
-    step, snapshot = LayoutStages.step, LayoutStages.snapshot
+    step, snapshot, frame = LayoutStages.step, LayoutStages.snapshot, LayoutStages.frame
     contact_once, publish = Service._contact_once, Publisher.publish
     on_data, tick_once, contact_due = Service._on_data, Service._tick_once, Pipeline.contact_due
 
@@ -89,22 +89,26 @@ def _instrument() -> None:
     def traced_step(self: LayoutStages, rows, raw, saturated, caps, t_sample, cycle,  # type: ignore[no-untyped-def]
                     now, held, on_time, period, inverse=True):
         res = step(self, rows, raw, saturated, caps, t_sample, cycle, now, held, on_time, period, inverse)
-        m, ids = self.moments, self.layout.ids
-        for r, t, h in zip(rows.tolist(), t_sample.tolist(), held.tolist()):
-            slot = m.t[r] == t  # the reading's slot in the skin frames: its touch flag as they hold it
-            TRACE["s"].append((now, int(ids[r]), t, bool(slot.any() and m.touched[r, slot.argmax()]), bool(h)))
+        r, ids = self.readings, self.layout.ids
+        for row, t, h in zip(rows.tolist(), t_sample.tolist(), held.tolist()):
+            slot = r.t[row] == t  # the reading's slot among the DATA readings: its touch flag as they hold it
+            TRACE["s"].append((now, int(ids[row]), t, bool(slot.any() and r.touched[row, slot.argmax()]), bool(h)))
         return res
 
-    def traced_snapshot(self: LayoutStages, now: float, bridge_timeout: float):  # type: ignore[no-untyped-def]
-        got = snapshot(self, now, bridge_timeout)
-        m = self.moments
-        if m is not None and self.layout is not None:
-            c = self.config.contact
-            bound = m._hold(min(c.held_wait, c.max_lag), now)
-            mo = m.moment(now, bridge_timeout, c.max_lag, c.held_wait)  # the frame it could take (same state)
-            TRACE["l"].append((now, _f(got.t_moment) if got is not None else None,
-                               [_f(b) for b in bound.tolist()], self.layout.ids.tolist(),
-                               m.settled.tolist(), m._held_now().tolist(), _f(mo)))
+    def traced_frame(self: LayoutStages, t, cycle, sampled, raw, saturated, caps, unchanged,  # type: ignore[no-untyped-def]
+                     now, inverse=True):
+        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse)
+        r, ids = self.readings, self.layout.ids
+        for row in sampled.tolist() + unchanged.tolist():  # every element the frame says something of
+            TRACE["s"].append((now, int(ids[row]), t, bool(r.last_touched[row]), False))
+        return got
+
+    def traced_snapshot(self: LayoutStages, now: float, bridge_timeout: float, scheduled: bool):  # type: ignore[no-untyped-def]
+        got = snapshot(self, now, bridge_timeout, scheduled)
+        if self.layout is not None:
+            n = self.layout.n  # (no holds: a frame is estimable once its records are in, or at its deadline)
+            TRACE["l"].append((now, _f(got.t_frame) if got is not None else None, [None] * n,
+                               self.layout.ids.tolist(), [], [False] * n, None))
         return got
 
     async def traced_contact_once(self: Service, limit: float = math.inf) -> bool:
@@ -190,6 +194,7 @@ def _instrument() -> None:
     Pipeline.contact_due = traced_contact_due  # type: ignore[method-assign]
     LayoutStages.step = traced_step  # type: ignore[method-assign]
     LayoutStages.snapshot = traced_snapshot  # type: ignore[method-assign]
+    LayoutStages.frame = traced_frame  # type: ignore[method-assign]
     Service._contact_once = traced_contact_once  # type: ignore[method-assign]
     Publisher.publish = traced_publish  # type: ignore[method-assign]
 
@@ -312,7 +317,7 @@ def print_breakdown(rows: list[dict[str, Any]], share: float = 0.1) -> None:
     cols = ["lat", "gate", "first", "last_k", "hold", "look", "pub", "recv", "frames_after"]
     print("\nper press, ms: gate = first touched frame's gate after the press start; first/last_k = "
           "its first touched / last reading of that frame at the daemon; hold = when that frame "
-          "became estimable (every element reported it or its hold ran out); look = the first "
+          "became estimable (its records in, or its deadline); look = the first "
           "look that took it; pub = its contact handed to ZeroMQ; (all after the frame's gate); "
           "recv = ZeroMQ to the subscriber; frames_after = frames between the first touched one "
           "and the first contact's")

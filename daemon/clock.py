@@ -205,3 +205,119 @@ def rows_to_host(cycles: NDArray[np.uint64], ref: NDArray[np.uint64], t: NDArray
     x = d.astype(np.float64)
     x = np.where(d >= np.uint64(1 << (bits - 1)), x - float(1 << bits), x) / hz
     return t + x * k
+
+
+class SkinClock:
+    """Mesh time → host time, one map for the whole skin.
+
+    Every bridge on mesh time samples on one global clock (the time root's counter), and
+    the gateways, one hop from the host over a short, steady serial line, measure how it
+    maps: each gateway's own points (the global cycle of its own sample's gate, or of its
+    readout record's end, with the arrival) feed the lower envelope of one
+    :class:`BridgeClock` (docs/time.md). A frame's host time is fixed when it is first
+    asked for (the map keeps learning; two bridges' samples of one frame carry one time).
+
+    Jumps are believed only when confirmed: a gateway's point the map puts more than
+    ``slack`` after its own arrival (a new root on another time, or a frame corrupted past
+    the CRC), or more than ``slack`` behind that gateway's newest point (the skin's time
+    went back; or records of frames seconds old, which a confused relay may still pass
+    on in a burst), moves the map only once ``confirm`` such points in a row, over at least
+    ``confirm_time`` s of arrivals, agree with each other (their mesh times as far apart as
+    their arrivals); until then, frames behind such a point are not mapped. A point the map
+    takes in between starts the count again.
+    """
+
+    def __init__(self, hz: float, slack: float = 0.25, memory: float = 10.0, memory_keys: int = 2500,
+                 confirm: int = 3, confirm_time: float = 0.1) -> None:
+        self.hz = float(hz)
+        self.slack = slack
+        self.confirm, self.confirm_time = confirm, confirm_time
+        self.memory = memory  # s of frames whose host time is kept once given
+        self.memory_keys = memory_keys  # frames kept before forgetting old ones is looked at
+        self.map = BridgeClock(hz, bits=64)
+        self.resets = 0
+        self._memo: dict[int, float] = {}  # global cycle of a frame -> its host time
+        self._newest = -1
+        self._jump: list[tuple[int, float]] = []  # (g, arrival) of gateway points in a row ahead of or behind the map
+        self._by_gateway: dict[int, int] = {}  # gateway -> newest global cycle of its own the map took
+        self._back = -1  # while a jump back waits for confirmation: frames behind this are not believed
+
+    @property
+    def synced(self) -> bool:
+        return self.map.synced
+
+    def teach(self, gateway: int, g: int, now: float) -> bool:
+        """A point of ``gateway``'s own: global cycle ``g`` reached the host at ``now``. True
+        when the map began again (the skin's time jumped, confirmed): frame times given
+        before no longer hold."""
+        floor = self._floor(gateway)
+        back = g < floor
+        jumped = taught = self._believed(g, now, back)
+        if taught and back:
+            self.map.restart(g, now)  # the skin's time went back: two points agree
+        elif taught:
+            jumped = self.map.observe(g, now)
+        if jumped:
+            self._by_gateway.clear()
+        if taught:
+            self._by_gateway[gateway] = max(self._by_gateway.get(gateway, -1), g) if not jumped else g
+        self._back = self._floor(gateway) if back and not taught else -1
+        if jumped:
+            self.resets += 1
+            self._memo.clear()
+            self._newest = -1
+        return jumped
+
+    def _floor(self, gateway: int) -> int:
+        """The global cycle more than ``slack`` behind the newest of ``gateway``'s own points
+        the map took (its points come in order: one behind that is the skin's time gone back,
+        or a corrupted frame; another gateway's line may lag)."""
+        return self._by_gateway.get(gateway, -1) - int(self.slack * self.hz)
+
+    def _believed(self, g: int, now: float, back: bool) -> bool:
+        """Whether a gateway's point of global cycle ``g``, arrived at ``now``, may teach the
+        map: at once unless the map puts it more than ``slack`` after its own arrival or it is
+        ``back``; then once ``confirm`` such points in a row, over ``confirm_time``, agree."""
+        if not self.map.synced or (not back and float(self.map.to_host(np.array([g], dtype=np.uint64))[0])
+                                   <= now + self.slack):
+            self._jump = []
+            return True
+        run = self._jump
+        if run and not abs((g - run[-1][0]) / self.hz - (now - run[-1][1])) <= self.slack:
+            run.clear()  # not the same jump: a point of its own
+        run.append((g, now))
+        if len(run) < self.confirm or now - run[0][1] < self.confirm_time - 1e-9:
+            return False
+        run.clear()
+        return True
+
+    def frame_time(self, g: int, now: float) -> float:
+        """:meth:`frame_times` of one frame (a readout record's), without arrays once it is mapped."""
+        t = self._memo.get(g)
+        if t is not None and g >= self._back:
+            return t
+        return float(self.frame_times(np.array([g], dtype=np.int64), now)[0])
+
+    def frame_times(self, g: NDArray[np.int64], now: float) -> NDArray[np.float64]:
+        """Host time of each frame's global cycle ``g`` (-1: none), NaN for none, for a frame
+        the map would put more than ``slack`` after ``now`` (its arrival: never remembered),
+        and for one behind a jump back awaiting confirmation. Frames older than the newest by
+        ``memory`` s are forgotten."""
+        keys, inverse = np.unique(g, return_inverse=True)
+        memo = self._memo
+        new = [k for k in keys.tolist() if k >= 0 and k not in memo and k >= self._back]
+        if new and self.map.synced:
+            mapped = self.map.to_host(np.array(new, dtype=np.uint64)).tolist()
+            kept = [(k, t) for k, t in zip(new, mapped) if t <= now + self.slack]
+            new = [k for k, _ in kept]
+            memo.update(kept)
+            if new:
+                newest = max(new)
+                if newest > self._newest:
+                    self._newest = newest
+                    if len(memo) > 4 * self.memory_keys:
+                        horizon = newest - int(self.memory * self.hz)
+                        self._memo = memo = {k: v for k, v in memo.items() if k >= horizon}
+        back = self._back
+        t = np.array([memo.get(k, math.nan) if k >= back else math.nan for k in keys.tolist()])
+        return t[inverse]

@@ -245,18 +245,25 @@ class ContactSection:
                            reloadable=True)
     worker_timeout: float = _key(30.0, "s one estimate may take before the worker process is taken as hung, "
                                  "killed and replaced", _up_to(3600), reloadable=True)
-    max_lag: float = _key(0.5, "s a bridge's data may trail the newest and still hold the estimated skin "
-                          "frame back (contacts are estimated on whole skin frames); a periodic bridge later than "
-                          "that is unknown for the newer frames (listed in the contact message's unknown) and "
-                          "named in health layout.late", _up_to(10), reloadable=True)
-    held_wait: float = _key(0.5, "s an event-based bridge may hold the frame back at most (a press it saw "
-                            "may still be on its way); it holds it back by its own delivery delay as measured, "
-                            "and this long only while that is not known yet. Beyond it, its older (held) "
-                            "reading stands for the frame",
-                            _up_to(10), reloadable=True)
-    max_lag_readings: int = _key(128, "readings kept per element to hold a skin frame back (memory: elements "
-                                 "x this x 33 bytes); max_lag reaches back at most this many readings at "
-                                 "calibration.max_step_rate", _count(1, 4096), reloadable=True)
+    max_lag: float = _key(0.5, "s the DATA readings of a bridge on no readout schedule (booting, without mesh "
+                          "time, an old capture) may trail the newest and still hold a frame estimated on DATA "
+                          "alone back; a bridge later than that is unknown for the newer frames (listed in the "
+                          "contact message's unknown) and named in health layout.late", _up_to(10), reloadable=True)
+    max_lag_readings: int = _key(128, "DATA readings kept per element for frames estimated on DATA (memory: "
+                                 "elements x this x 42 bytes); max_lag reaches back at most this many readings "
+                                 "at calibration.max_step_rate", _count(1, 4096), reloadable=True)
+
+
+@dataclass(frozen=True)
+class FramesSection:
+    """``[frames]``: skin frames from the gateways' readout records."""
+
+    margin: float = _key(0.02, "s a skin frame waits past its readout and its record's serial time for a "
+                         "gateway's record before it is estimated without it (that gateway's elements unknown); "
+                         "covers the host's read and scheduling delays. Frames whose records all came are "
+                         "estimated at once", _up_to(10, open_lo=False), reloadable=True)
+    max_pending: int = _key(64, "skin frames waiting for records at most (a newer one sends the oldest out as "
+                            "it is)", _count(1, 100_000), reloadable=True)
 
 
 @dataclass(frozen=True)
@@ -308,7 +315,7 @@ class LinkConfig:
 SECTION_TYPES: dict[str, type] = {
     "daemon": DaemonSection, "pub": PubSection, "control": ControlSection, "peers": PeersSection,
     "layout": LayoutSection, "chip": ChipSection, "calibration": CalibrationSection, "inverse": InverseSection,
-    "contact": ContactSection, "health": HealthSection, "protocol": ProtocolSection,
+    "contact": ContactSection, "frames": FramesSection, "health": HealthSection, "protocol": ProtocolSection,
 }
 #: Every key of every section (kind, default, doc, bounds, reloadable), from the dataclasses.
 SECTIONS: dict[str, dict[str, Key]] = {name: _schema(cls) for name, cls in SECTION_TYPES.items()}
@@ -332,6 +339,7 @@ class Config:
     calibration: CalibrationSection = field(default_factory=CalibrationSection)
     inverse: InverseSection = field(default_factory=InverseSection)
     contact: ContactSection = field(default_factory=ContactSection)
+    frames: FramesSection = field(default_factory=FramesSection)
     health: HealthSection = field(default_factory=HealthSection)
     protocol: ProtocolSection = field(default_factory=ProtocolSection)
     links: tuple[LinkConfig, ...] = ()

@@ -1,14 +1,22 @@
-"""Contacts from the skin at one moment: what a contact estimate needs (snapshot, spec,
-job), and the estimator and tracker it runs, in the contact worker's process or inline.
+"""Contacts from one skin frame: what a contact estimate needs (snapshot, spec, job),
+and the estimator and tracker it runs, in the contact worker's process or inline.
 
 The worker builds its estimator from a small :class:`ContactSpec` and keeps it (with its
 tracks) per owner while the spec stays the same, so the estimate itself only ships the
-readings of one moment."""
+readings of one frame.
+
+**Never a confident wrong contact.** Where a contact's elements or their neighbours are
+unknown in the frame, the contact lists them (``unknown_near``), and where the known
+readings do not pin it, its uncertainty covers every position and force the unknown ones
+leave open (:func:`bound_by_unknown`), instead of reporting the fit of the known share
+alone (a seam press with one side unknown was reported at the other side's centre with
+half its force, σ_F 4 mN)."""
 
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterator, Mapping
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,15 +41,14 @@ from numpy.typing import NDArray
 class ContactSnapshot:
     """What contact estimation needs of one moment; copied so the estimator may run in a thread."""
 
-    dc: FloatArray  # (n, 2) each element's ΔC at the moment (see daemon.moment)
+    dc: FloatArray  # (n, 2) each element's ΔC in the frame (see daemon.readings)
     touched: NDArray[np.bool_]
     t_host: float
     t_sample: FloatArray  # (n,) host time of each element's sample used (NaN: none)
-    cycle: NDArray[np.uint64]  # (n,) its bridge cycle count
+    cycle: NDArray[np.uint64]  # (n,) its cycle count (a scheduled sample's: its frame's global cycle)
     ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
-    t_moment: float  # host time the skin is estimated at: every element's reading at or just before it
+    t_frame: float  # host time of the skin frame estimated (its gates' start)
     unknown: NDArray[np.bool_] | None = None  # (n,) elements with no reading of this frame (None: all known)
-    again: bool = False  # the frame estimated last, taken again (a late onset of it came: Moments.take)
 
 
 @dataclass(frozen=True)
@@ -138,44 +145,85 @@ class ContactStage:
             self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
         self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
         self._row = {int(e): i for i, e in enumerate(layout.ids.tolist())}
+        e = layout.corner_edges
+        self._ring = [np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]]) for i in range(layout.n)]
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
         if snap.touched.any():
-            # When each known element's reading was taken: a new contact next to another
-            # waits until the elements between them were read since the press began (one
-            # of them late splits one press in two), while one disk could be both without
-            # those readings (see ContactTracker.step)
-            read_at = _ReadTimes(self._row, snap.t_sample if snap.unknown is None
-                                 else np.where(snap.unknown, np.nan, snap.t_sample))
-            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host,
-                                         at=snap.t_moment, read_at=read_at, again=snap.again)
+            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host, at=snap.t_frame)
         else:  # an empty frame still counts: tracks miss it and end (no contact to be born)
-            tracks = self.tracker.step([], snap.t_host, at=snap.t_moment, again=snap.again)
-        if snap.unknown is not None and snap.unknown.any():
-            # a contact that only unknown elements supported is no longer known: it ends
-            # now, not after the frames a missed contact is kept through
-            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[snap.unknown]})
+            tracks = self.tracker.step([], snap.t_host, at=snap.t_frame)
+        unknown = snap.unknown if snap.unknown is not None else np.zeros(self.layout.n, dtype=bool)
+        if unknown.any():
+            # a contact that only unknown elements supported is not seen in this frame (not
+            # reported), and not missed either: it goes on under its id when they come back,
+            # within UNSEEN_FRAMES frames in a row, and ends after that
+            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[unknown]}, UNSEEN_FRAMES)
             if gone:
                 tracks = [tc for tc in tracks if tc.id not in gone]
-        return [_finite(tc.to_dict()) for tc in tracks]
+        return [bound_by_unknown(_finite(tc.to_dict()), self.layout, self._row, self._ring, unknown)
+                for tc in tracks]
 
 
-class _ReadTimes(Mapping[int, float]):
-    """Element id → sample time of its reading in a snapshot (NaN: unknown), looked up in
-    the snapshot's array: the tracker asks only about the few elements around a new
-    contact, so a skin of thousands of elements builds no table per frame."""
+#: Frames in a row a contact whose elements are all unknown is held (not reported, not
+#: missed) before it ends: 0.25 s at 100 Hz, longer than a lost record or a late gateway.
+UNSEEN_FRAMES = 25
 
-    def __init__(self, row: dict[int, int], t: FloatArray) -> None:
-        self._row, self._t = row, t
 
-    def __getitem__(self, element: int) -> float:
-        return float(self._t[self._row[element]])
+def bound_by_unknown(c: dict[str, Any], layout: SkinLayout, row: Mapping[int, int], ring: list[NDArray[np.int64]],
+                     unknown: NDArray[np.bool_]) -> dict[str, Any]:
+    """``c`` (a contact's ``to_dict``) with ``unknown_near``: the ids of the unknown elements
+    among its elements and their neighbours (corners included), sorted. The fit leaves them
+    out; where it still pins a coordinate (``observable``: the known readings' cost rises
+    either side), the disk is what the known readings say, whatever the unknown ones read.
+    Along an axis it does not pin (or with no fitted disk) the press may reach into the
+    unknown elements by any amount, so there:
 
-    def __iter__(self) -> Iterator[int]:
-        return iter(self._row)
+    * the contact may lie anywhere in the bounding box of its elements and those: its
+      position is the box's middle along that axis (``observable`` stays False) and σ
+      reaches the box's far edges (every position in it within one σ);
+    * the force may be larger by the pressure over the unknown elements' whole area, and
+      the diameter by as much: σ of each covers that.
 
-    def __len__(self) -> int:
-        return len(self._row)
+    Without unknown neighbours ``c`` is returned as it is (with ``unknown_near`` empty)."""
+    rows = np.array([row[e] for e in c["elements"] if e in row], dtype=np.int64)
+    if rows.size == 0 or not unknown.any():
+        return {**c, "unknown_near": []}
+    near = np.unique(np.concatenate([rows, *(ring[r] for r in rows.tolist())]))
+    near = near[unknown[near]]
+    out = {**c, "unknown_near": [int(layout.ids[i]) for i in near.tolist()]}
+    if near.size == 0:
+        return out
+    b = layout.bounds
+    own_lo, own_hi = b[rows, :2].min(axis=0), b[rows, 2:].max(axis=0)
+    every = np.concatenate([rows, near])
+    lo, hi = b[every, :2].min(axis=0), b[every, 2:].max(axis=0)
+    fitted = bool(c.get("valid")) and bool(c.get("fit_ok"))
+    seen = [bool(v) for v in c["observable"]]
+    pos = [float(c["x"]), float(c["y"])]
+    sig = [float(c["sigma_x"]), float(c["sigma_y"])]
+    widened = False
+    for a in range(2):
+        reaches = lo[a] < own_lo[a] - 1e-12 or hi[a] > own_hi[a] + 1e-12  # an unknown element out along a
+        if not reaches or (fitted and seen[a] and math.isfinite(pos[a])):
+            continue
+        pos[a], seen[a], widened = 0.5 * float(lo[a] + hi[a]), False, True
+        cover = max(pos[a] - float(lo[a]), float(hi[a]) - pos[a])
+        sig[a] = cover if not math.isfinite(sig[a]) else max(sig[a], cover)
+    if not widened:
+        return out
+    out.update(x=pos[0], y=pos[1], sigma_x=sig[0], sigma_y=sig[1], observable=seen, sigma_xy=max(sig),
+               cov=[[sig[0] ** 2, 0.0], [0.0, sig[1] ** 2]])
+    extra = float(np.prod(b[near, 2:] - b[near, :2], axis=1).sum())  # m² the press may also cover
+    pressure, force, diam = c.get("pressure"), c.get("force"), c.get("diameter")
+    if isinstance(pressure, float) and math.isfinite(pressure) and isinstance(force, float) and math.isfinite(force):
+        s = c.get("sigma_force")
+        out["sigma_force"] = max(s, pressure * extra) if isinstance(s, float) and math.isfinite(s) else pressure * extra
+    if isinstance(diam, float) and math.isfinite(diam):
+        wider = math.sqrt(diam * diam + 4.0 * extra / math.pi) - diam
+        s = c.get("sigma_diameter")
+        out["sigma_diameter"] = max(s, wider) if isinstance(s, float) and math.isfinite(s) else wider
+    return out
 
 
 def _finite(d: dict[str, Any]) -> dict[str, Any]:

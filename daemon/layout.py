@@ -2,7 +2,7 @@
 and the stages built for that layout.
 
 :class:`LayoutStages` owns the layout-dependent stages (channel health, calibration and
-inverse, the moments contacts are estimated on, the contact spec) and rebuilds them when
+inverse, each element's reading of the skin frames contacts are estimated on, the contact spec) and rebuilds them when
 the HELLO-derived layout changes. A bridge the layout
 does not place is *reported* (health ``unplaced``), never guessed into a position.
 Layout ids are bridge ids; a bridge's element index 0 is the element the layout places.
@@ -19,7 +19,7 @@ from cellbridge.daemon.config import CalibrationSection, Config, ContactSection,
 from cellbridge.daemon.contacts import ContactSnapshot, ContactSpec
 from cellbridge.daemon.elements import ElementStage, calibration_config, default_params
 from cellbridge.daemon.health import ChannelHealth
-from cellbridge.daemon.moment import SPARE, Moments
+from cellbridge.daemon.readings import SPARE, ElementReadings
 from cellbridge.tactile import SkinLayout
 from cellbridge.tactile.layout import MAX_REACH, MAX_SIDE
 from numpy.typing import NDArray
@@ -51,16 +51,16 @@ class LayoutStages:
         self.contact_spec: ContactSpec | None = None  # what the service's worker process builds from
         self.channels: ChannelHealth | None = None
         self.row = np.full(_IDS, -1, dtype=np.int64)
-        self.moments: Moments | None = None
+        self.readings: ElementReadings | None = None
         self.rebuilds = 0
-        self.dirty = False  # the next contact snapshot is due even if the moment did not advance (tare)
+        self.dirty = False  # the next contact snapshot is due even if no new frame came (tare)
         if layout is not None:
             self._install(layout)
 
     def _install(self, layout: SkinLayout) -> None:
         src = self if self.layout is not None or self._previous is None else self._previous
         self._previous = None
-        old_layout, old_elements, old_channels, old_moments = src.layout, src.elements, src.channels, src.moments
+        old_layout, old_elements, old_channels, old_readings = src.layout, src.elements, src.channels, src.readings
         params = default_params(layout)
         inv = self.config.inverse
         self.layout = layout
@@ -74,7 +74,7 @@ class LayoutStages:
         self.row[ids[inside]] = np.nonzero(inside)[0]
         con = self.config.contact  # memory in readings: max_lag reaches back at most max_lag_readings
         depth = min(math.ceil(con.max_lag * cal.max_step_rate), con.max_lag_readings) + SPARE
-        self.moments = Moments(layout.n, depth, layout.corner_edges)
+        self.readings = ElementReadings(layout.n, depth)
         self.rebuilds += 1
         if old_layout is not None and old_elements is not None and old_layout.side == layout.side:
             # Elements that kept their place keep their baselines: a bridge joining late (or
@@ -82,9 +82,9 @@ class LayoutStages:
             rows, old_rows = _kept(old_layout, layout)
             if rows.size:
                 self.elements.adopt(old_elements, rows, old_rows)
-                assert old_channels is not None and old_moments is not None
+                assert old_channels is not None and old_readings is not None
                 self.channels.adopt(old_channels, rows, old_rows)
-                self.moments.adopt(old_moments, rows, old_rows)
+                self.readings.adopt(old_readings, rows, old_rows)
 
     def hello(self, geometry: dict[int, tuple[float, float, float]]) -> bool:
         """Geometry {bridge: (x, y, side)} announced in HELLOs; True when the layout changed.
@@ -164,41 +164,81 @@ class LayoutStages:
              caps: NDArray[np.float64], t_sample: NDArray[np.float64], cycle: NDArray[np.uint64],
              now: float, held: NDArray[np.bool_], on_time: NDArray[np.bool_],
              period: NDArray[np.float64], inverse: bool = True) -> dict[str, NDArray[Any]]:
-        """One read's placed samples through channel health → calibration and inverse →
-        the moments contacts are estimated on; the element stage's columns back (force
-        and area only with ``inverse``: :meth:`ElementStage.step`).
+        """One read's placed DATA samples (bridges on no readout schedule) through channel
+        health → calibration and inverse → the readings contacts are estimated on; the
+        element stage's columns back (force and area only with ``inverse``:
+        :meth:`ElementStage.step`).
 
         ``rows``: layout row of each sample (all placed); ``raw``/``saturated``/``caps``:
         (n, 2) readings, their saturation and capacitance (F); ``t_sample``: host time of
         each sample; ``now``: the read's arrival time; ``held``, ``on_time``, ``period``:
-        each reading's kind and sample period (:meth:`Moments.record`). Requires :attr:`ready`."""
-        assert self.elements is not None and self.channels is not None and self.moments is not None
+        each reading's kind and sample period (:meth:`ElementReadings.record`). Requires :attr:`ready`."""
+        assert self.elements is not None and self.channels is not None and self.readings is not None
+        res = self._calibrate(rows, raw, saturated, caps, now, held, inverse)
+        dc = np.stack([res["dc1"], res["dc2"]], axis=1)
+        r = self.readings
+        touched = r.classify(rows, dc, *self.elements.calibrator.thresholds())
+        r.record(rows, t_sample, cycle, dc, touched, now, held, on_time, period)
+        r.settle(self.elements.stepped, self.elements.touched)
+        return res
+
+    def frame(self, t: float, cycle: int, sampled: NDArray[np.int64], raw: NDArray[np.int64],
+              saturated: NDArray[np.bool_], caps: NDArray[np.float64], unchanged: NDArray[np.int64],
+              now: float, inverse: bool = True) -> tuple[dict[str, NDArray[Any]], int]:
+        """One complete scheduled skin frame at host time ``t`` (global cycle ``cycle``):
+        ``sampled`` rows with their readings (``raw``, ``saturated``, ``caps`` as in
+        :meth:`step`), ``unchanged`` rows (their previous reading, while the host has it);
+        every other element is unknown in it. The element stage's columns of the samples
+        back, and how many elements the frame leaves unknown. Requires :attr:`ready`."""
+        assert self.elements is not None and self.channels is not None and self.readings is not None
+        r = self.readings
+        kept, kept_caps = r.references(unchanged)
+        known = np.concatenate([sampled, kept])
+        every = np.concatenate([caps, kept_caps])
+        ns = sampled.shape[0]
+        res = self._calibrate(known, np.concatenate([raw, np.zeros((kept.shape[0], 2), np.int64)]),
+                              np.concatenate([saturated, np.zeros((kept.shape[0], 2), bool)]), every, now,
+                              None, inverse, channels=ns)
+        dc = np.stack([res["dc1"], res["dc2"]], axis=1)
+        touched = r.classify(known, dc, *self.elements.calibrator.thresholds())
+        stepped = np.zeros(r.n, dtype=bool)
+        stepped[self.elements.stepped] = True
+        touched = np.where(stepped[known], self.elements.touched[known], touched)
+        unknown = r.scheduled(t, cycle, sampled, caps, known, dc, touched)
+        return {k: v[:ns] for k, v in res.items()}, unknown
+
+    def _calibrate(self, rows: NDArray[np.int64], raw: NDArray[np.int64], saturated: NDArray[np.bool_],
+                   caps: NDArray[np.float64], now: float, held: NDArray[np.bool_] | None, inverse: bool,
+                   channels: int | None = None) -> dict[str, NDArray[Any]]:
+        """Channel health (of the first ``channels`` readings: all by default) and the element
+        stage on ``rows``' readings."""
+        assert self.elements is not None and self.channels is not None
         self.elements.held_for = self._held_for()
         last = {x: i for i, x in enumerate(rows.tolist())}  # each element's newest sample
         groups = (np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last)))
-        self.channels.update(rows, raw, saturated, groups, now)
-        res = self.elements.step(rows, caps, groups, now, held, inverse)
-        enter, leave = self.elements.calibrator.thresholds()
-        self.moments.record(rows, t_sample, cycle, np.stack([res["dc1"], res["dc2"]], axis=1),
-                            groups[0].shape[0] == rows.shape[0], now, enter, leave, held, on_time, period)
-        self.moments.settle(self.elements.stepped, self.elements.touched)
-        return res
+        c = rows.shape[0] if channels is None else channels
+        if c:
+            ch_last = {x: i for i, x in enumerate(rows[:c].tolist())}
+            self.channels.update(rows[:c], raw[:c], saturated[:c],
+                                 (np.fromiter(ch_last, np.int64, len(ch_last)),
+                                  np.fromiter(ch_last.values(), np.int64, len(ch_last))), now)
+        return self.elements.step(rows, caps, groups, now, held, inverse)
 
-    def snapshot(self, now: float, bridge_timeout: float) -> ContactSnapshot | None:
-        """The skin at the newest moment every live element has reported past, if that
-        moment advanced since the last snapshot (see :mod:`cellbridge.daemon.moment`)."""
-        if self.elements is None or self.moments is None or self.layout is None:
+    def snapshot(self, now: float, bridge_timeout: float, scheduled: bool) -> ContactSnapshot | None:
+        """The newest skin frame not estimated yet, each element's reading of it or unknown
+        (:mod:`cellbridge.daemon.readings`); ``scheduled``: a gateway is on the readout
+        schedule (its frames are the ones estimated)."""
+        if self.elements is None or self.readings is None or self.layout is None:
             return None
-        m = self.moments
+        r = self.readings
         self.elements.held_for = self._held_for()
-        m.settle(self.elements.flush(now), self.elements.touched)
-        c = self.config.contact
-        got = m.take(now, bridge_timeout, c.max_lag, force=self.dirty, held_wait=c.held_wait)
+        r.settle(self.elements.flush(now), self.elements.touched)
+        got = r.take(now, bridge_timeout, self.config.contact.max_lag, scheduled, force=self.dirty)
         if got is None:
             return None
         self.dirty = False
         return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t,
-                               got.unknown, got.again)
+                               got.unknown)
 
     def _held_for(self) -> float:
         """How long a held reading stands in the calibrator's steps: while its bridge is live
@@ -206,36 +246,34 @@ class LayoutStages:
         ``tau``; then the idle elements' readings lapsed between heartbeats)."""
         return max(self.config.calibration.tau, self.config.health.bridge_timeout)
 
-    def snapshot_due(self, now: float, bridge_timeout: float, idle: bool = False) -> float:
-        """When the skin's moment moves on without new data (:meth:`Moments.due`); ``inf``:
-        only with new data, or no layout, or ``idle`` (the last estimate had nothing to
-        track) with no reading newer than the last moment taken (:meth:`Moments.unseen`)."""
-        if self.moments is None or (idle and not self.moments.unseen()):
+    def snapshot_due(self, now: float, idle: bool, scheduled: bool) -> float:
+        """``now`` when :meth:`snapshot` has a frame to give (:meth:`ElementReadings.due`),
+        else ``inf``; also ``inf`` with no layout."""
+        if self.readings is None:
             return math.inf
-        c = self.config.contact
-        return self.moments.due(now, bridge_timeout, c.max_lag, c.held_wait)
+        return now if self.dirty else self.readings.due(now, idle, scheduled)
 
     def tare(self, bridges: list[int] | None) -> int:
         if self.elements is None:
             return 0
-        assert self.moments is not None
+        assert self.readings is not None
         self.dirty = True
         if bridges is None:
             self.elements.tare(None)
-            self.moments.forget(slice(None))
+            self.readings.forget(slice(None))
             return self.layout.n  # type: ignore[union-attr]  # elements exist only with a layout
         rows = self.row[np.asarray(bridges, dtype=np.int64)]
         rows = rows[rows >= 0]
         if rows.size:
             self.elements.tare(rows)
-            self.moments.forget(rows)
+            self.readings.forget(rows)
         return int(rows.size)
 
     def report(self, now: float, stuck_after: float) -> dict[str, Any]:
         out: dict[str, Any] = {"source": "file" if self.from_file else "hello", "rebuilds": self.rebuilds,
                                "rejected": self.rejected}
         if self.layout is None:
-            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[], late=[], late_estimates=0, retaken=0)
+            out.update(elements=0, stuck=[], saturated=[], touched=[], not_ready=[], late=[], late_estimates=0)
             return out
         ids = self.layout.ids
         ch = self.channels
@@ -248,9 +286,8 @@ class LayoutStages:
             saturated_samples=int(ch.saturated_samples.sum()),
             touched=ids[self.elements.touched].tolist(),
             not_ready=ids[~self.elements.calibrator.ready].tolist(),
-            late=ids[self.moments.late].tolist() if self.moments is not None else [],
-            late_estimates=self.moments.late_estimates if self.moments is not None else 0,
-            retaken=self.moments.retaken if self.moments is not None else 0,
+            late=ids[self.readings.late].tolist() if self.readings is not None else [],
+            late_estimates=self.readings.late_frames if self.readings is not None else 0,
         )
         cal: dict[str, Any] = self.elements.calibrator.health()
         cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids

@@ -55,7 +55,7 @@ class Topology(Publish):
 
 
 class ContactFrame(Publish):
-    """``contact``: the contacts of one moment of the skin (see :mod:`cellbridge.daemon.moment`)."""
+    """``contact``: the contacts of one skin frame (see :mod:`cellbridge.daemon.readings`)."""
 
     __slots__ = ()
     topic = "contact"

@@ -9,11 +9,17 @@ is a list of :mod:`cellbridge.daemon.messages`: messages to publish, log events,
 to write on a link; the shell does what each says and never reads the pipeline's
 attributes.
 
+Skin frames come from the gateways' readout records (:mod:`cellbridge.daemon.frames`):
+a frame is complete when every active gateway's record of it came, or at its deadline,
+and each element of it is a new reading, its previous one (its bridge said unchanged)
+or unknown (:mod:`cellbridge.daemon.readings`). Bridges on no schedule send DATA, read
+by a minimal fallback rule.
+
 Contact estimation is deliberately *not* in ``feed``: it is slow next to ingest, so
-the shell asks :meth:`Pipeline.contact_job` for the newest consistent state whenever
-its worker is free, runs it (:mod:`cellbridge.daemon.contact_worker`) and hands the
-contacts back to :meth:`Pipeline.contact_frame` (one moment of the skin, never a
-backlog; see :mod:`cellbridge.daemon.moment`).
+the shell asks :meth:`Pipeline.contact_job` for the newest complete frame whenever its
+worker is free (:meth:`Pipeline.contact_due` says when one is there), runs it
+(:mod:`cellbridge.daemon.contact_worker`) and hands the contacts back to
+:meth:`Pipeline.contact_frame` (one frame of the skin, never a backlog).
 """
 
 from __future__ import annotations
@@ -27,12 +33,13 @@ from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
-from cellbridge.daemon.clock import BridgeClock, rows_to_host
+from cellbridge.daemon.clock import BridgeClock, SkinClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.contacts import ContactJob, ContactSpec
 from cellbridge.daemon.surface import contact_fields, skin_report
 from cellbridge.daemon.elements import default_params
+from cellbridge.daemon.frames import SkinFrame, SkinFrames
 from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
 from cellbridge.daemon.layout import LayoutStages, layout_dict, skin_settings
@@ -48,7 +55,18 @@ from cellbridge.daemon.messages import (
     Topology,
 )
 from cellbridge.daemon.topology import Topology as Routes
-from cellbridge.daemon.wire import ADDR_BROADCAST, HELD, NO_MESH_TIME, OPS, Decoded, Ingress, SampleColumns, command_bytes
+from cellbridge.daemon.wire import (
+    ADDR_BROADCAST,
+    HELD,
+    NO_MESH_TIME,
+    OPS,
+    Decoded,
+    PART_BYTES,
+    Ingress,
+    Readout,
+    SampleColumns,
+    command_bytes,
+)
 from cellbridge.tactile import ElementParams, SkinLayout
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
@@ -56,11 +74,6 @@ SCHEMA_VERSION = 2  # 2: contacts in link frames (link, position, normal, force_
 _GATE_OP = int(OPS["gate"])
 _NO_MESH_TIME = np.int64(NO_MESH_TIME)
 _HELD = np.int64(HELD)
-_FRAME_MEMORY = 10.0  # s of frames whose host time is kept once given
-_FRAME_MEMORY_KEYS = 2500  # frames kept before forgetting old ones is looked at (250 Hz x 10 s)
-# s a frame's host time may lie after the arrival of its sample: the map from mesh time is the
-# lower envelope of the gateways' arrivals, off by milliseconds at most; later, the index is wrong.
-_FUTURE_SLACK = 0.25
 # Unplaced bridges health lists one by one: beyond this, only their count. One corrupt frame in
 # ~65 536 passes CRC-16 with a random origin, so a noisy line makes thousands of phantoms; each
 # would cost ~240 bytes in every health message (15 MB at 65 530) until forgotten.
@@ -102,16 +115,20 @@ class Pipeline:
         self._k = np.ones(0x10000)
         self._hz = np.full(0x10000, float(self.chip.clock_hz))
         self.clocks: dict[int, BridgeClock] = {}
-        # Mesh time -> host time, one map for the whole skin: every bridge on mesh time samples
-        # on the same global clock (its root's counter), and the gateways' own samples, one
-        # hop away over a short, steady serial line, measure how it maps (docs/time.md).
-        self.skin_clock = BridgeClock(self.chip.clock_hz, bits=64)
-        self.skin_clock_resets = 0
-        self._frame_memo: dict[int, float] = {}  # global cycle of a frame -> its host time
-        self._frame_newest = -1
-        self._skin_jump: tuple[int, float] | None = None  # (g, arrival) of a gateway sample ahead of or behind the map
-        self._skin_newest: dict[int, int] = {}  # gateway -> newest global cycle of its own the map took
-        self._skin_back = -1  # while a jump back waits for confirmation: frames behind this are not believed
+        # Mesh time -> host time, one map for the whole skin, taught by the gateways' own
+        # samples and readout records (docs/time.md)
+        self.skin_clock = SkinClock(self.chip.clock_hz)
+        f = config.frames
+        self.frames = SkinFrames(f.margin, config.health.bridge_timeout, f.max_pending)
+        self.unknown_element_frames = 0  # placed elements unknown in the scheduled frames given out
+        self._baud = {ln.name: ln.baudrate for ln in config.links}  # s a record takes on its line: bytes x 10 / baud
+        # bridges the readout records spoke for (a sample or unchanged): when, on which link, how
+        # many samples; folded into their health when it is read (_fold_heard)
+        self._heard = np.full(0x10000, -math.inf)
+        self._heard_via = np.zeros(0x10000, dtype=np.int64)
+        self._heard_new = np.zeros(0x10000, dtype=bool)
+        self._heard_samples = np.zeros(0x10000, dtype=np.int64)
+        self._link_index: dict[str, int] = {}
         self.bridges: dict[int, BridgeHealth] = {}
         self.links: dict[str, LinkHealth] = {ln.name: LinkHealth(ln.url) for ln in config.links}
         self.topology = Routes()
@@ -131,7 +148,7 @@ class Pipeline:
         self._next_contact_id = 0  # lowest contact id never published (see contact_job)
         self._carry: tuple[dict[str, Any], ...] = ()  # the contacts last published, as the worker gave them
         self.announced_silent: set[int] = set()
-        self._log: list[Message] = []  # log events, handed out with the next messages returned
+        self._queue: list[Message] = []  # log events (and the messages of frames contact_job gave out), handed out next
         # The pipeline runs on one time base, the host's monotonic clock as the shell passes
         # it: silence, frames and deadlines never see the wall clock step. Wall-clock time
         # is only stamped on what is published: monotonic time + this offset.
@@ -156,12 +173,12 @@ class Pipeline:
         self.wall_offset = float(offset)
 
     def _event(self, level: str, text: str) -> None:
-        self._log.append(LogEvent(level, text))
+        self._queue.append(LogEvent(level, text))
 
-    def _drain_log(self, out: list[Message]) -> list[Message]:
-        if self._log:
-            out.extend(self._log)
-            self._log.clear()
+    def _drain(self, out: list[Message]) -> list[Message]:
+        if self._queue:
+            out.extend(self._queue)
+            self._queue.clear()
         return out
 
     def _want(self, topic: str) -> bool:
@@ -202,7 +219,20 @@ class Pipeline:
         self._routing(link, dec, now, out)
         if dec.samples is not None:
             self._samples(link, dec.samples, now, out, dec.gateways)
-        return self._drain_log(out)
+        if dec.readouts:
+            self._readouts(link, dec.readouts, now)
+            self._frames_out(self.frames.take(now), now, out)
+        return self._drain(out)
+
+    def advance(self, now: float | None = None) -> list[Message]:
+        """Time passing to ``now`` (default: the last read's time): the skin frames whose
+        deadline passed go out (their elements' ``raw`` and ``element`` messages are
+        returned). :meth:`contact_job` does this too; a shell calls it first, to publish
+        what it returns."""
+        now = self.last_feed if now is None else now
+        out: list[Message] = []
+        self._frames_out(self.frames.take(now), now, out)
+        return self._drain(out)
 
     def _routing(self, link: str, dec: Decoded, now: float, out: list[Message]) -> None:
         window = self.ingress.dedupe.window
@@ -262,23 +292,7 @@ class Pipeline:
             own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
             if own.size:
                 newest = own[np.argmax(g[own])]
-                gw, gn = int(s.origin[newest]), int(g[newest])
-                back = gn < self._skin_floor(gw)
-                jumped = taught = self._skin_time_believed(gn, now, back)
-                if taught and back:
-                    self.skin_clock.restart(gn, now)  # the skin's time went back: two reads agree
-                elif taught:
-                    jumped = self.skin_clock.observe(gn, now)
-                if jumped:
-                    self._skin_newest.clear()
-                if taught:
-                    self._skin_newest[gw] = max(self._skin_newest.get(gw, -1), gn) if not jumped else gn
-                self._skin_back = self._skin_floor(gw) if back and not taught else -1
-                if jumped:
-                    self.skin_clock_resets += 1
-                    self._frame_memo.clear()
-                    self._frame_newest = -1
-                    self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
+                self._teach(int(s.origin[newest]), int(g[newest]), now)
         origin_list = s.origin.tolist()
         newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
         counts = Counter(origin_list)
@@ -296,16 +310,12 @@ class Pipeline:
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
         if on_time.any() and self.skin_clock.synced:
-            frame_t = self._frame_times(g, on_time, now)
             # A frame the map puts after the sample's own arrival was never taken: its index is
-            # wrong (a frame corrupted past the CRC, a bridge on some other time). Believed, it
-            # would move the skin frame that far ahead and stop every estimate until then.
+            # wrong (a frame corrupted past the CRC, a bridge on some other time); so is one
+            # behind a jump back of the skin's time not confirmed yet. Believed, it would move
+            # the skin frame that far and stop every estimate until then.
+            frame_t = self.skin_clock.frame_times(np.where(on_time, g, -1), now)
             wrong = on_time & np.isnan(frame_t)
-            if self._skin_back >= 0:
-                # Likewise, while a gateway's own sample behind the map waits for the next read
-                # to confirm a jump back: believed, frames behind it would lie that far back,
-                # every element late until the map restarts (a held press got a new id).
-                wrong |= on_time & (g < self._skin_back)
             if wrong.any():
                 for b_id, cnt in Counter(o[wrong].tolist()).items():
                     self.bridges[b_id].index_rejected += cnt
@@ -314,55 +324,94 @@ class Pipeline:
             t_sample = np.where(on_time, frame_t, t_sample)
         return t_sample, s.cycle.astype(np.float64) / hz, g
 
-    def _skin_floor(self, gateway: int) -> int:
-        """The global cycle more than the slack behind the newest of ``gateway``'s own samples
-        the map took (its samples come in order: one behind that is the skin's time gone back,
-        or a corrupted frame; another gateway's link may lag)."""
-        return self._skin_newest.get(gateway, -1) - int(_FUTURE_SLACK * self.skin_clock.hz)
+    def _teach(self, gateway: int, g: int, now: float) -> None:
+        """A gateway's own point of mesh time (global cycle ``g``) reached the host at ``now``."""
+        if self.skin_clock.teach(gateway, g, now):
+            self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
 
-    def _skin_time_believed(self, g: int, now: float, back: bool = False) -> bool:
-        """Whether a gateway's own sample of global cycle ``g``, arrived at ``now``, may teach
-        the map. One the map puts after its own arrival is either a jump of the skin's time
-        (a new root on another time) or a frame corrupted past the CRC: it is believed once
-        the gateway's next read agrees with it. (One corrupted frame remapped the skin at once,
-        and the true frames after it then lay an hour back: no estimate for 2 s, then a press
-        ended and came back with a new id.) So is one ``back``, behind the gateway's own newest
-        (:meth:`_skin_floor`): the skin's time went back (a new root behind it: two skins
-        joined, the root gateway restarted at 0), or a corrupted frame. (The map waited for 2 s
-        of such frames: every frame lay as far back as the jump, no estimate came for as long,
-        2 s at most, and after an hour's jump a held press came back under a new id.)"""
-        clock = self.skin_clock
-        if not clock.synced or (not back and float(clock.to_host(np.array([g], dtype=np.uint64))[0])
-                                <= now + _FUTURE_SLACK):
-            self._skin_jump = None
-            return True
-        seen, self._skin_jump = self._skin_jump, (g, now)
-        return seen is not None and abs((g - seen[0]) / clock.hz - (now - seen[1])) <= _FUTURE_SLACK
+    def _cycle_of(self, index: int, rate: int) -> int:
+        """The global cycle of frame ``index`` at ``rate`` (-1: its instant does not fit 62 bits:
+        a nonsense index)."""
+        g = index * int(self.chip.clock_hz) // rate
+        return g if 0 <= g < 1 << 62 else -1
 
-    def _frame_times(self, g: np.ndarray, on_time: np.ndarray, now: float) -> np.ndarray:
-        """Host time of each mesh-time sample's frame (global cycle ``g``), NaN for a frame
-        that would lie more than ``_FUTURE_SLACK`` after ``now``, the samples' arrival (never
-        remembered). A frame's time is fixed when its first sample arrives: the map keeps
-        learning (a lower envelope point moves it by up to a read's granularity), and two
-        bridges' samples of one index must still carry one time. Frames older than the
-        newest by ``_FRAME_MEMORY`` are forgotten."""
-        keys, inverse = np.unique(np.where(on_time, g, -1), return_inverse=True)
-        memo = self._frame_memo
-        new = [k for k in keys.tolist() if k >= 0 and k not in memo]
-        if new:
-            mapped = self.skin_clock.to_host(np.array(new, dtype=np.uint64)).tolist()
-            kept = [(k, t) for k, t in zip(new, mapped) if t <= now + _FUTURE_SLACK]
-            new = [k for k, _ in kept]
-            memo.update(kept)
-        if new:
-            newest = max(new)
-            if newest > self._frame_newest:
-                self._frame_newest = newest
-                if len(memo) > 4 * _FRAME_MEMORY_KEYS:
-                    horizon = newest - int(_FRAME_MEMORY * self.chip.clock_hz)
-                    self._frame_memo = memo = {k: v for k, v in memo.items() if k >= horizon}
-        t = np.array([memo.get(k, math.nan) for k in keys.tolist()])
-        return t[inverse]
+    def _readouts(self, link: str, records: list[tuple[int, Readout]], now: float) -> None:
+        """READOUT record parts a gateway wrote (:mod:`cellbridge.daemon.frames`): each record
+        teaches the skin clock (it cannot reach the host before its frame's gates opened: a
+        gateway sends it as soon as it is complete, the schedule's end being only the latest)
+        and joins its frame; the bridges it accounts for with a sample or unchanged were heard
+        (:meth:`_fold_heard`)."""
+        part_s = PART_BYTES * 10 / self._baud.get(link, 1_000_000)  # s a part takes on the line, at most
+        via = self._link_index.setdefault(link, len(self._link_index))
+        for gw, rec in records:
+            g = self._cycle_of(rec.index, rec.rate)
+            t = math.nan  # (a nonsense index: the record is refused, and counted)
+            if g >= 0:
+                if rec.part == 0:
+                    self._teach(gw, g, now)
+                t = self.skin_clock.frame_time(g, now)
+            self.frames.add(gw, rec, now, t, rec.parts * part_s)
+            if math.isfinite(t):
+                sampled = np.array([s[0] for s in rec.samples], dtype=np.int64)
+                said = np.concatenate([sampled, np.array(rec.unchanged, dtype=np.int64)])
+                self._heard[said], self._heard_via[said], self._heard_new[said] = now, via, True
+                self._heard_samples[sampled] += 1
+
+    def _fold_heard(self) -> None:
+        """The bridges readout records spoke for since the last fold into their health: heard
+        then, on that link, their samples counted. (Done when health is read, not per record:
+        a thousand bridges a frame, a hundred frames a second.)"""
+        ids = np.flatnonzero(self._heard_new)
+        if not ids.size:
+            return
+        names = list(self._link_index)
+        for bid, at, via, n in zip(ids.tolist(), self._heard[ids].tolist(), self._heard_via[ids].tolist(),
+                                   self._heard_samples[ids].tolist()):
+            b = self._bridge(bid, at)
+            if at > b.last_seen:
+                b.last_seen, b.link = at, names[via]
+            b.samples += n
+        self._heard_new[ids] = False
+        self._heard_samples[ids] = 0
+
+    def _frames_out(self, frames: list[SkinFrame], now: float, out: list[Message]) -> None:
+        """Complete skin frames into the element stages and the readings contacts are
+        estimated on; ``raw`` and ``element`` messages for their samples."""
+        for f in frames:
+            g = self._cycle_of(f.index, f.rate)
+            link = self.bridges[f.gateways[0]].link if f.gateways and f.gateways[0] in self.bridges else ""
+            raw = np.stack([f.c1, f.c2], axis=1)
+            if self._want("raw") and f.bridges.size:
+                cyc = [g] * f.bridges.size
+                out.append(self._message(RawBatch, now, {
+                    "link": link, "bridge": f.bridges.tolist(), "element": [0] * f.bridges.size, "cycle": cyc,
+                    "t_bridge": [g / self.chip.clock_hz] * f.bridges.size, "c1": f.c1.tolist(), "c2": f.c2.tolist(),
+                    "flags": f.flags.tolist(), "mode": f.mode.tolist(), "oversampling": f.oversampling.tolist(),
+                }))
+            if not self.skin.ready:
+                continue
+            zero = np.zeros(f.bridges.size, dtype=np.int64)
+            rows = self.skin.rows_of(f.bridges, zero)
+            placed = rows >= 0
+            if not placed.all():
+                for b_id, cnt in Counter(f.bridges[~placed].tolist()).items():
+                    self.bridges[b_id].unmapped_samples += cnt
+            caps, sat = self.frontend.capacitance(f.mode, f.oversampling, raw, f.flags, self.gate[f.bridges])
+            unchanged = self.skin.rows_of(f.unchanged, np.zeros(f.unchanged.size, dtype=np.int64))
+            res, unknown = self.skin.frame(f.t, g, rows[placed], raw[placed], sat[placed], caps[placed],
+                                           unchanged[unchanged >= 0], now, inverse=self._want("element"))
+            self.unknown_element_frames += unknown
+            if self._want("element") and placed.any():
+                n = int(placed.sum())
+                out.append(self._message(ElementBatch, now, {
+                    "bridge": f.bridges[placed].tolist(), "element": [0] * n, "cycle": [g] * n,
+                    "t_bridge": [g / self.chip.clock_hz] * n, "t_sample": [f.t + self.wall_offset] * n,
+                    "index": [f.index] * n, "on_time": [True] * n,
+                    "c1": caps[placed, 0].tolist(), "c2": caps[placed, 1].tolist(),
+                    "dc1": res["dc1"].tolist(), "dc2": res["dc2"].tolist(), "force": res["force"].tolist(),
+                    "area": res["area"].tolist(), "valid": res["valid"].tolist(), "status": res["status"].tolist(),
+                    "touched": res["touched"].tolist(),
+                }))
 
     def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message], gateways: set[int]) -> None:
         t_sample, t_bridge, g = self._sync_clocks(s, now, gateways)
@@ -406,35 +455,38 @@ class Pipeline:
     # -- contacts -----------------------------------------------------------------------
     def contact_job(self, now: float | None = None) -> ContactJob | None:
         """The next contact estimate to run, or None: estimation off, nobody subscribed
-        to ``contact``, no layout, or the skin's moment did not advance since the last job.
+        to ``contact``, no layout, or no skin frame came since the last job.
 
-        The job holds the skin at one moment: each element's reading at or just before
-        the newest time every live element has reported past (bridges silent for
-        ``bridge_timeout`` hold nothing back), stamped with the arrival time of the
-        newest data. Not the newest reading of each element: bridges' frames arrive
-        staggered, and a skin half pressed, half not, gives ghosts. Run it with
+        The job holds the newest complete skin frame (frames whose deadline passed by
+        ``now`` go out first: :meth:`advance`; their messages come with the next call that
+        returns messages): each element's reading of it, or unknown (see
+        :mod:`cellbridge.daemon.readings`). Never an older frame left behind: one frame
+        of the skin, never a backlog. Run it with
         :class:`~cellbridge.daemon.contact_worker.ContactWorker` (any executor) and pass
         the contacts to :meth:`contact_frame`. ``now``: the host time (default: the last
         read's); a shell passes it also when no data comes, so that silence is noticed."""
         if not self.config.contact.enabled or not self._want("contact"):
             return None
-        snap = self.skin.snapshot(self.last_feed if now is None else now, self.config.health.bridge_timeout)
+        now = self.last_feed if now is None else now
+        self._frames_out(self.frames.take(now), now, self._queue)
+        snap = self.skin.snapshot(now, self.config.health.bridge_timeout, self.frames.active(now))
         if snap is None or self.skin.contact_spec is None:
             return None
         return ContactJob(self._owner, self._surface_spec(self.skin.contact_spec), snap, self._next_contact_id,
                           self._carry)
 
     def contact_due(self, now: float, idle: bool = False) -> float:
-        """The host time at which :meth:`contact_job` has a new moment without new data
-        (event-based elements' holds run out), ``inf`` when only new data brings one. A shell
-        asks for a job when data comes or at this time, whichever is first (at most
-        ``contact.rate`` a second); the periodic tick notices silence. ``idle``: the last
-        estimate had nothing to track (the worker skipped it): the frames after it are worth
-        a look only once a reading newer than it came (an idle event-based skin's frames,
-        looked at one per period, cost a look each whatever ``contact.rate``)."""
+        """The host time at which :meth:`contact_job` has a new frame: ``now`` when one is
+        complete and not estimated yet, else the deadline of the oldest frame waiting for a
+        record, ``inf`` when only new data brings one. A shell asks for a job when data comes
+        or at this time, whichever is first (at most ``contact.rate`` a second); the periodic
+        tick notices silence. ``idle``: the last estimate had nothing to track (the worker
+        skipped it): a frame after it is worth a look only if it says something new (an
+        idle event-based skin's frames say "unchanged" a hundred times a second)."""
         if not self.config.contact.enabled or not self._want("contact"):
             return math.inf
-        return self.skin.snapshot_due(now, self.config.health.bridge_timeout, idle)
+        scheduled = self.frames.active(now)
+        return max(min(self.skin.snapshot_due(now, idle, scheduled), self.frames.due()), now)
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave
@@ -453,7 +505,7 @@ class Pipeline:
             out.append({**c, "t": self._wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
                         "t_sample": self._wall(max(ts)) if ts else None})
         out = contact_fields(self.surface, out)  # link, 3-D position, normal, force vector
-        t = self._wall(snap.t_moment) if math.isfinite(snap.t_moment) else None
+        t = self._wall(snap.t_frame) if math.isfinite(snap.t_frame) else None
         unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
         return self._message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
                                                          "unknown": unknown, "rebaselined": self._rebaselined()})
@@ -474,19 +526,20 @@ class Pipeline:
         self.wall_offset += delta
         self._event("warning", f"host wall clock stepped by {delta:+.3f} s; published times follow, "
                                "the skin is not affected")
-        return self._drain_log([])
+        return self._drain([])
 
     def tick(self, now: float, force: bool = False) -> list[Message]:
         """Time passes (the shell calls this often, ~10 Hz): ``health`` every
         ``health.interval`` (or now, if ``force``), ``topology`` when it changed, and log
         events (bridges gone silent or back, the host clock stepping back: a ``now``
         before the last tick's is taken as such a step)."""
+        self._fold_heard()
         h = self.config.health
         if now < self._last_tick:
             self._clock_stepped_back(now)
         self._last_tick = now
         if now < self._next_health and not force:
-            return self._drain_log([])
+            return self._drain([])
         interval = h.interval
         self._next_health = now + interval
         # Over the time since the health before (often more than the interval), not the interval.
@@ -513,7 +566,7 @@ class Pipeline:
         topo = self.topology_body(now)
         if self.topology.changed(topo) and self._want("topology"):
             out.append(self._message(Topology, now, topo))
-        return self._drain_log(out)
+        return self._drain(out)
 
     def _silence_events(self, went_silent: list[int], came_back: list[int], now: float) -> None:
         """Log bridges gone silent or back: each placed bridge by itself, of the others
@@ -538,6 +591,7 @@ class Pipeline:
         for bid in gone:
             del self.bridges[bid]
             self.clocks.pop(bid, None)
+            self.frames.forget(bid)
             self.topology.nodes.pop(bid, None)
             self.ingress.reassembly_drops.pop(bid, None)
             self._awake.discard(bid)
@@ -567,6 +621,7 @@ class Pipeline:
 
     def health_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
+        self._fold_heard()
         h = self.config.health
         layout_report = self.skin.report(now, h.stuck_after)
         placed, others = self.skin.split_placed(self.bridges)
@@ -594,6 +649,7 @@ class Pipeline:
             "duplicates": self.ingress.dedupe.duplicates,
             "dedupe": self.ingress.dedupe.counters(),
             "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
+            "frames": {**self.frames.counters(now), "unknown_element_frames": self.unknown_element_frames},
         }
 
     def _wall_bridge(self, report: dict[str, Any], reassembly_drops: int) -> dict[str, Any]:
@@ -637,6 +693,7 @@ class Pipeline:
         ``token`` names it in :meth:`finished_commands`) and the link writes that send it.
         Raises ValueError for a bridge never heard from."""
         if target is None:
+            self._fold_heard()
             alive = {b for b, bh in self.bridges.items() if not bh.silent}
             pending = self.commands.start(op, value, alive, now, timeout)
             data = command_bytes(ADDR_BROADCAST, pending.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
@@ -667,6 +724,7 @@ class Pipeline:
         only when calibration or inverse settings changed, and then only for every element;
         a new layout or new contact settings keep those of elements that kept their place."""
         old, self.config = self.config, config
+        self.frames.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
         sk = self.skin
         same_layout = (layout is None and not sk.from_file) or (
             layout is not None and sk.from_file and sk.layout is not None and layout_dict(layout) == layout_dict(sk.layout))
@@ -703,6 +761,7 @@ class Pipeline:
 
     def summary(self) -> str:
         """One line for the service manager's status: links up, bridges alive."""
+        self._fold_heard()
         alive = sum(1 for b in self.bridges.values() if not b.silent)
         up = sum(1 for h in self.links.values() if h.connected)
         return f"{up}/{len(self.links)} links up, {alive}/{len(self.bridges)} bridges alive"

@@ -245,8 +245,8 @@ class Service:
     # -- contacts -----------------------------------------------------------------------
     async def _contacts(self) -> None:
         while True:
-            # data came, the tick looked for silence, or held elements' holds run out
-            # (an event-based skin: a press's next frames come with no new data)
+            # data came (a frame completed), the tick looked for silence, or a frame's
+            # deadline passed with a gateway's record missing
             idle = not self.contacts.last_ran()
             due = self.pipeline.contact_due(self.now(), idle) - self.now()
             if not self._fresh.is_set() and due < self.TICK:
@@ -278,7 +278,9 @@ class Service:
         the estimate rate nothing: counted, idle frames kept the loop's token bucket empty
         and each frame of a press's onset was estimated up to a period after it was due)."""
         # (a replay in recorded time: its data's own time, or the whole recording looks silent)
-        job = self.pipeline.contact_job(None if self._recorded else self.now())
+        now = None if self._recorded else self.now()
+        self._act(self.pipeline.advance(now))  # frames whose deadline passed, and their elements' messages
+        job = self.pipeline.contact_job(now)
         if job is None:
             return False
         self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)

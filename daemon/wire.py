@@ -28,9 +28,11 @@ from cellbridge.protocol import (
     Fragment,
     Frame,
     Hello,
+    MAX_FRAME,
     HostReceiver,
     Mode,
     Op,
+    Readout,
     Reassembler,
     SampleFlags,
     StreamDecoder,
@@ -38,7 +40,7 @@ from cellbridge.protocol import (
 )
 
 __all__ = ["ADC_MODE", "ADDR_BROADCAST", "Decoded", "HELD", "NO_MESH_TIME", "Ingress", "Mode", "OPS", "OVERFLOW_C1", "OVERFLOW_C2",
-           "SampleColumns", "command_bytes", "mode_value"]
+           "PART_BYTES", "Readout", "SampleColumns", "command_bytes", "mode_value"]
 
 #: The protocol's numbers the sample columns carry, as plain ints for numpy.
 ADC_MODE = int(Mode.ADC)
@@ -48,6 +50,9 @@ OVERFLOW_C2 = int(SampleFlags.OVERFLOW_C2)
 #: from its arrival; a held sample (event-based reporting) stands for the frames not sent.
 NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 HELD = int(SampleFlags.HELD)
+
+#: Bytes a record part takes on a serial line at most: a whole frame, COBS and the delimiters.
+PART_BYTES = MAX_FRAME + 3
 
 #: Control parameter names → downlink op. SET_REPORTING is added by the emulator's protocol
 #: change; it is offered exactly when the protocol defines it.
@@ -107,6 +112,10 @@ class Decoded:
     replies: list[tuple[int, CommandReply]] = field(default_factory=list)
     frames_by_origin: dict[int, list[int]] = field(default_factory=dict)  # origin -> seqs, arrival order
     gateways: set[int] = field(default_factory=set)  # link-level senders (the gateway bridge)
+    # READOUT record parts a gateway wrote itself (origin = link-level sender), in arrival
+    # order: (gateway, record part)
+    readouts: list[tuple[int, Readout]] = field(default_factory=list)
+    foreign_readouts: int = 0  # READOUT frames whose origin is not the gateway that wrote them
     ignored: int = 0  # frames the host has no use for (LINK_ACK, CMD heard back)
 
 
@@ -181,6 +190,12 @@ class Ingress:
             out.statuses.append((frame.origin, p))
         elif type(p) is CommandReply:
             out.replies.append((frame.origin, p))
+        elif type(p) is Readout:
+            # a gateway writes its own record on its line; one relayed is no gateway's record
+            if frame.src == frame.origin:
+                out.readouts.append((frame.origin, p))
+            else:
+                out.foreign_readouts += 1
         else:
             out.ignored += 1
 

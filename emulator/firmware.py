@@ -186,10 +186,9 @@ class FirmwareConfig:
     firmware: str = FIRMWARE_VERSION  #: the version string HELLO announces
     #: The scheduled readout (emulator/readout.py, docs/time.md): samples on mesh time are
     #: read out frame by frame along the routing tree, every element accounted for; samples
-    #: without mesh time still go in DATA frames. Off by default while the daemon reads
-    #: frames by timing (docs/time.md, "The readout": its state); False: every sample in
-    #: DATA frames.
-    readout: bool = False
+    #: without mesh time still go in DATA frames; the daemon reads the records as skin
+    #: frames (docs/time.md). False: every sample in DATA frames (the daemon's fallback).
+    readout: bool = True
     #: Levels of the readout schedule (a bridge deeper sends in the deepest slot): the
     #: skin's depth from its gateways; the mesh builders set it from the mesh file.
     readout_depths: int = 8

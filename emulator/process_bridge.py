@@ -74,6 +74,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sampling rate in Hz at power-on, 1..250 (default 100)")
     parser.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE",
                         help=REPORTING_HELP)
+    parser.add_argument("--readout", choices=("on", "off"), default="on",
+                        help="samples on mesh time in READOUT records (on, default) or DATA frames (off)")
     parser.add_argument("--tcp", type=int, nargs="?", const=FILE_TCP, default=None, metavar="PORT",
                         help="gateway: also serve the serial stream on 127.0.0.1:PORT (0 = any free port; "
                              "no PORT: the mesh file's 'tcp', else any free port). Without --tcp, "
@@ -114,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
     world = World(mesh, bridges=[br.id])
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
                                  settings=Settings(rate_hz=args.rate, reporting=args.reporting), ack_slack=ACK_SLACK,
-                                 readout_acks=False, readout_depths=mesh.readout_depths(), readout_window=READOUT_WINDOW,
+                                 readout=args.readout == "on", readout_acks=False,
+                                 readout_depths=mesh.readout_depths(), readout_window=READOUT_WINDOW,
                                  transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate)),
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
     port = None

@@ -56,6 +56,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=rate_arg, default=100, help="sampling rate in Hz, 1..250 (default 100)")
     parser.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE",
                         help=REPORTING_HELP)
+    parser.add_argument("--readout", choices=("on", "off"), default="on",
+                        help="on (default): samples on mesh time are read out frame by frame in READOUT "
+                             "records (docs/time.md); off: every sample in DATA frames, as a skin before "
+                             "the readout sent them")
     parser.add_argument("--tcp", action="store_true",
                         help="also serve each gateway's stream on a TCP port (the mesh file's 'tcp', "
                              "else a free one), usable as pyserial's socket://127.0.0.1:PORT")
@@ -217,7 +221,8 @@ def run(args: argparse.Namespace) -> int:
         started, n_gateways = 0, len(mesh.gateways)
         for b in start_order(mesh):
             argv = ["bridge", "--mesh", args.mesh, "--id", str(b.id), "--seed", str(args.seed),
-                    "--rate", str(args.rate), "--reporting", reporting_text(args.reporting), *common]
+                    "--rate", str(args.rate), "--reporting", reporting_text(args.reporting),
+                    "--readout", args.readout, *common]
             master = None
             if b.gateway:
                 master, slave, device = open_pty()

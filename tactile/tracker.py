@@ -80,10 +80,7 @@ class _Track:
     # disk explains the cluster, e.g. two presses on one cluster with too few readings to
     # fit two) reports the cluster's centroid, which says nothing about where this is.
     anchor: Contact | None = None
-    # The instant (``at``) of the frame its last hit or miss was counted for: a frame
-    # estimated again (the daemon takes a frame again when a late onset of it came) is
-    # counted once, not as one more frame (a contact missed in it ended a frame early)
-    counted: float = math.nan
+    unseen: int = 0  # consecutive frames in which every element of it was unknown
 
     def __post_init__(self) -> None:
         if self.anchor is None:
@@ -170,7 +167,7 @@ class ContactTracker:
 
     def update(
         self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None, t: float | None = None, *,
-        at: float | None = None, read_at: Mapping[int, float] | None = None, again: bool = False,
+        at: float | None = None, read_at: Mapping[int, float] | None = None,
     ) -> list[TrackedContact]:
         """Estimate one frame (warm-started from the tracks) and track its contacts
         (``at``, ``read_at``: see :meth:`step`; with the readings at hand, a new contact
@@ -179,7 +176,7 @@ class ContactTracker:
         self._frame = (np.asarray(dC1, dtype=np.float64), np.asarray(dC2, dtype=np.float64),
                        None if active is None else np.asarray(active, dtype=bool))
         try:
-            return self.step(contacts, t, at=at, read_at=read_at, again=again)
+            return self.step(contacts, t, at=at, read_at=read_at)
         finally:
             self._frame = None
 
@@ -198,7 +195,7 @@ class ContactTracker:
         return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
     def step(self, contacts: Sequence[Contact], t: float | None = None, *, at: float | None = None,
-             read_at: Mapping[int, float] | None = None, again: bool = False) -> list[TrackedContact]:
+             read_at: Mapping[int, float] | None = None) -> list[TrackedContact]:
         """Associate one frame's contacts with the tracks; return the confirmed ones.
 
         ``t`` (s, optional) must be finite and never go back (as for the calibrator):
@@ -214,9 +211,7 @@ class ContactTracker:
         still on its way (a loaded host, a bridge retried) splits one press in two for
         as long as it is late; from :meth:`update`, only while one disk explains the two
         with those elements' readings left out (two fingers are still two without them).
-        ``again``: the frame at ``at`` is the last one estimated again (the daemon takes a
-        frame again when a late onset of it came): each track's hit or miss in it is counted
-        once, not as one frame more. Without ``read_at`` only ``split_frames`` applies. Given
+        Without ``read_at`` only ``split_frames`` applies. Given
         ``read_at``, a contact made only of readings a track already used (the same
         element readings, taken at the same instants) is no new contact either: it
         continues that track, or is dropped when the track matched another contact (a
@@ -228,9 +223,7 @@ class ContactTracker:
             if self._last_t is not None and t < self._last_t:
                 raise ValueError(f"t went backwards: {t!r} after {self._last_t!r}")
             self._last_t = float(t)
-        again = again and at is not None  # (a frame estimated again: each track's hit or miss in it counted once)
-        if not again:
-            self.frame += 1
+        self.frame += 1
         pairs = self._associate(contacts)
         dropped = self._remnants(contacts, pairs, read_at)
         matched_t = set()
@@ -239,10 +232,8 @@ class ContactTracker:
             tr = self._tracks[ti]
             c = contacts[ci]
             prev, tr.contact = tr.contact, c
-            if not (again and tr.counted == at and tr.missed == 0):  # (a hit there already)
-                tr.hits += 1
+            tr.hits += 1
             tr.missed = 0
-            tr.counted = at if at is not None else math.nan
             tr.t = t
             tr.elements = frozenset(c.elements)
             # A failed fit (a pressure, but no disk explains the cluster: two presses in one
@@ -264,9 +255,7 @@ class ContactTracker:
         keep = []
         for i, tr in enumerate(self._tracks):
             if i not in matched_t:
-                if not (again and tr.counted == at and tr.missed > 0):  # (missed there already)
-                    tr.missed += 1
-                tr.counted = at if at is not None else math.nan
+                tr.missed += 1
                 if tr.id is None:
                     self.rejected += 1  # a candidate must persist without a gap
                     continue
@@ -288,8 +277,7 @@ class ContactTracker:
                 need = max(self.birth_frames, self.split_frames) if near else self.birth_frames
                 since = at if at is not None else (t if t is not None else -math.inf)
                 read = {} if read_at is None else {e: read_at.get(e, math.nan) for e in els}
-                keep.append(_Track(c, self.frame, t=t, elements=els, need=need, since=since, read=read,
-                                   counted=at if at is not None else math.nan))
+                keep.append(_Track(c, self.frame, t=t, elements=els, need=need, since=since, read=read))
         for tr in keep:
             if tr.id is None and tr.hits >= tr.need and not self._unread_between(tr, keep, read_at):
                 tr.id = self._next_id
@@ -411,18 +399,30 @@ class ContactTracker:
         """Tracks seen but not yet born."""
         return sum(tr.id is None for tr in self._tracks)
 
-    def end_unsupported(self, unknown: set[int]) -> set[int]:
-        """End the tracks this frame did not match whose elements are all in ``unknown``
-        (elements the host has no reading of: nothing supports them any more). Returns the
-        ids of the confirmed contacts ended (their ids are never given again)."""
+    def end_unsupported(self, unknown: set[int], hold: int = 0) -> set[int]:
+        """Tracks this frame did not match whose elements are all in ``unknown`` (elements
+        the host has no reading of): the frame says nothing of them, so it is not counted
+        as a miss, for up to ``hold`` such frames in a row (a record lost on its way must
+        not end a press and give it a new id when its elements come back); after that
+        nothing supports them any more and they end. Returns the ids of the confirmed
+        contacts not seen in this frame for that reason, ended or held: neither is
+        reported for this frame (ended ids are never given again)."""
         gone: set[int] = set()
         keep = []
         for tr in self._tracks:
             if tr.missed > 0 and tr.elements and tr.elements <= unknown:
+                tr.unseen += 1
+                if tr.unseen <= hold:
+                    tr.missed -= 1  # not a miss: unseen
+                    if tr.id is not None:
+                        gone.add(tr.id)
+                    keep.append(tr)
+                    continue
                 if tr.id is not None:
                     gone.add(tr.id)
                     self.deaths += 1
                 continue
+            tr.unseen = 0
             keep.append(tr)
         self._tracks = keep
         return gone

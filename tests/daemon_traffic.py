@@ -21,6 +21,8 @@ from cellbridge.protocol import (
     Hello,
     Mode,
     Op,
+    Readout,
+    ReadoutSample,
     Sample,
     Status,
     encode_stream,
@@ -94,6 +96,28 @@ class Skin:
                start: int = 0) -> Iterator[tuple[int, bytes]]:
         for k in range(start, start + n_slots):
             yield k, self.slot(k, press)
+
+    def readout(self, k: int, press: tuple[float, float, float, float] | None = None, gateway: int | None = None,
+                bridges: list[int] | None = None, unchanged: tuple[int, ...] = (), missing: tuple[int, ...] = (),
+                span_us: int = 4000, parts: int = 1) -> bytes:
+        """``gateway``'s READOUT record of skin frame ``k`` (mesh time ``k / rate``), accounting
+        for ``bridges`` (default: every bridge): each a sample of ``press``, except those
+        ``unchanged`` or ``missing``; in ``parts`` frames (the bridges split among them)."""
+        gw = self.gateway if gateway is None else gateway
+        ids = self.ids if bridges is None else sorted(bridges)
+        k1, k2 = self.counts_for(press)
+        col = {b: i for i, b in enumerate(self.ids)}
+        groups = [ids[i::parts] for i in range(parts)]
+        out = b""
+        for part, group in enumerate(groups):
+            samples = tuple(ReadoutSample(b, int(k1[col[b]]), int(k2[col[b]]), 0) for b in group
+                            if b not in unchanged and b not in missing)
+            rec = Readout(k, int(self.rate), Mode.COUNTER, 1, samples, tuple(b for b in group if b in unchanged),
+                          tuple(b for b in group if b in missing), span_us, part, parts)
+            seq = self.seq.setdefault(gw, 0)
+            self.seq[gw] = (seq + 1) & 0xFFFF
+            out += encode_stream(Frame(src=gw, dst=0, origin=gw, seq=seq, payload=rec))
+        return out
 
     def reply(self, origin: int, token: int, op: Op, value: int | None = None) -> bytes:
         return self._frame(origin, CommandReply(token, op, Status.OK, value))

@@ -286,10 +286,15 @@ def render(topic: str, m: dict[str, Any]) -> str:
     if topic == "contact":
         ts = m["t_sample"]
         parts = [f"contact {t} t_sample={_f(ts - T0 if ts is not None else None, 1, 4)} n={len(m['contacts'])}"]
+        if m.get("unknown"):
+            parts.append(f"unknown={','.join(map(str, m['unknown']))}")
         for c in sorted(m["contacts"], key=lambda c: c["id"]):
             parts.append(f"| id={c['id']} x={_f(c['x'], 1e3, 1)}mm y={_f(c['y'], 1e3, 1)}mm "
+                         f"sx={_f(c['sigma_x'], 1e3, 1)}mm sy={_f(c['sigma_y'], 1e3, 1)}mm "
                          f"F={_f(c['force'], 1, 2)}N d={_f(c['diameter'], 1e3, 1)}mm "
                          f"elements={','.join(map(str, sorted(c['elements'])))} valid={int(bool(c['valid']))}")
+            if c.get("unknown_near"):
+                parts.append(f"unknown_near={','.join(map(str, c['unknown_near']))}")
         return " ".join(parts)
     if topic == "health":
         bridges = m.get("bridges", {})

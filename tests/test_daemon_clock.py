@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -118,3 +119,24 @@ def test_a_reset_is_taken_at_once_after_the_numbering_restarted() -> None:
     truth, cycles = _run(clock, 0.0, 3.5, 0.2, rng, c0=10**5)  # booted again: counter near zero
     assert clock.resets == 1
     assert np.all(np.abs(clock.to_host(cycles[-5:]) - truth[-5:]) < 0.02)
+
+
+def test_the_skin_clock_follows_a_jump_back_but_not_a_burst_of_old_frames() -> None:
+    """A gateway's points a few seconds behind its newest, in bursts between current ones (a
+    confused relay passing old records on), are not the skin's time going back: the map
+    keeps its time (it restarted on each burst of three). Points behind that keep coming,
+    consistent, for 0.1 s are: then it follows."""
+    from cellbridge.daemon.clock import SkinClock
+
+    hz = 50_000_000
+    clock = SkinClock(hz)
+    for k in range(200):
+        t = 10.0 + k * 0.01
+        assert not clock.teach(1, k * hz // 100, t + 0.004)
+        if k % 7 == 0 and k > 100:
+            for old in range(k - 90, k - 86):  # four old frames at once
+                assert not clock.teach(1, old * hz // 100, t + 0.004)
+    assert clock.resets == 0
+    assert clock.frame_time(199 * hz // 100, 12.0) == pytest.approx(10.0 + 1.99 + 0.004, abs=1e-3)
+    jumped = [clock.teach(1, k * hz // 100, 12.0 + k * 0.01 + 0.004) for k in range(15)]  # back to 0
+    assert jumped.index(True) == 10 and clock.resets == 1

@@ -121,7 +121,7 @@ def test_every_number_has_an_upper_bound() -> None:
     assert not unbounded
 
 
-def test_the_moment_buffer_is_sized_in_readings() -> None:
+def test_the_fallback_readings_buffer_is_sized_in_readings() -> None:
     """The longest max_lag at the fastest step rate still keeps at most max_lag_readings per element."""
     from cellbridge.daemon.pipeline import Pipeline
     from cellbridge.tactile import grid_layout
@@ -130,8 +130,8 @@ def test_the_moment_buffer_is_sized_in_readings() -> None:
                         "calibration": {"max_step_rate": 1000.0}})
     layout = grid_layout(32, 32)
     p = Pipeline(cfg, layout)
-    assert p.skin.moments.depth <= 256 + 8
-    assert p.skin.moments.t.nbytes <= layout.n * (256 + 8) * 8
+    assert p.skin.readings is not None and p.skin.readings.depth <= 256 + 8
+    assert p.skin.readings.t.nbytes <= layout.n * (256 + 8) * 8
 
 
 def test_sections_are_typed_frozen_and_the_only_way_in() -> None:

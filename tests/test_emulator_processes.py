@@ -121,7 +121,8 @@ def stop_and_sweep(proc: subprocess.Popen[bytes], mesh_path: Path) -> None:
 
 @pytest.fixture
 def skin(tmp_path: Path) -> Iterator[Skin]:
-    with running_skin(tmp_path) as s:
+    # (these tests read each bridge's own frames on the gateway's line: DATA, not readout records)
+    with running_skin(tmp_path, "--readout", "off") as s:
         yield s
 
 
@@ -350,7 +351,7 @@ def test_press_beside_the_skin_is_refused(tmp_path: Path) -> None:
 def test_mesh_up_event_reporting_sends_heartbeats_when_idle_and_reports_a_press(tmp_path: Path) -> None:
     # Booted event-based (threshold 40 counts, heartbeat 500 ms): an untouched skin sends
     # a heartbeat per bridge twice a second instead of 100 samples; a press is reported.
-    with running_skin(tmp_path, "--reporting", "event:40:500") as skin, \
+    with running_skin(tmp_path, "--reporting", "event:40:500", "--readout", "off") as skin, \
             serial.Serial(skin.gateways[1][0], 115200, timeout=0.1) as pty:
         skin.wait_for(pty, {1, 2, 3, 4}, seconds=20.0)
         skin.read(pty, 1.0)  # start-up traffic drains

@@ -130,7 +130,7 @@ def test_a_host_opening_the_gateway_pty_late_reads_no_seconds_old_frames(tmp_pat
     from cellbridge.protocol import StreamDecoder
     from test_emulator_processes import data_by_origin
 
-    with running_skin(tmp_path) as skin:
+    with running_skin(tmp_path, "--readout", "off") as skin:  # (each sample's own cycle: DATA frames)
         device = skin.gateways[1][0]
         with serial.serial_for_url(device, timeout=0) as port:
             skin.wait_for(port, {1, 2, 3, 4})

@@ -39,3 +39,27 @@ def test_a_changed_output_shows_as_a_readable_diff() -> None:
     changed = got[:i] + [got[i].replace("F=", "F=1")] + got[i + 1:]
     d = diff(sc, changed)
     assert [ln[0] for ln in d if ln[:1] in "+-" and ln[:3] not in ("+++", "---")] == ["-", "+"]
+
+
+def test_the_recordings_are_data_of_protocol_versions_up_to_3_read_through_the_fallback() -> None:
+    """The corpus was recorded before the readout schedule: every frame is of version 3 or
+    older and none is a READOUT record, so each replay runs the DATA fallback alone (and its
+    press still comes out as a contact, above)."""
+    from cobs import cobs
+
+    from cellbridge.protocol import FrameType
+    from golden_corpus import serial_reads
+
+    for sc in SCENARIOS:
+        versions, types = set(), set()
+        for _, _, data in serial_reads(paths(sc)[0]):
+            for piece in data.split(b"\x00"):
+                try:
+                    raw = cobs.decode(piece)
+                except cobs.DecodeError:  # (a piece split across reads, or line noise)
+                    continue
+                if len(raw) > 2:
+                    versions.add(raw[0])
+                    types.add(raw[2])
+        assert versions and max(versions) <= 3, (sc.name, versions)
+        assert int(FrameType.READOUT) not in types and int(FrameType.DATA) in types, sc.name

@@ -56,6 +56,7 @@ CONTACT_ITEM: dict[str, Any] = {
                               "model_y", "sigma_x", "sigma_y", "sigma_xy", "sigma_force", "sigma_diameter",
                               "pressure", "force_sum", "chi2", "t_sample")},
         "elements": _array(INT, "ids of the touched elements (bridge ids)"),
+        "unknown_near": _array(INT, "ids of the unknown elements among its elements and their neighbours"),
         "valid": BOOL, "fit_ok": BOOL,
     },
     "required": ["id", "x", "y", "force", "elements", "valid"],
@@ -80,7 +81,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         ["link", "bridge", "c1", "c2"],
         t_bridge=_array(FLOAT, "s, bridge time of each sample")),
     "contact": _payload(
-        "contact", "contacts on the skin at one moment",
+        "contact", "contacts of one skin frame",
         {"t_sample": FLOAT, "contacts": _array(CONTACT_ITEM, "one map per contact")},
         ["t_sample", "contacts"]),
     "health": _payload("health", "the daemon's health (every [health] interval)",

@@ -1,0 +1,363 @@
+"""Skin frames from the gateways' readout records: complete by the records, or by a deadline.
+
+A bridge on the readout schedule samples frame ``k`` with every other bridge (its gates
+start at mesh time ``k / rate``), and after the frame's readout its gateway writes one
+READOUT record of ``k`` on its serial line, accounting for every element routed through
+it: each is a *sample*, *unchanged* (its bridge said its reading stayed within the
+reporting threshold of its last sample) or *missing* (its slot stayed empty). So the
+host needs no guess from timing. :class:`SkinFrames` is fed the decoded records with
+their arrival and gives out **skin frames**, in order, each once. Frame ``k`` is complete
+as soon as every active gateway's record of it (one that delivered a record within
+``active_for``) came whole, all its parts; else it goes out at its **deadline**: the
+frame's host time + the largest readout span of the active gateways + the serial time
+of their largest record + ``margin``, without what did not come (those elements are
+unknown). A gateway writes a record as soon as it is complete, so records of two frames
+may come in either order: a frame waits for the frames of its rate before it (each
+complete or at its deadline), and a frame given out after one of which no record came
+at all says so (``after_gap``: an "unchanged" in it may refer to a sample in the lost
+record, so its bridges are missing there). A record of a frame already given out is
+*late*: counted, never used to rewrite what was given out.
+
+Sans-I/O and layout-free: bridges are ids, times are the caller's. The caller maps a
+frame's mesh time to host time (:class:`~cellbridge.daemon.clock.SkinClock`) and turns
+the states into element readings (:mod:`cellbridge.daemon.readings`).
+
+Bounded whatever arrives: at most ``max_pending`` frames wait (a new one beyond that
+sends the oldest out at once, as if its deadline had passed), at most ``max_gateways``
+gateways are followed, and a record whose frame lies after its own arrival (an index
+corrupted past the CRC, a gateway on another time) is refused. A gateway whose records
+go behind the frames given out while no other active gateway is ahead (the skin's time
+went back: its root restarted and counts from 0) restarts the sequence once three in a
+row over 0.1 s agree; fewer, or a burst of old records among current ones, are only late.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: Frame instants are kept as integer nanoseconds of mesh time (``index * 1e9 // rate``),
+#: so that frames of two rates order exactly and a u64 index never loses precision.
+_NS = 1_000_000_000
+#: s a record's frame may lie after the record's arrival (the host's map is off by
+#: milliseconds at most; further, the index is wrong).
+FUTURE_SLACK = 0.25
+#: Records in a row behind the frames given out, consistent and over at least CONFIRM_TIME s
+#: of arrivals, that restart the sequence (a burst of old records is no restart).
+CONFIRM = 3
+CONFIRM_TIME = 0.1
+_SAMPLE, _UNCHANGED, _MISSING = 0, 1, 2
+
+
+class RecordPart(Protocol):
+    """What a READOUT frame carries (``cellbridge.protocol.Readout`` is one)."""
+
+    @property
+    def index(self) -> int: ...
+    @property
+    def rate(self) -> int: ...
+    @property
+    def mode(self) -> int: ...
+    @property
+    def oversampling(self) -> int: ...
+    @property
+    def samples(self) -> Sequence[tuple[int, int, int, int]]: ...
+    @property
+    def unchanged(self) -> Sequence[int]: ...
+    @property
+    def missing(self) -> Sequence[int]: ...
+    @property
+    def span_us(self) -> int: ...
+    @property
+    def part(self) -> int: ...
+    @property
+    def parts(self) -> int: ...
+
+
+@dataclass(frozen=True, slots=True)
+class SkinFrame:
+    """One skin frame as the records said it: each bridge accounted for is in exactly one
+    of ``bridges`` (a sample, with ``c1``, ``c2``, ``flags``, ``mode``, ``oversampling``
+    aligned), ``unchanged`` or ``missing``; a bridge in none is unknown too (its
+    gateway's record did not arrive, or it is on no schedule). After a frame of which no
+    record came at all (``after_gap``) no bridge is unchanged: "unchanged" may refer to a
+    sample in the lost frame, so those bridges are ``missing`` (counted in
+    ``unchanged_after_gap``)."""
+
+    index: int
+    rate: int
+    t: float  #: host time of the frame's gate start
+    bridges: NDArray[np.int64]
+    c1: NDArray[np.int64]
+    c2: NDArray[np.int64]
+    flags: NDArray[np.int64]
+    mode: NDArray[np.int64]
+    oversampling: NDArray[np.int64]
+    unchanged: NDArray[np.int64]
+    missing: NDArray[np.int64]  #: said missing, in two records that disagree, or unchanged after a gap
+    complete: bool  #: every active gateway's record came, whole
+    by_deadline: bool  #: given out at its deadline (or pushed out by newer frames), not by the records
+    gateways: tuple[int, ...]  #: the gateways whose record of it came (whole or in part)
+    after_gap: bool = False  #: frames of its rate just before it were given out by no record
+
+
+class _Gateway:
+    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key", "back_at", "back_since")
+
+    def __init__(self) -> None:
+        self.last_key = -1  # instant of its newest record taken
+        self.arrival = -math.inf  # when that record came
+        self.span = 0.0  # s, its newest record's readout span
+        self.serial = 0.0  # s, its newest record's time on the line
+        self.back = 0  # records in a row behind the frames given out, as far apart as their arrivals
+        self.back_key = -1  # the last of them, and when it came
+        self.back_at = -math.inf
+        self.back_since = -math.inf  # when the first of them came
+
+
+class _Pending:
+    __slots__ = ("index", "rate", "key", "t", "deadline", "records")
+
+    def __init__(self, index: int, rate: int, key: int, t: float, deadline: float) -> None:
+        self.index, self.rate, self.key, self.t, self.deadline = index, rate, key, t, deadline
+        self.records: dict[int, dict[int, RecordPart]] = {}  # gateway -> part -> record part
+
+
+class SkinFrames:
+    """Readout records in, skin frames out (see the module).
+
+    ``margin``: s added to a frame's deadline beyond its readout and serial time (the
+    host's own read and scheduling delay); ``active_for``: s a gateway counts as active
+    after its last record (the daemon passes ``health.bridge_timeout``)."""
+
+    def __init__(self, margin: float = 0.02, active_for: float = 2.0, max_pending: int = 64,
+                 max_gateways: int = 1024) -> None:
+        if not (margin >= 0 and active_for > 0 and max_pending >= 1 and max_gateways >= 1):
+            raise ValueError("SkinFrames needs margin >= 0, active_for > 0, max_pending >= 1, max_gateways >= 1")
+        self.margin = float(margin)
+        self.active_for = float(active_for)
+        self.max_pending = int(max_pending)
+        self.max_gateways = int(max_gateways)
+        self._gw: dict[int, _Gateway] = {}
+        self._pending: dict[tuple[int, int], _Pending] = {}
+        self._ready: list[SkinFrame] = []  # given out at the next take (pushed out, or flushed at a restart)
+        self._done = -1  # instant of the newest frame given out
+        self._last: tuple[int, int] | None = None  # (index, rate) of the newest frame given out
+        self._restarted = False  # the sequence restarted: the next frame given out follows a gap
+        self.counts: dict[str, int] = dict.fromkeys(
+            ("records", "late_records", "rejected_records", "duplicate_parts", "conflicts", "unchanged_after_gap",
+             "frames_complete", "frames_by_deadline", "frames_pushed_out", "frames_missed",
+             "restarts"), 0)
+
+    def configure(self, margin: float, active_for: float, max_pending: int) -> None:
+        """A reload's settings (the frames waiting keep their deadlines)."""
+        self.margin, self.active_for, self.max_pending = float(margin), float(active_for), int(max_pending)
+
+    # -- in ------------------------------------------------------------------------------
+    def add(self, gateway: int, rec: RecordPart, arrival: float, t_frame: float, serial: float = 0.0) -> None:
+        """One record part written by ``gateway``, arrived at host time ``arrival``;
+        ``t_frame``: the host time of its frame's gate start (NaN: not known, refused);
+        ``serial``: s the record takes on the line. Never raises for what a line brings."""
+        span = rec.span_us * 1e-6
+        # a frame after the record's own arrival: a wrong index (or the host's map not yet
+        # following a jump of the skin's time); refused, though it counts towards a restart
+        mapped = math.isfinite(t_frame) and t_frame + span <= arrival + FUTURE_SLACK
+        g = self._gw.get(gateway)
+        if g is None:
+            if not mapped or (len(self._gw) >= self.max_gateways and not self._prune(arrival)):
+                self.counts["rejected_records"] += 1
+                return
+            g = self._gw[gateway] = _Gateway()
+        key = rec.index * _NS // rec.rate
+        if key <= self._done and not self._went_back(gateway, g, key, arrival):
+            self.counts["late_records" if mapped else "rejected_records"] += 1
+            if mapped and key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one
+                # joining, or back): it is active, and the frames after this wait for its records
+                g.arrival, g.last_key, g.span, g.serial = arrival, max(g.last_key, key), span, float(serial)
+            return
+        if not mapped:
+            self.counts["rejected_records"] += 1
+            return
+        self.counts["records"] += 1
+        g.back = 0
+        g.last_key, g.arrival, g.span, g.serial = max(g.last_key, key), arrival, span, float(serial)
+        p = self._pending.get((rec.index, rec.rate))
+        if p is None:
+            if len(self._pending) >= self.max_pending:  # (a backlog read at once: those ready go first)
+                self._ready = self.take(arrival)
+            if len(self._pending) >= self.max_pending:
+                self._push_out()
+            active = self._active(arrival)
+            deadline = t_frame + max(a.span for a in active) + max(a.serial for a in active) + self.margin
+            p = self._pending[(rec.index, rec.rate)] = _Pending(rec.index, rec.rate, key, t_frame, deadline)
+        parts = p.records.setdefault(gateway, {})
+        first = next(iter(parts.values()), None)
+        if first is not None and first.parts != rec.parts:
+            self.counts["rejected_records"] += 1  # a part of another record of the same frame: inconsistent
+            return
+        if rec.part in parts:
+            self.counts["duplicate_parts"] += 1
+            return
+        parts[rec.part] = rec
+
+    def _went_back(self, gateway: int, g: _Gateway, key: int, arrival: float) -> bool:
+        """A record of ``gateway`` behind the frames given out: late (a relay may pass on a
+        record seconds old), or the skin's time went back. True (and the sequence restarted)
+        when this is the gateway's ``CONFIRM``-th such record in a row, over ``CONFIRM_TIME``
+        s, each later than the one before by as much as it arrived later, and no other active
+        gateway is ahead."""
+        ok = g.back > 0 and key > g.back_key and abs((key - g.back_key) / _NS - (arrival - g.back_at)) <= FUTURE_SLACK
+        if not ok:
+            g.back_since = arrival
+        g.back, g.back_key, g.back_at = (g.back + 1 if ok else 1), key, arrival
+        if g.back < CONFIRM or arrival - g.back_since < CONFIRM_TIME - 1e-9:
+            return False
+        if any(o.last_key >= self._done for gw, o in self._gw.items()
+               if gw != gateway and arrival - o.arrival <= self.active_for):
+            return False
+        for p in sorted(self._pending.values(), key=lambda q: q.key):  # the old time's frames, as they are
+            self._ready.append(self._give(p, None))
+        self._done, self._last, self._restarted = -1, None, True
+        for o in self._gw.values():
+            o.last_key = -1
+        self.counts["restarts"] += 1
+        return True
+
+    def forget(self, gateway: int) -> None:
+        """Stop following ``gateway`` (gone for good): frames no longer wait for it."""
+        self._gw.pop(gateway, None)
+
+    def _prune(self, now: float) -> bool:
+        """Forget gateways inactive for ten times ``active_for``; whether room was made."""
+        old = [gw for gw, g in self._gw.items() if now - g.arrival > 10 * self.active_for]
+        for gw in old:
+            del self._gw[gw]
+        return bool(old)
+
+    # -- out -----------------------------------------------------------------------------
+    def _active(self, now: float) -> list[_Gateway]:
+        return [g for g in self._gw.values() if now - g.arrival <= self.active_for]
+
+    def active(self, now: float) -> bool:
+        """Whether some gateway is on the schedule (delivered a record within ``active_for``)."""
+        return any(now - g.arrival <= self.active_for for g in self._gw.values())
+
+    def take(self, now: float) -> list[SkinFrame]:
+        """The frames ready by ``now`` (see the module), oldest first, each given out once."""
+        out, self._ready = self._ready, []
+        if not self._pending:
+            return out
+        active = [gw for gw, g in self._gw.items() if now - g.arrival <= self.active_for]
+        for p in sorted(self._pending.values(), key=lambda q: q.key):
+            whole = bool(active) and all(self._whole(p, gw) for gw in active)
+            if p.deadline > now and not (whole and not self._gap_open(p, now)):
+                break  # (in order: the frames after it wait for it)
+            out.append(self._give(p, whole))
+        return out
+
+    def due(self) -> float:
+        """The host time at which :meth:`take` gives a frame out with no new record: the
+        earliest deadline of a frame waiting (``inf``: none)."""
+        if self._ready:
+            return -math.inf
+        return min((p.deadline for p in self._pending.values()), default=math.inf)
+
+    @staticmethod
+    def _whole(p: _Pending, gateway: int) -> bool:
+        parts = p.records.get(gateway)
+        if not parts:
+            return False
+        return len(parts) == next(iter(parts.values())).parts
+
+    def _gap_open(self, p: _Pending, now: float) -> bool:
+        """Whether a frame of ``p``'s rate between the last given out and ``p`` may still come
+        (a gateway writes each record as soon as it is complete: two frames' records may come
+        in either order): until the deadline of the one just before ``p``."""
+        last = self._last
+        if last is None or last[1] != p.rate or not 1 < p.index - last[0] <= self.max_pending:
+            return False
+        return now < p.deadline - 1.0 / p.rate
+
+    def _push_out(self) -> None:
+        """More than ``max_pending`` frames waiting: the oldest goes out now."""
+        p = min(self._pending.values(), key=lambda q: q.key)
+        self.counts["frames_pushed_out"] += 1
+        self._ready.append(self._give(p, None))
+
+    def _give(self, p: _Pending, whole: bool | None) -> SkinFrame:
+        """``whole``: every active gateway's record of ``p`` came (None or False: given out
+        at its deadline, or pushed out)."""
+        del self._pending[(p.index, p.rate)]
+        c = self.counts
+        by_deadline = not whole
+        c["frames_by_deadline" if by_deadline else "frames_complete"] += 1
+        last, gap = self._last, self._restarted
+        if last is not None and last[1] == p.rate and p.index > last[0] + 1:
+            c["frames_missed"] += p.index - last[0] - 1  # no record of them came at all
+            gap = True
+        if p.key > self._done:
+            self._done, self._last, self._restarted = p.key, (p.index, p.rate), False
+        return _frame(p, bool(whole), by_deadline, gap, self)
+
+    def counters(self, now: float) -> dict[str, Any]:
+        """What health reports of the frames (counts since start, and now)."""
+        return {**self.counts, "pending": len(self._pending), "gateways_active": len(self._active(now)),
+                "newest": None if self._last is None else {"index": self._last[0], "rate": self._last[1]}}
+
+
+def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owner: SkinFrames) -> SkinFrame:
+    """The frame of ``p``'s record parts: every bridge in one state; a bridge two parts
+    disagree on (not a sample or unchanged against missing) is missing, and counted."""
+    cols: list[list[int]] = [[], [], [], [], [], []]  # bridge, c1, c2, flags, mode, oversampling
+    unchanged: list[int] = []
+    missing: list[int] = []
+    for parts in p.records.values():
+        for rec in parts.values():
+            n = len(rec.samples)
+            if n:
+                for col, vals in zip(cols, zip(*rec.samples)):
+                    col.extend(vals)
+                cols[4].extend([int(rec.mode)] * n)
+                cols[5].extend([rec.oversampling] * n)
+            unchanged.extend(rec.unchanged)
+            missing.extend(rec.missing)
+    if after_gap and unchanged:  # "unchanged" may refer to a sample in the frame lost
+        owner.counts["unchanged_after_gap"] += len(unchanged)
+        missing, unchanged = missing + unchanged, []
+    arrays = [np.array(c, dtype=np.int64) for c in cols]
+    u, m = np.array(unchanged, dtype=np.int64), np.array(missing, dtype=np.int64)
+    every = np.concatenate([arrays[0], u, m])
+    if np.unique(every).size != every.size:  # a bridge in two parts or two gateways' records
+        arrays, u, m = _merge(arrays, u, m, owner)
+    b, c1, c2, fl, mo, ov = arrays
+    return SkinFrame(p.index, p.rate, p.t, b, c1, c2, fl, mo, ov, u, m, complete, by_deadline,
+                     tuple(sorted(p.records)), after_gap)
+
+
+def _merge(arrays: list[NDArray[np.int64]], u: NDArray[np.int64], m: NDArray[np.int64],
+           owner: SkinFrames) -> tuple[list[NDArray[np.int64]], NDArray[np.int64], NDArray[np.int64]]:
+    """One state per bridge: the same state twice is one; a sample or unchanged beats
+    missing (the bridge's word came through one route); any other disagreement (two
+    samples that differ, a sample and unchanged) is missing, counted in ``conflicts``."""
+    state: dict[int, tuple[int, ...]] = {}
+    conflict: set[int] = set()
+    rows = [(_SAMPLE, *r) for r in zip(*(a.tolist() for a in arrays))]
+    rows += [(_UNCHANGED, b) for b in u.tolist()] + [(_MISSING, b) for b in m.tolist()]
+    for r in rows:
+        b = r[1]
+        old = state.get(b)
+        if old is None or old[0] == _MISSING:
+            state[b] = r
+        elif r != old and r[0] != _MISSING:
+            conflict.add(b)
+    owner.counts["conflicts"] += len(conflict)
+    samples = [r[1:] for b, r in sorted(state.items()) if r[0] == _SAMPLE and b not in conflict]
+    cols = [np.array(c, dtype=np.int64) for c in zip(*samples)] if samples else [np.zeros(0, np.int64)] * 6
+    unch = sorted(b for b, r in state.items() if r[0] == _UNCHANGED and b not in conflict)
+    miss = sorted(b for b, r in state.items() if r[0] == _MISSING or b in conflict)
+    return cols, np.array(unch, dtype=np.int64), np.array(miss, dtype=np.int64)

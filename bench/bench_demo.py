@@ -1,12 +1,16 @@
 """How often ``cellbridge demo --check`` tells the truth: seam and corner presses, N runs each.
 
-Run: ``.venv/bin/python bench/bench_demo.py [--runs 20] [--burn] [--cases seam,corner]``.
+Run: ``.venv/bin/python bench/bench_demo.py [--runs 20] [--burn [--burners 4]] [--second-skin]
+[--cases seam,corner]``.
 Each run starts the whole chain as a user would (an emulated 4×4 skin in real processes,
 the daemon on its gateway's pty), presses, and checks the published contact: within 1 mm
 and 5 % of the press, with exactly one contact id. ``--burn`` keeps every core busy with a
-CPU-burning process per core for the whole measurement (the loaded-robot case). Prints a
-table per case: runs, passed, the worst position and force errors, and the runs with more
-than one id. The burners are stopped on exit, also on Ctrl-C.
+CPU-burning process per core (or ``--burners N``) for the whole measurement (the
+loaded-robot case); ``--second-skin`` runs a second emulated 4×4 (``mesh up``, its own
+ports) on the same cores the whole time. Prints a
+table per case: runs, passed, the worst position and force errors, the runs with more
+than one id, and over every report of every run those that stated a position off by more
+than 1 mm and 3 σ without listing an unknown element (``untrue``: a run with one fails). The burners are stopped on exit, also on Ctrl-C.
 """
 
 from __future__ import annotations
@@ -16,8 +20,11 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -28,20 +35,67 @@ CASES = {"seam": (0.057, 0.040), "corner": (0.0585, 0.0625)}
 BURN = "while True: pass"
 
 
-def one_run(x: float, y: float) -> dict:
-    """One ``demo --check --json`` run: its JSON result, plus ``ok`` and ``error`` keys."""
+def children(pid: int) -> list[tuple[int, str]]:
+    """(pid, command line) of ``pid``'s children, read from /proc."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            if ppid == pid:
+                out.append((int(d.name), (d / "cmdline").read_bytes().replace(b"\0", b" ").decode()))
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
+
+
+def stop_daemon_mid_press(demo: subprocess.Popen, pause: float, log: list[str]) -> None:
+    """SIGSTOP the demo's daemon 1 s into the press for ``pause`` s, then SIGCONT: it
+    reads its backlog. Its pid and the press are found among the demo's children."""
+    daemon = None
+    while demo.poll() is None:
+        kids = children(demo.pid)
+        daemon = daemon or next((p for p, cmd in kids if " daemon " in cmd), None)
+        if daemon and any(" press " in cmd for _, cmd in kids):
+            time.sleep(1.0)
+            try:
+                os.kill(daemon, signal.SIGSTOP)
+                time.sleep(pause)
+            finally:
+                os.kill(daemon, signal.SIGCONT)
+            log.append(f"daemon {daemon} stopped {pause:.1f} s")
+            return
+        time.sleep(0.05)
+
+
+def one_run(x: float, y: float, pause: float = 0.0) -> dict:
+    """One ``demo --check --json`` run: its JSON result, plus ``ok`` and ``error`` keys;
+    with ``pause``, its daemon is stopped that long mid-press."""
+    demo = subprocess.Popen([CLI, "demo", "--check", "--json", "--x", str(x), "--y", str(y)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    log: list[str] = []
+    watcher = threading.Thread(target=stop_daemon_mid_press, args=(demo, pause, log), daemon=True)
+    if pause:
+        watcher.start()
     try:
-        r = subprocess.run([CLI, "demo", "--check", "--json", "--x", str(x), "--y", str(y)],
-                           capture_output=True, text=True, timeout=280)
+        out, err = demo.communicate(timeout=280)
     except subprocess.TimeoutExpired:
+        stop(demo)
         return {"ok": False, "error": "timeout"}
+    finally:
+        if pause:
+            watcher.join(5.0)
+    if pause and not log:
+        return {"ok": False, "error": "the daemon was not stopped (press not seen)"}
+    r = subprocess.CompletedProcess(demo.args, demo.returncode, out, err)
     try:
         res = json.loads(r.stdout)
     except json.JSONDecodeError:
         return {"ok": False, "error": (r.stderr.strip().splitlines() or ["no output"])[-1]}
     got = res.get("reported") or {}
     ok = (r.returncode == 0 and bool(got) and abs(got["x"] - x) <= 1e-3 and abs(got["y"] - y) <= 1e-3
-          and abs(got["force"] - 3.0) <= 0.15 and len(res.get("ids", [])) == 1)
+          and abs(got["force"] - 3.0) <= 0.15 and len(res.get("ids", [])) == 1 and res.get("untrue", 0) == 0)
     res.update(ok=ok, error="" if ok else f"rc {r.returncode}")
     return res
 
@@ -50,6 +104,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=20, help="runs per case (default 20)")
     ap.add_argument("--burn", action="store_true", help="keep every core busy while measuring")
+    ap.add_argument("--burners", type=int, default=0,
+                    help="with --burn: this many burning processes (default one per core)")
+    ap.add_argument("--second-skin", action="store_true",
+                    help="run a second emulated 4x4 skin (mesh up) beside the demo's")
+    ap.add_argument("--stop-daemon", type=float, default=0.0, metavar="SECONDS",
+                    help="stop the daemon (SIGSTOP) this long 1 s into each press, then let it read its backlog")
     ap.add_argument("--cases", default="seam,corner", help="comma-separated: seam, corner")
     args = ap.parse_args()
     # SIGTERM (a kill, a timeout) unwinds like Ctrl-C, so every process started is stopped
@@ -57,16 +117,20 @@ def main() -> None:
     burners: list[subprocess.Popen] = []
     if args.burn:
         burners = [subprocess.Popen([sys.executable, "-c", BURN], start_new_session=True)
-                   for _ in range(os.cpu_count() or 2)]
+                   for _ in range(args.burners or os.cpu_count() or 2)]
+    work = Path(tempfile.mkdtemp(prefix="bench-demo-"))
     try:
-        print(f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}, burners {len(burners)}")
+        if args.second_skin:
+            burners.append(second_skin(work))
+        print(f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}, burners {len(burners) - args.second_skin}"
+              f"{', a second skin' if args.second_skin else ''}")
         rows = []
         for name in args.cases.split(","):
             x, y = CASES[name]
             results = []
             for i in range(args.runs):
                 t0 = time.monotonic()
-                res = one_run(x, y)
+                res = one_run(x, y, args.stop_daemon)
                 results.append(res)
                 print(f"  {name} {i + 1}/{args.runs}: {'ok ' if res['ok'] else 'BAD'} ids {res.get('ids')} "
                       f"pos {res.get('position_error_mm', float('nan')):.3f} mm "
@@ -77,13 +141,48 @@ def main() -> None:
             rows.append([name, len(results), sum(r["ok"] for r in results),
                          f"{max(pos):.3f}" if pos else "-", f"{max(frc):.2f}" if frc else "-",
                          sum(1 for r in results if len(r.get("ids", [])) > 1),
-                         sum(1 for r in results if not r.get("reported"))])
-        table(f"demo --check, {'both cores busy' if burners else 'quiet machine'}",
-              ["case", "runs", "passed", "worst pos mm", "worst force %", "runs >1 id", "runs no contact"], rows)
+                         sum(1 for r in results if not r.get("reported")),
+                         sum(r.get("untrue", 0) for r in results), sum(r.get("with_unknown", 0) for r in results),
+                         sum(r.get("reports", 0) for r in results)])
+        load = (f"{len(burners) - args.second_skin} burners" if args.burn else "no burners") + (
+            ", a second 4x4 skin" if args.second_skin else "") + (
+            f", daemon stopped {args.stop_daemon:g} s mid-press" if args.stop_daemon else "")
+        table(f"demo --check, {load}",
+              ["case", "runs", "passed", "worst pos mm", "worst force %", "runs >1 id", "runs no contact",
+               "untrue reports", "reports w/ unknown", "reports"], rows)
     finally:
         for p in burners:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
+            stop(p)
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def second_skin(work: Path) -> subprocess.Popen:
+    """A second emulated 4×4 skin in real processes (its own ports), pressed by nobody."""
+    mesh = work / "second.toml"
+    subprocess.run([CLI, "mesh", "gen", "grid", "4", "4", "-o", str(mesh)], check=True, capture_output=True)
+    with socket.socket() as s:  # a free base port: the medium takes it, the world the next two
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return subprocess.Popen([CLI, "mesh", "up", str(mesh), "--base-port", str(port)], start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def stop(p: subprocess.Popen) -> None:
+    """SIGTERM the process group (mesh up stops its bridges), SIGKILL after 10 s."""
+    for sig, wait in ((signal.SIGTERM, 10.0), (signal.SIGKILL, None)):
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            p.wait(wait)
+            break
+        except subprocess.TimeoutExpired:
+            continue
+    try:
+        os.killpg(p.pid, signal.SIGKILL)  # whatever of the group is left
+    except ProcessLookupError:
+        pass
 
 
 if __name__ == "__main__":

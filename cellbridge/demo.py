@@ -213,7 +213,9 @@ def _press_and_collect(args: argparse.Namespace, base_port: int, sub: zmq.Socket
 def _summarise(args: argparse.Namespace, contacts: list[dict[str, Any]]) -> dict[str, Any]:
     """The press's steady part: the second half of the reports of the longest-lived id."""
     out: dict[str, Any] = {"pressed": {"x": args.x, "y": args.y, "force": args.force, "diameter": args.diameter},
-                           "reports": len(contacts)}
+                           "reports": len(contacts),
+                           "with_unknown": sum(1 for c in contacts if c.get("unknown_near")),
+                           "untrue": sum(1 for c in contacts if _untrue(args, c))}
     if not contacts:
         return out
     ids = [c["id"] for c in contacts]
@@ -235,6 +237,18 @@ def _summarise(args: argparse.Namespace, contacts: list[dict[str, Any]]) -> dict
     return out
 
 
+def _untrue(args: argparse.Namespace, c: dict[str, Any]) -> bool:
+    """A report that states a wrong position as known: off the press by more than 1 mm and
+    3 of its own σ on an axis, with no unknown element listed that would explain it."""
+    if c.get("unknown_near"):
+        return False
+    for axis, true in (("x", args.x), ("y", args.y)):
+        off = abs(float(c[axis]) - true)
+        if off > max(1e-3, 3 * float(c.get("sigma_" + axis, 0.0))):
+            return True
+    return False
+
+
 def _print_table(r: dict[str, Any]) -> None:
     p = r["pressed"]
     if "reported" not in r:
@@ -251,6 +265,8 @@ def _print_table(r: dict[str, Any]) -> None:
     print(f"position error {r['position_error_mm']:.2f} mm (the paper's centroid: "
           f"{r['centroid_error_mm']:.1f} mm), force error {r['force_error_pct']:.2f} %, "
           f"{r['reports']} reports, contact ids {r['ids']}")
+    print(f"{r['with_unknown']} reports listed unknown elements; {r['untrue']} stated a position "
+          "off by more than 1 mm and 3 σ with none listed")
 
 
 def _within(r: dict[str, Any]) -> bool:

@@ -104,6 +104,7 @@ class SkinFrame:
     by_deadline: bool  #: given out at its deadline (or pushed out by newer frames), not by the records
     gateways: tuple[int, ...]  #: the gateways whose record of it came (whole or in part)
     after_gap: bool = False  #: frames of its rate just before it were given out by no record
+    root: int = 0  #: the time root whose mesh time ``index`` counts (0: not said)
 
 
 class _Gateway:
@@ -136,13 +137,14 @@ class SkinFrames:
     after its last record (the daemon passes ``health.bridge_timeout``)."""
 
     def __init__(self, margin: float = 0.02, active_for: float = 2.0, max_pending: int = 64,
-                 max_gateways: int = 1024) -> None:
+                 max_gateways: int = 1024, root: int = 0) -> None:
         if not (margin >= 0 and active_for > 0 and max_pending >= 1 and max_gateways >= 1):
             raise ValueError("SkinFrames needs margin >= 0, active_for > 0, max_pending >= 1, max_gateways >= 1")
         self.margin = float(margin)
         self.active_for = float(active_for)
         self.max_pending = int(max_pending)
         self.max_gateways = int(max_gateways)
+        self.root = root  # the time root of every record added (frames given out carry it)
         self._gw: dict[int, _Gateway] = {}
         self._pending: dict[tuple[int, int], _Pending] = {}
         self._ready: list[SkinFrame] = []  # given out at the next take (pushed out, or flushed at a restart)
@@ -336,7 +338,7 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owne
         arrays, u, m = _merge(arrays, u, m, owner)
     b, c1, c2, fl, mo, ov = arrays
     return SkinFrame(p.index, p.rate, p.t, b, c1, c2, fl, mo, ov, u, m, complete, by_deadline,
-                     tuple(sorted(p.records)), after_gap)
+                     tuple(sorted(p.records)), after_gap, owner.root)
 
 
 def _merge(arrays: list[NDArray[np.int64]], u: NDArray[np.int64], m: NDArray[np.int64],

@@ -184,11 +184,13 @@ class LayoutStages:
 
     def frame(self, t: float, cycle: int, sampled: NDArray[np.int64], raw: NDArray[np.int64],
               saturated: NDArray[np.bool_], caps: NDArray[np.float64], unchanged: NDArray[np.int64],
-              now: float, inverse: bool = True) -> tuple[dict[str, NDArray[Any]], int]:
-        """One complete scheduled skin frame at host time ``t`` (global cycle ``cycle``):
-        ``sampled`` rows with their readings (``raw``, ``saturated``, ``caps`` as in
-        :meth:`step`), ``unchanged`` rows (their previous reading, while the host has it);
-        every other element is unknown in it. The element stage's columns of the samples
+              now: float, inverse: bool = True, root: int = 0,
+              missing: NDArray[np.int64] | None = None) -> tuple[dict[str, NDArray[Any]], int]:
+        """One complete scheduled skin frame at host time ``t`` (global cycle ``cycle``) of
+        time root ``root``: ``sampled`` rows with their readings (``raw``, ``saturated``,
+        ``caps`` as in :meth:`step`), ``unchanged`` rows (their previous reading, while the
+        host has it), ``missing`` rows; every other element of that root is unknown in it
+        (:meth:`ElementReadings.scheduled`). The element stage's columns of the samples
         back, and how many elements the frame leaves unknown. Requires :attr:`ready`."""
         assert self.elements is not None and self.channels is not None and self.readings is not None
         r = self.readings
@@ -204,7 +206,8 @@ class LayoutStages:
         stepped = np.zeros(r.n, dtype=bool)
         stepped[self.elements.stepped] = True
         touched = np.where(stepped[known], self.elements.touched[known], touched)
-        unknown = r.scheduled(t, cycle, sampled, caps, known, dc, touched)
+        accounted = np.concatenate([sampled, unchanged, missing if missing is not None else sampled[:0]])
+        unknown = r.scheduled(t, cycle, sampled, caps, known, dc, touched, root, accounted)
         return {k: v[:ns] for k, v in res.items()}, unknown
 
     def _calibrate(self, rows: NDArray[np.int64], raw: NDArray[np.int64], saturated: NDArray[np.bool_],

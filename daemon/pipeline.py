@@ -33,13 +33,14 @@ from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
-from cellbridge.daemon.clock import BridgeClock, SkinClock, rows_to_host
+from cellbridge.daemon.clock import BridgeClock, rows_to_host
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.contacts import ContactJob, ContactSpec
 from cellbridge.daemon.surface import contact_fields, skin_report
 from cellbridge.daemon.elements import default_params
-from cellbridge.daemon.frames import SkinFrame, SkinFrames
+from cellbridge.daemon.domains import TimeDomains
+from cellbridge.daemon.frames import SkinFrame
 from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import BridgeHealth, LinkHealth, link_report
 from cellbridge.daemon.layout import LayoutStages, layout_dict, skin_settings
@@ -115,11 +116,11 @@ class Pipeline:
         self._k = np.ones(0x10000)
         self._hz = np.full(0x10000, float(self.chip.clock_hz))
         self.clocks: dict[int, BridgeClock] = {}
-        # Mesh time -> host time, one map for the whole skin, taught by the gateways' own
-        # samples and readout records (docs/time.md)
-        self.skin_clock = SkinClock(self.chip.clock_hz)
+        # Per time root (docs/time.md): mesh time -> host time, taught by the gateways' own
+        # samples and readout records, and the skin frames of the records
         f = config.frames
-        self.frames = SkinFrames(f.margin, config.health.bridge_timeout, f.max_pending)
+        self.times = TimeDomains(self.chip.clock_hz, f.margin, config.health.bridge_timeout, f.max_pending)
+        self._link_root: dict[str, int] = {}  # link -> the root of its newest record (DATA samples' mesh time)
         self.unknown_element_frames = 0  # placed elements unknown in the scheduled frames given out
         self._baud = {ln.name: ln.baudrate for ln in config.links}  # s a record takes on its line: bytes x 10 / baud
         # bridges the readout records spoke for (a sample or unchanged): when, on which link, how
@@ -221,7 +222,7 @@ class Pipeline:
             self._samples(link, dec.samples, now, out, dec.gateways)
         if dec.readouts:
             self._readouts(link, dec.readouts, now)
-            self._frames_out(self.frames.take(now), now, out)
+            self._frames_out(self.times.take(now), now, out)
         return self._drain(out)
 
     def advance(self, now: float | None = None) -> list[Message]:
@@ -231,7 +232,7 @@ class Pipeline:
         what it returns."""
         now = self.last_feed if now is None else now
         out: list[Message] = []
-        self._frames_out(self.frames.take(now), now, out)
+        self._frames_out(self.times.take(now), now, out)
         return self._drain(out)
 
     def _routing(self, link: str, dec: Decoded, now: float, out: list[Message]) -> None:
@@ -272,7 +273,8 @@ class Pipeline:
                 if gate:
                     self.gate[origin] = float(gate)
 
-    def _sync_clocks(self, s: SampleColumns, now: float, gateways: set[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _sync_clocks(self, s: SampleColumns, now: float, gateways: set[int],
+                     root: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Feed the clocks; (host time, bridge time, global cycle or -1) of every sample.
 
         A sample on mesh time (no ``NO_MESH_TIME`` flag, a rate) started its C1 gate at
@@ -292,7 +294,7 @@ class Pipeline:
             own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
             if own.size:
                 newest = own[np.argmax(g[own])]
-                self._teach(int(s.origin[newest]), int(g[newest]), now)
+                self._teach(root, int(s.origin[newest]), int(g[newest]), now)
         origin_list = s.origin.tolist()
         newest = {o: i for i, o in enumerate(origin_list)}  # each bridge's newest sample
         counts = Counter(origin_list)
@@ -309,12 +311,12 @@ class Pipeline:
         o = s.origin
         hz = self._hz[o]
         t_sample = rows_to_host(s.cycle, self._ref[o], self._t_ref[o], self._k[o], hz, self._bits)
-        if on_time.any() and self.skin_clock.synced:
+        frame_t = self.times.frame_times(root, np.where(on_time, g, -1), now) if on_time.any() else None
+        if frame_t is not None:
             # A frame the map puts after the sample's own arrival was never taken: its index is
             # wrong (a frame corrupted past the CRC, a bridge on some other time); so is one
             # behind a jump back of the skin's time not confirmed yet. Believed, it would move
             # the skin frame that far and stop every estimate until then.
-            frame_t = self.skin_clock.frame_times(np.where(on_time, g, -1), now)
             wrong = on_time & np.isnan(frame_t)
             if wrong.any():
                 for b_id, cnt in Counter(o[wrong].tolist()).items():
@@ -324,9 +326,9 @@ class Pipeline:
             t_sample = np.where(on_time, frame_t, t_sample)
         return t_sample, s.cycle.astype(np.float64) / hz, g
 
-    def _teach(self, gateway: int, g: int, now: float) -> None:
-        """A gateway's own point of mesh time (global cycle ``g``) reached the host at ``now``."""
-        if self.skin_clock.teach(gateway, g, now):
+    def _teach(self, root: int, gateway: int, g: int, now: float) -> None:
+        """A gateway's own point of ``root``'s mesh time (global cycle ``g``) reached the host at ``now``."""
+        if self.times.teach(root, gateway, g, now):
             self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
 
     def _cycle_of(self, index: int, rate: int) -> int:
@@ -344,13 +346,11 @@ class Pipeline:
         part_s = PART_BYTES * 10 / self._baud.get(link, 1_000_000)  # s a part takes on the line, at most
         via = self._link_index.setdefault(link, len(self._link_index))
         for gw, rec in records:
-            g = self._cycle_of(rec.index, rec.rate)
-            t = math.nan  # (a nonsense index: the record is refused, and counted)
-            if g >= 0:
-                if rec.part == 0:
-                    self._teach(gw, g, now)
-                t = self.skin_clock.frame_time(g, now)
-            self.frames.add(gw, rec, now, t, rec.parts * part_s)
+            g = self._cycle_of(rec.index, rec.rate)  # (-1, a nonsense index: the record is refused, and counted)
+            self._link_root[link] = rec.root
+            t, jumped = self.times.record(gw, rec, rec.root, g, now, rec.parts * part_s)
+            if jumped:
+                self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
             if math.isfinite(t):
                 sampled = np.array([s[0] for s in rec.samples], dtype=np.int64)
                 said = np.concatenate([sampled, np.array(rec.unchanged, dtype=np.int64)])
@@ -398,8 +398,10 @@ class Pipeline:
                     self.bridges[b_id].unmapped_samples += cnt
             caps, sat = self.frontend.capacitance(f.mode, f.oversampling, raw, f.flags, self.gate[f.bridges])
             unchanged = self.skin.rows_of(f.unchanged, np.zeros(f.unchanged.size, dtype=np.int64))
+            missing = self.skin.rows_of(f.missing, np.zeros(f.missing.size, dtype=np.int64))
             res, unknown = self.skin.frame(f.t, g, rows[placed], raw[placed], sat[placed], caps[placed],
-                                           unchanged[unchanged >= 0], now, inverse=self._want("element"))
+                                           unchanged[unchanged >= 0], now, inverse=self._want("element"),
+                                           root=f.root, missing=missing[missing >= 0])
             self.unknown_element_frames += unknown
             if self._want("element") and placed.any():
                 n = int(placed.sum())
@@ -414,7 +416,7 @@ class Pipeline:
                 }))
 
     def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message], gateways: set[int]) -> None:
-        t_sample, t_bridge, g = self._sync_clocks(s, now, gateways)
+        t_sample, t_bridge, g = self._sync_clocks(s, now, gateways, self._link_root.get(link, 0))
         o = s.origin
         raw = np.stack([s.c1, s.c2], axis=1)
         caps_all, sat_all = self.frontend.capacitance(s.mode, s.oversampling, raw, s.flags, self.gate[o])
@@ -468,8 +470,8 @@ class Pipeline:
         if not self.config.contact.enabled or not self._want("contact"):
             return None
         now = self.last_feed if now is None else now
-        self._frames_out(self.frames.take(now), now, self._queue)
-        snap = self.skin.snapshot(now, self.config.health.bridge_timeout, self.frames.active(now))
+        self._frames_out(self.times.take(now), now, self._queue)
+        snap = self.skin.snapshot(now, self.config.health.bridge_timeout, self.times.active(now))
         if snap is None or self.skin.contact_spec is None:
             return None
         return ContactJob(self._owner, self._surface_spec(self.skin.contact_spec), snap, self._next_contact_id,
@@ -485,8 +487,8 @@ class Pipeline:
         idle event-based skin's frames say "unchanged" a hundred times a second)."""
         if not self.config.contact.enabled or not self._want("contact"):
             return math.inf
-        scheduled = self.frames.active(now)
-        return max(min(self.skin.snapshot_due(now, idle, scheduled), self.frames.due()), now)
+        scheduled = self.times.active(now)
+        return max(min(self.skin.snapshot_due(now, idle, scheduled), self.times.due()), now)
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave
@@ -591,7 +593,7 @@ class Pipeline:
         for bid in gone:
             del self.bridges[bid]
             self.clocks.pop(bid, None)
-            self.frames.forget(bid)
+            self.times.forget(bid)
             self.topology.nodes.pop(bid, None)
             self.ingress.reassembly_drops.pop(bid, None)
             self._awake.discard(bid)
@@ -649,7 +651,7 @@ class Pipeline:
             "duplicates": self.ingress.dedupe.duplicates,
             "dedupe": self.ingress.dedupe.counters(),
             "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
-            "frames": {**self.frames.counters(now), "unknown_element_frames": self.unknown_element_frames},
+            "frames": {**self.times.counters(now), "unknown_element_frames": self.unknown_element_frames},
         }
 
     def _wall_bridge(self, report: dict[str, Any], reassembly_drops: int) -> dict[str, Any]:
@@ -724,7 +726,7 @@ class Pipeline:
         only when calibration or inverse settings changed, and then only for every element;
         a new layout or new contact settings keep those of elements that kept their place."""
         old, self.config = self.config, config
-        self.frames.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
+        self.times.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
         sk = self.skin
         same_layout = (layout is None and not sk.from_file) or (
             layout is not None and sk.from_file and sk.layout is not None and layout_dict(layout) == layout_dict(sk.layout))

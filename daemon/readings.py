@@ -64,6 +64,9 @@ class ElementReadings:
         self.ref_t = np.full(n, np.nan)  # its frame's host time
         self.ref_cycle = np.zeros(n, dtype=np.uint64)
         self.last_touched = np.zeros(n, dtype=bool)  # each element's touch flag in its newest reading
+        # the time root whose frames last accounted for each element (-1: none yet): a frame
+        # speaks for its own root's elements only (parts no cell joins keep their own mesh time)
+        self.domain = np.full(n, -1, dtype=np.int64)
         self._frame: FrameReading | None = None  # the newest scheduled frame
         self._news = False  # that frame has a sample, or its known elements changed
         # unscheduled: a ring of the newest readings
@@ -83,7 +86,7 @@ class ElementReadings:
         self._silent_told = False
         self._all = np.arange(n)
 
-    _ROWS = ("caps", "ref", "ref_t", "ref_cycle", "last_touched", "period", "count", "arrival")
+    _ROWS = ("caps", "ref", "ref_t", "ref_cycle", "last_touched", "domain", "period", "count", "arrival")
     _RINGS = ("t", "dc", "touched", "cycle", "held", "on_time")
 
     def adopt(self, old: ElementReadings, rows: NDArray[np.int64], old_rows: NDArray[np.int64]) -> None:
@@ -107,15 +110,22 @@ class ElementReadings:
         return ok, self.caps[ok]
 
     def scheduled(self, t: float, cycle: int, sampled: NDArray[np.int64], caps: FloatArray,
-                  known: NDArray[np.int64], dc: FloatArray, touched: NDArray[np.bool_]) -> int:
-        """A scheduled frame at host time ``t`` (global cycle ``cycle``): ``sampled`` rows
-        with their new capacitances ``caps``; ``known`` rows (sampled, then unchanged with a
-        reference) with their ΔC and touch flags. Every other element is unknown in it, and
-        its reference is gone until its next sample. Returns how many the frame leaves
-        unknown (an element without a baseline yet is unknown too, but not counted here)."""
+                  known: NDArray[np.int64], dc: FloatArray, touched: NDArray[np.bool_],
+                  root: int = 0, accounted: NDArray[np.int64] | None = None) -> int:
+        """A scheduled frame at host time ``t`` (global cycle ``cycle``) of time root ``root``:
+        ``sampled`` rows with their new capacitances ``caps``; ``known`` rows (sampled, then
+        unchanged with a reference) with their ΔC and touch flags; ``accounted``: every row
+        the frame's records named (sampled, unchanged or missing; default ``known``). The
+        frame speaks for the elements of its root (those its root's frames named last, and
+        those no frame named yet): every one of them not known is unknown in it, and its
+        reference is gone until its next sample; the elements of other roots keep what
+        their own newest frame said. Returns how many the frame leaves unknown (an element
+        without a baseline yet is unknown too, but not counted here)."""
+        self.domain[known if accounted is None else accounted] = root
+        scope = (self.domain == root) | (self.domain < 0)
         ok = np.zeros(self.n, dtype=bool)
         ok[known] = True
-        self.ref &= ok
+        self.ref &= ok | ~scope
         self.caps[sampled] = caps
         self.ref[sampled] = True
         self.ref_t[sampled] = t
@@ -127,11 +137,19 @@ class ElementReadings:
         tch[known] = touched
         self.last_touched[known] = touched
         t_sample = np.where(ok, self.ref_t, np.nan)
+        cyc = np.where(ok, self.ref_cycle, np.uint64(0))
+        unknown = ~ok
         prev = self._frame
-        self._news = sampled.size > 0 or prev is None or not np.array_equal(prev.unknown, ~ok)
-        self._frame = FrameReading(t, np.where(ok[:, None], full, np.nan), tch & ok, t_sample,
-                                   np.where(ok, self.ref_cycle, np.uint64(0)), ~ok)
-        return int(self.n - known.shape[0])
+        if not scope.all():  # another root's elements: as their own newest frame said
+            other = ~scope
+            if prev is None:
+                unknown[other] = True
+            else:
+                full[other], tch[other], t_sample[other] = prev.dc[other], prev.touched[other], prev.t_sample[other]
+                cyc[other], unknown[other] = prev.cycle[other], prev.unknown[other]
+        self._news = sampled.size > 0 or prev is None or not np.array_equal(prev.unknown, unknown)
+        self._frame = FrameReading(t, full, tch & ~unknown, t_sample, cyc, unknown)
+        return int(np.count_nonzero(scope) - np.count_nonzero(scope[known]))
 
     # -- unscheduled (DATA) ----------------------------------------------------------------
     def record(self, rows: NDArray[np.int64], t: FloatArray, cycle: NDArray[np.uint64], dc: FloatArray,

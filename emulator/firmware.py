@@ -18,6 +18,8 @@ bytes and the element's capacitance (``sense(tick) -> (C1, C2)`` in farads).
 
 from __future__ import annotations
 
+import dataclasses
+
 import random
 from bisect import insort
 from collections import Counter
@@ -653,7 +655,10 @@ class Firmware:
             self._own(data)
         if self.readout is not None:
             self._readout_at = -1
+            root = self.clock.root or 0  # whose mesh time the records' index counts
             for record in self.readout.take(tick):
+                if record.root != root:
+                    record = dataclasses.replace(record, root=root)
                 if self.config.gateway:
                     self._own(record)
                 else:

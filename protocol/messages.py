@@ -563,15 +563,23 @@ class Readout:
     span_us: int = 0  #: readout length of the schedule (u32, microseconds)
     part: int = 0  #: this frame's number among the record's parts (u8)
     parts: int = 1  #: frames the record is made of (u8, >= 1)
+    #: the time root whose mesh time ``index`` counts (u16; 0: not said). Skins not joined
+    #: by any cell (two limbs, each with its gateways) keep two unrelated mesh times.
+    root: int = 0
 
     def to_wire(self) -> list[Any]:
         return [self.index, self.rate, int(self.mode), self.oversampling,
                 [list(s) for s in self.samples], list(self.unchanged), list(self.missing),
-                self.span_us, self.part, self.parts]
+                self.span_us, self.part, self.parts, self.root]
 
     @classmethod
     def from_wire(cls, obj: Any) -> Readout:
-        k, rate, mode, over, raw, unchanged, missing, span, part, parts = _array(obj, 10, "READOUT")
+        root = 0
+        if type(obj) is list and len(obj) == 10:  # a record written before the root was carried
+            k, rate, mode, over, raw, unchanged, missing, span, part, parts = obj
+        else:
+            k, rate, mode, over, raw, unchanged, missing, span, part, parts, root = _array(obj, 11, "READOUT")
+            _uint(root, U16, "READOUT", "root")
         _uint(k, U64, "READOUT", "index")
         if type(rate) is not int or not 1 <= rate <= U16:
             raise _bad("READOUT", f"rate must be an integer in 1..{U16}, got {rate!r}")
@@ -616,7 +624,7 @@ class Readout:
                 last = b
             seen.update(ids)
             lists.append(tuple(ids))
-        return cls(k, rate, _MODES[mode], over, tuple(samples), lists[0], lists[1], span, part, parts)
+        return cls(k, rate, _MODES[mode], over, tuple(samples), lists[0], lists[1], span, part, parts, root)
 
     def bridges(self) -> int:
         """How many elements the record accounts for."""

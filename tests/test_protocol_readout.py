@@ -10,6 +10,7 @@ dropped with cause ``payload``. Frames older than version 4 had no READOUT: ``ty
 from __future__ import annotations
 
 import copy
+import dataclasses
 from typing import Any
 
 import msgpack
@@ -216,7 +217,7 @@ def test_no_mesh_time_and_held_are_refused_by_name() -> None:
 
 
 GOOD = Readout(4521, 100, Mode.COUNTER, 1, (ReadoutSample(2, 19600, 15800, 1), ReadoutSample(130, 19000, 15000)),
-               (3, 300), (4,), 2840, 0, 1).to_wire()
+               (3, 300), (4,), 2840, 0, 1, 7).to_wire()
 
 
 def _replaced(path: tuple[int, ...], value: Any) -> list[Any]:
@@ -256,10 +257,19 @@ def test_a_malformed_readout_is_refused(obj: Any, why: str) -> None:
     _refused(obj)
 
 
+def test_a_readout_without_its_root_reads_as_root_0_and_a_root_past_u16_is_refused() -> None:
+    """The 10-field form (records written before the root was carried) still reads."""
+    assert Readout.from_wire(GOOD).root == 7
+    assert Readout.from_wire(GOOD[:10]) == dataclasses.replace(Readout.from_wire(GOOD), root=0)
+    for root in (-1, 0x10000, 1.0, None):
+        with pytest.raises(ProtocolError):
+            Readout.from_wire(GOOD[:10] + [root])
+
+
 def test_a_readout_with_trailing_bytes_or_a_wider_form_is_refused() -> None:
     body = HEAD + msgpack.packb(GOOD)
     assert decode(sealed(body)).payload == Readout.from_wire(GOOD)
-    for bad in (body + b"\x00", body.replace(b"\x9a", b"\xdc\x00\x0a", 1)):
+    for bad in (body + b"\x00", body.replace(b"\x9b", b"\xdc\x00\x0b", 1), HEAD + msgpack.packb(GOOD + [0])):
         with pytest.raises(ProtocolError) as err:
             decode(sealed(bad))
         assert err.value.cause == "payload"
@@ -327,7 +337,7 @@ def test_what_one_frame_holds() -> None:
     def periodic(n: int) -> Readout:
         return Readout(2**20, 100, Mode.COUNTER, 1, tuple(ReadoutSample(b, 19600, 15800) for b in range(1, n + 1)),
                        span_us=3000)
-    assert _frame_len(periodic(16)) == 179
+    assert _frame_len(periodic(16)) == 180
     assert _frame_len(periodic(24)) <= MAX_FRAME
     with pytest.raises(ProtocolError):
         _frame_len(periodic(25))

@@ -1,0 +1,103 @@
+"""Time domains (daemon/domains.py): parts of a skin that no cell joins keep their own
+mesh time and their own frames; a frame of one never speaks for the other's elements."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cellbridge.daemon.domains import TimeDomains
+from cellbridge.daemon.readings import ElementReadings
+from cellbridge.protocol import Mode, Readout, ReadoutSample
+
+HZ = 50_000_000
+RATE = 100
+SPAN_US = 4000
+
+
+def record(k: int, bridges: tuple[int, ...], root: int) -> Readout:
+    return Readout(k, RATE, Mode.COUNTER, 1, tuple(ReadoutSample(b, 100 + b, 200, 0) for b in bridges), (), (),
+                   SPAN_US, 0, 1, root)
+
+
+def feed(td: TimeDomains, gateway: int, root: int, k0: int, frames: range, bridges: tuple[int, ...],
+         t0: float = 100.0) -> None:
+    """Records of frames ``k0 + i`` (i in ``frames``) of ``gateway`` on ``root``'s mesh time,
+    each arriving its readout after its gate start (host time ``t0 + i / RATE``)."""
+    for i in frames:
+        k = k0 + i
+        td.record(gateway, record(k, bridges, root), root, k * HZ // RATE, t0 + i / RATE + SPAN_US * 1e-6 + 0.001,
+                  0.001)
+
+
+def test_two_roots_with_unrelated_indices_give_both_their_frames() -> None:
+    """Two limbs: root 1 counts from frame 5 000, root 22 from frame 9 000 000 (their roots
+    powered on at unrelated moments). One map for both refused the second's records."""
+    td = TimeDomains(HZ, margin=0.01)
+    got = []
+    for i in range(50):
+        feed(td, 1, 1, 5_000, range(i, i + 1), (1, 2, 3))
+        feed(td, 22, 22, 9_000_000, range(i, i + 1), (22, 23))
+        got += td.take(100.0 + i / RATE + 0.006)
+    c = td.counters(101.0)
+    assert c["rejected_records"] == 0 and c["late_records"] == 0, c
+    assert c["time_roots"] == [1, 22] and c["gateways_active"] == 2
+    by_root = {r: [f for f in got if f.root == r] for r in (1, 22)}
+    assert [f.index for f in by_root[1]] == list(range(5_000, 5_050))
+    assert [f.index for f in by_root[22]] == list(range(9_000_000, 9_000_050))
+    assert all(f.complete and not f.by_deadline for f in got)  # neither waits for the other's gateway
+    # one host time base: frame i of both limbs is at 100 + i / RATE, within the map's error
+    assert abs(by_root[1][-1].t - by_root[22][-1].t) < 0.002
+    assert [f.t for f in got] == sorted(f.t for f in got)
+
+
+def test_a_gateway_that_moves_to_another_root_no_longer_holds_the_old_ones_frames() -> None:
+    """Gateway 16 followed root 1 with gateway 1, then (a failover) root 16. Frames of root 1
+    stop waiting for it: gateway 1's record makes them complete at once, not at the deadline."""
+    td = TimeDomains(HZ, margin=0.05)
+    feed(td, 1, 1, 1_000, range(0, 20), (1, 2))
+    feed(td, 16, 1, 1_000, range(0, 20), (15, 16))
+    td.take(101.0)
+    feed(td, 16, 16, 777_000, range(20, 21), (15, 16))
+    feed(td, 1, 1, 1_000, range(20, 21), (1, 2))
+    (f1, f16) = sorted(td.take(100.0 + 20 / RATE + 0.006), key=lambda f: f.root)
+    assert (f1.root, f1.index, f1.complete) == (1, 1_020, True)
+    assert f16.root == 16 and f16.complete
+    assert td.counters(101.0)["root_moves"] == 1 and td.root_of(16) == 16
+
+
+def test_roots_beyond_the_bound_are_refused_and_counted_and_unfollowed_ones_make_room() -> None:
+    td = TimeDomains(HZ, max_domains=2)
+    feed(td, 1, 1, 1_000, range(0, 5), (1,))
+    feed(td, 2, 2, 2_000, range(0, 5), (2,))
+    feed(td, 3, 3, 3_000, range(0, 5), (3,))  # a third root: no room (both followed, active)
+    c = td.counters(100.1)
+    assert c["time_roots"] == [1, 2] and c["rejected_records"] == 5
+    feed(td, 2, 1, 1_000, range(5, 6), (2,))  # gateway 2 moves to root 1: root 2 is followed by nobody
+    feed(td, 3, 3, 3_000, range(400, 401), (3,), t0=100.0)  # 4 s later: root 2 inactive, pruned
+    assert td.counters(104.1)["time_roots"] == [1, 3]
+
+
+def test_a_frame_of_one_root_leaves_the_other_roots_elements_as_their_frame_said() -> None:
+    """Elements 0-1 on root 1, 2-3 on root 22. Root 22's frame (2 sampled, 3 missing) must not
+    make 0 and 1 unknown, nor erase their readings; root 1's next frame leaves 2 and 3 as
+    root 22's frame said (2 known, 3 unknown)."""
+    r = ElementReadings(4, 8)
+    dc = lambda *v: np.array([[x, x] for x in v], dtype=np.float64)  # noqa: E731
+    caps = dc(1.0, 1.0)
+    r.scheduled(10.0, 1, np.array([0, 1]), caps, np.array([0, 1]), dc(0.5, 0.7), np.array([True, False]), 1,
+                np.array([0, 1]))
+    unknown = r.scheduled(10.001, 2, np.array([2]), caps[:1], np.array([2]), dc(0.9), np.array([True]), 22,
+                          np.array([2, 3]))
+    assert unknown == 1  # element 3, of root 22's two
+    f = r.take(10.002, 2.0, 0.1, True)
+    assert f is not None
+    assert f.unknown.tolist() == [False, False, False, True]
+    assert f.dc[:, 0].tolist()[:3] == [0.5, 0.7, 0.9] and math.isnan(f.dc[3, 0])
+    assert f.touched.tolist() == [True, False, True, False]
+    r.scheduled(10.01, 3, np.array([0]), caps[:1], np.array([0]), dc(0.6), np.array([True]), 1, np.array([0, 1]))
+    f = r.take(10.011, 2.0, 0.1, True)
+    assert f is not None
+    assert f.unknown.tolist() == [False, True, False, True]  # 1: missing in root 1's frame; 2, 3 as root 22 said
+    assert f.dc[2, 0] == 0.9 and f.t_sample[2] == 10.001

@@ -69,10 +69,12 @@ def stop_daemon_mid_press(demo: subprocess.Popen, pause: float, log: list[str]) 
         time.sleep(0.05)
 
 
-def one_run(x: float, y: float, pause: float = 0.0) -> dict:
+def one_run(x: float, y: float, pause: float = 0.0, defaults: bool = False) -> dict:
     """One ``demo --check --json`` run: its JSON result, plus ``ok`` and ``error`` keys;
-    with ``pause``, its daemon is stopped that long mid-press."""
-    demo = subprocess.Popen([CLI, "demo", "--check", "--json", "--x", str(x), "--y", str(y)],
+    with ``pause``, its daemon is stopped that long mid-press; ``defaults``: the skin and
+    the daemon with their own defaults (``demo --defaults``)."""
+    demo = subprocess.Popen([CLI, "demo", "--check", "--json", "--x", str(x), "--y", str(y),
+                             *(["--defaults"] if defaults else [])],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     log: list[str] = []
     watcher = threading.Thread(target=stop_daemon_mid_press, args=(demo, pause, log), daemon=True)
@@ -110,6 +112,8 @@ def main() -> None:
                     help="run a second emulated 4x4 skin (mesh up) beside the demo's")
     ap.add_argument("--stop-daemon", type=float, default=0.0, metavar="SECONDS",
                     help="stop the daemon (SIGSTOP) this long 1 s into each press, then let it read its backlog")
+    ap.add_argument("--defaults", action="store_true",
+                    help="the skin and the daemon with their own defaults (periodic 100 Hz; demo --defaults)")
     ap.add_argument("--cases", default="seam,corner", help="comma-separated: seam, corner")
     args = ap.parse_args()
     # SIGTERM (a kill, a timeout) unwinds like Ctrl-C, so every process started is stopped
@@ -130,7 +134,7 @@ def main() -> None:
             results = []
             for i in range(args.runs):
                 t0 = time.monotonic()
-                res = one_run(x, y, args.stop_daemon)
+                res = one_run(x, y, args.stop_daemon, args.defaults)
                 results.append(res)
                 print(f"  {name} {i + 1}/{args.runs}: {'ok ' if res['ok'] else 'BAD'} ids {res.get('ids')} "
                       f"pos {res.get('position_error_mm', float('nan')):.3f} mm "
@@ -146,7 +150,8 @@ def main() -> None:
                          sum(r.get("reports", 0) for r in results)])
         load = (f"{len(burners) - args.second_skin} burners" if args.burn else "no burners") + (
             ", a second 4x4 skin" if args.second_skin else "") + (
-            f", daemon stopped {args.stop_daemon:g} s mid-press" if args.stop_daemon else "")
+            f", daemon stopped {args.stop_daemon:g} s mid-press" if args.stop_daemon else "") + (
+            ", skin and daemon defaults" if args.defaults else "")
         table(f"demo --check, {load}",
               ["case", "runs", "passed", "worst pos mm", "worst force %", "runs >1 id", "runs no contact",
                "untrue reports", "reports w/ unknown", "reports"], rows)

@@ -52,6 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cols", type=int, default=4, help="skin columns (default 4)")
     parser.add_argument("--check", action="store_true",
                         help="exit 1 unless the contact is within 1 mm and 5 %% of the press")
+    parser.add_argument("--defaults", action="store_true",
+                        help="run the skin and the daemon with their own defaults, as by hand ('mesh up' "
+                             "periodic at 100 Hz, the daemon's calibration from 50 readings) instead of "
+                             "the demo's event-based skin and 10-reading calibration")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     parser.add_argument("--keep", action="store_true", help="keep the working folder (mesh, config, logs)")
 
@@ -290,7 +294,8 @@ def run(args: argparse.Namespace) -> int:
         say(f"starting an emulated {args.rows}x{args.cols} skin: {n} bridge processes, medium and world ...")
         # event-based reporting, as a large skin runs: an idle element sends a heartbeat, a
         # pressed one every sample; periodic 100 Hz from 16 bridges crowds the gateway's cell
-        with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port), "--reporting", "event:40"),
+        reporting = () if args.defaults else ("--reporting", "event:40")
+        with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port), *reporting),
                     stdout=subprocess.PIPE, stderr=open(work / "mesh.log", "w"), text=True) as mesh:
             device = gateway_line(mesh)[2]
             say(f"gateway on {device}; starting the daemon on it (pub {pub}) ...")
@@ -298,8 +303,9 @@ def run(args: argparse.Namespace) -> int:
             # baselines from 10 quiet readings (the default 50 take 50 s at the skin's 1 s
             # heartbeat; the emulated counters' noise is about one count)
             config.write_text(f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n'
-                              f'[daemon]\nlog_format = "text"\n\n[calibration]\nn_baseline = 10\n\n'
-                              f'[[link]]\nname = "gateway"\nurl = "{device}"\n')
+                              f'[daemon]\nlog_format = "text"\n\n'
+                              + ("" if args.defaults else "[calibration]\nn_baseline = 10\n\n")
+                              + f'[[link]]\nname = "gateway"\nurl = "{device}"\n')
             ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
             sub = ctx.socket(zmq.SUB)
             sub.setsockopt(zmq.LINGER, 0)

@@ -196,9 +196,10 @@ def _zstd_stream(total: int, piece: bytes, content_size: bool, prefix: bytes = b
 BOMB_KINDS = 10
 
 
-def bomb(kind: int) -> bytes:
-    """A whole file built around hostile chunks; ``kind`` picks which (0 to BOMB_KINDS - 1)."""
-    ch = channel_record(1, "element")
+def bomb(kind: int, topic: str = "element") -> bytes:
+    """A whole file built around hostile chunks; ``kind`` picks which (0 to BOMB_KINDS - 1);
+    its one channel is ``topic``."""
+    ch = channel_record(1, topic)
     kind %= BOMB_KINDS
     rng = random.Random(kind)
     if kind == 0:  # one zstd chunk declaring a 256 MB message, sizes honest (an 8 kB file)

@@ -23,7 +23,9 @@ RULES: dict[str, tuple[set[str], set[str]]] = {
     "emulator": ({"emulator", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "setproctitle", "mujoco"}),
     # mcap: the daemon takes a recording's serial channel as a link (``replay:FILE.mcap``);
     # yourdfpy: a skin description's link frames from the robot's URDF (the robot extra)
-    "daemon": ({"daemon", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "serial", "mcap", "yourdfpy"}),
+    # zstandard, lz4: an MCAP recording's chunks, decompressed within bounds (daemon/mcap_chunks.py)
+    "daemon": ({"daemon", "protocol", "tactile"}, {"numpy", "msgpack", "zmq", "serial", "mcap", "yourdfpy",
+                                                  "zstandard", "lz4"}),
 }
 #: The modules of the top package any layer may read: leaves without imports (version, root error).
 SHARED = {"_version", "errors"}

@@ -3,6 +3,7 @@ hostile files for ``info`` and ``replay`` (bounded memory, one-line errors, what
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import os
@@ -22,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import recording_mutations as rm
+from cellbridge.daemon.replay_source import read_records
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import ReadResult, RecordingWriter, read_messages, read_payloads
 from cellbridge.recording.recorder import Recorder
@@ -254,6 +256,46 @@ def test_reading_a_decompression_bomb_takes_no_more_memory_than_the_bounds(tmp_p
         assert not got and result.damaged == 1 and not result.ok, kind
         # the file read (once or twice over) and a few MB: never what it declares or expands to
         assert peak < 3 * path.stat().st_size + (8 << 20), f"bomb {kind}: {peak / 1e6:.0f} MB"
+
+
+def test_the_daemons_replay_link_refuses_every_bomb_by_name_within_bounded_memory(tmp_path: Path) -> None:
+    """``replay:FILE.mcap`` read recordings with the MCAP library's own reader, which
+    decompresses what a chunk declares: 256 MB for an 8 kB file. Every bomb, on the serial
+    channel the link reads, is a ValueError naming the file, and memory stays bounded."""
+    path = tmp_path / "b.mcap"
+    for kind in range(rm.BOMB_KINDS):
+        path.write_bytes(rm.bomb(kind, topic="serial"))
+        tracemalloc.start()
+        try:
+            with pytest.raises(ValueError, match=str(path)):
+                list(read_records(path, "gw"))
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 3 * path.stat().st_size + (24 << 20), f"bomb {kind}: {peak / 1e6:.0f} MB"
+
+
+def test_the_daemons_replay_link_reads_a_recording_cut_short_to_its_last_whole_chunk(tmp_path: Path) -> None:
+    path = tmp_path / "s.mcap"
+    w = RecordingWriter(path, chunk_size=200)
+    for i in range(50):
+        m = {"link": "gw", "t_host": 100.0 + i, "t_read": 10.0 + i, "data": base64.b64encode(bytes([i])).decode()}
+        w.add("serial", json.dumps(m).encode(), int((100 + i) * 1e9), int((100 + i) * 1e9), i)
+    w.finish()
+    whole = [t for t, _ in read_records(path, "gw")]
+    assert whole == [10.0 + i for i in range(50)]
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:len(data) // 2])
+    got = [t for t, _ in read_records(cut, "gw")]
+    assert 0 < len(got) < 50 and got == whole[:len(got)]
+    damaged = bytearray(data)
+    pos = data.index(b"\x28\xb5\x2f\xfd", len(data) // 3)  # a zstd frame's magic, a third in
+    damaged[pos:pos + 8] = b"\xff" * 8
+    bad = tmp_path / "damaged.mcap"
+    bad.write_bytes(bytes(damaged))
+    with pytest.raises(ValueError, match="damaged chunk"):
+        list(read_records(bad, "gw"))
 
 
 # -- item 8: damaged recordings ------------------------------------------------------------------

@@ -33,8 +33,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import lz4.frame
-import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
@@ -42,19 +40,19 @@ from mcap.records import Channel, ChunkIndex, Metadata
 from mcap.writer import CompressionType, Writer
 
 from cellbridge._version import __version__
+from cellbridge.daemon.mcap_chunks import (
+    MAX_CHUNK_BYTES,
+    MAX_RATIO,
+    MAX_RECORD_BYTES,
+    RATIO_FLOOR,
+    ChunkDamage,
+    decompress,
+)
 from cellbridge.recording import schemas
 
 MAGIC = b"\x89MCAP0\r\n"
-#: Largest chunk (its records, uncompressed) a reader decompresses: a message of up to
-#: codec.MAX_MESSAGE_BYTES on top of a full chunk of up to MAX_CHUNK_SIZE.
-MAX_CHUNK_BYTES = 20 << 20
-#: Most a chunk may expand (uncompressed : stored, beyond RATIO_FLOOR bytes). The daemon's
-#: JSON compresses about 5:1; a decompression bomb (a few kB that expand to many MB of
-#: tiny messages) would otherwise cost time out of all proportion to the file's size.
-MAX_RATIO = 1000
-RATIO_FLOOR = 64 << 10
-#: Largest record a reader reads into memory (a chunk as stored: compressed, or not).
-MAX_RECORD_BYTES = MAX_CHUNK_BYTES + (1 << 20)
+# The limits on chunks and records, shared with the daemon's replay link:
+# MAX_CHUNK_BYTES, MAX_RATIO, RATIO_FLOOR, MAX_RECORD_BYTES (daemon/mcap_chunks.py).
 #: Longest topic name read (the daemon's are a word); metadata records kept (larger ones
 #: and more are not kept: nothing reads them but a person).
 MAX_TOPIC = 200
@@ -252,19 +250,10 @@ def _parse(cls: Any, body: bytes) -> Any:
 
 def _decompress(compression: str, data: memoryview, size: int) -> bytes | memoryview:
     """The chunk's records, never more than ``size`` + 1 bytes whatever the frame claims."""
-    if compression == "":
-        return data
     try:
-        if compression == "zstd":
-            with zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True) as reader:
-                out = reader.read(size + 1)
-        elif compression == "lz4":
-            out = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
-        else:
-            raise _Damage(f"unknown compression {compression[:20]!r}")
-    except (zstandard.ZstdError, RuntimeError, ValueError, MemoryError) as exc:
-        raise _Damage(f"{compression} data unreadable ({str(exc)[:80] or type(exc).__name__})") from None
-    return out
+        return decompress(compression, data, size)
+    except ChunkDamage as exc:
+        raise _Damage(str(exc)) from None
 
 
 class _Index:

@@ -248,6 +248,7 @@ def make_skin_scene(model: SkinView, frames: dict[str, Any], stamp_ns: int) -> A
         if patch.link not in frames or not patch.ids:
             continue
         cubes = []
+        first = None
         for b in patch.ids:
             place = skin.elements[b]  # type: ignore[union-attr]  # skin is set when there are patches
             if place.position is None or place.normal is None:
@@ -257,16 +258,19 @@ def make_skin_scene(model: SkinView, frames: dict[str, Any], stamp_ns: int) -> A
             level = min(1.0, max(0.0, f / model.force_scale)) if math.isfinite(f) else math.nan
             r, g, bl = level_rgb(level)
             q = quat_from_to((0.0, 0.0, 1.0), place.normal)
+            pose = Pose(position=Vector3(x=place.position[0], y=place.position[1], z=place.position[2]),
+                        orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+            first = first or place
             cubes.append(CubePrimitive(
-                pose=Pose(position=Vector3(x=place.position[0], y=place.position[1], z=place.position[2]),
-                          orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+                pose=pose,
                 size=Vector3(x=side, y=side, z=ELEMENT_THICKNESS), color=Color(r=r / 255, g=g / 255, b=bl / 255, a=1.0)))
-        if not cubes:
+        if first is None or first.position is None or first.normal is None:
             continue
-        first = cubes[0].pose
+        at = [p + 0.02 * n for p, n in zip(first.position, first.normal)]  # its name just off its first element
         entities.append(SceneEntity(
             timestamp=ts, frame_id=patch.link, id=f"patch-{patch.name}", cubes=cubes,
-            texts=[TextPrimitive(pose=first, billboard=True, font_size=12.0, scale_invariant=True,
+            texts=[TextPrimitive(pose=Pose(position=Vector3(x=at[0], y=at[1], z=at[2]), orientation=Quaternion(w=1.0)),
+                                 billboard=True, font_size=12.0, scale_invariant=True,
                                  color=Color(r=0.8, g=0.85, b=0.9, a=1.0), text=patch.name)]))
     return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=ts, type=SceneEntityDeletionType.All)],
                        entities=entities)

@@ -299,8 +299,11 @@ def contact_line(c: Contact) -> str:
         return f"{name} ~{fmt(v * 1e3)}{s} mm (unresolved)"
     parts = [f"#{c.id}", axis("x", c.x, c.observable[0], c.sigma_x), axis("y", c.y, c.observable[1], c.sigma_y),
              f"F {format_force(c.force)}", f"⌀ {format_mm(c.diameter)}"]
-    if c.link is not None or c.patch is not None:
+    if c.link is not None or c.patch is not None:  # on a robot: where on it (x, y are on the unrolled skin)
         parts.insert(1, f"on {printable(c.link or '?', 20)}/{printable(c.patch or '?', 20)}")
+        if all(c.observable):
+            at = "(" + ", ".join(fmt(v * 1e3) for v in c.position) + ") mm" if c.position is not None else "?"
+            parts[2:4] = [f"at {at}"]
     if not c.valid:
         parts.append("(no pressure: position only)")
     if c.missed:

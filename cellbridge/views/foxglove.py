@@ -282,9 +282,9 @@ def contact_place(c: Contact, frames: dict[str, Any], robot: bool
     frame with its 3-D position and normal (None when any of them is unknown); on a flat
     skin, the frame ``skin`` at (x, y, 0), normal +z."""
     if robot:
-        if c.link not in frames or c.position is None or c.normal is None:
+        if c.link is None or c.link not in frames or c.position is None or c.normal is None:
             return None
-        return c.link, c.position, c.normal  # type: ignore[return-value]  # c.link is in frames
+        return c.link, c.position, c.normal
     if not (math.isfinite(c.x) and math.isfinite(c.y)):
         return None
     return FRAME_ID, (c.x, c.y, 0.0), (0.0, 0.0, 1.0)
@@ -316,7 +316,7 @@ def layout() -> Any:
     three_d = fl.ThreeDeePanel(title="skin", config=fl.ThreeDeeConfig(
         follow_tf=FRAME_ID,
         camera_state=fl.ThreeDeeCameraState(perspective=False, distance=0.4, phi=0.0),
-        transforms=fl.BaseRendererTransforms(show_label=True, axis_size=0.03),
+        scene=fl.BaseRendererSceneSettings(transforms=fl.BaseRendererTransforms(show_label=True, axis_size=0.03)),
         topics={
             TOPICS["grid"]: fl.BaseRendererGridTopicSettings(
                 visible=True, color_mode="gradient", color_field="force", gradient=("#14183cff", "#dc1e1eff"),

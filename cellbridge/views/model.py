@@ -6,6 +6,10 @@ it keeps the newest reading of every element, the tracked contacts, a summary of
 mesh's health, and this subscriber's own losses; :meth:`SkinView.frame` turns that into
 a :class:`Frame` (grid cells with a colour level and a label, contacts in grid units,
 status lines) that the terminal view, the web page and the Foxglove bridge all draw.
+With a skin on a robot (``topology``'s ``skin``, read by
+:mod:`cellbridge.views.robot_skin`) the frame is patch by patch: each patch's elements
+on a block of their own (:attr:`Frame.patches`), the contacts on their patch's block;
+the contacts keep their link, patch, position, normal and force vector for Foxglove.
 
 Fields are read defensively: a payload may carry keys this model does not know (the
 schema grows by adding), lack optional ones, or hold a wrong type; nothing here raises
@@ -642,8 +646,8 @@ class SkinView:
         if unplaced:  # below the patches: shift every block up
             per_row = max(cols, UNPLACED_PER_ROW)
             extra = (len(unplaced) + per_row - 1) // per_row + 1
-            for c in cells:
-                c.row += extra
+            for cell in cells:
+                cell.row += extra
             for blk in blocks:
                 blk.row0 += extra
             for i, b in enumerate(unplaced):

@@ -242,21 +242,28 @@ def test_picture_of_the_web_page_of_the_whole_robot_demo(tmp_path: Path) -> None
     from cellbridge.skin_run import run_daemon_on_skin
 
     sk = rp.skin()
-    presses = scenario(sk, 8, 0)
+    presses = scenario(sk, 24, 0)  # cellbridge robot run's default scenario
     seconds = max(p.end for p in presses) + 0.2
     world = TimelineWorld(mesh_from_skin(sk), simulate(sk, presses, seconds))
     newest: dict[str, Any] = {}
-    best: tuple[float, dict[str, Any]] | None = None
+    readings: dict[int, tuple[Any, ...]] = {}  # each element's newest reading (an element message is one line's)
+    columns = ("force", "area", "dc1", "dc2", "valid", "touched", "status", "t_sample")
+    best: tuple[tuple[float, ...], dict[str, Any]] | None = None
     for _, topic, m in run_daemon_on_skin(sk, world, seconds, seed=0):
-        if topic in ("topology", "element", "health"):
+        if topic in ("topology", "health"):
             newest[topic] = m
-        if topic == "contact" and "element" in newest and "topology" in newest:
-            score = sum(c["force"] for c in m["contacts"] if math.isfinite(c["force"] or math.nan)) \
-                + 10 * len({c["link"] for c in m["contacts"]})
+        elif topic == "element":
+            for k, b in enumerate(m["bridge"]):
+                readings[b] = tuple(m[c][k] for c in columns)
+        elif topic == "contact" and "topology" in newest and m["contacts"]:
+            score = (len(m["contacts"]), len({c["link"] for c in m["contacts"]}),
+                     sum(c["force"] for c in m["contacts"] if c["force"] is not None))
             if best is None or score > best[0]:
-                best = (score, {"topology": newest["topology"], "element": newest["element"], "contact": m,
+                ids = sorted(readings)
+                element = {"v": 2, "bridge": ids, **{c: [readings[b][i] for b in ids] for i, c in enumerate(columns)}}
+                best = (score, {"topology": newest["topology"], "element": element, "contact": m,
                                 "health": newest.get("health")})
-    assert best is not None and best[1]["contact"]["contacts"], "the run published no contact"
+    assert best is not None, "the run published no contact"
     shot = best[1]
 
     def answer(request: Any) -> Any:

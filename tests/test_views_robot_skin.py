@@ -213,3 +213,70 @@ def test_rigid_reads_back_the_rotation_and_translation_of_a_pose(q: Any, t: Any)
         assert all(math.isclose(a, b, abs_tol=1e-6) for a, b in zip(rotate(got[1], e), rotate((x, y, z, w), e)))
     mirrored = [[-r[0], r[1], r[2], r[3]] for r in m[:3]] + [m[3]]
     assert rigid(mirrored) is None  # a reflection is no pose
+
+
+def test_the_terminal_grid_titles_each_patch_and_keeps_the_names_of_narrow_ones_apart() -> None:
+    from cellbridge.views import textgrid
+
+    text = textgrid.layout(robot_view().frame(0.0), 80, 16).text()
+    assert "chest_left" in text[0] and "chest_right" in text[0] and "upper_arm / upper_low (around)" in text[0]
+    assert any("forearm / forearm (around)" in line for line in text)
+    assert any("●7" in line for line in text) and any("●8" in line for line in text)
+
+
+def test_patches_too_large_for_the_grid_are_drawn_as_the_layouts_plane_and_said_so() -> None:
+    topo = rp.topology(rp.skin())
+    for p in topo["skin"]["patches"]:
+        p["cols"] = 100  # five patches 100 columns wide: no two side by side within 128
+        p["rows"] = 100
+    f = robot_view(topology=topo).frame(0.0)
+    assert f.patches == [] and len(f.cells) == 45
+    assert any(line.endswith("(drawn as the layout's plane)") for line in f.status)
+
+
+json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
+                           lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=8), inner,
+                                                                                        max_size=5), max_leaves=30)
+skin_keys = st.sampled_from(["links", "patches", "elements", "name", "origin", "parent", "rows", "cols", "ids",
+                             "patch", "row", "col", "position", "normal", "link", "wrap", "pitch", "col_pitch"])
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.dictionaries(skin_keys, json_values, max_size=6), st.integers(0, 4), skin_keys, json_values)
+def test_any_skin_map_is_read_without_raising(extra: dict[str, Any], k: int, key: str, value: Any) -> None:
+    """Any msgpack-like value anywhere in a skin map: read, frame drawn, Foxglove messages encoded."""
+    topo = rp.topology(rp.skin())
+    sk = topo["skin"]
+    sk.update(extra)
+    for part in ("links", "patches"):
+        if isinstance(sk.get(part), list) and sk[part]:
+            item = sk[part][k % len(sk[part])]
+            if isinstance(item, dict):
+                item[key] = value
+    m = robot_view(topology=topo)
+    encode_all(m)
+    m.frame(0.0)
+
+
+def test_a_flat_skins_contact_arrow_points_into_the_skin() -> None:
+    m = SkinView()
+    m.feed("topology", {"v": 2, "seq": 0, "layout": grid_layout(3, 3), "skin": None}, 0.0)
+    m.feed("contact", {"v": 2, "seq": 0, "contacts": [{"id": 1, "x": 0.06, "y": 0.06, "force": 2.0, "diameter": 0.01}]},
+           0.0)
+    scene = fx.make_scene(m, m.frame(0.0), {}, False, 1)
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    from foxglove.messages import SceneUpdate
+
+    schema = SceneUpdate.get_schema()
+    fds = descriptor_pb2.FileDescriptorSet.FromString(schema.data)
+    pool = descriptor_pool.DescriptorPool()
+    for fd in fds.file:
+        pool.Add(fd)
+    msg = message_factory.GetMessageClass(pool.FindMessageTypeByName("foxglove.SceneUpdate")).FromString(scene.encode())
+    (e,) = msg.entities
+    (arrow,) = e.arrows
+    q = (arrow.pose.orientation.x, arrow.pose.orientation.y, arrow.pose.orientation.z, arrow.pose.orientation.w)
+    d = rotate(q, (1.0, 0.0, 0.0))
+    assert e.frame_id == "skin" and all(math.isclose(a, b, abs_tol=1e-9) for a, b in zip(d, (0.0, 0.0, -1.0)))
+    tip_z = arrow.pose.position.z - (arrow.shaft_length + arrow.head_length)
+    assert 0.0 < tip_z < 0.005 and arrow.pose.position.x == pytest.approx(0.06)

@@ -624,7 +624,8 @@ class SkinView:
         if not blocks or rows > MAX_GRID or cols > MAX_GRID:
             return None
         for b in blocks:
-            b.title = printable(b.link or "?", 24) + " / " + printable(b.name, 24) + (" (around)" if b.wrap else "")
+            b.short = printable(b.name, 24)
+            b.title = printable(b.link or "?", 24) + " / " + b.short + (" (around)" if b.wrap else "")
         return blocks, rows, cols
 
     def _patch_frame(self, now: float, blocks: list[PatchBlock], rows: int, cols: int) -> Frame:

@@ -127,13 +127,13 @@ def quat_of_matrix(m: list[list[float]]) -> Quat:
 def quat_from_to(a: tuple[float, float, float], b: tuple[float, float, float]) -> Quat:
     """The shortest rotation taking unit vector ``a`` to unit vector ``b`` (x, y, z, w)."""
     d = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-    if d < -1.0 + 1e-9:  # opposite: half a turn about any axis perpendicular to a
-        axis = (0.0, -a[2], a[1]) if abs(a[0]) < 0.9 else (-a[1], a[0], 0.0)
-        n = math.sqrt(sum(c * c for c in axis))
-        return (axis[0] / n, axis[1] / n, axis[2] / n, 0.0)
     c = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
     q = (c[0], c[1], c[2], 1.0 + d)
     n = math.sqrt(sum(x * x for x in q))
+    if n < 1e-12:  # opposite: half a turn about any axis perpendicular to a
+        axis = (0.0, -a[2], a[1]) if abs(a[0]) < 0.9 else (-a[1], a[0], 0.0)
+        n = math.sqrt(sum(x * x for x in axis))
+        return (axis[0] / n, axis[1] / n, axis[2] / n, 0.0)
     return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
@@ -277,7 +277,8 @@ class PatchBlock:
     row0: int
     col0: int
     wrap: bool
-    title: str = ""  # as shown (the views' model sets it, its strings escaped)
+    title: str = ""  # "link / name" as shown (the views' model sets it, its strings escaped)
+    short: str = ""  # the name alone, for a block too narrow for the title
 
 
 def pack_patches(patches: list[SkinPatch], gap: int = 1) -> tuple[list[PatchBlock], int, int]:

@@ -81,7 +81,8 @@ def layout(frame: Frame, width: int, height: int) -> TextGrid:
         if not 0 <= top < len(grid):
             continue
         room = (blk.cols + 1) * cw - 1  # its block and the gap after it
-        title = blk.title if len(blk.title) <= room else blk.title[: max(0, room - 1)] + "…"
+        title = blk.title if len(blk.title) <= room else blk.short  # the name alone when narrow
+        title = title if len(title) <= room else title[: max(0, room - 1)] + "…"
         for i, chx in enumerate(title):
             x = blk.col0 * cw + i
             if x < len(grid[top]):

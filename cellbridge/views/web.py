@@ -115,7 +115,7 @@ def frame_json(frame: Frame) -> dict[str, Any]:
                       "rgb": level_rgb(c.level), "label": c.label, "line": c.line, "force": num(c.force),
                       "x": num(c.x), "y": num(c.y), "diameter_m": num(c.diameter_m),
                       "observable": list(c.observable)} for c in frame.contacts],
-        "patches": [{"title": b.title, "row0": b.row0, "col0": b.col0, "rows": b.rows, "cols": b.cols}
+        "patches": [{"title": b.title, "short": b.short, "row0": b.row0, "col0": b.col0, "rows": b.rows, "cols": b.cols}
                     for b in frame.patches],
         "status": frame.status, "counters": frame.counters,
     }

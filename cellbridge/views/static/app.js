@@ -74,8 +74,9 @@
       sctx.strokeRect(x - 0.5, y - 0.5, w + 1, p.rows * g.cell + 1);
       const size = Math.max(9, Math.min(13, g.cell / 3));
       sctx.font = `${size}px sans-serif`; sctx.fillStyle = "#9fb3c8";
-      let text = p.title;
-      while (text.length > 1 && sctx.measureText(text).width > w + g.cell * 0.8) text = text.slice(0, -2) + "…";
+      const room = w + g.cell * 0.8;
+      let text = sctx.measureText(p.title).width <= room ? p.title : p.short;  // the name alone when narrow
+      while (text.length > 1 && sctx.measureText(text).width > room) text = text.slice(0, -2) + "…";
       const ty = y - g.cell / 2;
       sctx.fillText(text, x, ty);
       boxes.push({ x, y: ty - size / 2, w: sctx.measureText(text).width, h: size });

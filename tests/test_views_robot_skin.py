@@ -263,16 +263,7 @@ def test_a_flat_skins_contact_arrow_points_into_the_skin() -> None:
     m.feed("topology", {"v": 2, "seq": 0, "layout": grid_layout(3, 3), "skin": None}, 0.0)
     m.feed("contact", {"v": 2, "seq": 0, "contacts": [{"id": 1, "x": 0.06, "y": 0.06, "force": 2.0, "diameter": 0.01}]},
            0.0)
-    scene = fx.make_scene(m, m.frame(0.0), {}, False, 1)
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-    from foxglove.messages import SceneUpdate
-
-    schema = SceneUpdate.get_schema()
-    fds = descriptor_pb2.FileDescriptorSet.FromString(schema.data)
-    pool = descriptor_pool.DescriptorPool()
-    for fd in fds.file:
-        pool.Add(fd)
-    msg = message_factory.GetMessageClass(pool.FindMessageTypeByName("foxglove.SceneUpdate")).FromString(scene.encode())
+    msg = decode_scene(fx.make_scene(m, m.frame(0.0), {}, False, 1))
     (e,) = msg.entities
     (arrow,) = e.arrows
     q = (arrow.pose.orientation.x, arrow.pose.orientation.y, arrow.pose.orientation.z, arrow.pose.orientation.w)
@@ -280,3 +271,30 @@ def test_a_flat_skins_contact_arrow_points_into_the_skin() -> None:
     assert e.frame_id == "skin" and all(math.isclose(a, b, abs_tol=1e-9) for a, b in zip(d, (0.0, 0.0, -1.0)))
     tip_z = arrow.pose.position.z - (arrow.shaft_length + arrow.head_length)
     assert 0.0 < tip_z < 0.005 and arrow.pose.position.x == pytest.approx(0.06)
+
+
+def decode_scene(scene: Any) -> Any:
+    """A SceneUpdate as a client decodes it, with the schema the SDK advertises."""
+    from foxglove.messages import SceneUpdate
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    fds = descriptor_pb2.FileDescriptorSet.FromString(SceneUpdate.get_schema().data)
+    pool = descriptor_pool.DescriptorPool()
+    for fd in fds.file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName("foxglove.SceneUpdate")).FromString(scene.encode())
+
+
+def test_an_update_of_changed_patches_replaces_only_their_entities_and_deletes_nothing() -> None:
+    m = robot_view()
+    frames = fx.link_frames(m.skin)
+    whole = decode_scene(fx.make_skin_scene(m, frames, 1))
+    assert len(whole.deletions) == 1 and len(whole.entities) == 5
+    part = decode_scene(fx.make_skin_scene(m, frames, 1, only={"forearm"}))
+    assert len(part.deletions) == 0 and [e.id for e in part.entities] == ["patch-forearm"]
+    before = fx.patch_colours(m)
+    sk = rp.skin()
+    m.feed("element", {"v": 2, "seq": 1, "source": rp.SOURCE, "bridge": [sk.element_id("chest_left", 0, 0)], "force": [4.0], "valid": [True],
+                       "touched": [True]}, 0.0)
+    after = fx.patch_colours(m)
+    assert {n for n in after if after[n] != before[n]} == {"chest_left"}

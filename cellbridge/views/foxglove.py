@@ -223,10 +223,30 @@ def make_transforms(frames: dict[str, Any], stamp_ns: int) -> Any:
         for name, (parent, t, q) in sorted(frames.items())])
 
 
-def make_skin_scene(model: SkinView, frames: dict[str, Any], stamp_ns: int) -> Any:
-    """Every patch on its link: an entity ``patch-NAME`` in the link's frame, one tile per
-    element at its centre, facing along its normal, coloured by its force (grey: unknown),
-    and the patch's name as text. Patches on a link without a known frame are left out."""
+_TILES: dict[str, Any] = {}  # the tiles' poses and colours, kept for the skin description they are of
+
+
+def patch_colours(model: SkinView) -> dict[str, tuple[tuple[int, int, int], ...]]:
+    """Each patch's tiles' colours (what changes from one update of its entity to the next)."""
+    out: dict[str, tuple[tuple[int, int, int], ...]] = {}
+    if model.skin is None:
+        return out
+    for patch in model.skin.patches.values():
+        rgbs = []
+        for b in patch.ids:
+            e = model.elements.get(b)
+            f = e.shown_force() if e is not None else math.nan
+            rgbs.append(level_rgb(min(1.0, max(0.0, f / model.force_scale)) if math.isfinite(f) else math.nan))
+        out[patch.name] = tuple(rgbs)
+    return out
+
+
+def make_skin_scene(model: SkinView, frames: dict[str, Any], stamp_ns: int, only: set[str] | None = None) -> Any:
+    """Every patch on its link (or those named in ``only``, replacing their entities, the
+    others left as they are): an entity ``patch-NAME`` in the link's frame, one tile per
+    element at its centre, facing along its normal, coloured by its force (grey:
+    unknown), and the patch's name as text. Patches on a link without a known frame are
+    left out. A whole update first deletes all earlier entities."""
     from foxglove.messages import (
         Color,
         CubePrimitive,
@@ -243,9 +263,14 @@ def make_skin_scene(model: SkinView, frames: dict[str, Any], stamp_ns: int) -> A
     ts = Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
     skin = model.skin
     entities = []
-    side = 0.9 * model.side
+    if _TILES.get("skin") is not skin or _TILES.get("side") != model.side:  # poses: once per skin description
+        _TILES.clear()
+        _TILES.update(skin=skin, side=model.side, poses={}, colours={},
+                      size=Vector3(x=0.9 * model.side, y=0.9 * model.side, z=ELEMENT_THICKNESS))
+    poses: dict[int, Any] = _TILES["poses"]
+    colours: dict[tuple[int, int, int], Any] = _TILES["colours"]
     for patch in (skin.patches.values() if skin is not None else ()):
-        if patch.link not in frames or not patch.ids:
+        if patch.link not in frames or not patch.ids or (only is not None and patch.name not in only):
             continue
         cubes = []
         first = None
@@ -255,15 +280,17 @@ def make_skin_scene(model: SkinView, frames: dict[str, Any], stamp_ns: int) -> A
                 continue
             e = model.elements.get(b)
             f = e.shown_force() if e is not None else math.nan
-            level = min(1.0, max(0.0, f / model.force_scale)) if math.isfinite(f) else math.nan
-            r, g, bl = level_rgb(level)
-            q = quat_from_to((0.0, 0.0, 1.0), place.normal)
-            pose = Pose(position=Vector3(x=place.position[0], y=place.position[1], z=place.position[2]),
-                        orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+            rgb = level_rgb(min(1.0, max(0.0, f / model.force_scale)) if math.isfinite(f) else math.nan)
+            colour = colours.get(rgb)
+            if colour is None:
+                colour = colours[rgb] = Color(r=rgb[0] / 255, g=rgb[1] / 255, b=rgb[2] / 255, a=1.0)
+            pose = poses.get(b)
+            if pose is None:
+                q = quat_from_to((0.0, 0.0, 1.0), place.normal)
+                pose = poses[b] = Pose(position=Vector3(x=place.position[0], y=place.position[1], z=place.position[2]),
+                                       orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
             first = first or place
-            cubes.append(CubePrimitive(
-                pose=pose,
-                size=Vector3(x=side, y=side, z=ELEMENT_THICKNESS), color=Color(r=r / 255, g=g / 255, b=bl / 255, a=1.0)))
+            cubes.append(CubePrimitive(pose=pose, size=_TILES["size"], color=colour))
         if first is None or first.position is None or first.normal is None:
             continue
         at = [p + 0.02 * n for p, n in zip(first.position, first.normal)]  # its name just off its first element
@@ -272,8 +299,8 @@ def make_skin_scene(model: SkinView, frames: dict[str, Any], stamp_ns: int) -> A
             texts=[TextPrimitive(pose=Pose(position=Vector3(x=at[0], y=at[1], z=at[2]), orientation=Quaternion(w=1.0)),
                                  billboard=True, font_size=12.0, scale_invariant=True,
                                  color=Color(r=0.8, g=0.85, b=0.9, a=1.0), text=patch.name)]))
-    return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=ts, type=SceneEntityDeletionType.All)],
-                       entities=entities)
+    return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=ts, type=SceneEntityDeletionType.All)]
+                       if only is None else [], entities=entities)
 
 
 def contact_place(c: Contact, frames: dict[str, Any], robot: bool
@@ -354,8 +381,29 @@ class FoxgloveView:
         self.skin = SceneUpdateChannel(TOPICS["skin"])
         self.tf = FrameTransformsChannel(TOPICS["tf"])
         self.health_seen = 0
+        self._patches_of: Any = None  # the skin description whose patches were sent whole last
+        self._patch_frames: set[str] = set()
+        self._patches_all = -math.inf  # when (monotonic s)
+        self._patch_rgb: dict[str, tuple[tuple[int, int, int], ...]] = {}
         self.published = 0
         self.errors = 0  # frames that could not be made (counted in health's view counters)
+
+    def _publish_patches(self, frames: dict[str, Any], now: float, stamp: int) -> None:
+        """The patches' tiles: all of them once a second (a client that joins gets them, and
+        anything dropped is replaced) and whenever the skin description or its frames
+        change; in between only the patches whose colours changed (a tile per element of a
+        large skin is costly to make, and most patches are untouched)."""
+        colours = patch_colours(self.model)
+        whole = (self.model.skin is not self._patches_of or frames.keys() != self._patch_frames
+                 or now - self._patches_all >= 1.0)
+        if whole:
+            self.skin.log(make_skin_scene(self.model, frames, stamp), log_time=stamp)
+            self._patches_of, self._patch_frames, self._patches_all = self.model.skin, set(frames), now
+        else:
+            changed = {name for name, rgbs in colours.items() if self._patch_rgb.get(name) != rgbs}
+            if changed:
+                self.skin.log(make_skin_scene(self.model, frames, stamp, only=changed), log_time=stamp)
+        self._patch_rgb = colours
 
     def publish(self, now: float) -> None:
         stamp = time.time_ns()
@@ -364,7 +412,7 @@ class FoxgloveView:
         frames = link_frames(self.model.skin) if robot else {}
         if robot:
             self.tf.log(make_transforms(frames, stamp), log_time=stamp)
-            self.skin.log(make_skin_scene(self.model, frames, stamp), log_time=stamp)
+            self._publish_patches(frames, now, stamp)
         elif frame.cells and self.model.layout:  # not before the layout: no cell would be where it belongs
             self.grid.log(make_grid(frame, stamp), log_time=stamp)
         self.scene.log(make_scene(self.model, frame, frames, robot, stamp), log_time=stamp)

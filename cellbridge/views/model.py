@@ -358,6 +358,8 @@ class SkinView:
         self.needs_topology = True  # the shell asks the control socket for the layout while set
         self.skin: RobotSkin | None = None  # the skin on the robot (topology's ``skin``); None: a flat skin
         self.bad_fields = 0  # fields of readable payloads left out as unreadable (shown as unknown)
+        self._index: tuple[int, dict[str, int], dict[tuple[int, int], list[int]]] | None = None
+        self._layout_version = 0  # counts the layouts taken (the index above is of one)
 
     # ---- input --------------------------------------------------------------------
 
@@ -450,6 +452,7 @@ class SkinView:
                 continue  # a layout of more elements than are kept: the first ones drawn
             placed[bridge] = (px, py)
         self.layout = placed
+        self._layout_version += 1
         if "skin" in payload:
             self.skin = read_skin(payload["skin"], MAX_ELEMENTS, MAX_BRIDGE)
             if self.skin is None and payload["skin"] is not None:
@@ -676,25 +679,21 @@ class SkinView:
     def _on_patch(self, c: Contact, at: dict[str, PatchBlock]) -> tuple[float, float]:
         """A contact's place on the grid of patch blocks (grid units, 0 the left and lower
         edge of cell 0): from its place on the layout's plane (the atlas, ``x``, ``y``),
-        relative to the nearest element of its patch (the one it names, else the nearest
-        element's), one element pitch a cell, around a wrapped patch; NaN when not known."""
+        relative to an element of its patch (the one it names, else the nearest element's:
+        a patch's grid is an affine map of the layout), one element pitch a cell, around a
+        wrapped patch; NaN when not known."""
         skin = self.skin
         if skin is None or not (math.isfinite(c.x) and math.isfinite(c.y)):
             return math.nan, math.nan
-        pname = c.patch if c.patch in at else None
-        best: tuple[float, int] | None = None
-        for b, (x, y) in self.layout.items():
-            place = skin.elements.get(b)
-            if place is None or place.patch not in at or (pname is not None and place.patch != pname):
-                continue
-            dd = (x - c.x) ** 2 + (y - c.y) ** 2
-            if best is None or dd < best[0]:
-                best = (dd, b)
-        if best is None:
+        refs, cells = self._atlas_index()
+        ref_bridge = refs.get(c.patch) if c.patch is not None else None  # any element of it: the map is affine
+        if ref_bridge is None or ref_bridge not in self.layout:
+            ref_bridge = self._nearest_placed(c.x, c.y, cells)
+        if ref_bridge is None or skin.elements[ref_bridge].patch not in at:
             return math.nan, math.nan
-        ref = skin.elements[best[1]]
+        ref = skin.elements[ref_bridge]
         patch, block = skin.patches[ref.patch], at[ref.patch]
-        xe, ye = self.layout[best[1]]
+        xe, ye = self.layout[ref_bridge]
         cp = patch.col_pitch if math.isfinite(patch.col_pitch) else self.side
         rp = patch.pitch if math.isfinite(patch.pitch) else self.side
         gcol = ref.col + 0.5 + (c.x - xe) / cp
@@ -704,6 +703,33 @@ class SkinView:
         if not (-MAX_GRID <= gcol <= 2 * MAX_GRID and -MAX_GRID <= grow <= 2 * MAX_GRID):
             return math.nan, math.nan
         return block.col0 + gcol, block.row0 + grow
+
+    def _atlas_index(self) -> tuple[dict[str, int], dict[tuple[int, int], list[int]]]:
+        """(patch -> one of its elements on the layout, layout cell -> elements in it) of the
+        skin's elements, built once per layout and skin: a contact is placed on its patch
+        in constant time, whatever the skin's size."""
+        key = self._layout_version
+        if self._index is not None and self._index[0] == key:
+            return self._index[1], self._index[2]
+        refs: dict[str, int] = {}
+        cells: dict[tuple[int, int], list[int]] = {}
+        skin = self.skin
+        for b, (x, y) in self.layout.items():
+            place = skin.elements.get(b) if skin is not None else None
+            if place is None:
+                continue
+            refs.setdefault(place.patch, b)
+            cells.setdefault((math.floor(x / self.side), math.floor(y / self.side)), []).append(b)
+        self._index = (key, refs, cells)
+        return refs, cells
+
+    def _nearest_placed(self, x: float, y: float, cells: dict[tuple[int, int], list[int]]) -> int | None:
+        """The skin's element nearest (x, y) on the layout: among the 3 × 3 layout cells
+        around it, else (a contact off every element) among all."""
+        i, j = math.floor(x / self.side), math.floor(y / self.side)
+        near = [b for di in (-1, 0, 1) for dj in (-1, 0, 1) for b in cells.get((i + di, j + dj), ())]
+        pool = near or [b for bs in cells.values() for b in bs]
+        return min(pool, key=lambda b: (self.layout[b][0] - x) ** 2 + (self.layout[b][1] - y) ** 2, default=None)
 
     def _cell(self, bridge: int, row: int, col: int) -> Cell:
         """An element's force where the inverse gives one (0 when untouched); else its ΔC1

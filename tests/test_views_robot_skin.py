@@ -298,3 +298,17 @@ def test_an_update_of_changed_patches_replaces_only_their_entities_and_deletes_n
                        "touched": [True]}, 0.0)
     after = fx.patch_colours(m)
     assert {n for n in after if after[n] != before[n]} == {"chest_left"}
+
+
+@pytest.mark.parametrize("side", [5e-324, 1e-300])
+def test_a_tiny_element_side_does_not_overflow_the_contacts_placing(side: float) -> None:
+    """Found by the fuzz test: the layout's cell of a contact, x / side, was inf (OverflowError)."""
+    topo = rp.topology(rp.skin())
+    topo["layout"]["side"] = side
+    contact = rp.contact(rp.skin())
+    for c in contact["contacts"]:
+        c["patch"] = None  # placed by the nearest element
+    m = robot_view(topology=topo, contact=contact)
+    f = m.frame(0.0)
+    assert len(f.contacts) == 2
+    encode_all(m)

@@ -719,14 +719,20 @@ class SkinView:
             if place is None:
                 continue
             refs.setdefault(place.patch, b)
-            cells.setdefault((math.floor(x / self.side), math.floor(y / self.side)), []).append(b)
+            cells.setdefault(self._cell_key(x, y), []).append(b)
         self._index = (key, refs, cells)
         return refs, cells
+
+    def _cell_key(self, x: float, y: float) -> tuple[int, int]:
+        """The layout cell (of the element side) holding (x, y); positions a side too
+        small puts beyond 2**52 cells share the cell at the far end."""
+        lim = float(2**52)
+        return (math.floor(max(-lim, min(lim, x / self.side))), math.floor(max(-lim, min(lim, y / self.side))))
 
     def _nearest_placed(self, x: float, y: float, cells: dict[tuple[int, int], list[int]]) -> int | None:
         """The skin's element nearest (x, y) on the layout: among the 3 × 3 layout cells
         around it, else (a contact off every element) among all."""
-        i, j = math.floor(x / self.side), math.floor(y / self.side)
+        i, j = self._cell_key(x, y)
         near = [b for di in (-1, 0, 1) for dj in (-1, 0, 1) for b in cells.get((i + di, j + dj), ())]
         pool = near or [b for bs in cells.values() for b in bs]
         return min(pool, key=lambda b: (self.layout[b][0] - x) ** 2 + (self.layout[b][1] - y) ** 2, default=None)

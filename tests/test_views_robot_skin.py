@@ -133,6 +133,8 @@ def test_unreadable_skin_fields_are_counted_and_shown_as_unknown(where: str, bad
     if where == "origin" and bad != [[1, 2, 3, 4]] * 4:
         assert "upper_arm" not in fx.link_frames(m.skin) and "forearm" not in fx.link_frames(m.skin)
         assert m.bad_fields > 0
+    if where == "parent" and bad is not None:  # a mistyped parent: no root, no frame
+        assert "upper_arm" not in fx.link_frames(m.skin) and m.bad_fields > 0
     if where in ("position", "normal") and bad is not None:
         assert m.bad_fields > 0
 

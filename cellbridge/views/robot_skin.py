@@ -211,10 +211,13 @@ def read_skin(value: Any, max_elements: int, max_bridge: int = 0xFFFF) -> RobotS
             continue
         parent = ln.get("parent")
         pose = rigid(ln.get("origin"))
-        if pose is None or not (parent is None or isinstance(parent, str)):
+        if parent is not None and _name(parent) is None:
+            pose = None  # a parent not named: where the link is is not known (it is no root)
+        if pose is None:
             bad += 1
         links[name] = SkinLink(name, _name(parent), pose)
     bad += max(0, len(raw_links) - MAX_LINKS)
+    bad += sum(1 for ln in links.values() if ln.parent is not None and ln.parent not in links)  # a parent unheard of
     patches: dict[str, SkinPatch] = {}
     raw_patches = _list(value, "patches")
     for p in raw_patches[:MAX_PATCHES]:

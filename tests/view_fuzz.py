@@ -1,5 +1,7 @@
 """Random and mistyped daemon messages for the views' fuzz test: ``element``, ``contact``,
-``health`` and ``topology`` payloads shaped like the daemon's (docs/zmq-api.md), then
+``health`` and ``topology`` payloads shaped like the daemon's (docs/zmq-api.md; with a
+skin on a robot: topology's ``skin`` with its links, patches and element frames, and
+contacts' link, patch, 3-D position, normal and force vector), then
 mutated: NaN, ±inf, ±1e308, huge integers, wrong types, huge arrays, deep nesting,
 control characters in every string; and messages that are not payloads at all (not
 msgpack, a map keyed by an array, one or three frames, a topic that only begins like one).
@@ -83,13 +85,93 @@ def element(rng: random.Random, seq: int) -> dict[str, Any]:
             "t_sample": column(rng, n, lambda i: float(seq))}
 
 
+LINKS = ["torso", "upper_arm", "forearm"]
+
+
+def vector(rng: random.Random, good: Any) -> Any:
+    """A 3-vector: mostly ``good()``, sometimes with odd numbers in it or of another length."""
+    r = rng.random()
+    if r < 0.6:
+        return good()
+    if r < 0.8:
+        return [rng.choice(ODD_NUMBERS) if rng.random() < 0.5 else x for x in good()]
+    if r < 0.9:
+        return [rng.uniform(-1, 1) for _ in range(rng.choice([0, 1, 2, 4, 100]))]
+    return odd_value(rng)
+
+
+def pose(rng: random.Random) -> Any:
+    """A 4×4 pose: the identity moved, or scaled, mirrored, with odd numbers, of the wrong shape."""
+    m = [[1.0, 0.0, 0.0, rng.uniform(-0.3, 0.3)], [0.0, 1.0, 0.0, rng.uniform(-0.3, 0.3)],
+         [0.0, 0.0, 1.0, rng.uniform(-0.3, 0.3)], [0.0, 0.0, 0.0, 1.0]]
+    r = rng.random()
+    if r < 0.6:
+        return m
+    if r < 0.7:
+        m[0][0] = rng.choice([2.0, -1.0, 0.0])
+    elif r < 0.85:
+        m[rng.randrange(4)][rng.randrange(4)] = rng.choice(ODD_NUMBERS)
+    else:
+        return odd_value(rng)
+    return m
+
+
+def robot_contact(rng: random.Random, c: dict[str, Any]) -> dict[str, Any]:
+    """``c`` with the fields a daemon with a skin description adds."""
+    f = c["force"] if isinstance(c["force"], float) else 1.0
+    c.update(link=rng.choice([*LINKS, None, nasty_text(rng), 5]), patch=rng.choice(["forearm", "chest_left", None,
+                                                                                   nasty_text(rng)]),
+             position=vector(rng, lambda: [rng.uniform(-0.2, 0.2) for _ in range(3)]),
+             normal=vector(rng, lambda: [rng.uniform(-1, 1) for _ in range(3)]),
+             force_vector=vector(rng, lambda: [0.0, 0.0, -f]) if rng.random() < 0.9 else None,
+             position_cov=odd_value(rng))
+    return c
+
+
 def contact(rng: random.Random, seq: int) -> dict[str, Any]:
     n = rng.randrange(0, 5) if rng.random() > 0.003 else rng.randrange(1000, 20_000)
+    robot = rng.random() < 0.5
     contacts = [{"id": rng.randrange(0, 100), "x": rng.uniform(-0.1, 0.3), "y": rng.uniform(-0.1, 0.3),
                  "force": rng.uniform(0, 10), "diameter": rng.uniform(0, 0.05), "observable": [True, rng.random() < 0.5],
                  "valid": True, "missed": 0, "sigma_x": 1e-4, "sigma_y": 0.004, "elements": [1, 2],
                  "label": nasty_text(rng) if n < 10 else "\x1b[31m"} for _ in range(n)]
-    return {"v": 1, "seq": seq, "t_sample": 1.0, "contacts": contacts}
+    if robot and n < 10:
+        contacts = [robot_contact(rng, c) for c in contacts]
+    return {"v": 2, "seq": seq, "t_sample": 1.0, "contacts": contacts}
+
+
+def skin(rng: random.Random, n: int) -> Any:
+    """A ``skin`` map for a layout of ids 1..n: links (some posed oddly, some in a loop),
+    patches (some of odd sizes or names), element frames (some odd), now and then huge."""
+    if rng.random() < 0.1:
+        return odd_value(rng)
+    links = [{"name": name, "parent": parent, "origin": pose(rng), "declared": True}
+             for name, parent in zip(LINKS, [None, "torso", "upper_arm"])]
+    if rng.random() < 0.1:
+        links[0]["parent"] = "forearm"  # a loop
+    if rng.random() < 0.1:
+        links.append({"name": rng.choice(["skin", nasty_text(rng), "", 7]), "parent": odd_value(rng), "origin": pose(rng)})
+    if rng.random() < 0.003:
+        links += [{"name": f"l{i}", "parent": f"l{i - 1}", "origin": pose(rng)} for i in range(5000)]
+    npatch = rng.randrange(1, 5)
+    names = [rng.choice(["forearm", "chest_left", f"p{k}", nasty_text(rng)]) for k in range(npatch)]
+    patches = [{"name": name, "link": rng.choice([*LINKS, nasty_text(rng)]),
+                "shape": rng.choice(["plane", "cylinder", odd_value(rng)]),
+                "rows": rng.choice([1, 2, 3, 4, 0, -1, 10**9, math.nan, "3"]) if rng.random() < 0.3 else rng.randrange(1, 5),
+                "cols": rng.randrange(1, 8), "pitch": rng.choice([0.04, 0.04, math.nan, -1.0, 1e308]),
+                "col_pitch": rng.choice([0.04, 0.04, 0.0, math.inf]), "wrap": rng.choice([True, False, "yes"]),
+                "pose": pose(rng), "start": [0.0, 0.0], "first_id": 1} for name in names]
+    if rng.random() < 0.003:
+        patches += [{"name": f"q{i}", "link": "torso", "rows": 128, "cols": 128} for i in range(2000)]
+    k = n if rng.random() > 0.01 else rng.randrange(20_000, 80_000)
+    elements = {"ids": column(rng, k, lambda i: i + 1),
+                "patch": column(rng, k, lambda i: rng.choice(names)),
+                "row": column(rng, k, lambda i: rng.randrange(0, 5)),
+                "col": column(rng, k, lambda i: rng.randrange(0, 8)),
+                "position": [vector(rng, lambda: [rng.uniform(-0.2, 0.2) for _ in range(3)]) for _ in range(min(k, 200))],
+                "normal": [vector(rng, lambda: [0.0, 0.0, 1.0]) for _ in range(min(k, 200))]}
+    return {"name": nasty_text(rng), "side": 0.04, "urdf": None, "links": links, "patches": patches,
+            "gateways": [{"name": nasty_text(rng), "bridge": 1}], "elements": elements}
 
 
 def health(rng: random.Random, seq: int) -> dict[str, Any]:
@@ -109,10 +191,13 @@ def health(rng: random.Random, seq: int) -> dict[str, Any]:
 def topology(rng: random.Random, seq: int) -> dict[str, Any]:
     n = rng.randrange(1, 30) if rng.random() > 0.003 else rng.randrange(20_000, 80_000)
     side = rng.choice([0.04, 0.04, 0.0002, 1e-300, 5e-324, 0.0, -0.04, math.nan, math.inf, 1e308, "0.04"])
-    return {"v": 1, "seq": seq, "bridges": {}, "gateways": {nasty_text(rng): [1]},
-            "layout": {"side": side, "ids": column(rng, n, lambda i: i + 1),
-                       "x": column(rng, n, lambda i: rng.choice([i * 0.04, 1e308, -1e308, i * 1e3])),
-                       "y": column(rng, n, lambda i: rng.choice([0.0, (i % 4) * 0.04, 1e300]))}}
+    out = {"v": 1, "seq": seq, "bridges": {}, "gateways": {nasty_text(rng): [1]},
+           "layout": {"side": side, "ids": column(rng, n, lambda i: i + 1),
+                      "x": column(rng, n, lambda i: rng.choice([i * 0.04, 1e308, -1e308, i * 1e3])),
+                      "y": column(rng, n, lambda i: rng.choice([0.0, (i % 4) * 0.04, 1e300]))}}
+    if rng.random() < 0.5:  # a daemon with a skin description (schema 2)
+        out.update(v=2, skin=skin(rng, min(n, 1000)))
+    return out
 
 
 MAKERS = {"element": element, "contact": contact, "health": health, "topology": topology}

@@ -6,6 +6,10 @@ it keeps the newest reading of every element, the tracked contacts, a summary of
 mesh's health, and this subscriber's own losses; :meth:`SkinView.frame` turns that into
 a :class:`Frame` (grid cells with a colour level and a label, contacts in grid units,
 status lines) that the terminal view, the web page and the Foxglove bridge all draw.
+With a skin on a robot (``topology``'s ``skin``, read by
+:mod:`cellbridge.views.robot_skin`) the frame is patch by patch: each patch's elements
+on a block of their own (:attr:`Frame.patches`), the contacts on their patch's block;
+the contacts keep their link, patch, position, normal and force vector for Foxglove.
 
 Fields are read defensively: a payload may carry keys this model does not know (the
 schema grows by adding), lack optional ones, or hold a wrong type; nothing here raises
@@ -30,6 +34,8 @@ import unicodedata
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
+
+from cellbridge.views.robot_skin import PatchBlock, RobotSkin, pack_patches, read_skin, unit3, vec3
 
 TOPICS = ("element", "contact", "health", "topology")
 STALE_AFTER = 3.0  # s without any message: the daemon is shown as gone
@@ -65,6 +71,16 @@ def _size(value: Any) -> float:
     """A size or spread (m); NaN unless a number in [0, :data:`MAX_COORD`]."""
     v = _num(value)
     return v if 0.0 <= v <= MAX_COORD else math.nan
+
+
+def _label(value: Any) -> str | None:
+    """A name from the daemon (a link's, a patch's), at most 64 characters; None if not a string."""
+    return value[:64] if isinstance(value, str) else None
+
+
+def _force3(value: Any) -> tuple[float, float, float] | None:
+    """A force vector (N): three finite numbers, each within ±1e6."""
+    return vec3(value, 1e6)
 
 
 def _bridge(value: Any) -> int | None:
@@ -191,6 +207,13 @@ class Contact:
     sigma_x: float = math.nan
     sigma_y: float = math.nan
     elements: tuple[int, ...] = ()
+    # on the robot (None: not said, or unreadable): the link and patch, the centre and the
+    # skin's outward normal in the link frame (m), the force vector (N)
+    link: str | None = None
+    patch: str | None = None
+    position: tuple[float, float, float] | None = None
+    normal: tuple[float, float, float] | None = None
+    force_vector: tuple[float, float, float] | None = None
 
 
 @dataclass
@@ -239,6 +262,7 @@ class Frame:
     live: bool
     paused: bool
     counters: dict[str, Any]
+    patches: list[PatchBlock] = field(default_factory=list)  # with a skin on a robot: each patch's block
 
 
 def _ramp(level: float) -> tuple[int, int, int]:
@@ -279,6 +303,11 @@ def contact_line(c: Contact) -> str:
         return f"{name} ~{fmt(v * 1e3)}{s} mm (unresolved)"
     parts = [f"#{c.id}", axis("x", c.x, c.observable[0], c.sigma_x), axis("y", c.y, c.observable[1], c.sigma_y),
              f"F {format_force(c.force)}", f"⌀ {format_mm(c.diameter)}"]
+    if c.link is not None or c.patch is not None:  # on a robot: where on it (x, y are on the unrolled skin)
+        parts.insert(1, f"on {printable(c.link or '?', 20)}/{printable(c.patch or '?', 20)}")
+        if all(c.observable):
+            at = "(" + ", ".join(fmt(v * 1e3) for v in c.position) + ") mm" if c.position is not None else "?"
+            parts[2:4] = [f"at {at}"]
     if not c.valid:
         parts.append("(no pressure: position only)")
     if c.missed:
@@ -327,6 +356,10 @@ class SkinView:
         self._history_keep = HISTORY
         self._too_large: tuple[float, float] | None = None  # (cols, rows) of a layout beyond MAX_GRID
         self.needs_topology = True  # the shell asks the control socket for the layout while set
+        self.skin: RobotSkin | None = None  # the skin on the robot (topology's ``skin``); None: a flat skin
+        self.bad_fields = 0  # fields of readable payloads left out as unreadable (shown as unknown)
+        self._index: tuple[int, dict[str, int], dict[tuple[int, int], list[int]]] | None = None
+        self._layout_version = 0  # counts the layouts taken (the index above is of one)
 
     # ---- input --------------------------------------------------------------------
 
@@ -419,6 +452,15 @@ class SkinView:
                 continue  # a layout of more elements than are kept: the first ones drawn
             placed[bridge] = (px, py)
         self.layout = placed
+        self._layout_version += 1
+        if "skin" in payload:
+            self.skin = read_skin(payload["skin"], MAX_ELEMENTS, MAX_BRIDGE)
+            if self.skin is None and payload["skin"] is not None:
+                self.bad_fields += 1
+            elif self.skin is not None:
+                self.bad_fields += self.skin.bad
+        else:
+            self.skin = None  # a daemon without skin descriptions (schema 1)
         self.needs_topology = not self.layout
         self.changed = True
 
@@ -480,7 +522,11 @@ class SkinView:
                 else (True, True)
             elements = c.get("elements")
             missed = c.get("missed")
-            out.append(Contact(id=cid, x=_pos(c.get("x")), y=_pos(c.get("y")), force=_num(c.get("force")),
+            link, patch, position, normal, fvec = (self._opt(c, "link", _label), self._opt(c, "patch", _label),
+                                                   self._opt(c, "position", vec3), self._opt(c, "normal", unit3),
+                                                   self._opt(c, "force_vector", _force3))
+            out.append(Contact(link=link, patch=patch, position=position, normal=normal, force_vector=fvec,
+                               id=cid, x=_pos(c.get("x")), y=_pos(c.get("y")), force=_num(c.get("force")),
                                diameter=_size(c.get("diameter")), observable=observable,
                                valid=c.get("valid") is not False,
                                missed=missed if isinstance(missed, int) and not isinstance(missed, bool) else 0,
@@ -489,6 +535,17 @@ class SkinView:
                                if isinstance(elements, list) else ()))
         self.contacts = out
         self.contact_t = _num(p.get("t_sample"))
+
+    def _opt(self, c: dict[str, Any], key: str, read: Any) -> Any:
+        """``read(c[key])``; None when absent or null, and None counted in
+        :attr:`bad_fields` when present but unreadable."""
+        v = c.get(key)
+        if v is None:
+            return None
+        out = read(v)
+        if out is None:
+            self.bad_fields += 1
+        return out
 
     def _feed_health(self, p: dict[str, Any]) -> None:
         summary = summarise_health(p)
@@ -513,6 +570,9 @@ class SkinView:
         :data:`MAX_ELEMENTS` in all); a layout that would need a larger grid is drawn as
         unplaced elements, and a status line says so."""
         self.changed = False
+        blocks = self._patch_blocks()
+        if blocks is not None:
+            return self._patch_frame(now, *blocks)
         placed = dict(self.layout)
         for b in self.elements:  # a bridge without a known position still shows, after the placed ones
             placed.setdefault(b, (math.nan, math.nan))
@@ -557,6 +617,126 @@ class SkinView:
                      contacts=drawn, status=self.status_lines(now), live=self.live(now), paused=self.paused,
                      counters=self.counters())
 
+    def _patch_blocks(self) -> tuple[list[PatchBlock], int, int] | None:
+        """The patches' blocks (see :func:`pack_patches`) when the layout comes with a skin
+        on a robot whose patches fit the grid; None: draw the layout's plane (the atlas)."""
+        skin = self.skin
+        if skin is None or not skin.elements:
+            return None
+        blocks, rows, cols = pack_patches([p for p in skin.patches.values() if p.ids])
+        if not blocks or rows > MAX_GRID or cols > MAX_GRID:
+            return None
+        for b in blocks:
+            b.short = printable(b.name, 24)
+            b.title = printable(b.link or "?", 24) + " / " + b.short + (" (around)" if b.wrap else "")
+        return blocks, rows, cols
+
+    def _patch_frame(self, now: float, blocks: list[PatchBlock], rows: int, cols: int) -> Frame:
+        """The frame of a skin on a robot: each patch's elements on its own block of the
+        grid (its rows and columns as on the patch), a title row above each; elements the
+        skin description does not place in rows below; contacts on their patch's block."""
+        skin = self.skin
+        assert skin is not None
+        at = {b.name: b for b in blocks}
+        cells: list[Cell] = []
+        unplaced: list[int] = []
+        for b in sorted(set(self.layout) | set(self.elements)):
+            place = skin.elements.get(b)
+            block = at.get(place.patch) if place is not None else None
+            if place is None or block is None:
+                unplaced.append(b)
+                continue
+            cells.append(self._cell(b, block.row0 + place.row, block.col0 + place.col))
+        if unplaced:  # below the patches: shift every block up
+            per_row = max(cols, UNPLACED_PER_ROW)
+            extra = (len(unplaced) + per_row - 1) // per_row + 1
+            for cell in cells:
+                cell.row += extra
+            for blk in blocks:
+                blk.row0 += extra
+            for i, b in enumerate(unplaced):
+                cells.append(self._cell(b, extra - 2 - i // per_row, i % per_row))
+            rows += extra
+            cols = max(cols, min(len(unplaced), per_row))
+        quantity = "force" if not cells or any(c.quantity == "force" for c in cells) else "dc"
+        drawn = []
+        for c in self.contacts:
+            gx, gy = self._on_patch(c, at)
+            d = min(c.diameter / self.side, 2.0 * MAX_GRID) if math.isfinite(c.diameter) else 0.0
+            level = min(1.0, max(0.0, c.force / self.force_scale)) if math.isfinite(c.force) else math.nan
+            drawn.append(DrawnContact(
+                id=c.id, col=gx, row=gy, diameter=d, level=level,
+                force=c.force, x=c.x, y=c.y, diameter_m=c.diameter, observable=c.observable, valid=c.valid,
+                label=f"#{c.id} {format_force(c.force)}", line=contact_line(c)))
+        self._too_large = None
+        x0 = min((xy[0] for xy in self.layout.values()), default=0.0) - self.side / 2
+        y0 = min((xy[1] for xy in self.layout.values()), default=0.0) - self.side / 2
+        return Frame(rows=rows, cols=cols, side=self.side, origin=(x0, y0), quantity=quantity,
+                     scale=self.force_scale if quantity == "force" else self.dc_scale, cells=cells,
+                     contacts=drawn, status=self.status_lines(now), live=self.live(now), paused=self.paused,
+                     counters=self.counters(), patches=blocks)
+
+    def _on_patch(self, c: Contact, at: dict[str, PatchBlock]) -> tuple[float, float]:
+        """A contact's place on the grid of patch blocks (grid units, 0 the left and lower
+        edge of cell 0): from its place on the layout's plane (the atlas, ``x``, ``y``),
+        relative to an element of its patch (the one it names, else the nearest element's:
+        a patch's grid is an affine map of the layout), one element pitch a cell, around a
+        wrapped patch; NaN when not known."""
+        skin = self.skin
+        if skin is None or not (math.isfinite(c.x) and math.isfinite(c.y)):
+            return math.nan, math.nan
+        refs, cells = self._atlas_index()
+        ref_bridge = refs.get(c.patch) if c.patch is not None else None  # any element of it: the map is affine
+        if ref_bridge is None or ref_bridge not in self.layout:
+            ref_bridge = self._nearest_placed(c.x, c.y, cells)
+        if ref_bridge is None or skin.elements[ref_bridge].patch not in at:
+            return math.nan, math.nan
+        ref = skin.elements[ref_bridge]
+        patch, block = skin.patches[ref.patch], at[ref.patch]
+        xe, ye = self.layout[ref_bridge]
+        cp = patch.col_pitch if math.isfinite(patch.col_pitch) else self.side
+        rp = patch.pitch if math.isfinite(patch.pitch) else self.side
+        gcol = ref.col + 0.5 + (c.x - xe) / cp
+        grow = ref.row + 0.5 + (c.y - ye) / rp
+        if patch.wrap and patch.cols > 0:
+            gcol %= patch.cols
+        if not (-MAX_GRID <= gcol <= 2 * MAX_GRID and -MAX_GRID <= grow <= 2 * MAX_GRID):
+            return math.nan, math.nan
+        return block.col0 + gcol, block.row0 + grow
+
+    def _atlas_index(self) -> tuple[dict[str, int], dict[tuple[int, int], list[int]]]:
+        """(patch -> one of its elements on the layout, layout cell -> elements in it) of the
+        skin's elements, built once per layout and skin: a contact is placed on its patch
+        in constant time, whatever the skin's size."""
+        key = self._layout_version
+        if self._index is not None and self._index[0] == key:
+            return self._index[1], self._index[2]
+        refs: dict[str, int] = {}
+        cells: dict[tuple[int, int], list[int]] = {}
+        skin = self.skin
+        for b, (x, y) in self.layout.items():
+            place = skin.elements.get(b) if skin is not None else None
+            if place is None:
+                continue
+            refs.setdefault(place.patch, b)
+            cells.setdefault(self._cell_key(x, y), []).append(b)
+        self._index = (key, refs, cells)
+        return refs, cells
+
+    def _cell_key(self, x: float, y: float) -> tuple[int, int]:
+        """The layout cell (of the element side) holding (x, y); positions a side too
+        small puts beyond 2**52 cells share the cell at the far end."""
+        lim = float(2**52)
+        return (math.floor(max(-lim, min(lim, x / self.side))), math.floor(max(-lim, min(lim, y / self.side))))
+
+    def _nearest_placed(self, x: float, y: float, cells: dict[tuple[int, int], list[int]]) -> int | None:
+        """The skin's element nearest (x, y) on the layout: among the 3 × 3 layout cells
+        around it, else (a contact off every element) among all."""
+        i, j = self._cell_key(x, y)
+        near = [b for di in (-1, 0, 1) for dj in (-1, 0, 1) for b in cells.get((i + di, j + dj), ())]
+        pool = near or [b for bs in cells.values() for b in bs]
+        return min(pool, key=lambda b: (self.layout[b][0] - x) ** 2 + (self.layout[b][1] - y) ** 2, default=None)
+
     def _cell(self, bridge: int, row: int, col: int) -> Cell:
         """An element's force where the inverse gives one (0 when untouched); else its ΔC1
         (a light, ambiguous touch); else grey: "cal" while its baseline is taken, "?"."""
@@ -577,7 +757,7 @@ class SkinView:
         return {"received": dict(self.received), "lost": dict(self.lost), "malformed": self.malformed,
                 "daemon_restarts": self.daemon_restarts,
                 "other_sources": sum(self.other_sources.values()) + self.other_sources_more,
-                "unknown_topics": self.unknown_topics, "not_kept": self.not_kept}
+                "unknown_topics": self.unknown_topics, "not_kept": self.not_kept, "bad_fields": self.bad_fields}
 
     def status_lines(self, now: float) -> list[str]:
         """The status area: daemon, links, bridges, loss, rate, estimation time, this view's
@@ -609,12 +789,18 @@ class SkinView:
             lines.append(f"layout: {fmt(self._too_large[0], '.0f')} x {fmt(self._too_large[1], '.0f')} elements "
                          f"of {fmt(self.side * 1e3, '.2f')} mm, beyond the {MAX_GRID} x {MAX_GRID} drawn: "
                          "elements shown unplaced")
+        if self.skin is not None:
+            links = {p.link for p in self.skin.patches.values() if p.ids}
+            lines.append(f"skin: {printable(self.skin.name, 24) or '?'}, {len(self.skin.elements)} elements "
+                         f"in {sum(1 for p in self.skin.patches.values() if p.ids)} patches on {len(links)} links"
+                         + ("" if self._patch_blocks() is not None else " (drawn as the layout's plane)"))
         lost = sum(self.lost.values())
         lines.append(f"this view: {sum(self.received.values())} messages, lost {lost}"
                      + (f"  (daemon dropped {fmt(h['pub_dropped'], '.0f')})" if h.get("pub_dropped") else "")
                      + (f" ({', '.join(f'{k} {v}' for k, v in sorted(self.lost.items()))})" if lost else "")
                      + (f", malformed {self.malformed}" if self.malformed else "")
                      + (f", beyond limits {self.not_kept}" if self.not_kept else "")
+                     + (f", unreadable fields {self.bad_fields}" if self.bad_fields else "")
                      + (f", other topics {self.unknown_topics}" if self.unknown_topics else "")
                      + ("  [PAUSED]" if self.paused else ""))
         return lines

@@ -5,7 +5,8 @@ A :class:`~cellbridge.views.model.Frame` and a size in characters in, rows of
 coloured by its level (its id in the corner when there is room), its label centred in it; each contact is a marker at its
 estimated position (finer than the element) with its id beside it, moved to the nearest
 place (in element units) where a blank keeps it apart from every element's id and label:
-never ``↕02.1N`` read as one word. The layout's +y is
+never ``↕02.1N`` read as one word. A skin on a robot is drawn patch by patch: each
+patch's block with its link and name in the row above it. The layout's +y is
 drawn up, as on the web page and in Foxglove. Cells never shrink below 4×1
 characters: a skin that does not fit then grows the grid beyond the size given, and
 the terminal view scrolls it.
@@ -75,6 +76,18 @@ def layout(frame: Frame, width: int, height: int) -> TextGrid:
     bg0: RGB = (0, 0, 0)
     grid = [[(" ", (200, 200, 200), bg0) for _ in range(frame.cols * cw)] for _ in range(frame.rows * ch)]
     taken: set[tuple[int, int]] = set()  # characters of ids, labels and markers written so far
+    for blk in frame.patches:  # a skin on a robot: each patch's link and name in the row above its block
+        top = (frame.rows - 1 - (blk.row0 + blk.rows)) * ch
+        if not 0 <= top < len(grid):
+            continue
+        room = (blk.cols + 1) * cw - 1  # its block and the gap after it
+        title = blk.title if len(blk.title) <= room else blk.short  # the name alone when narrow
+        title = title if len(title) <= room else title[: max(0, room - 1)] + "…"
+        for i, chx in enumerate(title):
+            x = blk.col0 * cw + i
+            if x < len(grid[top]):
+                grid[top][x] = (chx, (160, 180, 200), bg0)
+                taken.add((top, x))
     for cell in frame.cells:
         bg = level_rgb(cell.level)
         ink = _ink(bg)

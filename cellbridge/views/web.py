@@ -56,7 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Serve one page that shows a running daemon's skin: elements coloured by force,\n"
         "contacts as disks at their estimated position (id, force, diameter), the force\n"
-        "over time of a clicked element, and the mesh's health. Open the printed URL.\n\n"
+        "over time of a clicked element, and the mesh's health. Open the printed URL.\n"
+        "A skin on a robot (a daemon whose [layout] file is a skin description) is drawn\n"
+        "patch by patch, titled by link and name; each contact says where on the robot.\n\n"
         "The page is on loopback (127.0.0.1) by default, reachable from this host only.\n"
         "Binding elsewhere (--host 0.0.0.0, a LAN address) is refused unless access is\n"
         "protected by a token (--token-file): the page and its WebSocket then answer only\n"
@@ -115,6 +117,8 @@ def frame_json(frame: Frame) -> dict[str, Any]:
                       "rgb": level_rgb(c.level), "label": c.label, "line": c.line, "force": num(c.force),
                       "x": num(c.x), "y": num(c.y), "diameter_m": num(c.diameter_m),
                       "observable": list(c.observable)} for c in frame.contacts],
+        "patches": [{"title": b.title, "short": b.short, "row0": b.row0, "col0": b.col0, "rows": b.rows, "cols": b.cols}
+                    for b in frame.patches],
         "status": frame.status, "counters": frame.counters,
     }
 

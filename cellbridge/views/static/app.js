@@ -66,7 +66,23 @@
     const g = state.geometry = geometry(f);
     const boxes = [];  // element ids and forces as drawn: contact labels keep clear of them
     sctx.clearRect(0, 0, skin.width, skin.height);
-    sctx.textAlign = "center"; sctx.textBaseline = "middle";
+    // a skin on a robot: each patch on its own block, its link and name in the row above it
+    sctx.textAlign = "left"; sctx.textBaseline = "middle";
+    for (const p of f.patches || []) {
+      const x = g.pad + p.col0 * g.cell, y = g.pad + (f.rows - p.row0 - p.rows) * g.cell, w = p.cols * g.cell;
+      sctx.strokeStyle = "#4a5a6c"; sctx.lineWidth = 1;
+      sctx.strokeRect(x - 0.5, y - 0.5, w + 1, p.rows * g.cell + 1);
+      const size = Math.max(9, Math.min(13, g.cell / 3));
+      sctx.font = `${size}px sans-serif`; sctx.fillStyle = "#9fb3c8";
+      const room = w + g.cell * 0.8;
+      let text = sctx.measureText(p.title).width <= room ? p.title : p.short;  // the name alone when narrow
+      while (text.length > 1 && sctx.measureText(text).width > room) text = text.slice(0, -2) + "…";
+      const ty = y - g.cell / 2;
+      sctx.fillText(text, x, ty);
+      boxes.push({ x, y: ty - size / 2, w: sctx.measureText(text).width, h: size });
+    }
+    state.patchTitles = (f.patches || []).length;
+    sctx.textAlign = "center";
     for (const c of f.cells) {
       const x = g.pad + c.col * g.cell, y = g.pad + (f.rows - 1 - c.row) * g.cell;
       sctx.fillStyle = rgb(c.rgb);

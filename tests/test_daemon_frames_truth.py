@@ -54,10 +54,10 @@ def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_l
     frame = LayoutStages.frame
 
     def seen(self: LayoutStages, t: float, cycle: int, sampled: np.ndarray, raw: np.ndarray, saturated: np.ndarray,
-             caps: np.ndarray, unchanged: np.ndarray, now: float, inverse: bool = True) -> Any:
+             caps: np.ndarray, unchanged: np.ndarray, now: float, inverse: bool = True, **kw: Any) -> Any:
         assert self.readings is not None and self.layout is not None
         kept = unchanged[self.readings.ref[unchanged]]
-        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse)
+        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, **kw)
         for r, (c1, c2) in zip(sampled.tolist(), raw.tolist()):
             raw_of[r] = (c1, c2)
         ids = self.layout.ids

@@ -33,6 +33,8 @@ from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Mode, ProtocolEr
 from cellbridge.protocol.messages import pack_payload
 
 _UNCHANGED = "u"
+_CLOCK_HZ = 50_000_000  #: chip cycles per second (``span_us`` and ``forget`` are in them)
+_TIME_BACK = 10  #: a child's record this many ``forget`` older than the newest frame sent: time went back
 
 #: An own or passed-on state of one element in one frame: a sample, or unchanged.
 State = ReadoutSample | str
@@ -81,6 +83,9 @@ class FrameReadout:
         self._expand = False  # the last record sent failed: expand unchanged states once
         self._sent: set[tuple[int, int]] = set()  # frames already sent (late records are counted)
         self._sent_order: list[tuple[int, int]] = []
+        #: rate -> the newest frame whose record went: a child's record of an older frame that
+        #: is not waiting here is late however old (``_sent`` remembers only the last frames)
+        self._newest: dict[int, int] = {}
 
     # -- inputs -----------------------------------------------------------------------
     def own(self, index: int, rate: int, mode: Mode, oversampling: int, state: State, slot: int,
@@ -110,10 +115,18 @@ class FrameReadout:
         for s in record.samples:
             self._last[s.bridge] = (record.mode, record.oversampling, s)
         key = (record.rate, record.index)
-        if key in self._sent:
+        p = self._pending.get(key)
+        newest = self._newest.get(record.rate)
+        if newest is not None and (newest - record.index) * _CLOCK_HZ > _TIME_BACK * self.config.forget * record.rate:
+            # far older than any relay holds a record: the skin's time went back (a new root
+            # numbering from 0; this bridge's own frames follow at its next sample)
+            del self._newest[record.rate]
+            self.counters["readout_time_back"] += 1
+        if key in self._sent or (p is None and record.index <= self._newest.get(record.rate, -1)):
+            # its frame's record went (or a newer one did: records go oldest frame first):
+            # passed on now it would only reach the host after the frame was given out
             self.counters["readout_late"] += 1
             return
-        p = self._pending.get(key)
         if p is None:
             # a frame this bridge has not sampled (yet): its slot is planned when the own
             # state comes; until then the record waits here
@@ -165,6 +178,8 @@ class FrameReadout:
             del self._pending[key]
             self._sent.add(key)
             self._sent_order.append(key)
+            if key[1] > self._newest.get(key[0], -1):
+                self._newest[key[0]] = key[1]
             if len(self._sent_order) > 256:
                 self._sent.discard(self._sent_order.pop(0))
             out.extend(self._records(p, tick))
@@ -195,6 +210,9 @@ class FrameReadout:
         if key in self._sent:
             self.counters["readout_own_late"] += 1
             return None
+        if index < self._newest.get(rate, -1) - 1:  # the skin's time went back (a new root)
+            del self._newest[rate]
+            self.counters["readout_time_back"] += 1
         p = self._pending.get(key)
         if p is None:
             p = self._pending[key] = _Pending(index, rate, slot, span)
@@ -232,7 +250,7 @@ class FrameReadout:
         missing = sum(len(g[2]) for g in groups.values())
         if missing:
             self.counters["readout_missing"] += missing
-        span_us = p.span // 50 if p.span else self.config.window * (self.config.depths + 1) // 50
+        span_us = (p.span if p.span else self.config.window * (self.config.depths + 1)) * 1_000_000 // _CLOCK_HZ
         out: list[Readout] = []
         for (mode, over), (samples, unchanged, miss) in groups.items():
             out.extend(_split(Readout(p.index, p.rate, mode, over, tuple(samples), tuple(unchanged), tuple(miss),

@@ -145,3 +145,27 @@ def test_a_child_whose_record_does_not_come_is_listed_missing_at_the_slot() -> N
     assert [x.index for x in passed] == [1]  # frame 2 is not complete before its slot: 7 is expected
     out = r.take(2000)
     assert out[0].unchanged == (5,) and out[0].missing == (7, 9)
+
+
+def test_a_record_of_a_frame_older_than_the_last_record_sent_is_dropped_however_old() -> None:
+    """The gateway (or a relay) remembers the last 256 frames it sent; a child's record of an
+    older one (a relay passing on a record seconds old) went on alone before, and the host got
+    a second record of a frame it had given out. It is counted late instead."""
+    from collections import Counter
+
+    c: Counter[str] = Counter()
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
+    for k in range(300):  # 300 frames at 100 Hz, each sent at its slot
+        r.own(k, 100, Mode.COUNTER, 1, ReadoutSample(1, k, k, 0), k * 500_000, 5000)
+        assert [x.index for x in r.take(k * 500_000)] == [k]
+    r.child(7, Readout(5, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 300 * 500_000)
+    r.own(300, 100, Mode.COUNTER, 1, ReadoutSample(1, 0, 0, 0), 300 * 500_000 + 4000, 5000)
+    assert [x.index for x in r.take(300 * 500_000 + 4000)] == [300]  # frame 5 does not go on again
+    assert c["readout_late"] == 1
+    # the skin's time going back (a new root numbering from 0) is followed, not taken for late
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
+    r.own(100_000, 100, Mode.COUNTER, 1, ReadoutSample(1, 0, 0, 0), 0, 5000)
+    assert [x.index for x in r.take(0)] == [100_000]
+    r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 10)
+    assert c["readout_time_back"] == 1 and c["readout_late"] == 1
+    assert [x.index for x in r.take(1010)] == [2]

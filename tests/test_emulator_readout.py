@@ -169,3 +169,22 @@ def test_a_record_of_a_frame_older_than_the_last_record_sent_is_dropped_however_
     r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 10)
     assert c["readout_time_back"] == 1 and c["readout_late"] == 1
     assert [x.index for x in r.take(1010)] == [2]
+
+
+def test_a_record_too_large_for_a_frame_fills_each_part_before_the_next() -> None:
+    """A relay near the gateway sends most of the skin's samples: a record of 40 samples
+    goes in 3 frames (16, 16, 8), not halved into 4 of 10; every part fits a frame, and the
+    parts hold every state once."""
+    from cellbridge.emulator.readout import _fits, _split
+
+    r = Readout(7, 250, Mode.COUNTER, 1, tuple(ReadoutSample(b, 1_000_000 + b, 2_000_000 + b, 0) for b in range(1, 41)),
+                (50, 51), (60,), 100_000)
+    parts = _split(r)
+    assert all(_fits(p) for p in parts)
+    assert len(parts) == 3, [len(p.samples) for p in parts]
+    assert sorted(s.bridge for p in parts for s in p.samples) == list(range(1, 41))
+    assert [b for p in parts for b in p.unchanged] == [50, 51] and [b for p in parts for b in p.missing] == [60]
+    for a, b in zip(parts, parts[1:]):  # none could have taken the next one's first entry
+        first = b.samples[:1]
+        assert not first or not _fits(Readout(a.index, a.rate, a.mode, a.oversampling, a.samples + first, a.unchanged,
+                                              a.missing, a.span_us))

@@ -86,6 +86,11 @@ class FrameReadout:
         #: rate -> the newest frame whose record went: a child's record of an older frame that
         #: is not waiting here is late however old (``_sent`` remembers only the last frames)
         self._newest: dict[int, int] = {}
+        #: take()'s fast path: nothing can be due before ``_due`` unless a state came
+        #: (own, a child's record) or a child was forgotten since the last look
+        self._changed = False
+        self._due: int | None = None
+        self._expire_at = 0  # children are looked at for expiry at most this often
 
     # -- inputs -----------------------------------------------------------------------
     def own(self, index: int, rate: int, mode: Mode, oversampling: int, state: State, slot: int,
@@ -96,6 +101,7 @@ class FrameReadout:
         if p is None:
             return
         p.own = (mode, oversampling, state)
+        self._changed = True
         if isinstance(state, ReadoutSample):
             self._last[self.me] = (mode, oversampling, state)
 
@@ -103,6 +109,7 @@ class FrameReadout:
         """A child's record (``src``: the neighbour that sent it). A late one (its frame's
         record already went) still says which bridges the child stands for."""
         self._heard_at[src] = tick
+        self._changed = True
         listed = {s.bridge for s in record.samples}
         listed.update(record.unchanged)
         listed.update(record.missing)
@@ -163,13 +170,26 @@ class FrameReadout:
     @property
     def next_tick(self) -> int | None:
         """The earliest slot among the frames waiting (None: nothing waits)."""
-        slots = [p.slot for p in self._pending.values()]
-        return min(slots) if slots else None
+        if self._changed:
+            slots = [p.slot for p in self._pending.values()]
+            return min(slots) if slots else None
+        return self._due
 
     def take(self, tick: int) -> list[Readout]:
         """The records due now, oldest frame first: complete, or at their slot. Each is
         one or more READOUT payloads that each fit a frame."""
-        self._expire(tick)
+        if tick >= self._expire_at:
+            self._expire_at = tick + max(1, self.config.forget // 16)
+            self._expire(tick)
+        if not self._changed and (self._due is None or tick < self._due):
+            return []  # a bridge wakes for much else (its link, beacons): nothing of ours changed
+        self._changed = False
+        out = self._take(tick)
+        slots = [p.slot for p in self._pending.values()]
+        self._due = min(slots) if slots else None
+        return out
+
+    def _take(self, tick: int) -> list[Readout]:
         out: list[Readout] = []
         for key in sorted(self._pending, key=lambda k: (self._pending[k].slot, k)):
             p = self._pending[key]
@@ -199,6 +219,7 @@ class FrameReadout:
                         del self._via[b]
                         self._last.pop(b, None)
                 self.counters["readout_children_forgotten"] += 1
+                self._changed = True  # a frame that waited for this child may be complete now
 
     def _evict(self) -> None:
         oldest = min(self._pending, key=lambda k: (self._pending[k].own is not None, k[1]))

@@ -188,3 +188,17 @@ def test_a_record_too_large_for_a_frame_fills_each_part_before_the_next() -> Non
         first = b.samples[:1]
         assert not first or not _fits(Readout(a.index, a.rate, a.mode, a.oversampling, a.samples + first, a.unchanged,
                                               a.missing, a.span_us))
+
+
+def test_records_of_a_parent_and_its_child_do_not_take_the_same_slot() -> None:
+    """At 250 Hz a relay's record of frame k and its child's record of frame k + 1 wait for
+    the same transmission's end; with equal ranks they started together and the child's
+    was lost to the relay's half duplex (101 in 2 s of a 4x4). A depth's parity in the
+    slots keeps them apart."""
+
+    vm = VirtualMesh(meshgen.grid(4, 4), seed=1, settings=Settings(rate_hz=250), readout=True)
+    vm.run(4.0)  # every bridge on the schedule
+    before = vm.medium.counters.get("half_duplex_at_addressee", 0)
+    vm.run(2.0)
+    lost = vm.medium.counters.get("half_duplex_at_addressee", 0) - before
+    assert lost <= 10, lost

@@ -176,8 +176,9 @@ class FrameReadout:
         return self._due
 
     def take(self, tick: int) -> list[Readout]:
-        """The records due now, oldest frame first: complete, or at their slot. Each is
-        one or more READOUT payloads that each fit a frame."""
+        """The records due now, oldest frame first: complete (and every older frame of
+        its rate gone), or at their slot. Each is one or more READOUT payloads that each
+        fit a frame."""
         if tick >= self._expire_at:
             self._expire_at = tick + max(1, self.config.forget // 16)
             self._expire(tick)
@@ -190,10 +191,18 @@ class FrameReadout:
         return out
 
     def _take(self, tick: int) -> list[Readout]:
+        # In frame order: a frame complete early waits for the older ones of its rate. Sent
+        # before them, it told the host (whose line keeps its order) that their records
+        # were lost, and theirs came after, late (30 of 1755 records on a 4x4's gateway line
+        # at 250 Hz with 1 % loss per hop).
         out: list[Readout] = []
-        for key in sorted(self._pending, key=lambda k: (self._pending[k].slot, k)):
+        blocked: set[int] = set()  # rates with an older frame not due yet
+        for key in sorted(self._pending):
+            if key[0] in blocked:
+                continue
             p = self._pending[key]
             if tick < p.slot and (p.own is None or not self._complete(p)):
+                blocked.add(key[0])
                 continue
             del self._pending[key]
             self._sent.add(key)

@@ -202,3 +202,21 @@ def test_records_of_a_parent_and_its_child_do_not_take_the_same_slot() -> None:
     vm.run(2.0)
     lost = vm.medium.counters.get("half_duplex_at_addressee", 0) - before
     assert lost <= 10, lost
+
+
+def test_a_frame_complete_early_waits_for_the_older_frames_of_its_rate() -> None:
+    """The host reads a record of a later frame on a gateway's line as the loss of the
+    earlier ones (a line keeps its order): a frame whose records all came waits until
+    every older frame's record went, at its slot at the latest."""
+    from collections import Counter
+
+    c: Counter[str] = Counter()
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
+    r.child(7, Readout(0, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 0)  # 7 is expected
+    assert [x.index for x in r.take(1000)] == [0]  # passed on a window later
+    r.own(1, 100, Mode.COUNTER, 1, "u", 10_000, 5000)  # frame 1: 7's record lost on its way
+    r.own(2, 100, Mode.COUNTER, 1, "u", 12_000, 5000)
+    r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 9000)  # frame 2 complete
+    assert r.take(9000) == []  # not before frame 1
+    out = r.take(10_000)  # frame 1 at its slot (7 missing), then frame 2
+    assert [(x.index, x.missing) for x in out] == [(1, (7,)), (2, ())]

@@ -10,7 +10,8 @@ Run: ``.venv/bin/python bench/bench_readout.py [--quick]`` (or ``make bench``). 
    known, on a periodic 8x8 at 250 Hz with four gateways (one per quadrant), lossless and
    with 1 % frame loss on every hop, measured once every bridge is on the schedule; with the
    losses that matter on the cells (``collision_at_addressee``, ``half_duplex_at_addressee``:
-   a record spoilt for the bridge it was sent to) and records that failed after their retry;
+   a record spoilt for the bridge it was sent to), records that failed after their retry,
+   and records a gateway wrote after a later frame's ("behind": the host reads them as lost);
    before it, the cells' capacity: the airtime the busiest relay needs per frame (its
    subtree's samples in and out, half duplex) for one gateway and for four;
 3. event-based traffic against periodic on a 4x4 at 100 Hz, idle and with four moving
@@ -98,7 +99,7 @@ def completeness(quick: bool) -> None:
     print(f"\n2b. frames complete at the gateways, periodic 8x8 at 250 Hz, gateways {gws} (one per quadrant), "
           "once every bridge is on the schedule")
     print(f"{'loss/hop':>8} {'frames':>7} {'complete':>9} {'element-frames':>14} {'known':>8} {'missing':>8} "
-          f"{'coll.@addr':>10} {'h-dup@addr':>10} {'failed':>7} {'target':>7}")
+          f"{'coll.@addr':>10} {'h-dup@addr':>10} {'failed':>7} {'behind':>6} {'target':>7}")
     for loss in (0.0, 0.01):
         mesh = meshgen.grid(8, 8, gateways=gws, loss=loss)
         warm, secs = (8.0, 2.0) if quick else (10.0, 5.0)
@@ -111,13 +112,18 @@ def completeness(quick: bool) -> None:
         vm.run(secs)
         wall = time.perf_counter() - t0
         by: dict[int, Counter[str]] = defaultdict(Counter)
+        behind = 0  # records written after a later frame's on the same line: the host takes them for lost
         for g in gws:
             dec = StreamDecoder()
+            newest = -1
             for _, chunk in vm.serial_chunks[g][n0[g]:]:
                 for f in dec.feed(chunk):
                     if f.type is FrameType.READOUT:
                         r: Readout = f.payload  # type: ignore[assignment]  # a READOUT frame's payload
                         by[r.index].update(s=len(r.samples), u=len(r.unchanged), m=len(r.missing))
+                        if r.part == 0:
+                            behind += r.index <= newest
+                            newest = max(newest, r.index)
         ks = sorted(by)[2:-30]  # whole frames of the window (the first ones began before it)
         total = len(ks) * 64
         known = sum(min(64, by[k]["s"] + by[k]["u"]) for k in ks)
@@ -127,7 +133,7 @@ def completeness(quick: bool) -> None:
         failed = sum(fw.counters.get("readout_failed", 0) for fw in vm.nodes.values()) - f0
         print(f"{loss:>8.0%} {len(ks):>7} {full / max(1, len(ks)):>9.2%} {total:>14} {known / max(1, total):>8.3%} "
               f"{total - known:>8} {med['collision_at_addressee']:>10} {med['half_duplex_at_addressee']:>10} "
-              f"{failed:>7} {'99.9%':>7}   ({warm:g}+{secs:g} s virtual in {wall:.0f} s)")
+              f"{failed:>7} {behind:>6} {'99.9%':>7}   ({warm:g}+{secs:g} s virtual in {wall:.0f} s)")
 
 
 def traffic(quick: bool) -> None:

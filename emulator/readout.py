@@ -90,6 +90,9 @@ class FrameReadout:
         #: (own, a child's record) or a child was forgotten since the last look
         self._changed = False
         self._due: int | None = None
+        #: (child, rate) -> the newest frame it sent a record of: a child sends its records in
+        #: frame order, so one that sent a later frame's record will not send this one's
+        self._child_newest: dict[tuple[int, int], int] = {}
         self._expire_at = 0  # children are looked at for expiry at most this often
 
     # -- inputs -----------------------------------------------------------------------
@@ -110,6 +113,9 @@ class FrameReadout:
         record already went) still says which bridges the child stands for."""
         self._heard_at[src] = tick
         self._changed = True
+        ck = (src, record.rate)
+        if record.index > self._child_newest.get(ck, -1):
+            self._child_newest[ck] = record.index
         listed = {s.bridge for s in record.samples}
         listed.update(record.unchanged)
         listed.update(record.missing)
@@ -215,14 +221,19 @@ class FrameReadout:
         return out
 
     def _complete(self, p: _Pending) -> bool:
+        """Every expected child sent its record of the frame, or a later frame's (then this
+        one's was lost on its way: it is listed missing now rather than at the slot)."""
         heard = p.heard or set()
-        return all(c in heard for c, m in self._members.items() if m)
+        newest = self._child_newest
+        return all(c in heard or newest.get((c, p.rate), -1) > p.index for c, m in self._members.items() if m)
 
     def _expire(self, tick: int) -> None:
         forget = self.config.forget
         for c, at in list(self._heard_at.items()):
             if tick - at > forget:
                 del self._heard_at[c]
+                for ck in [ck for ck in self._child_newest if ck[0] == c]:
+                    del self._child_newest[ck]
                 for b in self._members.pop(c, set()):
                     if self._via.get(b) == c:
                         del self._via[b]

@@ -213,10 +213,31 @@ def test_a_frame_complete_early_waits_for_the_older_frames_of_its_rate() -> None
     c: Counter[str] = Counter()
     r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
     r.child(7, Readout(0, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 0)  # 7 is expected
+    r.child(8, Readout(0, 100, Mode.COUNTER, 1, (ReadoutSample(8, 1, 1, 0),), (), ()), 0)  # so is 8
     assert [x.index for x in r.take(1000)] == [0]  # passed on a window later
-    r.own(1, 100, Mode.COUNTER, 1, "u", 10_000, 5000)  # frame 1: 7's record lost on its way
+    r.own(1, 100, Mode.COUNTER, 1, "u", 10_000, 5000)
     r.own(2, 100, Mode.COUNTER, 1, "u", 12_000, 5000)
-    r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 9000)  # frame 2 complete
-    assert r.take(9000) == []  # not before frame 1
-    out = r.take(10_000)  # frame 1 at its slot (7 missing), then frame 2
+    r.child(7, Readout(1, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 8000)
+    r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 9000)
+    p2 = r._pending[(100, 2)]  # frame 2 as if complete: its own state and every child heard
+    p2.heard = {7, 8}
+    assert r.take(9000) == []  # not before frame 1, which waits for 8
+    out = r.take(10_000)  # frame 1 at its slot (8 missing), then frame 2
+    assert [x.index for x in out] == [1, 2]
+
+
+def test_a_frame_whose_child_already_sent_a_later_record_goes_without_waiting_for_its_slot() -> None:
+    """A child sends its records in frame order: once its record of frame 2 came, its record
+    of frame 1 was lost, and frame 1 goes at once with the child missing (the frames behind
+    it waited for frame 1's slot, 80 ms at a real-time gateway, otherwise)."""
+    from collections import Counter
+
+    c: Counter[str] = Counter()
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
+    r.child(7, Readout(0, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 0)  # 7 is expected
+    assert [x.index for x in r.take(1000)] == [0]
+    r.own(1, 100, Mode.COUNTER, 1, "u", 10_000, 5000)  # 7's record of frame 1 lost on its way
+    r.own(2, 100, Mode.COUNTER, 1, "u", 12_000, 5000)
+    r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 3000)
+    out = r.take(3000)
     assert [(x.index, x.missing) for x in out] == [(1, (7,)), (2, ())]

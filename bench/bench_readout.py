@@ -6,13 +6,20 @@ Run: ``.venv/bin/python bench/bench_readout.py [--quick]`` (or ``make bench``). 
    gates) for 4x4 and 8x8 grids at 100 and 250 Hz, and what a frame took from its gate
    start to its gateway's record on the serial line (p50, p99; records go on as soon as
    they are complete, the slots bound them);
-2. frames complete at the gateway (every element a sample or unchanged) and element-frames
-   known, on a periodic 8x8 at 250 Hz (gateway in a corner), lossless and with 1 % frame
-   loss on every hop;
+2. frames complete at the gateways (every element a sample or unchanged) and element-frames
+   known, on a periodic 8x8 at 250 Hz with four gateways (one per quadrant), lossless and
+   with 1 % frame loss on every hop, measured once every bridge is on the schedule; with the
+   losses that matter on the cells (``collision_at_addressee``, ``half_duplex_at_addressee``:
+   a record spoilt for the bridge it was sent to), records that failed after their retry,
+   and records a gateway wrote after a later frame's ("behind": the host reads them as lost);
+   before it, the cells' capacity: the airtime the busiest relay needs per frame (its
+   subtree's samples in and out, half duplex) for one gateway and for four;
 3. event-based traffic against periodic on a 4x4 at 100 Hz, idle and with four moving
    presses: bits put on the cells, and record bytes on the gateway's serial line;
 4. delivered sample bits at the gateway over the raw bitrate of one of its cells, at
-   250 Hz on grids with the gateway in a corner (two cells) and in the middle (four).
+   250 Hz on grids with the gateway in a corner (two cells) and in the middle (four), and
+   the ceiling of that share for full frames (the header, the record's own fields, the
+   preamble, DIFS and the acknowledgement cost what they cost).
 
 The readings are the emulator's own (its chip and world models); no figure here depends on
 the daemon.
@@ -21,6 +28,7 @@ the daemon.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from collections import Counter, defaultdict
 
@@ -28,14 +36,17 @@ import numpy as np
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
+from cellbridge.emulator.readout import _split
+from cellbridge.emulator.transceiver import PREAMBLE_BITS, TransceiverConfig
 
 from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
-from cellbridge.protocol import FrameType, Readout, StreamDecoder
+from cellbridge.protocol import CRC_LEN, HEADER_LEN, FrameType, Mode, Readout, ReadoutSample, StreamDecoder
 from cellbridge.protocol.messages import pack_payload
 
 WINDOW = 6 * CLOCK_HZ // 1000  # FirmwareConfig.readout_window's default
+SAMPLE_BYTES = 13  # a sample in a READOUT record: [bridge, c1, c2, flags] (c1, c2 uint32)
 
 
 def records(vm: VirtualMesh, gateway: int) -> list[tuple[int, Readout]]:
@@ -69,28 +80,60 @@ def schedule(quick: bool) -> None:
                   f"{np.percentile(a, 50):>7.2f} {np.percentile(a, 99):>7.2f} {a.max():>7.2f}")
 
 
+def capacity() -> None:
+    print("\n2a. airtime the busiest relay needs per frame at least, 8x8 at 250 Hz: a gateway's neighbours "
+          "share its other bridges, at best evenly;\n    a relay (half duplex) takes its subtree's samples in and "
+          "sends them and its own on (13 bytes each; no headers, acknowledgements or gaps)")
+    print(f"{'gateways':<16} {'neighbours':>10} {'subtree >=':>10} {'ms per frame >=':>15} {'period ms':>9} {'fits':>5}")
+    for gws in ((1,), (28,), (10, 14, 42, 46)):
+        mesh = meshgen.grid(8, 8, gateways=gws)
+        nbrs = {x for g in gws for c in mesh.bridge(g).cells for x in mesh.members()[c]} - set(gws)
+        sub = math.ceil((len(mesh.bridges) - len(gws)) / len(nbrs))
+        need = (2 * sub - 1) * SAMPLE_BYTES * 8 / mesh.bitrate * 1000
+        print(f"{','.join(map(str, gws)):<16} {len(nbrs):>10} {sub:>10} {need:>15.2f} {1000 / 250:>9.1f} "
+              f"{'yes' if need < 4.0 else 'NO':>5}")
+
+
 def completeness(quick: bool) -> None:
-    print("\n2. frames complete at the gateway, periodic 8x8 at 250 Hz, gateway in a corner")
+    gws = (10, 14, 42, 46)
+    print(f"\n2b. frames complete at the gateways, periodic 8x8 at 250 Hz, gateways {gws} (one per quadrant), "
+          "once every bridge is on the schedule")
     print(f"{'loss/hop':>8} {'frames':>7} {'complete':>9} {'element-frames':>14} {'known':>8} {'missing':>8} "
-          f"{'target':>7}")
+          f"{'coll.@addr':>10} {'h-dup@addr':>10} {'failed':>7} {'behind':>6} {'target':>7}")
     for loss in (0.0, 0.01):
-        mesh = meshgen.grid(8, 8, loss=loss)
-        secs = 6.0 if quick else 12.0
+        mesh = meshgen.grid(8, 8, gateways=gws, loss=loss)
+        warm, secs = (12.0, 2.0) if quick else (14.0, 5.0)  # mesh time reaches the last bridges in ~10 s
         vm = VirtualMesh(mesh, seed=2, settings=Settings(rate_hz=250), readout=True)
         t0 = time.perf_counter()
+        vm.run(warm)
+        n0 = {g: len(vm.serial_chunks[g]) for g in gws}
+        m0 = Counter(vm.medium.counters)
+        f0 = sum(fw.counters.get("readout_failed", 0) for fw in vm.nodes.values())
         vm.run(secs)
         wall = time.perf_counter() - t0
         by: dict[int, Counter[str]] = defaultdict(Counter)
-        for _, r in records(vm, 1):
-            by[r.index].update(s=len(r.samples), u=len(r.unchanged), m=len(r.missing))
-        # from the moment every bridge is on the readout (mesh time spreads a hop per beacon)
-        ks = sorted(k for k, c in by.items() if c["s"] + c["u"] + c["m"] == 64)
-        ks = [k for k in ks if k >= ks[0] + 250] if ks else []
+        behind = 0  # records written after a later frame's on the same line: the host takes them for lost
+        for g in gws:
+            dec = StreamDecoder()
+            newest = -1
+            for _, chunk in vm.serial_chunks[g][n0[g]:]:
+                for f in dec.feed(chunk):
+                    if f.type is FrameType.READOUT:
+                        r: Readout = f.payload  # type: ignore[assignment]  # a READOUT frame's payload
+                        by[r.index].update(s=len(r.samples), u=len(r.unchanged), m=len(r.missing))
+                        if r.part == 0:
+                            behind += r.index <= newest
+                            newest = max(newest, r.index)
+        ks = sorted(by)[2:-30]  # whole frames of the window (the first ones began before it)
         total = len(ks) * 64
-        known = sum(by[k]["s"] + by[k]["u"] for k in ks)
-        full = sum(1 for k in ks if by[k]["s"] + by[k]["u"] == 64)
+        known = sum(min(64, by[k]["s"] + by[k]["u"]) for k in ks)
+        full = sum(1 for k in ks if by[k]["s"] + by[k]["u"] >= 64)
+        med = {k: vm.medium.counters.get(k, 0) - m0.get(k, 0) for k in ("collision_at_addressee",
+                                                                          "half_duplex_at_addressee")}
+        failed = sum(fw.counters.get("readout_failed", 0) for fw in vm.nodes.values()) - f0
         print(f"{loss:>8.0%} {len(ks):>7} {full / max(1, len(ks)):>9.2%} {total:>14} {known / max(1, total):>8.3%} "
-              f"{total - known:>8} {'99.9%':>7}   ({secs:g} s virtual in {wall:.0f} s)")
+              f"{total - known:>8} {med['collision_at_addressee']:>10} {med['half_duplex_at_addressee']:>10} "
+              f"{failed:>7} {behind:>6} {'99.9%':>7}   ({warm:g}+{secs:g} s virtual in {wall:.0f} s)")
 
 
 def traffic(quick: bool) -> None:
@@ -139,6 +182,18 @@ def efficiency(quick: bool) -> None:
         rate = sample_bits / secs
         print(f"{mesh.name + ('/' + str(gw)):<12} {cells:>13} {rate / 1000:>13.0f} {rate / mesh.bitrate:>17.1%} "
               f"{'90%':>7}")
+    # the ceiling: a record part filled with samples, its acknowledgement, DIFS and SIFS
+    big = Readout(10**6, 250, Mode.COUNTER, 1, tuple(ReadoutSample(b, 10**6, 2 * 10**6, 0) for b in range(1, 65)),
+                  (), (), 100_000)
+    first = _split(big)[0]
+    n = len(first.samples)
+    empty = Readout(first.index, first.rate, first.mode, first.oversampling, ())
+    payload = 8 * (len(pack_payload(first)) - len(pack_payload(empty)))
+    tc = TransceiverConfig()
+    frame_bits = 8 * (HEADER_LEN + CRC_LEN + len(pack_payload(first))) + PREAMBLE_BITS
+    ack_bits = 8 * 24 + PREAMBLE_BITS + tc.sifs_bits
+    print(f"{'ceiling':<12} {'-':>13} {'-':>13} {payload / (frame_bits + tc.difs_bits + ack_bits):>17.1%} {'90%':>7}"
+          f"   (a full part: {n} samples; {payload / (frame_bits + tc.difs_bits):.1%} without its acknowledgement)")
 
 
 def main() -> None:
@@ -146,6 +201,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="shorter runs")
     args = ap.parse_args()
     schedule(args.quick)
+    capacity()
     completeness(args.quick)
     traffic(args.quick)
     efficiency(args.quick)

@@ -11,7 +11,9 @@ edge's loss probability, and each of its bits flips with the edge's bit-error ra
 independently (the number of flipped bits is binomial: at a high rate, several per
 frame, and about one corrupted frame in 65 536 then passes the receiver's CRC-16, as
 on a real line: the host must cope with it). Every outcome is counted
-(``bit_errors``: corrupted deliveries; ``bits_flipped``).
+(``bit_errors``: corrupted deliveries; ``bits_flipped``); a collision or half-duplex loss
+at the bridge a frame was addressed to is also counted as ``collision_at_addressee`` or
+``half_duplex_at_addressee`` (the rest are copies overheard by neighbours, lost to no one).
 """
 
 from __future__ import annotations
@@ -122,6 +124,8 @@ class Medium:
         """The deliveries of ``tx`` at its end: (receiver, cell, bytes as received)."""
         out: list[tuple[int, int, bytes]] = []
         got: set[int] = set()
+        d = tx.data
+        dst = (d[5] << 8 | d[6]) if len(d) > 6 else -1
         if self._tx_end.get(tx.src) == tx.end:
             del self._tx_end[tx.src]
         for key in tx.receivers:
@@ -137,6 +141,8 @@ class Medium:
                 cause = "cut"
             if cause is not None:
                 self.counters[cause] += 1
+                if r == dst:  # spoilt for the bridge it was sent to (not only a copy overheard)
+                    self.counters[f"{cause}_at_addressee"] += 1
                 continue
             loss, ber = edge  # type: ignore[misc]  # edge is set here: a missing edge made cause 'cut' above
             if loss and self._rng.random() < loss:

@@ -223,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
                 late += n
                 if tick - due > settings.period_cycles(CLOCK_HZ):
                     behind += n
-            want = not fw.radio.idle
+            want = fw.radio.contending(tick, SHORT_TIMER)
             if out is not None:  # the contention state after it travels with it: one message
                 if _send(medium, encode_tx(me, out[1], out[0], want, tick), fw):
                     wanting, told = want, tick

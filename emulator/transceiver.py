@@ -99,6 +99,17 @@ class Transceiver:
         """No frame waiting for the cell (a new one may be handed over)."""
         return self._frame is None
 
+    def contending(self, tick: int, horizon: int) -> bool:
+        """Whether this transceiver needs to hear carrier at ``tick``: it holds a frame, other
+        than a readout record (no random backoff) planned to go within ``horizon`` cycles.
+        A real-time shell tells its medium only then: a carrier report takes longer than
+        such a record's wait to come, and the medium starts a transmission that finds its
+        cell busy when the cell is free, as carrier sense would have (so the two messages
+        per record that saying "contending" cost the shell and the medium bought nothing)."""
+        if self._frame is None:
+            return False
+        return not self._urgent or self._at - tick >= horizon
+
     def send(self, frame: bytes, cells: tuple[int, ...], tick: int, attempt: int = 0, urgent: bool = False,
              rank: int = 0) -> None:
         """Contend for ``cells`` with ``frame`` (the previous one must have gone out).

@@ -208,3 +208,23 @@ def test_a_corrupted_frame_that_passes_the_crc_happens_and_the_host_copes() -> N
     for k, data in enumerate(passed):
         p.feed("gw", b"\x00" + cobs.encode(data) + b"\x00", 1001.0 + k)
     assert p.tick(1010.0, force=True)  # health, counting what it could not use
+
+
+def test_a_transceiver_contends_for_carrier_reports_only_for_a_frame_that_waits() -> None:
+    """A real-time shell tells the medium it contends (and gets carrier reports) only while
+    it holds a frame that does not go within the horizon: a readout record goes DIFS and a
+    few slots after the cell is idle, sooner than a report could come."""
+    import random
+
+    from cellbridge.emulator.transceiver import Transceiver
+
+    radio = Transceiver(random.Random(0))
+    assert not radio.contending(0, 50_000)  # nothing held
+    radio.send(b"\x04" * 40, (1,), 0, urgent=True, rank=3)
+    assert not radio.contending(0, 50_000)  # a record, due in microseconds
+    radio.carrier(1, 0, 200_000)  # the cell busy for 4 ms: the record waits behind it
+    radio.advance(10)
+    assert radio.contending(10, 50_000)
+    other = Transceiver(random.Random(0))
+    other.send(b"\x04" * 40, (1,), 0)  # random backoff: contends as before
+    assert other.contending(0, 50_000)

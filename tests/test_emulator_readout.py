@@ -145,3 +145,99 @@ def test_a_child_whose_record_does_not_come_is_listed_missing_at_the_slot() -> N
     assert [x.index for x in passed] == [1]  # frame 2 is not complete before its slot: 7 is expected
     out = r.take(2000)
     assert out[0].unchanged == (5,) and out[0].missing == (7, 9)
+
+
+def test_a_record_of_a_frame_older_than_the_last_record_sent_is_dropped_however_old() -> None:
+    """The gateway (or a relay) remembers the last 256 frames it sent; a child's record of an
+    older one (a relay passing on a record seconds old) went on alone before, and the host got
+    a second record of a frame it had given out. It is counted late instead."""
+    from collections import Counter
+
+    c: Counter[str] = Counter()
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
+    for k in range(300):  # 300 frames at 100 Hz, each sent at its slot
+        r.own(k, 100, Mode.COUNTER, 1, ReadoutSample(1, k, k, 0), k * 500_000, 5000)
+        assert [x.index for x in r.take(k * 500_000)] == [k]
+    r.child(7, Readout(5, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 300 * 500_000)
+    r.own(300, 100, Mode.COUNTER, 1, ReadoutSample(1, 0, 0, 0), 300 * 500_000 + 4000, 5000)
+    assert [x.index for x in r.take(300 * 500_000 + 4000)] == [300]  # frame 5 does not go on again
+    assert c["readout_late"] == 1
+    # the skin's time going back (a new root numbering from 0) is followed, not taken for late
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
+    r.own(100_000, 100, Mode.COUNTER, 1, ReadoutSample(1, 0, 0, 0), 0, 5000)
+    assert [x.index for x in r.take(0)] == [100_000]
+    r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 10)
+    assert c["readout_time_back"] == 1 and c["readout_late"] == 1
+    assert [x.index for x in r.take(1010)] == [2]
+
+
+def test_a_record_too_large_for_a_frame_fills_each_part_before_the_next() -> None:
+    """A relay near the gateway sends most of the skin's samples: a record of 40 samples
+    goes in 3 frames (16, 16, 8), not halved into 4 of 10; every part fits a frame, and the
+    parts hold every state once."""
+    from cellbridge.emulator.readout import _fits, _split
+
+    r = Readout(7, 250, Mode.COUNTER, 1, tuple(ReadoutSample(b, 1_000_000 + b, 2_000_000 + b, 0) for b in range(1, 41)),
+                (50, 51), (60,), 100_000)
+    parts = _split(r)
+    assert all(_fits(p) for p in parts)
+    assert len(parts) == 3, [len(p.samples) for p in parts]
+    assert sorted(s.bridge for p in parts for s in p.samples) == list(range(1, 41))
+    assert [b for p in parts for b in p.unchanged] == [50, 51] and [b for p in parts for b in p.missing] == [60]
+    for a, b in zip(parts, parts[1:]):  # none could have taken the next one's first entry
+        first = b.samples[:1]
+        assert not first or not _fits(Readout(a.index, a.rate, a.mode, a.oversampling, a.samples + first, a.unchanged,
+                                              a.missing, a.span_us))
+
+
+def test_records_of_a_parent_and_its_child_do_not_take_the_same_slot() -> None:
+    """At 250 Hz a relay's record of frame k and its child's record of frame k + 1 wait for
+    the same transmission's end; with equal ranks they started together and the child's
+    was lost to the relay's half duplex (101 in 2 s of a 4x4). A depth's parity in the
+    slots keeps them apart."""
+
+    vm = VirtualMesh(meshgen.grid(4, 4), seed=1, settings=Settings(rate_hz=250), readout=True)
+    vm.run(4.0)  # every bridge on the schedule
+    before = vm.medium.counters.get("half_duplex_at_addressee", 0)
+    vm.run(2.0)
+    lost = vm.medium.counters.get("half_duplex_at_addressee", 0) - before
+    assert lost <= 10, lost
+
+
+def test_a_frame_complete_early_waits_for_the_older_frames_of_its_rate() -> None:
+    """The host reads a record of a later frame on a gateway's line as the loss of the
+    earlier ones (a line keeps its order): a frame whose records all came waits until
+    every older frame's record went, at its slot at the latest."""
+    from collections import Counter
+
+    c: Counter[str] = Counter()
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
+    r.child(7, Readout(0, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 0)  # 7 is expected
+    r.child(8, Readout(0, 100, Mode.COUNTER, 1, (ReadoutSample(8, 1, 1, 0),), (), ()), 0)  # so is 8
+    assert [x.index for x in r.take(1000)] == [0]  # passed on a window later
+    r.own(1, 100, Mode.COUNTER, 1, "u", 10_000, 5000)
+    r.own(2, 100, Mode.COUNTER, 1, "u", 12_000, 5000)
+    r.child(7, Readout(1, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 8000)
+    r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 9000)
+    p2 = r._pending[(100, 2)]  # frame 2 as if complete: its own state and every child heard
+    p2.heard = {7, 8}
+    assert r.take(9000) == []  # not before frame 1, which waits for 8
+    out = r.take(10_000)  # frame 1 at its slot (8 missing), then frame 2
+    assert [x.index for x in out] == [1, 2]
+
+
+def test_a_frame_whose_child_already_sent_a_later_record_goes_without_waiting_for_its_slot() -> None:
+    """A child sends its records in frame order: once its record of frame 2 came, its record
+    of frame 1 was lost, and frame 1 goes at once with the child missing (the frames behind
+    it waited for frame 1's slot, 80 ms at a real-time gateway, otherwise)."""
+    from collections import Counter
+
+    c: Counter[str] = Counter()
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000), c)
+    r.child(7, Readout(0, 100, Mode.COUNTER, 1, (ReadoutSample(7, 1, 1, 0),), (), ()), 0)  # 7 is expected
+    assert [x.index for x in r.take(1000)] == [0]
+    r.own(1, 100, Mode.COUNTER, 1, "u", 10_000, 5000)  # 7's record of frame 1 lost on its way
+    r.own(2, 100, Mode.COUNTER, 1, "u", 12_000, 5000)
+    r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 3000)
+    out = r.take(3000)
+    assert [(x.index, x.missing) for x in out] == [(1, (7,)), (2, ())]

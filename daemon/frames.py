@@ -15,8 +15,17 @@ unknown). A gateway writes a record as soon as it is complete, so records of two
 may come in either order: a frame waits for the frames of its rate before it (each
 complete or at its deadline), and a frame given out after one of which no record came
 at all says so (``after_gap``: an "unchanged" in it may refer to a sample in the lost
-record, so its bridges are missing there). A record of a frame already given out is
-*late*: counted, never used to rewrite what was given out.
+record, so its bridges are missing there). So does the first record of a gateway that
+came from another root's sequence (:meth:`SkinFrames.moved`): what its record before
+said is in no frame here, and the index cannot show a loss across two roots' mesh
+times, so its "unchanged" bridges are missing in that frame. A record of a frame already
+given out is *late*: counted, never used to rewrite what was given out.
+
+A gateway whose line is steadily late (a slower serial path, a USB adapter's buffering)
+would miss every deadline and leave its elements unknown for good: each gateway's
+*lag*, how much later than its readout and serial time its records arrived (the least
+over the last ``LAG_WINDOW`` s, at most ``MAX_LAG``), is added to the deadlines of the
+frames while it is active, when it is more than the ``margin`` covers.
 
 Sans-I/O and layout-free: bridges are ids, times are the caller's. The caller maps a
 frame's mesh time to host time (:class:`~cellbridge.daemon.clock.SkinClock`) and turns
@@ -34,6 +43,7 @@ row over 0.1 s agree; fewer, or a burst of old records among current ones, are o
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -51,6 +61,10 @@ FUTURE_SLACK = 0.25
 #: of arrivals, that restart the sequence (a burst of old records is no restart).
 CONFIRM = 3
 CONFIRM_TIME = 0.1
+#: s over which a gateway's lag is the least of its records' (a line stalled, then
+#: bursting, raises it for this long at most), and the most a deadline waits for it.
+LAG_WINDOW = 1.0
+MAX_LAG = 1.0
 _SAMPLE, _UNCHANGED, _MISSING = 0, 1, 2
 
 
@@ -87,7 +101,8 @@ class SkinFrame:
     gateway's record did not arrive, or it is on no schedule). After a frame of which no
     record came at all (``after_gap``) no bridge is unchanged: "unchanged" may refer to a
     sample in the lost frame, so those bridges are ``missing`` (counted in
-    ``unchanged_after_gap``)."""
+    ``unchanged_after_gap``); so are those a gateway's first record in the sequence says
+    unchanged."""
 
     index: int
     rate: int
@@ -108,7 +123,7 @@ class SkinFrame:
 
 
 class _Gateway:
-    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key", "back_at", "back_since")
+    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key", "back_at", "back_since", "lags")
 
     def __init__(self) -> None:
         self.last_key = -1  # instant of its newest record taken
@@ -119,14 +134,30 @@ class _Gateway:
         self.back_key = -1  # the last of them, and when it came
         self.back_at = -math.inf
         self.back_since = -math.inf  # when the first of them came
+        self.lags: deque[tuple[float, float]] = deque()  # (arrival, lag) of its records, lags increasing
+
+    def note_lag(self, arrival: float, lag: float) -> None:
+        """A record that arrived ``lag`` s after its frame's readout and serial time."""
+        q = self.lags
+        while q and q[-1][1] >= lag:
+            q.pop()
+        q.append((arrival, lag))
+        while q[0][0] < arrival - LAG_WINDOW:
+            q.popleft()
+
+    @property
+    def lag(self) -> float:
+        """s its records came late, the least over the last ``LAG_WINDOW`` s (at most ``MAX_LAG``)."""
+        return min(self.lags[0][1], MAX_LAG) if self.lags else 0.0
 
 
 class _Pending:
-    __slots__ = ("index", "rate", "key", "t", "deadline", "records")
+    __slots__ = ("index", "rate", "key", "t", "deadline", "records", "fresh")
 
     def __init__(self, index: int, rate: int, key: int, t: float, deadline: float) -> None:
         self.index, self.rate, self.key, self.t, self.deadline = index, rate, key, t, deadline
         self.records: dict[int, dict[int, RecordPart]] = {}  # gateway -> part -> record part
+        self.fresh: set[int] = set()  # gateways whose first record here is in this frame
 
 
 class SkinFrames:
@@ -151,6 +182,7 @@ class SkinFrames:
         self._done = -1  # instant of the newest frame given out
         self._last: tuple[int, int] | None = None  # (index, rate) of the newest frame given out
         self._restarted = False  # the sequence restarted: the next frame given out follows a gap
+        self._moved: set[int] = set()  # gateways come from another root: their next record follows a gap
         self.counts: dict[str, int] = dict.fromkeys(
             ("records", "late_records", "rejected_records", "duplicate_parts", "conflicts", "unchanged_after_gap",
              "frames_complete", "frames_by_deadline", "frames_pushed_out", "frames_missed",
@@ -176,6 +208,8 @@ class SkinFrames:
                 return
             g = self._gw[gateway] = _Gateway()
         key = rec.index * _NS // rec.rate
+        if mapped:
+            g.note_lag(arrival, max(0.0, arrival - t_frame - span - serial))
         if key <= self._done and not self._went_back(gateway, g, key, arrival):
             self.counts["late_records" if mapped else "rejected_records"] += 1
             if mapped and key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one
@@ -195,7 +229,9 @@ class SkinFrames:
             if len(self._pending) >= self.max_pending:
                 self._push_out()
             active = self._active(arrival)
-            deadline = t_frame + max(a.span for a in active) + max(a.serial for a in active) + self.margin
+            lag = max(a.lag for a in active)  # (within the margin, the margin covers it)
+            deadline = (t_frame + max(a.span for a in active) + max(a.serial for a in active) + self.margin
+                        + (lag if lag > self.margin else 0.0))
             p = self._pending[(rec.index, rec.rate)] = _Pending(rec.index, rec.rate, key, t_frame, deadline)
         parts = p.records.setdefault(gateway, {})
         first = next(iter(parts.values()), None)
@@ -206,6 +242,9 @@ class SkinFrames:
             self.counts["duplicate_parts"] += 1
             return
         parts[rec.part] = rec
+        if gateway in self._moved:
+            self._moved.discard(gateway)
+            p.fresh.add(gateway)
 
     def _went_back(self, gateway: int, g: _Gateway, key: int, arrival: float) -> bool:
         """A record of ``gateway`` behind the frames given out: late (a relay may pass on a
@@ -233,6 +272,12 @@ class SkinFrames:
     def forget(self, gateway: int) -> None:
         """Stop following ``gateway`` (gone for good): frames no longer wait for it."""
         self._gw.pop(gateway, None)
+        self._moved.discard(gateway)
+
+    def moved(self, gateway: int) -> None:
+        """``gateway``'s records now name this sequence's root, after another's: the first
+        of them joined here follows a gap (its "unchanged" bridges are missing there)."""
+        self._moved.add(gateway)
 
     def _prune(self, now: float) -> bool:
         """Forget gateways inactive for ten times ``active_for``; whether room was made."""
@@ -318,7 +363,7 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owne
     cols: list[list[int]] = [[], [], [], [], [], []]  # bridge, c1, c2, flags, mode, oversampling
     unchanged: list[int] = []
     missing: list[int] = []
-    for parts in p.records.values():
+    for gw, parts in p.records.items():
         for rec in parts.values():
             n = len(rec.samples)
             if n:
@@ -326,7 +371,11 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owne
                     col.extend(vals)
                 cols[4].extend([int(rec.mode)] * n)
                 cols[5].extend([rec.oversampling] * n)
-            unchanged.extend(rec.unchanged)
+            if gw in p.fresh and not after_gap and rec.unchanged:  # its record before is in no frame here
+                owner.counts["unchanged_after_gap"] += len(rec.unchanged)
+                missing.extend(rec.unchanged)
+            else:
+                unchanged.extend(rec.unchanged)
             missing.extend(rec.missing)
     if after_gap and unchanged:  # "unchanged" may refer to a sample in the frame lost
         owner.counts["unchanged_after_gap"] += len(unchanged)

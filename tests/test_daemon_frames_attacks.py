@@ -1,0 +1,113 @@
+"""The daemon's frame path attacked as a robot's lines attack it: a serial path steadily
+late, a failover that moves a gateway to another root, an index corrupted past the CRC,
+phantom roots filling the table. Each frame must say the truth or say it does not know,
+and every record refused stays counted in health."""
+
+from __future__ import annotations
+
+import random
+
+from cellbridge.daemon.clock import SkinClock
+from cellbridge.daemon.domains import TimeDomains
+from cellbridge.protocol import Mode, Readout, ReadoutSample
+
+HZ = 50_000_000
+RATE = 100
+SPAN_US = 4000
+
+
+def record(k: int, bridges: tuple[int, ...], root: int, unchanged: tuple[int, ...] = ()) -> Readout:
+    return Readout(k, RATE, Mode.COUNTER, 1, tuple(ReadoutSample(b, 100 + b, 200, 0) for b in bridges),
+                   unchanged, (), SPAN_US, 0, 1, root)
+
+
+def at(i: int, lag: float = 0.0) -> float:
+    """When frame ``1000 + i``'s record comes: its readout's end, a little, and ``lag``."""
+    return 100.0 + i / RATE + SPAN_US * 1e-6 + 0.001 + lag
+
+
+def test_a_gateway_whose_serial_path_is_late_has_its_frames_complete_not_its_elements_unknown_for_good() -> None:
+    """Two gateways, one behind a path 50-500 ms slower. Every record of the slow one came
+    after its frame's deadline: its elements were unknown in every frame, for as long as it
+    ran (each record counted late). The deadline learns each gateway's lag."""
+    for lag in (0.05, 0.2, 0.5):
+        td = TimeDomains(HZ, margin=0.02)
+        events = sorted([(at(i), 1, i) for i in range(600)] + [(at(i, lag), 2, i) for i in range(600)])
+        out = []
+        for t, gw, i in events:
+            td.record(gw, record(1000 + i, (gw,), 1), 1, (1000 + i) * HZ // RATE, t, 0.001)
+            out += td.take(t)
+        settled = [f for f in out if f.index >= 1200]  # after the first 2 s
+        assert [f.index for f in settled] == list(range(1200, 1600))
+        assert all(f.complete and 2 in f.bridges for f in settled), lag
+        late = td.counters(200.0)["late_records"]
+        assert late <= (1.0 + lag) * RATE, (lag, late)  # only until its lag is learnt
+
+
+def test_unchanged_in_a_gateways_first_record_after_a_root_move_is_not_believed() -> None:
+    """Bridge 15 sampled, then said unchanged; its next sample was in a record lost on the
+    line just as root 1 died. Gateway 16 took over as root 16 and carried the time on: its
+    next record says 15 unchanged, against the sample the host never got. No index can
+    show that loss across two roots' frames: 15 is missing in that frame (and counted)."""
+    td = TimeDomains(HZ)
+    out = []
+    for i in range(50):
+        td.record(16, record(1000 + i, (15, 16) if i == 0 else (16,), 1, () if i == 0 else (15,)), 1,
+                  (1000 + i) * HZ // RATE, at(i), 0.001)
+        out += td.take(at(i))
+    for i in range(51, 60):  # frame 1050 lost on the line
+        td.record(16, record(1000 + i, (16,), 16, (15,)), 16, (1000 + i) * HZ // RATE, at(i), 0.001)
+        out += td.take(at(i))
+    moved = [f for f in out if f.root == 16]
+    assert moved and 15 not in moved[0].unchanged.tolist() and 15 in moved[0].missing.tolist()
+    assert all(15 in f.unchanged.tolist() for f in moved[1:])  # from then on it speaks for itself again
+    assert td.counters(101.0)["unchanged_after_gap"] >= 1
+    assert all(15 in f.unchanged.tolist() for f in out if f.root == 1 and f.index > 1000)  # (the old root's)
+
+
+def test_an_index_corrupted_a_few_frames_ahead_does_not_move_the_skins_time() -> None:
+    """One record whose index passed the CRC 20 frames ahead (0.2 s, within the map's slack)
+    lowered the map's envelope at once: every frame after it was timed 0.2 s early for a
+    minute, and its deadline passed before its records could come."""
+    c = SkinClock(HZ)
+    for i in range(300):
+        c.teach(1, (1000 + i) * HZ // RATE, at(i))
+    c.teach(1, (1000 + 320) * HZ // RATE, at(300))  # frame 1300's record, its index 20 frames ahead
+    for i in range(301, 600):
+        c.teach(1, (1000 + i) * HZ // RATE, at(i))
+    assert abs(c.frame_time((1000 + 600) * HZ // RATE, 200.0) - at(600)) < 0.002
+    # a line whose delay truly drops (a gateway's first points came 50 ms late) is followed
+    c = SkinClock(HZ)
+    for i in range(100):
+        c.teach(1, (1000 + i) * HZ // RATE, at(i, 0.05))
+    for i in range(100, 110):
+        c.teach(1, (1000 + i) * HZ // RATE, at(i))
+    assert abs(c.frame_time((1000 + 110) * HZ // RATE, 200.0) - at(110)) < 0.002
+
+
+def test_phantom_roots_do_not_lock_out_the_root_a_failover_moves_to_and_counts_survive() -> None:
+    """A noisy line: 63 records passed the CRC corrupted, each naming a root (and a gateway)
+    of its own. Their gateways are remembered for ``forget_after`` (10 min), so the table of
+    roots stayed full of them: when the root gateway died and gateway 16 took over as root
+    16, every record of it was refused for those 10 minutes (the whole skin unknown). And a
+    root forgotten took its counts out of health (counts went down)."""
+    td = TimeDomains(HZ)
+    rng = random.Random(3)
+    for i in range(300):
+        for gw in (1, 16):
+            td.record(gw, record(1000 + i, (gw - 1, gw), 1), 1, (1000 + i) * HZ // RATE, at(i), 0.001)
+        if i < 63:
+            phantom, root, k = rng.randrange(100, 60000), rng.randrange(100, 60000), rng.randrange(1 << 40)
+            td.record(phantom, record(k, (phantom,), root), root, k * HZ // RATE, at(i), 0.001)
+        td.take(at(i))
+    before = td.counters(at(300))
+    assert len(before["time_roots"]) == 64
+    out = []
+    for i in range(1300, 1400):  # 10 s later: root 1 died, gateway 16 is root 16
+        td.record(16, record(1000 + i, (15, 16), 16), 16, (1000 + i) * HZ // RATE, at(i), 0.001)
+        out += td.take(at(i))
+    after = td.counters(at(1400))
+    assert sum(f.root == 16 for f in out) >= 95
+    assert after["rejected_records"] == before["rejected_records"]
+    for key in ("records", "frames_complete", "frames_by_deadline"):
+        assert after[key] >= before[key], key  # health counts never go back

@@ -126,6 +126,8 @@ class TimeDomains:
         if g >= 0:
             if rec.part == 0:
                 jumped = d.clock.teach(gateway, g, now)
+                if jumped:  # the skin's time jumped: its frames start again
+                    d.frames.restart()
             t = d.clock.frame_time(g, now)
         d.frames.add(gateway, rec, now, t, serial)
         return t, jumped

@@ -261,13 +261,20 @@ class SkinFrames:
         if any(o.last_key >= self._done for gw, o in self._gw.items()
                if gw != gateway and arrival - o.arrival <= self.active_for):
             return False
+        self.restart()
+        return True
+
+    def restart(self) -> None:
+        """The skin's time jumped (back, seen here; or either way, confirmed by the map of
+        mesh time): the frames waiting go out as they are, and the sequence starts again,
+        after a gap. Without this a jump forward counted every frame of the jump as missed
+        (606 743 at a failover to a root whose map was last taught at boot)."""
         for p in sorted(self._pending.values(), key=lambda q: q.key):  # the old time's frames, as they are
             self._ready.append(self._give(p, None))
         self._done, self._last, self._restarted = -1, None, True
         for o in self._gw.values():
             o.last_key = -1
         self.counts["restarts"] += 1
-        return True
 
     def forget(self, gateway: int) -> None:
         """Stop following ``gateway`` (gone for good): frames no longer wait for it."""

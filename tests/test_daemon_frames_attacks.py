@@ -111,3 +111,27 @@ def test_phantom_roots_do_not_lock_out_the_root_a_failover_moves_to_and_counts_s
     assert after["rejected_records"] == before["rejected_records"]
     for key in ("records", "frames_complete", "frames_by_deadline"):
         assert after[key] >= before[key], key  # health counts never go back
+
+
+def test_a_failover_to_a_root_last_mapped_at_boot_is_a_restart_not_hundreds_of_thousands_of_frames_missed() -> None:
+    """Gateway 16 was its own root for its first second (its counter's epoch), then followed
+    root 1; when root 1 died it became root 16 again, carrying root 1's time on. Root 16's
+    map jumped (confirmed), and its frame sequence counted every frame between its boot
+    time and root 1's time as missed (606 743 in a 4x4 virtual skin)."""
+    td = TimeDomains(HZ)
+    for i in range(100):  # at boot: root 16, on its own epoch
+        td.record(16, record(5_000 + i, (16,), 16), 16, (5_000 + i) * HZ // RATE, at(i), 0.001)
+        td.take(at(i))
+    for i in range(100, 300):  # following root 1
+        for gw in (1, 16):
+            td.record(gw, record(700_000 + i, (gw,), 1), 1, (700_000 + i) * HZ // RATE, at(i), 0.001)
+        td.take(at(i))
+    out = []
+    for i in range(300, 400):  # root 1 died: gateway 16 is root 16 on root 1's time
+        td.record(16, record(700_000 + i, (16,), 16), 16, (700_000 + i) * HZ // RATE, at(i), 0.001)
+        out += td.take(at(i))
+    c = td.counters(at(400))
+    assert c["frames_missed"] < 20, c["frames_missed"]
+    assert c["restarts"] == 1 and c["rejected_records"] <= 20
+    moved = [f for f in out if f.root == 16]
+    assert moved[0].after_gap and [f.index for f in moved] == list(range(moved[0].index, 700_400))

@@ -180,7 +180,13 @@ class SkinFrames:
         self._pending: dict[tuple[int, int], _Pending] = {}
         self._ready: list[SkinFrame] = []  # given out at the next take (pushed out, or flushed at a restart)
         self._done = -1  # instant of the newest frame given out
+        # the frames given out at that instant: one of another rate at the same instant (every
+        # 2nd of 40 Hz is one of 100 Hz) is not late for it
+        self._done_at: set[tuple[int, int]] = set()
         self._last: tuple[int, int] | None = None  # (index, rate) of the newest frame given out
+        # rate -> index of the newest frame of that rate given out: bridges at two rates make
+        # frames of both, and a frame lost of one must show whatever came of the other between
+        self._by_rate: dict[int, int] = {}
         self._restarted = False  # the sequence restarted: the next frame given out follows a gap
         self._moved: set[int] = set()  # gateways come from another root: their next record follows a gap
         self.counts: dict[str, int] = dict.fromkeys(
@@ -210,7 +216,8 @@ class SkinFrames:
         key = rec.index * _NS // rec.rate
         if mapped:
             g.note_lag(arrival, max(0.0, arrival - t_frame - span - serial))
-        if key <= self._done and not self._went_back(gateway, g, key, arrival):
+        behind = key < self._done or (key == self._done and (rec.index, rec.rate) in self._done_at)
+        if behind and not self._went_back(gateway, g, key, arrival):
             self.counts["late_records" if mapped else "rejected_records"] += 1
             if mapped and key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one
                 # joining, or back): it is active, and the frames after this wait for its records
@@ -272,6 +279,8 @@ class SkinFrames:
         for p in sorted(self._pending.values(), key=lambda q: q.key):  # the old time's frames, as they are
             self._ready.append(self._give(p, None))
         self._done, self._last, self._restarted = -1, None, True
+        self._by_rate.clear()
+        self._done_at = set()
         for o in self._gw.values():
             o.last_key = -1
         self.counts["restarts"] += 1
@@ -332,8 +341,8 @@ class SkinFrames:
         """Whether a frame of ``p``'s rate between the last given out and ``p`` may still come
         (a gateway writes each record as soon as it is complete: two frames' records may come
         in either order): until the deadline of the one just before ``p``."""
-        last = self._last
-        if last is None or last[1] != p.rate or not 1 < p.index - last[0] <= self.max_pending:
+        prev = self._by_rate.get(p.rate)
+        if prev is None or not 1 < p.index - prev <= self.max_pending:
             return False
         return now < p.deadline - 1.0 / p.rate
 
@@ -350,12 +359,20 @@ class SkinFrames:
         c = self.counts
         by_deadline = not whole
         c["frames_by_deadline" if by_deadline else "frames_complete"] += 1
-        last, gap = self._last, self._restarted
-        if last is not None and last[1] == p.rate and p.index > last[0] + 1:
-            c["frames_missed"] += p.index - last[0] - 1  # no record of them came at all
+        prev, gap = self._by_rate.get(p.rate), self._restarted
+        if prev is not None and p.index > prev + 1:
+            if (p.index - prev - 1) / p.rate <= self.active_for:  # (longer: its bridges were at another rate)
+                c["frames_missed"] += p.index - prev - 1  # no record of them came at all
             gap = True
+        elif prev is None and self._by_rate:  # a rate new here after another's frames: the sample its
+            gap = True  # bridges last sent may be in a frame of the old rate that was lost
+        if prev is None or p.index > prev:
+            self._by_rate[p.rate] = p.index
         if p.key > self._done:
             self._done, self._last, self._restarted = p.key, (p.index, p.rate), False
+            self._done_at = {(p.index, p.rate)}
+        elif p.key == self._done:
+            self._done_at.add((p.index, p.rate))
         return _frame(p, bool(whole), by_deadline, gap, self)
 
     def counters(self, now: float) -> dict[str, Any]:

@@ -9,6 +9,7 @@ import random
 
 from cellbridge.daemon.clock import SkinClock
 from cellbridge.daemon.domains import TimeDomains
+from cellbridge.daemon.frames import SkinFrames
 from cellbridge.protocol import Mode, Readout, ReadoutSample
 
 HZ = 50_000_000
@@ -135,3 +136,30 @@ def test_a_failover_to_a_root_last_mapped_at_boot_is_a_restart_not_hundreds_of_t
     assert c["restarts"] == 1 and c["rejected_records"] <= 20
     moved = [f for f in out if f.root == 16]
     assert moved[0].after_gap and [f.index for f in moved] == list(range(moved[0].index, 700_400))
+
+
+def test_bridges_at_two_rates_a_lost_record_of_one_is_seen_and_frames_at_one_instant_are_not_late() -> None:
+    """Bridge 5 at 100 Hz, bridge 7 at 40 Hz, one gateway. Frame 10 at 100 Hz (a new sample of
+    5) was lost on the line: with 40 Hz frames given out between, the gap was looked for only
+    against the newest frame given out, of the other rate, so frame 11 vouched for 5's sample
+    of frame 0 ("unchanged"): a stale reading called known, and nothing counted missed. And
+    every 2nd 40 Hz frame, at the instant of a 100 Hz frame already given out, was late."""
+    sf = SkinFrames(0.01)
+    events = [(k / 100, rec(k, 100, (5,) if k in (0, 10) else (), () if k in (0, 10) else (5,)))
+              for k in range(30) if k != 10]
+    events += [(j / 40, rec(j, 40, (7,) if j == 0 else (), () if j == 0 else (7,))) for j in range(12)]
+    out = []
+    for t, r in sorted(events, key=lambda e: e[0]):
+        sf.add(1, r, t + 0.005, t)
+        out += sf.take(t + 0.005)
+    out += sf.take(10.0)
+    (f11,) = [f for f in out if (f.index, f.rate) == (11, 100)]
+    assert 5 not in f11.unchanged.tolist() and 5 in f11.missing.tolist() and f11.after_gap
+    assert sf.counts["frames_missed"] == 1 and sf.counts["late_records"] == 0
+    assert sorted(f.index for f in out if f.rate == 40) == list(range(12))
+    assert all(7 in f.unchanged.tolist() for f in out if f.rate == 40 and f.index > 0)
+
+
+def rec(k: int, rate: int, samples: tuple[int, ...] = (), unchanged: tuple[int, ...] = ()) -> Readout:
+    return Readout(k, rate, Mode.COUNTER, 1, tuple(ReadoutSample(b, 1, 2, 0) for b in samples), unchanged, (),
+                   SPAN_US, 0, 1)

@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import random
 
+import numpy as np
+
 from cellbridge.daemon.clock import SkinClock
 from cellbridge.daemon.domains import TimeDomains
 from cellbridge.daemon.frames import SkinFrames
+from cellbridge.daemon.readings import ElementReadings
 from cellbridge.protocol import Mode, Readout, ReadoutSample
 
 HZ = 50_000_000
@@ -163,3 +166,22 @@ def test_bridges_at_two_rates_a_lost_record_of_one_is_seen_and_frames_at_one_ins
 def rec(k: int, rate: int, samples: tuple[int, ...] = (), unchanged: tuple[int, ...] = ()) -> Readout:
     return Readout(k, rate, Mode.COUNTER, 1, tuple(ReadoutSample(b, 1, 2, 0) for b in samples), unchanged, (),
                    SPAN_US, 0, 1)
+
+
+def test_an_older_frame_of_another_root_given_out_later_never_vouches_with_a_newer_reference() -> None:
+    """At a failover a gateway's records flap between the old root and the new one for a
+    few frames, both counting the same mesh time: root 16's frame at 7.278 s came before
+    root 1's frame at 7.275 s. Root 1's frame said element 0 unchanged, and the host gave
+    it the sample of root 16's later frame; and a sample of the older frame overwrote the
+    newer reference, so the next frame's "unchanged" vouched for the older sample."""
+    r = ElementReadings(2, 8)
+    one = np.array([0])
+    dc = np.array([[0.5, 0.5]])
+    caps = lambda v: np.array([[v, v]])  # noqa: E731
+    r.scheduled(7.235, 1, one, caps(1.0), one, dc, np.array([False]), 1, one)  # root 1: a sample
+    r.scheduled(7.278, 3, one, caps(2.0), one, dc, np.array([True]), 16, one)  # root 16, later: a new sample
+    kept, kept_caps = r.references(one, 7.275)  # root 1's frame of 7.275 s, given out after, says unchanged
+    assert kept.size == 0  # its bridge's sample then was the one of 7.235 s, not 7.278 s
+    r.scheduled(7.265, 2, one, caps(3.0), one, dc, np.array([False]), 1, one)  # root 1's older sample, late
+    kept, kept_caps = r.references(one, 7.285)  # root 16's next frame: unchanged since 7.278 s
+    assert kept.tolist() == [0] and kept_caps.tolist() == [[2.0, 2.0]]

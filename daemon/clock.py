@@ -295,6 +295,11 @@ class SkinClock:
         self._held[gateway] = (g, now)
         return True
 
+    def held(self, gateway: int, g: int) -> bool:
+        """Whether ``gateway``'s point of global cycle ``g`` is the one held back (its frame
+        is not believed either: a record of it may hold an older sample under a wrong index)."""
+        return self._held.get(gateway, (-1, 0.0))[0] == g
+
     def _floor(self, gateway: int) -> int:
         """The global cycle more than ``slack`` behind the newest of ``gateway``'s own points
         the map took (its points come in order: one behind that is the skin's time gone back,

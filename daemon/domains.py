@@ -128,7 +128,10 @@ class TimeDomains:
                 jumped = d.clock.teach(gateway, g, now)
                 if jumped:  # the skin's time jumped: its frames start again
                     d.frames.restart()
-            t = d.clock.frame_time(g, now)
+            # a record whose point the map holds back (its frame after its arrival, unconfirmed)
+            # is refused: a copy of an older record under an index corrupted ahead was given
+            # out as that later frame, whole, before the frame's own record came
+            t = math.nan if d.clock.held(gateway, g) else d.clock.frame_time(g, now)
         d.frames.add(gateway, rec, now, t, serial)
         return t, jumped
 

@@ -185,3 +185,24 @@ def test_an_older_frame_of_another_root_given_out_later_never_vouches_with_a_new
     r.scheduled(7.265, 2, one, caps(3.0), one, dc, np.array([False]), 1, one)  # root 1's older sample, late
     kept, kept_caps = r.references(one, 7.285)  # root 16's next frame: unchanged since 7.278 s
     assert kept.tolist() == [0] and kept_caps.tolist() == [[2.0, 2.0]]
+
+
+def test_a_record_copied_under_an_index_corrupted_ahead_is_refused_not_given_out_as_that_frame() -> None:
+    """Frame 1200's record came a second time, its index corrupted to 1220 (0.2 s ahead,
+    within the map's slack). It waited as frame 1220 and, whole, went out as soon as 1219
+    did: frame 1220 carried bridge 5's sample of frame 1200 (a stale reading called known),
+    and 1220's own record was late. The map holds that point back; its record is refused."""
+    td = TimeDomains(HZ)
+    out = []
+    for i in range(300):
+        k = 1000 + i
+        r = Readout(k, RATE, Mode.COUNTER, 1, (ReadoutSample(5, 100 + i, 100 + i, 0),), (), (), SPAN_US, 0, 1, 1)
+        td.record(1, r, 1, k * HZ // RATE, at(i), 0.001)
+        if i == 200:
+            bad = Readout(k + 20, RATE, Mode.COUNTER, 1, r.samples, (), (), SPAN_US, 0, 1, 1)
+            td.record(1, bad, 1, (k + 20) * HZ // RATE, at(i), 0.001)
+        out += td.take(at(i))
+    (f,) = [f for f in out if f.index == 1220]
+    assert f.c1.tolist() == [320] and f.complete
+    c = td.counters(at(300))
+    assert c["rejected_records"] == 1 and c["late_records"] == 0

@@ -152,9 +152,10 @@ class TimeDomains:
     def take(self, now: float) -> list[SkinFrame]:
         """Every domain's frames ready by ``now``, by host time (each domain's in its order)."""
         out, self._ready = self._ready, []
+        retired = bool(out)  # (frames of a domain forgotten: of another root than those that follow)
         for d in self._domains.values():
             out.extend(d.frames.take(now))
-        if len(self._domains) > 1 or len(out) > 1:
+        if len(self._domains) > 1 or retired:  # (one domain's frames are in its order already)
             out.sort(key=lambda f: f.t)
         if out:
             self._newest = {"index": out[-1].index, "rate": out[-1].rate, "root": out[-1].root}

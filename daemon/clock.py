@@ -225,12 +225,22 @@ class SkinClock:
     ``confirm_time`` s of arrivals, agree with each other (their mesh times as far apart as
     their arrivals); until then, frames behind such a point are not mapped. A point the map
     takes in between starts the count again.
+
+    A point the map puts between ``tolerance`` and ``slack`` after its arrival would lower
+    the envelope at once, and the envelope only ever goes down: one index corrupted past
+    the CRC a few frames ahead moved every frame's host time that much early for a minute
+    (and the frames' deadlines with it, before their records could come). Such a point is
+    held until the same gateway's next point agrees with it (its mesh time as far after
+    as its arrival, within ``tolerance``): a true earlier arrival is taught one point
+    late, a wrong index never.
     """
 
     def __init__(self, hz: float, slack: float = 0.25, memory: float = 10.0, memory_keys: int = 2500,
-                 confirm: int = 3, confirm_time: float = 0.1) -> None:
+                 confirm: int = 3, confirm_time: float = 0.1, tolerance: float = 0.005) -> None:
         self.hz = float(hz)
         self.slack = slack
+        self.tolerance = tolerance
+        self._held: dict[int, tuple[int, float]] = {}  # gateway -> its point that would lower the map, unconfirmed
         self.confirm, self.confirm_time = confirm, confirm_time
         self.memory = memory  # s of frames whose host time is kept once given
         self.memory_keys = memory_keys  # frames kept before forgetting old ones is looked at
@@ -252,6 +262,8 @@ class SkinClock:
         before no longer hold."""
         floor = self._floor(gateway)
         back = g < floor
+        if not back and self._hold(gateway, g, now):
+            return False
         jumped = taught = self._believed(g, now, back)
         if taught and back:
             self.map.restart(g, now)  # the skin's time went back: two points agree
@@ -267,6 +279,26 @@ class SkinClock:
             self._memo.clear()
             self._newest = -1
         return jumped
+
+    def _hold(self, gateway: int, g: int, now: float) -> bool:
+        """Whether ``gateway``'s point (``g``, ``now``) is held back: the map puts it more than
+        ``tolerance`` (and at most ``slack``) after its arrival, and the gateway's previous
+        point was not one such that agrees with it (see the class)."""
+        held = self._held.pop(gateway, None)
+        if not self.map.synced:
+            return False
+        ahead = float(self.map.to_host(np.array([g], dtype=np.uint64))[0]) - now
+        if not self.tolerance < ahead <= self.slack:
+            return False
+        if held is not None and g > held[0] and abs((g - held[0]) / self.hz - (now - held[1])) <= self.tolerance:
+            return False
+        self._held[gateway] = (g, now)
+        return True
+
+    def held(self, gateway: int, g: int) -> bool:
+        """Whether ``gateway``'s point of global cycle ``g`` is the one held back (its frame
+        is not believed either: a record of it may hold an older sample under a wrong index)."""
+        return self._held.get(gateway, (-1, 0.0))[0] == g
 
     def _floor(self, gateway: int) -> int:
         """The global cycle more than ``slack`` behind the newest of ``gateway``'s own points

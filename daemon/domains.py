@@ -14,7 +14,13 @@ and another took over; frames of the old root no longer wait for it). A line tha
 carries DATA samples on mesh time teaches the map of the root its gateway's newest record
 named (root 0 before any: a skin without the readout has one domain). At most
 ``max_domains`` roots are followed; a record of another root beyond them is refused
-(counted), after forgetting roots no gateway follows.
+(counted), after forgetting the roots no gateway follows that are quiet (none of their
+gateways delivered a record within ``active_for``); when there are none, the quiet roots
+followed by a gateway are forgotten: else records corrupted past the
+CRC, each naming a root of its own (and a gateway never heard again), filled the table
+for as long as their phantom gateways were remembered, and the root a failover moved
+to was refused. A domain forgotten keeps its counts in health and gives out the frames
+still waiting in it; a gateway coming back to it starts a sequence of its own.
 
 Sans-I/O: fed decoded records, global cycles and host times by the pipeline.
 """
@@ -58,6 +64,8 @@ class TimeDomains:
         self.refused = 0  # records of a root beyond max_domains
         self.moves = 0  # gateways that changed root
         self._newest: dict[str, int] | None = None  # the newest frame given out: index, rate, root
+        self._retired: dict[str, int] = {}  # the counts of domains forgotten
+        self._ready: list[SkinFrame] = []  # their frames still waiting, given out at the next take
 
     def configure(self, margin: float, active_for: float, max_pending: int) -> None:
         """A reload's settings, for every domain."""
@@ -70,12 +78,19 @@ class TimeDomains:
         if d is None:
             if len(self._domains) >= self.max_domains:
                 followed = set(self._root_of.values())
-                for r in [r for r, o in self._domains.items() if r not in followed and not o.frames.active(now)]:
-                    del self._domains[r]
+                quiet = [r for r, o in self._domains.items() if not o.frames.active(now)]
+                for r in [r for r in quiet if r not in followed] or quiet:  # those no gateway follows first
+                    self._retire(self._domains.pop(r))
             if len(self._domains) >= self.max_domains:
                 return None
             d = self._domains[root] = _Domain(SkinClock(self.hz), SkinFrames(*self._settings, root=root))
         return d
+
+    def _retire(self, d: _Domain) -> None:
+        """A domain forgotten: its frames waiting go out at the next take, its counts stay."""
+        self._ready.extend(d.frames.take(math.inf))
+        for k, v in d.frames.counts.items():
+            self._retired[k] = self._retired.get(k, 0) + v
 
     def root_of(self, gateway: int) -> int:
         """The root of ``gateway``'s newest record (0: none yet)."""
@@ -101,15 +116,22 @@ class TimeDomains:
             return math.nan, False
         old = self._root_of.get(gateway)
         if old != root:
-            if old is not None and old in self._domains:
-                self._domains[old].frames.forget(gateway)
+            if old is not None:
+                if old in self._domains:
+                    self._domains[old].frames.forget(gateway)
+                d.frames.moved(gateway)  # what it said before is in the old root's frames
                 self.moves += 1
             self._root_of[gateway] = root
         t, jumped = math.nan, False
         if g >= 0:
             if rec.part == 0:
                 jumped = d.clock.teach(gateway, g, now)
-            t = d.clock.frame_time(g, now)
+                if jumped:  # the skin's time jumped: its frames start again
+                    d.frames.restart()
+            # a record whose point the map holds back (its frame after its arrival, unconfirmed)
+            # is refused: a copy of an older record under an index corrupted ahead was given
+            # out as that later frame, whole, before the frame's own record came
+            t = math.nan if d.clock.held(gateway, g) else d.clock.frame_time(g, now)
         d.frames.add(gateway, rec, now, t, serial)
         return t, jumped
 
@@ -129,10 +151,11 @@ class TimeDomains:
     # -- out -----------------------------------------------------------------------------
     def take(self, now: float) -> list[SkinFrame]:
         """Every domain's frames ready by ``now``, by host time (each domain's in its order)."""
-        out: list[SkinFrame] = []
+        out, self._ready = self._ready, []
+        retired = bool(out)  # (frames of a domain forgotten: of another root than those that follow)
         for d in self._domains.values():
             out.extend(d.frames.take(now))
-        if len(self._domains) > 1:
+        if len(self._domains) > 1 or retired:  # (one domain's frames are in its order already)
             out.sort(key=lambda f: f.t)
         if out:
             self._newest = {"index": out[-1].index, "rate": out[-1].rate, "root": out[-1].root}
@@ -148,14 +171,14 @@ class TimeDomains:
 
     def counters(self, now: float) -> dict[str, Any]:
         """The frames' health summed over the domains, with the domains followed."""
-        out: dict[str, Any] = {}
+        out: dict[str, Any] = dict(self._retired)
         for d in self._domains.values():
             c = d.frames.counters(now)
             c.pop("newest")
             for k, v in c.items():
                 out[k] = out.get(k, 0) + v
-        if not out:
-            out = SkinFrames().counters(now)
+        if not self._domains:
+            out = {**SkinFrames().counters(now), **self._retired}
             out.pop("newest")
         out["rejected_records"] = out.get("rejected_records", 0) + self.refused
         return {**out, "newest": self._newest, "time_roots": sorted(r for r in self._domains if r),

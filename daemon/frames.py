@@ -15,8 +15,17 @@ unknown). A gateway writes a record as soon as it is complete, so records of two
 may come in either order: a frame waits for the frames of its rate before it (each
 complete or at its deadline), and a frame given out after one of which no record came
 at all says so (``after_gap``: an "unchanged" in it may refer to a sample in the lost
-record, so its bridges are missing there). A record of a frame already given out is
-*late*: counted, never used to rewrite what was given out.
+record, so its bridges are missing there). So does the first record of a gateway that
+came from another root's sequence (:meth:`SkinFrames.moved`): what its record before
+said is in no frame here, and the index cannot show a loss across two roots' mesh
+times, so its "unchanged" bridges are missing in that frame. A record of a frame already
+given out is *late*: counted, never used to rewrite what was given out.
+
+A gateway whose line is steadily late (a slower serial path, a USB adapter's buffering)
+would miss every deadline and leave its elements unknown for good: each gateway's
+*lag*, how much later than its readout and serial time its records arrived (the least
+over the last ``LAG_WINDOW`` s, at most ``MAX_LAG``), is added to the deadlines of the
+frames while it is active, when it is more than the ``margin`` covers.
 
 Sans-I/O and layout-free: bridges are ids, times are the caller's. The caller maps a
 frame's mesh time to host time (:class:`~cellbridge.daemon.clock.SkinClock`) and turns
@@ -34,6 +43,7 @@ row over 0.1 s agree; fewer, or a burst of old records among current ones, are o
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -51,6 +61,10 @@ FUTURE_SLACK = 0.25
 #: of arrivals, that restart the sequence (a burst of old records is no restart).
 CONFIRM = 3
 CONFIRM_TIME = 0.1
+#: s over which a gateway's lag is the least of its records' (a line stalled, then
+#: bursting, raises it for this long at most), and the most a deadline waits for it.
+LAG_WINDOW = 1.0
+MAX_LAG = 1.0
 _SAMPLE, _UNCHANGED, _MISSING = 0, 1, 2
 
 
@@ -87,7 +101,8 @@ class SkinFrame:
     gateway's record did not arrive, or it is on no schedule). After a frame of which no
     record came at all (``after_gap``) no bridge is unchanged: "unchanged" may refer to a
     sample in the lost frame, so those bridges are ``missing`` (counted in
-    ``unchanged_after_gap``)."""
+    ``unchanged_after_gap``); so are those a gateway's first record in the sequence says
+    unchanged."""
 
     index: int
     rate: int
@@ -108,7 +123,7 @@ class SkinFrame:
 
 
 class _Gateway:
-    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key", "back_at", "back_since")
+    __slots__ = ("last_key", "arrival", "span", "serial", "back", "back_key", "back_at", "back_since", "lags")
 
     def __init__(self) -> None:
         self.last_key = -1  # instant of its newest record taken
@@ -119,14 +134,30 @@ class _Gateway:
         self.back_key = -1  # the last of them, and when it came
         self.back_at = -math.inf
         self.back_since = -math.inf  # when the first of them came
+        self.lags: deque[tuple[float, float]] = deque()  # (arrival, lag) of its records, lags increasing
+
+    def note_lag(self, arrival: float, lag: float) -> None:
+        """A record that arrived ``lag`` s after its frame's readout and serial time."""
+        q = self.lags
+        while q and q[-1][1] >= lag:
+            q.pop()
+        q.append((arrival, lag))
+        while q[0][0] < arrival - LAG_WINDOW:
+            q.popleft()
+
+    @property
+    def lag(self) -> float:
+        """s its records came late, the least over the last ``LAG_WINDOW`` s (at most ``MAX_LAG``)."""
+        return min(self.lags[0][1], MAX_LAG) if self.lags else 0.0
 
 
 class _Pending:
-    __slots__ = ("index", "rate", "key", "t", "deadline", "records")
+    __slots__ = ("index", "rate", "key", "t", "deadline", "records", "fresh")
 
     def __init__(self, index: int, rate: int, key: int, t: float, deadline: float) -> None:
         self.index, self.rate, self.key, self.t, self.deadline = index, rate, key, t, deadline
         self.records: dict[int, dict[int, RecordPart]] = {}  # gateway -> part -> record part
+        self.fresh: set[int] = set()  # gateways whose first record here is in this frame
 
 
 class SkinFrames:
@@ -149,8 +180,15 @@ class SkinFrames:
         self._pending: dict[tuple[int, int], _Pending] = {}
         self._ready: list[SkinFrame] = []  # given out at the next take (pushed out, or flushed at a restart)
         self._done = -1  # instant of the newest frame given out
+        # the frames given out at that instant: one of another rate at the same instant (every
+        # 2nd of 40 Hz is one of 100 Hz) is not late for it
+        self._done_at: set[tuple[int, int]] = set()
         self._last: tuple[int, int] | None = None  # (index, rate) of the newest frame given out
+        # rate -> index of the newest frame of that rate given out: bridges at two rates make
+        # frames of both, and a frame lost of one must show whatever came of the other between
+        self._by_rate: dict[int, int] = {}
         self._restarted = False  # the sequence restarted: the next frame given out follows a gap
+        self._moved: set[int] = set()  # gateways come from another root: their next record follows a gap
         self.counts: dict[str, int] = dict.fromkeys(
             ("records", "late_records", "rejected_records", "duplicate_parts", "conflicts", "unchanged_after_gap",
              "frames_complete", "frames_by_deadline", "frames_pushed_out", "frames_missed",
@@ -176,7 +214,10 @@ class SkinFrames:
                 return
             g = self._gw[gateway] = _Gateway()
         key = rec.index * _NS // rec.rate
-        if key <= self._done and not self._went_back(gateway, g, key, arrival):
+        if mapped:
+            g.note_lag(arrival, max(0.0, arrival - t_frame - span - serial))
+        behind = key < self._done or (key == self._done and (rec.index, rec.rate) in self._done_at)
+        if behind and not self._went_back(gateway, g, key, arrival):
             self.counts["late_records" if mapped else "rejected_records"] += 1
             if mapped and key >= self._done - int(self.active_for * _NS):  # a gateway lagging (one
                 # joining, or back): it is active, and the frames after this wait for its records
@@ -195,7 +236,9 @@ class SkinFrames:
             if len(self._pending) >= self.max_pending:
                 self._push_out()
             active = self._active(arrival)
-            deadline = t_frame + max(a.span for a in active) + max(a.serial for a in active) + self.margin
+            lag = max(a.lag for a in active)  # (within the margin, the margin covers it)
+            deadline = (t_frame + max(a.span for a in active) + max(a.serial for a in active) + self.margin
+                        + (lag if lag > self.margin else 0.0))
             p = self._pending[(rec.index, rec.rate)] = _Pending(rec.index, rec.rate, key, t_frame, deadline)
         parts = p.records.setdefault(gateway, {})
         first = next(iter(parts.values()), None)
@@ -206,6 +249,9 @@ class SkinFrames:
             self.counts["duplicate_parts"] += 1
             return
         parts[rec.part] = rec
+        if gateway in self._moved:
+            self._moved.discard(gateway)
+            p.fresh.add(gateway)
 
     def _went_back(self, gateway: int, g: _Gateway, key: int, arrival: float) -> bool:
         """A record of ``gateway`` behind the frames given out: late (a relay may pass on a
@@ -222,17 +268,32 @@ class SkinFrames:
         if any(o.last_key >= self._done for gw, o in self._gw.items()
                if gw != gateway and arrival - o.arrival <= self.active_for):
             return False
+        self.restart()
+        return True
+
+    def restart(self) -> None:
+        """The skin's time jumped (back, seen here; or either way, confirmed by the map of
+        mesh time): the frames waiting go out as they are, and the sequence starts again,
+        after a gap. Without this a jump forward counted every frame of the jump as missed
+        (606 743 at a failover to a root whose map was last taught at boot)."""
         for p in sorted(self._pending.values(), key=lambda q: q.key):  # the old time's frames, as they are
             self._ready.append(self._give(p, None))
         self._done, self._last, self._restarted = -1, None, True
+        self._by_rate.clear()
+        self._done_at = set()
         for o in self._gw.values():
             o.last_key = -1
         self.counts["restarts"] += 1
-        return True
 
     def forget(self, gateway: int) -> None:
         """Stop following ``gateway`` (gone for good): frames no longer wait for it."""
         self._gw.pop(gateway, None)
+        self._moved.discard(gateway)
+
+    def moved(self, gateway: int) -> None:
+        """``gateway``'s records now name this sequence's root, after another's: the first
+        of them joined here follows a gap (its "unchanged" bridges are missing there)."""
+        self._moved.add(gateway)
 
     def _prune(self, now: float) -> bool:
         """Forget gateways inactive for ten times ``active_for``; whether room was made."""
@@ -280,8 +341,8 @@ class SkinFrames:
         """Whether a frame of ``p``'s rate between the last given out and ``p`` may still come
         (a gateway writes each record as soon as it is complete: two frames' records may come
         in either order): until the deadline of the one just before ``p``."""
-        last = self._last
-        if last is None or last[1] != p.rate or not 1 < p.index - last[0] <= self.max_pending:
+        prev = self._by_rate.get(p.rate)
+        if prev is None or not 1 < p.index - prev <= self.max_pending:
             return False
         return now < p.deadline - 1.0 / p.rate
 
@@ -298,12 +359,20 @@ class SkinFrames:
         c = self.counts
         by_deadline = not whole
         c["frames_by_deadline" if by_deadline else "frames_complete"] += 1
-        last, gap = self._last, self._restarted
-        if last is not None and last[1] == p.rate and p.index > last[0] + 1:
-            c["frames_missed"] += p.index - last[0] - 1  # no record of them came at all
+        prev, gap = self._by_rate.get(p.rate), self._restarted
+        if prev is not None and p.index > prev + 1:
+            if (p.index - prev - 1) / p.rate <= self.active_for:  # (longer: its bridges were at another rate)
+                c["frames_missed"] += p.index - prev - 1  # no record of them came at all
             gap = True
+        elif prev is None and self._by_rate:  # a rate new here after another's frames: the sample its
+            gap = True  # bridges last sent may be in a frame of the old rate that was lost
+        if prev is None or p.index > prev:
+            self._by_rate[p.rate] = p.index
         if p.key > self._done:
             self._done, self._last, self._restarted = p.key, (p.index, p.rate), False
+            self._done_at = {(p.index, p.rate)}
+        elif p.key == self._done:
+            self._done_at.add((p.index, p.rate))
         return _frame(p, bool(whole), by_deadline, gap, self)
 
     def counters(self, now: float) -> dict[str, Any]:
@@ -318,7 +387,7 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owne
     cols: list[list[int]] = [[], [], [], [], [], []]  # bridge, c1, c2, flags, mode, oversampling
     unchanged: list[int] = []
     missing: list[int] = []
-    for parts in p.records.values():
+    for gw, parts in p.records.items():
         for rec in parts.values():
             n = len(rec.samples)
             if n:
@@ -326,7 +395,11 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owne
                     col.extend(vals)
                 cols[4].extend([int(rec.mode)] * n)
                 cols[5].extend([rec.oversampling] * n)
-            unchanged.extend(rec.unchanged)
+            if gw in p.fresh and not after_gap and rec.unchanged:  # its record before is in no frame here
+                owner.counts["unchanged_after_gap"] += len(rec.unchanged)
+                missing.extend(rec.unchanged)
+            else:
+                unchanged.extend(rec.unchanged)
             missing.extend(rec.missing)
     if after_gap and unchanged:  # "unchanged" may refer to a sample in the frame lost
         owner.counts["unchanged_after_gap"] += len(unchanged)

@@ -194,7 +194,7 @@ class LayoutStages:
         back, and how many elements the frame leaves unknown. Requires :attr:`ready`."""
         assert self.elements is not None and self.channels is not None and self.readings is not None
         r = self.readings
-        kept, kept_caps = r.references(unchanged)
+        kept, kept_caps = r.references(unchanged, t)
         known = np.concatenate([sampled, kept])
         every = np.concatenate([caps, kept_caps])
         ns = sampled.shape[0]

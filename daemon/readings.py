@@ -104,9 +104,13 @@ class ElementReadings:
         self.taken, self.late_frames = old.taken, old.late_frames
 
     # -- scheduled -----------------------------------------------------------------------
-    def references(self, rows: NDArray[np.int64]) -> tuple[NDArray[np.int64], FloatArray]:
-        """Of ``rows`` said unchanged, those whose last sample the host has, and its capacitances."""
-        ok = rows[self.ref[rows]]
+    def references(self, rows: NDArray[np.int64], t: float = math.inf) -> tuple[NDArray[np.int64], FloatArray]:
+        """Of ``rows`` said unchanged in a frame at host time ``t``, those whose last sample the
+        host has, and its capacitances. "Unchanged" refers to a sample sent before the frame:
+        a reference taken from a later frame is not it (two roots' frames of one skin
+        interleave while a gateway's records flap between them at a failover)."""
+        with np.errstate(invalid="ignore"):
+            ok = rows[self.ref[rows] & ~(self.ref_t[rows] > t)]
         return ok, self.caps[ok]
 
     def scheduled(self, t: float, cycle: int, sampled: NDArray[np.int64], caps: FloatArray,
@@ -126,10 +130,13 @@ class ElementReadings:
         ok = np.zeros(self.n, dtype=bool)
         ok[known] = True
         self.ref &= ok | ~scope
-        self.caps[sampled] = caps
-        self.ref[sampled] = True
-        self.ref_t[sampled] = t
-        self.ref_cycle[sampled] = cycle
+        with np.errstate(invalid="ignore"):  # a sample of an earlier frame than the reference's (another
+            newer = ~(self.ref_t[sampled] > t)  # root's frame, given out after) is not what the bridge last sent
+        fresh = sampled[newer]
+        self.caps[fresh] = caps[newer]
+        self.ref[fresh] = True
+        self.ref_t[fresh] = t
+        self.ref_cycle[fresh] = cycle
         full = np.full((self.n, 2), np.nan)
         full[known] = dc
         ok &= np.isfinite(full).all(axis=1)  # no ΔC: no baseline yet

@@ -27,13 +27,15 @@ RATE = 100
 
 
 def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_loss: float = 0.0,
-        seconds: float = 9.0
+        seconds: float = 9.0, gateways: tuple[int, ...] = (1,), kill: int = 6, pipeline: list[Pipeline] | None = None
         ) -> tuple[dict[tuple[int, int], tuple[int, int]], list[tuple[int, dict[int, tuple[int, int]], set[int]]]]:
     """(truth, frames): ``truth[(bridge, index)]``: the sample the bridge last sent as of frame
     ``index`` (the one it took then, or its reference when it said unchanged); ``frames``: for
     each frame the daemon gave out, its index, the raw counts it holds of each element it calls
     known, and the elements of the layout. ``line_loss``: the share of the gateway's readout
-    records lost on its serial line (a frame corrupted there: no bridge knows)."""
+    records lost on its serial line (a frame corrupted there: no bridge knows). ``gateways``:
+    the skin's, each on a line of its own; ``kill``: the bridge that dies at 6 s (a relay, or
+    the root gateway); the pipeline is appended to ``pipeline``."""
     truth: dict[tuple[int, int], tuple[int, int]] = {}
     sent: dict[int, tuple[int, int]] = {}
     own = FrameReadout.own
@@ -50,35 +52,50 @@ def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_l
 
     monkeypatch.setattr(FrameReadout, "own", noted)
     frames: list[tuple[int, dict[int, tuple[int, int]], set[int]]] = []
-    raw_of: dict[int, tuple[int, int]] = {}  # the daemon's reference sample of each row, raw
+    # the raw sample of each bridge in each frame the daemon was given (by id: rows move when a
+    # layout from HELLO grows); an element the daemon keeps as unchanged holds the sample of the
+    # frame its reference came from (its ``ref_cycle``), whichever frame that was
+    raw_at: dict[tuple[int, int], tuple[int, int]] = {}
     frame = LayoutStages.frame
 
     def seen(self: LayoutStages, t: float, cycle: int, sampled: np.ndarray, raw: np.ndarray, saturated: np.ndarray,
-             caps: np.ndarray, unchanged: np.ndarray, now: float, inverse: bool = True, **kw: Any) -> Any:
+             caps: np.ndarray, unchanged: np.ndarray, now: float, inverse: bool = True, root: int = 0,
+             missing: np.ndarray | None = None) -> Any:
         assert self.readings is not None and self.layout is not None
-        kept = unchanged[self.readings.ref[unchanged]]
-        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, **kw)
-        for r, (c1, c2) in zip(sampled.tolist(), raw.tolist()):
-            raw_of[r] = (c1, c2)
+        ref_k = {int(r): round(int(c) * RATE / CLOCK_HZ) for r, c in zip(unchanged.tolist(),
+                                                                          self.readings.ref_cycle[unchanged].tolist())}
+        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, root, missing)
         ids = self.layout.ids
-        known = {int(ids[r]): raw_of[r] for r in sampled.tolist() + kept.tolist()}
-        frames.append((round(cycle * RATE / CLOCK_HZ), known, set(ids.tolist())))
+        k = round(cycle * RATE / CLOCK_HZ)
+        for r, (c1, c2) in zip(sampled.tolist(), raw.tolist()):
+            raw_at[(int(ids[r]), k)] = (c1, c2)
+        f = self.readings._frame
+        assert f is not None
+        known = {int(ids[r]): raw_at[(int(ids[r]), k)] for r in sampled.tolist() if not f.unknown[r]}
+        for r in unchanged.tolist():
+            if not f.unknown[r] and r not in sampled:  # the daemon vouched for its previous reading
+                known[int(ids[r])] = raw_at.get((int(ids[r]), ref_k[r]), (-1, -1))
+        frames.append((k, known, set(ids.tolist())))
         return got
 
     monkeypatch.setattr(LayoutStages, "frame", seen)
-    mesh = meshgen.grid(4, 4, loss=0.01)
+    mesh = meshgen.grid(4, 4, gateways=gateways, loss=0.01)
     presses = [Contact(4.0 + 1.2 * i, 0.8, 0.02 + 0.025 * i, 0.1 - 0.02 * i, 3.0, 0.02) for i in range(4)]
     settings = Settings(rate_hz=RATE) if reporting is None else Settings(rate_hz=RATE, reporting=reporting)
     vm = VirtualMesh(mesh, seed=5, world=World(mesh, presses), random_epochs=True, settings=settings, readout=True)
-    vm.kill(6, at=6.0)  # a relay of the skin's middle, mid-run
+    vm.kill(kill, at=6.0)  # mid-run
     vm.run(seconds)
-    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 3}}))
+    p = Pipeline(parse_config({"link": [{"name": f"gw{g}", "url": "/dev/null"} for g in gateways],
+                               "calibration": {"n_baseline": 3}}))
+    if pipeline is not None:
+        pipeline.append(p)
     rng = random.Random(7)
-    for t, data in vm.serial_chunks[1]:
+    reads = sorted((t, g, data) for g in gateways for t, data in vm.serial_chunks[g])
+    for t, g, data in reads:
         if line_loss:
             data = b"".join(encode_stream(f) for f in StreamDecoder().feed(data)
                             if not (isinstance(f.payload, Readout) and rng.random() < line_loss))
-        p.feed("gw", data, T0 + t / CLOCK_HZ)
+        p.feed(f"gw{g}", data, T0 + t / CLOCK_HZ)
         p.contact_job(T0 + t / CLOCK_HZ)
     return truth, frames
 
@@ -101,3 +118,24 @@ def test_every_element_a_frame_calls_known_holds_what_its_bridge_sampled(monkeyp
     assert all(6 not in known for _, known, _ in frames[-100:])  # the killed bridge: unknown after it died
     if not line_loss or reporting is None:  # (an idle event-based element once unknown waits for its heartbeat)
         assert sum(len(known) for _, known, _ in frames[-100:]) > 100 * 12  # the others, rerouted, known
+
+
+@pytest.mark.parametrize("reporting", [None, ReportingMode(40, 1000)], ids=["periodic", "event"])
+def test_the_root_gateway_dying_under_presses_leaves_every_known_element_true(monkeypatch: pytest.MonkeyPatch,
+                                                                              reporting: ReportingMode | None) -> None:
+    """Two gateways, 1 (the time root) and 16; gateway 1 dies at 6 s, mid-press: its subtree
+    reroutes to 16, and 16 becomes root 16 carrying the time on (its records change root).
+    Every element a frame calls known holds what its bridge sampled; the others are known
+    again within a second; and the failover is a restart of root 16's frames, not the
+    hundreds of thousands of frames between 16's boot time and root 1's counted missed."""
+    pipes: list[Pipeline] = []
+    truth, frames = run(monkeypatch, reporting, line_loss=0.03, gateways=(1, 16), kill=1, pipeline=pipes)
+    wrong = [(k, b, got, truth.get((b, k))) for k, known, _ in frames for b, got in known.items()
+             if truth.get((b, k)) != got]
+    assert not wrong, wrong[:10]
+    health = pipes[0].health_body(T0 + 9.0)["frames"]
+    assert 16 in health["time_roots"] and health["root_moves"] >= 1
+    assert health["frames_missed"] < 100, health["frames_missed"]
+    # the other 15, rerouted through gateway 16 and then on root 16's frames, known in the last 2 s
+    if reporting is None:
+        assert all(len(known) == 15 for _, known, _ in frames[-200:]), [len(k) for _, k, _ in frames[-200:]]

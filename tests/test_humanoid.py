@@ -93,3 +93,28 @@ def test_presses_on_the_humanoid_give_contacts_at_the_pressed_links(skin, report
         # 1 cm along the atlas x and 5 mm back along y from the element's centre, on its link
         assert np.linalg.norm(np.asarray(mid["position"]) - skin.position[skin.row_of(element)]) < 0.02
         assert len(cs) > 40  # published frame after frame while pressed
+
+
+def test_mesh_traffic_writes_captures_the_daemon_replays(tmp_path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    from cellbridge.daemon.replay_source import read_records
+
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "cellbridge", "mesh", "traffic", str(HUMANOID), "--seconds", "0.2",
+                           "--reporting", "event:30", "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["elements"] == 1144 and summary["gateways"] == 22 and summary["records"] == 20 * 22
+    caps = sorted(out.glob("gateway-*.cbcap"))
+    assert len(caps) == 22
+    reads = list(read_records(caps[0], "x"))
+    assert len(reads) == 20 and all(b >= a for (a, _), (b, _) in zip(reads, reads[1:]))
+    check = subprocess.run([sys.executable, "-m", "cellbridge", "daemon", "--config", str(out / "daemon.toml"),
+                            "--check"], capture_output=True, text=True, timeout=120)
+    assert check.returncode == 0 and "22 link(s)" in check.stdout + check.stderr
+    bad = subprocess.run([sys.executable, "-m", "cellbridge", "mesh", "traffic", str(tmp_path / "none.toml"),
+                          "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "none.toml" in bad.stderr

@@ -135,7 +135,8 @@ class SkinTraffic:
         self._reporters = None if periodic else [
             Reporter(settings.reporting, CLOCK_HZ // 1000, phase=_stagger(int(b), 1 << 16) / (1 << 16))
             for b in self.ids.tolist()]
-        self._refresh_slot = np.array([_stagger(int(b), refresh) for b in self.ids.tolist()]) if refresh else None
+        self._refresh_slot: NDArray[np.int64] | None = (
+            np.array([_stagger(int(b), refresh) for b in self.ids.tolist()], dtype=np.int64) if refresh else None)
         order = np.argsort(self.tree.depth, kind="stable")[::-1]
         self._levels = [order[self.tree.depth[order] == d] for d in range(int(self.tree.depth.max()), 0, -1)]
         self.counters: Counter[str] = Counter()
@@ -157,11 +158,13 @@ class SkinTraffic:
             return np.ones(c1.shape[0], dtype=bool)
         period = CLOCK_HZ // self.settings.rate_hz
         kept = np.empty(c1.shape[0], dtype=bool)
-        refresh = (index % self.refresh == self._refresh_slot) if self._refresh_slot is not None else None
+        slot = self._refresh_slot
+        refresh: list[bool] = (np.equal(slot, index % self.refresh).tolist() if slot is not None
+                               else [False] * c1.shape[0])
         for i, (rep, a, b, f) in enumerate(zip(self._reporters, c1.tolist(), c2.tolist(), flags.tolist())):
             s = Sample(0, start, a, b, f, index)
             k = rep.wants(s, period, True)
-            if not k and refresh is not None and refresh[i]:
+            if not k and refresh[i]:
                 k = True
                 rep.sent(s)
                 self.counters["readout_refreshed"] += 1

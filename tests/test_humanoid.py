@@ -84,7 +84,7 @@ def test_presses_on_the_humanoid_give_contacts_at_the_pressed_links(skin, report
                 during.setdefault((c["link"], c["patch"]), []).append(c)
     want = {(skin.patch(p).link, p) for p, _, _ in PRESSED}
     assert set(during) == want
-    for (link, patch), cs in during.items():
+    for (_link, patch), cs in during.items():
         (p, r, c) = next(q for q in PRESSED if q[0] == patch)
         element = skin.element_id(p, r, c)
         mid = cs[len(cs) // 2]

@@ -92,6 +92,8 @@ def generate(skin, reporting: str, seconds: float, into: Path) -> dict:
     world = World(mesh_from_skin(skin), presses(skin, seconds, rng))
     traffic = SkinTraffic(skin, world, settings=Settings(reporting=reporting_arg(reporting)), seed=1)
     writers = {g: CaptureWriter(into / f"gw{g}.cbcap") for g in traffic.gateways}
+    for w in writers.values():  # every line's replay shifted by one start: the gateways' offsets kept
+        w.write(T0, b"")
     last: dict[int, float] = {}  # frame index -> s from its gate start to its last record
     first = math.inf  # s from a frame's gate start to its earliest record, least over the run
     c0 = time.process_time()
@@ -194,6 +196,43 @@ def run_daemon(skin, gen: dict, into: Path, reporting: str) -> list[object]:
             fr.get("frames_missed", "-"), fr.get("late_records", "-")]
 
 
+def run_daemon_flat(gen: dict, into: Path, reporting: str) -> list[object]:
+    """The same recording replayed as fast as the daemon takes it, on its recorded times:
+    the daemon's CPU per second of skin (what real speed needs of a core), free of the
+    machine's other load."""
+    links = [{"name": f"gw{g}", "url": f"replay:{into / f'gw{g}.cbcap'}", "replay_speed": 0.0,
+              "replay_clock": "recorded", "wait_for_subscriber": True, "exit_when_done": True}
+             for g in gen["gateways"]]
+    cfg = into / "daemon-flat.toml"
+    ep = write_config(cfg, links, layout={"file": str(HUMANOID)}, health={"interval": 0.5})
+    client = Client(ep, (b"contact", b"health"))
+    health: dict = {}
+    messages = 0
+    try:
+        with daemon(cfg, stderr=into / "daemon-flat.err") as proc:
+            while client.recv(0.2) is None:  # the replay starts once this subscriber is there
+                pass
+            cpu0, _ = group_cpu_rss(proc.pid)
+            w0 = time.monotonic()
+            cpu1, rss = cpu0, 0
+            while proc.poll() is None and time.monotonic() - w0 < 10 * gen["seconds"]:
+                cpu1, rss = max((cpu1, rss), group_cpu_rss(proc.pid))
+                got = client.recv(0.2)
+                if got is not None and got[0] == "health":
+                    health = got[1]
+                elif got is not None:
+                    messages += 1
+            wall = time.monotonic() - w0
+    finally:
+        client.sub.close()
+        client.ctx.term()
+    fr = health.get("frames", {})
+    est = health.get("contact_estimation", {})
+    return [reporting, f"{(cpu1 - cpu0) / gen['seconds']:.3f}", f"{wall:.1f}", f"{rss / 1024:.0f}",
+            fr.get("frames_complete", "-"), fr.get("frames_by_deadline", "-"), fr.get("frames_missed", "-"),
+            fr.get("late_records", "-"), est.get("runs", "-"), messages]
+
+
 def grid_response(lay, contact):
     """(ΔC1, ΔC2) of one disk, each element's overlap counted on a 0.1 mm grid of cell
     centres anchored at the disk's centre: an integration independent of the model's."""
@@ -265,7 +304,9 @@ def main() -> int:
     skin = load_skin(HUMANOID)
     print(f"{HUMANOID.name}: {skin.n} elements, {len(skin.gateways)} gateways, {len(skin.patches)} patches, "
           f"{len({p.link for p in skin.patches})} links")
-    gen_rows, daemon_rows = [], []
+    gen_rows: list[list[object]] = []
+    daemon_rows: list[list[object]] = []
+    flat_rows: list[list[object]] = []
     with tempfile.TemporaryDirectory(prefix="bench_humanoid.") as tmp:
         for reporting in ("periodic", "event:30"):
             into = Path(tmp) / reporting.replace(":", "")
@@ -278,6 +319,7 @@ def main() -> int:
                              f"{g['bytes'] / seconds / len(g['gateways']) / 1e3:.1f}"])
             if not a.skip_daemon:
                 daemon_rows.append(run_daemon(skin, g, into, reporting))
+                flat_rows.append(run_daemon_flat(g, into, reporting))
     short = 0.05 if a.quick else 0.2
     rate = cycle_mesh_rate(skin, short)
     gen_rows.append([f"cycle-level mesh (virtual time), {short} s", f"{short}", f"{rate * short:.1f}",
@@ -291,6 +333,11 @@ def main() -> int:
               ["reporting", "samples/s", "CPU (cores)", "peak RSS MiB", "10-contact frames", "latency median ms",
                "latency p99 ms", "most contacts", "frames complete", "by deadline", "missed", "late records"],
               daemon_rows)
+    if flat_rows:
+        table("The daemon's CPU per second of skin: the same recordings replayed flat out on their recorded times "
+              "(CPU of the group while replaying / recorded s; target periodic ≤ 1, event-based ≤ 0.25)",
+              ["reporting", "CPU s per skin s", "wall s", "peak RSS MiB", "frames complete", "by deadline", "missed",
+               "late records", "estimates run", "messages"], flat_rows)
     table("ContactEstimator.estimate, one frame (CPU of this thread; target medians: 0.5 ms one contact on 4×4, "
           "4 ms ten contacts on the humanoid)",
           ["skin", "readings", "frames", "contacts found (mean)", "CPU median ms", "CPU p99 ms", "target ms"],

@@ -81,6 +81,8 @@ def _traffic(args: argparse.Namespace) -> int:
     t0 = time.time()  # the recording's host times start now (a replay shifts them to its own start)
     c0 = time.process_time()
     try:
+        for w in writers.values():  # an empty read at the start of each: a replay shifts each line to its
+            w.write(t0, b"")  # own start, and this keeps the gateways' records of a frame as far apart as they came
         for t, g, data in traffic.run(args.seconds):
             writers[g].write(t0 + t, data)
     finally:

@@ -21,8 +21,12 @@ The skin is ``cellbridge/skins/humanoid.toml`` (1 144 elements of 40 mm on 12 pa
    resident memory (the largest of the group's processes), the latency of each ``contact``
    message during the 10-contact rounds (from the moment the replay fed the frame's last
    gateway record to the message at the subscriber; the frame is known by its cycles),
-   and the frames: complete by their records, by deadline, missed, late records. Periodic
-   and event-based (threshold 30 counts).
+   and the frames: complete by their records, by deadline, missed, late records; with the
+   machine's load average and how late the replay fed its records at worst (a daemon that
+   does not get its core falls behind the recording: its figures then say so). Periodic
+   and event-based (threshold 30 counts). Then the daemon's core alone on the same
+   recordings, in this process (pipeline and an estimate per frame, CPU per second of
+   skin): what real speed needs of a core whatever else the machine runs.
 3. **The estimate call.** ``ContactEstimator.estimate`` on one frame (clustering, problem
    set-up, fit, σ, light-touch intervals), CPU time of this thread: one contact on a 4×4
    and 10 contacts on the humanoid, on readings its model made and on readings it did not
@@ -190,47 +194,52 @@ def run_daemon(skin, gen: dict, into: Path, reporting: str) -> list[object]:
     fr = health.get("frames", {})
     samples = gen["counters"].get("samples", 0) / gen["seconds"]
     la = np.array(lat) * 1e3
-    return [reporting, f"{samples:,.0f}", f"{cpu_per_s:.3f}", f"{rss / 1024:.0f}", len(lat),
+    late = max((ln.get("replay_late_max", 0.0) for ln in health.get("links", {}).values()), default=0.0)
+    return [reporting, f"{os.getloadavg()[0]:.1f}", f"{samples:,.0f}", f"{cpu_per_s:.3f}", f"{rss / 1024:.0f}",
+            f"{late * 1e3:.0f}", len(lat),
             f"{np.median(la):.2f}" if la.size else "-", f"{np.percentile(la, 99):.2f}" if la.size else "-",
             contacts_max, fr.get("frames_complete", "-"), fr.get("frames_by_deadline", "-"),
             fr.get("frames_missed", "-"), fr.get("late_records", "-")]
 
 
-def run_daemon_flat(gen: dict, into: Path, reporting: str) -> list[object]:
-    """The same recording replayed as fast as the daemon takes it, on its recorded times:
-    the daemon's CPU per second of skin (what real speed needs of a core), free of the
-    machine's other load."""
-    links = [{"name": f"gw{g}", "url": f"replay:{into / f'gw{g}.cbcap'}", "replay_speed": 0.0,
-              "replay_clock": "recorded", "wait_for_subscriber": True, "exit_when_done": True}
-             for g in gen["gateways"]]
-    cfg = into / "daemon-flat.toml"
-    ep = write_config(cfg, links, layout={"file": str(HUMANOID)}, health={"interval": 0.5})
-    client = Client(ep, (b"contact", b"health"))
-    health: dict = {}
-    messages = 0
-    try:
-        with daemon(cfg, stderr=into / "daemon-flat.err") as proc:
-            while client.recv(0.2) is None:  # the replay starts once this subscriber is there
-                pass
-            cpu0, _ = group_cpu_rss(proc.pid)
-            w0 = time.monotonic()
-            cpu1, rss = cpu0, 0
-            while proc.poll() is None and time.monotonic() - w0 < 10 * gen["seconds"]:
-                cpu1, rss = max((cpu1, rss), group_cpu_rss(proc.pid))
-                got = client.recv(0.2)
-                if got is not None and got[0] == "health":
-                    health = got[1]
-                elif got is not None:
-                    messages += 1
-            wall = time.monotonic() - w0
-    finally:
-        client.sub.close()
-        client.ctx.term()
-    fr = health.get("frames", {})
-    est = health.get("contact_estimation", {})
-    return [reporting, f"{(cpu1 - cpu0) / gen['seconds']:.3f}", f"{wall:.1f}", f"{rss / 1024:.0f}",
-            fr.get("frames_complete", "-"), fr.get("frames_by_deadline", "-"), fr.get("frames_missed", "-"),
-            fr.get("late_records", "-"), est.get("runs", "-"), messages]
+def core_capacity(skin, gen: dict, into: Path, reporting: str) -> list[object]:
+    """The daemon's core on the same recording, in this process: the pipeline fed every read
+    in order of arrival, a contact estimate per frame (inline, as the worker runs it); CPU
+    per second of skin (what real speed needs of a core, whatever else the machine runs).
+    The shell's share (asyncio, the replay's pacing, ZeroMQ) is left out."""
+    import heapq
+    import logging
+
+    from cellbridge.daemon.config import parse_config
+    from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
+    from cellbridge.daemon.pipeline import Pipeline
+    from cellbridge.daemon.replay_source import read_records
+
+    links = [{"name": f"gw{g}", "url": "/dev/null"} for g in gen["gateways"]]
+    p = Pipeline(parse_config({"link": links}), skin.layout())
+    p.surface = skin
+    w = ContactWorker(logging.getLogger("bench_humanoid"), InlineExecutor)
+    streams = [((t, g, d) for t, d in read_records(into / f"gw{g}.cbcap", "x")) for g in gen["gateways"]]
+    feed = est = 0.0
+    estimates = 0
+    tick = 0.0
+    for t, g, data in heapq.merge(*streams):
+        c0 = time.thread_time()
+        p.feed(f"gw{g}", data, t)
+        c1 = time.thread_time()
+        if t >= tick:
+            p.tick(t)
+            tick = t + 0.1
+        job = p.contact_job(t)
+        if job is not None:
+            p.contact_frame(job, w.estimate_now(job))
+            estimates += 1
+        c2 = time.thread_time()
+        feed, est = feed + c1 - c0, est + c2 - c1
+    fr = p.frames.counts
+    secs = gen["seconds"]
+    return [reporting, f"{feed / secs:.3f}", f"{est / secs:.3f}", f"{(feed + est) / secs:.3f}", estimates,
+            fr["frames_complete"], fr["frames_by_deadline"], fr["frames_missed"], fr["late_records"]]
 
 
 def grid_response(lay, contact):
@@ -319,7 +328,7 @@ def main() -> int:
                              f"{g['bytes'] / seconds / len(g['gateways']) / 1e3:.1f}"])
             if not a.skip_daemon:
                 daemon_rows.append(run_daemon(skin, g, into, reporting))
-                flat_rows.append(run_daemon_flat(g, into, reporting))
+                flat_rows.append(core_capacity(skin, g, into, reporting))
     short = 0.05 if a.quick else 0.2
     rate = cycle_mesh_rate(skin, short)
     gen_rows.append([f"cycle-level mesh (virtual time), {short} s", f"{short}", f"{rate * short:.1f}",
@@ -330,14 +339,14 @@ def main() -> int:
     if daemon_rows:
         table("The daemon at real speed on the humanoid (22 replay links at recorded speed; targets: periodic CPU "
               "≤ 1 core, event-based ≤ 0.25, RSS ≤ 250 MiB, p99 ≤ 10 ms, no frame lost)",
-              ["reporting", "samples/s", "CPU (cores)", "peak RSS MiB", "10-contact frames", "latency median ms",
+              ["reporting", "load avg", "samples/s", "CPU (cores)", "peak RSS MiB", "replay fed late, max ms", "10-contact frames", "latency median ms",
                "latency p99 ms", "most contacts", "frames complete", "by deadline", "missed", "late records"],
               daemon_rows)
     if flat_rows:
-        table("The daemon's CPU per second of skin: the same recordings replayed flat out on their recorded times "
-              "(CPU of the group while replaying / recorded s; target periodic ≤ 1, event-based ≤ 0.25)",
-              ["reporting", "CPU s per skin s", "wall s", "peak RSS MiB", "frames complete", "by deadline", "missed",
-               "late records", "estimates run", "messages"], flat_rows)
+        table("The daemon's core per second of skin: the same recordings through the pipeline and an estimate per "
+              "frame, in this process (CPU of this thread per recorded s; targets: periodic ≤ 1, event-based ≤ 0.25)",
+              ["reporting", "ingest CPU s/s", "estimates CPU s/s", "together", "estimates", "frames complete",
+               "by deadline", "missed", "late records"], flat_rows)
     table("ContactEstimator.estimate, one frame (CPU of this thread; target medians: 0.5 ms one contact on 4×4, "
           "4 ms ten contacts on the humanoid)",
           ["skin", "readings", "frames", "contacts found (mean)", "CPU median ms", "CPU p99 ms", "target ms"],

@@ -21,11 +21,12 @@ from cellbridge.daemon.messages import Publish
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.skin_mesh import mesh_from_skin
+from cellbridge.emulator.skin_traffic import SkinTraffic
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import World
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
-__all__ = ["run_daemon_on_skin"]
+__all__ = ["run_daemon_on_skin", "run_daemon_on_traffic"]
 
 #: Host time of the virtual run's start (any; the daemon stamps wall-clock times from it).
 T0 = 1_800_000_000.0
@@ -69,6 +70,40 @@ def run_daemon_on_skin(skin: SkinGeometry, world: World | None, seconds: float, 
             for m in p.feed(f"gw{g}", data, T0 + t):
                 if isinstance(m, Publish):
                     yield t, m.topic, m.payload
+        for m in p.tick(T0 + now):
+            if isinstance(m, Publish):
+                yield now, m.topic, m.payload
+        job = p.contact_job(T0 + now)
+        if job is not None:
+            contacts = w.estimate_now(job)
+            if contacts or shown:
+                yield now, "contact", p.contact_frame(job, contacts).payload
+            shown = bool(contacts)
+
+
+def run_daemon_on_traffic(traffic: SkinTraffic, seconds: float, *, step: float = 0.005,
+                          sections: dict[str, Any] | None = None) -> Iterator[tuple[float, str, dict[str, Any]]]:
+    """:func:`run_daemon_on_skin` on a skin's frame-level traffic
+    (:class:`~cellbridge.emulator.skin_traffic.SkinTraffic`: the gateways' readout records
+    without the cells, for a skin too large for the cycle-level mesh): the daemon's core
+    reads each gateway's bytes at their arrival, one link per gateway."""
+    skin = traffic.skin
+    links = [{"name": f"gw{g}", "url": "/dev/null"} for g in traffic.gateways]
+    p = Pipeline(parse_config({"link": links, **(sections or {})}), skin.layout())
+    p.surface = skin
+    w = ContactWorker(logging.getLogger("cellbridge.skin_run"), InlineExecutor)
+    reads = traffic.run(seconds)
+    pending = next(reads, None)
+    now = 0.0
+    shown = False
+    while now < seconds + 0.2:
+        now += step
+        while pending is not None and pending[0] <= now:
+            t, g, data = pending
+            for m in p.feed(f"gw{g}", data, T0 + t):
+                if isinstance(m, Publish):
+                    yield t, m.topic, m.payload
+            pending = next(reads, None)
         for m in p.tick(T0 + now):
             if isinstance(m, Publish):
                 yield now, m.topic, m.payload

@@ -185,6 +185,20 @@ class BridgeClock:
                             self.bits)
 
 
+    def to_host_one(self, cycle: int) -> float:
+        """:meth:`to_host` of one cycle count (the same arithmetic, without arrays: a readout
+        record's point, a hundred a second per gateway)."""
+        ref, t, k, hz = self.params()
+        bits = self.bits
+        d = (cycle - ref) % (1 << 64)
+        if bits < 64:
+            d &= (1 << bits) - 1
+        x = float(d)
+        if d >= 1 << (bits - 1):
+            x -= float(1 << bits)
+        return t + x / hz * k
+
+
 def _line(pts: list[tuple[float, float]], max_slope: float = math.inf) -> tuple[float, float]:
     """Least-squares (intercept, slope) through points (x, residual), the slope within ±max_slope."""
     n = len(pts)
@@ -310,8 +324,7 @@ class SkinClock:
         """Whether a gateway's point of global cycle ``g``, arrived at ``now``, may teach the
         map: at once unless the map puts it more than ``slack`` after its own arrival or it is
         ``back``; then once ``confirm`` such points in a row, over ``confirm_time``, agree."""
-        if not self.map.synced or (not back and float(self.map.to_host(np.array([g], dtype=np.uint64))[0])
-                                   <= now + self.slack):
+        if not self.map.synced or (not back and self.map.to_host_one(g) <= now + self.slack):
             self._jump = []
             return True
         run = self._jump

@@ -152,12 +152,13 @@ class _Gateway:
 
 
 class _Pending:
-    __slots__ = ("index", "rate", "key", "t", "deadline", "records", "fresh")
+    __slots__ = ("index", "rate", "key", "t", "deadline", "records", "fresh", "whole")
 
     def __init__(self, index: int, rate: int, key: int, t: float, deadline: float) -> None:
         self.index, self.rate, self.key, self.t, self.deadline = index, rate, key, t, deadline
         self.records: dict[int, dict[int, RecordPart]] = {}  # gateway -> part -> record part
         self.fresh: set[int] = set()  # gateways whose first record here is in this frame
+        self.whole: set[int] = set()  # the gateways whose record came whole, every part
 
 
 class SkinFrames:
@@ -252,6 +253,8 @@ class SkinFrames:
         if gateway in self._moved:
             self._moved.discard(gateway)
             p.fresh.add(gateway)
+        if len(parts) == rec.parts:
+            p.whole.add(gateway)
 
     def _went_back(self, gateway: int, g: _Gateway, key: int, arrival: float) -> bool:
         """A record of ``gateway`` behind the frames given out: late (a relay may pass on a
@@ -315,9 +318,9 @@ class SkinFrames:
         out, self._ready = self._ready, []
         if not self._pending:
             return out
-        active = [gw for gw, g in self._gw.items() if now - g.arrival <= self.active_for]
+        active = {gw for gw, g in self._gw.items() if now - g.arrival <= self.active_for}
         for p in sorted(self._pending.values(), key=lambda q: q.key):
-            whole = bool(active) and all(self._whole(p, gw) for gw in active)
+            whole = bool(active) and p.whole.issuperset(active)
             if p.deadline > now and not (whole and not self._gap_open(p, now)):
                 break  # (in order: the frames after it wait for it)
             out.append(self._give(p, whole))
@@ -329,13 +332,6 @@ class SkinFrames:
         if self._ready:
             return -math.inf
         return min((p.deadline for p in self._pending.values()), default=math.inf)
-
-    @staticmethod
-    def _whole(p: _Pending, gateway: int) -> bool:
-        parts = p.records.get(gateway)
-        if not parts:
-            return False
-        return len(parts) == next(iter(parts.values())).parts
 
     def _gap_open(self, p: _Pending, now: float) -> bool:
         """Whether a frame of ``p``'s rate between the last given out and ``p`` may still come

@@ -44,6 +44,60 @@ def _run_virtual(args: argparse.Namespace) -> int:
     return 0
 
 
+def _traffic(args: argparse.Namespace) -> int:
+    """A skin description's frame-level traffic into one capture per gateway, and a daemon
+    configuration that replays them (emulator/skin_traffic.py)."""
+    import json
+    import os
+    import time
+
+    from cellbridge.daemon.capture import CaptureWriter
+    from cellbridge.daemon.skin_file import is_skin_file, load_skin
+    from cellbridge.emulator.commands import Settings
+    from cellbridge.emulator.skin_mesh import mesh_from_skin
+    from cellbridge.emulator.skin_traffic import SkinTraffic
+    from cellbridge.emulator.world import World, check_on_skin, load_scenario
+    from cellbridge.tactile.skin_geometry import SkinError
+
+    try:
+        with open(args.skin, encoding="utf-8") as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise MeshError(f"{args.skin}: cannot read: {exc.strerror}") from None
+    if not is_skin_file(text):
+        raise MeshError(f"{args.skin}: not a skin description (no [[patch]] tables): 'mesh run' reads mesh files")
+    try:
+        skin = load_skin(args.skin)
+    except SkinError as exc:
+        raise MeshError(str(exc)) from None
+    mesh = mesh_from_skin(skin)
+    contacts = load_scenario(args.scenario) if args.scenario else []
+    for i, c in enumerate(contacts):
+        check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")
+    traffic = SkinTraffic(skin, World(mesh, contacts), settings=Settings(rate_hz=args.rate, reporting=args.reporting),
+                          seed=args.seed)
+    os.makedirs(args.out, exist_ok=True)
+    writers = {g: CaptureWriter(os.path.join(args.out, f"gateway-{g}.cbcap")) for g in traffic.gateways}
+    t0 = time.time()  # the recording's host times start now (a replay shifts them to its own start)
+    c0 = time.process_time()
+    try:
+        for w in writers.values():  # an empty read at the start of each: a replay shifts each line to its
+            w.write(t0, b"")  # own start, and this keeps the gateways' records of a frame as far apart as they came
+        for t, g, data in traffic.run(args.seconds):
+            writers[g].write(t0 + t, data)
+    finally:
+        for w in writers.values():
+            w.close()
+    cpu = time.process_time() - c0
+    links = "".join(f'\n[[link]]\nname = "gateway-{g}"\nurl = "replay:gateway-{g}.cbcap"\n' for g in traffic.gateways)
+    with open(os.path.join(args.out, "daemon.toml"), "w", encoding="utf-8") as fh:
+        fh.write(f"# cellbridge daemon --config {os.path.join(args.out, 'daemon.toml')}: replays the gateways' lines\n"
+                 f'[layout]\nfile = "{os.path.abspath(args.skin)}"\n{links}')
+    print(json.dumps({"seconds": args.seconds, "elements": skin.n, "gateways": len(traffic.gateways),
+                      "cpu_seconds": round(cpu, 3), **dict(traffic.counters)}, indent=1))
+    return 0
+
+
 def _ids(text: str) -> list[int]:
     try:
         return [int(t) for t in text.split(",") if t.strip()]
@@ -63,6 +117,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "  cellbridge mesh check line8.toml\n"
         "  cellbridge mesh run line8.toml --seconds 5 --scenario presses.toml --capture out/\n"
         "  cellbridge mesh up line8.toml                   # one process per bridge\n"
+        "  cellbridge mesh traffic humanoid.toml --seconds 120 --scenario presses.toml --out run/\n"
+        "                                                  # a skin description's gateway lines, frame level"
         "  cellbridge mesh up grid8.toml --reporting event:40:1000   # idle elements: heartbeats only"
     )
     sub = parser.add_subparsers(dest="mesh_command", metavar="ACTION", required=True)
@@ -86,6 +142,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rn.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE", help=REPORTING_HELP)
     rn.add_argument("--capture", metavar="DIR",
                     help="write each gateway's serial stream to DIR/gateway-<id>.bin (read it with cellbridge decode)")
+    tr = sub.add_parser("traffic", help="a skin description's gateway lines at frame level (the readout records, "
+                                        "no cells): captures the daemon replays")
+    tr.add_argument("skin", help="a skin description (TOML with [[patch]] tables)")
+    tr.add_argument("--seconds", type=seconds_arg, default=10.0, help="virtual seconds (default 10)")
+    tr.add_argument("--scenario", help="TOML file of [[contact]] stimuli (atlas positions)")
+    tr.add_argument("--seed", type=int, default=0, help="seed of the readings' noise (default 0)")
+    tr.add_argument("--rate", type=rate_arg, default=100, help="sampling rate in Hz, 1..250 (default 100)")
+    tr.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE", help=REPORTING_HELP)
+    tr.add_argument("--out", metavar="DIR", required=True,
+                    help="write DIR/gateway-<id>.cbcap (one per gateway) and DIR/daemon.toml (replays them)")
     up = sub.add_parser("up", help="start the medium, the world and one process per bridge (real time)")
     up.add_argument("mesh")
     try:
@@ -114,6 +180,8 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.mesh_command == "run":
             return _run_virtual(args)
+        if args.mesh_command == "traffic":
+            return _traffic(args)
         return int(importlib.import_module("cellbridge.emulator.process_up").run(args) or 0)
     except (MeshError, ScenarioError) as exc:
         print(f"cellbridge mesh: {exc}", file=sys.stderr)

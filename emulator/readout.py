@@ -292,14 +292,8 @@ class FrameReadout:
         if missing:
             self.counters["readout_missing"] += missing
         span_us = (p.span if p.span else self.config.window * (self.config.depths + 1)) * 1_000_000 // _CLOCK_HZ
-        out: list[Readout] = []
-        for (mode, over), (samples, unchanged, miss) in groups.items():
-            out.extend(_split(Readout(p.index, p.rate, mode, over, tuple(samples), tuple(unchanged), tuple(miss),
-                                      min(span_us, 0xFFFF_FFFF))))
+        out = record_parts(p.index, p.rate, groups, span_us)
         n = len(out)
-        if n > 1:
-            out = [Readout(r.index, r.rate, r.mode, r.oversampling, r.samples, r.unchanged, r.missing, r.span_us,
-                           i, n) for i, r in enumerate(out)]
         self.counters["readout_records"] += 1
         self.counters["readout_frames"] += n
         return out
@@ -307,6 +301,23 @@ class FrameReadout:
     def waiting(self) -> int:
         """Frames whose record has not gone yet (a power-off loses them)."""
         return len(self._pending)
+
+
+def record_parts(index: int, rate: int,
+                 groups: dict[tuple[Mode, int], tuple[list[ReadoutSample], list[int], list[int]]],
+                 span_us: int) -> list[Readout]:
+    """One record of frame ``index``: per (mode, oversampling) its samples, unchanged and
+    missing bridges (each list increasing by bridge id), as READOUT payloads that each fit
+    a frame, numbered ``part`` of ``parts`` when there are several."""
+    out: list[Readout] = []
+    for (mode, over), (samples, unchanged, miss) in groups.items():
+        out.extend(_split(Readout(index, rate, mode, over, tuple(samples), tuple(unchanged), tuple(miss),
+                                  min(span_us, 0xFFFF_FFFF))))
+    n = len(out)
+    if n > 1:
+        out = [Readout(r.index, r.rate, r.mode, r.oversampling, r.samples, r.unchanged, r.missing, r.span_us,
+                       i, n) for i, r in enumerate(out)]
+    return out
 
 
 def _fits(r: Readout) -> bool:
@@ -344,4 +355,4 @@ def _part(r: Readout, items: list[tuple[str, object]]) -> Readout:
                    tuple(x for k, x in items if k == "m"), r.span_us)  # type: ignore[misc]
 
 
-__all__ = ["FrameReadout", "ReadoutConfig", "State"]
+__all__ = ["FrameReadout", "ReadoutConfig", "State", "record_parts"]

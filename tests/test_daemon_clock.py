@@ -140,3 +140,17 @@ def test_the_skin_clock_follows_a_jump_back_but_not_a_burst_of_old_frames() -> N
     assert clock.frame_time(199 * hz // 100, 12.0) == pytest.approx(10.0 + 1.99 + 0.004, abs=1e-3)
     jumped = [clock.teach(1, k * hz // 100, 12.0 + k * 0.01 + 0.004) for k in range(15)]  # back to 0
     assert jumped.index(True) == 10 and clock.resets == 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(bits=st.sampled_from([32, 48, 64]), start=st.integers(0, 2**64 - 1), step=st.integers(1, 10**7),
+       cycles=st.lists(st.integers(0, 2**64 - 1), min_size=1, max_size=20))
+def test_to_host_one_is_to_host_of_one_cycle(bits: int, start: int, step: int, cycles: list[int]) -> None:
+    """The scalar map (a readout record's point) gives bit for bit what the vectorised one does."""
+    mask = (1 << bits) - 1
+    c = BridgeClock(50e6, bits=bits)
+    for i in range(12):
+        c.observe((start + i * step) & mask, 100.0 + i * step / 50e6 + (i % 3) * 1e-4)
+    for g in cycles:
+        g &= mask
+        assert c.to_host_one(g) == float(c.to_host(np.array([g], dtype=np.uint64))[0])

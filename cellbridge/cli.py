@@ -24,7 +24,7 @@ SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("decode", "cellbridge.decode", "decode serial-line bytes (COBS frames) into readable frames"),
     ("plot", "cellbridge.plot", "draw figures of the tactile model to PNG (response: the paper's Fig. 2)"),
     ("daemon", "cellbridge.daemon.cli", "run the host service: gateway serial lines in, ZeroMQ messages out"),
-    ("mesh", "cellbridge.emulator.mesh_cli", "generate, check, run and start emulated skins (mesh files)"),
+    ("mesh", "cellbridge.mesh_command", "generate, check, run and start emulated skins (mesh files)"),
     ("bridge", "cellbridge.emulator.process_bridge", "run one emulated bridge in real time (started by 'mesh up')"),
     ("medium", "cellbridge.emulator.process_medium", "relay cell transmissions between bridge processes (UDP on the base port)"),
     ("world", "cellbridge.emulator.process_world", "publish stimuli (contacts) to bridge processes"),

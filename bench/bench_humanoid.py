@@ -236,7 +236,7 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str) -> list[object]:
             estimates += 1
         c2 = time.thread_time()
         feed, est = feed + c1 - c0, est + c2 - c1
-    fr = p.frames.counts
+    fr = p.health_body(t)["frames"]
     secs = gen["seconds"]
     return [reporting, f"{feed / secs:.3f}", f"{est / secs:.3f}", f"{(feed + est) / secs:.3f}", estimates,
             fr["frames_complete"], fr["frames_by_deadline"], fr["frames_missed"], fr["late_records"]]

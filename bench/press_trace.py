@@ -96,8 +96,8 @@ def _instrument() -> None:
         return res
 
     def traced_frame(self: LayoutStages, t, cycle, sampled, raw, saturated, caps, unchanged,  # type: ignore[no-untyped-def]
-                     now, inverse=True):
-        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse)
+                     now, inverse=True, **kw):
+        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, **kw)
         r, ids = self.readings, self.layout.ids
         for row in sampled.tolist() + unchanged.tolist():  # every element the frame says something of
             TRACE["s"].append((now, int(ids[row]), t, bool(r.last_touched[row]), False))

@@ -103,20 +103,51 @@ def cpu_ticks(pid: int) -> int:
     return int(fields[11]) + int(fields[12])
 
 
-def read_records(dev: str, seconds: float) -> list[tuple[float, int, int, tuple[int, ...], int]]:
-    """(arrival, index, rate, bridges with a sample, missing entries) of every READOUT part read."""
+Record = tuple[float, int, int, tuple[int, ...], int, dict[int, int]]
+
+
+def read_records(port: serial.Serial, dec: StreamDecoder, seconds: float) -> list[Record]:
+    """(arrival, index, rate, bridges with a sample, missing entries, bridge -> c1) of every
+    READOUT part read."""
     out = []
-    dec = StreamDecoder()
-    with serial.Serial(dev, timeout=0.05) as port:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            chunk = port.read(max(1, port.in_waiting))
-            now = time.monotonic()
-            for f in dec.feed(chunk):
-                if f.type is FrameType.READOUT:
-                    r = f.payload
-                    out.append((now, r.index, r.rate, tuple(s.bridge for s in r.samples),  # type: ignore[union-attr]
-                                len(r.missing)))  # type: ignore[union-attr]
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        chunk = port.read(max(1, port.in_waiting))
+        now = time.monotonic()
+        for f in dec.feed(chunk):
+            if f.type is FrameType.READOUT:
+                r = f.payload
+                out.append((now, r.index, r.rate, tuple(s.bridge for s in r.samples),  # type: ignore[union-attr]
+                            len(r.missing), {s.bridge: s.c1 for s in r.samples}))  # type: ignore[union-attr]
+    return out
+
+
+def press_onsets(port: serial.Serial, dec: StreamDecoder, base: int, mesh, n: int, seed: int,  # type: ignore[no-untyped-def]
+                 hold: float = 0.4) -> list[tuple[float, int, float]]:
+    """``n`` presses at the centre of random elements, one at a time; for each, (s from the
+    press's start in the world to the first record read whose sample of the pressed element
+    moved half-way from its reading before the press to its reading during it, the frame's
+    index, the record's arrival). NaN when no sample showed it."""
+    import random
+
+    from realskin import world_press
+
+    rng = random.Random(seed)
+    out = []
+    for _ in range(n):
+        b = rng.choice(list(mesh.ids))
+        x, y = mesh.bridge(b).position
+        before = [r[5][b] for r in read_records(port, dec, 0.2) if b in r[5]]
+        start = world_press(base, x, y, hold)
+        during = read_records(port, dec, hold + 0.3)
+        vals = [(a, i, r5[b]) for a, i, _, _, _, r5 in during if b in r5 and a >= start]
+        steady = [v for a, _, v in vals if start + 0.2 <= a <= start + hold]
+        if not before or not steady:
+            out.append((float("nan"), -1, float("nan")))
+            continue
+        b0, b1 = float(np.median(before)), float(np.median(steady))
+        hit = next(((a, i) for a, i, v in vals if abs(v - b0) >= 0.5 * abs(b1 - b0)), None)
+        out.append((float("nan"), -1, float("nan")) if hit is None else (hit[0] - start, hit[1], hit[0]))
     return out
 
 
@@ -134,6 +165,9 @@ def main() -> None:
     ap.add_argument("--rt", action=argparse.BooleanOptionalAction, default=True,
                     help="run the skin at real-time priority (chrt -f 10) when permitted (default on)")
     ap.add_argument("--burners", type=int, default=0, help="busy loops beside the skin (default 0)")
+    ap.add_argument("--presses", type=int, default=0,
+                    help="after the window, press this many times (0.4 s each) at random elements' centres "
+                         "and time each press from the world to its first sample on the pty (default 0)")
     args = ap.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     mesh = meshgen.grid(args.side, args.side)
@@ -144,7 +178,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "skin.toml"
         path.write_text(mesh_to_toml(mesh))
-        cmd = [sys.executable, "-m", "cellbridge", "mesh", "up", str(path), "--base-port", str(free_base_port()),
+        base = free_base_port()
+        cmd = [sys.executable, "-m", "cellbridge", "mesh", "up", str(path), "--base-port", str(base),
                "--rate", str(args.rate), "--reporting", args.reporting]
         if rt:
             cmd = ["chrt", "-f", "10", *cmd]
@@ -168,9 +203,12 @@ def main() -> None:
             procs = skin_processes(proc.pid)
             before = {p: cpu_ticks(p) for p in procs}
             t0 = time.monotonic()
-            records = read_records(dev, args.seconds)
-            wall = time.monotonic() - t0
-            cpu = {role: 100.0 * (cpu_ticks(p) - before[p]) / CLK_TCK / wall for p, role in procs.items()}
+            dec = StreamDecoder()
+            with serial.Serial(dev, timeout=0.05) as port:
+                records = read_records(port, dec, args.seconds)
+                wall = time.monotonic() - t0
+                cpu = {role: 100.0 * (cpu_ticks(p) - before[p]) / CLK_TCK / wall for p, role in procs.items()}
+                onsets = press_onsets(port, dec, base, mesh, args.presses, 1)
         finally:
             for b in burners:
                 os.killpg(b.pid, signal.SIGKILL)
@@ -214,6 +252,17 @@ def main() -> None:
                for what, v in (("first part of a frame", fl), ("every part", lat))])
     else:
         print("readout latency: the gateway's plan of gates was not in its last line")
+    if onsets:
+        ok = [1000 * o for o, _, _ in onsets if np.isfinite(o)]
+        rows = [["press start -> first sample showing it on the pty", len(ok), len(onsets) - len(ok),
+                 *(f"{pct(ok, q):.1f}" for q in (50, 90, 99)), f"{max(ok, default=float('nan')):.1f}"]]
+        if len(gates) == 2:
+            gend = [1000 * (a - (t0_ + (i - k0) * (t1_ - t0_) / (k1 - k0) + gate_s)) for o, i, a in onsets
+                    if np.isfinite(o)]
+            rows.append(["  of which: that frame's gate end -> on the pty", len(gend), "",
+                         *(f"{pct(gend, q):.1f}" for q in (50, 90, 99)), f"{max(gend, default=float('nan')):.1f}"])
+        table("presses (the skin's share of a press's latency, no daemon)",
+              ["what", "n", "not seen", "p50 ms", "p90 ms", "p99 ms", "max ms"], rows)
     # 2. jitter
     if recs:
         t = np.array([r[0] for r in recs])

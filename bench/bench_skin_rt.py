@@ -94,13 +94,16 @@ def skin_processes(pgid: int) -> dict[int, str]:
     return out
 
 
-def cpu_ticks(pid: int) -> int:
+def cpu_ticks(pid: int) -> tuple[int, int, int]:
+    """(user ticks, system ticks, voluntary context switches: its wakes) of a process."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
+        status = Path(f"/proc/{pid}/status").read_text()
     except OSError:
-        return 0
+        return 0, 0, 0
     fields = stat[stat.rindex(")") + 2:].split()
-    return int(fields[11]) + int(fields[12])
+    m = re.search(r"^voluntary_ctxt_switches:\s+(\d+)", status, re.M)
+    return int(fields[11]), int(fields[12]), int(m.group(1)) if m else 0
 
 
 Record = tuple[float, int, int, tuple[int, ...], int, dict[int, int]]
@@ -207,7 +210,11 @@ def main() -> None:
             with serial.Serial(dev, timeout=0.05) as port:
                 records = read_records(port, dec, args.seconds)
                 wall = time.monotonic() - t0
-                cpu = {role: 100.0 * (cpu_ticks(p) - before[p]) / CLK_TCK / wall for p, role in procs.items()}
+                after = {p: cpu_ticks(p) for p in procs}
+                cpu = {role: 100.0 * (sum(after[p][:2]) - sum(before[p][:2])) / CLK_TCK / wall
+                       for p, role in procs.items()}
+                sys_cpu = {role: 100.0 * (after[p][1] - before[p][1]) / CLK_TCK / wall for p, role in procs.items()}
+                wakes = {role: (after[p][2] - before[p][2]) / wall for p, role in procs.items()}
                 onsets = press_onsets(port, dec, base, mesh, args.presses, 1)
         finally:
             for b in burners:
@@ -301,6 +308,12 @@ def main() -> None:
            "target"],
           [[f"{sum(bv):.1f}", f"{min(bv):.1f}", f"{pct(bv, 50):.1f}", f"{max(bv):.1f}", f"{cpu.get('medium', 0):.1f}",
             f"{cpu.get('world', 0):.1f}", f"{total:.1f}", f"<= {CPU_TARGET:g}"]])
+    bw = [v for r, v in wakes.items() if r.startswith("bridge")]
+    bs = [v for r, v in sys_cpu.items() if r.startswith("bridge")]
+    table("wakes (voluntary context switches) per second, and the kernel's share of the CPU",
+          ["bridge min", "bridge p50", "bridge max", "medium", "bridges' system %", "medium's system %"],
+          [[f"{min(bw):.0f}", f"{pct(bw, 50):.0f}", f"{max(bw):.0f}", f"{wakes.get('medium', 0):.0f}",
+            f"{sum(bs):.1f}", f"{sys_cpu.get('medium', 0):.1f}"]])
     # 4. counters (whole run)
     keys = ("late_gates", "behind_gates", "readout_late", "readout_failed", "readout_missing", "urgent_expired",
             "udp_drops", "retries")

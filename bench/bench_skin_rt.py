@@ -21,8 +21,12 @@ reader at the skin's priority), and after ``--settle`` s measures for ``--second
 4. what the bridges counted in the window's run (late gates, records late at a relay,
    records failed, missing entries), from their last lines.
 
-``--burners N`` runs N busy loops at normal priority beside it (a loaded machine). Every
-process started is stopped (its process group), also on failure.
+``--burners N`` runs N busy loops at normal priority beside it (a loaded machine).
+``--hold B:MS:EVERY`` holds bridge B's process up (SIGSTOP, then SIGCONT ``MS`` ms later)
+every ``EVERY`` ms during the window: a process the host does not run for tens of ms, as
+on a loaded machine, but on cue; the jitter table's "not named" column says how many
+frames went without its sample. Every process started is stopped (its process group),
+also on failure.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -109,6 +114,21 @@ def cpu_ticks(pid: int) -> tuple[int, int, int]:
 Record = tuple[float, int, int, tuple[int, ...], int, dict[int, int]]
 
 
+def hold_up(pid: int, held: float, every: float, until: float) -> None:
+    """SIGSTOP ``pid`` for ``held`` s every ``every`` s until ``until`` (monotonic); always
+    leaves it running."""
+    try:
+        while time.monotonic() < until:
+            os.kill(pid, signal.SIGSTOP)
+            try:
+                time.sleep(held)
+            finally:
+                os.kill(pid, signal.SIGCONT)
+            time.sleep(max(0.0, every - held))
+    except ProcessLookupError:
+        pass
+
+
 def read_records(port: serial.Serial, dec: StreamDecoder, seconds: float) -> list[Record]:
     """(arrival, index, rate, bridges with a sample, missing entries, bridge -> c1) of every
     READOUT part read."""
@@ -168,6 +188,8 @@ def main() -> None:
     ap.add_argument("--rt", action=argparse.BooleanOptionalAction, default=True,
                     help="run the skin at real-time priority (chrt -f 10) when permitted (default on)")
     ap.add_argument("--burners", type=int, default=0, help="busy loops beside the skin (default 0)")
+    ap.add_argument("--hold", default=None, metavar="B:MS:EVERY",
+                    help="hold bridge B's process up for MS ms every EVERY ms during the window (SIGSTOP/SIGCONT)")
     ap.add_argument("--presses", type=int, default=0,
                     help="after the window, press this many times (0.4 s each) at random elements' centres "
                          "and time each press from the world to its first sample on the pty (default 0)")
@@ -207,6 +229,13 @@ def main() -> None:
             before = {p: cpu_ticks(p) for p in procs}
             t0 = time.monotonic()
             dec = StreamDecoder()
+            holder = None
+            if args.hold:
+                hb, hms, hevery = (int(x) for x in args.hold.split(":"))
+                hpid = next(p for p, role in procs.items() if role == f"bridge {hb}")
+                holder = threading.Thread(target=hold_up, args=(hpid, hms / 1000, hevery / 1000, t0 + args.seconds),
+                                          daemon=True)
+                holder.start()
             with serial.Serial(dev, timeout=0.05) as port:
                 records = read_records(port, dec, args.seconds)
                 wall = time.monotonic() - t0
@@ -319,6 +348,11 @@ def main() -> None:
             "udp_drops", "retries")
     table("bridge counters over the whole run (sum over bridges)", list(keys),
           [[sum(int(d["counters"].get(k, 0)) for d in last.values()) for k in keys]])
+    if args.hold:
+        hb = int(args.hold.split(":")[0])
+        print(f"bridge {hb}'s counters (held up): {json.dumps(last.get(hb, {}).get('counters', {}))}")
+        print("records late at a relay, per bridge:",
+              {b: d["counters"].get("readout_late", 0) for b, d in sorted(last.items()) if d["counters"].get("readout_late")})
     print(f"(bridges that printed their counters: {len(last)} of {len(mesh.ids)}; "
           f"{len([x for x in lines if re.match('medium:', x)])} medium line)")
 

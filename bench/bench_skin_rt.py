@@ -279,7 +279,7 @@ def main() -> None:
         lat = [1000 * (a - (t0_ + (i - k0) * (t1_ - t0_) / (k1 - k0) + gate_s)) for a, i, *_ in recs]
         # the first part of each frame (a record in parts: the first part's arrival)
         first: dict[int, float] = {}
-        for (a, i, *_), v in zip(recs, lat):
+        for (_a, i, *_), v in zip(recs, lat):
             first.setdefault(i, v)
         fl = list(first.values())
         table("readout: gate end -> record read off the gateway's pty (ms)",

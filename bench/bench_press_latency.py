@@ -200,6 +200,37 @@ def _truth(press: Contact, contacts: list[dict]) -> tuple[float, float, int]:
     return 1e3 * math.hypot(x - press.x, y - press.y), 100 * abs(f - press.force) / press.force, len(set(ids))
 
 
+def _skin_share(log: Path, frames: list, mesh, rate: int, since: float) -> None:  # type: ignore[no-untyped-def]
+    """Every skin frame the daemon took from ``since`` (the first press) on, from its gate
+    end on the gateway's own plan (its last line names the ticks of two gates 10 s apart;
+    mesh time between is a straight line) to the daemon giving it out: the skin's share
+    and the daemon's read, apart from the daemon's own map of mesh time."""
+    from cellbridge.emulator.commands import Settings
+
+    gw = mesh.gateways[0]
+    plan = None
+    for line in log.read_text().splitlines():
+        if line.startswith("{"):
+            try:
+                d = json.loads(line)
+            except ValueError:
+                continue
+            if d.get("bridge") == gw:
+                plan = d.get("gates")
+    if not plan or len(plan) != 2 or not frames:
+        print("\n(no gate plan in the gateway's last line: no gate-end breakdown)")
+        return
+    (k0, t0), (k1, t1) = sorted((int(k), v / 50e6) for k, v in plan.items())
+    gates = Settings(rate_hz=rate).measure_cycles() / 50e6
+    d = sorted(1000 * (now - (t0 + (g * rate / 50e6 - k0) * (t1 - t0) / (k1 - k0) + gates))
+               for now, _t, g in frames if now >= since)
+    if not d:
+        return
+    q = [d[min(len(d) - 1, int(x * len(d)))] for x in (0.5, 0.9, 0.99)]
+    table("every skin frame during the presses: its gate end (the gateway's plan) -> given out by the daemon",
+          ["frames", "p50 ms", "p90 ms", "p99 ms", "max ms"], [[len(d), *(f"{x:.1f}" for x in q), f"{d[-1]:.1f}"]])
+
+
 def _setting(text: str) -> tuple[str, int | float]:
     """``KEY=VALUE`` of ``--contact``: an integer stays one (birth_frames), anything else is a float."""
     key, _, value = text.partition("=")
@@ -351,6 +382,8 @@ def main() -> None:
             from press_trace import breakdown, print_breakdown
 
             print_breakdown(breakdown(trace, pressed, 1.0 / args.rate, args.hold))
+            _stop(up)  # its bridges' last lines name the gateway's plan of gates
+            _skin_share(work / "mesh.log", trace.get("k", []), mesh, args.rate, pressed[0][0] if pressed else 0.0)
             (work / "presses.json").write_text(json.dumps(pressed))
             print(f"\ntrace and presses kept in {work}")
     finally:

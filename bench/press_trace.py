@@ -16,6 +16,9 @@ methods, in this process only, to note on the host monotonic clock:
   and what it ran: a task's step names the task's method);
 * ``w``: every wait of the event loop in its selector (entered, left, the thread's CPU
   time at both, the timeout, events ready);
+* ``k``: every skin frame the layout took: when, its host time, its global cycle (the
+  gate start on the skin's own plan: mesh time, which the bridges' last lines map to host
+  ticks);
 * ``x``: every job handed to the contact worker: when it was submitted, when the worker
   began and ended it (the worker process notes these in a file), and when its future was
   done in the daemon (the executor's result thread), all on the one monotonic clock.
@@ -43,7 +46,7 @@ from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
 from cellbridge.daemon.service import Service, run_service
 
-TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": [], "x": [], "w": []}
+TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": [], "x": [], "w": [], "k": []}
 WORKER_TRACE = "CB_PRESS_TRACE_WORKER"  #: env: the file the contact worker notes its jobs in
 
 
@@ -96,8 +99,9 @@ def _instrument() -> None:
         return res
 
     def traced_frame(self: LayoutStages, t, cycle, sampled, raw, saturated, caps, unchanged,  # type: ignore[no-untyped-def]
-                     now, inverse=True):
-        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse)
+                     now, inverse=True, **kw):
+        got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, **kw)
+        TRACE["k"].append((now, t, int(cycle)))  # the frame's global cycle: its gate on the skin's own plan
         r, ids = self.readings, self.layout.ids
         for row in sampled.tolist() + unchanged.tolist():  # every element the frame says something of
             TRACE["s"].append((now, int(ids[row]), t, bool(r.last_touched[row]), False))

@@ -197,6 +197,9 @@ class FirmwareConfig:
     #: Cycles per level of the schedule: a full frame, its acknowledgement and a retry in
     #: virtual time (the real-time shells add their message latency).
     readout_window: int = 6 * _MS
+    #: 0: the levels' slots evenly spread; else packed at the span's end this many cycles
+    #: apart, for hosts whose processes may be held up (:attr:`ReadoutConfig.hop`)
+    readout_hop: int = 0
     #: A child whose records stopped this long ago is no longer expected (nor its subtree).
     readout_forget: int = 2000 * _MS
     #: Records ask for a per-hop acknowledgement and get one retry (False: sent once; a
@@ -264,8 +267,9 @@ class Firmware:
         # Upward frames forwarded lately, with their hop counts (copies and loop returns).
         # Not a numbering window: a new boot's HELLO may have gone another way (protocol/copies.py).
         self.seen = RecentFrames(_COPY_AGE, _COPY_MEMORY)
-        self.readout = (FrameReadout(self.me, ReadoutConfig(c.readout_depths, c.readout_window, c.readout_forget),
-                                     self.counters) if c.readout else None)
+        self.readout = (FrameReadout(self.me, ReadoutConfig(c.readout_depths, c.readout_window, c.readout_forget,
+                                                            c.readout_hop), self.counters)
+                        if c.readout else None)
         self._readout_at = -1  # a child's record may have completed a frame: look at this tick
         self.sampler = Sampler(c.settings, self.chip, self.sense,
                                tick + self.rng.randrange(c.settings.period_cycles(c.clock_hz)), c.clock_hz,

@@ -86,6 +86,7 @@ class LinkLayer:
         self.outstanding: dict[tuple[int, int], _InFlight] = {}
         self._on_radio: _InFlight | None = None  #: the record the radio holds, not yet on the cell
         self._preempted = False  #: the normal frame in flight was taken off the radio for a record
+        self._parent: int | None = None  #: the parent at the last advance (records wait without one)
         self.inflight: _InFlight | None = None
         c = radio.config
         # SIFS, a slot, the acknowledgement; before it, at most one frame its sender may
@@ -209,6 +210,7 @@ class LinkLayer:
         used = False
         f = self.inflight
         radio = self.radio
+        self._parent = parent
         self._urgent_due(tick, parent, neighbours)
         if f is not None and 0 <= f.deadline <= tick and radio.idle:  # no acknowledgement in time
             if f.attempts > self.max_retries or (parent != f.next_hop and f.next_hop not in neighbours):
@@ -337,6 +339,14 @@ class LinkLayer:
         for u in self.outstanding.values():
             if u.deadline >= 0 and (t is None or u.deadline < t):
                 t = u.deadline
+        if self.urgent and self._parent is not None and self._on_radio is None and self.radio.idle:
+            # records queued behind the one that just went (a backlog after the bridge was
+            # held up, a record in parts): the next goes when the cell is ours again, not at
+            # the bridge's next gate. Without this wake a bridge that fell behind sent one
+            # record per frame and never caught up: every record it sent came after its
+            # parent's slot and was dropped as late, its element unknown for seconds.
+            tx = self.radio.tx_until
+            t = tx if t is None else min(t, tx)
         return t
 
     def has_work(self) -> bool:

@@ -52,10 +52,19 @@ from cellbridge.emulator.world import World
 
 SHORT_TIMER = CLOCK_HZ // 1000  #: a timer this close is slept for exactly, not polled for (ms granularity)
 ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the medium: allow 10 ms
-#: A level of the readout schedule in the real-time shells: a record crosses two processes
-#: and the medium per hop (a record normally goes on as soon as it is complete; this bounds
-#: how long a relay waits for a child whose record was lost)
+#: A level of the readout schedule in the real-time shells: ``depths`` of them make the
+#: span, the latest a frame's record leaves the gateway (and the base of the host's
+#: deadline). Records go on as soon as they are complete; the span only bounds how long
+#: the skin waits for a record that was lost, and how late a held-up one may still come.
 READOUT_WINDOW = 10 * CLOCK_HZ // 1000
+#: The slots are packed at the span's end, this far apart (``ReadoutConfig.hop``): a relay
+#: waits for a late child until this long before its parent's slot, time for its own record
+#: (a full frame at 1 Mbit/s, its acknowledgement, a retry, three processes' wakes). A
+#: bridge process held up by the host (a 4x4's leaf is 6 hops deep of 8 levels: for up to
+#: ~55 ms) still makes its frame; with the levels spread evenly, 10 ms after its own slot
+#: its parent had given its record up, and every record it sent while behind was dropped
+#: as late, its element unknown meanwhile.
+READOUT_HOP = 4 * CLOCK_HZ // 1000
 STIMULI_CHECK = CLOCK_HZ // 5  # the world's socket is looked at at least this often (its fd is edge-like)
 FILE_TCP = -1  #: ``--tcp`` without a port: the mesh file's
 _POLLIN = select.POLLIN
@@ -117,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     fw = Firmware(FirmwareConfig(br.id, br.cells, br.gateway, br.position, mesh.side,
                                  settings=Settings(rate_hz=args.rate, reporting=args.reporting), ack_slack=ACK_SLACK,
                                  readout=args.readout == "on", readout_acks=False,
-                                 readout_depths=mesh.readout_depths(), readout_window=READOUT_WINDOW,
+                                 readout_depths=mesh.readout_depths(), readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP,
                                  transceiver=TransceiverConfig(bit_cycles=CLOCK_HZ // mesh.bitrate)),
                   default_chip(br.id, args.seed), world.sense_for(br.id), args.seed, now_tick())
     port = None

@@ -51,6 +51,14 @@ class ReadoutConfig:
     window: int = 150_000
     #: A child silent this long (cycles) is no longer expected, nor its subtree listed.
     forget: int = 100_000_000
+    #: 0: the levels' slots are spread evenly (a bridge ``d`` deep sends by ``(depths - d)
+    #: * window``). Else the slots are packed at the end of the span, ``hop`` cycles apart
+    #: (by ``depths * window - d * hop``): a relay then waits for a late child until just
+    #: before its own parent's slot, so a record whose bridge's process was held up for
+    #: tens of milliseconds (real-time shells on a loaded host) still makes its frame,
+    #: while the span, and with it the host's deadline, stays the same. Records go as soon
+    #: as they are complete either way; the slots only bound the wait for a missing one.
+    hop: int = 0
 
 
 @dataclass
@@ -171,6 +179,8 @@ class FrameReadout:
     def slot(self, depth: int) -> int:
         """Cycles from a frame's gate end to the slot of a bridge ``depth`` hops from its gateway."""
         c = self.config
+        if c.hop:
+            return c.depths * c.window - min(depth, c.depths) * min(c.hop, c.window)
         return (c.depths - min(depth, c.depths)) * c.window
 
     @property

@@ -241,3 +241,49 @@ def test_a_frame_whose_child_already_sent_a_later_record_goes_without_waiting_fo
     r.child(7, Readout(2, 100, Mode.COUNTER, 1, (ReadoutSample(7, 2, 2, 0),), (), ()), 3000)
     out = r.take(3000)
     assert [(x.index, x.missing) for x in out] == [(1, (7,)), (2, ())]
+
+
+def test_a_record_held_up_tens_of_ms_in_the_real_time_shells_still_makes_its_frame() -> None:
+    """A bridge process held up by a loaded host (tens of ms before it computes its sample
+    and sends its record) is late for its own slot. With the real-time shells' levels
+    spread evenly its parent gave it up 10 ms after that slot and dropped the record as
+    late, and every record it sent while behind went the same way: its element unknown for
+    as long as the host stayed loaded. With the slots packed at the span's end the parent
+    waits until just before its own parent's slot, and passes the record on as soon as it
+    comes. (A 4x4 with a corner gateway: the leaf is 6 hops deep, its parent 5, of 8 levels.)"""
+    from collections import Counter
+
+    from cellbridge.emulator.process_bridge import READOUT_HOP, READOUT_WINDOW
+
+    ms = 50_000
+    config = ReadoutConfig(depths=8, window=READOUT_WINDOW, hop=READOUT_HOP)
+    c: Counter[str] = Counter()
+    parent = FrameReadout(5, config, c)
+    leaf = FrameReadout(7, config, Counter())
+    period = 10 * ms  # 100 Hz
+    gates = 4 * ms
+    sent: dict[int, tuple[int, Readout]] = {}
+    arrivals: list[tuple[int, Readout]] = []  # (tick, the leaf's record) at the parent
+    # (frame 0: the parent learns of its child before its own state comes)
+    for k, held_up in ((0, -ms), (1, 0), (2, 40 * ms), (3, 40 * ms), (4, 0)):
+        gate_end = k * period + gates
+        # the leaf's process wakes ``held_up`` late: its sample and record come then, and
+        # reach the parent a millisecond later (airtime, the medium)
+        leaf.own(k, 100, Mode.COUNTER, 1, ReadoutSample(7, k, k, 0), gate_end + leaf.slot(6), leaf.slot(0))
+        arrivals += [(gate_end + held_up + ms, r) for r in leaf.take(gate_end + held_up)]
+    for t in range(0, 5 * period + 100 * ms, ms // 2):
+        while arrivals and arrivals[0][0] <= t:
+            parent.child(7, arrivals.pop(0)[1], t)
+        if t % period == gates and t // period < 5:  # the parent's own sample, on time
+            k = t // period
+            parent.own(k, 100, Mode.COUNTER, 1, ReadoutSample(5, k, k, 0), t + parent.slot(5), parent.slot(0))
+        for r in parent.take(t):
+            sent[r.index] = (t, r)
+    assert c["readout_late"] == 0
+    for k in range(5):
+        t, r = sent[k]
+        assert [s.bridge for s in r.samples] == [5, 7] and r.missing == ()
+    t2, _ = sent[2]
+    assert t2 - (2 * period + gates) <= 42 * ms  # it went when the record came, not at its slot
+    # the parent's own record still has a hop's time before the grandparent's slot
+    assert parent.slot(4) - parent.slot(5) >= 4 * ms

@@ -41,6 +41,12 @@ class Score:
     by_kind: dict[str, list[int]] = field(default_factory=dict)  # kind -> [truths, detected]
     position: list[float] = field(default_factory=list)  # m, along the straddled axes, per matched report
     position_3d: list[float] = field(default_factory=list)  # m, reports of footprints straddling both axes
+    #: m, per straddled axis the report calls observable (its readings resolve it)
+    resolved: list[float] = field(default_factory=list)
+    #: (error, σ) in m, per straddled axis the report calls unobservable (the neighbour's share
+    #: under its touch threshold): honest when σ covers the error
+    unresolved: list[tuple[float, float]] = field(default_factory=list)
+    untrue: int = 0  #: resolved axes off by more than 1 mm and 3 σ: confident untruths
     force: list[float] = field(default_factory=list)  # relative error per matched report
     false_ids: set[int] = field(default_factory=set)
     reports: int = 0
@@ -58,6 +64,12 @@ class Score:
             ("position error, straddled axes, median", f"{1e3 * pct(self.position, 50):.2f} mm", "<= 2 mm"),
             ("position error, straddled axes, p95", f"{1e3 * pct(self.position, 95):.2f} mm", "<= 5 mm"),
             ("position error 3-D, both axes straddled, median", f"{1e3 * pct(self.position_3d, 50):.2f} mm", ""),
+            ("  per straddled axis the readings resolve, median", f"{1e3 * pct(self.resolved, 50):.2f} mm", ""),
+            ("  per straddled axis the readings resolve, p95", f"{1e3 * pct(self.resolved, 95):.2f} mm", ""),
+            ("  resolved axes off by > 1 mm and > 3 sigma", f"{self.untrue} of {len(self.resolved)}", "0"),
+            ("  straddled axes not resolved (said unobservable)", f"{len(self.unresolved)}", ""),
+            ("  ... of them within 2 sigma",
+             f"{sum(1 for e, sg in self.unresolved if e <= 2 * sg)}", "all"),
             ("force error, median", f"{100 * pct(self.force, 50):.2f} %", "<= 3 %"),
             ("force error, p95", f"{100 * pct(self.force, 95):.2f} %", ""),
             ("ids per detected contact, max", f"{max(self.ids_per_truth, default=0)}", "1"),
@@ -93,6 +105,22 @@ def _straddled(skin: SkinGeometry, ax: float, ay: float, r: float) -> tuple[bool
                 hit |= int(lay.element_at([[px, probe[1]]])[0]) >= 0
         out.append(hit)
     return out[0], out[1]
+
+
+def _per_axis(s: Score, c: dict[str, Any], straddled: tuple[bool, bool], errors: list[float]) -> None:
+    """Each straddled axis's error, apart by whether the report calls the axis observable."""
+    obs = c.get("observable") or (False, False)
+    cov = c.get("cov")
+    for axis in (0, 1):
+        if not straddled[axis]:
+            continue
+        err = abs(errors[axis])
+        sigma = math.sqrt(float(cov[axis][axis])) if cov else math.nan
+        if obs[axis]:
+            s.resolved.append(err)
+            s.untrue += int(err > 1e-3 and not err <= 3 * sigma)
+        else:
+            s.unresolved.append((err, sigma))
 
 
 def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable[tuple[float, list[dict[str, Any]]]],
@@ -142,6 +170,7 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
             e = np.asarray(c["position"]) - np.asarray(truth["point"][best_j])
             parts = [float(e @ np.asarray(sp.tangent_x)) if sx else 0.0, float(e @ np.asarray(sp.tangent_y)) if sy else 0.0]
             s.position.append(math.hypot(*parts))
+            _per_axis(s, c, (sx, sy), parts)
             if sx and sy:
                 s.position_3d.append(float(np.linalg.norm(e)))
     for k, truth in enumerate(tr):

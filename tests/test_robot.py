@@ -70,6 +70,32 @@ def test_the_scorer_counts_misses_false_contacts_and_errors() -> None:
     assert s.position == pytest.approx([0.001, 0.001]) and s.force == pytest.approx([0.05, 0.05])
 
 
+def test_the_scorer_tells_resolved_axes_from_unresolved_and_counts_confident_untruths() -> None:
+    skin = _arm()
+    (sp,) = skin.locate([0.08], [0.06])  # on the seam of the torso's two patches: straddled
+    truth = {"finger": 0, "link": "torso", "kind": "single", "area": 3e-4, "pad": 0.02, "start": 1.0, "end": 2.0,
+             "t": [1.0 + 0.001 * k for k in range(1001)], "point": [sp.position] * 1001,
+             "normal": [sp.normal] * 1001, "force": [2.0] * 1001, "atlas": [(0.08, 0.06)] * 1001}
+    off = np.array(sp.tangent_x) * 0.004 + np.array(sp.tangent_y) * 0.004  # 4 mm along both axes
+    base = {"id": 1, "missed": 0, "link": "torso", "position": list(np.array(sp.position) + off), "force": 2.0,
+            "valid": True}
+
+    def scored(observable: list[bool], sigma: float):
+        c = dict(base, observable=observable, cov=[[sigma * sigma, 0.0], [0.0, sigma * sigma]])
+        return score(skin, [truth], [(1.5, [c])])
+
+    precise = scored([True, True], 1e-4)  # 4 mm off, σ 0.1 mm: a confident untruth on each straddled axis
+    n = len(precise.resolved)
+    assert n >= 1 and precise.untrue == n and precise.unresolved == []
+    assert precise.resolved == pytest.approx([0.004] * n)
+    covered = scored([True, True], 3e-3)  # the same error inside 3 σ: no untruth
+    assert covered.untrue == 0 and len(covered.resolved) == n
+    unseen = scored([False, False], 3e-3)  # said unobservable: apart, and covered
+    assert unseen.resolved == [] and unseen.untrue == 0 and len(unseen.unresolved) == n
+    assert all(e <= 2 * sg for e, sg in unseen.unresolved)
+    assert "resolved axes off by > 1 mm and > 3 sigma" in precise.table()
+
+
 def test_link_frames_come_from_the_urdf(tmp_path) -> None:
     pytest.importorskip("yourdfpy")
     from cellbridge.daemon.skin_file import load_skin

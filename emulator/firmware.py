@@ -583,7 +583,7 @@ class Firmware:
         gates = st.measure_cycles()
         span = gates + r.slot(0)
         r.own(s.index, st.rate_hz, st.mode, st.oversampling if st.mode is Mode.ADC else 1, state,
-              start + gates + r.slot(depth), span, self.clock.root or 0)
+              start + gates + r.slot(depth), span, self.sampler.root)
 
     def _readout_rank(self) -> int:
         """The slots this bridge's records wait after the cell goes idle: twice its place
@@ -659,9 +659,8 @@ class Firmware:
             self._readout_at = -1
             # each record names the root its index counts (taken with the sample, or the
             # child's): stamped with the root followed now, a gateway at boot (its own root,
-            # its children already on another's time) and every bridge at a failover named
-            # frames of one root with another's id
-            for record in self.readout.take(tick):
+            # its children already on another's time) named their frames with its own root
+            for record in self.readout.take(tick, self.clock.root or 0):
                 if self.config.gateway:
                     self._own(record)
                 else:

@@ -199,17 +199,26 @@ class FrameReadout:
             return self._next_due()
         return self._due
 
-    def take(self, tick: int) -> list[Readout]:
+    def take(self, tick: int, root: int = 0) -> list[Readout]:
         """The records due now, oldest frame first: complete (and every older frame of
-        its rate gone), or at their slot. Each is one or more READOUT payloads that each
-        fit a frame."""
+        its root and rate gone), or at their slot. Each is one or more READOUT payloads
+        that each fit a frame, naming the root its index counts.
+
+        ``root``: the time root this bridge follows now (0: none, or not said). A frame
+        only its children's records make up, of another root, is dropped at its slot and
+        counted (``readout_other_root``): a gateway that is its own root for its first
+        second, its children already on the skin's root, passed their frames on between
+        its own, and the host saw its line switch roots at every record. The bridge's own
+        frames go with the root they were sampled on, so its records switch root once, at
+        the frame where its own sampling did (a child's record of a frame this bridge
+        sampled joins it: at a failover the new root carries the old one's time on)."""
         if tick >= self._expire_at:
             self._expire_at = tick + max(1, self.config.forget // 16)
             self._expire(tick)
         if not self._changed and (self._due is None or tick < self._due):
             return []  # a bridge wakes for much else (its link, beacons): nothing of ours changed
         self._changed = False
-        out = self._take(tick)
+        out = self._take(tick, root)
         self._due = self._next_due()
         return out
 
@@ -225,7 +234,7 @@ class FrameReadout:
                 first[(p.root, p.rate)] = p
         return min((p.slot for p in first.values()), default=None)
 
-    def _take(self, tick: int) -> list[Readout]:
+    def _take(self, tick: int, root: int) -> list[Readout]:
         # In frame order: a frame complete early waits for the older ones of its rate. Sent
         # before them, it told the host (whose line keeps its order) that their records
         # were lost, and theirs came after, late (30 of 1755 records on a 4x4's gateway line
@@ -241,6 +250,9 @@ class FrameReadout:
                 blocked.add(chain)
                 continue
             del self._pending[key]
+            if p.own is None and p.root and root and p.root != root:
+                self.counters["readout_other_root"] += 1
+                continue
             self._sent.add(key)
             self._sent_order.append(key)
             if key[1] > self._newest.get(chain, -1):

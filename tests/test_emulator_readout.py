@@ -18,6 +18,7 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware
 from cellbridge.emulator.readout import FrameReadout, ReadoutConfig
 from cellbridge.emulator.reporting import ReportingMode
+from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.virtual import VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import FrameType, Mode, Readout, ReadoutSample, Sample
@@ -299,3 +300,34 @@ def test_a_record_names_the_root_its_index_counts_not_the_one_the_bridge_follows
     r.child(12, Readout(1_330_216, 100, Mode.COUNTER, 1, (ReadoutSample(12, 1, 1, 0),), (), (), root=1), 0)
     out = r.take(1000) + r.take(9000)  # (the child's frame of root 1 goes a window after it came)
     assert sorted((x.index, x.root) for x in out) == [(723_687, 16), (1_330_216, 1)]
+
+
+def test_at_boot_a_gateway_that_is_its_own_root_names_no_childs_frame_with_its_root(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two gateways, 1 and 16: 16 is its own root for its first second (its own epoch) while
+    its children already sample on root 1's time. It stamped its own root on the records it
+    passed on (110 records refused by the host in the two-gateway truth run; with the root
+    taken with the sample but frames of both roots passed on, its line switched roots at
+    every record, 198 root moves at the host). Every record on 16's line names the root its
+    samples were taken on, and the line switches root once (16, then 1)."""
+    roots: dict[tuple[int, int], int] = {}  # (bridge, index) -> the root whose time gave the index
+    plan = Sampler._plan
+
+    def logged(self: Sampler, earliest: int, free: int, restart: bool = False) -> None:
+        plan(self, earliest, free, restart)
+        if self.on_time:  # the index as the clock gave it, and the root that clock followed then
+            roots[(self.timebase.clock.me, self.index)] = self.timebase.clock.root or 0
+
+    monkeypatch.setattr(Sampler, "_plan", logged)
+    vm = VirtualMesh(meshgen.grid(4, 4, gateways=(1, 16), loss=0.01), seed=5, random_epochs=True,
+                     settings=Settings(rate_hz=100), readout=True)
+    vm.run(4.0)
+    named = [f.payload.root for f in vm.frames[16] if f.type is FrameType.READOUT]  # type: ignore[attr-defined]
+    wrong = [(s.bridge, f.payload.index, f.payload.root, roots.get((s.bridge, f.payload.index)))  # type: ignore[attr-defined]
+             for f in vm.frames[16] if f.type is FrameType.READOUT
+             for s in f.payload.samples  # type: ignore[attr-defined]
+             if roots.get((s.bridge, f.payload.index), 0) not in (0, f.payload.root)]  # type: ignore[attr-defined]
+    assert not wrong, wrong[:10]
+    switches = [(a, b) for a, b in zip(named, named[1:]) if a != b]
+    assert switches == [(16, 1)], switches[:10]
+    assert vm.nodes[16].counters["readout_other_root"] > 0  # its children's frames of root 1, dropped while it was root 16

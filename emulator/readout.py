@@ -100,6 +100,7 @@ class FrameReadout:
         #: frame order, so one that sent a later frame's record will not send this one's
         self._child_newest: dict[tuple[int, int], int] = {}
         self._expire_at = 0  # children are looked at for expiry at most this often
+        self._root = 0  # the root this bridge followed at the last take()
 
     # -- inputs -----------------------------------------------------------------------
     def own(self, index: int, rate: int, mode: Mode, oversampling: int, state: State, slot: int,
@@ -218,6 +219,7 @@ class FrameReadout:
         if not self._changed and (self._due is None or tick < self._due):
             return []  # a bridge wakes for much else (its link, beacons): nothing of ours changed
         self._changed = False
+        self._root = root
         out = self._take(tick, root)
         self._due = self._next_due()
         return out
@@ -232,7 +234,14 @@ class FrameReadout:
             q = first.get((p.root, p.rate))
             if q is None or p.index < q.index:
                 first[(p.root, p.rate)] = p
+        if self._before_switch(self._root):  # the root followed now waits for them
+            first = {c: p for c, p in first.items() if c[0] != self._root}
         return min((p.slot for p in first.values()), default=None)
+
+    def _before_switch(self, root: int) -> bool:
+        """Whether own frames sampled on another root than ``root`` (the one followed now)
+        still wait: the records switch root once, after them."""
+        return bool(root) and any(p.own is not None and p.root and p.root != root for p in self._pending.values())
 
     def _take(self, tick: int, root: int) -> list[Readout]:
         # In frame order: a frame complete early waits for the older ones of its rate. Sent
@@ -241,10 +250,15 @@ class FrameReadout:
         # at 250 Hz with 1 % loss per hop).
         out: list[Readout] = []
         blocked: set[tuple[int, int]] = set()  # (root, rate) with an older frame not due yet
-        for key in sorted(self._pending):
+        # (frames of other roots first: those sampled before a switch of root go before the
+        # frames of the root followed now, which wait for them)
+        for key in sorted(self._pending, key=lambda k: (self._pending[k].root == root, k)):
             p = self._pending[key]
             chain = (p.root, p.rate)
             if chain in blocked:
+                continue
+            if root and p.root == root and self._before_switch(root):
+                blocked.add(chain)
                 continue
             if tick < p.slot and (p.own is None or not self._complete(p)):
                 blocked.add(chain)

@@ -331,3 +331,18 @@ def test_at_boot_a_gateway_that_is_its_own_root_names_no_childs_frame_with_its_r
     switches = [(a, b) for a, b in zip(named, named[1:]) if a != b]
     assert switches == [(16, 1)], switches[:10]
     assert vm.nodes[16].counters["readout_other_root"] > 0  # its children's frames of root 1, dropped while it was root 16
+
+
+def test_frames_sampled_before_a_root_switch_go_before_the_new_roots_frames() -> None:
+    """Gateway 16's own frame of its own root, sampled before it followed root 1, waited for
+    its slot while its first frame of root 1 went: the line named 16, 1, 16, 1 (seed 6 of
+    bench_root_failover). The frames of the root followed now wait until those went."""
+    from collections import Counter
+
+    r = FrameReadout(16, ReadoutConfig(depths=4, window=1000), Counter())
+    r.child(12, Readout(1, 100, Mode.COUNTER, 1, (ReadoutSample(12, 1, 1, 0),), (), (), root=16), 0)
+    assert [x.index for x in r.take(1000, 16)] == [1]  # 12 is expected
+    r.own(191_562, 100, Mode.COUNTER, 1, ReadoutSample(16, 1, 1, 0), 9000, 5000, root=16)  # waits for 12
+    r.own(892_925, 100, Mode.COUNTER, 1, ReadoutSample(16, 1, 1, 0), 5000, 5000, root=1)  # a slot before it
+    assert r.take(5000, 1) == [] and r.next_tick == 9000
+    assert [(x.index, x.root) for x in r.take(9000, 1)] == [(191_562, 16), (892_925, 1)]

@@ -18,8 +18,6 @@ bytes and the element's capacitance (``sense(tick) -> (C1, C2)`` in farads).
 
 from __future__ import annotations
 
-import dataclasses
-
 import random
 from bisect import insort
 from collections import Counter
@@ -589,7 +587,7 @@ class Firmware:
         gates = st.measure_cycles()
         span = gates + r.slot(0)
         r.own(s.index, st.rate_hz, st.mode, st.oversampling if st.mode is Mode.ADC else 1, state,
-              start + gates + r.slot(depth), span)
+              start + gates + r.slot(depth), span, self.sampler.root)
 
     def _readout_rank(self) -> int:
         """The slots this bridge's records wait after the cell goes idle: twice its place
@@ -663,10 +661,10 @@ class Firmware:
             self._own(data)
         if self.readout is not None:
             self._readout_at = -1
-            root = self.clock.root or 0  # whose mesh time the records' index counts
-            for record in self.readout.take(tick):
-                if record.root != root:
-                    record = dataclasses.replace(record, root=root)
+            # each record names the root its index counts (taken with the sample, or the
+            # child's): stamped with the root followed now, a gateway at boot (its own root,
+            # its children already on another's time) named their frames with its own root
+            for record in self.readout.take(tick, self.clock.root or 0):
                 if self.config.gateway:
                     self._own(record)
                 else:

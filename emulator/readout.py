@@ -26,6 +26,7 @@ takes an unchanged element as known only when it knew the element's previous fra
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from dataclasses import dataclass
 
@@ -70,6 +71,10 @@ class _Pending:
     slot: int  #: the tick the record goes at the latest
     span: int  #: cycles from the frame's gate start to the gateway's slot
     own: tuple[Mode, int, State] | None = None
+    #: the time root whose mesh time ``index`` counts: the bridge's own at its sample (else
+    #: the first child record's), stamped on the record whatever root the bridge follows
+    #: when it goes
+    root: int = 0
     #: (mode, oversampling) -> bridge -> state, from the children's records
     got: dict[int, tuple[Mode, int, State]] | None = None
     heard: set[int] | None = None  #: children whose record of this frame came
@@ -91,9 +96,10 @@ class FrameReadout:
         self._expand = False  # the last record sent failed: expand unchanged states once
         self._sent: set[tuple[int, int]] = set()  # frames already sent (late records are counted)
         self._sent_order: list[tuple[int, int]] = []
-        #: rate -> the newest frame whose record went: a child's record of an older frame that
-        #: is not waiting here is late however old (``_sent`` remembers only the last frames)
-        self._newest: dict[int, int] = {}
+        #: (root, rate) -> the newest frame whose record went: a child's record of an older
+        #: frame that is not waiting here is late however old (``_sent`` remembers only the
+        #: last frames); per root, as two roots' indices count unrelated mesh times
+        self._newest: dict[tuple[int, int], int] = {}
         #: take()'s fast path: nothing can be due before ``_due`` unless a state came
         #: (own, a child's record) or a child was forgotten since the last look
         self._changed = False
@@ -102,16 +108,20 @@ class FrameReadout:
         #: frame order, so one that sent a later frame's record will not send this one's
         self._child_newest: dict[tuple[int, int], int] = {}
         self._expire_at = 0  # children are looked at for expiry at most this often
+        self._root = 0  # the root this bridge followed at the last take()
 
     # -- inputs -----------------------------------------------------------------------
     def own(self, index: int, rate: int, mode: Mode, oversampling: int, state: State, slot: int,
-            span: int) -> None:
+            span: int, root: int = 0) -> None:
         """This bridge's state of frame ``index`` (taken at its gate end), and the frame's
-        ``slot`` (tick) and ``span`` (cycles) as this bridge's depth gives them."""
-        p = self._frame(index, rate, slot, span)
+        ``slot`` (tick) and ``span`` (cycles) as this bridge's depth gives them; ``root``:
+        the time root whose mesh time ``index`` counts (the one the bridge followed when it
+        sampled: the frame's record names it even if the bridge follows another by then)."""
+        p = self._frame(index, rate, slot, span, root)
         if p is None:
             return
         p.own = (mode, oversampling, state)
+        p.root = root
         self._changed = True
         if isinstance(state, ReadoutSample):
             self._last[self.me] = (mode, oversampling, state)
@@ -124,26 +134,35 @@ class FrameReadout:
         ck = (src, record.rate)
         if record.index > self._child_newest.get(ck, -1):
             self._child_newest[ck] = record.index
-        listed = {s.bridge for s in record.samples}
-        listed.update(record.unchanged)
-        listed.update(record.missing)
-        for b in listed:  # a bridge that re-routed through this child leaves its old branch
+        mine = self._members.setdefault(src, set())
+        for b in (*(s.bridge for s in record.samples), *record.unchanged):
+            # a bridge whose state came through this child re-routed through it: it leaves its old branch
             old = self._via.get(b)
             if old is not None and old != src:
                 self._members.get(old, set()).discard(b)
             self._via[b] = src
-        self._members.setdefault(src, set()).update(listed)
+            mine.add(b)
+        for b in record.missing:
+            # listed missing: what the child last knew of its subtree (it lists a bridge that
+            # left it until it forgets it, 2 s); the bridge stays with the branch its state
+            # comes through. (Taken as a re-route, a relay's stale claim and the bridge's own
+            # record took it from each other at every frame, and whenever the claim came
+            # first the frame went without waiting for the bridge, its record late: after
+            # the root gateway died, bridge 3 unknown in two frames of three for 2 s.)
+            if self._via.setdefault(b, src) == src:
+                mine.add(b)
         for s in record.samples:
             self._last[s.bridge] = (record.mode, record.oversampling, s)
         key = (record.rate, record.index)
         p = self._pending.get(key)
-        newest = self._newest.get(record.rate)
+        nk = (record.root, record.rate)
+        newest = self._newest.get(nk)
         if newest is not None and (newest - record.index) * _CLOCK_HZ > _TIME_BACK * self.config.forget * record.rate:
             # far older than any relay holds a record: the skin's time went back (a new root
             # numbering from 0; this bridge's own frames follow at its next sample)
-            del self._newest[record.rate]
+            del self._newest[nk]
             self.counters["readout_time_back"] += 1
-        if key in self._sent or (p is None and record.index <= self._newest.get(record.rate, -1)):
+        if key in self._sent or (p is None and record.index <= self._newest.get(nk, -1)):
             # its frame's record went (or a newer one did: records go oldest frame first):
             # passed on now it would only reach the host after the frame was given out
             self.counters["readout_late"] += 1
@@ -152,7 +171,8 @@ class FrameReadout:
             # a frame this bridge has not sampled (yet): its slot is planned when the own
             # state comes; until then the record waits here
             # (a record of a rate this bridge does not sample at goes on alone a window later)
-            p = self._pending[key] = _Pending(record.index, record.rate, tick + self.config.window, 0)
+            p = self._pending[key] = _Pending(record.index, record.rate, tick + self.config.window, 0,
+                                              root=record.root)
             if len(self._pending) > 64:  # a hostile or confused child: bounded
                 self._evict()
                 if key not in self._pending:
@@ -187,44 +207,80 @@ class FrameReadout:
     def next_tick(self) -> int | None:
         """The earliest slot among the frames waiting (None: nothing waits)."""
         if self._changed:
-            slots = [p.slot for p in self._pending.values()]
-            return min(slots) if slots else None
+            return self._next_due()
         return self._due
 
-    def take(self, tick: int) -> list[Readout]:
+    def take(self, tick: int, root: int = 0) -> list[Readout]:
         """The records due now, oldest frame first: complete (and every older frame of
-        its rate gone), or at their slot. Each is one or more READOUT payloads that each
-        fit a frame."""
+        its root and rate gone), or at their slot. Each is one or more READOUT payloads
+        that each fit a frame, naming the root its index counts.
+
+        ``root``: the time root this bridge follows now (0: none, or not said). A frame
+        only its children's records make up, of another root, is dropped at its slot and
+        counted (``readout_other_root``): a gateway that is its own root for its first
+        second, its children already on the skin's root, passed their frames on between
+        its own, and the host saw its line switch roots at every record. The bridge's own
+        frames go with the root they were sampled on, so its records switch root once, at
+        the frame where its own sampling did (a child's record of a frame this bridge
+        sampled joins it: at a failover the new root carries the old one's time on)."""
         if tick >= self._expire_at:
             self._expire_at = tick + max(1, self.config.forget // 16)
             self._expire(tick)
         if not self._changed and (self._due is None or tick < self._due):
             return []  # a bridge wakes for much else (its link, beacons): nothing of ours changed
         self._changed = False
-        out = self._take(tick)
-        slots = [p.slot for p in self._pending.values()]
-        self._due = min(slots) if slots else None
+        self._root = root
+        out = self._take(tick, root)
+        self._due = self._next_due()
         return out
 
-    def _take(self, tick: int) -> list[Readout]:
+    def _next_due(self) -> int | None:
+        """The earliest slot a waiting frame can go at: the oldest frame's of each root and
+        rate (a later frame goes after it, though its own slot may be earlier: a frame a
+        child's record began, or one planned at another depth; taken for due, it woke the
+        bridge at every tick until the older one's slot)."""
+        first: dict[tuple[int, int], _Pending] = {}
+        for p in self._pending.values():
+            q = first.get((p.root, p.rate))
+            if q is None or p.index < q.index:
+                first[(p.root, p.rate)] = p
+        if self._before_switch(self._root):  # the root followed now waits for them
+            first = {c: p for c, p in first.items() if c[0] != self._root}
+        return min((p.slot for p in first.values()), default=None)
+
+    def _before_switch(self, root: int) -> bool:
+        """Whether own frames sampled on another root than ``root`` (the one followed now)
+        still wait: the records switch root once, after them."""
+        return bool(root) and any(p.own is not None and p.root and p.root != root for p in self._pending.values())
+
+    def _take(self, tick: int, root: int) -> list[Readout]:
         # In frame order: a frame complete early waits for the older ones of its rate. Sent
         # before them, it told the host (whose line keeps its order) that their records
         # were lost, and theirs came after, late (30 of 1755 records on a 4x4's gateway line
         # at 250 Hz with 1 % loss per hop).
         out: list[Readout] = []
-        blocked: set[int] = set()  # rates with an older frame not due yet
-        for key in sorted(self._pending):
-            if key[0] in blocked:
-                continue
+        blocked: set[tuple[int, int]] = set()  # (root, rate) with an older frame not due yet
+        # (frames of other roots first: those sampled before a switch of root go before the
+        # frames of the root followed now, which wait for them)
+        for key in sorted(self._pending, key=lambda k: (self._pending[k].root == root, k)):
             p = self._pending[key]
+            chain = (p.root, p.rate)
+            if chain in blocked:
+                continue
+            if root and p.root == root and self._before_switch(root):
+                blocked.add(chain)
+                continue
             if tick < p.slot and (p.own is None or not self._complete(p)):
-                blocked.add(key[0])
+                blocked.add(chain)
                 continue
             del self._pending[key]
+            if p.own is None and p.root and root and p.root != root:
+                self.counters["readout_other_root"] += 1
+                continue
             self._sent.add(key)
             self._sent_order.append(key)
-            if key[1] > self._newest.get(key[0], -1):
-                self._newest[key[0]] = key[1]
+            if key[1] > self._newest.get(chain, -1):
+                self._newest[chain] = key[1]
             if len(self._sent_order) > 256:
                 self._sent.discard(self._sent_order.pop(0))
             out.extend(self._records(p, tick))
@@ -256,13 +312,13 @@ class FrameReadout:
         del self._pending[oldest]
         self.counters["readout_evicted"] += 1
 
-    def _frame(self, index: int, rate: int, slot: int, span: int) -> _Pending | None:
+    def _frame(self, index: int, rate: int, slot: int, span: int, root: int) -> _Pending | None:
         key = (rate, index)
         if key in self._sent:
             self.counters["readout_own_late"] += 1
             return None
-        if index < self._newest.get(rate, -1) - 1:  # the skin's time went back (a new root)
-            del self._newest[rate]
+        if index < self._newest.get((root, rate), -1) - 1:  # the skin's time went back (a new root)
+            del self._newest[(root, rate)]
             self.counters["readout_time_back"] += 1
         p = self._pending.get(key)
         if p is None:
@@ -303,6 +359,8 @@ class FrameReadout:
             self.counters["readout_missing"] += missing
         span_us = (p.span if p.span else self.config.window * (self.config.depths + 1)) * 1_000_000 // _CLOCK_HZ
         out = record_parts(p.index, p.rate, groups, span_us)
+        if p.root:
+            out = [dataclasses.replace(r, root=p.root) for r in out]
         n = len(out)
         self.counters["readout_records"] += 1
         self.counters["readout_frames"] += n

@@ -83,6 +83,9 @@ class Sampler:
         self.start = first_start
         self.index = 0  #: index of the sample whose gate starts at ``start``
         self.on_time = False  #: whether that gate is on mesh time
+        #: the time root whose mesh time ``index`` counts (its clock's when the gate was
+        #: planned: the clock may follow another root by the gate's end)
+        self.root = 0
         self.ready = first_start + settings.measure_cycles()
         #: The scheduled readout (:mod:`.readout`): a sample on mesh time goes there, with
         #: whether the reporter keeps it (False: unchanged) and its gate start tick, instead
@@ -213,6 +216,7 @@ class Sampler:
             if self.on_time and not restart and k > self.index + 1:
                 self.counters["frames_skipped"] += k - self.index - 1
             self.start, self.index, self.on_time = t, k, True
+            self.root = tb.clock.root or 0
         else:
             if self.on_time or restart:
                 self.index = 0

@@ -6,6 +6,7 @@ Random loss on every hop and a relay killed mid-run; periodic and event-based re
 from __future__ import annotations
 
 import random
+from collections import Counter
 from typing import Any
 
 import numpy as np
@@ -41,14 +42,14 @@ def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_l
     own = FrameReadout.own
 
     def noted(self: FrameReadout, index: int, rate: int, mode: Any, oversampling: int, state: Any, slot: int,
-              span: int) -> None:
+              span: int, root: int = 0) -> None:
         # each bridge's state of each frame, as its firmware puts it in the record: a sample
         # (periodic, a change, or a refresh), or unchanged against the last sample it sent
         if isinstance(state, ReadoutSample):
             sent[self.me] = (state.c1, state.c2)
         if self.me in sent:
             truth[(self.me, index)] = sent[self.me]
-        own(self, index, rate, mode, oversampling, state, slot, span)
+        own(self, index, rate, mode, oversampling, state, slot, span, root)
 
     monkeypatch.setattr(FrameReadout, "own", noted)
     frames: list[tuple[int, dict[int, tuple[int, int]], set[int]]] = []
@@ -141,10 +142,16 @@ def test_the_root_gateway_dying_under_presses_leaves_every_known_element_true(mo
         assert sum(len(known) == 15 for _, known, _ in frames[-200:]) >= 50, [len(k) for _, k, _ in frames[-200:]]
 
 
-@pytest.mark.xfail(strict=True, reason="after the root gateway's death one rerouted bridge (3) stays unknown in "
-                   "about two frames of three for seconds, though it samples every frame (since the readout's "
-                   "slot and ordering changes; cause not found yet): honest, not yet live")
 def test_after_the_root_gateways_death_every_rerouted_element_is_known_again_within_a_second(
         monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bridge 3 stayed unknown in about two frames of three for 2 s after it moved from relay
+    2's subtree to relay 7: 2 (then behind 6) listed it missing until it forgot it, and at 7
+    that stale claim took 3 from its own branch whenever it came first (the frame went
+    without waiting for 3's record, which came late)."""
     truth, frames = run(monkeypatch, None, line_loss=0.03, gateways=(1, 16), kill=1, pipeline=[])
-    assert all(len(known) == 15 for _, known, _ in frames[-200:]), [len(k) for _, k, _ in frames[-200:]]
+    last = frames[-200:]
+    # (the mesh loses 1 % per hop: a record lost on its way leaves its subtree unknown in that
+    # frame, and only that one, as every element samples every frame here)
+    unknown = Counter(b for _, known, ids in last for b in ids - set(known) - {1})
+    assert sum(len(known) == 15 for _, known, _ in last) >= 0.95 * len(last), unknown
+    assert max(unknown.values(), default=0) <= 0.05 * len(last), unknown

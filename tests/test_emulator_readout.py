@@ -18,6 +18,7 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware
 from cellbridge.emulator.readout import FrameReadout, ReadoutConfig
 from cellbridge.emulator.reporting import ReportingMode
+from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.virtual import VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import FrameType, Mode, Readout, ReadoutSample, Sample
@@ -287,3 +288,107 @@ def test_a_record_held_up_tens_of_ms_in_the_real_time_shells_still_makes_its_fra
     assert t2 - (2 * period + gates) <= 42 * ms  # it went when the record came, not at its slot
     # the parent's own record still has a hop's time before the grandparent's slot
     assert parent.slot(4) - parent.slot(5) >= 4 * ms
+
+
+def test_a_bridge_a_child_lists_missing_stays_with_the_branch_its_state_comes_through() -> None:
+    """After the root gateway died, bridge 3 (and 4 behind it) moved from relay 2's subtree
+    to relay 7 directly, while 2, now behind 6, still listed them missing until it forgot
+    them (2 s). At 7, 6's stale claim and 3's own record took 3 and 4 from each other at
+    every frame; whenever 6's record came first, child 3 was no longer expected, the frame
+    went at once with 3 and 4 missing and 3's record came late: unknown in two frames of
+    three for 2 s. A bridge listed missing stays with the branch its state comes through."""
+    from collections import Counter
+
+    c: Counter[str] = Counter()
+    r = FrameReadout(7, ReadoutConfig(depths=4, window=1000), c)
+    sample = ReadoutSample(0, 1, 1, 0)
+    for k, t in ((1, 0), (2, 10_000), (3, 20_000)):
+        r.own(k, 100, Mode.COUNTER, 1, sample._replace(bridge=7), t + 5000, 5000)
+        stale = Readout(k, 100, Mode.COUNTER, 1, (sample._replace(bridge=2), sample._replace(bridge=6)), (), (3, 4))
+        r.child(6, stale, t + 1000)  # 6's record first: it still lists 3 and 4, missing
+        if k > 1:  # 3 is expected from its first record on: the frame waits for it
+            assert r.take(t + 1000) == [], k
+        r.child(3, Readout(k, 100, Mode.COUNTER, 1, (sample._replace(bridge=3), sample._replace(bridge=4)), (), ()),
+                t + 2000)
+        out = r.take(t + 2000) if k > 1 else r.take(t + 5000)
+        assert [(x.index, [s.bridge for s in x.samples], x.missing) for x in out] == [(k, [2, 3, 4, 6, 7], ())], k
+    assert c["readout_late"] == 0
+
+
+def test_a_later_frame_whose_slot_passed_does_not_wake_the_bridge_before_the_older_frame_can_go() -> None:
+    """A later frame's slot can come before an older one's (a frame a child's record began,
+    or one planned at another depth); it goes only after the older one. Its slot taken for
+    the next wake, the firmware woke at every tick (20 ns) until the older frame's slot: a
+    boot of a 4x4 with two gateways took minutes of CPU instead of seconds."""
+    from collections import Counter
+
+    r = FrameReadout(5, ReadoutConfig(depths=4, window=1000), Counter())
+    for b in (7, 8):  # 7 and 8 are expected
+        r.child(b, Readout(1, 100, Mode.COUNTER, 1, (ReadoutSample(b, 1, 1, 0),), (), ()), 0)
+    assert [x.index for x in r.take(1000)] == [1]
+    r.own(2, 100, Mode.COUNTER, 1, "u", 9000, 5000)  # waits for 7 (and 8) until its slot
+    r.child(8, Readout(3, 100, Mode.COUNTER, 1, (ReadoutSample(8, 1, 1, 0),), (), ()), 2000)  # frame 3 begun
+    assert r.take(2000) == [] and r.next_tick == 9000  # frame 3's slot, 3000, cannot go before frame 2
+    assert [x.index for x in r.take(3000)] == [] and r.next_tick == 9000
+    assert [x.index for x in r.take(9000)] == [2, 3]
+
+
+def test_a_record_names_the_root_its_index_counts_not_the_one_the_bridge_follows_when_it_goes() -> None:
+    """At boot gateway 16 was its own root while its children were on root 1's time: it
+    stamped its own root on their records (their indices count root 1; ~100 refused by the
+    host). A record names the root of its frame: the bridge's own when it sampled, or the
+    child's for a frame it passes on, and frames of two roots wait for each other only
+    within their own root."""
+    from collections import Counter
+
+    r = FrameReadout(16, ReadoutConfig(depths=4, window=1000), Counter())
+    r.own(723_687, 100, Mode.COUNTER, 1, ReadoutSample(16, 1, 1, 0), 9000, 5000, root=16)
+    r.child(12, Readout(1_330_216, 100, Mode.COUNTER, 1, (ReadoutSample(12, 1, 1, 0),), (), (), root=1), 0)
+    out = r.take(1000) + r.take(9000)  # (the child's frame of root 1 goes a window after it came)
+    assert sorted((x.index, x.root) for x in out) == [(723_687, 16), (1_330_216, 1)]
+
+
+def test_at_boot_a_gateway_that_is_its_own_root_names_no_childs_frame_with_its_root(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two gateways, 1 and 16: 16 is its own root for its first second (its own epoch) while
+    its children already sample on root 1's time. It stamped its own root on the records it
+    passed on (110 records refused by the host in the two-gateway truth run; with the root
+    taken with the sample but frames of both roots passed on, its line switched roots at
+    every record, 198 root moves at the host). Every record on 16's line names the root its
+    samples were taken on, and the line switches root once (16, then 1)."""
+    roots: dict[tuple[int, int], int] = {}  # (bridge, index) -> the root whose time gave the index
+    plan = Sampler._plan
+
+    def logged(self: Sampler, earliest: int, free: int, restart: bool = False) -> None:
+        plan(self, earliest, free, restart)
+        if self.on_time:  # the index as the clock gave it, and the root that clock followed then
+            roots[(self.timebase.clock.me, self.index)] = self.timebase.clock.root or 0
+
+    monkeypatch.setattr(Sampler, "_plan", logged)
+    vm = VirtualMesh(meshgen.grid(4, 4, gateways=(1, 16), loss=0.01), seed=5, random_epochs=True,
+                     settings=Settings(rate_hz=100), readout=True)
+    vm.run(4.0)
+    named = [f.payload.root for f in vm.frames[16] if f.type is FrameType.READOUT]  # type: ignore[attr-defined]
+    wrong = [(s.bridge, f.payload.index, f.payload.root, roots.get((s.bridge, f.payload.index)))  # type: ignore[attr-defined]
+             for f in vm.frames[16] if f.type is FrameType.READOUT
+             for s in f.payload.samples  # type: ignore[attr-defined]
+             if roots.get((s.bridge, f.payload.index), 0) not in (0, f.payload.root)]  # type: ignore[attr-defined]
+    assert not wrong, wrong[:10]
+    switches = [(a, b) for a, b in zip(named, named[1:]) if a != b]
+    assert switches == [(16, 1)], switches[:10]
+    assert vm.nodes[16].counters["readout_other_root"] > 0  # its children's frames of root 1, dropped while it was root 16
+
+
+def test_frames_sampled_before_a_root_switch_go_before_the_new_roots_frames() -> None:
+    """Gateway 16's own frame of its own root, sampled before it followed root 1, waited for
+    its slot while its first frame of root 1 went: the line named 16, 1, 16, 1 (seed 6 of
+    bench_root_failover). The frames of the root followed now wait until those went."""
+    from collections import Counter
+
+    r = FrameReadout(16, ReadoutConfig(depths=4, window=1000), Counter())
+    r.child(12, Readout(1, 100, Mode.COUNTER, 1, (ReadoutSample(12, 1, 1, 0),), (), (), root=16), 0)
+    assert [x.index for x in r.take(1000, 16)] == [1]  # 12 is expected
+    r.own(191_562, 100, Mode.COUNTER, 1, ReadoutSample(16, 1, 1, 0), 9000, 5000, root=16)  # waits for 12
+    r.own(892_925, 100, Mode.COUNTER, 1, ReadoutSample(16, 1, 1, 0), 5000, 5000, root=1)  # a slot before it
+    assert r.take(5000, 1) == [] and r.next_tick == 9000
+    assert [(x.index, x.root) for x in r.take(9000, 1)] == [(191_562, 16), (892_925, 1)]

@@ -555,7 +555,9 @@ def test_two_fingers_sharing_an_element_each_get_an_id_within_the_split_wait() -
         for d in last.values():
             if d["missed"] == 0 and not d["unknown_near"]:
                 assert math.dist((d["x"], d["y"]), (c.x, c.y)) <= 1e-3 and abs(d["force"] - 3.0) <= 0.15, (k, d)
-            elif d["missed"] == 0:  # it says which neighbours it does not know, and its σ covers the truth
-                assert abs(d["x"] - c.x) <= d["sigma_x"] and abs(d["y"] - c.y) <= d["sigma_y"], (k, d)
+            elif d["missed"] == 0:  # it says which neighbours it does not know, and is right or its σ
+                # covers the truth (the project's untruth: off by more than 1 mm and 3 σ)
+                assert (math.dist((d["x"], d["y"]), (c.x, c.y)) <= 1e-3
+                        or (abs(d["x"] - c.x) <= 3 * d["sigma_x"] and abs(d["y"] - c.y) <= 3 * d["sigma_y"])), (k, d)
     for k in range(n):
         assert ids[k] != ids[k + n], k

@@ -46,3 +46,20 @@ def test_make_has_a_fast_lane_and_the_marker_is_registered() -> None:
     make = (ROOT / "Makefile").read_text()
     assert '-m "not process"' in make and "test-fast:" in make
     assert '"process: ' in (ROOT / "pyproject.toml").read_text()
+
+
+def _imported_test_modules(path: Path) -> list[str]:
+    import ast
+
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    names += [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    return [n for n in names if n.split(".")[0].startswith("test_")]
+
+
+def test_no_test_file_or_bench_script_imports_a_test_file() -> None:
+    """What tests and benchmarks share lives in helper modules: importing a test file runs
+    (and, under pytest, collects) its tests' module too, and couples two files' fixtures."""
+    found = [f"{p.relative_to(ROOT)} imports {n}" for d in ("tests", "bench") for p in sorted((ROOT / d).glob("*.py"))
+             for n in _imported_test_modules(p)]
+    assert not found, found

@@ -11,6 +11,8 @@ The shells (ptys, ZeroMQ, processes) are left out; ``cellbridge demo`` runs them
 
 from __future__ import annotations
 
+import heapq
+import math
 from collections.abc import Iterable, Iterator
 from typing import Any
 
@@ -72,5 +74,20 @@ def run_daemon_on_traffic(traffic: SkinTraffic, seconds: float, *,
     (:class:`~cellbridge.emulator.skin_traffic.SkinTraffic`: the gateways' readout records
     without the cells, for a skin too large for the cycle-level mesh): the daemon's core
     reads each gateway's bytes at their arrival, one link per gateway."""
-    reads = ((t, f"gw{g}", data) for t, g, data in traffic.run(seconds))
+    reads = ((t, f"gw{g}", data) for t, g, data in _arrivals(traffic, seconds))
     yield from _daemon_on(traffic.skin, traffic.gateways, reads, seconds + 0.2, sections)
+
+
+def _arrivals(traffic: SkinTraffic, seconds: float) -> Iterator[tuple[float, int, bytes]]:
+    """The gateways' bytes of ``seconds`` of traffic in order of arrival: a frame's records may
+    arrive after the next frame's first (a slow gateway's slot), and none arrives before its
+    frame's gates start, so each is given out once no later frame can come before it."""
+    rate = traffic.settings.rate_hz
+    waiting: list[tuple[float, int, bytes]] = []
+    for k in range(math.ceil(seconds * rate - 1e-9)):
+        for arrival in traffic.frame(k):
+            heapq.heappush(waiting, arrival)
+        while waiting and waiting[0][0] <= (k + 1) / rate:
+            yield heapq.heappop(waiting)
+    while waiting:
+        yield heapq.heappop(waiting)

@@ -8,9 +8,9 @@ A virtual event-based 4x4 skin (``VirtualMesh`` with the real-time latency model
 pair every 2 s from 10 s: two 3 N, 20 mm presses of 0.8 s each, 55-57 mm apart, their middle
 within 3 mm of element 6's centre, the second 9-20 ms after the first, both footprints on
 element 6 (``diagonal``: along one of its diagonals, each finger over the corner of four
-elements; ``any``: at any angle). The gateway's bytes go through the daemon's pipeline with
-the production contact path inline, on the daemon's schedule (as ``bench_press_latency.py
---virtual``). A finger's contacts are those published during its press within 30 mm of it and
+elements; ``any``: at any angle). The gateway's bytes go through the daemon offline (its pipeline and
+its contact loop's schedule in virtual time, the production contact path inline, as
+``bench_press_latency.py --virtual``). A finger's contacts are those published during its press within 30 mm of it and
 at least 10 mm nearer to it than to the other finger (a contact between the two, e.g. one
 failed fit of both, is neither's). Per seed: pairs where a finger got no contact at all,
 fingers whose first contact came 100 ms or more after their onset, fingers with more than one
@@ -20,23 +20,19 @@ id, and the median position and force errors from 0.3 s on. ``--verbose``: one l
 from __future__ import annotations
 
 import argparse
-import logging
 import math
 import random
 
 from timing import table
 
 from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
-from cellbridge.daemon.pacing import Pacer
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.offline import OfflineDaemon
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.realtime import reporting_arg
 from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 
-TICK_S = 0.1  # the daemon's pipeline tick (service.TICK)
 E6 = (0.04, 0.04)  # element 6's centre; elements are 40 mm squares
 LATE_S = 0.1
 
@@ -66,34 +62,16 @@ def finger_pairs(seed: int, n: int, geometry: str, hold: float) -> list[tuple[Co
 
 
 def published(seed: int, presses: list[Contact]) -> list[tuple[float, list[dict]]]:
-    """(host time, contacts) of every contact message, the daemon's schedule in virtual time."""
+    """(host time, contacts) of every contact message, the daemon's schedule in virtual time
+    (the daemon offline: cellbridge.daemon.offline)."""
     mesh = meshgen.grid(4, 4)
     vm = VirtualMesh(mesh, seed=seed, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
                      random_epochs=True, settings=Settings(rate_hz=100, reporting=reporting_arg("event:40")))
     vm.run(max(c.start + c.duration for c in presses) + 1.0)
-    reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
-    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 3}}))
-    w = ContactWorker(logging.getLogger("bench"), InlineExecutor)
-    pacer = Pacer(100.0)
-    out = []
-    rest_until, tick_at, i, now = -math.inf, 0.0, 0, 0.0
-    while now < reads[-1][0]:
-        due = p.contact_due(now, not w.last_ran())
-        now = max(now, rest_until, min(reads[i][0] if i < len(reads) else math.inf, due, tick_at))
-        ticked = now >= tick_at
-        if ticked:
-            tick_at = now + TICK_S
-        while i < len(reads) and reads[i][0] <= now:
-            p.feed("gw", reads[i][1], reads[i][0])
-            i += 1
-        if ticked:
-            p.tick(now)
-        job = p.contact_job(now)
-        contacts = w.estimate_now(job) if job is not None else []
-        rest_until = pacer.after_look(now, job is not None and w.last_ran(), p.contact_due(now, not w.last_ran()))
-        if job is not None:
-            out.append((now, p.contact_frame(job, contacts).payload["contacts"]))
-    return out
+    reads = [(t / CLOCK_HZ, "gw", data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
+    d = OfflineDaemon(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 3}}),
+                      topics={"contact"})
+    return [(t, m["contacts"]) for t, topic, m in d.run(reads, start=0.0) if topic == "contact"]
 
 
 def judge(pair: tuple[Contact, Contact], run: list[tuple[float, list[dict]]]) -> list[dict]:

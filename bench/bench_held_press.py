@@ -6,9 +6,9 @@ A 3x3 virtual mesh (one process, virtual time) samples at ``--rate`` Hz; the wor
 presses the centre element (3 N, 20 mm) from 10 s on and holds it, while the C2
 parasitic of a corner element nothing touches drifts by itself (``--drift`` F/s, twice
 the fastest drift the calibrator's tracker follows by default) for the whole run. The
-gateway's bytes go through the daemon's pipeline at their virtual times with the
-daemon's default configuration (``max_touch`` 600 s, unless ``--max-touch``), and the
-contact worker estimates every 0.1 s. Printed: what the ``contact`` topic said of the
+gateway's bytes go through the daemon offline (its pipeline and its contact loop's
+schedule, cellbridge.daemon.offline) at their virtual times with the daemon's default
+configuration (``max_touch`` 600 s, unless ``--max-touch``). Printed: what the ``contact`` topic said of the
 press over the hold (ids, gaps, force error against the pressed force), the
 calibrator's health (re-baselines, touches kept past max_touch), and whether the
 drifting element was ever touched or part of a contact. A lower sample rate keeps an
@@ -18,19 +18,18 @@ hour short to emulate; the calibration logic does not depend on it.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from test_daemon_skin_frames import T0, drive  # noqa: E402
+from cellbridge.daemon.config import parse_config
+from cellbridge.daemon.offline import OfflineDaemon
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.commands import Settings
+from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world import Contact, Drift, World
 
-from cellbridge.emulator import meshgen  # noqa: E402
-from cellbridge.emulator.commands import Settings  # noqa: E402
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh  # noqa: E402
-from cellbridge.emulator.world import Contact, Drift, World  # noqa: E402
+T0 = 1_800_000_000.0  # host time of virtual time 0
 
 PRESSED, DRIFTING = 5, 9  # the centre and a corner of a 3x3 grid
 PRESS_AT, FORCE, DIAMETER = 10.0, 3.0, 0.020
@@ -50,14 +49,15 @@ def main() -> None:
                   drifts=[Drift(DRIFTING, 0.0, 0.0, args.drift)])
     vm = VirtualMesh(mesh, seed=3, world=world, settings=Settings(rate_hz=args.rate), random_epochs=True)
     vm.run(seconds)
-    reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+    reads = [(T0 + t / CLOCK_HZ, "gw", data) for t, data in vm.serial_chunks[1]]
     emulated = time.process_time() - started
     sections = {} if args.max_touch is None else {"calibration": {"max_touch": args.max_touch}}
     ids: set[int] = set()
     forces, first, last, gaps, said = [], None, None, 0, []
     drift_touched = drift_in_contact = 0
     health = None
-    for t, topic, m in drive(reads, seconds, step=0.1, sections=sections):
+    daemon = OfflineDaemon(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], **sections}))
+    for t, topic, m in daemon.run(reads, T0 + seconds, start=T0):
         if topic == "element":
             drift_touched += sum(1 for b, x in zip(m["bridge"], m["touched"]) if b == DRIFTING and x)
         elif topic == "health":

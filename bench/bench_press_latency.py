@@ -14,8 +14,9 @@ host, same monotonic clock). Prints p50/p99/max and presses never seen, then the
 own account (health: late elements, unknown frames). Every process is stopped on exit.
 
 ``--virtual`` runs the skin in virtual time (``VirtualMesh`` with the real-time latency
-model) and feeds its gateway's bytes, at their virtual times, into the daemon's pipeline
-with the production contact path inline, estimating when the daemon would: the
+model) and feeds its gateway's bytes, at their virtual times, into the daemon offline
+(its pipeline and its contact loop's schedule, the production contact path inline,
+estimating when the daemon would): the
 same latency without the machine's load in it (deterministic by ``--seed``), and split
 into its parts (first sample showing the press at the host; first contact).
 
@@ -63,7 +64,6 @@ PRESS_S = 1.0
 GAP_S = 0.5
 #: A contact this close to a press is its contact: one element's side (a press inside one
 #: element is reported at the element's centre along an axis it cannot resolve)
-TICK_S = 0.1  # the daemon's pipeline tick (service.TICK)
 NEAR_M = 0.040
 
 
@@ -103,13 +103,8 @@ def _host_priority(same: bool) -> tuple[str, ...]:
 def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float], int]:  # type: ignore[no-untyped-def]
     """(press -> first sample showing it at the host, press -> first contact near it, missed)
     in virtual time; milliseconds."""
-    import logging
-
     from cellbridge.daemon.config import parse_config
-    from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
-    from cellbridge.daemon.messages import Publish
-    from cellbridge.daemon.pacing import Pacer
-    from cellbridge.daemon.pipeline import Pipeline
+    from cellbridge.daemon.offline import OfflineDaemon
     from cellbridge.emulator.commands import Settings
     from cellbridge.emulator.realtime import reporting_arg
     from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
@@ -130,54 +125,34 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
                      ack_slack=CLOCK_HZ // 100, random_epochs=True,
                      settings=Settings(rate_hz=args.rate, reporting=reporting_arg(args.reporting)))
     vm.run(presses[-1].start + args.hold + 1.0)
-    reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
+    reads = [(t / CLOCK_HZ, "gw", data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
     contact = dict(_setting(kv) for kv in args.contact)
-    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}))
-    w = ContactWorker(logging.getLogger("bench"), InlineExecutor)
+    # The daemon offline: the service's schedule (cellbridge.daemon.contact_schedule) in
+    # virtual time: a look when data came, when a frame's deadline passes or at the tick,
+    # no sooner than the pacer allows after the last look.
+    d = OfflineDaemon(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}),
+                      topics={"element", "contact"})
     sample_at: dict[int, float] = {}
     contact_at: dict[int, float] = {}
     seen: dict[int, list[dict]] = {k: [] for k in range(len(presses))}  # contacts during each press
-    i, now = 0, 0.0
-    end = reads[-1][0]
 
-    def near(x: float, y: float) -> list[int]:
+    def near(now: float, x: float, y: float) -> list[int]:
         return [k for k, c in enumerate(presses) if c.start <= now < c.start + c.duration + 0.5
                 and (c.x - x) ** 2 + (c.y - y) ** 2 <= NEAR_M ** 2]
 
-    # The daemon's schedule (service._contacts): a look when data came, when a frame's
-    # deadline passes (Pipeline.contact_due) or at the tick (every 0.1 s), and no
-    # sooner than the pacer allows after the last look (daemon/pacing.py).
-    pacer = Pacer(contact.get("rate", 100.0))
-    rest_until, tick_at = -math.inf, 0.0
-    while now < end:
-        due = p.contact_due(now, not w.last_ran())
-        after = reads[i][0] if i < len(reads) else math.inf
-        now = max(now, rest_until, min(after, due, tick_at))
-        ticked = now >= tick_at
-        if ticked:
-            tick_at = now + TICK_S
-        while i < len(reads) and reads[i][0] <= now:
-            t_read = reads[i][0]
-            for m in p.feed("gw", reads[i][1], t_read):
-                if isinstance(m, Publish) and m.topic == "element":
-                    for _b, touched in zip(m.payload["bridge"], m.payload["touched"]):
-                        if touched:
-                            for k, c in enumerate(presses):
-                                if c.start <= t_read < c.start + PRESS_S and k not in sample_at:
-                                    sample_at[k] = t_read - c.start
-            i += 1
-        if ticked:
-            p.tick(now)
-        job = p.contact_job(now)
-        contacts = w.estimate_now(job) if job is not None else []
-        rest_until = pacer.after_look(now, job is not None and w.last_ran(), p.contact_due(now, not w.last_ran()))
-        if job is not None:
-            snap = job.snapshot
+    for now, topic, m in d.run(reads, start=0.0):
+        if topic == "element":  # (published at the read's time)
+            for touched in m["touched"]:
+                if touched:
+                    for k, c in enumerate(presses):
+                        if c.start <= now < c.start + PRESS_S and k not in sample_at:
+                            sample_at[k] = now - c.start
+        elif topic == "contact":
             if args.verbose and any(c.start - 0.05 <= now < c.start + 0.8 for c in presses):
-                print(f"  {now:.3f} frame lag {1000 * (now - snap.t_frame):.0f} ms, touched "
-                      f"{int(snap.touched.sum())}, unknown {int(snap.unknown.sum()) if snap.unknown is not None else 0}")
-            for c in p.contact_frame(job, contacts).payload["contacts"]:
-                for k in near(c["x"], c["y"]):
+                lag = now - m["t_sample"] if m["t_sample"] is not None else math.nan
+                print(f"  {now:.3f} frame lag {1000 * lag:.0f} ms, unknown {len(m['unknown'])}")
+            for c in m["contacts"]:
+                for k in near(now, c["x"], c["y"]):
                     contact_at.setdefault(k, now - presses[k].start)
                 for k, pr in enumerate(presses):
                     if pr.start <= now < pr.start + pr.duration and c.get("missed", 0) == 0:

@@ -2,8 +2,9 @@
 
 Run: ``.venv/bin/python bench/bench_read_cost.py [--presses N] [--seed S]``.
 
-A look at the skin (``contact_due``, then ``contact_job``) follows every read in the
-daemon, and the loop can do nothing else meanwhile: a press's look, and the result of its
+A look at the skin (the contact scheduler's ``due``, then its ``look``: the frames whose
+deadline passed and ``contact_job``, ``cellbridge.daemon.contact_schedule``, as the service
+and the offline driver make it) follows every read in the daemon, and the loop can do nothing else meanwhile: a press's look, and the result of its
 estimate, wait behind the reads in front of them (docs/time.md: 2-4 ms a read on real
 processes around a press). The reads come from the emulator's deterministic mesh in
 virtual time (4×4, 100 Hz, event-based reporting, random presses): the emulator's bytes,
@@ -21,6 +22,7 @@ import numpy as np
 from timing import pin_to_one_core, table
 
 from cellbridge.daemon.config import parse_config
+from cellbridge.daemon.contact_schedule import ContactScheduler
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
@@ -47,6 +49,7 @@ def main() -> None:
     reads = [(t / CLOCK_HZ, data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}]}))
     p.want({"contact"})
+    sched = ContactScheduler(p, p.config.contact.rate)
     split = next(i for i, (t, _) in enumerate(reads) if t > WARM_S)
     for t, d in reads[:split]:
         p.feed("gw", d, t)
@@ -54,9 +57,10 @@ def main() -> None:
     for t, d in reads[split:]:
         t0 = time.perf_counter()
         p.feed("gw", d, t)
+        sched.fed()
         t1 = time.perf_counter()
-        p.contact_due(t)
-        p.contact_job(t)
+        sched.due(t, False)
+        sched.look(t)
         t2 = time.perf_counter()
         feed.append((t1 - t0) * 1e3)
         look.append((t2 - t1) * 1e3)

@@ -39,7 +39,8 @@ from cellbridge.daemon.links import SYSTEM_CLOCK, Clock, Link, Opener, ReplayLin
 from cellbridge.daemon.logs import event, setup
 from cellbridge.daemon.messages import Health, LinkWrite, LogEvent, Message
 from cellbridge.daemon.ops import OpsHooks
-from cellbridge.daemon.pacing import Pacer
+from cellbridge.daemon.contact_schedule import TICK as PIPELINE_TICK
+from cellbridge.daemon.contact_schedule import ContactScheduler
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
 from cellbridge.tactile import SkinLayout
@@ -60,7 +61,7 @@ class Service:
     ``drain_limit``: seconds a stop may take from SIGTERM to the last message (under the
     unit's ``TimeoutStopSec``), whatever hangs."""
 
-    TICK = 0.1  # s between pipeline ticks (health itself goes out every health.interval)
+    TICK = PIPELINE_TICK  # s between pipeline ticks (health itself goes out every health.interval)
     HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
     DRAIN_LIMIT = 10.0  # s: systemd's TimeoutStopSec=15 kills a daemon that takes longer
     REPLAY_WARM_LIMIT = 300.0  # s a replay waits at its start for the contact worker's warm-up
@@ -93,13 +94,13 @@ class Service:
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
         self.contacts = ContactWorker(self.log, contact_executor)
-        self._contacts_shown = False
-        self._feeds_since_snapshot = 0
         self.ingest_errors = 0
         self._busy = np.zeros(4096)  # s spent on each of the last reads, bytes to published messages
         self._n_reads = 0
         self._lag_max = 0.0  # s, since the last health message
-        self._pacer = Pacer(config.contact.rate)
+        # the contact loop's policy (pacing, when a frame is due, what is published, skipped
+        # reads); _contacts only waits and publishes
+        self.schedule = ContactScheduler(self.pipeline, config.contact.rate)
 
     def now(self) -> float:
         """The pipeline's time base: the monotonic clock (wall-clock time while a replay feeds
@@ -118,7 +119,7 @@ class Service:
             self.log.exception("ingest failed on one read", extra={"fields": {"link": link, "bytes": len(data)}})
         if p.commands_in_flight():
             self.control.resolve(now)
-        self._feeds_since_snapshot += 1
+        self.schedule.fed()
         self._fresh.set()
         self._busy[self._n_reads % self._busy.shape[0]] = time.perf_counter() - t0
         self._n_reads += 1
@@ -244,11 +245,13 @@ class Service:
 
     # -- contacts -----------------------------------------------------------------------
     async def _contacts(self) -> None:
+        """The contact loop's waiting: the policy is the scheduler's (daemon/contact_schedule.py)."""
+        sched = self.schedule
         while True:
             # data came (a frame completed), the tick looked for silence, or a frame's
             # deadline passed with a gateway's record missing
             idle = not self.contacts.last_ran()
-            due = self.pipeline.contact_due(self.now(), idle) - self.now()
+            due = sched.due(self.now(), idle) - self.now()
             if not self._fresh.is_set() and due < self.TICK:
                 # asyncio.timeout, not wait_for: Python 3.11's wait_for returns the result of
                 # a wait that ended in the step before its task was cancelled, and the cancel
@@ -261,37 +264,35 @@ class Service:
             self._fresh.clear()
             # ``rate`` bounds the estimates, not the looks, and a late estimate does not
             # make the next one late; a frame that came due while the look ran is looked
-            # at again at once (daemon/pacing.py)
+            # at again at once (daemon/pacing.py). The pacing runs on the host's
+            # performance counter, the pipeline on its own time base: due is carried over.
             started = time.perf_counter()
             estimated = await self._contact_once()
             now = self.now()
             t = time.perf_counter()
-            self._pacer.set_rate(self.config.contact.rate)
-            due_at = self.pipeline.contact_due(now, not self.contacts.last_ran())
-            rest = self._pacer.after_look(started, estimated, t + (due_at - now)) - t
+            sched.set_rate(self.config.contact.rate)
+            due_at = sched.due(now, not self.contacts.last_ran())
+            rest = sched.rest_until(started, estimated, t + (due_at - now)) - t
             if rest > 0:
                 await asyncio.sleep(rest)
 
     async def _contact_once(self, limit: float = math.inf) -> bool:
-        """Estimate the skin's newest frame if it moved on; whether a job ran in the worker
-        (a frame taken with nothing touched and no track left is not shipped, and costs
-        the estimate rate nothing: counted, idle frames kept the loop's token bucket empty
-        and each frame of a press's onset was estimated up to a period after it was due)."""
+        """Look at the skin once and estimate its newest frame if it moved on; whether a job
+        ran in the worker (a frame taken with nothing touched and no track left is not
+        shipped, and costs the estimate rate nothing: counted, idle frames kept the loop's
+        token bucket empty and each frame of a press's onset was estimated up to a period
+        after it was due). A failed estimate counts as one."""
         # (a replay in recorded time: its data's own time, or the whole recording looks silent)
-        now = None if self._recorded else self.now()
-        self._act(self.pipeline.advance(now))  # frames whose deadline passed, and their elements' messages
-        job = self.pipeline.contact_job(now)
-        if job is None:
+        look = self.schedule.look(None if self._recorded else self.now())
+        self._act(list(look.messages))  # frames whose deadline passed, and their elements' messages
+        if look.job is None:
             return False
-        self.contacts.stats["feeds_skipped"] += max(0, self._feeds_since_snapshot - 1)
-        self._feeds_since_snapshot = 0
-        contacts = await self.contacts.estimate(job, min(limit, self.config.contact.worker_timeout))
-        if contacts is None:
-            return True
-        if contacts or self._contacts_shown:  # publish every estimate with contacts, and the first without
-            self._act([self.pipeline.contact_frame(job, contacts)])
-        self._contacts_shown = bool(contacts)
-        return self.contacts.last_ran()
+        self.contacts.stats["feeds_skipped"] = self.schedule.feeds_skipped
+        contacts = await self.contacts.estimate(look.job, min(limit, self.config.contact.worker_timeout))
+        message = self.schedule.publish(look.job, contacts)
+        if message is not None:
+            self._act([message])
+        return contacts is None or self.contacts.last_ran()
 
     # -- reload -------------------------------------------------------------------------
     def reload(self) -> None:

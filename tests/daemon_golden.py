@@ -96,25 +96,15 @@ def compare(got: dict[str, Any], golden: dict[str, Any]) -> list[str]:
 
 
 def pipeline_output() -> dict[str, Any]:
-    """Replay the capture through the sans-I/O pipeline with the golden config."""
-    import logging
-
+    """Replay the capture through the daemon offline (its core and its contact loop's
+    schedule, in the capture's time) with the golden config."""
     from cellbridge.daemon.capture import read_capture
     from cellbridge.daemon.config import load_config
-    from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
-    from cellbridge.daemon.messages import Publish
-    from cellbridge.daemon.pipeline import Pipeline
+    from cellbridge.daemon.offline import OfflineDaemon
 
-    cfg = load_config(CONFIG)
-    p = Pipeline(cfg)
-    p.want({"element", "contact"})
-    worker = ContactWorker(logging.getLogger("golden"), InlineExecutor)
-    out: list[tuple[str, dict[str, Any]]] = []
-    for t, data in read_capture(CAPTURE):
-        out += [(m.topic, m.payload) for m in p.feed("gw", data, t) if isinstance(m, Publish)]
-    job = p.contact_job()
-    assert job is not None
-    out.append(("contact", p.contact_frame(job, worker.estimate_now(job)).payload))
+    # (the golden config replays the capture in recorded time: a look takes the last read's time)
+    d = OfflineDaemon(load_config(CONFIG), topics={"element", "contact"}, recorded=True)
+    out = [(o.topic, o.payload) for o in d.run((t, "gw", data) for t, data in read_capture(CAPTURE))]
     return normalise(out)
 
 

@@ -35,7 +35,6 @@ from typing import Any
 DATA = Path(__file__).parent / "data" / "golden"
 T0 = 1_750_000_000.0  #: host time (epoch) of virtual time 0
 READ_GRAIN = 0.001  #: s; a host read returns what arrived within this (a pty read's batching)
-ESTIMATE_EVERY = 0.02  #: s of recorded time between contact estimates
 
 
 @dataclass(frozen=True)
@@ -232,33 +231,19 @@ def serial_reads(path: Path) -> list[tuple[str, float, bytes]]:
 
 
 def daemon_output(sc: Scenario, recording: Path) -> list[str]:
-    """The daemon's pipeline on the recording's serial channel, one line per message,
-    contacts through the production contact path (an inline worker)."""
-    from cellbridge.daemon.pipeline import Pipeline
-    from pipeline_helpers import published, worker
+    """The daemon on the recording's serial channel, one line per message: its core and its
+    contact loop's schedule (ticks, pacing at ``[contact] rate``) in the recording's time,
+    contacts through the production contact path (an inline worker); a last ``health``."""
+    from cellbridge.daemon.messages import Publish
+    from cellbridge.daemon.offline import OfflineDaemon
 
     reads = serial_reads(recording)
-    p = Pipeline(config_for(sc, sorted({link for link, _, _ in reads})))
-    p.want({"element", "contact"})
-    w = worker()
-    lines: list[str] = []
-    shown = False
-    next_estimate = reads[0][1] + ESTIMATE_EVERY if reads else 0.0
-    t = T0
-    for link, t, data in reads:
-        for topic, msg in published(p.feed(link, data, t)):
-            lines.append(render(topic, msg))
-        if t >= next_estimate:
-            next_estimate = t + ESTIMATE_EVERY
-            job = p.contact_job()
-            if job is not None:
-                contacts = w.estimate_now(job)
-                if contacts or shown:
-                    m = p.contact_frame(job, contacts)
-                    lines.append(render(m.topic, m.payload))
-                shown = bool(contacts)
+    d = OfflineDaemon(config_for(sc, sorted({link for link, _, _ in reads})), topics={"element", "contact"})
+    lines = [render(o.topic, o.payload) for o in d.run((t, link, data) for link, t, data in reads)]
+    p = d.pipeline
     p.want({"health"})
-    health = [m for topic, m in published(p.tick(t, force=True)) if topic == "health"]
+    t = reads[-1][1] if reads else T0
+    health = [m.payload for m in p.tick(t, force=True) if isinstance(m, Publish) and m.topic == "health"]
     lines += [render("health", m) for m in health]
     return lines
 

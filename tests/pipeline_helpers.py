@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import logging
+import math
+from collections.abc import Iterator
 from typing import Any
 
+from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
+from cellbridge.daemon.offline import OfflineDaemon, Output
 from cellbridge.daemon.messages import LogEvent, Message, Publish
 from cellbridge.daemon.contacts import ContactJob, ContactSnapshot
 from cellbridge.daemon.pipeline import Pipeline
@@ -40,3 +44,21 @@ def estimate(p: Pipeline, job: ContactJob, runs: int = 1) -> tuple[str, dict[str
         contacts = w.estimate_now(job)
     m = p.contact_frame(job, contacts)
     return m.topic, m.payload
+
+
+#: Host time of virtual time 0 in the virtual-mesh tests.
+T0 = 1_800_000_000.0
+
+
+def drive(reads: list[tuple[float, bytes]], until: float, stop_feeding_at: float = math.inf,
+          wall_steps: dict[float, float] | None = None, sections: dict | None = None) -> Iterator[Output]:
+    """The daemon offline on the gateway's reads (the service's schedule in virtual time:
+    ticks, contact looks paced at ``[contact] rate``) from ``T0`` to ``T0 + until``; reads
+    from ``stop_feeding_at`` s on are lost (the line went quiet); at each time of
+    ``wall_steps`` the wall clock steps by its value (the next tick notices; the time base,
+    the monotonic clock, does not move). ``sections``: more of the daemon's configuration.
+    Yields (time, topic, payload)."""
+    d = OfflineDaemon(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], **(sections or {})}))
+    fed = ((t, "gw", data) for t, data in reads if t < T0 + stop_feeding_at)
+    steps = [(T0 + at, by) for at, by in (wall_steps or {}).items()]
+    yield from d.run(fed, T0 + until, start=T0, wall_steps=steps)

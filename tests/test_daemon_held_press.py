@@ -1,6 +1,6 @@
 """A press held past ``max_touch``, and an element drifting by itself, on an emulated skin.
 
-The virtual mesh's gateway bytes go through the daemon's pipeline in virtual time (as in
+The virtual mesh's gateway bytes go through the daemon's pipeline in virtual time (pipeline_helpers.drive: the daemon offline, as in
 test_daemon_skin_frames). ``max_touch`` is shortened to 20 s and the skin samples at
 10 Hz so that a minute of virtual time keeps the test short; the logic is the one the
 default 600 s runs (``bench/bench_held_press.py`` holds a press for an hour).
@@ -16,7 +16,7 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, Drift, World
 from cellbridge.tactile import ElementParams, grid_layout, skin_response
-from test_daemon_skin_frames import T0, drive
+from pipeline_helpers import T0, drive
 
 MAX_TOUCH = 20.0
 PRESSED = 5  # the centre element of a 3x3 grid
@@ -45,7 +45,7 @@ def test_a_press_held_past_max_touch_keeps_its_contact_and_a_drifting_element_is
     ids: set[int] = set()
     forces, first, last, gaps = [], None, None, 0
     health = None
-    for t, topic, m in drive(reads(seconds, [press], [drift]), seconds, step=0.1, sections=SECTIONS):
+    for t, topic, m in drive(reads(seconds, [press], [drift]), seconds, sections=SECTIONS):
         if topic == "element":
             for b, touched in zip(m["bridge"], m["touched"]):
                 assert not (b == DRIFTING and touched), f"drifting element touched at {t - T0:.1f} s"
@@ -82,7 +82,7 @@ def test_a_rebaseline_under_a_contact_is_said_on_the_contact_topic() -> None:
     seconds = PRESS_AT + MAX_TOUCH + 4.0
     press = Contact(PRESS_AT, 1e6, *CENTRE, FORCE, DIAMETER)
     said, ended = [], None
-    for t, topic, m in drive(reads(seconds, [press], [Drift(PRESSED, PRESS_AT + 1.0, rate, 0.0)]), seconds, step=0.1,
+    for t, topic, m in drive(reads(seconds, [press], [Drift(PRESSED, PRESS_AT + 1.0, rate, 0.0)]), seconds,
                              sections=SECTIONS):
         if topic == "contact":
             if m["rebaselined"]:
@@ -111,7 +111,7 @@ def test_a_press_held_beside_a_drifting_element_keeps_its_reading_and_force() ->
     truth = np.array([d1.max(), d2.max()])
     press = Contact(PRESS_AT, 1e6, *CENTRE, FORCE, DIAMETER)
     err, forces, health = [], [], None
-    for t, topic, m in drive(reads(seconds, [press], [Drift(DRIFTING, 0.0, 0.0, 2e-15)]), seconds, step=0.1,
+    for t, topic, m in drive(reads(seconds, [press], [Drift(DRIFTING, 0.0, 0.0, 2e-15)]), seconds,
                              sections=SECTIONS):
         if topic == "element":
             err += [np.array([a, c]) - truth for b, a, c in zip(m["bridge"], m["dc1"], m["dc2"])
@@ -137,7 +137,7 @@ def test_one_layer_drifting_alone_is_followed_not_touched(rates) -> None:
     seconds = 60.0
     touched_ever = False
     late = []
-    for t, topic, m in drive(reads(seconds, [], [Drift(DRIFTING, 2.0, *rates)]), seconds, step=0.1,
+    for t, topic, m in drive(reads(seconds, [], [Drift(DRIFTING, 2.0, *rates)]), seconds,
                              sections=SECTIONS):
         if topic == "element":
             for b, touched, a, c in zip(m["bridge"], m["touched"], m["dc1"], m["dc2"]):

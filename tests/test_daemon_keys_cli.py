@@ -12,7 +12,7 @@ from zmq.auth import load_certificate
 
 from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import load_curve
-from test_cli import CLI
+from daemon_harness import CLI
 
 
 def keys_gen(*args: str, umask: int = 0o022) -> subprocess.CompletedProcess[str]:

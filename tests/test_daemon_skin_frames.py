@@ -9,21 +9,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterator
 
 import pytest
 
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.contact_schedule import TICK
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, Readout, StreamDecoder, encode_stream
-from pipeline_helpers import published, worker
 
-T0 = 1_800_000_000.0
+from pipeline_helpers import T0, drive
+
 CORNER = (0.0585, 0.0625)  # across the corner of bridges 6, 7, 10 and 11 of a 4x4 grid
 UNDER = {6, 7, 10, 11}
 
@@ -38,39 +36,6 @@ def gateway_reads(seconds: float, presses: list[Contact], kill: tuple[int, ...] 
         vm.kill(b, at=kill_at)
     vm.run(seconds)
     return [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
-
-
-def drive(reads: list[tuple[float, bytes]], until: float, step: float = 0.01,
-          stop_feeding_at: float = math.inf, wall_steps: dict[float, float] | None = None,
-          sections: dict | None = None) -> Iterator[tuple[float, str, dict]]:
-    """The service's part, in virtual time: feed each read at its time, tick and estimate
-    contacts every ``step`` s (also when no data comes); at each time of ``wall_steps``
-    the wall clock steps by its value (the service tells the pipeline so; its time base,
-    the monotonic clock, does not move). ``sections``: more of the daemon's configuration.
-    Yields (time, topic, payload)."""
-    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], **(sections or {})}))
-    steps = sorted((wall_steps or {}).items())
-    w = worker()
-    i = 0
-    now = T0
-    shown = False
-    while now < T0 + until:
-        now += step
-        while steps and now - T0 >= steps[0][0]:
-            p.host_clock_step(steps.pop(0)[1])
-        while i < len(reads) and reads[i][0] <= now:
-            if reads[i][0] < T0 + stop_feeding_at:
-                for topic, payload in published(p.feed("gw", reads[i][1], reads[i][0])):
-                    yield reads[i][0], topic, payload
-            i += 1
-        for topic, payload in published(p.tick(now)):
-            yield now, topic, payload
-        job = p.contact_job(now)
-        if job is not None:
-            contacts = w.estimate_now(job)
-            if contacts or shown:
-                yield now, "contact", p.contact_frame(job, contacts).payload
-            shown = bool(contacts)
 
 
 @pytest.fixture(scope="module")
@@ -179,7 +144,7 @@ def test_a_wall_clock_step_moves_only_the_published_stamps(press_reads, plain_co
     assert [(t, c) for t, _, c in plain] == [(t, c) for t, _, c in stepped]
     assert any(c for t, _, c in plain if 4.5 < t < 6.4) and not any(c for t, _, c in plain if t > 6.7)
     for (t, th0, _), (_, th1, _) in zip(plain, stepped):
-        if all(abs(t - at) > 0.015 for at in steps):  # (a step lands on the first 10 ms tick at or after it)
+        if all(not at - 0.015 < t < at + TICK + 0.015 for at in steps):  # (the next tick notices a step)
             moved = sum(d for at, d in steps.items() if t > at)
             assert th1 - th0 == pytest.approx(moved, abs=1e-6)
 
@@ -362,7 +327,7 @@ def test_corner_presses_on_a_contended_event_based_skin_keep_one_id_from_their_f
                      random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.run(presses[-1].start + 1.6)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
-    run = [(t - T0, m) for t, topic, m in drive(reads, presses[-1].start + 1.6, step=0.005,
+    run = [(t - T0, m) for t, topic, m in drive(reads, presses[-1].start + 1.6,
                                                   sections={"contact": {"birth_frames": 1}})
            if topic == "contact" and t - T0 > 60.0]
     for k, c in enumerate(presses):
@@ -398,7 +363,7 @@ def test_presses_sliding_across_seams_of_an_event_based_skin_keep_one_id() -> No
                      random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.run(end)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
-    run = [(t - T0, m) for t, topic, m in drive(reads, end - 0.3, step=0.005)
+    run = [(t - T0, m) for t, topic, m in drive(reads, end - 0.3)
            if topic == "contact" and t - T0 > 61.0]
     for k, c in enumerate(presses):
         during = [m for t, m in run if c.start <= t < c.start + c.duration + 0.3]
@@ -469,7 +434,7 @@ def _corner_presses_held_back(phase: str, n: int) -> list[tuple[Contact, set[int
     for k, c in enumerate(presses):
         at = c.start if phase == "onset" else c.start + c.duration + 0.005 * (k // 4)
         reads = _held_back(reads, sorted(UNDER)[k % 4], [(at, at + 0.3)])
-    run = [(t - T0, m) for t, topic, m in drive(reads, end, step=0.005, sections={"calibration": {"n_baseline": 3}})
+    run = [(t - T0, m) for t, topic, m in drive(reads, end, sections={"calibration": {"n_baseline": 3}})
            if topic == "contact"]
     for k, c in enumerate(presses):
         steady = [d for t, m in run if c.start + 0.4 <= t < c.start + 0.9 for d in m["contacts"]]
@@ -534,7 +499,7 @@ def test_two_fingers_sharing_an_element_each_get_an_id_within_the_split_wait() -
                      random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.run(end)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
-    run = [(t - T0, m) for t, topic, m in drive(reads, end, step=0.005, sections={"calibration": {"n_baseline": 3}})
+    run = [(t - T0, m) for t, topic, m in drive(reads, end, sections={"calibration": {"n_baseline": 3}})
            if topic == "contact"]
     ids = []
     for k, c in enumerate(fingers):

@@ -16,7 +16,7 @@ from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import CurveKeys, CurveServer
 from cellbridge.daemon.subscribe import message_to_json
 from pub_helpers import json_lines, publisher, run_subscriber
-from test_cli import CLI
+from daemon_harness import CLI
 
 
 def test_sub_prints_subscribed_topics_as_json_lines() -> None:

@@ -10,9 +10,6 @@ msgpack-c headers exist; the JavaScript one runs where node finds its npm packag
 from __future__ import annotations
 
 import contextlib
-import shutil
-import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,47 +18,8 @@ import zmq
 
 from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import CurveKeys, CurveServer
+from example_subscribers import c_subscriber, js_subscriber, py_subscriber
 from pub_helpers import json_lines, publisher, run_subscriber
-
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-JS_DIR = EXAMPLES / "javascript"
-
-
-def _pkg_config_ok(*packages: str) -> bool:
-    return shutil.which("pkg-config") is not None and subprocess.run(
-        ["pkg-config", "--exists", *packages], capture_output=True).returncode == 0
-
-
-def c_subscriber(tmp_path: Path) -> list[str]:
-    if shutil.which("cc") is None or shutil.which("make") is None:
-        pytest.skip("C example: no C compiler (cc) or make on this machine")
-    if not (_pkg_config_ok("libzmq") and (_pkg_config_ok("msgpack-c") or _pkg_config_ok("msgpack"))):
-        pytest.skip("C example: libzmq or msgpack-c development files are missing "
-                    "(Debian: apt-get install libzmq3-dev libmsgpack-dev; `make test` run as root installs them)")
-    build = tmp_path / "c"
-    shutil.copytree(EXAMPLES / "c", build)
-    (build / "subscriber").unlink(missing_ok=True)
-    out = subprocess.run(["make", "-C", str(build)], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    assert "warning" not in out.stderr
-    return [str(build / "subscriber")]
-
-
-def js_subscriber(tmp_path: Path) -> list[str]:
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("JavaScript example: node is not installed")
-    probe = subprocess.run([node, "-e", "require('zeromq'); require('@msgpack/msgpack')"],
-                           cwd=JS_DIR, capture_output=True, timeout=60)
-    if probe.returncode != 0:
-        pytest.skip("JavaScript example: npm packages zeromq and @msgpack/msgpack are not installed "
-                    "(run `npm install` in examples/javascript; the suite downloads nothing)")
-    return [node, str(JS_DIR / "subscriber.js")]
-
-
-def py_subscriber(tmp_path: Path) -> list[str]:
-    return [sys.executable, str(EXAMPLES / "python" / "subscriber.py")]
-
 
 EXAMPLE_COMMANDS: dict[str, Callable[[Path], list[str]]] = {
     "python": py_subscriber, "c": c_subscriber, "javascript": js_subscriber}

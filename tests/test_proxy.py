@@ -19,7 +19,7 @@ from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import apply_client
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from pub_helpers import json_lines, run_subscriber
-from test_examples import c_subscriber
+from example_subscribers import c_subscriber
 
 
 def _proxy_cmd(front: str, backs: list[str], *extra: str) -> list[str]:

@@ -11,51 +11,7 @@ import pytest
 from cellbridge.tactile import ContactEstimator, ContactTracker, skin_response
 from cellbridge.tactile.seam_estimator import SeamEstimator
 from cellbridge.tactile.skin_geometry import SkinError, parse_skin, pose_matrix
-
-SKIN = """
-name = "test"
-side = 0.04
-[[link]]
-name = "torso"
-[[link]]
-name = "forearm"
-parent = "torso"
-origin = [0.3, 0.0, 0.0]
-rpy = [0.0, 1.5707963267948966, 0.0]
-
-[[patch]]
-name = "fore"
-link = "forearm"
-shape = "cylinder"
-radius = 0.045
-wrap = true
-rows = 3
-cols = 7
-origin = [0.0, 0.0, 0.05]
-
-[[patch]]
-name = "chest_l"
-link = "torso"
-shape = "plane"
-rows = 2
-cols = 2
-origin = [0.0, 0.0, 0.1]
-
-[[patch]]
-name = "chest_r"
-link = "torso"
-shape = "plane"
-rows = 2
-cols = 2
-origin = [0.08, 0.0, 0.1]
-
-[[gateway]]
-name = "arm"
-patch = "fore"
-[[gateway]]
-name = "chest"
-patch = "chest_l"
-"""
+from skin_descriptions import SKIN
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from test_cli import CLI
+from daemon_harness import CLI
 
 UNITS_DIR = Path(__file__).resolve().parent.parent / "systemd"
 UNITS = sorted(p.name for p in UNITS_DIR.glob("*.service"))

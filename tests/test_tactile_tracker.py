@@ -10,22 +10,8 @@ import pytest
 
 from cellbridge.tactile.contacts import ContactEstimator
 from cellbridge.tactile.layout import grid_layout
-from cellbridge.tactile.response import skin_response
 from cellbridge.tactile.tracker import ContactTracker
-
-MM = 1e-3
-NOISE = 1e-15
-LAY = grid_layout(3, 3)
-
-
-def frame(contacts, rng, lay=LAY):
-    dc1, dc2 = skin_response(lay, contacts)
-    return dc1 + rng.normal(0, NOISE, lay.n), dc2 + rng.normal(0, NOISE, lay.n)
-
-
-def tracker(**kw):
-    return ContactTracker(ContactEstimator(LAY, noise=NOISE), **kw)
-
+from tracker_frames import CORNER_PRESS, LAY, MM, NOISE, _reads, frame, tracker
 
 def test_contact_is_born_after_it_persists_and_keeps_its_id():
     rng = np.random.default_rng(1)
@@ -220,7 +206,6 @@ def test_a_tracker_built_afresh_continues_the_contacts_carried_over_with_their_i
     assert new.carry(wire) == 0
 
 
-CORNER_PRESS = [0.0185, 0.0225, 3.0, 0.020]  # across the corner of elements 0, 1, 3 and 4
 
 
 def _one_late(press, late, rng):
@@ -262,12 +247,6 @@ def test_a_lone_press_and_two_far_apart_are_born_at_their_first_frame():
     tr2 = tracker(birth_frames=1)
     far = [[0.0, 0.0, 3.0, 0.012], [0.08, 0.08, 3.0, 0.012]]  # elements 0 and 8: not neighbours
     assert len(tr2.update(*frame(far, rng))) == 2
-
-
-def _reads(at, fresh, stale_at=-0.5):
-    """``read_at`` of a 3x3 frame: the elements in ``fresh`` read at ``at``, the others last
-    read at ``stale_at`` (an event-based skin's held readings: a heartbeat before)."""
-    return {e: (at if e in fresh else stale_at) for e in range(LAY.n)}
 
 
 def test_a_press_read_in_two_while_an_element_between_is_late_keeps_one_id():

@@ -25,7 +25,7 @@ import pytest
 from daemon_harness import CLI
 from fake_daemon import FakeDaemon, grid_layout
 from pty_terminal import pty_program
-from test_views_hostile import WebPage, args, cell, foreign_sequences, server_view
+from view_clients import WebPage, args, cell, foreign_sequences, server_view
 from view_fuzz import SOURCE, messages, odd_value, topology
 
 N = 10_000

@@ -14,43 +14,17 @@ import re
 import shutil
 import signal
 import socket
-import subprocess
 import time
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
 from typing import Any
 
 import pytest
 
-from daemon_harness import CLI, free_port
+from daemon_harness import CLI
 from fake_daemon import FakeDaemon, grid_layout
-from pty_terminal import PtyProgram, escape_sequences, pty_program
+from pty_terminal import PtyProgram, pty_program
+from view_clients import WebPage, args, cell, foreign_sequences, server_view
 
 FOXGLOVE = ["foxglove.sdk.v1"]
-
-
-def args(fd: FakeDaemon) -> list[str]:
-    return ["--endpoint", fd.endpoints["pub"], "--control", fd.endpoints["control"]]
-
-
-@contextmanager
-def server_view(kind: str, fd: FakeDaemon, *extra: str) -> Iterator[tuple[subprocess.Popen[bytes], int]]:
-    """``cellbridge web`` or ``foxglove`` on a free port, up (its URL printed); always stopped."""
-    port = free_port()
-    proc = subprocess.Popen([CLI, kind, "--port", str(port), *args(fd), *extra], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, start_new_session=True)
-    try:
-        assert proc.stdout is not None
-        line = proc.stdout.readline().decode()
-        assert f":{port}" in line, (line, proc.stderr.read().decode() if proc.poll() is not None else "")  # type: ignore[union-attr]
-        yield proc, port
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(10)
-        for f in (proc.stdout, proc.stderr):
-            if f is not None:
-                f.close()
 
 
 def element(seq: int, forces: dict[int, float], source: str = "robot:5560") -> dict[str, Any]:
@@ -62,45 +36,6 @@ def element(seq: int, forces: dict[int, float], source: str = "robot:5560") -> d
 
 def health(seq: int, source: str = "robot:5560", **extra: Any) -> dict[str, Any]:
     return {"v": 1, "seq": seq, "source": source, "uptime": float(seq), "links": {"gw": {"connected": True}}, **extra}
-
-
-class WebPage:
-    """A WebSocket client of ``cellbridge web`` reading its frames, as the page does."""
-
-    def __init__(self, port: int, origin: str | None = None) -> None:
-        from websockets.sync.client import connect
-
-        self._stack = ExitStack()
-        self.ws = self._stack.enter_context(connect(f"ws://127.0.0.1:{port}/ws", origin=origin,  # type: ignore[arg-type]
-                                                    open_timeout=10, max_size=1 << 26))
-        self.frames = 0
-
-    def frame(self, pred: Any = lambda f: True, timeout: float = 20.0) -> dict[str, Any]:
-        end = time.monotonic() + timeout
-        last = None
-        while time.monotonic() < end:
-            last = json.loads(self.ws.recv(timeout=max(0.01, end - time.monotonic())))
-            self.frames += 1
-            if pred(last):
-                return last
-        raise AssertionError(f"no matching frame within {timeout} s; last: {str(last)[:2000]}")
-
-    def latest(self) -> dict[str, Any]:
-        """The newest frame: the next one, or the last of those already waiting."""
-        last = self.frame()
-        while True:
-            try:
-                last = json.loads(self.ws.recv(timeout=0))
-            except TimeoutError:
-                return last
-            self.frames += 1
-
-    def close(self) -> None:
-        self._stack.close()
-
-
-def cell(frame: dict[str, Any], bridge: int) -> dict[str, Any] | None:
-    return next((c for c in frame["cells"] if c["bridge"] == bridge), None)
 
 
 def http_status(port: int, host: str, path: str = "/") -> int:
@@ -304,33 +239,6 @@ def test_each_view_shows_only_the_source_it_is_given() -> None:
 
 OSC52 = "\x1b]52;c;cHduZWQ=\x07"  # write "pwned" to the clipboard
 RED = "\x1b[31m"  # basic red: never emitted by the view (truecolor styles)
-
-
-def _allowed(seq: str) -> bool:
-    """Whether a control sequence is one ``cellbridge watch`` (Textual) writes itself: SGR
-    with truecolor colours and attributes, cursor position, private modes and their
-    queries, the kitty keyboard protocol, the pointer shape (OSC 22), CR/LF/TAB."""
-    if re.fullmatch(r"\x1b\[\d*;?\d*H|\x1b\[\?[\d;]+[hl]|\x1b\[\?\d+\$p|\x1b\[[<>]\d*u|\x1b\]22;[a-z-]+\x07", seq):
-        return True
-    m = re.fullmatch(r"\x1b\[([\d;]*)m", seq)
-    if not m:
-        return False
-    params = [int(p) if p else 0 for p in m.group(1).split(";")]
-    i = 0
-    while i < len(params):
-        if params[i] in (38, 48):  # truecolor only: 38;2;r;g;b
-            if params[i + 1: i + 2] != [2] or len(params) < i + 5:
-                return False
-            i += 5
-            continue
-        if params[i] not in {0, 1, 2, 3, 4, 7, 8, 9, 21, 22, 23, 24, 27, 28, 29, 39, 49, 53, 55}:
-            return False
-        i += 1
-    return True
-
-
-def foreign_sequences(text: str) -> list[str]:
-    return [s for s in escape_sequences(text) if not _allowed(s)]
 
 
 def test_watch_shows_the_daemons_control_characters_escaped() -> None:

@@ -29,19 +29,13 @@ import pytest
 
 from browser import CHROMIUM, browser
 from cellbridge.views.model import level_rgb
+from view_clients import PICTURES, picture, pixel
 from view_harness import CLI, PRESSED, Client, daemon, fed_skin, free_port, skin_config, view_process, wait_ready
 
 TMUX = shutil.which("tmux")
-PICTURES = os.environ.get("CELLBRIDGE_PICTURES")
 needs_tmux = pytest.mark.skipif(TMUX is None, reason="tmux is not installed (make test installs it with apt-get as root)")
 needs_chromium = pytest.mark.skipif(CHROMIUM is None,
                                     reason="Debian's chromium is not installed (make test installs it with apt-get as root)")
-
-
-def picture(name: str, data: bytes) -> None:
-    if PICTURES:
-        Path(PICTURES).mkdir(parents=True, exist_ok=True)
-        (Path(PICTURES) / name).write_bytes(data)
 
 
 class Published:
@@ -214,13 +208,6 @@ def wait_line(proc: subprocess.Popen[bytes], timeout: float = 30.0) -> str:
     ready, _, _ = select.select([proc.stdout], [], [], timeout)
     assert ready, "the view printed nothing"
     return proc.stdout.readline().decode()
-
-
-def pixel(png: bytes, x: float, y: float) -> tuple[int, int, int]:
-    from PIL import Image
-
-    img = Image.open(io.BytesIO(png)).convert("RGB")
-    return img.getpixel((int(x), int(y)))  # type: ignore[return-value]  # an RGB image: a pixel is a 3-tuple
 
 
 @needs_chromium

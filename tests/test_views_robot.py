@@ -30,8 +30,7 @@ import robot_payloads as rp
 from browser import CHROMIUM, browser
 from fake_daemon import FakeDaemon
 from pty_terminal import pty_program
-from test_views_hostile import args, server_view
-from test_views_live import picture, pixel
+from view_clients import args, picture, pixel, server_view
 from view_harness import CLI
 
 from cellbridge.views.model import level_rgb

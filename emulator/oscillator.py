@@ -108,8 +108,8 @@ def seen_edge_count(period: float, jitter: float, gate: int, noise: JitterSource
     base = ((sums[b - 1] if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
     w = hint_steps if b == hint else noise.block_steps(b)
     cum = w.cumsum()
+    m = float(cum[-1]) / BLOCK - float(y[b]) / _SQRT_BLOCK
     steps = cum.tolist()  # steps[i - 1] = Σ_{j<i} w_j
-    m = steps[-1] / BLOCK - float(y[b]) / _SQRT_BLOCK
     k_step = period * jitter
     i = min(max(int((gate - base) / period), 0), BLOCK - 1)
     while i + 1 < BLOCK and ((steps[i] - m * (i + 1)) * k_step + period * (i + 1)) + base <= gate:

@@ -26,7 +26,7 @@ import numpy as np
 
 from cellbridge.emulator.adc import AdcTiming, held_inputs, sar_codes
 from cellbridge.emulator.keyed_random import GateNoise, KeyedNormals, Stream
-from cellbridge.emulator.oscillator import EdgeTrain, every_edge_seen, max_period_deviation, seen_edge_count
+from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation
 from cellbridge.tactile.transfer import C_MAX, ChipParams, adc_input, oscillator_period
 
 __all__ = ["CLOCK_HZ", "MIN_PERIOD_CYCLES", "ChipConfig", "Chip"]
@@ -199,16 +199,6 @@ class Chip:
         ``capacitance`` is the channel's total capacitance in farads (parasitic included).
         Deterministic for (seed, channel, start_cycle): the same call twice gives the same answer.
         """
-        if (type(capacitance) is float and 0.0 < capacitance <= MAX_CAPACITANCE
-                and type(channel) is int and type(start_cycle) is int and type(gate_cycles) is int
-                and channel >= 0 and start_cycle >= 0 and gate_cycles >= 1):
-            # the usual call, checked cheaply: plain numbers, an oscillator whose every edge
-            # is seen; the closed form without building the train (the same answer)
-            period = capacitance * self._period_per_farad
-            if every_edge_seen(period, self.config.jitter):
-                n = seen_edge_count(period, self.config.jitter, gate_cycles,
-                                    GateNoise(self._noise, channel, start_cycle))
-                return n % self._modulus, n >= self._modulus
         n = self.edge_train(channel, capacitance, start_cycle, gate_cycles).edge_count()
         return n % self._modulus, n >= self._modulus
 

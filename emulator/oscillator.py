@@ -43,8 +43,7 @@ from numpy.typing import NDArray
 
 from cellbridge.emulator.keyed_random import BLOCK_SIZE, Z_MAX
 
-__all__ = ["BLOCK", "SYNC_LATENCY", "EdgeTrain", "JitterSource", "every_edge_seen", "max_period_deviation",
-           "seen_edge_count"]
+__all__ = ["BLOCK", "SYNC_LATENCY", "EdgeTrain", "JitterSource", "max_period_deviation"]
 
 BLOCK = BLOCK_SIZE  #: periods per jitter block
 SYNC_LATENCY = 3  #: window origin L = start_cycle − SYNC_LATENCY
@@ -70,53 +69,6 @@ def max_period_deviation() -> float:
 
 
 _MAX_DEV = max_period_deviation()
-
-
-def every_edge_seen(period: float, jitter: float) -> bool:
-    """Whether no half period can be shorter than one cycle, whatever the jitter draws:
-    then the synchroniser sees every edge and the count has a closed form."""
-    return 0.5 * period * (1.0 - jitter * _MAX_DEV) >= 1.0 + _DETECT_MARGIN
-
-
-def seen_edge_count(period: float, jitter: float, gate: int, noise: JitterSource) -> int:
-    """``EdgeTrain(period, jitter, None, gate, noise).edge_count()`` when
-    :func:`every_edge_seen` holds, without the train: the same draws, the same doubles
-    and the same answer, for a fraction of the cost (the counter runs twice per sample in
-    every bridge process, so its per-call overhead is most of the emulated skin's sampling
-    CPU). Arguments are taken as checked (:meth:`EdgeTrain.__init__` checks them); the
-    tests compare this with :meth:`EdgeTrain.edge_count` on random gates.
-
-    Edge times are evaluated as scalars with exactly the operations, in exactly the order,
-    that :meth:`EdgeTrain.block_starts` and :meth:`EdgeTrain.block_rises` apply to whole
-    arrays; the prefix sums are numpy's (``cumsum``), read once as Python floats.
-    """
-    n_blocks = int((gate + 1) / (period * (BLOCK - jitter * _SQRT_BLOCK * Z_MAX))) + 2
-    phase, y, hint_steps = noise.head(n_blocks)
-    t0 = phase * period
-    block = period * BLOCK
-    b = min(max(int((gate - t0) / block), 0), n_blocks - 1)  # the hint block
-    hint = b
-    sums = y.cumsum().tolist()  # sums[b - 1] = Σ_{i<b} y_i
-    k_sum = period * jitter * _SQRT_BLOCK
-    # start(b) = ((Σ_{i<b} y_i) · k_sum + period · (BLOCK · b)) + t0, and start(0) = (0.0 · k_sum + 0.0) + t0
-    while (sums[b] * k_sum + period * (BLOCK * (b + 1))) + t0 <= gate:
-        b += 1
-    while b >= 0 and ((sums[b - 1] if b else 0.0) * k_sum + period * (BLOCK * b)) + t0 > gate:
-        b -= 1
-    if b < 0:  # edge 0 comes after the gate's end
-        return 0
-    base = ((sums[b - 1] if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
-    w = hint_steps if b == hint else noise.block_steps(b)
-    cum = w.cumsum()
-    m = float(cum[-1]) / BLOCK - float(y[b]) / _SQRT_BLOCK
-    steps = cum.tolist()  # steps[i - 1] = Σ_{j<i} w_j
-    k_step = period * jitter
-    i = min(max(int((gate - base) / period), 0), BLOCK - 1)
-    while i + 1 < BLOCK and ((steps[i] - m * (i + 1)) * k_step + period * (i + 1)) + base <= gate:
-        i += 1
-    while i >= 0 and (((steps[i - 1] if i else 0.0) - m * i) * k_step + period * i) + base > gate:
-        i -= 1
-    return b * BLOCK + i + 1 - (1 if t0 <= 0.0 else 0)
 
 
 class JitterSource(Protocol):
@@ -162,7 +114,7 @@ class EdgeTrain:
         self.noise = noise
         #: True when no half period can be shorter than one cycle, whatever the jitter draws:
         #: then the synchroniser sees every edge and the count has a closed form.
-        self.every_edge_seen = every_edge_seen(period, jitter)
+        self.every_edge_seen = 0.5 * period * (1.0 - jitter * _MAX_DEV) >= 1.0 + _DETECT_MARGIN
         #: Block sums drawn: enough that block n_blocks starts after the gate's end even
         #: if every y sits at −Z_MAX (start(b) ≥ T·b·(B − jitter·√B·Z_MAX)).
         self.n_blocks = int((self.gate + 1) / (period * (BLOCK - jitter * _SQRT_BLOCK * Z_MAX))) + 2

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from cellbridge.emulator.adc import sar_codes
 from cellbridge.emulator.chip import Chip, ChipConfig
 from cellbridge.emulator.keyed_random import Z_MAX, GateNoise, KeyedNormals, Stream
-from cellbridge.emulator.oscillator import EdgeTrain, every_edge_seen, max_period_deviation, seen_edge_count
+from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation
 from cellbridge.emulator.reference import step_conversions, step_counter
 
 MAX_JITTER = 0.99 / max_period_deviation()
@@ -83,33 +83,6 @@ def test_closed_form_spans_several_jitter_blocks(seed, start, gate, c, jitter):
     ref = len(step_counter(train, start).events)
     assert train.edge_count() == ref
     assert ref == train.event_offsets().size
-
-
-@settings(max_examples=300, deadline=None)
-@given(
-    seed=seeds,
-    start=starts,
-    gate=st.one_of(st.integers(1, 3000), st.integers(20_000, 200_000)),
-    c=st.floats(min_value=1e-12, max_value=200e-12),
-    jitter=jitters,
-    channel=st.integers(0, 3),
-)
-def test_seen_edge_count_is_the_trains_closed_form(seed, start, gate, c, jitter, channel):
-    """The chip's trainless count (what every sample runs) draws the same normals and
-    evaluates the same doubles as the edge train's closed form: the same count, whole
-    gates and many jitter blocks included; the chip's count agrees, wrapped."""
-    chip = Chip(ChipConfig(jitter=jitter), seed=seed)
-    train = chip.edge_train(channel, c, start, gate)
-    n = train.edge_count()
-    if train.every_edge_seen:
-        assert every_edge_seen(train.period, jitter)
-        assert seen_edge_count(train.period, jitter, gate, GateNoise(chip._noise, channel, start)) == n
-    else:
-        assert not every_edge_seen(train.period, jitter)
-    assert chip.count(channel, c, start, gate) == (n % (1 << 16), n >= (1 << 16))
-    # numpy numbers take the checked path: the same answer
-    assert chip.count(np.int64(channel), np.float64(c), np.int64(start), np.int64(gate)) == chip.count(
-        channel, c, start, gate)
 
 
 def test_edges_are_seen_by_the_rule_not_assumed():

@@ -343,6 +343,10 @@ def main() -> None:
           ["bridge min", "bridge p50", "bridge max", "medium", "bridges' system %", "medium's system %"],
           [[f"{min(bw):.0f}", f"{pct(bw, 50):.0f}", f"{max(bw):.0f}", f"{wakes.get('medium', 0):.0f}",
             f"{sum(bs):.1f}", f"{sys_cpu.get('medium', 0):.1f}"]])
+    per = sorted((int(r.split()[1]), v) for r, v in cpu.items() if r.startswith("bridge"))
+    table("CPU (% of one core) and wakes per second of each bridge process",
+          ["bridge", "CPU %", "wakes/s"],
+          [[str(b), f"{v:.1f}", f"{wakes.get(f'bridge {b}', 0):.0f}"] for b, v in per])
     # 4. counters (whole run)
     keys = ("late_gates", "behind_gates", "readout_late", "readout_failed", "readout_missing", "urgent_expired",
             "udp_drops", "retries")

@@ -176,7 +176,10 @@ def run(args: argparse.Namespace) -> int:
                     poller.unregister(fd)
                 registered = fds
             due = fw.sampler.next_tick  # when the samples computed at the next wake were wanted
-            wait = fw.next_tick - now_tick()
+            # Asked once a wake (it looks at every timer of the firmware): nothing changes it
+            # until a message comes, and a wake by messages asks again below.
+            next_tick = fw.next_tick
+            wait = next_tick - now_tick()
             if wait >= SHORT_TIMER:
                 ready = {fd for fd, _ in poller.poll(min(math.ceil(wait * 1000 / CLOCK_HZ), 200))}
             else:
@@ -209,6 +212,8 @@ def run(args: argparse.Namespace) -> int:
                         fw.carrier(*cs)
                     else:
                         fw.counters["medium_malformed"] += 1
+                if not fed:  # a carrier report alone moves the radio's timers
+                    next_tick = fw.next_tick
             if stimuli_fd in ready or tick >= stimuli_at:
                 stimuli_at = tick + STIMULI_CHECK
                 while stimuli.getsockopt(_EVENTS) & _ZMQ_POLLIN:  # type: ignore[operator]  # an int option (pyzmq types all int | bytes)
@@ -225,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
             # Only when something is due or the firmware took a frame or command: a wake for
             # the world's contacts (every bridge at once, twice a second) or a carrier report
             # computes nothing early, so it stays cheap and no herd of wakes forms.
-            out = fw.advance(tick) if fed or tick >= fw.next_tick else None
+            out = fw.advance(tick) if fed or tick >= next_tick else None
             settings = fw.sampler.settings
             if tick - due > settings.gate_cycles:  # this wake came more than one gate late
                 n = fw.counters["samples"] - taken

@@ -165,13 +165,19 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
         timeout = 100
         release_at = arbiter.next_release() if held else None
         if pending or starting or release_at is not None:
-            first = min([x[0] for x in (pending[:1] + starting[:1])]
-                        + ([] if release_at is None else [release_at]))
+            # the earliest of the three (no lists built: this runs at every wake)
+            first = pending[0][0] if pending else -1
+            if starting and (first < 0 or starting[0][0] < first):
+                first = starting[0][0]
+            if release_at is not None and (first < 0 or release_at < first):
+                first = release_at
             wait = first - now_tick()
             timeout = max(0, math.ceil(wait * 1000 / CLOCK_HZ))
             if 0 < wait < CLOCK_HZ // 1000 and not poller.poll(0):
                 # under a millisecond: slept for exactly (poll counts milliseconds, and a
-                # delivery or deferred start a millisecond late delays every hop)
+                # delivery or deferred start a millisecond late delays every hop). Not select
+                # with a microsecond timeout: it ends at each message that comes meanwhile,
+                # and the wakes that split what one sleep gathers cost more CPU than they save.
                 time.sleep(wait / CLOCK_HZ)
                 timeout = 0
         if poller.poll(timeout):

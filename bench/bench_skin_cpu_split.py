@@ -1,0 +1,121 @@
+"""Where the real-time skin's CPU goes: the firmware's own work against the cost of
+running it as one process per bridge.
+
+Run: ``.venv/bin/python bench/bench_skin_cpu_split.py [--seconds 10]`` (about 30 s).
+
+``cellbridge mesh up`` of a periodic 4x4 at 100 Hz (``bench/bench_skin_rt.py``) spends
+its CPU in 16 bridge processes and the medium. This script measures, on this machine:
+
+1. **the work itself**: the same skin in the virtual-time mesh (one process, the same
+   firmware, chip model and medium model, the readout configured as the real-time shells
+   configure it), its CPU (``process_time``) per second of skin time: what the skin costs
+   when every call runs back to back with warm caches;
+2. **a wake**: the CPU of one process waking from ``poll`` with a timeout, doing nothing
+   (the floor of every bridge timer and medium delivery), and of one UDP datagram sent on
+   loopback to a process that wakes for it and reads it (both processes' CPU: the floor
+   of every message between a bridge and the medium);
+3. what these floors make of the wakes and messages a real-time 4x4 counts
+   (``--wakes`` and ``--messages`` per second, from ``bench_skin_rt.py``'s wake table and
+   the medium's counters: defaults are a periodic 4x4 at 100 Hz).
+
+The difference between the real-time skin's CPU and (1) + (3) is what the interpreter
+loses running each wake's code with cold caches, among 17 processes on few cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import socket
+import time
+
+from timing import table
+
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
+from cellbridge.emulator.virtual import VirtualMesh
+
+
+def skin_work(seconds: float) -> float:
+    """CPU (% of one core) of a periodic 4x4 at 100 Hz in virtual time, after 5 s of start-up."""
+    vm = VirtualMesh(meshgen.grid(4, 4), seed=1, readout=True, readout_acks=False, readout_window=READOUT_WINDOW,
+                     readout_hop=READOUT_HOP, ack_slack=ACK_SLACK)
+    vm.run(5.0)
+    t0 = time.process_time()
+    vm.run(seconds)
+    return 100.0 * (time.process_time() - t0) / seconds
+
+
+def idle_wake(seconds: float) -> float:
+    """CPU (µs) of one wake from poll(1 ms) with nothing to do."""
+    p = select.poll()
+    t0, w0, n = time.process_time(), time.monotonic(), 0
+    while time.monotonic() - w0 < seconds:
+        p.poll(1)
+        n += 1
+    return 1e6 * (time.process_time() - t0) / n
+
+
+def datagram(seconds: float) -> float:
+    """CPU (µs, sender and receiver together) of one UDP datagram on loopback that wakes
+    its receiver: a child process echoes each one; half a round trip."""
+    a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    a.bind(("127.0.0.1", 0))
+    b.bind(("127.0.0.1", 0))
+    a.connect(b.getsockname())
+    b.connect(a.getsockname())
+    pid = os.fork()
+    if pid == 0:  # the echo: until the parent closes its end with an empty datagram
+        try:
+            a.close()
+            while True:
+                msg = b.recv(2048)
+                if not msg:
+                    break
+                b.send(msg)
+        finally:
+            os._exit(0)
+    b.close()
+    try:
+        t0, w0, n = os.times(), time.monotonic(), 0
+        while time.monotonic() - w0 < seconds:
+            a.send(b"x" * 100)
+            a.recv(2048)
+            n += 1
+            time.sleep(0.001)  # both sides sleep between messages, as the skin's processes do
+        a.send(b"")
+        os.waitpid(pid, 0)
+        t1 = os.times()
+    finally:
+        a.close()
+    cpu = (t1.user - t0.user) + (t1.system - t0.system) + (t1.children_user - t0.children_user) \
+        + (t1.children_system - t0.children_system)
+    # the parent's sleep wake is counted in: subtract one idle wake per round trip
+    return (1e6 * cpu / n - idle_wake(1.0)) / 2
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=10.0, help="skin time and measuring time per row (default 10)")
+    ap.add_argument("--wakes", type=float, default=4900.0,
+                    help="wakes/s of the real-time skin, bridges and medium (default 4900: 4x4 at 100 Hz)")
+    ap.add_argument("--messages", type=float, default=3400.0,
+                    help="datagrams/s between the bridges and the medium (default 3400: 4x4 at 100 Hz)")
+    args = ap.parse_args()
+    work = skin_work(args.seconds)
+    wake = idle_wake(args.seconds / 2)
+    msg = datagram(args.seconds / 2)
+    floor = (args.wakes * wake + args.messages * msg) / 1e4
+    table("where a periodic 4x4 at 100 Hz spends its CPU (this machine, now)",
+          ["what", "µs each", "per second", "% of one core"],
+          [["the skin's work, one process (virtual time)", "", "", f"{work:.1f}"],
+           ["a wake from poll, nothing to do", f"{wake:.0f}", f"{args.wakes:.0f}", f"{args.wakes * wake / 1e4:.1f}"],
+           ["a datagram that wakes its reader (both sides)", f"{msg:.0f}", f"{args.messages:.0f}",
+            f"{args.messages * msg / 1e4:.1f}"],
+           ["work + wakes + datagrams", "", "", f"{work + floor:.1f}"]])
+
+
+if __name__ == "__main__":
+    main()

@@ -86,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
         from cellbridge.ros2.convert import Converter
         from cellbridge.ros2.daemon_feed import PayloadModel
         from cellbridge.ros2.graph import BadInterface, Graph, dds_config
+        from cellbridge.ros2.relay import Relay
     except ImportError as exc:
         print(f"cellbridge ros2: {MISSING} ({exc})", file=sys.stderr)
         return 1
@@ -112,13 +113,10 @@ def run(args: argparse.Namespace) -> int:
             return 1
         print(f"cellbridge ros2: domain {args.domain} ({args.interface if not args.dds_config else 'own config'}): "
               + ", ".join(s.name for s in specs.values()), flush=True)
+        # contacts first, also those that arrive while a large message is being worked on
+        relay = Relay(source, model, converter, graph.publish, stop.is_set)
         while not stop.is_set():
-            source.poll(100)
-            source.drain(model)
-            # contacts first: a batch of large element messages (a 16x16 skin) must not hold them back
-            for topic, payload, now in sorted(model.take(), key=lambda m: m[0] != "contact"):
-                for key, message in converter.feed(topic, payload, now):
-                    graph.publish(key, message)
+            relay.step(100)
     finally:
         if graph is not None:
             graph.close()

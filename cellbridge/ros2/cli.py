@@ -65,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--marker-rate", type=float, default=10.0, metavar="HZ",
                    help="most skin pictures (markers) a second, besides one whenever the contacts come or go "
                         "(default: 10)")
+    g.add_argument("--diagnostics-rate", type=float, default=1.0, metavar="HZ",
+                   help="most diagnostics a second, besides one whenever the daemon's level (OK, WARN, ERROR) "
+                        "changes; the daemon's other health messages are left out, and counted (default: 1, "
+                        "what ROS 2's diagnostic tools expect; the daemon sends 4)")
 
 
 def _problem(args: argparse.Namespace) -> str | None:
@@ -76,6 +80,8 @@ def _problem(args: argparse.Namespace) -> str | None:
         return f"--domain must be within 0..232 (ROS_DOMAIN_ID), got {args.domain}"
     if not 0.1 <= args.marker_rate <= 1000:
         return f"--marker-rate must be within 0.1..1000, got {args.marker_rate}"
+    if not 0.1 <= args.diagnostics_rate <= 1000:
+        return f"--diagnostics-rate must be within 0.1..1000, got {args.diagnostics_rate}"
     if not args.frame_id.strip():
         return "--frame-id must not be empty"
     return None
@@ -98,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     specs = topics(args.namespace, args.diagnostics_topic)
-    converter = Converter(args.frame_id, marker_period=1.0 / args.marker_rate, force_scale=args.force_scale)
+    converter = Converter(args.frame_id, marker_period=1.0 / args.marker_rate, force_scale=args.force_scale,
+                          diagnostics_period=1.0 / args.diagnostics_rate)
     model = PayloadModel(converter, force_scale=args.force_scale)
     graph: Graph | None = None
     try:
@@ -124,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"published": graph.published if graph is not None else {},
                           "dropped": graph.dropped if graph is not None else {},
                           "malformed": model.malformed + converter.malformed, "lost": model.lost,
+                          "health_not_published": converter.diagnostics_skipped,
                           "daemon_restarts": model.daemon_restarts, "t": round(time.time(), 3)}), file=sys.stderr)
     return 0
 

@@ -15,6 +15,8 @@ held on the skin, so every estimate publishes a contact.
    arrival of the ``TactileContacts`` of the same skin frame (its header stamp is the
    message's ``t_sample``) over DDS: what the bridge to ROS 2 adds (a ZeroMQ hop, the
    conversion, CDR, DDS on loopback) on top of what any ZeroMQ subscriber sees.
+   Beside it, the share of that window the bridge's main thread spent on a CPU and
+   runnable but waiting for one (the kernel's schedstat): a loaded machine's delays.
 2. **CPU**: user+system CPU seconds of the ``cellbridge ros2`` process over a window, as %
    of one core, and what it published per second, on a 4×4 skin at 250 Hz and a 16×16
    skin at 100 Hz.
@@ -46,6 +48,14 @@ from ros2_peer import Peer  # noqa: E402
 from view_harness import PRESS, Client, daemon, fed_skin, skin_config, view_process, wait_ready  # noqa: E402
 
 NS = "/bench"
+
+
+def sched_seconds(pid: int) -> tuple[float, float]:
+    """The main thread's (on a CPU, waiting for one while runnable), in seconds: the kernel's
+    schedstat. ``cellbridge ros2`` does its work in that thread; a contact held up while it
+    waited for a CPU is the machine's load, not the bridge's work."""
+    on, wait, _ = Path(f"/proc/{pid}/schedstat").read_text().split()
+    return int(on) / 1e9, int(wait) / 1e9
 
 
 def cpu_seconds(pid: int) -> float:
@@ -161,17 +171,21 @@ def run_case(tmp: Path, rows: int, cols: int, rate: float, window: float) -> dic
                     zq, dq = ZmqContacts(ep["pub"]), DdsTopics(peer, block=True)
                     zq.start()
                     dq.start()
+                    s0, t0 = sched_seconds(proc.pid), time.monotonic()
                     try:
                         time.sleep(window)
+                        s1, dt = sched_seconds(proc.pid), time.monotonic() - t0
                     finally:
                         zq.close()
                         dq.close()
+                    on_cpu, runnable = (s1[0] - s0[0]) / dt, (s1[1] - s0[1]) / dt
                     lat = np.array([dq.contacts[k] - t for k, t in zq.arrived.items() if k in dq.contacts]) * 1e3
                     unmatched = sum(1 for k in zq.arrived if k not in dq.contacts)
         finally:
             peer.close()
             client.close()
     return {"cpu": cpu, "daemon_cpu": dcpu, "rates": rates, "lat": lat, "unmatched": unmatched,
+            "on_cpu": on_cpu, "runnable": runnable,
             "late": feeder.late}
 
 
@@ -193,9 +207,12 @@ def main() -> int:
                 print(f"{rows}x{cols} at {rate:.0f} Hz: not measured ({exc})", flush=True)
     q = (lambda x, p: f"{np.percentile(x, p):.2f}" if len(x) else "-")
     table("1. added latency: contact on ZeroMQ -> the same frame's TactileContacts over DDS (ms)",
-          ["skin", "contacts", "p50", "p99", "max", "not matched"],
+          ["skin", "contacts", "p50", "p99", "max", "not matched", "ros2 on a CPU", "ros2 waiting for one"],
           [[f"{r}x{c} at {hz:.0f} Hz", len(x["lat"]), q(x["lat"], 50), q(x["lat"], 99),
-            f"{x['lat'].max():.2f}" if len(x["lat"]) else "-", x["unmatched"]] for (r, c, hz), x in results])
+            f"{x['lat'].max():.2f}" if len(x["lat"]) else "-", x["unmatched"], f"{x['on_cpu'] * 100:.1f} %",
+            f"{x['runnable'] * 100:.1f} %"] for (r, c, hz), x in results])
+    print("(its main thread's share of the window on a CPU, and runnable but waiting for a CPU: the machine's\n"
+          " load; \"not matched\": contacts still under way when the window closed, or lost)")
     table(f"2. CPU of cellbridge ros2 (% of one core over {window:.0f} s; a press held, every topic read)",
           ["skin", "ros2 CPU", "daemon CPU", "state/s", "contacts/s", "markers/s", "diagnostics/s"],
           [[f"{r}x{c} at {hz:.0f} Hz", f"{x['cpu'] * 100:.1f} %", f"{x['daemon_cpu'] * 100:.1f} %",

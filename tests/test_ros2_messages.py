@@ -122,3 +122,14 @@ def test_topic_names_are_checked() -> None:
     for bad in ("left", "/", "/a//b", "/1a", "/a b", "/a__b"):
         with pytest.raises(BadTopicName):
             topics(bad)
+
+
+def test_diagnostics_at_most_once_a_period_but_at_once_when_the_daemons_level_changes() -> None:
+    c = Converter(diagnostics_period=1.0)
+    ok = {"t_host": 1.7e9, "links": {"gw": {"connected": True}}, "bridges": {"1": {"loss": 0.0}}}
+    down = {"t_host": 1.7e9, "links": {"gw": {"connected": False}}, "bridges": {"1": {"loss": 0.0}}}
+    fed = [(0.0, ok), (0.25, ok), (0.5, ok), (0.75, down), (1.0, down), (1.5, ok), (1.75, ok), (2.5, ok)]
+    published = [t for t, p in fed if c.feed("health", p, t)]
+    assert published == [0.0, 0.75, 1.5, 2.5]  # the period, and the level's two changes at once
+    assert c.diagnostics_skipped == len(fed) - len(published)
+    assert [key for key, _ in Converter().feed("health", ok, 0.0)] == ["diagnostics"]  # by default: every one

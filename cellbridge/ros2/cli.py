@@ -65,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--marker-rate", type=float, default=10.0, metavar="HZ",
                    help="most skin pictures (markers) a second, besides one whenever the contacts come or go "
                         "(default: 10)")
+    g.add_argument("--diagnostics-rate", type=float, default=1.0, metavar="HZ",
+                   help="most diagnostics a second, besides one whenever the daemon's level (OK, WARN, ERROR) "
+                        "changes; the daemon's other health messages are left out, and counted (default: 1, "
+                        "what ROS 2's diagnostic tools expect; the daemon sends 4)")
 
 
 def _problem(args: argparse.Namespace) -> str | None:
@@ -76,6 +80,8 @@ def _problem(args: argparse.Namespace) -> str | None:
         return f"--domain must be within 0..232 (ROS_DOMAIN_ID), got {args.domain}"
     if not 0.1 <= args.marker_rate <= 1000:
         return f"--marker-rate must be within 0.1..1000, got {args.marker_rate}"
+    if not 0.1 <= args.diagnostics_rate <= 1000:
+        return f"--diagnostics-rate must be within 0.1..1000, got {args.diagnostics_rate}"
     if not args.frame_id.strip():
         return "--frame-id must not be empty"
     return None
@@ -86,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
         from cellbridge.ros2.convert import Converter
         from cellbridge.ros2.daemon_feed import PayloadModel
         from cellbridge.ros2.graph import BadInterface, Graph, dds_config
+        from cellbridge.ros2.relay import Relay
     except ImportError as exc:
         print(f"cellbridge ros2: {MISSING} ({exc})", file=sys.stderr)
         return 1
@@ -97,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     specs = topics(args.namespace, args.diagnostics_topic)
-    converter = Converter(args.frame_id, marker_period=1.0 / args.marker_rate, force_scale=args.force_scale)
+    converter = Converter(args.frame_id, marker_period=1.0 / args.marker_rate, force_scale=args.force_scale,
+                          diagnostics_period=1.0 / args.diagnostics_rate)
     model = PayloadModel(converter, force_scale=args.force_scale)
     graph: Graph | None = None
     try:
@@ -112,13 +120,10 @@ def run(args: argparse.Namespace) -> int:
             return 1
         print(f"cellbridge ros2: domain {args.domain} ({args.interface if not args.dds_config else 'own config'}): "
               + ", ".join(s.name for s in specs.values()), flush=True)
+        # contacts first, also those that arrive while a large message is being worked on
+        relay = Relay(source, model, converter, graph.publish, stop.is_set)
         while not stop.is_set():
-            source.poll(100)
-            source.drain(model)
-            # contacts first: a batch of large element messages (a 16x16 skin) must not hold them back
-            for topic, payload, now in sorted(model.take(), key=lambda m: m[0] != "contact"):
-                for key, message in converter.feed(topic, payload, now):
-                    graph.publish(key, message)
+            relay.step(100)
     finally:
         if graph is not None:
             graph.close()
@@ -126,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"published": graph.published if graph is not None else {},
                           "dropped": graph.dropped if graph is not None else {},
                           "malformed": model.malformed + converter.malformed, "lost": model.lost,
+                          "health_not_published": converter.diagnostics_skipped,
                           "daemon_restarts": model.daemon_restarts, "t": round(time.time(), 3)}), file=sys.stderr)
     return 0
 

@@ -20,7 +20,10 @@ they make, by topic key (:mod:`cellbridge.ros2.qos`):
   frame the contacts were estimated on (``t_sample``). An empty list says the contacts ended.
 - ``health`` -> ``diagnostics``: a ``diagnostic_msgs/DiagnosticArray``: the daemon (OK,
   WARN when a bridge is silent or losing frames or this subscriber lost messages, ERROR
-  when a link is down), each link and each bridge.
+  when a link is down), each link and each bridge. At most every ``diagnostics_period``
+  s of the fed time (ROS 2's diagnostic tools expect about one a second; a 16x16 skin's
+  array costs ~25 ms to build and encode), and whenever the daemon's level changes; the
+  health messages left out are counted in :attr:`Converter.diagnostics_skipped`.
 - ``markers`` (from all of them, at most every ``marker_period`` s of the fed time, and
   whenever the number of contacts changes): a ``visualization_msgs/MarkerArray``, the
   skin's picture: a flat box per element coloured by force (the views' colour ramp),
@@ -79,9 +82,13 @@ class Converter:
     """Daemon payloads in, ROS 2 messages out. ``frame_id``: the flat skin's frame."""
 
     def __init__(self, frame_id: str = DEFAULT_FRAME, marker_period: float = MARKER_PERIOD,
-                 force_scale: float = 5.0) -> None:
+                 force_scale: float = 5.0, diagnostics_period: float = 0.0) -> None:
         self.frame_id = frame_id
         self.marker_period = marker_period
+        self.diagnostics_period = diagnostics_period
+        self.diagnostics_skipped = 0  # health messages that made no diagnostics (diagnostics_period)
+        self._diagnostics_at = -math.inf
+        self._diagnostics_level = -1
         self.force_scale = force_scale
         self.readings: dict[int, Reading] = {}
         self.layout: dict[int, tuple[float, float]] = {}
@@ -108,7 +115,11 @@ class Converter:
             elif topic == "contact":
                 out.append(("contacts", self._contact(payload)))
             elif topic == "health":
-                out.append(("diagnostics", self._health(payload)))
+                diag = self._health(payload, now)
+                if diag is None:
+                    self.diagnostics_skipped += 1
+                    return []
+                out.append(("diagnostics", diag))
             elif topic == "topology":
                 self.set_layout(payload)
             else:
@@ -224,7 +235,9 @@ class Converter:
 
     # ---- health -----------------------------------------------------------------------------
 
-    def _health(self, p: dict[str, Any]) -> T.DiagnosticArray:
+    def _health(self, p: dict[str, Any], now: float) -> T.DiagnosticArray | None:
+        """The diagnostics of a health payload, or None when it is not yet time for the next
+        (``diagnostics_period``) and the daemon's level is the one last published."""
         s = summarise_health(p)
         source = p["source"] if isinstance(p.get("source"), str) else ""
         links: dict[Any, Any] = p["links"] if isinstance(p.get("links"), dict) else {}
@@ -243,6 +256,9 @@ class Converter:
         if lost_here:
             level = max(level, T.DiagnosticStatus.WARN)
             problems.append(f"this bridge to ROS 2 lost {lost_here} daemon messages")
+        if now - self._diagnostics_at < self.diagnostics_period and level == self._diagnostics_level:
+            return None
+        self._diagnostics_at, self._diagnostics_level = now, level
         summary = f"{s['alive']} bridges live, {s['links_up']} of {s['links']} links up"
         kv = (lambda d: [T.KeyValue(str(k), _text(v)) for k, v in d.items()])
         status = [T.DiagnosticStatus(

@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -35,20 +33,9 @@ import serial
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.protocol import FrameType, StreamDecoder
+from realskin import free_base_port, rt_permitted  # noqa: E402
 
 TARGET_MS = 20.0
-
-
-def free_base_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return min(s.getsockname()[1], 60000)
-
-
-def rt_permitted() -> bool:
-    chrt = shutil.which("chrt")
-    return chrt is not None and subprocess.run([chrt, "-f", "10", "true"],
-                                               capture_output=True).returncode == 0
 
 
 def gateway_device(proc: subprocess.Popen[bytes], timeout: float) -> str:

@@ -35,9 +35,7 @@ import argparse
 import json
 import os
 import re
-import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -54,22 +52,12 @@ from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.protocol import FrameType, StreamDecoder
+from realskin import free_base_port, rt_permitted  # noqa: E402
 
 CLOCK_HZ = 50_000_000
 JITTER_TARGET_MS = 20.0
 CPU_TARGET = 50.0
 CLK_TCK = os.sysconf("SC_CLK_TCK")
-
-
-def free_base_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return min(s.getsockname()[1], 60000)
-
-
-def rt_permitted() -> bool:
-    chrt = shutil.which("chrt")
-    return chrt is not None and subprocess.run([chrt, "-f", "10", "true"], capture_output=True).returncode == 0
 
 
 def skin_processes(pgid: int) -> dict[int, str]:

@@ -17,6 +17,7 @@ import json
 import os
 import signal
 import socket
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -42,6 +43,12 @@ def free_base_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return min(s.getsockname()[1], 60000)
+
+
+def rt_permitted() -> bool:
+    """Whether this user may run a process at real-time priority (``chrt -f``)."""
+    chrt = shutil.which("chrt")
+    return chrt is not None and subprocess.run([chrt, "-f", "10", "true"], capture_output=True).returncode == 0
 
 
 def read_now(port: serial.Serial) -> bytes:

@@ -23,7 +23,8 @@ def test_a_press_across_a_seam_comes_back_at_that_point_with_that_force(x: float
     # its work folder under this test's own folder: see _left_behind
     # its own session, killed whole however the test ends: killed alone at a timeout, the
     # demo left its skin (16 bridges, medium, world) and its daemon running
-    proc = subprocess.Popen([CLI, "demo", "--check", "--json", "--x", str(x), "--y", str(y)],
+    # --keep: its logs stay in this test's folder, for the failure message below
+    proc = subprocess.Popen([CLI, "demo", "--check", "--json", "--keep", "--x", str(x), "--y", str(y)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             env={**os.environ, "TMPDIR": str(tmp_path)})
     try:
@@ -35,13 +36,73 @@ def test_a_press_across_a_seam_comes_back_at_that_point_with_that_force(x: float
     r = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
     assert r.stdout.strip(), r.stderr
     result = json.loads(r.stdout)
-    got = result["reported"]
-    assert abs(got["x"] - x) <= 1e-3 and abs(got["y"] - y) <= 1e-3, result
-    assert abs(got["force"] - 3.0) <= 0.05 * 3.0, result
-    assert len(result["ids"]) == 1, result  # one press, one tracked contact
-    assert r.returncode == 0, r.stderr
     left = _left_behind(tmp_path)
     assert left == [], f"processes left behind: {left}"
+    try:
+        check_press_result(result, x, y, 3.0)
+        if result["skin_whole"]:
+            assert r.returncode == 0, r.stderr
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}\n{_logs(tmp_path)}") from None
+
+
+def _logs(root: Path) -> str:
+    """The demo's daemon log (its last lines) and its skin's counters, to read a failure by."""
+    out = []
+    for log in sorted(root.glob("cellbridge-demo-*/daemon.log")):
+        out.append("daemon.log: ..." + "".join(log.read_text(errors="replace").splitlines(True)[-40:]))
+    for log in sorted(root.glob("cellbridge-demo-*/mesh.log")):
+        out.append("mesh.log: ..." + log.read_text(errors="replace")[-6000:])
+    return "\n".join(out)
+
+
+def check_press_result(result: dict, x: float, y: float, force: float) -> None:
+    """What a demo's press must show, whatever the machine's load.
+
+    Never a confident untruth: no report states a position off the press by more than
+    1 mm and 3 of its σ without listing the unknown elements that leave it open. When the
+    skin delivered every frame of the press whole, the press comes back within 1 mm and
+    5 % as one contact id. The emulated skin is 18 processes at normal priority: on a busy
+    machine (a laptop compiling, four CPU burners on two cores) they fall behind real time
+    and records of some frames never reach the gateway, which the contact messages say
+    (``unknown``). Then the reports that knew every element near them are held to 1 mm and
+    5 %, and the others must only be honest; ``bench/bench_demo.py`` measures how often a
+    loaded machine keeps the skin whole."""
+    assert result["messages"] > 0, result  # the daemon published throughout the press
+    assert result["untrue"] == 0, result
+    if result["skin_whole"]:
+        got = result["reported"]
+        assert abs(got["x"] - x) <= 1e-3 and abs(got["y"] - y) <= 1e-3, result
+        assert abs(got["force"] - force) <= 0.05 * force, result
+        assert len(result["ids"]) == 1, result  # one press, one tracked contact
+    elif "known" in result:
+        known = result["known"]
+        assert abs(known["x"] - x) <= 1e-3 and abs(known["y"] - y) <= 1e-3, result
+        assert abs(known["force"] - force) <= 0.05 * force, result
+
+
+@pytest.mark.parametrize("result, ok", [
+    ({"messages": 10, "untrue": 0, "skin_whole": True, "ids": [0],
+      "reported": {"x": 0.057, "y": 0.04, "force": 3.0}}, True),
+    ({"messages": 10, "untrue": 0, "skin_whole": True, "ids": [0, 1],  # a press split in two ids
+      "reported": {"x": 0.057, "y": 0.04, "force": 3.0}}, False),
+    ({"messages": 10, "untrue": 0, "skin_whole": True, "ids": [0],  # 2 mm off with the skin whole
+      "reported": {"x": 0.059, "y": 0.04, "force": 3.0}}, False),
+    ({"messages": 10, "untrue": 1, "skin_whole": False, "ids": [0],  # a precise wrong report
+      "reported": {"x": 0.07, "y": 0.04, "force": 2.0}}, False),
+    ({"messages": 10, "untrue": 0, "skin_whole": False, "ids": [0],  # honest, known reports right
+      "reported": {"x": 0.07, "y": 0.04, "force": 2.0}, "known": {"x": 0.057, "y": 0.04, "force": 3.05}}, True),
+    ({"messages": 10, "untrue": 0, "skin_whole": False, "ids": [0],  # known reports wrong
+      "reported": {"x": 0.057, "y": 0.04, "force": 3.0}, "known": {"x": 0.057, "y": 0.04, "force": 2.5}}, False),
+    ({"messages": 0, "untrue": 0, "skin_whole": False}, False),  # nothing published
+])
+def test_the_press_check_holds_the_known_reports_to_the_press_and_the_rest_to_honesty(result: dict, ok: bool) -> None:
+    try:
+        check_press_result(result, 0.057, 0.040, 3.0)
+    except AssertionError:
+        assert not ok
+    else:
+        assert ok
 
 
 def _left_behind(root: Path) -> list[str]:

@@ -201,17 +201,22 @@ def _wait_ready(sub: zmq.Socket, n: int, daemon: subprocess.Popen[Any], mesh: su
     raise RuntimeError(f"the daemon did not see {n} calibrated elements within {START_TIMEOUT:.0f} s")
 
 
-def _press_and_collect(args: argparse.Namespace, base_port: int,
-                       sub: zmq.Socket) -> tuple[list[dict[str, Any]], int, dict[int, int]]:
+Collected = tuple[list[dict[str, Any]], int, dict[int, int], dict[str, int]]
+
+
+def _press_and_collect(args: argparse.Namespace, base_port: int, sub: zmq.Socket) -> Collected:
     """Press, and collect what the daemon published meanwhile: the contacts (without the
-    ones kept through missed frames), the number of ``contact`` messages, and in how many
-    of those each element was listed unknown (frames the skin did not deliver whole)."""
+    ones kept through missed frames), the number of ``contact`` messages, in how many of
+    those each element was listed unknown (frames the skin did not deliver whole), and
+    how its health's skin frame counters (``frames_complete``, ``frames_by_deadline``,
+    ``unknown_element_frames``) moved from its first health message in the window to its last."""
     subprocess.run(_cellbridge("press", str(args.x), str(args.y), "--force", str(args.force),
                                "--diameter", str(args.diameter), "--duration", str(args.duration),
                                "--base-port", str(base_port)), check=True, timeout=30, stdout=subprocess.DEVNULL)
     seen: list[dict[str, Any]] = []
     messages = 0
     unknown: dict[int, int] = {}
+    frames: list[dict[str, Any]] = []
     end = time.monotonic() + args.duration + 1.0
     while time.monotonic() < end:
         msg = _recv(sub, 0.2)
@@ -220,10 +225,17 @@ def _press_and_collect(args: argparse.Namespace, base_port: int,
             for e in msg[1].get("unknown") or ():
                 unknown[e] = unknown.get(e, 0) + 1
             seen.extend(c for c in msg[1]["contacts"] if c.get("missed", 0) == 0)
-    return seen, messages, unknown
+        elif msg and msg[0] == "health" and isinstance(msg[1].get("frames"), dict):
+            frames.append(msg[1]["frames"])
+    skin: dict[str, int] = {}
+    for key in ("frames_complete", "frames_by_deadline", "unknown_element_frames"):
+        counts = [f[key] for f in frames if isinstance(f.get(key), int)]
+        if len(counts) >= 2:
+            skin[key] = counts[-1] - counts[0]
+    return seen, messages, unknown, skin
 
 
-def _summarise(args: argparse.Namespace, collected: tuple[list[dict[str, Any]], int, dict[int, int]]) -> dict[str, Any]:
+def _summarise(args: argparse.Namespace, collected: Collected) -> dict[str, Any]:
     """The press's steady part: the second half of the reports of the longest-lived id.
 
     Besides the median of those (``reported``), ``known`` is the median of the steady
@@ -232,14 +244,15 @@ def _summarise(args: argparse.Namespace, collected: tuple[list[dict[str, Any]], 
     frame of the press whole (no ``contact`` message listed an unknown element): only
     then can the press's every report be held to 1 mm and 5 %; an emulated skin starved of
     CPU (a busy machine) falls behind real time and loses records, and then the reports
-    list what they do not know."""
-    contacts, messages, unknown = collected
+    list what they do not know. ``skin_frames`` is how the daemon's health counted the
+    skin's frames meanwhile (complete, by deadline, unknown element-frames)."""
+    contacts, messages, unknown, skin = collected
     out: dict[str, Any] = {"pressed": {"x": args.x, "y": args.y, "force": args.force, "diameter": args.diameter},
                            "reports": len(contacts),
                            "with_unknown": sum(1 for c in contacts if c.get("unknown_near")),
                            "untrue": sum(1 for c in contacts if _untrue(args, c)),
-                           "messages": messages, "unknown_elements": {str(e): n for e, n in sorted(unknown.items())},
-                           "skin_whole": messages > 0 and not unknown}
+                           "messages": messages, "unknown_elements": {str(e): n for e, n in sorted(unknown.items())}, "skin_frames": skin,
+                           "skin_whole": messages > 0 and not unknown and not skin.get("unknown_element_frames")}
     if not contacts:
         return out
     ids = [c["id"] for c in contacts]

@@ -68,7 +68,8 @@ def check_press_result(result: dict, x: float, y: float, force: float) -> None:
     (``unknown``). Then the reports that knew every element near them are held to 1 mm and
     5 %, and the others must only be honest; ``bench/bench_demo.py`` measures how often a
     loaded machine keeps the skin whole."""
-    assert result["messages"] > 0, result  # the daemon published throughout the press
+    if result["messages"] == 0:  # no touch seen: only when the skin's readings went missing
+        assert result["skin_frames"].get("unknown_element_frames", 0) > 0, result
     assert result["untrue"] == 0, result
     if result["skin_whole"]:
         got = result["reported"]
@@ -94,7 +95,10 @@ def check_press_result(result: dict, x: float, y: float, force: float) -> None:
       "reported": {"x": 0.07, "y": 0.04, "force": 2.0}, "known": {"x": 0.057, "y": 0.04, "force": 3.05}}, True),
     ({"messages": 10, "untrue": 0, "skin_whole": False, "ids": [0],  # known reports wrong
       "reported": {"x": 0.057, "y": 0.04, "force": 3.0}, "known": {"x": 0.057, "y": 0.04, "force": 2.5}}, False),
-    ({"messages": 0, "untrue": 0, "skin_whole": False}, False),  # nothing published
+    ({"messages": 0, "untrue": 0, "skin_whole": False,  # nothing published, the skin whole
+      "skin_frames": {"frames_complete": 300, "unknown_element_frames": 0}}, False),
+    ({"messages": 0, "untrue": 0, "skin_whole": False,  # nothing published, the skin starved
+      "skin_frames": {"frames_complete": 100, "unknown_element_frames": 900}}, True),
 ])
 def test_the_press_check_holds_the_known_reports_to_the_press_and_the_rest_to_honesty(result: dict, ok: bool) -> None:
     try:

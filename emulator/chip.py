@@ -43,7 +43,7 @@ MAX_CAPACITANCE = C_MAX
 
 @dataclass(frozen=True)
 class ChipConfig:
-    """One chip's hardware; the defaults are DESIGN.md's reference chip."""
+    """One chip's hardware; the defaults are the reference chip (docs/emulator-chip.md)."""
 
     clock_hz: int = CLOCK_HZ
     crystal_ppm: float = 0.0  #: this chip's crystal offset (host seconds -> chip cycles)

@@ -25,7 +25,7 @@ HOWS: tuple[How, ...] = ("cut", "restart")  #: cut off (cells cut), or powered o
 
 
 def sync_bound(hops: int) -> float:
-    """The sync target (DESIGN.md), µs: p99 <= 2 µs at one hop, <= 10 µs at eight, linear between."""
+    """The sync target, µs: p99 <= 2 µs at one hop, <= 10 µs at eight, linear between."""
     return 2.0 + max(0, hops - 1) * 8.0 / 7.0
 
 

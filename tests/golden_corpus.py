@@ -255,6 +255,13 @@ def _f(v: Any, scale: float, digits: int) -> str:
     return text[1:] if text.startswith("-") and not text.strip("-0.") else text  # no "-0.0"
 
 
+def _observable(obs: Any) -> str:
+    """``observable`` as two letters: ``xy`` both axes pinned by the readings, ``x-``, ``-y``, ``--``."""
+    if not isinstance(obs, (list, tuple)) or len(obs) != 2:
+        return "?"
+    return ("x" if obs[0] else "-") + ("y" if obs[1] else "-")
+
+
 def _col(m: dict[str, Any], key: str, scale: float, digits: int) -> str:
     return ",".join(_f(v, scale, digits) for v in m[key])
 
@@ -277,6 +284,7 @@ def render(topic: str, m: dict[str, Any]) -> str:
             parts.append(f"| id={c['id']} x={_f(c['x'], 1e3, 1)}mm y={_f(c['y'], 1e3, 1)}mm "
                          f"sx={_f(c['sigma_x'], 1e3, 1)}mm sy={_f(c['sigma_y'], 1e3, 1)}mm "
                          f"F={_f(c['force'], 1, 2)}N d={_f(c['diameter'], 1e3, 1)}mm "
+                         f"A={_f(c.get('area'), 1e6, 1)}mm2 obs={_observable(c.get('observable'))} "
                          f"elements={','.join(map(str, sorted(c['elements'])))} valid={int(bool(c['valid']))}")
             if c.get("unknown_near"):
                 parts.append(f"unknown_near={','.join(map(str, c['unknown_near']))}")

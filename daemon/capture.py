@@ -24,6 +24,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
+from cellbridge.errors import CellbridgeError
+
 MAGIC = b"CBCAP1\n\x00"
 _REC = struct.Struct("<dI")
 MAX_RECORD = 1 << 24
@@ -57,6 +59,12 @@ def rotate(path: Path) -> Path | None:
     target = path.with_name(f"{path.name}.{max(taken, default=0) + 1}")
     path.rename(target)
     return target
+
+
+class CaptureError(CellbridgeError, ValueError):
+    """A capture or recording that cannot be replayed (not one, damaged, no serial reads of
+    the link asked for): the message names the file and what is wrong. A replay link
+    reports it and ends; a bug's ValueError is not one."""
 
 
 class CaptureWriter:
@@ -127,17 +135,18 @@ class CaptureWriter:
 
 
 def read_capture(path: str | Path) -> Iterator[tuple[float, bytes]]:
-    """(time, bytes) of every whole record; ValueError if the file is not a capture."""
+    """(time, bytes) of every whole record; :class:`CaptureError` if the file is not a
+    capture or a record's length is corrupt (a record cut short at the end is the end)."""
     with open(path, "rb") as fh:
         if fh.read(len(MAGIC)) != MAGIC:
-            raise ValueError(f"{path}: not a cellbridge capture file (bad magic)")
+            raise CaptureError(f"{path}: not a cellbridge capture file (bad magic)")
         while True:
             head = fh.read(_REC.size)
             if len(head) < _REC.size:
                 return
             t, n = _REC.unpack(head)
             if n > MAX_RECORD:
-                raise ValueError(f"{path}: corrupt record of {n} bytes")
+                raise CaptureError(f"{path}: corrupt record of {n} bytes")
             data = fh.read(n)
             if len(data) < n:
                 return

@@ -26,7 +26,7 @@ from mcap.records import Channel, Chunk, Message
 from mcap.stream_reader import StreamReader
 
 from cellbridge.daemon.capture import MAGIC as CAPTURE_MAGIC
-from cellbridge.daemon.capture import read_capture
+from cellbridge.daemon.capture import CaptureError, read_capture
 from cellbridge.daemon.mcap_chunks import MAX_RECORD_BYTES, ChunkDamage, check_chunk, decompress
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -36,14 +36,14 @@ MAX_SERIAL_MESSAGE = 256 << 10
 
 
 def read_records(path: str | Path, link: str) -> Iterator[tuple[float, bytes]]:
-    """(host time, bytes) of every read of ``link``; ValueError for a file that is neither format."""
+    """(host time, bytes) of every read of ``link``; CaptureError for a file that is neither format."""
     with open(path, "rb") as fh:
         magic = fh.read(8)
     if magic == CAPTURE_MAGIC:
         return read_capture(path)
     if magic == MCAP_MAGIC:
         return _mcap_serial(Path(path), link)
-    raise ValueError(f"{path}: neither a cellbridge capture nor an MCAP recording (bad magic)")
+    raise CaptureError(f"{path}: neither a cellbridge capture nor an MCAP recording (bad magic)")
 
 
 def serial_links(path: str | Path) -> dict[str, int]:
@@ -57,7 +57,7 @@ def serial_links(path: str | Path) -> dict[str, int]:
 def _serial_messages(path: Path) -> Iterator[tuple[str, float, bytes]]:
     """(link, read time, bytes) of the serial channel's messages, in file order. Chunks are
     decompressed within the readers' limits (:mod:`cellbridge.daemon.mcap_chunks`): one
-    beyond them, or unreadable, ends the reads with a ValueError naming where. A file cut
+    beyond them, or unreadable, ends the reads with a CaptureError naming where. A file cut
     short (the recorder killed) ends quietly at its last whole record."""
     channels: set[int] = set()
     with open(path, "rb") as fh:
@@ -68,16 +68,16 @@ def _serial_messages(path: Path) -> Iterator[tuple[str, float, bytes]]:
             except (StopIteration, EndOfFile, struct.error):  # (a record cut short: the file ends there)
                 return
             except McapError as exc:
-                raise ValueError(f"{path}: damaged at byte {fh.tell()}: {exc}") from None
+                raise CaptureError(f"{path}: damaged at byte {fh.tell()}: {exc}") from None
             if isinstance(rec, Chunk):
                 where = f"{path}: damaged chunk before byte {fh.tell()}"
                 try:
                     check_chunk(len(rec.data), rec.uncompressed_size)
                     data = decompress(rec.compression, rec.data, rec.uncompressed_size)
                 except ChunkDamage as exc:
-                    raise ValueError(f"{where}: {exc}") from None
+                    raise CaptureError(f"{where}: {exc}") from None
                 if len(data) != rec.uncompressed_size:
-                    raise ValueError(f"{where}: it expands to {'more' if len(data) > rec.uncompressed_size else 'less'}"
+                    raise CaptureError(f"{where}: it expands to {'more' if len(data) > rec.uncompressed_size else 'less'}"
                                      f" than the {rec.uncompressed_size} bytes it declares")
                 records: Iterator[Any] = _chunk_records(bytes(data))
             else:
@@ -88,7 +88,7 @@ def _serial_messages(path: Path) -> Iterator[tuple[str, float, bytes]]:
                 except StopIteration:
                     break
                 except (McapError, struct.error, ValueError) as exc:
-                    raise ValueError(f"{where}: {exc}") from None
+                    raise CaptureError(f"{where}: {exc}") from None
                 if isinstance(r, Channel) and r.topic == SERIAL_TOPIC:
                     channels.add(r.id)
                 elif isinstance(r, Message) and r.channel_id in channels:
@@ -97,15 +97,15 @@ def _serial_messages(path: Path) -> Iterator[tuple[str, float, bytes]]:
 
 def _chunk_records(data: bytes) -> Iterator[Channel | Message]:
     """The channels and messages of a chunk's decompressed records (others skipped);
-    ValueError for a record that runs past the chunk's end."""
+    CaptureError for a record that runs past the chunk's end."""
     stream = ReadDataStream(io.BytesIO(data))
     end = len(data)
     while stream.count < end:
         if end - stream.count < 9:
-            raise ValueError("a record header cut short at the chunk's end")
+            raise CaptureError("a record header cut short at the chunk's end")
         opcode, length = stream.read1(), stream.read8()
         if length > end - stream.count:
-            raise ValueError(f"a record of {length} bytes runs past the chunk's end")
+            raise CaptureError(f"a record of {length} bytes runs past the chunk's end")
         start = stream.count
         if opcode == Opcode.CHANNEL:
             yield Channel.read(stream)
@@ -115,27 +115,27 @@ def _chunk_records(data: bytes) -> Iterator[Channel | Message]:
             stream.read(length)
             continue
         if stream.count - start != length:
-            raise ValueError(f"a record declares {length} bytes and holds {stream.count - start}")
+            raise CaptureError(f"a record declares {length} bytes and holds {stream.count - start}")
 
 
 def _serial_read(data: bytes, where: str) -> tuple[str, float, bytes]:
-    """(link, read time, bytes) of one serial message; ValueError for one that is not."""
+    """(link, read time, bytes) of one serial message; CaptureError for one that is not."""
     if len(data) > MAX_SERIAL_MESSAGE:  # a read is at most READ_SIZE bytes: never JSON this large
-        raise ValueError(f"{where}: a serial message of {len(data)} bytes (at most {MAX_SERIAL_MESSAGE})")
+        raise CaptureError(f"{where}: a serial message of {len(data)} bytes (at most {MAX_SERIAL_MESSAGE})")
     try:
         m = json.loads(data)
         # t_read: never stepped with the wall clock (recordings before it: t_host)
         return str(m.get("link", "")), float(m.get("t_read", m["t_host"])), base64.b64decode(m["data"])
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise ValueError(f"{where}: a serial message unreadable ({str(exc)[:80]})") from None
+        raise CaptureError(f"{where}: a serial message unreadable ({str(exc)[:80]})") from None
 
 
 def _mcap_serial(path: Path, link: str) -> Iterator[tuple[float, bytes]]:
     names = serial_links(path)
     if not names:
-        raise ValueError(f"{path}: the recording has no serial channel (record with --serial)")
+        raise CaptureError(f"{path}: the recording has no serial channel (record with --serial)")
     if link not in names:
         if len(names) > 1:
-            raise ValueError(f"{path}: no serial reads of link {link!r} (recorded links: {', '.join(sorted(names))})")
+            raise CaptureError(f"{path}: no serial reads of link {link!r} (recorded links: {', '.join(sorted(names))})")
         (link,) = names
     return ((t, data) for name, t, data in _serial_messages(path) if name == link)

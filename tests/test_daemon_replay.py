@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from cellbridge.daemon.capture import MAGIC, read_capture, write_capture
+from cellbridge.daemon.capture import CaptureError
 from daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise, pipeline_output
 from daemon_harness import Client, Pty, daemon, write_config
 from daemon_traffic import Skin
@@ -91,7 +92,7 @@ def test_truncated_capture_reads_to_its_last_whole_record(tmp_path: Path) -> Non
     f.write_bytes(f.read_bytes()[:-2])
     assert list(read_capture(f)) == [(1.0, b"abc")]
     (tmp_path / "bad").write_bytes(b"nope" + MAGIC)
-    with pytest.raises(ValueError, match="not a cellbridge capture"):
+    with pytest.raises(CaptureError, match="not a cellbridge capture"):
         list(read_capture(tmp_path / "bad"))
 
 

@@ -21,6 +21,7 @@ from cellbridge.recording.mcapfile import ReadResult, RecordingWriter, read_mess
 from cellbridge.recording.recorder import Recorder, rotated_path
 from cellbridge.recording.replay import Pacer
 from cellbridge.recording.schemas import schema_for
+from cellbridge.daemon.capture import CaptureError
 from recording_helpers import same_payload
 
 floats = st.floats(allow_nan=True, allow_infinity=True)
@@ -223,10 +224,10 @@ def test_the_daemon_reads_a_recordings_serial_channel_and_old_captures(tmp_path:
     rec.close()
     assert list(read_records(tmp_path / "s.mcap", "gw0")) == reads["gw0"]
     assert list(read_records(tmp_path / "s.mcap", "gw1")) == reads["gw1"]
-    with pytest.raises(ValueError, match="recorded links: gw0, gw1"):
+    with pytest.raises(CaptureError, match="recorded links: gw0, gw1"):
         list(read_records(tmp_path / "s.mcap", "other"))
     write_capture(tmp_path / "old.cbcap", reads["gw0"])
     assert list(read_records(tmp_path / "old.cbcap", "any")) == reads["gw0"]
     (tmp_path / "x").write_bytes(struct.pack("<Q", 7))
-    with pytest.raises(ValueError, match="bad magic"):
+    with pytest.raises(CaptureError, match="bad magic"):
         read_records(tmp_path / "x", "gw")

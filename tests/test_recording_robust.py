@@ -23,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import recording_mutations as rm
+from cellbridge.daemon.capture import CaptureError
 from cellbridge.daemon.replay_source import read_records
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import ReadResult, RecordingWriter, read_messages, read_payloads
@@ -267,7 +268,7 @@ def test_the_daemons_replay_link_refuses_every_bomb_by_name_within_bounded_memor
         path.write_bytes(rm.bomb(kind, topic="serial"))
         tracemalloc.start()
         try:
-            with pytest.raises(ValueError, match=str(path)):
+            with pytest.raises(CaptureError, match=str(path)):
                 list(read_records(path, "gw"))
             peak = tracemalloc.get_traced_memory()[1]
         finally:
@@ -294,7 +295,7 @@ def test_the_daemons_replay_link_reads_a_recording_cut_short_to_its_last_whole_c
     damaged[pos:pos + 8] = b"\xff" * 8
     bad = tmp_path / "damaged.mcap"
     bad.write_bytes(bytes(damaged))
-    with pytest.raises(ValueError, match="damaged chunk"):
+    with pytest.raises(CaptureError, match="damaged chunk"):
         list(read_records(bad, "gw"))
 
 

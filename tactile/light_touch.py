@@ -10,6 +10,16 @@ which a coarse grid can step over). The fits within +4 of the best cost (95 % fo
 one parameter; and two grid points either side, so a diameter between grid points
 is bracketed with room to spare) give the span of centres, ± their own σ: the contact is reported at its middle with
 σ = √(span²/12 + σ_fit²).
+
+Those two branches are two discrete answers, not two points of one smooth profile: a
+small disk straddling a seam and a disk as large as an element further in can read
+alike to within the noise, and then which of them costs less is the noise's choice.
++4 (a one-parameter profile's 95 %) would drop the other branch when it is only
+e^-2 ≈ 14 % as likely, and report the chosen one with its own, tight σ: a confident
+untruth whenever the noise chose wrong. So every local minimum of the grid is a
+branch, and a branch is kept while its likelihood is above the 3σ tail of the best
+one's (cost within :data:`BRANCH`); within each kept branch the fits within +4 of its
+own minimum count, as above.
 """
 
 from __future__ import annotations
@@ -29,6 +39,11 @@ N_DIAMETERS = 20  #: grid of fixed diameters, log-spaced over 0.05–1.5 element
 #: profile (the diameter), so the span holds the truth at least as often as the 2σ
 #: the contact reports.
 CONSISTENT = 4.0
+#: Cost rise at which another branch (another local minimum of the diameter grid) stops
+#: counting: its likelihood ratio to the best's e^(-rise/2) is then below the two-sided
+#: 3σ tail, 0.27 % (2·ln(0.9973/0.0027) ≈ 11.8); reported σ, whose 3σ must hold the
+#: truth, may not leave out an answer more likely than that.
+BRANCH = 2.0 * math.log(0.9973 / 0.0027)
 
 
 def unlocated(cl: Cluster, side: float) -> Contact:
@@ -78,13 +93,12 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
         mine = qk == i
         c_ref = ref.cost[mine]
         floor = min(float(np.nanmin(cost[i])), float(np.nanmin(c_ref)) if c_ref.size else np.inf)
-        best = np.isfinite(cost[i]) & (cost[i] <= floor + CONSISTENT)
+        best, kref = _branches(cost[i], qd[mine], c_ref, floor)
         keep = best.copy()
         for step in (1, 2):
             keep[step:] |= best[:-step]
             keep[:-step] |= best[step:]
         keep &= np.isfinite(cost[i])
-        kref = np.isfinite(c_ref) & (c_ref <= floor + CONSISTENT)
         b = lay.bounds[cl.members]
         pos, sig, obs = [0.0, 0.0], [0.0, 0.0], [False, False]
         for ax in (0, 1):
@@ -121,3 +135,33 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
             chi2=float(fits.chi2[sl][int(np.nanargmin(cost[i]))]), dof=int(dof), **cl.base,
         ))
     return out
+
+
+def _branches(cost: np.ndarray, minima: np.ndarray, c_ref: np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """(grid fits, refined fits) that count, of one cluster: per branch whose minimum is
+    within :data:`BRANCH` of ``floor``, the fits within :data:`CONSISTENT` of that minimum.
+
+    ``cost``: the grid's costs; ``minima``: its local minima (grid indices), whose
+    free-diameter refinements cost ``c_ref``. A branch is the grid's valley around a local
+    minimum (out to where the cost stops rising), its minimum the lower of the grid
+    point's and the refinement's cost.
+    """
+    n = cost.size
+    grid = np.zeros(n, dtype=bool)
+    ref = np.zeros(c_ref.size, dtype=bool)
+    fin = np.isfinite(cost)
+    for m, (j, cr) in enumerate(zip(minima.tolist(), c_ref.tolist())):
+        low = min(float(cost[j]), cr) if math.isfinite(cr) else float(cost[j])
+        if not low <= floor + BRANCH:
+            continue
+        lo = j
+        while lo > 0 and fin[lo - 1] and cost[lo - 1] >= cost[lo]:
+            lo -= 1
+        hi = j
+        while hi < n - 1 and fin[hi + 1] and cost[hi + 1] >= cost[hi]:
+            hi += 1
+        grid[lo : hi + 1] |= fin[lo : hi + 1] & (cost[lo : hi + 1] <= low + CONSISTENT)
+        ref[m] = math.isfinite(cr) and cr <= low + CONSISTENT
+    # Grid fits in no valley of a local minimum (a plateau's edge) as before: against the floor.
+    grid |= fin & (cost <= floor + CONSISTENT)
+    return grid, ref

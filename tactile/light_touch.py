@@ -24,11 +24,14 @@ own minimum count, as above.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 
 from cellbridge.tactile.contact_result import Contact
+from cellbridge.tactile.element import ElementParams, sensitivity
+from cellbridge.tactile.inversion import branch_info, ratio
 from cellbridge.tactile.fit_problems import Cluster, FitRunner
 
 __all__ = ["locate_light", "unlocated"]
@@ -67,10 +70,8 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
     probs: list[Cluster] = []
     areas, lnf = [], []
     for cl in clusters:
-        nm = cl.members.size
-        s1 = np.maximum(cl.y[0, :nm], 0.0)
-        tot = s1.sum()
-        share = s1 / tot if tot > 0 else np.full(nm, 1.0 / nm)
+        tot = float(np.maximum(cl.y[0, : cl.members.size], 0.0).sum())
+        share = _shares(cl)
         f0 = max(tot / k_low, 1e-6) if tot > 0 else 1e-3
         for d in diam:
             areas.append(share * math.pi * d * d / 4)
@@ -85,8 +86,24 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
     padded = np.pad(cost, ((0, 0), (1, 1)), constant_values=np.inf)
     loc = np.isfinite(cost) & (cost <= padded[:, :-2]) & (cost <= padded[:, 2:])
     qk, qd = np.nonzero(loc)
+    # The branches' own diameters, from the cluster's ratio: each branch's valley in D is
+    # narrow (the ratio fixes the pressure to a fraction of a per cent), and the grid
+    # steps over one that lies between two of its points.
+    bk, bd, bf = [], [], []
+    for i, cl in enumerate(clusters):
+        for d, f in _ratio_branches(runner.params, cl):
+            bk.append(i)
+            bd.append(d)
+            bf.append(f)
+    t_ref = fits.theta[qk * N_DIAMETERS + qd]
+    if bk:
+        sb = runner.starts([clusters[k] for k in bk],
+                           [_shares(clusters[k]) * math.pi * d * d / 4 for k, d in zip(bk, bd)])
+        t_ref = np.vstack([t_ref, np.column_stack([sb[:, :2], np.log(bd), np.log(bf)])])
+    qk = np.concatenate([qk, np.asarray(bk, dtype=np.int64)])
+    qd = np.concatenate([qd, np.full(len(bk), -1, dtype=np.int64)])  # -1: no grid valley
     ref = runner.run(runner.batch([clusters[k] for k in qk], areas=False),
-                     fits.theta[qk * N_DIAMETERS + qd], np.ones((qk.size, 4), dtype=bool), 1, False)
+                     t_ref, np.ones((qk.size, 4), dtype=bool), 1, False)
     out = []
     for i, cl in enumerate(clusters):
         sl = slice(i * N_DIAMETERS, (i + 1) * N_DIAMETERS)
@@ -104,11 +121,15 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
         for ax in (0, 1):
             # A free-diameter refinement whose covariance is singular (at low pressure
             # D and F nearly trade off) only sets the cost floor; the fixed-diameter
-            # fits around it carry its position.
+            # fits around it carry its position. One that resolves the other axis but
+            # not this one is a consistent disk this axis's readings do not place (it
+            # lies inside its element along it): then no other branch's fit, pinned
+            # perhaps by the skin's edge, may say where along it the touch is.
             rs = ref.sig[mine, ax][kref]
+            flat = bool(np.any(~np.isfinite(rs) & np.isfinite(ref.sig[mine, 1 - ax][kref])))
             v = np.concatenate([fits.theta[sl, ax][keep], ref.theta[mine, ax][kref][np.isfinite(rs)]])
             s = np.concatenate([fits.sig[sl, ax][keep], rs[np.isfinite(rs)]])
-            if v.size and np.all(np.isfinite(s)) and s.max() < 0.25 * lay.side:
+            if v.size and not flat and np.all(np.isfinite(s)) and s.max() < 0.25 * lay.side:
                 lo, hi = float(np.min(v - s)), float(np.max(v + s))
                 pos[ax] = 0.5 * (lo + hi)
                 sig[ax] = math.sqrt((hi - lo) ** 2 / 12.0 + float(np.mean(s * s)))
@@ -116,7 +137,8 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
             else:
                 # Unseen: uniform over the cluster's extent less the smallest disk.
                 lo_e, hi_e = b[:, ax].min(), b[:, ax + 2].max()
-                dmin = float(diam[keep].min()) if keep.any() else 0.0
+                d_kept = np.concatenate([diam[keep], np.exp(ref.theta[mine, 2][kref])])
+                dmin = float(np.nanmin(d_kept)) if d_kept.size else 0.0
                 pos[ax] = 0.5 * (lo_e + hi_e)
                 sig[ax] = max(hi_e - lo_e - dmin, 0.0) / math.sqrt(12.0)
         # A best fit far worse than the noise found no disk that explains the
@@ -141,8 +163,9 @@ def _branches(cost: np.ndarray, minima: np.ndarray, c_ref: np.ndarray, floor: fl
     """(grid fits, refined fits) that count, of one cluster: per branch whose minimum is
     within :data:`BRANCH` of ``floor``, the fits within :data:`CONSISTENT` of that minimum.
 
-    ``cost``: the grid's costs; ``minima``: its local minima (grid indices), whose
-    free-diameter refinements cost ``c_ref``. A branch is the grid's valley around a local
+    ``cost``: the grid's costs; ``minima``: its local minima (grid indices; -1: a start
+    from a branch's diameter, :func:`_ratio_branches`), whose free-diameter refinements
+    cost ``c_ref``. A branch is the grid's valley around a local
     minimum (out to where the cost stops rising), its minimum the lower of the grid
     point's and the refinement's cost.
     """
@@ -151,6 +174,9 @@ def _branches(cost: np.ndarray, minima: np.ndarray, c_ref: np.ndarray, floor: fl
     ref = np.zeros(c_ref.size, dtype=bool)
     fin = np.isfinite(cost)
     for m, (j, cr) in enumerate(zip(minima.tolist(), c_ref.tolist())):
+        if j < 0:  # a refinement from a branch's diameter: no valley of the grid
+            ref[m] = math.isfinite(cr) and cr <= floor + BRANCH
+            continue
         low = min(float(cost[j]), cr) if math.isfinite(cr) else float(cost[j])
         if not low <= floor + BRANCH:
             continue
@@ -165,3 +191,50 @@ def _branches(cost: np.ndarray, minima: np.ndarray, c_ref: np.ndarray, floor: fl
     # Grid fits in no valley of a local minimum (a plateau's edge) as before: against the floor.
     grid |= fin & (cost <= floor + CONSISTENT)
     return grid, ref
+
+
+def _shares(cl: Cluster) -> np.ndarray:
+    """Each member's share of the cluster's ΔC1 (equal shares when it has none)."""
+    s1 = np.maximum(cl.y[0, : cl.members.size], 0.0)
+    tot = s1.sum()
+    return s1 / tot if tot > 0 else np.full(cl.members.size, 1.0 / cl.members.size)
+
+
+@functools.lru_cache(maxsize=8)
+def _ratio_table(params: ElementParams) -> tuple[np.ndarray, np.ndarray]:
+    """(ln σ, ρ(σ)) from far below the ratio's peak to above where it is unique."""
+    info = branch_info(params)
+    ln_s = np.linspace(math.log(info.sigma_peak) - 12.0, math.log(info.sigma_unique) + 1.0, 600)
+    return ln_s, ratio(np.exp(ln_s), params)
+
+
+def _ratio_branches(params: ElementParams, cl: Cluster) -> list[tuple[float, float]]:
+    """(D, F) of a disk wholly on the cluster at each pressure its summed ΔC1/ΔC2 allows.
+
+    The ratio of a light touch has two pressures (one each side of the ratio's peak;
+    the peak's when noise puts the ratio above it), and each, with the summed ΔC1,
+    gives the area and so the diameter: starts for the fit on each branch.
+    """
+    nm = cl.members.size
+    c1 = float(np.maximum(cl.y[0, :nm], 0.0).sum())
+    c2 = float(np.maximum(cl.y[1, :nm], 0.0).sum())
+    if not (c1 > 0 and c2 > 0):
+        return []
+    ln_s, rho = _ratio_table(params)
+    above = rho > c1 / c2
+    cross = np.flatnonzero(above[1:] != above[:-1])
+    if cross.size == 0:
+        sig = [branch_info(params).sigma_peak]
+    else:
+        sig = []
+        for j in cross.tolist():
+            r0, r1 = rho[j] - c1 / c2, rho[j + 1] - c1 / c2
+            t = r0 / (r0 - r1) if r0 != r1 else 0.5
+            sig.append(math.exp(ln_s[j] + t * (ln_s[j + 1] - ln_s[j])))
+    out = []
+    for sg in sig:
+        g1 = float(sensitivity(sg, params)[0])
+        if g1 > 0:
+            area = c1 / g1
+            out.append((math.sqrt(4.0 * area / math.pi), sg * area))
+    return out

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from cellbridge.tactile.estimator import ContactEstimator
 from cellbridge.tactile.layout import SkinLayout
@@ -64,3 +65,44 @@ def test_seam_light_touch_under_noise_never_a_confident_untruth():
         bad += len(untrue_axes(c, *TRUTH))
     assert resolved >= 24  # the seam's axes are still located, not given up
     assert bad == 0  # was 14 of 48 resolved axes before both branches counted
+
+
+# The forearm's wrap seam: 1.5 N on a 22.8 mm pad 5 mm past the seam, in the chart cut
+# on the other side (so the seam's two elements are neighbours). Its ratio allows a
+# disk of the true size and one of 30 mm; the true one's valley in D is narrower than
+# the grid's step, lying between two grid points whose costs both fall towards 30 mm.
+FORE_PITCH = 2 * math.pi * 0.045 / 7
+FORE = SkinLayout(np.array([[0.51073955 + FORE_PITCH * i, y] for y in (0.02, 0.06) for i in range(4)]),
+                  side=0.040, neighbour_gap=0.01)
+FORE_TRUTH = (0.5762416031455432, 0.02369032973236362)
+FORE_PAD = 0.022797884787327305
+
+
+def test_recorded_wrap_frame_finds_the_branch_between_grid_points():
+    dc1 = np.array([-0.03, 297.18, 1001.28, 0.77, 0.71, -0.78, 0.01, 0.78]) * 1e-15
+    dc2 = np.array([-0.01, 128.96, 438.16, 0.0, -0.02, -0.06, -0.05, 0.03]) * 1e-15
+    touched = np.array([False, True, True, False, False, False, False, False])
+    (c,) = ContactEstimator(FORE, noise=NOISE).estimate(dc1, dc2, touched)
+    assert not c.valid and c.fit_ok and c.observable[0]
+    assert untrue_axes(c, *FORE_TRUTH) == []  # was 1.63 mm off at σ 0.09 (the 30 mm disk alone)
+
+
+@pytest.mark.parametrize("force", [1.52, 2.0])
+def test_wrap_light_touch_under_noise_never_a_confident_untruth(force):
+    # At 2 N the other branch is a 47 mm disk hanging off the skin's edge, where the
+    # on-skin prior pins it along y: y was reported resolved, 7 mm off at σ 0.4 mm,
+    # although the true disk lies inside its row (23 of 24 frames).
+    est = ContactEstimator(FORE, noise=NOISE)
+    d1, d2 = skin_response(FORE, [(*FORE_TRUTH, force, FORE_PAD)])
+    rng = np.random.default_rng(1)
+    step = 0.78e-15
+    bad, resolved = 0, 0
+    for _ in range(24):
+        n1 = np.round((d1 + rng.normal(0, 0.4e-15, FORE.n)) / step) * step
+        n2 = np.round((d2 + rng.normal(0, 0.4e-15, FORE.n)) / step) * step
+        (c,) = est.estimate(n1, n2, n1 > 50e-15)
+        resolved += c.observable[0]
+        assert not c.observable[1]  # the disk is inside its row along y
+        bad += len(untrue_axes(c, *FORE_TRUTH))
+    assert resolved >= 12  # across the seam it is still located
+    assert bad == 0

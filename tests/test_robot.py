@@ -132,18 +132,3 @@ patch = "p"
         load_skin(tmp_path / "skin.toml")
     # without the URDF read (the emulator's way), its links are taken as named, undeclared
     assert not parse_skin(skin_text).link("fore").declared and math.isfinite(skin.side)
-
-
-def test_a_footprint_across_a_seam_with_a_gap_is_straddled() -> None:
-    from cellbridge.robot_score import _straddled
-
-    skin = _arm()
-    # The upper arm's columns are 41.9 mm apart, 40 mm wide: a 1.9 mm gap between them.
-    # A 20 mm pad 4 mm inside a column reaches 4.1 mm onto the next one across the gap.
-    left_edge = 0.24 + 0.5 * (2 * math.pi * 0.04 / 6 - skin.side) + 2 * math.pi * 0.04 / 6
-    assert _straddled(skin, left_edge + 0.004, 0.02, 0.010) == (True, False)  # was (False, False)
-    assert _straddled(skin, left_edge + 0.0105, 0.02, 0.010) == (False, False)  # 0.6 mm into the gap: on no element
-    # the wrap seam (the band's two ends): the same
-    assert _straddled(skin, 0.24 + 0.5 * (2 * math.pi * 0.04 / 6 - skin.side) + 0.004, 0.02, 0.010) == (True, False)
-    # the torso's two patches meet without a gap: as before
-    assert _straddled(skin, 0.08 + 0.004, 0.06, 0.010) == (True, False)

@@ -17,9 +17,14 @@ alike to within the noise, and then which of them costs less is the noise's choi
 +4 (a one-parameter profile's 95 %) would drop the other branch when it is only
 e^-2 ≈ 14 % as likely, and report the chosen one with its own, tight σ: a confident
 untruth whenever the noise chose wrong. So every local minimum of the grid is a
-branch, and a branch is kept while its likelihood is above the 3σ tail of the best
-one's (cost within :data:`BRANCH`); within each kept branch the fits within +4 of its
-own minimum count, as above.
+branch, and so is a free-diameter fit started at each pressure the cluster's summed
+ΔC1/ΔC2 allows (the ratio fixes a branch's pressure so closely that its valley in D
+can lie between two grid points, unmarked by any local minimum); a branch is kept
+while its likelihood is above the 3σ tail of the best one's (cost within
+:data:`BRANCH`), and within each kept branch the fits within +4 of its own minimum
+count, as above. An axis along which a kept disk lies inside its element is
+unresolved, whatever another branch says (a large disk over the skin's edge is pinned
+along it by the on-skin prior, not by the readings).
 """
 
 from __future__ import annotations
@@ -224,6 +229,8 @@ def _ratio_branches(params: ElementParams, cl: Cluster) -> list[tuple[float, flo
     above = rho > c1 / c2
     cross = np.flatnonzero(above[1:] != above[:-1])
     if cross.size == 0:
+        if not c1 / c2 > rho.max():
+            return []  # below every light pressure's ratio: the grid alone
         sig = [branch_info(params).sigma_peak]
     else:
         sig = []

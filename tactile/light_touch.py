@@ -142,8 +142,10 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
             else:
                 # Unseen: uniform over the cluster's extent less the smallest disk.
                 lo_e, hi_e = b[:, ax].min(), b[:, ax + 2].max()
+                # (With no grid fit kept, the whole extent: a refinement's diameter is
+                # too sharp a bound, the disk may hang over the cluster's edge.)
                 d_kept = np.concatenate([diam[keep], np.exp(ref.theta[mine, 2][kref])])
-                dmin = float(np.nanmin(d_kept)) if d_kept.size else 0.0
+                dmin = float(np.nanmin(d_kept)) if keep.any() else 0.0
                 pos[ax] = 0.5 * (lo_e + hi_e)
                 sig[ax] = max(hi_e - lo_e - dmin, 0.0) / math.sqrt(12.0)
         # A best fit far worse than the noise found no disk that explains the

@@ -86,23 +86,21 @@ class Score:
 
 def _straddled(skin: SkinGeometry, ax: float, ay: float, r: float) -> tuple[bool, bool]:
     """Whether a footprint of radius ``r`` at atlas (ax, ay) reaches into a neighbour
-    element along the atlas x and y (beyond its centre element's edge, onto another one)."""
+    element along the atlas x and y (half a millimetre onto another element, at least,
+    beyond the gap between them where the elements' pitch exceeds their side)."""
     lay = skin.layout()
-    h = 0.5 * skin.side
     i = int(lay.element_at([[ax, ay]])[0])
     if i < 0:
         return True, True  # in a seam: between elements on its axis at least
-    cx, cy = lay.centres[i]
     out = []
-    for axis, c, a in ((0, cx, ax), (1, cy, ay)):
+    for axis in (0, 1):
         hit = False
         for sgn in (-1.0, 1.0):
-            edge = c + sgn * h
-            if sgn * (a + sgn * r - edge) > 0.5e-3:  # half a millimetre over, at least
-                probe = [ax, ay]
-                probe[axis] = edge + sgn * 1e-3
-                px = skin.wrap_x(probe[0], probe[1])
-                hit |= int(lay.element_at([[px, probe[1]]])[0]) >= 0
+            probe = [ax, ay]
+            probe[axis] += sgn * (r - 0.5e-3)  # the footprint's reach, less half a millimetre
+            px = skin.wrap_x(probe[0], probe[1])
+            j = int(lay.element_at([[px, probe[1]]])[0])
+            hit |= j >= 0 and j != i
         out.append(hit)
     return out[0], out[1]
 

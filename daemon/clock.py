@@ -366,3 +366,93 @@ class SkinClock:
         back = self._back
         t = np.array([memo.get(k, math.nan) if k >= back else math.nan for k in keys.tolist()])
         return t[inverse]
+
+
+class BridgeClocks:
+    """Every bridge's own clock fit (:class:`BridgeClock`), and its parameters in columns
+    indexed by bridge id, so that a read's samples of many bridges map in one vector step.
+
+    Samples not on mesh time (a bridge booting or cut off from the skin's time, protocol
+    version 1) are timed by these fits; a fit starts at a bridge's first sample, at the
+    chip's clock rate unless its HELLO said another (:meth:`rate`).
+    """
+
+    def __init__(self, hz: float, bits: int) -> None:
+        self.hz = float(hz)
+        self.bits = bits
+        self._fits: dict[int, BridgeClock] = {}
+        self._rates: dict[int, float] = {}  # bridges whose HELLO said a rate other than the chip's
+        self._ref = np.zeros(0x10000, dtype=np.uint64)
+        self._t_ref = np.full(0x10000, np.nan)
+        self._k = np.ones(0x10000)
+        self._hz = np.full(0x10000, self.hz)
+
+    def __len__(self) -> int:
+        return len(self._fits)
+
+    def __contains__(self, bridge: object) -> bool:
+        return bridge in self._fits
+
+    def observe(self, bridge: int, cycle: int, now: float) -> bool:
+        """``bridge``'s newest sample of a read, at ``cycle``, arrived at ``now``: True when its
+        clock restarted (a reset) and the fit began again."""
+        fit = self._fits.get(bridge)
+        if fit is None:
+            fit = self._fits[bridge] = BridgeClock(self._rates.get(bridge, self.hz), bits=self.bits)
+        jumped = fit.observe(cycle, now)
+        self._ref[bridge], self._t_ref[bridge], self._k[bridge], self._hz[bridge] = fit.params()
+        return jumped
+
+    def booted(self, bridge: int) -> bool:
+        """``bridge`` restarted (HELLO numbered 0): its fit begins again with its next sample.
+        True when it had one in sync (a resynchronisation worth counting)."""
+        fit = self._fits.pop(bridge, None)
+        return fit is not None and fit.synced
+
+    def suspect_reset(self, bridge: int) -> None:
+        """``bridge``'s frame numbering restarted without a HELLO: perhaps a reset (:meth:`BridgeClock.suspect_reset`)."""
+        fit = self._fits.get(bridge)
+        if fit is not None:
+            fit.suspect_reset()
+
+    def rate(self, bridge: int, hz: float) -> None:
+        """``bridge``'s HELLO says its clock runs at ``hz``: its fit begins again at that rate."""
+        self._rates[bridge] = float(hz)
+        self._fits.pop(bridge, None)
+
+    def forget(self, bridge: int) -> None:
+        self._fits.pop(bridge, None)
+        self._rates.pop(bridge, None)
+
+    def to_host(self, bridges: NDArray[np.int64], cycles: NDArray[np.uint64]) -> NDArray[np.float64]:
+        """Host times of samples (``bridges[i]``'s cycle count ``cycles[i]``), each bridge
+        as of its last :meth:`observe`."""
+        return rows_to_host(cycles, self._ref[bridges], self._t_ref[bridges], self._k[bridges], self._hz[bridges],
+                            self.bits)
+
+    def seconds(self, bridges: NDArray[np.int64], cycles: NDArray[np.uint64]) -> NDArray[np.float64]:
+        """Each sample's bridge time: its cycle count in seconds of its bridge's clock."""
+        return cycles.astype(np.float64) / self._hz[bridges]
+
+
+def cycle_of(index: int, rate: int, hz: float) -> int:
+    """The global cycle of skin frame ``index`` at ``rate`` frames a second of a ``hz`` clock
+    (-1: its instant does not fit 62 bits, a nonsense index)."""
+    g = index * int(hz) // rate
+    return g if 0 <= g < 1 << 62 else -1
+
+
+def global_cycles(index: NDArray[np.uint64], rate: NDArray[np.int64], on_time: NDArray[np.bool_],
+                  hz: float) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    """The global cycle of each mesh-time sample's frame (``index / rate`` s), -1 for the
+    others: (on mesh time, cycle). A sample whose instant does not fit 62 bits is not on
+    mesh time (its index is nonsense)."""
+    with np.errstate(divide="ignore"):
+        on_time = on_time & (index.astype(np.float64) * hz / np.maximum(rate, 1) < 2.0**62)
+    if not on_time.any():
+        return on_time, np.full(index.shape[0], -1, dtype=np.int64)
+    r = np.where(on_time, rate, 1).astype(np.uint64)
+    cps = np.uint64(int(hz))
+    # index · hz // rate without index · hz, which wraps in uint64 below the check above
+    # (at a high rate): a corrupted index was put on some frame of the last 65 days
+    return on_time, np.where(on_time, (index // r * cps + index % r * cps // r).astype(np.int64), -1)

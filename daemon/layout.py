@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from cellbridge.daemon.config import CalibrationSection, Config, ContactSection, InverseSection
 from cellbridge.daemon.contacts import ContactSnapshot, ContactSpec
-from cellbridge.daemon.elements import ElementStage, calibration_config, default_params
+from cellbridge.daemon.elements import Calibrated, ElementStage, calibration_config, default_params
 from cellbridge.daemon.health import ChannelHealth
 from cellbridge.daemon.readings import SPARE, ElementReadings
 from cellbridge.tactile import SkinLayout
@@ -174,12 +174,13 @@ class LayoutStages:
         each sample; ``now``: the read's arrival time; ``held``, ``on_time``, ``period``:
         each reading's kind and sample period (:meth:`ElementReadings.record`). Requires :attr:`ready`."""
         assert self.elements is not None and self.channels is not None and self.readings is not None
-        res = self._calibrate(rows, raw, saturated, caps, now, held, inverse)
+        cal = self._calibrate(rows, raw, saturated, caps, now, held, inverse)
+        res = cal.columns
         dc = np.stack([res["dc1"], res["dc2"]], axis=1)
         r = self.readings
-        touched = r.classify(rows, dc, *self.elements.calibrator.thresholds())
+        touched = r.classify(rows, dc, *self.elements.thresholds())
         r.record(rows, t_sample, cycle, dc, touched, now, held, on_time, period)
-        r.settle(self.elements.stepped, self.elements.touched)
+        r.settle(cal.stepped.rows, cal.stepped.touched)
         return res
 
     def frame(self, t: float, cycle: int, sampled: NDArray[np.int64], raw: NDArray[np.int64],
@@ -198,25 +199,26 @@ class LayoutStages:
         known = np.concatenate([sampled, kept])
         every = np.concatenate([caps, kept_caps])
         ns = sampled.shape[0]
-        res = self._calibrate(known, np.concatenate([raw, np.zeros((kept.shape[0], 2), np.int64)]),
+        cal = self._calibrate(known, np.concatenate([raw, np.zeros((kept.shape[0], 2), np.int64)]),
                               np.concatenate([saturated, np.zeros((kept.shape[0], 2), bool)]), every, now,
                               None, inverse, channels=ns)
+        res = cal.columns
         dc = np.stack([res["dc1"], res["dc2"]], axis=1)
-        touched = r.classify(known, dc, *self.elements.calibrator.thresholds())
+        touched = r.classify(known, dc, *self.elements.thresholds())
         stepped = np.zeros(r.n, dtype=bool)
-        stepped[self.elements.stepped] = True
-        touched = np.where(stepped[known], self.elements.touched[known], touched)
+        stepped[cal.stepped.rows] = True
+        touched = np.where(stepped[known], cal.stepped.touched[known], touched)
         accounted = np.concatenate([sampled, unchanged, missing if missing is not None else sampled[:0]])
         unknown = r.scheduled(t, cycle, sampled, caps, known, dc, touched, root, accounted)
         return {k: v[:ns] for k, v in res.items()}, unknown
 
     def _calibrate(self, rows: NDArray[np.int64], raw: NDArray[np.int64], saturated: NDArray[np.bool_],
                    caps: NDArray[np.float64], now: float, held: NDArray[np.bool_] | None, inverse: bool,
-                   channels: int | None = None) -> dict[str, NDArray[Any]]:
+                   channels: int | None = None) -> Calibrated:
         """Channel health (of the first ``channels`` readings: all by default) and the element
         stage on ``rows``' readings."""
         assert self.elements is not None and self.channels is not None
-        self.elements.held_for = self._held_for()
+        self.elements.hold_for(self._held_for())
         groups = _newest(rows)
         c = rows.shape[0] if channels is None else channels
         if c:
@@ -231,8 +233,9 @@ class LayoutStages:
         if self.elements is None or self.readings is None or self.layout is None:
             return None
         r = self.readings
-        self.elements.held_for = self._held_for()
-        r.settle(self.elements.flush(now), self.elements.touched)
+        self.elements.hold_for(self._held_for())
+        stepped = self.elements.flush(now)
+        r.settle(stepped.rows, stepped.touched)
         got = r.take(now, bridge_timeout, self.config.contact.max_lag, scheduled, force=self.dirty)
         if got is None:
             return None
@@ -245,6 +248,13 @@ class LayoutStages:
         (``bridge_timeout``, reloadable), and ``tau`` at least (a heartbeat may be longer than
         ``tau``; then the idle elements' readings lapsed between heartbeats)."""
         return max(self.config.calibration.tau, self.config.health.bridge_timeout)
+
+    def take_rebaselined(self) -> list[int]:
+        """Bridge ids of the elements re-baselined under a touch (after ``max_touch``, their
+        reading no contact's) since the last call, each once."""
+        if self.elements is None or self.layout is None:
+            return []
+        return [int(b) for b in self.layout.ids[self.elements.take_rebaselined()]]
 
     def snapshot_due(self, now: float, idle: bool, scheduled: bool) -> float:
         """``now`` when :meth:`snapshot` has a frame to give (:meth:`ElementReadings.due`),
@@ -284,12 +294,12 @@ class LayoutStages:
             stuck=[{"bridge": int(ids[i]), "channel": int(c) + 1} for i, c in zip(*np.nonzero(stuck))],
             saturated=[{"bridge": int(ids[i]), "channel": int(c) + 1} for i, c in zip(*np.nonzero(ch.saturated))],
             saturated_samples=int(ch.saturated_samples.sum()),
-            touched=ids[self.elements.touched].tolist(),
-            not_ready=ids[~self.elements.calibrator.ready].tolist(),
+            touched=ids[self.elements.touched_rows()].tolist(),
+            not_ready=ids[self.elements.not_ready_rows()].tolist(),
             late=ids[self.readings.late].tolist() if self.readings is not None else [],
             late_estimates=self.readings.late_frames if self.readings is not None else 0,
         )
-        cal: dict[str, Any] = self.elements.calibrator.health()
+        cal: dict[str, Any] = self.elements.calibration_health()
         cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids
         out["calibration"] = cal
         return out

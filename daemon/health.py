@@ -241,11 +241,15 @@ class HealthBook:
         b.clock_hz = float(hz)
         return True
 
-    def sampled(self, bid: int, samples: int, cycle: int, now: float) -> None:
-        """``samples`` DATA samples of ``bid`` came in one read, the newest at ``cycle``."""
-        b = self._bridge(bid, now)
-        b.samples += samples
-        b.last_cycle = cycle
+    def sampled(self, newest: dict[int, int], origin: NDArray[np.int64], cycle: NDArray[np.uint64],
+                now: float) -> None:
+        """A read's DATA samples came (each one's bridge and cycle count); ``newest``: each
+        bridge's newest sample's index, in the order its bridges were first met."""
+        counts = Counter(origin.tolist())
+        for bid, i in newest.items():
+            b = self._bridge(bid, now)
+            b.samples += counts[bid]
+            b.last_cycle = int(cycle[i])
 
     def rejected(self, bids: NDArray[np.int64]) -> None:
         """Mesh-time samples of ``bids`` (one entry each) whose index was not believed."""

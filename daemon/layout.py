@@ -57,6 +57,25 @@ class LayoutStages:
         if layout is not None:
             self._install(layout)
 
+    def reconfigured(self, config: Config, layout: SkinLayout | None) -> tuple[LayoutStages, bool]:
+        """The stages for a reload's ``config`` and ``layout`` (the layout file's, or None),
+        and whether they were rebuilt. They are rebuilt only when their settings or the
+        layout changed: a SIGHUP that changes nothing of theirs (log rotation, client keys)
+        must not erase a press being held. Calibration and inverse unchanged, elements that
+        keep their place keep their baselines (a press held across the reload goes on, and
+        so does its contact's id); else every baseline is taken again."""
+        old = self.config
+        same_layout = (layout is None and not self.from_file) or (
+            layout is not None and self.from_file and self.layout is not None
+            and layout_dict(layout) == layout_dict(self.layout))
+        if same_layout and skin_settings(old) == skin_settings(config):
+            self.config = config
+            return self, False
+        same_elements = (old.calibration, old.inverse) == (config.calibration, config.inverse)
+        stages = LayoutStages(config, layout, self if same_elements else None)
+        stages.hello(self.geometry)
+        return stages, True
+
     def _install(self, layout: SkinLayout) -> None:
         src = self if self.layout is not None or self._previous is None else self._previous
         self._previous = None

@@ -5,42 +5,37 @@ under the service, in tests fed synthesized bytes, and on replayed captures with
 their recorded times (which is what makes golden-output tests exact). One call of
 :meth:`Pipeline.feed` handles one read of a link as a batch: frames are decoded, then
 every later stage works on numpy columns of all the batch's samples. What comes back
-is a list of :mod:`cellbridge.daemon.messages`: messages to publish, log events, bytes
-to write on a link; the shell does what each says and never reads the pipeline's
-attributes.
+is a list of :mod:`cellbridge.daemon.messages`; the shell does what each says.
 
-The pipeline orchestrates; each concept has its own owner, which it calls and which
-returns its results: the receive path (:class:`~cellbridge.daemon.wire.Ingress`), the
-bridges' clocks and the skin's mesh time (:mod:`cellbridge.daemon.clock`,
-:mod:`cellbridge.daemon.domains`), health (:class:`~cellbridge.daemon.health.HealthBook`),
-the mesh (:mod:`cellbridge.daemon.topology`), the element stages
-(:mod:`cellbridge.daemon.layout`), commands (:mod:`cellbridge.daemon.commands`) and
-contact identity (:class:`~cellbridge.daemon.contacts.ContactIdentity`). A bridge
-forgotten is forgotten by each of them.
+The pipeline orchestrates, and only that: each concept has one owner it calls, which
+returns its results. The receive path (:class:`~cellbridge.daemon.wire.Ingress`); time
+(:mod:`cellbridge.daemon.clock`: each bridge's fit and the skin's mesh time,
+:mod:`cellbridge.daemon.domains`: one map and one frame sequence per time root); health
+(:class:`~cellbridge.daemon.health.HealthBook`); the mesh (:mod:`~cellbridge.daemon.topology`);
+readings through the element stages (:mod:`~cellbridge.daemon.batches`,
+:mod:`~cellbridge.daemon.layout`); commands (:mod:`~cellbridge.daemon.commands`); contact
+identity (:class:`~cellbridge.daemon.contacts.ContactIdentity`). A bridge forgotten is
+forgotten by each of them.
 
 Skin frames come from the gateways' readout records (:mod:`cellbridge.daemon.frames`):
-a frame is complete when every active gateway's record of it came, or at its deadline,
-and each element of it is a new reading, its previous one (its bridge said unchanged)
-or unknown (:mod:`cellbridge.daemon.readings`). Bridges on no schedule send DATA, read
-by a minimal fallback rule.
-
-Contact estimation is deliberately *not* in ``feed``: it is slow next to ingest, so
-the shell asks :meth:`Pipeline.contact_job` for the newest complete frame whenever its
-worker is free (:meth:`Pipeline.contact_due` says when one is there), runs it
-(:mod:`cellbridge.daemon.contact_worker`) and hands the contacts back to
-:meth:`Pipeline.contact_frame` (one frame of the skin, never a backlog).
+complete when every active gateway's record of it came, or at its deadline. Bridges on
+no schedule send DATA, read by a minimal fallback rule. Contact estimation is *not* in
+``feed``: it is slow next to ingest, so the shell asks :meth:`Pipeline.contact_job` for
+the newest complete frame whenever its worker is free (:meth:`Pipeline.contact_due` says
+when one is there), runs it (:mod:`cellbridge.daemon.contact_worker`) and hands the
+contacts back to :meth:`Pipeline.contact_frame` (one frame of the skin, never a backlog).
 """
 
 from __future__ import annotations
 
 import math
-from collections import Counter
 from collections.abc import Iterable
 from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from cellbridge.daemon.clock import BridgeClocks, cycle_of, global_cycles
+from cellbridge.daemon.batches import Batch, Batches
+from cellbridge.daemon.clock import HostTimes, cycle_of
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.contacts import ContactIdentity, ContactJob, ContactSpec
@@ -50,40 +45,18 @@ from cellbridge.daemon.domains import TimeDomains
 from cellbridge.daemon.frames import SkinFrame
 from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import UNPLACED_SHOWN, HealthBook
-from cellbridge.daemon.layout import LayoutStages, layout_dict, skin_settings
-from cellbridge.daemon.messages import (
-    SCHEMA_VERSION,
-    ContactFrame,
-    ElementBatch,
-    Health,
-    LinkWrite,
-    LogEvent,
-    Message,
-    RawBatch,
-    Stamps,
-    Topology,
-)
+from cellbridge.daemon.layout import LayoutStages
+from cellbridge.daemon.messages import (SCHEMA_VERSION, ContactFrame, ElementBatch, Health, LinkWrite, LogEvent,
+                                        Message, RawBatch, Stamps, Topology)
 from cellbridge.daemon.topology import Topology as Routes
-from cellbridge.daemon.wire import (
-    ADDR_BROADCAST,
-    HELD,
-    NO_MESH_TIME,
-    OPS,
-    Decoded,
-    PART_BYTES,
-    Ingress,
-    Readout,
-    SampleColumns,
-    command_bytes,
-)
+from cellbridge.daemon.wire import NO_MESH_TIME, OPS, Decoded, Ingress, Readout, SampleColumns
 from cellbridge.tactile import ElementParams, SkinLayout
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
-__all__ = ["SCHEMA_VERSION", "Pipeline"]
+__all__ = ["SCHEMA_VERSION", "Pipeline"]  # the schema version of what it publishes (daemon/messages.py)
 
 _GATE_OP = int(OPS["gate"])
 _NO_MESH_TIME = np.int64(NO_MESH_TIME)
-_HELD = np.int64(HELD)
 _JUMPED = "mesh time jumped (a new time root?): mapping it to host time again"
 
 
@@ -109,17 +82,16 @@ class Pipeline:
         self.config = config
         self.ingress = Ingress(config.protocol.dedupe_window, config.protocol.reassembly_timeout)
         self.chip = chip_params(config.chip)
-        self.frontend = Frontend(default_params(layout) if layout is not None else ElementParams(), self.chip)
         self.skin = LayoutStages(config, layout)
-        self.gate = np.full(0x10000, float(self.chip.gate_cycles))
-        self.clocks = BridgeClocks(self.chip.clock_hz, config.chip.cycle_bits)
+        self.batches = Batches(Frontend(default_params(layout) if layout is not None else ElementParams(), self.chip),
+                               self.chip.clock_hz, self.chip.gate_cycles)
         # Per time root (docs/time.md): mesh time -> host time, taught by the gateways' own
         # samples and readout records, and the skin frames of the records
         f = config.frames
         self.times = TimeDomains(self.chip.clock_hz, f.margin, config.health.bridge_timeout, f.max_pending)
-        self._link_root: dict[str, int] = {}  # link -> the root of its newest record (DATA samples' mesh time)
+        self.time = HostTimes(self.times, self.chip.clock_hz, config.chip.cycle_bits,
+                              {ln.name: ln.baudrate for ln in config.links})
         self.unknown_element_frames = 0  # placed elements unknown in the scheduled frames given out
-        self._baud = {ln.name: ln.baudrate for ln in config.links}  # s a record takes on its line: bytes x 10 / baud
         self.health = HealthBook(self.chip.clock_hz, ((ln.name, ln.url) for ln in config.links))
         self.topology = Routes()
         self.commands = CommandTracker()
@@ -193,17 +165,17 @@ class Pipeline:
         for origin, seqs in dec.frames_by_origin.items():
             boot = origin in dec.boots
             if health.frames(origin, seqs, window, boot, link, now) and not boot:
-                self.clocks.suspect_reset(origin)  # numbering restarted without a HELLO: perhaps a reset
+                self.time.bridges.suspect_reset(origin)  # numbering restarted without a HELLO: perhaps a reset
             self.topology.heard(origin, link, dec.gateways, now)
         if self.topology.gateways_heard(link, dec.gateways, now):
             health.may_forget_from(now)
         for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
-            if self.clocks.booted(origin):
+            if self.time.bridges.booted(origin):
                 health.clock_reset(origin, now)
                 self._event("warning", f"bridge {origin}: restarted (HELLO 0), resynchronising its clock")
         for origin, h in dec.hellos:
             if health.clock_rate(origin, h.clock_hz, now):
-                self.clocks.rate(origin, h.clock_hz)
+                self.time.bridges.rate(origin, h.clock_hz)
         for origin, _src, bc in dec.beacons:
             self.topology.beacon(origin, bc.parent, bc.path_etx, bc.hops)
         for origin, st in dec.statuses:
@@ -219,131 +191,48 @@ class Pipeline:
             if p is not None and p.op == _GATE_OP and reply.status.name == "OK":
                 gate = reply.value if reply.value else p.value
                 if gate:
-                    self.gate[origin] = float(gate)
-
-    def _sample_times(self, s: SampleColumns, now: float, gateways: set[int],
-                      root: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Feed the clocks; (host time, bridge time, global cycle or -1) of every sample.
-
-        A sample on mesh time (no ``NO_MESH_TIME`` flag, a rate) started its C1 gate at
-        global time ``index / rate``: its host time comes from the skin's one map, so two
-        bridges' samples of one index get one host time. Other samples (a bridge booting
-        or cut off, protocol version 1) are timed from their bridge's own arrival fit."""
-        on_time, g = global_cycles(s.index, s.rate, ((s.flags & _NO_MESH_TIME) == 0) & (s.rate > 0),
-                                   self.chip.clock_hz)
-        if on_time.any():
-            own = np.flatnonzero(on_time & np.isin(s.origin, np.fromiter(gateways, np.int64, len(gateways))))
-            if own.size:
-                newest = own[np.argmax(g[own])]
-                if self.times.teach(root, int(s.origin[newest]), int(g[newest]), now):
-                    self._event("warning", _JUMPED)
-        origin_list = s.origin.tolist()
-        counts = Counter(origin_list)
-        for o, i in {o: i for i, o in enumerate(origin_list)}.items():  # each bridge's newest sample
-            cyc = int(s.cycle[i])
-            if self.clocks.observe(o, cyc, now):
-                self.health.clock_reset(o, now)
-                self._event("warning", f"bridge {o}: clock restarted (reset?), resynchronising")
-            self.health.sampled(o, counts[o], cyc, now)
-        o = s.origin
-        t_sample = self.clocks.to_host(o, s.cycle)
-        frame_t = self.times.frame_times(root, np.where(on_time, g, -1), now) if on_time.any() else None
-        if frame_t is not None:
-            # A frame the map puts after the sample's own arrival was never taken: its index is
-            # wrong (a frame corrupted past the CRC, a bridge on some other time); so is one
-            # behind a jump back of the skin's time not confirmed yet. Believed, it would move
-            # the skin frame that far and stop every estimate until then.
-            wrong = on_time & np.isnan(frame_t)
-            if wrong.any():
-                self.health.rejected(o[wrong])
-                g = np.where(wrong, -1, g)
-                on_time &= ~wrong
-            t_sample = np.where(on_time, frame_t, t_sample)
-        return t_sample, self.clocks.seconds(o, s.cycle), g
+                    self.batches.set_gate(origin, gate)
 
     def _readouts(self, link: str, records: list[tuple[int, Readout]], now: float) -> None:
-        """READOUT record parts a gateway wrote (:mod:`cellbridge.daemon.frames`): each record
-        teaches the skin clock (it cannot reach the host before its frame's gates opened: a
-        gateway sends it as soon as it is complete, the schedule's end being only the latest)
-        and joins its frame; the bridges it accounts for with a sample or unchanged were heard."""
-        part_s = PART_BYTES * 10 / self._baud.get(link, 1_000_000)  # s a part takes on the line, at most
-        for gw, rec in records:
-            g = cycle_of(rec.index, rec.rate, self.chip.clock_hz)  # (-1: a nonsense index, the record refused)
-            self._link_root[link] = rec.root
-            t, jumped = self.times.record(gw, rec, rec.root, g, now, rec.parts * part_s)
-            if jumped:
+        """READOUT record parts a gateway wrote (:mod:`cellbridge.daemon.frames`) teach the
+        skin's time and join their frames (:meth:`HostTimes.records`); the bridges each
+        accounts for with a sample or unchanged were heard."""
+        for r in self.time.records(link, records, now):
+            if r.jumped:
                 self._event("warning", _JUMPED)
-            if math.isfinite(t):
-                self.health.spoken_for(link, np.array([s[0] for s in rec.samples], dtype=np.int64),
-                                       np.array(rec.unchanged, dtype=np.int64), now)
+            if r.sampled is not None and r.unchanged is not None:
+                self.health.spoken_for(link, r.sampled, r.unchanged, now)
 
     def _frames_out(self, frames: list[SkinFrame], now: float, out: list[Message]) -> None:
         """Complete skin frames into the element stages and the readings contacts are
         estimated on; ``raw`` and ``element`` messages for their samples."""
         for f in frames:
-            g = cycle_of(f.index, f.rate, self.chip.clock_hz)
-            raw = np.stack([f.c1, f.c2], axis=1)
-            n = f.bridges.size
-            if self._want("raw") and n:
-                out.append(self.stamps.message(RawBatch, now, {
-                    "link": self.health.link_of(f.gateways[0]) if f.gateways else "", "bridge": f.bridges.tolist(),
-                    "element": [0] * n, "cycle": [g] * n, "t_bridge": [g / self.chip.clock_hz] * n,
-                    "c1": f.c1.tolist(), "c2": f.c2.tolist(), "flags": f.flags.tolist(), "mode": f.mode.tolist(),
-                    "oversampling": f.oversampling.tolist()}))
-            if not self.skin.ready:
-                continue
-            rows = self.skin.rows_of(f.bridges, np.zeros(n, dtype=np.int64))
-            placed = rows >= 0
-            if not placed.all():
-                self.health.unmapped(f.bridges[~placed])
-            caps, sat = self.frontend.capacitance(f.mode, f.oversampling, raw, f.flags, self.gate[f.bridges])
-            unchanged = self.skin.rows_of(f.unchanged, np.zeros(f.unchanged.size, dtype=np.int64))
-            missing = self.skin.rows_of(f.missing, np.zeros(f.missing.size, dtype=np.int64))
-            res, unknown = self.skin.frame(f.t, g, rows[placed], raw[placed], sat[placed], caps[placed],
-                                           unchanged[unchanged >= 0], now, inverse=self._want("element"),
-                                           root=f.root, missing=missing[missing >= 0])
-            self.unknown_element_frames += unknown
-            if self._want("element") and placed.any():
-                k = int(placed.sum())
-                out.append(self._elements(now, f.bridges[placed], [0] * k, [g] * k, [g / self.chip.clock_hz] * k,
-                                          [f.t + self.wall_offset] * k, [f.index] * k, [True] * k, caps[placed], res))
-
-    def _elements(self, now: float, bridges: np.ndarray, element: list[int], cycle: list[int], t_bridge: list[float],
-                  t_sample: list[float], index: list[int], on_time: list[bool], caps: np.ndarray,
-                  res: dict[str, np.ndarray]) -> ElementBatch:
-        return self.stamps.message(ElementBatch, now, {
-            "bridge": bridges.tolist(), "element": element, "cycle": cycle, "t_bridge": t_bridge,
-            "t_sample": t_sample, "index": index, "on_time": on_time, "c1": caps[:, 0].tolist(),
-            "c2": caps[:, 1].tolist(), **{k: res[k].tolist() for k in _ELEMENT_COLUMNS}})
+            link = self.health.link_of(f.gateways[0]) if f.gateways else ""
+            b = self.batches.frame(self.skin, link, f, cycle_of(f.index, f.rate, self.chip.clock_hz), now,
+                                   self.wall_offset, self._want("raw"), self._want("element"))
+            self.unknown_element_frames += b.unknown
+            self._batch(b, now, out)
 
     def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message], gateways: set[int]) -> None:
-        t_sample, t_bridge, g = self._sample_times(s, now, gateways, self._link_root.get(link, 0))
-        o = s.origin
-        raw = np.stack([s.c1, s.c2], axis=1)
-        caps_all, sat_all = self.frontend.capacitance(s.mode, s.oversampling, raw, s.flags, self.gate[o])
-        rows = self.skin.rows_of(o, s.element)
-        placed = rows >= 0
-        all_placed = bool(placed.all())
-        if not all_placed:
-            self.health.unmapped(o[~placed])
-        if self._want("raw"):
-            out.append(self.stamps.message(RawBatch, now, {
-                "link": link, "bridge": s.origin.tolist(), "element": s.element.tolist(),
-                "cycle": s.cycle.tolist(), "t_bridge": t_bridge.tolist(), "c1": s.c1.tolist(),
-                "c2": s.c2.tolist(), "flags": s.flags.tolist(), "mode": s.mode.tolist(),
-                "oversampling": s.oversampling.tolist()}))
-        if not self.skin.ready or not placed.any():
-            return
-        sel = slice(None) if all_placed else placed
-        caps, flags, rate = caps_all[sel], s.flags[sel], s.rate[sel]
-        with np.errstate(divide="ignore"):
-            period = np.where(rate > 0, 1.0 / rate, np.nan)
-        res = self.skin.step(rows[sel], raw[sel], sat_all[sel], caps, t_sample[sel], s.cycle[sel], now,
-                             (flags & _HELD) != 0, g[sel] >= 0, period, inverse=self._want("element"))
-        if self._want("element"):
-            out.append(self._elements(now, o[sel], s.element[sel].tolist(), s.cycle[sel].tolist(),
-                                      t_bridge[sel].tolist(), (t_sample[sel] + self.wall_offset).tolist(),
-                                      s.index[sel].tolist(), (g[sel] >= 0).tolist(), caps, res))
+        st = self.time.samples(link, s.origin, s.cycle, s.index, s.rate, (s.flags & _NO_MESH_TIME) == 0, gateways, now)
+        if st.jumped:
+            self._event("warning", _JUMPED)
+        self.health.sampled(st.newest, s.origin, s.cycle, now)
+        for o in st.resets:
+            self.health.clock_reset(o, now)
+            self._event("warning", f"bridge {o}: clock restarted (reset?), resynchronising")
+        if st.rejected.size:
+            self.health.rejected(st.rejected)
+        self._batch(self.batches.samples(self.skin, link, s, st.t_host, st.t_bridge, st.cycle, now, self.wall_offset,
+                                         self._want("raw"), self._want("element")), now, out)
+
+    def _batch(self, b: Batch, now: float, out: list[Message]) -> None:
+        if b.unplaced.size:
+            self.health.unmapped(b.unplaced)
+        if b.raw is not None:
+            out.append(self.stamps.message(RawBatch, now, b.raw))
+        if b.element is not None:
+            out.append(self.stamps.message(ElementBatch, now, b.element))
 
     # -- contacts -----------------------------------------------------------------------
     def contact_job(self, now: float | None = None) -> ContactJob | None:
@@ -455,7 +344,7 @@ class Pipeline:
         if gone is None:
             return
         for bid in gone:
-            self.clocks.forget(bid)
+            self.time.bridges.forget(bid)
             self.times.forget(bid)
             self.topology.forget(bid)
             self.ingress.forget(bid)
@@ -484,7 +373,7 @@ class Pipeline:
             **self.health.bridges_report(now, self.skin.split_placed, self.ingress.drops_of, w),
             "layout": layout_report,
             **self.ingress.totals(),
-            "commands": {"in_flight": len(self.commands), "unmatched_replies": self.commands.unmatched_replies},
+            "commands": self.commands.counters(),
             "frames": {**self.times.counters(now), "unknown_element_frames": self.unknown_element_frames},
         }
 
@@ -505,15 +394,11 @@ class Pipeline:
         ``token`` names it in :meth:`finished_commands`) and the link writes that send it.
         Raises ValueError for a bridge never heard from."""
         if target is None:
-            pending = self.commands.start(op, value, self.health.alive(), now, timeout)
-            data = command_bytes(ADDR_BROADCAST, pending.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
-            return pending, [LinkWrite(name, data) for name in self.health.link_names()]
+            return self.commands.send(op, value, None, self.health.alive(), self.health.link_names(), now, timeout)
         links = self.topology.links_of(target)
         if not links:
             raise ValueError(f"bridge {target} has not been heard from on any link")
-        pending = self.commands.start(op, value, {target}, now, timeout)
-        data = command_bytes(target, pending.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
-        return pending, [LinkWrite(name, data) for name in links]
+        return self.commands.send(op, value, target, {target}, links, now, timeout)
 
     def finished_commands(self, now: float) -> list[Pending]:
         """Commands whose bridges all answered, or whose time ran out by ``now`` (each once)."""
@@ -528,26 +413,13 @@ class Pipeline:
         return self.skin.tare(bridges)
 
     def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
-        """SIGHUP: take the reloadable settings. The element stages are rebuilt only when
-        their settings or the layout changed: a SIGHUP that changes nothing of theirs (log
-        rotation, client keys) must not erase a press being held. Baselines are re-taken
-        only when calibration or inverse settings changed, and then only for every element;
-        a new layout or new contact settings keep those of elements that kept their place."""
-        old, self.config = self.config, config
+        """SIGHUP: take the reloadable settings (the element stages:
+        :meth:`~cellbridge.daemon.layout.LayoutStages.reconfigured`)."""
+        self.config = config
         self.times.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
-        sk = self.skin
-        same_layout = (layout is None and not sk.from_file) or (
-            layout is not None and sk.from_file and sk.layout is not None and layout_dict(layout) == layout_dict(sk.layout))
-        if same_layout and skin_settings(old) == skin_settings(config):
-            sk.config = config
-            return
-        geometry = self.skin.geometry
-        # Calibration and inverse unchanged: elements that keep their place keep their
-        # baselines (a press held across the reload goes on, and so does its contact's id).
-        same_elements = (old.calibration, old.inverse) == (config.calibration, config.inverse)
-        self.skin = LayoutStages(config, layout, sk if same_elements else None)
-        self.skin.hello(geometry)
-        self.health.may_forget_from(-math.inf)
+        self.skin, rebuilt = self.skin.reconfigured(config, layout)
+        if rebuilt:
+            self.health.may_forget_from(-math.inf)
 
     # -- links and subscribers --------------------------------------------------------------
     def link_state(self, link: str, connected: bool, now: float, error: str = "") -> None:
@@ -568,6 +440,3 @@ class Pipeline:
         """One line for the service manager's status: links up, bridges alive."""
         return self.health.summary()
 
-
-#: The element stage's columns an ``element`` message carries, in its order.
-_ELEMENT_COLUMNS = ("dc1", "dc2", "force", "area", "valid", "status", "touched")

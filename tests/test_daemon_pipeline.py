@@ -147,7 +147,7 @@ def test_commands_go_to_the_link_a_bridge_was_heard_on_and_complete_on_reply() -
     p.feed("gw2", sk.reply(3, pending.token, Op.SET_GATE), T0 + 0.01)
     (done,) = p.commands.done(T0 + 0.01)
     assert done.result()["replies"]["3"]["status"] == "OK" and done.result()["missing"] == []
-    assert p.gate[3] == 50_000.0
+    assert p.batches.gate[3] == 50_000.0
     bpending, bwrites = p.command(int(Op.SET_RATE), 50, None, T0, 1.0)
     assert sorted(w.link for w in bwrites) == ["gw", "gw2"]
     assert StreamDecoder().feed(bwrites[0].data)[0].dst == ADDR_BROADCAST
@@ -496,7 +496,7 @@ def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_neve
     assert len(published(p.tick(t + 61.0, force=True))[0][1]["bridges"]) == 4
     body = p.health_body(t + 61.0)
     assert body["silent"] == [1, 2, 3, 4] and body["forgotten_bridges"] == 3000
-    assert len(p.clocks) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
+    assert len(p.time.bridges) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
     again = encode_stream(Frame(src=1, dst=0, origin=100, seq=1,
                                 payload=Data(Mode.COUNTER, (Sample(0, 2000, 100, 100, 0),))))
     p.feed("gw", again, t + 62.0)  # a forgotten origin that speaks again is back

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cellbridge.daemon.clock import cycle_of
 from cellbridge.daemon.frames import SkinFrame
 from cellbridge.daemon.frontend import Frontend
 from cellbridge.daemon.layout import LayoutStages
@@ -84,11 +85,12 @@ class Batches:
             (t_sample[sel] + wall).tolist(), s.index[sel].tolist(), (g[sel] >= 0).tolist(), caps, res)
         return Batch(raw_body, body, unplaced)
 
-    def frame(self, skin: LayoutStages, link: str, f: SkinFrame, g: int, now: float, wall: float,
+    def frame(self, skin: LayoutStages, link: str, f: SkinFrame, now: float, wall: float,
               raw: bool, element: bool) -> Batch:
-        """One complete skin frame ``f`` at global cycle ``g``, its first gateway on ``link``,
-        given out at ``now``: its samples, its unchanged (previous reading) and missing
-        elements into the element stages (:meth:`LayoutStages.frame`)."""
+        """One complete skin frame ``f``, its first gateway on ``link``, given out at
+        ``now``: its samples, its unchanged (previous reading) and missing elements into the
+        element stages (:meth:`LayoutStages.frame`)."""
+        g = cycle_of(f.index, f.rate, self.hz)
         counts = np.stack([f.c1, f.c2], axis=1)
         n = f.bridges.size
         raw_body = None if not (raw and n) else {

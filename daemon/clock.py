@@ -515,6 +515,26 @@ class HostTimes:
         self._baud = baud
         self._link_root: dict[str, int] = {}  # link -> the root of its newest record
 
+    def __len__(self) -> int:
+        """Bridges with a fit of their own."""
+        return len(self.bridges)
+
+    def booted(self, bridge: int) -> bool:
+        """:meth:`BridgeClocks.booted`."""
+        return self.bridges.booted(bridge)
+
+    def suspect_reset(self, bridge: int) -> None:
+        """:meth:`BridgeClocks.suspect_reset`."""
+        self.bridges.suspect_reset(bridge)
+
+    def rate(self, bridge: int, hz: float) -> None:
+        """:meth:`BridgeClocks.rate`."""
+        self.bridges.rate(bridge, hz)
+
+    def forget(self, bridge: int) -> None:
+        """``bridge`` is forgotten: its own fit goes (the roots' maps forget gateways themselves)."""
+        self.bridges.forget(bridge)
+
     def samples(self, link: str, origin: NDArray[np.int64], cycle: NDArray[np.uint64], index: NDArray[np.uint64],
                 rate: NDArray[np.int64], mesh: NDArray[np.bool_], gateways: Iterable[int], now: float) -> SampleTimes:
         """A read of ``link`` at ``now``: each sample's bridge, cycle count, frame index and

@@ -18,7 +18,7 @@ from collections import OrderedDict
 import itertools
 import math
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -118,14 +118,24 @@ class ContactIdentity:
         """The estimate of ``snapshot`` on ``spec``, continuing the contacts published."""
         return ContactJob(self.owner, spec, snapshot, self._first_id, self._carry)
 
-    def published(self, contacts: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
-        """The worker's ``contacts`` of a job are published: they are the ones to continue.
-        Returns them as a list."""
-        out = list(contacts)
-        self._carry = tuple(out)
-        for c in out:
+    def published(self, job: ContactJob, contacts: Iterable[dict[str, Any]],
+                  wall: Callable[[float | None], float | None]) -> list[dict[str, Any]]:
+        """The worker's ``contacts`` of ``job`` are published: they are the ones to continue.
+        Returns each (copied) with the cycle count of each of its elements' readings
+        (``cycles``) and the newest of their sample times (``t_sample``), its times moved to
+        the wall clock by ``wall``."""
+        snap = job.snapshot
+        index = {int(b): i for i, b in enumerate(snap.ids)}
+        contacts = list(contacts)
+        self._carry = tuple(contacts)
+        out = []
+        for c in contacts:
             if isinstance(c.get("id"), int):  # ids never go back, whatever rebuilt the tracker
                 self._first_id = max(self._first_id, c["id"] + 1)
+            rows = [index[e] for e in c["elements"]]
+            ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
+            out.append({**c, "t": wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
+                        "t_sample": wall(max(ts)) if ts else None})
         return out
 
 

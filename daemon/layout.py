@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ from cellbridge.daemon.elements import Calibrated, ElementStage, calibration_con
 from cellbridge.daemon.health import ChannelHealth
 from cellbridge.daemon.readings import SPARE, ElementReadings
 from cellbridge.tactile import SkinLayout
+from cellbridge.tactile.skin_geometry import Band
 from cellbridge.tactile.layout import MAX_REACH, MAX_SIDE
 from numpy.typing import NDArray
 
@@ -49,6 +51,7 @@ class LayoutStages:
         self.layout: SkinLayout | None = None
         self.elements: ElementStage | None = None
         self.contact_spec: ContactSpec | None = None  # what the service's worker process builds from
+        self._banded: tuple[ContactSpec, tuple[Band, ...], ContactSpec] | None = None  # (spec, bands, spec with them)
         self.channels: ChannelHealth | None = None
         self.row = np.full(_IDS, -1, dtype=np.int64)
         self.readings: ElementReadings | None = None
@@ -267,6 +270,18 @@ class LayoutStages:
         (``bridge_timeout``, reloadable), and ``tau`` at least (a heartbeat may be longer than
         ``tau``; then the idle elements' readings lapsed between heartbeats)."""
         return max(self.config.calibration.tau, self.config.health.bridge_timeout)
+
+    def spec(self, bands: tuple[Band, ...] = ()) -> ContactSpec | None:
+        """What a contact estimate of this layout is built from (None: no layout yet), with
+        the skin description's ``bands`` (contacts across wrap seams) when it has any: built
+        once per spec and bands, as a job carries it a hundred times a second."""
+        spec = self.contact_spec
+        if spec is None or not bands or spec.bands == bands:
+            return spec
+        memo = self._banded
+        if memo is None or memo[0] is not spec or memo[1] != bands:
+            self._banded = memo = (spec, bands, replace(spec, bands=bands))
+        return memo[2]
 
     def take_rebaselined(self) -> list[int]:
         """Bridge ids of the elements re-baselined under a touch (after ``max_touch``, their

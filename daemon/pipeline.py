@@ -30,15 +30,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from cellbridge.daemon.batches import Batch, Batches
-from cellbridge.daemon.clock import HostTimes, cycle_of
+from cellbridge.daemon.clock import HostTimes
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
-from cellbridge.daemon.contacts import ContactIdentity, ContactJob, ContactSpec
+from cellbridge.daemon.contacts import ContactIdentity, ContactJob
 from cellbridge.daemon.surface import contact_fields, skin_report
 from cellbridge.daemon.elements import default_params
 from cellbridge.daemon.domains import TimeDomains
@@ -61,15 +60,13 @@ _JUMPED = "mesh time jumped (a new time root?): mapping it to host time again"
 
 
 class Pipeline:
-    """Everything the daemon knows, fed by the shell; the shell's whole interface is methods.
-
-    - :meth:`feed` (one read of a link) and :meth:`tick` (time passing) return the
-      messages to act on, in order; :meth:`advance`, :meth:`host_clock_step` likewise.
-    - :meth:`contact_job` / :meth:`contact_frame`: the next contact estimate and its message.
-    - :meth:`command` / :meth:`finished_commands`: commands to bridges and their outcome.
-    - :meth:`want` (topics with subscribers), :meth:`link_state`, :meth:`link_stats` (the
-      shell's own link counters), :meth:`health_body`, :meth:`topology_body`,
-      :meth:`summary`, :meth:`tare`, :meth:`reconfigure`.
+    """Everything the daemon knows, fed by the shell; the shell's whole interface is methods:
+    :meth:`feed` (a read), :meth:`tick` (time passing), :meth:`advance` and
+    :meth:`host_clock_step` return the messages to act on, in order; :meth:`contact_job` /
+    :meth:`contact_frame` the next contact estimate and its message; :meth:`command` /
+    :meth:`finished_commands` commands to bridges; :meth:`want`, :meth:`link_state`,
+    :meth:`link_stats`, :meth:`health_body`, :meth:`topology_body`, :meth:`summary`,
+    :meth:`tare`, :meth:`reconfigure`.
 
     ``config`` is a validated :class:`~cellbridge.daemon.config.Config`; ``layout`` the
     layout file's, or None to place bridges by their HELLO geometry. Every time argument
@@ -88,9 +85,9 @@ class Pipeline:
         # Per time root (docs/time.md): mesh time -> host time, taught by the gateways' own
         # samples and readout records, and the skin frames of the records
         f = config.frames
-        self.times = TimeDomains(self.chip.clock_hz, f.margin, config.health.bridge_timeout, f.max_pending)
-        self.time = HostTimes(self.times, self.chip.clock_hz, config.chip.cycle_bits,
-                              {ln.name: ln.baudrate for ln in config.links})
+        self.domains = TimeDomains(self.chip.clock_hz, f.margin, config.health.bridge_timeout, f.max_pending)
+        self.clock = HostTimes(self.domains, self.chip.clock_hz, config.chip.cycle_bits,
+                               {ln.name: ln.baudrate for ln in config.links})
         self.unknown_element_frames = 0  # placed elements unknown in the scheduled frames given out
         self.health = HealthBook(self.chip.clock_hz, ((ln.name, ln.url) for ln in config.links))
         self.topology = Routes()
@@ -105,7 +102,6 @@ class Pipeline:
         self._queue: list[Message] = []  # log events (and the messages of frames contact_job gave out), handed out next
         #: the skin description (links, patches) the layout is the atlas of; set by the shell
         self.surface: SkinGeometry | None = None
-        self._spec_memo: tuple[ContactSpec, ContactSpec] | None = None
 
     @property
     def wall_offset(self) -> float:
@@ -113,13 +109,11 @@ class Pipeline:
         return self.stamps.wall_offset
 
     def set_wall_offset(self, offset: float) -> None:
-        """Wall-clock minus the time base the shell feeds (``time.time() - time.monotonic()``
-        for a service on the monotonic clock; 0 when fed wall-clock or recorded times).
-        Only published stamps use it."""
+        """Wall-clock minus the time base fed (0 for wall-clock or recorded times): stamps only."""
         self.stamps.wall_offset = float(offset)
 
     def _event(self, level: str, text: str) -> None:
-        self._queue.append(LogEvent(level, text))
+        self._queue.append(LogEvent(level, text))  # handed out with the next messages (_drain)
 
     def _drain(self, out: list[Message]) -> list[Message]:
         if self._queue:
@@ -147,17 +141,16 @@ class Pipeline:
             self._samples(link, dec.samples, now, out, dec.gateways)
         if dec.readouts:
             self._readouts(link, dec.readouts, now)
-            self._frames_out(self.times.take(now), now, out)
+            self._frames_out(self.domains.take(now), now, out)
         return self._drain(out)
 
     def advance(self, now: float | None = None) -> list[Message]:
         """Time passing to ``now`` (default: the last read's time): the skin frames whose
-        deadline passed go out (their elements' ``raw`` and ``element`` messages are
-        returned). :meth:`contact_job` does this too; a shell calls it first, to publish
-        what it returns."""
+        deadline passed go out, their ``raw`` and ``element`` messages returned
+        (:meth:`contact_job` does this too; a shell calls this first, to publish them)."""
         now = self.last_feed if now is None else now
         out: list[Message] = []
-        self._frames_out(self.times.take(now), now, out)
+        self._frames_out(self.domains.take(now), now, out)
         return self._drain(out)
 
     def _routing(self, link: str, dec: Decoded, now: float, out: list[Message]) -> None:
@@ -165,17 +158,17 @@ class Pipeline:
         for origin, seqs in dec.frames_by_origin.items():
             boot = origin in dec.boots
             if health.frames(origin, seqs, window, boot, link, now) and not boot:
-                self.time.bridges.suspect_reset(origin)  # numbering restarted without a HELLO: perhaps a reset
+                self.clock.suspect_reset(origin)  # numbering restarted without a HELLO: perhaps a reset
             self.topology.heard(origin, link, dec.gateways, now)
         if self.topology.gateways_heard(link, dec.gateways, now):
             health.may_forget_from(now)
         for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
-            if self.time.bridges.booted(origin):
+            if self.clock.booted(origin):
                 health.clock_reset(origin, now)
                 self._event("warning", f"bridge {origin}: restarted (HELLO 0), resynchronising its clock")
         for origin, h in dec.hellos:
             if health.clock_rate(origin, h.clock_hz, now):
-                self.time.bridges.rate(origin, h.clock_hz)
+                self.clock.rate(origin, h.clock_hz)
         for origin, _src, bc in dec.beacons:
             self.topology.beacon(origin, bc.parent, bc.path_etx, bc.hops)
         for origin, st in dec.statuses:
@@ -194,10 +187,9 @@ class Pipeline:
                     self.batches.set_gate(origin, gate)
 
     def _readouts(self, link: str, records: list[tuple[int, Readout]], now: float) -> None:
-        """READOUT record parts a gateway wrote (:mod:`cellbridge.daemon.frames`) teach the
-        skin's time and join their frames (:meth:`HostTimes.records`); the bridges each
-        accounts for with a sample or unchanged were heard."""
-        for r in self.time.records(link, records, now):
+        """READOUT record parts teach the skin's time and join their frames
+        (:meth:`HostTimes.records`); the bridges each accounts for were heard."""
+        for r in self.clock.records(link, records, now):
             if r.jumped:
                 self._event("warning", _JUMPED)
             if r.sampled is not None and r.unchanged is not None:
@@ -208,13 +200,12 @@ class Pipeline:
         estimated on; ``raw`` and ``element`` messages for their samples."""
         for f in frames:
             link = self.health.link_of(f.gateways[0]) if f.gateways else ""
-            b = self.batches.frame(self.skin, link, f, cycle_of(f.index, f.rate, self.chip.clock_hz), now,
-                                   self.wall_offset, self._want("raw"), self._want("element"))
+            b = self.batches.frame(self.skin, link, f, now, self.wall_offset, self._want("raw"), self._want("element"))
             self.unknown_element_frames += b.unknown
             self._batch(b, now, out)
 
     def _samples(self, link: str, s: SampleColumns, now: float, out: list[Message], gateways: set[int]) -> None:
-        st = self.time.samples(link, s.origin, s.cycle, s.index, s.rate, (s.flags & _NO_MESH_TIME) == 0, gateways, now)
+        st = self.clock.samples(link, s.origin, s.cycle, s.index, s.rate, (s.flags & _NO_MESH_TIME) == 0, gateways, now)
         if st.jumped:
             self._event("warning", _JUMPED)
         self.health.sampled(st.newest, s.origin, s.cycle, now)
@@ -237,67 +228,41 @@ class Pipeline:
     # -- contacts -----------------------------------------------------------------------
     def contact_job(self, now: float | None = None) -> ContactJob | None:
         """The next contact estimate to run, or None: estimation off, nobody subscribed
-        to ``contact``, no layout, or no skin frame came since the last job.
-
-        The job holds the newest complete skin frame (frames whose deadline passed by
-        ``now`` go out first: :meth:`advance`; their messages come with the next call that
-        returns messages): each element's reading of it, or unknown (see
-        :mod:`cellbridge.daemon.readings`). Never an older frame left behind: one frame
-        of the skin, never a backlog. Run it with
-        :class:`~cellbridge.daemon.contact_worker.ContactWorker` (any executor) and pass
-        the contacts to :meth:`contact_frame`. ``now``: the host time (default: the last
-        read's); a shell passes it also when no data comes, so that silence is noticed."""
+        to ``contact``, no layout, or no skin frame came since the last job. The job holds
+        the newest complete skin frame (frames whose deadline passed by ``now`` go out
+        first, their messages with the next call that returns any): each element's reading
+        of it, or unknown (:mod:`cellbridge.daemon.readings`); one frame, never a backlog.
+        Run it with :class:`~cellbridge.daemon.contact_worker.ContactWorker` and pass the
+        contacts to :meth:`contact_frame`. ``now``: default the last read's time; a shell
+        passes it also when no data comes, so that silence is noticed."""
         if not self.config.contact.enabled or not self._want("contact"):
             return None
         now = self.last_feed if now is None else now
-        self._frames_out(self.times.take(now), now, self._queue)
-        snap = self.skin.snapshot(now, self.config.health.bridge_timeout, self.times.active(now))
-        if snap is None or self.skin.contact_spec is None:
-            return None
-        return self.contacts.job(self._surface_spec(self.skin.contact_spec), snap)
+        self._frames_out(self.domains.take(now), now, self._queue)
+        snap = self.skin.snapshot(now, self.config.health.bridge_timeout, self.domains.active(now))
+        spec = self.skin.spec(self.surface.bands if self.surface is not None else ())
+        return None if snap is None or spec is None else self.contacts.job(spec, snap)
 
     def contact_due(self, now: float, idle: bool = False) -> float:
-        """The host time at which :meth:`contact_job` has a new frame: ``now`` when one is
-        complete and not estimated yet, else the deadline of the oldest frame waiting for a
-        record, ``inf`` when only new data brings one. A shell asks for a job when data comes
-        or at this time, whichever is first (at most ``contact.rate`` a second); the periodic
-        tick notices silence. ``idle``: the last estimate had nothing to track (the worker
-        skipped it): a frame after it is worth a look only if it says something new (an
-        idle event-based skin's frames say "unchanged" a hundred times a second)."""
+        """When :meth:`contact_job` has a new frame: ``now`` when one is complete and not
+        estimated yet, else the deadline of the oldest frame waiting for a record, ``inf``
+        when only new data brings one (a shell asks when data comes or then, whichever is
+        first). ``idle``: the last estimate had nothing to track: a frame after it is worth
+        a look only if it says something new (an idle skin's frames say "unchanged")."""
         if not self.config.contact.enabled or not self._want("contact"):
             return math.inf
-        scheduled = self.times.active(now)
-        return max(min(self.skin.snapshot_due(now, idle, scheduled), self.times.due()), now)
+        scheduled = self.domains.active(now)
+        return max(min(self.skin.snapshot_due(now, idle, scheduled), self.domains.due()), now)
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
-        """The ``contact`` message of ``job``'s estimate: each contact (as the worker gave
-        it, copied) with the cycle count of each of its elements' readings and the newest
-        of their sample times. Its contacts are the ones the next estimate continues."""
+        """The ``contact`` message of ``job``'s estimate (:meth:`ContactIdentity.published`),
+        with each contact's place on the robot (:func:`~cellbridge.daemon.surface.contact_fields`)."""
         snap, wall = job.snapshot, self.stamps.wall
-        index = {int(b): i for i, b in enumerate(snap.ids)}
-        out = []
-        for c in self.contacts.published(contacts):
-            rows = [index[e] for e in c["elements"]]
-            ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
-            out.append({**c, "t": wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
-                        "t_sample": wall(max(ts)) if ts else None})
-        out = contact_fields(self.surface, out)  # link, 3-D position, normal, force vector
-        t = wall(snap.t_frame) if math.isfinite(snap.t_frame) else None
-        unknown = [] if snap.unknown is None else snap.ids[snap.unknown].tolist()
-        return self.stamps.message(ContactFrame, snap.t_host, {"t_sample": t, "t_bridge": None, "contacts": out,
-                                                               "unknown": unknown,
-                                                               "rebaselined": self.skin.take_rebaselined()})
-
-    def _surface_spec(self, spec: ContactSpec) -> ContactSpec:
-        """The contact spec with the skin description's bands (contacts across wrap seams),
-        when there is a description and its atlas is the layout (daemon/surface.py)."""
-        bands = self.surface.bands if self.surface is not None else ()
-        if not bands or spec.bands == bands:
-            return spec
-        memo = self._spec_memo
-        if memo is None or memo[0] is not spec:
-            self._spec_memo = memo = (spec, replace(spec, bands=bands))
-        return memo[1]
+        out = contact_fields(self.surface, self.contacts.published(job, contacts, wall))
+        return self.stamps.message(ContactFrame, snap.t_host, {
+            "t_sample": wall(snap.t_frame) if math.isfinite(snap.t_frame) else None, "t_bridge": None,
+            "contacts": out, "unknown": [] if snap.unknown is None else snap.ids[snap.unknown].tolist(),
+            "rebaselined": self.skin.take_rebaselined()})
 
     # -- periodic -----------------------------------------------------------------------
     def host_clock_step(self, delta: float) -> list[Message]:
@@ -321,10 +286,9 @@ class Pipeline:
         self._last_tick = now
         if now < self._next_health and not force:
             return self._drain([])
-        interval = h.interval
-        self._next_health = now + interval
+        self._next_health = now + h.interval
         # Over the time since the health before (often more than the interval), not the interval.
-        elapsed = now - self._last_health if 0 < now - self._last_health < math.inf else interval
+        elapsed = now - self._last_health if 0 < now - self._last_health < math.inf else h.interval
         self._last_health = now
         self.ingress.expire(now)
         self._queue.extend(self.health.tick(now, elapsed, h.bridge_timeout, self.skin.split_placed))
@@ -338,14 +302,13 @@ class Pipeline:
         return self._drain(out)
 
     def _forget(self, before: float) -> None:
-        """Bridges the layout does not place last heard ``before`` (:meth:`HealthBook.forget`)
-        are forgotten by every owner, and gateway ids as old."""
+        """Bridges health forgets (:meth:`HealthBook.forget`) every owner forgets; gateway ids as old too."""
         gone = self.health.forget(before, self.skin.split_placed)
         if gone is None:
             return
         for bid in gone:
-            self.time.bridges.forget(bid)
-            self.times.forget(bid)
+            self.clock.forget(bid)
+            self.domains.forget(bid)
             self.topology.forget(bid)
             self.ingress.forget(bid)
         self.topology.forget_gateways(before)
@@ -364,17 +327,14 @@ class Pipeline:
 
     def health_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
-        layout_report = self.skin.report(now, self.config.health.stuck_after)
-        w = self.wall_offset
+        layout_report, w = self.skin.report(now, self.config.health.stuck_after), self.wall_offset
         return {
-            "t_bridge": None,
-            "uptime": self.health.uptime(now),
+            "t_bridge": None, "uptime": self.health.uptime(now),
             "links": self.health.links_report(self.ingress.counters, w),
             **self.health.bridges_report(now, self.skin.split_placed, self.ingress.drops_of, w),
-            "layout": layout_report,
-            **self.ingress.totals(),
+            "layout": layout_report, **self.ingress.totals(),
             "commands": self.commands.counters(),
-            "frames": {**self.times.counters(now), "unknown_element_frames": self.unknown_element_frames},
+            "frames": {**self.domains.counters(now), "unknown_element_frames": self.unknown_element_frames},
         }
 
     def topology_body(self, now: float) -> dict[str, Any]:
@@ -382,9 +342,7 @@ class Pipeline:
         body = self.topology.report(now, self.config.health.bridge_timeout, self.skin.split_placed, UNPLACED_SHOWN)
         for node in body["bridges"].values():
             node["last_seen"] = self.stamps.wall(node["last_seen"])
-        body["t_bridge"] = None
-        body["layout"] = self.skin.layout_report()
-        body["skin"] = skin_report(self.surface)
+        body.update(t_bridge=None, layout=self.skin.layout_report(), skin=skin_report(self.surface))
         return body
 
     # -- commands -----------------------------------------------------------------------
@@ -416,7 +374,7 @@ class Pipeline:
         """SIGHUP: take the reloadable settings (the element stages:
         :meth:`~cellbridge.daemon.layout.LayoutStages.reconfigured`)."""
         self.config = config
-        self.times.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
+        self.domains.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
         self.skin, rebuilt = self.skin.reconfigured(config, layout)
         if rebuilt:
             self.health.may_forget_from(-math.inf)

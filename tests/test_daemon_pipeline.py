@@ -496,7 +496,7 @@ def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_neve
     assert len(published(p.tick(t + 61.0, force=True))[0][1]["bridges"]) == 4
     body = p.health_body(t + 61.0)
     assert body["silent"] == [1, 2, 3, 4] and body["forgotten_bridges"] == 3000
-    assert len(p.time.bridges) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
+    assert len(p.clock) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
     again = encode_stream(Frame(src=1, dst=0, origin=100, seq=1,
                                 payload=Data(Mode.COUNTER, (Sample(0, 2000, 100, 100, 0),))))
     p.feed("gw", again, t + 62.0)  # a forgotten origin that speaks again is back

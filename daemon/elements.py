@@ -93,7 +93,7 @@ class ElementStage:
         self._held = np.full((layout.n, 2), np.nan)  # newest reading of each element, if held
         self._held_at = np.full(layout.n, -math.inf)  # when it came
         # s a held reading stands after it came (the bridge is live that long): hold_for
-        self._held_for = cal.tau
+        self._hold = cal.tau
         self._none = np.zeros(0, dtype=np.int64)
         self._last_step = -math.inf
         self._t = -math.inf
@@ -139,7 +139,7 @@ class ElementStage:
 
     def hold_for(self, seconds: float) -> None:
         """How long a held reading stands after it came: as long as its bridge counts as live."""
-        self._held_for = seconds
+        self._hold = seconds
 
     def touched_rows(self) -> NDArray[np.int64]:
         """The layout rows touched as of the last step."""
@@ -161,7 +161,7 @@ class ElementStage:
         """``values`` with the held readings that still stand filled in where an element
         has no new reading (a ready element's only: a baseline is taken from readings)."""
         fill = (np.isnan(values).any(axis=1) & np.isfinite(self._held).all(axis=1)
-                & (self._t - self._held_at <= self._held_for) & self.calibrator.ready)
+                & (self._t - self._held_at <= self._hold) & self.calibrator.ready)
         if not fill.any():
             return values
         out = values.copy()
@@ -213,7 +213,7 @@ class ElementStage:
         self.rebaselined[rows] = old.rebaselined[old_rows]
         for name in ("_held", "_held_at"):
             getattr(self, name)[rows] = getattr(old, name)[old_rows]
-        self._held_for = old._held_for
+        self._hold = old._hold
         self._last_step, self._t = old._last_step, old._t
 
     def tare(self, rows: NDArray[np.int64] | None) -> None:

@@ -240,7 +240,7 @@ class LayoutStages:
         """Channel health (of the first ``channels`` readings: all by default) and the element
         stage on ``rows``' readings."""
         assert self.elements is not None and self.channels is not None
-        self.elements.hold_for(self._held_for())
+        self.elements.hold_for(self._hold())
         groups = _newest(rows)
         c = rows.shape[0] if channels is None else channels
         if c:
@@ -255,7 +255,7 @@ class LayoutStages:
         if self.elements is None or self.readings is None or self.layout is None:
             return None
         r = self.readings
-        self.elements.hold_for(self._held_for())
+        self.elements.hold_for(self._hold())
         stepped = self.elements.flush(now)
         r.settle(stepped.rows, stepped.touched)
         got = r.take(now, bridge_timeout, self.config.contact.max_lag, scheduled, force=self.dirty)
@@ -265,7 +265,7 @@ class LayoutStages:
         return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t,
                                got.unknown)
 
-    def _held_for(self) -> float:
+    def _hold(self) -> float:
         """How long a held reading stands in the calibrator's steps: while its bridge is live
         (``bridge_timeout``, reloadable), and ``tau`` at least (a heartbeat may be longer than
         ``tau``; then the idle elements' readings lapsed between heartbeats)."""

@@ -219,7 +219,7 @@ class HealthBook:
         return b
 
     # -- what arrived ---------------------------------------------------------------------
-    def frames(self, bid: int, seqs: list[int], window: int, boot: bool, link: str, now: float) -> bool:
+    def frames_seen(self, bid: int, seqs: list[int], window: int, boot: bool, link: str, now: float) -> bool:
         """Frames of ``bid`` numbered ``seqs`` came on ``link`` (``window``: the duplicate
         filter's, ``boot``: its HELLO numbered 0 is among them). True when its numbering
         restarted."""

@@ -157,7 +157,7 @@ class Pipeline:
         window, health = self.ingress.dedupe_window(), self.health
         for origin, seqs in dec.frames_by_origin.items():
             boot = origin in dec.boots
-            if health.frames(origin, seqs, window, boot, link, now) and not boot:
+            if health.frames_seen(origin, seqs, window, boot, link, now) and not boot:
                 self.clock.suspect_reset(origin)  # numbering restarted without a HELLO: perhaps a reset
             self.topology.heard(origin, link, dec.gateways, now)
         if self.topology.gateways_heard(link, dec.gateways, now):

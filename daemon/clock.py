@@ -25,9 +25,14 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
+
+from cellbridge.daemon.wire import PART_BYTES, Readout
 
 
 class BridgeClock:
@@ -366,3 +371,240 @@ class SkinClock:
         back = self._back
         t = np.array([memo.get(k, math.nan) if k >= back else math.nan for k in keys.tolist()])
         return t[inverse]
+
+
+class BridgeClocks:
+    """Every bridge's own clock fit (:class:`BridgeClock`), and its parameters in columns
+    indexed by bridge id, so that a read's samples of many bridges map in one vector step.
+
+    Samples not on mesh time (a bridge booting or cut off from the skin's time, protocol
+    version 1) are timed by these fits; a fit starts at a bridge's first sample, at the
+    chip's clock rate unless its HELLO said another (:meth:`rate`).
+    """
+
+    def __init__(self, hz: float, bits: int) -> None:
+        self.hz = float(hz)
+        self.bits = bits
+        self._fits: dict[int, BridgeClock] = {}
+        self._rates: dict[int, float] = {}  # bridges whose HELLO said a rate other than the chip's
+        self._ref = np.zeros(0x10000, dtype=np.uint64)
+        self._t_ref = np.full(0x10000, np.nan)
+        self._k = np.ones(0x10000)
+        self._hz = np.full(0x10000, self.hz)
+
+    def __len__(self) -> int:
+        return len(self._fits)
+
+    def __contains__(self, bridge: object) -> bool:
+        return bridge in self._fits
+
+    def observe(self, bridge: int, cycle: int, now: float) -> bool:
+        """``bridge``'s newest sample of a read, at ``cycle``, arrived at ``now``: True when its
+        clock restarted (a reset) and the fit began again."""
+        fit = self._fits.get(bridge)
+        if fit is None:
+            fit = self._fits[bridge] = BridgeClock(self._rates.get(bridge, self.hz), bits=self.bits)
+        jumped = fit.observe(cycle, now)
+        self._ref[bridge], self._t_ref[bridge], self._k[bridge], self._hz[bridge] = fit.params()
+        return jumped
+
+    def booted(self, bridge: int) -> bool:
+        """``bridge`` restarted (HELLO numbered 0): its fit begins again with its next sample.
+        True when it had one in sync (a resynchronisation worth counting)."""
+        fit = self._fits.pop(bridge, None)
+        return fit is not None and fit.synced
+
+    def suspect_reset(self, bridge: int) -> None:
+        """``bridge``'s frame numbering restarted without a HELLO: perhaps a reset (:meth:`BridgeClock.suspect_reset`)."""
+        fit = self._fits.get(bridge)
+        if fit is not None:
+            fit.suspect_reset()
+
+    def rate(self, bridge: int, hz: float) -> None:
+        """``bridge``'s HELLO says its clock runs at ``hz``: its fit begins again at that rate."""
+        self._rates[bridge] = float(hz)
+        self._fits.pop(bridge, None)
+
+    def forget(self, bridge: int) -> None:
+        self._fits.pop(bridge, None)
+        self._rates.pop(bridge, None)
+
+    def to_host(self, bridges: NDArray[np.int64], cycles: NDArray[np.uint64]) -> NDArray[np.float64]:
+        """Host times of samples (``bridges[i]``'s cycle count ``cycles[i]``), each bridge
+        as of its last :meth:`observe`."""
+        return rows_to_host(cycles, self._ref[bridges], self._t_ref[bridges], self._k[bridges], self._hz[bridges],
+                            self.bits)
+
+    def seconds(self, bridges: NDArray[np.int64], cycles: NDArray[np.uint64]) -> NDArray[np.float64]:
+        """Each sample's bridge time: its cycle count in seconds of its bridge's clock."""
+        return cycles.astype(np.float64) / self._hz[bridges]
+
+
+def cycle_of(index: int, rate: int, hz: float) -> int:
+    """The global cycle of skin frame ``index`` at ``rate`` frames a second of a ``hz`` clock
+    (-1: its instant does not fit 62 bits, a nonsense index)."""
+    g = index * int(hz) // rate
+    return g if 0 <= g < 1 << 62 else -1
+
+
+def global_cycles(index: NDArray[np.uint64], rate: NDArray[np.int64], on_time: NDArray[np.bool_],
+                  hz: float) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    """The global cycle of each mesh-time sample's frame (``index / rate`` s), -1 for the
+    others: (on mesh time, cycle). A sample whose instant does not fit 62 bits is not on
+    mesh time (its index is nonsense)."""
+    with np.errstate(divide="ignore"):
+        on_time = on_time & (index.astype(np.float64) * hz / np.maximum(rate, 1) < 2.0**62)
+    if not on_time.any():
+        return on_time, np.full(index.shape[0], -1, dtype=np.int64)
+    r = np.where(on_time, rate, 1).astype(np.uint64)
+    cps = np.uint64(int(hz))
+    # index · hz // rate without index · hz, which wraps in uint64 below the check above
+    # (at a high rate): a corrupted index was put on some frame of the last 65 days
+    return on_time, np.where(on_time, (index // r * cps + index % r * cps // r).astype(np.int64), -1)
+
+
+class MeshMaps(Protocol):
+    """Each time root's map of mesh time to host time (:class:`~cellbridge.daemon.domains.TimeDomains`)."""
+
+    def teach(self, root: int, gateway: int, g: int, now: float) -> bool: ...
+
+    def frame_times(self, root: int, g: NDArray[np.int64], now: float) -> NDArray[np.float64] | None: ...
+
+    def record(self, gateway: int, rec: Readout, root: int, g: int, now: float,
+               serial: float) -> tuple[float, bool]: ...
+
+
+@dataclass(frozen=True, slots=True)
+class SampleTimes:
+    """One read's DATA samples timed (:meth:`HostTimes.samples`)."""
+
+    t_host: NDArray[np.float64]  # host time of each sample
+    t_bridge: NDArray[np.float64]  # its cycle count in seconds of its bridge's clock
+    cycle: NDArray[np.int64]  # its frame's global cycle, -1 when not on mesh time
+    newest: dict[int, int]  # each bridge's newest sample (its index), in the order first met
+    resets: list[int]  # bridges whose own clock restarted (a reset), in that order
+    rejected: NDArray[np.int64]  # the origin of each sample whose mesh-time index was not believed
+    jumped: bool  # the skin's mesh-time map began again (its time jumped, confirmed)
+
+
+@dataclass(frozen=True, slots=True)
+class RecordTime:
+    """One readout record part timed (:meth:`HostTimes.records`): whether the skin's map
+    began again, and, when the record joined its frame, the bridges it accounts for with a
+    sample and as unchanged (None: refused, its frame not mapped)."""
+
+    jumped: bool
+    sampled: NDArray[np.int64] | None
+    unchanged: NDArray[np.int64] | None
+
+
+class HostTimes:
+    """Host time for what a read holds: DATA samples and readout records.
+
+    A sample on mesh time is timed by its time root's map (:func:`mesh_times`; the roots'
+    maps and frame sequences are ``maps``, shared with the pipeline), any other by its
+    bridge's own fit (:class:`BridgeClocks`); a record by its frame's global time, and it
+    teaches its root's map. DATA samples of a link are on the root of that link's newest
+    record. ``baud``: each link's line rate (a record part's time on the line bounds how
+    late it may come)."""
+
+    def __init__(self, maps: MeshMaps, hz: float, bits: int, baud: dict[str, int]) -> None:
+        self.maps = maps
+        self.hz = float(hz)
+        self.bridges = BridgeClocks(hz, bits)
+        self._baud = baud
+        self._link_root: dict[str, int] = {}  # link -> the root of its newest record
+
+    def __len__(self) -> int:
+        """Bridges with a fit of their own."""
+        return len(self.bridges)
+
+    def booted(self, bridge: int) -> bool:
+        """:meth:`BridgeClocks.booted`."""
+        return self.bridges.booted(bridge)
+
+    def suspect_reset(self, bridge: int) -> None:
+        """:meth:`BridgeClocks.suspect_reset`."""
+        self.bridges.suspect_reset(bridge)
+
+    def rate(self, bridge: int, hz: float) -> None:
+        """:meth:`BridgeClocks.rate`."""
+        self.bridges.rate(bridge, hz)
+
+    def forget(self, bridge: int) -> None:
+        """``bridge`` is forgotten: its own fit goes (the roots' maps forget gateways themselves)."""
+        self.bridges.forget(bridge)
+
+    def samples(self, link: str, origin: NDArray[np.int64], cycle: NDArray[np.uint64], index: NDArray[np.uint64],
+                rate: NDArray[np.int64], mesh: NDArray[np.bool_], gateways: Iterable[int], now: float) -> SampleTimes:
+        """A read of ``link`` at ``now``: each sample's bridge, cycle count, frame index and
+        rate, ``mesh``: not flagged ``NO_MESH_TIME``; ``gateways``: the read's link-level
+        senders (their own samples teach the map)."""
+        m = mesh_times(self.maps, self._link_root.get(link, 0), origin, index, rate, mesh, gateways, now, self.hz)
+        origins = origin.tolist()
+        newest = {o: i for i, o in enumerate(origins)}
+        resets = [o for o, i in newest.items() if self.bridges.observe(o, int(cycle[i]), now)]
+        t = self.bridges.to_host(origin, cycle)
+        if m.t_frame is not None:
+            t = np.where(m.on_time, m.t_frame, t)
+        return SampleTimes(t, self.bridges.seconds(origin, cycle), m.cycle, newest, resets, m.rejected, m.jumped)
+
+    def records(self, link: str, records: Iterable[tuple[int, Readout]], now: float) -> list[RecordTime]:
+        """READOUT record parts gateways wrote on ``link``, arrived at ``now``: each teaches
+        its root's map (it cannot reach the host before its frame's gates opened: a gateway
+        sends it as soon as it is complete, the schedule's end being only the latest) and
+        joins its frame (``maps``)."""
+        part_s = PART_BYTES * 10 / self._baud.get(link, 1_000_000)  # s a part takes on the line, at most
+        out = []
+        for gw, rec in records:
+            g = cycle_of(rec.index, rec.rate, self.hz)  # (-1: a nonsense index, the record refused)
+            self._link_root[link] = rec.root
+            t, jumped = self.maps.record(gw, rec, rec.root, g, now, rec.parts * part_s)
+            if not math.isfinite(t):
+                out.append(RecordTime(jumped, None, None))
+                continue
+            out.append(RecordTime(jumped, np.array([s[0] for s in rec.samples], dtype=np.int64),
+                                  np.array(rec.unchanged, dtype=np.int64)))
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class MeshTimes:
+    """The mesh-time side of one read's samples (:func:`mesh_times`)."""
+
+    on_time: NDArray[np.bool_]  # mapped by the skin's map (else: by its bridge's own fit)
+    cycle: NDArray[np.int64]  # each sample's global cycle, -1 when not on mesh time
+    t_frame: NDArray[np.float64] | None  # host time of each on-time sample's frame (None: no map yet)
+    rejected: NDArray[np.int64]  # the origin of each sample whose index was not believed
+    jumped: bool  # the map began again (the skin's time jumped, confirmed)
+
+
+def mesh_times(maps: MeshMaps, root: int, origin: NDArray[np.int64], index: NDArray[np.uint64],
+               rate: NDArray[np.int64], mesh: NDArray[np.bool_], gateways: Iterable[int], now: float,
+               hz: float) -> MeshTimes:
+    """A read's samples on ``root``'s mesh time (``mesh``: not flagged ``NO_MESH_TIME``)
+    arrived at ``now``. A sample on mesh time started its C1 gate at global time
+    ``index / rate``: its host time comes from the skin's one map, so two bridges' samples
+    of one index get one host time. The newest of the ``gateways``' own samples teaches
+    the map. A frame the map puts after the sample's own arrival was never taken: its
+    index is wrong (a frame corrupted past the CRC, a bridge on some other time); so is one
+    behind a jump back of the skin's time not confirmed yet. Believed, it would move the
+    skin frame that far and stop every estimate until then: such samples are rejected
+    (timed by their bridge's own fit, and counted)."""
+    on_time, g = global_cycles(index, rate, mesh & (rate > 0), hz)
+    jumped = False
+    none = origin[:0]
+    if not on_time.any():
+        return MeshTimes(on_time, g, None, none, jumped)
+    gw = list(gateways)
+    own = np.flatnonzero(on_time & np.isin(origin, np.array(gw, dtype=np.int64)))
+    if own.size:
+        newest = own[np.argmax(g[own])]
+        jumped = maps.teach(root, int(origin[newest]), int(g[newest]), now)
+    t_frame = maps.frame_times(root, np.where(on_time, g, -1), now)
+    if t_frame is None:
+        return MeshTimes(on_time, g, None, none, jumped)
+    wrong = on_time & np.isnan(t_frame)
+    if wrong.any():
+        return MeshTimes(on_time & ~wrong, np.where(wrong, -1, g), t_frame, origin[wrong], jumped)
+    return MeshTimes(on_time, g, t_frame, none, jumped)

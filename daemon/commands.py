@@ -7,10 +7,12 @@ listed. The shell awaits completion; this object only keeps the books.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from cellbridge.daemon.wire import reply_fields
+from cellbridge.daemon.messages import LinkWrite
+from cellbridge.daemon.wire import ADDR_BROADCAST, command_bytes, reply_fields
 
 
 @dataclass(slots=True)
@@ -52,6 +54,14 @@ class CommandTracker:
         p = self._pending[token] = Pending(token, op, value, set(expected), now, now + timeout)
         return p
 
+    def send(self, op: int, value: int | None, target: int | None, expected: set[int], links: Iterable[str],
+             now: float, timeout: float) -> tuple[Pending, list[LinkWrite]]:
+        """Start a command to ``target`` (None: a broadcast) awaiting replies of ``expected``:
+        the command and the writes that send it on ``links``."""
+        p = self.start(op, value, expected, now, timeout)
+        data = command_bytes(ADDR_BROADCAST if target is None else target, p.token, op, value)  # type: ignore[arg-type]  # an Op value: the control layer checks it
+        return p, [LinkWrite(name, data) for name in links]
+
     def reply(self, bridge: int, reply: Any, now: float) -> Pending | None:
         """Record a reply; returns its command (None when no command waits for it)."""
         p = self._pending.get(reply.token)
@@ -79,3 +89,7 @@ class CommandTracker:
 
     def __len__(self) -> int:
         return len(self._pending)
+
+    def counters(self) -> dict[str, int]:
+        """For ``health``: commands in flight, replies no command waited for."""
+        return {"in_flight": len(self._pending), "unmatched_replies": self.unmatched_replies}

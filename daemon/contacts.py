@@ -15,8 +15,10 @@ half its force, σ_F 4 mN)."""
 from __future__ import annotations
 
 from collections import OrderedDict
+import itertools
 import math
-from collections.abc import Mapping
+import os
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -93,6 +95,48 @@ class ContactJob:
     # The owner's contacts last published (as the worker gave them): a tracker built afresh
     # (new layout or settings, a replaced worker) continues them, so a held contact keeps its id.
     carry: tuple[dict[str, Any], ...] = ()
+
+
+_OWNERS = itertools.count()
+
+
+class ContactIdentity:
+    """The host's side of contact identity: the ids the worker's tracker gives are kept here.
+
+    The tracker (in the worker, :func:`estimate`) numbers contacts and follows them from
+    frame to frame; it may be built afresh (a new layout or settings, a replaced worker
+    process), and then it continues from what this holds: the lowest id never published
+    (ids never go back) and the contacts last published (a held press keeps its id).
+    ``owner`` names this pipeline's tracks apart from any other's in the same worker."""
+
+    def __init__(self) -> None:
+        self.owner = f"{os.getpid()}.{next(_OWNERS)}"
+        self._first_id = 0
+        self._carry: tuple[dict[str, Any], ...] = ()
+
+    def job(self, spec: ContactSpec, snapshot: ContactSnapshot) -> ContactJob:
+        """The estimate of ``snapshot`` on ``spec``, continuing the contacts published."""
+        return ContactJob(self.owner, spec, snapshot, self._first_id, self._carry)
+
+    def published(self, job: ContactJob, contacts: Iterable[dict[str, Any]],
+                  wall: Callable[[float | None], float | None]) -> list[dict[str, Any]]:
+        """The worker's ``contacts`` of ``job`` are published: they are the ones to continue.
+        Returns each (copied) with the cycle count of each of its elements' readings
+        (``cycles``) and the newest of their sample times (``t_sample``), its times moved to
+        the wall clock by ``wall``."""
+        snap = job.snapshot
+        index = {int(b): i for i, b in enumerate(snap.ids)}
+        contacts = list(contacts)
+        self._carry = tuple(contacts)
+        out = []
+        for c in contacts:
+            if isinstance(c.get("id"), int):  # ids never go back, whatever rebuilt the tracker
+                self._first_id = max(self._first_id, c["id"] + 1)
+            rows = [index[e] for e in c["elements"]]
+            ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
+            out.append({**c, "t": wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
+                        "t_sample": wall(max(ts)) if ts else None})
+        return out
 
 
 #: The estimator each owner's jobs run on, built once per spec: in the worker process (or

@@ -16,11 +16,10 @@ import zmq
 import zmq.asyncio
 
 from cellbridge._version import __version__
+from cellbridge.daemon.commands import Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply, too_large
-from cellbridge.daemon.links import Link
 from cellbridge.daemon.logs import event
-from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import pack
 from cellbridge.daemon.wire import PING
 
@@ -30,17 +29,33 @@ MAX_FRAMES = 16
 
 
 class Host(Protocol):
-    """What the control server needs of the service."""
+    """What the control server needs of the service, and all it may do: it never holds
+    the pipeline or the links. Writes on a link go the service's one way (the same as
+    the pipeline's own messages take)."""
 
-    pipeline: Pipeline
-    links: dict[str, Link]
     config: Config
-
-    def status_body(self, now: float) -> dict[str, Any]: ...
 
     def now(self) -> float:
         """The pipeline's time base (command deadlines are kept on it)."""
         ...
+
+    def wall(self, now: float) -> float:
+        """``now`` on the wall clock, as published stamps are."""
+        ...
+
+    def status_body(self, now: float) -> dict[str, Any]: ...
+
+    def topology_body(self, now: float) -> dict[str, Any]: ...
+
+    def tare(self, bridges: list[int] | None) -> int: ...
+
+    def send_command(self, op: int, value: int | None, target: int | None, now: float,
+                     timeout: float) -> tuple[int, list[str]]:
+        """Start a command and write it on its links: its token and the links it went out
+        on. ValueError for a bridge never heard from."""
+        ...
+
+    def finished_commands(self, now: float) -> list[Pending]: ...
 
 
 class ControlServer:
@@ -108,18 +123,16 @@ class ControlServer:
 
     def resolve(self, now: float) -> None:
         """Complete the commands whose bridges all answered or whose time ran out."""
-        for p in self.host.pipeline.finished_commands(now):
+        for p in self.host.finished_commands(now):
             fut = self._waiting.pop(p.token, None)
             if fut is not None and not fut.done():
                 fut.set_result(p.result())
 
     async def command(self, op: int, value: int | None, target: int | None, timeout: float) -> dict[str, Any]:
         now = self.host.now()
-        pending, writes = self.host.pipeline.command(op, value, target, now, timeout)
+        token, sent = self.host.send_command(op, value, target, now, timeout)
         fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
-        self._waiting[pending.token] = fut
-        links = self.host.links
-        sent = [w.link for w in writes if w.link in links and links[w.link].write(w.data)]
+        self._waiting[token] = fut
         self.resolve(now)  # a broadcast with nobody alive completes at once
         async with asyncio.timeout(timeout + 1.0):  # (not wait_for: it can lose a cancel, see the service)
             result = await fut
@@ -144,17 +157,16 @@ class ControlServer:
 
     async def _execute(self, req: Request) -> dict[str, Any]:
         now = self.host.now()
-        pipeline = self.host.pipeline
         timeout = req.timeout or self.host.config.control.command_timeout
         if req.cmd == "status":
             return reply(True, req.id, **self.host.status_body(now))
         if req.cmd == "topology":
-            return reply(True, req.id, **pipeline.topology_body(now))
+            return reply(True, req.id, **self.host.topology_body(now))
         if req.cmd == "tare":
-            n = pipeline.tare(None if req.bridges is None else list(req.bridges))
+            n = self.host.tare(None if req.bridges is None else list(req.bridges))
             return reply(True, req.id, tared_elements=n)
         if req.cmd == "ping" and req.bridge is None:
-            return reply(True, req.id, pong=True, version=__version__, t_host=now + pipeline.wall_offset,
+            return reply(True, req.id, pong=True, version=__version__, t_host=self.host.wall(now),
                          commands=COMMANDS)
         op, value = (int(PING), None) if req.cmd == "ping" else (req.op, req.value)
         result = await self.command(op, value, req.bridge, timeout)  # type: ignore[arg-type]  # a bridge command's op and value, checked by parse_request

@@ -4,6 +4,8 @@ Calibrator), touch state, and (F, S) with a validity flag (the inverse)."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from cellbridge.tactile import (
@@ -30,6 +32,24 @@ def default_params(layout: SkinLayout) -> ElementParams:
     return ElementParams(side=layout.side)
 
 
+@dataclass(frozen=True, slots=True)
+class Stepped:
+    """What a call's calibrator step decided: the layout rows it classified by their newest
+    reading (none when the rate allowed no step), and every element's touch state after it."""
+
+    rows: NDArray[np.int64]
+    touched: NDArray[np.bool_]
+
+
+@dataclass(frozen=True, slots=True)
+class Calibrated:
+    """One batch through the element stage: per-sample ``columns`` (:meth:`ElementStage.step`)
+    and what its calibrator step decided."""
+
+    columns: dict[str, FloatArray]
+    stepped: Stepped
+
+
 class ElementStage:
     """Calibration and inverse for the elements of one layout, a batch at a time.
 
@@ -49,7 +69,7 @@ class ElementStage:
     A held reading (event-based reporting, flag ``HELD``) stands for the frames after it:
     its bridge sends again as soon as the element changes. Each step gives the Calibrator
     the newest reading of every element, so a ready element whose newest reading is held
-    takes part with that reading while its bridge is live (:attr:`held_for`: the daemon
+    takes part with that reading while its bridge is live (:meth:`hold_for`: the daemon
     sets the longer of ``tau`` and ``bridge_timeout``; a bridge silent that long is treated
     as silent). A bridge's heartbeat may be longer than ``tau`` (SET_REPORTING allows
     600 s), and ``tau`` shorter than the heartbeat: a reading standing for ``tau`` alone
@@ -72,73 +92,95 @@ class ElementStage:
         self._pending_rows = np.zeros(layout.n, dtype=bool)
         self._held = np.full((layout.n, 2), np.nan)  # newest reading of each element, if held
         self._held_at = np.full(layout.n, -math.inf)  # when it came
-        #: s a held reading stands after it came (the bridge is live that long); the
-        #: daemon's :class:`~cellbridge.daemon.layout.LayoutStages` keeps it current
-        self.held_for = cal.tau
-        self.stepped = np.zeros(0, dtype=np.int64)  # rows the last step classified (their newest reading)
+        # s a held reading stands after it came (the bridge is live that long): hold_for
+        self._hold = cal.tau
+        self._none = np.zeros(0, dtype=np.int64)
         self._last_step = -math.inf
         self._t = -math.inf
 
     def step(self, rows: NDArray[np.int64], caps: FloatArray, groups: tuple[NDArray[np.int64], NDArray[np.int64]],
-             now: float, held: NDArray[np.bool_] | None = None, inverse: bool = True) -> dict[str, FloatArray]:
+             now: float, held: NDArray[np.bool_] | None = None, inverse: bool = True) -> Calibrated:
         """``rows``: layout row of each sample; ``caps``: (n, 2) farads; ``groups``: the
         distinct rows and the index of each one's newest sample; ``held``: each sample's
-        ``HELD`` flag (None: none is held). Returns ΔC (``dc1``, ``dc2``) and ``touched`` of
-        each sample, and with ``inverse`` its force and area (``force``, ``area``,
-        ``valid``, ``status``). Those are for ``element`` messages only: a read with
-        touched samples spends a third of its time on them (0.4 of 1.2 ms, in-process),
-        and a press's contact waits behind the read."""
+        ``HELD`` flag (None: none is held). Returns the columns ΔC (``dc1``, ``dc2``) and
+        ``touched`` of each sample, and with ``inverse`` its force and area (``force``,
+        ``area``, ``valid``, ``status``), with what the step (if the rate allowed one)
+        decided. Force and area are for ``element`` messages only: a read with touched
+        samples spends a third of its time on them (0.4 of 1.2 ms, in-process), and a
+        press's contact waits behind the read."""
         self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
         uniq, newest = groups
         self._pending[uniq] = caps[newest]
         self._pending_rows[uniq] = True
         self._held[uniq] = np.nan if held is None else np.where(held[newest, None], caps[newest], np.nan)
         self._held_at[uniq] = self._t
-        self.stepped = self.stepped[:0]
+        stepped = self._none
         if self._t - self._last_step >= self.min_step:
             early = None
             if uniq.shape[0] != rows.shape[0]:  # several samples per element: also step on the first ones
                 first_rows, first = np.unique(rows, return_index=True)
                 early = np.full((self.layout.n, 2), np.nan)
                 early[first_rows] = caps[first]
-            self._step(early)
+            stepped = self._step(early)
         delta = caps - self.calibrator.baseline[rows]  # NaN while an element's baseline is being taken
         out = {"dc1": delta[:, 0], "dc2": delta[:, 1], "touched": self.touched[rows]}
         if inverse:
             out.update(self._inverse(delta))
-        return out
+        return Calibrated(out, Stepped(stepped, self.touched))
 
-    def flush(self, now: float) -> NDArray[np.int64]:
+    def flush(self, now: float) -> Stepped:
         """Step on the readings still waiting for one, if the rate allows it now (the contact
-        snapshot asks: their touch flags are then from them). The rows stepped."""
+        snapshot asks: their touch flags are then from them)."""
         self._t = max(self._t, now)
-        self.stepped = self.stepped[:0]
+        stepped = self._none
         if self._pending_rows.any() and self._t - self._last_step >= self.min_step:
-            self._step(None)
-        return self.stepped
+            stepped = self._step(None)
+        return Stepped(stepped, self.touched)
+
+    def hold_for(self, seconds: float) -> None:
+        """How long a held reading stands after it came: as long as its bridge counts as live."""
+        self._hold = seconds
+
+    def touched_rows(self) -> NDArray[np.int64]:
+        """The layout rows touched as of the last step."""
+        return np.flatnonzero(self.touched)
+
+    def thresholds(self) -> tuple[FloatArray, FloatArray]:
+        """The calibrator's touch thresholds (:meth:`Calibrator.thresholds`)."""
+        return self.calibrator.thresholds()
+
+    def calibration_health(self) -> dict[str, Any]:
+        """The calibrator's counters for ``health`` (:meth:`Calibrator.health`)."""
+        return self.calibrator.health()
+
+    def not_ready_rows(self) -> NDArray[np.int64]:
+        """The layout rows whose baseline is still being taken."""
+        return np.flatnonzero(~self.calibrator.ready)
 
     def _standing(self, values: FloatArray) -> FloatArray:
         """``values`` with the held readings that still stand filled in where an element
         has no new reading (a ready element's only: a baseline is taken from readings)."""
         fill = (np.isnan(values).any(axis=1) & np.isfinite(self._held).all(axis=1)
-                & (self._t - self._held_at <= self.held_for) & self.calibrator.ready)
+                & (self._t - self._held_at <= self._hold) & self.calibrator.ready)
         if not fill.any():
             return values
         out = values.copy()
         out[fill] = self._held[fill]
         return out
 
-    def _step(self, early: FloatArray | None) -> None:
+    def _step(self, early: FloatArray | None) -> NDArray[np.int64]:
+        """One calibrator step (two with ``early``); the rows it classified."""
         for values in ([self._pending] if early is None else [early, self._pending]):
             values = self._standing(values)
             st = self.calibrator.update(self._t, values)
             if st.rebaselined is not None:
                 self.rebaselined |= st.rebaselined
         self.touched = st.touched
-        self.stepped = np.flatnonzero(self._pending_rows)
+        stepped = np.flatnonzero(self._pending_rows)
         self._pending = np.full((self.layout.n, 2), np.nan)
         self._pending_rows[:] = False
         self._last_step = self._t
+        return stepped
 
     def take_rebaselined(self) -> NDArray[np.int64]:
         """Layout rows re-baselined after ``max_touch`` since the last call (each once)."""
@@ -171,7 +213,7 @@ class ElementStage:
         self.rebaselined[rows] = old.rebaselined[old_rows]
         for name in ("_held", "_held_at"):
             getattr(self, name)[rows] = getattr(old, name)[old_rows]
-        self.held_for = old.held_for
+        self._hold = old._hold
         self._last_step, self._t = old._last_step, old._t
 
     def tare(self, rows: NDArray[np.int64] | None) -> None:

@@ -12,15 +12,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from cellbridge.daemon.config import CalibrationSection, Config, ContactSection, InverseSection
 from cellbridge.daemon.contacts import ContactSnapshot, ContactSpec
-from cellbridge.daemon.elements import ElementStage, calibration_config, default_params
+from cellbridge.daemon.elements import Calibrated, ElementStage, calibration_config, default_params
 from cellbridge.daemon.health import ChannelHealth
 from cellbridge.daemon.readings import SPARE, ElementReadings
 from cellbridge.tactile import SkinLayout
+from cellbridge.tactile.skin_geometry import Band
 from cellbridge.tactile.layout import MAX_REACH, MAX_SIDE
 from numpy.typing import NDArray
 
@@ -49,6 +51,7 @@ class LayoutStages:
         self.layout: SkinLayout | None = None
         self.elements: ElementStage | None = None
         self.contact_spec: ContactSpec | None = None  # what the service's worker process builds from
+        self._banded: tuple[ContactSpec, tuple[Band, ...], ContactSpec] | None = None  # (spec, bands, spec with them)
         self.channels: ChannelHealth | None = None
         self.row = np.full(_IDS, -1, dtype=np.int64)
         self.readings: ElementReadings | None = None
@@ -56,6 +59,25 @@ class LayoutStages:
         self.dirty = False  # the next contact snapshot is due even if no new frame came (tare)
         if layout is not None:
             self._install(layout)
+
+    def reconfigured(self, config: Config, layout: SkinLayout | None) -> tuple[LayoutStages, bool]:
+        """The stages for a reload's ``config`` and ``layout`` (the layout file's, or None),
+        and whether they were rebuilt. They are rebuilt only when their settings or the
+        layout changed: a SIGHUP that changes nothing of theirs (log rotation, client keys)
+        must not erase a press being held. Calibration and inverse unchanged, elements that
+        keep their place keep their baselines (a press held across the reload goes on, and
+        so does its contact's id); else every baseline is taken again."""
+        old = self.config
+        same_layout = (layout is None and not self.from_file) or (
+            layout is not None and self.from_file and self.layout is not None
+            and layout_dict(layout) == layout_dict(self.layout))
+        if same_layout and skin_settings(old) == skin_settings(config):
+            self.config = config
+            return self, False
+        same_elements = (old.calibration, old.inverse) == (config.calibration, config.inverse)
+        stages = LayoutStages(config, layout, self if same_elements else None)
+        stages.hello(self.geometry)
+        return stages, True
 
     def _install(self, layout: SkinLayout) -> None:
         src = self if self.layout is not None or self._previous is None else self._previous
@@ -174,12 +196,13 @@ class LayoutStages:
         each sample; ``now``: the read's arrival time; ``held``, ``on_time``, ``period``:
         each reading's kind and sample period (:meth:`ElementReadings.record`). Requires :attr:`ready`."""
         assert self.elements is not None and self.channels is not None and self.readings is not None
-        res = self._calibrate(rows, raw, saturated, caps, now, held, inverse)
+        cal = self._calibrate(rows, raw, saturated, caps, now, held, inverse)
+        res = cal.columns
         dc = np.stack([res["dc1"], res["dc2"]], axis=1)
         r = self.readings
-        touched = r.classify(rows, dc, *self.elements.calibrator.thresholds())
+        touched = r.classify(rows, dc, *self.elements.thresholds())
         r.record(rows, t_sample, cycle, dc, touched, now, held, on_time, period)
-        r.settle(self.elements.stepped, self.elements.touched)
+        r.settle(cal.stepped.rows, cal.stepped.touched)
         return res
 
     def frame(self, t: float, cycle: int, sampled: NDArray[np.int64], raw: NDArray[np.int64],
@@ -198,25 +221,26 @@ class LayoutStages:
         known = np.concatenate([sampled, kept])
         every = np.concatenate([caps, kept_caps])
         ns = sampled.shape[0]
-        res = self._calibrate(known, np.concatenate([raw, np.zeros((kept.shape[0], 2), np.int64)]),
+        cal = self._calibrate(known, np.concatenate([raw, np.zeros((kept.shape[0], 2), np.int64)]),
                               np.concatenate([saturated, np.zeros((kept.shape[0], 2), bool)]), every, now,
                               None, inverse, channels=ns)
+        res = cal.columns
         dc = np.stack([res["dc1"], res["dc2"]], axis=1)
-        touched = r.classify(known, dc, *self.elements.calibrator.thresholds())
+        touched = r.classify(known, dc, *self.elements.thresholds())
         stepped = np.zeros(r.n, dtype=bool)
-        stepped[self.elements.stepped] = True
-        touched = np.where(stepped[known], self.elements.touched[known], touched)
+        stepped[cal.stepped.rows] = True
+        touched = np.where(stepped[known], cal.stepped.touched[known], touched)
         accounted = np.concatenate([sampled, unchanged, missing if missing is not None else sampled[:0]])
         unknown = r.scheduled(t, cycle, sampled, caps, known, dc, touched, root, accounted)
         return {k: v[:ns] for k, v in res.items()}, unknown
 
     def _calibrate(self, rows: NDArray[np.int64], raw: NDArray[np.int64], saturated: NDArray[np.bool_],
                    caps: NDArray[np.float64], now: float, held: NDArray[np.bool_] | None, inverse: bool,
-                   channels: int | None = None) -> dict[str, NDArray[Any]]:
+                   channels: int | None = None) -> Calibrated:
         """Channel health (of the first ``channels`` readings: all by default) and the element
         stage on ``rows``' readings."""
         assert self.elements is not None and self.channels is not None
-        self.elements.held_for = self._held_for()
+        self.elements.hold_for(self._hold())
         groups = _newest(rows)
         c = rows.shape[0] if channels is None else channels
         if c:
@@ -231,8 +255,9 @@ class LayoutStages:
         if self.elements is None or self.readings is None or self.layout is None:
             return None
         r = self.readings
-        self.elements.held_for = self._held_for()
-        r.settle(self.elements.flush(now), self.elements.touched)
+        self.elements.hold_for(self._hold())
+        stepped = self.elements.flush(now)
+        r.settle(stepped.rows, stepped.touched)
         got = r.take(now, bridge_timeout, self.config.contact.max_lag, scheduled, force=self.dirty)
         if got is None:
             return None
@@ -240,11 +265,30 @@ class LayoutStages:
         return ContactSnapshot(got.dc, got.touched, now, got.t_sample, got.cycle, self.layout.ids, got.t,
                                got.unknown)
 
-    def _held_for(self) -> float:
+    def _hold(self) -> float:
         """How long a held reading stands in the calibrator's steps: while its bridge is live
         (``bridge_timeout``, reloadable), and ``tau`` at least (a heartbeat may be longer than
         ``tau``; then the idle elements' readings lapsed between heartbeats)."""
         return max(self.config.calibration.tau, self.config.health.bridge_timeout)
+
+    def spec(self, bands: tuple[Band, ...] = ()) -> ContactSpec | None:
+        """What a contact estimate of this layout is built from (None: no layout yet), with
+        the skin description's ``bands`` (contacts across wrap seams) when it has any: built
+        once per spec and bands, as a job carries it a hundred times a second."""
+        spec = self.contact_spec
+        if spec is None or not bands or spec.bands == bands:
+            return spec
+        memo = self._banded
+        if memo is None or memo[0] is not spec or memo[1] != bands:
+            self._banded = memo = (spec, bands, replace(spec, bands=bands))
+        return memo[2]
+
+    def take_rebaselined(self) -> list[int]:
+        """Bridge ids of the elements re-baselined under a touch (after ``max_touch``, their
+        reading no contact's) since the last call, each once."""
+        if self.elements is None or self.layout is None:
+            return []
+        return [int(b) for b in self.layout.ids[self.elements.take_rebaselined()]]
 
     def snapshot_due(self, now: float, idle: bool, scheduled: bool) -> float:
         """``now`` when :meth:`snapshot` has a frame to give (:meth:`ElementReadings.due`),
@@ -284,12 +328,12 @@ class LayoutStages:
             stuck=[{"bridge": int(ids[i]), "channel": int(c) + 1} for i, c in zip(*np.nonzero(stuck))],
             saturated=[{"bridge": int(ids[i]), "channel": int(c) + 1} for i, c in zip(*np.nonzero(ch.saturated))],
             saturated_samples=int(ch.saturated_samples.sum()),
-            touched=ids[self.elements.touched].tolist(),
-            not_ready=ids[~self.elements.calibrator.ready].tolist(),
+            touched=ids[self.elements.touched_rows()].tolist(),
+            not_ready=ids[self.elements.not_ready_rows()].tolist(),
             late=ids[self.readings.late].tolist() if self.readings is not None else [],
             late_estimates=self.readings.late_frames if self.readings is not None else 0,
         )
-        cal: dict[str, Any] = self.elements.calibrator.health()
+        cal: dict[str, Any] = self.elements.calibration_health()
         cal["rebaselined"] = [[int(ids[i]), count] for i, count in cal["rebaselined"]]  # indices -> bridge ids
         out["calibration"] = cal
         return out

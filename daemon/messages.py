@@ -10,7 +10,9 @@ message with :meth:`Publish.with_fields`, never edits one in place.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
+
+SCHEMA_VERSION = 2  # 2: contacts in link frames (link, position, normal, force_vector), topology.skin
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,3 +82,29 @@ class LinkWrite:
 
 #: Everything :meth:`Pipeline.feed` and its siblings return.
 Message = Publish | LogEvent | LinkWrite
+
+_P = TypeVar("_P", bound=Publish)
+
+
+class Stamps:
+    """Each topic's sequence numbers and the wall-clock stamps of what is published.
+
+    The core runs on one time base, the host's monotonic clock as the shell passes it:
+    silence, frames and deadlines never see the wall clock step. Wall-clock time is only
+    stamped on what is published: that time + :attr:`wall_offset` (wall-clock minus the
+    time base; 0 when fed wall-clock or recorded times)."""
+
+    def __init__(self) -> None:
+        self.wall_offset = 0.0
+        self.seq: dict[str, int] = {}
+
+    def message(self, kind: type[_P], now: float, body: dict[str, Any]) -> _P:
+        """A ``kind`` message at ``now`` (time base) with ``body``'s fields: ``v``, ``seq`` (per
+        topic, from 0), ``t_host`` (wall clock) first."""
+        n = self.seq.get(kind.topic, 0)
+        self.seq[kind.topic] = n + 1
+        return kind({"v": SCHEMA_VERSION, "seq": n, "t_host": now + self.wall_offset, **body})
+
+    def wall(self, t: float | None) -> float | None:
+        """Time-base ``t`` on the wall clock (None stays None)."""
+        return None if t is None else t + self.wall_offset

@@ -32,6 +32,7 @@ import zmq.asyncio
 
 from cellbridge._version import __version__
 from cellbridge.daemon.layout_file import load_layout
+from cellbridge.daemon.commands import Pending
 from cellbridge.daemon.config import Config, ConfigError, load_config
 from cellbridge.daemon.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.control_server import ControlServer
@@ -131,14 +132,38 @@ class Service:
             if isinstance(m, LogEvent):
                 event(self.log, m.level, m.text, **m.fields)
             elif isinstance(m, LinkWrite):
-                link = self.links.get(m.link)
-                if link is not None:
-                    link.write(m.data)
+                self._write(m)
             else:
                 if isinstance(m, Health):
                     m = m.with_fields(self._shell_health())
                     self._lag_max = 0.0  # each health message reports the lag since the one before
                 publish(m.topic, m.payload)
+
+    def _write(self, w: LinkWrite) -> bool:
+        """The one way bytes reach a link (the pipeline's messages and control's commands):
+        True when the link took them."""
+        link = self.links.get(w.link)
+        return link is not None and link.write(w.data)
+
+    # -- what the control server asks (control_server.Host) ------------------------------
+    def send_command(self, op: int, value: int | None, target: int | None, now: float,
+                     timeout: float) -> tuple[int, list[str]]:
+        """Start a command to ``target`` (None: every bridge alive) and write it: its token
+        and the links it went out on."""
+        pending, writes = self.pipeline.command(op, value, target, now, timeout)
+        return pending.token, [w.link for w in writes if self._write(w)]
+
+    def finished_commands(self, now: float) -> list[Pending]:
+        return self.pipeline.finished_commands(now)
+
+    def topology_body(self, now: float) -> dict[str, Any]:
+        return self.pipeline.topology_body(now)
+
+    def tare(self, bridges: list[int] | None) -> int:
+        return self.pipeline.tare(bridges)
+
+    def wall(self, now: float) -> float:
+        return now + self.pipeline.wall_offset
 
     def _on_state(self, link: str, connected: bool, why: str) -> None:
         self.pipeline.link_state(link, connected, self.now(), why)

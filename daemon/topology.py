@@ -88,6 +88,10 @@ class Topology:
             for g, t in ids.items():
                 ids[g] = min(t, now)
 
+    def forget(self, bridge: int) -> None:
+        """``bridge`` is forgotten (a phantom or a stranger long silent)."""
+        self.nodes.pop(bridge, None)
+
     def beacon(self, bridge: int, parent: int, path_etx: int, hops: int) -> None:
         n = self.node(bridge)
         n.parent, n.path_etx, n.hops = parent, path_etx, hops

@@ -204,6 +204,28 @@ class Ingress:
         c["duplicates"] = self.duplicates_by_link.get(link, 0)
         return c
 
+    def dedupe_window(self) -> int:
+        """Sequence numbers the duplicate filter remembers per bridge: a number further back
+        than this is a restart of the bridge's numbering, not a duplicate."""
+        return self.dedupe.window
+
+    def expire(self, now: float) -> None:
+        """Drop fragments waiting longer than the reassembly timeout (counted as drops)."""
+        self.reassembler.expire(now)
+
+    def drops_of(self, bridge: int) -> int:
+        """Reassembly drops met handling ``bridge``'s fragments."""
+        return self.reassembly_drops.get(bridge, 0)
+
+    def forget(self, bridge: int) -> None:
+        """``bridge`` is forgotten: its count of reassembly drops goes with it."""
+        self.reassembly_drops.pop(bridge, None)
+
+    def totals(self) -> dict[str, object]:
+        """The receive path's counters over every link: reassembly, duplicates, dedupe."""
+        return {"reassembly": self.reassembler.counters(), "duplicates": self.dedupe.duplicates,
+                "dedupe": self.dedupe.counters()}
+
 
 def _columns(rows: list[tuple[int, ...]], meta: list[tuple[int, int, int, int, int, int]]) -> SampleColumns:
     a = np.array(rows, dtype=np.uint64).reshape(-1, 6)  # every field is unsigned; cycle and index need 64 bits

@@ -90,7 +90,7 @@ def ready_stage(held: bool) -> tuple[ElementStage, float]:
 
 def send(stage: ElementStage, t: float, rows: np.ndarray, held: bool = True) -> dict[str, np.ndarray]:
     caps = np.tile(REST + PRESS, (rows.shape[0], 1))
-    return stage.step(rows, caps, groups(rows), t, np.full(rows.shape[0], held))
+    return stage.step(rows, caps, groups(rows), t, np.full(rows.shape[0], held)).columns
 
 
 @pytest.mark.parametrize("first", [UNDER[:2], UNDER[1:3], UNDER[2:], UNDER[:3]])

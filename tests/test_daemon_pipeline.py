@@ -147,7 +147,7 @@ def test_commands_go_to_the_link_a_bridge_was_heard_on_and_complete_on_reply() -
     p.feed("gw2", sk.reply(3, pending.token, Op.SET_GATE), T0 + 0.01)
     (done,) = p.commands.done(T0 + 0.01)
     assert done.result()["replies"]["3"]["status"] == "OK" and done.result()["missing"] == []
-    assert p.gate[3] == 50_000.0
+    assert p.batches.gate[3] == 50_000.0
     bpending, bwrites = p.command(int(Op.SET_RATE), 50, None, T0, 1.0)
     assert sorted(w.link for w in bwrites) == ["gw", "gw2"]
     assert StreamDecoder().feed(bwrites[0].data)[0].dst == ADDR_BROADCAST
@@ -496,7 +496,7 @@ def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_neve
     assert len(published(p.tick(t + 61.0, force=True))[0][1]["bridges"]) == 4
     body = p.health_body(t + 61.0)
     assert body["silent"] == [1, 2, 3, 4] and body["forgotten_bridges"] == 3000
-    assert len(p.clocks) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
+    assert len(p.clock) == 4 and set(p.topology.nodes) == {1, 2, 3, 4}
     again = encode_stream(Frame(src=1, dst=0, origin=100, seq=1,
                                 payload=Data(Mode.COUNTER, (Sample(0, 2000, 100, 100, 0),))))
     p.feed("gw", again, t + 62.0)  # a forgotten origin that speaks again is back
@@ -641,7 +641,7 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     and their sender ids stayed in topology's gateways for ever. Health now lists every placed
     bridge and at most a bounded number of the others, with their counts; phantom gateway ids
     are pruned when their bridges are forgotten, the real gateway is kept."""
-    from cellbridge.daemon.pipeline import _UNPLACED_SHOWN
+    from cellbridge.daemon.health import UNPLACED_SHOWN as _UNPLACED_SHOWN
 
     sk = Skin()
     p, t, n = _phantoms(sk, 60.0)
@@ -686,7 +686,7 @@ def test_bogus_origins_heard_after_a_tick_that_found_nothing_to_forget_are_still
     p.tick(t + 61.0, force=True)
     h = p.health_body(t + 61.0)
     assert h["forgotten_bridges"] == n and h["unplaced_count"] == 0 and h["bridges_not_shown"] == 0
-    assert set(p.bridges) == {1, 2, 3, 4} and set(p.topology.nodes) == {1, 2, 3, 4}
+    assert set(p.health.bridges) == {1, 2, 3, 4} and set(p.topology.nodes) == {1, 2, 3, 4}
     assert p.topology_body(t + 61.0)["gateways"] == {"gw": [1]}
     # A second burst, after a tick that again left nothing to forget: forgotten likewise.
     p.feed("gw", encode_stream(Frame(src=6000, dst=0, origin=9000, seq=0,
@@ -722,7 +722,7 @@ def test_bogus_origins_cost_a_tick_a_bounded_topology_and_a_bounded_number_of_lo
     sender as a gateway), and when they went quiet each got its own "no data" event. Topology
     now lists every placed bridge and at most ``_UNPLACED_SHOWN`` others (the rest counted),
     and their silence is logged one by one only up to that bound, then as one summary."""
-    from cellbridge.daemon.pipeline import _UNPLACED_SHOWN
+    from cellbridge.daemon.health import UNPLACED_SHOWN as _UNPLACED_SHOWN
 
     sk = Skin()
     p, t, n = _phantoms(sk, 600.0)

@@ -190,3 +190,64 @@ def test_the_emulator_check_catches_a_firmware_opening_a_socket(tmp_path: Path) 
     got = core_violations(tmp_path, doc, "emulator")
     assert got == ["emulator/firmware.py:1: the core imports socket (I/O belongs in a shell)",
                    "emulator/firmware.py:2: the core imports the shell cellbridge.emulator.udp"], got
+
+
+# -- no reach-ins: an owner's state is read and changed through its methods -------------------
+
+#: ``owner.attribute`` pairs (as written: the attribute a module holds the owner in, then what it
+#: touches) that reach into another object, each with the module that owns it (the only one
+#: that may) and the method the others call instead.
+REACH_INS = {
+    ("dedupe", "window"): ("wire", "Ingress.dedupe_window()"),
+    ("dedupe", "duplicates"): ("wire", "Ingress.totals()"),
+    ("reassembler", "expire"): ("wire", "Ingress.expire()"),
+    ("ingress", "reassembly_drops"): ("wire", "Ingress.drops_of() / Ingress.forget()"),
+    ("nodes", "pop"): ("topology", "Topology.forget()"),
+    ("elements", "held_for"): ("elements", "ElementStage.hold_for()"),
+    ("elements", "stepped"): ("elements", "what ElementStage.step() / flush() return"),
+    ("elements", "touched"): ("elements", "what ElementStage.step() / flush() return, ElementStage.touched_rows()"),
+    ("elements", "calibrator"): ("elements", "ElementStage.thresholds() / calibration_health() / not_ready_rows()"),
+    ("host", "pipeline"): ("service", "the control server's Host methods"),
+    ("host", "links"): ("service", "Host.send_command(): the service writes on its links"),
+    ("clock", "bridges"): ("clock", "HostTimes' own methods"),
+}
+#: Attributes only their own module may touch.
+PRIVATE_TO = {"_samples_at_tick": "health"}
+
+
+def reach_ins(root: Path) -> list[str]:
+    """Every ``x.owner.attribute`` of :data:`REACH_INS` outside its owner's module, and every
+    attribute of :data:`PRIVATE_TO` touched outside its module, in the daemon's modules."""
+    found = []
+    for path in sorted((root / "daemon").glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        for node in sorted((n for n in ast.walk(tree) if isinstance(n, ast.Attribute)),
+                           key=lambda n: (n.lineno, n.col_offset)):
+            pair = (node.value.attr, node.attr) if isinstance(node.value, ast.Attribute) else None
+            if pair in REACH_INS and REACH_INS[pair][0] != path.stem:
+                found.append(f"daemon/{path.name}:{node.lineno}: reaches into {'.'.join(pair)} "
+                             f"(use {REACH_INS[pair][1]})")
+            owner = PRIVATE_TO.get(node.attr)
+            if owner is not None and path.stem != owner:
+                found.append(f"daemon/{path.name}:{node.lineno}: touches {node.attr}, private to daemon/{owner}.py")
+    return found
+
+
+def test_no_daemon_module_reaches_into_another_owners_attributes() -> None:
+    found = reach_ins(ROOT)
+    assert not found, "\n".join(found)
+
+
+def test_the_reach_in_check_catches_each_kind(tmp_path: Path) -> None:
+    (tmp_path / "daemon").mkdir()
+    (tmp_path / "daemon" / "pipeline.py").write_text(
+        "def f(self, b):\n    w = self.ingress.dedupe.window\n    self.topology.nodes.pop(1, None)\n"
+        "    b._samples_at_tick = 0\n    self.host.links['a'].write(b'')\n")
+    (tmp_path / "daemon" / "health.py").write_text("def g(b):\n    b._samples_at_tick = 0\n")  # its own
+    (tmp_path / "daemon" / "topology.py").write_text("def h(self):\n    self.nodes.pop(1, None)\n")  # its own
+    got = reach_ins(tmp_path)
+    assert got == ["daemon/pipeline.py:2: reaches into dedupe.window (use Ingress.dedupe_window())",
+                   "daemon/pipeline.py:3: reaches into nodes.pop (use Topology.forget())",
+                   "daemon/pipeline.py:4: touches _samples_at_tick, private to daemon/health.py",
+                   "daemon/pipeline.py:5: reaches into host.links (use Host.send_command(): the service "
+                   "writes on its links)"], got

@@ -318,9 +318,15 @@ class SkinFrames:
         out, self._ready = self._ready, []
         if not self._pending:
             return out
-        active = {gw for gw, g in self._gw.items() if now - g.arrival <= self.active_for}
+        active: set[int] | None = None  # (built only for a frame some gateway's record came whole
+        # of: a read that completes no frame, most of them, then costs no walk over the gateways)
         for p in sorted(self._pending.values(), key=lambda q: q.key):
-            whole = bool(active) and p.whole.issuperset(active)
+            if p.whole:
+                if active is None:
+                    active = {gw for gw, g in self._gw.items() if now - g.arrival <= self.active_for}
+                whole = bool(active) and p.whole.issuperset(active)
+            else:
+                whole = False  # (an empty set is a superset of no active gateway; with none, not whole)
             if p.deadline > now and not (whole and not self._gap_open(p, now)):
                 break  # (in order: the frames after it wait for it)
             out.append(self._give(p, whole))

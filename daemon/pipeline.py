@@ -495,7 +495,7 @@ class Pipeline:
         it, copied) with the cycle count of each of its elements' readings and the newest
         of their sample times."""
         snap = job.snapshot
-        index = {int(b): i for i, b in enumerate(snap.ids)}
+        index = dict(zip(snap.ids.tolist(), range(len(snap.ids))))  # (one C pass: a thousand ids a frame)
         out = []
         contacts = list(contacts)
         self._carry = tuple(contacts)

@@ -1,0 +1,109 @@
+"""The daemon's core on the humanoid skin, this checkout against another revision, in one run.
+
+Prints a table; asserts nothing. Run (a few minutes on a loaded machine):
+
+    .venv/bin/python bench/bench_humanoid_core.py [--against main] [--seconds 12] [--repeat 3]
+
+One recording of the humanoid's traffic (``bench_humanoid.generate``: rounds of 10
+simultaneous presses, event-based at 30 counts and/or periodic) goes through
+``bench_humanoid.core_capacity`` (the pipeline fed every read in order of arrival, a
+contact estimate per frame, inline) once with this checkout's ``cellbridge`` and once with
+``--against``'s (``git archive`` of that revision, put first on the import path of a
+child process). Each side runs once to warm up (compiled kernels cached, every path
+taken), then ``--repeat`` times; CPU of the measuring thread per recorded second (what
+real speed needs of a core, whatever else the machine runs), best and median. The
+frames' counts must agree between the two sides: the same frames, the same estimates.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import pickle
+import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+
+from timing import table
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def child(into: Path, reporting: str, repeat: int) -> None:
+    """In the child: warm up, then ``repeat`` runs; one JSON line of the rows."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    import bench_humanoid as bh
+
+    import cellbridge
+
+    skin = bh.load_skin(bh.HUMANOID)
+    gen = pickle.loads((into / "gen.pkl").read_bytes())
+    bh.core_capacity(skin, gen, into, reporting)
+    rows = [bh.core_capacity(skin, gen, into, reporting) for _ in range(repeat)]
+    print(json.dumps({"package": str(Path(cellbridge.__file__).parent), "rows": rows}))
+
+
+def run_side(src: Path | None, into: Path, reporting: str, repeat: int) -> dict:
+    env = dict(os.environ)
+    if src is not None:  # the other revision's package first: ahead of this checkout's editable install
+        env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")])
+    out = subprocess.run([sys.executable, __file__, "--child", str(into), reporting, str(repeat)], env=env,
+                         capture_output=True, text=True, timeout=3600, check=True, start_new_session=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> int:
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        child(Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]))
+        return 0
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--against", default="main", help="git revision to compare with (default main)")
+    ap.add_argument("--seconds", type=float, default=12.0, help="length of the recording (default 12)")
+    ap.add_argument("--repeat", type=int, default=3, help="measured runs per side after the warm-up (default 3)")
+    ap.add_argument("--reporting", default="event:30", help="event:30, periodic, or both comma-separated")
+    a = ap.parse_args()
+    sys.path.insert(0, str(ROOT / "bench"))
+    import bench_humanoid as bh
+
+    skin = bh.load_skin(bh.HUMANOID)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_humanoid_core.") as tmp:
+        old = Path(tmp) / "old"
+        src = Path(tmp) / "src"
+        src.mkdir()
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", a.against], capture_output=True, check=True)
+        with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tf:
+            tf.extractall(src, filter="data")
+        # the package as pyproject's package-dir maps it: cellbridge/, with protocol/, tactile/,
+        # emulator/ and daemon/ of the checkout's root as its subpackages
+        old.mkdir()
+        (src / "cellbridge").rename(old / "cellbridge")
+        for sub in ("protocol", "tactile", "emulator", "daemon"):
+            (src / sub).rename(old / "cellbridge" / sub)
+        for reporting in a.reporting.split(","):
+            into = Path(tmp) / reporting.replace(":", "")
+            into.mkdir()
+            gen = bh.generate(skin, reporting, a.seconds, into)
+            (into / "gen.pkl").write_bytes(pickle.dumps(gen))
+            for name, src in ((a.against, old), ("this checkout", None)):
+                got = run_side(src, into, reporting, a.repeat)
+                r = got["rows"]
+                ingest, est, total = ([float(x[i]) for x in r] for i in (1, 2, 3))
+                rows.append([reporting, name, f"{min(ingest):.3f} / {statistics.median(ingest):.3f}",
+                             f"{min(est):.3f} / {statistics.median(est):.3f}",
+                             f"{min(total):.3f} / {statistics.median(total):.3f}", r[0][4], r[0][5], r[0][6],
+                             r[0][7], r[0][8]])
+    table(f"The daemon's core per second of the humanoid skin ({a.seconds:g} s recording, CPU s of one thread per "
+          f"recorded s, best / median of {a.repeat}; target event-based together <= 0.25, periodic <= 1)",
+          ["reporting", "code", "ingest", "estimates", "together", "estimates run", "frames complete",
+           "by deadline", "missed", "late records"], rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

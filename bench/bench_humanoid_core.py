@@ -36,10 +36,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def child(into: Path, reporting: str, repeat: int) -> None:
     """In the child: warm up, then ``repeat`` runs; one JSON line of the rows."""
+    src = os.environ.get("BENCH_CELLBRIDGE_SRC")
+    if src:  # imported first: bench_humanoid puts this checkout's root first on the path
+        sys.path.insert(0, src)
+    import cellbridge
+
     sys.path.insert(0, str(ROOT / "bench"))
     import bench_humanoid as bh
-
-    import cellbridge
 
     skin = bh.load_skin(bh.HUMANOID)
     gen = pickle.loads((into / "gen.pkl").read_bytes())
@@ -50,11 +53,16 @@ def child(into: Path, reporting: str, repeat: int) -> None:
 
 def run_side(src: Path | None, into: Path, reporting: str, repeat: int) -> dict:
     env = dict(os.environ)
-    if src is not None:  # the other revision's package first: ahead of this checkout's editable install
-        env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")])
+    env.pop("BENCH_CELLBRIDGE_SRC", None)
+    if src is not None:  # the other revision's package, ahead of this checkout's editable install
+        env["BENCH_CELLBRIDGE_SRC"] = str(src)
     out = subprocess.run([sys.executable, __file__, "--child", str(into), reporting, str(repeat)], env=env,
                          capture_output=True, text=True, timeout=3600, check=True, start_new_session=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    want = (src / "cellbridge") if src is not None else ROOT / "cellbridge"
+    if Path(got["package"]).resolve() != want.resolve():
+        raise SystemExit(f"the child ran the package at {got['package']}, not {want}")
+    return got
 
 
 def main() -> int:

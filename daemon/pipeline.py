@@ -352,10 +352,10 @@ class Pipeline:
             if jumped:
                 self._event("warning", "mesh time jumped (a new time root?): mapping it to host time again")
             if math.isfinite(t):
-                sampled = np.array([s[0] for s in rec.samples], dtype=np.int64)
-                said = np.concatenate([sampled, np.array(rec.unchanged, dtype=np.int64)])
+                n = len(rec.samples)
+                said = np.array([s[0] for s in rec.samples] + list(rec.unchanged), dtype=np.int64)
                 self._heard[said], self._heard_via[said], self._heard_new[said] = now, via, True
-                self._heard_samples[sampled] += 1
+                self._heard_samples[said[:n]] += 1
 
     def _fold_heard(self) -> None:
         """The bridges readout records spoke for since the last fold into their health: heard

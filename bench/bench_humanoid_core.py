@@ -11,8 +11,11 @@ contact estimate per frame, inline) once with this checkout's ``cellbridge`` and
 ``--against``'s (``git archive`` of that revision, put first on the import path of a
 child process). Each side runs once to warm up (compiled kernels cached, every path
 taken), then ``--repeat`` times; CPU of the measuring thread per recorded second (what
-real speed needs of a core, whatever else the machine runs), best and median. The
-frames' counts must agree between the two sides: the same frames, the same estimates.
+real speed needs of a core, whatever else the machine runs), best and median.
+``--topics contact,health`` builds only the messages of the daemon's subscriber in
+``bench_humanoid`` (no ``raw`` or ``element`` messages, no per-element inverse for them).
+The frames' counts and the estimates run are printed for both sides: a line under the table
+says when they differ (a change that should keep every output does not).
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from timing import table
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def child(into: Path, reporting: str, repeat: int) -> None:
+def child(into: Path, reporting: str, repeat: int, topics: tuple[str, ...] | None) -> None:
     """In the child: warm up, then ``repeat`` runs; one JSON line of the rows."""
     src = os.environ.get("BENCH_CELLBRIDGE_SRC")
     if src:  # imported first: bench_humanoid puts this checkout's root first on the path
@@ -46,17 +49,17 @@ def child(into: Path, reporting: str, repeat: int) -> None:
 
     skin = bh.load_skin(bh.HUMANOID)
     gen = pickle.loads((into / "gen.pkl").read_bytes())
-    bh.core_capacity(skin, gen, into, reporting)
-    rows = [bh.core_capacity(skin, gen, into, reporting) for _ in range(repeat)]
+    bh.core_capacity(skin, gen, into, reporting, topics)
+    rows = [bh.core_capacity(skin, gen, into, reporting, topics) for _ in range(repeat)]
     print(json.dumps({"package": str(Path(cellbridge.__file__).parent), "rows": rows}))
 
 
-def run_side(src: Path | None, into: Path, reporting: str, repeat: int) -> dict:
+def run_side(src: Path | None, into: Path, reporting: str, repeat: int, topics: str) -> dict:
     env = dict(os.environ)
     env.pop("BENCH_CELLBRIDGE_SRC", None)
     if src is not None:  # the other revision's package, ahead of this checkout's editable install
         env["BENCH_CELLBRIDGE_SRC"] = str(src)
-    out = subprocess.run([sys.executable, __file__, "--child", str(into), reporting, str(repeat)], env=env,
+    out = subprocess.run([sys.executable, __file__, "--child", str(into), reporting, str(repeat), topics], env=env,
                          capture_output=True, text=True, timeout=3600, check=True, start_new_session=True)
     got = json.loads(out.stdout.strip().splitlines()[-1])
     want = (src / "cellbridge") if src is not None else ROOT / "cellbridge"
@@ -67,13 +70,17 @@ def run_side(src: Path | None, into: Path, reporting: str, repeat: int) -> dict:
 
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        child(Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]))
+        child(Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]),
+              None if sys.argv[5] == "all" else tuple(sys.argv[5].split(",")))
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--against", default="main", help="git revision to compare with (default main)")
     ap.add_argument("--seconds", type=float, default=12.0, help="length of the recording (default 12)")
     ap.add_argument("--repeat", type=int, default=3, help="measured runs per side after the warm-up (default 3)")
     ap.add_argument("--reporting", default="event:30", help="event:30, periodic, or both comma-separated")
+    ap.add_argument("--topics", default="all",
+                    help="topics subscribed, comma-separated (the pipeline builds only their messages; 'contact,health' "
+                         "is bench_humanoid's subscriber of the daemon), or 'all' (default: every message built)")
     a = ap.parse_args()
     sys.path.insert(0, str(ROOT / "bench"))
     import bench_humanoid as bh
@@ -99,15 +106,18 @@ def main() -> int:
             gen = bh.generate(skin, reporting, a.seconds, into)
             (into / "gen.pkl").write_bytes(pickle.dumps(gen))
             for name, src in ((a.against, old), ("this checkout", None)):
-                got = run_side(src, into, reporting, a.repeat)
+                got = run_side(src, into, reporting, a.repeat, a.topics)
                 r = got["rows"]
                 ingest, est, total = ([float(x[i]) for x in r] for i in (1, 2, 3))
                 rows.append([reporting, name, f"{min(ingest):.3f} / {statistics.median(ingest):.3f}",
                              f"{min(est):.3f} / {statistics.median(est):.3f}",
                              f"{min(total):.3f} / {statistics.median(total):.3f}", r[0][4], r[0][5], r[0][6],
                              r[0][7], r[0][8]])
+    for k in range(0, len(rows), 2):
+        if rows[k][5:] != rows[k + 1][5:]:
+            print(f"NOTE: {rows[k][0]}: the two sides' estimates or frames differ: {rows[k][5:]} vs {rows[k + 1][5:]}")
     table(f"The daemon's core per second of the humanoid skin ({a.seconds:g} s recording, CPU s of one thread per "
-          f"recorded s, best / median of {a.repeat}; target event-based together <= 0.25, periodic <= 1)",
+          f"recorded s, best / median of {a.repeat}; topics: {a.topics}; target event-based together <= 0.25, periodic <= 1)",
           ["reporting", "code", "ingest", "estimates", "together", "estimates run", "frames complete",
            "by deadline", "missed", "late records"], rows)
     return 0

@@ -10,7 +10,8 @@ simultaneous presses, event-based at 30 counts and/or periodic) goes through
 contact estimate per frame, inline) once with this checkout's ``cellbridge`` and once with
 ``--against``'s (``git archive`` of that revision, put first on the import path of a
 child process). Each side runs once to warm up (compiled kernels cached, every path
-taken), then ``--repeat`` times; CPU of the measuring thread per recorded second (what
+taken), then ``--repeat`` times, the two sides alternating (a load that comes and goes on
+a shared machine falls on both); CPU of the measuring thread per recorded second (what
 real speed needs of a core, whatever else the machine runs), best and median.
 ``--topics contact,health`` builds only the messages of the daemon's subscriber in
 ``bench_humanoid`` (no ``raw`` or ``element`` messages, no per-element inverse for them).
@@ -25,6 +26,7 @@ import io
 import json
 import os
 import pickle
+import signal
 import statistics
 import subprocess
 import sys
@@ -37,8 +39,8 @@ from timing import table
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def child(into: Path, reporting: str, repeat: int, topics: tuple[str, ...] | None) -> None:
-    """In the child: warm up, then ``repeat`` runs; one JSON line of the rows."""
+def child(into: Path, reporting: str, topics: tuple[str, ...] | None) -> None:
+    """In the child: warm up, then one run per line read from stdin, one JSON line each."""
     src = os.environ.get("BENCH_CELLBRIDGE_SRC")
     if src:  # imported first: bench_humanoid puts this checkout's root first on the path
         sys.path.insert(0, src)
@@ -50,28 +52,57 @@ def child(into: Path, reporting: str, repeat: int, topics: tuple[str, ...] | Non
     skin = bh.load_skin(bh.HUMANOID)
     gen = pickle.loads((into / "gen.pkl").read_bytes())
     bh.core_capacity(skin, gen, into, reporting, topics)
-    rows = [bh.core_capacity(skin, gen, into, reporting, topics) for _ in range(repeat)]
-    print(json.dumps({"package": str(Path(cellbridge.__file__).parent), "rows": rows}))
+    print(json.dumps({"package": str(Path(cellbridge.__file__).parent)}), flush=True)
+    for _ in sys.stdin:
+        print(json.dumps(bh.core_capacity(skin, gen, into, reporting, topics)), flush=True)
 
 
-def run_side(src: Path | None, into: Path, reporting: str, repeat: int, topics: str) -> dict:
-    env = dict(os.environ)
-    env.pop("BENCH_CELLBRIDGE_SRC", None)
-    if src is not None:  # the other revision's package, ahead of this checkout's editable install
-        env["BENCH_CELLBRIDGE_SRC"] = str(src)
-    out = subprocess.run([sys.executable, __file__, "--child", str(into), reporting, str(repeat), topics], env=env,
-                         capture_output=True, text=True, timeout=3600, check=True, start_new_session=True)
-    got = json.loads(out.stdout.strip().splitlines()[-1])
-    want = (src / "cellbridge") if src is not None else ROOT / "cellbridge"
-    if Path(got["package"]).resolve() != want.resolve():
-        raise SystemExit(f"the child ran the package at {got['package']}, not {want}")
-    return got
+class Side:
+    """A child process running one revision's core on the recording, a run per request."""
+
+    def __init__(self, src: Path | None, into: Path, reporting: str, topics: str) -> None:
+        env = dict(os.environ)
+        env.pop("BENCH_CELLBRIDGE_SRC", None)
+        if src is not None:  # the other revision's package, ahead of this checkout's editable install
+            env["BENCH_CELLBRIDGE_SRC"] = str(src)
+        self.proc = subprocess.Popen([sys.executable, __file__, "--child", str(into), reporting, topics], env=env,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                     start_new_session=True)
+        self.src = src
+
+    def ready(self) -> None:
+        got = json.loads(self._line())
+        want = (self.src / "cellbridge") if self.src is not None else ROOT / "cellbridge"
+        if Path(got["package"]).resolve() != want.resolve():
+            raise SystemExit(f"the child ran the package at {got['package']}, not {want}")
+
+    def run(self) -> list:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write("run\n")
+        self.proc.stdin.flush()
+        return json.loads(self._line())
+
+    def _line(self) -> str:
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise SystemExit(f"the child stopped (exit {self.proc.wait()})")
+        return line
+
+    def close(self) -> None:
+        """Stop the child (its stdin closed ends its loop; a child stuck in a run is killed)."""
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
+        try:
+            self.proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            self.proc.wait(timeout=30)
 
 
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        child(Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]),
-              None if sys.argv[5] == "all" else tuple(sys.argv[5].split(",")))
+        child(Path(sys.argv[2]), sys.argv[3], None if sys.argv[4] == "all" else tuple(sys.argv[4].split(",")))
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--against", default="main", help="git revision to compare with (default main)")
@@ -105,9 +136,19 @@ def main() -> int:
             into.mkdir()
             gen = bh.generate(skin, reporting, a.seconds, into)
             (into / "gen.pkl").write_bytes(pickle.dumps(gen))
-            for name, src in ((a.against, old), ("this checkout", None)):
-                got = run_side(src, into, reporting, a.repeat, a.topics)
-                r = got["rows"]
+            names = (a.against, "this checkout")
+            sides = [Side(pkg, into, reporting, a.topics) for pkg in (old, None)]
+            try:
+                for sd in sides:
+                    sd.ready()
+                runs: list[list[list]] = [[], []]
+                for _ in range(a.repeat):  # alternating: a load that comes and goes falls on both sides
+                    for i, sd in enumerate(sides):
+                        runs[i].append(sd.run())
+            finally:
+                for sd in sides:
+                    sd.close()
+            for name, r in zip(names, runs):
                 ingest, est, total = ([float(x[i]) for x in r] for i in (1, 2, 3))
                 rows.append([reporting, name, f"{min(ingest):.3f} / {statistics.median(ingest):.3f}",
                              f"{min(est):.3f} / {statistics.median(est):.3f}",

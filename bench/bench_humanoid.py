@@ -205,11 +205,12 @@ def run_daemon(skin, gen: dict, into: Path, reporting: str) -> list[object]:
             fr.get("frames_missed", "-"), fr.get("late_records", "-")]
 
 
-def core_capacity(skin, gen: dict, into: Path, reporting: str) -> list[object]:
+def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str, ...] | None = None) -> list[object]:
     """The daemon's core on the same recording, in this process: the pipeline fed every read
     in order of arrival, a contact estimate per frame (inline, as the worker runs it); CPU
     per second of skin (what real speed needs of a core, whatever else the machine runs).
-    The shell's share (asyncio, the replay's pacing, ZeroMQ) is left out."""
+    The shell's share (asyncio, the replay's pacing, ZeroMQ) is left out. ``topics``: the
+    topics subscribed (the pipeline builds only their messages); None: every topic."""
     import heapq
     import logging
 
@@ -221,6 +222,7 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str) -> list[object]:
     links = [{"name": f"gw{g}", "url": "/dev/null"} for g in gen["gateways"]]
     p = Pipeline(parse_config({"link": links}), skin.layout())
     p.surface = skin
+    p.want(None if topics is None else set(topics))
     w = ContactWorker(logging.getLogger("bench_humanoid"), InlineExecutor)
     streams = [((t, g, d) for t, d in read_records(into / f"gw{g}.cbcap", "x")) for g in gen["gateways"]]
     feed = est = 0.0

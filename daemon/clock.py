@@ -306,7 +306,7 @@ class SkinClock:
         held = self._held.pop(gateway, None)
         if not self.map.synced:
             return False
-        ahead = float(self.map.to_host(np.array([g], dtype=np.uint64))[0]) - now
+        ahead = self.map.to_host_one(g) - now  # (the arithmetic of to_host, without arrays: every record)
         if not self.tolerance < ahead <= self.slack:
             return False
         if held is not None and g > held[0] and abs((g - held[0]) / self.hz - (now - held[1])) <= self.tolerance:

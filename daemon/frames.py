@@ -318,13 +318,28 @@ class SkinFrames:
         out, self._ready = self._ready, []
         if not self._pending:
             return out
-        active = {gw for gw, g in self._gw.items() if now - g.arrival <= self.active_for}
         for p in sorted(self._pending.values(), key=lambda q: q.key):
-            whole = bool(active) and p.whole.issuperset(active)
+            whole = self._whole(p, now)
             if p.deadline > now and not (whole and not self._gap_open(p, now)):
                 break  # (in order: the frames after it wait for it)
             out.append(self._give(p, whole))
         return out
+
+    def _whole(self, p: _Pending, now: float) -> bool:
+        """Whether every gateway active at ``now`` (one at least) delivered its whole record
+        of ``p``. Walks the gateways only until one active is missing: a read that completes
+        no frame, most of them, stops at the first gateway still to come."""
+        done = p.whole
+        if not done:
+            return False
+        af = self.active_for
+        any_active = False
+        for gw, g in self._gw.items():
+            if now - g.arrival <= af:
+                if gw not in done:
+                    return False
+                any_active = True
+        return any_active
 
     def due(self) -> float:
         """The host time at which :meth:`take` gives a frame out with no new record: the

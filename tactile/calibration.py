@@ -455,7 +455,12 @@ class Calibrator:
         delta = np.full((n, c), np.nan)
         delta[live] = resid[live] - self._common
         self._catch_up(live & (st == TRACKING), tt, delta)
-        contact = self._contact_readings(live, delta)
+        # whether a reading is a contact's decides only where a channel is above leave (a touch
+        # beginning, an element drifting above its thresholds) or the element is touched (held
+        # past max_touch); every other live reading is answered True, as its answer is not read
+        with np.errstate(invalid="ignore"):
+            asked = live & ((st == TOUCHED) | np.any(delta > leave, axis=1))
+        contact = self._contact_readings(asked, delta)
         rebased = self._hysteresis(live, tt, delta, enter, leave, contact)
         self._track(live & (st == TRACKING), live, tt, delta, enter, leave, contact)
         if self.config.common_mode:
@@ -465,8 +470,9 @@ class Calibrator:
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps, rebased)
 
     def _contact_readings(self, live: NDArray[np.bool_], delta: FloatArray) -> NDArray[np.bool_] | None:
-        """(N,) whether each live element's ΔC is a reading some contact makes (True where
-        not live); None without ``is_contact``."""
+        """(N,) whether each ``live`` element's ΔC is a reading some contact makes (True
+        elsewhere); None without ``is_contact``. ``is_contact`` judges each row by itself, so
+        asking it of fewer rows changes none of their answers."""
         if self.is_contact is None:
             return None
         ok = np.ones(self.n_elements, dtype=bool)

@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -191,10 +192,15 @@ class Chart:
     period: float
     patches: tuple[str, ...]
 
+    @cached_property
+    def _rot_t(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The pose's rotation and translation as arrays (the pose is a tuple: kept, not rebuilt per call)."""
+        m = np.asarray(self.pose)
+        return m[:3, :3], m[:3, 3]
+
     def surface(self, u: NDArray[np.float64], v: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
         """Points, outward normals and the tangents d/du, d/dv (each (K, 3)) in the link frame."""
-        m = np.asarray(self.pose)
-        rot, t = m[:3, :3], m[:3, 3]
+        rot, t = self._rot_t
         k = u.shape[0]
         if self.shape == "cylinder":
             a = u / self.radius
@@ -307,10 +313,28 @@ class SkinGeometry:
         """Index of the chart each atlas point belongs to: the one whose extent is nearest
         (charts lie side by side along x, ``ATLAS_MARGIN`` sides apart)."""
         xa = np.atleast_1d(np.asarray(x, dtype=np.float64))
-        lo = np.array([c.x0 for c in self.charts])
-        hi = np.array([c.x0 + c.width for c in self.charts])
+        lo, hi = self._chart_extents
         dist = np.maximum(np.maximum(lo[None, :] - xa[:, None], xa[:, None] - hi[None, :]), 0.0)
         return np.argmin(dist, axis=1).astype(np.int64)
+
+    # (what locate reads of the charts and elements, built once: a contact message locates
+    # every contact of a frame, a hundred frames a second)
+    @cached_property
+    def _chart_extents(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        return np.array([c.x0 for c in self.charts]), np.array([c.x0 + c.width for c in self.charts])
+
+    @cached_property
+    def _chart_elements(self) -> list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]]:
+        """Per chart: its elements' rows and their atlas x and y."""
+        out = []
+        for k in range(len(self.charts)):
+            mine = np.flatnonzero(self.chart_of == k)
+            out.append((mine, self.atlas[mine, 0], self.atlas[mine, 1]))
+        return out
+
+    @cached_property
+    def _patch_of_list(self) -> list[int]:
+        return [int(i) for i in self.patch_of.tolist()]
 
     def locate(self, x: ArrayLike, y: ArrayLike) -> list[SurfacePoint]:
         """Link, patch, point, normal and tangents of atlas points (a position of a
@@ -331,15 +355,15 @@ class SkinGeometry:
                 px = c.x0 + np.mod(px - c.x0, c.period)
             u = px - c.x0 + c.u0
             v = py - c.y0 + c.v0
-            pts, nrm, du, dv = c.surface(u, v)
-            mine = np.flatnonzero(self.chart_of == k)
-            ddx = np.abs(self.atlas[mine, 0][None, :] - px[:, None])
+            pts, nrm, du, dv = (tuple(map(tuple, a.tolist())) for a in c.surface(u, v))
+            mine, ax, ay = self._chart_elements[k]
+            ddx = np.abs(ax[None, :] - px[:, None])
             if c.period > 0:
                 ddx = np.minimum(ddx, c.period - ddx)
-            near = mine[np.argmin(ddx ** 2 + (self.atlas[mine, 1][None, :] - py[:, None]) ** 2, axis=1)]
+            near = mine[np.argmin(ddx ** 2 + (ay[None, :] - py[:, None]) ** 2, axis=1)].tolist()
             for j, i in enumerate(sel.tolist()):
-                out[i] = SurfacePoint(c.link, self.patches[int(self.patch_of[near[j]])].name,
-                                      _t3(pts[j]), _t3(nrm[j]), _t3(du[j]), _t3(dv[j]))
+                out[i] = SurfacePoint(c.link, self.patches[self._patch_of_list[near[j]]].name,
+                                      pts[j], nrm[j], du[j], dv[j])
         return out  # type: ignore[return-value]  # every index belongs to one chart: all filled
 
     def atlas_of(self, link: str, point: Sequence[float]) -> tuple[float, float, float] | None:
@@ -376,10 +400,6 @@ class SkinGeometry:
             if bool(b.holds(x, y, self.side)):
                 return b.wrap(x)
         return x
-
-
-def _t3(a: NDArray[np.float64]) -> tuple[float, float, float]:
-    return (float(a[0]), float(a[1]), float(a[2]))
 
 
 # ----------------------------------------------------------------------------- parsing

@@ -371,3 +371,41 @@ def test_the_host_delivers_every_part_of_a_record_once_and_reassembles_a_fragmen
     assert counters["dedupe"]["duplicates"] == 2  # part0 and part1 again
     assert counters["reassembly"]["drops"].get("duplicate_fragment", 0) + \
         counters["reassembly"]["drops"].get("late_duplicate", 0) == 3
+
+
+_any_ids = st.lists(st.one_of(st.integers(-2, 70_000), st.booleans(), st.floats(0, 9), st.text(max_size=1)), max_size=6)
+_cells = st.one_of(st.integers(-2, 300), st.booleans(), st.just(1.0), st.none())
+_raw_samples = st.lists(st.one_of(st.lists(_cells, min_size=3, max_size=5), st.integers(0, 3)), max_size=6)
+
+
+@settings(max_examples=600, deadline=None)
+@given(_raw_samples, _any_ids, _any_ids, st.sampled_from([255, 65_535]))
+def test_the_column_check_of_a_readout_agrees_with_the_element_by_element_one(
+        raw: list[Any], unchanged: list[Any], missing: list[Any], limit: int) -> None:
+    """A READOUT's lists are checked in a few passes over the columns (a thousand elements a
+    frame): whatever they accept, the element-by-element check accepts alike, and whatever
+    it accepts, they do (so no valid record pays the slow path, and no bad one slips by)."""
+    from cellbridge.protocol.messages import _readout_lists, _readout_lists_checked
+
+    try:
+        want = _readout_lists_checked(raw, unchanged, missing, limit)
+    except ProtocolError:
+        want = None
+    got = _readout_lists(raw, unchanged, missing, limit)
+    assert got == want
+    if got is not None:
+        assert all(type(s) is ReadoutSample for s in got[0])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(0, 65_535), unique=True, max_size=40).map(sorted), st.data())
+def test_the_column_check_accepts_valid_lists_and_refuses_a_repeat(ids: list[int], data: st.DataObject) -> None:
+    """Valid lists (as a gateway writes them) pass the column check; a repeated bridge fails it."""
+    from cellbridge.protocol.messages import _readout_lists
+
+    k = data.draw(st.integers(0, len(ids)))
+    raw = [[b, 1, 2, 0] for b in ids[:k]]
+    got = _readout_lists(raw, ids[k:], [], 65_535)
+    assert got is not None and [s.bridge for s in got[0]] == ids[:k] and list(got[1]) == ids[k:]
+    if ids:
+        assert _readout_lists(raw, ids[k:], [ids[0]], 65_535) is None

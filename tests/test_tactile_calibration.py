@@ -828,3 +828,48 @@ def test_a_held_press_does_not_carry_a_ratchet_of_the_common_offset(seed):
     assert np.all(worst < 4 * fF), worst / fF
     assert np.all(np.abs(cal.common_drift) < 1 * fF), cal.common_drift / fF
     assert not cal.touched[drifting]
+
+
+def test_is_contact_is_asked_only_of_readings_it_decides_and_answers_alike():
+    """A step asks ``is_contact`` only of readings above ``leave`` or of touched elements (a
+    quiet skin of a thousand elements asks nothing); the steps come out as when every live
+    reading is asked (a wrapper that asks all rows and answers for the rows given)."""
+    from cellbridge.tactile import ContactSurface
+
+    surf = ContactSurface(ElementParams(side=0.04), noise=2 * fF)
+    asked: list[int] = []
+
+    def counting(delta, noise):
+        asked.append(delta.shape[0])
+        return surf(delta, noise)
+
+    cfg = CalibrationConfig(n_baseline=3, max_touch=2.0)
+    n = 40
+    a = Calibrator(n, 2, cfg, is_contact=counting)
+    b = Calibrator(n, 2, cfg, is_contact=surf)
+    # b asks of every live reading (a finite ΔC), as each step did before it asked fewer
+    b._contact_readings = lambda rows, delta: Calibrator._contact_readings(  # type: ignore[method-assign]
+        b, np.isfinite(delta).all(axis=1), delta)
+    rng = np.random.default_rng(3)
+    base = np.full((n, 2), 20 * pF)
+    for k in range(3):
+        feed(a, 0.1 * k, base)
+        feed(b, 0.1 * k, base)
+    asked.clear()
+    quiet = base + rng.normal(0, 1 * fF, (n, 2))
+    feed(a, 0.3, quiet)
+    feed(b, 0.3, quiet)
+    assert asked == []  # quiet: nothing to decide
+    for k in range(4, 120):
+        v = base + rng.normal(0, 1 * fF, (n, 2))
+        v[k % n] += [200 * fF, 100 * fF]  # a press's ratio
+        v[(3 * k) % n, 0] += 900 * fF  # one layer alone: drift
+        v[n - 1] += [200 * fF, 100 * fF] if k < 60 else [900 * fF, 100 * fF]  # held; then no contact's
+        if k % 7 == 0:
+            v[rng.integers(n)] = np.nan
+        sa, sb = feed(a, 0.1 * k, v), feed(b, 0.1 * k, v)
+        assert np.array_equal(sa.delta, sb.delta, equal_nan=True) and np.array_equal(sa.touched, sb.touched)
+        assert (sa.rebaselined is None) == (sb.rebaselined is None)
+    assert 0 < max(asked) < n
+    assert a.rebaselines[n - 1] >= 1 and a.holds[n - 1] >= 1  # max_touch both ways, alike
+    assert np.array_equal(a.rebaselines, b.rebaselines) and np.array_equal(a.holds, b.holds)

@@ -241,7 +241,8 @@ def _summarise(args: argparse.Namespace, collected: Collected) -> dict[str, Any]
     Besides the median of those (``reported``), ``known`` is the median of the steady
     reports that listed no unknown element near them: what the daemon stated while the
     skin delivered every reading it needed. ``skin_whole`` says the skin delivered every
-    frame of the press whole (no ``contact`` message listed an unknown element): only
+    frame of the press whole (no ``contact`` message listed an unknown element, and the
+    daemon's health counted no element-frame without a reading meanwhile): only
     then can the press's every report be held to 1 mm and 5 %; an emulated skin starved of
     CPU (a busy machine) falls behind real time and loses records, and then the reports
     list what they do not know. ``skin_frames`` is how the daemon's health counted the
@@ -319,10 +320,12 @@ def _print_skin(r: dict[str, Any]) -> None:
     """Whether the skin delivered the press's frames whole, and what the daemon said while it did."""
     if r.get("skin_whole"):
         return
-    listed = ", ".join(f"{e} in {n}" for e, n in r.get("unknown_elements", {}).items())
+    listed = ", ".join(f"{e} in {n}" for e, n in r.get("unknown_elements", {}).items()) or "none"
+    lost = r.get("skin_frames", {}).get("unknown_element_frames", 0)
     print(f"the skin did not deliver every frame whole: of {r.get('messages', 0)} contact messages, "
-          f"these listed elements unknown: {listed} (an emulated skin on a busy "
-          "machine falls behind real time; its health says how: frames_by_deadline, unknown_element_frames)")
+          f"these listed elements unknown: {listed}; element-frames without a reading meanwhile: {lost} "
+          "(an emulated skin on a busy machine falls behind real time; health says how: "
+          "frames_by_deadline, unknown_element_frames)")
     k = r.get("known")
     if k:
         print(f"reports that knew every element near them: {k['reports']}, position error "

@@ -34,7 +34,6 @@ import zmq
 import zmq.asyncio
 from timing import best_rate, pin_to_one_core
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from daemon_harness import Client, Pty, daemon, free_port, write_config  # noqa: E402
 
 from cellbridge.daemon.capture import CaptureWriter  # noqa: E402

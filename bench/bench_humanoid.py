@@ -54,7 +54,6 @@ from timing import table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout too
-sys.path.insert(0, str(ROOT / "tests"))
 from daemon_harness import Client, daemon, write_config  # noqa: E402
 
 from cellbridge.daemon.capture import CaptureWriter  # noqa: E402

@@ -40,7 +40,6 @@ import numpy as np
 import zmq
 from timing import table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from daemon_harness import daemon, free_port, write_config  # noqa: E402
 from daemon_traffic import Skin  # noqa: E402
 from live_skin import Collector, calibrated, cellbridge_cmd, group, live_skin  # noqa: E402

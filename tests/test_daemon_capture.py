@@ -10,7 +10,7 @@ from cellbridge.daemon.capture import CaptureWriter, read_capture
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.links import SerialLink
 from daemon_harness import CLI, Client, Pty, daemon, write_config
-from shell_fakes import FakeClock, FakeDevice, until
+from support.shell_fakes import FakeClock, FakeDevice, until
 
 
 def test_a_restart_keeps_the_previous_capture(tmp_path: Path) -> None:

@@ -14,8 +14,8 @@ from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.contact_schedule import TICK, ContactScheduler
 from cellbridge.daemon.offline import OfflineDaemon
 from cellbridge.daemon.pipeline import Pipeline
-from daemon_golden import CAPTURE
-from pipeline_helpers import worker
+from support.daemon_golden import CAPTURE
+from support.pipeline_helpers import worker
 
 READS = [(t, "gw", data) for t, data in read_capture(CAPTURE)]  # a 3x3 skin at 100 Hz, two presses
 

@@ -16,7 +16,7 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, Drift, World
 from cellbridge.tactile import ElementParams, grid_layout, skin_response
-from pipeline_helpers import T0, drive
+from support.pipeline_helpers import T0, drive
 
 MAX_TOUCH = 20.0
 PRESSED = 5  # the centre element of a 3x3 grid

@@ -27,7 +27,7 @@ from cellbridge.protocol import (
 )
 from cellbridge.tactile import adc_code, grid_layout, layout_to_toml
 from daemon_traffic import CLOCK, Skin, staggered
-from pipeline_helpers import estimate, logged, published, snapshot, worker
+from support.pipeline_helpers import estimate, logged, published, snapshot, worker
 
 T0 = 1_700_000_000.0
 STRADDLE = (0.020, 0.006, 3.0, 0.012)  # on the seam of bridges 1 and 2

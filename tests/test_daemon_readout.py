@@ -13,7 +13,7 @@ import pytest
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from daemon_traffic import CLOCK, Skin
-from pipeline_helpers import published, worker
+from support.pipeline_helpers import published, worker
 
 T0 = 1_700_000_000.0
 SPAN = 0.004  # s: the records' readout span

@@ -18,8 +18,8 @@ import zmq.asyncio
 
 from cellbridge.daemon.config import load_config
 from cellbridge.daemon.service import Service
-from daemon_golden import CAPTURE, CONFIG
-from shell_fakes import RecordingHooks, until
+from support.daemon_golden import CAPTURE, CONFIG
+from support.shell_fakes import RecordingHooks, until
 
 
 class HungWarmUp(concurrent.futures.ThreadPoolExecutor):

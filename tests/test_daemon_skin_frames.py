@@ -20,7 +20,7 @@ from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, Readout, StreamDecoder, encode_stream
 
-from pipeline_helpers import T0, drive
+from support.pipeline_helpers import T0, drive
 
 CORNER = (0.0585, 0.0625)  # across the corner of bridges 6, 7, 10 and 11 of a 4x4 grid
 UNDER = {6, 7, 10, 11}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import random
 
-from protocol_wire import sealed
+from support.protocol_wire import sealed
 
 from cellbridge.emulator.medium import Medium
 from cellbridge.emulator.mesh import Bridge, Cell, Link, Mesh

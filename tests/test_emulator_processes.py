@@ -19,7 +19,7 @@ from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.emulator.realtime import reporting_arg, reporting_text
 from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.protocol import Command, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
-from emulator_procs import (PY, Skin, data_by_origin, free_base_port,
+from support.emulator_procs import (PY, Skin, data_by_origin, free_base_port,
                             posing_bridges, processes_mentioning, running_medium, running_skin, terminate)
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import frames_of, messages_by_type
-from protocol_wire import sealed
+from support.protocol_strategies import frames_of, messages_by_type
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     CRC_CHECK,
@@ -262,7 +262,7 @@ def test_a_bundle_carries_frames_of_its_own_version_only(outer: int, inner: int)
     frame relabelled): two byte strings for one frame. And a version 3 bundle delivered a
     version 4 READOUT, a type version 3 did not have."""
     import msgpack
-    from protocol_v1 import encode_old
+    from support.protocol_v1 import encode_old
 
     from cellbridge.protocol import Readout
 

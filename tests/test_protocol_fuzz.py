@@ -10,8 +10,8 @@ import random
 
 from cobs import cobs
 import msgpack
-from protocol_v1 import encode_v1, encode_v2, encode_v3, same_header
-from protocol_wire import sealed
+from support.protocol_v1 import encode_v1, encode_v2, encode_v3, same_header
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     VERSION,

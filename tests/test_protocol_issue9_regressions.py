@@ -9,8 +9,8 @@ import msgpack
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
-from protocol_strategies import data as data_strategy
-from protocol_wire import sealed
+from support.protocol_strategies import data as data_strategy
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     VERSION,

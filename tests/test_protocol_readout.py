@@ -18,9 +18,9 @@ import pytest
 from cobs import cobs
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import readouts
-from protocol_v1 import encode_old
-from protocol_wire import sealed
+from support.protocol_strategies import readouts
+from support.protocol_v1 import encode_old
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     MAX_FRAME,

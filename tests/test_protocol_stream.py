@@ -7,7 +7,7 @@ import tracemalloc
 from cobs import cobs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import simple_frames
+from support.protocol_strategies import simple_frames
 
 from cellbridge.protocol import Beacon, Frame, StreamDecoder, encode, encode_stream
 from cellbridge.protocol.stream import max_encoded_len

@@ -1,6 +1,6 @@
 """The test vectors of docs/protocol.md, read from the document itself.
 
-``tests/protocol_doc_vectors.py`` regenerates their bytes; the first test here checks that
+``tests/support/protocol_doc_vectors.py`` regenerates their bytes; the first test here checks that
 the document holds what it would write, so a vector can neither drift from the encoder nor
 be edited by hand into another truth.
 """
@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from protocol_doc_vectors import SPEC, regenerate
+from support.protocol_doc_vectors import SPEC, regenerate
 
 from cellbridge.protocol import (
     VERSION,
@@ -66,8 +66,8 @@ NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 
 
 def test_the_vectors_in_the_document_are_current() -> None:
-    """What ``tests/protocol_doc_vectors.py`` would write is what the document holds (run it
-    after a change of the encoding: ``.venv/bin/python tests/protocol_doc_vectors.py``)."""
+    """What ``tests/support/protocol_doc_vectors.py`` would write is what the document holds (run it
+    after a change of the encoding: ``.venv/bin/python tests/support/protocol_doc_vectors.py``)."""
     text = SPEC.read_text()
     assert len(BLOCK.findall(text)) >= 30
     assert regenerate(text) == text

@@ -16,8 +16,8 @@ import pytest
 from cobs import cobs
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import frames_v3
-from protocol_v1 import as_read_from_v2, encode_v2, encode_v3, read_back
+from support.protocol_strategies import frames_v3
+from support.protocol_v1 import as_read_from_v2, encode_v2, encode_v3, read_back
 
 from cellbridge.protocol import (
     MAX_FRAME,

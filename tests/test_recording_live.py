@@ -22,7 +22,7 @@ from mcap.reader import make_reader
 from cellbridge.recording import codec
 from cellbridge.tactile import DEFAULT_NOISE
 from cellbridge.recording.mcapfile import ReadResult, read_messages
-from daemon_golden import CAPTURE, CONFIG, CONTACT_REL, CONTACT_TOL
+from support.daemon_golden import CAPTURE, CONFIG, CONTACT_REL, CONTACT_TOL
 from daemon_harness import Client, daemon, write_config
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from recording_helpers import same_payload

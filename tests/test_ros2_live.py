@@ -2,7 +2,7 @@
 
 The daemon reads synthesized gateway traffic of a 3×3 skin from a pty (view_harness): a
 2 N press across the seam of bridges 2 and 5. ``cellbridge ros2`` runs as a real process;
-the test is a second DDS participant (tests/ros2_peer.py: types generated from the .msg
+the test is a second DDS participant (bench/ros2_peer.py: types generated from the .msg
 text by another parser) on loopback, on a domain and namespace of its own so parallel
 tests never see each other.
 """

@@ -22,7 +22,7 @@ import pytest
 from daemon_harness import CLI
 from fake_daemon import FakeDaemon, grid_layout
 from pty_terminal import PtyProgram, pty_program
-from view_clients import WebPage, args, cell, foreign_sequences, server_view
+from support.view_clients import WebPage, args, cell, foreign_sequences, server_view
 
 FOXGLOVE = ["foxglove.sdk.v1"]
 

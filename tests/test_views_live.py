@@ -29,7 +29,7 @@ import pytest
 
 from browser import CHROMIUM, browser
 from cellbridge.views.model import level_rgb
-from view_clients import PICTURES, picture, pixel
+from support.view_clients import PICTURES, picture, pixel
 from view_harness import CLI, PRESSED, Client, daemon, fed_skin, free_port, skin_config, view_process, wait_ready
 
 TMUX = shutil.which("tmux")

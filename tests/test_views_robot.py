@@ -1,4 +1,4 @@
-"""The views of a skin on a robot (tests/robot_payloads.py: the arm's topology and contacts as
+"""The views of a skin on a robot (bench/robot_payloads.py: the arm's topology and contacts as
 the daemon makes them), as real processes fed by a stand-in daemon over loopback ZeroMQ:
 
 - ``cellbridge foxglove`` to a client of the Foxglove protocol that decodes the advertised
@@ -30,7 +30,7 @@ import robot_payloads as rp
 from browser import CHROMIUM, browser
 from fake_daemon import FakeDaemon
 from pty_terminal import pty_program
-from view_clients import args, picture, pixel, server_view
+from support.view_clients import args, picture, pixel, server_view
 from view_harness import CLI
 
 from cellbridge.views.model import level_rgb

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 import pytest
 
 from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
-from process_state import gone, until_gone
+from support.process_state import gone, until_gone
 
 
 @pytest.fixture

@@ -21,7 +21,7 @@ import pytest
 from cellbridge.daemon import contact_worker
 from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
-from process_state import gone, until_gone
+from support.process_state import gone, until_gone
 
 
 def _end(w: WorkerProcess) -> None:

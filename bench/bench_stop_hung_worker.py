@@ -59,7 +59,7 @@ with tempfile.TemporaryDirectory() as d:
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         try:
-            code = proc.wait(60)
+            code: int | None = proc.wait(60)
         except subprocess.TimeoutExpired:
             code = None
         took = time.monotonic() - t0

@@ -110,7 +110,7 @@ def press_in_world(control: str, start_in: float, duration: float) -> float:
     import zmq
 
     x, y, force, diameter = WORLD_PRESS
-    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.REQ)
     sock.linger = 0
     sock.connect(control)
     try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import subprocess
 from pathlib import Path
 
@@ -91,7 +92,7 @@ def test_a_wall_clock_step_does_not_enter_a_capture(tmp_path: Path) -> None:
                 clock.t += 0.5
                 dev.send(data)
                 want = sum(map(len, (b"\x00one\x00", b"two\x00", b"three\x00")[:k + 1]))
-                await until(lambda want=want: len(got) == want)
+                await until(functools.partial(lambda n: len(got) == n, want))
         finally:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)

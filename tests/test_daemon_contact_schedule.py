@@ -56,7 +56,7 @@ def test_every_estimate_with_contacts_is_published_and_the_first_without_then_no
 def test_reads_no_estimate_saw_are_counted_when_a_job_is_taken() -> None:
     p = Pipeline(config())
     sched = ContactScheduler(p, 100.0)
-    skipped = []
+    skipped: list[int] = []
     for t, link, data in READS:
         p.feed(link, data, t)
         sched.fed()

@@ -83,10 +83,14 @@ def test_a_hung_warm_up_delays_a_finished_replay_by_the_warm_limit_once(tmp_path
 
     async def scenario() -> float:
         svc, ctx = _service(tmp_path, worker_timeout=0.5, contact_executor=lambda: HungWarmUp(1), drain_limit=0.5)
-        svc.REPLAY_WARM_LIMIT = limit  # type: ignore[misc]
+        svc.REPLAY_WARM_LIMIT = limit
         stopping: list[float] = []
         said = svc.hooks.stopping
-        svc.hooks.stopping = lambda: (stopping.append(time.monotonic()), said())  # type: ignore[method-assign]
+        def stopping_noted() -> None:
+            stopping.append(time.monotonic())
+            said()
+
+        svc.hooks.stopping = stopping_noted  # type: ignore[method-assign]
         t0 = time.monotonic()
         task = asyncio.create_task(svc.run())
         try:

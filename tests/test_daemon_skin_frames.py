@@ -165,7 +165,7 @@ def _with_index_moved(reads: list[tuple[float, bytes]], origin: int | None, afte
                 p = f.payload
                 if isinstance(p, Readout):
                     f.payload = dataclasses.replace(p, index=p.index + by)
-                else:
+                elif isinstance(p, Data):
                     f.payload = Data(p.mode, tuple(s._replace(index=s.index + by) for s in p.samples), p.oversampling,
                                      p.rate)
             if hit:

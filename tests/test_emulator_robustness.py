@@ -68,7 +68,7 @@ def test_two_mesh_ups_started_at_once_on_one_base_port_one_runs_and_the_other_st
         assert b"cellbridge medium" not in err and b"cellbridge world" not in err, err
         assert gateway_line(winner)[:2] == ["gateway", "1"]  # the other skin runs, undisturbed
         time.sleep(1.0)
-        assert winner.poll() is None, winner.stderr.read() if winner.stderr else b""  # type: ignore[union-attr]
+        assert winner.poll() is None, winner.stderr.read() if winner.stderr else b""
     finally:
         for p, path in zip(procs, paths):
             stop_and_sweep(p, path)

@@ -36,7 +36,8 @@ def test_the_process_modules_exist_and_mark_their_tests(request: pytest.FixtureR
     have = {p.stem for p in (ROOT / "tests").glob("test_*.py")}
     assert conftest.PROCESS_MODULES <= have, sorted(conftest.PROCESS_MODULES - have)
     for item in request.session.items:
-        name = item.module.__name__.rpartition(".")[2] if getattr(item, "module", None) is not None else ""
+        module = getattr(item, "module", None)
+        name = module.__name__.rpartition(".")[2] if module is not None else ""
         if name in conftest.PROCESS_MODULES:
             assert item.get_closest_marker("process") is not None, item.nodeid
     assert request.node.get_closest_marker("process") is None

@@ -135,7 +135,7 @@ def test_a_second_participant_receives_the_press_in_tactile_msgs_as_the_daemon_p
             assert names["cellbridge: link gw"].message == "connected"
             stop_session(proc)
             assert proc.returncode == 0
-            stats = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
+            stats = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])
             assert stats["published"]["contacts"] >= matched and stats["malformed"] == 0
     finally:
         peer.close()
@@ -202,7 +202,7 @@ def test_a_restarted_daemon_is_picked_up_again_and_a_killed_bridge_leaves_nothin
                     proc.wait(15)
                     if sig == signal.SIGTERM:
                         assert proc.returncode == 0
-                        stats = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
+                        stats = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])
                         assert stats["daemon_restarts"] >= 1
                     assert not _session_alive(proc.pid), "a process of cellbridge ros2 outlived it"
                     # its DDS writers go: at once after SIGTERM (deleted), after their lease after SIGKILL

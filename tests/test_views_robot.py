@@ -97,11 +97,11 @@ def test_foxglove_draws_the_patches_on_their_links_and_each_contact_as_an_arrow_
                         continue
                     if isinstance(msg, str) or msg[0] != 1:
                         continue
-                    t = topic_of.get(struct.unpack_from("<I", msg, 1)[0])
-                    if t is not None and t not in got:
-                        m = decode[t](msg[13:])
-                        if done[t](m):
-                            got[t] = m
+                    topic = topic_of.get(struct.unpack_from("<I", msg, 1)[0])
+                    if topic is not None and topic not in got:
+                        m = decode[topic](msg[13:])
+                        if done[topic](m):
+                            got[topic] = m
             assert len(got) == 3, (list(got), fx.poll())
         finally:
             client.close()

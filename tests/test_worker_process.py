@@ -29,7 +29,7 @@ def worker() -> Iterator[WorkerProcess]:
 
 
 class Unpicklable(Exception):
-    def __reduce__(self) -> tuple:  # type: ignore[type-arg]
+    def __reduce__(self) -> tuple:
         raise TypeError("not this one")
 
 

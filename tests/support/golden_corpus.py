@@ -178,8 +178,8 @@ def host_reads(chunks: list[tuple[float, bytes]], transform: str) -> list[tuple[
         else:
             reads.append((at, bytearray(data)))
     out = []
-    for i, (t, data) in enumerate(reads):
-        b = bytes(data)
+    for i, (t, buf) in enumerate(reads):
+        b = bytes(buf)
         if transform == "noise":
             if i % 25 == 24:
                 b = b"\x13\x37noise" + b

@@ -18,13 +18,10 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import msgpack
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from daemon_traffic import Skin  # noqa: E402
 
 from cellbridge.daemon.config import parse_config

@@ -96,7 +96,10 @@ def accuracy(n=300):
     rng = np.random.default_rng(5)
     lay = grid_layout(2, 2)
     est = ContactEstimator(lay, noise=NOISE)
-    err, ferr, light, cover, axes, n_fit = [], [], [], 0, 0, 0
+    err_l: list[float] = []
+    light_l: list[float] = []
+    ferr: list[float] = []
+    cover, axes, n_fit = 0, 0, 0
     for _ in range(n):
         d = rng.uniform(0.010, 0.030)
         f = rng.uniform(2.0, 10.0)
@@ -115,11 +118,11 @@ def accuracy(n=300):
             axes += 1
             cover += abs(e - t) <= 2 * s
             if c.observable[ax] and c.valid:
-                err.append(e - t)
+                err_l.append(e - t)
             elif c.observable[ax]:
-                light.append(e - t)
-    err = np.array(err)
-    light = np.array(light)
+                light_l.append(e - t)
+    err = np.array(err_l)
+    light = np.array(light_l)
     table(
         "Accuracy: random straddling contacts on the 2×2 skin, 1 fF Gaussian noise per reading",
         ["contacts", "fitted", "valid", "resolved axes (valid)", "RMS err mm", "max err mm", "F err p95 %",
@@ -160,7 +163,7 @@ def perturbed_sets(lay, n, rng):
              for _ in range(n)]
     names = ("model-made (uniform)", "grid-integrated overlap", f"grid + {100 * GAIN:.0f} % gain error",
              f"spread s = {SPREAD / MM:.0f} mm, fitted uniform")
-    sets = {name: [] for name in names}
+    sets: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {name: [] for name in names}
     for c in disks:
         gains = 1.0 + rng.normal(0.0, GAIN, (2, lay.n))
         grid = grid_response(lay, c)
@@ -235,9 +238,9 @@ def speed_single(rows, rows_legacy, name, lay, n, n_legacy, rng):
 
 def speed_frame8(rows, rows_legacy, rng, n=200, n_legacy=10):
     lay = grid_layout(16, 16)
-    frames = []
+    frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     while len(frames) < n:
-        disks = []
+        disks: list[list[float]] = []
         while len(disks) < 8:
             d = random_disk(rng, 0.0, 0.600)
             # Separate fingers: footprints at least a pitch apart (touching pairs are
@@ -329,7 +332,8 @@ def main() -> None:
     print("cellbridge contact estimation bench — 40 mm elements, 1 fF noise, one core")
     accuracy()
     rng = np.random.default_rng(11)
-    rows, rows_legacy = [], []
+    rows: list[list[object]] = []
+    rows_legacy: list[list[object]] = []
     speed_single(rows, rows_legacy, "4×4", grid_layout(4, 4), 400, 40, rng)
     speed_single(rows, rows_legacy, "16×16", grid_layout(16, 16), 400, 20, rng)
     speed_frame8(rows, rows_legacy, rng)

@@ -34,11 +34,10 @@ import zmq
 import zmq.asyncio
 from timing import best_rate, pin_to_one_core
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from daemon_harness import Client, Pty, daemon, free_port, write_config  # noqa: E402
 
 from cellbridge.daemon.capture import CaptureWriter  # noqa: E402
-from cellbridge.daemon.config import parse_config  # noqa: E402
+from cellbridge.daemon.config import Config, parse_config  # noqa: E402
 from cellbridge.daemon.messages import Publish  # noqa: E402
 from cellbridge.daemon.pipeline import Pipeline  # noqa: E402
 from cellbridge.daemon.publisher import Publisher  # noqa: E402
@@ -86,7 +85,7 @@ class Traffic:
         return b"".join(out), keys
 
 
-def config(**sections: dict) -> object:
+def config(**sections: dict) -> Config:
     return parse_config({"link": [{"name": "gw", "url": "/dev/null"}], **sections})
 
 
@@ -119,7 +118,7 @@ def ingest_in_process(per_frame: int, samples: int) -> float:
             for m in p.feed("gw", c, t):
                 if isinstance(m, Publish):
                     pub.publish(m.topic, m.payload)
-        zsock = zmq.Socket.shadow(reader.underlying)
+        zsock: zmq.Socket[bytes] = zmq.Socket.shadow(reader.underlying)
         while zsock.poll(0):
             got[0] += len(msgpack.unpackb(zsock.recv_multipart()[1])["bridge"])
 
@@ -186,6 +185,7 @@ def replay_daemon(tmp: Path, capture: Path, expect: int, pin: bool) -> tuple[flo
         client.close()
     if got != expect:
         raise RuntimeError(f"daemon published {got} of {expect} samples")
+    assert first is not None and last is not None  # (got == expect > 0: messages came)
     return got / (last - first), rss, hwm
 
 
@@ -259,7 +259,9 @@ def floor_latency(tmp: Path, seconds: float) -> np.ndarray:
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.SUBSCRIBE, b"")
     sub.connect(endpoint)
-    size, sent, lat = 400, {}, []
+    size = 400
+    sent: dict[int, float] = {}
+    lat: list[float] = []
     try:
         time.sleep(1.0)
         t_next = time.monotonic()
@@ -320,7 +322,7 @@ def main() -> None:
                     help="seconds of recorded traffic for the long replay (default 600; 3600 = an hour)")
     args = ap.parse_args()
     quick = args.quick
-    rows = []
+    rows: list[tuple[str, str, str, bool | None]] = []  # (what, measured, target, met: None without a target)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         pin_to_one_core()

@@ -29,7 +29,7 @@ from cellbridge.emulator.mesh import Bridge, Cell, Mesh
 from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
 from cellbridge.emulator.world import Contact, World
-from cellbridge.protocol import FrameType
+from cellbridge.protocol import Data, FrameType
 from cellbridge.protocol.messages import packed_samples
 
 
@@ -80,8 +80,8 @@ def efficiency() -> None:
         secs = 2.0
         r = vm.run(secs)
         # the samples' bytes as they travel (protocol version 3 packs all but a frame's first)
-        bits = sum(8 * len(msgpack.packb(x)) for f in r.gateway_frames[1][first:] if f.type is FrameType.DATA
-                   and f.origin != 1 for x in packed_samples(f.payload.samples, f.payload.period))  # type: ignore[union-attr]  # a DATA frame's payload is a Data
+        bits = sum(8 * len(msgpack.packb(x)) for f in r.gateway_frames[1][first:] if isinstance(f.payload, Data)
+                   and f.origin != 1 for x in packed_samples(f.payload.samples, f.payload.period))
         share = bits / secs / mesh.bitrate
         offered = n * 250 * 14 * 8 / 1000
         print(f"{n:>7} {offered:>14.0f} {bits / secs / 1000:>16.0f} {share:>6.1%} "

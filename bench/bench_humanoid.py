@@ -38,6 +38,7 @@ The skin is ``cellbridge/skins/humanoid.toml`` (1 144 elements of 40 mm on 12 pa
 from __future__ import annotations
 
 import os
+from typing import cast
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
@@ -54,7 +55,6 @@ from timing import table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout too
-sys.path.insert(0, str(ROOT / "tests"))
 from daemon_harness import Client, daemon, write_config  # noqa: E402
 
 from cellbridge.daemon.capture import CaptureWriter  # noqa: E402
@@ -75,7 +75,7 @@ ROUND, HOLD, FIRST = 3.0, 2.0, 2.0  #: s per round of presses, held, first press
 NOISE = 1e-15
 GRID = 1e-4
 GAIN = 0.03
-ENTER = float(CalibrationConfig().enter)  #: F, the daemon's default touch threshold per channel
+ENTER = float(cast(float, CalibrationConfig().enter))  #: F, the daemon's default touch threshold per channel (one for both)
 
 
 def presses(skin, seconds: float, rng) -> list[Contact]:
@@ -270,7 +270,7 @@ def near_cut(skin, x: float) -> bool:
 
 def estimate_rows(skin, n: int = 200) -> list[list[object]]:
     rng = np.random.default_rng(11)
-    rows = []
+    rows: list[list[object]] = []
     for name, lay, k in (("4×4, 1 contact", grid_layout(4, 4), 1), ("humanoid, 10 contacts", skin.layout(), 10)):
         est = ContactEstimator(lay, noise=NOISE)
         for made in ("own model", "not its model (grid, 3 % gain)"):
@@ -306,8 +306,8 @@ def estimate_rows(skin, n: int = 200) -> list[list[object]]:
                 c0 = time.thread_time()
                 found.append(len(est.estimate(*f)))
                 cpu.append(time.thread_time() - c0)
-            c = np.array(cpu) * 1e3
-            rows.append([name, made, n, f"{np.mean(found):.2f}", f"{np.median(c):.3f}", f"{np.percentile(c, 99):.3f}",
+            ms = np.array(cpu) * 1e3
+            rows.append([name, made, n, f"{np.mean(found):.2f}", f"{np.median(ms):.3f}", f"{np.percentile(ms, 99):.3f}",
                          "0.5" if k == 1 else "4"])
     return rows
 

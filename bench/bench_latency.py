@@ -18,6 +18,7 @@ delivered, spread of one index ≤ 50 ms, delay well within 50 ms p99.
 from __future__ import annotations
 
 import argparse
+from typing import Any
 import os
 import time
 from collections import defaultdict
@@ -127,7 +128,7 @@ def main() -> None:
     print(f"medium: {medium}")
 
 
-def run_virtual(mesh, args):  # type: ignore[no-untyped-def]
+def run_virtual(mesh, args):
     """The same skin in virtual time: (arrivals, counters, window start, end, medium counters)."""
     from cellbridge.emulator.commands import Settings
     from cellbridge.emulator.realtime import reporting_arg
@@ -136,7 +137,7 @@ def run_virtual(mesh, args):  # type: ignore[no-untyped-def]
 
     lat = {"default": Latency(), "quiet": Latency(up=0.0001, down=0.0001, floor=0.00005, wake_late=0.0001),
            "none": None}[args.virtual]
-    extra: dict[str, object] = {} if args.max_latency is None else {"max_latency": int(args.max_latency * CLOCK_HZ / 1000)}
+    extra: dict[str, Any] = {} if args.max_latency is None else {"max_latency": int(args.max_latency * CLOCK_HZ / 1000)}
     if args.depth_slot is not None:
         extra["depth_slot"] = int(args.depth_slot * CLOCK_HZ / 1000)
     if args.slot is not None:

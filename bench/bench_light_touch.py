@@ -73,7 +73,7 @@ def cases(n: int) -> list[tuple[SkinLayout, float, float, np.ndarray, np.ndarray
 
 
 def run(locate: Callable, data: list) -> list[str]:
-    est_mod.locate_light = locate  # type: ignore[attr-defined]  # the estimator's light touch, swapped for the run
+    est_mod.locate_light = locate  # the estimator's light touch, swapped for the run
     ests = {id(lay): ContactEstimator(lay, noise=NOISE) for lay, *_ in data}
     resolved, untrue, unres, covered, light = [], 0, 0, 0, 0
     cpu = 0.0
@@ -110,7 +110,7 @@ def at_revision(rev: str) -> Callable:
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     Path(fh.name).unlink()
-    return mod.locate_light  # type: ignore[no-any-return]  # the module's own function
+    return mod.locate_light  # the module's own function
 
 
 def main() -> int:

@@ -31,7 +31,6 @@ from pathlib import Path
 import msgpack
 import zmq
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from daemon_harness import (  # noqa: E402
     Client, Pty, daemon, idle_connects, open_descriptors, proc_status_kb, write_config)
 

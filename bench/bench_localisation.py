@@ -59,15 +59,15 @@ def run(est, dc1, dc2):
 
 
 def sweep(est, xs, y, f, d, rng=None, trials=1, spread=0.0):
-    """Per position: (x error of model, of centroid, force rel. error, D error, straddle seen)."""
-    out = []
+    """Per position: (x error of model, of centroid, force rel. error, D error, straddle seen, σx)."""
+    out: list[tuple[float, float, float, float, bool, float]] = []
     for x in xs:
         dc1, dc2 = skin_response(LAY, [x, y, f, d], spread=spread)
         for _ in range(trials):
             m1, m2 = (dc1, dc2) if rng is None else quantised(dc1, dc2, rng)
             cs = run(est, m1, m2)
             if len(cs) != 1:
-                out.append((np.nan, np.nan, np.nan, np.nan, False))
+                out.append((np.nan, np.nan, np.nan, np.nan, False, np.nan))
                 continue
             c = cs[0]
             seen = c.elements == (0, 1)
@@ -84,7 +84,7 @@ def fig6():
         ("model, ΔC fit", ContactEstimator(LAY, noise=COUNTER_NOISE), np.random.default_rng(1), 4),
         ("model, area fit", ContactEstimator(LAY, method="area", noise=COUNTER_NOISE), np.random.default_rng(1), 4),
     ]
-    rows = []
+    rows: list[list[object]] = []
     for name, est, rng, trials in cases:
         res = sweep(est, xs, 0.0, 3.0, 0.010, rng, trials)
         seen = np.array([r[4] for r in res])
@@ -108,7 +108,7 @@ def fig6():
 
 def random_straddles(n=150):
     rng = np.random.default_rng(5)
-    rows = []
+    rows: list[list[object]] = []
     for label, noise, q in (("noise-free", None, None), ("2 ms counter", COUNTER_NOISE, np.random.default_rng(2))):
         est = ContactEstimator(LAY) if noise is None else ContactEstimator(LAY, noise=noise)
         err_m, err_c, covered, n_seen, n_all, n_light = [], [], 0, 0, 0, 0
@@ -147,7 +147,7 @@ def random_straddles(n=150):
 
 
 def stimulators():
-    rows = []
+    rows: list[list[object]] = []
     est = ContactEstimator(LAY)
     estq = ContactEstimator(LAY, noise=COUNTER_NOISE)
     rng = np.random.default_rng(3)
@@ -176,7 +176,7 @@ def stimulators():
 
 def spread_sweep(s=0.002):
     xs = np.arange(0.0155, 0.0246, 1.5 * MM)
-    rows = []
+    rows: list[list[object]] = []
     for name, est in (("model, spread-aware", ContactEstimator(LAY, spread=s)), ("model, uniform (s = 0)", ContactEstimator(LAY))):
         res = sweep(est, xs, 0.0, 3.0, 0.010, spread=s)
         ex = np.array([r[0] for r in res])

@@ -30,6 +30,7 @@ Tables:
 from __future__ import annotations
 
 import argparse
+from typing import Any
 import cProfile
 import os
 import pstats
@@ -57,7 +58,7 @@ def sync_error() -> None:
              ("random 32", meshgen.random_mesh(32, seed=3), None),
              ("4x4, latency model", meshgen.grid(4, 4), Latency(seed=3))]
     for name, mesh, lat in cases:
-        kw = {"ack_slack": CLOCK_HZ // 100} if lat else {}
+        kw: dict[str, Any] = {"ack_slack": CLOCK_HZ // 100} if lat else {}
         vm = VirtualMesh(mesh, seed=2, random_epochs=True, latency=lat, settings=Settings(reporting=EVENTS), **kw)
         root = min(mesh.gateways)
         hops = mesh.hops(root)
@@ -122,7 +123,7 @@ def costs() -> None:
     for c in mesh.cells:
         on = [b.id for b in mesh.bridges if c.id in b.cells]
         cell_bits.append(sum(rate[b] for b in on) * ((b_with * 8) + PREAMBLE_BITS))
-    rows = [["BEACON frame bytes", b_without, b_with, f"+{b_with - b_without}"],
+    rows: list[list[object]] = [["BEACON frame bytes", b_without, b_with, f"+{b_with - b_without}"],
             ["beacons/s per bridge (4x4, stable routes)", "-", f"{per_bridge:.2f}", "sync_period 0.5 s"],
             ["beacon bits/s per cell, mean (max)", "-", f"{np.mean(cell_bits):.0f} ({max(cell_bits):.0f})",
              f"{np.mean(cell_bits) / 1e6:.2%} of 1 Mbit/s"]]
@@ -232,8 +233,8 @@ def press_latency(seconds: float, reporting: str) -> list[list[object]]:
     by_bridge: dict[int, list[tuple[float, float, int]]] = defaultdict(list)
     for a in skin.arrivals:
         by_bridge[a.bridge].append((a.gate, a.arrived, a.c1))
-    d = [(a - start) * 1000 for start, pos in onsets
-         if (a := first_showing(sorted(by_bridge[under[pos]]), start)) is not None]
+    d = [(seen - start) * 1000 for start, pos in onsets
+         if (seen := first_showing(sorted(by_bridge[under[pos]]), start)) is not None]
     if not d:
         return [[f"4x4 real, {reporting} (load {load:.1f})", len(onsets), 0, "nan", "nan", "nan"]]
     return [[f"4x4 real, {reporting} (load {load:.1f})", len(onsets), len(d), f"{np.percentile(d, 50):.1f}",

@@ -100,7 +100,7 @@ def _host_priority(same: bool) -> tuple[str, ...]:
     return ("chrt", "-f", str(min(top, os.sched_getparam(0).sched_priority + 2)))
 
 
-def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float], int]:  # type: ignore[no-untyped-def]
+def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float], int, list[tuple[float, float, int]]]:
     """(press -> first sample showing it at the host, press -> first contact near it, missed)
     in virtual time; milliseconds."""
     from cellbridge.daemon.config import parse_config
@@ -175,7 +175,7 @@ def _truth(press: Contact, contacts: list[dict]) -> tuple[float, float, int]:
     return 1e3 * math.hypot(x - press.x, y - press.y), 100 * abs(f - press.force) / press.force, len(set(ids))
 
 
-def _skin_share(log: Path, frames: list, mesh, rate: int, since: float) -> None:  # type: ignore[no-untyped-def]
+def _skin_share(log: Path, frames: list, mesh, rate: int, since: float) -> None:
     """Every skin frame the daemon took from ``since`` (the first press) on, from its gate
     end on the gateway's own plan (its last line names the ticks of two gates 10 s apart;
     mesh time between is a straight line) to the daemon giving it out: the skin's share
@@ -266,7 +266,7 @@ def main() -> None:
     print(f"{mesh.name}: {n} bridges at {args.rate} Hz ({args.reporting}), {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}; {prio}")
     procs: list[subprocess.Popen] = []
-    ctx = zmq.Context.instance()
+    ctx: zmq.Context = zmq.Context.instance()
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
     for t in (b"contact", b"health"):
@@ -280,6 +280,7 @@ def main() -> None:
         device = ""
         deadline = time.monotonic() + 60
         while not device and time.monotonic() < deadline:
+            assert up.stdout is not None  # stdout=PIPE
             line = up.stdout.readline()
             if not line:
                 raise RuntimeError(f"mesh up ended: {(work / 'mesh.log').read_text()[-500:]}")

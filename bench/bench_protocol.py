@@ -54,7 +54,7 @@ def periodic(n: int, cycle: int, index: int) -> tuple[Sample, ...]:
 def periodic_data(samples: tuple[Sample, ...]) -> Data:
     data = Data(Mode.COUNTER, samples, 1, RATE)
     if "period" in Data.__dataclass_fields__:  # protocol version 3
-        data.period = PERIOD  # type: ignore[attr-defined]  # absent before version 3
+        data.period = PERIOD  # absent before version 3
     return data
 
 
@@ -158,7 +158,7 @@ def main() -> None:
         assert got == N // 2 + 50
 
     big = Frame(7, 0, 7, 0, Data(Mode.COUNTER, tuple(Sample(0, 40_000 + i, 19_600, 15_800, 0) for i in range(60))))
-    parts = []
+    parts: list[Frame] = []
     for d in range(N // 20):
         parts += fragment(Frame(7, 0, 7, len(parts) & 0xFFFF, big.payload), tag=d & 0xFFFF)
     parts_twice = [f for i in range(len(parts)) for f in (parts[i], parts[max(i - 50, 0)])]

@@ -55,7 +55,7 @@ def records(vm: VirtualMesh, gateway: int) -> list[tuple[int, Readout]]:
     out = []
     for tick, chunk in vm.serial_chunks[gateway]:
         for f in dec.feed(chunk):
-            if f.type is FrameType.READOUT:
+            if isinstance(f.payload, Readout):
                 out.append((tick, f.payload))
     return out
 

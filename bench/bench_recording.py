@@ -24,6 +24,7 @@ The machine is shared: timing figures are sensitive to other load.
 from __future__ import annotations
 
 import argparse
+from typing import Any
 import gc
 import json
 import os
@@ -40,7 +41,6 @@ import numpy as np
 import zmq
 from timing import table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from daemon_harness import daemon, free_port, write_config  # noqa: E402
 from daemon_traffic import Skin  # noqa: E402
 from live_skin import Collector, calibrated, cellbridge_cmd, group, live_skin  # noqa: E402
@@ -89,7 +89,7 @@ def recorder_cost(tmp: Path, capture: Path, seconds: float, extra: list[str], na
     return 100 * cpu, mb_h, stats["messages"]
 
 
-def round_trip(tmp: Path, press_s: float) -> dict[str, float]:
+def round_trip(tmp: Path, press_s: float) -> dict[str, Any]:
     """Record a live 4x4 skin through a press, replay it at --rate 1, and compare intervals.
 
     Three subscribers' clocks: a live one beside the recorder (receiving in a thread of its

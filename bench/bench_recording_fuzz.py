@@ -2,7 +2,7 @@
 
 Run: ``.venv/bin/python bench/bench_recording_fuzz.py [--count N] [--exec] [--keep DIR]``.
 
-The recordings (tests/recording_mutations.py) are mutations of recordings the recorder
+The recordings (bench/recording_mutations.py) are mutations of recordings the recorder
 makes (every topic, small chunks; zstd, lz4, uncompressed; finished and cut short):
 truncated, bit flips, random runs of bytes, oversized declared lengths (records, chunk
 sizes, compression names, data lengths), a chunk's zstd frame header overwritten,
@@ -34,7 +34,6 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from timing import table  # noqa: E402
 
 import recording_mutations as rm  # noqa: E402

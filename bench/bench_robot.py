@@ -37,7 +37,7 @@ def main() -> int:
     ap.add_argument("--out", help="keep truth.jsonl and contacts.jsonl here")
     a = ap.parse_args()
     try:
-        import mujoco  # noqa: F401
+        import mujoco  # type: ignore[import-untyped]  # noqa: F401  # no type information published
     except ImportError:
         print("bench_robot: needs mujoco (pip install 'cellbridge[robot]'); skipped")
         return 0

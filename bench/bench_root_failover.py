@@ -19,6 +19,7 @@ on). The gateway lines go through the daemon's pipeline. Prints, per seed:
 from __future__ import annotations
 
 import time
+from typing import Any
 from collections import Counter
 
 from cellbridge.daemon.config import parse_config
@@ -32,7 +33,7 @@ T0 = 1_800_000_000.0
 SECONDS = 9.0
 
 
-def scenario(seed: int) -> dict[str, object]:
+def scenario(seed: int) -> dict[str, Any]:
     mesh = meshgen.grid(4, 4, gateways=(1, 16), loss=0.01)
     vm = VirtualMesh(mesh, seed=seed, random_epochs=True, settings=Settings(rate_hz=100), readout=True)
     vm.kill(1, at=6.0)

@@ -17,10 +17,7 @@ against gateway 16 while the root was gone (8-11.5 s).
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from root_return import (  # noqa: E402  # the scenario tests/test_emulator_meshtime.py asserts on
     HEIR, HOWS, ROOT, US, How, errors_from_line, root_goes_and_returns, skin_time_line, sync_bound,
 )

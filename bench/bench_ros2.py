@@ -2,7 +2,7 @@
 
 Run: ``.venv/bin/python bench/bench_ros2.py [--quick]``.
 
-The skin is synthesized gateway traffic (``tests/daemon_traffic.py``) written into a pty in
+The skin is synthesized gateway traffic (``bench/daemon_traffic.py``) written into a pty in
 real time by a thread of this script, the daemon reads that pty as a gateway's serial
 line, and ``cellbridge ros2`` is a real process subscribed to the daemon. This script is
 two subscribers at once, each in a thread of its own that stamps what it receives with
@@ -42,7 +42,6 @@ import numpy as np
 import zmq
 from timing import table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from cyclonedds.util import duration  # noqa: E402
 from ros2_peer import Peer  # noqa: E402
 from view_harness import PRESS, Client, daemon, fed_skin, skin_config, view_process, wait_ready  # noqa: E402

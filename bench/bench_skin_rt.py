@@ -133,7 +133,7 @@ def read_records(port: serial.Serial, dec: StreamDecoder, seconds: float) -> lis
     return out
 
 
-def press_onsets(port: serial.Serial, dec: StreamDecoder, base: int, mesh, n: int, seed: int,  # type: ignore[no-untyped-def]
+def press_onsets(port: serial.Serial, dec: StreamDecoder, base: int, mesh, n: int, seed: int,
                  hold: float = 0.4) -> list[tuple[float, int, float]]:
     """``n`` presses at the centre of random elements, one at a time; for each, (s from the
     press's start in the world to the first record read whose sample of the pressed element
@@ -295,12 +295,12 @@ def main() -> None:
         sec = np.floor(g - g[0]).astype(int)
         lo_x, lo_y = [], []
         for s in np.unique(sec):
-            i = np.flatnonzero(sec == s)
-            j = i[np.argmin(d[i])]
+            in_s = np.flatnonzero(sec == s)
+            j = in_s[np.argmin(d[in_s])]
             lo_x.append(g[j])
             lo_y.append(d[j])
-        a, b = np.polyfit(lo_x, lo_y, 1) if len(lo_x) >= 2 else (0.0, float(min(lo_y)))
-        extra = (d - (a * g + b)) * 1000
+        slope, floor = np.polyfit(lo_x, lo_y, 1) if len(lo_x) >= 2 else (0.0, float(min(lo_y)))
+        extra = (d - (slope * g + floor)) * 1000
         extra -= min(0.0, float(extra.min()))
         per: dict[int, list[float]] = defaultdict(list)
         for r, e in zip(recs, extra):
@@ -331,10 +331,10 @@ def main() -> None:
           ["bridge min", "bridge p50", "bridge max", "medium", "bridges' system %", "medium's system %"],
           [[f"{min(bw):.0f}", f"{pct(bw, 50):.0f}", f"{max(bw):.0f}", f"{wakes.get('medium', 0):.0f}",
             f"{sum(bs):.1f}", f"{sys_cpu.get('medium', 0):.1f}"]])
-    per = sorted((int(r.split()[1]), v) for r, v in cpu.items() if r.startswith("bridge"))
+    per_bridge = sorted((int(r.split()[1]), v) for r, v in cpu.items() if r.startswith("bridge"))
     table("CPU (% of one core) and wakes per second of each bridge process",
           ["bridge", "CPU %", "wakes/s"],
-          [[str(b), f"{v:.1f}", f"{wakes.get(f'bridge {b}', 0):.0f}"] for b, v in per])
+          [[str(b), f"{v:.1f}", f"{wakes.get(f'bridge {b}', 0):.0f}"] for b, v in per_bridge])
     # 4. counters (whole run)
     keys = ("late_gates", "behind_gates", "readout_late", "readout_failed", "readout_missing", "urgent_expired",
             "udp_drops", "retries")

@@ -1,7 +1,7 @@
 """SIGTERM to a real daemon whose contact worker hangs: seconds from the signal to its exit.
 
 Run: ``.venv/bin/python bench/bench_stop_hung_worker.py [TREE]`` (TREE: a checkout whose
-tests/ harness to use, default this one; the daemon is the ``cellbridge`` beside the
+harness (daemon_harness, daemon_traffic) to use, default this one; the daemon is the ``cellbridge`` beside the
 python running this). A 3x3 skin is calibrated and pressed until a contact is
 published, then the contact worker process is stopped (SIGSTOP: hung mid-estimate),
 an estimate is sent its way, and the daemon gets SIGTERM. The unit's TimeoutStopSec is 15 s.
@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 tree = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(tree / "tests"))
+sys.path.insert(0, str(tree / "bench"))
 from daemon_harness import Client, Pty, daemon, write_config  # noqa: E402
 from daemon_traffic import Skin  # noqa: E402
 
@@ -59,7 +59,7 @@ with tempfile.TemporaryDirectory() as d:
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         try:
-            code = proc.wait(60)
+            code: int | None = proc.wait(60)
         except subprocess.TimeoutExpired:
             code = None
         took = time.monotonic() - t0

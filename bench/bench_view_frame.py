@@ -20,12 +20,9 @@ whole update (once a second). Prints the median and the slowest of 20 frames, in
 from __future__ import annotations
 
 import statistics
-import sys
 import time
-from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from cellbridge.views import foxglove as fx  # noqa: E402
 from cellbridge.views.model import SkinView  # noqa: E402

@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python bench/bench_view_stop.py [--runs N]``.
 
 Each view runs as a real process subscribed to a stand-in daemon
-(``tests/fake_daemon.py``); ``web`` and ``foxglove`` have a WebSocket client connected
+(``bench/fake_daemon.py``); ``web`` and ``foxglove`` have a WebSocket client connected
 and reading (a page, a Foxglove app), ``watch`` runs on an 80×24 pty. The time is from
 the SIGTERM to the process's exit (``waitpid``), the client's close frame as received.
 
@@ -16,13 +16,10 @@ import argparse
 import os
 import signal
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 from timing import table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from daemon_harness import CLI, free_port  # noqa: E402
 from fake_daemon import FakeDaemon  # noqa: E402
 from pty_terminal import PtyProgram  # noqa: E402

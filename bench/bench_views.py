@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python bench/bench_views.py [--quick]`` (needs Debian's ``chromium`` and
 ``tmux``; ``make test`` installs them as root).
 
-Except in 1a, the skin is synthesized gateway traffic (``tests/daemon_traffic.py``) written
+Except in 1a, the skin is synthesized gateway traffic (``bench/daemon_traffic.py``) written
 into a pty in real time by a thread of this script; the daemon reads that pty as it would a
 gateway's serial line, and each view is a real process subscribed to the daemon.
 
@@ -54,7 +54,6 @@ from typing import Any
 import numpy as np
 from timing import table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from browser import CHROMIUM, browser  # noqa: E402
 from live_skin import Collector, calibrated, live_skin  # noqa: E402
 from view_harness import (  # noqa: E402
@@ -111,7 +110,7 @@ def press_in_world(control: str, start_in: float, duration: float) -> float:
     import zmq
 
     x, y, force, diameter = WORLD_PRESS
-    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.REQ)
     sock.linger = 0
     sock.connect(control)
     try:

@@ -89,25 +89,29 @@ def _instrument() -> None:
         TRACE["d"].append((now, _f(due)))
         return due
 
-    def traced_step(self: LayoutStages, rows, raw, saturated, caps, t_sample, cycle,  # type: ignore[no-untyped-def]
+    def traced_step(self: LayoutStages, rows, raw, saturated, caps, t_sample, cycle,
                     now, held, on_time, period, inverse=True):
         res = step(self, rows, raw, saturated, caps, t_sample, cycle, now, held, on_time, period, inverse)
-        r, ids = self.readings, self.layout.ids
+        r, layout = self.readings, self.layout
+        assert r is not None and layout is not None  # a frame: the layout's readings are there
+        ids = layout.ids
         for row, t, h in zip(rows.tolist(), t_sample.tolist(), held.tolist()):
             slot = r.t[row] == t  # the reading's slot among the DATA readings: its touch flag as they hold it
             TRACE["s"].append((now, int(ids[row]), t, bool(slot.any() and r.touched[row, slot.argmax()]), bool(h)))
         return res
 
-    def traced_frame(self: LayoutStages, t, cycle, sampled, raw, saturated, caps, unchanged,  # type: ignore[no-untyped-def]
+    def traced_frame(self: LayoutStages, t, cycle, sampled, raw, saturated, caps, unchanged,
                      now, inverse=True, **kw):
         got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, **kw)
         TRACE["k"].append((now, t, int(cycle)))  # the frame's global cycle: its gate on the skin's own plan
-        r, ids = self.readings, self.layout.ids
+        r, layout = self.readings, self.layout
+        assert r is not None and layout is not None  # a frame: the layout's readings are there
+        ids = layout.ids
         for row in sampled.tolist() + unchanged.tolist():  # every element the frame says something of
             TRACE["s"].append((now, int(ids[row]), t, bool(r.last_touched[row]), False))
         return got
 
-    def traced_snapshot(self: LayoutStages, now: float, bridge_timeout: float, scheduled: bool):  # type: ignore[no-untyped-def]
+    def traced_snapshot(self: LayoutStages, now: float, bridge_timeout: float, scheduled: bool):
         got = snapshot(self, now, bridge_timeout, scheduled)
         if self.layout is not None:
             n = self.layout.n  # (no holds: a frame is estimable once its records are in, or at its deadline)
@@ -163,9 +167,9 @@ def _instrument() -> None:
         run_handle(self)
         t1 = time.monotonic()
         if t1 - t0 > 0.001:
-            cb = self._callback
+            cb = self._callback  # type: ignore[attr-defined]  # the handle's callback (private)
             task = getattr(cb, "__self__", None)
-            what = (task.get_coro().__qualname__ if isinstance(task, asyncio.Task)
+            what = (getattr(task.get_coro(), "__qualname__", "?") if isinstance(task, asyncio.Task)
                     else getattr(cb, "__qualname__", type(cb).__name__))
             TRACE["b"].append((f"cb {what}"[:80], t0, t1))
 
@@ -192,13 +196,13 @@ def _instrument() -> None:
 
     asyncio.BaseEventLoop._run_once = traced_run_once  # type: ignore[attr-defined]
     WorkerProcess.submit = traced_submit  # type: ignore[method-assign]
-    contact_worker.estimate = timed_estimate  # type: ignore[attr-defined]
+    contact_worker.estimate = timed_estimate
     Service._on_data = traced_on_data  # type: ignore[method-assign]
     Service._tick_once = traced_tick_once  # type: ignore[method-assign]
     Pipeline.contact_due = traced_contact_due  # type: ignore[method-assign]
     LayoutStages.step = traced_step  # type: ignore[method-assign]
     LayoutStages.snapshot = traced_snapshot  # type: ignore[method-assign]
-    LayoutStages.frame = traced_frame  # type: ignore[method-assign]
+    LayoutStages.frame = traced_frame  # type: ignore[assignment]  # its keywords passed on
     Service._contact_once = traced_contact_once  # type: ignore[method-assign]
     Publisher.publish = traced_publish  # type: ignore[method-assign]
 

@@ -14,6 +14,7 @@ arrival spread of one ``index`` across bridges is direct.
 from __future__ import annotations
 
 import json
+from typing import Self
 import os
 import signal
 import socket
@@ -71,7 +72,7 @@ def world_press(base_port: int, x: float, y: float, duration: float = 0.5, force
                 diameter: float = 0.02) -> float:
     """Ask the world of the ``mesh up`` on ``base_port`` for a press now; the host monotonic
     second the press starts (as the world set it). RuntimeError when it refuses or is silent."""
-    ctx = zmq.Context.instance()
+    ctx: zmq.Context = zmq.Context.instance()
     s = ctx.socket(zmq.REQ)
     s.setsockopt(zmq.LINGER, 0)
     s.connect(f"tcp://127.0.0.1:{base_port + 2}")
@@ -126,7 +127,7 @@ class RealSkin:
     def gate_time(self, bridge: int, cycle: int) -> float:
         return self._crystals[bridge].tick_at(cycle) / CLOCK_HZ
 
-    def __enter__(self) -> RealSkin:
+    def __enter__(self) -> Self:
         self._err = open(self.path + ".err", "w+")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "cellbridge", "mesh", "up", self.path, "--base-port", str(self.base_port),

@@ -9,7 +9,7 @@ import subprocess
 import sys
 import time
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 
@@ -32,12 +32,12 @@ def best_rate(fn: Callable[[], object], n: int, repeats: int = 3) -> float:
     return n / best
 
 
-def row(cells: list[object], widths: list[int]) -> str:
+def row(cells: Sequence[object], widths: list[int]) -> str:
     """One table line: first column left-aligned, the others right-aligned."""
     return "  ".join(str(c).rjust(w) if i else str(c).ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
 
 
-def table(title: str, head: list[str], rows: list[list[object]]) -> None:
+def table(title: str, head: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
     """Print a titled table with a dashed rule under the header."""
     widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
     print(f"\n{title}")

@@ -3,8 +3,12 @@
 Hypothesis's per-example deadline is a timed assertion: on a shared two-core machine (CI,
 a laptop running the emulator) a slow example says nothing about the code, so the
 deadline is off everywhere; speed is measured by the scripts in bench/.
+
+Two guards run around every test: one fails a test that starts a process or a pty without
+the ``process`` mark, the other a test whose event loop closes with tasks still pending.
 """
 
+import asyncio
 import functools
 import os
 from collections.abc import Callable, Iterator
@@ -87,6 +91,7 @@ def pytest_configure(config: pytest.Config) -> None:
     _posixsubprocess.fork_exec = _guarded("fork_exec", _posixsubprocess.fork_exec)
     if getattr(subprocess, "_fork_exec", None) is not None:
         subprocess._fork_exec = _posixsubprocess.fork_exec  # type: ignore[attr-defined]
+    _watch_loops_close()
 
 
 @pytest.hookimpl(wrapper=True)
@@ -106,3 +111,64 @@ def _process_mark_is_honest(request: pytest.FixtureRequest) -> Iterator[None]:
         pytest.fail(f"this test starts processes or ptys ({', '.join(sorted(set(started)))}) but is not marked "
                     "`process`: add its module to PROCESS_MODULES or its fixture to PROCESS_FIXTURES "
                     "(tests/conftest.py)", pytrace=False)
+
+
+# -- no asyncio task outlives its test -----------------------------------------------------------
+#
+# ``asyncio.run`` (and ``asyncio.Runner``) cancels every task still pending when its coroutine
+# returns, and a loop closed by hand drops them: either way a task that the code under test
+# started and forgot (a reader never awaited, a timer never cancelled) vanishes without a word,
+# and in the daemon it would go on running. Every loop a test closes, through a runner or by
+# hand, in the test's thread or another, is looked at as it closes: a task still pending there
+# fails the test, named with where it waits.
+
+_leaked: dict[str, list[str]] = {}  # test id -> the tasks its loops closed on
+
+
+def _note_pending(loop: asyncio.AbstractEventLoop) -> None:
+    item = _running[0]
+    if item is None:
+        return
+    pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
+    if pending:
+        seen = _leaked.setdefault(item.nodeid, [])
+        seen += [d for d in map(_describe, pending) if d not in seen]
+
+
+def _describe(task: asyncio.Task[Any]) -> str:
+    frames = task.get_stack(limit=1)
+    where = f" at {frames[0].f_code.co_filename}:{frames[0].f_lineno}" if frames else ""
+    return f"{task.get_name()} ({getattr(task.get_coro(), '__qualname__', task.get_coro())}{where})"
+
+
+def _watch_loops_close() -> None:
+    """Look at a loop's tasks before a runner cancels them (``Runner.close``, which
+    ``asyncio.run`` calls) and before a loop closed by hand (``BaseEventLoop.close``) drops them."""
+    runner_close = asyncio.Runner.close
+    loop_close = asyncio.BaseEventLoop.close
+
+    @functools.wraps(runner_close)
+    def close_runner(self: asyncio.Runner) -> None:
+        loop = getattr(self, "_loop", None)  # None until the runner made one
+        if loop is not None and not loop.is_closed():
+            _note_pending(loop)
+        runner_close(self)
+
+    @functools.wraps(loop_close)
+    def close_loop(self: asyncio.BaseEventLoop) -> None:
+        if not self.is_closed():
+            _note_pending(self)
+        loop_close(self)
+
+    asyncio.Runner.close = close_runner  # type: ignore[method-assign]
+    asyncio.BaseEventLoop.close = close_loop  # type: ignore[method-assign]
+
+
+@pytest.fixture(autouse=True)
+def _no_task_outlives_its_test(request: pytest.FixtureRequest) -> Iterator[None]:
+    yield
+    leaked = _leaked.pop(request.node.nodeid, None)
+    if leaked:
+        pytest.fail(f"the event loop closed with {len(leaked)} task(s) still pending (cancelled or dropped "
+                    f"unawaited): {'; '.join(leaked)}. Cancel and await every task the test or the code under "
+                    "test starts before its loop ends.", pytrace=False)

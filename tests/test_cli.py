@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from cobs import cobs
-from protocol_v1 import encode_v1, encode_v3
+from support.protocol_v1 import encode_v1, encode_v3
 
 from cellbridge.protocol import (
     Beacon,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import subprocess
 from pathlib import Path
 
@@ -10,7 +11,7 @@ from cellbridge.daemon.capture import CaptureWriter, read_capture
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.links import SerialLink
 from daemon_harness import CLI, Client, Pty, daemon, write_config
-from shell_fakes import FakeClock, FakeDevice, until
+from support.shell_fakes import FakeClock, FakeDevice, until
 
 
 def test_a_restart_keeps_the_previous_capture(tmp_path: Path) -> None:
@@ -91,7 +92,7 @@ def test_a_wall_clock_step_does_not_enter_a_capture(tmp_path: Path) -> None:
                 clock.t += 0.5
                 dev.send(data)
                 want = sum(map(len, (b"\x00one\x00", b"two\x00", b"three\x00")[:k + 1]))
-                await until(lambda want=want: len(got) == want)
+                await until(functools.partial(lambda n: len(got) == n, want))
         finally:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)

@@ -14,8 +14,8 @@ from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.contact_schedule import TICK, ContactScheduler
 from cellbridge.daemon.offline import OfflineDaemon
 from cellbridge.daemon.pipeline import Pipeline
-from daemon_golden import CAPTURE
-from pipeline_helpers import worker
+from support.daemon_golden import CAPTURE
+from support.pipeline_helpers import worker
 
 READS = [(t, "gw", data) for t, data in read_capture(CAPTURE)]  # a 3x3 skin at 100 Hz, two presses
 
@@ -56,7 +56,7 @@ def test_every_estimate_with_contacts_is_published_and_the_first_without_then_no
 def test_reads_no_estimate_saw_are_counted_when_a_job_is_taken() -> None:
     p = Pipeline(config())
     sched = ContactScheduler(p, 100.0)
-    skipped = []
+    skipped: list[int] = []
     for t, link, data in READS:
         p.feed(link, data, t)
         sched.fed()

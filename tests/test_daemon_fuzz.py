@@ -11,7 +11,7 @@ from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream
 from daemon_traffic import Skin
-from pipeline_helpers import published, worker
+from support.pipeline_helpers import published, worker
 
 CFG = parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 2}})
 U64 = 2**64 - 1

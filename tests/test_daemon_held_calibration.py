@@ -158,6 +158,7 @@ def test_a_held_reading_stands_while_its_bridge_is_live_even_past_tau(heartbeat,
     press = 3 * heartbeat + 0.75 * heartbeat  # between two heartbeats
     read(UNDER[[1, 3]], press, PRESS)
     read(UNDER[[0, 2]], press + 0.01, PRESS)
+    assert skin.elements is not None
     cal = skin.elements.calibrator
     assert cal.touched[UNDER].all() and cal.touched.sum() == UNDER.shape[0]
     np.testing.assert_allclose(cal.baseline[UNDER], np.tile(REST, (4, 1)), atol=5e-15)
@@ -190,6 +191,7 @@ def test_held_readings_stand_across_a_bridge_joining_the_layout() -> None:
     under = UNDER + 1  # bridge ids of the rows under a corner press
     read(under[[1, 3]], 400, 4.006, np.asarray(PRESS))
     read(under[[0, 2]], 400, 4.012, np.asarray(PRESS))
+    assert skin.elements is not None
     cal = skin.elements.calibrator
     rows = skin.rows_of(under, np.zeros(4, dtype=np.int64))
     assert cal.touched[rows].all() and cal.touched.sum() == 4

@@ -9,6 +9,7 @@ as a real process with systemd's default descriptor limit and attack it over loo
 from __future__ import annotations
 
 import resource
+from typing import Any
 import socket
 import subprocess
 import sys
@@ -213,7 +214,7 @@ def test_requests_beyond_max_pending_are_answered_busy(tmp_path: Path) -> None:
             dealer.connect(endpoints["control"])
             for i in range(5):  # nobody answers the pings: each waits its timeout
                 dealer.send(msgpack.packb({"v": 1, "cmd": "ping", "bridge": 2, "timeout": 3.0, "id": i}))
-            replies = []
+            replies: list[dict[str, Any]] = []
             while len(replies) < 5 and dealer.poll(10_000):
                 replies.append(msgpack.unpackb(dealer.recv()))
             busy = [r for r in replies if "busy" in r.get("error", "")]

@@ -64,6 +64,13 @@ def test_a_bind_beyond_loopback_without_keys_is_refused_before_start(tmp_path: P
         assert "refusing to bind" in r.stderr and "0.0.0.0" in r.stderr and "[security]" in r.stderr
 
 
+def _key_pair(path: Path) -> tuple[bytes, bytes]:
+    """A client's (public, secret) keys, from its secret key file (which holds both)."""
+    public, secret = zmq.auth.load_certificate(str(path))
+    assert secret is not None, path
+    return public, secret
+
+
 def _status(ctx: zmq.Context, endpoint: str, server_public: bytes, client_pair: tuple[bytes, bytes] | None,
             timeout: float) -> dict | None:
     req = ctx.socket(zmq.REQ)
@@ -92,8 +99,7 @@ def test_with_curve_an_allowed_client_gets_replies_and_a_foreign_one_nothing(tmp
     with open(cfg, "a") as f:
         f.write(f'[security]\nserver_secret_file = "{keys / "server.key_secret"}"\nallowed_clients_dir = "{allowed}"\n')
     server_public, _ = zmq.auth.load_certificate(str(keys / "server.key"))
-    robot = zmq.auth.load_certificate(str(keys / "robot.key_secret"))
-    stranger = zmq.auth.load_certificate(str(keys / "stranger.key_secret"))
+    robot, stranger = (_key_pair(keys / f"{who}.key_secret") for who in ("robot", "stranger"))
     ctx = zmq.Context()
     try:
         with daemon(cfg):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 from pathlib import Path
 
 import msgpack
@@ -27,7 +28,7 @@ from cellbridge.protocol import (
 )
 from cellbridge.tactile import adc_code, grid_layout, layout_to_toml
 from daemon_traffic import CLOCK, Skin, staggered
-from pipeline_helpers import estimate, logged, published, snapshot, worker
+from support.pipeline_helpers import estimate, logged, published, snapshot, worker
 
 T0 = 1_700_000_000.0
 STRADDLE = (0.020, 0.006, 3.0, 0.012)  # on the seam of bridges 1 and 2
@@ -389,7 +390,11 @@ def test_contact_worker_warm_up_estimates_a_press() -> None:
 
     calls = []
     run = physics.ContactStage.run
-    physics.ContactStage.run = lambda self, snap: calls.append(run(self, snap)) or calls[-1]  # type: ignore[method-assign]  # the test counts the runs
+    def counted(self: physics.ContactStage, snap: Any) -> Any:  # the test counts the runs
+        calls.append(run(self, snap))
+        return calls[-1]
+
+    physics.ContactStage.run = counted  # type: ignore[method-assign]
     try:
         physics.warm_up()
     finally:
@@ -799,7 +804,7 @@ def test_a_contact_held_across_a_rebuild_keeps_its_id(cause: str) -> None:
     press(p, sk, STRADDLE, 120, 20)
     job = p.contact_job()
     assert job is not None
-    after = estimate(p, job)[1]["contacts"]  # type: ignore[arg-type]
+    after = estimate(p, job)[1]["contacts"]
     assert [c["id"] for c in after] == [before[0]["id"]]
     assert after[0]["force"] == pytest.approx(before[0]["force"], rel=0.05)
 

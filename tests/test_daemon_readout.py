@@ -13,7 +13,7 @@ import pytest
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from daemon_traffic import CLOCK, Skin
-from pipeline_helpers import published, worker
+from support.pipeline_helpers import published, worker
 
 T0 = 1_700_000_000.0
 SPAN = 0.004  # s: the records' readout span
@@ -112,7 +112,7 @@ def test_an_unchanged_element_keeps_its_reading_because_its_bridge_said_so() -> 
     for i in range(k + 1, k + 8):
         p.feed("gw", sk.readout(i, CORNER, unchanged=tuple(sk.ids)), arrive(sk, i))
         job = p.contact_job()
-        assert job is not None and not job.snapshot.unknown.any()
+        assert job is not None and job.snapshot.unknown is not None and not job.snapshot.unknown.any()
         msg = p.contact_frame(job, w.estimate_now(job)).payload
         (c,) = msg["contacts"]
         assert c["id"] == 0 and sorted(c["elements"]) == [6, 7, 10, 11] and c["unknown_near"] == []
@@ -130,11 +130,11 @@ def test_unchanged_after_a_missing_frame_is_unknown_until_the_next_sample() -> N
     p.feed("gw", sk.readout(k, SEAM, missing=(2,)), arrive(sk, k))  # bridge 2's sample of the press lost
     p.feed("gw", sk.readout(k + 1, SEAM, unchanged=(1, 2, 3, 4)), arrive(sk, k + 1))
     job = p.contact_job()
-    assert job is not None and job.snapshot.unknown.tolist() == [False, True, False, False]
+    assert job is not None and job.snapshot.unknown is not None and job.snapshot.unknown.tolist() == [False, True, False, False]
     p.feed("gw", sk.readout(k + 2, SEAM, unchanged=(1, 3, 4)), arrive(sk, k + 2))  # its next sample
     p.feed("gw", sk.readout(k + 3, SEAM, unchanged=(1, 2, 3, 4)), arrive(sk, k + 3))
     job = p.contact_job()
-    assert job is not None and not job.snapshot.unknown.any()
+    assert job is not None and job.snapshot.unknown is not None and not job.snapshot.unknown.any()
     assert sorted(job.snapshot.ids[job.snapshot.touched].tolist()) == [1, 2]
 
 
@@ -164,7 +164,7 @@ def test_a_frame_waits_for_the_second_gateway_until_its_deadline_then_its_elemen
     assert t_frame + SPAN + margin <= due <= t_frame + SPAN + margin + 0.00258 + 1e-6
     assert p.contact_job(due - 1e-4) is None
     job = p.contact_job(due)
-    assert job is not None and job.snapshot.unknown.tolist() == [False, False, True, True]
+    assert job is not None and job.snapshot.unknown is not None and job.snapshot.unknown.tolist() == [False, False, True, True]
     late = p.feed("gw2", sk.readout(k, SEAM, gateway=4, bridges=[3, 4]), due + 0.01)
     # (the frame's element messages, of bridges 1 and 2, come with the next read) a late record rewrites nothing
     assert [m["bridge"] for t, m in published(late) if t == "element"] == [[1, 2]]
@@ -181,7 +181,7 @@ def test_a_frame_whose_records_all_came_is_estimated_at_once_not_at_its_deadline
     p.feed("gw2", sk.readout(k, SEAM, gateway=4, bridges=[3, 4]), now)
     assert p.contact_due(now) == now
     job = p.contact_job(now)
-    assert job is not None and not job.snapshot.unknown.any()
+    assert job is not None and job.snapshot.unknown is not None and not job.snapshot.unknown.any()
     assert sorted(job.snapshot.ids[job.snapshot.touched].tolist()) == [1, 2]
 
 
@@ -225,11 +225,11 @@ def test_a_bridge_on_no_schedule_is_read_by_the_fallback_rule() -> None:
         p.feed("gw", sk.readout(k, bridges=[1, 2, 3]), arrive(sk, k))
         p.feed("gw", b"\x00" + sk.slot(k).split(b"\x00\x00")[3], arrive(sk, k))
     job = p.contact_job()
-    assert job is not None and not job.snapshot.unknown.any()
+    assert job is not None and job.snapshot.unknown is not None and not job.snapshot.unknown.any()
     for i in range(k + 1, k + 5):  # bridge 4 goes quiet: its reading grows older than a period
         p.feed("gw", sk.readout(i, bridges=[1, 2, 3]), arrive(sk, i))
     job = p.contact_job()
-    assert job is not None and job.snapshot.unknown.tolist() == [False, False, False, True]
+    assert job is not None and job.snapshot.unknown is not None and job.snapshot.unknown.tolist() == [False, False, False, True]
 
 
 def test_bridges_on_the_schedule_are_alive_though_they_send_no_frame_of_their_own() -> None:

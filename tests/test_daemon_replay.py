@@ -10,7 +10,7 @@ import pytest
 
 from cellbridge.daemon.capture import MAGIC, read_capture, write_capture
 from cellbridge.daemon.capture import CaptureError
-from daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise, pipeline_output
+from support.daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise, pipeline_output
 from daemon_harness import Client, Pty, daemon, write_config
 from daemon_traffic import Skin
 

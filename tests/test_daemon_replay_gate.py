@@ -18,8 +18,8 @@ import zmq.asyncio
 
 from cellbridge.daemon.config import load_config
 from cellbridge.daemon.service import Service
-from daemon_golden import CAPTURE, CONFIG
-from shell_fakes import RecordingHooks, until
+from support.daemon_golden import CAPTURE, CONFIG
+from support.shell_fakes import RecordingHooks, until
 
 
 class HungWarmUp(concurrent.futures.ThreadPoolExecutor):
@@ -83,10 +83,14 @@ def test_a_hung_warm_up_delays_a_finished_replay_by_the_warm_limit_once(tmp_path
 
     async def scenario() -> float:
         svc, ctx = _service(tmp_path, worker_timeout=0.5, contact_executor=lambda: HungWarmUp(1), drain_limit=0.5)
-        svc.REPLAY_WARM_LIMIT = limit  # type: ignore[misc]
+        svc.REPLAY_WARM_LIMIT = limit
         stopping: list[float] = []
         said = svc.hooks.stopping
-        svc.hooks.stopping = lambda: (stopping.append(time.monotonic()), said())  # type: ignore[method-assign]
+        def stopping_noted() -> None:
+            stopping.append(time.monotonic())
+            said()
+
+        svc.hooks.stopping = stopping_noted  # type: ignore[method-assign]
         t0 = time.monotonic()
         task = asyncio.create_task(svc.run())
         try:

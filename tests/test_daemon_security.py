@@ -112,7 +112,7 @@ def curve_server(keys: dict[str, Path], kind: int) -> Iterator[tuple[zmq.Context
     try:
         curve.apply(server)
         server.bind("tcp://127.0.0.1:*")
-        yield context, server, server.last_endpoint.decode(), curve
+        yield context, server, server.get_string(zmq.LAST_ENDPOINT), curve
     finally:
         server.close()
         curve.stop()
@@ -202,5 +202,5 @@ def test_stop_returns_when_the_zap_thread_has_died(keys: dict[str, Path]) -> Non
         assert not stopper.is_alive(), "CurveServer.stop() blocked"
         assert result == [True]
     finally:
-        if not curve._auth.pipe:  # (a blocked stop leaves its pipe open: the context would never end)
+        if curve._auth.pipe is None:  # (a blocked stop leaves its pipe open: the context would never end)
             context.term()

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 import zmq
 
-from cellbridge.protocol import Op, StreamDecoder
+from cellbridge.protocol import Command, Frame, Op, StreamDecoder
+from support.payloads import payload_as
 from daemon_harness import Client, Pty, daemon, write_config
 from daemon_traffic import Skin
 
@@ -178,14 +179,15 @@ def test_set_goes_down_the_pty_as_a_cmd_frame_and_the_reply_comes_back(rig) -> N
     req.connect(client.endpoints["control"])
     try:
         req.send(msgpack.packb({"v": 1, "cmd": "set", "param": "mode", "value": "adc", "bridge": 3}))
-        frames = []
+        frames: list[Frame] = []
         decoder = StreamDecoder()
         end = time.monotonic() + 5
         while not frames and time.monotonic() < end:
             frames = decoder.feed(pty.read(0.2))
         (cmd,) = frames
-        assert cmd.dst == 3 and cmd.payload.op == Op.SET_MODE and cmd.payload.value == 1
-        pty.write(sk.reply(3, cmd.payload.token, Op.SET_MODE))
+        sent = payload_as(cmd, Command)
+        assert cmd.dst == 3 and sent.op == Op.SET_MODE and sent.value == 1
+        pty.write(sk.reply(3, sent.token, Op.SET_MODE))
         assert req.poll(5000)
         rep = msgpack.unpackb(req.recv())
         assert rep["ok"] is True and rep["replies"]["3"]["status"] == "OK" and rep["sent_on"] == ["gw"]

@@ -35,8 +35,8 @@ from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import RecordingWriter
 from cellbridge.recording.recorder import Recorder
 from daemon_traffic import Skin
-from pipeline_helpers import published, worker
-from shell_fakes import FakeClock, FakeDevice, RecordingHooks, ScriptedExecutor, until
+from support.pipeline_helpers import published, worker
+from support.shell_fakes import FakeClock, FakeDevice, RecordingHooks, ScriptedExecutor, until
 
 STRADDLE = (0.020, 0.006, 3.0, 0.012)  # on the seam of bridges 1 and 2
 
@@ -484,8 +484,8 @@ def test_a_finished_replay_waits_for_the_contact_workers_warm_up(tmp_path: Path,
     """The worker's warm-up (on a fresh installation: compiling the kernels, about 20 s)
     outlasts the golden capture's replay. The daemon stopped as soon as the replay ended,
     gave the pending estimate a share of ``drain_limit`` and published no contact at all."""
-    from daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise
-    from shell_fakes import SlowStartExecutor
+    from support.daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise
+    from support.shell_fakes import SlowStartExecutor
 
     async def scenario() -> None:
         path = tmp_path / "replay.toml"
@@ -617,7 +617,7 @@ sys.path.insert(0, {tests!r})
 from cellbridge.daemon.config import load_config
 from cellbridge.daemon.contact_worker import InlineExecutor
 from cellbridge.daemon.service import Service
-from shell_fakes import FakeDevice, RecordingHooks
+from support.shell_fakes import FakeDevice, RecordingHooks
 
 
 class Hooks(RecordingHooks):

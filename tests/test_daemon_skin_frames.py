@@ -20,7 +20,7 @@ from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, Readout, StreamDecoder, encode_stream
 
-from pipeline_helpers import T0, drive
+from support.pipeline_helpers import T0, drive
 
 CORNER = (0.0585, 0.0625)  # across the corner of bridges 6, 7, 10 and 11 of a 4x4 grid
 UNDER = {6, 7, 10, 11}
@@ -165,7 +165,7 @@ def _with_index_moved(reads: list[tuple[float, bytes]], origin: int | None, afte
                 p = f.payload
                 if isinstance(p, Readout):
                     f.payload = dataclasses.replace(p, index=p.index + by)
-                else:
+                elif isinstance(p, Data):
                     f.payload = Data(p.mode, tuple(s._replace(index=s.index + by) for s in p.samples), p.oversampling,
                                      p.rate)
             if hit:

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import CurveKeys, CurveServer
 from cellbridge.daemon.subscribe import message_to_json
-from pub_helpers import json_lines, publisher, run_subscriber
+from support.pub_helpers import json_lines, publisher, run_subscriber
 from daemon_harness import CLI
 
 

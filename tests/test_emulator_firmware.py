@@ -14,8 +14,9 @@ from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, ScenarioError, World, parse_scenario
 from cellbridge.protocol import (
     SampleFlags,
-    ADDR_BROADCAST, Command, CommandReply, Flags, Frame, FrameType, Mode, Op, Status,
+    ADDR_BROADCAST, Command, CommandReply, Data, Flags, Frame, FrameType, Mode, Op, Status,
 )
+from support.payloads import payload_as
 
 if TYPE_CHECKING:
     from cellbridge.emulator.linklayer import LinkLayer
@@ -182,7 +183,8 @@ def test_commands_reach_their_target_and_reply() -> None:
     vm.host_write(1, cmd(104, 2, Op.RESET, token=15), at=1.4)
     r = vm.run(3.0)
     rep = replies(r.gateway_frames[1])
-    assert [x.token for x in rep[6]] == [11] and rep[6][0].value > 1.0 * CLOCK_HZ
+    assert [x.token for x in rep[6]] == [11]
+    assert rep[6][0].value is not None and rep[6][0].value > 1.0 * CLOCK_HZ
     assert rep[4][0].status is Status.OK
     assert rep[5][0].status is Status.BAD_VALUE
     assert len(rep[3]) == 1 and rep[3][0].status is Status.OK
@@ -206,11 +208,12 @@ def test_samples_taken_before_a_rate_change_go_out_at_the_rate_they_were_taken_a
     rates = set()
     for f in r.gateway_frames[1]:
         if f.origin == 2 and f.type is FrameType.DATA:
-            for s in f.payload.samples:  # type: ignore[union-attr]  # a DATA frame's payload is a Data
+            data = payload_as(f, Data)
+            for s in data.samples:
                 if not s.flags & SampleFlags.NO_MESH_TIME:
-                    rates.add(f.payload.rate)  # type: ignore[union-attr]  # as above
+                    rates.add(data.rate)
                     # in virtual time a chip's cycles are mesh time to within a crystal's drift
-                    assert abs(s.cycle / CLOCK_HZ - s.index / f.payload.rate) < 0.005, (f.payload.rate, s)  # type: ignore[union-attr]  # as above
+                    assert abs(s.cycle / CLOCK_HZ - s.index / data.rate) < 0.005, (data.rate, s)
     assert rates == {50, 100, 200}
 
 
@@ -220,13 +223,13 @@ def test_broadcast_command_reaches_every_bridge() -> None:
     vm.host_write(1, cmd(7, ADDR_BROADCAST, Op.SET_MODE, int(Mode.ADC), token=5), at=1.0)
     r = vm.run(2.5)
     assert set(replies(r.gateway_frames[1])) == set(mesh.ids)
-    late = [f for f in r.gateway_frames[1] if f.type is FrameType.DATA and f.payload.samples[0].cycle > 1.6 * CLOCK_HZ]
-    assert late and all(f.payload.mode is Mode.ADC and f.payload.oversampling == 16 for f in late)
+    late = [f for f in r.gateway_frames[1] if f.type is FrameType.DATA and payload_as(f, Data).samples[0].cycle > 1.6 * CLOCK_HZ]
+    assert late and all(payload_as(f, Data).mode is Mode.ADC and payload_as(f, Data).oversampling == 16 for f in late)
 
 
 def _data_rate(vm: VirtualMesh, lo: float, hi: float) -> float:
     frames = vm.result().gateway_frames[1]
-    n = sum(1 for f in frames if f.type is FrameType.DATA and lo * CLOCK_HZ <= f.payload.samples[0].cycle < hi * CLOCK_HZ)
+    n = sum(1 for f in frames if f.type is FrameType.DATA and lo * CLOCK_HZ <= payload_as(f, Data).samples[0].cycle < hi * CLOCK_HZ)
     return n / (hi - lo)
 
 
@@ -287,7 +290,11 @@ def test_event_reporting_lazy_sampling_sends_what_gate_by_gate_sampling_sends() 
                          settings=Settings(reporting=ReportingMode(40, 300)))
         written: list[tuple[int, bytes]] = []  # (tick, bytes) on the gateway's serial line
         serial_out = vm._gateway_out
-        vm._gateway_out = lambda b, data: (written.append((vm.tick, data)), serial_out(b, data))  # type: ignore[method-assign]  # the test taps the gateway's output
+        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
+            written.append((vm.tick, data))
+            serial_out(b, data)
+
+        vm._gateway_out = tapped  # type: ignore[method-assign]
         return vm.run(2.5).samples(), written
 
     (lazy_samples, lazy_frames), (eager_samples, eager_frames) = run(True), run(False)
@@ -310,7 +317,11 @@ def test_lazy_sampling_sends_what_gate_by_gate_sampling_sends_from_boot(bridges:
         vm = VirtualMesh(meshgen.line(bridges), seed=seed, lazy_sampling=lazy)
         written: list[tuple[int, bytes]] = []  # (tick, bytes) on the gateway's serial line
         serial_out = vm._gateway_out
-        vm._gateway_out = lambda b, data: (written.append((vm.tick, data)), serial_out(b, data))  # type: ignore[method-assign]  # the test taps the gateway's output
+        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
+            written.append((vm.tick, data))
+            serial_out(b, data)
+
+        vm._gateway_out = tapped  # type: ignore[method-assign]
         return vm.run(2.5).samples(), written
 
     (lazy_samples, lazy_frames), (eager_samples, eager_frames) = run(True), run(False)
@@ -454,7 +465,7 @@ def test_a_gateway_counts_the_garbage_the_host_writes() -> None:
     assert c.get("serial_rx_overlong", 0) >= 1
     assert sum(v for k, v in c.items() if k.startswith("serial_rx_") and k != "serial_rx_bytes_dropped") >= 2
     out = StreamDecoder().feed(fw.take_serial())
-    assert [f.payload.token for f in out if f.type is FrameType.CMD_REPLY] == [9]
+    assert [payload_as(f, CommandReply).token for f in out if f.type is FrameType.CMD_REPLY] == [9]
 
 
 def test_event_reporting_with_threshold_0_sends_every_change_only() -> None:
@@ -506,6 +517,13 @@ def _link() -> LinkLayer:
     return link
 
 
+def _due(link: LinkLayer) -> int:
+    """The link's next tick: these tests ask it only with a frame pending."""
+    tick = link.next_tick
+    assert tick is not None
+    return tick
+
+
 def _next_transmission(link, tick: int, parent: int, neighbours: set[int]) -> tuple[int, int]:
     """Run the link until it puts a frame on the cells: (tick, link destination)."""
     from cellbridge.protocol import peek as parse
@@ -513,7 +531,9 @@ def _next_transmission(link, tick: int, parent: int, neighbours: set[int]) -> tu
     for _ in range(100):
         out, _used = link.advance(tick, parent, 0, 10, neighbours)
         if out is not None:
-            return tick, parse(out[0])[1]
+            peeked = parse(out[0])
+            assert peeked is not None, out
+            return tick, peeked[1]
         tick = link.next_tick
     raise AssertionError("nothing was sent")
 
@@ -525,7 +545,7 @@ def test_a_parent_change_while_waiting_for_an_ack_retries_the_old_next_hop() -> 
     link = _link()
     t, dst = _next_transmission(link, 0, 2, {2, 3})
     assert dst == 2
-    t, dst = _next_transmission(link, link.next_tick, 3, {2, 3})  # parent is now 3
+    t, dst = _next_transmission(link, _due(link), 3, {2, 3})  # parent is now 3
     assert dst == 2 and link.counters["frames_requeued"] == 0
     assert link.acked(20, 9, 2) and link.inflight is None
 
@@ -533,7 +553,7 @@ def test_a_parent_change_while_waiting_for_an_ack_retries_the_old_next_hop() -> 
 def test_a_parent_change_sends_the_frame_to_the_new_parent_when_the_old_one_is_gone() -> None:
     link = _link()
     _next_transmission(link, 0, 2, {2, 3})
-    t, dst = _next_transmission(link, link.next_tick, 3, {3})  # 2 evicted: dead or a loop
+    t, dst = _next_transmission(link, _due(link), 3, {3})  # 2 evicted: dead or a loop
     assert dst == 3 and link.counters["frames_requeued"] == 1
     assert link.counters["tx_failed"] == 0  # a gone next hop is no link failure to count again
 
@@ -543,7 +563,7 @@ def test_a_late_ack_withdraws_the_retransmission_still_waiting_for_the_cell() ->
     # is contending: it is late, not lost, and the frame needs no second transmission.
     link = _link()
     _next_transmission(link, 0, 2, {2})
-    deadline = link.next_tick
+    deadline = _due(link)
     out, _ = link.advance(deadline, 2, 0, 10, {2})
     assert out is None and not link.radio.idle and link.counters["retries"] == 1  # contending
     assert link.acked(20, 9, 2)
@@ -608,16 +628,16 @@ def test_late_acks_lengthen_the_wait_for_the_next_ones() -> None:
 
     link = _link()
     t, _ = _next_transmission(link, 0, 2, {2})
-    first_wait = link.next_tick - link.radio.tx_until
-    deadline = link.next_tick
+    first_wait = _due(link) - link.radio.tx_until
+    deadline = _due(link)
     link.advance(deadline, 2, 0, 10, {2})  # the retransmission is contending
     late = CLOCK_HZ // 500  # the ACK comes 2 ms after the deadline
     assert link.acked(20, 9, 2, deadline + late)
     assert link.extra_wait == 2 * late
     assert link.enqueue(Raw(int(FrameType.DATA), 0, 20, 10, 2, 0, b""))
     _next_transmission(link, deadline + late, 2, {2})
-    assert link.next_tick - link.radio.tx_until == first_wait + 2 * late
-    assert link.acked(20, 10, 2, link.next_tick - 1)  # in time: the extra wait decays
+    assert _due(link) - link.radio.tx_until == first_wait + 2 * late
+    assert link.acked(20, 10, 2, _due(link) - 1)  # in time: the extra wait decays
     assert 0 < link.extra_wait < 2 * late
 
 
@@ -655,11 +675,11 @@ def test_aligned_batches_leave_in_depth_slots_deepest_first() -> None:
     own_waits = []
     for tick, chunk in vm.serial_chunks[1]:
         for f in dec.feed(chunk):
-            if f.type is FrameType.DATA and not any(x.flags & SampleFlags.NO_MESH_TIME for x in f.payload.samples):
-                j = f.payload.samples[0].index // 5
+            if f.type is FrameType.DATA and not any(x.flags & SampleFlags.NO_MESH_TIME for x in payload_as(f, Data).samples):
+                j = payload_as(f, Data).samples[0].index // 5
                 arrivals.setdefault(j, []).append((f.origin, tick))
                 if f.origin == 1:
-                    last = vm.nodes[1].crystal.tick_at(f.payload.samples[-1].cycle)
+                    last = vm.nodes[1].crystal.tick_at(payload_as(f, Data).samples[-1].cycle)
                     own_waits.append((tick - last) / CLOCK_HZ)
     whole = [a for j, a in sorted(arrivals.items()) if {o for o, _ in a} == {1, 2, 3, 4}][5:]
     assert len(whole) > 50
@@ -678,7 +698,7 @@ def test_aligned_batches_put_one_group_of_indices_in_each_frame_on_every_bridge(
     # max_latency 50 ms) at the same global instant: no DATA frame mixes two batches.
     vm = VirtualMesh(meshgen.grid(3, 3), seed=2, random_epochs=True, aligned_batches=True, readout=False)
     r = vm.run(6.0)
-    groups = [{s.index // 5 for s in f.payload.samples} for f in r.gateway_frames[1]
-              if f.type is FrameType.DATA and not any(s.flags & SampleFlags.NO_MESH_TIME for s in f.payload.samples)]
+    groups = [{s.index // 5 for s in payload_as(f, Data).samples} for f in r.gateway_frames[1]
+              if f.type is FrameType.DATA and not any(s.flags & SampleFlags.NO_MESH_TIME for s in payload_as(f, Data).samples)]
     assert len(groups) > 100
     assert all(len(g) == 1 for g in groups)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import random
 
-from protocol_wire import sealed
+from support.protocol_wire import sealed
 
 from cellbridge.emulator.medium import Medium
 from cellbridge.emulator.mesh import Bridge, Cell, Link, Mesh
@@ -68,9 +68,11 @@ def test_backoff_freezes_while_the_cell_is_busy() -> None:
     planned = radio.next_tick
     assert planned is not None and planned >= 40 * BIT  # DIFS first
     radio.carrier(1, 0, 10_000)  # someone else transmits from the start
-    assert radio.next_tick >= 10_000 + 40 * BIT
+    deferred = radio.next_tick
+    assert deferred is not None and deferred >= 10_000 + 40 * BIT
     assert radio.advance(5_000) is None
     start = radio.next_tick
+    assert start is not None
     assert radio.advance(start) == (b"f" * 30, (1,))
     assert start >= 10_000 + 40 * BIT and radio.tx_until == start + (30 * 8 + 16) * BIT
 

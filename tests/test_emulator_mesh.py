@@ -12,6 +12,8 @@ from hypothesis import given, settings, strategies as st
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import MeshError, mesh_to_toml, parse_mesh
+from cellbridge.protocol import Data
+from support.payloads import payload_as
 
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
 
@@ -150,7 +152,7 @@ def test_cli_run_in_virtual_time_with_scenario_and_capture(tmp_path: Path) -> No
     summary = json.loads(r.stdout)
     assert all(n > 100 for n in summary["samples_delivered"].values())
     frames = StreamDecoder().feed((out / "gateway-1.bin").read_bytes())
-    c1 = {s.cycle: s.c1 for f in frames if f.type is FrameType.DATA and f.origin == 3 for s in f.payload.samples}
+    c1 = {s.cycle: s.c1 for f in frames if f.type is FrameType.DATA and f.origin == 3 for s in payload_as(f, Data).samples}
     pressed = [v for cyc, v in c1.items() if 0.55e0 * 50e6 <= cyc < 0.85 * 50e6]
     idle = [v for cyc, v in c1.items() if cyc < 0.45 * 50e6]
     assert pressed and idle and max(pressed) < min(idle) - 100  # the press raised C1 of bridge 3

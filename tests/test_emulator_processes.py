@@ -19,8 +19,10 @@ from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.emulator.realtime import reporting_arg, reporting_text
 from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.protocol import Command, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
-from emulator_procs import (PY, Skin, data_by_origin, free_base_port,
+from support.emulator_procs import (PY, Skin, data_by_origin, free_base_port,
                             posing_bridges, processes_mentioning, running_medium, running_skin, terminate)
+from cellbridge.protocol import CommandReply
+from support.payloads import payload_as
 
 
 @pytest.fixture
@@ -54,7 +56,7 @@ def test_mesh_up_pty_press_kill_and_clean_stop(skin: Skin) -> None:
         # a command written to the pty reaches bridge 4 and its reply comes back
         pty.write(encode_stream(Frame(0, 4, 0, 500, Command(77, Op.PING), flags=int(Flags.ACK_REQUEST))))
         answers = [f for f in skin.read(pty, 2.0) if f.type is FrameType.CMD_REPLY]
-        assert [(f.origin, f.payload.token) for f in answers] == [(4, 77)]
+        assert [(f.origin, payload_as(f, CommandReply).token) for f in answers] == [(4, 77)]
 
         # the same stream on the TCP port, as pyserial's socket:// URL
         with serial.serial_for_url(url, timeout=0.1) as tcp:

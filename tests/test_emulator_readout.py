@@ -22,6 +22,7 @@ from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.virtual import VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import FrameType, Mode, Readout, ReadoutSample, Sample
+from support.payloads import payload_as
 
 Truth = dict[tuple[int, int], tuple[int, int, bool]]  # (bridge, index) -> (c1, c2, sent as a sample)
 
@@ -368,11 +369,11 @@ def test_at_boot_a_gateway_that_is_its_own_root_names_no_childs_frame_with_its_r
     vm = VirtualMesh(meshgen.grid(4, 4, gateways=(1, 16), loss=0.01), seed=5, random_epochs=True,
                      settings=Settings(rate_hz=100), readout=True)
     vm.run(4.0)
-    named = [f.payload.root for f in vm.frames[16] if f.type is FrameType.READOUT]  # type: ignore[attr-defined]
-    wrong = [(s.bridge, f.payload.index, f.payload.root, roots.get((s.bridge, f.payload.index)))  # type: ignore[attr-defined]
+    named = [payload_as(f, Readout).root for f in vm.frames[16] if f.type is FrameType.READOUT]
+    wrong = [(s.bridge, payload_as(f, Readout).index, payload_as(f, Readout).root, roots.get((s.bridge, payload_as(f, Readout).index)))
              for f in vm.frames[16] if f.type is FrameType.READOUT
-             for s in f.payload.samples  # type: ignore[attr-defined]
-             if roots.get((s.bridge, f.payload.index), 0) not in (0, f.payload.root)]  # type: ignore[attr-defined]
+             for s in payload_as(f, Readout).samples
+             if roots.get((s.bridge, payload_as(f, Readout).index), 0) not in (0, payload_as(f, Readout).root)]
     assert not wrong, wrong[:10]
     switches = [(a, b) for a, b in zip(named, named[1:]) if a != b]
     assert switches == [(16, 1)], switches[:10]

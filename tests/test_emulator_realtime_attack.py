@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from emulator_procs import PY, free_base_port, processes_mentioning, posing_bridges, running_medium, stop_and_sweep, terminate
+from support.emulator_procs import PY, free_base_port, processes_mentioning, posing_bridges, running_medium, stop_and_sweep, terminate
 
 from cellbridge.demo import gateway_line
 from cellbridge.emulator import meshgen

@@ -9,7 +9,7 @@ import time
 
 import pytest
 from daemon_harness import stop_session
-from emulator_procs import free_base_port
+from support.emulator_procs import free_base_port
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml

@@ -14,7 +14,7 @@ import pytest
 from cellbridge.demo import gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
-from emulator_procs import PY, free_base_port, running_skin, stop_and_sweep, terminate
+from support.emulator_procs import PY, free_base_port, running_skin, stop_and_sweep, terminate
 
 
 def _grid(tmp_path: Path, name: str = "skin.toml") -> Path:
@@ -68,7 +68,7 @@ def test_two_mesh_ups_started_at_once_on_one_base_port_one_runs_and_the_other_st
         assert b"cellbridge medium" not in err and b"cellbridge world" not in err, err
         assert gateway_line(winner)[:2] == ["gateway", "1"]  # the other skin runs, undisturbed
         time.sleep(1.0)
-        assert winner.poll() is None, winner.stderr.read() if winner.stderr else b""  # type: ignore[union-attr]
+        assert winner.poll() is None, winner.stderr.read() if winner.stderr else b""
     finally:
         for p, path in zip(procs, paths):
             stop_and_sweep(p, path)
@@ -109,7 +109,7 @@ def test_a_second_process_for_a_running_bridge_id_is_refused(tmp_path):
 
 
 def _processes(text: str) -> list[int]:
-    from emulator_procs import processes_mentioning
+    from support.emulator_procs import processes_mentioning
 
     return processes_mentioning(text)
 
@@ -128,7 +128,7 @@ def test_a_host_opening_the_gateway_pty_late_reads_no_seconds_old_frames(tmp_pat
     import serial
 
     from cellbridge.protocol import StreamDecoder
-    from emulator_procs import data_by_origin
+    from support.emulator_procs import data_by_origin
 
     with running_skin(tmp_path, "--readout", "off") as skin:  # (each sample's own cycle: DATA frames)
         device = skin.gateways[1][0]

@@ -10,6 +10,8 @@ from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
 from cellbridge.protocol import FrameType, SampleFlags
+from cellbridge.protocol import Data
+from support.payloads import payload_as
 
 PERIOD = CLOCK_HZ // 100  # 100 Hz
 BEACON_PERIOD = 0.5  # FirmwareConfig.trickle_imax
@@ -256,7 +258,7 @@ def test_samples_survive_a_restart_then_a_move_to_the_other_gateway() -> None:
     vm.kill(1, at=3.0)
     r = vm.run(8.0)
     delivered = {(f.origin, x.cycle) for fr in r.gateway_frames.values() for f in fr
-                 if f.type is FrameType.DATA for x in f.payload.samples}
+                 if f.type is FrameType.DATA for x in payload_as(f, Data).samples}
     got = r.samples()
     assert {f.origin for f in r.gateway_frames[5] if f.type is FrameType.DATA} >= {2}
     for b in mesh.ids:

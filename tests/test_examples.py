@@ -18,8 +18,8 @@ import zmq
 
 from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import CurveKeys, CurveServer
-from example_subscribers import c_subscriber, js_subscriber, py_subscriber
-from pub_helpers import json_lines, publisher, run_subscriber
+from support.example_subscribers import c_subscriber, js_subscriber, py_subscriber
+from support.pub_helpers import json_lines, publisher, run_subscriber
 
 EXAMPLE_COMMANDS: dict[str, Callable[[Path], list[str]]] = {
     "python": py_subscriber, "c": c_subscriber, "javascript": js_subscriber}

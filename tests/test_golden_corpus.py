@@ -1,13 +1,13 @@
 """The golden corpus (tests/data/golden/): the daemon's pipeline on each recording's serial
-channel gives the committed line-per-message output (see tests/golden_corpus.py)."""
+channel gives the committed line-per-message output (see tests/support/golden_corpus.py)."""
 
 from __future__ import annotations
 
 import pytest
 
-from golden_corpus import SCENARIOS, Scenario, daemon_output, diff, paths
+from support.golden_corpus import SCENARIOS, Scenario, daemon_output, diff, paths
 
-REGEN = "the daemon's output changed: if on purpose, run `.venv/bin/python tests/golden_corpus.py --regen` " \
+REGEN = "the daemon's output changed: if on purpose, run `.venv/bin/python tests/support/golden_corpus.py --regen` " \
         "and commit the reviewed `git diff tests/data/golden`"
 
 
@@ -48,7 +48,7 @@ def test_the_recordings_are_data_of_protocol_versions_up_to_3_read_through_the_f
     from cobs import cobs
 
     from cellbridge.protocol import FrameType
-    from golden_corpus import serial_reads
+    from support.golden_corpus import serial_reads
 
     for sc in SCENARIOS:
         versions, types = set(), set()

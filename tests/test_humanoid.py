@@ -16,6 +16,7 @@ from cellbridge.emulator.skin_mesh import mesh_from_skin
 from cellbridge.emulator.skin_traffic import SkinTraffic, readout_tree
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Readout, StreamDecoder
+from support.payloads import payload_as
 from cellbridge.skin_run import run_daemon_on_traffic
 
 HUMANOID = Path(__file__).resolve().parents[1] / "cellbridge" / "skins" / "humanoid.toml"
@@ -57,8 +58,8 @@ def test_frame_level_traffic_is_the_firmware_s_readout_records(skin) -> None:
     for t, g, data in reads:
         frames = StreamDecoder().feed(data)
         assert frames and all(f.origin == g for f in frames)
-        recs = [f.payload for f in frames]
-        assert all(isinstance(r, Readout) and f.src == g for r, f in zip(recs, frames))
+        recs = [payload_as(f, Readout) for f in frames]
+        assert all(f.src == g for f in frames)
         assert [r.part for r in recs] == list(range(recs[0].parts))
         assert all(r.index == 7 and r.rate == 100 and not r.missing and not r.unchanged for r in recs)
         seen += [s.bridge for r in recs for s in r.samples]

@@ -13,8 +13,8 @@ import msgpack
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import frames_of, messages_by_type
-from protocol_wire import sealed
+from support.protocol_strategies import frames_of, messages_by_type
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import MAX_FRAME, Frame, FrameType, ProtocolError, decode, encode
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN

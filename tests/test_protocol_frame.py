@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import pytest
+from typing import Any
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import frames_of, messages_by_type
-from protocol_wire import sealed
+from support.protocol_strategies import frames_of, messages_by_type
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     CRC_CHECK,
@@ -26,6 +27,8 @@ from cellbridge.protocol import (
     encode,
 )
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
+from cellbridge.protocol import Fragment, Readout
+from support.payloads import payload_as
 
 
 def test_crc_parameters() -> None:
@@ -66,6 +69,7 @@ def test_round_trip_every_type(ftype: FrameType, data: st.DataObject) -> None:
 
 def frame_bytes_estimate(frame: Frame) -> bytes:
     from cellbridge.protocol.messages import pack_payload
+    assert not isinstance(frame.payload, Fragment)
     return b"h" * (HEADER_LEN + CRC_LEN) + pack_payload(frame.payload)
 
 
@@ -166,7 +170,7 @@ def _v3_with(path: tuple[int, ...], value: object) -> list:
     """V3_GOOD with the field at ``path`` replaced by ``value`` (``...``: removed)."""
     import copy
     out = copy.deepcopy(V3_GOOD)
-    parent = out
+    parent: Any = out
     for i in path[:-1]:
         parent = parent[i]
     if value is ...:
@@ -242,7 +246,7 @@ def test_bad_beacon_time(payload: bytes) -> None:
 def test_bundle_cannot_nest() -> None:
     inner = Frame(3, 1, 3, 1, Beacon(1, 10, 1))
     outer = Frame(1, 0, 1, 2, Bundle((inner,)))
-    assert decode(encode(outer)).payload.frames == (inner,)
+    assert payload_as(decode(encode(outer)), Bundle).frames == (inner,)
     with pytest.raises(ProtocolError) as err:
         encode(Frame(1, 0, 1, 3, Bundle((outer,))))
     assert err.value.cause == "nested_bundle"
@@ -262,9 +266,8 @@ def test_a_bundle_carries_frames_of_its_own_version_only(outer: int, inner: int)
     frame relabelled): two byte strings for one frame. And a version 3 bundle delivered a
     version 4 READOUT, a type version 3 did not have."""
     import msgpack
-    from protocol_v1 import encode_old
+    from support.protocol_v1 import encode_old
 
-    from cellbridge.protocol import Readout
 
     def bundle_of(version: int, frames: list[bytes]) -> bytes:
         head = bytes([version]) + encode(Frame(1, 0, 1, 2, Bundle((Frame(3, 1, 3, 1, Beacon(1, 10, 1)),))))[1:HEADER_LEN]
@@ -272,7 +275,7 @@ def test_a_bundle_carries_frames_of_its_own_version_only(outer: int, inner: int)
 
     beacon = Frame(3, 1, 3, 1, Beacon(1, 10, 1))
     same = bundle_of(outer, [encode_old(beacon, outer) if outer < VERSION else encode(beacon)])
-    assert decode(same).payload.frames == (beacon,)  # the bundle's own version reads
+    assert payload_as(decode(same), Bundle).frames == (beacon,)  # the bundle's own version reads
     for inner_frame in (beacon, Frame(1, 0, 1, 1, Readout(5, 100, Mode.COUNTER, 1, (), (1,)))):
         if inner_frame.type is FrameType.READOUT and inner < 4:
             continue  # a READOUT of an older version is refused as an unknown type already
@@ -285,7 +288,7 @@ def test_a_bundle_carries_frames_of_its_own_version_only(outer: int, inner: int)
 @pytest.mark.parametrize("field,value", [("src", -1), ("seq", 0x10000), ("hops", 256), ("flags", 0x10),
                                          ("cost", 1.5)])
 def test_encode_rejects_out_of_range_fields(field: str, value) -> None:
-    kwargs = dict(src=1, dst=0, origin=1, seq=1, payload=Beacon(0, 0, 0))
+    kwargs: dict[str, Any] = dict(src=1, dst=0, origin=1, seq=1, payload=Beacon(0, 0, 0))
     kwargs[field] = value
     with pytest.raises(ProtocolError):
         encode(Frame(**kwargs))

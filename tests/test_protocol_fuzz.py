@@ -7,11 +7,12 @@ checksum into the header, fragment and msgpack parsers instead of dying at the C
 from __future__ import annotations
 
 import random
+from typing import Any
 
 from cobs import cobs
 import msgpack
-from protocol_v1 import encode_v1, encode_v2, encode_v3, same_header
-from protocol_wire import sealed
+from support.protocol_v1 import encode_v1, encode_v2, encode_v3, same_header
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     VERSION,
@@ -180,7 +181,7 @@ def test_fuzzed_readouts_raise_only_protocol_error() -> None:
     removed or added) either decode into a record whose invariants hold and that encodes back
     to the same bytes, or are dropped with ProtocolError: nothing else escapes."""
     rng = random.Random(20261128)
-    edges = [0, 1, 2, 3, 4, 127, 128, 255, 256, 65535, 65536, 2**32 - 1, 2**32, 2**64 - 1, -1, -32,
+    edges: list[Any] = [0, 1, 2, 3, 4, 127, 128, 255, 256, 65535, 65536, 2**32 - 1, 2**32, 2**64 - 1, -1, -32,
              None, True, 1.5, "x", [], [1], {}]
     bases = [r.to_wire() for r in [*READOUTS, BIG_READOUT]]
     head = encode(Frame(1, 0, 1, 7, READOUTS[0]))[:HEADER_LEN]

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 import tracemalloc
 
 import msgpack
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
-from protocol_strategies import data as data_strategy
-from protocol_wire import sealed
+from support.protocol_strategies import data as data_strategy
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     VERSION,
@@ -33,6 +34,8 @@ from cellbridge.protocol import (
 )
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
 from cellbridge.tactile import transfer
+from cellbridge.protocol import Hello, LinkAck
+from support.payloads import payload_as
 
 
 # -- 1. duplicate filter ------------------------------------------------------------------------
@@ -135,7 +138,7 @@ def test_other_origins_cannot_flush_an_origins_completions() -> None:
 def test_fragments_of_two_datagrams_with_one_tag_are_not_spliced() -> None:
     a, b = _datagram(100, 19000), _datagram(200, 17000)
     pa, pb = fragment(a, tag=7, max_frame=64), fragment(b, tag=7, max_frame=64)
-    assert len(pa) == len(pb) and pa[0].payload.total == pb[0].payload.total
+    assert len(pa) == len(pb) and payload_as(pa[0], Fragment).total == payload_as(pb[0], Fragment).total
     r = Reassembler()
     out = [r.receive(p, 0.0) for p in [pa[0], *pb[1:]]]
     assert out == [None] * len(out)
@@ -151,7 +154,7 @@ LINK_ACK_HEAD = bytes.fromhex("02000700010005000100370000 00".replace(" ", ""))
     "92 05 cd 01 2c",  # the canonical form, accepted
 ])
 def test_canonical_link_ack_is_accepted(payload: str) -> None:
-    assert decode(sealed(LINK_ACK_HEAD + bytes.fromhex(payload))).payload.seq == 300
+    assert payload_as(decode(sealed(LINK_ACK_HEAD + bytes.fromhex(payload))), LinkAck).seq == 300
 
 
 @pytest.mark.parametrize("payload", [
@@ -174,7 +177,7 @@ def _hello_wire(geometry: bytes, fw: bytes, boots: bytes = b"\x01") -> bytes:
 
 def test_hello_refuses_float32_geometry_and_str8_strings() -> None:
     f32 = b"".join(msgpack.packb(v, use_single_float=True) for v in (0.5, 0.25, 0.04))
-    assert decode(_hello_wire(_F64, b"\xa50.1.0")).payload.side == 0.04
+    assert payload_as(decode(_hello_wire(_F64, b"\xa50.1.0")), Hello).side == 0.04
     for bad in (_hello_wire(f32, b"\xa50.1.0"), _hello_wire(_F64, b"\xd9\x050.1.0")):
         with pytest.raises(ProtocolError) as err:
             decode(bad)
@@ -193,7 +196,7 @@ _F64 = b"".join(b"\xcb" + msgpack.packb(v, use_single_float=False)[1:] for v in 
 def test_hello_boots_is_a_canonical_u32(boots: bytes, accepted: int | None) -> None:
     wire = _hello_wire(_F64, b"\xa50.1.0", boots)
     if accepted is not None:
-        assert decode(wire).payload.boots == accepted
+        assert payload_as(decode(wire), Hello).boots == accepted
         return
     with pytest.raises(ProtocolError) as err:
         decode(wire)
@@ -218,7 +221,7 @@ def test_data_ranges_depend_on_the_mode(mode: int, over: int, c1: int) -> None:
 
 @pytest.mark.parametrize("mode,over,c1", [(0, 1, 65535), (1, 4, 255 * 4), (1, 65535, 255 * 65535)])
 def test_data_ranges_at_their_limits_are_accepted(mode: int, over: int, c1: int) -> None:
-    assert decode(_data_wire(mode, over, c1)).payload.samples[0].c1 == c1
+    assert payload_as(decode(_data_wire(mode, over, c1)), Data).samples[0].c1 == c1
 
 
 def test_bundle_refuses_fragments() -> None:
@@ -285,7 +288,7 @@ def test_stream_feed_does_not_split_a_large_chunk_in_memory() -> None:
     finally:
         tracemalloc.stop()
     assert peak < len(chunk) // 10  # the old decoder split the whole chunk: more than its size again
-    c = d.counters()
+    c: dict[str, Any] = d.counters()  # nested counts, read as the test knows them
     assert c["delimiters"] == 50_000 and c["frames_dropped"] == {"cobs": 50_000}
     assert c["bytes_in"] == c["bytes_ok"] + sum(c["bytes_dropped"].values()) + c["delimiters"] + d.buffered
 
@@ -305,7 +308,7 @@ def test_every_decodable_data_payload_is_accepted_by_tactile(payload: Data) -> N
         wire = encode(Frame(7, 0, 7, 1, payload))
     except ProtocolError:
         return  # too many samples for one frame
-    decoded = decode(wire).payload
+    decoded = payload_as(decode(wire), Data)
     if not decoded.samples:
         return
     c = np.array([[s.c1, s.c2] for s in decoded.samples], dtype=np.int64)

@@ -18,9 +18,9 @@ import pytest
 from cobs import cobs
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import readouts
-from protocol_v1 import encode_old
-from protocol_wire import sealed
+from support.protocol_strategies import readouts
+from support.protocol_v1 import encode_old
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     MAX_FRAME,
@@ -41,6 +41,7 @@ from cellbridge.protocol import (
     fragment,
 )
 from cellbridge.protocol.frame import HEADER_LEN
+from support.payloads import payload_as
 
 U16, U32, U64 = 0xFFFF, 2**32 - 1, 2**64 - 1
 SAMPLES, UNCHANGED, MISSING = 4, 5, 6  # positions of the three lists in the wire array
@@ -99,11 +100,11 @@ def test_a_readout_round_trips_whole_or_fragmented(r: Readout) -> None:
         rx = Reassembler()
         assert [w for w in (rx.receive(decode(encode(p)), 0.0) for p in pieces) if w] == [frame]
         return
-    assert wire[0] == VERSION == 4 and wire[2] == FrameType.READOUT == 9
+    assert wire[0] == VERSION == 4 and wire[2] == FrameType.READOUT.value == 9
     got = decode(wire)
     assert got == frame and encode(got) == wire  # one record, one byte string
-    assert got.payload.bridges() == len(r.samples) + len(r.unchanged) + len(r.missing)
-    assert _valid_elements(got.payload)
+    assert payload_as(got, Readout).bridges() == len(r.samples) + len(r.unchanged) + len(r.missing)
+    assert _valid_elements(payload_as(got, Readout))
 
 
 @SETTINGS
@@ -307,7 +308,7 @@ def test_a_fragment_of_a_readout_older_than_version_4_cannot_be_encoded(version:
     with pytest.raises(ProtocolError) as err:
         encode(Frame(1, 0, 1, 7, Fragment(FrameType.READOUT, 3, 0, 10, b"abc", version)))
     assert err.value.cause == "type"
-    assert decode(encode(Frame(1, 0, 1, 7, Fragment(FrameType.READOUT, 3, 0, 10, b"abc", 4)))).payload.version == 4
+    assert payload_as(decode(encode(Frame(1, 0, 1, 7, Fragment(FrameType.READOUT, 3, 0, 10, b"abc", 4)))), Fragment).version == 4
 
 
 # -- sizes (docs/protocol.md §4, READOUT: cost per element) ---------------------------------
@@ -367,7 +368,7 @@ def test_the_host_delivers_every_part_of_a_record_once_and_reassembles_a_fragmen
     got = [f for t, frame in enumerate([part0, part1, part0, pieces[0], pieces[2], pieces[0], pieces[1], pieces[2],
                                         part1, pieces[1]]) for f in rx.receive(frame, t * 0.001)]
     assert got == [part0, part1, big]
-    counters = rx.counters()
+    counters: dict[str, Any] = rx.counters()  # nested counts, read as the test knows them
     assert counters["dedupe"]["duplicates"] == 2  # part0 and part1 again
     assert counters["reassembly"]["drops"].get("duplicate_fragment", 0) + \
         counters["reassembly"]["drops"].get("late_duplicate", 0) == 3

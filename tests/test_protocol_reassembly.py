@@ -8,7 +8,7 @@ import random
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
-from protocol_wire import sealed
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     MAX_FRAME,

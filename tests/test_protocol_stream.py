@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import tracemalloc
+from typing import Any
 
 from cobs import cobs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import simple_frames
+from support.protocol_strategies import simple_frames
 
 from cellbridge.protocol import Beacon, Frame, StreamDecoder, encode, encode_stream
 from cellbridge.protocol.stream import max_encoded_len
@@ -40,14 +41,14 @@ def _feed_in_chunks(decoder: StreamDecoder, stream: bytes, cuts: list[int]) -> l
     one_byte_at_a_time=st.booleans(),
 )
 def test_stream_yields_exactly_the_intact_frames(frames, damage, cuts, one_byte_at_a_time) -> None:
-    stream = bytearray(b"".join(encode_stream(f) for f in frames))
+    data = bytearray(b"".join(encode_stream(f) for f in frames))
     for pos, kind, junk in damage:
-        pos %= len(stream)
+        pos %= len(data)
         if kind == "flip":
-            stream[pos] ^= junk[0] or 0x5A
+            data[pos] ^= junk[0] or 0x5A
         else:
-            stream[pos:pos] = junk
-    stream = bytes(stream)
+            data[pos:pos] = junk
+    stream = bytes(data)
     # Oracle: a frame is intact when its exact encoding still stands between two delimiters.
     segments = stream.split(b"\x00")
     by_encoding = {cobs.encode(encode(f)): f for f in frames}
@@ -126,7 +127,7 @@ def test_a_memoryview_of_wide_items_is_counted_in_bytes() -> None:
     words = array.array("H", frame + b"\x00" * (len(frame) % 2))  # the stream in 16-bit words
     d = StreamDecoder()
     assert len(d.feed(memoryview(words))) == 1
-    c = d.counters()
+    c: dict[str, Any] = d.counters()  # nested counts, read as the test knows them
     assert c["bytes_in"] == len(words) * 2
     assert c["bytes_in"] == c["bytes_ok"] + sum(c["bytes_dropped"].values()) + c["delimiters"] + c["buffered"]
 
@@ -143,7 +144,7 @@ def test_frames_a_consumer_leaves_in_feed_iter_are_counted_not_lost() -> None:
         taken.append(f)
         if len(taken) == 5:
             break
-    c = d.counters()
+    c: dict[str, Any] = d.counters()
     # Decoded and not taken: frames abandoned; never read (later windows): bytes abandoned.
     assert c["frames_ok"] == 5 and 0 < c["frames_dropped"]["abandoned"] < len(frames) - 5
     assert c["bytes_ok"] == 5 * len(encode_stream(frames[0])[1:-1]) and c["bytes_dropped"]["abandoned"] > 0
@@ -152,5 +153,5 @@ def test_frames_a_consumer_leaves_in_feed_iter_are_counted_not_lost() -> None:
     # The next chunk starts mid-frame (the rest of this one was never read): resynchronised.
     tail = encode_stream(frames[0])
     assert d.feed(tail[10:] + tail) == [frames[0]]
-    c = d.counters()
-    assert c["bytes_in"] == c["bytes_ok"] + sum(c["bytes_dropped"].values()) + c["delimiters"] + c["buffered"]
+    after: dict[str, Any] = d.counters()
+    assert after["bytes_in"] == after["bytes_ok"] + sum(after["bytes_dropped"].values()) + after["delimiters"] + after["buffered"]

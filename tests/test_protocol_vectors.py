@@ -1,6 +1,6 @@
 """The test vectors of docs/protocol.md, read from the document itself.
 
-``tests/protocol_doc_vectors.py`` regenerates their bytes; the first test here checks that
+``tests/support/protocol_doc_vectors.py`` regenerates their bytes; the first test here checks that
 the document holds what it would write, so a vector can neither drift from the encoder nor
 be edited by hand into another truth.
 """
@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from protocol_doc_vectors import SPEC, regenerate
+from support.protocol_doc_vectors import SPEC, regenerate
 
 from cellbridge.protocol import (
     VERSION,
@@ -29,6 +29,8 @@ from cellbridge.protocol import (
 )
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
 from cellbridge.decode import frame_to_json
+from cellbridge.protocol import Data
+from support.payloads import payload_as
 
 BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1|-v2|-v3)?)\n(.*?)```", re.S)
 
@@ -66,8 +68,8 @@ NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 
 
 def test_the_vectors_in_the_document_are_current() -> None:
-    """What ``tests/protocol_doc_vectors.py`` would write is what the document holds (run it
-    after a change of the encoding: ``.venv/bin/python tests/protocol_doc_vectors.py``)."""
+    """What ``tests/support/protocol_doc_vectors.py`` would write is what the document holds (run it
+    after a change of the encoding: ``.venv/bin/python tests/support/protocol_doc_vectors.py``)."""
     text = SPEC.read_text()
     assert len(BLOCK.findall(text)) >= 30
     assert regenerate(text) == text
@@ -128,7 +130,7 @@ def test_vector(vector: dict[str, str]) -> None:
                          ids=lambda v: _json(v)["type"] if isinstance(v, dict) else f"v{v}")
 def test_an_older_version_vector_is_still_read(version: int, vector: dict[str, str]) -> None:
     frame, wire, _ = _read(vector, version)
-    assert frame.payload.period == 0  # versions 1 and 2 had none: their samples are all absolute
+    assert payload_as(frame, Data).period == 0  # versions 1 and 2 had none: their samples are all absolute
     encoded = bytes.fromhex(vector["encoded"])
     assert encoded[0] == VERSION and encode(frame) == encoded  # the canonical re-encoding is version 4
     assert encoded[1:HEADER_LEN] == wire[1:HEADER_LEN] and decode(encoded) == frame

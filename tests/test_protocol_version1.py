@@ -11,9 +11,9 @@ import msgpack
 import pytest
 from cobs import cobs
 from hypothesis import HealthCheck, assume, given, settings
-from protocol_strategies import frames_v3
-from protocol_v1 import as_read_from_v1, encode_v1, payload_v1, read_back
-from protocol_wire import sealed
+from support.protocol_strategies import frames_v3
+from support.protocol_v1 import as_read_from_v1, encode_v1, payload_v1, read_back
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import (
     MAX_FRAME,

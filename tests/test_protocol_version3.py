@@ -10,14 +10,16 @@ READOUT): a version 3 frame reads as today's and is written back as version 4.
 from __future__ import annotations
 
 import random
+from typing import Any
 
 import msgpack
 import pytest
 from cobs import cobs
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from protocol_strategies import frames_v3
-from protocol_v1 import as_read_from_v2, encode_v2, encode_v3, read_back
+from support.protocol_strategies import frames_v3
+from support.protocol_v1 import as_read_from_v2, encode_v2, encode_v3, read_back
+from support.payloads import payload_as
 
 from cellbridge.protocol import (
     MAX_FRAME,
@@ -95,7 +97,7 @@ def test_packed_data_round_trips_every_sample_a_chip_can_send(drawn: tuple, rate
     assert wire[0] == VERSION == 4
     assert decode(wire) == frame and encode(decode(wire)) == wire
     # every rebuilt cycle and index is in its u64 range (the decoder wraps, never overflows)
-    assert all(0 <= s.cycle <= U64 and 0 <= s.index <= U64 for s in decode(wire).payload.samples)
+    assert all(0 <= s.cycle <= U64 and 0 <= s.index <= U64 for s in payload_as(decode(wire), Data).samples)
 
 
 @settings(max_examples=200, suppress_health_check=[HealthCheck.too_slow])
@@ -165,7 +167,7 @@ def test_a_residual_or_step_outside_signed_64_bit_is_refused_not_wrapped() -> No
         assert err.value.cause == "payload"
     body = head + msgpack.packb([0, 1, [[0, 5, 0, 0, 0, 0], [0, -(2**63), 0, 0, 0, -(2**63)]], 100, 10])
     got = decode(body + _crc(body))
-    assert got.payload.samples[1] == Sample(0, (5 - 2**63 * 10 - 2**63) & U64, 0, 0, 0, 2**63)
+    assert payload_as(got, Data).samples[1] == Sample(0, (5 - 2**63 * 10 - 2**63) & U64, 0, 0, 0, 2**63)
     assert encode(got) == body + _crc(body)
 
 
@@ -238,7 +240,7 @@ def test_fuzzed_packed_data_raises_only_protocol_error() -> None:
     or other types) either decode into samples in range that encode back to the same bytes,
     or are dropped with ProtocolError: nothing else escapes."""
     rng = random.Random(20261124)
-    edges = [0, 1, -1, 127, 128, -32, -33, 2**16, 2**32, 2**63 - 1, 2**63, -(2**63), U64, None, True, 1.5, "x", []]
+    edges: list[Any] = [0, 1, -1, 127, 128, -32, -33, 2**16, 2**32, 2**63 - 1, 2**63, -(2**63), U64, None, True, 1.5, "x", []]
     base = Data(Mode.COUNTER, _periodic(6, 9_000_000_123, 18_000), 1, 100, 500_000).to_wire()
     head = encode(Frame(7, 0, 7, 1, Data(Mode.COUNTER, (), 1, 100, 10)))[:HEADER_LEN]
     decoded = 0
@@ -267,6 +269,6 @@ def test_fuzzed_packed_data_raises_only_protocol_error() -> None:
         except ProtocolError:
             continue
         decoded += 1
-        assert all(0 <= s.cycle <= U64 and 0 <= s.index <= U64 for s in frame.payload.samples)
+        assert all(0 <= s.cycle <= U64 and 0 <= s.index <= U64 for s in payload_as(frame, Data).samples)
         assert encode(frame) == wire
     assert decoded > 1000  # the fuzzer reached the packed samples' arithmetic, not only the checks

@@ -18,8 +18,8 @@ import zmq
 from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import apply_client
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
-from pub_helpers import json_lines, run_subscriber
-from example_subscribers import c_subscriber
+from support.pub_helpers import json_lines, run_subscriber
+from support.example_subscribers import c_subscriber
 
 
 def _proxy_cmd(front: str, backs: list[str], *extra: str) -> list[str]:
@@ -119,7 +119,7 @@ def test_proxy_names_a_bad_backend(bad: str) -> None:
 def test_a_curve_daemon_behind_the_proxy_is_reached_with_its_key_and_the_proxys_own(tmp_path: Path) -> None:
     """CURVE on the back side: a publisher that allows only the proxy's key, next to a plain one."""
     from cellbridge.daemon.security import CurveKeys, CurveServer
-    from pub_helpers import publisher
+    from support.pub_helpers import publisher
 
     (tmp_path / "allowed").mkdir()
     server_pub, server_secret = write_keypair(tmp_path, "daemon")

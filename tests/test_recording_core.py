@@ -91,7 +91,7 @@ def test_a_finished_file_opens_with_the_mcap_reader_indexed(tmp_path: Path) -> N
     with open(tmp_path / "a.mcap", "rb") as fh:
         reader = make_reader(fh)
         summary = reader.get_summary()
-        assert summary is not None and summary.statistics.message_count == 50
+        assert summary is not None and summary.statistics is not None and summary.statistics.message_count == 50
         assert {c.topic for c in summary.channels.values()} == {"element"}
         (schema,) = summary.schemas.values()
         assert schema.encoding == "jsonschema" and schema.name == "cellbridge.element"

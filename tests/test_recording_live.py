@@ -22,7 +22,7 @@ from mcap.reader import make_reader
 from cellbridge.recording import codec
 from cellbridge.tactile import DEFAULT_NOISE
 from cellbridge.recording.mcapfile import ReadResult, read_messages
-from daemon_golden import CAPTURE, CONFIG, CONTACT_REL, CONTACT_TOL
+from support.daemon_golden import CAPTURE, CONFIG, CONTACT_REL, CONTACT_TOL
 from daemon_harness import Client, daemon, write_config
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from recording_helpers import same_payload
@@ -234,10 +234,10 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
     for p, q in pairs:
         assert len(p["contacts"]) == len(q["contacts"])
         for x, y in zip(sorted(p["contacts"], key=lambda c: c["x"]), sorted(q["contacts"], key=lambda c: c["x"])):
-            for k, tol in CONTACT_TOL.items():
-                assert abs(x[k] - y[k]) <= tol, (k, x[k], y[k])
-            for k, rel in CONTACT_REL.items():
-                assert math.isclose(x[k], y[k], rel_tol=rel), (k, x[k], y[k])
+            for key, tol in CONTACT_TOL.items():
+                assert abs(x[key] - y[key]) <= tol, (key, x[key], y[key])
+            for key, rel in CONTACT_REL.items():
+                assert math.isclose(x[key], y[key], rel_tol=rel), (key, x[key], y[key])
             assert sorted(x["elements"]) == sorted(y["elements"])
 
 

@@ -355,7 +355,7 @@ def test_a_chunk_damaged_in_place_is_skipped_named_and_the_rest_is_info_and_repl
         proc = subprocess.Popen([*CLI, "replay", str(path), "--fast", "--wait-subscriber", "--endpoint",
                                  f"tcp://127.0.0.1:{port}"], stderr=subprocess.PIPE, text=True,
                                 start_new_session=True)
-        got = []
+        got: list[tuple[str, int]] = []
         try:
             while len(got) < len(every) - len(lost) and sub.poll(30_000):
                 topic, payload = sub.recv_multipart()

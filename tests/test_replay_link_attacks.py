@@ -4,6 +4,7 @@ ends late, a replay far behind, a recording whose times step back."""
 from __future__ import annotations
 
 import asyncio
+from typing import Any
 import time
 from pathlib import Path
 
@@ -12,7 +13,7 @@ from cellbridge.daemon.config import LinkConfig
 from cellbridge.daemon.links import ReplayLink
 
 
-def _link(path: Path, speed: float, clock: str, on_data) -> ReplayLink:  # type: ignore[no-untyped-def]
+def _link(path: Path, speed: float, clock: str, on_data) -> ReplayLink:
     return ReplayLink(LinkConfig(name="gw", url=f"replay:{path}", replay_speed=speed, replay_clock=clock),
                       on_data, lambda *a: None)
 
@@ -96,7 +97,7 @@ def test_a_recording_that_steps_back_is_not_counted_late(tmp_path: Path) -> None
     asyncio.run(asyncio.wait_for(link.run(), 10))
     stamps = [s for s, _ in fed]
     assert all(b >= a for a, b in zip(stamps, stamps[1:]))
-    st = link.stats()
+    st: dict[str, Any] = link.stats()
     # (a busy machine may wake a sleep a few ms late: that is late; the 0.3 s step is not)
     assert st["replay_late_max"] < 0.1, f"{st['replay_late']} records counted late (max {st['replay_late_max']:.3f} s)"
 

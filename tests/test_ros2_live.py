@@ -2,7 +2,7 @@
 
 The daemon reads synthesized gateway traffic of a 3×3 skin from a pty (view_harness): a
 2 N press across the seam of bridges 2 and 5. ``cellbridge ros2`` runs as a real process;
-the test is a second DDS participant (tests/ros2_peer.py: types generated from the .msg
+the test is a second DDS participant (bench/ros2_peer.py: types generated from the .msg
 text by another parser) on loopback, on a domain and namespace of its own so parallel
 tests never see each other.
 """
@@ -135,7 +135,7 @@ def test_a_second_participant_receives_the_press_in_tactile_msgs_as_the_daemon_p
             assert names["cellbridge: link gw"].message == "connected"
             stop_session(proc)
             assert proc.returncode == 0
-            stats = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
+            stats = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])
             assert stats["published"]["contacts"] >= matched and stats["malformed"] == 0
     finally:
         peer.close()
@@ -202,7 +202,7 @@ def test_a_restarted_daemon_is_picked_up_again_and_a_killed_bridge_leaves_nothin
                     proc.wait(15)
                     if sig == signal.SIGTERM:
                         assert proc.returncode == 0
-                        stats = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])  # type: ignore[union-attr]
+                        stats = json.loads(proc.stderr.read().decode().strip().splitlines()[-1])
                         assert stats["daemon_restarts"] >= 1
                     assert not _session_alive(proc.pid), "a process of cellbridge ros2 outlived it"
                     # its DDS writers go: at once after SIGTERM (deleted), after their lease after SIGKILL

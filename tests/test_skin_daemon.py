@@ -15,7 +15,7 @@ from cellbridge.emulator.skin_mesh import mesh_from_skin
 from cellbridge.emulator.world import Contact, World
 from cellbridge.skin_run import run_daemon_on_skin
 from cellbridge.tactile.skin_geometry import parse_skin
-from skin_descriptions import SKIN
+from support.skin_descriptions import SKIN
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ import pytest
 from cellbridge.tactile import ContactEstimator, ContactTracker, skin_response
 from cellbridge.tactile.seam_estimator import SeamEstimator
 from cellbridge.tactile.skin_geometry import SkinError, parse_skin, pose_matrix
-from skin_descriptions import SKIN
+from support.skin_descriptions import SKIN
 
 
 @pytest.fixture(scope="module")

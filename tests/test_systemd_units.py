@@ -77,6 +77,7 @@ def test_mesh_unit_runs_mesh_up() -> None:
 @needs_analyze
 def test_systemd_analyze_verify_passes(tmp_path: Path) -> None:
     copies = installed_copies(tmp_path)
+    assert ANALYZE is not None
     out = subprocess.run([ANALYZE, "verify", *map(str, copies)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     complaints = [ln for ln in out.stderr.splitlines() if "cellbridge" in ln]
@@ -87,6 +88,7 @@ def test_systemd_analyze_verify_passes(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("unit", "limit"), [("cellbridge-daemon.service", 2.0), ("cellbridge-mesh.service", 2.0)])
 def test_exposure_is_at_most(unit: str, limit: float, tmp_path: Path) -> None:
     copy = next(p for p in installed_copies(tmp_path) if p.name == unit)
+    assert ANALYZE is not None
     out = subprocess.run([ANALYZE, "security", "--offline=yes", str(copy)], capture_output=True, text=True,
                          timeout=120)
     match = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", out.stdout)

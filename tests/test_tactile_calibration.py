@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 import pytest
@@ -454,7 +455,7 @@ def test_an_untouched_skin_stays_untouched_for_an_hour_of_drift_steps_and_outage
     for k in range(t.size):
         touched |= cal.update(t[k], v[k]).touched
     assert not touched.any()
-    assert cal.rebaselines.sum() == 0 and cal.health()["common_jumps"] >= 5  # the upward steps
+    assert cal.rebaselines.sum() == 0 and cast(int, cal.health()["common_jumps"]) >= 5  # the upward steps
     last = cal.update(3600.0, 20 * pF + temp[-1] * scale + swing[-1] + steps[-1])
     assert np.abs(last.delta).max() < 25 * fF
 
@@ -618,7 +619,7 @@ def test_counts_in_the_config_refuse_booleans_with_a_value_error():
     for args in ((True, 2), (2, True), ("3", 2)):
         with pytest.raises(ValueError, match="n_"):
             Calibrator(*args)
-    assert Calibrator(np.int64(3), np.int32(2), CalibrationConfig(n_baseline=np.int16(5))).n_elements == 3
+    assert Calibrator(np.int64(3), np.int32(2), CalibrationConfig(n_baseline=np.int16(5))).n_elements == 3  # type: ignore[arg-type]  # numpy integers, on purpose
 
 
 def test_readings_in_picofarads_with_thresholds_in_farads_are_refused():
@@ -848,8 +849,10 @@ def test_is_contact_is_asked_only_of_readings_it_decides_and_answers_alike():
     a = Calibrator(n, 2, cfg, is_contact=counting)
     b = Calibrator(n, 2, cfg, is_contact=surf)
     # b asks of every live reading (a finite ΔC), as each step did before it asked fewer
-    b._contact_readings = lambda rows, delta: Calibrator._contact_readings(  # type: ignore[method-assign]
-        b, np.isfinite(delta).all(axis=1), delta)
+    def every_live(rows: np.ndarray, delta: np.ndarray) -> np.ndarray | None:
+        return Calibrator._contact_readings(b, np.asarray(np.isfinite(delta).all(axis=1)), delta)
+
+    b._contact_readings = every_live  # type: ignore[method-assign,assignment]
     rng = np.random.default_rng(3)
     base = np.full((n, 2), 20 * pF)
     for k in range(3):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 import math
 
 import numpy as np
@@ -18,7 +19,7 @@ from cellbridge.tactile.contacts import (
     force_centroid,
 )
 from cellbridge.tactile.element import ElementParams
-from cellbridge.tactile.layout import grid_layout
+from cellbridge.tactile.layout import SkinLayout, grid_layout
 from cellbridge.tactile.response import skin_response
 from cellbridge.tactile.transfer import counter_delta, counts_per_farad
 
@@ -28,17 +29,17 @@ P = ElementParams()
 MM = 1e-3
 
 
-def measure(contacts, lay=LAY, **kw):
+def measure(contacts: Any, lay: SkinLayout = LAY, **kw: Any) -> tuple[np.ndarray, np.ndarray]:
     return skin_response(lay, contacts, **kw)
 
 
-def quantised(dc1, dc2, rng):
+def quantised(dc1: np.ndarray, dc2: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
     """What one 2 ms counter gate per channel reports, as ΔC against the rest value."""
     return [counter_delta(dc, rest, rng.uniform(0, 1, dc.shape)) for dc, rest in ((dc1, P.C1_rest), (dc2, P.C2_rest))]
 
 
 # Rms of one counter reading: at most half a count.
-COUNTER_NOISE = (0.5 / counts_per_farad(P.C1_rest), 0.5 / counts_per_farad(P.C2_rest))
+COUNTER_NOISE = (float(0.5 / counts_per_farad(P.C1_rest)), float(0.5 / counts_per_farad(P.C2_rest)))
 
 
 # ------------------------------------------------------------------------ clusters
@@ -186,9 +187,9 @@ def test_two_separate_contacts_are_two_clusters():
 def test_straddling_contact_located_within_1mm_and_centroid_is_worse(off, y, f):
     d = 0.010
     x = 0.020 + off
-    c = EST.estimate(*measure([x, y, f, d]))
-    assert len(c) == 1
-    c = c[0]
+    found = EST.estimate(*measure([x, y, f, d]))
+    assert len(found) == 1
+    c = found[0]
     assert c.elements == (0, 1) and c.valid and c.fit_ok
     # Across the seam the position is observed: the model-based estimate is within
     # 1 mm (in fact µm), the centroid tens of millimetres off.

@@ -74,7 +74,7 @@ def x_bisect(sigma: float, E: float) -> float:
         mid = math.sqrt(lo) * math.sqrt(hi) if hi > 4 * lo else 0.5 * (lo + hi)
         if mid in (lo, hi):
             break
-        if sigma_of_compression(np.float64(mid), E, 1.0, 0.0) < sigma:
+        if sigma_of_compression(np.float64(mid), E, 1.0, 0.0) < sigma:  # type: ignore[arg-type]  # elementwise: a scalar too
             lo = mid
         else:
             hi = mid
@@ -152,7 +152,7 @@ def test_root_satisfies_eq2(log_u, E, d, frac0):
     x = dd / (d - d0)
     if x < 0.5:
         # σ back from Δd, written without cancellation: tight relative residual.
-        back = float(sigma_of_compression(np.float64(dd), E, d, d0))
+        back = float(sigma_of_compression(np.float64(dd), E, d, d0))  # type: ignore[arg-type]  # elementwise: a scalar too
         assert back == approx(sigma, rel=1e-12)
     else:
         # Δd near saturation fixes λ = 1 − x only to a few ulp of 1 (absolute), so

@@ -179,7 +179,7 @@ def test_more_noise_never_widens_the_valid_region():
         if prev is not None:
             assert not (ok & ~prev).any()
         prev = ok
-    assert prev.any()
+    assert prev is not None and prev.any()
 
 
 def test_predicted_noise_matches_monte_carlo():

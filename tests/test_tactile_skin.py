@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -156,7 +157,7 @@ def test_layout_validation():
     with pytest.raises(ValueError, match="overlap"):
         SkinLayout(np.array([[0.0, 0.0], [0.03, 0.0]]), side=0.04)
     with pytest.raises(ValueError, match="unique"):
-        SkinLayout(np.array([[0.0, 0.0], [0.04, 0.0]]), ids=[1, 1])
+        SkinLayout(np.array([[0.0, 0.0], [0.04, 0.0]]), ids=np.array([1, 1]))
     with pytest.raises(ValueError):
         SkinLayout(np.zeros((2, 3)))
     with pytest.raises(ValueError):
@@ -242,7 +243,7 @@ def test_straddling_contact_splits_by_overlap_at_one_pressure():
 def test_contributions_add(contacts):
     c = np.array(contacts)
     # Keep the disks apart (the model's assumption): drop any that overlaps an earlier one.
-    keep = []
+    keep: list[int] = []
     for i in range(len(c)):
         if all(np.hypot(*(c[i, :2] - c[j, :2])) > (c[i, 3] + c[j, 3]) / 2 for j in keep):
             keep.append(i)
@@ -359,13 +360,14 @@ def _refused_naming(text: str, key: str) -> None:
 
 
 def test_grid_layout_checks_its_arguments():
-    for kwargs, key in [({"rows": math.inf}, "rows"), ({"rows": True}, "rows"),
+    cases: list[tuple[dict[str, Any], str]] = [({"rows": math.inf}, "rows"), ({"rows": True}, "rows"),
                         ({"first_id": 1.7}, "first_id"), ({"pitch": "0.04"}, "pitch"),
-                        ({"origin": (0.0, math.nan)}, "origin"), ({"side": math.inf}, "side")]:
+                        ({"origin": (0.0, math.nan)}, "origin"), ({"side": math.inf}, "side")]
+    for kwargs, key in cases:
         args = {"rows": 2, "cols": 2} | kwargs
         with pytest.raises(ValueError, match=key):
             grid_layout(**args)
-    assert list(grid_layout(np.int64(1), 2, first_id=np.int32(4)).ids) == [4, 5]
+    assert list(grid_layout(np.int64(1), 2, first_id=np.int32(4)).ids) == [4, 5]  # type: ignore[arg-type]  # numpy integers, on purpose
     assert grid_layout(1, 2, pitch=1).side == 1.0  # an integer is a number of metres
 
 
@@ -442,7 +444,7 @@ def test_layout_ids_outside_int64_are_refused_not_wrapped():
     for ids in (np.array([2**64 - 1, 2**63], dtype=np.uint64), np.array([2.0**63, 0.0]),
                 np.array([1e300, 2e300])):
         with pytest.raises(ValueError, match="ids"):
-            SkinLayout(xy, ids=ids)
+            SkinLayout(xy, ids=ids)  # type: ignore[arg-type]  # ids no int64 holds, on purpose
     assert list(SkinLayout(xy, ids=np.array([2**63 - 1, 0], dtype=np.uint64)).ids) == [2**63 - 1, 0]
 
 
@@ -453,9 +455,9 @@ def test_index_of_and_neighbours_refuse_what_is_not_an_integer():
     with pytest.raises(ValueError, match="id"):
         lay.index_of([2**70])  # used to raise OverflowError
     with pytest.raises(ValueError, match="index"):
-        lay.neighbours(1.5)  # used to return no neighbours
-    assert list(lay.index_of([3.0, np.int32(1)])) == [3, 1]
-    assert list(lay.neighbours(np.int64(1))) == [0, 3]
+        lay.neighbours(1.5)  # type: ignore[arg-type]  # used to return no neighbours
+    assert list(lay.index_of([3.0, np.int32(1)])) == [3, 1]  # type: ignore[arg-type]  # integral float and numpy ids, on purpose
+    assert list(lay.neighbours(np.int64(1))) == [0, 3]  # type: ignore[arg-type]  # a numpy integer, on purpose
 
 
 @pytest.mark.parametrize("r", [1.0, 1e3, 1e5, 1e8, 1e200])

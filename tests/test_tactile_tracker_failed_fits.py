@@ -41,7 +41,7 @@ def test_a_corner_press_with_two_diagonal_onsets_late_keeps_one_id() -> None:
     # and 4 without 1 and 3, finds one press, and the split-off waits.
     import numpy as np
 
-    import tracker_frames as t
+    from support import tracker_frames as t
 
     rng = np.random.default_rng(41)
     press = t.CORNER_PRESS

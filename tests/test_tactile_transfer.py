@@ -496,7 +496,7 @@ def test_integer_chip_parameters_refuse_booleans():
             ChipParams(**{name: True})
     with pytest.raises(ValueError, match="resync"):
         CounterUnwrapper(C_REST * 0.9, C_REST + 20e-12, CHIP, resync=True)
-    assert ChipParams(gate_cycles=np.int64(50_000)).gate_cycles == 50_000
+    assert ChipParams(gate_cycles=np.int64(50_000)).gate_cycles == 50_000  # type: ignore[arg-type]  # a numpy integer, on purpose
 
 
 def test_unwrapper_refuses_a_sampled_mask_it_would_read_across_channels():

@@ -1,4 +1,4 @@
-"""The three views fed 10 000 random and mistyped daemon messages (tests/view_fuzz.py), as
+"""The three views fed 10 000 random and mistyped daemon messages (tests/support/view_fuzz.py), as
 real processes: none exits, the web page keeps receiving (and drawing) frames afterwards
 and shows what comes after, Foxglove keeps publishing, and ``cellbridge watch`` writes no
 control sequence it did not make itself (none of the messages' escape sequences, raw).
@@ -25,8 +25,8 @@ import pytest
 from daemon_harness import CLI
 from fake_daemon import FakeDaemon, grid_layout
 from pty_terminal import pty_program
-from view_clients import WebPage, args, cell, foreign_sequences, server_view
-from view_fuzz import SOURCE, messages, odd_value, topology
+from support.view_clients import WebPage, args, cell, foreign_sequences, server_view
+from support.view_fuzz import SOURCE, messages, odd_value, topology
 
 N = 10_000
 SEED = int(os.environ.get("CELLBRIDGE_FUZZ_SEED", "30"))

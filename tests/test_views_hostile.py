@@ -18,13 +18,14 @@ import time
 from typing import Any
 
 import pytest
+from websockets.typing import Origin, Subprotocol
 
 from daemon_harness import CLI
 from fake_daemon import FakeDaemon, grid_layout
 from pty_terminal import PtyProgram, pty_program
-from view_clients import WebPage, args, cell, foreign_sequences, server_view
+from support.view_clients import WebPage, args, cell, foreign_sequences, server_view
 
-FOXGLOVE = ["foxglove.sdk.v1"]
+FOXGLOVE = [Subprotocol("foxglove.sdk.v1")]
 
 
 def element(seq: int, forces: dict[int, float], source: str = "robot:5560") -> dict[str, Any]:
@@ -87,8 +88,8 @@ def test_web_answers_only_its_own_page_and_its_own_names() -> None:
             assert refused.value.response.status_code == 403, origin
         assert upgrade_status(port, f"evil.example:{port}", f"http://evil.example:{port}", "/ws").startswith(
             b"HTTP/1.1 403")  # DNS rebinding: same-origin, but not a name of this server
-        for origin in (f"http://127.0.0.1:{port}", None):  # the page itself; a program
-            page = WebPage(port, origin)
+        for page_origin in (f"http://127.0.0.1:{port}", None):  # the page itself; a program
+            page = WebPage(port, page_origin)
             try:
                 fd.publish("health", health(0))
                 assert page.frame()["type"] == "frame"
@@ -112,17 +113,15 @@ def test_foxglove_admits_the_desktop_app_and_foxgloves_web_app_only() -> None:
     with FakeDaemon() as fd, server_view("foxglove", fd) as (fx, port):
         for origin in ("http://evil.example", f"http://127.0.0.1:{port + 1}", "null"):
             with pytest.raises(InvalidStatus) as refused:
-                with connect(f"ws://127.0.0.1:{port}", origin=origin, subprotocols=FOXGLOVE,  # type: ignore[arg-type]
-                             open_timeout=10):
+                with connect(f"ws://127.0.0.1:{port}", origin=Origin(origin), subprotocols=FOXGLOVE, open_timeout=10):
                     pass
             assert refused.value.response.status_code == 403, origin
         assert upgrade_status(port, f"evil.example:{port}", None).startswith(b"HTTP/1.1 403")
-        for origin in (None, "https://app.foxglove.dev"):
-            with connect(f"ws://127.0.0.1:{port}", origin=origin, subprotocols=FOXGLOVE,  # type: ignore[arg-type]
-                         open_timeout=10) as ws:
+        for admitted in (None, Origin("https://app.foxglove.dev")):
+            with connect(f"ws://127.0.0.1:{port}", origin=admitted, subprotocols=FOXGLOVE, open_timeout=10) as ws:
                 assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
     with FakeDaemon() as fd, server_view("foxglove", fd, "--allow-origin", "http://localhost:3000") as (fx, port):
-        with connect(f"ws://127.0.0.1:{port}", origin="http://localhost:3000", subprotocols=FOXGLOVE,  # type: ignore[arg-type]
+        with connect(f"ws://127.0.0.1:{port}", origin=Origin("http://localhost:3000"), subprotocols=FOXGLOVE,
                      open_timeout=10) as ws:
             assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
 
@@ -138,7 +137,7 @@ def _foxglove_elements(port: int, pred: Any, timeout: float = 20.0) -> dict[str,
     try:
         client.wait_channels([TOPICS["elements"]])
         client.subscribe(TOPICS["elements"])
-        return client.next_message(TOPICS["elements"], timeout=timeout, pred=pred)[1]  # type: ignore[no-any-return]
+        return client.next_message(TOPICS["elements"], timeout=timeout, pred=pred)[1]
     finally:
         client.close()
 
@@ -280,7 +279,7 @@ def test_a_view_closes_its_clients_and_exits_at_once_on_sigterm(kind: str, signa
 
     with FakeDaemon() as fd, server_view(kind, fd) as (view, port):
         url = f"ws://127.0.0.1:{port}" + ("/ws" if kind == "web" else "")
-        with connect(url, subprotocols=FOXGLOVE if kind == "foxglove" else None,  # type: ignore[arg-type]
+        with connect(url, subprotocols=FOXGLOVE if kind == "foxglove" else None,
                      open_timeout=10, max_size=1 << 26) as ws:
             fd.publish("health", health(0))
             ws.recv(timeout=10)

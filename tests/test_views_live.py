@@ -29,7 +29,7 @@ import pytest
 
 from browser import CHROMIUM, browser
 from cellbridge.views.model import level_rgb
-from view_clients import PICTURES, picture, pixel
+from support.view_clients import PICTURES, picture, pixel
 from view_harness import CLI, PRESSED, Client, daemon, fed_skin, free_port, skin_config, view_process, wait_ready
 
 TMUX = shutil.which("tmux")
@@ -341,9 +341,10 @@ def test_foxglove_advertises_and_sends_the_grid_and_contacts_as_published(live: 
             assert client.subprotocol == subprotocol
             client.wait_channels(list(TOPICS.values()))
             grid_ch, scene_ch = client.by_topic(TOPICS["grid"]), client.by_topic(TOPICS["scene"])
+            assert grid_ch is not None and scene_ch is not None
             assert (grid_ch["encoding"], grid_ch["schemaName"]) == ("protobuf", "foxglove.Grid")
             assert (scene_ch["encoding"], scene_ch["schemaName"]) == ("protobuf", "foxglove.SceneUpdate")
-            assert all(client.by_topic(TOPICS[k])["encoding"] == "json" for k in ("elements", "health", "contacts"))
+            assert all((client.by_topic(TOPICS[k]) or {}).get("encoding") == "json" for k in ("elements", "health", "contacts"))
             for k in ("grid", "scene", "elements", "health"):
                 client.subscribe(TOPICS[k])
             pub.update()

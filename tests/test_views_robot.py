@@ -1,4 +1,4 @@
-"""The views of a skin on a robot (tests/robot_payloads.py: the arm's topology and contacts as
+"""The views of a skin on a robot (bench/robot_payloads.py: the arm's topology and contacts as
 the daemon makes them), as real processes fed by a stand-in daemon over loopback ZeroMQ:
 
 - ``cellbridge foxglove`` to a client of the Foxglove protocol that decodes the advertised
@@ -30,7 +30,7 @@ import robot_payloads as rp
 from browser import CHROMIUM, browser
 from fake_daemon import FakeDaemon
 from pty_terminal import pty_program
-from view_clients import args, picture, pixel, server_view
+from support.view_clients import args, picture, pixel, server_view
 from view_harness import CLI
 
 from cellbridge.views.model import level_rgb
@@ -97,11 +97,11 @@ def test_foxglove_draws_the_patches_on_their_links_and_each_contact_as_an_arrow_
                         continue
                     if isinstance(msg, str) or msg[0] != 1:
                         continue
-                    t = topic_of.get(struct.unpack_from("<I", msg, 1)[0])
-                    if t is not None and t not in got:
-                        m = decode[t](msg[13:])
-                        if done[t](m):
-                            got[t] = m
+                    topic = topic_of.get(struct.unpack_from("<I", msg, 1)[0])
+                    if topic is not None and topic not in got:
+                        m = decode[topic](msg[13:])
+                        if done[topic](m):
+                            got[topic] = m
             assert len(got) == 3, (list(got), fx.poll())
         finally:
             client.close()

@@ -74,7 +74,7 @@ def front() -> Iterator[tuple[SubprotocolFront, object]]:
         server.stop()
 
 
-def _connect(port: int, subprotocols: list[str]):  # type: ignore[no-untyped-def]
+def _connect(port: int, subprotocols: list[str]):
     from websockets.sync.client import connect
 
     return connect(f"ws://127.0.0.1:{port}", subprotocols=subprotocols, open_timeout=10)  # type: ignore[arg-type]

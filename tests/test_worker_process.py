@@ -15,7 +15,7 @@ from collections.abc import Iterator
 import pytest
 
 from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
-from process_state import gone, until_gone
+from support.process_state import gone, until_gone
 
 
 @pytest.fixture
@@ -29,7 +29,7 @@ def worker() -> Iterator[WorkerProcess]:
 
 
 class Unpicklable(Exception):
-    def __reduce__(self) -> tuple:  # type: ignore[type-arg]
+    def __reduce__(self) -> tuple:
         raise TypeError("not this one")
 
 

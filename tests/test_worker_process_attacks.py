@@ -6,6 +6,7 @@ Each test is bounded: hangs are detected with timeouts, every process started is
 from __future__ import annotations
 
 import concurrent.futures
+from typing import Any
 import gc
 import logging
 import os
@@ -21,7 +22,7 @@ import pytest
 from cellbridge.daemon import contact_worker
 from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
-from process_state import gone, until_gone
+from support.process_state import gone, until_gone
 
 
 def _end(w: WorkerProcess) -> None:
@@ -165,7 +166,7 @@ def test_the_worker_survives_a_sigterm_to_the_process_group_as_it_does_a_ctrl_c(
 class _DeadPool(concurrent.futures.Executor):
     """A worker that died (e.g. under systemd's SIGTERM): every job fails as broken."""
 
-    def submit(self, fn, /, *args, **kwargs):  # type: ignore[no-untyped-def]
+    def submit(self, fn, /, *args, **kwargs):
         f: concurrent.futures.Future[object] = concurrent.futures.Future()
         f.set_exception(BrokenWorker("the contact worker process ended"))
         return f
@@ -190,7 +191,7 @@ def test_a_stopping_contact_worker_does_not_start_a_new_process() -> None:
     cw = ContactWorker(logging.getLogger("attack"), factory)
     cw.start()
     cw.stop()
-    job = SimpleNamespace(snapshot=SimpleNamespace(touched=SimpleNamespace(any=lambda: True)),
+    job: Any = SimpleNamespace(snapshot=SimpleNamespace(touched=SimpleNamespace(any=lambda: True)),  # what estimate reads
                           spec=SimpleNamespace(max_missed=3))
     assert asyncio.run(cw.estimate(job, 1.0)) is None  # the dead worker: BrokenProcessPool -> _replace
     assert asyncio.run(cw.estimate(job, 1.0)) is None  # the drain's last look
@@ -225,7 +226,7 @@ def test_a_daemon_exiting_with_a_stopped_worker_still_exits() -> None:
             if p and not gone(p):
                 os.kill(p, signal.SIGKILL)
         parent.wait(5)
-        if parent.stdout:
+        if parent.stdout is not None:
             parent.stdout.close()
 
 
@@ -309,7 +310,7 @@ def _estimate_raising(job: object) -> None:
     raise TwoArgs("estimate", "failed")
 
 
-def test_a_first_estimate_whose_exception_does_not_unpickle_does_not_hang_the_contact_worker(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+def test_a_first_estimate_whose_exception_does_not_unpickle_does_not_hang_the_contact_worker(monkeypatch) -> None:
     """ContactWorker.estimate waits with no timeout until the worker has answered once (its
     warm-up): the reader thread that died on the unpickling leaves the future pending for
     ever, and contact estimation stops for good without a word (busy stays True)."""
@@ -354,7 +355,7 @@ def test_a_ctrl_c_while_the_worker_starts_does_not_kill_it() -> None:
         _end(w)
 
 
-def _estimate_maybe_hang(job: SimpleNamespace) -> list:  # type: ignore[type-arg]
+def _estimate_maybe_hang(job: SimpleNamespace) -> list:
     if job.hang:
         time.sleep(3600)
     return []
@@ -364,7 +365,7 @@ def _no_warm_up() -> None:
     return None
 
 
-def test_a_replacement_worker_that_hangs_too_is_caught_by_the_timeout(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+def test_a_replacement_worker_that_hangs_too_is_caught_by_the_timeout(monkeypatch) -> None:
     """(Pre-existing design, found on the way.) After a hung estimate is killed and replaced,
     _answered is False: the new worker's first estimate waits with no timeout at all. An
     input that hangs the estimator (the newest snapshot is much like the one that hung the

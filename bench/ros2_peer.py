@@ -69,9 +69,9 @@ class PeerTypes:
         if kind == Nodetype.NAME:
             return self[detail]
         if kind == Nodetype.SEQUENCE:
-            return idl.sequence[self._field_type(detail[0])]
+            return idl.sequence[self._field_type(detail[0])]  # type: ignore[misc]  # generic at run time, not in its types
         if kind == Nodetype.ARRAY:
-            return idl.array[self._field_type(detail[0]), detail[1]]
+            return idl.array[self._field_type(detail[0]), detail[1]]  # type: ignore[misc]  # as above
         raise TypeError(f"no DDS type for {node}")
 
     def _make(self, name: str) -> type:
@@ -97,7 +97,7 @@ class Peer:
         """Read ``topic`` (a ROS 2 name) of ``ros_type``; best effort or reliable as ROS 2 readers ask."""
         qos = Qos(Policy.Reliability.Reliable(duration(seconds=1)) if reliable else Policy.Reliability.BestEffort,
                   Policy.History.KeepLast(1000), Policy.Durability.Volatile)
-        t = Topic(self.participant, "rt" + topic, self.types[ros_type])
+        t: Topic[Any] = Topic(self.participant, "rt" + topic, self.types[ros_type])
         self.readers[topic] = DataReader(self.participant, t, qos=qos)
         self.got[topic] = []
 

@@ -11,6 +11,7 @@ skin's time is then a line in true time. At 12 s gateway 1 is back.
 from __future__ import annotations
 
 from typing import Callable, Literal
+import functools
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh
@@ -37,7 +38,7 @@ def root_goes_and_returns(seed: int, how: How) -> tuple[Mesh, VirtualMesh]:
     if how == "cut":
         for c in next(b for b in mesh.bridges if b.id == ROOT).cells:
             vm.cut(c, at=GONE_AT)
-            vm.at(BACK_AT, lambda c=c: vm.medium.restore_cell(c))
+            vm.at(BACK_AT, functools.partial(vm.medium.restore_cell, c))
     else:
         vm.kill(ROOT, at=GONE_AT)
         vm.restart(ROOT, at=BACK_AT)

@@ -19,6 +19,7 @@ from cellbridge.protocol import (
     Data,
     Frame,
     Hello,
+    Message,
     Mode,
     Op,
     Readout,
@@ -51,7 +52,7 @@ class Skin:
     def ids(self) -> list[int]:
         return [int(b) for b in self.layout.ids]
 
-    def _frame(self, origin: int, payload: object) -> bytes:
+    def _frame(self, origin: int, payload: Message) -> bytes:
         seq = self.seq[origin]
         self.seq[origin] = (seq + 1) & 0xFFFF
         return encode_stream(Frame(src=self.gateway, dst=0, origin=origin, seq=seq, payload=payload,

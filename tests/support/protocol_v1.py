@@ -22,7 +22,7 @@ import struct
 from typing import Any
 
 import msgpack
-from protocol_wire import sealed
+from support.protocol_wire import sealed
 
 from cellbridge.protocol import Beacon, Bundle, Data, Frame, Hello, SampleFlags
 from cellbridge.protocol.frame import HEADER_LEN

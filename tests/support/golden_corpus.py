@@ -12,11 +12,11 @@ made (the same note is in each recording's ``cellbridge`` metadata).
 
 Commands (from the repository root)::
 
-    .venv/bin/python tests/golden_corpus.py --regen     # the daemon's output changed on purpose:
+    .venv/bin/python tests/support/golden_corpus.py --regen     # the daemon's output changed on purpose:
                                                         # rewrite every .chk from the recordings
-    .venv/bin/python tests/golden_corpus.py --remake    # the emulator changed: run the mesh again,
+    .venv/bin/python tests/support/golden_corpus.py --remake    # the emulator changed: run the mesh again,
                                                         # rewrite the recordings and the .chk files
-    .venv/bin/python tests/golden_corpus.py --diff      # what would change, as a unified diff
+    .venv/bin/python tests/support/golden_corpus.py --diff      # what would change, as a unified diff
 
 then review ``git diff tests/data/golden`` and commit it with the change that caused it.
 """
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-DATA = Path(__file__).parent / "data" / "golden"
+DATA = Path(__file__).resolve().parents[1] / "data" / "golden"
 T0 = 1_750_000_000.0  #: host time (epoch) of virtual time 0
 READ_GRAIN = 0.001  #: s; a host read returns what arrived within this (a pty read's batching)
 
@@ -178,8 +178,8 @@ def host_reads(chunks: list[tuple[float, bytes]], transform: str) -> list[tuple[
         else:
             reads.append((at, bytearray(data)))
     out = []
-    for i, (t, data) in enumerate(reads):
-        b = bytes(data)
+    for i, (t, buf) in enumerate(reads):
+        b = bytes(buf)
         if transform == "noise":
             if i % 25 == 24:
                 b = b"\x13\x37noise" + b
@@ -196,7 +196,7 @@ def make_recording(sc: Scenario, path: Path) -> None:
     from cellbridge.recording.mcapfile import RecordingWriter
 
     w = RecordingWriter(path, chunk_size=256 * 1024, fsync=False,
-                        metadata={"scenario": sc.name, "note": sc.note, "made_by": "tests/golden_corpus.py --remake",
+                        metadata={"scenario": sc.name, "note": sc.note, "made_by": "tests/support/golden_corpus.py --remake",
                                   "seed": "1", "t0": repr(T0)})
     reads = sorted((t, f"gw{g}", data) for g, chunks in run_mesh(sc).items() for t, data in host_reads(chunks, sc.transform))
     seq = 0
@@ -320,14 +320,14 @@ def write_readme() -> None:
     lines = ["# Golden recordings", "",
              "MCAP recordings of the virtual mesh's gateway lines (the `serial` channel, as",
              "`cellbridge record --serial` keeps them) and, in `NAME.chk`, the daemon's output on each,",
-             "one line per message. Made by `tests/golden_corpus.py` (virtual mesh seed 1, host time",
+             "one line per message. Made by `tests/support/golden_corpus.py` (virtual mesh seed 1, host time",
              f"{T0:.0f} at virtual time 0, reads batched per {READ_GRAIN * 1e3:g} ms);",
              "`tests/test_golden_corpus.py` replays them all.", "",
-             "- `.venv/bin/python tests/golden_corpus.py --regen`: the daemon's output changed on purpose;",
+             "- `.venv/bin/python tests/support/golden_corpus.py --regen`: the daemon's output changed on purpose;",
              "  rewrite the `.chk` files, review `git diff tests/data/golden`, commit with the change.",
-             "- `.venv/bin/python tests/golden_corpus.py --remake`: the emulator changed; make the",
+             "- `.venv/bin/python tests/support/golden_corpus.py --remake`: the emulator changed; make the",
              "  recordings again (and the `.chk` files).",
-             "- `.venv/bin/python tests/golden_corpus.py --diff`: show what would change.", "",
+             "- `.venv/bin/python tests/support/golden_corpus.py --diff`: show what would change.", "",
              "| recording | how it was made |", "|---|---|"]
     lines += [f"| `{sc.name}.mcap` | {sc.note} ({sc.seconds:g} s) |" for sc in SCENARIOS]
     (DATA / "README.md").write_text("\n".join(lines) + "\n")
@@ -364,5 +364,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     sys.exit(main())

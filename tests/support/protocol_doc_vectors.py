@@ -1,6 +1,6 @@
 """The test vectors of docs/protocol.md §9 and §9a, regenerated from what each one states.
 
-Run ``.venv/bin/python tests/protocol_doc_vectors.py`` to rewrite the vectors in the
+Run ``.venv/bin/python tests/support/protocol_doc_vectors.py`` to rewrite the vectors in the
 document after a change of the encoding (``--check``: only say whether they are current,
 exit status 1 when not). What each vector's source of truth is:
 
@@ -51,7 +51,7 @@ from cellbridge.protocol import (
     encode_stream,
 )
 
-SPEC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
+SPEC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1|-v2|-v3)?)\n(.*?)```", re.S)
 OLD_KINDS = ("vector-v1", "vector-v2", "vector-v3")
 

@@ -25,7 +25,7 @@ small chunks (many of them), zstd, lz4 and uncompressed, one finished and one cu
 ``cellbridge`` entry point would run it: ``cellbridge.cli.main``, a traceback printed
 by the interpreter on an escaping exception), with its own stdout and stderr files; its
 exit status, wall time and peak RSS (``wait4``) are taken by the parent.
-``python tests/recording_mutations.py DIR`` runs every ``*.mcap`` in DIR and prints one
+``python bench/recording_mutations.py DIR`` runs every ``*.mcap`` in DIR and prints one
 JSON line per run (how the tests call it: one subprocess).
 """
 

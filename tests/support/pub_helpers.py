@@ -53,7 +53,7 @@ def publisher(setup: Callable[[zmq.Socket], None] | None = None, period: float =
             if setup is not None:
                 setup(sock)
             sock.bind("tcp://127.0.0.1:*")
-            endpoint.append(sock.last_endpoint.decode())
+            endpoint.append(sock.get_string(zmq.LAST_ENDPOINT))
             bound.set()
             seq = 0
             while not stop.wait(period):

@@ -1,6 +1,6 @@
 """The committed capture and its golden daemon output (tests/data/daemon_press.*).
 
-``python tests/daemon_golden.py`` regenerates both; do that only when a deliberate
+``python tests/support/daemon_golden.py`` regenerates both; do that only when a deliberate
 change of the daemon's output is reviewed, and commit the new golden file with it.
 
 The capture is a gateway line carrying nine bridges (3 x 3): HELLO and BEACON, quiet
@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 CAPTURE = DATA / "daemon_press.cbcap"
 GOLDEN = DATA / "daemon_press.golden.json"
 CONFIG = DATA / "daemon_press.toml"
@@ -27,7 +27,7 @@ T0 = 1_750_000_000.0
 
 
 def make_capture(path: Path) -> None:
-    sys.path.insert(0, str(Path(__file__).parent))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))  # run as a script too
     from daemon_traffic import Skin
 
     from cellbridge.daemon.capture import write_capture

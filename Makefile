@@ -20,8 +20,8 @@ help:
 	@echo "make demo   create .venv if missing, install, run an emulated skin and the daemon, press, show the contact"
 	@echo "make test   create .venv if missing, install cellbridge into it (and tmux/chromium as root), lint, run the test suite"
 	@echo "            on TEST_JOBS workers (default 2; TEST_JOBS=0: one process)"
-	@echo "make test-fast  the tests that start no process and no pty (-m 'not process'), in one process:"
-	@echo "            the in-process lane, for a quick check while working (make test still runs all)"
+	@echo "make test-fast  the tests that start no process and no pty and take no seconds of CPU each"
+	@echo "            (-m 'not process and not slow'), in one process: a quick check while working (make test runs all)"
 	@echo "make lint   ruff (pyproject's [tool.ruff]) and mypy ([tool.mypy], through .ci/typecheck); make test runs it first"
 	@echo "make bench  run the benchmarks in bench/ and print their tables"
 	@echo "make clean  remove .venv and build leftovers"
@@ -68,7 +68,7 @@ test: $(STAMP) tools lint
 # The fast lane: every test that stays in this process (tests/conftest.py marks those that
 # start a process or a pty `process`, and fails an unmarked one that does), on one worker.
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -n 0 -m "not process"
+	$(PY) -m pytest -q -n 0 -m "not process and not slow"
 
 bench: $(STAMP)
 	@for f in bench/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done

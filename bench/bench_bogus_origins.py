@@ -21,13 +21,12 @@ import statistics
 import time
 
 import msgpack
-
-from daemon_traffic import Skin  # noqa: E402
-
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.messages import LogEvent, Publish
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import Data, Frame, Mode, Sample, encode_stream
+
+from daemon_traffic import Skin
 
 
 def main() -> None:

@@ -17,8 +17,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
-from timing import best_rate, pin_to_one_core  # noqa: E402
-
 from cellbridge.tactile import (  # noqa: E402
     CalibrationConfig,
     Calibrator,
@@ -26,6 +24,8 @@ from cellbridge.tactile import (  # noqa: E402
     layout_to_toml,
     parse_layout,
 )
+
+from timing import best_rate, pin_to_one_core  # noqa: E402
 
 
 def layout_rows() -> list[tuple[str, int, float, float, float]]:

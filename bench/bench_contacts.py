@@ -51,10 +51,11 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from timing import pin_to_one_core, revision_tree, run_at_revision, table  # noqa: E402
 
 # The package's public names only: the same script runs on an older revision (--against).
 from cellbridge.tactile import ContactEstimator, cluster_elements, grid_layout, skin_response  # noqa: E402
+
+from timing import pin_to_one_core, revision_tree, run_at_revision, table  # noqa: E402
 
 #: The estimator before the compiled fit kernel (commit de1ca21): what --against compares with by default.
 BEFORE_KERNEL = "de1ca21^"

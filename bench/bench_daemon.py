@@ -32,17 +32,16 @@ import msgpack
 import numpy as np
 import zmq
 import zmq.asyncio
+from cellbridge.daemon.capture import CaptureWriter
+from cellbridge.daemon.config import Config, parse_config
+from cellbridge.daemon.messages import Publish
+from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.publisher import Publisher
+from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream
+from cellbridge.tactile import ChipParams, ElementParams, counts
+
+from daemon_harness import Client, Pty, daemon, free_port, write_config
 from timing import best_rate, pin_to_one_core
-
-from daemon_harness import Client, Pty, daemon, free_port, write_config  # noqa: E402
-
-from cellbridge.daemon.capture import CaptureWriter  # noqa: E402
-from cellbridge.daemon.config import Config, parse_config  # noqa: E402
-from cellbridge.daemon.messages import Publish  # noqa: E402
-from cellbridge.daemon.pipeline import Pipeline  # noqa: E402
-from cellbridge.daemon.publisher import Publisher  # noqa: E402
-from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream  # noqa: E402
-from cellbridge.tactile import ChipParams, ElementParams, counts  # noqa: E402
 
 CLOCK = 50_000_000
 TARGET_INGEST = 100_000

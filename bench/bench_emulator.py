@@ -21,8 +21,6 @@ from __future__ import annotations
 import time
 
 import msgpack
-from timing import pin_to_one_core
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.mesh import Bridge, Cell, Mesh
@@ -31,6 +29,8 @@ from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, FrameType
 from cellbridge.protocol.messages import packed_samples
+
+from timing import pin_to_one_core
 
 
 def ok(flag: bool) -> str:

@@ -23,8 +23,6 @@ import argparse
 import math
 import random
 
-from timing import table
-
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.offline import OfflineDaemon
 from cellbridge.emulator import meshgen
@@ -32,6 +30,8 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.realtime import reporting_arg
 from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
 from cellbridge.emulator.world import Contact, World
+
+from timing import table
 
 E6 = (0.04, 0.04)  # element 6's centre; elements are 40 mm squares
 LATE_S = 0.1

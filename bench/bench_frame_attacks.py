@@ -23,7 +23,6 @@ from __future__ import annotations
 import random
 
 import numpy as np
-
 from cellbridge.daemon.domains import TimeDomains
 from cellbridge.protocol import Mode, Readout, ReadoutSample
 

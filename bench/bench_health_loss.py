@@ -15,10 +15,10 @@ import argparse
 import time
 
 import serial
-
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen
+
 from realskin import RealSkin, read_now
 
 

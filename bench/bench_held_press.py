@@ -21,7 +21,6 @@ import argparse
 import time
 
 import numpy as np
-
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.offline import OfflineDaemon
 from cellbridge.emulator import meshgen

@@ -51,12 +51,11 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+
 from timing import table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout too
-from daemon_harness import Client, daemon, write_config  # noqa: E402
-
 from cellbridge.daemon.capture import CaptureWriter  # noqa: E402
 from cellbridge.daemon.skin_file import load_skin  # noqa: E402
 from cellbridge.emulator.commands import Settings  # noqa: E402
@@ -66,6 +65,8 @@ from cellbridge.emulator.skin_traffic import SkinTraffic  # noqa: E402
 from cellbridge.emulator.world import Contact, World  # noqa: E402
 from cellbridge.tactile import ContactEstimator, grid_layout, skin_response  # noqa: E402
 from cellbridge.tactile.calibration import CalibrationConfig  # noqa: E402
+
+from daemon_harness import Client, daemon, write_config  # noqa: E402
 
 HUMANOID = ROOT / "cellbridge" / "skins" / "humanoid.toml"
 RATE = 100

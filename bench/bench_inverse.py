@@ -17,9 +17,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 
 import numpy as np  # noqa: E402
-from timing import best_rate, pin_to_one_core  # noqa: E402
-
 from cellbridge.tactile import DEFAULT_NOISE, forward, inverse, solve  # noqa: E402
+
+from timing import best_rate, pin_to_one_core  # noqa: E402
 
 N = 1_000_000
 REPEATS = 5

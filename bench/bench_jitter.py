@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 import serial
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.protocol import FrameType, StreamDecoder
-from realskin import free_base_port, rt_permitted  # noqa: E402
+
+from realskin import free_base_port, rt_permitted
 
 TARGET_MS = 20.0
 

@@ -18,15 +18,15 @@ delivered, spread of one index ≤ 50 ms, delay well within 50 ms p99.
 from __future__ import annotations
 
 import argparse
-from typing import Any
 import os
 import time
 from collections import defaultdict
+from typing import Any
+
+from cellbridge.emulator import meshgen
 
 from realskin import Arrival, RealSkin, percentile
 from timing import table
-
-from cellbridge.emulator import meshgen
 
 
 def main() -> None:

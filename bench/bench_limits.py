@@ -31,8 +31,7 @@ from pathlib import Path
 import msgpack
 import zmq
 
-from daemon_harness import (  # noqa: E402
-    Client, Pty, daemon, idle_connects, open_descriptors, proc_status_kb, write_config)
+from daemon_harness import Client, Pty, daemon, idle_connects, open_descriptors, proc_status_kb, write_config
 
 
 def _limit_fds() -> None:

@@ -26,12 +26,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout too
 
-from cellbridge.tactile.contacts import ContactEstimator  # noqa: E402
-from cellbridge.tactile.element import ElementParams  # noqa: E402
-from cellbridge.tactile.layout import grid_layout  # noqa: E402
-from cellbridge.tactile.response import skin_response  # noqa: E402
-from cellbridge.tactile.transfer import counter_delta, counts_per_farad  # noqa: E402
-from timing import table  # noqa: E402
+from cellbridge.tactile.contacts import ContactEstimator
+from cellbridge.tactile.element import ElementParams
+from cellbridge.tactile.layout import grid_layout
+from cellbridge.tactile.response import skin_response
+from cellbridge.tactile.transfer import counter_delta, counts_per_farad
+
+from timing import table
 
 MM = 1e-3
 P = ElementParams()

@@ -14,11 +14,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout too
 
-from timing import table  # noqa: E402
+from cellbridge.emulator import meshgen
+from cellbridge.emulator.medium import Medium
+from cellbridge.emulator.mesh import mesh_to_toml, parse_mesh
 
-from cellbridge.emulator import meshgen  # noqa: E402
-from cellbridge.emulator.medium import Medium  # noqa: E402
-from cellbridge.emulator.mesh import mesh_to_toml, parse_mesh  # noqa: E402
+from timing import table
 
 
 def main() -> None:

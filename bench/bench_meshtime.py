@@ -30,23 +30,23 @@ Tables:
 from __future__ import annotations
 
 import argparse
-from typing import Any
 import cProfile
 import os
 import pstats
 import time
 from collections import defaultdict
+from typing import Any
 
 import msgpack
 import numpy as np
-from timing import pin_to_one_core, table
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.reporting import ReportingMode
 from cellbridge.emulator.transceiver import PREAMBLE_BITS
 from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
 from cellbridge.protocol import ADDR_BROADCAST, Beacon, Data, Frame, MeshTime, Mode, Sample, encode
+
+from timing import pin_to_one_core, table
 
 US = CLOCK_HZ // 1_000_000  #: cycles per microsecond
 EVENTS = ReportingMode(40, 1000)  #: as a large skin runs (mesh time does not depend on it)

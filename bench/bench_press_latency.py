@@ -53,12 +53,12 @@ from pathlib import Path
 
 import msgpack
 import zmq
-from realskin import world_press
-from timing import table
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.emulator.world import Contact
+
+from realskin import world_press
+from timing import table
 
 PRESS_S = 1.0
 GAP_S = 0.5

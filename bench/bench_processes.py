@@ -32,7 +32,8 @@ from pathlib import Path
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
-from realskin import free_base_port  # noqa: E402
+
+from realskin import free_base_port
 
 TARGET = 0.01
 

@@ -17,8 +17,6 @@ each state by its bridge id, and the frames a gateway's record takes per skin fr
 from __future__ import annotations
 
 import msgpack
-from timing import best_rate, pin_to_one_core
-
 from cellbridge.protocol import (
     Data,
     Frame,
@@ -34,6 +32,8 @@ from cellbridge.protocol import (
     encode_stream,
     fragment,
 )
+
+from timing import best_rate, pin_to_one_core
 
 N = 200_000
 TARGET_STREAM = 200_000

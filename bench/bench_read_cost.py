@@ -19,8 +19,6 @@ import random
 import time
 
 import numpy as np
-from timing import pin_to_one_core, table
-
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.contact_schedule import ContactScheduler
 from cellbridge.daemon.pipeline import Pipeline
@@ -29,6 +27,8 @@ from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.realtime import reporting_arg
 from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
 from cellbridge.emulator.world import Contact, World
+
+from timing import pin_to_one_core, table
 
 WARM_S = 60.0  # s of quiet skin first: routes, mesh time and baselines settle
 

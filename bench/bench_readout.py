@@ -33,13 +33,11 @@ import time
 from collections import Counter, defaultdict
 
 import numpy as np
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.readout import _split
-from cellbridge.emulator.transceiver import PREAMBLE_BITS, TransceiverConfig
-
 from cellbridge.emulator.reporting import ReportingMode
+from cellbridge.emulator.transceiver import PREAMBLE_BITS, TransceiverConfig
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import CRC_LEN, HEADER_LEN, FrameType, Mode, Readout, ReadoutSample, StreamDecoder

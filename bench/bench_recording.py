@@ -24,7 +24,6 @@ The machine is shared: timing figures are sensitive to other load.
 from __future__ import annotations
 
 import argparse
-from typing import Any
 import gc
 import json
 import os
@@ -35,20 +34,20 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import msgpack
 import numpy as np
 import zmq
+from cellbridge.daemon.capture import write_capture
+
+from cellbridge.recording import codec
+from cellbridge.recording.mcapfile import read_messages
+from daemon_harness import daemon, free_port, write_config
+from daemon_traffic import Skin
+from live_skin import Collector, calibrated, cellbridge_cmd, group, live_skin
+from recording_helpers import same_payload
 from timing import table
-
-from daemon_harness import daemon, free_port, write_config  # noqa: E402
-from daemon_traffic import Skin  # noqa: E402
-from live_skin import Collector, calibrated, cellbridge_cmd, group, live_skin  # noqa: E402
-from recording_helpers import same_payload  # noqa: E402
-
-from cellbridge.daemon.capture import write_capture  # noqa: E402
-from cellbridge.recording import codec  # noqa: E402
-from cellbridge.recording.mcapfile import read_messages  # noqa: E402
 
 
 def make_capture(path: Path, seconds: float, rows: int = 16, cols: int = 16, rate: float = 100.0) -> None:
@@ -105,7 +104,7 @@ def round_trip(tmp: Path, press_s: float) -> dict[str, Any]:
         live = Collector(skin.pub, (b"",))
         try:
             with group(cellbridge_cmd("record", str(out), "--endpoint", skin.pub, "--topics", "all"),
-                       stderr=open(work / "record.log", "wb")) as rec, live.in_background():  # noqa: SIM115
+                       stderr=open(work / "record.log", "wb")) as rec, live.in_background():
                 time.sleep(0.3)
                 with skin.daemon(skin.daemon_config(source="bench")):
                     if not live.wait(calibrated(skin.elements), 120):

@@ -34,9 +34,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from timing import table  # noqa: E402
-
-import recording_mutations as rm  # noqa: E402
+import recording_mutations as rm
+from timing import table
 
 
 def main() -> int:

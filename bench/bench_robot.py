@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout too
 
-from cellbridge.robot import run_scenario  # noqa: E402
+from cellbridge.robot import run_scenario
 
 
 def main() -> int:
@@ -61,6 +61,7 @@ def idle_frame_level(seconds: float, seed: int) -> tuple[int, int, float]:
 
     from cellbridge.emulator.robot_world import arm_skin
     from cellbridge.emulator.skin_traffic import SkinTraffic
+
     from cellbridge.skin_run import run_daemon_on_traffic
 
     c0 = time.process_time()

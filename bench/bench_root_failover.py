@@ -19,8 +19,8 @@ on). The gateway lines go through the daemon's pipeline. Prints, per seed:
 from __future__ import annotations
 
 import time
-from typing import Any
 from collections import Counter
+from typing import Any
 
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline

@@ -18,8 +18,16 @@ from __future__ import annotations
 
 import argparse
 
-from root_return import (  # noqa: E402  # the scenario tests/test_emulator_meshtime.py asserts on
-    HEIR, HOWS, ROOT, US, How, errors_from_line, root_goes_and_returns, skin_time_line, sync_bound,
+from root_return import (  # the scenario tests/test_emulator_meshtime.py asserts on
+    HEIR,
+    HOWS,
+    ROOT,
+    US,
+    How,
+    errors_from_line,
+    root_goes_and_returns,
+    skin_time_line,
+    sync_bound,
 )
 
 

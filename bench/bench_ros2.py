@@ -40,11 +40,11 @@ from typing import Any
 import msgpack
 import numpy as np
 import zmq
-from timing import table
+from cyclonedds.util import duration
 
-from cyclonedds.util import duration  # noqa: E402
-from ros2_peer import Peer  # noqa: E402
-from view_harness import PRESS, Client, daemon, fed_skin, skin_config, view_process, wait_ready  # noqa: E402
+from ros2_peer import Peer
+from timing import table
+from view_harness import PRESS, Client, daemon, fed_skin, skin_config, view_process, wait_ready
 
 NS = "/bench"
 

@@ -30,11 +30,11 @@ import select
 import socket
 import time
 
-from timing import table
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
 from cellbridge.emulator.virtual import VirtualMesh
+
+from timing import table
 
 
 def skin_work(seconds: float) -> float:

@@ -46,13 +46,13 @@ from pathlib import Path
 
 import numpy as np
 import serial
-from timing import table
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.protocol import FrameType, StreamDecoder
-from realskin import free_base_port, rt_permitted  # noqa: E402
+
+from realskin import free_base_port, rt_permitted
+from timing import table
 
 CLOCK_HZ = 50_000_000
 JITTER_TARGET_MS = 20.0

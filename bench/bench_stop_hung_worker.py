@@ -13,6 +13,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
 tree = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(tree / "bench"))
 from daemon_harness import Client, Pty, daemon, write_config  # noqa: E402

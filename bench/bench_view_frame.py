@@ -23,9 +23,8 @@ import statistics
 import time
 from typing import Any
 
-
-from cellbridge.views import foxglove as fx  # noqa: E402
-from cellbridge.views.model import SkinView  # noqa: E402
+from cellbridge.views import foxglove as fx
+from cellbridge.views.model import SkinView
 
 IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 

@@ -18,11 +18,10 @@ import signal
 import subprocess
 import time
 
+from daemon_harness import CLI, free_port
+from fake_daemon import FakeDaemon
+from pty_terminal import PtyProgram
 from timing import table
-
-from daemon_harness import CLI, free_port  # noqa: E402
-from fake_daemon import FakeDaemon  # noqa: E402
-from pty_terminal import PtyProgram  # noqa: E402
 
 
 def stop_server_view(kind: str, fd: FakeDaemon) -> tuple[float, str, int]:

@@ -52,11 +52,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from timing import table
 
-from browser import CHROMIUM, browser  # noqa: E402
-from live_skin import Collector, calibrated, live_skin  # noqa: E402
-from view_harness import (  # noqa: E402
+from browser import CHROMIUM, browser
+from live_skin import Collector, calibrated, live_skin
+from timing import table
+from view_harness import (
     CLI,
     PRESS,
     Client,
@@ -209,9 +209,8 @@ class FoxgloveReader(threading.Thread):
 
     def __init__(self, url: str) -> None:
         super().__init__(daemon=True)
-        from foxglove_client import FoxgloveClient
-
         from cellbridge.views.foxglove import TOPICS
+        from foxglove_client import FoxgloveClient
 
         self.client = FoxgloveClient(url)
         self.client.wait_channels(list(TOPICS.values()))

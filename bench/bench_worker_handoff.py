@@ -22,10 +22,10 @@ import sys
 import time
 
 import numpy as np
-from timing import table
-
 from cellbridge.daemon.service import GIL_SWITCH_INTERVAL
 from cellbridge.daemon.worker_process import WorkerProcess
+
+from timing import table
 
 JOB_S = 0.0008
 

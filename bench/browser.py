@@ -8,8 +8,6 @@ stopped, with its profile in a temporary folder.
 
 from __future__ import annotations
 
-from contextlib import ExitStack
-
 import base64
 import itertools
 import json
@@ -20,7 +18,7 @@ import subprocess
 import time
 import urllib.request
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 

@@ -141,7 +141,7 @@ def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None 
     """The daemon as a real process in its own process group; always stopped on exit.
 
     ``preexec_fn`` runs in the child before the command (resource limits, umask)."""
-    err = open(stderr, "wb") if stderr else subprocess.DEVNULL  # noqa: SIM115
+    err = open(stderr, "wb") if stderr else subprocess.DEVNULL
     proc = subprocess.Popen([CLI, "daemon", "--config", str(config)], stderr=err, stdout=subprocess.DEVNULL,
                             start_new_session=True, env=env, preexec_fn=preexec_fn)
     try:

@@ -12,7 +12,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
-
 from cellbridge.protocol import (
     Beacon,
     CommandReply,

@@ -9,12 +9,11 @@ FileDescriptorSet), not with a copy of Foxglove's ``.proto`` files.
 
 from __future__ import annotations
 
-from contextlib import ExitStack
-
 import base64
 import json
 import struct
 import time
+from contextlib import ExitStack
 from typing import Any
 
 # The protocol's v1 under both of its names: "foxglove.sdk.v1" (the SDK's) is

@@ -18,10 +18,10 @@ from typing import Any
 
 import msgpack
 import zmq
-
-from cellbridge.demo import _cellbridge, _free_port, _free_port_block, _group, _warm_kernels, gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
+
+from cellbridge.demo import _cellbridge, _free_port, _free_port_block, _group, _warm_kernels, gateway_line
 
 __all__ = ["LiveSkin", "Collector", "live_skin", "group", "cellbridge_cmd", "free_port"]
 
@@ -63,7 +63,7 @@ class LiveSkin:
     @contextmanager
     def daemon(self, config: Path) -> Iterator[subprocess.Popen[Any]]:
         with _group(_cellbridge("daemon", "--config", str(config)),
-                    stderr=open(self.work / f"{config.stem}.log", "wb")) as proc:  # noqa: SIM115
+                    stderr=open(self.work / f"{config.stem}.log", "wb")) as proc:
             yield proc
 
     def press(self, x: float, y: float, force: float = 3.0, diameter: float = 0.02, duration: float = 2.0) -> None:
@@ -84,7 +84,7 @@ def live_skin(work: Path, rows: int = 4, cols: int = 4, name: str = "skin",
     base_port = _free_port_block(3)
     with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port),
                             "--reporting", reporting),
-                stdout=subprocess.PIPE, stderr=open(work / f"{name}-mesh.log", "w"), text=True) as mesh:  # noqa: SIM115
+                stdout=subprocess.PIPE, stderr=open(work / f"{name}-mesh.log", "w"), text=True) as mesh:
         yield LiveSkin(work, rows, cols, gateway_line(mesh)[2], base_port, mesh)
 
 

@@ -39,7 +39,6 @@ import time
 from typing import Any
 
 import msgpack
-
 from cellbridge.daemon.cli import _load
 from cellbridge.daemon.layout import LayoutStages
 from cellbridge.daemon.pipeline import Pipeline

@@ -14,11 +14,10 @@ arrival spread of one ``index`` across bridges is direct.
 from __future__ import annotations
 
 import json
-from typing import Self
 import os
+import shutil
 import signal
 import socket
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -26,11 +25,11 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Self
 
 import msgpack
 import serial
 import zmq
-
 from cellbridge.emulator.mesh import Mesh, mesh_to_toml
 from cellbridge.emulator.meshtime import Crystal
 from cellbridge.emulator.realtime import CLOCK_HZ

@@ -36,8 +36,8 @@ import math
 import os
 import random
 import signal
-import subprocess
 import struct
+import subprocess
 import sys
 import time
 import traceback
@@ -392,7 +392,7 @@ def _child(argv: list[str], out: str, err: str) -> None:
             code = main(argv)
         except SystemExit as exc:
             code = exc.code if isinstance(exc.code, int) else 1
-        except BaseException:  # noqa: BLE001 - what the interpreter would do: print it, exit 1
+        except BaseException:
             traceback.print_exc()
             code = 1
         sys.stdout.flush()

@@ -10,8 +10,8 @@ skin's time is then a line in true time. At 12 s gateway 1 is back.
 
 from __future__ import annotations
 
-from typing import Callable, Literal
 import functools
+from typing import Callable, Literal
 
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh

@@ -10,12 +10,11 @@ the first pressed sample's bytes were written.
 from __future__ import annotations
 
 import subprocess
+import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-
-import threading
-import time
 
 from daemon_harness import CLI, Client, Pty, daemon, free_port, stop_session, write_config
 from daemon_traffic import Skin

@@ -18,8 +18,8 @@ import json
 import math
 import os
 import random
-import shutil
 import select
+import shutil
 import signal
 import socket
 import subprocess

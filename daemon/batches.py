@@ -16,13 +16,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.daemon.clock import cycle_of
 from cellbridge.daemon.frames import SkinFrame
 from cellbridge.daemon.frontend import Frontend
 from cellbridge.daemon.layout import LayoutStages
 from cellbridge.daemon.wire import HELD, SampleColumns
+from numpy.typing import NDArray
 
 _HELD = np.int64(HELD)
 #: The element stage's columns an ``element`` message carries, in its order.

@@ -88,7 +88,7 @@ class CaptureWriter:
         self._fh: BinaryIO | None = None
         try:
             self.rotated_to = rotate(self.path)
-            self._fh = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+            self._fh = open(self.path, "wb")
         except OSError as exc:
             self.error = f"{self.path}: cannot open: {exc.strerror or exc}"
             return

@@ -30,9 +30,8 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.daemon.wire import PART_BYTES, Readout
+from numpy.typing import NDArray
 
 
 class BridgeClock:

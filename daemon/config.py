@@ -20,8 +20,9 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from cellbridge.errors import CellbridgeError
 from cellbridge.tactile import DEFAULT_NOISE
+
+from cellbridge.errors import CellbridgeError
 
 Check = Callable[[Any], str | None]  # returns a complaint, or None when the value is fine
 

@@ -20,8 +20,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cellbridge.daemon.logs import event
 from cellbridge.daemon.contacts import ContactJob, estimate, warm_up
+from cellbridge.daemon.logs import event
 from cellbridge.daemon.worker_process import WorkerProcess
 
 Contacts = list[dict[str, Any]]

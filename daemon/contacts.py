@@ -14,10 +14,10 @@ half its force, σ_F 4 mN)."""
 
 from __future__ import annotations
 
-from collections import OrderedDict
 import itertools
 import math
 import os
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import msgpack
-
 from cellbridge.daemon.wire import OPS, mode_value
+
 from cellbridge.errors import CellbridgeError
 
 VERSION = 1

@@ -14,8 +14,6 @@ from typing import Any, Protocol
 
 import zmq
 import zmq.asyncio
-
-from cellbridge._version import __version__
 from cellbridge.daemon.commands import Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.control import COMMANDS, Request, RequestError, error, parse_request, reply, too_large
@@ -23,6 +21,7 @@ from cellbridge.daemon.logs import event
 from cellbridge.daemon.publisher import pack
 from cellbridge.daemon.wire import PING
 
+from cellbridge._version import __version__
 
 #: Frames one request may have (routing envelope, delimiter, body); more make it oversize.
 MAX_FRAMES = 16

@@ -31,10 +31,9 @@ import math
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.daemon.clock import SkinClock
 from cellbridge.daemon.frames import RecordPart, SkinFrame, SkinFrames
+from numpy.typing import NDArray
 
 #: Roots followed at once: a robot's limbs, with room for failovers and a corrupted root id.
 MAX_DOMAINS = 64

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from cellbridge.daemon.config import CalibrationSection
 from cellbridge.tactile import (
     CalibrationConfig,
     Calibrator,
@@ -19,7 +20,6 @@ from cellbridge.tactile import (
 )
 from cellbridge.tactile.arrays import FloatArray
 from numpy.typing import NDArray
-from cellbridge.daemon.config import CalibrationSection
 
 
 def calibration_config(s: CalibrationSection) -> CalibrationConfig:

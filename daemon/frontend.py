@@ -3,7 +3,6 @@ capacitances, through the chip's transfer functions in :mod:`cellbridge.tactile`
 
 from __future__ import annotations
 
-
 import numpy as np
 from cellbridge.daemon.config import ChipSection
 from cellbridge.daemon.wire import ADC_MODE, OVERFLOW_C1, OVERFLOW_C2

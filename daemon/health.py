@@ -15,9 +15,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.daemon.messages import LogEvent
+from numpy.typing import NDArray
 
 _SEQ_MOD = 0x10000
 _SEQ_HALF = 0x8000

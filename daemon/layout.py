@@ -22,8 +22,8 @@ from cellbridge.daemon.elements import Calibrated, ElementStage, calibration_con
 from cellbridge.daemon.health import ChannelHealth
 from cellbridge.daemon.readings import SPARE, ElementReadings
 from cellbridge.tactile import SkinLayout
-from cellbridge.tactile.skin_geometry import Band
 from cellbridge.tactile.layout import MAX_REACH, MAX_SIDE
+from cellbridge.tactile.skin_geometry import Band
 from numpy.typing import NDArray
 
 _IDS = 0x10000

@@ -6,7 +6,7 @@ from __future__ import annotations
 from os import PathLike
 
 from cellbridge.daemon.skin_file import is_skin_file, load_skin
-from cellbridge.tactile.layout import parse_layout, SkinLayout
+from cellbridge.tactile.layout import SkinLayout, parse_layout
 
 
 def load_layout(path: str | PathLike[str]) -> SkinLayout:

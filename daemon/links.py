@@ -24,10 +24,9 @@ from typing import Protocol
 
 import serial
 import serial.serialposix
-
 from cellbridge.daemon.capture import CaptureWriter
-from cellbridge.daemon.replay_source import read_records
 from cellbridge.daemon.config import LinkConfig
+from cellbridge.daemon.replay_source import read_records
 
 DataCallback = Callable[[str, bytes, float], None]
 StateCallback = Callable[[str, bool, str], None]

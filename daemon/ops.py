@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import zmq
-
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.notify import Notifier
 from cellbridge.daemon.peers import PeerGuard, PeerLimits, bound_socket

@@ -38,15 +38,25 @@ from cellbridge.daemon.clock import HostTimes
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import Config
 from cellbridge.daemon.contacts import ContactIdentity, ContactJob
-from cellbridge.daemon.surface import contact_fields, skin_report
-from cellbridge.daemon.elements import default_params
 from cellbridge.daemon.domains import TimeDomains
+from cellbridge.daemon.elements import default_params
 from cellbridge.daemon.frames import SkinFrame
 from cellbridge.daemon.frontend import Frontend, chip_params
 from cellbridge.daemon.health import UNPLACED_SHOWN, HealthBook
 from cellbridge.daemon.layout import LayoutStages
-from cellbridge.daemon.messages import (SCHEMA_VERSION, ContactFrame, ElementBatch, Health, LinkWrite, LogEvent,
-                                        Message, RawBatch, Stamps, Topology)
+from cellbridge.daemon.messages import (
+    SCHEMA_VERSION,
+    ContactFrame,
+    ElementBatch,
+    Health,
+    LinkWrite,
+    LogEvent,
+    Message,
+    RawBatch,
+    Stamps,
+    Topology,
+)
+from cellbridge.daemon.surface import contact_fields, skin_report
 from cellbridge.daemon.topology import Topology as Routes
 from cellbridge.daemon.wire import NO_MESH_TIME, OPS, Decoded, Ingress, Readout, SampleColumns
 from cellbridge.tactile import ElementParams, SkinLayout

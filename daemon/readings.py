@@ -31,9 +31,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.tactile.arrays import FloatArray
+from numpy.typing import NDArray
 
 #: Readings kept per element beyond ``max_lag`` at the fastest sampling rate.
 SPARE = 4

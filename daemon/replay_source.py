@@ -19,15 +19,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from cellbridge.daemon.capture import MAGIC as CAPTURE_MAGIC
+from cellbridge.daemon.capture import CaptureError, read_capture
+from cellbridge.daemon.mcap_chunks import MAX_RECORD_BYTES, ChunkDamage, check_chunk, decompress
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message
 from mcap.stream_reader import StreamReader
-
-from cellbridge.daemon.capture import MAGIC as CAPTURE_MAGIC
-from cellbridge.daemon.capture import CaptureError, read_capture
-from cellbridge.daemon.mcap_chunks import MAX_RECORD_BYTES, ChunkDamage, check_chunk, decompress
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 SERIAL_TOPIC = "serial"

@@ -29,22 +29,22 @@ from typing import Any
 import numpy as np
 import zmq
 import zmq.asyncio
-
-from cellbridge._version import __version__
-from cellbridge.daemon.layout_file import load_layout
 from cellbridge.daemon.commands import Pending
 from cellbridge.daemon.config import Config, ConfigError, load_config
+from cellbridge.daemon.contact_schedule import TICK as PIPELINE_TICK
+from cellbridge.daemon.contact_schedule import ContactScheduler
 from cellbridge.daemon.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.control_server import ControlServer
+from cellbridge.daemon.layout_file import load_layout
 from cellbridge.daemon.links import SYSTEM_CLOCK, Clock, Link, Opener, ReplayLink, SerialLink, open_serial
 from cellbridge.daemon.logs import event, setup
 from cellbridge.daemon.messages import Health, LinkWrite, LogEvent, Message
 from cellbridge.daemon.ops import OpsHooks
-from cellbridge.daemon.contact_schedule import TICK as PIPELINE_TICK
-from cellbridge.daemon.contact_schedule import ContactScheduler
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.publisher import Publisher
 from cellbridge.tactile import SkinLayout
+
+from cellbridge._version import __version__
 
 
 def read_layout(config: Config) -> SkinLayout | None:

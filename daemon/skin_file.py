@@ -14,7 +14,6 @@ from os import PathLike
 from pathlib import Path
 
 import numpy as np
-
 from cellbridge.tactile.skin_geometry import LinkFrame, SkinError, SkinGeometry, skin_from_mapping
 
 __all__ = ["is_skin_file", "load_skin", "urdf_links"]

@@ -17,7 +17,6 @@ from typing import Any, TextIO
 
 import msgpack
 import zmq
-
 from cellbridge.daemon.security import apply_client
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"

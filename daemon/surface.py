@@ -14,7 +14,6 @@ import math
 from typing import Any
 
 import numpy as np
-
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
 __all__ = ["contact_fields", "skin_report"]

@@ -14,11 +14,10 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.protocol import (
     ADDR_BROADCAST,
     ADDR_HOST,
+    MAX_FRAME,
     Beacon,
     BridgeStatus,
     Command,
@@ -28,7 +27,6 @@ from cellbridge.protocol import (
     Fragment,
     Frame,
     Hello,
-    MAX_FRAME,
     HostReceiver,
     Mode,
     Op,
@@ -38,6 +36,7 @@ from cellbridge.protocol import (
     StreamDecoder,
     encode_stream,
 )
+from numpy.typing import NDArray
 
 __all__ = ["ADC_MODE", "ADDR_BROADCAST", "Decoded", "HELD", "NO_MESH_TIME", "Ingress", "Mode", "OPS", "OVERFLOW_C1", "OVERFLOW_C2",
            "PART_BYTES", "Readout", "SampleColumns", "command_bytes", "mode_value"]

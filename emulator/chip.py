@@ -23,7 +23,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-
 from cellbridge.emulator.adc import AdcTiming, held_inputs, sar_codes
 from cellbridge.emulator.keyed_random import GateNoise, KeyedNormals, Stream
 from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation

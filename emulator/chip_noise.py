@@ -13,7 +13,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-
 from cellbridge.emulator.chip import Chip
 from cellbridge.tactile.transfer import (
     adc_mean_to_capacitance,

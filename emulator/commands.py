@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from cellbridge.protocol import Command, CommandReply, Mode, Op, Status
 from cellbridge.emulator.reporting import ReportingMode
+from cellbridge.protocol import Command, CommandReply, Mode, Op, Status
 
 MIN_GATE = 1_000  #: 20 µs: fewer cycles leave too few edges to count
 MAX_GATE = 5_000_000  #: 100 ms

@@ -26,7 +26,13 @@ from dataclasses import dataclass, field
 from importlib import metadata
 
 import msgpack
-
+from cellbridge.emulator.commands import MAX_GATE, Settings, execute
+from cellbridge.emulator.linklayer import LinkLayer
+from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig, Timebase
+from cellbridge.emulator.readout import FrameReadout, ReadoutConfig, State
+from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
+from cellbridge.emulator.sampling import Sampler
+from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
 from cellbridge.protocol import (
     ADDR_BROADCAST,
     ADDR_HOST,
@@ -45,25 +51,23 @@ from cellbridge.protocol import (
     Neighbour,
     Op,
     ProtocolError,
+    Raw,
     Readout,
     ReadoutSample,
+    RecentFrames,
     Sample,
     StreamDecoder,
+    addressed_to,
     decode,
     encode,
+    own,
+    to_serial,
     unpack_payload,
 )
-from cellbridge.protocol import Raw, RecentFrames, addressed_to, own, to_serial
 from cellbridge.protocol import peek as parse
 from cellbridge.protocol import reframe as build
-from cellbridge.emulator.commands import MAX_GATE, Settings, execute
-from cellbridge.emulator.linklayer import LinkLayer
-from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig, Timebase
-from cellbridge.emulator.readout import FrameReadout, ReadoutConfig, State
-from cellbridge.emulator.sampling import Sampler
-from cellbridge.emulator.routing import INFINITE, PERFECT_LINK, Router, Trickle
-from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
 from cellbridge.tactile.transfer import max_gate_cycles
+
 
 def _package_version() -> str:
     """The installed distribution's version, read from its metadata: the emulator does not

@@ -29,7 +29,6 @@ from collections.abc import Container
 from dataclasses import dataclass
 
 import msgpack
-
 from cellbridge.emulator.transceiver import Transceiver
 from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Flags, FrameType, Raw, reframe
 

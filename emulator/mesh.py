@@ -51,8 +51,9 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from cellbridge.errors import CellbridgeError
 from cellbridge.tactile.skin_geometry import Band
+
+from cellbridge.errors import CellbridgeError
 
 DEFAULT_SIDE = 0.040
 #: The element model's largest side (cellbridge.tactile.layout.MAX_SIDE): a bridge builds

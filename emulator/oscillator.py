@@ -39,9 +39,8 @@ import math
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.emulator.keyed_random import BLOCK_SIZE, Z_MAX
+from numpy.typing import NDArray
 
 __all__ = ["BLOCK", "SYNC_LATENCY", "EdgeTrain", "JitterSource", "max_period_deviation"]
 

@@ -31,24 +31,35 @@ import sys
 import time
 
 import zmq
-
 from cellbridge.emulator import udp
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.gateway_port import GatewayPort, open_pty
-from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
-    CARRIER, MAX_DATAGRAM, RX, decode_carrier, decode_rx, encode_tx, encode_want,
+    CARRIER,
+    MAX_DATAGRAM,
+    RX,
+    decode_carrier,
+    decode_rx,
+    encode_tx,
+    encode_want,
 )
+from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.process_world import decode_contacts
-from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.realtime import (
-    CLOCK_HZ, REPORTING_HELP, Endpoints, StopFlag, add_endpoint_arguments, endpoints, now_tick, rate_arg,
+    CLOCK_HZ,
+    REPORTING_HELP,
+    Endpoints,
+    StopFlag,
+    add_endpoint_arguments,
+    endpoints,
+    now_tick,
+    rate_arg,
     reporting_arg,
 )
+from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.virtual import default_chip
 from cellbridge.emulator.world import World
-
 
 SHORT_TIMER = CLOCK_HZ // 1000  #: a timer this close is slept for exactly, not polled for (ms granularity)
 ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the medium: allow 10 ms

@@ -42,16 +42,29 @@ from typing import Any
 from cellbridge.emulator import udp
 from cellbridge.emulator.carrier_arbiter import HOLD, CarrierArbiter
 from cellbridge.emulator.medium import Medium, Transmission
-from cellbridge.emulator.mesh import MeshError, load_mesh
 from cellbridge.emulator.medium_wire import (
-    MAX_DATAGRAM, TX, WANT, decode_tx, decode_want, encode_carrier, encode_rx, sender,
+    MAX_DATAGRAM,
+    TX,
+    WANT,
+    decode_tx,
+    decode_want,
+    encode_carrier,
+    encode_rx,
+    sender,
+)
+from cellbridge.emulator.mesh import MeshError, load_mesh
+from cellbridge.emulator.realtime import (
+    CLOCK_HZ,
+    StopFlag,
+    above_the_chips,
+    add_endpoint_arguments,
+    add_ready_argument,
+    endpoints,
+    now_tick,
+    signal_ready,
 )
 from cellbridge.protocol import MAX_FRAME, FrameType, addressed_to
 from cellbridge.protocol.frame import Flags
-from cellbridge.emulator.realtime import (
-    CLOCK_HZ, StopFlag, above_the_chips, add_endpoint_arguments, add_ready_argument, endpoints, now_tick,
-    signal_ready,
-)
 
 GONE_S = 3.0  #: a bridge silent this long is taken for gone (it says it is there every second)
 #: How long transmissions after an ack on the wire wait for that ack to reach this process

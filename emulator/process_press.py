@@ -8,9 +8,7 @@ import sys
 
 import msgpack
 import zmq
-
 from cellbridge.emulator.realtime import add_endpoint_arguments, endpoints
-
 
 #: Longest --timeout: a day (zmq's poll takes milliseconds as a C int; beyond, it overflowed).
 MAX_TIMEOUT_S = 86400.0

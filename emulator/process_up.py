@@ -31,13 +31,18 @@ import time
 import traceback
 
 import setproctitle
-
 from cellbridge.emulator import process_bridge
 from cellbridge.emulator.gateway_port import open_pty
 from cellbridge.emulator.mesh import Bridge, Mesh, load_mesh
 from cellbridge.emulator.pty_link import link_gateway
 from cellbridge.emulator.realtime import (
-    REPORTING_HELP, StopFlag, add_endpoint_arguments, die_with_parent, rate_arg, reporting_arg, reporting_text,
+    REPORTING_HELP,
+    StopFlag,
+    add_endpoint_arguments,
+    die_with_parent,
+    rate_arg,
+    reporting_arg,
+    reporting_text,
     seconds_arg,
 )
 

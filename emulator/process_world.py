@@ -17,11 +17,15 @@ import time
 
 import msgpack
 import zmq
-
-from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, add_ready_argument, endpoints, signal_ready
 from cellbridge.emulator.mesh import Mesh, MeshError, load_mesh
+from cellbridge.emulator.realtime import StopFlag, add_endpoint_arguments, add_ready_argument, endpoints, signal_ready
 from cellbridge.emulator.world import (
-    Contact, ScenarioError, check_on_skin, contact_from_mapping, contact_problem, load_scenario,
+    Contact,
+    ScenarioError,
+    check_on_skin,
+    contact_from_mapping,
+    contact_problem,
+    load_scenario,
 )
 
 REPUBLISH_S = 0.5

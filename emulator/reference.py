@@ -15,7 +15,6 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-
 from cellbridge.emulator.adc import AdcTiming
 from cellbridge.emulator.oscillator import SYNC_LATENCY, EdgeTrain
 

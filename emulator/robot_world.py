@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
 from cellbridge.emulator.mesh import Mesh
 from cellbridge.emulator.world import World
 from cellbridge.tactile import ElementParams, skin_response

@@ -28,7 +28,6 @@ from collections import Counter
 from collections.abc import Callable
 
 import msgpack
-
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.meshtime import Timebase
 from cellbridge.emulator.reporting import Reporter

@@ -13,7 +13,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-
 from cellbridge.emulator.mesh import Mesh, MeshError, mesh_from_mapping
 from cellbridge.tactile.layout import SkinLayout
 from cellbridge.tactile.skin_geometry import SkinGeometry

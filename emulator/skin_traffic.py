@@ -38,8 +38,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.readout import ReadoutConfig, record_parts
 from cellbridge.emulator.reporting import Reporter
@@ -48,6 +46,7 @@ from cellbridge.emulator.world import World
 from cellbridge.protocol import ADDR_HOST, Mode, ReadoutSample, Sample, own, reframe, to_serial
 from cellbridge.tactile.skin_geometry import SkinGeometry
 from cellbridge.tactile.transfer import ChipParams, counts
+from numpy.typing import NDArray
 
 __all__ = ["ReadoutTree", "SkinTraffic", "readout_tree"]
 

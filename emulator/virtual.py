@@ -23,15 +23,15 @@ import math
 import random
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
 from dataclasses import dataclass, field
+from typing import Any
 
 from cellbridge.emulator.carrier_arbiter import CarrierArbiter
+from cellbridge.emulator.chip import Chip, ChipConfig
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware, FirmwareConfig
 from cellbridge.emulator.medium import Medium, Transmission
 from cellbridge.emulator.mesh import Mesh
-from cellbridge.emulator.chip import Chip, ChipConfig
 from cellbridge.emulator.transceiver import TransceiverConfig
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Data, Frame, FrameType, Readout, Sample, StreamDecoder, encode_stream

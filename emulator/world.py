@@ -25,10 +25,10 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
-
 from cellbridge.emulator.mesh import Mesh, read_text
-from cellbridge.errors import CellbridgeError
 from cellbridge.tactile import ElementParams, SkinLayout, skin_response
+
+from cellbridge.errors import CellbridgeError
 
 _CONTACT_KEYS = {"start", "duration", "position", "force", "diameter", "velocity"}
 

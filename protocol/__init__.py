@@ -28,7 +28,6 @@ from cellbridge.protocol.frame import (
 )
 from cellbridge.protocol.host import HostReceiver
 from cellbridge.protocol.messages import (
-    unpack_payload,
     Beacon,
     BridgeStatus,
     Bundle,
@@ -38,8 +37,8 @@ from cellbridge.protocol.messages import (
     FrameType,
     Hello,
     LinkAck,
-    Message,
     MeshTime,
+    Message,
     Mode,
     Neighbour,
     Op,
@@ -48,6 +47,7 @@ from cellbridge.protocol.messages import (
     Sample,
     SampleFlags,
     Status,
+    unpack_payload,
 )
 from cellbridge.protocol.relay import Raw, addressed_to, own, peek, reframe, to_serial
 from cellbridge.protocol.stream import StreamDecoder, encode_stream

@@ -14,7 +14,6 @@ from enum import IntEnum
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import msgpack
-
 from cellbridge.protocol.errors import ProtocolError
 
 if TYPE_CHECKING:

@@ -14,11 +14,10 @@ from __future__ import annotations
 import struct
 from typing import NamedTuple
 
-from cobs import cobs
-
 from cellbridge.protocol.crc import crc16
 from cellbridge.protocol.frame import CRC_LEN, HEADER, HEADER_LEN, MAX_FRAME, MIN_FRAME, VERSION
 from cellbridge.protocol.messages import FrameType, Message, pack_payload
+from cobs import cobs
 
 _CRC = struct.Struct(">H")
 # Header bytes a radio's address filter reads (docs/protocol.md §2): type, link destination.

@@ -12,10 +12,9 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Iterator
 
-from cobs import cobs
-
 from cellbridge.protocol.errors import ProtocolError
 from cellbridge.protocol.frame import MAX_FRAME, MIN_FRAME, Frame, decode, encode
+from cobs import cobs
 
 DELIMITER = b"\x00"
 WINDOW = 65536  #: bytes of a fed chunk split at once: bounds what one feed call holds

@@ -25,25 +25,25 @@ from cellbridge.tactile.inversion import (
 from cellbridge.tactile.transfer import (
     ChipParams,
     CounterUnwrapper,
-    adc_mean_band,
-    check_gate,
-    counter_span,
-    max_gate_cycles,
-    plausible_capacitance,
-    sync_min_capacitance,
     adc_code,
     adc_input,
+    adc_mean_band,
     adc_mean_code,
     adc_mean_to_capacitance,
     adc_resolution,
+    check_gate,
     code_to_capacitance,
     codes_per_farad,
+    counter_delta,
+    counter_span,
     counts,
     counts_per_farad,
-    counter_delta,
     counts_to_capacitance,
     expected_counts,
+    max_gate_cycles,
     oscillator_period,
+    plausible_capacitance,
+    sync_min_capacitance,
     unwrap_counts,
 )
 
@@ -92,19 +92,19 @@ __all__ = [
 ]
 
 # Skin array, calibration and contact estimation (paper §III).
-from cellbridge.tactile.calibration import CalibrationConfig, CalibrationStep, Calibrator  # noqa: E402
-from cellbridge.tactile.contact_surface import ContactSurface  # noqa: E402
-from cellbridge.tactile.clusters import cluster_elements, force_centroid  # noqa: E402
-from cellbridge.tactile.contact_result import Contact  # noqa: E402
-from cellbridge.tactile.layout import (  # noqa: E402
+from cellbridge.tactile.calibration import CalibrationConfig, CalibrationStep, Calibrator
+from cellbridge.tactile.clusters import cluster_elements, force_centroid
+from cellbridge.tactile.contact_result import Contact
+from cellbridge.tactile.contact_surface import ContactSurface
+from cellbridge.tactile.layout import (
     SkinLayout,
     grid_layout,
     layout_from_mapping,
     layout_to_toml,
     parse_layout,
 )
-from cellbridge.tactile.overlap import disk_element_overlap, disk_rect_overlap  # noqa: E402
-from cellbridge.tactile.response import disk_response, pressure_field, skin_response  # noqa: E402
+from cellbridge.tactile.overlap import disk_element_overlap, disk_rect_overlap
+from cellbridge.tactile.response import disk_response, pressure_field, skin_response
 
 __all__ += [
     # skin array

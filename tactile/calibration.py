@@ -69,9 +69,8 @@ from dataclasses import dataclass
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
 from cellbridge.tactile.arrays import FloatArray
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "CalibrationConfig",

@@ -11,10 +11,9 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from numpy.typing import ArrayLike
-
 from cellbridge.tactile.arrays import IntArray
 from cellbridge.tactile.layout import SkinLayout
+from numpy.typing import ArrayLike
 
 __all__ = ["cluster_elements", "force_centroid"]
 

@@ -21,11 +21,10 @@ saturated press by one reading.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.inversion import branch_info
+from numpy.typing import NDArray
 
 __all__ = ["ContactSurface"]
 

@@ -30,9 +30,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from cellbridge.tactile._jit import compiled
-
 from cellbridge.tactile import element
+from cellbridge.tactile._jit import compiled
 from cellbridge.tactile.element import ElementParams
 
 __all__ = [

@@ -22,9 +22,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
-
 from cellbridge.tactile.arrays import FloatArray
+from numpy.typing import ArrayLike
 
 __all__ = [
     "EPS0",

@@ -24,8 +24,6 @@ import math
 from typing import Literal, Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
 from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.clusters import cluster_elements
 from cellbridge.tactile.contact_result import Contact
@@ -33,11 +31,12 @@ from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits
 from cellbridge.tactile.inverse_kernel import solve_compiled as solve
 from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info
-from cellbridge.tactile.light_touch import locate_light, unlocated
 from cellbridge.tactile.layout import SkinLayout
+from cellbridge.tactile.light_touch import locate_light, unlocated
 from cellbridge.tactile.response import _check_spread, _spread_cells
 from cellbridge.tactile.spread_model import DV, PROFILE_ROWS
 from cellbridge.tactile.two_disks import MODEL_ERROR, split_clusters
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["ContactEstimator", "estimate_contacts"]
 

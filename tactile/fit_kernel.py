@@ -26,7 +26,6 @@ import math
 
 import numpy as np
 from cellbridge.tactile._jit import compiled
-
 from cellbridge.tactile.disk_model import disk_residuals
 from cellbridge.tactile.spread_model import DV, spread_residuals
 

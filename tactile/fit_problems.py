@@ -13,8 +13,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.clusters import force_centroid
 from cellbridge.tactile.contact_result import Contact
@@ -22,6 +20,7 @@ from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.fit_kernel import UNIFORM, fit_batch, share_start
 from cellbridge.tactile.layout import SkinLayout
+from numpy.typing import NDArray
 
 __all__ = ["Cluster", "Batch", "Fits", "FitRunner", "major_axis"]
 

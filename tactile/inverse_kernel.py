@@ -19,13 +19,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike
-
 from cellbridge.tactile import inversion
 from cellbridge.tactile._jit import compiled
 from cellbridge.tactile.disk_model import element_vector, layer_response
 from cellbridge.tactile.element import ElementParams
-from cellbridge.tactile.inversion import InverseResult, _Tables, _solve_with, solve
+from cellbridge.tactile.inversion import InverseResult, _solve_with, _Tables, solve
+from numpy.typing import ArrayLike
 
 __all__ = ["solve_compiled"]
 

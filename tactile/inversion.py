@@ -37,10 +37,9 @@ import functools
 from typing import Callable, NamedTuple
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
 from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.element import DEFAULT_PARAMS, ElementParams, _elasticity, _g_of, _stretch
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "DEFAULT_NOISE",

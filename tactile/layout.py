@@ -11,10 +11,9 @@ from functools import cached_property
 from typing import Any, Literal, Mapping
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
 from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.element import ElementParams
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["SkinLayout", "grid_layout", "layout_from_mapping", "layout_to_toml", "parse_layout"]
 

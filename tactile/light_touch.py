@@ -33,11 +33,10 @@ import functools
 import math
 
 import numpy as np
-
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams, sensitivity
-from cellbridge.tactile.inversion import branch_info, ratio
 from cellbridge.tactile.fit_problems import Cluster, FitRunner
+from cellbridge.tactile.inversion import branch_info, ratio
 
 __all__ = ["locate_light", "unlocated"]
 

@@ -3,13 +3,10 @@ a straddling contact's share of each element it lies on."""
 
 from __future__ import annotations
 
-
 import numpy as np
-from numpy.typing import ArrayLike
-
 from cellbridge.tactile.arrays import FloatArray
-
 from cellbridge.tactile.layout import SkinLayout
+from numpy.typing import ArrayLike
 
 __all__ = ["disk_element_overlap", "disk_rect_overlap"]
 

@@ -10,13 +10,11 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
-from numpy.typing import ArrayLike
-
 from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.element import ElementParams, sensitivity
-
 from cellbridge.tactile.layout import SkinLayout
 from cellbridge.tactile.overlap import disk_rect_overlap
+from numpy.typing import ArrayLike
 
 __all__ = ["as_contacts", "disk_response", "pressure_field", "skin_response"]
 

@@ -19,14 +19,13 @@ from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike
-
 from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.estimator import ContactEstimator
 from cellbridge.tactile.layout import SkinLayout
 from cellbridge.tactile.skin_geometry import Band
+from numpy.typing import ArrayLike
 
 __all__ = ["SeamEstimator"]
 

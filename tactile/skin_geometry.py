@@ -31,10 +31,10 @@ from functools import cached_property
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+from cellbridge.tactile.layout import MAX_SIDE, SkinLayout
 from numpy.typing import ArrayLike, NDArray
 
 from cellbridge.errors import CellbridgeError
-from cellbridge.tactile.layout import MAX_SIDE, SkinLayout
 
 __all__ = [
     "Band", "Chart", "Gateway", "LinkFrame", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",

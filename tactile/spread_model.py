@@ -18,7 +18,6 @@ import math
 
 import numpy as np
 from cellbridge.tactile._jit import compiled
-
 from cellbridge.tactile.disk_model import overlap_grad, prior_row, sensitivity_slope, whiten
 from cellbridge.tactile.response import _disk_blur
 

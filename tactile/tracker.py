@@ -33,11 +33,10 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike
-
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.estimator import ContactEstimator
 from cellbridge.tactile.two_disks import SPLIT_DCHI2
+from numpy.typing import ArrayLike
 
 __all__ = ["TrackedContact", "ContactTracker"]
 

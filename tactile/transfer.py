@@ -42,10 +42,9 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
 from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.element import ElementParams
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "ChipParams",

@@ -27,13 +27,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
-
 from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.clusters import force_centroid
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.fit_problems import Cluster, FitRunner, Fits
 from cellbridge.tactile.overlap import disk_rect_overlap
+from numpy.typing import NDArray
 
 __all__ = ["MODEL_ERROR", "SPLIT_DCHI2", "split_clusters"]
 

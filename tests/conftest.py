@@ -56,12 +56,63 @@ PROCESS_MODULES = frozenset({
 PROCESS_FIXTURES = frozenset({"warm_kernels"})
 
 
+#: `slow`: seconds of CPU each (long virtual-time runs of a whole mesh, hours of simulated
+#: drift, large property sweeps). `make test` runs them; `make test-fast` leaves them out, so
+#: the in-process lane is the one to run after every edit. Modules whose tests are mostly such:
+SLOW_MODULES = frozenset({
+    "test_daemon_skin_frames", "test_emulator_meshtime", "test_emulator_topology", "test_daemon_frames_truth",
+    "test_daemon_held_press", "test_emulator_readout", "test_skin_daemon",
+})
+#: ... and single tests elsewhere ("module::test", every parametrisation), each about a second or more.
+SLOW_TESTS = frozenset({
+    "test_daemon_fuzz::test_any_data_frames_and_noise_never_raise",
+    "test_daemon_pipeline::test_frames_of_one_press_arriving_staggered_give_one_steady_contact",
+    "test_daemon_security::test_allowed_key_gets_replies_foreign_key_and_plain_clients_get_none",
+    "test_daemon_security::test_reload_admits_a_newly_allowed_key",
+    "test_emulator_carrier_arbiter::test_a_4x4_skin_under_real_time_latency_delivers_every_sample",
+    "test_emulator_firmware::test_a_broadcast_reset_is_answered_by_every_bridge",
+    "test_emulator_firmware::test_event_reporting_sends_far_fewer_frames_when_idle_and_reports_every_press",
+    "test_emulator_heartbeat_slots::test_an_idle_event_based_skin_spreads_its_heartbeats_over_the_frames",
+    "test_emulator_medium::test_a_skin_whose_relays_hear_frames_together_needs_few_retransmissions",
+    "test_golden_corpus::test_the_corpus_exercises_what_it_is_made_of",
+    "test_lanes::test_no_test_file_or_bench_script_imports_a_test_file",
+    "test_mesh_time_attacks::test_bridges_reset_under_a_press_are_read_out_again_within_a_second",
+    "test_mesh_time_attacks::test_bridges_reset_under_a_press_deliver_again_within_a_second",
+    "test_protocol_canonical::test_only_the_canonical_encoding_is_accepted",
+    "test_protocol_fuzz::test_fuzz_decoders_raise_only_protocol_error",
+    "test_protocol_readout::test_the_column_check_of_a_readout_agrees_with_the_element_by_element_one",
+    "test_protocol_reassembly::test_flood_of_first_fragments_keeps_memory_bounded",
+    "test_protocol_stream::test_feed_iter_yields_what_feed_returns_without_holding_it",
+    "test_protocol_stream::test_stream_yields_exactly_the_intact_frames",
+    "test_protocol_version3::test_a_version_3_frame_reads_as_today_and_is_written_back_as_version_4",
+    "test_protocol_version3::test_fragmented_packed_data_reassembles",
+    "test_protocol_version3::test_packed_data_round_trips_every_sample_a_chip_can_send",
+    "test_replay_link_attacks::test_stamps_never_go_back_or_run_ahead_when_paced",
+    "test_ros2_messages::test_no_payload_makes_the_converter_raise_or_a_message_that_does_not_serialise",
+    "test_tactile_calibration::test_a_common_step_is_drift_not_touch",
+    "test_tactile_calibration::test_a_held_press_does_not_carry_a_ratchet_of_the_common_offset",
+    "test_tactile_calibration::test_a_tracker_without_touch_detection_would_erase_the_press",
+    "test_tactile_calibration::test_an_untouched_skin_stays_untouched_for_an_hour_of_drift_steps_and_outages",
+    "test_tactile_calibration::test_bounded_drift_alone_keeps_an_undetected_press",
+    "test_tactile_calibration::test_common_drift_of_5_fF_per_second_is_not_touch",
+    "test_tactile_calibration::test_exponential_tracker_uses_timestamps_not_sample_count",
+    "test_tactile_calibration::test_max_touch_has_a_default_and_rebaselines_are_counted",
+    "test_tactile_calibration::test_ten_minute_press_is_kept_while_neighbour_drift_is_removed",
+    "test_tactile_calibration::test_ten_minute_press_under_5_fF_per_second_common_drift",
+    "test_tactile_calibration::test_ten_minute_slow_press_is_reported_and_kept",
+    "test_tactile_calibration::test_without_common_mode_the_press_is_still_not_erased",
+    "test_views_robot_skin::test_any_skin_map_is_read_without_raising",
+})
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         module = getattr(item, "module", None)
         name = module.__name__.rpartition(".")[2] if module is not None else ""
         if name in PROCESS_MODULES or PROCESS_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.process)
+        if name in SLOW_MODULES or f"{name}::{getattr(item, 'originalname', item.name)}" in SLOW_TESTS:
+            item.add_marker(pytest.mark.slow)
 
 
 _running: list[pytest.Item | None] = [None]  # the test whose setup, call or teardown runs now

@@ -8,9 +8,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-from cobs import cobs
-from support.protocol_v1 import encode_v1, encode_v3
-
 from cellbridge.protocol import (
     Beacon,
     Data,
@@ -25,6 +22,9 @@ from cellbridge.protocol import (
     encode_stream,
     fragment,
 )
+from cobs import cobs
+
+from support.protocol_v1 import encode_v1, encode_v3
 
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
 

@@ -13,6 +13,7 @@ from cellbridge.daemon import contacts
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.pipeline import Pipeline
+
 from daemon_traffic import Skin
 
 STRADDLE = (0.020, 0.006, 3.0, 0.012)  # a press on the seam of bridges 1 and 2

@@ -12,6 +12,7 @@ import time
 from cellbridge.daemon import contact_worker
 from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.worker_process import WorkerProcess
+
 from support.process_state import gone
 
 

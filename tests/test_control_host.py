@@ -15,7 +15,6 @@ from typing import Any
 import msgpack
 import zmq
 import zmq.asyncio
-
 from cellbridge.daemon.commands import CommandTracker, Pending
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.control_server import ControlServer

@@ -10,6 +10,7 @@ from pathlib import Path
 from cellbridge.daemon.capture import CaptureWriter, read_capture
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.links import SerialLink
+
 from daemon_harness import CLI, Client, Pty, daemon, write_config
 from support.shell_fakes import FakeClock, FakeDevice, until
 

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cellbridge.daemon.clock import BridgeClock
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from cellbridge.daemon.clock import BridgeClock
 
 HZ = 50e6
 

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import tomllib
-from typing import Any, cast
 from pathlib import Path
+from typing import Any, cast
 
 import pytest
-
 from cellbridge.daemon.config import LINK_KEYS, SECTIONS, ConfigError, default_toml, load_config, parse_config
 
 

@@ -8,12 +8,12 @@ import math
 from typing import Any
 
 import pytest
-
 from cellbridge.daemon.capture import read_capture
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.contact_schedule import TICK, ContactScheduler
 from cellbridge.daemon.offline import OfflineDaemon
 from cellbridge.daemon.pipeline import Pipeline
+
 from support.daemon_golden import CAPTURE
 from support.pipeline_helpers import worker
 

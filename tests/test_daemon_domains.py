@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from cellbridge.daemon.domains import TimeDomains
 from cellbridge.daemon.readings import ElementReadings
 from cellbridge.protocol import Mode, Readout, ReadoutSample
@@ -84,7 +83,7 @@ def test_a_frame_of_one_root_leaves_the_other_roots_elements_as_their_frame_said
     make 0 and 1 unknown, nor erase their readings; root 1's next frame leaves 2 and 3 as
     root 22's frame said (2 known, 3 unknown)."""
     r = ElementReadings(4, 8)
-    dc = lambda *v: np.array([[x, x] for x in v], dtype=np.float64)  # noqa: E731
+    dc = lambda *v: np.array([[x, x] for x in v], dtype=np.float64)
     caps = dc(1.0, 1.0)
     r.scheduled(10.0, 1, np.array([0, 1]), caps, np.array([0, 1]), dc(0.5, 0.7), np.array([True, False]), 1,
                 np.array([0, 1]))

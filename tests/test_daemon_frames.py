@@ -7,11 +7,10 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from cellbridge.daemon.frames import SkinFrame, SkinFrames
 from cellbridge.protocol import Mode, Readout, ReadoutSample
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 RATE = 100
 SPAN_US = 4000

@@ -8,7 +8,6 @@ from __future__ import annotations
 import random
 
 import numpy as np
-
 from cellbridge.daemon.clock import SkinClock
 from cellbridge.daemon.domains import TimeDomains
 from cellbridge.daemon.frames import SkinFrames
@@ -177,7 +176,7 @@ def test_an_older_frame_of_another_root_given_out_later_never_vouches_with_a_new
     r = ElementReadings(2, 8)
     one = np.array([0])
     dc = np.array([[0.5, 0.5]])
-    caps = lambda v: np.array([[v, v]])  # noqa: E731
+    caps = lambda v: np.array([[v, v]])
     r.scheduled(7.235, 1, one, caps(1.0), one, dc, np.array([False]), 1, one)  # root 1: a sample
     r.scheduled(7.278, 3, one, caps(2.0), one, dc, np.array([True]), 16, one)  # root 16, later: a new sample
     kept, kept_caps = r.references(one, 7.275)  # root 1's frame of 7.275 s, given out after, says unchanged

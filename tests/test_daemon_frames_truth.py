@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.layout import LayoutStages
 from cellbridge.daemon.pipeline import Pipeline

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from daemon_traffic import Skin
 from support.pipeline_helpers import published, worker
 

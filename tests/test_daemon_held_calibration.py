@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from cellbridge.daemon.config import DEFAULT_NOISE, parse_config
 from cellbridge.daemon.elements import ElementStage
 from cellbridge.daemon.layout import LayoutStages

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, Drift, World
 from cellbridge.tactile import ElementParams, grid_layout, skin_response
+
 from support.pipeline_helpers import T0, drive
 
 MAX_TOUCH = 20.0

@@ -8,10 +8,10 @@ import subprocess
 from pathlib import Path
 
 import zmq
-from zmq.auth import load_certificate
-
 from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import load_curve
+from zmq.auth import load_certificate
+
 from daemon_harness import CLI
 
 

@@ -9,20 +9,20 @@ as a real process with systemd's default descriptor limit and attack it over loo
 from __future__ import annotations
 
 import resource
-from typing import Any
 import socket
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import msgpack
 import pytest
 import zmq
-
 from cellbridge.daemon.control import MAX_ID_BYTES, RequestError, parse_request
 from cellbridge.daemon.peers import PeerLimits
+
 from daemon_harness import Client, Pty, daemon, idle_connects, open_descriptors, proc_status_kb, write_config
 
 SERVICE_NOFILE = 1024  # what systemd gives a service unless LimitNOFILE= says otherwise

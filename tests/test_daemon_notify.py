@@ -19,7 +19,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from cellbridge.daemon.notify import Notifier, heartbeat
 
 # The daemon's use of Notifier, reduced to its notify calls.

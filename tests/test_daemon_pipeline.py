@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import math
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 import msgpack
 import numpy as np
 import pytest
-
-from cellbridge.daemon.layout_file import load_layout
 from cellbridge.daemon.config import parse_config
+from cellbridge.daemon.layout_file import load_layout
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.protocol import (
     ADDR_BROADCAST,
@@ -27,6 +26,7 @@ from cellbridge.protocol import (
     fragment,
 )
 from cellbridge.tactile import adc_code, grid_layout, layout_to_toml
+
 from daemon_traffic import CLOCK, Skin, staggered
 from support.pipeline_helpers import estimate, logged, published, snapshot, worker
 

@@ -7,12 +7,11 @@ import time
 from pathlib import Path
 
 import pytest
+from cellbridge.daemon.capture import MAGIC, CaptureError, read_capture, write_capture
 
-from cellbridge.daemon.capture import MAGIC, read_capture, write_capture
-from cellbridge.daemon.capture import CaptureError
-from support.daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise, pipeline_output
 from daemon_harness import Client, Pty, daemon, write_config
 from daemon_traffic import Skin
+from support.daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise, pipeline_output
 
 
 def test_pipeline_replay_matches_golden() -> None:

@@ -15,9 +15,9 @@ from typing import Any
 
 import zmq
 import zmq.asyncio
-
 from cellbridge.daemon.config import load_config
 from cellbridge.daemon.service import Service
+
 from support.daemon_golden import CAPTURE, CONFIG
 from support.shell_fakes import RecordingHooks, until
 

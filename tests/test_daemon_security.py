@@ -11,12 +11,18 @@ from pathlib import Path
 
 import pytest
 import zmq
+from cellbridge.daemon.keys import write_keypair
+from cellbridge.daemon.security import (
+    CurveKeys,
+    CurveServer,
+    SecurityError,
+    apply_client,
+    check_bind,
+    is_loopback,
+    load_curve,
+)
 from hypothesis import given
 from hypothesis import strategies as st
-
-from cellbridge.daemon.keys import write_keypair
-from cellbridge.daemon.security import (CurveKeys, CurveServer, SecurityError, apply_client, check_bind,
-                                        is_loopback, load_curve)
 
 LOOPBACK = ["tcp://127.0.0.1:5561", "tcp://127.0.0.53:5560", "tcp://localhost:5561", "tcp://[::1]:5561",
             "tcp://lo:5561", "tcp://[::ffff:127.0.0.1]:5561", "ipc:///run/cellbridge/control", "inproc://control",

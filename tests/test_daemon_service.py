@@ -14,11 +14,11 @@ import msgpack
 import numpy as np
 import pytest
 import zmq
-
 from cellbridge.protocol import Command, Frame, Op, StreamDecoder
-from support.payloads import payload_as
+
 from daemon_harness import Client, Pty, daemon, write_config
 from daemon_traffic import Skin
+from support.payloads import payload_as
 
 CORNER = (0.020, 0.020, 3.0, 0.012)  # on the corner of four elements: x and y both observable
 

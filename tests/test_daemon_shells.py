@@ -24,13 +24,13 @@ import msgpack
 import pytest
 import zmq
 import zmq.asyncio
-
 from cellbridge.daemon.config import load_config, parse_config
 from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
 from cellbridge.daemon.links import SerialLink
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.daemon.replay_source import read_records
 from cellbridge.daemon.service import Service
+
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import RecordingWriter
 from cellbridge.recording.recorder import Recorder

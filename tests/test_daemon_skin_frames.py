@@ -11,7 +11,6 @@ import dataclasses
 import math
 
 import pytest
-
 from cellbridge.daemon.contact_schedule import TICK
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings

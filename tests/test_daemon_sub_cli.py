@@ -9,14 +9,14 @@ from pathlib import Path
 import msgpack
 import pytest
 import zmq
-from hypothesis import given
-from hypothesis import strategies as st
-
 from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import CurveKeys, CurveServer
 from cellbridge.daemon.subscribe import message_to_json
-from support.pub_helpers import json_lines, publisher, run_subscriber
+from hypothesis import given
+from hypothesis import strategies as st
+
 from daemon_harness import CLI
+from support.pub_helpers import json_lines, publisher, run_subscriber
 
 
 def test_sub_prints_subscribed_topics_as_json_lines() -> None:

@@ -35,6 +35,7 @@ def test_run_follows_each_read_by_the_messages_it_caused_and_matches_the_golden_
     # exactly what the offline daemon (the service's own schedule) publishes on these reads
     from cellbridge.daemon.config import parse_config
     from cellbridge.daemon.offline import OfflineDaemon
+
     from cellbridge.recording.mcapfile import read_payloads
 
     reads = sorted((p["t_host"], p["link"], p["data"]) for _, p in read_payloads(CORPUS / "fragments.mcap",
@@ -62,6 +63,7 @@ def test_run_follows_each_read_by_the_messages_it_caused_and_matches_the_golden_
 def test_a_recording_prints_its_reads_and_messages_in_the_order_kept(tmp_path: Path,
                                                                     capsys: pytest.CaptureFixture[str]) -> None:
     from cellbridge.protocol import StreamDecoder
+
     from cellbridge.recording.mcapfile import read_payloads
 
     data = next(p["data"] for _, p in read_payloads(CORPUS / "fragments.mcap", topics={"serial"}))

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import random
 
-
 from cellbridge.emulator.linklayer import LinkLayer
 from cellbridge.emulator.transceiver import Transceiver
 

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from hypothesis import given
-from hypothesis import strategies as st
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.carrier_arbiter import HOLD, CarrierArbiter
 from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
+from hypothesis import given
+from hypothesis import strategies as st
 
 BIT = 50  # cycles per bit at 1 Mbit/s
 CCA, DIFS = 4 * BIT, 40 * BIT

@@ -8,14 +8,13 @@ synchroniser rule are exercised, and narrow counters make short gates wrap.
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-
 from cellbridge.emulator.adc import sar_codes
 from cellbridge.emulator.chip import Chip, ChipConfig
 from cellbridge.emulator.keyed_random import Z_MAX, GateNoise, KeyedNormals, Stream
 from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation
 from cellbridge.emulator.reference import step_conversions, step_counter
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 MAX_JITTER = 0.99 / max_period_deviation()
 

@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from cellbridge.emulator.chip import Chip
 from cellbridge.emulator.chip_noise import adc_noise, counter_noise
 from cellbridge.tactile import DEFAULT_NOISE, ElementParams

@@ -5,17 +5,28 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import pytest
-from hypothesis import given, settings as hsettings, strategies as st
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings, execute
 from cellbridge.emulator.reporting import Reporter, ReportingMode
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world import Contact, ScenarioError, World, parse_scenario
 from cellbridge.protocol import (
+    ADDR_BROADCAST,
+    Command,
+    CommandReply,
+    Data,
+    Flags,
+    Frame,
+    FrameType,
+    Mode,
+    Op,
     SampleFlags,
-    ADDR_BROADCAST, Command, CommandReply, Data, Flags, Frame, FrameType, Mode, Op, Status,
+    Status,
 )
+from hypothesis import given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
+
 from support.payloads import payload_as
 
 if TYPE_CHECKING:
@@ -591,9 +602,8 @@ def _routed(me: int = 5):
 
 
 def _data(origin: int, seq: int, hops: int, src: int, dst: int = 5) -> bytes:
-    from cellbridge.protocol import Raw
+    from cellbridge.protocol import Flags, Raw
     from cellbridge.protocol import reframe as build
-    from cellbridge.protocol import Flags
 
     return build(Raw(int(FrameType.DATA), 0, origin, seq, hops, 0, b""), src, dst, int(Flags.ACK_REQUEST))
 

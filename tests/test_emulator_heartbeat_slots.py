@@ -11,16 +11,15 @@ from __future__ import annotations
 
 from collections import Counter
 
-from cobs import cobs
-from hypothesis import given
-from hypothesis import settings as hsettings
-from hypothesis import strategies as st
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.reporting import Reporter, ReportingMode
 from cellbridge.emulator.virtual import VirtualMesh
 from cellbridge.protocol import Data, Sample, SampleFlags, decode
+from cobs import cobs
+from hypothesis import given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
 
 PERIOD = 500_000  # 100 Hz at 50 MHz
 CPM = 50_000
@@ -81,7 +80,7 @@ def test_an_idle_event_based_skin_spreads_its_heartbeats_over_the_frames() -> No
             continue
         try:
             frame = decode(cobs.decode(segment))
-        except Exception:  # noqa: BLE001  # a partial frame at the end of the run
+        except Exception:  # a partial frame at the end of the run
             continue
         if isinstance(frame.payload, Data):
             for s in frame.payload.samples:

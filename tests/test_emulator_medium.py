@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import random
 
-from support.protocol_wire import sealed
-
 from cellbridge.emulator.medium import Medium
 from cellbridge.emulator.mesh import Bridge, Cell, Link, Mesh
 from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
 from cellbridge.protocol import crc16
+
+from support.protocol_wire import sealed
 
 BIT = 50
 
@@ -182,11 +182,11 @@ def test_bit_errors_follow_the_ber() -> None:
 def test_a_corrupted_frame_that_passes_the_crc_happens_and_the_host_copes() -> None:
     """About one corrupted frame in 65 536 passes CRC-16. The protocol decodes it (it is
     indistinguishable) or counts it by cause; the daemon's pipeline never raises on it."""
-    from cobs import cobs
-
     from cellbridge.daemon.config import parse_config
     from cellbridge.daemon.pipeline import Pipeline
     from cellbridge.protocol import Data, Frame, Mode, Sample, StreamDecoder, encode
+    from cobs import cobs
+
     from daemon_traffic import Skin
 
     frame = encode(Frame(1, 0, 2, 7, Data(Mode.COUNTER, (Sample(0, 123456, 19600, 15800, 0),), 1)))

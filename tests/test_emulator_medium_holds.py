@@ -12,7 +12,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
-
 from cellbridge.emulator import meshgen, udp
 from cellbridge.emulator.carrier_arbiter import HOLD, CarrierArbiter
 from cellbridge.emulator.medium import Medium
@@ -40,7 +39,7 @@ def serving(n: int = 2) -> Iterator[tuple[int, Medium, threading.Thread, list[Ba
     def run() -> None:
         try:
             serve(medium, sock, stop)  # type: ignore[arg-type]  # duck-typed StopFlag
-        except BaseException as exc:  # noqa: BLE001  # what killed the medium
+        except BaseException as exc:  # what killed the medium
             errors.append(exc)
 
     t = threading.Thread(target=run, daemon=True)

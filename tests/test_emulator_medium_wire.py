@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+from cellbridge.emulator.medium_wire import (
+    CARRIER,
+    RX,
+    TX,
+    WANT,
+    decode_carrier,
+    decode_rx,
+    decode_tx,
+    decode_want,
+    encode_carrier,
+    encode_rx,
+    encode_tx,
+    encode_want,
+    sender,
+)
 from hypothesis import given
 from hypothesis import strategies as st
-
-from cellbridge.emulator.medium_wire import (
-    CARRIER, RX, TX, WANT, decode_carrier, decode_rx, decode_tx, decode_want, encode_carrier, encode_rx,
-    encode_tx, encode_want, sender,
-)
 
 cells = st.lists(st.integers(0, 2**32 - 1), min_size=1, max_size=255).map(tuple)
 ids = st.integers(0, 2**32 - 1)

@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from pathlib import Path
-import shutil
 
 import pytest
-from hypothesis import given, settings, strategies as st
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import MeshError, mesh_to_toml, parse_mesh
 from cellbridge.protocol import Data
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from support.payloads import payload_as
 
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"

@@ -8,18 +8,17 @@ gate starts of one sample index across a skin.
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
-from root_return import HOWS, US, How, errors_from_line, root_goes_and_returns, skin_time_line, sync_bound
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh
 from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.protocol import MeshTime, SampleFlags
+from hypothesis import given
+from hypothesis import strategies as st
+
+from root_return import HOWS, US, How, errors_from_line, root_goes_and_returns, skin_time_line, sync_bound
 
 PERIOD_S = 0.5  # FirmwareConfig.sync_period
 

@@ -8,11 +8,10 @@ is due) must still send exactly what gate-by-gate sampling sends.
 
 from __future__ import annotations
 
-from cobs import cobs
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.protocol import MAX_FRAME, VERSION, Data, decode
+from cobs import cobs
 
 MS = CLOCK_HZ // 1000
 

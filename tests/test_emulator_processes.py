@@ -13,15 +13,23 @@ from pathlib import Path
 
 import pytest
 import serial
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.emulator.realtime import reporting_arg, reporting_text
 from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.protocol import Command, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
-from support.emulator_procs import (PY, Skin, data_by_origin, free_base_port,
-                            posing_bridges, processes_mentioning, running_medium, running_skin, terminate)
-from cellbridge.protocol import CommandReply
+from cellbridge.protocol import Command, CommandReply, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
+
+from support.emulator_procs import (
+    PY,
+    Skin,
+    data_by_origin,
+    free_base_port,
+    posing_bridges,
+    processes_mentioning,
+    running_medium,
+    running_skin,
+    terminate,
+)
 from support.payloads import payload_as
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.firmware import Firmware
@@ -22,6 +21,7 @@ from cellbridge.emulator.sampling import Sampler
 from cellbridge.emulator.virtual import VirtualMesh
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import FrameType, Mode, Readout, ReadoutSample, Sample
+
 from support.payloads import payload_as
 
 Truth = dict[tuple[int, int], tuple[int, int, bool]]  # (bridge, index) -> (c1, c2, sent as a sample)

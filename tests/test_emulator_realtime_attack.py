@@ -15,12 +15,19 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
-
-from support.emulator_procs import PY, free_base_port, processes_mentioning, posing_bridges, running_medium, stop_and_sweep, terminate
-
-from cellbridge.demo import gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import Mesh, mesh_to_toml
+
+from cellbridge.demo import gateway_line
+from support.emulator_procs import (
+    PY,
+    free_base_port,
+    posing_bridges,
+    processes_mentioning,
+    running_medium,
+    stop_and_sweep,
+    terminate,
+)
 
 
 def _roles(mesh_path: Path) -> dict[str, int]:
@@ -255,7 +262,6 @@ def test_world_refuses_a_press_whose_track_leaves_the_numbers(tmp_path: Path) ->
     # cannot place in time (a raw request: "inf", NaN) was taken as well.
     import msgpack
     import zmq
-
     from cellbridge.emulator.world import ScenarioError, parse_scenario
 
     with pytest.raises(ScenarioError, match="velocity"):

@@ -8,11 +8,11 @@ import sys
 import time
 
 import pytest
-from daemon_harness import stop_session
-from support.emulator_procs import free_base_port
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
+
+from daemon_harness import stop_session
+from support.emulator_procs import free_base_port
 
 _SHOW = ("from cellbridge.emulator.realtime import above_the_chips; import os; "
          "print(above_the_chips(), os.sched_getparam(0).sched_priority)")

@@ -10,10 +10,10 @@ import time
 from pathlib import Path
 
 import pytest
-
-from cellbridge.demo import gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
+
+from cellbridge.demo import gateway_line
 from support.emulator_procs import PY, free_base_port, running_skin, stop_and_sweep, terminate
 
 
@@ -126,8 +126,8 @@ def test_a_host_opening_the_gateway_pty_late_reads_no_seconds_old_frames(tmp_pat
     it 15 s late read 14 s old frames first. What no host took for STALE_S (1 s) is
     flushed: the oldest sample waiting at the open is about that old, not 6 s."""
     import serial
-
     from cellbridge.protocol import StreamDecoder
+
     from support.emulator_procs import data_by_origin
 
     with running_skin(tmp_path, "--readout", "off") as skin:  # (each sample's own cycle: DATA frames)

@@ -5,12 +5,11 @@ from __future__ import annotations
 from collections import Counter
 
 import pytest
-
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
-from cellbridge.protocol import FrameType, SampleFlags
-from cellbridge.protocol import Data
+from cellbridge.protocol import Data, FrameType, SampleFlags
+
 from support.payloads import payload_as
 
 PERIOD = CLOCK_HZ // 100  # 100 Hz

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import pytest
-
 from cellbridge.daemon.config import ConfigError, parse_config
 from cellbridge.daemon.control import RequestError
 from cellbridge.daemon.security import SecurityError
 from cellbridge.emulator.mesh import MeshError, parse_mesh
 from cellbridge.emulator.world import ScenarioError
-from cellbridge.errors import CellbridgeError
 from cellbridge.protocol import ProtocolError, decode
+
+from cellbridge.errors import CellbridgeError
 
 
 @pytest.mark.parametrize("kind", [ProtocolError, ConfigError, MeshError, ScenarioError, SecurityError, RequestError])

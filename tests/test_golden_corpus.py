@@ -45,9 +45,9 @@ def test_the_recordings_are_data_of_protocol_versions_up_to_3_read_through_the_f
     """The corpus was recorded before the readout schedule: every frame is of version 3 or
     older and none is a READOUT record, so each replay runs the DATA fallback alone (and its
     press still comes out as a contact, above)."""
+    from cellbridge.protocol import FrameType
     from cobs import cobs
 
-    from cellbridge.protocol import FrameType
     from support.golden_corpus import serial_reads
 
     for sc in SCENARIOS:

@@ -14,7 +14,6 @@ import random
 from collections import Counter
 
 import pytest
-
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.pipeline import Pipeline
 from cellbridge.emulator import meshgen

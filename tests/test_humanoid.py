@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from cellbridge.daemon.skin_file import load_skin
 from cellbridge.emulator.commands import Settings
 from cellbridge.emulator.realtime import reporting_arg
@@ -16,8 +15,9 @@ from cellbridge.emulator.skin_mesh import mesh_from_skin
 from cellbridge.emulator.skin_traffic import SkinTraffic, readout_tree
 from cellbridge.emulator.world import Contact, World
 from cellbridge.protocol import Readout, StreamDecoder
-from support.payloads import payload_as
+
 from cellbridge.skin_run import run_daemon_on_traffic
+from support.payloads import payload_as
 
 HUMANOID = Path(__file__).resolve().parents[1] / "cellbridge" / "skins" / "humanoid.toml"
 PRESSED = (("forearm_left", 3, 2), ("thigh_right", 5, 5), ("chest", 6, 3), ("head", 2, 9))

@@ -14,7 +14,6 @@ import math
 
 import numpy as np
 import pytest
-
 from cellbridge.tactile.estimator import ContactEstimator
 from cellbridge.tactile.layout import SkinLayout
 from cellbridge.tactile.response import skin_response

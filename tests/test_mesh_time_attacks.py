@@ -54,7 +54,7 @@ def test_bridges_reset_under_a_press_are_read_out_again_within_a_second() -> Non
                 if smp.bridge in sampled:
                     sampled[smp.bridge].add(f.payload.index)
     # frame indices count mesh time from the root's epoch: the newest read out is ~7.5 s
-    at = lambda t: newest - round((7.5 - t) * rate)  # noqa: E731 - the index sampled at virtual time t
+    at = lambda t: newest - round((7.5 - t) * rate)
     for b in UNDER:
         indices = sampled[b]
         before = [i for i in indices if at(4.0) <= i < at(5.0)]

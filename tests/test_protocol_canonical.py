@@ -11,13 +11,13 @@ import struct
 
 import msgpack
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from support.protocol_strategies import frames_of, messages_by_type
-from support.protocol_wire import sealed
-
 from cellbridge.protocol import MAX_FRAME, Frame, FrameType, ProtocolError, decode, encode
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from support.protocol_strategies import frames_of, messages_by_type
+from support.protocol_wire import sealed
 
 
 def _int_forms(n: int) -> list[bytes]:

@@ -5,11 +5,9 @@ from __future__ import annotations
 import random
 
 import pytest
-
+from cellbridge.protocol import DuplicateFilter
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
-
-from cellbridge.protocol import DuplicateFilter
 
 MOD = 65536
 

@@ -2,33 +2,35 @@
 
 from __future__ import annotations
 
-import pytest
 from typing import Any
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from support.protocol_strategies import frames_of, messages_by_type
-from support.protocol_wire import sealed
 
+import pytest
 from cellbridge.protocol import (
     CRC_CHECK,
     MAX_FRAME,
+    VERSION,
     Beacon,
     Bundle,
     Data,
+    Fragment,
     Frame,
-    VERSION,
     FrameType,
     MeshTime,
     Mode,
     ProtocolError,
+    Readout,
     Sample,
     crc16,
     decode,
     encode,
 )
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
-from cellbridge.protocol import Fragment, Readout
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
 from support.payloads import payload_as
+from support.protocol_strategies import frames_of, messages_by_type
+from support.protocol_wire import sealed
 
 
 def test_crc_parameters() -> None:
@@ -266,6 +268,7 @@ def test_a_bundle_carries_frames_of_its_own_version_only(outer: int, inner: int)
     frame relabelled): two byte strings for one frame. And a version 3 bundle delivered a
     version 4 READOUT, a type version 3 did not have."""
     import msgpack
+
     from support.protocol_v1 import encode_old
 
 

@@ -9,11 +9,7 @@ from __future__ import annotations
 import random
 from typing import Any
 
-from cobs import cobs
 import msgpack
-from support.protocol_v1 import encode_v1, encode_v2, encode_v3, same_header
-from support.protocol_wire import sealed
-
 from cellbridge.protocol import (
     VERSION,
     Beacon,
@@ -45,6 +41,10 @@ from cellbridge.protocol import (
     fragment,
 )
 from cellbridge.protocol.frame import HEADER_LEN
+from cobs import cobs
+
+from support.protocol_v1 import encode_v1, encode_v2, encode_v3, same_header
+from support.protocol_wire import sealed
 
 #: READOUT records (version 4): a periodic one, an event-based one with all three states and
 #: ids in every msgpack form, both parts of a record split by mode, and an 8x8 that travels

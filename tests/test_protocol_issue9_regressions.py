@@ -3,16 +3,12 @@
 from __future__ import annotations
 
 import math
-from typing import Any
 import tracemalloc
+from typing import Any
 
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from support.protocol_strategies import data as data_strategy
-from support.protocol_wire import sealed
-
 from cellbridge.protocol import (
     VERSION,
     Beacon,
@@ -22,6 +18,8 @@ from cellbridge.protocol import (
     Fragment,
     Frame,
     FrameType,
+    Hello,
+    LinkAck,
     Mode,
     ProtocolError,
     Reassembler,
@@ -34,9 +32,11 @@ from cellbridge.protocol import (
 )
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
 from cellbridge.tactile import transfer
-from cellbridge.protocol import Hello, LinkAck
-from support.payloads import payload_as
+from hypothesis import HealthCheck, given, settings
 
+from support.payloads import payload_as
+from support.protocol_strategies import data as data_strategy
+from support.protocol_wire import sealed
 
 # -- 1. duplicate filter ------------------------------------------------------------------------
 

@@ -15,13 +15,6 @@ from typing import Any
 
 import msgpack
 import pytest
-from cobs import cobs
-from hypothesis import HealthCheck, assume, given, settings
-from hypothesis import strategies as st
-from support.protocol_strategies import readouts
-from support.protocol_v1 import encode_old
-from support.protocol_wire import sealed
-
 from cellbridge.protocol import (
     MAX_FRAME,
     VERSION,
@@ -41,7 +34,14 @@ from cellbridge.protocol import (
     fragment,
 )
 from cellbridge.protocol.frame import HEADER_LEN
+from cobs import cobs
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
 from support.payloads import payload_as
+from support.protocol_strategies import readouts
+from support.protocol_v1 import encode_old
+from support.protocol_wire import sealed
 
 U16, U32, U64 = 0xFFFF, 2**32 - 1, 2**64 - 1
 SAMPLES, UNCHANGED, MISSING = 4, 5, 6  # positions of the three lists in the wire array

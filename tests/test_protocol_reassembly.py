@@ -6,10 +6,6 @@ import collections
 import random
 
 import pytest
-from hypothesis import assume, given, settings
-from hypothesis import strategies as st
-from support.protocol_wire import sealed
-
 from cellbridge.protocol import (
     MAX_FRAME,
     Data,
@@ -24,6 +20,10 @@ from cellbridge.protocol import (
     encode,
     fragment,
 )
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from support.protocol_wire import sealed
 
 
 def big_frame(n: int, seq: int = 100, origin: int = 9) -> Frame:

@@ -5,13 +5,13 @@ from __future__ import annotations
 import tracemalloc
 from typing import Any
 
+from cellbridge.protocol import Beacon, Frame, StreamDecoder, encode, encode_stream
+from cellbridge.protocol.stream import max_encoded_len
 from cobs import cobs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from support.protocol_strategies import simple_frames
 
-from cellbridge.protocol import Beacon, Frame, StreamDecoder, encode, encode_stream
-from cellbridge.protocol.stream import max_encoded_len
+from support.protocol_strategies import simple_frames
 
 sendable = simple_frames.filter(lambda f: len(_raw_len(f)) <= 255)
 

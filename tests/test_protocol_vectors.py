@@ -12,11 +12,9 @@ import re
 from typing import Any
 
 import pytest
-
-from support.protocol_doc_vectors import SPEC, regenerate
-
 from cellbridge.protocol import (
     VERSION,
+    Data,
     Fragment,
     Frame,
     Reassembler,
@@ -28,9 +26,10 @@ from cellbridge.protocol import (
     encode_stream,
 )
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
+
 from cellbridge.decode import frame_to_json
-from cellbridge.protocol import Data
 from support.payloads import payload_as
+from support.protocol_doc_vectors import SPEC, regenerate
 
 BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1|-v2|-v3)?)\n(.*?)```", re.S)
 

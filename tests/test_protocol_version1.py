@@ -9,12 +9,6 @@ from __future__ import annotations
 
 import msgpack
 import pytest
-from cobs import cobs
-from hypothesis import HealthCheck, assume, given, settings
-from support.protocol_strategies import frames_v3
-from support.protocol_v1 import as_read_from_v1, encode_v1, payload_v1, read_back
-from support.protocol_wire import sealed
-
 from cellbridge.protocol import (
     MAX_FRAME,
     VERSION,
@@ -36,6 +30,12 @@ from cellbridge.protocol import (
     encode_stream,
 )
 from cellbridge.protocol.frame import CRC_LEN
+from cobs import cobs
+from hypothesis import HealthCheck, assume, given, settings
+
+from support.protocol_strategies import frames_v3
+from support.protocol_v1 import as_read_from_v1, encode_v1, payload_v1, read_back
+from support.protocol_wire import sealed
 
 NO_MESH_TIME = SampleFlags.NO_MESH_TIME
 

@@ -14,13 +14,6 @@ from typing import Any
 
 import msgpack
 import pytest
-from cobs import cobs
-from hypothesis import HealthCheck, assume, given, settings
-from hypothesis import strategies as st
-from support.protocol_strategies import frames_v3
-from support.protocol_v1 import as_read_from_v2, encode_v2, encode_v3, read_back
-from support.payloads import payload_as
-
 from cellbridge.protocol import (
     MAX_FRAME,
     VERSION,
@@ -41,6 +34,13 @@ from cellbridge.protocol import (
 from cellbridge.protocol.frame import CRC_LEN, HEADER_LEN
 from cellbridge.protocol.messages import packed_sample, packed_samples
 from cellbridge.protocol.relay import peek
+from cobs import cobs
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from support.payloads import payload_as
+from support.protocol_strategies import frames_v3
+from support.protocol_v1 import as_read_from_v2, encode_v2, encode_v3, read_back
 
 U64 = 2**64 - 1
 NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)

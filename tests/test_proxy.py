@@ -14,12 +14,12 @@ from pathlib import Path
 import msgpack
 import pytest
 import zmq
-
 from cellbridge.daemon.keys import write_keypair
 from cellbridge.daemon.security import apply_client
+
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
-from support.pub_helpers import json_lines, run_subscriber
 from support.example_subscribers import c_subscriber
+from support.pub_helpers import json_lines, run_subscriber
 
 
 def _proxy_cmd(front: str, backs: list[str], *extra: str) -> list[str]:
@@ -59,7 +59,7 @@ def test_two_skins_behind_one_curve_proxy_reach_the_c_subscriber_told_apart_by_s
         proxy = stack.enter_context(group(
             _proxy_cmd(front, [s.pub for s in skins], "--server-secret", str(proxy_secret),
                        "--allowed-clients", str(keys / "allowed")),
-            stderr=open(tmp_path / "proxy.log", "wb")))  # noqa: SIM115
+            stderr=open(tmp_path / "proxy.log", "wb")))
 
         def subscriber(secret: Path) -> zmq.Socket:
             sock = ctx.socket(zmq.SUB)
@@ -119,6 +119,7 @@ def test_proxy_names_a_bad_backend(bad: str) -> None:
 def test_a_curve_daemon_behind_the_proxy_is_reached_with_its_key_and_the_proxys_own(tmp_path: Path) -> None:
     """CURVE on the back side: a publisher that allows only the proxy's key, next to a plain one."""
     from cellbridge.daemon.security import CurveKeys, CurveServer
+
     from support.pub_helpers import publisher
 
     (tmp_path / "allowed").mkdir()

@@ -11,6 +11,7 @@ from typing import Any
 import jsonschema
 import msgpack
 import pytest
+from cellbridge.daemon.capture import CaptureError
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
@@ -21,7 +22,6 @@ from cellbridge.recording.mcapfile import ReadResult, RecordingWriter, read_mess
 from cellbridge.recording.recorder import Recorder, rotated_path
 from cellbridge.recording.replay import Pacer
 from cellbridge.recording.schemas import schema_for
-from cellbridge.daemon.capture import CaptureError
 from recording_helpers import same_payload
 
 floats = st.floats(allow_nan=True, allow_infinity=True)

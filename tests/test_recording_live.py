@@ -17,15 +17,15 @@ from typing import Any
 
 import jsonschema
 import pytest
+from cellbridge.tactile import DEFAULT_NOISE
 from mcap.reader import make_reader
 
 from cellbridge.recording import codec
-from cellbridge.tactile import DEFAULT_NOISE
 from cellbridge.recording.mcapfile import ReadResult, read_messages
-from support.daemon_golden import CAPTURE, CONFIG, CONTACT_REL, CONTACT_TOL
 from daemon_harness import Client, daemon, write_config
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from recording_helpers import same_payload
+from support.daemon_golden import CAPTURE, CONFIG, CONTACT_REL, CONTACT_TOL
 
 PRESS = (0.040, 0.020)  # across the seam of two elements of the 2x2 skin
 
@@ -297,7 +297,7 @@ def _whole_chunks(path: Path) -> int:
             for rec in records:
                 if isinstance(rec, Chunk):
                     n += sum(1 for r in breakup_chunk(rec) if type(r).__name__ == "Message")
-        except Exception:  # noqa: BLE001 - the cut at the end
+        except Exception:
             pass
     return n
 

@@ -19,12 +19,12 @@ from typing import Any
 import msgpack
 import pytest
 import zmq
+from cellbridge.daemon.capture import CaptureError
+from cellbridge.daemon.replay_source import read_records
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import recording_mutations as rm
-from cellbridge.daemon.capture import CaptureError
-from cellbridge.daemon.replay_source import read_records
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import ReadResult, RecordingWriter, read_messages, read_payloads
 from cellbridge.recording.recorder import Recorder

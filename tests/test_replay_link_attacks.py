@@ -4,9 +4,9 @@ ends late, a replay far behind, a recording whose times step back."""
 from __future__ import annotations
 
 import asyncio
-from typing import Any
 import time
 from pathlib import Path
+from typing import Any
 
 from cellbridge.daemon.capture import write_capture
 from cellbridge.daemon.config import LinkConfig

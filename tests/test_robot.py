@@ -8,9 +8,9 @@ import math
 
 import numpy as np
 import pytest
+from cellbridge.tactile.skin_geometry import parse_skin
 
 from cellbridge.robot_score import score
-from cellbridge.tactile.skin_geometry import parse_skin
 
 ARM = None
 

@@ -20,17 +20,17 @@ import pytest
 
 pytest.importorskip("cyclonedds", reason="the ros2 extra is not installed (make install installs it)")
 
-from mcap.reader import make_reader  # noqa: E402
-from rosbags.rosbag2 import Reader  # noqa: E402
-from ruamel.yaml import YAML  # noqa: E402
+from mcap.reader import make_reader
+from rosbags.rosbag2 import Reader
+from ruamel.yaml import YAML
 
-from cellbridge.ros2 import msgdefs  # noqa: E402
-from cellbridge.ros2 import types as T  # noqa: E402
-from cellbridge.ros2.bag import BagExists, BagWriter  # noqa: E402
-from cellbridge.ros2.qos import topics  # noqa: E402
-from live_skin import Collector, cellbridge_cmd, group  # noqa: E402
-from ros2_peer import typestore  # noqa: E402
-from view_harness import Client, daemon, fed_skin, skin_config, wait_ready  # noqa: E402
+from cellbridge.ros2 import msgdefs
+from cellbridge.ros2 import types as T
+from cellbridge.ros2.bag import BagExists, BagWriter
+from cellbridge.ros2.qos import topics
+from live_skin import Collector, cellbridge_cmd, group
+from ros2_peer import typestore
+from view_harness import Client, daemon, fed_skin, skin_config, wait_ready
 
 PRESS = (0.040, 0.060)  # across the seam of two elements of the 4×4 skin
 

@@ -11,13 +11,13 @@ from hypothesis import strategies as st
 
 pytest.importorskip("cyclonedds", reason="the ros2 extra is not installed (make install installs it)")
 
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from cellbridge.ros2 import msgdefs  # noqa: E402
-from cellbridge.ros2 import types as T  # noqa: E402
-from cellbridge.ros2.convert import Converter  # noqa: E402
-from cellbridge.ros2.qos import BadTopicName, topics  # noqa: E402
-from ros2_peer import typestore  # noqa: E402
+from cellbridge.ros2 import msgdefs
+from cellbridge.ros2 import types as T
+from cellbridge.ros2.convert import Converter
+from cellbridge.ros2.qos import BadTopicName, topics
+from ros2_peer import typestore
 
 LAYOUT = {"layout": {"ids": [1, 2, 3, 4], "x": [0.02, 0.06, 0.02, 0.06], "y": [0.02, 0.02, 0.06, 0.06], "side": 0.04}}
 

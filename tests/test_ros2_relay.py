@@ -18,11 +18,11 @@ import zmq
 
 pytest.importorskip("cyclonedds", reason="the ros2 extra is not installed (make install installs it)")
 
-from cellbridge.ros2.convert import Converter  # noqa: E402
-from cellbridge.ros2.daemon_feed import PayloadModel  # noqa: E402
-from cellbridge.ros2.relay import Relay  # noqa: E402
-from cellbridge.views.source import Source  # noqa: E402
-from daemon_harness import free_port  # noqa: E402
+from cellbridge.ros2.convert import Converter
+from cellbridge.ros2.daemon_feed import PayloadModel
+from cellbridge.ros2.relay import Relay
+from cellbridge.views.source import Source
+from daemon_harness import free_port
 
 N = 256  # a 16x16 skin
 

@@ -10,11 +10,11 @@ import math
 
 import numpy as np
 import pytest
-
 from cellbridge.emulator.skin_mesh import mesh_from_skin
 from cellbridge.emulator.world import Contact, World
-from cellbridge.skin_run import run_daemon_on_skin
 from cellbridge.tactile.skin_geometry import parse_skin
+
+from cellbridge.skin_run import run_daemon_on_skin
 from support.skin_descriptions import SKIN
 
 

@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 import pytest
-
 from cellbridge.tactile import ContactEstimator, ContactTracker, skin_response
 from cellbridge.tactile.seam_estimator import SeamEstimator
 from cellbridge.tactile.skin_geometry import SkinError, parse_skin, pose_matrix
+
 from support.skin_descriptions import SKIN
 
 

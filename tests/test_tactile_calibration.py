@@ -7,9 +7,6 @@ from typing import cast
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from cellbridge.tactile.calibration import (
     COLLECTING,
     HOLDOFF,
@@ -22,6 +19,8 @@ from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.inversion import inverse
 from cellbridge.tactile.layout import grid_layout
 from cellbridge.tactile.response import skin_response
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 pF = 1e-12
 fF = 1e-15

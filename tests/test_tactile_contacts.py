@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import json
-from typing import Any
 import math
+from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from cellbridge.tactile.contacts import (
     Contact,
     ContactEstimator,
@@ -22,6 +19,8 @@ from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.layout import SkinLayout, grid_layout
 from cellbridge.tactile.response import skin_response
 from cellbridge.tactile.transfer import counter_delta, counts_per_farad
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 LAY = grid_layout(2, 2)  # the paper's 2×2 array, 40 mm pitch; seams at x = 20 mm, y = 20 mm
 EST = ContactEstimator(LAY)

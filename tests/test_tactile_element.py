@@ -11,9 +11,6 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from cellbridge.tactile import (
     EPS0,
     ElementParams,
@@ -23,6 +20,8 @@ from cellbridge.tactile import (
     rest_capacitance,
     sensitivity,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 P = ElementParams()
 

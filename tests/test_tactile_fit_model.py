@@ -6,16 +6,15 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from cellbridge.tactile.disk_model import disk_residuals, element_vector, overlap_grad, sensitivity_slope
 from cellbridge.tactile.element import ElementParams, sensitivity
 from cellbridge.tactile.fit_kernel import share_start
 from cellbridge.tactile.layout import grid_layout
 from cellbridge.tactile.overlap import disk_rect_overlap
-from cellbridge.tactile.response import skin_response, _spread_cells
-from cellbridge.tactile.spread_model import PROFILE_ROWS, DV, spread_residuals
+from cellbridge.tactile.response import _spread_cells, skin_response
+from cellbridge.tactile.spread_model import DV, PROFILE_ROWS, spread_residuals
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 P = ElementParams()
 PAR = element_vector(P)

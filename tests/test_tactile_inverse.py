@@ -10,9 +10,6 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from cellbridge.tactile import (
     DEFAULT_NOISE,
     ElementParams,
@@ -25,6 +22,8 @@ from cellbridge.tactile import (
     sensitivity,
     solve,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 P = ElementParams()
 INFO = branch_info()

@@ -14,7 +14,6 @@ import os
 import subprocess
 import sys
 
-
 SCRIPT = r"""
 import warnings
 warnings.simplefilter("always")

@@ -7,14 +7,14 @@ from typing import Any
 
 import numpy as np
 import pytest
+from cellbridge.tactile.element import ElementParams, forward, sensitivity
+from cellbridge.tactile.layout import SkinLayout, grid_layout, layout_from_mapping, layout_to_toml, parse_layout
+from cellbridge.tactile.overlap import disk_element_overlap, disk_rect_overlap
+from cellbridge.tactile.response import _disk_blur, disk_response, pressure_field, skin_response
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cellbridge.config import load_layout
-from cellbridge.tactile.element import ElementParams, forward, sensitivity
-from cellbridge.tactile.layout import grid_layout, layout_from_mapping, layout_to_toml, parse_layout, SkinLayout
-from cellbridge.tactile.overlap import disk_element_overlap, disk_rect_overlap
-from cellbridge.tactile.response import _disk_blur, disk_response, pressure_field, skin_response
 
 # ----------------------------------------------------------------- reference areas
 

@@ -7,11 +7,12 @@ import math
 
 import numpy as np
 import pytest
-
 from cellbridge.tactile.contacts import ContactEstimator
 from cellbridge.tactile.layout import grid_layout
 from cellbridge.tactile.tracker import ContactTracker
+
 from support.tracker_frames import CORNER_PRESS, LAY, MM, NOISE, _reads, frame, tracker
+
 
 def test_contact_is_born_after_it_persists_and_keeps_its_id():
     rng = np.random.default_rng(1)

@@ -11,9 +11,6 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from cellbridge.tactile import (
     ChipParams,
     ElementParams,
@@ -31,6 +28,8 @@ from cellbridge.tactile import (
     oscillator_period,
     unwrap_counts,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 P = ElementParams()
 C_REST = np.array([P.C1_rest, P.C2_rest])

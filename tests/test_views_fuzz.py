@@ -53,9 +53,8 @@ class FoxgloveReader(threading.Thread):
     """A Foxglove client subscribed to every channel, reading all the time (as the app does)."""
 
     def __init__(self, port: int) -> None:
-        from foxglove_client import FoxgloveClient
-
         from cellbridge.views.foxglove import TOPICS
+        from foxglove_client import FoxgloveClient
 
         super().__init__(daemon=True)
         self.client = FoxgloveClient(f"ws://127.0.0.1:{port}")
@@ -83,7 +82,7 @@ class FoxgloveReader(threading.Thread):
                 if topic is not None:
                     self.counts[topic] += 1
                     self.last[topic] = self.decoders[topic](msg[13:])
-        except BaseException as exc:  # noqa: BLE001  # the test reports it
+        except BaseException as exc:  # the test reports it
             self.error = exc
 
     def close(self) -> None:
@@ -116,7 +115,7 @@ class WebReader(threading.Thread):
                 with self.cond:
                     self.newest, self.count = frame, self.count + 1
                     self.cond.notify_all()
-        except BaseException as exc:  # noqa: BLE001  # the test reports it
+        except BaseException as exc:  # the test reports it
             self.error = exc
 
     def frame(self, pred: Any = lambda f: True, timeout: float = 20.0) -> dict[str, Any]:

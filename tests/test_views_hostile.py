@@ -129,9 +129,8 @@ def test_foxglove_admits_the_desktop_app_and_foxgloves_web_app_only() -> None:
 # ---- 1: one odd message neither freezes the page nor ends foxglove --------------------------
 
 def _foxglove_elements(port: int, pred: Any, timeout: float = 20.0) -> dict[str, Any]:
-    from foxglove_client import FoxgloveClient
-
     from cellbridge.views.foxglove import TOPICS
+    from foxglove_client import FoxgloveClient
 
     client = FoxgloveClient(f"ws://127.0.0.1:{port}")
     try:

@@ -329,8 +329,8 @@ def test_web_beyond_loopback_answers_only_with_the_token(live: Any, tmp_path: Pa
 def test_foxglove_advertises_and_sends_the_grid_and_contacts_as_published(live: Any, subprotocol: str) -> None:
     """A client speaking the protocol under either name (the issue's foxglove.websocket.v1,
     or foxglove.sdk.v1 as today's Foxglove app) gets it and the same channels."""
-    from foxglove_client import FoxgloveClient
     from cellbridge.views.foxglove import TOPICS
+    from foxglove_client import FoxgloveClient
 
     ep, feeder, pub, _ = live
     port = free_port()
@@ -468,10 +468,10 @@ def test_a_view_that_stops_reading_loses_its_own_messages_and_counts_them(tmp_pa
 def test_views_speak_curve_to_a_daemon_that_requires_it(tmp_path: Path) -> None:
     """With the daemon's CURVE keys a view gets the stream (its health says so); with a key
     the daemon does not allow it gets nothing, and the daemon counts the refusal."""
-    from foxglove_client import FoxgloveClient
-
     from cellbridge.daemon.keys import write_keypair
+
     from cellbridge.views.foxglove import TOPICS
+    from foxglove_client import FoxgloveClient
 
     (tmp_path / "clients").mkdir()
     (tmp_path / "other").mkdir()

@@ -322,7 +322,6 @@ def test_the_daemons_default_source_differs_between_two_daemons_on_one_host() ->
     import socket
 
     import zmq.asyncio
-
     from cellbridge.daemon.publisher import Publisher
 
     ctx = zmq.asyncio.Context()

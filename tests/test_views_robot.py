@@ -28,13 +28,12 @@ import pytest
 
 import robot_payloads as rp
 from browser import CHROMIUM, browser
+from cellbridge.views.model import level_rgb
+from cellbridge.views.robot_skin import rotate
 from fake_daemon import FakeDaemon
 from pty_terminal import pty_program
 from support.view_clients import args, picture, pixel, server_view
 from view_harness import CLI
-
-from cellbridge.views.model import level_rgb
-from cellbridge.views.robot_skin import rotate
 
 needs_chromium = pytest.mark.skipif(CHROMIUM is None,
                                     reason="Debian's chromium is not installed (make test installs it with apt-get as root)")
@@ -61,9 +60,8 @@ def quat(q: Any) -> tuple[float, float, float, float]:
 
 
 def test_foxglove_draws_the_patches_on_their_links_and_each_contact_as_an_arrow_along_its_force() -> None:
-    from foxglove_client import FoxgloveClient
-
     from cellbridge.views.foxglove import TOPICS
+    from foxglove_client import FoxgloveClient
 
     sk = rp.skin()
     topo = rp.topology(sk)["skin"]
@@ -238,6 +236,7 @@ def test_picture_of_the_web_page_of_the_whole_robot_demo(tmp_path: Path) -> None
     pytest.importorskip("mujoco")
     from cellbridge.emulator.robot_world import TimelineWorld, scenario, simulate
     from cellbridge.emulator.skin_mesh import mesh_from_skin
+
     from cellbridge.skin_run import run_daemon_on_skin
 
     sk = rp.skin()

@@ -15,11 +15,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import robot_payloads as rp
-from fake_daemon import grid_layout
-
 from cellbridge.views import foxglove as fx
 from cellbridge.views.model import SkinView
 from cellbridge.views.robot_skin import pack_patches, quat_from_to, rigid, rotate
+from fake_daemon import grid_layout
 
 
 def robot_view(topology: dict[str, Any] | None = None, contact: dict[str, Any] | None = None) -> SkinView:

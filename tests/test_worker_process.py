@@ -13,8 +13,8 @@ import time
 from collections.abc import Iterator
 
 import pytest
-
 from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
+
 from support.process_state import gone, until_gone
 
 

@@ -6,7 +6,6 @@ Each test is bounded: hangs are detected with timeouts, every process started is
 from __future__ import annotations
 
 import concurrent.futures
-from typing import Any
 import gc
 import logging
 import os
@@ -16,12 +15,13 @@ import sys
 import threading
 import time
 from types import SimpleNamespace
+from typing import Any
 
 import pytest
-
 from cellbridge.daemon import contact_worker
 from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
+
 from support.process_state import gone, until_gone
 
 

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import queue
+import signal
 import socket
 import sys
 import threading

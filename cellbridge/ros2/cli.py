@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
         except (BadInterface, ValueError) as exc:
             print(f"cellbridge ros2: {exc}", file=sys.stderr)
             return 2
-        except Exception as exc:  # noqa: BLE001 - Cyclone DDS raises its own DDSException (a bad config, an interface not there)
+        except Exception as exc:
             print(f"cellbridge ros2: cannot join ROS 2 domain {args.domain}: {exc}", file=sys.stderr)
             return 1
         print(f"cellbridge ros2: domain {args.domain} ({args.interface if not args.dds_config else 'own config'}): "

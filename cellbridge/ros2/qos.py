@@ -19,7 +19,6 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-
 RELIABLE, BEST_EFFORT = "reliable", "best_effort"
 #: rmw's enum values, as rosbag2 stores them in ``offered_qos_profiles``.
 _RMW = {"keep_last": 1, RELIABLE: 1, BEST_EFFORT: 2, "volatile": 2, "automatic": 1}

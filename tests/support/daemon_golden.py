@@ -28,9 +28,9 @@ T0 = 1_750_000_000.0
 
 def make_capture(path: Path) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))  # run as a script too
-    from daemon_traffic import Skin
-
     from cellbridge.daemon.capture import write_capture
+
+    from daemon_traffic import Skin
 
     sk = Skin(rows=3, cols=3)
     records = [(T0, sk.hellos() + sk.beacons())]

@@ -14,11 +14,12 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import serial
-
-from cellbridge.demo import gateway_line
 from cellbridge.emulator import meshgen
 from cellbridge.emulator.mesh import mesh_to_toml
 from cellbridge.protocol import Frame, FrameType, StreamDecoder
+
+from cellbridge.demo import gateway_line
+
 PY = [sys.executable, "-m", "cellbridge"]
 
 

@@ -9,9 +9,9 @@ from typing import Any
 
 from cellbridge.daemon.config import parse_config
 from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
-from cellbridge.daemon.offline import OfflineDaemon, Output
-from cellbridge.daemon.messages import LogEvent, Message, Publish
 from cellbridge.daemon.contacts import ContactJob, ContactSnapshot
+from cellbridge.daemon.messages import LogEvent, Message, Publish
+from cellbridge.daemon.offline import OfflineDaemon, Output
 from cellbridge.daemon.pipeline import Pipeline
 
 

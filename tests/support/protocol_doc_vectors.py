@@ -23,9 +23,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from cobs import cobs
-
-from cellbridge.decode import frame_to_json
 from cellbridge.protocol import (
     Beacon,
     BridgeStatus,
@@ -50,6 +47,9 @@ from cellbridge.protocol import (
     encode,
     encode_stream,
 )
+from cobs import cobs
+
+from cellbridge.decode import frame_to_json
 
 SPEC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 BLOCK = re.compile(r"```(vector(?:-crc|-datagram|-v1|-v2|-v3)?)\n(.*?)```", re.S)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from hypothesis import strategies as st
-
 from cellbridge.protocol import (
     Beacon,
     BridgeStatus,
@@ -15,15 +13,16 @@ from cellbridge.protocol import (
     FrameType,
     Hello,
     LinkAck,
+    MeshTime,
     Mode,
     Neighbour,
     Op,
-    MeshTime,
     Readout,
     ReadoutSample,
     Sample,
     Status,
 )
+from hypothesis import strategies as st
 
 u8 = st.integers(0, 0xFF)
 u16 = st.integers(0, 0xFFFF)

@@ -22,10 +22,10 @@ import struct
 from typing import Any
 
 import msgpack
-from support.protocol_wire import sealed
-
 from cellbridge.protocol import Beacon, Bundle, Data, Frame, Hello, SampleFlags
 from cellbridge.protocol.frame import HEADER_LEN
+
+from support.protocol_wire import sealed
 
 _HEADER = struct.Struct(">BBBHHHHBH")
 

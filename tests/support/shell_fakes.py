@@ -24,7 +24,6 @@ from collections.abc import Callable
 from typing import Any
 
 import serial
-
 from cellbridge.daemon.config import Config, LinkConfig
 from cellbridge.daemon.ops import OpsHooks
 

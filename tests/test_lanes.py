@@ -43,10 +43,23 @@ def test_the_process_modules_exist_and_mark_their_tests(request: pytest.FixtureR
     assert request.node.get_closest_marker("process") is None
 
 
-def test_make_has_a_fast_lane_and_the_marker_is_registered() -> None:
+def test_make_has_a_fast_lane_and_the_markers_are_registered() -> None:
     make = (ROOT / "Makefile").read_text()
-    assert '-m "not process"' in make and "test-fast:" in make
-    assert '"process: ' in (ROOT / "pyproject.toml").read_text()
+    assert '-m "not process and not slow"' in make and "test-fast:" in make
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert '"process: ' in pyproject and '"slow: ' in pyproject
+
+
+def test_the_slow_lists_name_tests_that_exist() -> None:
+    """A renamed or removed test left in SLOW_TESTS would silently put its successor back in
+    the quick lane (and a module in SLOW_MODULES the same): every name must match a test."""
+    tests = ROOT / "tests"
+    modules = {p.stem for p in tests.glob("test_*.py")}
+    assert conftest.SLOW_MODULES <= modules, sorted(conftest.SLOW_MODULES - modules)
+    for entry in conftest.SLOW_TESTS:
+        module, _, name = entry.partition("::")
+        assert module in modules, entry
+        assert f"def {name}(" in (tests / f"{module}.py").read_text(), entry
 
 
 def _imported(path: Path) -> list[str]:

@@ -427,8 +427,13 @@ def test_a_view_that_stops_reading_loses_its_own_messages_and_counts_them(tmp_pa
 
     from cellbridge.views.source import RCVBUF, RCVHWM
 
+    # The daemon's queue per subscriber (hwm) is what the test's own client, on a loaded
+    # machine, lives on while its process waits for a core: 20 messages (0.2 s of this skin)
+    # lost some of the client's own under four CPU burners. 200 gives it 2 s; the stopped
+    # view loses once more was published than every queue on its way holds.
+    hwm = 200
     with fed_skin(tmp_path, rows=16, cols=16) as (pty, feeder):
-        cfg, ep = skin_config(tmp_path, pty, pub={"hwm": 20})
+        cfg, ep = skin_config(tmp_path, pty, pub={"hwm": hwm})
         client = Client(ep, (b"element", b"health"))
         argv, url = start_web(ep)
         try:
@@ -446,7 +451,7 @@ def test_a_view_that_stops_reading_loses_its_own_messages_and_counts_them(tmp_pa
                         if got is not None and got[0] == b"element":
                             seqs.append(msgpack.unpackb(got[1])["seq"])
                             sizes.append(len(got[1]))
-                            bound = max(sizes) * (RCVHWM + 20) + 2 * RCVBUF + _wmem_max() + (2 << 20)
+                            bound = max(sizes) * (RCVHWM + hwm) + 2 * RCVBUF + _wmem_max() + (2 << 20)
                             if sum(sizes) > bound:
                                 break
                 finally:

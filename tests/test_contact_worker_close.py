@@ -9,6 +9,7 @@ import os
 import signal
 import time
 
+import pytest
 from cellbridge.daemon import contact_worker
 from cellbridge.daemon.contact_worker import ContactWorker
 from cellbridge.daemon.worker_process import WorkerProcess
@@ -44,12 +45,18 @@ def test_an_idle_worker_that_does_not_exit_is_killed_within_the_close_wait(warm_
             os.kill(pid, signal.SIGKILL)
 
 
-def test_an_idle_worker_exits_by_itself_at_close(warm_kernels: None) -> None:
+def test_an_idle_worker_exits_by_itself_at_close(warm_kernels: None, monkeypatch: pytest.MonkeyPatch,
+                                                 caplog: pytest.LogCaptureFixture) -> None:
+    """Told to end, an idle worker exits by itself: it is not the close wait's kill that
+    ends it. (Timed against ``CLOSE_WAIT`` this raced the machine: beside four CPU burners
+    an interpreter's exit took 2.06 s of the 2 s, and close() rightly killed it. The wait
+    is lengthened here, and what is checked is who ended it.)"""
+    monkeypatch.setattr(contact_worker, "CLOSE_WAIT", 60.0)
     worker = ContactWorker(logging.getLogger("test"))
     worker.start()
     assert asyncio.run(worker.warm(120.0))
     pid = _worker_pid(worker)
-    t0 = time.monotonic()
-    worker.close()
-    assert time.monotonic() - t0 < contact_worker.CLOSE_WAIT
+    with caplog.at_level(logging.WARNING, logger="test"):
+        worker.close()
     assert gone(pid)
+    assert not [r for r in caplog.records if "did not exit" in r.getMessage()], caplog.text

@@ -4,13 +4,15 @@ Hypothesis's per-example deadline is a timed assertion: on a shared two-core mac
 a laptop running the emulator) a slow example says nothing about the code, so the
 deadline is off everywhere; speed is measured by the scripts in bench/.
 
-Two guards run around every test: one fails a test that starts a process or a pty without
-the ``process`` mark, the other a test whose event loop closes with tasks still pending.
+Three guards run around every test: one fails a test that starts a process or a pty without
+the ``process`` mark, one a test whose event loop closes with tasks still pending, and one
+a test module that leaves a process of its own running after its last test.
 """
 
 import asyncio
 import functools
 import os
+import signal
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -119,13 +121,20 @@ _running: list[pytest.Item | None] = [None]  # the test whose setup, call or tea
 _started: dict[str, list[str]] = {}  # test id -> what an unmarked test started
 
 
+_spawned: set[int] = set()  # every process a test started (its pid: its session or group, if it made one)
+
+
 def _guarded(what: str, fn: Callable[..., Any]) -> Callable[..., Any]:
     @functools.wraps(fn)
     def call(*args: Any, **kwargs: Any) -> Any:
         item = _running[0]
         if item is not None and item.get_closest_marker("process") is None:
             _started.setdefault(item.nodeid, []).append(what)
-        return fn(*args, **kwargs)
+        result = fn(*args, **kwargs)
+        pid = result[0] if isinstance(result, tuple) else result  # forkpty: (pid, fd); openpty: (fd, fd)
+        if what != "os.openpty" and isinstance(pid, int) and pid > 0:
+            _spawned.add(pid)
+        return result
     return call
 
 
@@ -223,3 +232,53 @@ def _no_task_outlives_its_test(request: pytest.FixtureRequest) -> Iterator[None]
         pytest.fail(f"the event loop closed with {len(leaked)} task(s) still pending (cancelled or dropped "
                     f"unawaited): {'; '.join(leaked)}. Cancel and await every task the test or the code under "
                     "test starts before its loop ends.", pytrace=False)
+
+
+# -- no process outlives its test module -----------------------------------------------------------
+#
+# Every test stops what it starts, also on failure; a view stuck in its shutdown or a stop
+# path that sends SIGTERM and never SIGKILL leaves a process running after the suite, on a
+# user's machine. After a module's last test (and its fixtures) every process the tests
+# started, and every process in a session or group one of them led, must be gone. One that
+# is not is killed and the module fails, named with the process's command line.
+
+
+def _alive_descendants() -> dict[int, str]:
+    """Live processes (not zombies) this worker started, or in a session or process group
+    that one of them leads: pid -> command line."""
+    me = os.getpid()
+    found = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        pid = int(entry)
+        try:
+            with open(f"/proc/{pid}/stat", "rb") as f:
+                fields = f.read().rsplit(b")", 1)[1].split()
+            state, ppid, pgrp, session = fields[0], int(fields[1]), int(fields[2]), int(fields[3])
+            if state in (b"Z", b"X") or pid == me:
+                continue
+            if ppid == me or pgrp in _spawned or session in _spawned:
+                with open(f"/proc/{pid}/cmdline", "rb") as f:
+                    found[pid] = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        except (OSError, IndexError, ValueError):  # it ended meanwhile
+            continue
+    return found
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _no_process_outlives_its_module(request: pytest.FixtureRequest) -> Iterator[None]:
+    yield
+    left = _alive_descendants()
+    _spawned.clear()
+    if not left:
+        return
+    for pid in left:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+    pytest.fail(f"{request.module.__name__} left {len(left)} process(es) running after its tests (now killed): "
+                + "; ".join(f"{pid}: {cmd[:200]}" for pid, cmd in sorted(left.items()))
+                + ". Stop every process a test starts, with SIGKILL after a bounded wait, also on failure.",
+                pytrace=False)

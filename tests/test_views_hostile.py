@@ -14,6 +14,8 @@ import re
 import shutil
 import signal
 import socket
+import subprocess
+import sys
 import time
 from typing import Any
 
@@ -323,6 +325,35 @@ def test_watch_ends_on_sigterm_and_ctrl_c_with_the_terminal_restored(how: str) -
     assert rc == 0 and "Traceback" not in text
     assert text.rfind("\x1b[?1049l") > text.rfind("\x1b[?1049h") >= 0  # back from the alternate screen
     assert took < 3.0, f"watch took {took:.1f} s to exit"
+
+
+HANGING_STOP = """
+import sys, threading
+from cellbridge.views.signals import on_stop_signal
+on_stop_signal(lambda: None, deadline=0.5, restore=lambda: open(sys.argv[1], "w").write("restored"))
+print("ready", flush=True)
+threading.Event().wait()  # a stop that never ends: the main thread blocked, as in a stuck shutdown
+"""
+
+
+def test_a_view_whose_stop_hangs_is_cut_off_after_the_deadline(tmp_path: Any) -> None:
+    """A view stuck in its shutdown ignored every later SIGTERM and outlived the suite."""
+    marker = tmp_path / "restored"
+    proc = subprocess.Popen([sys.executable, "-c", HANGING_STOP, str(marker)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == b"ready\n"
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.1)
+        proc.send_signal(signal.SIGTERM)  # ignored: the stop under way goes on
+        rc = proc.wait(20)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+    stderr = proc.stderr.read().decode()  # type: ignore[union-attr]
+    assert rc == 1 and "still stopping 0.5 s after SIGTERM" in stderr, (rc, stderr)
+    assert marker.read_text() == "restored"
 
 
 # ---- 14: the page's contact label leaves the elements' own text readable ------------------------

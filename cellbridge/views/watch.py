@@ -10,19 +10,24 @@ whatever the rate of the skin; messages are all read (and counted) in between.
 Nothing the daemon sends reaches the terminal as it is: every string is shown with its
 control characters escaped (:func:`~cellbridge.views.model.printable`), so a link name
 holding an escape sequence cannot write to the clipboard or recolour the terminal.
-SIGTERM, SIGHUP and Ctrl-C end the view as ``q`` does (the terminal restored).
+SIGTERM, SIGHUP and Ctrl-C end the view as ``q`` does (the terminal restored); a stop
+that hangs is cut off after a deadline, the terminal's modes and screen put back by hand
+(:mod:`cellbridge.views.signals`).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import sys
+import termios
 import time
+from collections.abc import Callable
 from typing import Any
 
 from cellbridge.views.model import SkinView, printable
-from cellbridge.views.signals import ignore_stop_signals, on_stop_signal
+from cellbridge.views.signals import ignore_stop_signals, on_stop_signal, write_now
 from cellbridge.views.source import Source, add_source_arguments, open_source
 
 KEYS = "q quit  p pause  t tare  +/- force scale"
@@ -68,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
     if source is None:
         return 2
     try:
-        app = _make_app(source, SkinView(force_scale=args.force_scale, source=args.source), args.fps, args.endpoint)
+        app = _make_app(source, SkinView(force_scale=args.force_scale, source=args.source), args.fps, args.endpoint,
+                        _terminal_restorer())
         app.run()
     except KeyboardInterrupt:
         pass
@@ -78,7 +84,28 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any:
+# Leave the alternate screen, show the cursor, stop mouse reports and bracketed paste: what a
+# terminal needs back when the view cannot end its own way.
+_RESET_SCREEN = b"\x1b[?1000l\x1b[?1002l\x1b[?1003l\x1b[?1006l\x1b[?1015l\x1b[?2004l\x1b[?25h\x1b[?1049l"
+
+
+def _terminal_restorer() -> Callable[[], None]:
+    """What puts this terminal back as it is now (its modes, and the screen) if a stop hangs."""
+    try:
+        saved: list[Any] | None = termios.tcgetattr(sys.stdin.fileno())
+    except (termios.error, OSError, ValueError):
+        saved = None
+
+    def restore() -> None:
+        if saved is not None:
+            with contextlib.suppress(termios.error, OSError, ValueError):
+                termios.tcsetattr(sys.stdin.fileno(), termios.TCSANOW, saved)
+        write_now("/dev/tty", _RESET_SCREEN)
+
+    return restore
+
+
+def _make_app(source: Source, model: SkinView, fps: float, endpoint: str, restore: Callable[[], None]) -> Any:
     # Textual is imported here so that `cellbridge --help` stays fast.
     from rich.segment import Segment
     from rich.style import Style
@@ -180,7 +207,8 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str) -> Any
             self._shown_live: bool | None = None
             self.errors = 0
             loop = asyncio.get_running_loop()
-            on_stop_signal(lambda: loop.call_soon_threadsafe(self.exit))  # as q: the terminal restored
+            on_stop_signal(lambda: loop.call_soon_threadsafe(self.exit),  # as q: the terminal restored
+                           restore=restore)  # by hand, if that stop hangs
 
         def tick(self) -> None:
             try:

@@ -89,6 +89,11 @@ class Service:
         # The reads' times as a recording keeps them for a replay: the wall clock's at the
         # start, then the time base's, so that a wall-clock step never enters a replay.
         self._read_offset = self.pipeline.wall_offset
+        # A replay in recorded time runs on the recording's clock: the newest recorded time fed
+        # (None until the first read; link states meanwhile wait for it). Ticked on today's
+        # wall clock instead, every bridge of a recording made yesterday was a day silent.
+        self._recorded_now: float | None = None
+        self._states_before_data: list[tuple[str, bool, str]] = []
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
@@ -104,13 +109,24 @@ class Service:
         self.schedule = ContactScheduler(self.pipeline, config.contact.rate)
 
     def now(self) -> float:
-        """The pipeline's time base: the monotonic clock (wall-clock time while a replay feeds
-        recorded wall-clock times, so that they and now are on one base)."""
-        return self._clock.wall() if self._recorded else self._clock.time()
+        """The pipeline's time base: the monotonic clock; while a replay feeds recorded
+        wall-clock times, the newest of them fed so far (the recording's clock stands still
+        between its reads and after its end; before the first read it is the wall clock's
+        time, which the pipeline is never ticked on: :meth:`_tick_once`)."""
+        if self._recorded:
+            return self._clock.wall() if self._recorded_now is None else self._recorded_now
+        return self._clock.time()
 
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
         t0 = time.perf_counter()
+        if self._recorded and (self._recorded_now is None or now > self._recorded_now):
+            first = self._recorded_now is None
+            self._recorded_now = now
+            if first:  # the links came up on the recording's clock, at its first read
+                for name, connected, why in self._states_before_data:
+                    self.pipeline.link_state(name, connected, now, why)
+                self._states_before_data.clear()
         self.pub.serial(link, data, now + self.pipeline.wall_offset, now + self._read_offset)
         p = self.pipeline
         try:
@@ -166,7 +182,10 @@ class Service:
         return now + self.pipeline.wall_offset
 
     def _on_state(self, link: str, connected: bool, why: str) -> None:
-        self.pipeline.link_state(link, connected, self.now(), why)
+        if self._recorded and self._recorded_now is None:
+            self._states_before_data.append((link, connected, why))
+        else:
+            self.pipeline.link_state(link, connected, self.now(), why)
         if connected:
             event(self.log, "info", "link up", link=link, url=self.links[link].cfg.url)
         else:
@@ -226,6 +245,8 @@ class Service:
         if abs(step) > self.HOST_STEP and not self._recorded:  # the wall clock stepped (NTP)
             self._wall_offset += step
             self._act(self.pipeline.host_clock_step(step))
+        if self._recorded and self._recorded_now is None:
+            return next_status  # no recorded time yet: a tick now would be a clock stepping back later
         self._link_stats()
         self._act(self.pipeline.tick(now))
         self._fresh.set()  # contacts are looked at without new data too: silence ends them

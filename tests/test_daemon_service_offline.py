@@ -45,7 +45,8 @@ def _config(recording: Path, links: list[str], endpoint: str) -> dict[str, Any]:
     return data
 
 
-def _service_messages(recording: Path, links: list[str]) -> list[tuple[str, dict[str, Any]]]:
+def _service_messages(recording: Path, links: list[str], topics: tuple[str, ...] = ("element", "contact"),
+                      ) -> list[tuple[str, dict[str, Any]]]:
     """What the service published on ``inproc://``, in order, while it replayed ``recording``."""
     endpoint = "inproc://service-offline"
 
@@ -56,8 +57,8 @@ def _service_messages(recording: Path, links: list[str]) -> list[tuple[str, dict
         sub = ctx.socket(zmq.SUB)
         got: list[tuple[str, dict[str, Any]]] = []
         try:
-            for topic in (b"element", b"contact"):
-                sub.setsockopt(zmq.SUBSCRIBE, topic)
+            for topic in topics:
+                sub.setsockopt(zmq.SUBSCRIBE, topic.encode())
             task = asyncio.create_task(svc.run())
             for _ in range(500):  # the service binds first (inproc: connect after bind)
                 await asyncio.sleep(0.01)
@@ -146,3 +147,23 @@ def _frame_fields(message: dict[str, Any]) -> dict[str, Any]:
 
 def _by_id(message: dict[str, Any]) -> dict[int, dict[str, Any]]:
     return {c["id"]: {k: v for k, v in c.items() if k not in HISTORY} for c in message["contacts"]}
+
+
+def test_a_replay_in_recorded_time_runs_on_the_recordings_clock() -> None:
+    """Ticked on today's wall clock, every bridge of a recording made earlier was reported
+    silent (and then forgotten) while its reads were still being replayed."""
+    recording = DATA / f"{SCENARIO}.mcap"
+    reads = serial_reads(recording)
+    links = sorted({link for link, _, _ in reads})
+    first, last = min(t for _, t, _ in reads), max(t for _, t, _ in reads)
+    got = _service_messages(recording, links, ("health", "topology"))
+    health = [p for t, p in got if t == "health"]
+    assert len(health) >= 3, len(health)
+    for h in health:
+        assert first <= h["t_host"] <= last, (h["t_host"], first, last)  # on the recording's clock
+        bridges = h["bridges"]
+        silent = [b.get("id") for b in (bridges.values() if isinstance(bridges, dict) else bridges) if b["silent"]]
+        assert not silent, (h["t_host"] - first, silent)
+        for name in links:
+            since = h["links"][name]["connected_since"]
+            assert since is None or first <= since <= last, since  # the link came up at the first read

@@ -243,6 +243,11 @@ def _no_task_outlives_its_test(request: pytest.FixtureRequest) -> Iterator[None]
 # is not is killed and the module fails, named with the process's command line.
 
 
+#: Processes multiprocessing starts once per interpreter and keeps for its lifetime (a
+#: process pool's resource tracker, the fork server): not a test's to stop.
+_INTERPRETER_HELPERS = ("multiprocessing.resource_tracker", "multiprocessing.forkserver")
+
+
 def _alive_descendants() -> dict[int, str]:
     """Live processes (not zombies) this worker started, or in a session or process group
     that one of them leads: pid -> command line."""
@@ -260,7 +265,9 @@ def _alive_descendants() -> dict[int, str]:
                 continue
             if ppid == me or pgrp in _spawned or session in _spawned:
                 with open(f"/proc/{pid}/cmdline", "rb") as f:
-                    found[pid] = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+                    cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+                if not any(helper in cmd for helper in _INTERPRETER_HELPERS):
+                    found[pid] = cmd
         except (OSError, IndexError, ValueError):  # it ended meanwhile
             continue
     return found

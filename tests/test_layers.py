@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import sys
+import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -291,3 +292,26 @@ def test_the_reach_in_check_catches_each_kind(tmp_path: Path) -> None:
                    "daemon/core/pipeline.py:5: reaches into host.links (use Host.send_command(): the service "
                    "writes on its links)",
                    "daemon/shell/health.py:2: touches _samples_at_tick, private to daemon/core/health.py"], got
+
+
+# -- the installed distribution carries every package ----------------------------------------
+
+def source_packages(root: Path) -> set[str]:
+    """The dotted name of every package (a folder with ``__init__.py``) of the top package
+    and the layer folders under ``root``, as installed (``daemon/core`` is ``cellbridge.daemon.core``)."""
+    found = set()
+    for top, name in [("cellbridge", "cellbridge"), *((layer, f"cellbridge.{layer}") for layer in RULES)]:
+        for init in (root / top).rglob("__init__.py"):
+            parts = init.parent.relative_to(root / top).parts
+            found.add(".".join((name, *parts)))
+    return found
+
+
+def test_pyproject_lists_every_package_so_a_non_editable_install_carries_it() -> None:
+    """pyproject names its packages one by one (the layer folders map into cellbridge): a
+    sub-package it does not name is left out of a wheel, though the editable install and
+    every test here would still import it from the checkout."""
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    listed = set(config["tool"]["setuptools"]["packages"])
+    found = source_packages(ROOT)
+    assert found == listed, f"not in pyproject: {sorted(found - listed)}; no such package: {sorted(listed - found)}"

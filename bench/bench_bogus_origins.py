@@ -21,9 +21,9 @@ import statistics
 import time
 
 import msgpack
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.messages import LogEvent, Publish
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.messages import LogEvent, Publish
+from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.protocol import Data, Frame, Mode, Sample, encode_stream
 
 from daemon_traffic import Skin

@@ -20,9 +20,9 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-from cellbridge.emulator.chip import Chip  # noqa: E402
-from cellbridge.emulator.chip_noise import adc_noise, counter_noise  # noqa: E402
-from cellbridge.emulator.reference import step_conversions, step_counter  # noqa: E402
+from cellbridge.emulator.chip.chip import Chip  # noqa: E402
+from cellbridge.emulator.chip.chip_noise import adc_noise, counter_noise  # noqa: E402
+from cellbridge.emulator.chip.reference import step_conversions, step_counter  # noqa: E402
 from cellbridge.tactile import DEFAULT_NOISE, ElementParams  # noqa: E402
 
 from timing import best_rate, pin_to_one_core  # noqa: E402

@@ -32,11 +32,11 @@ import msgpack
 import numpy as np
 import zmq
 import zmq.asyncio
-from cellbridge.daemon.capture import CaptureWriter
-from cellbridge.daemon.config import Config, parse_config
-from cellbridge.daemon.messages import Publish
-from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.daemon.publisher import Publisher
+from cellbridge.daemon.core.config import Config, parse_config
+from cellbridge.daemon.core.messages import Publish
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.shell.capture import CaptureWriter
+from cellbridge.daemon.shell.publisher import Publisher
 from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream
 from cellbridge.tactile import ChipParams, ElementParams, counts
 

@@ -21,12 +21,12 @@ from __future__ import annotations
 import time
 
 import msgpack
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.mesh import Bridge, Cell, Mesh
-from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
-from cellbridge.emulator.world import Contact, World
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import Bridge, Cell, Mesh
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, MeshResult, VirtualMesh
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import Data, FrameType
 from cellbridge.protocol.messages import packed_samples
 

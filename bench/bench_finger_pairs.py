@@ -23,13 +23,13 @@ import argparse
 import math
 import random
 
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.offline import OfflineDaemon
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.realtime import reporting_arg
-from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
-from cellbridge.emulator.world import Contact, World
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.shell.offline import OfflineDaemon
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
+from cellbridge.emulator.realtime.realtime import reporting_arg
+from cellbridge.emulator.world.world import Contact, World
 
 from timing import table
 
@@ -63,7 +63,7 @@ def finger_pairs(seed: int, n: int, geometry: str, hold: float) -> list[tuple[Co
 
 def published(seed: int, presses: list[Contact]) -> list[tuple[float, list[dict]]]:
     """(host time, contacts) of every contact message, the daemon's schedule in virtual time
-    (the daemon offline: cellbridge.daemon.offline)."""
+    (the daemon offline: cellbridge.daemon.shell.offline)."""
     mesh = meshgen.grid(4, 4)
     vm = VirtualMesh(mesh, seed=seed, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
                      random_epochs=True, settings=Settings(rate_hz=100, reporting=reporting_arg("event:40")))

@@ -1,4 +1,4 @@
-"""The daemon's frame path under a robot's line faults, sans-I/O (daemon/domains.py, frames.py).
+"""The daemon's frame path under a robot's line faults, sans-I/O (daemon/core/domains.py, frames.py).
 
 Run: ``.venv/bin/python bench/bench_frame_attacks.py``. Prints, per scenario, the frames
 given out complete, the share of element-frames known (a sample or unchanged), the records
@@ -23,7 +23,7 @@ from __future__ import annotations
 import random
 
 import numpy as np
-from cellbridge.daemon.domains import TimeDomains
+from cellbridge.daemon.core.domains import TimeDomains
 from cellbridge.protocol import Mode, Readout, ReadoutSample
 
 HZ = 50_000_000

@@ -15,9 +15,9 @@ import argparse
 import time
 
 import serial
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.emulator import meshgen
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.emulator.mesh import meshgen
 
 from realskin import RealSkin, read_now
 

@@ -7,7 +7,7 @@ presses the centre element (3 N, 20 mm) from 10 s on and holds it, while the C2
 parasitic of a corner element nothing touches drifts by itself (``--drift`` F/s, twice
 the fastest drift the calibrator's tracker follows by default) for the whole run. The
 gateway's bytes go through the daemon offline (its pipeline and its contact loop's
-schedule, cellbridge.daemon.offline) at their virtual times with the daemon's default
+schedule, cellbridge.daemon.shell.offline) at their virtual times with the daemon's default
 configuration (``max_touch`` 600 s, unless ``--max-touch``). Printed: what the ``contact`` topic said of the
 press over the hold (ids, gaps, force error against the pressed force), the
 calibrator's health (re-baselines, touches kept past max_touch), and whether the
@@ -21,12 +21,12 @@ import argparse
 import time
 
 import numpy as np
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.offline import OfflineDaemon
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-from cellbridge.emulator.world import Contact, Drift, World
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.shell.offline import OfflineDaemon
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world.world import Contact, Drift, World
 
 T0 = 1_800_000_000.0  # host time of virtual time 0
 

@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.layout import layout_from_geometry
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.layout import layout_from_geometry
+from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.protocol import Frame, Hello, encode_stream
 
 

@@ -10,7 +10,7 @@ The skin is ``cellbridge/skins/humanoid.toml`` (1 144 elements of 40 mm on 12 pa
 1. **Generation.** The skin's traffic over the recording, with presses: from 2 s on,
    rounds of 10 simultaneous presses, each on another patch (D 12-25 mm, F 2-8 N), held
    2 s, then 1 s untouched. Written by the frame-level generator
-   (:class:`cellbridge.emulator.skin_traffic.SkinTraffic`: the gateways' READOUT records
+   (:class:`cellbridge.emulator.mesh.skin_traffic.SkinTraffic`: the gateways' READOUT records
    without the cells; its docstring says exactly what differs from the cycle-level mesh)
    into one capture file per gateway; its CPU per virtual second is quoted, beside the
    cycle-level virtual-time mesh's on a short stretch of the same skin.
@@ -56,13 +56,13 @@ from timing import table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout too
-from cellbridge.daemon.capture import CaptureWriter  # noqa: E402
-from cellbridge.daemon.skin_file import load_skin  # noqa: E402
-from cellbridge.emulator.commands import Settings  # noqa: E402
-from cellbridge.emulator.realtime import reporting_arg  # noqa: E402
-from cellbridge.emulator.skin_mesh import mesh_from_skin  # noqa: E402
-from cellbridge.emulator.skin_traffic import SkinTraffic  # noqa: E402
-from cellbridge.emulator.world import Contact, World  # noqa: E402
+from cellbridge.daemon.shell.capture import CaptureWriter  # noqa: E402
+from cellbridge.daemon.shell.skin_file import load_skin  # noqa: E402
+from cellbridge.emulator.firmware.commands import Settings  # noqa: E402
+from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin  # noqa: E402
+from cellbridge.emulator.mesh.skin_traffic import SkinTraffic  # noqa: E402
+from cellbridge.emulator.realtime.realtime import reporting_arg  # noqa: E402
+from cellbridge.emulator.world.world import Contact, World  # noqa: E402
 from cellbridge.tactile import ContactEstimator, grid_layout, skin_response  # noqa: E402
 from cellbridge.tactile.calibration import CalibrationConfig  # noqa: E402
 
@@ -121,7 +121,7 @@ def generate(skin, reporting: str, seconds: float, into: Path) -> dict:
 
 def cycle_mesh_rate(skin, seconds: float) -> float:
     """CPU s per virtual s of the cycle-level virtual-time mesh of the same skin."""
-    from cellbridge.emulator.virtual import VirtualMesh
+    from cellbridge.emulator.mesh.virtual import VirtualMesh
 
     vm = VirtualMesh(mesh_from_skin(skin), seed=1, random_epochs=True)
     c0 = time.process_time()
@@ -215,10 +215,10 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str
     import heapq
     import logging
 
-    from cellbridge.daemon.config import parse_config
-    from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
-    from cellbridge.daemon.pipeline import Pipeline
-    from cellbridge.daemon.replay_source import read_records
+    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.core.pipeline import Pipeline
+    from cellbridge.daemon.shell.contact_worker import ContactWorker, InlineExecutor
+    from cellbridge.daemon.shell.replay_source import read_records
 
     links = [{"name": f"gw{g}", "url": "/dev/null"} for g in gen["gateways"]]
     p = Pipeline(parse_config({"link": links}), skin.layout())

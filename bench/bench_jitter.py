@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 import serial
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
 from cellbridge.protocol import FrameType, StreamDecoder
 
 from realskin import free_base_port, rt_permitted

@@ -23,7 +23,7 @@ import time
 from collections import defaultdict
 from typing import Any
 
-from cellbridge.emulator import meshgen
+from cellbridge.emulator.mesh import meshgen
 
 from realskin import Arrival, RealSkin, percentile
 from timing import table
@@ -130,9 +130,9 @@ def main() -> None:
 
 def run_virtual(mesh, args):
     """The same skin in virtual time: (arrivals, counters, window start, end, medium counters)."""
-    from cellbridge.emulator.commands import Settings
-    from cellbridge.emulator.realtime import reporting_arg
-    from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
+    from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
+    from cellbridge.emulator.realtime.realtime import reporting_arg
     from cellbridge.protocol import Data, HostReceiver, SampleFlags
 
     lat = {"default": Latency(), "quiet": Latency(up=0.0001, down=0.0001, floor=0.00005, wake_late=0.0001),

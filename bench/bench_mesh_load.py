@@ -14,9 +14,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout too
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.medium import Medium
-from cellbridge.emulator.mesh import mesh_to_toml, parse_mesh
+from cellbridge.emulator.medium.medium import Medium
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml, parse_mesh
 
 from timing import table
 

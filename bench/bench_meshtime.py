@@ -39,11 +39,11 @@ from typing import Any
 
 import msgpack
 import numpy as np
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.emulator.transceiver import PREAMBLE_BITS
-from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.firmware.transceiver import PREAMBLE_BITS
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
 from cellbridge.protocol import ADDR_BROADCAST, Beacon, Data, Frame, MeshTime, Mode, Sample, encode
 
 from timing import pin_to_one_core, table
@@ -176,7 +176,7 @@ def first_showing(xs: list[tuple[float, float, int]], start: float) -> float | N
 def press_latency_virtual() -> list[list[object]]:
     """Press onset -> the first sample showing it at the gateway's serial line, virtual
     time with the latency model of a real-time mesh (deterministic)."""
-    from cellbridge.emulator.world import Contact
+    from cellbridge.emulator.world.world import Contact
     from cellbridge.protocol import HostReceiver
 
     rows = []

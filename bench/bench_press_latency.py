@@ -29,7 +29,7 @@ count: ``chrt -f 1 .venv/bin/python bench/bench_press_latency.py --reporting eve
 
 Run so (real-time priority P), the daemon, its contact worker and this subscriber run at
 P + 2, above the emulated skin (the bridges at P, the medium at P + 1: it stands for the
-wire, ``emulator/realtime.py``): on a robot the bridges are chips on the skin and take
+wire, ``emulator/realtime/realtime.py``): on a robot the bridges are chips on the skin and take
 no time of the host's CPU, while here 16 bridge processes, the medium and the world share
 two cores with the daemon, and at one priority a FIFO scheduler lets any of them finish
 its turn before the daemon runs. ``--same-priority`` keeps the daemon and the subscriber
@@ -53,9 +53,9 @@ from pathlib import Path
 
 import msgpack
 import zmq
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import mesh_to_toml
-from cellbridge.emulator.world import Contact
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
+from cellbridge.emulator.world.world import Contact
 
 from realskin import world_press
 from timing import table
@@ -103,12 +103,12 @@ def _host_priority(same: bool) -> tuple[str, ...]:
 def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float], int, list[tuple[float, float, int]]]:
     """(press -> first sample showing it at the host, press -> first contact near it, missed)
     in virtual time; milliseconds."""
-    from cellbridge.daemon.config import parse_config
-    from cellbridge.daemon.offline import OfflineDaemon
-    from cellbridge.emulator.commands import Settings
-    from cellbridge.emulator.realtime import reporting_arg
-    from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
-    from cellbridge.emulator.world import World
+    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.shell.offline import OfflineDaemon
+    from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
+    from cellbridge.emulator.realtime.realtime import reporting_arg
+    from cellbridge.emulator.world.world import World
 
     rng = random.Random(args.seed)
     span = (args.side - 1) * mesh.side
@@ -127,7 +127,7 @@ def run_virtual(args: argparse.Namespace, mesh) -> tuple[list[float], list[float
     vm.run(presses[-1].start + args.hold + 1.0)
     reads = [(t / CLOCK_HZ, "gw", data) for t, data in vm.serial_chunks[mesh.gateways[0]]]
     contact = dict(_setting(kv) for kv in args.contact)
-    # The daemon offline: the service's schedule (cellbridge.daemon.contact_schedule) in
+    # The daemon offline: the service's schedule (cellbridge.daemon.core.contact_schedule) in
     # virtual time: a look when data came, when a frame's deadline passes or at the tick,
     # no sooner than the pacer allows after the last look.
     d = OfflineDaemon(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "contact": contact}),
@@ -180,7 +180,7 @@ def _skin_share(log: Path, frames: list, mesh, rate: int, since: float) -> None:
     end on the gateway's own plan (its last line names the ticks of two gates 10 s apart;
     mesh time between is a straight line) to the daemon giving it out: the skin's share
     and the daemon's read, apart from the daemon's own map of mesh time."""
-    from cellbridge.emulator.commands import Settings
+    from cellbridge.emulator.firmware.commands import Settings
 
     gw = mesh.gateways[0]
     plan = None

@@ -30,8 +30,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
 
 from realskin import free_base_port
 

@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python bench/bench_read_cost.py [--presses N] [--seed S]``.
 
 A look at the skin (the contact scheduler's ``due``, then its ``look``: the frames whose
-deadline passed and ``contact_job``, ``cellbridge.daemon.contact_schedule``, as the service
+deadline passed and ``contact_job``, ``cellbridge.daemon.core.contact_schedule``, as the service
 and the offline driver make it) follows every read in the daemon, and the loop can do nothing else meanwhile: a press's look, and the result of its
 estimate, wait behind the reads in front of them (docs/time.md: 2-4 ms a read on real
 processes around a press). The reads come from the emulator's deterministic mesh in
@@ -19,14 +19,14 @@ import random
 import time
 
 import numpy as np
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.contact_schedule import ContactScheduler
-from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.realtime import reporting_arg
-from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
-from cellbridge.emulator.world import Contact, World
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.contact_schedule import ContactScheduler
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
+from cellbridge.emulator.realtime.realtime import reporting_arg
+from cellbridge.emulator.world.world import Contact, World
 
 from timing import pin_to_one_core, table
 

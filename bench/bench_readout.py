@@ -33,13 +33,13 @@ import time
 from collections import Counter, defaultdict
 
 import numpy as np
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.readout import _split
-from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.emulator.transceiver import PREAMBLE_BITS, TransceiverConfig
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-from cellbridge.emulator.world import Contact, World
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.readout import _split
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.firmware.transceiver import PREAMBLE_BITS, TransceiverConfig
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import CRC_LEN, HEADER_LEN, FrameType, Mode, Readout, ReadoutSample, StreamDecoder
 from cellbridge.protocol.messages import pack_payload
 

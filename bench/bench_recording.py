@@ -39,7 +39,7 @@ from typing import Any
 import msgpack
 import numpy as np
 import zmq
-from cellbridge.daemon.capture import write_capture
+from cellbridge.daemon.shell.capture import write_capture
 
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import read_messages

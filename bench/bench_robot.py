@@ -10,7 +10,7 @@ robot extra (mujoco). Long: on two busy cores, about 3-8 s of CPU per virtual se
 
 False contacts while idle are counted twice: in ``--idle`` s after the scenario on the
 cycle-level mesh (the cells, their losses; costly), and in ``--idle-frames`` s of the same
-skin untouched on the frame-level generator (:class:`cellbridge.emulator.skin_traffic.SkinTraffic`:
+skin untouched on the frame-level generator (:class:`cellbridge.emulator.mesh.skin_traffic.SkinTraffic`:
 the firmware's own records and element noise, without the cells), which reaches the
 ten minutes of the target at a fraction of the cost. A false contact is an id the daemon
 published with every element known.
@@ -59,8 +59,8 @@ def idle_frame_level(seconds: float, seed: int) -> tuple[int, int, float]:
     ``seconds``, read by the daemon's core from the frame-level generator."""
     import time
 
-    from cellbridge.emulator.robot_world import arm_skin
-    from cellbridge.emulator.skin_traffic import SkinTraffic
+    from cellbridge.emulator.mesh.skin_traffic import SkinTraffic
+    from cellbridge.emulator.world.robot_world import arm_skin
 
     from cellbridge.skin_run import run_daemon_on_traffic
 

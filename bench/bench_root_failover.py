@@ -22,11 +22,11 @@ import time
 from collections import Counter
 from typing import Any
 
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.protocol import FrameType, Readout
 
 T0 = 1_800_000_000.0

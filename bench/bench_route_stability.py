@@ -16,10 +16,10 @@ from __future__ import annotations
 import argparse
 import time
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.emulator.virtual import VirtualMesh
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import VirtualMesh
 
 _KEYS = ("parent_changes", "route_lost", "neighbour_evictions")
 

@@ -30,9 +30,9 @@ import select
 import socket
 import time
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
-from cellbridge.emulator.virtual import VirtualMesh
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import VirtualMesh
+from cellbridge.emulator.realtime.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
 
 from timing import table
 

@@ -46,9 +46,9 @@ from pathlib import Path
 
 import numpy as np
 import serial
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
 from cellbridge.protocol import FrameType, StreamDecoder
 
 from realskin import free_base_port, rt_permitted

@@ -22,8 +22,8 @@ import sys
 import time
 
 import numpy as np
-from cellbridge.daemon.service import GIL_SWITCH_INTERVAL
-from cellbridge.daemon.worker_process import WorkerProcess
+from cellbridge.daemon.shell.service import GIL_SWITCH_INTERVAL
+from cellbridge.daemon.shell.worker_process import WorkerProcess
 
 from timing import table
 

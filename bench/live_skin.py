@@ -18,8 +18,8 @@ from typing import Any
 
 import msgpack
 import zmq
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
 
 from cellbridge.demo import _cellbridge, _free_port, _free_port_block, _group, _warm_kernels, gateway_line
 

@@ -39,11 +39,11 @@ import time
 from typing import Any
 
 import msgpack
-from cellbridge.daemon.cli import _load
-from cellbridge.daemon.layout import LayoutStages
-from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.daemon.publisher import Publisher
-from cellbridge.daemon.service import Service, run_service
+from cellbridge.daemon.core.layout import LayoutStages
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.shell.cli import _load
+from cellbridge.daemon.shell.publisher import Publisher
+from cellbridge.daemon.shell.service import Service, run_service
 
 TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": [], "x": [], "w": [], "k": []}
 WORKER_TRACE = "CB_PRESS_TRACE_WORKER"  #: env: the file the contact worker notes its jobs in
@@ -54,7 +54,7 @@ def timed_estimate(job: Any) -> Any:
     names (the worker imports this module by name: bench/ is on its sys.path)."""
     import os
 
-    from cellbridge.daemon.contacts import estimate
+    from cellbridge.daemon.core.contacts import estimate
 
     t0 = time.monotonic()
     out = estimate(job)
@@ -135,8 +135,8 @@ def _instrument() -> None:
                                [(c.get("id"), c.get("x"), c.get("y"), c.get("force")) for c in payload["contacts"]]))
         return out
 
-    from cellbridge.daemon import contact_worker
-    from cellbridge.daemon.worker_process import WorkerProcess
+    from cellbridge.daemon.shell import contact_worker
+    from cellbridge.daemon.shell.worker_process import WorkerProcess
 
     submit = WorkerProcess.submit
 

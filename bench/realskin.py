@@ -30,10 +30,10 @@ from typing import Self
 import msgpack
 import serial
 import zmq
-from cellbridge.emulator.mesh import Mesh, mesh_to_toml
-from cellbridge.emulator.meshtime import Crystal
-from cellbridge.emulator.realtime import CLOCK_HZ
-from cellbridge.emulator.virtual import default_chip
+from cellbridge.emulator.firmware.meshtime import Crystal
+from cellbridge.emulator.mesh.mesh import Mesh, mesh_to_toml
+from cellbridge.emulator.mesh.virtual import default_chip
+from cellbridge.emulator.realtime.realtime import CLOCK_HZ
 from cellbridge.protocol import Data, HostReceiver, SampleFlags, StreamDecoder
 
 _NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)

@@ -1,16 +1,16 @@
 """The daemon's messages of a skin on a robot (the arm of ``cellbridge robot run``), for the
 views' tests: ``topology`` with its ``skin`` (links, patches, element frames) and
 ``contact`` with link, patch, 3-D position, normal and force vector, made by the
-daemon's own functions (:func:`cellbridge.daemon.surface.skin_report`,
-:func:`~cellbridge.daemon.surface.contact_fields`) from the arm's skin description.
+daemon's own functions (:func:`cellbridge.daemon.core.surface.skin_report`,
+:func:`~cellbridge.daemon.core.surface.contact_fields`) from the arm's skin description.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from cellbridge.daemon.surface import contact_fields, skin_report
-from cellbridge.emulator.robot_world import arm_skin
+from cellbridge.daemon.core.surface import contact_fields, skin_report
+from cellbridge.emulator.world.robot_world import arm_skin
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
 SOURCE = "robot:5560"

@@ -13,9 +13,9 @@ from __future__ import annotations
 import functools
 from typing import Callable, Literal
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import Mesh
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import Mesh
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
 
 US = CLOCK_HZ // 1_000_000  #: cycles per microsecond
 ROOT, HEIR = 1, 16  #: the root gateway that goes, the gateway that carries the time on

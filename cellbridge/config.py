@@ -4,6 +4,6 @@ The layout file is read by the daemon's own loader; it is offered here for tools
 
 from __future__ import annotations
 
-from cellbridge.daemon.layout_file import load_layout
+from cellbridge.daemon.shell.layout_file import load_layout
 
 __all__ = ["load_layout"]

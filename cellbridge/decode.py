@@ -195,8 +195,8 @@ def _run_offline(args: argparse.Namespace, reads: list[tuple[float, str, bytes]]
                  show_read: Any, show_message: Any) -> None:
     """The daemon offline on ``reads`` (time, link, bytes): every read shown before the
     messages of the same or a later time, as the daemon feeds a read before it looks."""
-    from cellbridge.daemon.config import ConfigError, load_config, parse_config
-    from cellbridge.daemon.offline import OfflineDaemon
+    from cellbridge.daemon.core.config import ConfigError, load_config, parse_config
+    from cellbridge.daemon.shell.offline import OfflineDaemon
 
     links = sorted({link for _, link, _ in reads})
     try:

@@ -129,7 +129,7 @@ def _stop(proc: subprocess.Popen[Any], grace: float = 10.0) -> None:
 def _group(cmd: list[str], **kw: Any) -> Iterator[subprocess.Popen[Any]]:
     """``cmd`` in its own session, stopped on exit; told to stop (SIGTERM) if the demo dies
     first, too: a demo killed by a timeout left its skin and its daemon running."""
-    from cellbridge.emulator.realtime import die_with_parent
+    from cellbridge.emulator.realtime.realtime import die_with_parent
 
     proc = subprocess.Popen(cmd, start_new_session=True, preexec_fn=die_with_parent, **kw)
     try:
@@ -337,8 +337,8 @@ def _within(r: dict[str, Any]) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cellbridge.emulator import meshgen
-    from cellbridge.emulator.mesh import mesh_to_toml
+    from cellbridge.emulator.mesh import meshgen
+    from cellbridge.emulator.mesh.mesh import mesh_to_toml
 
     say = (lambda *a: None) if args.json else (lambda *a: print(*a, file=sys.stderr, flush=True))
     work = Path(tempfile.mkdtemp(prefix="cellbridge-demo-"))

@@ -1,4 +1,4 @@
-"""``cellbridge mesh``: the emulator's mesh command (:mod:`cellbridge.emulator.mesh_cli`),
+"""``cellbridge mesh``: the emulator's mesh command (:mod:`cellbridge.emulator.realtime.mesh_cli`),
 and its ``traffic`` action, which writes what the daemon reads (capture files, a daemon
 configuration) and so lives above both layers.
 """
@@ -8,9 +8,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cellbridge.emulator import mesh_cli
-from cellbridge.emulator.mesh import MeshError
-from cellbridge.emulator.world import ScenarioError
+from cellbridge.emulator.mesh.mesh import MeshError
+from cellbridge.emulator.realtime import mesh_cli
+from cellbridge.emulator.world.world import ScenarioError
 
 add_arguments = mesh_cli.add_arguments
 
@@ -28,17 +28,17 @@ def run(args: argparse.Namespace) -> int:
 
 def _traffic(args: argparse.Namespace) -> int:
     """A skin description's frame-level traffic into one capture per gateway, and a daemon
-    configuration that replays them (emulator/skin_traffic.py)."""
+    configuration that replays them (emulator/mesh/skin_traffic.py)."""
     import json
     import os
     import time
 
-    from cellbridge.daemon.capture import CaptureWriter
-    from cellbridge.daemon.skin_file import is_skin_file, load_skin
-    from cellbridge.emulator.commands import Settings
-    from cellbridge.emulator.skin_mesh import mesh_from_skin
-    from cellbridge.emulator.skin_traffic import SkinTraffic
-    from cellbridge.emulator.world import World, check_on_skin, load_scenario
+    from cellbridge.daemon.shell.capture import CaptureWriter
+    from cellbridge.daemon.shell.skin_file import is_skin_file, load_skin
+    from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
+    from cellbridge.emulator.mesh.skin_traffic import SkinTraffic
+    from cellbridge.emulator.world.world import World, check_on_skin, load_scenario
     from cellbridge.tactile.skin_geometry import SkinError
 
     try:

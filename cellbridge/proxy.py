@@ -9,7 +9,7 @@ tells the streams apart.
 
 Security as the daemon does it: the front binds loopback only, unless it is a CURVE
 server (``--server-secret``, ``--allowed-clients``; the same key files and the same
-ZAP check, :class:`cellbridge.daemon.security.CurveServer`), and a subscriber without
+ZAP check, :class:`cellbridge.daemon.ops.security.CurveServer`), and a subscriber without
 an allowed key gets nothing. A CURVE daemon behind the proxy is reached as any client
 reaches it: its public key (``--back ENDPOINT=SERVER.key``) and the proxy's own key pair
 (``--client-key``). SIGINT and SIGTERM stop the proxy cleanly.
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import zmq
 
-from cellbridge.daemon.security import CurveKeys, CurveServer, apply_client, check_bind
+from cellbridge.daemon.ops.security import CurveKeys, CurveServer, apply_client, check_bind
 
 DEFAULT_FRONT = "tcp://127.0.0.1:5570"
 

@@ -3,7 +3,7 @@ are scored against what MuJoCo says touched it.
 
 ``run`` scripts a scenario (single presses anywhere, across wrap seams and across the
 seam of two patches of one link, slides, two at once) on the arm of
-:mod:`cellbridge.emulator.robot_world`, simulates it in MuJoCo, runs the arm's emulated
+:mod:`cellbridge.emulator.world.robot_world`, simulates it in MuJoCo, runs the arm's emulated
 skin in virtual time and the daemon's core on its gateway lines
 (:func:`cellbridge.skin_run.run_daemon_on_skin`), keeps the ground truth beside what the
 daemon published, and prints the accuracy table. Deterministic for a seed; no processes,
@@ -31,10 +31,10 @@ def run_scenario(contacts: int, seed: int = 0, reporting: str = "periodic", idle
                  out: str | None = None, progress: bool = False) -> tuple[Score, dict[str, Any]]:
     """Simulate a scenario of ``contacts`` contacts (then ``idle`` s untouched), run the skin
     and the daemon's core in virtual time, and score; (score, figures of the run)."""
-    from cellbridge.emulator.commands import Settings
-    from cellbridge.emulator.realtime import reporting_arg
-    from cellbridge.emulator.robot_world import TimelineWorld, arm_skin, scenario, simulate
-    from cellbridge.emulator.skin_mesh import mesh_from_skin
+    from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
+    from cellbridge.emulator.realtime.realtime import reporting_arg
+    from cellbridge.emulator.world.robot_world import TimelineWorld, arm_skin, scenario, simulate
     from cellbridge.skin_run import T0, run_daemon_on_skin
 
     skin = arm_skin()
@@ -109,12 +109,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.robot_command == "skin":
-        from cellbridge.emulator.robot_world import ARM_SKIN
+        from cellbridge.emulator.world.robot_world import ARM_SKIN
 
         sys.stdout.write(ARM_SKIN)
         return 0
     if args.robot_command == "mjcf":
-        from cellbridge.emulator.robot_world import arm_mjcf, arm_skin
+        from cellbridge.emulator.world.robot_world import arm_mjcf, arm_skin
 
         print(arm_mjcf(arm_skin()))
         return 0
@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
             print("cellbridge robot: needs MuJoCo: pip install 'cellbridge[robot]'", file=sys.stderr)
             return 2
     if args.robot_command == "score":
-        from cellbridge.emulator.robot_world import arm_skin
+        from cellbridge.emulator.world.robot_world import arm_skin
 
         try:
             with open(os.path.join(args.dir, "truth.jsonl"), encoding="utf-8") as fh:

@@ -2,7 +2,7 @@
 
 Inputs are plain records, so a run in virtual time and a recording of a real-time run
 (``cellbridge sub contact``) score alike: the ground truth of every contact (link, and per
-simulation step its point, force and atlas place: :class:`~cellbridge.emulator.robot_world.Truth`
+simulation step its point, force and atlas place: :class:`~cellbridge.emulator.world.robot_world.Truth`
 as a dict) and the ``contact`` messages the daemon published (each frame's ``t_sample``
 on the truth's clock, its contacts with ``link``, ``position``, ``force``,
 ``observable``).

@@ -2,7 +2,7 @@
 
 The virtual-time mesh (every bridge, the medium and the world in one process) writes each
 gateway's serial bytes at virtual instants; the daemon offline
-(:class:`~cellbridge.daemon.offline.OfflineDaemon`: its sans-I/O core and its contact
+(:class:`~cellbridge.daemon.shell.offline.OfflineDaemon`: its sans-I/O core and its contact
 loop's schedule, with the skin description as its layout) reads them at those instants,
 one link per gateway, and estimates contacts inline when the service would: what the
 daemon would publish, the same for the same seed on any machine, faster than real time.
@@ -16,13 +16,13 @@ import math
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.offline import OfflineDaemon
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.skin_mesh import mesh_from_skin
-from cellbridge.emulator.skin_traffic import SkinTraffic
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-from cellbridge.emulator.world import World
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.shell.offline import OfflineDaemon
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
+from cellbridge.emulator.mesh.skin_traffic import SkinTraffic
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world.world import World
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
 __all__ = ["run_daemon_on_skin", "run_daemon_on_traffic"]
@@ -71,7 +71,7 @@ def run_daemon_on_skin(skin: SkinGeometry, world: World | None, seconds: float, 
 def run_daemon_on_traffic(traffic: SkinTraffic, seconds: float, *,
                           sections: dict[str, Any] | None = None) -> Iterator[tuple[float, str, dict[str, Any]]]:
     """:func:`run_daemon_on_skin` on a skin's frame-level traffic
-    (:class:`~cellbridge.emulator.skin_traffic.SkinTraffic`: the gateways' readout records
+    (:class:`~cellbridge.emulator.mesh.skin_traffic.SkinTraffic`: the gateways' readout records
     without the cells, for a skin too large for the cycle-level mesh): the daemon's core
     reads each gateway's bytes at their arrival, one link per gateway."""
     reads = ((t, f"gw{g}", data) for t, g, data in _arrivals(traffic, seconds))

@@ -393,7 +393,7 @@ def parse_layout(text: str, source: str = "layout") -> SkinLayout:
     """Build a skin layout from the text of a TOML layout file (metres throughout).
 
     Takes text, not a path, so this layer stays free of I/O;
-    ``cellbridge.daemon.layout_file.load_layout`` reads the file. Every problem is a
+    ``cellbridge.daemon.shell.layout_file.load_layout`` reads the file. Every problem is a
     ``ValueError`` that starts with ``source`` and names the key
     (``arm.toml: [grid].rows must be an integer, got inf``). Types are
     strict: counts and ids are TOML integers, lengths are numbers (an integer is

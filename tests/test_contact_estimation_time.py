@@ -1,5 +1,5 @@
 """health's ``contact_estimation`` times the estimates, not the contact worker's warm-up
-(daemon/contact_worker.py ContactWorker.estimate)."""
+(daemon/shell/contact_worker.py ContactWorker.estimate)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import logging
 import time
 from typing import Any
 
-from cellbridge.daemon import contacts
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.contact_worker import ContactWorker
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.core import contacts
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.shell.contact_worker import ContactWorker
 
 from daemon_traffic import Skin
 

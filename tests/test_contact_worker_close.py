@@ -1,5 +1,5 @@
 """A stop ends the contact worker process in bounded time, whatever state it is in
-(daemon/contact_worker.py ContactWorker.close)."""
+(daemon/shell/contact_worker.py ContactWorker.close)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import signal
 import time
 
 import pytest
-from cellbridge.daemon import contact_worker
-from cellbridge.daemon.contact_worker import ContactWorker
-from cellbridge.daemon.worker_process import WorkerProcess
+from cellbridge.daemon.shell import contact_worker
+from cellbridge.daemon.shell.contact_worker import ContactWorker
+from cellbridge.daemon.shell.worker_process import WorkerProcess
 
 from support.process_state import gone
 

@@ -1,6 +1,6 @@
 """The control server needs only its narrow ``Host``: no pipeline, no links.
 
-A host that has nothing but :class:`~cellbridge.daemon.control_server.Host`'s members
+A host that has nothing but :class:`~cellbridge.daemon.shell.control_server.Host`'s members
 answers every request over a real ROUTER socket on loopback; a bridge command goes out
 through ``Host.send_command`` (the service's one road to the links) and its reply comes
 back through ``Host.finished_commands``.
@@ -15,9 +15,9 @@ from typing import Any
 import msgpack
 import zmq
 import zmq.asyncio
-from cellbridge.daemon.commands import CommandTracker, Pending
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.control_server import ControlServer
+from cellbridge.daemon.core.commands import CommandTracker, Pending
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.shell.control_server import ControlServer
 from cellbridge.protocol import CommandReply, Op, Status
 
 

@@ -7,9 +7,9 @@ import functools
 import subprocess
 from pathlib import Path
 
-from cellbridge.daemon.capture import CaptureWriter, read_capture
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.links import SerialLink
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.shell.capture import CaptureWriter, read_capture
+from cellbridge.daemon.shell.links import SerialLink
 
 from daemon_harness import CLI, Client, Pty, daemon, write_config
 from support.shell_fakes import FakeClock, FakeDevice, until

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from cellbridge.daemon.clock import BridgeClock
+from cellbridge.daemon.core.clock import BridgeClock
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -125,7 +125,7 @@ def test_the_skin_clock_follows_a_jump_back_but_not_a_burst_of_old_frames() -> N
     confused relay passing old records on), are not the skin's time going back: the map
     keeps its time (it restarted on each burst of three). Points behind that keep coming,
     consistent, for 0.1 s are: then it follows."""
-    from cellbridge.daemon.clock import SkinClock
+    from cellbridge.daemon.core.clock import SkinClock
 
     hz = 50_000_000
     clock = SkinClock(hz)

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any, cast
 
 import pytest
-from cellbridge.daemon.config import LINK_KEYS, SECTIONS, ConfigError, default_toml, load_config, parse_config
+from cellbridge.daemon.core.config import LINK_KEYS, SECTIONS, ConfigError, default_toml, load_config, parse_config
 
 
 def test_defaults_are_valid_and_documented() -> None:
@@ -123,7 +123,7 @@ def test_every_number_has_an_upper_bound() -> None:
 
 def test_the_fallback_readings_buffer_is_sized_in_readings() -> None:
     """The longest max_lag at the fastest step rate still keeps at most max_lag_readings per element."""
-    from cellbridge.daemon.pipeline import Pipeline
+    from cellbridge.daemon.core.pipeline import Pipeline
     from cellbridge.tactile import grid_layout
 
     cfg = parse_config({"contact": {"max_lag": 10.0, "max_lag_readings": 256},
@@ -139,7 +139,7 @@ def test_sections_are_typed_frozen_and_the_only_way_in() -> None:
     fields are exactly the schema's keys, each value of its declared type; no dict access."""
     import dataclasses
 
-    from cellbridge.daemon.config import SECTION_TYPES, Config, ContactSection
+    from cellbridge.daemon.core.config import SECTION_TYPES, Config, ContactSection
 
     cfg = parse_config({"contact": {"rate": 50, "max_lag": 1}, "link": [{"url": "/dev/ttyUSB0"}]})
     assert cfg.contact.rate == 50.0 and isinstance(cfg.contact.rate, float)  # an integer in TOML, a float here

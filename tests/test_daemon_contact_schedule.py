@@ -1,5 +1,5 @@
-"""The contact loop's one policy (daemon/contact_schedule.py) and the daemon offline
-(daemon/offline.py) that runs it in virtual time: what is published, what is counted, and
+"""The contact loop's one policy (daemon/core/contact_schedule.py) and the daemon offline
+(daemon/shell/offline.py) that runs it in virtual time: what is published, what is counted, and
 that the pacing production runs is the pacing every offline user gets."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import math
 from typing import Any
 
 import pytest
-from cellbridge.daemon.capture import read_capture
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.contact_schedule import TICK, ContactScheduler
-from cellbridge.daemon.offline import OfflineDaemon
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.contact_schedule import TICK, ContactScheduler
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.shell.capture import read_capture
+from cellbridge.daemon.shell.offline import OfflineDaemon
 
 from support.daemon_golden import CAPTURE
 from support.pipeline_helpers import worker

@@ -1,4 +1,4 @@
-"""Time domains (daemon/domains.py): parts of a skin that no cell joins keep their own
+"""Time domains (daemon/core/domains.py): parts of a skin that no cell joins keep their own
 mesh time and their own frames; a frame of one never speaks for the other's elements."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from cellbridge.daemon.domains import TimeDomains
-from cellbridge.daemon.readings import ElementReadings
+from cellbridge.daemon.core.domains import TimeDomains
+from cellbridge.daemon.core.readings import ElementReadings
 from cellbridge.protocol import Mode, Readout, ReadoutSample
 
 HZ = 50_000_000

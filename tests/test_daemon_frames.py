@@ -1,4 +1,4 @@
-"""Skin frames from readout records (daemon/frames.py): complete by the records or by the
+"""Skin frames from readout records (daemon/core/frames.py): complete by the records or by the
 deadline, in order, each once, late records counted, memory bounded whatever arrives."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from cellbridge.daemon.frames import SkinFrame, SkinFrames
+from cellbridge.daemon.core.frames import SkinFrame, SkinFrames
 from cellbridge.protocol import Mode, Readout, ReadoutSample
 from hypothesis import given, settings
 from hypothesis import strategies as st

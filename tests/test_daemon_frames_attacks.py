@@ -8,10 +8,10 @@ from __future__ import annotations
 import random
 
 import numpy as np
-from cellbridge.daemon.clock import SkinClock
-from cellbridge.daemon.domains import TimeDomains
-from cellbridge.daemon.frames import SkinFrames
-from cellbridge.daemon.readings import ElementReadings
+from cellbridge.daemon.core.clock import SkinClock
+from cellbridge.daemon.core.domains import TimeDomains
+from cellbridge.daemon.core.frames import SkinFrames
+from cellbridge.daemon.core.readings import ElementReadings
 from cellbridge.protocol import Mode, Readout, ReadoutSample
 
 HZ = 50_000_000

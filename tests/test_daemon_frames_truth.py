@@ -11,15 +11,15 @@ from typing import Any
 
 import numpy as np
 import pytest
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.layout import LayoutStages
-from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.readout import FrameReadout
-from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-from cellbridge.emulator.world import Contact, World
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.layout import LayoutStages
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.readout import FrameReadout
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import Readout, ReadoutSample, StreamDecoder, encode_stream
 
 T0 = 1_800_000_000.0

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import math
 
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream
 from hypothesis import given, settings
 from hypothesis import strategies as st

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from cellbridge.daemon.config import DEFAULT_NOISE, parse_config
-from cellbridge.daemon.elements import ElementStage
-from cellbridge.daemon.layout import LayoutStages
+from cellbridge.daemon.core.config import DEFAULT_NOISE, parse_config
+from cellbridge.daemon.core.elements import ElementStage
+from cellbridge.daemon.core.layout import LayoutStages
 from cellbridge.tactile import CalibrationConfig, ElementParams
 from cellbridge.tactile.layout import grid_layout
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from cellbridge.daemon.wire import Ingress
+from cellbridge.daemon.core.wire import Ingress
 from cellbridge.protocol import ADDR_HOST, Data, Frame, Mode, Sample, encode_stream, fragment
 
 

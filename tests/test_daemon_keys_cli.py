@@ -8,8 +8,8 @@ import subprocess
 from pathlib import Path
 
 import zmq
-from cellbridge.daemon.keys import write_keypair
-from cellbridge.daemon.security import load_curve
+from cellbridge.daemon.ops.security import load_curve
+from cellbridge.daemon.shell.keys import write_keypair
 from zmq.auth import load_certificate
 
 from daemon_harness import CLI

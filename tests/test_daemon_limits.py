@@ -20,8 +20,8 @@ from typing import Any
 import msgpack
 import pytest
 import zmq
-from cellbridge.daemon.control import MAX_ID_BYTES, RequestError, parse_request
-from cellbridge.daemon.peers import PeerLimits
+from cellbridge.daemon.core.control import MAX_ID_BYTES, RequestError, parse_request
+from cellbridge.daemon.ops.peers import PeerLimits
 
 from daemon_harness import Client, Pty, daemon, idle_connects, open_descriptors, proc_status_kb, write_config
 

@@ -19,12 +19,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from cellbridge.daemon.notify import Notifier, heartbeat
+from cellbridge.daemon.ops.notify import Notifier, heartbeat
 
 # The daemon's use of Notifier, reduced to its notify calls.
 SERVICE = """
 import signal, sys, time
-from cellbridge.daemon.notify import Notifier, heartbeat
+from cellbridge.daemon.ops.notify import Notifier, heartbeat
 n = Notifier()
 stop = []
 signal.signal(signal.SIGTERM, lambda *_: stop.append(1))

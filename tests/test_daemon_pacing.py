@@ -4,7 +4,7 @@ without a late one making every later one late, and looks that find nothing kept
 from __future__ import annotations
 
 import pytest
-from cellbridge.daemon.pacing import BURST, EMPTY_LOOK_GAP, Pacer
+from cellbridge.daemon.core.pacing import BURST, EMPTY_LOOK_GAP, Pacer
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

@@ -9,9 +9,9 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.layout_file import load_layout
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.shell.layout_file import load_layout
 from cellbridge.protocol import (
     ADDR_BROADCAST,
     Beacon,
@@ -386,7 +386,7 @@ def test_reconfigure_takes_a_new_layout_and_keeps_hello_geometry() -> None:
 
 
 def test_contact_worker_warm_up_estimates_a_press() -> None:
-    from cellbridge.daemon import contacts as physics
+    from cellbridge.daemon.core import contacts as physics
 
     calls = []
     run = physics.ContactStage.run
@@ -646,7 +646,7 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     and their sender ids stayed in topology's gateways for ever. Health now lists every placed
     bridge and at most a bounded number of the others, with their counts; phantom gateway ids
     are pruned when their bridges are forgotten, the real gateway is kept."""
-    from cellbridge.daemon.health import UNPLACED_SHOWN as _UNPLACED_SHOWN
+    from cellbridge.daemon.core.health import UNPLACED_SHOWN as _UNPLACED_SHOWN
 
     sk = Skin()
     p, t, n = _phantoms(sk, 60.0)
@@ -727,7 +727,7 @@ def test_bogus_origins_cost_a_tick_a_bounded_topology_and_a_bounded_number_of_lo
     sender as a gateway), and when they went quiet each got its own "no data" event. Topology
     now lists every placed bridge and at most ``_UNPLACED_SHOWN`` others (the rest counted),
     and their silence is logged one by one only up to that bound, then as one summary."""
-    from cellbridge.daemon.health import UNPLACED_SHOWN as _UNPLACED_SHOWN
+    from cellbridge.daemon.core.health import UNPLACED_SHOWN as _UNPLACED_SHOWN
 
     sk = Skin()
     p, t, n = _phantoms(sk, 600.0)
@@ -749,7 +749,7 @@ def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:
     (a new process), or a SIGHUP that changed the estimation settings: four presses came
     back as ids [0, 1, 0, 0]. The pipeline keeps the lowest id it never published and every
     job carries it, so a rebuilt tracker numbers a new press from there."""
-    from cellbridge.daemon import contacts
+    from cellbridge.daemon.core import contacts
 
     sk = Skin()
     p = make()
@@ -778,7 +778,7 @@ def test_a_contact_held_across_a_rebuild_keeps_its_id(cause: str) -> None:
     file. Each job carries the contacts last published; a tracker built afresh continues
     them (matched by position or element), and the SIGHUP keeps the baselines of elements
     that kept their place, so the held press is the same contact at once."""
-    from cellbridge.daemon import contacts
+    from cellbridge.daemon.core import contacts
     from cellbridge.protocol import Hello
     from cellbridge.tactile import SkinLayout
 
@@ -860,7 +860,7 @@ def test_hello_layout_overlap_check_by_grid_rejects_exactly_the_overlapping_brid
     per bridge was O(n² log n): ~1 s of blocked loop per join at 1 000 bridges). The grid
     must reject exactly what a pairwise check in id order rejects: touching edges are fine,
     any overlap in both coordinates is not, whichever cell the centres fall in."""
-    from cellbridge.daemon.layout import layout_from_geometry
+    from cellbridge.daemon.core.layout import layout_from_geometry
 
     rng = np.random.default_rng(7)
     side = 0.02

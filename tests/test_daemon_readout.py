@@ -9,8 +9,8 @@ import math
 import msgpack
 import numpy as np
 import pytest
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.pipeline import Pipeline
 
 from daemon_traffic import CLOCK, Skin
 from support.pipeline_helpers import published, worker

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 import pytest
-from cellbridge.daemon.capture import MAGIC, CaptureError, read_capture, write_capture
+from cellbridge.daemon.shell.capture import MAGIC, CaptureError, read_capture, write_capture
 
 from daemon_harness import Client, Pty, daemon, write_config
 from daemon_traffic import Skin

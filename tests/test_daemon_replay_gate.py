@@ -15,8 +15,8 @@ from typing import Any
 
 import zmq
 import zmq.asyncio
-from cellbridge.daemon.config import load_config
-from cellbridge.daemon.service import Service
+from cellbridge.daemon.core.config import load_config
+from cellbridge.daemon.shell.service import Service
 
 from support.daemon_golden import CAPTURE, CONFIG
 from support.shell_fakes import RecordingHooks, until

@@ -11,8 +11,7 @@ from pathlib import Path
 
 import pytest
 import zmq
-from cellbridge.daemon.keys import write_keypair
-from cellbridge.daemon.security import (
+from cellbridge.daemon.ops.security import (
     CurveKeys,
     CurveServer,
     SecurityError,
@@ -21,6 +20,7 @@ from cellbridge.daemon.security import (
     is_loopback,
     load_curve,
 )
+from cellbridge.daemon.shell.keys import write_keypair
 from hypothesis import given
 from hypothesis import strategies as st
 

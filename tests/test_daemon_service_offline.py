@@ -1,6 +1,6 @@
 """The service and the offline driver are one daemon: a golden corpus scenario replayed
-through the real :class:`~cellbridge.daemon.service.Service` (asyncio, its links, its
-contact loop, ZeroMQ on ``inproc://``) publishes what :class:`~cellbridge.daemon.offline.OfflineDaemon`
+through the real :class:`~cellbridge.daemon.shell.service.Service` (asyncio, its links, its
+contact loop, ZeroMQ on ``inproc://``) publishes what :class:`~cellbridge.daemon.shell.offline.OfflineDaemon`
 publishes on the same reads, the driver that makes the corpus's ``.chk`` files.
 
 The service replays in recorded time at half the recorded speed; the contact rate is set above the
@@ -19,10 +19,10 @@ from typing import Any
 import msgpack
 import zmq
 import zmq.asyncio
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.contact_worker import InlineExecutor
-from cellbridge.daemon.offline import OfflineDaemon
-from cellbridge.daemon.service import Service
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.shell.contact_worker import InlineExecutor
+from cellbridge.daemon.shell.offline import OfflineDaemon
+from cellbridge.daemon.shell.service import Service
 
 from support.golden_corpus import BASE_CONFIG, DATA, SCENARIOS, serial_reads
 from support.shell_fakes import RecordingHooks

@@ -24,12 +24,12 @@ import msgpack
 import pytest
 import zmq
 import zmq.asyncio
-from cellbridge.daemon.config import load_config, parse_config
-from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
-from cellbridge.daemon.links import SerialLink
-from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.daemon.replay_source import read_records
-from cellbridge.daemon.service import Service
+from cellbridge.daemon.core.config import load_config, parse_config
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.shell.contact_worker import ContactWorker, InlineExecutor
+from cellbridge.daemon.shell.links import SerialLink
+from cellbridge.daemon.shell.replay_source import read_records
+from cellbridge.daemon.shell.service import Service
 
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import RecordingWriter
@@ -409,9 +409,9 @@ def test_sigterm_with_a_hung_contact_worker_stops_within_the_drain_limit(tmp_pat
 
 
 def _virtual_press(seed: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    from cellbridge.emulator import meshgen
-    from cellbridge.emulator.virtual import VirtualMesh
-    from cellbridge.emulator.world import Contact, World
+    from cellbridge.emulator.mesh import meshgen
+    from cellbridge.emulator.mesh.virtual import VirtualMesh
+    from cellbridge.emulator.world.world import Contact, World
 
     mesh = meshgen.grid(2, 2)
     vm = VirtualMesh(mesh, seed=seed, world=World(mesh, [Contact(2.0, 1.0, 0.02, 0.0, 3.0, 0.012)]))
@@ -614,9 +614,9 @@ _LEFT_OPEN = """
 import asyncio, os, signal, sys
 import zmq
 sys.path.insert(0, {tests!r})
-from cellbridge.daemon.config import load_config
-from cellbridge.daemon.contact_worker import InlineExecutor
-from cellbridge.daemon.service import Service
+from cellbridge.daemon.core.config import load_config
+from cellbridge.daemon.shell.contact_worker import InlineExecutor
+from cellbridge.daemon.shell.service import Service
 from support.shell_fakes import FakeDevice, RecordingHooks
 
 
@@ -674,9 +674,9 @@ def test_a_shifted_replay_that_falls_behind_never_feeds_a_read_before_the_time_i
     In fake time (the link's clock), so that what is late is the test's choice and not the
     machine's: on the wall clock a busy machine made other records late too (a record due
     at 30 ms fed 6 ms late). Each sleep ends 3 ms late, within ``LATE``: on schedule."""
-    from cellbridge.daemon.capture import write_capture
-    from cellbridge.daemon.config import LinkConfig
-    from cellbridge.daemon.links import ReplayLink
+    from cellbridge.daemon.core.config import LinkConfig
+    from cellbridge.daemon.shell.capture import write_capture
+    from cellbridge.daemon.shell.links import ReplayLink
 
     class LateWaking(FakeClock):
         async def sleep(self, seconds: float) -> None:

@@ -11,12 +11,12 @@ import dataclasses
 import math
 
 import pytest
-from cellbridge.daemon.contact_schedule import TICK
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-from cellbridge.emulator.world import Contact, World
+from cellbridge.daemon.core.contact_schedule import TICK
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import Data, Readout, StreamDecoder, encode_stream
 
 from support.pipeline_helpers import T0, drive
@@ -317,7 +317,7 @@ def test_corner_presses_on_a_contended_event_based_skin_keep_one_id_from_their_f
     (press 11 of these 12, before its neighbours were unknown at the onset)."""
     import random
 
-    from cellbridge.emulator.virtual import Latency
+    from cellbridge.emulator.mesh.virtual import Latency
 
     mesh = meshgen.grid(4, 4)
     rng = random.Random(0)
@@ -346,7 +346,7 @@ def test_presses_sliding_across_seams_of_an_event_based_skin_keep_one_id() -> No
     a split of a confirmed contact had to persist the tracker's ``split_frames``)."""
     import random
 
-    from cellbridge.emulator.virtual import Latency
+    from cellbridge.emulator.mesh.virtual import Latency
 
     mesh = meshgen.grid(4, 4)
     rng = random.Random(3)
@@ -421,7 +421,7 @@ def _corner_presses_held_back(phase: str, n: int) -> list[tuple[Contact, set[int
     each with one of the four bridges under it held back 300 ms (in turn) from the press's
     start (``phase`` "onset") or end ("release"); each press and the contact ids published
     from its start to 0.5 s after its end. Checks each press's steady contact."""
-    from cellbridge.emulator.virtual import Latency
+    from cellbridge.emulator.mesh.virtual import Latency
 
     mesh = meshgen.grid(4, 4)
     presses = [Contact(6.0 + 1.5 * k, 1.0, *CORNER, 3.0, 0.020) for k in range(n)]
@@ -487,7 +487,7 @@ def test_two_fingers_sharing_an_element_each_get_an_id_within_the_split_wait() -
     of 96 such pairs over six seeds). Each finger gets its own id within the split wait of
     its onset (``split_frames``: two frames more than a finger landing alone), keeps it, and
     is read right from the first report."""
-    from cellbridge.emulator.virtual import Latency
+    from cellbridge.emulator.mesh.virtual import Latency
 
     mesh = meshgen.grid(4, 4)
     n = len(FINGER_PAIRS)

@@ -9,9 +9,9 @@ from pathlib import Path
 import msgpack
 import pytest
 import zmq
-from cellbridge.daemon.keys import write_keypair
-from cellbridge.daemon.security import CurveKeys, CurveServer
-from cellbridge.daemon.subscribe import message_to_json
+from cellbridge.daemon.ops.security import CurveKeys, CurveServer
+from cellbridge.daemon.shell.keys import write_keypair
+from cellbridge.daemon.shell.subscribe import message_to_json
 from hypothesis import given
 from hypothesis import strategies as st
 

@@ -33,8 +33,8 @@ def test_run_follows_each_read_by_the_messages_it_caused_and_matches_the_golden_
     assert rc == 0, err
     outs = [d for d in lines if "out" in d]
     # exactly what the offline daemon (the service's own schedule) publishes on these reads
-    from cellbridge.daemon.config import parse_config
-    from cellbridge.daemon.offline import OfflineDaemon
+    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.shell.offline import OfflineDaemon
 
     from cellbridge.recording.mcapfile import read_payloads
 

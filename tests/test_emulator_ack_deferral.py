@@ -1,12 +1,12 @@
 """A deferred link acknowledgement, and one queued behind it, still reach their sender
-within its ack wait (the ack deferral of :mod:`~cellbridge.emulator.transceiver`)."""
+within its ack wait (the ack deferral of :mod:`~cellbridge.emulator.firmware.transceiver`)."""
 
 from __future__ import annotations
 
 import random
 
-from cellbridge.emulator.linklayer import LinkLayer
-from cellbridge.emulator.transceiver import Transceiver
+from cellbridge.emulator.firmware.linklayer import LinkLayer
+from cellbridge.emulator.firmware.transceiver import Transceiver
 
 BIT = 50
 SIFS = 12 * BIT

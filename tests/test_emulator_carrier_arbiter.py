@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.carrier_arbiter import HOLD, CarrierArbiter
-from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
+from cellbridge.emulator.medium.carrier_arbiter import HOLD, CarrierArbiter
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
 from hypothesis import given
 from hypothesis import strategies as st
 

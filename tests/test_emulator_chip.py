@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 import pytest
-from cellbridge.emulator.chip import CLOCK_HZ, Chip, ChipConfig
+from cellbridge.emulator.chip.chip import CLOCK_HZ, Chip, ChipConfig
 from cellbridge.tactile import ElementParams, forward
 from cellbridge.tactile.transfer import adc_mean_code, counts, expected_counts, unwrap_counts
 

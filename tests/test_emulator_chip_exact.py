@@ -8,11 +8,11 @@ synchroniser rule are exercised, and narrow counters make short gates wrap.
 from __future__ import annotations
 
 import numpy as np
-from cellbridge.emulator.adc import sar_codes
-from cellbridge.emulator.chip import Chip, ChipConfig
-from cellbridge.emulator.keyed_random import Z_MAX, GateNoise, KeyedNormals, Stream
-from cellbridge.emulator.oscillator import EdgeTrain, max_period_deviation
-from cellbridge.emulator.reference import step_conversions, step_counter
+from cellbridge.emulator.chip.adc import sar_codes
+from cellbridge.emulator.chip.chip import Chip, ChipConfig
+from cellbridge.emulator.chip.keyed_random import Z_MAX, GateNoise, KeyedNormals, Stream
+from cellbridge.emulator.chip.oscillator import EdgeTrain, max_period_deviation
+from cellbridge.emulator.chip.reference import step_conversions, step_counter
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -123,7 +123,7 @@ def test_adc_fast_path_equals_reference(c, ppm, noise, seed, channel, start, n):
 @given(x=st.floats(min_value=-50.0, max_value=400.0), bits=st.integers(1, 12))
 def test_sar_search_is_floor_clipped(x, bits):
     """Held values anywhere, including beyond both rails."""
-    from cellbridge.emulator.adc import AdcTiming
+    from cellbridge.emulator.chip.adc import AdcTiming
 
     held = np.array([x])
     ref = step_conversions(AdcTiming(0, 1, bits), held, 0, bits)

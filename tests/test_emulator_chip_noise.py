@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 import pytest
-from cellbridge.emulator.chip import Chip
-from cellbridge.emulator.chip_noise import adc_noise, counter_noise
+from cellbridge.emulator.chip.chip import Chip
+from cellbridge.emulator.chip.chip_noise import adc_noise, counter_noise
 from cellbridge.tactile import DEFAULT_NOISE, ElementParams
 from cellbridge.tactile.transfer import adc_resolution, counts_per_farad, expected_counts
 

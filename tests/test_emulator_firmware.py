@@ -5,11 +5,11 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import pytest
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings, execute
-from cellbridge.emulator.reporting import Reporter, ReportingMode
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-from cellbridge.emulator.world import Contact, ScenarioError, World, parse_scenario
+from cellbridge.emulator.firmware.commands import Settings, execute
+from cellbridge.emulator.firmware.reporting import Reporter, ReportingMode
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.world.world import Contact, ScenarioError, World, parse_scenario
 from cellbridge.protocol import (
     ADDR_BROADCAST,
     Command,
@@ -30,7 +30,7 @@ from hypothesis import strategies as st
 from support.payloads import payload_as
 
 if TYPE_CHECKING:
-    from cellbridge.emulator.linklayer import LinkLayer
+    from cellbridge.emulator.firmware.linklayer import LinkLayer
 
 HOST = 0
 
@@ -357,8 +357,8 @@ def test_counters_never_go_back_across_a_reset_command() -> None:
 def test_a_reset_counts_the_frames_and_samples_it_discards() -> None:
     # A bridge without a route holds its HELLO, DATA and the RESET's reply in its queue;
     # the reset loses them, as a real one would, but never silently.
-    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
-    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.emulator.firmware.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.mesh.virtual import default_chip
     from cellbridge.protocol import encode
 
     fw = Firmware(FirmwareConfig(5, (1,)), default_chip(5, 0))
@@ -397,8 +397,8 @@ def test_a_host_flooding_commands_is_bounded_and_counted() -> None:
 def test_only_a_boot_sends_a_hello_numbered_0_even_after_the_numbering_wraps() -> None:
     # A HELLO numbered 0 tells the host's duplicate filter that the bridge restarted; a
     # periodic HELLO that happened to fall on seq 0 after a wrap would be taken as one.
-    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
-    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.emulator.firmware.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.mesh.virtual import default_chip
     from cellbridge.protocol import StreamDecoder
 
     fw = Firmware(FirmwareConfig(1, (1,), gateway=True), default_chip(1, 0))
@@ -463,8 +463,8 @@ def test_a_gateway_counts_the_garbage_the_host_writes() -> None:
     # must, but counted by cause; the command after the garbage is still executed.
     import random as _random
 
-    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
-    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.emulator.firmware.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.mesh.virtual import default_chip
     from cellbridge.protocol import StreamDecoder, encode_stream
 
     fw = Firmware(FirmwareConfig(1, (1,), gateway=True), default_chip(1, 0))
@@ -499,7 +499,7 @@ def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
     # A bridge resets once its reply and its copies of the command have left (at most
     # 3 s later), not after a fixed 50 ms: relays that reset at once threw away the
     # replies of the bridges behind them, and the host could not tell who had reset.
-    from cellbridge.emulator.commands import Settings as _Settings
+    from cellbridge.emulator.firmware.commands import Settings as _Settings
 
     mesh = meshgen.grid(6, 6)
     vm = VirtualMesh(mesh, seed=4, settings=_Settings(rate_hz=20))  # not saturated
@@ -519,8 +519,8 @@ def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
 def _link() -> LinkLayer:
     import random
 
-    from cellbridge.emulator.linklayer import LinkLayer
-    from cellbridge.emulator.transceiver import Transceiver
+    from cellbridge.emulator.firmware.linklayer import LinkLayer
+    from cellbridge.emulator.firmware.transceiver import Transceiver
 
     link = LinkLayer(5, (1, 2), Transceiver(random.Random(3)), ack_slack=CLOCK_HZ // 100)
     from cellbridge.protocol import Raw
@@ -591,8 +591,8 @@ def test_an_ack_for_a_frame_never_sent_is_ignored() -> None:
 
 
 def _routed(me: int = 5):
-    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
-    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.emulator.firmware.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.mesh.virtual import default_chip
     from cellbridge.protocol import ADDR_BROADCAST, Beacon, Frame, encode
 
     fw = Firmware(FirmwareConfig(me, (1, 2, 3)), default_chip(me, 0))
@@ -655,8 +655,8 @@ def test_a_fragmented_control_frame_is_counted_not_a_crash() -> None:
     # BEACON, LINK_ACK and CMD always fit one frame; one flagged FRAGMENT (from a hostile
     # neighbour on the cell, or the host on a gateway's serial line) decoded to a Fragment
     # payload and the firmware died on its missing fields, taking the bridge process down.
-    from cellbridge.emulator.firmware import Firmware, FirmwareConfig
-    from cellbridge.emulator.virtual import default_chip
+    from cellbridge.emulator.firmware.firmware import Firmware, FirmwareConfig
+    from cellbridge.emulator.mesh.virtual import default_chip
     from cellbridge.protocol import Fragment, encode, encode_stream
 
     fw = Firmware(FirmwareConfig(2, (1,)), default_chip(2, 0))
@@ -696,7 +696,7 @@ def test_aligned_batches_leave_in_depth_slots_deepest_first() -> None:
     assert all([o for o, _ in a] == [4, 3, 2, 1] for a in whole), whole[:3]
     # its own batch: the last sample's gates (2 + 2 ms), then its slot (slot_depths *
     # depth_slot, plus its offset of at most slot_jitter)
-    from cellbridge.emulator.firmware import FirmwareConfig
+    from cellbridge.emulator.firmware.firmware import FirmwareConfig
     fc = FirmwareConfig(1)
     slot = fc.slot_depths * fc.depth_slot / CLOCK_HZ
     assert own_waits and all(slot + 0.004 <= w <= slot + 0.004 + fc.slot_jitter / CLOCK_HZ + 0.001

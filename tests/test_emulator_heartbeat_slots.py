@@ -4,17 +4,17 @@ Every bridge samples the same instants on mesh time; heartbeats timed only from 
 sample sent left all bridges of an idle skin in one frame once a second, a burst that
 contended for the cells and taught the host delivery delays tens of milliseconds long
 (which then held every skin frame back as long). Each bridge now sends its heartbeat in
-its own slot of the heartbeat period (emulator/reporting.py).
+its own slot of the heartbeat period (emulator/firmware/reporting.py).
 """
 
 from __future__ import annotations
 
 from collections import Counter
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.reporting import Reporter, ReportingMode
-from cellbridge.emulator.virtual import VirtualMesh
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.reporting import Reporter, ReportingMode
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import VirtualMesh
 from cellbridge.protocol import Data, Sample, SampleFlags, decode
 from cobs import cobs
 from hypothesis import given

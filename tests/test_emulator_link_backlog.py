@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import random
 
-from cellbridge.emulator.linklayer import LinkLayer
-from cellbridge.emulator.transceiver import Transceiver
+from cellbridge.emulator.firmware.linklayer import LinkLayer
+from cellbridge.emulator.firmware.transceiver import Transceiver
 from cellbridge.protocol import Mode, Readout, ReadoutSample, own
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import random
 
-from cellbridge.emulator.medium import Medium
-from cellbridge.emulator.mesh import Bridge, Cell, Link, Mesh
-from cellbridge.emulator.transceiver import Transceiver, TransceiverConfig
+from cellbridge.emulator.firmware.transceiver import Transceiver, TransceiverConfig
+from cellbridge.emulator.medium.medium import Medium
+from cellbridge.emulator.mesh.mesh import Bridge, Cell, Link, Mesh
 from cellbridge.protocol import crc16
 
 from support.protocol_wire import sealed
@@ -101,7 +101,7 @@ def test_two_acks_due_together_both_go_out_one_after_the_other() -> None:
     assert radio.advance(t2 - 1) is None and radio.advance(t2) == (b"ack2", (2,))
     assert radio.next_tick is None
     # a bounded queue: one more than it holds is dropped and counted (its sender retries)
-    from cellbridge.emulator.transceiver import MAX_ACKS
+    from cellbridge.emulator.firmware.transceiver import MAX_ACKS
     for i in range(MAX_ACKS + 1):
         radio.send_ack(b"a%d" % i, (1,), 40_000)
     assert radio.acks_dropped == 1
@@ -138,8 +138,8 @@ def test_a_gateway_between_two_children_loses_neither_ones_frames_to_its_acks() 
     # Bridges 1 and 3 reach the gateway 2 on cells of their own and never hear each other.
     # When the gateway acknowledged one while the other's frame came in, that frame was lost:
     # bridge 3 retried 74-78 of its ~100 frames in 5 s (seeds 0-2), none now.
-    from cellbridge.emulator import meshgen
-    from cellbridge.emulator.virtual import VirtualMesh
+    from cellbridge.emulator.mesh import meshgen
+    from cellbridge.emulator.mesh.virtual import VirtualMesh
 
     for seed in range(3):
         vm = VirtualMesh(meshgen.line(3, gateways=(2,)), seed=seed, readout=False)  # contending DATA frames
@@ -151,9 +151,9 @@ def test_a_gateway_between_two_children_loses_neither_ones_frames_to_its_acks() 
 
 
 def test_a_skin_whose_relays_hear_frames_together_needs_few_retransmissions() -> None:
-    from cellbridge.emulator import meshgen
-    from cellbridge.emulator.commands import Settings
-    from cellbridge.emulator.virtual import CLOCK_HZ, Latency, VirtualMesh
+    from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh import meshgen
+    from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
 
     r = VirtualMesh(meshgen.grid(4, 4), seed=0, latency=Latency(), ack_slack=CLOCK_HZ // 100, readout=False,
                     settings=Settings(rate_hz=100), random_epochs=True).run(8.0)
@@ -182,8 +182,8 @@ def test_bit_errors_follow_the_ber() -> None:
 def test_a_corrupted_frame_that_passes_the_crc_happens_and_the_host_copes() -> None:
     """About one corrupted frame in 65 536 passes CRC-16. The protocol decodes it (it is
     indistinguishable) or counts it by cause; the daemon's pipeline never raises on it."""
-    from cellbridge.daemon.config import parse_config
-    from cellbridge.daemon.pipeline import Pipeline
+    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.core.pipeline import Pipeline
     from cellbridge.protocol import Data, Frame, Mode, Sample, StreamDecoder, encode
     from cobs import cobs
 
@@ -218,7 +218,7 @@ def test_a_transceiver_contends_for_carrier_reports_only_for_a_frame_that_waits(
     few slots after the cell is idle, sooner than a report could come."""
     import random
 
-    from cellbridge.emulator.transceiver import Transceiver
+    from cellbridge.emulator.firmware.transceiver import Transceiver
 
     radio = Transceiver(random.Random(0))
     assert not radio.contending(0, 50_000)  # nothing held

@@ -12,11 +12,12 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
-from cellbridge.emulator import meshgen, udp
-from cellbridge.emulator.carrier_arbiter import HOLD, CarrierArbiter
-from cellbridge.emulator.medium import Medium
-from cellbridge.emulator.medium_wire import decode_rx, encode_tx, encode_want
-from cellbridge.emulator.process_medium import serve
+from cellbridge.emulator.medium.carrier_arbiter import HOLD, CarrierArbiter
+from cellbridge.emulator.medium.medium import Medium
+from cellbridge.emulator.medium.medium_wire import decode_rx, encode_tx, encode_want
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.realtime import udp
+from cellbridge.emulator.realtime.process_medium import serve
 from cellbridge.protocol import ADDR_BROADCAST, Beacon, Frame, encode
 
 BIT = 50

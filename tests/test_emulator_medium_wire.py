@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from cellbridge.emulator.medium_wire import (
+from cellbridge.emulator.medium.medium_wire import (
     CARRIER,
     RX,
     TX,

@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import MeshError, mesh_to_toml, parse_mesh
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import MeshError, mesh_to_toml, parse_mesh
 from cellbridge.protocol import Data
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -177,8 +177,8 @@ def test_any_mesh_name_round_trips_through_toml(name: str) -> None:
 def test_sampling_rates_the_gates_cannot_hold_are_refused(tmp_path: Path) -> None:
     # --rate 0 crashed every process with a traceback; --rate 1000 (four times the gate
     # limit) ran with overlapping gates, a schedule no chip can keep.
-    from cellbridge.emulator.commands import Settings
-    from cellbridge.emulator.virtual import VirtualMesh
+    from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.virtual import VirtualMesh
 
     for rate in (0, -5, 251, 1000):
         with pytest.raises(ValueError, match=f"sampling rate {rate} Hz: must be 1..250 Hz"):

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import Mesh
-from cellbridge.emulator.meshtime import Crystal, MeshClock, MeshClockConfig
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.firmware.meshtime import Crystal, MeshClock, MeshClockConfig
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import Mesh
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.protocol import MeshTime, SampleFlags
 from hypothesis import given
 from hypothesis import strategies as st

@@ -8,8 +8,8 @@ is due) must still send exactly what gate-by-gate sampling sends.
 
 from __future__ import annotations
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.protocol import MAX_FRAME, VERSION, Data, decode
 from cobs import cobs
 

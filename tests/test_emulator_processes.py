@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 import serial
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import mesh_to_toml
-from cellbridge.emulator.realtime import reporting_arg, reporting_text
-from cellbridge.emulator.reporting import ReportingMode
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
+from cellbridge.emulator.realtime.realtime import reporting_arg, reporting_text
 from cellbridge.protocol import Command, CommandReply, Flags, Frame, FrameType, Op, StreamDecoder, encode_stream
 
 from support.emulator_procs import (
@@ -137,7 +137,7 @@ def test_medium_counts_deliveries_to_bridges_it_cannot_reach(tmp_path: Path) -> 
     # A delivery for a bridge process that is not there (dead, not yet started, or not
     # yet heard by a medium that restarted) is lost: the medium must count it, not drop
     # it silently.
-    from cellbridge.emulator.medium_wire import encode_tx
+    from cellbridge.emulator.medium.medium_wire import encode_tx
     from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
 
     beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
@@ -156,7 +156,7 @@ def test_medium_relays_between_two_bridge_sockets_and_refuses_strangers(tmp_path
     # The medium learns where each bridge is from its own messages: bridge 2 says it is
     # there (WANT), bridge 1 transmits on their cell, bridge 2 receives the frame. A
     # datagram naming a bridge the mesh does not have, or garbage, is counted, never relayed.
-    from cellbridge.emulator.medium_wire import decode_rx, encode_tx
+    from cellbridge.emulator.medium.medium_wire import decode_rx, encode_tx
     from cellbridge.protocol import ADDR_BROADCAST, Beacon, encode
 
     beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
@@ -276,7 +276,7 @@ def test_bad_reporting_option_is_refused_by_mesh_up_and_bridge(tmp_path: Path) -
 
 def test_mesh_up_starts_gateways_first_then_outwards() -> None:
     # Bridges boot beside neighbours that already route: the gateway, then by hops.
-    from cellbridge.emulator.process_up import start_order
+    from cellbridge.emulator.realtime.process_up import start_order
 
     assert [b.id for b in start_order(meshgen.line(5, gateways=(3,)))] == [3, 2, 4, 1, 5]
     order = [b.id for b in start_order(meshgen.grid(3, 3))]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from cellbridge.emulator.pty_link import link_gateway
+from cellbridge.emulator.realtime.pty_link import link_gateway
 
 
 def test_the_link_follows_the_current_pty(tmp_path: Path) -> None:

@@ -12,14 +12,14 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.firmware import Firmware
-from cellbridge.emulator.readout import FrameReadout, ReadoutConfig
-from cellbridge.emulator.reporting import ReportingMode
-from cellbridge.emulator.sampling import Sampler
-from cellbridge.emulator.virtual import VirtualMesh
-from cellbridge.emulator.world import Contact, World
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.firmware import Firmware
+from cellbridge.emulator.firmware.readout import FrameReadout, ReadoutConfig
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.firmware.sampling import Sampler
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import VirtualMesh
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import FrameType, Mode, Readout, ReadoutSample, Sample
 
 from support.payloads import payload_as
@@ -177,7 +177,7 @@ def test_a_record_too_large_for_a_frame_fills_each_part_before_the_next() -> Non
     """A relay near the gateway sends most of the skin's samples: a record of 40 samples
     goes in 3 frames (16, 16, 8), not halved into 4 of 10; every part fits a frame, and the
     parts hold every state once."""
-    from cellbridge.emulator.readout import _fits, _split
+    from cellbridge.emulator.firmware.readout import _fits, _split
 
     r = Readout(7, 250, Mode.COUNTER, 1, tuple(ReadoutSample(b, 1_000_000 + b, 2_000_000 + b, 0) for b in range(1, 41)),
                 (50, 51), (60,), 100_000)
@@ -255,7 +255,7 @@ def test_a_record_held_up_tens_of_ms_in_the_real_time_shells_still_makes_its_fra
     comes. (A 4x4 with a corner gateway: the leaf is 6 hops deep, its parent 5, of 8 levels.)"""
     from collections import Counter
 
-    from cellbridge.emulator.process_bridge import READOUT_HOP, READOUT_WINDOW
+    from cellbridge.emulator.realtime.process_bridge import READOUT_HOP, READOUT_WINDOW
 
     ms = 50_000
     config = ReadoutConfig(depths=8, window=READOUT_WINDOW, hop=READOUT_HOP)

@@ -15,8 +15,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import Mesh, mesh_to_toml
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import Mesh, mesh_to_toml
 
 from cellbridge.demo import gateway_line
 from support.emulator_procs import (
@@ -75,7 +75,7 @@ def _wait_roles(mesh_path: Path, want: set[str], seconds: float = 20.0) -> dict[
 
 _ESCAPE = """
 import os, sys
-from cellbridge.emulator import process_up
+from cellbridge.emulator.realtime import process_up
 r, w = os.pipe()
 os.close(r)
 os.dup2(w, 2)  # whoever read stderr went away: every write to it fails (EPIPE)
@@ -186,7 +186,7 @@ def test_medium_refuses_transmissions_a_bridge_cannot_make(tmp_path: Path) -> No
     # now refused and counted as bad_messages, and the real transmission still goes through.
     import random
 
-    from cellbridge.emulator.medium_wire import decode_rx, encode_tx
+    from cellbridge.emulator.medium.medium_wire import decode_rx, encode_tx
     from cellbridge.protocol import ADDR_BROADCAST, Beacon, Frame, encode
 
     beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
@@ -262,7 +262,7 @@ def test_world_refuses_a_press_whose_track_leaves_the_numbers(tmp_path: Path) ->
     # cannot place in time (a raw request: "inf", NaN) was taken as well.
     import msgpack
     import zmq
-    from cellbridge.emulator.world import ScenarioError, parse_scenario
+    from cellbridge.emulator.world.world import ScenarioError, parse_scenario
 
     with pytest.raises(ScenarioError, match="velocity"):
         parse_scenario("[[contact]]\nstart = 0\nduration = 2\nposition = [0.04, 0.04]\nforce = 1\n"

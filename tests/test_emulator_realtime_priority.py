@@ -8,13 +8,13 @@ import sys
 import time
 
 import pytest
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
 
 from daemon_harness import stop_session
 from support.emulator_procs import free_base_port
 
-_SHOW = ("from cellbridge.emulator.realtime import above_the_chips; import os; "
+_SHOW = ("from cellbridge.emulator.realtime.realtime import above_the_chips; import os; "
          "print(above_the_chips(), os.sched_getparam(0).sched_priority)")
 
 

@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 
 import pytest
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
 
 from cellbridge.demo import gateway_line
 from support.emulator_procs import PY, free_base_port, running_skin, stop_and_sweep, terminate
@@ -171,8 +171,8 @@ def test_the_daemon_flushes_what_a_line_held_before_it_opened_it():
     through it: this pins that down."""
     import tty
 
-    from cellbridge.daemon.config import LinkConfig
-    from cellbridge.daemon.links import SerialLink
+    from cellbridge.daemon.core.config import LinkConfig
+    from cellbridge.daemon.shell.links import SerialLink
 
     master, slave = os.openpty()
     tty.setraw(slave)
@@ -213,7 +213,7 @@ def _serves(port: int) -> bool:
 def test_the_mesh_files_tcp_port_is_served_only_with_tcp(tmp_path):
     """Point 18: the docs say --tcp serves a TCP port; gateways served the file's 'tcp'
     without it too (a port nobody asked to open)."""
-    from cellbridge.emulator.mesh import parse_mesh
+    from cellbridge.emulator.mesh.mesh import parse_mesh
 
     tcp = _port_free()
     mesh_path = tmp_path / "tcp.toml"
@@ -235,7 +235,7 @@ def test_the_mesh_files_tcp_port_is_served_only_with_tcp(tmp_path):
 def test_idle_tcp_clients_are_bounded_and_the_gateway_keeps_serving(tmp_path):
     """~1 010 idle clients exhausted the gateway's descriptors (and cost it a third of a
     core); beyond MAX_CLIENTS a client is closed at once, the first ones keep the stream."""
-    from cellbridge.emulator import gateway_port
+    from cellbridge.emulator.realtime import gateway_port
 
     MAX_CLIENTS = getattr(gateway_port, "MAX_CLIENTS", 8)
     with running_skin(tmp_path) as skin:
@@ -270,7 +270,7 @@ def test_idle_tcp_clients_are_bounded_and_the_gateway_keeps_serving(tmp_path):
 EMFILE_SCRIPT = """
 import os, resource, select, socket
 resource.setrlimit(resource.RLIMIT_NOFILE, (64, 64))
-from cellbridge.emulator.gateway_port import GatewayPort
+from cellbridge.emulator.realtime.gateway_port import GatewayPort
 p = GatewayPort(None, 0)
 client = socket.create_connection(("127.0.0.1", p.tcp_port))
 fill = []

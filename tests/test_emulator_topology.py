@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections import Counter
 
 import pytest
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.virtual import CLOCK_HZ, MeshResult, VirtualMesh
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, MeshResult, VirtualMesh
 from cellbridge.protocol import Data, FrameType, SampleFlags
 
 from support.payloads import payload_as
@@ -271,8 +271,8 @@ def test_grid_routing_stays_stable_under_real_time_message_latency() -> None:
     # re-send frames via a new parent, the copies met higher up with more hops and were
     # taken for loops, each dropping a good parent: parent churn fed by its own copies.
     # Without the latency this grid changes parents ~25 times in 4 s.
-    from cellbridge.emulator.reporting import ReportingMode
-    from cellbridge.emulator.virtual import Latency
+    from cellbridge.emulator.firmware.reporting import ReportingMode
+    from cellbridge.emulator.mesh.virtual import Latency
 
     mesh = meshgen.grid(5, 5)
     lat = Latency(up=0.003, down=0.003, wake_late=0.002)
@@ -287,7 +287,7 @@ def test_grid_routing_stays_stable_under_real_time_message_latency() -> None:
 
 
 def test_latency_model_is_deterministic() -> None:
-    from cellbridge.emulator.virtual import Latency
+    from cellbridge.emulator.mesh.virtual import Latency
 
     def run() -> list[tuple[int, int, int]]:
         vm = VirtualMesh(meshgen.grid(3, 3), seed=2, latency=Latency(seed=5), ack_slack=CLOCK_HZ // 100)
@@ -300,7 +300,7 @@ def test_an_acknowledged_neighbour_is_alive_though_its_beacons_are_suppressed() 
     """A neighbour expired ``neighbour_timeout`` after its last beacon, while Trickle keeps a
     live one quiet for longer: a parent acknowledging every frame was evicted. An
     acknowledged frame now counts as hearing it; an unacknowledged one does not."""
-    from cellbridge.emulator.routing import Router
+    from cellbridge.emulator.firmware.routing import Router
 
     r = Router(me=2, gateway=False, neighbour_timeout=1000)
     r.on_beacon(1, parent=0, path_etx=0, hops=0, tick=0)
@@ -323,7 +323,7 @@ def test_routes_stay_put_on_a_static_lossless_idle_mesh_past_trickles_long_inter
     # no neighbour evicted, no route lost. A few bridges may still move once to a path
     # cheaper by at least the hysteresis (frames that collided and were retried raise a
     # link's ETX), never back and forth.
-    from cellbridge.emulator.reporting import ReportingMode
+    from cellbridge.emulator.firmware.reporting import ReportingMode
 
     mesh = meshgen.grid(8, 8)
     # unscheduled (every frame of a readout would cost this minute-long run ten times the wakes)

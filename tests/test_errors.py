@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import pytest
-from cellbridge.daemon.config import ConfigError, parse_config
-from cellbridge.daemon.control import RequestError
-from cellbridge.daemon.security import SecurityError
-from cellbridge.emulator.mesh import MeshError, parse_mesh
-from cellbridge.emulator.world import ScenarioError
+from cellbridge.daemon.core.config import ConfigError, parse_config
+from cellbridge.daemon.core.control import RequestError
+from cellbridge.daemon.ops.security import SecurityError
+from cellbridge.emulator.mesh.mesh import MeshError, parse_mesh
+from cellbridge.emulator.world.world import ScenarioError
 from cellbridge.protocol import ProtocolError, decode
 
 from cellbridge.errors import CellbridgeError

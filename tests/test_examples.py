@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 import zmq
-from cellbridge.daemon.keys import write_keypair
-from cellbridge.daemon.security import CurveKeys, CurveServer
+from cellbridge.daemon.ops.security import CurveKeys, CurveServer
+from cellbridge.daemon.shell.keys import write_keypair
 
 from support.example_subscribers import c_subscriber, js_subscriber, py_subscriber
 from support.pub_helpers import json_lines, publisher, run_subscriber

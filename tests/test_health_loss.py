@@ -14,10 +14,10 @@ import random
 from collections import Counter
 
 import pytest
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.pipeline import Pipeline
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.protocol import StreamDecoder, encode_stream
 
 SECONDS = 6.0

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cellbridge.daemon.skin_file import load_skin
-from cellbridge.emulator.commands import Settings
-from cellbridge.emulator.realtime import reporting_arg
-from cellbridge.emulator.skin_mesh import mesh_from_skin
-from cellbridge.emulator.skin_traffic import SkinTraffic, readout_tree
-from cellbridge.emulator.world import Contact, World
+from cellbridge.daemon.shell.skin_file import load_skin
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
+from cellbridge.emulator.mesh.skin_traffic import SkinTraffic, readout_tree
+from cellbridge.emulator.realtime.realtime import reporting_arg
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import Readout, StreamDecoder
 
 from cellbridge.skin_run import run_daemon_on_traffic
@@ -101,7 +101,7 @@ def test_mesh_traffic_writes_captures_the_daemon_replays(tmp_path) -> None:
     import subprocess
     import sys
 
-    from cellbridge.daemon.replay_source import read_records
+    from cellbridge.daemon.shell.replay_source import read_records
 
     out = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "cellbridge", "mesh", "traffic", str(HUMANOID), "--seconds", "0.2",

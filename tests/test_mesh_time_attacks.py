@@ -3,9 +3,9 @@ forged or corrupted beacons, clocks at their limits. Each test is a defect once 
 
 from __future__ import annotations
 
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.virtual import VirtualMesh
-from cellbridge.emulator.world import Contact, World
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import VirtualMesh
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import Data, Readout
 
 CORNER = (0.0585, 0.0625)  # across the corner of bridges 6, 7, 10 and 11 of a 4x4 grid

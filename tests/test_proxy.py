@@ -14,8 +14,8 @@ from pathlib import Path
 import msgpack
 import pytest
 import zmq
-from cellbridge.daemon.keys import write_keypair
-from cellbridge.daemon.security import apply_client
+from cellbridge.daemon.ops.security import apply_client
+from cellbridge.daemon.shell.keys import write_keypair
 
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from support.example_subscribers import c_subscriber
@@ -118,7 +118,7 @@ def test_proxy_names_a_bad_backend(bad: str) -> None:
 
 def test_a_curve_daemon_behind_the_proxy_is_reached_with_its_key_and_the_proxys_own(tmp_path: Path) -> None:
     """CURVE on the back side: a publisher that allows only the proxy's key, next to a plain one."""
-    from cellbridge.daemon.security import CurveKeys, CurveServer
+    from cellbridge.daemon.ops.security import CurveKeys, CurveServer
 
     from support.pub_helpers import publisher
 

@@ -11,7 +11,7 @@ from typing import Any
 import jsonschema
 import msgpack
 import pytest
-from cellbridge.daemon.capture import CaptureError
+from cellbridge.daemon.shell.capture import CaptureError
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
@@ -212,8 +212,8 @@ def test_info_counts_topics_bridges_contacts_and_sources(tmp_path: Path) -> None
 
 
 def test_the_daemon_reads_a_recordings_serial_channel_and_old_captures(tmp_path: Path) -> None:
-    from cellbridge.daemon.capture import write_capture
-    from cellbridge.daemon.replay_source import read_records
+    from cellbridge.daemon.shell.capture import write_capture
+    from cellbridge.daemon.shell.replay_source import read_records
 
     rec = Recorder(tmp_path / "s.mcap", _writer)
     reads = {"gw0": [(1.0, b"\x00ab"), (1.5, b"c\x00")], "gw1": [(1.2, b"\x00xyz\x00")]}

@@ -187,7 +187,7 @@ def test_the_daemon_run_on_the_serial_channel_reproduces_elements_and_contacts(l
     both = sorted(set(a) & set(b))
     assert len(both) >= 0.95 * len(b) and len(both) >= 0.95 * len(a), (len(both), len(a), len(b))
     # the same reads at the same relative times, but for those a re-run fed late on a loaded
-    # machine: it stamps them when it feeds them, never before (daemon/links.py: ReplayLink)
+    # machine: it stamps them when it feeds them, never before (daemon/shell/links.py: ReplayLink)
     shifts = [a[k]["t_host"] - b[k]["t_host"] for k in both]
     shift = min(shifts)
     assert sum(1 for s in shifts if s - shift < 1e-5) >= 0.5 * len(shifts)

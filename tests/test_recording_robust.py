@@ -19,8 +19,8 @@ from typing import Any
 import msgpack
 import pytest
 import zmq
-from cellbridge.daemon.capture import CaptureError
-from cellbridge.daemon.replay_source import read_records
+from cellbridge.daemon.shell.capture import CaptureError
+from cellbridge.daemon.shell.replay_source import read_records
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 

@@ -1,4 +1,4 @@
-"""Attacks on a replay's pacing and late stamping (daemon/links.py ReplayLink.run): a sleep that
+"""Attacks on a replay's pacing and late stamping (daemon/shell/links.py ReplayLink.run): a sleep that
 ends late, a replay far behind, a recording whose times step back."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from cellbridge.daemon.capture import write_capture
-from cellbridge.daemon.config import LinkConfig
-from cellbridge.daemon.links import ReplayLink
+from cellbridge.daemon.core.config import LinkConfig
+from cellbridge.daemon.shell.capture import write_capture
+from cellbridge.daemon.shell.links import ReplayLink
 
 
 def _link(path: Path, speed: float, clock: str, on_data) -> ReplayLink:

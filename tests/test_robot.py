@@ -16,7 +16,7 @@ ARM = None
 
 
 def _arm():
-    from cellbridge.emulator.robot_world import arm_skin
+    from cellbridge.emulator.world.robot_world import arm_skin
     return arm_skin()
 
 
@@ -44,7 +44,7 @@ def test_the_scenario_scores_within_the_targets() -> None:
 
 def test_the_truth_follows_the_finger_onto_the_link_it_touched() -> None:
     pytest.importorskip("mujoco")
-    from cellbridge.emulator.robot_world import Press, simulate
+    from cellbridge.emulator.world.robot_world import Press, simulate
 
     skin = _arm()
     band = next(b for b in skin.bands if b.period > 0.28)  # the forearm
@@ -106,7 +106,7 @@ def test_the_scorer_tells_resolved_axes_from_unresolved_and_counts_confident_unt
 
 def test_link_frames_come_from_the_urdf(tmp_path) -> None:
     pytest.importorskip("yourdfpy")
-    from cellbridge.daemon.skin_file import load_skin
+    from cellbridge.daemon.shell.skin_file import load_skin
 
     (tmp_path / "arm.urdf").write_text("""<robot name="arm">
   <link name="base"/><link name="fore"/>

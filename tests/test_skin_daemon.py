@@ -10,8 +10,8 @@ import math
 
 import numpy as np
 import pytest
-from cellbridge.emulator.skin_mesh import mesh_from_skin
-from cellbridge.emulator.world import Contact, World
+from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.tactile.skin_geometry import parse_skin
 
 from cellbridge.skin_run import run_daemon_on_skin

@@ -132,8 +132,8 @@ def test_daemon_unit_lets_the_contact_kernels_compile_and_keeps_their_cache() ->
 def test_daemon_unit_keeps_its_files_private_and_has_descriptors_for_its_peer_bounds() -> None:
     """UMask=0000 made ipc sockets and captures world-writable; the descriptor limit must
     hold every peer the daemon admits (docs/daemon.md, Limits) plus a reserve for its lines."""
-    from cellbridge.daemon.config import parse_config
-    from cellbridge.daemon.peers import descriptors_needed
+    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.ops.peers import descriptors_needed
 
     unit = "cellbridge-daemon.service"
     (umask,) = values(unit, "UMask")

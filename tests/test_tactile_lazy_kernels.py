@@ -18,7 +18,7 @@ import cellbridge.config, cellbridge.cli
 import cellbridge.tactile
 from cellbridge.tactile import Calibrator, Contact, cluster_elements, grid_layout, skin_response
 from cellbridge.tactile.transfer import counter_delta
-import cellbridge.emulator.chip
+import cellbridge.emulator.chip.chip
 print("numba loaded early", "numba" in sys.modules)
 from cellbridge.tactile import ContactEstimator, ContactTracker, TrackedContact, estimate_contacts
 lay = grid_layout(2, 2)
@@ -58,7 +58,7 @@ if libc.prctl(65, 1, 0, 0, 0) != 0:
 import cellbridge.config, cellbridge.cli
 from cellbridge.tactile import Calibrator, grid_layout, parse_layout, skin_response
 from cellbridge.tactile.transfer import counter_delta
-import cellbridge.emulator.chip
+import cellbridge.emulator.chip.chip
 print("imported")
 """
 

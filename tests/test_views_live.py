@@ -473,7 +473,7 @@ def test_a_view_that_stops_reading_loses_its_own_messages_and_counts_them(tmp_pa
 def test_views_speak_curve_to_a_daemon_that_requires_it(tmp_path: Path) -> None:
     """With the daemon's CURVE keys a view gets the stream (its health says so); with a key
     the daemon does not allow it gets nothing, and the daemon counts the refusal."""
-    from cellbridge.daemon.keys import write_keypair
+    from cellbridge.daemon.shell.keys import write_keypair
 
     from cellbridge.views.foxglove import TOPICS
     from foxglove_client import FoxgloveClient

@@ -322,7 +322,7 @@ def test_the_daemons_default_source_differs_between_two_daemons_on_one_host() ->
     import socket
 
     import zmq.asyncio
-    from cellbridge.daemon.publisher import Publisher
+    from cellbridge.daemon.shell.publisher import Publisher
 
     ctx = zmq.asyncio.Context()
     try:

@@ -234,8 +234,8 @@ def test_picture_of_the_web_page_of_the_whole_robot_demo(tmp_path: Path) -> None
     the daemon's core in virtual time): the daemon's messages at the moment of the most
     contacts, replayed to ``cellbridge web``."""
     pytest.importorskip("mujoco")
-    from cellbridge.emulator.robot_world import TimelineWorld, scenario, simulate
-    from cellbridge.emulator.skin_mesh import mesh_from_skin
+    from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
+    from cellbridge.emulator.world.robot_world import TimelineWorld, scenario, simulate
 
     from cellbridge.skin_run import run_daemon_on_skin
 

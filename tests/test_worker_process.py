@@ -1,4 +1,4 @@
-"""The contact worker's executor, a real spawned process (daemon/worker_process.py): jobs in
+"""The contact worker's executor, a real spawned process (daemon/shell/worker_process.py): jobs in
 order, their exceptions, a process that dies or is killed under a job, shutdown, and a
 daemon that dies without a word."""
 
@@ -13,7 +13,7 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
+from cellbridge.daemon.shell.worker_process import BrokenWorker, WorkerProcess
 
 from support.process_state import gone, until_gone
 
@@ -99,7 +99,7 @@ def test_the_process_ignores_ctrl_c_and_ends_with_the_daemon_that_dies_without_a
     daemon's drain. A daemon killed outright (SIGKILL) closes its end of the pipe: the idle
     worker exits, as it must not be left running on the robot."""
     code = ("import os, sys, time\n"
-            "from cellbridge.daemon.worker_process import WorkerProcess\n"
+            "from cellbridge.daemon.shell.worker_process import WorkerProcess\n"
             "w = WorkerProcess(); w.submit(pow, 2, 2).result(30)\n"
             "print(w.pid, flush=True); time.sleep(60)\n")
     parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, start_new_session=True)

@@ -1,5 +1,5 @@
-"""Attacks on the contact worker's process (daemon/worker_process.py) and its use in
-daemon/contact_worker.py: each failed before its fix (the review of the worker process).
+"""Attacks on the contact worker's process (daemon/shell/worker_process.py) and its use in
+daemon/shell/contact_worker.py: each failed before its fix (the review of the worker process).
 
 Each test is bounded: hangs are detected with timeouts, every process started is killed."""
 
@@ -18,9 +18,9 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
-from cellbridge.daemon import contact_worker
-from cellbridge.daemon.contact_worker import ContactWorker
-from cellbridge.daemon.worker_process import BrokenWorker, WorkerProcess
+from cellbridge.daemon.shell import contact_worker
+from cellbridge.daemon.shell.contact_worker import ContactWorker
+from cellbridge.daemon.shell.worker_process import BrokenWorker, WorkerProcess
 
 from support.process_state import gone, until_gone
 
@@ -206,7 +206,7 @@ def test_a_daemon_exiting_with_a_stopped_worker_still_exits() -> None:
     daemon hangs at exit (any exit that did not pass ContactWorker.close(): an exception
     in run()'s finally before it, a tool using WorkerProcess directly)."""
     code = ("import os, signal\n"
-            "from cellbridge.daemon.worker_process import WorkerProcess\n"
+            "from cellbridge.daemon.shell.worker_process import WorkerProcess\n"
             "w = WorkerProcess(); w.submit(pow, 2, 2).result(30)\n"
             "print(w.pid, flush=True); os.kill(w.pid, signal.SIGSTOP)\n"
             "while open(f'/proc/{w.pid}/stat').read().split(')')[-1].split()[0] != 'T': pass\n")

@@ -38,7 +38,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from cellbridge.daemon.publisher import pack
+from cellbridge.daemon.shell.publisher import pack
 
 #: Largest message (JSON bytes) a recording holds: a health or topology message of a skin of
 #: ~10 000 bridges is a few MB.

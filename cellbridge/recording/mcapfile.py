@@ -40,7 +40,7 @@ from mcap.records import Channel, ChunkIndex, Metadata
 from mcap.writer import CompressionType, Writer
 
 from cellbridge._version import __version__
-from cellbridge.daemon.mcap_chunks import (
+from cellbridge.daemon.core.mcap_chunks import (
     MAX_CHUNK_BYTES,
     MAX_RATIO,
     MAX_RECORD_BYTES,
@@ -52,7 +52,7 @@ from cellbridge.recording import schemas
 
 MAGIC = b"\x89MCAP0\r\n"
 # The limits on chunks and records, shared with the daemon's replay link:
-# MAX_CHUNK_BYTES, MAX_RATIO, RATIO_FLOOR, MAX_RECORD_BYTES (daemon/mcap_chunks.py).
+# MAX_CHUNK_BYTES, MAX_RATIO, RATIO_FLOOR, MAX_RECORD_BYTES (daemon/core/mcap_chunks.py).
 #: Longest topic name read (the daemon's are a word); metadata records kept (larger ones
 #: and more are not kept: nothing reads them but a person).
 MAX_TOPIC = 200

@@ -28,7 +28,7 @@ from pathlib import Path
 import zmq
 
 from cellbridge._version import __version__
-from cellbridge.daemon.security import apply_client
+from cellbridge.daemon.ops.security import apply_client
 from cellbridge.recording.mcapfile import MAX_CHUNK_SIZE, RecordingWriter
 from cellbridge.recording.recorder import Recorder
 from cellbridge.ros2.record import add_profile_arguments

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from cellbridge.daemon.subscribe import jsonable
+from cellbridge.daemon.shell.subscribe import jsonable
 from cellbridge.views.access import FOXGLOVE_WEB
 from cellbridge.views.model import Contact, Frame, SkinView, level_rgb
 from cellbridge.views.robot_skin import RobotSkin, quat_from_to

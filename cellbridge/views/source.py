@@ -18,7 +18,7 @@ from typing import Any
 import msgpack
 import zmq
 
-from cellbridge.daemon.security import apply_client
+from cellbridge.daemon.ops.security import apply_client
 from cellbridge.views.model import TOPICS, SkinView, printable
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"

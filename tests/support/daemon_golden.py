@@ -28,7 +28,7 @@ T0 = 1_750_000_000.0
 
 def make_capture(path: Path) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))  # run as a script too
-    from cellbridge.daemon.capture import write_capture
+    from cellbridge.daemon.shell.capture import write_capture
 
     from daemon_traffic import Skin
 
@@ -98,9 +98,9 @@ def compare(got: dict[str, Any], golden: dict[str, Any]) -> list[str]:
 def pipeline_output() -> dict[str, Any]:
     """Replay the capture through the daemon offline (its core and its contact loop's
     schedule, in the capture's time) with the golden config."""
-    from cellbridge.daemon.capture import read_capture
-    from cellbridge.daemon.config import load_config
-    from cellbridge.daemon.offline import OfflineDaemon
+    from cellbridge.daemon.core.config import load_config
+    from cellbridge.daemon.shell.capture import read_capture
+    from cellbridge.daemon.shell.offline import OfflineDaemon
 
     # (the golden config replays the capture in recorded time: a look takes the last read's time)
     d = OfflineDaemon(load_config(CONFIG), topics={"element", "contact"}, recorded=True)

@@ -14,8 +14,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import serial
-from cellbridge.emulator import meshgen
-from cellbridge.emulator.mesh import mesh_to_toml
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.mesh import mesh_to_toml
 from cellbridge.protocol import Frame, FrameType, StreamDecoder
 
 from cellbridge.demo import gateway_line
@@ -169,7 +169,7 @@ def running_medium(tmp_path: Path, mesh_name: str = "line-2") -> Iterator[tuple[
 def posing_bridges(base: int) -> Iterator[tuple[socket.socket, socket.socket]]:
     """Two sockets talking to the medium at ``base`` as bridges 1 and 2 of a line of 2;
     bridge 2 has said it is there (WANT), so deliveries for it are sent."""
-    from cellbridge.emulator.medium_wire import encode_want
+    from cellbridge.emulator.medium.medium_wire import encode_want
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b1, \
             socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b2:

@@ -1,6 +1,6 @@
 """The golden corpus: MCAP recordings of the virtual mesh's gateway lines and the daemon's output on them.
 
-Each scenario below runs the deterministic virtual mesh (``cellbridge.emulator.virtual``),
+Each scenario below runs the deterministic virtual mesh (``cellbridge.emulator.mesh.virtual``),
 keeps every gateway's serial bytes with their virtual arrival times as a recording's
 ``serial`` channel (what ``cellbridge record --serial`` keeps from a live daemon), and
 writes next to it the daemon's output on that recording as one line per message
@@ -52,14 +52,14 @@ class Scenario:
 
 def _grid(rows: int, cols: int, gateways: tuple[int, ...] = (1,)) -> Callable[[], Any]:
     def make() -> Any:
-        from cellbridge.emulator import meshgen
+        from cellbridge.emulator.mesh import meshgen
         return meshgen.grid(rows, cols, gateways=gateways)
     return make
 
 
 def _line(n: int) -> Callable[[], Any]:
     def make() -> Any:
-        from cellbridge.emulator import meshgen
+        from cellbridge.emulator.mesh import meshgen
         return meshgen.line(n)
     return make
 
@@ -102,9 +102,9 @@ BASE_CONFIG: dict[str, dict[str, Any]] = {
 # -- making recordings ---------------------------------------------------------------------
 def run_mesh(sc: Scenario) -> dict[int, list[tuple[float, bytes]]]:
     """Every gateway's serial output as (virtual time, bytes) chunks."""
-    from cellbridge.emulator.commands import Settings
-    from cellbridge.emulator.virtual import CLOCK_HZ, VirtualMesh
-    from cellbridge.emulator.world import Contact
+    from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+    from cellbridge.emulator.world.world import Contact
     from cellbridge.protocol import Mode
 
     out: dict[int, list[tuple[float, bytes]]] = {}
@@ -210,7 +210,7 @@ def make_recording(sc: Scenario, path: Path) -> None:
 
 # -- the daemon's output -------------------------------------------------------------------
 def config_for(sc: Scenario, links: list[str]) -> Any:
-    from cellbridge.daemon.config import parse_config
+    from cellbridge.daemon.core.config import parse_config
 
     data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
     for k, v in sc.config.items():
@@ -234,8 +234,8 @@ def daemon_output(sc: Scenario, recording: Path) -> list[str]:
     """The daemon on the recording's serial channel, one line per message: its core and its
     contact loop's schedule (ticks, pacing at ``[contact] rate``) in the recording's time,
     contacts through the production contact path (an inline worker); a last ``health``."""
-    from cellbridge.daemon.messages import Publish
-    from cellbridge.daemon.offline import OfflineDaemon
+    from cellbridge.daemon.core.messages import Publish
+    from cellbridge.daemon.shell.offline import OfflineDaemon
 
     reads = serial_reads(recording)
     d = OfflineDaemon(config_for(sc, sorted({link for link, _, _ in reads})), topics={"element", "contact"})

@@ -7,12 +7,12 @@ import math
 from collections.abc import Iterator
 from typing import Any
 
-from cellbridge.daemon.config import parse_config
-from cellbridge.daemon.contact_worker import ContactWorker, InlineExecutor
-from cellbridge.daemon.contacts import ContactJob, ContactSnapshot
-from cellbridge.daemon.messages import LogEvent, Message, Publish
-from cellbridge.daemon.offline import OfflineDaemon, Output
-from cellbridge.daemon.pipeline import Pipeline
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.contacts import ContactJob, ContactSnapshot
+from cellbridge.daemon.core.messages import LogEvent, Message, Publish
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.shell.contact_worker import ContactWorker, InlineExecutor
+from cellbridge.daemon.shell.offline import OfflineDaemon, Output
 
 
 def published(messages: list[Message]) -> list[tuple[str, dict[str, Any]]]:

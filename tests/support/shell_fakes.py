@@ -24,8 +24,8 @@ from collections.abc import Callable
 from typing import Any
 
 import serial
-from cellbridge.daemon.config import Config, LinkConfig
-from cellbridge.daemon.ops import OpsHooks
+from cellbridge.daemon.core.config import Config, LinkConfig
+from cellbridge.daemon.ops.ops import OpsHooks
 
 
 class FakeSerial:

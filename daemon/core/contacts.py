@@ -1,0 +1,280 @@
+"""Contacts from one skin frame: what a contact estimate needs (snapshot, spec, job),
+and the estimator and tracker it runs, in the contact worker's process or inline.
+
+The worker builds its estimator from a small :class:`ContactSpec` and keeps it (with its
+tracks) per owner while the spec stays the same, so the estimate itself only ships the
+readings of one frame.
+
+**Never a confident wrong contact.** Where a contact's elements or their neighbours are
+unknown in the frame, the contact lists them (``unknown_near``), and where the known
+readings do not pin it, its uncertainty covers every position and force the unknown ones
+leave open (:func:`bound_by_unknown`), instead of reporting the fit of the known share
+alone (a seam press with one side unknown was reported at the other side's centre with
+half its force, σ_F 4 mN)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from cellbridge.daemon.core.config import ContactSection
+from cellbridge.daemon.core.elements import default_params
+from cellbridge.tactile import (
+    ContactEstimator,
+    ContactTracker,
+    ElementParams,
+    SkinLayout,
+    grid_layout,
+    skin_response,
+)
+from cellbridge.tactile.arrays import FloatArray
+from cellbridge.tactile.seam_estimator import SeamEstimator
+from cellbridge.tactile.skin_geometry import Band
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class ContactSnapshot:
+    """What contact estimation needs of one moment; copied so the estimator may run in a thread."""
+
+    dc: FloatArray  # (n, 2) each element's ΔC in the frame (see daemon.readings)
+    touched: NDArray[np.bool_]
+    t_host: float
+    t_sample: FloatArray  # (n,) host time of each element's sample used (NaN: none)
+    cycle: NDArray[np.uint64]  # (n,) its cycle count (a scheduled sample's: its frame's global cycle)
+    ids: NDArray[np.int64]  # (n,) the layout's element (bridge) ids
+    t_frame: float  # host time of the skin frame estimated (its gates' start)
+    unknown: NDArray[np.bool_] | None = None  # (n,) elements with no reading of this frame (None: all known)
+
+
+@dataclass(frozen=True)
+class ContactSpec:
+    """Everything a contact estimator is built from: small, picklable and hashable, so a
+    worker process can build (and keep) its own estimator for the current layout."""
+
+    ids: tuple[int, ...]
+    centres: tuple[tuple[float, float], ...]
+    side: float
+    neighbour_gap: float
+    noise: float
+    method: str
+    birth_frames: int = 1
+    max_missed: int = 2
+    bands: tuple[Band, ...] = ()  # the layout's bands that close on themselves (a skin description's)
+
+    @classmethod
+    def of(cls, layout: SkinLayout, noise: float, contact: ContactSection) -> ContactSpec:
+        return cls(tuple(int(i) for i in layout.ids), tuple((float(x), float(y)) for x, y in layout.centres),
+                   layout.side, float(layout.neighbour_gap), noise, contact.method,  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
+                   contact.birth_frames, contact.max_missed)
+
+    def build(self) -> ContactStage:
+        layout = SkinLayout(np.array(self.centres), side=self.side, ids=np.array(self.ids),
+                            neighbour_gap=self.neighbour_gap)
+        return ContactStage(layout, default_params(layout), self.noise, self.method, self.birth_frames,
+                            self.max_missed, self.bands)
+
+
+@dataclass(frozen=True)
+class ContactJob:
+    """One contact estimate to run: the skin at one moment and what its estimator is built from.
+
+    ``owner`` names the pipeline that made it: its contacts are tracked (ids, ages) apart
+    from any other pipeline's, even when several share a process (tests, tools)."""
+
+    owner: str
+    spec: ContactSpec
+    snapshot: ContactSnapshot
+    first_id: int = 0  # the owner's lowest id never used: a rebuilt tracker numbers from here
+    # The owner's contacts last published (as the worker gave them): a tracker built afresh
+    # (new layout or settings, a replaced worker) continues them, so a held contact keeps its id.
+    carry: tuple[dict[str, Any], ...] = ()
+
+
+_OWNERS = itertools.count()
+
+
+class ContactIdentity:
+    """The host's side of contact identity: the ids the worker's tracker gives are kept here.
+
+    The tracker (in the worker, :func:`estimate`) numbers contacts and follows them from
+    frame to frame; it may be built afresh (a new layout or settings, a replaced worker
+    process), and then it continues from what this holds: the lowest id never published
+    (ids never go back) and the contacts last published (a held press keeps its id).
+    ``owner`` names this pipeline's tracks apart from any other's in the same worker."""
+
+    def __init__(self) -> None:
+        self.owner = f"{os.getpid()}.{next(_OWNERS)}"
+        self._first_id = 0
+        self._carry: tuple[dict[str, Any], ...] = ()
+
+    def job(self, spec: ContactSpec, snapshot: ContactSnapshot) -> ContactJob:
+        """The estimate of ``snapshot`` on ``spec``, continuing the contacts published."""
+        return ContactJob(self.owner, spec, snapshot, self._first_id, self._carry)
+
+    def published(self, job: ContactJob, contacts: Iterable[dict[str, Any]],
+                  wall: Callable[[float | None], float | None]) -> list[dict[str, Any]]:
+        """The worker's ``contacts`` of ``job`` are published: they are the ones to continue.
+        Returns each (copied) with the cycle count of each of its elements' readings
+        (``cycles``) and the newest of their sample times (``t_sample``), its times moved to
+        the wall clock by ``wall``."""
+        snap = job.snapshot
+        index = dict(zip(snap.ids.tolist(), range(len(snap.ids))))  # one C pass: a thousand ids a frame
+        contacts = list(contacts)
+        self._carry = tuple(contacts)
+        out = []
+        for c in contacts:
+            if isinstance(c.get("id"), int):  # ids never go back, whatever rebuilt the tracker
+                self._first_id = max(self._first_id, c["id"] + 1)
+            rows = [index[e] for e in c["elements"]]
+            ts = [float(snap.t_sample[i]) for i in rows if math.isfinite(snap.t_sample[i])]
+            out.append({**c, "t": wall(c.get("t")), "cycles": [int(snap.cycle[i]) for i in rows],
+                        "t_sample": wall(max(ts)) if ts else None})
+        return out
+
+
+#: The estimator each owner's jobs run on, built once per spec: in the worker process (or
+#: the caller's, with an inline executor). A few owners at most are kept.
+_STAGES: OrderedDict[str, tuple[ContactSpec, ContactStage]] = OrderedDict()
+_MAX_OWNERS = 8
+
+
+def estimate(job: ContactJob) -> list[dict[str, Any]]:
+    """The contacts of ``job`` (tracked across its owner's jobs): what the contact worker runs.
+
+    The owner's estimator is rebuilt only when the spec changed (or this process has none:
+    a replaced worker); the rebuilt tracker continues the contacts the job carries."""
+    kept = _STAGES.get(job.owner)
+    if kept is None or kept[0] != job.spec:
+        kept = _STAGES[job.owner] = (job.spec, job.spec.build())
+        kept[1].tracker.carry(job.carry)
+    _STAGES.move_to_end(job.owner)
+    while len(_STAGES) > _MAX_OWNERS:
+        _STAGES.popitem(last=False)
+    kept[1].tracker.ids_from(job.first_id)
+    return kept[1].run(job.snapshot)
+
+
+def warm_up() -> None:
+    """Run in the worker at start: imports, and the estimator's compiled kernels loaded by one
+    estimate on a small skin, happen before the first touch instead of delaying it."""
+    layout = grid_layout(2, 2)
+    dc1, dc2 = skin_response(layout, [(0.02, 0.0, 1.0, 0.012)])
+    touched = dc1 > 1e-13
+    stage = ContactStage(layout, default_params(layout), 2e-15, "capacitance", birth_frames=1)
+    stage.run(ContactSnapshot(np.stack([dc1, dc2], axis=1), touched, 0.0, np.zeros(layout.n),
+                              np.zeros(layout.n, dtype=np.uint64), layout.ids, 0.0))
+
+
+class ContactStage:
+    """Contact estimation and tracking for one layout, one snapshot at a time.
+
+    Contacts keep a stable ``id`` across estimates and are reported only once they have
+    persisted ``birth_frames`` estimates (a one-frame spike is no contact); each track's
+    last disk warm-starts the next fit.
+    """
+
+    def __init__(self, layout: SkinLayout, params: ElementParams, noise: float, method: str,
+                 birth_frames: int = 1, max_missed: int = 2, bands: tuple[Band, ...] = ()) -> None:
+        self.layout = layout
+        if bands:  # a press across a wrap seam is one contact
+            self.estimator: ContactEstimator = SeamEstimator(layout, params, bands=bands, noise=noise, method=method)
+        else:
+            self.estimator = ContactEstimator(layout, params, noise=noise, method=method)  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
+        self.tracker = ContactTracker(self.estimator, birth_frames=birth_frames, max_missed=max_missed)
+        self._row = {int(e): i for i, e in enumerate(layout.ids.tolist())}
+        e = layout.corner_edges
+        self._ring = [np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]]) for i in range(layout.n)]
+
+    def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
+        if snap.touched.any():
+            tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host, at=snap.t_frame)
+        else:  # an empty frame still counts: tracks miss it and end (no contact to be born)
+            tracks = self.tracker.step([], snap.t_host, at=snap.t_frame)
+        unknown = snap.unknown if snap.unknown is not None else np.zeros(self.layout.n, dtype=bool)
+        if unknown.any():
+            # a contact that only unknown elements supported is not seen in this frame (not
+            # reported), and not missed either: it goes on under its id when they come back,
+            # within UNSEEN_FRAMES frames in a row, and ends after that
+            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[unknown]}, UNSEEN_FRAMES)
+            if gone:
+                tracks = [tc for tc in tracks if tc.id not in gone]
+        return [bound_by_unknown(_finite(tc.to_dict()), self.layout, self._row, self._ring, unknown)
+                for tc in tracks]
+
+
+#: Frames in a row a contact whose elements are all unknown is held (not reported, not
+#: missed) before it ends: 0.25 s at 100 Hz, longer than a lost record or a late gateway.
+UNSEEN_FRAMES = 25
+
+
+def bound_by_unknown(c: dict[str, Any], layout: SkinLayout, row: Mapping[int, int], ring: list[NDArray[np.int64]],
+                     unknown: NDArray[np.bool_]) -> dict[str, Any]:
+    """``c`` (a contact's ``to_dict``) with ``unknown_near``: the ids of the unknown elements
+    among its elements and their neighbours (corners included), sorted. The fit leaves them
+    out; where it still pins a coordinate (``observable``: the known readings' cost rises
+    either side), the disk is what the known readings say, whatever the unknown ones read.
+    Along an axis it does not pin (or with no fitted disk) the press may reach into the
+    unknown elements by any amount, so there:
+
+    * the contact may lie anywhere in the bounding box of its elements and those: its
+      position is the box's middle along that axis (``observable`` stays False) and σ
+      reaches the box's far edges (every position in it within one σ);
+    * the force may be larger by the pressure over the unknown elements' whole area, and
+      the diameter by as much: σ of each covers that.
+
+    Without unknown neighbours ``c`` is returned as it is (with ``unknown_near`` empty)."""
+    rows = np.array([row[e] for e in c["elements"] if e in row], dtype=np.int64)
+    if rows.size == 0 or not unknown.any():
+        return {**c, "unknown_near": []}
+    near = np.unique(np.concatenate([rows, *(ring[r] for r in rows.tolist())]))
+    near = near[unknown[near]]
+    out = {**c, "unknown_near": [int(layout.ids[i]) for i in near.tolist()]}
+    if near.size == 0:
+        return out
+    b = layout.bounds
+    own_lo, own_hi = b[rows, :2].min(axis=0), b[rows, 2:].max(axis=0)
+    every = np.concatenate([rows, near])
+    lo, hi = b[every, :2].min(axis=0), b[every, 2:].max(axis=0)
+    fitted = bool(c.get("valid")) and bool(c.get("fit_ok"))
+    seen = [bool(v) for v in c["observable"]]
+    pos = [float(c["x"]), float(c["y"])]
+    sig = [float(c["sigma_x"]), float(c["sigma_y"])]
+    widened = False
+    for a in range(2):
+        reaches = lo[a] < own_lo[a] - 1e-12 or hi[a] > own_hi[a] + 1e-12  # an unknown element out along a
+        if not reaches or (fitted and seen[a] and math.isfinite(pos[a])):
+            continue
+        pos[a], seen[a], widened = 0.5 * float(lo[a] + hi[a]), False, True
+        cover = max(pos[a] - float(lo[a]), float(hi[a]) - pos[a])
+        sig[a] = cover if not math.isfinite(sig[a]) else max(sig[a], cover)
+    if not widened:
+        return out
+    out.update(x=pos[0], y=pos[1], sigma_x=sig[0], sigma_y=sig[1], observable=seen, sigma_xy=max(sig),
+               cov=[[sig[0] ** 2, 0.0], [0.0, sig[1] ** 2]])
+    extra = float(np.prod(b[near, 2:] - b[near, :2], axis=1).sum())  # m² the press may also cover
+    pressure, force, diam = c.get("pressure"), c.get("force"), c.get("diameter")
+    if isinstance(pressure, float) and math.isfinite(pressure) and isinstance(force, float) and math.isfinite(force):
+        s = c.get("sigma_force")
+        out["sigma_force"] = max(s, pressure * extra) if isinstance(s, float) and math.isfinite(s) else pressure * extra
+    if isinstance(diam, float) and math.isfinite(diam):
+        wider = math.sqrt(diam * diam + 4.0 * extra / math.pi) - diam
+        s = c.get("sigma_diameter")
+        out["sigma_diameter"] = max(s, wider) if isinstance(s, float) and math.isfinite(s) else wider
+    return out
+
+
+def _finite(d: dict[str, Any]) -> dict[str, Any]:
+    """Plain Python floats (msgpack-ready); numpy scalars converted."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        out[k] = v
+    return out

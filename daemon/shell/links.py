@@ -1,0 +1,333 @@
+"""Link shells: one asyncio task per gateway line, feeding bytes and arrival times to a callback.
+
+``SerialLink`` opens any pyserial URL (a tty, a pseudo-terminal, ``socket://host:port``)
+and reads it from the event loop's reader callback, never blocking the loop: the port
+is non-blocking (timeout 0), opening runs in a worker thread (a ``socket://`` connect
+may take seconds). When the device goes away (USB pulled, pty closed, peer gone) the
+link reports it and reopens with exponential backoff, forever: a robot's daemon must
+outlive its cables. ``ReplayLink`` plays a capture file or an MCAP recording's serial
+channel back as if it were a line.
+
+A ``SerialLink`` takes its device from an *opener* and its time and waits from a
+:class:`Clock`, so tests run it on a fake device and a fake clock: unplugged and
+replugged, bytes one at a time or lost, backoff without waiting it out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import time
+from collections.abc import Awaitable, Callable, Iterator
+from typing import Protocol
+
+import serial
+import serial.serialposix
+from cellbridge.daemon.core.config import LinkConfig
+from cellbridge.daemon.shell.capture import CaptureWriter
+from cellbridge.daemon.shell.replay_source import read_records
+
+DataCallback = Callable[[str, bytes, float], None]
+StateCallback = Callable[[str, bool, str], None]
+READ_SIZE = 1 << 16
+
+
+class Port(Protocol):
+    """What a link needs of an open device (a pyserial port, or a test's fake): a file
+    descriptor that polls readable when there is data or the device is gone, and
+    non-blocking reads (``b""``: nothing now) and writes. Reads and writes raise
+    :class:`serial.SerialException` (or OSError) once the device is gone."""
+
+    def fileno(self) -> int: ...
+    def read(self, size: int = 1) -> bytes: ...
+    def write(self, data: bytes) -> int | None: ...
+    def close(self) -> None: ...
+
+
+#: Opens the device of a link's configuration; raises SerialException, OSError or ValueError.
+Opener = Callable[[LinkConfig], Port]
+
+
+def open_serial(cfg: LinkConfig) -> Port:
+    """Any pyserial URL. timeout=0: reads never wait; a socket:// write waits at most write_timeout."""
+    return serial.serial_for_url(cfg.url, baudrate=cfg.baudrate, timeout=0, write_timeout=0.05)
+
+
+class Clock(Protocol):
+    """Where a shell reads the host time and waits. ``time`` is the pipeline's time base
+    (monotonic: a wall-clock step must not move it); ``wall`` is for what is kept on disk."""
+
+    def time(self) -> float: ...
+    def wall(self) -> float: ...
+    async def sleep(self, seconds: float) -> None: ...
+
+
+class SystemClock:
+    """The host's monotonic clock, its wall clock and the event loop's timers."""
+
+    def time(self) -> float:
+        return time.monotonic()
+
+    def wall(self) -> float:
+        return time.time()
+
+    async def sleep(self, seconds: float) -> None:
+        await asyncio.sleep(seconds)
+
+
+SYSTEM_CLOCK = SystemClock()
+
+
+class Link:
+    """What the service sees of a link."""
+
+    def __init__(self, cfg: LinkConfig, on_data: DataCallback, on_state: StateCallback) -> None:
+        self.cfg = cfg
+        self.name = cfg.name
+        self._on_data = on_data
+        self._on_state = on_state
+        self.writes_dropped = 0  # commands for a link that is down (or a replay)
+
+    async def run(self) -> None:
+        raise NotImplementedError
+
+    def write(self, data: bytes) -> bool:
+        self.writes_dropped += 1
+        return False
+
+    def stats(self) -> dict[str, object]:
+        return {"writes_dropped": self.writes_dropped}
+
+
+class SerialLink(Link):
+    """A gateway's serial line: reads go to ``on_data(name, bytes, host time)``, state
+    changes to ``on_state(name, up, why)``; reopened with exponential backoff
+    (``reconnect_min`` doubling to ``reconnect_max``, back to the minimum after a
+    successful open) until the task is cancelled."""
+
+    def __init__(self, cfg: LinkConfig, on_data: DataCallback, on_state: StateCallback,
+                 opener: Opener = open_serial, clock: Clock = SYSTEM_CLOCK) -> None:
+        super().__init__(cfg, on_data, on_state)
+        self._opener = opener
+        self._clock = clock
+        self._ser: Port | None = None
+        self.capture: CaptureWriter | None = None
+        if cfg.capture:
+            self.capture = CaptureWriter(cfg.capture)
+        # A capture's times are the wall clock's at its start, then the monotonic clock's: a
+        # replay in recorded time takes them as its one time base, which a wall-clock step
+        # (NTP) must not move (replayed, a step back stopped every contact estimate).
+        self._capture_offset = clock.wall() - clock.time()
+
+    def _open(self) -> Port:
+        return self._opener(self.cfg)
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        delay = self.cfg.reconnect_min
+        try:
+            while True:
+                try:
+                    ser = await loop.run_in_executor(None, self._open)
+                except (serial.SerialException, OSError, ValueError) as exc:
+                    self._on_state(self.name, False, f"open failed: {exc}")
+                    await self._clock.sleep(delay)
+                    delay = min(delay * 2, self.cfg.reconnect_max)
+                    continue
+                delay = self.cfg.reconnect_min
+                reason = await self._pump(loop, ser)
+                self._on_state(self.name, False, reason)
+                await self._clock.sleep(delay)
+        finally:
+            if self._ser is not None:
+                self._close(loop)
+            if self.capture is not None:
+                self.capture.close()
+
+    async def _pump(self, loop: asyncio.AbstractEventLoop, ser: Port) -> str:
+        lost: asyncio.Future[str] = loop.create_future()
+        fd = ser.fileno()
+        capture = self.capture
+        on_data, name, clock = self._on_data, self.name, self._clock
+
+        read = _reader(ser)
+
+        def readable() -> None:
+            try:
+                data = read()
+            except (serial.SerialException, OSError) as exc:
+                loop.remove_reader(fd)
+                if not lost.done():
+                    lost.set_result(f"device lost: {exc}")
+                return
+            if data:
+                now = clock.time()  # the pipeline's time base
+                if capture is not None:
+                    capture.write(now + self._capture_offset, data)
+                on_data(name, data, now)
+
+        self._ser = ser
+        self._on_state(self.name, True, "")
+        loop.add_reader(fd, readable)
+        try:
+            return await lost
+        finally:
+            self._close(loop)
+
+    def _close(self, loop: asyncio.AbstractEventLoop) -> None:
+        ser, self._ser = self._ser, None
+        if ser is None:
+            return
+        try:
+            loop.remove_reader(ser.fileno())
+        except (OSError, ValueError, serial.SerialException):
+            pass
+        try:
+            ser.close()
+        except (OSError, serial.SerialException):
+            pass
+        if self.capture is not None:
+            self.capture.flush()
+
+    def stats(self) -> dict[str, object]:
+        out = super().stats()
+        if self.capture is not None:
+            out.update(self.capture.stats())
+        return out
+
+    def write(self, data: bytes) -> bool:
+        ser = self._ser
+        if ser is None:
+            return super().write(data)
+        try:
+            if isinstance(ser, serial.serialposix.Serial) and ser.fd is not None:
+                # A few dozen bytes: the driver's buffer takes them at once, or the line is
+                # stuck and the command is dropped (counted) instead of stalling the loop.
+                # A partial write is a dropped command too (the next frame's leading
+                # delimiter resynchronises the bridge's decoder).
+                return os.write(ser.fd, data) == len(data) or super().write(data)
+            ser.write(data)
+            return True
+        except (serial.SerialException, OSError):
+            return super().write(data)
+
+
+def _reader(ser: Port) -> Callable[[], bytes]:
+    """One non-blocking read of what is there. A tty or pty is read with a single
+    ``os.read`` (pyserial's ``read`` polls around it, three system calls a read)."""
+    fd = ser.fd if isinstance(ser, serial.serialposix.Serial) else None
+    if fd is not None:
+
+        def read_fd() -> bytes:
+            try:
+                data = os.read(fd, READ_SIZE)
+            except BlockingIOError:
+                return b""
+            except OSError as exc:
+                raise serial.SerialException(f"read failed: {exc}") from None
+            if not data:  # readable yet empty: the device is gone
+                raise serial.SerialException("device disconnected")
+            return data
+
+        return read_fd
+    return lambda: ser.read(READ_SIZE)
+
+
+class ReplayLink(Link):
+    """``replay:FILE``: the records of a capture at recorded speed × ``replay_speed`` (0: flat out).
+
+    ``replay_clock = "recorded"`` feeds the recorded arrival times (golden tests:
+    deterministic output); ``"shifted"`` moves them to start now.
+
+    A shifted replay paced at a speed that feeds a record more than :attr:`LATE` after its
+    due time (a starved loop) stamps it when it feeds it, as a line's read is stamped when
+    it is read, and goes on with its schedule: the records due meanwhile come in a burst,
+    as a line's bytes do after the kernel held them. Stamped on schedule instead, such a
+    record came into a pipeline whose looks and ticks had already run at the later time:
+    its time went backwards, the element stage skipped steps, and a re-run took its
+    baselines from other readings than the recorded run (9 fF apart, on a loaded machine).
+    Counted in ``replay_late`` (records stamped after their due time) and ``replay_late_max`` (s).
+    A replay behind its schedule lets the loop's other tasks run every 64 records (ticks,
+    estimates, the watchdog); a recording whose times step back is paced on its newest time.
+    """
+
+    #: s a paced record may be fed after its due time and still carry it (a sleep's wake-up)
+    LATE = 0.005
+
+    def __init__(self, cfg: LinkConfig, on_data: DataCallback, on_state: StateCallback,
+                 start_gate: Callable[[], Awaitable[None]] | None = None,
+                 on_done: Callable[[str], None] | None = None, clock: Clock = SYSTEM_CLOCK) -> None:
+        super().__init__(cfg, on_data, on_state)
+        self.path = cfg.url.split(":", 1)[1]
+        self._clock = clock  # paces a shifted replay (its time and its sleeps): a test's runs in fake time
+        self._gate = start_gate
+        self._on_done = on_done
+        self.records = 0
+        self.finished = False
+        self.late = 0  # records a shifted replay fed more than LATE after they were due
+        self.late_max = 0.0  # s, the latest of them
+
+    async def run(self) -> None:
+        try:
+            records = read_records(self.path, self.name)
+            first = next(records, None)
+        except (OSError, ValueError) as exc:
+            self._on_state(self.name, False, f"replay failed: {exc}")
+            return
+        if self._gate is not None:
+            await self._gate()
+        self._on_state(self.name, True, "")
+        speed, recorded = self.cfg.replay_speed, self.cfg.replay_clock == "recorded"
+        clock = self._clock
+        start = clock.time()  # shifted: records replayed on the pipeline's (monotonic) time base
+        why = "replay finished"
+        if first is not None:
+            t_first = first[0]
+            last, ahead, unyielded = -math.inf, 0.0, 0
+            try:
+                for t, data in _chain(first, records):
+                    rel = t - t_first
+                    if speed > 0:
+                        # paced on the recording's newest time so far: a recording whose times
+                        # step back is replayed at once, not counted as a machine running late
+                        ahead = max(ahead, rel)
+                        due = stamp = start + ahead / speed
+                        wait = due - clock.time()
+                        if wait > 0:
+                            await clock.sleep(wait)
+                            unyielded = 0
+                            wait = due - clock.time()  # the sleep itself may end late (a busy loop)
+                        elif unyielded >= 64:  # behind: the loop's other tasks run now and then
+                            await asyncio.sleep(0)
+                            unyielded = 0
+                            wait = due - clock.time()
+                        unyielded += 1
+                        if wait < -self.LATE:
+                            stamp = due - wait
+                        stamp = max(stamp, last)  # one on time behind a late one: not before it
+                        last = stamp
+                        if stamp > due and not recorded:
+                            self.late += 1
+                            self.late_max = max(self.late_max, stamp - due)
+                    else:
+                        stamp = start + rel
+                        if self.records % 64 == 0:
+                            await asyncio.sleep(0)  # let sockets and control run between records
+                    self.records += 1
+                    self._on_data(self.name, data, t if recorded else stamp)
+            except (OSError, ValueError) as exc:  # a record further on is corrupt: the replay ends there
+                why = f"replay failed after {self.records} records: {exc}"
+        self.finished = True
+        self._on_state(self.name, False, why)
+        if self._on_done is not None:
+            self._on_done(self.name)
+
+    def stats(self) -> dict[str, object]:
+        return {**super().stats(), "replayed_records": self.records, "replay_finished": self.finished,
+                "replay_late": self.late, "replay_late_max": self.late_max}
+
+
+def _chain(first: tuple[float, bytes], rest: Iterator[tuple[float, bytes]]) -> Iterator[tuple[float, bytes]]:
+    yield first
+    yield from rest

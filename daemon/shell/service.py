@@ -1,0 +1,543 @@
+"""The asyncio service: links, PUB, control, ticking, contacts and signals around one :class:`Pipeline`.
+
+Everything here is a thin shell: each task moves bytes or messages between the
+outside (serial lines, ZeroMQ sockets, signals) and the sans-I/O pipeline. Contact
+estimation runs in one worker *process* on the newest snapshot whenever the worker is
+free, so a slow estimate delays the next estimate, never ingest (a thread would hold
+the interpreter lock for milliseconds at a time and stall the event loop).
+
+Every outside part comes in through the constructor (the ZeroMQ context, the serial
+opener, the clock the links stamp and wait with, the contact worker's executor), so
+tests run a whole service in-process on fakes and ``inproc://`` endpoints.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import gc
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zmq
+import zmq.asyncio
+from cellbridge.daemon.core.commands import Pending
+from cellbridge.daemon.core.config import Config, ConfigError, load_config
+from cellbridge.daemon.core.contact_schedule import TICK as PIPELINE_TICK
+from cellbridge.daemon.core.contact_schedule import ContactScheduler
+from cellbridge.daemon.core.messages import Health, LinkWrite, LogEvent, Message
+from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.ops.ops import OpsHooks
+from cellbridge.daemon.shell.contact_worker import ContactWorker, ExecutorFactory, process_pool
+from cellbridge.daemon.shell.control_server import ControlServer
+from cellbridge.daemon.shell.layout_file import load_layout
+from cellbridge.daemon.shell.links import SYSTEM_CLOCK, Clock, Link, Opener, ReplayLink, SerialLink, open_serial
+from cellbridge.daemon.shell.logs import event, setup
+from cellbridge.daemon.shell.publisher import Publisher
+from cellbridge.tactile import SkinLayout
+
+from cellbridge._version import __version__
+
+
+def read_layout(config: Config) -> SkinLayout | None:
+    path = config.layout_path()
+    return None if path is None else load_layout(path)
+
+
+class Service:
+    """The daemon around one :class:`Pipeline`: :meth:`run` until SIGTERM/SIGINT (or every
+    replay with ``exit_when_done`` finished), :meth:`reload` on SIGHUP.
+
+    ``ctx``: the ZeroMQ context to bind in (default: a new one, terminated at the end;
+    a given one is left to its owner). ``opener``/``clock``: how serial links open their
+    device and read the time; ``contact_executor``: makes the contact worker's executor.
+    ``drain_limit``: seconds a stop may take from SIGTERM to the last message (under the
+    unit's ``TimeoutStopSec``), whatever hangs."""
+
+    TICK = PIPELINE_TICK  # s between pipeline ticks (health itself goes out every health.interval)
+    HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
+    DRAIN_LIMIT = 10.0  # s: systemd's TimeoutStopSec=15 kills a daemon that takes longer
+    REPLAY_WARM_LIMIT = 300.0  # s a replay waits at its start for the contact worker's warm-up
+    TASK_END_LIMIT = 1.0  # s a stop waits for the links' and the service's tasks to end once cancelled
+    TERM_LIMIT = 2.0  # s a stop waits for its ZeroMQ context to terminate (PUB lingers 1 s)
+
+    def __init__(self, config: Config, layout: SkinLayout | None = None, *, config_path: str | Path | None = None,
+                 hooks: OpsHooks | None = None, ctx: zmq.asyncio.Context | None = None,
+                 opener: Opener = open_serial, clock: Clock = SYSTEM_CLOCK,
+                 contact_executor: ExecutorFactory = process_pool, drain_limit: float = DRAIN_LIMIT) -> None:
+        self.config = config
+        self._ctx = ctx
+        self._opener = opener
+        self._clock = clock
+        self.drain_limit = drain_limit
+        self.config_path = config_path
+        self.log = setup(config.daemon.log_level, config.daemon.log_format)
+        self.pipeline = Pipeline(config, layout)
+        # The pipeline runs on the monotonic clock; a replay in recorded time feeds recorded
+        # wall-clock times instead, and then nothing is added to them.
+        self._recorded = any(ln.is_replay and ln.replay_clock == "recorded" for ln in config.links)
+        self._wall_offset = clock.wall() - clock.time()
+        self.pipeline.set_wall_offset(0.0 if self._recorded else self._wall_offset)
+        # The reads' times as a recording keeps them for a replay: the wall clock's at the
+        # start, then the time base's, so that a wall-clock step never enters a replay.
+        self._read_offset = self.pipeline.wall_offset
+        # A replay in recorded time runs on the recording's clock: the newest recorded time fed
+        # (None until the first read; link states meanwhile wait for it). Ticked on today's
+        # wall clock instead, every bridge of a recording made yesterday was a day silent.
+        self._recorded_now: float | None = None
+        self._states_before_data: list[tuple[str, bool, str]] = []
+        self.hooks = hooks if hooks is not None else OpsHooks(config)
+        self.links: dict[str, Link] = {}
+        self._fresh = asyncio.Event()
+        self._stop = asyncio.Event()
+        self._tasks: list[asyncio.Task[Any]] = []
+        self.contacts = ContactWorker(self.log, contact_executor)
+        self.ingest_errors = 0
+        self._busy = np.zeros(4096)  # s spent on each of the last reads, bytes to published messages
+        self._n_reads = 0
+        self._lag_max = 0.0  # s, since the last health message
+        # the contact loop's policy (pacing, when a frame is due, what is published, skipped
+        # reads); _contacts only waits and publishes
+        self.schedule = ContactScheduler(self.pipeline, config.contact.rate)
+
+    def now(self) -> float:
+        """The pipeline's time base: the monotonic clock; while a replay feeds recorded
+        wall-clock times, the newest of them fed so far (the recording's clock stands still
+        between its reads and after its end; before the first read it is the wall clock's
+        time, which the pipeline is never ticked on: :meth:`_tick_once`)."""
+        if self._recorded:
+            return self._clock.wall() if self._recorded_now is None else self._recorded_now
+        return self._clock.time()
+
+    # -- ingest -------------------------------------------------------------------------
+    def _on_data(self, link: str, data: bytes, now: float) -> None:
+        t0 = time.perf_counter()
+        if self._recorded and (self._recorded_now is None or now > self._recorded_now):
+            first = self._recorded_now is None
+            self._recorded_now = now
+            if first:  # the links came up on the recording's clock, at its first read
+                for name, connected, why in self._states_before_data:
+                    self.pipeline.link_state(name, connected, now, why)
+                self._states_before_data.clear()
+        self.pub.serial(link, data, now + self.pipeline.wall_offset, now + self._read_offset)
+        p = self.pipeline
+        try:
+            self._act(p.feed(link, data, now))
+        except Exception:  # a bug must cost one read, not the daemon
+            self.ingest_errors += 1
+            self.log.exception("ingest failed on one read", extra={"fields": {"link": link, "bytes": len(data)}})
+        if p.commands_in_flight():
+            self.control.resolve(now)
+        self.schedule.fed()
+        self._fresh.set()
+        self._busy[self._n_reads % self._busy.shape[0]] = time.perf_counter() - t0
+        self._n_reads += 1
+
+    def _act(self, messages: list[Message]) -> None:
+        """Do what the pipeline's messages say: publish, log, write on a link."""
+        publish = self.pub.publish
+        for m in messages:
+            if isinstance(m, LogEvent):
+                event(self.log, m.level, m.text, **m.fields)
+            elif isinstance(m, LinkWrite):
+                self._write(m)
+            else:
+                if isinstance(m, Health):
+                    m = m.with_fields(self._shell_health())
+                    self._lag_max = 0.0  # each health message reports the lag since the one before
+                publish(m.topic, m.payload)
+
+    def _write(self, w: LinkWrite) -> bool:
+        """The one way bytes reach a link (the pipeline's messages and control's commands):
+        True when the link took them."""
+        link = self.links.get(w.link)
+        return link is not None and link.write(w.data)
+
+    # -- what the control server asks (control_server.Host) ------------------------------
+    def send_command(self, op: int, value: int | None, target: int | None, now: float,
+                     timeout: float) -> tuple[int, list[str]]:
+        """Start a command to ``target`` (None: every bridge alive) and write it: its token
+        and the links it went out on."""
+        pending, writes = self.pipeline.command(op, value, target, now, timeout)
+        return pending.token, [w.link for w in writes if self._write(w)]
+
+    def finished_commands(self, now: float) -> list[Pending]:
+        return self.pipeline.finished_commands(now)
+
+    def topology_body(self, now: float) -> dict[str, Any]:
+        return self.pipeline.topology_body(now)
+
+    def tare(self, bridges: list[int] | None) -> int:
+        return self.pipeline.tare(bridges)
+
+    def wall(self, now: float) -> float:
+        return now + self.pipeline.wall_offset
+
+    def _on_state(self, link: str, connected: bool, why: str) -> None:
+        if self._recorded and self._recorded_now is None:
+            self._states_before_data.append((link, connected, why))
+        else:
+            self.pipeline.link_state(link, connected, self.now(), why)
+        if connected:
+            event(self.log, "info", "link up", link=link, url=self.links[link].cfg.url)
+        else:
+            event(self.log, "warning", "link down", link=link, reason=why)
+
+    def _make_link(self, cfg: Any) -> Link:
+        if cfg.is_replay:
+            gate = functools.partial(self._replay_gate, cfg.wait_for_subscriber)
+            return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done)
+        return SerialLink(cfg, self._on_data, self._on_state, self._opener, self._clock)
+
+    async def _replay_gate(self, subscriber: bool) -> None:
+        """A replay starts once a subscriber is there (``wait_for_subscriber``) and the contact
+        worker is warm: started before, a recording's first seconds were estimated late or
+        not at all, by how long the warm-up took on this machine (on a fresh installation
+        it compiles the kernels, about half a minute), where the daemon that recorded them
+        had its worker warm long before: a replay must not depend on that."""
+        if subscriber:
+            await self.pub.subscribed.wait()
+        if self.config.contact.enabled and not await self.contacts.warm(self.REPLAY_WARM_LIMIT):
+            event(self.log, "error", "contact worker not started: the replay goes on without waiting",
+                  waited=self.REPLAY_WARM_LIMIT)
+
+    def _replay_done(self, name: str) -> None:
+        event(self.log, "info", "replay finished", link=name, records=self.links[name].stats()["replayed_records"])
+        exits = [ln for ln in self.links.values() if ln.cfg.exit_when_done]
+        if exits and all(isinstance(ln, ReplayLink) and ln.finished for ln in exits):
+            self._tasks.append(asyncio.create_task(self._finish_replay()))
+
+    async def _finish_replay(self) -> None:
+        """Stop once the contacts of what was replayed are estimated: a stop's drain gives
+        the estimate under way a share of ``drain_limit`` (systemd's stop timeout), and a
+        replay that ends is no such stop."""
+        # (the replay began after the warm-up, or after its gate gave up on it: no second wait)
+        if self.contacts.warmed():
+            await self.contacts.idle(self.config.contact.worker_timeout)  # the estimate under way is published
+        self._stop.set()
+
+    # -- periodic -----------------------------------------------------------------------
+    async def _ticker(self) -> None:
+        next_status = 0.0
+        while True:
+            try:
+                next_status = self._tick_once(next_status)
+            except Exception:  # a bug must cost one tick, not every health message from now on
+                self.log.exception("tick failed")
+            asked = time.perf_counter()
+            await asyncio.sleep(self.TICK)
+            # How late the loop woke us: time the loop spent on other work (or did not get the CPU).
+            self._lag_max = max(self._lag_max, time.perf_counter() - asked - self.TICK)
+
+    def _tick_once(self, next_status: float) -> float:
+        """Health, command deadlines, logged events, and every 5 s sd_notify STATUS and
+        capture flushes; returns when the next STATUS is due."""
+        now = self.now()
+        step = (self._clock.wall() - self._clock.time()) - self._wall_offset
+        if abs(step) > self.HOST_STEP and not self._recorded:  # the wall clock stepped (NTP)
+            self._wall_offset += step
+            self._act(self.pipeline.host_clock_step(step))
+        if self._recorded and self._recorded_now is None:
+            return next_status  # no recorded time yet: a tick now would be a clock stepping back later
+        self._link_stats()
+        self._act(self.pipeline.tick(now))
+        self._fresh.set()  # contacts are looked at without new data too: silence ends them
+        self.control.resolve(now)
+        if now >= next_status or next_status - now > 5.0:  # (the host clock may step back)
+            next_status = now + 5.0
+            self.hooks.status(self.pipeline.summary())
+            for link in self.links.values():
+                cap = getattr(link, "capture", None)
+                if cap is not None:
+                    cap.flush()
+        return next_status
+
+    async def _watchdog(self, interval: float) -> None:
+        while True:
+            self.hooks.watchdog()
+            await asyncio.sleep(interval)
+
+    def _link_stats(self) -> None:
+        """The links' own counters into the pipeline's link health, before it builds health."""
+        for name, link in self.links.items():
+            self.pipeline.link_stats(name, link.stats())
+
+    def _shell_health(self) -> dict[str, Any]:
+        recent = self._busy[:min(self._n_reads, self._busy.shape[0])]
+        p50, p99 = (np.percentile(recent, [50, 99]) * 1e3).tolist() if recent.size else (None, None)
+        ingest = {"reads": self._n_reads, "errors": self.ingest_errors, "ms_per_read_p50": p50,
+                  "ms_per_read_p99": p99, "ms_per_read_max": float(recent.max() * 1e3) if recent.size else None,
+                  "loop_lag_ms_max": self._lag_max * 1e3}
+        out = {"pub": self.pub.stats(), "control": self.control.stats(), "contact_estimation": dict(self.contacts.stats),
+               "ingest": ingest}
+        security = self.hooks.counters()
+        if security:
+            out["security"] = security
+        return out
+
+    def status_body(self, now: float) -> dict[str, Any]:
+        self._link_stats()
+        body = self.pipeline.health_body(now)
+        body.update(self._shell_health(), version=__version__, t_host=now + self.pipeline.wall_offset)
+        return body
+
+    # -- contacts -----------------------------------------------------------------------
+    async def _contacts(self) -> None:
+        """The contact loop's waiting: the policy is the scheduler's (daemon/core/contact_schedule.py)."""
+        sched = self.schedule
+        while True:
+            # data came (a frame completed), the tick looked for silence, or a frame's
+            # deadline passed with a gateway's record missing
+            idle = not self.contacts.last_ran()
+            due = sched.due(self.now(), idle) - self.now()
+            if not self._fresh.is_set() and due < self.TICK:
+                # asyncio.timeout, not wait_for: Python 3.11's wait_for returns the result of
+                # a wait that ended in the step before its task was cancelled, and the cancel
+                # is lost; this loop then went on, and a stop's drain waited for it for ever.
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(max(due, 0.0)):
+                        await self._fresh.wait()
+            else:
+                await self._fresh.wait()
+            self._fresh.clear()
+            # ``rate`` bounds the estimates, not the looks, and a late estimate does not
+            # make the next one late; a frame that came due while the look ran is looked
+            # at again at once (daemon/core/pacing.py). The pacing runs on the host's
+            # performance counter, the pipeline on its own time base: due is carried over.
+            started = time.perf_counter()
+            estimated = await self._contact_once()
+            now = self.now()
+            t = time.perf_counter()
+            sched.set_rate(self.config.contact.rate)
+            due_at = sched.due(now, not self.contacts.last_ran())
+            rest = sched.rest_until(started, estimated, t + (due_at - now)) - t
+            if rest > 0:
+                await asyncio.sleep(rest)
+
+    async def _contact_once(self, limit: float = math.inf) -> bool:
+        """Look at the skin once and estimate its newest frame if it moved on; whether a job
+        ran in the worker (a frame taken with nothing touched and no track left is not
+        shipped, and costs the estimate rate nothing: counted, idle frames kept the loop's
+        token bucket empty and each frame of a press's onset was estimated up to a period
+        after it was due). A failed estimate counts as one."""
+        # (a replay in recorded time: its data's own time, or the whole recording looks silent)
+        look = self.schedule.look(None if self._recorded else self.now())
+        self._act(list(look.messages))  # frames whose deadline passed, and their elements' messages
+        if look.job is None:
+            return False
+        self.contacts.stats["feeds_skipped"] = self.schedule.feeds_skipped
+        contacts = await self.contacts.estimate(look.job, min(limit, self.config.contact.worker_timeout))
+        message = self.schedule.publish(look.job, contacts)
+        if message is not None:
+            self._act([message])
+        return contacts is None or self.contacts.last_ran()
+
+    # -- reload -------------------------------------------------------------------------
+    def reload(self) -> None:
+        """SIGHUP: re-read the config file and apply what can change without a restart."""
+        self.hooks.reloading()
+        if self.config_path is None:
+            event(self.log, "warning", "reload ignored: started without a config file")
+            self.hooks.ready("reloaded (nothing to do)")
+            return
+        try:
+            new = load_config(self.config_path)
+            layout = read_layout(new)
+        except (ConfigError, ValueError) as exc:
+            event(self.log, "error", "reload rejected, keeping the running config", error=str(exc))
+            self.hooks.ready("reload rejected")
+            return
+        fixed = self.config.needs_restart(new)
+        if fixed:
+            event(self.log, "warning", "reload: these changes need a restart", keys=fixed)
+        self.config = new
+        self.log.setLevel(new.daemon.log_level.upper())
+        self.pipeline.reconfigure(new, layout)
+        try:
+            self.hooks.reload_keys()
+        except ValueError as exc:
+            event(self.log, "error", "allowed client keys not reloaded, keeping the previous ones", error=str(exc))
+        event(self.log, "info", "config reloaded", source=new.source)
+        self.hooks.ready("reloaded")
+
+    # -- lifecycle ----------------------------------------------------------------------
+    def _bind(self, ctx: zmq.asyncio.Context) -> None:
+        c = self.config
+        self.pub = Publisher(ctx, c.pub.endpoint, c.pub.hwm, c.pub.count_drops, c.pub.source)
+        self.ctl = ctx.socket(zmq.ROUTER)
+        self.ctl.setsockopt(zmq.LINGER, 500)
+        self.control = ControlServer(self.ctl, self, self.log)
+        for sock, endpoint in ((self.pub.sock, c.pub.endpoint), (self.ctl, c.control.endpoint)):
+            self.hooks.secure(ctx, sock, endpoint)  # OPS: security check, CURVE and peer bounds, before bind
+            sock.bind(endpoint)
+            self.hooks.bound(sock, endpoint)  # OPS: an ipc:// socket file's mode and group
+        self.pub.on_wanted = self.pipeline.want
+
+    async def run(self) -> int:
+        loop = asyncio.get_running_loop()
+        ctx = self._ctx if self._ctx is not None else zmq.asyncio.Context()
+        try:
+            self._bind(ctx)
+        except (zmq.ZMQError, ValueError) as exc:
+            event(self.log, "error", "cannot bind", error=str(exc))
+            self.hooks.close()
+            if self._ctx is None:
+                ctx.destroy(linger=0)
+            return 1
+        self.pipeline.want(set())
+        for cfg in self.config.links:
+            self.links[cfg.name] = self._make_link(cfg)
+        loop.add_signal_handler(signal.SIGTERM, self._stop.set)
+        loop.add_signal_handler(signal.SIGINT, self._stop.set)
+        loop.add_signal_handler(signal.SIGHUP, self.reload)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGHUP})  # held back since the command began (cli.main)
+        if self.config.contact.enabled:  # (before the links: a replay waits for its warm-up)
+            self.contacts.start()
+        link_tasks = [asyncio.create_task(ln.run(), name=f"link {n}") for n, ln in self.links.items()]
+        self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self.control.serve(),
+                                                        self.pub.watch_subscriptions())]
+        if self.hooks.watchdog_interval:
+            self._tasks.append(asyncio.create_task(self._watchdog(self.hooks.watchdog_interval)))
+        event(self.log, "info", "daemon started", version=__version__, pub=self.config.pub.endpoint,
+              control=self.config.control.endpoint, links=list(self.links))
+        # Start-up objects (numpy, zmq, the layout) never die: keep them out of the cyclic
+        # collector's full passes, which pause the event loop for the time they take.
+        gc.collect()
+        gc.freeze()
+        self.hooks.ready(self.pipeline.summary())  # OPS: READY=1 once links run and sockets are bound
+        try:
+            await self._stop.wait()
+        finally:
+            self.hooks.stopping()  # OPS: STOPPING=1
+            event(self.log, "info", "stopping: draining")
+            try:
+                await self._drain(link_tasks)
+            finally:  # (also when the drain is cancelled: the sockets, the peer guard's thread
+                # and the worker process would be left open, and a term() of the context hung)
+                for t in (*link_tasks, *self._tasks):
+                    t.cancel()
+                for s in (self.pub.sock, self.ctl):
+                    s.close()
+                self.hooks.close()
+                if self._ctx is None:
+                    self._term(ctx, self.TERM_LIMIT)
+                self.contacts.close()
+                for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+                    loop.remove_signal_handler(sig)
+                event(self.log, "info", "stopped")
+        return 0
+
+    async def _drain(self, link_tasks: list[asyncio.Task[Any]]) -> None:
+        """Stop reading, finish what was read (last contact estimate, pending replies), say
+        goodbye, all within ``drain_limit`` s of the stop whatever hangs: a contact worker
+        still on an estimate when its share of the time is up is left to :meth:`run`,
+        which kills it; none is started in its place."""
+        end = time.monotonic() + self.drain_limit
+
+        def left(share: float) -> float:
+            return max(0.0, min(share, end - time.monotonic()))
+
+        self.contacts.stop()
+        await self._end(link_tasks, left(self.TASK_END_LIMIT))
+        await self.contacts.idle(left(self.drain_limit / 2))  # a running estimate finishes and is published
+        await self._end(self._tasks, left(self.TASK_END_LIMIT))
+        await self.control.finish(left(1.0))
+        if not self.contacts.working and left(math.inf) > 0:
+            await self._contact_once(left(math.inf))  # the newest state, if the last estimate did not see it
+        now = self.now()
+        self._link_stats()
+        self._act(self.pipeline.tick(now, force=True))
+
+    async def _end(self, tasks: list[asyncio.Task[Any]], limit: float) -> None:
+        """Cancel ``tasks`` and wait for them to end, at most ``limit`` s, cancelling those
+        still running again every 0.1 s (a cancel can be lost: Python 3.11's wait_for took
+        one in as the end of its wait). A task that outlives the bound is logged and left
+        (:func:`run_service` gives it a last bounded chance); the stop goes on."""
+        end = time.monotonic() + limit
+        pending = {t for t in tasks if not t.done()}
+        while pending:
+            for t in pending:
+                t.cancel()
+            wait = min(end - time.monotonic(), 0.1)
+            if wait <= 0:
+                break
+            _, pending = await asyncio.wait(pending, timeout=wait)
+        for t in tasks:  # what they raised is theirs, not the stop's (as gather's return_exceptions)
+            if t.done() and not t.cancelled():
+                t.exception()
+        if pending:
+            event(self.log, "error", "tasks did not end when cancelled, left behind",
+                  tasks=sorted(t.get_name() for t in pending), waited=limit)
+
+    def _term(self, ctx: zmq.asyncio.Context, limit: float) -> None:
+        """Terminate the service's own ZeroMQ context, waiting at most ``limit`` s. ``term()``
+        waits for every socket of the context to be closed, without a bound: one left open
+        (a helper thread that did not end in its time) held the daemon after its drain."""
+        worker = threading.Thread(target=ctx.term, name="cellbridge zmq term", daemon=True)
+        worker.start()
+        worker.join(limit)
+        if worker.is_alive():
+            event(self.log, "error", "ZeroMQ context did not terminate: a socket is still open or still sending",
+                  waited=limit)
+
+
+#: s a thread may hold the GIL while another waits for it (Python's default: 5 ms). A
+#: contact estimate's result reaches the loop through the worker's result thread
+#: (daemon/shell/worker_process.py), and ZeroMQ's authenticator answers from its own; with the
+#: loop busy on reads (1-5 ms of numpy work each, back to back around a press) such a
+#: thread waited up to a whole interval for its turn. Measured with the process pool the
+#: daemon used before, press to contact (bench/bench_press_latency.py --trace): submitted
+#: -> worker began 3.9 / 5.4 ms (p90/p99) with the default, 2.2 / 3.8 ms with this one.
+GIL_SWITCH_INTERVAL = 0.0005
+
+
+#: s the event loop's close gives tasks left after the service stopped, and the default executor
+LEFTOVER_LIMIT = 1.0
+
+
+def run_service(config_path: str | Path | None, config: Config) -> int:
+    """The daemon's process: the service on a new event loop until it stops; its exit status.
+
+    Not ``asyncio.run``: its close cancels the tasks left and waits for them without a
+    bound; a task that does not end when cancelled (the service logged it) would keep the
+    daemon from exiting after it said "stopped". Here they get ``LEFTOVER_LIMIT``."""
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)
+    layout = read_layout(config)
+    service = Service(config, layout, config_path=config_path)
+    loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)
+    try:
+        return loop.run_until_complete(service.run())
+    finally:
+        try:
+            close_loop(loop, LEFTOVER_LIMIT)
+        finally:
+            asyncio.set_event_loop(None)
+            loop.close()
+
+
+def close_loop(loop: asyncio.AbstractEventLoop, limit: float) -> None:
+    """What ``asyncio.run`` does after its coroutine, each wait bounded by ``limit`` s:
+    cancel the tasks left and wait for them, close async generators, shut the default
+    executor down."""
+    left = asyncio.all_tasks(loop)
+    for t in left:
+        t.cancel()
+    if left:
+        loop.run_until_complete(asyncio.wait(left, timeout=limit))
+        for t in left:
+            if t.done() and not t.cancelled():
+                t.exception()  # retrieved: a task's error at exit is not the daemon's to print
+    loop.run_until_complete(loop.shutdown_asyncgens())
+    loop.run_until_complete(asyncio.wait([loop.create_task(loop.shutdown_default_executor())], timeout=limit))
+
+
+logging.getLogger("asyncio").setLevel(logging.WARNING)

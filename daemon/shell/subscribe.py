@@ -1,0 +1,133 @@
+"""``cellbridge sub``: print what the daemon publishes, one JSON line per message.
+
+For looking at a live skin from a shell (``cellbridge sub contact | jq .payload``)
+and for scripts in languages without a ZeroMQ binding. Generic on purpose: it
+prints whatever keys a payload holds, so it needs no change when topics grow.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+from pathlib import Path
+from typing import Any, TextIO
+
+import msgpack
+import zmq
+from cellbridge.daemon.ops.security import apply_client
+
+DEFAULT_PUB = "tcp://127.0.0.1:5560"
+
+
+def jsonable(obj: Any) -> Any:
+    """A msgpack value as JSON data: bytes as hex, map keys as strings, NaN/inf as null."""
+    if isinstance(obj, dict):
+        return {k if isinstance(k, str) else json.dumps(jsonable(k)): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, (bytes, bytearray, memoryview)):
+        return bytes(obj).hex()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, msgpack.Timestamp):
+        return obj.to_unix()
+    if isinstance(obj, msgpack.ExtType):
+        return {"ext": obj.code, "data": obj.data.hex()}
+    return obj
+
+
+def message_to_json(parts: list[bytes]) -> dict[str, Any]:
+    """One published message ``[topic, msgpack payload]`` as a JSON-able dict.
+
+    A message of another shape, or a payload that is not msgpack, is kept with an
+    ``error`` key and its raw bytes: shown, never dropped.
+    """
+    topic = parts[0].decode("utf-8", "replace") if parts else ""
+    if len(parts) != 2:
+        return {"topic": topic, "error": f"expected 2 frames [topic, payload], got {len(parts)}",
+                "raw": [p.hex() for p in parts[1:]]}
+    try:
+        payload = msgpack.unpackb(parts[1], raw=False, strict_map_key=False)
+    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
+        return {"topic": topic, "error": f"payload is not msgpack: {exc}", "raw": parts[1].hex()}
+    return {"topic": topic, "payload": jsonable(payload)}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.description = (
+        "Subscribe to the daemon's PUB socket and print each message as one JSON line\n"
+        '{"topic": ..., "payload": {...}} (bytes as hex, NaN as null). A message that is\n'
+        'not [topic, msgpack] is printed with an "error" key instead of "payload".\n'
+        "Counters go to stderr at exit. Topics: contact, element, raw, health, topology.\n\n"
+        "examples:\n"
+        "  cellbridge sub                        # everything\n"
+        "  cellbridge sub contact | jq .payload  # contacts only\n"
+        "  cellbridge sub health --count 1       # one health message, then exit\n"
+        "  cellbridge sub --endpoint tcp://robot:5560 \\\n"
+        "      --server-key server.key --client-key me.key_secret   # a CURVE daemon"
+    )
+    parser.add_argument("topics", nargs="*", metavar="TOPIC",
+                        help="topic prefix to receive (ZeroMQ prefix match; default: all topics)")
+    parser.add_argument("--endpoint", default=DEFAULT_PUB, help=f"daemon's PUB endpoint (default: {DEFAULT_PUB})")
+    parser.add_argument("--count", type=int, default=0, metavar="N",
+                        help="exit after N messages (default: run until Ctrl-C)")
+    parser.add_argument("--timeout", type=float, default=0.0, metavar="SECONDS",
+                        help="exit with status 1 when no message arrives for this long (default: wait forever)")
+    parser.add_argument("--server-key", type=Path, metavar="FILE",
+                        help="daemon's public key file (NAME.key) when it runs with CURVE")
+    parser.add_argument("--client-key", type=Path, metavar="FILE",
+                        help="this client's secret key file (NAME.key_secret); "
+                             "its NAME.key must be allowed by the daemon")
+
+
+def run(args: argparse.Namespace) -> int:
+    if (args.server_key is None) != (args.client_key is None):
+        print("cellbridge sub: --server-key and --client-key go together (CURVE needs both)", file=sys.stderr)
+        return 2
+    if args.count < 0 or args.timeout < 0:
+        print("cellbridge sub: --count and --timeout must not be negative", file=sys.stderr)
+        return 2
+    context = zmq.Context()
+    sock = context.socket(zmq.SUB)
+    sock.linger = 0
+    counters = {"received": 0, "malformed": 0}
+    try:
+        if args.server_key is not None:
+            apply_client(sock, args.server_key, args.client_key)
+        for topic in args.topics or [""]:
+            sock.subscribe(topic)
+        sock.connect(args.endpoint)
+        return _print_messages(sock, args, counters, sys.stdout)
+    except ValueError as exc:  # bad key file
+        print(f"cellbridge sub: {exc}", file=sys.stderr)
+        return 2
+    except zmq.ZMQError as exc:
+        print(f"cellbridge sub: {args.endpoint}: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+    except BrokenPipeError:  # the reader went away (| head): that is the end, not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    finally:
+        print(json.dumps(counters), file=sys.stderr)
+        sock.close()
+        context.term()
+
+
+def _print_messages(sock: zmq.Socket, args: argparse.Namespace, counters: dict[str, int], out: TextIO) -> int:
+    timeout_ms = int(args.timeout * 1000) if args.timeout else None
+    while not args.count or counters["received"] < args.count:
+        if not sock.poll(timeout_ms):
+            print(f"cellbridge sub: no message for {args.timeout:g} s on {args.endpoint}", file=sys.stderr)
+            return 1
+        line = message_to_json(sock.recv_multipart())
+        counters["received"] += 1
+        counters["malformed"] += "error" in line
+        out.write(json.dumps(line) + "\n")
+        out.flush()
+    return 0

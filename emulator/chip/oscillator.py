@@ -1,0 +1,253 @@
+"""The RC oscillator's edge times around one counter gate, and what the counter makes of them.
+
+One definition of the edge times (:class:`EdgeTrain`) serves both the per-cycle
+reference stepper (:mod:`cellbridge.emulator.chip.reference`) and the fast path here; the
+fast path only evaluates fewer of them. Times are float cycles relative to the
+window origin ``L = start_cycle − SYNC_LATENCY``, so they stay small (a gate, not the
+chip's whole uptime) and keep ~1e-10-cycle precision.
+
+**Edges.** Rising edge k ≥ 0 is at ``t_k = phase·T + Σ_{i<k} T·(1 + jitter·z_i)``;
+the previous period's edge is at ``t_0 − T`` and the output is low before it. Each
+period is high for its first half (a relaxation oscillator charging and discharging
+through the same R between 1/3 and 2/3 of the supply).
+
+**Jitter, addressable.** The z_i are grouped into blocks of :data:`BLOCK` periods.
+Block b draws its *sum* ``Z_b = √B·y_b`` directly and its shape from B further normals
+w: ``z = w − mean(w) + Z_b/B``. Since ``w − mean(w)`` is independent of ``mean(w)``,
+this is exactly i.i.d. N(0, 1) periods — but the start of any block is a prefix sum
+of the y alone, so the gate's last edge needs ~gate/(B·T) + B normals, not one per
+period. The gate's *head* draw holds the phase, a fixed number of y (enough to pass
+the gate's end whatever they are) and the shape of the block where the gate most
+likely ends (the *hint* block, from the jitter-free edge times); every other block
+has its own substream. So the fast path's usual cost is one seek and one draw.
+
+**Synchroniser and counter.** The oscillator output is sampled at each integer cycle
+by flop 1, then flop 2; the counter increments at cycle n when flop 2 was high and
+its previous value low before edge n, i.e. ``level(n−2) = 1`` and ``level(n−3) = 0``
+(an edge whose first high sample is cycle L + a, a = ⌈t⌉, increments the register at
+L + a + 2, i.e. 2–3 cycles after the edge itself). The counter counts increments
+at cycles ``[start, start + gate)``. When every half period is at least one cycle
+long, every edge is seen and the count is simply the number of edges in
+``(0, gate]``: the fast path's closed form. Otherwise (oscillator near or above half
+the clock) :meth:`EdgeTrain.event_offsets` applies the synchroniser rule to every
+edge, vectorised.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+from cellbridge.emulator.chip.keyed_random import BLOCK_SIZE, Z_MAX
+from numpy.typing import NDArray
+
+__all__ = ["BLOCK", "SYNC_LATENCY", "EdgeTrain", "JitterSource", "max_period_deviation"]
+
+BLOCK = BLOCK_SIZE  #: periods per jitter block
+SYNC_LATENCY = 3  #: window origin L = start_cycle − SYNC_LATENCY
+_SQRT_BLOCK = math.sqrt(BLOCK)
+_ARANGE_BLOCK = np.arange(BLOCK, dtype=np.float64)
+_DETECT_MARGIN = 1e-6  # cycles of slack for float rounding in the all-edges-seen test
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+_OFFSETS = BLOCK * np.arange(4097, dtype=np.float64)
+
+
+def _block_offsets(n: int) -> FloatArray:
+    """Edge index of the first n block starts, as floats: 0, B, 2B, …"""
+    return _OFFSETS[:n] if n <= _OFFSETS.size else BLOCK * np.arange(n, dtype=np.float64)
+
+
+def max_period_deviation() -> float:
+    """Largest |z| a period can have, in units of the jitter (clipping makes it finite)."""
+    return 2.0 * Z_MAX + Z_MAX / _SQRT_BLOCK
+
+
+_MAX_DEV = max_period_deviation()
+
+
+class JitterSource(Protocol):
+    """The clipped standard normals a train's jitter is made of (a keyed generator)."""
+
+    def head(self, n: int) -> tuple[float, FloatArray, FloatArray]:
+        """(uniform phase, n block-sum normals y, BLOCK shape normals of the hint block)."""
+
+    def block_steps(self, b: int) -> FloatArray:
+        """The BLOCK shape normals w of block b (any block but the hint block)."""
+
+
+class EdgeTrain:
+    """The oscillator's rising edges for one gate of ``gate`` cycles.
+
+    ``period`` is T in chip cycles, ``jitter`` the relative rms jitter of one period,
+    ``phase`` ∈ [0, 1) places edge 0 at phase·T after the origin (None: the phase
+    the noise source draws, as the chip does).
+    """
+
+    __slots__ = (
+        "period", "jitter", "gate", "noise", "every_edge_seen", "n_blocks",
+        "_phase", "_sums", "_hint", "_hint_steps", "_starts",
+    )
+
+    def __init__(
+        self, period: float, jitter: float, phase: float | None, gate: int, noise: JitterSource
+    ) -> None:
+        if not (math.isfinite(period) and period > 0):
+            raise ValueError(f"oscillator period must be finite and > 0 cycles, got {period!r}")
+        if not (0.0 <= jitter * _MAX_DEV < 1.0):
+            raise ValueError(
+                f"jitter must lie in [0, {1 / _MAX_DEV:.4f}) so that every period "
+                f"stays positive, got {jitter!r}"
+            )
+        if phase is not None and not (0.0 <= phase < 1.0):
+            raise ValueError(f"phase must lie in [0, 1), got {phase!r}")
+        if not (type(gate) is int or isinstance(gate, np.integer)) or gate <= 0:
+            raise ValueError(f"gate must be a positive number of cycles, got {gate!r}")
+        self.period = period
+        self.jitter = jitter
+        self.gate = int(gate)
+        self.noise = noise
+        #: True when no half period can be shorter than one cycle, whatever the jitter draws:
+        #: then the synchroniser sees every edge and the count has a closed form.
+        self.every_edge_seen = 0.5 * period * (1.0 - jitter * _MAX_DEV) >= 1.0 + _DETECT_MARGIN
+        #: Block sums drawn: enough that block n_blocks starts after the gate's end even
+        #: if every y sits at −Z_MAX (start(b) ≥ T·b·(B − jitter·√B·Z_MAX)).
+        self.n_blocks = int((self.gate + 1) / (period * (BLOCK - jitter * _SQRT_BLOCK * Z_MAX))) + 2
+        self._phase = phase
+        self._sums: FloatArray | None = None
+        self._hint = -1
+        self._hint_steps: FloatArray | None = None
+        self._starts: FloatArray | None = None
+
+    # ------------------------------------------------------------ the definition
+
+    def _draw_head(self) -> FloatArray:
+        """Block sums y (drawing the gate's head once); sets the phase and the hint block."""
+        if self._sums is None:
+            phase, y, steps = self.noise.head(self.n_blocks)
+            if self._phase is None:
+                self._phase = phase
+            t0 = self._phase * self.period
+            self._hint = min(max(int((self.gate - t0) / (self.period * BLOCK)), 0), self.n_blocks - 1)
+            self._sums, self._hint_steps = y, steps
+        return self._sums
+
+    @property
+    def phase(self) -> float:
+        """Edge 0 is at phase·T after the origin."""
+        self._draw_head()
+        assert self._phase is not None
+        return self._phase
+
+    def block_starts(self) -> FloatArray:
+        """Times of edges 0, B, 2B, …, n_blocks·B (the last one is beyond the gate)."""
+        if self._starts is None:
+            y = self._draw_head()
+            n = self.n_blocks
+            starts = np.empty(n + 1)
+            starts[0] = 0.0
+            y.cumsum(out=starts[1:])  # Σ y over the blocks before each start
+            starts *= self.period * self.jitter * _SQRT_BLOCK
+            starts += self.period * _block_offsets(n + 1)
+            starts += self.phase * self.period
+            self._starts = starts
+        return self._starts
+
+    def _block_shape(self, b: int) -> tuple[FloatArray, float]:
+        """Prefix sums W of block b's shape normals w (W[i] = Σ_{j≤i} w_j) and the shift
+        m with z_i = w_i − m (m = mean(w) − y_b/√B, so that the block's z sum to y_b·√B)."""
+        y = self._draw_head()
+        w = self._hint_steps if b == self._hint else self.noise.block_steps(b)
+        assert w is not None
+        cum = w.cumsum()
+        return cum, float(cum[-1]) / BLOCK - float(y[b]) / _SQRT_BLOCK
+
+    def block_rises(self, b: int) -> FloatArray:
+        """Times of edges bB … bB + B − 1."""
+        starts = self.block_starts()
+        cum, m = self._block_shape(b)
+        rises = np.empty(BLOCK)
+        rises[0] = 0.0
+        rises[1:] = cum[:-1]  # Σ w over the periods before each edge …
+        rises -= m * _ARANGE_BLOCK  # … minus the shift: Σ z
+        rises *= self.period * self.jitter
+        rises += self.period * _ARANGE_BLOCK
+        rises += starts[b]
+        return rises
+
+    def edges(self) -> tuple[FloatArray, FloatArray]:
+        """(rises, falls) of every edge that can matter: the previous period's edge,
+        then edges 0, 1, … through the block that holds the gate's end."""
+        starts = self.block_starts()
+        last = int(np.searchsorted(starts, self.gate, side="right")) - 1
+        t0 = self.phase * self.period
+        rises = np.concatenate(
+            [[t0 - self.period], *(self.block_rises(b) for b in range(last + 1))]
+        )
+        nxt = np.empty_like(rises)
+        nxt[:-1] = rises[1:]
+        nxt[-1] = starts[last + 1]
+        falls = rises + 0.5 * (nxt - rises)
+        return rises, falls
+
+    # ------------------------------------------------------------ the fast path
+
+    def event_offsets(self) -> IntArray:
+        """Counter increments in the gate, as cycles after its start (0 … gate − 1).
+
+        The synchroniser rule applied to every edge: edge k (first high sample a_k =
+        ceil(t_k), first low sample b_k = ceil(fall_k)) is seen iff a_k < b_k and the
+        sample a_k − 1 is low, i.e. the last edge j with a_j < a_k has b_j < a_k.
+        """
+        rises, falls = self.edges()
+        a = np.ceil(rises).astype(np.int64)
+        b = np.ceil(falls).astype(np.int64)
+        prev = np.searchsorted(a, a, side="left") - 1
+        prev_high = (prev >= 0) & (b[np.maximum(prev, 0)] >= a)
+        seen = (a < b) & ~prev_high & (a >= 1) & (a <= self.gate)
+        return a[seen] - 1
+
+    def edge_count(self) -> int:
+        """Number of counter increments in the gate (not wrapped).
+
+        With every edge seen this is #{k : t_k ∈ (0, gate]}: find the block holding
+        the gate's end from the block sums' prefix sums, then the edge within it. The
+        few edge times it needs are evaluated as scalars with exactly the operations,
+        in exactly the order, that :meth:`block_starts` and :meth:`block_rises` apply
+        to whole arrays, so they are the same doubles (IEEE arithmetic is the same in
+        numpy and Python).
+        """
+        if not self.every_edge_seen:
+            return int(self.event_offsets().size)
+        gate, period = self.gate, self.period
+        sums = self._draw_head().cumsum()  # sums[b - 1] = Σ_{i<b} y_i
+        k_sum = period * self.jitter * _SQRT_BLOCK
+        t0 = self.phase * period
+
+        def start(b: int) -> float:
+            return ((float(sums[b - 1]) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
+
+        b = self._hint
+        while start(b + 1) <= gate:
+            b += 1
+        while b >= 0 and start(b) > gate:
+            b -= 1
+        if b < 0:  # edge 0 comes after the gate's end
+            return 0
+        steps, m = self._block_shape(b)  # steps[i - 1] = Σ_{j<i} w_j
+        k_step = period * self.jitter
+        base = start(b)
+
+        def rise(i: int) -> float:
+            return (((float(steps[i - 1]) if i else 0.0) - m * i) * k_step + period * i) + base
+
+        i = min(max(int((gate - base) / period), 0), BLOCK - 1)
+        while i + 1 < BLOCK and rise(i + 1) <= gate:
+            i += 1
+        while i >= 0 and rise(i) > gate:
+            i -= 1
+        return b * BLOCK + i + 1 - (1 if t0 <= 0.0 else 0)

@@ -1,0 +1,353 @@
+"""Link layer of the firmware: bounded queues, aggregation, per-hop ACK and retries.
+
+Frames climbing toward the sink wait in one bounded FIFO (a full queue refuses the
+newest frame and counts it). When the cell is free, the head frame and every queued
+frame that still fits go to the parent in one BUNDLE transmission, which the parent
+acknowledges with one LINK_ACK; without the acknowledgement the transmission is
+repeated with a wider backoff up to ``max_retries`` times. Its frames then go back to
+the head of the queue for the next parent the routing picks (a dead parent is
+evicted after a few such failures), at most ``max_rounds`` times, then are given up
+(counted as ``frames_failed``).
+
+A parent change while a transmission waits for its acknowledgement does not send its
+frames to the new parent while the old next hop is still a neighbour: the old one has
+most likely received them (its acknowledgement is late or lost), and a second copy
+sent up another path is a duplicate that meets the first one higher up with more hops,
+which looks like a routing loop there (and costs the cells twice). The retries go to the
+old next hop; only when it is gone (evicted from the neighbour table) or the retries
+are spent do the frames go back to the queue for the new parent. For the same reason a
+LINK_ACK that arrives after the deadline, while the retransmission still waits for the
+cell (message latency of a real-time mesh), is taken: the retransmission is withdrawn.
+Broadcasts (beacons, command floods) have their own small queue, go first and are
+never acknowledged.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, OrderedDict, deque
+from collections.abc import Container
+from dataclasses import dataclass
+
+import msgpack
+from cellbridge.emulator.firmware.transceiver import Transceiver
+from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Flags, FrameType, Raw, reframe
+
+_ACK = int(Flags.ACK_REQUEST)
+_BUNDLE = int(FrameType.BUNDLE)
+_HANDED_MEMORY = 512  # frames whose acknowledging neighbour is kept
+_BUNDLE_OVERHEAD = HEADER_LEN + CRC_LEN + 3  # header, CRC, msgpack array header (<= 3 bytes)
+
+
+@dataclass
+class _InFlight:
+    data: bytes
+    key: tuple[int, int]  #: (origin, seq) the LINK_ACK must name
+    frames: list[Raw]
+    next_hop: int
+    attempts: int = 0
+    deadline: int = -1  #: ack deadline once on the cell; -1 while still contending
+    missed: int = -1  #: the deadline that passed without an acknowledgement (last one)
+    urgent: bool = False  #: a readout record: sent without backoff, one retry, never requeued
+    rank: int = 0  #: a readout record's backoff slots
+
+
+class LinkLayer:
+    def __init__(self, me: int, cells: tuple[int, ...], radio: Transceiver, queue_len: int = 32,
+                 max_retries: int = 5, ack_bytes: int = 24, ack_slack: int = 0, max_rounds: int = 3) -> None:
+        self.me = me
+        self.max_rounds = max_rounds
+        self._rounds: dict[tuple[int, int], int] = {}  # frames sent back to the queue, and how often
+        self.cells = cells
+        self.radio = radio
+        self.queue_len = queue_len
+        self.max_retries = max_retries
+        self.queue: deque[Raw] = deque()
+        #: (origin, seq) -> the neighbour that acknowledged it, for the last frames handed on:
+        #: a copy coming back from that neighbour went round a loop, not up
+        self.handed: OrderedDict[tuple[int, int], int] = OrderedDict()
+        self.broadcasts: deque[bytes] = deque()
+        #: Readout records (:mod:`.readout`): each goes alone, before anything else, without
+        #: backoff, and is given up after ``urgent_retries`` retries (its slot is over by then)
+        self.urgent: deque[tuple[int, Raw, int]] = deque()  # (tick queued, record, rank)
+        self.urgent_retries = 1
+        #: Whether a record asks for a per-hop acknowledgement (and gets its retry). Without,
+        #: a lost record is listed missing by the relay above it all the same; the real-time
+        #: shells send records so, since an acknowledgement there crosses two processes.
+        self.urgent_acks = True
+        #: a record still queued this long after it was (no parent meanwhile) is given up:
+        #: its frame's slots are over, and the relays above listed it missing already
+        self.urgent_ttl = 200 * 50_000
+        #: outcomes of readout records not yet read by the firmware (True: acknowledged)
+        self.urgent_results: list[bool] = []
+        #: Readout records sent and waiting for their acknowledgement, by (origin, seq): not
+        #: stop-and-wait (a relay's next record does not wait for the last one's ack, which
+        #: crosses two processes in the real-time shells), each retried once at its deadline
+        self.outstanding: dict[tuple[int, int], _InFlight] = {}
+        self._on_radio: _InFlight | None = None  #: the record the radio holds, not yet on the cell
+        self._preempted = False  #: the normal frame in flight was taken off the radio for a record
+        self._parent: int | None = None  #: the parent at the last advance (records wait without one)
+        self.inflight: _InFlight | None = None
+        c = radio.config
+        # SIFS, a slot, the acknowledgement; before it, at most one frame its sender may
+        # wait for (the receiver hearing another on another cell) and one more
+        # acknowledgement due first (Transceiver.ack_defer), each SIFS after the one before
+        # (three SIFS in all: with one, an ack queued behind a fully deferred one ended
+        # 16 bits after its sender gave up, and the frame was sent again)
+        self._ack_wait = ((3 * c.sifs_bits + c.slot_bits) * c.bit_cycles + radio.ack_defer
+                          + 2 * radio.airtime(ack_bytes) + ack_slack)
+        # Extra wait learnt from acknowledgements that came after their deadline (message
+        # latency of a real-time mesh: a fixed allowance is too short when the host is busy,
+        # and every retransmission it causes loads the cells further). Late ACKs raise it,
+        # timely ones let it decay; it stays 0 where ACKs are never late (virtual time).
+        self.extra_wait = 0
+        self._max_extra = 4 * self._ack_wait
+        self.counters: Counter[str] = Counter()
+        self.results: list[tuple[int, int, bool]] = []  #: (next hop, attempts, ok) not yet read
+
+    def enqueue(self, frame: Raw) -> bool:
+        """Queue a frame for the parent; False (and counted) when the queue is full."""
+        if len(self.queue) >= self.queue_len:
+            self.counters["queue_drops"] += 1
+            return False
+        self.queue.append(frame)
+        return True
+
+    def enqueue_urgent(self, frame: Raw, tick: int, rank: int = 0) -> None:
+        """Queue a readout record for the parent (bounded like the queue; counted when full);
+        ``rank``: its backoff in slots (:meth:`Transceiver.send`)."""
+        if len(self.urgent) >= self.queue_len:
+            self.counters["urgent_drops"] += 1
+            self.urgent_results.append(False)
+            return
+        self.urgent.append((tick, frame, rank))
+
+    def broadcast(self, data: bytes) -> None:
+        if len(self.broadcasts) >= 16:
+            self.counters["broadcast_drops"] += 1
+            return
+        self.broadcasts.append(data)
+
+    def acked(self, origin: int, seq: int, src: int, tick: int = -1) -> bool:
+        """A LINK_ACK from ``src`` naming (origin, seq): True when it ends the transmission
+        in flight. One that comes after the deadline, while the retransmission still waits
+        for the cell, counts (late, not lost): the retransmission is withdrawn."""
+        u = self.outstanding.get((origin, seq))
+        if u is not None and src == u.next_hop:
+            if u is self._on_radio:  # its retry still waits for the cell: not needed any more
+                self.radio.cancel(u.data)
+                self._on_radio = None
+            del self.outstanding[(origin, seq)]
+            self.urgent_results.append(True)
+            self.counters["frames_acked"] += 1
+            return True
+        f = self.inflight
+        if f is None or f.attempts == 0 or (origin, seq) != f.key or src != f.next_hop:
+            return False
+        if f.deadline < 0:  # a retransmission is contending: it is not needed any more
+            self.radio.cancel(f.data)
+            self.counters["late_acks"] += 1
+            if tick >= f.missed >= 0:
+                late = tick - f.missed
+                self.extra_wait = min(self._max_extra, max(self.extra_wait, 2 * late))
+        elif f.attempts == 1:
+            self.extra_wait -= self.extra_wait // 16
+        self.results.append((f.next_hop, f.attempts, True))
+        self.counters["frames_acked"] += len(f.frames)
+        for x in f.frames:
+            self.handed[(x.origin, x.seq)] = f.next_hop
+        while len(self.handed) > _HANDED_MEMORY:
+            self.handed.popitem(last=False)
+        if self._rounds:
+            for x in f.frames:
+                self._rounds.pop((x.origin, x.seq), None)
+        self.inflight = None
+        return True
+
+    def _give_back(self, f: _InFlight) -> None:
+        """Frames of a failed transmission go back to the head of the queue (bounded rounds)."""
+        for x in reversed(f.frames):
+            key = (x.origin, x.seq)
+            n = self._rounds.get(key, 0) + 1
+            if n > self.max_rounds:
+                self._rounds.pop(key, None)
+                self.counters["frames_failed"] += 1
+            else:
+                self._rounds[key] = n
+                self.queue.appendleft(x)
+                self.counters["frames_requeued"] += 1
+        while len(self.queue) > self.queue_len:
+            x = self.queue.pop()
+            self._rounds.pop((x.origin, x.seq), None)
+            self.counters["queue_drops"] += 1
+
+    def _reframe(self, parent: int, seq: int, cost_add: int) -> tuple[_InFlight, bool]:
+        """Take queued frames for ``parent``; True in the result when a bundle seq was used."""
+        first = self.queue.popleft()
+        taken = [first]
+        encoded = [reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent)]
+        size = _BUNDLE_OVERHEAD + len(encoded[0]) + 2
+        while self.queue:
+            f = self.queue[0]
+            if size + HEADER_LEN + CRC_LEN + len(f.body) + 2 > MAX_FRAME:
+                break
+            taken.append(self.queue.popleft())
+            encoded.append(reframe(f._replace(cost=min(0xFFFF, f.cost + cost_add)), self.me, parent))
+            size += len(encoded[-1]) + 2
+        if len(taken) == 1:
+            data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent, _ACK)
+            return _InFlight(data, (first.origin, first.seq), taken, parent), False
+        bundle = Raw(_BUNDLE, 0, self.me, seq, 0, 0, msgpack.packb(encoded, use_bin_type=True))
+        self.counters["bundles"] += 1
+        self.counters["bundled_frames"] += len(taken)
+        return _InFlight(reframe(bundle, self.me, parent, _ACK), (self.me, seq), taken, parent), True
+
+    def advance(self, tick: int, parent: int | None, next_seq: int, cost_add: int,
+                neighbours: Container[int] = ()) -> tuple[tuple[bytes, tuple[int, ...]] | None, bool]:
+        """((bytes, cells) to put on the cells now, or None; whether ``next_seq`` was used).
+        ``neighbours``: the bridges still in the routing table; a transmission whose next
+        hop is no longer the parent keeps retrying it while it is one of them."""
+        used = False
+        f = self.inflight
+        radio = self.radio
+        self._parent = parent
+        self._urgent_due(tick, parent, neighbours)
+        if f is not None and 0 <= f.deadline <= tick and radio.idle:  # no acknowledgement in time
+            if f.attempts > self.max_retries or (parent != f.next_hop and f.next_hop not in neighbours):
+                if f.attempts > self.max_retries:
+                    self.counters["tx_failed"] += 1
+                    self.results.append((f.next_hop, f.attempts, False))
+                self._give_back(f)
+                self.inflight = f = None
+            elif not self._urgent_waiting(parent):
+                self.counters["retries"] += 1
+                f.missed, f.deadline = f.deadline, -1
+                radio.send(f.data, self.cells, tick, f.attempts)
+        if self._urgent_waiting(parent):
+            self._hand_urgent(tick, parent, cost_add)
+        elif f is None:
+            used = self._hand_over(tick, parent, next_seq, cost_add)
+        out = radio.advance(tick)
+        if out is not None:
+            u = self._on_radio
+            f = self.inflight
+            if u is not None and out[0] is u.data:
+                u.attempts += 1
+                u.deadline = radio.tx_until + self._ack_wait + self.extra_wait
+                self._on_radio = None
+                if not self.urgent_acks:
+                    self.counters["urgent_sent"] += 1
+            elif f is not None and out[0] is f.data and f.deadline < 0:
+                f.attempts += 1
+                f.deadline = radio.tx_until + self._ack_wait + self.extra_wait
+            elif f is None and not self._urgent_waiting(parent):
+                # a broadcast just went out: the next frame contends for the cell after it
+                # now, not at the bridge's next wake (a relay held a child's frame until its
+                # next gate or batch then, and lazy and gate-by-gate sampling sent different frames)
+                used = self._hand_over(tick, parent, next_seq, cost_add) or used
+        if radio.idle and f is not None and f.deadline < 0 and out is None and self._on_radio is None \
+                and not self._urgent_waiting(parent) and f is self.inflight and self._preempted:
+            self._preempted = False
+            radio.send(f.data, self.cells, tick, f.attempts)  # the frame a record went before
+        return out, used
+
+    def _urgent_waiting(self, parent: int | None) -> bool:
+        """A readout record (new, or a retry) waits for the radio."""
+        if self._on_radio is not None:
+            return False
+        if parent is not None and self.urgent:
+            return True
+        return any(u.deadline == -2 for u in self.outstanding.values())
+
+    def _urgent_due(self, tick: int, parent: int | None, neighbours: Container[int]) -> None:
+        """Records whose acknowledgement did not come by their deadline: retried once (marked
+        to be sent, deadline -2), then given up; expired queued records are given up too."""
+        while self.urgent and tick - self.urgent[0][0] > self.urgent_ttl:
+            self.urgent.popleft()
+            self.counters["urgent_expired"] += 1
+            self.urgent_results.append(False)
+        for key, u in list(self.outstanding.items()):
+            if 0 <= u.deadline <= tick:
+                if u.attempts > self.urgent_retries or (parent != u.next_hop and u.next_hop not in neighbours):
+                    del self.outstanding[key]
+                    self.counters["urgent_failed"] += 1
+                    self.urgent_results.append(False)
+                    # not fed to the routing's link estimate: a record's acknowledgement that
+                    # is late (message latency of the real-time shells) is no lost link, and
+                    # a parent that died is found by its beacons' timeout
+
+                else:
+                    u.deadline = -2  # to be sent again
+
+    def _hand_urgent(self, tick: int, parent: int | None, cost_add: int) -> bool:
+        """Give the radio a readout record (a retry first, then the oldest new one); a normal
+        frame still waiting for the cell is taken back and goes after it."""
+        radio = self.radio
+        f = self.inflight
+        if not radio.idle:
+            if f is not None and f.deadline < 0 and radio.cancel(f.data):
+                self._preempted = True
+            else:
+                return False
+        retry = next((u for u in self.outstanding.values() if u.deadline == -2), None)
+        if retry is not None:
+            retry.deadline = -1
+            self.counters["retries"] += 1
+            self._on_radio = retry
+            radio.send(retry.data, self.cells, tick, retry.attempts, urgent=True, rank=retry.rank)
+            return True
+        if parent is None or not self.urgent:
+            return False
+        _, first, rank = self.urgent.popleft()
+        data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent,
+                       _ACK if self.urgent_acks else 0)
+        u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank)
+        if not self.urgent_acks:
+            self._on_radio = u
+            radio.send(data, self.cells, tick, urgent=True, rank=rank)
+            return True
+        if len(self.outstanding) >= 16:  # bounded: the oldest is given up
+            old = next(iter(self.outstanding))
+            del self.outstanding[old]
+            self.counters["urgent_failed"] += 1
+            self.urgent_results.append(False)
+        self.outstanding[u.key] = u
+        self._on_radio = u
+        radio.send(data, self.cells, tick, urgent=True, rank=rank)
+        return True
+
+    def _hand_over(self, tick: int, parent: int | None, next_seq: int, cost_add: int) -> bool:
+        """Give the radio the next frame if it holds none (broadcasts first); whether
+        ``next_seq`` was used."""
+        radio = self.radio
+        if not radio.idle:
+            return False
+        if self.broadcasts:
+            radio.send(self.broadcasts.popleft(), self.cells, tick)
+        elif parent is not None and self.queue:
+            self.inflight, used = self._reframe(parent, next_seq, cost_add)
+            radio.send(self.inflight.data, self.cells, tick)
+            return used
+        return False
+
+    @property
+    def next_tick(self) -> int | None:
+        t = self.radio.next_tick
+        f = self.inflight
+        if f is not None and f.deadline >= 0:
+            t = f.deadline if t is None else min(t, f.deadline)
+        for u in self.outstanding.values():
+            if u.deadline >= 0 and (t is None or u.deadline < t):
+                t = u.deadline
+        if self.urgent and self._parent is not None and self._on_radio is None and self.radio.idle:
+            # records queued behind the one that just went (a backlog after the bridge was
+            # held up, a record in parts): the next goes when the cell is ours again, not at
+            # the bridge's next gate. Without this wake a bridge that fell behind sent one
+            # record per frame and never caught up: every record it sent came after its
+            # parent's slot and was dropped as late, its element unknown for seconds.
+            tx = self.radio.tx_until
+            t = tx if t is None else min(t, tx)
+        return t
+
+    def has_work(self) -> bool:
+        return bool(self.queue or self.broadcasts or self.urgent)
+

@@ -1,0 +1,1 @@
+"""The cells as a shared medium: who hears a transmission, carrier sense, and the datagrams that carry it between processes."""

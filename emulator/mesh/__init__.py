@@ -1,0 +1,1 @@
+"""Meshes (files, generated, from a skin description) and the whole skin stepped in virtual time."""

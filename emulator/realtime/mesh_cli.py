@@ -1,0 +1,134 @@
+"""``cellbridge mesh``: generate and check mesh files, and bring an emulated skin up."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from cellbridge.emulator.mesh.mesh import MeshError, load_mesh, mesh_to_toml
+from cellbridge.emulator.mesh.meshgen import generate
+from cellbridge.emulator.realtime.realtime import REPORTING_HELP, rate_arg, reporting_arg, seconds_arg
+from cellbridge.emulator.world.world import ScenarioError
+
+
+def _run_virtual(args: argparse.Namespace) -> int:
+    import json
+    import os
+
+    from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.virtual import VirtualMesh
+    from cellbridge.emulator.world.world import World, check_on_skin, load_scenario
+
+    mesh = load_mesh(args.mesh)
+    contacts = load_scenario(args.scenario) if args.scenario else []
+    for i, c in enumerate(contacts):
+        check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")
+    world = World(mesh, contacts)
+    vm = VirtualMesh(mesh, seed=args.seed, world=world, settings=Settings(rate_hz=args.rate, reporting=args.reporting))
+    result = vm.run(args.seconds)
+    if args.capture:
+        os.makedirs(args.capture, exist_ok=True)
+        for g, data in vm.serial.items():
+            with open(os.path.join(args.capture, f"gateway-{g}.bin"), "wb") as fh:
+                fh.write(data)
+    samples = result.samples()
+    print(json.dumps({
+        "seconds": result.seconds,
+        "samples_delivered": {str(b): len(samples.get(b, [])) for b in mesh.ids},
+        "cut_off": result.cut_off,
+        "parents": {str(b): p for b, p in result.parents.items()},
+        "medium": result.medium,
+        "counters": {str(b): c for b, c in result.counters.items()},
+    }, indent=1))
+    return 0
+
+
+def _ids(text: str) -> list[int]:
+    try:
+        return [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated bridge ids, got {text!r}") from None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.description = (
+        "Mesh files describe an emulated skin: cells, bridges (their cells, element\n"
+        "position, gateway flag) and link loss / bit-error rates.\n\n"
+        "examples:\n"
+        "  cellbridge mesh gen line 8 -o line8.toml        # 8 bridges, 7 hops, gateway 1\n"
+        "  cellbridge mesh gen grid 4 4 --gateways 1,16    # two gateways, to stdout\n"
+        "  cellbridge mesh gen random 32 --seed 7 --loss 0.01\n"
+        "  cellbridge mesh check line8.toml\n"
+        "  cellbridge mesh run line8.toml --seconds 5 --scenario presses.toml --capture out/\n"
+        "  cellbridge mesh up line8.toml                   # one process per bridge\n"
+        "  cellbridge mesh traffic humanoid.toml --seconds 120 --scenario presses.toml --out run/\n"
+        "                                                  # a skin description's gateway lines, frame level"
+        "  cellbridge mesh up grid8.toml --reporting event:40:1000   # idle elements: heartbeats only"
+    )
+    sub = parser.add_subparsers(dest="mesh_command", metavar="ACTION", required=True)
+    gen = sub.add_parser("gen", help="write a generated mesh file (line N | ring N | grid R C | random N)")
+    gen.add_argument("kind", choices=["line", "ring", "grid", "random"])
+    gen.add_argument("size", type=int, nargs="+", help="N, or R C for a grid")
+    gen.add_argument("--gateways", type=_ids, default=[1], help="gateway bridge ids, comma-separated (default 1)")
+    gen.add_argument("--loss", type=float, default=0.0, help="frame loss probability per delivery (default 0)")
+    gen.add_argument("--ber", type=float, default=0.0, help="bit-error rate per delivered bit (default 0)")
+    gen.add_argument("--side", type=float, default=0.040, help="element side and pitch in metres (default 0.04)")
+    gen.add_argument("--seed", type=int, default=0, help="random mesh only: seed of the shape (default 0)")
+    gen.add_argument("-o", "--output", help="file to write (default: standard output)")
+    chk = sub.add_parser("check", help="validate a mesh file and summarise it")
+    chk.add_argument("mesh")
+    rn = sub.add_parser("run", help="run a mesh in virtual time (faster than real time, deterministic)")
+    rn.add_argument("mesh")
+    rn.add_argument("--seconds", type=seconds_arg, default=5.0, help="virtual seconds to run (default 5)")
+    rn.add_argument("--scenario", help="TOML file of [[contact]] stimuli")
+    rn.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
+    rn.add_argument("--rate", type=rate_arg, default=100, help="sampling rate in Hz, 1..250 (default 100)")
+    rn.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE", help=REPORTING_HELP)
+    rn.add_argument("--capture", metavar="DIR",
+                    help="write each gateway's serial stream to DIR/gateway-<id>.bin (read it with cellbridge decode)")
+    tr = sub.add_parser("traffic", help="a skin description's gateway lines at frame level (the readout records, "
+                                        "no cells): captures the daemon replays")
+    tr.add_argument("skin", help="a skin description (TOML with [[patch]] tables)")
+    tr.add_argument("--seconds", type=seconds_arg, default=10.0, help="virtual seconds (default 10)")
+    tr.add_argument("--scenario", help="TOML file of [[contact]] stimuli (atlas positions)")
+    tr.add_argument("--seed", type=int, default=0, help="seed of the readings' noise (default 0)")
+    tr.add_argument("--rate", type=rate_arg, default=100, help="sampling rate in Hz, 1..250 (default 100)")
+    tr.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE", help=REPORTING_HELP)
+    tr.add_argument("--out", metavar="DIR", required=True,
+                    help="write DIR/gateway-<id>.cbcap (one per gateway) and DIR/daemon.toml (replays them)")
+    up = sub.add_parser("up", help="start the medium, the world and one process per bridge (real time)")
+    up.add_argument("mesh")
+    try:
+        importlib.import_module("cellbridge.emulator.realtime.process_up").add_arguments(up)
+    except ImportError:  # the process shells are optional for generating files
+        pass
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        if args.mesh_command == "gen":
+            mesh = generate(args.kind, args.size, gateways=args.gateways, loss=args.loss,
+                            ber=args.ber, side=args.side, seed=args.seed)
+            text = mesh_to_toml(mesh)
+            if args.output:
+                with open(args.output, "w", encoding="utf-8") as fh:
+                    fh.write(text)
+            else:
+                sys.stdout.write(text)
+            return 0
+        if args.mesh_command == "check":
+            mesh = load_mesh(args.mesh)
+            sizes = [len(v) for v in mesh.members().values()]
+            print(f"{args.mesh}: ok: {len(mesh.bridges)} bridges, {len(mesh.cells)} cells "
+                  f"(up to {max(sizes)} bridges on one), gateways {', '.join(map(str, mesh.gateways))}")
+            return 0
+        if args.mesh_command == "run":
+            return _run_virtual(args)
+        if args.mesh_command == "traffic":  # cellbridge/mesh_command.py runs it (it writes daemon captures)
+            raise MeshError("'mesh traffic' runs through the cellbridge command (cellbridge mesh traffic)")
+        return int(importlib.import_module("cellbridge.emulator.realtime.process_up").run(args) or 0)
+    except (MeshError, ScenarioError) as exc:
+        print(f"cellbridge mesh: {exc}", file=sys.stderr)
+        return 2

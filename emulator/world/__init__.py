@@ -1,0 +1,1 @@
+"""What presses on the skin, and each element's capacitance."""

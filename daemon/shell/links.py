@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import termios
 import time
 from collections.abc import Awaitable, Callable, Iterator
 from typing import Protocol
@@ -119,6 +120,10 @@ class SerialLink(Link):
         # replay in recorded time takes them as its one time base, which a wall-clock step
         # (NTP) must not move (replayed, a step back stopped every contact estimate).
         self._capture_offset = clock.wall() - clock.time()
+        self.empty_reads = 0  # readable, then nothing to read, the line still there (a flush between)
+
+    def _empty_read(self) -> None:
+        self.empty_reads += 1
 
     def _open(self) -> Port:
         return self._opener(self.cfg)
@@ -151,7 +156,7 @@ class SerialLink(Link):
         capture = self.capture
         on_data, name, clock = self._on_data, self.name, self._clock
 
-        read = _reader(ser)
+        read = _reader(ser, self._empty_read)
 
         def readable() -> None:
             try:
@@ -192,6 +197,7 @@ class SerialLink(Link):
 
     def stats(self) -> dict[str, object]:
         out = super().stats()
+        out["empty_reads"] = self.empty_reads
         if self.capture is not None:
             out.update(self.capture.stats())
         return out
@@ -213,22 +219,43 @@ class SerialLink(Link):
             return super().write(data)
 
 
-def _reader(ser: Port) -> Callable[[], bytes]:
+#: Readable-yet-empty reads in a row, the line still answering, after which it counts as gone
+#: (a driver that reports readiness it never backs with data would otherwise spin the loop).
+EMPTY_READS_GONE = 1000
+
+
+def _reader(ser: Port, on_empty: Callable[[], None]) -> Callable[[], bytes]:
     """One non-blocking read of what is there. A tty or pty is read with a single
-    ``os.read`` (pyserial's ``read`` polls around it, three system calls a read)."""
+    ``os.read`` (pyserial's ``read`` polls around it, three system calls a read).
+
+    A read that finds nothing although the line was readable is a line gone (a hung-up
+    tty) only if the line no longer answers: the input queue may have been flushed in
+    between (a pty's other side drops what was not read for a while), and taking that for
+    a disconnect cost a reconnect with its backoff. Such a read calls ``on_empty``."""
     fd = ser.fd if isinstance(ser, serial.serialposix.Serial) else None
     if fd is not None:
+        empty = 0
 
         def read_fd() -> bytes:
+            nonlocal empty
             try:
                 data = os.read(fd, READ_SIZE)
             except BlockingIOError:
                 return b""
             except OSError as exc:
                 raise serial.SerialException(f"read failed: {exc}") from None
-            if not data:  # readable yet empty: the device is gone
-                raise serial.SerialException("device disconnected")
-            return data
+            if data:
+                empty = 0
+                return data
+            try:
+                termios.tcgetattr(fd)  # a hung-up tty answers EIO
+            except (termios.error, OSError):
+                raise serial.SerialException("device disconnected") from None
+            empty += 1
+            if empty >= EMPTY_READS_GONE:
+                raise serial.SerialException(f"device disconnected ({empty} empty reads in a row)")
+            on_empty()
+            return b""
 
         return read_fd
     return lambda: ser.read(READ_SIZE)

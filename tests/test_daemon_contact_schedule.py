@@ -14,9 +14,10 @@ from cellbridge.daemon.contact_schedule import TICK, ContactScheduler
 from cellbridge.daemon.offline import OfflineDaemon
 from cellbridge.daemon.pipeline import Pipeline
 
-from support.daemon_golden import CAPTURE
+from support.golden_corpus import DATA
 from support.pipeline_helpers import worker
 
+CAPTURE = DATA / "daemon_press.cbcap"  # the golden corpus's capture scenario
 READS = [(t, "gw", data) for t, data in read_capture(CAPTURE)]  # a 3x3 skin at 100 Hz, two presses
 
 

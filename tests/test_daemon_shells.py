@@ -484,10 +484,11 @@ def test_a_finished_replay_waits_for_the_contact_workers_warm_up(tmp_path: Path,
     """The worker's warm-up (on a fresh installation: compiling the kernels, about 20 s)
     outlasts the golden capture's replay. The daemon stopped as soon as the replay ended,
     gave the pending estimate a share of ``drain_limit`` and published no contact at all."""
-    from support.golden_corpus import paths, published_diff, scenario
+    from support.golden_corpus import paths, published_diff
+    from support.golden_corpus import scenario as corpus_scenario
     from support.shell_fakes import SlowStartExecutor
 
-    sc = scenario("daemon_press")
+    sc = corpus_scenario("daemon_press")
     capture = paths(sc)[0]
     config = capture.with_suffix(".toml")
 

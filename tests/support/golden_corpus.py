@@ -164,6 +164,8 @@ def run_mesh(sc: Scenario) -> dict[int, list[tuple[float, bytes]]]:
             super()._gateway_out(b, data)
             out.setdefault(b, []).append((self.tick / CLOCK_HZ, data))
 
+    if sc.mesh is None:
+        raise ValueError(f"{sc.name}: no mesh to run (its reads come from a capture)")
     settings = Settings(mode=Mode.ADC) if sc.adc else Settings()
     vm = Recording(sc.mesh(), seed=1, settings=settings)
     for start, duration, x, y, force, diameter in sc.presses:

@@ -26,7 +26,7 @@ from cellbridge.daemon.core.messages import LogEvent, Publish
 from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.protocol import Data, Frame, Mode, Sample, encode_stream
 
-from daemon_traffic import Skin
+from daemon_traffic import GridFrames
 
 
 def main() -> None:
@@ -34,7 +34,7 @@ def main() -> None:
     ap.add_argument("--origins", type=int, default=65530)
     args = ap.parse_args()
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "health": {"forget_after": 600.0}}))
-    sk = Skin()
+    sk = GridFrames()
     t = 1000.0
     p.feed("gw", sk.hellos() + sk.beacons(), t)
     for k, data in sk.stream(20):

@@ -44,14 +44,14 @@ from cellbridge.daemon.shell.capture import write_capture
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import read_messages
 from daemon_harness import daemon, free_port, write_config
-from daemon_traffic import Skin
+from daemon_traffic import GridFrames
 from live_skin import Collector, calibrated, cellbridge_cmd, group, live_skin
 from recording_helpers import same_payload
 from timing import table
 
 
 def make_capture(path: Path, seconds: float, rows: int = 16, cols: int = 16, rate: float = 100.0) -> None:
-    sk = Skin(rows=rows, cols=cols, rate=rate)
+    sk = GridFrames(rows=rows, cols=cols, rate=rate)
     t0 = 1_750_000_000.0
     records = [(t0, sk.hellos() + sk.beacons())]
     n = int(seconds * rate)

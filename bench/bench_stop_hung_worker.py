@@ -17,7 +17,7 @@ from pathlib import Path
 tree = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(tree / "bench"))
 from daemon_harness import Client, Pty, daemon, write_config  # noqa: E402
-from daemon_traffic import Skin  # noqa: E402
+from daemon_traffic import GridFrames  # noqa: E402
 
 with tempfile.TemporaryDirectory() as d:
     tmp = Path(d)
@@ -27,7 +27,7 @@ with tempfile.TemporaryDirectory() as d:
     client = Client(ep)
     with daemon(cfg, tmp / "err.log") as proc:
         client.ready() if hasattr(client, "ready") else time.sleep(2)
-        sk = Skin(rows=3, cols=3)
+        sk = GridFrames(rows=3, cols=3)
         pty.write(sk.hellos() + sk.beacons())
         k, ready, end = 0, False, time.monotonic() + 60
         while not ready and time.monotonic() < end:

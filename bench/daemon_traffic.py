@@ -1,18 +1,30 @@
-"""Synthesized gateway traffic for daemon tests and benchmarks (no emulator).
+"""Hand-crafted gateway traffic for daemon tests and benchmarks: frames a test chooses.
 
-A skin of bridges (one element each, ids from 1) on a grid; each sampling slot every
-bridge reports its element's counter values for the capacitances a chosen press gives
-(``cellbridge.tactile.skin_response`` + the chip's transfer function), in DATA frames
-built with ``cellbridge.protocol``.
+:class:`GridFrames` writes the frames of a skin of bridges on a grid (one element each,
+ids from 1, the emulator's ``meshgen.grid`` geometry) that a test wants one by one:
+HELLO, BEACON, command replies, DATA samples of a sampling slot, and READOUT records
+with the unchanged, missing bridges and the split into parts a test chooses. It is not a
+second model of the skin: what a press does to the elements is the emulator's one world
+model (:class:`cellbridge.emulator.world.World` holding the press as a static contact:
+its capacitances, band ghosts included), counted by the chip's transfer function; a
+READOUT record a test does not split by hand is the firmware's own
+(:func:`cellbridge.emulator.firmware.readout.record_parts`), framed as the gateway frames it (as
+:meth:`cellbridge.emulator.mesh.skin_traffic.SkinTraffic.frame` does). For a whole skin's
+scheduled traffic frame after frame, use :class:`~cellbridge.emulator.mesh.skin_traffic.SkinTraffic`.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.firmware.readout import record_parts
+from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import (
+    ADDR_HOST,
     Beacon,
     CommandReply,
     Data,
@@ -26,14 +38,24 @@ from cellbridge.protocol import (
     Sample,
     Status,
     encode_stream,
+    own,
+    reframe,
+    to_serial,
 )
-from cellbridge.tactile import ChipParams, ElementParams, counts, grid_layout, skin_response
+from cellbridge.tactile import ChipParams, counts
 
 CLOCK = 50_000_000
 
+Press = tuple[float, float, float, float]  #: a static press: x, y (m), force (N), diameter (m)
+
 
 @dataclass
-class Skin:
+class GridFrames:
+    """Frames of a ``rows`` x ``cols`` grid skin, gateway ``gateway``, sampling ``rate`` slots a second.
+
+    Counter values jitter from call to call (a random oscillator phase, seed 7), as a
+    chip's do; everything else is deterministic."""
+
     rows: int = 2
     cols: int = 2
     rate: float = 100.0  # sampling slots per second
@@ -42,8 +64,9 @@ class Skin:
     cycle0: int = 1_000_000
 
     def __post_init__(self) -> None:
-        self.layout = grid_layout(self.rows, self.cols, first_id=1)
-        self.params = ElementParams(side=self.layout.side)
+        self.world = World(meshgen.grid(self.rows, self.cols, gateways=(self.gateway,)))
+        self.layout = self.world.layout  # ids from 1, row-major, on the mesh's pitch
+        self.params = self.world.params
         self.seq = {int(b): 0 for b in self.layout.ids}
         self.rng = np.random.default_rng(7)
 
@@ -68,20 +91,21 @@ class Skin:
         return b"".join(self._frame(b, Beacon(0 if b == self.gateway else self.gateway, 0 if b == self.gateway
                                               else 10, 0 if b == self.gateway else 1)) for b in self.ids)
 
-    def counts_for(self, press: tuple[float, float, float, float] | None, phase: np.ndarray | None = None
+    def capacitances(self, press: Press | None) -> tuple[np.ndarray, np.ndarray]:
+        """(C1, C2) of every element (in ``ids`` order) under a static ``press`` or none: the world's."""
+        self.world.set_contacts([] if press is None else [Contact(0.0, math.inf, *press)])
+        return self.world.capacitances(0.0)
+
+    def counts_for(self, press: Press | None, phase: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
         """Counter values (C1, C2) of every element for a press (x, y, F, D) or none."""
-        n = self.layout.n
-        if press is None:
-            d1 = d2 = np.zeros(n)
-        else:
-            d1, d2 = skin_response(self.layout, [press], self.params)
-        ph = self.rng.uniform(0, 1, (2, n)) if phase is None else phase
-        k1, _ = counts(self.params.C1_rest + d1, self.chip, ph[0])
-        k2, _ = counts(self.params.C2_rest + d2, self.chip, ph[1])
+        c1, c2 = self.capacitances(press)
+        ph = self.rng.uniform(0, 1, (2, self.layout.n)) if phase is None else phase
+        k1, _ = counts(c1, self.chip, ph[0])
+        k2, _ = counts(c2, self.chip, ph[1])
         return k1, k2
 
-    def slot(self, k: int, press: tuple[float, float, float, float] | None = None,
+    def slot(self, k: int, press: Press | None = None,
              per_frame: int = 1) -> bytes:
         """One sampling slot: every bridge's sample (``per_frame`` slots batched per frame)."""
         k1, k2 = self.counts_for(press)
@@ -92,39 +116,49 @@ class Skin:
             for i, b in enumerate(self.ids)
         )
 
-    def stream(self, n_slots: int, press: tuple[float, float, float, float] | None = None,
+    def stream(self, n_slots: int, press: Press | None = None,
                start: int = 0) -> Iterator[tuple[int, bytes]]:
         for k in range(start, start + n_slots):
             yield k, self.slot(k, press)
 
-    def readout(self, k: int, press: tuple[float, float, float, float] | None = None, gateway: int | None = None,
+    def readout(self, k: int, press: Press | None = None, gateway: int | None = None,
                 bridges: list[int] | None = None, unchanged: tuple[int, ...] = (), missing: tuple[int, ...] = (),
-                span_us: int = 4000, parts: int = 1) -> bytes:
+                span_us: int = 4000, parts: int | None = None) -> bytes:
         """``gateway``'s READOUT record of skin frame ``k`` (mesh time ``k / rate``), accounting
         for ``bridges`` (default: every bridge): each a sample of ``press``, except those
-        ``unchanged`` or ``missing``; in ``parts`` frames (the bridges split among them)."""
+        ``unchanged`` or ``missing``. Split as the firmware splits a record
+        (:func:`~cellbridge.emulator.firmware.readout.record_parts`: one frame while it fits), or, with
+        ``parts``, into that many frames with the bridges dealt among them in turn (a split
+        a test chooses). Framed as the gateway frames its own record, COBS on the line."""
         gw = self.gateway if gateway is None else gateway
         ids = self.ids if bridges is None else sorted(bridges)
         k1, k2 = self.counts_for(press)
         col = {b: i for i, b in enumerate(self.ids)}
-        groups = [ids[i::parts] for i in range(parts)]
+
+        def samples(group: list[int]) -> tuple[ReadoutSample, ...]:
+            return tuple(ReadoutSample(b, int(k1[col[b]]), int(k2[col[b]]), 0) for b in group
+                         if b not in unchanged and b not in missing)
+
+        if parts is None:
+            records = record_parts(k, int(self.rate), {(Mode.COUNTER, 1): (
+                list(samples(ids)), [b for b in ids if b in unchanged], [b for b in ids if b in missing])}, span_us)
+        else:
+            groups = [ids[i::parts] for i in range(parts)]
+            records = [Readout(k, int(self.rate), Mode.COUNTER, 1, samples(group),
+                               tuple(b for b in group if b in unchanged), tuple(b for b in group if b in missing),
+                               span_us, part, parts) for part, group in enumerate(groups)]
         out = b""
-        for part, group in enumerate(groups):
-            samples = tuple(ReadoutSample(b, int(k1[col[b]]), int(k2[col[b]]), 0) for b in group
-                            if b not in unchanged and b not in missing)
-            rec = Readout(k, int(self.rate), Mode.COUNTER, 1, samples, tuple(b for b in group if b in unchanged),
-                          tuple(b for b in group if b in missing), span_us, part, parts)
+        for rec in records:
             seq = self.seq.setdefault(gw, 0)
             self.seq[gw] = (seq + 1) & 0xFFFF
-            out += encode_stream(Frame(src=gw, dst=0, origin=gw, seq=seq, payload=rec))
+            out += to_serial(reframe(own(rec, gw, seq), gw, ADDR_HOST))  # as the gateway's firmware emits it
         return out
 
     def reply(self, origin: int, token: int, op: Op, value: int | None = None) -> bytes:
         return self._frame(origin, CommandReply(token, op, Status.OK, value))
 
 
-
-def staggered(sk: Skin, n_slots: int, press: tuple[float, float, float, float], on: int, off: int,
+def staggered(sk: GridFrames, n_slots: int, press: Press, on: int, off: int,
               max_delay: float, per_frame: int = 1, seed: int = 3) -> list[tuple[float, bytes]]:
     """(arrival time from 0, one DATA frame) of every bridge, sorted by arrival: the skin
     as it reaches a host for real. Each bridge samples at its own phase within a slot and

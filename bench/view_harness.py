@@ -1,6 +1,6 @@
 """A live daemon fed by a known press, for the views' tests and bench.
 
-A :class:`Feeder` thread writes synthesized gateway traffic (``daemon_traffic.Skin``:
+A :class:`Feeder` thread writes synthesized gateway traffic (``daemon_traffic.GridFrames``:
 HELLO, BEACON, quiet samples for the baseline, then a press) into a pty in real time;
 the daemon reads it as it would a gateway's serial line. The press is held, or
 switched on and off (the bench's press-to-pixels latency), and the feeder notes when
@@ -17,7 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from daemon_harness import CLI, Client, Pty, daemon, free_port, stop_session, write_config
-from daemon_traffic import Skin
+from daemon_traffic import GridFrames
 
 PRESS = (0.040, 0.022, 2.0, 0.010)  # across the seam of bridges 2 and 5 of a 3×3 skin
 PRESSED = (2, 5)
@@ -44,7 +44,7 @@ class Feeder(threading.Thread):
     the k-th slot since then, or None. HELLOs and BEACONs are repeated every second, so
     a daemon started (or restarted) while the feeder runs learns the layout."""
 
-    def __init__(self, pty: Pty, skin: Skin) -> None:
+    def __init__(self, pty: Pty, skin: GridFrames) -> None:
         super().__init__(daemon=True)
         self.pty, self.skin = pty, skin
         self.pattern: Callable[[int], tuple[float, float, float, float] | None] | None = None
@@ -104,7 +104,7 @@ def wait_ready(client: Client, timeout: float = 30.0) -> None:
 @contextmanager
 def fed_skin(tmp_path: Path, rows: int = 3, cols: int = 3, rate: float = 100.0) -> Iterator[tuple[Pty, Feeder]]:
     pty = Pty(tmp_path / "gw")
-    feeder = Feeder(pty, Skin(rows=rows, cols=cols, rate=rate))
+    feeder = Feeder(pty, GridFrames(rows=rows, cols=cols, rate=rate))
     feeder.start()
     try:
         yield pty, feeder

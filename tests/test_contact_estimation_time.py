@@ -14,7 +14,7 @@ from cellbridge.daemon.core.config import parse_config
 from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.daemon.shell.contact_worker import ContactWorker
 
-from daemon_traffic import Skin
+from daemon_traffic import GridFrames
 
 STRADDLE = (0.020, 0.006, 3.0, 0.012)  # a press on the seam of bridges 1 and 2
 
@@ -37,7 +37,7 @@ class SlowWarmUp(concurrent.futures.ThreadPoolExecutor):
 
 
 def _job(p: Pipeline) -> Any:
-    sk = Skin()
+    sk = GridFrames()
     p.feed("gw", sk.hellos() + sk.beacons(), 1000.0)
     for k, data in sk.stream(80):
         p.feed("gw", data, 1000.0 + k / sk.rate)

@@ -14,9 +14,10 @@ from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.daemon.shell.capture import read_capture
 from cellbridge.daemon.shell.offline import OfflineDaemon
 
-from support.daemon_golden import CAPTURE
+from support.golden_corpus import DATA
 from support.pipeline_helpers import worker
 
+CAPTURE = DATA / "daemon_press.cbcap"  # the golden corpus's capture scenario
 READS = [(t, "gw", data) for t, data in read_capture(CAPTURE)]  # a 3x3 skin at 100 Hz, two presses
 
 

@@ -10,7 +10,7 @@ from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon_traffic import Skin
+from daemon_traffic import GridFrames
 from support.pipeline_helpers import published, worker
 
 CFG = parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 2}})
@@ -38,7 +38,7 @@ data_frames = st.builds(
 
 def _pipeline() -> Pipeline:
     p = Pipeline(CFG)
-    p.feed("gw", Skin().hellos(), 1000.0)
+    p.feed("gw", GridFrames().hellos(), 1000.0)
     return p
 
 

@@ -194,7 +194,7 @@ def test_subscriptions_are_bounded_in_size_and_kind(limited) -> None:
 def test_requests_beyond_max_pending_are_answered_busy(tmp_path: Path) -> None:
     """Commands wait for bridges; a client pipelining thousands of them over DEALER must
     not make the daemon hold thousands of waiting tasks."""
-    from daemon_traffic import Skin
+    from daemon_traffic import GridFrames
 
     pty = Pty(tmp_path / "gw")
     cfg = tmp_path / "daemon.toml"
@@ -204,7 +204,7 @@ def test_requests_beyond_max_pending_are_answered_busy(tmp_path: Path) -> None:
     try:
         with daemon(cfg, tmp_path / "stderr.log"):
             client.ready()
-            sk = Skin()
+            sk = GridFrames()
             pty.write(sk.hellos())
             for _, data in sk.stream(3):
                 pty.write(data)

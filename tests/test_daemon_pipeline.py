@@ -27,7 +27,7 @@ from cellbridge.protocol import (
 )
 from cellbridge.tactile import adc_code, grid_layout, layout_to_toml
 
-from daemon_traffic import CLOCK, Skin, staggered
+from daemon_traffic import CLOCK, GridFrames, staggered
 from support.pipeline_helpers import estimate, logged, published, snapshot, worker
 
 T0 = 1_700_000_000.0
@@ -40,14 +40,14 @@ def make(extra: dict | None = None, layout=None) -> Pipeline:
     return Pipeline(cfg, layout)
 
 
-def settle(p: Pipeline, sk: Skin, n: int = 60, link: str = "gw") -> float:
+def settle(p: Pipeline, sk: GridFrames, n: int = 60, link: str = "gw") -> float:
     p.feed(link, sk.hellos() + sk.beacons(), T0)
     for k, data in sk.stream(n):
         p.feed(link, data, T0 + k / sk.rate)
     return T0 + n / sk.rate
 
 
-def press(p: Pipeline, sk: Skin, contact, start: int, n: int = 10) -> list:
+def press(p: Pipeline, sk: GridFrames, contact, start: int, n: int = 10) -> list:
     out = []
     for k, data in sk.stream(n, contact, start=start):
         out = p.feed("gw", data, T0 + k / sk.rate)
@@ -59,7 +59,7 @@ def topic(out: list, name: str) -> dict:
 
 
 def test_press_gives_force_on_element_and_position_on_contact() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk)
     out = press(p, sk, STRADDLE, 60)
@@ -81,7 +81,7 @@ def test_press_gives_force_on_element_and_position_on_contact() -> None:
 
 
 def test_sample_times_follow_the_bridge_clock() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 200)
     out = press(p, sk, None, 200, 5)
@@ -92,7 +92,7 @@ def test_sample_times_follow_the_bridge_clock() -> None:
 
 
 def test_garbage_and_truncated_frames_are_counted_not_fatal() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     t = settle(p, sk, 60)
     one = sk.slot(61).split(b"\x00")[1]  # the COBS bytes of one frame
@@ -106,7 +106,7 @@ def test_garbage_and_truncated_frames_are_counted_not_fatal() -> None:
 
 
 def test_cross_link_duplicates_are_removed_and_loss_counted() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 60)
     slots = [sk.slot(k) for k in range(60, 70)]
@@ -126,7 +126,7 @@ def test_cross_link_duplicates_are_removed_and_loss_counted() -> None:
 
 
 def test_fragmented_data_is_reassembled() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 60)
     samples = tuple(Sample(0, sk.cycle0 + 61 * 500_000 + i, 19600, 15800, 0) for i in range(30))
@@ -138,7 +138,7 @@ def test_fragmented_data_is_reassembled() -> None:
 
 
 def test_commands_go_to_the_link_a_bridge_was_heard_on_and_complete_on_reply() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 5, link="gw2")
     pending, writes = p.command(int(Op.SET_GATE), 50_000, 3, T0, 1.0)
@@ -161,7 +161,7 @@ def test_commands_go_to_the_link_a_bridge_was_heard_on_and_complete_on_reply() -
 
 
 def test_halved_gate_reads_the_same_capacitance() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 60)
     pending, _ = p.command(int(Op.SET_GATE), 50_000, 2, T0, 1.0)
@@ -174,7 +174,7 @@ def test_halved_gate_reads_the_same_capacitance() -> None:
 
 
 def test_adc_mode_is_converted() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 60)
     rng = np.random.default_rng(0)
@@ -189,7 +189,7 @@ def test_adc_mode_is_converted() -> None:
 
 
 def test_tare_retakes_the_baseline() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make({"calibration": {"n_baseline": 5}})
     settle(p, sk, 10)
     press(p, sk, STRADDLE, 10, 5)
@@ -205,7 +205,7 @@ def test_layout_file_places_bridges_and_reports_strangers(tmp_path: Path) -> Non
     f = tmp_path / "skin.toml"
     f.write_text(layout_to_toml(grid_layout(1, 2, first_id=1)))
     p = make(layout=load_layout(f))
-    sk = Skin()
+    sk = GridFrames()
     settle(p, sk, 60)
     out = press(p, sk, None, 60, 2)
     assert sorted(set(topic(out, "element")["bridge"])) == [1, 2]
@@ -216,7 +216,7 @@ def test_layout_file_places_bridges_and_reports_strangers(tmp_path: Path) -> Non
 
 
 def test_hello_layout_and_topology() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     out = p.feed("gw", sk.hellos() + sk.beacons(), T0)
     topo = topic(out, "topology")
@@ -233,7 +233,7 @@ def test_hello_layout_and_topology() -> None:
 
 
 def test_stuck_channel_is_reported() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 10)
     k1, k2 = sk.counts_for(None)
@@ -248,7 +248,7 @@ def test_stuck_channel_is_reported() -> None:
 
 
 def test_unwanted_topics_are_not_built() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     p.want({"contact"})
     settle(p, sk, 5)
@@ -261,7 +261,7 @@ def test_force_and_area_per_reading_are_computed_for_element_subscribers_only() 
     behind the read), and the skin frames contacts are estimated on are the same."""
     runs = []
     for topics in ({"contact"}, {"contact", "element"}):
-        sk, p = Skin(), make()
+        sk, p = GridFrames(), make()
         p.want(topics)
         settle(p, sk)
         out = press(p, sk, STRADDLE, 60)
@@ -275,7 +275,7 @@ def test_force_and_area_per_reading_are_computed_for_element_subscribers_only() 
 
 
 def test_reassembly_drops_are_reported_per_bridge() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 5)
     samples = tuple(Sample(0, 10**9 + i, 19600, 15800, 0) for i in range(30))
@@ -289,7 +289,7 @@ def test_reassembly_drops_are_reported_per_bridge() -> None:
 def test_topology_tracks_status_neighbours_and_the_gateway_of_each_link() -> None:
     from cellbridge.protocol import BridgeStatus, Neighbour
 
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     p.feed("gw", sk.hellos() + sk.beacons(), T0)
     st = encode_stream(Frame(3, 0, 4, sk.seq[4], BridgeStatus(3, 12, (Neighbour(3, 11), Neighbour(2, 25)), 0, 1, 0,
@@ -306,7 +306,7 @@ def test_topology_tracks_status_neighbours_and_the_gateway_of_each_link() -> Non
 
 def test_every_published_field_is_documented() -> None:
     doc = (Path(__file__).parent.parent / "docs" / "zmq-api.md").read_text()
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 60)
     out = press(p, sk, STRADDLE, 60, 5) + p.tick(T0 + 2)
@@ -329,7 +329,7 @@ def test_every_published_field_is_documented() -> None:
     assert not missing, f"fields not in docs/zmq-api.md: {missing}"
 
 
-def _rebooted(p: Pipeline, sk: Skin, t_reset: float) -> dict:
+def _rebooted(p: Pipeline, sk: GridFrames, t_reset: float) -> dict:
     """The skin's bridges boot again at ``t_reset``: numbering from 0, HELLOs, then 20
     samples; the last element message the pipeline published."""
     sk.seq = {b: 0 for b in sk.ids}
@@ -342,7 +342,7 @@ def _rebooted(p: Pipeline, sk: Skin, t_reset: float) -> dict:
 
 def test_bridge_reset_is_followed() -> None:
     """A bridge restarts: sequence numbers and cycle counter from zero, HELLO again."""
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     t = settle(p, sk, 300)
     sk.cycle0 = 0
@@ -357,7 +357,7 @@ def test_bridge_reset_is_followed() -> None:
 def test_elements_read_just_after_a_calibration_step_are_not_left_out() -> None:
     """Bridge 1's frame always comes in one read, the others' 0.1 ms later in the next:
     the calibrator steps at most every 4 ms, on everything read since its last step."""
-    sk = Skin()
+    sk = GridFrames()
     p = make({"calibration": {"n_baseline": 5}})
     p.feed("gw", sk.hellos(), T0)
     out: list = []
@@ -374,7 +374,7 @@ def test_elements_read_just_after_a_calibration_step_are_not_left_out() -> None:
 
 
 def test_reconfigure_takes_a_new_layout_and_keeps_hello_geometry() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 5)
     assert p.skin.layout is not None and p.skin.layout.n == 4
@@ -406,7 +406,7 @@ def test_contact_worker_warm_up_estimates_a_press() -> None:
 def test_host_clock_stepping_back_neither_stops_health_nor_hides_a_dead_bridge() -> None:
     """An NTP step of an hour back: health goes on at its interval, and a bridge that
     stops right after the step is reported silent after bridge_timeout, not an hour later."""
-    sk = Skin()
+    sk = GridFrames()
     p = make({"health": {"interval": 0.5, "bridge_timeout": 2.0}})
     t = settle(p, sk, 100)
     assert [x for x, _ in published(p.tick(t))] == ["health", "topology"]
@@ -423,7 +423,7 @@ def test_every_time_health_and_topology_publish_is_wall_clock_time() -> None:
     publishes is wall-clock time, and a wall-clock step moves it. Health's per-bridge
     ``first_seen`` and ``last_seen`` went out on the monotonic clock (seconds since boot,
     documented as epoch seconds) and never moved with a step."""
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     wall = 5_000.0  # wall-clock minus monotonic time
     p.set_wall_offset(wall)
@@ -440,7 +440,7 @@ def test_every_time_health_and_topology_publish_is_wall_clock_time() -> None:
 
 
 def test_a_command_sent_before_the_host_clock_steps_back_still_times_out() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     t = settle(p, sk, 20)
     p.tick(t)
@@ -454,7 +454,7 @@ def test_bridge_reset_soon_after_start_restarts_its_clock() -> None:
     """A bridge that resets 0.3 s after it started (the counter goes back by less than
     the clock's jump limit): its HELLO numbered 0 restarts the fit, so the new samples'
     times are not the old fit's (half a second off)."""
-    sk = Skin()
+    sk = GridFrames()
     sk.cycle0 = 0
     p = make()
     t = settle(p, sk, 30)
@@ -469,7 +469,7 @@ def test_a_reload_that_changes_nothing_of_the_skin_keeps_a_held_press() -> None:
     """SIGHUP for log rotation or new client keys: the baselines stay, so a hand resting
     on the skin still reads as touched with its force (it used to vanish: baselines were
     re-taken under the hand). A changed calibration still rebuilds."""
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk, 100)
     assert topic(press(p, sk, STRADDLE, 100, 20), "element")["touched"] == [True, True, False, False]
@@ -489,7 +489,7 @@ def test_unplaced_origins_silent_for_forget_after_are_forgotten_placed_ones_neve
     stranger's frames) used to stay in every health message forever: health grew without
     bound and each tick walked them all. Silent for ``health.forget_after`` s and not
     placed: forgotten (counted); a placed bridge that dies stays reported silent."""
-    sk = Skin()
+    sk = GridFrames()
     p = make({"health": {"forget_after": 60.0}})
     t = settle(p, sk, 20)
     buf = b"".join(encode_stream(Frame(src=1, dst=0, origin=o, seq=0,
@@ -515,7 +515,7 @@ def test_a_bridge_joining_late_does_not_retake_the_other_elements_baselines() ->
     re-taken, under the press). A bridge that moved is a new element: its baseline is new."""
     from cellbridge.protocol import Hello
 
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     t = settle(p, sk, 100)
     assert topic(press(p, sk, STRADDLE, 100, 20), "element")["touched"] == [True, True, False, False]
@@ -535,7 +535,7 @@ def test_sample_rate_is_over_the_time_that_passed_not_the_configured_interval() 
     """Health runs at least ``interval`` apart, often later (a 0.1 s tick, a loaded loop,
     a reload): a bridge's sample_rate divided the samples since the last health by the
     configured interval, so 100 samples/s read as 150 when health came 1.5 s apart."""
-    sk = Skin()
+    sk = GridFrames()
     p = make({"health": {"interval": 1.0}})
     t = settle(p, sk, 50)
     p.tick(t)
@@ -553,7 +553,7 @@ def test_frames_of_one_press_arriving_staggered_give_one_steady_contact(max_dela
     truth with its σ: an element whose readings around the frame differ in touch was
     pressed or released between them, perhaps before the frame, and is unknown there (a
     skin half pressed, half not, gave a press on one element)."""
-    sk = Skin(rows=4, cols=4)
+    sk = GridFrames(rows=4, cols=4)
     corner = (0.0585, 0.0625, 3.0, 0.020)  # across the corner of bridges 6, 7, 10 and 11
     p = make({"calibration": {"n_baseline": 10}})  # every element ready before the press, however reads fall
     p.feed("gw", sk.hellos() + sk.beacons(), T0)
@@ -591,7 +591,7 @@ def test_frames_of_one_press_arriving_staggered_give_one_steady_contact(max_dela
 
 def test_a_silent_bridge_does_not_freeze_contacts() -> None:
     """Bridge 4 stops: the moment waits for it only until it is ``bridge_timeout`` silent."""
-    sk = Skin()
+    sk = GridFrames()
     p = make({"health": {"bridge_timeout": 0.5}})
     t = settle(p, sk, 60)
     assert snapshot(p) is not None
@@ -609,7 +609,7 @@ def test_a_bridge_trailing_by_more_than_max_lag_does_not_hold_contacts_back_and_
     """Bridge 4's frames come 0.5 s late; with max_lag 0.3 s the frame does not wait for
     it: its element is unknown (its newest reading is 0.5 s old, far more than a sample
     period), and health names it."""
-    sk = Skin()
+    sk = GridFrames()
     p = make({"contact": {"max_lag": 0.3}})
     settle(p, sk, 60)
     queue: list[tuple[float, bytes]] = []
@@ -628,7 +628,7 @@ def test_a_bridge_trailing_by_more_than_max_lag_does_not_hold_contacts_back_and_
     assert layout["late"] == [4] and layout["late_estimates"] >= 1
 
 
-def _phantoms(sk: Skin, forget_after: float, n: int = 3000) -> tuple[Pipeline, float, int]:
+def _phantoms(sk: GridFrames, forget_after: float, n: int = 3000) -> tuple[Pipeline, float, int]:
     """A pipeline hearing ``sk``, then one junk DATA frame from each of ``n`` origins (100
     on), each with its own sender (CRC-16 phantoms of a noisy line): (pipeline, time, n)."""
     p = make({"health": {"forget_after": forget_after}})
@@ -648,7 +648,7 @@ def test_bogus_origins_cost_health_a_bounded_summary_and_their_gateway_ids_are_p
     are pruned when their bridges are forgotten, the real gateway is kept."""
     from cellbridge.daemon.core.health import UNPLACED_SHOWN as _UNPLACED_SHOWN
 
-    sk = Skin()
+    sk = GridFrames()
     p, t, n = _phantoms(sk, 60.0)
     h = p.health_body(t + 1.0)
     assert {"1", "2", "3", "4"} <= set(h["bridges"])  # placed bridges always reported
@@ -673,7 +673,7 @@ def test_bogus_origins_heard_after_a_tick_that_found_nothing_to_forget_are_still
     that tick stayed for the daemon's life (65 530 of them: 601 s later none forgotten,
     their sender ids still listed as gateways). A new origin or sender id makes the next
     due tick look again."""
-    sk = Skin()
+    sk = GridFrames()
     p = make({"health": {"forget_after": 60.0}})
     t = settle(p, sk, 20)
     p.tick(t, force=True)  # a steady skin: nothing unplaced, nothing to forget
@@ -709,7 +709,7 @@ def test_a_gateway_id_that_is_a_placed_bridge_is_dropped_once_unheard_as_a_gatew
     the link's gateway for ever, though only the real gateway is heard there. A gateway id
     unheard on its link for ``forget_after`` s is dropped, placed or not; the bridge itself
     stays in topology."""
-    sk = Skin()
+    sk = GridFrames()
     p = make({"health": {"forget_after": 60.0}})
     t = settle(p, sk, 20)
     p.feed("gw", encode_stream(Frame(src=3, dst=0, origin=2, seq=500, payload=Beacon(1, 10, 1))), t)
@@ -729,7 +729,7 @@ def test_bogus_origins_cost_a_tick_a_bounded_topology_and_a_bounded_number_of_lo
     and their silence is logged one by one only up to that bound, then as one summary."""
     from cellbridge.daemon.core.health import UNPLACED_SHOWN as _UNPLACED_SHOWN
 
-    sk = Skin()
+    sk = GridFrames()
     p, t, n = _phantoms(sk, 600.0)
     for k, data in sk.stream(20):  # the real skin goes on talking
         p.feed("gw", data, t + 9.0 + k / sk.rate)
@@ -751,7 +751,7 @@ def test_contact_ids_are_never_reused_after_the_tracker_is_rebuilt() -> None:
     job carries it, so a rebuilt tracker numbers a new press from there."""
     from cellbridge.daemon.core import contacts
 
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     settle(p, sk)
     ids = []
@@ -782,7 +782,7 @@ def test_a_contact_held_across_a_rebuild_keeps_its_id(cause: str) -> None:
     from cellbridge.protocol import Hello
     from cellbridge.tactile import SkinLayout
 
-    sk = Skin()
+    sk = GridFrames()
     p = make(layout=sk.layout if cause == "sighup_layout" else None)
     t = settle(p, sk, 100)
     press(p, sk, STRADDLE, 100, 20)

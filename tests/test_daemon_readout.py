@@ -12,7 +12,7 @@ import pytest
 from cellbridge.daemon.core.config import parse_config
 from cellbridge.daemon.core.pipeline import Pipeline
 
-from daemon_traffic import CLOCK, Skin
+from daemon_traffic import CLOCK, GridFrames
 from support.pipeline_helpers import published, worker
 
 T0 = 1_700_000_000.0
@@ -27,12 +27,12 @@ def make(extra: dict | None = None) -> Pipeline:
     return Pipeline(cfg)
 
 
-def arrive(sk: Skin, k: int) -> float:
+def arrive(sk: GridFrames, k: int) -> float:
     """When a gateway's record of frame k reaches the host: its readout's end, plus a little."""
     return T0 + k / sk.rate + SPAN + 0.0005
 
 
-def start(p: Pipeline, sk: Skin, frames: int = 20) -> int:
+def start(p: Pipeline, sk: GridFrames, frames: int = 20) -> int:
     """HELLOs, then ``frames`` quiet frames (the baselines); the next frame's index."""
     p.feed("gw", sk.hellos() + sk.beacons(), T0)
     for k in range(frames):
@@ -54,7 +54,7 @@ def contact_of(p: Pipeline, runs: int = 1) -> dict:
 
 
 def test_a_press_read_by_frames_is_one_contact_and_its_samples_carry_the_frames_cycle() -> None:
-    sk = Skin(rows=4, cols=4)
+    sk = GridFrames(rows=4, cols=4)
     p = make()
     k = start(p, sk)
     p.want({"element", "contact", "raw"})
@@ -85,7 +85,7 @@ def test_an_element_missing_from_the_frame_is_unknown_and_the_contact_says_so_wi
     """A seam press whose one side is missing: the contact lists it, and its position and force
     σ cover the truth. (The fit of the known side alone put it at that element's centre with
     about half the force, σ a fraction of a millimetre: a confident wrong contact.)"""
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     k = start(p, sk)
     for i in range(k, k + 3):
@@ -104,7 +104,7 @@ def test_an_element_missing_from_the_frame_is_unknown_and_the_contact_says_so_wi
 def test_an_unchanged_element_keeps_its_reading_because_its_bridge_said_so() -> None:
     """Event-based: the press's first frame has its samples, every frame after says unchanged:
     the contact holds its force and place, with nothing unknown."""
-    sk = Skin(rows=4, cols=4)
+    sk = GridFrames(rows=4, cols=4)
     p = make()
     k = start(p, sk)
     p.feed("gw", sk.readout(k, CORNER), arrive(sk, k))
@@ -124,7 +124,7 @@ def test_an_unchanged_element_keeps_its_reading_because_its_bridge_said_so() -> 
 def test_unchanged_after_a_missing_frame_is_unknown_until_the_next_sample() -> None:
     """Once an element was missing, a sample of it may have been lost: "unchanged" then
     refers to a reading the host never got, and the element is unknown until it sends one."""
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     k = start(p, sk)
     p.feed("gw", sk.readout(k, SEAM, missing=(2,)), arrive(sk, k))  # bridge 2's sample of the press lost
@@ -138,9 +138,9 @@ def test_unchanged_after_a_missing_frame_is_unknown_until_the_next_sample() -> N
     assert sorted(job.snapshot.ids[job.snapshot.touched].tolist()) == [1, 2]
 
 
-def two_gateway_skin() -> tuple[Skin, Pipeline, int]:
+def two_gateway_skin() -> tuple[GridFrames, Pipeline, int]:
     """A 2x2 skin: gateway 1 (link gw) reads bridges 1 and 2, gateway 4 (link gw2) 3 and 4."""
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     p.feed("gw", sk.hellos(), T0)
     k = 0
@@ -186,7 +186,7 @@ def test_a_frame_whose_records_all_came_is_estimated_at_once_not_at_its_deadline
 
 
 def test_records_read_one_byte_at_a_time_give_the_same_frames() -> None:
-    sk = Skin()
+    sk = GridFrames()
     whole, bytewise = make(), make()
     quiet = [(arrive(sk, i), sk.readout(i)) for i in range(20)]  # (the skin's counts jitter: made once)
     for p in (whole, bytewise):
@@ -215,7 +215,7 @@ def test_records_read_one_byte_at_a_time_give_the_same_frames() -> None:
 def test_a_bridge_on_no_schedule_is_read_by_the_fallback_rule() -> None:
     """Bridge 4 boots without mesh time and sends DATA; the others are on the schedule. In a
     frame, its newest DATA reading within one sample period counts; older, it is unknown."""
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     p.feed("gw", sk.hellos(), T0)
     data_only = sk.slot(0).split(b"\x00\x00")[3]  # (bridge 4's DATA frame of one slot, framed below)
@@ -233,7 +233,7 @@ def test_a_bridge_on_no_schedule_is_read_by_the_fallback_rule() -> None:
 
 
 def test_bridges_on_the_schedule_are_alive_though_they_send_no_frame_of_their_own() -> None:
-    sk = Skin()
+    sk = GridFrames()
     p = make()
     k = start(p, sk)
     for i in range(k, k + 300):  # 3 s of frames: past bridge_timeout

@@ -10,36 +10,49 @@ import pytest
 from cellbridge.daemon.shell.capture import MAGIC, CaptureError, read_capture, write_capture
 
 from daemon_harness import Client, Pty, daemon, write_config
-from daemon_traffic import Skin
-from support.daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise, pipeline_output
+from daemon_traffic import GridFrames
+from support.golden_corpus import diff, offline_run, paths, published_diff, scenario
 
-
-def test_pipeline_replay_matches_golden() -> None:
-    diffs = compare(pipeline_output(), load_golden())
-    assert not diffs, diffs[:10]
+SCENARIO = scenario("daemon_press")  # the corpus's capture: its output is tests/data/golden/daemon_press.chk
+CAPTURE, CHK = paths(SCENARIO)
+CONFIG = CAPTURE.with_suffix(".toml")
+# (the offline driver on the capture gives daemon_press.chk: tests/test_golden_corpus.py)
 
 
 def test_golden_holds_what_the_capture_was_made_of() -> None:
-    g = load_golden()
-    (c,) = g["last_contact"]["contacts"]
-    assert c["x"] == pytest.approx(0.040, abs=1e-3) and c["y"] == pytest.approx(0.022, abs=1e-3)
-    assert c["force"] == pytest.approx(2.0, rel=0.01) and sorted(c["elements"]) == [2, 5]
-    pressed = [m for m in g["element"] if any(m["touched"])][:6]  # the first press, on four elements
-    assert sorted({b for m in pressed for b, t in zip(m["bridge"], m["touched"]) if t}) == [1, 2, 4, 5]
+    lines = CHK.read_text().splitlines()
+    last = [ln for ln in lines if ln.startswith("contact")][-1]
+    assert " n=1 " in last and " elements=2,5 valid=1" in last, last  # the second press, across the seam
+    fields = dict(w.split("=", 1) for w in last.split(" | ")[1].split())
+    assert abs(float(fields["x"].removesuffix("mm")) - 40.0) <= 1.0 and abs(float(fields["y"].removesuffix("mm")) - 22.0) <= 1.0
+    assert abs(float(fields["F"].removesuffix("N")) - 2.0) <= 0.02
+    pressed = [ln for ln in lines if ln.startswith("element") and "1" in ln.split("touched=")[1]][:6]
+    touched = set()  # the first press, on four elements
+    for ln in pressed:
+        words = dict(w.split("=", 1) for w in ln.split()[1:])
+        touched |= {int(b) for b, t in zip(words["b"].split(","), words["touched"]) if t == "1"}
+    assert sorted(touched) == [1, 2, 4, 5]
 
 
 def test_comparison_catches_a_moved_contact_and_a_changed_force() -> None:
     import copy
 
-    g = load_golden()
-    moved = copy.deepcopy(g)
-    moved["last_contact"]["contacts"][0]["x"] += 1e-3
-    assert compare(moved, g) == [f"contacts[0].x: {moved['last_contact']['contacts'][0]['x']!r} != "
-                                 f"{g['last_contact']['contacts'][0]['x']!r}"]
-    changed = copy.deepcopy(g)
-    i, m = next((i, m) for i, m in enumerate(g["element"]) if any(f == f for f in m["force"]))  # a pressed one
-    changed["element"][i]["force"] = [f * 1.0001 for f in m["force"]]
-    assert len(compare(changed, g)) == sum(f == f for f in m["force"])  # each valid force is caught
+    messages, _ = offline_run(SCENARIO, CAPTURE)
+    assert published_diff(SCENARIO, messages) == []  # the offline driver's own output passes
+    moved = copy.deepcopy(messages)
+    last = next(m for t, m in reversed(moved) if t == "contact")
+    last["contacts"][0]["x"] += 1e-3
+    d = published_diff(SCENARIO, moved)
+    assert len(d) == 2 and all("x=41.0mm" in x and "x=40.0mm" in x for x in d), d  # the frame's line, the last
+    changed = copy.deepcopy(messages)
+    i, m = next((i, m) for i, (t, m) in enumerate(changed) if t == "element" and any(f == f for f in m["force"]))
+    m["force"] = [f * 1.0001 for f in m["force"]]
+    d = published_diff(SCENARIO, changed)
+    assert len([x for x in d if ".force[" in x]) == sum(f == f for f in m["force"]), d  # each valid force is caught
+    # and in the .chk: a contact moved by a millimetre is a changed line
+    lines = [ln.replace("x=40.0mm", "x=41.0mm") if ln.startswith("contact") else ln for ln in CHK.read_text().splitlines()]
+    assert sum(1 for ln in diff(SCENARIO, lines) if ln.startswith("+contact")) == sum(
+        1 for ln in lines if ln.startswith("contact") and "x=41.0mm" in ln) > 0
 
 
 def test_daemon_replaying_the_capture_publishes_the_golden_output(tmp_path: Path, warm_kernels: None) -> None:
@@ -54,8 +67,7 @@ def test_daemon_replaying_the_capture_publishes_the_golden_output(tmp_path: Path
             messages = client.until_exit(proc)
     finally:
         client.close()
-    got = normalise(messages)
-    diffs = compare(got, load_golden())
+    diffs = published_diff(SCENARIO, messages)
     assert not diffs, diffs[:10]
 
 
@@ -65,7 +77,7 @@ def test_capture_records_what_the_link_read(tmp_path: Path) -> None:
     cfg = tmp_path / "daemon.toml"
     endpoints = write_config(cfg, [{"name": "gw", "url": pty.link, "capture": cap}])
     client = Client(endpoints)
-    sk = Skin()
+    sk = GridFrames()
     sent = sk.hellos() + b"\x00junk\x00" + b"".join(d for _, d in sk.stream(20))
     try:
         with daemon(cfg) as proc:

@@ -18,8 +18,10 @@ import zmq.asyncio
 from cellbridge.daemon.core.config import load_config
 from cellbridge.daemon.shell.service import Service
 
-from support.daemon_golden import CAPTURE, CONFIG
+from support.golden_corpus import DATA
 from support.shell_fakes import RecordingHooks, until
+
+CAPTURE, CONFIG = DATA / "daemon_press.cbcap", DATA / "daemon_press.toml"  # the golden corpus's capture scenario
 
 
 class HungWarmUp(concurrent.futures.ThreadPoolExecutor):

@@ -17,7 +17,7 @@ import zmq
 from cellbridge.protocol import Command, Frame, Op, StreamDecoder
 
 from daemon_harness import Client, Pty, daemon, write_config
-from daemon_traffic import Skin
+from daemon_traffic import GridFrames
 from support.payloads import payload_as
 
 CORNER = (0.020, 0.020, 3.0, 0.012)  # on the corner of four elements: x and y both observable
@@ -42,7 +42,7 @@ def rig(tmp_path: Path, warm_kernels: None) -> Iterator[tuple[Pty, Client, Path]
         pty.close()
 
 
-def feed(pty: Pty, sk: Skin, n: int, press=None, start: int = 0, pause: float = 0.002) -> None:
+def feed(pty: Pty, sk: GridFrames, n: int, press=None, start: int = 0, pause: float = 0.002) -> None:
     for _, data in sk.stream(n, press, start):
         pty.write(data)
         time.sleep(pause)
@@ -56,7 +56,7 @@ def calibrated(health: dict, n: int) -> bool:
 
 def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
     pty, client, _ = rig
-    sk = Skin(rows=3, cols=3)  # pressing every element at once would read as a common-mode step
+    sk = GridFrames(rows=3, cols=3)  # pressing every element at once would read as a common-mode step
     pty.write(sk.hellos() + sk.beacons())
     feed(pty, sk, 40)
     # The calibrator steps on host time (at most calibration.max_step_rate a second), so a
@@ -114,9 +114,9 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
     assert float(np.median([c["contacts"][0]["force"] for c in reports])) == pytest.approx(3.0, rel=0.01)
 
 
-def announce(pty: Pty, client: Client, slots: int) -> Skin:
+def announce(pty: Pty, client: Client, slots: int) -> GridFrames:
     """Bridges say HELLO and send a few quiet slots; returns once their data comes out."""
-    sk = Skin()
+    sk = GridFrames()
     pty.write(sk.hellos())
     feed(pty, sk, slots)
     client.wait_for("element")
@@ -140,7 +140,7 @@ def test_closing_and_reopening_the_pty_reconnects(rig) -> None:
 
 def test_garbage_and_truncated_frames_are_counted_not_fatal(rig) -> None:
     pty, client, _ = rig
-    sk = Skin()
+    sk = GridFrames()
     pty.write(sk.hellos())
     one = sk.slot(0).split(b"\x00")[1]
     pty.write(b"\x00line noise\xff\xfe\x00" + one[:10] + b"\x00" + os.urandom(600) + b"\x00")
@@ -201,7 +201,7 @@ def test_set_goes_down_the_pty_as_a_cmd_frame_and_the_reply_comes_back(rig) -> N
 
 def test_topology_and_tare_over_control(rig) -> None:
     pty, client, _ = rig
-    sk = Skin()
+    sk = GridFrames()
     pty.write(sk.hellos() + sk.beacons())
     feed(pty, sk, 12)
     topo = client.wait_for("topology", lambda m: len(m["bridges"]) == 4)
@@ -232,7 +232,7 @@ def test_subscriber_that_never_reads_does_not_slow_ingest(tmp_path: Path) -> Non
     try:
         with daemon(cfg):
             reader.ready()
-            sk = Skin(rate=1000.0)
+            sk = GridFrames(rate=1000.0)
             slots = 3000
             hellos = sk.hellos()  # numbered before the data, as a bridge does
             blob = b"".join(data for _, data in sk.stream(slots))
@@ -308,7 +308,7 @@ def test_two_gateways_pty_and_socket_url_duplicates_removed(tmp_path: Path) -> N
             client.ready()
             conn, _ = server.accept()
             conns.append(conn)
-            sk = Skin()
+            sk = GridFrames()
             data = sk.hellos() + b"".join(d for _, d in sk.stream(10))
             pty.write(data)
             conn.sendall(data)
@@ -348,7 +348,7 @@ def test_count_drops_counts_what_a_full_subscriber_queue_refused(tmp_path: Path)
     try:
         with daemon(cfg):
             control.ready()
-            sk = Skin(rate=1000.0)
+            sk = GridFrames(rate=1000.0)
             pty.write(sk.hellos())
             for _, data in sk.stream(slots):
                 pty.write(data)
@@ -418,7 +418,7 @@ def test_a_hung_contact_worker_is_killed_and_replaced_and_contacts_resume(tmp_pa
     try:
         with daemon(cfg, tmp_path / "stderr.log") as proc:
             client.ready()
-            sk = Skin(rows=3, cols=3)
+            sk = GridFrames(rows=3, cols=3)
             pty.write(sk.hellos() + sk.beacons())
             k = 0
 

@@ -34,7 +34,7 @@ from cellbridge.daemon.shell.service import Service
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import RecordingWriter
 from cellbridge.recording.recorder import Recorder
-from daemon_traffic import Skin
+from daemon_traffic import GridFrames
 from support.pipeline_helpers import published, worker
 from support.shell_fakes import FakeClock, FakeDevice, RecordingHooks, ScriptedExecutor, until
 
@@ -89,7 +89,7 @@ def test_a_link_reads_byte_by_byte_and_reconnects_with_backoff_reset_after_an_op
 
 def test_bytes_lost_on_the_line_cost_frames_that_are_counted_and_the_rest_is_decoded() -> None:
     async def scenario(seed: int) -> tuple[int, int, dict[str, Any]]:
-        sk = Skin()
+        sk = GridFrames()
         dev = FakeDevice(chunk=7, loss=0.002, seed=seed)
         p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/ttyFAKE0"}]}))
         elements = [0]
@@ -124,7 +124,7 @@ def test_bytes_lost_on_the_line_cost_frames_that_are_counted_and_the_rest_is_dec
 
 
 def _job(p: Pipeline) -> Any:
-    sk = Skin()
+    sk = GridFrames()
     p.feed("gw", sk.hellos() + sk.beacons(), 1000.0)
     for k, data in sk.stream(80):
         p.feed("gw", data, 1000.0 + k / sk.rate)
@@ -265,7 +265,7 @@ async def _recv(sock: zmq.asyncio.Socket) -> tuple[str, dict[str, Any]]:
 def test_sighup_reloads_the_config_and_sigterm_drains_to_a_last_health(tmp_path: Path) -> None:
     async def scenario() -> None:
         dev = FakeDevice()
-        sk = Skin()
+        sk = GridFrames()
         async with running(tmp_path, dev) as (svc, ctx):
             health = _sub(ctx, svc, "health")
             await until(lambda: "health" in svc.pub.wanted)
@@ -325,7 +325,7 @@ def test_a_wall_clock_step_does_not_enter_the_reads_a_recording_replays(tmp_path
 def test_a_control_command_to_a_bridge_that_never_answers_times_out(tmp_path: Path) -> None:
     async def scenario() -> None:
         dev = FakeDevice()
-        sk = Skin()
+        sk = GridFrames()
         async with running(tmp_path, dev) as (svc, ctx):
             dev.send(sk.hellos())
             await until(lambda: "2" in svc.pipeline.health_body(0.0)["bridges"])
@@ -365,7 +365,7 @@ def test_control_replies_stamp_wall_clock_time(tmp_path: Path) -> None:
     asyncio.run(scenario())
 
 
-async def _press_until_an_estimate_hangs(dev: FakeDevice, sk: Skin) -> None:
+async def _press_until_an_estimate_hangs(dev: FakeDevice, sk: GridFrames) -> None:
     """Stream the skin's slots (a press across a seam from the 31st) until the service's
     ScriptedExecutor holds a hung estimate (at most 60 s: a guard, not a speed check)."""
     dev.send(sk.hellos() + sk.beacons())
@@ -386,7 +386,7 @@ def test_sigterm_with_a_hung_contact_worker_stops_within_the_drain_limit(tmp_pat
 
     async def scenario() -> None:
         dev = FakeDevice()
-        sk = Skin()
+        sk = GridFrames()
         make = ScriptedExecutor.factory(answers=2)
         async with running(tmp_path, dev, contact_executor=make, drain_limit=0.5) as (svc, ctx):
             contacts = _sub(ctx, svc, "contact", "health")
@@ -484,13 +484,18 @@ def test_a_finished_replay_waits_for_the_contact_workers_warm_up(tmp_path: Path,
     """The worker's warm-up (on a fresh installation: compiling the kernels, about 20 s)
     outlasts the golden capture's replay. The daemon stopped as soon as the replay ended,
     gave the pending estimate a share of ``drain_limit`` and published no contact at all."""
-    from support.daemon_golden import CAPTURE, CONFIG, compare, load_golden, normalise
+    from support.golden_corpus import paths, published_diff
+    from support.golden_corpus import scenario as corpus_scenario
     from support.shell_fakes import SlowStartExecutor
+
+    sc = corpus_scenario("daemon_press")
+    capture = paths(sc)[0]
+    config = capture.with_suffix(".toml")
 
     async def scenario() -> None:
         path = tmp_path / "replay.toml"
         path.write_text('[pub]\nendpoint = "inproc://replay-pub"\n[control]\nendpoint = "inproc://replay-ctl"\n'
-                        + CONFIG.read_text().replace("replay:daemon_press.cbcap", f"replay:{CAPTURE}"))
+                        + config.read_text().replace("replay:daemon_press.cbcap", f"replay:{capture}"))
         cfg = load_config(path)
         ctx = zmq.asyncio.Context()
         svc = Service(cfg, config_path=path, hooks=RecordingHooks(cfg), ctx=ctx,
@@ -504,7 +509,7 @@ def test_a_finished_replay_waits_for_the_contact_workers_warm_up(tmp_path: Path,
             messages.append(await _recv(sub))
         sub.close(0)
         ctx.destroy(linger=0)
-        diffs = compare(normalise(messages), load_golden())
+        diffs = published_diff(sc, messages)
         assert not diffs, diffs[:10]
 
     asyncio.run(scenario())
@@ -517,7 +522,7 @@ def test_a_drain_cancelled_midway_still_closes_the_sockets_and_ends_the_worker(t
 
     async def scenario() -> None:
         dev = FakeDevice()
-        sk = Skin()
+        sk = GridFrames()
         make = ScriptedExecutor.factory(answers=2)
         async with running(tmp_path, dev, contact_executor=make, drain_limit=10.0) as (svc, ctx):
             contacts = _sub(ctx, svc, "contact")

@@ -187,7 +187,7 @@ def test_a_corrupted_frame_that_passes_the_crc_happens_and_the_host_copes() -> N
     from cellbridge.protocol import Data, Frame, Mode, Sample, StreamDecoder, encode
     from cobs import cobs
 
-    from daemon_traffic import Skin
+    from daemon_traffic import GridFrames
 
     frame = encode(Frame(1, 0, 2, 7, Data(Mode.COUNTER, (Sample(0, 123456, 19600, 15800, 0),), 1)))
     two = Mesh((Cell(1),), (Bridge(1, (1,), (0.0, 0.0), True), Bridge(2, (1,), (0.04, 0.0))), ber=0.03)
@@ -206,7 +206,7 @@ def test_a_corrupted_frame_that_passes_the_crc_happens_and_the_host_copes() -> N
     assert dec.frames_ok + sum(dec.frames_dropped.values()) == 3 and len(got) == dec.frames_ok
     cfg = parse_config({"link": [{"name": "gw", "url": "/dev/null"}]})
     p = Pipeline(cfg)
-    p.feed("gw", Skin().hellos(), 1000.0)
+    p.feed("gw", GridFrames().hellos(), 1000.0)
     for k, data in enumerate(passed):
         p.feed("gw", b"\x00" + cobs.encode(data) + b"\x00", 1001.0 + k)
     assert p.tick(1010.0, force=True)  # health, counting what it could not use

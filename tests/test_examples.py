@@ -68,13 +68,13 @@ def test_example_reads_the_live_daemon(language: str, tmp_path: Path) -> None:
     import threading
 
     from daemon_harness import Pty, daemon, write_config
-    from daemon_traffic import Skin
+    from daemon_traffic import GridFrames
 
     cmd = EXAMPLE_COMMANDS[language](tmp_path)
     pty = Pty(tmp_path / "gw")
     cfg = tmp_path / "d.toml"
     ends = write_config(cfg, [{"name": "gw", "url": str(tmp_path / "gw")}])
-    sk = Skin(rows=2, cols=2)
+    sk = GridFrames(rows=2, cols=2)
     stop = threading.Event()
 
     def feed() -> None:  # the gateway keeps talking while the subscriber reads

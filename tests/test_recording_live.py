@@ -25,7 +25,12 @@ from cellbridge.recording.mcapfile import ReadResult, read_messages
 from daemon_harness import Client, daemon, write_config
 from live_skin import Collector, calibrated, cellbridge_cmd, free_port, group, live_skin
 from recording_helpers import same_payload
-from support.daemon_golden import CAPTURE, CONFIG, CONTACT_REL, CONTACT_TOL
+from support.golden_corpus import DATA
+
+CAPTURE, CONFIG = DATA / "daemon_press.cbcap", DATA / "daemon_press.toml"  # the golden corpus's capture scenario
+#: Two estimates of the same readings agree: within half a millimetre and 1 % of force.
+CONTACT_TOL = {"x": 5e-4, "y": 5e-4, "diameter": 5e-4}
+CONTACT_REL = {"force": 0.01}
 
 PRESS = (0.040, 0.020)  # across the seam of two elements of the 2x2 skin
 

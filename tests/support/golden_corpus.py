@@ -1,14 +1,18 @@
-"""The golden corpus: MCAP recordings of the virtual mesh's gateway lines and the daemon's output on them.
+"""The golden corpus: recordings of gateway lines and the daemon's output on them.
 
-Each scenario below runs the deterministic virtual mesh (``cellbridge.emulator.mesh.virtual``),
-keeps every gateway's serial bytes with their virtual arrival times as a recording's
-``serial`` channel (what ``cellbridge record --serial`` keeps from a live daemon), and
-writes next to it the daemon's output on that recording as one line per message
-(``NAME.chk``: ``element`` and ``contact`` messages with their fields rounded to what
-matters, and a last ``health`` line with the counters a scenario exercises), so a change
-of the daemon's output is a readable ``diff``. ``tests/test_golden_corpus.py`` replays
-them all. The files live in ``tests/data/golden/`` with ``README.md`` saying how each was
-made (the same note is in each recording's ``cellbridge`` metadata).
+Most scenarios below run the deterministic virtual mesh (``cellbridge.emulator.mesh.virtual``),
+keep every gateway's serial bytes with their virtual arrival times as a recording's
+``serial`` channel (what ``cellbridge record --serial`` keeps from a live daemon); a
+scenario with a ``capture`` instead writes hand-crafted frames (``bench/daemon_traffic.py``)
+as a link's capture file (``NAME.cbcap``, what a link's ``capture`` keeps, which the real
+daemon replays) and runs the daemon with its own config file. Next to each recording is the
+daemon's output on it as one line per message (``NAME.chk``: ``element`` and ``contact``
+messages with their fields rounded to what matters, and a last ``health`` line with the
+counters a scenario exercises), so a change of the daemon's output is a readable ``diff``.
+``tests/test_golden_corpus.py`` replays them all; :func:`published_diff` checks what a
+running daemon published against the same lines. The files live in ``tests/data/golden/``
+with ``README.md`` saying how each was made (the same note is in each MCAP recording's
+``cellbridge`` metadata).
 
 Commands (from the repository root)::
 
@@ -27,6 +31,7 @@ import argparse
 import difflib
 import math
 import sys
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -41,13 +46,17 @@ READ_GRAIN = 0.001  #: s; a host read returns what arrived within this (a pty re
 class Scenario:
     name: str
     note: str  #: how it was made, for README.md and the recording's metadata
-    mesh: Callable[[], Any]
+    mesh: Callable[[], Any] | None  #: None: the reads come from ``capture``
     seconds: float
     presses: tuple[tuple[float, float, float, float, float, float], ...] = ()  # start, duration, x, y, F, d
     restart: tuple[tuple[int, float], ...] = ()  # (bridge, at)
     adc: bool = False
     transform: str = ""  # "fragments", "wrap24", "noise": what is done to the gateway's bytes
     config: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: writes ``NAME.cbcap`` (a link's capture, link ``CAPTURE_LINK``): the reads, instead of the mesh
+    capture: Callable[[Path], None] | None = None
+    #: a daemon config in ``DATA`` the scenario runs with instead of ``BASE_CONFIG`` + ``config``
+    config_file: str = ""
 
 
 def _grid(rows: int, cols: int, gateways: tuple[int, ...] = (1,)) -> Callable[[], Any]:
@@ -62,6 +71,41 @@ def _line(n: int) -> Callable[[], Any]:
         from cellbridge.emulator.mesh import meshgen
         return meshgen.line(n)
     return make
+
+
+CAPTURE_LINK = "gw"  #: the link a capture scenario's reads come in on (its config's one link)
+PRESS = (0.020, 0.020, 3.0, 0.012)  #: daemon_press's first press: the corner of bridges 1, 2, 4 and 5
+PRESS2 = (0.040, 0.022, 2.0, 0.010)  #: its second, held to the end: across the seam of bridges 2 and 5
+
+
+def make_press_capture(path: Path) -> None:
+    """daemon_press: a gateway line carrying nine bridges (3 x 3) at 100 Hz: HELLO and BEACON,
+    15 quiet slots for the baseline, ``PRESS`` for 10, the release for 8, ``PRESS2`` for 12;
+    line noise and a truncated frame in slot 20, every third slot read in two pieces."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))  # run as a script too
+    from cellbridge.daemon.shell.capture import write_capture
+
+    from daemon_traffic import GridFrames
+
+    sk = GridFrames(rows=3, cols=3)
+    records = [(T0, sk.hellos() + sk.beacons())]
+    plan = [(None, 15), (PRESS, 10), (None, 8), (PRESS2, 12)]
+    k = 0
+    for press, n in plan:
+        for _ in range(n):
+            data = sk.slot(k, press)
+            if k == 20:
+                one = data.split(b"\x00")[1]
+                data = b"\x00noise\x00" + one[:7] + b"\x00" + data
+            t = T0 + 0.01 + k / sk.rate
+            if k % 3 == 0:  # a read that splits the slot in two
+                cut = len(data) // 3
+                records += [(t, data[:cut]), (t + 0.0004, data[cut:])]
+            else:
+                records.append((t, data))
+            k += 1
+    path.unlink(missing_ok=True)  # (a capture writer keeps a file it would overwrite as NAME.1)
+    write_capture(path, records)
 
 
 SCENARIOS: tuple[Scenario, ...] = (
@@ -91,6 +135,12 @@ SCENARIOS: tuple[Scenario, ...] = (
              "every 40th loses its last 5 bytes (a cut frame), every 55th has one bit flipped; a 3 N press from "
              "1.0 s to 2.0 s", _grid(2, 2), 2.5, presses=((1.0, 1.0, 0.040, 0.020, 3.0, 0.02),),
              transform="noise"),
+    Scenario("daemon_press", "a capture (`daemon_press.cbcap`, replayed with `daemon_press.toml`) of a gateway line "
+             "carrying a 3x3 grid's DATA frames at 100 Hz, hand-crafted (bench/daemon_traffic.py): 15 quiet "
+             "slots, a 3 N press on the corner of bridges 1, 2, 4 and 5 for 10, the release for 8, a 2 N press "
+             "across the seam of bridges 2 and 5 held to the end; line noise and a truncated frame in slot 20, "
+             "every third slot read in two pieces", None, 0.45, capture=make_press_capture,
+             config_file="daemon_press.toml"),
 )
 
 BASE_CONFIG: dict[str, dict[str, Any]] = {
@@ -114,6 +164,8 @@ def run_mesh(sc: Scenario) -> dict[int, list[tuple[float, bytes]]]:
             super()._gateway_out(b, data)
             out.setdefault(b, []).append((self.tick / CLOCK_HZ, data))
 
+    if sc.mesh is None:
+        raise ValueError(f"{sc.name}: no mesh to run (its reads come from a capture)")
     settings = Settings(mode=Mode.ADC) if sc.adc else Settings()
     vm = Recording(sc.mesh(), seed=1, settings=settings)
     for start, duration, x, y, force, diameter in sc.presses:
@@ -192,6 +244,9 @@ def host_reads(chunks: list[tuple[float, bytes]], transform: str) -> list[tuple[
 
 
 def make_recording(sc: Scenario, path: Path) -> None:
+    if sc.capture is not None:
+        sc.capture(path)
+        return
     from cellbridge.recording import codec
     from cellbridge.recording.mcapfile import RecordingWriter
 
@@ -210,8 +265,10 @@ def make_recording(sc: Scenario, path: Path) -> None:
 
 # -- the daemon's output -------------------------------------------------------------------
 def config_for(sc: Scenario, links: list[str]) -> Any:
-    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.core.config import load_config, parse_config
 
+    if sc.config_file:
+        return load_config(DATA / sc.config_file)
     data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
     for k, v in sc.config.items():
         data.setdefault(k, {}).update(v)
@@ -220,6 +277,10 @@ def config_for(sc: Scenario, links: list[str]) -> Any:
 
 
 def serial_reads(path: Path) -> list[tuple[str, float, bytes]]:
+    """(link, host time, bytes) of every read of a recording (or of a capture, on ``CAPTURE_LINK``)."""
+    if path.suffix == ".cbcap":
+        from cellbridge.daemon.shell.capture import read_capture
+        return [(CAPTURE_LINK, t, data) for t, data in read_capture(path)]
     from cellbridge.recording import codec
     from cellbridge.recording.mcapfile import read_messages
 
@@ -230,22 +291,31 @@ def serial_reads(path: Path) -> list[tuple[str, float, bytes]]:
     return out
 
 
-def daemon_output(sc: Scenario, recording: Path) -> list[str]:
-    """The daemon on the recording's serial channel, one line per message: its core and its
-    contact loop's schedule (ticks, pacing at ``[contact] rate``) in the recording's time,
-    contacts through the production contact path (an inline worker); a last ``health``."""
+def offline_run(sc: Scenario, recording: Path) -> tuple[list[tuple[str, dict[str, Any]]], list[dict[str, Any]]]:
+    """The daemon on the recording's reads: its core and its contact loop's schedule (ticks,
+    pacing at ``[contact] rate``) in the recording's time (a look at the last read's time
+    when the config replays in recorded time, as the service then does), contacts through
+    the production contact path (an inline worker). Its element and contact messages in
+    order, and the health it then publishes."""
     from cellbridge.daemon.core.messages import Publish
     from cellbridge.daemon.shell.offline import OfflineDaemon
 
     reads = serial_reads(recording)
-    d = OfflineDaemon(config_for(sc, sorted({link for link, _, _ in reads})), topics={"element", "contact"})
-    lines = [render(o.topic, o.payload) for o in d.run((t, link, data) for link, t, data in reads)]
+    cfg = config_for(sc, sorted({link for link, _, _ in reads}))
+    recorded = any(link.replay_clock == "recorded" and link.url.startswith("replay:") for link in cfg.links)
+    d = OfflineDaemon(cfg, topics={"element", "contact"}, recorded=recorded)
+    messages = [(o.topic, o.payload) for o in d.run((t, link, data) for link, t, data in reads)]
     p = d.pipeline
     p.want({"health"})
     t = reads[-1][1] if reads else T0
     health = [m.payload for m in p.tick(t, force=True) if isinstance(m, Publish) and m.topic == "health"]
-    lines += [render("health", m) for m in health]
-    return lines
+    return messages, health
+
+
+def daemon_output(sc: Scenario, recording: Path) -> list[str]:
+    """:func:`offline_run` one line per message (the ``.chk`` form), a last ``health``."""
+    messages, health = offline_run(sc, recording)
+    return [render(t, m) for t, m in messages] + [render("health", m) for m in health]
 
 
 def _f(v: Any, scale: float, digits: int) -> str:
@@ -303,7 +373,12 @@ def render(topic: str, m: dict[str, Any]) -> str:
 
 # -- the corpus on disk ----------------------------------------------------------------------
 def paths(sc: Scenario) -> tuple[Path, Path]:
-    return DATA / f"{sc.name}.mcap", DATA / f"{sc.name}.chk"
+    """The scenario's recording (``.mcap``, or its capture ``.cbcap``) and its ``.chk``."""
+    return DATA / f"{sc.name}{'.cbcap' if sc.capture else '.mcap'}", DATA / f"{sc.name}.chk"
+
+
+def scenario(name: str) -> Scenario:
+    return next(sc for sc in SCENARIOS if sc.name == name)
 
 
 def expected(sc: Scenario) -> list[str]:
@@ -316,20 +391,98 @@ def diff(sc: Scenario, got: list[str]) -> list[str]:
                                      lineterm="", n=1))
 
 
+def _same(a: Any, b: Any, path: str) -> list[str]:
+    """Where two messages' values differ: floats to 1e-9 relative (NaN equals NaN)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            return [f"{path}: keys differ: {sorted(set(a) ^ set(b))}"]
+        return [d for k in a for d in _same(a[k], b[k], f"{path}.{k}")]
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        if len(a) != len(b):
+            return [f"{path}: length {len(a)} != {len(b)}"]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _same(x, y, f"{path}[{i}]")]
+    if isinstance(a, float) and isinstance(b, (int, float)) and not isinstance(b, bool) \
+            or isinstance(b, float) and isinstance(a, (int, float)) and not isinstance(a, bool):
+        ok = (a != a and b != b) or math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-24)
+        return [] if ok else [f"{path}: {a!r} != {b!r}"]
+    return [] if a == b else [f"{path}: {a!r} != {b!r}"]
+
+
+def _contact_parts(line: str) -> tuple[str, Counter[str]]:
+    """A contact line as its frame's fields (``t_sample``, ``unknown``: not the instant of
+    the look ``t=`` nor the count ``n=``) and its contacts' texts without their track ids
+    (an id counts the tracks born before: history, not this frame)."""
+    head, *contacts = line.split(" | ")
+    frame = " ".join(w for w in head.split()[1:] if not w.startswith(("t=", "n=")))
+    return frame, Counter(" ".join(w for w in c.split() if not w.startswith("id=")) for c in contacts)
+
+
+def _t_sample(line: str) -> str:
+    return next(w for w in line.split() if w.startswith("t_sample="))
+
+
+def published_diff(sc: Scenario, messages: list[tuple[str, dict[str, Any]]]) -> list[str]:
+    """How the element and contact messages a running daemon published on the scenario's
+    recording (in order) differ from the offline driver's, i.e. from ``NAME.chk``.
+
+    The service and the offline driver are one daemon on the same reads, but when its
+    contact loop looks is the event loop's (a replay as fast as possible skips frames): so
+    the element messages must be the offline driver's one for one (every field but ``seq``
+    and ``source``, floats to 1e-9) and render to the ``.chk``'s element lines; a contact
+    message must render as the ``.chk``'s contact line of the same ``t_sample`` (the frame
+    it estimated), leaving out the instant of the look, the track ids, and a contact one
+    of them has not yet born or already ended (one at most); the last contact message (the
+    drain's estimate of the last frame) must be the ``.chk``'s last contact line but for its
+    track ids. Empty: no difference."""
+    want = [ln for ln in expected(sc) if not ln.startswith("health")]
+    mine = [(t, m) for t, m in messages if t in ("element", "contact")]
+    offline, _ = offline_run(sc, paths(sc)[0])
+
+    def elements(ms: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
+        return [{k: v for k, v in m.items() if k not in ("seq", "source")} for t, m in ms if t == "element"]
+
+    out = _same(elements(mine), elements(offline), "element")[:20]
+    got = [render(t, m) for t, m in mine]
+    out += list(difflib.unified_diff([ln for ln in want if ln.startswith("element")],
+                                     [ln for ln in got if ln.startswith("element")],
+                                     f"{sc.name}.chk", "published", lineterm="", n=0))[:20]
+    committed = {_t_sample(ln): ln for ln in want if ln.startswith("contact")}
+    contacts = [ln for ln in got if ln.startswith("contact")]
+    for ln in contacts:
+        theirs = committed.get(_t_sample(ln))
+        if theirs is None:  # a frame only the running daemon estimated
+            continue
+        (fa, a), (fb, b) = _contact_parts(ln), _contact_parts(theirs)
+        if fa != fb:
+            out.append(f"contact {_t_sample(ln)}: {fa!r} != {fb!r} (committed)")
+        if sum(((a - b) + (b - a)).values()) > 1:
+            out.append(f"contact {_t_sample(ln)}: {sorted(a - b)} != {sorted(b - a)} (committed)")
+    last = [ln for ln in want if ln.startswith("contact")][-1:]
+    if [(ln.split(" | ")[0], _contact_parts(ln)[1]) for ln in contacts[-1:]] != \
+            [(ln.split(" | ")[0], _contact_parts(ln)[1]) for ln in last]:
+        out.append(f"last contact: {contacts[-1:]!r} != {last!r} (committed)")
+    return out
+
+
 def write_readme() -> None:
     lines = ["# Golden recordings", "",
              "MCAP recordings of the virtual mesh's gateway lines (the `serial` channel, as",
-             "`cellbridge record --serial` keeps them) and, in `NAME.chk`, the daemon's output on each,",
-             "one line per message. Made by `tests/support/golden_corpus.py` (virtual mesh seed 1, host time",
+             "`cellbridge record --serial` keeps them), a link's capture file (`.cbcap`) of hand-crafted",
+             "frames, and, in `NAME.chk`, the daemon's output on each, one line per message.",
+             "Made by `tests/support/golden_corpus.py` (virtual mesh seed 1, host time",
              f"{T0:.0f} at virtual time 0, reads batched per {READ_GRAIN * 1e3:g} ms);",
-             "`tests/test_golden_corpus.py` replays them all.", "",
+             "`tests/test_golden_corpus.py` replays them all; the replay tests run the real daemon on",
+             "`daemon_press.cbcap` with `daemon_press.toml` and check what it publishes against `daemon_press.chk`.", "",
              "- `.venv/bin/python tests/support/golden_corpus.py --regen`: the daemon's output changed on purpose;",
              "  rewrite the `.chk` files, review `git diff tests/data/golden`, commit with the change.",
              "- `.venv/bin/python tests/support/golden_corpus.py --remake`: the emulator changed; make the",
              "  recordings again (and the `.chk` files).",
-             "- `.venv/bin/python tests/support/golden_corpus.py --diff`: show what would change.", "",
+             "- `.venv/bin/python tests/support/golden_corpus.py --diff`: show what would change.",
+             "- `.venv/bin/cellbridge decode NAME.mcap --run --topics contact,element`: each read's frames",
+             "  followed by the messages the daemon makes of it (with the default config; the corpus's",
+             "  own settings are in `tests/support/golden_corpus.py`).", "",
              "| recording | how it was made |", "|---|---|"]
-    lines += [f"| `{sc.name}.mcap` | {sc.note} ({sc.seconds:g} s) |" for sc in SCENARIOS]
+    lines += [f"| `{paths(sc)[0].name}` | {sc.note} ({sc.seconds:g} s) |" for sc in SCENARIOS]
     (DATA / "README.md").write_text("\n".join(lines) + "\n")
 
 

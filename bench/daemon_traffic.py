@@ -20,8 +20,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
-from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.firmware.readout import record_parts
+from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import (
     ADDR_HOST,

@@ -24,7 +24,7 @@ from cellbridge.daemon.shell.contact_worker import InlineExecutor
 from cellbridge.daemon.shell.offline import OfflineDaemon
 from cellbridge.daemon.shell.service import Service
 
-from support.golden_corpus import BASE_CONFIG, DATA, SCENARIOS, serial_reads
+from support.golden_corpus import BASE_CONFIG, DATA, SCENARIOS, same_values, serial_reads
 from support.shell_fakes import RecordingHooks
 
 SCENARIO = "multihop_line"  # a 3 N press on a line of 6 bridges: contacts from frames of 5 hops
@@ -87,17 +87,14 @@ def _service_messages(recording: Path, links: list[str], topics: tuple[str, ...]
 
 def _comparable(payload: dict[str, Any]) -> dict[str, Any]:
     """A message without its sequence number (each topic's count starts where its first
-    subscriber came) and its ``source`` (the publisher's stamp), floats rounded past the stamps' last bits and NaN as a string (it
-    equals nothing, itself included)."""
-    def clean(v: Any) -> Any:
-        if isinstance(v, float):
-            return "NaN" if v != v else round(v, 9)
-        if isinstance(v, dict):
-            return {k: clean(x) for k, x in v.items()}
-        if isinstance(v, (list, tuple)):
-            return [clean(x) for x in v]
-        return v
-    return {k: clean(v) for k, v in payload.items() if k not in ("seq", "source")}
+    subscriber came) and its ``source`` (the publisher's stamp); its values are compared
+    by :func:`same_values` (floats to 1e-9 relative: capacitances are 1e-11 F, so a
+    rounding to decimal places would have compared none of them)."""
+    return {k: v for k, v in payload.items() if k not in ("seq", "source")}
+
+
+def _frame_key(message: dict[str, Any]) -> float:
+    return round(message["t_sample"], 6)
 
 
 def test_the_service_publishes_what_the_offline_driver_publishes_on_a_corpus_recording() -> None:
@@ -110,8 +107,8 @@ def test_the_service_publishes_what_the_offline_driver_publishes_on_a_corpus_rec
             if o.topic in ("element", "contact")]
     got = [(topic, _comparable(p)) for topic, p in _service_messages(recording, links)]
 
-    assert [p for t, p in got if t == "element"] == [p for t, p in want if t == "element"]
-    offline_contacts = {p["t_sample"]: p for t, p in want if t == "contact"}
+    assert not same_values([p for t, p in got if t == "element"], [p for t, p in want if t == "element"], "element")
+    offline_contacts = {_frame_key(p): p for t, p in want if t == "contact"}
     service_contacts = [p for t, p in got if t == "contact"]
     assert sum(1 for p in offline_contacts.values() if p["contacts"]) >= 10  # the press was seen
     # The same frame estimated by both gives the same contacts, ids included. What the loop
@@ -123,13 +120,13 @@ def test_the_service_publishes_what_the_offline_driver_publishes_on_a_corpus_rec
     # compared, and a frame only one of them estimated neither.
     compared = 0
     for mine in service_contacts:
-        theirs = offline_contacts.get(mine["t_sample"])
+        theirs = offline_contacts.get(_frame_key(mine))
         if theirs is None:  # a frame only the service took (the offline look came after a newer read)
             continue
-        assert _frame_fields(mine) == _frame_fields(theirs), mine["t_sample"]
+        assert not same_values(_frame_fields(mine), _frame_fields(theirs)), mine["t_sample"]
         a, b = _by_id(mine), _by_id(theirs)
         for cid in a.keys() & b.keys():
-            assert a[cid] == b[cid], (mine["t_sample"], cid)
+            assert not same_values(a[cid], b[cid]), (mine["t_sample"], cid)
             compared += 1
         assert len(a.keys() ^ b.keys()) <= 1, (mine["t_sample"], sorted(a), sorted(b))
     assert compared >= 0.5 * sum(len(p["contacts"]) for p in offline_contacts.values()), compared

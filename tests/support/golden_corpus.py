@@ -391,16 +391,16 @@ def diff(sc: Scenario, got: list[str]) -> list[str]:
                                      lineterm="", n=1))
 
 
-def _same(a: Any, b: Any, path: str) -> list[str]:
+def same_values(a: Any, b: Any, path: str = "") -> list[str]:
     """Where two messages' values differ: floats to 1e-9 relative (NaN equals NaN)."""
     if isinstance(a, dict) and isinstance(b, dict):
         if set(a) != set(b):
             return [f"{path}: keys differ: {sorted(set(a) ^ set(b))}"]
-        return [d for k in a for d in _same(a[k], b[k], f"{path}.{k}")]
+        return [d for k in a for d in same_values(a[k], b[k], f"{path}.{k}")]
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         if len(a) != len(b):
             return [f"{path}: length {len(a)} != {len(b)}"]
-        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _same(x, y, f"{path}[{i}]")]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in same_values(x, y, f"{path}[{i}]")]
     if isinstance(a, float) and isinstance(b, (int, float)) and not isinstance(b, bool) \
             or isinstance(b, float) and isinstance(a, (int, float)) and not isinstance(a, bool):
         ok = (a != a and b != b) or math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-24)
@@ -441,7 +441,7 @@ def published_diff(sc: Scenario, messages: list[tuple[str, dict[str, Any]]]) -> 
     def elements(ms: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
         return [{k: v for k, v in m.items() if k not in ("seq", "source")} for t, m in ms if t == "element"]
 
-    out = _same(elements(mine), elements(offline), "element")[:20]
+    out = same_values(elements(mine), elements(offline), "element")[:20]
     got = [render(t, m) for t, m in mine]
     out += list(difflib.unified_diff([ln for ln in want if ln.startswith("element")],
                                      [ln for ln in got if ln.startswith("element")],

@@ -1,29 +1,19 @@
 """The daemon's sans-I/O core: (link, bytes, host time) in → frozen messages out.
 
-No sockets, no asyncio, no clock: the shells pass the time, so the same object runs
-under the service, in tests fed synthesized bytes, and on replayed captures with
-their recorded times (which is what makes golden-output tests exact). One call of
-:meth:`Pipeline.feed` handles one read of a link as a batch: frames are decoded, then
-every later stage works on numpy columns of all the batch's samples. What comes back
-is a list of :mod:`cellbridge.daemon.core.messages`; the shell does what each says.
+No sockets, no asyncio, no clock: the shells pass the time, so the same object runs under
+the service, in tests and on replayed recordings with their recorded times (which makes
+golden output exact). :meth:`Pipeline.feed` takes one read as a batch (numpy columns of
+all its samples) and returns :mod:`cellbridge.daemon.core.messages` for the shell to act on.
 
-The pipeline orchestrates, and only that: each concept has one owner it calls, which
-returns its results. The receive path (:class:`~cellbridge.daemon.core.wire.Ingress`); time
-(:mod:`cellbridge.daemon.core.clock`: each bridge's fit and the skin's mesh time,
-:mod:`cellbridge.daemon.core.domains`: one map and one frame sequence per time root); health
-(:class:`~cellbridge.daemon.core.health.HealthBook`); the mesh (:mod:`~cellbridge.daemon.core.topology`);
-readings through the element stages (:mod:`~cellbridge.daemon.core.batches`,
-:mod:`~cellbridge.daemon.core.layout`); commands (:mod:`~cellbridge.daemon.core.commands`); contact
-identity (:class:`~cellbridge.daemon.core.contacts.ContactIdentity`). A bridge forgotten is
-forgotten by each of them.
-
-Skin frames come from the gateways' readout records (:mod:`cellbridge.daemon.core.frames`):
-complete when every active gateway's record of it came, or at its deadline. Bridges on
-no schedule send DATA, read by a minimal fallback rule. Contact estimation is *not* in
-``feed``: it is slow next to ingest, so the shell asks :meth:`Pipeline.contact_job` for
-the newest complete frame whenever its worker is free (:meth:`Pipeline.contact_due` says
-when one is there), runs it (:mod:`cellbridge.daemon.shell.contact_worker`) and hands the
-contacts back to :meth:`Pipeline.contact_frame` (one frame of the skin, never a backlog).
+The pipeline orchestrates, and only that: each concept has one owner (``core/``: ``wire``
+the receive path, ``clock`` and ``domains`` time, ``health``, ``topology``, ``batches`` and
+``layout`` the element stages, ``commands``, ``contacts`` contact identity), which returns
+its results; a bridge forgotten is forgotten by each. Skin frames come from the gateways'
+readout records (``frames``), complete when every active gateway's record came or at
+their deadline; bridges on no schedule send DATA, read by a minimal fallback rule.
+Contact estimation is not in ``feed``: the shell asks :meth:`Pipeline.contact_job` for the
+newest complete frame whenever its worker is free, runs it and hands the contacts to
+:meth:`Pipeline.contact_frame` (one frame of the skin, never a backlog).
 """
 
 from __future__ import annotations

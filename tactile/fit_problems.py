@@ -22,7 +22,16 @@ from cellbridge.tactile.fit_kernel import UNIFORM, fit_batch, share_start
 from cellbridge.tactile.layout import SkinLayout
 from numpy.typing import NDArray
 
-__all__ = ["Cluster", "Batch", "Fits", "FitRunner", "major_axis"]
+__all__ = ["Cluster", "Batch", "Fits", "FitRunner", "RING_SIGNAL", "major_axis"]
+
+#: Noise sigmas above which a quiet ring element's reading is the disk's, not noise: a
+#: footprint reaching onto it by a fraction of a millimetre reads tens of sigmas while
+#: the touch threshold (an absolute ΔC, far above the noise) still calls it untouched.
+#: Such a reading enters the fit two-sided like a member's: it is what places the disk
+#: along the seam. Below it the ring only bounds the disks from above (a disk gains
+#: nothing by grazing a neighbour to explain its noise). 5 sigma on either channel:
+#: noise alone gets there about once in a million readings.
+RING_SIGNAL = 5.0
 
 
 @dataclass
@@ -39,6 +48,9 @@ class Cluster:
     base: dict = field(default_factory=dict)  # Contact fields known before any fit
     firm: bool = False  # the pressure is from too-noisy high-branch elements only
     bounds: FloatArray | None = None  # the layout's element bounds (a reference, for failed fits)
+    #: (observed,) True: the reading only bounds the disks from above (a quiet ring
+    #: element at the noise); None: the ring (every element after the members)
+    quiet: NDArray[np.bool_] | None = None
 
 
 @dataclass
@@ -163,6 +175,14 @@ class FitRunner:
         ring = np.unique(np.concatenate([self._ring_of[i] for i in members]))
         ring = ring[(labels[ring] < 0) & finite[ring]]
         obs = np.concatenate([members, ring])
+        # A ring element whose reading stands out of the noise counts both ways, unless
+        # it also borders another cluster (whose disk may be what it reads).
+        own = labels[members[0]]
+        signal = (c1[ring] > RING_SIGNAL * self.noise[0]) | (c2[ring] > RING_SIGNAL * self.noise[1])
+        for j in np.flatnonzero(signal):
+            nb = labels[self._ring_of[int(ring[j])]]
+            signal[j] = not np.any((nb >= 0) & (nb != own))
+        quiet = np.concatenate([np.zeros(members.size, dtype=bool), ~signal])
         vm = valid[members]
         sigma0 = float(force[members][vm].sum() / area[members][vm].sum()) if vm.any() else math.nan
         is_firm = False
@@ -200,7 +220,7 @@ class FitRunner:
             area=s_tot if ok else math.nan,
         )
         y = np.stack([c1[obs], c2[obs]])
-        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, lay.bounds)
+        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, lay.bounds, quiet)
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
         """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)
@@ -210,7 +230,8 @@ class FitRunner:
         sizes = np.array([cl.obs.size for cl in clusters])
         off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         allobs = np.concatenate([cl.obs for cl in clusters])
-        quiet = np.concatenate([np.arange(cl.obs.size) >= cl.members.size for cl in clusters])
+        quiet = np.concatenate([np.arange(cl.obs.size) >= cl.members.size if cl.quiet is None else cl.quiet
+                                for cl in clusters])
         if area_fit:
             y = np.zeros((2, allobs.size))
             y[0] = np.nan_to_num(np.concatenate([cl.area for cl in clusters]))

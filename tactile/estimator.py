@@ -28,7 +28,7 @@ from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.clusters import cluster_elements
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams
-from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits
+from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits, frame_noise
 from cellbridge.tactile.inverse_kernel import solve_compiled as solve
 from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info
 from cellbridge.tactile.layout import SkinLayout
@@ -198,13 +198,14 @@ class ContactEstimator:
                 continue
             finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
             labels = self._clusters(act[t], finite, hints)
+            ring_noise = frame_noise(c1[t], c2[t], finite & ~act[t], self.noise)
             order = np.argsort(labels, kind="stable")
             k_max = int(labels.max())
             starts = np.searchsorted(labels[order], np.arange(k_max + 2))
             for k in range(k_max + 1):
                 clusters.append(self._runner.cluster(
                     order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
-                    None if firm is None else firm[t]))
+                    None if firm is None else firm[t], ring_noise))
                 frame_of.append(t)
         out: list[list[Contact]] = [[] for _ in clusters]
         good = [k for k, cl in enumerate(clusters) if cl.valid]

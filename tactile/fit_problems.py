@@ -22,7 +22,7 @@ from cellbridge.tactile.fit_kernel import UNIFORM, fit_batch, share_start
 from cellbridge.tactile.layout import SkinLayout
 from numpy.typing import NDArray
 
-__all__ = ["Cluster", "Batch", "Fits", "FitRunner", "RING_SIGNAL", "major_axis"]
+__all__ = ["Cluster", "Batch", "Fits", "FitRunner", "RING_SIGNAL", "frame_noise", "major_axis"]
 
 #: Noise sigmas above which a quiet ring element's reading is the disk's, not noise: a
 #: footprint reaching onto it by a fraction of a millimetre reads tens of sigmas while
@@ -30,8 +30,28 @@ __all__ = ["Cluster", "Batch", "Fits", "FitRunner", "RING_SIGNAL", "major_axis"]
 #: Such a reading enters the fit two-sided like a member's: it is what places the disk
 #: along the seam. Below it the ring only bounds the disks from above (a disk gains
 #: nothing by grazing a neighbour to explain its noise). 5 sigma on either channel:
-#: noise alone gets there about once in a million readings.
+#: noise alone gets there about once in a million readings. The sigma is the larger of
+#: the configured noise and the frame's own (:func:`frame_noise`).
 RING_SIGNAL = 5.0
+#: Fewest untouched elements whose readings measure a frame's noise; with fewer, no
+#: ring reading is taken for signal (the configured noise alone may be far too small:
+#: an ADC front end reads tens of times noisier than the counter it defaults to).
+FRAME_NOISE_MIN = 6
+
+
+def frame_noise(c1: FloatArray, c2: FloatArray, untouched: NDArray[np.bool_], floor: FloatArray) -> FloatArray:
+    """(2,) noise of one frame's readings per channel: 1.4826·median |ΔC| of its untouched
+    elements (about zero: a common offset counts as noise), at least ``floor``; infinite
+    with fewer than :data:`FRAME_NOISE_MIN` untouched elements.
+
+    Untouched elements read the noise (and the few sub-threshold shares of a press, which
+    the median ignores), whatever the configured noise says: a skin whose readings are
+    noisier than configured does not turn its quiet elements' noise into signal.
+    """
+    if int(untouched.sum()) < FRAME_NOISE_MIN:
+        return np.full(2, np.inf)
+    mad = np.array([np.median(np.abs(c1[untouched])), np.median(np.abs(c2[untouched]))])
+    return np.maximum(floor, 1.4826 * mad)
 
 
 @dataclass
@@ -162,13 +182,16 @@ class FitRunner:
     def cluster(
         self, members: IntArray, labels: IntArray, c1: FloatArray, c2: FloatArray,
         finite: NDArray[np.bool_], valid: NDArray[np.bool_], force: FloatArray, area: FloatArray,
-        firm: FloatArray | None = None,
+        firm: FloatArray | None = None, ring_noise: FloatArray | None = None,
     ) -> Cluster:
         """A cluster's observed elements, shared pressure, areas, centroid and base fields.
 
         ``firm``: per element, a high-branch pressure its inverse found too noisy to
         report (NaN elsewhere); with no valid element, the ΔC1-weighted mean of these
         is the cluster's pressure, so a hard press is fitted, not taken for a light one.
+        ``ring_noise``: (2,) the frame's noise (:func:`frame_noise`) against which a
+        quiet ring element's reading counts as the disk's (:data:`RING_SIGNAL`); None:
+        the ring only bounds the disk from above.
         """
         lay = self.layout
         members = np.sort(members)
@@ -178,7 +201,10 @@ class FitRunner:
         # A ring element whose reading stands out of the noise counts both ways, unless
         # it also borders another cluster (whose disk may be what it reads).
         own = labels[members[0]]
-        signal = (c1[ring] > RING_SIGNAL * self.noise[0]) | (c2[ring] > RING_SIGNAL * self.noise[1])
+        if ring_noise is None:
+            signal = np.zeros(ring.size, dtype=bool)
+        else:
+            signal = (c1[ring] > RING_SIGNAL * ring_noise[0]) | (c2[ring] > RING_SIGNAL * ring_noise[1])
         for j in np.flatnonzero(signal):
             nb = labels[self._ring_of[int(ring[j])]]
             signal[j] = not np.any((nb >= 0) & (nb != own))

@@ -212,10 +212,11 @@ class ContactEstimator:
         if good:
             for k, cs in zip(good, self._fit_valid([clusters[k] for k in good], hints)):
                 out[k] = cs
-        # A light touch on one element says nothing finer than the element: no fit.
-        light = [k for k, cl in enumerate(clusters) if not cl.valid and cl.members.size > 1]
+        # A light touch on one element says nothing finer than the element (no fit),
+        # unless a quiet neighbour reads a share of it (fit_problems.RING_SIGNAL).
+        light = [k for k, cl in enumerate(clusters) if not cl.valid and (cl.members.size > 1 or _ring_reads(cl))]
         for k, cl in enumerate(clusters):
-            if not cl.valid and cl.members.size == 1:
+            if not cl.valid and cl.members.size == 1 and not _ring_reads(cl):
                 out[k] = [unlocated(cl, lay.side)]
         if light:
             for k, c in zip(light, locate_light(self._runner, [clusters[k] for k in light])):
@@ -398,6 +399,11 @@ class ContactEstimator:
         h = hints[ok]
         cx, cy = cl.centroid
         return h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))]
+
+
+def _ring_reads(cl: Cluster) -> bool:
+    """Whether a quiet ring element of the cluster reads a share of its disk."""
+    return cl.quiet is not None and not bool(cl.quiet[cl.members.size :].all())
 
 
 def estimate_contacts(

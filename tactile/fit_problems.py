@@ -72,6 +72,14 @@ class Cluster:
     #: element at the noise); None: the ring (every element after the members)
     quiet: NDArray[np.bool_] | None = None
 
+    @property
+    def seen(self) -> IntArray:
+        """Positions in ``obs`` of the elements that read the disk: the members, then
+        the ring elements whose reading counts both ways (where a start looks)."""
+        if self.quiet is None:
+            return np.arange(self.members.size)
+        return np.flatnonzero(~self.quiet)
+
 
 @dataclass
 class Batch:
@@ -284,9 +292,10 @@ class FitRunner:
         return r
 
     def starts(self, clusters: list[Cluster], areas: list[FloatArray] | None = None) -> FloatArray:
-        """(K, 3) share-based (x, y, r) of each cluster (areas over its members)."""
-        mem = [cl.members for cl in clusters]
-        ar = [cl.area[: cl.members.size] for cl in clusters] if areas is None else areas
+        """(K, 3) share-based (x, y, r) of each cluster (areas over its members and the
+        ring elements that read the disk, :attr:`Cluster.seen`, in that order)."""
+        mem = [cl.obs[cl.seen] for cl in clusters]
+        ar = [cl.area[cl.seen] for cl in clusters] if areas is None else areas
         nmem = np.array([m.size for m in mem], dtype=np.int64)
         off = np.concatenate([[0], np.cumsum(nmem)]).astype(np.int64)
         out = np.empty((len(mem), 3))

@@ -293,12 +293,16 @@ class ContactEstimator:
         # Measured on the uniform fit (the foam's saturation, not the tension, makes
         # the force's cost flat upwards), applied to whichever fit is reported.
         firm_sig = self._firm_force_sigma(clusters, fits, free)
+        shifts = self._ring_shifts(clusters, fits, free) if self.method != "area" else {}
         if self.spread > 0:
             fits = self._spread_refine(batch, fits)
         for k, s_lnf in firm_sig.items():
             fits.sig[k, 3] = max(fits.sig[k, 3], s_lnf)
-        if self.method != "area":
-            self._ring_margin(clusters, fits, free)
+        for k, shift in shifts.items():
+            for a in (0, 1):
+                if not fits.flat[k, a]:
+                    fits.sig[k, a] = math.hypot(fits.sig[k, a], shift[a])
+                    fits.cov[k, a, a] += shift[a] ** 2
         area_force = self.method == "area"
         results = {k: [fits.contact(cl, k, int(dof[k]), area_force)] for k, cl in enumerate(clusters)}
         # Two disks need the uniform model: under a spread, a one-disk misfit of the
@@ -318,22 +322,23 @@ class ContactEstimator:
                     results[k] = [c]
         return list(results.values())
 
-    def _ring_margin(self, clusters: list[Cluster], fits: Fits, free: NDArray[np.bool_]) -> None:
-        """Widen σ of the axes a quiet neighbour's reading places, by how far the disk
-        moves when that reading is smaller by the model tolerance.
+    def _ring_shifts(self, clusters: list[Cluster], fits: Fits, free: NDArray[np.bool_]) -> dict[int, FloatArray]:
+        """Per fit placed by a quiet neighbour's reading, how far its centre moves (x, y)
+        when that reading is smaller by the model tolerance: added to σ of each resolved axis.
 
         A footprint's share on an untouched neighbour is a few per cent of the cluster's
         readings, and it alone places the disk along that seam: a gain error, the sheets'
         tension, or the drift tracker absorbing the share while a press is held (at
         ``max_drift``, over tens of seconds) moves it, and the noise-only σ (hundredths of
-        a millimetre) would then not hold the truth. So each such fit is redone with those
-        readings lowered by ``model_error`` of the cluster's largest reading (at least to
-        0), and the shift of each resolved axis is added to its σ in quadrature (the same
-        tolerance a second disk must beat, :mod:`cellbridge.tactile.two_disks`).
+        a millimetre) would then not hold the truth. So each such fit is redone (uniform
+        model) with those readings lowered by ``model_error`` of the cluster's largest
+        reading (at least to 0): the same tolerance a second disk must beat
+        (:mod:`cellbridge.tactile.two_disks`). A refit that fails says nothing of the
+        shift: then the element's own spread, side/√12.
         """
         rows = [k for k, cl in enumerate(clusters) if fits.ok[k] and _ring_reads(cl)]
         if not rows or self.model_error == 0.0:
-            return
+            return {}
         sub = []
         for k in rows:
             cl = clusters[k]
@@ -345,14 +350,8 @@ class ContactEstimator:
             y[:, ring] = np.maximum(y[:, ring] - tol[:, None], 0.0)
             sub.append(replace(cl, y=y))
         moved = self._runner.run(self._runner.batch(sub), fits.theta[rows].copy(), free[rows], 1, False)
-        for j, k in enumerate(rows):
-            for a in (0, 1):
-                if fits.flat[k, a]:
-                    continue
-                # A refit that fails says nothing of the shift: the element's own spread.
-                d = moved.theta[j, a] - fits.theta[k, a] if moved.ok[j] else self.layout.side / math.sqrt(12.0)
-                fits.sig[k, a] = math.hypot(fits.sig[k, a], d)
-                fits.cov[k, a, a] += d * d
+        wide = np.full(2, self.layout.side / math.sqrt(12.0))
+        return {k: (moved.theta[j, :2] - fits.theta[k, :2] if moved.ok[j] else wide) for j, k in enumerate(rows)}
 
     def _firm_force_sigma(self, clusters: list[Cluster], fits: Fits, free: NDArray[np.bool_]) -> dict[int, float]:
         """Least σ of ln F of each hard press, from the profile upwards, not the curvature alone.

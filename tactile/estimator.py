@@ -21,6 +21,7 @@ per kind (one-disk, two-disk, fixed-diameter).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Literal, Sequence
 
 import numpy as np
@@ -28,7 +29,7 @@ from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.clusters import cluster_elements
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams
-from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits
+from cellbridge.tactile.fit_problems import Batch, Cluster, FitRunner, Fits, frame_noise
 from cellbridge.tactile.inverse_kernel import solve_compiled as solve
 from cellbridge.tactile.inversion import DEFAULT_NOISE, InverseStatus, branch_info
 from cellbridge.tactile.layout import SkinLayout
@@ -198,23 +199,25 @@ class ContactEstimator:
                 continue
             finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
             labels = self._clusters(act[t], finite, hints)
+            ring_noise = frame_noise(c1[t], c2[t], finite & ~act[t], self.noise)
             order = np.argsort(labels, kind="stable")
             k_max = int(labels.max())
             starts = np.searchsorted(labels[order], np.arange(k_max + 2))
             for k in range(k_max + 1):
                 clusters.append(self._runner.cluster(
                     order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
-                    None if firm is None else firm[t]))
+                    None if firm is None else firm[t], ring_noise))
                 frame_of.append(t)
         out: list[list[Contact]] = [[] for _ in clusters]
         good = [k for k, cl in enumerate(clusters) if cl.valid]
         if good:
             for k, cs in zip(good, self._fit_valid([clusters[k] for k in good], hints)):
                 out[k] = cs
-        # A light touch on one element says nothing finer than the element: no fit.
-        light = [k for k, cl in enumerate(clusters) if not cl.valid and cl.members.size > 1]
+        # A light touch on one element says nothing finer than the element (no fit),
+        # unless a quiet neighbour reads a share of it (fit_problems.RING_SIGNAL).
+        light = [k for k, cl in enumerate(clusters) if not cl.valid and (cl.members.size > 1 or _ring_reads(cl))]
         for k, cl in enumerate(clusters):
-            if not cl.valid and cl.members.size == 1:
+            if not cl.valid and cl.members.size == 1 and not _ring_reads(cl):
                 out[k] = [unlocated(cl, lay.side)]
         if light:
             for k, c in zip(light, locate_light(self._runner, [clusters[k] for k in light])):
@@ -290,10 +293,16 @@ class ContactEstimator:
         # Measured on the uniform fit (the foam's saturation, not the tension, makes
         # the force's cost flat upwards), applied to whichever fit is reported.
         firm_sig = self._firm_force_sigma(clusters, fits, free)
+        shifts = self._ring_shifts(clusters, fits, free) if self.method != "area" else {}
         if self.spread > 0:
             fits = self._spread_refine(batch, fits)
         for k, s_lnf in firm_sig.items():
             fits.sig[k, 3] = max(fits.sig[k, 3], s_lnf)
+        for k, shift in shifts.items():
+            for a in (0, 1):
+                if not fits.flat[k, a]:
+                    fits.sig[k, a] = math.hypot(fits.sig[k, a], shift[a])
+                    fits.cov[k, a, a] += shift[a] ** 2
         area_force = self.method == "area"
         results = {k: [fits.contact(cl, k, int(dof[k]), area_force)] for k, cl in enumerate(clusters)}
         # Two disks need the uniform model: under a spread, a one-disk misfit of the
@@ -312,6 +321,37 @@ class ContactEstimator:
                 if c.fit_ok:
                     results[k] = [c]
         return list(results.values())
+
+    def _ring_shifts(self, clusters: list[Cluster], fits: Fits, free: NDArray[np.bool_]) -> dict[int, FloatArray]:
+        """Per fit placed by a quiet neighbour's reading, how far its centre moves (x, y)
+        when that reading is smaller by the model tolerance: added to σ of each resolved axis.
+
+        A footprint's share on an untouched neighbour is a few per cent of the cluster's
+        readings, and it alone places the disk along that seam: a gain error, the sheets'
+        tension, or the drift tracker absorbing the share while a press is held (at
+        ``max_drift``, over tens of seconds) moves it, and the noise-only σ (hundredths of
+        a millimetre) would then not hold the truth. So each such fit is redone (uniform
+        model) with those readings lowered by ``model_error`` of the cluster's largest
+        reading (at least to 0): the same tolerance a second disk must beat
+        (:mod:`cellbridge.tactile.two_disks`). A refit that fails says nothing of the
+        shift: then the element's own spread, side/√12.
+        """
+        rows = [k for k, cl in enumerate(clusters) if fits.ok[k] and _ring_reads(cl)]
+        if not rows or self.model_error == 0.0:
+            return {}
+        sub = []
+        for k in rows:
+            cl = clusters[k]
+            nm = cl.members.size
+            peak = np.nanmax(np.abs(cl.y[:, :nm]), axis=1)
+            tol = self.model_error * np.where(np.isfinite(peak), peak, 0.0)
+            ring = cl.seen[cl.seen >= nm]
+            y = cl.y.copy()
+            y[:, ring] = np.maximum(y[:, ring] - tol[:, None], 0.0)
+            sub.append(replace(cl, y=y))
+        moved = self._runner.run(self._runner.batch(sub), fits.theta[rows].copy(), free[rows], 1, False)
+        wide = np.full(2, self.layout.side / math.sqrt(12.0))
+        return {k: (moved.theta[j, :2] - fits.theta[k, :2] if moved.ok[j] else wide) for j, k in enumerate(rows)}
 
     def _firm_force_sigma(self, clusters: list[Cluster], fits: Fits, free: NDArray[np.bool_]) -> dict[int, float]:
         """Least σ of ln F of each hard press, from the profile upwards, not the curvature alone.
@@ -397,6 +437,11 @@ class ContactEstimator:
         h = hints[ok]
         cx, cy = cl.centroid
         return h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))]
+
+
+def _ring_reads(cl: Cluster) -> bool:
+    """Whether a quiet ring element of the cluster reads a share of its disk."""
+    return cl.quiet is not None and not bool(cl.quiet[cl.members.size :].all())
 
 
 def estimate_contacts(

@@ -22,7 +22,36 @@ from cellbridge.tactile.fit_kernel import UNIFORM, fit_batch, share_start
 from cellbridge.tactile.layout import SkinLayout
 from numpy.typing import NDArray
 
-__all__ = ["Cluster", "Batch", "Fits", "FitRunner", "major_axis"]
+__all__ = ["Cluster", "Batch", "Fits", "FitRunner", "RING_SIGNAL", "frame_noise", "major_axis"]
+
+#: Noise sigmas above which a quiet ring element's reading is the disk's, not noise: a
+#: footprint reaching onto it by a fraction of a millimetre reads tens of sigmas while
+#: the touch threshold (an absolute ΔC, far above the noise) still calls it untouched.
+#: Such a reading enters the fit two-sided like a member's: it is what places the disk
+#: along the seam. Below it the ring only bounds the disks from above (a disk gains
+#: nothing by grazing a neighbour to explain its noise). 5 sigma on either channel:
+#: noise alone gets there about once in a million readings. The sigma is the larger of
+#: the configured noise and the frame's own (:func:`frame_noise`).
+RING_SIGNAL = 5.0
+#: Fewest untouched elements whose readings measure a frame's noise; with fewer, no
+#: ring reading is taken for signal (the configured noise alone may be far too small:
+#: an ADC front end reads tens of times noisier than the counter it defaults to).
+FRAME_NOISE_MIN = 6
+
+
+def frame_noise(c1: FloatArray, c2: FloatArray, untouched: NDArray[np.bool_], floor: FloatArray) -> FloatArray:
+    """(2,) noise of one frame's readings per channel: 1.4826·median |ΔC| of its untouched
+    elements (about zero: a common offset counts as noise), at least ``floor``; infinite
+    with fewer than :data:`FRAME_NOISE_MIN` untouched elements.
+
+    Untouched elements read the noise (and the few sub-threshold shares of a press, which
+    the median ignores), whatever the configured noise says: a skin whose readings are
+    noisier than configured does not turn its quiet elements' noise into signal.
+    """
+    if int(untouched.sum()) < FRAME_NOISE_MIN:
+        return np.full(2, np.inf)
+    mad = np.array([np.median(np.abs(c1[untouched])), np.median(np.abs(c2[untouched]))])
+    return np.maximum(floor, 1.4826 * mad)
 
 
 @dataclass
@@ -39,6 +68,17 @@ class Cluster:
     base: dict = field(default_factory=dict)  # Contact fields known before any fit
     firm: bool = False  # the pressure is from too-noisy high-branch elements only
     bounds: FloatArray | None = None  # the layout's element bounds (a reference, for failed fits)
+    #: (observed,) True: the reading only bounds the disks from above (a quiet ring
+    #: element at the noise); None: the ring (every element after the members)
+    quiet: NDArray[np.bool_] | None = None
+
+    @property
+    def seen(self) -> IntArray:
+        """Positions in ``obs`` of the elements that read the disk: the members, then
+        the ring elements whose reading counts both ways (where a start looks)."""
+        if self.quiet is None:
+            return np.arange(self.members.size)
+        return np.flatnonzero(~self.quiet)
 
 
 @dataclass
@@ -150,19 +190,33 @@ class FitRunner:
     def cluster(
         self, members: IntArray, labels: IntArray, c1: FloatArray, c2: FloatArray,
         finite: NDArray[np.bool_], valid: NDArray[np.bool_], force: FloatArray, area: FloatArray,
-        firm: FloatArray | None = None,
+        firm: FloatArray | None = None, ring_noise: FloatArray | None = None,
     ) -> Cluster:
         """A cluster's observed elements, shared pressure, areas, centroid and base fields.
 
         ``firm``: per element, a high-branch pressure its inverse found too noisy to
         report (NaN elsewhere); with no valid element, the ΔC1-weighted mean of these
         is the cluster's pressure, so a hard press is fitted, not taken for a light one.
+        ``ring_noise``: (2,) the frame's noise (:func:`frame_noise`) against which a
+        quiet ring element's reading counts as the disk's (:data:`RING_SIGNAL`); None:
+        the ring only bounds the disk from above.
         """
         lay = self.layout
         members = np.sort(members)
         ring = np.unique(np.concatenate([self._ring_of[i] for i in members]))
         ring = ring[(labels[ring] < 0) & finite[ring]]
         obs = np.concatenate([members, ring])
+        # A ring element whose reading stands out of the noise counts both ways, unless
+        # it also borders another cluster (whose disk may be what it reads).
+        own = labels[members[0]]
+        if ring_noise is None:
+            signal = np.zeros(ring.size, dtype=bool)
+        else:
+            signal = (c1[ring] > RING_SIGNAL * ring_noise[0]) | (c2[ring] > RING_SIGNAL * ring_noise[1])
+        for j in np.flatnonzero(signal):
+            nb = labels[self._ring_of[int(ring[j])]]
+            signal[j] = not np.any((nb >= 0) & (nb != own))
+        quiet = np.concatenate([np.zeros(members.size, dtype=bool), ~signal])
         vm = valid[members]
         sigma0 = float(force[members][vm].sum() / area[members][vm].sum()) if vm.any() else math.nan
         is_firm = False
@@ -200,7 +254,7 @@ class FitRunner:
             area=s_tot if ok else math.nan,
         )
         y = np.stack([c1[obs], c2[obs]])
-        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, lay.bounds)
+        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, lay.bounds, quiet)
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
         """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)
@@ -210,7 +264,8 @@ class FitRunner:
         sizes = np.array([cl.obs.size for cl in clusters])
         off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         allobs = np.concatenate([cl.obs for cl in clusters])
-        quiet = np.concatenate([np.arange(cl.obs.size) >= cl.members.size for cl in clusters])
+        quiet = np.concatenate([np.arange(cl.obs.size) >= cl.members.size if cl.quiet is None else cl.quiet
+                                for cl in clusters])
         if area_fit:
             y = np.zeros((2, allobs.size))
             y[0] = np.nan_to_num(np.concatenate([cl.area for cl in clusters]))
@@ -237,9 +292,10 @@ class FitRunner:
         return r
 
     def starts(self, clusters: list[Cluster], areas: list[FloatArray] | None = None) -> FloatArray:
-        """(K, 3) share-based (x, y, r) of each cluster (areas over its members)."""
-        mem = [cl.members for cl in clusters]
-        ar = [cl.area[: cl.members.size] for cl in clusters] if areas is None else areas
+        """(K, 3) share-based (x, y, r) of each cluster (areas over its members and the
+        ring elements that read the disk, :attr:`Cluster.seen`, in that order)."""
+        mem = [cl.obs[cl.seen] for cl in clusters]
+        ar = [cl.area[cl.seen] for cl in clusters] if areas is None else areas
         nmem = np.array([m.size for m in mem], dtype=np.int64)
         off = np.concatenate([[0], np.cumsum(nmem)]).astype(np.int64)
         out = np.empty((len(mem), 3))

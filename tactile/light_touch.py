@@ -74,7 +74,7 @@ def locate_light(runner: FitRunner, clusters: list[Cluster]) -> list[Contact]:
     probs: list[Cluster] = []
     areas, lnf = [], []
     for cl in clusters:
-        tot = float(np.maximum(cl.y[0, : cl.members.size], 0.0).sum())
+        tot = float(np.maximum(cl.y[0, cl.seen], 0.0).sum())
         share = _shares(cl)
         f0 = max(tot / k_low, 1e-6) if tot > 0 else 1e-3
         for d in diam:
@@ -200,10 +200,11 @@ def _branches(cost: np.ndarray, minima: np.ndarray, c_ref: np.ndarray, floor: fl
 
 
 def _shares(cl: Cluster) -> np.ndarray:
-    """Each member's share of the cluster's ΔC1 (equal shares when it has none)."""
-    s1 = np.maximum(cl.y[0, : cl.members.size], 0.0)
+    """Each share of the cluster's ΔC1 over the elements that read the disk
+    (:attr:`Cluster.seen`; equal shares when they read none)."""
+    s1 = np.maximum(cl.y[0, cl.seen], 0.0)
     tot = s1.sum()
-    return s1 / tot if tot > 0 else np.full(cl.members.size, 1.0 / cl.members.size)
+    return s1 / tot if tot > 0 else np.full(s1.size, 1.0 / s1.size)
 
 
 @functools.lru_cache(maxsize=8)
@@ -215,15 +216,14 @@ def _ratio_table(params: ElementParams) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _ratio_branches(params: ElementParams, cl: Cluster) -> list[tuple[float, float]]:
-    """(D, F) of a disk wholly on the cluster at each pressure its summed ΔC1/ΔC2 allows.
+    """(D, F) of a disk wholly on the elements that read it at each pressure their summed ΔC1/ΔC2 allows.
 
     The ratio of a light touch has two pressures (one each side of the ratio's peak;
     the peak's when noise puts the ratio above it), and each, with the summed ΔC1,
     gives the area and so the diameter: starts for the fit on each branch.
     """
-    nm = cl.members.size
-    c1 = float(np.maximum(cl.y[0, :nm], 0.0).sum())
-    c2 = float(np.maximum(cl.y[1, :nm], 0.0).sum())
+    c1 = float(np.maximum(cl.y[0, cl.seen], 0.0).sum())
+    c2 = float(np.maximum(cl.y[1, cl.seen], 0.0).sum())
     if not (c1 > 0 and c2 > 0):
         return []
     ln_s, rho = _ratio_table(params)

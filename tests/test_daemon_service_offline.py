@@ -20,6 +20,7 @@ import msgpack
 import zmq
 import zmq.asyncio
 from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.shell.capture import write_capture
 from cellbridge.daemon.shell.contact_worker import InlineExecutor
 from cellbridge.daemon.shell.offline import OfflineDaemon
 from cellbridge.daemon.shell.service import Service
@@ -49,10 +50,16 @@ def _service_messages(recording: Path, links: list[str], topics: tuple[str, ...]
                       ) -> list[tuple[str, dict[str, Any]]]:
     """What the service published on ``inproc://``, in order, while it replayed ``recording``."""
     endpoint = "inproc://service-offline"
+    return _run_service(_config(recording, links, endpoint), endpoint, topics)
+
+
+def _run_service(data: dict[str, Any], endpoint: str, topics: tuple[str, ...]) -> list[tuple[str, dict[str, Any]]]:
+    """What a service of config ``data`` (replays that exit when done, publishing on
+    ``endpoint``) published on ``topics``, in order."""
 
     async def run() -> list[tuple[str, dict[str, Any]]]:
         ctx = zmq.asyncio.Context()
-        cfg = parse_config(_config(recording, links, endpoint), "test")
+        cfg = parse_config(data, "test")
         svc = Service(cfg, hooks=RecordingHooks(cfg), ctx=ctx, contact_executor=InlineExecutor)
         sub = ctx.socket(zmq.SUB)
         got: list[tuple[str, dict[str, Any]]] = []
@@ -164,3 +171,46 @@ def test_a_replay_in_recorded_time_runs_on_the_recordings_clock() -> None:
         for name in links:
             since = h["links"][name]["connected_since"]
             assert since is None or first <= since <= last, since  # the link came up at the first read
+
+
+def _silent(health: dict[str, Any]) -> list[str]:
+    bridges = health["bridges"]
+    items = bridges.items() if isinstance(bridges, dict) else enumerate(bridges)
+    return sorted(str(k) for k, b in items if b["silent"])
+
+
+def test_two_links_replayed_in_recorded_time_keep_one_clock(tmp_path: Path) -> None:
+    """Two gateways' captures, the second line up 3 s after the first (its records 3 s
+    later): replayed, each link was paced from its own first record, so the second line's
+    t+3 s came at once, the recording's clock jumped 3 s and the first line's bridges were
+    reported silent while their reads were being replayed. The offline driver, fed the
+    same reads in time order, reports none silent."""
+    sc = next(s for s in SCENARIOS if s.name == "two_gateways")
+    merged: list[tuple[float, str, bytes]] = []
+    for link, shift in (("gw1", 0.0), ("gw9", 3.0)):
+        recs = [(t + shift, d) for name, t, d in serial_reads(DATA / "two_gateways.mcap") if name == link]
+        write_capture(tmp_path / f"{link}.cbcap", recs)
+        merged += [(t, link, d) for t, d in recs]
+    merged.sort(key=lambda r: r[0])
+    data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
+    for k, v in sc.config.items():
+        data.setdefault(k, {}).update(v)
+    endpoint = "inproc://two-links-recorded"
+    data["pub"] = {"endpoint": endpoint}
+    data["control"] = {"endpoint": endpoint + "-ctl"}
+    data["link"] = [{"name": n, "url": f"replay:{tmp_path / n}.cbcap", "replay_speed": 2.0,
+                     "replay_clock": "recorded", "exit_when_done": True, "wait_for_subscriber": True}
+                    for n in ("gw1", "gw9")]
+    offline = OfflineDaemon(parse_config(data, "test"), topics={"health"}, recorded=True)
+    assert not [o.payload["t_host"] for o in offline.run(merged) if o.topic == "health" and _silent(o.payload)]
+    got = _run_service(data, endpoint, ("health",))
+    health = [p for t, p in got if t == "health"]
+    t0 = merged[0][0]
+    gw1_end = max(t for t, link, _ in merged if link == "gw1")
+    quiet = data["health"].get("bridge_timeout", 2.0) if "health" in data else 2.0
+    during = [h for h in health if h["t_host"] < gw1_end + quiet - 0.05]
+    assert len(during) >= 3, [h["t_host"] - t0 for h in health]
+    assert not [(round(h["t_host"] - t0, 2), _silent(h)) for h in during if _silent(h)]
+    # the first line really went quiet at its end: on the recording's clock, it is silent
+    after = [h for h in health if h["t_host"] > gw1_end + quiet + 0.05]
+    assert after and all(_silent(h) for h in after), [(h["t_host"] - t0, _silent(h)) for h in health]

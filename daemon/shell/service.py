@@ -39,7 +39,16 @@ from cellbridge.daemon.ops.ops import OpsHooks
 from cellbridge.daemon.shell.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.shell.control_server import ControlServer
 from cellbridge.daemon.shell.layout_file import load_layout
-from cellbridge.daemon.shell.links import SYSTEM_CLOCK, Clock, Link, Opener, ReplayLink, SerialLink, open_serial
+from cellbridge.daemon.shell.links import (
+    SYSTEM_CLOCK,
+    Clock,
+    Link,
+    Opener,
+    RecordedOrder,
+    ReplayLink,
+    SerialLink,
+    open_serial,
+)
 from cellbridge.daemon.shell.logs import event, setup
 from cellbridge.daemon.shell.publisher import Publisher
 from cellbridge.tactile import SkinLayout
@@ -94,6 +103,9 @@ class Service:
         # wall clock instead, every bridge of a recording made yesterday was a day silent.
         self._recorded_now: float | None = None
         self._states_before_data: list[tuple[str, bool, str]] = []
+        # ... fed as one recording across links, from one origin and in one time order
+        self._recorded_order = RecordedOrder([ln.name for ln in config.links
+                                              if ln.is_replay and ln.replay_clock == "recorded"])
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
@@ -194,7 +206,8 @@ class Service:
     def _make_link(self, cfg: Any) -> Link:
         if cfg.is_replay:
             gate = functools.partial(self._replay_gate, cfg.wait_for_subscriber)
-            return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done)
+            order = self._recorded_order if cfg.replay_clock == "recorded" else None
+            return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done, order=order)
         return SerialLink(cfg, self._on_data, self._on_state, self._opener, self._clock)
 
     async def _replay_gate(self, subscriber: bool) -> None:

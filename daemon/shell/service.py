@@ -184,6 +184,9 @@ class Service:
     def finished_commands(self, now: float) -> list[Pending]:
         return self.pipeline.finished_commands(now)
 
+    def expire_command(self, token: int) -> Pending | None:
+        return self.pipeline.expire_command(token)
+
     def topology_body(self, now: float) -> dict[str, Any]:
         return self.pipeline.topology_body(now)
 

@@ -188,10 +188,13 @@ class SerialLink(Link):
             loop.remove_reader(ser.fileno())
         except (OSError, ValueError, serial.SerialException):
             pass
+        # Off the loop: pyserial's socket:// close sleeps 0.3 s, and a tty's close may wait
+        # for its output to drain; on the loop, every other link, the contact loop and
+        # control stood still meanwhile, at each hang-up of a TCP gateway.
         try:
-            ser.close()
-        except (OSError, serial.SerialException):
-            pass
+            loop.run_in_executor(None, _close_port, ser)
+        except RuntimeError:  # the loop's executor is shut down (the process is ending)
+            _close_port(ser)
         if self.capture is not None:
             self.capture.flush()
 
@@ -217,6 +220,13 @@ class SerialLink(Link):
             return True
         except (serial.SerialException, OSError):
             return super().write(data)
+
+
+def _close_port(ser: Port) -> None:
+    try:
+        ser.close()
+    except (OSError, serial.SerialException):
+        pass
 
 
 #: Readable-yet-empty reads in a row, the line still answering, after which it counts as gone

@@ -214,3 +214,24 @@ def test_two_links_replayed_in_recorded_time_keep_one_clock(tmp_path: Path) -> N
     # the first line really went quiet at its end: on the recording's clock, it is silent
     after = [h for h in health if h["t_host"] > gw1_end + quiet + 0.05]
     assert after and all(_silent(h) for h in after), [(h["t_host"] - t0, _silent(h)) for h in health]
+
+
+def test_a_recording_that_steps_back_a_day_goes_on_on_its_clock(tmp_path: Path) -> None:
+    """Two days' captures appended in the wrong order (the second a day earlier): the
+    recording's clock was held at its newest time, so it stood still at the first day's
+    end for the whole second day (no health, no silence, no command deadline); and the
+    link fed the whole second day at once. Now the clock follows the step back (the
+    pipeline takes it as a host clock stepping back) and the second day is paced."""
+    reads = [(t, d) for _, t, d in serial_reads(DATA / f"{SCENARIO}.mcap")]
+    day = 86400.0
+    write_capture(tmp_path / "two-days.cbcap", reads + [(t - day, d) for t, d in reads])
+    endpoint = "inproc://recorded-step-back"
+    data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
+    data["pub"] = {"endpoint": endpoint}
+    data["control"] = {"endpoint": endpoint + "-ctl"}
+    data["link"] = [{"name": "gw1", "url": f"replay:{tmp_path / 'two-days.cbcap'}", "replay_speed": 2.0,
+                     "replay_clock": "recorded", "exit_when_done": True, "wait_for_subscriber": True}]
+    health = [p for t, p in _run_service(data, endpoint, ("health",)) if t == "health"]
+    first, last = reads[0][0] - day, reads[-1][0] - day
+    second = [h["t_host"] - first for h in health if first <= h["t_host"] < last - 0.2]
+    assert len(second) >= 2, [h["t_host"] - reads[0][0] for h in health]

@@ -180,3 +180,18 @@ def test_replays_in_recorded_time_are_paced_from_one_origin(tmp_path: Path) -> N
     times = [t for _, t in fed]
     assert times == sorted(times), "fed out of recorded order"
     assert wall["late"] - wall["early"] >= 0.25, wall["late"] - wall["early"]
+
+
+def test_a_recording_that_steps_back_is_paced_on_from_the_step(tmp_path: Path) -> None:
+    """Two captures appended, the second made earlier (a day's, here 0.5 s): paced on the
+    recording's newest time, every record after the step was behind it and the whole
+    second capture was fed at once, a day's recording in a burst."""
+    path = tmp_path / "line.cbcap"
+    times = [1000.0 + 0.01 * i for i in range(40)] + [999.5 + 0.01 * i for i in range(40)]
+    write_capture(path, [(t, bytes([i % 256])) for i, t in enumerate(times)])
+    for clock in ("recorded", "shifted"):
+        fed: list[tuple[float, float]] = []
+        link = _link(path, 1.0, clock, lambda n, d, now, fed=fed: fed.append((now, time.monotonic())))
+        asyncio.run(asyncio.wait_for(link.run(), 10))
+        second = [w for _, w in fed[40:]]
+        assert second[-1] - second[0] >= 0.38, (clock, second[-1] - second[0])  # its 0.39 s, paced

@@ -329,7 +329,8 @@ class ReplayLink(Link):
     baselines from other readings than the recorded run (9 fF apart, on a loaded machine).
     Counted in ``replay_late`` (records stamped after their due time) and ``replay_late_max`` (s).
     A replay behind its schedule lets the loop's other tasks run every 64 records (ticks,
-    estimates, the watchdog); a recording whose times step back is paced on its newest time.
+    estimates, the watchdog); a recording whose times step back (captures appended) is paced on from the step,
+as if it went on there.
     """
 
     #: s a paced record may be fed after its due time and still carry it (a sleep's wake-up)
@@ -381,14 +382,16 @@ class ReplayLink(Link):
             t_first = first[0]
         if first is not None:
             last, ahead, unyielded = -math.inf, 0.0, 0
+            prev, back = -math.inf, 0.0  # the recording's last time; s it stepped back in all
             try:
                 for t, data in _chain(first, records):
                     if order is not None:
                         order.post(self.name, t)  # (before a sleep: the others need not wait for it)
-                    rel = t - t_first
+                    if t < prev:  # the recording steps back (captures appended): paced on from
+                        back += prev - t  # there, not fed at once (a day's capture in a burst)
+                    prev = t
+                    rel = t - t_first + back
                     if speed > 0:
-                        # paced on the recording's newest time so far: a recording whose times
-                        # step back is replayed at once, not counted as a machine running late
                         ahead = max(ahead, rel)
                         due = stamp = start + ahead / speed
                         wait = due - clock.time()

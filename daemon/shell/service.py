@@ -98,8 +98,8 @@ class Service:
         # The reads' times as a recording keeps them for a replay: the wall clock's at the
         # start, then the time base's, so that a wall-clock step never enters a replay.
         self._read_offset = self.pipeline.wall_offset
-        # A replay in recorded time runs on the recording's clock: the newest recorded time fed
-        # (None until the first read; link states meanwhile wait for it). Ticked on today's
+        # A replay in recorded time runs on the recording's clock: the recorded time of the
+        # last read fed (None until the first read; link states meanwhile wait for it). Ticked on today's
         # wall clock instead, every bridge of a recording made yesterday was a day silent.
         self._recorded_now: float | None = None
         self._states_before_data: list[tuple[str, bool, str]] = []
@@ -122,8 +122,8 @@ class Service:
 
     def now(self) -> float:
         """The pipeline's time base: the monotonic clock; while a replay feeds recorded
-        wall-clock times, the newest of them fed so far (the recording's clock stands still
-        between its reads and after its end; before the first read it is the wall clock's
+        wall-clock times, the last of them fed (the recording's clock stands still between
+        its reads and after its end, and steps back where the recording does; before the first read it is the wall clock's
         time, which the pipeline is never ticked on: :meth:`_tick_once`)."""
         if self._recorded:
             return self._clock.wall() if self._recorded_now is None else self._recorded_now
@@ -132,7 +132,12 @@ class Service:
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
         t0 = time.perf_counter()
-        if self._recorded and (self._recorded_now is None or now > self._recorded_now):
+        if self._recorded:
+            # (the replays feed in one time order across links, links.RecordedOrder: a read
+            # before the last is the recording's own step back, e.g. two days' captures
+            # concatenated, and the clock follows it as a host clock stepping back; held
+            # at the newest time instead, it stood still for the whole rest of the
+            # recording: no health, no silence, no command deadline)
             first = self._recorded_now is None
             self._recorded_now = now
             if first:  # the links came up on the recording's clock, at its first read

@@ -306,10 +306,12 @@ class RecordedOrder:
         return self.origin
 
     async def turn(self, name: str, t: float) -> None:
-        """Wait until no other link's next record is older than ``t``, ``name``'s next (posted)."""
+        """Wait until no other link's next record comes before ``t``, ``name``'s next (posted):
+        older, or as old on a link whose name sorts first (reads of one time, as the offline
+        driver orders them: a tie taken in whichever order the tasks ran changed which
+        frame each element stage saw first)."""
         while True:
-            others = [v for k, v in self._next.items() if k != name]
-            if not others or t <= min(math.inf if v is None else v for v in others):
+            if all((t, name) <= (math.inf if v is None else v, k) for k, v in self._next.items() if k != name):
                 return
             await self._changed.wait()
 

@@ -22,6 +22,7 @@ from pathlib import Path
 from cellbridge.daemon.core.config import LinkConfig
 from cellbridge.daemon.shell.capture import write_capture
 from cellbridge.daemon.shell.links import RecordedOrder, ReplayLink
+
 from timing import table
 
 

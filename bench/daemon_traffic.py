@@ -5,7 +5,7 @@ ids from 1, the emulator's ``meshgen.grid`` geometry) that a test wants one by o
 HELLO, BEACON, command replies, DATA samples of a sampling slot, and READOUT records
 with the unchanged, missing bridges and the split into parts a test chooses. It is not a
 second model of the skin: what a press does to the elements is the emulator's one world
-model (:class:`cellbridge.emulator.world.World` holding the press as a static contact:
+model (:class:`cellbridge.emulator.world.world.World` holding the press as a static contact:
 its capacitances, band ghosts included), counted by the chip's transfer function; a
 READOUT record a test does not split by hand is the firmware's own
 (:func:`cellbridge.emulator.firmware.readout.record_parts`), framed as the gateway frames it (as

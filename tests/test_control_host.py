@@ -58,6 +58,9 @@ class NarrowHost:
     def finished_commands(self, now: float) -> list[Pending]:
         return self.commands.done(now)
 
+    def expire_command(self, token: int) -> Pending | None:
+        return self.commands.expire(token)
+
 
 async def _session(host: NarrowHost) -> list[dict[str, Any]]:
     ctx = zmq.asyncio.Context()

@@ -166,3 +166,21 @@ def test_a_reload_names_exactly_the_changed_settings_that_need_a_restart() -> No
                         "link": [{"url": "/dev/ttyUSB1"}]})
     assert old.needs_restart(new) == ["pub.hwm", "link"]  # contact.rate and the log level: reloadable
     assert old.needs_restart(parse_config({"link": [{"url": "/dev/ttyUSB0"}]})) == []
+
+
+@pytest.mark.parametrize("other", [{"url": "/dev/ttyUSB0"}, {"url": "socket://127.0.0.1:9"},
+                                   {"url": "replay:b.cbcap", "replay_clock": "shifted"}])
+def test_a_replay_in_recorded_time_takes_no_link_on_another_clock(other: dict[str, Any]) -> None:
+    """A replay in recorded time puts the whole daemon on the recording's clock: a line
+    read beside it (host monotonic time) or a replay shifted to now was accepted, and its
+    reads, seconds since boot, were taken as the recording's time (health t_host in
+    1970, the clock stepping back at every read of one and forward at every read of the other)."""
+    data = {"link": [{"name": "a", "url": "replay:a.cbcap", "replay_clock": "recorded"}, {"name": "b", **other}]}
+    with pytest.raises(ConfigError, match="recorded") as exc:
+        parse_config(data, "t")
+    assert "link[1]" in str(exc.value), str(exc.value)
+
+
+def test_replays_in_recorded_time_together_are_accepted() -> None:
+    data = {"link": [{"name": n, "url": f"replay:{n}.cbcap", "replay_clock": "recorded"} for n in ("a", "b")]}
+    assert len(parse_config(data, "t").links) == 2

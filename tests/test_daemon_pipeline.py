@@ -418,6 +418,24 @@ def test_host_clock_stepping_back_neither_stops_health_nor_hides_a_dead_bridge()
     assert all(not b["alive"] for b in p.topology_body(back + 5.0)["bridges"].values())
 
 
+def test_after_the_clock_steps_back_no_health_time_lies_in_the_future() -> None:
+    """A replay in recorded time whose recording steps back a day (two days' captures
+    appended): bridges' times were brought back to the step, but ``uptime`` went
+    negative (-86399.9 s) and the link's ``connected_since`` stayed a day ahead."""
+    sk = GridFrames()
+    p = make()
+    p.link_state("gw", True, T0, "")
+    t = settle(p, sk, 20)
+    p.tick(t)
+    back = t - 86400.0
+    p.tick(back)
+    body = p.health_body(back)
+    assert 0.0 <= body["uptime"], body["uptime"]
+    link = body["links"]["gw"]
+    for key in ("connected_since", "last_data"):
+        assert link[key] is not None and link[key] <= back + p.wall_offset, (key, link[key] - back)
+
+
 def test_every_time_health_and_topology_publish_is_wall_clock_time() -> None:
     """The pipeline runs on the monotonic clock (seconds since boot in the service); what it
     publishes is wall-clock time, and a wall-clock step moves it. Health's per-bridge

@@ -97,3 +97,68 @@ def test_a_hung_up_line_is_still_a_lost_device() -> None:
     data, states, link = _run(flush_between=False, close_master=True)
     assert states[0] == (True, "") and len(states) >= 2 and states[1][0] is False, states
     assert "device lost" in states[1][1], states
+
+
+def test_a_socket_line_whose_peer_hangs_up_is_lost_without_stalling_the_loop() -> None:
+    """pyserial's socket:// ``close()`` sleeps 0.3 s ("give the server some time"): called on
+    the event loop, each hang-up of a TCP gateway stopped every other link, the contact loop
+    and control for 0.3 s (measured: the longest loop gap 0.30 s). The link is lost at once
+    and the port closed off the loop."""
+    import socket
+    import threading
+
+    from cellbridge.daemon.shell.links import open_serial
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    port = srv.getsockname()[1]
+    closed_on: list[threading.Thread] = []
+    states: list[tuple[float, bool, str]] = []
+    data: list[bytes] = []
+
+    def opener(cfg: LinkConfig) -> object:
+        ser = open_serial(cfg)
+        close = ser.close
+
+        def recorded_close() -> None:
+            closed_on.append(threading.current_thread())
+            close()
+
+        ser.close = recorded_close  # type: ignore[method-assign]
+        return ser
+
+    link = SerialLink(LinkConfig("gw", f"socket://127.0.0.1:{port}", reconnect_min=5.0),
+                      lambda name, b, t: data.append(b), lambda name, up, why: states.append((time.monotonic(), up, why)),
+                      opener)  # type: ignore[arg-type]
+    loop_thread: list[threading.Thread] = []
+
+    async def main() -> None:
+        loop_thread.append(threading.current_thread())
+        task = asyncio.create_task(link.run())
+        loop = asyncio.get_running_loop()
+        conn, _ = await asyncio.wait_for(loop.run_in_executor(None, srv.accept), 10)
+        try:
+            end = time.monotonic() + 10
+            while not states and time.monotonic() < end:
+                await asyncio.sleep(0.01)
+            conn.sendall(b"\x00abc\x00")
+            while not data and time.monotonic() < end:
+                await asyncio.sleep(0.01)
+        finally:
+            conn.close()
+        while len(states) < 2 and time.monotonic() < end:
+            await asyncio.sleep(0.01)
+        task.cancel()
+        try:
+            await task
+        except asyncio.CancelledError:
+            pass
+
+    try:
+        asyncio.run(main())
+    finally:
+        srv.close()
+    assert data == [b"\x00abc\x00"]
+    assert [s[1] for s in states] == [True, False] and "device lost" in states[1][2], states
+    assert closed_on and loop_thread[0] not in closed_on, "the port was closed on the event loop's thread"

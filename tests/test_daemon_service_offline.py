@@ -20,6 +20,7 @@ import msgpack
 import zmq
 import zmq.asyncio
 from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.shell.capture import write_capture
 from cellbridge.daemon.shell.contact_worker import InlineExecutor
 from cellbridge.daemon.shell.offline import OfflineDaemon
 from cellbridge.daemon.shell.service import Service
@@ -30,8 +31,9 @@ from support.shell_fakes import RecordingHooks
 SCENARIO = "multihop_line"  # a 3 N press on a line of 6 bridges: contacts from frames of 5 hops
 
 
-def _config(recording: Path, links: list[str], endpoint: str) -> dict[str, Any]:
-    sc = next(s for s in SCENARIOS if s.name == SCENARIO)
+def _config(recording: Path, links: list[str], endpoint: str, *, scenario: str = SCENARIO,
+            speed: float = 0.5) -> dict[str, Any]:
+    sc = next(s for s in SCENARIOS if s.name == scenario)
     data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
     for k, v in sc.config.items():
         data.setdefault(k, {}).update(v)
@@ -40,7 +42,7 @@ def _config(recording: Path, links: list[str], endpoint: str) -> dict[str, Any]:
     data["control"] = {"endpoint": endpoint + "-ctl"}
     # the replay waits for the test's subscriber: a message published before its subscription
     # reached the service would be lost to it, not to the comparison's other side
-    data["link"] = [{"name": n, "url": f"replay:{recording}", "replay_speed": 0.5, "replay_clock": "recorded",
+    data["link"] = [{"name": n, "url": f"replay:{recording}", "replay_speed": speed, "replay_clock": "recorded",
                      "exit_when_done": True, "wait_for_subscriber": True} for n in links]
     return data
 
@@ -49,10 +51,16 @@ def _service_messages(recording: Path, links: list[str], topics: tuple[str, ...]
                       ) -> list[tuple[str, dict[str, Any]]]:
     """What the service published on ``inproc://``, in order, while it replayed ``recording``."""
     endpoint = "inproc://service-offline"
+    return _run_service(_config(recording, links, endpoint), endpoint, topics)
+
+
+def _run_service(data: dict[str, Any], endpoint: str, topics: tuple[str, ...]) -> list[tuple[str, dict[str, Any]]]:
+    """What a service of config ``data`` (replays that exit when done, publishing on
+    ``endpoint``) published on ``topics``, in order."""
 
     async def run() -> list[tuple[str, dict[str, Any]]]:
         ctx = zmq.asyncio.Context()
-        cfg = parse_config(_config(recording, links, endpoint), "test")
+        cfg = parse_config(data, "test")
         svc = Service(cfg, hooks=RecordingHooks(cfg), ctx=ctx, contact_executor=InlineExecutor)
         sub = ctx.socket(zmq.SUB)
         got: list[tuple[str, dict[str, Any]]] = []
@@ -164,3 +172,90 @@ def test_a_replay_in_recorded_time_runs_on_the_recordings_clock() -> None:
         for name in links:
             since = h["links"][name]["connected_since"]
             assert since is None or first <= since <= last, since  # the link came up at the first read
+
+
+def _silent(health: dict[str, Any]) -> list[str]:
+    bridges = health["bridges"]
+    items = bridges.items() if isinstance(bridges, dict) else enumerate(bridges)
+    return sorted(str(k) for k, b in items if b["silent"])
+
+
+def test_two_links_replayed_in_recorded_time_keep_one_clock(tmp_path: Path) -> None:
+    """Two gateways' captures, the second line up 3 s after the first (its records 3 s
+    later): replayed, each link was paced from its own first record, so the second line's
+    t+3 s came at once, the recording's clock jumped 3 s and the first line's bridges were
+    reported silent while their reads were being replayed. The offline driver, fed the
+    same reads in time order, reports none silent."""
+    sc = next(s for s in SCENARIOS if s.name == "two_gateways")
+    merged: list[tuple[float, str, bytes]] = []
+    for link, shift in (("gw1", 0.0), ("gw9", 3.0)):
+        recs = [(t + shift, d) for name, t, d in serial_reads(DATA / "two_gateways.mcap") if name == link]
+        write_capture(tmp_path / f"{link}.cbcap", recs)
+        merged += [(t, link, d) for t, d in recs]
+    merged.sort(key=lambda r: r[0])
+    data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
+    for k, v in sc.config.items():
+        data.setdefault(k, {}).update(v)
+    endpoint = "inproc://two-links-recorded"
+    data["pub"] = {"endpoint": endpoint}
+    data["control"] = {"endpoint": endpoint + "-ctl"}
+    data["link"] = [{"name": n, "url": f"replay:{tmp_path / n}.cbcap", "replay_speed": 2.0,
+                     "replay_clock": "recorded", "exit_when_done": True, "wait_for_subscriber": True}
+                    for n in ("gw1", "gw9")]
+    offline = OfflineDaemon(parse_config(data, "test"), topics={"health"}, recorded=True)
+    assert not [o.payload["t_host"] for o in offline.run(merged) if o.topic == "health" and _silent(o.payload)]
+    got = _run_service(data, endpoint, ("health",))
+    health = [p for t, p in got if t == "health"]
+    t0 = merged[0][0]
+    gw1_end = max(t for t, link, _ in merged if link == "gw1")
+    quiet = data["health"].get("bridge_timeout", 2.0) if "health" in data else 2.0
+    during = [h for h in health if h["t_host"] < gw1_end + quiet - 0.05]
+    assert len(during) >= 3, [h["t_host"] - t0 for h in health]
+    assert not [(round(h["t_host"] - t0, 2), _silent(h)) for h in during if _silent(h)]
+    # the first line really went quiet at its end: on the recording's clock, it is silent
+    after = [h for h in health if h["t_host"] > gw1_end + quiet + 0.05]
+    assert after and all(_silent(h) for h in after), [(h["t_host"] - t0, _silent(h)) for h in health]
+
+
+def test_a_recording_that_steps_back_a_day_goes_on_on_its_clock(tmp_path: Path) -> None:
+    """Two days' captures appended in the wrong order (the second a day earlier): the
+    recording's clock was held at its newest time, so it stood still at the first day's
+    end for the whole second day (no health, no silence, no command deadline); and the
+    link fed the whole second day at once. Now the clock follows the step back (the
+    pipeline takes it as a host clock stepping back) and the second day is paced."""
+    reads = [(t, d) for _, t, d in serial_reads(DATA / f"{SCENARIO}.mcap")]
+    day = 86400.0
+    write_capture(tmp_path / "two-days.cbcap", reads + [(t - day, d) for t, d in reads])
+    endpoint = "inproc://recorded-step-back"
+    data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
+    data["pub"] = {"endpoint": endpoint}
+    data["control"] = {"endpoint": endpoint + "-ctl"}
+    data["link"] = [{"name": "gw1", "url": f"replay:{tmp_path / 'two-days.cbcap'}", "replay_speed": 2.0,
+                     "replay_clock": "recorded", "exit_when_done": True, "wait_for_subscriber": True}]
+    health = [p for t, p in _run_service(data, endpoint, ("health",)) if t == "health"]
+    first, last = reads[0][0] - day, reads[-1][0] - day
+    second = [h["t_host"] - first for h in health if first <= h["t_host"] < last - 0.2]
+    assert len(second) >= 2, [h["t_host"] - reads[0][0] for h in health]
+
+
+def test_two_gateways_replayed_flat_out_publish_the_offline_drivers_element_messages() -> None:
+    """Two links of one recording, flat out: each link fed 64 records at a turn, so the
+    element stages saw one gateway's frames long before the other's of the same time (403
+    of 406 element messages differed from the offline driver's, and no contact was ever
+    estimated); then reads of one time came in whichever order the links' tasks ran (274
+    differed). In one time order, ties by link name as the offline driver sorts them, they
+    are the same messages."""
+    recording = DATA / "two_gateways.mcap"
+    reads = serial_reads(recording)
+    links = sorted({link for link, _, _ in reads})
+    assert len(links) == 2
+    endpoint = "inproc://two-gateways-flat-out"
+    data = _config(recording, links, endpoint, scenario="two_gateways", speed=0.0)
+    offline = OfflineDaemon(parse_config(data, "test"), topics={"element", "contact"}, recorded=True)
+    want = [_comparable(o.payload) for o in offline.run(sorted((t, link, d) for link, t, d in reads))
+            if o.topic == "element"]
+    got = _run_service(data, endpoint, ("element", "contact"))
+    elements = [_comparable(p) for t, p in got if t == "element"]
+    assert len(elements) == len(want) > 300
+    assert not same_values(elements, want, "element")[:5]
+    assert any(p["contacts"] for t, p in got if t == "contact")  # the press was estimated

@@ -315,3 +315,51 @@ def test_pyproject_lists_every_package_so_a_non_editable_install_carries_it() ->
     listed = set(config["tool"]["setuptools"]["packages"])
     found = source_packages(ROOT)
     assert found == listed, f"not in pyproject: {sorted(found - listed)}; no such package: {sorted(listed - found)}"
+
+
+# -- docs, units and docstrings name modules that exist -----------------------------------------
+
+#: Where the daemon's and the emulator's dotted names are written for readers: the docs, the
+#: README, the systemd units, the benchmarks and the package sources' docstrings (tests/ is
+#: left out: its layer checks name made-up modules on purpose).
+NAMED_IN = ("docs", "README.md", "systemd", "bench", "cellbridge", *RULES)
+DOTTED = r"cellbridge\.(?:daemon|emulator)(?:\.[A-Za-z_][A-Za-z0-9_]*)+"
+
+
+def unresolved_names(root: Path) -> list[str]:
+    """``file:line: name`` of every ``cellbridge.daemon.*``/``cellbridge.emulator.*`` dotted
+    name under ``root`` that is neither a module nor an attribute of one."""
+    import importlib
+    import re
+
+    def resolves(name: str) -> bool:
+        parts = name.split(".")
+        for i in range(len(parts), 1, -1):
+            try:
+                obj: object = importlib.import_module(".".join(parts[:i]))
+            except ModuleNotFoundError:
+                continue
+            for attr in parts[i:]:
+                if not hasattr(obj, attr):
+                    return False
+                obj = getattr(obj, attr)
+            return True
+        return False
+
+    out = []
+    for where in NAMED_IN:
+        path = root / where
+        files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file()
+                                                     and p.suffix in (".py", ".md", ".service", ".toml", ".txt"))
+        for f in files:
+            for n, line in enumerate(f.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+                for name in re.findall(DOTTED, line):
+                    if not resolves(name):
+                        out.append(f"{f.relative_to(root)}:{n}: {name}")
+    return out
+
+
+def test_every_daemon_and_emulator_name_in_docs_units_and_docstrings_resolves() -> None:
+    """The sub-packages moved modules (``daemon/service.py`` to ``daemon/shell/service.py``):
+    a doc, a unit or a docstring still naming the old place sends its reader nowhere."""
+    assert not unresolved_names(ROOT)

@@ -10,7 +10,7 @@ from typing import Any
 
 from cellbridge.daemon.core.config import LinkConfig
 from cellbridge.daemon.shell.capture import write_capture
-from cellbridge.daemon.shell.links import ReplayLink
+from cellbridge.daemon.shell.links import RecordedOrder, ReplayLink
 
 
 def _link(path: Path, speed: float, clock: str, on_data) -> ReplayLink:
@@ -123,3 +123,68 @@ def test_stamps_never_go_back_or_run_ahead_when_paced(tmp_path: Path) -> None:
         stamps = [s for s, _ in fed]
         assert all(b >= a for a, b in zip(stamps, stamps[1:])), speed
         assert all(s <= f + 1e-6 for s, f in fed), speed  # never ahead of the clock when fed
+
+
+def _two_links(tmp_path: Path, speed: float, records: dict[str, list[tuple[float, bytes]]],
+               fed: list[tuple[str, float]]) -> list[ReplayLink]:
+    """Replay links of one service in recorded time, one capture each, sharing one order."""
+    order = RecordedOrder(list(records))
+    links = []
+    for name, recs in records.items():
+        path = tmp_path / f"{name}.cbcap"
+        write_capture(path, recs)
+        cfg = LinkConfig(name=name, url=f"replay:{path}", replay_speed=speed, replay_clock="recorded")
+        links.append(ReplayLink(cfg, lambda n, d, t: fed.append((n, t)), lambda *a: None, order=order))
+    return links
+
+
+def test_replays_in_recorded_time_flat_out_feed_one_time_order_across_links(tmp_path: Path) -> None:
+    """Flat out, each link fed 64 records before letting the other run: a busy line's 64
+    records cover less recorded time than a quiet one's, so the quiet link ran ahead, the
+    service's recorded clock with it, and the busy line's bridges looked silent (on a long
+    recording, forgotten) while their reads were still to come."""
+    busy = [(1000.0 + 0.001 * i, b"a") for i in range(600)]  # 1000 reads a second
+    quiet = [(1000.0 + 0.01 * i, b"b") for i in range(60)]  # 100 reads a second
+    fed: list[tuple[str, float]] = []
+
+    async def run() -> None:
+        await asyncio.gather(*(ln.run() for ln in _two_links(tmp_path, 0.0, {"busy": busy, "quiet": quiet}, fed)))
+
+    asyncio.run(run())
+    assert len(fed) == 660
+    times = [t for _, t in fed]
+    worst = max(a - b for a, b in zip(times, times[1:], strict=False))
+    assert worst <= 0.0, f"recorded time stepped back {worst:.3f} s between links"
+
+
+def test_replays_in_recorded_time_are_paced_from_one_origin(tmp_path: Path) -> None:
+    """A gateway that came up 0.3 s after the other: its first record is due 0.3 s after
+    the other's first (paced each from its own first record, both started at once and the
+    later line's times ran ahead of the earlier one's, by however long it came up later)."""
+    early = [(1000.0 + 0.02 * i, b"e") for i in range(10)]  # over by 0.18 s
+    late = [(1000.3 + 0.02 * i, b"l") for i in range(5)]
+    fed: list[tuple[str, float]] = []
+
+    async def run() -> None:
+        await asyncio.gather(*(ln.run() for ln in _two_links(tmp_path, 1.0, {"early": early, "late": late}, fed)))
+
+    started = time.monotonic()
+    asyncio.run(run())
+    times = [t for _, t in fed]
+    assert times == sorted(times), "fed out of recorded order"
+    assert time.monotonic() - started >= 0.3 + 0.08, "the later line's records were not paced from the origin"
+
+
+def test_a_recording_that_steps_back_is_paced_on_from_the_step(tmp_path: Path) -> None:
+    """Two captures appended, the second made earlier (a day's, here 0.5 s): paced on the
+    recording's newest time, every record after the step was behind it and the whole
+    second capture was fed at once, a day's recording in a burst."""
+    path = tmp_path / "line.cbcap"
+    times = [1000.0 + 0.01 * i for i in range(40)] + [999.5 + 0.01 * i for i in range(40)]
+    write_capture(path, [(t, bytes([i % 256])) for i, t in enumerate(times)])
+    for clock in ("recorded", "shifted"):
+        fed: list[tuple[float, float]] = []
+        link = _link(path, 1.0, clock, lambda n, d, now, fed=fed: fed.append((now, time.monotonic())))
+        asyncio.run(asyncio.wait_for(link.run(), 10))
+        second = [w for _, w in fed[40:]]
+        assert second[-1] - second[0] >= 0.38, (clock, second[-1] - second[0])  # its 0.39 s, paced

@@ -410,3 +410,32 @@ def test_the_pages_contact_label_is_never_drawn_over_an_elements_id_or_force(x: 
             return a["x0"] < b["x1"] and b["x0"] < a["x1"] and a["y0"] < b["y1"] and b["y0"] < a["y1"]
 
         assert [t["text"] for t in own if overlap(labels[0], t)] == [], (labels[0], own)
+
+
+def test_a_stop_cut_off_leaves_the_terminals_stderr_as_it_was(tmp_path: Any) -> None:
+    """The cut-off's line went out with O_NONBLOCK set on stderr, and left it set: that flag
+    belongs to the open file of the terminal, which the shell that started the view shares,
+    so the shell and every program after it found their terminal non-blocking (reads
+    failing with EAGAIN, 'Resource temporarily unavailable')."""
+    import fcntl
+    import pty
+
+    master, slave = pty.openpty()
+    try:
+        assert not fcntl.fcntl(slave, fcntl.F_GETFL) & os.O_NONBLOCK
+        proc = subprocess.Popen([sys.executable, "-c", HANGING_STOP, str(tmp_path / "restored")],
+                                stdout=subprocess.PIPE, stderr=slave, start_new_session=True)
+        try:
+            assert proc.stdout is not None and proc.stdout.readline() == b"ready\n"
+            proc.send_signal(signal.SIGTERM)
+            rc = proc.wait(20)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(5)
+        assert rc == 1
+        assert b"still stopping" in os.read(master, 4096)
+        assert not fcntl.fcntl(slave, fcntl.F_GETFL) & os.O_NONBLOCK, "the terminal was left non-blocking"
+    finally:
+        os.close(master)
+        os.close(slave)

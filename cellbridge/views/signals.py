@@ -71,11 +71,32 @@ def _give_up(signame: str, deadline: float, restore: Callable[[], Any] | None) -
 
 def write_now(target: str | int, data: bytes) -> None:
     """Write ``data`` to a path (opened for it) or a descriptor without ever blocking; a
-    part that does not fit, or any error, is dropped."""
+    part that does not fit, or any error, is dropped. A descriptor's flags are put back
+    after: O_NONBLOCK belongs to the open file, which a terminal's shell shares with the
+    view, and left set it made the shell's terminal non-blocking after the view was gone."""
+    if isinstance(target, str):
+        try:
+            fd = os.open(target, os.O_WRONLY | os.O_NONBLOCK | os.O_NOCTTY)
+        except OSError:
+            return
+        try:
+            os.write(fd, data)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+        return
     try:
-        fd = os.open(target, os.O_WRONLY | os.O_NONBLOCK | os.O_NOCTTY) if isinstance(target, str) else target
-        if isinstance(target, int):
-            fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) | os.O_NONBLOCK)
-        os.write(fd, data)
+        flags = fcntl.fcntl(target, fcntl.F_GETFL)
+    except OSError:
+        return
+    try:
+        fcntl.fcntl(target, fcntl.F_SETFL, flags | os.O_NONBLOCK)
+        os.write(target, data)
     except OSError:
         pass
+    finally:
+        try:
+            fcntl.fcntl(target, fcntl.F_SETFL, flags)
+        except OSError:
+            pass

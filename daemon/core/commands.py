@@ -80,6 +80,11 @@ class CommandTracker:
             del self._pending[p.token]
         return out
 
+    def expire(self, token: int) -> Pending | None:
+        """Take command ``token`` off the books as timed out, whatever its deadline (None:
+        it already finished)."""
+        return self._pending.pop(token, None)
+
     def clock_stepped_back(self, now: float) -> None:
         """Keep each command's full timeout from now instead of waiting out the step."""
         for p in self._pending.values():

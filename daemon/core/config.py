@@ -429,6 +429,15 @@ def parse_config(data: Mapping[str, Any], source: str = "config", base_dir: Path
         if link.reconnect_max < link.reconnect_min:
             problems.append(f"link[{i}].reconnect_max = {link.reconnect_max!r}: must be >= reconnect_min")
         links.append(link)
+    # A replay in recorded time puts the daemon on the recording's clock; a link on another
+    # clock (a line's host time, a replay shifted to now) beside it cannot share it.
+    if any(ln.is_replay and ln.replay_clock == "recorded" for ln in links):
+        for i, ln in enumerate(links):
+            if not (ln.is_replay and ln.replay_clock == "recorded"):
+                what = "a replay shifted to now" if ln.is_replay else "a line read on the host's clock"
+                problems.append(f"link[{i}] ({ln.name!r}) is {what}, beside a replay with replay_clock = "
+                                f"\"recorded\", which runs the daemon on the recording's clock: replay every "
+                                f"link in recorded time, or none")
     names = [ln.name for ln in links]
     for dup in sorted({n for n in names if names.count(n) > 1}):
         problems.append(f"link name {dup!r} used twice")

@@ -371,6 +371,14 @@ class HealthBook:
         for b in self.bridges.values():
             b.last_seen = min(b.last_seen, now)
             b.first_seen = min(b.first_seen, now)
+        # (and nothing else reported lies in the future: uptime went negative, a link came up "tomorrow")
+        if self.started is not None:
+            self.started = min(self.started, now)
+        for lh in self.links.values():
+            if lh.connected_since is not None:
+                lh.connected_since = min(lh.connected_since, now)
+            if lh.last_data is not None:
+                lh.last_data = min(lh.last_data, now)
 
     # -- what is reported -------------------------------------------------------------------
     def alive(self) -> set[int]:

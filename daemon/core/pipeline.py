@@ -362,6 +362,11 @@ class Pipeline:
         """Commands whose bridges all answered, or whose time ran out by ``now`` (each once)."""
         return self.commands.done(now) if len(self.commands) else []
 
+    def expire_command(self, token: int) -> Pending | None:
+        """Command ``token`` ended as timed out now (None: it already finished): for a time
+        base that never reaches its deadline (a replay's recorded clock stands still)."""
+        return self.commands.expire(token)
+
     def commands_in_flight(self) -> int:
         return len(self.commands)
 

@@ -56,6 +56,10 @@ class Host(Protocol):
 
     def finished_commands(self, now: float) -> list[Pending]: ...
 
+    def expire_command(self, token: int) -> Pending | None:
+        """End command ``token`` as timed out now (None: it already finished)."""
+        ...
+
 
 class ControlServer:
     def __init__(self, sock: zmq.asyncio.Socket, host: Host, log: logging.Logger) -> None:
@@ -133,8 +137,21 @@ class ControlServer:
         fut: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
         self._waiting[token] = fut
         self.resolve(now)  # a broadcast with nobody alive completes at once
-        async with asyncio.timeout(timeout + 1.0):  # (not wait_for: it can lose a cancel, see the service)
-            result = await fut
+        try:
+            async with asyncio.timeout(timeout + 1.0):  # (not wait_for: it can lose a cancel, see the service)
+                result = await fut
+        except TimeoutError:
+            # The time base never reached the deadline: a replay's recorded clock stands still
+            # between its reads and after its last (or has not started). The command ends as
+            # timed out on the host's clock, with the reply a timeout gives: who did not answer.
+            self._waiting.pop(token, None)
+            pending = self.host.expire_command(token)
+            if pending is None:  # finished meanwhile: resolved, or about to be
+                if not fut.done():
+                    raise
+                result = fut.result()
+            else:
+                result = pending.result()
         result["sent_on"] = sent
         return result
 

@@ -188,10 +188,13 @@ class SerialLink(Link):
             loop.remove_reader(ser.fileno())
         except (OSError, ValueError, serial.SerialException):
             pass
+        # Off the loop: pyserial's socket:// close sleeps 0.3 s, and a tty's close may wait
+        # for its output to drain; on the loop, every other link, the contact loop and
+        # control stood still meanwhile, at each hang-up of a TCP gateway.
         try:
-            ser.close()
-        except (OSError, serial.SerialException):
-            pass
+            loop.run_in_executor(None, _close_port, ser)
+        except RuntimeError:  # the loop's executor is shut down (the process is ending)
+            _close_port(ser)
         if self.capture is not None:
             self.capture.flush()
 
@@ -217,6 +220,13 @@ class SerialLink(Link):
             return True
         except (serial.SerialException, OSError):
             return super().write(data)
+
+
+def _close_port(ser: Port) -> None:
+    try:
+        ser.close()
+    except (OSError, serial.SerialException):
+        pass
 
 
 #: Readable-yet-empty reads in a row, the line still answering, after which it counts as gone
@@ -261,6 +271,51 @@ def _reader(ser: Port, on_empty: Callable[[], None]) -> Callable[[], bytes]:
     return lambda: ser.read(READ_SIZE)
 
 
+class RecordedOrder:
+    """The replays of one service in recorded time, fed as one recording: paced from one
+    origin (the earliest first record of them all, at the time every link has its first
+    record) and in one time order across links (a link waits while another's next record
+    is older than its own).
+
+    Paced each from its own first record, a gateway whose line came up later was replayed
+    as if it came up with the others: its records ran ahead of the others' by that much,
+    the service's recorded clock with them, and the others' bridges looked silent while
+    their reads were still to come. Flat out, each link fed 64 records at a turn: a quiet
+    line's 64 cover more recorded time than a busy one's, and drifted ahead without bound."""
+
+    def __init__(self, names: list[str]) -> None:
+        self._next: dict[str, float | None] = dict.fromkeys(names)  # None: not yet known
+        self._changed = asyncio.Event()
+        self.origin: tuple[float, float] | None = None  # (recorded time, host time) of the start
+
+    def post(self, name: str, t: float) -> None:
+        """``name``'s next record is at recorded time ``t`` (inf: it has no more)."""
+        self._next[name] = t
+        changed, self._changed = self._changed, asyncio.Event()
+        changed.set()
+
+    async def start(self, name: str, t: float, now: Callable[[], float]) -> tuple[float, float]:
+        """``name``'s first record is at ``t`` (inf: none); waits for every link's, then the
+        (recorded, host) times the replays are paced from (host time: ``now()`` then)."""
+        self.post(name, t)
+        while any(v is None for v in self._next.values()):
+            await self._changed.wait()
+        if self.origin is None:
+            first = min(v for v in self._next.values() if v is not None)
+            self.origin = (first if math.isfinite(first) else t, now())
+        return self.origin
+
+    async def turn(self, name: str, t: float) -> None:
+        """Wait until no other link's next record comes before ``t``, ``name``'s next (posted):
+        older, or as old on a link whose name sorts first (reads of one time, as the offline
+        driver orders them: a tie taken in whichever order the tasks ran changed which
+        frame each element stage saw first)."""
+        while True:
+            if all((t, name) <= (math.inf if v is None else v, k) for k, v in self._next.items() if k != name):
+                return
+            await self._changed.wait()
+
+
 class ReplayLink(Link):
     """``replay:FILE``: the records of a capture at recorded speed × ``replay_speed`` (0: flat out).
 
@@ -276,7 +331,8 @@ class ReplayLink(Link):
     baselines from other readings than the recorded run (9 fF apart, on a loaded machine).
     Counted in ``replay_late`` (records stamped after their due time) and ``replay_late_max`` (s).
     A replay behind its schedule lets the loop's other tasks run every 64 records (ticks,
-    estimates, the watchdog); a recording whose times step back is paced on its newest time.
+    estimates, the watchdog); a recording whose times step back (captures appended) is paced on from the step,
+as if it went on there.
     """
 
     #: s a paced record may be fed after its due time and still carry it (a sleep's wake-up)
@@ -284,8 +340,10 @@ class ReplayLink(Link):
 
     def __init__(self, cfg: LinkConfig, on_data: DataCallback, on_state: StateCallback,
                  start_gate: Callable[[], Awaitable[None]] | None = None,
-                 on_done: Callable[[str], None] | None = None, clock: Clock = SYSTEM_CLOCK) -> None:
+                 on_done: Callable[[str], None] | None = None, clock: Clock = SYSTEM_CLOCK,
+                 order: RecordedOrder | None = None) -> None:
         super().__init__(cfg, on_data, on_state)
+        self._order = order  # the service's replays in recorded time, fed as one (recorded clock only)
         self.path = cfg.url.split(":", 1)[1]
         self._clock = clock  # paces a shifted replay (its time and its sleeps): a test's runs in fake time
         self._gate = start_gate
@@ -301,7 +359,18 @@ class ReplayLink(Link):
             first = next(records, None)
         except (OSError, ValueError) as exc:
             self._on_state(self.name, False, f"replay failed: {exc}")
+            if self._order is not None:
+                self._order.post(self.name, math.inf)
             return
+        order = self._order
+        try:
+            await self._replay(first, records)
+        finally:  # (also cancelled or failed: the other links must not wait for this one)
+            if order is not None:
+                order.post(self.name, math.inf)
+
+    async def _replay(self, first: tuple[float, bytes] | None, records: Iterator[tuple[float, bytes]]) -> None:
+        order = self._order
         if self._gate is not None:
             await self._gate()
         self._on_state(self.name, True, "")
@@ -309,15 +378,22 @@ class ReplayLink(Link):
         clock = self._clock
         start = clock.time()  # shifted: records replayed on the pipeline's (monotonic) time base
         why = "replay finished"
-        if first is not None:
+        if order is not None:  # one origin for the service's replays in recorded time
+            t_first, start = await order.start(self.name, math.inf if first is None else first[0], clock.time)
+        elif first is not None:
             t_first = first[0]
+        if first is not None:
             last, ahead, unyielded = -math.inf, 0.0, 0
+            prev, back = -math.inf, 0.0  # the recording's last time; s it stepped back in all
             try:
                 for t, data in _chain(first, records):
-                    rel = t - t_first
+                    if order is not None:
+                        order.post(self.name, t)  # (before a sleep: the others need not wait for it)
+                    if t < prev:  # the recording steps back (captures appended): paced on from
+                        back += prev - t  # there, not fed at once (a day's capture in a burst)
+                    prev = t
+                    rel = t - t_first + back
                     if speed > 0:
-                        # paced on the recording's newest time so far: a recording whose times
-                        # step back is replayed at once, not counted as a machine running late
                         ahead = max(ahead, rel)
                         due = stamp = start + ahead / speed
                         wait = due - clock.time()
@@ -341,6 +417,8 @@ class ReplayLink(Link):
                         stamp = start + rel
                         if self.records % 64 == 0:
                             await asyncio.sleep(0)  # let sockets and control run between records
+                    if order is not None:
+                        await order.turn(self.name, t)
                     self.records += 1
                     self._on_data(self.name, data, t if recorded else stamp)
             except (OSError, ValueError) as exc:  # a record further on is corrupt: the replay ends there

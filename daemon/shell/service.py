@@ -39,7 +39,16 @@ from cellbridge.daemon.ops.ops import OpsHooks
 from cellbridge.daemon.shell.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.shell.control_server import ControlServer
 from cellbridge.daemon.shell.layout_file import load_layout
-from cellbridge.daemon.shell.links import SYSTEM_CLOCK, Clock, Link, Opener, ReplayLink, SerialLink, open_serial
+from cellbridge.daemon.shell.links import (
+    SYSTEM_CLOCK,
+    Clock,
+    Link,
+    Opener,
+    RecordedOrder,
+    ReplayLink,
+    SerialLink,
+    open_serial,
+)
 from cellbridge.daemon.shell.logs import event, setup
 from cellbridge.daemon.shell.publisher import Publisher
 from cellbridge.tactile import SkinLayout
@@ -89,11 +98,14 @@ class Service:
         # The reads' times as a recording keeps them for a replay: the wall clock's at the
         # start, then the time base's, so that a wall-clock step never enters a replay.
         self._read_offset = self.pipeline.wall_offset
-        # A replay in recorded time runs on the recording's clock: the newest recorded time fed
-        # (None until the first read; link states meanwhile wait for it). Ticked on today's
+        # A replay in recorded time runs on the recording's clock: the recorded time of the
+        # last read fed (None until the first read; link states meanwhile wait for it). Ticked on today's
         # wall clock instead, every bridge of a recording made yesterday was a day silent.
         self._recorded_now: float | None = None
         self._states_before_data: list[tuple[str, bool, str]] = []
+        # ... fed as one recording across links, from one origin and in one time order
+        self._recorded_order = RecordedOrder([ln.name for ln in config.links
+                                              if ln.is_replay and ln.replay_clock == "recorded"])
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
@@ -110,8 +122,8 @@ class Service:
 
     def now(self) -> float:
         """The pipeline's time base: the monotonic clock; while a replay feeds recorded
-        wall-clock times, the newest of them fed so far (the recording's clock stands still
-        between its reads and after its end; before the first read it is the wall clock's
+        wall-clock times, the last of them fed (the recording's clock stands still between
+        its reads and after its end, and steps back where the recording does; before the first read it is the wall clock's
         time, which the pipeline is never ticked on: :meth:`_tick_once`)."""
         if self._recorded:
             return self._clock.wall() if self._recorded_now is None else self._recorded_now
@@ -120,7 +132,12 @@ class Service:
     # -- ingest -------------------------------------------------------------------------
     def _on_data(self, link: str, data: bytes, now: float) -> None:
         t0 = time.perf_counter()
-        if self._recorded and (self._recorded_now is None or now > self._recorded_now):
+        if self._recorded:
+            # (the replays feed in one time order across links, links.RecordedOrder: a read
+            # before the last is the recording's own step back, e.g. two days' captures
+            # concatenated, and the clock follows it as a host clock stepping back; held
+            # at the newest time instead, it stood still for the whole rest of the
+            # recording: no health, no silence, no command deadline)
             first = self._recorded_now is None
             self._recorded_now = now
             if first:  # the links came up on the recording's clock, at its first read
@@ -172,6 +189,9 @@ class Service:
     def finished_commands(self, now: float) -> list[Pending]:
         return self.pipeline.finished_commands(now)
 
+    def expire_command(self, token: int) -> Pending | None:
+        return self.pipeline.expire_command(token)
+
     def topology_body(self, now: float) -> dict[str, Any]:
         return self.pipeline.topology_body(now)
 
@@ -194,7 +214,8 @@ class Service:
     def _make_link(self, cfg: Any) -> Link:
         if cfg.is_replay:
             gate = functools.partial(self._replay_gate, cfg.wait_for_subscriber)
-            return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done)
+            order = self._recorded_order if cfg.replay_clock == "recorded" else None
+            return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done, order=order)
         return SerialLink(cfg, self._on_data, self._on_state, self._opener, self._clock)
 
     async def _replay_gate(self, subscriber: bool) -> None:

@@ -5,7 +5,7 @@ for ``discharge`` cycles, released to charge through R_adc, held at the sampling
 instant ``sample_delay`` cycles later, and the SAR then decides one bit per cycle.
 Oversampling runs N conversions back to back. The sampling instant and the held
 value are defined here once; the per-cycle SAR stepper
-(:func:`cellbridge.emulator.chip.reference.reference_convert`) and the vectorised
+(:func:`cellbridge.emulator.chip.reference.step_conversions`) and the vectorised
 :func:`sar_codes` both read them.
 
 The held value is :func:`cellbridge.tactile.transfer.adc_input` (the RC charging

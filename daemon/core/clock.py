@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -493,8 +493,8 @@ class RecordTime:
     sample and as unchanged (None: refused, its frame not mapped)."""
 
     jumped: bool
-    sampled: NDArray[np.int64] | None
-    unchanged: NDArray[np.int64] | None
+    sampled: Sequence[int] | None
+    unchanged: Sequence[int] | None
 
 
 class HostTimes:
@@ -562,8 +562,7 @@ class HostTimes:
             if not math.isfinite(t):
                 out.append(RecordTime(jumped, None, None))
                 continue
-            out.append(RecordTime(jumped, np.array([s[0] for s in rec.samples], dtype=np.int64),
-                                  np.array(rec.unchanged, dtype=np.int64)))
+            out.append(RecordTime(jumped, [s[0] for s in rec.samples], rec.unchanged))
         return out
 
 

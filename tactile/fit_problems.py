@@ -203,8 +203,9 @@ class FitRunner:
         """
         lay = self.layout
         members = np.sort(members)
-        ring = np.unique(np.concatenate([self._ring_of[i] for i in members]))
-        ring = ring[(labels[ring] < 0) & finite[ring]]
+        near = np.zeros(lay.n, dtype=bool)  # (a mask, not np.unique: the same sorted rows, no sort)
+        near[np.concatenate([self._ring_of[i] for i in members.tolist()])] = True
+        ring = np.flatnonzero(near & (labels < 0) & finite)
         obs = np.concatenate([members, ring])
         # A ring element whose reading stands out of the noise counts both ways, unless
         # it also borders another cluster (whose disk may be what it reads).
@@ -243,13 +244,11 @@ class FitRunner:
         wts = np.where(np.isfinite(f[:nm]), f[:nm], 0.0)
         if not (wts > 0).any():
             wts = np.maximum(c1[members], 0.0)  # no pressure known: weight by ΔC1
-        full_w = np.zeros(lay.n)
-        full_w[members] = wts
-        cx, cy = force_centroid(lay, full_w, members)
+        cx, cy = force_centroid(lay, wts, np.arange(nm), lay.centres[members])
         s_tot = float(np.nansum(np.maximum(a[:nm], 0.0)))
         ok = bool(vm.any())
         base = dict(
-            centroid_x=cx, centroid_y=cy, elements=tuple(int(i) for i in lay.ids[members]),
+            centroid_x=cx, centroid_y=cy, elements=tuple(lay.ids[members].tolist()),
             pressure=sigma0, force_sum=float(np.nansum(f[:nm])) if ok else math.nan,
             area=s_tot if ok else math.nan,
         )

@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import IntEnum
+from functools import partial
+from itertools import chain
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import msgpack
@@ -535,7 +537,7 @@ def _readout_lists(raw: list[Any], unchanged: list[Any], missing: list[Any],
             return None
         b, c1, c2, fl = zip(*raw)
         ids = [*b, *unchanged, *missing]
-        if set(map(type, ids + [*c1, *c2, *fl])) != {int}:
+        if set(map(type, chain(ids, c1, c2, fl))) != {int}:
             return None
         if not (min(c1) >= 0 and max(c1) <= limit and min(c2) >= 0 and max(c2) <= limit
                 and min(fl) >= 0 and max(fl) <= _OVERFLOWS):
@@ -549,7 +551,7 @@ def _readout_lists(raw: list[Any], unchanged: list[Any], missing: list[Any],
     for ordered in (ids[:len(raw)], unchanged, missing):
         if ordered and (ordered[0] < 0 or ordered[-1] > U16 or ordered != sorted(ordered)):
             return None
-    return tuple([_new_tuple(ReadoutSample, s) for s in raw]), tuple(unchanged), tuple(missing)
+    return tuple(map(_readout_sample, raw)), tuple(unchanged), tuple(missing)
 
 
 def _readout_lists_checked(raw: list[Any], unchanged: list[Any], missing: list[Any],
@@ -591,6 +593,9 @@ class ReadoutSample(NamedTuple):
     c1: int  #: counter value (u16) or sum of ADC codes for C1, in the record's mode
     c2: int
     flags: int = 0  #: :class:`SampleFlags` bits (u8); the overflow bits only
+
+
+_readout_sample = partial(_new_tuple, ReadoutSample)  # (a sample's validated list: a ReadoutSample, in C)
 
 
 @dataclass(frozen=True, slots=True)

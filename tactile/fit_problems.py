@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from cellbridge.tactile.arrays import FloatArray, IntArray
+from cellbridge.tactile.arrays import FloatArray, IntArray, median0
 from cellbridge.tactile.clusters import force_centroid
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
@@ -50,7 +50,7 @@ def frame_noise(c1: FloatArray, c2: FloatArray, untouched: NDArray[np.bool_], fl
     """
     if int(untouched.sum()) < FRAME_NOISE_MIN:
         return np.full(2, np.inf)
-    mad = np.array([np.median(np.abs(c1[untouched])), np.median(np.abs(c2[untouched]))])
+    mad = np.array([median0(np.abs(c1[untouched])), median0(np.abs(c2[untouched]))])
     return np.maximum(floor, 1.4826 * mad)
 
 

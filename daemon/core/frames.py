@@ -425,10 +425,12 @@ def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owne
     if after_gap and unchanged:  # "unchanged" may refer to a sample in the frame lost
         owner.counts["unchanged_after_gap"] += len(unchanged)
         missing, unchanged = missing + unchanged, []
-    arrays = [np.array(c, dtype=np.int64) for c in cols]
-    u, m = np.array(unchanged, dtype=np.int64), np.array(missing, dtype=np.int64)
-    every = np.concatenate([arrays[0], u, m])
-    if np.unique(every).size != every.size:  # a bridge in two parts or two gateways' records
+    # (np.fromiter: a thousand ids of Python ints a frame, twice as fast as np.array)
+    arrays = [np.fromiter(c, np.int64, len(c)) for c in cols]
+    u, m = np.fromiter(unchanged, np.int64, len(unchanged)), np.fromiter(missing, np.int64, len(missing))
+    every = np.sort(np.concatenate([arrays[0], u, m]))
+    if (every[1:] == every[:-1]).any():  # a bridge in two parts or two gateways' records (sorted:
+        # side by side; np.unique hashed them, four times as long)
         arrays, u, m = _merge(arrays, u, m, owner)
     b, c1, c2, fl, mo, ov = arrays
     return SkinFrame(p.index, p.rate, p.t, b, c1, c2, fl, mo, ov, u, m, complete, by_deadline,

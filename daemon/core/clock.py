@@ -352,7 +352,10 @@ class SkinClock:
         the map would put more than ``slack`` after ``now`` (its arrival: never remembered),
         and for one behind a jump back awaiting confirmation. Frames older than the newest by
         ``memory`` s are forgotten."""
-        keys, inverse = np.unique(g, return_inverse=True)
+        if g.shape == (1,):  # (a record's frame, once a frame: np.unique's cost for nothing)
+            keys, inverse = g, np.zeros(1, dtype=np.intp)
+        else:
+            keys, inverse = np.unique(g, return_inverse=True)
         memo = self._memo
         new = [k for k in keys.tolist() if k >= 0 and k not in memo and k >= self._back]
         if new and self.map.synced:

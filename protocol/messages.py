@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import IntEnum
+from functools import partial
+from itertools import chain
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import msgpack
@@ -522,34 +524,34 @@ class Bundle:
         return cls(tuple(frames))
 
 
-def _increasing(ids: list[Any] | tuple[Any, ...]) -> bool:
-    """``ids`` (all ints) strictly increasing within 0..U16."""
-    return not ids or (ids[0] >= 0 and ids[-1] <= U16 and list(ids) == sorted(set(ids)))
-
-
 def _readout_lists(raw: list[Any], unchanged: list[Any], missing: list[Any],
                    limit: int) -> tuple[tuple[ReadoutSample, ...], tuple[int, ...], tuple[int, ...]] | None:
     """A READOUT's samples, unchanged and missing lists when every check of
     :meth:`Readout.from_wire` passes, in a few C-level passes over the columns rather than
     a Python step per element (a thousand elements a frame, a hundred frames a second);
-    None when any check fails, and the element-by-element validation then names what."""
+    None when any check fails, and the element-by-element validation then names what.
+    Every id of the three lists is an int once (one set of them all as long as the lists
+    together), so each list is strictly increasing when it is in order."""
     if raw:
         if set(map(type, raw)) != {list} or set(map(len, raw)) != {4}:
             return None
         b, c1, c2, fl = zip(*raw)
-        if set(map(type, b + c1 + c2 + fl)) != {int}:
+        ids = [*b, *unchanged, *missing]
+        if set(map(type, chain(ids, c1, c2, fl))) != {int}:
             return None
-        if not (_increasing(b) and min(c1) >= 0 and max(c1) <= limit and min(c2) >= 0 and max(c2) <= limit
+        if not (min(c1) >= 0 and max(c1) <= limit and min(c2) >= 0 and max(c2) <= limit
                 and min(fl) >= 0 and max(fl) <= _OVERFLOWS):
             return None
     else:
-        b = ()
-    for ids in (unchanged, missing):
-        if ids and (set(map(type, ids)) != {int} or not _increasing(ids)):
+        ids = [*unchanged, *missing]
+        if ids and set(map(type, ids)) != {int}:
             return None
-    if len(set(b).union(unchanged, missing)) != len(b) + len(unchanged) + len(missing):
-        return None  # a bridge in two states
-    return tuple([_new_tuple(ReadoutSample, s) for s in raw]), tuple(unchanged), tuple(missing)
+    if len(set(ids)) != len(ids):
+        return None  # a bridge twice: in two states, or twice in one list
+    for ordered in (ids[:len(raw)], unchanged, missing):
+        if ordered and (ordered[0] < 0 or ordered[-1] > U16 or ordered != sorted(ordered)):
+            return None
+    return tuple(map(_readout_sample, raw)), tuple(unchanged), tuple(missing)
 
 
 def _readout_lists_checked(raw: list[Any], unchanged: list[Any], missing: list[Any],
@@ -591,6 +593,9 @@ class ReadoutSample(NamedTuple):
     c1: int  #: counter value (u16) or sum of ADC codes for C1, in the record's mode
     c2: int
     flags: int = 0  #: :class:`SampleFlags` bits (u8); the overflow bits only
+
+
+_readout_sample = partial(_new_tuple, ReadoutSample)  # (a sample's validated list: a ReadoutSample, in C)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,6 +1,8 @@
-"""The numpy array types the package's signatures use, defined once."""
+"""The numpy array types the package's signatures use, defined once, and array helpers they share."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -9,4 +11,22 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["BoolArray", "FloatArray", "IntArray"]
+__all__ = ["BoolArray", "FloatArray", "IntArray", "median0"]
+
+
+def median0(a: FloatArray) -> Any:
+    """``np.median(a, axis=0)`` of a float64 array (1-D: a scalar; 2-D: a row), bit for bit:
+    the same partition and the same arithmetic, without np.median's generic machinery (a
+    skin frame takes a few medians of a thousand readings; the wrapper cost as much as the
+    partition). NaN anywhere in a column: NaN, as np.median gives it."""
+    n = a.shape[0]
+    if n == 0 or a.dtype != np.float64 or a.ndim > 2:
+        return np.median(a, axis=0)
+    h = n // 2
+    p = np.partition(a, [h - 1, h, -1] if n % 2 == 0 else [h, -1], axis=0)
+    m = (0.0 + p[h - 1] + p[h]) / 2 if n % 2 == 0 else (0.0 + p[h]) / 1  # (np.mean's sum starts at 0.0: -0.0 is 0.0)
+    last = p[n - 1]
+    nan = np.isnan(last)
+    if a.ndim == 1:
+        return last if nan else m
+    return np.where(nan, last, m) if nan.any() else m

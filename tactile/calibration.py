@@ -69,7 +69,7 @@ from dataclasses import dataclass
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
-from cellbridge.tactile.arrays import FloatArray
+from cellbridge.tactile.arrays import FloatArray, median0
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
@@ -209,7 +209,7 @@ def _common_reference(
     most = max(int(up.sum()), int(down.sum()))
     jump = bool(most and most >= need)
     if jump:
-        step = np.median(off[trk], axis=0)
+        step = median0(off[trk])
         with np.errstate(invalid="ignore"):  # inf · 0 when common_spread is inf
             tol = enter + cfg.common_spread * np.abs(step)
         alike = trk & np.all(np.abs(off - step) <= np.where(np.isnan(tol), np.inf, tol), axis=1)
@@ -497,7 +497,7 @@ class Calibrator:
             return  # too few to tell drift from touch: the offset is carried
         jump, most, ref = _common_reference(resid - self._common, trk, enter, self.config)
         if int(ref.sum()) >= self.config.min_common:
-            new = np.median(resid[ref], axis=0)
+            new = median0(resid[ref])
             if jump:
                 self._common_jumps += 1
                 self._last_jump = {
@@ -526,7 +526,7 @@ class Calibrator:
             return trk
         own = np.abs(self._base - self._base0)  # about zero, where the anchor keeps their median
         if self._spread_age <= 0:  # the spread moves slowly: a median now and then is enough
-            self._spread = 1.4826 * np.median(own[trk], axis=0)
+            self._spread = 1.4826 * median0(own[trk])
             self._spread_age = _SPREAD_EVERY
         self._spread_age -= 1
         with np.errstate(invalid="ignore"):  # NaN own drift: not ready, and not tracked
@@ -558,7 +558,7 @@ class Calibrator:
         if self._anchor_age > 0 or int(ref.sum()) < self.config.min_common:
             return
         self._anchor_age = _ANCHOR_EVERY
-        r = np.median(self._base[ref] - self._base0[ref], axis=0)
+        r = median0(self._base[ref] - self._base0[ref])
         if not np.any(r):
             return
         self._base -= np.where((self._state == TRACKING)[:, None], r, 0.0)

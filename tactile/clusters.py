@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 from cellbridge.tactile.arrays import IntArray
 from cellbridge.tactile.layout import SkinLayout
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["cluster_elements", "force_centroid"]
 
@@ -87,13 +87,15 @@ def _across_unknown(layout: SkinLayout, a: np.ndarray, u: np.ndarray) -> IntArra
     return pairs[~blocked]
 
 
-def force_centroid(layout: SkinLayout, weights: ArrayLike, members: ArrayLike) -> tuple[float, float]:
-    """The paper's spatial centroid Σw_i·c_i/Σw_i over ``members`` (indices)."""
+def force_centroid(layout: SkinLayout, weights: ArrayLike, members: ArrayLike,
+                   centres: NDArray[np.float64] | None = None) -> tuple[float, float]:
+    """The paper's spatial centroid Σw_i·c_i/Σw_i over ``members`` (indices into
+    ``weights``; of the layout's elements, unless ``centres`` gives the members' own centres)."""
     idx = np.asarray(members, dtype=np.int64)
     w = np.asarray(weights, dtype=np.float64)[idx]
     w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
     tot = w.sum()
-    c = layout.centres[idx]
+    c = layout.centres[idx] if centres is None else centres
     if not tot > 0:
         return float(c[:, 0].mean()), float(c[:, 1].mean())
     return float(w @ c[:, 0] / tot), float(w @ c[:, 1] / tot)

@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from cellbridge.tactile.arrays import FloatArray, IntArray
+from cellbridge.tactile.arrays import FloatArray, IntArray, median0
 from cellbridge.tactile.clusters import force_centroid
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
@@ -50,7 +50,7 @@ def frame_noise(c1: FloatArray, c2: FloatArray, untouched: NDArray[np.bool_], fl
     """
     if int(untouched.sum()) < FRAME_NOISE_MIN:
         return np.full(2, np.inf)
-    mad = np.array([np.median(np.abs(c1[untouched])), np.median(np.abs(c2[untouched]))])
+    mad = np.array([median0(np.abs(c1[untouched])), median0(np.abs(c2[untouched]))])
     return np.maximum(floor, 1.4826 * mad)
 
 
@@ -203,8 +203,9 @@ class FitRunner:
         """
         lay = self.layout
         members = np.sort(members)
-        ring = np.unique(np.concatenate([self._ring_of[i] for i in members]))
-        ring = ring[(labels[ring] < 0) & finite[ring]]
+        near = np.zeros(lay.n, dtype=bool)  # (a mask, not np.unique: the same sorted rows, no sort)
+        near[np.concatenate([self._ring_of[i] for i in members.tolist()])] = True
+        ring = np.flatnonzero(near & (labels < 0) & finite)
         obs = np.concatenate([members, ring])
         # A ring element whose reading stands out of the noise counts both ways, unless
         # it also borders another cluster (whose disk may be what it reads).
@@ -243,13 +244,11 @@ class FitRunner:
         wts = np.where(np.isfinite(f[:nm]), f[:nm], 0.0)
         if not (wts > 0).any():
             wts = np.maximum(c1[members], 0.0)  # no pressure known: weight by ΔC1
-        full_w = np.zeros(lay.n)
-        full_w[members] = wts
-        cx, cy = force_centroid(lay, full_w, members)
+        cx, cy = force_centroid(lay, wts, np.arange(nm), lay.centres[members])
         s_tot = float(np.nansum(np.maximum(a[:nm], 0.0)))
         ok = bool(vm.any())
         base = dict(
-            centroid_x=cx, centroid_y=cy, elements=tuple(int(i) for i in lay.ids[members]),
+            centroid_x=cx, centroid_y=cy, elements=tuple(lay.ids[members].tolist()),
             pressure=sigma0, force_sum=float(np.nansum(f[:nm])) if ok else math.nan,
             area=s_tot if ok else math.nan,
         )

@@ -260,9 +260,10 @@ class SkinGeometry:
     def n(self) -> int:
         return int(self.ids.shape[0])
 
-    @property
+    @cached_property
     def bands(self) -> tuple[Band, ...]:
-        """The charts that close on themselves."""
+        """The charts that close on themselves (built once: a contact job asks for them
+        with every read)."""
         return tuple(Band(c.x0, c.period, c.y0, c.y0 + c.height) for c in self.charts if c.period > 0)
 
     def layout(self) -> SkinLayout:

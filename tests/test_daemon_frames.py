@@ -320,3 +320,30 @@ def test_the_frames_arrays_are_int64_columns() -> None:
     (f,) = sf.take(arrive(1))
     for a in (f.bridges, f.c1, f.c2, f.flags, f.mode, f.oversampling, f.unchanged, f.missing):
         assert a.dtype == np.int64
+
+
+def test_a_take_at_the_same_time_again_sees_what_came_since() -> None:
+    """The pipeline takes after every read and again for every contact job, at one time; the
+    second walk is skipped only while nothing take reads changed: a record, a gateway
+    forgotten, a reload or a restart in between is seen by a take at that very time."""
+    sf = SkinFrames(MARGIN)
+    now = arrive(3)
+    for k in (1, 2):
+        sf.add(1, record(k, {1: (1, 1)}), arrive(k), t_of(k))
+        sf.add(9, record(k, {9: (9, 9)}), arrive(k), t_of(k))
+    sf.add(1, record(3, {1: (2, 2)}), now, t_of(3))
+    assert [f.index for f in sf.take(now)] == [1, 2]
+    assert sf.take(now) == []  # gateway 9's record of 3 may still come
+    sf.add(9, record(3, {9: (3, 3)}), now, t_of(3))  # it comes, at the same host time
+    assert [(f.index, f.complete) for f in sf.take(now)] == [(3, True)]
+
+    sf.add(1, record(4, {1: (4, 4)}), now + 0.01, t_of(4))
+    assert sf.take(now + 0.01) == []  # waits for gateway 9
+    sf.forget(9)  # gone for good: frame 4 waits for gateway 1 alone, whole
+    assert [(f.index, f.complete) for f in sf.take(now + 0.01)] == [(4, True)]
+
+    sf.add(2, record(5, {2: (5, 5)}, part=0, parts=2), now + 0.015, t_of(5))
+    sf.add(1, record(5, {1: (5, 5)}), now + 0.02, t_of(5))
+    assert sf.take(now + 0.02) == []  # gateway 2's record has a part to come
+    sf.configure(MARGIN, 0.001, 64)  # a reload: gateway 2, 5 ms silent, is no longer active
+    assert [(f.index, f.complete) for f in sf.take(now + 0.02)] == [(5, True)]

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -352,7 +352,10 @@ class SkinClock:
         the map would put more than ``slack`` after ``now`` (its arrival: never remembered),
         and for one behind a jump back awaiting confirmation. Frames older than the newest by
         ``memory`` s are forgotten."""
-        keys, inverse = np.unique(g, return_inverse=True)
+        if g.shape == (1,):  # (a record's frame, once a frame: np.unique's cost for nothing)
+            keys, inverse = g, np.zeros(1, dtype=np.intp)
+        else:
+            keys, inverse = np.unique(g, return_inverse=True)
         memo = self._memo
         new = [k for k in keys.tolist() if k >= 0 and k not in memo and k >= self._back]
         if new and self.map.synced:
@@ -493,8 +496,8 @@ class RecordTime:
     sample and as unchanged (None: refused, its frame not mapped)."""
 
     jumped: bool
-    sampled: NDArray[np.int64] | None
-    unchanged: NDArray[np.int64] | None
+    sampled: Sequence[int] | None
+    unchanged: Sequence[int] | None
 
 
 class HostTimes:
@@ -562,8 +565,7 @@ class HostTimes:
             if not math.isfinite(t):
                 out.append(RecordTime(jumped, None, None))
                 continue
-            out.append(RecordTime(jumped, np.array([s[0] for s in rec.samples], dtype=np.int64),
-                                  np.array(rec.unchanged, dtype=np.int64)))
+            out.append(RecordTime(jumped, [s[0] for s in rec.samples], rec.unchanged))
         return out
 
 

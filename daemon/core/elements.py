@@ -90,6 +90,7 @@ class ElementStage:
         self.touched = np.zeros(layout.n, dtype=bool)
         self._pending = np.full((layout.n, 2), np.nan)  # newest readings since the last step
         self._pending_rows = np.zeros(layout.n, dtype=bool)
+        self._waiting = False  # any of _pending_rows (flush asks with every read)
         self._held = np.full((layout.n, 2), np.nan)  # newest reading of each element, if held
         self._held_at = np.full(layout.n, -math.inf)  # when it came
         # s a held reading stands after it came (the bridge is live that long): hold_for
@@ -112,6 +113,7 @@ class ElementStage:
         uniq, newest = groups
         self._pending[uniq] = caps[newest]
         self._pending_rows[uniq] = True
+        self._waiting = self._waiting or bool(uniq.shape[0])
         self._held[uniq] = np.nan if held is None else np.where(held[newest, None], caps[newest], np.nan)
         self._held_at[uniq] = self._t
         stepped = self._none
@@ -133,7 +135,7 @@ class ElementStage:
         snapshot asks: their touch flags are then from them)."""
         self._t = max(self._t, now)
         stepped = self._none
-        if self._pending_rows.any() and self._t - self._last_step >= self.min_step:
+        if self._waiting and self._t - self._last_step >= self.min_step:
             stepped = self._step(None)
         return Stepped(stepped, self.touched)
 
@@ -179,6 +181,7 @@ class ElementStage:
         stepped = np.flatnonzero(self._pending_rows)
         self._pending = np.full((self.layout.n, 2), np.nan)
         self._pending_rows[:] = False
+        self._waiting = False
         self._last_step = self._t
         return stepped
 

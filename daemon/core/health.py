@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -201,12 +201,12 @@ class HealthBook:
         # silent with a rate of 0. A silent bridge costs the tick nothing (65 530 phantoms).
         self._awake: set[int] = set()
         self._forget_floor = -math.inf  # no bridge nor gateway id forget() could drop was last heard before this
-        # bridges the readout records spoke for (a sample or unchanged): when, on which link, how
-        # many samples; folded into their health when it is read (fold)
-        self._heard = np.full(0x10000, -math.inf)
-        self._heard_via = np.zeros(0x10000, dtype=np.int64)
-        self._heard_new = np.zeros(0x10000, dtype=bool)
-        self._heard_samples = np.zeros(0x10000, dtype=np.int64)
+        # bridges the readout records spoke for (a sample or unchanged) since the last fold:
+        # when and on which link (the newest record's), and how many samples; folded into
+        # their health when it is read (fold). Dicts filled in C (dict.fromkeys): a record
+        # part costs no array operation
+        self._heard: dict[int, tuple[float, int]] = {}
+        self._heard_samples: dict[int, int] = {}
         self._link_index: dict[str, int] = {}
 
     def _bridge(self, bid: int, now: float) -> BridgeHealth:
@@ -260,30 +260,32 @@ class HealthBook:
         for bid, n in Counter(bids.tolist()).items():
             self.bridges[bid].unmapped_samples += n
 
-    def spoken_for(self, link: str, sampled: NDArray[np.int64], unchanged: NDArray[np.int64], now: float) -> None:
+    def spoken_for(self, link: str, sampled: Sequence[int], unchanged: Sequence[int], now: float) -> None:
         """A readout record on ``link`` at ``now`` accounts for ``sampled`` (a sample each) and
-        ``unchanged`` bridges: heard. Folded in when health is read (:meth:`fold`), not per
-        record: a thousand bridges a frame, a hundred frames a second."""
-        via = self._link_index.setdefault(link, len(self._link_index))
-        said = np.concatenate([sampled, unchanged])
-        self._heard[said], self._heard_via[said], self._heard_new[said] = now, via, True
-        self._heard_samples[sampled] += 1
+        ``unchanged`` bridges (ids, 0..65535): heard. Folded in when health is read
+        (:meth:`fold`), not per record: a thousand bridges a frame, a hundred frames a second."""
+        said = (float(now), self._link_index.setdefault(link, len(self._link_index)))
+        heard = self._heard
+        heard.update(dict.fromkeys(sampled, said))
+        heard.update(dict.fromkeys(unchanged, said))
+        counts = self._heard_samples
+        for bid in sampled:
+            counts[bid] = counts.get(bid, 0) + 1
 
     def fold(self) -> None:
         """The bridges readout records spoke for since the last fold into their health:
         heard then, on that link, their samples counted."""
-        ids = np.flatnonzero(self._heard_new)
-        if not ids.size:
+        heard, counts = self._heard, self._heard_samples
+        if not heard:
             return
+        self._heard, self._heard_samples = {}, {}
         names = list(self._link_index)
-        for bid, at, via, n in zip(ids.tolist(), self._heard[ids].tolist(), self._heard_via[ids].tolist(),
-                                   self._heard_samples[ids].tolist()):
+        for bid in sorted(heard):  # (by id: the order bridges are first seen in)
+            at, via = heard[bid]
             b = self._bridge(bid, at)
             if at > b.last_seen:
                 b.last_seen, b.link = at, names[via]
-            b.samples += n
-        self._heard_new[ids] = False
-        self._heard_samples[ids] = 0
+            b.samples += counts.get(bid, 0)
 
     def link_of(self, bid: int) -> str:
         """The link ``bid`` was last heard on ("" if never)."""

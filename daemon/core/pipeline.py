@@ -240,8 +240,10 @@ class Pipeline:
         now = self.last_feed if now is None else now
         self._frames_out(self.domains.take(now), now, self._queue)
         snap = self.skin.snapshot(now, self.config.health.bridge_timeout, self.domains.active(now))
+        if snap is None:  # (most calls: the spec is built only for a frame to estimate)
+            return None
         spec = self.skin.spec(self.surface.bands if self.surface is not None else ())
-        return None if snap is None or spec is None else self.contacts.job(spec, snap)
+        return None if spec is None else self.contacts.job(spec, snap)
 
     def contact_due(self, now: float, idle: bool = False) -> float:
         """When :meth:`contact_job` has a new frame: ``now`` when one is complete and not

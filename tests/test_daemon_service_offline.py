@@ -217,6 +217,37 @@ def test_two_links_replayed_in_recorded_time_keep_one_clock(tmp_path: Path) -> N
     assert after and all(_silent(h) for h in after), [(h["t_host"] - t0, _silent(h)) for h in health]
 
 
+def test_a_replay_in_recorded_time_ticks_on_the_recordings_clock_as_the_offline_driver(tmp_path: Path) -> None:
+    """Health of a replay in recorded time goes out at the recording's times, those of the
+    offline driver fed the same reads, whatever pace the loop keeps: ticked by the loop's
+    timer only, a replay the machine could not keep pace with came in bursts between two
+    ticks, and health went out at whichever read was last fed (2.4 s of recording apart
+    beside four CPU burners, where the recording asks for one a second)."""
+    sc = next(s for s in SCENARIOS if s.name == "two_gateways")
+    merged: list[tuple[float, str, bytes]] = []
+    for link, shift in (("gw1", 0.0), ("gw9", 3.0)):  # (5.5 s of recording)
+        recs = [(t + shift, d) for name, t, d in serial_reads(DATA / "two_gateways.mcap") if name == link]
+        write_capture(tmp_path / f"{link}.cbcap", recs)
+        merged += [(t, link, d) for t, d in recs]
+    merged.sort(key=lambda r: r[0])
+    data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
+    for k, v in sc.config.items():
+        data.setdefault(k, {}).update(v)
+    endpoint = "inproc://recorded-ticks"
+    data["pub"] = {"endpoint": endpoint}
+    data["control"] = {"endpoint": endpoint + "-ctl"}
+    # flat out: the whole recording in bursts, far faster than the loop's 0.1 s timer
+    data["link"] = [{"name": n, "url": f"replay:{tmp_path / n}.cbcap", "replay_speed": 0.0,
+                     "replay_clock": "recorded", "exit_when_done": True, "wait_for_subscriber": True}
+                    for n in ("gw1", "gw9")]
+    offline = OfflineDaemon(parse_config(data, "test"), topics={"health"}, recorded=True)
+    want = [o.payload["t_host"] for o in offline.run(merged) if o.topic == "health"]
+    got = [p["t_host"] for t, p in _run_service(data, endpoint, ("health",)) if t == "health"]
+    end = merged[-1][0] - 0.5  # (after the last read the loop's own ticks go on at its time)
+    assert len([t for t in want if t < end]) >= 3
+    assert [t for t in got if t < end] == [t for t in want if t < end]
+
+
 def test_a_recording_that_steps_back_a_day_goes_on_on_its_clock(tmp_path: Path) -> None:
     """Two days' captures appended in the wrong order (the second a day earlier): the
     recording's clock was held at its newest time, so it stood still at the first day's

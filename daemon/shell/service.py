@@ -61,6 +61,11 @@ def read_layout(config: Config) -> SkinLayout | None:
     return None if path is None else load_layout(path)
 
 
+#: The most pipeline ticks a read of a replay in recorded time runs before it (10 s of
+#: recording): over a longer gap, the last ones only (:meth:`Service._recorded_ticks`).
+MAX_RECORDED_TICKS = 100
+
+
 class Service:
     """The daemon around one :class:`Pipeline`: :meth:`run` until SIGTERM/SIGINT (or every
     replay with ``exit_when_done`` finished), :meth:`reload` on SIGHUP.
@@ -102,6 +107,11 @@ class Service:
         # last read fed (None until the first read; link states meanwhile wait for it). Ticked on today's
         # wall clock instead, every bridge of a recording made yesterday was a day silent.
         self._recorded_now: float | None = None
+        # ... and ticked on it: every TICK of recorded time up to each read, as the offline
+        # driver ticks (health, silence and deadlines at the recording's times). Ticked only
+        # by the loop's timer, a replay the machine could not keep pace with came in bursts
+        # between two ticks, and health went out seconds of recording apart.
+        self._next_recorded_tick = math.inf
         self._states_before_data: list[tuple[str, bool, str]] = []
         # ... fed as one recording across links, from one origin and in one time order
         self._recorded_order = RecordedOrder([ln.name for ln in config.links
@@ -139,6 +149,7 @@ class Service:
             # at the newest time instead, it stood still for the whole rest of the
             # recording: no health, no silence, no command deadline)
             first = self._recorded_now is None
+            self._recorded_ticks(now)
             self._recorded_now = now
             if first:  # the links came up on the recording's clock, at its first read
                 for name, connected, why in self._states_before_data:
@@ -244,6 +255,28 @@ class Service:
         if self.contacts.warmed():
             await self.contacts.idle(self.config.contact.worker_timeout)  # the estimate under way is published
         self._stop.set()
+
+    def _recorded_ticks(self, t: float) -> None:
+        """A replay in recorded time, about to feed a read of recorded time ``t``: the pipeline's
+        ticks of the recording's clock before it (every :attr:`TICK` from the first read),
+        in time order with the reads, whatever pace the loop keeps. A read before the last
+        (the recording steps back) starts the ticks again from it: the loop's next tick
+        takes the step as the host clock's. Over a gap of more than :data:`MAX_RECORDED_TICKS`
+        ticks (a recording resumed an hour later) only the last of them run: each would find
+        what the one before found, and a day's gap would stall the loop for seconds."""
+        last = self._recorded_now
+        if last is None or t < last:
+            self._next_recorded_tick = t
+            return
+        nxt = self._next_recorded_tick
+        behind = math.floor((t - nxt) / self.TICK) - MAX_RECORDED_TICKS
+        if behind > 0:
+            nxt += behind * self.TICK
+        while nxt < t:
+            self._act(self.pipeline.tick(nxt))
+            self.control.resolve(nxt)
+            nxt += self.TICK
+        self._next_recorded_tick = nxt
 
     # -- periodic -----------------------------------------------------------------------
     async def _ticker(self) -> None:

@@ -20,7 +20,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -28,6 +27,7 @@ import threading
 import time
 from pathlib import Path
 
+from daemon_harness import free_port
 from timing import table
 
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
@@ -165,9 +165,7 @@ def second_skin(work: Path) -> subprocess.Popen:
     """A second emulated 4×4 skin in real processes (its own ports), pressed by nobody."""
     mesh = work / "second.toml"
     subprocess.run([CLI, "mesh", "gen", "grid", "4", "4", "-o", str(mesh)], check=True, capture_output=True)
-    with socket.socket() as s:  # a free base port: the medium takes it, the world the next two
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port(3)  # a free base port: the medium takes it, the world the next two
     return subprocess.Popen([CLI, "mesh", "up", str(mesh), "--base-port", str(port)], start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 

@@ -44,7 +44,6 @@ import math
 import os
 import random
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -57,6 +56,7 @@ from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.mesh import mesh_to_toml
 from cellbridge.emulator.world.world import Contact
 
+from daemon_harness import free_port
 from realskin import world_press
 from timing import table
 
@@ -68,9 +68,7 @@ NEAR_M = 0.040
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return free_port()
 
 
 def _start(cmd: list[str], prefix: tuple[str, ...] = (), **kw: object) -> subprocess.Popen:
@@ -258,7 +256,7 @@ def main() -> None:
         return
     work = Path(tempfile.mkdtemp(prefix="bench-press-"))
     (work / "skin.toml").write_text(mesh_to_toml(mesh))
-    base = min(_free_port(), 60000)
+    base = free_port(3)
     pub, ctl = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
     rt = os.sched_getscheduler(0) == os.SCHED_FIFO
     prio = (f"skin at real-time priority {os.sched_getparam(0).sched_priority}, daemon and subscriber "

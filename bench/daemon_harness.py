@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import os
+import random
 import select
 import shutil
 import signal
@@ -11,6 +12,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -22,10 +24,48 @@ import zmq
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def free_port(count: int = 1) -> int:
+    """A loopback TCP port (the first of ``count`` in a row) that a process this test or
+    benchmark starts can bind: free now, outside the kernel's ephemeral range, and in a
+    band of its own per pytest-xdist worker, and not among the last 512 this process handed out.
+
+    A port the kernel picks (bind to 0) is an ephemeral one: until the daemon binds it, any
+    outgoing connection of the machine (a subscriber, the other worker's tests) may take it
+    as its source port, and the daemon then exits "cannot bind" while the test waits for
+    its reply (seen once in a suite beside four CPU burners)."""
+    lo, hi = _ephemeral_range()
+    top = max(lo, 12_000)
+    bands = 16
+    width = (top - 10_000) // bands
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw")
+    band = 10_000 + (int(worker) % bands if worker.isdigit() else 0) * width
+    start = random.randrange(width)
+    for i in range(width):
+        port = band + (start + i) % width
+        if port + count > band + width or any(p in _HANDED for p in range(port, port + count)):
+            continue
+        try:
+            for p in range(port, port + count):
+                with socket.socket() as s:
+                    s.bind(("127.0.0.1", p))
+        except OSError:
+            continue
+        _HANDED.extend(range(port, port + count))
+        return port
+    raise RuntimeError(f"no {count} free loopback ports in {band}..{band + width - 1}")
+
+
+#: the ports this process handed out lately (a daemon may not have bound them yet)
+_HANDED: deque[int] = deque(maxlen=512)
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    """The kernel's ephemeral port range (Linux; elsewhere the IANA one)."""
+    try:
+        lo, hi = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(lo), int(hi)
+    except (OSError, ValueError):
+        return 49152, 65535
 
 
 def idle_connects(endpoint: str, n: int) -> list[socket.socket]:

@@ -17,7 +17,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -36,13 +35,14 @@ from cellbridge.emulator.mesh.virtual import default_chip
 from cellbridge.emulator.realtime.realtime import CLOCK_HZ
 from cellbridge.protocol import Data, HostReceiver, SampleFlags, StreamDecoder
 
+from daemon_harness import free_port
+
 _NO_MESH_TIME = int(SampleFlags.NO_MESH_TIME)
 
 
 def free_base_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return min(s.getsockname()[1], 60000)
+    """A base port with the next two free too (:func:`daemon_harness.free_port`)."""
+    return free_port(3)
 
 
 def rt_permitted() -> bool:

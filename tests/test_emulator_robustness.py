@@ -14,6 +14,7 @@ from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.mesh import mesh_to_toml
 
 from cellbridge.demo import gateway_line
+from daemon_harness import free_port
 from support.emulator_procs import PY, free_base_port, running_skin, stop_and_sweep, terminate
 
 
@@ -197,9 +198,7 @@ def test_the_daemon_flushes_what_a_line_held_before_it_opened_it():
 
 
 def _port_free() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_port()
 
 
 def _serves(port: int) -> bool:

@@ -20,26 +20,15 @@ from cellbridge.emulator.mesh.mesh import mesh_to_toml
 from cellbridge.protocol import Frame, FrameType, StreamDecoder
 
 from cellbridge.demo import gateway_line
+from daemon_harness import free_port
 
 PY = [sys.executable, "-m", "cellbridge"]
 
 
 def free_base_port() -> int:
-    """A base port whose three ZeroMQ ports (base..base+2) are free right now."""
-    for _ in range(50):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base > 60000:
-            continue
-        try:
-            for p in range(base, base + 3):
-                with socket.socket() as t:
-                    t.bind(("127.0.0.1", p))
-            return base
-        except OSError:
-            continue
-    raise RuntimeError("no free ports")
+    """A base port whose three ZeroMQ ports (base..base+2) are free right now
+    (:func:`daemon_harness.free_port`: outside the ephemeral range, a band per worker)."""
+    return free_port(3)
 
 
 def processes_mentioning(text: str) -> list[int]:

@@ -69,7 +69,7 @@ from dataclasses import dataclass
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
-from cellbridge.tactile.arrays import FloatArray, median0
+from cellbridge.tactile.arrays import FloatArray, median0, rows_all, rows_any
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
@@ -203,8 +203,8 @@ def _common_reference(
     *and* lie within ``enter + common_spread·|step|`` of its median step; otherwise
     the reference is the tracked elements that did not jump either way.
     """
-    up = trk & np.any(off > enter, axis=1)
-    down = trk & np.any(off < -enter, axis=1)
+    up = trk & rows_any(off > enter)
+    down = trk & rows_any(off < -enter)
     need = cfg.common_fraction * int(trk.sum())
     most = max(int(up.sum()), int(down.sum()))
     jump = bool(most and most >= need)
@@ -212,7 +212,7 @@ def _common_reference(
         step = median0(off[trk])
         with np.errstate(invalid="ignore"):  # inf · 0 when common_spread is inf
             tol = enter + cfg.common_spread * np.abs(step)
-        alike = trk & np.all(np.abs(off - step) <= np.where(np.isnan(tol), np.inf, tol), axis=1)
+        alike = trk & rows_all(np.abs(off - step) <= np.where(np.isnan(tol), np.inf, tol))
         jump = int(alike.sum()) >= need
     return jump, most, (trk if jump else trk & ~up & ~down)
 
@@ -431,7 +431,7 @@ class Calibrator:
             raise ValueError(f"values must have shape ({n}, {c}), got {v.shape}")
         t_arr = np.asarray(t, dtype=np.float64)
         tt = np.broadcast_to(t_arr, (n,))
-        sampled = np.all(np.isfinite(v), axis=1)
+        sampled = rows_all(np.isfinite(v))
         # NaN is allowed as the time of an element without a reading (as its values);
         # inf never: it would end every hold-off and trip max_touch at once.
         if not np.all(np.isfinite(tt) | (np.isnan(tt) & ~sampled & (t_arr.ndim > 0))):
@@ -458,7 +458,7 @@ class Calibrator:
         # beginning, an element drifting above its thresholds) or the element is touched (held
         # past max_touch); every other live reading is answered True, as its answer is not read
         with np.errstate(invalid="ignore"):
-            asked = live & ((st == TOUCHED) | np.any(delta > leave, axis=1))
+            asked = live & ((st == TOUCHED) | rows_any(delta > leave))
         contact = self._contact_readings(asked, delta)
         rebased = self._hysteresis(live, tt, delta, enter, leave, contact)
         self._track(live & (st == TRACKING), live, tt, delta, enter, leave, contact)
@@ -530,7 +530,7 @@ class Calibrator:
             self._spread_age = _SPREAD_EVERY
         self._spread_age -= 1
         with np.errstate(invalid="ignore"):  # NaN own drift: not ready, and not tracked
-            steady = trk & np.all(own <= np.maximum(enter, self.config.k_enter * self._spread), axis=1)
+            steady = trk & rows_all(own <= np.maximum(enter, self.config.k_enter * self._spread))
         steady &= ~np.isfinite(self._off_since)
         return steady if int(steady.sum()) >= self.config.min_common else trk
 
@@ -604,7 +604,7 @@ class Calibrator:
         if not back.any():
             return
         idx = np.nonzero(back)[0]  # tracked: sampled before, so the gap is finite
-        fit = idx[np.all(np.abs(delta[idx]) <= self._drift * gap[idx, None], axis=1)]
+        fit = idx[rows_all(np.abs(delta[idx]) <= self._drift * gap[idx, None])]
         if fit.size:
             self._base[fit] += delta[fit]
             delta[fit] = 0.0
@@ -617,10 +617,10 @@ class Calibrator:
         """Touch state changes; the elements re-baselined after ``max_touch`` (or None)."""
         cfg = self.config
         st = self._state
-        up = live & (st != TOUCHED) & np.any(delta > enter, axis=1)
+        up = live & (st != TOUCHED) & rows_any(delta > enter)
         if contact is not None:
             up &= contact  # above enter, but no contact's reading: drift, never a touch
-        down = live & (st == TOUCHED) & np.all(delta < leave, axis=1)
+        down = live & (st == TOUCHED) & rows_all(delta < leave)
         st[up] = TOUCHED
         self._since[up] = tt[up]
         st[down] = HOLDOFF
@@ -660,7 +660,7 @@ class Calibrator:
         fast = below & (tt[:, None] - self._below_since >= cfg.negative_after)
         if contact is not None:
             following = tt - self._off_since >= cfg.negative_after
-            off = trk & ~contact & (np.any(delta > enter, axis=1) | (following & np.any(delta > leave, axis=1)))
+            off = trk & ~contact & (rows_any(delta > enter) | (following & rows_any(delta > leave)))
             kept = np.where(live, np.inf, self._off_since)
             self._off_since = np.where(off, np.minimum(self._off_since, tt), kept)
             fast |= (off & (tt - self._off_since >= cfg.negative_after))[:, None]

@@ -15,7 +15,7 @@ from cellbridge.tactile.arrays import IntArray
 from cellbridge.tactile.layout import SkinLayout
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["cluster_elements", "force_centroid"]
+__all__ = ["centroid_of", "cluster_elements", "force_centroid"]
 
 
 def cluster_elements(
@@ -93,9 +93,14 @@ def force_centroid(layout: SkinLayout, weights: ArrayLike, members: ArrayLike,
     ``weights``; of the layout's elements, unless ``centres`` gives the members' own centres)."""
     idx = np.asarray(members, dtype=np.int64)
     w = np.asarray(weights, dtype=np.float64)[idx]
+    return centroid_of(w, layout.centres[idx] if centres is None else centres)
+
+
+def centroid_of(w: NDArray[np.float64], c: NDArray[np.float64]) -> tuple[float, float]:
+    """:func:`force_centroid` of weights ``w`` at centres ``c`` (K, 2), one row each: weights
+    not finite or not positive count 0; none left, the centres' mean."""
     w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
     tot = w.sum()
-    c = layout.centres[idx] if centres is None else centres
     if not tot > 0:
         return float(c[:, 0].mean()), float(c[:, 1].mean())
     return float(w @ c[:, 0] / tot), float(w @ c[:, 1] / tot)

@@ -268,8 +268,9 @@ class ContactEstimator:
         theta0[:, 3] = np.log(np.array([cl.sigma0 for cl in clusters]) * math.pi * st[:, 2] ** 2)
         pair_hints: dict[int, FloatArray] = {}
         hinted = np.zeros(len(clusters), dtype=bool)
+        on, sound = self._hints_on(hints)
         for k, cl in enumerate(clusters):
-            inside = self._hints_in(cl, hints, 2.0 * st[k, 2])
+            inside = self._hints_in(cl, hints, 2.0 * st[k, 2], on, sound)
             if inside.shape[0] >= 1:
                 hinted[k] = True
                 theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
@@ -415,8 +416,23 @@ class ContactEstimator:
         out.ok &= good
         return out
 
-    def _hints_in(self, cl: Cluster, hints: FloatArray, d_start: float) -> FloatArray:
-        """The hints that can be this cluster's disk, nearest its centroid first.
+    def _hints_on(self, hints: FloatArray) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """(H, N) whether each hint sits on each element (a quarter side of slack: the disk
+        moved), and (H,) whether it is a whole hint (finite, positive diameter and force):
+        what :meth:`_hints_in` asks of every cluster, once per frame."""
+        b = self.layout.bounds
+        m = 0.25 * self.layout.side
+        on = (
+            (hints[:, None, 0] >= b[None, :, 0] - m) & (hints[:, None, 0] <= b[None, :, 2] + m)
+            & (hints[:, None, 1] >= b[None, :, 1] - m) & (hints[:, None, 1] <= b[None, :, 3] + m)
+        )
+        sound = np.all(np.isfinite(hints), axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0)
+        return on, sound
+
+    def _hints_in(self, cl: Cluster, hints: FloatArray, d_start: float,
+                  on: NDArray[np.bool_], sound: NDArray[np.bool_]) -> FloatArray:
+        """The hints that can be this cluster's disk, nearest its centroid first
+        (``on``, ``sound``: :meth:`_hints_on` of ``hints``).
 
         A hint must sit on one of the cluster's elements (a quarter side of slack:
         the disk moved) and have a diameter within a factor 2 of what the readings
@@ -425,15 +441,9 @@ class ContactEstimator:
         """
         if hints.shape[0] == 0:
             return hints
-        b = self.layout.bounds[cl.members]
-        m = 0.25 * self.layout.side
-        on = (
-            (hints[:, None, 0] >= b[None, :, 0] - m) & (hints[:, None, 0] <= b[None, :, 2] + m)
-            & (hints[:, None, 1] >= b[None, :, 1] - m) & (hints[:, None, 1] <= b[None, :, 3] + m)
-        ).any(axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
             size_ok = np.abs(np.log(hints[:, 2] / d_start)) <= math.log(2.0)
-        ok = on & np.all(np.isfinite(hints), axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0) & size_ok
+        ok = on[:, cl.members].any(axis=1) & sound & size_ok
         h = hints[ok]
         cx, cy = cl.centroid
         return h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))]

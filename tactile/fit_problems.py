@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from cellbridge.tactile.arrays import FloatArray, IntArray, median0
-from cellbridge.tactile.clusters import force_centroid
+from cellbridge.tactile.clusters import centroid_of
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
 from cellbridge.tactile.element import ElementParams
@@ -164,6 +164,14 @@ class Fits:
         )
 
 
+def _nansum(x: FloatArray) -> float:
+    """``np.nansum`` of a 1-D array, bit for bit (NaN taken as 0, then one ``sum`` over the
+    same length), without its wrapper's cost (several calls per cluster per frame)."""
+    x = x.copy()
+    x[np.isnan(x)] = 0.0
+    return float(x.sum())
+
+
 def major_axis(vx: float, vy: float, cxy: float) -> float:
     """Larger semi-axis (one sigma) of a 2×2 covariance, in closed form."""
     half = 0.5 * (vx + vy)
@@ -201,58 +209,66 @@ class FitRunner:
         quiet ring element's reading counts as the disk's (:data:`RING_SIGNAL`); None:
         the ring only bounds the disk from above.
         """
+        # (Each step on the cluster's few rows, not the skin's: this runs for every cluster
+        # of every frame, and its cost is the calls, not the arithmetic.)
         lay = self.layout
         members = np.sort(members)
         near = np.zeros(lay.n, dtype=bool)  # (a mask, not np.unique: the same sorted rows, no sort)
         near[np.concatenate([self._ring_of[i] for i in members.tolist()])] = True
-        ring = np.flatnonzero(near & (labels < 0) & finite)
+        cand = np.flatnonzero(near)
+        ring = cand[(labels[cand] < 0) & finite[cand]]
         obs = np.concatenate([members, ring])
+        nm = members.size
+        c1o, c2o = c1[obs], c2[obs]
         # A ring element whose reading stands out of the noise counts both ways, unless
         # it also borders another cluster (whose disk may be what it reads).
         own = labels[members[0]]
         if ring_noise is None:
             signal = np.zeros(ring.size, dtype=bool)
         else:
-            signal = (c1[ring] > RING_SIGNAL * ring_noise[0]) | (c2[ring] > RING_SIGNAL * ring_noise[1])
-        for j in np.flatnonzero(signal):
+            signal = (c1o[nm:] > RING_SIGNAL * ring_noise[0]) | (c2o[nm:] > RING_SIGNAL * ring_noise[1])
+        for j in np.flatnonzero(signal).tolist():
             nb = labels[self._ring_of[int(ring[j])]]
             signal[j] = not np.any((nb >= 0) & (nb != own))
-        quiet = np.concatenate([np.zeros(members.size, dtype=bool), ~signal])
+        quiet = np.zeros(obs.size, dtype=bool)
+        quiet[nm:] = ~signal
         vm = valid[members]
-        sigma0 = float(force[members][vm].sum() / area[members][vm].sum()) if vm.any() else math.nan
+        any_valid = bool(vm.any())
+        a = area[obs]  # (fancy indexing: copies)
+        f = force[obs]
+        sigma0 = float(f[:nm][vm].sum() / a[:nm][vm].sum()) if any_valid else math.nan
         is_firm = False
-        if not vm.any() and firm is not None:
+        if not any_valid and firm is not None:
             fm = firm[members]
             hard = np.isfinite(fm)
             if hard.any():
-                w1 = np.maximum(c1[members][hard], 0.0) + 1e-300
+                w1 = np.maximum(c1o[:nm][hard], 0.0) + 1e-300
                 sigma0 = float(np.exp(np.sum(w1 * np.log(fm[hard])) / w1.sum()))
                 vm = hard
                 is_firm = True
         # Area per observed element: the inverse's where valid; elsewhere the
         # least-squares area at the cluster's pressure, A = (g·ΔC)/(g·g).
-        a = area[obs].copy()
-        f = force[obs].copy()
         if math.isfinite(sigma0):
             g1, g2 = self.g(sigma0)
             w1, w2 = 1.0 / self.noise[0] ** 2, 1.0 / self.noise[1] ** 2
-            est = (w1 * g1 * c1[obs] + w2 * g2 * c2[obs]) / (w1 * g1 * g1 + w2 * g2 * g2)
+            est = (w1 * g1 * c1o + w2 * g2 * c2o) / (w1 * g1 * g1 + w2 * g2 * g2)
             bad = ~valid[obs]
             a[bad] = est[bad]
             f[bad] = sigma0 * est[bad]
-        nm = members.size
-        wts = np.where(np.isfinite(f[:nm]), f[:nm], 0.0)
+        fm_ = f[:nm]
+        wts = np.where(np.isfinite(fm_), fm_, 0.0)
         if not (wts > 0).any():
-            wts = np.maximum(c1[members], 0.0)  # no pressure known: weight by ΔC1
-        cx, cy = force_centroid(lay, wts, np.arange(nm), lay.centres[members])
-        s_tot = float(np.nansum(np.maximum(a[:nm], 0.0)))
-        ok = bool(vm.any())
+            wts = np.maximum(c1o[:nm], 0.0)  # no pressure known: weight by ΔC1
+        cx, cy = centroid_of(wts, lay.centres[members])
+        s_tot = _nansum(np.maximum(a[:nm], 0.0))
+        ok = any_valid or is_firm
         base = dict(
             centroid_x=cx, centroid_y=cy, elements=tuple(lay.ids[members].tolist()),
-            pressure=sigma0, force_sum=float(np.nansum(f[:nm])) if ok else math.nan,
+            pressure=sigma0, force_sum=_nansum(fm_) if ok else math.nan,
             area=s_tot if ok else math.nan,
         )
-        y = np.stack([c1[obs], c2[obs]])
+        y = np.empty((2, obs.size))
+        y[0], y[1] = c1o, c2o
         return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, lay.bounds, quiet)
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:

@@ -202,18 +202,28 @@ class Chart:
         """Points, outward normals and the tangents d/du, d/dv (each (K, 3)) in the link frame."""
         rot, t = self._rot_t
         k = u.shape[0]
-        if self.shape == "cylinder":
-            a = u / self.radius
-            ca, sa = np.cos(a), np.sin(a)
-            local = np.stack([self.radius * ca, self.radius * sa, v], axis=1)
-            nrm = np.stack([ca, sa, np.zeros(k)], axis=1)
-            du = np.stack([-sa, ca, np.zeros(k)], axis=1)
-        else:
-            local = np.stack([u, v, np.zeros(k)], axis=1)
-            nrm = np.tile([0.0, 0.0, 1.0], (k, 1))
-            du = np.tile([1.0, 0.0, 0.0], (k, 1))
-        dv = np.tile([0.0, 1.0, 0.0] if self.shape == "plane" else [0.0, 0.0, 1.0], (k, 1))
-        return local @ rot.T + t, nrm @ rot.T, du @ rot.T, dv @ rot.T
+        return surface_points(np.full(k, self.shape == "cylinder"), np.full(k, self.shape == "plane"),
+                              np.full(k, self.radius), np.broadcast_to(rot, (k, 3, 3)), t, u, v)
+
+
+def surface_points(cylinder: NDArray[np.bool_], plane: NDArray[np.bool_], radius: NDArray[np.float64],
+                   rot: NDArray[np.float64], t: NDArray[np.float64], u: NDArray[np.float64],
+                   v: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+    """Points, outward normals and the tangents d/du, d/dv (each (K, 3)) in the link frame
+    of K points (u, v), each on its own chart: ``cylinder``/``plane`` its shape, ``radius``,
+    and its pose's rotation (K, 3, 3) and translation ((K, 3) or (3,)). One set of array
+    operations for all points, whatever their charts (a frame's contacts lie on many)."""
+    k = u.shape[0]
+    cyl = cylinder[:, None]
+    r = np.where(cylinder, radius, 1.0)
+    a = np.where(cylinder, u / r, 0.0)
+    ca, sa, zero = np.cos(a), np.sin(a), np.zeros(k)
+    local = np.where(cyl, np.stack([r * ca, r * sa, v], axis=1), np.stack([u, v, zero], axis=1))
+    nrm = np.where(cyl, np.stack([ca, sa, zero], axis=1), np.array([0.0, 0.0, 1.0]))
+    du = np.where(cyl, np.stack([-sa, ca, zero], axis=1), np.array([1.0, 0.0, 0.0]))
+    dv = np.where(plane[:, None], np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    out = np.einsum("kij,mkj->mki", rot, np.stack([local, nrm, du, dv]))
+    return out[0] + t, out[1], out[2], out[3]
 
 
 @dataclass(frozen=True)
@@ -325,13 +335,20 @@ class SkinGeometry:
         return np.array([c.x0 for c in self.charts]), np.array([c.x0 + c.width for c in self.charts])
 
     @cached_property
-    def _chart_elements(self) -> list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]]:
-        """Per chart: its elements' rows and their atlas x and y."""
-        out = []
-        for k in range(len(self.charts)):
-            mine = np.flatnonzero(self.chart_of == k)
-            out.append((mine, self.atlas[mine, 0], self.atlas[mine, 1]))
-        return out
+    def _chart_arrays(self) -> dict[str, NDArray[Any]]:
+        """Per chart, as arrays indexed by chart: what :func:`surface_points` and the wrap need."""
+        cs = self.charts
+        return {"x0": np.array([c.x0 for c in cs]), "period": np.array([c.period for c in cs]),
+                "u0": np.array([c.u0 for c in cs]), "y0": np.array([c.y0 for c in cs]),
+                "v0": np.array([c.v0 for c in cs]), "radius": np.array([c.radius for c in cs]),
+                "cylinder": np.array([c.shape == "cylinder" for c in cs]),
+                "plane": np.array([c.shape == "plane" for c in cs]),
+                "rot": np.array([np.asarray(c.pose)[:3, :3] for c in cs]).reshape(-1, 3, 3),
+                "t": np.array([np.asarray(c.pose)[:3, 3] for c in cs]).reshape(-1, 3)}
+
+    @cached_property
+    def _patch_names(self) -> list[str]:
+        return [p.name for p in self.patches]
 
     @cached_property
     def _patch_of_list(self) -> list[int]:
@@ -347,25 +364,24 @@ class SkinGeometry:
         if xa.shape != ya.shape or xa.ndim != 1:
             raise ValueError("x and y must be equal-length 1-D")
         ch = self.chart_at(xa, ya)
-        out: list[SurfacePoint | None] = [None] * xa.size
-        for k in np.unique(ch).tolist():
-            c = self.charts[k]
-            sel = np.flatnonzero(ch == k)
-            px, py = xa[sel], ya[sel]
-            if c.period > 0:
-                px = c.x0 + np.mod(px - c.x0, c.period)
-            u = px - c.x0 + c.u0
-            v = py - c.y0 + c.v0
-            pts, nrm, du, dv = (tuple(map(tuple, a.tolist())) for a in c.surface(u, v))
-            mine, ax, ay = self._chart_elements[k]
-            ddx = np.abs(ax[None, :] - px[:, None])
-            if c.period > 0:
-                ddx = np.minimum(ddx, c.period - ddx)
-            near = mine[np.argmin(ddx ** 2 + (ay[None, :] - py[:, None]) ** 2, axis=1)].tolist()
-            for j, i in enumerate(sel.tolist()):
-                out[i] = SurfacePoint(c.link, self.patches[self._patch_of_list[near[j]]].name,
-                                      pts[j], nrm[j], du[j], dv[j])
-        return out  # type: ignore[return-value]  # every index belongs to one chart: all filled
+        ca = self._chart_arrays
+        period = ca["period"][ch]
+        wraps = period > 0
+        x0 = ca["x0"][ch]
+        px = np.where(wraps, x0 + np.mod(xa - x0, np.where(wraps, period, 1.0)), xa)
+        u = px - x0 + ca["u0"][ch]
+        v = ya - ca["y0"][ch] + ca["v0"][ch]
+        pts, nrm, du, dv = (a.tolist() for a in surface_points(
+            ca["cylinder"][ch], ca["plane"][ch], ca["radius"][ch], ca["rot"][ch], ca["t"][ch], u, v))
+        # The nearest element of the point's own chart (the shorter way round a band).
+        ddx = np.abs(self.atlas[None, :, 0] - px[:, None])
+        ddx = np.where(wraps[:, None], np.minimum(ddx, period[:, None] - ddx), ddx)
+        d2 = np.where(self.chart_of[None, :] == ch[:, None], ddx ** 2 + (self.atlas[None, :, 1] - ya[:, None]) ** 2,
+                      np.inf)
+        near = np.argmin(d2, axis=1).tolist()
+        charts, names, patch_of = self.charts, self._patch_names, self._patch_of_list
+        return [SurfacePoint(charts[c].link, names[patch_of[e]], tuple(p), tuple(n), tuple(a), tuple(b))
+                for c, e, p, n, a, b in zip(ch.tolist(), near, pts, nrm, du, dv)]
 
     def atlas_of(self, link: str, point: Sequence[float]) -> tuple[float, float, float] | None:
         """Atlas (x, y) of the point of ``link``'s skin nearest a point in the link frame,

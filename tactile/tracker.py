@@ -437,17 +437,19 @@ class ContactTracker:
         m2 = self.motion * self.motion
         dx = (a.x - b.x) ** 2 / (a.sigma_x**2 + b.sigma_x**2 + m2 + 1e-18)
         dy = (a.y - b.y) ** 2 / (a.sigma_y**2 + b.sigma_y**2 + m2 + 1e-18)
-        if not all(math.isfinite(v) for v in (a.sigma_x, a.sigma_y, b.sigma_x, b.sigma_y, dx, dy)):
+        fin = math.isfinite
+        if not (fin(a.sigma_x) and fin(a.sigma_y) and fin(b.sigma_x) and fin(b.sigma_y) and fin(dx) and fin(dy)):
             return math.inf
         return math.sqrt(max(dx, dy))
 
     def _associate(self, contacts: Sequence[Contact]) -> list[tuple[int, int]]:
         cand = []
+        elements = [frozenset(c.elements) for c in contacts]
         for ti, tr in enumerate(self._tracks):
             ref = tr.anchor if tr.anchor is not None else tr.contact
             for ci, c in enumerate(contacts):
                 d = self._distance(ref, c)
-                shared = bool(tr.elements & set(c.elements))
+                shared = not tr.elements.isdisjoint(elements[ci])
                 if d <= self.gate or shared:
                     # A contact on a confirmed track's elements continues it before any
                     # candidate (a press read in two for a while, then whole again, keeps

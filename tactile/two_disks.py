@@ -51,19 +51,22 @@ def split_clusters(
     pair_hints: dict[int, FloatArray], adjacent: NDArray[np.bool_] | None, model_error: float = MODEL_ERROR,
 ) -> dict[int, list[Contact]]:
     """The clusters (by index) that are two contacts, with both contacts."""
-    # χ² in units of the noise → in units of noise and model tolerance together.
+    # χ² in units of the noise → in units of noise and model tolerance together (scale ≤ 1:
+    # asked only of the clusters whose plain χ² could pass, most clusters of a frame fit).
     scale = np.ones(len(clusters))
+    cand = []
     for k, cl in enumerate(clusters):
+        # Two disks leave about dof − 4 of noise: only a one-disk χ² beyond that by
+        # the threshold can pass the test.
+        if cl.members.size < 2 or not dof[k] - 4 >= 2:
+            continue
+        if not (fits.chi2[k] > dof[k] - 4 + SPLIT_DCHI2 or k in pair_hints):
+            continue
         peak = np.nanmax(np.abs(cl.y[:, : cl.members.size]), axis=1)
         tol = model_error * np.where(np.isfinite(peak), peak, 0.0)
         scale[k] = 1.0 / (1.0 + float(np.max(tol / runner.noise)) ** 2)
-    cand = [
-        k for k, cl in enumerate(clusters)
-        if cl.members.size >= 2 and dof[k] - 4 >= 2
-        # Two disks leave about dof − 4 of noise: only a one-disk χ² beyond that by
-        # the threshold can pass the test.
-        and (fits.chi2[k] * scale[k] > dof[k] - 4 + SPLIT_DCHI2 or k in pair_hints)
-    ]
+        if fits.chi2[k] * scale[k] > dof[k] - 4 + SPLIT_DCHI2 or k in pair_hints:
+            cand.append(k)
     if not cand:
         return {}
     seeds, owners = [], []

@@ -113,6 +113,7 @@ class ContactIdentity:
         self.owner = f"{os.getpid()}.{next(_OWNERS)}"
         self._first_id = 0
         self._carry: tuple[dict[str, Any], ...] = ()
+        self._index: tuple[object, dict[int, int]] = (None, {})  # (a layout's ids, id -> row): kept while they are
 
     def job(self, spec: ContactSpec, snapshot: ContactSnapshot) -> ContactJob:
         """The estimate of ``snapshot`` on ``spec``, continuing the contacts published."""
@@ -125,9 +126,11 @@ class ContactIdentity:
         (``cycles``) and the newest of their sample times (``t_sample``), its times moved to
         the wall clock by ``wall``."""
         snap = job.snapshot
-        index = dict(zip(snap.ids.tolist(), range(len(snap.ids))))  # one C pass: a thousand ids a frame
         contacts = list(contacts)
         self._carry = tuple(contacts)
+        if contacts and self._index[0] is not snap.ids:  # (the layout's ids: one array while it stands)
+            self._index = (snap.ids, dict(zip(snap.ids.tolist(), range(len(snap.ids)))))
+        index = self._index[1]
         out = []
         for c in contacts:
             if isinstance(c.get("id"), int):  # ids never go back, whatever rebuilt the tracker

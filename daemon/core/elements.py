@@ -18,7 +18,7 @@ from cellbridge.tactile import (
     SkinLayout,
     solve,
 )
-from cellbridge.tactile.arrays import FloatArray
+from cellbridge.tactile.arrays import FloatArray, rows_all, rows_any
 from numpy.typing import NDArray
 
 
@@ -162,7 +162,7 @@ class ElementStage:
     def _standing(self, values: FloatArray) -> FloatArray:
         """``values`` with the held readings that still stand filled in where an element
         has no new reading (a ready element's only: a baseline is taken from readings)."""
-        fill = (np.isnan(values).any(axis=1) & np.isfinite(self._held).all(axis=1)
+        fill = (rows_any(np.isnan(values)) & rows_all(np.isfinite(self._held))
                 & (self._t - self._held_at <= self._hold) & self.calibrator.ready)
         if not fill.any():
             return values
@@ -198,10 +198,10 @@ class ElementStage:
         n = delta.shape[0]
         force, area = np.full(n, np.nan), np.full(n, np.nan)
         valid = np.zeros(n, dtype=bool)
-        finite = np.isfinite(delta).all(axis=1)
+        finite = rows_all(np.isfinite(delta))
         status = np.where(finite, int(InverseStatus.BELOW_NOISE), int(InverseStatus.NONFINITE)).astype(np.uint8)
         with np.errstate(invalid="ignore"):
-            signal = finite & (delta > self.noise).all(axis=1)  # the inverse asks for k_sigma (3) noise sigmas
+            signal = finite & rows_all(delta > self.noise)  # the inverse asks for k_sigma (3) noise sigmas
         if signal.any():
             inv = solve(delta[signal, 0], delta[signal, 1], self.params, noise=self.noise)
             force[signal], area[signal], valid[signal], status[signal] = inv.force, inv.area, inv.valid, inv.status

@@ -31,7 +31,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from cellbridge.tactile.arrays import FloatArray
+from cellbridge.tactile.arrays import FloatArray, rows_all, rows_any
 from numpy.typing import NDArray
 
 #: Readings kept per element beyond ``max_lag`` at the fastest sampling rate.
@@ -138,7 +138,7 @@ class ElementReadings:
         self.ref_cycle[fresh] = cycle
         full = np.full((self.n, 2), np.nan)
         full[known] = dc
-        ok &= np.isfinite(full).all(axis=1)  # no ΔC: no baseline yet
+        ok &= rows_all(np.isfinite(full))  # no ΔC: no baseline yet
         tch = np.zeros(self.n, dtype=bool)
         tch[known] = touched
         self.last_touched[known] = touched
@@ -263,8 +263,8 @@ class ElementReadings:
         """Touch flags of new readings of ``rows`` by the calibrator's hysteresis (over
         ``enter``, or over ``leave`` after a touched reading), until it classifies them."""
         with np.errstate(invalid="ignore"):
-            over_enter = (dc > enter[rows]).any(axis=1)
-            over_leave = (dc > leave[rows]).any(axis=1)
+            over_enter = rows_any(dc > enter[rows])
+            over_leave = rows_any(dc > leave[rows])
         return over_enter | (self.last_touched[rows] & over_leave)
 
     def _fill(self, f: FrameReading, now: float, timeout: float) -> FrameReading:

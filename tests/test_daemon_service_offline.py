@@ -13,6 +13,8 @@ as it is meant to): the frames both estimated must give the same contacts.
 from __future__ import annotations
 
 import asyncio
+import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -246,6 +248,27 @@ def test_a_replay_in_recorded_time_ticks_on_the_recordings_clock_as_the_offline_
     end = merged[-1][0] - 0.5  # (after the last read the loop's own ticks go on at its time)
     assert len([t for t in want if t < end]) >= 3
     assert [t for t in got if t < end] == [t for t in want if t < end]
+
+
+def test_a_recorded_replay_with_absurd_times_ticks_a_bounded_number_of_times(tmp_path: Path) -> None:
+    """A capture whose times jump an hour, to 1e308 s (a corrupt double) and to NaN: the
+    ticks of the recording's clock before each read are bounded (the last 100 of a gap), a
+    time where a tick adds nothing ends them, and the replay runs to its end."""
+    reads = [(t, d) for _, t, d in serial_reads(DATA / f"{SCENARIO}.mcap")]
+    reads.insert(60, (reads[59][0] + 3600.0, reads[60][1]))
+    reads.insert(120, (1e308, reads[120][1]))
+    reads.insert(150, (math.nan, reads[150][1]))
+    write_capture(tmp_path / "gw1.cbcap", reads)
+    data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
+    endpoint = "inproc://recorded-absurd"
+    data["pub"] = {"endpoint": endpoint}
+    data["control"] = {"endpoint": endpoint + "-ctl"}
+    data["link"] = [{"name": "gw1", "url": f"replay:{tmp_path / 'gw1.cbcap'}", "replay_speed": 0.0,
+                     "replay_clock": "recorded", "exit_when_done": True, "wait_for_subscriber": True}]
+    t0 = time.monotonic()
+    health = [p for t, p in _run_service(data, endpoint, ("health",)) if t == "health"]
+    assert time.monotonic() - t0 < 60
+    assert len(health) >= 2
 
 
 def test_a_recording_that_steps_back_a_day_goes_on_on_its_clock(tmp_path: Path) -> None:

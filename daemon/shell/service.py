@@ -265,18 +265,21 @@ class Service:
         ticks (a recording resumed an hour later) only the last of them run: each would find
         what the one before found, and a day's gap would stall the loop for seconds."""
         last = self._recorded_now
-        if last is None or t < last:
+        if not math.isfinite(t):  # (a capture's corrupt time: no tick is due by it)
+            return
+        if last is None or not t >= last:
             self._next_recorded_tick = t
             return
         nxt = self._next_recorded_tick
-        behind = math.floor((t - nxt) / self.TICK) - MAX_RECORDED_TICKS
-        if behind > 0:
-            nxt += behind * self.TICK
-        while nxt < t:
+        if t - nxt > MAX_RECORDED_TICKS * self.TICK:
+            nxt = t - MAX_RECORDED_TICKS * self.TICK
+        for _ in range(MAX_RECORDED_TICKS + 1):  # (bounded: at 1e308 s a TICK adds nothing)
+            if not nxt < t:
+                break
             self._act(self.pipeline.tick(nxt))
             self.control.resolve(nxt)
             nxt += self.TICK
-        self._next_recorded_tick = nxt
+        self._next_recorded_tick = max(nxt, t)
 
     # -- periodic -----------------------------------------------------------------------
     async def _ticker(self) -> None:

@@ -182,28 +182,36 @@ def _silent(health: dict[str, Any]) -> list[str]:
     return sorted(str(k) for k, b in items if b["silent"])
 
 
-def test_two_links_replayed_in_recorded_time_keep_one_clock(tmp_path: Path) -> None:
-    """Two gateways' captures, the second line up 3 s after the first (its records 3 s
-    later): replayed, each link was paced from its own first record, so the second line's
-    t+3 s came at once, the recording's clock jumped 3 s and the first line's bridges were
-    reported silent while their reads were being replayed. The offline driver, fed the
-    same reads in time order, reports none silent."""
+def _two_links_3s_apart(tmp_path: Path, name: str, speed: float) -> tuple[list[tuple[float, str, bytes]], dict[str, Any], str]:
+    """The two_gateways scenario's captures with the second line up 3 s after the first
+    (5.5 s of recording), replayed in recorded time at ``speed``: the reads merged in time
+    order, the config, and its endpoint (``inproc://name``)."""
     sc = next(s for s in SCENARIOS if s.name == "two_gateways")
     merged: list[tuple[float, str, bytes]] = []
     for link, shift in (("gw1", 0.0), ("gw9", 3.0)):
-        recs = [(t + shift, d) for name, t, d in serial_reads(DATA / "two_gateways.mcap") if name == link]
+        recs = [(t + shift, d) for n, t, d in serial_reads(DATA / "two_gateways.mcap") if n == link]
         write_capture(tmp_path / f"{link}.cbcap", recs)
         merged += [(t, link, d) for t, d in recs]
     merged.sort(key=lambda r: r[0])
     data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
     for k, v in sc.config.items():
         data.setdefault(k, {}).update(v)
-    endpoint = "inproc://two-links-recorded"
+    endpoint = f"inproc://{name}"
     data["pub"] = {"endpoint": endpoint}
     data["control"] = {"endpoint": endpoint + "-ctl"}
-    data["link"] = [{"name": n, "url": f"replay:{tmp_path / n}.cbcap", "replay_speed": 2.0,
+    data["link"] = [{"name": n, "url": f"replay:{tmp_path / n}.cbcap", "replay_speed": speed,
                      "replay_clock": "recorded", "exit_when_done": True, "wait_for_subscriber": True}
                     for n in ("gw1", "gw9")]
+    return merged, data, endpoint
+
+
+def test_two_links_replayed_in_recorded_time_keep_one_clock(tmp_path: Path) -> None:
+    """Two gateways' captures, the second line up 3 s after the first (its records 3 s
+    later): replayed, each link was paced from its own first record, so the second line's
+    t+3 s came at once, the recording's clock jumped 3 s and the first line's bridges were
+    reported silent while their reads were being replayed. The offline driver, fed the
+    same reads in time order, reports none silent."""
+    merged, data, endpoint = _two_links_3s_apart(tmp_path, "two-links-recorded", 2.0)
     offline = OfflineDaemon(parse_config(data, "test"), topics={"health"}, recorded=True)
     assert not [o.payload["t_host"] for o in offline.run(merged) if o.topic == "health" and _silent(o.payload)]
     got = _run_service(data, endpoint, ("health",))
@@ -225,23 +233,8 @@ def test_a_replay_in_recorded_time_ticks_on_the_recordings_clock_as_the_offline_
     timer only, a replay the machine could not keep pace with came in bursts between two
     ticks, and health went out at whichever read was last fed (2.4 s of recording apart
     beside four CPU burners, where the recording asks for one a second)."""
-    sc = next(s for s in SCENARIOS if s.name == "two_gateways")
-    merged: list[tuple[float, str, bytes]] = []
-    for link, shift in (("gw1", 0.0), ("gw9", 3.0)):  # (5.5 s of recording)
-        recs = [(t + shift, d) for name, t, d in serial_reads(DATA / "two_gateways.mcap") if name == link]
-        write_capture(tmp_path / f"{link}.cbcap", recs)
-        merged += [(t, link, d) for t, d in recs]
-    merged.sort(key=lambda r: r[0])
-    data: dict[str, Any] = {k: dict(v) for k, v in BASE_CONFIG.items()}
-    for k, v in sc.config.items():
-        data.setdefault(k, {}).update(v)
-    endpoint = "inproc://recorded-ticks"
-    data["pub"] = {"endpoint": endpoint}
-    data["control"] = {"endpoint": endpoint + "-ctl"}
     # flat out: the whole recording in bursts, far faster than the loop's 0.1 s timer
-    data["link"] = [{"name": n, "url": f"replay:{tmp_path / n}.cbcap", "replay_speed": 0.0,
-                     "replay_clock": "recorded", "exit_when_done": True, "wait_for_subscriber": True}
-                    for n in ("gw1", "gw9")]
+    merged, data, endpoint = _two_links_3s_apart(tmp_path, "recorded-ticks", 0.0)
     offline = OfflineDaemon(parse_config(data, "test"), topics={"health"}, recorded=True)
     want = [o.payload["t_host"] for o in offline.run(merged) if o.topic == "health"]
     got = [p["t_host"] for t, p in _run_service(data, endpoint, ("health",)) if t == "health"]

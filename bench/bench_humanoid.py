@@ -150,18 +150,26 @@ def group_cpu_rss(pgid: int) -> tuple[float, int]:
     return cpu, rss
 
 
-def run_daemon(skin, gen: dict, into: Path, reporting: str) -> list[object]:
+def run_daemon(skin, gen: dict, into: Path, reporting: str, trace: list[list[object]] | None = None) -> list[object]:
+    """The real daemon at real speed on the recording (see the module); ``trace``: run it
+    through ``press_trace.py --light`` and append the breakdown row of its 10-contact
+    frames (:func:`breakdown_row`)."""
     links = [{"name": f"gw{g}", "url": f"replay:{into / f'gw{g}.cbcap'}", "replay_speed": 1.0,
               "wait_for_subscriber": True} for g in gen["gateways"]]
     cfg = into / "daemon.toml"
     ep = write_config(cfg, links, layout={"file": str(HUMANOID)}, health={"interval": 1.0})
     client = Client(ep, (b"contact", b"health"))
     lat: list[float] = []
+    got_at: dict[float, float] = {}  # a 10-contact message's t_sample -> wall time it reached the subscriber
     contacts_max = 0
     health: dict = {}
     seconds = gen["seconds"]
+    argv = None
+    if trace is not None:
+        argv = [sys.executable, str(Path(__file__).with_name("press_trace.py")), "--config", str(cfg),
+                "--trace", str(into / "trace.msgpack"), "--light"]
     try:
-        with daemon(cfg, stderr=into / "daemon.err") as proc:
+        with daemon(cfg, stderr=into / "daemon.err", argv=argv) as proc:
             start = time.monotonic()
             cpu0 = None
             c_end = math.inf
@@ -188,12 +196,15 @@ def run_daemon(skin, gen: dict, into: Path, reporting: str) -> list[object]:
                 t_in = (k / RATE) % ROUND
                 if len(live) >= 10 and FIRST % ROUND + 0.3 < t_in < FIRST % ROUND + HOLD - 0.1 and k in gen["last"]:
                     lat.append(now - m["t_sample"] - (gen["last"][k] - gen["first"]))
+                    got_at[m["t_sample"]] = now
                 contacts_max = max(contacts_max, len(live))
             cpu1, rss = group_cpu_rss(proc.pid)
             c_end = time.monotonic()
     finally:
         client.sub.close()
         client.ctx.term()
+    if trace is not None:  # (the daemon stopped: its trace is written)
+        trace.append(breakdown_row(reporting, into / "trace.msgpack", got_at))
     cpu_per_s = (cpu1 - cpu0) / (c_end - t_cpu0) if cpu0 is not None else math.nan
     fr = health.get("frames", {})
     samples = gen["counters"].get("samples", 0) / gen["seconds"]
@@ -204,6 +215,45 @@ def run_daemon(skin, gen: dict, into: Path, reporting: str) -> list[object]:
             f"{np.median(la):.2f}" if la.size else "-", f"{np.percentile(la, 99):.2f}" if la.size else "-",
             contacts_max, fr.get("frames_complete", "-"), fr.get("frames_by_deadline", "-"),
             fr.get("frames_missed", "-"), fr.get("late_records", "-")]
+
+
+#: the steps of :func:`breakdown_row`, each from the end of the one before
+STEPS = ("frame complete → look", "look → job submitted", "submitted → worker began", "worker's estimate",
+         "worker ended → result in the loop", "result → published", "published → subscriber")
+
+
+def breakdown_row(reporting: str, path: Path, got_at: dict[float, float]) -> list[object]:
+    """Where the 10-contact frames' latency went, from a ``press_trace.py --light`` trace and
+    ``got_at`` (each message's ``t_sample`` and the wall time it reached the subscriber): per
+    message, the host times of each step from the moment the pipeline completed its frame
+    (the read of its last record) to the subscriber; each step's median and p99 in ms, and
+    the whole."""
+    import msgpack
+
+    with open(path, "rb") as f:
+        tr = msgpack.unpack(f, strict_map_key=False)
+    off = tr["wall_offset"][0]
+    completed = {t: now for now, t, _cycle in tr["k"]}  # frame's host time -> when the layout took it
+    looks = sorted(tuple(e) for e in tr["e"] if e[2] is not None)  # (began, ended, frame's host time)
+    jobs = sorted(tuple(x) for x in tr.get("x", []))  # (submitted, began, ended, result in the loop)
+    published = {p[1]: p[0] for p in tr["p"]}  # t_sample -> when handed to ZeroMQ
+    steps: list[list[float]] = [[] for _ in range(len(STEPS) + 1)]
+    for t_sample, recv in got_at.items():
+        pub = published.get(t_sample)
+        e = None if pub is None else next((e for e in looks if e[0] <= pub <= e[1]), None)
+        done = None if e is None else completed.get(e[2])
+        x = None if e is None else next((j for j in jobs if e[0] <= j[0] <= e[1]), None)
+        if pub is None or e is None or done is None or x is None:
+            continue
+        times = [done, e[0], x[0], x[1], x[2], x[3], pub, recv - off]
+        for i in range(len(STEPS)):
+            steps[i].append(times[i + 1] - times[i])
+        steps[-1].append(times[-1] - times[0])
+    cells: list[object] = [reporting, len(steps[-1])]
+    for v in steps:
+        a = np.array(v) * 1e3
+        cells.append(f"{np.median(a):.2f} / {np.percentile(a, 99):.2f}" if a.size else "-")
+    return cells
 
 
 def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str, ...] | None = None) -> list[object]:
@@ -318,6 +368,9 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=120.0, help="length of each recording (default 120)")
     ap.add_argument("--quick", action="store_true", help="40 s recordings, a shorter cycle-level comparison")
     ap.add_argument("--skip-daemon", action="store_true", help="generation and the estimate call only")
+    ap.add_argument("--trace", action="store_true",
+                    help="run the daemon through bench/press_trace.py --light and print where its 10-contact "
+                         "frames' latency went (the trace costs the daemon some CPU: its CPU figure is then high)")
     a = ap.parse_args()
     seconds = 40.0 if a.quick else a.seconds
     skin = load_skin(HUMANOID)
@@ -326,6 +379,7 @@ def main() -> int:
     gen_rows: list[list[object]] = []
     daemon_rows: list[list[object]] = []
     flat_rows: list[list[object]] = []
+    trace_rows: list[list[object]] | None = [] if a.trace else None
     with tempfile.TemporaryDirectory(prefix="bench_humanoid.") as tmp:
         for reporting in ("periodic", "event:30"):
             into = Path(tmp) / reporting.replace(":", "")
@@ -337,7 +391,7 @@ def main() -> int:
                              f"{g['counters'].get('unchanged', 0) / seconds:,.0f}",
                              f"{g['bytes'] / seconds / len(g['gateways']) / 1e3:.1f}"])
             if not a.skip_daemon:
-                daemon_rows.append(run_daemon(skin, g, into, reporting))
+                daemon_rows.append(run_daemon(skin, g, into, reporting, trace_rows))
                 flat_rows.append(core_capacity(skin, g, into, reporting))
     short = 0.05 if a.quick else 0.2
     rate = cycle_mesh_rate(skin, short)
@@ -352,6 +406,10 @@ def main() -> int:
               ["reporting", "load avg", "samples/s", "CPU (cores)", "peak RSS MiB", "replay fed late, max ms", "10-contact frames", "latency median ms",
                "latency p99 ms", "most contacts", "frames complete", "by deadline", "missed", "late records"],
               daemon_rows)
+    if trace_rows:
+        table("Where the 10-contact frames' latency went (the traced daemon; ms, median / p99; each step from "
+              "the end of the one before, the first from the read that completed the frame)",
+              ["reporting", "frames", *STEPS, "complete → subscriber"], trace_rows)
     if flat_rows:
         table("The daemon's core per second of skin: the same recordings through the pipeline and an estimate per "
               "frame, in this process (CPU of this thread per recorded s; targets: periodic ≤ 1, event-based ≤ 0.25)",

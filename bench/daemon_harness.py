@@ -177,12 +177,15 @@ def stop_session(proc: subprocess.Popen[bytes]) -> None:
 
 @contextmanager
 def daemon(config: Path, stderr: Path | None = None, env: dict[str, str] | None = None,
-           preexec_fn: Callable[[], None] | None = None) -> Iterator[subprocess.Popen[bytes]]:
+           preexec_fn: Callable[[], None] | None = None,
+           argv: list[str] | None = None) -> Iterator[subprocess.Popen[bytes]]:
     """The daemon as a real process in its own process group; always stopped on exit.
 
-    ``preexec_fn`` runs in the child before the command (resource limits, umask)."""
+    ``preexec_fn`` runs in the child before the command (resource limits, umask); ``argv``
+    is the command (default ``cellbridge daemon --config CONFIG``; a traced daemon,
+    ``bench/press_trace.py``, takes the same config)."""
     err = open(stderr, "wb") if stderr else subprocess.DEVNULL
-    proc = subprocess.Popen([CLI, "daemon", "--config", str(config)], stderr=err, stdout=subprocess.DEVNULL,
+    proc = subprocess.Popen(argv or [CLI, "daemon", "--config", str(config)], stderr=err, stdout=subprocess.DEVNULL,
                             start_new_session=True, env=env, preexec_fn=preexec_fn)
     try:
         yield proc

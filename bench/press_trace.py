@@ -25,6 +25,11 @@ methods, in this process only, to note on the host monotonic clock:
 
 The trace is written as msgpack when the daemon stops (SIGTERM). Nothing here runs in a
 daemon started the ordinary way: the diagnostic costs the production path nothing.
+
+``--light`` notes only what a frame's way to its contact message needs (``k``, ``l`` without
+the elements, ``e``, ``x``, ``p``, and ``b`` without the event loop's callbacks; no ``s``,
+``d`` or ``w``): a skin of a thousand elements at 100 Hz would otherwise note 10⁵ readings a
+second and be slowed by its own trace (``bench/bench_humanoid.py --trace``).
 """
 
 from __future__ import annotations
@@ -67,7 +72,7 @@ def _f(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def _instrument() -> None:
+def _instrument(light: bool = False) -> None:
     step, snapshot, frame = LayoutStages.step, LayoutStages.snapshot, LayoutStages.frame
     contact_once, publish = Service._contact_once, Publisher.publish
     on_data, tick_once, contact_due = Service._on_data, Service._tick_once, Pipeline.contact_due
@@ -85,12 +90,15 @@ def _instrument() -> None:
 
     def traced_contact_due(self: Pipeline, now: float, idle: bool = False) -> float:
         due = contact_due(self, now, idle)
-        TRACE["d"].append((now, _f(due)))
+        if not light:
+            TRACE["d"].append((now, _f(due)))
         return due
 
     def traced_step(self: LayoutStages, rows, raw, saturated, caps, t_sample, cycle,
                     now, held, on_time, period, inverse=True):
         res = step(self, rows, raw, saturated, caps, t_sample, cycle, now, held, on_time, period, inverse)
+        if light:
+            return res
         r, layout = self.readings, self.layout
         assert r is not None and layout is not None  # a frame: the layout's readings are there
         ids = layout.ids
@@ -103,6 +111,8 @@ def _instrument() -> None:
                      now, inverse=True, **kw):
         got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, **kw)
         TRACE["k"].append((now, t, int(cycle)))  # the frame's global cycle: its gate on the skin's own plan
+        if light:
+            return got
         r, layout = self.readings, self.layout
         assert r is not None and layout is not None  # a frame: the layout's readings are there
         ids = layout.ids
@@ -112,7 +122,9 @@ def _instrument() -> None:
 
     def traced_snapshot(self: LayoutStages, now: float, bridge_timeout: float, scheduled: bool):
         got = snapshot(self, now, bridge_timeout, scheduled)
-        if self.layout is not None:
+        if light:
+            TRACE["l"].append((now, _f(got.t_frame) if got is not None else None))
+        elif self.layout is not None:
             n = self.layout.n  # (no holds: a frame is estimable once its records are in, or at its deadline)
             TRACE["l"].append((now, _f(got.t_frame) if got is not None else None, [None] * n,
                                self.layout.ids.tolist(), [], [False] * n, None))
@@ -172,8 +184,6 @@ def _instrument() -> None:
                     else getattr(cb, "__qualname__", type(cb).__name__))
             TRACE["b"].append((f"cb {what}"[:80], t0, t1))
 
-    asyncio.events.Handle._run = traced_run  # type: ignore[method-assign]
-
     run_once = asyncio.BaseEventLoop._run_once  # type: ignore[attr-defined]
 
     def traced_run_once(self: asyncio.BaseEventLoop) -> None:
@@ -193,7 +203,10 @@ def _instrument() -> None:
             sel._cb_traced = True
         run_once(self)
 
-    asyncio.BaseEventLoop._run_once = traced_run_once  # type: ignore[attr-defined]
+    if not light:
+        asyncio.events.Handle._run = traced_run  # type: ignore[method-assign]
+        asyncio.BaseEventLoop._run_once = traced_run_once  # type: ignore[attr-defined]
+
     WorkerProcess.submit = traced_submit  # type: ignore[method-assign]
     contact_worker.estimate = timed_estimate
     Service._on_data = traced_on_data  # type: ignore[method-assign]
@@ -210,13 +223,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", required=True)
     ap.add_argument("--trace", required=True, help="msgpack file the trace is written to at the stop")
+    ap.add_argument("--light", action="store_true", help="only what a frame's way to its contact needs (see the module)")
     args = ap.parse_args()
     config = _load(argparse.Namespace(config=args.config))
     import os
 
     worker_file = args.trace + ".worker"
     os.environ[WORKER_TRACE] = worker_file
-    _instrument()
+    _instrument(args.light)
     try:
         return run_service(args.config, config)
     finally:

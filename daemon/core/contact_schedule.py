@@ -13,7 +13,10 @@ The policy, in one place:
 - **when**: a look when data came (a read), at each tick (silence ends contacts), or when
   :meth:`Pipeline.contact_due` says a frame is complete or its deadline passed; never
   sooner than the :class:`~cellbridge.daemon.core.pacing.Pacer` allows after the last look
-  (``[contact] rate`` estimates a second on average, a token bucket);
+  (``[contact] rate`` estimates a second on average, a token bucket), except that the rest
+  after a look that estimated nothing ends at the read that completes a skin frame worth a
+  look (:meth:`ContactScheduler.fed`, :meth:`ContactScheduler.wakes`): that read is what
+  the rest waited for, and the rest's gap (a quarter of a period) would only delay it;
 - **what a look takes**: the frames whose deadline passed (their elements' messages, to
   publish first) and the newest complete skin frame as a contact job, or none;
 - **which estimates are published**: every estimate with contacts, and the first without
@@ -60,12 +63,13 @@ class ContactScheduler:
     The loop, in any time base the pacing is given in (the service: the host's monotonic
     counter; the offline driver: the reads' times)::
 
-        sched.fed()                                  # on every read
+        framed = sched.fed()                         # on every read
         at = sched.due(now, idle=not worker.last_ran())   # wait until then, data, or a tick
         look = sched.look(now)                       # publish look.messages
         contacts = worker.estimate(look.job)         # when look.job is not None
         message = sched.publish(look.job, contacts)  # publish it when not None
-        rest = sched.rest_until(t0, ran, sched.due(...))  # no look before then
+        rest = sched.rest_until(t0, ran, sched.due(...))  # no look before then, except:
+        sched.wakes(now, ran, framed, idle)          # a read in the rest after a look that ran nothing
     """
 
     def __init__(self, pipeline: Pipeline, rate: float) -> None:
@@ -75,14 +79,28 @@ class ContactScheduler:
         self.feeds_skipped = 0
         self._feeds = 0  # reads since the last job was taken
         self._shown = False  # the last published contact message had contacts
+        self._given = pipeline.frames_given()  # skin frames given out as of the last read
 
     def set_rate(self, rate: float) -> None:
         """``[contact] rate`` changed (a reload): this many estimates a second from now on."""
         self.pacer.set_rate(rate)
 
-    def fed(self) -> None:
-        """A read was fed to the pipeline (counted against the next job: skipped feeds)."""
+    def fed(self) -> bool:
+        """A read was fed to the pipeline (counted against the next job: skipped feeds).
+        True when it gave out a skin frame (complete by its records, or the read came past
+        a deadline; see :meth:`wakes`)."""
         self._feeds += 1
+        given = self.pipeline.frames_given()
+        framed, self._given = given != self._given, given
+        return framed
+
+    def wakes(self, now: float, estimated: bool, framed: bool, idle: bool) -> bool:
+        """Whether a read at ``now`` ends the loop's rest early: the look before the rest
+        ran no estimate (``estimated`` False: the rest is the pacer's gap after a look that
+        found nothing, not the token bucket's bound on estimates), the read completed a skin
+        frame (``framed``, from :meth:`fed`) and a look now finds it (:meth:`due`, ``idle``
+        as there: a frame that only repeats an idle skin's does not wake it)."""
+        return framed and not estimated and self.due(now, idle) <= now
 
     def due(self, now: float, idle: bool) -> float:
         """The pipeline's time at which a look finds a new frame without new data
@@ -96,6 +114,7 @@ class ContactScheduler:
         complete frame becomes the job."""
         messages = self.pipeline.advance(now)
         job = self.pipeline.contact_job(now)
+        self._given = self.pipeline.frames_given()  # (frames a look gave out at their deadline: no read's)
         if job is None:
             return Look(messages, None)
         skipped = max(0, self._feeds - 1)

@@ -17,8 +17,9 @@ average, on every press's first contact), until a frame came due later than the 
 
 A look that finds no new frame costs a skin-frame computation: after one, the next comes
 no sooner than ``empty_gap`` of the period or when the frame is due (a serial line read in
-small pieces cost a look per read). A look that finds the frame due yet none taken (a
-transition holds it back) rests a whole period: no spinning.
+small pieces cost a look per read), or at the read that completes a skin frame
+(``ContactScheduler.wakes``: that read is what the rest waits for). A look that finds the
+frame due yet none taken (a transition holds it back) rests a whole period: no spinning.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Generator, Iterable, Iterator
 from typing import Any, NamedTuple
 
 from cellbridge.daemon.core.config import Config
@@ -92,6 +92,7 @@ class OfflineDaemon:
         next_tick = start
         last_read = start
         rest_until = -math.inf
+        ran = False  # the last look ran an estimate (its rest is the token bucket's, not cut short)
         fresh = False
 
         def end() -> float:
@@ -104,18 +105,23 @@ class OfflineDaemon:
                 if isinstance(m, Publish):
                     yield Output(t, m.topic, m.payload)
 
-        def advance_to(t: float) -> Iterator[Output]:
-            """Reads and ticks up to ``t``, in time order (a read before a tick at one time)."""
+        def advance_to(t: float, resting: bool = False) -> Generator[Output, None, float | None]:
+            """Reads and ticks up to ``t``, in time order (a read before a tick at one time).
+            ``resting``: the loop's rest, which a read may end (``ContactScheduler.wakes``):
+            then the time of that read, else None."""
             nonlocal pending, next_tick, last_read, fresh
             while True:
                 t_read = pending.t if pending is not None else math.inf
                 if min(t_read, next_tick) > t:
-                    return
+                    return None
                 if pending is not None and t_read <= next_tick:
                     yield from publish(t_read, p.feed(pending.link, pending.data, t_read))
-                    sched.fed()
+                    framed = sched.fed()
                     last_read = t_read
                     pending = _next_read(it, t_read)
+                    if resting and sched.wakes(t_read, ran, framed, not w.last_ran()):
+                        fresh = True
+                        return t_read
                 else:
                     while steps and steps[0][0] <= next_tick:
                         yield from publish(next_tick, p.host_clock_step(steps.pop(0)[1]))
@@ -124,7 +130,7 @@ class OfflineDaemon:
                 fresh = True
 
         def look(t: float) -> Iterator[Output]:
-            nonlocal rest_until
+            nonlocal rest_until, ran
             self.looks += 1
             found = sched.look(None if self.recorded else t)
             yield from publish(t, found.messages)
@@ -139,10 +145,10 @@ class OfflineDaemon:
             rest_until = sched.rest_until(t, ran, sched.due(t, not w.last_ran()))
 
         while True:
-            if rest_until > now:  # the loop rests; reads and ticks go on
+            if rest_until > now:  # the loop rests; reads and ticks go on (a read may end it)
                 stop = min(rest_until, end())
-                yield from advance_to(stop)
-                now = max(now, stop)
+                woke = yield from advance_to(stop, resting=True)
+                now = max(now, stop if woke is None else woke)
                 if now >= end():
                     break
             if not fresh:  # wait for data, a tick, or a frame's due time

@@ -119,6 +119,10 @@ class Service:
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
+        # the contact loop rests after a look that ran no estimate, and a read completing a
+        # frame worth a look ends that rest (ContactScheduler.wakes)
+        self._resting = False
+        self._woken = asyncio.Event()
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[Any]] = []
         self.contacts = ContactWorker(self.log, contact_executor)
@@ -164,7 +168,9 @@ class Service:
             self.log.exception("ingest failed on one read", extra={"fields": {"link": link, "bytes": len(data)}})
         if p.commands_in_flight():
             self.control.resolve(now)
-        self.schedule.fed()
+        framed = self.schedule.fed()
+        if self._resting and self.schedule.wakes(now, False, framed, not self.contacts.last_ran()):
+            self._woken.set()
         self._fresh.set()
         self._busy[self._n_reads % self._busy.shape[0]] = time.perf_counter() - t0
         self._n_reads += 1
@@ -377,7 +383,25 @@ class Service:
             due_at = sched.due(now, not self.contacts.last_ran())
             rest = sched.rest_until(started, estimated, t + (due_at - now)) - t
             if rest > 0:
-                await asyncio.sleep(rest)
+                await self._rest(rest, estimated)
+
+    async def _rest(self, rest: float, estimated: bool) -> None:
+        """The pacer's ``rest`` s before the next look. After a look that ran no estimate
+        (``estimated`` False) a read that completes a skin frame worth a look ends it
+        (:meth:`ContactScheduler.wakes`): the gap only spaces looks at reads that complete
+        nothing, and a frame completed in it waited for the gap's end (up to a quarter of a
+        period, 2.5 ms at 100 Hz, on every press's way to its contact)."""
+        if estimated:
+            await asyncio.sleep(rest)
+            return
+        self._woken.clear()
+        self._resting = True
+        try:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(rest):  # (not wait_for: see above)
+                    await self._woken.wait()
+        finally:
+            self._resting = False
 
     async def _contact_once(self, limit: float = math.inf) -> bool:
         """Look at the skin once and estimate its newest frame if it moved on; whether a job

@@ -14,6 +14,7 @@ half its force, σ_F 4 mN)."""
 
 from __future__ import annotations
 
+import gc
 import itertools
 import math
 import os
@@ -153,6 +154,28 @@ class ContactIdentity:
 #: the caller's, with an inline executor). A few owners at most are kept.
 _STAGES: OrderedDict[str, tuple[ContactSpec, ContactStage]] = OrderedDict()
 _MAX_OWNERS = 8
+#: This process is the contact worker's (:func:`in_worker`): only there does building an
+#: estimator end in :func:`_settle` (a test or tool estimating inline keeps its collector as it is).
+_SETTLE = False
+
+
+def in_worker() -> None:
+    """The contact worker process's first job (``contact_worker.process_pool``): from now on
+    the warm-up and every estimator built are kept out of the cyclic collector's full passes."""
+    global _SETTLE
+    _SETTLE = True
+
+
+def _settle() -> None:
+    """Everything alive now (modules, compiled kernels, the estimators kept) out of the cyclic
+    collector's full passes. Over the humanoid's estimator one such pass took about 60 ms of
+    the worker's CPU, and one came every several seconds as the tracks' objects aged into
+    the oldest generation: a frame's whole latency budget, several times over, stalled. The
+    objects are unfrozen and collected first, so what a rebuild left behind (the estimator
+    before) is freed, not kept for ever; that one pass is paid once per build."""
+    gc.unfreeze()
+    gc.collect()
+    gc.freeze()
 
 
 def estimate(job: ContactJob) -> list[dict[str, Any]]:
@@ -164,6 +187,8 @@ def estimate(job: ContactJob) -> list[dict[str, Any]]:
     if kept is None or kept[0] != job.spec:
         kept = _STAGES[job.owner] = (job.spec, job.spec.build())
         kept[1].tracker.carry(job.carry)
+        if _SETTLE:
+            _settle()
     _STAGES.move_to_end(job.owner)
     while len(_STAGES) > _MAX_OWNERS:
         _STAGES.popitem(last=False)
@@ -180,6 +205,8 @@ def warm_up() -> None:
     stage = ContactStage(layout, default_params(layout), 2e-15, "capacitance", birth_frames=1)
     stage.run(ContactSnapshot(np.stack([dc1, dc2], axis=1), touched, 0.0, np.zeros(layout.n),
                               np.zeros(layout.n, dtype=np.uint64), layout.ids, 0.0))
+    if _SETTLE:
+        _settle()
 
 
 class ContactStage:

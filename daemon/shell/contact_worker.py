@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cellbridge.daemon.core.contacts import ContactJob, estimate, warm_up
+from cellbridge.daemon.core.contacts import ContactJob, estimate, in_worker, warm_up
 from cellbridge.daemon.shell.logs import event
 from cellbridge.daemon.shell.worker_process import WorkerProcess
 
@@ -32,8 +32,12 @@ CLOSE_WAIT = 2.0
 
 
 def process_pool() -> concurrent.futures.Executor:
-    """The production executor: one spawned process (:class:`~cellbridge.daemon.shell.worker_process.WorkerProcess`)."""
-    return WorkerProcess()
+    """The production executor: one spawned process (:class:`~cellbridge.daemon.shell.worker_process.WorkerProcess`),
+    told first that it is the contact worker (its estimators' objects are kept out of the
+    cyclic collector's full passes: :func:`~cellbridge.daemon.core.contacts.in_worker`)."""
+    pool = WorkerProcess()
+    pool.submit(in_worker)  # (jobs run in order: before the warm-up and every estimate)
+    return pool
 
 
 class InlineExecutor(concurrent.futures.Executor):

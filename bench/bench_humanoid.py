@@ -218,22 +218,24 @@ def run_daemon(skin, gen: dict, into: Path, reporting: str, trace: list[list[obj
 
 
 #: the steps of :func:`breakdown_row`, each from the end of the one before
-STEPS = ("frame complete → look", "look → job submitted", "submitted → worker began", "worker's estimate",
+STEPS = ("read late", "frame complete → look", "look → job submitted", "submitted → worker began", "worker's estimate",
          "worker ended → result in the loop", "result → published", "published → subscriber")
 
 
 def breakdown_row(reporting: str, path: Path, got_at: dict[float, float]) -> list[object]:
     """Where the 10-contact frames' latency went, from a ``press_trace.py --light`` trace and
     ``got_at`` (each message's ``t_sample`` and the wall time it reached the subscriber): per
-    message, the host times of each step from the moment the pipeline completed its frame
-    (the read of its last record) to the subscriber; each step's median and p99 in ms, and
-    the whole."""
+    message, the host times of each step from the read that completed its frame (its due
+    time in the replay, then when the pipeline took it) to the subscriber; each step's median
+    and p99 in ms, and the whole."""
     import msgpack
 
     with open(path, "rb") as f:
         tr = msgpack.unpack(f, strict_map_key=False)
     off = tr["wall_offset"][0]
-    completed = {t: now for now, t, _cycle in tr["k"]}  # frame's host time -> when the layout took it
+    # frame's host time -> (the read's time, when the layout took it): a paced replay's read
+    # carries its due time, and may be fed after it (the loop busy)
+    completed = {k[1]: (k[0], k[3]) for k in tr["k"]}
     looks = sorted(tuple(e) for e in tr["e"] if e[2] is not None)  # (began, ended, frame's host time)
     jobs = sorted(tuple(x) for x in tr.get("x", []))  # (submitted, began, ended, result in the loop)
     published = {p[1]: p[0] for p in tr["p"]}  # t_sample -> when handed to ZeroMQ
@@ -245,7 +247,7 @@ def breakdown_row(reporting: str, path: Path, got_at: dict[float, float]) -> lis
         x = None if e is None else next((j for j in jobs if e[0] <= j[0] <= e[1]), None)
         if pub is None or e is None or done is None or x is None:
             continue
-        times = [done, e[0], x[0], x[1], x[2], x[3], pub, recv - off]
+        times = [done[0], done[1], e[0], x[0], x[1], x[2], x[3], pub, recv - off]
         for i in range(len(STEPS)):
             steps[i].append(times[i + 1] - times[i])
         steps[-1].append(times[-1] - times[0])
@@ -408,8 +410,8 @@ def main() -> int:
               daemon_rows)
     if trace_rows:
         table("Where the 10-contact frames' latency went (the traced daemon; ms, median / p99; each step from "
-              "the end of the one before, the first from the read that completed the frame)",
-              ["reporting", "frames", *STEPS, "complete → subscriber"], trace_rows)
+              "the end of the one before, the first from the due time of the read that completed the frame)",
+              ["reporting", "frames", *STEPS, "read due → subscriber"], trace_rows)
     if flat_rows:
         table("The daemon's core per second of skin: the same recordings through the pipeline and an estimate per "
               "frame, in this process (CPU of this thread per recorded s; targets: periodic ≤ 1, event-based ≤ 0.25)",

@@ -110,7 +110,9 @@ def _instrument(light: bool = False) -> None:
     def traced_frame(self: LayoutStages, t, cycle, sampled, raw, saturated, caps, unchanged,
                      now, inverse=True, **kw):
         got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, **kw)
-        TRACE["k"].append((now, t, int(cycle)))  # the frame's global cycle: its gate on the skin's own plan
+        # the frame's global cycle (its gate on the skin's own plan), and the monotonic clock
+        # now: a paced replay's read carries its due time as ``now`` even when it came later
+        TRACE["k"].append((now, t, int(cycle), time.monotonic()))
         if light:
             return got
         r, layout = self.readings, self.layout
@@ -229,6 +231,7 @@ def main() -> int:
     import os
 
     worker_file = args.trace + ".worker"
+    open(worker_file, "w").close()  # (a trace of an earlier run in the same place: its jobs are not this one's)
     os.environ[WORKER_TRACE] = worker_file
     _instrument(args.light)
     try:

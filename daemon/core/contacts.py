@@ -186,7 +186,7 @@ def estimate(job: ContactJob) -> list[dict[str, Any]]:
     kept = _STAGES.get(job.owner)
     if kept is None or kept[0] != job.spec:
         kept = _STAGES[job.owner] = (job.spec, job.spec.build())
-        kept[1].tracker.carry(job.carry)
+        kept[1].carry(job.carry)
         if _SETTLE:
             _settle()
     _STAGES.move_to_end(job.owner)
@@ -228,6 +228,20 @@ class ContactStage:
         self._row = {int(e): i for i, e in enumerate(layout.ids.tolist())}
         e = layout.corner_edges
         self._ring = [np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]]) for i in range(layout.n)]
+
+    def carry(self, contacts: Iterable[dict[str, Any]]) -> int:
+        """Continue the contacts a tracker before this one published (a new layout or
+        settings, a replaced worker: :meth:`ContactTracker.carry`), each with the elements of
+        this layout only; one with none left ended with its layout. Carried whole, a contact
+        missed in the next frame was reported with an element the layout no longer has (a
+        SIGHUP's layout file without it), and the host, which looks up each element's row
+        in the frame, raised in its contact loop and ended it. Returns how many were taken."""
+        kept = []
+        for c in contacts:
+            elements = [e for e in c["elements"] if e in self._row]
+            if elements:
+                kept.append(c if len(elements) == len(c["elements"]) else {**c, "elements": elements})
+        return self.tracker.carry(kept)
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
         if snap.touched.any():

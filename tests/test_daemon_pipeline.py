@@ -894,3 +894,34 @@ def test_hello_layout_overlap_check_by_grid_rejects_exactly_the_overlapping_brid
         layout, rejected = layout_from_geometry(geometry)
         assert layout is not None and layout.ids.tolist() == kept
         assert rejected == sorted(set(geometry) - set(kept))
+
+
+def test_a_contact_missed_after_a_layout_without_its_elements_is_published_on_the_new_layout() -> None:
+    """A SIGHUP whose layout file no longer holds an element under a held press, released
+    as the layout changes: the tracker built for the new layout continued the contact, and
+    the estimate after the release reported it missed with the elements it had on the old
+    layout. The host's contact message looks up each element's row in the frame: a KeyError
+    in the contact loop, which ended it (no contact published again, health going on). A
+    carried contact keeps only the elements its new layout holds; one with none left ended."""
+    from cellbridge.tactile import SkinLayout
+
+    sk = GridFrames()
+    p = make(layout=sk.layout)
+    settle(p, sk, 100)
+    press(p, sk, STRADDLE, 100, 20)  # on the seam of bridges 1 and 2
+    w = worker()
+    job = p.contact_job()
+    assert job is not None
+    for _ in range(3):  # (born after a few estimates)
+        contacts = w.estimate_now(job)
+    before = p.contact_frame(job, contacts).payload["contacts"]
+    assert len(before) == 1 and set(before[0]["elements"]) == {1, 2}
+    keep = [i for i, b in enumerate(sk.ids) if b != 2]
+    smaller = SkinLayout(sk.layout.centres[keep], side=sk.layout.side, ids=sk.layout.ids[keep])
+    p.reconfigure(make().config, smaller)  # bridge 2 is no longer placed
+    press(p, sk, None, 120, 1)  # released
+    job = p.contact_job()
+    assert job is not None
+    after = p.contact_frame(job, w.estimate_now(job)).payload["contacts"]
+    assert [c["id"] for c in after] == [before[0]["id"]] and after[0]["missed"] == 1
+    assert after[0]["elements"] == [1] and len(after[0]["cycles"]) == 1

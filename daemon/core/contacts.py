@@ -82,6 +82,19 @@ class ContactSpec:
                    contact.birth_frames, contact.max_missed)
 
     def build(self) -> ContactStage:
+        """The estimator of this spec. Raises ValueError, saying which, for bytes that are not
+        whole int64 ids and (x, y) float64 centres, one centre an id (a truncated spec, or
+        arrays of another dtype read as these), or that make no layout (SkinLayout's checks)."""
+        if not isinstance(self.ids, bytes) or not isinstance(self.centres, bytes):
+            raise ValueError(f"contact spec: ids and centres must be bytes, got {type(self.ids).__name__} "
+                             f"and {type(self.centres).__name__}")
+        if len(self.ids) % 8:
+            raise ValueError(f"contact spec: ids are {len(self.ids)} bytes, not whole int64 ids")
+        if len(self.centres) % 16:
+            raise ValueError(f"contact spec: centres are {len(self.centres)} bytes, not whole (x, y) float64 pairs")
+        n, m = len(self.ids) // 8, len(self.centres) // 16
+        if n != m:
+            raise ValueError(f"contact spec: {n} ids and {m} centres")
         layout = SkinLayout(np.frombuffer(self.centres, dtype=np.float64).reshape(-1, 2).copy(), side=self.side,
                             ids=np.frombuffer(self.ids, dtype=np.int64).copy(),
                             neighbour_gap=self.neighbour_gap)
@@ -182,16 +195,22 @@ def estimate(job: ContactJob) -> list[dict[str, Any]]:
     """The contacts of ``job`` (tracked across its owner's jobs): what the contact worker runs.
 
     The owner's estimator is rebuilt only when the spec changed (or this process has none:
-    a replaced worker); the rebuilt tracker continues the contacts the job carries."""
+    a replaced worker); the rebuilt tracker continues the contacts the job carries. Raises
+    ValueError for a spec that makes no layout (:meth:`ContactSpec.build`) or a snapshot of
+    other elements than the spec's: refused, not estimated on whatever the bytes made."""
     kept = _STAGES.get(job.owner)
     if kept is None or kept[0] != job.spec:
         kept = _STAGES[job.owner] = (job.spec, job.spec.build())
-        kept[1].tracker.carry(job.carry)
+        kept[1].carry(job.carry)
         if _SETTLE:
             _settle()
     _STAGES.move_to_end(job.owner)
     while len(_STAGES) > _MAX_OWNERS:
         _STAGES.popitem(last=False)
+    snap_ids = np.ascontiguousarray(job.snapshot.ids, dtype=np.int64)  # (the daemon's: as it is, no copy)
+    if snap_ids.tobytes() != job.spec.ids:  # contacts are named by the spec's ids, rows by the snapshot's (~1 µs)
+        raise ValueError(f"contact job: the snapshot's {snap_ids.size} elements are not its spec's "
+                         f"{len(job.spec.ids) // 8}")
     kept[1].tracker.ids_from(job.first_id)
     return kept[1].run(job.snapshot)
 
@@ -228,6 +247,20 @@ class ContactStage:
         self._row = {int(e): i for i, e in enumerate(layout.ids.tolist())}
         e = layout.corner_edges
         self._ring = [np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]]) for i in range(layout.n)]
+
+    def carry(self, contacts: Iterable[dict[str, Any]]) -> int:
+        """Continue the contacts a tracker before this one published (a new layout or
+        settings, a replaced worker: :meth:`ContactTracker.carry`), each with the elements of
+        this layout only; one with none left ended with its layout. Carried whole, a contact
+        missed in the next frame was reported with an element the layout no longer has (a
+        SIGHUP's layout file without it), and the host, which looks up each element's row
+        in the frame, raised in its contact loop and ended it. Returns how many were taken."""
+        kept = []
+        for c in contacts:
+            elements = [e for e in c["elements"] if e in self._row]
+            if elements:
+                kept.append(c if len(elements) == len(c["elements"]) else {**c, "elements": elements})
+        return self.tracker.carry(kept)
 
     def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
         if snap.touched.any():

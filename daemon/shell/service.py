@@ -408,7 +408,19 @@ class Service:
         ran in the worker (a frame taken with nothing touched and no track left is not
         shipped, and costs the estimate rate nothing: counted, idle frames kept the loop's
         token bucket empty and each frame of a press's onset was estimated up to a period
-        after it was due). A failed estimate counts as one."""
+        after it was due). A failed estimate counts as one, and so does a look that raised:
+        a bug costs that look (logged, counted in the estimates' errors), not the contact
+        loop, whose task it ended (no contact published again, health going on, nothing
+        logged)."""
+        try:
+            return await self._look(limit)
+        except Exception:
+            self.contacts.stats["errors"] += 1
+            self.log.exception("contact look failed: this frame's contacts are not published")
+            return True
+
+    async def _look(self, limit: float) -> bool:
+        """:meth:`_contact_once` without its guard."""
         # (a replay in recorded time: its data's own time, or the whole recording looks silent)
         look = self.schedule.look(None if self._recorded else self.now())
         self._act(list(look.messages))  # frames whose deadline passed, and their elements' messages

@@ -203,6 +203,11 @@ class FrameReadout:
             return c.depths * c.window - min(depth, c.depths) * min(c.hop, c.window)
         return (c.depths - min(depth, c.depths)) * c.window
 
+    def expects_children(self) -> bool:
+        """Whether a frame's record waits for children's records (some child is expected):
+        then it cannot go at the bridge's own gate end."""
+        return any(self._members.values())
+
     @property
     def next_tick(self) -> int | None:
         """The earliest slot among the frames waiting (None: nothing waits)."""

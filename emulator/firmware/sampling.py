@@ -54,7 +54,8 @@ class Sampler:
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
                  counters: Counter[str], timebase: Timebase, event_latency: int | None = None,
                  slot: Callable[[], int] = lambda: 0, aligned: bool = True, heartbeat_phase: float = 0.0,
-                 readout: Callable[[Sample, bool, int], None] | None = None) -> None:
+                 readout: Callable[[Sample, bool, int], None] | None = None,
+                 readout_wait: Callable[[], int] = lambda: 0) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
@@ -90,6 +91,12 @@ class Sampler:
         #: whether the reporter keeps it (False: unchanged) and its gate start tick, instead
         #: of into a DATA frame. None: every sample goes in DATA frames.
         self.readout = readout
+        #: With ``lazy``: how long after its gate end a sample on the readout schedule may
+        #: wait to be computed (cycles, asked at each look): until its frame's record can go.
+        #: A relay's record waits for its children's records, each of which wakes it, so its
+        #: own sample is computed at the wake of the last of them (or at its slot) instead
+        #: of at a wake of its own; a leaf's record goes at its gate end (0).
+        self.readout_wait = readout_wait
 
     @property
     def next_tick(self) -> int:
@@ -102,9 +109,16 @@ class Sampler:
         there waits ``max_latency`` for company anyway. The capacitance a lazily computed
         sample sees is the one at its gate (``sense`` is called with the gate's tick)."""
         leave = self._leaving[0][0] if self._leaving else self.ready
+        if self.lazy and self.readout is not None and self.on_time:
+            # on the readout schedule a sample is due when its frame's record can go: at its
+            # gate end, or (a relay) when its children's records are in, at its slot at the
+            # latest (``readout_wait``); every child's record wakes the bridge meanwhile. Not
+            # while samples taken before mesh time wait in a batch: this one sends them.
+            due = self.ready if self.batch else self.ready + self.readout_wait()
+            if self._leaving and self._leaving[0][0] < due:
+                due = self._leaving[0][0]
+            return due if self.flush_at < 0 else min(due, self.flush_at)
         if not self.lazy or (self.readout is not None and self.on_time):
-            # on the readout schedule every sample is due at its gate end (its frame's record
-            # goes then at the earliest)
             return min(self.ready if self.flush_at < 0 else min(self.ready, self.flush_at), leave)
         if self.batch and self._batch_aligned != self._aligned():
             # the next sample closes the batch (aligned or timed, never both), unless its

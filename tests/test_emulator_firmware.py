@@ -759,3 +759,42 @@ def test_a_relay_computes_its_readout_sample_at_its_childrens_records_not_at_a_w
         assert lazy_wakes[b] <= eager_wakes[b] - 95, (b, lazy_wakes[b], eager_wakes[b])
     for b in set(mesh.ids) - relays - set(mesh.gateways):  # a leaf's record goes at its gate end
         assert lazy_wakes[b] == eager_wakes[b]
+
+
+def test_a_bridge_that_computes_its_next_samples_ahead_sends_what_it_sends_without() -> None:
+    # The real-time shell has the chip compute the next samples' counts after a wake that
+    # took one (Sampler.prefetch, process_bridge's PREFETCH): the same counts at the same
+    # gates, whatever the mesh clock did meanwhile (a gate it moved is computed when it
+    # is taken) and whatever the world did (a press: the pressed gates too). Same bytes at
+    # the same ticks on the gateway's line, and most counts came from the prefetch.
+    mesh = meshgen.grid(3, 3)
+    presses = [Contact(2.6, 0.3, 0.04, 0.04, 2.0, 0.02)]
+
+    def run(ahead: bool) -> tuple[dict, list, int, int]:
+        vm = VirtualMesh(mesh, seed=2, world=World(mesh, list(presses)), readout=True, readout_acks=False,
+                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+        written: list[tuple[int, bytes]] = []
+        serial_out = vm._gateway_out
+        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
+            written.append((vm.tick, data))
+            serial_out(b, data)
+
+        run_one = vm._run
+        def prefetching(b: int) -> None:  # and prefetches after each wake that sampled
+            fw = vm.nodes[b]
+            taken = fw.counters["samples"]
+            run_one(b)
+            if ahead and fw.counters["samples"] > taken:
+                fw.sampler.prefetch(8)
+
+        vm._gateway_out = tapped  # type: ignore[method-assign]
+        vm._run = prefetching  # type: ignore[method-assign]
+        r = vm.run(3.5)
+        hits = sum(fw.chip.prefetch_hits for fw in vm.nodes.values())  # type: ignore[attr-defined]
+        return r.samples(), written, hits, r.total("samples")
+
+    (a_samples, a_frames, hits, taken), (b_samples, b_frames, none, _) = run(True), run(False)
+    assert a_samples == b_samples
+    assert a_frames == b_frames
+    # two counts a sample; the first ~2.5 s boot without mesh time, when nothing is computed ahead
+    assert none == 0 and hits > taken // 2

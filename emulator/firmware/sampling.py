@@ -91,6 +91,7 @@ class Sampler:
         #: whether the reporter keeps it (False: unchanged) and its gate start tick, instead
         #: of into a DATA frame. None: every sample goes in DATA frames.
         self.readout = readout
+        self._sensed: tuple[float, float] | None = None  #: the capacitances of the last sample's gate
         #: With ``lazy``: how long after its gate end a sample on the readout schedule may
         #: wait to be computed (cycles, asked at each look): until its frame's record can go.
         #: A relay's record waits for its children's records, each of which wakes it, so its
@@ -132,6 +133,33 @@ class Sampler:
         period = self.settings.period_cycles(self.clock_hz)
         full = self.ready + (room - 1) * (period - period // 1000)
         return min(full, self.flush_at if self.batch else self.ready + self.latency, leave)
+
+    def prefetch(self, n: int) -> bool:
+        """Have the chip compute the counts of the next ``n`` samples on mesh time now
+        (:meth:`Chip.prefetch <cellbridge.emulator.chip.chip.Chip.prefetch>`), at the gates
+        the mesh clock plans now and the capacitances sensed at the next gate; a sample
+        whose gate or capacitance turns out otherwise (the clock corrected meanwhile, a
+        press) is computed when it is taken, as ever. Only when the next sample's counts
+        are not computed ahead already, the element is steady (the next gate senses what
+        the last one did: at rest, not while pressed, when every gate senses anew), in
+        counter mode on mesh time, and when the chip model can; True when it computed.
+        Changes nothing the bridge sends: a real-time shell calls it after a wake's work,
+        so the chip's next gates run while its code is warm."""
+        chip = self.chip
+        st = self.settings
+        if not self.on_time or st.mode is not Mode.COUNTER or n <= 0 or not hasattr(chip, "prefetch"):
+            return False
+        c1, c2 = self.sense(self.start)
+        gate = st.gate_cycles
+        if (c1, c2) != self._sensed or chip.computed(0, c1, self.start, gate):  # type: ignore[attr-defined]  # has a prefetch
+            return False
+        tb, rate = self.timebase, st.rate_hz
+        gates = []
+        for k in range(self.index, self.index + n):
+            t = self.start if k == self.index else tb.gate_tick(k, rate)
+            gates += [(0, c1, t, gate), (1, c2, t + gate, gate)]
+        chip.prefetch(gates)
+        return True
 
     def aligned_batch(self) -> int:
         """Samples per aligned batch: as many sample periods as fit in ``max_latency``,
@@ -247,7 +275,7 @@ class Sampler:
         if self.batch and aligned != self._batch_aligned:
             self._flush(out)  # a batch is either aligned or timed, never both
         self._batch_aligned = aligned
-        c1, c2 = self.sense(start)
+        c1, c2 = self._sensed = self.sense(start)
         if st.mode is Mode.COUNTER:
             v1, o1 = self.chip.count(0, c1, start, st.gate_cycles)  # type: ignore[attr-defined]  # the chip model is pluggable (tests pass their own); count/convert are its interface
             v2, o2 = self.chip.count(1, c2, start + st.gate_cycles, st.gate_cycles)  # type: ignore[attr-defined]  # the chip model is pluggable (tests pass their own); count/convert are its interface

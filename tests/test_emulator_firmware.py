@@ -20,6 +20,7 @@ from cellbridge.protocol import (
     FrameType,
     Mode,
     Op,
+    Readout,
     SampleFlags,
     Status,
 )
@@ -712,3 +713,88 @@ def test_aligned_batches_put_one_group_of_indices_in_each_frame_on_every_bridge(
               if f.type is FrameType.DATA and not any(s.flags & SampleFlags.NO_MESH_TIME for s in payload_as(f, Data).samples)]
     assert len(groups) > 100
     assert all(len(g) == 1 for g in groups)
+
+
+def test_a_relay_computes_its_readout_sample_at_its_childrens_records_not_at_a_wake_of_its_own() -> None:
+    # On the readout schedule a relay's record goes when its children's records are in (or
+    # at its slot): lazily, its own sample waits for the wake one of those records brings,
+    # instead of waking the bridge at its gate end (a real-time process's wake costs more
+    # than the sample). What leaves the gateway, and when, is exactly what gate-by-gate
+    # sampling sends; the relays wake about once a frame less.
+    mesh = meshgen.grid(3, 3)
+
+    def run(lazy: bool) -> tuple[dict, list, dict[int, int], int]:
+        vm = VirtualMesh(mesh, seed=2, lazy_sampling=lazy, readout=True, readout_acks=False,
+                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+        written: list[tuple[int, bytes]] = []
+        serial_out = vm._gateway_out
+        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
+            written.append((vm.tick, data))
+            serial_out(b, data)
+
+        wakes: dict[int, int] = dict.fromkeys(mesh.ids, 0)
+        run_one = vm._run
+        def counted(b: int) -> None:  # and counts each bridge's wakes after start-up
+            if vm.tick >= 3.0 * CLOCK_HZ:
+                wakes[b] += 1
+            run_one(b)
+
+        vm._gateway_out = tapped  # type: ignore[method-assign]
+        vm._run = counted  # type: ignore[method-assign]
+        r = vm.run(4.0)
+        records = [payload_as(f, Readout) for f in r.gateway_frames[1] if f.type is FrameType.READOUT]
+        frames = sum(1 for x in records if x.index >= 3 * x.rate)
+        return r.samples(), written, wakes, frames
+
+    lazy_samples, lazy_frames, lazy_wakes, n = run(True)
+    eager_samples, eager_frames, eager_wakes, _ = run(False)
+    assert n >= 95  # the readout ran (a frame every 10 ms)
+    assert lazy_samples == eager_samples
+    assert lazy_frames == eager_frames
+    vm = VirtualMesh(mesh, seed=2)
+    vm.run(1.0)
+    relays = {p for p in vm.result().parents.values() if p is not None} - set(mesh.gateways)
+    assert relays
+    for b in relays:  # a wake less per frame (100 in 1 s at 100 Hz)
+        assert lazy_wakes[b] <= eager_wakes[b] - 95, (b, lazy_wakes[b], eager_wakes[b])
+    for b in set(mesh.ids) - relays - set(mesh.gateways):  # a leaf's record goes at its gate end
+        assert lazy_wakes[b] == eager_wakes[b]
+
+
+def test_a_bridge_that_computes_its_next_samples_ahead_sends_what_it_sends_without() -> None:
+    # The real-time shell has the chip compute the next samples' counts after a wake that
+    # took one (Sampler.prefetch, process_bridge's PREFETCH): the same counts at the same
+    # gates, whatever the mesh clock did meanwhile (a gate it moved is computed when it
+    # is taken) and whatever the world did (a press: the pressed gates too). Same bytes at
+    # the same ticks on the gateway's line, and most counts came from the prefetch.
+    mesh = meshgen.grid(3, 3)
+    presses = [Contact(2.6, 0.3, 0.04, 0.04, 2.0, 0.02)]
+
+    def run(ahead: bool) -> tuple[dict, list, int, int]:
+        vm = VirtualMesh(mesh, seed=2, world=World(mesh, list(presses)), readout=True, readout_acks=False,
+                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+        written: list[tuple[int, bytes]] = []
+        serial_out = vm._gateway_out
+        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
+            written.append((vm.tick, data))
+            serial_out(b, data)
+
+        run_one = vm._run
+        def prefetching(b: int) -> None:  # and prefetches after each wake that sampled
+            fw = vm.nodes[b]
+            taken = fw.counters["samples"]
+            run_one(b)
+            if ahead and fw.counters["samples"] > taken:
+                fw.sampler.prefetch(8)
+
+        vm._gateway_out = tapped  # type: ignore[method-assign]
+        vm._run = prefetching  # type: ignore[method-assign]
+        r = vm.run(3.5)
+        hits = sum(fw.chip.prefetch_hits for fw in vm.nodes.values())  # type: ignore[attr-defined]
+        return r.samples(), written, hits, r.total("samples")
+
+    (a_samples, a_frames, hits, taken), (b_samples, b_frames, none, _) = run(True), run(False)
+    assert a_samples == b_samples
+    assert a_frames == b_frames
+    # two counts a sample; the first ~2.5 s boot without mesh time, when nothing is computed ahead
+    assert none == 0 and hits > taken // 2

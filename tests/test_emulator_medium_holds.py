@@ -17,7 +17,8 @@ from cellbridge.emulator.medium.medium import Medium
 from cellbridge.emulator.medium.medium_wire import decode_rx, encode_tx, encode_want
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.realtime import udp
-from cellbridge.emulator.realtime.process_medium import serve
+from cellbridge.emulator.realtime.process_medium import AHEAD, serve
+from cellbridge.emulator.realtime.realtime import now_tick
 from cellbridge.protocol import ADDR_BROADCAST, Beacon, Frame, encode
 
 BIT = 50
@@ -78,6 +79,30 @@ def test_a_transmission_with_a_frame_shorter_than_3_bytes_does_not_kill_the_medi
             assert not errors, errors
             assert t.is_alive()
             assert got is not None and got[1] == beacon
+
+
+def test_a_transmission_stamped_a_little_ahead_starts_at_its_stamp() -> None:
+    # A bridge hands over a transmission due within microseconds (a record's rank slots)
+    # in the wake before, stamped with its start (process_bridge's EARLY): the medium
+    # starts it then, not at its arrival, so its frame ends on the cell (and reaches its
+    # receiver) no earlier than the stamp plus its airtime. Started at arrival it arrived
+    # that much early.
+    beacon = encode(Frame(1, ADDR_BROADCAST, 1, 0, Beacon(0, 0, 0)))
+    with serving() as (port, medium, _t, errors):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b1, \
+                socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b2:
+            for s in (b1, b2):
+                s.connect(("127.0.0.1", port))
+                s.settimeout(3)
+            b2.send(encode_want(2, False))
+            time.sleep(0.1)
+            start = now_tick() + 9 * AHEAD // 10
+            b1.send(encode_tx(1, (1,), beacon, False, start))
+            got = decode_rx(b2.recv(4096))
+            heard = now_tick()
+            assert not errors, errors
+            assert got is not None and got[1] == beacon and got[2] == start
+            assert heard >= start + medium.airtime(len(beacon)), (heard - start) / 50
 
 
 # -- the arbiter ---------------------------------------------------------------------

@@ -224,30 +224,30 @@ class EdgeTrain:
         if not self.every_edge_seen:
             return int(self.event_offsets().size)
         gate, period = self.gate, self.period
-        sums = self._draw_head().cumsum()  # sums[b - 1] = Σ_{i<b} y_i
+        y = self._draw_head()
+        sums = y.cumsum()  # sums[b - 1] = Σ_{i<b} y_i
         k_sum = period * self.jitter * _SQRT_BLOCK
-        t0 = self.phase * period
-
-        def start(b: int) -> float:
-            return ((float(sums[b - 1]) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
-
+        phase = self._phase
+        assert phase is not None
+        t0 = phase * period
+        # start(b) = ((Σ_{i<b} y_i)·k_sum + T·(B·b)) + t0, inline (this runs twice a sample)
+        item = sums.item
         b = self._hint
-        while start(b + 1) <= gate:
+        while (item(b) * k_sum + period * (BLOCK * (b + 1))) + t0 <= gate:  # start(b + 1)
             b += 1
-        while b >= 0 and start(b) > gate:
+        while b >= 0 and ((item(b - 1) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0 > gate:
             b -= 1
         if b < 0:  # edge 0 comes after the gate's end
             return 0
+        base = ((item(b - 1) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
         steps, m = self._block_shape(b)  # steps[i - 1] = Σ_{j<i} w_j
         k_step = period * self.jitter
-        base = start(b)
+        step = steps.item
 
-        def rise(i: int) -> float:
-            return (((float(steps[i - 1]) if i else 0.0) - m * i) * k_step + period * i) + base
-
+        # rise(i) = (((Σ_{j<i} w_j) − m·i)·k_step + T·i) + base
         i = min(max(int((gate - base) / period), 0), BLOCK - 1)
-        while i + 1 < BLOCK and rise(i + 1) <= gate:
+        while i + 1 < BLOCK and (((step(i) - m * (i + 1)) * k_step + period * (i + 1)) + base) <= gate:
             i += 1
-        while i >= 0 and rise(i) > gate:
+        while i >= 0 and ((((step(i - 1) if i else 0.0) - m * i) * k_step + period * i) + base) > gate:
             i -= 1
         return b * BLOCK + i + 1 - (1 if t0 <= 0.0 else 0)

@@ -278,7 +278,7 @@ class Firmware:
                                c.batch_max, c.max_latency, c.lazy_sampling, self.counters, self.timebase,
                                c.event_latency, self._batch_slot, c.aligned_batches,
                                _stagger(c.bridge, 1 << 16) / (1 << 16),
-                               self._readout_sample if c.readout else None)
+                               self._readout_sample if c.readout else None, self._readout_wait)
         self.status_at = tick + c.status_period
         self._say_hello()  # queued until there is a route
         self.hello_at = tick + c.hello_period
@@ -592,6 +592,18 @@ class Firmware:
         span = gates + r.slot(0)
         r.own(s.index, st.rate_hz, st.mode, st.oversampling if st.mode is Mode.ADC else 1, state,
               start + gates + r.slot(depth), span, self.sampler.root)
+
+    def _readout_wait(self) -> int:
+        """Cycles after its gate end this bridge's sample on the readout schedule may wait
+        to be computed (the sampler's ``readout_wait``): 0 when its record goes at once (no
+        child expected), else its depth's slot, the latest its record goes; a child's record
+        coming earlier wakes the bridge, and the sample is computed then. The sample's
+        values are the same whenever it is computed (the chip's noise is keyed by the gate's
+        cycle, the capacitance is the one at the gate)."""
+        r = self.readout
+        if r is None or not r.expects_children():
+            return 0
+        return r.slot(0 if self.config.gateway else self.router.hops)
 
     def _readout_rank(self) -> int:
         """The slots this bridge's records wait after the cell goes idle: twice its place

@@ -346,6 +346,13 @@ class LinkLayer:
             # parent's slot and was dropped as late, its element unknown for seconds.
             tx = self.radio.tx_until
             t = tx if t is None else min(t, tx)
+        elif (self._preempted and f is not None and f.deadline < 0 and self._on_radio is None
+              and self.radio.idle and not self._urgent_waiting(self._parent)):
+            # the frame a record went before contends again once the record is on the cell:
+            # then, not at whatever wake comes next (a relay's next gate, or with its sample
+            # computed at its children's records, a frame later)
+            tx = self.radio.tx_until
+            t = tx if t is None else min(t, tx)
         return t
 
     def has_work(self) -> bool:

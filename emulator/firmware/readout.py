@@ -26,7 +26,6 @@ takes an unchanged element as known only when it knew the element's previous fra
 
 from __future__ import annotations
 
-import dataclasses
 from collections import Counter
 from dataclasses import dataclass
 
@@ -203,6 +202,11 @@ class FrameReadout:
             return c.depths * c.window - min(depth, c.depths) * min(c.hop, c.window)
         return (c.depths - min(depth, c.depths)) * c.window
 
+    def expects_children(self) -> bool:
+        """Whether a frame's record waits for children's records (some child is expected):
+        then it cannot go at the bridge's own gate end."""
+        return any(self._members.values())
+
     @property
     def next_tick(self) -> int | None:
         """The earliest slot among the frames waiting (None: nothing waits)."""
@@ -349,7 +353,7 @@ class FrameReadout:
                 self.counters["readout_expanded"] += 1
             g = groups.setdefault((mode, over), ([], [], []))
             if isinstance(st, ReadoutSample):
-                g[0].append(st._replace(bridge=b))
+                g[0].append(st if st.bridge == b else st._replace(bridge=b))
             elif st == _UNCHANGED:
                 g[1].append(b)
             else:
@@ -359,8 +363,10 @@ class FrameReadout:
             self.counters["readout_missing"] += missing
         span_us = (p.span if p.span else self.config.window * (self.config.depths + 1)) * 1_000_000 // _CLOCK_HZ
         out = record_parts(p.index, p.rate, groups, span_us)
-        if p.root:
-            out = [dataclasses.replace(r, root=p.root) for r in out]
+        if p.root:  # (not dataclasses.replace: it looks the fields up at every call)
+            root = p.root
+            out = [Readout(r.index, r.rate, r.mode, r.oversampling, r.samples, r.unchanged, r.missing, r.span_us,
+                           r.part, r.parts, root) for r in out]
         n = len(out)
         self.counters["readout_records"] += 1
         self.counters["readout_frames"] += n

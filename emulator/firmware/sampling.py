@@ -54,7 +54,8 @@ class Sampler:
                  first_start: int, clock_hz: int, batch_max: int, max_latency: int, lazy: bool,
                  counters: Counter[str], timebase: Timebase, event_latency: int | None = None,
                  slot: Callable[[], int] = lambda: 0, aligned: bool = True, heartbeat_phase: float = 0.0,
-                 readout: Callable[[Sample, bool, int], None] | None = None) -> None:
+                 readout: Callable[[Sample, bool, int], None] | None = None,
+                 readout_wait: Callable[[], int] = lambda: 0) -> None:
         self.settings = settings
         self.chip = chip
         self.sense = sense
@@ -90,6 +91,13 @@ class Sampler:
         #: whether the reporter keeps it (False: unchanged) and its gate start tick, instead
         #: of into a DATA frame. None: every sample goes in DATA frames.
         self.readout = readout
+        self._sensed: tuple[float, float] | None = None  #: the capacitances of the last sample's gate
+        #: With ``lazy``: how long after its gate end a sample on the readout schedule may
+        #: wait to be computed (cycles, asked at each look): until its frame's record can go.
+        #: A relay's record waits for its children's records, each of which wakes it, so its
+        #: own sample is computed at the wake of the last of them (or at its slot) instead
+        #: of at a wake of its own; a leaf's record goes at its gate end (0).
+        self.readout_wait = readout_wait
 
     @property
     def next_tick(self) -> int:
@@ -102,9 +110,16 @@ class Sampler:
         there waits ``max_latency`` for company anyway. The capacitance a lazily computed
         sample sees is the one at its gate (``sense`` is called with the gate's tick)."""
         leave = self._leaving[0][0] if self._leaving else self.ready
+        if self.lazy and self.readout is not None and self.on_time:
+            # on the readout schedule a sample is due when its frame's record can go: at its
+            # gate end, or (a relay) when its children's records are in, at its slot at the
+            # latest (``readout_wait``); every child's record wakes the bridge meanwhile. Not
+            # while samples taken before mesh time wait in a batch: this one sends them.
+            due = self.ready if self.batch else self.ready + self.readout_wait()
+            if self._leaving and self._leaving[0][0] < due:
+                due = self._leaving[0][0]
+            return due if self.flush_at < 0 else min(due, self.flush_at)
         if not self.lazy or (self.readout is not None and self.on_time):
-            # on the readout schedule every sample is due at its gate end (its frame's record
-            # goes then at the earliest)
             return min(self.ready if self.flush_at < 0 else min(self.ready, self.flush_at), leave)
         if self.batch and self._batch_aligned != self._aligned():
             # the next sample closes the batch (aligned or timed, never both), unless its
@@ -118,6 +133,33 @@ class Sampler:
         period = self.settings.period_cycles(self.clock_hz)
         full = self.ready + (room - 1) * (period - period // 1000)
         return min(full, self.flush_at if self.batch else self.ready + self.latency, leave)
+
+    def prefetch(self, n: int) -> bool:
+        """Have the chip compute the counts of the next ``n`` samples on mesh time now
+        (:meth:`Chip.prefetch <cellbridge.emulator.chip.chip.Chip.prefetch>`), at the gates
+        the mesh clock plans now and the capacitances sensed at the next gate; a sample
+        whose gate or capacitance turns out otherwise (the clock corrected meanwhile, a
+        press) is computed when it is taken, as ever. Only when the next sample's counts
+        are not computed ahead already, the element is steady (the next gate senses what
+        the last one did: at rest, not while pressed, when every gate senses anew), in
+        counter mode on mesh time, and when the chip model can; True when it computed.
+        Changes nothing the bridge sends: a real-time shell calls it after a wake's work,
+        so the chip's next gates run while its code is warm."""
+        chip = self.chip
+        st = self.settings
+        if not self.on_time or st.mode is not Mode.COUNTER or n <= 0 or not hasattr(chip, "prefetch"):
+            return False
+        c1, c2 = self.sense(self.start)
+        gate = st.gate_cycles
+        if (c1, c2) != self._sensed or chip.computed(0, c1, self.start, gate):  # type: ignore[attr-defined]  # has a prefetch
+            return False
+        tb, rate = self.timebase, st.rate_hz
+        gates = []
+        for k in range(self.index, self.index + n):
+            t = self.start if k == self.index else tb.gate_tick(k, rate)
+            gates += [(0, c1, t, gate), (1, c2, t + gate, gate)]
+        chip.prefetch(gates)
+        return True
 
     def aligned_batch(self) -> int:
         """Samples per aligned batch: as many sample periods as fit in ``max_latency``,
@@ -233,7 +275,7 @@ class Sampler:
         if self.batch and aligned != self._batch_aligned:
             self._flush(out)  # a batch is either aligned or timed, never both
         self._batch_aligned = aligned
-        c1, c2 = self.sense(start)
+        c1, c2 = self._sensed = self.sense(start)
         if st.mode is Mode.COUNTER:
             v1, o1 = self.chip.count(0, c1, start, st.gate_cycles)  # type: ignore[attr-defined]  # the chip model is pluggable (tests pass their own); count/convert are its interface
             v2, o2 = self.chip.count(1, c2, start + st.gate_cycles, st.gate_cycles)  # type: ignore[attr-defined]  # the chip model is pluggable (tests pass their own); count/convert are its interface

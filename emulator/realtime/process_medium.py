@@ -71,6 +71,11 @@ GONE_S = 3.0  #: a bridge silent this long is taken for gone (it says it is ther
 #: after its frame (:mod:`~cellbridge.emulator.medium.carrier_arbiter`): its receiver's process must wake, answer
 #: and be heard; on a 4×4 skin at 100 Hz on two busy cores that takes up to a few ms.
 ACK_GUARD = 4 * CLOCK_HZ // 1000
+#: A transmission stamped this far ahead of its arrival at most starts at its stamp (a
+#: bridge hands over a transmission due within microseconds without sleeping for them:
+#: process_bridge's ``EARLY``); a stamp further ahead (a bridge on another host, whose clock
+#: is not this one's) is taken for a start at arrival, as any other.
+AHEAD = CLOCK_HZ // 1000
 _LINK_ACK, _ACK_REQUEST = int(FrameType.LINK_ACK), int(Flags.ACK_REQUEST)
 
 
@@ -136,7 +141,9 @@ def serve(medium: Medium, sock: socket.socket, stop: StopFlag) -> None:
         dst = (frame[5] << 8 | frame[6]) if len(frame) > 6 else -1
         ack_for = dst if dst >= 0 and frame[2] == _LINK_ACK else -1  # dst: 7 bytes or more
         acker = dst if dst >= 0 and frame[1] & _ACK_REQUEST else -1
-        at = arbiter.admit(cells, sent, tick, medium.airtime(len(frame)), src, ack_for, acker)
+        # a stamp a little ahead of its arrival: the sender handed it over early (AHEAD)
+        at = arbiter.admit(cells, sent, sent if 0 < sent - tick <= AHEAD else tick, medium.airtime(len(frame)),
+                           src, ack_for, acker)
         if at == HOLD:
             held.append((src, cells, frame, sent))
             return False

@@ -322,6 +322,27 @@ def test_the_frames_arrays_are_int64_columns() -> None:
         assert a.dtype == np.int64
 
 
+def test_each_sample_keeps_its_own_parts_mode_and_oversampling() -> None:
+    """A record in two parts of two modes (samples of two modes never share a part), and a
+    gateway's record of the frame beside it: every sample's mode and oversampling are its
+    own part's, whatever the order the parts came in."""
+    adc = Readout(1, RATE, Mode.ADC, 4, (ReadoutSample(2, 40, 50, 0), ReadoutSample(5, 41, 51, 0)), (), (),
+                  SPAN_US, 1, 2)
+    counter = Readout(1, RATE, Mode.COUNTER, 1, (ReadoutSample(1, 100, 200, 1), ReadoutSample(7, 101, 201, 0)),
+                      (3,), (), SPAN_US, 0, 2)
+    other = Readout(1, RATE, Mode.ADC, 8, (ReadoutSample(9, 60, 70, 2),), (8,), (6,), SPAN_US)
+    sf = SkinFrames(MARGIN)
+    sf.add(1, adc, arrive(1), t_of(1))
+    sf.add(4, other, arrive(1), t_of(1))
+    sf.add(1, counter, arrive(1), t_of(1))
+    (f,) = sf.take(arrive(1))
+    got = {int(b): (int(c1), int(c2), int(fl), int(mo), int(ov))
+           for b, c1, c2, fl, mo, ov in zip(f.bridges, f.c1, f.c2, f.flags, f.mode, f.oversampling)}
+    assert got == {2: (40, 50, 0, 1, 4), 5: (41, 51, 0, 1, 4), 1: (100, 200, 1, 0, 1), 7: (101, 201, 0, 0, 1),
+                   9: (60, 70, 2, 1, 8)}
+    assert (f.unchanged.tolist(), f.missing.tolist(), f.complete) == ([3, 8], [6], True)
+
+
 def test_a_take_at_the_same_time_again_sees_what_came_since() -> None:
     """The pipeline takes after every read and again for every contact job, at one time; the
     second walk is skipped only while nothing take reads changed: a record, a gateway

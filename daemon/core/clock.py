@@ -280,9 +280,12 @@ class SkinClock:
         before no longer hold."""
         floor = self._floor(gateway)
         back = g < floor
-        if not back and self._hold(gateway, g, now):
+        # where the map puts the point (NaN: no map yet), worked out once for both checks (to_host_one:
+        # the arithmetic of to_host without arrays, as every readout record teaches a point)
+        at = self.map.to_host_one(g) if self.map.synced else math.nan
+        if not back and self._hold(gateway, g, now, at):
             return False
-        jumped = taught = self._believed(g, now, back)
+        jumped = taught = self._believed(g, now, back, at)
         if taught and back:
             self.map.restart(g, now)  # the skin's time went back: two points agree
         elif taught:
@@ -298,14 +301,14 @@ class SkinClock:
             self._newest = -1
         return jumped
 
-    def _hold(self, gateway: int, g: int, now: float) -> bool:
-        """Whether ``gateway``'s point (``g``, ``now``) is held back: the map puts it more than
-        ``tolerance`` (and at most ``slack``) after its arrival, and the gateway's previous
-        point was not one such that agrees with it (see the class)."""
+    def _hold(self, gateway: int, g: int, now: float, at: float) -> bool:
+        """Whether ``gateway``'s point (``g``, ``now``) is held back: the map puts it (at
+        ``at``) more than ``tolerance`` (and at most ``slack``) after its arrival, and the
+        gateway's previous point was not one such that agrees with it (see the class)."""
         held = self._held.pop(gateway, None)
         if not self.map.synced:
             return False
-        ahead = self.map.to_host_one(g) - now  # (the arithmetic of to_host, without arrays: every record)
+        ahead = at - now
         if not self.tolerance < ahead <= self.slack:
             return False
         if held is not None and g > held[0] and abs((g - held[0]) / self.hz - (now - held[1])) <= self.tolerance:
@@ -324,11 +327,12 @@ class SkinClock:
         or a corrupted frame; another gateway's line may lag)."""
         return self._by_gateway.get(gateway, -1) - int(self.slack * self.hz)
 
-    def _believed(self, g: int, now: float, back: bool) -> bool:
+    def _believed(self, g: int, now: float, back: bool, at: float) -> bool:
         """Whether a gateway's point of global cycle ``g``, arrived at ``now``, may teach the
-        map: at once unless the map puts it more than ``slack`` after its own arrival or it is
-        ``back``; then once ``confirm`` such points in a row, over ``confirm_time``, agree."""
-        if not self.map.synced or (not back and self.map.to_host_one(g) <= now + self.slack):
+        map: at once unless the map puts it (at ``at``) more than ``slack`` after its own
+        arrival or it is ``back``; then once ``confirm`` such points in a row, over
+        ``confirm_time``, agree."""
+        if not self.map.synced or (not back and at <= now + self.slack):
             self._jump = []
             return True
         run = self._jump

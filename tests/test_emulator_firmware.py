@@ -798,3 +798,34 @@ def test_a_bridge_that_computes_its_next_samples_ahead_sends_what_it_sends_witho
     assert a_frames == b_frames
     # two counts a sample; the first ~2.5 s boot without mesh time, when nothing is computed ahead
     assert none == 0 and hits > taken // 2
+
+
+def test_a_relay_whose_childs_record_comes_before_its_own_gate_end_sends_at_its_gate_end() -> None:
+    # A child with a shorter gate (SET_GATE to that bridge alone) ends its gate, and its
+    # record reaches the relay, before the relay's own gate ends. The wake that record
+    # brought came before the relay's sample could be taken: lazily the relay must still
+    # take it at its gate end, as gate by gate, not at the next wake that happens to come
+    # (the frame's wait for a record of its own, a window later: every frame of the
+    # relay's subtree reached the gateway 7 ms later than gate by gate).
+    mesh = meshgen.grid(3, 3)
+    probe = VirtualMesh(mesh, seed=2)
+    probe.run(1.0)
+    parents = probe.result().parents
+    relays = {p for p in parents.values() if p is not None} - set(mesh.gateways)
+    leaves = sorted(set(mesh.ids) - relays - set(mesh.gateways))
+    assert relays and leaves
+
+    def run(lazy: bool) -> tuple[list, list]:
+        vm = VirtualMesh(mesh, seed=2, lazy_sampling=lazy, readout=True, readout_acks=False,
+                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+        for i, b in enumerate(leaves):  # a fifth of the relays' gates
+            vm.host_write(1, cmd(100 + i, b, Op.SET_GATE, 20_000, token=100 + i), at=2.8)
+        r = vm.run(3.6)
+        got = [f for f in r.gateway_frames[1] if f.type is FrameType.CMD_REPLY]
+        assert len(got) == len(leaves) and all(f.payload.status is Status.OK for f in got)  # type: ignore[union-attr]  # CMD_REPLY payloads
+        return vm.serial_chunks[1], r.gateway_frames[1]
+
+    (lazy, frames), (eager, _) = run(True), run(False)
+    records = [payload_as(f, Readout) for f in frames if f.type is FrameType.READOUT]
+    assert sum(1 for x in records if x.index >= 3 * x.rate) >= 50
+    assert lazy == eager

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import pytest
@@ -31,6 +32,8 @@ from hypothesis import strategies as st
 from support.payloads import payload_as
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from cellbridge.emulator.firmware.linklayer import LinkLayer
 
 HOST = 0
@@ -829,3 +832,52 @@ def test_a_relay_whose_childs_record_comes_before_its_own_gate_end_sends_at_its_
     records = [payload_as(f, Readout) for f in frames if f.type is FrameType.READOUT]
     assert sum(1 for x in records if x.index >= 3 * x.rate) >= 50
     assert lazy == eager
+
+
+def test_a_contact_the_world_takes_back_still_pressed_the_gates_before() -> None:
+    # A bridge process mirrors the world process's list of contacts, and computes samples
+    # after their gates (a relay's readout sample at its children's records). A list that
+    # no longer holds a press that was on (a world that restarted) takes over when the
+    # bridge hears it: a gate before then still sensed the press, one after does not.
+    mesh = meshgen.grid(3, 3)
+    world = World(mesh)
+    on = Contact(1.0, math.inf, 0.04, 0.04, 3.0, 0.02)
+    world.set_contacts([on], 1.0)
+    sense = world.sense_for(5)
+    pressed, rest = sense(int(1.5 * CLOCK_HZ)), world.rest
+    assert pressed != rest
+    world.set_contacts([], 2.0)
+    assert sense(int(1.99 * CLOCK_HZ)) == pressed  # a gate before the new list: pressed
+    assert sense(int(2.0 * CLOCK_HZ)) == rest
+    later = Contact(2.5, 1.0, 0.04, 0.04, 3.0, 0.02)
+    world.set_contacts([later], 3.0)  # heard late: it pressed from its own start
+    assert sense(int(2.6 * CLOCK_HZ)) == pressed and sense(int(1.99 * CLOCK_HZ)) == pressed
+    world.set_contacts([later], 4.5)  # the same list again: nothing changes
+    assert sense(int(1.99 * CLOCK_HZ)) == pressed
+    world.set_contacts([], 4.5)  # the first press ended at 2.0, over 2 s ago: forgotten
+    assert sense(int(1.99 * CLOCK_HZ)) == rest and sense(int(2.6 * CLOCK_HZ)) == pressed
+
+
+def test_a_relays_lazy_sample_sees_a_press_the_world_took_back_after_its_gate() -> None:
+    # The contact list a bridge process mirrors changes between a relay's gate and the
+    # wake that computes its readout sample lazily (its children's records): a list
+    # without a press that was on at the gate. Lazily the relay must send what gate by
+    # gate sampling sends (the press at that gate), the same bytes at the same ticks.
+    mesh = meshgen.grid(3, 3)
+
+    def run(lazy: bool) -> list[tuple[int, bytes]]:
+        world = World(mesh)
+        vm = VirtualMesh(mesh, seed=2, world=world, lazy_sampling=lazy, readout=True, readout_acks=False,
+                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+        world.set_contacts([Contact(3.0, math.inf, 0.04, 0.04, 3.0, 0.2)], 0.0)
+
+        def publish(contacts: list[Contact], t: float) -> Callable[[], None]:
+            return lambda: world.set_contacts(contacts, t)
+
+        for t in (3.104, 3.2041, 3.3047):  # just after the leaves' gate ends (3.1039 ...)
+            vm.at(t, publish([], t))
+            vm.at(t + 0.05, publish([Contact(t + 0.05, math.inf, 0.04, 0.04, 3.0, 0.2)], t + 0.05))
+        vm.run(3.5)
+        return vm.serial_chunks[1]
+
+    assert run(True) == run(False)

@@ -587,6 +587,28 @@ def test_a_late_ack_withdraws_the_retransmission_still_waiting_for_the_cell() ->
     assert link.results == [(2, 1, True)]
 
 
+def test_a_frame_queued_behind_a_record_contends_once_the_record_is_on_the_cell() -> None:
+    # A relay computing its readout sample at its children's records wakes only for them,
+    # and each such wake makes a record, which goes before any frame in the queue. A frame
+    # queued meanwhile (a HELLO, a STATUS, a DATA of samples from before mesh time, a
+    # child's frame to forward) must contend once the record is on the cell, not at a wake
+    # not for a record (a DATA frame waited 180 ms in a lossy 3x3; it could wait for ever).
+    import random
+
+    from cellbridge.emulator.firmware.linklayer import LinkLayer
+    from cellbridge.emulator.firmware.transceiver import Transceiver
+    from cellbridge.protocol import Raw
+
+    link = LinkLayer(5, (1, 2), Transceiver(random.Random(3)), ack_slack=CLOCK_HZ // 100)
+    link.urgent_acks = False  # as the real-time shells run the readout
+    link.enqueue_urgent(Raw(int(FrameType.READOUT), 0, 5, 1, 0, 0, b""), 0)
+    assert link.enqueue(Raw(int(FrameType.DATA), 0, 20, 9, 2, 0, b""))
+    t, dst = _next_transmission(link, 0, 2, {2})
+    assert dst == 2 and link.counters["urgent_sent"] == 1 and link.queue
+    t, dst = _next_transmission(link, _due(link), 2, {2})  # no other wake needed
+    assert dst == 2 and not link.queue and link.inflight is not None and link.inflight.attempts == 1
+
+
 def test_an_ack_for_a_frame_never_sent_is_ignored() -> None:
     link = _link()
     out, _ = link.advance(0, 2, 0, 10, {2})  # handed to the radio, still contending

@@ -252,11 +252,16 @@ class World:
         """(C1, C2) of every element at ``t`` from the contacts alone (cached)."""
         active = tuple(i for i, c in enumerate(self.contacts) if c.active(t))
         moving = any(self.contacts[i].vx or self.contacts[i].vy for i in active)
-        key = (active, math.floor(t / self.quantum) if moving else None)
+        q = math.floor(t / self.quantum) if moving else None
+        key = (active, q)
         if key != self._key:
             self._key = key
             if active:
-                d1, d2 = skin_response(self.layout, self.disks([self.contacts[i].at(t) for i in active]),
+                # moving contacts where they are at the quantum's start, whoever asks first:
+                # a sample's capacitance is a function of its gate's time alone, not of the
+                # order the bridges (or a prefetch, or a lazy sample) asked in
+                when = t if q is None else q * self.quantum
+                d1, d2 = skin_response(self.layout, self.disks([self.contacts[i].at(when) for i in active]),
                                        self.params)
                 self._c1 = self.rest[0] + d1
                 self._c2 = self.rest[1] + d2

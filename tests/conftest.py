@@ -65,6 +65,7 @@ PROCESS_FIXTURES = frozenset({"warm_kernels"})
 SLOW_MODULES = frozenset({
     "test_daemon_skin_frames", "test_emulator_meshtime", "test_emulator_topology", "test_daemon_frames_truth",
     "test_daemon_held_press", "test_emulator_readout", "test_skin_daemon", "test_daemon_service_offline",
+    "test_emulator_lazy_attacks",
 })
 #: ... and single tests elsewhere ("module::test", every parametrisation), each about a second or more.
 SLOW_TESTS = frozenset({

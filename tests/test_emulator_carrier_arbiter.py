@@ -31,6 +31,24 @@ def test_starts_within_carrier_detection_still_collide() -> None:
     assert a.counters["deferred"] == 0
 
 
+def test_a_start_within_carrier_detection_of_an_early_handed_one_still_collides() -> None:
+    # A bridge hands a transmission due within microseconds over early, stamped with its
+    # start (process_bridge's EARLY): the medium admits it at its stamp, before that tick.
+    # Another bridge's transmission, started on the wire within carrier detection of that
+    # stamp, heard after it: the two collide on the wire, and must here (it waited for the
+    # first instead, as if the chip's carrier sense had seen a start not yet made).
+    a = CarrierArbiter(BIT)
+    assert a.admit((1,), sent=10_000, now=10_000, airtime=10_000) == 10_000  # heard at 9 950
+    assert a.admit((1,), sent=10_000 - CCA + 1, now=9_960, airtime=10_000) == 9_960
+    # stamped early too, within CCA after it: collides as well
+    assert a.admit((1,), sent=10_000 + CCA - 1, now=10_000 + CCA - 1, airtime=10_000) == 10_000 + CCA - 1
+    assert a.counters["deferred"] == 0
+    # one started a carrier detection or more after the early one's stamp still waits for it
+    b = CarrierArbiter(BIT)
+    b.admit((1,), sent=10_000, now=10_000, airtime=10_000)
+    assert b.admit((1,), sent=10_000 + CCA, now=10_000 + CCA, airtime=1000) == 20_000 + DIFS
+
+
 @given(st.lists(st.tuples(st.integers(1, 3), st.integers(0, 10**6), st.integers(1, 5000)), min_size=1, max_size=40))
 def test_never_before_it_was_heard_and_deferred_ones_never_overlap(txs: list[tuple[int, int, int]]) -> None:
     a = CarrierArbiter(BIT)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import pytest
@@ -31,6 +32,8 @@ from hypothesis import strategies as st
 from support.payloads import payload_as
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from cellbridge.emulator.firmware.linklayer import LinkLayer
 
 HOST = 0
@@ -180,6 +183,19 @@ def test_moving_contact_moves_the_response() -> None:
     assert w.capacitances(0.1)[0].argmax() == 0
     assert w.capacitances(1.05)[0].argmax() == 1
 
+
+
+def test_a_moving_contacts_capacitance_at_a_time_is_the_same_whatever_was_asked_before() -> None:
+    # A moving contact is evaluated once per quantum (1 ms). Evaluated at whichever time
+    # asked first, an element's capacitance at a gate depended on what was asked before:
+    # in a virtual mesh (one world for every bridge) on which bridge sampled first, and on
+    # whether a bridge computed its next counts ahead (Sampler.prefetch sensing the next
+    # gate) or its sample lazily: a count one off in a 4x4 at 250 Hz.
+    mesh = meshgen.line(3)
+    press = Contact(0.0, 2.0, 0.0, 0.0, 3.0, 0.02, vx=0.04)
+    first, fresh = World(mesh, [press]), World(mesh, [press])
+    first.capacitances(1.5002)  # the disk straddles elements 1 and 2: it moves their response
+    assert first.capacitances(1.5008)[0].tolist() == fresh.capacitances(1.5008)[0].tolist()
 
 # -- behaviour in a mesh ---------------------------------------------------------------
 
@@ -584,6 +600,28 @@ def test_a_late_ack_withdraws_the_retransmission_still_waiting_for_the_cell() ->
     assert link.results == [(2, 1, True)]
 
 
+def test_a_frame_queued_behind_a_record_contends_once_the_record_is_on_the_cell() -> None:
+    # A relay computing its readout sample at its children's records wakes only for them,
+    # and each such wake makes a record, which goes before any frame in the queue. A frame
+    # queued meanwhile (a HELLO, a STATUS, a DATA of samples from before mesh time, a
+    # child's frame to forward) must contend once the record is on the cell, not at a wake
+    # not for a record (a DATA frame waited 180 ms in a lossy 3x3; it could wait for ever).
+    import random
+
+    from cellbridge.emulator.firmware.linklayer import LinkLayer
+    from cellbridge.emulator.firmware.transceiver import Transceiver
+    from cellbridge.protocol import Raw
+
+    link = LinkLayer(5, (1, 2), Transceiver(random.Random(3)), ack_slack=CLOCK_HZ // 100)
+    link.urgent_acks = False  # as the real-time shells run the readout
+    link.enqueue_urgent(Raw(int(FrameType.READOUT), 0, 5, 1, 0, 0, b""), 0)
+    assert link.enqueue(Raw(int(FrameType.DATA), 0, 20, 9, 2, 0, b""))
+    t, dst = _next_transmission(link, 0, 2, {2})
+    assert dst == 2 and link.counters["urgent_sent"] == 1 and link.queue
+    t, dst = _next_transmission(link, _due(link), 2, {2})  # no other wake needed
+    assert dst == 2 and not link.queue and link.inflight is not None and link.inflight.attempts == 1
+
+
 def test_an_ack_for_a_frame_never_sent_is_ignored() -> None:
     link = _link()
     out, _ = link.advance(0, 2, 0, 10, {2})  # handed to the radio, still contending
@@ -798,3 +836,99 @@ def test_a_bridge_that_computes_its_next_samples_ahead_sends_what_it_sends_witho
     assert a_frames == b_frames
     # two counts a sample; the first ~2.5 s boot without mesh time, when nothing is computed ahead
     assert none == 0 and hits > taken // 2
+
+
+def test_a_relay_whose_childs_record_comes_before_its_own_gate_end_sends_at_its_gate_end() -> None:
+    # A child with a shorter gate (SET_GATE to that bridge alone) ends its gate, and its
+    # record reaches the relay, before the relay's own gate ends. The wake that record
+    # brought came before the relay's sample could be taken: lazily the relay must still
+    # take it at its gate end, as gate by gate, not at the next wake that happens to come
+    # (the frame's wait for a record of its own, a window later: every frame of the
+    # relay's subtree reached the gateway 7 ms later than gate by gate).
+    mesh = meshgen.grid(3, 3)
+    probe = VirtualMesh(mesh, seed=2)
+    probe.run(1.0)
+    parents = probe.result().parents
+    relays = {p for p in parents.values() if p is not None} - set(mesh.gateways)
+    leaves = sorted(set(mesh.ids) - relays - set(mesh.gateways))
+    assert relays and leaves
+
+    def run(lazy: bool) -> tuple[list, list]:
+        vm = VirtualMesh(mesh, seed=2, lazy_sampling=lazy, readout=True, readout_acks=False,
+                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+        for i, b in enumerate(leaves):  # a fifth of the relays' gates
+            vm.host_write(1, cmd(100 + i, b, Op.SET_GATE, 20_000, token=100 + i), at=2.8)
+        r = vm.run(3.6)
+        got = [f for f in r.gateway_frames[1] if f.type is FrameType.CMD_REPLY]
+        assert len(got) == len(leaves) and all(f.payload.status is Status.OK for f in got)  # type: ignore[union-attr]  # CMD_REPLY payloads
+        return vm.serial_chunks[1], r.gateway_frames[1]
+
+    (lazy, frames), (eager, _) = run(True), run(False)
+    records = [payload_as(f, Readout) for f in frames if f.type is FrameType.READOUT]
+    assert sum(1 for x in records if x.index >= 3 * x.rate) >= 50
+    assert lazy == eager
+
+
+def test_a_contact_the_world_takes_back_still_pressed_the_gates_before() -> None:
+    # A bridge process mirrors the world process's list of contacts, and computes samples
+    # after their gates (a relay's readout sample at its children's records). A list that
+    # no longer holds a press that was on (a world that restarted) takes over when the
+    # bridge hears it: a gate before then still sensed the press, one after does not.
+    mesh = meshgen.grid(3, 3)
+    world = World(mesh)
+    on = Contact(1.0, math.inf, 0.04, 0.04, 3.0, 0.02)
+    world.set_contacts([on], 1.0)
+    sense = world.sense_for(5)
+    pressed, rest = sense(int(1.5 * CLOCK_HZ)), world.rest
+    assert pressed != rest
+    world.set_contacts([], 2.0)
+    assert sense(int(1.99 * CLOCK_HZ)) == pressed  # a gate before the new list: pressed
+    assert sense(int(2.0 * CLOCK_HZ)) == rest
+    later = Contact(2.5, 1.0, 0.04, 0.04, 3.0, 0.02)
+    world.set_contacts([later], 3.0)  # heard late: it pressed from its own start
+    assert sense(int(2.6 * CLOCK_HZ)) == pressed and sense(int(1.99 * CLOCK_HZ)) == pressed
+    world.set_contacts([later], 4.5)  # the same list again: nothing changes
+    assert sense(int(1.99 * CLOCK_HZ)) == pressed
+    world.set_contacts([], 4.5)  # the first press ended at 2.0, over 2 s ago: forgotten
+    assert sense(int(1.99 * CLOCK_HZ)) == rest and sense(int(2.6 * CLOCK_HZ)) == pressed
+
+
+def test_a_relays_lazy_sample_sees_a_press_the_world_took_back_after_its_gate() -> None:
+    # The contact list a bridge process mirrors changes between a relay's gate and the
+    # wake that computes its readout sample lazily (its children's records): a list
+    # without a press that was on at the gate. Lazily the relay must send what gate by
+    # gate sampling sends (the press at that gate), the same bytes at the same ticks.
+    mesh = meshgen.grid(3, 3)
+
+    def run(lazy: bool) -> list[tuple[int, bytes]]:
+        world = World(mesh)
+        vm = VirtualMesh(mesh, seed=2, world=world, lazy_sampling=lazy, readout=True, readout_acks=False,
+                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+        world.set_contacts([Contact(3.0, math.inf, 0.04, 0.04, 3.0, 0.2)], 0.0)
+
+        def publish(contacts: list[Contact], t: float) -> Callable[[], None]:
+            return lambda: world.set_contacts(contacts, t)
+
+        for t in (3.104, 3.2041, 3.3047):  # just after the leaves' gate ends (3.1039 ...)
+            vm.at(t, publish([], t))
+            vm.at(t + 0.05, publish([Contact(t + 0.05, math.inf, 0.04, 0.04, 3.0, 0.2)], t + 0.05))
+        vm.run(3.5)
+        return vm.serial_chunks[1]
+
+    assert run(True) == run(False)
+
+
+def test_a_lossy_skin_with_two_gateways_sends_the_same_lazily_and_gate_by_gate() -> None:
+    # Booting on lossy cells, relays hold frames besides their records (DATA of samples
+    # from before mesh time, HELLO, STATUS): lazily a relay wakes only for its children's
+    # records, and a frame queued behind a record must still go when it would gate by
+    # gate (it went up to 180 ms later, behind 18 records).
+    mesh = meshgen.grid(3, 3, gateways=(1, 9), loss=0.03)
+
+    def run(lazy: bool) -> list[list[tuple[int, bytes]]]:
+        vm = VirtualMesh(mesh, seed=2, lazy_sampling=lazy, readout=True, readout_acks=False,
+                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+        vm.run(2.8)
+        return [vm.serial_chunks[g] for g in mesh.gateways]
+
+    assert run(True) == run(False)

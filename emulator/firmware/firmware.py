@@ -599,9 +599,15 @@ class Firmware:
         child expected), else its depth's slot, the latest its record goes; a child's record
         coming earlier wakes the bridge, and the sample is computed then. The sample's
         values are the same whenever it is computed (the chip's noise is keyed by the gate's
-        cycle, the capacitance is the one at the gate)."""
+        cycle, the capacitance is the one at the gate). 0 too when a child's record of the
+        sample's frame came before its gate end (a child with a shorter gate): no later
+        record need come, and the frame's record would wait for the next wake, whatever
+        it is for."""
         r = self.readout
         if r is None or not r.expects_children():
+            return 0
+        s = self.sampler
+        if r.child_came_first(s.index, s.settings.rate_hz):
             return 0
         return r.slot(0 if self.config.gateway else self.router.hops)
 

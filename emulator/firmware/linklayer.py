@@ -353,6 +353,13 @@ class LinkLayer:
             # computed at its children's records, a frame later)
             tx = self.radio.tx_until
             t = tx if t is None else min(t, tx)
+        elif (f is None and (self.broadcasts or (self.queue and self._parent is not None))
+              and self._on_radio is None and self.radio.idle and not self._urgent_waiting(self._parent)):
+            # a frame queued while a record went first contends once the record is on the
+            # cell: a relay that computes its sample at its children's records wakes only for
+            # them, each makes a record, and the queue waited for a wake of another kind
+            tx = self.radio.tx_until
+            t = tx if t is None else min(t, tx)
         return t
 
     def has_work(self) -> bool:

@@ -207,6 +207,13 @@ class FrameReadout:
         then it cannot go at the bridge's own gate end."""
         return any(self._members.values())
 
+    def child_came_first(self, index: int, rate: int) -> bool:
+        """Whether a child's record of frame ``index`` came before this bridge's own state
+        of it (a child whose gates end earlier: a shorter gate, another mode): the wake
+        that record brought has passed, so the own state is wanted at its gate end."""
+        p = self._pending.get((rate, index))
+        return p is not None and p.own is None and bool(p.heard)
+
     @property
     def next_tick(self) -> int | None:
         """The earliest slot among the frames waiting (None: nothing waits)."""

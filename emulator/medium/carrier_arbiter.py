@@ -141,8 +141,11 @@ class CarrierArbiter:
         for c in cells:
             x = on.get(c)
             if x is not None and x[2] > now:
-                if x[1] <= now and abs(sent - x[0]) < self.cca:
-                    collides = True  # started together on the wire: a real collision
+                # started together on the wire: a real collision. With one on air already, or
+                # one starting at its own stamp (handed over early: it may start after
+                # ``now``), not one deferred to after another (its stamp says nothing then)
+                if abs(sent - x[0]) < self.cca and (x[1] <= now or x[1] == x[0]):
+                    collides = True
                 busy_until = max(busy_until, x[2])
         start = now
         if busy_until > now and not collides:

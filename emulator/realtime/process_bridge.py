@@ -47,7 +47,7 @@ from cellbridge.emulator.mesh.mesh import MeshError, load_mesh
 from cellbridge.emulator.mesh.virtual import default_chip
 from cellbridge.emulator.realtime import udp
 from cellbridge.emulator.realtime.gateway_port import GatewayPort, open_pty
-from cellbridge.emulator.realtime.process_world import decode_contacts
+from cellbridge.emulator.realtime.process_world import KEEP_ENDED_S, decode_contacts
 from cellbridge.emulator.realtime.realtime import (
     CLOCK_HZ,
     REPORTING_HELP,
@@ -250,7 +250,9 @@ def run(args: argparse.Namespace) -> int:
                     if contacts is None:
                         fw.counters["stimuli_malformed"] += 1
                     else:
-                        world.set_contacts(contacts)
+                        # from now on: a sample of an earlier gate still to be computed (a
+                        # relay's, at its children's records) sees what pressed at its gate
+                        world.set_contacts(contacts, tick / CLOCK_HZ, KEEP_ENDED_S)
             if port is not None:
                 data = port.read(ready)
                 if data:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Mapping
 
 import numpy as np
@@ -189,6 +189,7 @@ class World:
         self.layout = SkinLayout(np.array([mesh.bridge(b).position for b in ids]), mesh.side, np.array(ids))
         self.index = {b: i for i, b in enumerate(ids)}
         self.contacts: list[Contact] = list(contacts or [])
+        self._published: list[Contact] | None = None  #: the list set_contacts was last given
         unknown = sorted({d.bridge for d in drifts or []} - set(mesh.ids))
         if unknown:
             raise ValueError(f"drift on bridge {unknown[0]}, which is not in the mesh")
@@ -206,10 +207,33 @@ class World:
         self.contacts.append(contact)
         self._key = None
 
-    def set_contacts(self, contacts: list[Contact]) -> None:
-        """Replace every contact (a bridge process mirroring the world process)."""
-        if contacts != self.contacts:
-            self.contacts = list(contacts)
+    def set_contacts(self, contacts: list[Contact], at: float | None = None, keep: float = 2.0) -> None:
+        """Replace every contact (a bridge process mirroring the world process's list).
+
+        ``at``: when (s, the contacts' clock) the new list takes over. A contact it no
+        longer holds (a world that restarted without it) stays as it was before ``at``,
+        ending then at the latest, for ``keep`` seconds after its end: a bridge computes a
+        sample lazily, after its gate (a relay's readout sample at its children's records,
+        a DATA batch at its frame), and that sample must see what pressed at its gate, not
+        what the world said afterwards. A contact the new list holds counts from its own
+        start, even one before ``at`` (the press began then; the world said so late).
+        None: the old contacts are forgotten at once (a world that knows its whole past)."""
+        new = list(contacts)
+        if new == self._published:
+            return
+        self._published = list(new)
+        if at is not None:
+            kept = []
+            for c in self.contacts:
+                end = c.start + c.duration
+                if c in new or end <= at - keep or c.start >= at:
+                    continue  # still there, long over, or not begun when it was taken back
+                if any(n.start == c.start and n.x == c.x and n.y == c.y for n in new):
+                    continue  # the same press, as the new list has it
+                kept.append(c if end <= at else replace(c, duration=at - c.start))
+            new = kept + new
+        if new != self.contacts:
+            self.contacts = new
             self._key = None
 
     def capacitances(self, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -228,11 +252,16 @@ class World:
         """(C1, C2) of every element at ``t`` from the contacts alone (cached)."""
         active = tuple(i for i, c in enumerate(self.contacts) if c.active(t))
         moving = any(self.contacts[i].vx or self.contacts[i].vy for i in active)
-        key = (active, math.floor(t / self.quantum) if moving else None)
+        q = math.floor(t / self.quantum) if moving else None
+        key = (active, q)
         if key != self._key:
             self._key = key
             if active:
-                d1, d2 = skin_response(self.layout, self.disks([self.contacts[i].at(t) for i in active]),
+                # moving contacts where they are at the quantum's start, whoever asks first:
+                # a sample's capacitance is a function of its gate's time alone, not of the
+                # order the bridges (or a prefetch, or a lazy sample) asked in
+                when = t if q is None else q * self.quantum
+                d1, d2 = skin_response(self.layout, self.disks([self.contacts[i].at(when) for i in active]),
                                        self.params)
                 self._c1 = self.rest[0] + d1
                 self._c2 = self.rest[1] + d2

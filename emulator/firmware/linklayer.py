@@ -232,7 +232,7 @@ class LinkLayer:
                     self.results.append((f.next_hop, f.attempts, False))
                 self._give_back(f)
                 self.inflight = f = None
-            elif not self._records_first(parent):
+            elif not self._urgent_waiting(parent):  # (while a record is only held, it waits no deadline away)
                 self.counters["retries"] += 1
                 f.missed, f.deadline = f.deadline, -1
                 radio.send(f.data, self.cells, tick, f.attempts)
@@ -285,7 +285,11 @@ class LinkLayer:
         if not self.outstanding or not self.urgent:
             return False
         of = self.urgent[0][4]
-        return of is not None and any(u.frame is not None and u.frame != of for u in self.outstanding.values())
+        # (only towards the same parent: a new parent has none of the old one's records)
+        # (nor behind a record past its first retry: a parent that died would hold every
+        # record behind each one's last retry, and the backlog outlived the re-route)
+        return of is not None and any(u.frame is not None and u.frame != of and u.next_hop == self._parent
+                                      and u.attempts <= 1 for u in self.outstanding.values())
 
     def _urgent_due(self, tick: int, parent: int | None, neighbours: Container[int]) -> None:
         """Records whose acknowledgement did not come by their deadline: retried (marked to

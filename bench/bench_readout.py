@@ -10,7 +10,7 @@ Run: ``.venv/bin/python bench/bench_readout.py [--quick]`` (or ``make bench``). 
    known, on a periodic 8x8 at 250 Hz with four gateways (one per quadrant), lossless and
    with 1 % frame loss on every hop, measured once every bridge is on the schedule; with the
    losses that matter on the cells (``collision_at_addressee``, ``half_duplex_at_addressee``:
-   a record spoilt for the bridge it was sent to), records that failed after their retry,
+   a record spoilt for the bridge it was sent to), records that failed after their retries,
    and records a gateway wrote after a later frame's ("behind": the host reads them as lost);
    before it, the cells' capacity: the airtime the busiest relay needs per frame (its
    subtree's samples in and out, half duplex) for one gateway and for four;

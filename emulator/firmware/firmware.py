@@ -204,8 +204,9 @@ class FirmwareConfig:
     readout_hop: int = 0
     #: A child whose records stopped this long ago is no longer expected (nor its subtree).
     readout_forget: int = 2000 * _MS
-    #: Records ask for a per-hop acknowledgement and get one retry (False: sent once; a
-    #: lost one is listed missing above all the same)
+    #: Records ask for a per-hop acknowledgement and are retried while a retry can still
+    #: reach the parent by its slot (False: sent once; a lost one is listed missing above
+    #: all the same)
     readout_acks: bool = True
     #: Event-based, a bridge on the readout sends a sample at least every this many frames
     #: (at its own phase, spread by its id), not only at its heartbeat: the host reads
@@ -690,7 +691,8 @@ class Firmware:
                 if self.config.gateway:
                     self._own(record)
                 else:
-                    self.link.enqueue_urgent(own(record, self.me, self._next_link_seq()), tick, self._readout_rank())
+                    self.link.enqueue_urgent(own(record, self.me, self._next_link_seq()), tick, self._readout_rank(),
+                                             self.readout.until(record), (record.root, record.rate, record.index))
         while self.floods and self.floods[0][0] <= tick:
             self.link.broadcast(self.floods.pop(0)[1])
         beacon = False

@@ -47,8 +47,12 @@ class _InFlight:
     attempts: int = 0
     deadline: int = -1  #: ack deadline once on the cell; -1 while still contending
     missed: int = -1  #: the deadline that passed without an acknowledgement (last one)
-    urgent: bool = False  #: a readout record: sent without backoff, one retry, never requeued
+    urgent: bool = False  #: a readout record: sent without backoff, retried within its frame's slots, never requeued
     rank: int = 0  #: a readout record's backoff slots
+    #: a readout record's use-by tick (its parent's slot: a retransmission ending later is
+    #: dropped there as late); -1: not known, bounded by ``urgent_retries`` alone
+    until: int = -1
+    frame: object = None  #: a readout record's frame (records of a later frame wait for it)
 
 
 class LinkLayer:
@@ -67,9 +71,12 @@ class LinkLayer:
         self.handed: OrderedDict[tuple[int, int], int] = OrderedDict()
         self.broadcasts: deque[bytes] = deque()
         #: Readout records (:mod:`.readout`): each goes alone, before anything else, without
-        #: backoff, and is given up after ``urgent_retries`` retries (its slot is over by then)
-        self.urgent: deque[tuple[int, Raw, int]] = deque()  # (tick queued, record, rank)
-        self.urgent_retries = 1
+        #: backoff, and is retried at most ``urgent_retries`` times, each retry only while its
+        #: transmission can still end before the record's use-by tick (its parent's slot):
+        #: the window of a level holds a record, its acknowledgement and one retry, and a
+        #: record sent as soon as it was complete, before its own slot, has room for more
+        self.urgent: deque[tuple[int, Raw, int, int, object]] = deque()  # (tick queued, record, rank, until, frame)
+        self.urgent_retries = 3
         #: Whether a record asks for a per-hop acknowledgement (and gets its retry). Without,
         #: a lost record is listed missing by the relay above it all the same; the real-time
         #: shells send records so, since an acknowledgement there crosses two processes.
@@ -79,9 +86,12 @@ class LinkLayer:
         self.urgent_ttl = 200 * 50_000
         #: outcomes of readout records not yet read by the firmware (True: acknowledged)
         self.urgent_results: list[bool] = []
-        #: Readout records sent and waiting for their acknowledgement, by (origin, seq): not
-        #: stop-and-wait (a relay's next record does not wait for the last one's ack, which
-        #: crosses two processes in the real-time shells), each retried once at its deadline
+        #: Readout records sent and waiting for their acknowledgement, by (origin, seq), each
+        #: retried at its deadline. The parts of one frame's record go back to back; a later
+        #: frame's record waits until the earlier frame's are acknowledged or given up: the
+        #: parent reads a child's record of a later frame as the loss of the earlier one (it
+        #: lists it missing and sends on at once), so a retry that came after it was dropped
+        #: as late, its subtree unknown in that frame though the retry got through.
         self.outstanding: dict[tuple[int, int], _InFlight] = {}
         self._on_radio: _InFlight | None = None  #: the record the radio holds, not yet on the cell
         self._preempted = False  #: the normal frame in flight was taken off the radio for a record
@@ -112,14 +122,18 @@ class LinkLayer:
         self.queue.append(frame)
         return True
 
-    def enqueue_urgent(self, frame: Raw, tick: int, rank: int = 0) -> None:
+    def enqueue_urgent(self, frame: Raw, tick: int, rank: int = 0, until: int = -1, of: object = None) -> None:
         """Queue a readout record for the parent (bounded like the queue; counted when full);
-        ``rank``: its backoff in slots (:meth:`Transceiver.send`)."""
+        ``rank``: its backoff in slots (:meth:`Transceiver.send`); ``until``: the tick after
+        which a retransmission is of no use (its parent's slot; -1: not known); ``of``: the
+        frame it belongs to (any hashable value; None: not said, it then waits for no other
+        record), so a record of a later frame waits until the earlier frame's records are
+        acknowledged or given up."""
         if len(self.urgent) >= self.queue_len:
             self.counters["urgent_drops"] += 1
             self.urgent_results.append(False)
             return
-        self.urgent.append((tick, frame, rank))
+        self.urgent.append((tick, frame, rank, until, of))
 
     def broadcast(self, data: bytes) -> None:
         if len(self.broadcasts) >= 16:
@@ -218,13 +232,13 @@ class LinkLayer:
                     self.results.append((f.next_hop, f.attempts, False))
                 self._give_back(f)
                 self.inflight = f = None
-            elif not self._urgent_waiting(parent):
+            elif not self._urgent_waiting(parent):  # (while a record is only held, it waits no deadline away)
                 self.counters["retries"] += 1
                 f.missed, f.deadline = f.deadline, -1
                 radio.send(f.data, self.cells, tick, f.attempts)
         if self._urgent_waiting(parent):
             self._hand_urgent(tick, parent, cost_add)
-        elif f is None:
+        elif f is None and not self._held():
             used = self._hand_over(tick, parent, next_seq, cost_add)
         out = radio.advance(tick)
         if out is not None:
@@ -239,13 +253,13 @@ class LinkLayer:
             elif f is not None and out[0] is f.data and f.deadline < 0:
                 f.attempts += 1
                 f.deadline = radio.tx_until + self._ack_wait + self.extra_wait
-            elif f is None and not self._urgent_waiting(parent):
+            elif f is None and not self._records_first(parent):
                 # a broadcast just went out: the next frame contends for the cell after it
                 # now, not at the bridge's next wake (a relay held a child's frame until its
                 # next gate or batch then, and lazy and gate-by-gate sampling sent different frames)
                 used = self._hand_over(tick, parent, next_seq, cost_add) or used
         if radio.idle and f is not None and f.deadline < 0 and out is None and self._on_radio is None \
-                and not self._urgent_waiting(parent) and f is self.inflight and self._preempted:
+                and not self._records_first(parent) and f is self.inflight and self._preempted:
             self._preempted = False
             radio.send(f.data, self.cells, tick, f.attempts)  # the frame a record went before
         return out, used
@@ -254,20 +268,42 @@ class LinkLayer:
         """A readout record (new, or a retry) waits for the radio."""
         if self._on_radio is not None:
             return False
-        if parent is not None and self.urgent:
+        if parent is not None and self.urgent and not self._held():
             return True
         return any(u.deadline == -2 for u in self.outstanding.values())
 
+    def _records_first(self, parent: int | None) -> bool:
+        """A readout record waits for the radio, or for an earlier frame's acknowledgement:
+        no other frame takes the cell meanwhile (one that did held the record up by its
+        airtime and its acknowledgement when the acknowledgement came)."""
+        return self._urgent_waiting(parent) or self._held()
+
+    def _held(self) -> bool:
+        """The next queued record is of another frame than a record still waiting for its
+        acknowledgement: it goes when that one is acknowledged or given up (in frame order
+        at the parent, which reads a later frame's record as the earlier one's loss)."""
+        if not self.outstanding or not self.urgent:
+            return False
+        of = self.urgent[0][4]
+        # (only towards the same parent: a new parent has none of the old one's records)
+        # (nor behind a record past its first retry: a parent that died would hold every
+        # record behind each one's last retry, and the backlog outlived the re-route)
+        return of is not None and any(u.frame is not None and u.frame != of and u.next_hop == self._parent
+                                      and u.attempts <= 1 for u in self.outstanding.values())
+
     def _urgent_due(self, tick: int, parent: int | None, neighbours: Container[int]) -> None:
-        """Records whose acknowledgement did not come by their deadline: retried once (marked
-        to be sent, deadline -2), then given up; expired queued records are given up too."""
+        """Records whose acknowledgement did not come by their deadline: retried (marked to
+        be sent, deadline -2) while retries are left and one can still end before the
+        record's use-by tick, else given up; expired queued records are given up too."""
         while self.urgent and tick - self.urgent[0][0] > self.urgent_ttl:
             self.urgent.popleft()
             self.counters["urgent_expired"] += 1
             self.urgent_results.append(False)
         for key, u in list(self.outstanding.items()):
             if 0 <= u.deadline <= tick:
-                if u.attempts > self.urgent_retries or (parent != u.next_hop and u.next_hop not in neighbours):
+                useless = 0 <= u.until < tick + self.radio.airtime(len(u.data))  # after the parent's slot
+                gone = parent != u.next_hop and u.next_hop not in neighbours
+                if u.attempts > self.urgent_retries or useless or gone:
                     del self.outstanding[key]
                     self.counters["urgent_failed"] += 1
                     self.urgent_results.append(False)
@@ -295,12 +331,13 @@ class LinkLayer:
             self._on_radio = retry
             radio.send(retry.data, self.cells, tick, retry.attempts, urgent=True, rank=retry.rank)
             return True
-        if parent is None or not self.urgent:
+        if parent is None or not self.urgent or self._held():
             return False
-        _, first, rank = self.urgent.popleft()
+        _, first, rank, until, of = self.urgent.popleft()
         data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent,
                        _ACK if self.urgent_acks else 0)
-        u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank)
+        u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank, until=until,
+                      frame=of)
         if not self.urgent_acks:
             self._on_radio = u
             radio.send(data, self.cells, tick, urgent=True, rank=rank)
@@ -338,7 +375,8 @@ class LinkLayer:
         for u in self.outstanding.values():
             if u.deadline >= 0 and (t is None or u.deadline < t):
                 t = u.deadline
-        if self.urgent and self._parent is not None and self._on_radio is None and self.radio.idle:
+        if self.urgent and self._parent is not None and self._on_radio is None and self.radio.idle \
+                and not self._held():
             # records queued behind the one that just went (a backlog after the bridge was
             # held up, a record in parts): the next goes when the cell is ours again, not at
             # the bridge's next gate. Without this wake a bridge that fell behind sent one

@@ -16,7 +16,7 @@ slot at the latest: the slot bounds the latency, the early send is what makes it
 A child is expected while it sent a record within ``forget`` cycles; the bridges its last
 record listed are its subtree, marked missing when its record of ``k`` does not come.
 
-A record that was lost on its way (its hop was not acknowledged after the retry) leaves
+A record that was lost on its way (its hop was not acknowledged after its retries) leaves
 the host without that frame of the subtree, and an *unchanged* of the next frame would
 then refer to a sample the host never got. So a bridge whose record failed sends its next
 record with every unchanged element expanded to the last sample it passed on for that
@@ -47,7 +47,9 @@ class ReadoutConfig:
     #: Levels of the schedule: a bridge deeper than this sends in the deepest level's slot.
     depths: int = 8
     #: Cycles per level: a record, its acknowledgement and one retry (and, in the
-    #: real-time shells, the processes' message latency).
+    #: real-time shells, the processes' message latency). A record that went before its
+    #: slot may be retried again while a retry can still reach the parent by the parent's
+    #: slot (:meth:`FrameReadout.until`).
     window: int = 150_000
     #: A child silent this long (cycles) is no longer expected, nor its subtree listed.
     forget: int = 100_000_000
@@ -95,6 +97,7 @@ class FrameReadout:
         self._expand = False  # the last record sent failed: expand unchanged states once
         self._sent: set[tuple[int, int]] = set()  # frames already sent (late records are counted)
         self._sent_order: list[tuple[int, int]] = []
+        self._until: dict[tuple[int, int], int] = {}  # frame sent -> its parent's slot (tick)
         #: (root, rate) -> the newest frame whose record went: a child's record of an older
         #: frame that is not waiting here is late however old (``_sent`` remembers only the
         #: last frames); per root, as two roots' indices count unrelated mesh times
@@ -214,6 +217,18 @@ class FrameReadout:
         p = self._pending.get((rate, index))
         return p is not None and p.own is None and bool(p.heard)
 
+    def _step(self) -> int:
+        """Cycles from a bridge's slot to its parent's (one level up)."""
+        c = self.config
+        return min(c.hop, c.window) if c.hop else c.window
+
+    def until(self, record: Readout) -> int:
+        """The tick of the parent's slot for the frame of ``record`` (one :meth:`take` just
+        gave; -1: not known): the parent passes that frame on by then, and a record of it
+        that comes later is dropped there as late, so a retransmission that cannot end by
+        then is not worth the cell's time (nor the wait of the next frame's record)."""
+        return self._until.get((record.rate, record.index), -1)
+
     @property
     def next_tick(self) -> int | None:
         """The earliest slot among the frames waiting (None: nothing waits)."""
@@ -292,8 +307,11 @@ class FrameReadout:
             self._sent_order.append(key)
             if key[1] > self._newest.get(chain, -1):
                 self._newest[chain] = key[1]
+            self._until[key] = p.slot + self._step()
             if len(self._sent_order) > 256:
-                self._sent.discard(self._sent_order.pop(0))
+                old = self._sent_order.pop(0)
+                self._sent.discard(old)
+                self._until.pop(old, None)
             out.extend(self._records(p, tick))
         return out
 

@@ -1,0 +1,65 @@
+"""A readout record's hop: its acknowledgement, its retries within its frame's slots, and
+the order of records of successive frames at the parent (sans-I/O, the link layer alone)."""
+
+from __future__ import annotations
+
+import random
+
+from cellbridge.emulator.firmware.linklayer import LinkLayer
+from cellbridge.emulator.firmware.transceiver import Transceiver
+from cellbridge.protocol import Mode, Readout, ReadoutSample, own
+
+PARENT = 9
+
+
+def _record(index: int) -> Readout:
+    return Readout(index, 250, Mode.COUNTER, 1, (ReadoutSample(5, index, index, 0),), (), ())
+
+
+def _run(link: LinkLayer, tick: int, until: int) -> tuple[int, list[tuple[int, bytes]]]:
+    """Drive ``link`` by its own ``next_tick`` up to ``until``: (tick, transmissions started)."""
+    sent: list[tuple[int, bytes]] = []
+    for _ in range(200):
+        out, _used = link.advance(tick, PARENT, 0, 1)
+        if out is not None:
+            sent.append((tick, out[0]))
+        t = link.next_tick
+        if t is None or t > until:
+            break
+        tick = max(tick + 1, t)
+    return tick, sent
+
+
+def test_a_later_frames_record_waits_until_the_earlier_ones_is_acknowledged() -> None:
+    """The parent reads a child's record of frame k + 1 as the loss of its record of k: it
+    lists the child's subtree missing in k and sends k on. Sent while k's record still
+    waited for its acknowledgement, the record of k + 1 made a retry of k that got through
+    come too late, and the subtree unknown in k."""
+    link = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    link.enqueue_urgent(own(_record(0), 5, 0), 0, until=10**9, of=(0, 250, 0))
+    link.enqueue_urgent(own(_record(1), 5, 1), 0, until=10**9, of=(0, 250, 1))
+    tick, sent = _run(link, 0, 60_000)  # well short of the acknowledgement's deadline
+    assert len(sent) == 1 and link.outstanding  # k + 1 waits for k's outcome
+    (origin, seq), = link.outstanding
+    assert link.acked(origin, seq, PARENT, tick)
+    _tick, sent = _run(link, tick, tick + 60_000)
+    assert len(sent) == 1  # now it goes
+
+
+def test_a_record_is_retried_while_a_retry_can_still_reach_the_parent_by_its_slot() -> None:
+    """No acknowledgement comes: with room before the parent's slot the record goes
+    ``urgent_retries`` + 1 times; with the slot too close for a retransmission to end by it,
+    it is given up at its first deadline, and the next frame's record goes."""
+    far = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    far.enqueue_urgent(own(_record(0), 5, 0), 0, until=10**9, of=(0, 250, 0))
+    _tick, sent = _run(far, 0, 10**8)
+    assert len(sent) == far.urgent_retries + 1 >= 3
+    assert far.urgent_results == [False] and not far.outstanding
+
+    near = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    near.enqueue_urgent(own(_record(0), 5, 0), 0, until=20_000, of=(0, 250, 0))  # 0.4 ms: one record's airtime
+    near.enqueue_urgent(own(_record(1), 5, 1), 0, until=10**9, of=(0, 250, 1))
+    _tick, sent = _run(near, 0, 10**6)
+    first = [data for _, data in sent if data == sent[0][1]]
+    assert len(first) == 1  # no retransmission of frame 0: it could not make the parent's slot
+    assert near.urgent_results[0] is False and len(sent) >= 2  # given up; frame 1 went

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 from cellbridge.tactile.skin_geometry import SkinGeometry
+from numpy.typing import NDArray
 
 __all__ = ["contact_fields", "skin_report"]
 
@@ -42,10 +43,21 @@ def contact_fields(skin: SkinGeometry | None, contacts: list[dict[str, Any]]) ->
         f = float(c["force"])
         fv = [-f * n for n in nrm] if math.isfinite(f) else None
         jac = np.array([tx, ty]).T  # (3, 2): atlas (x, y) -> link frame
-        cov = jac @ np.asarray(c["cov"], dtype=np.float64) @ jac.T
+        cov = _carried(jac, np.asarray(c["cov"], dtype=np.float64))
         out.append({**c, "link": link, "patch": patch, "position": list(pos), "normal": list(nrm),
                     "force_vector": fv, "position_cov": cov.tolist()})
     return out
+
+
+def _carried(jac: NDArray[np.float64], cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``jac @ cov @ jac.T``, where a zero entry of ``jac`` contributes nothing, also against
+    an infinite variance: an atlas axis the readings leave open (σ infinite) leaves open
+    the link coordinates it moves, and no other (0 · inf taken literally made the whole
+    covariance NaN, the surface normal's coordinate included, which the patch pins)."""
+    terms = jac[:, None, :, None] * jac[None, :, None, :]  # (3, 3, 2, 2): J[i, a] J[j, b]
+    with np.errstate(invalid="ignore"):
+        out = np.where(terms != 0, terms * cov[None, None, :, :], 0.0)
+    return np.asarray(out.sum(axis=(2, 3)), dtype=np.float64)
 
 
 def skin_report(skin: SkinGeometry | None) -> dict[str, Any] | None:

@@ -1,0 +1,68 @@
+"""A contact's position covariance carried into its link's frame (``position_cov``).
+
+An axis the readings leave open has an infinite variance (its σ covers every position);
+the link frame's coordinate that the axis does not move (the normal's, on a flat patch)
+must stay exactly known, not become NaN: 0 · inf taken literally made the whole row and
+column NaN, and a subscriber got no number it could use for any axis."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cellbridge.daemon.core.surface import contact_fields
+from cellbridge.daemon.shell.skin_file import load_skin
+
+HUMANOID = Path(__file__).resolve().parents[1] / "cellbridge" / "skins" / "humanoid.toml"
+
+
+@pytest.fixture(scope="module")
+def skin():
+    return load_skin(HUMANOID)
+
+
+def _centres(skin, n: int) -> list[tuple[float, float]]:
+    """Atlas points spread over the skin's elements (cylinders and planes alike)."""
+    c = skin.layout().centres
+    return [(float(c[i, 0]), float(c[i, 1])) for i in np.linspace(0, len(c) - 1, n).astype(int)]
+
+
+def _contact(cov: list[list[float]], x: float = 0.02, y: float = 0.02) -> dict:
+    return {"id": 1, "x": x, "y": y, "force": 2.0, "cov": cov}
+
+
+def test_an_open_axis_on_a_flat_skin_stays_open_and_the_normal_stays_known() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        (c,) = contact_fields(None, [_contact([[3.4e-05, 0.0], [0.0, math.inf]])])
+    cov = np.array(c["position_cov"])
+    assert not np.isnan(cov).any(), cov
+    assert cov[0, 0] == 3.4e-05 and cov[1, 1] == math.inf
+    assert (cov[2] == 0).all() and (cov[:, 2] == 0).all()  # along the normal: on the surface
+    assert cov[0, 1] == cov[1, 0] == 0
+
+
+def test_a_finite_covariance_is_the_jacobian_product_on_every_patch(skin) -> None:
+    rng = np.random.default_rng(3)
+    for x, y in _centres(skin, 25):
+        a = rng.normal(size=(2, 2))
+        c2 = a @ a.T * 1e-6
+        (c,) = contact_fields(skin, [_contact(c2.tolist(), x, y)])
+        sp = skin.locate([x], [y])[0]
+        jac = np.array([sp.tangent_x, sp.tangent_y]).T
+        assert np.allclose(np.array(c["position_cov"]), jac @ c2 @ jac.T, rtol=1e-12, atol=1e-18)
+
+
+def test_an_open_axis_on_any_patch_is_open_where_it_moves_and_nan_nowhere(skin) -> None:
+    for x, y in _centres(skin, 25):
+        (c,) = contact_fields(skin, [_contact([[1e-6, 0.0], [0.0, math.inf]], x, y)])
+        cov = np.array(c["position_cov"])
+        sp = skin.locate([x], [y])[0]
+        ty = np.array(sp.tangent_y)
+        assert not np.isnan(cov).any(), cov
+        moved = np.abs(ty) > 0  # the link coordinates the open axis moves have no bound
+        assert np.isinf(np.diag(cov)[moved]).all()
+        assert np.isfinite(np.diag(cov)[~moved]).all()

@@ -14,6 +14,7 @@ import contextlib
 import functools
 import os
 import signal
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -314,10 +315,28 @@ def _alive_descendants() -> dict[int, str]:
     return found
 
 
+#: s the guard gives processes that are ending to end: a test that stopped its child leaves
+#: the child's own children (a daemon's contact worker, a skin's bridges) to notice and
+#: exit by themselves, and on a busy machine one was caught mid-exit (its command line
+#: already gone) and reported as left running.
+EXIT_GRACE = 3.0
+
+
+def _left_after(grace: float) -> dict[int, str]:
+    """:func:`_alive_descendants` once those ending within ``grace`` s have ended: what a
+    module really left running."""
+    left = _alive_descendants()
+    end = time.monotonic() + grace
+    while left and time.monotonic() < end:
+        time.sleep(0.05)
+        left = _alive_descendants()
+    return left
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _no_process_outlives_its_module(request: pytest.FixtureRequest) -> Iterator[None]:
     yield
-    left = _alive_descendants()
+    left = _left_after(EXIT_GRACE)
     _spawned.clear()
     if not left:
         return

@@ -78,3 +78,21 @@ def test_the_guard_sees_a_grandchild_under_a_child_still_running() -> None:
         proc.kill()
         proc.wait(5)
         _end(grandchild)
+
+
+def test_the_guard_waits_for_a_process_that_is_ending_and_reports_one_that_is_not() -> None:
+    """A grandchild left to exit by itself once its parent was stopped (a daemon's contact
+    worker) is ending, not left running: the guard gives it ``EXIT_GRACE`` to end. One that
+    stays is still reported after that wait."""
+    ending = subprocess.Popen(["sleep", "0.3"])
+    staying = subprocess.Popen(["sleep", "60"])
+    try:
+        t0 = time.monotonic()
+        left = conftest._left_after(3.0)
+        assert ending.pid not in left, left  # ended within the grace, and was not reported
+        assert staying.pid in left, left
+        assert time.monotonic() - t0 >= 2.9  # it waited the grace out for the one staying
+    finally:
+        for p in (ending, staying):
+            p.kill()
+            p.wait(5)

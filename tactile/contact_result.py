@@ -18,7 +18,7 @@ class Contact:
     one-sigma position uncertainties under the configured noise, ``sigma_xy`` the
     larger semi-axis of the covariance ``cov``. ``observable`` says per axis whether
     the readings determine that coordinate (False: the value is the middle of the
-    consistent range). ``valid`` is False when no element's inverse gave a pressure
+    consistent range, or σ along it is infinite; an observable axis has a finite σ). ``valid`` is False when no element's inverse gave a pressure
     (too light a touch, or the ambiguous low-pressure region): only the position is
     meaningful then. A hard press that each element alone reads too noisily (on the
     unique high-pressure branch) is fitted and valid.

@@ -141,7 +141,10 @@ class Fits:
         cxy = float(cv[0, 1]) if not flat.any() and np.isfinite(cv[0, 1]) else 0.0
         sx, sy = float(sig[0]), float(sig[1])
         cx, cy = base["centroid_x"], base["centroid_y"]
-        seen = (not bool(flat[0]), not bool(flat[1]))
+        # A coordinate is observable where the readings pin it: not flat, and with a
+        # finite σ (a covariance that failed to solve leaves σ infinite without a flat
+        # bottom found: the readings do not pin that coordinate either).
+        seen = (not bool(flat[0]) and math.isfinite(sx), not bool(flat[1]) and math.isfinite(sy))
         if not ok:
             # The position is the centroid, which says only that the contact is on the
             # cluster: σ of a uniform spread out to the farther edge of the cluster on

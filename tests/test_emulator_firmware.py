@@ -10,6 +10,7 @@ from cellbridge.emulator.firmware.commands import Settings, execute
 from cellbridge.emulator.firmware.reporting import Reporter, ReportingMode
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.realtime.process_bridge import READOUT_HOP, READOUT_WINDOW
 from cellbridge.emulator.world.world import Contact, ScenarioError, World, parse_scenario
 from cellbridge.protocol import (
     ADDR_BROADCAST,
@@ -313,17 +314,11 @@ def test_event_reporting_lazy_sampling_sends_what_gate_by_gate_sampling_sends() 
     mesh = meshgen.line(3)
     presses = [Contact(0.8, 0.3, 0.04, 0.0, 2.0, 0.02), Contact(1.6, 0.05, 0.08, 0.0, 4.0, 0.02)]
 
-    def run(lazy: bool) -> tuple[dict, list]:
+    def run(lazy: bool) -> tuple[dict, dict]:
         vm = VirtualMesh(mesh, seed=5, world=World(mesh, list(presses)), lazy_sampling=lazy,
                          settings=Settings(reporting=ReportingMode(40, 300)))
-        written: list[tuple[int, bytes]] = []  # (tick, bytes) on the gateway's serial line
-        serial_out = vm._gateway_out
-        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
-            written.append((vm.tick, data))
-            serial_out(b, data)
 
-        vm._gateway_out = tapped  # type: ignore[method-assign]
-        return vm.run(2.5).samples(), written
+        return vm.run(2.5).samples(), vm.serial_chunks  # (tick, bytes) on each gateway's serial line
 
     (lazy_samples, lazy_frames), (eager_samples, eager_frames) = run(True), run(False)
     pressed = [s for s in eager_samples[2] if 0.8 * CLOCK_HZ <= s.cycle < 1.2 * CLOCK_HZ]
@@ -341,16 +336,10 @@ def test_lazy_sampling_sends_what_gate_by_gate_sampling_sends_from_boot(bridges:
     # waited in its queue handed that frame to the radio only at its next wake (the next
     # gate gate-by-gate, the next batch's slot lazily). Either way: other frames, other
     # collisions, and a real-time (lazy) relay sat on its children's frames.
-    def run(lazy: bool) -> tuple[dict, list]:
+    def run(lazy: bool) -> tuple[dict, dict]:
         vm = VirtualMesh(meshgen.line(bridges), seed=seed, lazy_sampling=lazy)
-        written: list[tuple[int, bytes]] = []  # (tick, bytes) on the gateway's serial line
-        serial_out = vm._gateway_out
-        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
-            written.append((vm.tick, data))
-            serial_out(b, data)
 
-        vm._gateway_out = tapped  # type: ignore[method-assign]
-        return vm.run(2.5).samples(), written
+        return vm.run(2.5).samples(), vm.serial_chunks  # (tick, bytes) on each gateway's serial line
 
     (lazy_samples, lazy_frames), (eager_samples, eager_frames) = run(True), run(False)
     assert lazy_samples == eager_samples
@@ -761,14 +750,9 @@ def test_a_relay_computes_its_readout_sample_at_its_childrens_records_not_at_a_w
     # sampling sends; the relays wake about once a frame less.
     mesh = meshgen.grid(3, 3)
 
-    def run(lazy: bool) -> tuple[dict, list, dict[int, int], int]:
+    def run(lazy: bool) -> tuple[dict, dict, dict[int, int], int]:
         vm = VirtualMesh(mesh, seed=2, lazy_sampling=lazy, readout=True, readout_acks=False,
-                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
-        written: list[tuple[int, bytes]] = []
-        serial_out = vm._gateway_out
-        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
-            written.append((vm.tick, data))
-            serial_out(b, data)
+                         readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP)
 
         wakes: dict[int, int] = dict.fromkeys(mesh.ids, 0)
         run_one = vm._run
@@ -777,12 +761,11 @@ def test_a_relay_computes_its_readout_sample_at_its_childrens_records_not_at_a_w
                 wakes[b] += 1
             run_one(b)
 
-        vm._gateway_out = tapped  # type: ignore[method-assign]
         vm._run = counted  # type: ignore[method-assign]
         r = vm.run(4.0)
         records = [payload_as(f, Readout) for f in r.gateway_frames[1] if f.type is FrameType.READOUT]
         frames = sum(1 for x in records if x.index >= 3 * x.rate)
-        return r.samples(), written, wakes, frames
+        return r.samples(), vm.serial_chunks, wakes, frames
 
     lazy_samples, lazy_frames, lazy_wakes, n = run(True)
     eager_samples, eager_frames, eager_wakes, _ = run(False)
@@ -808,14 +791,9 @@ def test_a_bridge_that_computes_its_next_samples_ahead_sends_what_it_sends_witho
     mesh = meshgen.grid(3, 3)
     presses = [Contact(2.6, 0.3, 0.04, 0.04, 2.0, 0.02)]
 
-    def run(ahead: bool) -> tuple[dict, list, int, int]:
+    def run(ahead: bool) -> tuple[dict, dict, int, int]:
         vm = VirtualMesh(mesh, seed=2, world=World(mesh, list(presses)), readout=True, readout_acks=False,
-                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
-        written: list[tuple[int, bytes]] = []
-        serial_out = vm._gateway_out
-        def tapped(b: int, data: bytes) -> None:  # the test taps the gateway's output
-            written.append((vm.tick, data))
-            serial_out(b, data)
+                         readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP)
 
         run_one = vm._run
         def prefetching(b: int) -> None:  # and prefetches after each wake that sampled
@@ -825,11 +803,10 @@ def test_a_bridge_that_computes_its_next_samples_ahead_sends_what_it_sends_witho
             if ahead and fw.counters["samples"] > taken:
                 fw.sampler.prefetch(8)
 
-        vm._gateway_out = tapped  # type: ignore[method-assign]
         vm._run = prefetching  # type: ignore[method-assign]
         r = vm.run(3.5)
         hits = sum(fw.chip.prefetch_hits for fw in vm.nodes.values())  # type: ignore[attr-defined]
-        return r.samples(), written, hits, r.total("samples")
+        return r.samples(), vm.serial_chunks, hits, r.total("samples")
 
     (a_samples, a_frames, hits, taken), (b_samples, b_frames, none, _) = run(True), run(False)
     assert a_samples == b_samples
@@ -855,7 +832,7 @@ def test_a_relay_whose_childs_record_comes_before_its_own_gate_end_sends_at_its_
 
     def run(lazy: bool) -> tuple[list, list]:
         vm = VirtualMesh(mesh, seed=2, lazy_sampling=lazy, readout=True, readout_acks=False,
-                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+                         readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP)
         for i, b in enumerate(leaves):  # a fifth of the relays' gates
             vm.host_write(1, cmd(100 + i, b, Op.SET_GATE, 20_000, token=100 + i), at=2.8)
         r = vm.run(3.6)
@@ -903,7 +880,7 @@ def test_a_relays_lazy_sample_sees_a_press_the_world_took_back_after_its_gate() 
     def run(lazy: bool) -> list[tuple[int, bytes]]:
         world = World(mesh)
         vm = VirtualMesh(mesh, seed=2, world=world, lazy_sampling=lazy, readout=True, readout_acks=False,
-                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+                         readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP)
         world.set_contacts([Contact(3.0, math.inf, 0.04, 0.04, 3.0, 0.2)], 0.0)
 
         def publish(contacts: list[Contact], t: float) -> Callable[[], None]:
@@ -927,7 +904,7 @@ def test_a_lossy_skin_with_two_gateways_sends_the_same_lazily_and_gate_by_gate()
 
     def run(lazy: bool) -> list[list[tuple[int, bytes]]]:
         vm = VirtualMesh(mesh, seed=2, lazy_sampling=lazy, readout=True, readout_acks=False,
-                         readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+                         readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP)
         vm.run(2.8)
         return [vm.serial_chunks[g] for g in mesh.gateways]
 

@@ -85,6 +85,9 @@ def one_run(x: float, y: float, pause: float = 0.0, defaults: bool = False) -> d
     except subprocess.TimeoutExpired:
         stop(demo)
         return {"ok": False, "error": "timeout"}
+    except BaseException:  # Ctrl-C, SIGTERM: the run in flight goes too
+        stop(demo)
+        raise
     finally:
         if pause:
             watcher.join(5.0)
@@ -116,8 +119,10 @@ def main() -> None:
                     help="the skin and the daemon with their own defaults (periodic 100 Hz; demo --defaults)")
     ap.add_argument("--cases", default="seam,corner", help="comma-separated: seam, corner")
     args = ap.parse_args()
-    # SIGTERM (a kill, a timeout) unwinds like Ctrl-C, so every process started is stopped
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    # SIGTERM (a kill, a timeout) and Ctrl-C unwind, so every process started is stopped;
+    # the first one ignores any that follow, which would cut the unwinding short
+    signal.signal(signal.SIGTERM, _unwind)
+    signal.signal(signal.SIGINT, _unwind)
     burners: list[subprocess.Popen] = []
     if args.burn:
         burners = [subprocess.Popen([sys.executable, "-c", BURN], start_new_session=True)
@@ -156,9 +161,20 @@ def main() -> None:
               ["case", "runs", "passed", "worst pos mm", "worst force %", "runs >1 id", "runs no contact",
                "untrue reports", "reports w/ unknown", "reports"], rows)
     finally:
+        # A second signal (``timeout`` passes its SIGTERM on; a second Ctrl-C) must not cut
+        # the clean-up short and leave burners or a skin running.
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, signal.SIG_IGN)
         for p in burners:
             stop(p)
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _unwind(signum: int, _frame: object) -> None:
+    """Exit (128 + the signal) through every ``finally``, deaf to further signals."""
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, signal.SIG_IGN)
+    sys.exit(128 + signum)
 
 
 def second_skin(work: Path) -> subprocess.Popen:

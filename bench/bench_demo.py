@@ -29,6 +29,7 @@ from pathlib import Path
 
 from daemon_harness import free_port
 from timing import table
+from unwind import unwind_on_signals
 
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
 CASES = {"seam": (0.057, 0.040), "corner": (0.0585, 0.0625)}
@@ -119,10 +120,7 @@ def main() -> None:
                     help="the skin and the daemon with their own defaults (periodic 100 Hz; demo --defaults)")
     ap.add_argument("--cases", default="seam,corner", help="comma-separated: seam, corner")
     args = ap.parse_args()
-    # SIGTERM (a kill, a timeout) and Ctrl-C unwind, so every process started is stopped;
-    # the first one ignores any that follow, which would cut the unwinding short
-    signal.signal(signal.SIGTERM, _unwind)
-    signal.signal(signal.SIGINT, _unwind)
+    unwind_on_signals()
     burners: list[subprocess.Popen] = []
     if args.burn:
         burners = [subprocess.Popen([sys.executable, "-c", BURN], start_new_session=True)
@@ -168,13 +166,6 @@ def main() -> None:
         for p in burners:
             stop(p)
         shutil.rmtree(work, ignore_errors=True)
-
-
-def _unwind(signum: int, _frame: object) -> None:
-    """Exit (128 + the signal) through every ``finally``, deaf to further signals."""
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, signal.SIG_IGN)
-    sys.exit(128 + signum)
 
 
 def second_skin(work: Path) -> subprocess.Popen:

@@ -66,6 +66,7 @@ from cellbridge.emulator.world.world import Contact
 from daemon_harness import free_port
 from realskin import world_press
 from timing import table
+from unwind import unwind_on_signals
 
 PRESS_S = 1.0
 GAP_S = 0.5
@@ -252,8 +253,7 @@ def main() -> None:
                     help="run the daemon with a timing trace (bench/press_trace.py) and print, for the median "
                          "and the slowest tenth of presses, what their contact waited for")
     args = ap.parse_args()
-    # SIGTERM (a kill, a timeout) unwinds like Ctrl-C, so every process started is stopped
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    unwind_on_signals()
     mesh = meshgen.grid(args.side, args.side)
     n = len(mesh.bridges)
     if args.virtual:

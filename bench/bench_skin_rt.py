@@ -53,6 +53,7 @@ from cellbridge.protocol import FrameType, StreamDecoder
 
 from realskin import free_base_port, rt_permitted
 from timing import table
+from unwind import unwind_on_signals
 
 CLOCK_HZ = 50_000_000
 JITTER_TARGET_MS = 20.0
@@ -182,7 +183,7 @@ def main() -> None:
                     help="after the window, press this many times (0.4 s each) at random elements' centres "
                          "and time each press from the world to its first sample on the pty (default 0)")
     args = ap.parse_args()
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    unwind_on_signals()
     mesh = meshgen.grid(args.side, args.side)
     gw = mesh.gateways[0]
     rt = args.rt and rt_permitted()

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from cellbridge.daemon.core.config import parse_config
 from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.protocol import Hello
 
 from daemon_traffic import CLOCK, GridFrames
 from support.pipeline_helpers import published, worker
@@ -241,3 +242,26 @@ def test_bridges_on_the_schedule_are_alive_though_they_send_no_frame_of_their_ow
     p.tick(arrive(sk, k + 300), force=True)
     body = p.health_body(arrive(sk, k + 300))
     assert body["silent"] == [4]  # said missing for 3 s: no word of it came
+
+
+def test_samples_of_a_bridge_known_only_by_its_records_are_counted_unplaced() -> None:
+    # A starved skin: one bridge's HELLO came, the others' not yet, and their samples come
+    # in the gateway's readout records before anything else of theirs. The host cannot
+    # place them; it counts them per bridge and reads on (this read once failed whole).
+    sk = GridFrames(rows=2, cols=2)
+    p = make()
+    first = sk.ids[0]
+    hello = Hello(first, "test-1", float(sk.layout.centres[0, 0]), float(sk.layout.centres[0, 1]),
+                  float(sk.layout.side), CLOCK, 3)
+    p.feed("gw", sk._frame(first, hello), T0)
+    for k in range(5):
+        p.feed("gw", sk.readout(k), arrive(sk, k))
+    h = p.health_body(arrive(sk, 5))
+    assert all(h["bridges"][str(b)]["unmapped_samples"] >= 4 for b in sk.ids[1:])
+    assert h["bridges"][str(first)]["unmapped_samples"] == 0
+    assert h["frames"]["frames_complete"] >= 4
+    # their HELLOs come, and they are placed
+    p.feed("gw", sk.hellos(), arrive(sk, 5))
+    for k in range(5, 40):
+        p.feed("gw", sk.readout(k), arrive(sk, k))
+    assert p.health_body(arrive(sk, 40))["unplaced"] == []

@@ -250,15 +250,17 @@ class HealthBook:
             b.samples += counts[bid]
             b.last_cycle = int(cycle[i])
 
-    def rejected(self, bids: NDArray[np.int64]) -> None:
+    def rejected(self, bids: NDArray[np.int64], now: float) -> None:
         """Mesh-time samples of ``bids`` (one entry each) whose index was not believed."""
         for bid, n in Counter(bids.tolist()).items():
-            self.bridges[bid].index_rejected += n
+            self._bridge(bid, now).index_rejected += n
 
-    def unmapped(self, bids: NDArray[np.int64]) -> None:
-        """Samples of ``bids`` (one entry each) of elements the layout does not place."""
+    def unmapped(self, bids: NDArray[np.int64], now: float) -> None:
+        """Samples of ``bids`` (one entry each) of elements the layout does not place. Such
+        a bridge may be known by nothing else yet: its samples came in a readout record
+        (folded into health only when it is read) before its HELLO."""
         for bid, n in Counter(bids.tolist()).items():
-            self.bridges[bid].unmapped_samples += n
+            self._bridge(bid, now).unmapped_samples += n
 
     def spoken_for(self, link: str, sampled: Sequence[int], unchanged: Sequence[int], now: float) -> None:
         """A readout record on ``link`` at ``now`` accounts for ``sampled`` (a sample each) and

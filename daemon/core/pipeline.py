@@ -215,13 +215,13 @@ class Pipeline:
             self.health.clock_reset(o, now)
             self._event("warning", f"bridge {o}: clock restarted (reset?), resynchronising")
         if st.rejected.size:
-            self.health.rejected(st.rejected)
+            self.health.rejected(st.rejected, now)
         self._batch(self.batches.samples(self.skin, link, s, st.t_host, st.t_bridge, st.cycle, now, self.wall_offset,
                                          self._want("raw"), self._want("element")), now, out)
 
     def _batch(self, b: Batch, now: float, out: list[Message]) -> None:
         if b.unplaced.size:
-            self.health.unmapped(b.unplaced)
+            self.health.unmapped(b.unplaced, now)
         if b.raw is not None:
             out.append(self.stamps.message(RawBatch, now, b.raw))
         if b.element is not None:

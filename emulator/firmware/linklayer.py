@@ -385,17 +385,20 @@ class LinkLayer:
             tx = self.radio.tx_until
             t = tx if t is None else min(t, tx)
         elif (self._preempted and f is not None and f.deadline < 0 and self._on_radio is None
-              and self.radio.idle and not self._urgent_waiting(self._parent)):
+              and self.radio.idle and not self._records_first(self._parent)):
             # the frame a record went before contends again once the record is on the cell:
             # then, not at whatever wake comes next (a relay's next gate, or with its sample
             # computed at its children's records, a frame later)
             tx = self.radio.tx_until
             t = tx if t is None else min(t, tx)
         elif (f is None and (self.broadcasts or (self.queue and self._parent is not None))
-              and self._on_radio is None and self.radio.idle and not self._urgent_waiting(self._parent)):
+              and self._on_radio is None and self.radio.idle and not self._records_first(self._parent)):
             # a frame queued while a record went first contends once the record is on the
             # cell: a relay that computes its sample at its children's records wakes only for
-            # them, each makes a record, and the queue waited for a wake of another kind
+            # them, each makes a record, and the queue waited for a wake of another kind.
+            # (Not while a record is held for an earlier one's acknowledgement: nothing else
+            # goes then, and that wake, past, woke the bridge at every cycle until the
+            # acknowledgement or its deadline, which the outstanding record's wake covers.)
             tx = self.radio.tx_until
             t = tx if t is None else min(t, tx)
         return t

@@ -88,3 +88,19 @@ def test_a_frame_queued_behind_a_held_record_does_not_wake_the_bridge_before_the
         assert t is not None and t > tick, (t, tick)  # not a wake that finds nothing to do
         tick, wakes = t, wakes + 1
     assert tick == u.deadline and wakes <= 2  # the record's acknowledgement deadline: its retry goes then
+
+
+def test_a_record_whose_every_retry_went_unacknowledged_is_a_lost_link_for_the_routing() -> None:
+    """A parent that died acknowledges nothing: a record that spent all its retries is told
+    to the routing as a failed transmission (as a normal frame's last retry is), so that
+    the parent is evicted by its failures and not only by its beacons' timeout. One given
+    up for its parent's slot is not: its retries were cut short."""
+    far = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    far.enqueue_urgent(own(_record(0), 5, 0), 0, until=10**9, of=(0, 250, 0))
+    _run(far, 0, 10**8)
+    assert far.results == [(PARENT, far.urgent_retries + 1, False)]
+
+    near = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    near.enqueue_urgent(own(_record(0), 5, 0), 0, until=20_000, of=(0, 250, 0))
+    _run(near, 0, 10**6)
+    assert near.urgent_results == [False] and near.results == []

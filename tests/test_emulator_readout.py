@@ -461,3 +461,20 @@ def test_an_expansion_does_not_send_a_sample_of_a_bridge_whose_last_frame_came_a
     r.own(4, 100, Mode.COUNTER, 1, "u", 30_900, 5000)
     (out,) = r.take(30_100)
     assert [(s.bridge, s.c1) for s in out.samples] == [(5, 1)] and out.unchanged == (7,)
+
+
+def test_a_relay_that_dies_at_250_hz_has_its_subtree_rerouted_in_tens_of_ms_not_by_the_beacon_timeout() -> None:
+    """At 250 Hz records are nearly all a bridge sends, and a record waits for the one before
+    it: the frames whose failed transmissions evict a dead parent did not get the cell, and a
+    record that failed all its retries was not told to the routing. Relay 6's subtree (seed 7)
+    stayed unknown until its beacons timed out, 2.4 s: 4 806 element-frames. A record whose
+    every retry went unacknowledged now counts as a lost link."""
+    mesh = meshgen.grid(4, 4, loss=0.01)
+    vm = VirtualMesh(mesh, seed=7, settings=Settings(rate_hz=250), readout=True)
+    vm.kill(6, at=4.0)
+    vm.run(5.0)
+    got = records(vm)
+    after = [(b, k) for (b, k) in got if k >= 1000 and b != 6]
+    unknown = sum(1 for key in after if got[key][0] != "s")
+    assert len(after) >= 15 * 200 and unknown <= 100, (unknown, len(after))
+    assert all(p != 6 for p in vm.result().parents.values())

@@ -307,10 +307,15 @@ class LinkLayer:
                     del self.outstanding[key]
                     self.counters["urgent_failed"] += 1
                     self.urgent_results.append(False)
-                    # not fed to the routing's link estimate: a record's acknowledgement that
-                    # is late (message latency of the real-time shells) is no lost link, and
-                    # a parent that died is found by its beacons' timeout
-
+                    if u.attempts > self.urgent_retries and not gone:
+                        # every retry spent without an acknowledgement (1 % loss per hop:
+                        # about 1 in 10^7 records) is a lost link, as a normal frame's last
+                        # retry is: fed to the routing. Else, where records are most of what
+                        # a bridge sends (250 Hz), the cell went to them and not to frames
+                        # whose failures evict a parent that died, and its beacons' timeout
+                        # found it seconds later, its subtree unknown meanwhile. (A record
+                        # given up for its slot is not: its retries were cut short.)
+                        self.results.append((u.next_hop, u.attempts, False))
                 else:
                     u.deadline = -2  # to be sent again
 

@@ -9,6 +9,7 @@ under presses.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterator
 
 import pytest
@@ -416,3 +417,64 @@ def test_a_multi_hop_skin_at_one_percent_loss_per_hop_keeps_its_element_frames_k
         if s is not None:
             assert (s.c1, s.c2) == truth[key][:2], key
     assert vm.result().total("retries") > 0  # the loss was real
+
+
+def _relay_that_failed_once() -> tuple[FrameReadout, Counter[str]]:
+    """Relay 5 with child 7 (event-based): frames 1 and 2 passed on, 7's sample in each."""
+    c: Counter[str] = Counter()
+    r = FrameReadout(5, ReadoutConfig(depths=4, window=1000), c)
+    for k, (t, v) in enumerate(((0, 100), (10_000, 200)), start=1):
+        r.child(7, Readout(k, 100, Mode.COUNTER, 1, (ReadoutSample(7, v, v, 0),), (), ()), t)
+        r.own(k, 100, Mode.COUNTER, 1, ReadoutSample(5, 1, 1, 0) if k == 1 else "u", t + 900, 5000)
+        assert [x.index for x in r.take(t + 100)] == [k]
+    return r, c
+
+
+def test_a_late_retry_of_an_older_record_does_not_become_the_sample_an_expansion_sends() -> None:
+    """A child's record of frame 1 got through but its acknowledgement was lost; its retries
+    go on, and once past the first the record of frame 2 no longer waits for them: the last
+    retry of 1 comes after 2. It is late (dropped), but its sample replaced 2's as the one
+    the relay kept for 7; when the relay's own record then failed, its next record expanded
+    7's *unchanged* to frame 1's reading, a sample 7 no longer held: a wrong reading the
+    host took as known."""
+    r, c = _relay_that_failed_once()
+    r.child(7, Readout(1, 100, Mode.COUNTER, 1, (ReadoutSample(7, 100, 100, 0),), (), ()), 10_200)  # the retry
+    assert c["readout_late"] == 1
+    r.sent(False)  # the relay's record of frame 2 was not acknowledged
+    r.child(7, Readout(3, 100, Mode.COUNTER, 1, (), (7,), ()), 20_000)  # 7: within its threshold of 200
+    r.own(3, 100, Mode.COUNTER, 1, "u", 20_900, 5000)
+    (out,) = r.take(20_100)
+    assert [(s.bridge, s.c1) for s in out.samples] == [(5, 1), (7, 200)]
+
+
+def test_an_expansion_does_not_send_a_sample_of_a_bridge_whose_last_frame_came_another_way() -> None:
+    """Bridge 7's record of frame 3 (a new sample) went up another route (relay 5's parent
+    changed, or 7 moved for a frame), and 7 said *unchanged* against it in frame 4, back
+    through relay 5. The sample relay 5 kept for 7 is frame 2's: expanded after a failed
+    record, it was a wrong reading. A relay expands only what it knows is the reference;
+    else the state stays *unchanged* (the host knows it only if it knew frame 3)."""
+    r, c = _relay_that_failed_once()
+    r.own(3, 100, Mode.COUNTER, 1, "u", 20_900, 5000)  # 7's record of frame 3 does not come here
+    r.take(20_900)
+    r.sent(False)
+    r.child(7, Readout(4, 100, Mode.COUNTER, 1, (), (7,), ()), 30_000)
+    r.own(4, 100, Mode.COUNTER, 1, "u", 30_900, 5000)
+    (out,) = r.take(30_100)
+    assert [(s.bridge, s.c1) for s in out.samples] == [(5, 1)] and out.unchanged == (7,)
+
+
+def test_a_relay_that_dies_at_250_hz_has_its_subtree_rerouted_in_tens_of_ms_not_by_the_beacon_timeout() -> None:
+    """At 250 Hz records are nearly all a bridge sends, and a record waits for the one before
+    it: the frames whose failed transmissions evict a dead parent did not get the cell, and a
+    record that failed all its retries was not told to the routing. Relay 6's subtree (seed 7)
+    stayed unknown until its beacons timed out, 2.4 s: 4 806 element-frames. A record whose
+    every retry went unacknowledged now counts as a lost link."""
+    mesh = meshgen.grid(4, 4, loss=0.01)
+    vm = VirtualMesh(mesh, seed=7, settings=Settings(rate_hz=250), readout=True)
+    vm.kill(6, at=4.0)
+    vm.run(5.0)
+    got = records(vm)
+    after = [(b, k) for (b, k) in got if k >= 1000 and b != 6]
+    unknown = sum(1 for key in after if got[key][0] != "s")
+    assert len(after) >= 15 * 200 and unknown <= 100, (unknown, len(after))
+    assert all(p != 6 for p in vm.result().parents.values())

@@ -307,10 +307,15 @@ class LinkLayer:
                     del self.outstanding[key]
                     self.counters["urgent_failed"] += 1
                     self.urgent_results.append(False)
-                    # not fed to the routing's link estimate: a record's acknowledgement that
-                    # is late (message latency of the real-time shells) is no lost link, and
-                    # a parent that died is found by its beacons' timeout
-
+                    if u.attempts > self.urgent_retries and not gone:
+                        # every retry spent without an acknowledgement (1 % loss per hop:
+                        # about 1 in 10^7 records) is a lost link, as a normal frame's last
+                        # retry is: fed to the routing. Else, where records are most of what
+                        # a bridge sends (250 Hz), the cell went to them and not to frames
+                        # whose failures evict a parent that died, and its beacons' timeout
+                        # found it seconds later, its subtree unknown meanwhile. (A record
+                        # given up for its slot is not: its retries were cut short.)
+                        self.results.append((u.next_hop, u.attempts, False))
                 else:
                     u.deadline = -2  # to be sent again
 
@@ -385,17 +390,20 @@ class LinkLayer:
             tx = self.radio.tx_until
             t = tx if t is None else min(t, tx)
         elif (self._preempted and f is not None and f.deadline < 0 and self._on_radio is None
-              and self.radio.idle and not self._urgent_waiting(self._parent)):
+              and self.radio.idle and not self._records_first(self._parent)):
             # the frame a record went before contends again once the record is on the cell:
             # then, not at whatever wake comes next (a relay's next gate, or with its sample
             # computed at its children's records, a frame later)
             tx = self.radio.tx_until
             t = tx if t is None else min(t, tx)
         elif (f is None and (self.broadcasts or (self.queue and self._parent is not None))
-              and self._on_radio is None and self.radio.idle and not self._urgent_waiting(self._parent)):
+              and self._on_radio is None and self.radio.idle and not self._records_first(self._parent)):
             # a frame queued while a record went first contends once the record is on the
             # cell: a relay that computes its sample at its children's records wakes only for
-            # them, each makes a record, and the queue waited for a wake of another kind
+            # them, each makes a record, and the queue waited for a wake of another kind.
+            # (Not while a record is held for an earlier one's acknowledgement: nothing else
+            # goes then, and that wake, past, woke the bridge at every cycle until the
+            # acknowledgement or its deadline, which the outstanding record's wake covers.)
             tx = self.radio.tx_until
             t = tx if t is None else min(t, tx)
         return t

@@ -94,6 +94,10 @@ class FrameReadout:
         self._via: dict[int, int] = {}  # bridge -> the child it came through lately
         self._heard_at: dict[int, int] = {}  # child -> tick of its last record
         self._last: dict[int, tuple[Mode, int, ReadoutSample]] = {}  # bridge -> last sample passed on
+        #: bridge -> (root, rate, index) of the newest frame through which ``_last`` is that
+        #: bridge's reference: its sample's frame, or a later one every frame up to which
+        #: said it unchanged here (:meth:`_note`)
+        self._last_at: dict[int, tuple[int, int, int]] = {}
         self._expand = False  # the last record sent failed: expand unchanged states once
         self._sent: set[tuple[int, int]] = set()  # frames already sent (late records are counted)
         self._sent_order: list[tuple[int, int]] = []
@@ -153,8 +157,7 @@ class FrameReadout:
             # the root gateway died, bridge 3 unknown in two frames of three for 2 s.)
             if self._via.setdefault(b, src) == src:
                 mine.add(b)
-        for s in record.samples:
-            self._last[s.bridge] = (record.mode, record.oversampling, s)
+        self._note(record)
         key = (record.rate, record.index)
         p = self._pending.get(key)
         nk = (record.root, record.rate)
@@ -190,6 +193,36 @@ class FrameReadout:
             p.got[b] = (m, o, _UNCHANGED)
         for b in record.missing:
             p.got.setdefault(b, (m, o, "m"))
+
+    def _note(self, record: Readout) -> None:
+        """Keep, per bridge of a child's record, the sample that is its reference (what an
+        *unchanged* of it refers to), for the expansion after a failed record. A sample
+        counts only when it is not older than the state kept (a retry whose first attempt
+        got through, its acknowledgement lost, comes after the next frame's record: taken,
+        its old sample replaced the newer one, and a later expansion sent that old reading
+        as the bridge's sample). An *unchanged* keeps the reference only when it follows
+        the frame kept: a frame of the bridge that did not come here (missing, or sent up
+        another route) may have held a new sample, so the one kept is forgotten and an
+        *unchanged* then stays one (the host knows it only if it knew the frame before)."""
+        chain = (record.root, record.rate)
+        at_of = self._last_at.get
+        k = record.index
+        for s in record.samples:
+            if s.bridge == self.me:  # (a confused child's word on this bridge: its own state is kept)
+                continue
+            at = at_of(s.bridge)
+            if at is None or at[:2] != chain or k >= at[2]:
+                self._last[s.bridge] = (record.mode, record.oversampling, s)
+                self._last_at[s.bridge] = (chain[0], chain[1], k)
+        for b in record.unchanged:
+            if b == self.me:
+                continue
+            at = at_of(b)
+            if at is not None and at[:2] == chain and at[2] <= k <= at[2] + 1:
+                self._last_at[b] = (chain[0], chain[1], k)
+            elif at is None or at[:2] != chain or k > at[2]:
+                self._last.pop(b, None)
+                self._last_at.pop(b, None)
 
     def sent(self, ok: bool) -> None:
         """The outcome of the last record handed to the link (acknowledged or given up)."""
@@ -333,6 +366,7 @@ class FrameReadout:
                     if self._via.get(b) == c:
                         del self._via[b]
                         self._last.pop(b, None)
+                        self._last_at.pop(b, None)
                 self.counters["readout_children_forgotten"] += 1
                 self._changed = True  # a frame that waited for this child may be complete now
 

@@ -430,14 +430,22 @@ class Calibrator:
         if v.shape != (n, c):
             raise ValueError(f"values must have shape ({n}, {c}), got {v.shape}")
         t_arr = np.asarray(t, dtype=np.float64)
-        tt = np.broadcast_to(t_arr, (n,))
         sampled = rows_all(np.isfinite(v))
         # NaN is allowed as the time of an element without a reading (as its values);
         # inf never: it would end every hold-off and trip max_touch at once.
-        if not np.all(np.isfinite(tt) | (np.isnan(tt) & ~sampled & (t_arr.ndim > 0))):
-            raise ValueError("time must be finite (NaN only for an element without a reading)")
-        if np.any(tt[sampled] < self._last_t[sampled]):
-            raise ValueError("time went backwards for an element")
+        if t_arr.ndim == 0:  # one time for all (the daemon's every step): checked as a number
+            t0 = float(t_arr)
+            if not math.isfinite(t0):
+                raise ValueError("time must be finite (NaN only for an element without a reading)")
+            tt = np.full(n, t0)
+            if (sampled & (self._last_t > t0)).any():
+                raise ValueError("time went backwards for an element")
+        else:
+            tt = np.broadcast_to(t_arr, (n,))
+            if not np.all(np.isfinite(tt) | (np.isnan(tt) & ~sampled)):
+                raise ValueError("time must be finite (NaN only for an element without a reading)")
+            if np.any(tt[sampled] < self._last_t[sampled]):
+                raise ValueError("time went backwards for an element")
         if self._thr is None:
             self.thresholds()
         enter, leave = self._thr  # type: ignore[misc]  # thresholds() has just set _thr
@@ -451,8 +459,7 @@ class Calibrator:
             self._update_common(resid, live & ref, enter, tt)
         self._collect(sampled & (st == COLLECTING), v)
 
-        delta = np.full((n, c), np.nan)
-        delta[live] = resid[live] - self._common
+        delta = np.where(live[:, None], resid - self._common, np.nan)
         self._catch_up(live & (st == TRACKING), tt, delta)
         # whether a reading is a contact's decides only where a channel is above leave (a touch
         # beginning, an element drifting above its thresholds) or the element is touched (held
@@ -654,21 +661,35 @@ class Calibrator:
         followed so until it is back below ``leave`` (or reads a contact's reading), so
         a steady drift is followed closely, not held at ``enter``."""
         cfg = self.config
+        # (An idle skin has no element below -enter nor drifting above enter: each rule's
+        # arrays are then what the rule leaves, and are not built; the same numbers.)
         below = trk[:, None] & (delta < -enter)
         since = np.where(live[:, None], np.inf, self._below_since)
-        self._below_since = np.where(below, np.minimum(self._below_since, tt[:, None]), since)
-        fast = below & (tt[:, None] - self._below_since >= cfg.negative_after)
+        fast: NDArray[np.bool_] | None = None  # None: no channel is followed fast
+        if below.any():
+            self._below_since = np.where(below, np.minimum(self._below_since, tt[:, None]), since)
+            fast = below & (tt[:, None] - self._below_since >= cfg.negative_after)
+        else:
+            self._below_since = since
         if contact is not None:
             following = tt - self._off_since >= cfg.negative_after
             off = trk & ~contact & (rows_any(delta > enter) | (following & rows_any(delta > leave)))
             kept = np.where(live, np.inf, self._off_since)
-            self._off_since = np.where(off, np.minimum(self._off_since, tt), kept)
-            fast |= (off & (tt - self._off_since >= cfg.negative_after))[:, None]
+            if off.any():
+                self._off_since = np.where(off, np.minimum(self._off_since, tt), kept)
+                drifted = (off & (tt - self._off_since >= cfg.negative_after))[:, None]
+                fast = drifted if fast is None else fast | drifted
+            else:
+                self._off_since = kept
         if not trk.any():
             return
         dt = tt - self._last_t
         dt = np.where(trk & np.isfinite(dt), dt, 0.0)  # first tracked reading: no step
-        tau = np.where(fast, cfg.tau_negative, cfg.tau)
-        alpha = -np.expm1(-dt[:, None] / tau)
-        innov = np.where(fast, delta, np.clip(delta, -self._clip, self._clip))
+        clipped = np.minimum(np.maximum(delta, -self._clip), self._clip)  # (np.clip, unwrapped)
+        if fast is None or not fast.any():
+            alpha = -np.expm1(-dt[:, None] / cfg.tau)
+            innov = clipped
+        else:
+            alpha = -np.expm1(-dt[:, None] / np.where(fast, cfg.tau_negative, cfg.tau))
+            innov = np.where(fast, delta, clipped)
         self._base += np.where(trk[:, None], alpha * innov, 0.0)

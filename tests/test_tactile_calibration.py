@@ -875,3 +875,46 @@ def test_is_contact_is_asked_only_of_readings_it_decides_and_answers_alike():
     assert 0 < max(asked) < n
     assert a.rebaselines[n - 1] >= 1 and a.holds[n - 1] >= 1  # max_touch both ways, alike
     assert np.array_equal(a.rebaselines, b.rebaselines) and np.array_equal(a.holds, b.holds)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_one_time_for_all_steps_as_that_time_per_element(seed):
+    """A scalar time (the daemon's every step, checked as a number) and the same time given
+    per element (checked as an array) step alike, bit for bit: presses, releases, readings
+    below the baseline, one layer drifting, elements without a reading, a common step."""
+    from cellbridge.tactile import ContactSurface
+
+    rng = np.random.default_rng(seed)
+    n = 40
+    cfg = CalibrationConfig(n_baseline=5, holdoff=0.05, max_touch=0.5, negative_after=0.05)
+    surface = ContactSurface(ElementParams(), 1 * fF)
+    one, per = (Calibrator(n, 2, cfg, is_contact=surface) for _ in range(2))
+    base = rng.uniform(15, 25, (n, 2)) * pF
+    press = np.zeros((n, 2))
+    for k in range(300):
+        t = 0.01 * k
+        if k % 40 == 20:  # presses on a few elements, a light one, one layer drifting alone
+            rows = rng.choice(n, 4, replace=False)
+            press[:] = 0.0
+            press[rows[0]] = [300 * fF, 120 * fF]
+            press[rows[1]] = [60 * fF, 10 * fF]
+            press[rows[2], 0] = 200 * fF
+            press[rows[3]] = [-150 * fF, -150 * fF]
+        if k % 40 == 35:
+            press[:] = 0.0
+        v = base + press + rng.normal(0, 2 * fF, (n, 2)) + (30 * fF if k > 250 else 0.0)
+        v[rng.random(n) < 0.1] = np.nan
+        a, b = one.update(t, v), per.update(np.full(n, t), v)
+        assert np.array_equal(a.delta, b.delta, equal_nan=True), k
+        assert np.array_equal(a.touched, b.touched) and np.array_equal(a.ready, b.ready), k
+        assert a.common_jump == b.common_jump, k
+        assert (a.rebaselined is None) == (b.rebaselined is None), k
+        if a.rebaselined is not None and b.rebaselined is not None:
+            assert np.array_equal(a.rebaselined, b.rebaselined), k
+    for name in Calibrator._PER_ELEMENT + ("_common",):
+        assert np.array_equal(getattr(one, name), getattr(per, name), equal_nan=True), name
+    assert one.health() == per.health()
+    with pytest.raises(ValueError, match="backwards"):
+        one.update(t - 1.0, base)
+    with pytest.raises(ValueError, match="finite"):
+        one.update(math.inf, base)

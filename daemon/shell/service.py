@@ -46,6 +46,7 @@ from cellbridge.daemon.shell.links import (
     Opener,
     RecordedOrder,
     ReplayLink,
+    ReplayPacer,
     SerialLink,
     open_serial,
 )
@@ -116,6 +117,9 @@ class Service:
         # ... fed as one recording across links, from one origin and in one time order
         self._recorded_order = RecordedOrder([ln.name for ln in config.links
                                               if ln.is_replay and ln.replay_clock == "recorded"])
+        # ... and those on shifted time at a recorded speed fed by one task, the records due
+        # together at one wake (links.ReplayPacer; on the host's clock, as the replays pace)
+        self._replay_pacer = ReplayPacer()
         self.hooks = hooks if hooks is not None else OpsHooks(config)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
@@ -232,7 +236,8 @@ class Service:
         if cfg.is_replay:
             gate = functools.partial(self._replay_gate, cfg.wait_for_subscriber)
             order = self._recorded_order if cfg.replay_clock == "recorded" else None
-            return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done, order=order)
+            return ReplayLink(cfg, self._on_data, self._on_state, gate, self._replay_done, order=order,
+                              pacer=self._replay_pacer if order is None else None)
         return SerialLink(cfg, self._on_data, self._on_state, self._opener, self._clock)
 
     async def _replay_gate(self, subscriber: bool) -> None:

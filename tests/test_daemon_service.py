@@ -241,8 +241,11 @@ def test_subscriber_that_never_reads_does_not_slow_ingest(tmp_path: Path) -> Non
                 pty.write(blob[i:i + 8192])
                 while drain(0):
                     pass
-            end = time.monotonic() + 30
-            while received < 4 * slots and time.monotonic() < end and drain(2.0):
+            # until every sample came, or none came for 5 s: on a busy machine the daemon
+            # may take far longer than its usual 2 s over these 12 000 samples, and the test
+            # is about losing none, not about when
+            end = time.monotonic() + 180
+            while received < 4 * slots and time.monotonic() < end and drain(5.0):
                 pass
             assert received == 4 * slots  # every sample reached the subscriber that reads
             st = reader.request({"v": 1, "cmd": "status"})

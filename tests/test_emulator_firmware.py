@@ -31,6 +31,7 @@ from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 
 from support.payloads import payload_as
+from support.virtual_prefetch import prefetch_after_sampling
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -795,15 +796,8 @@ def test_a_bridge_that_computes_its_next_samples_ahead_sends_what_it_sends_witho
         vm = VirtualMesh(mesh, seed=2, world=World(mesh, list(presses)), readout=True, readout_acks=False,
                          readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP)
 
-        run_one = vm._run
-        def prefetching(b: int) -> None:  # and prefetches after each wake that sampled
-            fw = vm.nodes[b]
-            taken = fw.counters["samples"]
-            run_one(b)
-            if ahead and fw.counters["samples"] > taken:
-                fw.sampler.prefetch(8)
-
-        vm._run = prefetching  # type: ignore[method-assign]
+        if ahead:
+            prefetch_after_sampling(vm)
         r = vm.run(3.5)
         hits = sum(fw.chip.prefetch_hits for fw in vm.nodes.values())  # type: ignore[attr-defined]
         return r.samples(), vm.serial_chunks, hits, r.total("samples")

@@ -17,9 +17,12 @@ import pytest
 from cellbridge.emulator.firmware.commands import Settings
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.mesh import Mesh
-from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+from cellbridge.emulator.mesh.virtual import VirtualMesh
+from cellbridge.emulator.realtime.process_bridge import READOUT_HOP, READOUT_WINDOW
 from cellbridge.emulator.world.world import Contact, World
 from cellbridge.protocol import ADDR_BROADCAST, Command, Flags, Frame, Op
+
+from support.virtual_prefetch import prefetch_after_sampling
 
 HOST = 0
 
@@ -72,18 +75,10 @@ def _run(name: str, lazy: bool, ahead: bool) -> list[list[tuple[int, bytes]]]:
     mesh, rate, fault, presses, seed = SCENARIOS[name]
     vm = VirtualMesh(mesh, seed=seed, world=World(mesh, list(presses)), settings=Settings(rate_hz=rate),
                      lazy_sampling=lazy, readout=True, readout_acks=False,
-                     readout_window=10 * CLOCK_HZ // 1000, readout_hop=4 * CLOCK_HZ // 1000)
+                     readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP)
     fault(vm)
-    run_one = vm._run
-
-    def prefetching(b: int) -> None:  # as the real-time shell: after a wake that sampled
-        fw = vm.nodes[b]
-        taken = fw.counters["samples"]
-        run_one(b)
-        if ahead and fw.counters["samples"] > taken:
-            fw.sampler.prefetch(8)
-
-    vm._run = prefetching  # type: ignore[method-assign]
+    if ahead:
+        prefetch_after_sampling(vm)
     vm.run(3.6)
     return [vm.serial_chunks[g] for g in mesh.gateways]
 

@@ -348,7 +348,9 @@ class Firmware:
         c.update(cca_busy=self.radio.cca_busy, transmissions=self.radio.transmissions,
                  acks_dropped=self.radio.acks_dropped,
                  bits_sent=self.radio.bits_sent, parent_changes=self.router.parent_changes,
-                 neighbour_evictions=self.router.evictions, suppressed=self.sampler.reporter.suppressed,
+                 neighbour_evictions=self.router.evictions,
+                 evictions_failed=self.router.evictions_failed, evictions_silent=self.router.evictions_silent,
+                 evictions_loop=self.router.evictions_loop, suppressed=self.sampler.reporter.suppressed,
                  copies_forgotten=self.seen.forgotten)
         return c
 

@@ -97,7 +97,12 @@ class Router:
         self.path_etx = 0 if gateway else INFINITE
         self.hops = 0
         self.parent_changes = 0
+        #: neighbours dropped, in all and by cause: frames to it failed ``max_failures``
+        #: times in a row, it was silent ``neighbour_timeout``, or it routed through us
         self.evictions = 0
+        self.evictions_failed = 0
+        self.evictions_silent = 0
+        self.evictions_loop = 0
 
     @property
     def has_route(self) -> bool:
@@ -137,11 +142,13 @@ class Router:
             if n.failures >= self.max_failures:
                 del self.table[nbr]
                 self.evictions += 1
+                self.evictions_failed += 1
 
     def expire(self, tick: int) -> None:
         for nid in [nid for nid, n in self.table.items() if tick - n.heard > self.neighbour_timeout]:
             del self.table[nid]
             self.evictions += 1
+            self.evictions_silent += 1
 
     def select(self) -> bool:
         """Re-choose the parent; True when the route changed in a way beacons must tell."""
@@ -172,6 +179,7 @@ class Router:
         if self.parent is not None and self.parent in self.table:
             del self.table[self.parent]
             self.evictions += 1
+            self.evictions_loop += 1
 
     def child_sent(self, sender: int) -> bool:
         """``sender`` forwarded a frame to us, so its parent is us (datapath validation).

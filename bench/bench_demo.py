@@ -1,12 +1,15 @@
 """How often ``cellbridge demo --check`` tells the truth: seam and corner presses, N runs each.
 
-Run: ``.venv/bin/python bench/bench_demo.py [--runs 20] [--burn [--burners 4]] [--second-skin]
-[--cases seam,corner]``.
+Run: ``.venv/bin/python bench/bench_demo.py [--runs 20] [--burn [--burners 4] [--burners-apart]]
+[--second-skin] [--cases seam,corner]``.
 Each run starts the whole chain as a user would (an emulated 4×4 skin in real processes,
 the daemon on its gateway's pty), presses, and checks the published contact: within 1 mm
 and 5 % of the press, with exactly one contact id. ``--burn`` keeps every core busy with a
 CPU-burning process per core (or ``--burners N``) for the whole measurement (the
-loaded-robot case); ``--second-skin`` runs a second emulated 4×4 (``mesh up``, its own
+loaded-robot case), all in one session as a shell starts them, or each in a session of
+its own (``--burners-apart``): where the kernel shares the CPU between sessions first
+(autogroups, the header says), the emulated skin, one session of 17 processes, then gets
+a sixth of two cores beside four burners, less than it needs to hold real time; ``--second-skin`` runs a second emulated 4×4 (``mesh up``, its own
 ports) on the same cores the whole time. Prints a
 table per case: runs, passed, the worst position and force errors, the runs with more
 than one id, and over every report of every run those that stated a position off by more
@@ -34,6 +37,27 @@ from unwind import unwind_on_signals
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
 CASES = {"seam": (0.057, 0.040), "corner": (0.0585, 0.0625)}
 BURN = "while True: pass"
+#: ``n`` burners in one process group and session: the first forks the others
+BURN_TOGETHER = "import os, sys\nfor _ in range(int(sys.argv[1]) - 1):\n    if os.fork() == 0:\n        break\nwhile True: pass"
+
+
+def autogroups() -> str:
+    """Whether the kernel shares the CPU between sessions first (``sched_autogroup``): then
+    each session's processes together get one session's share, whatever their number."""
+    try:
+        return "on" if Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1" else "off"
+    except OSError:
+        return "unknown"
+
+
+def start_burners(n: int, apart: bool) -> list[subprocess.Popen]:
+    """``n`` CPU-burning processes: in one session (as a shell or a build starts them), or
+    each in a session of its own (``apart``). With the kernel's autogroups on, the emulated
+    skin (one session: ``mesh up`` and its 17 processes) gets one session's share of the
+    cores beside them: a half with the burners together, a sixth with four apart."""
+    if apart:
+        return [subprocess.Popen([sys.executable, "-c", BURN], start_new_session=True) for _ in range(n)]
+    return [subprocess.Popen([sys.executable, "-c", BURN_TOGETHER, str(n)], start_new_session=True)]
 
 
 def children(pid: int) -> list[tuple[int, str]]:
@@ -112,6 +136,9 @@ def main() -> None:
     ap.add_argument("--burn", action="store_true", help="keep every core busy while measuring")
     ap.add_argument("--burners", type=int, default=0,
                     help="with --burn: this many burning processes (default one per core)")
+    ap.add_argument("--burners-apart", action="store_true",
+                    help="with --burn: each burner in a session of its own (default: all in one session, as a "
+                         "shell starts them); with the kernel's autogroups on, the skin then gets a smaller share")
     ap.add_argument("--second-skin", action="store_true",
                     help="run a second emulated 4x4 skin (mesh up) beside the demo's")
     ap.add_argument("--stop-daemon", type=float, default=0.0, metavar="SECONDS",
@@ -122,15 +149,16 @@ def main() -> None:
     args = ap.parse_args()
     unwind_on_signals()
     burners: list[subprocess.Popen] = []
-    if args.burn:
-        burners = [subprocess.Popen([sys.executable, "-c", BURN], start_new_session=True)
-                   for _ in range(args.burners or os.cpu_count() or 2)]
+    n_burn = (args.burners or os.cpu_count() or 2) if args.burn else 0
+    if n_burn:
+        burners = start_burners(n_burn, args.burners_apart)
     work = Path(tempfile.mkdtemp(prefix="bench-demo-"))
     try:
         if args.second_skin:
             burners.append(second_skin(work))
-        print(f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}, burners {len(burners) - args.second_skin}"
-              f"{', a second skin' if args.second_skin else ''}")
+        arrangement = ("each in a session of its own" if args.burners_apart else "in one session") if n_burn else ""
+        print(f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}, burners {n_burn} {arrangement}"
+              f"{', a second skin' if args.second_skin else ''}; the kernel's autogroups {autogroups()}")
         rows = []
         for name in args.cases.split(","):
             x, y = CASES[name]
@@ -151,7 +179,7 @@ def main() -> None:
                          sum(1 for r in results if not r.get("reported")),
                          sum(r.get("untrue", 0) for r in results), sum(r.get("with_unknown", 0) for r in results),
                          sum(r.get("reports", 0) for r in results)])
-        load = (f"{len(burners) - args.second_skin} burners" if args.burn else "no burners") + (
+        load = (f"{n_burn} burners {arrangement}" if n_burn else "no burners") + (
             ", a second 4x4 skin" if args.second_skin else "") + (
             f", daemon stopped {args.stop_daemon:g} s mid-press" if args.stop_daemon else "") + (
             ", skin and daemon defaults" if args.defaults else "")

@@ -78,15 +78,22 @@ ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the me
 #: span, the latest a frame's record leaves the gateway (and the base of the host's
 #: deadline). Records go on as soon as they are complete; the span only bounds how long
 #: the skin waits for a record that was lost, and how late a held-up one may still come.
-READOUT_WINDOW = 10 * CLOCK_HZ // 1000
+#: A record crosses a hop in two messages (bridge to medium to parent) and the parent's
+#: wake, each a few milliseconds late on a loaded host, so a 4x4 leaf's record reaches the
+#: gateway 6 hops up tens of milliseconds after its gate on average: with 10 ms levels
+#: the readout fell apart once the processes' delays averaged 3-4 ms (most element-frames
+#: missing, where 30 ms levels hold to about twice that, beyond which the skin's mesh time
+#: is the first to go). The cost: a frame that really lost a record waits for the span
+#: (240 ms on a 4x4) before the host gives it out without it.
+READOUT_WINDOW = 30 * CLOCK_HZ // 1000
 #: The slots are packed at the span's end, this far apart (``ReadoutConfig.hop``): a relay
 #: waits for a late child until this long before its parent's slot, time for its own record
-#: (a full frame at 1 Mbit/s, its acknowledgement, a retry, three processes' wakes). A
-#: bridge process held up by the host (a 4x4's leaf is 6 hops deep of 8 levels: for up to
-#: ~55 ms) still makes its frame; with the levels spread evenly, 10 ms after its own slot
-#: its parent had given its record up, and every record it sent while behind was dropped
-#: as late, its element unknown meanwhile.
-READOUT_HOP = 4 * CLOCK_HZ // 1000
+#: to cross the hop (two messages and a wake, each late on a loaded host). A bridge process
+#: held up by the host (a 4x4's leaf is 6 hops deep of 8 levels: for up to ~150 ms) still
+#: makes its frame; with the levels spread evenly, one level after its own slot its parent
+#: had given its record up, and every record it sent while behind was dropped as late, its
+#: element unknown meanwhile.
+READOUT_HOP = 15 * CLOCK_HZ // 1000
 STIMULI_CHECK = CLOCK_HZ // 5  # the world's socket is looked at at least this often (its fd is edge-like)
 FILE_TCP = -1  #: ``--tcp`` without a port: the mesh file's
 _POLLIN = select.POLLIN

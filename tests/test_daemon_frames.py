@@ -368,3 +368,22 @@ def test_a_take_at_the_same_time_again_sees_what_came_since() -> None:
     assert sf.take(now + 0.02) == []  # gateway 2's record has a part to come
     sf.configure(MARGIN, 0.001, 64)  # a reload: gateway 2, 5 ms silent, is no longer active
     assert [(f.index, f.complete) for f in sf.take(now + 0.02)] == [(5, True)]
+
+
+def test_a_record_that_went_long_before_its_schedules_end_is_taken() -> None:
+    """A record goes as soon as it is complete, long before its schedule's end on a deep
+    skin whose levels are wide (the real-time shells: 30 ms levels, an 8x8 grid's 16 of
+    them make a 480 ms span). The check against a frame from the future compared the
+    frame's *span end* with the arrival, so every record of such a skin that came within
+    the span's first half-second was refused, and the skin gave no frame at all. A record
+    is from the future when its frame's gates start after it arrived."""
+    span_us = 480_000
+    sf = SkinFrames(MARGIN)
+    k = 500
+    rec = Readout(k, RATE, Mode.COUNTER, 1, (ReadoutSample(1, 100, 200, 0),), (), (), span_us, 0, 1)
+    sf.add(1, rec, t_of(k) + 0.02, t_of(k))  # 20 ms after its gates started: complete early
+    (f,) = sf.take(t_of(k) + 0.02)
+    assert (f.index, f.complete) == (k, True) and sf.counts["rejected_records"] == 0
+    # its frame's gates half a second after its arrival: a wrong index, refused
+    sf.add(1, Readout(k + 100, RATE, Mode.COUNTER, 1, (), (), (), span_us, 0, 1), t_of(k) + 0.5, t_of(k + 100))
+    assert sf.counts["rejected_records"] == 1

@@ -212,9 +212,11 @@ class SkinFrames:
         ``serial``: s the record takes on the line. Never raises for what a line brings."""
         self._taken = None
         span = rec.span_us * 1e-6
-        # a frame after the record's own arrival: a wrong index (or the host's map not yet
-        # following a jump of the skin's time); refused, though it counts towards a restart
-        mapped = math.isfinite(t_frame) and t_frame + span <= arrival + FUTURE_SLACK
+        # a frame whose gates start after the record's own arrival: a wrong index (or the
+        # host's map not yet following a jump of the skin's time); refused, though it counts
+        # towards a restart. (Not its span's end: a record goes as soon as it is complete,
+        # well before the end of a deep skin's wide schedule.)
+        mapped = math.isfinite(t_frame) and t_frame <= arrival + FUTURE_SLACK
         g = self._gw.get(gateway)
         if g is None:
             if not mapped or (len(self._gw) >= self.max_gateways and not self._prune(arrival)):

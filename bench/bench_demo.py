@@ -157,7 +157,7 @@ def main() -> None:
         if args.second_skin:
             burners.append(second_skin(work))
         arrangement = ("each in a session of its own" if args.burners_apart else "in one session") if n_burn else ""
-        print(f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}, burners {n_burn} {arrangement}"
+        print(f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}, burners {n_burn}{' ' if n_burn else ''}{arrangement}"
               f"{', a second skin' if args.second_skin else ''}; the kernel's autogroups {autogroups()}")
         rows = []
         for name in args.cases.split(","):

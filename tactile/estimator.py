@@ -200,14 +200,10 @@ class ContactEstimator:
             finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
             labels = self._clusters(act[t], finite, hints)
             ring_noise = frame_noise(c1[t], c2[t], finite & ~act[t], self.noise)
-            order = np.argsort(labels, kind="stable")
-            k_max = int(labels.max())
-            starts = np.searchsorted(labels[order], np.arange(k_max + 2))
-            for k in range(k_max + 1):
-                clusters.append(self._runner.cluster(
-                    order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
-                    None if firm is None else firm[t], ring_noise))
-                frame_of.append(t)
+            these = self._runner.frame_clusters(labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
+                                                None if firm is None else firm[t], ring_noise)
+            clusters.extend(these)
+            frame_of.extend([t] * len(these))
         out: list[list[Contact]] = [[] for _ in clusters]
         good = [k for k, cl in enumerate(clusters) if cl.valid]
         if good:

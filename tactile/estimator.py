@@ -264,14 +264,15 @@ class ContactEstimator:
         theta0[:, 3] = np.log(np.array([cl.sigma0 for cl in clusters]) * math.pi * st[:, 2] ** 2)
         pair_hints: dict[int, FloatArray] = {}
         hinted = np.zeros(len(clusters), dtype=bool)
-        on, sound = self._hints_on(hints)
-        for k, cl in enumerate(clusters):
-            inside = self._hints_in(cl, hints, 2.0 * st[k, 2], on, sound)
-            if inside.shape[0] >= 1:
-                hinted[k] = True
-                theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
-            if inside.shape[0] >= 2:
-                pair_hints[k] = inside[:2]
+        if hints.shape[0]:  # (no hints, no cluster has one: nothing to ask per cluster)
+            on, sound = self._hints_on(hints)
+            for k, cl in enumerate(clusters):
+                inside = self._hints_in(cl, hints, 2.0 * st[k, 2], on, sound)
+                if inside.shape[0] >= 1:
+                    hinted[k] = True
+                    theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
+                if inside.shape[0] >= 2:
+                    pair_hints[k] = inside[:2]
         free = np.tile(nd_free, (len(clusters), 1))
         batch = run.batch(clusters)
         fits = run.run(batch, theta0, free, 1, True)

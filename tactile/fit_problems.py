@@ -124,22 +124,23 @@ class Fits:
 
         ``area_force``: the force is σ₀·πD²/4 (fits to areas, where F is no parameter).
         """
-        th = self.theta[k, 4 * disk : 4 * disk + 4]
-        sig = self.sig[k, 4 * disk : 4 * disk + 4]
-        flat = self.flat[k, 4 * disk : 4 * disk + 2]
-        cv = self.cov[k, 4 * disk : 4 * disk + 4, 4 * disk : 4 * disk + 4]
+        # (Python floats from here: the same arithmetic, without numpy scalars' overhead.)
+        th = self.theta[k, 4 * disk : 4 * disk + 4].tolist()
+        sig = self.sig[k, 4 * disk : 4 * disk + 4].tolist()
+        flat = self.flat[k, 4 * disk : 4 * disk + 2].tolist()
+        cv01 = float(self.cov[k, 4 * disk, 4 * disk + 1])
         ok = bool(self.ok[k])
         base = dict(cl.base)
         base.update(over)
-        diam = float(math.exp(th[2]))
+        diam = math.exp(th[2])
         if area_force:
             force = cl.sigma0 * math.pi * diam * diam / 4.0
             s_lnf = 2.0 * sig[2]
         else:
-            force = float(math.exp(th[3]))
+            force = math.exp(th[3])
             s_lnf = sig[3]
-        cxy = float(cv[0, 1]) if not flat.any() and np.isfinite(cv[0, 1]) else 0.0
-        sx, sy = float(sig[0]), float(sig[1])
+        cxy = cv01 if not (flat[0] or flat[1]) and math.isfinite(cv01) else 0.0
+        sx, sy = sig[0], sig[1]
         cx, cy = base["centroid_x"], base["centroid_y"]
         # A coordinate is observable where the readings pin it: not flat, and with a
         # finite σ (a covariance that failed to solve leaves σ infinite without a flat
@@ -165,6 +166,12 @@ class Fits:
             valid=True, fit_ok=ok, observable=seen,
             chi2=float(self.chi2[k]), dof=dof, **base,
         )
+
+
+def _finite(x: FloatArray) -> FloatArray:
+    """``np.nan_to_num(x)`` of a float array, without its cost where every value is finite
+    (nearly always; its wrapper cost more than the kernel call it feeds)."""
+    return x if np.isfinite(x).all() else np.nan_to_num(x)
 
 
 def major_axis(vx: float, vy: float, cxy: float) -> float:
@@ -250,7 +257,7 @@ class FitRunner:
                                 for cl in clusters])
         if area_fit:
             y = np.zeros((2, allobs.size))
-            y[0] = np.nan_to_num(np.concatenate([cl.area for cl in clusters]))
+            y[0] = _finite(np.concatenate([cl.area for cl in clusters]))
             w = np.empty((len(clusters), 2))
             for k, cl in enumerate(clusters):
                 g1, g2 = self.g(cl.sigma0)
@@ -282,5 +289,5 @@ class FitRunner:
         off = np.concatenate([[0], np.cumsum(nmem)]).astype(np.int64)
         out = np.empty((len(mem), 3))
         share_start(off, nmem, np.ascontiguousarray(self.layout.bounds[np.concatenate(mem)]),
-                    np.nan_to_num(np.concatenate(ar)), out)
+                    _finite(np.concatenate(ar)), out)
         return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from cellbridge.tactile.arrays import FloatArray, IntArray, median0
@@ -72,10 +73,13 @@ class Cluster:
     #: element at the noise); None: the ring (every element after the members)
     quiet: NDArray[np.bool_] | None = None
 
-    @property
+    @cached_property
     def seen(self) -> IntArray:
         """Positions in ``obs`` of the elements that read the disk: the members, then
-        the ring elements whose reading counts both ways (where a start looks)."""
+        the ring elements whose reading counts both ways (where a start looks).
+
+        Computed once (``quiet`` does not change after the cluster is made: a changed
+        cluster is a new one, ``dataclasses.replace``); asked many times a frame."""
         if self.quiet is None:
             return np.arange(self.members.size)
         return np.flatnonzero(~self.quiet)

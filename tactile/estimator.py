@@ -12,7 +12,8 @@ elements), it reports both.
 This module holds the orchestration only: the compiled model and fit are in
 :mod:`cellbridge.tactile.disk_model` and :mod:`cellbridge.tactile.fit_kernel` (the
 spread model in :mod:`cellbridge.tactile.spread_model`), the problems they are posed
-in :mod:`cellbridge.tactile.fit_problems`, the two-disk split in
+in :mod:`cellbridge.tactile.fit_problems` (a frame's clusters gathered in one compiled
+pass, :mod:`cellbridge.tactile.cluster_kernel`), the two-disk split in
 :mod:`cellbridge.tactile.two_disks` and the light touch in
 :mod:`cellbridge.tactile.light_touch`. Every fit of a frame runs in one kernel call
 per kind (one-disk, two-disk, fixed-diameter).

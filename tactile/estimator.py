@@ -12,7 +12,8 @@ elements), it reports both.
 This module holds the orchestration only: the compiled model and fit are in
 :mod:`cellbridge.tactile.disk_model` and :mod:`cellbridge.tactile.fit_kernel` (the
 spread model in :mod:`cellbridge.tactile.spread_model`), the problems they are posed
-in :mod:`cellbridge.tactile.fit_problems`, the two-disk split in
+in :mod:`cellbridge.tactile.fit_problems` (a frame's clusters gathered in one compiled
+pass, :mod:`cellbridge.tactile.cluster_kernel`), the two-disk split in
 :mod:`cellbridge.tactile.two_disks` and the light touch in
 :mod:`cellbridge.tactile.light_touch`. Every fit of a frame runs in one kernel call
 per kind (one-disk, two-disk, fixed-diameter).
@@ -200,14 +201,10 @@ class ContactEstimator:
             finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
             labels = self._clusters(act[t], finite, hints)
             ring_noise = frame_noise(c1[t], c2[t], finite & ~act[t], self.noise)
-            order = np.argsort(labels, kind="stable")
-            k_max = int(labels.max())
-            starts = np.searchsorted(labels[order], np.arange(k_max + 2))
-            for k in range(k_max + 1):
-                clusters.append(self._runner.cluster(
-                    order[starts[k] : starts[k + 1]], labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
-                    None if firm is None else firm[t], ring_noise))
-                frame_of.append(t)
+            these = self._runner.frame_clusters(labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
+                                                None if firm is None else firm[t], ring_noise)
+            clusters.extend(these)
+            frame_of.extend([t] * len(these))
         out: list[list[Contact]] = [[] for _ in clusters]
         good = [k for k, cl in enumerate(clusters) if cl.valid]
         if good:
@@ -268,14 +265,15 @@ class ContactEstimator:
         theta0[:, 3] = np.log(np.array([cl.sigma0 for cl in clusters]) * math.pi * st[:, 2] ** 2)
         pair_hints: dict[int, FloatArray] = {}
         hinted = np.zeros(len(clusters), dtype=bool)
-        on, sound = self._hints_on(hints)
-        for k, cl in enumerate(clusters):
-            inside = self._hints_in(cl, hints, 2.0 * st[k, 2], on, sound)
-            if inside.shape[0] >= 1:
-                hinted[k] = True
-                theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
-            if inside.shape[0] >= 2:
-                pair_hints[k] = inside[:2]
+        if hints.shape[0]:  # (no hints, no cluster has one: nothing to ask per cluster)
+            on, sound = self._hints_on(hints)
+            for k, cl in enumerate(clusters):
+                inside = self._hints_in(cl, hints, 2.0 * st[k, 2], on, sound)
+                if inside.shape[0] >= 1:
+                    hinted[k] = True
+                    theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
+                if inside.shape[0] >= 2:
+                    pair_hints[k] = inside[:2]
         free = np.tile(nd_free, (len(clusters), 1))
         batch = run.batch(clusters)
         fits = run.run(batch, theta0, free, 1, True)

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from cellbridge.tactile.arrays import FloatArray, IntArray, median0
-from cellbridge.tactile.clusters import centroid_of
+from cellbridge.tactile.cluster_kernel import gather_clusters
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
 from cellbridge.tactile.element import ElementParams
@@ -72,10 +73,13 @@ class Cluster:
     #: element at the noise); None: the ring (every element after the members)
     quiet: NDArray[np.bool_] | None = None
 
-    @property
+    @cached_property
     def seen(self) -> IntArray:
         """Positions in ``obs`` of the elements that read the disk: the members, then
-        the ring elements whose reading counts both ways (where a start looks)."""
+        the ring elements whose reading counts both ways (where a start looks).
+
+        Computed once (``quiet`` does not change after the cluster is made: a changed
+        cluster is a new one, ``dataclasses.replace``); asked many times a frame."""
         if self.quiet is None:
             return np.arange(self.members.size)
         return np.flatnonzero(~self.quiet)
@@ -124,22 +128,23 @@ class Fits:
 
         ``area_force``: the force is σ₀·πD²/4 (fits to areas, where F is no parameter).
         """
-        th = self.theta[k, 4 * disk : 4 * disk + 4]
-        sig = self.sig[k, 4 * disk : 4 * disk + 4]
-        flat = self.flat[k, 4 * disk : 4 * disk + 2]
-        cv = self.cov[k, 4 * disk : 4 * disk + 4, 4 * disk : 4 * disk + 4]
+        # (Python floats from here: the same arithmetic, without numpy scalars' overhead.)
+        th = self.theta[k, 4 * disk : 4 * disk + 4].tolist()
+        sig = self.sig[k, 4 * disk : 4 * disk + 4].tolist()
+        flat = self.flat[k, 4 * disk : 4 * disk + 2].tolist()
+        cv01 = float(self.cov[k, 4 * disk, 4 * disk + 1])
         ok = bool(self.ok[k])
         base = dict(cl.base)
         base.update(over)
-        diam = float(math.exp(th[2]))
+        diam = math.exp(th[2])
         if area_force:
             force = cl.sigma0 * math.pi * diam * diam / 4.0
             s_lnf = 2.0 * sig[2]
         else:
-            force = float(math.exp(th[3]))
+            force = math.exp(th[3])
             s_lnf = sig[3]
-        cxy = float(cv[0, 1]) if not flat.any() and np.isfinite(cv[0, 1]) else 0.0
-        sx, sy = float(sig[0]), float(sig[1])
+        cxy = cv01 if not (flat[0] or flat[1]) and math.isfinite(cv01) else 0.0
+        sx, sy = sig[0], sig[1]
         cx, cy = base["centroid_x"], base["centroid_y"]
         # A coordinate is observable where the readings pin it: not flat, and with a
         # finite σ (a covariance that failed to solve leaves σ infinite without a flat
@@ -167,12 +172,10 @@ class Fits:
         )
 
 
-def _nansum(x: FloatArray) -> float:
-    """``np.nansum`` of a 1-D array, bit for bit (NaN taken as 0, then one ``sum`` over the
-    same length), without its wrapper's cost (several calls per cluster per frame)."""
-    x = x.copy()
-    x[np.isnan(x)] = 0.0
-    return float(x.sum())
+def _finite(x: FloatArray) -> FloatArray:
+    """``np.nan_to_num(x)`` of a float array, without its cost where every value is finite
+    (nearly always; its wrapper cost more than the kernel call it feeds)."""
+    return x if np.isfinite(x).all() else np.nan_to_num(x)
 
 
 def major_axis(vx: float, vy: float, cxy: float) -> float:
@@ -190,21 +193,29 @@ class FitRunner:
         self.noise = noise
         self.area_method = area_method
         self.par = element_vector(params)
+        # Each element's corner neighbours, as CSR (rows of element i: _nb[_nb_ptr[i]:_nb_ptr[i + 1]]):
+        # built once per layout, read by every frame's ring search.
         e = layout.corner_edges
-        self._ring_of = [np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]]) for i in range(layout.n)]
+        both = np.concatenate([e, e[:, ::-1]])
+        both = both[np.argsort(both[:, 0], kind="stable")]
+        self._nb = np.ascontiguousarray(both[:, 1])
+        self._nb_ptr = np.concatenate([[0], np.cumsum(np.bincount(both[:, 0], minlength=layout.n))]).astype(np.int64)
 
     def g(self, sigma: float) -> tuple[float, float]:
         """Sensitivities (g1, g2) at one pressure (the compiled scalar: no array overhead)."""
         p = self.par
         return sensitivity_slope(sigma, *p[:4])[0], sensitivity_slope(sigma, *p[4:])[0]
 
-    def cluster(
-        self, members: IntArray, labels: IntArray, c1: FloatArray, c2: FloatArray,
+    def frame_clusters(
+        self, labels: IntArray, c1: FloatArray, c2: FloatArray,
         finite: NDArray[np.bool_], valid: NDArray[np.bool_], force: FloatArray, area: FloatArray,
         firm: FloatArray | None = None, ring_noise: FloatArray | None = None,
-    ) -> Cluster:
-        """A cluster's observed elements, shared pressure, areas, centroid and base fields.
+    ) -> list[Cluster]:
+        """Every cluster of one frame (``labels``: 0..K-1 per element, -1 untouched), in
+        label order: observed elements, shared pressure, areas, centroid and base fields.
 
+        A cluster's observed elements are its members (ascending rows), then its ring: the
+        members' corner neighbours that belong to no cluster and have a reading (ascending).
         ``firm``: per element, a high-branch pressure its inverse found too noisy to
         report (NaN elsewhere); with no valid element, the ΔC1-weighted mean of these
         is the cluster's pressure, so a hard press is fitted, not taken for a light one.
@@ -212,67 +223,31 @@ class FitRunner:
         quiet ring element's reading counts as the disk's (:data:`RING_SIGNAL`); None:
         the ring only bounds the disk from above.
         """
-        # (Each step on the cluster's few rows, not the skin's: this runs for every cluster
-        # of every frame, and its cost is the calls, not the arithmetic.)
+        # (One compiled pass over the frame's clusters: per cluster, numpy's calls cost far
+        # more than the arithmetic; see cluster_kernel.)
         lay = self.layout
-        members = np.sort(members)
-        near = np.zeros(lay.n, dtype=bool)  # (a mask, not np.unique: the same sorted rows, no sort)
-        near[np.concatenate([self._ring_of[i] for i in members.tolist()])] = True
-        cand = np.flatnonzero(near)
-        ring = cand[(labels[cand] < 0) & finite[cand]]
-        obs = np.concatenate([members, ring])
-        nm = members.size
-        c1o, c2o = c1[obs], c2[obs]
-        # A ring element whose reading stands out of the noise counts both ways, unless
-        # it also borders another cluster (whose disk may be what it reads).
-        own = labels[members[0]]
-        if ring_noise is None:
-            signal = np.zeros(ring.size, dtype=bool)
-        else:
-            signal = (c1o[nm:] > RING_SIGNAL * ring_noise[0]) | (c2o[nm:] > RING_SIGNAL * ring_noise[1])
-        for j in np.flatnonzero(signal).tolist():
-            nb = labels[self._ring_of[int(ring[j])]]
-            signal[j] = not np.any((nb >= 0) & (nb != own))
-        quiet = np.zeros(obs.size, dtype=bool)
-        quiet[nm:] = ~signal
-        vm = valid[members]
-        any_valid = bool(vm.any())
-        a = area[obs]  # (fancy indexing: copies)
-        f = force[obs]
-        sigma0 = float(f[:nm][vm].sum() / a[:nm][vm].sum()) if any_valid else math.nan
-        is_firm = False
-        if not any_valid and firm is not None:
-            fm = firm[members]
-            hard = np.isfinite(fm)
-            if hard.any():
-                w1 = np.maximum(c1o[:nm][hard], 0.0) + 1e-300
-                sigma0 = float(np.exp(np.sum(w1 * np.log(fm[hard])) / w1.sum()))
-                vm = hard
-                is_firm = True
-        # Area per observed element: the inverse's where valid; elsewhere the
-        # least-squares area at the cluster's pressure, A = (g·ΔC)/(g·g).
-        if math.isfinite(sigma0):
-            g1, g2 = self.g(sigma0)
-            w1, w2 = 1.0 / self.noise[0] ** 2, 1.0 / self.noise[1] ** 2
-            est = (w1 * g1 * c1o + w2 * g2 * c2o) / (w1 * g1 * g1 + w2 * g2 * g2)
-            bad = ~valid[obs]
-            a[bad] = est[bad]
-            f[bad] = sigma0 * est[bad]
-        fm_ = f[:nm]
-        wts = np.where(np.isfinite(fm_), fm_, 0.0)
-        if not (wts > 0).any():
-            wts = np.maximum(c1o[:nm], 0.0)  # no pressure known: weight by ΔC1
-        cx, cy = centroid_of(wts, lay.centres[members])
-        s_tot = _nansum(np.maximum(a[:nm], 0.0))
-        ok = any_valid or is_firm
-        base = dict(
-            centroid_x=cx, centroid_y=cy, elements=tuple(lay.ids[members].tolist()),
-            pressure=sigma0, force_sum=_nansum(fm_) if ok else math.nan,
-            area=s_tot if ok else math.nan,
-        )
-        y = np.empty((2, obs.size))
-        y[0], y[1] = c1o, c2o
-        return Cluster(members, obs, sigma0, a, y, (cx, cy), ok and s_tot > 0, base, is_firm, lay.bounds, quiet)
+        if not (labels >= 0).any():
+            return []
+        has_firm = firm is not None
+        rs = np.full(2, np.inf) if ring_noise is None else RING_SIGNAL * np.asarray(ring_noise, dtype=np.float64)
+        ooff, nm, obs, quiet, a, f, y, sigma0, any_valid, is_firm, cx, cy, s_tot, f_sum = gather_clusters(
+            labels, self._nb_ptr, self._nb, finite, c1, c2, valid, force, area, firm if has_firm else c1, has_firm,
+            rs, lay.centres, self.par, float(1.0 / self.noise[0] ** 2), float(1.0 / self.noise[1] ** 2))
+        out = []
+        ok = any_valid | is_firm  # a valid member's pressure, or a firm one
+        for k, (s, e, m) in enumerate(zip(ooff[:-1].tolist(), ooff[1:].tolist(), nm.tolist())):
+            members = obs[s : s + m]
+            fit = bool(ok[k])
+            st = float(s_tot[k])
+            sg = float(sigma0[k]) if fit else math.nan  # (math.nan itself: equal to itself in a dict)
+            base = dict(
+                centroid_x=float(cx[k]), centroid_y=float(cy[k]), elements=tuple(lay.ids[members].tolist()),
+                pressure=sg, force_sum=float(f_sum[k]) if fit else math.nan,
+                area=st if fit else math.nan,
+            )
+            out.append(Cluster(members, obs[s:e], sg, a[s:e], y[:, s:e], (float(cx[k]), float(cy[k])),
+                               fit and st > 0, base, bool(is_firm[k]), lay.bounds, quiet[s:e]))
+        return out
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
         """Kernel arrays for the clusters; ``areas`` (default: the estimator's method)
@@ -286,7 +261,7 @@ class FitRunner:
                                 for cl in clusters])
         if area_fit:
             y = np.zeros((2, allobs.size))
-            y[0] = np.nan_to_num(np.concatenate([cl.area for cl in clusters]))
+            y[0] = _finite(np.concatenate([cl.area for cl in clusters]))
             w = np.empty((len(clusters), 2))
             for k, cl in enumerate(clusters):
                 g1, g2 = self.g(cl.sigma0)
@@ -318,5 +293,5 @@ class FitRunner:
         off = np.concatenate([[0], np.cumsum(nmem)]).astype(np.int64)
         out = np.empty((len(mem), 3))
         share_start(off, nmem, np.ascontiguousarray(self.layout.bounds[np.concatenate(mem)]),
-                    np.nan_to_num(np.concatenate(ar)), out)
+                    _finite(np.concatenate(ar)), out)
         return out

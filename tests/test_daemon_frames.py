@@ -387,3 +387,34 @@ def test_a_record_that_went_long_before_its_schedules_end_is_taken() -> None:
     # its frame's gates half a second after its arrival: a wrong index, refused
     sf.add(1, Readout(k + 100, RATE, Mode.COUNTER, 1, (), (), (), span_us, 0, 1), t_of(k) + 0.5, t_of(k + 100))
     assert sf.counts["rejected_records"] == 1
+
+
+def test_a_record_claiming_an_absurd_span_does_not_hold_the_frames_for_a_minute() -> None:
+    """A record's span sets its frame's deadline. Since the future check compares the gate
+    start with the arrival (not the span's end), a record whose span is corrupt past the
+    CRC (0xFFFFFFFF us: 71 minutes) is taken, and a frame that lost another gateway's
+    record waited until 64 newer frames pushed it out, holding every frame after it: 6.4 s
+    without output at 10 Hz, 64 s at 1 Hz. A span counts for at most ``MAX_SPAN``."""
+    from cellbridge.daemon.core.frames import MAX_SPAN
+
+    rate = 10
+
+    def rec(k: int, b: int, span_us: int = 240_000) -> Readout:
+        return Readout(k, rate, Mode.COUNTER, 1, (ReadoutSample(b, 100, 200, 0),), (), (), span_us, 0, 1)
+
+    sf = SkinFrames(MARGIN)
+    for k in range(1, 20):  # two gateways, steady
+        for gw in (1, 2):
+            sf.add(gw, rec(k, gw), t_of(k, rate) + 0.03, t_of(k, rate))
+        sf.take(t_of(k, rate) + 0.03)
+    sf.add(1, rec(20, 1, 0xFFFF_FFFF), t_of(20, rate) + 0.03, t_of(20, rate))  # gateway 2's record of 20 lost
+    out: list[SkinFrame] = []
+    k = 21
+    while not any(f.index == 20 for f in out) and k < 200:
+        for gw in (1, 2):
+            sf.add(gw, rec(k, gw), t_of(k, rate) + 0.03, t_of(k, rate))
+        out += sf.take(t_of(k, rate) + 0.03)
+        k += 1
+    assert out and out[0].index == 20 and not out[0].complete
+    assert t_of(k - 1, rate) + 0.03 - t_of(20, rate) <= MAX_SPAN + 0.1 + MARGIN + 0.03  # (not 6.4 s)
+    assert [f.index for f in out] == list(range(20, 20 + len(out)))  # then the frames held, in order

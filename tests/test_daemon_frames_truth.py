@@ -27,15 +27,16 @@ RATE = 100
 
 
 def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_loss: float = 0.0,
-        seconds: float = 9.0, gateways: tuple[int, ...] = (1,), kill: int = 6, pipeline: list[Pipeline] | None = None
-        ) -> tuple[dict[tuple[int, int], tuple[int, int]], list[tuple[int, dict[int, tuple[int, int]], set[int]]]]:
+        seconds: float = 9.0, gateways: tuple[int, ...] = (1,), kill: int = 6, pipeline: list[Pipeline] | None = None,
+        rate: int = RATE, delay: float = 0.0) -> tuple[dict[tuple[int, int], tuple[int, int]], list[tuple[int, dict[int, tuple[int, int]], set[int]]]]:
     """(truth, frames): ``truth[(bridge, index)]``: the sample the bridge last sent as of frame
     ``index`` (the one it took then, or its reference when it said unchanged); ``frames``: for
     each frame the daemon gave out, its index, the raw counts it holds of each element it calls
     known, and the elements of the layout. ``line_loss``: the share of the gateway's readout
     records lost on its serial line (a frame corrupted there: no bridge knows). ``gateways``:
     the skin's, each on a line of its own; ``kill``: the bridge that dies at 6 s (a relay, or
-    the root gateway); the pipeline is appended to ``pipeline``."""
+    the root gateway); the pipeline is appended to ``pipeline``. ``delay`` > 0: the real-time
+    shells' readout schedule on a loaded host, each message and wake that late on average."""
     truth: dict[tuple[int, int], tuple[int, int]] = {}
     sent: dict[int, tuple[int, int]] = {}
     own = FrameReadout.own
@@ -62,11 +63,11 @@ def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_l
              caps: np.ndarray, unchanged: np.ndarray, now: float, inverse: bool = True, root: int = 0,
              missing: np.ndarray | None = None) -> Any:
         assert self.readings is not None and self.layout is not None
-        ref_k = {int(r): round(int(c) * RATE / CLOCK_HZ) for r, c in zip(unchanged.tolist(),
+        ref_k = {int(r): round(int(c) * rate / CLOCK_HZ) for r, c in zip(unchanged.tolist(),
                                                                           self.readings.ref_cycle[unchanged].tolist())}
         got = frame(self, t, cycle, sampled, raw, saturated, caps, unchanged, now, inverse, root, missing)
         ids = self.layout.ids
-        k = round(cycle * RATE / CLOCK_HZ)
+        k = round(cycle * rate / CLOCK_HZ)
         for r, (c1, c2) in zip(sampled.tolist(), raw.tolist()):
             raw_at[(int(ids[r]), k)] = (c1, c2)
         f = self.readings._frame
@@ -81,8 +82,16 @@ def run(monkeypatch: pytest.MonkeyPatch, reporting: ReportingMode | None, line_l
     monkeypatch.setattr(LayoutStages, "frame", seen)
     mesh = meshgen.grid(4, 4, gateways=gateways, loss=0.01)
     presses = [Contact(4.0 + 1.2 * i, 0.8, 0.02 + 0.025 * i, 0.1 - 0.02 * i, 3.0, 0.02) for i in range(4)]
-    settings = Settings(rate_hz=RATE) if reporting is None else Settings(rate_hz=RATE, reporting=reporting)
-    vm = VirtualMesh(mesh, seed=5, world=World(mesh, presses), random_epochs=True, settings=settings, readout=True)
+    settings = Settings(rate_hz=rate) if reporting is None else Settings(rate_hz=rate, reporting=reporting)
+    shells: dict[str, Any] = {}
+    if delay:
+        from cellbridge.emulator.mesh.virtual import Latency
+        from cellbridge.emulator.realtime.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
+        shells = dict(latency=Latency(up=delay, down=delay, wake_late=delay, seed=1), ack_slack=ACK_SLACK,
+                      readout_acks=False, readout_depths=mesh.readout_depths(), readout_window=READOUT_WINDOW,
+                      readout_hop=READOUT_HOP)
+    vm = VirtualMesh(mesh, seed=5, world=World(mesh, presses), random_epochs=True, settings=settings, readout=True,
+                     **shells)
     vm.kill(kill, at=6.0)  # mid-run
     vm.run(seconds)
     p = Pipeline(parse_config({"link": [{"name": f"gw{g}", "url": "/dev/null"} for g in gateways],
@@ -154,3 +163,19 @@ def test_after_the_root_gateways_death_every_rerouted_element_is_known_again_wit
     unknown = Counter(b for _, known, ids in last for b in ids - set(known) - {1})
     assert sum(len(known) == 15 for _, known, _ in last) >= 0.95 * len(last), unknown
     assert max(unknown.values(), default=0) <= 0.05 * len(last), unknown
+
+
+@pytest.mark.parametrize("rate", [100, 250])
+def test_on_a_loaded_host_every_element_the_real_time_shells_frames_call_known_is_true(
+        monkeypatch: pytest.MonkeyPatch, rate: int) -> None:
+    """The real-time shells' readout schedule (30 ms levels, slots 15 ms apart, no readout
+    acks), every message and wake ~6 ms late, 1 % loss per hop, event-based reporting, a
+    relay dying at 6 s: every element a frame calls known holds what its bridge sampled.
+    At 250 Hz a late bridge built its record of a frame after the next frame's state came,
+    and the expansion after a failed record gave the next frame's sample as this one's (51
+    element-frames wrong)."""
+    truth, frames = run(monkeypatch, ReportingMode(40, 1000), seconds=10.0, rate=rate, delay=0.006)
+    assert len(frames) > 8 * rate
+    wrong = [(k, b, got, truth.get((b, k))) for k, known, _ in frames for b, got in known.items()
+             if truth.get((b, k)) != got]
+    assert not wrong, (len(wrong), wrong[:5])

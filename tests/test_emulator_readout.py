@@ -137,6 +137,32 @@ def test_a_relay_whose_record_failed_sends_its_subtree_as_samples_next() -> None
     assert c["readout_expanded"] == 2
 
 
+def test_after_a_failed_record_a_frame_is_never_expanded_to_a_later_frames_sample() -> None:
+    """A bridge whose process is late (real-time shells on a loaded host, 250 Hz: frames 4
+    ms apart, wakes ~6 ms late) may build its record of frame 11 after its state of frame 12
+    came, and a relay after its child's record of 12. The expansion after a failed record
+    took the sample kept, frame 12's, as frame 11's: the host called the element known in
+    frame 11 with a reading the bridge took a frame later (51 element-frames in 10 s of a
+    4x4 with 1 % loss per hop). A state is expanded only to a sample not newer than its
+    frame; else it stays unchanged (the host knows it only if it knew the frame before)."""
+    from collections import Counter
+
+    c: Counter[str] = Counter()
+    r = FrameReadout(5, ReadoutConfig(depths=4, window=1000), c)
+    r.child(7, Readout(10, 100, Mode.COUNTER, 1, (ReadoutSample(7, 100, 200, 0),), (), ()), 0)
+    r.own(10, 100, Mode.COUNTER, 1, ReadoutSample(5, 1, 2, 0), 500, 5000)
+    assert [s.bridge for s in r.take(0)[0].samples] == [5, 7]
+    r.sent(False)  # its hop was not acknowledged
+    r.own(11, 100, Mode.COUNTER, 1, "u", 600, 5000)
+    r.child(7, Readout(12, 100, Mode.COUNTER, 1, (ReadoutSample(7, 101, 201, 0),), (), ()), 100)
+    r.own(12, 100, Mode.COUNTER, 1, ReadoutSample(5, 3, 4, 0), 700, 5000)  # before 11's record went
+    r.child(7, Readout(11, 100, Mode.COUNTER, 1, (), (7,), ()), 100)
+    by_index = {rec.index: rec for rec in r.take(100)}
+    eleven = by_index[11]
+    assert {(s.bridge, s.c1, s.c2) for s in eleven.samples} <= {(5, 1, 2), (7, 100, 200)}  # never 12's
+    assert {s.bridge for s in eleven.samples} | set(eleven.unchanged) | set(eleven.missing) == {5, 7}
+
+
 def test_a_child_whose_record_does_not_come_is_listed_missing_at_the_slot() -> None:
     from collections import Counter
 

@@ -66,6 +66,12 @@ CONFIRM_TIME = 0.1
 #: bursting, raises it for this long at most), and the most a deadline waits for it.
 LAG_WINDOW = 1.0
 MAX_LAG = 1.0
+#: s of a record's readout span a deadline counts at most. Records are taken when their
+#: frame's gates start before their arrival, whatever span they claim, so a span corrupt
+#: past the CRC (up to 0xFFFFFFFF us, 71 min) would hold its frame, and every frame after
+#: it, until ``max_pending`` newer ones push it out (64 s at 1 Hz). The deepest schedule
+#: the shells run is 0.48 s (16 levels of 30 ms on an 8x8).
+MAX_SPAN = 2.0
 _SAMPLE, _UNCHANGED, _MISSING = 0, 1, 2
 
 
@@ -211,7 +217,7 @@ class SkinFrames:
         ``t_frame``: the host time of its frame's gate start (NaN: not known, refused);
         ``serial``: s the record takes on the line. Never raises for what a line brings."""
         self._taken = None
-        span = rec.span_us * 1e-6
+        span = min(rec.span_us * 1e-6, MAX_SPAN)  # (a corrupt span holds no frame for minutes)
         # a frame whose gates start after the record's own arrival: a wrong index (or the
         # host's map not yet following a jump of the skin's time); refused, though it counts
         # towards a restart. (Not its span's end: a record goes as soon as it is complete,

@@ -130,7 +130,10 @@ class FrameReadout:
         p.root = root
         self._changed = True
         if isinstance(state, ReadoutSample):
-            self._last[self.me] = (mode, oversampling, state)
+            at = self._last_at.get(self.me)
+            if at is None or at[:2] != (root, rate) or index >= at[2]:  # (not an older frame's, come late)
+                self._last[self.me] = (mode, oversampling, state)
+                self._last_at[self.me] = (root, rate, index)
 
     def child(self, src: int, record: Readout, tick: int) -> None:
         """A child's record (``src``: the neighbour that sent it). A late one (its frame's
@@ -223,6 +226,14 @@ class FrameReadout:
             elif at is None or at[:2] != chain or k > at[2]:
                 self._last.pop(b, None)
                 self._last_at.pop(b, None)
+
+    def _refers(self, b: int, p: _Pending) -> bool:
+        """Whether the sample kept of ``b`` is what its *unchanged* in frame ``p`` refers to:
+        kept through a frame not after ``p`` of its time root and rate. A bridge running late
+        builds a record after the next frame's state came (its own, or a child's record), and
+        that frame's sample is no reading of ``p``'s: the state then stays unchanged."""
+        at = self._last_at.get(b)
+        return at is not None and at[:2] == (p.root, p.rate) and at[2] <= p.index
 
     def sent(self, ok: bool) -> None:
         """The outcome of the last record handed to the link (acknowledged or given up)."""
@@ -407,7 +418,7 @@ class FrameReadout:
         groups: dict[tuple[Mode, int], tuple[list[ReadoutSample], list[int], list[int]]] = {}
         for b in sorted(states):
             mode, over, st = states[b]
-            if st == _UNCHANGED and expand and b in self._last:
+            if st == _UNCHANGED and expand and b in self._last and self._refers(b, p):
                 mode, over, st = self._last[b]
                 self.counters["readout_expanded"] += 1
             g = groups.setdefault((mode, over), ([], [], []))

@@ -102,8 +102,17 @@ def test_press_written_into_a_pty_comes_out_as_element_and_contact(rig) -> None:
     assert el["v"] == 2 and isinstance(el["t_host"], float) and len(el["cycle"]) == len(el["bridge"])
     forces = [el["force"][i] for i in newest_slot(el) if el["valid"][i]]
     assert sum(forces) == pytest.approx(3.0, rel=0.05)  # each element's share of one press
+    # A frame the daemon did not get whole (a loaded machine writes and reads the slots
+    # late) is told as such: its contact lists the elements it did not know and its σ
+    # covers the press; every frame it knew whole is exact.
+    whole = [c for c in reports if not c["unknown"]]
+    assert len(whole) >= len(reports) // 2
     for c in reports:
         (contact,) = c["contacts"]
+        if c["unknown"]:
+            assert abs(contact["x"] - CORNER[0]) <= max(1e-3, 3 * contact["sigma_x"]), c
+            assert abs(contact["y"] - CORNER[1]) <= max(1e-3, 3 * contact["sigma_y"]), c
+            continue
         assert contact["x"] == pytest.approx(CORNER[0], abs=1e-3)
         assert contact["y"] == pytest.approx(CORNER[1], abs=1e-3)
         assert contact["force"] == pytest.approx(3.0, rel=0.03)

@@ -168,7 +168,7 @@ def test_the_web_page_draws_the_skin_patch_by_patch(tmp_path: Path) -> None:
             feed(fd, sk, seq)
             seq += 1
             time.sleep(0.1)
-            if page.evaluate("!!(cellbridge.frame && cellbridge.frame.patches.length === 5 && "
+            if page.evaluate("!!(typeof cellbridge !== 'undefined' && cellbridge.frame && cellbridge.frame.patches.length === 5 && "
                              "cellbridge.frame.contacts.length === 2 && cellbridge.frame.cells.some(c => c.touched))"):
                 break
         page.wait_for("cellbridge.patchTitles === 5", what="the patches' titles drawn")
@@ -278,7 +278,7 @@ def test_picture_of_the_web_page_of_the_whole_robot_demo(tmp_path: Path) -> None
                     fd.publish(topic, dict(shot[topic], seq=seq, source="robot:5560"))
             seq += 1
             time.sleep(0.1)
-            if page.evaluate("!!(cellbridge.frame && cellbridge.frame.patches.length === 5 && "
+            if page.evaluate("!!(typeof cellbridge !== 'undefined' && cellbridge.frame && cellbridge.frame.patches.length === 5 && "
                              f"cellbridge.frame.contacts.length === {len(shot['contact']['contacts'])})"):
                 break
         time.sleep(0.5)

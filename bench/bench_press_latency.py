@@ -211,13 +211,20 @@ def _skin_share(log: Path, frames: list, mesh, rate: int, since: float) -> None:
         return
     (k0, t0), (k1, t1) = sorted((int(k), v / 50e6) for k, v in plan.items())
     gates = Settings(rate_hz=rate).measure_cycles() / 50e6
-    d = sorted(1000 * (now - (t0 + (g * rate / 50e6 - k0) * (t1 - t0) / (k1 - k0) + gates))
-               for now, _t, g in frames if now >= since)
-    if not d:
+    def planned(g: int) -> float:  # host second the frame at global cycle g started its gates, on the plan
+        return t0 + (g * rate / 50e6 - k0) * (t1 - t0) / (k1 - k0)
+
+    taken = [(now, t, g) for now, t, g, *_ in frames if now >= since]
+    if not taken:
         return
-    q = [d[min(len(d) - 1, int(x * len(d)))] for x in (0.5, 0.9, 0.99)]
-    table("every skin frame during the presses: its gate end (the gateway's plan) -> given out by the daemon",
-          ["frames", "p50 ms", "p90 ms", "p99 ms", "max ms"], [[len(d), *(f"{x:.1f}" for x in q), f"{d[-1]:.1f}"]])
+    rows = []
+    for what, d in (("gate end (the gateway's plan) -> given out by the daemon",
+                     sorted(1000 * (now - (planned(g) + gates)) for now, _t, g in taken)),
+                    ("the frame's host time the daemon stamps - its gate start on the plan",
+                     sorted(1000 * (t - planned(g)) for _now, t, g in taken))):
+        q = [d[min(len(d) - 1, int(x * len(d)))] for x in (0.5, 0.9, 0.99)]
+        rows.append([what, len(d), *(f"{x:.1f}" for x in q), f"{d[-1]:.1f}"])
+    table("every skin frame during the presses", ["what", "frames", "p50 ms", "p90 ms", "p99 ms", "max ms"], rows)
 
 
 def _setting(text: str) -> tuple[str, int | float]:

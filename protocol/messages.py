@@ -631,17 +631,31 @@ class Readout:
     #: the time root whose mesh time ``index`` counts (u16; 0: not said). Skins not joined
     #: by any cell (two limbs, each with its gateways) keep two unrelated mesh times.
     root: int = 0
+    #: µs of mesh time from the frame's gate start to when a gateway began writing this part
+    #: on its serial line (u32; 0: not said, as on a cell). A record goes as soon as it is
+    #: complete, so its arrival alone tells the host when the frame was sampled only to
+    #: within the frame's whole readout; with its age, to within the serial line's delay.
+    age_us: int = 0
 
     def to_wire(self) -> list[Any]:
-        return [self.index, self.rate, int(self.mode), self.oversampling,
+        wire = [self.index, self.rate, int(self.mode), self.oversampling,
                 [list(s) for s in self.samples], list(self.unchanged), list(self.missing),
                 self.span_us, self.part, self.parts, self.root]
+        if self.age_us:
+            wire.append(self.age_us)
+        return wire
 
     @classmethod
     def from_wire(cls, obj: Any) -> Readout:
-        root = 0
-        if type(obj) is list and len(obj) == 10:  # a record written before the root was carried
+        root = age = 0
+        n = len(obj) if type(obj) is list else -1
+        if n == 10:  # a record written before the root was carried
             k, rate, mode, over, raw, unchanged, missing, span, part, parts = obj
+        elif n == 12:  # a gateway's, with its age
+            k, rate, mode, over, raw, unchanged, missing, span, part, parts, root, age = obj
+            _uint(root, U16, "READOUT", "root")
+            if type(age) is not int or not 1 <= age <= U32:  # (0 is said by leaving it out)
+                raise _bad("READOUT", f"age_us must be an integer in 1..{U32}, got {age!r}")
         else:
             k, rate, mode, over, raw, unchanged, missing, span, part, parts, root = _array(obj, 11, "READOUT")
             _uint(root, U16, "READOUT", "root")
@@ -667,7 +681,7 @@ class Readout:
             raise _bad("READOUT", "samples, unchanged and missing must be arrays")
         lists = _readout_lists(raw, unchanged, missing, limit) or _readout_lists_checked(raw, unchanged, missing,
                                                                                        limit)
-        return cls(k, rate, _MODES[mode], over, lists[0], lists[1], lists[2], span, part, parts, root)
+        return cls(k, rate, _MODES[mode], over, lists[0], lists[1], lists[2], span, part, parts, root, age)
 
     def bridges(self) -> int:
         """How many elements the record accounts for."""

@@ -68,6 +68,25 @@ def test_samples_of_one_index_get_one_host_time(press_reads) -> None:
     assert all(max(times[k]) - min(times[k]) <= 50e-6 for k in late)
 
 
+def test_a_frames_host_time_is_its_gate_start_not_its_readouts_end() -> None:
+    """Records go once the whole frame is read out, ~9 ms after its gates on a 4x4: timed
+    by their arrival alone, every frame (and every contact's time) came that much late.
+    A gateway's record says its age; the host then times a frame to within the line."""
+    mesh = meshgen.grid(4, 4)
+    vm = VirtualMesh(mesh, seed=3, random_epochs=True, readout=True)
+    vm.run(5.0)
+    reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
+    root = vm.nodes[1].timebase  # the gateway is the skin's time root
+    err = []
+    for _, topic, m in drive(reads, 5.0):
+        if topic == "element":
+            for k, on, t in zip(m["index"], m["on_time"], m["t_sample"]):
+                if on and k >= 300:  # (the map settled)
+                    err.append(t - (T0 + root.gate_tick(k, 100) / CLOCK_HZ))
+    assert len(err) > 1000
+    assert -0.5e-3 <= min(err) and max(err) <= 1e-3, (min(err), max(err))
+
+
 def test_a_held_press_is_one_contact_at_the_pressed_place(press_reads) -> None:
     ids = set()
     reports = []

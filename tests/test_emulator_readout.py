@@ -9,6 +9,7 @@ under presses.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from collections.abc import Iterator
 
@@ -217,6 +218,22 @@ def test_a_record_too_large_for_a_frame_fills_each_part_before_the_next() -> Non
         first = b.samples[:1]
         assert not first or not _fits(Readout(a.index, a.rate, a.mode, a.oversampling, a.samples + first, a.unchanged,
                                               a.missing, a.span_us))
+
+
+def test_every_part_of_a_gateways_record_still_fits_a_frame_once_its_age_and_root_are_on_it() -> None:
+    """A gateway stamps each part's age as it writes it: parts filled to the last byte
+    without room for it went out too long for a frame, and the host dropped them (on a
+    humanoid, part 0 of a pressed patch's record, every frame)."""
+    from cellbridge.emulator.firmware.readout import AGE_ROOM, _fits, record_parts
+
+    samples = [ReadoutSample(b, 1_000_000 + b, 2_000_000 + b, 0) for b in range(1, 81)]
+    for root in (1, 200, 0xFFFF):
+        parts = record_parts(7, 250, {(Mode.COUNTER, 1): (samples, [90, 91], [95])}, 100_000, root, AGE_ROOM)
+        assert len(parts) > 1 and all(p.root == root and p.parts == len(parts) for p in parts)
+        assert sorted(s.bridge for p in parts for s in p.samples) == list(range(1, 81))
+        assert all(_fits(dataclasses.replace(p, age_us=0xFFFF_FFFF)) for p in parts)
+        plain = record_parts(7, 250, {(Mode.COUNTER, 1): (samples, [90, 91], [95])}, 100_000, root)
+        assert all(_fits(p) for p in plain)  # (a relay's: no room kept, its root measured)
 
 
 def test_records_of_a_parent_and_its_child_do_not_take_the_same_slot() -> None:

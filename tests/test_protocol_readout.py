@@ -235,7 +235,7 @@ def _replaced(path: tuple[int, ...], value: Any) -> list[Any]:
 
 #: GOOD with one field wrong (its comment); every other field as in GOOD
 BAD = [
-    (GOOD[:9], "9 fields"), (GOOD + [0], "11 fields"), ({"index": 1}, "a map"), ([], "empty"),
+    (GOOD[:9], "9 fields"), (GOOD + [0], "12 fields with age 0: 0 is said by leaving it out"), ({"index": 1}, "a map"), ([], "empty"),
     (_replaced((0,), -1), "negative index"), (_replaced((0,), -(2**63)), "index a signed 64-bit"),
     (_replaced((0,), None), "nil index"), (_replaced((0,), True), "bool index"),
     (_replaced((1,), 0), "rate 0: a readout exists only on mesh time"), (_replaced((1,), 0x10000), "rate beyond u16"),
@@ -265,6 +265,20 @@ def test_a_readout_without_its_root_reads_as_root_0_and_a_root_past_u16_is_refus
     for root in (-1, 0x10000, 1.0, None):
         with pytest.raises(ProtocolError):
             Readout.from_wire(GOOD[:10] + [root])
+
+
+def test_a_gateways_readout_says_its_age_and_an_age_out_of_u32_or_zero_is_refused() -> None:
+    """The 12-field form: a gateway's record with the µs since its frame's gates started.
+    Written only when said, so a record without it keeps its 11 fields, byte for byte."""
+    aged = Readout.from_wire(GOOD + [9392])
+    assert aged == dataclasses.replace(Readout.from_wire(GOOD), age_us=9392)
+    assert aged.to_wire() == GOOD + [9392] and Readout.from_wire(GOOD).to_wire() == GOOD
+    assert Readout.from_wire(GOOD + [0xFFFF_FFFF]).age_us == 0xFFFF_FFFF
+    for age in (0, -1, 2**32, 1.5, None, True):
+        with pytest.raises(ProtocolError):
+            Readout.from_wire(GOOD + [age])
+    with pytest.raises(ProtocolError):
+        Readout.from_wire(GOOD + [9392, 0])
 
 
 def test_a_readout_with_trailing_bytes_or_a_wider_form_is_refused() -> None:

@@ -22,14 +22,14 @@ import random
 from bisect import insort
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 
 import msgpack
 from cellbridge.emulator.firmware.commands import MAX_GATE, Settings, execute
 from cellbridge.emulator.firmware.linklayer import LinkLayer
 from cellbridge.emulator.firmware.meshtime import Crystal, MeshClock, MeshClockConfig, Timebase
-from cellbridge.emulator.firmware.readout import FrameReadout, ReadoutConfig, State
+from cellbridge.emulator.firmware.readout import AGE_ROOM, FrameReadout, ReadoutConfig, State
 from cellbridge.emulator.firmware.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.firmware.sampling import Sampler
 from cellbridge.emulator.firmware.transceiver import Transceiver, TransceiverConfig
@@ -271,7 +271,8 @@ class Firmware:
         # Not a numbering window: a new boot's HELLO may have gone another way (protocol/copies.py).
         self.seen = RecentFrames(_COPY_AGE, _COPY_MEMORY)
         self.readout = (FrameReadout(self.me, ReadoutConfig(c.readout_depths, c.readout_window, c.readout_forget,
-                                                            c.readout_hop), self.counters)
+                                                            c.readout_hop), self.counters,
+                                     AGE_ROOM if c.gateway else 0)
                         if c.readout else None)
         self._readout_at = -1  # a child's record may have completed a frame: look at this tick
         self.sampler = Sampler(c.settings, self.chip, self.sense,
@@ -691,7 +692,7 @@ class Firmware:
             # its children already on another's time) named their frames with its own root
             for record in self.readout.take(tick, self.clock.root or 0):
                 if self.config.gateway:
-                    self._own(record)
+                    self._own(self._aged(record, tick))
                 else:
                     self.link.enqueue_urgent(own(record, self.me, self._next_link_seq()), tick, self._readout_rank(),
                                              self.readout.until(record), (record.root, record.rate, record.index))
@@ -748,6 +749,18 @@ class Firmware:
             self.link.results.clear()
             self._reroute(tick)
         return out
+
+    def _aged(self, record: Readout, tick: int) -> Readout:
+        """A gateway's record as it goes on the serial line, with its age: mesh time since
+        its frame's gate start (the host times the frame by it, not by how long the whole
+        readout took). Left unsaid without mesh time, or when the record counts another
+        root's time than the one this bridge follows."""
+        root = self.clock.root or 0
+        if not self.timebase.synced(tick) or record.root != root:
+            return record
+        now = self.clock.global_at(self.crystal.local(tick))
+        age = (now - record.index * self.config.clock_hz // record.rate) * 1_000_000 // self.config.clock_hz
+        return replace(record, age_us=age) if 0 < age <= 0xFFFF_FFFF else record
 
     def _reset_pending(self) -> bool:
         """Whether frames (the RESET's reply among them) or the RESET's flood copies are

@@ -85,10 +85,11 @@ class FrameReadout:
     """One bridge's part in the readout: its own states, its children's records, and the
     records it owes its parent (or, on a gateway, the host), each in time."""
 
-    def __init__(self, me: int, config: ReadoutConfig, counters: Counter[str]) -> None:
+    def __init__(self, me: int, config: ReadoutConfig, counters: Counter[str], room: int = 0) -> None:
         self.me = me
         self.config = config
         self.counters = counters
+        self.room = room  # bytes each part leaves free for what its writer adds (a gateway's age)
         self._pending: dict[tuple[int, int], _Pending] = {}  # (rate, index) -> frame
         self._members: dict[int, set[int]] = {}  # child -> the bridges its last record listed
         self._via: dict[int, int] = {}  # bridge -> the child it came through lately
@@ -432,11 +433,7 @@ class FrameReadout:
         if missing:
             self.counters["readout_missing"] += missing
         span_us = (p.span if p.span else self.config.window * (self.config.depths + 1)) * 1_000_000 // _CLOCK_HZ
-        out = record_parts(p.index, p.rate, groups, span_us)
-        if p.root:  # (not dataclasses.replace: it looks the fields up at every call)
-            root = p.root
-            out = [Readout(r.index, r.rate, r.mode, r.oversampling, r.samples, r.unchanged, r.missing, r.span_us,
-                           r.part, r.parts, root) for r in out]
+        out = record_parts(p.index, p.rate, groups, span_us, p.root or 0, self.room)
         n = len(out)
         self.counters["readout_records"] += 1
         self.counters["readout_frames"] += n
@@ -447,33 +444,39 @@ class FrameReadout:
         return len(self._pending)
 
 
+#: Bytes a gateway's ``age_us`` takes at most (a msgpack uint32): what each part of a record
+#: it writes on its serial line leaves free, its age being stamped as it goes out.
+AGE_ROOM = 5
+
+
 def record_parts(index: int, rate: int,
                  groups: dict[tuple[Mode, int], tuple[list[ReadoutSample], list[int], list[int]]],
-                 span_us: int) -> list[Readout]:
-    """One record of frame ``index``: per (mode, oversampling) its samples, unchanged and
-    missing bridges (each list increasing by bridge id), as READOUT payloads that each fit
-    a frame, numbered ``part`` of ``parts`` when there are several."""
+                 span_us: int, root: int = 0, room: int = 0) -> list[Readout]:
+    """One record of frame ``index`` on ``root``'s mesh time: per (mode, oversampling) its
+    samples, unchanged and missing bridges (each list increasing by bridge id), as READOUT
+    payloads that each fit a frame with ``room`` bytes to spare (:data:`AGE_ROOM` for a
+    gateway's), numbered ``part`` of ``parts`` when there are several."""
     out: list[Readout] = []
     for (mode, over), (samples, unchanged, miss) in groups.items():
         out.extend(_split(Readout(index, rate, mode, over, tuple(samples), tuple(unchanged), tuple(miss),
-                                  min(span_us, 0xFFFF_FFFF))))
+                                  min(span_us, 0xFFFF_FFFF), 0, 1, root), room))
     n = len(out)
     if n > 1:
         out = [Readout(r.index, r.rate, r.mode, r.oversampling, r.samples, r.unchanged, r.missing, r.span_us,
-                       i, n) for i, r in enumerate(out)]
+                       i, n, root) for i, r in enumerate(out)]
     return out
 
 
-def _fits(r: Readout) -> bool:
-    return HEADER_LEN + CRC_LEN + len(pack_payload(r)) <= MAX_FRAME
+def _fits(r: Readout, room: int = 0) -> bool:
+    return HEADER_LEN + CRC_LEN + len(pack_payload(r)) + room <= MAX_FRAME
 
 
-def _split(r: Readout) -> list[Readout]:
-    """``r`` as payloads that each fit one frame, each filled before the next is begun: a
-    relay near the gateway carries most of the skin's samples, and its records' headers and
-    frames are the cells' overhead (halving a record of 20 samples sent four frames of 5 to 10
-    samples where two do)."""
-    if _fits(r):
+def _split(r: Readout, room: int = 0) -> list[Readout]:
+    """``r`` as payloads that each fit one frame with ``room`` bytes to spare, each filled
+    before the next is begun: a relay near the gateway carries most of the skin's samples,
+    and its records' headers and frames are the cells' overhead (halving a record of 20
+    samples sent four frames of 5 to 10 samples where two do)."""
+    if _fits(r, room):
         return [r]
     items = [("s", s) for s in r.samples] + [("u", b) for b in r.unchanged] + [("m", b) for b in r.missing]
     if len(items) <= 1:
@@ -481,12 +484,12 @@ def _split(r: Readout) -> list[Readout]:
     out: list[Readout] = []
     part: list[tuple[str, object]] = []
     for item in items:
-        if part and not _fits(_part(r, part + [item])):
+        if part and not _fits(_part(r, part + [item]), room):
             out.append(_part(r, part))
             part = []
         part.append(item)
     last = _part(r, part)
-    if not _fits(last):
+    if not _fits(last, room):
         raise ProtocolError("too_large", "one readout entry does not fit a frame")
     out.append(last)
     return out
@@ -496,7 +499,7 @@ def _part(r: Readout, items: list[tuple[str, object]]) -> Readout:
     return Readout(r.index, r.rate, r.mode, r.oversampling,
                    tuple(x for k, x in items if k == "s"),  # type: ignore[misc]
                    tuple(x for k, x in items if k == "u"),  # type: ignore[misc]
-                   tuple(x for k, x in items if k == "m"), r.span_us)  # type: ignore[misc]
+                   tuple(x for k, x in items if k == "m"), r.span_us, 0, 1, r.root)  # type: ignore[misc]
 
 
-__all__ = ["FrameReadout", "ReadoutConfig", "State", "record_parts"]
+__all__ = ["AGE_ROOM", "FrameReadout", "ReadoutConfig", "State", "record_parts"]

@@ -9,8 +9,9 @@ records directly, frame by frame, vectorised over the elements:
 
 * the **same frames** the gateway's firmware writes: each record built by
   :func:`~cellbridge.emulator.firmware.readout.record_parts` (the firmware's own code: the split
-  into parts that fit a frame, their numbering, ``span_us``), framed as the gateway frames
-  its own messages (origin the gateway, its host numbering) and COBS-encoded on the line;
+  into parts that fit a frame, their numbering, ``span_us``), with the age the gateway
+  stamps on them (``age_us``: when it began writing), framed as the gateway frames its own
+  messages (origin the gateway, its host numbering) and COBS-encoded on the line;
 * the **same states**: periodic, every element a sample; event-based, each bridge's
   :class:`~cellbridge.emulator.firmware.reporting.Reporter` (threshold, follow-up, heartbeat slot,
   settling) and the readout's refresh (every ``readout_refresh`` frames in the bridge's
@@ -35,11 +36,11 @@ from __future__ import annotations
 import math
 from collections import Counter, deque
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from cellbridge.emulator.firmware.commands import Settings
-from cellbridge.emulator.firmware.readout import ReadoutConfig, record_parts
+from cellbridge.emulator.firmware.readout import AGE_ROOM, ReadoutConfig, record_parts
 from cellbridge.emulator.firmware.reporting import Reporter
 from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin, neighbour_pairs
 from cellbridge.emulator.world.world import World
@@ -202,7 +203,12 @@ class SkinTraffic:
             samples = [ReadoutSample(b, a, c, f) for b, a, c, f in
                        zip(ids[sr].tolist(), c1[sr].tolist(), c2[sr].tolist(), flags[sr].tolist())]
             unchanged = ids[rows[~k]].tolist()
-            parts = record_parts(index, rate, {(Mode.COUNTER, 1): (samples, unchanged, [])}, self.span_us)
+            # written once its subtree's records are in (the slots bound it), with its age
+            written = min(gate_end + float(done[g_row]), latest)
+            age = max(1, int((written - t) * 1e6))
+            parts = [replace(r, age_us=age) for r in
+                     record_parts(index, rate, {(Mode.COUNTER, 1): (samples, unchanged, [])}, self.span_us,
+                                  room=AGE_ROOM)]
             data = bytearray()
             for rec in parts:
                 seq = self._seq[g_id]
@@ -212,7 +218,7 @@ class SkinTraffic:
             self.counters["parts"] += len(parts)
             self.counters["samples"] += len(samples)
             self.counters["unchanged"] += len(unchanged)
-            arrival = min(gate_end + float(done[g_row]) + len(data) * 10 / self.baudrate, latest)
+            arrival = min(written + len(data) * 10 / self.baudrate, latest)
             out.append((arrival, g_id, bytes(data)))
         return out
 

@@ -272,12 +272,15 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str
     per second of skin (what real speed needs of a core, whatever else the machine runs).
     The shell's share (asyncio, the replay's pacing, ZeroMQ) is left out. ``topics``: the
     topics subscribed (the pipeline builds only their messages); None: every topic."""
+    import hashlib
     import heapq
     import logging
 
     from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.core.messages import Publish
     from cellbridge.daemon.core.pipeline import Pipeline
     from cellbridge.daemon.shell.contact_worker import ContactWorker, InlineExecutor
+    from cellbridge.daemon.shell.publisher import pack
     from cellbridge.daemon.shell.replay_source import read_records
 
     links = [{"name": f"gw{g}", "url": "/dev/null"} for g in gen["gateways"]]
@@ -289,23 +292,30 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str
     feed = est = 0.0
     estimates = 0
     tick = 0.0
+    digest = hashlib.sha256()
     for t, g, data in heapq.merge(*streams):
         c0 = time.thread_time()
-        p.feed(f"gw{g}", data, t)
+        out = p.feed(f"gw{g}", data, t)
         c1 = time.thread_time()
         if t >= tick:
-            p.tick(t)
+            out += p.tick(t)
             tick = t + 0.1
         job = p.contact_job(t)
         if job is not None:
-            p.contact_frame(job, w.estimate_now(job))
+            out.append(p.contact_frame(job, w.estimate_now(job)))
             estimates += 1
         c2 = time.thread_time()
         feed, est = feed + c1 - c0, est + c2 - c1
-    fr = p.health_body(t)["frames"]
+        for m in out:  # every output, outside the CPU measured
+            digest.update(type(m).__name__.encode())
+            digest.update(pack(m.payload) if isinstance(m, Publish) else repr(m).encode())
+    body = p.health_body(t)
+    digest.update(pack(body))
+    fr = body["frames"]
     secs = gen["seconds"]
     return [reporting, f"{feed / secs:.3f}", f"{est / secs:.3f}", f"{(feed + est) / secs:.3f}", estimates,
-            fr["frames_complete"], fr["frames_by_deadline"], fr["frames_missed"], fr["late_records"]]
+            fr["frames_complete"], fr["frames_by_deadline"], fr["frames_missed"], fr["late_records"],
+            digest.hexdigest()[:16]]
 
 
 def grid_response(lay, contact):
@@ -438,7 +448,7 @@ def main() -> int:
         table("The daemon's core per second of skin: the same recordings through the pipeline and an estimate per "
               "frame, in this process (CPU of this thread per recorded s; targets: periodic ≤ 1, event-based ≤ 0.25)",
               ["reporting", "ingest CPU s/s", "estimates CPU s/s", "together", "estimates", "frames complete",
-               "by deadline", "missed", "late records"], flat_rows)
+               "by deadline", "missed", "late records", "outputs (sha256)"], flat_rows)
     estimate_table(skin, a.quick)
     return 0
 

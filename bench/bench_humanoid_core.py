@@ -15,8 +15,9 @@ a shared machine falls on both); CPU of the measuring thread per recorded second
 real speed needs of a core, whatever else the machine runs), best and median.
 ``--topics contact,health`` builds only the messages of the daemon's subscriber in
 ``bench_humanoid`` (no ``raw`` or ``element`` messages, no per-element inverse for them).
-The frames' counts and the estimates run are printed for both sides: a line under the table
-says when they differ (a change that should keep every output does not).
+The frames' counts, the estimates run and a hash of every output (each message the pipeline
+returned, packed as the publisher packs it, and the last health) are printed for both sides: a
+line under the table says when they differ (a change that should keep every output does not).
 """
 
 from __future__ import annotations
@@ -153,14 +154,14 @@ def main() -> int:
                 rows.append([reporting, name, f"{min(ingest):.3f} / {statistics.median(ingest):.3f}",
                              f"{min(est):.3f} / {statistics.median(est):.3f}",
                              f"{min(total):.3f} / {statistics.median(total):.3f}", r[0][4], r[0][5], r[0][6],
-                             r[0][7], r[0][8]])
+                             r[0][7], r[0][8], r[0][9]])
     for k in range(0, len(rows), 2):
         if rows[k][5:] != rows[k + 1][5:]:
             print(f"NOTE: {rows[k][0]}: the two sides' estimates or frames differ: {rows[k][5:]} vs {rows[k + 1][5:]}")
     table(f"The daemon's core per second of the humanoid skin ({a.seconds:g} s recording, CPU s of one thread per "
           f"recorded s, best / median of {a.repeat}; topics: {a.topics}; target event-based together <= 0.25, periodic <= 1)",
           ["reporting", "code", "ingest", "estimates", "together", "estimates run", "frames complete",
-           "by deadline", "missed", "late records"], rows)
+           "by deadline", "missed", "late records", "outputs (sha256)"], rows)
     return 0
 
 

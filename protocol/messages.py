@@ -11,8 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import IntEnum
-from functools import partial
-from itertools import chain
+from itertools import repeat
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import msgpack
@@ -57,6 +56,7 @@ class Mode(IntEnum):
 
 _MODES = tuple(Mode)  # index -> member, cheaper than calling Mode(value)
 _new_tuple = tuple.__new__
+_LIST, _INT = {list}, {int}  # the one type of every sample, and of every id and code, in a READOUT
 
 
 class SampleFlags(IntEnum):
@@ -533,25 +533,28 @@ def _readout_lists(raw: list[Any], unchanged: list[Any], missing: list[Any],
     Every id of the three lists is an int once (one set of them all as long as the lists
     together), so each list is strictly increasing when it is in order."""
     if raw:
-        if set(map(type, raw)) != {list} or set(map(len, raw)) != {4}:
+        if set(map(type, raw)) != _LIST:
             return None
-        b, c1, c2, fl = zip(*raw)
+        try:  # lists of four each: rows of unequal lengths, or of another length, raise
+            b, c1, c2, fl = zip(*raw, strict=True)
+        except ValueError:
+            return None
         ids = [*b, *unchanged, *missing]
-        if set(map(type, chain(ids, c1, c2, fl))) != {int}:
+        if {*map(type, ids), *map(type, c1), *map(type, c2), *map(type, fl)} != _INT:
             return None
         if not (min(c1) >= 0 and max(c1) <= limit and min(c2) >= 0 and max(c2) <= limit
                 and min(fl) >= 0 and max(fl) <= _OVERFLOWS):
             return None
     else:
         ids = [*unchanged, *missing]
-        if ids and set(map(type, ids)) != {int}:
+        if ids and set(map(type, ids)) != _INT:
             return None
     if len(set(ids)) != len(ids):
         return None  # a bridge twice: in two states, or twice in one list
     for ordered in (ids[:len(raw)], unchanged, missing):
         if ordered and (ordered[0] < 0 or ordered[-1] > U16 or ordered != sorted(ordered)):
             return None
-    return tuple(map(_readout_sample, raw)), tuple(unchanged), tuple(missing)
+    return tuple(map(_new_tuple, repeat(ReadoutSample, len(raw)), raw)), tuple(unchanged), tuple(missing)
 
 
 def _readout_lists_checked(raw: list[Any], unchanged: list[Any], missing: list[Any],
@@ -593,9 +596,6 @@ class ReadoutSample(NamedTuple):
     c1: int  #: counter value (u16) or sum of ADC codes for C1, in the record's mode
     c2: int
     flags: int = 0  #: :class:`SampleFlags` bits (u8); the overflow bits only
-
-
-_readout_sample = partial(_new_tuple, ReadoutSample)  # (a sample's validated list: a ReadoutSample, in C)
 
 
 @dataclass(frozen=True, slots=True)

@@ -424,3 +424,29 @@ def test_the_column_check_accepts_valid_lists_and_refuses_a_repeat(ids: list[int
     assert got is not None and [s.bridge for s in got[0]] == ids[:k] and list(got[1]) == ids[k:]
     if ids:
         assert _readout_lists(raw, ids[k:], [ids[0]], 65_535) is None
+
+
+_good_row = st.lists(st.integers(0, 3), min_size=4, max_size=4)
+_odd_row = st.one_of(st.binary(min_size=4, max_size=4), st.text(min_size=4, max_size=4),
+                     st.tuples(*[st.integers(0, 3)] * 4), st.lists(st.integers(0, 3), min_size=3, max_size=5))
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(_good_row, max_size=5), _odd_row, st.data())
+def test_the_column_check_refuses_a_sample_not_a_list_of_four_among_lists_of_four(
+        rows: list[Any], odd: Any, data: st.DataObject) -> None:
+    """A sample that is bytes or text of four (whose items look like ids or codes), a tuple,
+    or a list of another length, among valid lists of four: the column check agrees with the
+    element-by-element one (a list of four is judged alike by both; anything else fails both)."""
+    from cellbridge.protocol.messages import _readout_lists, _readout_lists_checked
+
+    raw = [[b, *r[1:]] for b, r in enumerate(rows)]
+    at = data.draw(st.integers(0, len(raw)))
+    raw.insert(at, odd)
+    try:
+        want = _readout_lists_checked(raw, [], [], 255)
+    except ProtocolError:
+        want = None
+    assert _readout_lists(raw, [], [], 255) == want
+    if not (type(odd) is list and len(odd) == 4):
+        assert want is None

@@ -328,6 +328,37 @@ def test_a_held_press_on_an_event_based_skin_keeps_its_contact_when_a_bridge_joi
         assert m["contacts"][0]["force"] == pytest.approx(3.0, rel=0.05)
 
 
+def test_the_contact_worker_builds_a_grown_layouts_estimator_before_its_first_touch() -> None:
+    """Once nothing is touched the contact worker is not asked (nothing to track): a layout
+    that grew meanwhile (bridge 16 booting late) reached the worker process only with the
+    first touch, which then waited for the estimator's build and the collector's settling
+    pass (39-47 ms of a 4x4's first press, real processes). A job on a layout the worker has
+    not estimated on yet is asked, touched or not."""
+    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.core.pipeline import Pipeline
+
+    from support.pipeline_helpers import worker
+
+    mesh = meshgen.grid(4, 4)
+    vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(6.0, 1.0, *CORNER, 3.0, 0.020)]), random_epochs=True,
+                     settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
+    vm.kill(16, at=0.0)
+    vm.restart(16, at=4.0)
+    vm.run(6.5)
+    p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 3}}))
+    w, idle, ran = worker(), False, []
+    for t, data in vm.serial_chunks[1]:  # as the service's contact loop asks: when a frame is due
+        now = T0 + t / CLOCK_HZ
+        p.feed("gw", data, now)
+        if p.contact_due(now, idle) <= now and (job := p.contact_job(now)) is not None:
+            idle = not w.estimate_now(job)
+            if w.last_ran():
+                ran.append((now - T0, job.spec, bool(job.snapshot.touched.any())))
+    first = next(i for i, r in enumerate(ran) if r[2])
+    assert ran[first][0] > 6.0 and len(ran[first][1].ids) == 16 * 8  # the press, on the grown layout
+    assert any(r[1] == ran[first][1] for r in ran[:first])  # the worker built it before
+
+
 def test_corner_presses_on_a_contended_event_based_skin_keep_one_id_from_their_first_frame() -> None:
     """The real-time shells' latency model (message delays, 10 ms acknowledgement slack):
     the four bridges under a corner press send their onset samples at one instant and

@@ -73,6 +73,7 @@ class ContactWorker:
         self._job: concurrent.futures.Future[Contacts] | None = None  # the last estimate handed to the worker
         self._stopping = False
         self._ran = False  # the last estimate asked for ran the job (not skipped: nothing to track)
+        self._built: tuple[str, Any] | None = None  # (owner, spec) of the last job that ran: the worker's estimator
         self._warm: concurrent.futures.Future[None] | None = None  # the current worker's warm-up
 
     def _executor(self) -> concurrent.futures.Executor:
@@ -109,9 +110,17 @@ class ContactWorker:
         return self._job is not None and not self._job.done()
 
     def _needed(self, job: ContactJob) -> bool:
-        """False once nothing is touched and every track has ended: no need to ask."""
+        """False once nothing is touched and every track has ended: no need to ask; unless
+        the job's layout or settings are new to the worker. It builds its estimator at the
+        first job of a spec (and settles the collector): a layout that grew on an idle skin
+        (a bridge booting late) cost the first touch after it that build, 39-47 ms on a
+        4x4, where now an untouched frame pays it."""
         self._quiet = 0 if bool(job.snapshot.touched.any()) else self._quiet + 1
-        self._ran = self._quiet <= job.spec.max_missed + 1
+        built = (job.owner, job.spec)
+        self._ran = self._quiet <= job.spec.max_missed + 1 or built != self._built  # (the pipeline's one spec
+        # object per layout: compared by identity first)
+        if self._ran:
+            self._built = built
         return self._ran
 
     def last_ran(self) -> bool:

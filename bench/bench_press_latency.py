@@ -30,7 +30,10 @@ no unknown element listed.
 ``--trace`` (real processes) runs the daemon through ``bench/press_trace.py``, which notes
 when each reading, look, estimate and publish happened, and prints per press what its
 contact waited for (each step's p50/p90 over every press, then the median press and the
-slowest tenth step by step). Run the skin at real-time priority so other work does not
+slowest tenth step by step); then every skin frame's way on the gateway's own plan of
+gates: gate end → the gateway began writing its record (the record's age: the skin's
+readout) → the daemon read it (the line) → given out, and how far the daemon's time of
+the frame is from its gate start. Run the skin at real-time priority so other work does not
 count: ``chrt -f 1 .venv/bin/python bench/bench_press_latency.py --reporting event:40
 --presses 60 --trace``.
 
@@ -189,11 +192,12 @@ def _truth(press: Contact, contacts: list[dict]) -> tuple[float, float, int, int
     return 1e3 * err, 100 * abs(f - press.force) / press.force, len(set(ids)), untrue
 
 
-def _skin_share(log: Path, frames: list, mesh, rate: int, since: float) -> None:
+def _skin_share(log: Path, frames: list, records: list, mesh, rate: int, since: float) -> None:
     """Every skin frame the daemon took from ``since`` (the first press) on, from its gate
     end on the gateway's own plan (its last line names the ticks of two gates 10 s apart;
-    mesh time between is a straight line) to the daemon giving it out: the skin's share
-    and the daemon's read, apart from the daemon's own map of mesh time."""
+    mesh time between is a straight line) to the daemon giving it out, apart from the
+    daemon's own map of mesh time; and split at the gateway by its record's age (when it
+    began writing the record): the skin's readout, then the line and the daemon's read."""
     from cellbridge.emulator.firmware.commands import Settings
 
     gw = mesh.gateways[0]
@@ -224,6 +228,14 @@ def _skin_share(log: Path, frames: list, mesh, rate: int, since: float) -> None:
                      sorted(1000 * (t - planned(g)) for _now, t, g in taken))):
         q = [d[min(len(d) - 1, int(x * len(d)))] for x in (0.5, 0.9, 0.99)]
         rows.append([what, len(d), *(f"{x:.1f}" for x in q), f"{d[-1]:.1f}"])
+    aged = [(now, k * 50_000_000 // r, age) for now, k, r, age in records if now >= since and age and r == rate]
+    for what, d in (("gate end -> the gateway began writing its record (the record's age)",
+                     sorted(1000 * (age * 1e-6 - gates) for _now, _g, age in aged)),
+                    ("the gateway began writing -> the daemon read the record",
+                     sorted(1000 * (now - planned(g) - age * 1e-6) for now, g, age in aged))):
+        if d:
+            q = [d[min(len(d) - 1, int(x * len(d)))] for x in (0.5, 0.9, 0.99)]
+            rows.append([what, len(d), *(f"{x:.1f}" for x in q), f"{d[-1]:.1f}"])
     table("every skin frame during the presses", ["what", "frames", "p50 ms", "p90 ms", "p99 ms", "max ms"], rows)
 
 
@@ -383,7 +395,8 @@ def main() -> None:
 
             print_breakdown(breakdown(trace, pressed, 1.0 / args.rate, args.hold))
             _stop(up)  # its bridges' last lines name the gateway's plan of gates
-            _skin_share(work / "mesh.log", trace.get("k", []), mesh, args.rate, pressed[0][0] if pressed else 0.0)
+            _skin_share(work / "mesh.log", trace.get("k", []), trace.get("r", []), mesh, args.rate,
+                        pressed[0][0] if pressed else 0.0)
             (work / "presses.json").write_text(json.dumps(pressed))
             print(f"\ntrace and presses kept in {work}")
     finally:

@@ -19,6 +19,9 @@ methods, in this process only, to note on the host monotonic clock:
 * ``k``: every skin frame the layout took: when, its host time, its global cycle (the
   gate start on the skin's own plan: mesh time, which the bridges' last lines map to host
   ticks);
+* ``r``: every gateway record part 0 the daemon took: when it was read, its frame's index
+  and rate, and its age (µs of mesh time from the frame's gate start to when its gateway
+  began writing it; 0: not said);
 * ``x``: every job handed to the contact worker: when it was submitted, when the worker
   began and ended it (the worker process notes these in a file), and when its future was
   done in the daemon (the executor's result thread), all on the one monotonic clock.
@@ -44,13 +47,14 @@ import time
 from typing import Any
 
 import msgpack
+from cellbridge.daemon.core.domains import TimeDomains
 from cellbridge.daemon.core.layout import LayoutStages
 from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.daemon.shell.cli import _load
 from cellbridge.daemon.shell.publisher import Publisher
 from cellbridge.daemon.shell.service import Service, run_service
 
-TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": [], "x": [], "w": [], "k": []}
+TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b": [], "x": [], "w": [], "k": [], "r": []}
 WORKER_TRACE = "CB_PRESS_TRACE_WORKER"  #: env: the file the contact worker notes its jobs in
 
 
@@ -214,6 +218,15 @@ def _instrument(light: bool = False) -> None:
     Service._on_data = traced_on_data  # type: ignore[method-assign]
     Service._tick_once = traced_tick_once  # type: ignore[method-assign]
     Pipeline.contact_due = traced_contact_due  # type: ignore[method-assign]
+    record = TimeDomains.record
+
+    def traced_record(self: TimeDomains, gateway: int, rec: Any, root: int, g: int, now: float,
+                      serial: float) -> Any:
+        if rec.part == 0:
+            TRACE["r"].append((now, int(rec.index), int(rec.rate), int(rec.age_us)))
+        return record(self, gateway, rec, root, g, now, serial)
+
+    TimeDomains.record = traced_record  # type: ignore[method-assign]
     LayoutStages.step = traced_step  # type: ignore[method-assign]
     LayoutStages.snapshot = traced_snapshot  # type: ignore[method-assign]
     LayoutStages.frame = traced_frame  # type: ignore[assignment]  # its keywords passed on

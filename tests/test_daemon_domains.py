@@ -100,3 +100,33 @@ def test_a_frame_of_one_root_leaves_the_other_roots_elements_as_their_frame_said
     assert f is not None
     assert f.unknown.tolist() == [False, True, False, True]  # 1: missing in root 1's frame; 2, 3 as root 22 said
     assert f.dc[2, 0] == 0.9 and f.t_sample[2] == 10.001
+
+
+def test_every_part_of_a_record_held_back_is_refused_whatever_each_parts_age() -> None:
+    """A gateway stamps each part of a record with its own age (when it began writing that
+    part: part 1 after part 0's time on the line). Frame 1199's record came again, its index
+    corrupted one frame ahead (1201): its part 0 is held back and refused, but part 1, whose
+    point differs by its age, was taken as frame 1201's, and the samples of frame 1199 went
+    out as those of frame 1201 when the true record's part 1 came as a duplicate."""
+    serial = 0.0025  # s a full part takes on the line
+
+    def parts(k: int, i: int, age0: int = 8000) -> list[float]:
+        out = []
+        for p in range(2):
+            age = age0 + int(p * serial * 1e6)
+            rec = Readout(k, RATE, Mode.COUNTER, 1, tuple(ReadoutSample(b, 100 + b + i, 200, 0) for b in (1 + p, 3 + p)),
+                          (), (), 20_000, p, 2, 1, age)
+            now = 100.0 + i / RATE + age * 1e-6 + serial
+            out.append(td.record(1, rec, 1, k * HZ // RATE, now, 2 * serial)[0])
+        return out
+
+    td = TimeDomains(HZ, margin=0.01)
+    for i in range(200):
+        assert all(math.isfinite(t) for t in parts(1000 + i, i))
+    copy = parts(1201, 199)  # frame 1199's record under index 1201
+    assert all(math.isnan(t) for t in copy), copy
+    assert all(math.isfinite(t) for t in parts(1200, 200) + parts(1201, 201))
+    frames = {f.index: f for f in td.take(100.0 + 201 / RATE + 0.015)}
+    f = frames[1201]
+    assert f.complete and sorted(f.bridges.tolist()) == [1, 2, 3, 4]
+    assert f.c1.tolist() == [100 + b + 201 for b in f.bridges.tolist()], f.c1  # its own samples, none of 1199's

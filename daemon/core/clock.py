@@ -258,7 +258,8 @@ class SkinClock:
         self.hz = float(hz)
         self.slack = slack
         self.tolerance = tolerance
-        self._held: dict[int, tuple[int, float]] = {}  # gateway -> its point that would lower the map, unconfirmed
+        # gateway -> its point that would lower the map, unconfirmed: (g, arrival, its frame's cycle)
+        self._held: dict[int, tuple[int, float, int]] = {}
         self.confirm, self.confirm_time = confirm, confirm_time
         self.memory = memory  # s of frames whose host time is kept once given
         self.memory_keys = memory_keys  # frames kept before forgetting old ones is looked at
@@ -274,16 +275,18 @@ class SkinClock:
     def synced(self) -> bool:
         return self.map.synced
 
-    def teach(self, gateway: int, g: int, now: float) -> bool:
+    def teach(self, gateway: int, g: int, now: float, frame: int = -1) -> bool:
         """A point of ``gateway``'s own: global cycle ``g`` reached the host at ``now``. True
         when the map began again (the skin's time jumped, confirmed): frame times given
-        before no longer hold."""
+        before no longer hold. ``frame``: the global cycle of the frame the point is of, when
+        not ``g`` (a record's point is its frame's gate start plus its age): what
+        :meth:`held` is asked with."""
         floor = self._floor(gateway)
         back = g < floor
         # where the map puts the point (NaN: no map yet), worked out once for both checks (to_host_one:
         # the arithmetic of to_host without arrays, as every readout record teaches a point)
         at = self.map.to_host_one(g) if self.map.synced else math.nan
-        if not back and self._hold(gateway, g, now, at):
+        if not back and self._hold(gateway, g, now, at, g if frame < 0 else frame):
             return False
         jumped = taught = self._believed(g, now, back, at)
         if taught and back:
@@ -301,7 +304,7 @@ class SkinClock:
             self._newest = -1
         return jumped
 
-    def _hold(self, gateway: int, g: int, now: float, at: float) -> bool:
+    def _hold(self, gateway: int, g: int, now: float, at: float, frame: int) -> bool:
         """Whether ``gateway``'s point (``g``, ``now``) is held back: the map puts it (at
         ``at``) more than ``tolerance`` (and at most ``slack``) after its arrival, and the
         gateway's previous point was not one such that agrees with it (see the class)."""
@@ -313,13 +316,15 @@ class SkinClock:
             return False
         if held is not None and g > held[0] and abs((g - held[0]) / self.hz - (now - held[1])) <= self.tolerance:
             return False
-        self._held[gateway] = (g, now)
+        self._held[gateway] = (g, now, frame)
         return True
 
-    def held(self, gateway: int, g: int) -> bool:
-        """Whether ``gateway``'s point of global cycle ``g`` is the one held back (its frame
-        is not believed either: a record of it may hold an older sample under a wrong index)."""
-        return self._held.get(gateway, (-1, 0.0))[0] == g
+    def held(self, gateway: int, frame: int) -> bool:
+        """Whether ``gateway``'s point held back is of the frame at global cycle ``frame`` (the
+        frame is not believed either: a record of it may hold an older sample under a wrong
+        index). By the frame, not the point: each part of a record says its own age, and a
+        part after the first, its point later by the line's time, was taken as that frame's."""
+        return self._held.get(gateway, (-1, 0.0, -1))[2] == frame
 
     def _floor(self, gateway: int) -> int:
         """The global cycle more than ``slack`` behind the newest of ``gateway``'s own points

@@ -130,13 +130,14 @@ class TimeDomains:
             # contact's time with it.
             w = g + rec.age_us * int(self.hz) // 1_000_000 if 0 < rec.age_us <= rec.span_us else g
             if rec.part == 0:
-                jumped = d.clock.teach(gateway, w, now)
+                jumped = d.clock.teach(gateway, w, now, g)
                 if jumped:  # the skin's time jumped: its frames start again
                     d.frames.restart()
             # a record whose point the map holds back (its frame after its arrival, unconfirmed)
-            # is refused: a copy of an older record under an index corrupted ahead was given
-            # out as that later frame, whole, before the frame's own record came
-            t = math.nan if d.clock.held(gateway, w) else d.clock.frame_time(g, now)
+            # is refused, every part of it (each says its own age: asked by its frame): a copy
+            # of an older record under an index corrupted ahead was given out as that later
+            # frame, whole, before the frame's own record came
+            t = math.nan if d.clock.held(gateway, g) else d.clock.frame_time(g, now)
         d.frames.add(gateway, rec, now, t, serial)
         return t, jumped
 

@@ -130,3 +130,28 @@ def test_every_part_of_a_record_held_back_is_refused_whatever_each_parts_age() -
     f = frames[1201]
     assert f.complete and sorted(f.bridges.tolist()) == [1, 2, 3, 4]
     assert f.c1.tolist() == [100 + b + 201 for b in f.bridges.tolist()], f.c1  # its own samples, none of 1199's
+
+
+def test_records_that_begin_to_say_their_age_move_no_frame_before_its_gate_start() -> None:
+    """A gateway's records said no age for 3 s (it had no mesh time of this root yet, or an
+    older gateway's alone), then said it. The map had learned from their frames' gate
+    starts, as late as the readout (6-8 ms); the ages lowered its envelope by that step, and
+    the skew fit, its line through the old blocks' minima and the new, ran down at its bound
+    below the newest: frames were put up to 4 ms before their gate start for a minute, and
+    the first aged record of each gateway was refused (its frame lost)."""
+    line = 0.0013  # s from a record's writing to its arrival
+    td = TimeDomains(HZ, margin=0.02)
+    err, refused, frames = [], 0, []
+    events = []
+    for k in range(3000):  # 30 s
+        for gw, age in ((1, 0.006), (2, 0.008)):
+            said = int(age * 1e6) if k >= 300 else 0
+            rec = Readout(k, RATE, Mode.COUNTER, 1, (ReadoutSample(gw * 10, 1, 2, 0),), (), (), 20_000, 0, 1, 1, said)
+            events.append((100.0 + k / RATE + age + line, gw, rec))
+    for now, gw, rec in sorted(events, key=lambda e: e[0]):
+        t, _ = td.record(gw, rec, 1, rec.index * HZ // RATE, now, 0.001)
+        refused += math.isnan(t)
+        frames += td.take(now)
+    err = [f.t - (100.0 + f.index / RATE) for f in frames if f.index >= 300]
+    assert refused == 0 and len(frames) == 3000 and all(f.complete for f in frames)
+    assert -1e-4 <= min(err) and max(err) <= line + 1e-4, (min(err), max(err))

@@ -83,11 +83,12 @@ class BridgeClock:
         self.offset = 0.0
         self.skew = 0.0
 
-    def restart(self, cycle: int, arrival: float) -> None:
+    def restart(self, cycle: int, arrival: float, count: bool = True) -> None:
         """Begin the fit again at ``cycle``, arrived at ``arrival``, and count it: the owner
         knows the counts jumped (the skin's time went back), which :meth:`observe` only
-        concludes after ``confirm`` bridge seconds of counts behind the newest."""
-        self.resets += 1
+        concludes after ``confirm`` bridge seconds of counts behind the newest. ``count``
+        False: no reset, the owner's points before were only later than they could be."""
+        self.resets += count
         self._restart(int(cycle) % self._mod, arrival)
 
     def suspect_reset(self) -> None:
@@ -303,6 +304,20 @@ class SkinClock:
             self._memo.clear()
             self._newest = -1
         return jumped
+
+    def anew(self, g: int, now: float) -> None:
+        """Begin the map's envelope again at the point (``g``, ``now``), the skin's time
+        unchanged: the points it learned from were all later than the skin's (records that
+        did not say their age, placed at their frame's gate start), and the quicker points
+        from now on would lower it by that step, which the skew fit, its line through the
+        old blocks' minima and the new, ran on downwards past the newest (frames put up to
+        4 ms before their gate start for a minute). The frames already mapped keep their
+        host times; no jump is counted."""
+        if not self.map.synced:
+            return
+        self.map.restart(g, now, count=False)
+        self._held.clear()
+        self._jump = []
 
     def _hold(self, gateway: int, g: int, now: float, at: float, frame: int) -> bool:
         """Whether ``gateway``'s point (``g``, ``now``) is held back: the map puts it (at

@@ -39,12 +39,21 @@ from numpy.typing import NDArray
 MAX_DOMAINS = 64
 
 
+#: s without a point of a record that said its age, after which such a point, following
+#: points that did not say theirs, begins the map's envelope again (:meth:`SkinClock.anew`).
+#: Points of both kinds taught together (a gateway that says its age beside one that does
+#: not) leave the envelope to the quicker; a stretch of only the slower ones builds it up.
+AGED_GAP = 0.25
+
+
 class _Domain:
-    __slots__ = ("clock", "frames")
+    __slots__ = ("clock", "frames", "aged_at", "unaged")
 
     def __init__(self, clock: SkinClock, frames: SkinFrames) -> None:
         self.clock = clock
         self.frames = frames
+        self.aged_at = -math.inf  # arrival of the newest point of a record that said its age
+        self.unaged = False  # a point that did not say its age was taught since then
 
 
 class TimeDomains:
@@ -100,7 +109,10 @@ class TimeDomains:
         """A point of ``gateway``'s own on ``root``'s mesh time (global cycle ``g`` reached the
         host at ``now``): :meth:`SkinClock.teach`. True when that map began again."""
         d = self._domain(root, now)
-        return d is not None and d.clock.teach(gateway, g, now)
+        if d is None:
+            return False
+        d.unaged = True
+        return d.clock.teach(gateway, g, now)
 
     def record(self, gateway: int, rec: RecordPart, root: int, g: int, now: float,
                serial: float) -> tuple[float, bool]:
@@ -130,6 +142,12 @@ class TimeDomains:
             # contact's time with it.
             w = g + rec.age_us * int(self.hz) // 1_000_000 if 0 < rec.age_us <= rec.span_us else g
             if rec.part == 0:
+                if w == g:
+                    d.unaged = True
+                else:  # after a stretch of points that did not say their age: begin again here
+                    if d.unaged and now - d.aged_at > AGED_GAP:
+                        d.clock.anew(w, now)
+                    d.aged_at, d.unaged = now, False
                 jumped = d.clock.teach(gateway, w, now, g)
                 if jumped:  # the skin's time jumped: its frames start again
                     d.frames.restart()

@@ -341,6 +341,12 @@ class SkinClock:
         part after the first, its point later by the line's time, was taken as that frame's."""
         return self._held.get(gateway, (-1, 0.0, -1))[2] == frame
 
+    def before(self, g: int, now: float) -> bool:
+        """Whether the map puts global cycle ``g`` no more than ``tolerance`` after ``now``
+        (or has no map yet): a frame whose gates could have started before a record of it
+        arrived at ``now``."""
+        return not self.map.synced or self.map.to_host_one(g) - now <= self.tolerance
+
     def _floor(self, gateway: int) -> int:
         """The global cycle more than ``slack`` behind the newest of ``gateway``'s own points
         the map took (its points come in order: one behind that is the skin's time gone back,

@@ -47,13 +47,14 @@ AGED_GAP = 0.25
 
 
 class _Domain:
-    __slots__ = ("clock", "frames", "aged_at", "unaged")
+    __slots__ = ("clock", "frames", "aged_at", "unaged", "ages")
 
     def __init__(self, clock: SkinClock, frames: SkinFrames) -> None:
         self.clock = clock
         self.frames = frames
         self.aged_at = -math.inf  # arrival of the newest point of a record that said its age
         self.unaged = False  # a point that did not say its age was taught since then
+        self.ages: dict[int, int] = {}  # gateway -> cycles of age its newest record taken said
 
 
 class TimeDomains:
@@ -154,8 +155,17 @@ class TimeDomains:
             # a record whose point the map holds back (its frame after its arrival, unconfirmed)
             # is refused, every part of it (each says its own age: asked by its frame): a copy
             # of an older record under an index corrupted ahead was given out as that later
-            # frame, whole, before the frame's own record came
-            t = math.nan if d.clock.held(gateway, g) else d.clock.frame_time(g, now)
+            # frame, whole, before the frame's own record came. Not when its age alone put the
+            # point there: by the gateway's age before, its frame would have been taken (as
+            # without ages), so the point stays held and the record is taken (refused, its
+            # elements were unknown in that frame). An index corrupted ahead is still refused.
+            held = d.clock.held(gateway, g)
+            if held and w != g:
+                before = d.ages.get(gateway)
+                held = before is None or not d.clock.before(g + before, now)
+            elif not held and rec.part == 0 and w != g:
+                d.ages[gateway] = w - g
+            t = math.nan if held else d.clock.frame_time(g, now)
         d.frames.add(gateway, rec, now, t, serial)
         return t, jumped
 
@@ -170,6 +180,7 @@ class TimeDomains:
         """Stop following ``gateway`` (gone for good) in every domain."""
         for d in self._domains.values():
             d.frames.forget(gateway)
+            d.ages.pop(gateway, None)
         self._root_of.pop(gateway, None)
 
     # -- out -----------------------------------------------------------------------------

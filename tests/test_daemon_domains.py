@@ -181,3 +181,30 @@ def test_a_record_whose_age_alone_is_wrong_is_taken_by_its_frame() -> None:
     err = [f.t - (100.0 + f.index / RATE) for f in frames if f.index >= 300]
     assert refused == 0 and len(frames) == 500 and all(f.complete for f in frames), refused
     assert -1e-4 <= min(err) and max(err) <= line + 1e-4, (min(err), max(err))
+
+
+def test_a_record_beyond_its_span_on_a_deep_schedule_is_taken() -> None:
+    """A deep schedule (span 0.48 s): records go 0.31-0.32 s after their gates. One was
+    written later than its span (0.5 s): its age is not believed and it teaches its frame's
+    gate start, as a record that says none. The gateway's newest point was counted by its
+    age (when it was written), so this frame looked more than 0.25 s behind it, the skin's
+    time gone back: the record was refused, its elements unknown, where without ages it
+    was taken."""
+    line = 0.0013
+    td = TimeDomains(HZ, margin=0.02)
+    frames, refused, events = [], 0, []
+    for k in range(1500):
+        for gw in (1, 2):
+            age = 0.5 if (gw, k) == (1, 1000) else 0.30 + 0.01 * gw
+            rec = Readout(k, RATE, Mode.COUNTER, 1, (ReadoutSample(gw * 10, 1, 2, 0),), (), (), 480_000, 0, 1, 1,
+                          int(age * 1e6) if age <= 0.48 else 0)  # (said beyond the span or not: not believed)
+            events.append((100.0 + k / RATE + age + line, gw, rec))
+    for now, gw, rec in sorted(events, key=lambda e: e[0]):
+        t, _ = td.record(gw, rec, 1, rec.index * HZ // RATE, now, 0.001)
+        refused += math.isnan(t)
+        frames += td.take(now)
+    frames += td.take(math.inf)
+    assert refused == 0 and len(frames) == 1500, refused
+    assert all(len(f.bridges) == 2 for f in frames if f.index >= 100)
+    err = [f.t - (100.0 + f.index / RATE) for f in frames if f.index >= 100]
+    assert -1e-4 <= min(err) and max(err) <= line + 1e-4, (min(err), max(err))

@@ -269,7 +269,7 @@ class SkinClock:
         self._memo: dict[int, float] = {}  # global cycle of a frame -> its host time
         self._newest = -1
         self._jump: list[tuple[int, float]] = []  # (g, arrival) of gateway points in a row ahead of or behind the map
-        self._by_gateway: dict[int, int] = {}  # gateway -> newest global cycle of its own the map took
+        self._by_gateway: dict[int, int] = {}  # gateway -> newest frame (global cycle) of its own the map took
         self._back = -1  # while a jump back waits for confirmation: frames behind this are not believed
 
     @property
@@ -281,13 +281,17 @@ class SkinClock:
         when the map began again (the skin's time jumped, confirmed): frame times given
         before no longer hold. ``frame``: the global cycle of the frame the point is of, when
         not ``g`` (a record's point is its frame's gate start plus its age): what
-        :meth:`held` is asked with."""
+        :meth:`held` is asked with, and how far behind the gateway's newest it is: by their
+        frames, not their points (a record written later than its span says no age and
+        teaches its gate start: on a deep schedule, 0.3 s and more before the point of the
+        gateway's record before, it passed for the skin's time gone back, and was refused)."""
+        key = g if frame < 0 else frame
         floor = self._floor(gateway)
-        back = g < floor
+        back = key < floor
         # where the map puts the point (NaN: no map yet), worked out once for both checks (to_host_one:
         # the arithmetic of to_host without arrays, as every readout record teaches a point)
         at = self.map.to_host_one(g) if self.map.synced else math.nan
-        if not back and self._hold(gateway, g, now, at, g if frame < 0 else frame):
+        if not back and self._hold(gateway, g, now, at, key):
             return False
         jumped = taught = self._believed(g, now, back, at)
         if taught and back:
@@ -297,7 +301,7 @@ class SkinClock:
         if jumped:
             self._by_gateway.clear()
         if taught:
-            self._by_gateway[gateway] = max(self._by_gateway.get(gateway, -1), g) if not jumped else g
+            self._by_gateway[gateway] = max(self._by_gateway.get(gateway, -1), key) if not jumped else key
         self._back = self._floor(gateway) if back and not taught else -1
         if jumped:
             self.resets += 1

@@ -83,11 +83,12 @@ class BridgeClock:
         self.offset = 0.0
         self.skew = 0.0
 
-    def restart(self, cycle: int, arrival: float) -> None:
+    def restart(self, cycle: int, arrival: float, count: bool = True) -> None:
         """Begin the fit again at ``cycle``, arrived at ``arrival``, and count it: the owner
         knows the counts jumped (the skin's time went back), which :meth:`observe` only
-        concludes after ``confirm`` bridge seconds of counts behind the newest."""
-        self.resets += 1
+        concludes after ``confirm`` bridge seconds of counts behind the newest. ``count``
+        False: no reset, the owner's points before were only later than they could be."""
+        self.resets += count
         self._restart(int(cycle) % self._mod, arrival)
 
     def suspect_reset(self) -> None:
@@ -258,7 +259,8 @@ class SkinClock:
         self.hz = float(hz)
         self.slack = slack
         self.tolerance = tolerance
-        self._held: dict[int, tuple[int, float]] = {}  # gateway -> its point that would lower the map, unconfirmed
+        # gateway -> its point that would lower the map, unconfirmed: (g, arrival, its frame's cycle)
+        self._held: dict[int, tuple[int, float, int]] = {}
         self.confirm, self.confirm_time = confirm, confirm_time
         self.memory = memory  # s of frames whose host time is kept once given
         self.memory_keys = memory_keys  # frames kept before forgetting old ones is looked at
@@ -267,23 +269,29 @@ class SkinClock:
         self._memo: dict[int, float] = {}  # global cycle of a frame -> its host time
         self._newest = -1
         self._jump: list[tuple[int, float]] = []  # (g, arrival) of gateway points in a row ahead of or behind the map
-        self._by_gateway: dict[int, int] = {}  # gateway -> newest global cycle of its own the map took
+        self._by_gateway: dict[int, int] = {}  # gateway -> newest frame (global cycle) of its own the map took
         self._back = -1  # while a jump back waits for confirmation: frames behind this are not believed
 
     @property
     def synced(self) -> bool:
         return self.map.synced
 
-    def teach(self, gateway: int, g: int, now: float) -> bool:
+    def teach(self, gateway: int, g: int, now: float, frame: int = -1) -> bool:
         """A point of ``gateway``'s own: global cycle ``g`` reached the host at ``now``. True
         when the map began again (the skin's time jumped, confirmed): frame times given
-        before no longer hold."""
+        before no longer hold. ``frame``: the global cycle of the frame the point is of, when
+        not ``g`` (a record's point is its frame's gate start plus its age): what
+        :meth:`held` is asked with, and how far behind the gateway's newest it is: by their
+        frames, not their points (a record written later than its span says no age and
+        teaches its gate start: on a deep schedule, 0.3 s and more before the point of the
+        gateway's record before, it passed for the skin's time gone back, and was refused)."""
+        key = g if frame < 0 else frame
         floor = self._floor(gateway)
-        back = g < floor
+        back = key < floor
         # where the map puts the point (NaN: no map yet), worked out once for both checks (to_host_one:
         # the arithmetic of to_host without arrays, as every readout record teaches a point)
         at = self.map.to_host_one(g) if self.map.synced else math.nan
-        if not back and self._hold(gateway, g, now, at):
+        if not back and self._hold(gateway, g, now, at, key):
             return False
         jumped = taught = self._believed(g, now, back, at)
         if taught and back:
@@ -293,7 +301,7 @@ class SkinClock:
         if jumped:
             self._by_gateway.clear()
         if taught:
-            self._by_gateway[gateway] = max(self._by_gateway.get(gateway, -1), g) if not jumped else g
+            self._by_gateway[gateway] = max(self._by_gateway.get(gateway, -1), key) if not jumped else key
         self._back = self._floor(gateway) if back and not taught else -1
         if jumped:
             self.resets += 1
@@ -301,7 +309,21 @@ class SkinClock:
             self._newest = -1
         return jumped
 
-    def _hold(self, gateway: int, g: int, now: float, at: float) -> bool:
+    def anew(self, g: int, now: float) -> None:
+        """Begin the map's envelope again at the point (``g``, ``now``), the skin's time
+        unchanged: the points it learned from were all later than the skin's (records that
+        did not say their age, placed at their frame's gate start), and the quicker points
+        from now on would lower it by that step, which the skew fit, its line through the
+        old blocks' minima and the new, ran on downwards past the newest (frames put up to
+        4 ms before their gate start for a minute). The frames already mapped keep their
+        host times; no jump is counted."""
+        if not self.map.synced:
+            return
+        self.map.restart(g, now, count=False)
+        self._held.clear()
+        self._jump = []
+
+    def _hold(self, gateway: int, g: int, now: float, at: float, frame: int) -> bool:
         """Whether ``gateway``'s point (``g``, ``now``) is held back: the map puts it (at
         ``at``) more than ``tolerance`` (and at most ``slack``) after its arrival, and the
         gateway's previous point was not one such that agrees with it (see the class)."""
@@ -313,13 +335,21 @@ class SkinClock:
             return False
         if held is not None and g > held[0] and abs((g - held[0]) / self.hz - (now - held[1])) <= self.tolerance:
             return False
-        self._held[gateway] = (g, now)
+        self._held[gateway] = (g, now, frame)
         return True
 
-    def held(self, gateway: int, g: int) -> bool:
-        """Whether ``gateway``'s point of global cycle ``g`` is the one held back (its frame
-        is not believed either: a record of it may hold an older sample under a wrong index)."""
-        return self._held.get(gateway, (-1, 0.0))[0] == g
+    def held(self, gateway: int, frame: int) -> bool:
+        """Whether ``gateway``'s point held back is of the frame at global cycle ``frame`` (the
+        frame is not believed either: a record of it may hold an older sample under a wrong
+        index). By the frame, not the point: each part of a record says its own age, and a
+        part after the first, its point later by the line's time, was taken as that frame's."""
+        return self._held.get(gateway, (-1, 0.0, -1))[2] == frame
+
+    def before(self, g: int, now: float) -> bool:
+        """Whether the map puts global cycle ``g`` no more than ``tolerance`` after ``now``
+        (or has no map yet): a frame whose gates could have started before a record of it
+        arrived at ``now``."""
+        return not self.map.synced or self.map.to_host_one(g) - now <= self.tolerance
 
     def _floor(self, gateway: int) -> int:
         """The global cycle more than ``slack`` behind the newest of ``gateway``'s own points

@@ -39,12 +39,22 @@ from numpy.typing import NDArray
 MAX_DOMAINS = 64
 
 
+#: s without a point of a record that said its age, after which such a point, following
+#: points that did not say theirs, begins the map's envelope again (:meth:`SkinClock.anew`).
+#: Points of both kinds taught together (a gateway that says its age beside one that does
+#: not) leave the envelope to the quicker; a stretch of only the slower ones builds it up.
+AGED_GAP = 0.25
+
+
 class _Domain:
-    __slots__ = ("clock", "frames")
+    __slots__ = ("clock", "frames", "aged_at", "unaged", "ages")
 
     def __init__(self, clock: SkinClock, frames: SkinFrames) -> None:
         self.clock = clock
         self.frames = frames
+        self.aged_at = -math.inf  # arrival of the newest point of a record that said its age
+        self.unaged = False  # a point that did not say its age was taught since then
+        self.ages: dict[int, int] = {}  # gateway -> cycles of age its newest record taken said
 
 
 class TimeDomains:
@@ -100,7 +110,10 @@ class TimeDomains:
         """A point of ``gateway``'s own on ``root``'s mesh time (global cycle ``g`` reached the
         host at ``now``): :meth:`SkinClock.teach`. True when that map began again."""
         d = self._domain(root, now)
-        return d is not None and d.clock.teach(gateway, g, now)
+        if d is None:
+            return False
+        d.unaged = True
+        return d.clock.teach(gateway, g, now)
 
     def record(self, gateway: int, rec: RecordPart, root: int, g: int, now: float,
                serial: float) -> tuple[float, bool]:
@@ -130,13 +143,29 @@ class TimeDomains:
             # contact's time with it.
             w = g + rec.age_us * int(self.hz) // 1_000_000 if 0 < rec.age_us <= rec.span_us else g
             if rec.part == 0:
-                jumped = d.clock.teach(gateway, w, now)
+                if w == g:
+                    d.unaged = True
+                else:  # after a stretch of points that did not say their age: begin again here
+                    if d.unaged and now - d.aged_at > AGED_GAP:
+                        d.clock.anew(w, now)
+                    d.aged_at, d.unaged = now, False
+                jumped = d.clock.teach(gateway, w, now, g)
                 if jumped:  # the skin's time jumped: its frames start again
                     d.frames.restart()
             # a record whose point the map holds back (its frame after its arrival, unconfirmed)
-            # is refused: a copy of an older record under an index corrupted ahead was given
-            # out as that later frame, whole, before the frame's own record came
-            t = math.nan if d.clock.held(gateway, w) else d.clock.frame_time(g, now)
+            # is refused, every part of it (each says its own age: asked by its frame): a copy
+            # of an older record under an index corrupted ahead was given out as that later
+            # frame, whole, before the frame's own record came. Not when its age alone put the
+            # point there: by the gateway's age before, its frame would have been taken (as
+            # without ages), so the point stays held and the record is taken (refused, its
+            # elements were unknown in that frame). An index corrupted ahead is still refused.
+            held = d.clock.held(gateway, g)
+            if held and w != g:
+                before = d.ages.get(gateway)
+                held = before is None or not d.clock.before(g + before, now)
+            elif not held and rec.part == 0 and w != g:
+                d.ages[gateway] = w - g
+            t = math.nan if held else d.clock.frame_time(g, now)
         d.frames.add(gateway, rec, now, t, serial)
         return t, jumped
 
@@ -151,6 +180,7 @@ class TimeDomains:
         """Stop following ``gateway`` (gone for good) in every domain."""
         for d in self._domains.values():
             d.frames.forget(gateway)
+            d.ages.pop(gateway, None)
         self._root_of.pop(gateway, None)
 
     # -- out -----------------------------------------------------------------------------

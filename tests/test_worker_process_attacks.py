@@ -192,7 +192,7 @@ def test_a_stopping_contact_worker_does_not_start_a_new_process() -> None:
     cw.start()
     cw.stop()
     job: Any = SimpleNamespace(snapshot=SimpleNamespace(touched=SimpleNamespace(any=lambda: True)),  # what estimate reads
-                          spec=SimpleNamespace(max_missed=3))
+                          spec=SimpleNamespace(max_missed=3), owner="attack")
     assert asyncio.run(cw.estimate(job, 1.0)) is None  # the dead worker: BrokenProcessPool -> _replace
     assert asyncio.run(cw.estimate(job, 1.0)) is None  # the drain's last look
     assert len(made) == 1, f"{len(made)} executors made: a new worker was started during the stop"
@@ -318,7 +318,7 @@ def test_a_first_estimate_whose_exception_does_not_unpickle_does_not_hang_the_co
 
     monkeypatch.setattr(contact_worker, "estimate", _estimate_raising)
     cw = ContactWorker(logging.getLogger("attack"))
-    job = SimpleNamespace(snapshot=SimpleNamespace(touched=_Touched()), spec=SimpleNamespace(max_missed=3))
+    job = SimpleNamespace(snapshot=SimpleNamespace(touched=_Touched()), spec=SimpleNamespace(max_missed=3), owner="attack")
     try:
         try:
             got = asyncio.run(asyncio.wait_for(cw.estimate(job, 1.0), 8))  # type: ignore[arg-type]
@@ -378,7 +378,7 @@ def test_a_replacement_worker_that_hangs_too_is_caught_by_the_timeout(monkeypatc
     cw.start()
 
     def job(hang: bool) -> SimpleNamespace:
-        return SimpleNamespace(snapshot=SimpleNamespace(touched=_Touched()), spec=SimpleNamespace(max_missed=3),
+        return SimpleNamespace(snapshot=SimpleNamespace(touched=_Touched()), spec=SimpleNamespace(max_missed=3), owner="attack",
                                hang=hang)
 
     async def scenario() -> None:

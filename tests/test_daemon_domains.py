@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 from cellbridge.daemon.core.domains import TimeDomains
+from cellbridge.daemon.core.frames import SkinFrame
 from cellbridge.daemon.core.readings import ElementReadings
 from cellbridge.protocol import Mode, Readout, ReadoutSample
 
@@ -28,6 +29,24 @@ def feed(td: TimeDomains, gateway: int, root: int, k0: int, frames: range, bridg
         k = k0 + i
         td.record(gateway, record(k, bridges, root), root, k * HZ // RATE, t0 + i / RATE + SPAN_US * 1e-6 + 0.001,
                   0.001)
+
+
+def aged(k: int, gateway: int, span_us: int, age_us: int) -> Readout:
+    """Gateway ``gateway``'s record of frame ``k`` on root 1: its one element sampled, its age said."""
+    return Readout(k, RATE, Mode.COUNTER, 1, (ReadoutSample(gateway * 10, 1, 2, 0),), (), (), span_us, 0, 1, 1,
+                   age_us)
+
+
+def arrive(td: TimeDomains, events: list[tuple[float, int, Readout]]) -> tuple[list[SkinFrame], int]:
+    """Each (arrival, gateway, record) in order of arrival, the frames taken after each:
+    (the frames given out, how many records were refused)."""
+    frames: list[SkinFrame] = []
+    refused = 0
+    for now, gw, rec in sorted(events, key=lambda e: e[0]):
+        t, _ = td.record(gw, rec, 1, rec.index * HZ // RATE, now, 0.001)
+        refused += math.isnan(t)
+        frames += td.take(now)
+    return frames, refused
 
 
 def test_two_roots_with_unrelated_indices_give_both_their_frames() -> None:
@@ -142,17 +161,12 @@ def test_records_that_begin_to_say_their_age_move_no_frame_before_its_gate_start
     the first aged record of each gateway was refused (its frame lost)."""
     line = 0.0013  # s from a record's writing to its arrival
     td = TimeDomains(HZ, margin=0.02)
-    err, refused, frames = [], 0, []
     events = []
     for k in range(3000):  # 30 s
         for gw, age in ((1, 0.006), (2, 0.008)):
             said = int(age * 1e6) if k >= 300 else 0
-            rec = Readout(k, RATE, Mode.COUNTER, 1, (ReadoutSample(gw * 10, 1, 2, 0),), (), (), 20_000, 0, 1, 1, said)
-            events.append((100.0 + k / RATE + age + line, gw, rec))
-    for now, gw, rec in sorted(events, key=lambda e: e[0]):
-        t, _ = td.record(gw, rec, 1, rec.index * HZ // RATE, now, 0.001)
-        refused += math.isnan(t)
-        frames += td.take(now)
+            events.append((100.0 + k / RATE + age + line, gw, aged(k, gw, 20_000, said)))
+    frames, refused = arrive(td, events)
     err = [f.t - (100.0 + f.index / RATE) for f in frames if f.index >= 300]
     assert refused == 0 and len(frames) == 3000 and all(f.complete for f in frames)
     assert -1e-4 <= min(err) and max(err) <= line + 1e-4, (min(err), max(err))
@@ -166,18 +180,12 @@ def test_a_record_whose_age_alone_is_wrong_is_taken_by_its_frame() -> None:
     the age they were known. The point stays held (it teaches nothing), the record is taken."""
     line = 0.0013
     td = TimeDomains(HZ, margin=0.02)
-    frames, refused = [], 0
     events = []
     for k in range(500):
         for gw, age in ((1, 0.006), (2, 0.008)):
             said = age + (0.006 if (gw, k) == (2, 400) else 0.0)
-            rec = Readout(k, RATE, Mode.COUNTER, 1, (ReadoutSample(gw * 10, 1, 2, 0),), (), (), 20_000, 0, 1, 1,
-                          int(said * 1e6))
-            events.append((100.0 + k / RATE + age + line, gw, rec))
-    for now, gw, rec in sorted(events, key=lambda e: e[0]):
-        t, _ = td.record(gw, rec, 1, rec.index * HZ // RATE, now, 0.001)
-        refused += math.isnan(t)
-        frames += td.take(now)
+            events.append((100.0 + k / RATE + age + line, gw, aged(k, gw, 20_000, int(said * 1e6))))
+    frames, refused = arrive(td, events)
     err = [f.t - (100.0 + f.index / RATE) for f in frames if f.index >= 300]
     assert refused == 0 and len(frames) == 500 and all(f.complete for f in frames), refused
     assert -1e-4 <= min(err) and max(err) <= line + 1e-4, (min(err), max(err))
@@ -192,17 +200,13 @@ def test_a_record_beyond_its_span_on_a_deep_schedule_is_taken() -> None:
     was taken."""
     line = 0.0013
     td = TimeDomains(HZ, margin=0.02)
-    frames, refused, events = [], 0, []
+    events = []
     for k in range(1500):
         for gw in (1, 2):
             age = 0.5 if (gw, k) == (1, 1000) else 0.30 + 0.01 * gw
-            rec = Readout(k, RATE, Mode.COUNTER, 1, (ReadoutSample(gw * 10, 1, 2, 0),), (), (), 480_000, 0, 1, 1,
-                          int(age * 1e6) if age <= 0.48 else 0)  # (said beyond the span or not: not believed)
-            events.append((100.0 + k / RATE + age + line, gw, rec))
-    for now, gw, rec in sorted(events, key=lambda e: e[0]):
-        t, _ = td.record(gw, rec, 1, rec.index * HZ // RATE, now, 0.001)
-        refused += math.isnan(t)
-        frames += td.take(now)
+            said = int(age * 1e6) if age <= 0.48 else 0  # (said beyond the span or not: not believed)
+            events.append((100.0 + k / RATE + age + line, gw, aged(k, gw, 480_000, said)))
+    frames, refused = arrive(td, events)
     frames += td.take(math.inf)
     assert refused == 0 and len(frames) == 1500, refused
     assert all(len(f.bridges) == 2 for f in frames if f.index >= 100)

@@ -47,6 +47,7 @@ import time
 from typing import Any
 
 import msgpack
+from cellbridge.daemon.core.contacts import EstimateRequest
 from cellbridge.daemon.core.domains import TimeDomains
 from cellbridge.daemon.core.layout import LayoutStages
 from cellbridge.daemon.core.pipeline import Pipeline
@@ -58,7 +59,7 @@ TRACE: dict[str, list[Any]] = {"s": [], "l": [], "e": [], "p": [], "d": [], "b":
 WORKER_TRACE = "CB_PRESS_TRACE_WORKER"  #: env: the file the contact worker notes its jobs in
 
 
-def timed_estimate(job: Any) -> Any:
+def timed_estimate(req: EstimateRequest) -> list[dict[str, Any]]:
     """The worker's estimate, its start and end appended to the file $CB_PRESS_TRACE_WORKER
     names (the worker imports this module by name: bench/ is on its sys.path)."""
     import os
@@ -66,7 +67,7 @@ def timed_estimate(job: Any) -> Any:
     from cellbridge.daemon.core.contacts import estimate
 
     t0 = time.monotonic()
-    out = estimate(job)
+    out = estimate(req)
     with open(os.environ[WORKER_TRACE], "a") as f:
         f.write(f"{t0!r} {time.monotonic()!r}\n")
     return out

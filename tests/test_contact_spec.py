@@ -14,7 +14,7 @@ import dataclasses
 import numpy as np
 import pytest
 from cellbridge.daemon.core.config import parse_config
-from cellbridge.daemon.core.contacts import ContactJob, ContactSnapshot, ContactSpec, estimate
+from cellbridge.daemon.core.contacts import ContactJob, ContactSnapshot, ContactSpec, EstimateRequest, estimate
 from cellbridge.tactile import grid_layout, skin_response
 
 LAYOUT = grid_layout(4, 4)
@@ -28,6 +28,12 @@ def _snapshot(ids: np.ndarray = LAYOUT.ids) -> ContactSnapshot:
                            ids, 1.0)
 
 
+def _shipped(spec: ContactSpec, snap: ContactSnapshot, owner: str) -> EstimateRequest:
+    """A request with ``spec`` as the worker may get it: past the host's own checks
+    (:meth:`ContactJob.request`), so the worker's are what stands."""
+    return EstimateRequest(owner, b"", spec, snap.dc, snap.touched, snap.t_host, snap.t_frame, snap.unknown, 0, ())
+
+
 @pytest.mark.parametrize(("ids", "centres", "says"), [
     (SPEC.ids[:-1], SPEC.centres, "ids are 127 bytes"),
     (SPEC.ids, SPEC.centres[:-8], "centres are 248 bytes"),
@@ -39,17 +45,23 @@ def test_a_spec_whose_bytes_make_no_layout_is_refused_saying_why(ids: bytes, cen
     with pytest.raises(ValueError, match=f"contact spec: {says}"):
         spec.build()
     with pytest.raises(ValueError, match=f"contact spec: {says}"):
-        estimate(ContactJob(f"spec {says}", spec, _snapshot()))
+        ContactJob(f"spec {says}", spec, _snapshot()).request(b"", True)
+    with pytest.raises(ValueError, match=f"contact spec: {says}"):
+        estimate(_shipped(spec, _snapshot(), f"spec {says}"))
 
 
 def test_a_snapshot_of_other_elements_than_its_spec_is_refused() -> None:
     """The same count of elements, other ids: the estimate named its contacts by the spec's
     ids, which the host then looked up in the snapshot's."""
-    assert estimate(ContactJob("spec same ids", SPEC, _snapshot()))  # (the press: a contact)
+    assert estimate(ContactJob("spec same ids", SPEC, _snapshot()).request(SPEC.digest(), True))  # (a contact)
     other = np.asarray(LAYOUT.ids, dtype=np.int64) + 1000
-    with pytest.raises(ValueError, match="contact job: the snapshot's 16 elements are not its spec's"):
-        estimate(ContactJob("spec same ids", SPEC, _snapshot(other)))
-    assert estimate(ContactJob("spec same ids", SPEC, _snapshot()))  # the estimator kept goes on
+    with pytest.raises(ValueError, match="contact job: the snapshot's 16 elements are not its spec's 16"):
+        ContactJob("spec same ids", SPEC, _snapshot(other)).request(SPEC.digest(), False)
+    fewer = _snapshot()
+    fewer = dataclasses.replace(fewer, dc=fewer.dc[:-1], touched=fewer.touched[:-1])
+    with pytest.raises(ValueError, match="contact job: the snapshot's 15 elements are not its spec's 16"):
+        estimate(_shipped(SPEC, fewer, "spec same ids"))  # (past the host's check: the worker's own)
+    assert estimate(ContactJob("spec same ids", SPEC, _snapshot()).request(SPEC.digest(), False))  # kept, goes on
 
 
 def test_the_worker_process_refuses_a_hostile_spec_and_goes_on(warm_kernels: None) -> None:
@@ -67,10 +79,12 @@ def test_the_worker_process_refuses_a_hostile_spec_and_goes_on(warm_kernels: Non
                dataclasses.replace(SPEC, centres=SPEC.centres[:-8])]
         for spec in bad:
             with pytest.raises(ValueError, match="contact spec: "):
-                pool.submit(estimate, ContactJob("hostile", spec, _snapshot())).result(300)
+                pool.submit(estimate, _shipped(spec, _snapshot(), "hostile")).result(300)
+        snap = _snapshot()
+        fewer = dataclasses.replace(snap, dc=snap.dc[:-1], touched=snap.touched[:-1])
         with pytest.raises(ValueError, match="contact job: "):
-            pool.submit(estimate, ContactJob("hostile", SPEC, _snapshot(LAYOUT.ids + 1000))).result(300)
-        assert pool.submit(estimate, ContactJob("hostile", SPEC, _snapshot())).result(300)
+            pool.submit(estimate, _shipped(SPEC, fewer, "hostile")).result(300)
+        assert pool.submit(estimate, _shipped(SPEC, snap, "hostile")).result(300)
         assert pool.pid == pid and pool._proc.is_alive()
     finally:
         pool.kill()

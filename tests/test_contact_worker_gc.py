@@ -36,10 +36,10 @@ def test_the_worker_process_freezes_its_warm_up_and_each_estimator_it_builds(war
         pool.submit(warm_up).result(LIMIT)
         after_warm_up = pool.submit(gc.get_freeze_count).result(LIMIT)
         assert after_warm_up > 10_000  # the modules and kernels at least
-        assert pool.submit(estimate, _job("a")).result(LIMIT)  # the press: a contact
+        assert pool.submit(estimate, _job("a").request(b"", True)).result(LIMIT)  # the press: a contact
         after_build = pool.submit(gc.get_freeze_count).result(LIMIT)
         assert after_build > after_warm_up  # the new estimator's objects too
-        assert pool.submit(estimate, _job("a")).result(LIMIT)  # the same spec: nothing built, nothing more
+        assert pool.submit(estimate, _job("a").request(b"", True)).result(LIMIT)  # the same spec: nothing built, nothing more
         assert pool.submit(gc.get_freeze_count).result(LIMIT) == after_build
     finally:
         pool.kill()
@@ -49,5 +49,5 @@ def test_the_worker_process_freezes_its_warm_up_and_each_estimator_it_builds(war
 def test_an_inline_estimate_leaves_its_callers_collector_alone() -> None:
     frozen = gc.get_freeze_count()
     warm_up()
-    assert estimate(_job(f"inline {id(object())}"))
+    assert estimate(_job(f"inline {id(object())}").request(b"", True))
     assert gc.get_freeze_count() == frozen

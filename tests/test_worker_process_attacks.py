@@ -191,8 +191,7 @@ def test_a_stopping_contact_worker_does_not_start_a_new_process() -> None:
     cw = ContactWorker(logging.getLogger("attack"), factory)
     cw.start()
     cw.stop()
-    job: Any = SimpleNamespace(snapshot=SimpleNamespace(touched=SimpleNamespace(any=lambda: True)),  # what estimate reads
-                          spec=SimpleNamespace(max_missed=3), owner="attack")
+    job: Any = _FakeJob()
     assert asyncio.run(cw.estimate(job, 1.0)) is None  # the dead worker: BrokenProcessPool -> _replace
     assert asyncio.run(cw.estimate(job, 1.0)) is None  # the drain's last look
     assert len(made) == 1, f"{len(made)} executors made: a new worker was started during the stop"
@@ -318,7 +317,7 @@ def test_a_first_estimate_whose_exception_does_not_unpickle_does_not_hang_the_co
 
     monkeypatch.setattr(contact_worker, "estimate", _estimate_raising)
     cw = ContactWorker(logging.getLogger("attack"))
-    job = SimpleNamespace(snapshot=SimpleNamespace(touched=_Touched()), spec=SimpleNamespace(max_missed=3), owner="attack")
+    job = _FakeJob()
     try:
         try:
             got = asyncio.run(asyncio.wait_for(cw.estimate(job, 1.0), 8))  # type: ignore[arg-type]
@@ -338,6 +337,28 @@ class _Touched:
         return True
 
 
+class _FakeSpec:
+    """What the contact worker reads of a job's spec."""
+
+    max_missed = 3
+
+    def digest(self) -> bytes:
+        return b"stand-in"
+
+
+class _FakeJob:
+    """A picklable stand-in contact job: what the contact worker reads of one (its owner, its
+    spec, its snapshot's touched), and, as its request to the worker, itself (the stand-in
+    estimates read ``hang``)."""
+
+    def __init__(self, hang: bool = False) -> None:
+        self.owner, self.hang, self.spec = "attack", hang, _FakeSpec()
+        self.snapshot = SimpleNamespace(touched=_Touched())
+
+    def request(self, key: bytes, ship: bool) -> _FakeJob:
+        return self
+
+
 def test_a_ctrl_c_while_the_worker_starts_does_not_kill_it() -> None:
     """The worker ignores SIGINT only once _serve runs: a Ctrl-C to the process group in the
     spawned interpreter's bootstrap (imports, unpickling; daemon start, each replacement)
@@ -355,7 +376,7 @@ def test_a_ctrl_c_while_the_worker_starts_does_not_kill_it() -> None:
         _end(w)
 
 
-def _estimate_maybe_hang(job: SimpleNamespace) -> list:
+def _estimate_maybe_hang(job: _FakeJob) -> list:
     if job.hang:
         time.sleep(3600)
     return []
@@ -377,9 +398,8 @@ def test_a_replacement_worker_that_hangs_too_is_caught_by_the_timeout(monkeypatc
     cw = ContactWorker(logging.getLogger("attack"))
     cw.start()
 
-    def job(hang: bool) -> SimpleNamespace:
-        return SimpleNamespace(snapshot=SimpleNamespace(touched=_Touched()), spec=SimpleNamespace(max_missed=3), owner="attack",
-                               hang=hang)
+    def job(hang: bool) -> _FakeJob:
+        return _FakeJob(hang)
 
     async def scenario() -> None:
         assert await cw.estimate(job(False), 1.0) == []  # type: ignore[arg-type]

@@ -1,9 +1,11 @@
 """Contacts from one skin frame: what a contact estimate needs (snapshot, spec, job),
 and the estimator and tracker it runs, in the contact worker's process or inline.
 
-The worker builds its estimator from a small :class:`ContactSpec` and keeps it (with its
-tracks) per owner while the spec stays the same, so the estimate itself only ships the
-readings of one frame.
+The worker builds its estimator from a :class:`ContactSpec` and keeps it (with its
+tracks) per owner while the spec stays the same. What crosses to the worker is an
+:class:`EstimateRequest`: the readings of one frame the estimator reads, and the spec only
+while the worker has not built it (else its digest alone): on a humanoid's 1 144 elements a
+whole job pickled to about 80 kB, more than a pipe holds, and the request to about 21 kB.
 
 **Never a confident wrong contact.** Where a contact's elements or their neighbours are
 unknown in the frame, the contact lists them (``unknown_near``), and where the known
@@ -15,9 +17,11 @@ half its force, σ_F 4 mN)."""
 from __future__ import annotations
 
 import gc
+import hashlib
 import itertools
 import math
 import os
+import pickle
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -81,10 +85,17 @@ class ContactSpec:
                    layout.side, float(layout.neighbour_gap), noise, contact.method,  # type: ignore[arg-type]  # one of the estimator's methods: the config checks it
                    contact.birth_frames, contact.max_missed)
 
-    def build(self) -> ContactStage:
-        """The estimator of this spec. Raises ValueError, saying which, for bytes that are not
+    def digest(self) -> bytes:
+        """16 bytes that name this spec across processes: an estimate request whose worker
+        has built the spec carries them instead of the spec (:class:`EstimateRequest`)."""
+        return hashlib.blake2b(pickle.dumps((self.ids, self.centres, self.side, self.neighbour_gap, self.noise,
+                                             self.method, self.birth_frames, self.max_missed, self.bands)),
+                               digest_size=16).digest()
+
+    def check(self) -> int:
+        """The count of elements. Raises ValueError, saying which, for bytes that are not
         whole int64 ids and (x, y) float64 centres, one centre an id (a truncated spec, or
-        arrays of another dtype read as these), or that make no layout (SkinLayout's checks)."""
+        arrays of another dtype read as these)."""
         if not isinstance(self.ids, bytes) or not isinstance(self.centres, bytes):
             raise ValueError(f"contact spec: ids and centres must be bytes, got {type(self.ids).__name__} "
                              f"and {type(self.centres).__name__}")
@@ -95,6 +106,12 @@ class ContactSpec:
         n, m = len(self.ids) // 8, len(self.centres) // 16
         if n != m:
             raise ValueError(f"contact spec: {n} ids and {m} centres")
+        return n
+
+    def build(self) -> ContactStage:
+        """The estimator of this spec. Raises ValueError, saying which, for bytes that
+        :meth:`check` refuses or that make no layout (SkinLayout's checks)."""
+        self.check()
         layout = SkinLayout(np.frombuffer(self.centres, dtype=np.float64).reshape(-1, 2).copy(), side=self.side,
                             ids=np.frombuffer(self.ids, dtype=np.int64).copy(),
                             neighbour_gap=self.neighbour_gap)
@@ -116,6 +133,44 @@ class ContactJob:
     # The owner's contacts last published (as the worker gave them): a tracker built afresh
     # (new layout or settings, a replaced worker) continues them, so a held contact keeps its id.
     carry: tuple[dict[str, Any], ...] = ()
+
+    def request(self, key: bytes, ship: bool) -> EstimateRequest:
+        """What the worker needs of this job: ``key`` is the spec's :meth:`ContactSpec.digest`,
+        and the spec itself goes along when ``ship`` (the worker may not have built it).
+        Raises ValueError when the snapshot is of other elements than the spec's (contacts are
+        named by the spec's ids, and the host looks them up in the snapshot's), or a spec
+        that :meth:`ContactSpec.check` refuses."""
+        snap = self.snapshot
+        n = self.spec.check()
+        ids = np.ascontiguousarray(snap.ids, dtype=np.int64)
+        if ids.size != n or ids.tobytes() != self.spec.ids:
+            raise ValueError(f"contact job: the snapshot's {ids.size} elements are not its spec's {n}")
+        return EstimateRequest(self.owner, key, self.spec if ship else None, snap.dc, snap.touched, snap.t_host,
+                               snap.t_frame, snap.unknown, self.first_id, self.carry)
+
+
+@dataclass(frozen=True)
+class EstimateRequest:
+    """One estimate, as it crosses to the contact worker: the readings of one frame that the
+    estimator reads (not the sample times, cycle counts and ids the host keeps to publish
+    the contacts), and its estimator's spec by ``key`` (its digest), with the spec itself
+    only when the worker may not have built it (``spec`` None: the worker's own)."""
+
+    owner: str
+    key: bytes
+    spec: ContactSpec | None
+    dc: FloatArray  # (n, 2) as ContactSnapshot
+    touched: NDArray[np.bool_]
+    t_host: float
+    t_frame: float
+    unknown: NDArray[np.bool_] | None
+    first_id: int
+    carry: tuple[dict[str, Any], ...]
+
+
+class SpecNeeded(LookupError):
+    """The worker has no estimator under a request's key (a replaced worker, or one that
+    dropped the owner's): the request is to be sent again with its spec."""
 
 
 _OWNERS = itertools.count()
@@ -163,9 +218,10 @@ class ContactIdentity:
         return out
 
 
-#: The estimator each owner's jobs run on, built once per spec: in the worker process (or
-#: the caller's, with an inline executor). A few owners at most are kept.
-_STAGES: OrderedDict[str, tuple[ContactSpec, ContactStage]] = OrderedDict()
+#: The estimator each owner's requests run on, with its spec and the spec's digest, built
+#: once per spec: in the worker process (or the caller's, with an inline executor). A few
+#: owners at most are kept.
+_STAGES: OrderedDict[str, tuple[ContactSpec, bytes, ContactStage]] = OrderedDict()
 _MAX_OWNERS = 8
 #: This process is the contact worker's (:func:`in_worker`): only there does building an
 #: estimator end in :func:`_settle` (a test or tool estimating inline keeps its collector as it is).
@@ -191,28 +247,33 @@ def _settle() -> None:
     gc.freeze()
 
 
-def estimate(job: ContactJob) -> list[dict[str, Any]]:
-    """The contacts of ``job`` (tracked across its owner's jobs): what the contact worker runs.
+def estimate(req: EstimateRequest) -> list[dict[str, Any]]:
+    """The contacts of ``req`` (tracked across its owner's requests): what the contact worker runs.
 
-    The owner's estimator is rebuilt only when the spec changed (or this process has none:
-    a replaced worker); the rebuilt tracker continues the contacts the job carries. Raises
-    ValueError for a spec that makes no layout (:meth:`ContactSpec.build`) or a snapshot of
-    other elements than the spec's: refused, not estimated on whatever the bytes made."""
-    kept = _STAGES.get(job.owner)
-    if kept is None or kept[0] != job.spec:
-        kept = _STAGES[job.owner] = (job.spec, job.spec.build())
-        kept[1].carry(job.carry)
-        if _SETTLE:
-            _settle()
-    _STAGES.move_to_end(job.owner)
+    The owner's estimator is rebuilt only when the request ships a spec other than the one
+    built (or this process has none); the rebuilt tracker continues the contacts the request
+    carries. Raises :class:`SpecNeeded` for a request without its spec whose key is not the
+    estimator's here; ValueError for a spec that makes no layout (:meth:`ContactSpec.build`)
+    or readings of another count of elements than the spec's: refused, not estimated on
+    whatever the bytes made."""
+    kept = _STAGES.get(req.owner)
+    if req.spec is not None:
+        if kept is None or kept[0] != req.spec:
+            stage = req.spec.build()
+            stage.carry(req.carry)
+            kept = _STAGES[req.owner] = (req.spec, req.spec.digest(), stage)
+            if _SETTLE:
+                _settle()
+    elif kept is None or kept[1] != req.key:
+        raise SpecNeeded(f"contact worker: no estimator of spec {req.key.hex()} for {req.owner}")
+    _STAGES.move_to_end(req.owner)
     while len(_STAGES) > _MAX_OWNERS:
         _STAGES.popitem(last=False)
-    snap_ids = np.ascontiguousarray(job.snapshot.ids, dtype=np.int64)  # (the daemon's: as it is, no copy)
-    if snap_ids.tobytes() != job.spec.ids:  # contacts are named by the spec's ids, rows by the snapshot's (~1 µs)
-        raise ValueError(f"contact job: the snapshot's {snap_ids.size} elements are not its spec's "
-                         f"{len(job.spec.ids) // 8}")
-    kept[1].tracker.ids_from(job.first_id)
-    return kept[1].run(job.snapshot)
+    stage = kept[2]
+    if len(req.dc) != stage.layout.n:
+        raise ValueError(f"contact job: the snapshot's {len(req.dc)} elements are not its spec's {stage.layout.n}")
+    stage.tracker.ids_from(req.first_id)
+    return stage.run(req)
 
 
 def warm_up() -> None:
@@ -222,8 +283,7 @@ def warm_up() -> None:
     dc1, dc2 = skin_response(layout, [(0.02, 0.0, 1.0, 0.012)])
     touched = dc1 > 1e-13
     stage = ContactStage(layout, default_params(layout), 2e-15, "capacitance", birth_frames=1)
-    stage.run(ContactSnapshot(np.stack([dc1, dc2], axis=1), touched, 0.0, np.zeros(layout.n),
-                              np.zeros(layout.n, dtype=np.uint64), layout.ids, 0.0))
+    stage.run(EstimateRequest("warm-up", b"", None, np.stack([dc1, dc2], axis=1), touched, 0.0, 0.0, None, 0, ()))
     if _SETTLE:
         _settle()
 
@@ -262,7 +322,7 @@ class ContactStage:
                 kept.append(c if len(elements) == len(c["elements"]) else {**c, "elements": elements})
         return self.tracker.carry(kept)
 
-    def run(self, snap: ContactSnapshot) -> list[dict[str, Any]]:
+    def run(self, snap: EstimateRequest) -> list[dict[str, Any]]:
         if snap.touched.any():
             tracks = self.tracker.update(snap.dc[:, 0], snap.dc[:, 1], snap.touched, snap.t_host, at=snap.t_frame)
         else:  # an empty frame still counts: tracks miss it and end (no contact to be born)
@@ -272,7 +332,7 @@ class ContactStage:
             # a contact that only unknown elements supported is not seen in this frame (not
             # reported), and not missed either: it goes on under its id when they come back,
             # within UNSEEN_FRAMES frames in a row, and ends after that
-            gone = self.tracker.end_unsupported({int(i) for i in snap.ids[unknown]}, UNSEEN_FRAMES)
+            gone = self.tracker.end_unsupported({int(i) for i in self.layout.ids[unknown]}, UNSEEN_FRAMES)
             if gone:
                 tracks = [tc for tc in tracks if tc.id not in gone]
         return [bound_by_unknown(_finite(tc.to_dict()), self.layout, self._row, self._ring, unknown)

@@ -4,9 +4,10 @@ Production runs the worker in one spawned *process*: a thread would not do, as t
 estimator's Python code holds the interpreter lock for milliseconds at a time and every
 one of them would stall ingest. The worker takes its executor from a factory, so tests,
 tools and the golden files run the very same path on an :class:`InlineExecutor`. The
-worker builds its own estimator from a small :class:`~cellbridge.daemon.core.contacts.ContactSpec`
-and keeps it while the layout stays the same; a worker that dies is replaced at the next
-estimate.
+worker builds its own estimator from a :class:`~cellbridge.daemon.core.contacts.ContactSpec`
+and keeps it while the layout stays the same: the spec goes along with a request until the
+worker has answered one of it, and after that its digest alone. A worker that dies is
+replaced at the next estimate.
 """
 
 from __future__ import annotations
@@ -20,7 +21,15 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cellbridge.daemon.core.contacts import ContactJob, estimate, in_worker, warm_up
+from cellbridge.daemon.core.contacts import (
+    ContactJob,
+    ContactSpec,
+    EstimateRequest,
+    SpecNeeded,
+    estimate,
+    in_worker,
+    warm_up,
+)
 from cellbridge.daemon.shell.logs import event
 from cellbridge.daemon.shell.worker_process import WorkerProcess
 
@@ -75,6 +84,8 @@ class ContactWorker:
         self._ran = False  # the last estimate asked for ran the job (not skipped: nothing to track)
         self._built: tuple[str, Any] | None = None  # (owner, spec) of the last job that ran: the worker's estimator
         self._warm: concurrent.futures.Future[None] | None = None  # the current worker's warm-up
+        self._shipped: tuple[str, ContactSpec] | None = None  # (owner, spec) the current worker answered on
+        self._key: tuple[ContactSpec, bytes] | None = None  # the last spec's digest
 
     def _executor(self) -> concurrent.futures.Executor:
         if self._pool is None:
@@ -123,6 +134,45 @@ class ContactWorker:
             self._built = built
         return self._ran
 
+    def _request(self, job: ContactJob, ship: bool = False) -> EstimateRequest:
+        """``job`` as the worker takes it: with its spec while the current worker has not
+        answered a request of it (or ``ship``), else by the spec's digest alone."""
+        spec = job.spec
+        if self._key is None or self._key[0] is not spec:
+            self._key = (spec, spec.digest())
+        shipped = self._shipped
+        ship = ship or shipped is None or shipped[0] != job.owner or (shipped[1] is not spec and shipped[1] != spec)
+        return job.request(self._key[1], ship)
+
+    def _submit(self, job: ContactJob) -> concurrent.futures.Future[Contacts]:
+        """Hand ``job`` to the worker; a worker that has not the spec (:class:`SpecNeeded`:
+        it was replaced, or dropped the owner's estimator) gets it sent along again, at
+        once, before the answer is handed on."""
+        pool = self._executor()  # (the retry goes to the same worker: never a new one from the results thread)
+        first = pool.submit(estimate, self._request(job))
+        out: concurrent.futures.Future[Contacts] = concurrent.futures.Future()
+        out.set_running_or_notify_cancel()
+
+        def settle(fut: concurrent.futures.Future[Contacts], again: bool) -> None:
+            exc = fut.exception()
+            if exc is None:
+                self._shipped = (job.owner, job.spec)
+                out.set_result(fut.result())
+            elif isinstance(exc, SpecNeeded) and again:
+                self._shipped = None
+                try:
+                    retry = pool.submit(estimate, self._request(job, ship=True))
+                except Exception as err:  # (a worker shut down meanwhile)
+                    out.set_exception(err)
+                    return
+                retry.add_done_callback(lambda f: settle(f, False))
+            else:
+                self._shipped = None
+                out.set_exception(exc)
+
+        first.add_done_callback(lambda f: settle(f, True))
+        return out
+
     def last_ran(self) -> bool:
         """Whether the last estimate asked for ran its job (False: skipped, as nothing was
         touched and every track had ended; its answer was no contacts at no cost). The
@@ -133,7 +183,7 @@ class ContactWorker:
         """The contacts of ``job``, waiting for them (an inline executor: at once). Raises
         what the estimate raised."""
         t0 = time.perf_counter()
-        contacts = self._executor().submit(estimate, job).result() if self._needed(job) else []
+        contacts = self._submit(job).result() if self._needed(job) else []
         self._count(t0)
         return contacts
 
@@ -156,7 +206,7 @@ class ContactWorker:
                     with contextlib.suppress(Exception):  # a failed warm-up is the estimate's to report
                         await asyncio.shield(asyncio.wrap_future(self._warm))
                     t0 = time.perf_counter()  # last_ms/max_ms time the estimate, not the warm-up before it
-                self._job = self._executor().submit(estimate, job)
+                self._job = self._submit(job)
                 limit = timeout if self._answered or self._stopping or self._warm is not None else None
                 # asyncio.timeout, not wait_for: Python 3.11's wait_for returns a result that
                 # came in the step before its task was cancelled, and the cancel is lost (the
@@ -189,6 +239,7 @@ class ContactWorker:
         """Kill the worker (hung, or dead already) and warm up a new one."""
         pool, self._pool = self._pool, None
         self._answered = False
+        self._shipped = None
         self.stats["worker_restarts"] += 1
         if pool is not None:
             _kill(pool)

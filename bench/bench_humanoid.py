@@ -105,7 +105,6 @@ def generate(skin, reporting: str, seconds: float, into: Path) -> dict:
     for w in writers.values():  # every line's replay shifted by one start: the gateways' offsets kept
         w.write(T0, b"")
     last: dict[int, float] = {}  # frame index -> s from its gate start to its last record
-    first = math.inf  # s from a frame's gate start to its earliest record, least over the run
     c0 = time.process_time()
     nbytes = 0
     for k in range(int(round(seconds * RATE))):
@@ -113,12 +112,11 @@ def generate(skin, reporting: str, seconds: float, into: Path) -> dict:
             writers[g].write(T0 + t, data)
             nbytes += len(data)
             last[k] = max(last.get(k, 0.0), t - k / RATE)
-            first = min(first, t - k / RATE)
     cpu = time.process_time() - c0
     for w in writers.values():
         w.close()
     return {"cpu": cpu, "seconds": seconds, "bytes": nbytes, "last": last, "gateways": traffic.gateways,
-            "counters": dict(traffic.counters), "first": first}
+            "counters": dict(traffic.counters)}
 
 
 def cycle_mesh_rate(skin, seconds: float) -> float:
@@ -202,7 +200,9 @@ def run_daemon(skin, gen: dict, into: Path, reporting: str, trace: list[list[obj
                 k = round(live[0]["cycles"][0] * RATE / CLOCK)
                 t_in = (k / RATE) % ROUND
                 if len(live) >= 10 and FIRST % ROUND + 0.3 < t_in < FIRST % ROUND + HOLD - 0.1 and k in gen["last"]:
-                    lat.append(now - m["t_sample"] - (gen["last"][k] - gen["first"]))
+                    # t_sample is the frame's gate start (on the host's map, learned from
+                    # each record's age and arrival): its last record was fed last[k] after it
+                    lat.append(now - m["t_sample"] - gen["last"][k])
                     got_at[m["t_sample"]] = now
                 contacts_max = max(contacts_max, len(live))
             cpu1, rss, own1 = group_cpu_rss(proc.pid)

@@ -44,8 +44,8 @@ _LIVE: weakref.WeakSet[WorkerProcess] = weakref.WeakSet()  # workers started and
 
 class WorkerProcess(concurrent.futures.Executor):
     """An executor of one spawned process. :meth:`submit` sends the job at once, from the
-    caller's thread (jobs are small: a contact job pickles to about 2.5 KB, well inside a
-    pipe's buffer); a result thread completes the futures in order. A process that dies
+    caller's thread (jobs are small: a contact request without its spec stays inside a
+    pipe's buffer even on a humanoid's skin); a result thread completes the futures in order. A process that dies
     fails every pending future, and every later one, with ``BrokenProcessPool``."""
 
     def __init__(self) -> None:

@@ -20,6 +20,7 @@ from cellbridge.daemon.core import contacts
 from cellbridge.daemon.core.config import parse_config
 from cellbridge.daemon.core.contacts import ContactIdentity, ContactJob, ContactSnapshot, ContactSpec, EstimateRequest
 from cellbridge.daemon.shell.contact_worker import ContactWorker, process_pool
+from cellbridge.daemon.shell.worker_process import WorkerProcess
 from cellbridge.tactile import SkinLayout, grid_layout, skin_response
 
 LIMIT = 300.0  #: s a job may take: a cold warm-up compiles the kernels
@@ -45,7 +46,9 @@ class _Noting(concurrent.futures.Executor):
     """The production executor (a worker process), noting every request handed to it."""
 
     def __init__(self) -> None:
-        self.pool = process_pool()
+        pool = process_pool()
+        assert isinstance(pool, WorkerProcess)
+        self.pool = pool
         self.sent: list[EstimateRequest] = []
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
@@ -59,6 +62,18 @@ class _Noting(concurrent.futures.Executor):
         self.pool.kill()
 
 
+def _worker() -> tuple[ContactWorker, list[_Noting]]:
+    """A contact worker on production worker processes, and the executors it made (each
+    noting the requests it was handed)."""
+    made: list[_Noting] = []
+
+    def factory() -> concurrent.futures.Executor:
+        made.append(_Noting())
+        return made[-1]
+
+    return ContactWorker(logging.getLogger("request"), factory), made
+
+
 def _forget_estimators() -> None:
     """Run in the worker: it drops every estimator it built (as it drops an owner's when it
     keeps more than a few owners')."""
@@ -68,13 +83,7 @@ def _forget_estimators() -> None:
 def test_a_spec_goes_to_the_worker_once_and_then_its_digest_alone(warm_kernels: None) -> None:
     layout = grid_layout(32, 36)  # a humanoid's count of elements
     jobs = _jobs(layout, 3)
-    made: list[_Noting] = []
-
-    def factory() -> concurrent.futures.Executor:
-        made.append(_Noting())
-        return made[-1]
-
-    cw = ContactWorker(logging.getLogger("request"), factory)
+    cw, made = _worker()
     try:
         got = [cw.estimate_now(j) for j in jobs]
         sent = made[0].sent
@@ -91,13 +100,7 @@ def test_a_worker_without_the_estimator_is_sent_the_spec_again_and_the_estimate_
         warm_kernels: None) -> None:
     layout = grid_layout(4, 4)
     jobs = _jobs(layout, 4)
-    made: list[_Noting] = []
-
-    def factory() -> concurrent.futures.Executor:
-        made.append(_Noting())
-        return made[-1]
-
-    cw = ContactWorker(logging.getLogger("request"), factory)
+    cw, made = _worker()
     try:
         first = cw.estimate_now(jobs[0])
         made[0].pool.submit(_forget_estimators).result(LIMIT)
@@ -116,13 +119,7 @@ def test_a_replaced_worker_gets_the_spec_with_its_first_request(warm_kernels: No
 
     layout = grid_layout(4, 4)
     jobs = _jobs(layout, 3)
-    made: list[_Noting] = []
-
-    def factory() -> concurrent.futures.Executor:
-        made.append(_Noting())
-        return made[-1]
-
-    cw = ContactWorker(logging.getLogger("request"), factory)
+    cw, made = _worker()
     try:
         cw.start()
         assert asyncio.run(cw.estimate(jobs[0], LIMIT))

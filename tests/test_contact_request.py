@@ -20,6 +20,7 @@ from cellbridge.daemon.core import contacts
 from cellbridge.daemon.core.config import parse_config
 from cellbridge.daemon.core.contacts import ContactIdentity, ContactJob, ContactSnapshot, ContactSpec, EstimateRequest
 from cellbridge.daemon.shell.contact_worker import ContactWorker, process_pool
+from cellbridge.daemon.shell.worker_process import WorkerProcess
 from cellbridge.tactile import SkinLayout, grid_layout, skin_response
 
 LIMIT = 300.0  #: s a job may take: a cold warm-up compiles the kernels
@@ -45,7 +46,9 @@ class _Noting(concurrent.futures.Executor):
     """The production executor (a worker process), noting every request handed to it."""
 
     def __init__(self) -> None:
-        self.pool = process_pool()
+        pool = process_pool()
+        assert isinstance(pool, WorkerProcess)
+        self.pool = pool
         self.sent: list[EstimateRequest] = []
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:

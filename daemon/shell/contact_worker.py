@@ -154,6 +154,12 @@ class ContactWorker:
         out.set_running_or_notify_cancel()
 
         def settle(fut: concurrent.futures.Future[Contacts], again: bool) -> None:
+            if fut.cancelled():  # (an executor that cancels what it had not started: a thread
+                # pool's kill; its exception() raises, and ``out`` was left pending for ever)
+                self._shipped = None
+                out.set_exception(concurrent.futures.process.BrokenProcessPool(
+                    "the contact estimate was cancelled: its worker was killed before it ran"))
+                return
             exc = fut.exception()
             if exc is None:
                 self._shipped = (job.owner, job.spec)

@@ -1,0 +1,78 @@
+"""Attacks on what crosses to the contact worker (:class:`EstimateRequest`, the spec by its
+digest) and on the exchange around it (``ContactWorker._submit``): each failed before its
+fix.
+
+- An estimate queued behind a hung warm-up on an executor that cancels what it has not
+  started (a thread pool's ``shutdown(cancel_futures=True)``, as a hung worker's kill does)
+  left the estimate's future pending for ever: the callback that hands on the answer raised
+  on the cancelled future, so the worker stayed ``working`` and a stop skipped its last
+  estimate."""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from cellbridge.daemon.core.config import parse_config
+from cellbridge.daemon.core.contacts import (
+    ContactIdentity,
+    ContactSnapshot,
+    ContactSpec,
+)
+from cellbridge.daemon.shell.contact_worker import ContactWorker
+from cellbridge.tactile import grid_layout, skin_response
+
+CONTACT = parse_config({"link": [{"name": "a", "url": "/dev/null"}]}).contact
+LAYOUT = grid_layout(4, 4)
+SPEC = ContactSpec.of(LAYOUT, 2e-15, CONTACT)
+
+
+def _snapshot(k: int = 0, unknown: np.ndarray | None = None) -> ContactSnapshot:
+    """Frame ``k`` of one press on element 5 of a 4x4."""
+    x, y = LAYOUT.centres[5, :2]
+    dc1, dc2 = skin_response(LAYOUT, [(float(x), float(y), 3.0, 0.012)])
+    n = LAYOUT.n
+    return ContactSnapshot(np.stack([dc1, dc2], axis=1), dc1 > 1e-13, 1.0 + 0.01 * k, np.ones(n),
+                           np.arange(n, dtype=np.uint64), LAYOUT.ids, 1.0 + 0.01 * k, unknown)
+
+
+class _HungWarmUp(concurrent.futures.ThreadPoolExecutor):
+    """One thread whose warm-up never ends until ``release`` is set: every estimate waits
+    behind it, and a kill (``shutdown(cancel_futures=True)``) cancels them."""
+
+    def __init__(self, release: threading.Event) -> None:
+        super().__init__(1)
+        self.release = release
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
+        if fn.__name__ == "warm_up":
+            return super().submit(self.release.wait)
+        return super().submit(fn, *args, **kwargs)
+
+
+def test_an_estimate_cancelled_by_the_kill_of_its_hung_worker_is_not_left_pending() -> None:
+    release = threading.Event()
+    made: list[_HungWarmUp] = []
+
+    def factory() -> concurrent.futures.Executor:
+        made.append(_HungWarmUp(release))
+        return made[-1]
+
+    cw = ContactWorker(logging.getLogger("attack"), factory)
+    cw.start()
+    cw.stop()  # a stop's drain: its estimate has a bound, and the hung worker is not replaced
+    try:
+        job = ContactIdentity().job(SPEC, _snapshot())
+        assert asyncio.run(cw.estimate(job, 0.05)) is None  # behind the hung warm-up: timed out
+        assert cw.stats["errors"] == 1 and cw.stats["worker_restarts"] == 1
+        assert not cw.working, "the cancelled estimate's future is pending for ever"
+    finally:
+        release.set()
+        cw.close()
+        for pool in made:
+            pool.shutdown(wait=True)

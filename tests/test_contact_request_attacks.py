@@ -6,26 +6,34 @@ fix.
   started (a thread pool's ``shutdown(cancel_futures=True)``, as a hung worker's kill does)
   left the estimate's future pending for ever: the callback that hands on the answer raised
   on the cancelled future, so the worker stayed ``working`` and a stop skipped its last
-  estimate."""
+  estimate.
+- Specs equal as values but with other digests (``-0.0`` and ``0.0`` in a band, as the
+  worker compares what it keeps) cost every estimate two round trips and the spec shipped
+  again: the worker kept the first spec's digest, refused each request by the second's
+  (SpecNeeded), and on the spec shipped kept its estimator, and the old digest."""
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import dataclasses
 import logging
 import threading
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from cellbridge.daemon.core import contacts
 from cellbridge.daemon.core.config import parse_config
 from cellbridge.daemon.core.contacts import (
     ContactIdentity,
     ContactSnapshot,
     ContactSpec,
+    EstimateRequest,
 )
-from cellbridge.daemon.shell.contact_worker import ContactWorker
+from cellbridge.daemon.shell.contact_worker import ContactWorker, InlineExecutor
 from cellbridge.tactile import grid_layout, skin_response
+from cellbridge.tactile.skin_geometry import Band
 
 CONTACT = parse_config({"link": [{"name": "a", "url": "/dev/null"}]}).contact
 LAYOUT = grid_layout(4, 4)
@@ -76,3 +84,34 @@ def test_an_estimate_cancelled_by_the_kill_of_its_hung_worker_is_not_left_pendin
         cw.close()
         for pool in made:
             pool.shutdown(wait=True)
+
+
+class _Noting(InlineExecutor):
+    """Inline, noting whether each request handed over carried its spec."""
+
+    def __init__(self) -> None:
+        self.shipped: list[bool] = []
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
+        self.shipped.extend(a.spec is not None for a in args if isinstance(a, EstimateRequest))
+        return super().submit(fn, *args, **kwargs)
+
+
+def test_an_equal_spec_of_another_digest_is_shipped_once_not_with_every_estimate() -> None:
+    banded = dataclasses.replace(SPEC, bands=(Band(0.0, 0.08, 0.0, 0.07),))
+    same = dataclasses.replace(SPEC, bands=(Band(-0.0, 0.08, 0.0, 0.07),))
+    assert banded == same and banded.digest() != same.digest()  # (the premise)
+    made: list[_Noting] = []
+
+    def factory() -> concurrent.futures.Executor:
+        made.append(_Noting())
+        return made[-1]
+
+    contacts._STAGES.clear()
+    cw = ContactWorker(logging.getLogger("attack"), factory)
+    identity = ContactIdentity()
+    got = [cw.estimate_now(identity.job(banded if k < 2 else same, _snapshot(k))) for k in range(6)]
+    assert all(len(c) == 1 and c[0]["id"] == got[0][0]["id"] for c in got)  # one press, one track throughout
+    # the new digest refused once and its spec shipped, then the digest alone again (each
+    # later estimate was refused and shipped: [..., False, True, False, True, False, True])
+    assert made[0].shipped == [True, False, False, True, False, False, False], made[0].shipped

@@ -10,7 +10,11 @@ fix.
 - Specs equal as values but with other digests (``-0.0`` and ``0.0`` in a band, as the
   worker compares what it keeps) cost every estimate two round trips and the spec shipped
   again: the worker kept the first spec's digest, refused each request by the second's
-  (SpecNeeded), and on the spec shipped kept its estimator, and the old digest."""
+  (SpecNeeded), and on the spec shipped kept its estimator, and the old digest.
+- Readings of the right count but another shape or dtype (``unknown`` as int64, a third
+  column, ``touched`` as floats) were estimated as whatever they made: int64 ``unknown``
+  was taken as indices, so the contacts were bounded by other elements than the frame's
+  unknown ones."""
 
 from __future__ import annotations
 
@@ -23,13 +27,16 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import pytest
 from cellbridge.daemon.core import contacts
 from cellbridge.daemon.core.config import parse_config
 from cellbridge.daemon.core.contacts import (
     ContactIdentity,
+    ContactJob,
     ContactSnapshot,
     ContactSpec,
     EstimateRequest,
+    estimate,
 )
 from cellbridge.daemon.shell.contact_worker import ContactWorker, InlineExecutor
 from cellbridge.tactile import grid_layout, skin_response
@@ -115,3 +122,40 @@ def test_an_equal_spec_of_another_digest_is_shipped_once_not_with_every_estimate
     # the new digest refused once and its spec shipped, then the digest alone again (each
     # later estimate was refused and shipped: [..., False, True, False, True, False, True])
     assert made[0].shipped == [True, False, False, True, False, False, False], made[0].shipped
+
+
+def _request(**change: Any) -> EstimateRequest:
+    return dataclasses.replace(ContactJob("attack", SPEC, _snapshot()).request(SPEC.digest(), True), **change)
+
+
+_N = LAYOUT.n
+_DC = _snapshot().dc
+
+
+@pytest.mark.parametrize(("change", "says"), [
+    ({"unknown": np.ones(_N, dtype=np.int64)}, "unknown"),
+    ({"unknown": np.zeros(_N - 1, dtype=bool)}, "unknown"),
+    ({"touched": _snapshot().touched.astype(np.float64)}, "touched"),
+    ({"touched": _snapshot().touched[:-1]}, "touched"),
+    ({"dc": np.concatenate([_DC, _DC[:, :1]], axis=1)}, "dc"),
+    ({"dc": _DC[:, 0].copy()}, "dc"),
+    ({"dc": _DC.astype(object)}, "dc"),
+    ({"dc": _DC.tolist()}, "dc"),
+])
+def test_readings_of_another_shape_or_dtype_are_refused_saying_which(change: dict[str, Any], says: str) -> None:
+    contacts._STAGES.clear()
+    with pytest.raises(ValueError, match=says):
+        estimate(_request(**change))
+    assert len(estimate(_request())) == 1  # the next request is estimated as ever
+
+
+def test_nan_readings_of_unknown_elements_are_still_estimated() -> None:
+    """What the host sends for an element without a reading (NaN ΔC, flagged unknown) is no
+    hostile request: the checks above leave it to the estimator."""
+    contacts._STAGES.clear()
+    unknown = np.zeros(_N, dtype=bool)
+    unknown[0] = True
+    dc = _DC.copy()
+    dc[0] = np.nan
+    got = estimate(_request(dc=dc, unknown=unknown))
+    assert len(got) == 1 and got[0]["unknown_near"] == [int(LAYOUT.ids[0])]

@@ -265,10 +265,10 @@ def estimate(req: EstimateRequest) -> list[dict[str, Any]]:
             kept = _STAGES[req.owner] = (req.spec, req.spec.digest(), stage)
             if _SETTLE:
                 _settle()
-        else:  # an equal spec may digest otherwise (-0.0 for 0.0): the host names it by its own
-            digest = req.spec.digest()  # digest from now on, and a kept old one refused each request
-            if digest != kept[1]:
-                kept = _STAGES[req.owner] = (req.spec, digest, kept[2])
+        elif req.key != kept[1] and (digest := req.spec.digest()) != kept[1]:
+            # an equal spec of another digest (-0.0 for 0.0): the host asks by that digest from
+            # now on, and the one kept refused each of its requests (its own, computed here)
+            kept = _STAGES[req.owner] = (req.spec, digest, kept[2])
     elif kept is None or kept[1] != req.key:
         raise SpecNeeded(f"contact worker: no estimator of spec {req.key.hex()} for {req.owner}")
     _STAGES.move_to_end(req.owner)

@@ -14,7 +14,10 @@ fix.
 - Readings of the right count but another shape or dtype (``unknown`` as int64, a third
   column, ``touched`` as floats) were estimated as whatever they made: int64 ``unknown``
   was taken as indices, so the contacts were bounded by other elements than the frame's
-  unknown ones."""
+  unknown ones.
+- A request read the cached digest (``_key``) twice, around its own write of it: a retry's
+  write from the results thread in between named the request by the other spec's digest
+  (refused by the worker unless it kept that spec for the owner: a needless round trip)."""
 
 from __future__ import annotations
 
@@ -159,3 +162,38 @@ def test_nan_readings_of_unknown_elements_are_still_estimated() -> None:
     dc[0] = np.nan
     got = estimate(_request(dc=dc, unknown=unknown))
     assert len(got) == 1 and got[0]["unknown_near"] == [int(LAYOUT.ids[0])]
+
+
+class _Interleaved(ContactWorker):
+    """A contact worker whose ``_key`` runs ``between`` at the first read after a write: the
+    results thread sending a request again (its spec's digest written to ``_key``) between
+    the caller's write and its read."""
+
+    def __init__(self) -> None:
+        self._key_now: tuple[ContactSpec, bytes] | None = None
+        self._wrote = False
+        self.between: Callable[[], object] | None = None
+        super().__init__(logging.getLogger("attack"), InlineExecutor)
+
+    @property
+    def _key(self) -> tuple[ContactSpec, bytes] | None:
+        if self._wrote and self.between is not None:
+            between, self.between = self.between, None
+            between()
+        self._wrote = False
+        return self._key_now
+
+    @_key.setter
+    def _key(self, value: tuple[ContactSpec, bytes] | None) -> None:
+        self._key_now, self._wrote = value, True
+
+
+def test_a_request_is_named_by_its_own_specs_digest_whatever_the_results_thread_wrote_meanwhile() -> None:
+    other = dataclasses.replace(SPEC, noise=3e-15)  # (the layout's noise reloaded: another spec)
+    identity = ContactIdentity()
+    cw = _Interleaved()
+    old, new = identity.job(SPEC, _snapshot(0)), identity.job(other, _snapshot(1))
+    cw.estimate_now(old)
+    cw.between = lambda: cw._request(old, ship=True)  # a retry of the spec before, from the results thread
+    req = cw._request(new)
+    assert req.key == other.digest(), "the request names the other spec's estimator"

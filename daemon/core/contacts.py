@@ -254,8 +254,9 @@ def estimate(req: EstimateRequest) -> list[dict[str, Any]]:
     built (or this process has none); the rebuilt tracker continues the contacts the request
     carries. Raises :class:`SpecNeeded` for a request without its spec whose key is not the
     estimator's here; ValueError for a spec that makes no layout (:meth:`ContactSpec.build`)
-    or readings of another count of elements than the spec's: refused, not estimated on
-    whatever the bytes made."""
+    or readings of another count of elements than the spec's, or of another shape or dtype
+    than the host's (:func:`_check_readings`): refused, not estimated on whatever the bytes
+    made."""
     kept = _STAGES.get(req.owner)
     if req.spec is not None:
         if kept is None or kept[0] != req.spec:
@@ -264,16 +265,41 @@ def estimate(req: EstimateRequest) -> list[dict[str, Any]]:
             kept = _STAGES[req.owner] = (req.spec, req.spec.digest(), stage)
             if _SETTLE:
                 _settle()
+        elif req.key != kept[1] and (digest := req.spec.digest()) != kept[1]:
+            # an equal spec of another digest (-0.0 for 0.0): the host asks by that digest from
+            # now on, and the one kept refused each of its requests (its own, computed here)
+            kept = _STAGES[req.owner] = (req.spec, digest, kept[2])
     elif kept is None or kept[1] != req.key:
         raise SpecNeeded(f"contact worker: no estimator of spec {req.key.hex()} for {req.owner}")
     _STAGES.move_to_end(req.owner)
     while len(_STAGES) > _MAX_OWNERS:
         _STAGES.popitem(last=False)
     stage = kept[2]
-    if len(req.dc) != stage.layout.n:
-        raise ValueError(f"contact job: the snapshot's {len(req.dc)} elements are not its spec's {stage.layout.n}")
+    _check_readings(req, stage.layout.n)
     stage.tracker.ids_from(req.first_id)
     return stage.run(req)
+
+
+def _check_readings(req: EstimateRequest, n: int) -> None:
+    """Raises ValueError, saying which, for readings that are not the host's: ``dc`` (n, 2)
+    float64, ``touched`` and ``unknown`` (n,) bool. Others were estimated as whatever they
+    made (int64 ``unknown`` taken as indices: contacts bounded by other elements than the
+    frame's unknown ones; a third column of ΔC ignored); NaN readings are the host's own
+    (an element without a reading), and the estimator's to handle."""
+    dc = req.dc
+    if not isinstance(dc, np.ndarray) or dc.dtype != np.float64 or dc.ndim != 2 or dc.shape[1] != 2:
+        raise ValueError(f"contact job: dc must be (n, 2) float64, got {_shape(dc)}")
+    if dc.shape[0] != n:
+        raise ValueError(f"contact job: the snapshot's {dc.shape[0]} elements are not its spec's {n}")
+    for name, flags in (("touched", req.touched), ("unknown", req.unknown)):
+        if (flags is not None or name == "touched") and (
+                not isinstance(flags, np.ndarray) or flags.dtype != np.bool_ or flags.shape != (n,)):
+            raise ValueError(f"contact job: {name} must be ({n},) bool, got {_shape(flags)}")
+
+
+def _shape(a: object) -> str:
+    """``a``'s shape and dtype, or its type: what a refused reading was."""
+    return f"{a.shape} {a.dtype}" if isinstance(a, np.ndarray) else type(a).__name__
 
 
 def warm_up() -> None:

@@ -138,11 +138,12 @@ class ContactWorker:
         """``job`` as the worker takes it: with its spec while the current worker has not
         answered a request of it (or ``ship``), else by the spec's digest alone."""
         spec = job.spec
-        if self._key is None or self._key[0] is not spec:
-            self._key = (spec, spec.digest())
+        key = self._key  # (read once: the results thread writes it too, sending a request again)
+        if key is None or key[0] is not spec:
+            key = self._key = (spec, spec.digest())
         shipped = self._shipped
         ship = ship or shipped is None or shipped[0] != job.owner or (shipped[1] is not spec and shipped[1] != spec)
-        return job.request(self._key[1], ship)
+        return job.request(key[1], ship)
 
     def _submit(self, job: ContactJob) -> concurrent.futures.Future[Contacts]:
         """Hand ``job`` to the worker; a worker that has not the spec (:class:`SpecNeeded`:
@@ -154,6 +155,12 @@ class ContactWorker:
         out.set_running_or_notify_cancel()
 
         def settle(fut: concurrent.futures.Future[Contacts], again: bool) -> None:
+            if fut.cancelled():  # (an executor that cancels what it had not started: a thread
+                # pool's kill; its exception() raises, and ``out`` was left pending for ever)
+                self._shipped = None
+                out.set_exception(concurrent.futures.process.BrokenProcessPool(
+                    "the contact estimate was cancelled: its worker was killed before it ran"))
+                return
             exc = fut.exception()
             if exc is None:
                 self._shipped = (job.owner, job.spec)

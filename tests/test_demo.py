@@ -70,7 +70,7 @@ def check_press_result(result: dict, x: float, y: float, force: float) -> None:
     loaded machine keeps the skin whole."""
     if result["messages"] == 0:  # no touch seen: only when the skin's readings went missing
         assert result["skin_frames"].get("unknown_element_frames", 0) > 0, result
-    assert result["untrue"] == 0, result
+    assert result["untrue"] == 0 and result.get("untrue_force", 0) == 0, result
     if result["skin_whole"]:
         got = result["reported"]
         assert abs(got["x"] - x) <= 1e-3 and abs(got["y"] - y) <= 1e-3, result
@@ -91,6 +91,8 @@ def check_press_result(result: dict, x: float, y: float, force: float) -> None:
       "reported": {"x": 0.059, "y": 0.04, "force": 3.0}}, False),
     ({"messages": 10, "untrue": 1, "skin_whole": False, "ids": [0],  # a precise wrong report
       "reported": {"x": 0.07, "y": 0.04, "force": 2.0}}, False),
+    ({"messages": 10, "untrue": 0, "untrue_force": 2, "skin_whole": False, "ids": [0],  # a precise wrong force
+      "reported": {"x": 0.057, "y": 0.04, "force": 2.0}}, False),
     ({"messages": 10, "untrue": 0, "skin_whole": False, "ids": [0],  # honest, known reports right
       "reported": {"x": 0.07, "y": 0.04, "force": 2.0}, "known": {"x": 0.057, "y": 0.04, "force": 3.05}}, True),
     ({"messages": 10, "untrue": 0, "skin_whole": False, "ids": [0],  # known reports wrong

@@ -88,7 +88,7 @@ def run(skin: Any, gen: dict, into: Path) -> tuple[defaultdict[str, float], Coun
             tick = t + 0.1
         job = p.contact_job(t)
         if job is not None:
-            estimate(job.request(b"", True))
+            estimate(job)
         whole += time.thread_time() - t0
     return cpu, calls, whole
 

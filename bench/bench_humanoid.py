@@ -283,6 +283,12 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str
     from cellbridge.daemon.shell.publisher import pack
     from cellbridge.daemon.shell.replay_source import read_records
 
+    try:  # the calibrator's compiled step, warm as the daemon has it soon after its start
+        from cellbridge.tactile.calibration_kernel import warm_up
+    except ImportError:  # a revision without it (bench_humanoid_core --against): numpy's step
+        pass
+    else:
+        warm_up()
     links = [{"name": f"gw{g}", "url": "/dev/null"} for g in gen["gateways"]]
     p = Pipeline(parse_config({"link": links}), skin.layout())
     p.surface = skin

@@ -84,7 +84,7 @@ class ElementStage:
         self.layout = layout
         self.params = params
         self.noise = noise
-        self.calibrator = Calibrator(layout.n, 2, cal, is_contact=ContactSurface(params, noise))
+        self.calibrator = Calibrator(layout.n, 2, cal, is_contact=ContactSurface(params, noise), compiled=True)
         self.rebaselined = np.zeros(layout.n, dtype=bool)  # re-baselined since take_rebaselined()
         self.min_step = 1.0 / max_step_rate
         self.touched = np.zeros(layout.n, dtype=bool)

@@ -226,10 +226,14 @@ class LayoutStages:
                               None, inverse, channels=ns)
         res = cal.columns
         dc = np.stack([res["dc1"], res["dc2"]], axis=1)
-        touched = r.classify(known, dc, *self.elements.thresholds())
+        # the touch flags of the rows the step classified, the calibrator's hysteresis of the
+        # others (a frame's step, when the rate allows one, classifies every known row)
         stepped = np.zeros(r.n, dtype=bool)
         stepped[cal.stepped.rows] = True
-        touched = np.where(stepped[known], cal.stepped.touched[known], touched)
+        touched = cal.stepped.touched[known]
+        rest = np.flatnonzero(~stepped[known])
+        if rest.size:
+            touched[rest] = r.classify(known[rest], dc[rest], *self.elements.thresholds())
         accounted = np.concatenate([sampled, unchanged, missing if missing is not None else sampled[:0]])
         unknown = r.scheduled(t, cycle, sampled, caps, known, dc, touched, root, accounted)
         return {k: v[:ns] for k, v in res.items()}, unknown

@@ -479,6 +479,21 @@ class Service:
             self.hooks.bound(sock, endpoint)  # OPS: an ipc:// socket file's mode and group
         self.pub.on_wanted = self.pipeline.want
 
+    def _warm_calibration(self) -> None:
+        """In a thread at the start: the calibrator's compiled step loaded (compiled on a fresh
+        installation, about 12 s), while the first frames are stepped by numpy with the same
+        results (:mod:`cellbridge.tactile.calibration_kernel`). Failing, numpy steps them all."""
+        t0 = time.monotonic()
+        try:
+            from cellbridge.tactile import calibration_kernel
+
+            calibration_kernel.warm_up()
+        except Exception as exc:  # any failure leaves the numpy step, which gives the same numbers
+            event(self.log, "warning", "calibration kernel unavailable: numpy steps the calibrator",
+                  error=f"{type(exc).__name__}: {exc}")
+            return
+        event(self.log, "debug", "calibration kernel ready", seconds=round(time.monotonic() - t0, 3))
+
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
         ctx = self._ctx if self._ctx is not None else zmq.asyncio.Context()
@@ -499,6 +514,7 @@ class Service:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGHUP})  # held back since the command began (cli.main)
         if self.config.contact.enabled:  # (before the links: a replay waits for its warm-up)
             self.contacts.start()
+        threading.Thread(target=self._warm_calibration, name="calibration kernel", daemon=True).start()
         link_tasks = [asyncio.create_task(ln.run(), name=f"link {n}") for n, ln in self.links.items()]
         self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self.control.serve(),
                                                         self.pub.watch_subscriptions())]

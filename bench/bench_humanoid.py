@@ -276,6 +276,7 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str
     import heapq
     import logging
 
+    import cellbridge.tactile
     from cellbridge.daemon.core.config import parse_config
     from cellbridge.daemon.core.messages import Publish
     from cellbridge.daemon.core.pipeline import Pipeline
@@ -283,11 +284,12 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str
     from cellbridge.daemon.shell.publisher import pack
     from cellbridge.daemon.shell.replay_source import read_records
 
-    try:  # the calibrator's compiled step, warm as the daemon has it soon after its start
+    # the calibrator's compiled step, warm as the daemon has it soon after its start; a
+    # revision without it (bench_humanoid_core --against) steps with numpy (looked for in the
+    # package imported: the editable install's finder would find this checkout's)
+    if (Path(cellbridge.tactile.__file__).parent / "calibration_kernel.py").exists():
         from cellbridge.tactile.calibration_kernel import warm_up
-    except ImportError:  # a revision without it (bench_humanoid_core --against): numpy's step
-        pass
-    else:
+
         warm_up()
     links = [{"name": f"gw{g}", "url": "/dev/null"} for g in gen["gateways"]]
     p = Pipeline(parse_config({"link": links}), skin.layout())

@@ -286,6 +286,8 @@ class Calibrator:
         self._spread_age = 0  # steps until it is measured again
         self._anchor_age = 0  # steps until the offset is anchored again
         self._compiled = compiled
+        self._taus = np.array([cfg.tau, cfg.tau_negative])  # the compiled step's two time constants
+        self._frozen = not np.isfinite(self._taus).all()
         self._kernel: Any = None  # the compiled step's module, once it is warm
 
     _PER_ELEMENT = ("_buf", "_count", "_base", "_base0", "_noise", "_state", "_last_t", "_since", "_below_since",
@@ -510,11 +512,14 @@ class Calibrator:
             self.thresholds()
         enter, leave = self._thr  # type: ignore[misc]  # thresholds() has just set _thr
         cfg = self.config
-        # the tracker's gains over each element's time since its last reading, by numpy's expm1
-        dt = t0 - self._last_t
-        dt = np.where(np.isfinite(dt), dt, 0.0)
-        a_tau = -np.expm1(-dt / cfg.tau)
-        a_neg = -np.expm1(-dt / cfg.tau_negative)
+        # the tracker's gains at tau and tau_negative over each element's time since its last
+        # reading, by numpy's expm1 (the kernel takes 0 where that time is not finite)
+        lag = -(t0 - self._last_t)[:, None]
+        if self._frozen:  # tau = inf: -inf / inf (no reading yet) is NaN, and not used
+            with np.errstate(invalid="ignore"):
+                gains = -np.expm1(lag / self._taus)
+        else:
+            gains = -np.expm1(lag / self._taus)
         n, c = self.n_elements, self.n_channels
         delta = np.empty((n, c))
         out = np.empty((3, n), dtype=bool)
@@ -526,7 +531,7 @@ class Calibrator:
             got = kern.step(
                 t0, np.ascontiguousarray(v, dtype=np.float64), self._state, self._last_t, self._base, self._base0,
                 self._noise, self._since, self._below_since, self._off_since, self._holds, self._rebaselines,
-                self._count, enter, leave, self._drift, self._clip, self._common, self._spread, a_tau, a_neg, ages,
+                self._count, enter, leave, self._drift, self._clip, self._common, self._spread, gains, ages,
                 float(cfg.k_enter), int(cfg.min_common), bool(cfg.common_mode), float(cfg.common_fraction),
                 float(cfg.common_spread), float(cfg.tau), float(cfg.holdoff),
                 math.inf if cfg.max_touch is None else float(cfg.max_touch), cfg.max_touch is not None,

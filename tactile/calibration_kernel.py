@@ -75,7 +75,7 @@ def _step(
     noise: np.ndarray, since: np.ndarray, below_since: np.ndarray, off_since: np.ndarray,
     holds: np.ndarray, rebaselines: np.ndarray, count: np.ndarray,
     enter: np.ndarray, leave: np.ndarray, drift: np.ndarray, clip: np.ndarray, common: np.ndarray,
-    spread: np.ndarray, a_tau: np.ndarray, a_neg: np.ndarray, ages: np.ndarray,
+    spread: np.ndarray, gains: np.ndarray, ages: np.ndarray,
     k_enter: float, min_common: int, common_mode: bool, common_fraction: float, common_spread: float,
     tau: float, holdoff: float, max_touch: float, has_max_touch: bool, negative_after: float,
     surface: bool, s_noise: float, s_k: float, s_low: float, s_high: float, s_dc1_max: float,
@@ -83,9 +83,9 @@ def _step(
 ) -> tuple:
     """The step at time ``t0`` on readings ``v`` (n, c); state arrays updated in place.
 
-    ``ages``: [spread_age, anchor_age] (in place). ``a_tau``, ``a_neg``: each element's
-    tracker gain at ``tau`` and ``tau_negative`` over its time since its last reading (0
-    where that is not finite). ``surface``: the contact test is the ContactSurface of
+    ``ages``: [spread_age, anchor_age] (in place). ``gains`` (n, 2): each element's tracker
+    gain at ``tau`` and at ``tau_negative`` over its time since its last reading (taken as 0
+    here where that time is not finite). ``surface``: the contact test is the ContactSurface of
     the ``s_*`` constants (else none). ``delta`` (n, c): ΔC out; ``out`` (3, n) bool:
     touched, ready, re-baselined.
 
@@ -333,10 +333,11 @@ def _step(
                 if trk_i:
                     d = delta[i, j]
                     cl = _nanmin(_nanmax(d, -clip[j]), clip[j])
+                    seen = math.isfinite(t0 - last_t[i])  # (numpy's step: no time, no step)
                     if anyfast and fast[i, j]:
-                        base[i, j] += a_neg[i] * d
+                        base[i, j] += (gains[i, 1] if seen else 0.0) * d
                     else:
-                        base[i, j] += a_tau[i] * cl
+                        base[i, j] += (gains[i, 0] if seen else 0.0) * cl
                 else:
                     base[i, j] += 0.0
     # -- the anchor (Calibrator._anchor)

@@ -3,6 +3,8 @@ the same outputs and the same state, bit for bit, step after step."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from cellbridge.tactile import calibration_kernel
@@ -92,7 +94,7 @@ def run_both(cfg: CalibrationConfig, surface: bool, steps: int = 2600, seed: int
 def test_compiled_step_is_the_numpy_step_with_contact_surface() -> None:
     cfg = CalibrationConfig(n_baseline=5, max_touch=3.0, holdoff=0.5, tau=2.0)
     a, ran = run_both(cfg, surface=True)
-    h = a.health()
+    h: dict[str, Any] = a.health()
     # the scenario took every rule's rare branch, so the comparison covered them
     assert h["rebaselines_total"] > 0 and h["holds_total"] > 0
     assert h["common_jumps"] > 0 and h["outage_catchups"] > 0
@@ -102,10 +104,14 @@ def test_compiled_step_is_the_numpy_step_with_contact_surface() -> None:
 def test_compiled_step_is_the_numpy_step_without_contact_test_or_common_mode() -> None:
     cfg = CalibrationConfig(n_baseline=5, max_touch=3.0, holdoff=0.5, tau=2.0, common_mode=False)
     a, ran = run_both(cfg, surface=False, steps=1500, seed=1)
-    assert a.health()["rebaselines_total"] > 0
+    h: dict[str, Any] = a.health()
+    assert h["rebaselines_total"] > 0
     assert ran > 1200
     cfg = CalibrationConfig(n_baseline=5, max_touch=None, min_common=3, common_spread=float("inf"))
     _, ran = run_both(cfg, surface=True, steps=1500, seed=2)
+    assert ran > 1200
+    cfg = CalibrationConfig(n_baseline=5, tau=float("inf"), tau_negative=0.5, max_touch=3.0)  # a frozen baseline
+    _, ran = run_both(cfg, surface=True, steps=1500, seed=3)
     assert ran > 1200
 
 

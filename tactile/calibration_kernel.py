@@ -51,14 +51,11 @@ _TOUCHED_ST, _COLLECTING, _TRACKING, _HOLDOFF = 2, 0, 1, 3
 _BIG = np.finfo(np.float64).max
 
 
-def _median_col(x: np.ndarray, pick: np.ndarray, j: int, buf: np.ndarray) -> float:
-    """median0 of column ``j`` of the rows ``pick`` of ``x``: NaN if one is NaN."""
-    n = pick.size
+def _median(buf: np.ndarray, n: int) -> float:
+    """median0 of ``buf[:n]`` (n >= 1): NaN if one is NaN."""
     for k in range(n):
-        v = x[pick[k], j]
-        if math.isnan(v):
-            return v
-        buf[k] = v
+        if math.isnan(buf[k]):
+            return buf[k]
     h = n // 2
     p = np.partition(buf[:n], h)
     if n % 2 == 1:
@@ -93,54 +90,55 @@ def _step(
     DONE or NUMPY (nothing changed); whether the common offset jumped (``most`` elements
     of ``tracked``); elements caught up after a silence; whether any was re-baselined;
     whether the anchor moved the offset by ``r`` (c,).
+
+    The numpy step's passes are rule by rule over every element; the rules after the
+    common offset depend on an element's own state only, so here they run element by
+    element in one pass, each element through them in the numpy step's order.
     """
     n, c = v.shape
-    sampled = np.empty(n, dtype=np.bool_)  # every check before any state changes
+    r = np.zeros(c)
+    # every check before any state changes; each element's reading, readiness, tracking
+    live = np.empty(n, dtype=np.bool_)
+    ref = np.empty(n, dtype=np.bool_)
+    ntrk = 0
     for i in range(n):
         ok = True
         for j in range(c):
             if not math.isfinite(v[i, j]):
                 ok = False
-        sampled[i] = ok
         if ok and (st[i] == _COLLECTING or last_t[i] > t0):
-            return NUMPY, False, 0, 0, 0, False, False, np.zeros(c)
-    live = np.empty(n, dtype=np.bool_)
-    for i in range(n):
-        live[i] = sampled[i] and st[i] != _COLLECTING
-    resid = v - base
-    buf = np.empty(n)
-    # -- the reference elements (Calibrator._reference)
-    ref = np.empty(n, dtype=np.bool_)
-    ntrk = 0
-    for i in range(n):
+            return NUMPY, False, 0, 0, 0, False, False, r
+        live[i] = ok and st[i] != _COLLECTING
         ref[i] = st[i] == _TRACKING
-        if ref[i]:
-            ntrk += 1
+        ntrk += ref[i]
+    buf = np.empty(n)
+    # -- the reference elements (Calibrator._reference): tracked, and not drifting by themselves
     if ntrk >= min_common:
-        trk_rows = np.flatnonzero(ref)
-        own = np.abs(base - base0)
         if ages[0] <= 0:
             for j in range(c):
-                spread[j] = 1.4826 * _median_col(own, trk_rows, j, buf)
+                m = 0
+                for i in range(n):
+                    if ref[i]:
+                        buf[m] = abs(base[i, j] - base0[i, j])
+                        m += 1
+                spread[j] = 1.4826 * _median(buf, m)
             ages[0] = 32
         ages[0] -= 1
         steady = np.empty(n, dtype=np.bool_)
         nsteady = 0
         for i in range(n):
-            s = ref[i]
+            s = ref[i] and not math.isfinite(off_since[i])
             if s:
                 for j in range(c):
                     b = k_enter * spread[j]
-                    lim = enter[i, j] if (enter[i, j] >= b or math.isnan(enter[i, j])) else b
-                    if math.isnan(b):
-                        lim = b
-                    if not (own[i, j] <= lim):
+                    e = enter[i, j]
+                    lim = e if e >= b else b  # np.maximum: NaN if either is
+                    if math.isnan(e) or math.isnan(b):
+                        lim = math.nan
+                    if not (abs(base[i, j] - base0[i, j]) <= lim):
                         s = False
-                if math.isfinite(off_since[i]):
-                    s = False
             steady[i] = s
-            if s:
-                nsteady += 1
+            nsteady += s
         if nsteady >= min_common:
             ref = steady
     # -- the common offset (Calibrator._update_common, _common_reference)
@@ -148,38 +146,39 @@ def _step(
     most = 0
     k = 0
     if common_mode:
-        trk = live & ref
-        k = 0
+        trk = np.empty(n, dtype=np.bool_)
         for i in range(n):
-            if trk[i]:
-                k += 1
+            trk[i] = live[i] and ref[i]
+            k += trk[i]
         if k >= min_common:
-            up = np.zeros(n, dtype=np.bool_)
-            down = np.zeros(n, dtype=np.bool_)
+            moved = np.zeros(n, dtype=np.bool_)  # jumped past ±enter, up or down
             nup = 0
             ndown = 0
             for i in range(n):
                 if trk[i]:
+                    u = False
+                    d = False
                     for j in range(c):
-                        o = resid[i, j] - common[j]
+                        o = (v[i, j] - base[i, j]) - common[j]
                         if o > enter[i, j]:
-                            up[i] = True
+                            u = True
                         if o < -enter[i, j]:
-                            down[i] = True
-                    nup += up[i]
-                    ndown += down[i]
+                            d = True
+                    nup += u
+                    ndown += d
+                    moved[i] = u or d
             need = common_fraction * k
             most = max(nup, ndown)
             jump = most > 0 and most >= need
             if jump:
-                trk_rows = np.flatnonzero(trk)
-                off = np.empty((n, c))
-                for i in range(n):
-                    for j in range(c):
-                        off[i, j] = resid[i, j] - common[j]
                 stp = np.empty(c)
                 for j in range(c):
-                    stp[j] = _median_col(off, trk_rows, j, buf)
+                    m = 0
+                    for i in range(n):
+                        if trk[i]:
+                            buf[m] = (v[i, j] - base[i, j]) - common[j]
+                            m += 1
+                    stp[j] = _median(buf, m)
                 nalike = 0
                 for i in range(n):
                     if trk[i]:
@@ -188,31 +187,33 @@ def _step(
                             tol = enter[i, j] + common_spread * abs(stp[j])
                             if math.isnan(tol):
                                 tol = math.inf
-                            if not (abs(off[i, j] - stp[j]) <= tol):
+                            if not (abs(((v[i, j] - base[i, j]) - common[j]) - stp[j]) <= tol):
                                 a = False
                         nalike += a
                 jump = nalike >= need
-            rm = np.empty(n, dtype=np.bool_)
             nref = 0
             for i in range(n):
-                rm[i] = trk[i] and (jump or not (up[i] or down[i]))
-                nref += rm[i]
+                nref += trk[i] and (jump or not moved[i])
             if nref >= min_common:
-                rows = np.flatnonzero(rm)
                 for j in range(c):
-                    common[j] = _median_col(resid, rows, j, buf)
+                    m = 0
+                    for i in range(n):
+                        if trk[i] and (jump or not moved[i]):
+                            buf[m] = v[i, j] - base[i, j]
+                            m += 1
+                    common[j] = _median(buf, m)
                 jumped = jump
-    # -- ΔC and a catch-up after a silence (Calibrator._catch_up)
+    # -- element by element: ΔC, catch-up, contact test, touch state, drift, time
     catchups = 0
+    rebased = False
+    anytrk = False
+    zeros = False  # a baseline at exactly ±0 left out of the tracker's pass (numpy adds 0.0 to it)
     for i in range(n):
-        if live[i]:
-            for j in range(c):
-                delta[i, j] = resid[i, j] - common[j]
-        else:
-            for j in range(c):
-                delta[i, j] = np.nan
-    for i in range(n):
-        if live[i] and st[i] == _TRACKING:
+        li = live[i]
+        for j in range(c):
+            delta[i, j] = (v[i, j] - base[i, j]) - common[j] if li else np.nan
+        # Calibrator._catch_up
+        if li and st[i] == _TRACKING:
             gap = t0 - last_t[i]
             if gap > tau:
                 fit = True
@@ -224,38 +225,31 @@ def _step(
                         base[i, j] += delta[i, j]
                         delta[i, j] = 0.0
                     catchups += 1
-    # -- whether each asked reading is a contact's (Calibrator._contact_readings, ContactSurface)
-    contact = np.ones(n, dtype=np.bool_)
-    if surface:
-        for i in range(n):
-            asked = live[i] and st[i] == _TOUCHED_ST
-            if live[i] and not asked:
-                for j in range(c):
-                    if delta[i, j] > leave[i, j]:
-                        asked = True
+        # Calibrator._contact_readings: asked where touched or above leave (True elsewhere)
+        contact = True
+        if surface and li:
+            asked = st[i] == _TOUCHED_ST
+            for j in range(c):
+                if delta[i, j] > leave[i, j]:
+                    asked = True
             if asked:
                 x = delta[i, 0]
                 y = delta[i, 1]
-                m0 = noise[i, 0]
-                m1 = noise[i, 1]
-                m0 = 0.0 if math.isnan(m0) else (_BIG if m0 == math.inf else (-_BIG if m0 == -math.inf else m0))
-                m1 = 0.0 if math.isnan(m1) else (_BIG if m1 == math.inf else (-_BIG if m1 == -math.inf else m1))
+                m0 = _nan_to_num(noise[i, 0])
+                m1 = _nan_to_num(noise[i, 1])
                 t1 = s_k * (s_noise if s_noise >= m0 else m0)
                 t2 = s_k * (s_noise if s_noise >= m1 else m1)
                 lo = _nanmax(_nanmax((x - t1) / s_high, y - t2), 0.0)
                 hi = _nanmin((x + t1) / s_low, y + t2)
-                contact[i] = (lo <= hi) and (x <= s_dc1_max + t1) and math.isfinite(x) and math.isfinite(y)
-    # -- touch state (Calibrator._hysteresis)
-    rebased = False
-    stuck = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        if live[i]:
+                contact = (lo <= hi) and (x <= s_dc1_max + t1) and math.isfinite(x) and math.isfinite(y)
+        # Calibrator._hysteresis
+        if li:
             if st[i] != _TOUCHED_ST:
                 up_i = False
                 for j in range(c):
                     if delta[i, j] > enter[i, j]:
                         up_i = True
-                if up_i and contact[i]:
+                if up_i and contact:
                     st[i] = _TOUCHED_ST
                     since[i] = t0
             else:
@@ -268,18 +262,17 @@ def _step(
                     since[i] = t0
         if st[i] == _HOLDOFF and t0 - since[i] >= holdoff:
             st[i] = _TRACKING
+        stuck = False
         if has_max_touch and st[i] == _TOUCHED_ST and t0 - since[i] >= max_touch:
-            if surface:
-                if live[i]:
-                    if contact[i]:
-                        holds[i] += 1
-                        since[i] = t0
-                    else:
-                        stuck[i] = True
-            else:
-                stuck[i] = True
-    for i in range(n):
-        if stuck[i]:  # Calibrator.tare
+            if not surface:
+                stuck = True
+            elif li:
+                if contact:
+                    holds[i] += 1
+                    since[i] = t0
+                else:
+                    stuck = True
+        if stuck:  # Calibrator.tare
             rebaselines[i] += 1
             st[i] = _COLLECTING
             count[i] = 0
@@ -290,24 +283,14 @@ def _step(
                 below_since[i, j] = np.inf
             off_since[i] = np.inf
             rebased = True
-    # -- drift (Calibrator._track)
-    anytrk = False
-    anyfast = False
-    fast = np.zeros((n, c), dtype=np.bool_)
-    for i in range(n):
-        trk_i = live[i] and st[i] == _TRACKING
+        # Calibrator._track
+        trk_i = li and st[i] == _TRACKING
         anytrk = anytrk or trk_i
-        for j in range(c):
-            if trk_i and delta[i, j] < -enter[i, j]:
-                if t0 < below_since[i, j]:
-                    below_since[i, j] = t0
-                fast[i, j] = t0 - below_since[i, j] >= negative_after
-            elif live[i]:
-                below_since[i, j] = np.inf
+        drifted = False
         if surface:
             following = t0 - off_since[i] >= negative_after
             off_i = False
-            if trk_i and not contact[i]:
+            if trk_i and not contact:
                 over_e = False
                 over_l = False
                 for j in range(c):
@@ -319,45 +302,58 @@ def _step(
             if off_i:
                 if t0 < off_since[i]:
                     off_since[i] = t0
-                if t0 - off_since[i] >= negative_after:
-                    for j in range(c):
-                        fast[i, j] = True
-            elif live[i]:
+                drifted = t0 - off_since[i] >= negative_after
+            elif li:
                 off_since[i] = np.inf
+        seen = math.isfinite(t0 - last_t[i])  # (numpy's step: no time since a reading, no step)
         for j in range(c):
-            anyfast = anyfast or fast[i, j]
-    if anytrk:
-        for i in range(n):
-            trk_i = live[i] and st[i] == _TRACKING
-            for j in range(c):
-                if trk_i:
-                    d = delta[i, j]
-                    cl = _nanmin(_nanmax(d, -clip[j]), clip[j])
-                    seen = math.isfinite(t0 - last_t[i])  # (numpy's step: no time, no step)
-                    if anyfast and fast[i, j]:
-                        base[i, j] += (gains[i, 1] if seen else 0.0) * d
-                    else:
-                        base[i, j] += (gains[i, 0] if seen else 0.0) * cl
+            fast = drifted
+            if trk_i and delta[i, j] < -enter[i, j]:
+                if t0 < below_since[i, j]:
+                    below_since[i, j] = t0
+                fast = fast or t0 - below_since[i, j] >= negative_after
+            elif li:
+                below_since[i, j] = np.inf
+            if trk_i:
+                d = delta[i, j]
+                if fast:
+                    base[i, j] += (gains[i, 1] if seen else 0.0) * d
                 else:
-                    base[i, j] += 0.0
+                    base[i, j] += (gains[i, 0] if seen else 0.0) * _nanmin(_nanmax(d, -clip[j]), clip[j])
+            elif base[i, j] == 0.0:
+                zeros = True
+        if li:
+            last_t[i] = t0
+        if st[i] == _COLLECTING:
+            for j in range(c):
+                delta[i, j] = np.nan
+        out[0, i] = st[i] == _TOUCHED_ST
+        out[1, i] = st[i] != _COLLECTING
+        out[2, i] = stuck
+    if anytrk and zeros:  # numpy's tracker adds 0.0 to every other baseline: -0.0 becomes 0.0
+        for i in range(n):
+            if not (live[i] and st[i] == _TRACKING):
+                for j in range(c):
+                    if base[i, j] == 0.0:
+                        base[i, j] += 0.0
     # -- the anchor (Calibrator._anchor)
     anchored = False
-    r = np.zeros(c)
     if common_mode:
         ages[1] -= 1
         if ages[1] <= 0:
-            rm = np.empty(n, dtype=np.bool_)
             nref = 0
             for i in range(n):
-                rm[i] = ref[i] and st[i] == _TRACKING
-                nref += rm[i]
+                nref += ref[i] and st[i] == _TRACKING
             if nref >= min_common:
                 ages[1] = 8
-                rows = np.flatnonzero(rm)
-                ownd = base - base0
                 nz = False
                 for j in range(c):
-                    r[j] = _median_col(ownd, rows, j, buf)
+                    m = 0
+                    for i in range(n):
+                        if ref[i] and st[i] == _TRACKING:
+                            buf[m] = base[i, j] - base0[i, j]
+                            m += 1
+                    r[j] = _median(buf, m)
                     if r[j] != 0.0:
                         nz = True
                 if nz:
@@ -368,15 +364,6 @@ def _step(
                     for j in range(c):
                         common[j] += r[j]
                     anchored = True
-    for i in range(n):
-        if sampled[i]:
-            last_t[i] = t0
-        if st[i] == _COLLECTING:
-            for j in range(c):
-                delta[i, j] = np.nan
-        out[0, i] = st[i] == _TOUCHED_ST
-        out[1, i] = st[i] != _COLLECTING
-        out[2, i] = stuck[i]
     return DONE, jumped, most, k, catchups, rebased, anchored, r
 
 
@@ -387,6 +374,15 @@ def _nanmax(a: float, b: float) -> float:
     return a if a >= b else b
 
 
+def _nan_to_num(a: float) -> float:
+    """np.nan_to_num of a float: NaN 0, ±inf the largest finite float."""
+    if math.isnan(a):
+        return 0.0
+    if math.isinf(a):
+        return _BIG if a > 0 else -_BIG
+    return a
+
+
 def _nanmin(a: float, b: float) -> float:
     """np.minimum of two floats: NaN if either is."""
     if math.isnan(a) or math.isnan(b):
@@ -394,8 +390,9 @@ def _nanmin(a: float, b: float) -> float:
     return a if a <= b else b
 
 
-_median_col = compiled(_median_col)
+_median = compiled(_median)
 _nanmax = compiled(_nanmax)
+_nan_to_num = compiled(_nan_to_num)
 _nanmin = compiled(_nanmin)
 step = compiled(_step)
 

@@ -443,7 +443,7 @@ class Calibrator:
             raise ValueError(f"values must have shape ({n}, {c}), got {v.shape}")
         t_arr = np.asarray(t, dtype=np.float64)
         if self._compiled and t_arr.ndim == 0 and self._kernel_ready():
-            done = self._run_compiled(float(t_arr), v)
+            done = self.update_compiled(float(t_arr), v)
             if done is not None:
                 return done
         sampled = rows_all(np.isfinite(v))
@@ -500,9 +500,10 @@ class Calibrator:
             self._kernel = mod
         return True
 
-    def _run_compiled(self, t0: float, v: FloatArray) -> CalibrationStep | None:
-        """The step at ``t0`` by the compiled kernel; None (nothing changed) where it is
-        numpy's to take (see ``compiled`` in the constructor)."""
+    def update_compiled(self, t0: float, v: FloatArray) -> CalibrationStep | None:
+        """:meth:`update` at one time ``t0`` by the compiled step alone (its module imported):
+        None, and nothing changed, where the step is numpy's to take (see ``compiled`` in the
+        constructor). :meth:`update` calls it once the kernel is warm."""
         kern = self._kernel if self._kernel is not None else sys.modules["cellbridge.tactile.calibration_kernel"]
         surface = self.is_contact
         if not math.isfinite(t0) or (surface is not None and (type(surface) is not ContactSurface

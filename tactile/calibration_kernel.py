@@ -4,8 +4,10 @@ The calibrator's step is a few dozen numpy calls over every element (common offs
 hysteresis, drift tracking, the contact surface's test), each a pass over a thousand
 elements and a few microseconds of call overhead: about 0.4 ms a skin frame on a
 humanoid's 1 144 elements, half of the daemon's per-frame element stage. Here the step
-is one pass per rule over the elements, with the same rules, the same order of updates
-and the same arithmetic, so every number is the numpy step's, bit for bit
+is a few compiled passes (the reference elements, the common offset, then every element
+through the remaining rules, which read its own state only, and the anchor), with the
+same rules, the same order of updates and the same arithmetic, so every number is the
+numpy step's, bit for bit
 (tests/test_calibration_kernel.py steps both side by side and compares every output and
 every piece of state). Two parts stay numpy, passed in: the tracker's gains
 ``-expm1(-dt/tau)`` (numpy's ``expm1`` is not the C library's on every machine, and
@@ -412,7 +414,7 @@ def warm_up() -> None:
         cal = Calibrator(4, 2, CalibrationConfig(n_baseline=1), is_contact=ContactSurface(ElementParams(), 2e-15),
                          compiled=True)
         cal.update(0.0, np.full((4, 2), 1e-11))
-        if cal._run_compiled(0.01, np.full((4, 2), 1e-11)) is None:  # the compiled step itself, before READY
+        if cal.update_compiled(0.01, np.full((4, 2), 1e-11)) is None:  # the compiled step itself, before READY
             raise RuntimeError("the compiled calibration step did not run on its warm-up")
         # no compiling once warm: a step with other argument types (a read-only array) is
         # numpy's, not seconds of compiling in the middle of a skin frame

@@ -70,7 +70,7 @@ def run_both(cfg: CalibrationConfig, surface: bool, steps: int = 2600, seed: int
 
     a, b = make(False), make(True)
     ran = 0
-    real = b._run_compiled
+    real = b.update_compiled
 
     def counted(t0: float, v: np.ndarray):
         nonlocal ran
@@ -78,7 +78,7 @@ def run_both(cfg: CalibrationConfig, surface: bool, steps: int = 2600, seed: int
         ran += got is not None
         return got
 
-    b._run_compiled = counted  # type: ignore[method-assign]
+    b.update_compiled = counted  # type: ignore[method-assign]
     for k, (t, v) in enumerate(scenario(seed, steps)):
         if k == 1400:
             a.tare([1, 2, 3])
@@ -124,7 +124,7 @@ def test_a_step_the_kernel_was_not_compiled_for_is_numpys() -> None:
     b.update(0.0, v)
     v = v + 1e-13
     v.setflags(write=False)
-    assert b._run_compiled(0.01, v) is None
+    assert b.update_compiled(0.01, v) is None
     ra, rb = a.update(0.01, v), b.update(0.01, v)
     assert all(same(getattr(ra, f), getattr(rb, f)) for f in ra._fields)
 

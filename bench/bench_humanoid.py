@@ -266,6 +266,18 @@ def breakdown_row(reporting: str, path: Path, got_at: dict[float, float]) -> lis
     return cells
 
 
+def warm_calibration() -> None:
+    """The calibrator's compiled step warm, as the daemon has it before its links start; a
+    revision without it (``bench_humanoid_core --against``) steps with numpy (looked for in
+    the package imported: the editable install's finder would find this checkout's)."""
+    import cellbridge.tactile
+
+    if (Path(cellbridge.tactile.__file__).parent / "calibration_kernel.py").exists():
+        from cellbridge.tactile.calibration_kernel import warm_up
+
+        warm_up()
+
+
 def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str, ...] | None = None) -> list[object]:
     """The daemon's core on the same recording, in this process: the pipeline fed every read
     in order of arrival, a contact estimate per frame (inline, as the worker runs it); CPU
@@ -283,6 +295,7 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str
     from cellbridge.daemon.shell.publisher import pack
     from cellbridge.daemon.shell.replay_source import read_records
 
+    warm_calibration()
     links = [{"name": f"gw{g}", "url": "/dev/null"} for g in gen["gateways"]]
     p = Pipeline(parse_config({"link": links}), skin.layout())
     p.surface = skin

@@ -104,6 +104,7 @@ def main() -> int:
     import bench_humanoid as bh
 
     skin = bh.load_skin(bh.HUMANOID)
+    bh.warm_calibration()  # the calibrator's compiled step, as the daemon has it
     if a.idle:
         bh.presses = lambda skin, seconds, rng: []
     with tempfile.TemporaryDirectory(prefix="bench_humanoid_stages.") as tmp:

@@ -65,11 +65,13 @@ the transfer functions, normally); the default thresholds and rates assume farad
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
-from typing import Callable, NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 from cellbridge.tactile.arrays import FloatArray, median0, rows_all, rows_any
+from cellbridge.tactile.contact_surface import ContactSurface
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
@@ -235,11 +237,17 @@ class Calibrator:
     """Baselines, drift tracking and touch hysteresis for N elements × C channels."""
 
     def __init__(self, n_elements: int, n_channels: int = 2, config: CalibrationConfig | None = None,
-                 is_contact: Callable[[FloatArray, FloatArray], NDArray[np.bool_]] | None = None):
+                 is_contact: Callable[[FloatArray, FloatArray], NDArray[np.bool_]] | None = None,
+                 compiled: bool = False):
         """``is_contact(delta, noise)`` takes (k, C) ΔC rows and their measured noise
         (k, C; 0 where not known) and says which a contact can make (see
         :class:`~cellbridge.tactile.ContactSurface`); None: every reading could be a
-        contact's, and a touch still ends at ``max_touch`` (no way to tell a phantom)."""
+        contact's, and a touch still ends at ``max_touch`` (no way to tell a phantom).
+        ``compiled``: step with :mod:`cellbridge.tactile.calibration_kernel` (the same
+        numbers) once its ``warm_up`` has run in this process; this module never imports
+        it, and until then (and for a step the kernel leaves to numpy: a time per
+        element, an element collecting its baseline, another ``is_contact``) the step is
+        numpy's."""
         if not _is_count(n_elements):
             raise ValueError(f"n_elements must be an integer >= 1, got {n_elements!r}")
         if not _is_count(n_channels):
@@ -277,6 +285,10 @@ class Calibrator:
         self._spread = np.zeros(c)  # spread of the tracked elements' own drift (1.4826·MAD about 0)
         self._spread_age = 0  # steps until it is measured again
         self._anchor_age = 0  # steps until the offset is anchored again
+        self._compiled = compiled
+        self._taus = np.array([cfg.tau, cfg.tau_negative])  # the compiled step's two time constants
+        self._frozen = not np.isfinite(self._taus).all()
+        self._kernel: Any = None  # the compiled step's module, once it is warm
 
     _PER_ELEMENT = ("_buf", "_count", "_base", "_base0", "_noise", "_state", "_last_t", "_since", "_below_since",
                     "_rebaselines", "_holds", "_off_since")
@@ -430,6 +442,10 @@ class Calibrator:
         if v.shape != (n, c):
             raise ValueError(f"values must have shape ({n}, {c}), got {v.shape}")
         t_arr = np.asarray(t, dtype=np.float64)
+        if self._compiled and t_arr.ndim == 0 and self._kernel_ready():
+            done = self.update_compiled(float(t_arr), v)
+            if done is not None:
+                return done
         sampled = rows_all(np.isfinite(v))
         # NaN is allowed as the time of an element without a reading (as its values);
         # inf never: it would end every hold-off and trip max_touch at once.
@@ -474,6 +490,76 @@ class Calibrator:
         self._last_t[sampled] = tt[sampled]
         delta[st == COLLECTING] = np.nan  # re-baselined after max_touch: not ready
         return CalibrationStep(delta, st == TOUCHED, st != COLLECTING, self._common_jumps != jumps, rebased)
+
+    def _kernel_ready(self) -> bool:
+        """Whether the compiled step is warm in this process (looked up until it is)."""
+        if self._kernel is None:
+            mod = sys.modules.get("cellbridge.tactile.calibration_kernel")
+            if mod is None or not mod.READY:
+                return False
+            self._kernel = mod
+        return True
+
+    def update_compiled(self, t0: float, v: FloatArray) -> CalibrationStep | None:
+        """:meth:`update` at one time ``t0`` by the compiled step alone (its module imported):
+        None, and nothing changed, where the step is numpy's to take (see ``compiled`` in the
+        constructor). :meth:`update` calls it once the kernel is warm."""
+        kern = self._kernel if self._kernel is not None else sys.modules["cellbridge.tactile.calibration_kernel"]
+        surface = self.is_contact
+        if not math.isfinite(t0) or (surface is not None and (type(surface) is not ContactSurface
+                                                              or self.n_channels != 2)):
+            return None
+        if self._thr is None:
+            self.thresholds()
+        enter, leave = self._thr  # type: ignore[misc]  # thresholds() has just set _thr
+        cfg = self.config
+        # the tracker's gains at tau and tau_negative over each element's time since its last
+        # reading, by numpy's expm1 (the kernel takes 0 where that time is not finite)
+        lag = -(t0 - self._last_t)[:, None]
+        if self._frozen:  # tau = inf: -inf / inf (no reading yet) is NaN, and not used
+            with np.errstate(invalid="ignore"):
+                gains = -np.expm1(lag / self._taus)
+        else:
+            gains = -np.expm1(lag / self._taus)
+        n, c = self.n_elements, self.n_channels
+        delta = np.empty((n, c))
+        out = np.empty((3, n), dtype=bool)
+        ages = np.array([self._spread_age, self._anchor_age], dtype=np.int64)
+        old = self._common.copy()
+        has = surface is not None
+        s = surface if has else None
+        try:
+            got = kern.step(
+                t0, np.ascontiguousarray(v, dtype=np.float64), self._state, self._last_t, self._base, self._base0,
+                self._noise, self._since, self._below_since, self._off_since, self._holds, self._rebaselines,
+                self._count, enter, leave, self._drift, self._clip, self._common, self._spread, gains, ages,
+                float(cfg.k_enter), int(cfg.min_common), bool(cfg.common_mode), float(cfg.common_fraction),
+                float(cfg.common_spread), float(cfg.tau), float(cfg.holdoff),
+                math.inf if cfg.max_touch is None else float(cfg.max_touch), cfg.max_touch is not None,
+                float(cfg.negative_after), has, float(s.noise) if s is not None else 0.0,
+                float(s.k_sigma) if s is not None else 0.0, float(s.ratio_low) if s is not None else 1.0,
+                float(s.ratio_high) if s is not None else 1.0, float(s.dc1_max) if s is not None else 0.0,
+                delta, out)
+        except TypeError:  # argument types it was not compiled for (and compiles no more): numpy's
+            return None
+        code, jumped, most, k, catchups, rebased, anchored, r = got
+        if code != kern.DONE:
+            return None
+        self._spread_age, self._anchor_age = int(ages[0]), int(ages[1])
+        self._catchups += int(catchups)
+        if jumped:
+            self._common_jumps += 1
+            self._last_jump = {"t": t0, "offset_change": [float(x) for x in self._common - old],
+                               "elements": int(most), "tracked": int(k)}
+        if rebased:
+            self._thr = None
+        if anchored:
+            col = self._state == COLLECTING
+            if col.any():  # collected relative to the offset of their step: re-centre them too (_anchor)
+                idx = np.nonzero(col)[0]
+                stored = np.arange(cfg.n_baseline)[None, :] < self._count[idx, None]
+                self._buf[idx] -= np.where(stored[:, :, None], r, 0.0)
+        return CalibrationStep(delta, out[0], out[1], bool(jumped), out[2] if rebased else None)
 
     def _contact_readings(self, live: NDArray[np.bool_], delta: FloatArray) -> NDArray[np.bool_] | None:
         """(N,) whether each ``live`` element's ΔC is a reading some contact makes (True

@@ -98,11 +98,11 @@ class Batches:
             "mode": f.mode.tolist(), "oversampling": f.oversampling.tolist()}
         if not skin.ready:
             return Batch(raw_body, None, f.bridges[:0])
-        rows = skin.rows_of(f.bridges, np.zeros(n, dtype=np.int64))
+        rows = skin.bridge_rows(f.bridges)
         placed = rows >= 0
         caps, sat = self.frontend.capacitance(f.mode, f.oversampling, counts, f.flags, self.gate[f.bridges])
-        unchanged = skin.rows_of(f.unchanged, np.zeros(f.unchanged.size, dtype=np.int64))
-        missing = skin.rows_of(f.missing, np.zeros(f.missing.size, dtype=np.int64))
+        unchanged = skin.bridge_rows(f.unchanged)
+        missing = skin.bridge_rows(f.missing)
         res, unknown = skin.frame(f.t, g, rows[placed], counts[placed], sat[placed], caps[placed],
                                   unchanged[unchanged >= 0], now, inverse=element, root=f.root,
                                   missing=missing[missing >= 0])

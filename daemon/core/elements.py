@@ -43,11 +43,13 @@ class Stepped:
 
 @dataclass(frozen=True, slots=True)
 class Calibrated:
-    """One batch through the element stage: per-sample ``columns`` (:meth:`ElementStage.step`)
-    and what its calibrator step decided."""
+    """One batch through the element stage: per-sample ``columns`` (:meth:`ElementStage.step`),
+    what its calibrator step decided, and each sample's ΔC (n, 2) (``columns``' ``dc1`` and
+    ``dc2`` are its columns)."""
 
     columns: dict[str, FloatArray]
     stepped: Stepped
+    dc: FloatArray
 
 
 class ElementStage:
@@ -84,7 +86,7 @@ class ElementStage:
         self.layout = layout
         self.params = params
         self.noise = noise
-        self.calibrator = Calibrator(layout.n, 2, cal, is_contact=ContactSurface(params, noise))
+        self.calibrator = Calibrator(layout.n, 2, cal, is_contact=ContactSurface(params, noise), compiled=True)
         self.rebaselined = np.zeros(layout.n, dtype=bool)  # re-baselined since take_rebaselined()
         self.min_step = 1.0 / max_step_rate
         self.touched = np.zeros(layout.n, dtype=bool)
@@ -93,6 +95,7 @@ class ElementStage:
         self._waiting = False  # any of _pending_rows (flush asks with every read)
         self._held = np.full((layout.n, 2), np.nan)  # newest reading of each element, if held
         self._held_at = np.full(layout.n, -math.inf)  # when it came
+        self._any_held = False  # a held reading ever came (else none stands: _standing has nothing to do)
         # s a held reading stands after it came (the bridge is live that long): hold_for
         self._hold = cal.tau
         self._none = np.zeros(0, dtype=np.int64)
@@ -111,10 +114,16 @@ class ElementStage:
         press's contact waits behind the read."""
         self._t = max(self._t, now)  # the Calibrator needs times that never go backwards
         uniq, newest = groups
-        self._pending[uniq] = caps[newest]
+        # each row once (a skin frame): uniq is rows, and each sample its row's newest
+        latest = caps if uniq.shape[0] == rows.shape[0] else caps[newest]
+        self._pending[uniq] = latest
         self._pending_rows[uniq] = True
         self._waiting = self._waiting or bool(uniq.shape[0])
-        self._held[uniq] = np.nan if held is None else np.where(held[newest, None], caps[newest], np.nan)
+        if held is None:
+            self._held[uniq] = np.nan
+        else:
+            self._held[uniq] = np.where(held[newest, None], latest, np.nan)
+            self._any_held = self._any_held or bool(held.any())
         self._held_at[uniq] = self._t
         stepped = self._none
         if self._t - self._last_step >= self.min_step:
@@ -128,7 +137,7 @@ class ElementStage:
         out = {"dc1": delta[:, 0], "dc2": delta[:, 1], "touched": self.touched[rows]}
         if inverse:
             out.update(self._inverse(delta))
-        return Calibrated(out, Stepped(stepped, self.touched))
+        return Calibrated(out, Stepped(stepped, self.touched), delta)
 
     def flush(self, now: float) -> Stepped:
         """Step on the readings still waiting for one, if the rate allows it now (the contact
@@ -162,6 +171,8 @@ class ElementStage:
     def _standing(self, values: FloatArray) -> FloatArray:
         """``values`` with the held readings that still stand filled in where an element
         has no new reading (a ready element's only: a baseline is taken from readings)."""
+        if not self._any_held:
+            return values
         fill = (rows_any(np.isnan(values)) & rows_all(np.isfinite(self._held))
                 & (self._t - self._held_at <= self._hold) & self.calibrator.ready)
         if not fill.any():
@@ -216,6 +227,7 @@ class ElementStage:
         self.rebaselined[rows] = old.rebaselined[old_rows]
         for name in ("_held", "_held_at"):
             getattr(self, name)[rows] = getattr(old, name)[old_rows]
+        self._any_held = self._any_held or old._any_held
         self._hold = old._hold
         self._last_step, self._t = old._last_step, old._t
 

@@ -43,6 +43,8 @@ class Frontend:
         """(C in F, saturated), both (n, 2), from (n, 2) raw readings. Saturated: a dead
         oscillator or a counter value no counter can hold, an ADC mean at a rail (C is NaN
         for the impossible and the railed)."""
+        if raw.shape[0] == 0:  # (an event-based frame of unchanged elements only: no call's overhead)
+            return np.empty((0, 2)), np.zeros((0, 2), dtype=bool)
         adc = mode == ADC_MODE
         if not adc.any():
             return self._counter(raw, flags, gate)

@@ -119,6 +119,14 @@ class ChannelHealth:
         uniq, last = groups
         if sat.any():  # rare; ufunc.at is slow enough to matter on every read
             np.add.at(self.saturated_samples, rows, sat.astype(np.int64))
+        if uniq.shape[0] == rows.shape[0]:  # each row once (a skin frame): uniq is rows, each sample its newest
+            moved = np.zeros(self.last_raw.shape, dtype=bool)
+            moved[rows] = raw != self.last_raw[rows]
+            self.last_raw[rows] = raw
+            self.saturated[rows] = sat
+            self.changed_at[moved] = now
+            self.seen_at[rows] = now
+            return
         newest = np.empty_like(self.last_raw)
         newest[uniq] = raw[last]
         moved = np.zeros(self.last_raw.shape, dtype=bool)

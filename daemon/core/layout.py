@@ -165,6 +165,11 @@ class LayoutStages:
         """Layout row of each sample, -1 where the layout does not place it."""
         return np.where(element == 0, self.row[origin], -1)
 
+    def bridge_rows(self, bridges: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Layout row of each bridge's element 0 (a skin frame's), -1 where the layout does not
+        place it: :meth:`rows_of` without the element column."""
+        return self.row[bridges]
+
     def placed(self, bridge: int) -> bool:
         return bool(self.row[bridge] >= 0)
 
@@ -197,8 +202,7 @@ class LayoutStages:
         each reading's kind and sample period (:meth:`ElementReadings.record`). Requires :attr:`ready`."""
         assert self.elements is not None and self.channels is not None and self.readings is not None
         cal = self._calibrate(rows, raw, saturated, caps, now, held, inverse)
-        res = cal.columns
-        dc = np.stack([res["dc1"], res["dc2"]], axis=1)
+        res, dc = cal.columns, cal.dc
         r = self.readings
         touched = r.classify(rows, dc, *self.elements.thresholds())
         r.record(rows, t_sample, cycle, dc, touched, now, held, on_time, period)
@@ -221,15 +225,17 @@ class LayoutStages:
         known = np.concatenate([sampled, kept])
         every = np.concatenate([caps, kept_caps])
         ns = sampled.shape[0]
-        cal = self._calibrate(known, np.concatenate([raw, np.zeros((kept.shape[0], 2), np.int64)]),
-                              np.concatenate([saturated, np.zeros((kept.shape[0], 2), bool)]), every, now,
-                              None, inverse, channels=ns)
-        res = cal.columns
-        dc = np.stack([res["dc1"], res["dc2"]], axis=1)
-        touched = r.classify(known, dc, *self.elements.thresholds())
+        # (channel health is of the samples alone: the raw readings of the first ns rows)
+        cal = self._calibrate(known, raw, saturated, every, now, None, inverse, channels=ns)
+        res, dc = cal.columns, cal.dc
+        # the touch flags of the rows the step classified, the calibrator's hysteresis of the
+        # others (a frame's step, when the rate allows one, classifies every known row)
         stepped = np.zeros(r.n, dtype=bool)
         stepped[cal.stepped.rows] = True
-        touched = np.where(stepped[known], cal.stepped.touched[known], touched)
+        touched = cal.stepped.touched[known]
+        rest = np.flatnonzero(~stepped[known])
+        if rest.size:
+            touched[rest] = r.classify(known[rest], dc[rest], *self.elements.thresholds())
         accounted = np.concatenate([sampled, unchanged, missing if missing is not None else sampled[:0]])
         unknown = r.scheduled(t, cycle, sampled, caps, known, dc, touched, root, accounted)
         return {k: v[:ns] for k, v in res.items()}, unknown
@@ -237,8 +243,8 @@ class LayoutStages:
     def _calibrate(self, rows: NDArray[np.int64], raw: NDArray[np.int64], saturated: NDArray[np.bool_],
                    caps: NDArray[np.float64], now: float, held: NDArray[np.bool_] | None, inverse: bool,
                    channels: int | None = None) -> Calibrated:
-        """Channel health (of the first ``channels`` readings: all by default) and the element
-        stage on ``rows``' readings."""
+        """Channel health (of the first ``channels`` readings: all by default; ``raw`` and
+        ``saturated`` need only those) and the element stage on ``rows``' readings."""
         assert self.elements is not None and self.channels is not None
         self.elements.hold_for(self._hold())
         groups = _newest(rows)
@@ -257,7 +263,8 @@ class LayoutStages:
         r = self.readings
         self.elements.hold_for(self._hold())
         stepped = self.elements.flush(now)
-        r.settle(stepped.rows, stepped.touched)
+        if stepped.rows.size:  # (most calls: nothing was waiting for a step)
+            r.settle(stepped.rows, stepped.touched)
         got = r.take(now, bridge_timeout, self.config.contact.max_lag, scheduled, force=self.dirty)
         if got is None:
             return None
@@ -441,8 +448,7 @@ def _newest(rows: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int6
     A skin frame holds each element once: then that is ``rows`` itself, without a Python
     loop over a thousand elements per frame."""
     n = rows.shape[0]
-    s = np.sort(rows)
-    if n < 2 or not (s[1:] == s[:-1]).any():
+    if n < 2 or np.bincount(rows).max() < 2:  # (rows are layout rows: small, never negative)
         return rows, np.arange(n, dtype=np.int64)
     last = {x: i for i, x in enumerate(rows.tolist())}
     return np.fromiter(last, np.int64, len(last)), np.fromiter(last.values(), np.int64, len(last))

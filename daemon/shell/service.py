@@ -81,6 +81,10 @@ class Service:
     HOST_STEP = 0.005  # s: a change of wall minus monotonic time beyond this is a clock step
     DRAIN_LIMIT = 10.0  # s: systemd's TimeoutStopSec=15 kills a daemon that takes longer
     REPLAY_WARM_LIMIT = 300.0  # s a replay waits at its start for the contact worker's warm-up
+    #: s the start waits, before the links, for the calibrator's compiled step (loading it from
+    #: the cache takes under a second; compiling it on a fresh installation, about 12 s, goes on
+    #: in its thread past this while numpy steps the first frames)
+    CALIBRATION_WARM_LIMIT = 5.0
     TASK_END_LIMIT = 1.0  # s a stop waits for the links' and the service's tasks to end once cancelled
     TERM_LIMIT = 2.0  # s a stop waits for its ZeroMQ context to terminate (PUB lingers 1 s)
 
@@ -479,6 +483,33 @@ class Service:
             self.hooks.bound(sock, endpoint)  # OPS: an ipc:// socket file's mode and group
         self.pub.on_wanted = self.pipeline.want
 
+    def _warm_calibration(self, done: threading.Event) -> None:
+        """In a thread at the start: the calibrator's compiled step loaded, or compiled on a fresh
+        installation (:mod:`cellbridge.tactile.calibration_kernel`); frames before it is warm are
+        stepped by numpy, with the same results, and so are all of them if it fails."""
+        t0 = time.monotonic()
+        try:
+            from cellbridge.tactile import calibration_kernel
+
+            calibration_kernel.warm_up()
+        except Exception as exc:  # any failure leaves the numpy step, which gives the same numbers
+            event(self.log, "warning", "calibration kernel unavailable: numpy steps the calibrator",
+                  error=f"{type(exc).__name__}: {exc}")
+            return
+        finally:
+            done.set()
+        event(self.log, "debug", "calibration kernel ready", seconds=round(time.monotonic() - t0, 3))
+
+    async def _calibration_warm(self) -> None:
+        """Start the calibrator's warm-up and wait for it up to :attr:`CALIBRATION_WARM_LIMIT`:
+        loaded before the links, it neither holds the loop while frames come nor grows the
+        process's memory (its JIT, about 50 MiB) after the start."""
+        done = threading.Event()
+        threading.Thread(target=self._warm_calibration, args=(done,), name="calibration kernel", daemon=True).start()
+        end = time.monotonic() + self.CALIBRATION_WARM_LIMIT
+        while not done.is_set() and time.monotonic() < end:
+            await asyncio.sleep(0.02)
+
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
         ctx = self._ctx if self._ctx is not None else zmq.asyncio.Context()
@@ -499,6 +530,7 @@ class Service:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGHUP})  # held back since the command began (cli.main)
         if self.config.contact.enabled:  # (before the links: a replay waits for its warm-up)
             self.contacts.start()
+        await self._calibration_warm()
         link_tasks = [asyncio.create_task(ln.run(), name=f"link {n}") for n, ln in self.links.items()]
         self._tasks = [asyncio.create_task(c) for c in (self._ticker(), self._contacts(), self.control.serve(),
                                                         self.pub.watch_subscriptions())]

@@ -1,0 +1,138 @@
+"""The calibrator's compiled step (cellbridge.tactile.calibration_kernel) against its numpy step:
+the same outputs and the same state, bit for bit, step after step."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from cellbridge.tactile import calibration_kernel
+from cellbridge.tactile.calibration import CalibrationConfig, Calibrator
+from cellbridge.tactile.contact_surface import ContactSurface
+from cellbridge.tactile.element import ElementParams
+
+N = 60
+#: Everything a step may change (Calibrator's per-element state and its skin-wide state).
+STATE = (*Calibrator._PER_ELEMENT, "_common", "_spread", "_spread_age", "_anchor_age", "_common_jumps",
+         "_catchups", "_last_jump", "_thr")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def warm() -> None:
+    calibration_kernel.warm_up()
+
+
+def same(a: object, b: object) -> bool:
+    """Equal bit for bit (arrays: dtype, shape and bytes; NaNs and signed zeros included)."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype
+                and a.shape == b.shape and np.ascontiguousarray(a).tobytes() == np.ascontiguousarray(b).tobytes())
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+    return type(a) is type(b) and a == b
+
+
+def scenario(seed: int, steps: int):
+    """(t, readings) of a skin of N elements: noise and a slow common drift; presses that are
+    contacts' readings (held past max_touch: kept); a press turning into one layer alone while
+    touched (no contact's reading: re-baselined at max_touch); one layer drifting alone (no
+    touch); elements below their baselines (followed fast); silences longer than tau (caught
+    up); missing readings; a common step of the whole skin."""
+    rng = np.random.default_rng(seed)
+    base = 10e-12 + rng.normal(size=(N, 2)) * 1e-14
+    for k in range(steps):
+        v = base + rng.normal(size=(N, 2)) * 1e-16 + k * 2e-19
+        if (k // 100) % 3 == 1:
+            v[:6] += 3e-13 * np.array([1.0, 0.6])
+        if 200 <= k < 900:
+            v[50:53] += 3e-13 * (np.array([1.0, 0.6]) if k < 300 else np.array([1.0, 0.0]))
+        if (k // 150) % 4 == 2:
+            v[10:14, 0] += 2e-13
+        if (k // 170) % 5 == 3:
+            v[20:23] -= 1.5e-13
+        if 900 < k < 1300:
+            v[40:45] = np.nan
+        if 1300 <= k < 1320:
+            v[40:45] += 5e-16
+        if 2000 < k < 2050:
+            v += 5e-13
+        v[rng.random(N) < 0.2] = np.nan
+        yield 0.01 * (k + 1), v
+
+
+def run_both(cfg: CalibrationConfig, surface: bool, steps: int = 2600, seed: int = 0) -> tuple[Calibrator, int]:
+    """Both steps side by side on :func:`scenario`; asserts they agree every step. Returns the
+    numpy calibrator and how many steps the compiled one took itself."""
+    def make(compiled: bool) -> Calibrator:
+        return Calibrator(N, 2, cfg, is_contact=ContactSurface(ElementParams(), 2e-15) if surface else None,
+                          compiled=compiled)
+
+    a, b = make(False), make(True)
+    ran = 0
+    real = b.update_compiled
+
+    def counted(t0: float, v: np.ndarray):
+        nonlocal ran
+        got = real(t0, v)
+        ran += got is not None
+        return got
+
+    b.update_compiled = counted  # type: ignore[method-assign]
+    for k, (t, v) in enumerate(scenario(seed, steps)):
+        if k == 1400:
+            a.tare([1, 2, 3])
+            b.tare([1, 2, 3])
+        ra, rb = a.update(t, v.copy()), b.update(t, v.copy())
+        for f in ra._fields:
+            assert same(getattr(ra, f), getattr(rb, f)), (k, f)
+        for name in STATE:
+            assert same(getattr(a, name), getattr(b, name)), (k, name)
+    return a, ran
+
+
+def test_compiled_step_is_the_numpy_step_with_contact_surface() -> None:
+    cfg = CalibrationConfig(n_baseline=5, max_touch=3.0, holdoff=0.5, tau=2.0)
+    a, ran = run_both(cfg, surface=True)
+    h: dict[str, Any] = a.health()
+    # the scenario took every rule's rare branch, so the comparison covered them
+    assert h["rebaselines_total"] > 0 and h["holds_total"] > 0
+    assert h["common_jumps"] > 0 and h["outage_catchups"] > 0
+    assert ran > 2000  # all but the collecting steps were the kernel's
+
+
+def test_compiled_step_is_the_numpy_step_without_contact_test_or_common_mode() -> None:
+    cfg = CalibrationConfig(n_baseline=5, max_touch=3.0, holdoff=0.5, tau=2.0, common_mode=False)
+    a, ran = run_both(cfg, surface=False, steps=1500, seed=1)
+    h: dict[str, Any] = a.health()
+    assert h["rebaselines_total"] > 0
+    assert ran > 1200
+    cfg = CalibrationConfig(n_baseline=5, max_touch=None, min_common=3, common_spread=float("inf"))
+    _, ran = run_both(cfg, surface=True, steps=1500, seed=2)
+    assert ran > 1200
+    cfg = CalibrationConfig(n_baseline=5, tau=float("inf"), tau_negative=0.5, max_touch=3.0)  # a frozen baseline
+    _, ran = run_both(cfg, surface=True, steps=1500, seed=3)
+    assert ran > 1200
+
+
+def test_a_step_the_kernel_was_not_compiled_for_is_numpys() -> None:
+    """Read-only readings are another argument type: the warm kernel compiles nothing more
+    (seconds in the middle of a frame) and the numpy step takes them, with the same result."""
+    a, b = (Calibrator(4, 2, CalibrationConfig(n_baseline=1), compiled=c) for c in (False, True))
+    v = np.full((4, 2), 1e-11)
+    a.update(0.0, v)
+    b.update(0.0, v)
+    v = v + 1e-13
+    v.setflags(write=False)
+    assert b.update_compiled(0.01, v) is None
+    ra, rb = a.update(0.01, v), b.update(0.01, v)
+    assert all(same(getattr(ra, f), getattr(rb, f)) for f in ra._fields)
+
+
+def test_the_numpy_step_raises_what_it_raises() -> None:
+    """Time going backwards is refused as before (the kernel leaves such a step untouched)."""
+    cal = Calibrator(4, 2, CalibrationConfig(n_baseline=1), compiled=True)
+    cal.update(1.0, np.full((4, 2), 1e-11))
+    cal.update(1.01, np.full((4, 2), 1e-11))
+    with pytest.raises(ValueError, match="backwards"):
+        cal.update(0.5, np.full((4, 2), 1e-11))

@@ -167,11 +167,14 @@ def gateway_line(proc: subprocess.Popen[Any]) -> list[str]:
 
 
 def _warm_kernels() -> None:
-    """Compile the contact-fit kernels here, once, into numba's cache.
+    """Compile the contact-fit kernels and the calibrator's step here, once, into numba's cache.
 
     The daemon would otherwise compile them on its first contact (about half a minute on
-    a fresh install), and the press would be over before the daemon could report it."""
-    from cellbridge.tactile import ContactEstimator, grid_layout
+    a fresh install), and the press would be over before the daemon could report it; and
+    the calibrator's step at its start, in a thread that holds its loop back meanwhile."""
+    from cellbridge.tactile import ContactEstimator, calibration_kernel, grid_layout
+
+    calibration_kernel.warm_up()
 
     layout = grid_layout(2, 2)
     est = ContactEstimator(layout)

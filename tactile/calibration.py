@@ -525,7 +525,6 @@ class Calibrator:
         delta = np.empty((n, c))
         out = np.empty((3, n), dtype=bool)
         ages = np.array([self._spread_age, self._anchor_age], dtype=np.int64)
-        old = self._common.copy()
         has = surface is not None
         s = surface if has else None
         try:
@@ -542,14 +541,15 @@ class Calibrator:
                 delta, out)
         except TypeError:  # argument types it was not compiled for (and compiles no more): numpy's
             return None
-        code, jumped, most, k, catchups, rebased, anchored, r = got
+        code, jumped, most, k, catchups, rebased, anchored, r, change = got
         if code != kern.DONE:
             return None
         self._spread_age, self._anchor_age = int(ages[0]), int(ages[1])
         self._catchups += int(catchups)
         if jumped:
             self._common_jumps += 1
-            self._last_jump = {"t": t0, "offset_change": [float(x) for x in self._common - old],
+            # the jump's own change: an anchoring in the same step moved the offset after it
+            self._last_jump = {"t": t0, "offset_change": [float(x) for x in change],
                                "elements": int(most), "tracked": int(k)}
         if rebased:
             self._thr = None

@@ -88,10 +88,11 @@ def _step(
     the ``s_*`` constants (else none). ``delta`` (n, c): ΔC out; ``out`` (3, n) bool:
     touched, ready, re-baselined.
 
-    Returns ``(code, jumped, most, tracked, catchups, rebased, anchored, r)``: ``code``
+    Returns ``(code, jumped, most, tracked, catchups, rebased, anchored, r, change)``: ``code``
     DONE or NUMPY (nothing changed); whether the common offset jumped (``most`` elements
     of ``tracked``); elements caught up after a silence; whether any was re-baselined;
-    whether the anchor moved the offset by ``r`` (c,).
+    whether the anchor moved the offset by ``r`` (c,); the common offset's change by this
+    step's median (c,), before the anchor's (the jump's record).
 
     The numpy step's passes are rule by rule over every element; the rules after the
     common offset depend on an element's own state only, so here they run element by
@@ -99,6 +100,7 @@ def _step(
     """
     n, c = v.shape
     r = np.zeros(c)
+    chg = np.zeros(c)
     # every check before any state changes; each element's reading, readiness, tracking
     live = np.empty(n, dtype=np.bool_)
     ref = np.empty(n, dtype=np.bool_)
@@ -109,7 +111,7 @@ def _step(
             if not math.isfinite(v[i, j]):
                 ok = False
         if ok and (st[i] == _COLLECTING or last_t[i] > t0):
-            return NUMPY, False, 0, 0, 0, False, False, r
+            return NUMPY, False, 0, 0, 0, False, False, r, chg
         live[i] = ok and st[i] != _COLLECTING
         ref[i] = st[i] == _TRACKING
         ntrk += ref[i]
@@ -203,7 +205,9 @@ def _step(
                         if trk[i] and (jump or not moved[i]):
                             buf[m] = v[i, j] - base[i, j]
                             m += 1
-                    common[j] = _median(buf, m)
+                    med = _median(buf, m)
+                    chg[j] = med - common[j]  # the jump's record: before the anchor moves the offset too
+                    common[j] = med
                 jumped = jump
     # -- element by element: ΔC, catch-up, contact test, touch state, drift, time
     catchups = 0
@@ -366,7 +370,7 @@ def _step(
                     for j in range(c):
                         common[j] += r[j]
                     anchored = True
-    return DONE, jumped, most, k, catchups, rebased, anchored, r
+    return DONE, jumped, most, k, catchups, rebased, anchored, r, chg
 
 
 def _nanmax(a: float, b: float) -> float:

@@ -136,3 +136,21 @@ def test_the_numpy_step_raises_what_it_raises() -> None:
     cal.update(1.01, np.full((4, 2), 1e-11))
     with pytest.raises(ValueError, match="backwards"):
         cal.update(0.5, np.full((4, 2), 1e-11))
+
+
+def test_a_common_jump_in_an_anchoring_step_records_the_jump_alone() -> None:
+    """The jump's record (health()["last_common_jump"]) is the offset's change by the jump: in a
+    step that also anchors the offset, the anchor's shift is not part of it (as in the numpy step)."""
+    cfg = CalibrationConfig(n_baseline=1, max_touch=None)
+    a, b = (Calibrator(8, 2, cfg, compiled=c) for c in (False, True))
+    rng = np.random.default_rng(5)
+    base = 1e-11 + rng.normal(size=(8, 2)) * 1e-14
+    for k in range(26):
+        v = base + rng.normal(size=(8, 2)) * 1e-16 + k * 1e-17
+        if k >= 25:  # the step of the jump is one of the anchor's (every 8th)
+            v = v + 5e-13
+        a.update(0.01 * k, v.copy())
+        b.update(0.01 * k, v.copy())
+    assert a._last_jump is not None and a._last_jump["t"] == 0.25
+    assert same(a._last_jump, b._last_jump)
+    assert same(a._common, b._common)

@@ -154,3 +154,46 @@ def test_a_common_jump_in_an_anchoring_step_records_the_jump_alone() -> None:
     assert a._last_jump is not None and a._last_jump["t"] == 0.25
     assert same(a._last_jump, b._last_jump)
     assert same(a._common, b._common)
+
+
+def test_the_kernel_warm_mid_press_takes_over_with_the_same_numbers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A daemon's first frames are numpy's until the warm-up (two threads at once here) ends,
+    in the middle of a press: every step, before and after, is the numpy step's."""
+    import threading
+
+    monkeypatch.setattr(calibration_kernel, "READY", False)
+    cfg = CalibrationConfig(n_baseline=3, max_touch=2.0, holdoff=0.2, tau=1.0)
+    a, b = (Calibrator(N, 2, cfg, is_contact=ContactSurface(ElementParams(), 2e-15), compiled=c) for c in (False, True))
+    ran = 0
+    real = b.update_compiled
+
+    def counted(t0: float, v: np.ndarray):
+        nonlocal ran
+        got = real(t0, v)
+        ran += got is not None
+        return got
+
+    b.update_compiled = counted  # type: ignore[method-assign]
+    errors: list[BaseException] = []
+
+    def warm() -> None:
+        try:
+            calibration_kernel.warm_up()
+        except BaseException as exc:  # (asserted below)
+            errors.append(exc)
+
+    for k, (t, v) in enumerate(scenario(7, 700)):
+        if k == 150:  # inside a press of elements 0..5 (steps 100..199, and 400..499)
+            assert ran == 0 and a.touched[:6].any()
+            threads = [threading.Thread(target=warm) for _ in range(2)]
+            for th in threads:
+                th.start()
+            for th in threads:
+                th.join()
+            assert not errors and calibration_kernel.READY
+        ra, rb = a.update(t, v.copy()), b.update(t, v.copy())
+        for f in ra._fields:
+            assert same(getattr(ra, f), getattr(rb, f)), (k, f)
+        for name in STATE:
+            assert same(getattr(a, name), getattr(b, name)), (k, name)
+    assert ran > 400

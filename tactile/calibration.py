@@ -503,7 +503,13 @@ class Calibrator:
     def update_compiled(self, t0: float, v: FloatArray) -> CalibrationStep | None:
         """:meth:`update` at one time ``t0`` by the compiled step alone (its module imported):
         None, and nothing changed, where the step is numpy's to take (see ``compiled`` in the
-        constructor). :meth:`update` calls it once the kernel is warm."""
+        constructor). :meth:`update` calls it once the kernel is warm. ValueError for readings
+        of another shape than :meth:`update` takes (the kernel indexes the state by theirs)."""
+        n, c = self.n_elements, self.n_channels
+        if np.shape(v) == (n,) and c == 1:
+            v = np.asarray(v)[:, None]
+        if np.shape(v) != (n, c):
+            raise ValueError(f"values must have shape ({n}, {c}), got {np.shape(v)}")
         kern = self._kernel if self._kernel is not None else sys.modules["cellbridge.tactile.calibration_kernel"]
         surface = self.is_contact
         if not math.isfinite(t0) or (surface is not None and (type(surface) is not ContactSurface
@@ -521,7 +527,6 @@ class Calibrator:
                 gains = -np.expm1(lag / self._taus)
         else:
             gains = -np.expm1(lag / self._taus)
-        n, c = self.n_elements, self.n_channels
         delta = np.empty((n, c))
         out = np.empty((3, n), dtype=bool)
         ages = np.array([self._spread_age, self._anchor_age], dtype=np.int64)

@@ -197,3 +197,17 @@ def test_the_kernel_warm_mid_press_takes_over_with_the_same_numbers(monkeypatch:
         for name in STATE:
             assert same(getattr(a, name), getattr(b, name)), (k, name)
     assert ran > 400
+
+
+@pytest.mark.parametrize("shape", [(5, 2), (4, 3), (3, 2), (4, 1), (8,)])
+def test_the_compiled_step_refuses_readings_of_another_shape(shape: tuple[int, ...]) -> None:
+    """update_compiled is public: readings of another shape than (n_elements, n_channels) are
+    refused as update refuses them, before the kernel (which indexes the calibrator's state by
+    the readings' shape, unchecked: more rows or channels wrote past the state's arrays)."""
+    cal = Calibrator(4, 2, CalibrationConfig(n_baseline=1), compiled=True)
+    cal.update(0.0, np.full((4, 2), 1e-11))
+    before = {name: np.copy(getattr(cal, name)) for name in Calibrator._PER_ELEMENT}
+    with pytest.raises(ValueError, match="shape"):
+        cal.update_compiled(0.01, np.full(shape, 1e-11))
+    for name, was in before.items():
+        assert same(getattr(cal, name), was), name

@@ -537,7 +537,8 @@ class Calibrator:
                 t0, np.ascontiguousarray(v, dtype=np.float64), self._state, self._last_t, self._base, self._base0,
                 self._noise, self._since, self._below_since, self._off_since, self._holds, self._rebaselines,
                 self._count, enter, leave, self._drift, self._clip, self._common, self._spread, gains, ages,
-                float(cfg.k_enter), int(cfg.min_common), bool(cfg.common_mode), float(cfg.common_fraction),
+                # (min_common past the skin's size is never reached, as one beyond 64 bits is not)
+                float(cfg.k_enter), min(int(cfg.min_common), n + 1), bool(cfg.common_mode), float(cfg.common_fraction),
                 float(cfg.common_spread), float(cfg.tau), float(cfg.holdoff),
                 math.inf if cfg.max_touch is None else float(cfg.max_touch), cfg.max_touch is not None,
                 float(cfg.negative_after), has, float(s.noise) if s is not None else 0.0,

@@ -211,3 +211,17 @@ def test_the_compiled_step_refuses_readings_of_another_shape(shape: tuple[int, .
         cal.update_compiled(0.01, np.full(shape, 1e-11))
     for name, was in before.items():
         assert same(getattr(cal, name), was), name
+
+
+def test_a_min_common_beyond_64_bits_is_stepped_as_numpy_steps_it() -> None:
+    """min_common is any integer >= 1 (one larger than the skin: never a common offset); one past
+    the kernel's 64-bit integers raised OverflowError from every step instead of stepping."""
+    cfg = CalibrationConfig(n_baseline=1, min_common=10**20)
+    a, b = (Calibrator(4, 2, cfg, compiled=c) for c in (False, True))
+    for k in range(4):
+        v = np.full((4, 2), 1e-11) + k * 1e-13
+        ra = a.update(0.01 * k, v.copy())
+        rb = b.update(0.01 * k, v.copy()) if k == 0 else b.update_compiled(0.01 * k, v.copy())  # (0: collecting)
+        assert rb is not None and all(same(getattr(ra, f), getattr(rb, f)) for f in ra._fields), k
+        for name in STATE:
+            assert same(getattr(a, name), getattr(b, name)), (k, name)

@@ -9,7 +9,10 @@ through the remaining rules, which read its own state only, and the anchor), wit
 same rules, the same order of updates and the same arithmetic, so every number is the
 numpy step's, bit for bit
 (tests/test_calibration_kernel.py steps both side by side and compares every output and
-every piece of state). Two parts stay numpy, passed in: the tracker's gains
+every piece of state). One exception, where no sensor goes: readings that overflow float64
+(about 1e308 F) make a baseline NaN, and that NaN's sign bit may differ from the numpy
+step's (a NaN's sign and payload follow the operand order the compiler picks); the values,
+NaN where numpy has NaN, are the same. Two parts stay numpy, passed in: the tracker's gains
 ``-expm1(-dt/tau)`` (numpy's ``expm1`` is not the C library's on every machine, and
 differs from it in the last bit), and whatever the step leaves to
 :class:`~cellbridge.tactile.calibration.Calibrator` (baseline collection, the jump's

@@ -503,7 +503,13 @@ class Calibrator:
     def update_compiled(self, t0: float, v: FloatArray) -> CalibrationStep | None:
         """:meth:`update` at one time ``t0`` by the compiled step alone (its module imported):
         None, and nothing changed, where the step is numpy's to take (see ``compiled`` in the
-        constructor). :meth:`update` calls it once the kernel is warm."""
+        constructor). :meth:`update` calls it once the kernel is warm. ValueError for readings
+        of another shape than :meth:`update` takes (the kernel indexes the state by theirs)."""
+        n, c = self.n_elements, self.n_channels
+        if np.shape(v) == (n,) and c == 1:
+            v = np.asarray(v)[:, None]
+        if np.shape(v) != (n, c):
+            raise ValueError(f"values must have shape ({n}, {c}), got {np.shape(v)}")
         kern = self._kernel if self._kernel is not None else sys.modules["cellbridge.tactile.calibration_kernel"]
         surface = self.is_contact
         if not math.isfinite(t0) or (surface is not None and (type(surface) is not ContactSurface
@@ -521,11 +527,9 @@ class Calibrator:
                 gains = -np.expm1(lag / self._taus)
         else:
             gains = -np.expm1(lag / self._taus)
-        n, c = self.n_elements, self.n_channels
         delta = np.empty((n, c))
         out = np.empty((3, n), dtype=bool)
         ages = np.array([self._spread_age, self._anchor_age], dtype=np.int64)
-        old = self._common.copy()
         has = surface is not None
         s = surface if has else None
         try:
@@ -533,7 +537,8 @@ class Calibrator:
                 t0, np.ascontiguousarray(v, dtype=np.float64), self._state, self._last_t, self._base, self._base0,
                 self._noise, self._since, self._below_since, self._off_since, self._holds, self._rebaselines,
                 self._count, enter, leave, self._drift, self._clip, self._common, self._spread, gains, ages,
-                float(cfg.k_enter), int(cfg.min_common), bool(cfg.common_mode), float(cfg.common_fraction),
+                # (min_common past the skin's size is never reached, as one beyond 64 bits is not)
+                float(cfg.k_enter), min(int(cfg.min_common), n + 1), bool(cfg.common_mode), float(cfg.common_fraction),
                 float(cfg.common_spread), float(cfg.tau), float(cfg.holdoff),
                 math.inf if cfg.max_touch is None else float(cfg.max_touch), cfg.max_touch is not None,
                 float(cfg.negative_after), has, float(s.noise) if s is not None else 0.0,
@@ -542,14 +547,15 @@ class Calibrator:
                 delta, out)
         except TypeError:  # argument types it was not compiled for (and compiles no more): numpy's
             return None
-        code, jumped, most, k, catchups, rebased, anchored, r = got
+        code, jumped, most, k, catchups, rebased, anchored, r, change = got
         if code != kern.DONE:
             return None
         self._spread_age, self._anchor_age = int(ages[0]), int(ages[1])
         self._catchups += int(catchups)
         if jumped:
             self._common_jumps += 1
-            self._last_jump = {"t": t0, "offset_change": [float(x) for x in self._common - old],
+            # the jump's own change: an anchoring in the same step moved the offset after it
+            self._last_jump = {"t": t0, "offset_change": [float(x) for x in change],
                                "elements": int(most), "tracked": int(k)}
         if rebased:
             self._thr = None

@@ -9,7 +9,10 @@ through the remaining rules, which read its own state only, and the anchor), wit
 same rules, the same order of updates and the same arithmetic, so every number is the
 numpy step's, bit for bit
 (tests/test_calibration_kernel.py steps both side by side and compares every output and
-every piece of state). Two parts stay numpy, passed in: the tracker's gains
+every piece of state). One exception, where no sensor goes: readings that overflow float64
+(about 1e308 F) make a baseline NaN, and that NaN's sign bit may differ from the numpy
+step's (a NaN's sign and payload follow the operand order the compiler picks); the values,
+NaN where numpy has NaN, are the same. Two parts stay numpy, passed in: the tracker's gains
 ``-expm1(-dt/tau)`` (numpy's ``expm1`` is not the C library's on every machine, and
 differs from it in the last bit), and whatever the step leaves to
 :class:`~cellbridge.tactile.calibration.Calibrator` (baseline collection, the jump's
@@ -88,10 +91,11 @@ def _step(
     the ``s_*`` constants (else none). ``delta`` (n, c): ΔC out; ``out`` (3, n) bool:
     touched, ready, re-baselined.
 
-    Returns ``(code, jumped, most, tracked, catchups, rebased, anchored, r)``: ``code``
+    Returns ``(code, jumped, most, tracked, catchups, rebased, anchored, r, change)``: ``code``
     DONE or NUMPY (nothing changed); whether the common offset jumped (``most`` elements
     of ``tracked``); elements caught up after a silence; whether any was re-baselined;
-    whether the anchor moved the offset by ``r`` (c,).
+    whether the anchor moved the offset by ``r`` (c,); the common offset's change by this
+    step's median (c,), before the anchor's (the jump's record).
 
     The numpy step's passes are rule by rule over every element; the rules after the
     common offset depend on an element's own state only, so here they run element by
@@ -99,6 +103,7 @@ def _step(
     """
     n, c = v.shape
     r = np.zeros(c)
+    chg = np.zeros(c)
     # every check before any state changes; each element's reading, readiness, tracking
     live = np.empty(n, dtype=np.bool_)
     ref = np.empty(n, dtype=np.bool_)
@@ -109,7 +114,7 @@ def _step(
             if not math.isfinite(v[i, j]):
                 ok = False
         if ok and (st[i] == _COLLECTING or last_t[i] > t0):
-            return NUMPY, False, 0, 0, 0, False, False, r
+            return NUMPY, False, 0, 0, 0, False, False, r, chg
         live[i] = ok and st[i] != _COLLECTING
         ref[i] = st[i] == _TRACKING
         ntrk += ref[i]
@@ -203,7 +208,9 @@ def _step(
                         if trk[i] and (jump or not moved[i]):
                             buf[m] = v[i, j] - base[i, j]
                             m += 1
-                    common[j] = _median(buf, m)
+                    med = _median(buf, m)
+                    chg[j] = med - common[j]  # the jump's record: before the anchor moves the offset too
+                    common[j] = med
                 jumped = jump
     # -- element by element: ΔC, catch-up, contact test, touch state, drift, time
     catchups = 0
@@ -366,7 +373,7 @@ def _step(
                     for j in range(c):
                         common[j] += r[j]
                     anchored = True
-    return DONE, jumped, most, k, catchups, rebased, anchored, r
+    return DONE, jumped, most, k, catchups, rebased, anchored, r, chg
 
 
 def _nanmax(a: float, b: float) -> float:

@@ -136,3 +136,92 @@ def test_the_numpy_step_raises_what_it_raises() -> None:
     cal.update(1.01, np.full((4, 2), 1e-11))
     with pytest.raises(ValueError, match="backwards"):
         cal.update(0.5, np.full((4, 2), 1e-11))
+
+
+def test_a_common_jump_in_an_anchoring_step_records_the_jump_alone() -> None:
+    """The jump's record (health()["last_common_jump"]) is the offset's change by the jump: in a
+    step that also anchors the offset, the anchor's shift is not part of it (as in the numpy step)."""
+    cfg = CalibrationConfig(n_baseline=1, max_touch=None)
+    a, b = (Calibrator(8, 2, cfg, compiled=c) for c in (False, True))
+    rng = np.random.default_rng(5)
+    base = 1e-11 + rng.normal(size=(8, 2)) * 1e-14
+    for k in range(26):
+        v = base + rng.normal(size=(8, 2)) * 1e-16 + k * 1e-17
+        if k >= 25:  # the step of the jump is one of the anchor's (every 8th)
+            v = v + 5e-13
+        a.update(0.01 * k, v.copy())
+        b.update(0.01 * k, v.copy())
+    assert a._last_jump is not None and a._last_jump["t"] == 0.25
+    assert same(a._last_jump, b._last_jump)
+    assert same(a._common, b._common)
+
+
+def test_the_kernel_warm_mid_press_takes_over_with_the_same_numbers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A daemon's first frames are numpy's until the warm-up (two threads at once here) ends,
+    in the middle of a press: every step, before and after, is the numpy step's."""
+    import threading
+
+    monkeypatch.setattr(calibration_kernel, "READY", False)
+    cfg = CalibrationConfig(n_baseline=3, max_touch=2.0, holdoff=0.2, tau=1.0)
+    a, b = (Calibrator(N, 2, cfg, is_contact=ContactSurface(ElementParams(), 2e-15), compiled=c) for c in (False, True))
+    ran = 0
+    real = b.update_compiled
+
+    def counted(t0: float, v: np.ndarray):
+        nonlocal ran
+        got = real(t0, v)
+        ran += got is not None
+        return got
+
+    b.update_compiled = counted  # type: ignore[method-assign]
+    errors: list[BaseException] = []
+
+    def warm() -> None:
+        try:
+            calibration_kernel.warm_up()
+        except BaseException as exc:  # (asserted below)
+            errors.append(exc)
+
+    for k, (t, v) in enumerate(scenario(7, 700)):
+        if k == 150:  # inside a press of elements 0..5 (steps 100..199, and 400..499)
+            assert ran == 0 and a.touched[:6].any()
+            threads = [threading.Thread(target=warm) for _ in range(2)]
+            for th in threads:
+                th.start()
+            for th in threads:
+                th.join()
+            assert not errors and calibration_kernel.READY
+        ra, rb = a.update(t, v.copy()), b.update(t, v.copy())
+        for f in ra._fields:
+            assert same(getattr(ra, f), getattr(rb, f)), (k, f)
+        for name in STATE:
+            assert same(getattr(a, name), getattr(b, name)), (k, name)
+    assert ran > 400
+
+
+@pytest.mark.parametrize("shape", [(5, 2), (4, 3), (3, 2), (4, 1), (8,)])
+def test_the_compiled_step_refuses_readings_of_another_shape(shape: tuple[int, ...]) -> None:
+    """update_compiled is public: readings of another shape than (n_elements, n_channels) are
+    refused as update refuses them, before the kernel (which indexes the calibrator's state by
+    the readings' shape, unchecked: more rows or channels wrote past the state's arrays)."""
+    cal = Calibrator(4, 2, CalibrationConfig(n_baseline=1), compiled=True)
+    cal.update(0.0, np.full((4, 2), 1e-11))
+    before = {name: np.copy(getattr(cal, name)) for name in Calibrator._PER_ELEMENT}
+    with pytest.raises(ValueError, match="shape"):
+        cal.update_compiled(0.01, np.full(shape, 1e-11))
+    for name, was in before.items():
+        assert same(getattr(cal, name), was), name
+
+
+def test_a_min_common_beyond_64_bits_is_stepped_as_numpy_steps_it() -> None:
+    """min_common is any integer >= 1 (one larger than the skin: never a common offset); one past
+    the kernel's 64-bit integers raised OverflowError from every step instead of stepping."""
+    cfg = CalibrationConfig(n_baseline=1, min_common=10**20)
+    a, b = (Calibrator(4, 2, cfg, compiled=c) for c in (False, True))
+    for k in range(4):
+        v = np.full((4, 2), 1e-11) + k * 1e-13
+        ra = a.update(0.01 * k, v.copy())
+        rb = b.update(0.01 * k, v.copy()) if k == 0 else b.update_compiled(0.01 * k, v.copy())  # (0: collecting)
+        assert rb is not None and all(same(getattr(ra, f), getattr(rb, f)) for f in ra._fields), k
+        for name in STATE:
+            assert same(getattr(a, name), getattr(b, name)), (k, name)

@@ -714,3 +714,47 @@ def test_a_shifted_replay_that_falls_behind_never_feeds_a_read_before_the_time_i
     assert on_schedule == [*range(21), *range(51, 60)]  # back on its schedule after them
     stats = link.stats()
     assert stats["replay_late"] == 30 and stats["replay_late_max"] == pytest.approx(0.293, abs=1e-9), stats
+
+
+def test_a_failing_calibration_kernel_leaves_the_numpy_step_and_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The calibrator's compiled step failing to compile (or load) at the start: the warm-up
+    ends (the start waits no longer), a warning says that numpy steps the calibrator and why,
+    and a calibrator made for the kernel steps by numpy, never calling it."""
+    import threading
+
+    import numpy as np
+    from cellbridge.tactile import calibration_kernel
+    from cellbridge.tactile.calibration import CalibrationConfig, Calibrator
+
+    def broken() -> None:
+        raise RuntimeError("compiling the step failed")
+
+    monkeypatch.setattr(calibration_kernel, "warm_up", broken)
+    monkeypatch.setattr(calibration_kernel, "READY", False)
+    cfg = parse_config({"link": [{"name": "gw", "url": "/dev/ttyFAKE0"}], "daemon": {"log_level": "warning"}})
+    svc = Service(cfg, hooks=RecordingHooks(cfg), contact_executor=InlineExecutor)
+    records: list[logging.LogRecord] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(record)
+
+    handler = Keep()
+    svc.log.addHandler(handler)
+    done = threading.Event()
+    try:
+        svc._warm_calibration(done)
+    finally:
+        svc.log.removeHandler(handler)
+    assert done.is_set()
+    said = [r for r in records if "numpy steps the calibrator" in r.getMessage()]
+    assert said and "compiling the step failed" in str(said[0].fields)  # type: ignore[attr-defined]
+    cal = Calibrator(4, 2, CalibrationConfig(n_baseline=1), compiled=True)
+
+    def never(t0: float, v: Any) -> None:
+        raise AssertionError("the compiled step was called without a warm kernel")
+
+    monkeypatch.setattr(cal, "update_compiled", never)
+    for k in range(3):
+        cal.update(0.01 * k, np.full((4, 2), 1e-11))
+    assert cal.ready.all()

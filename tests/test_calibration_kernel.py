@@ -61,6 +61,20 @@ def scenario(seed: int, steps: int):
         yield 0.01 * (k + 1), v
 
 
+def _count_compiled(cal: Calibrator) -> list[int]:
+    """``cal``'s steps that the compiled step took itself, counted in the list's one item."""
+    count = [0]
+    real = cal.update_compiled
+
+    def counted(t0: float, v: np.ndarray):
+        got = real(t0, v)
+        count[0] += got is not None
+        return got
+
+    cal.update_compiled = counted  # type: ignore[method-assign]
+    return count
+
+
 def run_both(cfg: CalibrationConfig, surface: bool, steps: int = 2600, seed: int = 0) -> tuple[Calibrator, int]:
     """Both steps side by side on :func:`scenario`; asserts they agree every step. Returns the
     numpy calibrator and how many steps the compiled one took itself."""
@@ -69,16 +83,7 @@ def run_both(cfg: CalibrationConfig, surface: bool, steps: int = 2600, seed: int
                           compiled=compiled)
 
     a, b = make(False), make(True)
-    ran = 0
-    real = b.update_compiled
-
-    def counted(t0: float, v: np.ndarray):
-        nonlocal ran
-        got = real(t0, v)
-        ran += got is not None
-        return got
-
-    b.update_compiled = counted  # type: ignore[method-assign]
+    compiled = _count_compiled(b)
     for k, (t, v) in enumerate(scenario(seed, steps)):
         if k == 1400:
             a.tare([1, 2, 3])
@@ -88,7 +93,7 @@ def run_both(cfg: CalibrationConfig, surface: bool, steps: int = 2600, seed: int
             assert same(getattr(ra, f), getattr(rb, f)), (k, f)
         for name in STATE:
             assert same(getattr(a, name), getattr(b, name)), (k, name)
-    return a, ran
+    return a, compiled[0]
 
 
 def test_compiled_step_is_the_numpy_step_with_contact_surface() -> None:
@@ -164,16 +169,7 @@ def test_the_kernel_warm_mid_press_takes_over_with_the_same_numbers(monkeypatch:
     monkeypatch.setattr(calibration_kernel, "READY", False)
     cfg = CalibrationConfig(n_baseline=3, max_touch=2.0, holdoff=0.2, tau=1.0)
     a, b = (Calibrator(N, 2, cfg, is_contact=ContactSurface(ElementParams(), 2e-15), compiled=c) for c in (False, True))
-    ran = 0
-    real = b.update_compiled
-
-    def counted(t0: float, v: np.ndarray):
-        nonlocal ran
-        got = real(t0, v)
-        ran += got is not None
-        return got
-
-    b.update_compiled = counted  # type: ignore[method-assign]
+    compiled = _count_compiled(b)
     errors: list[BaseException] = []
 
     def warm() -> None:
@@ -184,7 +180,7 @@ def test_the_kernel_warm_mid_press_takes_over_with_the_same_numbers(monkeypatch:
 
     for k, (t, v) in enumerate(scenario(7, 700)):
         if k == 150:  # inside a press of elements 0..5 (steps 100..199, and 400..499)
-            assert ran == 0 and a.touched[:6].any()
+            assert compiled[0] == 0 and a.touched[:6].any()
             threads = [threading.Thread(target=warm) for _ in range(2)]
             for th in threads:
                 th.start()
@@ -196,7 +192,7 @@ def test_the_kernel_warm_mid_press_takes_over_with_the_same_numbers(monkeypatch:
             assert same(getattr(ra, f), getattr(rb, f)), (k, f)
         for name in STATE:
             assert same(getattr(a, name), getattr(b, name)), (k, name)
-    assert ran > 400
+    assert compiled[0] > 400
 
 
 @pytest.mark.parametrize("shape", [(5, 2), (4, 3), (3, 2), (4, 1), (8,)])

@@ -306,18 +306,25 @@ def test_an_index_whose_instant_overflows_64_bits_is_not_on_a_skin_frame(press_d
     assert health["bridges"]["6"]["index_rejected"] == hit
 
 
+def _late_bridge_16(press: tuple[float, float], boot: float, until: float) -> VirtualMesh:
+    """An event-based 4x4 at 100 Hz in virtual time, run ``until`` s: a 3 N corner press of
+    (start, duration) ``press``, and bridge 16 off until it boots at ``boot`` s."""
+    mesh = meshgen.grid(4, 4)
+    vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(*press, *CORNER, 3.0, 0.020)]), random_epochs=True,
+                     settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
+    vm.kill(16, at=0.0)
+    vm.restart(16, at=boot)
+    vm.run(until)
+    return vm
+
+
 def test_a_held_press_on_an_event_based_skin_keeps_its_contact_when_a_bridge_joins() -> None:
     """An event-based 4x4 skin whose bridge 16 boots late, at 6 s, while a corner press is held
     (4-9 s). Its HELLO extends the layout; the moments began empty, and the pressed elements,
     steady, do not send again before their heartbeat: the press ended (``contacts: []``, 15
     elements unknown) and came back as a new id at a third of its force, with a phantom
     second contact, for most of a second."""
-    mesh = meshgen.grid(4, 4)
-    vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(4.0, 5.0, *CORNER, 3.0, 0.020)]), random_epochs=True,
-                     settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
-    vm.kill(16, at=0.0)
-    vm.restart(16, at=6.0)
-    vm.run(9.5)
+    vm = _late_bridge_16(press=(4.0, 5.0), boot=6.0, until=9.5)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
     run = list(drive(reads, 9.5, sections={"calibration": {"n_baseline": 3}}))
     assert any(topic == "topology" and "16" in m["bridges"] and 6.0 < t - T0 < 7.0 for t, topic, m in run)
@@ -339,12 +346,7 @@ def test_the_contact_worker_builds_a_grown_layouts_estimator_before_its_first_to
 
     from support.pipeline_helpers import worker
 
-    mesh = meshgen.grid(4, 4)
-    vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(6.0, 1.0, *CORNER, 3.0, 0.020)]), random_epochs=True,
-                     settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
-    vm.kill(16, at=0.0)
-    vm.restart(16, at=4.0)
-    vm.run(6.5)
+    vm = _late_bridge_16(press=(6.0, 1.0), boot=4.0, until=6.5)
     p = Pipeline(parse_config({"link": [{"name": "gw", "url": "/dev/null"}], "calibration": {"n_baseline": 3}}))
     w, idle, ran = worker(), False, []
     for t, data in vm.serial_chunks[1]:  # as the service's contact loop asks: when a frame is due

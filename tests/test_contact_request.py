@@ -130,3 +130,39 @@ def test_a_replaced_worker_gets_the_spec_with_its_first_request(warm_kernels: No
         assert made[1].sent[0].spec is not None and cw.stats["errors"] == 1
     finally:
         cw.close()
+
+
+def test_a_replaced_worker_builds_the_estimator_on_an_untouched_frame_not_on_the_first_touch(
+        warm_kernels: None) -> None:
+    """A new worker has no estimator: the first job after the replacement runs even on an
+    idle skin, so that the build is paid before a press, not by the press's first estimate
+    (the same rule as a layout that changed on an idle skin)."""
+    import asyncio
+
+    layout = grid_layout(4, 4)
+    spec = ContactSpec.of(layout, 2e-15, CONTACT)
+    identity = ContactIdentity()
+    n = layout.n
+
+    def untouched(k: int) -> ContactJob:
+        t = 1.0 + k * 0.01
+        return identity.job(spec, ContactSnapshot(np.zeros((n, 2)), np.zeros(n, dtype=bool), t, np.ones(n),
+                                                  np.arange(n, dtype=np.uint64), layout.ids, t))
+
+    cw, made = _worker()
+    try:
+        cw.start()
+        quiet = CONTACT.max_missed + 3
+        for k in range(quiet):  # the estimator is built, then an idle skin asks nothing more
+            assert asyncio.run(cw.estimate(untouched(k), LIMIT)) == []
+        asked = len(made[0].sent)
+        assert asked < quiet
+        made[0].kill()
+        cw._replace()  # as a hung or dead worker is replaced
+        assert len(made) == 2
+        assert asyncio.run(cw.estimate(untouched(quiet), LIMIT)) == []
+        assert len(made[1].sent) == 1 and made[1].sent[0].spec is not None  # built now, on the idle skin
+        assert asyncio.run(cw.estimate(untouched(quiet + 1), LIMIT)) == []
+        assert len(made[1].sent) == 1  # and then idle again
+    finally:
+        cw.close()

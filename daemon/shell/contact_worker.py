@@ -247,6 +247,7 @@ class ContactWorker:
         pool, self._pool = self._pool, None
         self._answered = False
         self._shipped = None
+        self._built = None  # the new worker has no estimator: its first job runs, touched or not
         self.stats["worker_restarts"] += 1
         if pool is not None:
             _kill(pool)

@@ -15,7 +15,9 @@ Run: ``.venv/bin/python bench/bench_readout.py [--quick]`` (or ``make bench``). 
    before it, the cells' capacity: the airtime the busiest relay needs per frame (its
    subtree's samples in and out, half duplex) for one gateway and for four;
 3. event-based traffic against periodic on a 4x4 at 100 Hz, idle and with four moving
-   presses: bits put on the cells, and record bytes on the gateway's serial line;
+   presses: bits put on the cells, and record bytes on the gateway's serial line; and what
+   a leaf's record of one frame costs on its cell with a sample and unchanged (every frame
+   has one record from every bridge either way: the frame's fixed cost bounds the ratio);
 4. delivered sample bits at the gateway over the raw bitrate of one of its cells, at
    250 Hz on grids with the gateway in a corner (two cells) and in the middle (four), and
    the ceiling of that share for full frames (the header, the record's own fields, the
@@ -154,6 +156,19 @@ def traffic(quick: bool) -> None:
             serial[periodic] = sum(len(c) for _, c in vm.serial_chunks[1][n0:]) / secs
         print(f"{label:<8} {bits[True]:>16.0f} {bits[False]:>8.0f} {bits[False] / bits[True]:>6.1%} "
               f"{serial[True]:>15.0f} {serial[False]:>8.0f} {serial[False] / serial[True]:>6.1%}")
+    # Why the ratio stays high: every frame, each leaf sends a record either way, and what
+    # the two differ in (a sample or an unchanged id) is small beside what both cost.
+    tc = TransceiverConfig()
+    ack = 8 * 24 + PREAMBLE_BITS + tc.sifs_bits
+
+    def airtime(r: Readout) -> int:
+        return 8 * (HEADER_LEN + CRC_LEN + len(pack_payload(r))) + PREAMBLE_BITS + tc.difs_bits + ack
+
+    sampled = airtime(Readout(10**5, 100, Mode.COUNTER, 1, (ReadoutSample(7, 19_600, 15_800, 0),), (), (), 52_000))
+    unchanged = airtime(Readout(10**5, 100, Mode.COUNTER, 1, (), (7,), (), 52_000))
+    print(f"a leaf's record of one frame, with its acknowledgement and gaps: {sampled} bits with its sample, "
+          f"{unchanged} unchanged ({unchanged / sampled:.0%}); header, CRC, record fields, preamble, DIFS and "
+          f"acknowledgement {airtime(Readout(10**5, 100, Mode.COUNTER, 1, ()))} bits of either")
 
 
 def efficiency(quick: bool) -> None:

@@ -75,8 +75,8 @@ class Frontend:
     def _counter(self, raw: NDArray[np.int64], flags: NDArray[np.int64], gate: FloatArray
                  ) -> tuple[FloatArray, NDArray[np.bool_]]:
         """unwrap_counts (the overflow flags known) then counts_to_capacitance of the count
-        at the reference gate, with their arithmetic; a counter value no 16-bit counter
-        holds is a corrupt reading (saturated, NaN). Raises ValueError where unwrap_counts
+        at the reference gate, with their arithmetic; a counter value the chip's counter cannot
+        hold is a corrupt reading (saturated, NaN). Raises ValueError where unwrap_counts
         would: a negative counter value, a gate that is not finite."""
         m = self._modulus
         bad: NDArray[np.bool_] | None = None

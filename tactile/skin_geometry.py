@@ -347,6 +347,25 @@ class SkinGeometry:
                 "t": np.array([np.asarray(c.pose)[:3, 3] for c in cs]).reshape(-1, 3)}
 
     @cached_property
+    def _chart_rows(self) -> NDArray[np.int64]:
+        """(charts, elements of the largest) each chart's element rows in ascending order,
+        padded with -1."""
+        counts = np.bincount(self.chart_of, minlength=len(self.charts))
+        out = np.full((len(self.charts), max(int(counts.max(initial=0)), 1)), -1, dtype=np.int64)
+        for c in range(len(self.charts)):
+            sel = np.flatnonzero(self.chart_of == c)
+            out[c, :sel.size] = sel
+        return out
+
+    @cached_property
+    def _atlas_x(self) -> NDArray[np.float64]:
+        return np.ascontiguousarray(self.atlas[:, 0])
+
+    @cached_property
+    def _atlas_y(self) -> NDArray[np.float64]:
+        return np.ascontiguousarray(self.atlas[:, 1])
+
+    @cached_property
     def _patch_names(self) -> list[str]:
         return [p.name for p in self.patches]
 
@@ -373,12 +392,19 @@ class SkinGeometry:
         v = ya - ca["y0"][ch] + ca["v0"][ch]
         pts, nrm, du, dv = (a.tolist() for a in surface_points(
             ca["cylinder"][ch], ca["plane"][ch], ca["radius"][ch], ca["rot"][ch], ca["t"][ch], u, v))
-        # The nearest element of the point's own chart (the shorter way round a band).
-        ddx = np.abs(self.atlas[None, :, 0] - px[:, None])
+        # The nearest element of the point's own chart (the shorter way round a band), the
+        # first of equals in the order of rows; among that chart's elements only (a tenth of
+        # a humanoid's), -1 where a chart has fewer than the largest one.
+        rows = self._chart_rows[ch]
+        pad = rows < 0
+        at = np.where(pad, 0, rows)
+        ddx = np.abs(self._atlas_x[at] - px[:, None])
         ddx = np.where(wraps[:, None], np.minimum(ddx, period[:, None] - ddx), ddx)
-        d2 = np.where(self.chart_of[None, :] == ch[:, None], ddx ** 2 + (self.atlas[None, :, 1] - ya[:, None]) ** 2,
-                      np.inf)
-        near = np.argmin(d2, axis=1).tolist()
+        d2 = np.where(pad, np.inf, ddx ** 2 + (self._atlas_y[at] - ya[:, None]) ** 2)
+        j = np.argmin(d2, axis=1)
+        k = np.arange(j.shape[0])
+        # (no element nearer than infinitely far: the first row, as over the whole skin)
+        near = np.where(pad[k, j] | (d2[k, j] == np.inf), 0, rows[k, j]).tolist()
         charts, names, patch_of = self.charts, self._patch_names, self._patch_of_list
         return [SurfacePoint(charts[c].link, names[patch_of[e]], tuple(p), tuple(n), tuple(a), tuple(b))
                 for c, e, p, n, a, b in zip(ch.tolist(), near, pts, nrm, du, dv)]

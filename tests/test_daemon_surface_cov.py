@@ -66,3 +66,20 @@ def test_an_open_axis_on_any_patch_is_open_where_it_moves_and_nan_nowhere(skin) 
         moved = np.abs(ty) > 0  # the link coordinates the open axis moves have no bound
         assert np.isinf(np.diag(cov)[moved]).all()
         assert np.isfinite(np.diag(cov)[~moved]).all()
+
+
+def test_a_frames_contacts_are_each_carried_as_if_alone(skin) -> None:
+    """A frame's contacts are placed and carried together: each one's fields are what it
+    gets alone (an open axis of one never reaches another's covariance)."""
+    rng = np.random.default_rng(4)
+    contacts = []
+    for k, (x, y) in enumerate(_centres(skin, 12)):
+        a = rng.normal(size=(2, 2))
+        cov = (a @ a.T * 1e-6).tolist()
+        if k % 3 == 0:
+            cov = [[cov[0][0], 0.0], [0.0, math.inf]]
+        contacts.append({**_contact(cov, x, y), "id": k, "force": 1.0 + k})
+    together = contact_fields(skin, contacts)
+    assert len({c["patch"] for c in together}) > 1
+    for c, alone in zip(together, (contact_fields(skin, [c])[0] for c in contacts)):
+        assert repr(c) == repr(alone)

@@ -154,3 +154,24 @@ def test_bad_descriptions_are_refused_naming_the_key(change, message) -> None:
     assert text != SKIN
     with pytest.raises(SkinError, match=message):
         parse_skin(text, "test.toml")
+
+
+def test_a_point_is_on_the_patch_of_the_nearest_element_of_its_own_chart(skin) -> None:
+    """locate's patch: the nearest element of the point's own chart (the shorter way round a
+    band; of equally near ones, the first row), whatever lies nearer on another chart,
+    searched over every element of the skin here."""
+    rng = np.random.default_rng(11)
+    lo, hi = skin.atlas.min(axis=0), skin.atlas.max(axis=0)
+    xs = np.concatenate([rng.uniform(lo[0] - 0.05, hi[0] + 0.05, 400), skin.atlas[:, 0]])
+    ys = np.concatenate([rng.uniform(lo[1] - 0.05, hi[1] + 0.05, 400), skin.atlas[:, 1]])
+    points = skin.locate(xs, ys)
+    charts = skin.chart_at(xs, ys)
+    assert len(set(charts.tolist())) > 1  # (the points fall on several charts)
+    for x, y, ch, sp in zip(xs, ys, charts, points):
+        c = skin.charts[ch]
+        px = c.x0 + (x - c.x0) % c.period if c.period > 0 else x
+        dx = np.abs(skin.atlas[:, 0] - px)
+        if c.period > 0:
+            dx = np.minimum(dx, c.period - dx)
+        d2 = np.where(skin.chart_of == ch, dx ** 2 + (skin.atlas[:, 1] - y) ** 2, np.inf)
+        assert sp.patch == skin.patches[int(skin.patch_of[int(np.argmin(d2))])].name

@@ -126,13 +126,18 @@ class ElementReadings:
         without a baseline yet is unknown too, but not counted here)."""
         self.domain[known if accounted is None else accounted] = root
         scope = (self.domain == root) | (self.domain < 0)
+        whole = bool(scope.all())  # (one root: the frame speaks for every element)
         ok = np.zeros(self.n, dtype=bool)
         ok[known] = True
-        self.ref &= ok | ~scope
+        self.ref &= ok if whole else ok | ~scope
         with np.errstate(invalid="ignore"):  # a sample of an earlier frame than the reference's (another
             newer = ~(self.ref_t[sampled] > t)  # root's frame, given out after) is not what the bridge last sent
-        fresh = sampled[newer]
-        self.caps[fresh] = caps[newer]
+        if newer.all():  # (every sample but at a failover: no copies of them)
+            fresh = sampled
+            self.caps[fresh] = caps
+        else:
+            fresh = sampled[newer]
+            self.caps[fresh] = caps[newer]
         self.ref[fresh] = True
         self.ref_t[fresh] = t
         self.ref_cycle[fresh] = cycle
@@ -146,7 +151,7 @@ class ElementReadings:
         cyc = np.where(ok, self.ref_cycle, np.uint64(0))
         unknown = ~ok
         prev = self._frame
-        if not scope.all():  # another root's elements: as their own newest frame said
+        if not whole:  # another root's elements: as their own newest frame said
             other = ~scope
             if prev is None:
                 unknown[other] = True
@@ -155,6 +160,8 @@ class ElementReadings:
                 cyc[other], unknown[other] = prev.cycle[other], prev.unknown[other]
         self._news = sampled.size > 0 or prev is None or not np.array_equal(prev.unknown, unknown)
         self._frame = FrameReading(t, full, tch & ~unknown, t_sample, cyc, unknown)
+        if whole:
+            return self.n - known.shape[0]
         return int(np.count_nonzero(scope) - np.count_nonzero(scope[known]))
 
     # -- unscheduled (DATA) ----------------------------------------------------------------

@@ -30,34 +30,36 @@ def contact_fields(skin: SkinGeometry | None, contacts: list[dict[str, Any]]) ->
     xs = [float(c["x"]) for c in contacts]
     ys = [float(c["y"]) for c in contacts]
     points = skin.locate(xs, ys) if skin is not None else None
-    out = []
-    for k, c in enumerate(contacts):
+    Vec = tuple[float, float, float]
+    placed: list[tuple[str | None, str | None, Vec, Vec, Vec, Vec]] = []
+    for k in range(len(contacts)):
         if points is None:
-            link = patch = None
-            pos = (xs[k], ys[k], 0.0)
-            nrm = (0.0, 0.0, 1.0)
-            tx, ty = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
+            placed.append((None, None, (xs[k], ys[k], 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)))
         else:
             sp = points[k]
-            link, patch, pos, nrm, tx, ty = sp.link, sp.patch, sp.position, sp.normal, sp.tangent_x, sp.tangent_y
+            placed.append((sp.link, sp.patch, sp.position, sp.normal, sp.tangent_x, sp.tangent_y))
+    # every contact's Jacobian (3, 2): atlas (x, y) -> link frame, carried in one pass
+    jac = np.array([(tx, ty) for *_, tx, ty in placed], dtype=np.float64).transpose(0, 2, 1)
+    covs = _carried(jac, np.array([c["cov"] for c in contacts], dtype=np.float64)).tolist()
+    out = []
+    for c, (link, patch, pos, nrm, _, _), cov in zip(contacts, placed, covs):
         f = float(c["force"])
         fv = [-f * n for n in nrm] if math.isfinite(f) else None
-        jac = np.array([tx, ty]).T  # (3, 2): atlas (x, y) -> link frame
-        cov = _carried(jac, np.asarray(c["cov"], dtype=np.float64))
         out.append({**c, "link": link, "patch": patch, "position": list(pos), "normal": list(nrm),
-                    "force_vector": fv, "position_cov": cov.tolist()})
+                    "force_vector": fv, "position_cov": cov})
     return out
 
 
 def _carried(jac: NDArray[np.float64], cov: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``jac @ cov @ jac.T``, where a zero entry of ``jac`` contributes nothing, also against
-    an infinite variance: an atlas axis the readings leave open (σ infinite) leaves open
-    the link coordinates it moves, and no other (0 · inf taken literally made the whole
-    covariance NaN, the surface normal's coordinate included, which the patch pins)."""
-    terms = jac[:, None, :, None] * jac[None, :, None, :]  # (3, 3, 2, 2): J[i, a] J[j, b]
+    """``jac @ cov @ jac.T`` of each contact (``jac`` (k, 3, 2), ``cov`` (k, 2, 2)), where a
+    zero entry of ``jac`` contributes nothing, also against an infinite variance: an atlas
+    axis the readings leave open (σ infinite) leaves open the link coordinates it moves,
+    and no other (0 · inf taken literally made the whole covariance NaN, the surface
+    normal's coordinate included, which the patch pins)."""
+    terms = jac[:, :, None, :, None] * jac[:, None, :, None, :]  # (k, 3, 3, 2, 2): J[i, a] J[j, b]
     with np.errstate(invalid="ignore"):
-        out = np.where(terms != 0, terms * cov[None, None, :, :], 0.0)
-    return np.asarray(out.sum(axis=(2, 3)), dtype=np.float64)
+        out = np.where(terms != 0, terms * cov[:, None, None, :, :], 0.0)
+    return np.asarray(out.sum(axis=(3, 4)), dtype=np.float64)
 
 
 def skin_report(skin: SkinGeometry | None) -> dict[str, Any] | None:

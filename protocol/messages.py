@@ -531,7 +531,17 @@ def _readout_lists(raw: list[Any], unchanged: list[Any], missing: list[Any],
     a Python step per element (a thousand elements a frame, a hundred frames a second);
     None when any check fails, and the element-by-element validation then names what.
     Every id of the three lists is an int once (one set of them all as long as the lists
-    together), so each list is strictly increasing when it is in order."""
+    together), so each list is strictly increasing when it is in order. A record of
+    at most :data:`_FEW` samples (every record on a cell) is checked in one Python pass
+    instead, the same checks: the column passes' fixed cost is larger there."""
+    if len(raw) <= _FEW:
+        return _few_readout_lists(raw, unchanged, missing, limit)
+    return _column_readout_lists(raw, unchanged, missing, limit)
+
+
+def _column_readout_lists(raw: list[Any], unchanged: list[Any], missing: list[Any],
+                          limit: int) -> tuple[tuple[ReadoutSample, ...], tuple[int, ...], tuple[int, ...]] | None:
+    """:func:`_readout_lists` in C-level passes over the columns."""
     if raw:
         if set(map(type, raw)) != _LIST:
             return None
@@ -555,6 +565,44 @@ def _readout_lists(raw: list[Any], unchanged: list[Any], missing: list[Any],
         if ordered and (ordered[0] < 0 or ordered[-1] > U16 or ordered != sorted(ordered)):
             return None
     return tuple(map(_new_tuple, repeat(ReadoutSample, len(raw)), raw)), tuple(unchanged), tuple(missing)
+
+
+#: Samples up to which a READOUT's lists are checked in one Python pass rather than in
+#: column passes: measured faster at every size up to 40 (1 sample: 0.5 µs against 3.7;
+#: 16: 7.7 against 9.3), and a bridge reads records of one sample (a leaf's) most.
+_FEW = 16
+
+
+def _few_readout_lists(raw: list[Any], unchanged: list[Any], missing: list[Any],
+                       limit: int) -> tuple[tuple[ReadoutSample, ...], tuple[int, ...], tuple[int, ...]] | None:
+    """:func:`_readout_lists` (the same checks, the same answer) in one pass over the
+    entries: each list strictly increasing within 0..U16 and no bridge in two."""
+    samples = []
+    last = -1
+    for s in raw:
+        if type(s) is not list or len(s) != 4:
+            return None
+        b, c1, c2, fl = s
+        if not (type(b) is int and type(c1) is int and type(c2) is int and type(fl) is int
+                and last < b and 0 <= c1 <= limit and 0 <= c2 <= limit and 0 <= fl <= _OVERFLOWS):
+            return None
+        last = b
+        samples.append(_new_tuple(ReadoutSample, s))
+    if last > U16:
+        return None
+    if unchanged or missing:
+        for ids in (unchanged, missing):
+            last = -1
+            for b in ids:
+                if type(b) is not int or not last < b:
+                    return None
+                last = b
+            if last > U16:
+                return None
+        together = [*(s[0] for s in raw), *unchanged, *missing]
+        if len(set(together)) != len(together):
+            return None
+    return tuple(samples), tuple(unchanged), tuple(missing)
 
 
 def _readout_lists_checked(raw: list[Any], unchanged: list[Any], missing: list[Any],

@@ -84,6 +84,25 @@ def test_closed_form_spans_several_jitter_blocks(seed, start, gate, c, jitter):
     assert ref == train.event_offsets().size
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=seeds,
+    start=starts,
+    gate=st.integers(1, 400_000),
+    c=st.floats(min_value=2e-12, max_value=60e-12),
+    jitter=jitters,
+    channel=st.integers(0, 3),
+)
+def test_chip_count_takes_the_train_count_on_long_gates(seed, start, gate, c, jitter, channel):
+    """The chip's count (its own path, without a train) equals the train's edge count on
+    gates of up to 8 ms, where the gate's end falls in the hint block or, with large
+    jitter, another one; passed as numpy scalars (the train's path) the same."""
+    chip = Chip(ChipConfig(jitter=jitter, counter_bits=32), seed=seed)
+    n = chip.edge_train(channel, c, start, gate).edge_count()
+    assert chip.count(channel, c, start, gate) == (n, False)
+    assert chip.count(np.int64(channel), np.float64(c), np.int64(start), np.int64(gate)) == (n, False)  # type: ignore[arg-type]  # numpy scalars, as a caller may pass
+
+
 def test_edges_are_seen_by_the_rule_not_assumed():
     """An oscillator faster than half the clock loses edges in the synchroniser: the
     count is then well below gate/T, and still equal to the stepper's."""

@@ -220,6 +220,28 @@ def test_a_record_too_large_for_a_frame_fills_each_part_before_the_next() -> Non
                                               a.missing, a.span_us))
 
 
+@pytest.mark.parametrize("n", [0, 1, 2, 3, 4, 6, 9, 14, 20])
+def test_whether_a_record_fits_is_what_its_packed_size_says(n: int) -> None:
+    """``_fits`` skips packing a record whose largest possible encoding fits: its answer
+    is the packed size's for records of every number of entries around that bound, with
+    the largest numbers each field can hold and the smallest, with room kept or not."""
+    from cellbridge.emulator.firmware.readout import _fits
+    from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME
+    from cellbridge.protocol.messages import pack_payload
+
+    for big in (False, True):
+        v = (lambda x: x) if not big else (lambda x: 0xFFFF_FFFF - x)
+        samples = tuple(ReadoutSample(0xFFFF - b if big else b, v(b), v(2 * b), 3 if big else 0) for b in range(n))
+        ids = tuple(range(1000, 1000 + n))
+        for k in range(n + 1):
+            r = Readout(2**64 - 1 if big else 1, 0xFFFF if big else 100, Mode.ADC if big else Mode.COUNTER,
+                        0xFFFF if big else 1, samples[:k], ids[k:], ids[:n - k] if big else (),
+                        0xFFFF_FFFF if big else 0, 0, 1, 0xFFFF if big else 0, 0xFFFF_FFFF if big else 0)
+            for room in (0, 5, 40):
+                truth = HEADER_LEN + CRC_LEN + len(pack_payload(r)) + room <= MAX_FRAME
+                assert _fits(r, room) == truth, (n, k, big, room)
+
+
 def test_every_part_of_a_gateways_record_still_fits_a_frame_once_its_age_and_root_are_on_it() -> None:
     """A gateway stamps each part's age as it writes it: parts filled to the last byte
     without room for it went out too long for a frame, and the host dropped them (on a

@@ -400,30 +400,37 @@ def test_the_column_check_of_a_readout_agrees_with_the_element_by_element_one(
     """A READOUT's lists are checked in a few passes over the columns (a thousand elements a
     frame): whatever they accept, the element-by-element check accepts alike, and whatever
     it accepts, they do (so no valid record pays the slow path, and no bad one slips by)."""
-    from cellbridge.protocol.messages import _readout_lists, _readout_lists_checked
+    from cellbridge.protocol.messages import (
+        _column_readout_lists,
+        _few_readout_lists,
+        _readout_lists,
+        _readout_lists_checked,
+    )
 
     try:
         want = _readout_lists_checked(raw, unchanged, missing, limit)
     except ProtocolError:
         want = None
-    got = _readout_lists(raw, unchanged, missing, limit)
-    assert got == want
-    if got is not None:
-        assert all(type(s) is ReadoutSample for s in got[0])
+    for check in (_readout_lists, _few_readout_lists, _column_readout_lists):  # (the one pass, for few samples)
+        got = check(raw, unchanged, missing, limit)
+        assert got == want, check.__name__
+        if got is not None:
+            assert all(type(s) is ReadoutSample for s in got[0])
 
 
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.integers(0, 65_535), unique=True, max_size=40).map(sorted), st.data())
 def test_the_column_check_accepts_valid_lists_and_refuses_a_repeat(ids: list[int], data: st.DataObject) -> None:
     """Valid lists (as a gateway writes them) pass the column check; a repeated bridge fails it."""
-    from cellbridge.protocol.messages import _readout_lists
+    from cellbridge.protocol.messages import _column_readout_lists, _few_readout_lists, _readout_lists
 
     k = data.draw(st.integers(0, len(ids)))
     raw = [[b, 1, 2, 0] for b in ids[:k]]
-    got = _readout_lists(raw, ids[k:], [], 65_535)
-    assert got is not None and [s.bridge for s in got[0]] == ids[:k] and list(got[1]) == ids[k:]
-    if ids:
-        assert _readout_lists(raw, ids[k:], [ids[0]], 65_535) is None
+    for check in (_readout_lists, _few_readout_lists, _column_readout_lists):
+        got = check(raw, ids[k:], [], 65_535)
+        assert got is not None and [s.bridge for s in got[0]] == ids[:k] and list(got[1]) == ids[k:]
+        if ids:
+            assert check(raw, ids[k:], [ids[0]], 65_535) is None
 
 
 _good_row = st.lists(st.integers(0, 3), min_size=4, max_size=4)
@@ -438,7 +445,12 @@ def test_the_column_check_refuses_a_sample_not_a_list_of_four_among_lists_of_fou
     """A sample that is bytes or text of four (whose items look like ids or codes), a tuple,
     or a list of another length, among valid lists of four: the column check agrees with the
     element-by-element one (a list of four is judged alike by both; anything else fails both)."""
-    from cellbridge.protocol.messages import _readout_lists, _readout_lists_checked
+    from cellbridge.protocol.messages import (
+        _column_readout_lists,
+        _few_readout_lists,
+        _readout_lists,
+        _readout_lists_checked,
+    )
 
     raw = [[b, *r[1:]] for b, r in enumerate(rows)]
     at = data.draw(st.integers(0, len(raw)))
@@ -447,6 +459,7 @@ def test_the_column_check_refuses_a_sample_not_a_list_of_four_among_lists_of_fou
         want = _readout_lists_checked(raw, [], [], 255)
     except ProtocolError:
         want = None
-    assert _readout_lists(raw, [], [], 255) == want
+    for check in (_readout_lists, _few_readout_lists, _column_readout_lists):
+        assert check(raw, [], [], 255) == want, check.__name__
     if not (type(odd) is list and len(odd) == 4):
         assert want is None

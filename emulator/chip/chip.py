@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from cellbridge.emulator.chip.adc import AdcTiming, held_inputs, sar_codes
 from cellbridge.emulator.chip.keyed_random import GateNoise, KeyedNormals, Stream
-from cellbridge.emulator.chip.oscillator import EdgeTrain, max_period_deviation
+from cellbridge.emulator.chip.oscillator import EdgeTrain, gate_edge_count, max_period_deviation
 from cellbridge.tactile.transfer import C_MAX, ChipParams, adc_input, oscillator_period
 
 __all__ = ["CLOCK_HZ", "MIN_PERIOD_CYCLES", "ChipConfig", "Chip"]
@@ -160,6 +160,9 @@ class Chip:
         self.prefetch_hits = 0  #: counts answered from :meth:`prefetch`
         # T is linear in C: evaluate transfer.oscillator_period once, not per gate.
         self._period_per_farad = float(oscillator_period(1e-12, self.params)) * self._clock / 1e-12
+        #: whether count may take gate_edge_count's path: a jitter EdgeTrain accepts (else
+        #: every count builds the train, which says what is wrong)
+        self._fast_ok = math.isfinite(self._period_per_farad) and 0.0 <= config.jitter * max_period_deviation() < 1.0
 
     # ------------------------------------------------------------------ clock
 
@@ -206,7 +209,15 @@ class Chip:
             if got is not None:
                 self.prefetch_hits += 1
                 return got
-        n = self.edge_train(channel, capacitance, start_cycle, gate_cycles).edge_count()
+        n = None
+        if (type(capacitance) is float and 0.0 < capacitance <= MAX_CAPACITANCE and type(channel) is int
+                and channel >= 0 and type(start_cycle) is int and start_cycle >= 0
+                and type(gate_cycles) is int and gate_cycles >= 1 and self._fast_ok):
+            period = capacitance * self._period_per_farad  # period_cycles, inline
+            if period >= MIN_PERIOD_CYCLES:
+                n = gate_edge_count(period, self.config.jitter, gate_cycles, self._noise, channel, start_cycle)
+        if n is None:  # arguments to check, or an oscillator the synchroniser misses edges of
+            n = self.edge_train(channel, capacitance, start_cycle, gate_cycles).edge_count()
         return n % self._modulus, n >= self._modulus
 
     def prefetch(self, gates: list[tuple[int, float, int, int]]) -> None:

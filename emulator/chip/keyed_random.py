@@ -85,6 +85,18 @@ class KeyedNormals:
         np.minimum(z, Z_MAX, out=z)
         return np.maximum(z, -Z_MAX, out=z)
 
+    def gate_head(self, channel: int, cycle: int, n: int) -> tuple[float, NDArray[np.float64]]:
+        """A gate's head draw (:data:`Stream.JITTER_BLOCKS`): (phase, ``n + BLOCK_SIZE``
+        clipped normals), one seek and one draw. The hot path of every counter gate:
+        :class:`GateNoise` and the chip's count both take it from here."""
+        self._seek(_JITTER_BLOCKS, channel, cycle, 0)
+        gen = self._gen
+        phase = float(gen.random())
+        z = gen.standard_normal(n + BLOCK_SIZE)
+        np.minimum(z, Z_MAX, out=z)
+        np.maximum(z, -Z_MAX, out=z)
+        return phase, z
+
     def uniform(self, stream: Stream, channel: int, cycle: int, substream: int = 0) -> float:
         """One uniform number in [0, 1) (a SplitMix64 hash of the key: no generator seek)."""
         tag = (int(stream) << 56) | ((substream & 0xFFFF) << 40) | (channel & 0xFFFFFFFFFF)
@@ -109,12 +121,7 @@ class GateNoise:
 
     def head(self, n: int) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
         """(phase, n block sums, the hint block's BLOCK_SIZE shape normals): one seek, one draw."""
-        k = self._normals
-        k._seek(_JITTER_BLOCKS, self._channel, self._cycle, 0)
-        phase = float(k._gen.random())
-        z = k._gen.standard_normal(n + BLOCK_SIZE)
-        np.minimum(z, Z_MAX, out=z)
-        np.maximum(z, -Z_MAX, out=z)
+        phase, z = self._normals.gate_head(self._channel, self._cycle, n)
         return phase, z[:n], z[n:]
 
     def block_steps(self, b: int) -> NDArray[np.float64]:

@@ -467,7 +467,21 @@ def record_parts(index: int, rate: int,
     return out
 
 
+#: Bytes a READOUT payload takes at most besides its entries: the outer array's header,
+#: nine scalars of at most 9 bytes each (msgpack's largest number form) and three list
+#: headers of at most 5 (array 32) ...
+_MOST_FIXED = 1 + 9 * 9 + 3 * 5
+#: ... a sample at most (an array of four numbers), an unchanged or missing id at most
+_MOST_SAMPLE, _MOST_ID = 1 + 4 * 9, 9
+
+
 def _fits(r: Readout, room: int = 0) -> bool:
+    """Whether ``r`` packs into one frame with ``room`` bytes to spare. A record whose
+    largest possible encoding fits (every leaf's, a small relay's) is not packed here:
+    the link packs it once, when it builds the frame."""
+    most = _MOST_FIXED + _MOST_SAMPLE * len(r.samples) + _MOST_ID * (len(r.unchanged) + len(r.missing))
+    if HEADER_LEN + CRC_LEN + most + room <= MAX_FRAME:
+        return True
     return HEADER_LEN + CRC_LEN + len(pack_payload(r)) + room <= MAX_FRAME
 
 

@@ -689,8 +689,13 @@ class Firmware:
             self._readout_at = -1
             # each record names the root its index counts (taken with the sample, or the
             # child's): stamped with the root followed now, a gateway at boot (its own root,
-            # its children already on another's time) named their frames with its own root
-            for record in self.readout.take(tick, self.clock.root or 0):
+            # its children already on another's time) named their frames with its own root.
+            # The root followed is its own sampling's while that is on the schedule: its
+            # clock may follow a new root while its next gate is still planned on the old
+            # one, and a frame of its children alone on the new root, passed on before that
+            # gate's own frame, switched its line to the new root and back.
+            s = self.sampler
+            for record in self.readout.take(tick, s.root if s.on_time and s.root else self.clock.root or 0):
                 if self.config.gateway:
                     self._own(self._aged(record, tick))
                 else:

@@ -547,3 +547,35 @@ def test_a_relay_that_dies_at_250_hz_has_its_subtree_rerouted_in_tens_of_ms_not_
     assert len(after) >= 15 * 200 and unknown <= 100, (unknown, len(after))
     assert all(p != 6 for p in vm.result().parents.values())
 
+
+def test_a_child_silent_for_quiet_is_not_waited_for_until_it_is_heard_again() -> None:
+    """Children 2 and 3; 3 falls silent. Until ``quiet`` has passed the frame waits for it
+    (a slow child's record still makes its frame); after, the frame goes as soon as 2's
+    record is in, with 3's subtree listed missing; once 3 is heard again it is waited for."""
+    quiet = 5_000_000  # (above two frame periods at 100 Hz, which count too)
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=10**8, forget=10**9, quiet=quiet), Counter())
+    slot = 10**8  # far: nothing here goes at its slot
+
+    def rec(src: int, index: int) -> Readout:
+        return Readout(index, 100, Mode.COUNTER, 1, (ReadoutSample(src, 1, 1, 0),))
+
+    r.child(2, rec(2, 1), 0)
+    r.child(3, rec(3, 1), 0)
+    r.at(10)
+    r.own(1, 100, Mode.COUNTER, 1, ReadoutSample(1, 1, 1, 0), slot, slot)
+    assert [x.index for x in r.take(10)] == [1]
+    # frame 2: 2's record comes, 3 is silent but heard 1 000 000 cycles ago: waited for
+    r.own(2, 100, Mode.COUNTER, 1, ReadoutSample(1, 1, 1, 0), slot, slot)
+    r.child(2, rec(2, 2), 1_000_000)
+    assert r.take(1_000_000) == [] and r.expects_children(100)
+    assert r.next_tick == quiet + 1  # it wakes when 3 stops being waited for, not at the slot
+    got = r.take(quiet + 1)
+    assert [(x.index, [s.bridge for s in x.samples], list(x.missing)) for x in got] == [(2, [1, 2], [3])]
+    # 3 is heard again (its record of frame 2, late): waited for in frame 3
+    r.child(3, rec(3, 2), quiet + 2)
+    assert r.counters["readout_late"] == 1
+    r.own(3, 100, Mode.COUNTER, 1, ReadoutSample(1, 1, 1, 0), slot, slot)
+    r.child(2, rec(2, 3), quiet + 3)
+    assert r.take(quiet + 3) == []
+    r.child(3, rec(3, 3), quiet + 4)
+    assert [(x.index, list(x.missing)) for x in r.take(quiet + 4)] == [(3, [])]

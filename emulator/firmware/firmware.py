@@ -204,6 +204,9 @@ class FirmwareConfig:
     readout_hop: int = 0
     #: A child whose records stopped this long ago is no longer expected (nor its subtree).
     readout_forget: int = 2000 * _MS
+    #: A child whose records stopped this long ago is no longer waited for, only listed
+    #: missing, until it is heard again (:attr:`ReadoutConfig.quiet`)
+    readout_quiet: int = 100 * _MS
     #: Records ask for a per-hop acknowledgement and are retried while a retry can still
     #: reach the parent by its slot (False: sent once; a lost one is listed missing above
     #: all the same)
@@ -271,7 +274,7 @@ class Firmware:
         # Not a numbering window: a new boot's HELLO may have gone another way (protocol/copies.py).
         self.seen = RecentFrames(_COPY_AGE, _COPY_MEMORY)
         self.readout = (FrameReadout(self.me, ReadoutConfig(c.readout_depths, c.readout_window, c.readout_forget,
-                                                            c.readout_hop), self.counters,
+                                                            c.readout_hop, c.readout_quiet), self.counters,
                                      AGE_ROOM if c.gateway else 0)
                         if c.readout else None)
         self._readout_at = -1  # a child's record may have completed a frame: look at this tick
@@ -608,9 +611,9 @@ class Firmware:
         record need come, and the frame's record would wait for the next wake, whatever
         it is for."""
         r = self.readout
-        if r is None or not r.expects_children():
-            return 0
         s = self.sampler
+        if r is None or not r.expects_children(s.settings.rate_hz):
+            return 0
         if r.child_came_first(s.index, s.settings.rate_hz):
             return 0
         return r.slot(0 if self.config.gateway else self.router.hops)
@@ -683,6 +686,8 @@ class Firmware:
     # -- time -----------------------------------------------------------------------
     def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
         """Run every timer due at ``tick``; the (bytes, cells) to transmit now, if any."""
+        if self.readout is not None:
+            self.readout.at(tick)  # (the sampler asks it whether a sample waits for children)
         for data in self.sampler.advance(tick):
             self._own(data)
         if self.readout is not None:

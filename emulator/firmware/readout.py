@@ -14,7 +14,13 @@ record did not come by the slot). A relay sends its record as soon as it is comp
 (its own state is in and every child it expects has sent its record of ``k``), and at its
 slot at the latest: the slot bounds the latency, the early send is what makes it short.
 A child is expected while it sent a record within ``forget`` cycles; the bridges its last
-record listed are its subtree, marked missing when its record of ``k`` does not come.
+record listed are its subtree, marked missing when its record of ``k`` does not come. It
+is *waited for* only while it is heard: a child silent for ``quiet`` cycles (and two
+frame periods) is not waited for until its next record comes, so a frame goes as soon as
+the rest of it is in. (A dead relay's parent waited for it until its slot in every frame,
+and under the real-time shells' message delays its record then came after the next
+level's slot: its siblings, and each ancestor's subtree in turn, went missing with it
+until it was forgotten.)
 
 A record that was lost on its way (its hop was not acknowledged after its retries) leaves
 the host without that frame of the subtree, and an *unchanged* of the next frame would
@@ -61,6 +67,11 @@ class ReadoutConfig:
     #: while the span, and with it the host's deadline, stays the same. Records go as soon
     #: as they are complete either way; the slots only bound the wait for a missing one.
     hop: int = 0
+    #: A child silent this long (cycles), and for two periods of the frame's rate, is not
+    #: waited for (its subtree is listed missing as soon as the rest of the frame is in)
+    #: until it is heard again. Longer than a process of the real-time shells is held up
+    #: (tens of milliseconds on a loaded host), far shorter than ``forget``.
+    quiet: int = 5_000_000
 
 
 @dataclass
@@ -116,8 +127,14 @@ class FrameReadout:
         self._child_newest: dict[tuple[int, int], int] = {}
         self._expire_at = 0  # children are looked at for expiry at most this often
         self._root = 0  # the root this bridge followed at the last take()
+        self._now = 0  # the tick of the bridge's current wake (:meth:`at`)
 
     # -- inputs -----------------------------------------------------------------------
+    def at(self, tick: int) -> None:
+        """The bridge woke at ``tick``: which children are waited for is judged at it (the
+        sampler asks :meth:`expects_children` before :meth:`take` runs)."""
+        self._now = tick
+
     def own(self, index: int, rate: int, mode: Mode, oversampling: int, state: State, slot: int,
             span: int, root: int = 0) -> None:
         """This bridge's state of frame ``index`` (taken at its gate end), and the frame's
@@ -140,6 +157,7 @@ class FrameReadout:
         """A child's record (``src``: the neighbour that sent it). A late one (its frame's
         record already went) still says which bridges the child stands for."""
         self._heard_at[src] = tick
+        self._now = tick
         self._changed = True
         ck = (src, record.rate)
         if record.index > self._child_newest.get(ck, -1):
@@ -250,10 +268,18 @@ class FrameReadout:
             return c.depths * c.window - min(depth, c.depths) * min(c.hop, c.window)
         return (c.depths - min(depth, c.depths)) * c.window
 
-    def expects_children(self) -> bool:
-        """Whether a frame's record waits for children's records (some child is expected):
-        then it cannot go at the bridge's own gate end."""
-        return any(self._members.values())
+    def expects_children(self, rate: int) -> bool:
+        """Whether a frame's record at ``rate`` waits for children's records (some child is
+        expected and heard lately: :attr:`ReadoutConfig.quiet`): then it cannot go at the
+        bridge's own gate end."""
+        return any(m and self._waited(c, rate, self._now) for c, m in self._members.items())
+
+    def _waited(self, child: int, rate: int, tick: int) -> bool:
+        """Whether a frame at ``rate`` waits for ``child`` at ``tick``: it was heard within
+        ``quiet`` cycles, or within two of the frame's periods (a slow rate's records are
+        that far apart)."""
+        at = self._heard_at.get(child)
+        return at is not None and tick - at <= max(self.config.quiet, 2 * _CLOCK_HZ // max(1, rate))
 
     def child_came_first(self, index: int, rate: int) -> bool:
         """Whether a child's record of frame ``index`` came before this bridge's own state
@@ -294,6 +320,7 @@ class FrameReadout:
         frames go with the root they were sampled on, so its records switch root once, at
         the frame where its own sampling did (a child's record of a frame this bridge
         sampled joins it: at a failover the new root carries the old one's time on)."""
+        self._now = tick
         if tick >= self._expire_at:
             self._expire_at = tick + max(1, self.config.forget // 16)
             self._expire(tick)
@@ -309,7 +336,8 @@ class FrameReadout:
         """The earliest slot a waiting frame can go at: the oldest frame's of each root and
         rate (a later frame goes after it, though its own slot may be earlier: a frame a
         child's record began, or one planned at another depth; taken for due, it woke the
-        bridge at every tick until the older one's slot)."""
+        bridge at every tick until the older one's slot); or, before it, the tick a child
+        it waits for stops being waited for (:attr:`ReadoutConfig.quiet`)."""
         first: dict[tuple[int, int], _Pending] = {}
         for p in self._pending.values():
             q = first.get((p.root, p.rate))
@@ -317,7 +345,18 @@ class FrameReadout:
                 first[(p.root, p.rate)] = p
         if self._before_switch(self._root):  # the root followed now waits for them
             first = {c: p for c, p in first.items() if c[0] != self._root}
-        return min((p.slot for p in first.values()), default=None)
+        due = min((p.slot for p in first.values()), default=None)
+        if due is not None:
+            now, quiet = self._now, self.config.quiet
+            for p in first.values():
+                heard = p.heard or ()
+                for c, m in self._members.items():
+                    at = self._heard_at.get(c)
+                    if m and at is not None and c not in heard:
+                        end = at + max(quiet, 2 * _CLOCK_HZ // max(1, p.rate)) + 1
+                        if now < end < due:
+                            due = end
+        return due
 
     def _before_switch(self, root: int) -> bool:
         """Whether own frames sampled on another root than ``root`` (the one followed now)
@@ -341,7 +380,7 @@ class FrameReadout:
             if root and p.root == root and self._before_switch(root):
                 blocked.add(chain)
                 continue
-            if tick < p.slot and (p.own is None or not self._complete(p)):
+            if tick < p.slot and (p.own is None or not self._complete(p, tick)):
                 blocked.add(chain)
                 continue
             del self._pending[key]
@@ -360,12 +399,14 @@ class FrameReadout:
             out.extend(self._records(p, tick))
         return out
 
-    def _complete(self, p: _Pending) -> bool:
+    def _complete(self, p: _Pending, tick: int) -> bool:
         """Every expected child sent its record of the frame, or a later frame's (then this
-        one's was lost on its way: it is listed missing now rather than at the slot)."""
+        one's was lost on its way: it is listed missing now rather than at the slot), or is
+        not waited for (silent: :attr:`ReadoutConfig.quiet`)."""
         heard = p.heard or set()
         newest = self._child_newest
-        return all(c in heard or newest.get((c, p.rate), -1) > p.index for c, m in self._members.items() if m)
+        return all(c in heard or newest.get((c, p.rate), -1) > p.index or not self._waited(c, p.rate, tick)
+                   for c, m in self._members.items() if m)
 
     def _expire(self, tick: int) -> None:
         forget = self.config.forget

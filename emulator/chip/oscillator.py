@@ -36,6 +36,7 @@ edge, vectorised.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -215,42 +216,16 @@ class EdgeTrain:
         """Number of counter increments in the gate (not wrapped).
 
         With every edge seen this is #{k : t_k ∈ (0, gate]}: find the block holding
-        the gate's end from the block sums' prefix sums, then the edge within it. The
-        few edge times it needs are evaluated as scalars with exactly the operations,
-        in exactly the order, that :meth:`block_starts` and :meth:`block_rises` apply
-        to whole arrays, so they are the same doubles (IEEE arithmetic is the same in
-        numpy and Python).
+        the gate's end from the block sums' prefix sums, then the edge within it
+        (:func:`_edges_to`, evaluating only the edge times it needs).
         """
         if not self.every_edge_seen:
             return int(self.event_offsets().size)
-        gate, period = self.gate, self.period
         y = self._draw_head()
-        sums = y.cumsum()  # sums[b - 1] = Σ_{i<b} y_i
-        k_sum = period * self.jitter * _SQRT_BLOCK
-        phase = self._phase
-        assert phase is not None
-        t0 = phase * period
-        # start(b) = ((Σ_{i<b} y_i)·k_sum + T·(B·b)) + t0, inline (this runs twice a sample)
-        item = sums.item
-        b = self._hint
-        while (item(b) * k_sum + period * (BLOCK * (b + 1))) + t0 <= gate:  # start(b + 1)
-            b += 1
-        while b >= 0 and ((item(b - 1) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0 > gate:
-            b -= 1
-        if b < 0:  # edge 0 comes after the gate's end
-            return 0
-        base = ((item(b - 1) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
-        steps, m = self._block_shape(b)  # steps[i - 1] = Σ_{j<i} w_j
-        k_step = period * self.jitter
-        step = steps.item
-
-        # rise(i) = (((Σ_{j<i} w_j) − m·i)·k_step + T·i) + base
-        i = min(max(int((gate - base) / period), 0), BLOCK - 1)
-        while i + 1 < BLOCK and (((step(i) - m * (i + 1)) * k_step + period * (i + 1)) + base) <= gate:
-            i += 1
-        while i >= 0 and ((((step(i - 1) if i else 0.0) - m * i) * k_step + period * i) + base) > gate:
-            i -= 1
-        return b * BLOCK + i + 1 - (1 if t0 <= 0.0 else 0)
+        phase, hint, steps = self._phase, self._hint, self._hint_steps
+        assert phase is not None and steps is not None
+        return _edges_to(self.period, self.jitter, self.gate, phase * self.period, y, hint,
+                         lambda b: steps if b == hint else self.noise.block_steps(b))
 
 
 _JITTER_STEPS = int(Stream.JITTER_STEPS)
@@ -274,9 +249,21 @@ def gate_edge_count(period: float, jitter: float, gate: int, normals: KeyedNorma
     phase, z = normals.gate_head(channel, cycle, n)
     t0 = phase * period
     hint = min(max(int((gate - t0) / (period * BLOCK)), 0), n - 1)
-    y = z[:n]
+    return _edges_to(period, jitter, gate, t0, z[:n], hint,
+                     lambda b: z[n:] if b == hint else normals.normals(_JITTER_STEPS, channel, cycle, BLOCK, b))
+
+
+def _edges_to(period: float, jitter: float, gate: int, t0: float, y: FloatArray, hint: int,
+              shape: Callable[[int], FloatArray]) -> int:
+    """#{k : t_k ∈ (0, gate]} with every edge seen: edge 0 at ``t0``, block sums ``y``,
+    ``shape(b)`` block b's shape normals; the search starts at block ``hint``. The few edge
+    times it needs are evaluated as scalars with exactly the operations, in exactly the
+    order, that :meth:`EdgeTrain.block_starts` and :meth:`EdgeTrain.block_rises` apply to
+    whole arrays, so they are the same doubles (IEEE arithmetic is the same in numpy and
+    Python)."""
     item = y.cumsum().item  # item(b) = Σ_{i≤b} y_i
     k_sum = period * jitter * _SQRT_BLOCK
+    # start(b) = ((Σ_{i<b} y_i)·k_sum + T·(B·b)) + t0, inline (this runs twice a sample)
     b = hint
     while (item(b) * k_sum + period * (BLOCK * (b + 1))) + t0 <= gate:  # start(b + 1)
         b += 1
@@ -285,11 +272,11 @@ def gate_edge_count(period: float, jitter: float, gate: int, normals: KeyedNorma
     if b < 0:  # edge 0 comes after the gate's end
         return 0
     base = ((item(b - 1) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
-    w = z[n:] if b == hint else normals.normals(_JITTER_STEPS, channel, cycle, BLOCK, b)
-    cum = w.cumsum()  # cum[i - 1] = Σ_{j<i} w_j
-    m = cum.item(-1) / BLOCK - y.item(b) / _SQRT_BLOCK
+    cum = shape(b).cumsum()  # cum[i - 1] = Σ_{j<i} w_j
+    m = cum.item(-1) / BLOCK - y.item(b) / _SQRT_BLOCK  # z_i = w_i − m: the block's z sum to y_b·√B
     k_step = period * jitter
     step = cum.item
+    # rise(i) = (((Σ_{j<i} w_j) − m·i)·k_step + T·i) + base
     i = min(max(int((gate - base) / period), 0), BLOCK - 1)
     while i + 1 < BLOCK and (((step(i) - m * (i + 1)) * k_step + period * (i + 1)) + base) <= gate:
         i += 1

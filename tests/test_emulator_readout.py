@@ -552,8 +552,8 @@ def test_a_child_silent_for_quiet_is_not_waited_for_until_it_is_heard_again() ->
     """Children 2 and 3; 3 falls silent. Until ``quiet`` has passed the frame waits for it
     (a slow child's record still makes its frame); after, the frame goes as soon as 2's
     record is in, with 3's subtree listed missing; once 3 is heard again it is waited for."""
-    quiet = 5_000_000  # (above two frame periods at 100 Hz, which count too)
-    r = FrameReadout(1, ReadoutConfig(depths=4, window=10**8, forget=10**9, quiet=quiet), Counter())
+    quiet = 5_000_000  # (above two frame periods at 100 Hz, and the span and a period, which count too)
+    r = FrameReadout(1, ReadoutConfig(depths=4, window=1000, forget=10**9, quiet=quiet), Counter())
     slot = 10**8  # far: nothing here goes at its slot
 
     def rec(src: int, index: int) -> Readout:
@@ -579,3 +579,46 @@ def test_a_child_silent_for_quiet_is_not_waited_for_until_it_is_heard_again() ->
     assert r.take(quiet + 3) == []
     r.child(3, rec(3, 3), quiet + 4)
     assert [(x.index, list(x.missing)) for x in r.take(quiet + 4)] == [(3, [])]
+
+
+@pytest.mark.parametrize("held_ms", [90, 110, 150])
+def test_a_child_held_up_as_long_as_the_schedule_absorbs_is_still_waited_for(held_ms: int) -> None:
+    """The real-time shells' schedule (8 levels of 30 ms, slots packed 15 ms apart) lets a
+    4x4's leaf (6 hops deep) be held up for up to ~150 ms and still make its parent's
+    frame (its parent, 5 deep, waits until 165 ms after the gate). Silent for ``quiet``
+    (100 ms), the leaf was no longer waited for: every frame of the hold from then on went
+    without it, and each record it sent once running again came late (in a virtual real-time
+    4x4 with the leaf held 110 ms every 500 ms, 255 element-frames of 4 144 unknown where
+    the slots alone had none). A child is waited for as long as its record could still make
+    the frame: ``quiet`` is not shorter than the schedule's span and a frame period."""
+    from cellbridge.emulator.realtime.process_bridge import READOUT_HOP, READOUT_WINDOW
+
+    ms = 50_000
+    config = ReadoutConfig(depths=8, window=READOUT_WINDOW, hop=READOUT_HOP)  # quiet: its default, 100 ms
+    c: Counter[str] = Counter()
+    parent = FrameReadout(5, config, c)
+    leaf = FrameReadout(7, config, Counter())
+    period, gates, frames = 10 * ms, 4 * ms, 40
+    hold = (10 * period + gates + ms, 10 * period + gates + ms + held_ms * ms)  # after frame 10's record left
+    sent: dict[int, Readout] = {}
+    arrivals: list[tuple[int, Readout]] = []  # (tick, the leaf's record) at the parent
+    sampled = 0  # the leaf's frames sampled so far
+    for t in range(0, frames * period + 300 * ms, ms // 2):
+        if not hold[0] <= t < hold[1]:  # running: every frame whose gate ended (the hold's at once after it)
+            while sampled < frames and sampled * period + gates <= t:
+                k, sampled = sampled, sampled + 1
+                leaf.own(k, 100, Mode.COUNTER, 1, ReadoutSample(7, k, k, 0), k * period + gates + leaf.slot(6),
+                         leaf.slot(0))
+            arrivals += [(t + ms, r) for r in leaf.take(t)]
+        while arrivals and arrivals[0][0] <= t:
+            parent.child(7, arrivals.pop(0)[1], t)
+        # the parent's own sample, on time (frame 0's 2 ms late: it learns of its child first)
+        if t % period == gates + (2 * ms if t < period else 0) and t // period < frames:
+            k = t // period
+            parent.own(k, 100, Mode.COUNTER, 1, ReadoutSample(5, k, k, 0), k * period + gates + parent.slot(5),
+                       parent.slot(0))
+        for r in parent.take(t):
+            sent[r.index] = r
+    assert sorted(sent) == list(range(frames))
+    lost = [k for k, r in sent.items() if [s.bridge for s in r.samples] != [5, 7]]
+    assert lost == [] and c["readout_late"] == 0, (lost, c)

@@ -204,8 +204,9 @@ class FirmwareConfig:
     readout_hop: int = 0
     #: A child whose records stopped this long ago is no longer expected (nor its subtree).
     readout_forget: int = 2000 * _MS
-    #: A child whose records stopped this long ago is no longer waited for, only listed
-    #: missing, until it is heard again (:attr:`ReadoutConfig.quiet`)
+    #: A child whose records stopped this long ago (and the schedule's span and a frame
+    #: period ago) is no longer waited for, only listed missing, until it is heard again
+    #: (:attr:`ReadoutConfig.quiet`)
     readout_quiet: int = 100 * _MS
     #: Records ask for a per-hop acknowledgement and are retried while a retry can still
     #: reach the parent by its slot (False: sent once; a lost one is listed missing above

@@ -16,7 +16,8 @@ slot at the latest: the slot bounds the latency, the early send is what makes it
 A child is expected while it sent a record within ``forget`` cycles; the bridges its last
 record listed are its subtree, marked missing when its record of ``k`` does not come. It
 is *waited for* only while it is heard: a child silent for ``quiet`` cycles (and two
-frame periods) is not waited for until its next record comes, so a frame goes as soon as
+frame periods, and the schedule's span and a period: a child held up for less may still
+make its slot) is not waited for until its next record comes, so a frame goes as soon as
 the rest of it is in. (A dead relay's parent waited for it until its slot in every frame,
 and under the real-time shells' message delays its record then came after the next
 level's slot: its siblings, and each ancestor's subtree in turn, went missing with it
@@ -67,10 +68,12 @@ class ReadoutConfig:
     #: while the span, and with it the host's deadline, stays the same. Records go as soon
     #: as they are complete either way; the slots only bound the wait for a missing one.
     hop: int = 0
-    #: A child silent this long (cycles), and for two periods of the frame's rate, is not
-    #: waited for (its subtree is listed missing as soon as the rest of the frame is in)
-    #: until it is heard again. Longer than a process of the real-time shells is held up
-    #: (tens of milliseconds on a loaded host), far shorter than ``forget``.
+    #: A child silent this long (cycles), for two periods of the frame's rate, and for the
+    #: schedule's span (``depths * window``) and one period, is not waited for (its subtree
+    #: is listed missing as soon as the rest of the frame is in) until it is heard again.
+    #: Within the span a held-up child's record can still make its frame (the real-time
+    #: shells' slots absorb a leaf's process held up ~150 ms): silence that short is a
+    #: child running late, not one that is gone. Far shorter than ``forget``.
     quiet: int = 5_000_000
 
 
@@ -274,12 +277,19 @@ class FrameReadout:
         bridge's own gate end."""
         return any(m and self._waited(c, rate, self._now) for c, m in self._members.items())
 
+    def _quiet(self, rate: int) -> int:
+        """Cycles of silence after which a child is not waited for in a frame at ``rate``:
+        ``quiet``, two of the frame's periods (a slow rate's records are that far apart), and
+        the schedule's span and a period (a child held up for less may still make its
+        parent's slot: its silence is its last record's period and the hold)."""
+        period = _CLOCK_HZ // max(1, rate)
+        return max(self.config.quiet, 2 * period, self.slot(0) + period)
+
     def _waited(self, child: int, rate: int, tick: int) -> bool:
         """Whether a frame at ``rate`` waits for ``child`` at ``tick``: it was heard within
-        ``quiet`` cycles, or within two of the frame's periods (a slow rate's records are
-        that far apart)."""
+        :meth:`_quiet` cycles."""
         at = self._heard_at.get(child)
-        return at is not None and tick - at <= max(self.config.quiet, 2 * _CLOCK_HZ // max(1, rate))
+        return at is not None and tick - at <= self._quiet(rate)
 
     def child_came_first(self, index: int, rate: int) -> bool:
         """Whether a child's record of frame ``index`` came before this bridge's own state
@@ -347,13 +357,14 @@ class FrameReadout:
             first = {c: p for c, p in first.items() if c[0] != self._root}
         due = min((p.slot for p in first.values()), default=None)
         if due is not None:
-            now, quiet = self._now, self.config.quiet
+            now = self._now
             for p in first.values():
                 heard = p.heard or ()
+                quiet = self._quiet(p.rate)
                 for c, m in self._members.items():
                     at = self._heard_at.get(c)
                     if m and at is not None and c not in heard:
-                        end = at + max(quiet, 2 * _CLOCK_HZ // max(1, p.rate)) + 1
+                        end = at + quiet + 1
                         if now < end < due:
                             due = end
         return due

@@ -26,7 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,8 @@ import zmq
 
 GATEWAY_TIMEOUT = 30.0  # s for 'mesh up' to print its gateway line
 START_TIMEOUT = 120.0  # s for the daemon to see every bridge calibrated (first run compiles kernels)
+#: daemons started on fresh ports when another program took one between its choice and the bind
+BIND_TRIES = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -352,6 +354,51 @@ def _within(r: dict[str, Any]) -> bool:
     return "reported" in r and r["position_error_mm"] <= 1.0 and r["force_error_pct"] <= 5.0
 
 
+def _daemon_and_press(args: argparse.Namespace, work: Path, device: str, pub: str, ctl: str, base_port: int,
+                      mesh: subprocess.Popen[Any], n: int, say: Callable[..., None]) -> dict[str, Any] | None:
+    """Start the daemon on the gateway's ``device`` with ``pub`` and ``ctl``, wait until
+    every element is calibrated, press and summarise; None when the daemon ended at start-up
+    because another program bound one of its ports first (the ports were free when chosen,
+    and the daemon binds them seconds later: on a busy machine something else may take one
+    meanwhile). Raises RuntimeError for any other start-up failure."""
+    config = work / "daemon.toml"
+    # baselines from 10 quiet readings (the default 50 take 50 s at the skin's 1 s
+    # heartbeat; the emulated counters' noise is about one count)
+    config.write_text(f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n'
+                      f'[daemon]\nlog_format = "text"\n\n'
+                      + ("" if args.defaults else "[calibration]\nn_baseline = 10\n\n")
+                      + f'[[link]]\nname = "gateway"\nurl = "{device}"\n')
+    log = work / "daemon.log"
+    start = log.stat().st_size if log.exists() else 0
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    for topic in (b"contact", b"health"):
+        sub.setsockopt(zmq.SUBSCRIBE, topic)
+    sub.connect(pub)
+    try:
+        with _group(_cellbridge("daemon", "--config", str(config)), stderr=open(log, "a")) as daemon:
+            try:
+                _wait_ready(sub, n, daemon, mesh)
+            except RuntimeError:
+                if daemon.poll() is not None and _bind_refused(log, start):
+                    return None
+                raise
+            say(f"all {n} elements calibrated; pressing {args.force} N with a {1e3 * args.diameter:.0f} mm "
+                f"disk at ({1e3 * args.x:.1f}, {1e3 * args.y:.1f}) mm for {args.duration} s ...")
+            return _summarise(args, _press_and_collect(args, base_port, sub))
+    finally:
+        sub.close()
+
+
+def _bind_refused(log: Path, start: int) -> bool:
+    """Whether the daemon's log from byte ``start`` on says an endpoint was in use."""
+    with open(log, "rb") as f:
+        f.seek(start)
+        text = f.read().decode(errors="replace")
+    return "cannot bind" in text and "Address already in use" in text
+
+
 def run(args: argparse.Namespace) -> int:
     from cellbridge.emulator.mesh import meshgen
     from cellbridge.emulator.mesh.mesh import mesh_to_toml
@@ -364,7 +411,6 @@ def run(args: argparse.Namespace) -> int:
         mesh_file = work / "skin.toml"
         mesh_file.write_text(mesh_to_toml(meshgen.grid(args.rows, args.cols)))
         base_port = _free_port_block(3)
-        pub, ctl = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
         n = args.rows * args.cols
         say(f"starting an emulated {args.rows}x{args.cols} skin: {n} bridge processes, medium and world ...")
         # event-based reporting, as a large skin runs: an idle element sends a heartbeat, a
@@ -373,29 +419,16 @@ def run(args: argparse.Namespace) -> int:
         with _group(_cellbridge("mesh", "up", str(mesh_file), "--base-port", str(base_port), *reporting),
                     stdout=subprocess.PIPE, stderr=open(work / "mesh.log", "w"), text=True) as mesh:
             device = gateway_line(mesh)[2]
-            say(f"gateway on {device}; starting the daemon on it (pub {pub}) ...")
-            config = work / "daemon.toml"
-            # baselines from 10 quiet readings (the default 50 take 50 s at the skin's 1 s
-            # heartbeat; the emulated counters' noise is about one count)
-            config.write_text(f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n'
-                              f'[daemon]\nlog_format = "text"\n\n'
-                              + ("" if args.defaults else "[calibration]\nn_baseline = 10\n\n")
-                              + f'[[link]]\nname = "gateway"\nurl = "{device}"\n')
-            ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
-            sub = ctx.socket(zmq.SUB)
-            sub.setsockopt(zmq.LINGER, 0)
-            for topic in (b"contact", b"health"):
-                sub.setsockopt(zmq.SUBSCRIBE, topic)
-            sub.connect(pub)
-            try:
-                with _group(_cellbridge("daemon", "--config", str(config)),
-                            stderr=open(work / "daemon.log", "w")) as daemon:
-                    _wait_ready(sub, n, daemon, mesh)
-                    say(f"all {n} elements calibrated; pressing {args.force} N with a {1e3 * args.diameter:.0f} mm "
-                        f"disk at ({1e3 * args.x:.1f}, {1e3 * args.y:.1f}) mm for {args.duration} s ...")
-                    result = _summarise(args, _press_and_collect(args, base_port, sub))
-            finally:
-                sub.close()
+            for attempt in range(1, BIND_TRIES + 1):
+                pub, ctl = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
+                say(f"gateway on {device}; starting the daemon on it (pub {pub}) ...")
+                outcome = _daemon_and_press(args, work, device, pub, ctl, base_port, mesh, n, say)
+                if outcome is not None:
+                    result = outcome
+                    break
+                if attempt == BIND_TRIES:
+                    raise RuntimeError(f"the daemon's ports were taken before it could bind them, {BIND_TRIES} times")
+                say("another program took the daemon's ports before it bound them; again on others ...")
         if args.json:
             print(json.dumps(result))
         else:

@@ -149,3 +149,40 @@ def test_a_demo_running_beside_this_one_is_not_left_behind_by_it(tmp_path: Path)
         for p in procs:
             p.kill()
             p.wait()
+
+
+def test_the_demo_starts_its_daemon_again_on_other_ports_when_one_was_taken(
+        warm_kernels: None, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+        tmp_path: Path) -> None:
+    """The demo chooses free ports and its daemon binds them seconds later: on a busy machine
+    (a test suite beside it) another program took one meanwhile, and the demo ended with
+    'daemon ended with status 1 during start-up'. It starts the daemon again on other ports."""
+    import argparse
+    import socket
+    import tempfile
+
+    from cellbridge import demo
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # its work folder, kept, in this test's
+
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", demo._free_port()))
+    taken.listen()
+    ports = iter([taken.getsockname()[1]])
+    real = demo._free_port
+    monkeypatch.setattr(demo, "_free_port", lambda: next(ports, None) or real())
+    parser = argparse.ArgumentParser()
+    demo.add_arguments(parser)
+    args = parser.parse_args(["--check", "--json", "--keep", "--x", "0.057", "--y", "0.040"])
+    try:
+        code = demo.run(args)
+    finally:
+        taken.close()
+    out = capsys.readouterr().out
+    assert out.strip(), "no result"
+    check_press_result(json.loads(out), 0.057, 0.040, 3.0)
+    assert code == 0
+    (log,) = tmp_path.glob("cellbridge-demo-*/daemon.log")
+    text = log.read_text()
+    assert text.count("cannot bind") == 1 and "Address already in use" in text  # the first daemon's
+    assert _left_behind(tmp_path) == []

@@ -13,7 +13,8 @@ reach a bridge a little after the medium made them (the medium starts a transmis
 sender began on a cell already busy when the cell is free, as the real-time medium's
 carrier arbiter does), and a bridge wakes for a timer at the next millisecond at best
 (``poll`` takes milliseconds; a shorter wait is slept exactly) and later still under load.
-It exists so that what the real-time mesh does can be reproduced and tested here.
+It exists so that what the real-time mesh does can be reproduced and tested here, including
+a bridge process the host holds up (:meth:`VirtualMesh.hold`, as ``SIGSTOP``/``SIGCONT`` do).
 """
 
 from __future__ import annotations
@@ -158,6 +159,7 @@ class VirtualMesh:
             self._down_last: dict[int, int] = {}  # bridge -> arrival of its last message from it
             self._arbiter = CarrierArbiter(self.medium.bit_cycles)
             self._arbiter.counters = self.medium.counters
+        self._holds: dict[int, list[tuple[int, int]]] = {}  # bridge -> (start, end) ticks it is held up
         self.nodes: dict[int, Firmware] = {}
         self.resets: Counter[int] = Counter()
         self.serial: dict[int, bytearray] = {g: bytearray() for g in mesh.gateways}
@@ -213,6 +215,8 @@ class VirtualMesh:
                 if lat.wake_late > 0:
                     wait += int(self._lat_rng.expovariate(1.0 / lat.wake_late) * CLOCK_HZ)
             t = self.tick + wait
+            if self._holds:
+                t = self._held_until(b, t)
         if self._wake.get(b) != t:
             self._wake[b] = t
             self._push(t, _WAKE, b)
@@ -243,6 +247,23 @@ class VirtualMesh:
             self.resets[bridge] += 1
             self._boot(bridge, self.tick)
         self.at(at, do)
+
+    def hold(self, bridge: int, at: float, seconds: float) -> None:
+        """Hold ``bridge``'s process up from ``at`` for ``seconds`` of virtual time, as a
+        loaded host (or ``SIGSTOP`` then ``SIGCONT``) does to a real-time shell's bridge: it
+        runs nothing meanwhile, and its timers and the medium's messages to it wait for the
+        end, in order. Only with ``latency`` (without it the bridges are chips, not processes)."""
+        if self.latency is None:
+            raise ValueError("a bridge is held up only in a real-time model (latency=Latency(...))")
+        start = int(at * CLOCK_HZ)
+        self._holds.setdefault(bridge, []).append((start, start + int(seconds * CLOCK_HZ)))
+
+    def _held_until(self, bridge: int, tick: int) -> int:
+        """The end of a hold of ``bridge`` that ``tick`` falls in (else ``tick``)."""
+        for start, end in self._holds.get(bridge, ()):
+            if start <= tick < end:
+                return end
+        return tick
 
     def cut(self, cell: int, at: float) -> None:
         self.at(at, lambda: self.medium.cut_cell(cell))
@@ -301,6 +322,8 @@ class VirtualMesh:
         """A message from the medium reaches ``b`` later (in order); ``b`` then wakes."""
         assert self.latency is not None
         at = max(self.tick + self._delay(self.latency.down), self._down_last.get(b, 0))
+        if self._holds:
+            at = self._held_until(b, at)
         self._down_last[b] = at
         self._push(at, _MSG, (b, action))
 
@@ -318,6 +341,11 @@ class VirtualMesh:
             tick, prio, _, item = heapq.heappop(heap)
             self.tick = tick
             if prio == _WAKE:
+                if self._holds and self._held_until(item, tick) != tick:  # (planned before the hold was)
+                    if self._wake.get(item) == tick:
+                        self._wake[item] = self._held_until(item, tick)
+                        self._push(self._wake[item], _WAKE, item)
+                    continue
                 if self._wake.get(item) == tick and item in nodes:
                     del self._wake[item]
                     if self.latency is not None:
@@ -335,6 +363,9 @@ class VirtualMesh:
                         self._run(r)
             elif prio == _MSG:
                 r, action = item
+                if self._holds and self._held_until(r, tick) != tick:  # (sent before the hold was planned)
+                    self._push(self._held_until(r, tick), _MSG, item)
+                    continue
                 fw = nodes.get(r)
                 if fw is not None:  # a real-time bridge runs its timers at every wake
                     action(fw)

@@ -99,3 +99,20 @@ def test_what_the_transfer_functions_refuse_is_refused() -> None:
         fe.capacitance(mode, over, np.array([[5000, 5000], [5000, 5000]]), flags, np.array([np.nan, 1e5]))
     with pytest.raises(ValueError, match="finite"):
         fe.capacitance(mode, over, np.array([[5000, 5000], [5000, 5000]]), flags, np.array([np.inf, 1e5]))
+
+
+@pytest.mark.parametrize("gate", [0.0, -0.0, -5.0, 1e-320, 1.0, 3.7, float(2**32), float(2**40)])
+def test_hostile_gates_and_counter_values_convert_as_the_transfer_functions_do(gate: float) -> None:
+    """A gate no chip sets (zero, negative, subnormal, far longer than the counter could
+    count) and counter values at and beyond the modulus, with and without the overflow
+    flags: every value and saturation flag the transfer functions', bit for bit (NaN where
+    they give no reading), and no error where they raise none."""
+    m = CHIP.counter_modulus
+    raw = np.array([[0, 1], [m - 1, m], [m + 1, 19_588], [15_788, 40_000], [65_535, 0]], dtype=np.int64)
+    for flags in (np.zeros(5, dtype=np.int64), np.array([0, OVERFLOW_C1, OVERFLOW_C2, OVERFLOW_C1 | OVERFLOW_C2, 3])):
+        gates = np.array([gate, 1e5, gate, gate, 25_000.0])
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            caps, sat = Frontend(PARAMS, CHIP).capacitance(np.zeros(5, dtype=np.int64), np.ones(5, dtype=np.int64),
+                                                           raw, flags, gates)
+            want_caps, want_sat = reference(raw, flags, gates)
+        assert caps.tobytes() == want_caps.tobytes() and np.array_equal(sat, want_sat)

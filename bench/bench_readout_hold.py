@@ -16,7 +16,6 @@ time): a figure changes only with the code.
 from __future__ import annotations
 
 import argparse
-from collections import defaultdict
 
 from cellbridge.emulator.firmware.commands import Settings
 from cellbridge.emulator.firmware.firmware import Firmware
@@ -49,11 +48,7 @@ def run(kind: str, held_ms: int, every_ms: int, seed: int, rate: int, event: boo
                          world=world, readout=True, readout_acks=False, readout_window=READOUT_WINDOW,
                          readout_hop=READOUT_HOP, ack_slack=ACK_SLACK, readout_depths=mesh.readout_depths())
         vm.run(WARM)
-        parents = {b: vm.nodes[b].router.parent for b in mesh.ids}
-        kids: dict[int, set[int]] = defaultdict(set)
-        for b, p in parents.items():
-            if p is not None:
-                kids[p].add(b)
+        parents, kids = vm.parents(), vm.children()
 
         def depth(b: int) -> int:
             d = 0

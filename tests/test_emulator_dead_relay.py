@@ -29,22 +29,18 @@ def test_a_dead_relay_leaves_the_rest_of_the_skin_known_under_process_delays() -
                      readout_acks=False, readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP,
                      ack_slack=ACK_SLACK, readout_depths=mesh.readout_depths())
     vm.run(WARM)
-    parents = {b: vm.nodes[b].router.parent for b in mesh.ids}
-    children: dict[int, set[int]] = defaultdict(set)
-    for b, p in parents.items():
-        if p is not None:
-            children[p].add(b)
+    parents, children = vm.parents(), vm.children()
 
     def subtree(root: int) -> set[int]:
         out, todo = {root}, [root]
         while todo:
-            for c in children[todo.pop()] - out:
+            for c in children.get(todo.pop(), set()) - out:
                 out.add(c)
                 todo.append(c)
         return out
 
     # a relay below another relay: its parent's record has a level above it to reach
-    relays = [b for b in mesh.ids if children[b] and parents[b] not in (None, *mesh.gateways)]
+    relays = [b for b in mesh.ids if children.get(b) and parents.get(b) not in (None, *mesh.gateways)]
     assert relays, parents
     victim = max(relays, key=lambda b: (len(mesh.ids) - len(subtree(b)), b))
     others = set(mesh.ids) - subtree(victim)

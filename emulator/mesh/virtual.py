@@ -382,6 +382,18 @@ class VirtualMesh:
         return {b: abs(fw.clock.global_at(fw.crystal.local(self.tick)) - g0) * 1e6 / CLOCK_HZ
                 for b, fw in self.nodes.items() if b != root and fw.clock.has_fit()}
 
+    def parents(self) -> dict[int, int | None]:
+        """Each live bridge's parent on its route now (None: a gateway, or no route)."""
+        return {b: fw.router.parent for b, fw in self.nodes.items()}
+
+    def children(self) -> dict[int, set[int]]:
+        """Each live bridge's children on the routes now (a leaf: an empty set)."""
+        out: dict[int, set[int]] = {b: set() for b in self.nodes}
+        for b, p in self.parents().items():
+            if p is not None and p in out:
+                out[p].add(b)
+        return out
+
     def result(self) -> MeshResult:
         counters = {}
         for b in self.mesh.ids:
@@ -391,7 +403,7 @@ class VirtualMesh:
                      {"has_route": 0, "queue_len": 0, "resets": self.resets[b]})
             c["alive"] = int(b in self.nodes)
             counters[b] = dict(c)
-        parents = {b: fw.router.parent for b, fw in self.nodes.items()}
+        parents = self.parents()
         cut_off = sorted(b for b, fw in self.nodes.items() if not fw.router.has_route)
         return MeshResult({g: list(f) for g, f in self.frames.items()}, counters, dict(self.medium.counters),
                           cut_off, parents, self.tick / CLOCK_HZ,

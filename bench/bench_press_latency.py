@@ -251,6 +251,8 @@ def _setting(text: str) -> tuple[str, int | float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--side", type=int, default=4)
+    ap.add_argument("--gateway", type=int, default=None,
+                    help="the gateway's bridge id (default: the grid generator's, see cellbridge mesh gen)")
     ap.add_argument("--rate", type=int, default=100)
     ap.add_argument("--reporting", default="periodic", help="periodic or event:THRESHOLD (default periodic)")
     ap.add_argument("--presses", type=int, default=40)
@@ -273,7 +275,7 @@ def main() -> None:
                          "and the slowest tenth of presses, what their contact waited for")
     args = ap.parse_args()
     unwind_on_signals()
-    mesh = meshgen.grid(args.side, args.side)
+    mesh = meshgen.grid(args.side, args.side, None if args.gateway is None else (args.gateway,))
     n = len(mesh.bridges)
     if args.virtual:
         lat_s, lat_c, missed, truth = run_virtual(args, mesh)

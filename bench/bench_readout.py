@@ -174,7 +174,7 @@ def traffic(quick: bool) -> None:
 def efficiency(quick: bool) -> None:
     print("\n4. sample bits delivered at the gateway, 250 Hz, over one of its cells' raw bitrate")
     print(f"{'skin':<12} {'gateway cells':>13} {'sample kbit/s':>13} {'share of one cell':>17} {'target':>7}")
-    for mesh, gw in ((meshgen.grid(8, 8), 1), (meshgen.grid(8, 8, gateways=(28,)), 28)):
+    for mesh, gw in ((meshgen.grid(8, 8, gateways=(1,)), 1), (meshgen.grid(8, 8, gateways=(28,)), 28)):
         vm = VirtualMesh(mesh, seed=4, settings=Settings(rate_hz=250), readout=True)
         vm.run(6.0)
         n0 = len(vm.serial_chunks[gw])

@@ -1,8 +1,8 @@
 """Bridge processes held up on a loaded host: what the scheduled readout still delivers.
 
-Run: ``.venv/bin/python bench/bench_readout_hold.py [--seed N] [--rate HZ] [--event]``.
+Run: ``.venv/bin/python bench/bench_readout_hold.py [--seed N] [--rate HZ] [--event] [--gateway ID]``.
 
-A virtual real-time 4x4 (one corner gateway; the real-time shells' schedule: levels of
+A virtual real-time 4x4 (one gateway: the grid's default, its centre, or ``--gateway``; the real-time shells' schedule: levels of
 ``READOUT_WINDOW``, slots packed ``READOUT_HOP`` apart, no per-hop acknowledgements; each
 message 2 ms late on average, each wake 1 ms) runs 6 s to settle, then the deepest leaf, or
 the deepest relay below another relay, is held up (:meth:`VirtualMesh.hold`, as ``SIGSTOP``
@@ -29,7 +29,8 @@ from cellbridge.protocol import FrameType, Readout, Sample
 WARM, SPAN = 6.0, 3.0  #: s settled before the holds; s held and measured after
 
 
-def run(kind: str, held_ms: int, every_ms: int, seed: int, rate: int, event: bool) -> tuple[int, int, int, int, int]:
+def run(kind: str, held_ms: int, every_ms: int, seed: int, rate: int, event: bool,
+        gateway: int | None = None) -> tuple[int, int, int, int, int]:
     """(unknown element-frames, of, the held bridge's known frames, frames, wrong) of one case."""
     truth: dict[tuple[int, int], tuple[int, int]] = {}
     real = Firmware._readout_sample
@@ -38,7 +39,7 @@ def run(kind: str, held_ms: int, every_ms: int, seed: int, rate: int, event: boo
         truth[(self.me, s.index)] = (s.c1, s.c2)
         real(self, s, kept, start)
 
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4) if gateway is None else meshgen.grid(4, 4, gateways=(gateway,))
     settings = Settings(rate_hz=rate, reporting=ReportingMode(40, 1000)) if event else Settings(rate_hz=rate)
     world = World(mesh, [Contact(1.5 + 0.7 * i, 0.5 + 0.5 * i, 0.02 + 0.04 * (i % 3), 0.03 + 0.03 * (i % 2),
                                  3.0, 0.02) for i in range(6)]) if event else None
@@ -90,15 +91,17 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--rate", type=int, default=100)
     ap.add_argument("--event", action="store_true", help="event-based reporting, presses in the world")
+    ap.add_argument("--gateway", type=int, default=None, help="the gateway's bridge id (default: the grid's centre)")
     args = ap.parse_args()
-    print(f"4x4, {args.rate} Hz, {'event-based' if args.event else 'periodic'}, seed {args.seed}")
+    gw = meshgen.grid(4, 4).gateways[0] if args.gateway is None else args.gateway
+    print(f"4x4, gateway {gw}, {args.rate} Hz, {'event-based' if args.event else 'periodic'}, seed {args.seed}")
     print(f"{'held':>6} {'every':>6} {'bridge':>6} {'unknown':>9} {'of':>6} {'held known':>11} {'wrong':>6}")
     for kind in ("leaf", "relay"):
         for every in (0, 500):
             for held in (0, 50, 90, 110, 150):
                 if held == 0 and every:
                     continue
-                unknown, n, vk, frames, wrong = run(kind, held, every, args.seed, args.rate, args.event)
+                unknown, n, vk, frames, wrong = run(kind, held, every, args.seed, args.rate, args.event, args.gateway)
                 print(f"{held:>4}ms {every or 'once':>6} {kind:>6} {unknown:>9} {n:>6} {vk:>5}/{frames:<5} {wrong:>6}")
 
 

@@ -28,7 +28,7 @@ SECTIONS = {"calibration": {"max_touch": MAX_TOUCH, "n_baseline": 20}}
 
 
 def reads(seconds: float, presses: list[Contact], drifts: list[Drift]) -> list[tuple[float, bytes]]:
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
     world = World(mesh, presses, drifts=drifts)
     vm = VirtualMesh(mesh, seed=3, world=world, settings=Settings(rate_hz=10), random_epochs=True)
     vm.run(seconds)

@@ -29,7 +29,7 @@ def gateway_reads(seconds: float, presses: list[Contact], kill: tuple[int, ...] 
                   seed: int = 1, readout: bool = True) -> list[tuple[float, bytes]]:
     """The gateway line's reads of a virtual 4x4 skin: readout records of skin frames, or
     with ``readout`` False every bridge's DATA (bridges on no schedule: the fallback)."""
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=seed, world=World(mesh, presses), random_epochs=True, readout=readout)
     for b in kill:
         vm.kill(b, at=kill_at)
@@ -72,7 +72,7 @@ def test_a_frames_host_time_is_its_gate_start_not_its_readouts_end() -> None:
     """Records go once the whole frame is read out, ~9 ms after its gates on a 4x4: timed
     by their arrival alone, every frame (and every contact's time) came that much late.
     A gateway's record says its age; the host then times a frame to within the line."""
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=3, random_epochs=True, readout=True)
     vm.run(5.0)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
@@ -309,7 +309,7 @@ def test_an_index_whose_instant_overflows_64_bits_is_not_on_a_skin_frame(press_d
 def _late_bridge_16(press: tuple[float, float], boot: float, until: float) -> VirtualMesh:
     """An event-based 4x4 at 100 Hz in virtual time, run ``until`` s: a 3 N corner press of
     (start, duration) ``press``, and bridge 16 off until it boots at ``boot`` s."""
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(*press, *CORNER, 3.0, 0.020)]), random_epochs=True,
                      settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.kill(16, at=0.0)
@@ -371,7 +371,7 @@ def test_corner_presses_on_a_contended_event_based_skin_keep_one_id_from_their_f
 
     from cellbridge.emulator.mesh.virtual import Latency
 
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     rng = random.Random(0)
     presses = [Contact(61.6 + i * 1.5 + rng.uniform(0, 0.01), 1.0, *CORNER, 3.0, 0.020) for i in range(12)]
     vm = VirtualMesh(mesh, seed=0, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
@@ -400,7 +400,7 @@ def test_presses_sliding_across_seams_of_an_event_based_skin_keep_one_id() -> No
 
     from cellbridge.emulator.mesh.virtual import Latency
 
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     rng = random.Random(3)
     presses, end = [], 62.0
     for _ in range(2):
@@ -475,7 +475,7 @@ def _corner_presses_held_back(phase: str, n: int) -> list[tuple[Contact, set[int
     from its start to 0.5 s after its end. Checks each press's steady contact."""
     from cellbridge.emulator.mesh.virtual import Latency
 
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     presses = [Contact(6.0 + 1.5 * k, 1.0, *CORNER, 3.0, 0.020) for k in range(n)]
     vm = VirtualMesh(mesh, seed=2, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
                      random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
@@ -541,7 +541,7 @@ def test_two_fingers_sharing_an_element_each_get_an_id_within_the_split_wait() -
     is read right from the first report."""
     from cellbridge.emulator.mesh.virtual import Latency
 
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     n = len(FINGER_PAIRS)
     fingers = [Contact(t, 0.8, *a, 3.0, 0.020) for t, a, _, _ in FINGER_PAIRS]
     fingers += [Contact(t + gap, 0.8, *b, 3.0, 0.020) for t, _, b, gap in FINGER_PAIRS]
@@ -592,7 +592,7 @@ def test_on_a_loaded_host_the_real_time_shells_schedule_keeps_a_seam_press_whole
     from cellbridge.emulator.mesh.virtual import Latency
     from cellbridge.emulator.realtime.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
 
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     seam = Contact(12.0, 2.0, 0.057, 0.040, 3.0, 0.020)  # the skin joined and settled (~10 s at such delays)
     vm = VirtualMesh(mesh, seed=1, world=World(mesh, [seam]), random_epochs=True,
                      latency=Latency(up=0.006, down=0.006, wake_late=0.006, seed=1),

@@ -66,7 +66,7 @@ def test_never_before_it_was_heard_and_deferred_ones_never_overlap(txs: list[tup
 def test_a_4x4_skin_under_real_time_latency_delivers_every_sample() -> None:
     # Without the arbiter (and short timers slept exactly) the latency model's 4x4 at
     # 100 Hz lost two thirds of some bridges' samples in queues; with them, none.
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     quiet = Latency(up=0.0001, down=0.0001, floor=0.00005, wake_late=0.0001, seed=1)  # a quiet machine
     vm = VirtualMesh(mesh, seed=0, latency=quiet, ack_slack=CLOCK_HZ // 100, readout=False)  # every DATA sample
     r = vm.run(6.0)

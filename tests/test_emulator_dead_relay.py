@@ -23,7 +23,7 @@ RATE = 100
 
 
 def test_a_dead_relay_leaves_the_rest_of_the_skin_known_under_process_delays() -> None:
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     # the real-time shells' readout, and messages 6 ms late on average each way
     vm = VirtualMesh(mesh, seed=5, latency=Latency(up=0.006, down=0.006, wake_late=0.003), readout=True,
                      readout_acks=False, readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP,

@@ -248,7 +248,7 @@ def test_samples_taken_before_a_rate_change_go_out_at_the_rate_they_were_taken_a
 
 
 def test_broadcast_command_reaches_every_bridge() -> None:
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
     vm = VirtualMesh(mesh, seed=3)
     vm.host_write(1, cmd(7, ADDR_BROADCAST, Op.SET_MODE, int(Mode.ADC), token=5), at=1.0)
     r = vm.run(2.5)
@@ -264,7 +264,7 @@ def _data_rate(vm: VirtualMesh, lo: float, hi: float) -> float:
 
 
 def test_event_reporting_sends_far_fewer_frames_when_idle_and_reports_every_press() -> None:
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     presses = [Contact(2.0 + 0.5 * i, 0.2, x, y, 2.0, 0.02)
                for i, (x, y) in enumerate([(0.0, 0.0), (0.06, 0.04), (0.12, 0.12)])]
     runs = {}
@@ -508,7 +508,7 @@ def test_a_broadcast_reset_is_answered_by_every_bridge() -> None:
     # replies of the bridges behind them, and the host could not tell who had reset.
     from cellbridge.emulator.firmware.commands import Settings as _Settings
 
-    mesh = meshgen.grid(6, 6)
+    mesh = meshgen.grid(6, 6, gateways=(1,))
     vm = VirtualMesh(mesh, seed=4, settings=_Settings(rate_hz=20))  # not saturated
     vm.host_write(1, cmd(1, ADDR_BROADCAST, Op.RESET, token=5), at=2.0)
     r = vm.run(8.0)
@@ -735,7 +735,7 @@ def test_aligned_batches_leave_in_depth_slots_deepest_first() -> None:
 def test_aligned_batches_put_one_group_of_indices_in_each_frame_on_every_bridge() -> None:
     # With aligned batches every bridge closes batch j (indices [5j, 5j + 5) at 100 Hz and
     # max_latency 50 ms) at the same global instant: no DATA frame mixes two batches.
-    vm = VirtualMesh(meshgen.grid(3, 3), seed=2, random_epochs=True, aligned_batches=True, readout=False)
+    vm = VirtualMesh(meshgen.grid(3, 3, gateways=(1,)), seed=2, random_epochs=True, aligned_batches=True, readout=False)
     r = vm.run(6.0)
     groups = [{s.index // 5 for s in payload_as(f, Data).samples} for f in r.gateway_frames[1]
               if f.type is FrameType.DATA and not any(s.flags & SampleFlags.NO_MESH_TIME for s in payload_as(f, Data).samples)]
@@ -749,7 +749,7 @@ def test_a_relay_computes_its_readout_sample_at_its_childrens_records_not_at_a_w
     # instead of waking the bridge at its gate end (a real-time process's wake costs more
     # than the sample). What leaves the gateway, and when, is exactly what gate-by-gate
     # sampling sends; the relays wake about once a frame less.
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
 
     def run(lazy: bool) -> tuple[dict, dict, dict[int, int], int]:
         vm = VirtualMesh(mesh, seed=2, lazy_sampling=lazy, readout=True, readout_acks=False,
@@ -789,7 +789,7 @@ def test_a_bridge_that_computes_its_next_samples_ahead_sends_what_it_sends_witho
     # gates, whatever the mesh clock did meanwhile (a gate it moved is computed when it
     # is taken) and whatever the world did (a press: the pressed gates too). Same bytes at
     # the same ticks on the gateway's line, and most counts came from the prefetch.
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
     presses = [Contact(2.6, 0.3, 0.04, 0.04, 2.0, 0.02)]
 
     def run(ahead: bool) -> tuple[dict, dict, int, int]:
@@ -816,7 +816,7 @@ def test_a_relay_whose_childs_record_comes_before_its_own_gate_end_sends_at_its_
     # take it at its gate end, as gate by gate, not at the next wake that happens to come
     # (the frame's wait for a record of its own, a window later: every frame of the
     # relay's subtree reached the gateway 7 ms later than gate by gate).
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
     probe = VirtualMesh(mesh, seed=2)
     probe.run(1.0)
     parents = probe.result().parents
@@ -845,7 +845,7 @@ def test_a_contact_the_world_takes_back_still_pressed_the_gates_before() -> None
     # after their gates (a relay's readout sample at its children's records). A list that
     # no longer holds a press that was on (a world that restarted) takes over when the
     # bridge hears it: a gate before then still sensed the press, one after does not.
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
     world = World(mesh)
     on = Contact(1.0, math.inf, 0.04, 0.04, 3.0, 0.02)
     world.set_contacts([on], 1.0)
@@ -869,7 +869,7 @@ def test_a_relays_lazy_sample_sees_a_press_the_world_took_back_after_its_gate() 
     # wake that computes its readout sample lazily (its children's records): a list
     # without a press that was on at the gate. Lazily the relay must send what gate by
     # gate sampling sends (the press at that gate), the same bytes at the same ticks.
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
 
     def run(lazy: bool) -> list[tuple[int, bytes]]:
         world = World(mesh)

@@ -70,7 +70,7 @@ def test_heartbeats_are_never_more_than_a_heartbeat_apart_and_return_to_the_slot
 def test_an_idle_event_based_skin_spreads_its_heartbeats_over_the_frames() -> None:
     """A 4x4 idle skin on mesh time: no frame index carries the heartbeats of more than two
     bridges (before the slots, every bridge's heartbeat shared one index)."""
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=3, random_epochs=True, readout=False,  # DATA heartbeats (unscheduled path)
                      settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)))
     vm.run(14.0)

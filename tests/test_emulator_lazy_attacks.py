@@ -61,13 +61,13 @@ def _nothing(vm: VirtualMesh) -> None:
 _PRESSES = [Contact(2.9, 0.3, 0.05, 0.05, 2.0, 0.03), Contact(3.1, 0.2, 0.09, 0.02, 3.0, 0.02, 0.05, 0.0)]
 
 SCENARIOS: dict[str, tuple[Mesh, int, Callable[[VirtualMesh], None], list[Contact], int]] = {
-    "children die and reset mid-frame": (meshgen.grid(3, 3), 100, _children_die, [], 2),
+    "children die and reset mid-frame": (meshgen.grid(3, 3, gateways=(1,)), 100, _children_die, [], 2),
     "the time root dies and comes back": (meshgen.grid(3, 3, gateways=(1, 9)), 100, _root_dies, [], 2),
     "the root dies on lossy cells": (meshgen.grid(3, 3, gateways=(1, 9), loss=0.03), 100, _root_dies, [], 2),
-    "rate commands while counts are ahead": (meshgen.grid(3, 3), 100, _rates, [], 2),
-    "a relay's longer gate": (meshgen.grid(3, 3), 100, _gate, [], 2),
-    "a RESET": (meshgen.grid(3, 3), 100, _reset, [], 2),
-    "a still and a moving press at 250 Hz": (meshgen.grid(4, 4), 250, _nothing, _PRESSES, 3),
+    "rate commands while counts are ahead": (meshgen.grid(3, 3, gateways=(1,)), 100, _rates, [], 2),
+    "a relay's longer gate": (meshgen.grid(3, 3, gateways=(1,)), 100, _gate, [], 2),
+    "a RESET": (meshgen.grid(3, 3, gateways=(1,)), 100, _reset, [], 2),
+    "a still and a moving press at 250 Hz": (meshgen.grid(4, 4, gateways=(1,)), 250, _nothing, _PRESSES, 3),
 }
 
 

@@ -155,7 +155,7 @@ def test_a_skin_whose_relays_hear_frames_together_needs_few_retransmissions() ->
     from cellbridge.emulator.mesh import meshgen
     from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
 
-    r = VirtualMesh(meshgen.grid(4, 4), seed=0, latency=Latency(), ack_slack=CLOCK_HZ // 100, readout=False,
+    r = VirtualMesh(meshgen.grid(4, 4, gateways=(1,)), seed=0, latency=Latency(), ack_slack=CLOCK_HZ // 100, readout=False,
                     settings=Settings(rate_hz=100), random_epochs=True).run(8.0)
     assert r.total("data_frames") > 2000  # 16 bridges, 20 a second each
     assert r.total("retries") < 50 and r.total("acks_dropped") == 0, (r.total("retries"), r.total("acks_dropped"))

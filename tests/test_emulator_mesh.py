@@ -82,7 +82,7 @@ def test_bad_files_are_refused_naming_the_problem(edit, words) -> None:
 @pytest.mark.parametrize("mesh, n, hops", [
     (meshgen.line(8), 8, 7),
     (meshgen.ring(10), 10, 5),
-    (meshgen.grid(4, 4), 16, 6),
+    (meshgen.grid(4, 4, gateways=(1,)), 16, 6),
     (meshgen.random_mesh(32, seed=5), 32, None),
 ])
 def test_generators_make_valid_connected_meshes(mesh, n, hops) -> None:
@@ -118,6 +118,29 @@ def test_cut_cells_and_dead_bridges_change_reachability() -> None:
     assert m.reachable(cut=frozenset({1})) == {1}
     r = meshgen.ring(6)
     assert r.reachable(dead=frozenset({2})) == {1, 3, 4, 5, 6}
+
+
+@given(st.integers(1, 8), st.integers(1, 8))
+@settings(max_examples=25, deadline=None)
+def test_a_grids_default_gateway_is_its_centre_the_shallowest_tree(rows: int, cols: int) -> None:
+    """A frame's readout climbs the routing tree hop by hop: a generated grid's one gateway
+    is the bridge no other bridge of the grid is further from than from any other."""
+    mesh = meshgen.grid(rows, cols)
+    [gw] = mesh.gateways
+    assert gw == meshgen.grid_centre(rows, cols)
+
+    def deepest(g: int) -> int:
+        return max(meshgen.grid(rows, cols, gateways=(g,)).hops().values())
+
+    assert deepest(gw) == min(deepest(b) for b in mesh.ids)
+
+
+def test_cli_gen_puts_a_grids_gateway_at_its_centre_and_other_kinds_at_bridge_1(tmp_path: Path) -> None:
+    for args, want in ((["grid", "4", "4"], [6]), (["grid", "8", "8"], [28]), (["grid", "2", "2"], [1]),
+                       (["line", "8"], [1]), (["ring", "6"], [1])):
+        r = subprocess.run([CLI, "mesh", "gen", *args], capture_output=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        assert parse_mesh(r.stdout.decode()).gateways == want, args
 
 
 def test_cli_gen_and_check(tmp_path: Path) -> None:

@@ -173,7 +173,7 @@ def _run_and_measure(mesh: Mesh, seconds: float, seed: int, after: float) -> tup
 
 @pytest.mark.parametrize("name, mesh", [
     ("line of 9 (8 hops)", meshgen.line(9)),
-    ("4x4 grid", meshgen.grid(4, 4)),
+    ("4x4 grid", meshgen.grid(4, 4, gateways=(1,))),
     ("random 32", meshgen.random_mesh(32, seed=3)),
 ])
 def test_mesh_time_error_per_hop_and_sync_after_boot(name: str, mesh: Mesh) -> None:
@@ -187,7 +187,7 @@ def test_mesh_time_error_per_hop_and_sync_after_boot(name: str, mesh: Mesh) -> N
 
 
 def test_samples_carry_the_skin_frame_index_and_flag_the_time_before_sync() -> None:
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
     # DATA samples carry each gate's cycle (a readout record carries none: its frame is its time)
     vm = VirtualMesh(mesh, seed=5, random_epochs=True, readout=False)
     r = vm.run(6.0)
@@ -213,7 +213,7 @@ def test_gate_starts_of_one_index_across_an_8x8_skin_within_20_us() -> None:
     any rate (the test asks for 100 Hz's), and at 100 Hz the 14 s of 64 chips' sampling cost
     85 s of CPU (450 s, the suite's timeout, beside four CPU burners) for the same spread
     (about 2 us either way); bench/bench_meshtime.py measures it with full traffic."""
-    mesh = meshgen.grid(8, 8)
+    mesh = meshgen.grid(8, 8, gateways=(1,))
     vm = VirtualMesh(mesh, seed=7, random_epochs=True, settings=Settings(rate_hz=10))
     vm.run(14.0)  # 14 hops from the far corner: synced by about 0.6 + 14 * 1.5 s at worst
     assert all(fw.clock.synced(fw.crystal.local(vm.tick)) for fw in vm.nodes.values())
@@ -226,7 +226,7 @@ def test_gate_starts_of_one_index_across_an_8x8_skin_within_20_us() -> None:
 
 
 def test_after_a_relay_dies_its_children_keep_time_through_other_neighbours() -> None:
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=3, random_epochs=True)
     vm.kill(6, at=8.0)
     vm.run(8.0 + 3 * PERIOD_S)

@@ -279,7 +279,7 @@ def test_mesh_up_starts_gateways_first_then_outwards() -> None:
     from cellbridge.emulator.realtime.process_up import start_order
 
     assert [b.id for b in start_order(meshgen.line(5, gateways=(3,)))] == [3, 2, 4, 1, 5]
-    order = [b.id for b in start_order(meshgen.grid(3, 3))]
+    order = [b.id for b in start_order(meshgen.grid(3, 3, gateways=(1,)))]
     hops = {1: 0, 2: 1, 4: 1, 3: 2, 5: 2, 7: 2, 6: 3, 8: 3, 9: 4}
     assert sorted(order) == list(range(1, 10))
     assert [hops[b] for b in order] == sorted(hops[b] for b in order)

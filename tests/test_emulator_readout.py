@@ -62,7 +62,7 @@ def records(vm: VirtualMesh) -> dict[tuple[int, int], tuple[str, ReadoutSample |
 
 
 def test_periodic_records_under_loss_and_a_dead_relay_say_what_each_bridge_sampled(truth: Truth) -> None:
-    mesh = meshgen.grid(4, 4, loss=0.01)
+    mesh = meshgen.grid(4, 4, loss=0.01, gateways=(1,))
     vm = VirtualMesh(mesh, seed=7, readout=True)
     vm.kill(6, at=4.0)  # a relay in the middle: its subtree re-routes
     vm.run(7.0)
@@ -91,7 +91,7 @@ def test_event_based_records_keep_every_unchanged_element_within_its_threshold(t
     # element's frame before (a record lost on the way breaks the chain until the next
     # sample). Whatever it reads that way must lie within the reporting threshold of what
     # the bridge sampled at that frame.
-    mesh = meshgen.grid(4, 4, loss=0.01)
+    mesh = meshgen.grid(4, 4, loss=0.01, gateways=(1,))
     presses = [Contact(1.5 + 0.7 * i, 0.5, 0.02 + 0.04 * (i % 3), 0.03 + 0.03 * (i % 2), 3.0, 0.02)
                for i in range(6)]
     vm = VirtualMesh(mesh, seed=3, world=World(mesh, presses), readout=True,
@@ -264,7 +264,7 @@ def test_records_of_a_parent_and_its_child_do_not_take_the_same_slot() -> None:
     was lost to the relay's half duplex (101 in 2 s of a 4x4). A depth's parity in the
     slots keeps them apart."""
 
-    vm = VirtualMesh(meshgen.grid(4, 4), seed=1, settings=Settings(rate_hz=250), readout=True)
+    vm = VirtualMesh(meshgen.grid(4, 4, gateways=(1,)), seed=1, settings=Settings(rate_hz=250), readout=True)
     vm.run(4.0)  # every bridge on the schedule
     before = vm.medium.counters.get("half_duplex_at_addressee", 0)
     vm.run(2.0)
@@ -473,7 +473,7 @@ def test_a_multi_hop_skin_at_one_percent_loss_per_hop_keeps_its_element_frames_k
     With the later frame's record waiting for the earlier one's outcome, and retries while
     they can still reach the parent by its slot, the skin keeps its element-frames known,
     and every one it calls known is what its bridge sampled."""
-    mesh = meshgen.grid(4, 4, loss=0.01)
+    mesh = meshgen.grid(4, 4, loss=0.01, gateways=(1,))
     vm = VirtualMesh(mesh, seed=7, settings=Settings(rate_hz=250), readout=True)
     vm.run(7.0)
     got = records(vm)
@@ -537,7 +537,7 @@ def test_a_relay_that_dies_at_250_hz_has_its_subtree_rerouted_in_tens_of_ms_not_
     record that failed all its retries was not told to the routing. Relay 6's subtree (seed 7)
     stayed unknown until its beacons timed out, 2.4 s: 4 806 element-frames. A record whose
     every retry went unacknowledged now counts as a lost link."""
-    mesh = meshgen.grid(4, 4, loss=0.01)
+    mesh = meshgen.grid(4, 4, loss=0.01, gateways=(1,))
     vm = VirtualMesh(mesh, seed=7, settings=Settings(rate_hz=250), readout=True)
     vm.kill(6, at=4.0)
     vm.run(5.0)
@@ -632,7 +632,7 @@ def test_a_leaf_held_up_110_ms_every_half_second_keeps_its_frames_on_a_real_time
     from cellbridge.emulator.mesh.virtual import Latency
     from cellbridge.emulator.realtime.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
 
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=5, latency=Latency(up=0.002, down=0.002, wake_late=0.001), readout=True,
                      readout_acks=False, readout_window=READOUT_WINDOW, readout_hop=READOUT_HOP,
                      ack_slack=ACK_SLACK, readout_depths=mesh.readout_depths())

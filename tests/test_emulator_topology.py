@@ -102,7 +102,7 @@ def test_line_of_8_delivers_every_sample_over_7_hops() -> None:
 
 
 @pytest.mark.parametrize("mesh, settings", [
-    (meshgen.grid(4, 4), Settings()),
+    (meshgen.grid(4, 4, gateways=(1,)), Settings()),
     (meshgen.ring(12), Settings()),
 ], ids=["grid4x4", "ring12"])
 def test_every_bridge_reaches_the_gateway(mesh, settings) -> None:
@@ -124,7 +124,7 @@ def test_a_random_skin_with_shared_cells_reads_out_its_frames() -> None:
 
 
 def test_killing_a_relay_reroutes_within_three_beacon_periods() -> None:
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=4)
     before = vm.run(2.0)
     relay = 2 if 2 in before.parents.values() else 5
@@ -237,7 +237,7 @@ def test_bit_errors_in_the_readout_leave_frames_listed_missing_never_wrong() -> 
 
 
 def test_same_seed_same_run_other_seed_other_run() -> None:
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
 
     def stream(seed: int) -> list[tuple[int, int, int]]:
         r = VirtualMesh(mesh, seed=seed).run(1.5)
@@ -274,7 +274,7 @@ def test_grid_routing_stays_stable_under_real_time_message_latency() -> None:
     from cellbridge.emulator.firmware.reporting import ReportingMode
     from cellbridge.emulator.mesh.virtual import Latency
 
-    mesh = meshgen.grid(5, 5)
+    mesh = meshgen.grid(5, 5, gateways=(1,))
     lat = Latency(up=0.003, down=0.003, wake_late=0.002)
     vm = VirtualMesh(mesh, seed=1, settings=Settings(reporting=ReportingMode(40, 1000)), latency=lat,
                      ack_slack=CLOCK_HZ // 100)  # the real-time shell's allowance
@@ -290,7 +290,7 @@ def test_latency_model_is_deterministic() -> None:
     from cellbridge.emulator.mesh.virtual import Latency
 
     def run() -> list[tuple[int, int, int]]:
-        vm = VirtualMesh(meshgen.grid(3, 3), seed=2, latency=Latency(seed=5), ack_slack=CLOCK_HZ // 100)
+        vm = VirtualMesh(meshgen.grid(3, 3, gateways=(1,)), seed=2, latency=Latency(seed=5), ack_slack=CLOCK_HZ // 100)
         return [(o, b, s) for o, b, s, _ in vm.run(1.5).delivered()]
 
     assert run() == run()
@@ -325,7 +325,7 @@ def test_routes_stay_put_on_a_static_lossless_idle_mesh_past_trickles_long_inter
     # link's ETX), never back and forth.
     from cellbridge.emulator.firmware.reporting import ReportingMode
 
-    mesh = meshgen.grid(8, 8)
+    mesh = meshgen.grid(8, 8, gateways=(1,))
     # unscheduled (every frame of a readout would cost this minute-long run ten times the wakes)
     vm = VirtualMesh(mesh, seed=4, settings=Settings(reporting=ReportingMode(40, 1000)), readout=False)
     formed = vm.run(10.0)

@@ -25,7 +25,7 @@ SECONDS = 6.0
 
 @pytest.fixture(scope="module")
 def reads() -> list[tuple[float, bytes]]:
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))
     vm = VirtualMesh(mesh, seed=2, random_epochs=True, readout=False)  # loss of DATA frames, by their numbering
     vm.run(SECONDS)
     assert vm.result().total("forwarded") > 0 and vm.result().total("beacons") > 0  # a multi-hop mesh at work

@@ -20,7 +20,7 @@ def test_bridges_reset_under_a_press_deliver_again_within_a_second() -> None:
     the relay dropped every frame until the new numbering passed the old (bridge 6: 14 s
     and more, element unknown the whole time). A relay only needs to catch retransmitted
     copies and loops, which come within a few frames of the newest."""
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(4.0, 4.5, *CORNER, 3.0, 0.020)]), random_epochs=True,
                      readout=False)
     for b in UNDER:
@@ -39,7 +39,7 @@ def test_bridges_reset_under_a_press_are_read_out_again_within_a_second() -> Non
     """The same resets on the readout (the default): within a second of its restart each
     bridge is back in the gateway's records as a sample, and stays there frame after frame
     (periodic reporting: every frame of a bridge on the schedule holds its sample)."""
-    mesh = meshgen.grid(4, 4)
+    mesh = meshgen.grid(4, 4, gateways=(1,))
     vm = VirtualMesh(mesh, seed=1, world=World(mesh, [Contact(4.0, 4.5, *CORNER, 3.0, 0.020)]), random_epochs=True)
     for b in UNDER:
         vm.restart(b, at=5.0)

@@ -72,7 +72,7 @@ class ReadoutConfig:
     #: schedule's span (``depths * window``) and one period, is not waited for (its subtree
     #: is listed missing as soon as the rest of the frame is in) until it is heard again.
     #: Within the span a held-up child's record can still make its frame (the real-time
-    #: shells' slots absorb a leaf's process held up ~150 ms): silence that short is a
+    #: shells' slots absorb a 4x4 leaf's process held up ~120 ms): silence that short is a
     #: child running late, not one that is gone. Far shorter than ``forget``.
     quiet: int = 5_000_000
 

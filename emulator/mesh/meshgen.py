@@ -60,11 +60,25 @@ def ring(n: int, gateways: Sequence[int] = (1,), loss: float = 0.0, ber: float =
     return _finish(cells, pos, gateways, loss, ber, side, f"ring-{n}")
 
 
-def grid(rows: int, cols: int, gateways: Sequence[int] = (1,), loss: float = 0.0, ber: float = 0.0,
+def grid_centre(rows: int, cols: int) -> int:
+    """The bridge at the middle of a rows × cols grid (the upper left one of the middle four
+    of an even grid): a grid's default gateway."""
+    return (rows - 1) // 2 * cols + (cols - 1) // 2 + 1
+
+
+def grid(rows: int, cols: int, gateways: Sequence[int] | None = None, loss: float = 0.0, ber: float = 0.0,
          side: float = DEFAULT_SIDE) -> Mesh:
-    """rows × cols bridges; bridge (r, c) is id r·cols + c + 1; edge neighbours share a cell."""
+    """rows × cols bridges; bridge (r, c) is id r·cols + c + 1; edge neighbours share a cell.
+
+    ``gateways``: default the grid's centre bridge (:func:`grid_centre`), the shallowest
+    routing tree one gateway gives: every frame's readout climbs the tree deepest first,
+    hop by hop, so its latency grows with the depth (a 4×4's deepest bridge is 4 hops from
+    its centre, 6 from a corner), and the centre spreads the skin's records over four cells
+    into the gateway, where a corner has two."""
     if rows < 1 or cols < 1:
         raise MeshError("grid: rows and cols must be >= 1")
+    if gateways is None:
+        gateways = (grid_centre(rows, cols),)
     pos = {r * cols + c + 1: (c * side, r * side) for r in range(rows) for c in range(cols)}
     cells: dict[int, list[int]] = {}
     for r in range(rows):

@@ -58,20 +58,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "position, gateway flag) and link loss / bit-error rates.\n\n"
         "examples:\n"
         "  cellbridge mesh gen line 8 -o line8.toml        # 8 bridges, 7 hops, gateway 1\n"
+        "  cellbridge mesh gen grid 4 4 -o grid4.toml      # 16 bridges, gateway 6 (the centre)\n"
         "  cellbridge mesh gen grid 4 4 --gateways 1,16    # two gateways, to stdout\n"
         "  cellbridge mesh gen random 32 --seed 7 --loss 0.01\n"
         "  cellbridge mesh check line8.toml\n"
         "  cellbridge mesh run line8.toml --seconds 5 --scenario presses.toml --capture out/\n"
         "  cellbridge mesh up line8.toml                   # one process per bridge\n"
         "  cellbridge mesh traffic humanoid.toml --seconds 120 --scenario presses.toml --out run/\n"
-        "                                                  # a skin description's gateway lines, frame level"
+        "                                                  # a skin description's gateway lines, frame level\n"
         "  cellbridge mesh up grid8.toml --reporting event:40:1000   # idle elements: heartbeats only"
     )
     sub = parser.add_subparsers(dest="mesh_command", metavar="ACTION", required=True)
     gen = sub.add_parser("gen", help="write a generated mesh file (line N | ring N | grid R C | random N)")
     gen.add_argument("kind", choices=["line", "ring", "grid", "random"])
     gen.add_argument("size", type=int, nargs="+", help="N, or R C for a grid")
-    gen.add_argument("--gateways", type=_ids, default=[1], help="gateway bridge ids, comma-separated (default 1)")
+    gen.add_argument("--gateways", type=_ids, default=None,
+                     help="gateway bridge ids, comma-separated (default: a grid's centre bridge, the shallowest "
+                          "routing tree, e.g. 6 of a 4x4; bridge 1 of the other kinds)")
     gen.add_argument("--loss", type=float, default=0.0, help="frame loss probability per delivery (default 0)")
     gen.add_argument("--ber", type=float, default=0.0, help="bit-error rate per delivered bit (default 0)")
     gen.add_argument("--side", type=float, default=0.040, help="element side and pitch in metres (default 0.04)")
@@ -109,8 +112,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         if args.mesh_command == "gen":
-            mesh = generate(args.kind, args.size, gateways=args.gateways, loss=args.loss,
-                            ber=args.ber, side=args.side, seed=args.seed)
+            kw = {} if args.gateways is None else {"gateways": args.gateways}
+            mesh = generate(args.kind, args.size, loss=args.loss, ber=args.ber, side=args.side, seed=args.seed, **kw)
             text = mesh_to_toml(mesh)
             if args.output:
                 with open(args.output, "w", encoding="utf-8") as fh:

@@ -79,17 +79,18 @@ ACK_SLACK = 10 * CLOCK_HZ // 1000  # a LINK_ACK crosses two processes and the me
 #: deadline). Records go on as soon as they are complete; the span only bounds how long
 #: the skin waits for a record that was lost, and how late a held-up one may still come.
 #: A record crosses a hop in two messages (bridge to medium to parent) and the parent's
-#: wake, each a few milliseconds late on a loaded host, so a 4x4 leaf's record reaches the
-#: gateway 6 hops up tens of milliseconds after its gate on average: with 10 ms levels
+#: wake, each a few milliseconds late on a loaded host, so a leaf's record reaches the
+#: gateway several hops up tens of milliseconds after its gate on average: with 10 ms levels
 #: the readout fell apart once the processes' delays averaged 3-4 ms (most element-frames
 #: missing, where 30 ms levels hold to about twice that, beyond which the skin's mesh time
 #: is the first to go). The cost: a frame that really lost a record waits for the span
-#: (240 ms on a 4x4) before the host gives it out without it.
+#: (180 ms on a 4x4 with its gateway at the centre, 6 levels) before the host gives it out
+#: without it.
 READOUT_WINDOW = 30 * CLOCK_HZ // 1000
 #: The slots are packed at the span's end, this far apart (``ReadoutConfig.hop``): a relay
 #: waits for a late child until this long before its parent's slot, time for its own record
 #: to cross the hop (two messages and a wake, each late on a loaded host). A bridge process
-#: held up by the host (a 4x4's leaf is 6 hops deep of 8 levels: for up to ~150 ms) still
+#: held up by the host (a 4x4's leaf is 4 hops deep of 6 levels: for up to ~120 ms) still
 #: makes its frame; with the levels spread evenly, one level after its own slot its parent
 #: had given its record up, and every record it sent while behind was dropped as late, its
 #: element unknown meanwhile.

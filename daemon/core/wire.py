@@ -176,7 +176,13 @@ class Ingress:
 
     def _route(self, frame: Frame, out: Decoded, rows: list, meta: list) -> None:
         p = frame.payload
-        if type(p) is Data:
+        if type(p) is Readout:  # (first: a skin on the readout schedule sends little else)
+            # a gateway writes its own record on its line; one relayed is no gateway's record
+            if frame.src == frame.origin:
+                out.readouts.append((frame.origin, p))
+            else:
+                out.foreign_readouts += 1
+        elif type(p) is Data:
             rows.extend(p.samples)
             meta.append((frame.origin, int(p.mode), p.oversampling, len(p.samples), frame.seq, p.rate))
         elif type(p) is Hello:
@@ -189,12 +195,6 @@ class Ingress:
             out.statuses.append((frame.origin, p))
         elif type(p) is CommandReply:
             out.replies.append((frame.origin, p))
-        elif type(p) is Readout:
-            # a gateway writes its own record on its line; one relayed is no gateway's record
-            if frame.src == frame.origin:
-                out.readouts.append((frame.origin, p))
-            else:
-                out.foreign_readouts += 1
         else:
             out.ignored += 1
 

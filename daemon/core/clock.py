@@ -34,6 +34,11 @@ import numpy as np
 from cellbridge.daemon.core.wire import PART_BYTES, Readout
 from numpy.typing import NDArray
 
+#: Global cycles fit 62 bits: an index whose instant does not is nonsense.
+_CYCLE_END = 1 << 62
+_NOT_HELD = (-1, 0.0, -1)  # SkinClock.held of a gateway with no point held
+_bridge_of = itemgetter(0)  # a readout sample's bridge
+
 
 class BridgeClock:
     """Clock model of one bridge; feed ``observe(cycle, arrival)``, then map with ``to_host``."""
@@ -344,7 +349,7 @@ class SkinClock:
         frame is not believed either: a record of it may hold an older sample under a wrong
         index). By the frame, not the point: each part of a record says its own age, and a
         part after the first, its point later by the line's time, was taken as that frame's."""
-        return self._held.get(gateway, (-1, 0.0, -1))[2] == frame
+        return self._held.get(gateway, _NOT_HELD)[2] == frame
 
     def before(self, g: int, now: float) -> bool:
         """Whether the map puts global cycle ``g`` no more than ``tolerance`` after ``now``
@@ -364,7 +369,8 @@ class SkinClock:
         arrival or it is ``back``; then once ``confirm`` such points in a row, over
         ``confirm_time``, agree."""
         if not self.map.synced or (not back and at <= now + self.slack):
-            self._jump = []
+            if self._jump:  # (a new list for every point taught, most of them with none waiting)
+                self._jump = []
             return True
         run = self._jump
         if run and not abs((g - run[-1][0]) / self.hz - (now - run[-1][1])) <= self.slack:
@@ -490,11 +496,6 @@ class BridgeClocks:
     def seconds(self, bridges: NDArray[np.int64], cycles: NDArray[np.uint64]) -> NDArray[np.float64]:
         """Each sample's bridge time: its cycle count in seconds of its bridge's clock."""
         return cycles.astype(np.float64) / self._hz[bridges]
-
-
-#: Global cycles fit 62 bits: an index whose instant does not is nonsense.
-_CYCLE_END = 1 << 62
-_bridge_of = itemgetter(0)  # a readout sample's bridge
 
 
 def cycle_of(index: int, rate: int, hz: float) -> int:

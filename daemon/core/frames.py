@@ -262,7 +262,7 @@ class SkinFrames:
                         + (lag if lag > self.margin else 0.0))
             p = self._pending[(rec.index, rec.rate)] = _Pending(rec.index, rec.rate, key, t_frame, deadline)
         parts = p.records.setdefault(gateway, {})
-        first = next(iter(parts.values()), None)
+        first = next(iter(parts.values())) if parts else None
         if first is not None and first.parts != rec.parts:
             self.counts["rejected_records"] += 1  # a part of another record of the same frame: inconsistent
             return

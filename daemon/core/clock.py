@@ -385,7 +385,7 @@ class SkinClock:
         """:meth:`frame_times` of one frame (a readout record's), without arrays: the same
         steps on one key, the map's point by :meth:`BridgeClock.to_host_one` (the arithmetic
         of ``to_host``, to the bit). A frame is mapped once, at its first record: arrays
-        cost 50 µs there, a hundred frames a second."""
+        cost 12 µs there against 0.6, a hundred frames a second."""
         memo, back = self._memo, self._back
         t = memo.get(g)
         if t is not None and g >= back:
@@ -549,8 +549,8 @@ class RecordTime(NamedTuple):
     """One readout record part timed (:meth:`HostTimes.records`): whether the skin's map
     began again, and, when the record joined its frame, the bridges it accounts for with a
     sample and as unchanged (None: refused, its frame not mapped). (A named tuple: one is
-    made for every record part, a hundred a second per gateway, at a third of a frozen
-    dataclass's cost.)"""
+    made for every record part, a hundred a second per gateway, at 0.25 µs against a
+    frozen dataclass's 0.43.)"""
 
     jumped: bool
     sampled: Sequence[int] | None

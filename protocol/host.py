@@ -23,7 +23,7 @@ from __future__ import annotations
 from cellbridge.protocol.dedupe import DuplicateFilter
 from cellbridge.protocol.fragment import Reassembler
 from cellbridge.protocol.frame import Frame
-from cellbridge.protocol.messages import Bundle, Hello
+from cellbridge.protocol.messages import Bundle, Data, Hello, Readout
 
 
 class HostReceiver:
@@ -35,12 +35,17 @@ class HostReceiver:
 
     def receive(self, frame: Frame, now: float) -> list[Frame]:
         """Frames completed by ``frame`` and not seen before (``now``: seconds, for reassembly)."""
-        if isinstance(frame.payload, Bundle):
-            return [f for inner in frame.payload.frames for f in self.receive(inner, now)]
-        whole = self.reassembler.receive(frame, now)
-        if whole is None:
-            return []
-        p = whole.payload
+        p = frame.payload
+        if type(p) is Readout or type(p) is Data:  # (whole messages, most frames: nothing to reassemble)
+            whole = frame
+        else:
+            if isinstance(p, Bundle):
+                return [f for inner in p.frames for f in self.receive(inner, now)]
+            got = self.reassembler.receive(frame, now)
+            if got is None:
+                return []
+            whole = got
+            p = whole.payload
         hello = isinstance(p, Hello)
         if self.dedupe.is_duplicate(whole.origin, whole.seq, hello, p.boots or None if hello else None):  # type: ignore[union-attr]  # boots is read only when p is a Hello
             return []

@@ -69,6 +69,10 @@ class StreamDecoder:
         A Frame object takes ~10x its wire size; to hold none of them, use :meth:`feed_iter`.
         """
         out: list[Frame] = []
+        if type(chunk) is bytes and len(chunk) <= WINDOW:  # (a read of a line: one window, no generator)
+            self.bytes_in += len(chunk)
+            self._scan(chunk, out)
+            return out
         for piece in self._windows(chunk):
             self._scan(piece, out)
         return out

@@ -153,3 +153,39 @@ def test_to_host_one_is_to_host_of_one_cycle(bits: int, start: int, step: int, c
     for g in cycles:
         g &= mask
         assert c.to_host_one(g) == float(c.to_host(np.array([g], dtype=np.uint64))[0])
+
+
+_steps = st.lists(st.tuples(
+    st.sampled_from(["teach", "ask"]),
+    # the next frame number after the one before: 100 Hz frames of a 50 MHz mesh time, mostly
+    # forward, now and then back (below 0: a nonsense index)
+    st.one_of(st.integers(0, 3), st.integers(-60, 60)),
+    st.floats(-0.5, 0.5),  # host time of the step after the frame's own instant
+), min_size=10, max_size=80)
+
+
+@settings(max_examples=300, deadline=None)
+@given(steps=_steps, memory_keys=st.integers(1, 3), memory=st.sampled_from([0.05, 0.5, 10.0]))
+def test_frame_time_of_one_frame_is_frame_times_of_it(steps: list[tuple[str, int, float]], memory_keys: int,
+                                                      memory: float) -> None:
+    """A readout record's frame is mapped by the scalar path (frame_time): it gives, and
+    remembers, what the array path (frame_times of that one frame) gives, to the bit, on
+    any sequence of points taught and frames asked (a map not made yet, jumps back and
+    ahead held or confirmed, frames after their arrival, the memory pruned)."""
+    from cellbridge.daemon.core.clock import SkinClock
+
+    hz = 50_000_000
+    one, arr = SkinClock(hz, memory=memory, memory_keys=memory_keys), SkinClock(hz, memory=memory,
+                                                                               memory_keys=memory_keys)
+    k = 0
+    for what, step, dt in steps:
+        k += step
+        g = k * hz // 100 if k >= 0 else -1
+        now = 100.0 + k * 0.01 + dt
+        if what == "teach" and g >= 0:
+            assert one.teach(7, g, now) == arr.teach(7, g, now)
+            continue
+        a = one.frame_time(g, now)
+        b = float(arr.frame_times(np.array([g], dtype=np.int64), now)[0])
+        assert a == b or (np.isnan(a) and np.isnan(b)), (a, b)
+        assert one._memo == arr._memo and one._newest == arr._newest  # what later frames are given

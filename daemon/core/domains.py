@@ -66,6 +66,7 @@ class TimeDomains:
     def __init__(self, hz: float, margin: float = 0.02, active_for: float = 2.0, max_pending: int = 64,
                  max_domains: int = MAX_DOMAINS) -> None:
         self.hz = float(hz)
+        self._hz_int = int(self.hz)
         self._settings = (float(margin), float(active_for), int(max_pending))
         self.max_domains = int(max_domains)
         self._domains: dict[int, _Domain] = {}
@@ -141,7 +142,7 @@ class TimeDomains:
             # they are complete, so by their frames alone the map put every frame as late as
             # the skin's quickest whole readout (8-9 ms on a 4x4 at 100 Hz), and every
             # contact's time with it.
-            w = g + rec.age_us * int(self.hz) // 1_000_000 if 0 < rec.age_us <= rec.span_us else g
+            w = g + rec.age_us * self._hz_int // 1_000_000 if 0 < rec.age_us <= rec.span_us else g
             if rec.part == 0:
                 if w == g:
                     d.unaged = True

@@ -47,6 +47,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import chain
+from operator import attrgetter
 from typing import Any, Protocol
 
 import numpy as np
@@ -73,6 +74,7 @@ MAX_LAG = 1.0
 #: the shells run is 0.48 s (16 levels of 30 ms on an 8x8).
 MAX_SPAN = 2.0
 _SAMPLE, _UNCHANGED, _MISSING = 0, 1, 2
+_BY_KEY = attrgetter("key")  # a pending frame's instant (the order frames go out in)
 
 
 class RecordPart(Protocol):
@@ -260,7 +262,7 @@ class SkinFrames:
                         + (lag if lag > self.margin else 0.0))
             p = self._pending[(rec.index, rec.rate)] = _Pending(rec.index, rec.rate, key, t_frame, deadline)
         parts = p.records.setdefault(gateway, {})
-        first = next(iter(parts.values()), None)
+        first = next(iter(parts.values())) if parts else None
         if first is not None and first.parts != rec.parts:
             self.counts["rejected_records"] += 1  # a part of another record of the same frame: inconsistent
             return
@@ -338,7 +340,7 @@ class SkinFrames:
         out, self._ready = self._ready, []
         if not self._pending or now == self._taken:
             return out
-        for p in sorted(self._pending.values(), key=lambda q: q.key):
+        for p in sorted(self._pending.values(), key=_BY_KEY):
             whole = self._whole(p, now)
             if p.deadline > now and not (whole and not self._gap_open(p, now)):
                 break  # (in order: the frames after it wait for it)
@@ -355,7 +357,10 @@ class SkinFrames:
             return False
         af = self.active_for
         any_active = False
-        for gw, g in self._gw.items():
+        # newest gateway first: the gateways are kept in the order their first record came,
+        # and their records of a frame come mostly in that order, so a frame's missing
+        # gateways are at the end (the walk from the start passed half of them a read)
+        for gw, g in reversed(self._gw.items()):
             if now - g.arrival <= af:
                 if gw not in done:
                     return False

@@ -163,6 +163,8 @@ class Pipeline:
             self.topology.heard(origin, link, dec.gateways, now)
         if self.topology.gateways_heard(link, dec.gateways, now):
             health.may_forget_from(now)
+        if not (dec.boots or dec.hellos or dec.beacons or dec.statuses or dec.replies):
+            return  # (a read of readout records or samples alone: most reads)
         for origin in dec.boots:  # its cycle counter restarted too, perhaps by less than the clock's jump limit
             if self.clock.booted(origin):
                 health.clock_reset(origin, now)

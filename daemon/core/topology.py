@@ -57,6 +57,11 @@ class Topology:
         if not gateways:
             return False
         ids = self.gateways.setdefault(link, {})
+        if len(gateways) == 1:  # (a line with one gateway: every read of it)
+            (gw,) = gateways
+            new = gw not in ids
+            ids[gw] = now
+            return new
         new = not gateways <= ids.keys()
         ids.update(dict.fromkeys(gateways, now))
         return new

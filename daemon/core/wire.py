@@ -155,8 +155,12 @@ class Ingress:
         meta: list[tuple[int, int, int, int, int, int]] = []  # (origin, mode, oversampling, n, seq, rate)
         dedupe, reassembler, receive = self.dedupe, self.reassembler, self.receiver.receive
         dropped_before = dedupe.duplicates + dedupe.stale
-        for frame in self.decoder(link).feed(data):
-            out.gateways.add(frame.src)
+        decoder = self.decoders.get(link)
+        if decoder is None:
+            decoder = self.decoder(link)
+        by_origin, gateways, route = out.frames_by_origin, out.gateways, self._route
+        for frame in decoder.feed(data):
+            gateways.add(frame.src)
             if type(frame.payload) is Fragment:
                 reassembler.expire(now)  # timeouts first, so a drop below is this bridge's own doing
                 before = reassembler.drops.total()
@@ -167,8 +171,12 @@ class Ingress:
             else:
                 wholes = receive(frame, now)
             for whole in wholes:
-                out.frames_by_origin.setdefault(whole.origin, []).append(whole.seq)
-                self._route(whole, out, rows, meta)
+                seqs = by_origin.get(whole.origin)
+                if seqs is None:
+                    by_origin[whole.origin] = [whole.seq]
+                else:
+                    seqs.append(whole.seq)
+                route(whole, out, rows, meta)
         self.duplicates_by_link[link] += dedupe.duplicates + dedupe.stale - dropped_before
         if rows:
             out.samples = _columns(rows, meta)
@@ -176,7 +184,13 @@ class Ingress:
 
     def _route(self, frame: Frame, out: Decoded, rows: list, meta: list) -> None:
         p = frame.payload
-        if type(p) is Data:
+        if type(p) is Readout:  # (first: a skin on the readout schedule sends little else)
+            # a gateway writes its own record on its line; one relayed is no gateway's record
+            if frame.src == frame.origin:
+                out.readouts.append((frame.origin, p))
+            else:
+                out.foreign_readouts += 1
+        elif type(p) is Data:
             rows.extend(p.samples)
             meta.append((frame.origin, int(p.mode), p.oversampling, len(p.samples), frame.seq, p.rate))
         elif type(p) is Hello:
@@ -189,12 +203,6 @@ class Ingress:
             out.statuses.append((frame.origin, p))
         elif type(p) is CommandReply:
             out.replies.append((frame.origin, p))
-        elif type(p) is Readout:
-            # a gateway writes its own record on its line; one relayed is no gateway's record
-            if frame.src == frame.origin:
-                out.readouts.append((frame.origin, p))
-            else:
-                out.foreign_readouts += 1
         else:
             out.ignored += 1
 

@@ -191,8 +191,17 @@ class Mesh:
 
     def readout_depths(self) -> int:
         """Levels the readout schedule needs (``FirmwareConfig.readout_depths``): the deepest
-        bridge's hops from its nearest gateway, and two more for routes that take a detour."""
-        return max(self.hops().values(), default=0) + 2
+        bridge's hops from its nearest gateway, and two more for routes that take a detour;
+        with more than one gateway, at least the deepest bridge's hops once any one gateway
+        has died. The schedule is fixed when the skin starts, and a bridge deeper than its
+        last level sends in its parent's slot, always too late: after the failover it is
+        listed missing in every frame. (Centre bridge 6 and corner 16 of a 4x4 give 5 levels,
+        and bridge 1 is 6 hops from 16 once 6 died: it was unknown for good.)"""
+        deepest = max(self.hops().values(), default=0) + 2
+        if len(self.gateways) > 1:
+            for g in self.gateways:
+                deepest = max(deepest, max(self.hops(dead=frozenset((g,))).values(), default=0))
+        return deepest
 
     def reachable(self, cut: frozenset[int] = frozenset(),
                   dead: frozenset[int] = frozenset()) -> set[int]:

@@ -43,7 +43,7 @@ def main() -> None:
     args = ap.parse_args()
     seconds = PRESS_AT + args.seconds + 2.0
     started = time.process_time()
-    mesh = meshgen.grid(3, 3)
+    mesh = meshgen.grid(3, 3, gateways=(1,))  # (a corner gateway: the press is on the centre bridge)
     world = World(mesh, [Contact(PRESS_AT, 1e9, 0.04, 0.04, FORCE, DIAMETER)],
                   drifts=[Drift(DRIFTING, 0.0, 0.0, args.drift)])
     vm = VirtualMesh(mesh, seed=3, world=world, settings=Settings(rate_hz=args.rate), random_epochs=True)

@@ -174,6 +174,10 @@ def main() -> None:
                       f"pos {res.get('position_error_mm', float('nan')):.3f} mm "
                       f"force {res.get('force_error_pct', float('nan')):.2f} % {res['error']} "
                       f"({time.monotonic() - t0:.0f} s)", flush=True)
+                if not res["ok"]:  # what the skin did not deliver meanwhile, and what the daemon knew
+                    print(f"      unknown elements (contact messages listing each): {res.get('unknown_elements')}; "
+                          f"skin frames: {res.get('skin_frames')}; reports {res.get('reports')}, with unknown "
+                          f"near {res.get('with_unknown')}; known-only median: {res.get('known')}", flush=True)
             pos = [r["position_error_mm"] for r in results if "position_error_mm" in r]
             frc = [r["force_error_pct"] for r in results if "force_error_pct" in r]
             rows.append([name, len(results), sum(r["ok"] for r in results),

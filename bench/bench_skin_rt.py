@@ -173,6 +173,7 @@ def main() -> None:
     ap.add_argument("--settle", type=float, default=12.0, help="seconds after start-up before (default 12)")
     ap.add_argument("--rate", type=int, default=100, help="sampling rate in Hz (default 100)")
     ap.add_argument("--side", type=int, default=4, help="grid side (default 4: a 4x4 skin)")
+    ap.add_argument("--gateway", type=int, default=None, help="the gateway's bridge id (default: the grid's centre)")
     ap.add_argument("--reporting", default="periodic", help="periodic (default) or event:THRESHOLD")
     ap.add_argument("--rt", action=argparse.BooleanOptionalAction, default=True,
                     help="run the skin at real-time priority (chrt -f 10) when permitted (default on)")
@@ -184,7 +185,7 @@ def main() -> None:
                          "and time each press from the world to its first sample on the pty (default 0)")
     args = ap.parse_args()
     unwind_on_signals()
-    mesh = meshgen.grid(args.side, args.side)
+    mesh = meshgen.grid(args.side, args.side, None if args.gateway is None else (args.gateway,))
     gw = mesh.gateways[0]
     rt = args.rt and rt_permitted()
     gate_s = Settings(rate_hz=args.rate).measure_cycles() / CLOCK_HZ

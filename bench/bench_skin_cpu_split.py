@@ -16,7 +16,10 @@ its CPU in 16 bridge processes and the medium. This script measures, on this mac
    of every message between a bridge and the medium);
 3. what these floors make of the wakes and messages a real-time 4x4 counts
    (``--wakes`` and ``--messages`` per second, from ``bench_skin_rt.py``'s wake table and
-   the medium's counters: defaults are a periodic 4x4 at 100 Hz).
+   the medium's counters: defaults are a periodic 4x4 at 100 Hz);
+4. the same skin as (1) in one process paced to the host's clock (sleeping until each
+   next event): what the skin would cost in real time with every bridge and the medium in
+   one process, about the floor of any layout of its processes.
 
 The difference between the real-time skin's CPU and (1) + (3) is what the interpreter
 loses running each wake's code with cold caches, among 17 processes on few cores.
@@ -30,9 +33,11 @@ import select
 import socket
 import time
 
+import numpy as np
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.virtual import VirtualMesh
 from cellbridge.emulator.realtime.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
+from cellbridge.emulator.realtime.realtime import CLOCK_HZ
 
 from timing import table
 
@@ -45,6 +50,30 @@ def skin_work(seconds: float) -> float:
     t0 = time.process_time()
     vm.run(seconds)
     return 100.0 * (time.process_time() - t0) / seconds
+
+
+def paced_skin(seconds: float) -> tuple[float, float, float]:
+    """The same skin in one process paced to the host's clock: it sleeps until its next
+    event's instant and then runs everything due (a late wake runs more at once). What
+    the skin costs in real time with no process per bridge and no datagrams: about the
+    floor of any layout of its processes. (CPU in % of one core, sleeps a second, p99 of how
+    late an event ran, ms.)"""
+    vm = VirtualMesh(meshgen.grid(4, 4), seed=1, readout=True, readout_acks=False, readout_window=READOUT_WINDOW,
+                     readout_hop=READOUT_HOP, ack_slack=ACK_SLACK)
+    vm.run(5.0)
+    w0, v0 = time.monotonic(), vm.tick
+    c0, sleeps, late = time.process_time(), 0, []
+    while (elapsed := time.monotonic() - w0) < seconds:
+        nxt = vm.next_event()
+        due = elapsed + 0.01 if nxt is None else (nxt - v0) / CLOCK_HZ
+        if due > elapsed:
+            time.sleep(due - elapsed)
+            sleeps += 1
+        now = time.monotonic() - w0
+        late.append(now - due)
+        vm.advance_to(v0 + int(now * CLOCK_HZ))
+    cpu = time.process_time() - c0
+    return 100.0 * cpu / seconds, sleeps / seconds, 1000.0 * float(np.percentile(late, 99))
 
 
 def idle_wake(seconds: float) -> float:
@@ -105,6 +134,7 @@ def main() -> None:
                     help="datagrams/s between the bridges and the medium (default 3400: 4x4 at 100 Hz)")
     args = ap.parse_args()
     work = skin_work(args.seconds)
+    paced, sleeps, late = paced_skin(args.seconds)
     wake = idle_wake(args.seconds / 2)
     msg = datagram(args.seconds / 2)
     floor = (args.wakes * wake + args.messages * msg) / 1e4
@@ -114,7 +144,9 @@ def main() -> None:
            ["a wake from poll, nothing to do", f"{wake:.0f}", f"{args.wakes:.0f}", f"{args.wakes * wake / 1e4:.1f}"],
            ["a datagram that wakes its reader (both sides)", f"{msg:.0f}", f"{args.messages:.0f}",
             f"{args.messages * msg / 1e4:.1f}"],
-           ["work + wakes + datagrams", "", "", f"{work + floor:.1f}"]])
+           ["work + wakes + datagrams", "", "", f"{work + floor:.1f}"],
+           [f"the skin in one process paced to the clock (events p99 {late:.1f} ms late)", "", f"{sleeps:.0f}",
+            f"{paced:.1f}"]])
 
 
 if __name__ == "__main__":

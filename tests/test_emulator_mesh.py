@@ -227,3 +227,25 @@ def test_cli_run_refuses_a_scenario_contact_beside_the_skin(tmp_path: Path) -> N
     r = subprocess.run([CLI, "mesh", "run", str(path), "--seconds", "0.5", "--scenario", str(scenario)],
                        capture_output=True, timeout=60)
     assert r.returncode == 2 and b"contact[0]" in r.stderr and b"touches no element" in r.stderr, r.stderr
+
+
+def test_next_event_names_the_tick_the_mesh_next_acts_at() -> None:
+    """A caller pacing the mesh to a clock sleeps until ``next_event``: nothing may be due
+    before it (a later tick named would run events late), and running to it runs what
+    was due then (an earlier tick named would wake the caller for nothing, for ever)."""
+    from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
+
+    vm = VirtualMesh(meshgen.grid(2, 2), seed=1)
+    vm.run(0.3)
+    waited = 0
+    for _ in range(300):
+        t = vm.next_event()
+        assert t is not None and t >= vm.tick
+        if t - vm.tick >= 2:
+            vm.run((t - vm.tick - 0.5) / CLOCK_HZ)  # to the tick before it
+            assert vm.next_event() == t  # nothing ran
+            waited += 1
+        vm.run((t - vm.tick + 0.5) / CLOCK_HZ)  # to it
+        after = vm.next_event()
+        assert after is None or after > t  # what was due at t ran (and planned only later)
+    assert waited > 100  # events apart, not one tick after another

@@ -332,9 +332,21 @@ class VirtualMesh:
         self.serial_chunks[b].append((self.tick, data))
         self.frames[b].extend(self.decoders[b].feed(data))
 
+    def next_event(self) -> int | None:
+        """The tick of the next thing the mesh does (a bridge's wake, a transmission's end,
+        a message), None when nothing is planned: a caller that paces the mesh to a clock
+        sleeps until then and :meth:`advance_to` it (``bench/bench_skin_cpu_split.py``)."""
+        return self._heap[0][0] if self._heap else None
+
     def run(self, seconds: float) -> MeshResult:
         """Advance virtual time by ``seconds``; the result covers the whole run so far."""
-        end = self.tick + int(seconds * CLOCK_HZ)
+        self.advance_to(self.tick + int(seconds * CLOCK_HZ))
+        return self.result()
+
+    def advance_to(self, end: int) -> None:
+        """Run everything due up to tick ``end`` (at or after the current tick), without
+        building a result: for a caller that advances the mesh in many small steps (the
+        result copies every frame each gateway sent so far)."""
         heap = self._heap
         nodes = self.nodes
         while heap and heap[0][0] <= end:
@@ -373,7 +385,6 @@ class VirtualMesh:
             else:
                 item()
         self.tick = end
-        return self.result()
 
     def time_errors(self, root: int) -> dict[int, float]:
         """Each bridge with a mesh-time fit: |its global time − ``root``'s| now, in µs."""

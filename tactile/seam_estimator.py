@@ -84,7 +84,8 @@ class SeamEstimator(ContactEstimator):
             if hb.size:
                 hb = hb.copy()
                 hb[:, 0] = np.where(hb[:, 0] >= b.x0 + 0.5 * b.period, hb[:, 0] - b.period, hb[:, 0])
-            found = tw.estimator.estimate(c1[tw.rows], c2[tw.rows], act[tw.rows], hints=hb)
+            # (only a cluster on the cut can give a seam contact: the band's others are not estimated)
+            found = tw.estimator.estimate(c1[tw.rows], c2[tw.rows], act[tw.rows], hints=hb, replaced=~tw.at_cut)
             seam = [c for c in found if tw.cut_ids.intersection(c.elements)]
             if not seam:
                 continue

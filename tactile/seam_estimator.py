@@ -25,7 +25,7 @@ from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.estimator import ContactEstimator
 from cellbridge.tactile.layout import SkinLayout
 from cellbridge.tactile.skin_geometry import Band
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["SeamEstimator"]
 
@@ -50,6 +50,7 @@ class SeamEstimator(ContactEstimator):
         super().__init__(layout, params, **options)  # type: ignore[arg-type]  # ContactEstimator's own keywords, checked there
         self.bands = tuple(bands)
         self._twins: list[_Twin] = []
+        self._row_of = {int(e): i for i, e in enumerate(layout.ids.tolist())}  # element id -> layout row
         side = layout.side
         for b in self.bands:
             rows = np.flatnonzero(b.holds(layout.centres[:, 0], layout.centres[:, 1]))
@@ -65,12 +66,16 @@ class SeamEstimator(ContactEstimator):
             self._twins.append(_Twin(b, rows, at_cut, frozenset(int(i) for i in layout.ids[rows][at_cut]), twin))
 
     def estimate(self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None, *,
-                 hints: ArrayLike | None = None) -> list[Contact]:
-        contacts = super().estimate(dC1, dC2, active, hints=hints)
+                 hints: ArrayLike | None = None, replaced: NDArray[np.bool_] | None = None) -> list[Contact]:
         if not self._twins:
-            return contacts
+            return super().estimate(dC1, dC2, active, hints=hints, replaced=replaced)
         c1, c2, act = (a[0] for a in self._readings(dC1, dC2, active, 1))
         h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64).reshape(-1, 4)
+        # The second charts first: the elements whose contacts they give (a press at a cut)
+        # are replaced in the first chart's, whose clusters wholly on them are then not
+        # estimated at all (they were, and dropped: a seventh of a humanoid's estimate).
+        seams: list[tuple[_Twin, list[Contact], frozenset[int]]] = []
+        drop = np.zeros(self.layout.n, dtype=bool) if replaced is None else np.array(replaced, dtype=bool)
         for tw in self._twins:
             if not (act[tw.rows] & tw.at_cut).any():
                 continue
@@ -79,13 +84,18 @@ class SeamEstimator(ContactEstimator):
             if hb.size:
                 hb = hb.copy()
                 hb[:, 0] = np.where(hb[:, 0] >= b.x0 + 0.5 * b.period, hb[:, 0] - b.period, hb[:, 0])
-            found = tw.estimator.estimate(c1[tw.rows], c2[tw.rows], act[tw.rows], hints=hb)
+            # (only a cluster on the cut can give a seam contact: the band's others are not estimated)
+            found = tw.estimator.estimate(c1[tw.rows], c2[tw.rows], act[tw.rows], hints=hb, replaced=~tw.at_cut)
             seam = [c for c in found if tw.cut_ids.intersection(c.elements)]
             if not seam:
                 continue
             taken = tw.cut_ids.union(*(c.elements for c in seam))
+            seams.append((tw, seam, taken))
+            drop[[self._row_of[e] for e in taken]] = True
+        contacts = super().estimate(dC1, dC2, active, hints=hints, replaced=drop if drop.any() else None)
+        for tw, seam, taken in seams:
             contacts = [c for c in contacts if not taken.intersection(c.elements)]
-            contacts += [_wrapped(c, b) for c in seam]
+            contacts += [_wrapped(c, tw.band) for c in seam]
         return contacts
 
     def estimate_frames(self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None) -> list[list[Contact]]:

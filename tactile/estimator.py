@@ -141,8 +141,21 @@ class ContactEstimator:
             h = h.reshape(-1, 4)
         if h.ndim != 2 or h.shape[1] != 4:
             raise ValueError(f"hints must be (x, y, diameter, force) rows, got shape {h.shape}")
-        (per_frame,) = self._estimate(*self._readings(dC1, dC2, active, 1), h, replaced)
+        (per_frame,) = self._estimate(*self._readings(dC1, dC2, active, 1), h, self._replaced_mask(replaced))
         return per_frame
+
+    def _replaced_mask(self, replaced: ArrayLike | None) -> NDArray[np.bool_] | None:
+        """``replaced`` checked: (N,) flags, one per element of the layout, or None.
+
+        Raises ValueError for anything else: element rows or ids, or another layout's
+        mask, would index the clusters' members silently and drop the wrong contacts."""
+        if replaced is None:
+            return None
+        r = np.asarray(replaced)
+        if r.dtype != np.bool_ or r.shape != (self.layout.n,):
+            raise ValueError(f"replaced must be ({self.layout.n},) bool flags, one per element; "
+                             f"got {r.dtype} of shape {r.shape}")
+        return r
 
     def estimate_frames(
         self, dC1: ArrayLike, dC2: ArrayLike, active: ArrayLike | None = None

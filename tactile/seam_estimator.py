@@ -69,13 +69,14 @@ class SeamEstimator(ContactEstimator):
                  hints: ArrayLike | None = None, replaced: NDArray[np.bool_] | None = None) -> list[Contact]:
         if not self._twins:
             return super().estimate(dC1, dC2, active, hints=hints, replaced=replaced)
+        given = self._replaced_mask(replaced)
         c1, c2, act = (a[0] for a in self._readings(dC1, dC2, active, 1))
         h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64).reshape(-1, 4)
         # The second charts first: the elements whose contacts they give (a press at a cut)
         # are replaced in the first chart's, whose clusters wholly on them are then not
         # estimated at all (they were, and dropped: a seventh of a humanoid's estimate).
         seams: list[tuple[_Twin, list[Contact], frozenset[int]]] = []
-        drop = np.zeros(self.layout.n, dtype=bool) if replaced is None else np.array(replaced, dtype=bool)
+        drop = np.zeros(self.layout.n, dtype=bool) if given is None else given.copy()
         for tw in self._twins:
             if not (act[tw.rows] & tw.at_cut).any():
                 continue

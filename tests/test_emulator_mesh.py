@@ -249,3 +249,44 @@ def test_next_event_names_the_tick_the_mesh_next_acts_at() -> None:
         after = vm.next_event()
         assert after is None or after > t  # what was due at t ran (and planned only later)
     assert waited > 100  # events apart, not one tick after another
+
+
+def test_advance_to_refuses_a_tick_before_now() -> None:
+    """Virtual time never runs backwards: a mesh set back would stamp what it sends next
+    earlier than what it already sent, and its result would report an elapsed time it
+    has passed."""
+    from cellbridge.emulator.mesh.virtual import VirtualMesh
+
+    vm = VirtualMesh(meshgen.grid(2, 2), seed=1)
+    vm.run(0.3)
+    now = vm.tick
+    with pytest.raises(ValueError, match="before"):
+        vm.advance_to(now - 1)
+    with pytest.raises(ValueError, match="before"):
+        vm.run(-0.01)
+    assert vm.tick == now
+    vm.advance_to(now)  # (now itself: nothing to do, allowed)
+    assert vm.tick == now
+
+
+def test_an_action_planned_for_a_time_passed_runs_now() -> None:
+    """A fault or command planned at a virtual time the mesh has already passed (a
+    scenario that schedules between run() or advance_to() calls) runs at the current
+    tick: run at its own, it would stamp the gateway's output before what was already
+    sent (a replay of the line would then go back in time), and ``next_event`` would
+    name a tick in the past to a caller pacing the mesh to a clock."""
+    from cellbridge.emulator.mesh.virtual import VirtualMesh
+    from cellbridge.protocol import Command, Flags, Frame, Op
+
+    vm = VirtualMesh(meshgen.line(3), seed=1)
+    vm.run(0.5)
+    now = vm.tick
+    seen: list[int] = []
+    vm.at(0.1, lambda: seen.append(vm.tick))
+    vm.host_write(1, Frame(0, 1, 0, 7, Command(9, Op.PING, None), flags=int(Flags.ACK_REQUEST)), at=0.1)
+    t = vm.next_event()
+    assert t is not None and t >= now
+    vm.run(0.2)
+    assert seen == [now]
+    stamps = [tick for tick, _ in vm.serial_chunks[1]]
+    assert stamps == sorted(stamps) and stamps[-1] >= now

@@ -109,3 +109,21 @@ def test_replaced_elements_drop_only_the_clusters_wholly_on_them(presses, seed, 
     assert all(c.elements and set(c.elements) <= ids for c in left)
     if not replaced.any():
         assert repr(got) == repr(every)
+
+
+def test_replaced_must_be_one_flag_per_element() -> None:
+    """``replaced`` is a mask over the layout's elements: element rows or ids, or a mask of
+    another layout, would silently drop the wrong clusters' contacts (or keep them), so
+    anything but (N,) flags is refused."""
+    import pytest
+
+    dc1, dc2, act = frame([(AT_CUT[0], 0.0, 0.0, 2.0, 0.02), (0, 0.0, 0.0, 2.0, 0.02)], 1, [])
+    plain = ContactEstimator(LAY, PARAMS, noise=DEFAULT_NOISE)
+    rows = np.flatnonzero(act)
+    for est in (plain, EST):
+        for bad in (rows, np.ones(LAY.n + 3, dtype=bool), np.ones(LAY.n - 1, dtype=bool),
+                    np.arange(LAY.n), np.ones((1, LAY.n), dtype=bool)):
+            with pytest.raises(ValueError, match="replaced"):
+                est.estimate(dc1, dc2, act, replaced=bad)  # type: ignore[arg-type]  # the wrong types are the point
+    none = np.zeros(LAY.n, dtype=bool)
+    assert repr(EST.estimate(dc1, dc2, act, replaced=none)) == repr(EST.estimate(dc1, dc2, act))

@@ -222,8 +222,11 @@ class VirtualMesh:
             self._push(t, _WAKE, b)
 
     def at(self, seconds: float, action: Callable[[], None]) -> None:
-        """Run ``action`` at a virtual time (faults, commands, presses)."""
-        self._push(int(seconds * CLOCK_HZ), _FAULT, action)
+        """Run ``action`` at a virtual time (faults, commands, presses); at the current
+        tick if the mesh has already passed it (virtual time does not run backwards: run
+        at its own tick, the action would stamp what it makes the gateways send before
+        what they have sent, and :meth:`next_event` would name a tick in the past)."""
+        self._push(max(int(seconds * CLOCK_HZ), self.tick), _FAULT, action)
 
     def kill(self, bridge: int, at: float) -> None:
         def do() -> None:
@@ -346,7 +349,12 @@ class VirtualMesh:
     def advance_to(self, end: int) -> None:
         """Run everything due up to tick ``end`` (at or after the current tick), without
         building a result: for a caller that advances the mesh in many small steps (the
-        result copies every frame each gateway sent so far)."""
+        result copies every frame each gateway sent so far).
+
+        Raises ValueError for an ``end`` before the current tick: virtual time does not
+        run backwards (the mesh would stamp what it sends next before what it has sent)."""
+        if end < self.tick:
+            raise ValueError(f"tick {end} is before the mesh's current tick {self.tick}: virtual time does not run backwards")
         heap = self._heap
         nodes = self.nodes
         while heap and heap[0][0] <= end:

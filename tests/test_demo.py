@@ -180,8 +180,14 @@ def test_the_demo_starts_its_daemon_again_on_other_ports_when_one_was_taken(
         taken.close()
     out = capsys.readouterr().out
     assert out.strip(), "no result"
-    check_press_result(json.loads(out), 0.057, 0.040, 3.0)
-    assert code == 0
+    result = json.loads(out)
+    check_press_result(result, 0.057, 0.040, 3.0)
+    # 1 only when the check failed, which a loaded machine may cause only by keeping the
+    # skin's frames from arriving whole (said in the messages; check_press_result holds
+    # such a press to honesty, not to 1 mm): the retry on other ports is this test's point
+    assert code in (0, 1), (code, result)
+    if result["skin_whole"]:
+        assert code == 0, result
     (log,) = tmp_path.glob("cellbridge-demo-*/daemon.log")
     text = log.read_text()
     assert text.count("cannot bind") == 1 and "Address already in use" in text  # the first daemon's

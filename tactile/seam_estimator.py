@@ -50,7 +50,6 @@ class SeamEstimator(ContactEstimator):
         super().__init__(layout, params, **options)  # type: ignore[arg-type]  # ContactEstimator's own keywords, checked there
         self.bands = tuple(bands)
         self._twins: list[_Twin] = []
-        self._row_of = {int(e): i for i, e in enumerate(layout.ids.tolist())}  # element id -> layout row
         side = layout.side
         for b in self.bands:
             rows = np.flatnonzero(b.holds(layout.centres[:, 0], layout.centres[:, 1]))
@@ -92,7 +91,7 @@ class SeamEstimator(ContactEstimator):
                 continue
             taken = tw.cut_ids.union(*(c.elements for c in seam))
             seams.append((tw, seam, taken))
-            drop[[self._row_of[e] for e in taken]] = True
+            drop[self.layout.index_of(sorted(taken))] = True
         contacts = super().estimate(dC1, dC2, active, hints=hints, replaced=drop if drop.any() else None)
         for tw, seam, taken in seams:
             contacts = [c for c in contacts if not taken.intersection(c.elements)]

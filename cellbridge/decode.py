@@ -37,7 +37,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "\"root\" whose mesh time its index counts. Frames of\n"
         "protocol versions 1 to 3 are read too and print with the fields they lack at their\n"
         "defaults (version 1: rate 0, flag 4, index 0, time null, boots 0; 1 and 2: period 0).\n\n"
-        "defaults (version 1: rate 0, flag 4, index 0, time null, boots 0; 1 and 2: period 0).\n\n"
         "A recording (MCAP, e.g. 'cellbridge record rec.mcap --serial'; its 'serial' topic is\n"
         "the daemon's reads of its lines) prints one JSON line per event in the order the\n"
         "daemon read and published them: {\"t\", \"in\": link, \"frame\"} for each frame of\n"

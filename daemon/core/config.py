@@ -143,7 +143,7 @@ class ControlSection:
                          _endpoint)
     command_timeout: float = _key(1.0, "s to wait for bridges to answer a command", _up_to(60), reloadable=True)
     max_request_bytes: int = _key(65536, "largest request answered; a larger one gets an error reply, one "
-                                  "over 16 times this is refused by the transport (the connection is dropped)",
+                                  "over 4 times this is refused by the transport (the connection is dropped)",
                                   _count(1024, 1 << 24))
     max_pending: int = _key(256, "requests in progress at once (commands wait for bridges); more are "
                             "answered 'busy' at once", _count(1, 65536))

@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Subscribe to the daemon's PUB socket and print each message as one JSON line\n"
         '{"topic": ..., "payload": {...}} (bytes as hex, NaN as null). A message that is\n'
         'not [topic, msgpack] is printed with an "error" key instead of "payload".\n'
-        "Counters go to stderr at exit. Topics: contact, element, raw, health, topology.\n\n"
+        "Counters go to stderr at exit. Topics: contact, element, raw, health, topology, serial.\n\n"
         "examples:\n"
         "  cellbridge sub                        # everything\n"
         "  cellbridge sub contact | jq .payload  # contacts only\n"

@@ -22,9 +22,11 @@ Start by printing the defaults into a file and adding your gateway(s):
   cellbridge daemon --config cellbridge.toml
 
 Link URLs are pyserial URLs (/dev/ttyUSB0, a pty path, socket://HOST:PORT) or
-replay:FILE to play back a capture recorded with the link's `capture = "FILE"` key.
+replay:FILE to play back a capture recorded with the link's `capture = "FILE"` key,
+or an MCAP recording made with `cellbridge record --serial` (docs/recording.md).
 Subscribers connect to tcp://127.0.0.1:5560 (topics contact, element, raw, health,
-topology; msgpack payloads); control is a msgpack request/reply on tcp://127.0.0.1:5561.
+topology, serial; msgpack payloads); control is a msgpack request/reply on
+tcp://127.0.0.1:5561.
 docs/zmq-api.md describes every message. SIGTERM drains and exits 0; SIGHUP reloads
 the settings marked (reload) in --print-config (one sent during start-up is taken once
 the daemon is up). Clients are bounded by [peers]: connections per socket and per

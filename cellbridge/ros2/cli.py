@@ -68,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--diagnostics-rate", type=float, default=1.0, metavar="HZ",
                    help="most diagnostics a second, besides one whenever the daemon's level (OK, WARN, ERROR) "
                         "changes; the daemon's other health messages are left out, and counted (default: 1, "
-                        "what ROS 2's diagnostic tools expect; the daemon sends 4)")
+                        "what ROS 2's diagnostic tools expect; the daemon sends one every [health] interval, 1 s by "
+                        "default)")
 
 
 def _problem(args: argparse.Namespace) -> str | None:

@@ -51,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "  q        quit (also Ctrl-C)\n"
         "  p        pause the display (messages are still read and counted)\n"
         "  t        tare: re-take every element's baseline (asks for confirmation: y / n)\n"
-        "  + / -    force at full colour x2 / /2\n\n"
+        "  + / -    force at full colour /2 / x2 (more / less sensitive)\n\n"
         "examples:\n"
         "  cellbridge watch\n"
         "  ssh robot -t cellbridge watch\n"

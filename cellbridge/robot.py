@@ -99,7 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rn.add_argument("--contacts", type=int, default=24, help="contacts in the scenario, at least (default 24)")
     rn.add_argument("--seed", type=int, default=0, help="seed of the scenario and the skin (default 0)")
     rn.add_argument("--reporting", default="periodic", help="the bridges' reporting (default periodic; an event-based skin calibrates only as its heartbeats come)")
-    rn.add_argument("--idle", type=float, default=0.0, help="seconds untouched after the scenario (false contacts)")
+    rn.add_argument("--idle", type=float, default=0.0, help="seconds untouched after the scenario, where any contact is a false one (default 0)")
     rn.add_argument("--out", metavar="DIR", help="write DIR/truth.jsonl and DIR/contacts.jsonl")
     sc = sub.add_parser("score", help="score DIR/contacts.jsonl against DIR/truth.jsonl (from run --out)")
     sc.add_argument("dir")

@@ -90,6 +90,43 @@ def test_a_contact_is_a_tactile_contact_with_the_wrench_into_the_skin() -> None:
     assert out["contacts"].contacts == [] and not [m for m in out["markers"].markers if m.ns == "contacts"]
 
 
+def test_a_contact_on_a_link_is_at_its_position_in_that_link_frame_pressing_along_its_normal() -> None:
+    # a robot skin's contact: x, y are its place on the unrolled patches (the atlas), not
+    # link coordinates; its point, normal and force in the link frame are position, normal
+    c = Converter()
+    c.set_layout(LAYOUT)
+    p, n = [0.3, -0.02, 0.05], [0.0, -1.0, 0.0]
+    contact: dict[str, object] = {"id": 4, "x": 0.12, "y": 0.7, "force": 2.0, "valid": True, "diameter": 0.02,
+                                  "link": "forearm", "position": p, "normal": n, "force_vector": [0.0, 2.0, 0.0]}
+    contacts = {"t_sample": 1.7e9, "contacts": [contact]}
+    out = dict(c.feed("contact", contacts, 0.0))
+    (a,) = out["contacts"].contacts
+    assert a.header.frame_id == "forearm"
+    assert (a.position.x, a.position.y, a.position.z) == tuple(p)
+    assert (a.normal.x, a.normal.y, a.normal.z) == tuple(n)
+    assert (a.wrench.force.x, a.wrench.force.y, a.wrench.force.z) == (0.0, 2.0, 0.0)
+    # torque about the link frame's origin: position x force
+    assert (a.wrench.torque.x, a.wrench.torque.y, a.wrench.torque.z) == pytest.approx((-0.1, 0.0, 0.6))
+    marks = {m.ns: m for m in out["markers"].markers if m.ns in ("contacts", "forces", "labels")}
+    assert all(m.header.frame_id == "forearm" for m in marks.values())
+    disk = marks["contacts"].pose
+    # the disk lies on the surface at the point, its axis along the normal (z turned onto -y)
+    assert (disk.position.x, disk.position.y, disk.position.z) == pytest.approx((0.3, -0.022, 0.05))
+    q = disk.orientation
+    axis_z = (2 * (q.x * q.z + q.w * q.y), 2 * (q.y * q.z - q.w * q.x), 1 - 2 * (q.x * q.x + q.y * q.y))
+    assert axis_z == pytest.approx(tuple(n), abs=1e-9)
+    tail, head = marks["forces"].points
+    assert (head.x, head.y, head.z) == pytest.approx((0.3, -0.024, 0.05))  # it ends at the skin, pressing in
+    assert (tail.x - head.x, tail.y - head.y, tail.z - head.z) == pytest.approx((0.0, -0.02, 0.0))  # 1 cm a N
+    lab = marks["labels"].pose.position
+    assert (lab.x, lab.y, lab.z) == pytest.approx((0.3, -0.04, 0.05))
+    # a position the daemon did not send whole or finite is the atlas place on the plane
+    contact.update(position=[0.3, None, 0.05], link=None, normal=None)
+    ((_, got), *_) = c.feed("contact", contacts, 1.0)
+    (a,) = got.contacts
+    assert (a.position.x, a.position.y, a.position.z) == (0.12, 0.7, 0.0)
+
+
 def test_health_becomes_diagnostics_with_a_level_that_says_what_is_wrong() -> None:
     c = Converter()
     health = {"t_host": 1.7e9, "source": "robot", "links": {"gw": {"connected": False, "last_error": "gone"}},

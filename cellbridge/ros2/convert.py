@@ -222,9 +222,7 @@ class Converter:
         return link if isinstance(link, str) and link else self.frame_id
 
     def tactile_contact(self, c: dict[str, Any], stamp: T.Time) -> T.TactileContact:
-        px, py, pz = _num(c.get("x")), _num(c.get("y")), _num(c.get("z", 0.0))
-        normal = c.get("normal")
-        n = tuple(_num(v) for v in normal) if isinstance(normal, list) and len(normal) == 3 else UP
+        (px, py, pz), n = _place(c)
         force = _num(c.get("force")) if c.get("valid") is not False else math.nan
         fx, fy, fz = -force * n[0], -force * n[1], -force * n[2]
         return T.TactileContact(
@@ -311,8 +309,8 @@ class Converter:
                             scale=T.Vector3(side, side, 0.002), color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0),
                             points=points, colors=colors))
         for c in self.contacts:
-            x, y = _num(c.get("x")), _num(c.get("y"))
-            if not (math.isfinite(x) and math.isfinite(y)):
+            p, n = _place(c)
+            if not all(math.isfinite(v) for v in p):
                 continue
             cid = int(c["id"])
             h = T.Header(stamp=header.stamp, frame_id=self.frame_of(c))
@@ -321,17 +319,47 @@ class Converter:
             d = d if math.isfinite(d) and d > 0 else 0.004
             level = min(1.0, max(0.0, force / self.force_scale)) if math.isfinite(force) else math.nan
             out.append(T.Marker(header=h, ns="contacts", id=cid, type=T.Marker.CYLINDER, action=T.Marker.ADD,
-                                pose=T.Pose(position=T.Point(x, y, 0.002)), scale=T.Vector3(d, d, 0.004),
-                                color=_rgba(level, 0.9)))
+                                pose=T.Pose(position=_out(p, n, 0.002), orientation=_z_onto(n)),
+                                scale=T.Vector3(d, d, 0.004), color=_rgba(level, 0.9)))
             if math.isfinite(force) and force > 0:
                 length = force * ARROW_PER_NEWTON
                 out.append(T.Marker(header=h, ns="forces", id=cid, type=T.Marker.ARROW, action=T.Marker.ADD,
-                                    points=[T.Point(x, y, 0.004 + length), T.Point(x, y, 0.004)],
+                                    points=[_out(p, n, 0.004 + length), _out(p, n, 0.004)],
                                     scale=T.Vector3(0.002, 0.005, 0.004), color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0)))
             out.append(T.Marker(header=h, ns="labels", id=cid, type=T.Marker.TEXT_VIEW_FACING, action=T.Marker.ADD,
-                                pose=T.Pose(position=T.Point(x, y, 0.02)), scale=T.Vector3(0.0, 0.0, 0.008),
+                                pose=T.Pose(position=_out(p, n, 0.02)), scale=T.Vector3(0.0, 0.0, 0.008),
                                 color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0), text=contact_line(_view_contact(c))))
         return T.MarkerArray(markers=out)
+
+
+def _place(c: dict[str, Any]) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """A contact's point and outward unit normal in its frame (:meth:`Converter.frame_of`):
+    its ``position`` and ``normal`` when the daemon sent them whole and finite (a robot
+    skin's contact: ``x``, ``y`` are then its place on the unrolled patches, not link
+    coordinates), else ``(x, y, 0)`` and +z (a flat skin's plane)."""
+    pos, nrm = c.get("position"), c.get("normal")
+    p = tuple(_num(v) for v in pos) if isinstance(pos, list) and len(pos) == 3 else ()
+    n = tuple(_num(v) for v in nrm) if isinstance(nrm, list) and len(nrm) == 3 else ()
+    if len(p) != 3 or not all(math.isfinite(v) for v in p):
+        p = (_num(c.get("x")), _num(c.get("y")), 0.0)
+    norm = math.sqrt(sum(v * v for v in n)) if len(n) == 3 else math.nan
+    n = tuple(v / norm for v in n) if math.isfinite(norm) and norm > 0 else UP
+    return p, n  # type: ignore[return-value]  # (both are three floats by construction)
+
+
+def _out(p: tuple[float, float, float], n: tuple[float, float, float], d: float) -> T.Point:
+    """The point ``d`` m out of the skin from ``p`` along ``n``."""
+    return T.Point(p[0] + d * n[0], p[1] + d * n[1], p[2] + d * n[2])
+
+
+def _z_onto(n: tuple[float, float, float]) -> T.Quaternion:
+    """The rotation that turns +z onto the unit vector ``n`` (a disk marker's axis)."""
+    w = 1.0 + n[2]  # (1 + z·n; the half-way quaternion (z × n, 1 + z·n), normalised)
+    if w < 1e-9:  # n = -z: half a turn about x
+        return T.Quaternion(1.0, 0.0, 0.0, 0.0)
+    x, y = -n[1], n[0]
+    s = math.sqrt(x * x + y * y + w * w)
+    return T.Quaternion(x / s, y / s, 0.0, w / s)
 
 
 def _rgba(level: float, alpha: float) -> T.ColorRGBA:

@@ -925,3 +925,24 @@ def test_a_contact_missed_after_a_layout_without_its_elements_is_published_on_th
     after = p.contact_frame(job, w.estimate_now(job)).payload["contacts"]
     assert [c["id"] for c in after] == [before[0]["id"]] and after[0]["missed"] == 1
     assert after[0]["elements"] == [1] and len(after[0]["cycles"]) == 1
+
+
+def test_health_stamps_the_last_common_jump_on_the_wall_clock_as_every_other_time() -> None:
+    # the pipeline runs on the host's monotonic clock; what it publishes is on the wall clock
+    from dataclasses import replace
+
+    sk = GridFrames()
+    p = make()
+    base = 5_000.0  # a monotonic clock's reading
+    p.set_wall_offset(T0 - base)
+    p.feed("gw", sk.hellos() + sk.beacons(), base)
+    for k, data in sk.stream(60):
+        p.feed("gw", data, base + k / sk.rate)
+    sk.chip = replace(sk.chip, R_osc=sk.chip.R_osc * 1.02)  # every element steps alike: drift, no touch
+    for k, data in sk.stream(10, start=60):
+        p.feed("gw", data, base + k / sk.rate)
+    body = p.health_body(base + 70 / sk.rate)
+    cal = body["layout"]["calibration"]
+    assert cal["common_jumps"] >= 1, cal
+    t = cal["last_common_jump"]["t"]
+    assert T0 + 0.55 <= t <= T0 + 0.7, t  # the step came at slot 60, 0.6 s in

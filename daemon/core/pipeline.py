@@ -339,6 +339,9 @@ class Pipeline:
     def health_body(self, now: float) -> dict[str, Any]:
         """The fields of a ``health`` message at ``now`` (control's ``status`` answers with them)."""
         layout_report, w = self.skin.report(now, self.config.health.stuck_after), self.wall_offset
+        jump = layout_report.get("calibration", {}).get("last_common_jump")
+        if jump is not None:  # (the calibrator is fed the time base; health speaks the wall clock)
+            jump["t"] = self.stamps.wall(jump["t"])
         return {
             "t_bridge": None, "uptime": self.health.uptime(now),
             "links": self.health.links_report(self.ingress.counters, w),

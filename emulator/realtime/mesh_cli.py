@@ -81,9 +81,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gen.add_argument("--seed", type=int, default=0, help="random mesh only: seed of the shape (default 0)")
     gen.add_argument("-o", "--output", help="file to write (default: standard output)")
     chk = sub.add_parser("check", help="validate a mesh file and summarise it")
-    chk.add_argument("mesh")
+    chk.add_argument("mesh", help="a mesh file (TOML: cellbridge mesh gen writes one; docs/emulator.md)")
     rn = sub.add_parser("run", help="run a mesh in virtual time (faster than real time, deterministic)")
-    rn.add_argument("mesh")
+    rn.add_argument("mesh", help="a mesh file (TOML: cellbridge mesh gen writes one; docs/emulator.md)")
     rn.add_argument("--seconds", type=seconds_arg, default=5.0, help="virtual seconds to run (default 5)")
     rn.add_argument("--scenario", help="TOML file of [[contact]] stimuli")
     rn.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
@@ -102,7 +102,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     tr.add_argument("--out", metavar="DIR", required=True,
                     help="write DIR/gateway-<id>.cbcap (one per gateway) and DIR/daemon.toml (replays them)")
     up = sub.add_parser("up", help="start the medium, the world and one process per bridge (real time)")
-    up.add_argument("mesh")
+    up.add_argument("mesh", help="a mesh file (TOML: cellbridge mesh gen writes one; docs/emulator.md)")
     try:
         importlib.import_module("cellbridge.emulator.realtime.process_up").add_arguments(up)
     except ImportError:  # the process shells are optional for generating files

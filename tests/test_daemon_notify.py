@@ -6,7 +6,6 @@ watchdog_interval from its loop, STOPPING on SIGTERM); the test is systemd.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import os
 import signal
@@ -19,12 +18,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from cellbridge.daemon.ops.notify import Notifier, heartbeat
+from cellbridge.daemon.ops.notify import Notifier
 
 # The daemon's use of Notifier, reduced to its notify calls.
 SERVICE = """
 import signal, sys, time
-from cellbridge.daemon.ops.notify import Notifier, heartbeat
+from cellbridge.daemon.ops.notify import Notifier
 n = Notifier()
 stop = []
 signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
@@ -159,30 +158,3 @@ def test_a_manager_that_reads_nothing_costs_a_send_a_bounded_wait_not_the_daemon
 @pytest.mark.parametrize("value", ["", "relative/path.sock", "vsock:2:1234"])
 def test_unusable_notify_socket_values_disable_it(value: str) -> None:
     assert not Notifier({"NOTIFY_SOCKET": value}).enabled
-
-
-def test_heartbeat_sends_watchdog_and_status_from_the_loop(tmp_path: Path) -> None:
-    path = tmp_path / "notify.sock"
-    summaries = iter(f"contacts: {i}" for i in range(1000))
-
-    async def scenario(sock: socket.socket) -> list[str]:
-        notifier = Notifier({"NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "40000"})
-        task = asyncio.create_task(heartbeat(notifier, lambda: next(summaries), status_every=0.05))
-        seen: list[str] = []
-        try:
-            while seen.count("WATCHDOG=1") < 3 or sum(m.startswith("STATUS=") for m in seen) < 2:
-                seen.append((await asyncio.wait_for(asyncio.get_running_loop().sock_recv(sock, 4096), 10)).decode())
-        finally:
-            task.cancel()
-        return seen
-
-    with notify_socket(str(path)) as sock:
-        sock.setblocking(False)
-        seen = asyncio.run(scenario(sock))
-    statuses = [m for m in seen if m.startswith("STATUS=")]
-    assert statuses[:2] == ["STATUS=contacts: 0", "STATUS=contacts: 1"]
-
-
-def test_heartbeat_returns_when_there_is_nothing_to_send() -> None:
-    asyncio.run(asyncio.wait_for(heartbeat(Notifier({})), 5))
-    asyncio.run(asyncio.wait_for(heartbeat(Notifier({"NOTIFY_SOCKET": "/x"})), 5))  # no watchdog, no summary

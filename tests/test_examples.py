@@ -104,3 +104,26 @@ def test_example_reads_the_live_daemon(language: str, tmp_path: Path) -> None:
         p = ln["payload"]
         assert p["v"] == 2 and isinstance(p["t_host"], float)
         assert set(p["bridge"]) <= set(sk.ids) and len(p["c1"]) == len(p["bridge"])
+
+
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_prints_valid_json_where_a_value_is_not_a_number(language: str, tmp_path: Path) -> None:
+    # an element's force is NaN where it is not valid; a σ along an axis the readings leave
+    # open is infinite: JSON has neither, and every example prints null for both
+    import json
+
+    import msgpack
+
+    cmd = EXAMPLE_COMMANDS[language](tmp_path)
+    payload = {"v": 2, "seq": 0, "t_host": 1.7e9, "bridge": [1, 2], "force": [float("nan"), 1.5],
+               "sigma": [float("inf"), float("-inf")]}
+    with publisher(extra=[[b"element", msgpack.packb(payload)]]) as endpoint:
+        out = run_subscriber([*cmd, "-e", endpoint, "-n", "2", "element"], cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+
+    def strict(token: str) -> None:
+        raise AssertionError(f"not JSON: {token}")
+
+    lines = [json.loads(line, parse_constant=strict) for line in out.stdout.splitlines() if line.strip()]
+    assert lines and all(ln["payload"]["force"] == [None, 1.5] and ln["payload"]["sigma"] == [None, None]
+                         for ln in lines)

@@ -13,11 +13,10 @@ same from a terminal as under systemd.
 
 from __future__ import annotations
 
-import asyncio
 import os
 import socket
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 
 #: s a notification waits for room in the service manager's queue (then it is counted as an error)
 SEND_TIMEOUT = 0.1
@@ -91,29 +90,6 @@ class Notifier:
         except OSError as exc:
             self.send_errors += 1
             self._stuck = isinstance(exc, (TimeoutError, BlockingIOError))
-
-
-async def heartbeat(notifier: Notifier, summary: Callable[[], str] | None = None,
-                    status_every: float = 5.0) -> None:
-    """Send WATCHDOG every ``watchdog_interval`` and ``STATUS=summary()`` every ``status_every``.
-
-    Run it as a task of the daemon's event loop for its whole life: both come from
-    the loop itself, so a stalled loop goes silent and systemd restarts the daemon.
-    Returns at once when there is nothing to send.
-    """
-    interval = notifier.watchdog_interval
-    if not notifier.enabled or (interval is None and summary is None):
-        return
-    step = min(x for x in (interval, status_every if summary is not None else None) if x is not None)
-    loop = asyncio.get_running_loop()
-    next_status = loop.time()
-    while True:
-        if interval is not None:
-            notifier.watchdog()
-        if summary is not None and loop.time() >= next_status:
-            notifier.status(summary())
-            next_status = loop.time() + status_every
-        await asyncio.sleep(step)
 
 
 def _status_line(text: str) -> str:

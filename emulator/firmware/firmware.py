@@ -142,16 +142,13 @@ class FirmwareConfig:
     settings: Settings = field(default_factory=Settings)
     batch_max: int = 16  #: samples per DATA frame at most (also bounded by the frame size)
     #: A sample waits at most this long for company in a DATA frame (periodic reporting).
-    #: The trade-off of latency against air time: at saturation 50 ms keeps >= 70 % of a
-    #: cell's bits for samples (bench_emulator), 10 ms only ~47 %; with aligned batches a
-    #: 4x4 skin at 100 Hz spreads one index p99 ~85 ms at 50 ms, 115 ms at 30 ms, and
-    #: saturates its cells at 20 ms (bench/bench_latency.py, virtual time with the latency
-    #: model; docs/emulator.md).
+    #: The trade-off of latency against air time: a shorter wait sends more, shorter frames,
+    #: each with its header, acknowledgement and gaps, and leaves less of a saturated cell
+    #: for samples (bench/bench_emulator.py, bench/bench_latency.py; docs/emulator.md).
     max_latency: int = 50 * _MS
     #: The same under event-based reporting: 1 ms, a sample goes almost as soon as it is
-    #: taken. Few samples travel, and at 100 Hz a 10 ms wait put two in a frame at most
-    #: while the host saw every press 10 ms later (press to its first sample at the host,
-    #: virtual time: p50 23.5 -> 14 ms, bench/bench_press_latency.py --virtual --reporting event:40).
+    #: taken. Few samples travel, so a longer wait puts few of them together while the
+    #: host sees every press that much later (bench/bench_press_latency.py --virtual).
     event_latency: int = 1 * _MS
     #: An aligned batch (periodic, on mesh time: emulator/firmware/sampling.py) leaves in its
     #: bridge's *slot* after the batch closes: the deepest bridges first, one ``depth_slot``

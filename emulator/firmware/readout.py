@@ -376,9 +376,9 @@ class FrameReadout:
 
     def _take(self, tick: int, root: int) -> list[Readout]:
         # In frame order: a frame complete early waits for the older ones of its rate. Sent
-        # before them, it told the host (whose line keeps its order) that their records
-        # were lost, and theirs came after, late (30 of 1755 records on a 4x4's gateway line
-        # at 250 Hz with 1 % loss per hop).
+        # before them, it tells the parent (whose cell keeps each child's order) that their
+        # records were lost: a parent gives a child's record up once a later one came, and
+        # theirs would then come after, late.
         out: list[Readout] = []
         blocked: set[tuple[int, int]] = set()  # (root, rate) with an older frame not due yet
         # (frames of other roots first: those sampled before a switch of root go before the

@@ -13,10 +13,23 @@ written by `cellbridge keys gen`; the client's .key must be allowed by the daemo
 
 import argparse
 import json
+import math
 
 import msgpack
 import zmq
 import zmq.auth
+
+
+def plain(value):
+    """``value`` with every NaN and infinity as None: JSON has neither (an element's force
+    is NaN where it is not valid, a σ infinite along an axis the readings leave open)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    return value
 
 
 def main() -> None:
@@ -40,7 +53,8 @@ def main() -> None:
     while not args.count or received < args.count:
         topic, payload = sock.recv_multipart()
         message = msgpack.unpackb(payload, strict_map_key=False)  # every payload carries "v" and "t_host"
-        print(json.dumps({"topic": topic.decode(), "payload": message}, default=bytes.hex), flush=True)
+        print(json.dumps({"topic": topic.decode(), "payload": plain(message)}, default=bytes.hex, allow_nan=False),
+              flush=True)
         received += 1
     sock.close(linger=0)
 

@@ -261,6 +261,10 @@ def run(args: argparse.Namespace) -> int:
                         # from now on: a sample of an earlier gate still to be computed (a
                         # relay's, at its children's records) sees what pressed at its gate
                         world.set_contacts(contacts, tick / CLOCK_HZ, KEEP_ENDED_S)
+                        # the capacitances a new press gives, computed now, about half a
+                        # period before its first gate: not in the readout of the frame
+                        # that shows it, where every hop's bridge waited for its own
+                        world.prepare(tick / CLOCK_HZ)
             if port is not None:
                 data = port.read(ready)
                 if data:

@@ -30,6 +30,8 @@ from cellbridge.tactile import ElementParams, SkinLayout, skin_response
 
 from cellbridge.errors import CellbridgeError
 
+#: Sets of active contacts whose capacitances a world keeps (:meth:`World._pressed`)
+_RESPONSES_KEPT = 8
 _CONTACT_KEYS = {"start", "duration", "position", "force", "diameter", "velocity"}
 
 
@@ -199,9 +201,12 @@ class World:
         self.wraps = mesh.wraps  # bands that close on themselves: a press across the seam presses both ends
         self.side = mesh.side
         self.rest = (self.params.C1_rest, self.params.C2_rest)
-        self._key: object = None
+        self._key: object = None  # (a subclass's own cache of one value)
         self._c1 = np.full(self.layout.n, self.rest[0])
         self._c2 = np.full(self.layout.n, self.rest[1])
+        #: (active contacts, quantum or None) -> (C1, C2): :meth:`_pressed`'s cache, oldest first
+        self._responses: dict[tuple[tuple[Contact, ...], int | None], tuple[np.ndarray, np.ndarray]] = {}
+        self._extent = self.layout.extent
 
     def press(self, contact: Contact) -> None:
         self.contacts.append(contact)
@@ -249,26 +254,50 @@ class World:
         return c1, c2
 
     def _pressed(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """(C1, C2) of every element at ``t`` from the contacts alone (cached)."""
-        active = tuple(i for i, c in enumerate(self.contacts) if c.active(t))
-        moving = any(self.contacts[i].vx or self.contacts[i].vy for i in active)
+        """(C1, C2) of every element at ``t`` from the contacts alone (cached per set of
+        active contacts and, for moving ones, per quantum: a few sets are kept, so a sample
+        of a gate before a press, computed lazily after the press came, does not evict the
+        press's own values, nor they it)."""
+        active = tuple(c for c in self.contacts if c.active(t))
+        moving = any(c.vx or c.vy for c in active)
         q = math.floor(t / self.quantum) if moving else None
         key = (active, q)
-        if key != self._key:
-            self._key = key
-            if active:
-                # moving contacts where they are at the quantum's start, whoever asks first:
-                # a sample's capacitance is a function of its gate's time alone, not of the
-                # order the bridges (or a prefetch, or a lazy sample) asked in
-                when = t if q is None else q * self.quantum
-                d1, d2 = skin_response(self.layout, self.disks([self.contacts[i].at(when) for i in active]),
-                                       self.params)
-                self._c1 = self.rest[0] + d1
-                self._c2 = self.rest[1] + d2
-            else:
-                self._c1 = np.full(self.layout.n, self.rest[0])
-                self._c2 = np.full(self.layout.n, self.rest[1])
-        return self._c1, self._c2
+        got = self._responses.get(key)
+        if got is None:
+            got = self._respond(active, t if q is None else q * self.quantum)
+            if len(self._responses) >= _RESPONSES_KEPT:
+                self._responses.pop(next(iter(self._responses)))  # the oldest set
+            self._responses[key] = got
+        return got
+
+    def _respond(self, active: tuple[Contact, ...], when: float) -> tuple[np.ndarray, np.ndarray]:
+        """(C1, C2) of every element under ``active`` placed where they are at ``when``
+        (moving contacts where they are at the quantum's start, whoever asks first: a
+        sample's capacitance is a function of its gate's time alone, not of the order the
+        bridges, a prefetch or a lazy sample asked in). A disk wholly outside the bounding
+        box of this world's elements touches none of them and is left out: a bridge
+        process's world holds its own element only, and the skin response of a press
+        elsewhere (most presses, for most bridges) costs a millisecond of a cold process
+        for nothing but rounding."""
+        disks = self.disks([c.at(when) for c in active])
+        x0, y0, x1, y1 = self._extent
+        disks = [d for d in disks
+                 if not (d[0] + d[3] / 2 < x0 or d[0] - d[3] / 2 > x1 or d[1] + d[3] / 2 < y0 or d[1] - d[3] / 2 > y1)]
+        if not disks:
+            return np.full(self.layout.n, self.rest[0]), np.full(self.layout.n, self.rest[1])
+        d1, d2 = skin_response(self.layout, disks, self.params)
+        return self.rest[0] + d1, self.rest[1] + d2
+
+    def prepare(self, t: float) -> None:
+        """Compute now the capacitances samples from ``t`` (s) on will ask for: those of
+        the contacts active at ``t`` and at each of the next contacts' starts and ends
+        (a few). Changes no value, only when the work runs: a bridge process calls it in
+        the wake the world's new contacts bring (a press's start, about half a sampling
+        period before its first gate), so the first sample that shows the press, and
+        every relay's sample on its way to the gateway, is not held up by it."""
+        instants = sorted({t, *(e for c in self.contacts for e in (c.start, c.start + c.duration) if e > t)})
+        for e in instants[:_RESPONSES_KEPT // 2]:
+            self._pressed(e)
 
     def disks(self, disks: list[tuple[float, float, float, float]]) -> list[tuple[float, float, float, float]]:
         """The ``(x, y, force, diameter)`` disks with their copies one band over, where a

@@ -48,14 +48,16 @@ def test_two_skins_behind_one_curve_proxy_reach_the_c_subscriber_told_apart_by_s
     front = f"tcp://127.0.0.1:{free_port()}"
     ctx = zmq.Context()
     with ExitStack() as stack:
-        skins = []
-        for name in ("skin-a", "skin-b"):
+        skins, watches = [], []
+        for name in ("skin-a", "skin-b"):  # both started, then waited for: their calibrations overlap
             skin = stack.enter_context(live_skin(tmp_path / name, 2, 2, name))
             watch = Collector(skin.pub, (b"health",), ctx)
             stack.callback(watch.close)
             stack.enter_context(skin.daemon(skin.daemon_config(source=name)))
-            watch.pump(120, until=calibrated(4))
             skins.append(skin)
+            watches.append(watch)
+        for watch in watches:
+            watch.pump(120, until=calibrated(4))
         proxy = stack.enter_context(group(
             _proxy_cmd(front, [s.pub for s in skins], "--server-secret", str(proxy_secret),
                        "--allowed-clients", str(keys / "allowed")),

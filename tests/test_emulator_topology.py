@@ -319,10 +319,11 @@ def test_routes_stay_put_on_a_static_lossless_idle_mesh_past_trickles_long_inter
     # Neighbours expired 2 s after their last beacon while Trickle suppression kept live
     # ones quiet longer: an 8x8 mesh changed parents 91 times in 30 s, lost routes and
     # evicted live neighbours for ever. After the routes form, a static lossless mesh with
-    # nothing to report but heartbeats must keep them for a minute (120 long intervals):
-    # no neighbour evicted, no route lost. A few bridges may still move once to a path
+    # nothing to report but heartbeats must keep them (30 s: 60 long intervals): no
+    # neighbour evicted, no route lost. A few bridges may still move once to a path
     # cheaper by at least the hysteresis (frames that collided and were retried raise a
-    # link's ETX), never back and forth.
+    # link's ETX), never back and forth: without the hysteresis, 10 parent changes in
+    # those 30 s, one bridge moving twice.
     from cellbridge.emulator.firmware.reporting import ReportingMode
 
     mesh = meshgen.grid(8, 8, gateways=(1,))
@@ -330,11 +331,11 @@ def test_routes_stay_put_on_a_static_lossless_idle_mesh_past_trickles_long_inter
     vm = VirtualMesh(mesh, seed=4, settings=Settings(reporting=ReportingMode(40, 1000)), readout=False)
     formed = vm.run(10.0)
     assert formed.cut_off == []
-    end = vm.run(60.0)
+    end = vm.run(30.0)
     after = {b: {k: end.counters[b].get(k, 0) - formed.counters[b].get(k, 0)
                  for k in ("parent_changes", "route_lost", "neighbour_evictions")} for b in mesh.ids}
     assert sum(a["route_lost"] for a in after.values()) == 0
     assert sum(a["neighbour_evictions"] for a in after.values()) == 0
-    assert sum(a["parent_changes"] for a in after.values()) <= len(mesh.ids) // 8
+    assert sum(a["parent_changes"] for a in after.values()) <= len(mesh.ids) // 16
     assert max(a["parent_changes"] for a in after.values()) <= 1
-    assert end.cut_off == [] and sum(end.parents[b] != formed.parents[b] for b in mesh.ids) <= len(mesh.ids) // 8
+    assert end.cut_off == [] and sum(end.parents[b] != formed.parents[b] for b in mesh.ids) <= len(mesh.ids) // 16

@@ -127,3 +127,26 @@ def test_example_prints_valid_json_where_a_value_is_not_a_number(language: str, 
     lines = [json.loads(line, parse_constant=strict) for line in out.stdout.splitlines() if line.strip()]
     assert lines and all(ln["payload"]["force"] == [None, 1.5] and ln["payload"]["sigma"] == [None, None]
                          for ln in lines)
+
+
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_prints_a_map_whose_keys_are_numbers_and_not_numbers(language: str, tmp_path: Path) -> None:
+    # msgpack map keys may be any value: an int key prints as its digits, a NaN or infinite
+    # float key as a string (a JSON key is one); the subscriber keeps running either way
+    import json
+
+    import msgpack
+
+    cmd = EXAMPLE_COMMANDS[language](tmp_path)
+    payload = {"v": 2, "t_host": 1.7e9, "bridges": {7: {"loss": float("nan")}, float("nan"): 1, float("inf"): 2}}
+    with publisher(extra=[[b"health", msgpack.packb(payload, strict_types=False)]]) as endpoint:
+        out = run_subscriber([*cmd, "-e", endpoint, "-n", "2", "health"], cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+
+    def strict(token: str) -> None:
+        raise AssertionError(f"not JSON: {token}")
+
+    lines = [json.loads(line, parse_constant=strict) for line in out.stdout.splitlines() if line.strip()]
+    odd = [ln["payload"]["bridges"] for ln in lines if "bridges" in ln["payload"]]
+    assert odd and all(len(b) == 3 and b["7"] == {"loss": None} and {v for k, v in b.items() if k != "7"} == {1, 2}
+                       for b in odd), odd

@@ -170,3 +170,111 @@ def test_diagnostics_at_most_once_a_period_but_at_once_when_the_daemons_level_ch
     assert published == [0.0, 0.75, 1.5, 2.5]  # the period, and the level's two changes at once
     assert c.diagnostics_skipped == len(fed) - len(published)
     assert [key for key, _ in Converter().feed("health", ok, 0.0)] == ["diagnostics"]  # by default: every one
+
+
+ON_LINK: dict[str, Any] = {"id": 4, "x": 0.12, "y": 0.7, "force": 2.0, "valid": True, "diameter": 0.02,
+                           "link": "forearm", "patch": "fa", "position": [0.3, -0.02, 0.05],
+                           "normal": [0.0, -1.0, 0.0], "force_vector": [0.0, 2.0, 0.0]}
+
+
+def _drawn(out: dict[str, Any]) -> dict[str, Any]:
+    return {m.ns: m for m in out["markers"].markers if m.ns in ("contacts", "forces", "labels")}
+
+
+@pytest.mark.parametrize("position", [None, [0.3, -0.02], [0.3, -0.02, 0.05, 1.0], [0.3, math.nan, 0.05],
+                                      [0.3, math.inf, 0.05], ["0.3", -0.02, 0.05], [True, -0.02, 0.05], "abc",
+                                      [0.3, -0.02, 1e300]])
+def test_a_contact_on_a_link_whose_position_is_not_whole_is_nowhere_not_at_its_atlas_place(position: Any) -> None:
+    # x, y are the place on the unrolled patches: put in the link's frame they are a
+    # confident wrong point; the contact is listed (its id, force) with its place unknown
+    c = Converter()
+    c.set_layout(LAYOUT)
+    contact = {**ON_LINK, "position": position}
+    if position is None:
+        del contact["position"]
+    out = dict(c.feed("contact", {"t_sample": 1.7e9, "contacts": [contact]}, 0.0))
+    (a,) = out["contacts"].contacts
+    assert a.name == "contact_4" and a.header.frame_id == "forearm"
+    assert all(math.isnan(v) for v in (a.position.x, a.position.y, a.position.z))
+    assert all(math.isnan(v) for v in (a.wrench.torque.x, a.wrench.torque.y, a.wrench.torque.z))
+    assert not _drawn(out)  # nothing drawn where it is not known (as the Foxglove scene does)
+    assert c.malformed == 1
+
+
+@pytest.mark.parametrize("normal", [None, [0.0, 0.0, 0.0], [0.0, math.nan, 0.0], [0.0, -1.0], [0.0, -1.0, 0.0, 0.0],
+                                    [False, True, False], [1e-300, 0.0, 0.0], "up"])
+def test_a_contact_on_a_link_without_a_usable_normal_has_no_direction_not_the_planes(normal: Any) -> None:
+    # +z of a link frame is no direction of its skin: the normal and the force along it are unknown
+    c = Converter()
+    c.set_layout(LAYOUT)
+    contact = {**ON_LINK, "normal": normal}
+    out = dict(c.feed("contact", {"t_sample": 1.7e9, "contacts": [contact]}, 0.0))
+    (a,) = out["contacts"].contacts
+    assert (a.position.x, a.position.y, a.position.z) == (0.3, -0.02, 0.05)
+    assert all(math.isnan(v) for v in (a.normal.x, a.normal.y, a.normal.z))
+    assert all(math.isnan(v) for v in (a.wrench.force.x, a.wrench.force.y, a.wrench.force.z))
+    assert not _drawn(out)
+
+
+def test_a_non_unit_normal_is_normalised_and_the_disk_quaternion_is_unit() -> None:
+    c = Converter(marker_period=0)
+    c.set_layout(LAYOUT)
+    for n in ([0.0, -5.0, 0.0], [1e-6, 0.0, -3.0], [0.0, 1e-12, -1.0], [3.0, 4.0, 0.0]):
+        out = dict(c.feed("contact", {"t_sample": 1.7e9, "contacts": [{**ON_LINK, "normal": n}]}, 0.0))
+        (a,) = out["contacts"].contacts
+        size = math.sqrt(sum(v * v for v in n))
+        assert (a.normal.x, a.normal.y, a.normal.z) == pytest.approx(tuple(v / size for v in n))
+        q = _drawn(out)["contacts"].pose.orientation
+        assert q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2 == pytest.approx(1.0)
+        axis_z = (2 * (q.x * q.z + q.w * q.y), 2 * (q.y * q.z - q.w * q.x), 1 - 2 * (q.x * q.x + q.y * q.y))
+        assert axis_z == pytest.approx((a.normal.x, a.normal.y, a.normal.z), abs=1e-6)
+
+
+def test_a_contact_on_a_link_is_labelled_with_its_link_and_place_as_the_views_label_it() -> None:
+    from cellbridge.views.model import SkinView, contact_line
+    c = Converter()
+    c.set_layout(LAYOUT)
+    payload = {"t_sample": 1.7e9, "contacts": [ON_LINK]}
+    view = SkinView()
+    view.feed("contact", payload, 0.0)
+    label = _drawn(dict(c.feed("contact", payload, 0.0)))["labels"].text
+    assert label == contact_line(view.contacts[0])
+    assert "forearm/fa" in label and "(300.0, -20.0, 50.0) mm" in label
+
+
+@pytest.mark.parametrize("cid", [2**31 - 1, 2**31, 2**40, 2**64])
+def test_a_contact_id_past_a_markers_int32_still_serialises(cid: int) -> None:
+    # a marker's id is an int32: a daemon's contact id past it must not stop the bridge or the bag
+    c = Converter()
+    c.set_layout(LAYOUT)
+    out = dict(c.feed("contact", {"t_sample": 1.7e9, "contacts": [{**ON_LINK, "id": cid}]}, 0.0))
+    assert out["contacts"].contacts[0].name == f"contact_{cid}"
+    for message in out.values():
+        T.cdr(message)
+    assert {m.id for m in _drawn(out).values()} and all(0 <= m.id < 2**31 for m in _drawn(out).values())
+
+
+def test_the_ros_2_markers_and_the_foxglove_scene_put_a_contact_at_the_same_place() -> None:
+    from cellbridge.views.foxglove import contact_place
+    from cellbridge.views.model import SkinView
+    frames = {"forearm": ("world", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))}
+    cases = [ON_LINK, {**ON_LINK, "normal": [0.0, -2.0, 0.0]}, {**ON_LINK, "position": [0.3, -0.02]},
+             {**ON_LINK, "normal": [0.0, 0.0, 0.0]}, {**ON_LINK, "position": [2e3, 0.0, 0.0]},
+             {**ON_LINK, "normal": [1e7, 0.0, 0.0]}, {**ON_LINK, "position": [True, 0.0, 0.0]}]
+    for contact in cases:
+        c = Converter()
+        c.set_layout(LAYOUT)
+        payload = {"t_sample": 1.7e9, "contacts": [contact]}
+        view = SkinView()
+        view.feed("contact", payload, 0.0)
+        fox = contact_place(view.contacts[0], frames, robot=True)
+        drawn = _drawn(dict(c.feed("contact", payload, 0.0)))
+        if fox is None:
+            assert not drawn, contact
+            continue
+        frame, p, n = fox
+        disk = drawn["contacts"]
+        assert disk.header.frame_id == frame
+        lift = 0.002
+        assert (disk.pose.position.x, disk.pose.position.y, disk.pose.position.z) == \
+            pytest.approx(tuple(pv + lift * nv for pv, nv in zip(p, n)))

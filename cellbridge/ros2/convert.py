@@ -12,12 +12,16 @@ they make, by topic key (:mod:`cellbridge.ros2.qos`):
   force is not known (no reading yet, baseline being taken, the inverse has no unique
   answer) reads NaN. Stamped with the newest sample time of the daemon's message.
 - ``contact`` -> ``contacts``: a ``tactile_msgs/TactileContacts``, one ``TactileContact``
-  per contact: ``name`` ``contact_<id>``, ``position`` (x, y, 0) in the frame, ``normal``
-  (0, 0, 1) (out of the skin), ``wrench`` the force the contact applies *to* the skin
-  (-F times the normal) and its torque about the frame's origin (position × force), as
-  tactile_toolbox's own contact estimation fills it. A contact without pressure
-  (``valid`` false) has a NaN wrench: its position alone is known. Stamped with the skin
-  frame the contacts were estimated on (``t_sample``). An empty list says the contacts ended.
+  per contact: ``name`` ``contact_<id>``, ``position`` and ``normal`` (out of the skin) in
+  its frame (a flat skin: (x, y, 0) and (0, 0, 1)), ``wrench`` the force the contact
+  applies *to* the skin (-F times the normal) and its torque about the frame's origin
+  (position × force), as tactile_toolbox's own contact estimation fills it. A contact
+  without pressure (``valid`` false) has a NaN wrench: its position alone is known. A
+  contact on a link whose ``position`` (or ``normal``) did not come whole and finite has
+  a NaN position (or normal and force), is not drawn, and is counted in
+  :attr:`Converter.malformed`: its ``x``, ``y`` are a place on the unrolled patches, not
+  in the link's frame. Stamped with the skin frame the contacts were estimated on
+  (``t_sample``). An empty list says the contacts ended.
 - ``health`` -> ``diagnostics``: a ``diagnostic_msgs/DiagnosticArray``: the daemon (OK,
   WARN when a bridge is silent or losing frames or this subscriber lost messages, ERROR
   when a link is down), each link and each bridge. At most every ``diagnostics_period``
@@ -48,10 +52,13 @@ from typing import Any
 from cellbridge.ros2 import DEFAULT_FRAME
 from cellbridge.ros2 import types as T
 from cellbridge.views.model import UNTOUCHED, Contact, contact_line, level_rgb, summarise_health
+from cellbridge.views.robot_skin import unit3, vec3
 
 MARKER_PERIOD = 0.1  # s: at most 10 pictures a second (a 16x16 skin's picture costs ~10 ms to build and encode)
 ARROW_PER_NEWTON = 0.01  # m of arrow per N
 UP = (0.0, 0.0, 1.0)
+NOWHERE = (math.nan, math.nan, math.nan)
+INT32 = 2**31  # a marker's id is an int32
 LOSS_WARN = 0.05  # a bridge losing more than this fraction of its frames is a warning
 
 
@@ -208,9 +215,11 @@ class Converter:
         stamp = T.stamp(t)
         kept, out = [], []
         for c in contacts:
-            if not isinstance(c, dict) or not isinstance(c.get("id"), int):
+            if not isinstance(c, dict) or not isinstance(c.get("id"), int) or isinstance(c.get("id"), bool):
                 self.malformed += 1
                 continue
+            if not _place(c)[2]:
+                self.malformed += 1  # on a link, but not where or not which way: listed, its place unknown
             kept.append(c)
             out.append(self.tactile_contact(c, stamp))
         self.contacts = kept
@@ -222,7 +231,7 @@ class Converter:
         return link if isinstance(link, str) and link else self.frame_id
 
     def tactile_contact(self, c: dict[str, Any], stamp: T.Time) -> T.TactileContact:
-        (px, py, pz), n = _place(c)
+        (px, py, pz), n, _ = _place(c)
         force = _num(c.get("force")) if c.get("valid") is not False else math.nan
         fx, fy, fz = -force * n[0], -force * n[1], -force * n[2]
         return T.TactileContact(
@@ -309,10 +318,10 @@ class Converter:
                             scale=T.Vector3(side, side, 0.002), color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0),
                             points=points, colors=colors))
         for c in self.contacts:
-            p, n = _place(c)
-            if not all(math.isfinite(v) for v in p):
+            p, n, _ = _place(c)
+            if not all(math.isfinite(v) for v in p + n):
                 continue
-            cid = int(c["id"])
+            cid = c["id"] if -INT32 <= c["id"] < INT32 else c["id"] % INT32
             h = T.Header(stamp=header.stamp, frame_id=self.frame_of(c))
             force = _num(c.get("force")) if c.get("valid") is not False else math.nan
             d = _num(c.get("diameter"))
@@ -332,19 +341,26 @@ class Converter:
         return T.MarkerArray(markers=out)
 
 
-def _place(c: dict[str, Any]) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-    """A contact's point and outward unit normal in its frame (:meth:`Converter.frame_of`):
-    its ``position`` and ``normal`` when the daemon sent them whole and finite (a robot
-    skin's contact: ``x``, ``y`` are then its place on the unrolled patches, not link
-    coordinates), else ``(x, y, 0)`` and +z (a flat skin's plane)."""
-    pos, nrm = c.get("position"), c.get("normal")
-    p = tuple(_num(v) for v in pos) if isinstance(pos, list) and len(pos) == 3 else ()
-    n = tuple(_num(v) for v in nrm) if isinstance(nrm, list) and len(nrm) == 3 else ()
-    if len(p) != 3 or not all(math.isfinite(v) for v in p):
-        p = (_num(c.get("x")), _num(c.get("y")), 0.0)
-    norm = math.sqrt(sum(v * v for v in n)) if len(n) == 3 else math.nan
-    n = tuple(v / norm for v in n) if math.isfinite(norm) and norm > 0 else UP
-    return p, n  # type: ignore[return-value]  # (both are three floats by construction)
+Vec3 = tuple[float, float, float]
+
+
+def _place(c: dict[str, Any]) -> tuple[Vec3, Vec3, bool]:
+    """A contact's point and outward unit normal in its frame (:meth:`Converter.frame_of`),
+    and whether both are known, read as the views read them (:func:`vec3`, :func:`unit3`:
+    the Foxglove scene draws the same contact at the same place).
+
+    A contact on a link (``link`` not null: a robot skin) is where its ``position`` and
+    ``normal`` say, each NaN when not whole and finite (or no link name): its ``x``, ``y``
+    are its place on the unrolled patches, and +z of a link frame is no direction of its
+    skin, so neither stands in. A flat skin's contact (``link`` null or absent) is at
+    ``position`` or else ``(x, y, 0)``, along ``normal`` or else +z (its plane's)."""
+    p, n = vec3(c.get("position")), unit3(c.get("normal"))
+    link = c.get("link")
+    if link is not None:
+        named = isinstance(link, str) and bool(link)
+        return (p if p is not None and named else NOWHERE, n if n is not None else NOWHERE,
+                p is not None and n is not None and named)
+    return (p if p is not None else (_num(c.get("x")), _num(c.get("y")), 0.0), n if n is not None else UP, True)
 
 
 def _out(p: tuple[float, float, float], n: tuple[float, float, float], d: float) -> T.Point:
@@ -371,7 +387,10 @@ def _view_contact(c: dict[str, Any]) -> Contact:
     """The views' contact, for its one-line description."""
     obs = c.get("observable")
     observable = (obs[0] is not False, obs[1] is not False) if isinstance(obs, list) and len(obs) >= 2 else (True, True)
-    return Contact(id=int(c["id"]), x=_num(c.get("x")), y=_num(c.get("y")), force=_num(c.get("force")),
+    link, patch = c.get("link"), c.get("patch")  # on a robot: the label says where on it, as the views' do
+    return Contact(link=link[:64] if isinstance(link, str) else None, patch=patch[:64] if isinstance(patch, str) else None,
+                   position=vec3(c.get("position")) if link is not None else None,
+                   id=int(c["id"]), x=_num(c.get("x")), y=_num(c.get("y")), force=_num(c.get("force")),
                    diameter=_num(c.get("diameter")), observable=observable, valid=c.get("valid") is not False,
                    missed=c["missed"] if isinstance(c.get("missed"), int) else 0,
                    sigma_x=_num(c.get("sigma_x")), sigma_y=_num(c.get("sigma_y")))

@@ -26,10 +26,18 @@ def plain(value):
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
-        return {k: plain(v) for k, v in value.items()}
+        return {key(k): plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [plain(v) for v in value]
     return value
+
+
+def key(k):
+    """A map key as JSON writes it: a JSON key is a string, so a NaN or infinite one is
+    its name (json.dumps would refuse it, and this subscriber would stop)."""
+    if isinstance(k, float) and not math.isfinite(k):
+        return "NaN" if k != k else "Infinity" if k > 0 else "-Infinity"
+    return k
 
 
 def main() -> None:

@@ -241,17 +241,14 @@ class TimelineWorld(World):
 
     def _pressed(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         disks = self.timeline.at(t)
-        key = ("timeline", disks)
-        if key != self._key:
-            self._key = key
-            if disks:
-                d1, d2 = skin_response(self.layout, self.disks(list(disks)), self.params)
-                self._c1 = self.rest[0] + d1
-                self._c2 = self.rest[1] + d2
-            else:
-                self._c1 = np.full(self.layout.n, self.rest[0])
-                self._c2 = np.full(self.layout.n, self.rest[1])
-        return self._c1, self._c2
+
+        def respond() -> tuple[np.ndarray, np.ndarray]:
+            if not disks:
+                return np.full(self.layout.n, self.rest[0]), np.full(self.layout.n, self.rest[1])
+            d1, d2 = skin_response(self.layout, self.disks(list(disks)), self.params)
+            return self.rest[0] + d1, self.rest[1] + d2
+
+        return self._cached(("timeline", disks), respond)
 
     def sense_for(self, bridge: int):
         i = self.index[bridge]

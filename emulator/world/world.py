@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass, replace
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 from cellbridge.emulator.mesh.mesh import Mesh, read_text
@@ -201,16 +201,12 @@ class World:
         self.wraps = mesh.wraps  # bands that close on themselves: a press across the seam presses both ends
         self.side = mesh.side
         self.rest = (self.params.C1_rest, self.params.C2_rest)
-        self._key: object = None  # (a subclass's own cache of one value)
-        self._c1 = np.full(self.layout.n, self.rest[0])
-        self._c2 = np.full(self.layout.n, self.rest[1])
-        #: (active contacts, quantum or None) -> (C1, C2): :meth:`_pressed`'s cache, oldest first
-        self._responses: dict[tuple[tuple[Contact, ...], int | None], tuple[np.ndarray, np.ndarray]] = {}
+        #: a stimulus's key -> (C1, C2): :meth:`_cached`'s values, oldest first
+        self._responses: dict[object, tuple[np.ndarray, np.ndarray]] = {}
         self._extent = self.layout.extent
 
     def press(self, contact: Contact) -> None:
         self.contacts.append(contact)
-        self._key = None
 
     def set_contacts(self, contacts: list[Contact], at: float | None = None, keep: float = 2.0) -> None:
         """Replace every contact (a bridge process mirroring the world process's list).
@@ -239,7 +235,6 @@ class World:
             new = kept + new
         if new != self.contacts:
             self.contacts = new
-            self._key = None
 
     def capacitances(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(C1, C2) of every element at time ``t`` (s), parasitics and drifts included."""
@@ -261,12 +256,17 @@ class World:
         active = tuple(c for c in self.contacts if c.active(t))
         moving = any(c.vx or c.vy for c in active)
         q = math.floor(t / self.quantum) if moving else None
-        key = (active, q)
+        return self._cached((active, q), lambda: self._respond(active, t if q is None else q * self.quantum))
+
+    def _cached(self, key: object, compute: Callable[[], tuple[np.ndarray, np.ndarray]]
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """The (C1, C2) a stimulus named by ``key`` gives (a function of the key alone),
+        computed by ``compute`` the first time; the last ``_RESPONSES_KEPT`` are kept."""
         got = self._responses.get(key)
         if got is None:
-            got = self._respond(active, t if q is None else q * self.quantum)
+            got = compute()
             if len(self._responses) >= _RESPONSES_KEPT:
-                self._responses.pop(next(iter(self._responses)))  # the oldest set
+                self._responses.pop(next(iter(self._responses)))  # the oldest
             self._responses[key] = got
         return got
 

@@ -230,6 +230,11 @@ class FitRunner:
             return []
         has_firm = firm is not None
         rs = np.full(2, np.inf) if ring_noise is None else RING_SIGNAL * np.asarray(ring_noise, dtype=np.float64)
+        # contiguous, whatever the caller's readings are (a grid's columns of its (n, 2) ΔC, a
+        # robot link's gathered rows): one compiled signature, the one the worker's warm-up
+        # loads (a second cost 25 ms of compiling, mid-run, at a robot skin's first press)
+        c1, c2 = np.ascontiguousarray(c1), np.ascontiguousarray(c2)
+        firm = None if firm is None else np.ascontiguousarray(firm)
         ooff, nm, obs, quiet, a, f, y, sigma0, any_valid, is_firm, cx, cy, s_tot, f_sum = gather_clusters(
             labels, self._nb_ptr, self._nb, finite, c1, c2, valid, force, area, firm if has_firm else c1, has_firm,
             rs, lay.centres, self.par, float(1.0 / self.noise[0] ** 2), float(1.0 / self.noise[1] ** 2))

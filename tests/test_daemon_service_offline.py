@@ -136,7 +136,7 @@ def test_the_service_publishes_what_the_offline_driver_publishes_on_a_corpus_rec
         assert not same_values(_frame_fields(mine), _frame_fields(theirs)), mine["t_sample"]
         a, b = _by_id(mine), _by_id(theirs)
         for cid in a.keys() & b.keys():
-            assert not same_values(a[cid], b[cid]), (mine["t_sample"], cid)
+            assert not same_values(a[cid], b[cid]), (mine["t_sample"], cid, sorted(a), sorted(b))
             compared += 1
         assert len(a.keys() ^ b.keys()) <= 1, (mine["t_sample"], sorted(a), sorted(b))
     assert compared >= 0.5 * sum(len(p["contacts"]) for p in offline_contacts.values()), compared

@@ -70,9 +70,9 @@ def test_a_job_whose_arguments_do_not_pickle_does_not_shift_later_results() -> N
             assert f1.exception(5) is not None
         f2 = w.submit(pow, 2, 3)
         f3 = w.submit(pow, 2, 4)
-        got = f2.result(10)
+        got = f2.result(60)
         assert got == 8, f"job pow(2, 3) got the result {got} (of the job after it)"
-        assert f3.result(10) == 16
+        assert f3.result(60) == 16
     finally:
         _end(w)
 
@@ -87,13 +87,13 @@ def test_an_exception_that_does_not_unpickle_fails_its_future_and_the_worker_goe
     try:
         bad = w.submit(_raise_two_args)
         try:
-            bad.result(5)
+            bad.result(60)
         except concurrent.futures.TimeoutError:
             pytest.fail("the future of a job whose exception does not unpickle never completes "
                         f"(reader thread alive: {w._reader is not None and w._reader.is_alive()})")
         except Exception:
             pass  # any exception is fine
-        assert w.submit(pow, 2, 2).result(5) == 4 or True
+        assert w.submit(pow, 2, 2).result(60) == 4  # the process goes on
     finally:
         _end(w)
 
@@ -104,7 +104,7 @@ def test_after_an_exception_that_does_not_unpickle_later_jobs_do_not_hang() -> N
         w.submit(_raise_two_args)
         nxt = w.submit(pow, 2, 2)
         try:
-            nxt.result(5)
+            nxt.result(60)
         except concurrent.futures.TimeoutError:
             pytest.fail("a job after it hangs for ever: the executor is not broken, its reader is dead")
         except BrokenWorker:
@@ -136,7 +136,7 @@ def test_big_jobs_and_big_results_do_not_deadlock() -> None:
     try:
         ok = done.wait(15)
         assert ok, "submit() blocked for good: caller, reader and worker deadlocked"
-        assert futs[2].result(15) == big
+        assert futs[2].result(60) == big
     finally:
         _end(w)  # (the kill breaks the deadlock: the caller's send() gets EPIPE)
         t.join(5)
@@ -236,8 +236,8 @@ def test_huge_result_and_unpicklable_result() -> None:
     try:
         assert len(w.submit(_sleep_then_big, 0.0, 50 * 1024 * 1024).result(30)) == 50 * 1024 * 1024
         with pytest.raises(RuntimeError, match="does not pickle"):
-            w.submit(threading.Lock).result(10)  # a lock does not pickle
-        assert w.submit(pow, 2, 5).result(10) == 32
+            w.submit(threading.Lock).result(60)  # a lock does not pickle
+        assert w.submit(pow, 2, 5).result(60) == 32
     finally:
         _end(w)
 
@@ -250,10 +250,10 @@ def test_submit_after_the_process_died_and_after_kill() -> None:
         os.kill(w.pid, signal.SIGKILL)
         for _ in range(20):  # whether or not the reader has seen the EOF yet
             with pytest.raises(BrokenWorker):
-                w.submit(pow, 2, 2).result(5)
+                w.submit(pow, 2, 2).result(60)
         w.kill()
         with pytest.raises(BrokenWorker):
-            w.submit(pow, 2, 2).result(5)
+            w.submit(pow, 2, 2).result(60)
         w.shutdown(wait=True)
         with pytest.raises(RuntimeError):
             w.submit(pow, 2, 2)
@@ -272,9 +272,11 @@ def test_kill_races_with_results_in_flight() -> None:
             k = threading.Thread(target=w.kill)
             k.start()
             k.join(5)
+            _, pending = concurrent.futures.wait(futs, timeout=60)  # (one bound for all: a hang fails once)
+            assert not pending, f"{len(pending)} futures never completed"
             for i, f in enumerate(futs):
                 try:
-                    assert f.result(5) == 2 ** i
+                    assert f.result(0) == 2 ** i
                 except BrokenWorker:
                     pass
         finally:
@@ -406,9 +408,9 @@ def test_a_replacement_worker_that_hangs_too_is_caught_by_the_timeout(monkeypatc
         assert await cw.estimate(job(True), 1.0) is None  # type: ignore[arg-type]
         assert cw.stats["worker_restarts"] == 1
         try:
-            await asyncio.wait_for(cw.estimate(job(True), 1.0), 6)  # type: ignore[arg-type]
+            await asyncio.wait_for(cw.estimate(job(True), 1.0), 60)  # type: ignore[arg-type]
         except TimeoutError:
-            pytest.fail("the replacement's first estimate (timeout=1.0) hung for 6 s with no timeout")
+            pytest.fail("the replacement's first estimate (timeout=1.0) hung for 60 s with no timeout")
 
     try:
         asyncio.run(scenario())

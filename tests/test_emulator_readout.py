@@ -220,6 +220,47 @@ def test_a_record_too_large_for_a_frame_fills_each_part_before_the_next() -> Non
                                               a.missing, a.span_us))
 
 
+def test_a_split_record_has_the_parts_that_filling_entry_by_entry_gives() -> None:
+    """``_split`` finds each part by bisection: its parts are exactly those of adding the
+    entries one by one until the next would not fit, for records of every size, with
+    small and large values (a packed entry from 1 to 9 bytes a number), with the
+    gateway's room kept or not."""
+    import random
+
+    from cellbridge.emulator.firmware.readout import _fits, _part, _split
+
+    def one_by_one(r: Readout, room: int) -> list[Readout]:
+        if _fits(r, room):
+            return [r]
+        items: list[tuple[str, object]] = [("s", s) for s in r.samples]
+        items += [("u", b) for b in r.unchanged] + [("m", b) for b in r.missing]
+        out: list[Readout] = []
+        part: list[tuple[str, object]] = []
+        for item in items:
+            if part and not _fits(_part(r, [*part, item]), room):
+                out.append(_part(r, part))
+                part = []
+            part.append(item)
+        return [*out, _part(r, part)]
+
+    rng = random.Random(5)
+    split = 0
+    for _ in range(400):
+        ids = sorted(rng.sample(range(1, 70_000), rng.randint(2, 80)))
+        kinds = [rng.choice("ssum") for _ in ids]
+        big = rng.choice([10, 70_000, 2**31])
+        r = Readout(rng.randrange(2**32), 100, Mode.COUNTER, 1,
+                    tuple(ReadoutSample(b, rng.randrange(big), rng.randrange(big), rng.randrange(4))
+                          for b, k in zip(ids, kinds) if k == "s"),
+                    tuple(b for b, k in zip(ids, kinds) if k == "u"),
+                    tuple(b for b, k in zip(ids, kinds) if k == "m"), rng.randrange(2**20), 0, 1, rng.randrange(3))
+        room = rng.choice([0, 5])
+        parts = _split(r, room)
+        assert parts == one_by_one(r, room)
+        split += len(parts) > 1
+    assert split > 100  # the records did need splitting, most of them into several parts
+
+
 @pytest.mark.parametrize("n", [0, 1, 2, 3, 4, 6, 9, 14, 20])
 def test_whether_a_record_fits_is_what_its_packed_size_says(n: int) -> None:
     """``_fits`` skips packing a record whose largest possible encoding fits: its answer

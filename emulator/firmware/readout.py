@@ -541,23 +541,39 @@ def _split(r: Readout, room: int = 0) -> list[Readout]:
     """``r`` as payloads that each fit one frame with ``room`` bytes to spare, each filled
     before the next is begun: a relay near the gateway carries most of the skin's samples,
     and its records' headers and frames are the cells' overhead (halving a record of 20
-    samples sent four frames of 5 to 10 samples where two do)."""
+    samples sent four frames of 5 to 10 samples where two do).
+
+    Each part is the longest run of the entries left that fits (one entry at least): what
+    adding entries one by one until the next would not fit gives, since a payload only
+    grows with its entries. The run is found by bisection, a few packings a part instead
+    of one per entry (a gateway splits its record every frame)."""
     if _fits(r, room):
         return [r]
-    items = [("s", s) for s in r.samples] + [("u", b) for b in r.unchanged] + [("m", b) for b in r.missing]
+    items: list[tuple[str, object]] = [("s", s) for s in r.samples]
+    items += [("u", b) for b in r.unchanged] + [("m", b) for b in r.missing]
     if len(items) <= 1:
         raise ProtocolError("too_large", "one readout entry does not fit a frame")
     out: list[Readout] = []
-    part: list[tuple[str, object]] = []
-    for item in items:
-        if part and not _fits(_part(r, part + [item]), room):
-            out.append(_part(r, part))
-            part = []
-        part.append(item)
-    last = _part(r, part)
-    if not _fits(last, room):
+    n = len(items)
+    first = 0
+    whole_fits = False  # whether items[first:] fits (not for the whole record: checked above)
+    while first < n:
+        if first and _fits(_part(r, items[first:]), room):
+            whole_fits = True
+            end = n
+        else:
+            lo, hi = first + 1, n - 1  # items[first:lo] is taken even when it does not fit
+            while lo < hi:
+                mid = (lo + hi + 1) // 2
+                if _fits(_part(r, items[first:mid]), room):
+                    lo = mid
+                else:
+                    hi = mid - 1
+            end = lo
+        out.append(_part(r, items[first:end]))
+        first = end
+    if not whole_fits and not _fits(out[-1], room):
         raise ProtocolError("too_large", "one readout entry does not fit a frame")
-    out.append(last)
     return out
 
 

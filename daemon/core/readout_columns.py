@@ -33,12 +33,13 @@ _MODES = tuple(Mode)
 _NO_INT = -1  # (a value the compiled reader did not take as a canonical non-negative int)
 
 
-@dataclass(frozen=True, slots=True, eq=False)
+@dataclass(slots=True, eq=False)  # (not frozen: a frozen dataclass's __init__ costs a µs more, a record)
 class ReadoutColumns:
     """One READOUT record part (the fields of :class:`~cellbridge.protocol.Readout`) with
     its samples as one int64 array of rows (bridge, c1, c2, flags), and ``unchanged`` and
     ``missing`` as int64 arrays (each list strictly increasing, no bridge in two of the
-    three). ``mode`` is the :class:`~cellbridge.protocol.Mode` value as an int."""
+    three). ``mode`` is the :class:`~cellbridge.protocol.Mode` value as an int. Read only:
+    nothing changes a record once it is read."""
 
     index: int
     rate: int

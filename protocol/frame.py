@@ -23,8 +23,10 @@ datagrams are fragmented (:mod:`cellbridge.protocol.fragment`).
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntFlag
+from typing import Any
 
 from cellbridge.protocol.crc import crc16
 from cellbridge.protocol.errors import ProtocolError
@@ -77,6 +79,7 @@ _FRAGMENT = int(Flags.FRAGMENT)  # plain int: IntFlag arithmetic is slow on the 
 _UNKNOWN_MUST_UNDERSTAND = MUST_UNDERSTAND_MASK & ~_FRAGMENT
 _BUNDLE = int(FrameType.BUNDLE)
 _HELLO = int(FrameType.HELLO)
+_READOUT = int(FrameType.READOUT)
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,7 +167,7 @@ def encode(frame: Frame) -> bytes:
     return body + _CRC.pack(crc16(body))
 
 
-def decode(data: bytes | bytearray | memoryview) -> Frame:
+def decode(data: bytes | bytearray | memoryview, readout: Callable[[bytes], Any] | None = None) -> Frame:
     """Wire bytes (no COBS) to a validated :class:`Frame`.
 
     Raises only :class:`ProtocolError`; its ``cause`` names what was wrong
@@ -176,6 +179,11 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
     decodes into today's message (the fields later versions added at their defaults),
     which ``encode`` writes as version 4: ``decode(encode(decode(x))) == decode(x)``. A
     frame type newer than the frame's version (READOUT before version 4) is ``type``.
+
+    ``readout``: a reader of a whole current-version READOUT payload that gives its own
+    form of the record, or None to leave the payload to :func:`unpack_payload` (a reader
+    that gives a value for a payload must give it only where ``unpack_payload`` decodes
+    that payload, and be the same record: the daemon reads its records into columns).
     """
     n = len(data)
     if n < MIN_FRAME:
@@ -206,7 +214,9 @@ def decode(data: bytes | bytearray | memoryview) -> Frame:
             raise ProtocolError("fragment", "a bundle is never fragmented")
         payload = Fragment(FrameType(ftype), tag, offset, total, chunk, ver)
     else:
-        payload = unpack_payload(ftype, data[HEADER_LEN:-CRC_LEN], ver)
+        body = data[HEADER_LEN:-CRC_LEN]
+        fast = readout(body) if readout is not None and ftype == _READOUT and ver == VERSION else None
+        payload = fast if fast is not None else unpack_payload(ftype, body, ver)
         if ftype == _HELLO:
             check_origin(origin, payload)
     return Frame(src, dst, origin, seq, payload, hops, cost, flags & OPTIONAL_MASK)

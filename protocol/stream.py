@@ -10,7 +10,8 @@ after line noise) discards only the garbage up to the first delimiter.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from cellbridge.protocol.errors import ProtocolError
 from cellbridge.protocol.frame import MAX_FRAME, MIN_FRAME, Frame, decode, encode
@@ -44,10 +45,13 @@ class StreamDecoder:
     Causes: ``overlong`` (more bytes than any valid frame before a delimiter),
     ``cobs`` (invalid COBS), and the :class:`ProtocolError` causes of
     :func:`decode` (``crc``, ``short``, ``version``, ...).
+
+    ``readout``: :func:`decode`'s reader of READOUT payloads (None: the plain messages).
     """
 
-    def __init__(self, max_frame: int = MAX_FRAME) -> None:
+    def __init__(self, max_frame: int = MAX_FRAME, readout: Callable[[bytes], Any] | None = None) -> None:
         self.max_buffer = max_encoded_len(max_frame)
+        self.readout = readout
         self._buf = bytearray()
         self._skipping = False  # inside an over-long run: discard until the next delimiter
         self._skip_cause = "overlong"  # what the skipped bytes are counted as
@@ -167,7 +171,7 @@ class StreamDecoder:
             self._dropped("short", len(encoded))
             return
         try:
-            out.append(decode(raw))
+            out.append(decode(raw, self.readout))
         except ProtocolError as exc:
             self._dropped(exc.cause, len(encoded))
             return

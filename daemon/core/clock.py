@@ -27,17 +27,15 @@ import math
 from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from operator import itemgetter
 from typing import NamedTuple, Protocol
 
 import numpy as np
-from cellbridge.daemon.core.wire import PART_BYTES, Readout
+from cellbridge.daemon.core.wire import PART_BYTES, ReadoutColumns
 from numpy.typing import NDArray
 
 #: Global cycles fit 62 bits: an index whose instant does not is nonsense.
 _CYCLE_END = 1 << 62
 _NOT_HELD = (-1, 0.0, -1)  # SkinClock.held of a gateway with no point held
-_bridge_of = itemgetter(0)  # a readout sample's bridge
 
 
 class BridgeClock:
@@ -528,7 +526,7 @@ class MeshMaps(Protocol):
 
     def frame_times(self, root: int, g: NDArray[np.int64], now: float) -> NDArray[np.float64] | None: ...
 
-    def record(self, gateway: int, rec: Readout, root: int, g: int, now: float,
+    def record(self, gateway: int, rec: ReadoutColumns, root: int, g: int, now: float,
                serial: float) -> tuple[float, bool]: ...
 
 
@@ -609,7 +607,7 @@ class HostTimes:
             t = np.where(m.on_time, m.t_frame, t)
         return SampleTimes(t, self.bridges.seconds(origin, cycle), m.cycle, newest, resets, m.rejected, m.jumped)
 
-    def records(self, link: str, records: Iterable[tuple[int, Readout]], now: float) -> list[RecordTime]:
+    def records(self, link: str, records: Iterable[tuple[int, ReadoutColumns]], now: float) -> list[RecordTime]:
         """READOUT record parts gateways wrote on ``link``, arrived at ``now``: each teaches
         its root's map (it cannot reach the host before its frame's gates opened: a gateway
         sends it as soon as it is complete, the schedule's end being only the latest) and
@@ -627,7 +625,7 @@ class HostTimes:
             if not math.isfinite(t):
                 out.append(RecordTime(jumped, None, None))
                 continue
-            out.append(RecordTime(jumped, list(map(_bridge_of, rec.samples)), rec.unchanged))
+            out.append(RecordTime(jumped, rec.samples[:, 0].tolist(), rec.unchanged.tolist()))
         return out
 
 

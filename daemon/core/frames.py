@@ -44,13 +44,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass
-from itertools import chain
 from operator import attrgetter
 from typing import Any, Protocol
 
 import numpy as np
+from cellbridge.daemon.core.readout_columns import ReadoutColumns
 from numpy.typing import NDArray
 
 #: Frame instants are kept as integer nanoseconds of mesh time (``index * 1e9 // rate``),
@@ -78,7 +77,9 @@ _BY_KEY = attrgetter("key")  # a pending frame's instant (the order frames go ou
 
 
 class RecordPart(Protocol):
-    """What a READOUT frame carries (``cellbridge.protocol.Readout`` is one)."""
+    """What a READOUT frame carries (:class:`~cellbridge.daemon.core.readout_columns.ReadoutColumns`
+    is one, and so is ``cellbridge.protocol.Readout``: the frame reads the samples, unchanged
+    and missing lists of either)."""
 
     @property
     def index(self) -> int: ...
@@ -88,12 +89,6 @@ class RecordPart(Protocol):
     def mode(self) -> int: ...
     @property
     def oversampling(self) -> int: ...
-    @property
-    def samples(self) -> Sequence[tuple[int, int, int, int]]: ...
-    @property
-    def unchanged(self) -> Sequence[int]: ...
-    @property
-    def missing(self) -> Sequence[int]: ...
     @property
     def span_us(self) -> int: ...
     @property
@@ -421,37 +416,40 @@ class SkinFrames:
 def _frame(p: _Pending, complete: bool, by_deadline: bool, after_gap: bool, owner: SkinFrames) -> SkinFrame:
     """The frame of ``p``'s record parts: every bridge in one state; a bridge two parts
     disagree on (not a sample or unchanged against missing) is missing, and counted."""
-    samples: list[tuple[int, int, int, int]] = []  # every part's (bridge, c1, c2, flags), in order
+    blocks: list[NDArray[np.int64]] = []  # every part's samples, (n, 4) rows of bridge, c1, c2, flags, in order
     kinds: list[tuple[int, int, int]] = []  # per part with samples: its mode, oversampling, how many
-    unchanged: list[int] = []
-    missing: list[int] = []
+    unchanged: list[NDArray[np.int64]] = []
+    missing: list[NDArray[np.int64]] = []
     for gw, parts in p.records.items():
         fresh = gw in p.fresh and not after_gap  # its record before is in no frame here
-        for rec in parts.values():
-            if rec.samples:
-                samples.extend(rec.samples)
-                kinds.append((int(rec.mode), rec.oversampling, len(rec.samples)))
-            if fresh and rec.unchanged:
-                owner.counts["unchanged_after_gap"] += len(rec.unchanged)
-                missing.extend(rec.unchanged)
-            else:
-                unchanged.extend(rec.unchanged)
-            missing.extend(rec.missing)
+        for part in parts.values():
+            rec = part if type(part) is ReadoutColumns else ReadoutColumns.of(part)  # type: ignore[arg-type]  # a plain Readout
+            n = rec.samples.shape[0]
+            if n:
+                blocks.append(rec.samples)
+                kinds.append((rec.mode, rec.oversampling, n))
+            if rec.unchanged.size:
+                if fresh:
+                    owner.counts["unchanged_after_gap"] += rec.unchanged.size
+                    missing.append(rec.unchanged)
+                else:
+                    unchanged.append(rec.unchanged)
+            if rec.missing.size:
+                missing.append(rec.missing)
     if after_gap and unchanged:  # "unchanged" may refer to a sample in the frame lost
-        owner.counts["unchanged_after_gap"] += len(unchanged)
+        owner.counts["unchanged_after_gap"] += sum(u.size for u in unchanged)
         missing, unchanged = missing + unchanged, []
-    # One pass over every part's samples, not a list per column and part (a part per gateway,
-    # a hundred frames a second). (np.fromiter: a thousand ids of Python ints a frame,
-    # twice as fast as np.array.)
-    n = len(samples)
-    b, c1, c2, fl = np.fromiter(chain.from_iterable(samples), np.int64, 4 * n).reshape(n, 4).T.copy()
+    # The parts' columns joined: each part's samples are one array from its payload's bytes
+    # (:mod:`cellbridge.daemon.core.readout_columns`), no Python object per sample.
+    b, c1, c2, fl = (np.concatenate(blocks) if blocks else np.zeros((0, 4), np.int64)).T.copy()
     if kinds:
         k = np.array(kinds, dtype=np.int64)
         mo, ov = np.repeat(k[:, 0], k[:, 2]), np.repeat(k[:, 1], k[:, 2])
     else:
         mo = ov = np.zeros(0, np.int64)
     arrays = [b, c1, c2, fl, mo, ov]
-    u, m = np.fromiter(unchanged, np.int64, len(unchanged)), np.fromiter(missing, np.int64, len(missing))
+    u = np.concatenate(unchanged) if unchanged else np.zeros(0, np.int64)
+    m = np.concatenate(missing) if missing else np.zeros(0, np.int64)
     every = np.sort(np.concatenate([b, u, m]))
     if (every[1:] == every[:-1]).any():  # a bridge in two parts or two gateways' records (sorted:
         # side by side; np.unique hashed them, four times as long)

@@ -48,7 +48,7 @@ from cellbridge.daemon.core.messages import (
 )
 from cellbridge.daemon.core.surface import contact_fields, skin_report
 from cellbridge.daemon.core.topology import Topology as Routes
-from cellbridge.daemon.core.wire import NO_MESH_TIME, OPS, Decoded, Ingress, Readout, SampleColumns
+from cellbridge.daemon.core.wire import NO_MESH_TIME, OPS, Decoded, Ingress, ReadoutColumns, SampleColumns
 from cellbridge.tactile import ElementParams, SkinLayout
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
@@ -189,7 +189,7 @@ class Pipeline:
                 if gate:
                     self.batches.set_gate(origin, gate)
 
-    def _readouts(self, link: str, records: list[tuple[int, Readout]], now: float) -> None:
+    def _readouts(self, link: str, records: list[tuple[int, ReadoutColumns]], now: float) -> None:
         """READOUT record parts teach the skin's time and join their frames
         (:meth:`HostTimes.records`); the bridges each accounts for were heard."""
         for r in self.clock.records(link, records, now):

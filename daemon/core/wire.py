@@ -2,9 +2,10 @@
 
 Everything the daemon needs from the wire protocol passes through here (stream
 decoding per link, cross-link duplicate removal, reassembly, bundles, command
-frames), so a change of the protocol's API touches this module only. Samples leave
-as numpy columns at once: per-sample Python objects beyond the decoder would cap
-ingest far below 100 000 samples a second.
+frames), so a change of the protocol's API touches this module only (and
+:mod:`~cellbridge.daemon.core.readout_columns`, its reader of READOUT payloads). Samples
+leave as numpy columns at once: per-sample Python objects beyond the decoder would cap
+ingest far below 100 000 samples a second; a readout record's samples are never objects.
 """
 
 from __future__ import annotations
@@ -12,8 +13,10 @@ from __future__ import annotations
 import itertools
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import numpy as np
+from cellbridge.daemon.core.readout_columns import ReadoutColumns, readout_columns
 from cellbridge.protocol import (
     ADDR_BROADCAST,
     ADDR_HOST,
@@ -39,7 +42,7 @@ from cellbridge.protocol import (
 from numpy.typing import NDArray
 
 __all__ = ["ADC_MODE", "ADDR_BROADCAST", "Decoded", "HELD", "NO_MESH_TIME", "Ingress", "Mode", "OPS", "OVERFLOW_C1", "OVERFLOW_C2",
-           "PART_BYTES", "Readout", "SampleColumns", "command_bytes", "mode_value"]
+           "PART_BYTES", "Readout", "ReadoutColumns", "SampleColumns", "command_bytes", "mode_value"]
 
 #: The protocol's numbers the sample columns carry, as plain ints for numpy.
 ADC_MODE = int(Mode.ADC)
@@ -112,8 +115,8 @@ class Decoded:
     frames_by_origin: dict[int, list[int]] = field(default_factory=dict)  # origin -> seqs, arrival order
     gateways: set[int] = field(default_factory=set)  # link-level senders (the gateway bridge)
     # READOUT record parts a gateway wrote itself (origin = link-level sender), in arrival
-    # order: (gateway, record part)
-    readouts: list[tuple[int, Readout]] = field(default_factory=list)
+    # order: (gateway, record part as columns)
+    readouts: list[tuple[int, ReadoutColumns]] = field(default_factory=list)
     foreign_readouts: int = 0  # READOUT frames whose origin is not the gateway that wrote them
     ignored: int = 0  # frames the host has no use for (LINK_ACK, CMD heard back)
 
@@ -137,14 +140,14 @@ class Ingress:
     def decoder(self, link: str) -> StreamDecoder:
         d = self.decoders.get(link)
         if d is None:
-            d = self.decoders[link] = StreamDecoder()
+            d = self.decoders[link] = StreamDecoder(readout=readout_columns)
             self.duplicates_by_link[link] = 0
         return d
 
     def reset_link(self, link: str) -> None:
         """A reconnected link starts mid-stream: forget its partial frame, keep its counters."""
         old = self.decoder(link)
-        fresh = StreamDecoder()
+        fresh = StreamDecoder(readout=readout_columns)
         fresh.frames_ok, fresh.bytes_ok, fresh.bytes_in = old.frames_ok, old.bytes_ok, old.bytes_in
         fresh.frames_dropped, fresh.bytes_dropped = old.frames_dropped, old.bytes_dropped
         self.decoders[link] = fresh
@@ -183,11 +186,12 @@ class Ingress:
         return out
 
     def _route(self, frame: Frame, out: Decoded, rows: list, meta: list) -> None:
-        p = frame.payload
-        if type(p) is Readout:  # (first: a skin on the readout schedule sends little else)
-            # a gateway writes its own record on its line; one relayed is no gateway's record
+        p: Any = frame.payload
+        if type(p) is ReadoutColumns or type(p) is Readout:  # (first: a skin on the readout
+            # schedule sends little else; a plain one was reassembled or bundled) a gateway
+            # writes its own record on its line; one relayed is no gateway's record
             if frame.src == frame.origin:
-                out.readouts.append((frame.origin, p))
+                out.readouts.append((frame.origin, ReadoutColumns.of(p) if type(p) is Readout else cast(ReadoutColumns, p)))
             else:
                 out.foreign_readouts += 1
         elif type(p) is Data:

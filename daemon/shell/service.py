@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import zmq
 import zmq.asyncio
+from cellbridge.daemon.core import readout_columns
 from cellbridge.daemon.core.commands import Pending
 from cellbridge.daemon.core.config import Config, ConfigError, load_config
 from cellbridge.daemon.core.contact_schedule import TICK as PIPELINE_TICK
@@ -484,10 +485,16 @@ class Service:
         self.pub.on_wanted = self.pipeline.want
 
     def _warm_calibration(self, done: threading.Event) -> None:
-        """In a thread at the start: the calibrator's compiled step loaded, or compiled on a fresh
-        installation (:mod:`cellbridge.tactile.calibration_kernel`); frames before it is warm are
-        stepped by numpy, with the same results, and so are all of them if it fails."""
+        """In a thread at the start: the READOUT reader (:mod:`cellbridge.daemon.core.readout_columns`)
+        and the calibrator's compiled step loaded, or compiled on a fresh installation
+        (:mod:`cellbridge.tactile.calibration_kernel`); frames before it is warm are stepped by
+        numpy, with the same results, and so are all of them if it fails (and a reader that
+        fails leaves every record to the plain decoder)."""
         t0 = time.monotonic()
+        # (first the READOUT reader, a quarter of the calibrator's time: the ingest's, which
+        # otherwise compiled at the first record, holding the loop)
+        if not readout_columns.warm_up():
+            event(self.log, "warning", "compiled READOUT reader unavailable: records are read by the plain decoder")
         try:
             from cellbridge.tactile import calibration_kernel
 

@@ -186,7 +186,7 @@ def test_the_warm_up_loads_the_reader_and_a_reader_that_fails_leaves_every_recor
         calls.append(1)
         raise TypeError("cannot compile")
 
-    monkeypatch.setattr(rc, "_parse", broken)
+    monkeypatch.setattr(rc, "_PARSE", [broken])
     monkeypatch.setattr(rc, "_USABLE", [True])
     assert readout_columns(payload) is None and readout_columns(payload) is None
     assert len(calls) == 1  # not tried again

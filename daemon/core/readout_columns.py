@@ -19,12 +19,12 @@ exactly as before.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from cellbridge.protocol import Mode, Readout, ReadoutSample
-from cellbridge.tactile._jit import compiled
 from numpy.typing import NDArray
 
 __all__ = ["ReadoutColumns", "readout_columns"]
@@ -83,7 +83,8 @@ def readout_columns(payload: bytes) -> ReadoutColumns | None:
     if not _USABLE[0]:
         return None
     try:
-        head, samples, unchanged, missing = _parse(np.frombuffer(payload, dtype=np.uint8))
+        parse = _PARSE[0] if _PARSE else _compiled_parse()
+        head, samples, unchanged, missing = parse(np.frombuffer(payload, dtype=np.uint8))
     except Exception:  # (the compile failed: compiled code itself raises nothing here)
         _USABLE[0] = False
         return None
@@ -259,11 +260,22 @@ def _parse(buf: Any) -> tuple[Any, Any, Any, Any]:
     return head, samples, unchanged, missing
 
 
-_uint = compiled(_uint)
-_array = compiled(_array)
-_ids = compiled(_ids)
-_disjoint = compiled(_disjoint)
-_parse = compiled(_parse)
+_PARSE: list[Any] = []  # the compiled _parse, made at the first record (or the warm-up): a tool
+# importing the daemon's wire module does not import numba for it (0.2 s)
+_COMPILING = threading.Lock()  # (the warm-up's thread and the event loop may both be first)
+
+
+def _compiled_parse() -> Any:
+    """The compiled :func:`_parse` (its helpers compiled first: it calls them by name)."""
+    with _COMPILING:
+        if not _PARSE:
+            from cellbridge.tactile._jit import compiled
+
+            g = globals()
+            for name in ("_uint", "_array", "_ids", "_disjoint"):
+                g[name] = compiled(g[name])
+            _PARSE.append(compiled(_parse))
+    return _PARSE[0]
 
 
 def warm_up() -> bool:

@@ -361,26 +361,39 @@ def test_the_contact_worker_builds_a_grown_layouts_estimator_before_its_first_to
     assert any(r[1] == ran[first][1] for r in ran[:first])  # the worker built it before
 
 
+#: s of an event-based skin's run before its presses, and the daemon's baseline for them:
+#: a steady element of an event-based bridge sends at its heartbeat (1 s), so the default
+#: baseline of 50 quiet readings per element took 50 s of virtual time (60 s run before the
+#: presses: two thirds of these tests' CPU); 3 readings are there after 3 s, and the mesh is
+#: on mesh time by then (``test_emulator_meshtime``).
+EVENT_WARM_UP = 8.0
+EVENT_BASELINE = {"calibration": {"n_baseline": 3}}
+
+
 def test_corner_presses_on_a_contended_event_based_skin_keep_one_id_from_their_first_frame() -> None:
     """The real-time shells' latency model (message delays, 10 ms acknowledgement slack):
     the four bridges under a corner press send their onset samples at one instant and
     contend. With ``birth_frames = 1`` every frame counts, and one retried onset sample
     made a frame of three touched elements and one "untouched": two contacts, an extra id
-    (press 11 of these 12, before its neighbours were unknown at the onset)."""
+    (press 11 of these 12, before its neighbours were unknown at the onset).
+
+    The presses begin after ``EVENT_WARM_UP`` s, on baselines of ``EVENT_BASELINE`` readings
+    (see there)."""
     import random
 
     from cellbridge.emulator.mesh.virtual import Latency
 
     mesh = meshgen.grid(4, 4, gateways=(1,))
     rng = random.Random(0)
-    presses = [Contact(61.6 + i * 1.5 + rng.uniform(0, 0.01), 1.0, *CORNER, 3.0, 0.020) for i in range(12)]
+    presses = [Contact(EVENT_WARM_UP + 1.6 + i * 1.5 + rng.uniform(0, 0.01), 1.0, *CORNER, 3.0, 0.020)
+               for i in range(12)]
     vm = VirtualMesh(mesh, seed=0, world=World(mesh, presses), latency=Latency(), ack_slack=CLOCK_HZ // 100,
                      random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.run(presses[-1].start + 1.6)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
     run = [(t - T0, m) for t, topic, m in drive(reads, presses[-1].start + 1.6,
-                                                  sections={"contact": {"birth_frames": 1}})
-           if topic == "contact" and t - T0 > 60.0]
+                                                  sections={"contact": {"birth_frames": 1}, **EVENT_BASELINE})
+           if topic == "contact" and t - T0 > EVENT_WARM_UP]
     for k, c in enumerate(presses):
         during = [m for t, m in run if c.start <= t < c.start + c.duration + 0.3]
         ids = {d["id"] for m in during for d in m["contacts"]}
@@ -395,14 +408,17 @@ def test_presses_sliding_across_seams_of_an_event_based_skin_keep_one_id() -> No
     instants (a bridge sends a change only beyond its threshold). With ``birth_frames`` 1
     each such frame gave the press a second id beside it for a frame or two, with half its
     force (slides 3, 5 and 6 of these 6, 2.65 + 0.61 N, 2.03 + 0.87 N, 2.43 + 0.29 N, before
-    a split of a confirmed contact had to persist the tracker's ``split_frames``)."""
+    a split of a confirmed contact had to persist the tracker's ``split_frames``).
+
+    The slides begin after ``EVENT_WARM_UP`` s, on baselines of ``EVENT_BASELINE`` readings
+    (see there)."""
     import random
 
     from cellbridge.emulator.mesh.virtual import Latency
 
     mesh = meshgen.grid(4, 4, gateways=(1,))
     rng = random.Random(3)
-    presses, end = [], 62.0
+    presses, end = [], EVENT_WARM_UP + 2.0
     for _ in range(2):
         for x, y, vx, vy, hold in ((0.005, 0.06, 0.11, 0.0, 1.0), (0.005, 0.005, 0.11, 0.11, 0.9),
                                    (0.06, 0.002, 0.0, 0.3, 0.38)):
@@ -414,8 +430,8 @@ def test_presses_sliding_across_seams_of_an_event_based_skin_keep_one_id() -> No
                      random_epochs=True, settings=Settings(rate_hz=100, reporting=ReportingMode(40, 1000)), readout=True)
     vm.run(end)
     reads = [(T0 + t / CLOCK_HZ, data) for t, data in vm.serial_chunks[1]]
-    run = [(t - T0, m) for t, topic, m in drive(reads, end - 0.3)
-           if topic == "contact" and t - T0 > 61.0]
+    run = [(t - T0, m) for t, topic, m in drive(reads, end - 0.3, sections=EVENT_BASELINE)
+           if topic == "contact" and t - T0 > EVENT_WARM_UP + 1.0]
     for k, c in enumerate(presses):
         during = [m for t, m in run if c.start <= t < c.start + c.duration + 0.3]
         assert {d["id"] for m in during for d in m["contacts"]} and all(len(m["contacts"]) <= 1 for m in during), k

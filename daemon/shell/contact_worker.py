@@ -144,7 +144,7 @@ class ContactWorker:
         """``job`` as the worker takes it: with its spec while the current worker has not
         answered a request of it (or ``ship``), else by the spec's digest alone."""
         spec = job.spec
-        key = self._key  # (read once: a results thread, where there is one, writes it too, sending a request again)
+        key = self._key  # (read once: the results thread writes it too, sending a request again)
         if key is None or key[0] is not spec:
             key = self._key = (spec, spec.digest())
         shipped = self._shipped
@@ -155,7 +155,7 @@ class ContactWorker:
         """Hand ``job`` to the worker; a worker that has not the spec (:class:`SpecNeeded`:
         it was replaced, or dropped the owner's estimator) gets it sent along again, at
         once, before the answer is handed on."""
-        pool = self._executor()  # (the retry goes to the same worker: never a new one from where the result is read)
+        pool = self._executor()  # (the retry goes to the same worker: never a new one from the results thread)
         first = pool.submit(estimate, self._request(job))
         out: concurrent.futures.Future[Contacts] = concurrent.futures.Future()
         out.set_running_or_notify_cancel()

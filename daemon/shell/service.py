@@ -627,8 +627,8 @@ class Service:
 
 
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms). A
-#: contact estimate's result reached the loop through a result thread (the loop reads it
-#: itself now: daemon/shell/worker_process.py), and ZeroMQ's authenticator answers from its own; with the
+#: contact estimate's result reaches the loop through the worker's result thread
+#: (daemon/shell/worker_process.py), and ZeroMQ's authenticator answers from its own; with the
 #: loop busy on reads (1-5 ms of numpy work each, back to back around a press) such a
 #: thread waited up to a whole interval for its turn. Measured with the process pool the
 #: daemon used before, press to contact (bench/bench_press_latency.py --trace): submitted

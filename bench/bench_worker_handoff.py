@@ -7,8 +7,7 @@ The loop runs reads of 1-5 ms of small-array numpy work (what a serial read cost
 daemon around a press: docs/time.md) with 0-2 ms gaps; every 3-12 ms a job of 0.8 ms (an
 estimate of a press) is submitted and awaited. Compared: the standard library's
 ``ProcessPoolExecutor`` (one spawned process; at Python's default GIL switch interval,
-5 ms, and at the daemon's, 0.5 ms) and the daemon's ``WorkerProcess``, its results read by
-a thread of their own or, as in the daemon, by the event loop. Same seed, same
+5 ms, and at the daemon's, 0.5 ms) and the daemon's ``WorkerProcess``. Same seed, same
 loads: the table shows what the hand-offs cost, not the job.
 """
 
@@ -21,7 +20,6 @@ import multiprocessing
 import random
 import sys
 import time
-from collections.abc import Callable
 
 import numpy as np
 from cellbridge.daemon.shell.service import GIL_SWITCH_INTERVAL
@@ -55,17 +53,8 @@ async def _reads(rng: random.Random) -> None:
         await asyncio.sleep(rng.uniform(0.0, 0.002))
 
 
-async def _measure(make: Callable[[], concurrent.futures.Executor], jobs: int,
-                   seed: int) -> tuple[list[float], list[float]]:
-    ex = make()  # (in the running loop: the daemon's WorkerProcess is read by it)
-    try:
-        return await _measure_on(ex, jobs, seed)
-    finally:
-        ex.shutdown(wait=True)
-
-
-async def _measure_on(ex: concurrent.futures.Executor, jobs: int, seed: int) -> tuple[list[float], list[float]]:
-    await asyncio.wrap_future(ex.submit(job, 0))  # the process is up
+async def _measure(ex: concurrent.futures.Executor, jobs: int, seed: int) -> tuple[list[float], list[float]]:
+    ex.submit(job, 0).result()  # the process is up
     reads = asyncio.create_task(_reads(random.Random(seed)))
     rng = random.Random(seed + 1)
     began, total = [], []
@@ -88,18 +77,17 @@ def main() -> None:
     args = ap.parse_args()
     rows = []
     default = sys.getswitchinterval()
-    makers: dict[str, Callable[[], concurrent.futures.Executor]] = {
-        "ProcessPoolExecutor": lambda: concurrent.futures.ProcessPoolExecutor(
-            1, mp_context=multiprocessing.get_context("spawn")),
-        "WorkerProcess, a result thread": WorkerProcess,
-        "WorkerProcess, read by the loop (the daemon's)": lambda: WorkerProcess(asyncio.get_running_loop()),
-    }
     cases = [("ProcessPoolExecutor", default), ("ProcessPoolExecutor", GIL_SWITCH_INTERVAL),
-             ("WorkerProcess, a result thread", GIL_SWITCH_INTERVAL),
-             ("WorkerProcess, read by the loop (the daemon's)", GIL_SWITCH_INTERVAL)]
+             ("WorkerProcess", GIL_SWITCH_INTERVAL)]
     for name, interval in cases:
         sys.setswitchinterval(interval)
-        began, total = asyncio.run(_measure(makers[name], args.jobs, args.seed))
+        ex: concurrent.futures.Executor = (
+            concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            if name == "ProcessPoolExecutor" else WorkerProcess())
+        try:
+            began, total = asyncio.run(_measure(ex, args.jobs, args.seed))
+        finally:
+            ex.shutdown(wait=True)
         for what, ms in (("submitted -> began", began), ("submitted -> result in the loop", total)):
             a = np.asarray(ms)
             rows.append([name, f"{interval * 1e3:g}", what,

@@ -54,7 +54,7 @@ PROCESS_MODULES = frozenset({
     "test_plot_cli", "test_process_guard", "test_proxy", "test_recording_core", "test_recording_live", "test_recording_robust", "test_robot",
     "test_ros2_bag", "test_ros2_live", "test_skin_frames_live", "test_systemd_units", "test_tactile_kernel_cache",
     "test_tactile_lazy_kernels", "test_views_fuzz", "test_views_hostile", "test_views_live", "test_views_model",
-    "test_views_robot", "test_worker_process", "test_worker_process_attacks", "test_worker_process_loop",
+    "test_views_robot", "test_worker_process", "test_worker_process_attacks",
 })
 #: Fixtures that start a process or open a pty for the test that asks for them.
 PROCESS_FIXTURES = frozenset({"warm_kernels"})

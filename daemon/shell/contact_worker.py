@@ -43,14 +43,8 @@ CLOSE_WAIT = 2.0
 def process_pool() -> concurrent.futures.Executor:
     """The production executor: one spawned process (:class:`~cellbridge.daemon.shell.worker_process.WorkerProcess`),
     told first that it is the contact worker (its estimators' objects are kept out of the
-    cyclic collector's full passes: :func:`~cellbridge.daemon.core.contacts.in_worker`).
-    Made in a running event loop (the daemon's), that loop reads its results; elsewhere
-    a thread does."""
-    try:
-        loop: asyncio.AbstractEventLoop | None = asyncio.get_running_loop()
-    except RuntimeError:
-        loop = None
-    pool = WorkerProcess(loop)
+    cyclic collector's full passes: :func:`~cellbridge.daemon.core.contacts.in_worker`)."""
+    pool = WorkerProcess()
     pool.submit(in_worker)  # (jobs run in order: before the warm-up and every estimate)
     return pool
 

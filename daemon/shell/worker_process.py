@@ -6,11 +6,9 @@ through two of the pool's threads (its manager and its call queue's feeder), and
 to win the interpreter lock from the event loop, busy 1-5 ms with every serial read around
 a press. On a 4x4 skin at 100 Hz a contact job waited 0.9 / 3.1 / 5.2 ms (p50/p90/p99)
 from its submission to its start in the worker, longer than the estimate itself (1.6 ms).
-Here the caller writes the job down the process's pipe itself. The results come back
-through the daemon's event loop, which watches the pipe (given ``loop``): a result thread
-would be one more wake, and one more wait for the interpreter lock, on every estimate's way
-back (0.5 ms median on a 4x4 press). Without a loop (tools, tests), one thread reads them.
-``bench/bench_worker_handoff.py`` measures both under a loop busy like the daemon's.
+Here the caller writes the job down the process's pipe itself, and one thread reads the
+results: ``bench/bench_worker_handoff.py`` measures both under a loop busy like the
+daemon's.
 
 The process is spawned (a fork would copy the daemon's sockets). It ignores SIGINT and
 SIGTERM, from its first instruction on (a Ctrl-C in a terminal reaches the whole process
@@ -28,22 +26,16 @@ import atexit
 import collections
 import concurrent.futures
 import concurrent.futures.process
-import contextlib
 import ctypes
 import multiprocessing
 import multiprocessing.connection
 import os
 import signal
-import socket
-import struct
 import threading
 import weakref
 from collections.abc import Callable
 from multiprocessing.reduction import ForkingPickler
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:  # (not imported at run time: the spawned process starts without asyncio)
-    import asyncio
+from typing import Any
 
 BrokenWorker = concurrent.futures.process.BrokenProcessPool  #: what a job's future holds when the process died
 _ENDED_BY_DAEMON = {signal.SIGINT, signal.SIGTERM}  #: signals the worker leaves to the daemon
@@ -53,16 +45,10 @@ _LIVE: weakref.WeakSet[WorkerProcess] = weakref.WeakSet()  # workers started and
 class WorkerProcess(concurrent.futures.Executor):
     """An executor of one spawned process. :meth:`submit` sends the job at once, from the
     caller's thread (jobs are small: a contact request without its spec stays inside a
-    pipe's buffer even on a humanoid's skin). The futures complete in order: in ``loop``'s
-    thread, which reads the results as they come (without blocking: a result in pieces
-    waits for its rest in a buffer), or, without a loop, in a result thread. A process
-    that dies fails every pending future, and every later one, with ``BrokenProcessPool``.
+    pipe's buffer even on a humanoid's skin); a result thread completes the futures in order. A process that dies
+    fails every pending future, and every later one, with ``BrokenProcessPool``."""
 
-    With a loop, a result must fit the pipe's buffer while the loop's thread sends a job
-    that does not (it cannot read while it sends): contact results do (a few kB), and so do
-    the jobs, but for a spec shipped once per layout."""
-
-    def __init__(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
+    def __init__(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(target=_serve, args=(child, os.getpid()), name="cellbridge-contact-worker",
@@ -81,16 +67,8 @@ class WorkerProcess(concurrent.futures.Executor):
         self._broken = ""  # why the process can take no more jobs ("" while it can)
         self._shut = False
         _LIVE.add(self)
-        self._loop = loop
-        self._reader: threading.Thread | None = None
-        self._sock: socket.socket | None = None  # the loop's own handle of the pipe, read without blocking
-        self._inbox = bytearray()  # what the loop read of results not yet whole
-        if loop is None:
-            self._reader = threading.Thread(target=self._read, name="contact-worker-results", daemon=True)
-            self._reader.start()
-        else:
-            self._sock = socket.socket(fileno=os.dup(self._conn.fileno()))
-            loop.add_reader(self._sock.fileno(), self._readable)
+        self._reader = threading.Thread(target=self._read, name="contact-worker-results", daemon=True)
+        self._reader.start()
 
     @property
     def pid(self) -> int | None:
@@ -127,68 +105,27 @@ class WorkerProcess(concurrent.futures.Executor):
         return fut
 
     def _read(self) -> None:
-        """The result thread (no loop): each result as it comes, until the pipe ends."""
         try:
             while True:
                 try:
                     data = self._conn.recv_bytes()
                 except (EOFError, OSError):
                     break
-                self._take(data)
+                try:
+                    ok, value = ForkingPickler.loads(data)
+                except Exception as exc:  # pickled in the worker, does not unpickle here
+                    ok, value = False, RuntimeError(f"the job's reply does not unpickle: {type(exc).__name__}: {exc}")
+                with self._lock:
+                    if not self._pending:  # a result that came in as the process was killed
+                        continue
+                    fut = self._pending.popleft()
+                if ok:
+                    fut.set_result(value)
+                else:
+                    fut.set_exception(value)
         finally:
             self._fail("the contact worker process ended")
             self._conn.close()
-
-    def _readable(self) -> None:
-        """The loop's reader: what the pipe holds now, each whole result taken; at the
-        pipe's end (the process died or exited), the pending futures fail."""
-        sock = self._sock
-        if sock is None:
-            return
-        ended = False
-        try:
-            while True:
-                chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
-                if not chunk:
-                    ended = True
-                    break
-                self._inbox += chunk
-        except (BlockingIOError, InterruptedError):
-            pass
-        except OSError:
-            ended = True
-        for data in _messages(self._inbox):
-            self._take(data)
-        if ended:
-            self._detach()
-            self._fail("the contact worker process ended")
-            self._conn.close()
-
-    def _detach(self) -> None:
-        """The loop stops watching the pipe (before its handle closes: a closed fd's number
-        is soon another's)."""
-        sock, self._sock = self._sock, None
-        if sock is None:
-            return
-        loop = self._loop
-        if loop is not None and not loop.is_closed():
-            loop.remove_reader(sock.fileno())
-        sock.close()
-
-    def _take(self, data: bytes) -> None:
-        """One result: its future, the oldest pending, completes with it."""
-        try:
-            ok, value = ForkingPickler.loads(data)
-        except Exception as exc:  # pickled in the worker, does not unpickle here
-            ok, value = False, RuntimeError(f"the job's reply does not unpickle: {type(exc).__name__}: {exc}")
-        with self._lock:
-            if not self._pending:  # a result that came in as the process was killed
-                return
-            fut = self._pending.popleft()
-        if ok:
-            fut.set_result(value)
-        else:
-            fut.set_exception(value)
 
     def _fail(self, why: str) -> None:
         with self._lock:
@@ -202,8 +139,6 @@ class WorkerProcess(concurrent.futures.Executor):
         self._proc.kill()
         _LIVE.discard(self)
         self._fail("the contact worker process was killed")
-        if self._loop is not None:
-            self._stop_watching()
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         """No more jobs: the process ends once it has run those sent (at once with
@@ -220,10 +155,7 @@ class WorkerProcess(concurrent.futures.Executor):
                     pass  # gone already
         if wait:
             self._proc.join()
-            if self._reader is not None:
-                self._reader.join()
-            else:
-                self._stop_watching()
+            self._reader.join()
             _LIVE.discard(self)
 
     def end(self, wait: float) -> bool:
@@ -235,60 +167,11 @@ class WorkerProcess(concurrent.futures.Executor):
             self.kill()
             self._proc.join(1.0)
             return False
-        if self._loop is not None:
-            self._stop_watching()
         _LIVE.discard(self)
         return True
 
-    def _stop_watching(self) -> None:
-        """With a loop: the pipe is no longer read (the process ended or was killed); what
-        it still held is taken, the futures left fail. From the loop's thread, or handed to
-        it."""
-        loop = self._loop
-        assert loop is not None
-        if loop.is_closed():
-            self._detach()
-            return
-        import asyncio  # (the loop's owner has it loaded)
-
-        try:
-            running = asyncio.get_running_loop()
-        except RuntimeError:
-            running = None
-        if running is not loop:
-            loop.call_soon_threadsafe(self._stop_watching)
-            return
-        self._readable()  # (a last read: results, and the end if it is there)
-        self._detach()
-        self._fail("the contact worker process ended")
-        with contextlib.suppress(OSError):
-            self._conn.close()
-
 
 _END = bytes(ForkingPickler.dumps(None))  #: the last message a worker reads
-_SIZE = struct.Struct("!i")  # a message's length ahead of it (multiprocessing.connection's framing)
-_BIG = struct.Struct("!Q")  # after a length of -1: the length of a message over 2 GiB
-
-
-def _messages(inbox: bytearray) -> list[bytes]:
-    """The whole messages at the head of ``inbox``, taken out of it (a message in pieces
-    stays for the next read)."""
-    out = []
-    at = 0
-    while len(inbox) - at >= 4:
-        (n,) = _SIZE.unpack_from(inbox, at)
-        head = 4
-        if n == -1:
-            if len(inbox) - at < 12:
-                break
-            (n,) = _BIG.unpack_from(inbox, at + 4)
-            head = 12
-        if len(inbox) - at < head + n:
-            break
-        out.append(bytes(inbox[at + head:at + head + n]))
-        at += head + n
-    del inbox[:at]
-    return out
 
 
 @atexit.register

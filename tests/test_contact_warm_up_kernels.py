@@ -1,6 +1,7 @@
 """The contact worker's warm-up loads every compiled kernel an estimate needs, in the one
 signature the estimate calls it with: on a grid and on a robot's skin (wrap seams, links'
-rows gathered), no kernel compiles again after it. A second signature costs 25 ms of
+rows gathered), two disks in one cluster (split in two contacts) and the area method, no
+kernel compiles again after it. A second signature costs 25 ms of
 compiling mid-run, in the worker, on the estimate of a robot's first press: a latency spike
 where the daemon should be fastest.
 
@@ -33,11 +34,11 @@ def kernels():
                 out[f"{mod.__name__}.{k}"] = v
     return out
 
-def press(layout, params, bands, disks, rng):
+def press(layout, params, bands, disks, rng, method="capacitance"):
     dc1, dc2 = skin_response(layout, disks, params)
     dc = np.stack([dc1, dc2], axis=1) + rng.normal(0.0, 2e-15, (layout.n, 2))
     touched = (dc > 50e-15).any(axis=1)
-    stage = ContactStage(layout, params, 2e-15, "capacitance", birth_frames=1, bands=bands)
+    stage = ContactStage(layout, params, 2e-15, method, birth_frames=1, bands=bands)
     got = []
     for k in range(3):
         got += stage.run(EstimateRequest("t", b"", None, dc, touched, 0.01 * k, 0.01 * k, None, 0, ()))
@@ -48,6 +49,9 @@ before = {k: len(v.signatures) for k, v in kernels().items()}
 rng = np.random.default_rng(3)
 grid = grid_layout(4, 4)
 found = press(grid, default_params(grid), (), [(0.05, 0.05, 3.0, 0.012), (0.11, 0.12, 2.0, 0.01)], rng)
+grid8 = grid_layout(8, 8)  # two disks in one cluster: split in two contacts
+found += press(grid8, default_params(grid8), (), [(0.1, 0.1, 8.0, 0.0082), (0.08, 0.08, 1.0, 0.0169)], rng)
+found += press(grid, default_params(grid), (), [(0.05, 0.05, 3.0, 0.012)], rng, "area")  # the area method
 skin = parse_skin(ARM_SKIN, "arm skin")
 lay = skin.layout()
 c = lay.centres

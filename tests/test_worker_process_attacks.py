@@ -197,6 +197,33 @@ def test_a_stopping_contact_worker_does_not_start_a_new_process() -> None:
     assert len(made) == 1, f"{len(made)} executors made: a new worker was started during the stop"
 
 
+class _HungPool(concurrent.futures.Executor):
+    """An executor whose jobs never finish (a hung worker), killable."""
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        fut.set_running_or_notify_cancel()
+        return fut
+
+    def kill(self) -> None:
+        pass
+
+
+def test_a_worker_that_hangs_in_the_stop_is_not_said_to_be_replaced(caplog: pytest.LogCaptureFixture) -> None:
+    """The stop kills a hung worker and starts none: the log said "a new one starts"."""
+    import asyncio
+
+    cw = ContactWorker(logging.getLogger("attack-stop"), _HungPool)
+    cw.start()  # (its warm-up hangs too)
+    cw.stop()
+    with caplog.at_level(logging.ERROR, logger="attack-stop"):
+        assert asyncio.run(cw.estimate(_FakeJob(), 0.2)) is None  # type: ignore[arg-type]
+    said = [r.getMessage() for r in caplog.records]
+    assert any("contact worker hung: killed" in m for m in said), said
+    assert not any("a new one starts" in m for m in said), said
+    assert cw.stats["worker_restarts"] == 1 and cw._pool is None  # killed, none started
+
+
 # -- 5. interpreter exit with a live, stopped worker ---------------------------------------
 
 def test_a_daemon_exiting_with_a_stopped_worker_still_exits() -> None:

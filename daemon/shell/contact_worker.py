@@ -224,7 +224,8 @@ class ContactWorker:
             except Exception as exc:  # a bad estimate (or a dead worker) must not end contact publishing
                 self.stats["errors"] += 1
                 if isinstance(exc, asyncio.TimeoutError):
-                    event(self.log, "error", "contact worker hung: killed, a new one starts", timeout=timeout)
+                    event(self.log, "error", "contact worker hung: killed" + ("" if self._stopping else ", a new one starts"),
+                          timeout=timeout)
                     self._replace()
                 else:
                     event(self.log, "error", "contact estimation failed", error=f"{type(exc).__name__}: {exc}")

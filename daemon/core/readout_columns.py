@@ -19,7 +19,6 @@ exactly as before.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -262,19 +261,21 @@ def _parse(buf: Any) -> tuple[Any, Any, Any, Any]:
 
 _PARSE: list[Any] = []  # the compiled _parse, made at the first record (or the warm-up): a tool
 # importing the daemon's wire module does not import numba for it (0.2 s)
-_COMPILING = threading.Lock()  # (the warm-up's thread and the event loop may both be first)
 
 
 def _compiled_parse() -> Any:
-    """The compiled :func:`_parse` (its helpers compiled first: it calls them by name)."""
-    with _COMPILING:
-        if not _PARSE:
-            from cellbridge.tactile._jit import compiled
+    """The compiled :func:`_parse` (its helpers compiled first: it calls them by name). Two
+    callers at once (the daemon's warm-up thread and a first record) each compile what is
+    not compiled yet, and the first parse made is the one kept."""
+    if not _PARSE:
+        from cellbridge.tactile._jit import compiled
 
-            g = globals()
-            for name in ("_uint", "_array", "_ids", "_disjoint"):
-                g[name] = compiled(g[name])
-            _PARSE.append(compiled(_parse))
+        g = globals()
+        for name in ("_uint", "_array", "_ids", "_disjoint"):
+            f = g[name]  # (read once: a plain function, or another caller's compiled one)
+            if not hasattr(f, "py_func"):
+                g[name] = compiled(f)
+        _PARSE.append(compiled(_parse))
     return _PARSE[0]
 
 

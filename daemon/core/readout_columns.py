@@ -98,6 +98,15 @@ def readout_columns(payload: bytes) -> ReadoutColumns | None:
 # non-negative int in the smallest of fixint, uint8, 16, 32, 64; an array's length in the
 # smallest of fixarray, array16, array32. Anything else is not read here.
 
+def _be(buf: Any, at: int, k: int) -> Any:
+    """The big-endian unsigned int of the ``k`` bytes at ``at`` (the caller checked they are
+    there, and that 8 of them stay below 2**63)."""
+    v = np.int64(0)
+    for i in range(k):
+        v = (v << 8) | np.int64(buf[at + i])
+    return v
+
+
 def _uint(buf: Any, pos: int) -> tuple[Any, Any]:
     """The canonical non-negative int at ``pos`` (at most 2**63 - 1) and the position after
     it; ``_NO_INT`` when there is none."""
@@ -114,21 +123,17 @@ def _uint(buf: Any, pos: int) -> tuple[Any, Any]:
     if b == 0xCD:
         if pos + 3 > n:
             return _NO_INT, pos
-        v = (np.int64(buf[pos + 1]) << 8) | np.int64(buf[pos + 2])
+        v = _be(buf, pos + 1, 2)
         return (v, pos + 3) if v > 0xFF else (_NO_INT, pos)
     if b == 0xCE:
         if pos + 5 > n:
             return _NO_INT, pos
-        v = np.int64(0)
-        for i in range(1, 5):
-            v = (v << 8) | np.int64(buf[pos + i])
+        v = _be(buf, pos + 1, 4)
         return (v, pos + 5) if v > 0xFFFF else (_NO_INT, pos)
     if b == 0xCF:
         if pos + 9 > n or buf[pos + 1] >= 0x80:  # (beyond int64: the plain path's)
             return _NO_INT, pos
-        v = np.int64(0)
-        for i in range(1, 9):
-            v = (v << 8) | np.int64(buf[pos + i])
+        v = _be(buf, pos + 1, 8)
         return (v, pos + 9) if v > 0xFFFF_FFFF else (_NO_INT, pos)
     return _NO_INT, pos
 
@@ -145,14 +150,12 @@ def _array(buf: Any, pos: int) -> tuple[Any, Any]:
     if b == 0xDC:
         if pos + 3 > n:
             return _NO_INT, pos
-        v = (np.int64(buf[pos + 1]) << 8) | np.int64(buf[pos + 2])
+        v = _be(buf, pos + 1, 2)
         return (v, pos + 3) if v >= 16 else (_NO_INT, pos)
     if b == 0xDD:
         if pos + 5 > n:
             return _NO_INT, pos
-        v = np.int64(0)
-        for i in range(1, 5):
-            v = (v << 8) | np.int64(buf[pos + i])
+        v = _be(buf, pos + 1, 4)
         return (v, pos + 5) if v >= 0x10000 else (_NO_INT, pos)
     return _NO_INT, pos
 
@@ -271,7 +274,7 @@ def _compiled_parse() -> Any:
         from cellbridge.tactile._jit import compiled
 
         g = globals()
-        for name in ("_uint", "_array", "_ids", "_disjoint"):
+        for name in ("_be", "_uint", "_array", "_ids", "_disjoint"):
             f = g[name]  # (read once: a plain function, or another caller's compiled one)
             if not hasattr(f, "py_func"):
                 g[name] = compiled(f)

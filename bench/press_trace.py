@@ -66,10 +66,10 @@ def timed_estimate(req: EstimateRequest) -> list[dict[str, Any]]:
 
     from cellbridge.daemon.core.contacts import estimate
 
-    t0 = time.monotonic()
+    t0, c0 = time.monotonic(), time.thread_time()
     out = estimate(req)
     with open(os.environ[WORKER_TRACE], "a") as f:
-        f.write(f"{t0!r} {time.monotonic()!r}\n")
+        f.write(f"{t0!r} {time.monotonic()!r} {time.thread_time() - c0!r}\n")
     return out
 
 
@@ -255,7 +255,7 @@ def main() -> int:
         with contextlib.suppress(OSError):
             ran = [tuple(map(float, line.split())) for line in open(worker_file)]
             # each submitted job with the worker's start and end of it (jobs run one at a time, in order)
-            TRACE["x"] = [(a, s, e, b) for (a, b), (s, e) in zip(sorted(TRACE["x"]), ran)]
+            TRACE["x"] = [(a, s, e, b, c) for (a, b), (s, e, c) in zip(sorted(TRACE["x"]), ran)]
         with open(args.trace, "wb") as f:
             msgpack.pack(TRACE, f)
 
@@ -317,7 +317,7 @@ def breakdown(trace: dict[str, list[Any]], presses: list[tuple[float, float, flo
         if job is not None and "look" in row and job[0] >= tk + row["look"] / 1e3 - 1e-4:
             # the contact's job: submitted → worker began → worker ended → future done → published
             row["job"] = tuple(round(1e3 * v, 2) for v in (job[1] - job[0], job[2] - job[1], job[3] - job[2],
-                                                            pub[0] - job[3]))
+                                                            pub[0] - job[3], job[4]))
         est = next((e for e in ests if e[2] is not None and abs(e[2] - tp) < 1e-6), None)
         if est is not None:
             row["est"] = (1e3 * (est[0] - tk), 1e3 * (est[1] - tk))
@@ -374,7 +374,7 @@ def print_breakdown(rows: list[dict[str, Any]], share: float = 0.1) -> None:
     if jobs:
         print(f" the contact's job in the worker ({len(jobs)} presses), ms, p50/p90/p99/max:")
         for i, what in enumerate(("submitted -> worker began", "worker's estimate", "worker ended -> future done",
-                                  "future done -> published")):
+                                  "future done -> published", "(the estimate's CPU)")):
             xs = sorted(j[i] for j in jobs)
             qs = [xs[min(len(xs) - 1, int(q * len(xs)))] for q in (0.5, 0.9, 0.99)] + [xs[-1]]
             print(f"   {what:<28}" + "".join(f"{v:8.2f}" for v in qs))

@@ -22,7 +22,10 @@ The skin is ``cellbridge/skins/humanoid.toml`` (1 144 elements of 40 mm on 12 pa
    the daemon's own process, the rest being its contact worker's), peak
    resident memory (the largest of the group's processes), the latency of each ``contact``
    message during the 10-contact rounds (from the moment the replay fed the frame's last
-   gateway record to the message at the subscriber; the frame is known by its cycles),
+   gateway record to the message at the subscriber; the frame is known by the newest cycle
+   of a contact sampled in it, and placed by the message's ``t_sample``, less the *map
+   lag*: how much later than the frame's gate start the daemon's map of mesh time puts it,
+   about the quickest record's serial time, measured on the same recording in process),
    and the frames: complete by their records, by deadline, missed, late records; with the
    machine's load average and how late the replay fed its records at worst (a daemon that
    does not get its core falls behind the recording: its figures then say so). Periodic
@@ -154,10 +157,24 @@ def group_cpu_rss(pgid: int) -> tuple[float, int, float]:
     return cpu, rss, own
 
 
-def run_daemon(skin, gen: dict, into: Path, reporting: str, trace: list[list[object]] | None = None) -> list[object]:
+def frame_index(message: dict) -> int | None:
+    """The index of the skin frame a ``contact`` message estimated, from a contact with an
+    element sampled in that frame (its ``t_sample`` is the message's: its newest cycle is
+    the frame's); None when every contact's readings are older (held: event-based)."""
+    if message.get("t_sample") is None:
+        return None
+    fresh = [c for c in message["contacts"] if c.get("missed", 0) == 0 and c.get("t_sample") == message["t_sample"]
+             and c.get("cycles")]
+    return round(max(fresh[0]["cycles"]) * RATE / CLOCK) if fresh else None
+
+
+def run_daemon(skin, gen: dict, into: Path, reporting: str, trace: list[list[object]] | None = None,
+               map_lag: float = 0.0) -> list[object]:
     """The real daemon at real speed on the recording (see the module); ``trace``: run it
     through ``press_trace.py --light`` and append the breakdown row of its 10-contact
-    frames (:func:`breakdown_row`)."""
+    frames (:func:`breakdown_row`); ``map_lag``: s the daemon's map puts a frame after its
+    gate start (:func:`core_capacity`'s ``map_lags`` on the same recording), added back to
+    each latency measured from the message's ``t_sample``."""
     links = [{"name": f"gw{g}", "url": f"replay:{into / f'gw{g}.cbcap'}", "replay_speed": 1.0,
               "wait_for_subscriber": True} for g in gen["gateways"]]
     cfg = into / "daemon.toml"
@@ -195,14 +212,14 @@ def run_daemon(skin, gen: dict, into: Path, reporting: str, trace: list[list[obj
                         break
                     continue
                 live = [c for c in m["contacts"] if c.get("missed", 0) == 0]
-                if not live or m["t_sample"] is None:
+                k = frame_index(m)
+                if not live or k is None:
                     continue
-                k = round(live[0]["cycles"][0] * RATE / CLOCK)
                 t_in = (k / RATE) % ROUND
                 if len(live) >= 10 and FIRST % ROUND + 0.3 < t_in < FIRST % ROUND + HOLD - 0.1 and k in gen["last"]:
-                    # t_sample is the frame's gate start (on the host's map, learned from
-                    # each record's age and arrival): its last record was fed last[k] after it
-                    lat.append(now - m["t_sample"] - gen["last"][k])
+                    # t_sample is the frame's gate start on the host's map, map_lag late:
+                    # its last record was fed last[k] after the gate start
+                    lat.append(now - (m["t_sample"] - map_lag) - gen["last"][k])
                     got_at[m["t_sample"]] = now
                 contacts_max = max(contacts_max, len(live))
             cpu1, rss, own1 = group_cpu_rss(proc.pid)
@@ -278,12 +295,17 @@ def warm_calibration() -> None:
         warm_up()
 
 
-def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str, ...] | None = None) -> list[object]:
+def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str, ...] | None = None,
+                  map_lags: list[float] | None = None) -> list[object]:
     """The daemon's core on the same recording, in this process: the pipeline fed every read
     in order of arrival, a contact estimate per frame (inline, as the worker runs it); CPU
     per second of skin (what real speed needs of a core, whatever else the machine runs).
     The shell's share (asyncio, the replay's pacing, ZeroMQ) is left out. ``topics``: the
-    topics subscribed (the pipeline builds only their messages); None: every topic."""
+    topics subscribed (the pipeline builds only their messages); None: every topic.
+    ``map_lags``: appended, for every estimated frame :func:`frame_index` names, how much
+    later than its gate start the daemon's map put it (s): the host learns a frame's time
+    from its records' arrivals, and a record arrives its serial time after the gateway began
+    writing it, so the map is late by about the quickest record's serial time."""
     import hashlib
     import heapq
     import logging
@@ -314,10 +336,16 @@ def core_capacity(skin, gen: dict, into: Path, reporting: str, topics: tuple[str
             out += p.tick(t)
             tick = t + 0.1
         job = p.contact_job(t)
+        frame = None
         if job is not None:
-            out.append(p.contact_frame(job, w.estimate_now(job)))
+            frame = p.contact_frame(job, w.estimate_now(job))
+            out.append(frame)
             estimates += 1
         c2 = time.thread_time()
+        if map_lags is not None and frame is not None:
+            k = frame_index(frame.payload)
+            if k is not None:
+                map_lags.append(frame.payload["t_sample"] - p.wall_offset - (T0 + k / RATE))
         feed, est = feed + c1 - c0, est + c2 - c1
         for m in out:  # every output, outside the CPU measured
             digest.update(type(m).__name__.encode())
@@ -438,8 +466,10 @@ def main() -> int:
                              f"{g['counters'].get('unchanged', 0) / seconds:,.0f}",
                              f"{g['bytes'] / seconds / len(g['gateways']) / 1e3:.1f}"])
             if not a.skip_daemon:
-                daemon_rows.append(run_daemon(skin, g, into, reporting, trace_rows))
-                flat_rows.append(core_capacity(skin, g, into, reporting))
+                lags: list[float] = []
+                flat_rows.append(core_capacity(skin, g, into, reporting, map_lags=lags))
+                daemon_rows.append(run_daemon(skin, g, into, reporting, trace_rows, float(np.median(lags))))
+                daemon_rows[-1].insert(10, f"{1e3 * float(np.median(lags)):.2f}")
     short = 0.05 if a.quick else 0.2
     rate = cycle_mesh_rate(skin, short)
     gen_rows.append([f"cycle-level mesh (virtual time), {short} s", f"{short}", f"{rate * short:.1f}",
@@ -451,7 +481,7 @@ def main() -> int:
         table("The daemon at real speed on the humanoid (22 replay links at recorded speed; targets: periodic CPU "
               "≤ 1 core, event-based ≤ 0.25, RSS ≤ 250 MiB, p99 ≤ 10 ms, no frame lost)",
               ["reporting", "load avg", "samples/s", "CPU (cores)", "of it the daemon's own process", "peak RSS MiB", "replay fed late, max ms", "10-contact frames", "latency median ms",
-               "latency p99 ms", "most contacts", "frames complete", "by deadline", "missed", "late records"],
+               "latency p99 ms", "map lag ms", "most contacts", "frames complete", "by deadline", "missed", "late records"],
               daemon_rows)
     if trace_rows:
         table("Where the 10-contact frames' latency went (the traced daemon; ms, median / p99; each step from "

@@ -293,10 +293,12 @@ class ContactEstimator:
             for k, inside in enumerate(self._hints_in(clusters, hints, 2.0 * st[:, 2])):
                 if inside.shape[0] >= 1:
                     hinted[k] = True
-                    theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
+                    hx, hy, hd, hf = inside[0].tolist()
+                    theta0[k] = (hx, hy, math.log(hd), math.log(hf))
                 if inside.shape[0] >= 2:
                     pair_hints[k] = inside[:2]
-        free = np.tile(nd_free, (len(clusters), 1))
+        free = np.empty((len(clusters), 4), dtype=bool)
+        free[:] = nd_free
         batch = run.batch(clusters)
         fits = run.run(batch, theta0, free, 1, True)
         # A warm start in the wrong valley (the disk moved far since last frame) is
@@ -364,7 +366,7 @@ class ContactEstimator:
         for k in rows:
             cl = clusters[k]
             nm = cl.members.size
-            peak = np.nanmax(np.abs(cl.y[:, :nm]), axis=1)
+            peak = np.fmax.reduce(np.abs(cl.y[:, :nm]), axis=1)  # (nanmax's values, without its copies)
             tol = self.model_error * np.where(np.isfinite(peak), peak, 0.0)
             ring = cl.seen[cl.seen >= nm]
             y = cl.y.copy()
@@ -451,7 +453,7 @@ class ContactEstimator:
         humanoid's 1 144 elements comparing every hint with every element, then asking
         each cluster apart, cost a tenth of a frame's estimate."""
         members = [cl.members for cl in clusters]
-        sizes = np.array([m.size for m in members], dtype=np.int64)
+        sizes = np.fromiter((m.size for m in members), dtype=np.int64, count=len(members))
         b = self.layout.bounds[np.concatenate(members)]
         m = 0.25 * self.layout.side
         on = (
@@ -459,25 +461,33 @@ class ContactEstimator:
             & (hints[:, None, 1] >= b[None, :, 1] - m) & (hints[:, None, 1] <= b[None, :, 3] + m)
         )
         # (K, H): on one of the cluster's elements (a cluster has one member at least)
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        starts = np.zeros(sizes.size, dtype=np.int64)
+        np.cumsum(sizes[:-1], out=starts[1:])
         on_cluster = np.logical_or.reduceat(on, starts, axis=1).T
-        sound = np.all(np.isfinite(hints), axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0)
+        sound = np.isfinite(hints).all(axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0)
         with np.errstate(invalid="ignore", divide="ignore"):
             size_ok = np.abs(np.log(hints[None, :, 2] / np.asarray(d_start, dtype=np.float64)[:, None])) <= math.log(2.0)
         ok = on_cluster & sound[None, :] & size_ok
+        # (a cluster's hints by their rows, a view for one: most clusters hold one hint or none)
+        none = hints[:0]
         out = []
-        for k, cl in enumerate(clusters):
-            h = hints[ok[k]]
-            if h.shape[0] > 1:
-                cx, cy = cl.centroid
-                h = h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))]
-            out.append(h)
+        for k, at in enumerate(ok.tolist()):
+            n = at.count(True)
+            if n == 0:
+                out.append(none)
+            elif n == 1:
+                j = at.index(True)
+                out.append(hints[j : j + 1])
+            else:
+                h = hints[ok[k]]
+                cx, cy = clusters[k].centroid
+                out.append(h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))])
         return out
 
 
 def _ring_reads(cl: Cluster) -> bool:
     """Whether a quiet ring element of the cluster reads a share of its disk."""
-    return cl.quiet is not None and not bool(cl.quiet[cl.members.size :].all())
+    return cl.ring_reads
 
 
 def estimate_contacts(

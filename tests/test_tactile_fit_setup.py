@@ -1,0 +1,96 @@
+"""A frame's fit set-up taken in one pass over its clusters gives what a cluster at a time gave.
+
+The estimator poses its fits from the frame's clusters: each one's share-based start
+(:meth:`FitRunner.starts`), the hints that may start it (``ContactEstimator._hints_in``) and
+whether its quiet ring reads the disk (:attr:`Cluster.ring_reads`, kept once computed). Each
+is computed over the clusters' flat arrays, or kept; the plain forms (a cluster at a time,
+as they were written first) are the reference here, on random presses, readings and hints.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from cellbridge.tactile import ContactEstimator, grid_layout, skin_response
+from cellbridge.tactile.fit_problems import Cluster, FitRunner
+from hypothesis import given
+from hypothesis import strategies as st
+
+
+def _plain_starts(runner: FitRunner, clusters: list[Cluster]) -> np.ndarray:
+    """starts() of the clusters as a cluster at a time gives it (its ``areas`` path)."""
+    return runner.starts(clusters, [cl.area[cl.seen] for cl in clusters])
+
+
+def _plain_hints_in(est: ContactEstimator, clusters: list[Cluster], hints: np.ndarray,
+                    d_start: np.ndarray) -> list[np.ndarray]:
+    """The hints of each cluster, as the first form of ``_hints_in`` asked each cluster apart."""
+    out = []
+    m = 0.25 * est.layout.side
+    for k, cl in enumerate(clusters):
+        b = est.layout.bounds[cl.members]
+        on = ((hints[:, None, 0] >= b[None, :, 0] - m) & (hints[:, None, 0] <= b[None, :, 2] + m)
+              & (hints[:, None, 1] >= b[None, :, 1] - m) & (hints[:, None, 1] <= b[None, :, 3] + m)).any(axis=1)
+        sound = np.all(np.isfinite(hints), axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            size_ok = np.abs(np.log(hints[:, 2] / float(d_start[k]))) <= math.log(2.0)
+        h = hints[on & sound & size_ok]
+        if h.shape[0] > 1:
+            cx, cy = cl.centroid
+            h = h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))]
+        out.append(h)
+    return out
+
+
+presses = st.lists(st.tuples(st.floats(-0.02, 0.18), st.floats(-0.02, 0.18), st.floats(0.05, 8.0),
+                             st.floats(0.004, 0.05)), min_size=1, max_size=5)
+hint_rows = st.lists(st.tuples(st.floats(-0.03, 0.19), st.floats(-0.03, 0.19),
+                               st.sampled_from([0.0, -0.01, math.nan, math.inf, 0.005, 0.01, 0.02, 0.04]),
+                               st.sampled_from([0.0, math.nan, 0.1, 1.0, 3.0])), max_size=8)
+
+
+#: hints near a press (the previous frame's contacts: one or two per press, moved a little)
+near = st.lists(st.tuples(st.integers(0, 4), st.floats(-0.012, 0.012), st.floats(-0.012, 0.012),
+                          st.floats(0.5, 2.2)), max_size=8)
+
+
+@given(presses, hint_rows, near, st.integers(0, 2**32 - 1), st.booleans())
+def test_the_set_up_in_one_pass_is_the_set_up_a_cluster_at_a_time(press, hints, moved, seed, holes):
+    lay = grid_layout(5, 5)
+    est = ContactEstimator(lay, noise=2e-15)
+    disks: list[tuple[float, float, float, float]] = []
+    for x, y, f, d in press:  # (disks that do not overlap one another, as skin_response needs)
+        if all(math.hypot(x - u, y - v) > 0.5 * (d + e) for u, v, _, e in disks):
+            disks.append((x, y, f, d))
+    dc1, dc2 = skin_response(lay, disks)
+    rng = np.random.default_rng(seed)
+    dc1 = dc1 + rng.normal(0.0, 2e-15, lay.n)
+    dc2 = dc2 + rng.normal(0.0, 2e-15, lay.n)
+    if holes:  # elements with no reading: clusters joined around them, rings without them
+        gone = rng.choice(lay.n, size=3, replace=False)
+        dc1[gone] = np.nan
+    hints = hints + [(disks[i % len(disks)][0] + dx, disks[i % len(disks)][1] + dy, disks[i % len(disks)][3] * g,
+                      disks[i % len(disks)][2]) for i, dx, dy, g in moved]
+    h = np.array(hints, dtype=np.float64).reshape(-1, 4)
+    seen: list[tuple[list[Cluster], np.ndarray]] = []
+    fit_valid = est._fit_valid
+
+    def spy(clusters: list[Cluster], hs: np.ndarray) -> list:
+        seen.append((clusters, hs))
+        return fit_valid(clusters, hs)
+
+    est._fit_valid = spy  # type: ignore[method-assign, assignment]
+    est.estimate(dc1, dc2, hints=h)
+    for clusters, hs in seen:
+        st_fast = est._runner.starts(clusters)
+        np.testing.assert_array_equal(st_fast, _plain_starts(est._runner, clusters))
+        d_start = 2.0 * st_fast[:, 2]
+        got = est._hints_in(clusters, hs, d_start) if hs.shape[0] else []
+        want = _plain_hints_in(est, clusters, hs, d_start) if hs.shape[0] else []
+        assert len(got) == len(want)
+        for g, w in zip(got, want):
+            assert g.shape == w.shape
+            np.testing.assert_array_equal(g, w)
+        for cl in clusters:
+            assert cl.ring_reads == (cl.quiet is not None and not bool(cl.quiet[cl.members.size:].all()))

@@ -94,3 +94,25 @@ def test_the_set_up_in_one_pass_is_the_set_up_a_cluster_at_a_time(press, hints, 
             np.testing.assert_array_equal(g, w)
         for cl in clusters:
             assert cl.ring_reads == (cl.quiet is not None and not bool(cl.quiet[cl.members.size:].all()))
+
+
+@given(presses, st.integers(0, 2**32 - 1), st.lists(st.integers(0, 24), min_size=1, max_size=25, unique=True),
+       st.floats(0.0, 3.0))
+def test_an_inverse_of_the_skin_taken_by_rows_is_the_inverse_of_those_rows(press, seed, rows, scale):
+    """A band's second chart takes its elements' inverse from the skin's (Inverse.rows):
+    the same arrays as its own inverse of those elements' readings, ``firm`` None alike."""
+    lay = grid_layout(5, 5)
+    est = ContactEstimator(lay, noise=2e-15)
+    dc1, dc2 = skin_response(lay, [(x, y, f * 10.0 ** scale, d) for x, y, f, d in press[:1]])
+    rng = np.random.default_rng(seed)
+    c1 = (dc1 * rng.uniform(0.5, 2.0, lay.n) + rng.normal(0.0, 2e-15, lay.n))[None]
+    c2 = (dc2 * rng.uniform(0.5, 2.0, lay.n) + rng.normal(0.0, 2e-15, lay.n))[None]
+    act = (rng.random(lay.n) < 0.7)[None] & ((c1 > 6e-15) | (c2 > 6e-15))
+    r = np.array(sorted(rows), dtype=np.int64)
+    got = est._inverse(c1, c2, act).rows(r)
+    sub = ContactEstimator(grid_layout(1, r.size), noise=2e-15)  # (another layout of as many elements)
+    want = sub._inverse(c1[:, r], c2[:, r], act[:, r])
+    for g, w in zip(got, want):
+        assert (g is None) == (w is None)
+        if g is not None:
+            np.testing.assert_array_equal(g, w)

@@ -116,3 +116,39 @@ def test_an_inverse_of_the_skin_taken_by_rows_is_the_inverse_of_those_rows(press
         assert (g is None) == (w is None)
         if g is not None:
             np.testing.assert_array_equal(g, w)
+
+
+def _plain_components(n: int, e: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Labels by numpy's min-label propagation with pointer jumping (cluster_elements' first form)."""
+    lab = np.arange(n)
+    while True:
+        m = np.minimum(lab[e[:, 0]], lab[e[:, 1]])
+        new = lab.copy()
+        np.minimum.at(new, e[:, 0], m)
+        np.minimum.at(new, e[:, 1], m)
+        new = new[new]
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    out = np.full(n, -1, dtype=np.int64)
+    roots = np.unique(lab[a])
+    out[a] = np.searchsorted(roots, lab[a])
+    return out
+
+
+@given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1), st.floats(0.0, 1.0),
+       st.sampled_from(["edge", "corner"]), st.floats(0.0, 0.4))
+def test_the_compiled_components_are_numpys_labels(rows, cols, seed, density, connectivity, holes):
+    """cluster_elements' labels (compiled union-find) are those of numpy's propagation, on
+    random touches of a grid, with and without unknown elements between them."""
+    from cellbridge.tactile.clusters import _across_unknown, cluster_elements
+
+    lay = grid_layout(rows, cols)
+    rng = np.random.default_rng(seed)
+    a = rng.random(lay.n) < density
+    e = lay.edges if connectivity == "edge" else lay.corner_edges
+    e = e[a[e[:, 0]] & a[e[:, 1]]]
+    np.testing.assert_array_equal(cluster_elements(lay, a, connectivity), _plain_components(lay.n, e, a))
+    u = (rng.random(lay.n) < holes) & ~a
+    eu = np.concatenate([e, _across_unknown(lay, a, u)])
+    np.testing.assert_array_equal(cluster_elements(lay, a, connectivity, unknown=u), _plain_components(lay.n, eu, a))

@@ -252,10 +252,9 @@ class ContactEstimator:
             finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
             labels = self._clusters(act[t], finite, hints)
             ring_noise = frame_noise(c1[t], c2[t], finite & ~act[t], self.noise)
+            # (clusters wholly on replaced elements left out: see estimate)
             these = self._runner.frame_clusters(labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
-                                                None if firm is None else firm[t], ring_noise)
-            if replaced is not None:  # (see estimate)
-                these = [cl for cl in these if not replaced[cl.members].all()]
+                                                None if firm is None else firm[t], ring_noise, replaced)
             clusters.extend(these)
             frame_of.extend([t] * len(these))
         out: list[list[Contact]] = [[] for _ in clusters]

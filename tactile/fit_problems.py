@@ -10,6 +10,7 @@ hands back :class:`Fits`.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -223,6 +224,7 @@ class FitRunner:
         self, labels: IntArray, c1: FloatArray, c2: FloatArray,
         finite: NDArray[np.bool_], valid: NDArray[np.bool_], force: FloatArray, area: FloatArray,
         firm: FloatArray | None = None, ring_noise: FloatArray | None = None,
+        replaced: NDArray[np.bool_] | None = None,
     ) -> list[Cluster]:
         """Every cluster of one frame (``labels``: 0..K-1 per element, -1 untouched), in
         label order: observed elements, shared pressure, areas, centroid and base fields.
@@ -234,7 +236,9 @@ class FitRunner:
         is the cluster's pressure, so a hard press is fitted, not taken for a light one.
         ``ring_noise``: (2,) the frame's noise (:func:`frame_noise`) against which a
         quiet ring element's reading counts as the disk's (:data:`RING_SIGNAL`); None:
-        the ring only bounds the disk from above.
+        the ring only bounds the disk from above. ``replaced``: (N,) elements whose
+        contacts the caller takes from elsewhere: a cluster wholly on them is left out of
+        the list (it still shapes the others' rings, as every cluster does).
         """
         # (One compiled pass over the frame's clusters: per cluster, numpy's calls cost far
         # more than the arithmetic; see cluster_kernel.)
@@ -253,7 +257,15 @@ class FitRunner:
             rs, lay.centres, self.par, float(1.0 / self.noise[0] ** 2), float(1.0 / self.noise[1] ** 2))
         out = []
         ok = any_valid | is_firm  # a valid member's pressure, or a firm one
-        for k, (s, e, m) in enumerate(zip(ooff[:-1].tolist(), ooff[1:].tolist(), nm.tolist())):
+        if replaced is None:
+            posed: Iterable[int] = range(nm.size)
+        else:  # (the clusters with a member not replaced: those a contact of theirs would be kept from)
+            some = np.zeros(nm.size, dtype=bool)
+            some[labels[(labels >= 0) & ~replaced]] = True
+            posed = np.flatnonzero(some).tolist()
+        starts, ends, sizes = ooff[:-1].tolist(), ooff[1:].tolist(), nm.tolist()
+        for k in posed:
+            s, e, m = starts[k], ends[k], sizes[k]
             members = obs[s : s + m]
             fit = bool(ok[k])
             st = float(s_tot[k])

@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 from cellbridge.tactile import ContactEstimator, grid_layout, skin_response
+from cellbridge.tactile.element import ElementParams
 from cellbridge.tactile.fit_problems import Cluster, FitRunner
 from hypothesis import given
 from hypothesis import strategies as st
@@ -152,3 +153,30 @@ def test_the_compiled_components_are_numpys_labels(rows, cols, seed, density, co
     u = (rng.random(lay.n) < holes) & ~a
     eu = np.concatenate([e, _across_unknown(lay, a, u)])
     np.testing.assert_array_equal(cluster_elements(lay, a, connectivity, unknown=u), _plain_components(lay.n, eu, a))
+
+
+@given(presses, st.integers(0, 2**32 - 1), st.floats(0.0, 1.0))
+def test_clusters_left_out_as_replaced_are_those_wholly_on_replaced_elements(press, seed, share):
+    """frame_clusters(replaced=...) poses the clusters a filter of the whole list keeps
+    (a member not replaced), each as the whole list has it."""
+    from cellbridge.tactile.clusters import cluster_elements
+
+    lay = grid_layout(6, 6)
+    runner = FitRunner(lay, ElementParams(side=lay.side), np.full(2, 2e-15), False)
+    rng = np.random.default_rng(seed)
+    c1, c2 = skin_response(lay, [(x, y, f, d) for x, y, f, d in press[:1]])
+    act = (rng.random(lay.n) < 0.35) | (c1 > 5e-14)
+    labels = cluster_elements(lay, act)
+    valid = act & (rng.random(lay.n) < 0.8)
+    force = np.where(valid, rng.uniform(0.1, 3.0, lay.n), np.nan)
+    area = np.where(valid, rng.uniform(1e-5, 1e-3, lay.n), np.nan)
+    fin = np.ones(lay.n, dtype=bool)
+    replaced = rng.random(lay.n) < share
+    every = runner.frame_clusters(labels, c1, c2, fin, valid, force, area, None, np.full(2, 2e-15))
+    want = [cl for cl in every if not replaced[cl.members].all()]
+    got = runner.frame_clusters(labels, c1, c2, fin, valid, force, area, None, np.full(2, 2e-15), replaced)
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g.obs, w.obs)
+        np.testing.assert_array_equal(g.y, w.y)
+        assert g.base == w.base and g.valid == w.valid

@@ -48,20 +48,11 @@ def cluster_elements(
         if u.shape != (layout.n,):
             raise ValueError(f"unknown must have shape ({layout.n},), got {u.shape}")
         e = np.concatenate([e, _across_unknown(layout, a, u)])
-    lab = np.arange(layout.n)
-    while True:  # min-label propagation with pointer jumping: O(log diameter) passes
-        m = np.minimum(lab[e[:, 0]], lab[e[:, 1]])
-        new = lab.copy()
-        np.minimum.at(new, e[:, 0], m)
-        np.minimum.at(new, e[:, 1], m)
-        new = new[new]
-        if np.array_equal(new, lab):
-            break
-        lab = new
-    out = np.full(layout.n, -1, dtype=np.int64)
-    roots = np.unique(lab[a])
-    out[a] = np.searchsorted(roots, lab[a])
-    return out
+    # (one compiled pass; contiguous int64 pairs and bool flags: the one signature the warm-up
+    # loads. Imported here: this module is the layout's, which imports where numba cannot run.)
+    from cellbridge.tactile.cluster_kernel import components
+
+    return components(layout.n, np.ascontiguousarray(e, dtype=np.int64), np.ascontiguousarray(a))
 
 
 def _across_unknown(layout: SkinLayout, a: np.ndarray, u: np.ndarray) -> IntArray:

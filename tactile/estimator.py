@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Literal, Sequence
+from typing import Literal, NamedTuple, Sequence
 
 import numpy as np
 from cellbridge.tactile.arrays import FloatArray, IntArray
@@ -44,6 +44,25 @@ __all__ = ["ContactEstimator", "estimate_contacts"]
 
 #: Steps in ln F above a hard press's fit where its profile cost is taken.
 FIRM_STEPS = np.array([0.05, 0.1, 0.2, 0.4, 0.8, 1.6])
+#: (the status as a plain int: an enum member looked up and compared on every frame costs more)
+_ILL_CONDITIONED = int(InverseStatus.ILL_CONDITIONED)
+
+
+class Inverse(NamedTuple):
+    """One or more frames' element inverses (:meth:`ContactEstimator._inverse`): (T, N) each."""
+
+    valid: NDArray[np.bool_]
+    force: FloatArray
+    area: FloatArray
+    firm: FloatArray | None  # None: no active element too noisy
+    hard: NDArray[np.bool_] | None  # the active elements too noisy (None: none)
+
+    def rows(self, rows: IntArray) -> Inverse:
+        """The inverse of the elements ``rows`` alone: what :meth:`ContactEstimator._inverse`
+        gives on their readings (``firm`` None where none of them is too noisy)."""
+        hard = None if self.hard is None or not self.hard[:, rows].any() else self.hard[:, rows]
+        return Inverse(self.valid[:, rows], self.force[:, rows], self.area[:, rows],
+                       None if hard is None or self.firm is None else self.firm[:, rows], hard)
 
 
 class ContactEstimator:
@@ -136,12 +155,8 @@ class ContactEstimator:
         the other clusters' contacts are what they are without it (each cluster is fitted
         on its own readings), in the same order.
         """
-        h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64)
-        if h.ndim == 1 and h.size in (0, 4):
-            h = h.reshape(-1, 4)
-        if h.ndim != 2 or h.shape[1] != 4:
-            raise ValueError(f"hints must be (x, y, diameter, force) rows, got shape {h.shape}")
-        (per_frame,) = self._estimate(*self._readings(dC1, dC2, active, 1), h, self._replaced_mask(replaced))
+        (per_frame,) = self._estimate(*self._readings(dC1, dC2, active, 1), _checked_hints(hints),
+                                      self._replaced_mask(replaced))
         return per_frame
 
     def _replaced_mask(self, replaced: ArrayLike | None) -> NDArray[np.bool_] | None:
@@ -193,15 +208,19 @@ class ContactEstimator:
             act = act.reshape(-1, n) & finite
         return c1, c2, act
 
-    def _estimate(
-        self, c1: FloatArray, c2: FloatArray, act: NDArray[np.bool_], hints: FloatArray,
-        replaced: NDArray[np.bool_] | None = None,
-    ) -> list[list[Contact]]:
-        lay = self.layout
+    def _inverse(self, c1: FloatArray, c2: FloatArray, act: NDArray[np.bool_]) -> Inverse:
+        """Each active element's inverse, as (T, N) arrays: whether it gave a pressure
+        (``valid``), its force and area (NaN where none), and ``firm`` (see
+        :meth:`FitRunner.frame_clusters`; None where no active element is too noisy).
+
+        Each element's inverse is its readings' alone, so the same readings give the same
+        values on any layout holding the element (a band's second chart, whose frame is
+        the skin's: :class:`~cellbridge.tactile.seam_estimator.SeamEstimator`, :meth:`Inverse.rows`)."""
         valid = np.zeros(c1.shape, dtype=bool)
         force = np.full(c1.shape, np.nan)
         area = np.full(c1.shape, np.nan)
         firm = None
+        hard_at = None
         if act.any():
             inv = solve(c1[act], c2[act], self.params, noise=float(self.noise.max()), **self.inverse_options)
             valid[act] = inv.valid
@@ -211,10 +230,20 @@ class ContactEstimator:
             # element's inverse, yet its pressure is on the unique high branch: no
             # light touch reads like it. The cluster's fit, over all its elements,
             # still measures the force (with its own σ); the pressure starts it.
-            hard = inv.status == InverseStatus.ILL_CONDITIONED
+            hard = inv.status == _ILL_CONDITIONED
             if hard.any():
                 firm = np.full(c1.shape, np.nan)
                 firm[act] = np.where(hard & (inv.pressure >= self._sigma_unique), inv.pressure, np.nan)
+                hard_at = np.zeros(c1.shape, dtype=bool)
+                hard_at[act] = hard
+        return Inverse(valid, force, area, firm, hard_at)
+
+    def _estimate(
+        self, c1: FloatArray, c2: FloatArray, act: NDArray[np.bool_], hints: FloatArray,
+        replaced: NDArray[np.bool_] | None = None, inverse: Inverse | None = None,
+    ) -> list[list[Contact]]:
+        lay = self.layout
+        valid, force, area, firm, _ = self._inverse(c1, c2, act) if inverse is None else inverse
         clusters: list[Cluster] = []
         frame_of: list[int] = []
         for t in range(c1.shape[0]):
@@ -223,10 +252,9 @@ class ContactEstimator:
             finite = np.isfinite(c1[t]) & np.isfinite(c2[t])
             labels = self._clusters(act[t], finite, hints)
             ring_noise = frame_noise(c1[t], c2[t], finite & ~act[t], self.noise)
+            # (clusters wholly on replaced elements left out: see estimate)
             these = self._runner.frame_clusters(labels, c1[t], c2[t], finite, valid[t], force[t], area[t],
-                                                None if firm is None else firm[t], ring_noise)
-            if replaced is not None:  # (see estimate)
-                these = [cl for cl in these if not replaced[cl.members].all()]
+                                                None if firm is None else firm[t], ring_noise, replaced)
             clusters.extend(these)
             frame_of.extend([t] * len(these))
         out: list[list[Contact]] = [[] for _ in clusters]
@@ -293,10 +321,12 @@ class ContactEstimator:
             for k, inside in enumerate(self._hints_in(clusters, hints, 2.0 * st[:, 2])):
                 if inside.shape[0] >= 1:
                     hinted[k] = True
-                    theta0[k] = [inside[0, 0], inside[0, 1], math.log(inside[0, 2]), math.log(inside[0, 3])]
+                    hx, hy, hd, hf = inside[0].tolist()
+                    theta0[k] = (hx, hy, math.log(hd), math.log(hf))
                 if inside.shape[0] >= 2:
                     pair_hints[k] = inside[:2]
-        free = np.tile(nd_free, (len(clusters), 1))
+        free = np.empty((len(clusters), 4), dtype=bool)
+        free[:] = nd_free
         batch = run.batch(clusters)
         fits = run.run(batch, theta0, free, 1, True)
         # A warm start in the wrong valley (the disk moved far since last frame) is
@@ -364,7 +394,7 @@ class ContactEstimator:
         for k in rows:
             cl = clusters[k]
             nm = cl.members.size
-            peak = np.nanmax(np.abs(cl.y[:, :nm]), axis=1)
+            peak = np.fmax.reduce(np.abs(cl.y[:, :nm]), axis=1)  # (nanmax's values, without its copies)
             tol = self.model_error * np.where(np.isfinite(peak), peak, 0.0)
             ring = cl.seen[cl.seen >= nm]
             y = cl.y.copy()
@@ -451,7 +481,7 @@ class ContactEstimator:
         humanoid's 1 144 elements comparing every hint with every element, then asking
         each cluster apart, cost a tenth of a frame's estimate."""
         members = [cl.members for cl in clusters]
-        sizes = np.array([m.size for m in members], dtype=np.int64)
+        sizes = np.fromiter((m.size for m in members), dtype=np.int64, count=len(members))
         b = self.layout.bounds[np.concatenate(members)]
         m = 0.25 * self.layout.side
         on = (
@@ -459,25 +489,43 @@ class ContactEstimator:
             & (hints[:, None, 1] >= b[None, :, 1] - m) & (hints[:, None, 1] <= b[None, :, 3] + m)
         )
         # (K, H): on one of the cluster's elements (a cluster has one member at least)
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        starts = np.zeros(sizes.size, dtype=np.int64)
+        np.cumsum(sizes[:-1], out=starts[1:])
         on_cluster = np.logical_or.reduceat(on, starts, axis=1).T
-        sound = np.all(np.isfinite(hints), axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0)
+        sound = np.isfinite(hints).all(axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0)
         with np.errstate(invalid="ignore", divide="ignore"):
             size_ok = np.abs(np.log(hints[None, :, 2] / np.asarray(d_start, dtype=np.float64)[:, None])) <= math.log(2.0)
         ok = on_cluster & sound[None, :] & size_ok
+        # (a cluster's hints by their rows, a view for one: most clusters hold one hint or none)
+        none = hints[:0]
         out = []
-        for k, cl in enumerate(clusters):
-            h = hints[ok[k]]
-            if h.shape[0] > 1:
-                cx, cy = cl.centroid
-                h = h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))]
-            out.append(h)
+        for k, at in enumerate(ok.tolist()):
+            n = at.count(True)
+            if n == 0:
+                out.append(none)
+            elif n == 1:
+                j = at.index(True)
+                out.append(hints[j : j + 1])
+            else:
+                h = hints[ok[k]]
+                cx, cy = clusters[k].centroid
+                out.append(h[np.argsort(np.hypot(h[:, 0] - cx, h[:, 1] - cy))])
         return out
+
+
+def _checked_hints(hints: ArrayLike | None) -> FloatArray:
+    """``hints`` of :meth:`ContactEstimator.estimate` as (H, 4) rows; ValueError for another shape."""
+    h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64)
+    if h.ndim == 1 and h.size in (0, 4):
+        h = h.reshape(-1, 4)
+    if h.ndim != 2 or h.shape[1] != 4:
+        raise ValueError(f"hints must be (x, y, diameter, force) rows, got shape {h.shape}")
+    return h
 
 
 def _ring_reads(cl: Cluster) -> bool:
     """Whether a quiet ring element of the cluster reads a share of its disk."""
-    return cl.quiet is not None and not bool(cl.quiet[cl.members.size :].all())
+    return cl.ring_reads
 
 
 def estimate_contacts(

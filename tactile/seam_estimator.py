@@ -22,7 +22,7 @@ import numpy as np
 from cellbridge.tactile.arrays import FloatArray, IntArray
 from cellbridge.tactile.contact_result import Contact
 from cellbridge.tactile.element import ElementParams
-from cellbridge.tactile.estimator import ContactEstimator
+from cellbridge.tactile.estimator import ContactEstimator, _checked_hints
 from cellbridge.tactile.layout import SkinLayout
 from cellbridge.tactile.skin_geometry import Band
 from numpy.typing import ArrayLike, NDArray
@@ -50,6 +50,7 @@ class SeamEstimator(ContactEstimator):
         super().__init__(layout, params, **options)  # type: ignore[arg-type]  # ContactEstimator's own keywords, checked there
         self.bands = tuple(bands)
         self._twins: list[_Twin] = []
+        self._row_of = {e: i for i, e in enumerate(layout.ids.tolist())}  # element id -> layout row
         side = layout.side
         for b in self.bands:
             rows = np.flatnonzero(b.holds(layout.centres[:, 0], layout.centres[:, 1]))
@@ -69,8 +70,12 @@ class SeamEstimator(ContactEstimator):
         if not self._twins:
             return super().estimate(dC1, dC2, active, hints=hints, replaced=replaced)
         given = self._replaced_mask(replaced)
-        c1, c2, act = (a[0] for a in self._readings(dC1, dC2, active, 1))
-        h = np.zeros((0, 4)) if hints is None else np.asarray(hints, dtype=np.float64).reshape(-1, 4)
+        h = _checked_hints(hints)
+        C1, C2, ACT = self._readings(dC1, dC2, active, 1)
+        act = ACT[0]
+        # Each element's inverse once for the skin: a band's second chart reads the same
+        # elements, and an element's inverse is its readings' alone (the same values).
+        inv = self._inverse(C1, C2, ACT)
         # The second charts first: the elements whose contacts they give (a press at a cut)
         # are replaced in the first chart's, whose clusters wholly on them are then not
         # estimated at all (they were, and dropped: a seventh of a humanoid's estimate).
@@ -85,14 +90,15 @@ class SeamEstimator(ContactEstimator):
                 hb = hb.copy()
                 hb[:, 0] = np.where(hb[:, 0] >= b.x0 + 0.5 * b.period, hb[:, 0] - b.period, hb[:, 0])
             # (only a cluster on the cut can give a seam contact: the band's others are not estimated)
-            found = tw.estimator.estimate(c1[tw.rows], c2[tw.rows], act[tw.rows], hints=hb, replaced=~tw.at_cut)
+            (found,) = tw.estimator._estimate(C1[:, tw.rows], C2[:, tw.rows], ACT[:, tw.rows], hb, ~tw.at_cut,
+                                              inv.rows(tw.rows))
             seam = [c for c in found if tw.cut_ids.intersection(c.elements)]
             if not seam:
                 continue
             taken = tw.cut_ids.union(*(c.elements for c in seam))
             seams.append((tw, seam, taken))
-            drop[self.layout.index_of(sorted(taken))] = True
-        contacts = super().estimate(dC1, dC2, active, hints=hints, replaced=drop if drop.any() else None)
+            drop[[self._row_of[e] for e in taken]] = True
+        (contacts,) = self._estimate(C1, C2, ACT, h, drop if drop.any() else None, inv)
         for tw, seam, taken in seams:
             contacts = [c for c in contacts if not taken.intersection(c.elements)]
             contacts += [_wrapped(c, tw.band) for c in seam]

@@ -367,6 +367,8 @@ class ContactStage:
             gone = self.tracker.end_unsupported({int(i) for i in self.layout.ids[unknown]}, UNSEEN_FRAMES)
             if gone:
                 tracks = [tc for tc in tracks if tc.id not in gone]
+        if not unknown.any():  # (every reading known: nothing bounds a contact; bound_by_unknown's own answer)
+            return [{**_finite(tc.to_dict()), "unknown_near": []} for tc in tracks]
         return [bound_by_unknown(_finite(tc.to_dict()), self.layout, self._row, self._ring, unknown)
                 for tc in tracks]
 

@@ -141,12 +141,37 @@ def _guarded(what: str, fn: Callable[..., Any]) -> Callable[..., Any]:
     return call
 
 
+def _warm_kernel_cache(config: pytest.Config) -> None:
+    """Compile the numba kernels (the contact estimator's, the calibrator's step, the readout
+    reader) into their cache once, before pytest-xdist's workers start.
+
+    On a fresh checkout every worker that reaches a kernel first compiles it (about 30 s of
+    CPU), and so does every daemon a live test starts meanwhile: the workers are handed
+    alternate tests of the same modules, so they get there together and both cores spent the
+    suite's first half minute compiling the same kernels, two to four times over. Once the
+    cache holds them a worker or daemon loads them in a second. Only the controller of a
+    distributed run does this (in one process a kernel is compiled once, where it is first
+    used); a warm-up that fails changes nothing: the test that needs the kernel fails and
+    says why."""
+    if hasattr(config, "workerinput") or not config.getoption("numprocesses", None) \
+            or config.getoption("dist", "no") == "no":
+        return
+    import subprocess
+    import sys
+
+    warm = "from cellbridge.demo import _warm_kernels; _warm_kernels(); readout_columns.warm_up()"
+    subprocess.run([sys.executable, "-c", f"from cellbridge.daemon.core import readout_columns; {warm}"],
+                   stdout=subprocess.DEVNULL, check=False)
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """Every way a test starts a process or a pty passes through one of these: subprocess
     and multiprocessing's spawn (fork_exec, posix_spawn), a fork (multiprocessing's fork,
     pty.fork), a pty (os.openpty, which pty.openpty calls)."""
     import _posixsubprocess
     import subprocess
+
+    _warm_kernel_cache(config)
 
     for name in ("fork", "forkpty", "openpty", "posix_spawn", "posix_spawnp"):
         if hasattr(os, name):

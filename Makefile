@@ -65,10 +65,8 @@ TEST_JOBS ?= 2
 # The numba kernels compile into their cache (about 30 s of one core on a fresh checkout) while
 # lint runs on the other: the suite then starts with them cached (tests/conftest.py's warm-up
 # finds them there in a second: the same warm-up as this).
-WARM_KERNELS := from cellbridge.demo import _warm_kernels; from cellbridge.daemon.core import readout_columns; \
-	_warm_kernels(); readout_columns.warm_up()
 test: $(STAMP) tools
-	@$(PY) -c "$(WARM_KERNELS)" & warm=$$!; \
+	@$(PY) tests/support/warm_kernels.py & warm=$$!; \
 	$(MAKE) --no-print-directory lint; status=$$?; wait $$warm; exit $$status
 	$(PY) -m pytest -q -n $(TEST_JOBS)
 

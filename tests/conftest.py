@@ -16,6 +16,7 @@ import os
 import signal
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -141,6 +142,10 @@ def _guarded(what: str, fn: Callable[..., Any]) -> Callable[..., Any]:
     return call
 
 
+#: s the kernels' warm-up before a distributed run may take (a cold cache on a busy machine: ~1-2 min)
+WARM_UP_LIMIT = 600
+
+
 def _warm_kernel_cache(config: pytest.Config) -> None:
     """Compile the numba kernels (the contact estimator's, the calibrator's step, the readout
     reader) into their cache once, before pytest-xdist's workers start.
@@ -159,9 +164,11 @@ def _warm_kernel_cache(config: pytest.Config) -> None:
     import subprocess
     import sys
 
-    warm = "from cellbridge.demo import _warm_kernels; _warm_kernels(); readout_columns.warm_up()"
-    subprocess.run([sys.executable, "-c", f"from cellbridge.daemon.core import readout_columns; {warm}"],
-                   stdout=subprocess.DEVNULL, check=False)
+    try:  # (a warm-up that hangs must not hold the suite: its tests would say what hangs)
+        subprocess.run([sys.executable, str(Path(__file__).with_name("support") / "warm_kernels.py")],
+                       stdout=subprocess.DEVNULL, check=False, timeout=WARM_UP_LIMIT)
+    except subprocess.TimeoutExpired:
+        pass
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -34,7 +34,9 @@ from typing import Any
 import msgpack
 import zmq
 
-GATEWAY_TIMEOUT = 30.0  # s for 'mesh up' to print its gateway line
+#: s for 'mesh up' to print its gateway line: a guard against a hung start, not a pace (a
+#: 4x4 starts 18 interpreters first; 30 s ran out on a busy 2-core machine)
+GATEWAY_TIMEOUT = 90.0
 START_TIMEOUT = 120.0  # s for the daemon to see every bridge calibrated (first run compiles kernels)
 #: daemons started on fresh ports when another program took one between its choice and the bind
 BIND_TRIES = 3

@@ -64,9 +64,11 @@ TEST_JOBS ?= 2
 
 # The numba kernels compile into their cache (about 30 s of one core on a fresh checkout) while
 # lint runs on the other: the suite then starts with them cached (tests/conftest.py's warm-up
-# finds them there in a second: the same warm-up as this).
+# finds them there in a second: the same warm-up as this). A background job of this shell
+# ignores Ctrl-C (SIGINT: a non-interactive shell's jobs do), so the trap stops it with the rest.
 test: $(STAMP) tools
 	@$(PY) tests/support/warm_kernels.py & warm=$$!; \
+	trap 'kill $$warm 2>/dev/null; exit 130' INT TERM; \
 	$(MAKE) --no-print-directory lint; status=$$?; wait $$warm; exit $$status
 	$(PY) -m pytest -q -n $(TEST_JOBS)
 

@@ -9,16 +9,32 @@ anything from :mod:`cellbridge.tactile` (even the layout parser the daemon's
 configuration uses) would fail. Here such a function is compiled without a disk
 cache instead (on first use, every start), named in :data:`UNCACHED`, and one
 warning says how to give it a cache (``NUMBA_CACHE_DIR``).
+
+numba checks a cached kernel against its own file alone, yet the kernels compile in
+rules of other modules (``disk_model.layer_response`` in the element inverse,
+``inversion``'s per-reading rules, ``spread_model``'s constants in the fits): an edit of
+one left the callers' cache as it was, and processes ran the rule from before the edit
+without a word. So each kernel's cache is checked against every module of
+:data:`KERNEL_SOURCES` too (tests/test_tactile_kernel_cache_sources.py keeps the list whole).
 """
 
 from __future__ import annotations
 
+import os
 import warnings
+from functools import cache
 from typing import Any, Callable
 
 from numba import njit
 
-__all__ = ["compiled", "UNCACHED"]
+__all__ = ["compiled", "UNCACHED", "KERNEL_SOURCES"]
+
+#: The modules of this package whose code a kernel may compile in: those holding kernels and
+#: every module of the package they import from, and so on (their functions and constants
+#: are compiled into the callers). An edit of any of them compiles every kernel again.
+KERNEL_SOURCES = ("arrays", "calibration", "calibration_kernel", "cluster_kernel", "contact_surface", "disk_model",
+                  "element", "fit_kernel", "inverse_kernel", "inversion", "layout", "overlap", "response",
+                  "spread_model")
 
 #: Qualified names of the kernels compiled without a disk cache in this process.
 UNCACHED: list[str] = []
@@ -33,7 +49,7 @@ def compiled(fn: Callable[..., Any], **options: Any) -> Any:
     inf or NaN as in numpy, instead of raising).
     """
     try:
-        return njit(cache=True, **options)(fn)
+        return _checked_against_sources(njit(cache=True, **options)(fn))
     except RuntimeError as exc:
         if "cannot cache" not in str(exc):
             raise
@@ -47,3 +63,28 @@ def compiled(fn: Callable[..., Any], **options: Any) -> Any:
         )
     UNCACHED.append(f"{fn.__module__}.{fn.__qualname__}")
     return njit(**options)(fn)
+
+
+@cache
+def _sources_stamp() -> tuple[tuple[str, int, int], ...]:
+    """(module, modification time in ns, size) of every module of :data:`KERNEL_SOURCES`."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    out = []
+    for name in KERNEL_SOURCES:
+        try:
+            st = os.stat(os.path.join(here, f"{name}.py"))
+        except OSError:  # (an installation without the sources: numba's own check alone)
+            continue
+        out.append((name, st.st_mtime_ns, st.st_size))
+    return tuple(out)
+
+
+def _checked_against_sources(dispatcher: Any) -> Any:
+    """``dispatcher`` (cached) with its cache index stamped, and checked, with the stamps of
+    :data:`KERNEL_SOURCES` beside numba's own of the kernel's file: a cache written before an
+    edit of any of them is not loaded, the kernel compiles again and overwrites it. (numba's
+    index holds one stamp, compared for equality; a numba without that field keeps its own.)"""
+    index = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    if index is not None and hasattr(index, "_source_stamp"):
+        index._source_stamp = (index._source_stamp, _sources_stamp())
+    return dispatcher

@@ -48,11 +48,12 @@ def cluster_elements(
         if u.shape != (layout.n,):
             raise ValueError(f"unknown must have shape ({layout.n},), got {u.shape}")
         e = np.concatenate([e, _across_unknown(layout, a, u)])
-    # (one compiled pass; contiguous int64 pairs and bool flags: the one signature the warm-up
-    # loads. Imported here: this module is the layout's, which imports where numba cannot run.)
+    # (one compiled pass; contiguous, writable int64 pairs and bool flags: the one signature the
+    # warm-up loads (a read-only array is another type to numba, compiled at its first call).
+    # Imported here: this module is the layout's, which imports where numba cannot run.)
     from cellbridge.tactile.cluster_kernel import components
 
-    return components(layout.n, np.ascontiguousarray(e, dtype=np.int64), np.ascontiguousarray(a))
+    return components(layout.n, np.require(e, np.int64, ("C", "W")), np.require(a, np.bool_, ("C", "W")))
 
 
 def _across_unknown(layout: SkinLayout, a: np.ndarray, u: np.ndarray) -> IntArray:

@@ -180,3 +180,23 @@ def test_clusters_left_out_as_replaced_are_those_wholly_on_replaced_elements(pre
         np.testing.assert_array_equal(g.obs, w.obs)
         np.testing.assert_array_equal(g.y, w.y)
         assert g.base == w.base and g.valid == w.valid
+
+
+def test_read_only_flags_reach_the_components_kernel_as_its_one_signature() -> None:
+    """An ``active`` (or ``unknown``) array a caller made read-only is another array type to
+    numba: passed as it was, the kernel compiled a second signature at its first call (a
+    latency spike mid-run), which the warm-up never loads."""
+    from cellbridge.tactile.cluster_kernel import components
+    from cellbridge.tactile.clusters import cluster_elements
+
+    layout = grid_layout(3, 3)
+    active = np.zeros(layout.n, dtype=bool)
+    active[[0, 1, 4]] = True
+    cluster_elements(layout, active.copy())  # the signature every caller gives
+    before = len(components.signatures)
+    active.flags.writeable = False
+    unknown = np.zeros(layout.n, dtype=bool)
+    unknown.flags.writeable = False
+    labels = cluster_elements(layout, active, unknown=unknown)
+    assert labels.tolist() == [0, 0, -1, -1, 0, -1, -1, -1, -1]
+    assert len(components.signatures) == before, components.signatures

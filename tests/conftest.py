@@ -159,7 +159,8 @@ def _warm_kernel_cache(config: pytest.Config) -> None:
     used); a warm-up that fails changes nothing: the test that needs the kernel fails and
     says why."""
     if hasattr(config, "workerinput") or not config.getoption("numprocesses", None) \
-            or config.getoption("dist", "no") == "no":
+            or config.getoption("dist", "no") == "no" or config.getoption("collectonly", False) \
+            or config.getoption("help", False):  # (nothing runs: --co, --help)
         return
     import subprocess
     import sys

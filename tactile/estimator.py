@@ -264,9 +264,9 @@ class ContactEstimator:
                 out[k] = cs
         # A light touch on one element says nothing finer than the element (no fit),
         # unless a quiet neighbour reads a share of it (fit_problems.RING_SIGNAL).
-        light = [k for k, cl in enumerate(clusters) if not cl.valid and (cl.members.size > 1 or _ring_reads(cl))]
+        light = [k for k, cl in enumerate(clusters) if not cl.valid and (cl.members.size > 1 or cl.ring_reads)]
         for k, cl in enumerate(clusters):
-            if not cl.valid and cl.members.size == 1 and not _ring_reads(cl):
+            if not cl.valid and cl.members.size == 1 and not cl.ring_reads:
                 out[k] = [unlocated(cl, lay.side)]
         if light:
             for k, c in zip(light, locate_light(self._runner, [clusters[k] for k in light])):
@@ -387,7 +387,7 @@ class ContactEstimator:
         (:mod:`cellbridge.tactile.two_disks`). A refit that fails says nothing of the
         shift: then the element's own spread, side/√12.
         """
-        rows = [k for k, cl in enumerate(clusters) if fits.ok[k] and _ring_reads(cl)]
+        rows = [k for k, cl in enumerate(clusters) if fits.ok[k] and cl.ring_reads]
         if not rows or self.model_error == 0.0:
             return {}
         sub = []
@@ -522,10 +522,6 @@ def _checked_hints(hints: ArrayLike | None) -> FloatArray:
         raise ValueError(f"hints must be (x, y, diameter, force) rows, got shape {h.shape}")
     return h
 
-
-def _ring_reads(cl: Cluster) -> bool:
-    """Whether a quiet ring element of the cluster reads a share of its disk."""
-    return cl.ring_reads
 
 
 def estimate_contacts(

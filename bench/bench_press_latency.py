@@ -68,7 +68,7 @@ from cellbridge.emulator.world.world import Contact
 
 from daemon_harness import free_port
 from realskin import world_press
-from timing import table
+from timing import fifo_every_thread, table
 from unwind import unwind_on_signals
 
 PRESS_S = 1.0
@@ -337,7 +337,7 @@ def main() -> None:
                             stderr=open(work / "daemon.log", "w"))
         procs.append(daemon)
         if host:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(host[2])))
+            fifo_every_thread(int(host[2]))  # ZeroMQ's I/O thread too: it was started above
         deadline = time.monotonic() + 180
         while time.monotonic() < deadline:
             if sub.poll(1000):

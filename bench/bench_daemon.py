@@ -41,7 +41,7 @@ from cellbridge.protocol import Data, Frame, Hello, Mode, Sample, encode_stream
 from cellbridge.tactile import ChipParams, ElementParams, counts
 
 from daemon_harness import Client, Pty, daemon, free_port, write_config
-from timing import best_rate, pin_to_one_core
+from timing import best_rate, pin_to_one_core, warm_daemon_kernels
 
 CLOCK = 50_000_000
 TARGET_INGEST = 100_000
@@ -325,6 +325,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         pin_to_one_core()
+        warm_daemon_kernels()
         n = 40_000 if quick else 200_000
         for per_frame in (1, 5):
             r = ingest_in_process(per_frame, n)

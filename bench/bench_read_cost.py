@@ -28,7 +28,7 @@ from cellbridge.emulator.mesh.virtual import CLOCK_HZ, Latency, VirtualMesh
 from cellbridge.emulator.realtime.realtime import reporting_arg
 from cellbridge.emulator.world.world import Contact, World
 
-from timing import pin_to_one_core, table
+from timing import pin_to_one_core, table, warm_daemon_kernels
 
 WARM_S = 60.0  # s of quiet skin first: routes, mesh time and baselines settle
 
@@ -39,6 +39,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
     pin_to_one_core()
+    warm_daemon_kernels()
     mesh = meshgen.grid(4, 4)
     rng = random.Random(args.seed)
     presses = [Contact(WARM_S + 2.0 + i, 0.3, rng.uniform(0, 0.12), rng.uniform(0, 0.12), 3.0, 0.02)

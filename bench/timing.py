@@ -35,6 +35,18 @@ def fifo_every_thread(priority: int) -> None:
             pass
 
 
+def warm_daemon_kernels() -> None:
+    """The compiled READOUT reader and calibrator step loaded (compiled on a fresh
+    installation), as the daemon has them once it runs: a pipeline measured in-process
+    without them steps with numpy and parses records in Python, the daemon's path only in
+    its first seconds."""
+    from cellbridge.daemon.core import readout_columns
+    from cellbridge.tactile import calibration_kernel
+
+    readout_columns.warm_up()
+    calibration_kernel.warm_up()
+
+
 def best_rate(fn: Callable[[], object], n: int, repeats: int = 3) -> float:
     """Items per second of ``fn`` processing ``n`` items, best of ``repeats`` runs
     (the best run is the one least disturbed by the rest of the machine)."""

@@ -60,6 +60,10 @@ UP = (0.0, 0.0, 1.0)
 NOWHERE = (math.nan, math.nan, math.nan)
 INT32 = 2**31  # a marker's id is an int32
 LOSS_WARN = 0.05  # a bridge losing more than this fraction of its frames is a warning
+#: The largest finite float32: a reading's channels are float32, and a value past it cannot be written
+#: (the encoder raises): such a reading is unknown (NaN) and counted, never the end of the relay or the bag.
+F32_MAX = 3.4028234663852886e38
+BRIDGE_MAX = 0xFFFF  # bridge ids are u16 (docs/protocol.md): another id is no element
 
 
 def _num(value: Any) -> float:
@@ -167,25 +171,39 @@ class Converter:
         n = len(bridges)
         newest = -math.inf
         cols = [_col(p, k, n) for k in ("force", "area", "dc1", "dc2", "valid", "touched", "status", "t_sample")]
+        beyond = False  # a value no float32 holds, or an id no bridge has: counted once for the message
         for b, force, area, dc1, dc2, valid, touched, status, ts in zip(bridges, *cols):
-            if not isinstance(b, int) or isinstance(b, bool):
+            if b.__class__ is not int or not 0 <= b <= BRIDGE_MAX:
+                beyond = beyond or (isinstance(b, int) and not isinstance(b, bool))
                 continue
             r = self.readings.get(b)
             if r is None:
                 r = self.readings[b] = Reading()
-            # (floats as they come, the rest through _num: this loop runs 256 times a message on a 16x16 skin)
+            # (floats as they come, the rest through _num: this loop runs 256 times a message on a 16x16 skin;
+            # -F32_MAX <= v <= F32_MAX is false for NaN, the infinities and what float32 cannot hold)
             f = force if force.__class__ is float else _num(force)
-            if valid is True and f == f and f not in (math.inf, -math.inf):
-                r.force, r.area = f, area if area.__class__ is float else _num(area)
+            if valid is True and -F32_MAX <= f <= F32_MAX:
+                a = area if area.__class__ is float else _num(area)
+                if a > F32_MAX or a < -F32_MAX:
+                    a, beyond = math.nan, True
+                r.force, r.area = f, a
             elif status.__class__ is int and status & UNTOUCHED and touched is not True:
                 r.force, r.area = 0.0, 0.0
             else:
+                beyond = beyond or (valid is True and f == f and f not in (math.inf, -math.inf))
                 r.force, r.area = math.nan, math.nan
-            r.dc1 = dc1 if dc1.__class__ is float else _num(dc1)
-            r.dc2 = dc2 if dc2.__class__ is float else _num(dc2)
+            d1 = dc1 if dc1.__class__ is float else _num(dc1)
+            d2 = dc2 if dc2.__class__ is float else _num(dc2)
+            if d1 > F32_MAX or d1 < -F32_MAX or d2 > F32_MAX or d2 < -F32_MAX:
+                beyond = True
+                d1 = d1 if -F32_MAX <= d1 <= F32_MAX else math.nan
+                d2 = d2 if -F32_MAX <= d2 <= F32_MAX else math.nan
+            r.dc1, r.dc2 = d1, d2
             t = ts if ts.__class__ is float else _num(ts)
             if t > newest and t != math.inf:
                 newest = t
+        if beyond:
+            self.malformed += 1
         if not math.isfinite(newest):
             newest = _num(p.get("t_host"))
         return self.state(newest)

@@ -1,0 +1,220 @@
+"""The ROS 2 side under a daemon stream nobody planned for: values past a ROS 2 field's range,
+several daemons on one endpoint (a proxy), payloads the views cannot read.
+
+In-process tests use the views' real ZeroMQ shell on a real PUB socket on loopback; the
+recorder tests run ``cellbridge record --profile ros2`` as a process (its own process group,
+stopped on the way out) against a stand-in daemon on loopback, and read the bag back with
+rosbags as ``tests/test_ros2_bag.py`` does.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import pytest
+import zmq
+
+pytest.importorskip("cyclonedds", reason="the ros2 extra is not installed (make install installs it)")
+
+from rosbags.rosbag2 import Reader
+
+from cellbridge.ros2 import types as T
+from cellbridge.ros2.convert import Converter
+from live_skin import cellbridge_cmd, group
+from ros2_peer import typestore
+
+LAYOUT = {"ids": [1, 2], "x": [0.02, 0.06], "y": [0.02, 0.02], "side": 0.04}
+
+
+def element(seq: int, source: str = "skin", **cols: Any) -> dict[str, Any]:
+    base = {"v": 2, "seq": seq, "t_host": 1.7e9 + seq, "source": source, "bridge": [1, 2], "force": [1.0, 0.0],
+            "area": [1e-4, 0.0], "dc1": [1e-13, 0.0], "dc2": [1e-13, 0.0], "valid": [True, False],
+            "status": [0, 8], "touched": [True, False], "t_sample": [1.7e9 + seq] * 2}
+    return {**base, **cols}
+
+
+def contact(seq: int, source: str = "skin", x: float = 0.02, **fields: Any) -> dict[str, Any]:
+    return {"v": 2, "seq": seq, "t_host": 1.7e9 + seq, "t_sample": 1.7e9 + seq, "source": source,
+            "contacts": [{"id": 3, "x": x, "y": 0.02, "force": 2.0, "valid": True, "diameter": 0.01}], **fields}
+
+
+def health(seq: int, source: str = "skin") -> dict[str, Any]:
+    return {"v": 2, "seq": seq, "t_host": 1.7e9 + seq, "uptime": 1.0, "source": source,
+            "links": {"gw": {"connected": True}}, "bridges": {"1": {"silent": False, "loss": 0.0}}}
+
+
+# ---- the converter: whatever comes in, what goes out is a message ROS 2 can carry -----------
+
+OUT_OF_RANGE = {
+    "force past float32": ("element", element(0, force=[1e300, 0.0])),
+    "area past float32": ("element", element(0, area=[-1e300, 0.0])),
+    "dc1 past float32": ("element", element(0, dc1=[1e39, 0.0])),
+    "dc2 past float32": ("element", element(0, dc2=[0.0, -4e38])),
+    "bridge id past u16": ("element", element(0, bridge=[1, 2**200])),
+    "negative bridge id": ("element", element(0, bridge=[1, -5])),
+    "stamp at 2^31 s": ("contact", contact(0, t_sample=2.0**31)),
+    "stamp rounding up to 2^31 s": ("contact", contact(0, t_sample=2147483647.9999999)),
+}
+
+
+@pytest.mark.parametrize("name", list(OUT_OF_RANGE))
+def test_every_message_made_of_an_out_of_range_payload_serialises(name: str) -> None:
+    """A value a ROS 2 field cannot hold (float32 past 3.4e38, an int32 second past 2038, an
+    element id no bridge has) is unknown (NaN, zero stamp) or left out, and counted: it never
+    stops the relay or the recorder with an encoder's exception."""
+    topic, payload = OUT_OF_RANGE[name]
+    conv = Converter()
+    conv.set_layout({"layout": LAYOUT})
+    out = conv.feed(topic, payload, 1.0)
+    assert out, "nothing made"
+    for _, message in out:
+        T.cdr(message)  # raised "Failed to encode member sensors" before
+    later = conv.feed("element", element(1), 2.0)  # and the next ordinary message still goes out
+    for _, message in later:
+        T.cdr(message)
+    state = next(m for k, m in later if k == "state")
+    assert [c.name for c in state.sensors][-1].endswith("/element")
+    assert all(0 <= v <= 65535 for v in state.sensors[-1].values)
+    if topic == "element":
+        assert conv.malformed >= 1, "an out-of-range reading must be counted"
+
+
+def test_a_reading_past_float32_is_unknown_not_a_wrong_number() -> None:
+    conv = Converter()
+    conv.set_layout({"layout": LAYOUT})
+    out = dict(conv.feed("element", element(0, force=[1e300, 0.5], valid=[True, True], dc1=[1e39, 2e-13]), 1.0))
+    force, dc1 = out["state"].sensors[0].values, out["state"].sensors[2].values
+    assert math.isnan(force[0]) and force[1] == 0.5
+    assert math.isnan(dc1[0]) and dc1[1] == 2e-13
+    assert conv.malformed == 1
+
+
+def test_a_stamp_past_int32_seconds_is_zero_not_an_overflow() -> None:
+    assert T.stamp(2.0**31) == T.Time()
+    assert T.stamp(2147483647.9999999) == T.Time()
+    assert T.stamp(2147483646.5) == T.Time(sec=2147483646, nanosec=500_000_000)
+
+
+# ---- the recorder, a process -----------------------------------------------------------------
+
+class Daemon:
+    """A stand-in daemon on loopback: PUB, and a control socket that answers ``topology``."""
+
+    def __init__(self) -> None:
+        self.ctx = zmq.Context()
+        self.pub = self.ctx.socket(zmq.PUB)
+        self.pub.linger = 0
+        self.pub_ep = f"tcp://127.0.0.1:{self.pub.bind_to_random_port('tcp://127.0.0.1')}"
+        self.ctl = self.ctx.socket(zmq.ROUTER)
+        self.ctl.linger = 0
+        self.ctl_ep = f"tcp://127.0.0.1:{self.ctl.bind_to_random_port('tcp://127.0.0.1')}"
+        self.seq: dict[str, int] = {}
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._answer, daemon=True)
+        self._thread.start()
+
+    def _answer(self) -> None:
+        while not self._stop.is_set():
+            with self._lock:
+                try:
+                    frames = self.ctl.recv_multipart(zmq.NOBLOCK)
+                except zmq.Again:
+                    frames = None
+                except zmq.ZMQError:
+                    return
+                if frames:
+                    req = msgpack.unpackb(frames[-1])
+                    reply = {"ok": True, "id": req.get("id"), "v": 2, "layout": LAYOUT, "source": "skin"}
+                    self.ctl.send_multipart([frames[0], msgpack.packb(reply)])
+            time.sleep(0.01)
+
+    def send(self, topic: str, make: Any, **kw: Any) -> None:
+        seq = self.seq[topic] = self.seq.get(topic, -1) + 1
+        with self._lock:
+            self.pub.send_multipart([topic.encode(), msgpack.packb(make(seq, **kw))])
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.ctx.destroy(linger=0)
+
+
+def bag_counts(bag: Path) -> int:
+    meta = (bag / "metadata.yaml").read_text() if (bag / "metadata.yaml").exists() else ""
+    for line in meta.splitlines():
+        if line.strip().startswith("message_count:"):
+            return int(line.split(":")[1])
+    return 0
+
+
+@contextmanager
+def recorder(daemon: Daemon, bag: Path, log: Path, *extra: str, preexec: Any = None) -> Iterator[subprocess.Popen[Any]]:
+    cmd = cellbridge_cmd("record", str(bag), "--profile", "ros2", "--endpoint", daemon.pub_ep,
+                         "--control", daemon.ctl_ep, "--chunk-seconds", "0.2", "--no-fsync", *extra)
+    with open(log, "wb") as err, group(cmd, stderr=err) as proc:
+        yield proc
+
+
+def joined(daemon: Daemon, bag: Path, proc: subprocess.Popen[Any]) -> None:
+    """Until the recorder's bag holds a message (its subscription reached the PUB)."""
+    end = time.monotonic() + 60
+    while time.monotonic() < end and proc.poll() is None:
+        daemon.send("health", health)
+        if bag_counts(bag) > 0:
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"the recorder never recorded (status {proc.poll()})")
+
+
+def stopped(proc: subprocess.Popen[Any], log: Path, sig: int = signal.SIGTERM) -> tuple[int, dict[str, Any]]:
+    os.killpg(proc.pid, sig)
+    rc = proc.wait(30)
+    lines = [ln for ln in log.read_text().splitlines() if ln.startswith("{")]
+    return rc, json.loads(lines[-1]) if lines else {}
+
+
+def read_bag(bag: Path) -> dict[str, int]:
+    store = typestore()
+    counts: dict[str, int] = {}
+    with Reader(bag) as reader:
+        for conn, _, raw in reader.messages():
+            store.deserialize_cdr(raw, conn.msgtype)
+            counts[conn.topic] = counts.get(conn.topic, 0) + 1
+    return counts
+
+
+@pytest.fixture
+def daemon() -> Iterator[Daemon]:
+    d = Daemon()
+    try:
+        yield d
+    finally:
+        d.close()
+
+
+def test_the_recorder_outlives_a_reading_past_float32_and_its_bag_reads(daemon: Daemon, tmp_path: Path) -> None:
+    bag, log = tmp_path / "bag", tmp_path / "record.log"
+    with recorder(daemon, bag, log) as proc:
+        joined(daemon, bag, proc)
+        daemon.send("element", element, force=[1e300, 0.0])
+        daemon.send("contact", contact)
+        time.sleep(0.5)
+        assert proc.poll() is None, log.read_text()[-2000:]  # it died with a traceback before
+        rc, stats = stopped(proc, log)
+    assert rc == 0, log.read_text()[-2000:]
+    assert stats["malformed"] >= 1
+    got = read_bag(bag)
+    assert got.get("/cellbridge/contacts") == 1
+    assert got == {k: v for k, v in stats["recorded"].items() if v}

@@ -31,6 +31,9 @@ from rosbags.rosbag2 import Reader
 
 from cellbridge.ros2 import types as T
 from cellbridge.ros2.convert import Converter
+from cellbridge.ros2.daemon_feed import PayloadModel
+from cellbridge.ros2.relay import Relay
+from cellbridge.views.source import Source
 from live_skin import cellbridge_cmd, group
 from ros2_peer import typestore
 
@@ -104,6 +107,101 @@ def test_a_stamp_past_int32_seconds_is_zero_not_an_overflow() -> None:
     assert T.stamp(2.0**31) == T.Time()
     assert T.stamp(2147483647.9999999) == T.Time()
     assert T.stamp(2147483646.5) == T.Time(sec=2147483646, nanosec=500_000_000)
+
+
+# ---- the feed: one daemon per topic, each bad payload counted once ---------------------------
+
+class Pub:
+    """A PUB socket on loopback standing in for daemons behind a proxy, and a Source on it."""
+
+    def __init__(self) -> None:
+        self.ctx = zmq.Context()
+        self.pub = self.ctx.socket(zmq.PUB)
+        self.pub.linger = 0
+        self.port = self.pub.bind_to_random_port("tcp://127.0.0.1")
+        ctl = self.ctx.socket(zmq.ROUTER)  # a control endpoint that never answers
+        ctl.linger = 0
+        self.ctl_port = ctl.bind_to_random_port("tcp://127.0.0.1")
+        self.ctl = ctl
+        self.source = Source(f"tcp://127.0.0.1:{self.port}", f"tcp://127.0.0.1:{self.ctl_port}")
+
+    def send(self, topic: str, payload: Any) -> None:
+        self.pub.send_multipart([topic.encode(), msgpack.packb(payload)])
+
+    def joined(self, model: PayloadModel, source: str = "skin") -> None:
+        end = time.monotonic() + 30
+        seq = 0
+        while time.monotonic() < end:
+            self.send("health", health(seq, source))
+            seq += 1
+            if self.source.poll(50):
+                self.source.drain(model)
+                model.take()
+                return
+        raise AssertionError("the subscriber never joined")
+
+    def settle(self, model: PayloadModel, n: int) -> None:
+        """Until ``n`` more messages were drained into ``model``."""
+        want = sum(model.received.values()) + model.malformed + model.unknown_topics + n
+        end = time.monotonic() + 30
+        while time.monotonic() < end and sum(model.received.values()) + model.malformed + model.unknown_topics < want:
+            if self.source.poll(100):
+                self.source.drain(model)
+
+    def close(self) -> None:
+        self.source.close()
+        self.ctx.destroy(linger=0)
+
+
+@pytest.fixture
+def pub() -> Iterator[Pub]:
+    p = Pub()
+    try:
+        yield p
+    finally:
+        p.close()
+
+
+def test_two_daemons_behind_a_proxy_are_never_mixed_into_one_topic(pub: Pub) -> None:
+    """As every view: the first daemon heard (or ``--source``'s) is the one published, the
+    others are counted (docs/views.md, "One daemon per picture")."""
+    conv = Converter(marker_period=math.inf)
+    model = PayloadModel(conv)
+    pub.joined(model, "left")
+    pub.send("contact", contact(1, "left", x=0.02))
+    pub.send("contact", contact(1, "right", x=0.06))
+    pub.send("topology", {"v": 2, "seq": 0, "source": "right", "t_host": 1.7e9, "layout": LAYOUT})
+    pub.settle(model, 3)
+    out: list[tuple[str, Any]] = []
+    Relay(pub.source, model, conv, lambda k, m: out.append((k, m))).step(0)
+    xs = [c.position.x for k, m in out if k == "contacts" for c in m.contacts]
+    assert xs == [0.02], xs  # the right daemon's contact was published as the left's before
+    assert model.other_sources == {"right": 2}
+    assert not conv.layout  # nor its layout taken for the left's
+
+
+def test_source_picks_the_daemon_published(pub: Pub) -> None:
+    conv = Converter(marker_period=math.inf)
+    model = PayloadModel(conv, source="right")
+    pub.joined(model, "right")
+    pub.send("contact", contact(1, "left", x=0.02))
+    pub.send("contact", contact(1, "right", x=0.06))
+    pub.settle(model, 2)
+    out: list[tuple[str, Any]] = []
+    Relay(pub.source, model, conv, lambda k, m: out.append((k, m))).step(0)
+    assert [c.position.x for k, m in out if k == "contacts" for c in m.contacts] == [0.06]
+
+
+def test_a_payload_nobody_can_read_is_counted_once(pub: Pub) -> None:
+    conv = Converter(marker_period=math.inf)
+    model = PayloadModel(conv)
+    pub.joined(model)
+    pub.send("element", {"v": 2, "seq": 1, "source": "skin", "bridge": 5})  # no bridge column
+    pub.send("element", [1, 2, 3])  # not a map
+    pub.pub.send_multipart([b"contact", b"\xc1\xc1"])  # not msgpack
+    pub.settle(model, 3)
+    Relay(pub.source, model, conv, lambda k, m: None).step(0)
+    assert model.malformed + conv.malformed == 3, (model.malformed, conv.malformed)  # 5: two counted twice
 
 
 # ---- the recorder, a process -----------------------------------------------------------------

@@ -6,6 +6,13 @@ this subscriber's losses (gaps in ``seq``), notices a restarted daemon (its numb
 starts again) and then asks for the layout anew, as every view does. Besides, it keeps
 each payload for :class:`cellbridge.ros2.convert.Converter` (:meth:`take`), and hands
 it every layout (a ``topology`` message or the control socket's reply).
+
+Only payloads of the daemon the model shows are kept (``source``: ``--source``, else the
+first heard, as every view): behind a ``cellbridge proxy`` another daemon's contacts would
+otherwise go out on the same topic, in the same frame, as if they were this skin's. The
+others are counted (:attr:`other_sources`). A payload the converter is given is counted
+as malformed by the converter alone: the view's own reading of it (which fails on the
+same payloads) is not counted a second time.
 """
 
 from __future__ import annotations
@@ -17,17 +24,26 @@ from cellbridge.views.model import SkinView
 
 
 class PayloadModel(SkinView):
-    def __init__(self, converter: Converter, force_scale: float = 5.0) -> None:
-        super().__init__(force_scale=force_scale)
+    def __init__(self, converter: Converter, force_scale: float = 5.0, source: str | None = None) -> None:
+        super().__init__(force_scale=force_scale, source=source)
         self.converter = converter
         self.pending: list[tuple[str, Any, float]] = []
+        self._kept = False
+
+    def _shown(self, source: Any) -> bool:
+        self._kept = super()._shown(source)
+        return self._kept
 
     def feed(self, topic: str, payload: Any, now: float) -> None:
+        self._kept = False  # set by _shown: a map of a known topic from the daemon shown
+        malformed = self.malformed
         try:
             super().feed(topic, payload, now)
         except ArithmeticError:  # a health figure past float range: the view's summary gives up on it
             self.malformed += 1
-        self.pending.append((topic, payload, now))
+        if self._kept:
+            self.malformed = malformed  # the converter counts what it cannot read
+            self.pending.append((topic, payload, now))
 
     def _feed_element(self, p: dict[str, Any]) -> None:
         """Only whether an element the layout does not place is reporting (then the layout is

@@ -61,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"cellbridge record: --profile ros2 {MISSING} ({exc})", file=sys.stderr)
         return 1
+    from cellbridge.ros2.cli import _others
     from cellbridge.ros2.qos import BadTopicName, topics
     from cellbridge.views.source import Source
 
@@ -127,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
                 error = f"{args.out}: {exc.strerror or exc}"
         stats = {"recorded": {specs[k].name: n for k, n in bag.counts.items()}, "messages": bag.messages,
                  "received": received, "lost": model.lost, "malformed": model.malformed + converter.malformed,
-                 "daemon_restarts": model.daemon_restarts, "files": [str(f.path) for f in bag.files], "error": error}
+                 "daemon_restarts": model.daemon_restarts, "source": model.source,
+                 "other_sources": _others(model), "files": [str(f.path) for f in bag.files], "error": error}
         print(json.dumps(stats), file=sys.stderr)
     if error:
         print(f"cellbridge record: {error}", file=sys.stderr)

@@ -13,6 +13,7 @@ import json
 import math
 import os
 import signal
+import struct
 import subprocess
 import threading
 import time
@@ -316,3 +317,59 @@ def test_the_recorder_outlives_a_reading_past_float32_and_its_bag_reads(daemon: 
     got = read_bag(bag)
     assert got.get("/cellbridge/contacts") == 1
     assert got == {k: v for k, v in stats["recorded"].items() if v}
+
+
+def stream_counts(bag: Path) -> dict[str, int]:
+    """Messages per topic as a reader that goes through each MCAP file in order finds them
+    (up to a file's last whole record: the last file of a stopped bag has no summary)."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+
+    counts: dict[str, int] = {}
+    for f in sorted(bag.glob("*.mcap")):
+        topics: dict[int, str] = {}
+        with open(f, "rb") as fh:
+            try:
+                for r in StreamReader(fh, skip_magic=False).records:
+                    if isinstance(r, Channel):
+                        topics[r.id] = r.topic
+                    elif isinstance(r, Message):
+                        counts[topics[r.channel_id]] = counts.get(topics[r.channel_id], 0) + 1
+            except (McapError, EOFError, struct.error):  # the cut-short end
+                pass
+    return counts
+
+
+def metadata_counts(bag: Path) -> dict[str, int]:
+    from ruamel.yaml import YAML
+
+    info = YAML(typ="safe").load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    return {t["topic_metadata"]["name"]: t["message_count"] for t in info["topics_with_message_count"]
+            if t["message_count"]}
+
+
+def test_a_full_disk_stops_the_recorder_and_its_counts_are_what_the_bag_holds(daemon: Daemon, tmp_path: Path) -> None:
+    """The file-size limit (RLIMIT_FSIZE, 100 KiB) stands for a full disk: the recorder stops with
+    status 1, and what it says it recorded, what metadata.yaml says and what the files hold agree."""
+    bag, log = tmp_path / "bag", tmp_path / "record.log"
+    cmd = cellbridge_cmd("record", str(bag), "--profile", "ros2", "--endpoint", daemon.pub_ep, "--control",
+                         daemon.ctl_ep, "--chunk-seconds", "0.2", "--chunk-size", "0.01", "--no-fsync")
+    rng = __import__("random").Random(5)
+    with open(log, "wb") as err, group(["bash", "-c", 'ulimit -f 100; exec "$@"', "bash", *cmd], stderr=err) as proc:
+        joined(daemon, bag, proc)
+        end = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < end:  # incompressible readings until the limit
+            for _ in range(20):
+                daemon.send("element", element, force=[rng.random(), rng.random()],
+                            dc1=[rng.random() * 1e-12, rng.random() * 1e-12])
+            time.sleep(0.02)
+        rc = proc.wait(30)
+    lines = [ln for ln in log.read_text().splitlines() if ln.startswith("{")]
+    assert rc == 1 and lines, log.read_text()[-2000:]
+    stats = json.loads(lines[-1])
+    assert "File too large" in stats["error"]
+    recorded = {k: v for k, v in stats["recorded"].items() if v}
+    assert recorded == stream_counts(bag), (recorded, stream_counts(bag))
+    assert metadata_counts(bag) == recorded
+    assert stats["messages"] == sum(recorded.values())

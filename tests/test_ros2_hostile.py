@@ -373,3 +373,25 @@ def test_a_full_disk_stops_the_recorder_and_its_counts_are_what_the_bag_holds(da
     assert recorded == stream_counts(bag), (recorded, stream_counts(bag))
     assert metadata_counts(bag) == recorded
     assert stats["messages"] == sum(recorded.values())
+
+
+def test_sigterm_while_the_recorder_starts_still_finishes_its_bag(daemon: Daemon, tmp_path: Path) -> None:
+    """The bag exists from the recorder's first moments: a SIGTERM from then on finishes it. The
+    recorder is held just after the bag is made, reading its key file (a FIFO nobody writes yet)."""
+    bag, log, key = tmp_path / "bag", tmp_path / "record.log", tmp_path / "server.key"
+    os.mkfifo(key)
+    cmd = cellbridge_cmd("record", str(bag), "--profile", "ros2", "--endpoint", daemon.pub_ep, "--control",
+                         daemon.ctl_ep, "--server-key", str(key), "--client-key", str(tmp_path / "c.key_secret"))
+    with open(log, "wb") as err, group(cmd, stderr=err) as proc:
+        end = time.monotonic() + 60
+        while not (bag / "metadata.yaml").exists() and time.monotonic() < end:
+            time.sleep(0.01)
+        time.sleep(0.5)  # at the key file's open() by now
+        os.killpg(proc.pid, signal.SIGTERM)
+        time.sleep(0.2)
+        fd = os.open(key, os.O_WRONLY | os.O_NONBLOCK) if proc.poll() is None else -1  # let the open() return
+        if fd >= 0:
+            os.close(fd)
+        rc = proc.wait(30)
+    assert rc != -signal.SIGTERM, "killed by the SIGTERM: its bag was left unfinished"
+    assert read_bag(bag) == {}  # finished: rosbags reads it (it needs the summary)

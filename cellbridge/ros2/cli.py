@@ -106,13 +106,12 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"cellbridge ros2: {MISSING} ({exc})", file=sys.stderr)
         return 1
+    stop = threading.Event()  # (before the sockets and DDS are made: a signal meanwhile still prints the counters)
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
     source = open_source("ros2", args, _problem(args))
     if source is None:
         return 2
-
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
     specs = topics(args.namespace, args.diagnostics_topic)
     converter = Converter(args.frame_id, marker_period=1.0 / args.marker_rate, force_scale=args.force_scale,
                           diagnostics_period=1.0 / args.diagnostics_rate)

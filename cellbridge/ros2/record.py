@@ -76,6 +76,11 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, BadTopicName) as exc:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
+    # before the bag exists: a SIGINT or SIGTERM from the moment it does finishes it (one that came
+    # while the sockets were made, before, killed the recorder and left a bag no rosbag2 reader opens)
+    stop: list[bool] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.append(True))
     meta = {"endpoint": args.endpoint, "topics": ",".join(wanted), "recorder_host": socket.gethostname(),
             "cellbridge_version": __version__, "started": f"{time.time():.6f}", "frame_id": args.frame_id}
     try:
@@ -91,9 +96,6 @@ def run(args: argparse.Namespace) -> int:
         bag.finish()
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
-    stop: list[bool] = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.append(True))
     converter = Converter(args.frame_id)
     model = PayloadModel(converter)
     received, error = 0, ""

@@ -395,3 +395,25 @@ def test_sigterm_while_the_recorder_starts_still_finishes_its_bag(daemon: Daemon
         rc = proc.wait(30)
     assert rc != -signal.SIGTERM, "killed by the SIGTERM: its bag was left unfinished"
     assert read_bag(bag) == {}  # finished: rosbags reads it (it needs the summary)
+
+
+def test_a_payload_of_a_schema_version_it_does_not_know_is_counted_not_converted(pub: Pub) -> None:
+    """docs/zmq-api.md: a change that removes or redefines a field raises ``v``: a version-3
+    contact's fields may not mean what version 2's do, so nothing is published as if they did."""
+    from cellbridge.daemon.core.messages import SCHEMA_VERSION
+    from cellbridge.ros2.convert import SCHEMA_VERSION as KNOWN
+
+    assert KNOWN == SCHEMA_VERSION  # the converter knows the daemon's own version
+    conv = Converter(marker_period=math.inf)
+    model = PayloadModel(conv)
+    pub.joined(model)
+    pub.send("contact", contact(1, v=KNOWN + 1))
+    pub.send("topology", {"v": KNOWN + 1, "seq": 0, "source": "skin", "t_host": 1.7e9, "layout": LAYOUT})
+    pub.send("contact", contact(2, v=1))  # an older version is read (fields are only added within one)
+    pub.settle(model, 3)
+    out: list[tuple[str, Any]] = []
+    Relay(pub.source, model, conv, lambda k, m: out.append((k, m))).step(0)
+    assert [len(m.contacts) for k, m in out if k == "contacts"] == [1]
+    assert conv.newer_schema == 2
+    assert not conv.layout
+    assert Converter().feed("contact", contact(1, v=KNOWN + 1), 1.0) == []

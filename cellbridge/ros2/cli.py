@@ -139,7 +139,8 @@ def run(args: argparse.Namespace) -> int:
         source.close()
         print(json.dumps({"published": graph.published if graph is not None else {},
                           "dropped": graph.dropped if graph is not None else {},
-                          "malformed": model.malformed + converter.malformed, "lost": model.lost,
+                          "malformed": model.malformed + converter.malformed, "newer_schema": converter.newer_schema,
+                          "lost": model.lost,
                           "health_not_published": converter.diagnostics_skipped,
                           "daemon_restarts": model.daemon_restarts, "source": model.source,
                           "other_sources": _others(model), "t": round(time.time(), 3)}), file=sys.stderr)

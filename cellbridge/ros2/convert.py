@@ -40,7 +40,10 @@ plane, metres, z out of the skin), except a contact whose map names its own ``li
 which is then its frame (a skin on a robot's links).
 
 Nothing here raises on a payload: a payload that is not what the API says is counted
-in :attr:`Converter.malformed`.
+in :attr:`Converter.malformed`. A payload of a schema version newer than the one this
+converter was written for (``v`` above :data:`SCHEMA_VERSION`: a version that removes or
+redefines a field, docs/zmq-api.md) is counted in :attr:`Converter.newer_schema` and makes
+nothing: its fields may not mean what they say here.
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ from cellbridge.ros2 import types as T
 from cellbridge.views.model import UNTOUCHED, Contact, contact_line, level_rgb, summarise_health
 from cellbridge.views.robot_skin import unit3, vec3
 
+SCHEMA_VERSION = 2  # the daemon's payload schema this reads (docs/zmq-api.md, "Versioning")
 MARKER_PERIOD = 0.1  # s: at most 10 pictures a second (a 16x16 skin's picture costs ~10 ms to build and encode)
 ARROW_PER_NEWTON = 0.01  # m of arrow per N
 UP = (0.0, 0.0, 1.0)
@@ -107,6 +111,7 @@ class Converter:
         self.contacts: list[dict[str, Any]] = []
         self.lost: dict[str, int] = {}  # the shell's: messages its subscriber lost, shown in diagnostics
         self.malformed = 0
+        self.newer_schema = 0  # payloads of a schema version after SCHEMA_VERSION: not converted
         self.made: dict[str, int] = {}
         self._marker_at = -math.inf
         self._drawn_contacts = -1
@@ -118,6 +123,9 @@ class Converter:
         counted on it): the ROS 2 messages it makes, as ``(topic key, message)``."""
         if not isinstance(payload, dict):
             self.malformed += 1
+            return []
+        if newer_schema(payload):
+            self.newer_schema += 1
             return []
         out: list[tuple[str, Any]] = []
         try:
@@ -360,6 +368,12 @@ class Converter:
 
 
 Vec3 = tuple[float, float, float]
+
+
+def newer_schema(payload: dict[str, Any]) -> bool:
+    """Whether ``payload`` says it is of a schema version after :data:`SCHEMA_VERSION`."""
+    v = payload.get("v")
+    return v.__class__ is int and v > SCHEMA_VERSION
 
 
 def _place(c: dict[str, Any]) -> tuple[Vec3, Vec3, bool]:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from cellbridge.ros2.convert import Converter
+from cellbridge.ros2.convert import Converter, newer_schema
 from cellbridge.views.model import SkinView
 
 
@@ -35,6 +35,9 @@ class PayloadModel(SkinView):
         return self._kept
 
     def feed(self, topic: str, payload: Any, now: float) -> None:
+        if isinstance(payload, dict) and newer_schema(payload):  # not even its layout is taken
+            self.converter.newer_schema += 1
+            return
         self._kept = False  # set by _shown: a map of a known topic from the daemon shown
         malformed = self.malformed
         try:

@@ -421,3 +421,19 @@ def test_a_payload_of_a_schema_version_it_does_not_know_is_counted_not_converted
     assert conv.newer_schema == 2
     assert not conv.layout
     assert Converter().feed("contact", contact(1, v=KNOWN + 1), 1.0) == []
+
+
+def test_an_element_a_new_layout_drops_leaves_the_readings() -> None:
+    """A topology that changes mid-stream (a daemon restarted on a smaller skin, a layout
+    rebuilt): an element the new layout no longer has is no longer reported, with the last
+    force the old one gave it, as if it were still there."""
+    conv = Converter()
+    conv.set_layout({"layout": {"ids": [1, 2, 3], "x": [0.02, 0.06, 0.10], "y": [0.02] * 3, "side": 0.04}})
+    conv.feed("element", element(0, bridge=[1, 2, 3], force=[1.0, 2.0, 3.0], valid=[True] * 3), 1.0)
+    conv.set_layout({"layout": LAYOUT})  # elements 1 and 2
+    out = dict(conv.feed("element", element(1, bridge=[1], force=[1.5], valid=[True]), 2.0))
+    ids = out["state"].sensors[-1].values
+    assert ids == [1.0, 2.0], ids
+    assert out["state"].sensors[0].values == [1.5, 2.0]
+    cubes = next(m for m in out["markers"].markers if m.ns == "elements")
+    assert len(cubes.points) == 2

@@ -169,6 +169,9 @@ class Converter:
             self.side = side
         self.layout = {b: (_num(x), _num(y)) for b, x, y in zip(ids, xs, ys)
                        if isinstance(b, int) and math.isfinite(_num(x)) and math.isfinite(_num(y))}
+        if self.layout:  # an element the layout no longer has (a smaller skin, a rebuilt layout) is gone:
+            # its last reading is not the skin's any more
+            self.readings = {b: r for b, r in self.readings.items() if b in self.layout}
 
     # ---- element ----------------------------------------------------------------------------
 

@@ -437,3 +437,52 @@ def test_an_element_a_new_layout_drops_leaves_the_readings() -> None:
     assert out["state"].sensors[0].values == [1.5, 2.0]
     cubes = next(m for m in out["markers"].markers if m.ns == "elements")
     assert len(cubes.points) == 2
+
+
+def test_a_wall_clock_step_while_recording_neither_reorders_the_bag_nor_shows_in_it(
+        daemon: Daemon, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``cellbridge record --help``: publish times follow the monotonic clock from the wall
+    clock's time at the start, so a clock step while recording does not show in a replay. The
+    recorder runs in this process (the wall clock cannot be stepped on this machine: it is
+    replaced by one that steps back an hour a few messages into the recording); the bag's message times
+    must still grow and span the recording's real length, not minus an hour."""
+    from cellbridge.cli import build_parser
+
+    real_time = time.time
+    reads = [0]
+
+    def stepped() -> float:  # back an hour once the recorder read the clock for 10 messages
+        reads[0] += 1
+        return real_time() - (3600.0 if reads[0] > 12 else 0.0)
+
+    monkeypatch.setattr(time, "time", stepped)
+    monkeypatch.setattr(time, "time_ns", lambda: int(stepped() * 1e9))
+    stop = threading.Event()
+
+    def traffic() -> None:
+        while not stop.is_set():
+            daemon.send("contact", contact)
+            time.sleep(0.02)
+
+    feeder = threading.Thread(target=traffic, daemon=True)
+    feeder.start()
+    bag = tmp_path / "bag"
+    args = build_parser().parse_args(["record", str(bag), "--profile", "ros2", "--endpoint", daemon.pub_ep,
+                                      "--control", daemon.ctl_ep, "--duration", "2", "--no-fsync", "--topics", "contact"])
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert args._module.endswith("record_cli")
+        from cellbridge.ros2 import record
+
+        assert record.run(args) == 0
+    finally:
+        stop.set()
+        feeder.join(5)
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    with Reader(bag) as reader:
+        times = [t for _, t, _ in reader.messages()]
+    assert len(times) > 20
+    assert times == sorted(times), "the step reordered the bag"
+    span = (times[-1] - times[0]) / 1e9
+    assert 1.0 < span < 3.0, span  # about the 2 s recorded (an hour off, or negative, before)

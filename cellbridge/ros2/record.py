@@ -5,7 +5,11 @@ drained into :class:`cellbridge.ros2.daemon_feed.PayloadModel`: a restarted daem
 picked up again, the layout is asked for on the control socket), turned into ROS 2
 messages (:mod:`cellbridge.ros2.convert`) and written into a bag
 (:mod:`cellbridge.ros2.bag`). A message's time in the bag is when it was received here,
-as ``ros2 bag record`` stamps it; its header holds the skin's own time.
+as ``ros2 bag record`` stamps it; its header holds the skin's own time. That time is read
+on :class:`cellbridge.recording.record_cli.EpochClock` (the wall clock's at the start, the
+monotonic clock's from then on), as the JSON recorder's: a wall-clock step while recording
+stepped the bag's times with it, so a step back put later messages before earlier ones in
+every reader's (time) order, and ``--rotate-minutes`` measured across the step.
 
 SIGINT and SIGTERM finish the bag (exit 0); a failed write (full disk) stops it with a
 message (exit 1); the counters go to stderr as one JSON line.
@@ -62,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge record: --profile ros2 {MISSING} ({exc})", file=sys.stderr)
         return 1
     from cellbridge.ros2.cli import _others
+    from cellbridge.recording.record_cli import EpochClock
     from cellbridge.ros2.qos import BadTopicName, topics
     from cellbridge.views.source import Source
 
@@ -96,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
         bag.finish()
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
+    clock = EpochClock()
     converter = Converter(args.frame_id)
     model = PayloadModel(converter)
     received, error = 0, ""
@@ -112,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
                 for topic, payload, _ in model.take():
                     received += 1
                     t_host = payload.get("t_host") if isinstance(payload, dict) else None
-                    now_ns = time.time_ns()
+                    now_ns = int(clock() * 1e9)
                     for key, message in converter.feed(topic, payload, t_host if isinstance(t_host, float) else 0.0):
                         bag.add(key, message, now_ns)
                 if args.chunk_seconds and time.monotonic() - flushed >= args.chunk_seconds:

@@ -269,11 +269,11 @@ def recorder(daemon: Daemon, bag: Path, log: Path, *extra: str, preexec: Any = N
         yield proc
 
 
-def joined(daemon: Daemon, bag: Path, proc: subprocess.Popen[Any]) -> None:
+def joined(daemon: Daemon, bag: Path, proc: subprocess.Popen[Any], topic: str = "health") -> None:
     """Until the recorder's bag holds a message (its subscription reached the PUB)."""
     end = time.monotonic() + 60
     while time.monotonic() < end and proc.poll() is None:
-        daemon.send("health", health)
+        daemon.send(topic, {"health": health, "element": element}[topic])
         if bag_counts(bag) > 0:
             return
         time.sleep(0.1)
@@ -486,3 +486,19 @@ def test_a_wall_clock_step_while_recording_neither_reorders_the_bag_nor_shows_in
     assert times == sorted(times), "the step reordered the bag"
     span = (times[-1] - times[0]) / 1e9
     assert 1.0 < span < 3.0, span  # about the 2 s recorded (an hour off, or negative, before)
+
+
+def test_the_bag_keeps_drawing_the_skin_when_the_daemons_clock_steps_back(daemon: Daemon, tmp_path: Path) -> None:
+    """The markers' rate (10 a second) was measured on the daemon's ``t_host``: when the
+    daemon's wall clock stepped back an hour, the bag held no picture for an hour."""
+    bag, log = tmp_path / "bag", tmp_path / "record.log"
+    with recorder(daemon, bag, log, "--topics", "element") as proc:
+        joined(daemon, bag, proc, "element")
+        for i in range(40):  # 2 s of readings, the daemon's clock an hour back after the first
+            daemon.send("element", element, t_host=1.7e9 - (3600.0 if i else 0.0) + 0.05 * i)
+            time.sleep(0.05)
+        time.sleep(0.5)
+        rc, stats = stopped(proc, log)
+    assert rc == 0, log.read_text()[-2000:]
+    markers = read_bag(bag).get("/cellbridge/markers", 0)
+    assert markers >= 10, (markers, stats)  # about 20 in 2 s; 1 before

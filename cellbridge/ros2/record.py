@@ -65,8 +65,8 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"cellbridge record: --profile ros2 {MISSING} ({exc})", file=sys.stderr)
         return 1
-    from cellbridge.ros2.cli import _others
     from cellbridge.recording.record_cli import EpochClock
+    from cellbridge.ros2.cli import _others
     from cellbridge.ros2.qos import BadTopicName, topics
     from cellbridge.views.source import Source
 
@@ -115,11 +115,12 @@ def run(args: argparse.Namespace) -> int:
             source.poll(100)
             source.drain(model, max_messages=args.count - received if args.count else 100_000)
             try:
-                for topic, payload, _ in model.take():
+                for topic, payload, arrived in model.take():
                     received += 1
-                    t_host = payload.get("t_host") if isinstance(payload, dict) else None
                     now_ns = int(clock() * 1e9)
-                    for key, message in converter.feed(topic, payload, t_host if isinstance(t_host, float) else 0.0):
+                    # the pictures' rate on the arrival (monotonic), as 'cellbridge ros2' counts it: on the
+                    # daemon's t_host a step back of its clock left the bag without a picture for as long
+                    for key, message in converter.feed(topic, payload, arrived):
                         bag.add(key, message, now_ns)
                 if args.chunk_seconds and time.monotonic() - flushed >= args.chunk_seconds:
                     flushed = time.monotonic()

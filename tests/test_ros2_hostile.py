@@ -502,3 +502,39 @@ def test_the_bag_keeps_drawing_the_skin_when_the_daemons_clock_steps_back(daemon
     assert rc == 0, log.read_text()[-2000:]
     markers = read_bag(bag).get("/cellbridge/markers", 0)
     assert markers >= 10, (markers, stats)  # about 20 in 2 s; 1 before
+
+
+def test_a_contact_message_of_thousands_of_contacts_costs_a_bounded_time() -> None:
+    """A contact message of 20 000 contacts (a skin has at most one per element; the views keep
+    64 per message) took seconds to convert, its picture megabytes: the relay, which sends
+    contacts first, stalled on each. As the views: the picture draws at most 64 contacts, the
+    message lists at most 4096 (a 64×64 skin's elements); the rest are counted."""
+    from cellbridge.views.model import MAX_CONTACTS, MAX_ELEMENTS
+
+    conv = Converter()
+    conv.set_layout({"layout": LAYOUT})
+    payload = contact(0)
+    payload["contacts"] = [{"id": i, "x": 0.001 * (i % 100), "y": 0.02, "force": 1.0, "diameter": 0.01}
+                           for i in range(20_000)]
+    t = time.process_time()
+    out = dict(conv.feed("contact", payload, 1.0))
+    sizes = {k: len(T.cdr(m)) for k, m in out.items()}
+    spent = time.process_time() - t
+    assert len(out["contacts"].contacts) == MAX_ELEMENTS
+    assert len([m for m in out["markers"].markers if m.ns == "contacts"]) == MAX_CONTACTS
+    assert conv.malformed == 1  # the message, once
+    assert sizes["markers"] < 100_000, sizes
+    assert spent < 2.5, spent  # ~9 s before (on a machine that takes 0.4 s for 1000)
+
+
+def test_a_layout_of_a_hundred_thousand_elements_is_bounded_as_the_views_bound_it() -> None:
+    from cellbridge.views.model import MAX_ELEMENTS
+
+    conv = Converter()
+    n = 100_000
+    conv.set_layout({"layout": {"ids": list(range(n)), "x": [0.001 * i for i in range(n)], "y": [0.0] * n}})
+    out = dict(conv.feed("element", element(0), 1.0))
+    cubes = next(m for m in out["markers"].markers if m.ns == "elements")
+    assert len(cubes.points) == MAX_ELEMENTS
+    assert len(out["state"].sensors[-1].values) == MAX_ELEMENTS
+    assert conv.malformed == 1

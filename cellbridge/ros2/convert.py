@@ -54,7 +54,15 @@ from typing import Any
 
 from cellbridge.ros2 import DEFAULT_FRAME
 from cellbridge.ros2 import types as T
-from cellbridge.views.model import UNTOUCHED, Contact, contact_line, level_rgb, summarise_health
+from cellbridge.views.model import (
+    MAX_CONTACTS,
+    MAX_ELEMENTS,
+    UNTOUCHED,
+    Contact,
+    contact_line,
+    level_rgb,
+    summarise_health,
+)
 from cellbridge.views.robot_skin import unit3, vec3
 
 SCHEMA_VERSION = 2  # the daemon's payload schema this reads (docs/zmq-api.md, "Versioning")
@@ -111,6 +119,7 @@ class Converter:
         self.contacts: list[dict[str, Any]] = []
         self.lost: dict[str, int] = {}  # the shell's: messages its subscriber lost, shown in diagnostics
         self.malformed = 0
+        self._counted_layout: Any = None  # the last layout counted as beyond the bound
         self.newer_schema = 0  # payloads of a schema version after SCHEMA_VERSION: not converted
         self.made: dict[str, int] = {}
         self._marker_at = -math.inf
@@ -168,7 +177,13 @@ class Converter:
         if math.isfinite(side) and side > 0:
             self.side = side
         self.layout = {b: (_num(x), _num(y)) for b, x, y in zip(ids, xs, ys)
-                       if isinstance(b, int) and math.isfinite(_num(x)) and math.isfinite(_num(y))}
+                       if b.__class__ is int and 0 <= b <= BRIDGE_MAX
+                       and math.isfinite(_num(x)) and math.isfinite(_num(y))}
+        if len(self.layout) > MAX_ELEMENTS:  # the views' bound (a 64x64 skin): every picture draws them all
+            self.layout = dict(sorted(self.layout.items())[:MAX_ELEMENTS])
+            if layout is not self._counted_layout:  # (the control reply and the message may be one payload)
+                self._counted_layout = layout
+                self.malformed += 1
         if self.layout:  # an element the layout no longer has (a smaller skin, a rebuilt layout) is gone:
             # its last reading is not the skin's any more
             self.readings = {b: r for b, r in self.readings.items() if b in self.layout}
@@ -189,6 +204,9 @@ class Converter:
                 continue
             r = self.readings.get(b)
             if r is None:
+                if len(self.readings) >= MAX_ELEMENTS:  # the views' bound: readings of further ids are counted
+                    beyond = True
+                    continue
                 r = self.readings[b] = Reading()
             # (floats as they come, the rest through _num: this loop runs 256 times a message on a 16x16 skin;
             # -F32_MAX <= v <= F32_MAX is false for NaN, the infinities and what float32 cannot hold)
@@ -243,6 +261,10 @@ class Converter:
             t = _num(p.get("t_host"))
         stamp = T.stamp(t)
         kept, out = [], []
+        if len(contacts) > MAX_ELEMENTS:  # more contacts than a 64x64 skin has elements: a bound, as the
+            # views keep one (converting 20 000 took seconds, and the relay sends contacts first)
+            self.malformed += 1
+            contacts = contacts[:MAX_ELEMENTS]
         for c in contacts:
             if not isinstance(c, dict) or not isinstance(c.get("id"), int) or isinstance(c.get("id"), bool):
                 self.malformed += 1
@@ -346,7 +368,7 @@ class Converter:
         out.append(T.Marker(header=header, ns="elements", id=0, type=T.Marker.CUBE_LIST, action=T.Marker.ADD,
                             scale=T.Vector3(side, side, 0.002), color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0),
                             points=points, colors=colors))
-        for c in self.contacts:
+        for c in self.contacts[:MAX_CONTACTS]:  # the views' bound: a picture of 64 contacts at most
             p, n, _ = _place(c)
             if not all(math.isfinite(v) for v in p + n):
                 continue

@@ -538,3 +538,20 @@ def test_a_layout_of_a_hundred_thousand_elements_is_bounded_as_the_views_bound_i
     assert len(cubes.points) == MAX_ELEMENTS
     assert len(out["state"].sensors[-1].values) == MAX_ELEMENTS
     assert conv.malformed == 1
+
+
+def test_messages_the_recorder_cannot_place_are_counted_in_its_closing_line(daemon: Daemon, tmp_path: Path) -> None:
+    """A topic that only starts like a subscribed one (ZeroMQ subscribes by prefix:
+    ``contact_v3`` reaches a ``contact`` subscriber) and a multipart of the wrong shape: each
+    is counted where the closing line shows it, none is lost silently."""
+    bag, log = tmp_path / "bag", tmp_path / "record.log"
+    with recorder(daemon, bag, log) as proc:
+        joined(daemon, bag, proc)
+        daemon.pub.send_multipart([b"contact_v3", msgpack.packb(contact(0))])
+        daemon.pub.send_multipart([b"contact", msgpack.packb(contact(1)), b"extra"])
+        daemon.pub.send_multipart([b"contact", b"\xc1"])
+        time.sleep(0.5)
+        rc, stats = stopped(proc, log)
+    assert rc == 0
+    assert stats.get("unknown_topics") == 1, stats
+    assert stats["malformed"] == 2, stats

@@ -140,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"published": graph.published if graph is not None else {},
                           "dropped": graph.dropped if graph is not None else {},
                           "malformed": model.malformed + converter.malformed, "newer_schema": converter.newer_schema,
+                          "unknown_topics": model.unknown_topics,
                           "lost": model.lost,
                           "health_not_published": converter.diagnostics_skipped,
                           "daemon_restarts": model.daemon_restarts, "source": model.source,

@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
                 error = f"{args.out}: {exc.strerror or exc}"
         stats = {"recorded": {specs[k].name: n for k, n in bag.counts.items()}, "messages": bag.messages,
                  "received": received, "lost": model.lost, "malformed": model.malformed + converter.malformed,
-                 "newer_schema": converter.newer_schema,
+                 "newer_schema": converter.newer_schema, "unknown_topics": model.unknown_topics,
                  "daemon_restarts": model.daemon_restarts, "source": model.source,
                  "other_sources": _others(model), "files": [str(f.path) for f in bag.files], "error": error}
         print(json.dumps(stats), file=sys.stderr)

@@ -555,3 +555,19 @@ def test_messages_the_recorder_cannot_place_are_counted_in_its_closing_line(daem
     assert rc == 0
     assert stats.get("unknown_topics") == 1, stats
     assert stats["malformed"] == 2, stats
+
+
+def test_a_health_message_of_fifty_thousand_bridges_is_read_for_a_bounded_number() -> None:
+    from cellbridge.ros2.convert import MAX_HEALTH_BRIDGES
+
+    n = 50_000
+    p = {**health(0), "bridges": {str(b): {"silent": b % 2 == 0, "loss": 0.0} for b in range(n)}}
+    conv = Converter()
+    t = time.process_time()
+    out = dict(conv.feed("health", p, 1.0))
+    T.cdr(out["diagnostics"])
+    spent = time.process_time() - t
+    bridges = [s for s in out["diagnostics"].status if s.name.startswith("cellbridge: bridge ")]
+    assert len(bridges) == MAX_HEALTH_BRIDGES
+    assert conv.malformed == 1
+    assert spent < 6.0, spent  # ~10 s before, on a machine where 256 bridges take 0.13 s

@@ -50,11 +50,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from itertools import islice
 from typing import Any
 
 from cellbridge.ros2 import DEFAULT_FRAME
 from cellbridge.ros2 import types as T
 from cellbridge.views.model import (
+    MAX_BRIDGE,
     MAX_CONTACTS,
     MAX_ELEMENTS,
     UNTOUCHED,
@@ -75,7 +77,7 @@ LOSS_WARN = 0.05  # a bridge losing more than this fraction of its frames is a w
 #: The largest finite float32: a reading's channels are float32, and a value past it cannot be written
 #: (the encoder raises): such a reading is unknown (NaN) and counted, never the end of the relay or the bag.
 F32_MAX = 3.4028234663852886e38
-BRIDGE_MAX = 0xFFFF  # bridge ids are u16 (docs/protocol.md): another id is no element
+MAX_HEALTH_BRIDGES = MAX_ELEMENTS + 64  # bridges a health message is read for: a 64x64 skin's and 64 strangers
 
 
 def _num(value: Any) -> float:
@@ -177,7 +179,7 @@ class Converter:
         if math.isfinite(side) and side > 0:
             self.side = side
         self.layout = {b: (_num(x), _num(y)) for b, x, y in zip(ids, xs, ys)
-                       if b.__class__ is int and 0 <= b <= BRIDGE_MAX
+                       if b.__class__ is int and 0 <= b <= MAX_BRIDGE
                        and math.isfinite(_num(x)) and math.isfinite(_num(y))}
         if len(self.layout) > MAX_ELEMENTS:  # the views' bound (a 64x64 skin): every picture draws them all
             self.layout = dict(sorted(self.layout.items())[:MAX_ELEMENTS])
@@ -199,7 +201,7 @@ class Converter:
         cols = [_col(p, k, n) for k in ("force", "area", "dc1", "dc2", "valid", "touched", "status", "t_sample")]
         beyond = False  # a value no float32 holds, or an id no bridge has: counted once for the message
         for b, force, area, dc1, dc2, valid, touched, status, ts in zip(bridges, *cols):
-            if b.__class__ is not int or not 0 <= b <= BRIDGE_MAX:
+            if b.__class__ is not int or not 0 <= b <= MAX_BRIDGE:
                 beyond = beyond or (isinstance(b, int) and not isinstance(b, bool))
                 continue
             r = self.readings.get(b)
@@ -296,6 +298,12 @@ class Converter:
     def _health(self, p: dict[str, Any], now: float) -> T.DiagnosticArray | None:
         """The diagnostics of a health payload, or None when it is not yet time for the next
         (``diagnostics_period``) and the daemon's level is the one last published."""
+        bridges_in = p.get("bridges")
+        if isinstance(bridges_in, dict) and len(bridges_in) > MAX_HEALTH_BRIDGES:
+            # a daemon lists every placed bridge and 64 others: more is no skin the views show, and each
+            # status costs ~0.5 ms (50 000 took 10 s a message): the first MAX_HEALTH_BRIDGES, counted
+            self.malformed += 1
+            p = {**p, "bridges": dict(islice(bridges_in.items(), MAX_HEALTH_BRIDGES))}
         s = summarise_health(p)
         source = p["source"] if isinstance(p.get("source"), str) else ""
         links: dict[Any, Any] = p["links"] if isinstance(p.get("links"), dict) else {}

@@ -20,7 +20,7 @@ from __future__ import annotations
 from typing import Any
 
 from cellbridge.ros2.convert import Converter, newer_schema
-from cellbridge.views.model import SkinView
+from cellbridge.views.model import TOPICS, SkinView
 
 
 class PayloadModel(SkinView):
@@ -36,7 +36,10 @@ class PayloadModel(SkinView):
 
     def feed(self, topic: str, payload: Any, now: float) -> None:
         if isinstance(payload, dict) and newer_schema(payload):  # not even its layout is taken
-            self.converter.newer_schema += 1
+            if topic in TOPICS and self._shown(payload.get("source")):
+                self.converter.newer_schema += 1
+                self.received[topic] = self.received.get(topic, 0) + 1
+                self._count_seq(topic, payload)  # received, so its seq is no gap (losses stay true)
             return
         self._kept = False  # set by _shown: a map of a known topic from the daemon shown
         malformed = self.malformed

@@ -70,7 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the proxy's server secret key (NAME.key_secret): CURVE on the front")
     parser.add_argument("--allowed-clients", type=Path, metavar="DIR",
                         help="directory of allowed subscribers' public keys (*.key), with --server-secret")
-    parser.add_argument("--hwm", type=int, default=10_000, help="messages queued per subscriber (default 10000)")
+    parser.add_argument("--hwm", type=int, default=10_000,
+                        help="messages queued per subscriber, at least 1 (default 10000); a subscriber that falls "
+                             "further behind loses messages, and sees the gaps in seq")
 
 
 class Proxy:
@@ -131,6 +133,9 @@ class Proxy:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.hwm < 1:  # libzmq reads 0 as "no limit": a slow subscriber would grow the proxy without end
+        print(f"cellbridge proxy: --hwm must be at least 1, got {args.hwm}", file=sys.stderr)
+        return 2
     if (args.server_secret is None) != (args.allowed_clients is None):
         print("cellbridge proxy: --server-secret and --allowed-clients go together (CURVE needs both)",
               file=sys.stderr)

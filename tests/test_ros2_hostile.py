@@ -573,3 +573,27 @@ def test_a_health_message_of_fifty_thousand_bridges_is_read_for_a_bounded_number
     assert len(bridges) == MAX_HEALTH_BRIDGES
     assert conv.malformed == 1
     assert spent < 6.0, spent  # ~10 s before, on a machine where 256 bridges take 0.13 s
+
+
+def test_a_daemon_restarted_under_a_press_ends_its_contacts_on_ros_2(pub: Pub) -> None:
+    """The daemon publishes contacts while there are any and once ``[]`` when they end; a
+    daemon that dies under a press never sends that ``[]``, and a restarted one starts with
+    no contact to end. The last TactileContacts said the skin was pressed, for ever (and the
+    picture drew it): a restart (health's seq starting again) ends the old daemon's contacts."""
+    conv = Converter(marker_period=math.inf)
+    model = PayloadModel(conv)
+    pub.joined(model)  # health seq 0, 1, ...
+    out: list[tuple[str, Any]] = []
+    relay = Relay(pub.source, model, conv, lambda k, m: out.append((k, m)))
+    pub.send("health", health(100))
+    pub.send("contact", contact(0))
+    pub.settle(model, 2)
+    relay.step(0)
+    assert [len(m.contacts) for k, m in out if k == "contacts"] == [1]
+    out.clear()
+    pub.send("health", health(0))  # a new daemon process: its numbering starts again
+    pub.settle(model, 1)
+    relay.step(0)
+    assert model.daemon_restarts == 1
+    assert [len(m.contacts) for k, m in out if k == "contacts"] == [0], out
+    assert not conv.contacts

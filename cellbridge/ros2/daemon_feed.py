@@ -42,13 +42,15 @@ class PayloadModel(SkinView):
                 self._count_seq(topic, payload)  # received, so its seq is no gap (losses stay true)
             return
         self._kept = False  # set by _shown: a map of a known topic from the daemon shown
-        malformed = self.malformed
+        malformed, restarts = self.malformed, self.daemon_restarts
         try:
             super().feed(topic, payload, now)
         except ArithmeticError:  # a health figure past float range: the view's summary gives up on it
             self.malformed += 1
         if self._kept:
             self.malformed = malformed  # the converter counts what it cannot read
+            if self.daemon_restarts != restarts and self.converter.contacts:
+                self.pending.append(("contact", _ended(payload), now))
             self.pending.append((topic, payload, now))
 
     def _feed_element(self, p: dict[str, Any]) -> None:
@@ -75,3 +77,13 @@ class PayloadModel(SkinView):
         out, self.pending = self.pending, []
         self.converter.lost = self.lost
         return out
+
+
+def _ended(health: dict[str, Any]) -> dict[str, Any]:
+    """The ``contact`` message a daemon restarted under a press never sends: its contacts
+    ended (``contacts: []``), at the new process's first health message. The old process
+    published contacts while it had any and would have sent ``[]`` when they ended; it died
+    first, and the new one has none to end: without this, the last TactileContacts (and the
+    picture) said the skin was pressed until the next touch."""
+    t = health.get("t_host")
+    return {"v": health.get("v"), "source": health.get("source"), "t_host": t, "t_sample": t, "contacts": []}

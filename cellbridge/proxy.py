@@ -39,9 +39,11 @@ class Backend:
 
 
 def parse_backend(text: str) -> Backend:
-    """``tcp://robot:5560`` or ``tcp://robot:5560=robot-server.key`` (a CURVE daemon)."""
+    """``tcp://robot:5560`` or ``tcp://robot:5560=robot-server.key`` (a CURVE daemon). Not
+    ``inproc://``: that reaches only this process, where no daemon runs (it was taken, and
+    the proxy then waited for ever on a back that could never come)."""
     endpoint, sep, key = text.partition("=")
-    if not endpoint.startswith(("tcp://", "ipc://", "inproc://")):
+    if not endpoint.startswith(("tcp://", "ipc://")):
         raise argparse.ArgumentTypeError(f"{text!r}: a ZeroMQ endpoint (tcp://HOST:PORT or ipc://PATH), "
                                          "optionally =SERVER.key")
     return Backend(endpoint, Path(key) if sep else None)

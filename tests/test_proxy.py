@@ -112,7 +112,7 @@ def test_proxy_refuses_a_front_beyond_loopback_without_curve(tmp_path: Path) -> 
     assert r.returncode == 2 and "--client-key" in r.stderr
 
 
-@pytest.mark.parametrize("bad", ["5560", "http://x"])
+@pytest.mark.parametrize("bad", ["5560", "http://x", "inproc://daemon"])  # inproc: this process only, no daemon
 def test_proxy_names_a_bad_backend(bad: str) -> None:
     r = subprocess.run(cellbridge_cmd("proxy", "--back", bad), capture_output=True, text=True, timeout=30)
     assert r.returncode == 2 and "ZeroMQ endpoint" in r.stderr

@@ -597,3 +597,18 @@ def test_a_daemon_restarted_under_a_press_ends_its_contacts_on_ros_2(pub: Pub) -
     assert model.daemon_restarts == 1
     assert [len(m.contacts) for k, m in out if k == "contacts"] == [0], out
     assert not conv.contacts
+
+
+def test_one_hiccup_is_not_a_warning_for_the_rest_of_the_week() -> None:
+    """Diagnostics WARN when this subscriber lost daemon messages: lost since the diagnostics
+    before, not ever (one loss on Monday read WARN until the relay was restarted)."""
+    conv = Converter(diagnostics_period=0.0)
+    conv.lost = {"element": 3}
+    first = dict(conv.feed("health", health(0), 1.0))["diagnostics"].status[0]
+    assert first.level == T.DiagnosticStatus.WARN and "lost 3" in first.message
+    later = dict(conv.feed("health", health(1), 2.0))["diagnostics"].status[0]
+    assert later.level == T.DiagnosticStatus.OK, later.message
+    assert ("lost_by_this_subscriber", "3") in [(kv.key, kv.value) for kv in later.values]  # the total stays shown
+    conv.lost = {"element": 4}
+    again = dict(conv.feed("health", health(2), 3.0))["diagnostics"].status[0]
+    assert again.level == T.DiagnosticStatus.WARN and "lost 1" in again.message

@@ -23,7 +23,8 @@ they make, by topic key (:mod:`cellbridge.ros2.qos`):
   in the link's frame. Stamped with the skin frame the contacts were estimated on
   (``t_sample``). An empty list says the contacts ended.
 - ``health`` -> ``diagnostics``: a ``diagnostic_msgs/DiagnosticArray``: the daemon (OK,
-  WARN when a bridge is silent or losing frames or this subscriber lost messages, ERROR
+  WARN when a bridge is silent or losing frames or this subscriber lost messages since the
+  diagnostics before, ERROR
   when a link is down), each link and each bridge. At most every ``diagnostics_period``
   s of the fed time (ROS 2's diagnostic tools expect about one a second; a 16x16 skin's
   array costs ~25 ms to build and encode), and whenever the daemon's level changes; the
@@ -120,6 +121,7 @@ class Converter:
         self.side = 0.04
         self.contacts: list[dict[str, Any]] = []
         self.lost: dict[str, int] = {}  # the shell's: messages its subscriber lost, shown in diagnostics
+        self._lost_published = 0  # sum(lost) when the diagnostics last went out
         self.malformed = 0
         self._counted_layout: Any = None  # the last layout counted as beyond the bound
         self.newer_schema = 0  # payloads of a schema version after SCHEMA_VERSION: not converted
@@ -309,6 +311,7 @@ class Converter:
         links: dict[Any, Any] = p["links"] if isinstance(p.get("links"), dict) else {}
         bridges: dict[Any, Any] = p["bridges"] if isinstance(p.get("bridges"), dict) else {}
         lost_here = sum(self.lost.values())
+        lost_new = lost_here - self._lost_published  # since the diagnostics before: a loss is news once
         level, problems = T.DiagnosticStatus.OK, []
         if s["links"] and s["links_up"] < s["links"]:
             level = T.DiagnosticStatus.ERROR
@@ -319,12 +322,13 @@ class Converter:
         if s["loss"] > LOSS_WARN:
             level = max(level, T.DiagnosticStatus.WARN)
             problems.append(f"{s['loss']:.1%} of frames lost")
-        if lost_here:
+        if lost_new > 0:  # (a total that never goes down read WARN for the rest of the week after one hiccup)
             level = max(level, T.DiagnosticStatus.WARN)
-            problems.append(f"this bridge to ROS 2 lost {lost_here} daemon messages")
+            problems.append(f"this bridge to ROS 2 lost {lost_new} daemon messages ({lost_here} in all)")
         if now - self._diagnostics_at < self.diagnostics_period and level == self._diagnostics_level:
             return None
         self._diagnostics_at, self._diagnostics_level = now, level
+        self._lost_published = lost_here
         summary = f"{s['alive']} bridges live, {s['links_up']} of {s['links']} links up"
         kv = (lambda d: [T.KeyValue(str(k), _text(v)) for k, v in d.items()])
         status = [T.DiagnosticStatus(

@@ -39,9 +39,11 @@ class Backend:
 
 
 def parse_backend(text: str) -> Backend:
-    """``tcp://robot:5560`` or ``tcp://robot:5560=robot-server.key`` (a CURVE daemon)."""
+    """``tcp://robot:5560`` or ``tcp://robot:5560=robot-server.key`` (a CURVE daemon). Not
+    ``inproc://``: that reaches only this process, where no daemon runs (it was taken, and
+    the proxy then waited for ever on a back that could never come)."""
     endpoint, sep, key = text.partition("=")
-    if not endpoint.startswith(("tcp://", "ipc://", "inproc://")):
+    if not endpoint.startswith(("tcp://", "ipc://")):
         raise argparse.ArgumentTypeError(f"{text!r}: a ZeroMQ endpoint (tcp://HOST:PORT or ipc://PATH), "
                                          "optionally =SERVER.key")
     return Backend(endpoint, Path(key) if sep else None)
@@ -70,7 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the proxy's server secret key (NAME.key_secret): CURVE on the front")
     parser.add_argument("--allowed-clients", type=Path, metavar="DIR",
                         help="directory of allowed subscribers' public keys (*.key), with --server-secret")
-    parser.add_argument("--hwm", type=int, default=10_000, help="messages queued per subscriber (default 10000)")
+    parser.add_argument("--hwm", type=int, default=10_000,
+                        help="messages queued per subscriber, at least 1 (default 10000); a subscriber that falls "
+                             "further behind loses messages, and sees the gaps in seq")
 
 
 class Proxy:
@@ -131,6 +135,9 @@ class Proxy:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.hwm < 1:  # libzmq reads 0 as "no limit": a slow subscriber would grow the proxy without end
+        print(f"cellbridge proxy: --hwm must be at least 1, got {args.hwm}", file=sys.stderr)
+        return 2
     if (args.server_secret is None) != (args.allowed_clients is None):
         print("cellbridge proxy: --server-secret and --allowed-clients go together (CURVE needs both)",
               file=sys.stderr)

@@ -112,7 +112,7 @@ def test_proxy_refuses_a_front_beyond_loopback_without_curve(tmp_path: Path) -> 
     assert r.returncode == 2 and "--client-key" in r.stderr
 
 
-@pytest.mark.parametrize("bad", ["5560", "http://x"])
+@pytest.mark.parametrize("bad", ["5560", "http://x", "inproc://daemon"])  # inproc: this process only, no daemon
 def test_proxy_names_a_bad_backend(bad: str) -> None:
     r = subprocess.run(cellbridge_cmd("proxy", "--back", bad), capture_output=True, text=True, timeout=30)
     assert r.returncode == 2 and "ZeroMQ endpoint" in r.stderr
@@ -149,3 +149,17 @@ def test_a_curve_daemon_behind_the_proxy_is_reached_with_its_key_and_the_proxys_
     # both publishers got through: the secured one every 20 ms, the plain one every 50 ms
     seqs = [msgpack.unpackb(p)["seq"] for _, p, _ in sub.messages]
     assert any(b < a for a, b in zip(seqs, seqs[1:]))  # two numberings interleaved: both came through
+
+
+@pytest.mark.parametrize("hwm", ["0", "-1"])
+def test_proxy_refuses_a_queue_bound_that_is_no_bound(hwm: str) -> None:
+    """libzmq reads a high-water mark of 0 as "no limit": one slow subscriber then grows the
+    proxy's memory without end, while --help promises a bound per subscriber."""
+    with group(_proxy_cmd(f"tcp://127.0.0.1:{free_port()}", ["tcp://127.0.0.1:1"], "--hwm", hwm),
+               stderr=subprocess.PIPE, text=True) as proxy:
+        try:
+            rc = proxy.wait(15)
+        except subprocess.TimeoutExpired:
+            rc = None  # (it ran, unbounded)
+        assert rc == 2, f"status {rc}"
+        assert proxy.stderr is not None and "--hwm" in proxy.stderr.read()

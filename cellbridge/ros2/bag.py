@@ -15,6 +15,12 @@ rewritten (atomically) at every :meth:`BagWriter.flush` as well as at the end, s
 bag still opens, with the counts of its last flush.
 
 ``metadata.yaml`` is rosbag2's version 5 (Humble's; every later rosbag2 reads it).
+
+A write that fails (a full disk, a file-size limit) leaves the file as it was after its
+last whole chunk: what was written of the chunk in progress is cut off again, and the
+counts (:attr:`BagWriter.counts`, the files' and ``metadata.yaml``'s) go back to what the
+files hold. Without that the recorder said it recorded the messages of a chunk that never
+reached the disk whole, which no reader finds.
 """
 
 from __future__ import annotations
@@ -79,6 +85,8 @@ class BagWriter:
         self._out: _UnbufferedFile | None = None
         self._channels: dict[str, int] = {}
         self.finished = False
+        # what the files hold whole: the current file's length and the counts then
+        self._whole: tuple[int, dict[str, int], _File] = (0, dict(self.counts), _File(self.path))
         self._open_next()
         self.write_metadata()
 
@@ -99,15 +107,26 @@ class BagWriter:
             raise
         self._channels = {}
         self.files.append(_File(path))
+        self._mark_whole()
 
-    def _close_current(self) -> None:
-        if self._writer is not None and self._out is not None:
-            w, out, self._writer, self._out = self._writer, self._out, None, None
+    def _mark_whole(self) -> None:
+        """Everything added so far is in the current file, whole (a chunk was just written)."""
+        assert self._out is not None
+        f = self.files[-1]
+        self._whole = (self._out.tell(), dict(self.counts), _File(f.path, f.first_ns, f.last_ns, f.messages))
+
+    def _cut_back(self) -> None:
+        """After a failed write: the current file ends at its last whole chunk again, and the
+        counts are those of what the files hold."""
+        pos, counts, f = self._whole
+        self.counts = counts
+        if self.files and self.files[-1].path == f.path:
+            self.files[-1] = f
+        if self._out is not None and self._out.fd >= 0:
             try:
-                w.finish()
-                out.flush()
-            finally:
-                out.close()
+                os.ftruncate(self._out.fd, pos)  # frees space: possible on a full disk
+            except OSError:
+                pass
 
     def _channel(self, key: str) -> int:
         ch = self._channels.get(key)
@@ -122,25 +141,41 @@ class BagWriter:
 
     def add(self, key: str, message: Any, log_ns: int, publish_ns: int | None = None) -> None:
         """One message (a :mod:`cellbridge.ros2.types` object) of topic ``key`` at ``log_ns``."""
+        data = cdr(message)
+        try:
+            self._add(key, data, log_ns, publish_ns)
+        except OSError:
+            self._cut_back()
+            raise
+
+    def _add(self, key: str, data: bytes, log_ns: int, publish_ns: int | None) -> None:
         current = self.files[-1]
         if current.messages and ((self.rotate_bytes and self._out is not None and self._out.tell() >= self.rotate_bytes)
                                  or (self.rotate_ns and log_ns - current.first_ns >= self.rotate_ns)):
             self._close_current()
             self._open_next()
             current = self.files[-1]
-        assert self._writer is not None
-        self._writer.add_message(self._channel(key), log_time=log_ns, data=cdr(message),
+        assert self._writer is not None and self._out is not None
+        before = self._out.tell()
+        self._writer.add_message(self._channel(key), log_time=log_ns, data=data,
                                  publish_time=log_ns if publish_ns is None else publish_ns)
         if not current.messages:
             current.first_ns = current.last_ns = log_ns
         current.first_ns, current.last_ns = min(current.first_ns, log_ns), max(current.last_ns, log_ns)
         current.messages += 1
         self.counts[key] += 1
+        if self._out.tell() != before:  # the chunk with this message in it was written
+            self._mark_whole()
 
     def flush(self) -> None:
         """Finish the chunk in progress and write ``metadata.yaml``: all so far survives a kill."""
         if self._writer is not None:
-            self._writer.flush()
+            try:
+                self._writer.flush()
+            except OSError:
+                self._cut_back()
+                raise
+            self._mark_whole()
         self.write_metadata()
 
     def finish(self) -> None:
@@ -149,15 +184,38 @@ class BagWriter:
             self.finished = True
             try:
                 self._close_current()
+            except OSError:
+                self._cut_back()
+                raise
             finally:
                 self.write_metadata()
 
+    def _close_current(self) -> None:
+        if self._writer is not None and self._out is not None:
+            w, out = self._writer, self._out
+            try:
+                w.finish()
+                out.flush()
+                f = self.files[-1]  # finished whole: all counted so far is in the files
+                self._whole = (out.tell(), dict(self.counts), _File(f.path, f.first_ns, f.last_ns, f.messages))
+            except OSError:
+                self._cut_back()  # (while the file is still open)
+                raise
+            finally:
+                self._writer = self._out = None
+                out.close()
+
     def abandon(self) -> None:
-        """Close without writing more (after a write error)."""
+        """Close without writing more (after a write error); ``metadata.yaml`` says what the
+        files hold, if there is room to say it."""
         self.finished = True
         if self._out is not None:
             self._out.close()
         self._writer = self._out = None
+        try:
+            self.write_metadata()
+        except OSError:
+            pass
 
     def write_metadata(self) -> None:
         text = metadata_yaml(self.specs, self.counts, self.files)

@@ -18,6 +18,7 @@ import time
 
 from cellbridge.ros2 import DEFAULT_FRAME, MISSING
 from cellbridge.ros2.qos import BadTopicName, topics
+from cellbridge.views.model import SkinView
 from cellbridge.views.source import add_source_arguments, open_source
 
 
@@ -88,6 +89,14 @@ def _problem(args: argparse.Namespace) -> str | None:
     return None
 
 
+def _others(model: SkinView) -> dict[str, int]:
+    """Messages of daemons other than the one published (several behind a proxy), by source."""
+    others = dict(model.other_sources)
+    if model.other_sources_more:
+        others["(more)"] = model.other_sources_more
+    return others
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         from cellbridge.ros2.convert import Converter
@@ -97,17 +106,16 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"cellbridge ros2: {MISSING} ({exc})", file=sys.stderr)
         return 1
+    stop = threading.Event()  # (before the sockets and DDS are made: a signal meanwhile still prints the counters)
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
     source = open_source("ros2", args, _problem(args))
     if source is None:
         return 2
-
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
     specs = topics(args.namespace, args.diagnostics_topic)
     converter = Converter(args.frame_id, marker_period=1.0 / args.marker_rate, force_scale=args.force_scale,
                           diagnostics_period=1.0 / args.diagnostics_rate)
-    model = PayloadModel(converter, force_scale=args.force_scale)
+    model = PayloadModel(converter, force_scale=args.force_scale, source=args.source)
     graph: Graph | None = None
     try:
         try:
@@ -131,8 +139,11 @@ def run(args: argparse.Namespace) -> int:
         source.close()
         print(json.dumps({"published": graph.published if graph is not None else {},
                           "dropped": graph.dropped if graph is not None else {},
-                          "malformed": model.malformed + converter.malformed, "lost": model.lost,
+                          "malformed": model.malformed + converter.malformed, "newer_schema": converter.newer_schema,
+                          "unknown_topics": model.unknown_topics,
+                          "lost": model.lost,
                           "health_not_published": converter.diagnostics_skipped,
-                          "daemon_restarts": model.daemon_restarts, "t": round(time.time(), 3)}), file=sys.stderr)
+                          "daemon_restarts": model.daemon_restarts, "source": model.source,
+                          "other_sources": _others(model), "t": round(time.time(), 3)}), file=sys.stderr)
     return 0
 

@@ -23,7 +23,8 @@ they make, by topic key (:mod:`cellbridge.ros2.qos`):
   in the link's frame. Stamped with the skin frame the contacts were estimated on
   (``t_sample``). An empty list says the contacts ended.
 - ``health`` -> ``diagnostics``: a ``diagnostic_msgs/DiagnosticArray``: the daemon (OK,
-  WARN when a bridge is silent or losing frames or this subscriber lost messages, ERROR
+  WARN when a bridge is silent or losing frames or this subscriber lost messages since the
+  diagnostics before, ERROR
   when a link is down), each link and each bridge. At most every ``diagnostics_period``
   s of the fed time (ROS 2's diagnostic tools expect about one a second; a 16x16 skin's
   array costs ~25 ms to build and encode), and whenever the daemon's level changes; the
@@ -40,26 +41,44 @@ plane, metres, z out of the skin), except a contact whose map names its own ``li
 which is then its frame (a skin on a robot's links).
 
 Nothing here raises on a payload: a payload that is not what the API says is counted
-in :attr:`Converter.malformed`.
+in :attr:`Converter.malformed`. A payload of a schema version newer than the one this
+converter was written for (``v`` above :data:`SCHEMA_VERSION`: a version that removes or
+redefines a field, docs/zmq-api.md) is counted in :attr:`Converter.newer_schema` and makes
+nothing: its fields may not mean what they say here.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from itertools import islice
 from typing import Any
 
 from cellbridge.ros2 import DEFAULT_FRAME
 from cellbridge.ros2 import types as T
-from cellbridge.views.model import UNTOUCHED, Contact, contact_line, level_rgb, summarise_health
+from cellbridge.views.model import (
+    MAX_BRIDGE,
+    MAX_CONTACTS,
+    MAX_ELEMENTS,
+    UNTOUCHED,
+    Contact,
+    contact_line,
+    level_rgb,
+    summarise_health,
+)
 from cellbridge.views.robot_skin import unit3, vec3
 
+SCHEMA_VERSION = 2  # the daemon's payload schema this reads (docs/zmq-api.md, "Versioning")
 MARKER_PERIOD = 0.1  # s: at most 10 pictures a second (a 16x16 skin's picture costs ~10 ms to build and encode)
 ARROW_PER_NEWTON = 0.01  # m of arrow per N
 UP = (0.0, 0.0, 1.0)
 NOWHERE = (math.nan, math.nan, math.nan)
 INT32 = 2**31  # a marker's id is an int32
 LOSS_WARN = 0.05  # a bridge losing more than this fraction of its frames is a warning
+#: The largest finite float32: a reading's channels are float32, and a value past it cannot be written
+#: (the encoder raises): such a reading is unknown (NaN) and counted, never the end of the relay or the bag.
+F32_MAX = 3.4028234663852886e38
+MAX_HEALTH_BRIDGES = MAX_ELEMENTS + 64  # bridges a health message is read for: a 64x64 skin's and 64 strangers
 
 
 def _num(value: Any) -> float:
@@ -102,7 +121,10 @@ class Converter:
         self.side = 0.04
         self.contacts: list[dict[str, Any]] = []
         self.lost: dict[str, int] = {}  # the shell's: messages its subscriber lost, shown in diagnostics
+        self._lost_published = 0  # sum(lost) when the diagnostics last went out
         self.malformed = 0
+        self._counted_layout: Any = None  # the last layout counted as beyond the bound
+        self.newer_schema = 0  # payloads of a schema version after SCHEMA_VERSION: not converted
         self.made: dict[str, int] = {}
         self._marker_at = -math.inf
         self._drawn_contacts = -1
@@ -114,6 +136,9 @@ class Converter:
         counted on it): the ROS 2 messages it makes, as ``(topic key, message)``."""
         if not isinstance(payload, dict):
             self.malformed += 1
+            return []
+        if newer_schema(payload):
+            self.newer_schema += 1
             return []
         out: list[tuple[str, Any]] = []
         try:
@@ -156,7 +181,16 @@ class Converter:
         if math.isfinite(side) and side > 0:
             self.side = side
         self.layout = {b: (_num(x), _num(y)) for b, x, y in zip(ids, xs, ys)
-                       if isinstance(b, int) and math.isfinite(_num(x)) and math.isfinite(_num(y))}
+                       if b.__class__ is int and 0 <= b <= MAX_BRIDGE
+                       and math.isfinite(_num(x)) and math.isfinite(_num(y))}
+        if len(self.layout) > MAX_ELEMENTS:  # the views' bound (a 64x64 skin): every picture draws them all
+            self.layout = dict(sorted(self.layout.items())[:MAX_ELEMENTS])
+            if layout is not self._counted_layout:  # (the control reply and the message may be one payload)
+                self._counted_layout = layout
+                self.malformed += 1
+        if self.layout:  # an element the layout no longer has (a smaller skin, a rebuilt layout) is gone:
+            # its last reading is not the skin's any more
+            self.readings = {b: r for b, r in self.readings.items() if b in self.layout}
 
     # ---- element ----------------------------------------------------------------------------
 
@@ -167,25 +201,42 @@ class Converter:
         n = len(bridges)
         newest = -math.inf
         cols = [_col(p, k, n) for k in ("force", "area", "dc1", "dc2", "valid", "touched", "status", "t_sample")]
+        beyond = False  # a value no float32 holds, or an id no bridge has: counted once for the message
         for b, force, area, dc1, dc2, valid, touched, status, ts in zip(bridges, *cols):
-            if not isinstance(b, int) or isinstance(b, bool):
+            if b.__class__ is not int or not 0 <= b <= MAX_BRIDGE:
+                beyond = beyond or (isinstance(b, int) and not isinstance(b, bool))
                 continue
             r = self.readings.get(b)
             if r is None:
+                if len(self.readings) >= MAX_ELEMENTS:  # the views' bound: readings of further ids are counted
+                    beyond = True
+                    continue
                 r = self.readings[b] = Reading()
-            # (floats as they come, the rest through _num: this loop runs 256 times a message on a 16x16 skin)
+            # (floats as they come, the rest through _num: this loop runs 256 times a message on a 16x16 skin;
+            # -F32_MAX <= v <= F32_MAX is false for NaN, the infinities and what float32 cannot hold)
             f = force if force.__class__ is float else _num(force)
-            if valid is True and f == f and f not in (math.inf, -math.inf):
-                r.force, r.area = f, area if area.__class__ is float else _num(area)
+            if valid is True and -F32_MAX <= f <= F32_MAX:
+                a = area if area.__class__ is float else _num(area)
+                if a > F32_MAX or a < -F32_MAX:
+                    a, beyond = math.nan, True
+                r.force, r.area = f, a
             elif status.__class__ is int and status & UNTOUCHED and touched is not True:
                 r.force, r.area = 0.0, 0.0
             else:
+                beyond = beyond or (valid is True and f == f and f not in (math.inf, -math.inf))
                 r.force, r.area = math.nan, math.nan
-            r.dc1 = dc1 if dc1.__class__ is float else _num(dc1)
-            r.dc2 = dc2 if dc2.__class__ is float else _num(dc2)
+            d1 = dc1 if dc1.__class__ is float else _num(dc1)
+            d2 = dc2 if dc2.__class__ is float else _num(dc2)
+            if d1 > F32_MAX or d1 < -F32_MAX or d2 > F32_MAX or d2 < -F32_MAX:
+                beyond = True
+                d1 = d1 if -F32_MAX <= d1 <= F32_MAX else math.nan
+                d2 = d2 if -F32_MAX <= d2 <= F32_MAX else math.nan
+            r.dc1, r.dc2 = d1, d2
             t = ts if ts.__class__ is float else _num(ts)
             if t > newest and t != math.inf:
                 newest = t
+        if beyond:
+            self.malformed += 1
         if not math.isfinite(newest):
             newest = _num(p.get("t_host"))
         return self.state(newest)
@@ -214,6 +265,10 @@ class Converter:
             t = _num(p.get("t_host"))
         stamp = T.stamp(t)
         kept, out = [], []
+        if len(contacts) > MAX_ELEMENTS:  # more contacts than a 64x64 skin has elements: a bound, as the
+            # views keep one (converting 20 000 took seconds, and the relay sends contacts first)
+            self.malformed += 1
+            contacts = contacts[:MAX_ELEMENTS]
         for c in contacts:
             if not isinstance(c, dict) or not isinstance(c.get("id"), int) or isinstance(c.get("id"), bool):
                 self.malformed += 1
@@ -245,11 +300,18 @@ class Converter:
     def _health(self, p: dict[str, Any], now: float) -> T.DiagnosticArray | None:
         """The diagnostics of a health payload, or None when it is not yet time for the next
         (``diagnostics_period``) and the daemon's level is the one last published."""
+        bridges_in = p.get("bridges")
+        if isinstance(bridges_in, dict) and len(bridges_in) > MAX_HEALTH_BRIDGES:
+            # a daemon lists every placed bridge and 64 others: more is no skin the views show, and each
+            # status costs ~0.5 ms (50 000 took 10 s a message): the first MAX_HEALTH_BRIDGES, counted
+            self.malformed += 1
+            p = {**p, "bridges": dict(islice(bridges_in.items(), MAX_HEALTH_BRIDGES))}
         s = summarise_health(p)
         source = p["source"] if isinstance(p.get("source"), str) else ""
         links: dict[Any, Any] = p["links"] if isinstance(p.get("links"), dict) else {}
         bridges: dict[Any, Any] = p["bridges"] if isinstance(p.get("bridges"), dict) else {}
         lost_here = sum(self.lost.values())
+        lost_new = lost_here - self._lost_published  # since the diagnostics before: a loss is news once
         level, problems = T.DiagnosticStatus.OK, []
         if s["links"] and s["links_up"] < s["links"]:
             level = T.DiagnosticStatus.ERROR
@@ -260,12 +322,13 @@ class Converter:
         if s["loss"] > LOSS_WARN:
             level = max(level, T.DiagnosticStatus.WARN)
             problems.append(f"{s['loss']:.1%} of frames lost")
-        if lost_here:
+        if lost_new > 0:  # (a total that never goes down read WARN for the rest of the week after one hiccup)
             level = max(level, T.DiagnosticStatus.WARN)
-            problems.append(f"this bridge to ROS 2 lost {lost_here} daemon messages")
+            problems.append(f"this bridge to ROS 2 lost {lost_new} daemon messages ({lost_here} in all)")
         if now - self._diagnostics_at < self.diagnostics_period and level == self._diagnostics_level:
             return None
         self._diagnostics_at, self._diagnostics_level = now, level
+        self._lost_published = lost_here
         summary = f"{s['alive']} bridges live, {s['links_up']} of {s['links']} links up"
         kv = (lambda d: [T.KeyValue(str(k), _text(v)) for k, v in d.items()])
         status = [T.DiagnosticStatus(
@@ -317,7 +380,7 @@ class Converter:
         out.append(T.Marker(header=header, ns="elements", id=0, type=T.Marker.CUBE_LIST, action=T.Marker.ADD,
                             scale=T.Vector3(side, side, 0.002), color=T.ColorRGBA(1.0, 1.0, 1.0, 1.0),
                             points=points, colors=colors))
-        for c in self.contacts:
+        for c in self.contacts[:MAX_CONTACTS]:  # the views' bound: a picture of 64 contacts at most
             p, n, _ = _place(c)
             if not all(math.isfinite(v) for v in p + n):
                 continue
@@ -342,6 +405,12 @@ class Converter:
 
 
 Vec3 = tuple[float, float, float]
+
+
+def newer_schema(payload: dict[str, Any]) -> bool:
+    """Whether ``payload`` says it is of a schema version after :data:`SCHEMA_VERSION`."""
+    v = payload.get("v")
+    return v.__class__ is int and v > SCHEMA_VERSION
 
 
 def _place(c: dict[str, Any]) -> tuple[Vec3, Vec3, bool]:

@@ -5,7 +5,11 @@ drained into :class:`cellbridge.ros2.daemon_feed.PayloadModel`: a restarted daem
 picked up again, the layout is asked for on the control socket), turned into ROS 2
 messages (:mod:`cellbridge.ros2.convert`) and written into a bag
 (:mod:`cellbridge.ros2.bag`). A message's time in the bag is when it was received here,
-as ``ros2 bag record`` stamps it; its header holds the skin's own time.
+as ``ros2 bag record`` stamps it; its header holds the skin's own time. That time is read
+on :class:`cellbridge.recording.record_cli.EpochClock` (the wall clock's at the start, the
+monotonic clock's from then on), as the JSON recorder's: a wall-clock step while recording
+stepped the bag's times with it, so a step back put later messages before earlier ones in
+every reader's (time) order, and ``--rotate-minutes`` measured across the step.
 
 SIGINT and SIGTERM finish the bag (exit 0); a failed write (full disk) stops it with a
 message (exit 1); the counters go to stderr as one JSON line.
@@ -61,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"cellbridge record: --profile ros2 {MISSING} ({exc})", file=sys.stderr)
         return 1
+    from cellbridge.recording.record_cli import EpochClock
+    from cellbridge.ros2.cli import _others
     from cellbridge.ros2.qos import BadTopicName, topics
     from cellbridge.views.source import Source
 
@@ -75,6 +81,11 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, BadTopicName) as exc:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
+    # before the bag exists: a SIGINT or SIGTERM from the moment it does finishes it (one that came
+    # while the sockets were made, before, killed the recorder and left a bag no rosbag2 reader opens)
+    stop: list[bool] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.append(True))
     meta = {"endpoint": args.endpoint, "topics": ",".join(wanted), "recorder_host": socket.gethostname(),
             "cellbridge_version": __version__, "started": f"{time.time():.6f}", "frame_id": args.frame_id}
     try:
@@ -90,9 +101,7 @@ def run(args: argparse.Namespace) -> int:
         bag.finish()
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
-    stop: list[bool] = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.append(True))
+    clock = EpochClock()
     converter = Converter(args.frame_id)
     model = PayloadModel(converter)
     received, error = 0, ""
@@ -106,11 +115,12 @@ def run(args: argparse.Namespace) -> int:
             source.poll(100)
             source.drain(model, max_messages=args.count - received if args.count else 100_000)
             try:
-                for topic, payload, _ in model.take():
+                for topic, payload, arrived in model.take():
                     received += 1
-                    t_host = payload.get("t_host") if isinstance(payload, dict) else None
-                    now_ns = time.time_ns()
-                    for key, message in converter.feed(topic, payload, t_host if isinstance(t_host, float) else 0.0):
+                    now_ns = int(clock() * 1e9)
+                    # the pictures' rate on the arrival (monotonic), as 'cellbridge ros2' counts it: on the
+                    # daemon's t_host a step back of its clock left the bag without a picture for as long
+                    for key, message in converter.feed(topic, payload, arrived):
                         bag.add(key, message, now_ns)
                 if args.chunk_seconds and time.monotonic() - flushed >= args.chunk_seconds:
                     flushed = time.monotonic()
@@ -127,7 +137,9 @@ def run(args: argparse.Namespace) -> int:
                 error = f"{args.out}: {exc.strerror or exc}"
         stats = {"recorded": {specs[k].name: n for k, n in bag.counts.items()}, "messages": bag.messages,
                  "received": received, "lost": model.lost, "malformed": model.malformed + converter.malformed,
-                 "daemon_restarts": model.daemon_restarts, "files": [str(f.path) for f in bag.files], "error": error}
+                 "newer_schema": converter.newer_schema, "unknown_topics": model.unknown_topics,
+                 "daemon_restarts": model.daemon_restarts, "source": model.source,
+                 "other_sources": _others(model), "files": [str(f.path) for f in bag.files], "error": error}
         print(json.dumps(stats), file=sys.stderr)
     if error:
         print(f"cellbridge record: {error}", file=sys.stderr)

@@ -242,8 +242,12 @@ def cdr(message: IdlStruct) -> bytes:
 
 
 def stamp(t: float) -> Time:
-    """A ``builtin_interfaces/Time`` of ``t`` s since the epoch (0 for a time that is not one)."""
-    if not (t == t) or t <= 0 or t > 2**31:
+    """A ``builtin_interfaces/Time`` of ``t`` s since the epoch (0 for a time that is not one,
+    or one past what its int32 seconds hold: 2038; the encoder would refuse the message)."""
+    if not (t == t) or t <= 0 or t >= 2**31:
         return Time()
     ns = int(round(t * 1e9))
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    sec = ns // 1_000_000_000
+    if sec >= 2**31:  # rounded up onto 2**31 s
+        return Time()
+    return Time(sec=sec, nanosec=ns % 1_000_000_000)

@@ -505,11 +505,12 @@ def test_the_bag_keeps_drawing_the_skin_when_the_daemons_clock_steps_back(daemon
     assert markers >= 10, (markers, stats)  # about 20 in 2 s; 1 before
 
 
-def test_a_contact_message_of_thousands_of_contacts_costs_a_bounded_time() -> None:
+def test_a_contact_message_of_thousands_of_contacts_is_bounded() -> None:
     """A contact message of 20 000 contacts (a skin has at most one per element; the views keep
     64 per message) took seconds to convert, its picture megabytes: the relay, which sends
     contacts first, stalled on each. As the views: the picture draws at most 64 contacts, the
-    message lists at most 4096 (a 64×64 skin's elements); the rest are counted."""
+    message lists at most 4096 (a 64×64 skin's elements); the rest are counted. (The bounds are
+    checked, not the time: speed is bench/'s to show.)"""
     from cellbridge.views.model import MAX_CONTACTS, MAX_ELEMENTS
 
     conv = Converter()
@@ -517,15 +518,12 @@ def test_a_contact_message_of_thousands_of_contacts_costs_a_bounded_time() -> No
     payload = contact(0)
     payload["contacts"] = [{"id": i, "x": 0.001 * (i % 100), "y": 0.02, "force": 1.0, "diameter": 0.01}
                            for i in range(20_000)]
-    t = time.process_time()
     out = dict(conv.feed("contact", payload, 1.0))
     sizes = {k: len(T.cdr(m)) for k, m in out.items()}
-    spent = time.process_time() - t
     assert len(out["contacts"].contacts) == MAX_ELEMENTS
     assert len([m for m in out["markers"].markers if m.ns == "contacts"]) == MAX_CONTACTS
     assert conv.malformed == 1  # the message, once
     assert sizes["markers"] < 100_000, sizes
-    assert spent < 2.5, spent  # ~9 s before (on a machine that takes 0.4 s for 1000)
 
 
 def test_a_layout_of_a_hundred_thousand_elements_is_bounded_as_the_views_bound_it() -> None:
@@ -564,14 +562,11 @@ def test_a_health_message_of_fifty_thousand_bridges_is_read_for_a_bounded_number
     n = 50_000
     p = {**health(0), "bridges": {str(b): {"silent": b % 2 == 0, "loss": 0.0} for b in range(n)}}
     conv = Converter()
-    t = time.process_time()
     out = dict(conv.feed("health", p, 1.0))
     T.cdr(out["diagnostics"])
-    spent = time.process_time() - t
     bridges = [s for s in out["diagnostics"].status if s.name.startswith("cellbridge: bridge ")]
     assert len(bridges) == MAX_HEALTH_BRIDGES
     assert conv.malformed == 1
-    assert spent < 6.0, spent  # ~10 s before, on a machine where 256 bridges take 0.13 s
 
 
 def test_a_daemon_restarted_under_a_press_ends_its_contacts_on_ros_2(pub: Pub) -> None:
@@ -611,3 +606,36 @@ def test_one_hiccup_is_not_a_warning_for_the_rest_of_the_week() -> None:
     conv.lost = {"element": 4}
     again = dict(conv.feed("health", health(2), 3.0))["diagnostics"].status[0]
     assert again.level == T.DiagnosticStatus.WARN and "lost 1" in again.message
+
+
+def test_a_bag_of_contacts_alone_still_ends_the_contacts_of_a_daemon_restarted_under_a_press(
+        daemon: Daemon, tmp_path: Path) -> None:
+    """``--topics contact``: the bag holds no health, yet a restarted daemon is known by its
+    health numbering starting again. Without health the recorder never noticed: the old
+    process's contact stayed the bag's last word (pressed for ever) and no restart was told."""
+    bag, log = tmp_path / "bag", tmp_path / "record.log"
+    with recorder(daemon, bag, log, "--topics", "contact") as proc:
+        end = time.monotonic() + 60
+        while bag_counts(bag) == 0 and time.monotonic() < end and proc.poll() is None:
+            daemon.send("contact", contact)  # until its subscription reached the PUB
+            time.sleep(0.1)
+        for _ in range(3):
+            daemon.send("health", health)
+            time.sleep(0.05)
+        daemon.send("contact", contact)
+        time.sleep(0.3)
+        daemon.seq["health"] = -1  # a new daemon process: its numbering starts again
+        daemon.send("health", health)
+        time.sleep(0.5)
+        rc, stats = stopped(proc, log)
+    assert rc == 0, log.read_text()[-2000:]
+    assert stats["daemon_restarts"] == 1, stats
+    assert stats["recorded"].get("/diagnostics", 0) == 0, stats  # health heard, not recorded: not asked for
+    store = typestore()
+    last = None
+    with Reader(bag) as reader:
+        for conn, _, raw in reader.messages():
+            assert conn.topic != "/diagnostics"
+            if conn.topic == "/cellbridge/contacts":
+                last = store.deserialize_cdr(raw, conn.msgtype)
+    assert last is not None and len(last.contacts) == 0, last

@@ -96,7 +96,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
     try:
-        source = Source(args.endpoint, args.control, args.server_key, args.client_key, topics=wanted, rcvhwm=RCVHWM)
+        # health always: a restarted daemon is known by its health numbering starting again (the
+        # layout asked anew, the old process's contacts ended); in the bag only when asked for
+        heard = wanted if "health" in wanted else (*wanted, "health")
+        source = Source(args.endpoint, args.control, args.server_key, args.client_key, topics=heard, rcvhwm=RCVHWM)
     except (ValueError, OSError) as exc:
         bag.finish()
         print(f"cellbridge record: {exc}", file=sys.stderr)
@@ -116,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
             source.drain(model, max_messages=args.count - received if args.count else 100_000)
             try:
                 for topic, payload, arrived in model.take():
+                    if topic not in wanted:  # (health heard for the restarts alone)
+                        continue
                     received += 1
                     now_ns = int(clock() * 1e9)
                     # the pictures' rate on the arrival (monotonic), as 'cellbridge ros2' counts it: on the

@@ -98,8 +98,9 @@ def test_a_recording_that_steps_back_is_not_counted_late(tmp_path: Path) -> None
     stamps = [s for s, _ in fed]
     assert all(b >= a for a, b in zip(stamps, stamps[1:]))
     st: dict[str, Any] = link.stats()
-    # (a busy machine may wake a sleep a few ms late: that is late; the 0.3 s step is not)
-    assert st["replay_late_max"] < 0.1, f"{st['replay_late']} records counted late (max {st['replay_late_max']:.3f} s)"
+    # (a busy machine may wake a sleep late: that is late, and under a full test run on two
+    # cores it was 0.107 s once; the step counted late would be ~0.3 s: 0.2 tells them apart)
+    assert st["replay_late_max"] < 0.2, f"{st['replay_late']} records counted late (max {st['replay_late_max']:.3f} s)"
 
 
 # -- things that should hold -------------------------------------------------------------------

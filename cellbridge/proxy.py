@@ -12,7 +12,9 @@ server (``--server-secret``, ``--allowed-clients``; the same key files and the s
 ZAP check, :class:`cellbridge.daemon.ops.security.CurveServer`), and a subscriber without
 an allowed key gets nothing. A CURVE daemon behind the proxy is reached as any client
 reaches it: its public key (``--back ENDPOINT=SERVER.key``) and the proxy's own key pair
-(``--client-key``). SIGINT and SIGTERM stop the proxy cleanly.
+(``--client-key``). SIGINT and SIGTERM stop the proxy cleanly (status 0); should its
+proxy thread end by itself, the process ends too, with status 1 and the reason on its
+last line, rather than stay up forwarding nothing (its supervisor then restarts it).
 """
 
 from __future__ import annotations
@@ -111,17 +113,32 @@ class Proxy:
             self.close()
             raise
         self._thread = threading.Thread(target=self._run, name="zmq proxy", daemon=True)
+        self._stopping = False
+        self._error: str | None = None
 
     def _run(self) -> None:
         try:
             zmq.proxy_steerable(self.xpub, self.xsub, None, self.control)
         except zmq.ContextTerminated:
             pass
+        except Exception as exc:  # (any: the thread ends either way, and :meth:`failure` says why)
+            self._error = f"{type(exc).__name__}: {exc}"
+        if not self._stopping and self._error is None:
+            self._error = "the proxy loop ended by itself"
+
+    def failure(self) -> str | None:
+        """Why the proxy thread ended when nobody stopped it (None: it runs, or was stopped).
+        A process whose proxy thread died would stay up forwarding nothing: the caller ends
+        it, so that its supervisor sees a failure and starts it again."""
+        if self._thread.is_alive() or self._stopping or not self._thread.ident:
+            return None
+        return self._error or "the proxy thread ended"
 
     def start(self) -> None:
         self._thread.start()
 
     def stop(self) -> None:
+        self._stopping = True
         if self._thread.is_alive():
             self._command.send(b"TERMINATE")
             self._thread.join(5)
@@ -154,12 +171,15 @@ def run(args: argparse.Namespace) -> int:
     proxy.start()
     print(json.dumps({"proxy": "started", "front": args.front, "back": [b.endpoint for b in args.back]}),
           file=sys.stderr, flush=True)
+    failure = None
     try:
         while not done.wait(0.5):
-            pass
+            if (failure := proxy.failure()) is not None:
+                break
     finally:
         proxy.stop()
         counters = proxy.curve.counters() if proxy.curve is not None else {}
         proxy.close()
-        print(json.dumps({"proxy": "stopped", **counters}), file=sys.stderr)
-    return 0
+        print(json.dumps({"proxy": "failed" if failure else "stopped", **({"error": failure} if failure else {}),
+                          **counters}), file=sys.stderr)
+    return 1 if failure else 0

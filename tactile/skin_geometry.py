@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+import unicodedata
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Mapping, Sequence
@@ -37,8 +38,8 @@ from numpy.typing import ArrayLike, NDArray
 from cellbridge.errors import CellbridgeError
 
 __all__ = [
-    "Band", "Chart", "Gateway", "LinkFrame", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",
-    "parse_skin", "pose_matrix", "skin_from_mapping",
+    "Band", "Chart", "Gateway", "LinkFrame", "MAX_NAME", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",
+    "frame_name", "parse_skin", "pose_matrix", "skin_from_mapping",
 ]
 
 _DEFAULT_SIDE = 0.040
@@ -50,6 +51,9 @@ ATLAS_MARGIN = 2.0
 SAME_SURFACE = 1e-6
 #: Bridge ids (as the wire protocol numbers bridges).
 MAX_ID = 0xFFFE
+#: Characters a link's, patch's or gateway's name may have: a link's name is the frame id of
+#: its contacts in ROS 2 and Foxglove, and the views show names whole.
+MAX_NAME = 64
 
 _TOP = {"name", "side", "neighbour_gap", "urdf", "link", "patch", "gateway"}
 _LINK = {"name", "parent", "origin", "rpy"}
@@ -468,9 +472,22 @@ def _vec(value: Any, n: int, where: str, what: str) -> tuple[float, ...]:
     return tuple(_num(v, where) for v in value)
 
 
+def frame_name(value: Any) -> str | None:
+    """``value`` when it can name a link, patch or gateway, else None: a string of 1 to
+    :data:`MAX_NAME` characters, not all blank, none a control or format character. A
+    link's name becomes the ``frame_id`` of its contacts in ROS 2 and Foxglove: a NUL ends
+    a string in ROS 2's C++ messages (the frame read there would be another one), and a
+    name cut to fit would read as another link's."""
+    if (not isinstance(value, str) or not 0 < len(value) <= MAX_NAME or not value.strip()
+            or any(unicodedata.category(ch)[0] == "C" for ch in value)):
+        return None
+    return value
+
+
 def _name(value: Any, where: str) -> str:
-    if not isinstance(value, str) or not value.strip():
-        raise SkinError(f"{where}: must be a non-empty string, got {value!r}")
+    if frame_name(value) is None:
+        raise SkinError(f"{where}: must be a name of 1 to {MAX_NAME} characters, none a control character, "
+                        f"got {value!r}")
     return value
 
 
@@ -548,6 +565,11 @@ def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch
 
 def _links(data: Mapping[str, Any], source: str, urdf_links: Sequence[LinkFrame] | None) -> dict[str, LinkFrame]:
     links: dict[str, LinkFrame] = {ln.name: ln for ln in urdf_links or ()}
+    for ln in links.values():  # the URDF's names become frame ids too
+        for name in (ln.name, ln.parent):
+            if name is not None and frame_name(name) is None:
+                raise SkinError(f"{source}: the URDF's link {name!r} cannot name a frame here (1 to {MAX_NAME} "
+                                f"characters, none a control character)")
     for i, e in enumerate(_tables(data, "link", source)):
         where = f"{source}: link[{i}]"
         _unknown(e, _LINK, where)

@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from contextlib import ExitStack
 from pathlib import Path
@@ -163,3 +164,26 @@ def test_proxy_refuses_a_queue_bound_that_is_no_bound(hwm: str) -> None:
             rc = None  # (it ran, unbounded)
         assert rc == 2, f"status {rc}"
         assert proxy.stderr is not None and "--hwm" in proxy.stderr.read()
+
+
+def test_a_proxy_whose_thread_dies_ends_with_a_failure_instead_of_staying_up_deaf() -> None:
+    """The proxy runs libzmq's loop in a thread; when that loop failed (an error from
+    libzmq), the thread ended and the process stayed up for ever forwarding nothing, so
+    systemd never restarted it. The failure is injected (libzmq's loop cannot be made to
+    fail from outside): the process must end with status 1, saying why."""
+    front, back = free_port(), free_port()
+    code = ("import sys, zmq\n"
+            "def broken(*args):\n"
+            "    raise zmq.ZMQError(14)\n"
+            "zmq.proxy_steerable = broken\n"
+            "from cellbridge.cli import main\n"
+            f"sys.exit(main(['proxy', '--front', 'tcp://127.0.0.1:{front}', '--back', 'tcp://127.0.0.1:{back}']))\n")
+    with group([sys.executable, "-c", code], stderr=subprocess.PIPE, text=True) as proc:
+        try:
+            rc = proc.wait(20)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the proxy stayed up with its proxy thread dead")
+        err = proc.stderr.read() if proc.stderr is not None else ""
+    assert rc == 1, err
+    last = json.loads(err.strip().splitlines()[-1])
+    assert last["proxy"] == "failed" and "ZMQError" in last["error"], err

@@ -526,6 +526,26 @@ def test_a_contact_message_of_thousands_of_contacts_is_bounded() -> None:
     assert sizes["markers"] < 100_000, sizes
 
 
+@pytest.mark.parametrize("link", ["fore\x00arm", "fore\u202earm", "f" * 65, "f" * 64 + "2"])
+def test_a_link_that_cannot_name_a_frame_is_no_frame_id_and_its_contact_has_no_place(link: str) -> None:
+    """A NUL in a contact's link went into the ROS 2 frame id as it was (a C++ subscriber
+    reads the string up to the NUL: another frame, or none), and a long one cut to fit could
+    read as another link. Such a link names no frame: the contact stays in the skin's frame
+    with its place and force unknown (NaN), counted, and its label escapes nothing raw."""
+    conv = Converter()
+    conv.set_layout({"layout": LAYOUT})
+    payload = contact(0)
+    payload["contacts"][0].update(link=link, patch="p\x00", position=[0.01, 0.02, 0.03], normal=[0.0, 0.0, 1.0],
+                                  force_vector=[0.0, 0.0, -2.0])
+    out = dict(conv.feed("contact", payload, 1.0))
+    (c,) = out["contacts"].contacts
+    assert c.header.frame_id == conv.frame_id and "\x00" not in c.header.frame_id
+    assert math.isnan(c.position.x) and math.isnan(c.wrench.force.z)
+    assert conv.malformed == 1
+    for m in out["markers"].markers:
+        assert "\x00" not in m.header.frame_id and "\x00" not in m.text and "\u202e" not in m.text
+
+
 def test_a_layout_of_a_hundred_thousand_elements_is_bounded_as_the_views_bound_it() -> None:
     from cellbridge.views.model import MAX_ELEMENTS
 

@@ -148,6 +148,11 @@ patch = "front"
     (("shape = \"plane\"\nrows = 2\ncols = 2\norigin = [0.0", "shape = \"plane\"\nwrap = true\nrows = 2\ncols = 2\norigin = [0.0"),
      "only a cylinder"),
     (("rows = 3", "rows = 3\ncolour = 1"), "unknown key 'colour'"),
+    # a link's name is its contacts' frame id in ROS 2 and Foxglove: a NUL ends it in C++,
+    # and a name cut to fit a view would read as another link's
+    (('link = "forearm"', 'link = "fore\\u0000arm"'), "none a control character"),
+    (('link = "forearm"', 'link = "fore\\u001b[2Jarm"'), "none a control character"),
+    (('link = "forearm"', 'link = "' + "f" * 65 + '"'), "1 to 64 characters"),
 ])
 def test_bad_descriptions_are_refused_naming_the_key(change, message) -> None:
     text = SKIN.replace(*change)

@@ -56,6 +56,7 @@ from typing import Any
 
 from cellbridge.ros2 import DEFAULT_FRAME
 from cellbridge.ros2 import types as T
+from cellbridge.tactile.skin_geometry import frame_name
 from cellbridge.views.model import (
     MAX_BRIDGE,
     MAX_CONTACTS,
@@ -282,8 +283,7 @@ class Converter:
 
     def frame_of(self, c: dict[str, Any]) -> str:
         """The frame a contact is in: its own ``link`` when the daemon names one, else the skin's."""
-        link = c.get("link")
-        return link if isinstance(link, str) and link else self.frame_id
+        return frame_name(c.get("link")) or self.frame_id
 
     def tactile_contact(self, c: dict[str, Any], stamp: T.Time) -> T.TactileContact:
         (px, py, pz), n, _ = _place(c)
@@ -419,16 +419,17 @@ def _place(c: dict[str, Any]) -> tuple[Vec3, Vec3, bool]:
     the Foxglove scene draws the same contact at the same place).
 
     A contact on a link (``link`` not null: a robot skin) is where its ``position`` and
-    ``normal`` say, each NaN when not whole and finite (or no link name): its ``x``, ``y``
+    ``normal`` say, each NaN when not whole and finite (both when its link names no frame:
+    :func:`~cellbridge.tactile.skin_geometry.frame_name`): its ``x``, ``y``
     are its place on the unrolled patches, and +z of a link frame is no direction of its
     skin, so neither stands in. A flat skin's contact (``link`` null or absent) is at
     ``position`` or else ``(x, y, 0)``, along ``normal`` or else +z (its plane's)."""
     p, n = vec3(c.get("position")), unit3(c.get("normal"))
     link = c.get("link")
     if link is not None:
-        named = isinstance(link, str) and bool(link)
-        return (p if p is not None and named else NOWHERE, n if n is not None else NOWHERE,
-                p is not None and n is not None and named)
+        if frame_name(link) is None:  # in a frame that cannot be named: nothing of it is known here
+            return NOWHERE, NOWHERE, False
+        return (p if p is not None else NOWHERE, n if n is not None else NOWHERE, p is not None and n is not None)
     return (p if p is not None else (_num(c.get("x")), _num(c.get("y")), 0.0), n if n is not None else UP, True)
 
 
@@ -457,7 +458,7 @@ def _view_contact(c: dict[str, Any]) -> Contact:
     obs = c.get("observable")
     observable = (obs[0] is not False, obs[1] is not False) if isinstance(obs, list) and len(obs) >= 2 else (True, True)
     link, patch = c.get("link"), c.get("patch")  # on a robot: the label says where on it, as the views' do
-    return Contact(link=link[:64] if isinstance(link, str) else None, patch=patch[:64] if isinstance(patch, str) else None,
+    return Contact(link=frame_name(link), patch=frame_name(patch),
                    position=vec3(c.get("position")) if link is not None else None,
                    id=int(c["id"]), x=_num(c.get("x")), y=_num(c.get("y")), force=_num(c.get("force")),
                    diameter=_num(c.get("diameter")), observable=observable, valid=c.get("valid") is not False,

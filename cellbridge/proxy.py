@@ -56,7 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Merge several daemons' PUB streams into one (libzmq's XSUB/XPUB proxy). Subscribers\n"
         "connect to --front as to a daemon; subscriptions are passed on to every daemon; each\n"
-        "payload's 'source' names the daemon it came from.\n\n"
+        "payload's 'source' names the daemon it came from. Ends on SIGINT or SIGTERM (status\n"
+        "0), or with status 1 should libzmq's proxy loop fail, its last line saying why.\n\n"
         "examples:\n"
         "  cellbridge proxy --back tcp://127.0.0.1:5560 --back tcp://127.0.0.1:5562\n"
         "  cellbridge proxy --front tcp://0.0.0.0:5570 --server-secret proxy.key_secret \\\n"

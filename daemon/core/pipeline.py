@@ -389,10 +389,13 @@ class Pipeline:
         :meth:`contact_job` comes at once. Returns how many elements were tared."""
         return self.skin.tare(bridges)
 
-    def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
+    def reconfigure(self, config: Config, layout: SkinLayout | None, surface: SkinGeometry | None = None) -> None:
         """SIGHUP: take the reloadable settings (the element stages:
-        :meth:`~cellbridge.daemon.core.layout.LayoutStages.reconfigured`)."""
+        :meth:`~cellbridge.daemon.core.layout.LayoutStages.reconfigured`) and the layout
+        file's skin description (``surface``: the next contacts are placed on its links, and
+        ``topology`` says it at the next health interval)."""
         self.config = config
+        self.surface = surface
         self.domains.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
         self.skin, rebuilt = self.skin.reconfigured(config, layout)
         if rebuilt:

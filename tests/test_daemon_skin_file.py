@@ -1,0 +1,139 @@
+"""`cellbridge daemon` whose ``[layout] file`` is a skin description: the service built as
+the command builds it (:func:`~cellbridge.daemon.shell.service.build_service`) publishes each
+contact on its link, in the link frame, and the description in ``topology``; a SIGHUP that
+names another skin file publishes the new one, and its contacts on the new links.
+
+The skin's gateway lines are frame-level traffic (:class:`SkinTraffic`, what ``cellbridge
+mesh traffic`` writes) replayed in recorded time; ZeroMQ on ``inproc://``, estimates inline.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import zmq
+import zmq.asyncio
+from cellbridge.daemon.core.config import load_config
+from cellbridge.daemon.shell.capture import CaptureWriter
+from cellbridge.daemon.shell.contact_worker import InlineExecutor
+from cellbridge.daemon.shell.service import build_service
+from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
+from cellbridge.emulator.mesh.skin_traffic import SkinTraffic
+from cellbridge.emulator.world.world import Contact, World
+from cellbridge.tactile.skin_geometry import parse_skin
+
+from support.shell_fakes import RecordingHooks
+from support.skin_descriptions import SKIN
+
+T0 = 1_800_000_000.0
+SECONDS = 4.0
+
+
+def _write_skin(tmp: Path, name: str, text: str) -> Path:
+    path = tmp / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _traffic(tmp: Path, skin_text: str, press: Contact) -> list[str]:
+    """Captures of the skin's gateway lines under ``press``; the link names."""
+    skin = parse_skin(skin_text, "skin")
+    traffic = SkinTraffic(skin, World(mesh_from_skin(skin), [press]))
+    writers = {g: CaptureWriter(str(tmp / f"gateway-{g}.cbcap")) for g in traffic.gateways}
+    try:
+        for w in writers.values():
+            w.write(T0, b"")
+        for t, g, data in traffic.run(SECONDS):
+            writers[g].write(T0 + t, data)
+    finally:
+        for w in writers.values():
+            w.close()
+    return [f"gateway-{g}" for g in traffic.gateways]
+
+
+def _config(tmp: Path, layout: Path, links: list[str], endpoint: str) -> Path:
+    text = (f'[layout]\nfile = "{layout}"\n[contact]\nrate = 1000.0\n'
+            f'[pub]\nendpoint = "{endpoint}"\n[control]\nendpoint = "{endpoint}-ctl"\n')
+    for n in links:
+        text += (f'[[link]]\nname = "{n}"\nurl = "replay:{tmp / n}.cbcap"\nreplay_speed = 4.0\n'
+                 f'replay_clock = "recorded"\nexit_when_done = true\nwait_for_subscriber = true\n')
+    path = tmp / "daemon.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _run(config_path: Path, endpoint: str, *, reload_to: Path | None = None) -> list[tuple[str, dict[str, Any]]]:
+    """What the daemon of ``config_path`` published on ``contact`` and ``topology`` while it
+    replayed; ``reload_to``: a configuration written over it and reloaded (SIGHUP) once the
+    first contact arrived."""
+
+    async def run() -> list[tuple[str, dict[str, Any]]]:
+        ctx = zmq.asyncio.Context()
+        config = load_config(config_path)
+        svc = build_service(config, config_path, hooks=RecordingHooks(config), ctx=ctx,
+                            contact_executor=InlineExecutor)
+        sub = ctx.socket(zmq.SUB)
+        got: list[tuple[str, dict[str, Any]]] = []
+        reloaded = reload_to is None
+        try:
+            for topic in ("contact", "topology"):
+                sub.setsockopt(zmq.SUBSCRIBE, topic.encode())
+            task = asyncio.create_task(svc.run())
+            for _ in range(500):  # the service binds first (inproc: connect after bind)
+                await asyncio.sleep(0.01)
+                try:
+                    sub.connect(endpoint)
+                    break
+                except zmq.ZMQError:
+                    continue
+            while not task.done():
+                if await sub.poll(200):
+                    parts = await sub.recv_multipart()
+                    got.append((parts[0].decode(), msgpack.unpackb(parts[1])))
+                    if not reloaded and got[-1][0] == "contact" and got[-1][1]["contacts"]:
+                        assert reload_to is not None
+                        config_path.write_text(reload_to.read_text(encoding="utf-8"), encoding="utf-8")
+                        svc.reload()
+                        got.append(("reloaded", {}))
+                        reloaded = True
+            assert await asyncio.wait_for(task, 30) == 0
+            while await sub.poll(100):
+                parts = await sub.recv_multipart()
+                got.append((parts[0].decode(), msgpack.unpackb(parts[1])))
+        finally:
+            sub.close(linger=0)
+            ctx.destroy(linger=0)
+        return got
+
+    return asyncio.run(asyncio.wait_for(run(), 60))
+
+
+def _seam_press(skin_text: str) -> tuple[Contact, float]:
+    skin = parse_skin(skin_text, "skin")
+    (band,) = skin.bands
+    x = band.x0 + band.period - 0.004  # 4 mm before the wrap's cut: across the seam
+    return Contact(2.0, 1.5, x, 0.045, 3.0, 0.02), x - band.x0
+
+
+def test_the_daemon_on_a_skin_file_publishes_contacts_on_their_link_and_the_skin_in_topology(tmp_path) -> None:
+    press, along = _seam_press(SKIN)
+    links = _traffic(tmp_path, SKIN, press)
+    endpoint = "inproc://skin-file"
+    got = _run(_config(tmp_path, _write_skin(tmp_path, "arm.toml", SKIN), links, endpoint), endpoint)
+    topo = [m for t, m in got if t == "topology"]
+    assert topo and topo[-1]["skin"] is not None
+    assert [p["name"] for p in topo[-1]["skin"]["patches"]] == ["fore", "chest_l", "chest_r"]
+    contacts = [c for t, m in got if t == "contact" for c in m["contacts"] if c["missed"] == 0]
+    assert len(contacts) > 10
+    assert {c["id"] for c in contacts} == {contacts[0]["id"]}  # across the wrap seam: one contact
+    c = contacts[len(contacts) // 2]
+    assert c["link"] == "forearm" and c["patch"] == "fore"
+    skin = parse_skin(SKIN, "skin")
+    angle = (along - 0.5 * skin.patches[0].col_pitch) / 0.045
+    want = np.array([0.045 * math.cos(angle), 0.045 * math.sin(angle), 0.075])
+    assert np.linalg.norm(np.array(c["position"]) - want) < 2e-3

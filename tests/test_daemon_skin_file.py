@@ -99,7 +99,7 @@ def _run(config_path: Path, endpoint: str, *, reload_to: Path | None = None) -> 
                         assert reload_to is not None
                         config_path.write_text(reload_to.read_text(encoding="utf-8"), encoding="utf-8")
                         svc.reload()
-                        got.append(("reloaded", {}))
+                        got.append(("reloaded", {"t_host": svc.pipeline.last_feed}))
                         reloaded = True
             assert await asyncio.wait_for(task, 30) == 0
             while await sub.poll(100):
@@ -137,3 +137,26 @@ def test_the_daemon_on_a_skin_file_publishes_contacts_on_their_link_and_the_skin
     angle = (along - 0.5 * skin.patches[0].col_pitch) / 0.045
     want = np.array([0.045 * math.cos(angle), 0.045 * math.sin(angle), 0.075])
     assert np.linalg.norm(np.array(c["position"]) - want) < 2e-3
+
+
+def test_a_sighup_naming_another_skin_file_publishes_it_and_its_links(tmp_path) -> None:
+    """The second description renames the forearm (the same atlas: the stages and the press
+    held go on): once reloaded, topology says the new description and contacts are on the
+    renamed link."""
+    renamed = SKIN.replace('"forearm"', '"lower_arm"')
+    press, _ = _seam_press(SKIN)
+    links = _traffic(tmp_path, SKIN, press)
+    endpoint = "inproc://skin-file-reload"
+    first = _config(tmp_path, _write_skin(tmp_path, "arm.toml", SKIN), links, endpoint)
+    second = tmp_path / "second.toml"
+    second.write_text(first.read_text(encoding="utf-8").replace("arm.toml", "lower.toml"), encoding="utf-8")
+    _write_skin(tmp_path, "lower.toml", renamed)
+    got = _run(first, endpoint, reload_to=second)
+    at = [t for t, _ in got].index("reloaded")
+    before = [c for t, m in got[:at] if t == "contact" for c in m["contacts"]]
+    assert before and {c["link"] for c in before} == {"forearm"}
+    topo = [m for t, m in got[at:] if t == "topology"]
+    assert topo and {ln["name"] for ln in topo[-1]["skin"]["links"]} == {"torso", "lower_arm"}
+    # (messages published before the reload may still be on their way when it is made)
+    after = [c for t, m in got[at:] if t == "contact" and m["t_host"] > got[at][1]["t_host"] for c in m["contacts"]]
+    assert len(after) > 5 and {c["link"] for c in after} == {"lower_arm"}

@@ -103,6 +103,7 @@ class Pipeline:
         self._queue: list[Message] = []  # log events (and the messages of frames contact_job gave out), handed out next
         #: the skin description (links, patches) the layout is the atlas of; set by the shell
         self.surface: SkinGeometry | None = None
+        self._topology_due = False  # a reload changed the layout or the description: topology is news
 
     @property
     def wall_offset(self) -> float:
@@ -308,8 +309,9 @@ class Pipeline:
         if self._want("health"):
             out.append(self.stamps.message(Health, now, self.health_body(now)))
         topo = self.topology_body(now)
-        if self.topology.changed(topo) and self._want("topology"):
+        if (self.topology.changed(topo) or self._topology_due) and self._want("topology"):
             out.append(self.stamps.message(Topology, now, topo))
+            self._topology_due = False
         return self._drain(out)
 
     def _forget(self, before: float) -> None:
@@ -395,11 +397,15 @@ class Pipeline:
         file's skin description (``surface``: the next contacts are placed on its links, and
         ``topology`` says it at the next health interval)."""
         self.config = config
+        described = surface is not self.surface
         self.surface = surface
         self.domains.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
         self.skin, rebuilt = self.skin.reconfigured(config, layout)
         if rebuilt:
             self.health.may_forget_from(-math.inf)
+        # A new layout or description is news to every view (the mesh's routes alone decide
+        # whether topology changed): the next tick publishes it.
+        self._topology_due = self._topology_due or rebuilt or described
 
     # -- links and subscribers --------------------------------------------------------------
     def link_state(self, link: str, connected: bool, now: float, error: str = "") -> None:

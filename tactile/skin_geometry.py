@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from cellbridge.errors import CellbridgeError
 
 __all__ = [
-    "Band", "Chart", "Gateway", "LinkFrame", "MAX_NAME", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",
+    "Band", "Chart", "Gateway", "LinkFrame", "MAX_NAME", "MAX_PATCHES", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",
     "frame_name", "parse_skin", "pose_matrix", "skin_from_mapping",
 ]
 
@@ -54,6 +54,9 @@ MAX_ID = 0xFFFE
 #: Characters a link's, patch's or gateway's name may have: a link's name is the frame id of
 #: its contacts in ROS 2 and Foxglove, and the views show names whole.
 MAX_NAME = 64
+#: Patches a description may have: far more than a robot's limbs and faces need, and few
+#: enough that finding each patch's surface among the others' stays well under a second.
+MAX_PATCHES = 4096
 
 _TOP = {"name", "side", "neighbour_gap", "urdf", "link", "patch", "gateway"}
 _LINK = {"name", "parent", "origin", "rpy"}
@@ -284,17 +287,25 @@ class SkinGeometry:
         """The atlas as a :class:`SkinLayout` (element ids = bridge ids)."""
         return SkinLayout(self.atlas, side=self.side, ids=self.ids, neighbour_gap=self.neighbour_gap)
 
+    @cached_property
+    def _patch_by_name(self) -> dict[str, Patch]:
+        return {p.name: p for p in self.patches}
+
+    @cached_property
+    def _link_by_name(self) -> dict[str, LinkFrame]:
+        return {ln.name: ln for ln in self.links}
+
     def patch(self, name: str) -> Patch:
-        for p in self.patches:
-            if p.name == name:
-                return p
-        raise SkinError(f"no patch named {name!r}")
+        try:
+            return self._patch_by_name[name]
+        except KeyError:
+            raise SkinError(f"no patch named {name!r}") from None
 
     def link(self, name: str) -> LinkFrame:
-        for ln in self.links:
-            if ln.name == name:
-                return ln
-        raise SkinError(f"no link named {name!r}")
+        try:
+            return self._link_by_name[name]
+        except KeyError:
+            raise SkinError(f"no link named {name!r}") from None
 
     def element_id(self, patch: str, row: int, col: int) -> int:
         """Bridge id of element (row, col) of ``patch``."""
@@ -584,14 +595,21 @@ def _links(data: Mapping[str, Any], source: str, urdf_links: Sequence[LinkFrame]
     for ln in links.values():
         if ln.parent is not None and ln.parent not in links:
             raise SkinError(f"{source}: link {ln.name!r}: parent {ln.parent!r} is not a link of the description")
-    for name in links:  # no cycles
-        seen: set[str] = set()
+    # No cycles. Each link is walked up only until a link already known to reach a root:
+    # linear in the links, however deep the chain (walking every link to its root took
+    # seconds on a chain 10 000 deep).
+    rooted: set[str] = set()
+    for name in links:
+        path: list[str] = []
+        on_path: set[str] = set()
         cur: str | None = name
-        while cur is not None:
-            if cur in seen:
+        while cur is not None and cur not in rooted:
+            if cur in on_path:
                 raise SkinError(f"{source}: link {name!r}: its parents go round in a circle")
-            seen.add(cur)
+            path.append(cur)
+            on_path.add(cur)
             cur = links[cur].parent
+        rooted.update(path)
     return links
 
 
@@ -615,6 +633,56 @@ def _same_surface(a: Patch, b: Patch) -> tuple[float, float] | None:
         return None
     phi = math.atan2(r[1, 0], r[0, 0])  # b's x axis turned about the common axis
     return a.radius * phi, float(t[2])
+
+
+class _SurfaceKeys:
+    """The charts' surfaces so far, as arrays: which charts a patch may lie on, found in one
+    vectorised pass over all of them (comparing a patch with every chart in turn, by
+    :func:`_same_surface`'s matrix inverse, took minutes for a few thousand patches).
+
+    A chart's key is its first patch's link and shape, its frame's rotation (9 numbers),
+    origin, and for a cylinder its radius. A patch on a chart's surface has, within a few
+    times :data:`SAME_SURFACE`: a plane, the same rotation and the same offset along the
+    normal; a cylinder, the same radius, the same axis, and its origin on that axis. The
+    candidates are then confirmed by :func:`_same_surface`, in chart order."""
+
+    _SLACK = 100.0 * SAME_SURFACE  # far looser than _same_surface: never misses a chart it would find
+
+    def __init__(self, most: int) -> None:
+        self._links: dict[str, int] = {}
+        self._link = np.zeros(most, dtype=np.int64)  # index in _links
+        self._shape = np.zeros(most, dtype=np.bool_)  # cylinder
+        self._rot = np.zeros((most, 3, 3))
+        self._t = np.zeros((most, 3))
+        self._radius = np.zeros(most)
+        self._n = 0
+
+    def add(self, p: Patch) -> None:
+        m = np.asarray(p.pose)
+        k = self._n
+        self._link[k] = self._links.setdefault(p.link, len(self._links))
+        self._shape[k] = p.shape == "cylinder"
+        self._rot[k], self._t[k], self._radius[k] = m[:3, :3], m[:3, 3], p.radius
+        self._n += 1
+
+    def candidates(self, p: Patch) -> list[int]:
+        """Charts whose surface ``p`` may lie on, in chart order."""
+        n = self._n
+        if n == 0 or p.link not in self._links:
+            return []
+        m = np.asarray(p.pose)
+        rot, t = self._rot[:n], self._t[:n]
+        slack = self._SLACK
+        d = t - m[:3, 3]  # from p's origin to each chart's
+        z = rot[:, :, 2]  # each chart's normal (plane) or axis (cylinder)
+        along = np.einsum("ki,ki->k", d, z)
+        if p.shape == "plane":
+            ok = ~self._shape[:n] & (np.abs(rot - m[:3, :3]).max(axis=(1, 2)) <= slack) & (np.abs(along) <= slack)
+        else:
+            off_axis = np.linalg.norm(d - along[:, None] * z, axis=1)
+            ok = (self._shape[:n] & (np.abs(self._radius[:n] - p.radius) <= slack)
+                  & (np.abs(z - m[:3, 2]).max(axis=1) <= slack) & (off_axis <= slack))
+        return np.flatnonzero(ok & (self._link[:n] == self._links[p.link])).tolist()
 
 
 def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
@@ -643,13 +711,18 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
         raise SkinError(f"{source}: urdf must be a file name, got {urdf!r}")
     links = _links(data, source, urdf_links)
 
+    tables = _tables(data, "patch", source)
+    if len(tables) > MAX_PATCHES:
+        raise SkinError(f"{source}: patch: at most {MAX_PATCHES} [[patch]] tables, got {len(tables)}")
     patches: list[Patch] = []
+    by_name: dict[str, Patch] = {}  # (names looked up in dicts: a skin may have thousands)
     next_id = 1
-    for i, e in enumerate(_tables(data, "patch", source)):
+    for i, e in enumerate(tables):
         where = f"{source}: patch[{i}]" + (f" ({e['name']})" if isinstance(e.get("name"), str) else "")
         p = _patch(e, where, side, next_id)
-        if any(q.name == p.name for q in patches):
+        if p.name in by_name:
             raise SkinError(f"{where}.name: duplicate patch name {p.name!r}")
+        by_name[p.name] = p
         if p.link not in links:
             if urdf is None or urdf_links is not None:
                 known = ", ".join(sorted(links)) or "none"
@@ -668,9 +741,10 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
     chart_of_patch: list[int] = []
     offsets: list[tuple[float, float]] = []
     refs: list[int] = []  # first patch of each chart
+    keys = _SurfaceKeys(len(patches))
     for k, p in enumerate(patches):
-        for c, ref in enumerate(refs):
-            off = _same_surface(patches[ref], p)
+        for c in keys.candidates(p):
+            off = _same_surface(patches[refs[c]], p)
             if off is not None:
                 chart_of_patch.append(c)
                 offsets.append(off)
@@ -679,6 +753,7 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
             chart_of_patch.append(len(refs))
             offsets.append((0.0, 0.0))
             refs.append(k)
+            keys.add(p)
 
     ids_l, patch_l, row_l, col_l, chart_l, u_l, v_l = [], [], [], [], [], [], []
     for k, p in enumerate(patches):
@@ -746,6 +821,7 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
 
     gateways: list[Gateway] = []
     gw_ids: dict[int, str] = {}
+    gw_names: set[str] = set()
     for i, e in enumerate(_tables(data, "gateway", source)):
         where = f"{source}: gateway[{i}]"
         _unknown(e, _GATEWAY, where)
@@ -753,13 +829,13 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
             if key not in e:
                 raise SkinError(f"{where}: missing key '{key}'")
         gname = _name(e["name"], f"{where}.name")
-        if any(g.name == gname for g in gateways):
+        if gname in gw_names:
             raise SkinError(f"{where}.name: duplicate gateway name {gname!r}")
+        gw_names.add(gname)
         pname = _name(e["patch"], f"{where}.patch")
-        try:
-            p = next(q for q in patches if q.name == pname)
-        except StopIteration:
-            raise SkinError(f"{where}.patch: no patch {pname!r}") from None
+        if pname not in by_name:
+            raise SkinError(f"{where}.patch: no patch {pname!r}")
+        p = by_name[pname]
         row = _int(e.get("row", 0), f"{where}.row", 0, p.rows - 1)
         col = _int(e.get("col", 0), f"{where}.col", 0, p.cols - 1)
         tcp = _int(e["tcp"], f"{where}.tcp", 0, 65535) if "tcp" in e else None
@@ -812,6 +888,7 @@ def parse_skin(text: str, source: str = "skin", urdf_links: Sequence[LinkFrame] 
         rpy = [0.0, 0.0, 0.0]       # angle 0 its x
         start = [0.0, 0.02]     # optional: (u, v) of element (0, 0)'s centre (cylinder: arc length, z)
         first_id = 1            # optional: bridge id of element (0, 0), row-major (default: after the last patch)
+                                # (at most MAX_PATCHES = 4096 patches)
 
         [[gateway]]
         name = "arm"

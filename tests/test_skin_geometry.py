@@ -180,3 +180,41 @@ def test_a_point_is_on_the_patch_of_the_nearest_element_of_its_own_chart(skin) -
             dx = np.minimum(dx, c.period - dx)
         d2 = np.where(skin.chart_of == ch, dx ** 2 + (skin.atlas[:, 1] - y) ** 2, np.inf)
         assert sp.patch == skin.patches[int(skin.patch_of[int(np.argmin(d2))])].name
+
+
+def _large(links: int, planes: int) -> str:
+    """A chain of ``links`` links, and ``planes`` 1x1 patches on its last link, each turned
+    about its normal (every one its own chart), each a gateway."""
+    text = "".join(f'[[link]]\nname = "l{i}"\n' + (f'parent = "l{i - 1}"\n' if i else "") for i in range(links))
+    last = f"l{links - 1}"
+    text += "".join(f'[[patch]]\nname = "p{i}"\nlink = "{last}"\nshape = "plane"\nrows = 1\ncols = 1\n'
+                    f"rpy = [0.0, 0.0, {0.001 * (i + 1)}]\n" for i in range(planes))
+    return text + "".join(f'[[gateway]]\nname = "g{i}"\npatch = "p{i}"\n' for i in range(planes))
+
+
+def test_a_deep_parent_chain_and_many_patches_are_read_in_linear_time() -> None:
+    """A chain 10 000 links deep, 1 500 patches each on its own surface of one link, a
+    gateway on each: read in a second or two (the checks compared every pair: minutes),
+    and whatever walks the links or patches by name stays linear."""
+    import time
+
+    t = time.perf_counter()
+    s = parse_skin(_large(10_000, 1_500), "large.toml")
+    assert len(s.charts) == 1_500 and len(s.links) == 10_000
+    assert len(s.gateway_ids()) == 1_500
+    assert s.link_pose("l9999")[2, 3] == 0.0
+    assert time.perf_counter() - t < 4.0
+
+
+def test_more_patches_than_the_limit_are_refused_at_once() -> None:
+    """Each patch's surface is looked for among the charts before it: a hostile file of
+    65 534 one-element patches, each on its own surface, is refused before that."""
+    import time
+
+    from cellbridge.tactile.skin_geometry import MAX_PATCHES
+
+    text = _large(1, MAX_PATCHES + 1)
+    t = time.perf_counter()
+    with pytest.raises(SkinError, match=f"patch: at most {MAX_PATCHES}"):
+        parse_skin(text, "many.toml")
+    assert time.perf_counter() - t < 3.0

@@ -698,8 +698,8 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
         raise SkinError(f"{source}: a skin description is a TOML table")
     _unknown(data, _TOP, source)
     name = data.get("name", "")
-    if not isinstance(name, str):
-        raise SkinError(f"{source}: name must be a string")
+    if name != "":  # (in every message about the skin, and in topology: a name as a link's)
+        name = _name(name, f"{source}: name")
     side = _num(data.get("side", _DEFAULT_SIDE), f"{source}: side", 0.0, True)
     if side > MAX_SIDE:
         raise SkinError(f"{source}: side must be <= {MAX_SIDE:g} m (metres, not millimetres), got {side!r}")
@@ -822,6 +822,7 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
     gateways: list[Gateway] = []
     gw_ids: dict[int, str] = {}
     gw_names: set[str] = set()
+    tcp_of: dict[int, str] = {}
     for i, e in enumerate(_tables(data, "gateway", source)):
         where = f"{source}: gateway[{i}]"
         _unknown(e, _GATEWAY, where)
@@ -839,6 +840,10 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
         row = _int(e.get("row", 0), f"{where}.row", 0, p.rows - 1)
         col = _int(e.get("col", 0), f"{where}.col", 0, p.cols - 1)
         tcp = _int(e["tcp"], f"{where}.tcp", 0, 65535) if "tcp" in e else None
+        if tcp:  # (0: any free port, as many as wanted) `mesh up --tcp` serves one gateway a port
+            if tcp in tcp_of:
+                raise SkinError(f"{where}.tcp: port {tcp} is already gateway {tcp_of[tcp]!r}'s")
+            tcp_of[tcp] = gname
         bid = p.first_id + row * p.cols + col
         if bid in gw_ids:
             raise SkinError(f"{where}: element ({row}, {col}) of {pname!r} is already gateway {gw_ids[bid]!r}")

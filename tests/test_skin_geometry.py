@@ -153,6 +153,12 @@ patch = "front"
     (('link = "forearm"', 'link = "fore\\u0000arm"'), "none a control character"),
     (('link = "forearm"', 'link = "fore\\u001b[2Jarm"'), "none a control character"),
     (('link = "forearm"', 'link = "' + "f" * 65 + '"'), "1 to 64 characters"),
+    # two gateways on one TCP port: `mesh up --tcp` cannot serve both (0: any free port)
+    (('patch = "fore"\n[[gateway]]\nname = "chest"\npatch = "chest_l"',
+      'patch = "fore"\ntcp = 7100\n[[gateway]]\nname = "chest"\npatch = "chest_l"\ntcp = 7100'),
+     "gateway\\[1\\].tcp: port 7100 is already gateway 'arm'"),
+    # the skin's name is in every message about it and in topology: a name as the others'
+    (('name = "test"', 'name = "te\\u001b[2Jst"'), "name: must be a name of 1 to 64"),
 ])
 def test_bad_descriptions_are_refused_naming_the_key(change, message) -> None:
     text = SKIN.replace(*change)

@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from cellbridge.errors import CellbridgeError
 
 __all__ = [
-    "Band", "Chart", "Gateway", "LinkFrame", "MAX_NAME", "MAX_PATCHES", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",
+    "Band", "Chart", "Gateway", "LinkFrame", "MAX_LENGTH", "MAX_NAME", "MAX_PATCHES", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",
     "frame_name", "parse_skin", "pose_matrix", "skin_from_mapping",
 ]
 
@@ -57,6 +57,11 @@ MAX_NAME = 64
 #: Patches a description may have: far more than a robot's limbs and faces need, and few
 #: enough that finding each patch's surface among the others' stays well under a second.
 MAX_PATCHES = 4096
+#: m: the farthest an element centre or a link's or patch's origin may lie from its frame's
+#: origin along any axis. The views and ROS 2 take a place farther off as unknown
+#: (docs/views.md): a description putting anything there is refused here, where the key
+#: can be named, instead of published as contacts no subscriber can place.
+MAX_LENGTH = 1000.0
 
 _TOP = {"name", "side", "neighbour_gap", "urdf", "link", "patch", "gateway"}
 _LINK = {"name", "parent", "origin", "rpy"}
@@ -517,6 +522,9 @@ def _unknown(keys: Any, allowed: set[str], where: str) -> None:
 
 def _pose(e: Mapping[str, Any], where: str) -> NDArray[np.float64]:
     origin = _vec(e["origin"], 3, f"{where}.origin", "[x, y, z] in metres") if "origin" in e else (0.0, 0.0, 0.0)
+    if max(abs(v) for v in origin) > MAX_LENGTH:
+        raise SkinError(f"{where}.origin: must lie within {MAX_LENGTH:g} m of its frame's origin along every axis "
+                        f"(metres), got {list(origin)!r}")
     rpy = _vec(e["rpy"], 3, f"{where}.rpy", "[roll, pitch, yaw] in radians") if "rpy" in e else (0.0, 0.0, 0.0)
     return pose_matrix(origin, rpy)
 
@@ -542,6 +550,8 @@ def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch
         if "radius" not in e:
             raise SkinError(f"{where}: a cylinder patch needs 'radius' (m)")
         radius = _num(e["radius"], f"{where}.radius", 0.0, True)
+        if radius > MAX_LENGTH:
+            raise SkinError(f"{where}.radius: must be <= {MAX_LENGTH:g} m (metres), got {radius!r}")
         wrap = e.get("wrap", False)
         if type(wrap) is not bool:
             raise SkinError(f"{where}.wrap: must be true or false, got {wrap!r}")
@@ -576,11 +586,17 @@ def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch
 
 def _links(data: Mapping[str, Any], source: str, urdf_links: Sequence[LinkFrame] | None) -> dict[str, LinkFrame]:
     links: dict[str, LinkFrame] = {ln.name: ln for ln in urdf_links or ()}
-    for ln in links.values():  # the URDF's names become frame ids too
+    for ln in links.values():  # the URDF's names become frame ids too, its joints' origins link poses
         for name in (ln.name, ln.parent):
             if name is not None and frame_name(name) is None:
                 raise SkinError(f"{source}: the URDF's link {name!r} cannot name a frame here (1 to {MAX_NAME} "
                                 f"characters, none a control character)")
+        m = np.asarray(ln.origin, dtype=np.float64)
+        if m.shape != (4, 4) or not np.isfinite(m).all():
+            raise SkinError(f"{source}: the URDF's link {ln.name!r}: its joint's origin is not finite")
+        if np.abs(m[:3, 3]).max() > MAX_LENGTH:
+            raise SkinError(f"{source}: the URDF's link {ln.name!r}: its joint's origin must lie within "
+                            f"{MAX_LENGTH:g} m of its parent's along every axis, got {m[:3, 3].tolist()!r}")
     for i, e in enumerate(_tables(data, "link", source)):
         where = f"{source}: link[{i}]"
         _unknown(e, _LINK, where)
@@ -819,6 +835,15 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
         position[sel] = pts
         normal[sel] = nrm
 
+    far = np.flatnonzero(np.abs(position).max(axis=1) > MAX_LENGTH)
+    if far.size:  # (the first in id order)
+        k = int(far[0])
+        p = patches[int(patch_of[k])]
+        i = patches.index(p)
+        raise SkinError(f"{source}: patch[{i}] ({p.name}): element ({int(rows[k])}, {int(cols[k])}) lies at "
+                        f"({', '.join(f'{v:.6g}' for v in position[k])}) m in link {p.link!r}'s frame: every "
+                        f"coordinate must be within {MAX_LENGTH:g} m")
+
     gateways: list[Gateway] = []
     gw_ids: dict[int, str] = {}
     gw_names: set[str] = set()
@@ -904,7 +929,8 @@ def parse_skin(text: str, source: str = "skin", urdf_links: Sequence[LinkFrame] 
 
     Patches of one link on one surface (the same plane with the same in-plane axes; the
     same cylinder with its axis the same way) share its coordinates, and a press across
-    their seam is one contact.
+    their seam is one contact. Origins, radii and element centres lie within
+    :data:`MAX_LENGTH` (1 km) of their frame's origin along every axis.
     """
     try:
         data = tomllib.loads(text)

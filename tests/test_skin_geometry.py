@@ -157,6 +157,13 @@ patch = "front"
     (('patch = "fore"\n[[gateway]]\nname = "chest"\npatch = "chest_l"',
       'patch = "fore"\ntcp = 7100\n[[gateway]]\nname = "chest"\npatch = "chest_l"\ntcp = 7100'),
      "gateway\\[1\\].tcp: port 7100 is already gateway 'arm'"),
+    # every view and ROS 2 take a place beyond 1 km of its frame's origin as unknown: a
+    # description putting its elements or links there is refused, not published as unknown
+    (("origin = [0.0, 0.0, 0.05]", "origin = [1e300, 0.0, 0.05]"), "patch\\[0\\] \\(fore\\).origin: must lie within"),
+    (("origin = [0.3, 0.0, 0.0]", "origin = [1e308, 0.0, 0.0]"), "link\\[1\\].origin: must lie within"),
+    (("origin = [0.08, 0.0, 0.1]", "origin = [0.08, 0.0, 0.1]\nstart = [999.9, 0.0]"),
+     "patch\\[2\\] \\(chest_r\\): element \\(0, 1\\) lies at \\(1000.02, .* in link 'torso'"),
+    (("radius = 0.045", "radius = 1e300"), "patch\\[0\\] \\(fore\\).radius: must be <= 1000"),
     # the skin's name is in every message about it and in topology: a name as the others'
     (('name = "test"', 'name = "te\\u001b[2Jst"'), "name: must be a name of 1 to 64"),
 ])
@@ -224,3 +231,21 @@ def test_more_patches_than_the_limit_are_refused_at_once() -> None:
     with pytest.raises(SkinError, match=f"patch: at most {MAX_PATCHES}"):
         parse_skin(text, "many.toml")
     assert time.perf_counter() - t < 3.0
+
+
+def test_a_urdf_joint_that_is_no_rigid_motion_is_refused_naming_the_joint(tmp_path) -> None:
+    """A URDF joint's origin becomes a link's pose in topology, Foxglove's transforms and
+    ROS 2: a NaN in it, or a translation beyond what the views read, is refused."""
+    pytest.importorskip("yourdfpy")
+    from cellbridge.daemon.shell.skin_file import load_skin
+
+    skin_text = ('urdf = "arm.urdf"\n[[patch]]\nname = "p"\nlink = "fore"\nshape = "plane"\nrows = 1\ncols = 2\n'
+                 '[[gateway]]\nname = "g"\npatch = "p"\n')
+    (tmp_path / "skin.toml").write_text(skin_text)
+    for xyz, message in (("nan 0 0.3", "not finite"), ("0 0 5000", "must lie within")):
+        (tmp_path / "arm.urdf").write_text(f"""<robot name="arm">
+  <link name="base"/><link name="fore"/>
+  <joint name="elbow" type="fixed"><parent link="base"/><child link="fore"/><origin xyz="{xyz}"/></joint>
+</robot>""")
+        with pytest.raises(SkinError, match=f"URDF's link 'fore'.*{message}"):
+            load_skin(tmp_path / "skin.toml")

@@ -36,16 +36,13 @@ def _traffic(args: argparse.Namespace) -> int:
     from cellbridge.daemon.shell.capture import CaptureWriter
     from cellbridge.daemon.shell.skin_file import is_skin_file, load_skin
     from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.mesh import read_text
     from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
     from cellbridge.emulator.mesh.skin_traffic import SkinTraffic
     from cellbridge.emulator.world.world import World, check_on_skin, load_scenario
     from cellbridge.tactile.skin_geometry import SkinError
 
-    try:
-        with open(args.skin, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise MeshError(f"{args.skin}: cannot read: {exc.strerror}") from None
+    text = read_text(args.skin, "skin description", MeshError)
     if not is_skin_file(text):
         raise MeshError(f"{args.skin}: not a skin description (no [[patch]] tables): 'mesh run' reads mesh files")
     try:

@@ -10,12 +10,20 @@ mesh traffic`` writes) replayed in recorded time; ZeroMQ on ``inproc://``, estim
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import msgpack
 import numpy as np
+import pytest
 import zmq
 import zmq.asyncio
 from cellbridge.daemon.core.config import load_config
@@ -160,3 +168,46 @@ def test_a_sighup_naming_another_skin_file_publishes_it_and_its_links(tmp_path) 
     # (messages published before the reload may still be on their way when it is made)
     after = [c for t, m in got[at:] if t == "contact" and m["t_host"] > got[at][1]["t_host"] for c in m["contacts"]]
     assert len(after) > 5 and {c["link"] for c in after} == {"lower_arm"}
+
+
+def _command(args: list[str], limit: float = 30.0) -> subprocess.CompletedProcess[str]:
+    """``cellbridge ARGS`` in its own process group, its memory bounded to 1.5 GB (a reader
+    without a bound would take the machine's), killed with its group after ``limit`` s."""
+
+    def bounded() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (1_500_000_000, 1_500_000_000))
+
+    proc = subprocess.Popen([sys.executable, "-m", "cellbridge", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=bounded)
+    try:
+        out, err = proc.communicate(timeout=limit)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    return subprocess.CompletedProcess(args, proc.returncode, out, err)
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("endless", [False, True])
+def test_a_huge_or_endless_skin_file_is_refused_at_once_by_every_command_that_reads_it(tmp_path, endless) -> None:
+    """A skin description is a few hundred kilobytes: a file of 40 MB (valid TOML: a
+    description padded with comments) or one that never ends (/dev/zero) is refused after
+    reading past the bound, by the daemon's check, mesh check and mesh traffic, naming
+    the file, without a traceback; none was bounded (a gigabyte read whole, and parsed)."""
+    if endless:
+        path = Path("/dev/zero")
+    else:
+        path = tmp_path / "huge.toml"
+        with open(path, "w", encoding="utf-8") as fh:
+            fh.write(SKIN)
+            fh.write(("#" + "x" * 98 + "\n") * 400_000)
+    config = tmp_path / "daemon.toml"
+    config.write_text(f'[layout]\nfile = "{path}"\n[[link]]\nname = "g"\nurl = "/dev/null"\n', encoding="utf-8")
+    for args in (["daemon", "--config", str(config), "--check"], ["mesh", "check", str(path)],
+                 ["mesh", "traffic", str(path), "--seconds", "1", "--out", str(tmp_path / "run")]):
+        t = time.monotonic()
+        got = _command(args)
+        assert got.returncode == 2, (args, got.stderr[-2000:])
+        assert f"{path}: " in got.stderr and "too large" in got.stderr and "Traceback" not in got.stderr, got.stderr
+        assert time.monotonic() - t < 10.0

@@ -249,3 +249,25 @@ def test_a_urdf_joint_that_is_no_rigid_motion_is_refused_naming_the_joint(tmp_pa
 </robot>""")
         with pytest.raises(SkinError, match=f"URDF's link 'fore'.*{message}"):
             load_skin(tmp_path / "skin.toml")
+
+
+def test_a_truncated_urdf_is_refused_not_recovered(tmp_path, capfd) -> None:
+    """A URDF cut short (copied while it was being written) is not XML: read with the XML
+    parser's recovery, the joint cut off put its link at its parent's origin, 0.3 m from
+    where it is, and only a log line said so. Refused, naming the file, nothing printed."""
+    pytest.importorskip("yourdfpy")
+    from cellbridge.daemon.shell.skin_file import load_skin
+
+    (tmp_path / "skin.toml").write_text('urdf = "arm.urdf"\n[[patch]]\nname = "p"\nlink = "fore"\nshape = "plane"\n'
+                                        'rows = 1\ncols = 2\n[[gateway]]\nname = "g"\npatch = "p"\n')
+    whole = """<robot name="arm">
+  <link name="base"/><link name="fore"/>
+  <joint name="elbow" type="fixed"><parent link="base"/><child link="fore"/><origin xyz="0 0 0.3"/></joint>
+</robot>"""
+    (tmp_path / "arm.urdf").write_text(whole)
+    assert load_skin(tmp_path / "skin.toml").link_pose("fore")[2, 3] == pytest.approx(0.3)
+    (tmp_path / "arm.urdf").write_text(whole[:whole.index('0.3"') + 3])
+    with pytest.raises(SkinError, match="arm.urdf: not a URDF it can read: not well-formed XML"):
+        load_skin(tmp_path / "skin.toml")
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from os import PathLike
 
-from cellbridge.daemon.shell.skin_file import is_skin_file, load_skin
+from cellbridge.daemon.shell.skin_file import is_skin_file, load_skin, read_bounded
 from cellbridge.tactile.layout import SkinLayout, parse_layout
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
@@ -21,13 +21,7 @@ def load_layout_file(path: str | PathLike[str]) -> tuple[SkinLayout, SkinGeometr
 
     Every problem, a missing file included, is a ``ValueError`` naming the file.
     """
-    try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read layout: {exc.strerror}") from None
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: layout is not UTF-8 text") from None
+    text = read_bounded(path, "layout")
     if is_skin_file(text):
         skin = load_skin(path)
         return skin.layout(), skin

@@ -9,6 +9,8 @@ missing yourdfpy is an error saying how to install it.
 
 from __future__ import annotations
 
+import io
+import logging
 import tomllib
 from os import PathLike
 from pathlib import Path
@@ -16,15 +18,27 @@ from pathlib import Path
 import numpy as np
 from cellbridge.tactile.skin_geometry import LinkFrame, SkinError, SkinGeometry, skin_from_mapping
 
-__all__ = ["is_skin_file", "load_skin", "urdf_links"]
+__all__ = ["MAX_FILE_BYTES", "is_skin_file", "load_skin", "read_bounded", "urdf_links"]
 
 
-def _read(path: str | PathLike[str], what: str) -> str:
+#: Bytes a skin description or layout file may have: a layout of every bridge id (65 534)
+#: is about 5 MB, a skin description of 4096 patches about 1. A file past it (a gigabyte,
+#: /dev/zero) is refused after this much is read, not read whole into memory and parsed.
+MAX_FILE_BYTES = 16 * 2**20
+
+
+def read_bounded(path: str | PathLike[str], what: str) -> str:
+    """The text of a user's file (at most :data:`MAX_FILE_BYTES`); a missing, unreadable or
+    larger file, or one not UTF-8, is a :class:`SkinError` (a ``ValueError``) naming it."""
     try:
-        with open(path, encoding="utf-8") as fh:
-            return fh.read()
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
         raise SkinError(f"{path}: cannot read {what}: {exc.strerror}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise SkinError(f"{path}: {what} too large (more than {MAX_FILE_BYTES} bytes)")
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError:
         raise SkinError(f"{path}: {what} is not UTF-8 text") from None
 
@@ -37,11 +51,27 @@ def urdf_links(path: str | PathLike[str]) -> list[LinkFrame]:
         raise SkinError(f"{path}: reading a URDF needs yourdfpy: pip install 'cellbridge[robot]'") from None
     if not Path(path).is_file():
         raise SkinError(f"{path}: cannot read URDF: no such file")
+    data = read_bounded(path, "URDF").encode("utf-8")
+    # Strict XML first: yourdfpy, on a parse error, logs it and parses again recovering what
+    # it can, so a file cut short gave its last joint no origin (the link at its parent's)
+    # and only a log line said so. No entities are expanded, nothing is fetched.
+    from lxml import etree  # type: ignore[import-untyped]  # (yourdfpy's own XML parser; no type information published)
+
     try:
-        robot = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False,
-                                   build_collision_scene_graph=False, load_collision_meshes=False)
+        etree.fromstring(data, etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False))
+    except etree.XMLSyntaxError as exc:
+        raise SkinError(f"{path}: not a URDF it can read: not well-formed XML: {exc}") from None
+    quiet = logging.getLogger("yourdfpy")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)  # what it would log is in the error raised here
+    try:
+        robot = yourdfpy.URDF.load(io.BytesIO(data), mesh_dir=str(Path(path).parent), load_meshes=False,
+                                   build_scene_graph=False, build_collision_scene_graph=False,
+                                   load_collision_meshes=False)
     except Exception as exc:  # yourdfpy raises many kinds for a bad file; each is a bad URDF here
         raise SkinError(f"{path}: not a URDF it can read: {exc}") from None
+    finally:
+        quiet.setLevel(level)
     parent_of = {j.child: j for j in robot.robot.joints}
     out = []
     for link in robot.robot.links:
@@ -64,7 +94,7 @@ def load_skin(path: str | PathLike[str]) -> SkinGeometry:
     """Read and validate a skin description, and the URDF it names (relative to the file).
 
     Every problem, a missing file included, is a :class:`SkinError` naming the file."""
-    text = _read(path, "skin description")
+    text = read_bounded(path, "skin description")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -417,13 +417,24 @@ def parse_mesh(text: str, source: str = "mesh") -> Mesh:
     return mesh_from_mapping(data, source)
 
 
+#: Bytes a mesh, skin or scenario file may have: a mesh of every bridge id (65 534) is
+#: about 9 MB. A file past it (a gigabyte, /dev/zero) is refused after this much is read,
+#: not read whole into memory and parsed for a minute.
+MAX_FILE_BYTES = 16 * 2**20
+
+
 def read_text(path: str, what: str, error: type[ValueError]) -> str:
-    """A user's file as text; a missing or unreadable file is ``error`` naming it."""
+    """A user's file as text (at most :data:`MAX_FILE_BYTES`); a missing, unreadable or
+    larger file is ``error`` naming it."""
     try:
-        with open(path, encoding="utf-8") as fh:
-            return fh.read()
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
         raise error(f"{path}: cannot read {what}: {exc.strerror}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise error(f"{path}: {what} too large (more than {MAX_FILE_BYTES} bytes)")
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError:
         raise error(f"{path}: {what} is not UTF-8 text") from None
 

@@ -701,6 +701,47 @@ class _SurfaceKeys:
         return np.flatnonzero(ok & (self._link[:n] == self._links[p.link])).tolist()
 
 
+def _check_apart(source: str, side: float, patches: Sequence[Patch], charts: Sequence[Chart],
+                 patch_of: NDArray[np.int64], chart_of: NDArray[np.int64], rows: NDArray[np.int64],
+                 cols: NDArray[np.int64], position: NDArray[np.float64], normal: NDArray[np.float64]) -> None:
+    """Elements of one link on different charts must not lie on top of each other: centres
+    closer than half a side, facing the same way (normals less than 90° apart). Two
+    patches on surfaces a hair apart (an origin 10 µm off, a turn of 10⁻⁵ rad) are two
+    charts, which the layout's overlap check never compares, and every press there read as
+    two contacts at one place. Elements at a fold (a box's faces: 0.7 side apart, at 90°)
+    or back to back (a plate's two faces) are not on top of each other.
+
+    Only links with several charts are looked at; each element against those in the 27
+    grid cells of half a side around it (linear in the elements)."""
+    per_link: dict[str, int] = {}
+    for c in charts:
+        per_link[c.link] = per_link.get(c.link, 0) + 1
+    links = {name for name, n in per_link.items() if n > 1}
+    if not links:
+        return
+    cell = 0.5 * side
+    grid: dict[tuple[str, int, int, int], list[int]] = {}
+    shifts = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+    link_of = [charts[int(c)].link for c in chart_of.tolist()]
+    keys = np.floor(position / cell).astype(np.int64).tolist()
+    for k in range(len(link_of)):
+        link = link_of[k]
+        if link not in links:
+            continue
+        gx, gy, gz = keys[k]
+        for dx, dy, dz in shifts:
+            for j in grid.get((link, gx + dx, gy + dy, gz + dz), ()):
+                if (chart_of[j] != chart_of[k] and float(np.sum((position[j] - position[k]) ** 2)) < cell * cell
+                        and float(normal[j] @ normal[k]) > 0.0):
+                    a, b = patches[int(patch_of[j])], patches[int(patch_of[k])]
+                    gap = float(np.linalg.norm(position[j] - position[k]))
+                    raise SkinError(f"{source}: patches {a.name!r} and {b.name!r} of link {link!r} overlap: their "
+                                    f"elements ({rows[j]}, {cols[j]}) and ({rows[k]}, {cols[k]}) are {gap:.3g} m "
+                                    f"apart, facing the same way (patches of one surface share its pose to "
+                                    f"{SAME_SURFACE:g} m and rad)")
+        grid.setdefault((link, gx, gy, gz), []).append(k)
+
+
 def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
                       urdf_links: Sequence[LinkFrame] | None = None) -> SkinGeometry:
     """Validate a parsed skin description and build its :class:`SkinGeometry`.
@@ -835,6 +876,7 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
         position[sel] = pts
         normal[sel] = nrm
 
+    _check_apart(source, side, patches, charts, patch_of, chart_of, rows, cols, position, normal)
     far = np.flatnonzero(np.abs(position).max(axis=1) > MAX_LENGTH)
     if far.size:  # (the first in id order)
         k = int(far[0])

@@ -197,11 +197,11 @@ def test_a_point_is_on_the_patch_of_the_nearest_element_of_its_own_chart(skin) -
 
 def _large(links: int, planes: int) -> str:
     """A chain of ``links`` links, and ``planes`` 1x1 patches on its last link, each turned
-    about its normal (every one its own chart), each a gateway."""
+    about its normal (every one its own chart) 0.1 m from the one before, each a gateway."""
     text = "".join(f'[[link]]\nname = "l{i}"\n' + (f'parent = "l{i - 1}"\n' if i else "") for i in range(links))
     last = f"l{links - 1}"
     text += "".join(f'[[patch]]\nname = "p{i}"\nlink = "{last}"\nshape = "plane"\nrows = 1\ncols = 1\n'
-                    f"rpy = [0.0, 0.0, {0.001 * (i + 1)}]\n" for i in range(planes))
+                    f"rpy = [0.0, 0.0, {0.001 * (i + 1)}]\norigin = [{0.1 * i}, 0.0, 0.0]\n" for i in range(planes))
     return text + "".join(f'[[gateway]]\nname = "g{i}"\npatch = "p{i}"\n' for i in range(planes))
 
 
@@ -271,3 +271,48 @@ def test_a_truncated_urdf_is_refused_not_recovered(tmp_path, capfd) -> None:
         load_skin(tmp_path / "skin.toml")
     out, err = capfd.readouterr()
     assert out == "" and err == ""
+
+
+_TWO_PLANES = """side = 0.04
+[[link]]
+name = "box"
+[[patch]]
+name = "top"
+link = "box"
+shape = "plane"
+rows = 2
+cols = 2
+[[patch]]
+name = "second"
+link = "box"
+shape = "plane"
+rows = 2
+cols = 2
+{pose}
+[[gateway]]
+name = "g"
+patch = "top"
+[[gateway]]
+name = "h"
+patch = "second"
+"""
+
+
+@pytest.mark.parametrize("pose, overlaps", [
+    ("origin = [0.0, 0.0, 0.00001]", True),  # 10 µm off the first one's plane: its own chart, on top of it
+    ("rpy = [0.0, 0.0, 0.00001]", True),  # turned a little: its own chart, on top of it
+    ("origin = [0.04, 0.0, 0.0]\nrpy = [0.0, 0.0, 0.0001]", True),  # one column overlapping, turned a little
+    ("origin = [0.06, 0.0, -0.02]\nrpy = [0.0, 1.5707963267948966, 0.0]", False),  # a box's next face
+    ("origin = [0.0, 0.04, -0.001]\nrpy = [3.141592653589793, 0.0, 0.0]", False),  # underneath, facing away
+    ("origin = [0.1, 0.0, 0.0]\nrpy = [0.0, 0.0, 0.0001]", False),  # beside it, apart
+])
+def test_patches_of_one_link_on_top_of_each_other_are_refused(pose, overlaps) -> None:
+    """Two patches of one link whose elements lie on top of each other, on surfaces a hair
+    apart (so not one chart, where the layout would refuse the overlap): each press there
+    read as two contacts at one place. Refused naming both; a fold (a box's faces) is not."""
+    text = _TWO_PLANES.format(pose=pose)
+    if overlaps:
+        with pytest.raises(SkinError, match="patches 'top' and 'second' of link 'box' overlap"):
+            parse_skin(text, "box.toml")
+    else:
+        assert len(parse_skin(text, "box.toml").charts) == 2

@@ -211,3 +211,31 @@ def test_a_huge_or_endless_skin_file_is_refused_at_once_by_every_command_that_re
         assert got.returncode == 2, (args, got.stderr[-2000:])
         assert f"{path}: " in got.stderr and "too large" in got.stderr and "Traceback" not in got.stderr, got.stderr
         assert time.monotonic() - t < 10.0
+
+
+def test_an_estimate_in_flight_across_a_reload_is_placed_on_the_skin_it_was_made_on() -> None:
+    """The contact worker estimates on the atlas of the description the job was made with;
+    a SIGHUP that names another description while it runs must not place its contacts on
+    the new one's links (the same atlas x, y there is another link, another point)."""
+    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.core.pipeline import Pipeline
+
+    skin = parse_skin(SKIN, "arm.toml")
+    other = parse_skin(SKIN.replace('"forearm"', '"lower_arm"').replace("radius = 0.045", "radius = 0.05"),
+                       "other.toml")
+    traffic = SkinTraffic(skin)
+    config = parse_config({"link": [{"name": f"gw{g}", "url": "/dev/null"} for g in traffic.gateways]})
+    pipeline = Pipeline(config, skin.layout())
+    pipeline.surface = skin
+    job = None
+    for t, g, data in traffic.run(1.0):
+        pipeline.feed(f"gw{g}", data, T0 + t)
+        job = pipeline.contact_job(T0 + t) or job
+    assert job is not None
+    pipeline.reconfigure(config, other.layout(), other)  # the reload, while the job is estimated
+    x, y = skin.atlas[skin.row_of(skin.element_id("fore", 1, 3))]
+    contact = {"id": 1, "x": float(x), "y": float(y), "force": 2.0, "cov": [[1e-6, 0.0], [0.0, 1e-6]],
+               "elements": [skin.element_id("fore", 1, 3)], "t": T0 + 1.0}
+    (c,) = pipeline.contact_frame(job, [contact]).payload["contacts"]
+    want = skin.locate([x], [y])[0]
+    assert c["link"] == "forearm" and np.allclose(c["position"], want.position)

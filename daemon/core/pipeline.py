@@ -248,7 +248,7 @@ class Pipeline:
         if snap is None:  # (most calls: the spec is built only for a frame to estimate)
             return None
         spec = self.skin.spec(self.surface.bands if self.surface is not None else ())
-        return None if spec is None else self.contacts.job(spec, snap)
+        return None if spec is None else self.contacts.job(spec, snap, self.surface)
 
     def contact_due(self, now: float, idle: bool = False) -> float:
         """When :meth:`contact_job` has a new frame: ``now`` when one is complete and not
@@ -268,9 +268,10 @@ class Pipeline:
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate (:meth:`ContactIdentity.published`),
-        with each contact's place on the robot (:func:`~cellbridge.daemon.core.surface.contact_fields`)."""
+        with each contact's place on the robot (:func:`~cellbridge.daemon.core.surface.contact_fields`)
+        on the description the job was made with (a reload may have installed another since)."""
         snap, wall = job.snapshot, self.stamps.wall
-        out = contact_fields(self.surface, self.contacts.published(job, contacts, wall))
+        out = contact_fields(job.surface, self.contacts.published(job, contacts, wall))
         return self.stamps.message(ContactFrame, snap.t_host, {
             "t_sample": wall(snap.t_frame) if math.isfinite(snap.t_frame) else None, "t_bridge": None,
             "contacts": out, "unknown": [] if snap.unknown is None else snap.ids[snap.unknown].tolist(),

@@ -32,6 +32,7 @@ def _traffic(args: argparse.Namespace) -> int:
     import json
     import os
     import time
+    import tomllib
 
     from cellbridge.daemon.shell.capture import CaptureWriter
     from cellbridge.daemon.shell.skin_file import is_skin_file, load_skin
@@ -43,6 +44,12 @@ def _traffic(args: argparse.Namespace) -> int:
     from cellbridge.tactile.skin_geometry import SkinError
 
     text = read_text(args.skin, "skin description", MeshError)
+    try:
+        tomllib.loads(text)  # (a file that is no TOML is not "without [[patch]] tables")
+    except tomllib.TOMLDecodeError as exc:
+        raise MeshError(f"{args.skin}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise MeshError(f"{args.skin}: not valid TOML: nested too deeply") from None
     if not is_skin_file(text):
         raise MeshError(f"{args.skin}: not a skin description (no [[patch]] tables): 'mesh run' reads mesh files")
     try:

@@ -239,3 +239,24 @@ def test_an_estimate_in_flight_across_a_reload_is_placed_on_the_skin_it_was_made
     (c,) = pipeline.contact_frame(job, [contact]).payload["contacts"]
     want = skin.locate([x], [y])[0]
     assert c["link"] == "forearm" and np.allclose(c["position"], want.position)
+
+
+@pytest.mark.process
+def test_a_toml_file_nested_too_deeply_is_refused_by_every_command_that_reads_it(tmp_path) -> None:
+    """tomllib parses nested arrays recursively: a 200 kB file of brackets raised
+    RecursionError, a traceback from daemon --check (as the layout file or the
+    configuration), mesh check, mesh traffic and a scenario, and a SIGHUP re-reading it
+    would have raised out of the reload. Each is refused naming the file."""
+    deep = tmp_path / "deep.toml"
+    deep.write_text("a = " + "[" * 100_000 + "]" * 100_000 + "\n", encoding="utf-8")
+    skin = _write_skin(tmp_path, "arm.toml", SKIN)
+    config = tmp_path / "daemon.toml"
+    config.write_text(f'[layout]\nfile = "{deep}"\n[[link]]\nname = "g"\nurl = "/dev/null"\n', encoding="utf-8")
+    for args in (["daemon", "--config", str(config), "--check"], ["daemon", "--config", str(deep), "--check"],
+                 ["mesh", "check", str(deep)], ["mesh", "traffic", str(deep), "--out", str(tmp_path / "run")],
+                 ["mesh", "traffic", str(skin), "--seconds", "1", "--scenario", str(deep),
+                  "--out", str(tmp_path / "run")]):
+        got = _command(args)
+        assert got.returncode == 2, (args, got.stderr[-2000:])
+        assert f"{deep}: " in got.stderr and "nested too deeply" in got.stderr, (args, got.stderr[-2000:])
+        assert "Traceback" not in got.stderr, (args, got.stderr[-2000:])

@@ -83,10 +83,11 @@ def urdf_links(path: str | PathLike[str]) -> list[LinkFrame]:
 
 
 def is_skin_file(text: str) -> bool:
-    """Whether a TOML text is a skin description (it has ``[[patch]]`` tables)."""
+    """Whether a TOML text is a skin description (it has ``[[patch]]`` tables); a text that
+    is no TOML is not (its reader says why)."""
     try:
         return "patch" in tomllib.loads(text)
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):  # (nested arrays are parsed recursively)
         return False
 
 
@@ -99,6 +100,8 @@ def load_skin(path: str | PathLike[str]) -> SkinGeometry:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SkinError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise SkinError(f"{path}: not valid TOML: nested too deeply") from None
     links = None
     urdf = data.get("urdf")
     if isinstance(urdf, str) and urdf:

@@ -405,6 +405,8 @@ def parse_mesh(text: str, source: str = "mesh") -> Mesh:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise MeshError(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise MeshError(f"{source}: not valid TOML: nested too deeply") from None
     if "patch" in data:
         from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
         from cellbridge.tactile.skin_geometry import SkinError, skin_from_mapping

@@ -56,7 +56,7 @@ def _traffic(args: argparse.Namespace) -> int:
         skin = load_skin(args.skin)
     except SkinError as exc:
         raise MeshError(str(exc)) from None
-    mesh = mesh_from_skin(skin)
+    mesh = mesh_from_skin(skin, source=args.skin)
     contacts = load_scenario(args.scenario) if args.scenario else []
     for i, c in enumerate(contacts):
         check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")

@@ -316,3 +316,14 @@ def test_patches_of_one_link_on_top_of_each_other_are_refused(pose, overlaps) ->
             parse_skin(text, "box.toml")
     else:
         assert len(parse_skin(text, "box.toml").charts) == 2
+
+
+def test_a_surface_without_a_gateway_is_refused_naming_the_file_and_its_patches() -> None:
+    """Cells join neighbouring elements of one surface only: the chest's patches with no
+    gateway of their own reach none. `mesh check`/`mesh up`/`mesh traffic` said "test:
+    bridge 22 is unreachable" (the skin's name, a bridge id); now the file and the patches."""
+    from cellbridge.emulator.mesh.mesh import MeshError, parse_mesh
+
+    text = SKIN.replace('[[gateway]]\nname = "chest"\npatch = "chest_l"\n', "")
+    with pytest.raises(MeshError, match="^arm.toml: patches 'chest_l', 'chest_r' of link 'torso' reach no gateway"):
+        parse_mesh(text, "arm.toml")

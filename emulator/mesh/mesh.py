@@ -415,7 +415,7 @@ def parse_mesh(text: str, source: str = "mesh") -> Mesh:
             skin = skin_from_mapping(data, source)
         except SkinError as exc:
             raise MeshError(str(exc)) from None
-        return mesh_from_skin(skin)
+        return mesh_from_skin(skin, source=source)
     return mesh_from_mapping(data, source)
 
 

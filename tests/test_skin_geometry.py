@@ -269,6 +269,11 @@ def test_a_truncated_urdf_is_refused_not_recovered(tmp_path, capfd) -> None:
     (tmp_path / "arm.urdf").write_text(whole[:whole.index('0.3"') + 3])
     with pytest.raises(SkinError, match="arm.urdf: not a URDF it can read: not well-formed XML"):
         load_skin(tmp_path / "skin.toml")
+    # a DTD: entities expanded a billion times, or a file of this machine read into link names
+    (tmp_path / "arm.urdf").write_text('<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY x SYSTEM "file:///etc/hostname">]>'
+                                       + whole.replace('"fore"', '"&x;"'))
+    with pytest.raises(SkinError, match="arm.urdf: not a URDF it can read: it declares a DTD"):
+        load_skin(tmp_path / "skin.toml")
     out, err = capfd.readouterr()
     assert out == "" and err == ""
 

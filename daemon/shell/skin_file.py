@@ -14,6 +14,7 @@ import logging
 import tomllib
 from os import PathLike
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 from cellbridge.tactile.skin_geometry import LinkFrame, SkinError, SkinGeometry, skin_from_mapping
@@ -51,16 +52,18 @@ def urdf_links(path: str | PathLike[str]) -> list[LinkFrame]:
         raise SkinError(f"{path}: reading a URDF needs yourdfpy: pip install 'cellbridge[robot]'") from None
     if not Path(path).is_file():
         raise SkinError(f"{path}: cannot read URDF: no such file")
-    data = read_bounded(path, "URDF").encode("utf-8")
+    text = read_bounded(path, "URDF")
     # Strict XML first: yourdfpy, on a parse error, logs it and parses again recovering what
     # it can, so a file cut short gave its last joint no origin (the link at its parent's)
-    # and only a log line said so. No entities are expanded, nothing is fetched.
-    from lxml import etree  # type: ignore[import-untyped]  # (yourdfpy's own XML parser; no type information published)
-
+    # and only a log line said so. A URDF declares no DTD: one (entities to expand, files
+    # or addresses to fetch) is refused before any parser sees it.
+    if "<!DOCTYPE" in text or "<!ENTITY" in text:
+        raise SkinError(f"{path}: not a URDF it can read: it declares a DTD (<!DOCTYPE or <!ENTITY)")
     try:
-        etree.fromstring(data, etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False))
-    except etree.XMLSyntaxError as exc:
+        ElementTree.fromstring(text)
+    except ElementTree.ParseError as exc:
         raise SkinError(f"{path}: not a URDF it can read: not well-formed XML: {exc}") from None
+    data = text.encode("utf-8")
     quiet = logging.getLogger("yourdfpy")
     level = quiet.level
     quiet.setLevel(logging.CRITICAL)  # what it would log is in the error raised here

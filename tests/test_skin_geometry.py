@@ -332,3 +332,25 @@ def test_a_surface_without_a_gateway_is_refused_naming_the_file_and_its_patches(
     text = SKIN.replace('[[gateway]]\nname = "chest"\npatch = "chest_l"\n', "")
     with pytest.raises(MeshError, match="^arm.toml: patches 'chest_l', 'chest_r' of link 'torso' reach no gateway"):
         parse_mesh(text, "arm.toml")
+
+
+@pytest.mark.parametrize("body, message", [
+    ('<link name="base"/><link name="fore"/><link name="fore"/>'
+     '<joint name="elbow" type="fixed"><parent link="base"/><child link="fore"/><origin xyz="0 0 0.3"/></joint>',
+     "link 'fore' is described twice"),
+    ('<link name="base"/><link name="fore"/>'
+     '<joint name="elbow" type="fixed"><parent link="base"/><child link="fore"/><origin xyz="0 0 0.3"/></joint>'
+     '<joint name="wrist" type="fixed"><parent link="base"/><child link="fore"/><origin xyz="0 0 0.5"/></joint>',
+     "link 'fore' is the child of two joints \\('elbow', 'wrist'\\)"),
+])
+def test_a_urdf_that_places_a_link_twice_is_refused(tmp_path, body, message) -> None:
+    """A link described twice, or the child of two joints: which pose is its? The last
+    joint read was taken (0.5 m here, or 0.3), silently; refused naming the link."""
+    pytest.importorskip("yourdfpy")
+    from cellbridge.daemon.shell.skin_file import load_skin
+
+    (tmp_path / "skin.toml").write_text('urdf = "arm.urdf"\n[[patch]]\nname = "p"\nlink = "fore"\nshape = "plane"\n'
+                                        'rows = 1\ncols = 2\n[[gateway]]\nname = "g"\npatch = "p"\n')
+    (tmp_path / "arm.urdf").write_text(f'<robot name="arm">{body}</robot>')
+    with pytest.raises(SkinError, match=f"arm.urdf: {message}"):
+        load_skin(tmp_path / "skin.toml")

@@ -14,6 +14,7 @@ import logging
 import tomllib
 from os import PathLike
 from pathlib import Path
+from typing import Any
 from xml.etree import ElementTree
 
 import numpy as np
@@ -75,7 +76,19 @@ def urdf_links(path: str | PathLike[str]) -> list[LinkFrame]:
         raise SkinError(f"{path}: not a URDF it can read: {exc}") from None
     finally:
         quiet.setLevel(level)
-    parent_of = {j.child: j for j in robot.robot.joints}
+    # One pose per link: a link described twice, or the child of two joints, has two (the
+    # last read was taken, silently).
+    parent_of: dict[str, Any] = {}
+    for j in robot.robot.joints:
+        if j.child in parent_of:
+            raise SkinError(f"{path}: link {j.child!r} is the child of two joints ({parent_of[j.child].name!r}, "
+                            f"{j.name!r})")
+        parent_of[j.child] = j
+    seen: set[str] = set()
+    for link in robot.robot.links:
+        if link.name in seen:
+            raise SkinError(f"{path}: link {link.name!r} is described twice")
+        seen.add(link.name)
     out = []
     for link in robot.robot.links:
         j = parent_of.get(link.name)

@@ -393,16 +393,26 @@ class SkinGeometry:
     def _patch_of_list(self) -> list[int]:
         return [int(i) for i in self.patch_of.tolist()]
 
-    def locate(self, x: ArrayLike, y: ArrayLike) -> list[SurfacePoint]:
+    def locate(self, x: ArrayLike, y: ArrayLike, chart: ArrayLike | None = None) -> list[SurfacePoint]:
         """Link, patch, point, normal and tangents of atlas points (a position of a
         contact, or of anything else estimated on the atlas). A point off every element
-        (in a seam, or a disk centre fitted past a patch's edge) is on the nearest chart's
-        surface, extended; its patch is the one of the nearest element."""
+        (in a seam, or a disk centre fitted past a patch's edge) is on its chart's surface,
+        extended; its patch is the one of the nearest element of that chart.
+
+        ``chart``: each point's chart index when known (a contact's: its elements'), -1
+        where not; a point without one is on the nearest chart. A disk centre fitted past
+        a patch's edge, beyond the middle of the margin to the next chart, is nearer that
+        chart, on another link: only its elements say which it is on."""
         xa = np.atleast_1d(np.asarray(x, dtype=np.float64))
         ya = np.atleast_1d(np.asarray(y, dtype=np.float64))
         if xa.shape != ya.shape or xa.ndim != 1:
             raise ValueError("x and y must be equal-length 1-D")
         ch = self.chart_at(xa, ya)
+        if chart is not None:
+            given = np.atleast_1d(np.asarray(chart, dtype=np.int64))
+            if given.shape != ch.shape:
+                raise ValueError("chart must give one index per point")
+            ch = np.where((given >= 0) & (given < len(self.charts)), given, ch)
         ca = self._chart_arrays
         period = ca["period"][ch]
         wraps = period > 0

@@ -260,3 +260,32 @@ def test_a_toml_file_nested_too_deeply_is_refused_by_every_command_that_reads_it
         assert got.returncode == 2, (args, got.stderr[-2000:])
         assert f"{deep}: " in got.stderr and "nested too deeply" in got.stderr, (args, got.stderr[-2000:])
         assert "Traceback" not in got.stderr, (args, got.stderr[-2000:])
+
+
+def test_the_skin_description_in_topology_is_built_once_per_description(monkeypatch) -> None:
+    """topology's ``skin`` lists every element (a skin of 62 500: 0.1 s to build), and the
+    body is built at every health interval to see whether the routes changed: it was
+    rebuilt each time, a tenth of a second of the event loop a second for nothing."""
+    from cellbridge.daemon.core import pipeline as pipeline_module
+    from cellbridge.daemon.core.config import parse_config
+    from cellbridge.daemon.core.pipeline import Pipeline
+
+    built: list[object] = []
+    real = pipeline_module.skin_report
+
+    def counting(skin):  # type: ignore[no-untyped-def]
+        built.append(skin)
+        return real(skin)
+
+    monkeypatch.setattr(pipeline_module, "skin_report", counting)
+    skin = parse_skin(SKIN, "arm.toml")
+    config = parse_config({"link": [{"name": "gw", "url": "/dev/null"}]})
+    p = Pipeline(config, skin.layout())
+    p.surface = skin
+    first = [p.topology_body(float(t))["skin"] for t in range(3)]
+    assert first[0] == first[2] and first[0]["name"] == "test" and len(built) == 1
+    other = parse_skin(SKIN.replace('"forearm"', '"lower_arm"'), "other.toml")
+    p.reconfigure(config, other.layout(), other)
+    assert {ln["name"] for ln in p.topology_body(4.0)["skin"]["links"]} == {"torso", "lower_arm"}
+    p.topology_body(5.0)
+    assert len(built) == 2

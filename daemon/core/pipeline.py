@@ -104,6 +104,7 @@ class Pipeline:
         #: the skin description (links, patches) the layout is the atlas of; set by the shell
         self.surface: SkinGeometry | None = None
         self._topology_due = False  # a reload changed the layout or the description: topology is news
+        self._skin_reported: tuple[SkinGeometry | None, dict[str, Any] | None] | None = None
 
     @property
     def wall_offset(self) -> float:
@@ -359,8 +360,16 @@ class Pipeline:
         body = self.topology.report(now, self.config.health.bridge_timeout, self.skin.split_placed, UNPLACED_SHOWN)
         for node in body["bridges"].values():
             node["last_seen"] = self.stamps.wall(node["last_seen"])
-        body.update(t_bridge=None, layout=self.skin.layout_report(), skin=skin_report(self.surface))
+        body.update(t_bridge=None, layout=self.skin.layout_report(), skin=self._skin_report())
         return body
+
+    def _skin_report(self) -> dict[str, Any] | None:
+        """``topology``'s ``skin``: built once per description (it lists every element, a
+        tenth of a second on the largest skin, and the body is built at every health
+        interval to see whether the routes changed). Read only: published as it is."""
+        if self._skin_reported is None or self._skin_reported[0] is not self.surface:
+            self._skin_reported = (self.surface, skin_report(self.surface))
+        return self._skin_reported[1]
 
     # -- commands -----------------------------------------------------------------------
     def command(self, op: int, value: int | None, target: int | None, now: float,

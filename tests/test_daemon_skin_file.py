@@ -33,7 +33,7 @@ from cellbridge.daemon.shell.service import build_service
 from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
 from cellbridge.emulator.mesh.skin_traffic import SkinTraffic
 from cellbridge.emulator.world.world import Contact, World
-from cellbridge.tactile.skin_geometry import parse_skin
+from cellbridge.tactile.skin_geometry import SkinGeometry, parse_skin
 
 from support.shell_fakes import RecordingHooks
 from support.skin_descriptions import SKIN
@@ -273,7 +273,7 @@ def test_the_skin_description_in_topology_is_built_once_per_description(monkeypa
     built: list[object] = []
     real = pipeline_module.skin_report
 
-    def counting(skin):  # type: ignore[no-untyped-def]
+    def counting(skin: SkinGeometry | None) -> dict | None:
         built.append(skin)
         return real(skin)
 

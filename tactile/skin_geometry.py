@@ -539,7 +539,7 @@ def _pose(e: Mapping[str, Any], where: str) -> NDArray[np.float64]:
     return pose_matrix(origin, rpy)
 
 
-def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch:
+def _patch(e: Mapping[str, Any], where: str, side: float, gap: float, next_id: int) -> Patch:
     _unknown(e, _PATCH, where)
     for key in ("name", "link", "shape", "rows", "cols"):
         if key not in e:
@@ -586,6 +586,16 @@ def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch
     if shape == "cylinder" and not wrap and cols * col_pitch > circ * (1 + 1e-9):
         raise SkinError(f"{where}: {cols} cols of {col_pitch} m ({cols * col_pitch:.6g} m) go more than once around "
                         f"the cylinder ({circ:.6g} m); a grid that closes on itself is 'wrap = true'")
+    # A patch's elements are neighbours (a cell joins each to the next; a press across the
+    # seam between two is one contact): a seam wider than neighbour_gap leaves its rows or
+    # columns apart, and a wrap whose columns are so far apart closed on nothing (no band).
+    for n, step, what, fix in ((rows, pitch, "rows", "a smaller pitch"),
+                               (cols, col_pitch, "columns", "more cols or a smaller radius" if wrap
+                                else "a smaller col_pitch")):
+        if n > 1 and step - side > gap * (1 + 1e-9) + 1e-12:
+            raise SkinError(f"{where}: its {what} are {step:.6g} m apart, a seam of {step - side:.6g} m between "
+                            f"elements of {side} m, wider than neighbour_gap {gap} m: they would be no neighbours "
+                            f"({fix}, or a larger neighbour_gap)")
     start = _vec(e["start"], 2, f"{where}.start", "[u, v] in metres") if "start" in e else (0.0, 0.0)
     first_id = _int(e.get("first_id", next_id), f"{where}.first_id", 1, MAX_ID)
     if first_id + rows * cols - 1 > MAX_ID:
@@ -786,7 +796,7 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
     next_id = 1
     for i, e in enumerate(tables):
         where = f"{source}: patch[{i}]" + (f" ({e['name']})" if isinstance(e.get("name"), str) else "")
-        p = _patch(e, where, side, next_id)
+        p = _patch(e, where, side, gap, next_id)
         if p.name in by_name:
             raise SkinError(f"{where}.name: duplicate patch name {p.name!r}")
         by_name[p.name] = p
@@ -947,7 +957,8 @@ def parse_skin(text: str, source: str = "skin", urdf_links: Sequence[LinkFrame] 
 
         name = "arm"            # optional
         side = 0.040            # element side (m), every patch
-        neighbour_gap = 0.010   # optional: widest seam between neighbours (default side/4)
+        neighbour_gap = 0.010   # optional: widest seam between neighbours (default side/4); a
+                                # patch's pitches are at most side + neighbour_gap
         urdf = "arm.urdf"       # optional: link frames from the robot's URDF
 
         [[link]]                # links the URDF does not hold (all of them, without one)

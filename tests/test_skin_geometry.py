@@ -164,6 +164,11 @@ patch = "front"
     (("origin = [0.08, 0.0, 0.1]", "origin = [0.08, 0.0, 0.1]\nstart = [999.9, 0.0]"),
      "patch\\[2\\] \\(chest_r\\): element \\(0, 1\\) lies at \\(1000.02, .* in link 'torso'"),
     (("radius = 0.045", "radius = 1e300"), "patch\\[0\\] \\(fore\\).radius: must be <= 1000"),
+    # a wrap whose columns leave a seam wider than neighbour_gap: no band (it did not wrap),
+    # its columns no neighbours (each a contact of its own, no cell between them)
+    (("radius = 0.045", "radius = 0.06"), "patch\\[0\\] \\(fore\\): its columns are 0.05385.* m apart"),
+    (("cols = 2\norigin = [0.0, 0.0, 0.1]", "cols = 2\npitch = 0.06\ncol_pitch = 0.04\norigin = [0.0, 0.0, 0.1]"),
+     "patch\\[1\\] \\(chest_l\\): its rows are 0.06 m apart"),
     # the skin's name is in every message about it and in topology: a name as the others'
     (('name = "test"', 'name = "te\\u001b[2Jst"'), "name: must be a name of 1 to 64"),
 ])

@@ -32,27 +32,31 @@ def _traffic(args: argparse.Namespace) -> int:
     import json
     import os
     import time
+    import tomllib
 
     from cellbridge.daemon.shell.capture import CaptureWriter
     from cellbridge.daemon.shell.skin_file import is_skin_file, load_skin
     from cellbridge.emulator.firmware.commands import Settings
+    from cellbridge.emulator.mesh.mesh import read_text
     from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
     from cellbridge.emulator.mesh.skin_traffic import SkinTraffic
     from cellbridge.emulator.world.world import World, check_on_skin, load_scenario
     from cellbridge.tactile.skin_geometry import SkinError
 
+    text = read_text(args.skin, "skin description", MeshError)
     try:
-        with open(args.skin, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise MeshError(f"{args.skin}: cannot read: {exc.strerror}") from None
+        tomllib.loads(text)  # (a file that is no TOML is not "without [[patch]] tables")
+    except tomllib.TOMLDecodeError as exc:
+        raise MeshError(f"{args.skin}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise MeshError(f"{args.skin}: not valid TOML: nested too deeply") from None
     if not is_skin_file(text):
         raise MeshError(f"{args.skin}: not a skin description (no [[patch]] tables): 'mesh run' reads mesh files")
     try:
         skin = load_skin(args.skin)
     except SkinError as exc:
         raise MeshError(str(exc)) from None
-    mesh = mesh_from_skin(skin)
+    mesh = mesh_from_skin(skin, source=args.skin)
     contacts = load_scenario(args.scenario) if args.scenario else []
     for i, c in enumerate(contacts):
         check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")

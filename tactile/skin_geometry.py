@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from cellbridge.errors import CellbridgeError
 
 __all__ = [
-    "Band", "Chart", "Gateway", "LinkFrame", "MAX_NAME", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",
+    "Band", "Chart", "Gateway", "LinkFrame", "MAX_LENGTH", "MAX_NAME", "MAX_PATCHES", "Patch", "SkinError", "SkinGeometry", "SurfacePoint",
     "frame_name", "parse_skin", "pose_matrix", "skin_from_mapping",
 ]
 
@@ -54,6 +54,14 @@ MAX_ID = 0xFFFE
 #: Characters a link's, patch's or gateway's name may have: a link's name is the frame id of
 #: its contacts in ROS 2 and Foxglove, and the views show names whole.
 MAX_NAME = 64
+#: Patches a description may have: far more than a robot's limbs and faces need, and few
+#: enough that finding each patch's surface among the others' stays well under a second.
+MAX_PATCHES = 4096
+#: m: the farthest an element centre or a link's or patch's origin may lie from its frame's
+#: origin along any axis. The views and ROS 2 take a place farther off as unknown
+#: (docs/views.md): a description putting anything there is refused here, where the key
+#: can be named, instead of published as contacts no subscriber can place.
+MAX_LENGTH = 1000.0
 
 _TOP = {"name", "side", "neighbour_gap", "urdf", "link", "patch", "gateway"}
 _LINK = {"name", "parent", "origin", "rpy"}
@@ -284,17 +292,25 @@ class SkinGeometry:
         """The atlas as a :class:`SkinLayout` (element ids = bridge ids)."""
         return SkinLayout(self.atlas, side=self.side, ids=self.ids, neighbour_gap=self.neighbour_gap)
 
+    @cached_property
+    def _patch_by_name(self) -> dict[str, Patch]:
+        return {p.name: p for p in self.patches}
+
+    @cached_property
+    def _link_by_name(self) -> dict[str, LinkFrame]:
+        return {ln.name: ln for ln in self.links}
+
     def patch(self, name: str) -> Patch:
-        for p in self.patches:
-            if p.name == name:
-                return p
-        raise SkinError(f"no patch named {name!r}")
+        try:
+            return self._patch_by_name[name]
+        except KeyError:
+            raise SkinError(f"no patch named {name!r}") from None
 
     def link(self, name: str) -> LinkFrame:
-        for ln in self.links:
-            if ln.name == name:
-                return ln
-        raise SkinError(f"no link named {name!r}")
+        try:
+            return self._link_by_name[name]
+        except KeyError:
+            raise SkinError(f"no link named {name!r}") from None
 
     def element_id(self, patch: str, row: int, col: int) -> int:
         """Bridge id of element (row, col) of ``patch``."""
@@ -377,16 +393,26 @@ class SkinGeometry:
     def _patch_of_list(self) -> list[int]:
         return [int(i) for i in self.patch_of.tolist()]
 
-    def locate(self, x: ArrayLike, y: ArrayLike) -> list[SurfacePoint]:
+    def locate(self, x: ArrayLike, y: ArrayLike, chart: ArrayLike | None = None) -> list[SurfacePoint]:
         """Link, patch, point, normal and tangents of atlas points (a position of a
         contact, or of anything else estimated on the atlas). A point off every element
-        (in a seam, or a disk centre fitted past a patch's edge) is on the nearest chart's
-        surface, extended; its patch is the one of the nearest element."""
+        (in a seam, or a disk centre fitted past a patch's edge) is on its chart's surface,
+        extended; its patch is the one of the nearest element of that chart.
+
+        ``chart``: each point's chart index when known (a contact's: its elements'), -1
+        where not; a point without one is on the nearest chart. A disk centre fitted past
+        a patch's edge, beyond the middle of the margin to the next chart, is nearer that
+        chart, on another link: only its elements say which it is on."""
         xa = np.atleast_1d(np.asarray(x, dtype=np.float64))
         ya = np.atleast_1d(np.asarray(y, dtype=np.float64))
         if xa.shape != ya.shape or xa.ndim != 1:
             raise ValueError("x and y must be equal-length 1-D")
         ch = self.chart_at(xa, ya)
+        if chart is not None:
+            given = np.atleast_1d(np.asarray(chart, dtype=np.int64))
+            if given.shape != ch.shape:
+                raise ValueError("chart must give one index per point")
+            ch = np.where((given >= 0) & (given < len(self.charts)), given, ch)
         ca = self._chart_arrays
         period = ca["period"][ch]
         wraps = period > 0
@@ -506,11 +532,14 @@ def _unknown(keys: Any, allowed: set[str], where: str) -> None:
 
 def _pose(e: Mapping[str, Any], where: str) -> NDArray[np.float64]:
     origin = _vec(e["origin"], 3, f"{where}.origin", "[x, y, z] in metres") if "origin" in e else (0.0, 0.0, 0.0)
+    if max(abs(v) for v in origin) > MAX_LENGTH:
+        raise SkinError(f"{where}.origin: must lie within {MAX_LENGTH:g} m of its frame's origin along every axis "
+                        f"(metres), got {list(origin)!r}")
     rpy = _vec(e["rpy"], 3, f"{where}.rpy", "[roll, pitch, yaw] in radians") if "rpy" in e else (0.0, 0.0, 0.0)
     return pose_matrix(origin, rpy)
 
 
-def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch:
+def _patch(e: Mapping[str, Any], where: str, side: float, gap: float, next_id: int) -> Patch:
     _unknown(e, _PATCH, where)
     for key in ("name", "link", "shape", "rows", "cols"):
         if key not in e:
@@ -531,6 +560,8 @@ def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch
         if "radius" not in e:
             raise SkinError(f"{where}: a cylinder patch needs 'radius' (m)")
         radius = _num(e["radius"], f"{where}.radius", 0.0, True)
+        if radius > MAX_LENGTH:
+            raise SkinError(f"{where}.radius: must be <= {MAX_LENGTH:g} m (metres), got {radius!r}")
         wrap = e.get("wrap", False)
         if type(wrap) is not bool:
             raise SkinError(f"{where}.wrap: must be true or false, got {wrap!r}")
@@ -555,6 +586,16 @@ def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch
     if shape == "cylinder" and not wrap and cols * col_pitch > circ * (1 + 1e-9):
         raise SkinError(f"{where}: {cols} cols of {col_pitch} m ({cols * col_pitch:.6g} m) go more than once around "
                         f"the cylinder ({circ:.6g} m); a grid that closes on itself is 'wrap = true'")
+    # A patch's elements are neighbours (a cell joins each to the next; a press across the
+    # seam between two is one contact): a seam wider than neighbour_gap leaves its rows or
+    # columns apart, and a wrap whose columns are so far apart closed on nothing (no band).
+    for n, step, what, fix in ((rows, pitch, "rows", "a smaller pitch"),
+                               (cols, col_pitch, "columns", "more cols or a smaller radius" if wrap
+                                else "a smaller col_pitch")):
+        if n > 1 and step - side > gap * (1 + 1e-9) + 1e-12:
+            raise SkinError(f"{where}: its {what} are {step:.6g} m apart, a seam of {step - side:.6g} m between "
+                            f"elements of {side} m, wider than neighbour_gap {gap} m: they would be no neighbours "
+                            f"({fix}, or a larger neighbour_gap)")
     start = _vec(e["start"], 2, f"{where}.start", "[u, v] in metres") if "start" in e else (0.0, 0.0)
     first_id = _int(e.get("first_id", next_id), f"{where}.first_id", 1, MAX_ID)
     if first_id + rows * cols - 1 > MAX_ID:
@@ -565,11 +606,17 @@ def _patch(e: Mapping[str, Any], where: str, side: float, next_id: int) -> Patch
 
 def _links(data: Mapping[str, Any], source: str, urdf_links: Sequence[LinkFrame] | None) -> dict[str, LinkFrame]:
     links: dict[str, LinkFrame] = {ln.name: ln for ln in urdf_links or ()}
-    for ln in links.values():  # the URDF's names become frame ids too
+    for ln in links.values():  # the URDF's names become frame ids too, its joints' origins link poses
         for name in (ln.name, ln.parent):
             if name is not None and frame_name(name) is None:
                 raise SkinError(f"{source}: the URDF's link {name!r} cannot name a frame here (1 to {MAX_NAME} "
                                 f"characters, none a control character)")
+        m = np.asarray(ln.origin, dtype=np.float64)
+        if m.shape != (4, 4) or not np.isfinite(m).all():
+            raise SkinError(f"{source}: the URDF's link {ln.name!r}: its joint's origin is not finite")
+        if np.abs(m[:3, 3]).max() > MAX_LENGTH:
+            raise SkinError(f"{source}: the URDF's link {ln.name!r}: its joint's origin must lie within "
+                            f"{MAX_LENGTH:g} m of its parent's along every axis, got {m[:3, 3].tolist()!r}")
     for i, e in enumerate(_tables(data, "link", source)):
         where = f"{source}: link[{i}]"
         _unknown(e, _LINK, where)
@@ -584,14 +631,21 @@ def _links(data: Mapping[str, Any], source: str, urdf_links: Sequence[LinkFrame]
     for ln in links.values():
         if ln.parent is not None and ln.parent not in links:
             raise SkinError(f"{source}: link {ln.name!r}: parent {ln.parent!r} is not a link of the description")
-    for name in links:  # no cycles
-        seen: set[str] = set()
+    # No cycles. Each link is walked up only until a link already known to reach a root:
+    # linear in the links, however deep the chain (walking every link to its root took
+    # seconds on a chain 10 000 deep).
+    rooted: set[str] = set()
+    for name in links:
+        path: list[str] = []
+        on_path: set[str] = set()
         cur: str | None = name
-        while cur is not None:
-            if cur in seen:
+        while cur is not None and cur not in rooted:
+            if cur in on_path:
                 raise SkinError(f"{source}: link {name!r}: its parents go round in a circle")
-            seen.add(cur)
+            path.append(cur)
+            on_path.add(cur)
             cur = links[cur].parent
+        rooted.update(path)
     return links
 
 
@@ -617,6 +671,97 @@ def _same_surface(a: Patch, b: Patch) -> tuple[float, float] | None:
     return a.radius * phi, float(t[2])
 
 
+class _SurfaceKeys:
+    """The charts' surfaces so far, as arrays: which charts a patch may lie on, found in one
+    vectorised pass over all of them (comparing a patch with every chart in turn, by
+    :func:`_same_surface`'s matrix inverse, took minutes for a few thousand patches).
+
+    A chart's key is its first patch's link and shape, its frame's rotation (9 numbers),
+    origin, and for a cylinder its radius. A patch on a chart's surface has, within a few
+    times :data:`SAME_SURFACE`: a plane, the same rotation and the same offset along the
+    normal; a cylinder, the same radius, the same axis, and its origin on that axis. The
+    candidates are then confirmed by :func:`_same_surface`, in chart order."""
+
+    _SLACK = 100.0 * SAME_SURFACE  # far looser than _same_surface: never misses a chart it would find
+
+    def __init__(self, most: int) -> None:
+        self._links: dict[str, int] = {}
+        self._link = np.zeros(most, dtype=np.int64)  # index in _links
+        self._shape = np.zeros(most, dtype=np.bool_)  # cylinder
+        self._rot = np.zeros((most, 3, 3))
+        self._t = np.zeros((most, 3))
+        self._radius = np.zeros(most)
+        self._n = 0
+
+    def add(self, p: Patch) -> None:
+        m = np.asarray(p.pose)
+        k = self._n
+        self._link[k] = self._links.setdefault(p.link, len(self._links))
+        self._shape[k] = p.shape == "cylinder"
+        self._rot[k], self._t[k], self._radius[k] = m[:3, :3], m[:3, 3], p.radius
+        self._n += 1
+
+    def candidates(self, p: Patch) -> list[int]:
+        """Charts whose surface ``p`` may lie on, in chart order."""
+        n = self._n
+        if n == 0 or p.link not in self._links:
+            return []
+        m = np.asarray(p.pose)
+        rot, t = self._rot[:n], self._t[:n]
+        slack = self._SLACK
+        d = t - m[:3, 3]  # from p's origin to each chart's
+        z = rot[:, :, 2]  # each chart's normal (plane) or axis (cylinder)
+        along = np.einsum("ki,ki->k", d, z)
+        if p.shape == "plane":
+            ok = ~self._shape[:n] & (np.abs(rot - m[:3, :3]).max(axis=(1, 2)) <= slack) & (np.abs(along) <= slack)
+        else:
+            off_axis = np.linalg.norm(d - along[:, None] * z, axis=1)
+            ok = (self._shape[:n] & (np.abs(self._radius[:n] - p.radius) <= slack)
+                  & (np.abs(z - m[:3, 2]).max(axis=1) <= slack) & (off_axis <= slack))
+        return np.flatnonzero(ok & (self._link[:n] == self._links[p.link])).tolist()
+
+
+def _check_apart(source: str, side: float, patches: Sequence[Patch], charts: Sequence[Chart],
+                 patch_of: NDArray[np.int64], chart_of: NDArray[np.int64], rows: NDArray[np.int64],
+                 cols: NDArray[np.int64], position: NDArray[np.float64], normal: NDArray[np.float64]) -> None:
+    """Elements of one link on different charts must not lie on top of each other: centres
+    closer than half a side, facing the same way (normals less than 90° apart). Two
+    patches on surfaces a hair apart (an origin 10 µm off, a turn of 10⁻⁵ rad) are two
+    charts, which the layout's overlap check never compares, and every press there read as
+    two contacts at one place. Elements at a fold (a box's faces: 0.7 side apart, at 90°)
+    or back to back (a plate's two faces) are not on top of each other.
+
+    Only links with several charts are looked at; each element against those in the 27
+    grid cells of half a side around it (linear in the elements)."""
+    per_link: dict[str, int] = {}
+    for c in charts:
+        per_link[c.link] = per_link.get(c.link, 0) + 1
+    links = {name for name, n in per_link.items() if n > 1}
+    if not links:
+        return
+    cell = 0.5 * side
+    grid: dict[tuple[str, int, int, int], list[int]] = {}
+    shifts = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+    link_of = [charts[int(c)].link for c in chart_of.tolist()]
+    keys = np.floor(position / cell).astype(np.int64).tolist()
+    for k in range(len(link_of)):
+        link = link_of[k]
+        if link not in links:
+            continue
+        gx, gy, gz = keys[k]
+        for dx, dy, dz in shifts:
+            for j in grid.get((link, gx + dx, gy + dy, gz + dz), ()):
+                if (chart_of[j] != chart_of[k] and float(np.sum((position[j] - position[k]) ** 2)) < cell * cell
+                        and float(normal[j] @ normal[k]) > 0.0):
+                    a, b = patches[int(patch_of[j])], patches[int(patch_of[k])]
+                    gap = float(np.linalg.norm(position[j] - position[k]))
+                    raise SkinError(f"{source}: patches {a.name!r} and {b.name!r} of link {link!r} overlap: their "
+                                    f"elements ({rows[j]}, {cols[j]}) and ({rows[k]}, {cols[k]}) are {gap:.3g} m "
+                                    f"apart, facing the same way (patches of one surface share its pose to "
+                                    f"{SAME_SURFACE:g} m and rad)")
+        grid.setdefault((link, gx, gy, gz), []).append(k)
+
+
 def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
                       urdf_links: Sequence[LinkFrame] | None = None) -> SkinGeometry:
     """Validate a parsed skin description and build its :class:`SkinGeometry`.
@@ -630,8 +775,8 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
         raise SkinError(f"{source}: a skin description is a TOML table")
     _unknown(data, _TOP, source)
     name = data.get("name", "")
-    if not isinstance(name, str):
-        raise SkinError(f"{source}: name must be a string")
+    if name != "":  # (in every message about the skin, and in topology: a name as a link's)
+        name = _name(name, f"{source}: name")
     side = _num(data.get("side", _DEFAULT_SIDE), f"{source}: side", 0.0, True)
     if side > MAX_SIDE:
         raise SkinError(f"{source}: side must be <= {MAX_SIDE:g} m (metres, not millimetres), got {side!r}")
@@ -643,13 +788,18 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
         raise SkinError(f"{source}: urdf must be a file name, got {urdf!r}")
     links = _links(data, source, urdf_links)
 
+    tables = _tables(data, "patch", source)
+    if len(tables) > MAX_PATCHES:
+        raise SkinError(f"{source}: patch: at most {MAX_PATCHES} [[patch]] tables, got {len(tables)}")
     patches: list[Patch] = []
+    by_name: dict[str, Patch] = {}  # (names looked up in dicts: a skin may have thousands)
     next_id = 1
-    for i, e in enumerate(_tables(data, "patch", source)):
+    for i, e in enumerate(tables):
         where = f"{source}: patch[{i}]" + (f" ({e['name']})" if isinstance(e.get("name"), str) else "")
-        p = _patch(e, where, side, next_id)
-        if any(q.name == p.name for q in patches):
+        p = _patch(e, where, side, gap, next_id)
+        if p.name in by_name:
             raise SkinError(f"{where}.name: duplicate patch name {p.name!r}")
+        by_name[p.name] = p
         if p.link not in links:
             if urdf is None or urdf_links is not None:
                 known = ", ".join(sorted(links)) or "none"
@@ -668,9 +818,10 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
     chart_of_patch: list[int] = []
     offsets: list[tuple[float, float]] = []
     refs: list[int] = []  # first patch of each chart
+    keys = _SurfaceKeys(len(patches))
     for k, p in enumerate(patches):
-        for c, ref in enumerate(refs):
-            off = _same_surface(patches[ref], p)
+        for c in keys.candidates(p):
+            off = _same_surface(patches[refs[c]], p)
             if off is not None:
                 chart_of_patch.append(c)
                 offsets.append(off)
@@ -679,6 +830,7 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
             chart_of_patch.append(len(refs))
             offsets.append((0.0, 0.0))
             refs.append(k)
+            keys.add(p)
 
     ids_l, patch_l, row_l, col_l, chart_l, u_l, v_l = [], [], [], [], [], [], []
     for k, p in enumerate(patches):
@@ -744,8 +896,20 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
         position[sel] = pts
         normal[sel] = nrm
 
+    _check_apart(source, side, patches, charts, patch_of, chart_of, rows, cols, position, normal)
+    far = np.flatnonzero(np.abs(position).max(axis=1) > MAX_LENGTH)
+    if far.size:  # (the first in id order)
+        k = int(far[0])
+        p = patches[int(patch_of[k])]
+        i = patches.index(p)
+        raise SkinError(f"{source}: patch[{i}] ({p.name}): element ({int(rows[k])}, {int(cols[k])}) lies at "
+                        f"({', '.join(f'{v:.6g}' for v in position[k])}) m in link {p.link!r}'s frame: every "
+                        f"coordinate must be within {MAX_LENGTH:g} m")
+
     gateways: list[Gateway] = []
     gw_ids: dict[int, str] = {}
+    gw_names: set[str] = set()
+    tcp_of: dict[int, str] = {}
     for i, e in enumerate(_tables(data, "gateway", source)):
         where = f"{source}: gateway[{i}]"
         _unknown(e, _GATEWAY, where)
@@ -753,16 +917,20 @@ def skin_from_mapping(data: Mapping[str, Any], source: str = "skin",
             if key not in e:
                 raise SkinError(f"{where}: missing key '{key}'")
         gname = _name(e["name"], f"{where}.name")
-        if any(g.name == gname for g in gateways):
+        if gname in gw_names:
             raise SkinError(f"{where}.name: duplicate gateway name {gname!r}")
+        gw_names.add(gname)
         pname = _name(e["patch"], f"{where}.patch")
-        try:
-            p = next(q for q in patches if q.name == pname)
-        except StopIteration:
-            raise SkinError(f"{where}.patch: no patch {pname!r}") from None
+        if pname not in by_name:
+            raise SkinError(f"{where}.patch: no patch {pname!r}")
+        p = by_name[pname]
         row = _int(e.get("row", 0), f"{where}.row", 0, p.rows - 1)
         col = _int(e.get("col", 0), f"{where}.col", 0, p.cols - 1)
         tcp = _int(e["tcp"], f"{where}.tcp", 0, 65535) if "tcp" in e else None
+        if tcp:  # (0: any free port, as many as wanted) `mesh up --tcp` serves one gateway a port
+            if tcp in tcp_of:
+                raise SkinError(f"{where}.tcp: port {tcp} is already gateway {tcp_of[tcp]!r}'s")
+            tcp_of[tcp] = gname
         bid = p.first_id + row * p.cols + col
         if bid in gw_ids:
             raise SkinError(f"{where}: element ({row}, {col}) of {pname!r} is already gateway {gw_ids[bid]!r}")
@@ -789,7 +957,8 @@ def parse_skin(text: str, source: str = "skin", urdf_links: Sequence[LinkFrame] 
 
         name = "arm"            # optional
         side = 0.040            # element side (m), every patch
-        neighbour_gap = 0.010   # optional: widest seam between neighbours (default side/4)
+        neighbour_gap = 0.010   # optional: widest seam between neighbours (default side/4); a
+                                # patch's pitches are at most side + neighbour_gap
         urdf = "arm.urdf"       # optional: link frames from the robot's URDF
 
         [[link]]                # links the URDF does not hold (all of them, without one)
@@ -812,6 +981,7 @@ def parse_skin(text: str, source: str = "skin", urdf_links: Sequence[LinkFrame] 
         rpy = [0.0, 0.0, 0.0]       # angle 0 its x
         start = [0.0, 0.02]     # optional: (u, v) of element (0, 0)'s centre (cylinder: arc length, z)
         first_id = 1            # optional: bridge id of element (0, 0), row-major (default: after the last patch)
+                                # (at most MAX_PATCHES = 4096 patches)
 
         [[gateway]]
         name = "arm"
@@ -822,7 +992,8 @@ def parse_skin(text: str, source: str = "skin", urdf_links: Sequence[LinkFrame] 
 
     Patches of one link on one surface (the same plane with the same in-plane axes; the
     same cylinder with its axis the same way) share its coordinates, and a press across
-    their seam is one contact.
+    their seam is one contact. Origins, radii and element centres lie within
+    :data:`MAX_LENGTH` (1 km) of their frame's origin along every axis.
     """
     try:
         data = tomllib.loads(text)

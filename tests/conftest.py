@@ -67,7 +67,7 @@ PROCESS_FIXTURES = frozenset({"warm_kernels"})
 SLOW_MODULES = frozenset({
     "test_daemon_skin_frames", "test_emulator_meshtime", "test_emulator_topology", "test_daemon_frames_truth",
     "test_daemon_held_press", "test_emulator_readout", "test_skin_daemon", "test_daemon_service_offline",
-    "test_emulator_lazy_attacks",
+    "test_emulator_lazy_attacks", "test_daemon_skin_file",
 })
 #: ... and single tests elsewhere ("module::test", every parametrisation), each about a second or more.
 SLOW_TESTS = frozenset({
@@ -108,6 +108,8 @@ SLOW_TESTS = frozenset({
     "test_tactile_calibration::test_ten_minute_slow_press_is_reported_and_kept",
     "test_tactile_calibration::test_without_common_mode_the_press_is_still_not_erased",
     "test_views_robot_skin::test_any_skin_map_is_read_without_raising",
+    "test_skin_geometry::test_a_deep_parent_chain_and_many_patches_are_read_in_linear_time",
+    "test_skin_geometry::test_more_patches_than_the_limit_are_refused_at_once",
 })
 
 

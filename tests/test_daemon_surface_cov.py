@@ -83,3 +83,48 @@ def test_a_frames_contacts_are_each_carried_as_if_alone(skin) -> None:
     assert len({c["patch"] for c in together}) > 1
     for c, alone in zip(together, (contact_fields(skin, [c])[0] for c in contacts)):
         assert repr(c) == repr(alone)
+
+
+_TWO_LINKS = """side = 0.04
+[[link]]
+name = "palm"
+[[link]]
+name = "thumb"
+[[patch]]
+name = "palm"
+link = "palm"
+shape = "plane"
+rows = 3
+cols = 3
+[[patch]]
+name = "thumb"
+link = "thumb"
+shape = "plane"
+rows = 3
+cols = 3
+[[gateway]]
+name = "g"
+patch = "palm"
+[[gateway]]
+name = "h"
+patch = "thumb"
+"""
+
+
+def test_a_contact_fitted_past_its_patch_s_edge_stays_on_its_elements_link() -> None:
+    """A press at a patch's edge with its centre off the skin touches only the edge
+    column, and its fitted centre can lie past the edge, into the margin between two
+    charts of the atlas. It is on its elements' link (the palm), on the palm's plane
+    extended; the nearest chart (the thumb's, past half the margin) put it on another
+    link, at a precise wrong place."""
+    from cellbridge.tactile.skin_geometry import ATLAS_MARGIN, parse_skin
+
+    skin = parse_skin(_TWO_LINKS, "hand.toml")
+    palm, thumb = skin.charts
+    assert thumb.x0 - (palm.x0 + palm.width) == pytest.approx(ATLAS_MARGIN * skin.side)
+    edge = skin.element_id("palm", 1, 2)  # the palm's last column, middle row
+    ex, ey = skin.atlas[skin.row_of(edge)]
+    x = palm.x0 + palm.width + 0.6 * ATLAS_MARGIN * skin.side  # past the middle of the margin
+    (c,) = contact_fields(skin, [{**_contact([[1e-6, 0.0], [0.0, 1e-6]], x, float(ey)), "elements": [edge]}])
+    assert c["link"] == "palm" and c["patch"] == "palm"
+    assert c["position"] == pytest.approx([x - palm.x0 + palm.u0, float(ey) - palm.y0 + palm.v0, 0.0])

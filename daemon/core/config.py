@@ -468,6 +468,8 @@ def load_config(path: str | Path) -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(str(p), [f"not valid TOML: {exc}"]) from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise ConfigError(str(p), ["not valid TOML: nested too deeply"]) from None
     return parse_config(data, str(p), p.resolve().parent)
 
 

@@ -41,7 +41,7 @@ from cellbridge.tactile import (
 from cellbridge.tactile.arrays import FloatArray
 from cellbridge.tactile.disk_model import element_vector, sensitivity_slope
 from cellbridge.tactile.seam_estimator import SeamEstimator
-from cellbridge.tactile.skin_geometry import Band
+from cellbridge.tactile.skin_geometry import Band, SkinGeometry
 from numpy.typing import NDArray
 
 
@@ -134,6 +134,9 @@ class ContactJob:
     # The owner's contacts last published (as the worker gave them): a tracker built afresh
     # (new layout or settings, a replaced worker) continues them, so a held contact keeps its id.
     carry: tuple[dict[str, Any], ...] = ()
+    # The skin description the spec's layout is the atlas of (None: a flat layout): its
+    # contacts are placed on it, whatever a reload installed while they were estimated.
+    surface: SkinGeometry | None = None
 
     def request(self, key: bytes, ship: bool) -> EstimateRequest:
         """What the worker needs of this job: ``key`` is the spec's :meth:`ContactSpec.digest`,
@@ -192,9 +195,10 @@ class ContactIdentity:
         self._carry: tuple[dict[str, Any], ...] = ()
         self._index: tuple[object, dict[int, int]] = (None, {})  # (a layout's ids, id -> row): kept while they are
 
-    def job(self, spec: ContactSpec, snapshot: ContactSnapshot) -> ContactJob:
-        """The estimate of ``snapshot`` on ``spec``, continuing the contacts published."""
-        return ContactJob(self.owner, spec, snapshot, self._first_id, self._carry)
+    def job(self, spec: ContactSpec, snapshot: ContactSnapshot, surface: SkinGeometry | None = None) -> ContactJob:
+        """The estimate of ``snapshot`` on ``spec`` (the atlas of ``surface``, when it is a
+        skin description's), continuing the contacts published."""
+        return ContactJob(self.owner, spec, snapshot, self._first_id, self._carry, surface)
 
     def published(self, job: ContactJob, contacts: Iterable[dict[str, Any]],
                   wall: Callable[[float | None], float | None]) -> list[dict[str, Any]]:

@@ -103,6 +103,8 @@ class Pipeline:
         self._queue: list[Message] = []  # log events (and the messages of frames contact_job gave out), handed out next
         #: the skin description (links, patches) the layout is the atlas of; set by the shell
         self.surface: SkinGeometry | None = None
+        self._topology_due = False  # a reload changed the layout or the description: topology is news
+        self._skin_reported: tuple[SkinGeometry | None, dict[str, Any] | None] | None = None
 
     @property
     def wall_offset(self) -> float:
@@ -247,7 +249,7 @@ class Pipeline:
         if snap is None:  # (most calls: the spec is built only for a frame to estimate)
             return None
         spec = self.skin.spec(self.surface.bands if self.surface is not None else ())
-        return None if spec is None else self.contacts.job(spec, snap)
+        return None if spec is None else self.contacts.job(spec, snap, self.surface)
 
     def contact_due(self, now: float, idle: bool = False) -> float:
         """When :meth:`contact_job` has a new frame: ``now`` when one is complete and not
@@ -267,9 +269,10 @@ class Pipeline:
 
     def contact_frame(self, job: ContactJob, contacts: Iterable[dict[str, Any]]) -> ContactFrame:
         """The ``contact`` message of ``job``'s estimate (:meth:`ContactIdentity.published`),
-        with each contact's place on the robot (:func:`~cellbridge.daemon.core.surface.contact_fields`)."""
+        with each contact's place on the robot (:func:`~cellbridge.daemon.core.surface.contact_fields`)
+        on the description the job was made with (a reload may have installed another since)."""
         snap, wall = job.snapshot, self.stamps.wall
-        out = contact_fields(self.surface, self.contacts.published(job, contacts, wall))
+        out = contact_fields(job.surface, self.contacts.published(job, contacts, wall))
         return self.stamps.message(ContactFrame, snap.t_host, {
             "t_sample": wall(snap.t_frame) if math.isfinite(snap.t_frame) else None, "t_bridge": None,
             "contacts": out, "unknown": [] if snap.unknown is None else snap.ids[snap.unknown].tolist(),
@@ -308,8 +311,9 @@ class Pipeline:
         if self._want("health"):
             out.append(self.stamps.message(Health, now, self.health_body(now)))
         topo = self.topology_body(now)
-        if self.topology.changed(topo) and self._want("topology"):
+        if (self.topology.changed(topo) or self._topology_due) and self._want("topology"):
             out.append(self.stamps.message(Topology, now, topo))
+            self._topology_due = False
         return self._drain(out)
 
     def _forget(self, before: float) -> None:
@@ -356,8 +360,16 @@ class Pipeline:
         body = self.topology.report(now, self.config.health.bridge_timeout, self.skin.split_placed, UNPLACED_SHOWN)
         for node in body["bridges"].values():
             node["last_seen"] = self.stamps.wall(node["last_seen"])
-        body.update(t_bridge=None, layout=self.skin.layout_report(), skin=skin_report(self.surface))
+        body.update(t_bridge=None, layout=self.skin.layout_report(), skin=self._skin_report())
         return body
+
+    def _skin_report(self) -> dict[str, Any] | None:
+        """``topology``'s ``skin``: built once per description (it lists every element, a
+        tenth of a second on the largest skin, and the body is built at every health
+        interval to see whether the routes changed). Read only: published as it is."""
+        if self._skin_reported is None or self._skin_reported[0] is not self.surface:
+            self._skin_reported = (self.surface, skin_report(self.surface))
+        return self._skin_reported[1]
 
     # -- commands -----------------------------------------------------------------------
     def command(self, op: int, value: int | None, target: int | None, now: float,
@@ -389,14 +401,21 @@ class Pipeline:
         :meth:`contact_job` comes at once. Returns how many elements were tared."""
         return self.skin.tare(bridges)
 
-    def reconfigure(self, config: Config, layout: SkinLayout | None) -> None:
+    def reconfigure(self, config: Config, layout: SkinLayout | None, surface: SkinGeometry | None = None) -> None:
         """SIGHUP: take the reloadable settings (the element stages:
-        :meth:`~cellbridge.daemon.core.layout.LayoutStages.reconfigured`)."""
+        :meth:`~cellbridge.daemon.core.layout.LayoutStages.reconfigured`) and the layout
+        file's skin description (``surface``: the next contacts are placed on its links, and
+        ``topology`` says it at the next health interval)."""
         self.config = config
+        described = surface is not self.surface
+        self.surface = surface
         self.domains.configure(config.frames.margin, config.health.bridge_timeout, config.frames.max_pending)
         self.skin, rebuilt = self.skin.reconfigured(config, layout)
         if rebuilt:
             self.health.may_forget_from(-math.inf)
+        # A new layout or description is news to every view (the mesh's routes alone decide
+        # whether topology changed): the next tick publishes it.
+        self._topology_due = self._topology_due or rebuilt or described
 
     # -- links and subscribers --------------------------------------------------------------
     def link_state(self, link: str, connected: bool, now: float, error: str = "") -> None:

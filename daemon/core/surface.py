@@ -29,7 +29,7 @@ def contact_fields(skin: SkinGeometry | None, contacts: list[dict[str, Any]]) ->
         return contacts
     xs = [float(c["x"]) for c in contacts]
     ys = [float(c["y"]) for c in contacts]
-    points = skin.locate(xs, ys) if skin is not None else None
+    points = skin.locate(xs, ys, [_chart_of(skin, c) for c in contacts]) if skin is not None else None
     Vec = tuple[float, float, float]
     placed: list[tuple[str | None, str | None, Vec, Vec, Vec, Vec]] = []
     for k in range(len(contacts)):
@@ -48,6 +48,18 @@ def contact_fields(skin: SkinGeometry | None, contacts: list[dict[str, Any]]) ->
         out.append({**c, "link": link, "patch": patch, "position": list(pos), "normal": list(nrm),
                     "force_vector": fv, "position_cov": cov})
     return out
+
+
+def _chart_of(skin: SkinGeometry, contact: dict[str, Any]) -> int:
+    """The chart of a contact's elements (-1: none of them is the skin's): where it is,
+    whatever chart its fitted centre lies nearest (a centre past a patch's edge can lie
+    nearer the next chart of the atlas, another link's)."""
+    for e in contact.get("elements") or ():
+        try:
+            return int(skin.chart_of[skin.row_of(e)])
+        except (KeyError, TypeError, ValueError):
+            continue
+    return -1
 
 
 def _carried(jac: NDArray[np.float64], cov: NDArray[np.float64]) -> NDArray[np.float64]:

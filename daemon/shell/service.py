@@ -39,7 +39,7 @@ from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.daemon.ops.ops import OpsHooks
 from cellbridge.daemon.shell.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.shell.control_server import ControlServer
-from cellbridge.daemon.shell.layout_file import load_layout
+from cellbridge.daemon.shell.layout_file import load_layout_file
 from cellbridge.daemon.shell.links import (
     SYSTEM_CLOCK,
     Clock,
@@ -54,13 +54,16 @@ from cellbridge.daemon.shell.links import (
 from cellbridge.daemon.shell.logs import event, setup
 from cellbridge.daemon.shell.publisher import Publisher
 from cellbridge.tactile import SkinLayout
+from cellbridge.tactile.skin_geometry import SkinGeometry
 
 from cellbridge._version import __version__
 
 
-def read_layout(config: Config) -> SkinLayout | None:
+def read_layout(config: Config) -> tuple[SkinLayout | None, SkinGeometry | None]:
+    """The layout file's layout and skin description (None, None: no layout file; the
+    description None: a plain layout)."""
     path = config.layout_path()
-    return None if path is None else load_layout(path)
+    return (None, None) if path is None else load_layout_file(path)
 
 
 #: The most pipeline ticks a read of a replay in recorded time runs before it (10 s of
@@ -453,7 +456,7 @@ class Service:
             return
         try:
             new = load_config(self.config_path)
-            layout = read_layout(new)
+            layout, surface = read_layout(new)
         except (ConfigError, ValueError) as exc:
             event(self.log, "error", "reload rejected, keeping the running config", error=str(exc))
             self.hooks.ready("reload rejected")
@@ -463,7 +466,7 @@ class Service:
             event(self.log, "warning", "reload: these changes need a restart", keys=fixed)
         self.config = new
         self.log.setLevel(new.daemon.log_level.upper())
-        self.pipeline.reconfigure(new, layout)
+        self.pipeline.reconfigure(new, layout, surface)
         try:
             self.hooks.reload_keys()
         except ValueError as exc:
@@ -640,6 +643,15 @@ GIL_SWITCH_INTERVAL = 0.0005
 LEFTOVER_LIMIT = 1.0
 
 
+def build_service(config: Config, config_path: str | Path | None, **kwargs: Any) -> Service:
+    """The service ``cellbridge daemon`` runs for ``config`` (read from ``config_path``), its
+    layout file read; ``kwargs``: the rest of :class:`Service`'s arguments (tests)."""
+    layout, surface = read_layout(config)
+    service = Service(config, layout, config_path=config_path, **kwargs)
+    service.pipeline.surface = surface
+    return service
+
+
 def run_service(config_path: str | Path | None, config: Config) -> int:
     """The daemon's process: the service on a new event loop until it stops; its exit status.
 
@@ -647,8 +659,7 @@ def run_service(config_path: str | Path | None, config: Config) -> int:
     bound; a task that does not end when cancelled (the service logged it) would keep the
     daemon from exiting after it said "stopped". Here they get ``LEFTOVER_LIMIT``."""
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
-    layout = read_layout(config)
-    service = Service(config, layout, config_path=config_path)
+    service = build_service(config, config_path)
     loop = asyncio.new_event_loop()
     asyncio.set_event_loop(loop)
     try:

@@ -9,22 +9,38 @@ missing yourdfpy is an error saying how to install it.
 
 from __future__ import annotations
 
+import io
+import logging
 import tomllib
 from os import PathLike
 from pathlib import Path
+from typing import Any
+from xml.etree import ElementTree
 
 import numpy as np
 from cellbridge.tactile.skin_geometry import LinkFrame, SkinError, SkinGeometry, skin_from_mapping
 
-__all__ = ["is_skin_file", "load_skin", "urdf_links"]
+__all__ = ["MAX_FILE_BYTES", "is_skin_file", "load_skin", "read_bounded", "urdf_links"]
 
 
-def _read(path: str | PathLike[str], what: str) -> str:
+#: Bytes a skin description or layout file may have: a layout of every bridge id (65 534)
+#: is about 5 MB, a skin description of 4096 patches about 1. A file past it (a gigabyte,
+#: /dev/zero) is refused after this much is read, not read whole into memory and parsed.
+MAX_FILE_BYTES = 16 * 2**20
+
+
+def read_bounded(path: str | PathLike[str], what: str) -> str:
+    """The text of a user's file (at most :data:`MAX_FILE_BYTES`); a missing, unreadable or
+    larger file, or one not UTF-8, is a :class:`SkinError` (a ``ValueError``) naming it."""
     try:
-        with open(path, encoding="utf-8") as fh:
-            return fh.read()
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
         raise SkinError(f"{path}: cannot read {what}: {exc.strerror}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise SkinError(f"{path}: {what} too large (more than {MAX_FILE_BYTES} bytes)")
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError:
         raise SkinError(f"{path}: {what} is not UTF-8 text") from None
 
@@ -37,12 +53,42 @@ def urdf_links(path: str | PathLike[str]) -> list[LinkFrame]:
         raise SkinError(f"{path}: reading a URDF needs yourdfpy: pip install 'cellbridge[robot]'") from None
     if not Path(path).is_file():
         raise SkinError(f"{path}: cannot read URDF: no such file")
+    text = read_bounded(path, "URDF")
+    # Strict XML first: yourdfpy, on a parse error, logs it and parses again recovering what
+    # it can, so a file cut short gave its last joint no origin (the link at its parent's)
+    # and only a log line said so. A URDF declares no DTD: one (entities to expand, files
+    # or addresses to fetch) is refused before any parser sees it.
+    if "<!DOCTYPE" in text or "<!ENTITY" in text:
+        raise SkinError(f"{path}: not a URDF it can read: it declares a DTD (<!DOCTYPE or <!ENTITY)")
     try:
-        robot = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False,
-                                   build_collision_scene_graph=False, load_collision_meshes=False)
+        ElementTree.fromstring(text)
+    except ElementTree.ParseError as exc:
+        raise SkinError(f"{path}: not a URDF it can read: not well-formed XML: {exc}") from None
+    data = text.encode("utf-8")
+    quiet = logging.getLogger("yourdfpy")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)  # what it would log is in the error raised here
+    try:
+        robot = yourdfpy.URDF.load(io.BytesIO(data), mesh_dir=str(Path(path).parent), load_meshes=False,
+                                   build_scene_graph=False, build_collision_scene_graph=False,
+                                   load_collision_meshes=False)
     except Exception as exc:  # yourdfpy raises many kinds for a bad file; each is a bad URDF here
         raise SkinError(f"{path}: not a URDF it can read: {exc}") from None
-    parent_of = {j.child: j for j in robot.robot.joints}
+    finally:
+        quiet.setLevel(level)
+    # One pose per link: a link described twice, or the child of two joints, has two (the
+    # last read was taken, silently).
+    parent_of: dict[str, Any] = {}
+    for j in robot.robot.joints:
+        if j.child in parent_of:
+            raise SkinError(f"{path}: link {j.child!r} is the child of two joints ({parent_of[j.child].name!r}, "
+                            f"{j.name!r})")
+        parent_of[j.child] = j
+    seen: set[str] = set()
+    for link in robot.robot.links:
+        if link.name in seen:
+            raise SkinError(f"{path}: link {link.name!r} is described twice")
+        seen.add(link.name)
     out = []
     for link in robot.robot.links:
         j = parent_of.get(link.name)
@@ -53,10 +99,11 @@ def urdf_links(path: str | PathLike[str]) -> list[LinkFrame]:
 
 
 def is_skin_file(text: str) -> bool:
-    """Whether a TOML text is a skin description (it has ``[[patch]]`` tables)."""
+    """Whether a TOML text is a skin description (it has ``[[patch]]`` tables); a text that
+    is no TOML is not (its reader says why)."""
     try:
         return "patch" in tomllib.loads(text)
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):  # (nested arrays are parsed recursively)
         return False
 
 
@@ -64,11 +111,13 @@ def load_skin(path: str | PathLike[str]) -> SkinGeometry:
     """Read and validate a skin description, and the URDF it names (relative to the file).
 
     Every problem, a missing file included, is a :class:`SkinError` naming the file."""
-    text = _read(path, "skin description")
+    text = read_bounded(path, "skin description")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SkinError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise SkinError(f"{path}: not valid TOML: nested too deeply") from None
     links = None
     urdf = data.get("urdf")
     if isinstance(urdf, str) and urdf:

@@ -405,6 +405,8 @@ def parse_mesh(text: str, source: str = "mesh") -> Mesh:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise MeshError(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise MeshError(f"{source}: not valid TOML: nested too deeply") from None
     if "patch" in data:
         from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
         from cellbridge.tactile.skin_geometry import SkinError, skin_from_mapping
@@ -413,17 +415,28 @@ def parse_mesh(text: str, source: str = "mesh") -> Mesh:
             skin = skin_from_mapping(data, source)
         except SkinError as exc:
             raise MeshError(str(exc)) from None
-        return mesh_from_skin(skin)
+        return mesh_from_skin(skin, source=source)
     return mesh_from_mapping(data, source)
 
 
+#: Bytes a mesh, skin or scenario file may have: a mesh of every bridge id (65 534) is
+#: about 9 MB. A file past it (a gigabyte, /dev/zero) is refused after this much is read,
+#: not read whole into memory and parsed for a minute.
+MAX_FILE_BYTES = 16 * 2**20
+
+
 def read_text(path: str, what: str, error: type[ValueError]) -> str:
-    """A user's file as text; a missing or unreadable file is ``error`` naming it."""
+    """A user's file as text (at most :data:`MAX_FILE_BYTES`); a missing, unreadable or
+    larger file is ``error`` naming it."""
     try:
-        with open(path, encoding="utf-8") as fh:
-            return fh.read()
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
         raise error(f"{path}: cannot read {what}: {exc.strerror}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise error(f"{path}: {what} too large (more than {MAX_FILE_BYTES} bytes)")
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError:
         raise error(f"{path}: {what} is not UTF-8 text") from None
 

@@ -36,13 +36,46 @@ def neighbour_pairs(skin: SkinGeometry) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
-def mesh_from_skin(skin: SkinGeometry, loss: float = 0.0, ber: float = 0.0) -> Mesh:
-    """The mesh of ``skin`` (validated as a mesh file is: every bridge must reach a gateway)."""
+def _gatewayless(skin: SkinGeometry, pairs: list[list[int]], gateway_rows: set[int]) -> list[int] | None:
+    """Rows of the first group of elements joined by cells (``pairs``) holding no gateway
+    (in row order), or None: every element reaches one."""
+    root = list(range(skin.n))
+
+    def find(i: int) -> int:
+        while root[i] != i:
+            root[i] = root[root[i]]
+            i = root[i]
+        return i
+
+    for i, j in pairs:
+        root[find(i)] = find(j)
+    served = {find(r) for r in gateway_rows}
+    for r in range(skin.n):
+        if find(r) not in served:
+            return [k for k in range(skin.n) if find(k) == find(r)]
+    return None
+
+
+def mesh_from_skin(skin: SkinGeometry, loss: float = 0.0, ber: float = 0.0, source: str | None = None) -> Mesh:
+    """The mesh of ``skin`` (validated as a mesh file is: every bridge must reach a gateway).
+    ``source``: the file it came from, named by every error (default: the skin's name).
+
+    Elements that reach no gateway are refused naming their patches and link: cells join
+    neighbouring elements of one surface only, so a surface needs a gateway of its own."""
+    where = source or skin.name or "skin"
     ids = skin.ids.tolist()
     gateways = {bid: g for bid, g in zip(skin.gateway_ids(), skin.gateways)}
+    pairs = neighbour_pairs(skin).tolist()
+    alone = _gatewayless(skin, pairs, {skin.row_of(b) for b in gateways})
+    if alone is not None:
+        names = list(dict.fromkeys(skin.patches[int(skin.patch_of[r])].name for r in alone))
+        link = skin.patch(names[0]).link
+        raise MeshError(f"{where}: patch{'es' if len(names) > 1 else ''} {', '.join(repr(n) for n in names)} of link "
+                        f"{link!r} reach no gateway ({len(alone)} elements): cells join neighbouring elements of "
+                        f"one surface only, so each surface needs a [[gateway]] of its own")
     cells_of: dict[int, list[int]] = {b: [] for b in ids}
     cells = []
-    for k, (i, j) in enumerate(neighbour_pairs(skin).tolist(), start=1):
+    for k, (i, j) in enumerate(pairs, start=1):
         cells.append({"id": k})
         cells_of[ids[i]].append(k)
         cells_of[ids[j]].append(k)
@@ -59,13 +92,13 @@ def mesh_from_skin(skin: SkinGeometry, loss: float = 0.0, ber: float = 0.0) -> M
                 entry["tcp"] = gateways[b].tcp
         if not entry["cells"]:
             g = gateways.get(b)
-            raise MeshError(f"{skin.name or 'skin'}: element {b} has no neighbour"
+            raise MeshError(f"{where}: element {b} has no neighbour"
                             + ("" if g else ": no cell joins it to the rest, and it is no gateway"))
         bridges.append(entry)
     data = {"name": skin.name, "side": skin.side, "loss": loss, "ber": ber, "cell": cells, "bridge": bridges,
             "wrap": [{"x0": b.x0, "period": b.period, "y0": b.y0, "y1": b.y1} for b in skin.bands]}
     try:
-        return mesh_from_mapping(data, skin.name or "skin")
+        return mesh_from_mapping(data, where)
     except MeshError as exc:
         raise MeshError(f"{exc} (in a skin, each link's surfaces need a gateway of their own: cells join "
                         f"neighbouring elements of one surface only)") from None

@@ -162,6 +162,8 @@ def parse_scenario(text: str, source: str = "scenario") -> list[Contact]:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise ScenarioError(f"{source}: not valid TOML: nested too deeply") from None
     extra = sorted(set(data) - {"contact"})
     if extra:
         raise ScenarioError(f"{source}: unknown key '{extra[0]}' (a scenario holds [[contact]] tables)")

@@ -12,13 +12,11 @@ as it is meant to): the frames both estimated must give the same contacts.
 
 from __future__ import annotations
 
-import asyncio
 import math
 import time
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import zmq
 import zmq.asyncio
 from cellbridge.daemon.core.config import parse_config
@@ -28,6 +26,7 @@ from cellbridge.daemon.shell.offline import OfflineDaemon
 from cellbridge.daemon.shell.service import Service
 
 from support.golden_corpus import BASE_CONFIG, DATA, SCENARIOS, same_values, serial_reads
+from support.service_messages import service_messages
 from support.shell_fakes import RecordingHooks
 
 SCENARIO = "multihop_line"  # a 3 N press on a line of 6 bridges: contacts from frames of 5 hops
@@ -60,39 +59,11 @@ def _run_service(data: dict[str, Any], endpoint: str, topics: tuple[str, ...]) -
     """What a service of config ``data`` (replays that exit when done, publishing on
     ``endpoint``) published on ``topics``, in order."""
 
-    async def run() -> list[tuple[str, dict[str, Any]]]:
-        ctx = zmq.asyncio.Context()
+    def make(ctx: zmq.asyncio.Context) -> Service:
         cfg = parse_config(data, "test")
-        svc = Service(cfg, hooks=RecordingHooks(cfg), ctx=ctx, contact_executor=InlineExecutor)
-        sub = ctx.socket(zmq.SUB)
-        got: list[tuple[str, dict[str, Any]]] = []
-        try:
-            for topic in topics:
-                sub.setsockopt(zmq.SUBSCRIBE, topic.encode())
-            task = asyncio.create_task(svc.run())
-            for _ in range(500):  # the service binds first (inproc: connect after bind)
-                await asyncio.sleep(0.01)
-                try:
-                    sub.connect(endpoint)
-                    break
-                except zmq.ZMQError:
-                    continue
-            while not task.done():
-                # poll, then receive: a receive cancelled by a timeout could take a message
-                # with it on a loaded machine (the last health, the one a test looks for)
-                if await sub.poll(200):
-                    parts = await sub.recv_multipart()
-                    got.append((parts[0].decode(), msgpack.unpackb(parts[1])))
-            assert await task == 0
-            while await sub.poll(100):
-                parts = await sub.recv_multipart()
-                got.append((parts[0].decode(), msgpack.unpackb(parts[1])))
-        finally:
-            sub.close(linger=0)
-            ctx.destroy(linger=0)
-        return got
+        return Service(cfg, hooks=RecordingHooks(cfg), ctx=ctx, contact_executor=InlineExecutor)
 
-    return asyncio.run(run())
+    return service_messages(make, endpoint, topics)
 
 
 def _comparable(payload: dict[str, Any]) -> dict[str, Any]:

@@ -9,19 +9,14 @@ mesh traffic`` writes) replayed in recorded time; ZeroMQ on ``inproc://``, estim
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import math
-import os
 import resource
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import numpy as np
 import pytest
 import zmq
@@ -29,12 +24,14 @@ import zmq.asyncio
 from cellbridge.daemon.core.config import load_config
 from cellbridge.daemon.shell.capture import CaptureWriter
 from cellbridge.daemon.shell.contact_worker import InlineExecutor
-from cellbridge.daemon.shell.service import build_service
+from cellbridge.daemon.shell.service import Service, build_service
 from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin
 from cellbridge.emulator.mesh.skin_traffic import SkinTraffic
 from cellbridge.emulator.world.world import Contact, World
 from cellbridge.tactile.skin_geometry import SkinGeometry, parse_skin
 
+from support.pub_helpers import run_subscriber
+from support.service_messages import service_messages
 from support.shell_fakes import RecordingHooks
 from support.skin_descriptions import SKIN
 
@@ -79,46 +76,22 @@ def _run(config_path: Path, endpoint: str, *, reload_to: Path | None = None) -> 
     """What the daemon of ``config_path`` published on ``contact`` and ``topology`` while it
     replayed; ``reload_to``: a configuration written over it and reloaded (SIGHUP) once the
     first contact arrived."""
+    reloaded = [reload_to is None]
 
-    async def run() -> list[tuple[str, dict[str, Any]]]:
-        ctx = zmq.asyncio.Context()
+    def make(ctx: zmq.asyncio.Context) -> Service:
         config = load_config(config_path)
-        svc = build_service(config, config_path, hooks=RecordingHooks(config), ctx=ctx,
-                            contact_executor=InlineExecutor)
-        sub = ctx.socket(zmq.SUB)
-        got: list[tuple[str, dict[str, Any]]] = []
-        reloaded = reload_to is None
-        try:
-            for topic in ("contact", "topology"):
-                sub.setsockopt(zmq.SUBSCRIBE, topic.encode())
-            task = asyncio.create_task(svc.run())
-            for _ in range(500):  # the service binds first (inproc: connect after bind)
-                await asyncio.sleep(0.01)
-                try:
-                    sub.connect(endpoint)
-                    break
-                except zmq.ZMQError:
-                    continue
-            while not task.done():
-                if await sub.poll(200):
-                    parts = await sub.recv_multipart()
-                    got.append((parts[0].decode(), msgpack.unpackb(parts[1])))
-                    if not reloaded and got[-1][0] == "contact" and got[-1][1]["contacts"]:
-                        assert reload_to is not None
-                        config_path.write_text(reload_to.read_text(encoding="utf-8"), encoding="utf-8")
-                        svc.reload()
-                        got.append(("reloaded", {"t_host": svc.pipeline.last_feed}))
-                        reloaded = True
-            assert await asyncio.wait_for(task, 30) == 0
-            while await sub.poll(100):
-                parts = await sub.recv_multipart()
-                got.append((parts[0].decode(), msgpack.unpackb(parts[1])))
-        finally:
-            sub.close(linger=0)
-            ctx.destroy(linger=0)
-        return got
+        return build_service(config, config_path, hooks=RecordingHooks(config), ctx=ctx,
+                             contact_executor=InlineExecutor)
 
-    return asyncio.run(asyncio.wait_for(run(), 60))
+    def on_message(svc: Service, got: list[tuple[str, dict[str, Any]]]) -> None:
+        if not reloaded[0] and got[-1][0] == "contact" and got[-1][1]["contacts"]:
+            assert reload_to is not None
+            config_path.write_text(reload_to.read_text(encoding="utf-8"), encoding="utf-8")
+            svc.reload()
+            got.append(("reloaded", {"t_host": svc.pipeline.last_feed}))
+            reloaded[0] = True
+
+    return service_messages(make, endpoint, ("contact", "topology"), on_message)
 
 
 def _seam_press(skin_text: str) -> tuple[Contact, float]:
@@ -177,15 +150,7 @@ def _command(args: list[str], limit: float = 30.0) -> subprocess.CompletedProces
     def bounded() -> None:
         resource.setrlimit(resource.RLIMIT_AS, (1_500_000_000, 1_500_000_000))
 
-    proc = subprocess.Popen([sys.executable, "-m", "cellbridge", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=bounded)
-    try:
-        out, err = proc.communicate(timeout=limit)
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-    return subprocess.CompletedProcess(args, proc.returncode, out, err)
+    return run_subscriber([sys.executable, "-m", "cellbridge", *args], timeout=limit, preexec_fn=bounded)
 
 
 @pytest.mark.process

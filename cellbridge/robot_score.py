@@ -14,7 +14,9 @@ contact's position error and force error. The position error counts the axes of 
 the true footprint straddles (crosses into a neighbour element): the readings of a
 footprint inside one element cannot place it along that axis, which the daemon says
 (``observable``) and reports the range's middle. *False* contacts: published contact ids
-that never matched a true contact.
+that never matched a true contact (nor a stray touch: a finger the scenario did not script,
+counted apart as not scored). One id matched to two true contacts detects both, and the
+table's "true contacts per id" says so.
 """
 
 from __future__ import annotations
@@ -51,6 +53,13 @@ class Score:
     false_ids: set[int] = field(default_factory=set)
     reports: int = 0
     ids_per_truth: list[int] = field(default_factory=list)
+    #: published id -> true contacts it matched: more than one is one id standing for two
+    #: presses (each still detected), which the table shows
+    truths_per_id: dict[int, int] = field(default_factory=dict)
+    #: true contacts not scored: stray touches (a finger where the scenario scripted none)
+    #: and truths with no step; published ids on a stray are no false contacts
+    not_scored: int = 0
+    stray_ids: set[int] = field(default_factory=set)
 
     def rows(self) -> list[tuple[str, str, str]]:
         """(what, measured, target) rows of the accuracy table."""
@@ -73,7 +82,10 @@ class Score:
             ("force error, median", f"{100 * pct(self.force, 50):.2f} %", "<= 3 %"),
             ("force error, p95", f"{100 * pct(self.force, 95):.2f} %", ""),
             ("ids per detected contact, max", f"{max(self.ids_per_truth, default=0)}", "1"),
+            ("true contacts per id, max", f"{max(self.truths_per_id.values(), default=0)}", "1"),
             ("false contacts (ids matching nothing)", f"{len(self.false_ids)}", "0"),
+            ("true contacts not scored (stray touches)", f"{self.not_scored}", ""),
+            ("  published ids on them", f"{len(self.stray_ids)}", ""),
             ("reports scored", f"{self.reports}", ""),
         ]
         return rows
@@ -125,12 +137,15 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
           ramp: float = 0.05) -> Score:
     """Score ``frames`` (``(t, contacts)``: each published frame's instant on the truth's
     clock and its contacts) against ``truths`` (:meth:`Truth.to_dict` records)."""
-    tr = [t for t in truths if t["kind"] != "stray" and len(t["t"]) > 0]
-    s = Score(truths=len(tr))
+    everything = list(truths)
+    tr = [t for t in everything if t["kind"] != "stray" and len(t["t"]) > 0]
+    strays = [t for t in everything if t["kind"] == "stray" and len(t["t"]) > 0]
+    s = Score(truths=len(tr), not_scored=len(everything) - len(tr))
     t_arr = [np.asarray(t["t"]) for t in tr]
     matched_ids: dict[int, set[int]] = {k: set() for k in range(len(tr))}
     any_match: dict[int, bool] = {}
     straddle_memo: dict[tuple[int, int], tuple[bool, bool]] = {}
+    truths_of_id: dict[int, set[int]] = {}
     for t, contacts in frames:
         for c in contacts:
             if c.get("missed", 0) != 0:
@@ -146,9 +161,13 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
                 if d < best_d:
                     best, best_d, best_j = k, d, j
             if best is None or best_d > MATCH:
+                if _near(strays, t, c):
+                    any_match[cid] = True  # a real touch, unscripted: no false contact
+                    s.stray_ids.add(cid)
                 continue
             any_match[cid] = True
             matched_ids[best].add(cid)
+            truths_of_id.setdefault(cid, set()).add(best)
             truth = tr[best]
             held = truth["start"] + ramp + SETTLE <= t <= truth["end"] - ramp
             if not held:
@@ -179,4 +198,16 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
             n_d[1] += 1
             s.ids_per_truth.append(len(matched_ids[k]))
     s.false_ids = {cid for cid, ok in any_match.items() if not ok}
+    s.truths_per_id = {cid: len(ks) for cid, ks in truths_of_id.items()}
     return s
+
+
+def _near(truths: list[dict[str, Any]], t: float, c: dict[str, Any]) -> bool:
+    """Whether contact ``c`` at ``t`` lies within :data:`MATCH` of one of ``truths`` active then on its link."""
+    for truth in truths:
+        if not (truth["start"] - 0.02 <= t <= truth["end"] + 0.02) or truth["link"] != c.get("link"):
+            continue
+        j = int(np.clip(np.searchsorted(np.asarray(truth["t"]), t), 0, len(truth["t"]) - 1))
+        if float(np.linalg.norm(np.asarray(c["position"]) - np.asarray(truth["point"][j]))) <= MATCH:
+            return True
+    return False

@@ -29,6 +29,7 @@ def test_the_scenario_scores_within_the_targets() -> None:
     assert {"single", "wrap", "patch_seam", "slide", "two"} <= kinds
     assert s.truths >= 7 and s.detected == s.truths, s.table()
     assert max(s.ids_per_truth) == 1, s.table()  # one id per contact, seams and slides included
+    assert max(s.truths_per_id.values()) == 1, s.table()  # and one contact per id
     assert not s.false_ids and fig["idle_false_contacts"] == 0, s.table()
     # Straddled axes the readings resolve are within the targets, and none states a wrong
     # position; a footprint that reaches only a few mm onto a neighbour leaves it under its
@@ -155,3 +156,39 @@ def test_a_footprint_across_a_seam_with_a_gap_is_straddled() -> None:
     assert _straddled(skin, 0.24 + 0.5 * (2 * math.pi * 0.04 / 6 - skin.side) + 0.004, 0.02, 0.010) == (True, False)
     # the torso's two patches meet without a gap: as before
     assert _straddled(skin, 0.08 + 0.004, 0.06, 0.010) == (True, False)
+
+
+def _torso_truth(start: float, kind: str = "single") -> dict:
+    skin = _arm()
+    (sp,) = skin.locate([0.08], [0.06])
+    n = 501
+    return {"finger": 0, "link": "torso", "kind": kind, "area": 3e-4, "pad": 0.02, "start": start, "end": start + 0.5,
+            "t": [start + 0.001 * k for k in range(n)], "point": [sp.position] * n, "normal": [sp.normal] * n,
+            "force": [2.0] * n, "atlas": [(0.08, 0.06)] * n}
+
+
+def test_one_id_matched_to_two_true_contacts_is_shown_not_counted_as_two_clean_detections() -> None:
+    """Two presses one after the other at one place, published as one id: both are
+    detected (a contact matched each), and the table says one id stood for two."""
+    skin = _arm()
+    a, b = _torso_truth(1.0), _torso_truth(2.0)
+    c = {"id": 5, "missed": 0, "link": "torso", "position": list(a["point"][0]), "force": 2.0, "valid": True}
+    s = score(skin, [a, b], [(1.2, [c]), (2.2, [c])])
+    assert s.detected == 2 and s.ids_per_truth == [1, 1]
+    assert s.truths_per_id == {5: 2}, s.truths_per_id
+    rows = {r[0]: r[1] for r in s.rows()}
+    assert rows["true contacts per id, max"] == "2", s.table()
+
+
+def test_stray_true_contacts_are_counted_not_dropped() -> None:
+    """A finger touching where the scenario did not script it (kind "stray") is not scored,
+    and a contact on it is no false one: both said in the table."""
+    skin = _arm()
+    stray = _torso_truth(1.0, kind="stray")
+    c = {"id": 5, "missed": 0, "link": "torso", "position": list(stray["point"][0]), "force": 2.0, "valid": True}
+    s = score(skin, [stray, _torso_truth(3.0)], [(1.2, [c])])
+    assert s.truths == 1 and s.not_scored == 1
+    assert not s.false_ids, s.table()  # it touched something: not a false contact
+    rows = {r[0]: r[1] for r in s.rows()}
+    assert rows["true contacts not scored (stray touches)"] == "1", s.table()
+    assert rows["  published ids on them"] == "1", s.table()

@@ -16,7 +16,8 @@ footprint inside one element cannot place it along that axis, which the daemon s
 (``observable``) and reports the range's middle. *False* contacts: published contact ids
 that never matched a true contact (nor a stray touch: a finger the scenario did not script,
 counted apart as not scored). One id matched to two true contacts detects both, and the
-table's "true contacts per id" says so.
+table's "true contacts per id" says so; the reports of a matched id made while it matched
+nothing (it lingers past the release, or came before the press) are counted apart.
 """
 
 from __future__ import annotations
@@ -60,6 +61,10 @@ class Score:
     #: and truths with no step; published ids on a stray are no false contacts
     not_scored: int = 0
     stray_ids: set[int] = field(default_factory=set)
+    #: reports of ids that matched a true contact, made while they matched none (before its
+    #: press, after its release, or wandered off): a detected contact that lingers is no false
+    #: id, and would otherwise count nowhere
+    off_truth: int = 0
 
     def rows(self) -> list[tuple[str, str, str]]:
         """(what, measured, target) rows of the accuracy table."""
@@ -84,6 +89,7 @@ class Score:
             ("ids per detected contact, max", f"{max(self.ids_per_truth, default=0)}", "1"),
             ("true contacts per id, max", f"{max(self.truths_per_id.values(), default=0)}", "1"),
             ("false contacts (ids matching nothing)", f"{len(self.false_ids)}", "0"),
+            ("reports of detected ids while they matched nothing", f"{self.off_truth}", "0"),
             ("true contacts not scored (stray touches)", f"{self.not_scored}", ""),
             ("  published ids on them", f"{len(self.stray_ids)}", ""),
             ("reports scored", f"{self.reports}", ""),
@@ -146,6 +152,7 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
     any_match: dict[int, bool] = {}
     straddle_memo: dict[tuple[int, int], tuple[bool, bool]] = {}
     truths_of_id: dict[int, set[int]] = {}
+    unmatched: dict[int, int] = {}  # id -> its reports that matched no true contact
     for t, contacts in frames:
         for c in contacts:
             if c.get("missed", 0) != 0:
@@ -164,6 +171,8 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
                 if _near(strays, t, c):
                     any_match[cid] = True  # a real touch, unscripted: no false contact
                     s.stray_ids.add(cid)
+                else:
+                    unmatched[cid] = unmatched.get(cid, 0) + 1
                 continue
             any_match[cid] = True
             matched_ids[best].add(cid)
@@ -198,6 +207,7 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
             n_d[1] += 1
             s.ids_per_truth.append(len(matched_ids[k]))
     s.false_ids = {cid for cid, ok in any_match.items() if not ok}
+    s.off_truth = sum(n for cid, n in unmatched.items() if any_match[cid])
     s.truths_per_id = {cid: len(ks) for cid, ks in truths_of_id.items()}
     return s
 

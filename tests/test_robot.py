@@ -30,6 +30,7 @@ def test_the_scenario_scores_within_the_targets() -> None:
     assert s.truths >= 7 and s.detected == s.truths, s.table()
     assert max(s.ids_per_truth) == 1, s.table()  # one id per contact, seams and slides included
     assert max(s.truths_per_id.values()) == 1, s.table()  # and one contact per id
+    assert s.off_truth == 0 and s.not_scored == 0, s.table()  # no report lingers past its press
     assert not s.false_ids and fig["idle_false_contacts"] == 0, s.table()
     # Straddled axes the readings resolve are within the targets, and none states a wrong
     # position; a footprint that reaches only a few mm onto a neighbour leaves it under its
@@ -192,3 +193,16 @@ def test_stray_true_contacts_are_counted_not_dropped() -> None:
     rows = {r[0]: r[1] for r in s.rows()}
     assert rows["true contacts not scored (stray touches)"] == "1", s.table()
     assert rows["  published ids on them"] == "1", s.table()
+
+
+def test_reports_of_a_detected_id_before_its_press_or_after_its_release_are_counted() -> None:
+    """A contact that matched its press but is still published 2 s after the release (or
+    0.5 s before the press) is no false id: those reports are counted apart, target 0."""
+    skin = _arm()
+    a = _torso_truth(1.0)
+    c = {"id": 5, "missed": 0, "link": "torso", "position": list(a["point"][0]), "force": 2.0, "valid": True}
+    s = score(skin, [a], [(0.5, [c]), (1.2, [c]), (3.5, [c]), (3.6, [c])])
+    assert s.detected == 1 and not s.false_ids
+    assert s.off_truth == 3, s.table()
+    rows = {r[0]: r[1] for r in s.rows()}
+    assert rows["reports of detected ids while they matched nothing"] == "3", s.table()

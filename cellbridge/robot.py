@@ -21,7 +21,7 @@ import time
 from typing import Any
 
 from cellbridge.robot_files import RunFileError, prepare_out, read_run, write_run
-from cellbridge.robot_score import Score, score
+from cellbridge.robot_score import Score, idle_false_ids, idle_line, score
 
 __all__ = ["MAX_CONTACTS", "MAX_IDLE", "Stopped", "add_arguments", "run", "run_scenario", "truths_until"]
 
@@ -57,7 +57,6 @@ def run_scenario(contacts: int, seed: int = 0, reporting: str = "periodic", idle
     t_sim = time.perf_counter() - t0
     world = TimelineWorld(mesh_from_skin(skin), timeline)
     frames: list[tuple[float, list[dict[str, Any]]]] = []
-    idle_ids: set[int] = set()
     t1 = time.perf_counter()
     shown = 0
     until = 0.0
@@ -70,8 +69,6 @@ def run_scenario(contacts: int, seed: int = 0, reporting: str = "periodic", idle
                 continue
             ts = m["t_sample"] - T0 if m["t_sample"] is not None else t
             frames.append((ts, m["contacts"]))
-            if ts > busy:
-                idle_ids |= {c["id"] for c in m["contacts"] if c.get("missed", 0) == 0}
             if progress and int(t) > shown:
                 shown = int(t)
                 print(f"\r  virtual {t:6.1f} / {seconds:.1f} s", end="", file=sys.stderr, flush=True)
@@ -92,7 +89,7 @@ def run_scenario(contacts: int, seed: int = 0, reporting: str = "periodic", idle
     sc = score(skin, scored, frames)
     idle_run = max(0.0, min(until, seconds) - busy)
     figures = {"virtual_s": seconds, "simulate_s": t_sim, "skin_and_daemon_s": t_run, "idle_s": idle_run,
-               "idle_false_contacts": len(idle_ids), "elements": skin.n, "gateways": len(skin.gateways),
+               "idle_false_contacts": len(idle_false_ids(frames, busy)), "elements": skin.n, "gateways": len(skin.gateways),
                "complete": complete, "until": until, "truths_left_out": left}
     return sc, figures
 
@@ -153,6 +150,9 @@ def _score_dir(directory: str) -> int:
                   f"stopped (virtual {until:.1f} s): nothing to score", file=sys.stderr)
             return 2
     print(score(arm_skin(), truths, got.frames).table())
+    busy, until = got.meta.get("busy"), got.meta.get("until")
+    if isinstance(busy, (int, float)) and isinstance(until, (int, float)) and until > busy:
+        print(idle_line(len(idle_false_ids(got.frames, busy)), until - busy))
     for note in got.notes:
         print(f"note: {note}")
     return 0
@@ -224,5 +224,5 @@ def run(args: argparse.Namespace) -> int:
     print(result.table())
     print(f"\n{fig['elements']} elements, {fig['gateways']} gateways; {fig['virtual_s']:.1f} s of virtual time: "
           f"MuJoCo {fig['simulate_s']:.1f} s, skin and daemon {fig['skin_and_daemon_s']:.1f} s"
-          + (f"; idle {fig['idle_s']:.0f} s: {fig['idle_false_contacts']} false contacts" if fig["idle_s"] else ""))
+          + (f"; {idle_line(fig['idle_false_contacts'], fig['idle_s'])}" if fig["idle_s"] else ""))
     return 0 if fig["complete"] else 130

@@ -31,7 +31,7 @@ import numpy as np
 
 from cellbridge.tactile.skin_geometry import SkinGeometry
 
-__all__ = ["MATCH", "Score", "score"]
+__all__ = ["MATCH", "Score", "idle_false_ids", "idle_line", "score"]
 
 MATCH = 0.020  #: m: farthest a published contact may be from a true one and match it
 SETTLE = 0.05  #: s after a press's ramp before its readings are held steady enough to score
@@ -221,3 +221,17 @@ def _near(truths: list[dict[str, Any]], t: float, c: dict[str, Any]) -> bool:
         if float(np.linalg.norm(np.asarray(c["position"]) - np.asarray(truth["point"][j]))) <= MATCH:
             return True
     return False
+
+
+def idle_false_ids(frames: Iterable[tuple[float, list[dict[str, Any]]]], busy: float) -> set[int]:
+    """The ids published (with their elements seen: ``missed`` 0) after ``busy``, the
+    instant the scenario's last press is over: nothing touches the skin then, so each is
+    a false contact."""
+    return {int(c["id"]) for t, cs in frames if t > busy for c in cs if c.get("missed", 0) == 0}
+
+
+def idle_line(ids: int, seconds: float) -> str:
+    """The idle false contacts as the target reads them: a rate over the idle time, not a
+    bare count (one in 30 s is twenty per 10 minutes)."""
+    rate = 600.0 * ids / seconds if seconds > 0 else math.nan
+    return f"idle {seconds:.0f} s: {ids} false contacts ({rate:.1f} per 10 minutes; target at most 1)"

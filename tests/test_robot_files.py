@@ -230,3 +230,18 @@ def test_a_run_stopped_midway_says_partial_and_leaves_no_process(tmp_path: Path,
     assert meta["complete"] is False and meta["until"] < meta["virtual_s"]
     with pytest.raises(ProcessLookupError):
         os.killpg(p.pid, 0)  # nothing of its group left
+
+
+def test_score_says_the_idle_false_contacts_per_ten_minutes_of_idle(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run with 60 s untouched after its scenario (run.json's busy and idle) and one false
+    contact in them: score says so, as a rate over the idle time (10 per 10 minutes), not
+    as a bare count to hold against the target's 1 per 10 minutes."""
+    from cellbridge.robot_files import write_run
+
+    ghost = _contact(9, position=[0.5, 0.5, 0.5])
+    write_run(str(tmp_path), [_truth()], [(1.05, [_contact()]), (30.0, [ghost])],
+              {"seed": 0, "complete": True, "until": 63.0, "busy": 3.0, "idle": 60.0, "virtual_s": 63.0})
+    rc, out, err = _score(capsys, tmp_path)
+    assert rc == 0, err
+    assert "idle 60 s: 1 false contacts (10.0 per 10 minutes; target at most 1)" in out, out

@@ -214,6 +214,11 @@ def read_run(directory: str) -> RunFiles:
         files = meta.get("files") if isinstance(meta, dict) else None
         if not isinstance(files, dict) or meta.get("format") != FORMAT:
             raise RunFileError(f"{run_path}: not a run's description (format {FORMAT})")
+        if not isinstance(meta.get("complete", True), bool):
+            raise RunFileError(f"{run_path}: 'complete' is not true or false")
+        for key in ("until", "busy", "idle", "virtual_s"):
+            if key in meta and not _finite(meta[key]):
+                raise RunFileError(f"{run_path}: '{key}' is not a finite number")
         for name in (TRUTH, CONTACTS):
             want = files.get(name, {}).get("sha256") if isinstance(files.get(name), dict) else None
             path = os.path.join(directory, name)

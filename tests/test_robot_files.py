@@ -245,3 +245,15 @@ def test_score_says_the_idle_false_contacts_per_ten_minutes_of_idle(
     rc, out, err = _score(capsys, tmp_path)
     assert rc == 0, err
     assert "idle 60 s: 1 false contacts (10.0 per 10 minutes; target at most 1)" in out, out
+
+
+@pytest.mark.parametrize("field, value", [("until", "soon"), ("until", [1]), ("complete", "no"), ("busy", float("nan")),
+                                          ("until", float("inf"))])
+def test_a_run_json_with_mistyped_fields_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                    field: str, value: Any) -> None:
+    from cellbridge.robot_files import write_run
+
+    write_run(str(tmp_path), [_truth()], [(1.05, [_contact()])],
+              {"seed": 0, "complete": False, "until": 4.0, "busy": 3.0, field: value})
+    rc, out, err = _score(capsys, tmp_path)
+    assert rc == 2 and "run.json" in err and f"'{field}'" in err and "Traceback" not in err, (out, err)

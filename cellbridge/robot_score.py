@@ -13,7 +13,9 @@ matched it; while it is held (from its ramp's end to the release's start), each 
 contact's position error and force error. The position error counts the axes of the skin
 the true footprint straddles (crosses into a neighbour element): the readings of a
 footprint inside one element cannot place it along that axis, which the daemon says
-(``observable``) and reports the range's middle. *False* contacts: published contact ids
+(``observable``) and reports the range's middle; such an axis is scored apart, for
+honesty only (its σ should cover the error; one said observable and off by more than
+1 mm and 3 σ is a confident untruth). *False* contacts: published contact ids
 that never matched a true contact (nor a stray touch: a finger the scenario did not script,
 counted apart as not scored). One id matched to two true contacts detects both, and the
 table's "true contacts per id" says so; the reports of a matched id made while it matched
@@ -50,6 +52,11 @@ class Score:
     #: under its touch threshold): honest when σ covers the error
     unresolved: list[tuple[float, float]] = field(default_factory=list)
     untrue: int = 0  #: resolved axes off by more than 1 mm and 3 σ: confident untruths
+    #: (error, σ) in m, per axis the footprint does not straddle (inside one element along it:
+    #: the readings cannot place it, the report should say the element's middle and a σ
+    #: that covers it); and of them those said observable, off by > 1 mm and > 3 σ
+    inside: list[tuple[float, float]] = field(default_factory=list)
+    inside_untrue: int = 0
     force: list[float] = field(default_factory=list)  # relative error per matched report
     false_ids: set[int] = field(default_factory=set)
     reports: int = 0
@@ -84,6 +91,9 @@ class Score:
             ("  straddled axes not resolved (said unobservable)", f"{len(self.unresolved)}", ""),
             ("  ... of them within 2 sigma",
              f"{sum(1 for e, sg in self.unresolved if e <= 2 * sg)}", "all"),
+            ("axes inside one element (not straddled)", f"{len(self.inside)}", ""),
+            ("  ... of them within 2 sigma", f"{sum(1 for e, sg in self.inside if e <= 2 * sg)}", "all"),
+            ("  said observable, off by > 1 mm and > 3 sigma", f"{self.inside_untrue}", "0"),
             ("force error, median", f"{100 * pct(self.force, 50):.2f} %", "<= 3 %"),
             ("force error, p95", f"{100 * pct(self.force, 95):.2f} %", ""),
             ("ids per detected contact, max", f"{max(self.ids_per_truth, default=0)}", "1"),
@@ -139,6 +149,20 @@ def _per_axis(s: Score, c: dict[str, Any], straddled: tuple[bool, bool], errors:
             s.unresolved.append((err, sigma))
 
 
+def _inside(s: Score, c: dict[str, Any], straddled: tuple[bool, bool], errors: list[float]) -> None:
+    """Each axis the footprint does not straddle: its error and σ, and whether the report
+    calls it observable while off by more than 1 mm and 3 σ (a confident untruth)."""
+    obs = c.get("observable") or (False, False)
+    cov = c.get("cov")
+    for axis in (0, 1):
+        if straddled[axis]:
+            continue
+        err = abs(errors[axis])
+        sigma = math.sqrt(float(cov[axis][axis])) if cov else math.nan
+        s.inside.append((err, sigma))
+        s.inside_untrue += int(bool(obs[axis]) and err > 1e-3 and not err <= 3 * sigma)
+
+
 def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable[tuple[float, list[dict[str, Any]]]],
           ramp: float = 0.05) -> Score:
     """Score ``frames`` (``(t, contacts)``: each published frame's instant on the truth's
@@ -190,10 +214,11 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
             if key not in straddle_memo:
                 straddle_memo[key] = _straddled(skin, ax, ay, 0.5 * truth["pad"])
             sx, sy = straddle_memo[key]
-            if not (sx or sy):
-                continue
             (sp,) = skin.locate([ax], [ay])
             e = np.asarray(c["position"]) - np.asarray(truth["point"][best_j])
+            _inside(s, c, (sx, sy), [float(e @ np.asarray(sp.tangent_x)), float(e @ np.asarray(sp.tangent_y))])
+            if not (sx or sy):
+                continue
             parts = [float(e @ np.asarray(sp.tangent_x)) if sx else 0.0, float(e @ np.asarray(sp.tangent_y)) if sy else 0.0]
             s.position.append(math.hypot(*parts))
             _per_axis(s, c, (sx, sy), parts)

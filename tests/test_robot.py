@@ -31,6 +31,7 @@ def test_the_scenario_scores_within_the_targets() -> None:
     assert max(s.ids_per_truth) == 1, s.table()  # one id per contact, seams and slides included
     assert max(s.truths_per_id.values()) == 1, s.table()  # and one contact per id
     assert s.off_truth == 0 and s.not_scored == 0, s.table()  # no report lingers past its press
+    assert s.inside_untrue == 0 and all(e <= 2 * sg for e, sg in s.inside), s.table()  # axes inside an element
     assert not s.false_ids and fig["idle_false_contacts"] == 0, s.table()
     # Straddled axes the readings resolve are within the targets, and none states a wrong
     # position; a footprint that reaches only a few mm onto a neighbour leaves it under its
@@ -206,3 +207,36 @@ def test_reports_of_a_detected_id_before_its_press_or_after_its_release_are_coun
     assert s.off_truth == 3, s.table()
     rows = {r[0]: r[1] for r in s.rows()}
     assert rows["reports of detected ids while they matched nothing"] == "3", s.table()
+
+
+def test_an_axis_inside_one_element_said_observable_and_far_off_is_a_confident_untruth() -> None:
+    """A small press at an element's middle straddles no axis: its reports' position errors
+    were scored nowhere, so a report 4 mm off with σ 0.1 mm (observable) passed as
+    nothing; it is now counted, and an honest one (σ covering it) is not."""
+    from cellbridge.robot_score import _straddled
+
+    skin = _arm()
+    ax, ay = (float(v) for v in skin.atlas[0])  # element 0's middle
+    assert _straddled(skin, ax, ay, 0.005) == (False, False)
+    (sp,) = skin.locate([ax], [ay])
+    n = 501
+    truth = {"finger": 0, "link": _link_of(skin, ax, ay), "kind": "single",
+             "area": 8e-5, "pad": 0.01, "start": 1.0, "end": 1.5, "t": [1.0 + 0.001 * k for k in range(n)],
+             "point": [sp.position] * n, "normal": [sp.normal] * n, "force": [2.0] * n, "atlas": [(ax, ay)] * n}
+    off = np.array(sp.position) + 0.004 * np.array(sp.tangent_x)
+
+    def scored(observable: list[bool], sigma: float):
+        c = {"id": 1, "missed": 0, "link": truth["link"], "position": list(off), "force": 2.0, "valid": True,
+             "observable": observable, "cov": [[sigma * sigma, 0.0], [0.0, sigma * sigma]]}
+        return score(skin, [truth], [(1.2, [c])])
+
+    lying = scored([True, True], 1e-4)
+    assert lying.inside_untrue == 1 and len(lying.inside) == 2, lying.table()
+    rows = {r[0]: r[1] for r in lying.rows()}
+    assert rows["  said observable, off by > 1 mm and > 3 sigma"] == "1", lying.table()
+    honest = scored([False, False], 0.012)
+    assert honest.inside_untrue == 0 and all(e <= 2 * sg for e, sg in honest.inside), honest.table()
+
+
+def _link_of(skin, ax: float, ay: float) -> str:
+    return skin.charts[int(skin.chart_at([ax], [ay])[0])].link

@@ -150,9 +150,9 @@ def _score_dir(directory: str) -> int:
                   f"stopped (virtual {until:.1f} s): nothing to score", file=sys.stderr)
             return 2
     print(score(arm_skin(), truths, got.frames).table())
-    busy, until = got.meta.get("busy"), got.meta.get("until")
-    if isinstance(busy, (int, float)) and isinstance(until, (int, float)) and until > busy:
-        print(idle_line(len(idle_false_ids(got.frames, busy)), until - busy))
+    busy, end = got.meta.get("busy"), got.meta.get("until")  # run.json's: finite numbers when there
+    if isinstance(busy, (int, float)) and isinstance(end, (int, float)) and end > busy:
+        print(idle_line(len(idle_false_ids(got.frames, busy)), end - busy))
     for note in got.notes:
         print(f"note: {note}")
     return 0

@@ -32,7 +32,7 @@ def _truth(start: float = 1.0, link: str = "torso") -> dict[str, Any]:
             "normal": [list(sp.normal)] * n, "force": [2.0] * n, "atlas": [[0.08, 0.06]] * n}
 
 
-def _contact(cid: int = 1, **kw: Any) -> dict[str, Any]:
+def _contact(cid: Any = 1, **kw: Any) -> dict[str, Any]:
     t = _truth()
     return dict({"id": cid, "missed": 0, "link": "torso", "position": t["point"][0], "force": 2.0, "valid": True}, **kw)
 

@@ -133,6 +133,7 @@ def _score_dir(directory: str) -> int:
 
     try:
         got = read_run(directory)
+        got.check_on(arm_skin())
     except RunFileError as exc:
         print(f"cellbridge robot score: {exc}", file=sys.stderr)
         return 2

@@ -28,9 +28,14 @@ import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from cellbridge.errors import CellbridgeError
+
+if TYPE_CHECKING:
+    from cellbridge.tactile.skin_geometry import SkinGeometry
 
 __all__ = ["MAX_LINE", "RunFileError", "RunFiles", "prepare_out", "read_run", "write_run"]
 
@@ -54,6 +59,33 @@ class RunFiles:
     frames: list[tuple[float, list[dict[str, Any]]]]
     meta: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    truth_lines: list[int] = field(default_factory=list)  #: the line of each truth in its file
+    truth_path: str = ""
+
+    def check_on(self, skin: SkinGeometry) -> None:
+        """Refuse (:class:`RunFileError`, naming the line) a truth on a link ``skin`` has not
+        (files of another skin) or whose atlas place at some step is off its link's patches
+        by more than an element's side: it could be matched to nothing, or its reports'
+        errors measured against a place on no skin."""
+        links = {c.link for c in skin.charts}
+        charts = skin.charts
+        for d, n in zip(self.truths, self.truth_lines):
+            where = f"{self.truth_path}:{n}: not a true contact on this skin"
+            if d["link"] not in links:
+                raise RunFileError(f"{where}: link {d['link']!r} is not a link of the arm's skin ({', '.join(sorted(links))})")
+            if not d["atlas"]:
+                continue
+            xy = np.asarray(d["atlas"], dtype=np.float64)
+            ci = skin.chart_at(xy[:, 0], xy[:, 1])
+            x0 = np.array([charts[i].x0 for i in ci]) - skin.side
+            y0 = np.array([charts[i].y0 for i in ci]) - skin.side
+            x1 = x0 + np.array([charts[i].width for i in ci]) + 2 * skin.side
+            y1 = y0 + np.array([charts[i].height for i in ci]) + 2 * skin.side
+            ok = (x0 <= xy[:, 0]) & (xy[:, 0] <= x1) & (y0 <= xy[:, 1]) & (xy[:, 1] <= y1)
+            ok &= np.array([charts[i].link == d["link"] for i in ci])
+            if not ok.all():
+                k = int(np.argmin(ok))
+                raise RunFileError(f"{where}: its atlas place {tuple(xy[k])} at step {k} is not on link {d['link']}")
 
 
 def _finite(v: Any) -> bool:
@@ -150,14 +182,16 @@ def _contact_problem(c: Any) -> str | None:
     return None
 
 
-def read_truths(path: str) -> list[dict[str, Any]]:
-    out = []
+def read_truths(path: str) -> tuple[list[dict[str, Any]], list[int]]:
+    """The truths of ``path`` and the line of each."""
+    out, lines = [], []
     for n, d in _lines(path):
         problem = _truth_problem(d)
         if problem:
             raise RunFileError(f"{path}:{n}: not a true contact: {problem}")
         out.append(d)
-    return out
+        lines.append(n)
+    return out, lines
 
 
 def read_frames(path: str) -> tuple[list[tuple[float, list[dict[str, Any]]]], int]:
@@ -227,13 +261,13 @@ def read_run(directory: str) -> RunFiles:
                                    "files of two runs, or one changed since")
     else:
         notes.append(f"no {RUN} in {directory}: whether {TRUTH} and {CONTACTS} are of one run is not checked")
-    truths = read_truths(os.path.join(directory, TRUTH))
+    truths, truth_lines = read_truths(os.path.join(directory, TRUTH))
     frames, other = read_frames(os.path.join(directory, CONTACTS))
     if other:
         notes.append(f"{os.path.join(directory, CONTACTS)}: {other} lines of other topics skipped")
     if not truths:
         raise RunFileError(f"{os.path.join(directory, TRUTH)}: no true contact: nothing to score against")
-    return RunFiles(truths, frames, meta, notes)
+    return RunFiles(truths, frames, meta, notes, truth_lines, os.path.join(directory, TRUTH))
 
 
 def prepare_out(directory: str) -> None:

@@ -257,3 +257,18 @@ def test_a_run_json_with_mistyped_fields_is_refused(tmp_path: Path, capsys: pyte
               {"seed": 0, "complete": False, "until": 4.0, "busy": 3.0, field: value})
     rc, out, err = _score(capsys, tmp_path)
     assert rc == 2 and "run.json" in err and f"'{field}'" in err and "Traceback" not in err, (out, err)
+
+
+@pytest.mark.parametrize("change, says", [
+    ({"link": "ghost"}, "link 'ghost' is not a link of the arm's skin"),
+    ({"atlas": [[1e6, 1e6]] * 101}, "is not on link torso"),
+    ({"atlas": [[0.08, 0.06]] * 100 + [[5.0, -3.0]]}, "step 100"),
+])
+def test_a_true_contact_off_the_arms_skin_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                    change: dict[str, Any], says: str) -> None:
+    """A truth on a link the arm has not (files of another skin), or whose atlas place is
+    off its link's patches, cannot be matched or placed: it was scored as a miss, or its
+    reports' errors measured against a place on no skin."""
+    rc, out, err = _score(capsys, _dir(tmp_path, [GOOD_TRUTH, json.dumps(dict(_truth(), **change))], [GOOD_FRAME]))
+    assert rc == 2 and "truth.jsonl:2:" in err and says in err, (out, err)
+

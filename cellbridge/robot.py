@@ -15,6 +15,7 @@ the arm's skin description and MuJoCo model.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import time
@@ -184,6 +185,16 @@ def _stop(signum: int, _frame: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        status = _run(args)
+        sys.stdout.flush()
+        return status
+    except BrokenPipeError:  # the reader went away (| head): the end of the output, not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.robot_command == "skin":
         from cellbridge.emulator.world.robot_world import ARM_SKIN
 

@@ -272,3 +272,20 @@ def test_a_true_contact_off_the_arms_skin_is_refused(tmp_path: Path, capsys: pyt
     rc, out, err = _score(capsys, _dir(tmp_path, [GOOD_TRUTH, json.dumps(dict(_truth(), **change))], [GOOD_FRAME]))
     assert rc == 2 and "truth.jsonl:2:" in err and says in err, (out, err)
 
+
+@pytest.mark.process
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("action", ["skin", "mjcf", "score"])
+def test_a_reader_that_goes_away_ends_the_output_without_a_traceback(tmp_path: Path, action: str) -> None:
+    """``cellbridge robot score DIR | head -3``: the reader closes the pipe; that is the end of
+    the output, not a BrokenPipeError traceback."""
+    d = _dir(tmp_path, [GOOD_TRUTH], [GOOD_FRAME])
+    cmd = [sys.executable, "-m", "cellbridge", "robot", action] + ([str(d)] if action == "score" else [])
+    r, w = os.pipe()
+    os.close(r)  # the reader is gone before the first line
+    try:
+        p = subprocess.run(cmd, stdout=w, stderr=subprocess.PIPE, text=True, timeout=100, cwd=ROOT)
+    finally:
+        os.close(w)
+    assert "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr, p.stderr
+    assert p.returncode == 0, p.stderr

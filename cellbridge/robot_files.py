@@ -176,10 +176,22 @@ def _contact_problem(c: Any) -> str | None:
         return f"contact {c['id']}: 'observable' is not two booleans"
     cov = c.get("cov")
     if cov is not None and not (isinstance(cov, list) and len(cov) == 2 and all(
-            isinstance(r, list) and len(r) == 2 and all(_number(v) and not math.isnan(v) for v in r) for r in cov)
-            and all(cov[i][i] >= 0 for i in (0, 1))):
+            isinstance(r, list) and len(r) == 2 and all(v is None or (_number(v) and not math.isnan(v)) for v in r)
+            for r in cov) and all(cov[i][i] is None or cov[i][i] >= 0 for i in (0, 1))):
         return f"contact {c['id']}: 'cov' is not a 2x2 covariance"
     return None
+
+
+def _unnull(c: dict[str, Any]) -> None:
+    """``cellbridge sub`` writes numbers that are not finite as null: a variance on ``cov``'s
+    diagonal so is infinite (an axis the readings leave open; the daemon's cov holds no
+    NaN), and a null force is not known."""
+    cov = c.get("cov")
+    if isinstance(cov, list):
+        c["cov"] = [[math.inf if v is None and i == j else (0.0 if v is None else v) for j, v in enumerate(r)]
+                    for i, r in enumerate(cov)]
+    if "force" in c and c["force"] is None:
+        c["force"] = math.nan
 
 
 def read_truths(path: str) -> tuple[list[dict[str, Any]], list[int]]:
@@ -216,6 +228,8 @@ def read_frames(path: str) -> tuple[list[tuple[float, list[dict[str, Any]]]], in
             problem = _contact_problem(c)
             if problem:
                 raise RunFileError(f"{path}:{n}: not a contact frame: {problem}")
+            if not c.get("missed", 0):
+                _unnull(c)
         frames.append((float(d["t"]), cs))
     return frames, other
 

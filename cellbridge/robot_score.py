@@ -207,7 +207,7 @@ def score(skin: SkinGeometry, truths: Iterable[dict[str, Any]], frames: Iterable
                 continue
             s.reports += 1
             ft = float(truth["force"][best_j])
-            if c.get("valid") and math.isfinite(float(c["force"])) and ft > 0:
+            if c.get("valid") and isinstance(c.get("force"), (int, float)) and math.isfinite(c["force"]) and ft > 0:
                 s.force.append(abs(float(c["force"]) - ft) / ft)
             ax, ay = truth["atlas"][best_j]
             key = (best, best_j // 20)  # the footprint moves little in 20 ms

@@ -22,12 +22,12 @@ from cellbridge.cli import main
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _truth(start: float = 1.0, link: str = "torso") -> dict[str, Any]:
+def _truth(start: float = 1.0, link: str = "torso", n: int = 101) -> dict[str, Any]:
     from cellbridge.emulator.world.robot_world import arm_skin
 
     (sp,) = arm_skin().locate([0.08], [0.06])
-    n = 101
-    return {"finger": 0, "link": link, "kind": "single", "area": 3e-4, "pad": 0.02, "start": start, "end": start + 0.1,
+    return {"finger": 0, "link": link, "kind": "single", "area": 3e-4, "pad": 0.02, "start": start,
+            "end": start + 0.001 * (n - 1),
             "t": [start + 0.001 * k for k in range(n)], "point": [list(sp.position)] * n,
             "normal": [list(sp.normal)] * n, "force": [2.0] * n, "atlas": [[0.08, 0.06]] * n}
 
@@ -289,3 +289,16 @@ def test_a_reader_that_goes_away_ends_the_output_without_a_traceback(tmp_path: P
         os.close(w)
     assert "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr, p.stderr
     assert p.returncode == 0, p.stderr
+
+
+def test_a_sub_recordings_nulls_for_infinite_and_unknown_numbers_are_scored(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``cellbridge sub`` writes a number that is not finite as null: an unobservable axis's
+    infinite variance in ``cov``, a force not known. Such a recording is scored (the axis
+    unresolved, the force left out), not refused and no TypeError."""
+    c = _contact(force=None, observable=[False, True], cov=[[None, 0.0], [0.0, 1e-8]])
+    line = json.dumps({"topic": "contact", "payload": {"t_sample": 1.2, "contacts": [c]}})  # held: scored
+    rc, out, err = _score(capsys, _dir(tmp_path, [json.dumps(_truth(n=501))], [line]))
+    assert rc == 0 and "100.0 %" in out and "Traceback" not in err, (out, err)
+    rows = {ln[:52].strip(): ln[52:].split() for ln in out.splitlines()}
+    assert rows["reports scored"][0] == "1" and rows["force error, median"][0] == "nan", out

@@ -18,6 +18,7 @@ import argparse
 import os
 import signal
 import sys
+import threading
 import time
 from typing import Any
 
@@ -32,7 +33,13 @@ MAX_IDLE = 3600.0  #: s untouched after the scenario, at most
 
 
 class Stopped(KeyboardInterrupt):
-    """SIGTERM during a run: stops it as Ctrl-C does (what was run is kept, said partial)."""
+    """SIGTERM or Ctrl-C during a run: stops it (what was run is kept, said partial)."""
+
+
+#: set by ``robot run``'s signal handler before it raises :class:`Stopped`: the run's loop
+#: also stops on it, should the exception be lost on its way up (raised inside a destructor
+#: or a callback whose caller drops what it raised)
+STOP = threading.Event()
 
 
 def run_scenario(contacts: int, seed: int = 0, reporting: str = "periodic", idle: float = 0.0,
@@ -66,6 +73,8 @@ def run_scenario(contacts: int, seed: int = 0, reporting: str = "periodic", idle
         for t, topic, m in run_daemon_on_skin(skin, world, seconds, seed=seed,
                                               settings=Settings(reporting=reporting_arg(reporting))):
             until = t
+            if STOP.is_set():
+                raise Stopped(0)
             if topic != "contact":
                 continue
             ts = m["t_sample"] - T0 if m["t_sample"] is not None else t
@@ -181,6 +190,7 @@ def _run_problem(args: argparse.Namespace) -> str | None:
 
 
 def _stop(signum: int, _frame: Any) -> None:
+    STOP.set()
     raise Stopped(signum)
 
 
@@ -216,7 +226,8 @@ def _run(args: argparse.Namespace) -> int:
     if problem:
         print(f"cellbridge robot run: {problem}", file=sys.stderr)
         return 2
-    previous = signal.signal(signal.SIGTERM, _stop)
+    STOP.clear()
+    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         result, fig = run_scenario(args.contacts, args.seed, args.reporting, args.idle, args.out, progress=True)
     except KeyboardInterrupt:  # a second Ctrl-C or SIGTERM, while scoring or writing
@@ -228,7 +239,8 @@ def _run(args: argparse.Namespace) -> int:
               "nothing of this run kept", file=sys.stderr)
         return 1
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     if not fig["complete"]:
         print(f"PARTIAL: stopped at virtual {fig['until']:.1f} of {fig['virtual_s']:.1f} s; "
               f"{fig['truths_left_out']} true contacts after it left out"

@@ -26,6 +26,7 @@ import hashlib
 import json
 import math
 import os
+import stat
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -252,6 +253,10 @@ def read_run(directory: str) -> RunFiles:
         raise RunFileError(f"{directory}: no such directory (cellbridge robot run --out {directory} makes one)")
     meta: dict[str, Any] = {}
     notes: list[str] = []
+    for name in (TRUTH, CONTACTS, RUN):  # a FIFO would be waited on for ever, a device read without end
+        path = os.path.join(directory, name)
+        if os.path.exists(path) and not stat.S_ISREG(os.stat(path).st_mode):
+            raise RunFileError(f"{path}: not a regular file")
     run_path = os.path.join(directory, RUN)
     if os.path.exists(run_path):
         try:
@@ -293,6 +298,11 @@ def prepare_out(directory: str) -> None:
         raise RunFileError(f"--out {directory}: exists and is not a directory") from None
     except OSError as exc:
         raise RunFileError(f"--out {directory}: cannot make it: {exc.strerror or exc}") from None
+    for name in (TRUTH, CONTACTS, RUN):
+        path = os.path.join(directory, name)
+        if os.path.lexists(path) and not os.path.isfile(path):
+            raise RunFileError(f"--out {directory}: {path} is not a regular file (a directory?): the run could "
+                               "not replace it")
     probe = os.path.join(directory, f".{RUN}.probe")
     try:
         with open(probe, "w", encoding="utf-8") as fh:

@@ -302,3 +302,25 @@ def test_a_sub_recordings_nulls_for_infinite_and_unknown_numbers_are_scored(
     assert rc == 0 and "100.0 %" in out and "Traceback" not in err, (out, err)
     rows = {ln[:52].strip(): ln[52:].split() for ln in out.splitlines()}
     assert rows["reports scored"][0] == "1" and rows["force error, median"][0] == "nan", out
+
+
+def test_a_fifo_or_a_directory_in_place_of_a_file_is_refused_not_waited_on(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``robot score`` opened a FIFO named truth.jsonl and waited for a writer for ever."""
+    d = _dir(tmp_path, [GOOD_TRUTH], [GOOD_FRAME])
+    os.remove(d / "truth.jsonl")
+    os.mkfifo(d / "truth.jsonl")
+    rc, _, err = _score(capsys, d)
+    assert rc == 2 and "truth.jsonl" in err and "not a regular file" in err, err
+
+
+@pytest.mark.process  # importing mujoco starts a process
+def test_an_out_whose_file_names_are_taken_by_directories_is_refused_before_the_run(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A directory named contacts.jsonl in --out made the run's last step (the rename) fail,
+    after the whole run."""
+    pytest.importorskip("mujoco")
+    (tmp_path / "contacts.jsonl").mkdir()
+    rc = main(["robot", "run", "--contacts", "1", "--out", str(tmp_path)])
+    _, err = capsys.readouterr()
+    assert rc == 2 and "contacts.jsonl" in err and "not a regular file" in err, err

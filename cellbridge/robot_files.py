@@ -47,6 +47,10 @@ RUN = "run.json"
 FORMAT = 1
 
 
+#: the fields of a published contact the scorer reads (robot_score.score); the rest is not kept
+SCORED = ("id", "missed", "link", "position", "force", "valid", "observable", "cov")
+
+
 class RunFileError(CellbridgeError, ValueError):
     """A run's file that cannot be scored; the message names the file and the line."""
 
@@ -231,7 +235,8 @@ def read_frames(path: str) -> tuple[list[tuple[float, list[dict[str, Any]]]], in
                 raise RunFileError(f"{path}:{n}: not a contact frame: {problem}")
             if not c.get("missed", 0):
                 _unnull(c)
-        frames.append((float(d["t"]), cs))
+        if cs:  # what the scorer reads of each contact, no more: a long run's file is read in a fraction of its size
+            frames.append((float(d["t"]), [{k: c[k] for k in SCORED if k in c} for c in cs]))
     return frames, other
 
 

@@ -324,3 +324,18 @@ def test_an_out_whose_file_names_are_taken_by_directories_is_refused_before_the_
     rc = main(["robot", "run", "--contacts", "1", "--out", str(tmp_path)])
     _, err = capsys.readouterr()
     assert rc == 2 and "contacts.jsonl" in err and "not a regular file" in err, err
+
+
+def test_a_long_runs_frames_keep_only_what_the_scorer_reads(tmp_path: Path) -> None:
+    """A published contact carries some thirty fields; robot score kept them all (a 100 MB
+    contacts.jsonl took about 500 MB), of which it reads eight. Frames without contacts
+    hold nothing to score and are not kept."""
+    from cellbridge.robot_files import SCORED, read_frames
+
+    full = _contact(age=12, t=1.0, x=0.1, y=0.2, elements=list(range(40)), cycles=list(range(40)), chi2=1.0)
+    p = tmp_path / "contacts.jsonl"
+    p.write_text(json.dumps({"t": 1.0, "contacts": [full]}) + "\n" + json.dumps({"t": 1.1, "contacts": []}) + "\n")
+    frames, other = read_frames(str(p))
+    assert other == 0 and len(frames) == 1
+    (c,) = frames[0][1]
+    assert set(c) <= set(SCORED) and c["id"] == 1 and c["position"] == full["position"]

@@ -291,6 +291,11 @@ def read_run(directory: str) -> RunFiles:
         notes.append(f"{os.path.join(directory, CONTACTS)}: {other} lines of other topics skipped")
     if not truths:
         raise RunFileError(f"{os.path.join(directory, TRUTH)}: no true contact: nothing to score against")
+    lo, hi = min(d["start"] for d in truths) - 1.0, max(d["end"] for d in truths) + 1.0
+    if not meta and frames and not any(lo <= t <= hi for t, _ in frames):  # (run.json vouches for one run)
+        raise RunFileError(f"{os.path.join(directory, CONTACTS)}: no frame within the true contacts' time "
+                           f"({lo + 1:.3f} to {hi - 1:.3f} s; its frames {frames[0][0]:.3f} to {frames[-1][0]:.3f} s): "
+                           "on another clock (a real-time recording's epoch?), or of another run")
     return RunFiles(truths, frames, meta, notes, truth_lines, os.path.join(directory, TRUTH))
 
 

@@ -132,9 +132,12 @@ def test_files_of_two_runs_are_refused(tmp_path: Path, capsys: pytest.CaptureFix
     (a / "contacts.jsonl").write_bytes((b / "contacts.jsonl").read_bytes())
     rc, out, err = _score(capsys, a)
     assert rc == 2 and "contacts.jsonl: not the file this run wrote" in err and "two runs" in err, err
-    os.remove(a / "run.json")  # without run.json: scored, and said unchecked
+    os.remove(a / "run.json")  # without run.json: b's frames lie outside a's truths' time
     rc, out, err = _score(capsys, a)
-    assert rc == 0 and "not checked" in out, out
+    assert rc == 2 and "no frame within the true contacts' time" in err, (out, err)
+    (b / "run.json").unlink()  # b's own files without run.json: scored, and said unchecked
+    rc, out, err = _score(capsys, b)
+    assert rc == 0 and "100.0 %" in out and "not checked" in out, out
 
 
 def test_a_partial_run_scores_only_what_it_ran(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -339,3 +342,13 @@ def test_a_long_runs_frames_keep_only_what_the_scorer_reads(tmp_path: Path) -> N
     assert other == 0 and len(frames) == 1
     (c,) = frames[0][1]
     assert set(c) <= set(SCORED) and c["id"] == 1 and c["position"] == full["position"]
+
+
+def test_contacts_on_another_clock_than_the_truths_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A ``cellbridge sub contact`` recording of a real-time daemon has t_sample on the epoch
+    (1.8e9 s), the truth seconds from the run's start: no frame falls within any truth's
+    time, and the table said 0 % detected, every contact false, with confidence."""
+    frame = json.loads(GOOD_FRAME)
+    line = json.dumps({"topic": "contact", "payload": {"t_sample": 1.8e9 + frame["t"], "contacts": frame["contacts"]}})
+    rc, out, err = _score(capsys, _dir(tmp_path, [GOOD_TRUTH], [line]))
+    assert rc == 2 and "contacts.jsonl" in err and "clock" in err, (out, err)

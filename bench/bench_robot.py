@@ -25,6 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout too
 
 from cellbridge.robot import run_scenario
+from cellbridge.robot_score import idle_line
 
 
 def main() -> int:
@@ -43,14 +44,13 @@ def main() -> int:
         return 0
     score, fig = run_scenario(a.contacts, a.seed, "periodic", a.idle, a.out, progress=True)
     print(score.table())
-    print(f"idle {fig['idle_s']:.0f} s after the scenario: {fig['idle_false_contacts']} false contacts "
-          f"(target: at most 1 per 10 minutes)")
+    print(f"after the scenario: {idle_line(fig['idle_false_contacts'], fig['idle_s'])}")
     print(f"{fig['elements']} elements, {fig['gateways']} gateways; {fig['virtual_s']:.1f} s of virtual time: "
           f"MuJoCo {fig['simulate_s']:.1f} s, skin and daemon {fig['skin_and_daemon_s']:.1f} s")
     if a.idle_frames > 0:
         ids, reports, cpu = idle_frame_level(a.idle_frames, a.seed)
-        print(f"idle {a.idle_frames:.0f} s on the frame-level generator: {ids} false contacts in {reports} "
-              f"contact messages (target: at most 1 per 10 minutes); {cpu:.0f} s of CPU")
+        print(f"on the frame-level generator: {idle_line(ids, a.idle_frames)}, in {reports} contact messages; "
+              f"{cpu:.0f} s of CPU")
     return 0
 
 

@@ -29,6 +29,9 @@ def test_the_scenario_scores_within_the_targets() -> None:
     assert {"single", "wrap", "patch_seam", "slide", "two"} <= kinds
     assert s.truths >= 7 and s.detected == s.truths, s.table()
     assert max(s.ids_per_truth) == 1, s.table()  # one id per contact, seams and slides included
+    assert max(s.truths_per_id.values()) == 1, s.table()  # and one contact per id
+    assert s.off_truth == 0 and s.not_scored == 0, s.table()  # no report lingers past its press
+    assert s.inside_untrue == 0 and all(e <= 2 * sg for e, sg in s.inside), s.table()  # axes inside an element
     assert not s.false_ids and fig["idle_false_contacts"] == 0, s.table()
     # Straddled axes the readings resolve are within the targets, and none states a wrong
     # position; a footprint that reaches only a few mm onto a neighbour leaves it under its
@@ -155,3 +158,85 @@ def test_a_footprint_across_a_seam_with_a_gap_is_straddled() -> None:
     assert _straddled(skin, 0.24 + 0.5 * (2 * math.pi * 0.04 / 6 - skin.side) + 0.004, 0.02, 0.010) == (True, False)
     # the torso's two patches meet without a gap: as before
     assert _straddled(skin, 0.08 + 0.004, 0.06, 0.010) == (True, False)
+
+
+def _torso_truth(start: float, kind: str = "single") -> dict:
+    skin = _arm()
+    (sp,) = skin.locate([0.08], [0.06])
+    n = 501
+    return {"finger": 0, "link": "torso", "kind": kind, "area": 3e-4, "pad": 0.02, "start": start, "end": start + 0.5,
+            "t": [start + 0.001 * k for k in range(n)], "point": [sp.position] * n, "normal": [sp.normal] * n,
+            "force": [2.0] * n, "atlas": [(0.08, 0.06)] * n}
+
+
+def test_one_id_matched_to_two_true_contacts_is_shown_not_counted_as_two_clean_detections() -> None:
+    """Two presses one after the other at one place, published as one id: both are
+    detected (a contact matched each), and the table says one id stood for two."""
+    skin = _arm()
+    a, b = _torso_truth(1.0), _torso_truth(2.0)
+    c = {"id": 5, "missed": 0, "link": "torso", "position": list(a["point"][0]), "force": 2.0, "valid": True}
+    s = score(skin, [a, b], [(1.2, [c]), (2.2, [c])])
+    assert s.detected == 2 and s.ids_per_truth == [1, 1]
+    assert s.truths_per_id == {5: 2}, s.truths_per_id
+    rows = {r[0]: r[1] for r in s.rows()}
+    assert rows["true contacts per id, max"] == "2", s.table()
+
+
+def test_stray_true_contacts_are_counted_not_dropped() -> None:
+    """A finger touching where the scenario did not script it (kind "stray") is not scored,
+    and a contact on it is no false one: both said in the table."""
+    skin = _arm()
+    stray = _torso_truth(1.0, kind="stray")
+    c = {"id": 5, "missed": 0, "link": "torso", "position": list(stray["point"][0]), "force": 2.0, "valid": True}
+    s = score(skin, [stray, _torso_truth(3.0)], [(1.2, [c])])
+    assert s.truths == 1 and s.not_scored == 1
+    assert not s.false_ids, s.table()  # it touched something: not a false contact
+    rows = {r[0]: r[1] for r in s.rows()}
+    assert rows["true contacts not scored (stray touches)"] == "1", s.table()
+    assert rows["  published ids on them"] == "1", s.table()
+
+
+def test_reports_of_a_detected_id_before_its_press_or_after_its_release_are_counted() -> None:
+    """A contact that matched its press but is still published 2 s after the release (or
+    0.5 s before the press) is no false id: those reports are counted apart, target 0."""
+    skin = _arm()
+    a = _torso_truth(1.0)
+    c = {"id": 5, "missed": 0, "link": "torso", "position": list(a["point"][0]), "force": 2.0, "valid": True}
+    s = score(skin, [a], [(0.5, [c]), (1.2, [c]), (3.5, [c]), (3.6, [c])])
+    assert s.detected == 1 and not s.false_ids
+    assert s.off_truth == 3, s.table()
+    rows = {r[0]: r[1] for r in s.rows()}
+    assert rows["reports of detected ids while they matched nothing"] == "3", s.table()
+
+
+def test_an_axis_inside_one_element_said_observable_and_far_off_is_a_confident_untruth() -> None:
+    """A small press at an element's middle straddles no axis: its reports' position errors
+    were scored nowhere, so a report 4 mm off with σ 0.1 mm (observable) passed as
+    nothing; it is now counted, and an honest one (σ covering it) is not."""
+    from cellbridge.robot_score import _straddled
+
+    skin = _arm()
+    ax, ay = (float(v) for v in skin.atlas[0])  # element 0's middle
+    assert _straddled(skin, ax, ay, 0.005) == (False, False)
+    (sp,) = skin.locate([ax], [ay])
+    n = 501
+    truth = {"finger": 0, "link": _link_of(skin, ax, ay), "kind": "single",
+             "area": 8e-5, "pad": 0.01, "start": 1.0, "end": 1.5, "t": [1.0 + 0.001 * k for k in range(n)],
+             "point": [sp.position] * n, "normal": [sp.normal] * n, "force": [2.0] * n, "atlas": [(ax, ay)] * n}
+    off = np.array(sp.position) + 0.004 * np.array(sp.tangent_x)
+
+    def scored(observable: list[bool], sigma: float):
+        c = {"id": 1, "missed": 0, "link": truth["link"], "position": list(off), "force": 2.0, "valid": True,
+             "observable": observable, "cov": [[sigma * sigma, 0.0], [0.0, sigma * sigma]]}
+        return score(skin, [truth], [(1.2, [c])])
+
+    lying = scored([True, True], 1e-4)
+    assert lying.inside_untrue == 1 and len(lying.inside) == 2, lying.table()
+    rows = {r[0]: r[1] for r in lying.rows()}
+    assert rows["  said observable, off by > 1 mm and > 3 sigma"] == "1", lying.table()
+    honest = scored([False, False], 0.012)
+    assert honest.inside_untrue == 0 and all(e <= 2 * sg for e, sg in honest.inside), honest.table()
+
+
+def _link_of(skin, ax: float, ay: float) -> str:
+    return skin.charts[int(skin.chart_at([ax], [ay])[0])].link

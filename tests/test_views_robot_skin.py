@@ -313,3 +313,56 @@ def test_a_tiny_element_side_does_not_overflow_the_contacts_placing(side: float)
     f = m.frame(0.0)
     assert len(f.contacts) == 2
     encode_all(m)
+
+
+def _drawn(contact: dict[str, Any]) -> tuple[Any, Any]:
+    f = robot_view(contact=contact).frame(0.0)
+    return f, next(c for c in f.contacts if c.id == 7)
+
+
+def _on_a_block(f: Any, con: Any) -> str | None:
+    """The patch whose block the drawn contact lies on (a cell's margin around it), or None."""
+    for b in f.patches:
+        if b.col0 - 1 <= con.col <= b.col0 + b.cols + 1 and b.row0 - 1 <= con.row <= b.row0 + b.rows + 1:
+            return b.name
+    return None
+
+
+@pytest.mark.parametrize("link, patch", [("ghost", "ghost_patch"), ("ghost", None), ("torso", None),
+                                         ("torso", "forearm"), (None, "ghost_patch")])
+def test_a_contact_on_a_link_or_patch_the_topology_contradicts_is_listed_not_drawn_on_another_patch(
+        link: Any, patch: Any) -> None:
+    """Contact 7 lies on the forearm's atlas place; it names a link not in the topology,
+    or the torso (whose patches are elsewhere), or a patch of another link: the flat
+    views must not draw it on the forearm's (or any) block as if it were there."""
+    contact = rp.contact(rp.skin())
+    contact["contacts"][0].update(link=link, patch=patch)
+    f, con = _drawn(contact)
+    assert _on_a_block(f, con) is None, (con.col, con.row, _on_a_block(f, con))
+    assert math.isnan(con.col) and math.isnan(con.row)
+    assert con.line.startswith("#7")  # still listed
+
+
+def test_a_contact_far_off_its_patch_is_not_drawn_on_another_patchs_block() -> None:
+    """Contact 7 names the forearm but its atlas place is on the chest: drawn by the
+    forearm's affine map it would land beyond the forearm's block, on another's."""
+    sk = rp.skin()
+    contact = rp.contact(sk)
+    far = sk.atlas[sk.row_of(sk.element_id("chest_left", 0, 0))]
+    contact["contacts"][0].update(x=float(far[0]), y=float(far[1]))
+    f, con = _drawn(contact)
+    assert _on_a_block(f, con) in (None, "forearm"), (con.col, con.row, _on_a_block(f, con))
+
+
+@pytest.mark.parametrize("link, patch", [("torso", "forearm"), ("forearm", "ghost_patch"), ("ghost", None)])
+def test_foxglove_draws_no_contact_whose_patch_the_topology_puts_on_another_link_or_lacks(link: str, patch: Any) -> None:
+    """Contact 7 at its forearm position, said to be on the torso's frame with the forearm's
+    patch (or on a patch the topology lacks, or on a link it lacks): where it is is
+    contradicted, so it is not drawn at that position in some link's frame."""
+    contact = rp.contact(rp.skin())
+    contact["contacts"][0].update(link=link, patch=patch)
+    m = robot_view(contact=contact)
+    f = m.frame(0.0)
+    scene = decode_scene(fx.make_scene(m, f, fx.link_frames(m.skin), True, 1))
+    ids = {e.id for e in scene.entities}
+    assert "contact-7" not in ids and "contact-8" in ids, ids

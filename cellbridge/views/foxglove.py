@@ -149,7 +149,7 @@ def make_scene(model: SkinView, frame: Frame, frames: dict[str, Any], robot: boo
     ts = Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
     entities = []
     for c, drawn in zip(model.contacts, frame.contacts):
-        place = contact_place(c, frames, robot)
+        place = contact_place(c, frames, robot, model.skin)
         if place is None:
             continue
         fid, p, n = place
@@ -303,14 +303,20 @@ def make_skin_scene(model: SkinView, frames: dict[str, Any], stamp_ns: int, only
                        if only is None else [], entities=entities)
 
 
-def contact_place(c: Contact, frames: dict[str, Any], robot: bool
+def contact_place(c: Contact, frames: dict[str, Any], robot: bool, skin: RobotSkin | None = None
                   ) -> tuple[str, tuple[float, float, float], tuple[float, float, float]] | None:
     """(frame, centre, outward normal) where a contact is drawn: on a robot, its link's
-    frame with its 3-D position and normal (None when any of them is unknown); on a flat
-    skin, the frame ``skin`` at (x, y, 0), normal +z."""
+    frame with its 3-D position and normal (None when any of them is unknown, and when
+    ``skin`` contradicts the link: the patch it names is not the skin's, or is another
+    link's; so it is never drawn precisely in a frame it may not be in); on a flat skin,
+    the frame ``skin`` at (x, y, 0), normal +z."""
     if robot:
         if c.link is None or c.link not in frames or c.position is None or c.normal is None:
             return None
+        if skin is not None and c.patch is not None:
+            named = skin.patches.get(c.patch)
+            if named is None or named.link != c.link:
+                return None
         return c.link, c.position, c.normal
     if not (math.isfinite(c.x) and math.isfinite(c.y)):
         return None

@@ -681,16 +681,24 @@ class SkinView:
         edge of cell 0): from its place on the layout's plane (the atlas, ``x``, ``y``),
         relative to an element of its patch (the one it names, else the nearest element's:
         a patch's grid is an affine map of the layout), one element pitch a cell, around a
-        wrapped patch; NaN when not known."""
+        wrapped patch; NaN when not known, and when the link or patch it names is not the
+        one of that place (a link or patch the topology lacks, a patch of another link):
+        listed, never drawn on another link's patch."""
         skin = self.skin
         if skin is None or not (math.isfinite(c.x) and math.isfinite(c.y)):
             return math.nan, math.nan
         refs, cells = self._atlas_index()
+        if c.patch is not None:  # the patch it names, which must be the skin's and on the link it names
+            named = skin.patches.get(c.patch)
+            if named is None or (c.link is not None and named.link != c.link):
+                return math.nan, math.nan
         ref_bridge = refs.get(c.patch) if c.patch is not None else None  # any element of it: the map is affine
         if ref_bridge is None or ref_bridge not in self.layout:
             ref_bridge = self._nearest_placed(c.x, c.y, cells)
         if ref_bridge is None or skin.elements[ref_bridge].patch not in at:
             return math.nan, math.nan
+        if c.link is not None and skin.patches[skin.elements[ref_bridge].patch].link != c.link:
+            return math.nan, math.nan  # its link's patches are elsewhere (or it has none): not on another's
         ref = skin.elements[ref_bridge]
         patch, block = skin.patches[ref.patch], at[ref.patch]
         xe, ye = self.layout[ref_bridge]

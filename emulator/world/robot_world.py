@@ -297,6 +297,7 @@ def scenario(skin: SkinGeometry, contacts: int, seed: int = 0, gap: float = 0.25
     kinds = ["single", "single", "wrap", "patch_seam", "slide", "two"]
     n = 0
     while n < contacts:
+        before = len(presses)
         kind = kinds[len(presses) % len(kinds)] if presses else "single"
         pad = rng.uniform(0.014, 0.024)
         hold = rng.uniform(0.35, 0.6)
@@ -323,7 +324,7 @@ def scenario(skin: SkinGeometry, contacts: int, seed: int = 0, gap: float = 0.25
             x, y = _places(skin, rng, kind, pad)
             presses.append(Press(0, t, x, y, force, pad, hold, kind=kind))
             n += 1
-        t = max(p.end for p in presses) + gap
+        t = max(p.end for p in presses[before:]) + gap  # each starts after every earlier one ended: linear
     return presses
 
 

@@ -61,7 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "periodic at 100 Hz, the daemon's calibration from 50 readings) instead of "
                              "the demo's event-based skin and 10-reading calibration")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    parser.add_argument("--keep", action="store_true", help="keep the working folder (mesh, config, logs)")
+    parser.add_argument("--keep", action="store_true",
+                        help="keep the working folder (mesh, config, logs); its path is printed on stderr, and "
+                             "with --json is the result's 'kept'")
 
 
 #: The demo's listening ports come from [LISTEN_FLOOR, the kernel's ephemeral range): a port
@@ -431,12 +433,14 @@ def run(args: argparse.Namespace) -> int:
                 if attempt == BIND_TRIES:
                     raise RuntimeError(f"the daemon's ports were taken before it could bind them, {BIND_TRIES} times")
                 say("another program took the daemon's ports before it bound them; again on others ...")
+        if args.keep:
+            result["kept"] = str(work)
         if args.json:
             print(json.dumps(result))
         else:
             _print_table(result)
-        if args.keep:
-            say(f"working folder kept: {work}")
+        if args.keep:  # (with --json too, where say is silent: the one answer --keep asked for)
+            print(f"working folder kept: {work}", file=sys.stderr, flush=True)
         return 0 if (_within(result) or not args.check) else 1
     except (RuntimeError, subprocess.SubprocessError) as exc:
         print(f"cellbridge demo: {exc} (logs in {work})", file=sys.stderr)

@@ -189,6 +189,7 @@ def test_the_demo_starts_its_daemon_again_on_other_ports_when_one_was_taken(
     if result["skin_whole"]:
         assert code == 0, result
     (log,) = tmp_path.glob("cellbridge-demo-*/daemon.log")
+    assert result["kept"] == str(log.parent)  # --keep with --json: where the folder is, in the result
     text = log.read_text()
     assert text.count("cannot bind") == 1 and "Address already in use" in text  # the first daemon's
     assert _left_behind(tmp_path) == []

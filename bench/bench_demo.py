@@ -1,7 +1,7 @@
 """How often ``cellbridge demo --check`` tells the truth: seam and corner presses, N runs each.
 
 Run: ``.venv/bin/python bench/bench_demo.py [--runs 20] [--burn [--burners 4] [--burners-apart]]
-[--second-skin] [--cases seam,corner]``.
+[--second-skin] [--cases seam,corner] [--keep-failed]``.
 Each run starts the whole chain as a user would (an emulated 4×4 skin in real processes,
 the daemon on its gateway's pty), presses, and checks the published contact: within 1 mm
 and 5 % of the press, with exactly one contact id. ``--burn`` keeps every core busy with a
@@ -96,12 +96,14 @@ def stop_daemon_mid_press(demo: subprocess.Popen, pause: float, log: list[str]) 
         time.sleep(0.05)
 
 
-def one_run(x: float, y: float, pause: float = 0.0, defaults: bool = False) -> dict:
+def one_run(x: float, y: float, pause: float = 0.0, defaults: bool = False, keep_failed: bool = False) -> dict:
     """One ``demo --check --json`` run: its JSON result, plus ``ok`` and ``error`` keys;
     with ``pause``, its daemon is stopped that long mid-press; ``defaults``: the skin and
-    the daemon with their own defaults (``demo --defaults``)."""
+    the daemon with their own defaults (``demo --defaults``); ``keep_failed``: a failed
+    run's working folder (logs, the bridges' counters) is kept, its path the result's
+    ``kept``, and a passed run's removed."""
     demo = subprocess.Popen([CLI, "demo", "--check", "--json", "--x", str(x), "--y", str(y),
-                             *(["--defaults"] if defaults else [])],
+                             *(["--defaults"] if defaults else []), *(["--keep"] if keep_failed else [])],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     log: list[str] = []
     watcher = threading.Thread(target=stop_daemon_mid_press, args=(demo, pause, log), daemon=True)
@@ -130,6 +132,8 @@ def one_run(x: float, y: float, pause: float = 0.0, defaults: bool = False) -> d
           and abs(got["force"] - 3.0) <= 0.15 and len(res.get("ids", [])) == 1 and res.get("untrue", 0) == 0
           and res.get("untrue_force", 0) == 0)
     res.update(ok=ok, error="" if ok else f"rc {r.returncode}")
+    if ok and res.get("kept"):
+        shutil.rmtree(res.pop("kept"), ignore_errors=True)
     return res
 
 
@@ -149,6 +153,9 @@ def main() -> None:
     ap.add_argument("--defaults", action="store_true",
                     help="the skin and the daemon with their own defaults (periodic 100 Hz; demo --defaults)")
     ap.add_argument("--cases", default="seam,corner", help="comma-separated: seam, corner")
+    ap.add_argument("--keep-failed", action="store_true",
+                    help="keep each failed run's working folder (the daemon's log, the bridges' counters in "
+                         "mesh.log) and print its path")
     args = ap.parse_args()
     unwind_on_signals()
     burners: list[subprocess.Popen] = []
@@ -168,7 +175,7 @@ def main() -> None:
             results = []
             for i in range(args.runs):
                 t0 = time.monotonic()
-                res = one_run(x, y, args.stop_daemon, args.defaults)
+                res = one_run(x, y, args.stop_daemon, args.defaults, args.keep_failed)
                 results.append(res)
                 print(f"  {name} {i + 1}/{args.runs}: {'ok ' if res['ok'] else 'BAD'} ids {res.get('ids')} "
                       f"pos {res.get('position_error_mm', float('nan')):.3f} mm "
@@ -177,7 +184,8 @@ def main() -> None:
                 if not res["ok"]:  # what the skin did not deliver meanwhile, and what the daemon knew
                     print(f"      unknown elements (contact messages listing each): {res.get('unknown_elements')}; "
                           f"skin frames: {res.get('skin_frames')}; reports {res.get('reports')}, with unknown "
-                          f"near {res.get('with_unknown')}; known-only median: {res.get('known')}", flush=True)
+                          f"near {res.get('with_unknown')}; known-only median: {res.get('known')}"
+                          + (f"; kept in {res['kept']}" if res.get("kept") else ""), flush=True)
             pos = [r["position_error_mm"] for r in results if "position_error_mm" in r]
             frc = [r["force_error_pct"] for r in results if "force_error_pct" in r]
             rows.append([name, len(results), sum(r["ok"] for r in results),

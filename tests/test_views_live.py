@@ -87,8 +87,8 @@ def _shared_daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[L
     """One pressed daemon for the module's tests that only watch it: starting one, taking
     its baseline and waiting for its first estimate took seconds per test. They change
     nothing it holds (they start views, connect and go; the tare, which re-baselines it,
-    has a daemon of its own: :func:`own_live`). Also its process, to tell a test that
-    finds it gone from one that broke it."""
+    has a daemon of its own: :func:`own_live`). Also its subscriber, which :func:`live`
+    drains for each test."""
     with _pressed_daemon(tmp_path_factory.mktemp("views_live")) as shared:
         yield shared, shared[2].client
 
@@ -365,13 +365,16 @@ def test_web_beyond_loopback_answers_only_with_the_token(live: Any, tmp_path: Pa
 # ---- cellbridge foxglove to a Foxglove protocol client --------------------------------------
 
 @pytest.mark.parametrize("subprotocol", ["foxglove.websocket.v1", "foxglove.sdk.v1"])
-def test_foxglove_advertises_and_sends_the_grid_and_contacts_as_published(live: Any, subprotocol: str) -> None:
+def test_foxglove_advertises_and_sends_the_grid_and_contacts_as_published(own_live: Any, subprotocol: str) -> None:
     """A client speaking the protocol under either name (the issue's foxglove.websocket.v1,
     or foxglove.sdk.v1 as today's Foxglove app) gets it and the same channels."""
     from cellbridge.views.foxglove import TOPICS
     from foxglove_client import FoxgloveClient
 
-    ep, feeder, pub, _ = live
+    # A daemon of its own, its press just begun: on the module's shared daemon (its press
+    # held for a minute), beside four CPU burners, the first grid once showed a pressed
+    # element's force unknown (NaN); not yet understood, so not shared.
+    ep, feeder, pub, _ = own_live
     port = free_port()
     with view_process(["foxglove", "--port", str(port), *view_args(ep)], stdout=subprocess.PIPE) as fx:
         assert wait_line(fx).strip() == f"cellbridge foxglove: ws://127.0.0.1:{port} (Foxglove WebSocket)"

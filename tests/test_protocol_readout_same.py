@@ -92,7 +92,6 @@ def test_fuzzed_readout_same_frames_raise_only_protocol_error_and_decode_only_wi
     import random
 
     from support.protocol_v1 import encode_v1, encode_v2
-
     from test_protocol_fuzz import mutate
 
     seeds = [Frame(6, 2, 6, 815, ReadoutSame(3, 44)), Frame(300, 0xFFFE, 300, 0xFFFF, ReadoutSame(127, 127)),

@@ -20,6 +20,10 @@ LINK_ACK that arrives after the deadline, while the retransmission still waits f
 cell (message latency of a real-time mesh), is taken: the retransmission is withdrawn.
 Broadcasts (beacons, command floods) have their own small queue, go first and are
 never acknowledged.
+
+A readout record in which nothing changed, and which repeats the newest record the same
+parent acknowledged but for its frame, goes as a READOUT_SAME: three payload bytes, no
+acknowledgement, no retry (:attr:`LinkLayer.same_records`, docs/time.md).
 """
 
 from __future__ import annotations

@@ -29,6 +29,14 @@ then refer to a sample the host never got. So a bridge whose record failed sends
 record with every unchanged element expanded to the last sample it passed on for that
 element (a relay keeps the last sample of every element of its subtree), and the host
 takes an unchanged element as known only when it knew the element's previous frame.
+
+A record in which nothing changed may come as a READOUT_SAME (the link layer sends it so
+when it repeats the record the parent last acknowledged: docs/time.md), which
+:meth:`FrameReadout.child_same` rebuilds from the child's last whole record, or drops
+when it has none that matches: then, as for silence, the child's elements are missing in
+that frame, never unchanged. A lost one held no sample, so the references stay good
+through it; and an element a bridge listed missing goes, the next time it passes it on
+unchanged, as the sample it keeps of it, so the host knows it again at once.
 """
 
 from __future__ import annotations
@@ -476,7 +484,8 @@ class FrameReadout:
                         self._last.pop(b, None)
                         self._last_at.pop(b, None)
                         self._owed.discard(b)
-                self._refs.pop(c, None)
+                # (its last whole record stays: a child back after it was forgotten may still
+                # refer to it, and the record says exactly what it said)
                 self.counters["readout_children_forgotten"] += 1
                 self._changed = True  # a frame that waited for this child may be complete now
 

@@ -16,8 +16,9 @@ Run: ``.venv/bin/python bench/bench_readout.py [--quick]`` (or ``make bench``). 
    subtree's samples in and out, half duplex) for one gateway and for four;
 3. event-based traffic against periodic on a 4x4 at 100 Hz, idle and with four moving
    presses: bits put on the cells, and record bytes on the gateway's serial line; and what
-   a leaf's record of one frame costs on its cell with a sample and unchanged (every frame
-   has one record from every bridge either way: the frame's fixed cost bounds the ratio);
+   a leaf's record of one frame costs on its cell with a sample, unchanged, and unchanged as
+   a READOUT_SAME (no acknowledgement, three payload bytes: every frame has one record from
+   every bridge either way, so the frame's fixed cost bounds the ratio);
 4. delivered sample bits at the gateway over the raw bitrate of one of its cells, at
    250 Hz on grids with the gateway in a corner (two cells) and in the middle (four), and
    the ceiling of that share for full frames (the header, the record's own fields, the
@@ -42,7 +43,16 @@ from cellbridge.emulator.firmware.transceiver import PREAMBLE_BITS, TransceiverC
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.virtual import CLOCK_HZ, VirtualMesh
 from cellbridge.emulator.world.world import Contact, World
-from cellbridge.protocol import CRC_LEN, HEADER_LEN, FrameType, Mode, Readout, ReadoutSample, StreamDecoder
+from cellbridge.protocol import (
+    CRC_LEN,
+    HEADER_LEN,
+    FrameType,
+    Mode,
+    Readout,
+    ReadoutSame,
+    ReadoutSample,
+    StreamDecoder,
+)
 from cellbridge.protocol.messages import pack_payload
 
 WINDOW = 6 * CLOCK_HZ // 1000  # FirmwareConfig.readout_window's default
@@ -157,19 +167,23 @@ def traffic(quick: bool) -> None:
             serial[periodic] = sum(len(c) for _, c in vm.serial_chunks[1][n0:]) / secs
         print(f"{label:<8} {bits[True]:>16.0f} {bits[False]:>8.0f} {bits[False] / bits[True]:>6.1%} "
               f"{serial[True]:>15.0f} {serial[False]:>8.0f} {serial[False] / serial[True]:>6.1%}")
-    # Why the ratio stays high: every frame, each leaf sends a record either way, and what
-    # the two differ in (a sample or an unchanged id) is small beside what both cost.
+    # What bounds the ratio: every frame, each leaf sends a record either way. A whole one
+    # costs its header, its own fields and an acknowledgement beside the sample or id it
+    # carries; one in which nothing changed goes as a READOUT_SAME (the parent acknowledged
+    # the record it repeats): a header, three payload bytes, no acknowledgement.
     tc = TransceiverConfig()
     ack = 8 * 24 + PREAMBLE_BITS + tc.sifs_bits
 
-    def airtime(r: Readout) -> int:
-        return 8 * (HEADER_LEN + CRC_LEN + len(pack_payload(r))) + PREAMBLE_BITS + tc.difs_bits + ack
+    def airtime(r: Readout | ReadoutSame, acked: bool = True) -> int:
+        return 8 * (HEADER_LEN + CRC_LEN + len(pack_payload(r))) + PREAMBLE_BITS + tc.difs_bits + (ack if acked else 0)
 
     sampled = airtime(Readout(10**5, 100, Mode.COUNTER, 1, (ReadoutSample(7, 19_600, 15_800, 0),), (), (), 52_000))
     unchanged = airtime(Readout(10**5, 100, Mode.COUNTER, 1, (), (7,), (), 52_000))
+    same = airtime(ReadoutSame(1, 0), acked=False)
     print(f"a leaf's record of one frame, with its acknowledgement and gaps: {sampled} bits with its sample, "
           f"{unchanged} unchanged ({unchanged / sampled:.0%}); header, CRC, record fields, preamble, DIFS and "
-          f"acknowledgement {airtime(Readout(10**5, 100, Mode.COUNTER, 1, ()))} bits of either")
+          f"acknowledgement {airtime(Readout(10**5, 100, Mode.COUNTER, 1, ()))} bits of either; unchanged as a "
+          f"READOUT_SAME, with its gaps, {same} ({same / sampled:.0%})")
 
 
 def efficiency(quick: bool) -> None:

@@ -43,6 +43,7 @@ from cellbridge.protocol.messages import (
     Neighbour,
     Op,
     Readout,
+    ReadoutSame,
     ReadoutSample,
     Sample,
     SampleFlags,
@@ -57,7 +58,7 @@ __all__ = [
     "CRC_CHECK",
     "Beacon", "BridgeStatus", "Bundle", "Command", "CommandReply", "Data", "DuplicateFilter",
     "Flags", "Fragment", "Frame", "FrameType", "Hello", "HostReceiver", "LinkAck", "MeshTime", "Message", "Mode",
-    "Neighbour", "Op", "ProtocolError", "Readout", "ReadoutSample", "Reassembler", "RecentFrames", "Sample", "SampleFlags", "Status",
+    "Neighbour", "Op", "ProtocolError", "Readout", "ReadoutSame", "ReadoutSample", "Reassembler", "RecentFrames", "Sample", "SampleFlags", "Status",
     "Raw", "StreamDecoder", "addressed_to", "crc16", "decode", "encode", "encode_stream", "fragment", "own",
     "peek", "reframe", "to_serial", "unpack_payload",
 ]

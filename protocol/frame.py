@@ -46,7 +46,7 @@ from cellbridge.protocol.messages import (
 READ_VERSIONS = frozenset({1, 2, 3, 4})
 #: The first version that has each frame type; older versions did not know it (a frame of
 #: that type and an older version is dropped as an unknown type).
-_SINCE = {int(FrameType.READOUT): 4}
+_SINCE = {int(FrameType.READOUT): 4, int(FrameType.READOUT_SAME): 4}
 #: The frame types each version has: one lookup per decoded frame checks version and type.
 _TYPES_OF = {v: frozenset(t for t in MESSAGE_CLASSES if _SINCE.get(t, 0) <= v) for v in READ_VERSIONS}
 MAX_FRAME = 255  #: whole frame, header to CRC, before COBS

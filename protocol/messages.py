@@ -46,6 +46,9 @@ class FrameType(IntEnum):
     LINK_ACK = 7
     BUNDLE = 8
     READOUT = 9  #: version 4: one skin frame of a subtree, every element accounted for
+    #: version 4, between bridges only: a READOUT whose every element is unchanged, told as
+    #: "the elements of my record ``ref``, unchanged, ``step`` frames later"
+    READOUT_SAME = 10
 
 
 class Mode(IntEnum):
@@ -743,11 +746,57 @@ class Readout:
         return len(self.samples) + len(self.unchanged) + len(self.missing)
 
 
-Message = Data | Beacon | Hello | BridgeStatus | Command | CommandReply | LinkAck | Bundle | Readout
+@dataclass(frozen=True, slots=True)
+class ReadoutSame:
+    """A bridge's READOUT of one frame in which every element it accounts for is unchanged,
+    told relative to an earlier record of its that its parent acknowledged (``ref``): "frame
+    ``ref.index + step``: every element of record ``ref``, unchanged; rate, mode,
+    oversampling, span and root as in ``ref``". It goes to the parent only (never on a
+    serial line), unacknowledged: an idle skin's records were mostly a header, the record's
+    own fields and a LINK_ACK around a one-byte id (docs/protocol.md §4). The parent rebuilds
+    the whole :class:`Readout` from the record it holds, or, holding no record that matches
+    ``ref``, drops it: the elements are then missing in that frame, never unchanged.
+
+    ``step``: frames after the referenced record's (1-127: a bridge sends a whole record at
+    least every 128 frames, so a parent that lost its copy waits that long at most).
+    ``ref``: the low 7 bits of the referenced record's frame ``seq`` (a check that the
+    parent's copy is the one meant)."""
+
+    frame_type: ClassVar[FrameType] = FrameType.READOUT_SAME
+    step: int
+    ref: int
+
+    def to_wire(self) -> list[Any]:
+        return [self.step, self.ref]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> ReadoutSame:
+        step, ref = _array(obj, 2, "READOUT_SAME")
+        if type(step) is not int or not 1 <= step <= SAME_STEP_MAX:
+            raise _bad("READOUT_SAME", f"step must be an integer in 1..{SAME_STEP_MAX}, got {step!r}")
+        if type(ref) is not int or not 0 <= ref <= SAME_REF_MASK:
+            raise _bad("READOUT_SAME", f"ref must be an integer in 0..{SAME_REF_MASK}, got {ref!r}")
+        return cls(step, ref)
+
+    def rebuild(self, ref: Readout) -> Readout:
+        """The whole record this one stands for, given the record ``ref`` it refers to (the
+        caller checked ``ref``'s seq): every element ``ref`` listed, unchanged."""
+        ids = sorted((*(s.bridge for s in ref.samples), *ref.unchanged, *ref.missing))
+        return Readout(ref.index + self.step, ref.rate, ref.mode, ref.oversampling, (), tuple(ids), (),
+                       ref.span_us, 0, 1, ref.root)
+
+
+#: A READOUT_SAME's largest ``step`` (a msgpack fixint: its payload is 3 bytes)
+SAME_STEP_MAX = 127
+#: A READOUT_SAME's ``ref``: this many low bits of the referenced record's ``seq``
+SAME_REF_MASK = 0x7F
+
+
+Message = Data | Beacon | Hello | BridgeStatus | Command | CommandReply | LinkAck | Bundle | Readout | ReadoutSame
 
 MESSAGE_CLASSES: dict[int, type[Any]] = {
     cls.frame_type: cls
-    for cls in (Data, Beacon, Hello, BridgeStatus, Command, CommandReply, LinkAck, Bundle, Readout)
+    for cls in (Data, Beacon, Hello, BridgeStatus, Command, CommandReply, LinkAck, Bundle, Readout, ReadoutSame)
 }
 
 
@@ -768,7 +817,7 @@ def pack_payload(message: Message) -> bytes:
 _OLD_PARSERS: dict[int, dict[int, Any]] = {
     1: {FrameType.DATA: Data.from_wire_v1, FrameType.BEACON: Beacon.from_wire_v1, FrameType.HELLO: Hello.from_wire_v1},
     2: {FrameType.DATA: Data.from_wire_v2},
-    3: {},  # version 4 only added READOUT: every version 3 payload reads as today's
+    3: {},  # version 4 only added READOUT (and READOUT_SAME): every version 3 payload reads as today's
 }
 
 

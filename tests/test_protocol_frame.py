@@ -94,7 +94,7 @@ def test_header_writes_version_4() -> None:
 @pytest.mark.parametrize(
     "offset,value,cause",
     [(0, 0, "version"), (0, 5, "version"), (0, 0xFF, "version"), (1, 0x20, "must_understand"),
-     (1, 0x80, "must_understand"), (2, 0, "type"), (2, 10, "type"), (2, 99, "type")],
+     (1, 0x80, "must_understand"), (2, 0, "type"), (2, 11, "type"), (2, 99, "type")],
 )
 def test_header_policy(offset: int, value: int, cause: str) -> None:
     body = bytearray(encode(SAMPLE)[:-CRC_LEN])

@@ -77,7 +77,8 @@ def test_the_vectors_in_the_document_are_current() -> None:
 def test_every_frame_type_has_a_vector() -> None:
     frames = [_json(v) for v in VECTORS]
     types = {f["type"] for f in frames}
-    assert types == {"DATA", "BEACON", "HELLO", "STATUS", "CMD", "CMD_REPLY", "LINK_ACK", "BUNDLE", "READOUT"}
+    assert types == {"DATA", "BEACON", "HELLO", "STATUS", "CMD", "CMD_REPLY", "LINK_ACK", "BUNDLE", "READOUT",
+                     "READOUT_SAME"}
     assert any(f["flags"] for f in frames)
     assert any("tag" in f["payload"] for f in frames)  # fragments
     # version 2's fields, each shown with a value other than its default

@@ -53,6 +53,7 @@ from cellbridge.protocol import (
     ProtocolError,
     Raw,
     Readout,
+    ReadoutSame,
     ReadoutSample,
     RecentFrames,
     Sample,
@@ -86,6 +87,7 @@ _MS = 50_000  # cycles per millisecond at 50 MHz
 _PARSED = frozenset({int(FrameType.BEACON), int(FrameType.CMD), int(FrameType.LINK_ACK)})  # acted on here
 _BUNDLE = int(FrameType.BUNDLE)
 _READOUT = int(FrameType.READOUT)
+_READOUT_SAME = int(FrameType.READOUT_SAME)
 _OVERFLOWS = 0x03  # the sample flags a readout record carries (its state says the rest)
 #: A relay takes a frame it forwarded this recently for a copy (a retransmission, a detour,
 #: a loop's return: all within the retries of a hop or the few hops of a loop); an older
@@ -432,8 +434,17 @@ class Firmware:
             except ProtocolError:
                 self.counters["rx_bad_readout"] += 1
                 return False
-            self.readout.child(src, record, tick)
+            self.readout.child(src, record, tick, f.seq)
             self._readout_at = tick
+            return True
+        if f.type == _READOUT_SAME and self.readout is not None and not f.flags & _FRAGMENT:
+            try:
+                same: ReadoutSame = unpack_payload(_READOUT_SAME, f.body)  # type: ignore[assignment]  # its payload
+            except ProtocolError:
+                self.counters["rx_bad_readout"] += 1
+                return False
+            if self.readout.child_same(src, same, tick):
+                self._readout_at = tick
             return True
         if f.type == _BUNDLE:
             try:
@@ -703,7 +714,8 @@ class Firmware:
                     self._own(self._aged(record, tick))
                 else:
                     self.link.enqueue_urgent(own(record, self.me, self._next_link_seq()), tick, self._readout_rank(),
-                                             self.readout.until(record), (record.root, record.rate, record.index))
+                                             self.readout.until(record), (record.root, record.rate, record.index),
+                                             record)
         while self.floods and self.floods[0][0] <= tick:
             self.link.broadcast(self.floods.pop(0)[1])
         beacon = False

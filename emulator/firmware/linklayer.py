@@ -20,6 +20,10 @@ LINK_ACK that arrives after the deadline, while the retransmission still waits f
 cell (message latency of a real-time mesh), is taken: the retransmission is withdrawn.
 Broadcasts (beacons, command floods) have their own small queue, go first and are
 never acknowledged.
+
+A readout record in which nothing changed, and which repeats the newest record the same
+parent acknowledged but for its frame, goes as a READOUT_SAME: three payload bytes, no
+acknowledgement, no retry (:attr:`LinkLayer.same_records`, docs/time.md).
 """
 
 from __future__ import annotations
@@ -30,10 +34,12 @@ from dataclasses import dataclass
 
 import msgpack
 from cellbridge.emulator.firmware.transceiver import Transceiver
-from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Flags, FrameType, Raw, reframe
+from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Flags, FrameType, Raw, Readout, ReadoutSame, reframe
+from cellbridge.protocol.messages import SAME_REF_MASK, SAME_STEP_MAX, pack_payload
 
 _ACK = int(Flags.ACK_REQUEST)
 _BUNDLE = int(FrameType.BUNDLE)
+_SAME = int(FrameType.READOUT_SAME)
 _HANDED_MEMORY = 512  # frames whose acknowledging neighbour is kept
 _BUNDLE_OVERHEAD = HEADER_LEN + CRC_LEN + 3  # header, CRC, msgpack array header (<= 3 bytes)
 
@@ -53,6 +59,7 @@ class _InFlight:
     #: dropped there as late); -1: not known, bounded by ``urgent_retries`` alone
     until: int = -1
     frame: object = None  #: a readout record's frame (records of a later frame wait for it)
+    record: Readout | None = None  #: a readout record's content (what a READOUT_SAME may refer to once acknowledged)
 
 
 class LinkLayer:
@@ -75,12 +82,24 @@ class LinkLayer:
         #: transmission can still end before the record's use-by tick (its parent's slot):
         #: the window of a level holds a record, its acknowledgement and one retry, and a
         #: record sent as soon as it was complete, before its own slot, has room for more
-        self.urgent: deque[tuple[int, Raw, int, int, object]] = deque()  # (tick queued, record, rank, until, frame)
+        #: (tick queued, record's frame, rank, until, frame, record)
+        self.urgent: deque[tuple[int, Raw, int, int, object, Readout | None]] = deque()
         self.urgent_retries = 3
         #: Whether a record asks for a per-hop acknowledgement (and gets its retry). Without,
         #: a lost record is listed missing by the relay above it all the same; the real-time
         #: shells send records so, since an acknowledgement there crosses two processes.
         self.urgent_acks = True
+        #: Whether a record whose every element is unchanged goes as a READOUT_SAME (a 19-byte
+        #: frame, unacknowledged) when it differs from the last record the same parent
+        #: acknowledged only in its frame index (docs/protocol.md §4). An idle leaf's record
+        #: was a 35-byte frame and a 24-byte LINK_ACK every frame: ~60 % of it the header,
+        #: the record's own fields and the acknowledgement, for one id. A lost one leaves its
+        #: elements missing at the parent for that frame: nothing else was in it.
+        self.same_records = True
+        #: parent -> (seq, record): the newest whole record sent to it, once it acknowledged
+        #: it (a READOUT_SAME refers to it); none while a newer one waits for its acknowledgement
+        self._refs: dict[int, tuple[int, Readout]] = {}
+        self._newest_full: dict[int, int] = {}  # parent -> seq of the newest whole record sent to it
         #: a record still queued this long after it was (no parent meanwhile) is given up:
         #: its frame's slots are over, and the relays above listed it missing already
         self.urgent_ttl = 200 * 50_000
@@ -122,18 +141,37 @@ class LinkLayer:
         self.queue.append(frame)
         return True
 
-    def enqueue_urgent(self, frame: Raw, tick: int, rank: int = 0, until: int = -1, of: object = None) -> None:
+    def enqueue_urgent(self, frame: Raw, tick: int, rank: int = 0, until: int = -1, of: object = None,
+                       record: Readout | None = None) -> None:
         """Queue a readout record for the parent (bounded like the queue; counted when full);
         ``rank``: its backoff in slots (:meth:`Transceiver.send`); ``until``: the tick after
         which a retransmission is of no use (its parent's slot; -1: not known); ``of``: the
         frame it belongs to (any hashable value; None: not said, it then waits for no other
         record), so a record of a later frame waits until the earlier frame's records are
-        acknowledged or given up."""
+        acknowledged or given up; ``record``: the READOUT ``frame`` carries (None: not said,
+        it then always goes whole), so one that only repeats an acknowledged record's
+        unchanged elements goes as a READOUT_SAME (:attr:`same_records`)."""
         if len(self.urgent) >= self.queue_len:
             self.counters["urgent_drops"] += 1
             self.urgent_results.append(False)
             return
-        self.urgent.append((tick, frame, rank, until, of))
+        self.urgent.append((tick, frame, rank, until, of, record))
+
+    def _same(self, record: Readout, parent: int) -> ReadoutSame | None:
+        """``record`` as a READOUT_SAME to ``parent``, when that says exactly the same: every
+        element unchanged, and the elements, rate, mode, oversampling, span and root those
+        of the newest record ``parent`` acknowledged, at most :data:`SAME_STEP_MAX` frames
+        before (a parent that lost its copy is without this child's elements that long at
+        most). The parent rebuilds ``record`` from its copy; else None (it goes whole)."""
+        ref = self._refs.get(parent)
+        if ref is None or record.samples or record.missing or record.parts != 1:
+            return None
+        seq, r = ref
+        step = record.index - r.index
+        if not 1 <= step <= SAME_STEP_MAX or record.root != r.root or record.rate != r.rate:
+            return None
+        same = ReadoutSame(step, seq & SAME_REF_MASK)
+        return same if same.rebuild(r) == record else None
 
     def broadcast(self, data: bytes) -> None:
         if len(self.broadcasts) >= 16:
@@ -151,6 +189,8 @@ class LinkLayer:
                 self.radio.cancel(u.data)
                 self._on_radio = None
             del self.outstanding[(origin, seq)]
+            if u.record is not None and u.record.parts == 1 and self._newest_full.get(src) == seq:
+                self._refs[src] = (seq, u.record)  # (the newest whole record the parent holds)
             self.urgent_results.append(True)
             self.counters["frames_acked"] += 1
             return True
@@ -338,11 +378,23 @@ class LinkLayer:
             return True
         if parent is None or not self.urgent or self._held():
             return False
-        _, first, rank, until, of = self.urgent.popleft()
+        _, first, rank, until, of, record = self.urgent.popleft()
+        same = self._same(record, parent) if record is not None and self.same_records and self.urgent_acks else None
+        if same is not None:  # unacknowledged: its loss leaves its elements missing above, nothing more
+            data = reframe(Raw(_SAME, 0, first.origin, first.seq, first.hops, first.cost, pack_payload(same)),
+                           self.me, parent)
+            self._on_radio = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank,
+                                       until=until, frame=of)
+            self.counters["urgent_same"] += 1
+            radio.send(data, self.cells, tick, urgent=True, rank=rank)
+            return True
         data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent,
                        _ACK if self.urgent_acks else 0)
         u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank, until=until,
-                      frame=of)
+                      frame=of, record=record)
+        if record is not None:  # the parent's copy to refer to is this one once acknowledged, none till then
+            self._refs.pop(parent, None)
+            self._newest_full[parent] = first.seq
         if not self.urgent_acks:
             self._on_radio = u
             radio.send(data, self.cells, tick, urgent=True, rank=rank)

@@ -29,6 +29,14 @@ then refer to a sample the host never got. So a bridge whose record failed sends
 record with every unchanged element expanded to the last sample it passed on for that
 element (a relay keeps the last sample of every element of its subtree), and the host
 takes an unchanged element as known only when it knew the element's previous frame.
+
+A record in which nothing changed may come as a READOUT_SAME (the link layer sends it so
+when it repeats the record the parent last acknowledged: docs/time.md), which
+:meth:`FrameReadout.child_same` rebuilds from the child's last whole record, or drops
+when it has none that matches: then, as for silence, the child's elements are missing in
+that frame, never unchanged. A lost one held no sample, so the references stay good
+through it; and an element a bridge listed missing goes, the next time it passes it on
+unchanged, as the sample it keeps of it, so the host knows it again at once.
 """
 
 from __future__ import annotations
@@ -36,8 +44,17 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 
-from cellbridge.protocol import CRC_LEN, HEADER_LEN, MAX_FRAME, Mode, ProtocolError, Readout, ReadoutSample
-from cellbridge.protocol.messages import pack_payload
+from cellbridge.protocol import (
+    CRC_LEN,
+    HEADER_LEN,
+    MAX_FRAME,
+    Mode,
+    ProtocolError,
+    Readout,
+    ReadoutSame,
+    ReadoutSample,
+)
+from cellbridge.protocol.messages import SAME_REF_MASK, pack_payload
 
 _UNCHANGED = "u"
 _CLOCK_HZ = 50_000_000  #: chip cycles per second (``span_us`` and ``forget`` are in them)
@@ -114,6 +131,12 @@ class FrameReadout:
         #: said it unchanged here (:meth:`_note`)
         self._last_at: dict[int, tuple[int, int, int]] = {}
         self._expand = False  # the last record sent failed: expand unchanged states once
+        #: bridges this one listed missing in a record it sent: passed on as unchanged later,
+        #: each goes as the sample kept of it (the host knows an element again only from a
+        #: sample once it was unknown in a frame; a child's lost READOUT_SAME leaves one so)
+        self._owed: set[int] = set()
+        #: child -> (seq, record): its last whole one-part record, what its READOUT_SAME refers to
+        self._refs: dict[int, tuple[int, Readout]] = {}
         self._sent: set[tuple[int, int]] = set()  # frames already sent (late records are counted)
         self._sent_order: list[tuple[int, int]] = []
         self._until: dict[tuple[int, int], int] = {}  # frame sent -> its parent's slot (tick)
@@ -156,9 +179,17 @@ class FrameReadout:
                 self._last[self.me] = (mode, oversampling, state)
                 self._last_at[self.me] = (root, rate, index)
 
-    def child(self, src: int, record: Readout, tick: int) -> None:
+    def child(self, src: int, record: Readout, tick: int, seq: int | None = None, since: int | None = None) -> None:
         """A child's record (``src``: the neighbour that sent it). A late one (its frame's
-        record already went) still says which bridges the child stands for."""
+        record already went) still says which bridges the child stands for. ``seq``: the
+        frame's sequence number when it came whole (a READOUT_SAME of the child may refer
+        to it: :meth:`child_same`); ``since``: the frame of the record a READOUT_SAME
+        rebuilt this one from."""
+        if seq is not None and record.parts == 1:
+            self._refs.pop(src, None)
+            self._refs[src] = (seq, record)
+            if len(self._refs) > 64:  # (bounded: the least recently refreshed child's goes)
+                del self._refs[next(iter(self._refs))]
         self._heard_at[src] = tick
         self._now = tick
         self._changed = True
@@ -182,7 +213,7 @@ class FrameReadout:
             # the root gateway died, bridge 3 unknown in two frames of three for 2 s.)
             if self._via.setdefault(b, src) == src:
                 mine.add(b)
-        self._note(record)
+        self._note(record, since)
         key = (record.rate, record.index)
         p = self._pending.get(key)
         nk = (record.root, record.rate)
@@ -219,7 +250,21 @@ class FrameReadout:
         for b in record.missing:
             p.got.setdefault(b, (m, o, "m"))
 
-    def _note(self, record: Readout) -> None:
+    def child_same(self, src: int, same: ReadoutSame, tick: int) -> bool:
+        """A child's READOUT_SAME: its record rebuilt from the record it refers to, and taken
+        as :meth:`child` takes a whole one. False (counted) when no record of that child
+        here matches its ``ref`` (this bridge restarted, or the child's reference is another
+        parent's): the frame then goes as if nothing came, its elements missing, never
+        unchanged."""
+        got = self._refs.get(src)
+        if got is None or got[0] & SAME_REF_MASK != same.ref:
+            self.counters["readout_same_unknown"] += 1
+            return False
+        self.counters["readout_same"] += 1
+        self.child(src, same.rebuild(got[1]), tick, since=got[1].index)
+        return True
+
+    def _note(self, record: Readout, since: int | None = None) -> None:
         """Keep, per bridge of a child's record, the sample that is its reference (what an
         *unchanged* of it refers to), for the expansion after a failed record. A sample
         counts only when it is not older than the state kept (a retry whose first attempt
@@ -228,7 +273,13 @@ class FrameReadout:
         as the bridge's sample). An *unchanged* keeps the reference only when it follows
         the frame kept: a frame of the bridge that did not come here (missing, or sent up
         another route) may have held a new sample, so the one kept is forgotten and an
-        *unchanged* then stays one (the host knows it only if it knew the frame before)."""
+        *unchanged* then stays one (the host knows it only if it knew the frame before).
+
+        ``since``: ``record`` was rebuilt from a READOUT_SAME referring to the child's record
+        of frame ``since``. Everything the child sent after that record was a READOUT_SAME
+        (a whole record sent after it would be its reference now), which carries no sample:
+        one lost on the way lost nothing, so a sample kept through frame ``since`` or later
+        is still the reference, whatever frames went missing here since."""
         chain = (record.root, record.rate)
         at_of = self._last_at.get
         k = record.index
@@ -243,7 +294,8 @@ class FrameReadout:
             if b == self.me:
                 continue
             at = at_of(b)
-            if at is not None and at[:2] == chain and at[2] <= k <= at[2] + 1:
+            if at is not None and at[:2] == chain and at[2] <= k and (
+                    k <= at[2] + 1 or (since is not None and since <= at[2])):
                 self._last_at[b] = (chain[0], chain[1], k)
             elif at is None or at[:2] != chain or k > at[2]:
                 self._last.pop(b, None)
@@ -431,6 +483,9 @@ class FrameReadout:
                         del self._via[b]
                         self._last.pop(b, None)
                         self._last_at.pop(b, None)
+                        self._owed.discard(b)
+                # (its last whole record stays: a child back after it was forgotten may still
+                # refer to it, and the record says exactly what it said)
                 self.counters["readout_children_forgotten"] += 1
                 self._changed = True  # a frame that waited for this child may be complete now
 
@@ -468,19 +523,23 @@ class FrameReadout:
         else:  # a frame of another rate than this bridge's: its children's states, passed on
             self.counters["readout_passed_on"] += 1
         expand, self._expand = self._expand, False
+        owed = self._owed
         groups: dict[tuple[Mode, int], tuple[list[ReadoutSample], list[int], list[int]]] = {}
         for b in sorted(states):
             mode, over, st = states[b]
-            if st == _UNCHANGED and expand and b in self._last and self._refers(b, p):
+            if st == _UNCHANGED and (expand or b in owed) and b in self._last and self._refers(b, p):
                 mode, over, st = self._last[b]
                 self.counters["readout_expanded"] += 1
             g = groups.setdefault((mode, over), ([], [], []))
             if isinstance(st, ReadoutSample):
                 g[0].append(st if st.bridge == b else st._replace(bridge=b))
+                owed.discard(b)
             elif st == _UNCHANGED:
                 g[1].append(b)
+                owed.discard(b)  # (no sample kept to send: the host knows it again at its next)
             else:
                 g[2].append(b)
+                owed.add(b)
         missing = sum(len(g[2]) for g in groups.values())
         if missing:
             self.counters["readout_missing"] += missing

@@ -18,6 +18,7 @@ from cellbridge.protocol import (
     Neighbour,
     Op,
     Readout,
+    ReadoutSame,
     ReadoutSample,
     Sample,
     Status,
@@ -75,9 +76,11 @@ def readouts(draw: st.DrawFn, max_elements: int = 24) -> Readout:
 
 
 readout = readouts()
-#: the messages of versions 1 to 3 (READOUT came with version 4)
+#: a READOUT_SAME (version 4): any step and ref in their ranges
+readout_same = st.builds(ReadoutSame, st.integers(1, 127), st.integers(0, 127))
+#: the messages of versions 1 to 3 (READOUT and READOUT_SAME came with version 4)
 simple_messages_v3 = data | beacon | hello | status | command | reply | link_ack
-simple_messages = simple_messages_v3 | readout
+simple_messages = simple_messages_v3 | readout | readout_same
 
 header = dict(src=u16, dst=u16, origin=u16, seq=u16, hops=u8, cost=u16, flags=st.integers(0, 0x0F))
 
@@ -109,5 +112,5 @@ frames_v3 = frames_of(simple_messages_v3) | st.builds(Frame, payload=_bundles(fr
 messages_by_type = {
     FrameType.DATA: data, FrameType.BEACON: beacon, FrameType.HELLO: hello, FrameType.STATUS: status,
     FrameType.CMD: command, FrameType.CMD_REPLY: reply, FrameType.LINK_ACK: link_ack, FrameType.BUNDLE: bundle,
-    FrameType.READOUT: readout,
+    FrameType.READOUT: readout, FrameType.READOUT_SAME: readout_same,
 }

@@ -1,0 +1,204 @@
+"""READOUT_SAME on the readout schedule: a record in which nothing changed goes as three
+payload bytes without an acknowledgement, and what is lost or cannot be rebuilt comes out
+*missing*, never *unchanged* (docs/time.md, "Nothing changed: READOUT_SAME").
+
+Sans-I/O (the link layer alone, a relay's :class:`FrameReadout` alone), then a whole
+event-based mesh against the emulator's ground truth with loss and a leaf killed."""
+
+from __future__ import annotations
+
+import random
+from collections import Counter
+from collections.abc import Iterator
+
+import pytest
+from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.firmware import Firmware, _stagger
+from cellbridge.emulator.firmware.linklayer import LinkLayer
+from cellbridge.emulator.firmware.readout import FrameReadout, ReadoutConfig
+from cellbridge.emulator.firmware.reporting import ReportingMode
+from cellbridge.emulator.firmware.transceiver import Transceiver
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import VirtualMesh
+from cellbridge.protocol import Flags, FrameType, Mode, Readout, ReadoutSame, ReadoutSample, Sample, decode, own
+
+from test_emulator_readout import Truth, records
+
+PARENT = 9
+
+
+@pytest.fixture
+def truth(monkeypatch: pytest.MonkeyPatch) -> Iterator[Truth]:
+    """(bridge, index) -> (c1, c2, sent) of every state a bridge handed its readout."""
+    log: Truth = {}
+    real = Firmware._readout_sample
+
+    def logged(self: Firmware, s: Sample, kept: bool, start: int) -> None:
+        log[(self.me, s.index)] = (s.c1, s.c2, kept)
+        real(self, s, kept, start)
+
+    monkeypatch.setattr(Firmware, "_readout_sample", logged)
+    yield log
+
+
+def _unchanged(index: int, ids: tuple[int, ...] = (5,)) -> Readout:
+    return Readout(index, 100, Mode.COUNTER, 1, (), ids, (), 2840, 0, 1, 1)
+
+
+def _run(link: LinkLayer, tick: int, until: int) -> tuple[int, list[bytes]]:
+    """Drive ``link`` by its own ``next_tick`` up to ``until``: (tick, transmissions started)."""
+    sent: list[bytes] = []
+    for _ in range(200):
+        out, _used = link.advance(tick, PARENT, 0, 1)
+        if out is not None:
+            sent.append(out[0])
+        t = link.next_tick
+        if t is None or t > until:
+            break
+        tick = max(tick + 1, t)
+    return tick, sent
+
+
+def _send(link: LinkLayer, record: Readout, seq: int, tick: int, ack: bool = True) -> tuple[int, bytes]:
+    """Queue ``record`` (frame seq ``seq``) and run the link until it went; acknowledge it
+    when asked and it asked for it: (tick, the frame put on the cell)."""
+    link.enqueue_urgent(own(record, 5, seq), tick, until=10**12, of=(1, 100, record.index), record=record)
+    tick, sent = _run(link, tick, tick + 60_000)
+    assert len(sent) == 1
+    if decode(sent[0]).flags & Flags.ACK_REQUEST:
+        if ack:
+            assert link.acked(5, seq, PARENT, tick)
+        else:  # its acknowledgement lost: given up (its retries are not what is looked at here)
+            del link.outstanding[(5, seq)]
+    return tick, sent[0]
+
+
+def test_an_all_unchanged_record_goes_as_a_readout_same_only_once_the_parent_acknowledged_the_record_it_repeats() -> None:
+    link = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    tick, first = _send(link, _unchanged(100), 40, 0, ack=False)  # whole, and its acknowledgement lost
+    assert decode(first).type is FrameType.READOUT
+    tick, second = _send(link, _unchanged(101), 41, tick + 10**6)  # nothing to refer to yet: whole
+    assert decode(second).type is FrameType.READOUT and decode(second).flags & Flags.ACK_REQUEST
+    tick, third = _send(link, _unchanged(104), 42, tick + 10**6)
+    f = decode(third)
+    assert f.type is FrameType.READOUT_SAME and f.payload == ReadoutSame(3, 41) and len(third) == 19
+    assert not f.flags & Flags.ACK_REQUEST and not link.outstanding  # never retried
+    # a record that says more than its reference (a sample, a missing element, another
+    # element set, span or root) goes whole, and leaves no reference until acknowledged
+    for other in (Readout(105, 100, Mode.COUNTER, 1, (ReadoutSample(5, 1, 2, 0),), (), (), 2840, 0, 1, 1),
+                  Readout(106, 100, Mode.COUNTER, 1, (), (5,), (8,), 2840, 0, 1, 1), _unchanged(107, (5, 8)),
+                  Readout(108, 100, Mode.COUNTER, 1, (), (5,), (), 9999, 0, 1, 1),
+                  Readout(109, 100, Mode.COUNTER, 1, (), (5,), (), 2840, 0, 1, 2)):
+        tick, data = _send(link, other, 50 + other.index % 100, tick + 10**6, ack=False)
+        assert decode(data).type is FrameType.READOUT
+    tick, data = _send(link, _unchanged(110), 60, tick + 10**6)  # (whole: the last one was not acknowledged)
+    assert decode(data).type is FrameType.READOUT
+    # at most 127 frames after its reference
+    tick, data = _send(link, _unchanged(237), 61, tick + 10**6)
+    assert decode(data).payload == ReadoutSame(127, 60)
+    tick, data = _send(link, _unchanged(238), 62, tick + 10**6)
+    assert decode(data).type is FrameType.READOUT
+    assert link.counters["urgent_same"] == 2
+
+
+def test_an_acknowledgement_of_an_older_record_that_comes_after_a_newer_one_went_is_no_reference() -> None:
+    """The reference is the newest whole record sent to the parent: an older one whose
+    acknowledgement comes after a newer one was sent (its retry got through late) is a
+    record the parent has replaced since (it keeps each child's last)."""
+    link = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    link.enqueue_urgent(own(_unchanged(100, (5, 8)), 5, 40), 0, until=10**12, of=None, record=_unchanged(100, (5, 8)))
+    link.enqueue_urgent(own(_unchanged(101), 5, 41), 0, until=10**12, of=None, record=_unchanged(101))
+    tick, sent = _run(link, 0, 60_000)
+    assert len(sent) == 2 and set(link.outstanding) == {(5, 40), (5, 41)}  # (not frame-ordered here: of=None)
+    assert link.acked(5, 41, PARENT, tick) and link.acked(5, 40, PARENT, tick)  # 40's comes last
+    tick, data = _send(link, _unchanged(102), 42, tick + 10**6)
+    assert decode(data).payload == ReadoutSame(1, 41)  # the newest one, not the last acknowledged
+
+
+def _relay() -> tuple[FrameReadout, Counter[str]]:
+    c: Counter[str] = Counter()
+    return FrameReadout(5, ReadoutConfig(depths=4, window=1000), c), c
+
+
+def _frame(r: FrameReadout, k: int, tick: int, state: object = "u") -> Readout:
+    r.own(k, 100, Mode.COUNTER, 1, state, tick, 5000, 1)  # type: ignore[arg-type]  # a State
+    out = r.take(tick)
+    assert [x.index for x in out] == [k]
+    return out[0]
+
+
+def test_a_lost_or_unmatched_readout_same_leaves_the_childs_elements_missing_never_unchanged() -> None:
+    r, c = _relay()
+    ref = Readout(10, 100, Mode.COUNTER, 1, (ReadoutSample(7, 100, 200, 0),), (9,), (), 2840, 0, 1, 1)
+    r.child(7, ref, 0, seq=300)
+    first = _frame(r, 10, 1000, ReadoutSample(5, 1, 2, 0))
+    assert {s.bridge for s in first.samples} == {5, 7} and first.unchanged == (9,)
+    # frame 11: child 7's READOUT_SAME was lost on the cell: silence at the slot
+    eleven = _frame(r, 11, 2000)
+    assert eleven.missing == (7, 9) and eleven.unchanged == (5,)
+    # frame 12: one that refers to another record (seq 301, not 300) is not rebuilt
+    assert not r.child_same(7, ReadoutSame(2, 301 & 0x7F), 2500)
+    twelve = _frame(r, 12, 3000)
+    assert twelve.missing == (7, 9) and c["readout_same_unknown"] == 1
+    # frame 13: a matching one is the child's record of 13, every element unchanged; the
+    # elements this relay listed missing go as the samples it keeps of them (the host does
+    # not take an unchanged after a frame it did not know)
+    assert r.child_same(7, ReadoutSame(3, 300 & 0x7F), 3500)
+    thirteen = _frame(r, 13, 4000)
+    assert [(s.bridge, s.c1, s.c2) for s in thirteen.samples] == [(7, 100, 200)]
+    assert thirteen.unchanged == (5, 9) and thirteen.missing == ()  # (9: no sample of it kept here)
+    # frame 14: the debt is paid, unchanged again
+    assert r.child_same(7, ReadoutSame(4, 300 & 0x7F), 4500)
+    fourteen = _frame(r, 14, 5000)
+    assert fourteen.unchanged == (5, 7, 9) and not fourteen.samples
+    assert c["readout_same"] == 2
+
+
+def test_a_bridge_that_restarted_keeps_no_record_to_rebuild_from() -> None:
+    r, c = _relay()  # (a parent that restarted: it holds none of its children's records)
+    assert not r.child_same(7, ReadoutSame(1, 44), 0)
+    out = _frame(r, 10, 1000)
+    assert out.unchanged == (5,) and 7 not in out.unchanged
+    assert c["readout_same_unknown"] == 1
+
+
+def test_an_event_based_skin_sends_readout_sames_and_every_element_frame_it_knows_is_right(truth: Truth) -> None:
+    """An idle event-based 4x4 with 1 % loss per hop and a leaf killed mid-run: most records
+    go as READOUT_SAME, and the gateway's records say of each element-frame what its bridge
+    sampled: a sample is the reading of the frame or of the last sample sent (an expansion),
+    an unchanged element after a frame the host knew lies within the threshold of the host's
+    reading, and the dead leaf is never unchanged after its death."""
+    mesh = meshgen.grid(4, 4, loss=0.01, gateways=(1,))
+    vm = VirtualMesh(mesh, seed=11, readout=True, settings=Settings(reporting=ReportingMode(40, 1000)))
+    vm.kill(16, at=4.0)  # a leaf in the far corner
+    vm.run(6.0)
+    same = sum(fw.link.counters.get("urgent_same", 0) for fw in vm.nodes.values())
+    whole = sum(fw.counters.get("readout_records", 0) for b, fw in vm.nodes.items() if b != 1)
+    assert same > 0.5 * whole, (same, whole)
+    got = records(vm)
+    reading: dict[int, tuple[int, int]] = {}
+    prev_known: dict[int, int] = {}
+    sent: dict[int, list[tuple[int, int, int]]] = {}  # bridge -> (index, c1, c2) of its samples sent
+    refresh = vm.nodes[2].config.readout_refresh
+    for (b, k), (c1, c2, kept) in sorted(truth.items(), key=lambda x: x[0][1]):
+        if kept or k % refresh == _stagger(b, refresh):  # (the readout's refresh sends one too)
+            sent.setdefault(b, []).append((k, c1, c2))
+    unchanged = 0
+    for (b, k) in sorted(got, key=lambda x: (x[1], x[0])):
+        state, s = got[(b, k)]
+        if b == 16 and k > 405:
+            assert state == "m", (b, k, state)  # dead: silence is missing, never unchanged
+        if state == "s":
+            assert s is not None
+            now = truth[(b, k)][:2]
+            last_sent = [(c1, c2) for (j, c1, c2) in sent.get(b, []) if j <= k][-1:]
+            assert (s.c1, s.c2) == now or [(s.c1, s.c2)] == last_sent, (b, k)
+            reading[b] = (s.c1, s.c2)
+        elif state == "u" and prev_known.get(b) == k - 1 and b in reading:
+            c1, c2, _ = truth[(b, k)]
+            assert abs(c1 - reading[b][0]) <= 40 and abs(c2 - reading[b][1]) <= 40, (b, k)
+            unchanged += 1
+        elif state != "u":
+            reading.pop(b, None)
+        prev_known[b] = k if state != "m" else -1
+    assert unchanged > 3000

@@ -15,50 +15,22 @@ from collections.abc import Iterator
 
 import pytest
 from cellbridge.emulator.firmware.commands import Settings
-from cellbridge.emulator.firmware.firmware import Firmware
 from cellbridge.emulator.firmware.readout import FrameReadout, ReadoutConfig
 from cellbridge.emulator.firmware.reporting import ReportingMode
 from cellbridge.emulator.firmware.sampling import Sampler
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.virtual import VirtualMesh
 from cellbridge.emulator.world.world import Contact, World
-from cellbridge.protocol import FrameType, Mode, Readout, ReadoutSample, Sample
+from cellbridge.protocol import FrameType, Mode, Readout, ReadoutSample
 
 from support.payloads import payload_as
-
-Truth = dict[tuple[int, int], tuple[int, int, bool]]  # (bridge, index) -> (c1, c2, sent as a sample)
+from support.readout_truth import Truth, log_readout_states, records
 
 
 @pytest.fixture
 def truth(monkeypatch: pytest.MonkeyPatch) -> Iterator[Truth]:
-    log: Truth = {}
-    real = Firmware._readout_sample
-
-    def logged(self: Firmware, s: Sample, kept: bool, start: int) -> None:
-        log[(self.me, s.index)] = (s.c1, s.c2, kept)
-        real(self, s, kept, start)
-
-    monkeypatch.setattr(Firmware, "_readout_sample", logged)
-    yield log
-
-
-def records(vm: VirtualMesh) -> dict[tuple[int, int], tuple[str, ReadoutSample | None]]:
-    """(bridge, index) -> its state in the gateways' records (each element-frame once)."""
-    out: dict[tuple[int, int], tuple[str, ReadoutSample | None]] = {}
-    for frames in vm.frames.values():
-        for f in frames:
-            if f.type is FrameType.READOUT:
-                r: Readout = f.payload  # type: ignore[assignment]  # a READOUT frame's payload
-                for s in r.samples:
-                    assert (s.bridge, r.index) not in out, "an element-frame in two records"
-                    out[(s.bridge, r.index)] = ("s", s)
-                for b in r.unchanged:
-                    assert (b, r.index) not in out, "an element-frame in two records"
-                    out[(b, r.index)] = ("u", None)
-                for b in r.missing:
-                    assert (b, r.index) not in out, "an element-frame in two records"
-                    out[(b, r.index)] = ("m", None)
-    return out
+    """(bridge, index) -> (c1, c2, sent) of every state a bridge handed its readout."""
+    yield log_readout_states(monkeypatch)
 
 
 def test_periodic_records_under_loss_and_a_dead_relay_say_what_each_bridge_sampled(truth: Truth) -> None:

@@ -13,16 +13,16 @@ from collections.abc import Iterator
 
 import pytest
 from cellbridge.emulator.firmware.commands import Settings
-from cellbridge.emulator.firmware.firmware import Firmware, _stagger
+from cellbridge.emulator.firmware.firmware import _stagger
 from cellbridge.emulator.firmware.linklayer import LinkLayer
 from cellbridge.emulator.firmware.readout import FrameReadout, ReadoutConfig
 from cellbridge.emulator.firmware.reporting import ReportingMode
 from cellbridge.emulator.firmware.transceiver import Transceiver
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.virtual import VirtualMesh
-from cellbridge.protocol import Flags, FrameType, Mode, Readout, ReadoutSame, ReadoutSample, Sample, decode, own
+from cellbridge.protocol import Flags, FrameType, Mode, Readout, ReadoutSame, ReadoutSample, decode, own
 
-from test_emulator_readout import Truth, records
+from support.readout_truth import Truth, log_readout_states, records
 
 PARENT = 9
 
@@ -30,15 +30,7 @@ PARENT = 9
 @pytest.fixture
 def truth(monkeypatch: pytest.MonkeyPatch) -> Iterator[Truth]:
     """(bridge, index) -> (c1, c2, sent) of every state a bridge handed its readout."""
-    log: Truth = {}
-    real = Firmware._readout_sample
-
-    def logged(self: Firmware, s: Sample, kept: bool, start: int) -> None:
-        log[(self.me, s.index)] = (s.c1, s.c2, kept)
-        real(self, s, kept, start)
-
-    monkeypatch.setattr(Firmware, "_readout_sample", logged)
-    yield log
+    yield log_readout_states(monkeypatch)
 
 
 def _unchanged(index: int, ids: tuple[int, ...] = (5,)) -> Readout:

@@ -92,7 +92,7 @@ def test_fuzzed_readout_same_frames_raise_only_protocol_error_and_decode_only_wi
     import random
 
     from support.protocol_v1 import encode_v1, encode_v2
-    from test_protocol_fuzz import mutate
+    from support.protocol_wire import mutate
 
     seeds = [Frame(6, 2, 6, 815, ReadoutSame(3, 44)), Frame(300, 0xFFFE, 300, 0xFFFF, ReadoutSame(127, 127)),
              Frame(1, 2, 1, 0, ReadoutSame(1, 0))]
@@ -100,7 +100,7 @@ def test_fuzzed_readout_same_frames_raise_only_protocol_error_and_decode_only_wi
     rng = random.Random(20261201)
     decoded = sames = 0
     for _ in range(20_000):
-        data = mutate(rng, rng.choice(wire))
+        data = mutate(rng, rng.choice(wire), wire)
         try:
             f = decode(data)
         except ProtocolError:

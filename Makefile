@@ -70,14 +70,15 @@ lint: $(STAMP)
 TEST_JOBS ?= 2
 
 # The numba kernels compile into their cache (about 30 s of one core on a fresh checkout) while
-# lint runs on the other: the suite then starts with them cached (tests/conftest.py's warm-up
-# finds them there in a second: the same warm-up as this). A background job of this shell
+# lint runs on the other: the suite then starts with them cached, and is told so
+# (CELLBRIDGE_KERNELS_WARMED: tests/conftest.py's warm-up, the same as this one, which a
+# pytest started by hand runs, is not done a second time). A background job of this shell
 # ignores Ctrl-C (SIGINT: a non-interactive shell's jobs do), so the trap stops it with the rest.
 test: $(STAMP) tools
 	@$(PY) tests/support/warm_kernels.py & warm=$$!; \
 	trap 'kill $$warm 2>/dev/null; exit 130' INT TERM; \
 	$(MAKE) --no-print-directory lint; status=$$?; wait $$warm; exit $$status
-	$(PY) -m pytest -q -n $(TEST_JOBS) --dist worksteal
+	CELLBRIDGE_KERNELS_WARMED=1 $(PY) -m pytest -q -n $(TEST_JOBS) --dist worksteal
 
 # The fast lane: every test that stays in this process (tests/conftest.py marks those that
 # start a process or a pty `process`, and fails an unmarked one that does), on one worker.

@@ -60,17 +60,25 @@ lint: $(STAMP)
 # The suite runs on TEST_JOBS pytest-xdist workers (default 2: half its time is real
 # processes waiting on real time; its timing tests are built to pass with both cores busy).
 # `make test TEST_JOBS=0` runs it in one process, as `pytest` alone does.
+# --dist worksteal: each worker starts on one half of the collection, in its order, and a
+# worker that runs out takes the back half of what the other still has queued. A module's
+# tests mostly run on one worker, and its module-scoped set-up (a live skin, a pressed daemon,
+# a virtual skin's run) is made once. pytest-xdist's default (load) hands out runs of tests
+# in turn, ever shorter toward the end, so a module could have its tests and its set-up on
+# both workers; and a worker it had handed a long run of slow tests late kept them while the
+# other ran out of work (load takes nothing back). Stealing evens the two out to the end.
 TEST_JOBS ?= 2
 
 # The numba kernels compile into their cache (about 30 s of one core on a fresh checkout) while
-# lint runs on the other: the suite then starts with them cached (tests/conftest.py's warm-up
-# finds them there in a second: the same warm-up as this). A background job of this shell
+# lint runs on the other: the suite then starts with them cached, and is told so
+# (CELLBRIDGE_KERNELS_WARMED: tests/conftest.py's warm-up, the same as this one, which a
+# pytest started by hand runs, is not done a second time). A background job of this shell
 # ignores Ctrl-C (SIGINT: a non-interactive shell's jobs do), so the trap stops it with the rest.
 test: $(STAMP) tools
 	@$(PY) tests/support/warm_kernels.py & warm=$$!; \
 	trap 'kill $$warm 2>/dev/null; exit 130' INT TERM; \
 	$(MAKE) --no-print-directory lint; status=$$?; wait $$warm; exit $$status
-	$(PY) -m pytest -q -n $(TEST_JOBS)
+	CELLBRIDGE_KERNELS_WARMED=1 $(PY) -m pytest -q -n $(TEST_JOBS) --dist worksteal
 
 # The fast lane: every test that stays in this process (tests/conftest.py marks those that
 # start a process or a pty `process`, and fails an unmarked one that does), on one worker.

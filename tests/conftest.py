@@ -146,6 +146,10 @@ def _guarded(what: str, fn: Callable[..., Any]) -> Callable[..., Any]:
 
 #: s the kernels' warm-up before a distributed run may take (a cold cache on a busy machine: ~1-2 min)
 WARM_UP_LIMIT = 600
+#: Set (to 1) by ``make test`` on the suite it starts: its recipe ran the same warm-up beside
+#: lint and waited for it, so the controller's own would only load the kernels again (~2 s
+#: before any worker starts).
+WARMED_ENV = "CELLBRIDGE_KERNELS_WARMED"
 
 
 def _warm_kernel_cache(config: pytest.Config) -> None:
@@ -159,8 +163,8 @@ def _warm_kernel_cache(config: pytest.Config) -> None:
     cache holds them a worker or daemon loads them in a second. Only the controller of a
     distributed run does this (in one process a kernel is compiled once, where it is first
     used); a warm-up that fails changes nothing: the test that needs the kernel fails and
-    says why."""
-    if hasattr(config, "workerinput") or not config.getoption("numprocesses", None) \
+    says why. Not done again when ``make test`` says (``WARMED_ENV``) it has just done it."""
+    if os.environ.get(WARMED_ENV) == "1" or hasattr(config, "workerinput") or not config.getoption("numprocesses", None) \
             or config.getoption("dist", "no") == "no" or config.getoption("collectonly", False) \
             or config.getoption("help", False):  # (nothing runs: --co, --help)
         return

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import random
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -129,20 +130,42 @@ def test_every_element_a_frame_calls_known_holds_what_its_bridge_sampled(monkeyp
         assert sum(len(known) for _, known, _ in frames[-100:]) > 100 * 12  # the others, rerouted, known
 
 
+RootDeath = tuple[dict[tuple[int, int], tuple[int, int]], list[tuple[int, dict[int, tuple[int, int]], set[int]]],
+                  Pipeline]
+
+
+@pytest.fixture(scope="module")
+def root_gateway_dies() -> Callable[[ReportingMode | None], RootDeath]:
+    """:func:`run` of two gateways, 1 (the time root) dying at 6 s, 3 % of the records lost on
+    the lines: (truth, frames, the pipeline), made once per reporting mode in this module. The
+    periodic run is the one both tests below look at (each made it itself: the same seeded 9
+    s, twice); neither changes what it is given (the pipeline is asked only for its health,
+    by one of them)."""
+    made: dict[ReportingMode | None, RootDeath] = {}
+
+    def get(reporting: ReportingMode | None) -> RootDeath:
+        if reporting not in made:
+            pipes: list[Pipeline] = []
+            with pytest.MonkeyPatch.context() as mp:
+                truth, frames = run(mp, reporting, line_loss=0.03, gateways=(1, 16), kill=1, pipeline=pipes)
+            made[reporting] = (truth, frames, pipes[0])
+        return made[reporting]
+    return get
+
+
 @pytest.mark.parametrize("reporting", [None, ReportingMode(40, 1000)], ids=["periodic", "event"])
-def test_the_root_gateway_dying_under_presses_leaves_every_known_element_true(monkeypatch: pytest.MonkeyPatch,
-                                                                              reporting: ReportingMode | None) -> None:
+def test_the_root_gateway_dying_under_presses_leaves_every_known_element_true(
+        root_gateway_dies: Callable[[ReportingMode | None], RootDeath], reporting: ReportingMode | None) -> None:
     """Two gateways, 1 (the time root) and 16; gateway 1 dies at 6 s, mid-press: its subtree
     reroutes to 16, and 16 becomes root 16 carrying the time on (its records change root).
     Every element a frame calls known holds what its bridge sampled; the others are known
     again within a second; and the failover is a restart of root 16's frames, not the
     hundreds of thousands of frames between 16's boot time and root 1's counted missed."""
-    pipes: list[Pipeline] = []
-    truth, frames = run(monkeypatch, reporting, line_loss=0.03, gateways=(1, 16), kill=1, pipeline=pipes)
+    truth, frames, pipe = root_gateway_dies(reporting)
     wrong = [(k, b, got, truth.get((b, k))) for k, known, _ in frames for b, got in known.items()
              if truth.get((b, k)) != got]
     assert not wrong, wrong[:10]
-    health = pipes[0].health_body(T0 + 9.0)["frames"]
+    health = pipe.health_body(T0 + 9.0)["frames"]
     assert 16 in health["time_roots"] and health["root_moves"] >= 1
     assert health["frames_missed"] < 100, health["frames_missed"]
     # the other 15, rerouted through gateway 16 and then on root 16's frames, known in the last 2 s
@@ -151,12 +174,12 @@ def test_the_root_gateway_dying_under_presses_leaves_every_known_element_true(mo
 
 
 def test_after_the_root_gateways_death_every_rerouted_element_is_known_again_within_a_second(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+        root_gateway_dies: Callable[[ReportingMode | None], RootDeath]) -> None:
     """Bridge 3 stayed unknown in about two frames of three for 2 s after it moved from relay
     2's subtree to relay 7: 2 (then behind 6) listed it missing until it forgot it, and at 7
     that stale claim took 3 from its own branch whenever it came first (the frame went
     without waiting for 3's record, which came late)."""
-    truth, frames = run(monkeypatch, None, line_loss=0.03, gateways=(1, 16), kill=1, pipeline=[])
+    _, frames, _ = root_gateway_dies(None)
     last = frames[-200:]
     # (the mesh loses 1 % per hop: a record lost on its way leaves its subtree unknown in that
     # frame, and only that one, as every element samples every frame here)

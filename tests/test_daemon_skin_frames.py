@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import pytest
 from cellbridge.daemon.core.contact_schedule import TICK
@@ -199,7 +200,8 @@ def test_a_sample_index_from_the_future_neither_stops_nor_fakes_contacts(press_d
     at the wrong place with every other element unknown, then no estimate for the hour, the
     release never told), and health counts the samples whose index was not believed."""
     reads = _with_index_moved(press_data, 6, 5.0, 100 * 3600)
-    contacts = [(t - T0, m) for t, topic, m in drive(reads, 7.0) if topic == "contact"]
+    run = list(drive(reads, 7.0))  # (one run of the daemon for the contacts and the health: it is deterministic)
+    contacts = [(t - T0, m) for t, topic, m in run if topic == "contact"]
     for t, m in contacts:
         assert m["t_sample"] is None or m["t_sample"] <= T0 + t + 1e-9, (t, m["t_sample"] - T0)
         if 5.0 < t < 6.4:
@@ -210,7 +212,7 @@ def test_a_sample_index_from_the_future_neither_stops_nor_fakes_contacts(press_d
             assert math.hypot(c["x"] - CORNER[0], c["y"] - CORNER[1]) < 1e-3 and c["force"] == pytest.approx(3.0, rel=0.05)
     assert sum(1 for t, m in contacts if 5.1 < t < 6.4) > 20
     assert any(not m["contacts"] for t, m in contacts if t > 6.5), "the release was never published"
-    health = [m for _, topic, m in drive(reads, 7.0) if topic == "health"][-1]
+    health = [m for _, topic, m in run if topic == "health"][-1]
     assert health["bridges"]["6"]["index_rejected"] > 0
     assert all(h["index_rejected"] == 0 for b, h in health["bridges"].items() if b != "6")
 
@@ -244,16 +246,31 @@ def test_a_jump_of_the_skin_time_is_followed(either_reads) -> None:
     assert late and all(late)
 
 
+@pytest.fixture(scope="module")
+def long_press_reads() -> Callable[[bool], list[tuple[float, bytes]]]:
+    """The gateway's reads of a 3.5 s corner press (from 4 s, 8 s in all), with ``readout``
+    True (records) or False (DATA), made once per module: the skin is seeded, so every
+    jump of the test below starts from the same bytes, and each jump is made on a copy
+    (``_with_index_moved`` decodes and re-encodes; the reads themselves are never changed).
+    Each of the six cases ran the same 8 s of the virtual skin itself."""
+    made: dict[bool, list[tuple[float, bytes]]] = {}
+
+    def reads(readout: bool) -> list[tuple[float, bytes]]:
+        if readout not in made:
+            made[readout] = gateway_reads(8.0, [Contact(4.0, 3.5, *CORNER, 3.0, 0.020)], readout=readout)
+        return made[readout]
+    return reads
+
+
 @pytest.mark.parametrize("readout", [True, False])
 @pytest.mark.parametrize("back", [100 * 3600, 150, 50])
-def test_a_jump_back_of_the_skin_time_is_followed(back, readout) -> None:
+def test_a_jump_back_of_the_skin_time_is_followed(long_press_reads, back, readout) -> None:
     """Every bridge's indices ``back`` frames earlier from 5 s on (a new time root whose time
     is behind the skin's: two skins joined, or the root gateway restarted with its counter
     at 0), as a jump ahead is (the test above). The map waited for 2 s of frames behind it
     before it started again: no estimate for as long as the jump (at most 2 s) while the
     press went on, and after an hour's jump the press came back under a new contact id."""
-    reads = _with_index_moved(gateway_reads(8.0, [Contact(4.0, 3.5, *CORNER, 3.0, 0.020)], readout=readout), None,
-                              5.0, -back)
+    reads = _with_index_moved(long_press_reads(readout), None, 5.0, -back)
     run = list(drive(reads, 8.0))
     during = [(t - T0, m) for t, topic, m in run if topic == "contact" and 5.0 < t - T0 < 7.4]
     assert len({c["id"] for _, m in during for c in m["contacts"]}) == 1

@@ -194,3 +194,59 @@ def test_an_event_based_skin_sends_readout_sames_and_every_element_frame_it_know
             reading.pop(b, None)
         prev_known[b] = k if state != "m" else -1
     assert unchanged > 3000
+
+
+def _send_to(link: LinkLayer, parent: int, record: Readout, seq: int, tick: int,
+             neighbours: tuple[int, ...] = ()) -> tuple[int, bytes]:
+    """``record`` (frame seq ``seq``) sent to ``parent`` and acknowledged if it asked: (tick, frame)."""
+    link.enqueue_urgent(own(record, 5, seq), tick, until=10**12, of=(1, 100, record.index), record=record)
+    sent: list[bytes] = []
+    for _ in range(200):
+        out, _used = link.advance(tick, parent, 0, 1, neighbours)
+        if out is not None:
+            sent.append(out[0])
+            break
+        t = link.next_tick
+        if t is None:
+            break
+        tick = max(tick + 1, t)
+    assert len(sent) == 1
+    if decode(sent[0]).flags & Flags.ACK_REQUEST:
+        assert link.acked(5, seq, parent, tick)
+    return tick, sent[0]
+
+
+def test_a_record_sent_to_another_parent_ends_the_reference_the_old_parent_holds() -> None:
+    """A child that moved to another parent and back must not refer to the record its old
+    parent kept: its records meanwhile (samples among them) went elsewhere, and the old
+    parent, reading the READOUT_SAME as "nothing but READOUT_SAMEs since", kept its stale
+    sample as the element's reference and sent it as the element's reading when it owed it."""
+    link = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    tick, data = _send_to(link, PARENT, _unchanged(100), 40, 0)
+    assert decode(data).type is FrameType.READOUT
+    sampled = Readout(101, 100, Mode.COUNTER, 1, (ReadoutSample(5, 7, 8, 0),), (), (), 2840, 0, 1, 1)
+    tick, data = _send_to(link, 8, sampled, 41, tick + 10**6)  # (the route changed: parent 8 now)
+    assert decode(data).type is FrameType.READOUT
+    tick, data = _send_to(link, PARENT, _unchanged(102), 42, tick + 10**6)  # back to the old parent
+    assert decode(data).type is FrameType.READOUT, "a READOUT_SAME to a parent that missed a record"
+    tick, data = _send_to(link, PARENT, _unchanged(103), 43, tick + 10**6)
+    assert decode(data).payload == ReadoutSame(1, 42)  # (the new reference, once acknowledged)
+
+
+
+def test_a_late_acknowledgement_from_the_old_parent_is_no_reference_after_a_record_went_to_another() -> None:
+    """The old parent's acknowledgement of a whole record coming after a newer whole record
+    went to the new parent (a route change while it was on its way) makes no reference:
+    the old parent missed the newer record."""
+    link = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    link.enqueue_urgent(own(_unchanged(100), 5, 40), 0, until=10**12, of=None, record=_unchanged(100))
+    out, _used = link.advance(0, PARENT, 0, 1)
+    tick = 0
+    while out is None:
+        tick = max(tick + 1, link.next_tick or tick + 1)
+        out, _used = link.advance(tick, PARENT, 0, 1)
+    sampled = Readout(101, 100, Mode.COUNTER, 1, (ReadoutSample(5, 7, 8, 0),), (), (), 2840, 0, 1, 1)
+    tick, data = _send_to(link, 8, sampled, 41, tick, (PARENT, 8))  # to the new parent 8, acknowledged
+    assert link.acked(5, 40, PARENT, tick)  # the old parent's acknowledgement, late
+    tick, data = _send_to(link, PARENT, _unchanged(102), 42, tick + 10**6)  # back to the old parent
+    assert decode(data).type is FrameType.READOUT, "a READOUT_SAME to a parent that missed a record"

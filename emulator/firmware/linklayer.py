@@ -96,10 +96,12 @@ class LinkLayer:
         #: the record's own fields and the acknowledgement, for one id. A lost one leaves its
         #: elements missing at the parent for that frame: nothing else was in it.
         self.same_records = True
-        #: parent -> (seq, record): the newest whole record sent to it, once it acknowledged
-        #: it (a READOUT_SAME refers to it); none while a newer one waits for its acknowledgement
+        #: parent -> (seq, record): the newest whole record sent, once the parent it went to
+        #: acknowledged it (a READOUT_SAME refers to it); none while a newer one waits for its
+        #: acknowledgement, and never a record of another parent than the newest one's (the
+        #: parent reads a READOUT_SAME as "nothing but READOUT_SAMEs since my copy")
         self._refs: dict[int, tuple[int, Readout]] = {}
-        self._newest_full: dict[int, int] = {}  # parent -> seq of the newest whole record sent to it
+        self._newest_full: tuple[int, int] | None = None  # (parent, seq) of the newest whole record sent
         #: a record still queued this long after it was (no parent meanwhile) is given up:
         #: its frame's slots are over, and the relays above listed it missing already
         self.urgent_ttl = 200 * 50_000
@@ -189,7 +191,7 @@ class LinkLayer:
                 self.radio.cancel(u.data)
                 self._on_radio = None
             del self.outstanding[(origin, seq)]
-            if u.record is not None and u.record.parts == 1 and self._newest_full.get(src) == seq:
+            if u.record is not None and u.record.parts == 1 and self._newest_full == (src, seq):
                 self._refs[src] = (seq, u.record)  # (the newest whole record the parent holds)
             self.urgent_results.append(True)
             self.counters["frames_acked"] += 1
@@ -393,8 +395,12 @@ class LinkLayer:
         u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank, until=until,
                       frame=of, record=record)
         if record is not None:  # the parent's copy to refer to is this one once acknowledged, none till then
-            self._refs.pop(parent, None)
-            self._newest_full[parent] = first.seq
+            # (nor any other parent's: its copy is older than what went here, and a READOUT_SAME
+            # to it after a route change and back told it "nothing but READOUT_SAMEs since",
+            # so it kept a sample from before the change as the element's reference, and
+            # sent that stale reading as the element's sample when it owed one)
+            self._refs.clear()
+            self._newest_full = (parent, first.seq)
         if not self.urgent_acks:
             self._on_radio = u
             radio.send(data, self.cells, tick, urgent=True, rank=rank)

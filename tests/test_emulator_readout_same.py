@@ -250,3 +250,27 @@ def test_a_late_acknowledgement_from_the_old_parent_is_no_reference_after_a_reco
     assert link.acked(5, 40, PARENT, tick)  # the old parent's acknowledgement, late
     tick, data = _send_to(link, PARENT, _unchanged(102), 42, tick + 10**6)  # back to the old parent
     assert decode(data).type is FrameType.READOUT, "a READOUT_SAME to a parent that missed a record"
+
+
+def test_a_sample_that_went_nowhere_for_want_of_a_route_is_no_reference() -> None:
+    """A bridge without a route drops its frame's state (``readout_no_route``). A change
+    dropped so was a sample its reporter counted as sent: the frames after it were
+    *unchanged* from a reading no one got, and went as READOUT_SAMEs to the parent back,
+    which kept its older sample as the reference through them and sent that stale reading
+    as the element's sample when it owed it. The next sample after one lost so is sent."""
+    vm = VirtualMesh(meshgen.grid(2, 2, gateways=(1,)), seed=3, readout=True,
+                     settings=Settings(reporting=ReportingMode(40, 1000)))
+    vm.run(2.0)
+    fw = vm.nodes[4]
+    rep = fw.sampler.reporter
+    last = rep._last
+    assert last is not None and fw.router.has_route
+    moved = [last._replace(index=last.index + i, cycle=last.cycle + i * 500_000, c1=last.c1 + 500)
+             for i in (1, 2, 3)]
+    parent, fw.router.parent = fw.router.parent, None  # the route lost for two frames
+    for s in moved[:2]:
+        assert rep.wants(s)  # (a change, and the sample after it)
+        fw._readout_sample(s, True, s.cycle)
+    fw.router.parent = parent
+    assert fw.counters["readout_no_route"] >= 2
+    assert rep.wants(moved[2]), "unchanged from a sample that went nowhere"

@@ -595,6 +595,8 @@ class Firmware:
         assert r is not None
         if not (c.gateway or self.router.has_route):
             self.counters["readout_no_route"] += 1  # nowhere to send it: the host sees no record of it
+            if kept:  # (the reporter took it for sent: the frames after it would be unchanged from it)
+                self.sampler.reporter.lost()
             return
         st = self.sampler.settings
         refresh = c.readout_refresh

@@ -274,3 +274,19 @@ def test_a_sample_that_went_nowhere_for_want_of_a_route_is_no_reference() -> Non
     fw.router.parent = parent
     assert fw.counters["readout_no_route"] >= 2
     assert rep.wants(moved[2]), "unchanged from a sample that went nowhere"
+
+
+def test_an_older_whole_record_coming_late_does_not_replace_the_newer_one_a_readout_same_refers_to() -> None:
+    """A whole record's last retry comes after the child's next whole record (its earlier
+    attempts got through, their acknowledgements lost; the next record went once it was
+    past its first retry). The child refers to the newer one, acknowledged: kept in its
+    place, the older record made every READOUT_SAME after it unmatched, the child's
+    elements missing for up to 127 frames."""
+    r, c = _relay()
+    old = Readout(10, 100, Mode.COUNTER, 1, (ReadoutSample(7, 100, 200, 0),), (), (), 2840, 0, 1, 1)
+    new = Readout(11, 100, Mode.COUNTER, 1, (), (7,), (), 2840, 0, 1, 1)
+    r.child(7, old, 0, seq=300)
+    r.child(7, new, 100, seq=301)
+    r.child(7, old, 200, seq=300)  # (the retry, late)
+    assert r.child_same(7, ReadoutSame(1, 301 & 0x7F), 300), "the newer record's READOUT_SAME unmatched"
+    assert c["readout_same_unknown"] == 0

@@ -290,3 +290,31 @@ def test_an_older_whole_record_coming_late_does_not_replace_the_newer_one_a_read
     r.child(7, old, 200, seq=300)  # (the retry, late)
     assert r.child_same(7, ReadoutSame(1, 301 & 0x7F), 300), "the newer record's READOUT_SAME unmatched"
     assert c["readout_same_unknown"] == 0
+
+
+@pytest.mark.parametrize("readout", [True, False])
+def test_a_readout_same_the_bridge_cannot_read_as_its_childs_is_counted_and_dropped_not_relayed(readout: bool) -> None:
+    """A READOUT_SAME is a bridge-to-parent frame: one fragmented, bundled, or sent to a
+    bridge not on the readout schedule was relayed up as a frame of its origin's, marking
+    its (origin, seq) seen at every relay (a real frame of that number then a duplicate)
+    and reaching the host, which has no use for it. It is counted (``rx_readout_same``)
+    and dropped."""
+    from cellbridge.protocol import Bundle, Frame, Raw, encode, reframe
+    from cellbridge.protocol.messages import pack_payload
+
+    vm = VirtualMesh(meshgen.grid(2, 2, gateways=(1,)), seed=3, readout=readout,
+                     settings=Settings(reporting=ReportingMode(40, 1000)))
+    vm.run(1.0)
+    fw = vm.nodes[2]
+    tick = vm.tick
+    same = Frame(4, 2, 4, 77, ReadoutSame(1, 3))
+    frames = [reframe(Raw(int(FrameType.READOUT_SAME), 0, 4, 76, 0, 0, pack_payload(ReadoutSame(1, 3))), 4, 2,
+                      int(Flags.FRAGMENT)),  # (a fragment's header or not: the flag is what the firmware reads)
+              encode(Frame(4, 2, 4, 78, Bundle((Frame(4, 2, 4, 79, ReadoutSame(1, 3)),))))]
+    if not readout:
+        frames.append(encode(same))
+    before = fw.counters["forwarded"]
+    for data in frames:
+        fw.receive(data, tick, fw.config.cells[0])
+    assert fw.counters["forwarded"] == before
+    assert fw.counters["rx_readout_same"] == len(frames)

@@ -437,7 +437,13 @@ class Firmware:
             self.readout.child(src, record, tick, f.seq)
             self._readout_at = tick
             return True
-        if f.type == _READOUT_SAME and self.readout is not None and not f.flags & _FRAGMENT:
+        if f.type == _READOUT_SAME:
+            if self.readout is None or f.flags & _FRAGMENT:
+                # a bridge-to-parent frame that is never fragmented, read only on the schedule:
+                # relayed, it marked its (origin, seq) seen up the tree (a real frame of that
+                # number then a duplicate) and reached the host, which has no use for it
+                self.counters["rx_readout_same"] += 1
+                return False
             try:
                 same: ReadoutSame = unpack_payload(_READOUT_SAME, f.body)  # type: ignore[assignment]  # its payload
             except ProtocolError:
@@ -454,6 +460,8 @@ class Firmware:
             for g in inner:
                 if g is None:
                     self.counters["rx_bad_bundle"] += 1
+                elif g[2].type == _READOUT_SAME:  # (never bundled: see above)
+                    self.counters["rx_readout_same"] += 1
                 else:
                     self._upward(g[2], tick, src)
         else:

@@ -185,7 +185,7 @@ class FrameReadout:
         frame's sequence number when it came whole (a READOUT_SAME of the child may refer
         to it: :meth:`child_same`); ``since``: the frame of the record a READOUT_SAME
         rebuilt this one from."""
-        if seq is not None and record.parts == 1 and not self._older_ref(src, record):
+        if seq is not None and record.parts == 1 and not self._older_ref(src, record, seq):
             self._refs.pop(src, None)
             self._refs[src] = (seq, record)
             if len(self._refs) > 64:  # (bounded: the least recently refreshed child's goes)
@@ -264,19 +264,22 @@ class FrameReadout:
         self.child(src, same.rebuild(got[1]), tick, since=got[1].index)
         return True
 
-    def _older_ref(self, src: int, record: Readout) -> bool:
-        """Whether ``record`` is an older frame of ``src`` than the whole record kept for it,
-        of the same root and rate, at most :data:`SAME_STEP_MAX` frames before: a retry
-        come late (its acknowledgements lost, the child's next whole record went past it and
-        was acknowledged). The child refers to the newer one: replaced by the retry, every
-        READOUT_SAME after it was unmatched, its elements missing until its next whole
-        record. (Further back it is a new numbering of the frames: taken.)"""
+    def _older_ref(self, src: int, record: Readout, seq: int) -> bool:
+        """Whether ``record`` (frame ``seq``) is an older record of ``src`` than the whole one
+        kept for it: of the same root and rate, at most :data:`SAME_STEP_MAX` frames before,
+        and numbered at most :data:`SAME_REF_MASK` before it (a child numbers its frames in
+        order): a retry come late (its acknowledgements lost, the child's next whole record
+        went past it and was acknowledged). The child refers to the newer one: replaced by
+        the retry, every READOUT_SAME after it was unmatched, its elements missing until its
+        next whole record. (Further back it is a new numbering, of the frames or of the
+        child's seq after a restart: taken.)"""
         got = self._refs.get(src)
         if got is None:
             return False
-        kept = got[1]
+        kept_seq, kept = got
         return ((record.root, record.rate) == (kept.root, kept.rate)
-                and kept.index - SAME_STEP_MAX <= record.index < kept.index)
+                and kept.index - SAME_STEP_MAX <= record.index < kept.index
+                and 0 < (kept_seq - seq) & 0xFFFF <= SAME_REF_MASK)
 
     def _note(self, record: Readout, since: int | None = None) -> None:
         """Keep, per bridge of a child's record, the sample that is its reference (what an

@@ -253,9 +253,9 @@ class FrameReadout:
     def child_same(self, src: int, same: ReadoutSame, tick: int) -> bool:
         """A child's READOUT_SAME: its record rebuilt from the record it refers to, and taken
         as :meth:`child` takes a whole one. False (counted) when no record of that child
-        here matches its ``ref`` (this bridge restarted, or the child's reference is another
-        parent's): the frame then goes as if nothing came, its elements missing, never
-        unchanged."""
+        here matches its ``ref`` (this bridge restarted, or the frame is forged: a child
+        refers only to a record of its that this bridge acknowledged): the frame then goes
+        as if nothing came, its elements missing, never unchanged."""
         got = self._refs.get(src)
         if got is None or got[0] & SAME_REF_MASK != same.ref:
             self.counters["readout_same_unknown"] += 1

@@ -318,3 +318,68 @@ def test_a_readout_same_the_bridge_cannot_read_as_its_childs_is_counted_and_drop
         fw.receive(data, tick, fw.config.cells[0])
     assert fw.counters["forwarded"] == before
     assert fw.counters["rx_readout_same"] == len(frames)
+
+
+def test_a_leaf_moved_between_its_parents_while_pressed_is_never_unchanged_from_a_reading_it_left(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A corner leaf's cell to its parent is cut every 0.3 s (the one cut before restored):
+    it moves between its two parents and back, a while without a route each time, while
+    presses come and go on it. A release sampled without a route went nowhere, and the host,
+    its parent sending the pressed sample it kept when it owed the element, then read the
+    leaf as pressed, *unchanged*, for as long as it stayed released."""
+    from cellbridge.emulator.firmware.firmware import Firmware
+    from cellbridge.emulator.world.world import Contact, World
+
+    log: dict[tuple[int, int], tuple[int, int, bool]] = {}  # (bridge, index) -> (c1, c2, sent)
+    real = Firmware._readout_sample
+
+    def logged(self: Firmware, s: object, kept: bool, start: int) -> None:
+        routed = self.config.gateway or self.router.has_route
+        refresh = self.config.readout_refresh
+        sent = routed and (kept or s.index % refresh == _stagger(self.me, refresh))  # type: ignore[attr-defined]
+        log[(self.me, s.index)] = (s.c1, s.c2, sent)  # type: ignore[attr-defined]
+        real(self, s, kept, start)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Firmware, "_readout_sample", logged)
+    mesh = meshgen.grid(4, 4, loss=0.01, gateways=(1,))
+    presses = [Contact(2.6 + 0.45 * i, 0.12, 0.12, 0.12, 2.0 + i % 3, 0.03) for i in range(12)]
+    vm = VirtualMesh(mesh, seed=3, readout=True, settings=Settings(reporting=ReportingMode(40, 1000)),
+                     world=World(mesh, presses))
+    cut: list[int] = []
+
+    def move() -> None:
+        fw = vm.nodes[16]
+        if fw.router.parent is None:
+            return
+        if cut:
+            vm.medium.restore_cell(cut.pop())
+        cell = next(iter(set(mesh.bridge(16).cells) & set(mesh.bridge(fw.router.parent).cells)))
+        vm.medium.cut_cell(cell)
+        cut.append(cell)
+
+    for i in range(20):
+        vm.at(2.5 + 0.3 * i, move)
+    vm.run(8.5)
+    got = records(vm)
+    reading: dict[int, tuple[int, int]] = {}
+    prev_known: dict[int, int] = {}
+    sent: dict[int, list[tuple[int, int, int]]] = {}
+    for (b, k), (c1, c2, went) in sorted(log.items(), key=lambda x: x[0][1]):
+        if went:
+            sent.setdefault(b, []).append((k, c1, c2))
+    unchanged = 0
+    for (b, k) in sorted(got, key=lambda x: (x[1], x[0])):
+        state, s = got[(b, k)]
+        if state == "s":
+            assert s is not None
+            last_sent = [(c1, c2) for (j, c1, c2) in sent.get(b, []) if j <= k][-1:]
+            assert (s.c1, s.c2) == log[(b, k)][:2] or [(s.c1, s.c2)] == last_sent, (b, k)
+            reading[b] = (s.c1, s.c2)
+        elif state == "u" and prev_known.get(b) == k - 1 and b in reading:
+            c1, c2, _ = log[(b, k)]
+            assert abs(c1 - reading[b][0]) <= 40 and abs(c2 - reading[b][1]) <= 40, (b, k, (c1, c2), reading[b])
+            unchanged += 1
+        elif state != "u":
+            reading.pop(b, None)
+        prev_known[b] = k if state != "m" else -1
+    assert unchanged > 3000 and vm.nodes[16].counters["readout_no_route"] > 0

@@ -383,3 +383,20 @@ def test_a_leaf_moved_between_its_parents_while_pressed_is_never_unchanged_from_
             reading.pop(b, None)
         prev_known[b] = k if state != "m" else -1
     assert unchanged > 3000 and vm.nodes[16].counters["readout_no_route"] > 0
+
+
+def test_a_record_given_up_unsent_ends_the_reference_the_records_queued_behind_it_would_use() -> None:
+    """A whole record (a sample in it) that expired in the queue without a parent was never
+    sent, so the reference stayed: the record queued behind it, built before the loss was
+    known (unchanged from that sample), went as a READOUT_SAME over it, and the parent took
+    its older sample as the reference through the lost one."""
+    link = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    tick, _data = _send(link, _unchanged(100), 40, 0)  # the reference, acknowledged
+    sampled = Readout(101, 100, Mode.COUNTER, 1, (ReadoutSample(5, 7, 8, 0),), (), (), 2840, 0, 1, 1)
+    link.enqueue_urgent(own(sampled, 5, 41), tick, until=10**12, of=(1, 100, 101), record=sampled)
+    later = tick + 500_000
+    link.enqueue_urgent(own(_unchanged(102), 5, 42), later, until=10**12, of=(1, 100, 102), record=_unchanged(102))
+    link.advance(tick + link.urgent_ttl + 1, None, 0, 1)  # no parent meanwhile: the first expires
+    assert link.counters["urgent_expired"] == 1 and len(link.urgent) == 1
+    _tick, sent = _run(link, tick + link.urgent_ttl + 2, tick + link.urgent_ttl + 60_000)
+    assert len(sent) == 1 and decode(sent[0]).type is FrameType.READOUT, "a READOUT_SAME over a lost sample"

@@ -156,6 +156,7 @@ class LinkLayer:
         if len(self.urgent) >= self.queue_len:
             self.counters["urgent_drops"] += 1
             self.urgent_results.append(False)
+            self._no_ref()
             return
         self.urgent.append((tick, frame, rank, until, of, record))
 
@@ -174,6 +175,15 @@ class LinkLayer:
             return None
         same = ReadoutSame(step, seq & SAME_REF_MASK)
         return same if same.rebuild(r) == record else None
+
+    def _no_ref(self) -> None:
+        """A record was given up unsent (the queue full, or expired without a parent): what
+        it said (a sample, perhaps) no parent got, and the records queued behind it, built
+        before its loss was known, are unchanged from it. None of them may go as a
+        READOUT_SAME over it (the parent would keep its older sample as the reference
+        through it), nor may a late acknowledgement of an older record make one."""
+        self._refs.clear()
+        self._newest_full = None
 
     def broadcast(self, data: bytes) -> None:
         if len(self.broadcasts) >= 16:
@@ -341,6 +351,7 @@ class LinkLayer:
             self.urgent.popleft()
             self.counters["urgent_expired"] += 1
             self.urgent_results.append(False)
+            self._no_ref()
         for key, u in list(self.outstanding.items()):
             if 0 <= u.deadline <= tick:
                 useless = 0 <= u.until < tick + self.radio.airtime(len(u.data))  # after the parent's slot

@@ -400,3 +400,33 @@ def test_a_record_given_up_unsent_ends_the_reference_the_records_queued_behind_i
     assert link.counters["urgent_expired"] == 1 and len(link.urgent) == 1
     _tick, sent = _run(link, tick + link.urgent_ttl + 2, tick + link.urgent_ttl + 60_000)
     assert len(sent) == 1 and decode(sent[0]).type is FrameType.READOUT, "a READOUT_SAME over a lost sample"
+
+
+def _from_4(message: object, seq: int) -> bytes:
+    """``message`` as bridge 4's frame to bridge 2, on the wire."""
+    from cellbridge.protocol import Frame, encode
+
+    return encode(Frame(4, 2, 4, seq, message))  # type: ignore[arg-type]
+
+
+def test_a_whole_record_acknowledged_but_unreadable_leaves_no_older_copy_to_rebuild_from() -> None:
+    """The acknowledgement goes before the payload is read: a child's whole record that the
+    parent acknowledged but could not read (``rx_bad_readout``) is the child's reference
+    from then on, and the parent's older copy (its seq's low bits the same, 128 on) rebuilt
+    the child's READOUT_SAME from the wrong record: another element set, another frame."""
+    from cellbridge.protocol import Raw, reframe
+
+    vm = VirtualMesh(meshgen.grid(2, 2, gateways=(1,)), seed=3, readout=True,
+                     settings=Settings(reporting=ReportingMode(40, 1000)))
+    vm.run(1.0)
+    fw = vm.nodes[2]
+    tick = vm.tick
+    fw.receive(_from_4(Readout(10, 100, Mode.COUNTER, 1, (), (4, 8), (), 2840, 0, 1, 1), 300), tick,
+               fw.config.cells[0])
+    bad = reframe(Raw(int(FrameType.READOUT), 0, 4, 300 + 128, 0, 0, b"\x93\x01\x02\x03"), 4, 2,
+                  int(Flags.ACK_REQUEST))
+    fw.receive(bad, tick + 1000, fw.config.cells[0])
+    assert fw.counters["rx_bad_readout"] == 1
+    same = fw.counters["readout_same"]
+    fw.receive(_from_4(ReadoutSame(1, 300 & 0x7F), 429), tick + 2000, fw.config.cells[0])
+    assert fw.counters["readout_same"] == same, "rebuilt from a record the child does not refer to"

@@ -433,6 +433,7 @@ class Firmware:
                 record: Readout = unpack_payload(_READOUT, f.body)  # type: ignore[assignment]  # a READOUT payload
             except ProtocolError:
                 self.counters["rx_bad_readout"] += 1
+                self.readout.unreadable(src)
                 return False
             self.readout.child(src, record, tick, f.seq)
             self._readout_at = tick

@@ -250,6 +250,13 @@ class FrameReadout:
         for b in record.missing:
             p.got.setdefault(b, (m, o, "m"))
 
+    def unreadable(self, src: int) -> None:
+        """A whole record of ``src`` came but could not be read. Its hop acknowledged it
+        (before reading it), so the child refers to it from now on: the older record kept
+        of it is dropped, else a READOUT_SAME whose ``ref`` happened to match that one's
+        (128 frames on) was rebuilt from it, another element set and another frame."""
+        self._refs.pop(src, None)
+
     def child_same(self, src: int, same: ReadoutSame, tick: int) -> bool:
         """A child's READOUT_SAME: its record rebuilt from the record it refers to, and taken
         as :meth:`child` takes a whole one. False (counted) when no record of that child

@@ -16,6 +16,12 @@ filtered.
 A READOUT passes like DATA: reassembled when its record came fragmented, then filtered
 by (origin, seq). Each part of a record is a frame of its own and is delivered on its
 own; joining the parts, and the gateways' records of one skin frame, is the caller's.
+
+A READOUT_SAME goes from a bridge to its parent only, numbered from the bridge's link
+numbering, not the host's: one that reaches the host (forged, or relayed by a bridge that
+could not read it; alone, fragmented or bundled) is counted (``readout_same``) and
+dropped before the duplicate filter, where its (origin, seq) would have marked a real
+frame of that bridge's as a duplicate.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ from __future__ import annotations
 from cellbridge.protocol.dedupe import DuplicateFilter
 from cellbridge.protocol.fragment import Reassembler
 from cellbridge.protocol.frame import Frame
-from cellbridge.protocol.messages import Bundle, Data, Hello, Readout
+from cellbridge.protocol.messages import Bundle, Data, Hello, Readout, ReadoutSame
 
 
 class HostReceiver:
@@ -32,6 +38,7 @@ class HostReceiver:
     def __init__(self, dedupe: DuplicateFilter | None = None, reassembler: Reassembler | None = None) -> None:
         self.dedupe = dedupe if dedupe is not None else DuplicateFilter()
         self.reassembler = reassembler if reassembler is not None else Reassembler()
+        self.readout_same = 0  #: READOUT_SAMEs dropped (a bridge-to-parent frame: none is the host's)
 
     def receive(self, frame: Frame, now: float) -> list[Frame]:
         """Frames completed by ``frame`` and not seen before (``now``: seconds, for reassembly)."""
@@ -46,10 +53,14 @@ class HostReceiver:
                 return []
             whole = got
             p = whole.payload
+            if type(p) is ReadoutSame:
+                self.readout_same += 1
+                return []
         hello = isinstance(p, Hello)
         if self.dedupe.is_duplicate(whole.origin, whole.seq, hello, p.boots or None if hello else None):  # type: ignore[union-attr]  # boots is read only when p is a Hello
             return []
         return [whole]
 
     def counters(self) -> dict[str, object]:
-        return {"dedupe": self.dedupe.counters(), "reassembly": self.reassembler.counters()}
+        return {"dedupe": self.dedupe.counters(), "reassembly": self.reassembler.counters(),
+                "readout_same": self.readout_same}

@@ -158,6 +158,7 @@ class Ingress:
         meta: list[tuple[int, int, int, int, int, int]] = []  # (origin, mode, oversampling, n, seq, rate)
         dedupe, reassembler, receive = self.dedupe, self.reassembler, self.receiver.receive
         dropped_before = dedupe.duplicates + dedupe.stale
+        same_before = self.receiver.readout_same
         decoder = self.decoders.get(link)
         if decoder is None:
             decoder = self.decoder(link)
@@ -181,6 +182,7 @@ class Ingress:
                     seqs.append(whole.seq)
                 route(whole, out, rows, meta)
         self.duplicates_by_link[link] += dedupe.duplicates + dedupe.stale - dropped_before
+        out.ignored += self.receiver.readout_same - same_before  # (a bridge-to-parent frame: HostReceiver)
         if rows:
             out.samples = _columns(rows, meta)
         return out

@@ -433,11 +433,18 @@ class Firmware:
                 record: Readout = unpack_payload(_READOUT, f.body)  # type: ignore[assignment]  # a READOUT payload
             except ProtocolError:
                 self.counters["rx_bad_readout"] += 1
+                self.readout.unreadable(src)
                 return False
             self.readout.child(src, record, tick, f.seq)
             self._readout_at = tick
             return True
-        if f.type == _READOUT_SAME and self.readout is not None and not f.flags & _FRAGMENT:
+        if f.type == _READOUT_SAME:
+            if self.readout is None or f.flags & _FRAGMENT:
+                # a bridge-to-parent frame that is never fragmented, read only on the schedule:
+                # relayed, it marked its (origin, seq) seen up the tree (a real frame of that
+                # number then a duplicate) and reached the host, which has no use for it
+                self.counters["rx_readout_same"] += 1
+                return False
             try:
                 same: ReadoutSame = unpack_payload(_READOUT_SAME, f.body)  # type: ignore[assignment]  # its payload
             except ProtocolError:
@@ -454,6 +461,8 @@ class Firmware:
             for g in inner:
                 if g is None:
                     self.counters["rx_bad_bundle"] += 1
+                elif g[2].type == _READOUT_SAME:  # (never bundled: see above)
+                    self.counters["rx_readout_same"] += 1
                 else:
                     self._upward(g[2], tick, src)
         else:
@@ -595,6 +604,8 @@ class Firmware:
         assert r is not None
         if not (c.gateway or self.router.has_route):
             self.counters["readout_no_route"] += 1  # nowhere to send it: the host sees no record of it
+            if kept:  # (the reporter took it for sent: the frames after it would be unchanged from it)
+                self.sampler.reporter.lost()
             return
         st = self.sampler.settings
         refresh = c.readout_refresh

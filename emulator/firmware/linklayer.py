@@ -96,10 +96,12 @@ class LinkLayer:
         #: the record's own fields and the acknowledgement, for one id. A lost one leaves its
         #: elements missing at the parent for that frame: nothing else was in it.
         self.same_records = True
-        #: parent -> (seq, record): the newest whole record sent to it, once it acknowledged
-        #: it (a READOUT_SAME refers to it); none while a newer one waits for its acknowledgement
+        #: parent -> (seq, record): the newest whole record sent, once the parent it went to
+        #: acknowledged it (a READOUT_SAME refers to it); none while a newer one waits for its
+        #: acknowledgement, and never a record of another parent than the newest one's (the
+        #: parent reads a READOUT_SAME as "nothing but READOUT_SAMEs since my copy")
         self._refs: dict[int, tuple[int, Readout]] = {}
-        self._newest_full: dict[int, int] = {}  # parent -> seq of the newest whole record sent to it
+        self._newest_full: tuple[int, int] | None = None  # (parent, seq) of the newest whole record sent
         #: a record still queued this long after it was (no parent meanwhile) is given up:
         #: its frame's slots are over, and the relays above listed it missing already
         self.urgent_ttl = 200 * 50_000
@@ -154,6 +156,7 @@ class LinkLayer:
         if len(self.urgent) >= self.queue_len:
             self.counters["urgent_drops"] += 1
             self.urgent_results.append(False)
+            self._no_ref()
             return
         self.urgent.append((tick, frame, rank, until, of, record))
 
@@ -173,6 +176,15 @@ class LinkLayer:
         same = ReadoutSame(step, seq & SAME_REF_MASK)
         return same if same.rebuild(r) == record else None
 
+    def _no_ref(self) -> None:
+        """A record was given up unsent (the queue full, or expired without a parent): what
+        it said (a sample, perhaps) no parent got, and the records queued behind it, built
+        before its loss was known, are unchanged from it. None of them may go as a
+        READOUT_SAME over it (the parent would keep its older sample as the reference
+        through it), nor may a late acknowledgement of an older record make one."""
+        self._refs.clear()
+        self._newest_full = None
+
     def broadcast(self, data: bytes) -> None:
         if len(self.broadcasts) >= 16:
             self.counters["broadcast_drops"] += 1
@@ -189,7 +201,7 @@ class LinkLayer:
                 self.radio.cancel(u.data)
                 self._on_radio = None
             del self.outstanding[(origin, seq)]
-            if u.record is not None and u.record.parts == 1 and self._newest_full.get(src) == seq:
+            if u.record is not None and u.record.parts == 1 and self._newest_full == (src, seq):
                 self._refs[src] = (seq, u.record)  # (the newest whole record the parent holds)
             self.urgent_results.append(True)
             self.counters["frames_acked"] += 1
@@ -339,6 +351,7 @@ class LinkLayer:
             self.urgent.popleft()
             self.counters["urgent_expired"] += 1
             self.urgent_results.append(False)
+            self._no_ref()
         for key, u in list(self.outstanding.items()):
             if 0 <= u.deadline <= tick:
                 useless = 0 <= u.until < tick + self.radio.airtime(len(u.data))  # after the parent's slot
@@ -393,8 +406,12 @@ class LinkLayer:
         u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank, until=until,
                       frame=of, record=record)
         if record is not None:  # the parent's copy to refer to is this one once acknowledged, none till then
-            self._refs.pop(parent, None)
-            self._newest_full[parent] = first.seq
+            # (nor any other parent's: its copy is older than what went here, and a READOUT_SAME
+            # to it after a route change and back told it "nothing but READOUT_SAMEs since",
+            # so it kept a sample from before the change as the element's reference, and
+            # sent that stale reading as the element's sample when it owed one)
+            self._refs.clear()
+            self._newest_full = (parent, first.seq)
         if not self.urgent_acks:
             self._on_radio = u
             radio.send(data, self.cells, tick, urgent=True, rank=rank)

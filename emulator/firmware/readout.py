@@ -54,7 +54,7 @@ from cellbridge.protocol import (
     ReadoutSame,
     ReadoutSample,
 )
-from cellbridge.protocol.messages import SAME_REF_MASK, pack_payload
+from cellbridge.protocol.messages import SAME_REF_MASK, SAME_STEP_MAX, pack_payload
 
 _UNCHANGED = "u"
 _CLOCK_HZ = 50_000_000  #: chip cycles per second (``span_us`` and ``forget`` are in them)
@@ -185,7 +185,7 @@ class FrameReadout:
         frame's sequence number when it came whole (a READOUT_SAME of the child may refer
         to it: :meth:`child_same`); ``since``: the frame of the record a READOUT_SAME
         rebuilt this one from."""
-        if seq is not None and record.parts == 1:
+        if seq is not None and record.parts == 1 and not self._older_ref(src, record, seq):
             self._refs.pop(src, None)
             self._refs[src] = (seq, record)
             if len(self._refs) > 64:  # (bounded: the least recently refreshed child's goes)
@@ -250,12 +250,19 @@ class FrameReadout:
         for b in record.missing:
             p.got.setdefault(b, (m, o, "m"))
 
+    def unreadable(self, src: int) -> None:
+        """A whole record of ``src`` came but could not be read. Its hop acknowledged it
+        (before reading it), so the child refers to it from now on: the older record kept
+        of it is dropped, else a READOUT_SAME whose ``ref`` happened to match that one's
+        (128 frames on) was rebuilt from it, another element set and another frame."""
+        self._refs.pop(src, None)
+
     def child_same(self, src: int, same: ReadoutSame, tick: int) -> bool:
         """A child's READOUT_SAME: its record rebuilt from the record it refers to, and taken
         as :meth:`child` takes a whole one. False (counted) when no record of that child
-        here matches its ``ref`` (this bridge restarted, or the child's reference is another
-        parent's): the frame then goes as if nothing came, its elements missing, never
-        unchanged."""
+        here matches its ``ref`` (this bridge restarted, or the frame is forged: a child
+        refers only to a record of its that this bridge acknowledged): the frame then goes
+        as if nothing came, its elements missing, never unchanged."""
         got = self._refs.get(src)
         if got is None or got[0] & SAME_REF_MASK != same.ref:
             self.counters["readout_same_unknown"] += 1
@@ -263,6 +270,23 @@ class FrameReadout:
         self.counters["readout_same"] += 1
         self.child(src, same.rebuild(got[1]), tick, since=got[1].index)
         return True
+
+    def _older_ref(self, src: int, record: Readout, seq: int) -> bool:
+        """Whether ``record`` (frame ``seq``) is an older record of ``src`` than the whole one
+        kept for it: of the same root and rate, at most :data:`SAME_STEP_MAX` frames before,
+        and numbered at most :data:`SAME_REF_MASK` before it (a child numbers its frames in
+        order): a retry come late (its acknowledgements lost, the child's next whole record
+        went past it and was acknowledged). The child refers to the newer one: replaced by
+        the retry, every READOUT_SAME after it was unmatched, its elements missing until its
+        next whole record. (Further back it is a new numbering, of the frames or of the
+        child's seq after a restart: taken.)"""
+        got = self._refs.get(src)
+        if got is None:
+            return False
+        kept_seq, kept = got
+        return ((record.root, record.rate) == (kept.root, kept.rate)
+                and kept.index - SAME_STEP_MAX <= record.index < kept.index
+                and 0 < (kept_seq - seq) & 0xFFFF <= SAME_REF_MASK)
 
     def _note(self, record: Readout, since: int | None = None) -> None:
         """Keep, per bridge of a child's record, the sample that is its reference (what an

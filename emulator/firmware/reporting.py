@@ -136,6 +136,15 @@ class Reporter:
         it is the reference of what follows, as any sample sent is."""
         self._last = s
 
+    def lost(self) -> None:
+        """The last sample sent went nowhere (the readout's bridge had no route): it is no
+        reference, so the next sample is sent. Without this the frames after it were
+        *unchanged* from a reading no one got, and a parent that kept an older sample took
+        them as unchanged from that one."""
+        self._last = None
+        self._follow = False
+        self._settling = None
+
     def _settled(self, s: Sample, last: Sample) -> bool:
         """Watching a change settle: True when ``s`` completes ``SETTLE_SAMPLES`` samples
         that agree within the settle band and the first of them lies outside it from the

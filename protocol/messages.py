@@ -694,18 +694,26 @@ class Readout:
     #: complete, so its arrival alone tells the host when the frame was sampled only to
     #: within the frame's whole readout; with its age, to within the serial line's delay.
     age_us: int = 0
+    #: On a cell only: frames back to the last whole record the sender had acknowledged by
+    #: this parent, when all it sent the parent since were READOUT_SAMEs (u8, 1 …
+    #: :data:`SAME_STEP_MAX`; 0: not said). Those carried no sample, so a parent that lost
+    #: some of them still holds every element of that record as its sender last sent it,
+    #: and an *unchanged* here refers to that (:meth:`FrameReadout.child`).
+    ref_step: int = 0
 
     def to_wire(self) -> list[Any]:
         wire = [self.index, self.rate, int(self.mode), self.oversampling,
                 [list(s) for s in self.samples], list(self.unchanged), list(self.missing),
                 self.span_us, self.part, self.parts, self.root]
-        if self.age_us:
+        if self.ref_step:
+            wire += (self.age_us, self.ref_step)
+        elif self.age_us:
             wire.append(self.age_us)
         return wire
 
     @classmethod
     def from_wire(cls, obj: Any) -> Readout:
-        root = age = 0
+        root = age = step = 0
         n = len(obj) if type(obj) is list else -1
         if n == 10:  # a record written before the root was carried
             k, rate, mode, over, raw, unchanged, missing, span, part, parts = obj
@@ -714,6 +722,12 @@ class Readout:
             _uint(root, U16, "READOUT", "root")
             if type(age) is not int or not 1 <= age <= U32:  # (0 is said by leaving it out)
                 raise _bad("READOUT", f"age_us must be an integer in 1..{U32}, got {age!r}")
+        elif n == 13:  # with the step back to its reference (a bridge's, to its parent)
+            k, rate, mode, over, raw, unchanged, missing, span, part, parts, root, age, step = obj
+            _uint(root, U16, "READOUT", "root")
+            _uint(age, U32, "READOUT", "age_us")
+            if type(step) is not int or not 1 <= step <= SAME_STEP_MAX:
+                raise _bad("READOUT", f"ref_step must be an integer in 1..{SAME_STEP_MAX}, got {step!r}")
         else:
             k, rate, mode, over, raw, unchanged, missing, span, part, parts, root = _array(obj, 11, "READOUT")
             _uint(root, U16, "READOUT", "root")
@@ -739,7 +753,7 @@ class Readout:
             raise _bad("READOUT", "samples, unchanged and missing must be arrays")
         lists = _readout_lists(raw, unchanged, missing, limit) or _readout_lists_checked(raw, unchanged, missing,
                                                                                        limit)
-        return cls(k, rate, _MODES[mode], over, lists[0], lists[1], lists[2], span, part, parts, root, age)
+        return cls(k, rate, _MODES[mode], over, lists[0], lists[1], lists[2], span, part, parts, root, age, step)
 
     def bridges(self) -> int:
         """How many elements the record accounts for."""

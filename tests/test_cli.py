@@ -112,7 +112,7 @@ def test_decode_prints_readout_records_parts_and_fragments(tmp_path: Path) -> No
     assert [ln["type"] for ln in lines] == ["READOUT"] * 3
     assert lines[0]["payload"] == {"index": 4600, "rate": 100, "mode": 0, "oversampling": 1,
                                    "samples": [[2, 19600, 15800, 0]], "unchanged": [5], "missing": [],
-                                   "span_us": 2840, "part": 0, "parts": 2, "root": 0, "age_us": 0}
+                                   "span_us": 2840, "part": 0, "parts": 2, "root": 0, "age_us": 0, "ref_step": 0}
     assert lines[1]["payload"]["samples"] == [[9, 2272, 1968, 1]] and lines[1]["payload"]["missing"] == [10]
     assert lines[2]["seq"] == 7 and len(lines[2]["payload"]["samples"]) == 64  # reassembled from 3 fragments
     counters = json.loads(out.stderr.decode().strip().splitlines()[-1])

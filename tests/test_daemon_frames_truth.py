@@ -126,8 +126,11 @@ def test_every_element_a_frame_calls_known_holds_what_its_bridge_sampled(monkeyp
     # the loss and the relay cost something, and it was said: elements unknown, none wrong
     assert sum(len(ids) - len(known) for _, known, ids in frames) > 0
     assert all(6 not in known for _, known, _ in frames[-100:])  # the killed bridge: unknown after it died
-    if not line_loss or reporting is None:  # (an idle event-based element once unknown waits for its heartbeat)
-        assert sum(len(known) for _, known, _ in frames[-100:]) > 100 * 12  # the others, rerouted, known
+    # the others, rerouted, known; event-based too with the line losing records: the gateway
+    # writes each element as the sample it keeps every ``serial_refresh`` frames
+    # (a record lost on the line leaves its elements unknown ~5 frames on average, 3 % of the records)
+    least = 100 * 14 * (1 - 6 * line_loss) if reporting is not None else 100 * 12
+    assert sum(len(known) for _, known, _ in frames[-100:]) > least, sum(len(known) for _, known, _ in frames[-100:])
 
 
 RootDeath = tuple[dict[tuple[int, int], tuple[int, int]], list[tuple[int, dict[int, tuple[int, int]], set[int]]],

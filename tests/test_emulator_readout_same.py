@@ -13,7 +13,6 @@ from collections.abc import Iterator
 
 import pytest
 from cellbridge.emulator.firmware.commands import Settings
-from cellbridge.emulator.firmware.firmware import _stagger
 from cellbridge.emulator.firmware.linklayer import LinkLayer
 from cellbridge.emulator.firmware.readout import FrameReadout, ReadoutConfig
 from cellbridge.emulator.firmware.reporting import ReportingMode
@@ -171,9 +170,8 @@ def test_an_event_based_skin_sends_readout_sames_and_every_element_frame_it_know
     reading: dict[int, tuple[int, int]] = {}
     prev_known: dict[int, int] = {}
     sent: dict[int, list[tuple[int, int, int]]] = {}  # bridge -> (index, c1, c2) of its samples sent
-    refresh = vm.nodes[2].config.readout_refresh
     for (b, k), (c1, c2, kept) in sorted(truth.items(), key=lambda x: x[0][1]):
-        if kept or k % refresh == _stagger(b, refresh):  # (the readout's refresh sends one too)
+        if kept:
             sent.setdefault(b, []).append((k, c1, c2))
     unchanged = 0
     for (b, k) in sorted(got, key=lambda x: (x[1], x[0])):
@@ -327,20 +325,9 @@ def test_a_leaf_moved_between_its_parents_while_pressed_is_never_unchanged_from_
     presses come and go on it. A release sampled without a route went nowhere, and the host,
     its parent sending the pressed sample it kept when it owed the element, then read the
     leaf as pressed, *unchanged*, for as long as it stayed released."""
-    from cellbridge.emulator.firmware.firmware import Firmware
     from cellbridge.emulator.world.world import Contact, World
 
-    log: dict[tuple[int, int], tuple[int, int, bool]] = {}  # (bridge, index) -> (c1, c2, sent)
-    real = Firmware._readout_sample
-
-    def logged(self: Firmware, s: object, kept: bool, start: int) -> None:
-        routed = self.config.gateway or self.router.has_route
-        refresh = self.config.readout_refresh
-        sent = routed and (kept or s.index % refresh == _stagger(self.me, refresh))  # type: ignore[attr-defined]
-        log[(self.me, s.index)] = (s.c1, s.c2, sent)  # type: ignore[attr-defined]
-        real(self, s, kept, start)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(Firmware, "_readout_sample", logged)
+    log = log_readout_states(monkeypatch)  # (bridge, index) -> (c1, c2, sent)
     mesh = meshgen.grid(4, 4, loss=0.01, gateways=(1,))
     presses = [Contact(2.6 + 0.45 * i, 0.12, 0.12, 0.12, 2.0 + i % 3, 0.03) for i in range(12)]
     vm = VirtualMesh(mesh, seed=3, readout=True, settings=Settings(reporting=ReportingMode(40, 1000)),

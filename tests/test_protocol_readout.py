@@ -281,6 +281,23 @@ def test_a_gateways_readout_says_its_age_and_an_age_out_of_u32_or_zero_is_refuse
         Readout.from_wire(GOOD + [9392, 0])
 
 
+def test_a_bridges_readout_says_the_step_to_its_reference_and_a_step_out_of_1_to_127_is_refused() -> None:
+    """The 13-field form: a bridge's record to its parent with ``ref_step`` after a zero
+    age (a gateway's record never says it: its 11 or 12 fields stay byte for byte)."""
+    stepped = Readout.from_wire(GOOD + [0, 6])
+    assert stepped == dataclasses.replace(Readout.from_wire(GOOD), ref_step=6)
+    assert stepped.to_wire() == GOOD + [0, 6]
+    assert Readout.from_wire(GOOD + [9392, 127]).age_us == 9392
+    for step in (0, 128, -1, 1.0, None, True):
+        with pytest.raises(ProtocolError):
+            Readout.from_wire(GOOD + [0, step])
+    for age in (-1, 2**32, None):
+        with pytest.raises(ProtocolError):
+            Readout.from_wire(GOOD + [age, 6])
+    with pytest.raises(ProtocolError):
+        Readout.from_wire(GOOD + [0, 6, 0])
+
+
 def test_a_readout_with_trailing_bytes_or_a_wider_form_is_refused() -> None:
     body = HEAD + msgpack.packb(GOOD)
     assert decode(sealed(body)).payload == Readout.from_wire(GOOD)

@@ -100,12 +100,16 @@ def test_every_frame_type_has_a_vector() -> None:
 
 def test_the_readout_vectors_show_every_state_and_a_record_in_parts() -> None:
     """Version 4's READOUT: a periodic record (samples only), an event-based one with samples,
-    unchanged and missing elements, and both parts of one record."""
+    unchanged and missing elements, both parts of one record, and a bridge's on a cell with
+    the step back to its reference."""
     readouts = [f for f in map(_json, VECTORS) if f["type"] == "READOUT"]
     for f in readouts:
         p = f["payload"]
         ids = [s[0] for s in p["samples"]] + p["unchanged"] + p["missing"]
-        assert len(ids) == len(set(ids)) and f["dst"] == 0  # a gateway's record, to the host
+        assert len(ids) == len(set(ids))
+        # a gateway's record to the host, or a bridge's to its parent naming its reference
+        assert (f["dst"] == 0) != bool(p["ref_step"]), f
+    assert any(f["payload"]["ref_step"] for f in readouts)
     whole = [f["payload"] for f in readouts if f["payload"]["parts"] == 1]
     assert any(p["samples"] and not p["unchanged"] and not p["missing"] for p in whole)
     assert any(p["samples"] and p["unchanged"] and p["missing"] for p in whole)

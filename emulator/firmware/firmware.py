@@ -30,6 +30,7 @@ from cellbridge.emulator.firmware.commands import MAX_GATE, Settings, execute
 from cellbridge.emulator.firmware.linklayer import LinkLayer
 from cellbridge.emulator.firmware.meshtime import Crystal, MeshClock, MeshClockConfig, Timebase
 from cellbridge.emulator.firmware.readout import AGE_ROOM, FrameReadout, ReadoutConfig, State
+from cellbridge.emulator.firmware.readout import stagger as _stagger
 from cellbridge.emulator.firmware.routing import INFINITE, PERFECT_LINK, Router, Trickle
 from cellbridge.emulator.firmware.sampling import Sampler
 from cellbridge.emulator.firmware.transceiver import Transceiver, TransceiverConfig
@@ -121,12 +122,6 @@ def _hello_boots(f: Raw) -> int | None:
     return hello.boots or None  # type: ignore[union-attr]  # unpacked as a HELLO: a Hello
 
 
-def _stagger(bridge: int, most: int) -> int:
-    """The bridge's own offset in [0, most): spread by a multiplicative hash of its id, so
-    neighbours (consecutive ids) land far apart."""
-    return (bridge * 2_654_435_761 % 4_294_967_296) * most >> 32
-
-
 def _when(item: tuple[int, bytes]) -> int:
     return item[0]
 
@@ -214,8 +209,27 @@ class FirmwareConfig:
     #: Event-based, a bridge on the readout sends a sample at least every this many frames
     #: (at its own phase, spread by its id), not only at its heartbeat: the host reads
     #: "unchanged" only after a frame it knew, so an element whose record was lost on the
-    #: way is unknown until its next sample, and this bounds how long (0: heartbeat only)
-    readout_refresh: int = 10
+    #: way is unknown until its next sample. Losses on the cells are covered by the samples
+    #: the relays keep (expanded after a failed record, sent for an element listed missing)
+    #: and losses on the serial line by the gateway's ``serial_refresh``; this covers what
+    #: no kept sample can (a relay or gateway that restarted, a new parent that keeps none
+    #: of an element it then loses a record of): rarer, as it costs every
+    #: bridge a sample on the cells (0: heartbeat only). None: 50 frames with
+    #: ``readout_acks``, 10 without (then no bridge learns that its record was lost, nothing
+    #: is expanded after a loss, and only this brings the elements back)
+    readout_refresh: int | None = None
+    #: A gateway writes every element it keeps a sample of as that sample once every this
+    #: many frames (at the element's phase) where its bridge said *unchanged*: a record lost
+    #: on the serial line leaves an element unknown this many frames at most, at no cost on
+    #: the cells (0: never; emulator/firmware/readout.py)
+    serial_refresh: int = 10
+
+    @property
+    def cell_refresh(self) -> int:
+        """The refresh on the cells in frames (:attr:`readout_refresh`, its default resolved)."""
+        if self.readout_refresh is not None:
+            return self.readout_refresh
+        return 50 if self.readout_acks else 10
 
 
 def _rest(_tick: int) -> tuple[float, float]:
@@ -275,7 +289,7 @@ class Firmware:
         self.seen = RecentFrames(_COPY_AGE, _COPY_MEMORY)
         self.readout = (FrameReadout(self.me, ReadoutConfig(c.readout_depths, c.readout_window, c.readout_forget,
                                                             c.readout_hop, c.readout_quiet), self.counters,
-                                     AGE_ROOM if c.gateway else 0)
+                                     AGE_ROOM if c.gateway else 0, c.serial_refresh if c.gateway else 0)
                         if c.readout else None)
         self._readout_at = -1  # a child's record may have completed a frame: look at this tick
         self.sampler = Sampler(c.settings, self.chip, self.sense,
@@ -608,7 +622,7 @@ class Firmware:
                 self.sampler.reporter.lost()
             return
         st = self.sampler.settings
-        refresh = c.readout_refresh
+        refresh = 0 if c.gateway else c.cell_refresh  # (a gateway's own: its line's refresh, FrameReadout)
         if not kept and refresh > 0 and s.index % refresh == _stagger(self.me, refresh):
             kept = True
             self.sampler.reporter.sent(s)

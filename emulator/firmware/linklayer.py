@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from collections import Counter, OrderedDict, deque
 from collections.abc import Container
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import msgpack
 from cellbridge.emulator.firmware.transceiver import Transceiver
@@ -40,6 +40,7 @@ from cellbridge.protocol.messages import SAME_REF_MASK, SAME_STEP_MAX, pack_payl
 _ACK = int(Flags.ACK_REQUEST)
 _BUNDLE = int(FrameType.BUNDLE)
 _SAME = int(FrameType.READOUT_SAME)
+_FRAGMENT = int(Flags.FRAGMENT)
 _HANDED_MEMORY = 512  # frames whose acknowledging neighbour is kept
 _BUNDLE_OVERHEAD = HEADER_LEN + CRC_LEN + 3  # header, CRC, msgpack array header (<= 3 bytes)
 
@@ -175,6 +176,19 @@ class LinkLayer:
             return None
         same = ReadoutSame(step, seq & SAME_REF_MASK)
         return same if same.rebuild(r) == record else None
+
+    def _ref_step(self, record: Readout, parent: int) -> int:
+        """Frames from the newest record ``parent`` acknowledged to ``record``, when all
+        that went since were READOUT_SAMEs and ``record`` may say so (one part, of that
+        record's root and rate, within :data:`SAME_STEP_MAX`); else 0. The parent that
+        lost some of those READOUT_SAMEs still holds the samples they stood for
+        (:attr:`Readout.ref_step`)."""
+        ref = self._refs.get(parent)
+        if ref is None or record.parts != 1:
+            return 0
+        r = ref[1]
+        step = record.index - r.index
+        return step if 1 <= step <= SAME_STEP_MAX and (record.root, record.rate) == (r.root, r.rate) else 0
 
     def _no_ref(self) -> None:
         """A record was given up unsent (the queue full, or expired without a parent): what
@@ -401,6 +415,12 @@ class LinkLayer:
             self.counters["urgent_same"] += 1
             radio.send(data, self.cells, tick, urgent=True, rank=rank)
             return True
+        step = self._ref_step(record, parent) if record is not None and self.same_records and self.urgent_acks else 0
+        if step and record is not None:
+            body = pack_payload(replace(record, ref_step=step))
+            if HEADER_LEN + len(body) + CRC_LEN <= MAX_FRAME and not first.flags & _FRAGMENT:
+                first = first._replace(body=body)
+                self.counters["urgent_ref_step"] += 1
         data = reframe(first._replace(cost=min(0xFFFF, first.cost + cost_add)), self.me, parent,
                        _ACK if self.urgent_acks else 0)
         u = _InFlight(data, (first.origin, first.seq), [first], parent, urgent=True, rank=rank, until=until,

@@ -60,6 +60,12 @@ _UNCHANGED = "u"
 _CLOCK_HZ = 50_000_000  #: chip cycles per second (``span_us`` and ``forget`` are in them)
 _TIME_BACK = 10  #: a child's record this many ``forget`` older than the newest frame sent: time went back
 
+def stagger(bridge: int, most: int) -> int:
+    """The bridge's own offset in [0, most): spread by a multiplicative hash of its id, so
+    neighbours (consecutive ids) land far apart (heartbeat and refresh phases, slots)."""
+    return (bridge * 2_654_435_761 % 4_294_967_296) * most >> 32
+
+
 #: An own or passed-on state of one element in one frame: a sample, or unchanged.
 State = ReadoutSample | str
 
@@ -116,8 +122,15 @@ class FrameReadout:
     """One bridge's part in the readout: its own states, its children's records, and the
     records it owes its parent (or, on a gateway, the host), each in time."""
 
-    def __init__(self, me: int, config: ReadoutConfig, counters: Counter[str], room: int = 0) -> None:
+    def __init__(self, me: int, config: ReadoutConfig, counters: Counter[str], room: int = 0,
+                 refresh: int = 0) -> None:
+        """``room``: bytes each record part leaves free (a gateway's age); ``refresh``: on a
+        gateway, every element kept goes as its sample once every this many frames
+        (0: never; see the module)."""
+        if refresh < 0:
+            raise ValueError(f"refresh {refresh} must be >= 0 frames")
         self.me = me
+        self.refresh = refresh
         self.config = config
         self.counters = counters
         self.room = room  # bytes each part leaves free for what its writer adds (a gateway's age)
@@ -184,7 +197,17 @@ class FrameReadout:
         record already went) still says which bridges the child stands for. ``seq``: the
         frame's sequence number when it came whole (a READOUT_SAME of the child may refer
         to it: :meth:`child_same`); ``since``: the frame of the record a READOUT_SAME
-        rebuilt this one from."""
+        rebuilt this one from. A whole record's ``ref_step`` says the same of the record
+        that many frames back, for the elements of the copy kept here when it is that
+        record (else it is not used)."""
+        only: frozenset[int] | None = None
+        if since is None and record.ref_step:
+            got = self._refs.get(src)
+            r = got[1] if got is not None else None
+            if r is not None and (r.root, r.rate, r.index) == (record.root, record.rate, record.index - record.ref_step):
+                since = r.index
+                only = frozenset((*(s.bridge for s in r.samples), *r.unchanged))
+                self.counters["readout_ref_step"] += 1
         if seq is not None and record.parts == 1 and not self._older_ref(src, record, seq):
             self._refs.pop(src, None)
             self._refs[src] = (seq, record)
@@ -213,7 +236,7 @@ class FrameReadout:
             # the root gateway died, bridge 3 unknown in two frames of three for 2 s.)
             if self._via.setdefault(b, src) == src:
                 mine.add(b)
-        self._note(record, since)
+        self._note(record, since, only)
         key = (record.rate, record.index)
         p = self._pending.get(key)
         nk = (record.root, record.rate)
@@ -288,7 +311,7 @@ class FrameReadout:
                 and kept.index - SAME_STEP_MAX <= record.index < kept.index
                 and 0 < (kept_seq - seq) & 0xFFFF <= SAME_REF_MASK)
 
-    def _note(self, record: Readout, since: int | None = None) -> None:
+    def _note(self, record: Readout, since: int | None = None, only: frozenset[int] | None = None) -> None:
         """Keep, per bridge of a child's record, the sample that is its reference (what an
         *unchanged* of it refers to), for the expansion after a failed record. A sample
         counts only when it is not older than the state kept (a retry whose first attempt
@@ -303,7 +326,9 @@ class FrameReadout:
         of frame ``since``. Everything the child sent after that record was a READOUT_SAME
         (a whole record sent after it would be its reference now), which carries no sample:
         one lost on the way lost nothing, so a sample kept through frame ``since`` or later
-        is still the reference, whatever frames went missing here since."""
+        is still the reference, whatever frames went missing here since. ``only``: the
+        elements ``since`` holds for (None: all; a whole record's ``ref_step`` holds only
+        for the elements of the record it names)."""
         chain = (record.root, record.rate)
         at_of = self._last_at.get
         k = record.index
@@ -319,7 +344,7 @@ class FrameReadout:
                 continue
             at = at_of(b)
             if at is not None and at[:2] == chain and at[2] <= k and (
-                    k <= at[2] + 1 or (since is not None and since <= at[2])):
+                    k <= at[2] + 1 or (since is not None and since <= at[2] and (only is None or b in only))):
                 self._last_at[b] = (chain[0], chain[1], k)
             elif at is None or at[:2] != chain or k > at[2]:
                 self._last.pop(b, None)
@@ -548,12 +573,18 @@ class FrameReadout:
             self.counters["readout_passed_on"] += 1
         expand, self._expand = self._expand, False
         owed = self._owed
+        refresh = self.refresh
+        phase = p.index % refresh if refresh else -1
         groups: dict[tuple[Mode, int], tuple[list[ReadoutSample], list[int], list[int]]] = {}
         for b in sorted(states):
             mode, over, st = states[b]
-            if st == _UNCHANGED and (expand or b in owed) and b in self._last and self._refers(b, p):
-                mode, over, st = self._last[b]
-                self.counters["readout_expanded"] += 1
+            if st == _UNCHANGED and b in self._last:
+                if (expand or b in owed) and self._refers(b, p):
+                    mode, over, st = self._last[b]
+                    self.counters["readout_expanded"] += 1
+                elif phase >= 0 and stagger(b, refresh) == phase and self._refers(b, p):
+                    mode, over, st = self._last[b]
+                    self.counters["readout_serial_refreshed"] += 1
             g = groups.setdefault((mode, over), ([], [], []))
             if isinstance(st, ReadoutSample):
                 g[0].append(st if st.bridge == b else st._replace(bridge=b))

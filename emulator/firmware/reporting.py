@@ -131,6 +131,11 @@ class Reporter:
         self.suppressed += 1
         return False
 
+    @property
+    def reference(self) -> Sample | None:
+        """The last sample sent: what an *unchanged* refers to (None: the next is sent)."""
+        return self._last
+
     def sent(self, s: Sample) -> None:
         """``s`` went out although :meth:`wants` did not ask for it (the readout's refresh):
         it is the reference of what follows, as any sample sent is."""

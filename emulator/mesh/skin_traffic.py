@@ -14,8 +14,10 @@ records directly, frame by frame, vectorised over the elements:
   messages (origin the gateway, its host numbering) and COBS-encoded on the line;
 * the **same states**: periodic, every element a sample; event-based, each bridge's
   :class:`~cellbridge.emulator.firmware.reporting.Reporter` (threshold, follow-up, heartbeat slot,
-  settling) and the readout's refresh (every ``readout_refresh`` frames in the bridge's
-  slot) decide sample or *unchanged*, as on the chip;
+  settling) and the readout's refresh on the cells (every ``readout_refresh`` frames in
+  the bridge's slot) decide sample or *unchanged*, as on the chip, and the gateway's
+  refresh of its line (every ``serial_refresh`` frames in the element's slot) writes an
+  unchanged element as the last sample its bridge sent, as the gateway does;
 * the **same readings**: the world's capacitances (:class:`~cellbridge.emulator.world.world.World`,
   band ghosts included) at each gate's middle, counted by the closed-form counter
   (:func:`cellbridge.tactile.transfer.counts`) at a random oscillator phase.
@@ -40,7 +42,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from cellbridge.emulator.firmware.commands import Settings
+from cellbridge.emulator.firmware.firmware import FirmwareConfig
 from cellbridge.emulator.firmware.readout import AGE_ROOM, ReadoutConfig, record_parts
+from cellbridge.emulator.firmware.readout import stagger as _stagger
 from cellbridge.emulator.firmware.reporting import Reporter
 from cellbridge.emulator.mesh.skin_mesh import mesh_from_skin, neighbour_pairs
 from cellbridge.emulator.world.world import World
@@ -56,11 +60,6 @@ _CELL_BIT = 1e-6  #: s a bit takes on a cell (1 Mbit/s)
 _HOP_EXTRA = 150e-6  #: s of a hop besides the record's airtime: the idle wait and the acknowledgement
 _RECORD_BYTES = 24  #: a cell frame's header, CRC and READOUT fields besides its states (about)
 _SAMPLE_BYTES = 9  #: a sample in a record (about; unchanged: 3)
-
-
-def _stagger(bridge: int, most: int) -> int:
-    """The firmware's per-bridge offset in [0, most) (emulator/firmware/firmware.py)."""
-    return (bridge * 2_654_435_761 % 4_294_967_296) * most >> 32
 
 
 @dataclass(frozen=True)
@@ -104,11 +103,13 @@ class SkinTraffic:
     """The serial bytes each gateway of ``skin`` writes, frame by frame (see the module).
 
     ``world``: the stimuli (None: untouched); ``settings``: every bridge's (rate, mode
-    COUNTER only, reporting); ``refresh``: the readout's refresh of event-based bridges
-    (frames); ``baudrate``: the gateways' lines. Deterministic for a ``seed``."""
+    COUNTER only, reporting); ``refresh`` and ``serial_refresh``: the readout's refresh of
+    event-based bridges on the cells and the gateways' of their lines (frames, 0: none;
+    the firmware's defaults); ``baudrate``: the gateways' lines. Deterministic for a ``seed``."""
 
     def __init__(self, skin: SkinGeometry, world: World | None = None, *, settings: Settings = Settings(),
-                 seed: int = 0, refresh: int = 10, baudrate: int = 1_000_000,
+                 seed: int = 0, refresh: int = FirmwareConfig(0).cell_refresh,
+                 serial_refresh: int = FirmwareConfig.serial_refresh, baudrate: int = 1_000_000,
                  readout: ReadoutConfig | None = None) -> None:
         if settings.mode is not Mode.COUNTER:
             raise ValueError("SkinTraffic reads counter mode only")
@@ -119,6 +120,7 @@ class SkinTraffic:
         self.tree = readout_tree(skin)
         self.ids = skin.ids.astype(np.int64)
         self.refresh = refresh
+        self.serial_refresh = serial_refresh
         self.baudrate = baudrate
         self.chip = ChipParams(gate_cycles=settings.gate_cycles)
         depths = int(self.tree.depth.max()) + 2  # the skin's depth plus two, as a mesh file gives it
@@ -137,6 +139,10 @@ class SkinTraffic:
             for b in self.ids.tolist()]
         self._refresh_slot: NDArray[np.int64] | None = (
             np.array([_stagger(int(b), refresh) for b in self.ids.tolist()], dtype=np.int64) if refresh else None)
+        self._serial_slot: NDArray[np.int64] | None = (
+            np.array([_stagger(int(b), serial_refresh) for b in self.ids.tolist()], dtype=np.int64)
+            if serial_refresh else None)
+        self._is_gateway = self.tree.parent < 0
         order = np.argsort(self.tree.depth, kind="stable")[::-1]
         self._levels = [order[self.tree.depth[order] == d] for d in range(int(self.tree.depth.max()), 0, -1)]
         self.counters: Counter[str] = Counter()
@@ -151,25 +157,41 @@ class SkinTraffic:
         r2, o2 = counts(c2, self.chip, self.rng.random(n))
         return r1, r2, (o1.astype(np.int64) | (o2.astype(np.int64) << 1))
 
+    def _phase(self, slots: NDArray[np.int64] | None, every: int, index: int) -> list[bool]:
+        n = self.ids.shape[0]
+        return np.equal(slots, index % every).tolist() if slots is not None else [False] * n
+
     def _kept(self, index: int, start: int, c1: NDArray[np.int64], c2: NDArray[np.int64],
-              flags: NDArray[np.int64]) -> NDArray[np.bool_]:
-        """Which elements send a sample in frame ``index`` (the rest: unchanged)."""
+              flags: NDArray[np.int64]) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """Which elements send a sample in frame ``index`` on the cells, and which the
+        gateway writes as a sample (the rest: unchanged). An element the gateway refreshes
+        has its reading in ``c1``, ``c2``, ``flags`` replaced by the last sample it sent."""
+        n = c1.shape[0]
         if self._reporters is None:
-            return np.ones(c1.shape[0], dtype=bool)
+            every = np.ones(n, dtype=bool)
+            return every, every
         period = CLOCK_HZ // self.settings.rate_hz
-        kept = np.empty(c1.shape[0], dtype=bool)
-        slot = self._refresh_slot
-        refresh: list[bool] = (np.equal(slot, index % self.refresh).tolist() if slot is not None
-                               else [False] * c1.shape[0])
+        kept = np.empty(n, dtype=bool)
+        written = np.empty(n, dtype=bool)
+        refresh = self._phase(self._refresh_slot, self.refresh, index)
+        serial = self._phase(self._serial_slot, self.serial_refresh, index)
+        gateway = self._is_gateway.tolist()
         for i, (rep, a, b, f) in enumerate(zip(self._reporters, c1.tolist(), c2.tolist(), flags.tolist())):
             s = Sample(0, start, a, b, f, index)
             k = rep.wants(s, period, True)
-            if not k and refresh[i]:
+            if not k and refresh[i] and not gateway[i]:  # (a gateway's own: its line's refresh, below)
                 k = True
                 rep.sent(s)
                 self.counters["readout_refreshed"] += 1
             kept[i] = k
-        return kept
+            written[i] = k
+            if not k and serial[i]:
+                ref = rep.reference
+                if ref is not None:
+                    c1[i], c2[i], flags[i] = ref.c1, ref.c2, ref.flags
+                    written[i] = True
+                    self.counters["readout_serial_refreshed"] += 1
+        return kept, written
 
     def _arrivals(self, kept: NDArray[np.bool_]) -> NDArray[np.float64]:
         """s after the gates' end at which each element's record is complete (modelled)."""
@@ -189,9 +211,9 @@ class SkinTraffic:
         start = index * CLOCK_HZ // rate
         t = start / CLOCK_HZ
         c1, c2, flags = self._readings(t)
-        kept = self._kept(index, start, c1, c2, flags)
+        cells, kept = self._kept(index, start, c1, c2, flags)
         gate_end = t + self.settings.measure_cycles() / CLOCK_HZ
-        done = self._arrivals(kept)
+        done = self._arrivals(cells)
         latest = t + self.span_us * 1e-6
         ids, gw = self.ids, self.tree.gateway
         out = []

@@ -82,7 +82,7 @@ def message_from_json(kind: str, p: dict[str, Any]) -> Any:
     if kind == "READOUT":
         return Readout(p["index"], p["rate"], Mode(p["mode"]), p["oversampling"],
                        tuple(ReadoutSample(*s) for s in p["samples"]), tuple(p["unchanged"]), tuple(p["missing"]),
-                       p["span_us"], p["part"], p["parts"], p.get("root", 0), p.get("age_us", 0))
+                       p["span_us"], p["part"], p["parts"], p.get("root", 0), p.get("age_us", 0), p.get("ref_step", 0))
     if kind == "READOUT_SAME":
         return ReadoutSame(**p)
     raise ValueError(f"no frame type {kind!r}")

@@ -60,7 +60,7 @@ bridge_id = st.sampled_from([0, 1, 127, 128, 255, 256, 0xFFFE, 0xFFFF]) | u16
 def readouts(draw: st.DrawFn, max_elements: int = 24) -> Readout:
     """A valid READOUT (version 4): distinct bridges, each in one state, every list increasing
     by bridge id; samples in the mode's ranges with overflow flags only; any index, rate,
-    span, part of parts, root and age (0: not said)."""
+    span, part of parts, root, age and step back to its reference (0: not said)."""
     mode = draw(st.sampled_from(Mode))
     over = 1 if mode is Mode.COUNTER else draw(st.integers(1, 0xFFFF))
     code = st.integers(0, 0xFFFF if mode is Mode.COUNTER else 255 * over)
@@ -72,7 +72,8 @@ def readouts(draw: st.DrawFn, max_elements: int = 24) -> Readout:
     missing = tuple(b for b, s in zip(ids, states) if s == "m")
     parts = draw(st.integers(1, 0xFF))
     return Readout(draw(u64), draw(st.integers(1, 0xFFFF)), mode, over, samples, unchanged, missing, draw(u32),
-                   draw(st.integers(0, parts - 1)), parts, draw(st.integers(0, 0xFFFF)), draw(u32))
+                   draw(st.integers(0, parts - 1)), parts, draw(st.integers(0, 0xFFFF)), draw(u32),
+                   draw(st.integers(0, 127)))
 
 
 readout = readouts()

@@ -1,0 +1,149 @@
+"""Where an element the host lost comes back from, on an event-based skin whose cells carry
+no refresh to speak of: the gateway's refresh of its serial line, a whole record's step back
+to the record its READOUT_SAMEs referred to, and a bridge's first record after a new route
+(emulator/firmware/readout.py, docs/time.md).
+
+Sans-I/O: a gateway's or relay's :class:`FrameReadout` fed its children's records, and a
+bridge's :class:`LinkLayer` handing its records to the cell."""
+
+from __future__ import annotations
+
+import random
+from collections import Counter
+
+from cellbridge.emulator.firmware.linklayer import LinkLayer
+from cellbridge.emulator.firmware.readout import AGE_ROOM, FrameReadout, ReadoutConfig, stagger
+from cellbridge.emulator.firmware.transceiver import Transceiver
+from cellbridge.protocol import Flags, FrameType, Mode, Readout, ReadoutSame, ReadoutSample, decode, own
+
+PARENT = 9
+
+
+def _record(index: int, samples: tuple[ReadoutSample, ...] = (), unchanged: tuple[int, ...] = (),
+            ref_step: int = 0) -> Readout:
+    return Readout(index, 100, Mode.COUNTER, 1, samples, unchanged, (), 2840, 0, 1, 1, 0, ref_step)
+
+
+def _bridge(me: int, refresh: int = 0) -> tuple[FrameReadout, Counter[str]]:
+    c: Counter[str] = Counter()
+    return FrameReadout(me, ReadoutConfig(depths=4, window=1000), c, AGE_ROOM if refresh else 0, refresh), c
+
+
+def _frame(r: FrameReadout, k: int, state: object = "u") -> Readout:
+    """Frame ``k`` with this bridge's own ``state``, taken at its slot."""
+    r.own(k, 100, Mode.COUNTER, 1, state, 1000 * k, 5000, 1)  # type: ignore[arg-type]  # a State
+    out = r.take(1000 * k)
+    assert [x.index for x in out] == [k]
+    return out[0]
+
+
+def _samples(r: Readout) -> dict[int, tuple[int, int]]:
+    return {s.bridge: (s.c1, s.c2) for s in r.samples}
+
+
+def test_a_gateway_writes_each_unchanged_element_it_keeps_as_its_sample_once_every_refresh_frames() -> None:
+    """A record lost on the serial line (no bridge sees it) leaves the host without an
+    element until its next sample: the gateway sends the sample it keeps, in the element's
+    own phase, every ``refresh`` frames. It refreshes only what it keeps as the reference of
+    the *unchanged* (an element it never had a sample of stays unchanged), and a relay
+    (refresh 0) never does."""
+    gw, c = _bridge(1, refresh=10)
+    relay, rc = _bridge(5)
+    first = _record(10, (ReadoutSample(7, 100, 200, 0),), (9,))
+    gw.child(7, first, 0, seq=300)
+    relay.child(7, first, 0, seq=300)
+    _frame(gw, 10, ReadoutSample(1, 1, 2, 0))
+    _frame(relay, 10, ReadoutSample(5, 1, 2, 0))
+    kept = {1: (1, 2), 7: (100, 200)}  # (its own element too)
+    for k in range(11, 41):
+        gw.child(7, _record(k, (), (7, 9)), 1000 * k - 500, seq=300 + k - 10)
+        relay.child(7, _record(k, (), (7, 9)), 1000 * k - 500, seq=300 + k - 10)
+        out = _frame(gw, k)
+        assert _frame(relay, k).samples == ()
+        assert _samples(out) == {b: v for b, v in kept.items() if k % 10 == stagger(b, 10)}, (k, out)
+        assert 9 in out.unchanged
+    assert c["readout_serial_refreshed"] == 6 and rc["readout_serial_refreshed"] == 0
+
+
+def test_a_gateway_does_not_refresh_an_element_from_a_sample_a_lost_frame_may_have_replaced() -> None:
+    """Frame 12 of child 7 did not come (it may have held a new sample of 7): from then on
+    the sample kept is no reference, and the gateway refreshes nothing of 7 (the host then
+    waits for 7's next sample; a wrong reading is worse than an unknown one)."""
+    gw, c = _bridge(1, refresh=4)
+    gw.child(7, _record(10, (ReadoutSample(7, 100, 200, 0),)), 0, seq=300)
+    _frame(gw, 10, ReadoutSample(1, 1, 2, 0))
+    for k in range(11, 31):
+        if k != 12:
+            gw.child(7, _record(k, (), (7,)), 1000 * k - 500, seq=300 + k - 10)
+        out = _frame(gw, k)
+        if k > 12:
+            assert 7 not in _samples(out), (k, out)
+    assert c["readout_serial_refreshed"] == sum(1 for k in range(11, 31) if k % 4 == stagger(1, 4))  # its own only
+
+
+def test_a_whole_record_after_lost_readout_sames_keeps_the_reference_of_the_elements_it_names() -> None:
+    """Child 7's READOUT_SAME of frame 11 was lost (its elements missing here, owed to the
+    host); its record of frame 12 is whole (8 changed) and says its reference is 2 frames
+    back. A READOUT_SAME carries no sample, so 7's unchanged refers to the sample of frame
+    10 this relay keeps: the relay pays its debt with it at once. Without the step it could
+    not know that, and 7 stayed unknown to the host until its next sample."""
+    for step, paid in ((2, True), (0, False), (1, False)):  # (1: a record this relay does not hold)
+        r, c = _bridge(5)
+        r.child(7, _record(10, (ReadoutSample(7, 100, 200, 0), ReadoutSample(8, 300, 400, 0))), 0, seq=300)
+        _frame(r, 10, ReadoutSample(5, 1, 2, 0))
+        assert _frame(r, 11).missing == (7, 8)  # the READOUT_SAME of 11: lost on the cell
+        r.child(7, _record(12, (ReadoutSample(8, 310, 410, 0),), (7,), ref_step=step), 11_500, seq=302)
+        twelve = _frame(r, 12)
+        assert _samples(twelve) == ({7: (100, 200), 8: (310, 410)} if paid else {8: (310, 410)}), (step, twelve)
+        assert (7 in twelve.unchanged) != paid and c["readout_ref_step"] == int(paid)
+
+
+def test_a_step_back_holds_only_for_the_elements_of_the_record_it_names() -> None:
+    """Element 11 came through child 6 until frame 10, 6's record of frame 11 was lost, and
+    from frame 12 it comes through child 7 (re-routed), whose record names a reference that
+    did not hold 11 (7 sent a READOUT_SAME of it for frame 11). Frame 11 of 11 may have held a new sample, gone with 6's record: the
+    sample kept from 6 is no reference for 7's *unchanged* of it."""
+    r, _ = _bridge(5)
+    r.child(6, _record(10, (ReadoutSample(11, 500, 600, 0),)), 0, seq=40)
+    r.child(7, _record(10, (ReadoutSample(7, 100, 200, 0),)), 0, seq=300)
+    _frame(r, 10, ReadoutSample(5, 1, 2, 0))
+    assert r.child_same(7, ReadoutSame(1, 300 & 0x7F), 10_500)
+    assert _frame(r, 11).missing == (11,)  # 6's record lost
+    r.child(7, _record(12, (), (7, 11), ref_step=2), 11_500, seq=302)
+    twelve = _frame(r, 12)
+    assert 11 in twelve.unchanged and 11 not in _samples(twelve), twelve
+
+
+def _link_send(link: LinkLayer, record: Readout, seq: int, tick: int, ack: bool = True) -> tuple[int, Readout | None]:
+    """Queue ``record`` and run the link until it went (acknowledged if asked and ``ack``):
+    (tick, the READOUT put on the cell, or None for a READOUT_SAME)."""
+    link.enqueue_urgent(own(record, 5, seq), tick, until=10**12, of=(1, 100, record.index), record=record)
+    for _ in range(200):
+        out, _used = link.advance(tick, PARENT, 0, 1)
+        if out is not None:
+            f = decode(out[0])
+            if f.flags & Flags.ACK_REQUEST and ack:
+                assert link.acked(5, seq, PARENT, tick)
+            return tick, f.payload if f.type is FrameType.READOUT else None  # type: ignore[return-value]
+        t = link.next_tick
+        assert t is not None
+        tick = max(tick + 1, t)
+    raise AssertionError("not sent")
+
+
+def test_a_whole_record_after_readout_sames_names_the_record_they_referred_to() -> None:
+    """The step is said only when it holds: everything sent to the parent since the record
+    it names, which the parent acknowledged, was a READOUT_SAME."""
+    link = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+    changed = (ReadoutSample(8, 300, 400, 0),)
+    tick, first = _link_send(link, _record(100, changed, (5,)), 40, 0)
+    assert first is not None and first.ref_step == 0  # (no reference yet)
+    tick, same = _link_send(link, _record(101, (), (5, 8)), 41, tick + 10**6)
+    assert same is None  # a READOUT_SAME
+    tick, whole = _link_send(link, _record(103, changed, (5,)), 43, tick + 10**6, ack=False)
+    assert whole is not None and whole.ref_step == 3 and link.counters["urgent_ref_step"] == 1
+    # its acknowledgement lost: no reference now (the parent may hold 103 or 100)
+    del link.outstanding[(5, 43)]
+    link._no_ref()
+    tick, after = _link_send(link, _record(104, changed, (5,)), 44, tick + 10**6)
+    assert after is not None and after.ref_step == 0

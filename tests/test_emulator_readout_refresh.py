@@ -147,3 +147,15 @@ def test_a_whole_record_after_readout_sames_names_the_record_they_referred_to() 
     link._no_ref()
     tick, after = _link_send(link, _record(104, changed, (5,)), 44, tick + 10**6)
     assert after is not None and after.ref_step == 0
+
+
+def test_a_record_of_samples_only_or_right_after_its_reference_says_no_step() -> None:
+    """A periodic skin's records (every element a sample) keep their size, as does a record
+    right after its reference: the step would tell the parent nothing it does not know."""
+    for k, record in ((101, _record(101, (ReadoutSample(5, 1, 2, 0), ReadoutSample(8, 300, 400, 0)))),
+                      (101, _record(101, (ReadoutSample(8, 310, 410, 0),), (5,))),
+                      (105, _record(105, (ReadoutSample(5, 1, 2, 0), ReadoutSample(8, 300, 400, 0))))):
+        link = LinkLayer(5, (1,), Transceiver(random.Random(0)))
+        tick, _ = _link_send(link, _record(100, (ReadoutSample(8, 300, 400, 0),), (5,)), 40, 0)
+        tick, sent = _link_send(link, record, 41, tick + 10**6)
+        assert sent is not None and sent.ref_step == 0, (k, sent)

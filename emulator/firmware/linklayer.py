@@ -182,13 +182,16 @@ class LinkLayer:
         that went since were READOUT_SAMEs and ``record`` may say so (one part, of that
         record's root and rate, within :data:`SAME_STEP_MAX`); else 0. The parent that
         lost some of those READOUT_SAMEs still holds the samples they stood for
-        (:attr:`Readout.ref_step`)."""
+        (:attr:`Readout.ref_step`). Said only where it can help: the record has unchanged
+        elements, and at least one frame lies between it and its reference (a periodic
+        skin's records, all samples, and a record right after its reference stay as they
+        were, two bytes shorter)."""
         ref = self._refs.get(parent)
-        if ref is None or record.parts != 1:
+        if ref is None or record.parts != 1 or not record.unchanged:
             return 0
         r = ref[1]
         step = record.index - r.index
-        return step if 1 <= step <= SAME_STEP_MAX and (record.root, record.rate) == (r.root, r.rate) else 0
+        return step if 2 <= step <= SAME_STEP_MAX and (record.root, record.rate) == (r.root, r.rate) else 0
 
     def _no_ref(self) -> None:
         """A record was given up unsent (the queue full, or expired without a parent): what

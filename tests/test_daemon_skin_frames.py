@@ -487,10 +487,11 @@ def _held_back(reads: list[tuple[float, bytes]], origin: int, windows: list[tupl
 def _steady_contacts_true_or_unsure(steady: list[dict], k: int) -> None:
     """A corner press's steady contacts (3 N at ``CORNER``): one that knows every element
     near it is right (force within 5 %, position within 1 mm); one that lists neighbours it
-    does not know (a record lost on the cells: the elements are unknown until their bridge
-    sends a sample) is right or covers the truth with its σ. Such contacts are few: a record
-    lost costs an element at most its refresh (``readout_refresh``, 10 frames: 0.1 s of the
-    0.5 s looked at), and a skin that mostly does not know fails."""
+    does not know (a record lost on the cells: the elements are unknown until a sample of
+    them comes) is right or covers the truth with its σ. Such contacts are few: a record
+    lost costs an element a frame or two (the relays send the samples they keep of what
+    they listed missing; at worst its bridge's refresh on the cells, 50 frames), and a skin
+    that mostly does not know fails."""
     assert steady, k
     sure = [d for d in steady if not d["unknown_near"]]
     assert len(sure) >= 0.7 * len(steady), (k, len(sure), len(steady))
@@ -547,7 +548,7 @@ def test_a_corner_press_with_one_bridge_starved_at_its_release_keeps_one_id() ->
     lists 10, 11, 14, 15 and 16 missing (a relay's record lost among the bridges' STATUS
     frames), the next says 10 and 11 unchanged against a frame the host did not have, and
     the contact says so (``unknown_near`` [10, 11], σ of the force 30 N): unsure, not wrong;
-    then 3.00 N while it still lists 11 and 14 until their refresh (10 of its 49 reports)."""
+    then 3.00 N while it still lists 11 and 14 until a sample of them comes."""
     got = _corner_presses_held_back("release", 8)
     assert [len(ids) for _, ids in got] == [1] * 8, [sorted(ids) for _, ids in got]
 

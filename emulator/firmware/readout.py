@@ -60,6 +60,7 @@ _UNCHANGED = "u"
 _CLOCK_HZ = 50_000_000  #: chip cycles per second (``span_us`` and ``forget`` are in them)
 _TIME_BACK = 10  #: a child's record this many ``forget`` older than the newest frame sent: time went back
 
+
 def stagger(bridge: int, most: int) -> int:
     """The bridge's own offset in [0, most): spread by a multiplicative hash of its id, so
     neighbours (consecutive ids) land far apart (heartbeat and refresh phases, slots)."""

@@ -11,10 +11,27 @@ from __future__ import annotations
 import random
 from collections import Counter
 
+from cellbridge.emulator.firmware.commands import Settings
 from cellbridge.emulator.firmware.linklayer import LinkLayer
 from cellbridge.emulator.firmware.readout import AGE_ROOM, FrameReadout, ReadoutConfig, stagger
+from cellbridge.emulator.firmware.reporting import ReportingMode
 from cellbridge.emulator.firmware.transceiver import Transceiver
-from cellbridge.protocol import Flags, FrameType, Mode, Readout, ReadoutSame, ReadoutSample, decode, own
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import VirtualMesh
+from cellbridge.protocol import (
+    ADDR_BROADCAST,
+    Command,
+    Flags,
+    Frame,
+    FrameType,
+    Mode,
+    Op,
+    Readout,
+    ReadoutSame,
+    ReadoutSample,
+    decode,
+    own,
+)
 
 PARENT = 9
 
@@ -147,3 +164,24 @@ def test_a_whole_record_after_readout_sames_names_the_record_they_referred_to() 
     link._no_ref()
     tick, after = _link_send(link, _record(104, changed, (5,)), 44, tick + 10**6)
     assert after is not None and after.ref_step == 0
+
+
+def test_a_gateways_own_element_is_a_fresh_sample_every_serial_refresh_frames_after_a_rate_change() -> None:
+    """A gateway's own element goes straight onto its line, so it carries no refresh on the
+    cells; its line's refresh wrote the sample its readout kept, and only while that sample
+    was the reference of the frame's time root and rate. After a rate change (the reporter
+    keeps its reference: the first frames at the new rate are *unchanged*) nothing was kept
+    at the new rate, and the gateway's own element stayed unknown to the host until its
+    heartbeat (here a minute; 2 s of 200 Hz frames without one sample). It samples afresh
+    at its line's refresh phase instead, as every other bridge does at its cells' one."""
+    vm = VirtualMesh(meshgen.grid(2, 2, gateways=(1,)), seed=3, readout=True,
+                     settings=Settings(reporting=ReportingMode(40, 60_000)))
+    vm.host_write(1, Frame(0, ADDR_BROADCAST, 0, 500, Command(1, Op.SET_RATE, 200)), at=2.0)
+    vm.run(3.0)
+    every = vm.nodes[1].config.serial_refresh
+    records = [f.payload for f in vm.frames[1] if isinstance(f.payload, Readout)]
+    fast = sorted((r.index, r) for r in records if r.rate == 200)
+    assert len(fast) > 150
+    own = [k for k, r in fast if 1 in _samples(r)]
+    assert own and own[0] - fast[0][0] <= every, (own[:3], fast[0][0])
+    assert all(b - a <= every for a, b in zip(own, own[1:])), own

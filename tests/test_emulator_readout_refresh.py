@@ -185,3 +185,22 @@ def test_a_gateways_own_element_is_a_fresh_sample_every_serial_refresh_frames_af
     own = [k for k, r in fast if 1 in _samples(r)]
     assert own and own[0] - fast[0][0] <= every, (own[:3], fast[0][0])
     assert all(b - a <= every for a, b in zip(own, own[1:])), own
+
+
+def test_a_bridge_back_on_the_schedule_expands_its_own_element_only_from_a_sample_taken_since() -> None:
+    """A bridge off mesh time (cut off for 5 s) sends its samples in DATA frames: its
+    reporter's reference is then one of them, and its first frames back on the schedule are
+    *unchanged* from it. Its readout still kept the last sample it had put in a record, and
+    after a failed record expanded its own element to that older reading (pressed while off
+    the schedule: read as released). Its own sample is a reference only through frames
+    handed to the readout one after another, as a child's element is through the child's."""
+    r, c = _bridge(5)
+    _frame(r, 10, ReadoutSample(5, 100, 200, 0))
+    _frame(r, 11)
+    r.sent(False)  # a failed record: the next one expands its unchanged elements
+    assert _samples(_frame(r, 12)) == {5: (100, 200)}  # (frames 10-12 in a row: the reference)
+    _frame(r, 13)
+    r.sent(False)  # frames 14-600 off the schedule (DATA frames), and a record failed
+    back = _frame(r, 601)
+    assert 5 not in _samples(back) and 5 in back.unchanged, back
+    assert c["readout_expanded"] == 1

@@ -186,11 +186,21 @@ class FrameReadout:
         p.own = (mode, oversampling, state)
         p.root = root
         self._changed = True
+        at = self._last_at.get(self.me)
         if isinstance(state, ReadoutSample):
-            at = self._last_at.get(self.me)
             if at is None or at[:2] != (root, rate) or index >= at[2]:  # (not an older frame's, come late)
                 self._last[self.me] = (mode, oversampling, state)
                 self._last_at[self.me] = (root, rate, index)
+        elif at is not None and (at[:2] != (root, rate) or index > at[2]):
+            # unchanged from the reporter's reference: the sample kept, only while every frame
+            # since it came here in turn. Frames that did not (the bridge off mesh time, its
+            # samples in DATA frames; a state come after its frame went) may have held a newer
+            # sample, and an expansion then sent the kept one as the bridge's reading
+            if at[:2] == (root, rate) and index == at[2] + 1:
+                self._last_at[self.me] = (root, rate, index)
+            else:
+                self._last.pop(self.me, None)
+                del self._last_at[self.me]
 
     def child(self, src: int, record: Readout, tick: int, seq: int | None = None, since: int | None = None) -> None:
         """A child's record (``src``: the neighbour that sent it). A late one (its frame's

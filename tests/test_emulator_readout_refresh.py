@@ -204,3 +204,24 @@ def test_a_bridge_back_on_the_schedule_expands_its_own_element_only_from_a_sampl
     back = _frame(r, 601)
     assert 5 not in _samples(back) and 5 in back.unchanged, back
     assert c["readout_expanded"] == 1
+
+
+def test_a_gateway_refreshes_a_frame_built_after_a_later_frames_record_came() -> None:
+    """A gateway (or relay) builds a frame's record once every child's record of it is in,
+    and a leaf's record of the next frame may come before a relay's of this one (retried, or
+    held up). The sample kept was then the reference through a later frame than the one
+    written, and was taken for no reference of it: neither refreshed nor sent for an element
+    owed, which the host then waited for until its next sample (under heavy loss a tenth of
+    the element-frames). It is the reference of every frame from its own to the last one it
+    is kept through; a sample of a later frame is not."""
+    k = 20 + stagger(7, 10)  # a frame at 7's phase
+    for later, written in (((), (100, 200)), ((ReadoutSample(7, 300, 400, 0),), None)):
+        gw, _ = _bridge(1, refresh=10)
+        gw.child(7, _record(k - 2, (ReadoutSample(7, 100, 200, 0),)), 0, seq=300)
+        for j in range(k - 2, k):
+            _frame(gw, j, ReadoutSample(1, 1, 2, 0))
+            gw.child(7, _record(j + 1, (), (7,)), 1000 * j + 500, seq=300 + j - k + 3)
+        # frame k + 1's record comes before frame k's record is built: 7 unchanged, or sampled
+        gw.child(7, _record(k + 1, later, () if later else (7,)), 1000 * k - 200, seq=304)
+        out = _frame(gw, k, ReadoutSample(1, 1, 2, 0))
+        assert _samples(out).get(7) == written, out

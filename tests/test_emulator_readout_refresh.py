@@ -11,10 +11,27 @@ from __future__ import annotations
 import random
 from collections import Counter
 
+from cellbridge.emulator.firmware.commands import Settings
 from cellbridge.emulator.firmware.linklayer import LinkLayer
 from cellbridge.emulator.firmware.readout import AGE_ROOM, FrameReadout, ReadoutConfig, stagger
+from cellbridge.emulator.firmware.reporting import ReportingMode
 from cellbridge.emulator.firmware.transceiver import Transceiver
-from cellbridge.protocol import Flags, FrameType, Mode, Readout, ReadoutSame, ReadoutSample, decode, own
+from cellbridge.emulator.mesh import meshgen
+from cellbridge.emulator.mesh.virtual import VirtualMesh
+from cellbridge.protocol import (
+    ADDR_BROADCAST,
+    Command,
+    Flags,
+    Frame,
+    FrameType,
+    Mode,
+    Op,
+    Readout,
+    ReadoutSame,
+    ReadoutSample,
+    decode,
+    own,
+)
 
 PARENT = 9
 
@@ -159,3 +176,64 @@ def test_a_record_of_samples_only_or_right_after_its_reference_says_no_step() ->
         tick, _ = _link_send(link, _record(100, (ReadoutSample(8, 300, 400, 0),), (5,)), 40, 0)
         tick, sent = _link_send(link, record, 41, tick + 10**6)
         assert sent is not None and sent.ref_step == 0, (k, sent)
+
+
+def test_a_gateways_own_element_is_a_fresh_sample_every_serial_refresh_frames_after_a_rate_change() -> None:
+    """A gateway's own element goes straight onto its line, so it carries no refresh on the
+    cells; its line's refresh wrote the sample its readout kept, and only while that sample
+    was the reference of the frame's time root and rate. After a rate change (the reporter
+    keeps its reference: the first frames at the new rate are *unchanged*) nothing was kept
+    at the new rate, and the gateway's own element stayed unknown to the host until its
+    heartbeat (here a minute; 2 s of 200 Hz frames without one sample). It samples afresh
+    at its line's refresh phase instead, as every other bridge does at its cells' one."""
+    vm = VirtualMesh(meshgen.grid(2, 2, gateways=(1,)), seed=3, readout=True,
+                     settings=Settings(reporting=ReportingMode(40, 60_000)))
+    vm.host_write(1, Frame(0, ADDR_BROADCAST, 0, 500, Command(1, Op.SET_RATE, 200)), at=2.0)
+    vm.run(3.0)
+    every = vm.nodes[1].config.serial_refresh
+    records = [f.payload for f in vm.frames[1] if isinstance(f.payload, Readout)]
+    fast = sorted((r.index, r) for r in records if r.rate == 200)
+    assert len(fast) > 150
+    own = [k for k, r in fast if 1 in _samples(r)]
+    assert own and own[0] - fast[0][0] <= every, (own[:3], fast[0][0])
+    assert all(b - a <= every for a, b in zip(own, own[1:])), own
+
+
+def test_a_bridge_back_on_the_schedule_expands_its_own_element_only_from_a_sample_taken_since() -> None:
+    """A bridge off mesh time (cut off for 5 s) sends its samples in DATA frames: its
+    reporter's reference is then one of them, and its first frames back on the schedule are
+    *unchanged* from it. Its readout still kept the last sample it had put in a record, and
+    after a failed record expanded its own element to that older reading (pressed while off
+    the schedule: read as released). Its own sample is a reference only through frames
+    handed to the readout one after another, as a child's element is through the child's."""
+    r, c = _bridge(5)
+    _frame(r, 10, ReadoutSample(5, 100, 200, 0))
+    _frame(r, 11)
+    r.sent(False)  # a failed record: the next one expands its unchanged elements
+    assert _samples(_frame(r, 12)) == {5: (100, 200)}  # (frames 10-12 in a row: the reference)
+    _frame(r, 13)
+    r.sent(False)  # frames 14-600 off the schedule (DATA frames), and a record failed
+    back = _frame(r, 601)
+    assert 5 not in _samples(back) and 5 in back.unchanged, back
+    assert c["readout_expanded"] == 1
+
+
+def test_a_gateway_refreshes_a_frame_built_after_a_later_frames_record_came() -> None:
+    """A gateway (or relay) builds a frame's record once every child's record of it is in,
+    and a leaf's record of the next frame may come before a relay's of this one (retried, or
+    held up). The sample kept was then the reference through a later frame than the one
+    written, and was taken for no reference of it: neither refreshed nor sent for an element
+    owed, which the host then waited for until its next sample (under heavy loss a tenth of
+    the element-frames). It is the reference of every frame from its own to the last one it
+    is kept through; a sample of a later frame is not."""
+    k = 20 + stagger(7, 10)  # a frame at 7's phase
+    for later, written in (((), (100, 200)), ((ReadoutSample(7, 300, 400, 0),), None)):
+        gw, _ = _bridge(1, refresh=10)
+        gw.child(7, _record(k - 2, (ReadoutSample(7, 100, 200, 0),)), 0, seq=300)
+        for j in range(k - 2, k):
+            _frame(gw, j, ReadoutSample(1, 1, 2, 0))
+            gw.child(7, _record(j + 1, (), (7,)), 1000 * j + 500, seq=300 + j - k + 3)
+        # frame k + 1's record comes before frame k's record is built: 7 unchanged, or sampled
+        gw.child(7, _record(k + 1, later, () if later else (7,)), 1000 * k - 200, seq=304)
+        out = _frame(gw, k, ReadoutSample(1, 1, 2, 0))
+        assert _samples(out).get(7) == written, out

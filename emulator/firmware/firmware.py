@@ -221,7 +221,8 @@ class FirmwareConfig:
     #: A gateway writes every element it keeps a sample of as that sample once every this
     #: many frames (at the element's phase) where its bridge said *unchanged*: a record lost
     #: on the serial line leaves an element unknown this many frames at most, at no cost on
-    #: the cells (0: never; emulator/firmware/readout.py)
+    #: the cells (0: never; emulator/firmware/readout.py). The gateway's own element samples
+    #: afresh at this refresh instead (it has none on the cells)
     serial_refresh: int = 10
 
     @property
@@ -622,7 +623,11 @@ class Firmware:
                 self.sampler.reporter.lost()
             return
         st = self.sampler.settings
-        refresh = 0 if c.gateway else c.cell_refresh  # (a gateway's own: its line's refresh, FrameReadout)
+        # a gateway's own element goes straight onto its line: it samples afresh at its line's
+        # refresh, at no cost on the cells (its readout's refresh writes only a sample it
+        # keeps as the reference of the frame's root and rate: none after a rate or root
+        # change, and the element stayed unknown until its heartbeat)
+        refresh = c.serial_refresh if c.gateway else c.cell_refresh
         if not kept and refresh > 0 and s.index % refresh == _stagger(self.me, refresh):
             kept = True
             self.sampler.reporter.sent(s)

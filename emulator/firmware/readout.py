@@ -144,6 +144,9 @@ class FrameReadout:
         #: bridge's reference: its sample's frame, or a later one every frame up to which
         #: said it unchanged here (:meth:`_note`)
         self._last_at: dict[int, tuple[int, int, int]] = {}
+        #: bridge -> the frame of the sample ``_last`` holds: it is the reference of the frames
+        #: from this one to ``_last_at``'s (:meth:`_refers`)
+        self._last_from: dict[int, int] = {}
         self._expand = False  # the last record sent failed: expand unchanged states once
         #: bridges this one listed missing in a record it sent: passed on as unchanged later,
         #: each goes as the sample kept of it (the host knows an element again only from a
@@ -187,11 +190,23 @@ class FrameReadout:
         p.own = (mode, oversampling, state)
         p.root = root
         self._changed = True
+        at = self._last_at.get(self.me)
         if isinstance(state, ReadoutSample):
-            at = self._last_at.get(self.me)
             if at is None or at[:2] != (root, rate) or index >= at[2]:  # (not an older frame's, come late)
                 self._last[self.me] = (mode, oversampling, state)
                 self._last_at[self.me] = (root, rate, index)
+                self._last_from[self.me] = index
+        elif at is not None and (at[:2] != (root, rate) or index > at[2]):
+            # unchanged from the reporter's reference: the sample kept, only while every frame
+            # since it came here in turn. Frames that did not (the bridge off mesh time, its
+            # samples in DATA frames; a state come after its frame went) may have held a newer
+            # sample, and an expansion then sent the kept one as the bridge's reading
+            if at[:2] == (root, rate) and index == at[2] + 1:
+                self._last_at[self.me] = (root, rate, index)
+            else:
+                self._last.pop(self.me, None)
+                self._last_from.pop(self.me, None)
+                del self._last_at[self.me]
 
     def child(self, src: int, record: Readout, tick: int, seq: int | None = None, since: int | None = None) -> None:
         """A child's record (``src``: the neighbour that sent it). A late one (its frame's
@@ -340,6 +355,7 @@ class FrameReadout:
             if at is None or at[:2] != chain or k >= at[2]:
                 self._last[s.bridge] = (record.mode, record.oversampling, s)
                 self._last_at[s.bridge] = (chain[0], chain[1], k)
+                self._last_from[s.bridge] = k
         for b in record.unchanged:
             if b == self.me:
                 continue
@@ -350,14 +366,19 @@ class FrameReadout:
             elif at is None or at[:2] != chain or k > at[2]:
                 self._last.pop(b, None)
                 self._last_at.pop(b, None)
+                self._last_from.pop(b, None)
 
     def _refers(self, b: int, p: _Pending) -> bool:
         """Whether the sample kept of ``b`` is what its *unchanged* in frame ``p`` refers to:
-        kept through a frame not after ``p`` of its time root and rate. A bridge running late
-        builds a record after the next frame's state came (its own, or a child's record), and
-        that frame's sample is no reading of ``p``'s: the state then stays unchanged."""
+        a sample of a frame not after ``p``, kept through ``p`` or later, of ``p``'s time root
+        and rate. A bridge running late builds a record after the next frame's state came (its
+        own, or a child's record): a sample of that frame is no reading of ``p``'s, and the
+        state then stays unchanged; the next frame *unchanged* leaves the sample kept the
+        reference of ``p`` (taken for none, a frame waiting for a relay's retried record
+        while a leaf's of the next frame came neither refreshed nor paid an owed element)."""
         at = self._last_at.get(b)
-        return at is not None and at[:2] == (p.root, p.rate) and at[2] <= p.index
+        return (at is not None and at[:2] == (p.root, p.rate)
+                and self._last_from.get(b, at[2]) <= p.index <= at[2])
 
     def sent(self, ok: bool) -> None:
         """The outcome of the last record handed to the link (acknowledged or given up)."""
@@ -533,6 +554,7 @@ class FrameReadout:
                         del self._via[b]
                         self._last.pop(b, None)
                         self._last_at.pop(b, None)
+                        self._last_from.pop(b, None)
                         self._owed.discard(b)
                 # (its last whole record stays: a child back after it was forgotten may still
                 # refer to it, and the record says exactly what it said)

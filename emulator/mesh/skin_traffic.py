@@ -17,7 +17,8 @@ records directly, frame by frame, vectorised over the elements:
   settling) and the readout's refresh on the cells (every ``readout_refresh`` frames in
   the bridge's slot) decide sample or *unchanged*, as on the chip, and the gateway's
   refresh of its line (every ``serial_refresh`` frames in the element's slot) writes an
-  unchanged element as the last sample its bridge sent, as the gateway does;
+  unchanged element as the last sample its bridge sent, as the gateway does (its own
+  element sampled afresh then);
 * the **same readings**: the world's capacitances (:class:`~cellbridge.emulator.world.world.World`,
   band ghosts included) at each gate's middle, counted by the closed-form counter
   (:func:`cellbridge.tactile.transfer.counts`) at a random oscillator phase.
@@ -179,7 +180,7 @@ class SkinTraffic:
         for i, (rep, a, b, f) in enumerate(zip(self._reporters, c1.tolist(), c2.tolist(), flags.tolist())):
             s = Sample(0, start, a, b, f, index)
             k = rep.wants(s, period, True)
-            if not k and refresh[i] and not gateway[i]:  # (a gateway's own: its line's refresh, below)
+            if not k and (serial[i] if gateway[i] else refresh[i]):  # (a gateway's own: its line's refresh)
                 k = True
                 rep.sent(s)
                 self.counters["readout_refreshed"] += 1

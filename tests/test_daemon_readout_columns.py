@@ -5,6 +5,8 @@ path refuses. And the skin frames made of its columns are the frames of the plai
 
 from __future__ import annotations
 
+import dataclasses
+
 from typing import Any
 
 import msgpack
@@ -49,6 +51,9 @@ def _agrees(payload: bytes) -> ReadoutColumns | None:
 @SETTINGS
 @given(readouts(max_elements=64), st.booleans())
 def test_a_valid_record_is_read_into_the_columns_of_the_plain_record(r: Readout, old_form: bool) -> None:
+    if r.ref_step:  # (a bridge's to its parent, never on a gateway's line: the plain path reads it)
+        assert _agrees(msgpack.packb(r.to_wire())) is None
+        r = dataclasses.replace(r, ref_step=0)
     wire = r.to_wire()
     if old_form:  # the ten fields written before the root was carried
         r = Readout(r.index, r.rate, r.mode, r.oversampling, r.samples, r.unchanged, r.missing, r.span_us, r.part,

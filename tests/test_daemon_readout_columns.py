@@ -6,7 +6,6 @@ path refuses. And the skin frames made of its columns are the frames of the plai
 from __future__ import annotations
 
 import dataclasses
-
 from typing import Any
 
 import msgpack

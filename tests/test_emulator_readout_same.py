@@ -21,7 +21,7 @@ from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.virtual import VirtualMesh
 from cellbridge.protocol import Flags, FrameType, Mode, Readout, ReadoutSame, ReadoutSample, decode, own
 
-from support.readout_truth import Truth, log_readout_states, records
+from support.readout_truth import Truth, check_known, log_readout_states, records
 
 PARENT = 9
 
@@ -167,30 +167,8 @@ def test_an_event_based_skin_sends_readout_sames_and_every_element_frame_it_know
     whole = sum(fw.counters.get("readout_records", 0) for b, fw in vm.nodes.items() if b != 1)
     assert same > 0.5 * whole, (same, whole)
     got = records(vm)
-    reading: dict[int, tuple[int, int]] = {}
-    prev_known: dict[int, int] = {}
-    sent: dict[int, list[tuple[int, int, int]]] = {}  # bridge -> (index, c1, c2) of its samples sent
-    for (b, k), (c1, c2, kept) in sorted(truth.items(), key=lambda x: x[0][1]):
-        if kept:
-            sent.setdefault(b, []).append((k, c1, c2))
-    unchanged = 0
-    for (b, k) in sorted(got, key=lambda x: (x[1], x[0])):
-        state, s = got[(b, k)]
-        if b == 16 and k > 405:
-            assert state == "m", (b, k, state)  # dead: silence is missing, never unchanged
-        if state == "s":
-            assert s is not None
-            now = truth[(b, k)][:2]
-            last_sent = [(c1, c2) for (j, c1, c2) in sent.get(b, []) if j <= k][-1:]
-            assert (s.c1, s.c2) == now or [(s.c1, s.c2)] == last_sent, (b, k)
-            reading[b] = (s.c1, s.c2)
-        elif state == "u" and prev_known.get(b) == k - 1 and b in reading:
-            c1, c2, _ = truth[(b, k)]
-            assert abs(c1 - reading[b][0]) <= 40 and abs(c2 - reading[b][1]) <= 40, (b, k)
-            unchanged += 1
-        elif state != "u":
-            reading.pop(b, None)
-        prev_known[b] = k if state != "m" else -1
+    assert all(state == "m" for (b, k), (state, _) in got.items() if b == 16 and k > 405)  # dead: never unchanged
+    unchanged = check_known(got, truth)
     assert unchanged > 3000
 
 
@@ -347,28 +325,7 @@ def test_a_leaf_moved_between_its_parents_while_pressed_is_never_unchanged_from_
     for i in range(20):
         vm.at(2.5 + 0.3 * i, move)
     vm.run(8.5)
-    got = records(vm)
-    reading: dict[int, tuple[int, int]] = {}
-    prev_known: dict[int, int] = {}
-    sent: dict[int, list[tuple[int, int, int]]] = {}
-    for (b, k), (c1, c2, went) in sorted(log.items(), key=lambda x: x[0][1]):
-        if went:
-            sent.setdefault(b, []).append((k, c1, c2))
-    unchanged = 0
-    for (b, k) in sorted(got, key=lambda x: (x[1], x[0])):
-        state, s = got[(b, k)]
-        if state == "s":
-            assert s is not None
-            last_sent = [(c1, c2) for (j, c1, c2) in sent.get(b, []) if j <= k][-1:]
-            assert (s.c1, s.c2) == log[(b, k)][:2] or [(s.c1, s.c2)] == last_sent, (b, k)
-            reading[b] = (s.c1, s.c2)
-        elif state == "u" and prev_known.get(b) == k - 1 and b in reading:
-            c1, c2, _ = log[(b, k)]
-            assert abs(c1 - reading[b][0]) <= 40 and abs(c2 - reading[b][1]) <= 40, (b, k, (c1, c2), reading[b])
-            unchanged += 1
-        elif state != "u":
-            reading.pop(b, None)
-        prev_known[b] = k if state != "m" else -1
+    unchanged = check_known(records(vm), log)
     assert unchanged > 3000 and vm.nodes[16].counters["readout_no_route"] > 0
 
 

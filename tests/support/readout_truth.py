@@ -56,3 +56,35 @@ def records(vm: VirtualMesh) -> dict[tuple[int, int], tuple[str, ReadoutSample |
                     assert (b, r.index) not in out, "an element-frame in two records"
                     out[(b, r.index)] = ("m", None)
     return out
+
+
+def check_known(got: dict[tuple[int, int], tuple[str, ReadoutSample | None]], truth: Truth,
+                threshold: int = 40) -> int:
+    """Every element-frame the gateways' records let the host know holds what its bridge
+    sampled: a sample is the frame's reading or the last sample the bridge sent (an
+    expansion, the gateway's refresh); an *unchanged* after a frame the host knew lies
+    within ``threshold`` counts of the host's reading. Returns how many unchanged were
+    checked so."""
+    sent: dict[int, list[tuple[int, int, int]]] = {}  # bridge -> (index, c1, c2) of its samples sent
+    for (b, k), (c1, c2, went) in sorted(truth.items(), key=lambda x: x[0][1]):
+        if went:
+            sent.setdefault(b, []).append((k, c1, c2))
+    reading: dict[int, tuple[int, int]] = {}
+    prev_known: dict[int, int] = {}
+    unchanged = 0
+    for (b, k) in sorted(got, key=lambda x: (x[1], x[0])):
+        state, s = got[(b, k)]
+        if state == "s":
+            assert s is not None
+            last_sent = [(c1, c2) for (j, c1, c2) in sent.get(b, []) if j <= k][-1:]
+            assert (s.c1, s.c2) == truth[(b, k)][:2] or [(s.c1, s.c2)] == last_sent, (b, k)
+            reading[b] = (s.c1, s.c2)
+        elif state == "u" and prev_known.get(b) == k - 1 and b in reading:
+            c1, c2, _ = truth[(b, k)]
+            assert abs(c1 - reading[b][0]) <= threshold and abs(c2 - reading[b][1]) <= threshold, (
+                b, k, (c1, c2), reading[b])
+            unchanged += 1
+        elif state != "u":
+            reading.pop(b, None)
+        prev_known[b] = k if state != "m" else -1
+    return unchanged

@@ -27,7 +27,7 @@ from typing import Any, Callable
 
 from numba import njit
 
-__all__ = ["compiled", "UNCACHED", "KERNEL_SOURCES"]
+__all__ = ["compiled", "UNCACHED", "KERNEL_SOURCES", "missing_from_cache"]
 
 #: The modules of this package whose code a kernel may compile in: those holding kernels and
 #: every module of the package they import from, and so on (their functions and constants
@@ -39,6 +39,9 @@ KERNEL_SOURCES = ("arrays", "calibration", "calibration_kernel", "cluster_kernel
 #: Qualified names of the kernels compiled without a disk cache in this process.
 UNCACHED: list[str] = []
 
+#: The kernels made with a disk cache in this process, for :func:`missing_from_cache`.
+_CACHED: list[Any] = []
+
 
 def compiled(fn: Callable[..., Any], **options: Any) -> Any:
     """``numba.njit(cache=True, **options)``, or without the cache where numba finds no place for it.
@@ -49,7 +52,9 @@ def compiled(fn: Callable[..., Any], **options: Any) -> Any:
     inf or NaN as in numpy, instead of raising).
     """
     try:
-        return _checked_against_sources(njit(cache=True, **options)(fn))
+        dispatcher = _checked_against_sources(njit(cache=True, **options)(fn))
+        _CACHED.append(dispatcher)
+        return dispatcher
     except RuntimeError as exc:
         if "cannot cache" not in str(exc):
             raise
@@ -88,3 +93,25 @@ def _checked_against_sources(dispatcher: Any) -> Any:
     if index is not None and hasattr(index, "_source_stamp"):
         index._source_stamp = (index._source_stamp, _sources_stamp())
     return dispatcher
+
+
+def missing_from_cache() -> list[str]:
+    """Qualified names of the kernels made so far in this process (by importing their
+    modules) whose disk cache holds no code for this machine, or code compiled before an
+    edit of their sources: what the first call of each would compile.
+
+    Why a process asks: compiling grows it by about 150 MiB (LLVM's memory, which it keeps
+    for its life) where loading the same kernels from the cache costs about 50, so a
+    long-running process compiles in a child first (:mod:`cellbridge.daemon.shell.kernels`).
+    A kernel whose cache cannot be read counts as missing."""
+    out = []
+    for dispatcher in _CACHED:
+        try:
+            magic = dispatcher.targetctx.codegen().magic_tuple()
+            index = dispatcher._cache._cache_file._load_index()  # {} when absent or stale
+            if any(key[1] == magic for key in index):
+                continue
+        except Exception:  # (another numba's layout: the kernel compiles where it is called)
+            pass
+        out.append(f"{dispatcher.py_func.__module__}.{dispatcher.py_func.__qualname__}")
+    return out

@@ -9,9 +9,9 @@ import logging
 import time
 from typing import Any
 
-from cellbridge.daemon.core import contacts
 from cellbridge.daemon.core.config import parse_config
 from cellbridge.daemon.core.pipeline import Pipeline
+from cellbridge.daemon.shell import contact_worker
 from cellbridge.daemon.shell.contact_worker import ContactWorker
 
 from daemon_traffic import GridFrames
@@ -28,7 +28,7 @@ class SlowWarmUp(concurrent.futures.ThreadPoolExecutor):
         super().__init__(max_workers=1)
 
     def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> concurrent.futures.Future[Any]:
-        if fn is contacts.warm_up:
+        if fn is contact_worker.warm_up:
             def slow() -> None:
                 time.sleep(WARM)
                 fn()

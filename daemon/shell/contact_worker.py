@@ -28,8 +28,8 @@ from cellbridge.daemon.core.contacts import (
     SpecNeeded,
     estimate,
     in_worker,
-    warm_up,
 )
+from cellbridge.daemon.shell.kernels import warm_up
 from cellbridge.daemon.shell.logs import event
 from cellbridge.daemon.shell.worker_process import WorkerProcess
 

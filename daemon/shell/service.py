@@ -37,6 +37,7 @@ from cellbridge.daemon.core.contact_schedule import ContactScheduler
 from cellbridge.daemon.core.messages import Health, LinkWrite, LogEvent, Message
 from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.daemon.ops.ops import OpsHooks
+from cellbridge.daemon.shell import kernels
 from cellbridge.daemon.shell.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.shell.control_server import ControlServer
 from cellbridge.daemon.shell.layout_file import load_layout_file
@@ -495,12 +496,17 @@ class Service:
         fails leaves every record to the plain decoder)."""
         t0 = time.monotonic()
         # (first the READOUT reader, a quarter of the calibrator's time: the ingest's, which
-        # otherwise compiled at the first record, holding the loop)
+        # otherwise compiled at the first record, holding the loop; each compiled in a child
+        # where the cache lacks it, see :mod:`cellbridge.daemon.shell.kernels`)
+        if kernels.compile_apart("cellbridge.daemon.core.readout_columns:warm_up"):
+            event(self.log, "info", "READOUT reader compiled apart", seconds=round(time.monotonic() - t0, 3))
         if not readout_columns.warm_up():
             event(self.log, "warning", "compiled READOUT reader unavailable: records are read by the plain decoder")
         try:
             from cellbridge.tactile import calibration_kernel
 
+            if kernels.compile_apart("cellbridge.tactile.calibration_kernel:warm_up"):
+                event(self.log, "info", "calibration kernel compiled apart", seconds=round(time.monotonic() - t0, 3))
             calibration_kernel.warm_up()
         except Exception as exc:  # any failure leaves the numpy step, which gives the same numbers
             event(self.log, "warning", "calibration kernel unavailable: numpy steps the calibrator",

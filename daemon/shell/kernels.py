@@ -1,0 +1,58 @@
+"""The daemon's compiled kernels compiled in a child process when their cache is empty.
+
+A process that compiles numba kernels keeps LLVM's memory for its life: on a fresh
+installation (or after an upgrade) the daemon, compiling the READOUT reader and the
+calibrator's step in its own process, and its contact worker, compiling the fit's
+kernels, each stayed about 100 MiB larger than the same processes loading the same
+kernels from the cache (the humanoid's daemon 352 against 245 MiB, its worker 395 against
+216), until they were restarted; a robot's daemon may not be for days. So where a kernel
+is not in the cache, the warm-up runs first in a short-lived child Python that compiles
+it into the cache, and the process then loads it from there. Where the cache already
+holds every kernel nothing is started; where there is no disk cache
+(:data:`cellbridge.tactile._jit.UNCACHED`) a child would compile for nothing, and the
+process compiles in place as before.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from cellbridge.tactile import _jit
+
+#: Longest a child's compile may take (s): about 20 s of one core on a fresh installation,
+#: much longer on a loaded machine; past it the caller compiles in its own process.
+COMPILE_LIMIT = 300.0
+
+
+def compile_apart(target: str, limit: float = COMPILE_LIMIT) -> bool:
+    """Run ``target`` (``"package.module:function"``, a warm-up taking no argument) in a
+    child Python when a kernel made in this process is missing from the disk cache, and
+    wait for it (at most ``limit`` s).
+
+    Returns whether a child ran and succeeded (its kernels are then in the cache). Not an
+    error otherwise: a child that cannot start, fails or overruns (it is killed) leaves
+    the caller's own warm-up to compile in place, as without this step. The child stays in
+    the caller's process group, so that a stop of the group stops it too."""
+    module, _, function = target.partition(":")
+    if not module or not function.isidentifier():
+        raise ValueError(f"compile target {target!r}: must be 'package.module:function'")
+    if _jit.UNCACHED or not _jit.missing_from_cache():
+        return False
+    code = f"import importlib; importlib.import_module({module!r}).{function}()"
+    try:
+        done = subprocess.run([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, timeout=limit, check=False)
+    except (OSError, subprocess.SubprocessError):  # (a timeout kills the child)
+        return False
+    return done.returncode == 0
+
+
+def warm_up() -> None:
+    """The contact worker's warm-up, run in the worker process: the estimator's kernels
+    compiled apart where the cache lacks them, then :func:`cellbridge.daemon.core.contacts.warm_up`
+    (imports, the kernels loaded)."""
+    from cellbridge.daemon.core import contacts
+
+    compile_apart("cellbridge.daemon.core.contacts:warm_up")
+    contacts.warm_up()

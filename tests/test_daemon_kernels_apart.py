@@ -1,0 +1,85 @@
+"""Kernels missing from numba's cache are compiled in a child, and the process only loads them.
+
+A long-running process that compiles keeps LLVM's memory for its life (the humanoid's daemon
+and contact worker each about 100 MiB larger after a first start on a fresh installation), so
+the daemon's warm-ups compile apart (:mod:`cellbridge.daemon.shell.kernels`). Each case runs
+in a fresh Python with its own empty cache folder: the calibrator's step (the smallest of the
+daemon's kernel sets, about 10 s to compile) compiled in place, and apart.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = r"""
+import sys
+from cellbridge.daemon.shell import kernels
+from cellbridge.tactile import _jit, calibration_kernel
+
+def mine():
+    return [n for n in _jit.missing_from_cache() if n.startswith("cellbridge.tactile.calibration_kernel.")]
+
+def status(key):
+    for line in open("/proc/self/status"):
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024
+
+print("missing_before", len(mine()))
+if sys.argv[1] == "apart":
+    try:
+        kernels.compile_apart("no colon")
+    except ValueError:
+        print("refused True")
+    print("failed_child", kernels.compile_apart("cellbridge.no_such_module:warm_up"))
+    print("apart", kernels.compile_apart("cellbridge.tactile.calibration_kernel:warm_up"))
+    print("missing_after_child", len(mine()))
+rss = status("VmRSS")
+calibration_kernel.warm_up()
+print("grew", status("VmHWM") - rss)
+print("missing_end", len(mine()))
+"""
+
+
+def _run(mode: str, cache: Path) -> dict[str, str]:
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    env.pop("NUMBA_CACHE_LOCATOR_CLASSES", None)
+    r = subprocess.run([sys.executable, "-c", SCRIPT, mode], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return dict(line.split(" ", 1) for line in r.stdout.splitlines())
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, str]]:
+    in_place, apart = tmp_path_factory.mktemp("in_place"), tmp_path_factory.mktemp("apart")
+    return {"in place": _run("in", in_place), "apart": _run("apart", apart), "again": _run("apart", apart)}
+
+
+def test_missing_kernels_are_compiled_in_a_child_and_loaded_from_the_cache(runs: dict[str, dict[str, str]]) -> None:
+    a = runs["apart"]
+    assert int(a["missing_before"]) > 0  # an empty cache: the kernels are named missing
+    assert a["apart"] == "True" and a["missing_after_child"] == "0"  # the child filled the cache
+    assert a["missing_end"] == "0"
+
+
+def test_the_process_that_loads_grows_far_less_than_the_one_that_compiles(runs: dict[str, dict[str, str]]) -> None:
+    in_place, apart = float(runs["in place"]["grew"]), float(runs["apart"]["grew"])
+    assert in_place - apart > 50, (in_place, apart)  # MiB (about 150 against 50 here)
+
+
+def test_a_full_cache_starts_no_child(runs: dict[str, dict[str, str]]) -> None:
+    again = runs["again"]
+    assert again["missing_before"] == "0"
+    assert again["apart"] == "False" and again["failed_child"] == "False"  # nothing missing: nothing run
+
+
+def test_a_bad_target_is_refused_and_a_failing_child_leaves_the_compile_to_the_caller(
+        runs: dict[str, dict[str, str]]) -> None:
+    a = runs["apart"]
+    assert a["refused"] == "True"
+    assert a["failed_child"] == "False"
+    assert int(runs["in place"]["missing_before"]) > 0 and runs["in place"]["missing_end"] == "0"

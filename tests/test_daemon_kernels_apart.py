@@ -9,9 +9,12 @@ daemon's kernel sets, about 10 s to compile) compiled in place, and apart.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -83,3 +86,56 @@ def test_a_bad_target_is_refused_and_a_failing_child_leaves_the_compile_to_the_c
     assert a["refused"] == "True"
     assert a["failed_child"] == "False"
     assert int(runs["in place"]["missing_before"]) > 0 and runs["in place"]["missing_end"] == "0"
+
+
+ORPHAN = r"""
+import sys
+from cellbridge.daemon.shell import kernels
+from cellbridge.tactile import calibration_kernel  # (its kernels missing: the child is started)
+print("started", flush=True)
+kernels.compile_apart("slow_warm_up:warm")
+"""
+
+SLOW = """
+import os, time
+def warm():
+    open(os.environ["CHILD_PID_FILE"], "w").write(str(os.getpid()))
+    time.sleep(120)
+"""
+
+
+def test_a_child_whose_caller_is_killed_ends_itself(tmp_path: Path) -> None:
+    (tmp_path / "slow_warm_up.py").write_text(SLOW)
+    pid_file = tmp_path / "child.pid"
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), CHILD_PID_FILE=str(pid_file),
+               PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    env.pop("NUMBA_CACHE_LOCATOR_CLASSES", None)
+    caller = subprocess.Popen([sys.executable, "-c", ORPHAN], env=env, stdout=subprocess.PIPE, start_new_session=True)
+    child = 0
+    try:
+        deadline = time.monotonic() + 60
+        while not pid_file.exists() or not pid_file.read_text():
+            assert time.monotonic() < deadline and caller.poll() is None, "the child never started"
+            time.sleep(0.05)
+        child = int(pid_file.read_text())
+        caller.kill()  # alone: its child is not signalled
+        caller.wait(10)
+        deadline = time.monotonic() + 5
+        while _alive(child):
+            assert time.monotonic() < deadline, "the child compiled on after its caller was killed"
+            time.sleep(0.05)
+    finally:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(caller.pid, signal.SIGKILL)
+        caller.wait(10)
+        if caller.stdout is not None:
+            caller.stdout.close()
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, reaped by init soon, counts as ended)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"

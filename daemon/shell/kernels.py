@@ -15,6 +15,7 @@ process compiles in place as before.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -25,6 +26,17 @@ from cellbridge.tactile import _jit
 COMPILE_LIMIT = 300.0
 
 
+#: The child's first lines (``{parent}``: the caller's pid): a thread that ends the child
+#: once its parent is gone (no longer its parent's pid).
+_ORPHAN_WATCH = """import os, threading, time
+def _watch():
+    while os.getppid() == {parent}:
+        time.sleep(0.5)
+    os._exit(1)
+threading.Thread(target=_watch, daemon=True).start()
+"""
+
+
 def compile_apart(target: str, limit: float = COMPILE_LIMIT) -> bool:
     """Run ``target`` (``"package.module:function"``, a warm-up taking no argument) in a
     child Python when a kernel made in this process is missing from the disk cache, and
@@ -33,13 +45,14 @@ def compile_apart(target: str, limit: float = COMPILE_LIMIT) -> bool:
     Returns whether a child ran and succeeded (its kernels are then in the cache). Not an
     error otherwise: a child that cannot start, fails or overruns (it is killed) leaves
     the caller's own warm-up to compile in place, as without this step. The child stays in
-    the caller's process group, so that a stop of the group stops it too."""
+    the caller's process group, so that a stop of the group stops it too, and ends itself
+    within half a second when the caller is gone (killed alone, it would have compiled on)."""
     module, _, function = target.partition(":")
     if not module or not function.isidentifier():
         raise ValueError(f"compile target {target!r}: must be 'package.module:function'")
     if _jit.UNCACHED or not _jit.missing_from_cache():
         return False
-    code = f"import importlib; importlib.import_module({module!r}).{function}()"
+    code = _ORPHAN_WATCH.format(parent=os.getpid()) + f"import importlib; importlib.import_module({module!r}).{function}()\n"
     try:
         done = subprocess.run([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, timeout=limit, check=False)

@@ -27,6 +27,13 @@ at its centre along the other, its σ spanning the element), and ``untrue`` repo
 those ``cellbridge demo --check`` calls so: off by more than 1 mm and 3 σ on an axis with
 no unknown element listed.
 
+``--tcp`` reads the gateway's TCP port (``mesh up --tcp``, a ``socket://`` link) instead of
+its pty: the kernel hands a pty's bytes to their reader from a worker thread at normal
+priority, which the real-time skin holds back at the tail (the trace's "the gateway began
+writing -> the daemon read the record" row says how much); a socket's go in the writer's
+own time. A robot's USB serial line takes the kernel's path of a pty, on a machine whose
+real-time work is not 17 emulated processes.
+
 ``--trace`` (real processes) runs the daemon through ``bench/press_trace.py``, which notes
 when each reading, look, estimate and publish happened, and prints per press what its
 contact waited for (each step's p50/p90 over every press, then the median press and the
@@ -270,6 +277,9 @@ def main() -> None:
     ap.add_argument("--same-priority", action="store_true",
                     help="under chrt, run the daemon and this subscriber at the skin's real-time priority, "
                          "not above it (see the module)")
+    ap.add_argument("--tcp", action="store_true",
+                    help="read the gateway's TCP port (mesh up --tcp, a socket:// link) instead of its pty "
+                         "(see the module's text)")
     ap.add_argument("--trace", action="store_true",
                     help="run the daemon with a timing trace (bench/press_trace.py) and print, for the median "
                          "and the slowest tenth of presses, what their contact waited for")
@@ -312,7 +322,7 @@ def main() -> None:
     sub.connect(pub)
     try:
         up = _start(["mesh", "up", str(work / "skin.toml"), "--base-port", str(base), "--rate", str(args.rate),
-                     "--reporting", args.reporting], stdout=subprocess.PIPE, stderr=open(work / "mesh.log", "w"),
+                     "--reporting", args.reporting, *(["--tcp"] if args.tcp else [])], stdout=subprocess.PIPE, stderr=open(work / "mesh.log", "w"),
                     text=True)
         procs.append(up)
         device = ""
@@ -322,7 +332,7 @@ def main() -> None:
             line = up.stdout.readline()
             if not line:
                 raise RuntimeError(f"mesh up ended: {(work / 'mesh.log').read_text()[-500:]}")
-            device = next((w for w in line.split() if w.startswith("/dev/")), "")
+            device = next((w for w in line.split() if w.startswith("socket://" if args.tcp else "/dev/")), "")
         (work / "daemon.toml").write_text(
             f'[pub]\nendpoint = "{pub}"\n\n[control]\nendpoint = "{ctl}"\n\n[daemon]\nlog_format = "text"\n\n'
             f'[[link]]\nname = "gateway"\nurl = "{device}"\n'

@@ -95,10 +95,12 @@ def _checked_against_sources(dispatcher: Any) -> Any:
     return dispatcher
 
 
-def missing_from_cache() -> list[str]:
+def missing_from_cache(modules: tuple[str, ...] = ()) -> list[str]:
     """Qualified names of the kernels made so far in this process (by importing their
     modules) whose disk cache holds no code for this machine, or code compiled before an
-    edit of their sources: what the first call of each would compile.
+    edit of their sources: what the first call of each would compile. Only those of
+    ``modules`` (full module names) where given: a process may hold kernels it never calls
+    (the daemon imports its contact worker's), which say nothing of its own.
 
     Why a process asks: compiling grows it by about 150 MiB (LLVM's memory, which it keeps
     for its life) where loading the same kernels from the cache costs about 50, so a
@@ -106,6 +108,8 @@ def missing_from_cache() -> list[str]:
     A kernel whose cache cannot be read counts as missing."""
     out = []
     for dispatcher in _CACHED:
+        if modules and dispatcher.py_func.__module__ not in modules:
+            continue
         try:
             magic = dispatcher.targetctx.codegen().magic_tuple()
             index = dispatcher._cache._cache_file._load_index()  # {} when absent or stale

@@ -266,6 +266,12 @@ _PARSE: list[Any] = []  # the compiled _parse, made at the first record (or the 
 # importing the daemon's wire module does not import numba for it (0.2 s)
 
 
+def make_reader() -> None:
+    """The compiled reader's kernels made, not compiled (nor loaded): numba's cache can then be
+    asked for them (:func:`cellbridge.tactile._jit.missing_from_cache`) before the warm-up."""
+    _compiled_parse()
+
+
 def _compiled_parse() -> Any:
     """The compiled :func:`_parse` (its helpers compiled first: it calls them by name). Two
     callers at once (the daemon's warm-up thread and a first record) each compile what is

@@ -26,7 +26,7 @@ from cellbridge.tactile import _jit
 COMPILE_LIMIT = 300.0
 
 
-#: The child's first lines (``{parent}``: the caller's pid): a thread that ends the child
+#: The child's first lines after its import path (``{parent}``: the caller's pid): a thread that ends the child
 #: once its parent is gone (no longer its parent's pid).
 _ORPHAN_WATCH = """import os, threading, time
 def _watch():
@@ -55,7 +55,10 @@ def compile_apart(target: str, limit: float = COMPILE_LIMIT, modules: tuple[str,
         raise ValueError(f"compile target {target!r}: must be 'package.module:function'")
     if _jit.UNCACHED or not _jit.missing_from_cache(modules):
         return False
-    code = _ORPHAN_WATCH.format(parent=os.getpid()) + f"import importlib; importlib.import_module({module!r}).{function}()\n"
+    # (the caller's import path, not the one `python -c` makes: the working folder first, where
+    # another `cellbridge` may be, a checkout's: the child must compile the caller's files)
+    code = (f"import sys; sys.path[:] = {sys.path!r}\n" + _ORPHAN_WATCH.format(parent=os.getpid())
+            + f"import importlib; importlib.import_module({module!r}).{function}()\n")
     try:
         done = subprocess.run([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, timeout=limit, check=False)

@@ -92,7 +92,37 @@ def _checked_against_sources(dispatcher: Any) -> Any:
     index = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
     if index is not None and hasattr(index, "_source_stamp"):
         index._source_stamp = (index._source_stamp, _sources_stamp())
+        _read_or_none(index)
     return dispatcher
+
+
+def _read_or_none(index: Any) -> None:
+    """``index`` (numba's cache index of one kernel) reading a file it cannot read (cut short,
+    empty: numba renames it into place without syncing it, and a power loss soon after can
+    leave it so) as no cache: the kernel compiles again and its files are written anew.
+    numba read it as a cache, and the kernel raised at its every call, in every process, until
+    the cache was deleted. (An index: empty; a data file: as one deleted, which numba skips.)"""
+    load_index, load_data = getattr(index, "_load_index", None), getattr(index, "_load_data", None)
+    if load_index is None or load_data is None:
+        return
+
+    def _load_index() -> Any:
+        try:
+            return load_index()
+        except OSError:  # (numba's: a missing index is no cache, an unreadable folder is not)
+            raise
+        except Exception:  # unpickling what is left: EOFError, UnpicklingError, ...
+            return {}
+
+    def _load_data(name: str) -> Any:
+        try:
+            return load_data(name)
+        except OSError:
+            raise
+        except Exception as exc:
+            raise OSError(f"numba cache file {name} unreadable: {exc!r}") from exc
+
+    index._load_index, index._load_data = _load_index, _load_data
 
 
 def missing_from_cache(modules: tuple[str, ...] = ()) -> list[str]:

@@ -53,7 +53,7 @@ PROCESS_MODULES = frozenset({
     "test_emulator_pty_link", "test_emulator_realtime_attack", "test_emulator_realtime_priority",
     "test_emulator_robustness", "test_examples", "test_harness_pty", "test_humanoid", "test_packaging",
     "test_plot_cli", "test_process_guard", "test_proxy", "test_recording_core", "test_recording_live", "test_recording_robust", "test_robot",
-    "test_ros2_bag", "test_ros2_hostile", "test_ros2_live", "test_skin_frames_live", "test_systemd_units", "test_tactile_kernel_cache", "test_tactile_kernel_cache_sources",
+    "test_ros2_bag", "test_ros2_hostile", "test_ros2_live", "test_skin_frames_live", "test_systemd_units", "test_tactile_kernel_cache", "test_tactile_kernel_cache_cut", "test_tactile_kernel_cache_sources",
     "test_tactile_lazy_kernels", "test_views_fuzz", "test_views_hostile", "test_views_live", "test_views_model",
     "test_views_robot", "test_worker_process", "test_worker_process_attacks",
 })

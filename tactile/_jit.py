@@ -53,7 +53,8 @@ def compiled(fn: Callable[..., Any], **options: Any) -> Any:
     """
     try:
         dispatcher = _checked_against_sources(njit(cache=True, **options)(fn))
-        _CACHED.append(dispatcher)
+        if hasattr(dispatcher, "py_func"):  # (not with NUMBA_DISABLE_JIT: the function itself, nothing to cache)
+            _CACHED.append(dispatcher)
         return dispatcher
     except RuntimeError as exc:
         if "cannot cache" not in str(exc):

@@ -175,3 +175,25 @@ def test_the_child_imports_the_package_its_caller_runs(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr[-2000:]
     got = dict(line.split(" ", 1) for line in r.stdout.splitlines())
     assert got["apart"] == "True" and where.read_text() == got["caller"]
+
+
+NO_JIT = r"""
+from cellbridge.daemon.shell import kernels
+from cellbridge.tactile import _jit, calibration_kernel
+print("missing", ",".join(_jit.missing_from_cache()) or "-")
+print("apart", kernels.compile_apart("cellbridge.tactile.calibration_kernel:warm_up"))
+kernels.warm_up()
+print("warm True")
+"""
+
+
+def test_with_numba_s_jit_disabled_nothing_is_missing_and_the_worker_warms_up(tmp_path: Path) -> None:
+    # NUMBA_DISABLE_JIT (numba's switch to step through the kernels as Python) makes the
+    # decorator return the function itself: missing_from_cache raised on it (no py_func),
+    # and the contact worker's warm-up with it
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), NUMBA_DISABLE_JIT="1")
+    env.pop("NUMBA_CACHE_LOCATOR_CLASSES", None)
+    r = subprocess.run([sys.executable, "-c", NO_JIT], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = dict(line.split(" ", 1) for line in r.stdout.splitlines())
+    assert got == {"missing": "-", "apart": "False", "warm": "True"}

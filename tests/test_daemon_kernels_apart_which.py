@@ -75,3 +75,37 @@ def test_the_reader_missing_alone_is_compiled_apart_and_loaded(cache: Path) -> N
     got = _run("worker_cached", cache)
     assert got["children"] == "'cellbridge.daemon.core.readout_columns'"
     assert got["compiled_here"] == "0" and got["loaded"] == "2"
+
+
+READ_WHILE_APART = r"""
+import logging, sys, threading, types
+from cellbridge.daemon.shell import kernels, service
+from cellbridge.daemon.core import readout_columns
+from cellbridge.daemon.core.readout_columns import Readout, ReadoutSample, Mode
+from cellbridge.protocol.messages import pack_payload
+
+RECORD = pack_payload(Readout(1, 100, Mode.COUNTER, 1, (ReadoutSample(1, 2, 3, 0),), (2,), (3,), 10, 0, 1, 1, 1))
+
+def apart(target, limit=0.0, modules=()):
+    if "readout_columns" in target:  # a record comes while the child compiles the reader
+        print("read_meanwhile", readout_columns.readout_columns(RECORD) is not None)
+        print("compiled_meanwhile", sum(len(d.stats.cache_misses) for d in readout_columns._PARSE))
+        return False  # (no child here: the warm-up compiles in place)
+    print("read_after", readout_columns.readout_columns(RECORD) is not None)
+    sys.exit(0)  # (not the calibrator's)
+kernels.compile_apart = apart
+service.Service._warm_calibration(types.SimpleNamespace(log=logging.getLogger("t")), threading.Event())
+"""
+
+
+def test_a_record_while_the_reader_compiles_apart_is_read_plainly_not_compiled_in_the_daemon(tmp_path: Path) -> None:
+    # the daemon waits for its warm-ups a few seconds at most (CALIBRATION_WARM_LIMIT), and a child
+    # compiling the reader took longer (a Python's start, then 4 s of compiling; 11 s with two
+    # daemons starting): the first READOUT record after the links started compiled the reader on
+    # the event loop, in the daemon's process
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    env.pop("NUMBA_CACHE_LOCATOR_CLASSES", None)
+    r = subprocess.run([sys.executable, "-c", READ_WHILE_APART], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = dict(line.split(" ", 1) for line in r.stdout.splitlines())
+    assert got == {"read_meanwhile": "False", "compiled_meanwhile": "0", "read_after": "True"}

@@ -498,7 +498,8 @@ class Service:
         # (first the READOUT reader, a quarter of the calibrator's time: the ingest's, which
         # otherwise compiled at the first record, holding the loop; each compiled in a child
         # where the cache lacks it, see :mod:`cellbridge.daemon.shell.kernels`; the reader's kernels
-        # are made at its first use, so made first here: asked for before, they were not missed)
+        # are made at its first use, so made first here: asked for before, they were not missed;
+        # records that come meanwhile are read by the plain decoder, see make_reader)
         with contextlib.suppress(Exception):  # (a reader that fails is the warm-up's to report)
             readout_columns.make_reader()
             if kernels.compile_apart("cellbridge.daemon.core.readout_columns:warm_up",

@@ -53,7 +53,8 @@ def compiled(fn: Callable[..., Any], **options: Any) -> Any:
     """
     try:
         dispatcher = _checked_against_sources(njit(cache=True, **options)(fn))
-        _CACHED.append(dispatcher)
+        if hasattr(dispatcher, "py_func"):  # (not with NUMBA_DISABLE_JIT: the function itself, nothing to cache)
+            _CACHED.append(dispatcher)
         return dispatcher
     except RuntimeError as exc:
         if "cannot cache" not in str(exc):
@@ -92,13 +93,45 @@ def _checked_against_sources(dispatcher: Any) -> Any:
     index = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
     if index is not None and hasattr(index, "_source_stamp"):
         index._source_stamp = (index._source_stamp, _sources_stamp())
+        _read_or_none(index)
     return dispatcher
 
 
-def missing_from_cache() -> list[str]:
+def _read_or_none(index: Any) -> None:
+    """``index`` (numba's cache index of one kernel) reading a file it cannot read (cut short,
+    empty: numba renames it into place without syncing it, and a power loss soon after can
+    leave it so) as no cache: the kernel compiles again and its files are written anew.
+    numba read it as a cache, and the kernel raised at its every call, in every process, until
+    the cache was deleted. (An index: empty; a data file: as one deleted, which numba skips.)"""
+    load_index, load_data = getattr(index, "_load_index", None), getattr(index, "_load_data", None)
+    if load_index is None or load_data is None:
+        return
+
+    def _load_index() -> Any:
+        try:
+            return load_index()
+        except OSError:  # (numba's: a missing index is no cache, an unreadable folder is not)
+            raise
+        except Exception:  # unpickling what is left: EOFError, UnpicklingError, ...
+            return {}
+
+    def _load_data(name: str) -> Any:
+        try:
+            return load_data(name)
+        except OSError:
+            raise
+        except Exception as exc:
+            raise OSError(f"numba cache file {name} unreadable: {exc!r}") from exc
+
+    index._load_index, index._load_data = _load_index, _load_data
+
+
+def missing_from_cache(modules: tuple[str, ...] = ()) -> list[str]:
     """Qualified names of the kernels made so far in this process (by importing their
     modules) whose disk cache holds no code for this machine, or code compiled before an
-    edit of their sources: what the first call of each would compile.
+    edit of their sources: what the first call of each would compile. Only those of
+    ``modules`` (full module names) where given: a process may hold kernels it never calls
+    (the daemon imports its contact worker's), which say nothing of its own.
 
     Why a process asks: compiling grows it by about 150 MiB (LLVM's memory, which it keeps
     for its life) where loading the same kernels from the cache costs about 50, so a
@@ -106,6 +139,8 @@ def missing_from_cache() -> list[str]:
     A kernel whose cache cannot be read counts as missing."""
     out = []
     for dispatcher in _CACHED:
+        if modules and dispatcher.py_func.__module__ not in modules:
+            continue
         try:
             magic = dispatcher.targetctx.codegen().magic_tuple()
             index = dispatcher._cache._cache_file._load_index()  # {} when absent or stale

@@ -139,3 +139,61 @@ def _alive(pid: int) -> bool:
     except (OSError, IndexError):
         return False
     return state != "Z"
+
+
+WHERE_FROM = """
+import os
+def warm():
+    import cellbridge
+    open(os.environ["WHERE_FILE"], "w").write(cellbridge.__file__)
+"""
+
+CALLER = r"""
+import cellbridge
+from cellbridge.daemon.shell import kernels
+from cellbridge.tactile import calibration_kernel  # (its kernels missing: the child is started)
+print("apart", kernels.compile_apart("where_from:warm"))
+print("caller", cellbridge.__file__)
+"""
+
+
+def test_the_child_imports_the_package_its_caller_runs(tmp_path: Path) -> None:
+    # the daemon's command (a console script) started where a folder holds another
+    # `cellbridge` package (a checkout's, another version's): the child, a `python -c`, put
+    # the working folder first on its path and imported that one, not the caller's
+    (tmp_path / "tools").mkdir()
+    (tmp_path / "tools" / "where_from.py").write_text(WHERE_FROM)
+    (tmp_path / "tools" / "caller.py").write_text(CALLER)
+    (tmp_path / "checkout" / "cellbridge").mkdir(parents=True)
+    (tmp_path / "checkout" / "cellbridge" / "__init__.py").write_text("raise ImportError('another cellbridge')\n")
+    where = tmp_path / "where"
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), WHERE_FILE=str(where),
+               PYTHONPATH=os.pathsep.join(p for p in [str(tmp_path / "tools"), os.environ.get("PYTHONPATH")] if p))
+    env.pop("NUMBA_CACHE_LOCATOR_CLASSES", None)
+    r = subprocess.run([sys.executable, str(tmp_path / "tools" / "caller.py")], cwd=tmp_path / "checkout", env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = dict(line.split(" ", 1) for line in r.stdout.splitlines())
+    assert got["apart"] == "True" and where.read_text() == got["caller"]
+
+
+NO_JIT = r"""
+from cellbridge.daemon.shell import kernels
+from cellbridge.tactile import _jit, calibration_kernel
+print("missing", ",".join(_jit.missing_from_cache()) or "-")
+print("apart", kernels.compile_apart("cellbridge.tactile.calibration_kernel:warm_up"))
+kernels.warm_up()
+print("warm True")
+"""
+
+
+def test_with_numba_s_jit_disabled_nothing_is_missing_and_the_worker_warms_up(tmp_path: Path) -> None:
+    # NUMBA_DISABLE_JIT (numba's switch to step through the kernels as Python) makes the
+    # decorator return the function itself: missing_from_cache raised on it (no py_func),
+    # and the contact worker's warm-up with it
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), NUMBA_DISABLE_JIT="1")
+    env.pop("NUMBA_CACHE_LOCATOR_CLASSES", None)
+    r = subprocess.run([sys.executable, "-c", NO_JIT], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = dict(line.split(" ", 1) for line in r.stdout.splitlines())
+    assert got == {"missing": "-", "apart": "False", "warm": "True"}

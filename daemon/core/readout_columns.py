@@ -73,12 +73,22 @@ class ReadoutColumns:
 #: read its warm-up record right), and every record then goes to the plain path, which
 #: reads each the same, slower (numba retried a failed compile at every call: seconds a record).
 _USABLE = [True]
+#: Whether the compiled reader may be called: False from :func:`make_reader` until the end of
+#: :func:`warm_up` (the daemon's warm-up compiles the reader meanwhile, in a child: a record
+#: calling it then compiled it in the daemon's process, on the event loop), and the plain
+#: path reads the records in between.
+_READY = [True]
 
 
 def readout_columns(payload: bytes) -> ReadoutColumns | None:
     """The record part of a current-version READOUT ``payload`` (the frame's payload bytes),
     or None: not the canonical encoding of a valid record as this reads it, or the compiled
-    reader is not usable (the plain path then decides). See the module."""
+    reader is not usable, or not yet (the plain path then decides). See the module."""
+    return _read(payload) if _READY[0] else None
+
+
+def _read(payload: bytes) -> ReadoutColumns | None:
+    """:func:`readout_columns`, ready or not (the warm-up's read)."""
     if not _USABLE[0]:
         return None
     try:
@@ -266,6 +276,14 @@ _PARSE: list[Any] = []  # the compiled _parse, made at the first record (or the 
 # importing the daemon's wire module does not import numba for it (0.2 s)
 
 
+def make_reader() -> None:
+    """The compiled reader's kernels made, not compiled (nor loaded): numba's cache can then be
+    asked for them (:func:`cellbridge.tactile._jit.missing_from_cache`) before the warm-up.
+    Until :func:`warm_up`, records are read by the plain path."""
+    _READY[0] = False
+    _compiled_parse()
+
+
 def _compiled_parse() -> Any:
     """The compiled :func:`_parse` (its helpers compiled first: it calls them by name). Two
     callers at once (the daemon's warm-up thread and a first record) each compile what is
@@ -291,7 +309,10 @@ def warm_up() -> bool:
     from cellbridge.protocol.messages import pack_payload
 
     rec = Readout(1, 100, Mode.COUNTER, 1, (ReadoutSample(1, 2, 3, 0),), (2,), (3,), 10, 0, 1, 1, 1)
-    got = readout_columns(pack_payload(rec))
-    if got is None or got.readout() != rec:
-        _USABLE[0] = False
+    try:
+        got = _read(pack_payload(rec))
+        if got is None or got.readout() != rec:
+            _USABLE[0] = False
+    finally:  # (records meanwhile were read by the plain path: none waited on the compile)
+        _READY[0] = True
     return _USABLE[0]

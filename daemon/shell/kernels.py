@@ -26,7 +26,7 @@ from cellbridge.tactile import _jit
 COMPILE_LIMIT = 300.0
 
 
-#: The child's first lines (``{parent}``: the caller's pid): a thread that ends the child
+#: The child's first lines after its import path (``{parent}``: the caller's pid): a thread that ends the child
 #: once its parent is gone (no longer its parent's pid).
 _ORPHAN_WATCH = """import os, threading, time
 def _watch():
@@ -37,10 +37,13 @@ threading.Thread(target=_watch, daemon=True).start()
 """
 
 
-def compile_apart(target: str, limit: float = COMPILE_LIMIT) -> bool:
+def compile_apart(target: str, limit: float = COMPILE_LIMIT, modules: tuple[str, ...] = ()) -> bool:
     """Run ``target`` (``"package.module:function"``, a warm-up taking no argument) in a
     child Python when a kernel made in this process is missing from the disk cache, and
-    wait for it (at most ``limit`` s).
+    wait for it (at most ``limit`` s). With ``modules``, only the kernels of those modules
+    are asked for: the ones the warm-up loads, made in this process before the call (the
+    daemon holds its contact worker's kernels, which no warm-up of its own compiles: asked
+    for too, they started a child at every start of a daemon without contacts).
 
     Returns whether a child ran and succeeded (its kernels are then in the cache). Not an
     error otherwise: a child that cannot start, fails or overruns (it is killed) leaves
@@ -50,9 +53,12 @@ def compile_apart(target: str, limit: float = COMPILE_LIMIT) -> bool:
     module, _, function = target.partition(":")
     if not module or not function.isidentifier():
         raise ValueError(f"compile target {target!r}: must be 'package.module:function'")
-    if _jit.UNCACHED or not _jit.missing_from_cache():
+    if _jit.UNCACHED or not _jit.missing_from_cache(modules):
         return False
-    code = _ORPHAN_WATCH.format(parent=os.getpid()) + f"import importlib; importlib.import_module({module!r}).{function}()\n"
+    # (the caller's import path, not the one `python -c` makes: the working folder first, where
+    # another `cellbridge` may be, a checkout's: the child must compile the caller's files)
+    code = (f"import sys; sys.path[:] = {sys.path!r}\n" + _ORPHAN_WATCH.format(parent=os.getpid())
+            + f"import importlib; importlib.import_module({module!r}).{function}()\n")
     try:
         done = subprocess.run([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, timeout=limit, check=False)

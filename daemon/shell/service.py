@@ -497,15 +497,21 @@ class Service:
         t0 = time.monotonic()
         # (first the READOUT reader, a quarter of the calibrator's time: the ingest's, which
         # otherwise compiled at the first record, holding the loop; each compiled in a child
-        # where the cache lacks it, see :mod:`cellbridge.daemon.shell.kernels`)
-        if kernels.compile_apart("cellbridge.daemon.core.readout_columns:warm_up"):
-            event(self.log, "info", "READOUT reader compiled apart", seconds=round(time.monotonic() - t0, 3))
+        # where the cache lacks it, see :mod:`cellbridge.daemon.shell.kernels`; the reader's kernels
+        # are made at its first use, so made first here: asked for before, they were not missed;
+        # records that come meanwhile are read by the plain decoder, see make_reader)
+        with contextlib.suppress(Exception):  # (a reader that fails is the warm-up's to report)
+            readout_columns.make_reader()
+            if kernels.compile_apart("cellbridge.daemon.core.readout_columns:warm_up",
+                                     modules=("cellbridge.daemon.core.readout_columns",)):
+                event(self.log, "info", "READOUT reader compiled apart", seconds=round(time.monotonic() - t0, 3))
         if not readout_columns.warm_up():
             event(self.log, "warning", "compiled READOUT reader unavailable: records are read by the plain decoder")
         try:
             from cellbridge.tactile import calibration_kernel
 
-            if kernels.compile_apart("cellbridge.tactile.calibration_kernel:warm_up"):
+            if kernels.compile_apart("cellbridge.tactile.calibration_kernel:warm_up",
+                                     modules=("cellbridge.tactile.calibration_kernel",)):
                 event(self.log, "info", "calibration kernel compiled apart", seconds=round(time.monotonic() - t0, 3))
             calibration_kernel.warm_up()
         except Exception as exc:  # any failure leaves the numpy step, which gives the same numbers

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from support.numba_cache import run_with_cache
+
 SCRIPT = r"""
 import sys
 from cellbridge.daemon.shell import kernels
@@ -49,11 +51,7 @@ print("missing_end", len(mine()))
 
 
 def _run(mode: str, cache: Path) -> dict[str, str]:
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-    env.pop("NUMBA_CACHE_LOCATOR_CLASSES", None)
-    r = subprocess.run([sys.executable, "-c", SCRIPT, mode], env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    return dict(line.split(" ", 1) for line in r.stdout.splitlines())
+    return run_with_cache(SCRIPT, mode, cache)
 
 
 @pytest.fixture(scope="module")

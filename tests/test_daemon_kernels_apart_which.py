@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from support.numba_cache import run_with_cache
+
 SCRIPT = r"""
 import logging, sys, threading, types
 from cellbridge.daemon.shell import kernels, service
@@ -45,11 +47,7 @@ print("loaded", sum(len(d.stats.cache_hits) for d in (*readout_columns._PARSE, c
 
 
 def _run(mode: str, cache: Path) -> dict[str, str]:
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-    env.pop("NUMBA_CACHE_LOCATOR_CLASSES", None)
-    r = subprocess.run([sys.executable, "-c", SCRIPT, mode], env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    return dict(line.split(" ", 1) for line in r.stdout.splitlines())
+    return run_with_cache(SCRIPT, mode, cache)
 
 
 @pytest.fixture(scope="module")

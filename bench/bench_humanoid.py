@@ -136,11 +136,11 @@ def cycle_mesh_rate(skin, seconds: float) -> float:
     return (time.process_time() - c0) / seconds
 
 
-def group_cpu_rss(pgid: int) -> tuple[float, int, float]:
-    """(user + system s, largest VmHWM kB, user + system s of the group's leader) of the
-    processes of a process group (the daemon's: its leader the daemon's own process, the
-    others its contact worker and multiprocessing's helpers)."""
-    cpu, rss, own = 0.0, 0, 0.0
+def group_processes(pgid: int) -> dict[int, tuple[float, float, float]]:
+    """``{pid: (VmRSS MiB, VmHWM MiB, user + system CPU s)}`` of the processes of a process
+    group (the daemon's: its leader the daemon's own process, the others its contact worker,
+    multiprocessing's helpers, a kernel compile's child)."""
+    out: dict[int, tuple[float, float, float]] = {}
     tck = os.sysconf("SC_CLK_TCK")
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
@@ -150,15 +150,21 @@ def group_cpu_rss(pgid: int) -> tuple[float, int, float]:
             fields = stat[stat.rindex(")") + 2:].split()
             if int(fields[2]) != pgid:
                 continue
-            cpu += (int(fields[11]) + int(fields[12])) / tck
-            if int(d.name) == pgid:
-                own = (int(fields[11]) + int(fields[12])) / tck
-            for line in (d / "status").read_text().splitlines():
-                if line.startswith("VmHWM:"):
-                    rss = max(rss, int(line.split()[1]))
-        except (OSError, ValueError, IndexError):
+            status = dict(line.split(":", 1) for line in (d / "status").read_text().splitlines() if ":" in line)
+            out[int(d.name)] = (int(status["VmRSS"].split()[0]) / 1024, int(status["VmHWM"].split()[0]) / 1024,
+                                (int(fields[11]) + int(fields[12])) / tck)
+        except (OSError, ValueError, IndexError, KeyError):
             continue
-    return cpu, rss, own
+    return out
+
+
+def group_cpu_rss(pgid: int) -> tuple[float, int, float]:
+    """(user + system s, largest VmHWM kB, user + system s of the group's leader) of the
+    processes of a process group (:func:`group_processes`)."""
+    procs = group_processes(pgid)
+    cpu = sum(v[2] for v in procs.values())
+    rss = max((round(v[1] * 1024) for v in procs.values()), default=0)
+    return cpu, rss, procs[pgid][2] if pgid in procs else 0.0
 
 
 def frame_index(message: dict) -> int | None:

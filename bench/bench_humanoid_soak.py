@@ -20,7 +20,6 @@ half holds the warm-up: caches, numba's compiled code, allocator arenas), and th
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 import time
@@ -34,33 +33,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout too
 from cellbridge.daemon.shell.skin_file import load_skin  # noqa: E402
 
-from bench_humanoid import HUMANOID, generate  # noqa: E402
+from bench_humanoid import HUMANOID, generate, group_processes  # noqa: E402
 from daemon_harness import Client, daemon, write_config  # noqa: E402
 
 TARGET_MIB = 250
 
 
 def group_memory(pgid: int) -> dict[str, tuple[float, float, float]]:
-    """``{"daemon" | "worker N": (VmRSS MiB, VmHWM MiB, user + system CPU s)}`` of the
-    processes of the daemon's process group (its leader the daemon's own process)."""
-    out: dict[str, tuple[float, float, float]] = {}
-    tck = os.sysconf("SC_CLK_TCK")
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            stat = (d / "stat").read_text()
-            fields = stat[stat.rindex(")") + 2:].split()
-            if int(fields[2]) != pgid:
-                continue
-            status = dict(line.split(":", 1) for line in (d / "status").read_text().splitlines() if ":" in line)
-            rss = int(status["VmRSS"].split()[0]) / 1024
-            hwm = int(status["VmHWM"].split()[0]) / 1024
-        except (OSError, ValueError, IndexError, KeyError):
-            continue
-        name = "daemon" if int(d.name) == pgid else f"worker {d.name}"
-        out[name] = (rss, hwm, (int(fields[11]) + int(fields[12])) / tck)
-    return out
+    """``{"daemon" | "worker PID": (VmRSS MiB, VmHWM MiB, CPU s)}`` of the daemon's process group."""
+    return {("daemon" if pid == pgid else f"worker {pid}"): v for pid, v in group_processes(pgid).items()}
 
 
 def slope_mib_per_hour(points: list[tuple[float, float]]) -> float:

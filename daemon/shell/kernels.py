@@ -4,8 +4,8 @@ A process that compiles numba kernels keeps LLVM's memory for its life: on a fre
 installation (or after an upgrade) the daemon, compiling the READOUT reader and the
 calibrator's step in its own process, and its contact worker, compiling the fit's
 kernels, each stayed about 100 MiB larger than the same processes loading the same
-kernels from the cache (the humanoid's daemon 352 against 245 MiB, its worker 395 against
-216), until they were restarted; a robot's daemon may not be for days. So where a kernel
+kernels from the cache, until they were restarted; a robot's daemon may not be for days
+(``bench/bench_humanoid_soak.py`` with an empty ``NUMBA_CACHE_DIR`` shows it). So where a kernel
 is not in the cache, the warm-up runs first in a short-lived child Python that compiles
 it into the cache, and the process then loads it from there. Where the cache already
 holds every kernel nothing is started; where there is no disk cache
@@ -26,8 +26,8 @@ from cellbridge.tactile import _jit
 COMPILE_LIMIT = 300.0
 
 
-#: The child's first lines after its import path (``{parent}``: the caller's pid): a thread that ends the child
-#: once its parent is gone (no longer its parent's pid).
+#: The child's first lines after its import path (``{parent}``: the caller's pid): a thread
+#: that ends the child once its parent is gone (no longer its parent's pid).
 _ORPHAN_WATCH = """import os, threading, time
 def _watch():
     while os.getppid() == {parent}:

@@ -246,9 +246,13 @@ def test_subscriber_that_never_reads_does_not_slow_ingest(tmp_path: Path) -> Non
             hellos = sk.hellos()  # numbered before the data, as a bridge does
             blob = b"".join(data for _, data in sk.stream(slots))
             pty.write(hellos)
-            for i in range(0, len(blob), 8192):
-                pty.write(blob[i:i + 8192])
-                while drain(0):
+            # Paced by the reader: each chunk's messages read before the next is written. With
+            # hwm 10 a reader that falls more than 10 messages behind loses its own (libzmq, per
+            # subscriber), and on a busy machine the reader's process, starved for a moment,
+            # did (11 898 of 12 000 samples): the test is about the stuck subscriber, not that.
+            for i in range(0, len(blob), 1024):
+                pty.write(blob[i:i + 1024])
+                while drain(0.02):
                     pass
             # until every sample came, or none came for 5 s: on a busy machine the daemon
             # may take far longer than its usual 2 s over these 12 000 samples, and the test

@@ -136,7 +136,9 @@ def missing_from_cache(modules: tuple[str, ...] = ()) -> list[str]:
     Why a process asks: compiling grows it by about 150 MiB (LLVM's memory, which it keeps
     for its life) where loading the same kernels from the cache costs about 50, so a
     long-running process compiles in a child first (:mod:`cellbridge.daemon.shell.kernels`).
-    A kernel whose cache cannot be read counts as missing."""
+    A kernel whose cache cannot be asked (another numba's internals, an unreadable folder)
+    is not named: a child could not tell either, and would be started at every start for
+    nothing; the kernel compiles where it is first called, as without this check."""
     out = []
     for dispatcher in _CACHED:
         if modules and dispatcher.py_func.__module__ not in modules:
@@ -146,7 +148,7 @@ def missing_from_cache(modules: tuple[str, ...] = ()) -> list[str]:
             index = dispatcher._cache._cache_file._load_index()  # {} when absent or stale
             if any(key[1] == magic for key in index):
                 continue
-        except Exception:  # (another numba's layout: the kernel compiles where it is called)
-            pass
+        except Exception:  # (see above: not named)
+            continue
         out.append(f"{dispatcher.py_func.__module__}.{dispatcher.py_func.__qualname__}")
     return out

@@ -7,13 +7,19 @@ Prints four tables:
    100 Hz (targets >= 100x for one bridge, >= 1x for 64); "delivered" is the share of
    samples that reached the gateway (64 bridges at 100 Hz periodic overload one
    gateway's cells: the last row reports events only, as a large skin should);
-2. cell-link efficiency at saturation: sample bits delivered to the gateway per
-   second as a share of the 1 Mbit/s of its cell, with more bridges at 250 Hz on the
-   gateway's cell than the cell can carry (target >= 70 %). A sample's bits are its
-   msgpack bytes on the wire (14 bytes: element, cycle, c1, c2, flags);
+2. cell-link efficiency at saturation of the unscheduled path (DATA frames, what bridges
+   without mesh time send): sample bits delivered to the gateway per second as a share
+   of the 1 Mbit/s of its cell, with more bridges at 250 Hz on the gateway's cell than
+   the cell can carry (target >= 70 %). A sample's bits are its msgpack bytes on the
+   wire (14 bytes: element, cycle, c1, c2, flags). The scheduled readout's figures (its
+   records, at saturation and in event-based traffic) are ``bench/bench_readout.py``'s;
 3. per-element rate end to end for a 16-element gateway at 2 ms gates (target 250 Hz);
 4. periodic vs event-based DATA frames per second reaching the gateway of a 4x4
-   skin, idle and pressed (four moving contacts).
+   skin, idle and pressed (four moving contacts), on the unscheduled path.
+
+Sections 2 and 4 run the bridges without the readout schedule (``readout=False``): with
+it, samples on mesh time go in READOUT records, and counting DATA frames would count
+only the stragglers without mesh time.
 """
 
 from __future__ import annotations
@@ -69,12 +75,13 @@ def star(n: int) -> Mesh:
 
 
 def efficiency() -> None:
-    print("\n2. cell-link efficiency at the gateway's cell, 250 Hz per bridge (1 Mbit/s raw)")
+    print("\n2. cell-link efficiency at the gateway's cell, 250 Hz per bridge (1 Mbit/s raw), DATA frames "
+          "(no readout schedule; bench_readout.py section 4 for the schedule's)")
     print(f"{'bridges':>7} {'offered kbit/s':>14} {'delivered kbit/s':>16} {'share':>6} {'collisions':>10} "
           f"{'target':>7} {'ok':>4}")
     for n in (40, 60):
         mesh = star(n)
-        vm = VirtualMesh(mesh, seed=1, settings=Settings(rate_hz=250))
+        vm = VirtualMesh(mesh, seed=1, settings=Settings(rate_hz=250), readout=False)
         vm.run(0.5)
         first = len(vm.frames[1])
         secs = 2.0
@@ -103,14 +110,16 @@ def per_element_rate() -> None:
 
 
 def reporting_modes() -> None:
-    print("\n4. DATA frames per second at the gateway of a 4x4 skin, 100 Hz (its corner gateway 1)")
+    print("\n4. DATA frames per second at the gateway of a 4x4 skin, 100 Hz (its corner gateway 1), no readout "
+          "schedule (bench_readout.py section 3 for the schedule's traffic)")
     print(f"{'skin':<8} {'periodic':>9} {'event-based':>11} {'ratio':>6} {'bridges heard':>13}")
     mesh = meshgen.grid(4, 4, gateways=(1,))  # (the figures before the grid's default gateway moved to its centre)
     moving = [Contact(0.0, 10.0, 0.0, 0.02 * k, 2.0, 0.02, vx=0.03, vy=0.0) for k in range(4)]
     for label, contacts in (("idle", []), ("pressed", moving)):
         rates = {}
         for mode in (ReportingMode(), ReportingMode(40, 1000)):
-            vm = VirtualMesh(mesh, seed=3, world=World(mesh, list(contacts)), settings=Settings(reporting=mode))
+            vm = VirtualMesh(mesh, seed=3, world=World(mesh, list(contacts)), settings=Settings(reporting=mode),
+                             readout=False)
             r = vm.run(5.0)
             frames = [f for f in r.gateway_frames[1] if f.type is FrameType.DATA
                       and f.payload.samples[0].cycle >= CLOCK_HZ]  # type: ignore[union-attr]  # a DATA frame's payload is a Data

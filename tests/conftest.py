@@ -49,7 +49,7 @@ PROCESS_MODULES = frozenset({
     "test_cli", "test_contact_warm_up_kernels", "test_daemon_kernels_apart", "test_daemon_kernels_apart_which", "test_contact_worker_close", "test_contact_worker_gc", "test_daemon_capture", "test_daemon_config", "test_daemon_keys_cli",
     "test_daemon_limits", "test_daemon_local_access", "test_daemon_notify", "test_daemon_ops_live",
     "test_daemon_replay", "test_daemon_replay_gate", "test_daemon_serial_link", "test_daemon_service", "test_daemon_shells", "test_daemon_startup", "test_daemon_sub_cli", "test_demo",
-    "test_demo_children", "test_demo_gateway", "test_make_test_stop", "test_emulator_mesh", "test_emulator_processes",
+    "test_demo_children", "test_demo_gateway", "test_make_test_stop", "test_emulator_mesh", "test_emulator_readout_load", "test_emulator_processes",
     "test_emulator_pty_link", "test_emulator_realtime_attack", "test_emulator_realtime_priority",
     "test_emulator_robustness", "test_examples", "test_harness_pty", "test_humanoid", "test_packaging",
     "test_plot_cli", "test_process_guard", "test_proxy", "test_recording_core", "test_recording_live", "test_recording_robust", "test_robot",

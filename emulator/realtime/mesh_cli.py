@@ -6,8 +6,9 @@ import argparse
 import importlib
 import sys
 
-from cellbridge.emulator.mesh.mesh import MeshError, load_mesh, mesh_to_toml
+from cellbridge.emulator.mesh.mesh import Mesh, MeshError, load_mesh, mesh_to_toml
 from cellbridge.emulator.mesh.meshgen import generate
+from cellbridge.emulator.mesh.readout_load import FITS_BELOW, CellLoad, load_line, load_warning, readout_load
 from cellbridge.emulator.realtime.realtime import REPORTING_HELP, rate_arg, reporting_arg, seconds_arg
 from cellbridge.emulator.world.world import ScenarioError
 
@@ -42,6 +43,17 @@ def _run_virtual(args: argparse.Namespace) -> int:
         "counters": {str(b): c for b, c in result.counters.items()},
     }, indent=1))
     return 0
+
+
+def warn_if_not_fitting(mesh: Mesh, rate: int, acked: bool = True) -> CellLoad:
+    """Print :func:`~cellbridge.emulator.mesh.readout_load.load_warning` on standard error
+    when ``mesh`` cannot carry its readout at ``rate`` Hz (``mesh check``, ``mesh run`` and
+    ``mesh up``, before they start; ``acked``: its records are acknowledged hop by hop, as
+    in virtual time; the real-time shells send them once). Returns the load."""
+    load = readout_load(mesh, rate, acked)
+    if not load.fits:
+        print(load_warning(load), file=sys.stderr, flush=True)
+    return load
 
 
 def _ids(text: str) -> list[int]:
@@ -80,8 +92,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gen.add_argument("--side", type=float, default=0.040, help="element side and pitch in metres (default 0.04)")
     gen.add_argument("--seed", type=int, default=0, help="random mesh only: seed of the shape (default 0)")
     gen.add_argument("-o", "--output", help="file to write (default: standard output)")
-    chk = sub.add_parser("check", help="validate a mesh file and summarise it")
+    chk = sub.add_parser("check", help="validate a mesh file and summarise it, with the share of its busiest "
+                                       "cell's airtime the readout takes")
     chk.add_argument("mesh", help="a mesh file (TOML: cellbridge mesh gen writes one; docs/emulator.md)")
+    chk.add_argument("--rate", type=rate_arg, default=100,
+                     help="sampling rate in Hz, 1..250, whose readout load to report (default 100); above "
+                          f"{FITS_BELOW * 100:.0f}%% of a cell's airtime a warning says the readout does not fit")
     rn = sub.add_parser("run", help="run a mesh in virtual time (faster than real time, deterministic)")
     rn.add_argument("mesh", help="a mesh file (TOML: cellbridge mesh gen writes one; docs/emulator.md)")
     rn.add_argument("--seconds", type=seconds_arg, default=5.0, help="virtual seconds to run (default 5)")
@@ -126,8 +142,10 @@ def run(args: argparse.Namespace) -> int:
             sizes = [len(v) for v in mesh.members().values()]
             print(f"{args.mesh}: ok: {len(mesh.bridges)} bridges, {len(mesh.cells)} cells "
                   f"(up to {max(sizes)} bridges on one), gateways {', '.join(map(str, mesh.gateways))}")
+            print(load_line(warn_if_not_fitting(mesh, args.rate)))
             return 0
         if args.mesh_command == "run":
+            warn_if_not_fitting(load_mesh(args.mesh), args.rate)
             return _run_virtual(args)
         if args.mesh_command == "traffic":  # cellbridge/mesh_command.py runs it (it writes daemon captures)
             raise MeshError("'mesh traffic' runs through the cellbridge command (cellbridge mesh traffic)")

@@ -34,6 +34,7 @@ import setproctitle
 from cellbridge.emulator.mesh.mesh import Bridge, Mesh, load_mesh
 from cellbridge.emulator.realtime import process_bridge
 from cellbridge.emulator.realtime.gateway_port import open_pty
+from cellbridge.emulator.realtime.mesh_cli import warn_if_not_fitting
 from cellbridge.emulator.realtime.pty_link import link_gateway
 from cellbridge.emulator.realtime.realtime import (
     REPORTING_HELP,
@@ -178,6 +179,8 @@ def _bridge_main(argv: list[str], keep_fd: int | None, supervisor: int) -> int:
 
 def run(args: argparse.Namespace) -> int:
     mesh = load_mesh(args.mesh)  # MeshError is reported by the caller
+    if args.readout == "on":  # (the shells send records unacknowledged: process_bridge)
+        warn_if_not_fitting(mesh, args.rate, acked=False)
     stop = StopFlag()
     common = ["--base-port", str(args.base_port), "--host", args.host]
     children: dict[str, subprocess.Popen[bytes] | ForkedBridge] = {}

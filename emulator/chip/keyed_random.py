@@ -21,6 +21,7 @@ the counter's fast path prove that the synchroniser sees every edge.
 from __future__ import annotations
 
 import enum
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,8 +66,9 @@ class KeyedNormals:
         # buffer (``buffer_pos`` 4): the next draw comes from the counter.
         self._counter = [0, 0, 0, 0]
         self._key = [self._seed64, 0]
-        self._state = {"bit_generator": "Philox", "state": {"counter": self._counter, "key": self._key},
-                       "buffer": [0, 0, 0, 0], "buffer_pos": 4, "has_uint32": 0, "uinteger": 0}
+        # (numpy's stubs type the state's words as arrays: the setter takes any sequence)
+        self._state: Any = cast(Any, {"bit_generator": "Philox", "state": {"counter": self._counter, "key": self._key},
+                                      "buffer": [0, 0, 0, 0], "buffer_pos": 4, "has_uint32": 0, "uinteger": 0})
         self._bitgen.state = self._state
 
     def _seek(self, stream: int, channel: int, cycle: int, substream: int) -> None:

@@ -518,7 +518,12 @@ class FrameReadout:
     def _before_switch(self, root: int) -> bool:
         """Whether own frames sampled on another root than ``root`` (the one followed now)
         still wait: the records switch root once, after them."""
-        return bool(root) and any(p.own is not None and p.root and p.root != root for p in self._pending.values())
+        if not root:
+            return False
+        for p in self._pending.values():  # (a loop, not any() over a generator: asked at every look)
+            if p.own is not None and p.root and p.root != root:
+                return True
+        return False
 
     def _take(self, tick: int, root: int) -> list[Readout]:
         # In frame order: a frame complete early waits for the older ones of its rate. Sent
@@ -562,8 +567,11 @@ class FrameReadout:
         not waited for (silent: :attr:`ReadoutConfig.quiet`)."""
         heard = p.heard or set()
         newest = self._child_newest
-        return all(c in heard or newest.get((c, p.rate), -1) > p.index or not self._waited(c, p.rate, tick)
-                   for c, m in self._members.items() if m)
+        rate, index = p.rate, p.index
+        for c, m in self._members.items():  # (a loop, not all() over a generator: asked at every look)
+            if m and c not in heard and newest.get((c, rate), -1) <= index and self._waited(c, rate, tick):
+                return False
+        return True
 
     def _expire(self, tick: int) -> None:
         forget = self.config.forget

@@ -1,7 +1,7 @@
 """Where the real-time skin's CPU goes: the firmware's own work against the cost of
 running it as one process per bridge.
 
-Run: ``.venv/bin/python bench/bench_skin_cpu_split.py [--seconds 10]`` (about 30 s).
+Run: ``.venv/bin/python bench/bench_skin_cpu_split.py [--seconds 10]`` (about 45 s).
 
 ``cellbridge mesh up`` of a periodic 4x4 at 100 Hz (``bench/bench_skin_rt.py``) spends
 its CPU in 16 bridge processes and the medium. This script measures, on this machine:
@@ -9,7 +9,9 @@ its CPU in 16 bridge processes and the medium. This script measures, on this mac
 1. **the work itself**: the same skin in the virtual-time mesh (one process, the same
    firmware, chip model and medium model, the readout configured as the real-time shells
    configure it), its CPU (``process_time``) per second of skin time: what the skin costs
-   when every call runs back to back with warm caches;
+   when every call runs back to back with warm caches; once with each count computed when
+   its sample is taken, once with the chip computing the next samples' counts together
+   after a wake that took one, as the bridge processes do (``PREFETCH``);
 2. **a wake**: the CPU of one process waking from ``poll`` with a timeout, doing nothing
    (the floor of every bridge timer and medium delivery), and of one UDP datagram sent on
    loopback to a process that wakes for it and reads it (both processes' CPU: the floor
@@ -36,16 +38,18 @@ import time
 import numpy as np
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.virtual import VirtualMesh
-from cellbridge.emulator.realtime.process_bridge import ACK_SLACK, READOUT_HOP, READOUT_WINDOW
+from cellbridge.emulator.realtime.process_bridge import ACK_SLACK, PREFETCH, READOUT_HOP, READOUT_WINDOW
 from cellbridge.emulator.realtime.realtime import CLOCK_HZ
 
 from timing import table
 
 
-def skin_work(seconds: float) -> float:
-    """CPU (% of one core) of a periodic 4x4 at 100 Hz in virtual time, after 5 s of start-up."""
+def skin_work(seconds: float, prefetch: int = 0) -> float:
+    """CPU (% of one core) of a periodic 4x4 at 100 Hz in virtual time, after 5 s of start-up;
+    ``prefetch``: the chip computes that many samples' counts ahead after a wake that took
+    one, as the bridge processes do (``PREFETCH``; the same skin, its counts computed together)."""
     vm = VirtualMesh(meshgen.grid(4, 4), seed=1, readout=True, readout_acks=False, readout_window=READOUT_WINDOW,
-                     readout_hop=READOUT_HOP, ack_slack=ACK_SLACK)
+                     readout_hop=READOUT_HOP, ack_slack=ACK_SLACK, prefetch=prefetch)
     vm.run(5.0)
     t0 = time.process_time()
     vm.run(seconds)
@@ -134,6 +138,7 @@ def main() -> None:
                     help="datagrams/s between the bridges and the medium (default 3400: 4x4 at 100 Hz)")
     args = ap.parse_args()
     work = skin_work(args.seconds)
+    work_ahead = skin_work(args.seconds, PREFETCH)
     paced, sleeps, late = paced_skin(args.seconds)
     wake = idle_wake(args.seconds / 2)
     msg = datagram(args.seconds / 2)
@@ -141,6 +146,8 @@ def main() -> None:
     table("where a periodic 4x4 at 100 Hz spends its CPU (this machine, now)",
           ["what", "µs each", "per second", "% of one core"],
           [["the skin's work, one process (virtual time)", "", "", f"{work:.1f}"],
+           [f"the same, counts computed {PREFETCH} samples ahead as the bridge processes do", "", "",
+            f"{work_ahead:.1f}"],
            ["a wake from poll, nothing to do", f"{wake:.0f}", f"{args.wakes:.0f}", f"{args.wakes * wake / 1e4:.1f}"],
            ["a datagram that wakes its reader (both sides)", f"{msg:.0f}", f"{args.messages:.0f}",
             f"{args.messages * msg / 1e4:.1f}"],

@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from cellbridge.emulator.chip.adc import AdcTiming, held_inputs, sar_codes
 from cellbridge.emulator.chip.keyed_random import GateNoise, KeyedNormals, Stream
-from cellbridge.emulator.chip.oscillator import EdgeTrain, gate_edge_count, max_period_deviation
+from cellbridge.emulator.chip.oscillator import EdgeTrain, gate_edge_count, gate_edge_counts, max_period_deviation
 from cellbridge.tactile.transfer import C_MAX, ChipParams, adc_input, oscillator_period
 
 __all__ = ["CLOCK_HZ", "MIN_PERIOD_CYCLES", "ChipConfig", "Chip"]
@@ -236,9 +236,25 @@ class Chip:
         ahead = self._ahead
         for key in [k for k in ahead if k[2] < first]:
             del ahead[key]
+        todo: dict[tuple[int, float, int], list[int]] = {}  # (channel, capacitance, gate) -> starts
         for key in gates:
             if key not in ahead and len(ahead) < 64:
-                ahead[key] = self.count(*key)
+                ch, c, start, gate = key
+                counts = None
+                if (type(c) is float and 0.0 < c <= MAX_CAPACITANCE and type(ch) is int and ch >= 0
+                        and type(start) is int and start >= 0 and type(gate) is int and gate >= 1 and self._fast_ok
+                        and c * self._period_per_farad >= MIN_PERIOD_CYCLES):
+                    todo.setdefault((ch, c, gate), []).append(start)
+                    counts = (0, False)  # a place held: computed below with its channel's others
+                ahead[key] = counts if counts is not None else self.count(*key)
+        # the gates of one channel and capacitance together (gate_edge_counts: the same counts)
+        modulus = self._modulus
+        for (ch, c, gate), starts in todo.items():
+            got = gate_edge_counts(c * self._period_per_farad, self.config.jitter, gate, self._noise, ch, starts)
+            for start, n in zip(starts, got if got is not None else [None] * len(starts)):
+                if n is None:
+                    n = self.edge_train(ch, c, start, gate).edge_count()
+                ahead[(ch, c, start, gate)] = (n % modulus, n >= modulus)
 
     def computed(self, channel: int, capacitance: float, start_cycle: int, gate_cycles: int) -> bool:
         """Whether :meth:`count` with these arguments is answered from :meth:`prefetch`."""

@@ -21,6 +21,7 @@ the counter's fast path prove that the synchroniser sees every edge.
 from __future__ import annotations
 
 import enum
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,22 +60,25 @@ class KeyedNormals:
         self._seed64 = self.seed & _MASK64
         self._bitgen = np.random.Philox(key=0)
         self._gen = np.random.Generator(self._bitgen)
-        self._state = self._bitgen.state
-        self._key = self._state["state"]["key"]
-        self._counter = self._state["state"]["counter"]
-        self._key[0] = self._seed64
+        # The state a seek assigns, in plain lists: the setter reads each word of a list
+        # at half the cost of a numpy array's, and a store into a list costs a fraction
+        # of one into an array (the seek runs twice a counter gate). An empty output
+        # buffer (``buffer_pos`` 4): the next draw comes from the counter.
+        self._counter = [0, 0, 0, 0]
+        self._key = [self._seed64, 0]
+        # (numpy's stubs type the state's words as arrays: the setter takes any sequence)
+        self._state: Any = cast(Any, {"bit_generator": "Philox", "state": {"counter": self._counter, "key": self._key},
+                                      "buffer": [0, 0, 0, 0], "buffer_pos": 4, "has_uint32": 0, "uinteger": 0})
+        self._bitgen.state = self._state
 
     def _seek(self, stream: int, channel: int, cycle: int, substream: int) -> None:
-        # Hot path (two per counter gate): plain int stores into kept arrays, one setter.
+        # Hot path (two per counter gate): plain int stores into kept lists, one setter.
         self._key[1] = cycle & _MASK64
         ctr = self._counter
         ctr[0] = (substream << _SUBSTREAM_SHIFT) & _MASK64
         ctr[1] = stream
         ctr[2] = channel & _MASK64
-        st = self._state
-        st["buffer_pos"] = 4  # empty output buffer: next draw comes from the counter
-        st["has_uint32"] = 0
-        self._bitgen.state = st
+        self._bitgen.state = self._state
 
     def normals(
         self, stream: int, channel: int, cycle: int, n: int, substream: int = 0
@@ -96,6 +100,20 @@ class KeyedNormals:
         np.minimum(z, Z_MAX, out=z)
         np.maximum(z, -Z_MAX, out=z)
         return phase, z
+
+    def gate_heads(self, channel: int, cycles: list[int], out: NDArray[np.float64]) -> list[float]:
+        """:meth:`gate_head` of the gates at ``cycles`` of one channel: the phases, and each
+        gate's clipped normals in its row of ``out`` (rows of ``n + BLOCK_SIZE``). One draw
+        per gate as there, clipped all at once: the same numbers."""
+        gen = self._gen
+        phases = []
+        for k, cycle in enumerate(cycles):
+            self._seek(_JITTER_BLOCKS, channel, cycle, 0)
+            phases.append(float(gen.random()))
+            gen.standard_normal(out=out[k])
+        np.minimum(out, Z_MAX, out=out)
+        np.maximum(out, -Z_MAX, out=out)
+        return phases
 
     def uniform(self, stream: Stream, channel: int, cycle: int, substream: int = 0) -> float:
         """One uniform number in [0, 1) (a SplitMix64 hash of the key: no generator seek)."""

@@ -43,7 +43,8 @@ import numpy as np
 from cellbridge.emulator.chip.keyed_random import BLOCK_SIZE, Z_MAX, KeyedNormals, Stream
 from numpy.typing import NDArray
 
-__all__ = ["BLOCK", "SYNC_LATENCY", "EdgeTrain", "JitterSource", "gate_edge_count", "max_period_deviation"]
+__all__ = ["BLOCK", "SYNC_LATENCY", "EdgeTrain", "JitterSource", "gate_edge_count", "gate_edge_counts",
+           "max_period_deviation"]
 
 BLOCK = BLOCK_SIZE  #: periods per jitter block
 SYNC_LATENCY = 3  #: window origin L = start_cycle − SYNC_LATENCY
@@ -231,6 +232,11 @@ class EdgeTrain:
 _JITTER_STEPS = int(Stream.JITTER_STEPS)
 
 
+def _head_blocks(period: float, jitter: float, gate: int) -> int:
+    """:attr:`EdgeTrain.n_blocks` of a gate: the block sums its head draw holds."""
+    return int((gate + 1) / (period * (BLOCK - jitter * _SQRT_BLOCK * Z_MAX))) + 2
+
+
 def gate_edge_count(period: float, jitter: float, gate: int, normals: KeyedNormals, channel: int,
                     cycle: int) -> int | None:
     """:meth:`EdgeTrain.edge_count` of the gate at (``channel``, ``cycle``) of a chip whose
@@ -245,23 +251,54 @@ def gate_edge_count(period: float, jitter: float, gate: int, normals: KeyedNorma
     """
     if not 0.5 * period * (1.0 - jitter * _MAX_DEV) >= 1.0 + _DETECT_MARGIN:
         return None
-    n = int((gate + 1) / (period * (BLOCK - jitter * _SQRT_BLOCK * Z_MAX))) + 2  # EdgeTrain.n_blocks
+    n = _head_blocks(period, jitter, gate)
     phase, z = normals.gate_head(channel, cycle, n)
     t0 = phase * period
-    hint = min(max(int((gate - t0) / (period * BLOCK)), 0), n - 1)
-    return _edges_to(period, jitter, gate, t0, z[:n], hint,
-                     lambda b: z[n:] if b == hint else normals.normals(_JITTER_STEPS, channel, cycle, BLOCK, b))
+    hint = int((gate - t0) / (period * BLOCK))
+    hint = 0 if hint < 0 else n - 1 if hint >= n else hint
+    y = z[:n]
+    return _edges_to(period, jitter, gate, t0, y, hint, None, y.cumsum(), z[n:].cumsum(), normals, channel, cycle)
+
+
+def gate_edge_counts(period: float, jitter: float, gate: int, normals: KeyedNormals, channel: int,
+                     cycles: list[int]) -> list[int] | None:
+    """:func:`gate_edge_count` of several gates of one channel and oscillator period (at
+    ``cycles``), the same answers: each gate's head is drawn into a row of one array, and
+    the clipping and the prefix sums run once on all the rows (numpy's accumulation along
+    a row is the same sequential sum as on a lone array: the same doubles). What it buys
+    is the call overhead of those array operations, which on a gate's few hundred numbers
+    costs more than the arithmetic: a real-time bridge computes its next samples' counts
+    together (:meth:`Chip.prefetch <cellbridge.emulator.chip.chip.Chip.prefetch>`)."""
+    if not 0.5 * period * (1.0 - jitter * _MAX_DEV) >= 1.0 + _DETECT_MARGIN:
+        return None
+    n = _head_blocks(period, jitter, gate)
+    z = np.empty((len(cycles), n + BLOCK))
+    phases = normals.gate_heads(channel, cycles, z)
+    ycum = z[:, :n].cumsum(axis=1)
+    wcum = z[:, n:].cumsum(axis=1)
+    out = []
+    for k, cycle in enumerate(cycles):
+        t0 = phases[k] * period
+        hint = int((gate - t0) / (period * BLOCK))
+        hint = 0 if hint < 0 else n - 1 if hint >= n else hint
+        out.append(_edges_to(period, jitter, gate, t0, z[k, :n], hint, None, ycum[k], wcum[k], normals, channel,
+                             cycle))
+    return out
 
 
 def _edges_to(period: float, jitter: float, gate: int, t0: float, y: FloatArray, hint: int,
-              shape: Callable[[int], FloatArray]) -> int:
+              shape: Callable[[int], FloatArray] | None, ycum: FloatArray | None = None,
+              hint_cum: FloatArray | None = None, normals: KeyedNormals | None = None, channel: int = 0,
+              cycle: int = 0) -> int:
     """#{k : t_k ∈ (0, gate]} with every edge seen: edge 0 at ``t0``, block sums ``y``,
     ``shape(b)`` block b's shape normals; the search starts at block ``hint``. The few edge
     times it needs are evaluated as scalars with exactly the operations, in exactly the
     order, that :meth:`EdgeTrain.block_starts` and :meth:`EdgeTrain.block_rises` apply to
     whole arrays, so they are the same doubles (IEEE arithmetic is the same in numpy and
-    Python)."""
-    item = y.cumsum().item  # item(b) = Σ_{i≤b} y_i
+    Python). The counter's fast path passes what it computed already instead: ``ycum``
+    (the prefix sums of ``y``), ``hint_cum`` (those of the hint block's shape) and the keyed
+    normals a gate's other blocks are drawn from (``shape`` None)."""
+    item = (y.cumsum() if ycum is None else ycum).item  # item(b) = Σ_{i≤b} y_i
     k_sum = period * jitter * _SQRT_BLOCK
     # start(b) = ((Σ_{i<b} y_i)·k_sum + T·(B·b)) + t0, inline (this runs twice a sample)
     b = hint
@@ -272,12 +309,19 @@ def _edges_to(period: float, jitter: float, gate: int, t0: float, y: FloatArray,
     if b < 0:  # edge 0 comes after the gate's end
         return 0
     base = ((item(b - 1) if b else 0.0) * k_sum + period * (BLOCK * b)) + t0
-    cum = shape(b).cumsum()  # cum[i - 1] = Σ_{j<i} w_j
+    if shape is not None:
+        cum = shape(b).cumsum()  # cum[i - 1] = Σ_{j<i} w_j
+    elif b == hint and hint_cum is not None:
+        cum = hint_cum
+    else:
+        assert normals is not None
+        cum = normals.normals(_JITTER_STEPS, channel, cycle, BLOCK, b).cumsum()
     m = cum.item(-1) / BLOCK - y.item(b) / _SQRT_BLOCK  # z_i = w_i − m: the block's z sum to y_b·√B
     k_step = period * jitter
     step = cum.item
     # rise(i) = (((Σ_{j<i} w_j) − m·i)·k_step + T·i) + base
-    i = min(max(int((gate - base) / period), 0), BLOCK - 1)
+    i = int((gate - base) / period)
+    i = 0 if i < 0 else BLOCK - 1 if i > BLOCK - 1 else i
     while i + 1 < BLOCK and (((step(i) - m * (i + 1)) * k_step + period * (i + 1)) + base) <= gate:
         i += 1
     while i >= 0 and ((((step(i - 1) if i else 0.0) - m * i) * k_step + period * i) + base) > gate:

@@ -319,17 +319,31 @@ class Firmware:
 
     @property
     def next_tick(self) -> int:
-        t = min(self.sampler.next_tick, self.trickle.next_tick, self.status_at, self.time_beacon_at)
+        # (asked after every wake: comparisons in line rather than min() over a tuple)
+        t = self.sampler.next_tick
+        x = self.trickle.next_tick
+        if x < t:
+            t = x
+        x = self.status_at
+        if x < t:
+            t = x
+        x = self.time_beacon_at
+        if x < t:
+            t = x
         if self.floods and self.floods[0][0] < t:
             t = self.floods[0][0]
-        for x in (self.hello_at, self.reset_at):
-            if x >= 0 and x < t:
-                t = x
+        x = self.hello_at
+        if 0 <= x < t:
+            t = x
+        x = self.reset_at
+        if 0 <= x < t:
+            t = x
         lt = self.link.next_tick
         if lt is not None and lt < t:
             t = lt
-        if self.readout is not None:
-            rt = self.readout.next_tick
+        r = self.readout
+        if r is not None:
+            rt = r.next_tick
             if rt is not None and rt < t:
                 t = rt
             if 0 <= self._readout_at < t:
@@ -725,11 +739,14 @@ class Firmware:
     # -- time -----------------------------------------------------------------------
     def advance(self, tick: int) -> tuple[bytes, tuple[int, ...]] | None:
         """Run every timer due at ``tick``; the (bytes, cells) to transmit now, if any."""
-        if self.readout is not None:
-            self.readout.at(tick)  # (the sampler asks it whether a sample waits for children)
-        for data in self.sampler.advance(tick):
+        # (runs at every wake of every bridge: the parts kept in locals, each asked in turn)
+        readout = self.readout
+        sampler = self.sampler
+        if readout is not None:
+            readout.at(tick)  # (the sampler asks it whether a sample waits for children)
+        for data in sampler.advance(tick):
             self._own(data)
-        if self.readout is not None:
+        if readout is not None:
             self._readout_at = -1
             # each record names the root its index counts (taken with the sample, or the
             # child's): stamped with the root followed now, a gateway at boot (its own root,
@@ -738,19 +755,19 @@ class Firmware:
             # clock may follow a new root while its next gate is still planned on the old
             # one, and a frame of its children alone on the new root, passed on before that
             # gate's own frame, switched its line to the new root and back.
-            s = self.sampler
-            for record in self.readout.take(tick, s.root if s.on_time and s.root else self.clock.root or 0):
+            for record in readout.take(tick, sampler.root if sampler.on_time and sampler.root else self.clock.root or 0):
                 if self.config.gateway:
                     self._own(self._aged(record, tick))
                 else:
                     self.link.enqueue_urgent(own(record, self.me, self._next_link_seq()), tick, self._readout_rank(),
-                                             self.readout.until(record), (record.root, record.rate, record.index),
+                                             readout.until(record), (record.root, record.rate, record.index),
                                              record)
         while self.floods and self.floods[0][0] <= tick:
             self.link.broadcast(self.floods.pop(0)[1])
         beacon = False
-        if self.trickle.next_tick <= tick:
-            beacon = self.trickle.advance(tick, force=not self.router.has_route)
+        trickle = self.trickle
+        if trickle.next_tick <= tick:
+            beacon = trickle.advance(tick, force=not self.router.has_route)
         if self.time_beacon_at <= tick:
             local = self.crystal.local(tick)
             self.clock.tick(local)
@@ -780,23 +797,25 @@ class Firmware:
             self.power_off()
             self._past += self._life_totals()
             self._power_on(tick)
+            readout = self.readout
         r = self.router
+        link = self.link
         p = r.table.get(r.parent) if r.parent is not None else None
         if p is not None:
-            out, used = self.link.advance(tick, p.id, self._link_candidate(), int(round(p.link_etx)), r.table)
+            out, used = link.advance(tick, p.id, self._link_candidate(), int(round(p.link_etx)), r.table)
         else:
-            out, used = self.link.advance(tick, None, self._link_candidate(), PERFECT_LINK, r.table)
+            out, used = link.advance(tick, None, self._link_candidate(), PERFECT_LINK, r.table)
         if used:  # a bundle took the link number
             self._next_link_seq()
-        if self.link.urgent_results:
-            if self.readout is not None:
-                for ok in self.link.urgent_results:
-                    self.readout.sent(ok)
-            self.link.urgent_results.clear()
-        if self.link.results:
-            for nbr, attempts, ok in self.link.results:
-                self.router.on_link_result(nbr, attempts, ok, tick)
-            self.link.results.clear()
+        if link.urgent_results:
+            if readout is not None:
+                for ok in link.urgent_results:
+                    readout.sent(ok)
+            link.urgent_results.clear()
+        if link.results:
+            for nbr, attempts, ok in link.results:
+                r.on_link_result(nbr, attempts, ok, tick)
+            link.results.clear()
             self._reroute(tick)
         return out
 

@@ -171,6 +171,8 @@ class FrameReadout:
         self._expire_at = 0  # children are looked at for expiry at most this often
         self._root = 0  # the root this bridge followed at the last take()
         self._now = 0  # the tick of the bridge's current wake (:meth:`at`)
+        self._slots: dict[int, int] = {}  # depth -> slot(depth)
+        self._quiets: dict[int, int] = {}  # rate -> _quiet(rate)
 
     # -- inputs -----------------------------------------------------------------------
     def at(self, tick: int) -> None:
@@ -389,24 +391,45 @@ class FrameReadout:
     # -- schedule -----------------------------------------------------------------------
     def slot(self, depth: int) -> int:
         """Cycles from a frame's gate end to the slot of a bridge ``depth`` hops from its gateway."""
-        c = self.config
-        if c.hop:
-            return c.depths * c.window - min(depth, c.depths) * min(c.hop, c.window)
-        return (c.depths - min(depth, c.depths)) * c.window
+        got = self._slots.get(depth)
+        if got is None:  # (a function of the config and the depth: kept, as it is asked at every look)
+            c = self.config
+            if c.hop:
+                got = c.depths * c.window - min(depth, c.depths) * min(c.hop, c.window)
+            else:
+                got = (c.depths - min(depth, c.depths)) * c.window
+            if len(self._slots) < 64:
+                self._slots[depth] = got
+        return got
 
     def expects_children(self, rate: int) -> bool:
         """Whether a frame's record at ``rate`` waits for children's records (some child is
         expected and heard lately: :attr:`ReadoutConfig.quiet`): then it cannot go at the
         bridge's own gate end."""
-        return any(m and self._waited(c, rate, self._now) for c, m in self._members.items())
+        if not self._members:
+            return False
+        heard_at = self._heard_at
+        quiet = self._quiet(rate)
+        now = self._now
+        for c, m in self._members.items():
+            if m:
+                at = heard_at.get(c)
+                if at is not None and now - at <= quiet:  # (_waited, inline: asked at every look)
+                    return True
+        return False
 
     def _quiet(self, rate: int) -> int:
         """Cycles of silence after which a child is not waited for in a frame at ``rate``:
         ``quiet``, two of the frame's periods (a slow rate's records are that far apart), and
         the schedule's span and a period (a child held up for less may still make its
         parent's slot: its silence is its last record's period and the hold)."""
-        period = _CLOCK_HZ // max(1, rate)
-        return max(self.config.quiet, 2 * period, self.slot(0) + period)
+        got = self._quiets.get(rate)
+        if got is None:
+            period = _CLOCK_HZ // max(1, rate)
+            got = max(self.config.quiet, 2 * period, self.slot(0) + period)
+            if len(self._quiets) < 64:
+                self._quiets[rate] = got
+        return got
 
     def _waited(self, child: int, rate: int, tick: int) -> bool:
         """Whether a frame at ``rate`` waits for ``child`` at ``tick``: it was heard within
@@ -495,7 +518,12 @@ class FrameReadout:
     def _before_switch(self, root: int) -> bool:
         """Whether own frames sampled on another root than ``root`` (the one followed now)
         still wait: the records switch root once, after them."""
-        return bool(root) and any(p.own is not None and p.root and p.root != root for p in self._pending.values())
+        if not root:
+            return False
+        for p in self._pending.values():  # (a loop, not any() over a generator: asked at every look)
+            if p.own is not None and p.root and p.root != root:
+                return True
+        return False
 
     def _take(self, tick: int, root: int) -> list[Readout]:
         # In frame order: a frame complete early waits for the older ones of its rate. Sent
@@ -539,8 +567,11 @@ class FrameReadout:
         not waited for (silent: :attr:`ReadoutConfig.quiet`)."""
         heard = p.heard or set()
         newest = self._child_newest
-        return all(c in heard or newest.get((c, p.rate), -1) > p.index or not self._waited(c, p.rate, tick)
-                   for c, m in self._members.items() if m)
+        rate, index = p.rate, p.index
+        for c, m in self._members.items():  # (a loop, not all() over a generator: asked at every look)
+            if m and c not in heard and newest.get((c, rate), -1) <= index and self._waited(c, rate, tick):
+                return False
+        return True
 
     def _expire(self, tick: int) -> None:
         forget = self.config.forget

@@ -54,7 +54,8 @@ class Trickle:
 
     @property
     def next_tick(self) -> int:
-        return min(self.fire_at, self.end_at) if self.fire_at >= 0 else self.end_at
+        f = self.fire_at
+        return f if 0 <= f < self.end_at else self.end_at
 
     def advance(self, tick: int, force: bool = False) -> bool:
         """True when a beacon should be sent now (``force``: whatever was heard)."""

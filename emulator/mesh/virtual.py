@@ -134,8 +134,14 @@ class MeshResult:
 class VirtualMesh:
     def __init__(self, mesh: Mesh, seed: int = 0, world: World | None = None,
                  settings: Settings = Settings(), chip: Callable[[int, int], object] = default_chip,
-                 latency: Latency | None = None, random_epochs: bool = False, **firmware: object) -> None:
+                 latency: Latency | None = None, random_epochs: bool = False, prefetch: int = 0,
+                 **firmware: object) -> None:
         self.mesh = mesh
+        #: After a wake that took a sample, the chip computes the next ``prefetch`` samples'
+        #: counts at once, as a real-time bridge process does (``PREFETCH`` in
+        #: emulator/realtime/process_bridge.py): the same counts, so the same skin, at what
+        #: the bridge processes' chip work costs (0: each count when its sample is taken)
+        self.prefetch = prefetch
         #: chips whose cycle counters started at unrelated moments (as after separate power-ons):
         #: sample cycles are then far from the virtual ticks, and mesh time must find the offsets
         self.random_epochs = random_epochs
@@ -288,7 +294,10 @@ class VirtualMesh:
     def _run(self, b: int) -> None:
         fw = self.nodes[b]
         tick = self.tick
+        taken = fw.counters["samples"]
         out = fw.advance(tick)
+        if self.prefetch and fw.counters["samples"] > taken:
+            fw.sampler.prefetch(self.prefetch)
         if out is not None:
             if self.latency is None:
                 self._start(b, out[0], out[1])

@@ -159,6 +159,18 @@ def test_cli_gen_and_check(tmp_path: Path) -> None:
     assert r.returncode == 2 and b"gateway 9" in r.stderr
 
 
+def test_cli_gen_and_run_say_which_file_they_cannot_write(tmp_path: Path) -> None:
+    """`mesh gen -o` into a folder that does not exist, and `mesh run --capture` naming a
+    file, printed a Python traceback: a sentence naming the path now, before any run."""
+    mesh = tmp_path / "line.toml"
+    mesh.write_text(mesh_to_toml(meshgen.line(2)))
+    for args, path in ((["gen", "line", "3", "-o", str(tmp_path / "no" / "x.toml")], tmp_path / "no" / "x.toml"),
+                       (["run", str(mesh), "--seconds", "0.1", "--capture", str(mesh)], mesh)):
+        r = subprocess.run([CLI, "mesh", *args], capture_output=True, timeout=60)
+        assert r.returncode == 2 and b"Traceback" not in r.stderr, r.stderr
+        assert f"{path}: cannot write".encode() in r.stderr and not r.stdout
+
+
 def test_cli_run_in_virtual_time_with_scenario_and_capture(tmp_path: Path) -> None:
     import json
 

@@ -47,8 +47,19 @@ def test_sub_shows_malformed_messages_and_counts_them() -> None:
 
 def test_sub_times_out_with_status_1() -> None:
     with publisher() as endpoint:
-        out = run_subscriber([CLI, "sub", "no-such-topic", "--endpoint", endpoint, "--timeout", "0.3"])
+        out = run_subscriber([CLI, "sub", "serial", "--endpoint", endpoint, "--timeout", "0.3"])  # never published here
     assert out.returncode == 1 and "no message for 0.3 s" in out.stderr
+
+
+def test_sub_refuses_a_topic_no_topic_starts_with() -> None:
+    """`cellbridge sub helth` (or `contacts`) waited forever without a word: a prefix that
+    matches none of the daemon's topics is refused, naming them; a true prefix still works."""
+    with publisher() as endpoint:
+        typo = run_subscriber([CLI, "sub", "contact", "helth", "--endpoint", endpoint, "--timeout", "20"])
+        prefix = run_subscriber([CLI, "sub", "heal", "--endpoint", endpoint, "--count", "1", "--timeout", "20"])
+    assert typo.returncode == 2 and typo.stdout == "" and "Traceback" not in typo.stderr
+    assert "'helth'" in typo.stderr and "contact, element, raw, health, topology, serial" in typo.stderr
+    assert prefix.returncode == 0 and [ln["topic"] for ln in json_lines(prefix.stdout)] == ["health"]
 
 
 def test_sub_as_curve_client(tmp_path: Path) -> None:

@@ -18,6 +18,7 @@ from typing import Any, TextIO
 import msgpack
 import zmq
 from cellbridge.daemon.ops.security import apply_client
+from cellbridge.daemon.shell.publisher import TOPICS
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
 
@@ -90,6 +91,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.count < 0 or args.timeout < 0:
         print("cellbridge sub: --count and --timeout must not be negative", file=sys.stderr)
+        return 2
+    # a prefix no topic starts with ('helth', 'contacts') would wait forever without a word
+    unknown = [t for t in args.topics if not any(topic.startswith(t) for topic in TOPICS)]
+    if unknown:
+        print(f"cellbridge sub: no topic starts with {unknown[0]!r} (topics: {', '.join(TOPICS)})", file=sys.stderr)
         return 2
     context = zmq.Context()
     sock = context.socket(zmq.SUB)

@@ -147,7 +147,7 @@ def _recording(args: argparse.Namespace) -> int:
     """A recording: its reads' frames, each followed by the messages it caused (recorded, or
     made now by the daemon run offline with ``--run``)."""
     from cellbridge.recording import codec
-    from cellbridge.recording.mcapfile import ReadResult, read_payloads
+    from cellbridge.recording.mcapfile import NotARecording, ReadResult, read_payloads
 
     topics = set() if args.topics.strip() == "none" else {t.strip() for t in args.topics.split(",") if t.strip()}
     result = ReadResult()
@@ -177,6 +177,9 @@ def _recording(args: argparse.Namespace) -> int:
                      for _, p in read_payloads(args.input, result, {"serial"})
                      if isinstance(p.get("t_host"), (int, float)) and math.isfinite(p["t_host"])]
             _run_offline(args, reads, topics, show_read, show_message)
+    except NotARecording as exc:  # names the file itself
+        print(f"cellbridge decode: {exc}", file=sys.stderr)
+        return 1
     except (OSError, ValueError) as exc:
         print(f"cellbridge decode: {args.input}: {exc}", file=sys.stderr)
         return 1

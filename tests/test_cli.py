@@ -67,6 +67,28 @@ def test_decode_prints_frames_and_counts_garbage(tmp_path: Path) -> None:
     assert sum(counters["stream"]["frames_dropped"].values()) == 2  # leading junk and the bad COBS tail
 
 
+def test_decode_read_by_head_ends_quietly(tmp_path: Path) -> None:
+    """`cellbridge decode capture.bin | head` (the README's) and the same of a recording
+    ended in a BrokenPipeError traceback, or '[Errno 32] Broken pipe' and status 1: a reader
+    that goes away is the end of the output, status 0, nothing on stderr about it."""
+    frames = [Frame(5, 0, 5, i % 65536, Beacon(1, 20, 2)) for i in range(3000)]  # more than a pipe holds
+    capture = tmp_path / "capture.bin"
+    capture.write_bytes(b"".join(encode_stream(f) for f in frames))
+    golden = Path(__file__).parent / "data" / "golden" / "bridge_reset.mcap"
+    for source in (capture, golden):
+        proc = subprocess.Popen([CLI, "decode", str(source), "--topics", "all"] if source == golden
+                                else [CLI, "decode", str(source)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            assert proc.stdout is not None and proc.stdout.readline().startswith(b"{")
+            proc.stdout.close()  # as head does after its lines
+            _, err = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+            proc.wait()
+        assert proc.returncode == 0 and b"Traceback" not in err and b"Broken pipe" not in err, (source, err)
+
+
 def test_decode_hex_from_stdin() -> None:
     frame = Frame(5, 0, 5, 1, Beacon(1, 20, 2))
     out = run("decode", "--hex", "-", stdin=encode_stream(frame).hex(" ").encode())

@@ -39,6 +39,14 @@ def test_help_lists_subcommands() -> None:
     assert b"decode" in out.stdout
 
 
+def test_ros2_help_says_a_robots_contacts_are_in_their_links_frames() -> None:
+    """`cellbridge ros2 --help` said 'Everything is in one frame (--frame-id)', while a
+    contact on a robot's skin is in its link's frame (README, docs/ros2.md)."""
+    text = " ".join(run("ros2", "--help").stdout.decode().split())
+    assert "Everything is in one frame" not in text
+    assert "a contact on a robot's skin is in the frame of the link it is on" in text
+
+
 def test_internal_entry_points_run_but_stay_out_of_the_top_level_help() -> None:
     listed = run("--help").stdout.decode()
     for name in ("bridge", "medium", "world"):  # started by 'mesh up', not by people

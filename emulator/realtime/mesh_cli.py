@@ -104,7 +104,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gen.add_argument("--loss", type=float, default=0.0, help="frame loss probability per delivery (default 0)")
     gen.add_argument("--ber", type=float, default=0.0, help="bit-error rate per delivered bit (default 0)")
     gen.add_argument("--side", type=float, default=0.040, help="element side and pitch in metres (default 0.04)")
-    gen.add_argument("--seed", type=int, default=0, help="random mesh only: seed of the shape (default 0)")
+    gen.add_argument("--seed", type=int, default=None, help="random mesh only: seed of the shape (default 0)")
     gen.add_argument("-o", "--output", help="file to write (default: standard output)")
     chk = sub.add_parser("check", help="validate a mesh file and summarise it, with the share of its busiest "
                                        "cell's airtime the readout takes")
@@ -142,8 +142,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         if args.mesh_command == "gen":
+            if args.seed is not None and args.kind != "random":  # a line, ring or grid has one shape: a seed changes nothing
+                raise MeshError(f"--seed shapes a random mesh only, not a {args.kind}")
             kw = {} if args.gateways is None else {"gateways": args.gateways}
-            mesh = generate(args.kind, args.size, loss=args.loss, ber=args.ber, side=args.side, seed=args.seed, **kw)
+            mesh = generate(args.kind, args.size, loss=args.loss, ber=args.ber, side=args.side,
+                            seed=args.seed or 0, **kw)
             text = mesh_to_toml(mesh)
             if args.output:
                 _write(args.output, text)

@@ -89,7 +89,8 @@ def test_sub_as_curve_client(tmp_path: Path) -> None:
     (["--server-key", "server.key"], "go together"),
     (["--server-key", "missing.key", "--client-key", "missing.key_secret"], "cannot read a CURVE key"),
     (["--endpoint", "tcp://nowhere"], "tcp://nowhere"),
-    (["--count", "-1"], "must not be negative"),
+    (["--count", "-1"], "--count must be at least 1, got -1"),
+    (["--count", "0"], "--count must be at least 1, got 0 (leave it out to run until Ctrl-C)"),
 ])
 def test_sub_bad_input_gives_clear_errors(args: list[str], message: str, tmp_path: Path) -> None:
     out = run_subscriber([CLI, "sub", *args, "--timeout", "0.1"], cwd=tmp_path)

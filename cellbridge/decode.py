@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from dataclasses import fields, is_dataclass
 from typing import Any
@@ -116,10 +117,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"cellbridge decode: input is not hexadecimal: {exc}", file=sys.stderr)
             return 2
     decoder, reassembler = StreamDecoder(), Reassembler()
-    for frame in decoder.feed_iter(raw):
-        whole = reassembler.receive(frame, 0.0)
-        if whole is not None:
-            print(json.dumps(frame_to_json(whole)))
+    try:
+        for frame in decoder.feed_iter(raw):
+            whole = reassembler.receive(frame, 0.0)
+            if whole is not None:
+                print(json.dumps(frame_to_json(whole)))
+    except BrokenPipeError:  # read by `head` (README: decode capture.bin | head): it has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     print(json.dumps({"stream": decoder.counters(), "reassembly": reassembler.counters()}), file=sys.stderr)
     return 0
 
@@ -147,7 +152,7 @@ def _recording(args: argparse.Namespace) -> int:
     """A recording: its reads' frames, each followed by the messages it caused (recorded, or
     made now by the daemon run offline with ``--run``)."""
     from cellbridge.recording import codec
-    from cellbridge.recording.mcapfile import ReadResult, read_payloads
+    from cellbridge.recording.mcapfile import NotARecording, ReadResult, read_payloads
 
     topics = set() if args.topics.strip() == "none" else {t.strip() for t in args.topics.split(",") if t.strip()}
     result = ReadResult()
@@ -177,12 +182,15 @@ def _recording(args: argparse.Namespace) -> int:
                      for _, p in read_payloads(args.input, result, {"serial"})
                      if isinstance(p.get("t_host"), (int, float)) and math.isfinite(p["t_host"])]
             _run_offline(args, reads, topics, show_read, show_message)
+    except BrokenPipeError:  # the reader went away (| head): nothing more to say (an OSError: caught first)
+        sys.stderr.close()
+        return 0
+    except NotARecording as exc:  # names the file itself
+        print(f"cellbridge decode: {exc}", file=sys.stderr)
+        return 1
     except (OSError, ValueError) as exc:
         print(f"cellbridge decode: {args.input}: {exc}", file=sys.stderr)
         return 1
-    except BrokenPipeError:  # the reader went away (| head): nothing more to say
-        sys.stderr.close()
-        return 0
     problem = result.problem(args.input)
     if problem:
         print(f"cellbridge decode: {problem}", file=sys.stderr)

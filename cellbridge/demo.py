@@ -403,10 +403,33 @@ def _bind_refused(log: Path, start: int) -> bool:
     return "cannot bind" in text and "Address already in use" in text
 
 
+def _problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the skin or the press asked for, as 'mesh gen' and 'press' say it,
+    or None. Asked before anything starts: a press beside the skin or of a negative force
+    was refused only after the skin had booted and calibrated, a minute later, and a
+    --rows 0 was a traceback."""
+    from cellbridge.emulator.mesh import meshgen
+    from cellbridge.emulator.mesh.mesh import MeshError
+    from cellbridge.emulator.world.world import ScenarioError, check_on_skin, contact_from_mapping
+
+    try:
+        mesh = meshgen.grid(args.rows, args.cols)
+        press = {"start": 0.0, "duration": args.duration, "position": [args.x, args.y], "force": args.force,
+                 "diameter": args.diameter}
+        check_on_skin(mesh, contact_from_mapping(press, "press"), "press")
+    except (MeshError, ScenarioError) as exc:
+        return str(exc)
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     from cellbridge.emulator.mesh import meshgen
     from cellbridge.emulator.mesh.mesh import mesh_to_toml
 
+    problem = _problem(args)
+    if problem is not None:
+        print(f"cellbridge demo: {problem}", file=sys.stderr)
+        return 2
     say = (lambda *a: None) if args.json else (lambda *a: print(*a, file=sys.stderr, flush=True))
     work = Path(tempfile.mkdtemp(prefix="cellbridge-demo-"))
     try:

@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default: 1 2 5 10 15 20)")
     p.add_argument("--noise", type=float, default=DEFAULT_NOISE * 1e15, metavar="FF",
                    help="rms noise of each ΔC given to the inverse, in fF "
-                        "(default: %(default)s, about two counter counts at a 2 ms gate)")
+                        "(default: %(default).2g, about two counter counts at a 2 ms gate)")
     p.add_argument("--dpi", type=int, default=150, help="resolution (default: %(default)s)")
     parser.set_defaults(_plot_parser=parser)
 

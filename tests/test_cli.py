@@ -39,6 +39,14 @@ def test_help_lists_subcommands() -> None:
     assert b"decode" in out.stdout
 
 
+def test_ros2_help_says_a_robots_contacts_are_in_their_links_frames() -> None:
+    """`cellbridge ros2 --help` said 'Everything is in one frame (--frame-id)', while a
+    contact on a robot's skin is in its link's frame (README, docs/ros2.md)."""
+    text = " ".join(run("ros2", "--help").stdout.decode().split())
+    assert "Everything is in one frame" not in text
+    assert "a contact on a robot's skin is in the frame of the link it is on" in text
+
+
 def test_internal_entry_points_run_but_stay_out_of_the_top_level_help() -> None:
     listed = run("--help").stdout.decode()
     for name in ("bridge", "medium", "world"):  # started by 'mesh up', not by people
@@ -65,6 +73,28 @@ def test_decode_prints_frames_and_counts_garbage(tmp_path: Path) -> None:
     counters = json.loads(out.stderr.decode().strip().splitlines()[-1])
     assert counters["stream"]["frames_ok"] == 3
     assert sum(counters["stream"]["frames_dropped"].values()) == 2  # leading junk and the bad COBS tail
+
+
+def test_decode_read_by_head_ends_quietly(tmp_path: Path) -> None:
+    """`cellbridge decode capture.bin | head` (the README's) and the same of a recording
+    ended in a BrokenPipeError traceback, or '[Errno 32] Broken pipe' and status 1: a reader
+    that goes away is the end of the output, status 0, nothing on stderr about it."""
+    frames = [Frame(5, 0, 5, i % 65536, Beacon(1, 20, 2)) for i in range(3000)]  # more than a pipe holds
+    capture = tmp_path / "capture.bin"
+    capture.write_bytes(b"".join(encode_stream(f) for f in frames))
+    golden = Path(__file__).parent / "data" / "golden" / "bridge_reset.mcap"
+    for source in (capture, golden):
+        proc = subprocess.Popen([CLI, "decode", str(source), "--topics", "all"] if source == golden
+                                else [CLI, "decode", str(source)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            assert proc.stdout is not None and proc.stdout.readline().startswith(b"{")
+            proc.stdout.close()  # as head does after its lines
+            _, err = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+            proc.wait()
+        assert proc.returncode == 0 and b"Traceback" not in err and b"Broken pipe" not in err, (source, err)
 
 
 def test_decode_hex_from_stdin() -> None:

@@ -47,8 +47,19 @@ def test_sub_shows_malformed_messages_and_counts_them() -> None:
 
 def test_sub_times_out_with_status_1() -> None:
     with publisher() as endpoint:
-        out = run_subscriber([CLI, "sub", "no-such-topic", "--endpoint", endpoint, "--timeout", "0.3"])
+        out = run_subscriber([CLI, "sub", "serial", "--endpoint", endpoint, "--timeout", "0.3"])  # never published here
     assert out.returncode == 1 and "no message for 0.3 s" in out.stderr
+
+
+def test_sub_refuses_a_topic_no_topic_starts_with() -> None:
+    """`cellbridge sub helth` (or `contacts`) waited forever without a word: a prefix that
+    matches none of the daemon's topics is refused, naming them; a true prefix still works."""
+    with publisher() as endpoint:
+        typo = run_subscriber([CLI, "sub", "contact", "helth", "--endpoint", endpoint, "--timeout", "20"])
+        prefix = run_subscriber([CLI, "sub", "heal", "--endpoint", endpoint, "--count", "1", "--timeout", "20"])
+    assert typo.returncode == 2 and typo.stdout == "" and "Traceback" not in typo.stderr
+    assert "'helth'" in typo.stderr and "contact, element, raw, health, topology, serial" in typo.stderr
+    assert prefix.returncode == 0 and [ln["topic"] for ln in json_lines(prefix.stdout)] == ["health"]
 
 
 def test_sub_as_curve_client(tmp_path: Path) -> None:
@@ -78,7 +89,8 @@ def test_sub_as_curve_client(tmp_path: Path) -> None:
     (["--server-key", "server.key"], "go together"),
     (["--server-key", "missing.key", "--client-key", "missing.key_secret"], "cannot read a CURVE key"),
     (["--endpoint", "tcp://nowhere"], "tcp://nowhere"),
-    (["--count", "-1"], "must not be negative"),
+    (["--count", "-1"], "--count must be at least 1, got -1"),
+    (["--count", "0"], "--count must be at least 1, got 0 (leave it out to run until Ctrl-C)"),
 ])
 def test_sub_bad_input_gives_clear_errors(args: list[str], message: str, tmp_path: Path) -> None:
     out = run_subscriber([CLI, "sub", *args, "--timeout", "0.1"], cwd=tmp_path)

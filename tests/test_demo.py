@@ -193,3 +193,18 @@ def test_the_demo_starts_its_daemon_again_on_other_ports_when_one_was_taken(
     text = log.read_text()
     assert text.count("cannot bind") == 1 and "Address already in use" in text  # the first daemon's
     assert _left_behind(tmp_path) == []
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (["--x", "5"], "press: a 0.02 m contact at (5.0, 0.04) touches no element"),
+    (["--force", "-1"], "press.force: must be a number > 0.0, got -1.0"),
+    (["--duration", "0"], "press.duration: must be a number > 0.0, got 0.0"),
+    (["--rows", "0"], "grid: rows and cols must be >= 1"),
+])
+def test_a_press_or_skin_the_demo_cannot_make_is_refused_before_anything_starts(args: list[str], says: str) -> None:
+    """`cellbridge demo --x 5` (millimetres for metres) or `--force -1` booted the skin and the
+    daemon, waited for calibration, and only then had the press refused; `--rows 0` was a
+    traceback. Each is said at once, exit 2, and nothing was started."""
+    r = subprocess.run([CLI, "demo", *args], capture_output=True, text=True, timeout=60, start_new_session=True)
+    assert r.returncode == 2 and r.stderr.startswith(f"cellbridge demo: {says}"), r.stderr
+    assert "starting" not in r.stderr and "Traceback" not in r.stderr and r.stdout == ""

@@ -159,6 +159,28 @@ def test_cli_gen_and_check(tmp_path: Path) -> None:
     assert r.returncode == 2 and b"gateway 9" in r.stderr
 
 
+def test_cli_gen_refuses_a_seed_for_a_shape_it_cannot_change() -> None:
+    """`mesh gen grid 4 4 --seed 7` took the seed and wrote the one grid there is, as if it
+    had mattered (the help says: random mesh only). It is refused; a random mesh takes it."""
+    r = subprocess.run([CLI, "mesh", "gen", "grid", "2", "2", "--seed", "7"], capture_output=True, timeout=60)
+    assert r.returncode == 2 and not r.stdout and b"--seed shapes a random mesh only, not a grid" in r.stderr
+    seeded = [subprocess.run([CLI, "mesh", "gen", "random", "6", "--seed", s], capture_output=True, timeout=60)
+              for s in ("0", "7")]
+    assert all(r.returncode == 0 for r in seeded) and seeded[0].stdout != seeded[1].stdout
+
+
+def test_cli_gen_and_run_say_which_file_they_cannot_write(tmp_path: Path) -> None:
+    """`mesh gen -o` into a folder that does not exist, and `mesh run --capture` naming a
+    file, printed a Python traceback: a sentence naming the path now, before any run."""
+    mesh = tmp_path / "line.toml"
+    mesh.write_text(mesh_to_toml(meshgen.line(2)))
+    for args, path in ((["gen", "line", "3", "-o", str(tmp_path / "no" / "x.toml")], tmp_path / "no" / "x.toml"),
+                       (["run", str(mesh), "--seconds", "0.1", "--capture", str(mesh)], mesh)):
+        r = subprocess.run([CLI, "mesh", *args], capture_output=True, timeout=60)
+        assert r.returncode == 2 and b"Traceback" not in r.stderr, r.stderr
+        assert f"{path}: cannot write".encode() in r.stderr and not r.stdout
+
+
 def test_cli_run_in_virtual_time_with_scenario_and_capture(tmp_path: Path) -> None:
     import json
 

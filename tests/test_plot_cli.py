@@ -79,3 +79,12 @@ def test_module_entry_point_help():
     r = subprocess.run([sys.executable, "-m", "cellbridge", "plot", "response", "--help"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "Fig. 2" in r.stdout
+
+
+def test_response_help_prints_the_noise_default_as_a_number_people_write(capsys):
+    """`plot response --help` said '(default: 0.7000000000000001, ...)', the float of 7e-16 F
+    in fF: the default is printed as 0.7."""
+    with pytest.raises(SystemExit):
+        main(["plot", "response", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: 0.7, about two counter counts" in text and "0.7000" not in text

@@ -173,6 +173,40 @@ def test_a_bag_rotates_into_files_rosbags_reads_in_order(tmp_path: Path) -> None
         BagWriter(tmp_path / "b", topics())
 
 
+def test_info_and_decode_say_a_bags_file_is_a_ros_2_bag(tmp_path: Path, capsys: Any) -> None:
+    """`cellbridge info skin/skin_0.mcap` (a bag of record --profile ros2) called the file
+    damaged, every message 'not JSON' (replay too: the same reader): they now say it is a
+    ROS 2 bag's file and what reads it."""
+    import argparse
+
+    from cellbridge import decode
+    from cellbridge.recording import info
+    from cellbridge.recording.mcapfile import NotARecording, read_messages
+
+    bag = BagWriter(tmp_path / "skin", topics())
+    for key, msg in _spec_messages():
+        bag.add(key, msg, 1_700_000_000_000_000_000)
+    bag.finish()
+    file = tmp_path / "skin" / "skin_0.mcap"
+    with pytest.raises(NotARecording, match="a ROS 2 bag's file"):
+        next(read_messages(file))
+    assert info.run(argparse.Namespace(files=[file], json=False)) == 1
+    assert decode.run(_decode_args(str(file))) == 1
+    err = capsys.readouterr().err
+    assert err.count(f"{file}: a ROS 2 bag's file (cellbridge record --profile ros2") == 2, err
+    assert "damaged" not in err and "not JSON" not in err
+
+
+def _decode_args(path: str) -> Any:
+    import argparse
+
+    from cellbridge import decode
+
+    parser = argparse.ArgumentParser()
+    decode.add_arguments(parser)
+    return parser.parse_args([path])
+
+
 def test_every_shipped_type_serialises_as_rosbags_reads_it() -> None:
     """Each DDS class's CDR decodes with rosbags' definitions (ROS 2 Humble's for the standard
     messages, the shipped .msg text for tactile_msgs), and its fields are those of the .msg."""

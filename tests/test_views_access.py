@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -88,3 +90,19 @@ def test_the_foxglove_front_admits_the_desktop_app_and_foxgloves_web_app_only() 
         assert answer is not None and answer.startswith(b"HTTP/1.1 403 Forbidden\r\n")
         head, _, body = answer.partition(b"\r\n\r\n")
         assert int(dict(line.split(b": ", 1) for line in head.split(b"\r\n")[1:])[b"Content-Length"]) == len(body)
+
+
+def test_a_token_file_that_cannot_be_read_is_named_in_a_sentence(tmp_path: Path) -> None:
+    """`cellbridge web --token-file nope.token` said "[Errno 2] No such file or directory:
+    'nope.token'", and a binary file a codec's complaint without the file's name."""
+    from cellbridge.views.web import read_token
+
+    (tmp_path / "binary.token").write_bytes(b"\xff\xfe" * 20)
+    (tmp_path / "good.token").write_text("a-token-of-twenty-chars\n")
+    for name, says in (("nope.token", "cannot read the token: No such file or directory"),
+                       ("binary.token", "the token must be text")):
+        with pytest.raises(ValueError) as exc:
+            read_token(tmp_path / name)
+        assert str(exc.value).startswith(f"{tmp_path / name}: {says}")
+        assert "Errno" not in str(exc.value)
+    assert read_token(tmp_path / "good.token") == "a-token-of-twenty-chars"

@@ -439,3 +439,16 @@ def test_a_stop_cut_off_leaves_the_terminals_stderr_as_it_was(tmp_path: Any) -> 
     finally:
         os.close(master)
         os.close(slave)
+
+
+@pytest.mark.parametrize(("command", "option"), [
+    (["web", "--port", "0"], "--endpoint"), (["foxglove", "--port", "0"], "--control"),
+    (["ros2"], "--endpoint"), (["record", "{tmp}/bag", "--profile", "ros2", "--duration", "1"], "--control"),
+])
+def test_a_view_given_an_endpoint_without_its_scheme_says_so(command: list[str], option: str, tmp_path: Any) -> None:
+    """`cellbridge web --endpoint 127.0.0.1:5560` (tcp:// left out) printed libzmq's traceback:
+    a sentence naming the option now, exit 2, nothing left running."""
+    cmd = [CLI, *(c.format(tmp=tmp_path) for c in command), option, "127.0.0.1:5560"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, start_new_session=True)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert f"{option} 127.0.0.1:5560: Invalid argument: not an endpoint to connect to" in r.stderr

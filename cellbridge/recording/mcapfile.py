@@ -17,8 +17,8 @@ the declared size (a zstd or lz4 frame may claim anything). A damaged part (a ch
 that does not decompress or fails its CRC, a record that does not parse, framing that
 runs off) is skipped, counted and described in
 :class:`ReadResult`, and reading goes on after it (with the file's index, at the next
-chunk); what can be read is read. Nothing but :class:`NotARecording` (not MCAP at all)
-and ``OSError`` leaves the reader.
+chunk); what can be read is read. Nothing but :class:`NotARecording` (not MCAP at all, or
+a ROS 2 bag's file) and ``OSError`` leaves the reader.
 """
 
 from __future__ import annotations
@@ -173,7 +173,13 @@ class Recorded:
 
 
 class NotARecording(ValueError):
-    """The file is not MCAP at all (its first bytes are not MCAP's magic)."""
+    """The file is not MCAP at all (its first bytes are not MCAP's magic), or is the MCAP
+    file of a ROS 2 bag (``record --profile ros2``: CDR messages, which are not the JSON
+    payloads every message here is read as: each would be skipped as damaged)."""
+
+
+#: The MCAP profile of a ROS 2 bag's files (``cellbridge/ros2/bag.py`` and rosbag2 write it).
+ROS2_PROFILE = b"ros2"
 
 
 #: Parts of a damaged file described one by one in :attr:`ReadResult.damage` (the rest counted).
@@ -517,6 +523,19 @@ class _Reader:
 _NAMES = {Opcode.CHUNK: "chunk", Opcode.MESSAGE: "message", Opcode.CHANNEL: "channel", Opcode.METADATA: "metadata"}
 
 
+def _profile(fh: Any) -> bytes | None:
+    """The profile of the header record that follows the magic (None: no such record)."""
+    head = fh.read(_HEAD.size)
+    if len(head) < _HEAD.size:
+        return None
+    opcode, length = _HEAD.unpack(head)
+    body = fh.read(min(length, 4 + 64)) if opcode == Opcode.HEADER else b""
+    if len(body) < 4:
+        return None
+    (n,) = struct.unpack_from("<I", body)
+    return bytes(body[4:4 + n]) if n <= 64 else None
+
+
 def read_messages(path: str | Path, result: ReadResult | None = None,
                   topics: set[str] | None = None) -> Iterator[Recorded]:
     """Every message in the order it was recorded (the order the daemon published it).
@@ -532,6 +551,9 @@ def read_messages(path: str | Path, result: ReadResult | None = None,
     with open(path, "rb") as fh:
         if fh.read(len(MAGIC)) != MAGIC:
             raise NotARecording(f"{path}: not an MCAP file (bad magic)")
+        if _profile(fh) == ROS2_PROFILE:
+            raise NotARecording(f"{path}: a ROS 2 bag's file (cellbridge record --profile ros2; CDR messages): "
+                                "read the bag with ros2 bag, rosbags or Foxglove")
         reader = _Reader(fh, path, result, topics)
         reader.read_footer()
         yield from reader.messages()

@@ -88,8 +88,14 @@ class Source:
         self.sub.rcvbuf = RCVBUF
         for t in topics:
             self.sub.subscribe(t)
-        self.sub.connect(endpoint)
-        self.ctl.connect(control)
+        for option, sock, address in (("--endpoint", self.sub, endpoint), ("--control", self.ctl, control)):
+            try:
+                sock.connect(address)
+            except zmq.ZMQError as exc:  # '127.0.0.1:5560' (no tcp://), a port missing: said, not a traceback
+                self.close()
+                reason = zmq.strerror(exc.errno) if exc.errno is not None else str(exc)
+                raise ValueError(f"{option} {address}: {reason}: not an endpoint to connect to "
+                                 "(tcp://HOST:PORT or ipc://PATH)") from None
         self.poller = zmq.Poller()
         self.poller.register(self.sub, zmq.POLLIN)
         self.poller.register(self.ctl, zmq.POLLIN)

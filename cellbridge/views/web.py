@@ -97,7 +97,14 @@ def is_loopback_host(host: str) -> bool:
 
 
 def read_token(path: Path) -> str:
-    token = path.read_text().strip()
+    """The access token in ``path``; ValueError with a sentence naming the file when it
+    cannot be read ('[Errno 2] No such file or directory: ...' was Python's, not ours)."""
+    try:
+        token = path.read_text(encoding="utf-8").strip()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read the token: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: the token must be text (UTF-8)") from None
     if len(token) < 16:
         raise ValueError(f"{path}: the token must be at least 16 characters (e.g. python3 -c "
                          f"'import secrets; print(secrets.token_urlsafe())' > {path})")

@@ -18,6 +18,7 @@ from typing import Any, TextIO
 import msgpack
 import zmq
 from cellbridge.daemon.ops.security import apply_client
+from cellbridge.daemon.shell.publisher import TOPICS
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
 
@@ -73,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("topics", nargs="*", metavar="TOPIC",
                         help="topic prefix to receive (ZeroMQ prefix match; default: all topics)")
     parser.add_argument("--endpoint", default=DEFAULT_PUB, help=f"daemon's PUB endpoint (default: {DEFAULT_PUB})")
-    parser.add_argument("--count", type=int, default=0, metavar="N",
+    parser.add_argument("--count", type=int, default=None, metavar="N",
                         help="exit after N messages (default: run until Ctrl-C)")
     parser.add_argument("--timeout", type=float, default=0.0, metavar="SECONDS",
                         help="exit with status 1 when no message arrives for this long (default: wait forever)")
@@ -88,8 +89,17 @@ def run(args: argparse.Namespace) -> int:
     if (args.server_key is None) != (args.client_key is None):
         print("cellbridge sub: --server-key and --client-key go together (CURVE needs both)", file=sys.stderr)
         return 2
-    if args.count < 0 or args.timeout < 0:
-        print("cellbridge sub: --count and --timeout must not be negative", file=sys.stderr)
+    if args.count is not None and args.count < 1:  # --count 0 ran until Ctrl-C, as if left out
+        print(f"cellbridge sub: --count must be at least 1, got {args.count} (leave it out to run until Ctrl-C)",
+              file=sys.stderr)
+        return 2
+    if args.timeout < 0:
+        print("cellbridge sub: --timeout must not be negative", file=sys.stderr)
+        return 2
+    # a prefix no topic starts with ('helth', 'contacts') would wait forever without a word
+    unknown = [t for t in args.topics if not any(topic.startswith(t) for topic in TOPICS)]
+    if unknown:
+        print(f"cellbridge sub: no topic starts with {unknown[0]!r} (topics: {', '.join(TOPICS)})", file=sys.stderr)
         return 2
     context = zmq.Context()
     sock = context.socket(zmq.SUB)
@@ -121,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_messages(sock: zmq.Socket, args: argparse.Namespace, counters: dict[str, int], out: TextIO) -> int:
     timeout_ms = int(args.timeout * 1000) if args.timeout else None
-    while not args.count or counters["received"] < args.count:
+    while args.count is None or counters["received"] < args.count:
         if not sock.poll(timeout_ms):
             print(f"cellbridge sub: no message for {args.timeout:g} s on {args.endpoint}", file=sys.stderr)
             return 1

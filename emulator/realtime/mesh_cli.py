@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from cellbridge.emulator.mesh.mesh import Mesh, MeshError, load_mesh, mesh_to_toml
@@ -15,7 +16,6 @@ from cellbridge.emulator.world.world import ScenarioError
 
 def _run_virtual(args: argparse.Namespace) -> int:
     import json
-    import os
 
     from cellbridge.emulator.firmware.commands import Settings
     from cellbridge.emulator.mesh.virtual import VirtualMesh
@@ -25,14 +25,14 @@ def _run_virtual(args: argparse.Namespace) -> int:
     contacts = load_scenario(args.scenario) if args.scenario else []
     for i, c in enumerate(contacts):
         check_on_skin(mesh, c, f"{args.scenario}: contact[{i}]")
+    if args.capture:  # made before the run: a folder that cannot be is said at once, not after it
+        _write(args.capture, None)
     world = World(mesh, contacts)
     vm = VirtualMesh(mesh, seed=args.seed, world=world, settings=Settings(rate_hz=args.rate, reporting=args.reporting))
     result = vm.run(args.seconds)
     if args.capture:
-        os.makedirs(args.capture, exist_ok=True)
         for g, data in vm.serial.items():
-            with open(os.path.join(args.capture, f"gateway-{g}.bin"), "wb") as fh:
-                fh.write(data)
+            _write(os.path.join(args.capture, f"gateway-{g}.bin"), data)
     samples = result.samples()
     print(json.dumps({
         "seconds": result.seconds,
@@ -43,6 +43,20 @@ def _run_virtual(args: argparse.Namespace) -> int:
         "counters": {str(b): c for b, c in result.counters.items()},
     }, indent=1))
     return 0
+
+
+def _write(path: str, data: bytes | bytearray | str | None) -> None:
+    """Write ``data`` to the file ``path`` (``None``: make the folder ``path``). One that cannot
+    be made (no such folder, a file where the folder goes, no permission) is a
+    :class:`MeshError` naming it: the user reads a sentence, not a traceback."""
+    try:
+        if data is None:
+            os.makedirs(path, exist_ok=True)
+            return
+        with open(path, "wb") as fh:
+            fh.write(data.encode("utf-8") if isinstance(data, str) else data)
+    except OSError as exc:
+        raise MeshError(f"{path}: cannot write: {exc.strerror or exc}") from None
 
 
 def warn_if_not_fitting(mesh: Mesh, rate: int, acked: bool = True) -> CellLoad:
@@ -90,7 +104,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gen.add_argument("--loss", type=float, default=0.0, help="frame loss probability per delivery (default 0)")
     gen.add_argument("--ber", type=float, default=0.0, help="bit-error rate per delivered bit (default 0)")
     gen.add_argument("--side", type=float, default=0.040, help="element side and pitch in metres (default 0.04)")
-    gen.add_argument("--seed", type=int, default=0, help="random mesh only: seed of the shape (default 0)")
+    gen.add_argument("--seed", type=int, default=None, help="random mesh only: seed of the shape (default 0)")
     gen.add_argument("-o", "--output", help="file to write (default: standard output)")
     chk = sub.add_parser("check", help="validate a mesh file and summarise it, with the share of its busiest "
                                        "cell's airtime the readout takes")
@@ -128,12 +142,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         if args.mesh_command == "gen":
+            if args.seed is not None and args.kind != "random":  # a line, ring or grid has one shape: a seed changes nothing
+                raise MeshError(f"--seed shapes a random mesh only, not a {args.kind}")
             kw = {} if args.gateways is None else {"gateways": args.gateways}
-            mesh = generate(args.kind, args.size, loss=args.loss, ber=args.ber, side=args.side, seed=args.seed, **kw)
+            mesh = generate(args.kind, args.size, loss=args.loss, ber=args.ber, side=args.side,
+                            seed=args.seed or 0, **kw)
             text = mesh_to_toml(mesh)
             if args.output:
-                with open(args.output, "w", encoding="utf-8") as fh:
-                    fh.write(text)
+                _write(args.output, text)
             else:
                 sys.stdout.write(text)
             return 0

@@ -250,14 +250,20 @@ def test_watch_shows_the_daemons_control_characters_escaped() -> None:
             return {"v": 1, "id": rid, "ok": False, "error": f"no{OSC52}pe{RED}"}
         return {"v": 1, "id": rid, "ok": True, "layout": grid_layout()}
 
+    shown = (re.escape("\\x1b]52;c;cHduZWQ=\\x07:up"), re.escape("calibration \\x1b[31m9 ready"))
     with FakeDaemon(reply=reply) as fd, pty_program([CLI, "watch", *args(fd)]) as watch:
-        for seq in range(40):
+        # published until the view shows both (a loaded machine may start it after a fixed
+        # number of messages went out: a subscriber misses what came before it joined)
+        end = time.monotonic() + 60
+        seq = 0
+        while time.monotonic() < end and not all(re.search(p, watch.text()) for p in shown):
             fd.publish("health", health(seq, links={OSC52: {"connected": True}},
                                         layout={"calibration": {"ready": f"{RED}9", "collecting": 0}}))
             fd.publish("element", element(seq, {1: 1.0}))
+            seq += 1
             time.sleep(0.05)
-        watch.wait_for(re.escape("\\x1b]52;c;cHduZWQ=\\x07:up"))
-        watch.wait_for(re.escape("calibration \\x1b[31m9 ready"))
+        for p in shown:
+            watch.wait_for(p, timeout=1)
         watch.send(b"t")
         watch.wait_for("re-take the baseline")
         watch.send(b"y")

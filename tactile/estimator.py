@@ -21,8 +21,8 @@ per kind (one-disk, two-disk, fixed-diameter).
 
 from __future__ import annotations
 
+import itertools
 import math
-from dataclasses import replace
 from typing import Literal, NamedTuple, Sequence
 
 import numpy as np
@@ -120,6 +120,10 @@ class ContactEstimator:
         self._runner = FitRunner(layout, self.params, nz, method == "area")
         self._sigma_unique = branch_info(self.params).sigma_unique
         lo, hi = layout.bounds[:, :2].min(axis=0), layout.bounds[:, 2:].max(axis=0)
+        # Each element's rectangle with a quarter side of slack, where a hint counts as on it
+        # (:meth:`_hints_in`): the same sums every frame, made once.
+        slack = 0.25 * layout.side
+        self._grown = layout.bounds + np.array([-slack, -slack, slack, slack])
         self._skin_diagonal = float(np.hypot(*(hi - lo)))
         self._adj_edge = layout.adjacency("edge") if layout.n <= 4096 else None
         if self.spread > 0:
@@ -310,7 +314,8 @@ class ContactEstimator:
     def _fit_valid(self, clusters: list[Cluster], hints: FloatArray) -> list[list[Contact]]:
         nd_free = np.array([True, True, True, self.method != "area"])
         run = self._runner
-        st = run.starts(clusters)
+        batch = run.batch(clusters)
+        st = run.starts(clusters, batch=batch)
         theta0 = np.empty((len(clusters), 4))
         theta0[:, :2] = st[:, :2]
         theta0[:, 2] = np.log(2.0 * st[:, 2])
@@ -327,7 +332,6 @@ class ContactEstimator:
                     pair_hints[k] = inside[:2]
         free = np.empty((len(clusters), 4), dtype=bool)
         free[:] = nd_free
-        batch = run.batch(clusters)
         fits = run.run(batch, theta0, free, 1, True)
         # A warm start in the wrong valley (the disk moved far since last frame) is
         # caught by its fit quality and redone from the readings' own start.
@@ -355,7 +359,7 @@ class ContactEstimator:
                     fits.sig[k, a] = math.hypot(fits.sig[k, a], shift[a])
                     fits.cov[k, a, a] += shift[a] ** 2
         area_force = self.method == "area"
-        results = {k: [fits.contact(cl, k, int(dof[k]), area_force)] for k, cl in enumerate(clusters)}
+        results = {k: [c] for k, c in enumerate(fits.contacts(clusters, dof, area_force))}
         # Two disks need the uniform model: under a spread, a one-disk misfit of the
         # uniform model is no evidence of a second contact.
         split: dict[int, list[Contact]] = {}
@@ -390,17 +394,17 @@ class ContactEstimator:
         rows = [k for k, cl in enumerate(clusters) if fits.ok[k] and cl.ring_reads]
         if not rows or self.model_error == 0.0:
             return {}
-        sub = []
-        for k in rows:
+        # (the clusters' batch, its readings lowered where they are ring readings that count:
+        # the same values as a batch of changed clusters, without a copy of each cluster)
+        batch = self._runner.batch([clusters[k] for k in rows])
+        for k, at in zip(rows, batch.off[:-1].tolist()):
             cl = clusters[k]
             nm = cl.members.size
             peak = np.fmax.reduce(np.abs(cl.y[:, :nm]), axis=1)  # (nanmax's values, without its copies)
             tol = self.model_error * np.where(np.isfinite(peak), peak, 0.0)
-            ring = cl.seen[cl.seen >= nm]
-            y = cl.y.copy()
-            y[:, ring] = np.maximum(y[:, ring] - tol[:, None], 0.0)
-            sub.append(replace(cl, y=y))
-        moved = self._runner.run(self._runner.batch(sub), fits.theta[rows].copy(), free[rows], 1, False)
+            ring = at + cl.seen[cl.seen >= nm]
+            batch.y[:, ring] = np.maximum(batch.y[:, ring] - tol[:, None], 0.0)
+        moved = self._runner.run(batch, fits.theta[rows].copy(), free[rows], 1, False)
         wide = np.full(2, self.layout.side / math.sqrt(12.0))
         return {k: (moved.theta[j, :2] - fits.theta[k, :2] if moved.ok[j] else wide) for j, k in enumerate(rows)}
 
@@ -481,16 +485,11 @@ class ContactEstimator:
         humanoid's 1 144 elements comparing every hint with every element, then asking
         each cluster apart, cost a tenth of a frame's estimate."""
         members = [cl.members for cl in clusters]
-        sizes = np.fromiter((m.size for m in members), dtype=np.int64, count=len(members))
-        b = self.layout.bounds[np.concatenate(members)]
-        m = 0.25 * self.layout.side
-        on = (
-            (hints[:, None, 0] >= b[None, :, 0] - m) & (hints[:, None, 0] <= b[None, :, 2] + m)
-            & (hints[:, None, 1] >= b[None, :, 1] - m) & (hints[:, None, 1] <= b[None, :, 3] + m)
-        )
+        g = self._grown[np.concatenate(members)]  # (the members' rectangles with the slack, as (M, 4))
+        hx, hy = hints[:, 0:1], hints[:, 1:2]  # (H, 1) each
+        on = (hx >= g[:, 0]) & (hx <= g[:, 2]) & (hy >= g[:, 1]) & (hy <= g[:, 3])
         # (K, H): on one of the cluster's elements (a cluster has one member at least)
-        starts = np.zeros(sizes.size, dtype=np.int64)
-        np.cumsum(sizes[:-1], out=starts[1:])
+        starts = list(itertools.accumulate([m.size for m in members[:-1]], initial=0))
         on_cluster = np.logical_or.reduceat(on, starts, axis=1).T
         sound = np.isfinite(hints).all(axis=1) & (hints[:, 2] > 0) & (hints[:, 3] > 0)
         with np.errstate(invalid="ignore", divide="ignore"):

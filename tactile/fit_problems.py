@@ -52,7 +52,9 @@ def frame_noise(c1: FloatArray, c2: FloatArray, untouched: NDArray[np.bool_], fl
     """
     if int(untouched.sum()) < FRAME_NOISE_MIN:
         return np.full(2, np.inf)
-    mad = np.array([median0(np.abs(c1[untouched])), median0(np.abs(c2[untouched]))])
+    # (both channels' medians in one partition of an (n, 2) array: column by column the same
+    # values as a median each, in half the numpy calls)
+    mad = median0(np.abs(np.stack([c1[untouched], c2[untouched]], axis=1)))
     return np.maximum(floor, 1.4826 * mad)
 
 
@@ -136,47 +138,61 @@ class Fits:
         ``area_force``: the force is σ₀·πD²/4 (fits to areas, where F is no parameter).
         """
         # (Python floats from here: the same arithmetic, without numpy scalars' overhead.)
-        th = self.theta[k, 4 * disk : 4 * disk + 4].tolist()
-        sig = self.sig[k, 4 * disk : 4 * disk + 4].tolist()
-        flat = self.flat[k, 4 * disk : 4 * disk + 2].tolist()
-        cv01 = float(self.cov[k, 4 * disk, 4 * disk + 1])
-        ok = bool(self.ok[k])
-        base = dict(cl.base)
-        base.update(over)
-        diam = math.exp(th[2])
-        if area_force:
-            force = cl.sigma0 * math.pi * diam * diam / 4.0
-            s_lnf = 2.0 * sig[2]
-        else:
-            force = math.exp(th[3])
-            s_lnf = sig[3]
-        cxy = cv01 if not (flat[0] or flat[1]) and math.isfinite(cv01) else 0.0
-        sx, sy = sig[0], sig[1]
-        cx, cy = base["centroid_x"], base["centroid_y"]
-        # A coordinate is observable where the readings pin it: not flat, and with a
-        # finite σ (a covariance that failed to solve leaves σ infinite without a flat
-        # bottom found: the readings do not pin that coordinate either).
-        seen = (not bool(flat[0]) and math.isfinite(sx), not bool(flat[1]) and math.isfinite(sy))
-        if not ok:
-            # The position is the centroid, which says only that the contact is on the
-            # cluster: σ of a uniform spread out to the farther edge of the cluster on
-            # each side (a failed fit's covariance says nothing about the centroid).
-            assert cl.bounds is not None  # every cluster built here carries its layout's bounds
-            b = cl.bounds[cl.members]
-            sx, sy = (max(c - float(b[:, a].min()), float(b[:, a + 2].max()) - c) / math.sqrt(3.0)
-                      for a, c in ((0, cx), (1, cy)))
-            cxy, seen = 0.0, (False, False)
-        return Contact(
-            x=float(th[0]) if ok else cx, y=float(th[1]) if ok else cy,
-            force=force if ok else base["force_sum"],
-            diameter=diam if ok else 2.0 * math.sqrt(max(base["area"], 0.0) / math.pi),
-            model_x=float(th[0]) if ok else math.nan, model_y=float(th[1]) if ok else math.nan,
-            sigma_x=sx, sigma_y=sy, sigma_xy=major_axis(sx * sx, sy * sy, cxy), cov=((sx * sx, cxy), (cxy, sy * sy)),
-            sigma_force=float(force * s_lnf) if ok else math.nan,
-            sigma_diameter=float(diam * sig[2]) if ok else math.nan,
-            valid=True, fit_ok=ok, observable=seen,
-            chi2=float(self.chi2[k]), dof=dof, **base,
-        )
+        return _contact(cl, self.theta[k, 4 * disk : 4 * disk + 4].tolist(), self.sig[k, 4 * disk : 4 * disk + 4].tolist(),
+                        self.flat[k, 4 * disk : 4 * disk + 2].tolist(), float(self.cov[k, 4 * disk, 4 * disk + 1]),
+                        bool(self.ok[k]), float(self.chi2[k]), dof, area_force, over)
+
+    def contacts(self, clusters: list[Cluster], dof: FloatArray, area_force: bool = False) -> list[Contact]:
+        """:meth:`contact` of every problem's (first) disk, problem k being ``clusters[k]``
+        with ``int(dof[k])`` degrees of freedom. Each array is read into Python lists once,
+        not sliced and converted a problem at a time (six numpy calls a contact, ten
+        contacts a frame, were a tenth of the fit's set-up)."""
+        theta, sig, flat = self.theta[:, :4].tolist(), self.sig[:, :4].tolist(), self.flat[:, :2].tolist()
+        cv01, ok, chi2, dofs = self.cov[:, 0, 1].tolist(), self.ok.tolist(), self.chi2.tolist(), dof.tolist()
+        return [_contact(cl, theta[k], sig[k], flat[k], cv01[k], ok[k], chi2[k], int(dofs[k]), area_force, {})
+                for k, cl in enumerate(clusters)]
+
+
+def _contact(cl: Cluster, th: list[float], sig: list[float], flat: list[bool], cv01: float, ok: bool, chi2: float,
+             dof: int, area_force: bool, over: dict[str, object]) -> Contact:
+    """:meth:`Fits.contact` of one disk, its row's values given as Python floats: ``th``,
+    ``sig`` (x, y, ln D, ln F), ``flat`` (x, y), ``cv01`` its covariance of x and y."""
+    base = dict(cl.base)
+    base.update(over)
+    diam = math.exp(th[2])
+    if area_force:
+        force = cl.sigma0 * math.pi * diam * diam / 4.0
+        s_lnf = 2.0 * sig[2]
+    else:
+        force = math.exp(th[3])
+        s_lnf = sig[3]
+    cxy = cv01 if not (flat[0] or flat[1]) and math.isfinite(cv01) else 0.0
+    sx, sy = sig[0], sig[1]
+    cx, cy = base["centroid_x"], base["centroid_y"]
+    # A coordinate is observable where the readings pin it: not flat, and with a
+    # finite σ (a covariance that failed to solve leaves σ infinite without a flat
+    # bottom found: the readings do not pin that coordinate either).
+    seen = (not bool(flat[0]) and math.isfinite(sx), not bool(flat[1]) and math.isfinite(sy))
+    if not ok:
+        # The position is the centroid, which says only that the contact is on the
+        # cluster: σ of a uniform spread out to the farther edge of the cluster on
+        # each side (a failed fit's covariance says nothing about the centroid).
+        assert cl.bounds is not None  # every cluster built here carries its layout's bounds
+        b = cl.bounds[cl.members]
+        sx, sy = (max(c - float(b[:, a].min()), float(b[:, a + 2].max()) - c) / math.sqrt(3.0)
+                  for a, c in ((0, cx), (1, cy)))
+        cxy, seen = 0.0, (False, False)
+    return Contact(
+        x=float(th[0]) if ok else cx, y=float(th[1]) if ok else cy,
+        force=force if ok else base["force_sum"],
+        diameter=diam if ok else 2.0 * math.sqrt(max(base["area"], 0.0) / math.pi),
+        model_x=float(th[0]) if ok else math.nan, model_y=float(th[1]) if ok else math.nan,
+        sigma_x=sx, sigma_y=sy, sigma_xy=major_axis(sx * sx, sy * sy, cxy), cov=((sx * sx, cxy), (cxy, sy * sy)),
+        sigma_force=float(force * s_lnf) if ok else math.nan,
+        sigma_diameter=float(diam * sig[2]) if ok else math.nan,
+        valid=True, fit_ok=ok, observable=seen,
+        chi2=chi2, dof=dof, **base,
+    )
 
 
 def _finite(x: FloatArray) -> FloatArray:
@@ -263,20 +279,23 @@ class FitRunner:
             some = np.zeros(nm.size, dtype=bool)
             some[labels[(labels >= 0) & ~replaced]] = True
             posed = np.flatnonzero(some).tolist()
+        # (every per-cluster value read into Python once, not a numpy scalar at a time)
         starts, ends, sizes = ooff[:-1].tolist(), ooff[1:].tolist(), nm.tolist()
+        ids = lay.ids[obs].tolist()
+        oks, firms, s_tots, f_sums, sigmas = ok.tolist(), is_firm.tolist(), s_tot.tolist(), f_sum.tolist(), sigma0.tolist()
+        cxs, cys = cx.tolist(), cy.tolist()
         for k in posed:
             s, e, m = starts[k], ends[k], sizes[k]
-            members = obs[s : s + m]
-            fit = bool(ok[k])
-            st = float(s_tot[k])
-            sg = float(sigma0[k]) if fit else math.nan  # (math.nan itself: equal to itself in a dict)
+            fit = oks[k]
+            st = s_tots[k]
+            sg = sigmas[k] if fit else math.nan  # (math.nan itself: equal to itself in a dict)
             base = dict(
-                centroid_x=float(cx[k]), centroid_y=float(cy[k]), elements=tuple(lay.ids[members].tolist()),
-                pressure=sg, force_sum=float(f_sum[k]) if fit else math.nan,
+                centroid_x=cxs[k], centroid_y=cys[k], elements=tuple(ids[s : s + m]),
+                pressure=sg, force_sum=f_sums[k] if fit else math.nan,
                 area=st if fit else math.nan,
             )
-            out.append(Cluster(members, obs[s:e], sg, a[s:e], y[:, s:e], (float(cx[k]), float(cy[k])),
-                               fit and st > 0, base, bool(is_firm[k]), lay.bounds, quiet[s:e]))
+            out.append(Cluster(obs[s : s + m], obs[s:e], sg, a[s:e], y[:, s:e], (cxs[k], cys[k]),
+                               fit and st > 0, base, firms[k], lay.bounds, quiet[s:e]))
         return out
 
     def batch(self, clusters: list[Cluster], areas: bool | None = None) -> Batch:
@@ -315,9 +334,20 @@ class FitRunner:
                   r.theta, r.sig, r.flat, r.cov, r.chi2, r.cost, r.ok, sm)
         return r
 
-    def starts(self, clusters: list[Cluster], areas: list[FloatArray] | None = None) -> FloatArray:
+    def starts(self, clusters: list[Cluster], areas: list[FloatArray] | None = None,
+               batch: Batch | None = None) -> FloatArray:
         """(K, 3) share-based (x, y, r) of each cluster (areas over its members and the
-        ring elements that read the disk, :attr:`Cluster.seen`, in that order)."""
+        ring elements that read the disk, :attr:`Cluster.seen`, in that order). ``batch``:
+        the clusters' own (:meth:`batch`), whose flat arrays serve here too."""
+        if areas is None and batch is not None:
+            # (the batch's observed elements, the quiet ones masked out: each cluster's
+            # ``seen`` in its order, its elements' rectangles already gathered)
+            seen = ~batch.quiet
+            nmem = np.add.reduceat(seen, batch.off[:-1], dtype=np.int64)
+            out = np.empty((len(clusters), 3))
+            share_start(_offsets(nmem), nmem, batch.bounds[seen],
+                        _finite(np.concatenate([cl.area for cl in clusters])[seen]), out)
+            return out
         quiet = [cl.quiet for cl in clusters if cl.quiet is not None] if areas is None else []
         if areas is None and len(quiet) == len(clusters) and all(q.size for q in quiet):
             # (the clusters' observed elements gathered once and the quiet ones masked out:

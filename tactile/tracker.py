@@ -445,27 +445,35 @@ class ContactTracker:
 
     def _associate(self, contacts: Sequence[Contact]) -> list[tuple[int, int]]:
         cand = []
-        elements = [frozenset(c.elements) for c in contacts]
+        # (the contacts on each element, so a track's shared contacts are one look-up per
+        # element of it, not a set intersection per pair)
+        on: dict[int, list[int]] = {}
+        for ci, c in enumerate(contacts):
+            for e in c.elements:
+                on.setdefault(e, []).append(ci)
         # (:meth:`_distance` of every pair, each contact's terms taken once: its arithmetic,
         # in its order, without a call and a dozen attribute reads per pair; ten tracks
         # against ten contacts are a hundred pairs a frame)
         m2 = self.motion * self.motion
+        gate = self.gate
         fin = math.isfinite
         terms = [(c.x, c.y, c.sigma_x**2, c.sigma_y**2, fin(c.sigma_x) and fin(c.sigma_y)) for c in contacts]
         for ti, tr in enumerate(self._tracks):
             ref = tr.anchor if tr.anchor is not None else tr.contact
             ax, ay, asx, asy, afin = ref.x, ref.y, ref.sigma_x**2, ref.sigma_y**2, fin(ref.sigma_x) and fin(ref.sigma_y)
+            sharing = {ci for e in tr.elements for ci in on.get(e, ())}
+            unborn = tr.id is None
             for ci, (bx, by, bsx, bsy, bfin) in enumerate(terms):
                 dx = (ax - bx) ** 2 / (asx + bsx + m2 + 1e-18)
                 dy = (ay - by) ** 2 / (asy + bsy + m2 + 1e-18)
                 d = math.sqrt(max(dx, dy)) if afin and bfin and fin(dx) and fin(dy) else math.inf
-                shared = not tr.elements.isdisjoint(elements[ci])
-                if d <= self.gate or shared:
+                shared = ci in sharing
+                if d <= gate or shared:
                     # A contact on a confirmed track's elements continues it before any
                     # candidate (a press read in two for a while, then whole again, keeps
                     # its id rather than taking the split-off's); then closest first, and
                     # confirmed tracks first at equal distance.
-                    cand.append((not (shared and tr.id is not None), d, tr.id is None, ti, ci))
+                    cand.append((not (shared and not unborn), d, unborn, ti, ci))
         cand.sort()
         used_t, used_c, pairs = set(), set(), []
         for _, _, _, ti, ci in cand:

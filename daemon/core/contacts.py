@@ -372,7 +372,10 @@ class ContactStage:
             if gone:
                 tracks = [tc for tc in tracks if tc.id not in gone]
         if not unknown.any():  # (every reading known: nothing bounds a contact; bound_by_unknown's own answer)
-            return [{**_finite(tc.to_dict()), "unknown_near": []} for tc in tracks]
+            out = [_finite(tc.to_dict()) for tc in tracks]
+            for d in out:
+                d["unknown_near"] = []
+            return out
         return [bound_by_unknown(_finite(tc.to_dict()), self.layout, self._row, self._ring, unknown)
                 for tc in tracks]
 
@@ -453,10 +456,10 @@ def bound_by_unknown(c: dict[str, Any], layout: SkinLayout, row: Mapping[int, in
 
 
 def _finite(d: dict[str, Any]) -> dict[str, Any]:
-    """Plain Python floats (msgpack-ready); numpy scalars converted."""
-    out = {}
+    """``d`` (a fresh ``to_dict``, changed in place) with plain Python floats (msgpack-ready):
+    numpy scalars converted. In place, not copied: ten contacts a frame, each copied twice
+    more on its way out, were a few per cent of a humanoid frame's estimate."""
     for k, v in d.items():
         if isinstance(v, np.generic):
-            v = v.item()
-        out[k] = v
-    return out
+            d[k] = v.item()  # (a value replaced, no key added: the iteration stays valid)
+    return d

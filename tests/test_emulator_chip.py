@@ -230,3 +230,14 @@ def test_counts_computed_ahead_are_the_counts_each_answered_once() -> None:
     assert chip.count(*other) == fresh.count(*other) and chip.prefetch_hits == len(gates)
     chip.prefetch(gates[4:6])  # what was computed for gates before the new first is forgotten
     assert not chip.computed(*gates[0])
+
+
+def test_a_prefetch_that_raises_leaves_no_count_it_did_not_compute() -> None:
+    # A prefetch whose later gate count() refuses (a capacitance below the modelled
+    # oscillator) raised after holding places for the earlier gates with a dummy (0,
+    # False): count() then answered those gates with it, not with their counts.
+    chip, fresh = Chip(ChipConfig(), seed=0), Chip(ChipConfig(), seed=0)
+    good, bad = (0, 211.6e-12, 0, 100_000), (1, 0.5e-12, 0, 100_000)
+    with pytest.raises(ValueError):
+        chip.prefetch([good, bad])
+    assert chip.count(*good) == fresh.count(*good) != (0, False)

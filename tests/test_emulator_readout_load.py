@@ -13,9 +13,10 @@ import pytest
 from cellbridge.emulator.firmware.commands import Settings
 from cellbridge.emulator.mesh import meshgen
 from cellbridge.emulator.mesh.mesh import Bridge, Cell, Mesh, mesh_to_toml
-from cellbridge.emulator.mesh.readout_load import FITS_BELOW, ack_bits, readout_load, record_frames
+from cellbridge.emulator.mesh.readout_load import FITS_BELOW, ack_bits, readout_load, record_frames, records_frames
 from cellbridge.emulator.mesh.virtual import VirtualMesh
 from cellbridge.protocol import Readout, StreamDecoder
+from cellbridge.protocol.messages import pack_payload
 
 CLI = shutil.which("cellbridge", path=str(Path(sys.executable).parent)) or "cellbridge"
 
@@ -103,3 +104,33 @@ def test_check_and_run_say_when_it_does_not_fit(tmp_path: Path) -> None:
     r = subprocess.run([CLI, "mesh", "run", str(crowded), "--rate", "250", "--seconds", "0.05"], capture_output=True,
                        timeout=120)
     assert r.returncode == 0 and b"warning: at 250 Hz" in r.stderr
+
+
+def test_records_of_every_size_cost_what_each_split_alone_does() -> None:
+    # readout_load prices all its subtrees' records at once (records_frames): the same bits
+    # and parts as splitting each record by itself (record_frames, the firmware's _split)
+    sizes = set(range(1, 160)) | {300, 777}
+    table = records_frames(sizes, 100)
+    assert table == {n: record_frames(n, 100) for n in sizes}
+    assert records_frames({5, 40}, 250) == {5: record_frames(5, 250), 40: record_frames(40, 250)}
+
+
+def test_a_long_line_is_priced_without_packing_its_records_again_and_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Each of a line's subtrees is of another size, and splitting each record whole packed
+    # its samples over and over (a line of 1000 bridges: a minute before mesh check said
+    # anything). Counted here as the samples packed into payloads: about each once.
+    from cellbridge.emulator.firmware import readout as readout_module
+    from cellbridge.emulator.mesh import readout_load as load_module
+
+    packed = [0]
+
+    def counting(payload: object) -> bytes:
+        packed[0] += len(getattr(payload, "samples", ()))
+        return pack_payload(payload)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(readout_module, "pack_payload", counting)
+    monkeypatch.setattr(load_module, "pack_payload", counting)
+    line = meshgen.line(300)
+    load = readout_load(line, 100)
+    assert load.busiest == 2 and not load.fits
+    assert packed[0] < 20 * len(line.bridges)

@@ -237,16 +237,22 @@ class Chip:
         for key in [k for k in ahead if k[2] < first]:
             del ahead[key]
         todo: dict[tuple[int, float, int], list[int]] = {}  # (channel, capacitance, gate) -> starts
+        # Gates for the fast path are only noted here and enter ``ahead`` once computed:
+        # a place held in it with a dummy count would be answered by count() if anything
+        # below raised (a gate whose count() refuses its arguments, an interrupt).
+        held: set[tuple[int, float, int, int]] = set()
+        room = 64 - len(ahead)
         for key in gates:
-            if key not in ahead and len(ahead) < 64:
+            if room > 0 and key not in ahead and key not in held:
                 ch, c, start, gate = key
-                counts = None
                 if (type(c) is float and 0.0 < c <= MAX_CAPACITANCE and type(ch) is int and ch >= 0
                         and type(start) is int and start >= 0 and type(gate) is int and gate >= 1 and self._fast_ok
                         and c * self._period_per_farad >= MIN_PERIOD_CYCLES):
-                    todo.setdefault((ch, c, gate), []).append(start)
-                    counts = (0, False)  # a place held: computed below with its channel's others
-                ahead[key] = counts if counts is not None else self.count(*key)
+                    todo.setdefault((ch, c, gate), []).append(start)  # computed below with its channel's others
+                    held.add(key)
+                else:
+                    ahead[key] = self.count(*key)
+                room -= 1
         # the gates of one channel and capacitance together (gate_edge_counts: the same counts)
         modulus = self._modulus
         for (ch, c, gate), starts in todo.items():

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from cellbridge.emulator.firmware.readout import _split
+from cellbridge.emulator.firmware.readout import _fits, _part, _split
 from cellbridge.emulator.firmware.transceiver import PREAMBLE_BITS, TransceiverConfig
 from cellbridge.emulator.mesh.mesh import Mesh
 from cellbridge.protocol import CRC_LEN, HEADER_LEN, Mode, Readout, ReadoutSample
@@ -48,8 +48,70 @@ def record_frames(samples: int, rate: int, tc: TransceiverConfig | None = None) 
     r = Readout(10**6, rate, Mode.COUNTER, 1,
                 tuple(ReadoutSample(b, 1 << 20, 1 << 20, 0) for b in range(1, samples + 1)), (), (), 100_000)
     parts = _split(r)
-    return sum(8 * (HEADER_LEN + CRC_LEN + len(pack_payload(p))) + PREAMBLE_BITS + tc.difs_bits
-               for p in parts), len(parts)
+    return sum(_frame_bits(p, tc) for p in parts), len(parts)
+
+
+def _frame_bits(part: Readout, tc: TransceiverConfig) -> int:
+    return 8 * (HEADER_LEN + CRC_LEN + len(pack_payload(part))) + PREAMBLE_BITS + tc.difs_bits
+
+
+def records_frames(sizes: set[int], rate: int, tc: TransceiverConfig | None = None) -> dict[int, tuple[int, int]]:
+    """:func:`record_frames` of records of each of ``sizes`` samples, the same answers,
+    without splitting each record anew. A record is split greedily (each part the longest
+    run of the samples left that fits a frame), and its samples are those of the largest
+    record's first ones: so its parts are the largest record's, up to the one it ends in,
+    cut there. Splitting each record whole packs its samples again and again (quadratic in
+    its size, per record): the subtrees of a long line are of every size, and a mesh of a
+    thousand bridges took a minute before ``mesh check`` printed."""
+    tc = tc or TransceiverConfig()
+    if not sizes:
+        return {}
+    top = max(sizes)
+    whole = Readout(10**6, rate, Mode.COUNTER, 1,
+                    tuple(ReadoutSample(b, 1 << 20, 1 << 20, 0) for b in range(1, top + 1)), (), (), 100_000)
+    items: list[tuple[str, object]] = [("s", s) for s in whole.samples]
+
+    def fits(first: int, n: int) -> bool:
+        return _fits(_part(whole, items[first:first + n]))
+
+    ends = [0]  # the largest record's parts: samples [ends[k], ends[k + 1])
+    while ends[-1] < top:
+        first, rest = ends[-1], top - ends[-1]
+        good, bad, probe = 1, rest + 1, 2  # one sample a part at least (_split's)
+        while probe <= rest:  # galloping, then bisection: the longest run that fits
+            if not fits(first, probe):
+                bad = probe
+                break
+            good, probe = probe, 2 * probe
+        else:
+            if good < rest and fits(first, rest):
+                good = rest
+            elif good < rest:
+                bad = rest
+        while bad - good > 1:
+            mid = (good + bad) // 2
+            if fits(first, mid):
+                good = mid
+            else:
+                bad = mid
+        ends.append(first + good)
+    done = [0]  # bits of the largest record's first k parts
+    for a, b in zip(ends, ends[1:]):
+        done.append(done[-1] + _frame_bits(_part(whole, items[a:b]), tc))
+    out: dict[int, tuple[int, int]] = {}
+    k = 0
+    alone = True  # whether the records so far fit a frame whole (a longer one fits no better)
+    for n in sorted(sizes):
+        if alone:
+            r = Readout(whole.index, rate, Mode.COUNTER, 1, whole.samples[:n], (), (), whole.span_us)
+            if n < 1 or _fits(r):  # a record that fits one frame goes whole, as itself
+                out[n] = (_frame_bits(r, tc), 1)
+                continue
+            alone = False
+        while ends[k + 1] < n:
+            k += 1
+        out[n] = (done[k] + _frame_bits(_part(whole, items[ends[k]:n]), tc), k + 1)
+    return out
 
 
 @dataclass(frozen=True)
@@ -88,12 +150,9 @@ def readout_load(mesh: Mesh, rate: int, acked: bool = True) -> CellLoad:
         subtree[parent[b]] += subtree[b]
     bits: dict[int, int] = {c.id: 0 for c in mesh.cells}
     ack = ack_bits() if acked else 0
-    memo: dict[int, tuple[int, int]] = {}
+    memo = records_frames({subtree[b] for b in parent}, rate)
     for b, p in parent.items():
-        n = subtree[b]
-        if n not in memo:
-            memo[n] = record_frames(n, rate)
-        frames, parts = memo[n]
+        frames, parts = memo[subtree[b]]
         for c in mesh.bridge(b).cells:  # the record's frames on the sender's cells
             bits[c] += frames
         for c in mesh.bridge(p).cells:  # and the parent's acknowledgements on its own

@@ -134,3 +134,12 @@ def test_a_long_line_is_priced_without_packing_its_records_again_and_again(monke
     load = readout_load(line, 100)
     assert load.busiest == 2 and not load.fits
     assert packed[0] < 20 * len(line.bridges)
+
+
+def test_a_mesh_of_gateways_alone_says_no_cell_carries_a_record() -> None:
+    from cellbridge.emulator.mesh.readout_load import load_line
+
+    alone = Mesh((Cell(1),), (Bridge(1, (1,), (0.0, 0.0), True),), name="alone")
+    load = readout_load(alone, 100)
+    assert load.peak == 0 and load.fits
+    assert load_line(load) == "readout at 100 Hz: no cell carries a record"

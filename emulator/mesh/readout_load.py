@@ -166,7 +166,7 @@ def readout_load(mesh: Mesh, rate: int, acked: bool = True) -> CellLoad:
 
 def load_line(load: CellLoad) -> str:
     """One line that states the load (``mesh check`` prints it)."""
-    if load.busiest is None:
+    if load.busiest is None or load.peak == 0:  # (no cells, or gateways alone: they write to the host)
         return f"readout at {load.rate} Hz: no cell carries a record"
     return (f"readout at {load.rate} Hz (periodic): the busiest cell, {load.busiest}, spends {load.peak:.0%} of its "
             f"airtime on records and acknowledgements (fits below {FITS_BELOW:.0%})")

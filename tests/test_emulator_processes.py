@@ -28,6 +28,7 @@ from support.emulator_procs import (
     processes_mentioning,
     running_medium,
     running_skin,
+    stop_and_sweep,
     terminate,
 )
 from support.payloads import payload_as
@@ -290,3 +291,33 @@ def test_mesh_up_refuses_a_bad_start_interval(tmp_path: Path) -> None:
     mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
     r = subprocess.run([*PY, "mesh", "up", str(mesh_path), "--start-interval", "-1"], capture_output=True, timeout=30)
     assert r.returncode == 2 and b"--start-interval" in r.stderr and b"Traceback" not in r.stderr
+
+
+def test_ctrl_c_to_mesh_up_stops_everything_without_a_word_of_failure(tmp_path: Path) -> None:
+    # Ctrl-C in a terminal sends SIGINT to the whole foreground process group: the
+    # supervisor and every process it started at once. The children then exit while the
+    # supervisor still watches them, and it said "bridge 3 exited ...; the rest keep
+    # running" about each: a normal stop looked like failures. Three stops: the children's
+    # exits fall at another moment of the supervisor's watch each time.
+    mesh_path = tmp_path / "line-2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
+    from cellbridge.demo import gateway_line
+
+    for _ in range(3):
+        proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(free_base_port()),
+                                 "--start-interval", "0"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            gateway_line(proc)
+            end = time.monotonic() + 30
+            while len(processes_mentioning(str(mesh_path))) < 5 and time.monotonic() < end:  # up, medium, world, 2
+                time.sleep(0.1)
+            time.sleep(0.5)
+            os.killpg(proc.pid, signal.SIGINT)  # as the terminal does
+            _, err = proc.communicate(timeout=30)
+        finally:
+            stop_and_sweep(proc, mesh_path)
+        assert proc.returncode == 0, err
+        assert b"exited" not in err and b"keep running" not in err, err.decode()
+        assert b"Traceback" not in err, err.decode()
+    assert processes_mentioning(str(mesh_path)) == []

@@ -257,8 +257,12 @@ def run(args: argparse.Namespace) -> int:
                     print(line, flush=True)
         reported: set[str] = set()
         while not stop.stopped:
-            time.sleep(0.2)
+            _pause(0.2, stop)
             for name, p in children.items():
+                # Ctrl-C signals the whole process group: the children exit as this
+                # supervisor stops, and their exits are that stop, not failures to report
+                if stop.stopped:
+                    break
                 if p.poll() is not None and name not in reported:
                     reported.add(name)
                     _report(f"cellbridge mesh up: {name} exited with status {p.returncode}; "

@@ -130,7 +130,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rn.add_argument("--reporting", default="periodic", help="the bridges' reporting (default periodic; an event-based skin calibrates only as its heartbeats come)")
     rn.add_argument("--idle", type=float, default=0.0, help=f"seconds untouched after the scenario, where any contact is a false one (0..{MAX_IDLE:.0f}; default 0)")
     rn.add_argument("--out", metavar="DIR", help="write DIR/truth.jsonl, DIR/contacts.jsonl and DIR/run.json "
-                    "(made and checked before the run; a stopped run's files say partial)")
+                    "(made and checked before the run; a stopped run's files say partial); a DIR holding "
+                    "an earlier run's is refused")
+    rn.add_argument("--force", action="store_true", help="with --out: replace the earlier run's files in DIR")
     sc = sub.add_parser("score", help="score DIR/contacts.jsonl against DIR/truth.jsonl (from run --out)")
     sc.add_argument("dir")
     sub.add_parser("skin", help="print the arm's skin description (TOML)")
@@ -181,9 +183,11 @@ def _run_problem(args: argparse.Namespace) -> str | None:
         reporting_arg(args.reporting)
     except argparse.ArgumentTypeError as exc:
         return f"--reporting: {exc}"
+    if args.force and args.out is None:
+        return "--force replaces an earlier run's files in --out DIR: it goes with --out"
     if args.out is not None:
         try:
-            prepare_out(args.out)
+            prepare_out(args.out, force=args.force)
         except RunFileError as exc:
             return str(exc)
     return None

@@ -116,6 +116,27 @@ def test_record_refuses_a_chunk_size_its_readers_would_not_read(tmp_path: Path) 
     assert r.returncode == 2 and "at most 8 MB" in r.stderr and not (tmp_path / "x.mcap").exists()
 
 
+@pytest.mark.parametrize("profile", ["mcap", "ros2"])
+@pytest.mark.parametrize(("option", "value"), [("--count", "0"), ("--count", "-3"), ("--duration", "0")])
+def test_record_refuses_a_limit_of_nothing_as_sub_does(tmp_path: Path, profile: str, option: str, value: str) -> None:
+    # --count 0 (and --duration 0) meant "no limit": a recording until Ctrl-C, without a
+    # word, where `cellbridge sub --count 0` is refused. One way to say "until Ctrl-C": leave it out.
+    port = free_port()  # nobody publishes there: a recorder that started would wait until the timeout
+    out = tmp_path / "x.mcap"
+    r = subprocess.run([*CLI, "record", str(out), "--profile", profile, "--endpoint", f"tcp://127.0.0.1:{port}",
+                        option, value], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert f"{option} must be" in r.stderr and "leave it out" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not out.exists()
+
+
+def test_record_help_says_how_to_record_until_ctrl_c() -> None:
+    r = subprocess.run([*CLI, "record", "--help"], capture_output=True, text=True, timeout=60)
+    text = " ".join(r.stdout.split())
+    assert "--count N stop after N messages (default: until Ctrl-C)" in text, text
+    assert "--duration S stop after S seconds (default: until Ctrl-C)" in text, text
+
+
 def test_the_recorder_counts_what_it_cannot_write_and_writes_the_rest(tmp_path: Path) -> None:
     rec = Recorder(tmp_path / "o.mcap", lambda p: RecordingWriter(p, fsync=False), topics={"element"})
     rec.feed("element", codec.to_msgpack(_element(0, 1.0)), 1.0)

@@ -139,8 +139,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="chunk compression (default: zstd)")
     parser.add_argument("--no-fsync", action="store_true",
                         help="do not fsync on each chunk (faster; a power loss may lose more than a chunk)")
-    parser.add_argument("--count", type=int, default=0, metavar="N", help="stop after N messages")
-    parser.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds")
+    parser.add_argument("--count", type=int, default=None, metavar="N",
+                        help="stop after N messages (default: until Ctrl-C)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S seconds (default: until Ctrl-C)")
     add_curve_client_arguments(parser)
     add_profile_arguments(parser)
 
@@ -156,7 +158,21 @@ def topics_of(args: argparse.Namespace) -> list[str]:
     return out
 
 
+def limits_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with ``--count`` and ``--duration``, or None. Left out, each means no
+    limit; 0 is refused, as ``cellbridge sub --count 0`` is (it ran until Ctrl-C, silently)."""
+    if args.count is not None and args.count < 1:
+        return f"--count must be at least 1, got {args.count} (leave it out to record until Ctrl-C)"
+    if args.duration is not None and not 0 < args.duration < float("inf"):  # (False for NaN)
+        return f"--duration must be more than 0 seconds, got {args.duration:g} (leave it out to record until Ctrl-C)"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
+    problem = limits_problem(args)
+    if problem:
+        print(f"cellbridge record: {problem}", file=sys.stderr)
+        return 2
     if args.profile == "ros2":
         from cellbridge.ros2 import record as ros2_record
         return ros2_record.run(args)
@@ -168,9 +184,8 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
-    if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds, args.count, args.duration) < 0 \
-            or args.chunk_size <= 0:
-        print("cellbridge record: sizes, times and counts must not be negative", file=sys.stderr)
+    if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds) < 0 or args.chunk_size <= 0:
+        print("cellbridge record: sizes and times must not be negative", file=sys.stderr)
         return 2
     if args.chunk_size * 1e6 > MAX_CHUNK_SIZE:
         print(f"cellbridge record: --chunk-size {args.chunk_size:g} MB: at most {MAX_CHUNK_SIZE / 1e6:g} MB "
@@ -207,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
         sys.setswitchinterval(SWITCH_INTERVAL)
         receiver = Receiver(sock, clock)
         receiver.start()
-        end = time.monotonic() + args.duration if args.duration else None
+        end = None if args.duration is None else time.monotonic() + args.duration
         total = 0
 
         def take(parts: list[bytes], now: float) -> None:
@@ -216,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 rec.feed(parts[0].decode("ascii", "replace"), parts[1], now)
 
-        while not stop and not rec.stopped and (not args.count or total < args.count):
+        while not stop and not rec.stopped and (args.count is None or total < args.count):
             if end is not None and time.monotonic() >= end:
                 break
             if receiver.error is not None:
@@ -231,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
         receiver.stop.set()
         receiver.join()
         if stop and not rec.stopped:  # what was received before the signal goes into the file too
-            while not args.count or total < args.count:
+            while args.count is None or total < args.count:
                 try:
                     parts, now = receiver.messages.get_nowait()
                 except queue.Empty:

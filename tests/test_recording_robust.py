@@ -137,6 +137,34 @@ def test_record_help_says_how_to_record_until_ctrl_c() -> None:
     assert "--duration S stop after S seconds (default: until Ctrl-C)" in text, text
 
 
+@pytest.mark.parametrize("rotate", [False, True])
+def test_record_refuses_to_replace_an_earlier_recording_unless_force(tmp_path: Path, rotate: bool) -> None:
+    # `cellbridge record skin.mcap` run twice replaced the first recording without a word,
+    # where `record skin --profile ros2` refuses an existing bag.
+    from support.pub_helpers import publisher
+
+    out = tmp_path / "skin.mcap"
+    earlier = tmp_path / "skin-0000.mcap" if rotate else out
+    earlier.write_bytes(b"an earlier recording")
+    extra = ["--rotate-minutes", "60"] if rotate else []
+    with publisher() as endpoint:
+        r = subprocess.run([*CLI, "record", str(out), "--endpoint", endpoint, "--count", "3", *extra],
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and str(earlier) in r.stderr and "--force" in r.stderr, r.stderr
+        assert earlier.read_bytes() == b"an earlier recording" and "Traceback" not in r.stderr
+        r = subprocess.run([*CLI, "record", str(out), "--endpoint", endpoint, "--count", "3", "--force", *extra],
+                           capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert len(list(read_payloads(earlier))) == 3
+
+
+def test_record_refuses_force_for_a_ros2_bag(tmp_path: Path) -> None:
+    # a bag is always a new directory: --force would be ignored, so it is refused
+    r = subprocess.run([*CLI, "record", str(tmp_path / "bag"), "--profile", "ros2", "--force", "--endpoint",
+                        f"tcp://127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--force" in r.stderr and "new directory" in r.stderr, r.stderr
+
+
 def test_the_recorder_counts_what_it_cannot_write_and_writes_the_rest(tmp_path: Path) -> None:
     rec = Recorder(tmp_path / "o.mcap", lambda p: RecordingWriter(p, fsync=False), topics={"element"})
     rec.feed("element", codec.to_msgpack(_element(0, 1.0)), 1.0)

@@ -16,7 +16,9 @@ no longer hold back the stamps of the messages that arrive meanwhile.
 from __future__ import annotations
 
 import argparse
+import glob
 import json
+import os
 import queue
 import signal
 import socket
@@ -139,6 +141,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="chunk compression (default: zstd)")
     parser.add_argument("--no-fsync", action="store_true",
                         help="do not fsync on each chunk (faster; a power loss may lose more than a chunk)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an earlier recording of that name (with rotation: OUT-NNNN.mcap); "
+                             "without it, one is refused (a ROS 2 bag is always a new directory)")
     parser.add_argument("--count", type=int, default=None, metavar="N",
                         help="stop after N messages (default: until Ctrl-C)")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
@@ -168,8 +173,19 @@ def limits_problem(args: argparse.Namespace) -> str | None:
     return None
 
 
+def earlier_recording(out: Path, rotating: bool) -> Path | None:
+    """A file a recording to ``out`` would replace: ``out`` itself, or with rotation the
+    first ``OUT-NNNN.mcap`` there is; None when there is none."""
+    if not rotating:
+        return out if os.path.lexists(out) else None
+    pattern = f"{glob.escape(out.stem)}-[0-9][0-9][0-9][0-9]{glob.escape(out.suffix or '.mcap')}"
+    return next(iter(sorted(out.parent.glob(pattern))), None)
+
+
 def run(args: argparse.Namespace) -> int:
     problem = limits_problem(args)
+    if args.force and args.profile == "ros2":
+        problem = "--force replaces an MCAP recording; a ROS 2 bag is always a new directory (remove the old one)"
     if problem:
         print(f"cellbridge record: {problem}", file=sys.stderr)
         return 2
@@ -186,6 +202,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds) < 0 or args.chunk_size <= 0:
         print("cellbridge record: sizes and times must not be negative", file=sys.stderr)
+        return 2
+    earlier = None if args.force else earlier_recording(args.out, int(args.rotate_size * 1e6) > 0 or args.rotate_minutes > 0)
+    if earlier is not None:
+        print(f"cellbridge record: {earlier} exists (an earlier recording?): choose another name, or add --force "
+              "to replace it", file=sys.stderr)
         return 2
     if args.chunk_size * 1e6 > MAX_CHUNK_SIZE:
         print(f"cellbridge record: --chunk-size {args.chunk_size:g} MB: at most {MAX_CHUNK_SIZE / 1e6:g} MB "

@@ -21,6 +21,8 @@ from cellbridge.daemon.ops.security import apply_client
 from cellbridge.daemon.shell.publisher import TOPICS
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
+#: Seconds without a first message before `sub` says so (and waits on).
+QUIET_S = 5.0
 
 
 def jsonable(obj: Any) -> Any:
@@ -63,7 +65,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Subscribe to the daemon's PUB socket and print each message as one JSON line\n"
         '{"topic": ..., "payload": {...}} (bytes as hex, NaN as null). A message that is\n'
         'not [topic, msgpack] is printed with an "error" key instead of "payload".\n'
-        "Counters go to stderr at exit. Topics: contact, element, raw, health, topology, serial.\n\n"
+        "Counters go to stderr at exit. Topics: contact, element, raw, health, topology, serial.\n"
+        "When nothing comes in the first 5 s (no daemon there?), a line on stderr says so.\n\n"
         "examples:\n"
         "  cellbridge sub                        # everything\n"
         "  cellbridge sub contact | jq .payload  # contacts only\n"
@@ -131,10 +134,19 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_messages(sock: zmq.Socket, args: argparse.Namespace, counters: dict[str, int], out: TextIO) -> int:
     timeout_ms = int(args.timeout * 1000) if args.timeout else None
+    wait_ms = timeout_ms
+    if not args.timeout or args.timeout > QUIET_S:  # connecting never fails: a daemon that is not there says nothing
+        if not sock.poll(int(QUIET_S * 1000)):
+            print(f"cellbridge sub: nothing in {QUIET_S:g} s from {args.endpoint}"
+                  + (f" on {', '.join(args.topics)}" if args.topics else "") + ": is the daemon running"
+                  + (" and does it allow this client's key" if args.server_key is not None else "")
+                  + "? (waiting on; Ctrl-C stops, --timeout S gives up)", file=sys.stderr, flush=True)
+            wait_ms = None if timeout_ms is None else timeout_ms - int(QUIET_S * 1000)
     while args.count is None or counters["received"] < args.count:
-        if not sock.poll(timeout_ms):
+        if not sock.poll(wait_ms):
             print(f"cellbridge sub: no message for {args.timeout:g} s on {args.endpoint}", file=sys.stderr)
             return 1
+        wait_ms = timeout_ms
         line = message_to_json(sock.recv_multipart())
         counters["received"] += 1
         counters["malformed"] += "error" in line

@@ -56,6 +56,33 @@ def test_internal_entry_points_run_but_stay_out_of_the_top_level_help() -> None:
     assert "    mesh " in listed and "    daemon " in listed
 
 
+def test_every_command_and_action_says_what_it_does_in_its_help() -> None:
+    # `cellbridge mesh up --help` and `robot run --help` listed options under no sentence of
+    # what the command does (that it prints the gateways' lines, that Ctrl-C stops it all),
+    # and `demo --help` began with the source's markup (``cellbridge demo``).
+    import argparse
+
+    from cellbridge.cli import INTERNAL, build_parser
+
+    def commands(parser: argparse.ArgumentParser, path: str) -> list[tuple[str, argparse.ArgumentParser]]:
+        found = [(path, parser)]
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    if name not in INTERNAL:
+                        found += commands(sub, f"{path} {name}")
+        return found
+
+    bare, marked = [], []
+    for path, parser in commands(build_parser(), "cellbridge"):
+        text = parser.format_help()
+        if not (parser.description or "").strip():
+            bare.append(path)
+        if "``" in text:
+            marked.append(path)
+    assert bare == [] and marked == [], (bare, marked)
+
+
 def test_version() -> None:
     from cellbridge import __version__
     assert run("--version").stdout.decode().strip() == f"cellbridge {__version__}"

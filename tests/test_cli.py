@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from cellbridge.protocol import (
     Beacon,
     Data,
@@ -81,6 +82,27 @@ def test_every_command_and_action_says_what_it_does_in_its_help() -> None:
         if "``" in text:
             marked.append(path)
     assert bare == [] and marked == [], (bare, marked)
+
+
+@pytest.mark.parametrize("command", [
+    ["daemon", "--print-config"], ["mesh", "gen", "grid", "8", "8"], ["mesh", "check", "{mesh}"],
+    ["mesh", "run", "{mesh}", "--seconds", "0.5"],
+])
+def test_output_whose_reader_went_away_ends_quietly(command: list[str], tmp_path: Path) -> None:
+    # `cellbridge daemon --print-config | head` (or mesh gen, check, run) ended in a
+    # BrokenPipeError traceback and status 1: the reader leaving is the end of the output
+
+    from cellbridge.emulator.mesh import meshgen
+    from cellbridge.emulator.mesh.mesh import mesh_to_toml
+
+    mesh = tmp_path / "skin.toml"
+    mesh.write_text(mesh_to_toml(meshgen.grid(2, 2)))
+    proc = subprocess.Popen([CLI, *(a.format(mesh=mesh) for a in command)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    assert proc.stdout is not None
+    proc.stdout.close()  # the reader is gone before the first line
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and err == b"", err.decode()
 
 
 def test_version() -> None:

@@ -165,6 +165,34 @@ def test_record_refuses_force_for_a_ros2_bag(tmp_path: Path) -> None:
     assert r.returncode == 2 and "--force" in r.stderr and "new directory" in r.stderr, r.stderr
 
 
+def test_record_of_a_daemon_that_is_not_there_says_so_and_that_no_file_was_written(tmp_path: Path) -> None:
+    # With no daemon on the endpoint the recorder waited without a word and, stopped, exited
+    # 0 with its counters: no skin.mcap, and nothing said about it.
+    out = tmp_path / "skin.mcap"
+    endpoint = f"tcp://127.0.0.1:{free_port()}"  # nobody publishes there
+    proc = subprocess.Popen([*CLI, "record", str(out), "--endpoint", endpoint], stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        assert proc.stderr is not None
+        os.set_blocking(proc.stderr.fileno(), False)
+        said = b""
+        end = time.monotonic() + 30
+        while b"\n" not in said and time.monotonic() < end and proc.poll() is None:
+            said += proc.stderr.read() or b""
+            time.sleep(0.1)
+        assert b"is the daemon running" in said and endpoint.encode() in said, said
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    text = (said + err).decode()
+    assert proc.returncode == 1, text
+    assert f"nothing received from {endpoint}: {out} not written" in text and "Traceback" not in text, text
+    assert not out.exists()
+
+
 def test_the_recorder_counts_what_it_cannot_write_and_writes_the_rest(tmp_path: Path) -> None:
     rec = Recorder(tmp_path / "o.mcap", lambda p: RecordingWriter(p, fsync=False), topics={"element"})
     rec.feed("element", codec.to_msgpack(_element(0, 1.0)), 1.0)

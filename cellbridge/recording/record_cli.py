@@ -44,6 +44,8 @@ BACKLOG = 100_000
 #: The interpreter's thread switch interval while recording (default 5 ms): the receiver
 #: gets the GIL within this while the writer encodes JSON, so a stamp is at most this late.
 SWITCH_INTERVAL = 0.0005
+#: Seconds without a first message before the recorder says so (and waits on).
+QUIET_S = 5.0
 
 
 class EpochClock:
@@ -110,7 +112,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "recording does not show in a replay. The line of counters at the end counts what\n"
         "was not recorded as received: malformed (not [topic, msgpack map]), bad_time\n"
         "(t_host no time: recorded with its receive time), oversized (not written), dropped,\n"
-        "unconfirmed, missed (gaps in seq).\n\n"
+        "unconfirmed, missed (gaps in seq). The file is made with the first message recorded:\n"
+        "with none (no daemon there?) nothing is written, a line says so, and the exit status is 1.\n\n"
         "Topics: contact, element, raw, health, topology, and serial (each gateway read's bytes:\n"
         "a daemon can later be run on them, link url replay:FILE.mcap). Default: all but raw\n"
         "and serial.\n\n"
@@ -234,6 +237,7 @@ def run(args: argparse.Namespace) -> int:
     sock.reconnect_ivl = 10
     receiver: Receiver | None = None
     switch = sys.getswitchinterval()
+    total = 0
     try:
         if args.server_key is not None:
             apply_client(sock, args.server_key, args.client_key)
@@ -243,8 +247,9 @@ def run(args: argparse.Namespace) -> int:
         sys.setswitchinterval(SWITCH_INTERVAL)
         receiver = Receiver(sock, clock)
         receiver.start()
-        end = None if args.duration is None else time.monotonic() + args.duration
-        total = 0
+        started = time.monotonic()
+        end = None if args.duration is None else started + args.duration
+        quiet_said = False
 
         def take(parts: list[bytes], now: float) -> None:
             if len(parts) != 2:
@@ -261,6 +266,11 @@ def run(args: argparse.Namespace) -> int:
                 parts, now = receiver.messages.get(timeout=0.1)
             except queue.Empty:
                 rec.tick(clock())
+                if not total and not quiet_said and time.monotonic() - started >= QUIET_S:
+                    quiet_said = True  # (a recorder started before its daemon is right: it waits on)
+                    print(f"cellbridge record: nothing in {QUIET_S:g} s from {args.endpoint}: is the daemon "
+                          "running? (waiting on: the file is made with the first message; Ctrl-C stops)",
+                          file=sys.stderr, flush=True)
                 continue
             total += 1
             take(parts, now)
@@ -293,5 +303,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(rec.stats()), file=sys.stderr)
     if rec.error:
         print(f"cellbridge record: {rec.error}", file=sys.stderr)
+        return 1
+    if not rec.files:  # the file is made with the first message recorded
+        what = (f"nothing received from {args.endpoint}" if not total else
+                f"none of the {total} messages received could be recorded")
+        print(f"cellbridge record: {what}: {args.out} not written", file=sys.stderr)
         return 1
     return 0

@@ -105,6 +105,24 @@ def test_output_whose_reader_went_away_ends_quietly(command: list[str], tmp_path
     assert proc.returncode == 0 and err == b"", err.decode()
 
 
+@pytest.mark.parametrize("command", [
+    ["sub", "--endpoint", "127.0.0.1:5560"],
+    ["record", "{tmp}/x.mcap", "--endpoint", "127.0.0.1:5560"],
+    ["replay", "{golden}", "--endpoint", "127.0.0.1:5560"],
+    ["proxy", "--back", "tcp://127.0.0.1:5560", "--front", "127.0.0.1:5570"],
+])
+def test_an_endpoint_without_its_scheme_is_named_as_such(command: list[str], tmp_path: Path) -> None:
+    # `--endpoint 127.0.0.1:5560` (tcp:// left out) said libzmq's "Invalid argument
+    # (addr='127.0.0.1:5560')", and `proxy --front 127.0.0.1:5570` that the loopback address
+    # was "not a loopback endpoint"; the views and the daemon's config say what an endpoint is
+    from support.golden_corpus import DATA
+
+    argv = [a.format(tmp=tmp_path, golden=DATA / "fragments.mcap") for a in command]
+    r = subprocess.run([CLI, *argv], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert "tcp://HOST:PORT" in r.stderr and "not a loopback" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 def test_version() -> None:
     from cellbridge import __version__
     assert run("--version").stdout.decode().strip() == f"cellbridge {__version__}"

@@ -30,7 +30,7 @@ from pathlib import Path
 import zmq
 
 from cellbridge._version import __version__
-from cellbridge.daemon.ops.security import apply_client
+from cellbridge.daemon.ops.security import apply_client, endpoint_error
 from cellbridge.recording.mcapfile import MAX_CHUNK_SIZE, RecordingWriter
 from cellbridge.recording.recorder import Recorder
 from cellbridge.ros2.record import add_profile_arguments
@@ -290,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
     except zmq.ZMQError as exc:
-        print(f"cellbridge record: {args.endpoint}: {exc}", file=sys.stderr)
+        print(f"cellbridge record: {endpoint_error(args.endpoint, exc)}", file=sys.stderr)
         return 2
     finally:
         if receiver is not None:

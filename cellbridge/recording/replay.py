@@ -34,6 +34,7 @@ from typing import Any
 
 import zmq
 
+from cellbridge.daemon.ops.security import endpoint_error
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import NotARecording, ReadResult, read_payloads
 
@@ -253,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
         notes += ahead.notes
         elapsed = time.monotonic() - t0
     except zmq.ZMQError as exc:
-        print(f"cellbridge replay: {args.endpoint}: {exc}", file=sys.stderr)
+        print(f"cellbridge replay: {endpoint_error(args.endpoint, exc)}", file=sys.stderr)
         return 2
     finally:
         sock.close()

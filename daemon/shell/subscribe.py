@@ -17,7 +17,7 @@ from typing import Any, TextIO
 
 import msgpack
 import zmq
-from cellbridge.daemon.ops.security import apply_client
+from cellbridge.daemon.ops.security import apply_client, endpoint_error
 from cellbridge.daemon.shell.publisher import TOPICS
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge sub: {exc}", file=sys.stderr)
         return 2
     except zmq.ZMQError as exc:
-        print(f"cellbridge sub: {args.endpoint}: {exc}", file=sys.stderr)
+        print(f"cellbridge sub: {endpoint_error(args.endpoint, exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 0

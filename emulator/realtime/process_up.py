@@ -35,7 +35,7 @@ from cellbridge.emulator.mesh.mesh import Bridge, Mesh, load_mesh
 from cellbridge.emulator.realtime import process_bridge
 from cellbridge.emulator.realtime.gateway_port import open_pty
 from cellbridge.emulator.realtime.mesh_cli import warn_if_not_fitting
-from cellbridge.emulator.realtime.pty_link import link_gateway
+from cellbridge.emulator.realtime.pty_link import link_folder_problem, link_gateway
 from cellbridge.emulator.realtime.realtime import (
     REPORTING_HELP,
     StopFlag,
@@ -75,7 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"once delays acknowledgements until routes churn)")
     parser.add_argument("--pty-link", metavar="DIR",
                         help="also keep a symlink DIR/gateway-<id> to each gateway's pty (its /dev/pts number "
-                             "changes on every start; configure the daemon with the link)")
+                             "changes on every start; configure the daemon with the link); DIR is made "
+                             "if missing")
     add_endpoint_arguments(parser)
 
 
@@ -191,6 +192,11 @@ def run(args: argparse.Namespace) -> int:
         children[name] = subprocess.Popen(cmd, pass_fds=pass_fds, preexec_fn=die_with_parent,
                                           stdin=subprocess.DEVNULL)
 
+    if args.pty_link:  # (made now: a folder that cannot be is said before anything starts)
+        problem = link_folder_problem(args.pty_link)
+        if problem:
+            _report(f"cellbridge mesh up: {problem}. Nothing started.")
+            return 2
     # Claimed first, held for this process's life: two mesh ups started at once both found
     # the ports free, and each took the other's bound port for its own failure.
     claims = claim_base_port(args.base_port)

@@ -218,6 +218,27 @@ def test_decode_prints_readout_records_parts_and_fragments(tmp_path: Path) -> No
     assert b"READOUT" in run("decode", "--help").stdout
 
 
+@pytest.mark.parametrize("topics", ["bogus", "contacts", "contact,helth"])
+def test_decode_refuses_a_topic_the_daemon_has_not(topics: str) -> None:
+    # `decode rec.mcap --topics contacts` (a typo) printed the frames and never a contact,
+    # without a word: `cellbridge sub` and `record` refuse a topic no topic is
+    from support.golden_corpus import DATA
+
+    r = run("decode", str(DATA / "fragments.mcap"), "--topics", topics)
+    assert r.returncode == 2 and r.stdout == b"", r.stderr
+    assert b"--topics" in r.stderr and b"contact, element" in r.stderr and b"Traceback" not in r.stderr, r.stderr
+
+
+def test_decode_topics_all_prints_every_topic_recorded() -> None:
+    # `--topics all` (as `record --topics all`) was taken for a topic named 'all': no message printed
+    from support.golden_corpus import DATA
+
+    r = run("decode", str(DATA / "fragments.mcap"), "--run", "--topics", "all")
+    assert r.returncode == 0, r.stderr
+    outs = {json.loads(line)["out"] for line in r.stdout.splitlines() if b'"out"' in line}
+    assert outs == {"contact", "element", "raw", "health", "topology"}, outs
+
+
 def test_decode_bad_input_gives_clear_errors(tmp_path: Path) -> None:
     missing = run("decode", str(tmp_path / "nope.bin"))
     assert missing.returncode == 2 and b"cannot read" in missing.stderr and b"Traceback" not in missing.stderr

@@ -321,3 +321,20 @@ def test_ctrl_c_to_mesh_up_stops_everything_without_a_word_of_failure(tmp_path: 
         assert b"exited" not in err and b"keep running" not in err, err.decode()
         assert b"Traceback" not in err, err.decode()
     assert processes_mentioning(str(mesh_path)) == []
+
+
+def test_mesh_up_refuses_a_bad_scenario_before_starting_anything(tmp_path: Path) -> None:
+    # The scenario was read by the world process only: the medium started (and printed its
+    # counters), the world failed, then 'the world did not start on base port ...'
+    mesh_path = tmp_path / "line-2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
+    bad = tmp_path / "presses.toml"
+    bad.write_text("[[contact]]\nstart = 1\nduration = 1\nposition = [0.04]\nforce = 2\ndiameter = 0.02\n")
+    off = tmp_path / "beside.toml"
+    off.write_text("[[contact]]\nstart = 1\nduration = 1\nposition = [4.0, 4.0]\nforce = 2\ndiameter = 0.02\n")
+    for scenario, says in ((bad, "must be [x, y]"), (off, "touches no element"), (tmp_path / "none.toml", "cannot read")):
+        r = subprocess.run([*PY, "mesh", "up", str(mesh_path), "--scenario", str(scenario), "--base-port",
+                            str(free_base_port())], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and str(scenario) in r.stderr and says in r.stderr, r.stderr
+        assert "medium:" not in r.stderr and "did not start" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert processes_mentioning(str(mesh_path)) == []

@@ -46,6 +46,7 @@ from cellbridge.emulator.realtime.realtime import (
     reporting_text,
     seconds_arg,
 )
+from cellbridge.emulator.world.world import check_on_skin, load_scenario
 
 GRACE_S = 5.0
 #: Between two bridges' starts. A whole 8x8 skin forked at once (64 bridges in ~1.5 s)
@@ -180,6 +181,9 @@ def _bridge_main(argv: list[str], keep_fd: int | None, supervisor: int) -> int:
 
 def run(args: argparse.Namespace) -> int:
     mesh = load_mesh(args.mesh)  # MeshError is reported by the caller
+    if args.scenario:  # read here too (ScenarioError, as MeshError): a bad one is said before anything starts
+        for i, contact in enumerate(load_scenario(args.scenario)):
+            check_on_skin(mesh, contact, f"{args.scenario}: contact[{i}]")
     if args.readout == "on":  # (the shells send records unacknowledged: process_bridge)
         warn_if_not_fitting(mesh, args.rate, acked=False)
     stop = StopFlag()

@@ -193,6 +193,17 @@ def test_record_of_a_daemon_that_is_not_there_says_so_and_that_no_file_was_writt
     assert not out.exists()
 
 
+def test_replay_refuses_a_topic_the_daemon_has_not() -> None:
+    # `cellbridge replay skin.mcap --topics contacts` (a typo) sent nothing and exited 0
+    from support.golden_corpus import DATA
+
+    r = subprocess.run([*CLI, "replay", str(DATA / "fragments.mcap"), "--fast", "--endpoint",
+                        f"tcp://127.0.0.1:{free_port()}", "--topics", "serial,contacts"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "'contacts'" in r.stderr and "contact, element" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+
+
 def test_the_recorder_counts_what_it_cannot_write_and_writes_the_rest(tmp_path: Path) -> None:
     rec = Recorder(tmp_path / "o.mcap", lambda p: RecordingWriter(p, fsync=False), topics={"element"})
     rec.feed("element", codec.to_msgpack(_element(0, 1.0)), 1.0)

@@ -82,6 +82,15 @@ def test_sub_says_when_nothing_comes_and_waits_on() -> None:
     assert proc.returncode == 0 and out == b"" and b"Traceback" not in said + err, err
 
 
+def test_sub_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs() -> None:
+    # an idle skin publishes no contact: `sub contact` asked "is the daemon running?" of a
+    # daemon whose health came every second. Its health says it runs: nothing to ask.
+    with publisher() as endpoint:  # contact, health and raw; never topology
+        out = run_subscriber([CLI, "sub", "topology", "--endpoint", endpoint, "--timeout", "7"])
+    assert out.returncode == 1 and "no message for 7 s" in out.stderr, out.stderr
+    assert "is the daemon running" not in out.stderr, out.stderr
+
+
 def test_sub_refuses_a_topic_no_topic_starts_with() -> None:
     """`cellbridge sub helth` (or `contacts`) waited forever without a word: a prefix that
     matches none of the daemon's topics is refused, naming them; a true prefix still works."""

@@ -221,3 +221,24 @@ def test_python_example_reads_on_past_a_message_it_cannot_decode(tmp_path: Path)
     assert len(lines) == 12 and "Traceback" not in out.stderr
     errors = {ln["topic"]: ln["error"] for ln in lines if "error" in ln}
     assert errors == {"contact": "payload is not msgpack", "health": "expected 2 frames [topic, payload]"}, lines
+
+
+def test_python_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs(tmp_path: Path) -> None:
+    # an idle skin publishes no contact: the daemon's health, every second, says it runs
+    import os
+    import signal
+    import subprocess
+    import time
+
+    with publisher() as endpoint:  # contact, health and raw; never topology
+        proc = subprocess.Popen([*py_subscriber(tmp_path), "-e", endpoint, "topology"], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            time.sleep(7)
+            os.killpg(proc.pid, signal.SIGINT)
+            _, err = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0 and err == b"", err

@@ -204,6 +204,19 @@ def test_replay_refuses_a_topic_the_daemon_has_not() -> None:
     assert "Traceback" not in r.stderr
 
 
+def test_record_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs(tmp_path: Path) -> None:
+    # an idle skin publishes no contact: `record --topics contact` must not ask "is the daemon
+    # running?" of a daemon whose health comes every second
+    from support.pub_helpers import publisher
+
+    out = tmp_path / "skin.mcap"
+    with publisher() as endpoint:  # contact, health and raw; never topology
+        r = subprocess.run([*CLI, "record", str(out), "--endpoint", endpoint, "--topics", "topology",
+                            "--duration", "7"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and f"nothing received from {endpoint}: {out} not written" in r.stderr, r.stderr
+    assert "is the daemon running" not in r.stderr, r.stderr
+
+
 def test_the_recorder_counts_what_it_cannot_write_and_writes_the_rest(tmp_path: Path) -> None:
     rec = Recorder(tmp_path / "o.mcap", lambda p: RecordingWriter(p, fsync=False), topics={"element"})
     rec.feed("element", codec.to_msgpack(_element(0, 1.0)), 1.0)

@@ -31,6 +31,7 @@ import zmq
 
 from cellbridge._version import __version__
 from cellbridge.daemon.ops.security import apply_client, endpoint_error
+from cellbridge.daemon.shell.subscribe import QUIET_S, health_probe
 from cellbridge.recording.mcapfile import MAX_CHUNK_SIZE, RecordingWriter
 from cellbridge.recording.recorder import Recorder
 from cellbridge.ros2.record import add_profile_arguments
@@ -44,8 +45,6 @@ BACKLOG = 100_000
 #: The interpreter's thread switch interval while recording (default 5 ms): the receiver
 #: gets the GIL within this while the writer encodes JSON, so a stamp is at most this late.
 SWITCH_INTERVAL = 0.0005
-#: Seconds without a first message before the recorder says so (and waits on).
-QUIET_S = 5.0
 
 
 class EpochClock:
@@ -236,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
     # then has the daemon's first messages too (the first read's serial bytes among them).
     sock.reconnect_ivl = 10
     receiver: Receiver | None = None
+    probe: zmq.Socket | None = None
     switch = sys.getswitchinterval()
     total = 0
     try:
@@ -244,12 +244,12 @@ def run(args: argparse.Namespace) -> int:
         for t in topics:
             sock.subscribe(t)
         sock.connect(args.endpoint)
+        probe = health_probe(ctx, args)  # (a daemon runs when its health comes, whatever the topics recorded)
         sys.setswitchinterval(SWITCH_INTERVAL)
         receiver = Receiver(sock, clock)
         receiver.start()
         started = time.monotonic()
         end = None if args.duration is None else started + args.duration
-        quiet_said = False
 
         def take(parts: list[bytes], now: float) -> None:
             if len(parts) != 2:
@@ -266,14 +266,19 @@ def run(args: argparse.Namespace) -> int:
                 parts, now = receiver.messages.get(timeout=0.1)
             except queue.Empty:
                 rec.tick(clock())
-                if not total and not quiet_said and time.monotonic() - started >= QUIET_S:
-                    quiet_said = True  # (a recorder started before its daemon is right: it waits on)
-                    print(f"cellbridge record: nothing in {QUIET_S:g} s from {args.endpoint}: is the daemon "
-                          "running? (waiting on: the file is made with the first message; Ctrl-C stops)",
-                          file=sys.stderr, flush=True)
+                if probe is not None and time.monotonic() - started >= QUIET_S:
+                    if not total and not probe.poll(0):  # (a recorder started before its daemon is right: it waits on)
+                        print(f"cellbridge record: nothing in {QUIET_S:g} s from {args.endpoint}, not even its "
+                              "health: is the daemon running? (waiting on: the file is made with the first "
+                              "message; Ctrl-C stops)", file=sys.stderr, flush=True)
+                    probe.close()
+                    probe = None
                 continue
             total += 1
             take(parts, now)
+            if probe is not None:  # a message came: the daemon is there
+                probe.close()
+                probe = None
         receiver.stop.set()
         receiver.join()
         if stop and not rec.stopped:  # what was received before the signal goes into the file too
@@ -297,6 +302,8 @@ def run(args: argparse.Namespace) -> int:
             receiver.stop.set()
             receiver.join()
         sys.setswitchinterval(switch)
+        if probe is not None:
+            probe.close()
         sock.close()
         ctx.term()
         rec.close()

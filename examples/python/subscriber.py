@@ -10,8 +10,8 @@ Needs only pyzmq and msgpack (pip install pyzmq msgpack), not cellbridge.
 -s/-k: the daemon's public key file and this client's secret key file, both
 written by `cellbridge keys gen`; the client's .key must be allowed by the daemon.
 
-Nothing in 5 s (no daemon there, a key it does not allow) is said on stderr, and it waits
-on. A message it cannot decode prints with "error" instead of "payload". Ctrl-C or a
+Nothing in 5 s, not even the daemon's health (no daemon there, a key it does not allow),
+is said on stderr, and it waits on. A message it cannot decode prints with "error" instead of "payload". Ctrl-C or a
 reader that went away (| head) ends it with status 0; bad arguments with a sentence, 2.
 """
 
@@ -77,18 +77,23 @@ def main() -> int:
     if (args.server_key is None) != (args.client_key is None):
         parser.error("CURVE needs both -s SERVER.key and -k CLIENT.key_secret")
 
-    sock = zmq.Context.instance().socket(zmq.SUB)
-    sock.linger = 0
+    context = zmq.Context.instance()
+    sock, probe = context.socket(zmq.SUB), context.socket(zmq.SUB)  # probe: the daemon's health alone
     try:
+        for s in (sock, probe):
+            s.linger = 0
         if args.server_key:
             server_public, _ = zmq.auth.load_certificate(args.server_key)
             public, secret = zmq.auth.load_certificate(args.client_key)
             if secret is None:
                 raise ValueError(f"{args.client_key}: no secret key in it (-k takes the NAME.key_secret file)")
-            sock.curve_serverkey, sock.curve_publickey, sock.curve_secretkey = server_public, public, secret
+            for s in (sock, probe):
+                s.curve_serverkey, s.curve_publickey, s.curve_secretkey = server_public, public, secret
         for topic in args.topics or [""]:
             sock.subscribe(topic)
-        sock.connect(args.endpoint)
+        probe.subscribe("health")
+        for s in (sock, probe):
+            s.connect(args.endpoint)
     except (OSError, ValueError) as exc:  # a key file missing or not a key
         print(f"subscriber: {exc}", file=sys.stderr)
         return 2
@@ -98,10 +103,13 @@ def main() -> int:
 
     received = 0
     try:
-        if not sock.poll(QUIET_S * 1000):  # connecting never fails: a daemon that is not there says nothing
-            print(f"subscriber: nothing from {args.endpoint} in {QUIET_S:g} s: is the daemon running"
-                  + (" and does it allow this client's key?" if args.server_key else "?")
+        # Connecting never fails: a daemon that is not there says nothing. A running one
+        # publishes its health every second, even while the topics asked for are quiet.
+        if not sock.poll(QUIET_S * 1000) and not probe.poll(0):
+            print(f"subscriber: nothing from {args.endpoint} in {QUIET_S:g} s, not even its health: is the "
+                  "daemon running" + (" and does it allow this client's key?" if args.server_key else "?")
                   + " (waiting on; Ctrl-C stops)", file=sys.stderr, flush=True)
+        probe.close()
         while not args.count or received < args.count:
             parts = sock.recv_multipart()
             line = {"topic": parts[0].decode(errors="replace")}
@@ -119,6 +127,7 @@ def main() -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (no second error at exit)
     finally:
         sock.close()
+        probe.close()
     return 0
 
 

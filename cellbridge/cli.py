@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -87,7 +88,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(args, "_import_error", None) is not None:
             print(f"cellbridge {args.command}: {args._import_error}", file=sys.stderr)
             return 1
-        return int(importlib.import_module(args._module).run(args) or 0)
+        try:
+            return int(importlib.import_module(args._module).run(args) or 0)
+        except BrokenPipeError:  # the reader of the output went away (| head): its end, not an error
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (no second one at exit)
+            return 0
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 

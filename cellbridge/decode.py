@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="input is hexadecimal text (whitespace ignored) instead of raw bytes")
     parser.add_argument("--topics", default="contact",
                         help="a recording: the daemon's topics printed beside the frames, comma-separated "
-                             "(default contact; 'none' for frames only)")
+                             "(default contact; 'all' for every one; 'none' for frames only)")
     parser.add_argument("--run", action="store_true",
                         help="a recording: run the daemon offline on its reads instead of printing what it "
                              "recorded (default config, one link per recorded link; --config for another)")
@@ -151,10 +151,18 @@ class _Lines:
 def _recording(args: argparse.Namespace) -> int:
     """A recording: its reads' frames, each followed by the messages it caused (recorded, or
     made now by the daemon run offline with ``--run``)."""
+    from cellbridge.daemon.shell.publisher import TOPICS
     from cellbridge.recording import codec
     from cellbridge.recording.mcapfile import NotARecording, ReadResult, read_payloads
 
-    topics = set() if args.topics.strip() == "none" else {t.strip() for t in args.topics.split(",") if t.strip()}
+    messages = [t for t in TOPICS if t != "serial"]  # (the reads are the serial topic: always shown)
+    words = {t.strip() for t in args.topics.split(",") if t.strip()}
+    topics = set() if words == {"none"} else set(messages) if words == {"all"} else words
+    unknown = sorted(topics - set(TOPICS))
+    if unknown:  # a typo ('contacts') printed frames and never a message, without a word
+        print(f"cellbridge decode: --topics: the daemon has no topic {unknown[0]!r} (topics: {', '.join(messages)}; "
+              "or all, or none)", file=sys.stderr)
+        return 2
     result = ReadResult()
     lines = _Lines()
     out = sys.stdout

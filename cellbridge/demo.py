@@ -43,7 +43,7 @@ BIND_TRIES = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.description = __doc__.split("\n\n")[0] + (
+    parser.description = __doc__.split("\n\n")[0].replace("``cellbridge demo``: the", "The") + (
         " Starts an emulated 4×4 skin and the daemon on its gateway, presses where two"
         " elements meet, and prints the contact the daemon published next to the press."
     )

@@ -233,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         fig.savefig(args.output, dpi=args.dpi, format="png")
     except OSError as exc:
-        print(f"cellbridge plot {figure}: cannot write {args.output}: {exc}", file=sys.stderr)
+        print(f"cellbridge plot {figure}: cannot write {args.output}: {exc.strerror or exc}", file=sys.stderr)
         return 1
     print(f"wrote {args.output}")
     return 0

@@ -51,6 +51,14 @@ def parse_backend(text: str) -> Backend:
     return Backend(endpoint, Path(key) if sep else None)
 
 
+def parse_front(text: str) -> str:
+    """``--front``: an endpoint to bind, ``tcp://HOST:PORT`` or ``ipc://PATH`` (``127.0.0.1:5570``,
+    tcp:// left out, was refused as "not a loopback endpoint")."""
+    if not text.startswith(("tcp://", "ipc://")):
+        raise argparse.ArgumentTypeError(f"{text!r}: a ZeroMQ endpoint to bind (tcp://HOST:PORT or ipc://PATH)")
+    return text
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.description = (
@@ -65,7 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "  cellbridge proxy --back tcp://arm:5560=arm-server.key --client-key proxy.key_secret\n"
         "                                                              # a CURVE daemon behind it"
     )
-    parser.add_argument("--front", default=DEFAULT_FRONT,
+    parser.add_argument("--front", type=parse_front, default=DEFAULT_FRONT,
                         help=f"endpoint subscribers connect to (XPUB, bound; default {DEFAULT_FRONT})")
     parser.add_argument("--back", type=parse_backend, action="append", required=True, metavar="ENDPOINT[=KEY]",
                         help="a daemon's PUB endpoint (repeat for each); =SERVER.key for a CURVE daemon")

@@ -124,17 +124,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "  cellbridge robot skin > arm.toml        # the arm's skin: cellbridge mesh up arm.toml"
     )
     sub = parser.add_subparsers(dest="robot_command", metavar="ACTION", required=True)
-    rn = sub.add_parser("run", help="simulate a scenario, run the skin and the daemon in virtual time, score")
+    rn = sub.add_parser("run", help="simulate a scenario, run the skin and the daemon in virtual time, score",
+                        description="Simulate a scenario of --contacts presses on the arm's skin (MuJoCo), run "
+                                    "its emulated skin and the daemon's core on them in virtual time, and print "
+                                    "the daemon's contacts scored against the simulation's (a minute or two for "
+                                    "24). Ctrl-C or SIGTERM stop it: the table of what ran is printed marked "
+                                    "PARTIAL (exit status 130).")
     rn.add_argument("--contacts", type=int, default=24, help=f"contacts in the scenario, at least (1..{MAX_CONTACTS}; default 24)")
     rn.add_argument("--seed", type=int, default=0, help="seed of the scenario and the skin (default 0)")
     rn.add_argument("--reporting", default="periodic", help="the bridges' reporting (default periodic; an event-based skin calibrates only as its heartbeats come)")
     rn.add_argument("--idle", type=float, default=0.0, help=f"seconds untouched after the scenario, where any contact is a false one (0..{MAX_IDLE:.0f}; default 0)")
     rn.add_argument("--out", metavar="DIR", help="write DIR/truth.jsonl, DIR/contacts.jsonl and DIR/run.json "
-                    "(made and checked before the run; a stopped run's files say partial)")
-    sc = sub.add_parser("score", help="score DIR/contacts.jsonl against DIR/truth.jsonl (from run --out)")
+                    "(made and checked before the run; a stopped run's files say partial); a DIR holding "
+                    "an earlier run's is refused")
+    rn.add_argument("--force", action="store_true", help="with --out: replace the earlier run's files in DIR")
+    sc = sub.add_parser("score", help="score DIR/contacts.jsonl against DIR/truth.jsonl (from run --out)",
+                        description="Score the contacts of DIR/contacts.jsonl (written by 'robot run --out DIR', "
+                                    "or a 'cellbridge sub contact' recording) against the true contacts of "
+                                    "DIR/truth.jsonl, and print the table. Files of two runs, and lines it cannot "
+                                    "score, are refused, naming the file and line.")
     sc.add_argument("dir")
-    sub.add_parser("skin", help="print the arm's skin description (TOML)")
-    sub.add_parser("mjcf", help="print the arm's MuJoCo model (MJCF)")
+    sub.add_parser("skin", help="print the arm's skin description (TOML)",
+                   description="Print the skin description (TOML) of the arm 'robot run' presses on: its patches "
+                               "of elements on the torso, upper arm and forearm ('cellbridge mesh up' runs it).")
+    sub.add_parser("mjcf", help="print the arm's MuJoCo model (MJCF)",
+                   description="Print the MuJoCo model (MJCF XML) of the arm 'robot run' simulates.")
 
 
 def _score_dir(directory: str) -> int:
@@ -181,9 +195,11 @@ def _run_problem(args: argparse.Namespace) -> str | None:
         reporting_arg(args.reporting)
     except argparse.ArgumentTypeError as exc:
         return f"--reporting: {exc}"
+    if args.force and args.out is None:
+        return "--force replaces an earlier run's files in --out DIR: it goes with --out"
     if args.out is not None:
         try:
-            prepare_out(args.out)
+            prepare_out(args.out, force=args.force)
         except RunFileError as exc:
             return str(exc)
     return None

@@ -299,9 +299,10 @@ def read_run(directory: str) -> RunFiles:
     return RunFiles(truths, frames, meta, notes, truth_lines, os.path.join(directory, TRUTH))
 
 
-def prepare_out(directory: str) -> None:
+def prepare_out(directory: str, force: bool = False) -> None:
     """Make ``directory`` (and check it takes files) before a run, so that a run of an
-    hour does not end on an ``--out`` it cannot write. Raises :class:`RunFileError`."""
+    hour does not end on an ``--out`` it cannot write, nor replace an earlier run's files
+    unless ``force`` (``--force``). Raises :class:`RunFileError`."""
     try:
         os.makedirs(directory, exist_ok=True)
     except FileExistsError:
@@ -313,6 +314,10 @@ def prepare_out(directory: str) -> None:
         if os.path.lexists(path) and not os.path.isfile(path):
             raise RunFileError(f"--out {directory}: {path} is not a regular file (a directory?): the run could "
                                "not replace it")
+    earlier = [name for name in (TRUTH, CONTACTS, RUN) if os.path.lexists(os.path.join(directory, name))]
+    if earlier and not force:
+        raise RunFileError(f"--out {directory}: holds an earlier run ({', '.join(earlier)}): choose another "
+                           "directory, or add --force to replace it")
     probe = os.path.join(directory, f".{RUN}.probe")
     try:
         with open(probe, "w", encoding="utf-8") as fh:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from cellbridge.protocol import (
     Beacon,
     Data,
@@ -54,6 +55,72 @@ def test_internal_entry_points_run_but_stay_out_of_the_top_level_help() -> None:
         out = run(name, "--help")
         assert out.returncode == 0 and f"cellbridge {name}" in out.stdout.decode()
     assert "    mesh " in listed and "    daemon " in listed
+
+
+def test_every_command_and_action_says_what_it_does_in_its_help() -> None:
+    # `cellbridge mesh up --help` and `robot run --help` listed options under no sentence of
+    # what the command does (that it prints the gateways' lines, that Ctrl-C stops it all),
+    # and `demo --help` began with the source's markup (``cellbridge demo``).
+    import argparse
+
+    from cellbridge.cli import INTERNAL, build_parser
+
+    def commands(parser: argparse.ArgumentParser, path: str) -> list[tuple[str, argparse.ArgumentParser]]:
+        found = [(path, parser)]
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    if name not in INTERNAL:
+                        found += commands(sub, f"{path} {name}")
+        return found
+
+    bare, marked = [], []
+    for path, parser in commands(build_parser(), "cellbridge"):
+        text = parser.format_help()
+        if not (parser.description or "").strip():
+            bare.append(path)
+        if "``" in text:
+            marked.append(path)
+    assert bare == [] and marked == [], (bare, marked)
+
+
+@pytest.mark.parametrize("command", [
+    ["daemon", "--print-config"], ["mesh", "gen", "grid", "8", "8"], ["mesh", "check", "{mesh}"],
+    ["mesh", "run", "{mesh}", "--seconds", "0.5"],
+])
+def test_output_whose_reader_went_away_ends_quietly(command: list[str], tmp_path: Path) -> None:
+    # `cellbridge daemon --print-config | head` (or mesh gen, check, run) ended in a
+    # BrokenPipeError traceback and status 1: the reader leaving is the end of the output
+
+    from cellbridge.emulator.mesh import meshgen
+    from cellbridge.emulator.mesh.mesh import mesh_to_toml
+
+    mesh = tmp_path / "skin.toml"
+    mesh.write_text(mesh_to_toml(meshgen.grid(2, 2)))
+    proc = subprocess.Popen([CLI, *(a.format(mesh=mesh) for a in command)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    assert proc.stdout is not None
+    proc.stdout.close()  # the reader is gone before the first line
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and err == b"", err.decode()
+
+
+@pytest.mark.parametrize("command", [
+    ["sub", "--endpoint", "127.0.0.1:5560"],
+    ["record", "{tmp}/x.mcap", "--endpoint", "127.0.0.1:5560"],
+    ["replay", "{golden}", "--endpoint", "127.0.0.1:5560"],
+    ["proxy", "--back", "tcp://127.0.0.1:5560", "--front", "127.0.0.1:5570"],
+])
+def test_an_endpoint_without_its_scheme_is_named_as_such(command: list[str], tmp_path: Path) -> None:
+    # `--endpoint 127.0.0.1:5560` (tcp:// left out) said libzmq's "Invalid argument
+    # (addr='127.0.0.1:5560')", and `proxy --front 127.0.0.1:5570` that the loopback address
+    # was "not a loopback endpoint"; the views and the daemon's config say what an endpoint is
+    from support.golden_corpus import DATA
+
+    argv = [a.format(tmp=tmp_path, golden=DATA / "fragments.mcap") for a in command]
+    r = subprocess.run([CLI, *argv], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert "tcp://HOST:PORT" in r.stderr and "not a loopback" not in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 def test_version() -> None:
@@ -149,6 +216,27 @@ def test_decode_prints_readout_records_parts_and_fragments(tmp_path: Path) -> No
     assert counters["stream"]["frames_dropped"] == {"type": 1}  # the version 3 READOUT
     assert counters["reassembly"]["completed"] == 1
     assert b"READOUT" in run("decode", "--help").stdout
+
+
+@pytest.mark.parametrize("topics", ["bogus", "contacts", "contact,helth"])
+def test_decode_refuses_a_topic_the_daemon_has_not(topics: str) -> None:
+    # `decode rec.mcap --topics contacts` (a typo) printed the frames and never a contact,
+    # without a word: `cellbridge sub` and `record` refuse a topic no topic is
+    from support.golden_corpus import DATA
+
+    r = run("decode", str(DATA / "fragments.mcap"), "--topics", topics)
+    assert r.returncode == 2 and r.stdout == b"", r.stderr
+    assert b"--topics" in r.stderr and b"contact, element" in r.stderr and b"Traceback" not in r.stderr, r.stderr
+
+
+def test_decode_topics_all_prints_every_topic_recorded() -> None:
+    # `--topics all` (as `record --topics all`) was taken for a topic named 'all': no message printed
+    from support.golden_corpus import DATA
+
+    r = run("decode", str(DATA / "fragments.mcap"), "--run", "--topics", "all")
+    assert r.returncode == 0, r.stderr
+    outs = {json.loads(line)["out"] for line in r.stdout.splitlines() if b'"out"' in line}
+    assert outs == {"contact", "element", "raw", "health", "topology"}, outs
 
 
 def test_decode_bad_input_gives_clear_errors(tmp_path: Path) -> None:

@@ -51,6 +51,46 @@ def test_sub_times_out_with_status_1() -> None:
     assert out.returncode == 1 and "no message for 0.3 s" in out.stderr
 
 
+def test_sub_says_when_nothing_comes_and_waits_on() -> None:
+    # `cellbridge sub` with no daemon on the endpoint waited without a word, for ever
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from daemon_harness import free_port
+
+    endpoint = f"tcp://127.0.0.1:{free_port()}"  # nobody publishes there
+    proc = subprocess.Popen([CLI, "sub", "--endpoint", endpoint], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        assert proc.stderr is not None
+        os.set_blocking(proc.stderr.fileno(), False)
+        said = b""
+        end = time.monotonic() + 30
+        while b"\n" not in said and time.monotonic() < end and proc.poll() is None:
+            said += proc.stderr.read() or b""
+            time.sleep(0.1)
+        assert b"is the daemon running" in said and endpoint.encode() in said, said
+        assert proc.poll() is None  # waiting on: a daemon started later is read
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == 0 and out == b"" and b"Traceback" not in said + err, err
+
+
+def test_sub_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs() -> None:
+    # an idle skin publishes no contact: `sub contact` asked "is the daemon running?" of a
+    # daemon whose health came every second. Its health says it runs: nothing to ask.
+    with publisher() as endpoint:  # contact, health and raw; never topology
+        out = run_subscriber([CLI, "sub", "topology", "--endpoint", endpoint, "--timeout", "7"])
+    assert out.returncode == 1 and "no message for 7 s" in out.stderr, out.stderr
+    assert "is the daemon running" not in out.stderr, out.stderr
+
+
 def test_sub_refuses_a_topic_no_topic_starts_with() -> None:
     """`cellbridge sub helth` (or `contacts`) waited forever without a word: a prefix that
     matches none of the daemon's topics is refused, naming them; a true prefix still works."""

@@ -28,6 +28,7 @@ from support.emulator_procs import (
     processes_mentioning,
     running_medium,
     running_skin,
+    stop_and_sweep,
     terminate,
 )
 from support.payloads import payload_as
@@ -290,3 +291,50 @@ def test_mesh_up_refuses_a_bad_start_interval(tmp_path: Path) -> None:
     mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
     r = subprocess.run([*PY, "mesh", "up", str(mesh_path), "--start-interval", "-1"], capture_output=True, timeout=30)
     assert r.returncode == 2 and b"--start-interval" in r.stderr and b"Traceback" not in r.stderr
+
+
+def test_ctrl_c_to_mesh_up_stops_everything_without_a_word_of_failure(tmp_path: Path) -> None:
+    # Ctrl-C in a terminal sends SIGINT to the whole foreground process group: the
+    # supervisor and every process it started at once. The children then exit while the
+    # supervisor still watches them, and it said "bridge 3 exited ...; the rest keep
+    # running" about each: a normal stop looked like failures. Three stops: the children's
+    # exits fall at another moment of the supervisor's watch each time.
+    mesh_path = tmp_path / "line-2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
+    from cellbridge.demo import gateway_line
+
+    for _ in range(3):
+        proc = subprocess.Popen([*PY, "mesh", "up", str(mesh_path), "--base-port", str(free_base_port()),
+                                 "--start-interval", "0"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            gateway_line(proc)
+            end = time.monotonic() + 30
+            while len(processes_mentioning(str(mesh_path))) < 5 and time.monotonic() < end:  # up, medium, world, 2
+                time.sleep(0.1)
+            time.sleep(0.5)
+            os.killpg(proc.pid, signal.SIGINT)  # as the terminal does
+            _, err = proc.communicate(timeout=30)
+        finally:
+            stop_and_sweep(proc, mesh_path)
+        assert proc.returncode == 0, err
+        assert b"exited" not in err and b"keep running" not in err, err.decode()
+        assert b"Traceback" not in err, err.decode()
+    assert processes_mentioning(str(mesh_path)) == []
+
+
+def test_mesh_up_refuses_a_bad_scenario_before_starting_anything(tmp_path: Path) -> None:
+    # The scenario was read by the world process only: the medium started (and printed its
+    # counters), the world failed, then 'the world did not start on base port ...'
+    mesh_path = tmp_path / "line-2.toml"
+    mesh_path.write_text(mesh_to_toml(meshgen.line(2)))
+    bad = tmp_path / "presses.toml"
+    bad.write_text("[[contact]]\nstart = 1\nduration = 1\nposition = [0.04]\nforce = 2\ndiameter = 0.02\n")
+    off = tmp_path / "beside.toml"
+    off.write_text("[[contact]]\nstart = 1\nduration = 1\nposition = [4.0, 4.0]\nforce = 2\ndiameter = 0.02\n")
+    for scenario, says in ((bad, "must be [x, y]"), (off, "touches no element"), (tmp_path / "none.toml", "cannot read")):
+        r = subprocess.run([*PY, "mesh", "up", str(mesh_path), "--scenario", str(scenario), "--base-port",
+                            str(free_base_port())], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and str(scenario) in r.stderr and says in r.stderr, r.stderr
+        assert "medium:" not in r.stderr and "did not start" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert processes_mentioning(str(mesh_path)) == []

@@ -150,3 +150,95 @@ def test_example_prints_a_map_whose_keys_are_numbers_and_not_numbers(language: s
     odd = [ln["payload"]["bridges"] for ln in lines if "bridges" in ln["payload"]]
     assert odd and all(len(b) == 3 and b["7"] == {"loss": None} and {v for k, v in b.items() if k != "7"} == {1, 2}
                        for b in odd), odd
+
+
+# The Python example's ends: each a sentence and an exit status, never a traceback.
+
+
+def test_python_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(tmp_path: Path) -> None:
+    # No daemon on the endpoint: the subscriber waited without a word, and Ctrl-C then
+    # ended it in a KeyboardInterrupt traceback.
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from daemon_harness import free_port
+
+    endpoint = f"tcp://127.0.0.1:{free_port()}"  # nobody publishes there
+    proc = subprocess.Popen([*py_subscriber(tmp_path), "-e", endpoint], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        assert proc.stderr is not None
+        os.set_blocking(proc.stderr.fileno(), False)
+        said = b""
+        end = time.monotonic() + 30
+        while b"\n" not in said and time.monotonic() < end and proc.poll() is None:
+            said += proc.stderr.read() or b""
+            time.sleep(0.1)
+        assert b"is the daemon running" in said and endpoint.encode() in said, said
+        assert proc.poll() is None  # it waits on: a daemon started later is read
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C, as the terminal sends it
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == 0, err
+    assert b"Traceback" not in said + err and out == b"", err
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (["-e", "robot:5560"], "robot:5560"),  # no transport: ZeroMQ refuses it
+    (["-s", "missing.key", "-k", "missing.key_secret"], "missing.key"),
+    (["-s", "server.key"], "-k"),  # CURVE needs both keys: one alone was ignored, and nothing came
+    (["-n", "-1"], "-n"),  # printed nothing and exited 0
+    (["-n", "ten"], "-n"),
+])
+def test_python_example_refuses_bad_arguments_in_a_sentence(tmp_path: Path, args: list[str], says: str) -> None:
+    (tmp_path / "server.key").write_text("not a certificate\n")
+    out = run_subscriber([*py_subscriber(tmp_path), *args], cwd=tmp_path, timeout=30)
+    assert out.returncode == 2, (out.stdout, out.stderr)
+    assert says in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_python_example_ends_quietly_when_its_reader_goes_away(tmp_path: Path) -> None:
+    # subscriber.py | head -1: the pipe closes under it, the end of the output, not an error
+    with publisher() as endpoint:
+        out = run_subscriber(["sh", "-c", f'"$0" "$1" -e {endpoint} | head -n 1', *py_subscriber(tmp_path)],
+                             cwd=tmp_path, timeout=30)
+    assert out.returncode == 0, out.stderr
+    assert len(json_lines(out.stdout)) == 1 and out.stderr == "", out.stderr
+
+
+def test_python_example_reads_on_past_a_message_it_cannot_decode(tmp_path: Path) -> None:
+    # a payload that is not msgpack, or a message of three frames, ended it in a traceback;
+    # now each is a line with "error" (as the C example and `cellbridge sub` print it)
+    with publisher(extra=[[b"contact", b"\xc1"], [b"health", b"a", b"b"]]) as endpoint:
+        out = run_subscriber([*py_subscriber(tmp_path), "-e", endpoint, "-n", "12"], cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    lines = json_lines(out.stdout)
+    assert len(lines) == 12 and "Traceback" not in out.stderr
+    errors = {ln["topic"]: ln["error"] for ln in lines if "error" in ln}
+    assert errors == {"contact": "payload is not msgpack", "health": "expected 2 frames [topic, payload]"}, lines
+
+
+def test_python_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs(tmp_path: Path) -> None:
+    # an idle skin publishes no contact: the daemon's health, every second, says it runs
+    import os
+    import signal
+    import subprocess
+    import time
+
+    with publisher() as endpoint:  # contact, health and raw; never topology
+        proc = subprocess.Popen([*py_subscriber(tmp_path), "-e", endpoint, "topology"], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            time.sleep(7)
+            os.killpg(proc.pid, signal.SIGINT)
+            _, err = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0 and err == b"", err

@@ -72,7 +72,9 @@ def test_missing_matplotlib_is_explained(tmp_path, capsys, monkeypatch):
 def test_unwritable_output(tmp_path, capsys):
     out = tmp_path / "no-such-dir" / "x.png"
     assert main(["plot", "response", "-o", str(out), "--dpi", "30"]) == 1
-    assert "cannot write" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # one sentence, the file named once: not the exception's text after it ("[Errno 2] ...: '...x.png'")
+    assert err == f"cellbridge plot response: cannot write {out}: No such file or directory\n", err
 
 
 def test_module_entry_point_help():

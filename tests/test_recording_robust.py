@@ -116,6 +116,107 @@ def test_record_refuses_a_chunk_size_its_readers_would_not_read(tmp_path: Path) 
     assert r.returncode == 2 and "at most 8 MB" in r.stderr and not (tmp_path / "x.mcap").exists()
 
 
+@pytest.mark.parametrize("profile", ["mcap", "ros2"])
+@pytest.mark.parametrize(("option", "value"), [("--count", "0"), ("--count", "-3"), ("--duration", "0")])
+def test_record_refuses_a_limit_of_nothing_as_sub_does(tmp_path: Path, profile: str, option: str, value: str) -> None:
+    # --count 0 (and --duration 0) meant "no limit": a recording until Ctrl-C, without a
+    # word, where `cellbridge sub --count 0` is refused. One way to say "until Ctrl-C": leave it out.
+    port = free_port()  # nobody publishes there: a recorder that started would wait until the timeout
+    out = tmp_path / "x.mcap"
+    r = subprocess.run([*CLI, "record", str(out), "--profile", profile, "--endpoint", f"tcp://127.0.0.1:{port}",
+                        option, value], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert f"{option} must be" in r.stderr and "leave it out" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not out.exists()
+
+
+def test_record_help_says_how_to_record_until_ctrl_c() -> None:
+    r = subprocess.run([*CLI, "record", "--help"], capture_output=True, text=True, timeout=60)
+    text = " ".join(r.stdout.split())
+    assert "--count N stop after N messages (default: until Ctrl-C)" in text, text
+    assert "--duration S stop after S seconds (default: until Ctrl-C)" in text, text
+
+
+@pytest.mark.parametrize("rotate", [False, True])
+def test_record_refuses_to_replace_an_earlier_recording_unless_force(tmp_path: Path, rotate: bool) -> None:
+    # `cellbridge record skin.mcap` run twice replaced the first recording without a word,
+    # where `record skin --profile ros2` refuses an existing bag.
+    from support.pub_helpers import publisher
+
+    out = tmp_path / "skin.mcap"
+    earlier = tmp_path / "skin-0000.mcap" if rotate else out
+    earlier.write_bytes(b"an earlier recording")
+    extra = ["--rotate-minutes", "60"] if rotate else []
+    with publisher() as endpoint:
+        r = subprocess.run([*CLI, "record", str(out), "--endpoint", endpoint, "--count", "3", *extra],
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and str(earlier) in r.stderr and "--force" in r.stderr, r.stderr
+        assert earlier.read_bytes() == b"an earlier recording" and "Traceback" not in r.stderr
+        r = subprocess.run([*CLI, "record", str(out), "--endpoint", endpoint, "--count", "3", "--force", *extra],
+                           capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert len(list(read_payloads(earlier))) == 3
+
+
+def test_record_refuses_force_for_a_ros2_bag(tmp_path: Path) -> None:
+    # a bag is always a new directory: --force would be ignored, so it is refused
+    r = subprocess.run([*CLI, "record", str(tmp_path / "bag"), "--profile", "ros2", "--force", "--endpoint",
+                        f"tcp://127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--force" in r.stderr and "new directory" in r.stderr, r.stderr
+
+
+def test_record_of_a_daemon_that_is_not_there_says_so_and_that_no_file_was_written(tmp_path: Path) -> None:
+    # With no daemon on the endpoint the recorder waited without a word and, stopped, exited
+    # 0 with its counters: no skin.mcap, and nothing said about it.
+    out = tmp_path / "skin.mcap"
+    endpoint = f"tcp://127.0.0.1:{free_port()}"  # nobody publishes there
+    proc = subprocess.Popen([*CLI, "record", str(out), "--endpoint", endpoint], stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        assert proc.stderr is not None
+        os.set_blocking(proc.stderr.fileno(), False)
+        said = b""
+        end = time.monotonic() + 30
+        while b"\n" not in said and time.monotonic() < end and proc.poll() is None:
+            said += proc.stderr.read() or b""
+            time.sleep(0.1)
+        assert b"is the daemon running" in said and endpoint.encode() in said, said
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    text = (said + err).decode()
+    assert proc.returncode == 1, text
+    assert f"nothing received from {endpoint}: {out} not written" in text and "Traceback" not in text, text
+    assert not out.exists()
+
+
+def test_replay_refuses_a_topic_the_daemon_has_not() -> None:
+    # `cellbridge replay skin.mcap --topics contacts` (a typo) sent nothing and exited 0
+    from support.golden_corpus import DATA
+
+    r = subprocess.run([*CLI, "replay", str(DATA / "fragments.mcap"), "--fast", "--endpoint",
+                        f"tcp://127.0.0.1:{free_port()}", "--topics", "serial,contacts"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "'contacts'" in r.stderr and "contact, element" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_record_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs(tmp_path: Path) -> None:
+    # an idle skin publishes no contact: `record --topics contact` must not ask "is the daemon
+    # running?" of a daemon whose health comes every second
+    from support.pub_helpers import publisher
+
+    out = tmp_path / "skin.mcap"
+    with publisher() as endpoint:  # contact, health and raw; never topology
+        r = subprocess.run([*CLI, "record", str(out), "--endpoint", endpoint, "--topics", "topology",
+                            "--duration", "7"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and f"nothing received from {endpoint}: {out} not written" in r.stderr, r.stderr
+    assert "is the daemon running" not in r.stderr, r.stderr
+
+
 def test_the_recorder_counts_what_it_cannot_write_and_writes_the_rest(tmp_path: Path) -> None:
     rec = Recorder(tmp_path / "o.mcap", lambda p: RecordingWriter(p, fsync=False), topics={"element"})
     rec.feed("element", codec.to_msgpack(_element(0, 1.0)), 1.0)

@@ -156,6 +156,7 @@ def test_a_partial_run_scores_only_what_it_ran(tmp_path: Path, capsys: pytest.Ca
     (["--idle", "inf"], "--idle must be within"),
     (["--idle", "-5"], "--idle must be within"),
     (["--reporting", "bogus"], "--reporting: expected 'periodic'"),
+    (["--force"], "--force replaces an earlier run's files in --out DIR: it goes with --out"),
 ])
 @pytest.mark.process  # importing mujoco starts a process
 def test_run_options_out_of_range_are_refused_before_the_run(
@@ -182,6 +183,31 @@ def test_an_out_it_cannot_write_is_refused_before_the_run(tmp_path: Path, capsys
         rc = main(["robot", "run", "--contacts", "1", "--out", str(ro)])
         _, err = capsys.readouterr()
         assert rc == 2 and "cannot write in it" in err, err
+
+
+@pytest.mark.process  # importing mujoco starts a process
+def test_an_out_holding_an_earlier_run_is_refused_before_the_run_unless_force(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # A second `robot run --out run/` replaced the first run's files without a word (an
+    # hour's run lost to a repeated command line); `keys gen` and a ROS 2 bag refuse an
+    # existing file, `keys gen --force` replaces it.
+    from cellbridge.robot_files import RunFileError, prepare_out
+
+    pytest.importorskip("mujoco")
+    d = _dir(tmp_path, [GOOD_TRUTH], [GOOD_FRAME])
+    (d / "run.json").write_text("{}\n")
+    before = {p.name: p.read_bytes() for p in d.iterdir()}
+    with pytest.raises(RunFileError, match="an earlier run"):
+        prepare_out(str(d))
+    rc = main(["robot", "run", "--contacts", "1", "--out", str(d)])
+    _, err = capsys.readouterr()
+    assert rc == 2 and "--force" in err and "contacts.jsonl" in err and "Traceback" not in err, err
+    assert {p.name: p.read_bytes() for p in d.iterdir()} == before  # nothing of it touched
+    prepare_out(str(d), force=True)  # --force: the run may replace them
+    (tmp_path / "fresh").mkdir()
+    prepare_out(str(tmp_path / "fresh"))  # an empty directory, or one of other files, is no earlier run
+    (tmp_path / "fresh" / "notes.txt").write_text("mine")
+    prepare_out(str(tmp_path / "fresh"))
 
 
 @pytest.mark.process

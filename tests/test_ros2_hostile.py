@@ -659,3 +659,21 @@ def test_a_bag_of_contacts_alone_still_ends_the_contacts_of_a_daemon_restarted_u
             if conn.topic == "/cellbridge/contacts":
                 last = store.deserialize_cdr(raw, conn.msgtype)
     assert last is not None and len(last.contacts) == 0, last
+
+
+def test_an_interface_this_machine_has_not_is_named_as_such() -> None:
+    # `cellbridge ros2 --interface eht0` (a typo) printed Cyclone DDS's "does not match an
+    # available interface" and "cannot join ROS 2 domain 0: [DDS_RETCODE_ERROR] Non specific error"
+    import socket
+
+    from cellbridge.ros2.graph import BadInterface, dds_config
+
+    with pytest.raises(BadInterface, match="no such network interface here"):
+        dds_config("nosuchif0")
+    names = [name for _, name in socket.if_nameindex()]
+    assert all(dds_config(n) for n in names)  # every interface this machine has is taken
+    r = subprocess.run(cellbridge_cmd("ros2", "--interface", "nosuchif0", "--endpoint", "tcp://127.0.0.1:1"),
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert "'nosuchif0': no such network interface here (interfaces: lo" in r.stderr, r.stderr
+    assert "DDS_RETCODE" not in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -447,6 +447,14 @@ def test_a_stop_cut_off_leaves_the_terminals_stderr_as_it_was(tmp_path: Any) -> 
         os.close(slave)
 
 
+@pytest.mark.parametrize("command", [["web", "--port", "-1"], ["foxglove", "--port", "-1"],
+                                     ["foxglove", "--port", "70000"]])
+def test_a_view_given_a_port_out_of_range_says_so(command: list[str]) -> None:
+    # `cellbridge foxglove --port -1` ended in "OverflowError: bind(): port must be 0-65535."
+    r = subprocess.run([CLI, *command], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--port must be within 0..65535" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 @pytest.mark.parametrize(("command", "option"), [
     (["web", "--port", "0"], "--endpoint"), (["foxglove", "--port", "0"], "--control"),
     (["ros2"], "--endpoint"), (["record", "{tmp}/bag", "--profile", "ros2", "--duration", "1"], "--control"),

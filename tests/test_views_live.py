@@ -233,6 +233,81 @@ def test_watch_tares_only_after_confirmation(own_live: Any, tmp_path: Path) -> N
         tmux.kill()
 
 
+@needs_tmux
+def test_watch_of_a_replay_says_its_tare_went_unanswered(tmp_path: Path) -> None:
+    # A replay publishes the daemon's topics and has no control socket: the tare was queued
+    # for a daemon that is not there, and the status line said "tare: sent" for ever.
+    from cellbridge.recording import codec
+    from cellbridge.recording.mcapfile import RecordingWriter
+    from support.pub_helpers import daemon_messages
+
+    rec = tmp_path / "skin.mcap"
+    writer = RecordingWriter(rec, fsync=False)
+    t0 = time.time_ns()
+    for i in range(1200):  # two minutes of the daemon's topics at 10 Hz
+        for topic, payload in daemon_messages(i):
+            writer.add(topic, codec.encode(topic, payload), t0 + i * 100_000_000, t0 + i * 100_000_000, i)
+    writer.finish()
+    pub, control = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"  # nothing on control
+    replay = subprocess.Popen([CLI, "replay", str(rec), "--endpoint", pub], stderr=subprocess.PIPE,
+                              start_new_session=True)
+    tmux = Tmux(tmp_path)
+    try:
+        tmux("new-session", "-d", "-s", "v", "-x", "80", "-y", "24",
+             f"{CLI} watch --endpoint {pub} --control {control}")
+        tmux.wait_for("#3 ")  # the replayed contact
+        tmux("send-keys", "-t", "v", "t")
+        tmux.wait_for("re-take the baseline")
+        tmux("send-keys", "-t", "v", "y")
+        screen = tmux.wait_for(r"tare: (not sent|no answer)", timeout=15)
+        assert control in screen and "tare: sent" not in screen, screen
+    finally:
+        tmux.kill()
+        os.killpg(replay.pid, signal.SIGTERM)
+        replay.communicate(timeout=15)
+
+
+def test_a_tare_no_daemon_took_is_never_delivered_later_and_one_unanswered_says_so() -> None:
+    # The view's control socket queued a tare for a control endpoint nobody served: a daemon
+    # started there later would have re-baselined on it, long after the user asked.
+    import msgpack
+    import zmq
+
+    from cellbridge.views import source as source_module
+    from cellbridge.views.model import SkinView
+    from cellbridge.views.source import Source
+
+    control = f"tcp://127.0.0.1:{free_port()}"
+    src = Source(f"tcp://127.0.0.1:{free_port()}", control)
+    context = zmq.Context()
+    router = context.socket(zmq.ROUTER)
+    router.linger = 0
+    try:
+        src.tare()
+        assert src.notice.startswith("tare: not sent") and control in src.notice, src.notice
+        router.bind(control)  # a daemon's control socket appears, and answers nothing
+        model = SkinView()
+        asked: list[str] = []
+        end = time.monotonic() + 10
+        while time.monotonic() < end and not asked:  # until the view is connected: its layout requests come
+            src.drain(model)
+            asked += [msgpack.unpackb(router.recv_multipart()[-1])["cmd"] for _ in range(1) if router.poll(100)]
+        src.tare()
+        while router.poll(500):
+            asked.append(msgpack.unpackb(router.recv_multipart()[-1])["cmd"])
+        assert asked.count("tare") == 1 and asked[-1] == "tare", asked  # the one sent once connected, not the first
+        assert src.notice == "tare: sent"
+        end = time.monotonic() + source_module.TARE_ANSWER_S + 5
+        while time.monotonic() < end and src.notice == "tare: sent":
+            src.drain(model)
+            time.sleep(0.1)
+        assert src.notice.startswith(f"tare: no answer from {control}"), src.notice
+    finally:
+        router.close()
+        context.term()
+        src.close()
+
+
 # ---- cellbridge web in headless Chromium ----------------------------------------------------
 
 def start_web(ep: dict[str, str], *extra: str) -> tuple[Any, str]:

@@ -16,7 +16,9 @@ no longer hold back the stamps of the messages that arrive meanwhile.
 from __future__ import annotations
 
 import argparse
+import glob
 import json
+import os
 import queue
 import signal
 import socket
@@ -28,7 +30,8 @@ from pathlib import Path
 import zmq
 
 from cellbridge._version import __version__
-from cellbridge.daemon.ops.security import apply_client
+from cellbridge.daemon.ops.security import apply_client, endpoint_error
+from cellbridge.daemon.shell.subscribe import QUIET_S, health_probe
 from cellbridge.recording.mcapfile import MAX_CHUNK_SIZE, RecordingWriter
 from cellbridge.recording.recorder import Recorder
 from cellbridge.ros2.record import add_profile_arguments
@@ -108,7 +111,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "recording does not show in a replay. The line of counters at the end counts what\n"
         "was not recorded as received: malformed (not [topic, msgpack map]), bad_time\n"
         "(t_host no time: recorded with its receive time), oversized (not written), dropped,\n"
-        "unconfirmed, missed (gaps in seq).\n\n"
+        "unconfirmed, missed (gaps in seq). The file is made with the first message recorded:\n"
+        "with none (no daemon there?) nothing is written, a line says so, and the exit status is 1.\n\n"
         "Topics: contact, element, raw, health, topology, and serial (each gateway read's bytes:\n"
         "a daemon can later be run on them, link url replay:FILE.mcap). Default: all but raw\n"
         "and serial.\n\n"
@@ -139,8 +143,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="chunk compression (default: zstd)")
     parser.add_argument("--no-fsync", action="store_true",
                         help="do not fsync on each chunk (faster; a power loss may lose more than a chunk)")
-    parser.add_argument("--count", type=int, default=0, metavar="N", help="stop after N messages")
-    parser.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an earlier recording of that name (with rotation: OUT-NNNN.mcap); "
+                             "without it, one is refused (a ROS 2 bag is always a new directory)")
+    parser.add_argument("--count", type=int, default=None, metavar="N",
+                        help="stop after N messages (default: until Ctrl-C)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S seconds (default: until Ctrl-C)")
     add_curve_client_arguments(parser)
     add_profile_arguments(parser)
 
@@ -156,7 +165,32 @@ def topics_of(args: argparse.Namespace) -> list[str]:
     return out
 
 
+def limits_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with ``--count`` and ``--duration``, or None. Left out, each means no
+    limit; 0 is refused, as ``cellbridge sub --count 0`` is (it ran until Ctrl-C, silently)."""
+    if args.count is not None and args.count < 1:
+        return f"--count must be at least 1, got {args.count} (leave it out to record until Ctrl-C)"
+    if args.duration is not None and not 0 < args.duration < float("inf"):  # (False for NaN)
+        return f"--duration must be more than 0 seconds, got {args.duration:g} (leave it out to record until Ctrl-C)"
+    return None
+
+
+def earlier_recording(out: Path, rotating: bool) -> Path | None:
+    """A file a recording to ``out`` would replace: ``out`` itself, or with rotation the
+    first ``OUT-NNNN.mcap`` there is; None when there is none."""
+    if not rotating:
+        return out if os.path.lexists(out) else None
+    pattern = f"{glob.escape(out.stem)}-[0-9][0-9][0-9][0-9]{glob.escape(out.suffix or '.mcap')}"
+    return next(iter(sorted(out.parent.glob(pattern))), None)
+
+
 def run(args: argparse.Namespace) -> int:
+    problem = limits_problem(args)
+    if args.force and args.profile == "ros2":
+        problem = "--force replaces an MCAP recording; a ROS 2 bag is always a new directory (remove the old one)"
+    if problem:
+        print(f"cellbridge record: {problem}", file=sys.stderr)
+        return 2
     if args.profile == "ros2":
         from cellbridge.ros2 import record as ros2_record
         return ros2_record.run(args)
@@ -168,9 +202,13 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
-    if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds, args.count, args.duration) < 0 \
-            or args.chunk_size <= 0:
-        print("cellbridge record: sizes, times and counts must not be negative", file=sys.stderr)
+    if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds) < 0 or args.chunk_size <= 0:
+        print("cellbridge record: sizes and times must not be negative", file=sys.stderr)
+        return 2
+    earlier = None if args.force else earlier_recording(args.out, int(args.rotate_size * 1e6) > 0 or args.rotate_minutes > 0)
+    if earlier is not None:
+        print(f"cellbridge record: {earlier} exists (an earlier recording?): choose another name, or add --force "
+              "to replace it", file=sys.stderr)
         return 2
     if args.chunk_size * 1e6 > MAX_CHUNK_SIZE:
         print(f"cellbridge record: --chunk-size {args.chunk_size:g} MB: at most {MAX_CHUNK_SIZE / 1e6:g} MB "
@@ -197,18 +235,21 @@ def run(args: argparse.Namespace) -> int:
     # then has the daemon's first messages too (the first read's serial bytes among them).
     sock.reconnect_ivl = 10
     receiver: Receiver | None = None
+    probe: zmq.Socket | None = None
     switch = sys.getswitchinterval()
+    total = 0
     try:
         if args.server_key is not None:
             apply_client(sock, args.server_key, args.client_key)
         for t in topics:
             sock.subscribe(t)
         sock.connect(args.endpoint)
+        probe = health_probe(ctx, args)  # (a daemon runs when its health comes, whatever the topics recorded)
         sys.setswitchinterval(SWITCH_INTERVAL)
         receiver = Receiver(sock, clock)
         receiver.start()
-        end = time.monotonic() + args.duration if args.duration else None
-        total = 0
+        started = time.monotonic()
+        end = None if args.duration is None else started + args.duration
 
         def take(parts: list[bytes], now: float) -> None:
             if len(parts) != 2:
@@ -216,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 rec.feed(parts[0].decode("ascii", "replace"), parts[1], now)
 
-        while not stop and not rec.stopped and (not args.count or total < args.count):
+        while not stop and not rec.stopped and (args.count is None or total < args.count):
             if end is not None and time.monotonic() >= end:
                 break
             if receiver.error is not None:
@@ -225,13 +266,23 @@ def run(args: argparse.Namespace) -> int:
                 parts, now = receiver.messages.get(timeout=0.1)
             except queue.Empty:
                 rec.tick(clock())
+                if probe is not None and time.monotonic() - started >= QUIET_S:
+                    if not total and not probe.poll(0):  # (a recorder started before its daemon is right: it waits on)
+                        print(f"cellbridge record: nothing in {QUIET_S:g} s from {args.endpoint}, not even its "
+                              "health: is the daemon running? (waiting on: the file is made with the first "
+                              "message; Ctrl-C stops)", file=sys.stderr, flush=True)
+                    probe.close()
+                    probe = None
                 continue
             total += 1
             take(parts, now)
+            if probe is not None:  # a message came: the daemon is there
+                probe.close()
+                probe = None
         receiver.stop.set()
         receiver.join()
         if stop and not rec.stopped:  # what was received before the signal goes into the file too
-            while not args.count or total < args.count:
+            while args.count is None or total < args.count:
                 try:
                     parts, now = receiver.messages.get_nowait()
                 except queue.Empty:
@@ -244,18 +295,25 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
     except zmq.ZMQError as exc:
-        print(f"cellbridge record: {args.endpoint}: {exc}", file=sys.stderr)
+        print(f"cellbridge record: {endpoint_error(args.endpoint, exc)}", file=sys.stderr)
         return 2
     finally:
         if receiver is not None:
             receiver.stop.set()
             receiver.join()
         sys.setswitchinterval(switch)
+        if probe is not None:
+            probe.close()
         sock.close()
         ctx.term()
         rec.close()
         print(json.dumps(rec.stats()), file=sys.stderr)
     if rec.error:
         print(f"cellbridge record: {rec.error}", file=sys.stderr)
+        return 1
+    if not rec.files:  # the file is made with the first message recorded
+        what = (f"nothing received from {args.endpoint}" if not total else
+                f"none of the {total} messages received could be recorded")
+        print(f"cellbridge record: {what}: {args.out} not written", file=sys.stderr)
         return 1
     return 0

@@ -34,8 +34,10 @@ from typing import Any
 
 import zmq
 
+from cellbridge.daemon.ops.security import endpoint_error
 from cellbridge.recording import codec
 from cellbridge.recording.mcapfile import NotARecording, ReadResult, read_payloads
+from cellbridge.recording.schemas import SCHEMAS
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
 SPIN = 0.001  #: s before a message is due that the replay waits awake (timing within a millisecond)
@@ -202,6 +204,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"cellbridge replay: {p}: no such file", file=sys.stderr)
             return 2
     topics = {t.strip() for t in args.topics.split(",") if t.strip()} or None
+    unknown = sorted((topics or set()) - set(SCHEMAS))
+    if unknown:  # a typo ('contacts') replayed nothing, exit 0 (a newer daemon's topic: replayed by default)
+        print(f"cellbridge replay: --topics: the daemon has no topic {unknown[0]!r} (topics: "
+              f"{', '.join(sorted(SCHEMAS))})", file=sys.stderr)
+        return 2
     stop: list[bool] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(True))
@@ -253,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
         notes += ahead.notes
         elapsed = time.monotonic() - t0
     except zmq.ZMQError as exc:
-        print(f"cellbridge replay: {args.endpoint}: {exc}", file=sys.stderr)
+        print(f"cellbridge replay: {endpoint_error(args.endpoint, exc)}", file=sys.stderr)
         return 2
     finally:
         sock.close()

@@ -16,6 +16,7 @@ to reach ROS 2 nodes on other machines. Or a whole Cyclone DDS configuration of 
 from __future__ import annotations
 
 import re
+import socket
 from typing import Any
 
 from cyclonedds.core import DDSException, Policy
@@ -46,6 +47,9 @@ def dds_config(interface: str = LOOPBACK, max_participants: int = 32) -> str:
                 "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
                 f"<MaxAutoParticipantIndex>{max_participants}</MaxAutoParticipantIndex>"
                 "<Peers><Peer Address=\"127.0.0.1\"/></Peers></Discovery></Domain></CycloneDDS>")
+    names = [name for _, name in socket.if_nameindex()]
+    if interface not in names and ":" not in interface:  # (an alias label, eth0:1, is not listed)
+        raise BadInterface(f"{interface!r}: no such network interface here (interfaces: {', '.join(names)})")
     return (f"<CycloneDDS><Domain Id=\"any\"><General><Interfaces><NetworkInterface name=\"{interface}\"/>"
             "</Interfaces></General></Domain></CycloneDDS>")
 

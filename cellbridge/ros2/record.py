@@ -73,9 +73,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         wanted = _topics(args)
         specs = topics(args.namespace)
-        if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds, args.count, args.duration) < 0 \
-                or args.chunk_size <= 0:
-            raise ValueError("sizes, times and counts must not be negative")
+        if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds) < 0 or args.chunk_size <= 0:
+            raise ValueError("sizes and times must not be negative")
         if (args.server_key is None) != (args.client_key is None):
             raise ValueError("--server-key and --client-key go together (CURVE needs both)")
     except (ValueError, BadTopicName) as exc:
@@ -109,14 +108,14 @@ def run(args: argparse.Namespace) -> int:
     model = PayloadModel(converter)
     received, error = 0, ""
     stats: dict[str, Any] = {}
-    end = time.monotonic() + args.duration if args.duration else None
+    end = None if args.duration is None else time.monotonic() + args.duration  # (record_cli checked both limits)
     flushed = time.monotonic()
     try:
-        while not stop and not error and (not args.count or received < args.count):
+        while not stop and not error and (args.count is None or received < args.count):
             if end is not None and time.monotonic() >= end:
                 break
             source.poll(100)
-            source.drain(model, max_messages=args.count - received if args.count else 100_000)
+            source.drain(model, max_messages=100_000 if args.count is None else args.count - received)
             try:
                 for topic, payload, arrived in model.take():
                     if topic not in wanted:  # (health heard for the restarts alone)

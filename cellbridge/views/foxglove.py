@@ -439,6 +439,8 @@ def run(args: argparse.Namespace) -> int:
     problem = None
     if not 1 <= args.rate <= 240:
         problem = f"--rate must be within 1..240, got {args.rate}"
+    elif not 0 <= args.port <= 65535:  # (as web: a port out of range ended in an OverflowError traceback)
+        problem = f"--port must be within 0..65535, got {args.port}"
     elif not is_loopback_host(args.host):
         problem = (f"refusing to listen on {args.host}: the Foxglove protocol has no access control; "
                    "listen on loopback and use an SSH tunnel (ssh -L 8765:127.0.0.1:8765 HOST)")

@@ -29,6 +29,7 @@ DEFAULT_CONTROL = "tcp://127.0.0.1:5561"
 RCVHWM = 200
 RCVBUF = 1 << 20
 TOPOLOGY_RETRY = 1.0  # s between layout requests while the layout is unknown
+TARE_ANSWER_S = 3.0  # s a tare waits for the daemon's answer before the view says none came
 
 
 def add_source_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,6 +81,10 @@ class Source:
         self.context = zmq.Context()
         self.sub = self.context.socket(zmq.SUB)
         self.ctl = self.context.socket(zmq.DEALER)
+        # a request is sent to a daemon connected now, or not at all: a tare queued for a
+        # control socket nobody serves (a replay's) would re-baseline a daemon started later
+        self.ctl.immediate = True
+        self.control = control
         for s in (self.sub, self.ctl):
             s.linger = 0
             if server_key is not None and client_key is not None:
@@ -100,7 +105,7 @@ class Source:
         self.poller.register(self.sub, zmq.POLLIN)
         self.poller.register(self.ctl, zmq.POLLIN)
         self._next_id = 0
-        self._pending: dict[int, str] = {}
+        self._pending: dict[int, tuple[str, float]] = {}  # request id: its command, when it was sent
         self._topology_at = -1e9
         self.notice = ""  # the last control reply worth showing ("tare: 16 elements")
 
@@ -129,22 +134,38 @@ class Source:
                 continue
             model.feed(parts[0].decode("ascii", "replace"), payload, now)
         self._replies(model)
+        self._unanswered(now)
         if model.needs_topology and now - self._topology_at >= TOPOLOGY_RETRY:
-            self._topology_at = now
-            self.request({"v": 1, "cmd": "topology"})
+            # not sent (not connected yet, or a replay): asked again soon, not a second later
+            self._topology_at = now if self.request({"v": 1, "cmd": "topology"}) else now - TOPOLOGY_RETRY + 0.1
         return n
 
-    def request(self, body: dict[str, Any]) -> None:
-        """Send a control request; its reply is taken in a later :meth:`drain`."""
+    def request(self, body: dict[str, Any]) -> bool:
+        """Send a control request; its reply is taken in a later :meth:`drain`. False when
+        no daemon's control socket is connected to take it (nothing is sent)."""
         self._next_id += 1
         body = dict(body, id=self._next_id)
-        self._pending[self._next_id] = str(body.get("cmd"))
-        if len(self._pending) > 16:  # a daemon that never answers: forget the oldest
-            self._pending.pop(next(iter(self._pending)))
         try:
             self.ctl.send(msgpack.packb(body), zmq.NOBLOCK)
         except zmq.Again:
-            self.notice = f"{body.get('cmd')}: the daemon's control socket is not reachable"
+            return False
+        self._pending[self._next_id] = (str(body.get("cmd")), time.monotonic())
+        if len(self._pending) > 16:  # a daemon that never answers: forget the oldest
+            self._pending.pop(next(iter(self._pending)))
+        return True
+
+    def tare(self) -> None:
+        """Ask the daemon to tare; :attr:`notice` says what became of it: sent, then its
+        answer, or that none came (a replay, or a proxy, has no control socket)."""
+        self.notice = ("tare: sent" if self.request({"v": 1, "cmd": "tare"}) else
+                       f"tare: not sent: no daemon answers on {self.control} (a replay has no control socket)")
+
+    def _unanswered(self, now: float) -> None:
+        for rid, (cmd, sent) in list(self._pending.items()):
+            if cmd == "tare" and now - sent > TARE_ANSWER_S:
+                del self._pending[rid]
+                self.notice = (f"tare: no answer from {self.control} in {TARE_ANSWER_S:g} s "
+                               "(the daemon may not have tared)")
 
     def _replies(self, model: SkinView) -> None:
         while True:
@@ -160,7 +181,7 @@ class Source:
             if not isinstance(reply, dict):
                 continue
             rid = reply.get("id")
-            cmd = self._pending.pop(rid, None) if isinstance(rid, int) else None
+            cmd, _ = self._pending.pop(rid, (None, 0.0)) if isinstance(rid, int) else (None, 0.0)
             if cmd == "topology" and reply.get("ok") is True:
                 model.feed_topology(reply)
             elif cmd == "tare":

@@ -50,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "keys:\n"
         "  q        quit (also Ctrl-C)\n"
         "  p        pause the display (messages are still read and counted)\n"
-        "  t        tare: re-take every element's baseline (asks for confirmation: y / n)\n"
+        "  t        tare: re-take every element's baseline (asks for confirmation: y / n;\n"
+        "           a replay has no control socket: there the tare says it was not sent)\n"
         "  + / -    force at full colour /2 / x2 (more / less sensitive)\n\n"
         "examples:\n"
         "  cellbridge watch\n"
@@ -233,8 +234,9 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str, restor
             self.set_text("#contacts", "\n".join([c.line for c in frame.contacts] or ["no contact"]))
             status = list(frame.status)
             status.append(f"colour: {what}, full at {frame.scale:g} {'N' if frame.quantity == 'force' else 'pF'}"
-                          + (f"   {source.notice}" if source.notice else "")
                           + (f"   view errors {self.errors}" if self.errors else ""))
+            if source.notice:  # a line of its own: a tare's answer is read whole, not cut at 80 columns
+                status.append(source.notice)
             self.set_text("#status", "\n".join(status))
 
         def set_text(self, selector: str, text: str) -> None:
@@ -255,8 +257,7 @@ def _make_app(source: Source, model: SkinView, fps: float, endpoint: str, restor
         def action_tare(self) -> None:
             def answered(yes: bool | None) -> None:
                 if yes:
-                    source.request({"v": 1, "cmd": "tare"})
-                    source.notice = "tare: sent"
+                    source.tare()
                 else:
                     source.notice = "tare: cancelled"
                 self.draw(time.monotonic())

@@ -10,6 +10,7 @@ then only clients whose public key lies in the allowed directory get anything
 from __future__ import annotations
 
 import contextlib
+import errno
 import grp
 import ipaddress
 import os
@@ -84,6 +85,16 @@ def _path(section: Mapping[str, Any], key: str, where: str, base_dir: Path | Non
         raise ValueError(f"{where}: {key} must be a non-empty path string, got {value!r}")
     path = Path(os.path.expandvars(value))
     return path if path.is_absolute() or base_dir is None else base_dir / path
+
+
+def endpoint_error(endpoint: str, exc: zmq.ZMQError) -> str:
+    """``endpoint`` and what libzmq said of it, as a sentence: one that is no endpoint at all
+    (``127.0.0.1:5560``, tcp:// left out) says what an endpoint is, not libzmq's
+    "Invalid argument (addr='127.0.0.1:5560')"."""
+    reason = zmq.strerror(exc.errno) if exc.errno is not None else str(exc)
+    if exc.errno in (errno.EINVAL, zmq.EPROTONOSUPPORT):
+        return f"{endpoint}: {reason}: not a ZeroMQ endpoint (tcp://HOST:PORT or ipc://PATH)"
+    return f"{endpoint}: {reason}"
 
 
 def is_loopback(endpoint: str) -> bool:

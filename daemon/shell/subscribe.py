@@ -12,15 +12,18 @@ import json
 import math
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any, TextIO
 
 import msgpack
 import zmq
-from cellbridge.daemon.ops.security import apply_client
+from cellbridge.daemon.ops.security import apply_client, endpoint_error
 from cellbridge.daemon.shell.publisher import TOPICS
 
 DEFAULT_PUB = "tcp://127.0.0.1:5560"
+#: Seconds without a first message before `sub` says so (and waits on).
+QUIET_S = 5.0
 
 
 def jsonable(obj: Any) -> Any:
@@ -63,7 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Subscribe to the daemon's PUB socket and print each message as one JSON line\n"
         '{"topic": ..., "payload": {...}} (bytes as hex, NaN as null). A message that is\n'
         'not [topic, msgpack] is printed with an "error" key instead of "payload".\n'
-        "Counters go to stderr at exit. Topics: contact, element, raw, health, topology, serial.\n\n"
+        "Counters go to stderr at exit. Topics: contact, element, raw, health, topology, serial.\n"
+        "When nothing comes in the first 5 s, not even the daemon's health, a line on stderr\n"
+        "says so (no daemon there?); it waits on.\n\n"
         "examples:\n"
         "  cellbridge sub                        # everything\n"
         "  cellbridge sub contact | jq .payload  # contacts only\n"
@@ -111,12 +116,12 @@ def run(args: argparse.Namespace) -> int:
         for topic in args.topics or [""]:
             sock.subscribe(topic)
         sock.connect(args.endpoint)
-        return _print_messages(sock, args, counters, sys.stdout)
+        return _print_messages(sock, args, counters, sys.stdout, health_probe(context, args))
     except ValueError as exc:  # bad key file
         print(f"cellbridge sub: {exc}", file=sys.stderr)
         return 2
     except zmq.ZMQError as exc:
-        print(f"cellbridge sub: {args.endpoint}: {exc}", file=sys.stderr)
+        print(f"cellbridge sub: {endpoint_error(args.endpoint, exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 0
@@ -129,12 +134,51 @@ def run(args: argparse.Namespace) -> int:
         context.term()
 
 
-def _print_messages(sock: zmq.Socket, args: argparse.Namespace, counters: dict[str, int], out: TextIO) -> int:
+def health_probe(context: zmq.Context, args: argparse.Namespace) -> zmq.Socket:
+    """A SUB socket on ``args.endpoint``'s ``health`` alone (with ``args``' CURVE keys): a
+    running daemon publishes it every second, so it tells a daemon that is not there from
+    one whose other topics are quiet (an untouched skin publishes no contact)."""
+    probe = context.socket(zmq.SUB)
+    probe.linger = 0
+    if args.server_key is not None:
+        apply_client(probe, args.server_key, args.client_key)
+    probe.subscribe(b"health")
+    probe.connect(args.endpoint)
+    return probe
+
+
+def not_there(command: str, args: argparse.Namespace, sock: zmq.Socket, probe: zmq.Socket, then: str) -> bool:
+    """Wait up to :data:`QUIET_S` for a first message on ``sock``; when neither it nor the
+    ``health`` ``probe`` got one, say on stderr that the daemon may not be there (connecting
+    never fails: a daemon that is not there says nothing), ending with ``then``. Whether it
+    was said. Closes ``probe``."""
+    try:
+        if sock.poll(int(QUIET_S * 1000)) or probe.poll(0):
+            return False
+    finally:
+        probe.close()
+    print(f"cellbridge {command}: nothing in {QUIET_S:g} s from {args.endpoint}, not even its health: is the "
+          "daemon running" + (" and does it allow this client's key" if args.server_key is not None else "")
+          + f"? ({then})", file=sys.stderr, flush=True)
+    return True
+
+
+def _print_messages(sock: zmq.Socket, args: argparse.Namespace, counters: dict[str, int], out: TextIO,
+                    probe: zmq.Socket) -> int:
     timeout_ms = int(args.timeout * 1000) if args.timeout else None
+    wait_ms = timeout_ms
+    if args.timeout and args.timeout <= QUIET_S:  # (it gives up before it would say so)
+        probe.close()
+    else:
+        start = time.monotonic()
+        not_there("sub", args, sock, probe, "waiting on; Ctrl-C stops, --timeout S gives up")
+        if timeout_ms is not None:  # the first message's wait includes this one
+            wait_ms = max(0, timeout_ms - int((time.monotonic() - start) * 1000))
     while args.count is None or counters["received"] < args.count:
-        if not sock.poll(timeout_ms):
+        if not sock.poll(wait_ms):
             print(f"cellbridge sub: no message for {args.timeout:g} s on {args.endpoint}", file=sys.stderr)
             return 1
+        wait_ms = timeout_ms
         line = message_to_json(sock.recv_multipart())
         counters["received"] += 1
         counters["malformed"] += "error" in line

@@ -95,7 +95,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "  cellbridge mesh up grid8.toml --reporting event:40:1000   # idle elements: heartbeats only"
     )
     sub = parser.add_subparsers(dest="mesh_command", metavar="ACTION", required=True)
-    gen = sub.add_parser("gen", help="write a generated mesh file (line N | ring N | grid R C | random N)")
+    gen = sub.add_parser("gen", help="write a generated mesh file (line N | ring N | grid R C | random N)",
+                         description="Write a mesh file of a generated shape: a line or ring of N bridges, a "
+                                     "grid of R x C, or a random mesh of N; on standard output, or into the "
+                                     "file -o names (replaced if it exists).")
     gen.add_argument("kind", choices=["line", "ring", "grid", "random"])
     gen.add_argument("size", type=int, nargs="+", help="N, or R C for a grid")
     gen.add_argument("--gateways", type=_ids, default=None,
@@ -107,12 +110,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gen.add_argument("--seed", type=int, default=None, help="random mesh only: seed of the shape (default 0)")
     gen.add_argument("-o", "--output", help="file to write (default: standard output)")
     chk = sub.add_parser("check", help="validate a mesh file and summarise it, with the share of its busiest "
-                                       "cell's airtime the readout takes")
+                                       "cell's airtime the readout takes",
+                         description="Validate a mesh file and print a line of what it holds (bridges, cells, "
+                                     "gateways) and one of the readout's load on its busiest cell at --rate; "
+                                     "a load that does not fit is warned of on standard error. Exit status 2 "
+                                     "and a sentence naming the problem for a bad file.")
     chk.add_argument("mesh", help="a mesh file (TOML: cellbridge mesh gen writes one; docs/emulator.md)")
     chk.add_argument("--rate", type=rate_arg, default=100,
                      help="sampling rate in Hz, 1..250, whose readout load to report (default 100); above "
                           f"{FITS_BELOW * 100:.0f}%% of a cell's airtime a warning says the readout does not fit")
-    rn = sub.add_parser("run", help="run a mesh in virtual time (faster than real time, deterministic)")
+    rn = sub.add_parser("run", help="run a mesh in virtual time (faster than real time, deterministic)",
+                        description="Run a mesh in virtual time, in this one process (faster than real time; "
+                                    "the same seed gives the same run), and print its counters as JSON: samples "
+                                    "delivered per bridge, bridges cut off, each one's parent, the medium's and "
+                                    "each bridge's counters. --capture keeps each gateway's serial line.")
     rn.add_argument("mesh", help="a mesh file (TOML: cellbridge mesh gen writes one; docs/emulator.md)")
     rn.add_argument("--seconds", type=seconds_arg, default=5.0, help="virtual seconds to run (default 5)")
     rn.add_argument("--scenario", help="TOML file of [[contact]] stimuli")
@@ -122,7 +133,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rn.add_argument("--capture", metavar="DIR",
                     help="write each gateway's serial stream to DIR/gateway-<id>.bin (read it with cellbridge decode)")
     tr = sub.add_parser("traffic", help="a skin description's gateway lines at frame level (the readout records, "
-                                        "no cells): captures the daemon replays")
+                                        "no cells): captures the daemon replays",
+                        description="Write what the gateways of a skin description (TOML with [[patch]] tables) "
+                                    "send on their serial lines, at frame level: DIR/gateway-<id>.cbcap per "
+                                    "gateway and DIR/daemon.toml, with which 'cellbridge daemon --config "
+                                    "DIR/daemon.toml' replays them in real time. Prints the run's counters as "
+                                    "JSON.")
     tr.add_argument("skin", help="a skin description (TOML with [[patch]] tables)")
     tr.add_argument("--seconds", type=seconds_arg, default=10.0, help="virtual seconds (default 10)")
     tr.add_argument("--scenario", help="TOML file of [[contact]] stimuli (atlas positions)")
@@ -131,7 +147,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     tr.add_argument("--reporting", type=reporting_arg, default="periodic", metavar="MODE", help=REPORTING_HELP)
     tr.add_argument("--out", metavar="DIR", required=True,
                     help="write DIR/gateway-<id>.cbcap (one per gateway) and DIR/daemon.toml (replays them)")
-    up = sub.add_parser("up", help="start the medium, the world and one process per bridge (real time)")
+    up = sub.add_parser("up", help="start the medium, the world and one process per bridge (real time)",
+                        description="Start an emulated skin in real time: the medium, the world and one process "
+                                    "per bridge. Prints a line 'gateway <id> <device>' per gateway, its "
+                                    "pseudo-terminal, which the daemon opens as it would /dev/ttyUSB0 (with --tcp "
+                                    "also socket://127.0.0.1:PORT); 'cellbridge press' presses on it. Runs until "
+                                    "Ctrl-C or SIGTERM, which stop every process it started; a process that dies "
+                                    "meanwhile is reported and the others keep running.")
     up.add_argument("mesh", help="a mesh file (TOML: cellbridge mesh gen writes one; docs/emulator.md)")
     try:
         importlib.import_module("cellbridge.emulator.realtime.process_up").add_arguments(up)

@@ -35,7 +35,7 @@ from cellbridge.emulator.mesh.mesh import Bridge, Mesh, load_mesh
 from cellbridge.emulator.realtime import process_bridge
 from cellbridge.emulator.realtime.gateway_port import open_pty
 from cellbridge.emulator.realtime.mesh_cli import warn_if_not_fitting
-from cellbridge.emulator.realtime.pty_link import link_gateway
+from cellbridge.emulator.realtime.pty_link import link_folder_problem, link_gateway
 from cellbridge.emulator.realtime.realtime import (
     REPORTING_HELP,
     StopFlag,
@@ -46,6 +46,7 @@ from cellbridge.emulator.realtime.realtime import (
     reporting_text,
     seconds_arg,
 )
+from cellbridge.emulator.world.world import check_on_skin, load_scenario
 
 GRACE_S = 5.0
 #: Between two bridges' starts. A whole 8x8 skin forked at once (64 bridges in ~1.5 s)
@@ -75,7 +76,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"once delays acknowledgements until routes churn)")
     parser.add_argument("--pty-link", metavar="DIR",
                         help="also keep a symlink DIR/gateway-<id> to each gateway's pty (its /dev/pts number "
-                             "changes on every start; configure the daemon with the link)")
+                             "changes on every start; configure the daemon with the link); DIR is made "
+                             "if missing")
     add_endpoint_arguments(parser)
 
 
@@ -179,6 +181,9 @@ def _bridge_main(argv: list[str], keep_fd: int | None, supervisor: int) -> int:
 
 def run(args: argparse.Namespace) -> int:
     mesh = load_mesh(args.mesh)  # MeshError is reported by the caller
+    if args.scenario:  # read here too (ScenarioError, as MeshError): a bad one is said before anything starts
+        for i, contact in enumerate(load_scenario(args.scenario)):
+            check_on_skin(mesh, contact, f"{args.scenario}: contact[{i}]")
     if args.readout == "on":  # (the shells send records unacknowledged: process_bridge)
         warn_if_not_fitting(mesh, args.rate, acked=False)
     stop = StopFlag()
@@ -191,6 +196,11 @@ def run(args: argparse.Namespace) -> int:
         children[name] = subprocess.Popen(cmd, pass_fds=pass_fds, preexec_fn=die_with_parent,
                                           stdin=subprocess.DEVNULL)
 
+    if args.pty_link:  # (made now: a folder that cannot be is said before anything starts)
+        problem = link_folder_problem(args.pty_link)
+        if problem:
+            _report(f"cellbridge mesh up: {problem}. Nothing started.")
+            return 2
     # Claimed first, held for this process's life: two mesh ups started at once both found
     # the ports free, and each took the other's bound port for its own failure.
     claims = claim_base_port(args.base_port)
@@ -257,8 +267,12 @@ def run(args: argparse.Namespace) -> int:
                     print(line, flush=True)
         reported: set[str] = set()
         while not stop.stopped:
-            time.sleep(0.2)
+            _pause(0.2, stop)
             for name, p in children.items():
+                # Ctrl-C signals the whole process group: the children exit as this
+                # supervisor stops, and their exits are that stop, not failures to report
+                if stop.stopped:
+                    break
                 if p.poll() is not None and name not in reported:
                     reported.add(name)
                     _report(f"cellbridge mesh up: {name} exited with status {p.returncode}; "

@@ -20,3 +20,15 @@ def link_gateway(directory: str | Path, gateway: int, device: str) -> Path:
     os.symlink(device, tmp)
     os.replace(tmp, link)
     return link
+
+
+def link_folder_problem(directory: str | Path) -> str | None:
+    """Make ``directory`` (and its parents) for the links, before anything starts; a sentence
+    saying why it cannot hold them, or None."""
+    try:
+        os.makedirs(directory, exist_ok=True)
+    except OSError as exc:
+        return f"--pty-link {directory}: cannot make it: {exc.strerror or exc}"
+    if not os.access(directory, os.W_OK | os.X_OK):
+        return f"--pty-link {directory}: cannot write in it"
+    return None

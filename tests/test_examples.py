@@ -152,12 +152,13 @@ def test_example_prints_a_map_whose_keys_are_numbers_and_not_numbers(language: s
                        for b in odd), odd
 
 
-# The Python example's ends: each a sentence and an exit status, never a traceback.
+# The examples' ends: each a sentence and an exit status, never a traceback (Ctrl-C: exit 0).
 
 
-def test_python_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(tmp_path: Path) -> None:
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(language: str, tmp_path: Path) -> None:
     # No daemon on the endpoint: the subscriber waited without a word, and Ctrl-C then
-    # ended it in a KeyboardInterrupt traceback.
+    # ended it in a KeyboardInterrupt traceback (Python), with exit 1 (C), or 130 (JavaScript).
     import os
     import signal
     import subprocess
@@ -166,7 +167,7 @@ def test_python_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(tmp_p
     from daemon_harness import free_port
 
     endpoint = f"tcp://127.0.0.1:{free_port()}"  # nobody publishes there
-    proc = subprocess.Popen([*py_subscriber(tmp_path), "-e", endpoint], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([*EXAMPLE_COMMANDS[language](tmp_path), "-e", endpoint], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, start_new_session=True)
     try:
         assert proc.stderr is not None
@@ -223,7 +224,9 @@ def test_python_example_reads_on_past_a_message_it_cannot_decode(tmp_path: Path)
     assert errors == {"contact": "payload is not msgpack", "health": "expected 2 frames [topic, payload]"}, lines
 
 
-def test_python_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs(tmp_path: Path) -> None:
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs(language: str,
+                                                                                   tmp_path: Path) -> None:
     # an idle skin publishes no contact: the daemon's health, every second, says it runs
     import os
     import signal
@@ -231,7 +234,8 @@ def test_python_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whethe
     import time
 
     with publisher() as endpoint:  # contact, health and raw; never topology
-        proc = subprocess.Popen([*py_subscriber(tmp_path), "-e", endpoint, "topology"], stdout=subprocess.PIPE,
+        proc = subprocess.Popen([*EXAMPLE_COMMANDS[language](tmp_path), "-e", endpoint, "topology"],
+                                stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, start_new_session=True)
         try:
             time.sleep(7)

@@ -244,3 +244,22 @@ def test_decode_bad_input_gives_clear_errors(tmp_path: Path) -> None:
     assert missing.returncode == 2 and b"cannot read" in missing.stderr and b"Traceback" not in missing.stderr
     bad_hex = run("decode", "--hex", "-", stdin=b"zz")
     assert bad_hex.returncode == 2 and b"not hexadecimal" in bad_hex.stderr
+
+
+@pytest.mark.parametrize("command", [["info"], ["info", "--json"], ["decode"], ["replay", "--fast"],
+                                     ["robot", "score"]])
+def test_a_missing_file_is_a_usage_error_of_every_command_that_reads_one(tmp_path: Path, command: list[str]) -> None:
+    # `info` exited 1 for a file that is not there, where decode, replay and robot score exit 2
+    # (1 is a file that is there but damaged)
+    missing = tmp_path / "nope.mcap"
+    r = run(*command, str(missing))
+    assert r.returncode == 2, (command, r.returncode, r.stderr)
+    said = r.stderr.decode()
+    assert str(missing) in said and "Traceback" not in said and r.stdout == b"", said
+
+
+def test_info_of_a_missing_file_among_good_ones_still_summarises_the_good_ones(tmp_path: Path) -> None:
+    from support.golden_corpus import DATA
+
+    r = run("info", str(tmp_path / "nope.mcap"), str(DATA / "fragments.mcap"))
+    assert r.returncode == 2 and b"fragments.mcap" in r.stdout, r.stderr

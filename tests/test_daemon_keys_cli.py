@@ -59,6 +59,23 @@ def test_gen_refuses_to_overwrite_unless_forced(tmp_path: Path) -> None:
 def test_gen_bad_input_gives_clear_errors(tmp_path: Path) -> None:
     bad_name = keys_gen("--dir", str(tmp_path), "../escape")
     assert bad_name.returncode == 2 and "plain file name" in bad_name.stderr
-    missing_dir = keys_gen("--dir", str(tmp_path / "nope"))
-    assert missing_dir.returncode == 2 and "cannot write into" in missing_dir.stderr
-    assert "Traceback" not in bad_name.stderr + missing_dir.stderr
+    (tmp_path / "a-file").write_text("")
+    no_dir = keys_gen("--dir", str(tmp_path / "a-file" / "keys"))  # a folder that cannot be made
+    assert no_dir.returncode == 2 and "cannot make" in no_dir.stderr and "a-file" in no_dir.stderr, no_dir.stderr
+    assert "Traceback" not in bad_name.stderr + no_dir.stderr
+
+
+def test_gen_makes_a_missing_folder_private(tmp_path: Path) -> None:
+    # `keys gen --dir DIR` refused a DIR that was not there, where `mesh up --pty-link DIR` and
+    # `robot run --out DIR` make theirs; now it makes it (and its missing parents), 0700 whatever
+    # the umask: a folder of secret keys is its owner's alone
+    target = tmp_path / "etc" / "cellbridge"
+    out = keys_gen("--dir", str(target), "server", umask=0)
+    assert out.returncode == 0, out.stderr
+    assert (target / "server.key").is_file() and mode(target / "server.key_secret") == 0o600
+    assert mode(target) == 0o700 and mode(tmp_path / "etc") == 0o700
+    assert f"made {target}" in out.stdout or f"made {target}" in out.stderr, (out.stdout, out.stderr)
+    os.chmod(target, 0o755)  # a folder that is there keeps its mode
+    assert keys_gen("--dir", str(target), "arm").returncode == 0 and mode(target) == 0o755
+    help_text = subprocess.run([CLI, "keys", "gen", "--help"], capture_output=True, text=True, timeout=60).stdout
+    assert "made if missing" in " ".join(help_text.split())

@@ -13,6 +13,8 @@ import signal
 import time
 from pathlib import Path
 
+import pytest
+
 from daemon_harness import Client, Pty, daemon, write_config
 
 SIGHUP_BIT = 1 << (signal.SIGHUP - 1)
@@ -57,3 +59,33 @@ def test_sighup_during_start_up_is_taken_as_a_reload(tmp_path: Path) -> None:
     finally:
         client.close()
         pty.close()
+
+
+@pytest.mark.parametrize("taken", ["pub", "control"])
+def test_a_second_daemon_on_taken_endpoints_says_so_in_a_sentence_and_exits(tmp_path: Path, taken: str) -> None:
+    # two `cellbridge daemon` with the same config: the second said so only in a JSON log line
+    import subprocess
+
+    from daemon_harness import CLI, free_port
+
+    pty = Pty(tmp_path / "gw")
+    first_cfg, second_cfg = tmp_path / "first.toml", tmp_path / "second.toml"
+    ends = write_config(first_cfg, [{"name": "gw", "url": pty.link}], contact={"enabled": False})
+    other = "control" if taken == "pub" else "pub"
+    write_config(second_cfg, [{"name": "gw", "url": pty.link}], contact={"enabled": False},
+                 **{taken: {"endpoint": ends[taken]}, other: {"endpoint": f"tcp://127.0.0.1:{free_port()}"}})
+    client = Client(ends, (b"health",))
+    try:
+        with daemon(first_cfg):
+            client.ready()
+            second = subprocess.run([CLI, "daemon", "--config", str(second_cfg)], capture_output=True, text=True,
+                                    timeout=60, start_new_session=True)
+    finally:
+        client.close()
+        pty.close()
+    assert second.returncode != 0, second.stderr
+    lines = second.stderr.splitlines()
+    assert any(line.startswith("{") and "Address already in use" in line for line in lines), lines  # the log line
+    said = [line for line in lines if line.startswith("cellbridge daemon:")]
+    assert len(said) == 1, lines
+    assert ends[taken] in said[0] and f"[{taken}] endpoint" in said[0] and "another daemon" in said[0], said

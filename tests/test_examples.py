@@ -152,12 +152,13 @@ def test_example_prints_a_map_whose_keys_are_numbers_and_not_numbers(language: s
                        for b in odd), odd
 
 
-# The Python example's ends: each a sentence and an exit status, never a traceback.
+# The examples' ends: each a sentence and an exit status, never a traceback (Ctrl-C: exit 0).
 
 
-def test_python_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(tmp_path: Path) -> None:
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(language: str, tmp_path: Path) -> None:
     # No daemon on the endpoint: the subscriber waited without a word, and Ctrl-C then
-    # ended it in a KeyboardInterrupt traceback.
+    # ended it in a KeyboardInterrupt traceback (Python), with exit 1 (C), or 130 (JavaScript).
     import os
     import signal
     import subprocess
@@ -166,7 +167,7 @@ def test_python_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(tmp_p
     from daemon_harness import free_port
 
     endpoint = f"tcp://127.0.0.1:{free_port()}"  # nobody publishes there
-    proc = subprocess.Popen([*py_subscriber(tmp_path), "-e", endpoint], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([*EXAMPLE_COMMANDS[language](tmp_path), "-e", endpoint], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, start_new_session=True)
     try:
         assert proc.stderr is not None
@@ -223,7 +224,9 @@ def test_python_example_reads_on_past_a_message_it_cannot_decode(tmp_path: Path)
     assert errors == {"contact": "payload is not msgpack", "health": "expected 2 frames [topic, payload]"}, lines
 
 
-def test_python_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs(tmp_path: Path) -> None:
+@pytest.mark.parametrize("language", EXAMPLE_COMMANDS)
+def test_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whether_it_runs(language: str,
+                                                                                   tmp_path: Path) -> None:
     # an idle skin publishes no contact: the daemon's health, every second, says it runs
     import os
     import signal
@@ -231,7 +234,8 @@ def test_python_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whethe
     import time
 
     with publisher() as endpoint:  # contact, health and raw; never topology
-        proc = subprocess.Popen([*py_subscriber(tmp_path), "-e", endpoint, "topology"], stdout=subprocess.PIPE,
+        proc = subprocess.Popen([*EXAMPLE_COMMANDS[language](tmp_path), "-e", endpoint, "topology"],
+                                stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, start_new_session=True)
         try:
             time.sleep(7)
@@ -241,4 +245,66 @@ def test_python_example_of_a_quiet_topic_of_a_running_daemon_does_not_ask_whethe
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+    assert proc.returncode == 0 and err == b"", err
+
+
+def readme_subscriber() -> str:
+    """The README's inline Python subscriber, as written there."""
+    import re
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    blocks = [b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "recv_multipart" in b]
+    assert len(blocks) == 1, "the README's Python subscriber snippet"
+    return blocks[0]
+
+
+def test_readme_subscriber_prints_contacts_and_ends_quietly_on_ctrl_c(tmp_path: Path) -> None:
+    # the README's snippet, run as written, ended in a KeyboardInterrupt traceback on Ctrl-C
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import msgpack
+
+    code = readme_subscriber()
+    assert "tcp://127.0.0.1:5560" in code  # the daemon's default endpoint: published on here when free
+    context = zmq.Context()
+    pub: zmq.Socket[bytes] | None = context.socket(zmq.PUB)
+    assert pub is not None
+    pub.linger = 0
+    try:
+        pub.bind("tcp://127.0.0.1:5560")
+    except zmq.ZMQError:  # a daemon of another run holds the default port: Ctrl-C is tested alone
+        pub.close()
+        pub = None
+    # (-u: its stdout is a pipe here, not a terminal)
+    proc = subprocess.Popen([sys.executable, "-u", "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            cwd=tmp_path, start_new_session=True)
+    try:
+        assert proc.stdout is not None
+        if pub is not None:
+            os.set_blocking(proc.stdout.fileno(), False)
+            printed = b""
+            contact = msgpack.packb({"v": 1, "seq": 0, "t_host": 1.7e9,
+                                     "contacts": [{"id": 1, "x": 0.057, "y": 0.04, "force": 3.0}]})
+            end = time.monotonic() + 30
+            while b"\n" not in printed and time.monotonic() < end and proc.poll() is None:
+                pub.send_multipart([b"contact", contact])
+                time.sleep(0.1)
+                printed += proc.stdout.read() or b""
+            assert printed.split(b"\n")[0] == b"0.057 0.04 3.0", printed
+        else:
+            time.sleep(2)
+        assert proc.poll() is None
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C, as the terminal sends it
+        _, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        if pub is not None:
+            pub.close()
+        context.term()
     assert proc.returncode == 0 and err == b"", err

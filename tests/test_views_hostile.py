@@ -466,3 +466,29 @@ def test_a_view_given_an_endpoint_without_its_scheme_says_so(command: list[str],
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, start_new_session=True)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert f"{option} 127.0.0.1:5560: Invalid argument: not an endpoint to connect to" in r.stderr
+
+
+def test_watch_says_when_no_daemon_answers_and_not_when_one_runs_quietly() -> None:
+    # `cellbridge watch` with no daemon showed "waiting for the first message" for ever; as
+    # `cellbridge sub` does, after 5 s with nothing, not even health, it says no daemon answers
+    from daemon_harness import free_port
+
+    nobody = f"tcp://127.0.0.1:{free_port()}"
+    with pty_program([CLI, "watch", "--endpoint", nobody, "--control", f"tcp://127.0.0.1:{free_port()}"]) as watch:
+        watch.wait_for("waiting for the first message")
+        start = time.monotonic()
+        watch.wait_for("no daemon answers on " + re.escape(nobody), timeout=30)
+        assert time.monotonic() - start > 3.0  # not at once: a daemon takes a moment to be heard
+        watch.wait_for("not even its health")
+        assert watch.proc.poll() is None  # it waits on: a daemon started later is shown
+        watch.send(b"\x03")
+        assert watch.proc.wait(10) == 0
+    with FakeDaemon() as fd, pty_program([CLI, "watch", *args(fd)]) as watch:  # only health, once a second
+        end = time.monotonic() + 7.0
+        seq = 0
+        while time.monotonic() < end:
+            fd.publish("health", health(seq))
+            seq += 1
+            time.sleep(0.5)
+        watch.wait_for("daemon: live")
+        assert "no daemon answers" not in watch.text()

@@ -151,7 +151,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = ("Summarise a recording: topics and message counts, duration, daemons, bridges, "
                           "contacts seen, serial links kept. A recording cut short is read to its last whole "
                           "chunk (exit 0); a damaged one is summarised from what can be read, and a line on "
-                          "stderr says what was skipped (exit 1).")
+                          "stderr says what was skipped (exit 1). A file that is not there or cannot be read: exit 2.")
     parser.add_argument("files", type=Path, nargs="+", metavar="FILE.mcap")
     parser.add_argument("--json", action="store_true", help="one JSON object per file instead of text")
 
@@ -161,13 +161,13 @@ def run(args: argparse.Namespace) -> int:
     for path in args.files:
         try:
             info = summarise(path)
-        except OSError as exc:
+        except OSError as exc:  # not there, or not readable: 2, as decode, replay and robot score say it
             print(f"cellbridge info: {path}: {exc.strerror or exc}", file=sys.stderr)
-            status = 1
+            status = 2
             continue
         except NotARecording as exc:
             print(f"cellbridge info: {exc}", file=sys.stderr)
-            status = 1
+            status = max(status, 1)
             continue
         try:
             print(json.dumps(info) if args.json else format_text(info), flush=True)
@@ -176,5 +176,5 @@ def run(args: argparse.Namespace) -> int:
             return status
         if "damaged" in info:
             print(f"cellbridge info: {info['damaged']}", file=sys.stderr, flush=True)
-            status = 1
+            status = max(status, 1)
     return status

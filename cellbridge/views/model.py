@@ -327,7 +327,10 @@ class SkinView:
     """
 
     def __init__(self, force_scale: float = 5.0, dc_scale: float = 2.0, stale_after: float = STALE_AFTER,
-                 source: str | None = None) -> None:
+                 source: str | None = None, endpoint: str | None = None, quiet_after: float = math.inf) -> None:
+        self.endpoint = endpoint  # the daemon's PUB endpoint, named when nothing comes from it
+        self.quiet_after = quiet_after  # s with no message at all before the status says no daemon answers
+        self._waiting_since: float | None = None  # when the status was first asked for
         self.force_scale = force_scale  # N at full colour
         self.dc_scale = dc_scale  # pF at full colour
         self.stale_after = stale_after
@@ -772,7 +775,13 @@ class SkinView:
         losses. Every string from the daemon in it has passed :func:`printable`."""
         h = self.health_summary
         lines = []
-        if self.last_message == -math.inf:
+        if self._waiting_since is None:
+            self._waiting_since = now
+        if self.last_message == -math.inf and not self.received and now - self._waiting_since >= self.quiet_after:
+            # nothing at all, not even health (every second from a running daemon): as `cellbridge sub` says it
+            lines.append(f"daemon: no daemon answers on {printable(self.endpoint or '?')}")
+            lines.append(f"  nothing in {self.quiet_after:g} s, not even its health: is it running? (waiting on)")
+        elif self.last_message == -math.inf:
             lines.append("daemon: waiting for the first message"
                          + (f" of source {printable(self.source)}" if self.source_given else ""))
         elif not self.live(now):

@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from cellbridge.daemon.shell.subscribe import QUIET_S
 from cellbridge.views.model import SkinView, printable
 from cellbridge.views.signals import ignore_stop_signals, on_stop_signal, write_now
 from cellbridge.views.source import Source, add_source_arguments, open_source
@@ -74,8 +75,8 @@ def run(args: argparse.Namespace) -> int:
     if source is None:
         return 2
     try:
-        app = _make_app(source, SkinView(force_scale=args.force_scale, source=args.source), args.fps, args.endpoint,
-                        _terminal_restorer())
+        model = SkinView(force_scale=args.force_scale, source=args.source, endpoint=args.endpoint, quiet_after=QUIET_S)
+        app = _make_app(source, model, args.fps, args.endpoint, _terminal_restorer())
         app.run()
     except KeyboardInterrupt:
         pass

@@ -46,6 +46,26 @@ def write_keypair(directory: Path, name: str, *, force: bool = False) -> tuple[P
     return public_path, secret_path
 
 
+def make_key_dir(directory: Path) -> list[Path]:
+    """Make ``directory`` and its missing parents, each 0700 whatever the umask (a folder
+    of secret keys is its owner's alone; one that is there keeps its mode). The folders
+    made, outermost first. OSError when one cannot be made."""
+    missing: list[Path] = []
+    d = directory
+    while not d.exists() and d != d.parent:
+        missing.append(d)
+        d = d.parent
+    made: list[Path] = []
+    for d in reversed(missing):
+        try:
+            d.mkdir(mode=0o700)
+        except FileExistsError:  # made meanwhile by another: its mode is its maker's
+            continue
+        os.chmod(d, 0o700)
+        made.append(d)
+    return made
+
+
 def _write_atomic(path: Path, text: str, mode: int) -> None:
     """Create a temporary file with ``mode`` already set, then rename it into place."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -80,11 +100,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                          "NAME.key_secret (public and secret key, 0600).")
     gen.add_argument("name", nargs="?", default="server",
                      help="base name of the two files (default: server)")
-    gen.add_argument("--dir", type=Path, default=Path("."), help="directory to write into (default: .)")
+    gen.add_argument("--dir", type=Path, default=Path("."),
+                     help="directory to write into (default: .); made if missing, with its missing parents, "
+                          "mode 0700 (a folder that is there keeps its mode)")
     gen.add_argument("--force", action="store_true", help="replace an existing pair of that name")
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        made = make_key_dir(args.dir)
+    except OSError as exc:
+        print(f"cellbridge keys gen: --dir {args.dir}: cannot make it: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    for d in made:
+        print(f"made {d}  (mode 0700)")
     try:
         public_path, secret_path = write_keypair(args.dir, args.name, force=args.force)
     except (ValueError, FileExistsError) as exc:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import functools
 import gc
 import logging
@@ -37,6 +38,7 @@ from cellbridge.daemon.core.contact_schedule import ContactScheduler
 from cellbridge.daemon.core.messages import Health, LinkWrite, LogEvent, Message
 from cellbridge.daemon.core.pipeline import Pipeline
 from cellbridge.daemon.ops.ops import OpsHooks
+from cellbridge.daemon.ops.security import endpoint_error
 from cellbridge.daemon.shell import kernels
 from cellbridge.daemon.shell.contact_worker import ContactWorker, ExecutorFactory, process_pool
 from cellbridge.daemon.shell.control_server import ControlServer
@@ -130,6 +132,7 @@ class Service:
         # together at one wake (links.ReplayPacer; on the host's clock, as the replays pace)
         self._replay_pacer = ReplayPacer()
         self.hooks = hooks if hooks is not None else OpsHooks(config)
+        self._binding = ("pub", config.pub.endpoint)  # the socket being bound (said when that fails)
         self.links: dict[str, Link] = {}
         self._fresh = asyncio.Event()
         # the contact loop rests after a look that ran no estimate, and a read completing a
@@ -482,7 +485,9 @@ class Service:
         self.ctl = ctx.socket(zmq.ROUTER)
         self.ctl.setsockopt(zmq.LINGER, 500)
         self.control = ControlServer(self.ctl, self, self.log)
-        for sock, endpoint in ((self.pub.sock, c.pub.endpoint), (self.ctl, c.control.endpoint)):
+        for section, sock, endpoint in (("pub", self.pub.sock, c.pub.endpoint),
+                                        ("control", self.ctl, c.control.endpoint)):
+            self._binding = (section, endpoint)
             self.hooks.secure(ctx, sock, endpoint)  # OPS: security check, CURVE and peer bounds, before bind
             sock.bind(endpoint)
             self.hooks.bound(sock, endpoint)  # OPS: an ipc:// socket file's mode and group
@@ -539,6 +544,7 @@ class Service:
             self._bind(ctx)
         except (zmq.ZMQError, ValueError) as exc:
             event(self.log, "error", "cannot bind", error=str(exc))
+            print(f"cellbridge daemon: {bind_problem(*self._binding, exc)}", file=sys.stderr, flush=True)
             self.hooks.close()
             if self._ctx is None:
                 ctx.destroy(linger=0)
@@ -662,6 +668,18 @@ def build_service(config: Config, config_path: str | Path | None, **kwargs: Any)
     service = Service(config, layout, config_path=config_path, **kwargs)
     service.pipeline.surface = surface
     return service
+
+
+def bind_problem(section: str, endpoint: str, exc: Exception) -> str:
+    """A bind that failed as one sentence for a person: the endpoint, its config key, and
+    for one in use the likely cause (the log line gives libzmq's words to a machine)."""
+    where = f"{endpoint} ([{section}] endpoint)"
+    if isinstance(exc, zmq.ZMQError) and exc.errno == errno.EADDRINUSE:
+        return (f"{where} is in use: another daemon is probably running on it (the same config started "
+                "twice?); stop that one, or give this one other endpoints")
+    if isinstance(exc, zmq.ZMQError):
+        return f"{where} cannot be bound: {endpoint_error(endpoint, exc).removeprefix(endpoint + ': ')}"
+    return f"{where}: {exc}"
 
 
 def run_service(config_path: str | Path | None, config: Config) -> int:

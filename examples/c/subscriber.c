@@ -9,17 +9,33 @@
  * public key file and this client's secret key file, both written by
  * `cellbridge keys gen` (the client's NAME.key must be in the daemon's
  * allowed_clients_dir).
+ *
+ * When nothing comes in the first 5 s, not even the daemon's health (published every
+ * second), a line on stderr says so and it waits on. Ctrl-C ends it, exit 0.
  */
+#define _POSIX_C_SOURCE 200809L /* sigaction, getopt */
 #include <msgpack.h>
 #include <zmq.h>
 
+#include <errno.h>
 #include <math.h>
+#include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 #include <unistd.h>
 
 static void print_json(const msgpack_object *o);
+
+#define QUIET_MS 5000 /* ms without a message before it says so (and waits on) */
+
+static volatile sig_atomic_t stopped; /* Ctrl-C: the end, not an error */
+
+static void on_sigint(int sig)
+{
+    (void)sig;
+    stopped = 1;
+}
 
 static void print_string(const char *s, size_t n)
 {
@@ -125,11 +141,19 @@ int main(int argc, char **argv)
             return 2;
         }
     }
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_sigint; /* no SA_RESTART: a wait in libzmq returns EINTR */
+    sigaction(SIGINT, &sa, NULL);
     void *ctx = zmq_ctx_new();
     void *sub = zmq_socket(ctx, ZMQ_SUB);
+    void *probe = zmq_socket(ctx, ZMQ_SUB); /* the daemon's health alone: is a daemon there? */
     int linger = 0;
     zmq_setsockopt(sub, ZMQ_LINGER, &linger, sizeof linger);
-    if ((server_key || client_key) && !(server_key && client_key && make_curve_client(sub, server_key, client_key) == 0)) {
+    zmq_setsockopt(probe, ZMQ_LINGER, &linger, sizeof linger);
+    if ((server_key || client_key)
+        && !(server_key && client_key && make_curve_client(sub, server_key, client_key) == 0
+             && make_curve_client(probe, server_key, client_key) == 0)) {
         fprintf(stderr, "CURVE needs both -s SERVER.key and -k CLIENT.key_secret, readable\n");
         rc = 2;
         goto out;
@@ -138,20 +162,36 @@ int main(int argc, char **argv)
         zmq_setsockopt(sub, ZMQ_SUBSCRIBE, "", 0); /* every topic */
     for (int i = optind; i < argc; i++)
         zmq_setsockopt(sub, ZMQ_SUBSCRIBE, argv[i], strlen(argv[i])); /* prefix match */
-    if (zmq_connect(sub, endpoint) != 0) {
+    zmq_setsockopt(probe, ZMQ_SUBSCRIBE, "health", 6);
+    if (zmq_connect(sub, endpoint) != 0 || zmq_connect(probe, endpoint) != 0) {
         fprintf(stderr, "%s: %s\n", endpoint, zmq_strerror(zmq_errno()));
         rc = 2;
         goto out;
     }
+    /* Connecting never fails: a daemon that is not there says nothing. A running one
+     * publishes its health every second, even while the topics asked for are quiet. */
+    zmq_pollitem_t first[] = {{sub, 0, ZMQ_POLLIN, 0}, {probe, 0, ZMQ_POLLIN, 0}};
+    int ready = zmq_poll(first, 2, QUIET_MS);
+    if (ready == 0 || (ready > 0 && !(first[0].revents | first[1].revents)))
+        fprintf(stderr, "subscriber: nothing from %s in %d s, not even its health: is the daemon running%s (waiting on; "
+                "Ctrl-C stops)\n", endpoint, QUIET_MS / 1000,
+                server_key ? " and does it allow this client's key?" : "?");
+    zmq_close(probe);
+    probe = NULL;
     msgpack_unpacked payload;
     msgpack_unpacked_init(&payload);
-    while (count == 0 || received < count) {
+    while (!stopped && (count == 0 || received < count)) {
         zmq_msg_t topic, body;
         int more = 0;
         size_t more_size = sizeof more;
         zmq_msg_init(&topic);
         zmq_msg_init(&body);
-        if (zmq_msg_recv(&topic, sub, 0) < 0) { rc = 1; break; } /* interrupted */
+        if (zmq_msg_recv(&topic, sub, 0) < 0) { /* Ctrl-C (EINTR): the end; anything else an error */
+            if (!(stopped || zmq_errno() == EINTR)) rc = 1;
+            zmq_msg_close(&topic);
+            zmq_msg_close(&body);
+            break;
+        }
         zmq_getsockopt(sub, ZMQ_RCVMORE, &more, &more_size);
         if (more) zmq_msg_recv(&body, sub, 0);
         int extra = 0;
@@ -180,6 +220,7 @@ int main(int argc, char **argv)
     }
     msgpack_unpacked_destroy(&payload);
 out:
+    if (probe) zmq_close(probe);
     zmq_close(sub);
     zmq_ctx_term(ctx);
     return rc;

@@ -7,12 +7,17 @@
 //
 // -s/-k make it a CURVE client: the daemon's public key file and this client's secret
 // key file, both written by `cellbridge keys gen` (the client's .key must be allowed).
+//
+// When nothing comes in the first 5 s, not even the daemon's health (published every
+// second), a line on stderr says so and it waits on. Ctrl-C ends it, exit 0.
 "use strict";
 
 const fs = require("node:fs");
 const { parseArgs } = require("node:util");
 const zmq = require("zeromq");
 const { decode } = require("@msgpack/msgpack");
+
+const QUIET_MS = 5000; // ms without a message before it says so (and waits on)
 
 // The Z85 key after `name = "` in a ZeroMQ certificate file.
 function readKey(path, name) {
@@ -40,23 +45,45 @@ async function main() {
       "client-key": { type: "string", short: "k" },
     },
   });
+  process.on("SIGINT", () => process.exit(0)); // Ctrl-C: the end, not an error
   const sock = new zmq.Subscriber({ linger: 0 });
-  if (values["server-key"] && values["client-key"]) {
-    sock.curveServerKey = readKey(values["server-key"], "public-key");
-    sock.curvePublicKey = readKey(values["client-key"], "public-key");
-    sock.curveSecretKey = readKey(values["client-key"], "secret-key");
+  const probe = new zmq.Subscriber({ linger: 0 }); // the daemon's health alone: is a daemon there?
+  const curve = Boolean(values["server-key"] && values["client-key"]);
+  if (curve) {
+    for (const s of [sock, probe]) {
+      s.curveServerKey = readKey(values["server-key"], "public-key");
+      s.curvePublicKey = readKey(values["client-key"], "public-key");
+      s.curveSecretKey = readKey(values["client-key"], "secret-key");
+    }
   }
   sock.connect(values.endpoint);
+  probe.connect(values.endpoint);
   if (positionals.length === 0) sock.subscribe(); // every topic
   else sock.subscribe(...positionals); // prefix match
+  probe.subscribe("health");
+
+  // Connecting never fails: a daemon that is not there says nothing. A running one
+  // publishes its health every second, even while the topics asked for are quiet.
+  let heard = false;
+  probe.receive().then(() => { heard = true; }, () => {}); // (rejected when closed)
+  const quiet = setTimeout(() => {
+    if (!heard) {
+      console.error(`subscriber: nothing from ${values.endpoint} in ${QUIET_MS / 1000} s, not even its health: ` +
+        `is the daemon running${curve ? " and does it allow this client's key?" : "?"} (waiting on; Ctrl-C stops)`);
+    }
+    probe.close();
+  }, QUIET_MS);
 
   const count = Number(values.count);
   let received = 0;
   for await (const [topic, payload] of sock) {
+    heard = true;
     const message = { topic: topic.toString(), payload: decode(payload) }; // every payload has "v" and "t_host"
     process.stdout.write(JSON.stringify(message, replacer) + "\n");
     if (count && ++received >= count) break;
   }
+  clearTimeout(quiet);
+  if (!probe.closed) probe.close();
   sock.close();
 }
 

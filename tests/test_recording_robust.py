@@ -543,3 +543,26 @@ def test_reading_some_topics_skips_chunks_by_the_index_and_loses_none(tmp_path: 
         result = ReadResult()
         got = [(m.topic, m.data) for m in read_messages(path, result, topics)]
         assert got == [m for m in every if m[0] in topics] and result.ok and result.complete
+
+
+@pytest.mark.parametrize("profile", ["mcap", "ros2"])
+@pytest.mark.parametrize("option", ["--rotate-size", "--chunk-size", "--chunk-seconds", "--duration",
+                                    "--rotate-minutes"])
+def test_record_refuses_an_option_that_is_not_a_number_it_can_keep_to(tmp_path: Path, profile: str,
+                                                                     option: str) -> None:
+    """``nan`` (or ``inf``) passed every check: ``--rotate-size nan`` ended in a traceback, and
+    ``--chunk-seconds nan`` or ``--duration nan`` recorded on without finishing a chunk on time
+    or stopping when told: a kill then lost far more than the second the help promises."""
+    out = tmp_path / "x"
+    r = subprocess.run([*CLI, "record", str(out), "--profile", profile, "--endpoint", "tcp://127.0.0.1:1",
+                        option, "nan"], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2, r.stderr
+    assert option in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def test_record_profile_ros2_refuses_a_chunk_size_its_readers_would_not_read(tmp_path: Path) -> None:
+    r = subprocess.run([*CLI, "record", str(tmp_path / "bag"), "--profile", "ros2", "--chunk-size", "50"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "at most 8 MB" in r.stderr and not (tmp_path / "bag").exists()
+

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import queue
 import signal
 import socket
@@ -156,6 +157,25 @@ def topics_of(args: argparse.Namespace) -> list[str]:
     return out
 
 
+def numbers_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the sizes, times and counts of ``args`` (both profiles), or None.
+    Each is a finite number (``nan`` passed a check of ``< 0`` and then stopped nothing:
+    ``--duration nan`` never ended, ``--chunk-seconds nan`` never finished a chunk on time)."""
+    for option, value in (("--rotate-size", args.rotate_size), ("--rotate-minutes", args.rotate_minutes),
+                          ("--chunk-size", args.chunk_size), ("--chunk-seconds", args.chunk_seconds),
+                          ("--duration", args.duration)):
+        if not math.isfinite(value) or value < 0:
+            return f"{option} {value:g}: not a number of 0 or more"
+    if args.count < 0:
+        return "--count must not be negative"
+    if args.chunk_size <= 0:
+        return "--chunk-size must be more than 0"
+    if args.chunk_size * 1e6 > MAX_CHUNK_SIZE:
+        return (f"--chunk-size {args.chunk_size:g} MB: at most {MAX_CHUNK_SIZE / 1e6:g} MB "
+                "(readers bound the chunks they decompress)")
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     if args.profile == "ros2":
         from cellbridge.ros2 import record as ros2_record
@@ -168,13 +188,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
-    if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds, args.count, args.duration) < 0 \
-            or args.chunk_size <= 0:
-        print("cellbridge record: sizes, times and counts must not be negative", file=sys.stderr)
-        return 2
-    if args.chunk_size * 1e6 > MAX_CHUNK_SIZE:
-        print(f"cellbridge record: --chunk-size {args.chunk_size:g} MB: at most {MAX_CHUNK_SIZE / 1e6:g} MB "
-              "(readers bound the chunks they decompress)", file=sys.stderr)
+    problem = numbers_problem(args)
+    if problem:
+        print(f"cellbridge record: {problem}", file=sys.stderr)
         return 2
     meta = {"endpoint": args.endpoint, "topics": ",".join(topics), "recorder_host": socket.gethostname(),
             "cellbridge_version": __version__, "started": f"{time.time():.6f}"}

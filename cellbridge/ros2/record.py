@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"cellbridge record: --profile ros2 {MISSING} ({exc})", file=sys.stderr)
         return 1
-    from cellbridge.recording.record_cli import EpochClock
+    from cellbridge.recording.record_cli import EpochClock, numbers_problem
     from cellbridge.ros2.cli import _others
     from cellbridge.ros2.qos import BadTopicName, topics
     from cellbridge.views.source import Source
@@ -73,9 +73,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         wanted = _topics(args)
         specs = topics(args.namespace)
-        if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds, args.count, args.duration) < 0 \
-                or args.chunk_size <= 0:
-            raise ValueError("sizes, times and counts must not be negative")
+        problem = numbers_problem(args)
+        if problem:
+            raise ValueError(problem)
         if (args.server_key is None) != (args.client_key is None):
             raise ValueError("--server-key and --client-key go together (CURVE needs both)")
     except (ValueError, BadTopicName) as exc:

@@ -566,3 +566,14 @@ def test_record_profile_ros2_refuses_a_chunk_size_its_readers_would_not_read(tmp
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "at most 8 MB" in r.stderr and not (tmp_path / "bag").exists()
 
+
+@pytest.mark.parametrize("hwm", ["0", "-1"])
+def test_replay_refuses_a_queue_bound_that_is_no_bound(tmp_path: Path, hwm: str) -> None:
+    """``--hwm -1`` was a ZeroMQ traceback; ``--hwm 0`` is libzmq's "no limit": a subscriber
+    that stops reading then grows the replay's memory without end."""
+    w = RecordingWriter(tmp_path / "a.mcap", fsync=False)
+    w.add("element", codec.encode("element", _element(0, 1.7e9)), 1, 1, 0)
+    w.finish()
+    r = subprocess.run([*CLI, "replay", str(tmp_path / "a.mcap"), "--fast", "--endpoint",
+                        f"tcp://127.0.0.1:{free_port()}", "--hwm", hwm], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--hwm" in r.stderr and "Traceback" not in r.stderr, r.stderr

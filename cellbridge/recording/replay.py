@@ -176,7 +176,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--topics", default="", help="comma-separated topics to replay (default: all recorded)")
     parser.add_argument("--wait-subscriber", action="store_true",
                         help="start once a subscriber has subscribed (nothing is lost to a slow connect)")
-    parser.add_argument("--hwm", type=int, default=100_000, help="messages queued per subscriber (default 100000)")
+    parser.add_argument("--hwm", type=int, default=100_000, help="messages queued per subscriber, at least 1 (default 100000)")
     parser.add_argument("--max-gap", type=float, default=DEFAULT_MAX_GAP, metavar="S",
                         help=f"shorten a pause in the recording longer than S s to S s, and say so on stderr "
                              f"(default {DEFAULT_MAX_GAP:g}; inf keeps every pause)")
@@ -196,6 +196,9 @@ def run(args: argparse.Namespace) -> int:
         pacer = Pacer(rate, args.max_gap)
     except ValueError as exc:
         print(f"cellbridge replay: {exc}", file=sys.stderr)
+        return 2
+    if args.hwm < 1:  # libzmq reads 0 as no limit: a subscriber that stops reading would grow the replay for ever
+        print(f"cellbridge replay: --hwm must be at least 1, got {args.hwm}", file=sys.stderr)
         return 2
     for p in args.inputs:
         if not p.is_file():

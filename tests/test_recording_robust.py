@@ -577,3 +577,27 @@ def test_replay_refuses_a_queue_bound_that_is_no_bound(tmp_path: Path, hwm: str)
     r = subprocess.run([*CLI, "replay", str(tmp_path / "a.mcap"), "--fast", "--endpoint",
                         f"tcp://127.0.0.1:{free_port()}", "--hwm", hwm], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "--hwm" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_recording_of_messages_that_compress_past_the_readers_ratio_reads_back(tmp_path: Path) -> None:
+    """Messages that repeat themselves (a large skin's identical readings, a synthetic stream)
+    compressed into chunks of more than 1000:1, which every reader, ``info`` and ``replay``
+    of this very recorder among them, refused as decompression bombs: a whole recording
+    read back as "damaged: N damaged parts skipped; 0 messages read". The recorder writes
+    only what its readers read."""
+    from mcap.stream_reader import StreamReader
+
+    out = tmp_path / "same.mcap"
+    w = RecordingWriter(out, fsync=False)
+    for i in range(12):
+        p = {"v": 1, "seq": i, "t_host": 1.7e9 + i, "force": [0.123456789012345] * 50_000, "source": "x"}
+        w.add("element", codec.encode("element", p), int((1.7e9 + i) * 1e9), int((1.7e9 + i) * 1e9), i)
+    w.finish()
+    result = ReadResult()
+    assert [p["seq"] for _, p in read_payloads(out, result)] == list(range(12))
+    assert result.ok and result.damaged == 0, result.damage
+    with open(out, "rb") as fh:  # and the mcap package reads it as it stands
+        n = sum(1 for r in StreamReader(fh).records if type(r).__name__ == "Message")
+    assert n == 12
+    r = subprocess.run([*CLI, "info", str(out)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "damaged" not in r.stderr, r.stderr

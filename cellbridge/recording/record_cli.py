@@ -40,6 +40,10 @@ DEFAULT_TOPICS = ("contact", "element", "health", "topology")
 #: Messages stamped but not yet written that the receiver holds before it leaves the rest in
 #: ZeroMQ's queue (bounded by its high-water mark; what overflows shows as ``missed``).
 BACKLOG = 100_000
+#: ... and bytes of them: past this the receiver goes on taking messages off the socket but
+#: keeps none (they show as ``missed``), so that neither its queue nor ZeroMQ's, bounded in
+#: messages only, grows by the size of large ones (100 000 of 500 kB are 50 GB).
+BACKLOG_BYTES = 256 << 20
 #: The interpreter's thread switch interval while recording (default 5 ms): the receiver
 #: gets the GIL within this while the writer encodes JSON, so a stamp is at most this late.
 SWITCH_INTERVAL = 0.0005
@@ -59,17 +63,31 @@ class EpochClock:
 class Receiver(threading.Thread):
     """Takes messages off the SUB socket as they come and stamps them (``clock``).
 
-    Hands ``(parts, time received)`` to :attr:`messages`; the socket is this thread's
-    alone once started. Stops when :attr:`stop` is set (within 0.1 s).
+    Hands ``(parts, time received)`` to :meth:`get`; the socket is this thread's alone once
+    started. Holds at most :data:`BACKLOG` messages and :data:`BACKLOG_BYTES` bytes not yet
+    taken. Stops when :attr:`stop` is set (within 0.1 s).
     """
 
     def __init__(self, sock: zmq.Socket, clock: EpochClock) -> None:
         super().__init__(name="record-receiver", daemon=True)
         self.sock = sock
         self.clock = clock
-        self.messages: queue.SimpleQueue[tuple[list[bytes], float]] = queue.SimpleQueue()
+        self.messages: queue.SimpleQueue[tuple[list[bytes], float, int]] = queue.SimpleQueue()
         self.stop = threading.Event()
         self.error: zmq.ZMQError | None = None
+        self._put_bytes = 0  # (this thread's)
+        self._taken_bytes = 0  # (the taker's)
+        self.discarded = 0  #: messages taken off the socket and not kept: over BACKLOG_BYTES
+
+    @property
+    def backlog_bytes(self) -> int:
+        return self._put_bytes - self._taken_bytes
+
+    def get(self, timeout: float | None = None) -> tuple[list[bytes], float]:
+        """The next message and its time received (``queue.Empty`` after ``timeout``; 0: none waiting)."""
+        parts, now, size = self.messages.get(timeout=timeout) if timeout != 0 else self.messages.get_nowait()
+        self._taken_bytes += size
+        return parts, now
 
     def run(self) -> None:
         try:
@@ -84,7 +102,12 @@ class Receiver(threading.Thread):
                         parts = self.sock.recv_multipart(zmq.NOBLOCK)
                     except zmq.Again:
                         break
-                    self.messages.put((parts, self.clock()))
+                    size = sum(len(p) for p in parts)
+                    if self.backlog_bytes + size > BACKLOG_BYTES:  # far behind on large messages: not kept
+                        self.discarded += 1
+                        continue
+                    self._put_bytes += size
+                    self.messages.put((parts, self.clock(), size))
         except zmq.ZMQError as exc:
             self.error = exc
 
@@ -109,7 +132,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "recording does not show in a replay. The line of counters at the end counts what\n"
         "was not recorded as received: malformed (not [topic, msgpack map]), bad_time\n"
         "(t_host no time: recorded with its receive time), oversized (not written), dropped,\n"
-        "unconfirmed, missed (gaps in seq).\n\n"
+        "unconfirmed, missed (gaps in seq), behind (received while the writer was over 256 MB\n"
+        "behind: not kept, and missed).\n\n"
         "Topics: contact, element, raw, health, topology, and serial (each gateway read's bytes:\n"
         "a daemon can later be run on them, link url replay:FILE.mcap). Default: all but raw\n"
         "and serial.\n\n"
@@ -238,7 +262,7 @@ def run(args: argparse.Namespace) -> int:
             if receiver.error is not None:
                 raise receiver.error
             try:
-                parts, now = receiver.messages.get(timeout=0.1)
+                parts, now = receiver.get(timeout=0.1)
             except queue.Empty:
                 rec.tick(clock())
                 continue
@@ -249,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
         if stop and not rec.stopped:  # what was received before the signal goes into the file too
             while not args.count or total < args.count:
                 try:
-                    parts, now = receiver.messages.get_nowait()
+                    parts, now = receiver.get(timeout=0)
                 except queue.Empty:
                     break
                 total += 1
@@ -270,7 +294,8 @@ def run(args: argparse.Namespace) -> int:
         sock.close()
         ctx.term()
         rec.close()
-        print(json.dumps(rec.stats()), file=sys.stderr)
+        print(json.dumps({**rec.stats(), "behind": receiver.discarded if receiver is not None else 0}),
+              file=sys.stderr)
     if rec.error:
         print(f"cellbridge record: {rec.error}", file=sys.stderr)
         return 1

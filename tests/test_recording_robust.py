@@ -660,3 +660,13 @@ def test_a_recording_of_messages_that_compress_past_the_readers_ratio_reads_back
     assert n == 12
     r = subprocess.run([*CLI, "info", str(out)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "damaged" not in r.stderr, r.stderr
+
+
+def test_info_and_replay_of_a_fifo_say_what_it_is_and_wait_for_nothing(tmp_path: Path) -> None:
+    """``cellbridge info`` of a FIFO (a name given by mistake, a pipe left in a directory of
+    recordings) waited for ever for a writer; ``replay`` said it was no such file."""
+    fifo = tmp_path / "skin.mcap"
+    os.mkfifo(fifo)
+    for cmd in (["info", str(fifo)], ["replay", str(fifo), "--fast", "--endpoint", f"tcp://127.0.0.1:{free_port()}"]):
+        r = subprocess.run([*CLI, *cmd], capture_output=True, text=True, timeout=30)
+        assert r.returncode in (1, 2) and "not a regular file" in r.stderr and "Traceback" not in r.stderr, r.stderr

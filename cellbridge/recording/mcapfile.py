@@ -26,6 +26,7 @@ from __future__ import annotations
 import bisect
 import io
 import os
+import stat
 import struct
 import zlib
 from collections.abc import Iterator
@@ -580,6 +581,9 @@ def read_messages(path: str | Path, result: ReadResult | None = None,
     :data:`MAX_CHUNK_BYTES` whatever the file declares.
     """
     result = result if result is not None else ReadResult()
+    mode = os.stat(path).st_mode
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a FIFO would be waited on for ever, a device read without end
+        raise NotARecording(f"{path}: not a regular file (a FIFO or a device): not read")
     with open(path, "rb") as fh:
         if fh.read(len(MAGIC)) != MAGIC:
             raise NotARecording(f"{path}: not an MCAP file (bad magic)")

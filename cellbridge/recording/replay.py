@@ -202,7 +202,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     for p in args.inputs:
         if not p.is_file():
-            print(f"cellbridge replay: {p}: no such file", file=sys.stderr)
+            what = "not a regular file (a FIFO, a device or a directory)" if p.exists() else "no such file"
+            print(f"cellbridge replay: {p}: {what}", file=sys.stderr)
             return 2
     topics = {t.strip() for t in args.topics.split(",") if t.strip()} or None
     stop: list[bool] = []

@@ -659,3 +659,15 @@ def test_a_bag_of_contacts_alone_still_ends_the_contacts_of_a_daemon_restarted_u
             if conn.topic == "/cellbridge/contacts":
                 last = store.deserialize_cdr(raw, conn.msgtype)
     assert last is not None and len(last.contacts) == 0, last
+
+
+@pytest.mark.parametrize("frame", ["", " ", "skin\tleft", "skin\x7f", "x" * 65])
+def test_a_frame_id_that_cannot_name_a_frame_is_refused_live_and_for_a_bag(tmp_path: Path, frame: str) -> None:
+    """``--frame-id`` is every flat-skin message's frame: ``cellbridge ros2`` took one with a
+    control character (a link named so is refused as a frame id), and ``record --profile
+    ros2`` took any, an empty one too: a bag whose every message is in no frame rviz shows."""
+    for cmd in (["ros2", "--frame-id", frame],
+                ["record", str(tmp_path / "bag"), "--profile", "ros2", "--frame-id", frame]):
+        r = subprocess.run([*cellbridge_cmd(), *cmd], capture_output=True, text=True, timeout=30)
+        assert r.returncode == 2 and "--frame-id" in r.stderr and "Traceback" not in r.stderr, (cmd, r.stderr)
+    assert not (tmp_path / "bag").exists()

@@ -66,14 +66,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"cellbridge record: --profile ros2 {MISSING} ({exc})", file=sys.stderr)
         return 1
     from cellbridge.recording.record_cli import EpochClock, numbers_problem
-    from cellbridge.ros2.cli import _others
+    from cellbridge.ros2.cli import _others, frame_id_problem
     from cellbridge.ros2.qos import BadTopicName, topics
     from cellbridge.views.source import Source
 
     try:
         wanted = _topics(args)
         specs = topics(args.namespace)
-        problem = numbers_problem(args)
+        problem = numbers_problem(args) or frame_id_problem(args.frame_id)
         if problem:
             raise ValueError(problem)
         if (args.server_key is None) != (args.client_key is None):

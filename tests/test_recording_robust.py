@@ -695,3 +695,41 @@ def test_a_paced_replay_of_a_long_recording_does_not_grow_with_its_length(tmp_pa
 
     fast, paced = peak_kb("--fast"), peak_kb("--rate", "1e9")
     assert paced < fast + 12_000, f"paced {paced} kB, fast {fast} kB"
+
+
+def test_messages_a_restarted_daemon_published_before_the_recorder_reconnected_are_counted_missed(
+        tmp_path: Path) -> None:
+    """A restarted daemon numbers its messages from 0 again; the recorder took a seq going back
+    as the restart and counted nothing, though the new process's first messages, published
+    before the recorder had reconnected, never reached it: a recording short of them with
+    ``missed`` 0. They are counted now (the new numbering starts at 0), and so is the restart."""
+    port = free_port()
+    out = tmp_path / "r.mcap"
+    rec = subprocess.Popen([*CLI, "record", str(out), "--endpoint", f"tcp://127.0.0.1:{port}", "--no-fsync",
+                            "--topics", "health"], stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        for life, lost in ((0, 0), (1, 5)):
+            ctx = zmq.Context()  # a daemon process each: its own context, ended (the port free) before the next
+            pub = ctx.socket(zmq.PUB)
+            pub.linger = 0
+            try:
+                pub.bind(f"tcp://127.0.0.1:{port}")
+                for seq in range(10):
+                    if seq == lost:
+                        time.sleep(2.0)  # the recorder (re)connects and subscribes: the ones before never reach it
+                    pub.send_multipart([b"health", msgpack.packb({"v": 1, "seq": seq, "t_host": 1.7e9 + life,
+                                                                  "source": "arm:5560"})])
+                time.sleep(0.5)
+            finally:
+                pub.close()
+                ctx.term()
+        time.sleep(0.5)
+        os.killpg(rec.pid, signal.SIGINT)
+        _, err = rec.communicate(timeout=60)
+    finally:
+        if rec.poll() is None:
+            os.killpg(rec.pid, signal.SIGKILL)
+            rec.wait()
+    stats = json.loads(err.strip().splitlines()[-1])
+    assert stats["recorded"] == {"health": 15}, stats
+    assert stats["missed"] == {"health": 5} and stats["restarts"] == 1, stats

@@ -132,7 +132,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "recording does not show in a replay. The line of counters at the end counts what\n"
         "was not recorded as received: malformed (not [topic, msgpack map]), bad_time\n"
         "(t_host no time: recorded with its receive time), oversized (not written), dropped,\n"
-        "unconfirmed, missed (gaps in seq), behind (received while the writer was over 256 MB\n"
+        "unconfirmed, missed (gaps in seq), restarts (the daemon's), behind (received while the writer was over 256 MB\n"
         "behind: not kept, and missed).\n\n"
         "Topics: contact, element, raw, health, topology, and serial (each gateway read's bytes:\n"
         "a daemon can later be run on them, link url replay:FILE.mcap). Default: all but raw\n"

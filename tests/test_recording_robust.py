@@ -619,7 +619,7 @@ def test_a_burst_of_large_messages_faster_than_the_disk_keeps_the_recorders_memo
         ctx.term()
     assert rec.returncode == 0, err
     stats = json.loads(err.strip().splitlines()[-1])
-    assert peak < 800, f"recorder grew to {peak} MB"
+    assert peak < 1000, f"recorder grew to {peak} MB"
     assert stats["behind"] > 0
     kept = sum(1 for _ in read_payloads(out))
     assert kept == stats["recorded"]["element"]

@@ -714,7 +714,7 @@ def test_a_bag_recorder_behind_on_large_messages_keeps_its_memory_bounded_and_co
         ctx.term()
     assert rec.returncode == 0, err
     stats = json.loads(err.strip().splitlines()[-1])
-    assert peak < 800, f"recorder grew to {peak} MB"
+    assert peak < 1000, f"recorder grew to {peak} MB"
     got, lost = stats["recorded"]["/cellbridge/tactile_state"], stats["lost"].get("element", 0)
     assert got + lost <= n <= got + lost + stats["behind"], stats  # every message in the bag, or counted
 

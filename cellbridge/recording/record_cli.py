@@ -44,6 +44,10 @@ BACKLOG = 100_000
 #: keeps none (they show as ``missed``), so that neither its queue nor ZeroMQ's, bounded in
 #: messages only, grows by the size of large ones (100 000 of 500 kB are 50 GB).
 BACKLOG_BYTES = 256 << 20
+#: Messages ZeroMQ itself queues for the receiver: the deep queue (a slow disk moment must
+#: not cost messages) is the receiver's, bounded in bytes too; ZeroMQ's, bounded in messages
+#: only, held 100 000 of any size whenever the receiver waited for a core (a loaded machine).
+RCVHWM = 1000
 #: The interpreter's thread switch interval while recording (default 5 ms): the receiver
 #: gets the GIL within this while the writer encodes JSON, so a stamp is at most this late.
 SWITCH_INTERVAL = 0.0005
@@ -232,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
     ctx = zmq.Context()
     sock = ctx.socket(zmq.SUB)
     sock.linger = 0
-    sock.rcvhwm = 100_000  # a slow disk moment must not cost messages
+    sock.rcvhwm = RCVHWM
     # Retry a daemon not yet bound every 10 ms, not ZeroMQ's 100: a recorder started first
     # then has the daemon's first messages too (the first read's serial bytes among them).
     sock.reconnect_ivl = 10

@@ -33,7 +33,7 @@ from cellbridge.ros2 import DEFAULT_FRAME, MISSING
 PROFILES = ("mcap", "ros2")
 #: The daemon's topics a ROS 2 bag holds (raw readings and serial bytes have no ROS 2 message here).
 ROS2_TOPICS = ("contact", "element", "health", "topology")
-RCVHWM = 100_000  # messages queued for this subscriber: a slow disk moment must not cost messages
+RCVHWM = 1000  # messages ZeroMQ queues for the receiver (whose own queue is the deep one: record_cli.RCVHWM)
 #: Messages decoded and converted at a time: a backlog waits as the daemon's bytes (at most
 #: record_cli.BACKLOG_BYTES of them, taken off the socket by a thread of their own), not as
 #: decoded payloads, which take several times their size (100 000 decoded at once were GBs).

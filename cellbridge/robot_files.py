@@ -211,17 +211,63 @@ def read_truths(path: str) -> tuple[list[dict[str, Any]], list[int]]:
     return out, lines
 
 
-def read_frames(path: str) -> tuple[list[tuple[float, list[dict[str, Any]]]], int]:
+@dataclass
+class _Runs:
+    """The daemon runs of a ``cellbridge sub`` recording, told apart by each source's ``seq``:
+    a restarted daemon numbers its messages, and its contacts, from 0 again, so its contact 0
+    is not the old process's contact 0. A message whose ``seq`` is its source's last one
+    again was recorded twice: scored once."""
+
+    last: dict[str, int] = field(default_factory=dict)  # source -> last seq
+    run: dict[str, int] = field(default_factory=dict)  # source -> its daemon run (0: the first)
+    ids: dict[tuple[str, int, int], int] = field(default_factory=dict)  # (source, run, id) -> id scored
+    restarts: int = 0
+    twice: int = 0
+
+    def new_message(self, payload: dict[str, Any]) -> bool:
+        """Whether ``payload`` is to be scored (False: its source's last message again)."""
+        seq = payload.get("seq")
+        if not isinstance(seq, int) or isinstance(seq, bool):
+            return True
+        source = str(payload.get("source", ""))
+        last = self.last.get(source)
+        if last is not None and seq == last:
+            self.twice += 1
+            return False
+        if last is not None and seq < last:
+            self.restarts += 1
+            self.run[source] = self.run.get(source, 0) + 1
+        self.last[source] = seq
+        return True
+
+    def told_apart(self, payload: dict[str, Any], contacts: list[dict[str, Any]]) -> None:
+        """Each contact's ``id`` one of its daemon run alone (unchanged while there is one run of one source)."""
+        if not self.restarts and len(self.last) <= 1:
+            return
+        source = str(payload.get("source", ""))
+        first = (source, self.run.get(source, 0)) == (next(iter(self.last)), 0)  # the first run heard: ids kept
+        for c in contacts:
+            key = (source, self.run.get(source, 0), int(c["id"]))
+            c["id"] = self.ids.setdefault(key, int(c["id"]) if first else -1 - len(self.ids))  # (the daemon's are >= 0)
+
+
+def read_frames(path: str, notes: list[str] | None = None) -> tuple[list[tuple[float, list[dict[str, Any]]]], int]:
     """The frames of ``path``, and how many lines of other topics (a ``cellbridge sub``
-    recording) it skipped."""
+    recording) it skipped; what it found of restarted daemons and messages recorded twice
+    goes to ``notes``."""
     frames: list[tuple[float, list[dict[str, Any]]]] = []
     other = 0
+    runs = _Runs()
     for n, d in _lines(path):
+        payload: dict[str, Any] | None = None
         if isinstance(d, dict) and "topic" in d and "t" not in d:  # a line of `cellbridge sub`
             if d["topic"] != "contact" or not isinstance(d.get("payload"), dict):
                 other += 1
                 continue
-            d = {"t": d["payload"].get("t_sample"), "contacts": d["payload"].get("contacts")}
+            payload = d["payload"]
+            if not runs.new_message(payload):
+                continue
+            d = {"t": payload.get("t_sample"), "contacts": payload.get("contacts")}
         if not isinstance(d, dict):
             raise RunFileError(f"{path}:{n}: not a contact frame: not a JSON object")
         if not _finite(d.get("t")):
@@ -235,8 +281,19 @@ def read_frames(path: str) -> tuple[list[tuple[float, list[dict[str, Any]]]], in
                 raise RunFileError(f"{path}:{n}: not a contact frame: {problem}")
             if not c.get("missed", 0):
                 _unnull(c)
+        if payload is not None:
+            runs.told_apart(payload, cs)
         if cs:  # what the scorer reads of each contact, no more: a long run's file is read in a fraction of its size
             frames.append((float(d["t"]), [{k: c[k] for k in SCORED if k in c} for c in cs]))
+    if notes is not None and runs.restarts:
+        times = "once" if runs.restarts == 1 else f"{runs.restarts} times"
+        notes.append(f"{path}: the daemon restarted {times} (its seq went back): the contact ids of each run "
+                     "told apart")
+    elif notes is not None and len(runs.last) > 1:
+        notes.append(f"{path}: contacts of {len(runs.last)} daemons (sources): their ids told apart")
+    if notes is not None and runs.twice:
+        notes.append(f"{path}: {runs.twice} message{'s' if runs.twice > 1 else ''} recorded twice "
+                     "(the same seq again): scored once")
     return frames, other
 
 
@@ -286,7 +343,7 @@ def read_run(directory: str) -> RunFiles:
     else:
         notes.append(f"no {RUN} in {directory}: whether {TRUTH} and {CONTACTS} are of one run is not checked")
     truths, truth_lines = read_truths(os.path.join(directory, TRUTH))
-    frames, other = read_frames(os.path.join(directory, CONTACTS))
+    frames, other = read_frames(os.path.join(directory, CONTACTS), notes)
     if other:
         notes.append(f"{os.path.join(directory, CONTACTS)}: {other} lines of other topics skipped")
     if not truths:

@@ -644,3 +644,193 @@ def test_reading_some_topics_skips_chunks_by_the_index_and_loses_none(tmp_path: 
         result = ReadResult()
         got = [(m.topic, m.data) for m in read_messages(path, result, topics)]
         assert got == [m for m in every if m[0] in topics] and result.ok and result.complete
+
+
+@pytest.mark.parametrize("profile", ["mcap", "ros2"])
+@pytest.mark.parametrize("option", ["--rotate-size", "--chunk-size", "--chunk-seconds", "--duration",
+                                    "--rotate-minutes"])
+def test_record_refuses_an_option_that_is_not_a_number_it_can_keep_to(tmp_path: Path, profile: str,
+                                                                     option: str) -> None:
+    """``nan`` (or ``inf``) passed every check: ``--rotate-size nan`` ended in a traceback, and
+    ``--chunk-seconds nan`` or ``--duration nan`` recorded on without finishing a chunk on time
+    or stopping when told: a kill then lost far more than the second the help promises."""
+    out = tmp_path / "x"
+    r = subprocess.run([*CLI, "record", str(out), "--profile", profile, "--endpoint", "tcp://127.0.0.1:1",
+                        option, "nan"], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2, r.stderr
+    assert option in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def test_record_profile_ros2_refuses_a_chunk_size_its_readers_would_not_read(tmp_path: Path) -> None:
+    r = subprocess.run([*CLI, "record", str(tmp_path / "bag"), "--profile", "ros2", "--chunk-size", "50"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "at most 8 MB" in r.stderr and not (tmp_path / "bag").exists()
+
+
+@pytest.mark.parametrize("hwm", ["0", "-1"])
+def test_replay_refuses_a_queue_bound_that_is_no_bound(tmp_path: Path, hwm: str) -> None:
+    """``--hwm -1`` was a ZeroMQ traceback; ``--hwm 0`` is libzmq's "no limit": a subscriber
+    that stops reading then grows the replay's memory without end."""
+    w = RecordingWriter(tmp_path / "a.mcap", fsync=False)
+    w.add("element", codec.encode("element", _element(0, 1.7e9)), 1, 1, 0)
+    w.finish()
+    r = subprocess.run([*CLI, "replay", str(tmp_path / "a.mcap"), "--fast", "--endpoint",
+                        f"tcp://127.0.0.1:{free_port()}", "--hwm", hwm], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--hwm" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_burst_of_large_messages_faster_than_the_disk_keeps_the_recorders_memory_bounded_and_counts_the_rest(
+        tmp_path: Path) -> None:
+    """The receiver held up to 100 000 messages whatever their size, and ZeroMQ's queue as many
+    again: a publisher of 450 kB messages faster than the writer grew the recorder by ~150 MB
+    a second (GBs, until the kernel killed it; a replay --fast of a large skin into a recorder). Now it keeps at most 256 MB behind, and what
+    it could not keep is counted (``missed``, ``behind``), never silently lost."""
+    port = free_port()
+    out = tmp_path / "big.mcap"
+    n, per_second = 6000, 600  # 270 MB/s for 10 s: more than the writer encodes, steadily (not one burst)
+    rec = subprocess.Popen([*CLI, "record", str(out), "--endpoint", f"tcp://127.0.0.1:{port}", "--no-fsync",
+                            "--topics", "element"], stderr=subprocess.PIPE, text=True, start_new_session=True)
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.sndhwm = 0
+    pub.linger = 0
+    peak = 0
+    try:
+        pub.bind(f"tcp://127.0.0.1:{port}")
+        time.sleep(2.0)  # the recorder connects and subscribes
+        rest = b"".join(msgpack.packb(x) for x in ("v", 1, "t_host", 1.7e9, "source", "x",
+                                                    "force", [0.123456789012345] * 50_000))
+        t0 = time.monotonic()
+        for i in range(n):
+            pub.send_multipart([b"element", b"\x85" + msgpack.packb("seq") + msgpack.packb(i) + rest])
+            if i % 20 == 0:
+                peak = max(peak, _rss_mb(rec.pid))
+                time.sleep(max(0.0, t0 + i / per_second - time.monotonic()))
+        for _ in range(20):
+            peak = max(peak, _rss_mb(rec.pid))
+            time.sleep(0.1)
+        os.killpg(rec.pid, signal.SIGINT)
+        _, err = rec.communicate(timeout=120)
+    finally:
+        if rec.poll() is None:
+            os.killpg(rec.pid, signal.SIGKILL)
+            rec.wait()
+        pub.close()
+        ctx.term()
+    assert rec.returncode == 0, err
+    stats = json.loads(err.strip().splitlines()[-1])
+    assert peak < 1000, f"recorder grew to {peak} MB"
+    assert stats["behind"] > 0
+    kept = sum(1 for _ in read_payloads(out))
+    assert kept == stats["recorded"]["element"]
+    # every message is written, or counted: a gap in seq before a kept one, or not kept at the end
+    assert kept + stats["missed"].get("element", 0) <= n <= kept + stats["missed"].get("element", 0) + stats["behind"]
+
+
+def _rss_mb(pid: int) -> int:
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) // 1024
+    except OSError:
+        pass
+    return 0
+
+
+def test_a_recording_of_messages_that_compress_past_the_readers_ratio_reads_back(tmp_path: Path) -> None:
+    """Messages that repeat themselves (a large skin's identical readings, a synthetic stream)
+    compressed into chunks of more than 1000:1, which every reader, ``info`` and ``replay``
+    of this very recorder among them, refused as decompression bombs: a whole recording
+    read back as "damaged: N damaged parts skipped; 0 messages read". The recorder writes
+    only what its readers read."""
+    from mcap.stream_reader import StreamReader
+
+    out = tmp_path / "same.mcap"
+    w = RecordingWriter(out, fsync=False)
+    for i in range(12):
+        p = {"v": 1, "seq": i, "t_host": 1.7e9 + i, "force": [0.123456789012345] * 50_000, "source": "x"}
+        w.add("element", codec.encode("element", p), int((1.7e9 + i) * 1e9), int((1.7e9 + i) * 1e9), i)
+    w.finish()
+    result = ReadResult()
+    assert [p["seq"] for _, p in read_payloads(out, result)] == list(range(12))
+    assert result.ok and result.damaged == 0, result.damage
+    with open(out, "rb") as fh:  # and the mcap package reads it as it stands
+        n = sum(1 for r in StreamReader(fh).records if type(r).__name__ == "Message")
+    assert n == 12
+    r = subprocess.run([*CLI, "info", str(out)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "damaged" not in r.stderr, r.stderr
+
+
+def test_info_and_replay_of_a_fifo_say_what_it_is_and_wait_for_nothing(tmp_path: Path) -> None:
+    """``cellbridge info`` of a FIFO (a name given by mistake, a pipe left in a directory of
+    recordings) waited for ever for a writer; ``replay`` said it was no such file."""
+    fifo = tmp_path / "skin.mcap"
+    os.mkfifo(fifo)
+    for cmd in (["info", str(fifo)], ["replay", str(fifo), "--fast", "--endpoint", f"tcp://127.0.0.1:{free_port()}"]):
+        r = subprocess.run([*CLI, *cmd], capture_output=True, text=True, timeout=30)
+        assert r.returncode in (1, 2) and "not a regular file" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_paced_replay_of_a_long_recording_does_not_grow_with_its_length(tmp_path: Path) -> None:
+    """The replay kept how late every paced message went out, a float per message, for its
+    closing line: a 3-day recording (50 million messages) grew it by ~1.6 GB. A million
+    messages paced now take no more memory than a million sent as fast as possible."""
+    src = tmp_path / "a.mcap"
+    w = RecordingWriter(src, fsync=False)
+    data = codec.encode("health", {"v": 1, "seq": 0, "t_host": 1.7e9})
+    for i in range(20_000):
+        w.add("health", data, 1_700_000_000_000_000_000 + i, 1_700_000_000_000_000_000 + i * 1000, i)
+    w.finish()
+
+    def peak_kb(*mode: str) -> int:
+        p = subprocess.Popen([*CLI, "replay", *[str(src)] * 50, *mode, "--endpoint", f"tcp://127.0.0.1:{free_port()}"],
+                             stderr=subprocess.PIPE, text=True)
+        assert p.stderr is not None
+        err = p.stderr.read()
+        _, status, usage = os.wait4(p.pid, 0)
+        p.returncode = os.waitstatus_to_exitcode(status)
+        assert p.returncode == 0 and json.loads(err.strip().splitlines()[-1])["sent"] == 1_000_000, err
+        return usage.ru_maxrss
+
+    fast, paced = peak_kb("--fast"), peak_kb("--rate", "1e9")
+    assert paced < fast + 12_000, f"paced {paced} kB, fast {fast} kB"
+
+
+def test_messages_a_restarted_daemon_published_before_the_recorder_reconnected_are_counted_missed(
+        tmp_path: Path) -> None:
+    """A restarted daemon numbers its messages from 0 again; the recorder took a seq going back
+    as the restart and counted nothing, though the new process's first messages, published
+    before the recorder had reconnected, never reached it: a recording short of them with
+    ``missed`` 0. They are counted now (the new numbering starts at 0), and so is the restart."""
+    port = free_port()
+    out = tmp_path / "r.mcap"
+    rec = subprocess.Popen([*CLI, "record", str(out), "--endpoint", f"tcp://127.0.0.1:{port}", "--no-fsync",
+                            "--topics", "health"], stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        for life, lost in ((0, 0), (1, 5)):
+            ctx = zmq.Context()  # a daemon process each: its own context, ended (the port free) before the next
+            pub = ctx.socket(zmq.PUB)
+            pub.linger = 0
+            try:
+                pub.bind(f"tcp://127.0.0.1:{port}")
+                for seq in range(10):
+                    if seq == lost:
+                        time.sleep(2.0)  # the recorder (re)connects and subscribes: the ones before never reach it
+                    pub.send_multipart([b"health", msgpack.packb({"v": 1, "seq": seq, "t_host": 1.7e9 + life,
+                                                                  "source": "arm:5560"})])
+                time.sleep(0.5)
+            finally:
+                pub.close()
+                ctx.term()
+        time.sleep(0.5)
+        os.killpg(rec.pid, signal.SIGINT)
+        _, err = rec.communicate(timeout=60)
+    finally:
+        if rec.poll() is None:
+            os.killpg(rec.pid, signal.SIGKILL)
+            rec.wait()
+    stats = json.loads(err.strip().splitlines()[-1])
+    assert stats["recorded"] == {"health": 15}, stats
+    assert stats["missed"] == {"health": 5} and stats["restarts"] == 1, stats

@@ -378,3 +378,24 @@ def test_contacts_on_another_clock_than_the_truths_are_refused(tmp_path: Path, c
     line = json.dumps({"topic": "contact", "payload": {"t_sample": 1.8e9 + frame["t"], "contacts": frame["contacts"]}})
     rc, out, err = _score(capsys, _dir(tmp_path, [GOOD_TRUTH], [line]))
     assert rc == 2 and "contacts.jsonl" in err and "clock" in err, (out, err)
+
+
+def test_a_daemon_restarted_in_a_sub_recording_has_its_false_contact_counted_false(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A restarted daemon numbers its contacts from 0 again: in a ``cellbridge sub`` recording
+    its new contact 0, touching nothing, took the id of the old process's contact 0 that
+    matched the press, and was scored as that detected contact lingering ("reports of
+    detected ids while they matched nothing"), the false contacts row reading 0. Each daemon
+    run's ids are now told apart (its ``seq`` going back), and a message recorded twice is
+    scored once; both are said."""
+    far = _contact(0, position=[9.0, 9.0, 9.0])
+    lines = [json.dumps({"topic": "contact", "payload": {"seq": s, "source": "arm:5560", "t_sample": t,
+                                                          "contacts": cs}})
+             for s, t, cs in ((7, 1.05, [_contact(0)]), (7, 1.05, [_contact(0)]),  # the same message twice
+                              (0, 1.06, [far]))]  # the daemon restarted: seq from 0, ids from 0
+    rc, out, err = _score(capsys, _dir(tmp_path, [GOOD_TRUTH], lines))
+    assert rc == 0, err
+    rows = {ln[:52].strip(): ln[52:].split() for ln in out.splitlines()}
+    assert rows["false contacts (ids matching nothing)"][0] == "1", out
+    assert rows["reports of detected ids while they matched nothing"][0] == "0", out
+    assert "restarted" in out and "1 message recorded twice" in out, out

@@ -35,7 +35,7 @@ from cellbridge.ros2.convert import Converter
 from cellbridge.ros2.daemon_feed import PayloadModel
 from cellbridge.ros2.relay import Relay
 from cellbridge.views.source import Source
-from live_skin import cellbridge_cmd, group
+from live_skin import cellbridge_cmd, free_port, group
 from ros2_peer import typestore
 
 LAYOUT = {"ids": [1, 2], "x": [0.02, 0.06], "y": [0.02, 0.02], "side": 0.04}
@@ -677,3 +677,72 @@ def test_an_interface_this_machine_has_not_is_named_as_such() -> None:
     assert r.returncode == 2, r.stderr
     assert "'nosuchif0': no such network interface here (interfaces: lo" in r.stderr, r.stderr
     assert "DDS_RETCODE" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("frame", ["", " ", "skin\tleft", "skin\x7f", "x" * 65])
+def test_a_frame_id_that_cannot_name_a_frame_is_refused_live_and_for_a_bag(tmp_path: Path, frame: str) -> None:
+    """``--frame-id`` is every flat-skin message's frame: ``cellbridge ros2`` took one with a
+    control character (a link named so is refused as a frame id), and ``record --profile
+    ros2`` took any, an empty one too: a bag whose every message is in no frame rviz shows."""
+    for cmd in (["ros2", "--frame-id", frame],
+                ["record", str(tmp_path / "bag"), "--profile", "ros2", "--frame-id", frame]):
+        r = subprocess.run([*cellbridge_cmd(), *cmd], capture_output=True, text=True, timeout=30)
+        assert r.returncode == 2 and "--frame-id" in r.stderr and "Traceback" not in r.stderr, (cmd, r.stderr)
+    assert not (tmp_path / "bag").exists()
+
+
+def test_a_bag_recorder_behind_on_large_messages_keeps_its_memory_bounded_and_counts_the_rest(
+        tmp_path: Path) -> None:
+    """The bag recorder decoded up to 100 000 waiting messages at once, and ZeroMQ held as many
+    again: a stream of a 64x64 skin's element messages (300 kB) faster than it converts them
+    (a replay --fast into a bag) grew it by ~200 MB a second, 2.3 GB in 10 s. Now what waits
+    is at most 256 MB of the daemon's bytes; messages past that are counted (behind, lost),
+    and what was received before the SIGINT goes into the bag."""
+    port = free_port()
+    bag = tmp_path / "bag"
+    n, per_second, e = 3000, 300, 4096
+    rec = subprocess.Popen([*cellbridge_cmd(), "record", str(bag), "--profile", "ros2", "--endpoint",
+                            f"tcp://127.0.0.1:{port}", "--control", f"tcp://127.0.0.1:{free_port()}", "--no-fsync",
+                            "--topics", "element"], stderr=subprocess.PIPE, text=True, start_new_session=True)
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.sndhwm = 0
+    pub.linger = 0
+    peak = 0
+    try:
+        pub.bind(f"tcp://127.0.0.1:{port}")
+        time.sleep(2.0)  # the recorder connects and subscribes
+        t0 = time.monotonic()
+        for i in range(n):
+            p = {"v": 1, "seq": i, "t_host": 1.7e9 + i * 0.01, "t_sample": 1.7e9 + i * 0.01, "source": "x",
+                 "t_bridge": [1e-6] * e, "bridge": list(range(e)), "element": list(range(e)), "cycle": [i] * e,
+                 "c1": [1e-11] * e, "c2": [2e-11] * e, "dc1": [1e-13] * e, "dc2": [1e-13] * e, "force": [0.5] * e,
+                 "area": [1e-4] * e, "valid": [True] * e}
+            pub.send_multipart([b"element", msgpack.packb(p)])
+            if i % 20 == 0:
+                peak = max(peak, _rss_mb(rec.pid))
+            time.sleep(max(0.0, t0 + i / per_second - time.monotonic()))
+        os.killpg(rec.pid, signal.SIGINT)
+        _, err = rec.communicate(timeout=180)
+    finally:
+        if rec.poll() is None:
+            os.killpg(rec.pid, signal.SIGKILL)
+            rec.wait()
+        pub.close()
+        ctx.term()
+    assert rec.returncode == 0, err
+    stats = json.loads(err.strip().splitlines()[-1])
+    assert peak < 1000, f"recorder grew to {peak} MB"
+    got, lost = stats["recorded"]["/cellbridge/tactile_state"], stats["lost"].get("element", 0)
+    assert got + lost <= n <= got + lost + stats["behind"], stats  # every message in the bag, or counted
+
+
+def _rss_mb(pid: int) -> int:
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) // 1024
+    except OSError:
+        pass
+    return 0

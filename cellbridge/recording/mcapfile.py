@@ -26,6 +26,7 @@ from __future__ import annotations
 import bisect
 import io
 import os
+import stat
 import struct
 import zlib
 from collections.abc import Iterator
@@ -33,6 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import mcap.writer
+import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
@@ -62,6 +65,36 @@ MAX_METADATA_RECORDS = 64
 MAX_CHUNK_SIZE = 8_000_000
 
 PROFILE = ""  # no ROS profile: plain JSON channels
+
+#: zstd's skippable frame: a magic number, the length of the bytes that follow; every zstd
+#: decoder passes over it.
+_SKIPPABLE = struct.Struct("<II")
+_SKIPPABLE_MAGIC = 0x184D2A50
+
+
+def compress_within_ratio(data: bytes) -> bytes:
+    """zstd of a chunk's records, padded (a skippable frame after the compressed one) so that
+    it stores at least 1 byte per :data:`MAX_RATIO` beyond :data:`RATIO_FLOOR`: every reader
+    (``info``, ``replay``, the daemon's replay link) takes a chunk that expands more as a
+    decompression bomb, and messages that repeat themselves (identical readings of a large
+    skin) compress past that. The padding costs at most a thousandth of the chunk."""
+    out: bytes = zstandard.compress(data)
+    need = (len(data) - RATIO_FLOOR) // MAX_RATIO + 1 - len(out)
+    if need > 0:
+        pad = max(0, need - _SKIPPABLE.size)
+        out += _SKIPPABLE.pack(_SKIPPABLE_MAGIC, pad) + bytes(pad)
+    return out
+
+
+class _ChunkZstd:
+    """What the ``mcap`` package's writer calls ``zstandard``: its chunks compressed by
+    :func:`compress_within_ratio` (it compresses each chunk with ``zstandard.compress``), so
+    every MCAP file cellbridge writes (recordings, ROS 2 bags) reads back in its readers."""
+
+    compress = staticmethod(compress_within_ratio)
+
+
+mcap.writer.zstandard = _ChunkZstd  # type: ignore[assignment]
 LIBRARY = f"cellbridge {__version__}"
 
 
@@ -548,6 +581,9 @@ def read_messages(path: str | Path, result: ReadResult | None = None,
     :data:`MAX_CHUNK_BYTES` whatever the file declares.
     """
     result = result if result is not None else ReadResult()
+    mode = os.stat(path).st_mode
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a FIFO would be waited on for ever, a device read without end
+        raise NotARecording(f"{path}: not a regular file (a FIFO or a device): not read")
     with open(path, "rb") as fh:
         if fh.read(len(MAGIC)) != MAGIC:
             raise NotARecording(f"{path}: not an MCAP file (bad magic)")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import glob
 import json
+import math
 import os
 import queue
 import signal
@@ -42,6 +43,14 @@ DEFAULT_TOPICS = ("contact", "element", "health", "topology")
 #: Messages stamped but not yet written that the receiver holds before it leaves the rest in
 #: ZeroMQ's queue (bounded by its high-water mark; what overflows shows as ``missed``).
 BACKLOG = 100_000
+#: ... and bytes of them: past this the receiver goes on taking messages off the socket but
+#: keeps none (they show as ``missed``), so that neither its queue nor ZeroMQ's, bounded in
+#: messages only, grows by the size of large ones (100 000 of 500 kB are 50 GB).
+BACKLOG_BYTES = 256 << 20
+#: Messages ZeroMQ itself queues for the receiver: the deep queue (a slow disk moment must
+#: not cost messages) is the receiver's, bounded in bytes too; ZeroMQ's, bounded in messages
+#: only, held 100 000 of any size whenever the receiver waited for a core (a loaded machine).
+RCVHWM = 1000
 #: The interpreter's thread switch interval while recording (default 5 ms): the receiver
 #: gets the GIL within this while the writer encodes JSON, so a stamp is at most this late.
 SWITCH_INTERVAL = 0.0005
@@ -61,17 +70,31 @@ class EpochClock:
 class Receiver(threading.Thread):
     """Takes messages off the SUB socket as they come and stamps them (``clock``).
 
-    Hands ``(parts, time received)`` to :attr:`messages`; the socket is this thread's
-    alone once started. Stops when :attr:`stop` is set (within 0.1 s).
+    Hands ``(parts, time received)`` to :meth:`get`; the socket is this thread's alone once
+    started. Holds at most :data:`BACKLOG` messages and :data:`BACKLOG_BYTES` bytes not yet
+    taken. Stops when :attr:`stop` is set (within 0.1 s).
     """
 
     def __init__(self, sock: zmq.Socket, clock: EpochClock) -> None:
         super().__init__(name="record-receiver", daemon=True)
         self.sock = sock
         self.clock = clock
-        self.messages: queue.SimpleQueue[tuple[list[bytes], float]] = queue.SimpleQueue()
+        self.messages: queue.SimpleQueue[tuple[list[bytes], float, int]] = queue.SimpleQueue()
         self.stop = threading.Event()
         self.error: zmq.ZMQError | None = None
+        self._put_bytes = 0  # (this thread's)
+        self._taken_bytes = 0  # (the taker's)
+        self.discarded = 0  #: messages taken off the socket and not kept: over BACKLOG_BYTES
+
+    @property
+    def backlog_bytes(self) -> int:
+        return self._put_bytes - self._taken_bytes
+
+    def get(self, timeout: float | None = None) -> tuple[list[bytes], float]:
+        """The next message and its time received (``queue.Empty`` after ``timeout``; 0: none waiting)."""
+        parts, now, size = self.messages.get(timeout=timeout) if timeout != 0 else self.messages.get_nowait()
+        self._taken_bytes += size
+        return parts, now
 
     def run(self) -> None:
         try:
@@ -86,7 +109,12 @@ class Receiver(threading.Thread):
                         parts = self.sock.recv_multipart(zmq.NOBLOCK)
                     except zmq.Again:
                         break
-                    self.messages.put((parts, self.clock()))
+                    size = sum(len(p) for p in parts)
+                    if self.backlog_bytes + size > BACKLOG_BYTES:  # far behind on large messages: not kept
+                        self.discarded += 1
+                        continue
+                    self._put_bytes += size
+                    self.messages.put((parts, self.clock(), size))
         except zmq.ZMQError as exc:
             self.error = exc
 
@@ -111,8 +139,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "recording does not show in a replay. The line of counters at the end counts what\n"
         "was not recorded as received: malformed (not [topic, msgpack map]), bad_time\n"
         "(t_host no time: recorded with its receive time), oversized (not written), dropped,\n"
-        "unconfirmed, missed (gaps in seq). The file is made with the first message recorded:\n"
-        "with none (no daemon there?) nothing is written, a line says so, and the exit status is 1.\n\n"
+        "unconfirmed, missed (gaps in seq), restarts (the daemon's), behind (received while the writer was over 256 MB\n"
+        "behind: not kept, and missed). The file is made with the first message recorded: with none\n"
+        "(no daemon there?) nothing is written, a line says so, and the exit status is 1.\n\n"
         "Topics: contact, element, raw, health, topology, and serial (each gateway read's bytes:\n"
         "a daemon can later be run on them, link url replay:FILE.mcap). Default: all but raw\n"
         "and serial.\n\n"
@@ -184,6 +213,22 @@ def earlier_recording(out: Path, rotating: bool) -> Path | None:
     return next(iter(sorted(out.parent.glob(pattern))), None)
 
 
+def numbers_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the sizes and times of ``args`` (both profiles; the limits are
+    :func:`limits_problem`'s), or None. Each is a finite number (``nan`` passed a check of
+    ``< 0`` and then stopped nothing: ``--chunk-seconds nan`` never finished a chunk on time)."""
+    for option, value in (("--rotate-size", args.rotate_size), ("--rotate-minutes", args.rotate_minutes),
+                          ("--chunk-size", args.chunk_size), ("--chunk-seconds", args.chunk_seconds)):
+        if not math.isfinite(value) or value < 0:
+            return f"{option} {value:g}: not a number of 0 or more"
+    if args.chunk_size <= 0:
+        return "--chunk-size must be more than 0"
+    if args.chunk_size * 1e6 > MAX_CHUNK_SIZE:
+        return (f"--chunk-size {args.chunk_size:g} MB: at most {MAX_CHUNK_SIZE / 1e6:g} MB "
+                "(readers bound the chunks they decompress)")
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     problem = limits_problem(args)
     if args.force and args.profile == "ros2":
@@ -202,17 +247,14 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"cellbridge record: {exc}", file=sys.stderr)
         return 2
-    if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds) < 0 or args.chunk_size <= 0:
-        print("cellbridge record: sizes and times must not be negative", file=sys.stderr)
+    problem = numbers_problem(args)
+    if problem:
+        print(f"cellbridge record: {problem}", file=sys.stderr)
         return 2
     earlier = None if args.force else earlier_recording(args.out, int(args.rotate_size * 1e6) > 0 or args.rotate_minutes > 0)
     if earlier is not None:
         print(f"cellbridge record: {earlier} exists (an earlier recording?): choose another name, or add --force "
               "to replace it", file=sys.stderr)
-        return 2
-    if args.chunk_size * 1e6 > MAX_CHUNK_SIZE:
-        print(f"cellbridge record: --chunk-size {args.chunk_size:g} MB: at most {MAX_CHUNK_SIZE / 1e6:g} MB "
-              "(readers bound the chunks they decompress)", file=sys.stderr)
         return 2
     meta = {"endpoint": args.endpoint, "topics": ",".join(topics), "recorder_host": socket.gethostname(),
             "cellbridge_version": __version__, "started": f"{time.time():.6f}"}
@@ -230,7 +272,7 @@ def run(args: argparse.Namespace) -> int:
     ctx = zmq.Context()
     sock = ctx.socket(zmq.SUB)
     sock.linger = 0
-    sock.rcvhwm = 100_000  # a slow disk moment must not cost messages
+    sock.rcvhwm = RCVHWM
     # Retry a daemon not yet bound every 10 ms, not ZeroMQ's 100: a recorder started first
     # then has the daemon's first messages too (the first read's serial bytes among them).
     sock.reconnect_ivl = 10
@@ -263,7 +305,7 @@ def run(args: argparse.Namespace) -> int:
             if receiver.error is not None:
                 raise receiver.error
             try:
-                parts, now = receiver.messages.get(timeout=0.1)
+                parts, now = receiver.get(timeout=0.1)
             except queue.Empty:
                 rec.tick(clock())
                 if probe is not None and time.monotonic() - started >= QUIET_S:
@@ -284,7 +326,7 @@ def run(args: argparse.Namespace) -> int:
         if stop and not rec.stopped:  # what was received before the signal goes into the file too
             while args.count is None or total < args.count:
                 try:
-                    parts, now = receiver.messages.get_nowait()
+                    parts, now = receiver.get(timeout=0)
                 except queue.Empty:
                     break
                 total += 1
@@ -307,7 +349,8 @@ def run(args: argparse.Namespace) -> int:
         sock.close()
         ctx.term()
         rec.close()
-        print(json.dumps(rec.stats()), file=sys.stderr)
+        print(json.dumps({**rec.stats(), "behind": receiver.discarded if receiver is not None else 0}),
+              file=sys.stderr)
     if rec.error:
         print(f"cellbridge record: {rec.error}", file=sys.stderr)
         return 1

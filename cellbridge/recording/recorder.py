@@ -16,7 +16,9 @@ a prefix) is counted with the :attr:`malformed` ones.
 
 Messages the daemon published that never arrived (a subscriber's ZeroMQ queue is bounded;
 a recorder that falls behind loses messages there) show as gaps in each topic's ``seq``,
-counted per topic in :attr:`missed`.
+counted per topic in :attr:`missed`; so do the first messages of a restarted daemon (its
+``seq`` starts at 0 again, counted in :attr:`restarts`) published before the recorder
+had reconnected.
 
 A write that fails (disk full, I/O error) stops the recording: the error is kept in
 :attr:`error`, the file keeps its whole chunks, later messages are counted in
@@ -80,6 +82,7 @@ class Recorder:
         self.unconfirmed = 0  # messages in the chunk being built or written when a write failed: may be lost
         self.missed: Counter[str] = Counter()  # per topic: gaps in seq, messages that never reached us
         self._seq: dict[tuple[str, str], int] = {}  # (topic, source) -> last seq
+        self._restarts: Counter[tuple[str, str]] = Counter()  # (topic, source) -> its seq going back
         self.error = ""
 
     @property
@@ -159,8 +162,11 @@ class Recorder:
         if isinstance(seq, int):
             key = (topic, str(p.get("source", "")))
             last = self._seq.get(key)
-            if last is not None and seq > last + 1:  # (lower: the daemon restarted, numbering from 0)
+            if last is not None and seq > last + 1:
                 self.missed[topic] += seq - last - 1
+            elif last is not None and seq <= last:  # the daemon restarted, numbering from 0: its first
+                self.missed[topic] += seq  # messages, published before this recorder reconnected, never came
+                self._restarts[key] += 1
             self._seq[key] = seq
         if self._guard(lambda: w.add(topic, data, log_ns, now_ns, seq if isinstance(seq, int) else 0)):
             self.recorded[topic] += 1
@@ -184,9 +190,17 @@ class Recorder:
                 self.writer = w
                 self._fail(exc)
 
+    @property
+    def restarts(self) -> int:
+        """Daemon restarts seen (a topic's seq going back; each daemon's counted once per restart)."""
+        per_source: dict[str, int] = {}
+        for (_, source), n in self._restarts.items():
+            per_source[source] = max(per_source.get(source, 0), n)
+        return sum(per_source.values())
+
     def stats(self) -> dict[str, Any]:
         return {"recorded": dict(self.recorded), "messages": sum(self.recorded.values()),
                 "malformed": self.malformed, "bad_time": self.bad_time, "oversized": self.oversized,
                 "dropped": self.dropped, "unconfirmed": self.unconfirmed,
-                "missed": dict(self.missed), "files": [str(f) for f in self.files],
+                "missed": dict(self.missed), "restarts": self.restarts, "files": [str(f) for f in self.files],
                 "error": self.error}

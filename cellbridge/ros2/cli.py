@@ -18,6 +18,7 @@ import time
 
 from cellbridge.ros2 import DEFAULT_FRAME, MISSING
 from cellbridge.ros2.qos import BadTopicName, topics
+from cellbridge.tactile.skin_geometry import MAX_NAME, frame_name
 from cellbridge.views.model import SkinView
 from cellbridge.views.source import add_source_arguments, open_source
 
@@ -85,8 +86,15 @@ def _problem(args: argparse.Namespace) -> str | None:
         return f"--marker-rate must be within 0.1..1000, got {args.marker_rate}"
     if not 0.1 <= args.diagnostics_rate <= 1000:
         return f"--diagnostics-rate must be within 0.1..1000, got {args.diagnostics_rate}"
-    if not args.frame_id.strip():
-        return "--frame-id must not be empty"
+    return frame_id_problem(args.frame_id)
+
+
+def frame_id_problem(frame_id: str) -> str | None:
+    """Why ``--frame-id`` names no frame (empty, too long, a control character: as a link's
+    name is checked, since it is every flat-skin message's ``frame_id``), or None."""
+    if frame_name(frame_id) is None:
+        return (f"--frame-id must be a name of 1 to {MAX_NAME} characters, none a control character, "
+                f"got {frame_id[:80]!r}")
     return None
 
 

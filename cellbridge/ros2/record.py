@@ -18,7 +18,9 @@ message (exit 1); the counters go to stderr as one JSON line.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import queue
 import signal
 import socket
 import sys
@@ -31,7 +33,11 @@ from cellbridge.ros2 import DEFAULT_FRAME, MISSING
 PROFILES = ("mcap", "ros2")
 #: The daemon's topics a ROS 2 bag holds (raw readings and serial bytes have no ROS 2 message here).
 ROS2_TOPICS = ("contact", "element", "health", "topology")
-RCVHWM = 100_000  # messages queued for this subscriber: a slow disk moment must not cost messages
+RCVHWM = 1000  # messages ZeroMQ queues for the receiver (whose own queue is the deep one: record_cli.RCVHWM)
+#: Messages decoded and converted at a time: a backlog waits as the daemon's bytes (at most
+#: record_cli.BACKLOG_BYTES of them, taken off the socket by a thread of their own), not as
+#: decoded payloads, which take several times their size (100 000 decoded at once were GBs).
+DRAIN = 100
 DEFAULT_CONTROL = "tcp://127.0.0.1:5561"
 
 
@@ -65,16 +71,17 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"cellbridge record: --profile ros2 {MISSING} ({exc})", file=sys.stderr)
         return 1
-    from cellbridge.recording.record_cli import EpochClock
-    from cellbridge.ros2.cli import _others
+    from cellbridge.recording.record_cli import EpochClock, Receiver, numbers_problem
+    from cellbridge.ros2.cli import _others, frame_id_problem
     from cellbridge.ros2.qos import BadTopicName, topics
     from cellbridge.views.source import Source
 
     try:
         wanted = _topics(args)
         specs = topics(args.namespace)
-        if min(args.rotate_size, args.rotate_minutes, args.chunk_seconds) < 0 or args.chunk_size <= 0:
-            raise ValueError("sizes and times must not be negative")
+        problem = numbers_problem(args) or frame_id_problem(args.frame_id)
+        if problem:
+            raise ValueError(problem)
         if (args.server_key is None) != (args.client_key is None):
             raise ValueError("--server-key and --client-key go together (CURVE needs both)")
     except (ValueError, BadTopicName) as exc:
@@ -110,29 +117,56 @@ def run(args: argparse.Namespace) -> int:
     stats: dict[str, Any] = {}
     end = None if args.duration is None else time.monotonic() + args.duration  # (record_cli checked both limits)
     flushed = time.monotonic()
+    # the daemon's socket is the receiver's alone from here: it holds at most BACKLOG_BYTES of
+    # messages not yet converted, and takes (and counts) the rest off the socket, so that neither
+    # its queue nor ZeroMQ's grows by the size of large messages the conversion is behind on
+    receiver = Receiver(source.sub, clock)
+    receiver.start()
+
+    def convert(timeout: float) -> bool:
+        """Convert and write the next batch of what the receiver took (False: none came)."""
+        nonlocal received, flushed, error
+        batch: list[list[bytes]] = []
+        room = DRAIN if args.count is None else min(DRAIN, args.count - received)
+        with contextlib.suppress(queue.Empty):
+            batch.append(receiver.get(timeout=timeout)[0])
+            while len(batch) < room:
+                batch.append(receiver.get(timeout=0)[0])
+        source.feed_received(model, batch)
+        try:
+            for topic, payload, arrived in model.take():
+                if topic not in wanted:  # (health heard for the restarts alone)
+                    continue
+                received += 1
+                now_ns = int(clock() * 1e9)
+                # the pictures' rate on the arrival (monotonic), as 'cellbridge ros2' counts it: on the
+                # daemon's t_host a step back of its clock left the bag without a picture for as long
+                for key, message in converter.feed(topic, payload, arrived):
+                    bag.add(key, message, now_ns)
+            if args.chunk_seconds and time.monotonic() - flushed >= args.chunk_seconds:
+                flushed = time.monotonic()
+                bag.flush()
+        except OSError as exc:
+            error = f"{args.out}: {exc.strerror or exc}; recording stopped (the bag keeps its whole chunks)"
+            bag.abandon()
+        return bool(batch)
+
     try:
         while not stop and not error and (args.count is None or received < args.count):
             if end is not None and time.monotonic() >= end:
                 break
-            source.poll(100)
-            source.drain(model, max_messages=100_000 if args.count is None else args.count - received)
-            try:
-                for topic, payload, arrived in model.take():
-                    if topic not in wanted:  # (health heard for the restarts alone)
-                        continue
-                    received += 1
-                    now_ns = int(clock() * 1e9)
-                    # the pictures' rate on the arrival (monotonic), as 'cellbridge ros2' counts it: on the
-                    # daemon's t_host a step back of its clock left the bag without a picture for as long
-                    for key, message in converter.feed(topic, payload, arrived):
-                        bag.add(key, message, now_ns)
-                if args.chunk_seconds and time.monotonic() - flushed >= args.chunk_seconds:
-                    flushed = time.monotonic()
-                    bag.flush()
-            except OSError as exc:
-                error = f"{args.out}: {exc.strerror or exc}; recording stopped (the bag keeps its whole chunks)"
-                bag.abandon()
+            if receiver.error is not None:
+                error = f"{args.endpoint}: {receiver.error}"
+                break
+            convert(0.1)
+        receiver.stop.set()
+        receiver.join()
+        if stop:  # what was received before the signal goes into the bag too
+            while not error and (args.count is None or received < args.count) and convert(0):
+                pass
     finally:
+        receiver.stop.set()
+        receiver.join()
         source.close()
         if not error:
             try:
@@ -143,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
                  "received": received, "lost": model.lost, "malformed": model.malformed + converter.malformed,
                  "newer_schema": converter.newer_schema, "unknown_topics": model.unknown_topics,
                  "daemon_restarts": model.daemon_restarts, "source": model.source,
-                 "other_sources": _others(model), "files": [str(f.path) for f in bag.files], "error": error}
+                 "other_sources": _others(model), "files": [str(f.path) for f in bag.files], "error": error,
+                 "behind": receiver.discarded}
         print(json.dumps(stats), file=sys.stderr)
     if error:
         print(f"cellbridge record: {error}", file=sys.stderr)

@@ -73,6 +73,18 @@ def open_source(command: str, args: argparse.Namespace, problem: str | None) -> 
     return None
 
 
+def _feed(model: SkinView, parts: list[bytes], now: float) -> None:
+    if len(parts) != 2:
+        model.feed_malformed(now)
+        return
+    try:
+        payload = msgpack.unpackb(parts[1], raw=False, strict_map_key=False)
+    except Exception:  # not msgpack, too deep, a map keyed by an array (TypeError): counted
+        model.feed_malformed(now)
+        return
+    model.feed(parts[0].decode("ascii", "replace"), payload, now)
+
+
 class Source:
     """The daemon's stream, drained into a :class:`SkinView` without blocking."""
 
@@ -124,21 +136,25 @@ class Source:
             except zmq.Again:
                 break
             n += 1
-            if len(parts) != 2:
-                model.feed_malformed(now)
-                continue
-            try:
-                payload = msgpack.unpackb(parts[1], raw=False, strict_map_key=False)
-            except Exception:  # not msgpack, too deep, a map keyed by an array (TypeError): counted
-                model.feed_malformed(now)
-                continue
-            model.feed(parts[0].decode("ascii", "replace"), payload, now)
+            _feed(model, parts, now)
+        self._answer(model, now)
+        return n
+
+    def feed_received(self, model: SkinView, received: list[list[bytes]]) -> int:
+        """As :meth:`drain`, of messages another thread took off :attr:`sub` (which is then
+        that thread's alone: the caller never polls or drains this source)."""
+        now = time.monotonic()
+        for parts in received:
+            _feed(model, parts, now)
+        self._answer(model, now)
+        return len(received)
+
+    def _answer(self, model: SkinView, now: float) -> None:
         self._replies(model)
         self._unanswered(now)
         if model.needs_topology and now - self._topology_at >= TOPOLOGY_RETRY:
             # not sent (not connected yet, or a replay): asked again soon, not a second later
             self._topology_at = now if self.request({"v": 1, "cmd": "topology"}) else now - TOPOLOGY_RETRY + 0.1
-        return n
 
     def request(self, body: dict[str, Any]) -> bool:
         """Send a control request; its reply is taken in a later :meth:`drain`. False when

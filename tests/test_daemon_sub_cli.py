@@ -16,6 +16,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from daemon_harness import CLI
+from support.process_state import first_stderr_line
 from support.pub_helpers import json_lines, publisher, run_subscriber
 
 
@@ -56,7 +57,6 @@ def test_sub_says_when_nothing_comes_and_waits_on() -> None:
     import os
     import signal
     import subprocess
-    import time
 
     from daemon_harness import free_port
 
@@ -64,13 +64,7 @@ def test_sub_says_when_nothing_comes_and_waits_on() -> None:
     proc = subprocess.Popen([CLI, "sub", "--endpoint", endpoint], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True)
     try:
-        assert proc.stderr is not None
-        os.set_blocking(proc.stderr.fileno(), False)
-        said = b""
-        end = time.monotonic() + 30
-        while b"\n" not in said and time.monotonic() < end and proc.poll() is None:
-            said += proc.stderr.read() or b""
-            time.sleep(0.1)
+        said = first_stderr_line(proc)
         assert b"is the daemon running" in said and endpoint.encode() in said, said
         assert proc.poll() is None  # waiting on: a daemon started later is read
         os.killpg(proc.pid, signal.SIGINT)

@@ -19,6 +19,7 @@ from cellbridge.daemon.ops.security import CurveKeys, CurveServer
 from cellbridge.daemon.shell.keys import write_keypair
 
 from support.example_subscribers import c_subscriber, js_subscriber, py_subscriber
+from support.process_state import first_stderr_line
 from support.pub_helpers import json_lines, publisher, run_subscriber
 
 EXAMPLE_COMMANDS: dict[str, Callable[[Path], list[str]]] = {
@@ -162,7 +163,6 @@ def test_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(language: st
     import os
     import signal
     import subprocess
-    import time
 
     from daemon_harness import free_port
 
@@ -170,13 +170,7 @@ def test_example_says_when_nothing_comes_and_ends_quietly_on_ctrl_c(language: st
     proc = subprocess.Popen([*EXAMPLE_COMMANDS[language](tmp_path), "-e", endpoint], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, start_new_session=True)
     try:
-        assert proc.stderr is not None
-        os.set_blocking(proc.stderr.fileno(), False)
-        said = b""
-        end = time.monotonic() + 30
-        while b"\n" not in said and time.monotonic() < end and proc.poll() is None:
-            said += proc.stderr.read() or b""
-            time.sleep(0.1)
+        said = first_stderr_line(proc)
         assert b"is the daemon running" in said and endpoint.encode() in said, said
         assert proc.poll() is None  # it waits on: a daemon started later is read
         os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C, as the terminal sends it

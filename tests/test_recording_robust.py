@@ -30,6 +30,7 @@ from cellbridge.recording.mcapfile import ReadResult, RecordingWriter, read_mess
 from cellbridge.recording.recorder import Recorder
 from cellbridge.recording.replay import Pacer
 from daemon_harness import free_port
+from support.process_state import first_stderr_line, rss_mib
 
 CLI = [sys.executable, "-m", "cellbridge"]
 
@@ -173,13 +174,7 @@ def test_record_of_a_daemon_that_is_not_there_says_so_and_that_no_file_was_writt
     proc = subprocess.Popen([*CLI, "record", str(out), "--endpoint", endpoint], stderr=subprocess.PIPE,
                             start_new_session=True)
     try:
-        assert proc.stderr is not None
-        os.set_blocking(proc.stderr.fileno(), False)
-        said = b""
-        end = time.monotonic() + 30
-        while b"\n" not in said and time.monotonic() < end and proc.poll() is None:
-            said += proc.stderr.read() or b""
-            time.sleep(0.1)
+        said = first_stderr_line(proc)
         assert b"is the daemon running" in said and endpoint.encode() in said, said
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=20)
@@ -705,10 +700,10 @@ def test_a_burst_of_large_messages_faster_than_the_disk_keeps_the_recorders_memo
         for i in range(n):
             pub.send_multipart([b"element", b"\x85" + msgpack.packb("seq") + msgpack.packb(i) + rest])
             if i % 20 == 0:
-                peak = max(peak, _rss_mb(rec.pid))
+                peak = max(peak, rss_mib(rec.pid))
                 time.sleep(max(0.0, t0 + i / per_second - time.monotonic()))
         for _ in range(20):
-            peak = max(peak, _rss_mb(rec.pid))
+            peak = max(peak, rss_mib(rec.pid))
             time.sleep(0.1)
         os.killpg(rec.pid, signal.SIGINT)
         _, err = rec.communicate(timeout=120)
@@ -726,17 +721,6 @@ def test_a_burst_of_large_messages_faster_than_the_disk_keeps_the_recorders_memo
     assert kept == stats["recorded"]["element"]
     # every message is written, or counted: a gap in seq before a kept one, or not kept at the end
     assert kept + stats["missed"].get("element", 0) <= n <= kept + stats["missed"].get("element", 0) + stats["behind"]
-
-
-def _rss_mb(pid: int) -> int:
-    try:
-        with open(f"/proc/{pid}/status") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) // 1024
-    except OSError:
-        pass
-    return 0
 
 
 def test_a_recording_of_messages_that_compress_past_the_readers_ratio_reads_back(tmp_path: Path) -> None:

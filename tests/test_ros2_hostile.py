@@ -37,6 +37,7 @@ from cellbridge.ros2.relay import Relay
 from cellbridge.views.source import Source
 from live_skin import cellbridge_cmd, free_port, group
 from ros2_peer import typestore
+from support.process_state import rss_mib
 
 LAYOUT = {"ids": [1, 2], "x": [0.02, 0.06], "y": [0.02, 0.02], "side": 0.04}
 
@@ -720,7 +721,7 @@ def test_a_bag_recorder_behind_on_large_messages_keeps_its_memory_bounded_and_co
                  "area": [1e-4] * e, "valid": [True] * e}
             pub.send_multipart([b"element", msgpack.packb(p)])
             if i % 20 == 0:
-                peak = max(peak, _rss_mb(rec.pid))
+                peak = max(peak, rss_mib(rec.pid))
             time.sleep(max(0.0, t0 + i / per_second - time.monotonic()))
         os.killpg(rec.pid, signal.SIGINT)
         _, err = rec.communicate(timeout=180)
@@ -735,14 +736,3 @@ def test_a_bag_recorder_behind_on_large_messages_keeps_its_memory_bounded_and_co
     assert peak < 1000, f"recorder grew to {peak} MB"
     got, lost = stats["recorded"]["/cellbridge/tactile_state"], stats["lost"].get("element", 0)
     assert got + lost <= n <= got + lost + stats["behind"], stats  # every message in the bag, or counted
-
-
-def _rss_mb(pid: int) -> int:
-    try:
-        with open(f"/proc/{pid}/status") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) // 1024
-    except OSError:
-        pass
-    return 0

@@ -3,6 +3,8 @@ this test process perhaps, has not reaped it yet, but it runs no more)."""
 
 from __future__ import annotations
 
+import os
+import subprocess
 import time
 
 
@@ -21,3 +23,29 @@ def until_gone(pid: int, limit: float = 10.0) -> bool:
     while not gone(pid) and time.monotonic() < end:
         time.sleep(0.02)
     return gone(pid)
+
+
+def rss_mib(pid: int) -> int:
+    """``pid``'s resident memory in MiB (0: gone, or not readable)."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) // 1024
+    except OSError:
+        pass
+    return 0
+
+
+def first_stderr_line(proc: subprocess.Popen[bytes], limit: float = 30.0) -> bytes:
+    """What ``proc`` wrote on its stderr (a pipe) until its first full line, ``limit`` s at
+    most, or until it ended: a command that says something and waits on is read without
+    blocking on the rest. Leaves the pipe non-blocking."""
+    assert proc.stderr is not None
+    os.set_blocking(proc.stderr.fileno(), False)
+    said = b""
+    end = time.monotonic() + limit
+    while b"\n" not in said and time.monotonic() < end and proc.poll() is None:
+        said += proc.stderr.read() or b""
+        time.sleep(0.1)
+    return said

@@ -79,9 +79,16 @@ def _xpub(port: int) -> tuple[zmq.Context, zmq.Socket]:
     return ctx, pub
 
 
-def _wait_subscribed(pub: zmq.Socket, proc: subprocess.Popen[Any], seconds: float = 60) -> None:
-    assert pub.poll(int(seconds * 1000)), f"no subscription (recorder status {proc.poll()})"
-    assert pub.recv()[:1] == b"\x01"
+def _wait_subscribed(pub: zmq.Socket, proc: subprocess.Popen[Any], topic: bytes = b"element",
+                     seconds: float = 60) -> None:
+    """Until the recorder subscribed to ``topic``: its first subscription may be another
+    socket's (the recorder also listens for the daemon's health, to say when none comes)."""
+    end = time.monotonic() + seconds
+    while True:
+        left = end - time.monotonic()
+        assert left > 0 and pub.poll(int(left * 1000)), f"no subscription to {topic!r} (recorder status {proc.poll()})"
+        if pub.recv() == b"\x01" + topic:
+            return
 
 
 def test_record_keeps_going_after_t_host_1e20_and_inf_and_says_how_many(tmp_path: Path) -> None:
